@@ -1,0 +1,23 @@
+"""Exceptions raised by nplps.
+
+Every error that nplps raises on purpose derives from :class:`NplpsError`. Problems with what the
+user passed in (images, masks, rig files, depths) are :class:`InputError`, which is also a
+``ValueError`` so that generic handlers keep working. The Rust core's typed errors are mapped onto
+these classes at the Python boundary (see ``rust/nplps-python``).
+"""
+
+
+class NplpsError(Exception):
+    """Base class of every error nplps raises on purpose."""
+
+
+class InputError(NplpsError, ValueError):
+    """The input (images, mask, depth, options) is invalid; the message names the problem."""
+
+
+class RigError(InputError):
+    """The rig (camera or lights) is invalid, or a rig file cannot be read."""
+
+
+class SolverError(NplpsError, RuntimeError):
+    """The solver failed on valid input (for example the sparse factorization)."""

@@ -1,0 +1,322 @@
+//! The mesh: one quad facet per masked pixel, vertices at pixel corners.
+//!
+//! Facet (r, c) is pixel (r, c). Its corners, always in this order, are
+//! `00 = (r, c)`, `01 = (r, c+1)`, `10 = (r+1, c)`, `11 = (r+1, c+1)` on the
+//! (H+1) x (W+1) vertex grid. A vertex is *active* (an unknown of the global step) when a masked
+//! facet uses it. Regions are the connected components of facets that share a vertex
+//! (8-connectivity of pixels); each region's depth offset is fixed by the gauge.
+
+use crate::error::{ensure_input, Result};
+use crate::rig::Camera;
+
+/// Corner offsets (dx, dy) from a facet centre, in units of the pixel footprint, in corner order.
+pub const CORNER_OFFSETS: [[f64; 2]; 4] = [[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]];
+
+/// Sentinel for a vertex that no masked facet uses.
+pub const INACTIVE: u32 = u32::MAX;
+
+/// Connectivity of the masked mesh.
+#[derive(Debug, Clone)]
+pub struct Grid {
+    /// Image height H (facet rows).
+    pub height: usize,
+    /// Image width W (facet columns).
+    pub width: usize,
+    /// Pixel index `r * W + c` of each masked facet, in row-major order.
+    pub facets: Vec<usize>,
+    /// Unknown index of the 4 corners of each facet (order 00, 01, 10, 11).
+    pub facet_vertices: Vec<[u32; 4]>,
+    /// For each grid vertex `r * (W+1) + c`: its unknown index, or [`INACTIVE`].
+    pub vertex_unknown: Vec<u32>,
+    /// Grid vertex index of each unknown (row-major, increasing).
+    pub active: Vec<usize>,
+    /// Region label of each unknown, 0..n_regions, numbered by first appearance.
+    pub region_of_unknown: Vec<u32>,
+    /// Number of regions.
+    pub n_regions: usize,
+    /// The lowest-index unknown of each region (pinned in the global step).
+    pub pins: Vec<u32>,
+}
+
+impl Grid {
+    /// Builds the mesh of a mask of H x W pixels (`None`: every pixel). Fails on an empty mask or
+    /// a mask of the wrong length.
+    pub fn new(height: usize, width: usize, mask: Option<&[bool]>) -> Result<Grid> {
+        ensure_input(height > 0 && width > 0, || {
+            format!("images must not be empty, got {height} x {width} pixels")
+        })?;
+        if let Some(m) = mask {
+            ensure_input(m.len() == height * width, || {
+                format!(
+                    "mask has {} pixels, the images have {height} x {width} = {}",
+                    m.len(),
+                    height * width
+                )
+            })?;
+        }
+        let facets: Vec<usize> = (0..height * width)
+            .filter(|&p| mask.is_none_or(|m| m[p]))
+            .collect();
+        ensure_input(!facets.is_empty(), || {
+            "mask is empty: no pixel is selected for reconstruction".to_string()
+        })?;
+
+        let vw = width + 1;
+        let n_vertices = (height + 1) * vw;
+        let corners = |p: usize| {
+            let (r, c) = (p / width, p % width);
+            let v = r * vw + c;
+            [v, v + 1, v + vw, v + vw + 1]
+        };
+        let mut used = vec![false; n_vertices];
+        for &p in &facets {
+            for v in corners(p) {
+                used[v] = true;
+            }
+        }
+        let mut vertex_unknown = vec![INACTIVE; n_vertices];
+        let mut active = Vec::new();
+        for (v, _) in used.iter().enumerate().filter(|(_, u)| **u) {
+            vertex_unknown[v] = active.len() as u32;
+            active.push(v);
+        }
+        let facet_vertices: Vec<[u32; 4]> = facets
+            .iter()
+            .map(|&p| corners(p).map(|v| vertex_unknown[v]))
+            .collect();
+
+        let (region_of_unknown, n_regions) = label_regions(active.len(), &facet_vertices);
+        let mut pins = vec![u32::MAX; n_regions];
+        for (u, &reg) in region_of_unknown.iter().enumerate() {
+            if pins[reg as usize] == u32::MAX {
+                pins[reg as usize] = u as u32;
+            }
+        }
+        Ok(Grid {
+            height,
+            width,
+            facets,
+            facet_vertices,
+            vertex_unknown,
+            active,
+            region_of_unknown,
+            n_regions,
+            pins,
+        })
+    }
+
+    /// Number of unknowns (active vertices).
+    pub fn n_unknowns(&self) -> usize {
+        self.active.len()
+    }
+
+    /// Number of masked facets.
+    pub fn n_facets(&self) -> usize {
+        self.facets.len()
+    }
+
+    /// (row, column) of facet `f`.
+    #[inline]
+    pub fn facet_rc(&self, f: usize) -> (usize, usize) {
+        let p = self.facets[f];
+        (p / self.width, p % self.width)
+    }
+
+    /// The 4 corners (x, y, z) of facet `f` given the unknowns' depths `z`.
+    #[inline]
+    pub fn facet_corners(&self, camera: &Camera, f: usize, z: &[f64]) -> [[f64; 3]; 4] {
+        let (r, c) = self.facet_rc(f);
+        let ids = self.facet_vertices[f];
+        let rc = [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)];
+        std::array::from_fn(|j| {
+            let [x, y] = camera.vertex_xy(rc[j].0, rc[j].1);
+            [x, y, z[ids[j] as usize]]
+        })
+    }
+
+    /// Region label of every pixel (-1 outside the mask), row-major (H, W).
+    pub fn pixel_regions(&self) -> Vec<i32> {
+        let mut out = vec![-1; self.height * self.width];
+        for (f, &p) in self.facets.iter().enumerate() {
+            out[p] = self.region_of_unknown[self.facet_vertices[f][0] as usize] as i32;
+        }
+        out
+    }
+
+    /// Scatters per-unknown values onto the full (H+1) x (W+1) vertex grid, NaN where inactive.
+    pub fn scatter_vertices(&self, values: &[f64]) -> Vec<f64> {
+        let mut out = vec![f64::NAN; self.vertex_unknown.len()];
+        for (u, &v) in self.active.iter().enumerate() {
+            out[v] = values[u];
+        }
+        out
+    }
+
+    /// Gathers the unknowns' values from a full (H+1) x (W+1) vertex grid.
+    pub fn gather_vertices(&self, full: &[f64]) -> Vec<f64> {
+        self.active.iter().map(|&v| full[v]).collect()
+    }
+
+    /// Arithmetic mean of `values` (one per unknown) over each region.
+    pub fn region_means(&self, values: &[f64]) -> Vec<f64> {
+        let mut sum = vec![0.0; self.n_regions];
+        let mut count = vec![0usize; self.n_regions];
+        for (&reg, &v) in self.region_of_unknown.iter().zip(values) {
+            sum[reg as usize] += v;
+            count[reg as usize] += 1;
+        }
+        sum.iter().zip(&count).map(|(s, &n)| s / n as f64).collect()
+    }
+
+    /// Shifts each region by a constant so that its arithmetic mean equals `gauge[region]`.
+    pub fn apply_gauge(&self, values: &mut [f64], gauge: &[f64]) {
+        let means = self.region_means(values);
+        for (v, &reg) in values.iter_mut().zip(&self.region_of_unknown) {
+            *v += gauge[reg as usize] - means[reg as usize];
+        }
+    }
+}
+
+/// Geometric normal of a quad: `normalize((v10 - v01) x (v11 - v00))`, facing the camera
+/// (n_z < 0) for a visible facet. It is the normal of the plane spanned by the two diagonals, i.e.
+/// the averaged finite-difference slope of the quad.
+#[inline]
+pub fn quad_normal(q: &[[f64; 3]; 4]) -> [f64; 3] {
+    let d1 = sub(q[2], q[1]);
+    let d2 = sub(q[3], q[0]);
+    normalize(cross(d1, d2))
+}
+
+/// Mean of the 4 corners.
+#[inline]
+pub fn quad_centre(q: &[[f64; 3]; 4]) -> [f64; 3] {
+    std::array::from_fn(|i| 0.25 * (q[0][i] + q[1][i] + q[2][i] + q[3][i]))
+}
+
+#[inline]
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline]
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline]
+pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
+    let n = dot(a, a).sqrt();
+    [a[0] / n, a[1] / n, a[2] / n]
+}
+
+/// Connected components of the unknowns where the 4 corners of a facet are connected
+/// (union-find). Labels are numbered by first appearance in unknown order.
+fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    fn find(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            let up = parent[parent[x as usize] as usize];
+            parent[x as usize] = up;
+            x = up;
+        }
+        x
+    }
+    for fv in facet_vertices {
+        let root = find(&mut parent, fv[0]);
+        for &v in &fv[1..] {
+            let other = find(&mut parent, v);
+            if other != root {
+                let (lo, hi) = if other < root { (other, root) } else { (root, other) };
+                parent[hi as usize] = lo;
+            }
+        }
+    }
+    let mut label = vec![u32::MAX; n];
+    let mut region = vec![0u32; n];
+    let mut n_regions = 0u32;
+    for u in 0..n {
+        let root = find(&mut parent, u as u32) as usize;
+        if label[root] == u32::MAX {
+            label[root] = n_regions;
+            n_regions += 1;
+        }
+        region[u] = label[root];
+    }
+    (region, n_regions as usize)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn full_mask_has_all_vertices_and_one_region() {
+        let g = Grid::new(3, 4, None).unwrap();
+        assert_eq!(g.n_facets(), 12);
+        assert_eq!(g.n_unknowns(), 20);
+        assert_eq!(g.n_regions, 1);
+        assert_eq!(g.pins, vec![0]);
+        assert_eq!(g.facet_vertices[5], [6, 7, 11, 12]);
+    }
+
+    #[test]
+    fn diagonal_neighbours_share_a_region_and_islands_do_not() {
+        // Pixels (0,0) and (1,1) touch at one vertex: one region. Pixel (0,3) is an island.
+        #[rustfmt::skip]
+        let mask = [
+            true, false, false, true,
+            false, true, false, false,
+        ];
+        let g = Grid::new(2, 4, Some(&mask)).unwrap();
+        assert_eq!(g.n_regions, 2);
+        let regions = g.pixel_regions();
+        assert_eq!(regions[0], regions[5]);
+        assert_ne!(regions[0], regions[3]);
+        assert_eq!(g.pins.len(), 2);
+        for (reg, &pin) in g.pins.iter().enumerate() {
+            assert_eq!(g.region_of_unknown[pin as usize] as usize, reg);
+            assert!(g.region_of_unknown[..pin as usize].iter().all(|&r| r as usize != reg));
+        }
+    }
+
+    #[test]
+    fn empty_and_mismatched_masks_are_errors() {
+        assert!(Grid::new(2, 2, Some(&[false; 4])).is_err());
+        assert!(Grid::new(2, 2, Some(&[true; 3])).is_err());
+    }
+
+    #[test]
+    fn gauge_sets_region_means() {
+        let g = Grid::new(2, 2, None).unwrap();
+        let mut z: Vec<f64> = (0..9).map(|i| i as f64).collect();
+        g.apply_gauge(&mut z, &[10.0]);
+        assert!((g.region_means(&z)[0] - 10.0).abs() < 1e-12);
+        assert!((z[1] - z[0] - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn quad_normal_faces_the_camera() {
+        let q = [
+            [0.0, 0.0, 5.0],
+            [1.0, 0.0, 5.0],
+            [0.0, 1.0, 5.0],
+            [1.0, 1.0, 5.0],
+        ];
+        let n = quad_normal(&q);
+        assert!((n[2] + 1.0).abs() < 1e-15);
+        // z = 5 + 0.5 x: the normal is (0.5, 0, -1) normalized.
+        let q = q.map(|p| [p[0], p[1], p[2] + 0.5 * p[0]]);
+        let n = quad_normal(&q);
+        let s = (1.25f64).sqrt();
+        assert!((n[0] - 0.5 / s).abs() < 1e-12 && (n[2] + 1.0 / s).abs() < 1e-12);
+    }
+}

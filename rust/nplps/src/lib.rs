@@ -1,0 +1,50 @@
+//! # nplps — photometric stereo with near point lighting
+//!
+//! Recovers a metric mesh, normals and albedo from k images of a still object, each lit by one
+//! point light close to it, by the mesh-deformation method of Xie, Dai & Wang, "Photometric
+//! Stereo with Near Point Lighting: A Solution by Mesh Deformation" (CVPR 2015).
+//!
+//! Each pixel is a quad facet whose corners are shared mesh vertices with unknown depth. A
+//! [local step](local) fits every facet's normal under the near-light image model
+//! `I_k = rho * max(0, n . (p_k - x)) / |p_k - x|^3` and turns it into target corner depths; a
+//! [global step](global) glues the facets back together with one sparse least-squares system,
+//! factored once per mask; the [solver] alternates the two until the depths converge.
+//!
+//! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
+//! depth = z; normals face the camera (n_z < 0). Units are the user's.
+//!
+//! ```
+//! use nplps::{reconstruct, ImageStack, InitialDepth, Options, Problem, Scene, SceneKind};
+//!
+//! // A synthetic saddle, 32 x 32 pixels, 100 mm wide, 200 mm away, 27 lights.
+//! let scene = Scene::new(SceneKind::Saddle, 32, 100.0, 200.0, 0).unwrap();
+//! let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+//! let stack = ImageStack::new(&images, scene.rig.n_lights(), 32, 32).unwrap();
+//! let problem = Problem::new(stack, &scene.rig, None, InitialDepth::Distance(scene.mean_depth())).unwrap();
+//! let options = Options { iterations: 50, tol: 1e-9, ..Options::default() };
+//! let result = reconstruct(&problem, &options, &mut |_| nplps::Control::Continue).unwrap();
+//! let err = result.depth.iter().zip(&scene.depth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+//! assert!(err < 0.1, "max depth error {err} mm");
+//! ```
+
+#![warn(missing_docs)]
+
+pub mod baseline;
+pub mod error;
+pub mod global;
+pub mod grid;
+pub mod local;
+pub mod problem;
+pub mod render;
+pub mod rig;
+pub mod solver;
+pub mod synth;
+
+pub use baseline::reconstruct_parallel;
+pub use error::{Error, Result};
+pub use local::Weighting;
+pub use problem::{ImageStack, InitialDepth, Problem};
+pub use render::{mesh_normals, render, vertices};
+pub use rig::{Camera, Rig};
+pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Timings};
+pub use synth::{Scene, SceneKind};

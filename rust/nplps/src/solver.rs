@@ -1,0 +1,283 @@
+//! The solver loop: alternate local and global steps until the depths converge.
+//!
+//! ```text
+//! z = initial depths (gauged per region)
+//! for it in 1..=iterations:
+//!     local step on z  -> targets, normals, albedo, residuals
+//!     global step      -> z_new, shifted so each region's mean depth is its gauge
+//!     dz = max |z_new - z|;  z = z_new
+//!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
+//! final local step on z -> reported normals, albedo, residuals
+//! ```
+
+use std::time::{Duration, Instant};
+
+use faer::Par;
+
+use crate::error::{Error, Result};
+use crate::global::GlobalSystem;
+use crate::grid::Grid;
+use crate::local::{local_step, FacetFit, Model, Weighting};
+use crate::problem::Problem;
+use crate::rig::Rig;
+
+/// Options of the iteration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Options {
+    /// Maximum number of local/global iterations.
+    pub iterations: usize,
+    /// Stop when the largest vertex depth change of an iteration is at most `tol` times the
+    /// lateral size of the grid.
+    pub tol: f64,
+    /// Observations at or below this value are treated as shadowed and left out of the fits.
+    pub dark: f64,
+    /// Weighting of the per-facet systems.
+    pub weighting: Weighting,
+    /// Worker threads (0: rayon's default, all cores).
+    pub threads: usize,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            iterations: 10,
+            tol: 1e-6,
+            dark: 0.0,
+            weighting: Weighting::Image,
+            threads: 0,
+        }
+    }
+}
+
+/// What one iteration did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IterationStats {
+    /// 1-based iteration number.
+    pub iteration: usize,
+    /// Largest vertex depth change of this iteration.
+    pub depth_change: f64,
+    /// RMS image residual over all usable observations of this iteration's local step.
+    pub rms_residual: f64,
+    /// Time since the solver started.
+    pub elapsed: Duration,
+}
+
+/// Answer of a progress callback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Control {
+    /// Go on iterating.
+    Continue,
+    /// Stop now: the solver returns [`Error::Cancelled`].
+    Cancel,
+}
+
+/// Wall-clock time spent in each part.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Timings {
+    /// Assembly, analysis and factorization of the global system.
+    pub factorization: Duration,
+    /// All local steps.
+    pub local: Duration,
+    /// All global solves (right sides, back-substitution, gauge).
+    pub solve: Duration,
+    /// Everything.
+    pub total: Duration,
+}
+
+/// The result of a reconstruction. Per-pixel arrays are (H, W) row-major, per-vertex arrays
+/// (H+1, W+1); NaN (or 0 for counts) outside the mask.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// Image height H.
+    pub height: usize,
+    /// Image width W.
+    pub width: usize,
+    /// Vertex depths z.
+    pub depth: Vec<f64>,
+    /// Local-fit unit normals (the mesh normal where a facet could not be fitted).
+    pub normals: Vec<[f64; 3]>,
+    /// Fitted albedo (NaN where a facet could not be fitted).
+    pub albedo: Vec<f64>,
+    /// RMS image residual of each facet's fit.
+    pub residual: Vec<f64>,
+    /// Number of usable lights of each facet.
+    pub lights_used: Vec<u32>,
+    /// Region label of each pixel (-1 outside the mask).
+    pub regions: Vec<i32>,
+    /// Gauge (mean vertex depth) of each region.
+    pub gauge: Vec<f64>,
+    /// One entry per iteration run.
+    pub history: Vec<IterationStats>,
+    /// Whether the tolerance was reached.
+    pub converged: bool,
+    /// Number of negative observations inside the mask (treated as unlit).
+    pub negative_observations: usize,
+    /// Where the time went.
+    pub timings: Timings,
+}
+
+/// Runs `f` on a rayon pool of `threads` workers (0: the global pool).
+pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> Result<T> {
+    if threads == 0 {
+        return Ok(f());
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| Error::Input(format!("cannot start {threads} worker threads: {e}")))?;
+    Ok(pool.install(f))
+}
+
+/// faer parallelism matching the current rayon pool.
+pub(crate) fn faer_par() -> Par {
+    match rayon::current_num_threads() {
+        0 | 1 => Par::Seq,
+        n => Par::rayon(n),
+    }
+}
+
+/// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
+/// [`Control::Cancel`] stops the solver with [`Error::Cancelled`].
+pub fn reconstruct(
+    problem: &Problem<'_>,
+    options: &Options,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<Reconstruction> {
+    if !(options.tol >= 0.0) {
+        return Err(Error::Input(format!("tol must be >= 0, got {}", options.tol)));
+    }
+    with_threads(options.threads, || run(problem, options, progress))?
+}
+
+fn run(
+    problem: &Problem<'_>,
+    options: &Options,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<Reconstruction> {
+    let start = Instant::now();
+    let mut timings = Timings::default();
+    let grid = &problem.grid;
+    let rig = problem.rig;
+
+    let t = Instant::now();
+    let mut system = GlobalSystem::new(grid, faer_par())?;
+    timings.factorization = t.elapsed();
+
+    let scale = lateral_size(grid, rig);
+    let mut z = problem.z0.clone();
+    let mut z_new = vec![0.0; z.len()];
+    let mut fits = vec![FacetFit::EMPTY; grid.n_facets()];
+    let mut targets = vec![[0.0; 4]; grid.n_facets()];
+    let mut history = Vec::with_capacity(options.iterations);
+    let mut converged = false;
+    let local = |z: &[f64], fits: &mut [FacetFit], timings: &mut Timings| {
+        let t = Instant::now();
+        local_step(
+            grid,
+            &rig.camera,
+            Model::Near(&rig.lights, options.weighting),
+            &problem.obs,
+            z,
+            options.dark,
+            fits,
+        );
+        timings.local += t.elapsed();
+    };
+
+    for iteration in 1..=options.iterations {
+        local(&z, &mut fits, &mut timings);
+        let t = Instant::now();
+        for (tg, fit) in targets.iter_mut().zip(&fits) {
+            *tg = fit.target;
+        }
+        system.solve(grid, &targets, &z, &mut z_new);
+        grid.apply_gauge(&mut z_new, &problem.gauge);
+        let depth_change = z
+            .iter()
+            .zip(&z_new)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        std::mem::swap(&mut z, &mut z_new);
+        timings.solve += t.elapsed();
+
+        let stats = IterationStats {
+            iteration,
+            depth_change,
+            rms_residual: rms_of(&fits),
+            elapsed: start.elapsed(),
+        };
+        history.push(stats);
+        if progress(&stats) == Control::Cancel {
+            return Err(Error::Cancelled);
+        }
+        if !depth_change.is_finite() {
+            return Err(Error::Solver(format!(
+                "the depths diverged at iteration {iteration}"
+            )));
+        }
+        if depth_change <= options.tol * scale {
+            converged = true;
+            break;
+        }
+    }
+    local(&z, &mut fits, &mut timings);
+    timings.total = start.elapsed();
+    Ok(assemble(problem, &z, &fits, history, converged, timings))
+}
+
+/// Lateral size of the grid, `max(W * w, H * h)`.
+pub(crate) fn lateral_size(grid: &Grid, rig: &Rig) -> f64 {
+    let [w, h] = rig.camera.pixel_size();
+    (grid.width as f64 * w).max(grid.height as f64 * h)
+}
+
+/// RMS image residual over all usable observations of valid facets.
+pub(crate) fn rms_of(fits: &[FacetFit]) -> f64 {
+    let (sse, n) = fits
+        .iter()
+        .filter(|f| f.valid)
+        .fold((0.0, 0u64), |(s, n), f| (s + f.sse, n + f.used as u64));
+    if n == 0 {
+        f64::NAN
+    } else {
+        (sse / n as f64).sqrt()
+    }
+}
+
+/// Scatters the per-facet and per-unknown results onto full image and vertex grids.
+pub(crate) fn assemble(
+    problem: &Problem<'_>,
+    z: &[f64],
+    fits: &[FacetFit],
+    history: Vec<IterationStats>,
+    converged: bool,
+    timings: Timings,
+) -> Reconstruction {
+    let grid = &problem.grid;
+    let n_pixels = grid.height * grid.width;
+    let mut normals = vec![[f64::NAN; 3]; n_pixels];
+    let mut albedo = vec![f64::NAN; n_pixels];
+    let mut residual = vec![f64::NAN; n_pixels];
+    let mut lights_used = vec![0u32; n_pixels];
+    for (fit, &p) in fits.iter().zip(&grid.facets) {
+        normals[p] = fit.normal;
+        albedo[p] = fit.albedo;
+        residual[p] = fit.rms();
+        lights_used[p] = fit.used;
+    }
+    Reconstruction {
+        height: grid.height,
+        width: grid.width,
+        depth: grid.scatter_vertices(z),
+        normals,
+        albedo,
+        residual,
+        lights_used,
+        regions: grid.pixel_regions(),
+        gauge: problem.gauge.clone(),
+        history,
+        converged,
+        negative_observations: problem.negative_observations,
+        timings,
+    }
+}

@@ -1,0 +1,198 @@
+//! Synthetic scenes with ground truth, for tests, the demo and the benchmark.
+//!
+//! Every scene is an object of lateral size `size` (the grid spans `[-size/2, size/2]^2`,
+//! orthographic camera) whose mean vertex depth is about `distance`, seen by
+//! [`standard_lights`]: 27 point lights in three layers 1.5, 2.25 and 3 object sizes in front of
+//! the object, spread over about the object's size. Albedo is `distance^2 * (0.6 + 0.4 * s)`
+//! with a smooth pattern `s` in [0, 1], so intensities are of order 1.
+
+use std::f64::consts::PI;
+
+use crate::error::{Error, Result};
+use crate::rig::Rig;
+
+/// The kinds of synthetic scene.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SceneKind {
+    /// `z = d + 0.5 (x^2 - y^2) / size`: slopes up to 0.5.
+    Saddle,
+    /// A sphere of radius 0.6 size seen inside a disc mask of radius 0.45 size (slopes to ~49
+    /// degrees).
+    SphereCap,
+    /// Two faces of a cube turned about the vertical axis (40 and 50 degrees), its sharp edge on
+    /// the middle vertex column.
+    Cube,
+    /// A plane with 12 random Gaussian bumps and dents (seeded).
+    Bumps,
+}
+
+impl SceneKind {
+    /// All kinds, in a fixed order.
+    pub const ALL: [SceneKind; 4] = [SceneKind::Saddle, SceneKind::SphereCap, SceneKind::Cube, SceneKind::Bumps];
+
+    /// Lower-case name (`saddle`, `sphere`, `cube`, `bumps`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            SceneKind::Saddle => "saddle",
+            SceneKind::SphereCap => "sphere",
+            SceneKind::Cube => "cube",
+            SceneKind::Bumps => "bumps",
+        }
+    }
+
+    /// Parses a name given by [`SceneKind::name`].
+    pub fn from_name(name: &str) -> Result<SceneKind> {
+        SceneKind::ALL
+            .into_iter()
+            .find(|k| k.name() == name)
+            .ok_or_else(|| {
+                let names: Vec<_> = SceneKind::ALL.iter().map(|k| k.name()).collect();
+                Error::Input(format!("unknown scene {name:?}; choose one of {}", names.join(", ")))
+            })
+    }
+}
+
+/// A synthetic scene: true surface, mask, albedo and rig.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// Image height H.
+    pub height: usize,
+    /// Image width W.
+    pub width: usize,
+    /// True vertex depths, (H+1) x (W+1).
+    pub depth: Vec<f64>,
+    /// Mask, H x W.
+    pub mask: Vec<bool>,
+    /// True albedo, H x W.
+    pub albedo: Vec<f64>,
+    /// The rig (orthographic camera, 27 lights).
+    pub rig: Rig,
+    /// Lateral object size.
+    pub size: f64,
+}
+
+impl Scene {
+    /// Builds a scene of `n` x `n` pixels, lateral size `size` and working distance `distance`;
+    /// `seed` drives the random bumps.
+    pub fn new(kind: SceneKind, n: usize, size: f64, distance: f64, seed: u64) -> Result<Scene> {
+        if n < 2 || !(size > 0.0) || !(distance > 0.0) {
+            return Err(Error::Input(format!(
+                "a scene needs n >= 2 pixels and positive size and distance, got n = {n}, size = {size}, distance = {distance}"
+            )));
+        }
+        let pixel = size / n as f64;
+        let origin = [-0.5 * size, -0.5 * size];
+        let rig = Rig::orthographic([pixel, pixel], origin, standard_lights(size, distance))?;
+        let bumps = random_bumps(size, seed);
+        let surface = |x: f64, y: f64| -> f64 {
+            match kind {
+                SceneKind::Saddle => distance + 0.5 * (x * x - y * y) / size,
+                SceneKind::SphereCap => {
+                    let r = 0.6 * size;
+                    distance - (r * r - x * x - y * y).max(0.0).sqrt() + 0.5 * r
+                }
+                SceneKind::Cube => {
+                    let t = if x < 0.0 { -(40f64.to_radians().tan()) } else { 50f64.to_radians().tan() };
+                    distance - 0.25 * size + t * x
+                }
+                SceneKind::Bumps => {
+                    distance
+                        + bumps
+                            .iter()
+                            .map(|b| b.amplitude * (-((x - b.x).powi(2) + (y - b.y).powi(2)) / (2.0 * b.sigma * b.sigma)).exp())
+                            .sum::<f64>()
+                }
+            }
+        };
+        let vw = n + 1;
+        let depth: Vec<f64> = (0..vw * vw)
+            .map(|v| {
+                let [x, y] = rig.camera.vertex_xy(v / vw, v % vw);
+                surface(x, y)
+            })
+            .collect();
+        let centre = |p: usize| {
+            let [x, y] = rig.camera.vertex_xy(p / n, p % n);
+            (x + 0.5 * pixel, y + 0.5 * pixel)
+        };
+        let mask: Vec<bool> = (0..n * n)
+            .map(|p| {
+                let (x, y) = centre(p);
+                kind != SceneKind::SphereCap || x * x + y * y <= (0.45 * size).powi(2)
+            })
+            .collect();
+        let albedo: Vec<f64> = (0..n * n)
+            .map(|p| {
+                let (x, y) = centre(p);
+                let s = 0.5 + 0.25 * (2.0 * PI * x / size).sin() + 0.25 * (3.0 * PI * y / size).cos();
+                distance * distance * (0.6 + 0.4 * s)
+            })
+            .collect();
+        Ok(Scene {
+            height: n,
+            width: n,
+            depth,
+            mask,
+            albedo,
+            rig,
+            size,
+        })
+    }
+
+    /// The scene's images, rendered by the model.
+    pub fn render(&self) -> Result<Vec<f64>> {
+        crate::render::render(&self.rig, self.height, self.width, &self.depth, &self.albedo, Some(&self.mask))
+    }
+
+    /// Arithmetic mean of the true vertex depths used by the mask (the true gauge).
+    pub fn mean_depth(&self) -> f64 {
+        let grid = crate::grid::Grid::new(self.height, self.width, Some(&self.mask)).expect("scene mask is valid");
+        let z = grid.gather_vertices(&self.depth);
+        z.iter().sum::<f64>() / z.len() as f64
+    }
+}
+
+/// 27 point lights: three layers at `distance - {1.5, 2.25, 3} * size`, each 9 lights on circles
+/// of radius 0.3, 0.4 and 0.5 times `size`, turned from layer to layer so that no two lights are
+/// aligned with the object's centre.
+pub fn standard_lights(size: f64, distance: f64) -> Vec<[f64; 3]> {
+    let mut lights = Vec::with_capacity(27);
+    for (layer, stand_off) in [1.5, 2.25, 3.0].into_iter().enumerate() {
+        for i in 0..9 {
+            let angle = 2.0 * PI * (i as f64 + layer as f64 / 3.0) / 9.0;
+            let radius = size * (0.3 + 0.1 * (i % 3) as f64);
+            lights.push([radius * angle.cos(), radius * angle.sin(), distance - stand_off * size]);
+        }
+    }
+    lights
+}
+
+struct Bump {
+    x: f64,
+    y: f64,
+    sigma: f64,
+    amplitude: f64,
+}
+
+/// 12 Gaussian bumps with centres inside the object, widths 0.06..0.15 size and heights
+/// +-0.03..0.08 size, from a splitmix64 stream.
+fn random_bumps(size: f64, seed: u64) -> Vec<Bump> {
+    let mut state = seed;
+    let mut uniform = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    };
+    (0..12)
+        .map(|_| {
+            let x = (uniform() - 0.5) * 0.8 * size;
+            let y = (uniform() - 0.5) * 0.8 * size;
+            let sigma = (0.06 + 0.09 * uniform()) * size;
+            let sign = if uniform() < 0.5 { -1.0 } else { 1.0 };
+            let amplitude = sign * (0.03 + 0.05 * uniform()) * size;
+            Bump { x, y, sigma, amplitude }
+        })
+        .collect()
+}

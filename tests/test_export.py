@@ -1,0 +1,298 @@
+"""Tests of nplps.export: PLY / OBJ meshes, normal maps, albedo and depth files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from nplps import io
+from nplps.errors import InputError
+from nplps.export import (
+    read_ply,
+    save_albedo,
+    save_depth_npy,
+    save_depth_tiff,
+    save_normal_map,
+    write_obj,
+    write_ply,
+)
+
+H, W = 3, 4
+DEPTH = 2.0
+
+
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    """A flat plane z = DEPTH seen by the camera, and a mask with a hole and a missing corner."""
+    rows, cols = np.mgrid[0 : H + 1, 0 : W + 1].astype(np.float64)
+    vertices = np.stack([0.1 * cols, 0.1 * rows + 0.05, np.full_like(rows, DEPTH)], axis=2)
+    mask = np.ones((H, W), dtype=bool)
+    mask[1, 1] = False  # a hole: its corners are still used by the neighbours
+    mask[0, 3] = False  # vertex (0, 4) becomes unused
+    return vertices, mask
+
+
+def _expected_used(mask: np.ndarray) -> np.ndarray:
+    """The vertices that are a corner of a masked facet, computed naively."""
+    used = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=bool)
+    for r, c in zip(*np.nonzero(mask)):
+        used[r : r + 2, c : c + 2] = True
+    return used
+
+
+def _face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Right-hand geometric normals of the triangles."""
+    a, b, c = (points[faces[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
+
+
+def _camera_normals() -> np.ndarray:
+    """Per-vertex normals (0, 0, -1): facing the camera in the OpenCV frame."""
+    normals = np.zeros((H + 1, W + 1, 3))
+    normals[..., 2] = -1.0
+    return normals
+
+
+# --------------------------------------------------------------------------------------------------
+# PLY
+# --------------------------------------------------------------------------------------------------
+
+
+def test_ply_counts_and_coordinates(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    path = tmp_path / "mesh.ply"
+    write_ply(path, vertices, mask)
+
+    mesh = read_ply(path)
+
+    used = _expected_used(mask)
+    assert len(mesh["vertices"]) == used.sum() == (H + 1) * (W + 1) - 1
+    assert len(mesh["faces"]) == 2 * mask.sum()
+    assert mesh["normals"] is None and mesh["colors"] is None
+    assert "nplps" in mesh["comments"] and "frame opencv" in mesh["comments"]
+    np.testing.assert_allclose(mesh["vertices"], vertices[used], rtol=1e-6)
+    assert mesh["faces"].min() == 0 and mesh["faces"].max() == used.sum() - 1
+
+
+def test_ply_triangle_layout(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    path = tmp_path / "mesh.ply"
+    write_ply(path, vertices, mask)
+
+    mesh = read_ply(path)
+
+    points, faces = mesh["vertices"], mesh["faces"]
+    for i, (r, c) in enumerate(zip(*np.nonzero(mask))):  # row-major facet order
+        first = vertices[[r, r + 1, r + 1], [c, c, c + 1]]  # (00, 10, 11)
+        second = vertices[[r, r + 1, r], [c, c + 1, c + 1]]  # (00, 11, 01)
+        np.testing.assert_allclose(points[faces[2 * i]], first, rtol=1e-6)
+        np.testing.assert_allclose(points[faces[2 * i + 1]], second, rtol=1e-6)
+
+
+def test_ply_faces_face_the_camera_opencv(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    path = tmp_path / "mesh.ply"
+    write_ply(path, vertices, mask, normals=_camera_normals())
+
+    mesh = read_ply(path)
+
+    geometric = _face_normals(mesh["vertices"], mesh["faces"])
+    assert np.all(geometric[:, 2] < 0)  # towards the camera at the origin (plane at z > 0)
+    vertex_normals = mesh["normals"][mesh["faces"][:, 0]]
+    assert np.all(np.einsum("ij,ij->i", geometric, vertex_normals) > 0)
+
+
+def test_ply_opengl_frame(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    normals = _camera_normals()
+    normals[..., 0] = 0.6
+    normals[..., 2] = -0.8
+    path = tmp_path / "mesh_gl.ply"
+    write_ply(path, vertices, mask, normals=normals, opengl=True)
+
+    mesh = read_ply(path)
+
+    used = _expected_used(mask)
+    assert "frame opengl" in mesh["comments"]
+    np.testing.assert_allclose(mesh["vertices"], vertices[used] * [1, -1, -1], rtol=1e-6)
+    np.testing.assert_allclose(mesh["normals"], normals[used] * [1, -1, -1], rtol=1e-6)
+    assert np.all(mesh["vertices"][:, 2] < 0)  # in front of the viewer: z backwards
+    geometric = _face_normals(mesh["vertices"], mesh["faces"])
+    assert np.all(geometric[:, 2] > 0)  # front faces point at the viewer (+z)
+
+
+def test_ply_colors(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    albedo = np.linspace(0.1, 0.9, (H + 1) * (W + 1)).reshape(H + 1, W + 1)
+    albedo[2, 2] = np.nan
+    path = tmp_path / "mesh.ply"
+    write_ply(path, vertices, mask, albedo=albedo)
+
+    colors = read_ply(path)["colors"]
+
+    written = albedo[_expected_used(mask)]
+    reference = np.percentile(written[np.isfinite(written)], 99)
+    expected = np.nan_to_num(np.rint(np.clip(written / reference * 255, 0, 255)), nan=0)
+    assert colors.dtype == np.uint8
+    np.testing.assert_array_equal(colors[:, 0], colors[:, 1])
+    np.testing.assert_array_equal(colors[:, 0], colors[:, 2])
+    np.testing.assert_array_equal(colors[:, 0], expected.astype(np.uint8))
+    assert colors.max() == 255
+
+
+def test_ply_skips_facets_with_nan(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    vertices[3, 0] = np.nan  # only facet (2, 0) uses this vertex
+    path = tmp_path / "mesh.ply"
+    with pytest.warns(RuntimeWarning, match="skipped 1 masked facet"):
+        write_ply(path, vertices, mask)
+
+    mesh = read_ply(path)
+
+    assert len(mesh["faces"]) == 2 * (mask.sum() - 1)
+    assert np.isfinite(mesh["vertices"]).all()
+
+
+def test_ply_rejects_bad_shapes(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    with pytest.raises(InputError, match="mask"):
+        write_ply(tmp_path / "a.ply", vertices, mask[:, :-1])
+    with pytest.raises(InputError, match="normals"):
+        write_ply(tmp_path / "a.ply", vertices, mask, normals=np.zeros((H, W, 3)))
+    with pytest.raises(InputError, match="no facet"):
+        write_ply(tmp_path / "a.ply", vertices, np.zeros_like(mask))
+
+
+def test_read_ply_rejects_other_files(tmp_path: Path) -> None:
+    path = tmp_path / "ascii.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(InputError, match="binary_little_endian"):
+        read_ply(path)
+
+
+# --------------------------------------------------------------------------------------------------
+# OBJ
+# --------------------------------------------------------------------------------------------------
+
+
+def _parse_obj(path: Path) -> dict[str, np.ndarray]:
+    """Parse the v / vn / f lines of an OBJ file (f as (m, 3, 2) vertex // normal indices)."""
+    records: dict[str, list] = {"v": [], "vn": [], "f": []}
+    for line in path.read_text().splitlines():
+        tag, *values = line.split()
+        if tag == "v" or tag == "vn":
+            records[tag].append([float(value) for value in values])
+        elif tag == "f":
+            records["f"].append([[int(i) for i in value.split("//")] for value in values])
+    return {tag: np.array(values) for tag, values in records.items()}
+
+
+def test_obj_with_normals_and_colors(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    albedo = np.linspace(0.0, 1.0, (H + 1) * (W + 1)).reshape(H + 1, W + 1)
+    write_ply(tmp_path / "mesh.ply", vertices, mask, normals=_camera_normals(), albedo=albedo)
+    path = tmp_path / "mesh.obj"
+    write_obj(path, vertices, mask, normals=_camera_normals(), albedo=albedo)
+
+    obj = _parse_obj(path)
+    ply = read_ply(tmp_path / "mesh.ply")
+
+    assert path.read_text().startswith("# nplps\n# frame opencv\n")
+    n = _expected_used(mask).sum()
+    assert obj["v"].shape == (n, 6) and obj["vn"].shape == (n, 3)
+    assert obj["f"].shape == (2 * mask.sum(), 3, 2)
+    assert obj["f"].min() == 1 and obj["f"].max() == n  # 1-based, in range
+    np.testing.assert_array_equal(obj["f"][..., 0], obj["f"][..., 1])
+    np.testing.assert_array_equal(obj["f"][..., 0] - 1, ply["faces"])
+    np.testing.assert_allclose(obj["v"][:, :3], ply["vertices"], rtol=1e-6)
+    np.testing.assert_allclose(obj["v"][:, 3:] * 255, ply["colors"], atol=1e-3)
+    np.testing.assert_allclose(obj["vn"], ply["normals"])
+
+
+def test_obj_without_normals(tmp_path: Path) -> None:
+    vertices, mask = _grid()
+    path = tmp_path / "mesh.obj"
+    write_obj(path, vertices, mask, opengl=True)
+
+    lines = path.read_text().splitlines()
+
+    assert lines[1] == "# frame opengl"
+    faces = np.array([[int(i) for i in line.split()[1:]] for line in lines if line[0] == "f"])
+    points = np.array([[float(x) for x in line.split()[1:]] for line in lines if line[0] == "v"])
+    assert points.shape == (_expected_used(mask).sum(), 3)
+    assert faces.shape == (2 * mask.sum(), 3)
+    assert faces.min() == 1 and faces.max() == len(points)
+    assert np.all(_face_normals(points, faces - 1)[:, 2] > 0)
+    assert not any(line.startswith("vn") for line in lines)
+
+
+# --------------------------------------------------------------------------------------------------
+# Images
+# --------------------------------------------------------------------------------------------------
+
+
+def test_normal_map_encoding(tmp_path: Path) -> None:
+    normals = np.zeros((2, 2, 3))
+    normals[0, 0] = (0, 0, -1)
+    normals[0, 1] = (1, 0, 0)
+    normals[1, 0] = np.nan
+    normals[1, 1] = (0, -1, 0)  # up in the image
+    path = tmp_path / "normals.png"
+    save_normal_map(path, normals)
+
+    image = io.read_image(path)
+
+    assert image.dtype == np.uint8 and image.shape == (2, 2, 3)
+    np.testing.assert_array_equal(image[0, 0], (128, 128, 255))
+    np.testing.assert_array_equal(image[0, 1], (255, 128, 128))
+    np.testing.assert_array_equal(image[1, 0], (0, 0, 0))
+    np.testing.assert_array_equal(image[1, 1], (128, 255, 128))
+
+    mask = np.array([[True, False], [True, True]])
+    save_normal_map(path, normals, mask)
+    np.testing.assert_array_equal(io.read_image(path)[0, 1], (0, 0, 0))
+
+
+def test_albedo_png_is_16_bit(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    albedo = rng.random((8, 9)) * 0.7
+    albedo[0, 0] = np.nan
+    path = tmp_path / "albedo.png"
+
+    scale = save_albedo(path, albedo)
+
+    header = path.read_bytes()[:26]
+    assert header[24] == 16  # PNG bit depth
+    image = io.read_image(path)
+    assert image.dtype == np.uint16 and image.shape == (8, 9)
+    assert scale == pytest.approx(65535 / np.nanpercentile(albedo, 99.9))
+    assert image[0, 0] == 0
+    assert image.max() == 65535
+    finite = np.isfinite(albedo)
+    expected = np.clip(albedo[finite] * scale, 0, 65535)
+    np.testing.assert_allclose(image[finite], expected, atol=0.5 + 1e-9)
+
+
+def test_depth_npy_round_trip(tmp_path: Path) -> None:
+    depth = np.array([[1.0, np.nan], [2.5, 1e-12]])
+    path = tmp_path / "depth.bin"  # written exactly there, no .npy appended
+    save_depth_npy(path, depth)
+
+    loaded = np.load(path)
+
+    assert loaded.dtype == np.float64
+    np.testing.assert_array_equal(loaded, depth)
+
+
+def test_depth_tiff_round_trip(tmp_path: Path) -> None:
+    depth = np.array([[1.0, np.nan, 3.25], [2.5, 0.125, np.nan]])
+    path = tmp_path / "depth.tif"
+    save_depth_tiff(path, depth)
+
+    loaded = tifffile.imread(path)
+
+    assert loaded.dtype == np.float32
+    np.testing.assert_array_equal(loaded, depth.astype(np.float32))
+    np.testing.assert_array_equal(io.read_image(path), loaded)
