@@ -275,8 +275,8 @@ def test_facets_with_fewer_than_three_lights():
                                ref.mesh_normals(res["depth"], ps, o)[dark], atol=1e-15)
     # the lit facets are still reconstructed well
     ang = angle_deg(res["normals"], ref.mesh_normals(z, ps, o))
-    assert ang[~dark].mean() < 0.05, ang[~dark].mean()
-    assert np.abs(res["depth"] - z).max() < 1e-2 * S
+    assert ang[~dark].mean() < 0.01, ang[~dark].mean()
+    assert np.abs(res["depth"] - z).max() < 1e-3 * S
 
 
 def test_dark_threshold_and_nan_observations_are_skipped():

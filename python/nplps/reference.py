@@ -304,8 +304,9 @@ class _Local:
         np.copyto(self.Iu, 0.0, where=~self.usable)
         self.Uf = self.usable.astype(np.float64)
         # chunks where every observation is usable skip the weighting by Uf
-        self.all_usable = [bool(self.usable[:, lo:lo + _CHUNK].all())
-                           for lo in range(0, prob.F, _CHUNK)]
+        self.chunk = _CHUNK
+        self.all_usable = [bool(self.usable[:, lo:lo + self.chunk].all())
+                           for lo in range(0, prob.F, self.chunk)]
         self.nuse = self.usable.sum(axis=0)
         self.lights = lights
         self.weighting = weighting
@@ -323,10 +324,11 @@ class _Local:
         ssq = np.empty(F)
         P = self.lights
         px, py, pz = P[:, 0:1], P[:, 1:2], P[:, 2:3]
-        for lo in range(0, F, _CHUNK):
-            hi = min(lo + _CHUNK, F)
+        chunk = self.chunk
+        for lo in range(0, F, chunk):
+            hi = min(lo + chunk, F)
             Iu = self.Iu[:, lo:hi]  # 0 where unusable
-            Uf = None if self.all_usable[lo // _CHUNK] else self.Uf[:, lo:hi]
+            Uf = None if self.all_usable[lo // chunk] else self.Uf[:, lo:hi]
             if self.parallel_dirs is None:
                 ax = px - prob.cx[lo:hi]
                 ay = py - prob.cy[lo:hi]

@@ -13,24 +13,38 @@ use crate::global::GlobalSystem;
 use crate::grid::{normalize, sub};
 use crate::local::{local_step, FacetFit, Model};
 use crate::problem::Problem;
-use crate::solver::{assemble, faer_par, rms_of, with_threads, IterationStats, Reconstruction, Timings};
+use crate::solver::{
+    assemble, faer_par, rms_of, with_threads, IterationStats, Reconstruction, Timings,
+};
 
 /// Light directions of the parallel-light model, seen from the centroid of the initial surface.
 pub fn parallel_directions(problem: &Problem<'_>) -> Vec<[f64; 3]> {
     let grid = &problem.grid;
     let mut centroid = [0.0; 3];
     for (u, &v) in grid.active.iter().enumerate() {
-        let [x, y] = problem.rig.camera.vertex_xy(v / (grid.width + 1), v % (grid.width + 1));
+        let [x, y] = problem
+            .rig
+            .camera
+            .vertex_xy(v / (grid.width + 1), v % (grid.width + 1));
         for (acc, val) in centroid.iter_mut().zip([x, y, problem.z0[u]]) {
             *acc += val;
         }
     }
     let centroid = centroid.map(|s| s / grid.n_unknowns() as f64);
-    problem.rig.lights.iter().map(|p| normalize(sub(*p, centroid))).collect()
+    problem
+        .rig
+        .lights
+        .iter()
+        .map(|p| normalize(sub(*p, centroid)))
+        .collect()
 }
 
 /// Runs the parallel-light baseline on `problem` (`dark` as in the solver options).
-pub fn reconstruct_parallel(problem: &Problem<'_>, dark: f64, threads: usize) -> Result<Reconstruction> {
+pub fn reconstruct_parallel(
+    problem: &Problem<'_>,
+    dark: f64,
+    threads: usize,
+) -> Result<Reconstruction> {
     with_threads(threads, || {
         let start = Instant::now();
         let grid = &problem.grid;
@@ -43,7 +57,15 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, dark: f64, threads: usize) ->
         let camera = &problem.rig.camera;
         let mut fits: Vec<FacetFit> = vec![FacetFit::EMPTY; grid.n_facets()];
         let t = Instant::now();
-        local_step(grid, camera, Model::Parallel(&directions), &problem.obs, &problem.z0, dark, &mut fits);
+        local_step(
+            grid,
+            camera,
+            Model::Parallel(&directions),
+            &problem.obs,
+            &problem.z0,
+            dark,
+            &mut fits,
+        );
         timings.local = t.elapsed();
 
         let t = Instant::now();

@@ -104,7 +104,9 @@ impl GlobalSystem {
                 MemStack::new(&mut self.scratch),
                 Default::default(),
             )
-            .map_err(|e| Error::Solver(format!("the normal matrix is not positive definite: {e:?}")))?;
+            .map_err(|e| {
+                Error::Solver(format!("the normal matrix is not positive definite: {e:?}"))
+            })?;
         Ok(())
     }
 
@@ -149,7 +151,13 @@ impl GlobalSystem {
 
     /// One global step: the depths that best glue the facets' targets `targets`, with each
     /// region's constant taken from `z_current` at its pinned vertex. Writes `z_out`.
-    pub fn solve(&mut self, grid: &Grid, targets: &[[f64; 4]], z_current: &[f64], z_out: &mut [f64]) {
+    pub fn solve(
+        &mut self,
+        grid: &Grid,
+        targets: &[[f64; 4]],
+        z_current: &[f64],
+        z_out: &mut [f64],
+    ) {
         z_out.fill(0.0);
         for (t, ids) in targets.iter().zip(&grid.facet_vertices) {
             for j in 0..4 {

@@ -235,7 +235,11 @@ fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
         for &v in &fv[1..] {
             let other = find(&mut parent, v);
             if other != root {
-                let (lo, hi) = if other < root { (other, root) } else { (root, other) };
+                let (lo, hi) = if other < root {
+                    (other, root)
+                } else {
+                    (root, other)
+                };
                 parent[hi as usize] = lo;
             }
         }
@@ -284,7 +288,9 @@ mod tests {
         assert_eq!(g.pins.len(), 2);
         for (reg, &pin) in g.pins.iter().enumerate() {
             assert_eq!(g.region_of_unknown[pin as usize] as usize, reg);
-            assert!(g.region_of_unknown[..pin as usize].iter().all(|&r| r as usize != reg));
+            assert!(g.region_of_unknown[..pin as usize]
+                .iter()
+                .all(|&r| r as usize != reg));
         }
     }
 

@@ -255,7 +255,13 @@ mod tests {
         images[0] = 0.0;
         images[1] = -1.0;
         let l = lights();
-        let fit = fit_facet(&q, Model::Near(&l, Weighting::Image), &images, 0.0, [1.0, 1.0]);
+        let fit = fit_facet(
+            &q,
+            Model::Near(&l, Weighting::Image),
+            &images,
+            0.0,
+            [1.0, 1.0],
+        );
         assert!(!fit.valid);
         assert_eq!(fit.used, 2);
         assert!(fit.albedo.is_nan() && fit.rms().is_nan());

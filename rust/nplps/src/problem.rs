@@ -110,7 +110,9 @@ impl<'a> Problem<'a> {
 fn initial_depth(grid: &Grid, depth: InitialDepth<'_>) -> Result<(Vec<f64>, Vec<f64>)> {
     match depth {
         InitialDepth::Distance(d) => {
-            ensure_input(d.is_finite(), || format!("the working distance must be finite, got {d}"))?;
+            ensure_input(d.is_finite(), || {
+                format!("the working distance must be finite, got {d}")
+            })?;
             Ok((vec![d; grid.n_unknowns()], vec![d; grid.n_regions]))
         }
         InitialDepth::Map(map) => {

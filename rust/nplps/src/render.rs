@@ -33,7 +33,12 @@ fn check_depth(height: usize, width: usize, depth: &[f64]) -> Result<()> {
 }
 
 /// Mesh normal of every pixel of an (H+1) x (W+1) depth map (NaN where a corner is NaN).
-pub fn mesh_normals(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
+pub fn mesh_normals(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+) -> Result<Vec<[f64; 3]>> {
     check_depth(height, width, depth)?;
     Ok((0..height * width)
         .into_par_iter()
@@ -42,7 +47,12 @@ pub fn mesh_normals(camera: &Camera, height: usize, width: usize, depth: &[f64])
 }
 
 /// 3-D position of every vertex of an (H+1) x (W+1) depth map.
-pub fn vertices(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
+pub fn vertices(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+) -> Result<Vec<[f64; 3]>> {
     check_depth(height, width, depth)?;
     let vw = width + 1;
     Ok(depth
@@ -68,7 +78,10 @@ pub fn render(
     check_depth(height, width, depth)?;
     let plane = height * width;
     ensure_input(albedo.len() == plane, || {
-        format!("albedo has {} values, expected H x W = {plane}", albedo.len())
+        format!(
+            "albedo has {} values, expected H x W = {plane}",
+            albedo.len()
+        )
     })?;
     if let Some(m) = mask {
         ensure_input(m.len() == plane, || {

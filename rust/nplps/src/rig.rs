@@ -41,7 +41,8 @@ impl Camera {
         }
     }
 
-    fn validate(&self) -> Result<()> {
+    /// Checks that the camera's parameters are finite and its pixel size positive.
+    pub fn validate(&self) -> Result<()> {
         match *self {
             Camera::Orthographic { pixel_size, origin } => {
                 if !pixel_size.iter().all(|s| s.is_finite() && *s > 0.0) {
@@ -100,7 +101,11 @@ impl Rig {
                 self.lights.len()
             )));
         }
-        if let Some(i) = self.lights.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        if let Some(i) = self
+            .lights
+            .iter()
+            .position(|p| !p.iter().all(|v| v.is_finite()))
+        {
             return Err(Error::Rig(format!(
                 "light {i} has a non-finite position {:?}",
                 self.lights[i]

@@ -144,7 +144,10 @@ pub fn reconstruct(
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
     if !(options.tol >= 0.0) {
-        return Err(Error::Input(format!("tol must be >= 0, got {}", options.tol)));
+        return Err(Error::Input(format!(
+            "tol must be >= 0, got {}",
+            options.tol
+        )));
     }
     with_threads(options.threads, || run(problem, options, progress))?
 }

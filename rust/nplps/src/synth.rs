@@ -28,7 +28,12 @@ pub enum SceneKind {
 
 impl SceneKind {
     /// All kinds, in a fixed order.
-    pub const ALL: [SceneKind; 4] = [SceneKind::Saddle, SceneKind::SphereCap, SceneKind::Cube, SceneKind::Bumps];
+    pub const ALL: [SceneKind; 4] = [
+        SceneKind::Saddle,
+        SceneKind::SphereCap,
+        SceneKind::Cube,
+        SceneKind::Bumps,
+    ];
 
     /// Lower-case name (`saddle`, `sphere`, `cube`, `bumps`).
     pub fn name(&self) -> &'static str {
@@ -47,7 +52,10 @@ impl SceneKind {
             .find(|k| k.name() == name)
             .ok_or_else(|| {
                 let names: Vec<_> = SceneKind::ALL.iter().map(|k| k.name()).collect();
-                Error::Input(format!("unknown scene {name:?}; choose one of {}", names.join(", ")))
+                Error::Input(format!(
+                    "unknown scene {name:?}; choose one of {}",
+                    names.join(", ")
+                ))
             })
     }
 }
@@ -92,14 +100,23 @@ impl Scene {
                     distance - (r * r - x * x - y * y).max(0.0).sqrt() + 0.5 * r
                 }
                 SceneKind::Cube => {
-                    let t = if x < 0.0 { -(40f64.to_radians().tan()) } else { 50f64.to_radians().tan() };
+                    let t = if x < 0.0 {
+                        -(40f64.to_radians().tan())
+                    } else {
+                        50f64.to_radians().tan()
+                    };
                     distance - 0.25 * size + t * x
                 }
                 SceneKind::Bumps => {
                     distance
                         + bumps
                             .iter()
-                            .map(|b| b.amplitude * (-((x - b.x).powi(2) + (y - b.y).powi(2)) / (2.0 * b.sigma * b.sigma)).exp())
+                            .map(|b| {
+                                b.amplitude
+                                    * (-((x - b.x).powi(2) + (y - b.y).powi(2))
+                                        / (2.0 * b.sigma * b.sigma))
+                                        .exp()
+                            })
                             .sum::<f64>()
                 }
             }
@@ -124,7 +141,8 @@ impl Scene {
         let albedo: Vec<f64> = (0..n * n)
             .map(|p| {
                 let (x, y) = centre(p);
-                let s = 0.5 + 0.25 * (2.0 * PI * x / size).sin() + 0.25 * (3.0 * PI * y / size).cos();
+                let s =
+                    0.5 + 0.25 * (2.0 * PI * x / size).sin() + 0.25 * (3.0 * PI * y / size).cos();
                 distance * distance * (0.6 + 0.4 * s)
             })
             .collect();
@@ -141,12 +159,20 @@ impl Scene {
 
     /// The scene's images, rendered by the model.
     pub fn render(&self) -> Result<Vec<f64>> {
-        crate::render::render(&self.rig, self.height, self.width, &self.depth, &self.albedo, Some(&self.mask))
+        crate::render::render(
+            &self.rig,
+            self.height,
+            self.width,
+            &self.depth,
+            &self.albedo,
+            Some(&self.mask),
+        )
     }
 
     /// Arithmetic mean of the true vertex depths used by the mask (the true gauge).
     pub fn mean_depth(&self) -> f64 {
-        let grid = crate::grid::Grid::new(self.height, self.width, Some(&self.mask)).expect("scene mask is valid");
+        let grid = crate::grid::Grid::new(self.height, self.width, Some(&self.mask))
+            .expect("scene mask is valid");
         let z = grid.gather_vertices(&self.depth);
         z.iter().sum::<f64>() / z.len() as f64
     }
@@ -161,7 +187,11 @@ pub fn standard_lights(size: f64, distance: f64) -> Vec<[f64; 3]> {
         for i in 0..9 {
             let angle = 2.0 * PI * (i as f64 + layer as f64 / 3.0) / 9.0;
             let radius = size * (0.3 + 0.1 * (i % 3) as f64);
-            lights.push([radius * angle.cos(), radius * angle.sin(), distance - stand_off * size]);
+            lights.push([
+                radius * angle.cos(),
+                radius * angle.sin(),
+                distance - stand_off * size,
+            ]);
         }
     }
     lights
@@ -192,7 +222,12 @@ fn random_bumps(size: f64, seed: u64) -> Vec<Bump> {
             let sigma = (0.06 + 0.09 * uniform()) * size;
             let sign = if uniform() < 0.5 { -1.0 } else { 1.0 };
             let amplitude = sign * (0.03 + 0.05 * uniform()) * size;
-            Bump { x, y, sigma, amplitude }
+            Bump {
+                x,
+                y,
+                sigma,
+                amplitude,
+            }
         })
         .collect()
 }

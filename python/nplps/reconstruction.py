@@ -1,0 +1,188 @@
+"""The result of a reconstruction, and writing it to files."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from . import _core, export
+from .rig import Rig
+
+
+class Iteration(NamedTuple):
+    """What one local/global iteration did."""
+
+    iteration: int
+    #: Largest vertex depth change of the iteration (scene units).
+    depth_change: float
+    #: RMS image residual over all usable observations (image units).
+    rms_residual: float
+    #: Seconds since the solver started.
+    elapsed: float
+
+
+@dataclass
+class Reconstruction:
+    """A reconstructed surface. Per-pixel arrays are (H, W[, 3]), per-vertex arrays
+    (H+1, W+1[, 3]); values outside the mask are NaN (0 for ``lights_used``)."""
+
+    #: Vertex depths z (H+1, W+1).
+    depth: np.ndarray
+    #: Local-fit unit normals (H, W, 3), facing the camera (n_z < 0).
+    normals: np.ndarray
+    #: Fitted albedo (H, W); NaN where a pixel had fewer than 3 usable lights.
+    albedo: np.ndarray
+    #: RMS image residual of each pixel's fit (H, W), in image units.
+    residual: np.ndarray
+    #: Number of usable (lit) lights of each pixel (H, W).
+    lights_used: np.ndarray
+    #: Region label of each pixel (H, W), -1 outside the mask.
+    regions: np.ndarray
+    #: Mean vertex depth of each region (the gauge).
+    gauge: np.ndarray
+    #: One entry per iteration.
+    history: list[Iteration]
+    #: Whether the tolerance was reached within the iteration limit.
+    converged: bool
+    #: The mask (H, W) that was reconstructed.
+    mask: np.ndarray
+    #: The rig the images were taken with.
+    rig: Rig
+    #: Seconds spent in factorization, local steps, solves and in total.
+    timings: dict[str, float] = field(default_factory=dict)
+    #: "near" for the near-light method, "parallel" for the conventional baseline.
+    method: str = "near"
+
+    @classmethod
+    def _from_core(cls, out: dict[str, Any], mask: np.ndarray, rig: Rig, method: str) -> "Reconstruction":
+        return cls(
+            depth=out["depth"],
+            normals=out["normals"],
+            albedo=out["albedo"],
+            residual=out["residual"],
+            lights_used=out["lights_used"],
+            regions=out["regions"],
+            gauge=out["gauge"],
+            history=[Iteration(*h) for h in out["history"]],
+            converged=bool(out["converged"]),
+            mask=mask,
+            rig=rig,
+            timings=dict(out["timings"]),
+            method=method,
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape (H, W)."""
+        return self.mask.shape  # type: ignore[return-value]
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """3-D vertex positions (H+1, W+1, 3) in the camera frame."""
+        return _core.vertices(self.depth, self.rig.camera)
+
+    @property
+    def mesh_normals(self) -> np.ndarray:
+        """The mesh's own facet normals (H, W, 3): cross product of each quad's diagonals."""
+        return _core.mesh_normals(self.depth, self.rig.camera)
+
+    @property
+    def unfitted(self) -> int:
+        """Number of masked pixels with fewer than 3 usable lights (they kept their shape)."""
+        return int(np.count_nonzero(self.mask & (self.lights_used < 3)))
+
+    def vertex_normals(self) -> np.ndarray:
+        """Per-vertex normals (H+1, W+1, 3): the normalized mean of the adjacent pixels' normals."""
+        return _normalize(_to_vertices(self.normals))
+
+    def vertex_albedo(self) -> np.ndarray:
+        """Per-vertex albedo (H+1, W+1): the mean of the adjacent pixels' albedo."""
+        return _to_vertices(self.albedo[..., None])[..., 0]
+
+    def save_ply(self, path: str | os.PathLike[str], opengl: bool = False) -> None:
+        """Binary PLY of the masked facets, with vertex normals and albedo as grey colour.
+
+        Triangles are wound counter-clockwise as seen from the camera. ``opengl=True`` writes the
+        OpenGL frame (x right, y up, z towards the viewer) instead of the camera's OpenCV frame.
+        """
+        export.write_ply(path, self.vertices, self.mask, self.vertex_normals(), self.vertex_albedo(), opengl=opengl)
+
+    def save_obj(self, path: str | os.PathLike[str], opengl: bool = False) -> None:
+        """Wavefront OBJ of the masked facets (same content and options as :meth:`save_ply`)."""
+        export.write_obj(path, self.vertices, self.mask, self.vertex_normals(), self.vertex_albedo(), opengl=opengl)
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready summary of the run."""
+        last = self.history[-1] if self.history else None
+        return {
+            "method": self.method,
+            "shape": list(self.shape),
+            "pixels": int(self.mask.sum()),
+            "regions": len(self.gauge),
+            "gauge": [float(g) for g in self.gauge],
+            "iterations": len(self.history),
+            "converged": self.converged,
+            "last_depth_change": None if last is None else last.depth_change,
+            "rms_residual": None if last is None else last.rms_residual,
+            "unfitted_pixels": self.unfitted,
+            "depth_range": [float(np.nanmin(self.depth)), float(np.nanmax(self.depth))],
+            "timings": self.timings,
+        }
+
+    def save(self, directory: str | os.PathLike[str], stem: str = "mesh", opengl: bool = False) -> dict[str, Path]:
+        """Writes the mesh (PLY and OBJ), the maps and ``summary.json`` into ``directory``.
+
+        Files: ``mesh.ply``, ``mesh.obj``, ``normals.png`` (normal map, see
+        :func:`nplps.export.save_normal_map`), ``albedo.png`` (16-bit), ``depth.npy`` (float64)
+        and ``depth.tiff`` (float32) of the vertex depths, ``normals.npy``, ``residual.npy`` and
+        ``summary.json``. Returns the paths written.
+        """
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {
+            "ply": out / f"{stem}.ply",
+            "obj": out / f"{stem}.obj",
+            "normal_map": out / "normals.png",
+            "albedo": out / "albedo.png",
+            "depth_npy": out / "depth.npy",
+            "depth_tiff": out / "depth.tiff",
+            "normals_npy": out / "normals.npy",
+            "residual_npy": out / "residual.npy",
+            "summary": out / "summary.json",
+        }
+        self.save_ply(paths["ply"], opengl=opengl)
+        self.save_obj(paths["obj"], opengl=opengl)
+        export.save_normal_map(paths["normal_map"], self.normals, self.mask)
+        summary = self.summary()
+        summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
+        export.save_depth_npy(paths["depth_npy"], self.depth)
+        export.save_depth_tiff(paths["depth_tiff"], self.depth)
+        np.save(paths["normals_npy"], self.normals)
+        np.save(paths["residual_npy"], self.residual)
+        paths["summary"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        return paths
+
+
+def _to_vertices(values: np.ndarray) -> np.ndarray:
+    """Mean of the finite values of the (up to 4) pixels around each vertex: (H, W, C) -> (H+1, W+1, C)."""
+    h, w, c = values.shape
+    total = np.zeros((h + 1, w + 1, c))
+    count = np.zeros((h + 1, w + 1, 1))
+    finite = np.isfinite(values).all(axis=-1, keepdims=True)
+    v = np.where(finite, values, 0.0)
+    for dr in (0, 1):
+        for dc in (0, 1):
+            total[dr : dr + h, dc : dc + w] += v
+            count[dr : dr + h, dc : dc + w] += finite
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)

@@ -1,0 +1,107 @@
+"""Synthetic scenes with ground truth (rendered by the same image model as the solver).
+
+Scenes are built by the Rust core (``saddle``, ``sphere``, ``cube``, ``bumps``): an object of
+lateral size ``size`` at working distance ``distance`` under an orthographic camera, lit by 27
+point lights in three layers 1.5, 2.25 and 3 object sizes in front of it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import _core, export
+from .api import render
+from .rig import Rig
+
+SCENES = ("saddle", "sphere", "cube", "bumps")
+
+
+@dataclass
+class Scene:
+    """A synthetic scene: true surface, mask, albedo, rig and rendered images."""
+
+    name: str
+    #: True vertex depths (H+1, W+1).
+    depth: np.ndarray
+    #: Mask (H, W).
+    mask: np.ndarray
+    #: True albedo (H, W).
+    albedo: np.ndarray
+    rig: Rig
+    #: Lateral object size (scene units).
+    size: float
+    #: Images (k, H, W) rendered by the model (with noise if requested).
+    images: np.ndarray = field(repr=False)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """True mesh normals (H, W, 3), NaN outside the mask."""
+        n = _core.mesh_normals(self.depth, self.rig.camera)
+        n[~self.mask] = np.nan
+        return n
+
+    @property
+    def mean_depth(self) -> float:
+        """Mean true depth of the vertices the mask uses (the true working distance)."""
+        h, w = self.mask.shape
+        used = np.zeros((h + 1, w + 1), dtype=bool)
+        for dr in (0, 1):
+            for dc in (0, 1):
+                used[dr : dr + h, dc : dc + w] |= self.mask
+        return float(self.depth[used].mean())
+
+    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+        """Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
+        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``.
+
+        Images are scaled so that their maximum is 65535; the scale is absorbed by the albedo.
+        """
+        import imageio.v3 as iio
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        scale = 65535.0 / max(float(self.images.max()), 1e-300)
+        paths: dict[str, Path] = {}
+        for i, image in enumerate(self.images):
+            p = out / f"image_{i:02d}.png"
+            iio.imwrite(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
+            paths[f"image_{i:02d}"] = p
+        self.rig.save(out / "rig.json")
+        iio.imwrite(out / "mask.png", (self.mask * 255).astype(np.uint8))
+        export.save_depth_npy(out / "depth_gt.npy", self.depth)
+        np.save(out / "normals_gt.npy", self.normals)
+        np.save(out / "albedo_gt.npy", self.albedo * scale / 65535.0)
+        paths.update(rig=out / "rig.json", mask=out / "mask.png", depth_gt=out / "depth_gt.npy")
+        return paths
+
+
+def make_scene(
+    name: str,
+    n: int = 128,
+    size: float = 100.0,
+    distance: float = 200.0,
+    seed: int = 0,
+    noise: float = 0.0,
+) -> Scene:
+    """Builds and renders a synthetic scene.
+
+    Args:
+        name: one of ``saddle``, ``sphere`` (a sphere cap in a disc mask), ``cube`` (two faces
+            of a turned cube, the sharp edge on a pixel line) or ``bumps`` (random smooth bumps).
+        n: image size n x n pixels.
+        size: lateral object size; distance: working distance (same unit).
+        seed: seed of the random bumps and of the noise.
+        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity
+            (images are clipped at 0 afterwards).
+    """
+    d = _core.synth_scene(name, int(n), float(size), float(distance), int(seed))
+    rig = Rig.orthographic(pixel_size=d["pixel_size"], origin=d["origin"], lights=d["lights"])
+    images = render(d["depth"], rig, d["albedo"], d["mask"])
+    if noise > 0:
+        rng = np.random.default_rng(seed)
+        images = np.clip(images + rng.normal(0.0, noise * images.max(), images.shape), 0.0, None)
+    return Scene(name, d["depth"], d["mask"], d["albedo"], rig, float(d["size"]), images)

@@ -1,0 +1,71 @@
+//! End-to-end accuracy on synthetic scenes rendered by the model.
+
+use nplps::{
+    mesh_normals, reconstruct, reconstruct_parallel, Control, ImageStack, InitialDepth, Options,
+    Problem, Reconstruction, Scene, SceneKind,
+};
+
+fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// Mean angular error (degrees) of `normals` against the scene's true mesh normals, inside the mask.
+fn mean_normal_error(scene: &Scene, normals: &[[f64; 3]]) -> f64 {
+    let truth = mesh_normals(&scene.rig.camera, scene.height, scene.width, &scene.depth).unwrap();
+    let errs: Vec<f64> = (0..truth.len())
+        .filter(|&p| scene.mask[p])
+        .map(|p| angle_deg(truth[p], normals[p]))
+        .collect();
+    errs.iter().sum::<f64>() / errs.len() as f64
+}
+
+fn max_depth_error(scene: &Scene, result: &Reconstruction) -> f64 {
+    result
+        .depth
+        .iter()
+        .zip(&scene.depth)
+        .filter(|(a, _)| a.is_finite())
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
+}
+
+fn solve(scene: &Scene, images: &[f32], options: &Options) -> Reconstruction {
+    let stack = ImageStack::new(images, scene.rig.n_lights(), scene.height, scene.width).unwrap();
+    let problem = Problem::new(
+        stack,
+        &scene.rig,
+        Some(&scene.mask),
+        InitialDepth::Distance(scene.mean_depth()),
+    )
+    .unwrap();
+    reconstruct(&problem, options, &mut |_| Control::Continue).unwrap()
+}
+
+fn exact_images(scene: &Scene) -> Vec<f32> {
+    scene.render().unwrap().iter().map(|&v| v as f32).collect()
+}
+
+#[test]
+fn exact_model_recovers_every_scene() {
+    let options = Options {
+        iterations: 200,
+        tol: 1e-9,
+        ..Options::default()
+    };
+    for kind in SceneKind::ALL {
+        let scene = Scene::new(kind, 48, 100.0, 200.0, 7).unwrap();
+        let result = solve(&scene, &exact_images(&scene), &options);
+        let normal_err = mean_normal_error(&scene, &result.normals);
+        let depth_err = max_depth_error(&scene, &result) / scene.size;
+        println!(
+            "{:>7}: {} iterations, normal error {normal_err:.2e} deg, depth error {depth_err:.2e} of size",
+            kind.name(),
+            result.history.len()
+        );
+        assert!(normal_err < 0.01, "{}: {normal_err} degrees", kind.name());
+        assert!(depth_err < 1e-3, "{}: depth error {depth_err}", kind.name());
+    }
+}
