@@ -247,13 +247,13 @@ fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
     let mut label = vec![u32::MAX; n];
     let mut region = vec![0u32; n];
     let mut n_regions = 0u32;
-    for u in 0..n {
+    for (u, reg) in region.iter_mut().enumerate() {
         let root = find(&mut parent, u as u32) as usize;
         if label[root] == u32::MAX {
             label[root] = n_regions;
             n_regions += 1;
         }
-        region[u] = label[root];
+        *reg = label[root];
     }
     (region, n_regions as usize)
 }

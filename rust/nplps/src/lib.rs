@@ -34,6 +34,7 @@ pub mod error;
 pub mod global;
 pub mod grid;
 pub mod local;
+pub mod ordering;
 pub mod problem;
 pub mod render;
 pub mod rig;

@@ -243,8 +243,8 @@ mod tests {
             assert!(err < 1e-4, "{weighting:?}: {err} degrees");
             assert!((fit.albedo / 2.0e4 - 1.0).abs() < 1e-5);
             let mean = 0.25 * q.iter().map(|p| p[2]).sum::<f64>();
-            for j in 0..4 {
-                assert!((fit.target[j] - (q[j][2] - mean)).abs() < 1e-5);
+            for (t, corner) in fit.target.iter().zip(&q) {
+                assert!((t - (corner[2] - mean)).abs() < 1e-5);
             }
         }
     }

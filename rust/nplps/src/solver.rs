@@ -143,7 +143,7 @@ pub fn reconstruct(
     options: &Options,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
-    if !(options.tol >= 0.0) {
+    if options.tol.is_nan() || options.tol < 0.0 {
         return Err(Error::Input(format!(
             "tol must be >= 0, got {}",
             options.tol

@@ -83,7 +83,7 @@ impl Scene {
     /// Builds a scene of `n` x `n` pixels, lateral size `size` and working distance `distance`;
     /// `seed` drives the random bumps.
     pub fn new(kind: SceneKind, n: usize, size: f64, distance: f64, seed: u64) -> Result<Scene> {
-        if n < 2 || !(size > 0.0) || !(distance > 0.0) {
+        if n < 2 || size.is_nan() || size <= 0.0 || distance.is_nan() || distance <= 0.0 {
             return Err(Error::Input(format!(
                 "a scene needs n >= 2 pixels and positive size and distance, got n = {n}, size = {size}, distance = {distance}"
             )));

@@ -69,3 +69,40 @@ fn exact_model_recovers_every_scene() {
         assert!(depth_err < 1e-3, "{}: depth error {depth_err}", kind.name());
     }
 }
+
+#[test]
+fn near_light_model_beats_the_parallel_baseline() {
+    let scene = Scene::new(SceneKind::SphereCap, 40, 100.0, 200.0, 0).unwrap();
+    let images = exact_images(&scene);
+    let stack = ImageStack::new(&images, scene.rig.n_lights(), scene.height, scene.width).unwrap();
+    let problem = Problem::new(
+        stack,
+        &scene.rig,
+        Some(&scene.mask),
+        InitialDepth::Distance(scene.mean_depth()),
+    )
+    .unwrap();
+    let near = reconstruct(&problem, &Options::default(), &mut |_| Control::Continue).unwrap();
+    let parallel = reconstruct_parallel(&problem, 0.0, 0).unwrap();
+    let (e_near, e_par) = (
+        mean_normal_error(&scene, &near.normals),
+        mean_normal_error(&scene, &parallel.normals),
+    );
+    println!("sphere: near {e_near:.2e} deg, parallel baseline {e_par:.2} deg");
+    assert!(e_near < 0.01 && e_par > 1.0);
+}
+
+#[test]
+fn cancelling_stops_the_solver() {
+    let scene = Scene::new(SceneKind::Saddle, 16, 100.0, 200.0, 0).unwrap();
+    let images = exact_images(&scene);
+    let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
+    let problem = Problem::new(stack, &scene.rig, None, InitialDepth::Distance(200.0)).unwrap();
+    let mut calls = 0;
+    let result = reconstruct(&problem, &Options::default(), &mut |_| {
+        calls += 1;
+        Control::Cancel
+    });
+    assert_eq!(result.unwrap_err(), nplps::Error::Cancelled);
+    assert_eq!(calls, 1);
+}
