@@ -14,7 +14,7 @@ use crate::grid::{normalize, sub};
 use crate::local::{local_step, FacetFit, Model};
 use crate::problem::Problem;
 use crate::solver::{
-    assemble, faer_par, rms_of, with_threads, IterationStats, Reconstruction, Timings,
+    assemble, sparse_par, rms_of, with_threads, IterationStats, Reconstruction, Timings,
 };
 
 /// Light directions of the parallel-light model, seen from the centroid of the initial surface.
@@ -50,7 +50,7 @@ pub fn reconstruct_parallel(
         let grid = &problem.grid;
         let mut timings = Timings::default();
         let t = Instant::now();
-        let mut system = GlobalSystem::new(grid, faer_par())?;
+        let mut system = GlobalSystem::new(grid, sparse_par(false))?;
         timings.factorization = t.elapsed();
 
         let directions = parallel_directions(problem);

@@ -89,6 +89,12 @@ pub enum Model<'a> {
 }
 
 impl Model<'_> {
+    /// Whether every equation has weight 1 (the residual then follows from the normal equations).
+    #[inline]
+    fn unit_weights(&self) -> bool {
+        !matches!(self, Model::Near(_, Weighting::Paper))
+    }
+
     /// For light k seen from the point `c`: the vector `b` of the image model `I = b . g`, and
     /// the weight that multiplies the equation.
     #[inline]
@@ -98,7 +104,8 @@ impl Model<'_> {
                 let a = sub(lights[k], c);
                 let d2 = dot(a, a);
                 let d3 = d2 * d2.sqrt();
-                let b = [a[0] / d3, a[1] / d3, a[2] / d3];
+                let inv = 1.0 / d3;
+                let b = [a[0] * inv, a[1] * inv, a[2] * inv];
                 match weighting {
                     Weighting::Image => (b, 1.0),
                     Weighting::Paper => (b, d3),
@@ -128,6 +135,11 @@ pub fn local_step(
 }
 
 /// Fits one facet with corners `q` (see the module documentation).
+///
+/// The symmetric 3 x 3 system is accumulated entry by entry and solved by nalgebra's Cholesky
+/// factorization (failure = singular system). With unit equation weights the residual follows
+/// from the normal equations, `sum (b_k . g - I_k)^2 = sum I_k^2 - g . s`, without a second pass
+/// over the lights; the paper weighting takes that second pass.
 pub fn fit_facet(
     q: &[[f64; 3]; 4],
     model: Model<'_>,
@@ -137,20 +149,36 @@ pub fn fit_facet(
 ) -> FacetFit {
     let c = quad_centre(q);
     let usable = |i: f32| !(i.is_nan() || i as f64 <= dark);
-    let mut t = Matrix3::<f64>::zeros();
-    let mut s = Vector3::<f64>::zeros();
+    // Upper triangle of T (t00, t01, t02, t11, t12, t22), right side s, sum of I^2.
+    let mut t = [0.0f64; 6];
+    let mut s = [0.0f64; 3];
+    let mut sum_i2 = 0.0;
     let mut used = 0u32;
-    for (k, &i) in intensities.iter().enumerate().filter(|(_, i)| usable(**i)) {
+    for (k, &i) in intensities.iter().enumerate() {
+        if !usable(i) {
+            continue;
+        }
+        let i = i as f64;
         let (b, w) = model.row(k, c);
-        let r = Vector3::from(b) * w;
-        t += r * r.transpose();
-        s += r * (w * i as f64);
+        let r = [b[0] * w, b[1] * w, b[2] * w];
+        let y = w * i;
+        t[0] += r[0] * r[0];
+        t[1] += r[0] * r[1];
+        t[2] += r[0] * r[2];
+        t[3] += r[1] * r[1];
+        t[4] += r[1] * r[2];
+        t[5] += r[2] * r[2];
+        s[0] += r[0] * y;
+        s[1] += r[1] * y;
+        s[2] += r[2] * y;
+        sum_i2 += i * i;
         used += 1;
     }
     if used < 3 {
         return keep_shape(q, used);
     }
-    let Some(g) = t.cholesky().map(|ch| ch.solve(&s)) else {
+    let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
+    let Some(g) = tm.cholesky().map(|ch| ch.solve(&Vector3::from(s))) else {
         return keep_shape(q, used);
     };
     let rho = g.norm();
@@ -158,15 +186,19 @@ pub fn fit_facet(
         return keep_shape(q, used);
     }
     let g = [g.x, g.y, g.z];
-    let sse = intensities
-        .iter()
-        .enumerate()
-        .filter(|(_, i)| usable(**i))
-        .map(|(k, &i)| {
-            let e = dot(model.row(k, c).0, g) - i as f64;
-            e * e
-        })
-        .sum();
+    let sse = if model.unit_weights() {
+        (sum_i2 - dot(g, s)).max(0.0)
+    } else {
+        intensities
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| usable(**i))
+            .map(|(k, &i)| {
+                let e = dot(model.row(k, c).0, g) - i as f64;
+                e * e
+            })
+            .sum()
+    };
     let n = [g[0] / rho, g[1] / rho, g[2] / rho];
     FacetFit {
         target: plane_target(n, pixel_size),
