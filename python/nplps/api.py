@@ -60,9 +60,11 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
         return None
     if progress is True:
 
+        width = len(str(iterations))
+
         def report(it: Iteration) -> None:
             print(
-                f"iteration {it.iteration:>3}/{iterations}: depth change {it.depth_change:.3e}, "
+                f"iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}, "
                 f"rms residual {it.rms_residual:.3e}, {it.elapsed:.2f} s",
                 file=sys.stderr,
                 flush=True,

@@ -244,6 +244,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except NplpsError as e:
         _error(str(e))
         return 2
+    except BrokenPipeError:  # output piped into e.g. `head`: stop quietly
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 1
     except OSError as e:
         _error(_os_message(e))
         return 1
@@ -307,7 +314,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if not args.quiet:
         _note(f"{stack.shape[0]} images of {stack.shape[2]} x {stack.shape[1]} pixels, {rig.n_lights} lights")
 
-    progress = None if args.quiet else _progress_printer(args.iterations)
+    progress = not args.quiet
     common = dict(mask=args.mask, depth=depth, dark=args.dark, threads=args.threads)
     start = time.perf_counter()
     with _warnings_to_stderr():
@@ -336,10 +343,7 @@ def load_rig(path: str) -> Any:
 
     if os.path.isdir(path):
         raise RigError(f"rig file '{path}' is a directory")
-    try:
-        return Rig.load(path)
-    except UnicodeDecodeError:  # Rig.load lets this through for binary files
-        raise RigError(f"rig file '{path}' is not a JSON text file") from None
+    return Rig.load(path)
 
 
 def resolve_images(items: Sequence[str], mask: str | None = None, quiet: bool = False) -> list[str]:
@@ -422,18 +426,6 @@ def parse_depth(value: str) -> float | np.ndarray:
             "it must be an (H+1, W+1) map of vertex depths"
         )
     return depth.astype(np.float64)
-
-
-def _progress_printer(iterations: int) -> Callable[[Any], None]:
-    width = len(str(iterations))
-
-    def report(it: Any) -> None:
-        _note(
-            f"iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}, "
-            f"rms residual {it.rms_residual:.3e}, {it.elapsed:.2f} s"
-        )
-
-    return report
 
 
 class _warnings_to_stderr:

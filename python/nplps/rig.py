@@ -126,6 +126,8 @@ class Rig:
             raise RigError(f"cannot read rig file {os.fspath(path)!r}: {e.strerror}") from None
         except json.JSONDecodeError as e:
             raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {e}") from None
+        except UnicodeDecodeError:
+            raise RigError(f"rig file {os.fspath(path)!r} is not a JSON text file") from None
         return cls.from_dict(data, source=os.fspath(path))
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from . import _core, export
 from .api import render
+from .errors import InputError
 from .rig import Rig
 
 SCENES = ("saddle", "sphere", "cube", "bumps")
@@ -98,6 +99,8 @@ def make_scene(
         noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity
             (images are clipped at 0 afterwards).
     """
+    if not noise >= 0:
+        raise InputError(f"noise must be >= 0 (a fraction of the maximum intensity), got {noise}")
     d = _core.synth_scene(name, int(n), float(size), float(distance), int(seed))
     rig = Rig.orthographic(pixel_size=d["pixel_size"], origin=d["origin"], lights=d["lights"])
     images = render(d["depth"], rig, d["albedo"], d["mask"])
