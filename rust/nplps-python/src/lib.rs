@@ -89,6 +89,7 @@ fn reconstruct<'py>(
         dark,
         weighting: weighting(py, weighting_name)?,
         threads,
+        ..nplps::Options::default()
     };
     let mut callback_error: Option<PyErr> = None;
     let result = py.detach(|| {
