@@ -46,10 +46,11 @@ def _prepare(images: Images, rig: Rig, mask: Any, depth: Depth | None) -> tuple[
     return stack, mask_arr, None, depth_map
 
 
-def _warn_negative(count: int) -> None:
+def _warn_negative(count: int, dark: float) -> None:
     if count:
+        treated = "they were treated as unlit" if dark >= 0 else f"those above dark = {dark} were used"
         warnings.warn(
-            f"{count} pixel values inside the mask are negative (dark-frame subtraction?); they were treated as unlit",
+            f"{count} pixel values inside the mask are negative (dark-frame subtraction?); {treated}",
             RuntimeWarning,
             stacklevel=3,
         )
@@ -134,7 +135,7 @@ def reconstruct(
         _threads(threads),
         _progress_callback(progress, int(iterations)),
     )
-    _warn_negative(out["negative_observations"])
+    _warn_negative(out["negative_observations"], float(dark))
     return Reconstruction._from_core(out, mask_arr, rig, "near")
 
 

@@ -58,7 +58,7 @@ class Rig:
             lights: (k, 3) light positions; lights stand in front of the object (smaller z).
         """
         if np.isscalar(pixel_size):
-            pixel_size = (float(pixel_size), float(pixel_size))  # type: ignore[arg-type]
+            pixel_size = (pixel_size, pixel_size)  # type: ignore[assignment]
         w, h = _pair(pixel_size, "pixel_size")
         ox, oy = _pair(origin, "origin")
         camera = {"model": "orthographic", "pixel_size": [w, h], "origin": [ox, oy]}
@@ -86,7 +86,7 @@ class Rig:
         if missing:
             raise RigError(f"{source}: missing key(s) {', '.join(missing)}")
         version = data["version"]
-        if not isinstance(version, int) or version < 1 or version > RIG_FILE_VERSION:
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1 or version > RIG_FILE_VERSION:
             raise RigError(f"{source}: unsupported rig file version {version!r} (this nplps reads 1..{RIG_FILE_VERSION})")
         camera = data["camera"]
         if not isinstance(camera, dict) or "model" not in camera:

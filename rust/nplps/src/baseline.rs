@@ -11,10 +11,10 @@ use std::time::Instant;
 use crate::error::Result;
 use crate::global::GlobalSystem;
 use crate::grid::{normalize, sub};
-use crate::local::{local_step, FacetFit, Model};
+use crate::local::{local_step, FacetFit, FitSettings, Model};
 use crate::problem::Problem;
 use crate::solver::{
-    assemble, sparse_par, rms_of, with_threads, IterationStats, Reconstruction, Timings,
+    assemble, check_dark, rms_of, sparse_par, with_threads, IterationStats, Reconstruction, Timings,
 };
 
 /// Light directions of the parallel-light model, seen from the centroid of the initial surface.
@@ -45,6 +45,7 @@ pub fn reconstruct_parallel(
     dark: f64,
     threads: usize,
 ) -> Result<Reconstruction> {
+    check_dark(dark)?;
     with_threads(threads, || {
         let start = Instant::now();
         let grid = &problem.grid;
@@ -63,7 +64,10 @@ pub fn reconstruct_parallel(
             Model::Parallel(&directions),
             &problem.obs,
             &problem.z0,
-            dark,
+            FitSettings {
+                dark,
+                fast_residual: false,
+            },
             &mut fits,
         );
         timings.local = t.elapsed();

@@ -79,6 +79,15 @@ pub struct Observations {
     pub values: Vec<f32>,
 }
 
+/// Settings of the per-facet fits.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitSettings {
+    /// Observations at or below this value (and NaN) are shadowed and left out.
+    pub dark: f64,
+    /// Take the residual from the normal equations instead of a second pass (see [`fit_facet`]).
+    pub fast_residual: bool,
+}
+
 /// The lighting model a facet is fitted with.
 #[derive(Debug, Clone, Copy)]
 pub enum Model<'a> {
@@ -116,37 +125,43 @@ impl Model<'_> {
     }
 }
 
-/// Runs the local step on every facet in parallel (rayon), writing `fits`.
+/// Runs the local step on every facet in parallel (rayon), writing `fits` (see [`fit_facet`]
+/// for `fast_residual`).
 pub fn local_step(
     grid: &Grid,
     camera: &Camera,
     model: Model<'_>,
     obs: &Observations,
     z: &[f64],
-    dark: f64,
+    settings: FitSettings,
     fits: &mut [FacetFit],
 ) {
     let pixel_size = camera.pixel_size();
     fits.par_iter_mut().enumerate().for_each(|(f, fit)| {
         let q = grid.facet_corners(camera, f, z);
         let intensities = &obs.values[f * obs.k..(f + 1) * obs.k];
-        *fit = fit_facet(&q, model, intensities, dark, pixel_size);
+        *fit = fit_facet(&q, model, intensities, pixel_size, settings);
     });
 }
 
 /// Fits one facet with corners `q` (see the module documentation).
 ///
 /// The symmetric 3 x 3 system is accumulated entry by entry and solved by nalgebra's Cholesky
-/// factorization (failure = singular system). With unit equation weights the residual follows
-/// from the normal equations, `sum (b_k . g - I_k)^2 = sum I_k^2 - g . s`, without a second pass
-/// over the lights; the paper weighting takes that second pass.
+/// factorization (failure = singular system). With `fast_residual` and unit equation weights the
+/// residual follows from the normal equations, `sum (b_k . g - I_k)^2 = sum I_k^2 - g . s`,
+/// without a second pass over the lights (exact up to a cancellation of order
+/// `sqrt(eps * sum I_k^2)`, fine for the per-iteration history); otherwise it is summed exactly.
 pub fn fit_facet(
     q: &[[f64; 3]; 4],
     model: Model<'_>,
     intensities: &[f32],
-    dark: f64,
     pixel_size: [f64; 2],
+    settings: FitSettings,
 ) -> FacetFit {
+    let FitSettings {
+        dark,
+        fast_residual,
+    } = settings;
     let c = quad_centre(q);
     let usable = |i: f32| !(i.is_nan() || i as f64 <= dark);
     // Upper triangle of T (t00, t01, t02, t11, t12, t22), right side s, sum of I^2.
@@ -186,7 +201,7 @@ pub fn fit_facet(
         return keep_shape(q, used);
     }
     let g = [g.x, g.y, g.z];
-    let sse = if model.unit_weights() {
+    let sse = if fast_residual && model.unit_weights() {
         (sum_i2 - dot(g, s)).max(0.0)
     } else {
         intensities
@@ -234,6 +249,11 @@ fn keep_shape(q: &[[f64; 3]; 4], used: u32) -> FacetFit {
 mod tests {
     use super::*;
 
+    const EXACT: FitSettings = FitSettings {
+        dark: 0.0,
+        fast_residual: false,
+    };
+
     fn lights() -> Vec<[f64; 3]> {
         vec![
             [30.0, 0.0, -50.0],
@@ -268,7 +288,7 @@ mod tests {
         let (q, n, images) = facet();
         for weighting in [Weighting::Image, Weighting::Paper] {
             let l = lights();
-            let fit = fit_facet(&q, Model::Near(&l, weighting), &images, 0.0, [1.0, 1.0]);
+            let fit = fit_facet(&q, Model::Near(&l, weighting), &images, [1.0, 1.0], EXACT);
             assert!(fit.valid);
             assert_eq!(fit.used, 4);
             let err = dot(fit.normal, n).clamp(-1.0, 1.0).acos().to_degrees();
@@ -291,13 +311,39 @@ mod tests {
             &q,
             Model::Near(&l, Weighting::Image),
             &images,
-            0.0,
             [1.0, 1.0],
+            EXACT,
         );
         assert!(!fit.valid);
         assert_eq!(fit.used, 2);
         assert!(fit.albedo.is_nan() && fit.rms().is_nan());
         assert!(fit.target.iter().all(|t| t.is_finite()));
         assert!((fit.target.iter().sum::<f64>()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn fast_residual_matches_the_exact_one_on_noisy_data() {
+        let (q, _, images) = facet();
+        let noisy: Vec<f32> = images
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| v * (1.0 + 0.02 * (k as f32 - 1.5)))
+            .collect();
+        let l = lights();
+        let model = Model::Near(&l, Weighting::Image);
+        let fast = fit_facet(
+            &q,
+            model,
+            &noisy,
+            [1.0, 1.0],
+            FitSettings {
+                fast_residual: true,
+                ..EXACT
+            },
+        );
+        let exact = fit_facet(&q, model, &noisy, [1.0, 1.0], EXACT);
+        assert!(exact.rms() > 0.0);
+        assert!((fast.rms() / exact.rms() - 1.0).abs() < 1e-6);
+        assert_eq!(fast.normal, exact.normal);
     }
 }
