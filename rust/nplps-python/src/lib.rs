@@ -59,6 +59,43 @@ fn weighting(py: Python<'_>, name: &str) -> PyResult<nplps::Weighting> {
     }
 }
 
+/// The borrowed input of a reconstruction: rig, (k, H, W) images, mask and starting depth.
+struct Input<'a> {
+    rig: nplps::Rig,
+    shape: [usize; 3],
+    images: &'a [f32],
+    mask: Option<&'a [bool]>,
+    depth: nplps::InitialDepth<'a>,
+}
+
+impl<'a> Input<'a> {
+    fn new(
+        py: Python<'_>,
+        images: &'a PyReadonlyArray3<'_, f32>,
+        camera: &Bound<'_, PyDict>,
+        lights: PyReadonlyArray2<'_, f64>,
+        mask: Option<&'a PyReadonlyArray2<'_, bool>>,
+        distance: Option<f64>,
+        depth_map: Option<&'a PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<Input<'a>> {
+        let shape = images.shape();
+        Ok(Input {
+            rig: rig_from(py, camera, lights)?,
+            shape: [shape[0], shape[1], shape[2]],
+            images: slice(py, images, "images")?,
+            mask: mask.map(|m| slice(py, m, "mask")).transpose()?,
+            depth: initial_depth(py, distance, depth_map)?,
+        })
+    }
+
+    /// The validated problem (runs without the GIL).
+    fn problem(&self) -> nplps::Result<nplps::Problem<'_>> {
+        let [k, h, w] = self.shape;
+        let stack = nplps::ImageStack::new(self.images, k, h, w)?;
+        nplps::Problem::new(stack, &self.rig, self.mask, self.depth)
+    }
+}
+
 /// Near-light reconstruction (see `nplps.reconstruct`). Returns a dict of arrays.
 #[pyfunction]
 #[pyo3(signature = (images, camera, lights, mask, distance, depth_map, iterations, tol, dark, weighting_name, threads, progress))]
@@ -78,11 +115,15 @@ fn reconstruct<'py>(
     threads: usize,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = rig_from(py, camera, lights)?;
-    let shape = images.shape().to_vec();
-    let data = slice(py, &images, "images")?;
-    let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
-    let depth = initial_depth(py, distance, depth_map.as_ref())?;
+    let input = Input::new(
+        py,
+        &images,
+        camera,
+        lights,
+        mask.as_ref(),
+        distance,
+        depth_map.as_ref(),
+    )?;
     let options = nplps::Options {
         iterations,
         tol,
@@ -94,8 +135,7 @@ fn reconstruct<'py>(
     let mut callback_error: Option<PyErr> = None;
     let result = py.detach(|| {
         no_panic(|| {
-            let stack = nplps::ImageStack::new(data, shape[0], shape[1], shape[2])?;
-            let problem = nplps::Problem::new(stack, &rig, mask, depth)?;
+            let problem = input.problem()?;
             let mut on_iteration = |stats: &nplps::IterationStats| {
                 Python::attach(|py| {
                     let outcome = py.check_signals().and_then(|_| match &progress {
@@ -145,15 +185,18 @@ fn reconstruct_parallel<'py>(
     dark: f64,
     threads: usize,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = rig_from(py, camera, lights)?;
-    let shape = images.shape().to_vec();
-    let data = slice(py, &images, "images")?;
-    let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
-    let depth = initial_depth(py, distance, depth_map.as_ref())?;
+    let input = Input::new(
+        py,
+        &images,
+        camera,
+        lights,
+        mask.as_ref(),
+        distance,
+        depth_map.as_ref(),
+    )?;
     let result = py.detach(|| {
         no_panic(|| {
-            let stack = nplps::ImageStack::new(data, shape[0], shape[1], shape[2])?;
-            let problem = nplps::Problem::new(stack, &rig, mask, depth)?;
+            let problem = input.problem()?;
             nplps::reconstruct_parallel(&problem, dark, threads)
         })
     });

@@ -32,16 +32,15 @@ fn max_depth_error(scene: &Scene, result: &Reconstruction) -> f64 {
         .fold(0.0, f64::max)
 }
 
-fn solve(scene: &Scene, images: &[f32], options: &Options) -> Reconstruction {
+/// The scene's problem with its mask, started at the true working distance.
+fn problem<'a>(scene: &'a Scene, images: &[f32]) -> Problem<'a> {
     let stack = ImageStack::new(images, scene.rig.n_lights(), scene.height, scene.width).unwrap();
-    let problem = Problem::new(
-        stack,
-        &scene.rig,
-        Some(&scene.mask),
-        InitialDepth::Distance(scene.mean_depth()),
-    )
-    .unwrap();
-    reconstruct(&problem, options, &mut |_| Control::Continue).unwrap()
+    let depth = InitialDepth::Distance(scene.mean_depth());
+    Problem::new(stack, &scene.rig, Some(&scene.mask), depth).unwrap()
+}
+
+fn solve(scene: &Scene, images: &[f32], options: &Options) -> Reconstruction {
+    reconstruct(&problem(scene, images), options, &mut |_| Control::Continue).unwrap()
 }
 
 fn exact_images(scene: &Scene) -> Vec<f32> {
@@ -73,15 +72,7 @@ fn exact_model_recovers_every_scene() {
 #[test]
 fn near_light_model_beats_the_parallel_baseline() {
     let scene = Scene::new(SceneKind::SphereCap, 40, 100.0, 200.0, 0).unwrap();
-    let images = exact_images(&scene);
-    let stack = ImageStack::new(&images, scene.rig.n_lights(), scene.height, scene.width).unwrap();
-    let problem = Problem::new(
-        stack,
-        &scene.rig,
-        Some(&scene.mask),
-        InitialDepth::Distance(scene.mean_depth()),
-    )
-    .unwrap();
+    let problem = problem(&scene, &exact_images(&scene));
     let near = reconstruct(&problem, &Options::default(), &mut |_| Control::Continue).unwrap();
     let parallel = reconstruct_parallel(&problem, 0.0, 0).unwrap();
     let (e_near, e_par) = (
@@ -95,9 +86,7 @@ fn near_light_model_beats_the_parallel_baseline() {
 #[test]
 fn cancelling_stops_the_solver() {
     let scene = Scene::new(SceneKind::Saddle, 16, 100.0, 200.0, 0).unwrap();
-    let images = exact_images(&scene);
-    let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
-    let problem = Problem::new(stack, &scene.rig, None, InitialDepth::Distance(200.0)).unwrap();
+    let problem = problem(&scene, &exact_images(&scene));
     let mut calls = 0;
     let result = reconstruct(&problem, &Options::default(), &mut |_| {
         calls += 1;
