@@ -8,8 +8,9 @@
 
 use crate::grid::{Grid, INACTIVE};
 
-/// Largest box (in grid vertices) that is numbered directly.
-pub const LEAF: usize = 64;
+/// Largest box (in grid vertices) that is numbered directly. Measured on a 512 x 512 grid: leaves
+/// of 2-8 vertices give 16.3 M factor nonzeros, 16 give 17.0 M, 64 give 18.9 M, 1024 give 34.6 M.
+pub const LEAF: usize = 8;
 
 /// The elimination order as `(forward, inverse)`: `forward[i]` is the unknown eliminated i-th,
 /// `inverse[forward[i]] = i`.
