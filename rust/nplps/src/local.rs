@@ -193,7 +193,7 @@ pub fn fit_facet(
         return keep_shape(q, used);
     }
     let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
-    let Some(g) = tm.cholesky().map(|ch| ch.solve(&Vector3::from(s))) else {
+    let Some(g) = solve_spd3(&tm, &Vector3::from(s)) else {
         return keep_shape(q, used);
     };
     let rho = g.norm();
@@ -223,6 +223,21 @@ pub fn fit_facet(
         used,
         valid: true,
     }
+}
+
+/// Solves `T g = s` for a symmetric 3 x 3 `T`, or `None` when `T` is not (numerically) positive
+/// definite: its determinant must exceed `1e-12` times the product of its diagonal (Hadamard's
+/// bound), which rejects singular and nearly singular light configurations. nalgebra's closed-form
+/// inverse keeps the dependency chain per facet short (a Cholesky factorization chains three
+/// square roots and several divisions).
+#[inline]
+fn solve_spd3(t: &Matrix3<f64>, s: &Vector3<f64>) -> Option<Vector3<f64>> {
+    let diag = t[(0, 0)] * t[(1, 1)] * t[(2, 2)];
+    let det = t.determinant();
+    if !(diag > 0.0 && det > 1e-12 * diag) {
+        return None;
+    }
+    t.try_inverse().map(|inv| inv * s)
 }
 
 /// Mean-subtracted corner depths of the plane with normal `n` (n_z limited to `-NZ_MIN`).
