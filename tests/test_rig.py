@@ -66,8 +66,10 @@ def test_orthographic_bad_origin_and_lights():
         nplps.Rig.orthographic(1.0, lights=LIGHTS[:2])
     with pytest.raises(nplps.RigError, match=r"at least 3 lights, the rig has 0"):
         nplps.Rig.orthographic(1.0)
-    with pytest.raises(nplps.RigError, match=r"unknown camera model \"pinhole\""):
-        nplps.Rig(camera={"model": "pinhole", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS)
+    with pytest.raises(nplps.RigError, match=r"unknown camera model \"fisheye\""):
+        nplps.Rig(camera={"model": "fisheye", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS)
+    with pytest.raises(nplps.RigError, match=r"camera is missing the key \"K\""):
+        nplps.Rig(camera={"model": "pinhole"}, lights=LIGHTS)
     with pytest.raises(nplps.RigError, match=r"camera is missing the key \"origin\""):
         nplps.Rig(camera={"model": "orthographic", "pixel_size": [1, 1]}, lights=LIGHTS)
 
@@ -116,9 +118,9 @@ def test_save_load_round_trip(tmp_path):
     data = json.loads(path.read_text(encoding="utf-8"))
     assert set(data) == {"version", "camera", "lights"}
     assert list(data) == ["version", "camera", "lights"]
-    assert data["version"] == 1
+    assert data["version"] == 2
     assert data["camera"] == {"model": "orthographic", "pixel_size": [0.5, 0.25], "origin": [-8.0, 4.125]}
-    assert data["lights"] == [{"position": list(p)} for p in rig.lights.tolist()]
+    assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.lights.tolist()]
 
     loaded = nplps.Rig.load(path)
     assert loaded.camera == rig.camera
@@ -162,12 +164,12 @@ def _edit(fn):
         ([1, 2, 3], r"rig\.json: a rig file holds a JSON object, got list"),
         (_edit(lambda d: d.pop("lights")), r"rig\.json: missing key\(s\) lights"),
         (_edit(lambda d: (d.pop("version"), d.pop("camera"))), r"missing key\(s\) version, camera"),
-        (_edit(lambda d: d.update(version=2)), r"unsupported rig file version 2 \(this nplps reads 1\.\.1\)"),
+        (_edit(lambda d: d.update(version=3)), r"unsupported rig file version 3 \(this nplps reads 1\.\.2\)"),
         (_edit(lambda d: d.update(version=0)), r"unsupported rig file version 0"),
         (_edit(lambda d: d.update(version="1")), r"unsupported rig file version '1'"),
-        (_edit(lambda d: d["lights"][1].pop("position")), r"light 1 needs a 'position' of 3 numbers"),
+        (_edit(lambda d: d["lights"][1].pop("position")), r"light 1 position must be 3 numbers, got None"),
         (_edit(lambda d: d["lights"][2].update(position=[1, 2])), r"light 2 position must have 3 numbers, got 2"),
-        (_edit(lambda d: d["lights"][0].update(position=["a", 0, 0])), r"light 0 needs a 'position' of 3 numbers"),
+        (_edit(lambda d: d["lights"][0].update(position=["a", 0, 0])), r"light 0 position must be 3 numbers"),
         (_edit(lambda d: d.update(lights={"position": [0, 0, 0]})), r"'lights' must be a list"),
         (_edit(lambda d: d.update(lights=d["lights"][:2])), r"at least 3 lights, the rig has 2"),
         (_edit(lambda d: d.update(camera=[])), r"'camera' must be an object with a 'model' key"),
@@ -190,3 +192,60 @@ def test_load_missing_file(tmp_path):
         nplps.Rig.load(missing)
     with pytest.raises(nplps.RigError, match=r"cannot read rig file"):
         nplps.Rig.load(tmp_path)  # a directory
+
+
+def test_version_1_files_are_read(tmp_path):
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps({
+        "version": 1,
+        "camera": {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
+        "lights": [{"position": p} for p in LIGHTS],
+    }))
+    rig = nplps.Rig.load(path)
+    np.testing.assert_array_equal(rig.lights, np.array(LIGHTS, dtype=float))
+    np.testing.assert_array_equal(rig.intensities, 1.0)
+    assert not rig.directional.any() and not rig.mu.any()
+
+
+def test_pinhole_led_rig_round_trip(tmp_path):
+    K = [[800.0, 0.0, 319.5], [0.0, 810.0, 239.5], [0.0, 0.0, 1.0]]
+    rig = nplps.Rig.pinhole(
+        K,
+        lights=[[50.0, 0.0, -10.0], [-40.0, 30.0, -5.0], [0.0, -45.0, -20.0]],
+        distortion=[-0.1, 0.01],
+        intensities=[1.0, [0.9, 1.0, 1.1], 1.2],
+        directions=[[0, 0, 1], [0.1, 0, 1], [0, 0.2, 1]],
+        mu=[1.0, 0.0, 2.0],
+        directional_lights=[[0.0, 0.0, -2.0]],
+        directional_intensities=[0.5],
+    )
+    assert rig.n_lights == 4 and rig.is_pinhole
+    np.testing.assert_allclose(np.linalg.norm(rig.directions, axis=1), 1.0)
+    np.testing.assert_array_equal(rig.lights[3], [0.0, 0.0, -1.0])  # normalized
+    path = tmp_path / "rig.json"
+    rig.save(path)
+    data = json.loads(path.read_text())
+    assert data["camera"]["model"] == "pinhole" and data["camera"]["distortion"] == [-0.1, 0.01, 0.0, 0.0, 0.0]
+    assert [light["type"] for light in data["lights"]] == ["point", "point", "point", "directional"]
+    assert "mu" not in data["lights"][1] and data["lights"][2]["mu"] == 2.0
+    loaded = nplps.Rig.load(path)
+    for name in ("lights", "intensities", "mu", "directional"):
+        np.testing.assert_allclose(getattr(loaded, name), getattr(rig, name))
+    np.testing.assert_allclose(loaded.directions[[0, 2]], rig.directions[[0, 2]])
+    np.testing.assert_allclose(loaded.K, K)
+
+
+def test_pinhole_and_led_errors():
+    good_k = [[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]
+    with pytest.raises(nplps.RigError, match=r"K must be \[\[fx, s, cx\]"):
+        nplps.Rig.pinhole([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 1.0, 1.0]], lights=LIGHTS)
+    with pytest.raises(nplps.RigError, match=r"K must be a 3 x 3 matrix"):
+        nplps.Rig.pinhole(np.eye(2), lights=LIGHTS)
+    with pytest.raises(nplps.RigError, match=r"need their principal directions"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, mu=[1.0] * len(LIGHTS))
+    with pytest.raises(nplps.RigError, match=r"anisotropy mu = -1"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, directions=[[0, 0, 1]] * len(LIGHTS), mu=[-1.0] + [1.0] * (len(LIGHTS) - 1))
+    with pytest.raises(nplps.RigError, match=r"positive intensities"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 0.0] + [1.0] * (len(LIGHTS) - 2))
+    with pytest.raises(nplps.RigError, match=r"intensities must be a number, \(k,\) or \(k, 3\)"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 2.0])

@@ -10,7 +10,7 @@ import numpy as np
 
 from . import _core
 from .errors import InputError
-from .io import load_images, load_mask
+from .io import load_mask, load_stack
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
 
@@ -19,11 +19,15 @@ Depth = Union[float, np.ndarray]
 Progress = Union[None, bool, Callable[[Iteration], Any]]
 
 
-def _prepare(images: Images, rig: Rig, mask: Any, depth: Depth | None) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None]:
+def _prepare(
+    images: Images, rig: Rig, mask: Any, depth: Depth | None, color: bool | None = None
+) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
     if not isinstance(rig, Rig):
         raise InputError(f"rig must be an nplps.Rig, got {type(rig).__name__}")
-    stack = np.ascontiguousarray(load_images(images), dtype=np.float32)
-    k, h, w = stack.shape
+    stack, levels = load_stack(images, color=color is not False)
+    if color and stack.ndim != 4:
+        raise InputError("color=True needs RGB images (k, H, W, 3)")
+    k, h, w = stack.shape[:3]
     if k != rig.n_lights:
         raise InputError(f"{k} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order")
     mask_arr = np.ascontiguousarray(load_mask(mask, (h, w)))
@@ -36,14 +40,36 @@ def _prepare(images: Images, rig: Rig, mask: Any, depth: Depth | None) -> tuple[
         d = float(depth)  # type: ignore[arg-type]
         if not np.isfinite(d) or d <= 0:
             raise InputError(f"the working distance must be a positive finite number, got {depth!r}")
-        return stack, mask_arr, d, None
+        return stack, mask_arr, d, None, levels
     depth_map = np.ascontiguousarray(np.asarray(depth, dtype=np.float64))
     if depth_map.shape != (h + 1, w + 1):
         raise InputError(
             f"the initial depth map has shape {depth_map.shape}; it must have one value per vertex, "
             f"(H+1, W+1) = {(h + 1, w + 1)} for {h} x {w} images"
         )
-    return stack, mask_arr, None, depth_map
+    return stack, mask_arr, None, depth_map, levels
+
+
+def _thresholds(dark: float | None, saturation: float | None, levels: int | None) -> tuple[float, float]:
+    """Shadow and saturation thresholds; by default one level above black and the top level for
+    integer images (values are scaled to [0, 1]), 0 and none for floating-point images."""
+    if dark is None:
+        dark = 0.0 if levels is None else 1.0 / levels
+    if saturation is None:
+        saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
+    return float(dark), float(saturation)
+
+
+def _apply_valid(stack: np.ndarray, valid: Any) -> np.ndarray:
+    """Marks the observations where ``valid`` is False as missing (NaN)."""
+    if valid is None:
+        return stack
+    v = np.asarray(valid, dtype=bool)
+    if v.shape != stack.shape[:3]:
+        raise InputError(f"valid must have one flag per observation, shape {stack.shape[:3]}, got {v.shape}")
+    out = stack.copy()
+    out[~v] = np.nan
+    return out
 
 
 def _warn_negative(count: int, dark: float) -> None:
@@ -91,51 +117,68 @@ def reconstruct(
     iterations: int = 10,
     tol: float = 1e-6,
     progress: Progress = None,
-    dark: float = 0.0,
+    dark: float | None = None,
+    saturation: float | None = None,
     weighting: str = "image",
+    robust: str | None = None,
+    color: bool | None = None,
+    valid: Any = None,
     threads: int | None = None,
 ) -> Reconstruction:
-    """Reconstructs a surface from k images taken under k near point lights.
+    """Reconstructs a surface from k images taken under k near lights.
 
     Args:
         images: (k, H, W) or (k, H, W, 3) array, or k image files / arrays (8/16-bit PNG, TIFF,
-            ...), one per light in the rig's order. Integer images are scaled to [0, 1]; RGB
-            becomes grey (mean of the channels).
-        rig: the :class:`~nplps.Rig` (camera and light positions).
+            JPEG, ...), one per light in the rig's order. Integer images are scaled to [0, 1].
+        rig: the :class:`~nplps.Rig` (camera and lights).
         mask: (H, W) boolean array or mask image (non-zero = reconstruct); None: every pixel.
-        depth: the working distance (each connected region's mean vertex depth; the surface
-            starts as a plane there), or an (H+1, W+1) initial vertex depth map (each region's
-            mean depth stays at the map's mean). Required: near-light reconstruction depends on it.
+        depth: the working distance, or an (H+1, W+1) initial vertex depth map. It sets each
+            connected region's gauge: the arithmetic mean vertex depth (orthographic camera) or the
+            geometric mean vertex depth (pinhole camera); the surface starts there. Required:
+            near-light reconstruction depends on it.
         iterations: maximum number of local/global iterations.
         tol: stop when the largest depth change of an iteration is at most ``tol`` times the
             lateral size of the image footprint.
         progress: None (silent), True (a line per iteration on stderr) or a callable that gets an
             :class:`~nplps.Iteration` after every iteration (raise in it to stop).
-        dark: observations at or below this value count as shadowed and are left out of the fits.
+        dark: observations at or below this value count as shadowed and are left out of the fits
+            (default: one level above black for integer images, 0 for float images).
+        saturation: observations at or above it count as saturated and are left out (default:
+            the top level for integer images, none for float images).
         weighting: "image" (least squares in image units, default) or "paper" (the paper's Eq. 6).
+        robust: None, "cauchy" or "tukey": iteratively reweighted fits that resist highlights
+            and cast shadows.
+        color: None (RGB images give RGB albedo), True (require RGB) or False (average to grey).
+        valid: optional (k, H, W) booleans; False marks observations to leave out.
         threads: worker threads (None: all cores).
 
     Returns:
         A :class:`~nplps.Reconstruction`.
     """
-    stack, mask_arr, distance, depth_map = _prepare(images, rig, mask, depth)
+    stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
+    dark_, saturation_ = _thresholds(dark, saturation, levels)
     if int(iterations) < 1:
         raise InputError(f"iterations must be at least 1, got {iterations}")
+    options = {
+        "iterations": int(iterations),
+        "tol": float(tol),
+        "dark": dark_,
+        "saturation": saturation_,
+        "weighting": weighting,
+        "robust": "none" if robust is None else robust,
+        "threads": _threads(threads),
+    }
     out = _core.reconstruct(
-        stack,
+        _apply_valid(stack, valid),
         rig.camera,
-        rig.lights,
+        rig._core_lights(),
         mask_arr,
         distance,
         depth_map,
-        int(iterations),
-        float(tol),
-        float(dark),
-        weighting,
-        _threads(threads),
+        options,
         _progress_callback(progress, int(iterations)),
     )
-    _warn_negative(out["negative_observations"], float(dark))
+    _warn_negative(out["negative_observations"], dark_)
     return Reconstruction._from_core(out, mask_arr, rig, "near")
 
 
@@ -144,34 +187,51 @@ def reconstruct_parallel(
     rig: Rig,
     mask: Any = None,
     depth: Depth | None = None,
-    dark: float = 0.0,
+    dark: float | None = None,
+    saturation: float | None = None,
+    robust: str | None = None,
+    color: bool | None = None,
+    valid: Any = None,
     threads: int | None = None,
 ) -> Reconstruction:
     """The conventional baseline: parallel-light photometric stereo, then the same integration.
 
-    Each light becomes one direction, from the centroid of the initial surface (given by
-    ``depth`` as in :func:`reconstruct`) to the light, with no falloff. Useful to see what the
-    near-light model gains.
+    Each point light becomes one direction, from the centroid of the initial surface (given by
+    ``depth`` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
+    theirs. Useful to see what the near-light model gains. Options as in :func:`reconstruct`.
     """
-    stack, mask_arr, distance, depth_map = _prepare(images, rig, mask, depth)
-    out = _core.reconstruct_parallel(stack, rig.camera, rig.lights, mask_arr, distance, depth_map, float(dark), _threads(threads))
+    stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
+    dark_, saturation_ = _thresholds(dark, saturation, levels)
+    options = {
+        "dark": dark_,
+        "saturation": saturation_,
+        "robust": "none" if robust is None else robust,
+        "threads": _threads(threads),
+    }
+    out = _core.reconstruct_parallel(
+        _apply_valid(stack, valid), rig.camera, rig._core_lights(), mask_arr, distance, depth_map, options
+    )
     return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 
 
 def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: np.ndarray | None = None) -> np.ndarray:
-    """Images (k, H, W) of the surface with vertex depths ``depth`` (H+1, W+1) under ``rig``.
+    """Images (k, H, W), or (k, H, W, 3) for an (H, W, 3) albedo, of the surface with vertex
+    depths ``depth`` (H+1, W+1) under ``rig``.
 
     Each pixel is the quad between its 4 corner vertices, with the quad's mesh normal and its
-    centre as the surface point: ``I_k = albedo * max(0, n . (p_k - c)) / |p_k - c|^3``
-    (attached shadows clipped at 0). Pixels outside ``mask`` are 0.
+    centre c as the surface point: ``I = albedo * intensity * max(0, n . beta(c))`` with the
+    light's ``beta`` (point light: ``(p - c) / |p - c|^3`` times the LED factor; directional: its
+    direction); attached shadows clipped at 0. Pixels outside ``mask`` are 0.
     """
     z = np.ascontiguousarray(np.asarray(depth, dtype=np.float64))
     if z.ndim != 2 or min(z.shape) < 2:
         raise InputError(f"depth must be an (H+1, W+1) vertex depth map, got shape {z.shape}")
     shape = (z.shape[0] - 1, z.shape[1] - 1)
-    rho = np.ascontiguousarray(np.broadcast_to(np.asarray(albedo, dtype=np.float64), shape))
+    a = np.asarray(albedo, dtype=np.float64)
+    target = shape + (3,) if a.ndim == 3 or (a.ndim == 1 and a.shape == (3,)) else shape
+    rho = np.ascontiguousarray(np.broadcast_to(a, target))
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    return _core.render(z, rig.camera, rig.lights, rho, m)
+    return _core.render(z, rig.camera, rig._core_lights(), rho, m)
 
 
 def _threads(threads: int | None) -> int:

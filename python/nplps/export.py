@@ -105,7 +105,9 @@ def _check_mesh_inputs(
         _require_shape("normals", normals, vertices.shape)
     if albedo is not None:
         albedo = np.asarray(albedo)
-        _require_shape("albedo", albedo, grid)
+        _require_shape("albedo", albedo, grid + albedo.shape[2:] if albedo.ndim == 3 else grid)
+        if albedo.ndim == 3 and albedo.shape[2] != 3:
+            raise InputError(f"albedo has shape {albedo.shape}, expected (H + 1, W + 1) or (H + 1, W + 1, 3)")
     return vertices, mask, normals, albedo
 
 
@@ -174,9 +176,10 @@ def _quantize(
 
 
 def _grey_colors(albedo: np.ndarray) -> np.ndarray:
-    """Grey ``(n, 3)`` uint8 colours: albedo scaled by its 99th percentile to 0..255."""
-    grey, _ = _quantize(albedo, _COLOR_PERCENTILE, 255, np.uint8)
-    return np.repeat(grey[:, None], 3, axis=1)
+    """``(n, 3)`` uint8 colours: albedo (grey ``(n,)`` or RGB ``(n, 3)``) scaled by its 99th
+    percentile (over all channels) to 0..255."""
+    colors, _ = _quantize(albedo, _COLOR_PERCENTILE, 255, np.uint8)
+    return colors if colors.ndim == 2 else np.repeat(colors[:, None], 3, axis=1)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -437,14 +440,27 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
 
     Args:
         path: output file (written as PNG whatever its extension).
-        albedo: ``(H, W)`` albedo.
+        albedo: ``(H, W)`` grey or ``(H, W, 3)`` RGB albedo (16-bit RGB PNG, one scale for all
+            channels).
     """
     albedo = np.asarray(albedo)
-    if albedo.ndim != 2:
-        raise InputError(f"albedo must have shape (H, W), got {albedo.shape}")
+    if not (albedo.ndim == 2 or (albedo.ndim == 3 and albedo.shape[2] == 3)):
+        raise InputError(f"albedo must have shape (H, W) or (H, W, 3), got {albedo.shape}")
     pixels, scale = _quantize(albedo, _ALBEDO_PERCENTILE, 65535, np.uint16)
-    iio.imwrite(path, pixels, extension=".png")
+    write_png16(path, pixels)
     return scale
+
+
+def write_png16(path: PathLike, pixels: np.ndarray) -> None:
+    """Writes a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (with pypng:
+    Pillow cannot write 16-bit RGB)."""
+    import png
+
+    pixels = np.asarray(pixels, dtype=np.uint16)
+    h, w = pixels.shape[:2]
+    grey = pixels.ndim == 2
+    with open(path, "wb") as file:
+        png.Writer(w, h, greyscale=grey, bitdepth=16).write(file, pixels.reshape(h, -1).tolist())
 
 
 def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:

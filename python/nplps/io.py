@@ -202,7 +202,7 @@ def to_gray(img: np.ndarray) -> np.ndarray:
 
 
 def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
-    """Load the input images as a float32 stack of shape ``(k, H, W)``.
+    """Load the input images as a float32 grey stack of shape ``(k, H, W)``.
 
     Args:
         images: either an array of shape ``(k, H, W)`` or ``(k, H, W, 3)`` of any numeric dtype,
@@ -216,43 +216,42 @@ def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
         InputError: no image, an image of the wrong number of dimensions, images of different
             sizes, an unreadable file, or NaN / infinite values. The message names the image.
     """
+    return load_stack(images, color=False)[0]
+
+
+def load_stack(images: np.ndarray | Sequence[ImageSource], color: bool = False) -> tuple[np.ndarray, int | None]:
+    """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set
+    and every image is RGB, with integers scaled to ``[0, 1]``.
+
+    Returns the stack and the number of levels of the source (``255`` for 8-bit, ``65535`` for
+    16-bit input, the largest of the images' if they differ), or None for floating-point input.
+    Raises :class:`InputError` like :func:`load_images`.
+    """
     if isinstance(images, np.ndarray):
-        stack = _stack_from_array(images)
-        labels = [f"image {i}" for i in range(stack.shape[0])]
+        if not (images.ndim == 3 or (images.ndim == 4 and images.shape[3] == 3)):
+            raise InputError(
+                "expected an image stack of shape (k, H, W) or (k, H, W, 3), "
+                f"got an array of shape {images.shape}"
+            )
+        if images.shape[0] == 0:
+            raise InputError("no input image: the image stack is empty")
+        items: list[ImageSource] = list(images)
+        labels = [f"image {i}" for i in range(len(items))]
     else:
-        stack, labels = _stack_from_sequence(images)
+        if isinstance(images, (str, os.PathLike)):
+            raise InputError(f"expected a sequence of images, got the single path '{os.fspath(images)}'")
+        items = list(images)
+        if not items:
+            raise InputError("no input image: the image list is empty")
+        labels = [_label(i, item) for i, item in enumerate(items)]
+    raw = [_read_one(item, label) for item, label in zip(items, labels)]
+    keep_color = color and all(p.ndim == 3 for p in raw)
+    converted = [to_float(p) if keep_color else _gray(p, label) for p, label in zip(raw, labels)]
+    _check_same_shape(converted, labels)
+    stack = np.ascontiguousarray(np.stack(converted), dtype=np.float32)
     _check_finite(stack, labels)
-    return stack
-
-
-def _stack_from_array(images: np.ndarray) -> np.ndarray:
-    """Convert a ``(k, H, W)`` or ``(k, H, W, 3)`` array to a float32 ``(k, H, W)`` stack."""
-    if not (images.ndim == 3 or (images.ndim == 4 and images.shape[3] == 3)):
-        raise InputError(
-            "expected an image stack of shape (k, H, W) or (k, H, W, 3), "
-            f"got an array of shape {images.shape}"
-        )
-    if images.shape[0] == 0:
-        raise InputError("no input image: the image stack is empty")
-    stack = to_float(images)
-    if stack.ndim == 4:
-        stack = stack.mean(axis=3, dtype=np.float32)
-    return np.ascontiguousarray(stack)
-
-
-def _stack_from_sequence(images: Sequence[ImageSource]) -> tuple[np.ndarray, list[str]]:
-    """Read / convert each item of ``images`` and stack them; also return their labels."""
-    if isinstance(images, (str, os.PathLike)):
-        raise InputError(
-            f"expected a sequence of images, got the single path '{os.fspath(images)}'"
-        )
-    items = list(images)
-    if not items:
-        raise InputError("no input image: the image list is empty")
-    labels = [_label(i, item) for i, item in enumerate(items)]
-    grays = [_load_one(item, label) for item, label in zip(items, labels)]
-    _check_same_shape(grays, labels)
-    return np.stack(grays), labels
+    levels = [np.iinfo(p.dtype).max for p in raw if np.issubdtype(p.dtype, np.integer)]
+    return stack, (max(levels) if levels and len(levels) == len(raw) else None)
 
 
 def _label(index: int, item: ImageSource) -> str:
@@ -262,34 +261,35 @@ def _label(index: int, item: ImageSource) -> str:
     return f"image {index}"
 
 
-def _load_one(item: ImageSource, label: str) -> np.ndarray:
-    """Read or convert one image to float32 ``(H, W)``."""
-    if isinstance(item, (str, os.PathLike)):
-        pixels = read_image(item)
-    else:
-        pixels = np.asarray(item)
+def _read_one(item: ImageSource, label: str) -> np.ndarray:
+    """Read a file or take an array; its shape must be ``(H, W)`` or ``(H, W, 3)``."""
+    pixels = read_image(item) if isinstance(item, (str, os.PathLike)) else np.asarray(item)
     if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)):
         raise InputError(f"{label}: expected shape (H, W) or (H, W, 3), got {pixels.shape}")
+    return pixels
+
+
+def _gray(pixels: np.ndarray, label: str) -> np.ndarray:
     try:
         return to_gray(pixels)
     except InputError as exc:
         raise InputError(f"{label}: {exc}") from exc
 
 
-def _check_same_shape(grays: list[np.ndarray], labels: list[str]) -> None:
+def _check_same_shape(images: list[np.ndarray], labels: list[str]) -> None:
     """Raise InputError naming the first image whose size differs from the first image's."""
-    reference = grays[0].shape
-    for gray, label in zip(grays[1:], labels[1:]):
-        if gray.shape != reference:
+    reference = images[0].shape
+    for image, label in zip(images[1:], labels[1:]):
+        if image.shape != reference:
             raise InputError(
-                f"images have different sizes: {label} has shape {gray.shape} (H, W) "
+                f"images have different sizes: {label} has shape {image.shape} "
                 f"but {labels[0]} has shape {reference}"
             )
 
 
 def _check_finite(stack: np.ndarray, labels: list[str]) -> None:
     """Raise InputError listing the images that contain NaN or infinite values."""
-    bad_counts = np.count_nonzero(~np.isfinite(stack), axis=(1, 2))
+    bad_counts = np.count_nonzero(~np.isfinite(stack.reshape(stack.shape[0], -1)), axis=1)
     bad = np.flatnonzero(bad_counts)
     if bad.size == 0:
         return

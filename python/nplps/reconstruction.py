@@ -35,7 +35,8 @@ class Reconstruction:
     depth: np.ndarray
     #: Local-fit unit normals (H, W, 3), facing the camera (n_z < 0).
     normals: np.ndarray
-    #: Fitted albedo (H, W); NaN where a pixel had fewer than 3 usable lights.
+    #: Fitted albedo (H, W), or (H, W, 3) for colour images; NaN where a pixel had fewer than 3
+    #: usable lights.
     albedo: np.ndarray
     #: RMS image residual of each pixel's fit (H, W), in image units.
     residual: np.ndarray
@@ -101,11 +102,13 @@ class Reconstruction:
         return _normalize(_to_vertices(self.normals))
 
     def vertex_albedo(self) -> np.ndarray:
-        """Per-vertex albedo (H+1, W+1): the mean of the adjacent pixels' albedo."""
+        """Per-vertex albedo (H+1, W+1[, 3]): the mean of the adjacent pixels' albedo."""
+        if self.albedo.ndim == 3:
+            return _to_vertices(self.albedo)
         return _to_vertices(self.albedo[..., None])[..., 0]
 
     def save_ply(self, path: str | os.PathLike[str], opengl: bool = False) -> None:
-        """Binary PLY of the masked facets, with vertex normals and albedo as grey colour.
+        """Binary PLY of the masked facets, with vertex normals and the albedo as vertex colour.
 
         Triangles are wound counter-clockwise as seen from the camera. ``opengl=True`` writes the
         OpenGL frame (x right, y up, z towards the viewer) instead of the camera's OpenCV frame.

@@ -47,13 +47,15 @@ class Scene:
 
     @property
     def mean_depth(self) -> float:
-        """Mean true depth of the vertices the mask uses (the true working distance)."""
+        """Mean true depth of the vertices the mask uses: arithmetic (orthographic camera) or
+        geometric (pinhole camera) — the true gauge."""
         h, w = self.mask.shape
         used = np.zeros((h + 1, w + 1), dtype=bool)
         for dr in (0, 1):
             for dc in (0, 1):
                 used[dr : dr + h, dc : dc + w] |= self.mask
-        return float(self.depth[used].mean())
+        z = self.depth[used]
+        return float(np.exp(np.log(z).mean())) if self.rig.is_pinhole else float(z.mean())
 
     def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
         """Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
@@ -69,7 +71,7 @@ class Scene:
         paths: dict[str, Path] = {}
         for i, image in enumerate(self.images):
             p = out / f"image_{i:02d}.png"
-            iio.imwrite(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
+            export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
             paths[f"image_{i:02d}"] = p
         self.rig.save(out / "rig.json")
         iio.imwrite(out / "mask.png", (self.mask * 255).astype(np.uint8))
@@ -87,6 +89,10 @@ def make_scene(
     distance: float = 200.0,
     seed: int = 0,
     noise: float = 0.0,
+    camera: str = "orthographic",
+    led: bool = False,
+    rgb: bool = False,
+    directional: bool = False,
 ) -> Scene:
     """Builds and renders a synthetic scene.
 
@@ -98,11 +104,29 @@ def make_scene(
         seed: seed of the random bumps and of the noise.
         noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity
             (images are clipped at 0 afterwards).
+        camera: "orthographic" or "pinhole" (a camera at the origin whose view spans the object
+            at the working distance).
+        led: anisotropic LEDs aimed at the object (mu 0.5 to 2) with unequal RGB intensities.
+        rgb: colour albedo and (k, H, W, 3) images.
+        directional: every third light is a distant (directional) light.
     """
+    if camera not in ("orthographic", "pinhole"):
+        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
     if not noise >= 0:
         raise InputError(f"noise must be >= 0 (a fraction of the maximum intensity), got {noise}")
-    d = _core.synth_scene(name, int(n), float(size), float(distance), int(seed))
-    rig = Rig.orthographic(pixel_size=d["pixel_size"], origin=d["origin"], lights=d["lights"])
+    d = _core.synth_scene(
+        name, int(n), float(size), float(distance), int(seed),
+        pinhole=camera == "pinhole", led=led, rgb=rgb, directional=directional,
+    )
+    lights = d["lights"]
+    rig = Rig(
+        camera=d["camera"],
+        lights=np.array(lights["vectors"]),
+        intensities=np.array(lights["intensities"]),
+        directions=np.array(lights["axes"]),
+        mu=np.array(lights["mu"]),
+        directional=np.array(lights["directional"]),
+    )
     images = render(d["depth"], rig, d["albedo"], d["mask"])
     if noise > 0:
         rng = np.random.default_rng(seed)

@@ -1,24 +1,86 @@
 //! Conversions between Python objects and the core's types.
+//!
+//! The camera is the rig file's `camera` mapping (`model` = "orthographic" with `pixel_size`
+//! and `origin`, or "pinhole" with `K` and optional `distortion`). The lights are a mapping of
+//! per-light lists: `vectors` (k x 3: positions of point lights, unit directions towards the light
+//! of directional lights), `directional` (k booleans), `intensities` (k x 3), `axes` (k x 3, LED
+//! principal directions) and `mu` (k anisotropies).
 
-use numpy::{IntoPyArray, PyArray1, PyArrayMethods, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyDictMethods};
 
 use crate::errors::{py_error, to_py};
 
+/// Reads `key` of `dict`; a missing or malformed value is a `RigError` naming the key.
+fn get<'py, T: FromPyObjectOwned<'py>>(
+    py: Python<'py>,
+    dict: &Bound<'py, PyDict>,
+    what: &str,
+    key: &str,
+) -> PyResult<T> {
+    let value = dict
+        .get_item(key)?
+        .ok_or_else(|| py_error(py, "RigError", format!("{what} is missing the key {key:?}")))?;
+    value.extract::<T>().map_err(|e| {
+        let e: PyErr = e.into();
+        py_error(
+            py,
+            "RigError",
+            format!("{what} key {key:?} is invalid: {e}"),
+        )
+    })
+}
+
+/// Reads an optional option of an options mapping (`InputError` when malformed).
+pub fn option<'py, T: FromPyObjectOwned<'py>>(
+    py: Python<'py>,
+    dict: &Bound<'py, PyDict>,
+    key: &str,
+    default: T,
+) -> PyResult<T> {
+    match dict.get_item(key)? {
+        None => Ok(default),
+        Some(v) if v.is_none() => Ok(default),
+        Some(v) => v.extract::<T>().map_err(|e| {
+            let e: PyErr = e.into();
+            py_error(py, "InputError", format!("option {key:?} is invalid: {e}"))
+        }),
+    }
+}
+
 /// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping.
 pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps::Camera> {
-    let model: String = get(py, camera, "model")?;
+    let model: String = get(py, camera, "camera", "model")?;
     let cam = match model.as_str() {
         "orthographic" => nplps::Camera::Orthographic {
-            pixel_size: get(py, camera, "pixel_size")?,
-            origin: get(py, camera, "origin")?,
+            pixel_size: get(py, camera, "camera", "pixel_size")?,
+            origin: get(py, camera, "camera", "origin")?,
         },
+        "pinhole" => {
+            let k: [[f64; 3]; 3] = get(py, camera, "camera", "K")?;
+            let distortion: Option<Vec<f64>> = get(py, camera, "camera", "distortion").ok();
+            let mut d = [0.0; 5];
+            if let Some(v) = distortion {
+                if v.len() > 5 {
+                    return Err(py_error(
+                        py,
+                        "RigError",
+                        format!(
+                            "distortion has {} coefficients; at most 5 (k1, k2, p1, p2, k3)",
+                            v.len()
+                        ),
+                    ));
+                }
+                d[..v.len()].copy_from_slice(&v);
+            }
+            nplps::Camera::Pinhole { k, distortion: d }
+        }
         other => {
             return Err(py_error(
                 py,
                 "RigError",
-                format!("unknown camera model {other:?}; supported: \"orthographic\""),
+                format!("unknown camera model {other:?}; supported: \"orthographic\", \"pinhole\""),
             ))
         }
     };
@@ -26,51 +88,106 @@ pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps
     Ok(cam)
 }
 
-/// Builds a core [`nplps::Rig`] from the `camera` mapping and a (k, 3) light array.
-pub fn rig_from(
-    py: Python<'_>,
-    camera: &Bound<'_, PyDict>,
-    lights: PyReadonlyArray2<'_, f64>,
-) -> PyResult<nplps::Rig> {
-    let lights_view = lights.as_array();
-    if lights_view.ncols() != 3 {
+/// The camera as the rig file's mapping.
+pub fn camera_dict<'py>(py: Python<'py>, camera: &nplps::Camera) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    match *camera {
+        nplps::Camera::Orthographic { pixel_size, origin } => {
+            d.set_item("model", "orthographic")?;
+            d.set_item("pixel_size", pixel_size.to_vec())?;
+            d.set_item("origin", origin.to_vec())?;
+        }
+        nplps::Camera::Pinhole { k, distortion } => {
+            d.set_item("model", "pinhole")?;
+            d.set_item("K", k.iter().map(|r| r.to_vec()).collect::<Vec<_>>())?;
+            d.set_item("distortion", distortion.to_vec())?;
+        }
+    }
+    Ok(d)
+}
+
+/// Builds the core's lights from the lights mapping (see the module documentation).
+pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
+    let what = "lights";
+    let vectors: Vec<[f64; 3]> = get(py, lights, what, "vectors")?;
+    let directional: Vec<bool> = get(py, lights, what, "directional")?;
+    let intensities: Vec<[f64; 3]> = get(py, lights, what, "intensities")?;
+    let axes: Vec<[f64; 3]> = get(py, lights, what, "axes")?;
+    let mu: Vec<f64> = get(py, lights, what, "mu")?;
+    let k = vectors.len();
+    if [directional.len(), intensities.len(), axes.len(), mu.len()]
+        .iter()
+        .any(|&n| n != k)
+    {
         return Err(py_error(
             py,
             "RigError",
-            format!(
-                "lights must be a (k, 3) array, got shape {:?}",
-                lights_view.shape()
-            ),
+            format!("every light needs all its parameters ({k} lights)"),
         ));
     }
+    Ok((0..k)
+        .map(|i| {
+            if directional[i] {
+                nplps::Light::Directional {
+                    direction: vectors[i],
+                    intensity: intensities[i],
+                }
+            } else {
+                nplps::Light::Point {
+                    position: vectors[i],
+                    intensity: intensities[i],
+                    axis: axes[i],
+                    mu: mu[i],
+                }
+            }
+        })
+        .collect())
+}
+
+/// The lights as the lights mapping.
+pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bound<'py, PyDict>> {
+    let (mut vectors, mut directional, mut intensities, mut axes, mut mu) =
+        (vec![], vec![], vec![], vec![], vec![]);
+    for light in lights {
+        let (v, dir, phi, axis, m) = match *light {
+            nplps::Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } => (position, false, intensity, axis, mu),
+            nplps::Light::Directional {
+                direction,
+                intensity,
+            } => (direction, true, intensity, [0.0, 0.0, 1.0], 0.0),
+        };
+        vectors.push(v.to_vec());
+        directional.push(dir);
+        intensities.push(phi.to_vec());
+        axes.push(axis.to_vec());
+        mu.push(m);
+    }
+    let d = PyDict::new(py);
+    d.set_item("vectors", vectors)?;
+    d.set_item("directional", directional)?;
+    d.set_item("intensities", intensities)?;
+    d.set_item("axes", axes)?;
+    d.set_item("mu", mu)?;
+    Ok(d)
+}
+
+/// Builds and validates a core [`nplps::Rig`].
+pub fn rig_from(
+    py: Python<'_>,
+    camera: &Bound<'_, PyDict>,
+    lights: &Bound<'_, PyDict>,
+) -> PyResult<nplps::Rig> {
     let rig = nplps::Rig {
         camera: camera_from(py, camera)?,
-        lights: lights_view
-            .rows()
-            .into_iter()
-            .map(|r| [r[0], r[1], r[2]])
-            .collect(),
+        lights: lights_from(py, lights)?,
     };
     rig.validate().map_err(|e| to_py(py, e))?;
     Ok(rig)
-}
-
-fn get<'py, T: FromPyObjectOwned<'py>>(
-    py: Python<'py>,
-    dict: &Bound<'py, PyDict>,
-    key: &str,
-) -> PyResult<T> {
-    let value = dict
-        .get_item(key)?
-        .ok_or_else(|| py_error(py, "RigError", format!("camera is missing the key {key:?}")))?;
-    value.extract::<T>().map_err(|e| {
-        let e: PyErr = e.into();
-        py_error(
-            py,
-            "RigError",
-            format!("camera key {key:?} is invalid: {e}"),
-        )
-    })
 }
 
 /// A flat vector as a numpy array of the given shape.
@@ -103,7 +220,12 @@ pub fn reconstruction_dict<'py>(
     let d = PyDict::new(py);
     d.set_item("depth", array(py, r.depth, &[h + 1, w + 1])?)?;
     d.set_item("normals", array3(py, r.normals, &[h, w])?)?;
-    d.set_item("albedo", array(py, r.albedo, &[h, w])?)?;
+    let albedo = if r.channels == 1 {
+        array(py, r.albedo.iter().map(|a| a[0]).collect(), &[h, w])?
+    } else {
+        array3(py, r.albedo, &[h, w])?
+    };
+    d.set_item("albedo", albedo)?;
     d.set_item("residual", array(py, r.residual, &[h, w])?)?;
     d.set_item("lights_used", array(py, r.lights_used, &[h, w])?)?;
     d.set_item("regions", array(py, r.regions, &[h, w])?)?;

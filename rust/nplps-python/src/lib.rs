@@ -8,11 +8,13 @@
 mod convert;
 mod errors;
 
-use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use convert::{array, array3, camera_from, reconstruction_dict, rig_from};
+use convert::{
+    array, array3, camera_dict, camera_from, lights_dict, option, reconstruction_dict, rig_from,
+};
 use errors::{no_panic, py_error, to_py};
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
@@ -47,22 +49,48 @@ fn initial_depth<'a>(
     }
 }
 
-fn weighting(py: Python<'_>, name: &str) -> PyResult<nplps::Weighting> {
-    match name {
-        "image" => Ok(nplps::Weighting::Image),
-        "paper" => Ok(nplps::Weighting::Paper),
-        other => Err(py_error(
-            py,
-            "InputError",
-            format!("weighting must be \"image\" or \"paper\", got {other:?}"),
-        )),
-    }
+/// Solver options from the options mapping (keys as in `nplps.reconstruct`).
+fn options_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
+    let defaults = nplps::Options::default();
+    let weighting = match option(py, d, "weighting", "image".to_string())?.as_str() {
+        "image" => nplps::Weighting::Image,
+        "paper" => nplps::Weighting::Paper,
+        other => {
+            return Err(py_error(
+                py,
+                "InputError",
+                format!("weighting must be \"image\" or \"paper\", got {other:?}"),
+            ))
+        }
+    };
+    let robust = match option(py, d, "robust", "none".to_string())?.as_str() {
+        "none" => nplps::Robust::None,
+        "cauchy" => nplps::Robust::Cauchy,
+        "tukey" => nplps::Robust::Tukey,
+        other => {
+            return Err(py_error(
+                py,
+                "InputError",
+                format!("robust must be None, \"cauchy\" or \"tukey\", got {other:?}"),
+            ))
+        }
+    };
+    Ok(nplps::Options {
+        iterations: option(py, d, "iterations", defaults.iterations)?,
+        tol: option(py, d, "tol", defaults.tol)?,
+        dark: option(py, d, "dark", defaults.dark)?,
+        saturation: option(py, d, "saturation", defaults.saturation)?,
+        weighting,
+        robust,
+        threads: option(py, d, "threads", defaults.threads)?,
+        ..defaults
+    })
 }
 
-/// The borrowed input of a reconstruction: rig, (k, H, W) images, mask and starting depth.
+/// The borrowed input of a reconstruction: rig, (k, H, W[, 3]) images, mask and starting depth.
 struct Input<'a> {
     rig: nplps::Rig,
-    shape: [usize; 3],
+    shape: [usize; 4],
     images: &'a [f32],
     mask: Option<&'a [bool]>,
     depth: nplps::InitialDepth<'a>,
@@ -71,17 +99,27 @@ struct Input<'a> {
 impl<'a> Input<'a> {
     fn new(
         py: Python<'_>,
-        images: &'a PyReadonlyArray3<'_, f32>,
-        camera: &Bound<'_, PyDict>,
-        lights: PyReadonlyArray2<'_, f64>,
+        images: &'a PyReadonlyArrayDyn<'_, f32>,
+        rig: nplps::Rig,
         mask: Option<&'a PyReadonlyArray2<'_, bool>>,
         distance: Option<f64>,
         depth_map: Option<&'a PyReadonlyArray2<'_, f64>>,
     ) -> PyResult<Input<'a>> {
-        let shape = images.shape();
+        let s = images.shape();
+        let shape = match *s {
+            [k, h, w] => [k, h, w, 1],
+            [k, h, w, c] => [k, h, w, c],
+            _ => {
+                return Err(py_error(
+                    py,
+                    "InputError",
+                    format!("images must be (k, H, W) or (k, H, W, 3), got shape {s:?}"),
+                ))
+            }
+        };
         Ok(Input {
-            rig: rig_from(py, camera, lights)?,
-            shape: [shape[0], shape[1], shape[2]],
+            rig,
+            shape,
             images: slice(py, images, "images")?,
             mask: mask.map(|m| slice(py, m, "mask")).transpose()?,
             depth: initial_depth(py, distance, depth_map)?,
@@ -90,48 +128,37 @@ impl<'a> Input<'a> {
 
     /// The validated problem (runs without the GIL).
     fn problem(&self) -> nplps::Result<nplps::Problem<'_>> {
-        let [k, h, w] = self.shape;
-        let stack = nplps::ImageStack::new(self.images, k, h, w)?;
+        let [k, h, w, c] = self.shape;
+        let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
         nplps::Problem::new(stack, &self.rig, self.mask, self.depth)
     }
 }
 
 /// Near-light reconstruction (see `nplps.reconstruct`). Returns a dict of arrays.
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, iterations, tol, dark, weighting_name, threads, progress))]
+#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options, progress))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
-    images: PyReadonlyArray3<'py, f32>,
+    images: PyReadonlyArrayDyn<'py, f32>,
     camera: &Bound<'py, PyDict>,
-    lights: PyReadonlyArray2<'py, f64>,
+    lights: &Bound<'py, PyDict>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     distance: Option<f64>,
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
-    iterations: usize,
-    tol: f64,
-    dark: f64,
-    weighting_name: &str,
-    threads: usize,
+    options: &Bound<'py, PyDict>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let rig = rig_from(py, camera, lights)?;
     let input = Input::new(
         py,
         &images,
-        camera,
-        lights,
+        rig,
         mask.as_ref(),
         distance,
         depth_map.as_ref(),
     )?;
-    let options = nplps::Options {
-        iterations,
-        tol,
-        dark,
-        weighting: weighting(py, weighting_name)?,
-        threads,
-        ..nplps::Options::default()
-    };
+    let options = options_from(py, options)?;
     let mut callback_error: Option<PyErr> = None;
     let result = py.detach(|| {
         no_panic(|| {
@@ -172,57 +199,73 @@ fn reconstruct<'py>(
 
 /// Parallel-light baseline (see `nplps.reconstruct_parallel`).
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, dark, threads))]
+#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct_parallel<'py>(
     py: Python<'py>,
-    images: PyReadonlyArray3<'py, f32>,
+    images: PyReadonlyArrayDyn<'py, f32>,
     camera: &Bound<'py, PyDict>,
-    lights: PyReadonlyArray2<'py, f64>,
+    lights: &Bound<'py, PyDict>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     distance: Option<f64>,
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
-    dark: f64,
-    threads: usize,
+    options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let rig = rig_from(py, camera, lights)?;
     let input = Input::new(
         py,
         &images,
-        camera,
-        lights,
+        rig,
         mask.as_ref(),
         distance,
         depth_map.as_ref(),
     )?;
-    let result = py.detach(|| {
-        no_panic(|| {
-            let problem = input.problem()?;
-            nplps::reconstruct_parallel(&problem, dark, threads)
-        })
-    });
+    let options = options_from(py, options)?;
+    let result =
+        py.detach(|| no_panic(|| nplps::reconstruct_parallel(&input.problem()?, &options)));
     reconstruction_dict(py, result.map_err(|e| to_py(py, e))?)
 }
 
-/// Images (k, H, W) of the surface `depth` (H+1, W+1) with albedo (H, W) under the rig.
+/// Images (k, H, W) or (k, H, W, 3) of the surface `depth` (H+1, W+1) with albedo (H, W) or
+/// (H, W, 3) under the rig.
 #[pyfunction]
 #[pyo3(signature = (depth, camera, lights, albedo, mask=None))]
 fn render<'py>(
     py: Python<'py>,
     depth: PyReadonlyArray2<'py, f64>,
     camera: &Bound<'py, PyDict>,
-    lights: PyReadonlyArray2<'py, f64>,
-    albedo: PyReadonlyArray2<'py, f64>,
+    lights: &Bound<'py, PyDict>,
+    albedo: PyReadonlyArrayDyn<'py, f64>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = rig_from(py, camera, lights)?;
-    let (h, w) = (albedo.shape()[0], albedo.shape()[1]);
+    let (h, w) = (
+        depth.shape()[0].saturating_sub(1),
+        depth.shape()[1].saturating_sub(1),
+    );
+    let channels = match albedo.shape() {
+        [_, _] => 1,
+        [_, _, c] => *c,
+        s => {
+            return Err(py_error(
+                py,
+                "InputError",
+                format!("albedo must be (H, W) or (H, W, 3), got shape {s:?}"),
+            ))
+        }
+    };
     let depth_s = slice(py, &depth, "depth")?;
     let albedo_s = slice(py, &albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
     let images = py
-        .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, mask)))
+        .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, channels, mask)))
         .map_err(|e| to_py(py, e))?;
-    array(py, images, &[rig.n_lights(), h, w])
+    let k = rig.n_lights();
+    if channels == 1 {
+        array(py, images, &[k, h, w])
+    } else {
+        array(py, images, &[k, h, w, channels])
+    }
 }
 
 /// Mesh normals (H, W, 3) of a vertex depth map (H+1, W+1).
@@ -233,7 +276,10 @@ fn mesh_normals<'py>(
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(py, camera)?;
-    let (h, w) = (depth.shape()[0] - 1, depth.shape()[1] - 1);
+    let (h, w) = (
+        depth.shape()[0].saturating_sub(1),
+        depth.shape()[1].saturating_sub(1),
+    );
     let z = slice(py, &depth, "depth")?;
     let normals = py
         .detach(|| no_panic(|| nplps::mesh_normals(&cam, h, w, z)))
@@ -249,25 +295,29 @@ fn vertices<'py>(
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(py, camera)?;
-    let (h, w) = (depth.shape()[0] - 1, depth.shape()[1] - 1);
+    let (h, w) = (
+        depth.shape()[0].saturating_sub(1),
+        depth.shape()[1].saturating_sub(1),
+    );
     let z = slice(py, &depth, "depth")?;
     let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(|e| to_py(py, e))?;
     array3(py, v, &[h + 1, w + 1])
 }
 
-/// Validates a rig (camera mapping and (k, 3) lights); raises `RigError` when it is invalid.
+/// Validates a rig (camera and lights mappings); raises `RigError` when it is invalid.
 #[pyfunction]
 fn check_rig<'py>(
     py: Python<'py>,
     camera: &Bound<'py, PyDict>,
-    lights: PyReadonlyArray2<'py, f64>,
+    lights: &Bound<'py, PyDict>,
 ) -> PyResult<()> {
     rig_from(py, camera, lights).map(|_| ())
 }
 
 /// A synthetic scene with ground truth: dict of depth, mask, albedo, camera and lights.
 #[pyfunction]
-#[pyo3(signature = (name, n, size, distance, seed))]
+#[pyo3(signature = (name, n, size, distance, seed, pinhole=false, led=false, rgb=false, directional=false))]
+#[allow(clippy::too_many_arguments)]
 fn synth_scene<'py>(
     py: Python<'py>,
     name: &str,
@@ -275,19 +325,31 @@ fn synth_scene<'py>(
     size: f64,
     distance: f64,
     seed: u64,
+    pinhole: bool,
+    led: bool,
+    rgb: bool,
+    directional: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let options = nplps::SceneOptions {
+        pinhole,
+        led,
+        rgb,
+        directional,
+    };
     let scene = nplps::SceneKind::from_name(name)
-        .and_then(|kind| nplps::Scene::new(kind, n, size, distance, seed))
+        .and_then(|kind| nplps::Scene::with_options(kind, n, size, distance, seed, options))
         .map_err(|e| to_py(py, e))?;
     let d = PyDict::new(py);
     d.set_item("depth", array(py, scene.depth, &[n + 1, n + 1])?)?;
     d.set_item("mask", array(py, scene.mask, &[n, n])?)?;
-    d.set_item("albedo", array(py, scene.albedo, &[n, n])?)?;
-    let nplps::Camera::Orthographic { pixel_size, origin } = scene.rig.camera;
-    d.set_item("pixel_size", pixel_size.to_vec())?;
-    d.set_item("origin", origin.to_vec())?;
-    let k = scene.rig.n_lights();
-    d.set_item("lights", array3(py, scene.rig.lights, &[k])?)?;
+    let albedo_shape: &[usize] = if scene.channels == 1 {
+        &[n, n]
+    } else {
+        &[n, n, 3]
+    };
+    d.set_item("albedo", array(py, scene.albedo, albedo_shape)?)?;
+    d.set_item("camera", camera_dict(py, &scene.rig.camera)?)?;
+    d.set_item("lights", lights_dict(py, &scene.rig.lights)?)?;
     d.set_item("size", scene.size)?;
     Ok(d)
 }
@@ -301,7 +363,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
-    m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
+    m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     Ok(())
 }

@@ -1,32 +1,33 @@
 //! The conventional baseline the paper compares against: parallel-light photometric stereo
 //! followed by integration with the same global step.
 //!
-//! Each light becomes one direction `l_k = (p_k - x0) / |p_k - x0|` from the centroid `x0` of
-//! the initial surface, with no falloff; each facet's `g` solves
-//! `min sum_k (l_k . g - I_k)^2` over its usable lights, and the normals are integrated by one
-//! global step (orthographic targets do not depend on the depths, so one solve is exact).
+//! Each point light becomes one direction `l_k = (p_k - x0) / |p_k - x0|` from the centroid `x0`
+//! of the initial surface, with no falloff (its intensity is kept); directional lights keep their
+//! direction. Each facet's `g` is the least-squares fit of `I_k = Phi_k l_k . g` over its usable
+//! lights, and the normals are integrated by one global step (the targets do not depend on the
+//! depths, so one solve is exact).
 
 use std::time::Instant;
 
 use crate::error::Result;
 use crate::global::GlobalSystem;
 use crate::grid::{normalize, sub};
-use crate::local::{local_step, FacetFit, FitSettings, Model};
+use crate::local::{local_step, FacetFit, Model, Weighting};
 use crate::problem::Problem;
+use crate::rig::Light;
 use crate::solver::{
-    assemble, check_dark, rms_of, sparse_par, with_threads, IterationStats, Reconstruction, Timings,
+    assemble, max_depth_change, rms_of, sparse_par, with_threads, IterationStats, Options,
+    Reconstruction, Timings,
 };
 
-/// Light directions of the parallel-light model, seen from the centroid of the initial surface.
-pub fn parallel_directions(problem: &Problem<'_>) -> Vec<[f64; 3]> {
+/// `(direction, intensity)` of each light in the parallel-light model, seen from the centroid of
+/// the initial surface.
+pub fn parallel_lights(problem: &Problem<'_>) -> Vec<([f64; 3], [f64; 3])> {
     let grid = &problem.grid;
     let mut centroid = [0.0; 3];
-    for (u, &v) in grid.active.iter().enumerate() {
-        let [x, y] = problem
-            .rig
-            .camera
-            .vertex_xy(v / (grid.width + 1), v % (grid.width + 1));
-        for (acc, val) in centroid.iter_mut().zip([x, y, problem.z0[u]]) {
+    for (i, &u) in problem.u0.iter().enumerate() {
+        let x = problem.geometry.position(i, u);
+        for (acc, val) in centroid.iter_mut().zip(x) {
             *acc += val;
         }
     }
@@ -35,61 +36,64 @@ pub fn parallel_directions(problem: &Problem<'_>) -> Vec<[f64; 3]> {
         .rig
         .lights
         .iter()
-        .map(|p| normalize(sub(*p, centroid)))
+        .map(|light| match *light {
+            Light::Point {
+                position,
+                intensity,
+                ..
+            } => (normalize(sub(position, centroid)), intensity),
+            Light::Directional {
+                direction,
+                intensity,
+            } => (direction, intensity),
+        })
         .collect()
 }
 
-/// Runs the parallel-light baseline on `problem` (`dark` as in the solver options).
-pub fn reconstruct_parallel(
-    problem: &Problem<'_>,
-    dark: f64,
-    threads: usize,
-) -> Result<Reconstruction> {
-    check_dark(dark)?;
-    with_threads(threads, || {
+/// Runs the parallel-light baseline on `problem` (`options` give the thresholds, the robust
+/// estimator and the threads; the weighting is always in image units).
+pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
+    options.validate()?;
+    with_threads(options.threads, || {
         let start = Instant::now();
         let grid = &problem.grid;
         let mut timings = Timings::default();
         let t = Instant::now();
-        let mut system = GlobalSystem::new(grid, sparse_par(false))?;
+        let mut system = GlobalSystem::new(grid, sparse_par(options.parallel_sparse))?;
         timings.factorization = t.elapsed();
 
-        let directions = parallel_directions(problem);
-        let camera = &problem.rig.camera;
+        let lights = parallel_lights(problem);
         let mut fits: Vec<FacetFit> = vec![FacetFit::EMPTY; grid.n_facets()];
+        let settings = Options {
+            weighting: Weighting::Image,
+            ..*options
+        }
+        .fit_settings(false);
         let t = Instant::now();
         local_step(
             grid,
-            camera,
-            Model::Parallel(&directions),
+            &problem.geometry,
+            Model::Parallel(&lights),
             &problem.obs,
-            &problem.z0,
-            FitSettings {
-                dark,
-                fast_residual: false,
-            },
+            &problem.u0,
+            settings,
             &mut fits,
         );
         timings.local = t.elapsed();
 
         let t = Instant::now();
         let targets: Vec<[f64; 4]> = fits.iter().map(|f| f.target).collect();
-        let mut z = vec![0.0; grid.n_unknowns()];
-        system.solve(grid, &targets, &problem.z0, &mut z);
-        grid.apply_gauge(&mut z, &problem.gauge);
+        let mut u = vec![0.0; grid.n_unknowns()];
+        system.solve(grid, &targets, &problem.u0, &mut u);
+        grid.apply_gauge(&mut u, &problem.gauge);
         timings.solve = t.elapsed();
-        let depth_change = z
-            .iter()
-            .zip(&problem.z0)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
         timings.total = start.elapsed();
         let history = vec![IterationStats {
             iteration: 1,
-            depth_change,
-            rms_residual: rms_of(&fits),
+            depth_change: max_depth_change(&problem.geometry, &u, &problem.u0),
+            rms_residual: rms_of(&fits, problem.obs.channels),
             elapsed: timings.total,
         }];
-        Ok(assemble(problem, &z, &fits, history, true, timings))
+        Ok(assemble(problem, &u, &fits, history, true, timings))
     })?
 }

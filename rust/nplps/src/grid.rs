@@ -7,10 +7,7 @@
 //! (8-connectivity of pixels); each region's depth offset is fixed by the gauge.
 
 use crate::error::{ensure_input, Result};
-use crate::rig::Camera;
-
-/// Corner offsets (dx, dy) from a facet centre, in units of the pixel footprint, in corner order.
-pub const CORNER_OFFSETS: [[f64; 2]; 4] = [[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]];
+use crate::geometry::Geometry;
 
 /// Sentinel for a vertex that no masked facet uses.
 pub const INACTIVE: u32 = u32::MAX;
@@ -122,16 +119,10 @@ impl Grid {
         (p / self.width, p % self.width)
     }
 
-    /// The 4 corners (x, y, z) of facet `f` given the unknowns' depths `z`.
+    /// The 4 corners of facet `f` given the unknowns `u` (see [`Geometry`]).
     #[inline]
-    pub fn facet_corners(&self, camera: &Camera, f: usize, z: &[f64]) -> [[f64; 3]; 4] {
-        let (r, c) = self.facet_rc(f);
-        let ids = self.facet_vertices[f];
-        let rc = [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)];
-        std::array::from_fn(|j| {
-            let [x, y] = camera.vertex_xy(rc[j].0, rc[j].1);
-            [x, y, z[ids[j] as usize]]
-        })
+    pub fn facet_corners(&self, geometry: &Geometry, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
+        self.facet_vertices[f].map(|i| geometry.position(i as usize, u[i as usize]))
     }
 
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).

@@ -31,6 +31,7 @@
 
 pub mod baseline;
 pub mod error;
+pub mod geometry;
 pub mod global;
 pub mod grid;
 pub mod local;
@@ -43,9 +44,9 @@ pub mod synth;
 
 pub use baseline::reconstruct_parallel;
 pub use error::{Error, Result};
-pub use local::Weighting;
+pub use local::{Robust, Weighting};
 pub use problem::{ImageStack, InitialDepth, Problem};
 pub use render::{mesh_normals, render, vertices};
-pub use rig::{Camera, Rig};
+pub use rig::{Camera, Light, Rig};
 pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Timings};
-pub use synth::{Scene, SceneKind};
+pub use synth::{Scene, SceneKind, SceneOptions};

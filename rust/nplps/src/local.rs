@@ -1,27 +1,28 @@
-//! Local step: fit each facet's normal under the near-light model and turn it into target corner
-//! depths.
+//! Local step: fit each facet's normal under the lighting model and turn it into target corner
+//! values for the global step.
 //!
-//! For facet f with centre `c` (mean of its 4 corners) and usable lights `I_k > dark`, with
-//! `a_k = p_k - c`, the scaled normal `g = rho * n` solves the 3 x 3 normal equations `T g = s`:
-//! - [`Weighting::Image`] (default): `b_k = a_k / |a_k|^3`, `T = sum b_k b_k^T`,
-//!   `s = sum I_k b_k`, i.e. least squares of the image model `I_k = b_k . g` in image units;
-//! - [`Weighting::Paper`] (Eq. 6 of Xie et al.): `T = sum a_k a_k^T`, `s = sum |a_k|^3 I_k a_k`.
+//! For facet f with centre `c` (mean of its 4 corners), light k contributes the image model
+//! `I_{k,ch} = rho_ch * n . r_{k,ch}` with `r_{k,ch} = Phi_{k,ch} * beta_k(c)` (see
+//! [`Light::beta`]; `Phi` is the light's intensity in channel `ch`, grey images use the mean of
+//! its channels). Per channel, the scaled normal `g_ch = rho_ch * n` solves the weighted normal
+//! equations `T_ch g_ch = s_ch`, `T_ch = sum w r r^T`, `s_ch = sum w I r`, over the usable lights
+//! (`dark < I < saturation` in every channel, not NaN), with weights
+//! - [`Weighting::Image`] (default): `w = 1`, least squares in image units;
+//! - [`Weighting::Paper`] (Eq. 6 of Xie et al., generalized): `w = (|p - c|^3 / (Phi aniso))^2`,
+//!   i.e. each equation multiplied by `|a_k|^3` for isotropic unit lights;
 //!
-//! Then `rho = |g|`, `n = g / rho`, and the facet's target is the plane through `c` with normal
-//! `n`: corner j at offset `(dx_j, dy_j)` from the centre gets `p_j = c_z - (n_x dx_j + n_y dy_j)
-//! / n_z'` with `n_z' = min(n_z, -NZ_MIN)`. The global step only sees the mean-subtracted target
-//! `N p = -(n_x dx + n_y dy) / n_z'`. A facet with fewer than 3 usable lights, or a singular
-//! system, keeps its current shape (`target = N z(f)`) and reports no albedo.
+//! times the robust weights of the optional IRLS ([`Robust`]). Grey images give `n = g / |g|`,
+//! `rho = |g|`. Colour images give `n = normalize(sum_ch g_ch)` and, for that `n`, the
+//! least-squares albedo `rho_ch = n . s_ch / (n^T T_ch n)`. The target for the global step is the
+//! plane through `c` with normal `n` (see [`Geometry::plane_target`]). A facet with fewer than 3
+//! usable lights, or a singular system, keeps its current shape and reports no albedo.
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use crate::grid::{dot, quad_centre, quad_normal, sub, Grid, CORNER_OFFSETS};
-use crate::rig::Camera;
-
-/// Largest allowed `n_z` of a fitted normal when it is turned into a plane (`-NZ_MIN`), which
-/// bounds the target slopes of grazing fits.
-pub const NZ_MIN: f64 = 0.01;
+use crate::geometry::Geometry;
+use crate::grid::{dot, quad_centre, quad_normal, Grid};
+use crate::rig::Light;
 
 /// How the per-facet linear system weights the lights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -33,16 +34,62 @@ pub enum Weighting {
     Paper,
 }
 
+/// Optional robust estimator (iteratively reweighted least squares) that keeps highlights and
+/// cast shadows from bending the normals. Residuals `e_k` (RMS over channels) are scaled by
+/// `sigma = 1.4826 * median |e|`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Robust {
+    /// Plain least squares.
+    #[default]
+    None,
+    /// Cauchy weights `1 / (1 + (e / (2.385 sigma))^2)`.
+    Cauchy,
+    /// Tukey's biweight `(1 - (e / (4.685 sigma))^2)^2`, 0 beyond `4.685 sigma`.
+    Tukey,
+}
+
+/// Reweighting rounds of the robust estimator.
+pub const IRLS_ITERATIONS: usize = 8;
+
+/// Settings of the per-facet fits.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitSettings {
+    /// Observations at or below this value (and NaN) are shadowed and left out.
+    pub dark: f64,
+    /// Observations at or above this value are saturated and left out.
+    pub saturation: f64,
+    /// Weighting of the equations.
+    pub weighting: Weighting,
+    /// Robust estimator.
+    pub robust: Robust,
+    /// Take the residual of grey, unit-weight fits from the normal equations,
+    /// `sum (r . g - I)^2 = sum I^2 - g . s`, instead of a second pass over the lights (exact up
+    /// to a cancellation of order `sqrt(eps * sum I^2)`; used for the per-iteration history).
+    pub fast_residual: bool,
+}
+
+impl Default for FitSettings {
+    fn default() -> Self {
+        FitSettings {
+            dark: 0.0,
+            saturation: f64::INFINITY,
+            weighting: Weighting::Image,
+            robust: Robust::None,
+            fast_residual: false,
+        }
+    }
+}
+
 /// The local fit of one facet.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FacetFit {
-    /// Mean-subtracted target corner depths (order 00, 01, 10, 11).
+    /// Mean-subtracted target corner values (order 00, 01, 10, 11).
     pub target: [f64; 4],
     /// Fitted unit normal (the mesh normal for an invalid facet).
     pub normal: [f64; 3],
-    /// Fitted albedo `rho` (NaN for an invalid facet).
-    pub albedo: f64,
-    /// Sum of squared image residuals `(b_k . g - I_k)^2` over the usable lights.
+    /// Fitted albedo per channel (grey: all three equal; NaN for an invalid facet).
+    pub albedo: [f64; 3],
+    /// Sum of squared image residuals over the usable observations (lights x channels).
     pub sse: f64,
     /// Number of usable lights.
     pub used: u32,
@@ -55,181 +102,335 @@ impl FacetFit {
     pub const EMPTY: FacetFit = FacetFit {
         target: [0.0; 4],
         normal: [f64::NAN; 3],
-        albedo: f64::NAN,
+        albedo: [f64::NAN; 3],
         sse: 0.0,
         used: 0,
         valid: false,
     };
 
-    /// RMS image residual over the usable lights (NaN for an invalid facet).
-    pub fn rms(&self) -> f64 {
+    /// RMS image residual per usable observation (NaN for an invalid facet).
+    pub fn rms(&self, channels: usize) -> f64 {
         if self.valid {
-            (self.sse / self.used as f64).sqrt()
+            (self.sse / (self.used as usize * channels) as f64).sqrt()
         } else {
             f64::NAN
         }
     }
 }
 
-/// Per-facet observations, facet-major: `obs[f * k + i]` is facet f's intensity under light i.
+/// Per-facet observations, facet-major: `values[(f * k + i) * channels + ch]`.
+#[derive(Debug, Clone)]
 pub struct Observations {
     /// Number of lights k.
     pub k: usize,
-    /// Intensities, `n_facets * k`.
+    /// Channels per observation (1 or 3).
+    pub channels: usize,
+    /// Intensities, `n_facets * k * channels`; NaN marks a missing observation.
     pub values: Vec<f32>,
-}
-
-/// Settings of the per-facet fits.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FitSettings {
-    /// Observations at or below this value (and NaN) are shadowed and left out.
-    pub dark: f64,
-    /// Take the residual from the normal equations instead of a second pass (see [`fit_facet`]).
-    pub fast_residual: bool,
 }
 
 /// The lighting model a facet is fitted with.
 #[derive(Debug, Clone, Copy)]
 pub enum Model<'a> {
-    /// Near point lights at these positions (the method's model).
-    Near(&'a [[f64; 3]], Weighting),
-    /// Parallel lights along these unit directions, no falloff (the conventional baseline).
-    Parallel(&'a [[f64; 3]]),
+    /// The rig's lights (the method's model).
+    Near(&'a [Light]),
+    /// Parallel lights `(direction, intensity)`, no falloff (the conventional baseline).
+    Parallel(&'a [([f64; 3], [f64; 3])]),
 }
 
 impl Model<'_> {
-    /// Whether every equation has weight 1 (the residual then follows from the normal equations).
+    /// `beta_k(c)`, the paper-weighting factor and the intensity of light k.
     #[inline]
-    fn unit_weights(&self) -> bool {
-        !matches!(self, Model::Near(_, Weighting::Paper))
-    }
-
-    /// For light k seen from the point `c`: the vector `b` of the image model `I = b . g`, and
-    /// the weight that multiplies the equation.
-    #[inline]
-    fn row(&self, k: usize, c: [f64; 3]) -> ([f64; 3], f64) {
+    fn row(&self, k: usize, c: [f64; 3]) -> ([f64; 3], f64, [f64; 3]) {
         match *self {
-            Model::Near(lights, weighting) => {
-                let a = sub(lights[k], c);
-                let d2 = dot(a, a);
-                let d3 = d2 * d2.sqrt();
-                let inv = 1.0 / d3;
-                let b = [a[0] * inv, a[1] * inv, a[2] * inv];
-                match weighting {
-                    Weighting::Image => (b, 1.0),
-                    Weighting::Paper => (b, d3),
-                }
+            Model::Near(lights) => {
+                let (b, w) = lights[k].beta(c);
+                (b, w, lights[k].intensity())
             }
-            Model::Parallel(directions) => (directions[k], 1.0),
+            Model::Parallel(lights) => (lights[k].0, 1.0, lights[k].1),
         }
     }
 }
 
-/// Runs the local step on every facet in parallel (rayon), writing `fits` (see [`fit_facet`]
-/// for `fast_residual`).
+/// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
+/// unknowns (see [`Geometry`]).
 pub fn local_step(
     grid: &Grid,
-    camera: &Camera,
+    geometry: &Geometry,
     model: Model<'_>,
     obs: &Observations,
-    z: &[f64],
+    u: &[f64],
     settings: FitSettings,
     fits: &mut [FacetFit],
 ) {
-    let pixel_size = camera.pixel_size();
+    let per_facet = obs.k * obs.channels;
     fits.par_iter_mut().enumerate().for_each(|(f, fit)| {
-        let q = grid.facet_corners(camera, f, z);
-        let intensities = &obs.values[f * obs.k..(f + 1) * obs.k];
-        *fit = fit_facet(&q, model, intensities, pixel_size, settings);
+        let q = grid.facet_corners(geometry, f, u);
+        let ids = grid.facet_vertices[f];
+        let values = &obs.values[f * per_facet..(f + 1) * per_facet];
+        let c = quad_centre(&q);
+        *fit = match fit_facet(c, model, values, obs.channels, settings) {
+            Some(fitted) => FacetFit {
+                target: geometry.plane_target(fitted.normal, ids, c),
+                ..fitted
+            },
+            None => keep_shape(
+                &q,
+                ids.map(|i| u[i as usize]),
+                usable_count(values, obs.channels, settings),
+            ),
+        };
     });
 }
 
-/// Fits one facet with corners `q` (see the module documentation).
-///
-/// The symmetric 3 x 3 system is accumulated entry by entry and solved by nalgebra's Cholesky
-/// factorization (failure = singular system). With `fast_residual` and unit equation weights the
-/// residual follows from the normal equations, `sum (b_k . g - I_k)^2 = sum I_k^2 - g . s`,
-/// without a second pass over the lights (exact up to a cancellation of order
-/// `sqrt(eps * sum I_k^2)`, fine for the per-iteration history); otherwise it is summed exactly.
-pub fn fit_facet(
-    q: &[[f64; 3]; 4],
-    model: Model<'_>,
-    intensities: &[f32],
-    pixel_size: [f64; 2],
-    settings: FitSettings,
-) -> FacetFit {
-    let FitSettings {
-        dark,
-        fast_residual,
-    } = settings;
-    let c = quad_centre(q);
-    let usable = |i: f32| !(i.is_nan() || i as f64 <= dark);
-    // Upper triangle of T (t00, t01, t02, t11, t12, t22), right side s, sum of I^2.
-    let mut t = [0.0f64; 6];
-    let mut s = [0.0f64; 3];
-    let mut sum_i2 = 0.0;
-    let mut used = 0u32;
-    for (k, &i) in intensities.iter().enumerate() {
-        if !usable(i) {
-            continue;
-        }
-        let i = i as f64;
-        let (b, w) = model.row(k, c);
-        let r = [b[0] * w, b[1] * w, b[2] * w];
-        let y = w * i;
-        t[0] += r[0] * r[0];
-        t[1] += r[0] * r[1];
-        t[2] += r[0] * r[2];
-        t[3] += r[1] * r[1];
-        t[4] += r[1] * r[2];
-        t[5] += r[2] * r[2];
-        s[0] += r[0] * y;
-        s[1] += r[1] * y;
-        s[2] += r[2] * y;
-        sum_i2 += i * i;
-        used += 1;
-    }
-    if used < 3 {
-        return keep_shape(q, used);
-    }
-    let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
-    let Some(g) = solve_spd3(&tm, &Vector3::from(s)) else {
-        return keep_shape(q, used);
-    };
-    let rho = g.norm();
-    if !(rho.is_finite() && rho > 0.0) {
-        return keep_shape(q, used);
-    }
-    let g = [g.x, g.y, g.z];
-    let sse = if fast_residual && model.unit_weights() {
-        (sum_i2 - dot(g, s)).max(0.0)
+/// Whether an observation (all its channels) can be used.
+#[inline]
+fn usable(obs: &[f32], settings: &FitSettings) -> bool {
+    obs.iter().all(|&v| {
+        let v = v as f64;
+        v > settings.dark && v < settings.saturation
+    })
+}
+
+fn usable_count(values: &[f32], channels: usize, settings: FitSettings) -> u32 {
+    values
+        .chunks_exact(channels)
+        .filter(|o| usable(o, &settings))
+        .count() as u32
+}
+
+/// Grey scale factor of a light's intensity for `channels` channels.
+#[inline]
+fn channel_intensity(phi: [f64; 3], channels: usize, ch: usize) -> f64 {
+    if channels == 1 {
+        (phi[0] + phi[1] + phi[2]) / 3.0
     } else {
-        intensities
-            .iter()
-            .enumerate()
-            .filter(|(_, i)| usable(**i))
-            .map(|(k, &i)| {
-                let e = dot(model.row(k, c).0, g) - i as f64;
-                e * e
+        phi[ch]
+    }
+}
+
+/// Normal equations of one facet, per channel.
+#[derive(Default)]
+struct Sums {
+    t: [[f64; 6]; 3],
+    s: [[f64; 3]; 3],
+    sum_i2: f64,
+    used: u32,
+}
+
+/// One facet's data during its fit.
+struct Facet<'a> {
+    c: [f64; 3],
+    model: Model<'a>,
+    values: &'a [f32],
+    channels: usize,
+    settings: FitSettings,
+}
+
+impl Facet<'_> {
+    /// Observations per light (chunks of `channels` values).
+    fn observations(&self) -> impl Iterator<Item = (usize, &[f32])> {
+        self.values.chunks_exact(self.channels).enumerate()
+    }
+
+    /// Accumulates the weighted normal equations with robust weights `rw(k)`.
+    fn accumulate(&self, rw: impl Fn(usize) -> f64) -> Sums {
+        let mut sums = Sums::default();
+        for (k, o) in self.observations() {
+            if !usable(o, &self.settings) {
+                continue;
+            }
+            sums.used += 1;
+            let robust = rw(k);
+            if robust == 0.0 {
+                continue;
+            }
+            let (b, pw, phi) = self.model.row(k, self.c);
+            for (ch, &i) in o.iter().enumerate() {
+                let i = i as f64;
+                let p = channel_intensity(phi, self.channels, ch);
+                let r = [b[0] * p, b[1] * p, b[2] * p];
+                let w = robust
+                    * match self.settings.weighting {
+                        Weighting::Image => 1.0,
+                        Weighting::Paper => (pw / p) * (pw / p),
+                    };
+                let (t, s) = (&mut sums.t[ch], &mut sums.s[ch]);
+                t[0] += w * r[0] * r[0];
+                t[1] += w * r[0] * r[1];
+                t[2] += w * r[0] * r[2];
+                t[3] += w * r[1] * r[1];
+                t[4] += w * r[1] * r[2];
+                t[5] += w * r[2] * r[2];
+                s[0] += w * r[0] * i;
+                s[1] += w * r[1] * i;
+                s[2] += w * r[2] * i;
+                sums.sum_i2 += i * i;
+            }
+        }
+        sums
+    }
+
+    /// Squared residual of light k's observation `o` (summed over channels) under the fit
+    /// `(n, albedo)`, or `None` when the observation is not usable.
+    fn sq_residual(&self, k: usize, o: &[f32], n: [f64; 3], albedo: [f64; 3]) -> Option<f64> {
+        if !usable(o, &self.settings) {
+            return None;
+        }
+        let (b, _, phi) = self.model.row(k, self.c);
+        let nb = dot(n, b);
+        Some(
+            o.iter()
+                .enumerate()
+                .map(|(ch, &i)| {
+                    let e = albedo[ch] * channel_intensity(phi, self.channels, ch) * nb - i as f64;
+                    e * e
+                })
+                .sum(),
+        )
+    }
+
+    /// Robust weights (per light) of the fit `(n, albedo)`; `None` when fewer than 3 lights keep
+    /// a positive weight.
+    fn robust_weights(
+        &self,
+        n: [f64; 3],
+        albedo: [f64; 3],
+        scratch: &mut Vec<f64>,
+    ) -> Option<Vec<f64>> {
+        let channels = self.channels as f64;
+        let rms: Vec<Option<f64>> = self
+            .observations()
+            .map(|(k, o)| {
+                self.sq_residual(k, o, n, albedo)
+                    .map(|e| (e / channels).sqrt())
             })
+            .collect();
+        scratch.clear();
+        scratch.extend(rms.iter().flatten());
+        let mid = scratch.len() / 2;
+        let median = *scratch.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+        let max_i = self.values.iter().fold(0.0f32, |m, v| m.max(*v)) as f64;
+        let sigma = (1.4826 * median).max(1e-9 * max_i).max(f64::MIN_POSITIVE);
+        let weights: Vec<f64> = rms
+            .iter()
+            .map(|e| e.map_or(0.0, |e| robust_weight(self.settings.robust, e, sigma)))
+            .collect();
+        (weights.iter().filter(|w| **w > 0.0).count() >= 3).then_some(weights)
+    }
+}
+
+/// Solves the accumulated system for the normal and the albedo per channel.
+fn solve_sums(sums: &Sums, channels: usize) -> Option<([f64; 3], [f64; 3], [f64; 3])> {
+    let mut gs = [[0.0; 3]; 3];
+    let mut tms = [Matrix3::zeros(); 3];
+    for ch in 0..channels {
+        let t = &sums.t[ch];
+        tms[ch] = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
+        let g = solve_spd3(&tms[ch], &Vector3::from(sums.s[ch]))?;
+        gs[ch] = [g.x, g.y, g.z];
+    }
+    if channels == 1 {
+        let g = gs[0];
+        let rho = dot(g, g).sqrt();
+        if !(rho.is_finite() && rho > 0.0) {
+            return None;
+        }
+        return Some(([g[0] / rho, g[1] / rho, g[2] / rho], [rho; 3], g));
+    }
+    let sum: [f64; 3] = std::array::from_fn(|i| gs[0][i] + gs[1][i] + gs[2][i]);
+    let norm = dot(sum, sum).sqrt();
+    if !(norm.is_finite() && norm > 0.0) {
+        return None;
+    }
+    let n = sum.map(|v| v / norm);
+    let nv = Vector3::from(n);
+    let albedo: [f64; 3] = std::array::from_fn(|ch| {
+        let den = nv.dot(&(tms[ch] * nv));
+        dot(n, sums.s[ch]) / den
+    });
+    if !albedo.iter().all(|a| a.is_finite()) {
+        return None;
+    }
+    Some((n, albedo, sum))
+}
+
+/// Robust weight of a residual `e` with scale `sigma`.
+#[inline]
+fn robust_weight(robust: Robust, e: f64, sigma: f64) -> f64 {
+    match robust {
+        Robust::None => 1.0,
+        Robust::Cauchy => {
+            let x = e / (2.385 * sigma);
+            1.0 / (1.0 + x * x)
+        }
+        Robust::Tukey => {
+            let x = e / (4.685 * sigma);
+            if x < 1.0 {
+                (1.0 - x * x) * (1.0 - x * x)
+            } else {
+                0.0
+            }
+        }
+    }
+}
+
+/// Fits one facet with centre `c` to its observations `values` (k lights x `channels`); `None`
+/// when it cannot be fitted. The target is left at zero (the caller sets it).
+pub fn fit_facet(
+    c: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: FitSettings,
+) -> Option<FacetFit> {
+    let facet = Facet {
+        c,
+        model,
+        values,
+        channels,
+        settings,
+    };
+    let sums = facet.accumulate(|_| 1.0);
+    if sums.used < 3 {
+        return None;
+    }
+    let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
+    if settings.robust != Robust::None {
+        let mut scratch = Vec::new();
+        for _ in 0..IRLS_ITERATIONS {
+            let Some(weights) = facet.robust_weights(n, albedo, &mut scratch) else {
+                break;
+            };
+            match solve_sums(&facet.accumulate(|k| weights[k]), channels) {
+                Some((n2, a2, _)) => (n, albedo) = (n2, a2),
+                None => break,
+            }
+        }
+    }
+    let unit_weights = settings.weighting == Weighting::Image && settings.robust == Robust::None;
+    let sse = if settings.fast_residual && unit_weights && channels == 1 {
+        (sums.sum_i2 - dot(g, sums.s[0])).max(0.0)
+    } else {
+        facet
+            .observations()
+            .filter_map(|(k, o)| facet.sq_residual(k, o, n, albedo))
             .sum()
     };
-    let n = [g[0] / rho, g[1] / rho, g[2] / rho];
-    FacetFit {
-        target: plane_target(n, pixel_size),
+    Some(FacetFit {
+        target: [0.0; 4],
         normal: n,
-        albedo: rho,
+        albedo,
         sse,
-        used,
+        used: sums.used,
         valid: true,
-    }
+    })
 }
 
 /// Solves `T g = s` for a symmetric 3 x 3 `T`, or `None` when `T` is not (numerically) positive
 /// definite: its determinant must exceed `1e-12` times the product of its diagonal (Hadamard's
 /// bound), which rejects singular and nearly singular light configurations. nalgebra's closed-form
-/// inverse keeps the dependency chain per facet short (a Cholesky factorization chains three
-/// square roots and several divisions).
+/// inverse keeps the dependency chain per facet short.
 #[inline]
 fn solve_spd3(t: &Matrix3<f64>, s: &Vector3<f64>) -> Option<Vector3<f64>> {
     let diag = t[(0, 0)] * t[(1, 1)] * t[(2, 2)];
@@ -240,20 +441,13 @@ fn solve_spd3(t: &Matrix3<f64>, s: &Vector3<f64>) -> Option<Vector3<f64>> {
     t.try_inverse().map(|inv| inv * s)
 }
 
-/// Mean-subtracted corner depths of the plane with normal `n` (n_z limited to `-NZ_MIN`).
-#[inline]
-pub fn plane_target(n: [f64; 3], pixel_size: [f64; 2]) -> [f64; 4] {
-    let nz = n[2].min(-NZ_MIN);
-    CORNER_OFFSETS.map(|[ox, oy]| -(n[0] * ox * pixel_size[0] + n[1] * oy * pixel_size[1]) / nz)
-}
-
-/// The fit of a facet that cannot be fitted: it keeps its current (mean-subtracted) shape.
-fn keep_shape(q: &[[f64; 3]; 4], used: u32) -> FacetFit {
-    let mean = 0.25 * (q[0][2] + q[1][2] + q[2][2] + q[3][2]);
+/// The fit of a facet that cannot be fitted: it keeps its current (mean-subtracted) unknowns.
+fn keep_shape(q: &[[f64; 3]; 4], u: [f64; 4], used: u32) -> FacetFit {
+    let mean = 0.25 * (u[0] + u[1] + u[2] + u[3]);
     FacetFit {
-        target: std::array::from_fn(|j| q[j][2] - mean),
+        target: u.map(|v| v - mean),
         normal: quad_normal(q),
-        albedo: f64::NAN,
+        albedo: [f64::NAN; 3],
         sse: 0.0,
         used,
         valid: false,
@@ -263,102 +457,138 @@ fn keep_shape(q: &[[f64; 3]; 4], used: u32) -> FacetFit {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::grid::{normalize, sub};
 
-    const EXACT: FitSettings = FitSettings {
-        dark: 0.0,
-        fast_residual: false,
-    };
-
-    fn lights() -> Vec<[f64; 3]> {
-        vec![
-            [30.0, 0.0, -50.0],
-            [-20.0, 25.0, -60.0],
-            [-10.0, -30.0, -40.0],
-            [5.0, 5.0, -80.0],
+    fn lights() -> Vec<Light> {
+        [
+            [30.0, 0.0, 50.0],
+            [-20.0, 25.0, 40.0],
+            [-10.0, -30.0, 60.0],
+            [5.0, 5.0, 20.0],
+            [0.0, -40.0, 45.0],
         ]
+        .into_iter()
+        .map(Light::point)
+        .collect()
     }
 
-    /// A tilted plane facet and its exact images.
-    fn facet() -> ([[f64; 3]; 4], [f64; 3], Vec<f32>) {
-        let slope = [0.3, -0.2];
-        let q: [[f64; 3]; 4] = std::array::from_fn(|j| {
-            let [dx, dy] = CORNER_OFFSETS[j];
-            [dx, dy, 100.0 + slope[0] * dx + slope[1] * dy]
-        });
-        let n = crate::grid::normalize([slope[0], slope[1], -1.0]);
-        let c = quad_centre(&q);
-        let rho = 2.0e4;
-        let images = lights()
-            .iter()
-            .map(|p| {
-                let a = sub(*p, c);
-                (rho * dot(n, a).max(0.0) / dot(a, a).powf(1.5)) as f32
-            })
-            .collect();
-        (q, n, images)
+    /// A tilted facet centre 100 away and its exact images for albedo (2e4, 1e4, 5e3).
+    fn facet(channels: usize) -> ([f64; 3], [f64; 3], Vec<f32>) {
+        let c = [1.0, -2.0, 100.0];
+        let n = normalize([0.3, -0.2, -1.0]);
+        let rho = [2.0e4, 1.0e4, 5.0e3];
+        let mut images = Vec::new();
+        for l in lights() {
+            let (b, _) = l.beta(c);
+            for r in &rho[..channels] {
+                images.push((r * dot(n, b).max(0.0)) as f32);
+            }
+        }
+        (c, n, images)
+    }
+
+    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+        dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
     }
 
     #[test]
-    fn exact_images_give_the_exact_plane() {
-        let (q, n, images) = facet();
-        for weighting in [Weighting::Image, Weighting::Paper] {
-            let l = lights();
-            let fit = fit_facet(&q, Model::Near(&l, weighting), &images, [1.0, 1.0], EXACT);
-            assert!(fit.valid);
-            assert_eq!(fit.used, 4);
-            let err = dot(fit.normal, n).clamp(-1.0, 1.0).acos().to_degrees();
-            assert!(err < 1e-4, "{weighting:?}: {err} degrees");
-            assert!((fit.albedo / 2.0e4 - 1.0).abs() < 1e-5);
-            let mean = 0.25 * q.iter().map(|p| p[2]).sum::<f64>();
-            for (t, corner) in fit.target.iter().zip(&q) {
-                assert!((t - (corner[2] - mean)).abs() < 1e-5);
+    fn exact_images_give_the_exact_normal() {
+        let l = lights();
+        for channels in [1, 3] {
+            let (c, n, images) = facet(channels);
+            for weighting in [Weighting::Image, Weighting::Paper] {
+                for robust in [Robust::None, Robust::Cauchy, Robust::Tukey] {
+                    let settings = FitSettings {
+                        weighting,
+                        robust,
+                        ..FitSettings::default()
+                    };
+                    let fit = fit_facet(c, Model::Near(&l), &images, channels, settings).unwrap();
+                    assert_eq!(fit.used, 5);
+                    assert!(
+                        angle(fit.normal, n) < 1e-4,
+                        "{channels} {weighting:?} {robust:?}"
+                    );
+                    assert!((fit.albedo[0] / 2.0e4 - 1.0).abs() < 1e-5);
+                    if channels == 3 {
+                        assert!((fit.albedo[2] / 5.0e3 - 1.0).abs() < 1e-5);
+                    }
+                }
             }
         }
     }
 
     #[test]
-    fn shadowed_facet_keeps_its_shape() {
-        let (q, _, mut images) = facet();
+    fn robust_fit_ignores_a_highlight() {
+        let l = lights();
+        let mut more = l.clone();
+        more.extend(
+            [[15.0, 15.0, 30.0], [-25.0, -5.0, 35.0], [10.0, -20.0, 25.0]].map(Light::point),
+        );
+        let c = [1.0, -2.0, 100.0];
+        let n = normalize([0.3, -0.2, -1.0]);
+        let mut images: Vec<f32> = more
+            .iter()
+            .map(|l| (2.0e4 * dot(n, l.beta(c).0)) as f32)
+            .collect();
+        images[3] *= 3.0;
+        let plain = fit_facet(c, Model::Near(&more), &images, 1, FitSettings::default()).unwrap();
+        let robust = FitSettings {
+            robust: Robust::Tukey,
+            ..FitSettings::default()
+        };
+        let fixed = fit_facet(c, Model::Near(&more), &images, 1, robust).unwrap();
+        assert!(angle(plain.normal, n) > 1.0);
+        assert!(angle(fixed.normal, n) < 1e-3, "{}", angle(fixed.normal, n));
+    }
+
+    #[test]
+    fn shadowed_and_saturated_observations_are_left_out() {
+        let l = lights();
+        let (c, _, mut images) = facet(1);
         images[0] = 0.0;
         images[1] = -1.0;
-        let l = lights();
-        let fit = fit_facet(
-            &q,
-            Model::Near(&l, Weighting::Image),
-            &images,
-            [1.0, 1.0],
-            EXACT,
-        );
-        assert!(!fit.valid);
-        assert_eq!(fit.used, 2);
-        assert!(fit.albedo.is_nan() && fit.rms().is_nan());
-        assert!(fit.target.iter().all(|t| t.is_finite()));
-        assert!((fit.target.iter().sum::<f64>()).abs() < 1e-12);
+        images[2] = f32::NAN;
+        assert!(fit_facet(c, Model::Near(&l), &images, 1, FitSettings::default()).is_none());
+        assert_eq!(usable_count(&images, 1, FitSettings::default()), 2);
+        let (c, _, images) = facet(1);
+        let saturation = FitSettings {
+            saturation: images[2] as f64,
+            ..FitSettings::default()
+        };
+        let fit = fit_facet(c, Model::Near(&l), &images, 1, saturation).unwrap();
+        assert_eq!(fit.used, 4);
     }
 
     #[test]
     fn fast_residual_matches_the_exact_one_on_noisy_data() {
-        let (q, _, images) = facet();
+        let l = lights();
+        let (c, _, images) = facet(1);
         let noisy: Vec<f32> = images
             .iter()
             .enumerate()
             .map(|(k, &v)| v * (1.0 + 0.02 * (k as f32 - 1.5)))
             .collect();
-        let l = lights();
-        let model = Model::Near(&l, Weighting::Image);
-        let fast = fit_facet(
-            &q,
-            model,
-            &noisy,
-            [1.0, 1.0],
-            FitSettings {
-                fast_residual: true,
-                ..EXACT
-            },
-        );
-        let exact = fit_facet(&q, model, &noisy, [1.0, 1.0], EXACT);
-        assert!(exact.rms() > 0.0);
-        assert!((fast.rms() / exact.rms() - 1.0).abs() < 1e-6);
-        assert_eq!(fast.normal, exact.normal);
+        let fast = FitSettings {
+            fast_residual: true,
+            ..FitSettings::default()
+        };
+        let a = fit_facet(c, Model::Near(&l), &noisy, 1, fast).unwrap();
+        let b = fit_facet(c, Model::Near(&l), &noisy, 1, FitSettings::default()).unwrap();
+        assert!(b.sse > 0.0 && (a.sse / b.sse - 1.0).abs() < 1e-6);
+        let _ = sub(c, c);
+    }
+
+    #[test]
+    fn invalid_facets_keep_their_shape() {
+        let q = [
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 2.0],
+            [0.0, 1.0, 3.0],
+            [1.0, 1.0, 5.0],
+        ];
+        let fit = keep_shape(&q, [1.0, 2.0, 3.0, 5.0], 2);
+        assert!(!fit.valid && fit.albedo[0].is_nan() && fit.rms(1).is_nan());
+        assert_eq!(fit.target, [-1.75, -0.75, 0.25, 2.25]);
     }
 }

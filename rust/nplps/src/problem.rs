@@ -3,14 +3,16 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_input, Error, Result};
+use crate::geometry::Geometry;
 use crate::grid::Grid;
 use crate::local::Observations;
 use crate::rig::Rig;
 
-/// A borrowed stack of k grey images, laid out (k, H, W) row-major.
+/// A borrowed stack of k images, laid out (k, H, W, C) row-major with C = 1 (grey) or 3 (RGB).
+/// NaN marks a missing observation (left out of the fits); infinities are errors.
 #[derive(Debug, Clone, Copy)]
 pub struct ImageStack<'a> {
-    /// Pixel values, `k * height * width` of them.
+    /// Pixel values, `k * height * width * channels` of them.
     pub data: &'a [f32],
     /// Number of images k.
     pub k: usize,
@@ -18,14 +20,30 @@ pub struct ImageStack<'a> {
     pub height: usize,
     /// Image width W.
     pub width: usize,
+    /// Channels per pixel C (1 or 3).
+    pub channels: usize,
 }
 
 impl<'a> ImageStack<'a> {
-    /// Wraps `data` as k images of H x W pixels; fails when the length does not match.
+    /// Wraps `data` as k grey images of H x W pixels; fails when the length does not match.
     pub fn new(data: &'a [f32], k: usize, height: usize, width: usize) -> Result<Self> {
-        ensure_input(data.len() == k * height * width, || {
+        Self::with_channels(data, k, height, width, 1)
+    }
+
+    /// Wraps `data` as k images of H x W pixels with `channels` (1 or 3) values each.
+    pub fn with_channels(
+        data: &'a [f32],
+        k: usize,
+        height: usize,
+        width: usize,
+        channels: usize,
+    ) -> Result<Self> {
+        ensure_input(channels == 1 || channels == 3, || {
+            format!("images must have 1 (grey) or 3 (RGB) channels, got {channels}")
+        })?;
+        ensure_input(data.len() == k * height * width * channels, || {
             format!(
-                "image data has {} values, expected k * H * W = {k} * {height} * {width}",
+                "image data has {} values, expected k * H * W * C = {k} * {height} * {width} * {channels}",
                 data.len()
             )
         })?;
@@ -34,6 +52,7 @@ impl<'a> ImageStack<'a> {
             k,
             height,
             width,
+            channels,
         })
     }
 }
@@ -55,11 +74,14 @@ pub struct Problem<'a> {
     pub rig: &'a Rig,
     /// Mesh connectivity of the mask.
     pub grid: Grid,
+    /// Vertex positions and unknowns (depth or log-depth) under the rig's camera.
+    pub geometry: Geometry,
     /// Per-facet observations (facet-major).
     pub obs: Observations,
-    /// Initial depth of each unknown, already gauged.
-    pub z0: Vec<f64>,
-    /// Gauge value of each region (its mean vertex depth).
+    /// Initial unknown of each active vertex (depth, or log-depth for a pinhole camera).
+    pub u0: Vec<f64>,
+    /// Gauge of each region: the mean of its unknowns (arithmetic mean depth, or log of the
+    /// geometric mean depth).
     pub gauge: Vec<f64>,
     /// Number of negative observations inside the mask (treated as unlit).
     pub negative_observations: usize,
@@ -81,39 +103,52 @@ impl<'a> Problem<'a> {
                 rig.n_lights()
             )
         })?;
-        if let Some(i) = images.data.iter().position(|v| !v.is_finite()) {
-            let plane = images.height * images.width;
+        if let Some(i) = images.data.iter().position(|v| v.is_infinite()) {
+            let plane = images.height * images.width * images.channels;
+            let pixel = (i % plane) / images.channels;
             return Err(Error::Input(format!(
-                "image {} has a non-finite value (NaN or inf) at row {}, column {}",
+                "image {} has an infinite value at row {}, column {}",
                 i / plane,
-                (i % plane) / images.width,
-                i % images.width
+                pixel / images.width,
+                pixel % images.width
             )));
         }
         let grid = Grid::new(images.height, images.width, mask)?;
-        let (z0, gauge) = initial_depth(&grid, depth)?;
-        let min_depth = z0.iter().copied().fold(f64::INFINITY, f64::min);
+        let geometry = Geometry::new(&rig.camera, &grid);
+        let (u0, gauge) = initial_unknowns(&grid, &geometry, depth)?;
+        let min_depth = u0
+            .iter()
+            .map(|&u| geometry.depth(u))
+            .fold(f64::INFINITY, f64::min);
         rig.check_lights_in_front(min_depth)?;
         let obs = gather_observations(&grid, &images);
         let negative_observations = obs.values.par_iter().filter(|v| **v < 0.0).count();
         Ok(Problem {
             rig,
             grid,
+            geometry,
             obs,
-            z0,
+            u0,
             gauge,
             negative_observations,
         })
     }
 }
 
-fn initial_depth(grid: &Grid, depth: InitialDepth<'_>) -> Result<(Vec<f64>, Vec<f64>)> {
+fn initial_unknowns(
+    grid: &Grid,
+    geometry: &Geometry,
+    depth: InitialDepth<'_>,
+) -> Result<(Vec<f64>, Vec<f64>)> {
+    let positive = geometry.is_perspective();
+    let valid = |z: f64| z.is_finite() && (!positive || z > 0.0);
     match depth {
         InitialDepth::Distance(d) => {
-            ensure_input(d.is_finite(), || {
-                format!("the working distance must be finite, got {d}")
+            ensure_input(valid(d), || {
+                format!("the working distance must be finite (and positive for a pinhole camera), got {d}")
             })?;
-            Ok((vec![d; grid.n_unknowns()], vec![d; grid.n_regions]))
+            let u = geometry.unknown(d);
+            Ok((vec![u; grid.n_unknowns()], vec![u; grid.n_regions]))
         }
         InitialDepth::Map(map) => {
             let (h, w) = (grid.height + 1, grid.width + 1);
@@ -125,32 +160,43 @@ fn initial_depth(grid: &Grid, depth: InitialDepth<'_>) -> Result<(Vec<f64>, Vec<
                 )
             })?;
             let z0 = grid.gather_vertices(map);
-            if let Some(u) = z0.iter().position(|z| !z.is_finite()) {
-                let v = grid.active[u];
+            if let Some(i) = z0.iter().position(|z| !valid(*z)) {
+                let v = grid.active[i];
                 return Err(Error::Input(format!(
-                    "the initial depth map is not finite at vertex (row {}, column {}) used by the mask",
+                    "the initial depth map is {} at vertex (row {}, column {}) used by the mask",
+                    if z0[i].is_finite() {
+                        "not positive"
+                    } else {
+                        "not finite"
+                    },
                     v / w,
                     v % w
                 )));
             }
-            let gauge = grid.region_means(&z0);
-            Ok((z0, gauge))
+            let u0: Vec<f64> = z0.iter().map(|&z| geometry.unknown(z)).collect();
+            let gauge = grid.region_means(&u0);
+            Ok((u0, gauge))
         }
     }
 }
 
-/// Transposes the masked pixels of a (k, H, W) stack to facet-major order.
+/// Transposes the masked pixels of a (k, H, W, C) stack to facet-major order.
 fn gather_observations(grid: &Grid, images: &ImageStack<'_>) -> Observations {
-    let k = images.k;
-    let plane = images.height * images.width;
-    let mut values = vec![0.0f32; grid.n_facets() * k];
+    let (k, channels) = (images.k, images.channels);
+    let plane = images.height * images.width * channels;
+    let mut values = vec![0.0f32; grid.n_facets() * k * channels];
     values
-        .par_chunks_mut(k)
+        .par_chunks_mut(k * channels)
         .zip(grid.facets.par_iter())
         .for_each(|(out, &p)| {
-            for (i, o) in out.iter_mut().enumerate() {
-                *o = images.data[i * plane + p];
+            for (i, o) in out.chunks_exact_mut(channels).enumerate() {
+                let start = i * plane + p * channels;
+                o.copy_from_slice(&images.data[start..start + channels]);
             }
         });
-    Observations { k, values }
+    Observations {
+        k,
+        channels,
+        values,
+    }
 }

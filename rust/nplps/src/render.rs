@@ -1,27 +1,19 @@
 //! Rendering by the image model, and geometry of a depth map (vertices, mesh normals).
 //!
 //! A facet with corners `q` (vertices at pixel corners) has centre `c = mean(q)` and mesh normal
-//! `n = normalize((q10 - q01) x (q11 - q00))`; its image under light k is
-//! `I_k = rho * max(0, n . (p_k - c)) / |p_k - c|^3` (attached shadows clipped at 0).
+//! `n = normalize((q10 - q01) x (q11 - q00))`; its image under light k in channel `ch` is
+//! `I = rho_ch * Phi_{k,ch} * max(0, n . beta_k(c))` (attached shadows clipped at 0; see
+//! [`Light::beta`]). Grey images use the mean of each light's channels.
 
 use rayon::prelude::*;
 
 use crate::error::{ensure_input, Result};
-use crate::grid::{dot, quad_centre, quad_normal, sub};
-use crate::rig::{Camera, Rig};
+use crate::geometry::Geometry;
+use crate::grid::{dot, quad_centre, quad_normal, Grid};
+use crate::rig::{Camera, Light, Rig};
 
-/// The 4 corners of pixel (r, c) of an (H+1) x (W+1) vertex depth map.
-#[inline]
-fn pixel_quad(camera: &Camera, width: usize, depth: &[f64], r: usize, c: usize) -> [[f64; 3]; 4] {
-    let vw = width + 1;
-    let rc = [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)];
-    rc.map(|(rr, cc)| {
-        let [x, y] = camera.vertex_xy(rr, cc);
-        [x, y, depth[rr * vw + cc]]
-    })
-}
-
-fn check_depth(height: usize, width: usize, depth: &[f64]) -> Result<()> {
+/// Vertex positions of a full (H+1) x (W+1) depth map.
+fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
     ensure_input(depth.len() == (height + 1) * (width + 1), || {
         format!(
             "depth map has {} values, expected (H+1) x (W+1) = {} x {}",
@@ -29,21 +21,26 @@ fn check_depth(height: usize, width: usize, depth: &[f64]) -> Result<()> {
             height + 1,
             width + 1
         )
-    })
+    })?;
+    let grid = Grid::new(height, width, None)?;
+    let geometry = Geometry::new(camera, &grid);
+    Ok(depth
+        .iter()
+        .enumerate()
+        .map(|(v, &z)| geometry.position_at_depth(v, z))
+        .collect())
 }
 
-/// Mesh normal of every pixel of an (H+1) x (W+1) depth map (NaN where a corner is NaN).
-pub fn mesh_normals(
-    camera: &Camera,
-    height: usize,
-    width: usize,
-    depth: &[f64],
-) -> Result<Vec<[f64; 3]>> {
-    check_depth(height, width, depth)?;
-    Ok((0..height * width)
-        .into_par_iter()
-        .map(|p| quad_normal(&pixel_quad(camera, width, depth, p / width, p % width)))
-        .collect())
+/// The 4 corners of pixel `p` from the vertex positions.
+#[inline]
+fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
+    let v = (p / width) * (width + 1) + p % width;
+    [
+        vertices[v],
+        vertices[v + 1],
+        vertices[v + width + 1],
+        vertices[v + width + 2],
+    ]
 }
 
 /// 3-D position of every vertex of an (H+1) x (W+1) depth map.
@@ -53,34 +50,44 @@ pub fn vertices(
     width: usize,
     depth: &[f64],
 ) -> Result<Vec<[f64; 3]>> {
-    check_depth(height, width, depth)?;
-    let vw = width + 1;
-    Ok(depth
-        .iter()
-        .enumerate()
-        .map(|(v, &z)| {
-            let [x, y] = camera.vertex_xy(v / vw, v % vw);
-            [x, y, z]
-        })
+    positions(camera, height, width, depth)
+}
+
+/// Mesh normal of every pixel of an (H+1) x (W+1) depth map (NaN where a corner is NaN).
+pub fn mesh_normals(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+) -> Result<Vec<[f64; 3]>> {
+    let v = positions(camera, height, width, depth)?;
+    Ok((0..height * width)
+        .into_par_iter()
+        .map(|p| quad_normal(&pixel_quad(&v, width, p)))
         .collect())
 }
 
-/// Renders the k images (k, H, W) of the surface `depth` ((H+1) x (W+1)) with per-pixel
-/// `albedo` (H x W). Pixels outside `mask`, or with a NaN corner, are 0.
+/// Renders the k images (k, H, W, C) of the surface `depth` ((H+1) x (W+1)) with per-pixel
+/// `albedo` (H x W x C, C = 1 or 3). Pixels outside `mask`, or with a NaN corner, are 0.
 pub fn render(
     rig: &Rig,
     height: usize,
     width: usize,
     depth: &[f64],
     albedo: &[f64],
+    channels: usize,
     mask: Option<&[bool]>,
 ) -> Result<Vec<f64>> {
-    check_depth(height, width, depth)?;
+    let v = positions(&rig.camera, height, width, depth)?;
     let plane = height * width;
-    ensure_input(albedo.len() == plane, || {
+    ensure_input(channels == 1 || channels == 3, || {
+        format!("channels must be 1 or 3, got {channels}")
+    })?;
+    ensure_input(albedo.len() == plane * channels, || {
         format!(
-            "albedo has {} values, expected H x W = {plane}",
-            albedo.len()
+            "albedo has {} values, expected H x W x C = {}",
+            albedo.len(),
+            plane * channels
         )
     })?;
     if let Some(m) = mask {
@@ -89,34 +96,49 @@ pub fn render(
         })?;
     }
     let k = rig.n_lights();
-    let mut out = vec![0.0; k * plane];
-    // Pixel-major work, written image-major.
+    let stride = plane * channels;
+    let mut out = vec![0.0; k * stride];
     let per_pixel: Vec<Vec<f64>> = (0..plane)
         .into_par_iter()
         .map(|p| {
             if mask.is_some_and(|m| !m[p]) {
                 return Vec::new();
             }
-            let q = pixel_quad(&rig.camera, width, depth, p / width, p % width);
-            let n = quad_normal(&q);
-            let c = quad_centre(&q);
-            if !(n.iter().all(|v| v.is_finite())) {
+            let q = pixel_quad(&v, width, p);
+            let (n, c) = (quad_normal(&q), quad_centre(&q));
+            if !n.iter().all(|x| x.is_finite()) {
                 return Vec::new();
             }
+            let rho = &albedo[p * channels..(p + 1) * channels];
             rig.lights
                 .iter()
-                .map(|l| {
-                    let a = sub(*l, c);
-                    let d2 = dot(a, a);
-                    albedo[p] * dot(n, a).max(0.0) / (d2 * d2.sqrt())
-                })
+                .flat_map(|l| shade(l, n, c, rho))
                 .collect()
         })
         .collect();
     for (p, values) in per_pixel.iter().enumerate() {
-        for (i, v) in values.iter().enumerate() {
-            out[i * plane + p] = *v;
+        for (j, value) in values.iter().enumerate() {
+            let (i, ch) = (j / channels, j % channels);
+            out[i * stride + p * channels + ch] = *value;
         }
     }
     Ok(out)
+}
+
+/// The image values (one per channel of `rho`) of a facet with normal `n` and centre `c`.
+fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64]) -> Vec<f64> {
+    let (beta, _) = light.beta(c);
+    let shading = dot(n, beta).max(0.0);
+    let phi = light.intensity();
+    rho.iter()
+        .enumerate()
+        .map(|(ch, r)| {
+            let p = if rho.len() == 1 {
+                (phi[0] + phi[1] + phi[2]) / 3.0
+            } else {
+                phi[ch]
+            };
+            r * p * shading
+        })
+        .collect()
 }

@@ -5,9 +5,9 @@
 //! share them.
 
 use crate::error::{Error, Result};
+use crate::grid::{dot, sub};
 
-/// Camera model. Only the paper's orthographic camera exists for now; pinhole cameras extend this
-/// enum.
+/// Camera model.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Camera {
     /// Orthographic camera looking along +z. Vertex (r, c) of the mesh stands at
@@ -19,29 +19,26 @@ pub enum Camera {
         /// Scene (x, y) of the top-left corner of pixel (0, 0).
         origin: [f64; 2],
     },
+    /// Pinhole camera at the origin with intrinsics `k` in the 0-based pixel-centre convention
+    /// (pixel (r, c) has its centre at (u, v) = (c, r)) and OpenCV distortion coefficients
+    /// (k1, k2, p1, p2, k3). Vertex (r, c) sits on the ray through the pixel corner
+    /// (u, v) = (c - 1/2, r - 1/2), scaled to z = 1, at depth z.
+    Pinhole {
+        /// Intrinsic matrix, row-major.
+        k: [[f64; 3]; 3],
+        /// Distortion (k1, k2, p1, p2, k3); zeros for none.
+        distortion: [f64; 5],
+    },
 }
 
 impl Camera {
-    /// Scene (x, y) of vertex (r, c) (a pixel corner).
-    #[inline]
-    pub fn vertex_xy(&self, r: usize, c: usize) -> [f64; 2] {
-        match *self {
-            Camera::Orthographic { pixel_size, origin } => [
-                origin[0] + c as f64 * pixel_size[0],
-                origin[1] + r as f64 * pixel_size[1],
-            ],
-        }
+    /// Whether the global step works on log-depth (pinhole) rather than depth (orthographic).
+    pub fn is_perspective(&self) -> bool {
+        matches!(self, Camera::Pinhole { .. })
     }
 
-    /// Pixel footprint (w, h).
-    #[inline]
-    pub fn pixel_size(&self) -> [f64; 2] {
-        match *self {
-            Camera::Orthographic { pixel_size, .. } => pixel_size,
-        }
-    }
-
-    /// Checks that the camera's parameters are finite and its pixel size positive.
+    /// Checks that the camera's parameters are finite, the pixel size positive, and K a valid
+    /// upper-triangular intrinsic matrix with positive focal lengths.
     pub fn validate(&self) -> Result<()> {
         match *self {
             Camera::Orthographic { pixel_size, origin } => {
@@ -55,33 +52,198 @@ impl Camera {
                 }
                 Ok(())
             }
+            Camera::Pinhole { k, distortion } => {
+                let finite = k.iter().flatten().chain(&distortion).all(|v| v.is_finite());
+                let shape_ok = k[1][0] == 0.0 && k[2] == [0.0, 0.0, 1.0];
+                if !(finite && shape_ok && k[0][0] > 0.0 && k[1][1] > 0.0) {
+                    return Err(Error::Rig(format!(
+                        "K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive finite focal \
+                         lengths (and finite distortion), got K = {k:?}, distortion = {distortion:?}"
+                    )));
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Orthographic: the scene (x, y) of vertex (r, c). Pinhole: the ray (x, y) of vertex (r, c)
+    /// at z = 1, undistorted.
+    pub fn vertex_xy(&self, r: usize, c: usize) -> [f64; 2] {
+        match *self {
+            Camera::Orthographic { pixel_size, origin } => [
+                origin[0] + c as f64 * pixel_size[0],
+                origin[1] + r as f64 * pixel_size[1],
+            ],
+            Camera::Pinhole { k, distortion } => {
+                let (u, v) = (c as f64 - 0.5, r as f64 - 0.5);
+                let yd = (v - k[1][2]) / k[1][1];
+                let xd = (u - k[0][2] - k[0][1] * yd) / k[0][0];
+                undistort([xd, yd], distortion)
+            }
+        }
+    }
+
+    /// Lateral extent of one pixel at depth `z` (w, h).
+    pub fn pixel_size_at(&self, z: f64) -> [f64; 2] {
+        match *self {
+            Camera::Orthographic { pixel_size, .. } => pixel_size,
+            Camera::Pinhole { k, .. } => [z / k[0][0], z / k[1][1]],
         }
     }
 }
 
-/// A calibrated rig: one camera and k isotropic point lights.
-///
-/// Image model at a surface point `x` with unit normal `n` and albedo `rho`:
-/// `I_k = rho * max(0, n . (p_k - x)) / |p_k - x|^3`.
+/// Inverts OpenCV's distortion model by fixed-point iteration (as `cv::undistortPoints` does).
+fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
+    if dist.iter().all(|c| *c == 0.0) {
+        return d;
+    }
+    let [k1, k2, p1, p2, k3] = dist;
+    let (mut x, mut y) = (d[0], d[1]);
+    for _ in 0..30 {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        x = (d[0] - dx) / radial;
+        y = (d[1] - dy) / radial;
+    }
+    [x, y]
+}
+
+/// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
+/// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Light {
+    /// A near point light (an LED) at `position`, emitting around the unit `axis` with
+    /// anisotropy `mu` (Quéau et al. 2018): `beta(x) = ((x - p) . axis / |x - p|)^mu *
+    /// (p - x) / |p - x|^3`; `mu = 0` is an isotropic point light (the axis is then unused).
+    Point {
+        /// Position p in the camera frame.
+        position: [f64; 3],
+        /// Intensity per channel (R, G, B; grey images use the mean).
+        intensity: [f64; 3],
+        /// Unit principal direction, from the LED towards the scene.
+        axis: [f64; 3],
+        /// Anisotropy mu >= 0.
+        mu: f64,
+    },
+    /// A distant light: `beta = direction` (unit, from the surface towards the light).
+    Directional {
+        /// Unit direction from the surface towards the light.
+        direction: [f64; 3],
+        /// Intensity per channel.
+        intensity: [f64; 3],
+    },
+}
+
+impl Light {
+    /// An isotropic point light of unit intensity.
+    pub fn point(position: [f64; 3]) -> Light {
+        Light::Point {
+            position,
+            intensity: [1.0; 3],
+            axis: [0.0, 0.0, 1.0],
+            mu: 0.0,
+        }
+    }
+
+    /// Intensity per channel.
+    pub fn intensity(&self) -> [f64; 3] {
+        match *self {
+            Light::Point { intensity, .. } | Light::Directional { intensity, .. } => intensity,
+        }
+    }
+
+    /// `beta(x)` (see [`Light`]) and the factor `|p - x|^3 / aniso` that turns the paper's
+    /// Eq. 6 weighting into equation weights (1 for directional lights).
+    #[inline]
+    pub fn beta(&self, x: [f64; 3]) -> ([f64; 3], f64) {
+        match *self {
+            Light::Point {
+                position, axis, mu, ..
+            } => {
+                let a = sub(position, x);
+                let d2 = dot(a, a);
+                let d = d2.sqrt();
+                let d3 = d2 * d;
+                let aniso = if mu == 0.0 {
+                    1.0
+                } else {
+                    (-dot(a, axis) / d).max(0.0).powf(mu)
+                };
+                let f = aniso / d3;
+                ([a[0] * f, a[1] * f, a[2] * f], d3 / aniso)
+            }
+            Light::Directional { direction, .. } => (direction, 1.0),
+        }
+    }
+
+    fn validate(&self, i: usize) -> Result<()> {
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        let (vector, name, intensity, axis, mu) = match *self {
+            Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } => (position, "position", intensity, axis, mu),
+            Light::Directional {
+                direction,
+                intensity,
+            } => (direction, "direction", intensity, [0.0, 0.0, 1.0], 0.0),
+        };
+        if !finite(&vector) {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite {name} {vector:?}"
+            )));
+        }
+        if !finite(&intensity) || !finite(&axis) || !mu.is_finite() {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite parameter: {self:?}"
+            )));
+        }
+        if !intensity.iter().all(|v| *v > 0.0) {
+            return Err(Error::Rig(format!(
+                "light {i} must have positive intensities, got {intensity:?}"
+            )));
+        }
+        if mu < 0.0 {
+            return Err(Error::Rig(format!(
+                "light {i} has anisotropy mu = {mu}; it must be >= 0"
+            )));
+        }
+        let unit = |v: [f64; 3]| (dot(v, v).sqrt() - 1.0).abs() < 1e-6;
+        match *self {
+            Light::Point { axis, mu, .. } if mu > 0.0 && !unit(axis) => Err(Error::Rig(format!(
+                "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {axis:?}"
+            ))),
+            Light::Directional { direction, .. } if !unit(direction) => Err(Error::Rig(format!(
+                "light {i}: a directional light needs a unit direction, got {direction:?}"
+            ))),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// A calibrated rig: one camera and k lights.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rig {
     /// The camera.
     pub camera: Camera,
-    /// Light positions `p_k` in the camera frame.
-    pub lights: Vec<[f64; 3]>,
+    /// The lights, in the order of the images.
+    pub lights: Vec<Light>,
 }
 
 impl Rig {
-    /// An orthographic rig; fails on non-positive pixel sizes, non-finite values or fewer than
-    /// three lights.
+    /// An orthographic rig with isotropic unit point lights at `positions`.
     pub fn orthographic(
         pixel_size: [f64; 2],
         origin: [f64; 2],
-        lights: Vec<[f64; 3]>,
+        positions: Vec<[f64; 3]>,
     ) -> Result<Rig> {
         let rig = Rig {
             camera: Camera::Orthographic { pixel_size, origin },
-            lights,
+            lights: positions.into_iter().map(Light::point).collect(),
         };
         rig.validate()?;
         Ok(rig)
@@ -92,7 +254,7 @@ impl Rig {
         self.lights.len()
     }
 
-    /// Checks the camera and the lights.
+    /// Checks the camera and the lights (at least 3).
     pub fn validate(&self) -> Result<()> {
         self.camera.validate()?;
         if self.lights.len() < 3 {
@@ -101,29 +263,25 @@ impl Rig {
                 self.lights.len()
             )));
         }
-        if let Some(i) = self
-            .lights
+        self.lights
             .iter()
-            .position(|p| !p.iter().all(|v| v.is_finite()))
-        {
-            return Err(Error::Rig(format!(
-                "light {i} has a non-finite position {:?}",
-                self.lights[i]
-            )));
-        }
-        Ok(())
+            .enumerate()
+            .try_for_each(|(i, l)| l.validate(i))
     }
 
-    /// Fails when a light is not strictly in front of the surface (its z must be smaller than
-    /// the smallest surface depth `min_depth`: lights stand between the camera side and the
-    /// object).
+    /// Fails when a point light is not strictly in front of the surface (its z must be smaller
+    /// than the smallest surface depth `min_depth`: lights stand on the camera's side).
     pub fn check_lights_in_front(&self, min_depth: f64) -> Result<()> {
-        if let Some(i) = self.lights.iter().position(|p| p[2] >= min_depth) {
-            return Err(Error::Rig(format!(
-                "light {i} at z = {} is not in front of the surface (nearest depth {min_depth}); \
-                 lights must have smaller z than the object (z grows away from the camera)",
-                self.lights[i][2]
-            )));
+        for (i, light) in self.lights.iter().enumerate() {
+            if let Light::Point { position, .. } = light {
+                if position[2] >= min_depth {
+                    return Err(Error::Rig(format!(
+                        "light {i} at z = {} is not in front of the surface (nearest depth {min_depth}); \
+                         lights must have smaller z than the object (z grows away from the camera)",
+                        position[2]
+                    )));
+                }
+            }
         }
         Ok(())
     }
@@ -145,6 +303,46 @@ mod tests {
     }
 
     #[test]
+    fn pinhole_rays_go_through_pixel_corners() {
+        let cam = Camera::Pinhole {
+            k: [[100.0, 0.0, 10.0], [0.0, 200.0, 20.0], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        };
+        cam.validate().unwrap();
+        // Corner (r, c) = (20.5, 10.5) is the principal point.
+        let [x, y] = cam.vertex_xy(0, 0);
+        assert!((x + 10.5 / 100.0).abs() < 1e-15 && (y + 20.5 / 200.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn undistortion_inverts_the_distortion_model() {
+        let dist = [-0.2, 0.05, 0.001, -0.002, 0.01];
+        let (x, y) = (0.3f64, -0.2f64);
+        let r2 = x * x + y * y;
+        let radial = 1.0 + dist[0] * r2 + dist[1] * r2 * r2 + dist[4] * r2 * r2 * r2;
+        let xd = x * radial + 2.0 * dist[2] * x * y + dist[3] * (r2 + 2.0 * x * x);
+        let yd = y * radial + dist[2] * (r2 + 2.0 * y * y) + 2.0 * dist[3] * x * y;
+        let [ux, uy] = undistort([xd, yd], dist);
+        assert!((ux - x).abs() < 1e-10 && (uy - y).abs() < 1e-10);
+    }
+
+    #[test]
+    fn led_beta_follows_the_anisotropic_model() {
+        let led = Light::Point {
+            position: [0.0, 0.0, 0.0],
+            intensity: [1.0; 3],
+            axis: [0.0, 0.0, 1.0],
+            mu: 2.0,
+        };
+        // On the axis at distance 2: beta = (p - x) / 8; off axis at 45 degrees the factor is 1/2.
+        let (b, w) = led.beta([0.0, 0.0, 2.0]);
+        assert!((b[2] + 0.25).abs() < 1e-15 && (w - 8.0).abs() < 1e-12);
+        let (b, _) = led.beta([1.0, 0.0, 1.0]);
+        let expected = 0.5 / 2f64.powf(1.5);
+        assert!((b[0] + expected).abs() < 1e-12);
+    }
+
+    #[test]
     fn rejects_bad_rigs() {
         assert!(matches!(
             Rig::orthographic([0.0, 1.0], [0.0, 0.0], lights()),
@@ -160,5 +358,10 @@ mod tests {
         let rig = Rig::orthographic([1.0, 1.0], [0.0, 0.0], lights()).unwrap();
         assert!(rig.check_lights_in_front(1.0).is_ok());
         assert!(rig.check_lights_in_front(0.0).is_err());
+        let bad_k = Camera::Pinhole {
+            k: [[0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        };
+        assert!(bad_k.validate().is_err());
     }
 }

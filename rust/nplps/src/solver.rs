@@ -15,11 +15,10 @@ use std::time::{Duration, Instant};
 use faer::Par;
 
 use crate::error::{Error, Result};
+use crate::geometry::Geometry;
 use crate::global::GlobalSystem;
-use crate::grid::Grid;
-use crate::local::{local_step, FacetFit, FitSettings, Model, Weighting};
+use crate::local::{local_step, FacetFit, FitSettings, Model, Robust, Weighting};
 use crate::problem::Problem;
-use crate::rig::Rig;
 
 /// Options of the iteration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -31,8 +30,12 @@ pub struct Options {
     pub tol: f64,
     /// Observations at or below this value are treated as shadowed and left out of the fits.
     pub dark: f64,
+    /// Observations at or above this value are treated as saturated and left out of the fits.
+    pub saturation: f64,
     /// Weighting of the per-facet systems.
     pub weighting: Weighting,
+    /// Robust estimator of the per-facet fits.
+    pub robust: Robust,
     /// Worker threads (0: rayon's default, all cores).
     pub threads: usize,
     /// Run faer's sparse factorization and solves on the worker threads too. Off by default:
@@ -42,24 +45,39 @@ pub struct Options {
 }
 
 impl Options {
-    /// Checks the options: `tol >= 0`, `dark` finite.
+    /// Checks the options: `tol >= 0`, `dark` finite, `saturation > dark`.
     pub fn validate(&self) -> Result<()> {
         if self.tol.is_nan() || self.tol < 0.0 {
             return Err(Error::Input(format!("tol must be >= 0, got {}", self.tol)));
         }
-        check_dark(self.dark)
+        check_thresholds(self.dark, self.saturation)
+    }
+
+    /// The per-facet fit settings of these options.
+    pub fn fit_settings(&self, fast_residual: bool) -> FitSettings {
+        FitSettings {
+            dark: self.dark,
+            saturation: self.saturation,
+            weighting: self.weighting,
+            robust: self.robust,
+            fast_residual,
+        }
     }
 }
 
-/// The shadow threshold must be a finite number.
-pub(crate) fn check_dark(dark: f64) -> Result<()> {
-    if dark.is_finite() {
-        Ok(())
-    } else {
-        Err(Error::Input(format!(
+/// The shadow threshold must be a finite number below the saturation threshold.
+pub(crate) fn check_thresholds(dark: f64, saturation: f64) -> Result<()> {
+    if !dark.is_finite() {
+        return Err(Error::Input(format!(
             "dark (the shadow threshold) must be a finite number, got {dark}"
-        )))
+        )));
     }
+    if saturation.is_nan() || saturation <= dark {
+        return Err(Error::Input(format!(
+            "saturation must be above dark (= {dark}), got {saturation}"
+        )));
+    }
+    Ok(())
 }
 
 impl Default for Options {
@@ -68,7 +86,9 @@ impl Default for Options {
             iterations: 10,
             tol: 1e-6,
             dark: 0.0,
+            saturation: f64::INFINITY,
             weighting: Weighting::Image,
+            robust: Robust::None,
             threads: 0,
             parallel_sparse: false,
         }
@@ -122,15 +142,19 @@ pub struct Reconstruction {
     pub depth: Vec<f64>,
     /// Local-fit unit normals (the mesh normal where a facet could not be fitted).
     pub normals: Vec<[f64; 3]>,
-    /// Fitted albedo (NaN where a facet could not be fitted).
-    pub albedo: Vec<f64>,
+    /// Channels of the images (1 or 3): the albedo has as many meaningful entries.
+    pub channels: usize,
+    /// Fitted albedo per channel (grey: three equal values; NaN where a facet could not be
+    /// fitted).
+    pub albedo: Vec<[f64; 3]>,
     /// RMS image residual of each facet's fit.
     pub residual: Vec<f64>,
     /// Number of usable lights of each facet.
     pub lights_used: Vec<u32>,
     /// Region label of each pixel (-1 outside the mask).
     pub regions: Vec<i32>,
-    /// Gauge (mean vertex depth) of each region.
+    /// Gauge of each region: its arithmetic mean vertex depth (orthographic) or geometric mean
+    /// vertex depth (pinhole).
     pub gauge: Vec<f64>,
     /// One entry per iteration run.
     pub history: Vec<IterationStats>,
@@ -187,8 +211,9 @@ fn run(
     let mut system = GlobalSystem::new(grid, sparse_par(options.parallel_sparse))?;
     timings.factorization = t.elapsed();
 
-    let scale = lateral_size(grid, rig);
-    let mut z = problem.z0.clone();
+    let geometry = &problem.geometry;
+    let scale = lateral_size(problem);
+    let mut z = problem.u0.clone();
     let mut z_new = vec![0.0; z.len()];
     let mut fits = vec![FacetFit::EMPTY; grid.n_facets()];
     let mut targets = vec![[0.0; 4]; grid.n_facets()];
@@ -199,14 +224,11 @@ fn run(
         let t = Instant::now();
         local_step(
             grid,
-            &rig.camera,
-            Model::Near(&rig.lights, options.weighting),
+            geometry,
+            Model::Near(&rig.lights),
             &problem.obs,
             z,
-            FitSettings {
-                dark: options.dark,
-                fast_residual: fast,
-            },
+            options.fit_settings(fast),
             fits,
         );
         timings.local += t.elapsed();
@@ -220,18 +242,14 @@ fn run(
         }
         system.solve(grid, &targets, &z, &mut z_new);
         grid.apply_gauge(&mut z_new, &problem.gauge);
-        let depth_change = z
-            .iter()
-            .zip(&z_new)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
+        let depth_change = max_depth_change(geometry, &z, &z_new);
         std::mem::swap(&mut z, &mut z_new);
         timings.solve += t.elapsed();
 
         let stats = IterationStats {
             iteration,
             depth_change,
-            rms_residual: rms_of(&fits),
+            rms_residual: rms_of(&fits, problem.obs.channels),
             elapsed: start.elapsed(),
         };
         history.push(stats);
@@ -253,18 +271,34 @@ fn run(
     Ok(assemble(problem, &z, &fits, history, converged, timings))
 }
 
-/// Lateral size of the grid, `max(W * w, H * h)`.
-pub(crate) fn lateral_size(grid: &Grid, rig: &Rig) -> f64 {
-    let [w, h] = rig.camera.pixel_size();
+/// Largest change of vertex depth between two sets of unknowns.
+pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(&x, &y)| (geometry.depth(x) - geometry.depth(y)).abs())
+        .fold(0.0, f64::max)
+}
+
+/// Lateral size of the image footprint, `max(W * w, H * h)`, with the pixel size taken at the
+/// mean gauge depth for a pinhole camera.
+pub(crate) fn lateral_size(problem: &Problem<'_>) -> f64 {
+    let grid = &problem.grid;
+    let mean_gauge = problem.gauge.iter().sum::<f64>() / problem.gauge.len() as f64;
+    let [w, h] = problem
+        .rig
+        .camera
+        .pixel_size_at(problem.geometry.depth(mean_gauge));
     (grid.width as f64 * w).max(grid.height as f64 * h)
 }
 
 /// RMS image residual over all usable observations of valid facets.
-pub(crate) fn rms_of(fits: &[FacetFit]) -> f64 {
+pub(crate) fn rms_of(fits: &[FacetFit], channels: usize) -> f64 {
     let (sse, n) = fits
         .iter()
         .filter(|f| f.valid)
-        .fold((0.0, 0u64), |(s, n), f| (s + f.sse, n + f.used as u64));
+        .fold((0.0, 0u64), |(s, n), f| {
+            (s + f.sse, n + (f.used as usize * channels) as u64)
+        });
     if n == 0 {
         f64::NAN
     } else {
@@ -284,25 +318,34 @@ pub(crate) fn assemble(
     let grid = &problem.grid;
     let n_pixels = grid.height * grid.width;
     let mut normals = vec![[f64::NAN; 3]; n_pixels];
-    let mut albedo = vec![f64::NAN; n_pixels];
+    let mut albedo = vec![[f64::NAN; 3]; n_pixels];
     let mut residual = vec![f64::NAN; n_pixels];
     let mut lights_used = vec![0u32; n_pixels];
     for (fit, &p) in fits.iter().zip(&grid.facets) {
         normals[p] = fit.normal;
         albedo[p] = fit.albedo;
-        residual[p] = fit.rms();
+        residual[p] = fit.rms(problem.obs.channels);
         lights_used[p] = fit.used;
     }
     Reconstruction {
         height: grid.height,
         width: grid.width,
-        depth: grid.scatter_vertices(z),
+        channels: problem.obs.channels,
+        depth: grid.scatter_vertices(
+            &z.iter()
+                .map(|&u| problem.geometry.depth(u))
+                .collect::<Vec<_>>(),
+        ),
         normals,
         albedo,
         residual,
         lights_used,
         regions: grid.pixel_regions(),
-        gauge: problem.gauge.clone(),
+        gauge: problem
+            .gauge
+            .iter()
+            .map(|&g| problem.geometry.depth(g))
+            .collect(),
         history,
         converged,
         negative_observations: problem.negative_observations,

@@ -1,7 +1,8 @@
 //! Synthetic scenes with ground truth, for tests, the demo and the benchmark.
 //!
-//! Every scene is an object of lateral size `size` (the grid spans `[-size/2, size/2]^2`,
-//! orthographic camera) whose mean vertex depth is about `distance`, seen by
+//! Every scene is an object of lateral size `size` (the grid spans `[-size/2, size/2]^2` with
+//! the orthographic camera; a pinhole camera sees the same extent at the working distance) whose
+//! mean vertex depth is about `distance`, seen by
 //! [`standard_lights`]: 27 point lights in three layers 1.5, 2.25 and 3 object sizes in front of
 //! the object, spread over about the object's size. Albedo is `distance^2 * (0.6 + 0.4 * s)`
 //! with a smooth pattern `s` in [0, 1], so intensities are of order 1.
@@ -9,7 +10,7 @@
 use std::f64::consts::PI;
 
 use crate::error::{Error, Result};
-use crate::rig::Rig;
+use crate::rig::{Camera, Light, Rig};
 
 /// The kinds of synthetic scene.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -60,6 +61,20 @@ impl SceneKind {
     }
 }
 
+/// Variations of the rig and images of a synthetic scene.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SceneOptions {
+    /// A pinhole camera at the origin (focal length so that the object spans the image) instead
+    /// of the orthographic one; the surface is then `z = surface(D x_r, D y_r)` on each ray.
+    pub pinhole: bool,
+    /// Anisotropic LEDs aimed at the object (mu from 0.5 to 2) with unequal RGB intensities.
+    pub led: bool,
+    /// Colour albedo (3 channels).
+    pub rgb: bool,
+    /// Every third light is a distant, directional light.
+    pub directional: bool,
+}
+
 /// A synthetic scene: true surface, mask, albedo and rig.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -71,26 +86,57 @@ pub struct Scene {
     pub depth: Vec<f64>,
     /// Mask, H x W.
     pub mask: Vec<bool>,
-    /// True albedo, H x W.
+    /// Channels of the albedo and the images (1 or 3).
+    pub channels: usize,
+    /// True albedo, H x W x channels.
     pub albedo: Vec<f64>,
-    /// The rig (orthographic camera, 27 lights).
+    /// The rig (27 lights).
     pub rig: Rig,
     /// Lateral object size.
     pub size: f64,
 }
 
 impl Scene {
-    /// Builds a scene of `n` x `n` pixels, lateral size `size` and working distance `distance`;
-    /// `seed` drives the random bumps.
+    /// Builds a scene of `n` x `n` pixels, lateral size `size` and working distance `distance`
+    /// with an orthographic camera and isotropic unit point lights; `seed` drives the random
+    /// bumps.
     pub fn new(kind: SceneKind, n: usize, size: f64, distance: f64, seed: u64) -> Result<Scene> {
+        Scene::with_options(kind, n, size, distance, seed, SceneOptions::default())
+    }
+
+    /// As [`Scene::new`] with the variations in `options`.
+    pub fn with_options(
+        kind: SceneKind,
+        n: usize,
+        size: f64,
+        distance: f64,
+        seed: u64,
+        options: SceneOptions,
+    ) -> Result<Scene> {
         if n < 2 || size.is_nan() || size <= 0.0 || distance.is_nan() || distance <= 0.0 {
             return Err(Error::Input(format!(
                 "a scene needs n >= 2 pixels and positive size and distance, got n = {n}, size = {size}, distance = {distance}"
             )));
         }
-        let pixel = size / n as f64;
-        let origin = [-0.5 * size, -0.5 * size];
-        let rig = Rig::orthographic([pixel, pixel], origin, standard_lights(size, distance))?;
+        let camera = if options.pinhole {
+            let f = n as f64 * distance / size;
+            let c = (n as f64 - 1.0) / 2.0;
+            Camera::Pinhole {
+                k: [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]],
+                distortion: [0.0; 5],
+            }
+        } else {
+            let pixel = size / n as f64;
+            Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [-0.5 * size, -0.5 * size],
+            }
+        };
+        let rig = Rig {
+            camera,
+            lights: scene_lights(size, distance, options),
+        };
+        rig.validate()?;
         let bumps = random_bumps(size, seed);
         let surface = |x: f64, y: f64| -> f64 {
             match kind {
@@ -121,16 +167,32 @@ impl Scene {
                 }
             }
         };
+        // Lateral coordinates of each vertex: the grid (orthographic) or the ray at the working
+        // distance (pinhole).
         let vw = n + 1;
-        let depth: Vec<f64> = (0..vw * vw)
+        let lateral: Vec<[f64; 2]> = (0..vw * vw)
             .map(|v| {
-                let [x, y] = rig.camera.vertex_xy(v / vw, v % vw);
-                surface(x, y)
+                let [x, y] = camera.vertex_xy(v / vw, v % vw);
+                if options.pinhole {
+                    [x * distance, y * distance]
+                } else {
+                    [x, y]
+                }
             })
             .collect();
+        let depth: Vec<f64> = lateral.iter().map(|&[x, y]| surface(x, y)).collect();
         let centre = |p: usize| {
-            let [x, y] = rig.camera.vertex_xy(p / n, p % n);
-            (x + 0.5 * pixel, y + 0.5 * pixel)
+            let v = (p / n) * vw + p % n;
+            let corners = [
+                lateral[v],
+                lateral[v + 1],
+                lateral[v + vw],
+                lateral[v + vw + 1],
+            ];
+            (
+                corners.iter().map(|c| c[0]).sum::<f64>() / 4.0,
+                corners.iter().map(|c| c[1]).sum::<f64>() / 4.0,
+            )
         };
         let mask: Vec<bool> = (0..n * n)
             .map(|p| {
@@ -138,12 +200,19 @@ impl Scene {
                 kind != SceneKind::SphereCap || x * x + y * y <= (0.45 * size).powi(2)
             })
             .collect();
+        let channels = if options.rgb { 3 } else { 1 };
+        let tints = [[1.0, 0.0], [0.8, 0.2], [0.6, 0.4]];
         let albedo: Vec<f64> = (0..n * n)
-            .map(|p| {
+            .flat_map(|p| {
                 let (x, y) = centre(p);
                 let s =
                     0.5 + 0.25 * (2.0 * PI * x / size).sin() + 0.25 * (3.0 * PI * y / size).cos();
-                distance * distance * (0.6 + 0.4 * s)
+                let s2 = 0.5 + 0.5 * (PI * (x + y) / size).cos();
+                let base = distance * distance * (0.6 + 0.4 * s);
+                tints[..channels]
+                    .iter()
+                    .map(move |[a, b]| base * (a + b * s2))
+                    .collect::<Vec<_>>()
             })
             .collect();
         Ok(Scene {
@@ -151,13 +220,14 @@ impl Scene {
             width: n,
             depth,
             mask,
+            channels,
             albedo,
             rig,
             size,
         })
     }
 
-    /// The scene's images, rendered by the model.
+    /// The scene's images (k, H, W, C), rendered by the model.
     pub fn render(&self) -> Result<Vec<f64>> {
         crate::render::render(
             &self.rig,
@@ -165,17 +235,68 @@ impl Scene {
             self.width,
             &self.depth,
             &self.albedo,
+            self.channels,
             Some(&self.mask),
         )
     }
 
-    /// Arithmetic mean of the true vertex depths used by the mask (the true gauge).
+    /// Mean of the true vertex depths used by the mask: arithmetic (orthographic) or geometric
+    /// (pinhole) — the true gauge.
     pub fn mean_depth(&self) -> f64 {
         let grid = crate::grid::Grid::new(self.height, self.width, Some(&self.mask))
             .expect("scene mask is valid");
         let z = grid.gather_vertices(&self.depth);
-        z.iter().sum::<f64>() / z.len() as f64
+        if self.rig.camera.is_perspective() {
+            (z.iter().map(|v| v.ln()).sum::<f64>() / z.len() as f64).exp()
+        } else {
+            z.iter().sum::<f64>() / z.len() as f64
+        }
     }
+}
+
+/// The scene's lights: [`standard_lights`] as isotropic unit point lights, or with the LED and
+/// directional variations of `options`.
+fn scene_lights(size: f64, distance: f64, options: SceneOptions) -> Vec<Light> {
+    let target = [0.0, 0.0, distance];
+    standard_lights(size, distance)
+        .into_iter()
+        .enumerate()
+        .map(|(i, position)| {
+            let t = i as f64;
+            let intensity = if options.led {
+                let base = 0.8 + 0.4 * (0.5 + 0.5 * (1.7 * t).sin());
+                [
+                    base,
+                    base * (0.9 + 0.1 * (0.9 * t).cos()),
+                    base * (0.85 + 0.1 * (1.3 * t).sin()),
+                ]
+            } else {
+                [1.0; 3]
+            };
+            if options.directional && i % 3 == 2 {
+                let to_light = crate::grid::sub(position, target);
+                let d2 = crate::grid::dot(to_light, to_light);
+                return Light::Directional {
+                    direction: crate::grid::normalize(to_light),
+                    intensity: intensity.map(|v| v / d2),
+                };
+            }
+            let (axis, mu) = if options.led {
+                (
+                    crate::grid::normalize(crate::grid::sub(target, position)),
+                    0.5 + 0.5 * (i % 4) as f64,
+                )
+            } else {
+                ([0.0, 0.0, 1.0], 0.0)
+            };
+            Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            }
+        })
+        .collect()
 }
 
 /// 27 point lights: three layers at `distance - {1.5, 2.25, 3} * size`, each 9 lights on circles

@@ -2,7 +2,7 @@
 
 use nplps::{
     mesh_normals, reconstruct, reconstruct_parallel, Control, ImageStack, InitialDepth, Options,
-    Problem, Reconstruction, Scene, SceneKind,
+    Problem, Reconstruction, Scene, SceneKind, SceneOptions,
 };
 
 fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -47,6 +47,126 @@ fn exact_images(scene: &Scene) -> Vec<f32> {
     scene.render().unwrap().iter().map(|&v| v as f32).collect()
 }
 
+/// Reconstructs a scene with options from its exact images (any channels) at the true gauge.
+fn solve_scene(scene: &Scene, options: &Options) -> Reconstruction {
+    let images = exact_images(scene);
+    let stack = ImageStack::with_channels(
+        &images,
+        scene.rig.n_lights(),
+        scene.height,
+        scene.width,
+        scene.channels,
+    )
+    .unwrap();
+    let depth = InitialDepth::Distance(scene.mean_depth());
+    let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), depth).unwrap();
+    reconstruct(&problem, options, &mut |_| Control::Continue).unwrap()
+}
+
+#[test]
+fn real_rig_variations_are_recovered_exactly() {
+    let options = Options {
+        iterations: 100,
+        tol: 1e-10,
+        ..Options::default()
+    };
+    let variations = [
+        (
+            "pinhole",
+            SceneOptions {
+                pinhole: true,
+                ..SceneOptions::default()
+            },
+        ),
+        (
+            "pinhole + LEDs",
+            SceneOptions {
+                pinhole: true,
+                led: true,
+                ..SceneOptions::default()
+            },
+        ),
+        (
+            "orthographic + LEDs",
+            SceneOptions {
+                led: true,
+                ..SceneOptions::default()
+            },
+        ),
+        (
+            "RGB",
+            SceneOptions {
+                rgb: true,
+                led: true,
+                ..SceneOptions::default()
+            },
+        ),
+        (
+            "directional",
+            SceneOptions {
+                directional: true,
+                pinhole: true,
+                ..SceneOptions::default()
+            },
+        ),
+    ];
+    for (name, variation) in variations {
+        for kind in [SceneKind::Saddle, SceneKind::SphereCap] {
+            let scene = Scene::with_options(kind, 40, 100.0, 200.0, 3, variation).unwrap();
+            let result = solve_scene(&scene, &options);
+            let normal_err = mean_normal_error(&scene, &result.normals);
+            let depth_err = max_depth_error(&scene, &result) / scene.size;
+            println!(
+                "{name:>20} {:>7}: normal error {normal_err:.2e} deg, depth error {depth_err:.2e}",
+                kind.name()
+            );
+            assert!(
+                normal_err < 0.01,
+                "{name} {}: {normal_err} degrees",
+                kind.name()
+            );
+            assert!(
+                depth_err < 1e-3,
+                "{name} {}: depth error {depth_err}",
+                kind.name()
+            );
+            if scene.channels == 3 {
+                let p = scene.mask.iter().position(|m| *m).unwrap();
+                for ch in 0..3 {
+                    let rel = result.albedo[p][ch] / scene.albedo[p * 3 + ch] - 1.0;
+                    assert!(rel.abs() < 1e-3, "{name}: albedo channel {ch} off by {rel}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn pinhole_gauge_is_the_geometric_mean_depth() {
+    let scene = Scene::with_options(
+        SceneKind::Bumps,
+        32,
+        100.0,
+        300.0,
+        5,
+        SceneOptions {
+            pinhole: true,
+            ..SceneOptions::default()
+        },
+    )
+    .unwrap();
+    let result = solve_scene(&scene, &Options::default());
+    let finite: Vec<f64> = result
+        .depth
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite())
+        .collect();
+    let geometric = (finite.iter().map(|z| z.ln()).sum::<f64>() / finite.len() as f64).exp();
+    assert!((geometric / scene.mean_depth() - 1.0).abs() < 1e-12);
+    assert!((result.gauge[0] / scene.mean_depth() - 1.0).abs() < 1e-12);
+}
+
 #[test]
 fn exact_model_recovers_every_scene() {
     let options = Options {
@@ -74,7 +194,7 @@ fn near_light_model_beats_the_parallel_baseline() {
     let scene = Scene::new(SceneKind::SphereCap, 40, 100.0, 200.0, 0).unwrap();
     let problem = problem(&scene, &exact_images(&scene));
     let near = reconstruct(&problem, &Options::default(), &mut |_| Control::Continue).unwrap();
-    let parallel = reconstruct_parallel(&problem, 0.0, 0).unwrap();
+    let parallel = reconstruct_parallel(&problem, &Options::default()).unwrap();
     let (e_near, e_par) = (
         mean_normal_error(&scene, &near.normals),
         mean_normal_error(&scene, &parallel.normals),

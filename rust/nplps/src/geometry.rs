@@ -1,0 +1,109 @@
+//! Where the mesh vertices are, and what the global step solves for.
+//!
+//! Every unknown of the global step is one scalar `u` per active vertex:
+//! - orthographic camera: `u = z`, the vertex at `(x, y, z)` with `(x, y)` fixed by the grid;
+//! - pinhole camera: `u = log z`, the vertex at `z * r` on the ray `r = (x, y, 1)` through its
+//!   pixel corner.
+//!
+//! The local step's plane through the facet centre `c` with normal `n` becomes mean-subtracted
+//! targets for the 4 corners:
+//! - orthographic: `z_j = c_z - (n_x dx_j + n_y dy_j) / n_z` (dx, dy: corner offsets from `c`);
+//! - pinhole: the plane meets ray `r_j` at `z_j = (n . c) / (n . r_j)`, so
+//!   `log z_j = log(-n . c) - log(-n . r_j)` and the mean-subtracted target
+//!   `-log(-n . r_j) + mean_j log(-n . r_j)` does not depend on the plane's offset.
+//!
+//! Grazing fits are limited: `n_z <= -NZ_MIN` (orthographic), `-n . r_j >= NZ_MIN |r_j|`
+//! (pinhole). The gauge is the arithmetic mean of `u` per region: the arithmetic mean depth
+//! (orthographic) or the geometric mean depth (pinhole).
+
+use crate::grid::Grid;
+use crate::rig::Camera;
+
+/// Largest allowed `n_z` (orthographic), or smallest `-n . r / |r|` (pinhole), when a fitted
+/// normal is turned into a plane; bounds the target slopes of grazing fits.
+pub const NZ_MIN: f64 = 0.01;
+
+/// Vertex positions of the active vertices of a grid under a camera.
+#[derive(Debug, Clone)]
+pub struct Geometry {
+    perspective: bool,
+    /// Per unknown: the fixed (x, y) (orthographic) or the ray's (x, y) at z = 1 (pinhole).
+    base: Vec<[f64; 2]>,
+}
+
+impl Geometry {
+    /// The geometry of `grid`'s active vertices under `camera`.
+    pub fn new(camera: &Camera, grid: &Grid) -> Geometry {
+        let vw = grid.width + 1;
+        Geometry {
+            perspective: camera.is_perspective(),
+            base: grid
+                .active
+                .iter()
+                .map(|&v| camera.vertex_xy(v / vw, v % vw))
+                .collect(),
+        }
+    }
+
+    /// Whether the unknowns are log-depths.
+    #[inline]
+    pub fn is_perspective(&self) -> bool {
+        self.perspective
+    }
+
+    /// The unknown of a depth.
+    #[inline]
+    pub fn unknown(&self, z: f64) -> f64 {
+        if self.perspective {
+            z.ln()
+        } else {
+            z
+        }
+    }
+
+    /// The depth of an unknown.
+    #[inline]
+    pub fn depth(&self, u: f64) -> f64 {
+        if self.perspective {
+            u.exp()
+        } else {
+            u
+        }
+    }
+
+    /// Position of unknown `i` with unknown value `u`.
+    #[inline]
+    pub fn position(&self, i: usize, u: f64) -> [f64; 3] {
+        self.position_at_depth(i, self.depth(u))
+    }
+
+    /// Position of unknown `i` at depth `z`.
+    #[inline]
+    pub fn position_at_depth(&self, i: usize, z: f64) -> [f64; 3] {
+        let [x, y] = self.base[i];
+        if self.perspective {
+            [x * z, y * z, z]
+        } else {
+            [x, y, z]
+        }
+    }
+
+    /// Mean-subtracted targets of the corners `ids` for the plane through `centre` with unit
+    /// normal `n` (see the module documentation).
+    #[inline]
+    pub fn plane_target(&self, n: [f64; 3], ids: [u32; 4], centre: [f64; 3]) -> [f64; 4] {
+        let base = ids.map(|i| self.base[i as usize]);
+        let raw: [f64; 4] = if self.perspective {
+            base.map(|[x, y]| {
+                let norm = (x * x + y * y + 1.0).sqrt();
+                let s = (-(n[0] * x + n[1] * y + n[2])).max(NZ_MIN * norm);
+                -s.ln()
+            })
+        } else {
+            let nz = n[2].min(-NZ_MIN);
+            base.map(|[x, y]| -(n[0] * (x - centre[0]) + n[1] * (y - centre[1])) / nz)
+        };
+        let mean = 0.25 * (raw[0] + raw[1] + raw[2] + raw[3]);
+        raw.map(|t| t - mean)
+    }
+}
