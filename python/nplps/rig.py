@@ -63,6 +63,7 @@ class Rig:
     def __post_init__(self) -> None:
         lights = _array(self.lights, "lights", (-1, 3))
         k = lights.shape[0]
+        directions_given = self.directions is not None
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
         set_("lights", lights)
         set_("intensities", _intensities(self.intensities, k))
@@ -75,7 +76,7 @@ class Rig:
         if directional.shape != (k,):
             raise RigError(f"directional must have one flag per light ({k}), got shape {directional.shape}")
         set_("directional", directional)
-        if self.directions is None and np.any(self.mu > 0):
+        if not directions_given and np.any(self.mu > 0):  # type: ignore[operator]
             raise RigError("anisotropic LEDs (mu > 0) need their principal directions (directions=...)")
         if np.any(directional):
             unit = np.linalg.norm(lights[directional], axis=1)
