@@ -451,6 +451,12 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
     return scale
 
 
+def save_grey_png(path: PathLike, image: np.ndarray) -> None:
+    """Writes an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
+    image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
+    iio.imwrite(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8), extension=".png")
+
+
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
     """Writes a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (with pypng:
     Pillow cannot write 16-bit RGB)."""

@@ -97,6 +97,35 @@ class Reconstruction:
         """Number of masked pixels with fewer than 3 usable lights (they kept their shape)."""
         return int(np.count_nonzero(self.mask & (self.lights_used < 3)))
 
+    def predict(self, rig: Rig | None = None, lights: list[int] | None = None) -> np.ndarray:
+        """Images (k, H, W[, 3]) predicted from this result under ``rig`` (default: its own),
+        for the lights ``lights`` of that rig (default: all).
+
+        Each pixel is shaded with its local-fit normal and albedo at the centre of its quad. A
+        parallel-light result predicts with its own model (each point light seen as a direction
+        from the surface's centroid). Use it to compare a held-out image with its prediction.
+        """
+        rig = self.rig if rig is None else rig
+        light_params = rig._core_lights()
+        if lights is not None:
+            light_params = {key: [values[i] for i in lights] for key, values in light_params.items()}
+        return _core.predict(
+            self.depth, self.normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
+        )
+
+    def shaded(self) -> np.ndarray:
+        """A grey picture (H, W) of the mesh lit from the camera: ``max(0, -n . v)`` with the mesh
+        normal n and the viewing direction v of each pixel; 0 outside the mask."""
+        n = self.mesh_normals
+        if self.rig.is_pinhole:
+            v = self.vertices
+            centre = 0.25 * (v[:-1, :-1] + v[:-1, 1:] + v[1:, :-1] + v[1:, 1:])
+            view = centre / np.linalg.norm(centre, axis=-1, keepdims=True)
+        else:
+            view = np.array([0.0, 0.0, 1.0])
+        shade = np.clip(-(n * view).sum(axis=-1), 0.0, 1.0)
+        return np.where(self.mask & np.isfinite(shade), shade, 0.0)
+
     def vertex_normals(self) -> np.ndarray:
         """Per-vertex normals (H+1, W+1, 3): the normalized mean of the adjacent pixels' normals."""
         return _normalize(_to_vertices(self.normals))
@@ -141,7 +170,8 @@ class Reconstruction:
         """Writes the mesh (PLY and OBJ), the maps and ``summary.json`` into ``directory``.
 
         Files: ``mesh.ply``, ``mesh.obj``, ``normals.png`` (normal map, see
-        :func:`nplps.export.save_normal_map`), ``albedo.png`` (16-bit), ``depth.npy`` (float64)
+        :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the camera),
+        ``albedo.png`` (16-bit), ``depth.npy`` (float64)
         and ``depth.tiff`` (float32) of the vertex depths, ``normals.npy``, ``residual.npy`` and
         ``summary.json``. Returns the paths written.
         """
@@ -151,6 +181,7 @@ class Reconstruction:
             "ply": out / f"{stem}.ply",
             "obj": out / f"{stem}.obj",
             "normal_map": out / "normals.png",
+            "shaded": out / "shaded.png",
             "albedo": out / "albedo.png",
             "depth_npy": out / "depth.npy",
             "depth_tiff": out / "depth.tiff",
@@ -161,6 +192,7 @@ class Reconstruction:
         self.save_ply(paths["ply"], opengl=opengl)
         self.save_obj(paths["obj"], opengl=opengl)
         export.save_normal_map(paths["normal_map"], self.normals, self.mask)
+        export.save_grey_png(paths["shaded"], self.shaded())
         summary = self.summary()
         summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
         export.save_depth_npy(paths["depth_npy"], self.depth)

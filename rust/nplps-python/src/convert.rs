@@ -176,8 +176,19 @@ pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bo
     Ok(d)
 }
 
-/// Builds and validates a core [`nplps::Rig`].
+/// Builds and validates a core [`nplps::Rig`] for reconstruction (at least 3 lights).
 pub fn rig_from(
+    py: Python<'_>,
+    camera: &Bound<'_, PyDict>,
+    lights: &Bound<'_, PyDict>,
+) -> PyResult<nplps::Rig> {
+    let rig = lighting_from(py, camera, lights)?;
+    rig.validate().map_err(|e| to_py(py, e))?;
+    Ok(rig)
+}
+
+/// Builds a core [`nplps::Rig`] for rendering: any number of lights, each one valid.
+pub fn lighting_from(
     py: Python<'_>,
     camera: &Bound<'_, PyDict>,
     lights: &Bound<'_, PyDict>,
@@ -186,7 +197,7 @@ pub fn rig_from(
         camera: camera_from(py, camera)?,
         lights: lights_from(py, lights)?,
     };
-    rig.validate().map_err(|e| to_py(py, e))?;
+    rig.validate_parameters().map_err(|e| to_py(py, e))?;
     Ok(rig)
 }
 

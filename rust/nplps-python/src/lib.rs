@@ -13,7 +13,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use convert::{
-    array, array3, camera_dict, camera_from, lights_dict, option, reconstruction_dict, rig_from,
+    array, array3, camera_dict, camera_from, lighting_from, lights_dict, option,
+    reconstruction_dict, rig_from,
 };
 use errors::{no_panic, py_error, to_py};
 
@@ -238,7 +239,7 @@ fn render<'py>(
     albedo: PyReadonlyArrayDyn<'py, f64>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = rig_from(py, camera, lights)?;
+    let rig = lighting_from(py, camera, lights)?;
     let (h, w) = (
         depth.shape()[0].saturating_sub(1),
         depth.shape()[1].saturating_sub(1),
@@ -259,6 +260,47 @@ fn render<'py>(
     let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
     let images = py
         .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, channels, mask)))
+        .map_err(|e| to_py(py, e))?;
+    let k = rig.n_lights();
+    if channels == 1 {
+        array(py, images, &[k, h, w])
+    } else {
+        array(py, images, &[k, h, w, channels])
+    }
+}
+
+/// Predicted images of a reconstruction (see `Reconstruction.predict`).
+#[pyfunction]
+#[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel))]
+#[allow(clippy::too_many_arguments)]
+fn predict<'py>(
+    py: Python<'py>,
+    depth: PyReadonlyArray2<'py, f64>,
+    normals: PyReadonlyArrayDyn<'py, f64>,
+    albedo: PyReadonlyArrayDyn<'py, f64>,
+    camera: &Bound<'py, PyDict>,
+    lights: &Bound<'py, PyDict>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+    parallel: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let rig = lighting_from(py, camera, lights)?;
+    let (h, w) = (
+        depth.shape()[0].saturating_sub(1),
+        depth.shape()[1].saturating_sub(1),
+    );
+    let channels = if albedo.ndim() == 3 {
+        albedo.shape()[2]
+    } else {
+        1
+    };
+    let n: Vec<[f64; 3]> = slice(py, &normals, "normals")?
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let (z, a) = (slice(py, &depth, "depth")?, slice(py, &albedo, "albedo")?);
+    let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
+    let images = py
+        .detach(|| no_panic(|| nplps::predict(&rig, h, w, z, &n, a, channels, mask, parallel)))
         .map_err(|e| to_py(py, e))?;
     let k = rig.n_lights();
     if channels == 1 {
@@ -361,6 +403,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;

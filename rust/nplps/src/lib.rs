@@ -46,7 +46,7 @@ pub use baseline::reconstruct_parallel;
 pub use error::{Error, Result};
 pub use local::{Robust, Weighting};
 pub use problem::{ImageStack, InitialDepth, Problem};
-pub use render::{mesh_normals, render, vertices};
+pub use render::{mesh_normals, predict, render, vertices};
 pub use rig::{Camera, Light, Rig};
 pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Timings};
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -125,6 +125,85 @@ pub fn render(
     Ok(out)
 }
 
+/// Predicts the k images (k, H, W, C) of a reconstruction: each pixel shaded with its own
+/// (local-fit) `normals` (H x W) and `albedo` (H x W x C) at the centre of its quad on `depth`.
+/// With `parallel`, each point light is replaced by a parallel light along the direction from
+/// the centroid of the surface to the light (the baseline's model). Pixels outside `mask` or
+/// with a NaN are 0.
+#[allow(clippy::too_many_arguments)]
+pub fn predict(
+    rig: &Rig,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+    normals: &[[f64; 3]],
+    albedo: &[f64],
+    channels: usize,
+    mask: Option<&[bool]>,
+    parallel: bool,
+) -> Result<Vec<f64>> {
+    let v = positions(&rig.camera, height, width, depth)?;
+    let plane = height * width;
+    ensure_input(
+        normals.len() == plane && albedo.len() == plane * channels,
+        || format!("normals and albedo must have H x W = {plane} pixels"),
+    )?;
+    let inside = |p: usize| mask.is_none_or(|m| m[p]);
+    let lights: Vec<Light> = if parallel {
+        let finite: Vec<[f64; 3]> = v
+            .iter()
+            .copied()
+            .filter(|x| x.iter().all(|c| c.is_finite()))
+            .collect();
+        let centroid: [f64; 3] =
+            std::array::from_fn(|i| finite.iter().map(|x| x[i]).sum::<f64>() / finite.len() as f64);
+        rig.lights
+            .iter()
+            .map(|l| match *l {
+                Light::Point {
+                    position,
+                    intensity,
+                    ..
+                } => Light::Directional {
+                    direction: crate::grid::normalize(crate::grid::sub(position, centroid)),
+                    intensity,
+                },
+                other => other,
+            })
+            .collect()
+    } else {
+        rig.lights.clone()
+    };
+    let k = lights.len();
+    let stride = plane * channels;
+    let mut out = vec![0.0; k * stride];
+    let per_pixel: Vec<Vec<f64>> = (0..plane)
+        .into_par_iter()
+        .map(|p| {
+            let c = quad_centre(&pixel_quad(&v, width, p));
+            let rho = &albedo[p * channels..(p + 1) * channels];
+            let finite = c
+                .iter()
+                .chain(&normals[p])
+                .chain(rho)
+                .all(|x| x.is_finite());
+            if !inside(p) || !finite {
+                return Vec::new();
+            }
+            lights
+                .iter()
+                .flat_map(|l| shade(l, normals[p], c, rho))
+                .collect()
+        })
+        .collect();
+    for (p, values) in per_pixel.iter().enumerate() {
+        for (j, value) in values.iter().enumerate() {
+            out[(j / channels) * stride + p * channels + j % channels] = *value;
+        }
+    }
+    Ok(out)
+}
+
 /// The image values (one per channel of `rho`) of a facet with normal `n` and centre `c`.
 fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64]) -> Vec<f64> {
     let (beta, _) = light.beta(c);

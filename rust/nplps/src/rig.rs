@@ -256,13 +256,19 @@ impl Rig {
 
     /// Checks the camera and the lights (at least 3).
     pub fn validate(&self) -> Result<()> {
-        self.camera.validate()?;
         if self.lights.len() < 3 {
             return Err(Error::Rig(format!(
                 "photometric stereo needs at least 3 lights, the rig has {}",
                 self.lights.len()
             )));
         }
+        self.validate_parameters()
+    }
+
+    /// Checks the camera and every light's parameters, whatever their number (rendering and
+    /// prediction work with any number of lights).
+    pub fn validate_parameters(&self) -> Result<()> {
+        self.camera.validate()?;
         self.lights
             .iter()
             .enumerate()

@@ -1,0 +1,73 @@
+"""Held-out evaluation for captures without ground truth.
+
+Reconstruct with every light but one, predict the left-out image from the result and the rig,
+and compare it with the captured image. A model that explains the data better predicts the
+left-out images better; this is how near-light and parallel-light results are compared on real
+captures.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from .api import reconstruct, reconstruct_parallel
+from .io import load_stack
+from .reconstruction import Reconstruction
+from .rig import Rig
+
+
+class HeldOut(NamedTuple):
+    """The held-out error of one light."""
+
+    light: int
+    #: ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
+    #: the prediction finite.
+    relative_error: float
+    #: The reconstruction made without this light.
+    result: Reconstruction
+    #: The predicted image.
+    prediction: np.ndarray
+
+
+def held_out(
+    images: Any,
+    rig: Rig,
+    mask: Any = None,
+    depth: Any = None,
+    method: str = "near",
+    lights: list[int] | None = None,
+    dark: float | None = None,
+    saturation: float | None = None,
+    **options: Any,
+) -> list[HeldOut]:
+    """Leaves each light in ``lights`` (default: all) out in turn and reports the relative error
+    of its predicted image. ``method`` is "near" (nplps) or "parallel" (the baseline); other
+    options go to :func:`nplps.reconstruct`.
+    """
+    stack, levels = load_stack(images, color=options.get("color") is not False)
+    solve: Callable[..., Reconstruction] = reconstruct if method == "near" else reconstruct_parallel
+    if method == "parallel":
+        options = {k: v for k, v in options.items() if k in ("robust", "color", "threads", "valid")}
+    lo = (0.0 if levels is None else 1.0 / levels) if dark is None else dark
+    hi = (np.inf if levels is None else 1.0 - 0.5 / levels) if saturation is None else saturation
+    valid = options.pop("valid", None)
+    out = []
+    for i in range(rig.n_lights) if lights is None else lights:
+        keep = [j for j in range(rig.n_lights) if j != i]
+        kept_valid = None if valid is None else np.asarray(valid)[keep]
+        result = solve(
+            stack[keep], rig.subset(keep), mask, depth, dark=dark, saturation=saturation, valid=kept_valid, **options
+        )
+        prediction = result.predict(rig, lights=[i])[0]
+        image = stack[i]
+        select = (image > lo) & (image < hi) & np.isfinite(prediction)
+        if valid is not None:
+            select &= np.asarray(valid)[i][..., None] if image.ndim == 3 else np.asarray(valid)[i]
+        if image.ndim == 3:
+            select = select.all(axis=-1)
+        select &= result.mask
+        error = np.linalg.norm((prediction - image)[select]) / np.linalg.norm(image[select])
+        out.append(HeldOut(i, float(error), result, prediction))
+    return out
