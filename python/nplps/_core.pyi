@@ -1,5 +1,10 @@
 """Type stubs of the compiled core ``nplps._core`` (Rust, pyo3). Use the wrappers in
-:mod:`nplps` rather than these functions directly: they validate and convert the input."""
+:mod:`nplps` rather than these functions directly: they validate and convert the input.
+
+``camera`` is the rig file's camera mapping; ``lights`` a mapping of per-light lists
+(``vectors``, ``directional``, ``intensities``, ``axes``, ``mu``: see ``Rig._core_lights``);
+``options`` a mapping with the keyword options of :func:`nplps.reconstruct` (``iterations``,
+``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``)."""
 
 from typing import Any, Callable, Mapping
 
@@ -9,40 +14,55 @@ import numpy.typing as npt
 __version__: str
 
 Camera = Mapping[str, Any]
+Lights = Mapping[str, list[Any]]
 ProgressCallback = Callable[[int, float, float, float], Any]
 
 def reconstruct(
     images: npt.NDArray[np.float32],
     camera: Camera,
-    lights: npt.NDArray[np.float64],
+    lights: Lights,
     mask: npt.NDArray[np.bool_] | None,
     distance: float | None,
     depth_map: npt.NDArray[np.float64] | None,
-    iterations: int,
-    tol: float,
-    dark: float,
-    weighting_name: str,
-    threads: int,
+    options: Mapping[str, Any],
     progress: ProgressCallback | None,
 ) -> dict[str, Any]: ...
 def reconstruct_parallel(
     images: npt.NDArray[np.float32],
     camera: Camera,
-    lights: npt.NDArray[np.float64],
+    lights: Lights,
     mask: npt.NDArray[np.bool_] | None,
     distance: float | None,
     depth_map: npt.NDArray[np.float64] | None,
-    dark: float,
-    threads: int,
+    options: Mapping[str, Any],
 ) -> dict[str, Any]: ...
 def render(
     depth: npt.NDArray[np.float64],
     camera: Camera,
-    lights: npt.NDArray[np.float64],
+    lights: Lights,
     albedo: npt.NDArray[np.float64],
     mask: npt.NDArray[np.bool_] | None = None,
 ) -> npt.NDArray[np.float64]: ...
+def predict(
+    depth: npt.NDArray[np.float64],
+    normals: npt.NDArray[np.float64],
+    albedo: npt.NDArray[np.float64],
+    camera: Camera,
+    lights: Lights,
+    mask: npt.NDArray[np.bool_] | None,
+    parallel: bool,
+) -> npt.NDArray[np.float64]: ...
 def mesh_normals(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
 def vertices(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
-def check_rig(camera: Camera, lights: npt.NDArray[np.float64]) -> None: ...
-def synth_scene(name: str, n: int, size: float, distance: float, seed: int) -> dict[str, Any]: ...
+def check_rig(camera: Camera, lights: Lights) -> None: ...
+def synth_scene(
+    name: str,
+    n: int,
+    size: float,
+    distance: float,
+    seed: int,
+    pinhole: bool = False,
+    led: bool = False,
+    rgb: bool = False,
+    directional: bool = False,
+) -> dict[str, Any]: ...
