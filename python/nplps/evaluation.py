@@ -25,6 +25,12 @@ class HeldOut(NamedTuple):
     #: ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
     #: the prediction finite.
     relative_error: float
+    #: The same after scaling the prediction by the least-squares gain ``a`` (reported below):
+    #: the error of the shading's shape, free of the left-out light's intensity calibration,
+    #: which no reconstruction from the other lights can know.
+    shape_error: float
+    #: The gain ``a = <prediction, image> / <prediction, prediction>``.
+    gain: float
     #: The reconstruction made without this light.
     result: Reconstruction
     #: The predicted image.
@@ -68,6 +74,10 @@ def held_out(
         if image.ndim == 3:
             select = select.all(axis=-1)
         select &= result.mask
-        error = np.linalg.norm((prediction - image)[select]) / np.linalg.norm(image[select])
-        out.append(HeldOut(i, float(error), result, prediction))
+        p, q = prediction[select], image[select]
+        norm = np.linalg.norm(q)
+        gain = float(np.dot(p, q) / np.dot(p, p))
+        error = np.linalg.norm(p - q) / norm
+        shape_error = np.linalg.norm(gain * p - q) / norm
+        out.append(HeldOut(i, float(error), float(shape_error), gain, result, prediction))
     return out
