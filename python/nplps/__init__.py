@@ -13,7 +13,7 @@ Quick start::
     result.save("out/")
 """
 
-from . import export, io
+from . import captures, evaluation, export, io, preprocess
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .errors import InputError, NplpsError, RigError, SolverError
@@ -37,4 +37,7 @@ __all__ = [
     "SolverError",
     "io",
     "export",
+    "preprocess",
+    "captures",
+    "evaluation",
 ]

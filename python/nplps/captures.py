@@ -32,12 +32,15 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import TYPE_CHECKING, Any, Literal, Union
 
 import numpy as np
 
 from . import preprocess
 from .errors import InputError, RigError
+
+if TYPE_CHECKING:
+    from .rig import Rig
 from .io import PathLike, read_image, to_float
 
 __all__ = [
@@ -142,6 +145,23 @@ class Capture:
             ambient = ambient.mean(axis=2, dtype=np.float64).astype(np.float32)
         return dataclasses.replace(self, images=images, ambient=ambient)
 
+    def rig(self) -> "Rig":
+        """The capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
+        unit pixels when K is unknown) with its point lights (LED model) or directional lights."""
+        from .rig import Rig
+
+        if self.rig_path is not None:
+            return Rig.load(self.rig_path)
+        if self.directional:
+            if self.K is None:
+                return Rig.orthographic(1.0, directional_lights=self.directions, directional_intensities=self.intensities)
+            return Rig.pinhole(self.K, distortion=self.distortion, directional_lights=self.directions,
+                               directional_intensities=self.intensities)
+        if self.K is None or self.positions is None:
+            raise InputError(f"capture {self.name!r} has no camera intrinsics or light positions to build a rig from")
+        return Rig.pinhole(self.K, lights=self.positions, distortion=self.distortion, intensities=self.intensities,
+                           directions=self.directions, mu=self.mu)
+
     def select(self, indices: Sequence[int]) -> Capture:
         """Return a copy restricted to the images / lights ``indices`` (0-based, in order)."""
         idx = _check_indices(indices, self.num_images, "select")
@@ -222,9 +242,9 @@ def _check_folder(folder: PathLike) -> Path:
 
 
 def _resolve(folder: Path, name: PathLike) -> Path:
-    """``name`` relative to ``folder`` unless absolute; must exist."""
+    """``name`` relative to ``folder`` unless absolute or already an existing path; must exist."""
     path = Path(name)
-    if not path.is_absolute():
+    if not path.is_absolute() and not path.is_file():
         path = folder / path
     if not path.is_file():
         raise InputError(f"file '{path}' not found")
@@ -892,3 +912,46 @@ def load_folder(
         files=list(files),
     )
     return capture.load(gray=gray) if load else capture
+
+
+# --------------------------------------------------------------------------------------------------
+# Pre-processing of a whole capture
+# --------------------------------------------------------------------------------------------------
+
+
+def prepare(
+    capture: Capture,
+    *,
+    bin_factor: int = 1,
+    ambient: bool = True,
+    vignetting: Literal["cos4"] | np.ndarray | None = "cos4",
+    gray: bool = False,
+) -> Capture:
+    """The usual pre-processing of a near-light capture, as the near_ps authors do it.
+
+    Loads the images if needed, subtracts the ambient image (clipping at 0), divides by the
+    vignetting map (``"cos4"`` from K, a flat-field map, or None), and bins by ``bin_factor``
+    (images averaged, mask kept where its whole block is, K adjusted: fx' = fx/s,
+    cx' = (cx + 1/2)/s - 1/2). Returns a loaded capture on the binned grid; ``capture.rig()``
+    then gives the matching rig.
+    """
+    c = capture.load(gray=gray)
+    images = np.asarray(c.images, dtype=np.float32)
+    if ambient and c.ambient is not None:
+        images = preprocess.subtract_ambient(images, np.asarray(c.ambient, dtype=np.float32))
+    if isinstance(vignetting, str):
+        if vignetting != "cos4":
+            raise InputError(f"vignetting must be 'cos4', a map or None, got {vignetting!r}")
+        if c.K is not None:
+            images = preprocess.compensate_vignetting(images, preprocess.vignetting_cos4(images.shape[1:3], c.K))
+    elif vignetting is not None:
+        images = preprocess.compensate_vignetting(images, np.asarray(vignetting))
+    K, mask, normals = c.K, c.mask, c.normals_gt
+    if bin_factor != 1:
+        images = preprocess.bin_images(images, bin_factor)
+        K = None if K is None else preprocess.bin_intrinsics(K, bin_factor)
+        mask = None if mask is None else preprocess.bin_mask(mask, bin_factor)
+        normals = None
+    return dataclasses.replace(
+        c, images=np.ascontiguousarray(images, dtype=np.float32), ambient=None, K=K, mask=mask, normals_gt=normals
+    )
