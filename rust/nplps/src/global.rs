@@ -38,6 +38,17 @@ pub enum FillOrdering {
     Amd,
 }
 
+/// A prior on the unknowns (depth, or log-depth for a pinhole camera) fused in the global step:
+/// the energy gains `weight * sum_v (u_v - prior_v)^2` over the unknowns whose prior is finite.
+/// A region the prior covers needs no pinned vertex.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prior {
+    /// Prior value of each unknown (NaN: none).
+    pub values: Vec<f64>,
+    /// Weight of the prior term relative to the facet terms.
+    pub weight: f64,
+}
+
 /// Relative residual above which a factorization is considered wrong.
 const RESIDUAL_LIMIT: f64 = 1e-6;
 
@@ -55,6 +66,8 @@ pub struct GlobalSystem {
     par: Par,
     scratch: MemBuffer,
     pins: Vec<u32>,
+    /// `weight * prior` per unknown (0 where there is no prior), added to every right side.
+    prior_rhs: Option<Vec<f64>>,
     /// Relative residual of the check solve after factorization.
     pub check_residual: f64,
     /// Whether the parallel factorization failed its check and was redone sequentially.
@@ -65,13 +78,35 @@ impl GlobalSystem {
     /// Assembles, analyses and factors the system of `grid` with the nested-dissection
     /// ordering, using `par` for faer's kernels.
     pub fn new(grid: &Grid, par: Par) -> Result<GlobalSystem> {
-        GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection)
+        GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection, None)
     }
 
-    /// As [`GlobalSystem::new`], with a chosen fill-reducing ordering.
-    pub fn with_ordering(grid: &Grid, par: Par, ordering: FillOrdering) -> Result<GlobalSystem> {
+    /// As [`GlobalSystem::new`], with a chosen fill-reducing ordering and an optional prior
+    /// (see [`Prior`]).
+    pub fn with_ordering(
+        grid: &Grid,
+        par: Par,
+        ordering: FillOrdering,
+        prior: Option<&Prior>,
+    ) -> Result<GlobalSystem> {
         let n = grid.n_unknowns();
-        let lower = assemble_lower(grid)?;
+        // Regions that the prior covers are anchored by it and need no pin.
+        let mut anchored = vec![false; grid.n_regions];
+        if let Some(prior) = prior {
+            for (u, value) in prior.values.iter().enumerate() {
+                if value.is_finite() {
+                    anchored[grid.region_of_unknown[u] as usize] = true;
+                }
+            }
+        }
+        let pins: Vec<u32> = grid
+            .pins
+            .iter()
+            .zip(&anchored)
+            .filter(|(_, a)| !**a)
+            .map(|(p, _)| *p)
+            .collect();
+        let lower = assemble_lower(grid, &pins, prior)?;
         let (fwd, inv) = nested_dissection(grid);
         let ord = match ordering {
             FillOrdering::Amd => SymmetricOrdering::Amd,
@@ -92,7 +127,13 @@ impl GlobalSystem {
             lower,
             par,
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::empty()),
-            pins: grid.pins.clone(),
+            pins,
+            prior_rhs: prior.map(|p| {
+                p.values
+                    .iter()
+                    .map(|v| if v.is_finite() { p.weight * v } else { 0.0 })
+                    .collect()
+            }),
             check_residual: f64::NAN,
             fell_back_to_sequential: false,
         };
@@ -197,12 +238,22 @@ impl GlobalSystem {
         for &p in &self.pins {
             z_out[p as usize] += z_current[p as usize];
         }
+        if let Some(rhs) = &self.prior_rhs {
+            for (z, r) in z_out.iter_mut().zip(rhs) {
+                *z += r;
+            }
+        }
         self.solve_in_place(z_out);
     }
 }
 
-/// Lower triangle of `A = sum_f S_f^T N S_f` plus 1 on each pinned diagonal entry.
-fn assemble_lower(grid: &Grid) -> Result<SparseColMat<usize, f64>> {
+/// Lower triangle of `A = sum_f S_f^T N S_f`, plus 1 on each pinned diagonal entry and the
+/// prior's weight on each diagonal entry it covers.
+fn assemble_lower(
+    grid: &Grid,
+    pins: &[u32],
+    prior: Option<&Prior>,
+) -> Result<SparseColMat<usize, f64>> {
     let n = grid.n_unknowns();
     let mut triplets = Vec::with_capacity(grid.n_facets() * 10 + grid.pins.len());
     for ids in &grid.facet_vertices {
@@ -217,8 +268,15 @@ fn assemble_lower(grid: &Grid) -> Result<SparseColMat<usize, f64>> {
             }
         }
     }
-    for &p in &grid.pins {
+    for &p in pins {
         triplets.push(Triplet::new(p as usize, p as usize, 1.0));
+    }
+    if let Some(prior) = prior {
+        for (u, value) in prior.values.iter().enumerate() {
+            if value.is_finite() {
+                triplets.push(Triplet::new(u, u, prior.weight));
+            }
+        }
     }
     SparseColMat::try_new_from_triplets(n, n, &triplets)
         .map_err(|e| Error::Solver(format!("cannot assemble the normal matrix: {e:?}")))
@@ -264,7 +322,8 @@ mod tests {
     fn large_grid_factorizes_accurately() {
         let grid = Grid::new(120, 130, None).unwrap();
         let nd = GlobalSystem::new(&grid, Par::rayon(2)).unwrap();
-        let amd = GlobalSystem::with_ordering(&grid, Par::rayon(2), FillOrdering::Amd).unwrap();
+        let amd =
+            GlobalSystem::with_ordering(&grid, Par::rayon(2), FillOrdering::Amd, None).unwrap();
         assert!(nd.check_residual < 1e-9 && amd.check_residual < 1e-9);
         println!(
             "factor nonzeros: nested dissection {}, AMD {}",

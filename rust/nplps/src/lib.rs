@@ -30,6 +30,7 @@
 #![warn(missing_docs)]
 
 pub mod baseline;
+pub mod distance;
 pub mod error;
 pub mod geometry;
 pub mod global;
@@ -43,10 +44,11 @@ pub mod solver;
 pub mod synth;
 
 pub use baseline::reconstruct_parallel;
+pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
 pub use error::{Error, Result};
 pub use local::{Robust, Weighting};
 pub use problem::{ImageStack, InitialDepth, Problem};
 pub use render::{mesh_normals, predict, render, vertices};
 pub use rig::{Camera, Light, Rig};
-pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Timings};
+pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Solver, Timings};
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -4,6 +4,7 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_input, Error, Result};
 use crate::geometry::Geometry;
+use crate::global::Prior;
 use crate::grid::Grid;
 use crate::local::Observations;
 use crate::rig::Rig;
@@ -85,6 +86,8 @@ pub struct Problem<'a> {
     pub gauge: Vec<f64>,
     /// Number of negative observations inside the mask (treated as unlit).
     pub negative_observations: usize,
+    /// Optional depth prior fused in the global step.
+    pub prior: Option<Prior>,
 }
 
 impl<'a> Problem<'a> {
@@ -131,7 +134,43 @@ impl<'a> Problem<'a> {
             u0,
             gauge,
             negative_observations,
+            prior: None,
         })
+    }
+}
+
+impl Problem<'_> {
+    /// Adds a per-vertex prior depth map ((H+1) x (W+1); NaN where there is none) with `weight`
+    /// relative to the facet terms (see [`Prior`]; for a pinhole camera the prior acts on
+    /// log-depth).
+    pub fn set_prior(&mut self, map: &[f64], weight: f64) -> Result<()> {
+        let (h, w) = (self.grid.height + 1, self.grid.width + 1);
+        ensure_input(map.len() == h * w, || {
+            format!(
+                "the depth prior has {} values; it must have (H+1) x (W+1) = {h} x {w}",
+                map.len()
+            )
+        })?;
+        ensure_input(weight.is_finite() && weight > 0.0, || {
+            format!("the prior weight must be positive and finite, got {weight}")
+        })?;
+        let values: Vec<f64> = self
+            .grid
+            .gather_vertices(map)
+            .into_iter()
+            .map(|z| {
+                if z.is_finite() && z > 0.0 {
+                    self.geometry.unknown(z)
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        ensure_input(values.iter().any(|v| v.is_finite()), || {
+            "the depth prior has no finite positive value inside the mask".to_string()
+        })?;
+        self.prior = Some(Prior { values, weight });
+        Ok(())
     }
 }
 

@@ -16,7 +16,7 @@ use faer::Par;
 
 use crate::error::{Error, Result};
 use crate::geometry::Geometry;
-use crate::global::GlobalSystem;
+use crate::global::{FillOrdering, GlobalSystem};
 use crate::local::{local_step, FacetFit, FitSettings, Model, Robust, Weighting};
 use crate::problem::Problem;
 
@@ -194,81 +194,186 @@ pub fn reconstruct(
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
     options.validate()?;
-    with_threads(options.threads, || run(problem, options, progress))?
+    with_threads(options.threads, || {
+        let start = Instant::now();
+        let mut solver = Solver::new(problem, options)?;
+        let mut u = problem.u0.clone();
+        let (history, converged) = solver.iterate(
+            &mut u,
+            &problem.gauge,
+            options.iterations,
+            options.tol,
+            start,
+            progress,
+        )?;
+        Ok(solver.finish(&u, history, converged, start))
+    })?
 }
 
-fn run(
-    problem: &Problem<'_>,
-    options: &Options,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<Reconstruction> {
-    let start = Instant::now();
-    let mut timings = Timings::default();
-    let grid = &problem.grid;
-    let rig = problem.rig;
+/// The iteration machinery of one problem: the factored global system and the per-facet
+/// buffers, reusable for several runs (warm starts, other gauges).
+pub struct Solver<'p> {
+    problem: &'p Problem<'p>,
+    options: Options,
+    system: GlobalSystem,
+    fits: Vec<FacetFit>,
+    targets: Vec<[f64; 4]>,
+    next: Vec<f64>,
+    /// Time spent so far.
+    pub timings: Timings,
+}
 
-    let t = Instant::now();
-    let mut system = GlobalSystem::new(grid, sparse_par(options.parallel_sparse))?;
-    timings.factorization = t.elapsed();
-
-    let geometry = &problem.geometry;
-    let scale = lateral_size(problem);
-    let mut z = problem.u0.clone();
-    let mut z_new = vec![0.0; z.len()];
-    let mut fits = vec![FacetFit::EMPTY; grid.n_facets()];
-    let mut targets = vec![[0.0; 4]; grid.n_facets()];
-    let mut history = Vec::with_capacity(options.iterations);
-    let mut converged = false;
-    // Iterations use the fast residual (history only); the final, reported step sums it exactly.
-    let local = |z: &[f64], fits: &mut [FacetFit], timings: &mut Timings, fast: bool| {
+impl<'p> Solver<'p> {
+    /// Factors the global system of `problem` (with its prior, if any).
+    pub fn new(problem: &'p Problem<'p>, options: &Options) -> Result<Solver<'p>> {
         let t = Instant::now();
-        local_step(
-            grid,
-            geometry,
-            Model::Near(&rig.lights),
-            &problem.obs,
-            z,
-            options.fit_settings(fast),
-            fits,
-        );
-        timings.local += t.elapsed();
-    };
-
-    for iteration in 1..=options.iterations {
-        local(&z, &mut fits, &mut timings, true);
-        let t = Instant::now();
-        for (tg, fit) in targets.iter_mut().zip(&fits) {
-            *tg = fit.target;
-        }
-        system.solve(grid, &targets, &z, &mut z_new);
-        grid.apply_gauge(&mut z_new, &problem.gauge);
-        let depth_change = max_depth_change(geometry, &z, &z_new);
-        std::mem::swap(&mut z, &mut z_new);
-        timings.solve += t.elapsed();
-
-        let stats = IterationStats {
-            iteration,
-            depth_change,
-            rms_residual: rms_of(&fits, problem.obs.channels),
-            elapsed: start.elapsed(),
-        };
-        history.push(stats);
-        if progress(&stats) == Control::Cancel {
-            return Err(Error::Cancelled);
-        }
-        if !depth_change.is_finite() {
-            return Err(Error::Solver(format!(
-                "the depths diverged at iteration {iteration}"
-            )));
-        }
-        if depth_change <= options.tol * scale {
-            converged = true;
-            break;
-        }
+        let system = GlobalSystem::with_ordering(
+            &problem.grid,
+            sparse_par(options.parallel_sparse),
+            FillOrdering::NestedDissection,
+            problem.prior.as_ref(),
+        )?;
+        let n = problem.grid.n_facets();
+        Ok(Solver {
+            problem,
+            options: *options,
+            system,
+            fits: vec![FacetFit::EMPTY; n],
+            targets: vec![[0.0; 4]; n],
+            next: vec![0.0; problem.grid.n_unknowns()],
+            timings: Timings {
+                factorization: t.elapsed(),
+                ..Timings::default()
+            },
+        })
     }
-    local(&z, &mut fits, &mut timings, false);
-    timings.total = start.elapsed();
-    Ok(assemble(problem, &z, &fits, history, converged, timings))
+
+    /// The problem this solver works on.
+    pub fn problem(&self) -> &'p Problem<'p> {
+        self.problem
+    }
+
+    /// The local step on `u` (fast residuals for iterations, exact for reports).
+    pub fn local(&mut self, u: &[f64], fast_residual: bool) -> &[FacetFit] {
+        let t = Instant::now();
+        let p = self.problem;
+        let settings = self.options.fit_settings(fast_residual);
+        local_step(
+            &p.grid,
+            &p.geometry,
+            Model::Near(&p.rig.lights),
+            &p.obs,
+            u,
+            settings,
+            &mut self.fits,
+        );
+        self.timings.local += t.elapsed();
+        &self.fits
+    }
+
+    /// Runs up to `iterations` local/global iterations from `u` (updated in place) with the
+    /// per-region `gauge` (in unknowns), stopping when the largest depth change is at most
+    /// `tol` times the lateral size. Returns the history and whether it converged.
+    pub fn iterate(
+        &mut self,
+        u: &mut Vec<f64>,
+        gauge: &[f64],
+        iterations: usize,
+        tol: f64,
+        start: Instant,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<(Vec<IterationStats>, bool)> {
+        let p = self.problem;
+        let scale = lateral_size(p);
+        let mut history = Vec::with_capacity(iterations);
+        for iteration in 1..=iterations {
+            self.local(u, true);
+            let t = Instant::now();
+            for (tg, fit) in self.targets.iter_mut().zip(&self.fits) {
+                *tg = fit.target;
+            }
+            self.system.solve(&p.grid, &self.targets, u, &mut self.next);
+            p.grid.apply_gauge(&mut self.next, gauge);
+            let depth_change = max_depth_change(&p.geometry, u, &self.next);
+            std::mem::swap(u, &mut self.next);
+            self.timings.solve += t.elapsed();
+
+            let stats = IterationStats {
+                iteration,
+                depth_change,
+                rms_residual: rms_of(&self.fits, p.obs.channels),
+                elapsed: start.elapsed(),
+            };
+            history.push(stats);
+            if progress(&stats) == Control::Cancel {
+                return Err(Error::Cancelled);
+            }
+            if !depth_change.is_finite() {
+                return Err(Error::Solver(format!(
+                    "the depths diverged at iteration {iteration}"
+                )));
+            }
+            if depth_change <= tol * scale {
+                return Ok((history, true));
+            }
+        }
+        Ok((history, false))
+    }
+
+    /// RMS image residual of each region under the last local step.
+    pub fn region_residuals(&self) -> Vec<f64> {
+        let grid = &self.problem.grid;
+        let mut sse = vec![0.0; grid.n_regions];
+        let mut count = vec![0usize; grid.n_regions];
+        for (fit, ids) in self
+            .fits
+            .iter()
+            .zip(&grid.facet_vertices)
+            .filter(|(f, _)| f.valid)
+        {
+            let r = grid.region_of_unknown[ids[0] as usize] as usize;
+            sse[r] += fit.sse;
+            count[r] += fit.used as usize * self.problem.obs.channels;
+        }
+        sse.iter()
+            .zip(&count)
+            .map(|(s, &n)| {
+                if n == 0 {
+                    f64::NAN
+                } else {
+                    (s / n as f64).sqrt()
+                }
+            })
+            .collect()
+    }
+
+    /// The final (exact) local step on `u` and the assembled result.
+    pub fn finish(
+        &mut self,
+        u: &[f64],
+        history: Vec<IterationStats>,
+        converged: bool,
+        start: Instant,
+    ) -> Reconstruction {
+        self.local(u, false);
+        self.timings.total = start.elapsed();
+        let mut result = assemble(
+            self.problem,
+            u,
+            &self.fits,
+            history,
+            converged,
+            self.timings,
+        );
+        result.gauge = self
+            .problem
+            .grid
+            .region_means(u)
+            .iter()
+            .map(|&g| self.problem.geometry.depth(g))
+            .collect();
+        result
+    }
 }
 
 /// Largest change of vertex depth between two sets of unknowns.

@@ -215,3 +215,46 @@ fn cancelling_stops_the_solver() {
     assert_eq!(result.unwrap_err(), nplps::Error::Cancelled);
     assert_eq!(calls, 1);
 }
+
+#[test]
+fn working_distance_is_found_from_the_images() {
+    use nplps::{reconstruct_auto, DistanceSearch};
+    for pinhole in [false, true] {
+        let variation = SceneOptions {
+            pinhole,
+            ..SceneOptions::default()
+        };
+        let scene = Scene::with_options(SceneKind::Bumps, 40, 100.0, 200.0, 2, variation).unwrap();
+        let truth = scene.mean_depth();
+        let images = exact_images(&scene);
+        let stack = ImageStack::new(&images, scene.rig.n_lights(), 40, 40).unwrap();
+        for factor in [0.7, 1.3] {
+            let problem = Problem::new(
+                stack,
+                &scene.rig,
+                Some(&scene.mask),
+                InitialDepth::Distance(truth * factor),
+            )
+            .unwrap();
+            let search = DistanceSearch {
+                guess: Some(truth * factor),
+                ..DistanceSearch::default()
+            };
+            let t = std::time::Instant::now();
+            let (result, estimate) =
+                reconstruct_auto(&problem, &Options::default(), &search, &mut |_| {
+                    Control::Continue
+                })
+                .unwrap();
+            let rel = estimate.distance[0] / truth - 1.0;
+            println!(
+                "pinhole {pinhole}, guess x{factor}: estimate {:.3} (true {truth:.3}, {rel:+.2e}), {} evaluations, {:?}",
+                estimate.distance[0],
+                estimate.curve[0].len(),
+                t.elapsed()
+            );
+            assert!(rel.abs() < 0.01);
+            assert!(mean_normal_error(&scene, &result.normals) < 0.05);
+        }
+    }
+}

@@ -1,0 +1,297 @@
+//! The working distance from the images.
+//!
+//! Under near lighting the lighting of a surface point depends on where it is, so the absolute
+//! distance of the object is observable: with the wrong gauge (each region's mean depth, or
+//! geometric mean depth for a pinhole camera) no surface explains the images as well as with the
+//! right one. [`estimate_distance`] scans the photometric residual of the reconstruction over a
+//! log-spaced range of gauges and refines each region's minimum by golden-section search; every
+//! evaluation is a few warm-started iterations that reuse the one factorization. Regions are
+//! independent in the global step, so all of them are searched at once.
+//!
+//! With 3 lights the fit is exact at every distance, and directional lights do not depend on
+//! the distance: such rigs are rejected.
+
+use std::time::Instant;
+
+use crate::error::{Error, Result};
+use crate::problem::Problem;
+use crate::rig::Light;
+use crate::solver::{with_threads, Control, IterationStats, Options, Reconstruction, Solver};
+
+/// How to search for the working distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DistanceSearch {
+    /// Search range (near, far) in depth units. None: from `guess`, else from the rig.
+    pub range: Option<(f64, f64)>,
+    /// A rough distance; the range is then `(guess / 2, guess * 2)`.
+    pub guess: Option<f64>,
+    /// Candidates of the coarse, log-spaced scan.
+    pub scan: usize,
+    /// Local/global iterations per evaluation (warm-started).
+    pub inner: usize,
+    /// Relative precision of the refinement.
+    pub precision: f64,
+}
+
+impl Default for DistanceSearch {
+    fn default() -> Self {
+        DistanceSearch {
+            range: None,
+            guess: None,
+            scan: 12,
+            inner: 5,
+            precision: 1e-3,
+        }
+    }
+}
+
+/// The estimated gauge of every region and the residual curve it came from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DistanceEstimate {
+    /// Estimated distance of each region (arithmetic mean depth, or geometric mean depth for a
+    /// pinhole camera).
+    pub distance: Vec<f64>,
+    /// Per region, every evaluated `(distance, RMS residual)`, sorted by distance.
+    pub curve: Vec<Vec<(f64, f64)>>,
+    /// The search range used.
+    pub range: (f64, f64),
+}
+
+/// Fails when the rig cannot reveal the distance.
+fn check_observable(problem: &Problem<'_>) -> Result<()> {
+    let lights = &problem.rig.lights;
+    if !lights.iter().any(|l| matches!(l, Light::Point { .. })) {
+        return Err(Error::Input(
+            "the working distance cannot be estimated with directional lights only: they light every \
+             distance alike; give depth explicitly"
+                .into(),
+        ));
+    }
+    if lights.len() <= 3 {
+        return Err(Error::Input(format!(
+            "the working distance cannot be estimated from {} lights: with 3 lights every distance fits \
+             the images exactly; use at least 4 lights or give depth explicitly",
+            lights.len()
+        )));
+    }
+    Ok(())
+}
+
+/// The search range: given, around the guess, or from the rig (just beyond the farthest point
+/// light to 20 light-spreads beyond it).
+fn search_range(problem: &Problem<'_>, search: &DistanceSearch) -> Result<(f64, f64)> {
+    let points: Vec<[f64; 3]> = problem
+        .rig
+        .lights
+        .iter()
+        .filter_map(|l| match l {
+            Light::Point { position, .. } => Some(*position),
+            Light::Directional { .. } => None,
+        })
+        .collect();
+    let front = points
+        .iter()
+        .map(|p| p[2])
+        .fold(f64::NEG_INFINITY, f64::max);
+    let (near, far) = match (search.range, search.guess) {
+        (Some(r), _) => r,
+        (None, Some(g)) => (g / 2.0, g * 2.0),
+        (None, None) => {
+            let spread = points
+                .iter()
+                .flat_map(|a| {
+                    points.iter().map(move |b| {
+                        crate::grid::dot(crate::grid::sub(*a, *b), crate::grid::sub(*a, *b)).sqrt()
+                    })
+                })
+                .fold(0.0, f64::max)
+                .max(1e-9);
+            (
+                front.max(0.0) + 0.05 * spread,
+                front.max(0.0) + 20.0 * spread,
+            )
+        }
+    };
+    let near = near.max(front + 1e-6 * (far - front).abs());
+    if !(near.is_finite() && far.is_finite() && near > 0.0 && far > near * (1.0 + 1e-6)) {
+        return Err(Error::Input(format!(
+            "the distance search range ({near}, {far}) is empty: it must lie beyond the point lights (z > {front})"
+        )));
+    }
+    Ok((near, far))
+}
+
+/// Evaluates the per-region residual at per-region distances `d`, warm-starting from `u`.
+struct Evaluator<'s, 'p> {
+    solver: &'s mut Solver<'p>,
+    u: Vec<f64>,
+    inner: usize,
+    curve: Vec<Vec<(f64, f64)>>,
+    start: Instant,
+}
+
+impl Evaluator<'_, '_> {
+    fn eval(
+        &mut self,
+        d: &[f64],
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<Vec<f64>> {
+        let problem = self.solver.problem();
+        let gauge: Vec<f64> = d.iter().map(|&x| problem.geometry.unknown(x)).collect();
+        problem.grid.apply_gauge(&mut self.u, &gauge);
+        self.solver
+            .iterate(&mut self.u, &gauge, self.inner, 0.0, self.start, progress)?;
+        self.solver.local(&self.u, true);
+        let residuals = self.solver.region_residuals();
+        for ((curve, &x), &r) in self.curve.iter_mut().zip(d).zip(&residuals) {
+            curve.push((x, r));
+        }
+        Ok(residuals)
+    }
+}
+
+/// Estimates each region's working distance (see the module documentation).
+pub fn estimate_distance(
+    problem: &Problem<'_>,
+    options: &Options,
+    search: &DistanceSearch,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<DistanceEstimate> {
+    options.validate()?;
+    check_observable(problem)?;
+    let range = search_range(problem, search)?;
+    with_threads(options.threads, || {
+        let mut solver = Solver::new(problem, options)?;
+        search_with(&mut solver, problem, search, range, progress).map(|(estimate, _)| estimate)
+    })?
+}
+
+/// The search itself; also returns the warm state at the estimate.
+fn search_with(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    search: &DistanceSearch,
+    range: (f64, f64),
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(DistanceEstimate, Vec<f64>)> {
+    let regions = problem.grid.n_regions;
+    let scan = search.scan.max(3);
+    let (ln_near, ln_far) = (range.0.ln(), range.1.ln());
+    let step = (ln_far - ln_near) / (scan - 1) as f64;
+    let mut ev = Evaluator {
+        solver,
+        u: problem.u0.clone(),
+        inner: search.inner.max(1),
+        curve: vec![Vec::new(); regions],
+        start: Instant::now(),
+    };
+    // Coarse scan from far to near (surfaces start flat; far is the gentlest start).
+    let mut scanned: Vec<(f64, Vec<f64>)> = Vec::with_capacity(scan);
+    for i in (0..scan).rev() {
+        let d = (ln_near + step * i as f64).exp();
+        scanned.push((d, ev.eval(&vec![d; regions], progress)?));
+    }
+    scanned.reverse();
+    // Per region, bracket the scan's minimum.
+    let mut lo = vec![0.0; regions];
+    let mut hi = vec![0.0; regions];
+    for r in 0..regions {
+        let best = (0..scan)
+            .min_by(|&a, &b| scanned[a].1[r].total_cmp(&scanned[b].1[r]))
+            .unwrap_or(0);
+        if best == 0 || best == scan - 1 {
+            let side = if best == 0 { "near" } else { "far" };
+            return Err(Error::Input(format!(
+                "the photometric residual of region {r} keeps falling towards the {side} end of the distance \
+                 search range ({:.4}, {:.4}): the distance lies outside it or cannot be observed; \
+                 widen depth_range",
+                range.0, range.1
+            )));
+        }
+        lo[r] = ln_near + step * (best - 1) as f64;
+        hi[r] = ln_near + step * (best + 1) as f64;
+    }
+    // Golden-section refinement in log-distance, all regions at once.
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let mut x1: Vec<f64> = (0..regions)
+        .map(|r| hi[r] - phi * (hi[r] - lo[r]))
+        .collect();
+    let mut x2: Vec<f64> = (0..regions)
+        .map(|r| lo[r] + phi * (hi[r] - lo[r]))
+        .collect();
+    let mut f1 = ev.eval(&x1.iter().map(|x| x.exp()).collect::<Vec<_>>(), progress)?;
+    let mut f2 = ev.eval(&x2.iter().map(|x| x.exp()).collect::<Vec<_>>(), progress)?;
+    let tolerance = search.precision.max(1e-9);
+    while (0..regions).any(|r| hi[r] - lo[r] > tolerance) {
+        let mut trial = vec![0.0; regions];
+        let mut left = vec![false; regions];
+        for r in 0..regions {
+            left[r] = f1[r] < f2[r];
+            if left[r] {
+                hi[r] = x2[r];
+                x2[r] = x1[r];
+                f2[r] = f1[r];
+                x1[r] = hi[r] - phi * (hi[r] - lo[r]);
+                trial[r] = x1[r];
+            } else {
+                lo[r] = x1[r];
+                x1[r] = x2[r];
+                f1[r] = f2[r];
+                x2[r] = lo[r] + phi * (hi[r] - lo[r]);
+                trial[r] = x2[r];
+            }
+        }
+        let f = ev.eval(&trial.iter().map(|x| x.exp()).collect::<Vec<_>>(), progress)?;
+        for r in 0..regions {
+            if left[r] {
+                f1[r] = f[r];
+            } else {
+                f2[r] = f[r];
+            }
+        }
+    }
+    let distance: Vec<f64> = (0..regions)
+        .map(|r| (0.5 * (lo[r] + hi[r])).exp())
+        .collect();
+    for curve in &mut ev.curve {
+        curve.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    let estimate = DistanceEstimate {
+        distance,
+        curve: ev.curve,
+        range,
+    };
+    Ok((estimate, ev.u))
+}
+
+/// Estimates the working distance of every region, then reconstructs at it (warm-started).
+pub fn reconstruct_auto(
+    problem: &Problem<'_>,
+    options: &Options,
+    search: &DistanceSearch,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(Reconstruction, DistanceEstimate)> {
+    options.validate()?;
+    check_observable(problem)?;
+    let range = search_range(problem, search)?;
+    with_threads(options.threads, || {
+        let start = Instant::now();
+        let mut solver = Solver::new(problem, options)?;
+        let (estimate, mut u) = search_with(&mut solver, problem, search, range, progress)?;
+        let gauge: Vec<f64> = estimate
+            .distance
+            .iter()
+            .map(|&d| problem.geometry.unknown(d))
+            .collect();
+        problem.grid.apply_gauge(&mut u, &gauge);
+        let (history, converged) = solver.iterate(
+            &mut u,
+            &gauge,
+            options.iterations,
+            options.tol,
+            start,
+            progress,
+        )?;
+        Ok((solver.finish(&u, history, converged, start), estimate))
+    })?
+}
