@@ -33,9 +33,13 @@ def _prepare(
     mask_arr = np.ascontiguousarray(load_mask(mask, (h, w)))
     if depth is None:
         raise InputError(
-            "depth is required: give the working distance (the object's mean depth, in the rig's unit) "
-            "or an (H+1, W+1) initial depth map; a wrong distance bends the result"
+            "depth is required: give the working distance (the object's mean depth, in the rig's unit), "
+            "an (H+1, W+1) initial depth map, or 'auto' to estimate it; a wrong distance bends the result"
         )
+    if isinstance(depth, str):
+        if depth != "auto":
+            raise InputError(f"depth must be a number, a depth map or 'auto', got {depth!r}")
+        return stack, mask_arr, _auto_start(rig), None, levels
     if np.isscalar(depth) or np.ndim(depth) == 0:
         d = float(depth)  # type: ignore[arg-type]
         if not np.isfinite(d) or d <= 0:
@@ -48,6 +52,16 @@ def _prepare(
             f"(H+1, W+1) = {(h + 1, w + 1)} for {h} x {w} images"
         )
     return stack, mask_arr, None, depth_map, levels
+
+
+def _auto_start(rig: Rig) -> float:
+    """A starting plane for the distance search, well beyond the point lights (the search sets
+    the gauge itself)."""
+    points = rig.lights[~rig.directional]  # type: ignore[index]
+    if len(points) == 0:
+        return 1.0
+    spread = float(np.ptp(points, axis=0).max()) or 1.0
+    return float(points[:, 2].max()) + 10.0 * spread
 
 
 def _thresholds(dark: float | None, saturation: float | None, levels: int | None) -> tuple[float, float]:
@@ -124,6 +138,10 @@ def reconstruct(
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
+    depth_range: tuple[float, float] | None = None,
+    depth_guess: float | None = None,
+    depth_prior: np.ndarray | None = None,
+    prior_weight: float = 1.0,
 ) -> Reconstruction:
     """Reconstructs a surface from k images taken under k near lights.
 
@@ -132,10 +150,13 @@ def reconstruct(
             JPEG, ...), one per light in the rig's order. Integer images are scaled to [0, 1].
         rig: the :class:`~nplps.Rig` (camera and lights).
         mask: (H, W) boolean array or mask image (non-zero = reconstruct); None: every pixel.
-        depth: the working distance, or an (H+1, W+1) initial vertex depth map. It sets each
-            connected region's gauge: the arithmetic mean vertex depth (orthographic camera) or the
-            geometric mean vertex depth (pinhole camera); the surface starts there. Required:
-            near-light reconstruction depends on it.
+        depth: the working distance, an (H+1, W+1) initial vertex depth map, or "auto". It sets
+            each connected region's gauge: the arithmetic mean vertex depth (orthographic camera)
+            or the geometric mean vertex depth (pinhole camera); the surface starts there.
+            Required: near-light reconstruction depends on it. "auto" estimates each region's
+            gauge by minimizing the photometric residual (see ``result.distance``), searching
+            ``depth_range`` (near, far), or ``depth_guess / 2`` to ``depth_guess * 2``, or a range
+            derived from the lights.
         iterations: maximum number of local/global iterations.
         tol: stop when the largest depth change of an iteration is at most ``tol`` times the
             lateral size of the image footprint.
@@ -151,6 +172,11 @@ def reconstruct(
         color: None (RGB images give RGB albedo), True (require RGB) or False (average to grey).
         valid: optional (k, H, W) booleans; False marks observations to leave out.
         threads: worker threads (None: all cores).
+        depth_range, depth_guess: where ``depth="auto"`` searches.
+        depth_prior: an optional (H+1, W+1) prior depth map (NaN where unknown), e.g. from a
+            coarse scan, fused in the global step with ``prior_weight`` relative to the facet
+            terms (the prior acts on depth, or on log-depth for a pinhole camera). ``depth`` keeps
+            its meaning (start and gauge).
 
     Returns:
         A :class:`~nplps.Reconstruction`.
@@ -167,7 +193,16 @@ def reconstruct(
         "weighting": weighting,
         "robust": "none" if robust is None else robust,
         "threads": _threads(threads),
+        "auto": isinstance(depth, str),
+        "depth_range": None if depth_range is None else tuple(float(v) for v in depth_range),
+        "depth_guess": None if depth_guess is None else float(depth_guess),
+        "prior_weight": float(prior_weight),
     }
+    prior = None
+    if depth_prior is not None:
+        prior = np.ascontiguousarray(np.asarray(depth_prior, dtype=np.float64))
+        if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
+            raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
     out = _core.reconstruct(
         _apply_valid(stack, valid),
         rig.camera,
@@ -177,6 +212,7 @@ def reconstruct(
         depth_map,
         options,
         _progress_callback(progress, int(iterations)),
+        prior,
     )
     _warn_negative(out["negative_observations"], dark_)
     return Reconstruction._from_core(out, mask_arr, rig, "near")

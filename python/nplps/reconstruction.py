@@ -10,8 +10,26 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from . import _core, export
+from . import _core, export, plots
 from .rig import Rig
+
+
+@dataclass
+class DistanceEstimate:
+    """The working distance estimated from the images (``depth="auto"``)."""
+
+    #: Estimated distance of each region (arithmetic mean depth, or geometric mean depth for a
+    #: pinhole camera).
+    distance: np.ndarray
+    #: Per region, the evaluated (distance, RMS residual) pairs, sorted by distance (N, 2).
+    curve: list[np.ndarray]
+    #: The (near, far) range searched.
+    range: tuple[float, float]
+
+    def save_curve(self, path: str | os.PathLike[str]) -> None:
+        """Writes the residual curve(s) as CSV (region, distance, rms_residual)."""
+        rows = [f"{r},{d!r},{e!r}" for r, curve in enumerate(self.curve) for d, e in curve]
+        Path(path).write_text("region,distance,rms_residual\n" + "\n".join(rows) + "\n", encoding="utf-8")
 
 
 class Iteration(NamedTuple):
@@ -58,6 +76,8 @@ class Reconstruction:
     timings: dict[str, float] = field(default_factory=dict)
     #: "near" for the near-light method, "parallel" for the conventional baseline.
     method: str = "near"
+    #: The distance search, when ``depth="auto"``.
+    distance: DistanceEstimate | None = None
 
     @classmethod
     def _from_core(cls, out: dict[str, Any], mask: np.ndarray, rig: Rig, method: str) -> "Reconstruction":
@@ -75,6 +95,7 @@ class Reconstruction:
             rig=rig,
             timings=dict(out["timings"]),
             method=method,
+            distance=_distance(out.get("distance_estimate")),
         )
 
     @property
@@ -164,6 +185,7 @@ class Reconstruction:
             "unfitted_pixels": self.unfitted,
             "depth_range": [float(np.nanmin(self.depth)), float(np.nanmax(self.depth))],
             "timings": self.timings,
+            "estimated_distance": None if self.distance is None else [float(d) for d in self.distance.distance],
         }
 
     def save(self, directory: str | os.PathLike[str], stem: str = "mesh", opengl: bool = False) -> dict[str, Path]:
@@ -199,8 +221,23 @@ class Reconstruction:
         export.save_depth_tiff(paths["depth_tiff"], self.depth)
         np.save(paths["normals_npy"], self.normals)
         np.save(paths["residual_npy"], self.residual)
+        if self.distance is not None:
+            paths["distance_curve"] = out / "distance_curve.csv"
+            paths["distance_plot"] = out / "distance_curve.svg"
+            self.distance.save_curve(paths["distance_curve"])
+            plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
         paths["summary"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
         return paths
+
+
+def _distance(d: dict[str, Any] | None) -> DistanceEstimate | None:
+    if d is None:
+        return None
+    return DistanceEstimate(
+        distance=np.asarray(d["distance"]),
+        curve=[np.asarray(c, dtype=np.float64).reshape(-1, 2) for c in d["curve"]],
+        range=tuple(d["range"]),  # type: ignore[arg-type]
+    )
 
 
 def _to_vertices(values: np.ndarray) -> np.ndarray:

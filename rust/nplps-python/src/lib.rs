@@ -135,9 +135,21 @@ impl<'a> Input<'a> {
     }
 }
 
+/// The distance search of the options mapping (`auto`, `depth_range`, `depth_guess`), if asked.
+fn search_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>> {
+    if !option(py, d, "auto", false)? {
+        return Ok(None);
+    }
+    Ok(Some(nplps::DistanceSearch {
+        range: option(py, d, "depth_range", None)?,
+        guess: option(py, d, "depth_guess", None)?,
+        ..nplps::DistanceSearch::default()
+    }))
+}
+
 /// Near-light reconstruction (see `nplps.reconstruct`). Returns a dict of arrays.
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options, progress))]
+#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options, progress, prior=None))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
@@ -149,6 +161,7 @@ fn reconstruct<'py>(
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
     options: &Bound<'py, PyDict>,
     progress: Option<Py<PyAny>>,
+    prior: Option<PyReadonlyArray2<'py, f64>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let rig = rig_from(py, camera, lights)?;
     let input = Input::new(
@@ -159,11 +172,20 @@ fn reconstruct<'py>(
         distance,
         depth_map.as_ref(),
     )?;
+    let search = search_from(py, options)?;
+    let prior_weight: f64 = option(py, options, "prior_weight", 1.0)?;
+    let prior = prior
+        .as_ref()
+        .map(|p| slice(py, p, "depth prior"))
+        .transpose()?;
     let options = options_from(py, options)?;
     let mut callback_error: Option<PyErr> = None;
     let result = py.detach(|| {
         no_panic(|| {
-            let problem = input.problem()?;
+            let mut problem = input.problem()?;
+            if let Some(map) = prior {
+                problem.set_prior(map, prior_weight)?;
+            }
             let mut on_iteration = |stats: &nplps::IterationStats| {
                 Python::attach(|py| {
                     let outcome = py.check_signals().and_then(|_| match &progress {
@@ -189,13 +211,30 @@ fn reconstruct<'py>(
                     }
                 })
             };
-            nplps::reconstruct(&problem, &options, &mut on_iteration)
+            match &search {
+                Some(search) => {
+                    nplps::reconstruct_auto(&problem, &options, search, &mut on_iteration)
+                        .map(|(r, estimate)| (r, Some(estimate)))
+                }
+                None => {
+                    nplps::reconstruct(&problem, &options, &mut on_iteration).map(|r| (r, None))
+                }
+            }
         })
     });
     if let Some(e) = callback_error {
         return Err(e);
     }
-    reconstruction_dict(py, result.map_err(|e| to_py(py, e))?)
+    let (result, estimate) = result.map_err(|e| to_py(py, e))?;
+    let d = reconstruction_dict(py, result)?;
+    if let Some(estimate) = estimate {
+        let e = PyDict::new(py);
+        e.set_item("distance", estimate.distance)?;
+        e.set_item("curve", estimate.curve)?;
+        e.set_item("range", estimate.range)?;
+        d.set_item("distance_estimate", e)?;
+    }
+    Ok(d)
 }
 
 /// Parallel-light baseline (see `nplps.reconstruct_parallel`).
