@@ -4,7 +4,8 @@
 ``camera`` is the rig file's camera mapping; ``lights`` a mapping of per-light lists
 (``vectors``, ``directional``, ``intensities``, ``axes``, ``mu``: see ``Rig._core_lights``);
 ``options`` a mapping with the keyword options of :func:`nplps.reconstruct` (``iterations``,
-``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``)."""
+``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, and for the distance
+search and the prior ``auto``, ``depth_range``, ``depth_guess``, ``prior_weight``)."""
 
 from typing import Any, Callable, Mapping
 
@@ -26,6 +27,7 @@ def reconstruct(
     depth_map: npt.NDArray[np.float64] | None,
     options: Mapping[str, Any],
     progress: ProgressCallback | None,
+    prior: npt.NDArray[np.float64] | None = None,
 ) -> dict[str, Any]: ...
 def reconstruct_parallel(
     images: npt.NDArray[np.float32],

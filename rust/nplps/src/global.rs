@@ -332,4 +332,34 @@ mod tests {
         );
         assert!(nd.factor_nnz() < amd.factor_nnz());
     }
+
+    /// A prior on every unknown anchors the system without pins and pulls the solution towards
+    /// the prior where the targets say nothing (here: flat targets, prior = a tilted plane).
+    #[test]
+    fn prior_pulls_towards_its_values() {
+        let grid = Grid::new(6, 7, None).unwrap();
+        let values: Vec<f64> = grid
+            .active
+            .iter()
+            .map(|&v| 10.0 + 0.1 * (v % 8) as f64)
+            .collect();
+        let prior = Prior {
+            values: values.clone(),
+            weight: 1e6,
+        };
+        let mut sys = GlobalSystem::with_ordering(
+            &grid,
+            Par::Seq,
+            FillOrdering::NestedDissection,
+            Some(&prior),
+        )
+        .unwrap();
+        assert!(sys.pins.is_empty());
+        let targets = vec![[0.0; 4]; grid.n_facets()];
+        let mut z = vec![0.0; grid.n_unknowns()];
+        sys.solve(&grid, &targets, &values, &mut z);
+        for (a, b) in z.iter().zip(&values) {
+            assert!((a - b).abs() < 1e-3, "{a} vs {b}");
+        }
+    }
 }
