@@ -7,11 +7,14 @@ import re
 import shlex
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import nplps
+import nplps.io
+import nplps.preprocess
 from nplps import cli
 from nplps.export import read_ply
 
@@ -290,7 +293,7 @@ def test_keyboard_interrupt(monkeypatch, capsys):
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("command", [[], ["reconstruct"], ["synth"], ["demo"]])
+@pytest.mark.parametrize("command", [[], ["reconstruct"], ["evaluate"], ["synth"], ["demo"]])
 def test_help(capsys, command):
     rc, stdout, _ = run(capsys, *command, "--help")
     assert rc == 0
@@ -298,6 +301,7 @@ def test_help(capsys, command):
     assert "example" in stdout
     if not command:
         assert "OpenCV" in stdout and "reconstruct" in stdout and "synth" in stdout and "demo" in stdout
+        assert "evaluate" in stdout
 
 
 def test_version_subprocess(tmp_path):
@@ -329,3 +333,314 @@ def test_resolve_images_natural_order(tmp_path, capsys):
     assert [p.rsplit("/", 1)[-1] for p in files] == ["img1.png", "img2.png", "img10.png"]
     err = capsys.readouterr().err
     assert "using 3 images" in err and "Mask.png" in err and "--mask" in err
+
+
+# --------------------------------------------------------------------------------------------------
+# real-rig options: pinhole / LED / RGB scenes, pre-processing, binning, capture folders
+# --------------------------------------------------------------------------------------------------
+
+REAL_SIZE = 32
+
+
+def synth(capsys, out, *options):
+    """Runs ``nplps synth bumps`` and returns the reconstruct command it printed (as argv)."""
+    rc, stdout, stderr = run(capsys, "synth", "bumps", "--size", REAL_SIZE, "--out", out, *options)
+    assert rc == 0, stderr
+    line = next(line for line in stdout.splitlines() if line.strip().startswith("nplps reconstruct"))
+    return shlex.split(line.strip())[1:]
+
+
+@pytest.fixture(scope="module")
+def pinhole_dir(tmp_path_factory):
+    """A pinhole LED scene (grey) written by ``nplps synth``, and its printed command."""
+    out = tmp_path_factory.mktemp("pinhole") / "scene"
+    rc = cli.main(["synth", "bumps", "--size", str(REAL_SIZE), "--camera", "pinhole", "--led", "--out", str(out)])
+    assert rc == 0
+    return out, nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True).mean_depth
+
+
+def vertex_normals_error(result, truth_path):
+    truth = np.load(truth_path)
+    mask = np.isfinite(truth).all(axis=-1)
+    return angular_errors(np.load(result / "normals.npy"), truth, mask)
+
+
+def test_synth_pinhole_led_rgb_reconstructs(tmp_path, capsys):
+    argv = synth(capsys, tmp_path / "s", "--camera", "pinhole", "--led", "--rgb", "--directional")
+    rig = nplps.Rig.load(tmp_path / "s" / "rig.json")
+    assert rig.is_pinhole and rig.directional.sum() == 9 and (rig.mu > 0).any()
+    argv[argv.index("--out") + 1] = str(tmp_path / "r")
+    rc, stdout, stderr = run(capsys, *argv)
+    assert rc == 0, stderr
+    assert "pinhole camera, 18 point lights, 9 directional lights" in stdout
+    assert "(RGB, 16-bit)" in stderr
+    errors = vertex_normals_error(tmp_path / "r", tmp_path / "s" / "normals_gt.npy")
+    assert np.isfinite(errors).all() and errors.mean() < 0.1
+    assert (tmp_path / "r" / "shaded.png").is_file()
+
+
+def test_gray_averages_colour(tmp_path, capsys):
+    argv = synth(capsys, tmp_path / "s", "--rgb")  # equal RGB intensities: grey is exact
+    out = argv.index("--out") + 1
+    for option, channels in (([], 3), (["--gray"], 1)):
+        argv[out] = str(tmp_path / f"r{channels}")
+        rc, _, stderr = run(capsys, *argv, *option, "-q")
+        assert rc == 0, stderr
+        albedo = nplps.io.read_image(tmp_path / f"r{channels}" / "albedo.png")
+        assert (albedo.shape[2] if albedo.ndim == 3 else 1) == channels
+        errors = vertex_normals_error(tmp_path / f"r{channels}", tmp_path / "s" / "normals_gt.npy")
+        assert errors.mean() < 0.1
+
+
+def test_bin_2_pinhole(pinhole_dir, tmp_path, capsys):
+    out, depth = pinhole_dir
+    rc, stdout, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png",
+        "--depth", depth, "--bin", "2", "--out", tmp_path / "r",
+    )
+    assert rc == 0, stderr
+    assert "binned 2 x 2" in stderr
+    half = REAL_SIZE // 2
+    assert np.load(tmp_path / "r" / "depth.npy").shape == (half + 1, half + 1)
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["shape"] == [half, half]
+    mask = nplps.preprocess.bin_mask(nplps.io.load_mask(str(out / "mask.png"), (REAL_SIZE, REAL_SIZE)), 2)
+    assert read_ply(tmp_path / "r" / "mesh.ply")["faces"].shape == (2 * int(mask.sum()), 3)
+    # the binned K puts the mesh where the full-resolution one is: normals of 2 x 2 blocks agree
+    truth = np.load(out / "normals_gt.npy").reshape(half, 2, half, 2, 3).mean(axis=(1, 3))
+    truth /= np.linalg.norm(truth, axis=-1, keepdims=True)
+    errors = angular_errors(np.load(tmp_path / "r" / "normals.npy"), truth, mask)
+    assert np.nanmean(errors) < 0.3
+
+
+def write16(path, image):
+    nplps.export.write_png16(path, np.clip(np.rint(image), 0, 65535).astype(np.uint16))
+
+
+@pytest.mark.parametrize("case", ["ambient", "ambient+exposures", "srgb"])
+def test_preprocessing_undoes_its_effect(scene_dir, tmp_path, capsys, case):
+    """Images with a constant ambient level added (and scaled by exposures, or sRGB-encoded)
+    reconstruct like the plain images when the matching options are given."""
+    out, command = scene_dir
+    depth = command[command.index("--depth") + 1]
+    raw = np.stack([nplps.io.read_image(p).astype(np.float64) for p in sorted(out.glob("image_*.png"))])
+    plain = np.floor(raw / 4)  # leaves room for the ambient level and the exposures
+    exposures = np.resize([1.0, 2.0, 3.0], len(raw)) if "exposures" in case else np.ones(len(raw))
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    options = []
+    for i, image in enumerate(plain):
+        write16(tmp_path / "a" / f"img_{i:02d}.png", image)
+        if case == "srgb":
+            encoded = nplps.preprocess.linear_to_srgb(image / 65535) * 65535
+            write16(tmp_path / "b" / f"img_{i:02d}.png", encoded)
+        else:
+            write16(tmp_path / "b" / f"img_{i:02d}.png", image * exposures[i] + 1000)
+    if case == "srgb":
+        options += ["--srgb"]
+    else:
+        write16(tmp_path / "b" / "ambient.png", np.full(plain.shape[1:], 1000.0))
+        options += ["--ambient", tmp_path / "b" / "ambient.png"]
+    if "exposures" in case:
+        options += ["--exposures", ",".join(f"{e:g}" for e in exposures)]
+    common = ["--rig", out / "rig.json", "--mask", out / "mask.png", "--depth", depth, "--dark", "1e-4", "-q"]
+    rc, _, stderr = run(capsys, "reconstruct", tmp_path / "a", *common, "--out", tmp_path / "ra")
+    assert rc == 0, stderr
+    rc, _, stderr = run(capsys, "reconstruct", tmp_path / "b", *common, *options, "--out", tmp_path / "rb")
+    assert rc == 0, stderr  # ambient.png in the folder is not taken as an image
+    mask = nplps.io.load_mask(str(out / "mask.png"), plain.shape[1:])
+    na, nb = (np.load(tmp_path / r / "normals.npy") for r in ("ra", "rb"))
+    tolerance = 0.05 if case == "srgb" else 1e-3  # sRGB re-quantizes the bright values
+    assert angular_errors(na, nb, mask).max() < tolerance
+    da, db = (np.load(tmp_path / r / "depth.npy") for r in ("ra", "rb"))
+    np.testing.assert_allclose(da, db, rtol=1e-4 if case == "srgb" else 1e-6)
+
+
+def test_saturation_left_out(scene_dir, tmp_path, capsys):
+    out, command = scene_dir
+    depth = command[command.index("--depth") + 1]
+    common = ["--rig", out / "rig.json", "--mask", out / "mask.png", "--depth", depth, "--iterations", "2"]
+    rc, _, stderr = run(capsys, "reconstruct", out, *common, "--saturation", "0.5", "--out", tmp_path / "r")
+    assert rc == 0, stderr
+    saturated = int(re.search(r"(\d+) saturated", stderr).group(1))
+    raw = np.stack([nplps.io.read_image(p) for p in sorted(out.glob("image_*.png"))])
+    assert saturated == int(np.count_nonzero(raw / 65535 >= 0.5)) > 0
+
+
+def test_evaluate_near_beats_parallel(tmp_path, capsys):
+    synth(capsys, tmp_path / "s", "--camera", "pinhole", "--led", "--noise", "0.002")
+    depth = nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True).mean_depth
+    s = tmp_path / "s"
+    rc, stdout, stderr = run(
+        capsys, "evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", depth, "--lights", "0,5,13,26"
+    )
+    assert rc == 0, stderr
+    rows = {}
+    for line in stdout.splitlines():
+        m = re.match(r"\s*(\d+|mean)\s+(\S+)\s+(\S+)\s+(\S+)\s+(\S+)$", line)
+        if m:
+            rows[m.group(1)] = [float(v) for v in m.groups()[1:]]
+    assert set(rows) == {"0", "5", "13", "26", "mean"}, stdout
+    assert "near rel. error" in stdout and "parallel shape error" in stdout
+    for near_rel, near_shape, par_rel, par_shape in rows.values():
+        assert near_rel < par_rel and near_shape < par_shape
+    assert rows["mean"][0] < 0.05
+
+
+def test_evaluate_rgb_and_bad_lights(tmp_path, capsys):
+    synth(capsys, tmp_path / "s", "--rgb")
+    s = tmp_path / "s"
+    common = ["evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", "200"]
+    rc, stdout, stderr = run(capsys, *common, "--lights", "3", "-q")
+    assert rc == 0, stderr
+    assert re.search(r"^\s*3\s", stdout, re.M) and re.search(r"^\s*mean\s", stdout, re.M)
+    rc, _, stderr = run(capsys, *common, "--lights", "1,27")
+    assert_one_line_error(rc, stderr, "--lights", "27")
+    rc, _, stderr = run(capsys, *common, "--lights", "a")
+    assert_one_line_error(rc, stderr, "--lights")
+
+
+# -- capture folders --------------------------------------------------------------------------------
+
+
+def test_capture_near_ps(tmp_path, capsys):
+    """A near_ps folder (camera.mat, light.mat) with vignetted images and an ambient image."""
+    scipy_io = pytest.importorskip("scipy.io")
+    scene = nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True)
+    rig = scene.rig
+    folder = tmp_path / "near"
+    folder.mkdir()
+    K1 = rig.K.copy()
+    K1[:2, 2] += 1.0  # MATLAB's 1-based pixel coordinates
+    scipy_io.savemat(folder / "camera.mat", {"K": K1})
+    scipy_io.savemat(
+        folder / "light.mat",
+        {"S": rig.lights, "Dir": rig.directions, "Phi": rig.intensities, "mu": rig.mu[:, None]},
+    )
+    vignetting = nplps.preprocess.vignetting_cos4((REAL_SIZE, REAL_SIZE), rig.K, np.float64)
+    scale = 60000.0 / scene.images.max()
+    for i, image in enumerate(scene.images):
+        write16(folder / f"led_{i + 1:02d}.png", image * scale * vignetting + 700)
+    write16(folder / "led_ambient.png", np.full((REAL_SIZE, REAL_SIZE), 700.0))
+    iio = pytest.importorskip("imageio.v3")
+    iio.imwrite(folder / "led_mask.png", (scene.mask * 255).astype(np.uint8))
+
+    rc, stdout, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", folder, "--depth", scene.mean_depth, "--out", tmp_path / "r"
+    )
+    assert rc == 0, stderr
+    assert "ambient 'led_ambient.png' subtracted" in stderr and "cos^4" in stderr
+    assert "pinhole camera, 27 point lights" in stdout
+    errors = angular_errors(np.load(tmp_path / "r" / "normals.npy"), scene.normals, scene.mask)
+    assert errors.mean() < 0.1
+    # vignetting is common to all lights, so only the albedo shows whether it was divided out
+    albedo = nplps.io.read_image(tmp_path / "r" / "albedo.png").astype(np.float64)
+    ok = scene.mask & (albedo < 65535)
+    ratio = albedo[ok] / scene.albedo[ok]
+    assert ratio.std() / ratio.mean() < 1e-3
+
+    # a glob pattern picks the images; --bin works on captures too
+    (folder / "led_all.png").write_bytes((folder / "led_01.png").read_bytes())
+    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", folder, "--depth", "200", "--out", tmp_path / "x", "-q")
+    assert_one_line_error(rc, stderr, "28 image files", "glob pattern")
+    rc, _, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", folder, "led_[0-9]*.png",
+        "--depth", scene.mean_depth, "--bin", "2", "--out", tmp_path / "b", "-q",
+    )
+    assert rc == 0, stderr
+    assert np.load(tmp_path / "b" / "depth.npy").shape == (REAL_SIZE // 2 + 1,) * 2
+
+
+def test_capture_diligent(tmp_path, capsys):
+    """A DiLiGenT object folder: directional lights in DiLiGenT's frame, RGB intensities."""
+    rng = np.random.default_rng(5)
+    k = 12
+    dirs = rng.normal(size=(k, 3)) * [0.5, 0.5, 0.0] + [0.0, 0.0, -1.0]  # towards the camera
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    intensities = rng.uniform(0.6, 1.4, (k, 3))
+    rig = nplps.Rig.orthographic(1.0, directional_lights=dirs, directional_intensities=intensities)
+    base = nplps.make_scene("bumps", 24)
+    depth = base.depth / base.rig.camera["pixel_size"][0]  # in pixel units
+    albedo = np.stack([base.albedo, 0.8 * base.albedo, 0.6 * base.albedo], axis=-1)
+    images = nplps.render(depth, rig, albedo, base.mask)
+    obj = tmp_path / "toyPNG"
+    obj.mkdir()
+    names = [f"{i + 1:03d}.png" for i in range(k)]
+    for name, image in zip(names, images):
+        write16(obj / name, image / images.max() * 65535)
+    (obj / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(obj / "light_directions.txt", dirs * [1.0, -1.0, -1.0])  # DiLiGenT frame: y up, z to the viewer
+    np.savetxt(obj / "light_intensities.txt", intensities)
+    iio = pytest.importorskip("imageio.v3")
+    iio.imwrite(obj / "mask.png", (base.mask * 255).astype(np.uint8))
+
+    rc, stdout, stderr = run(capsys, "reconstruct", "--capture", "diligent", tmp_path, "--depth", "100", "--out", tmp_path / "r")
+    assert rc == 0, stderr
+    assert "orthographic camera, 12 directional lights" in stdout
+    truth = nplps._core.mesh_normals(depth, rig.camera)
+    errors = angular_errors(np.load(tmp_path / "r" / "normals.npy"), truth, base.mask)
+    assert errors.mean() < 0.1
+
+
+def test_capture_option_errors(tmp_path, capsys):
+    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--rig", "r.json", "--depth", "1", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "--capture", "--rig")
+    rc, _, stderr = run(capsys, "reconstruct", "--capture", "diligent", tmp_path / "none", "--depth", "1", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "--capture diligent", "folder")
+    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--depth", "1", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "camera.mat")
+
+
+REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.mark.skipif(not (REAL_DATA / "hehe12").is_dir(), reason="real captures (../shared/data) not present")
+def test_capture_hehe12(tmp_path, capsys):
+    rc, stdout, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", REAL_DATA / "hehe12", "photometric_sample_raw_[0-9]*.png",
+        "--depth", "200", "--bin", "8", "--robust", "tukey", "--out", tmp_path / "r",
+    )
+    assert rc == 0, stderr
+    assert "pinhole camera, 8 point lights" in stdout
+    assert np.load(tmp_path / "r" / "depth.npy").shape == (1200 // 8 + 1, 1920 // 8 + 1)
+
+
+# -- errors of the new options ----------------------------------------------------------------------
+
+
+def test_error_bad_bin(scene_dir, tmp_path, capsys):
+    out, _ = scene_dir
+    common = ["reconstruct", out, "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r"]
+    rc, _, stderr = run(capsys, *common, "--bin", "0")
+    assert_one_line_error(rc, stderr, "--bin", "positive")
+    rc, _, stderr = run(capsys, *common, "--bin", "64")
+    assert_one_line_error(rc, stderr, "--bin 64", "smaller")
+    assert not (tmp_path / "r").exists()
+
+
+def test_error_cos4_needs_pinhole(scene_dir, tmp_path, capsys):
+    out, _ = scene_dir
+    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", "--vignetting", "cos4", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "cos4", "pinhole", "orthographic")
+
+
+@pytest.mark.parametrize(
+    "options, words",
+    [
+        (["--exposures", "1,2"], ["--exposures", "2 values", f"{27} images"]),
+        (["--exposures", "1,x"], ["--exposures", "numbers"]),
+        (["--saturation", "-1"], ["--saturation"]),
+        (["--ambient", "missing.png"], ["missing.png"]),
+    ],
+)
+def test_error_preprocessing_options(scene_dir, tmp_path, capsys, options, words):
+    out, _ = scene_dir
+    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", *options, "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, *words)
+
+
+def test_error_no_images_or_rig(scene_dir, tmp_path, capsys):
+    out, _ = scene_dir
+    rc, _, stderr = run(capsys, "reconstruct", "--depth", "200", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "IMAGES", "--capture")
+    rc, _, stderr = run(capsys, "reconstruct", out, "--depth", "200", "--out", tmp_path / "r")
+    assert_one_line_error(rc, stderr, "--rig")
