@@ -644,3 +644,56 @@ def test_error_no_images_or_rig(scene_dir, tmp_path, capsys):
     assert_one_line_error(rc, stderr, "IMAGES", "--capture")
     rc, _, stderr = run(capsys, "reconstruct", out, "--depth", "200", "--out", tmp_path / "r")
     assert_one_line_error(rc, stderr, "--rig")
+
+
+# --------------------------------------------------------------------------------------------------
+# working distance and priors
+# --------------------------------------------------------------------------------------------------
+
+
+def test_reconstruct_with_auto_depth(scene_dir, tmp_path, capsys):
+    out, command = scene_dir
+    truth = float(command[command.index("--depth") + 1])
+    argv = command[1:]
+    argv[argv.index("--depth") + 1] = "auto"
+    argv[argv.index("--out") + 1] = str(tmp_path / "auto")
+    rc, stdout, stderr = run(capsys, *argv, "--baseline", "-q")
+    assert rc == 0, stderr
+    estimate = float(re.search(r"distance\s+([0-9.]+) \(estimated", stdout).group(1))
+    assert estimate == pytest.approx(truth, rel=0.01)
+    assert (tmp_path / "auto" / "distance_curve.svg").read_text().startswith("<svg")
+    lines = (tmp_path / "auto" / "distance_curve.csv").read_text().splitlines()
+    assert lines[0] == "region,distance,rms_residual" and len(lines) > 10
+    summary = json.loads((tmp_path / "auto" / "summary.json").read_text())
+    assert summary["estimated_distance"][0] == pytest.approx(estimate, rel=1e-5)
+    # The baseline ran at the estimated distance.
+    base = json.loads((tmp_path / "auto" / "baseline" / "summary.json").read_text())
+    assert base["gauge"][0] == pytest.approx(estimate, rel=1e-3)
+
+
+def test_auto_depth_range_and_prior_options(scene_dir, tmp_path, capsys):
+    out, command = scene_dir
+    truth = float(command[command.index("--depth") + 1])
+    argv = command[1:]
+    argv[argv.index("--depth") + 1] = "auto"
+    argv[argv.index("--out") + 1] = str(tmp_path / "r")
+    rc, _, stderr = run(capsys, *argv, "--depth-range", f"{1.1 * truth},{3 * truth}", "-q")
+    assert rc == 2 and "near end" in stderr
+    prior = tmp_path / "prior.npy"
+    np.save(prior, np.load(out / "depth_gt.npy"))
+    argv[argv.index("--depth") + 1] = str(truth)
+    rc, _, stderr = run(capsys, *argv, "--depth-prior", prior, "--prior-weight", "0.5", "-q")
+    assert rc == 0, stderr
+    rc, _, stderr = run(capsys, *argv, "--depth-range", "1,2,3", "-q")
+    assert rc == 2 and "--depth-range" in stderr
+
+
+def test_evaluate_with_auto_depth_on_colour_images(tmp_path, capsys):
+    scene = tmp_path / "rgb"
+    rc, _, _ = run(capsys, "synth", "bumps", "--size", 24, "--camera", "pinhole", "--led", "--rgb", "--out", scene)
+    assert rc == 0
+    rc, stdout, stderr = run(capsys, "evaluate", scene, "--rig", scene / "rig.json", "--mask", scene / "mask.png",
+                             "--depth", "auto", "--lights", "0,13")
+    assert rc == 0, stderr
+    assert "estimated working distance" in stderr
+    assert "mean" in stdout

@@ -138,3 +138,13 @@ def test_held_out_prefers_the_near_light_model():
     for a, b in zip(near, parallel):
         assert a.light == b.light
         assert a.relative_error < 0.05 < b.relative_error
+
+
+def test_grey_mode_leaves_out_observations_with_one_saturated_channel():
+    s = nplps.make_scene("sphere", n=24, camera="pinhole", rgb=True)
+    images = np.round(s.images / s.images.max() * 255).astype(np.uint8)
+    images[0, 12, 12, 1] = 255  # only the green channel saturates
+    grey = nplps.reconstruct(images, s.rig, s.mask, s.mean_depth, color=False)
+    colour = nplps.reconstruct(images, s.rig, s.mask, s.mean_depth)
+    assert grey.albedo.ndim == 2 and colour.albedo.ndim == 3
+    assert grey.lights_used[12, 12] == colour.lights_used[12, 12] == colour.lights_used[12, 11] - 1

@@ -24,7 +24,7 @@ def _prepare(
 ) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
     if not isinstance(rig, Rig):
         raise InputError(f"rig must be an nplps.Rig, got {type(rig).__name__}")
-    stack, levels = load_stack(images, color=color is not False)
+    stack, levels = load_stack(images, color=True)
     if color and stack.ndim != 4:
         raise InputError("color=True needs RGB images (k, H, W, 3)")
     k, h, w = stack.shape[:3]
@@ -74,13 +74,24 @@ def _thresholds(dark: float | None, saturation: float | None, levels: int | None
     return float(dark), float(saturation)
 
 
-def _apply_valid(stack: np.ndarray, valid: Any) -> np.ndarray:
-    """Marks the observations where ``valid`` is False as missing (NaN)."""
-    if valid is None:
+def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """Averages RGB to grey when ``color`` is False; observations with a saturated channel are
+    returned as missing (the grey average would hide them)."""
+    if stack.ndim != 4 or color is not False:
+        return stack, None
+    missing = (stack >= saturation).any(axis=-1) if np.isfinite(saturation) else None
+    return np.ascontiguousarray(stack.mean(axis=-1, dtype=np.float32)), missing
+
+
+def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = None) -> np.ndarray:
+    """Marks the observations where ``valid`` is False, or ``missing`` is True, as missing (NaN)."""
+    if valid is None and missing is None:
         return stack
-    v = np.asarray(valid, dtype=bool)
+    v = np.ones(stack.shape[:3], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
     if v.shape != stack.shape[:3]:
         raise InputError(f"valid must have one flag per observation, shape {stack.shape[:3]}, got {v.shape}")
+    if missing is not None:
+        v = v & ~missing
     out = stack.copy()
     out[~v] = np.nan
     return out
@@ -183,6 +194,7 @@ def reconstruct(
     """
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
+    stack, missing = _channels(stack, color, saturation_)
     if int(iterations) < 1:
         raise InputError(f"iterations must be at least 1, got {iterations}")
     options = {
@@ -204,7 +216,7 @@ def reconstruct(
         if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
             raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
     out = _core.reconstruct(
-        _apply_valid(stack, valid),
+        _apply_valid(stack, valid, missing),
         rig.camera,
         rig._core_lights(),
         mask_arr,
@@ -238,6 +250,7 @@ def reconstruct_parallel(
     """
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
+    stack, missing = _channels(stack, color, saturation_)
     options = {
         "dark": dark_,
         "saturation": saturation_,
@@ -245,7 +258,7 @@ def reconstruct_parallel(
         "threads": _threads(threads),
     }
     out = _core.reconstruct_parallel(
-        _apply_valid(stack, valid), rig.camera, rig._core_lights(), mask_arr, distance, depth_map, options
+        _apply_valid(stack, valid, missing), rig.camera, rig._core_lights(), mask_arr, distance, depth_map, options
     )
     return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 

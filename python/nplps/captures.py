@@ -114,6 +114,8 @@ class Capture:
     notes: str = ""
     rig_path: Path | None = None
     files: list[Path] = field(default_factory=list)
+    #: Pixel footprint of the orthographic rig used when K is unknown (grows with binning).
+    pixel_size: float = 1.0
 
     @property
     def num_images(self) -> int:
@@ -154,7 +156,9 @@ class Capture:
             return Rig.load(self.rig_path)
         if self.directional:
             if self.K is None:
-                return Rig.orthographic(1.0, directional_lights=self.directions, directional_intensities=self.intensities)
+                return Rig.orthographic(
+                    self.pixel_size, directional_lights=self.directions, directional_intensities=self.intensities
+                )
             return Rig.pinhole(self.K, distortion=self.distortion, directional_lights=self.directions,
                                directional_intensities=self.intensities)
         if self.K is None or self.positions is None:
@@ -953,5 +957,11 @@ def prepare(
         mask = None if mask is None else preprocess.bin_mask(mask, bin_factor)
         normals = None
     return dataclasses.replace(
-        c, images=np.ascontiguousarray(images, dtype=np.float32), ambient=None, K=K, mask=mask, normals_gt=normals
+        c,
+        images=np.ascontiguousarray(images, dtype=np.float32),
+        ambient=None,
+        K=K,
+        mask=mask,
+        normals_gt=normals,
+        pixel_size=c.pixel_size * bin_factor,
     )

@@ -239,8 +239,26 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
         "--depth",
         required=True,
         metavar="D",
-        help="working distance (the object's mean depth, in the rig's unit), or a .npy file "
-        "with an (H+1, W+1) initial vertex depth map (NaN allowed outside the mask)",
+        help="working distance (the object's mean depth, in the rig's unit), a .npy file "
+        "with an (H+1, W+1) initial vertex depth map (NaN allowed outside the mask), or 'auto' to "
+        "estimate it from the images (needs 4+ lights, some of them point lights)",
+    )
+    p.add_argument(
+        "--depth-range",
+        metavar="NEAR,FAR",
+        help="with --depth auto: where to search (default: derived from the light positions)",
+    )
+    p.add_argument(
+        "--depth-prior",
+        metavar="PRIOR.npy",
+        help="(H+1, W+1) prior depth map (e.g. from a coarse scan; NaN where unknown) fused in the global step",
+    )
+    p.add_argument(
+        "--prior-weight",
+        type=float,
+        default=1.0,
+        metavar="W",
+        help="weight of --depth-prior relative to the facet terms (default 1)",
     )
     p.add_argument(
         "--mask",
@@ -474,7 +492,23 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
 
 def near_options(args: argparse.Namespace) -> dict[str, Any]:
     """The options of the near-light solver only (not of the parallel-light baseline)."""
-    return {"iterations": args.iterations, "tol": args.tol, "weighting": args.weighting}
+    options: dict[str, Any] = {"iterations": args.iterations, "tol": args.tol, "weighting": args.weighting}
+    if args.depth_range is not None:
+        near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")
+        if len(near_far) != 2:
+            raise InputError(f"--depth-range needs two numbers NEAR,FAR, got {args.depth_range}")
+        options["depth_range"] = tuple(near_far)
+    if args.depth_prior is not None:
+        options["depth_prior"] = parse_depth(args.depth_prior)
+        options["prior_weight"] = args.prior_weight
+    return options
+
+
+def _estimated(result: Any, options: dict[str, Any]) -> dict[str, Any]:
+    """The options with ``depth="auto"`` replaced by the depth map that ``result`` estimated."""
+    if not isinstance(options.get("depth"), str):
+        return options
+    return dict(options, depth=result.depth)
 
 
 def check_input_args(args: argparse.Namespace) -> None:
@@ -812,7 +846,9 @@ def _natural_key(name: str) -> list[Any]:
 
 
 def parse_depth(value: str) -> float | np.ndarray:
-    """``--depth``: a positive number, or the path of a .npy depth map."""
+    """``--depth``: a positive number, 'auto', or the path of a .npy depth map."""
+    if value == "auto":
+        return value  # type: ignore[return-value]
     try:
         number = float(value)
     except ValueError:
@@ -876,7 +912,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.baseline:
         start = time.perf_counter()
         with _warnings_to_stderr():
-            base = reconstruct_parallel(inputs.images, inputs.rig, inputs.mask, **common)
+            base = reconstruct_parallel(inputs.images, inputs.rig, inputs.mask, **_estimated(result, common))
         wall = time.perf_counter() - start
         base_paths = base.save(Path(args.out) / "baseline", opengl=args.opengl)
         print()
@@ -900,6 +936,9 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path],
     print(f"  unfitted pixels {s['unfitted_pixels']} (fewer than 3 lit images)")
     lo, hi = s["depth_range"]
     print(f"  depth range     {lo:.6g} .. {hi:.6g}")
+    if s.get("estimated_distance"):
+        estimates = ", ".join(f"{d:.6g}" for d in s["estimated_distance"])
+        print(f"  distance        {estimates} (estimated; residual curve in distance_curve.csv / .svg)")
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
     files = sorted({str(p.parent) for p in paths.values()})
     print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
@@ -915,8 +954,16 @@ EVALUATE_COLUMNS = ("light", "near rel. error", "near shape error", "parallel re
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import held_out
 
-    inputs = _grey_for_evaluation(build_inputs(args), args.quiet)
+    inputs = build_inputs(args)
     lights = parse_lights(args.lights, inputs.rig.n_lights)
+    if inputs.options["depth"] == "auto":
+        from .api import reconstruct
+
+        with _warnings_to_stderr():
+            estimate = reconstruct(inputs.images, inputs.rig, inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args))
+        distances = ", ".join(f"{d:.6g}" for d in estimate.distance.distance)
+        _note(f"estimated working distance (all lights): {distances}")
+        inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
     for done, light in enumerate(lights):
         start = time.perf_counter()
@@ -933,16 +980,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             _note(f"light {light} left out ({done + 1}/{len(lights)}): {time.perf_counter() - start:.2f} s")
     _print_evaluation(rows, inputs.rig.n_lights)
     return 0
-
-
-def _grey_for_evaluation(inputs: Inputs, quiet: bool) -> Inputs:
-    """nplps.evaluation.held_out fails on RGB stacks (np.dot of (n, 3) arrays), so evaluate
-    averages colour images to grey."""
-    if inputs.images.ndim != 4:
-        return inputs
-    if not quiet:
-        _note("note: evaluate works on grey images: RGB averaged")
-    return inputs._replace(images=_to_gray(inputs.images))
 
 
 def parse_lights(text: str | None, k: int) -> list[int]:

@@ -13,6 +13,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from .api import reconstruct, reconstruct_parallel
+from .errors import InputError
 from .io import load_stack
 from .reconstruction import Reconstruction
 from .rig import Rig
@@ -50,8 +51,11 @@ def held_out(
 ) -> list[HeldOut]:
     """Leaves each light in ``lights`` (default: all) out in turn and reports the relative error
     of its predicted image. ``method`` is "near" (nplps) or "parallel" (the baseline); other
-    options go to :func:`nplps.reconstruct`.
+    options go to :func:`nplps.reconstruct`. ``depth`` must be a distance or a depth map (estimate
+    it first with ``depth="auto"`` on all lights: leaving a light out should not move it).
     """
+    if isinstance(depth, str):
+        raise InputError("held_out needs a distance or a depth map; estimate it first with reconstruct(depth='auto')")
     stack, levels = load_stack(images, color=options.get("color") is not False)
     solve: Callable[..., Reconstruction] = reconstruct if method == "near" else reconstruct_parallel
     if method == "parallel":
@@ -74,7 +78,7 @@ def held_out(
         if image.ndim == 3:
             select = select.all(axis=-1)
         select &= result.mask
-        p, q = prediction[select], image[select]
+        p, q = prediction[select].ravel(), image[select].ravel()
         norm = np.linalg.norm(q)
         gain = float(np.dot(p, q) / np.dot(p, p))
         error = np.linalg.norm(p - q) / norm
