@@ -33,6 +33,22 @@ fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     })
 }
 
+/// The image size (H, W) of an (H+1, W+1) vertex depth map, and its values.
+fn depth_grid<'a>(
+    py: Python<'_>,
+    depth: &'a PyReadonlyArray2<'_, f64>,
+) -> PyResult<(usize, usize, &'a [f64])> {
+    let shape = depth.shape();
+    if shape[0] < 2 || shape[1] < 2 {
+        return Err(py_error(
+            py,
+            "InputError",
+            format!("depth must be an (H+1, W+1) vertex map, got shape {shape:?}"),
+        ));
+    }
+    Ok((shape[0] - 1, shape[1] - 1, slice(py, depth, "depth")?))
+}
+
 /// The starting depth: a working distance or an (H+1, W+1) map.
 fn initial_depth<'a>(
     py: Python<'_>,
@@ -279,10 +295,7 @@ fn render<'py>(
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = lighting_from(py, camera, lights)?;
-    let (h, w) = (
-        depth.shape()[0].saturating_sub(1),
-        depth.shape()[1].saturating_sub(1),
-    );
+    let (h, w, depth_s) = depth_grid(py, &depth)?;
     let channels = match albedo.shape() {
         [_, _] => 1,
         [_, _, c] => *c,
@@ -294,7 +307,6 @@ fn render<'py>(
             ))
         }
     };
-    let depth_s = slice(py, &depth, "depth")?;
     let albedo_s = slice(py, &albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
     let images = py
@@ -323,10 +335,7 @@ fn predict<'py>(
     parallel: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = lighting_from(py, camera, lights)?;
-    let (h, w) = (
-        depth.shape()[0].saturating_sub(1),
-        depth.shape()[1].saturating_sub(1),
-    );
+    let (h, w, z) = depth_grid(py, &depth)?;
     let channels = if albedo.ndim() == 3 {
         albedo.shape()[2]
     } else {
@@ -336,7 +345,7 @@ fn predict<'py>(
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect();
-    let (z, a) = (slice(py, &depth, "depth")?, slice(py, &albedo, "albedo")?);
+    let a = slice(py, &albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
     let images = py
         .detach(|| no_panic(|| nplps::predict(&rig, h, w, z, &n, a, channels, mask, parallel)))
@@ -357,11 +366,7 @@ fn mesh_normals<'py>(
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(py, camera)?;
-    let (h, w) = (
-        depth.shape()[0].saturating_sub(1),
-        depth.shape()[1].saturating_sub(1),
-    );
-    let z = slice(py, &depth, "depth")?;
+    let (h, w, z) = depth_grid(py, &depth)?;
     let normals = py
         .detach(|| no_panic(|| nplps::mesh_normals(&cam, h, w, z)))
         .map_err(|e| to_py(py, e))?;
@@ -376,11 +381,7 @@ fn vertices<'py>(
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(py, camera)?;
-    let (h, w) = (
-        depth.shape()[0].saturating_sub(1),
-        depth.shape()[1].saturating_sub(1),
-    );
-    let z = slice(py, &depth, "depth")?;
+    let (h, w, z) = depth_grid(py, &depth)?;
     let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(|e| to_py(py, e))?;
     array3(py, v, &[h + 1, w + 1])
 }

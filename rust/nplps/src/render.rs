@@ -95,34 +95,45 @@ pub fn render(
             format!("mask has {} values, expected H x W = {plane}", m.len())
         })?;
     }
-    let k = rig.n_lights();
+    Ok(shade_images(&rig.lights, plane, channels, albedo, |p| {
+        if mask.is_some_and(|m| !m[p]) {
+            return None;
+        }
+        let q = pixel_quad(&v, width, p);
+        Some((quad_normal(&q), quad_centre(&q)))
+    }))
+}
+
+/// The k images (k, H, W, C) of pixels shaded by `lights`: `surface(p)` gives the normal and the
+/// surface point of pixel p (None: 0), `albedo` its albedo per channel. Pixels with a non-finite
+/// normal, point or albedo are 0.
+fn shade_images(
+    lights: &[Light],
+    plane: usize,
+    channels: usize,
+    albedo: &[f64],
+    surface: impl Fn(usize) -> Option<([f64; 3], [f64; 3])> + Sync,
+) -> Vec<f64> {
     let stride = plane * channels;
-    let mut out = vec![0.0; k * stride];
+    let mut out = vec![0.0; lights.len() * stride];
     let per_pixel: Vec<Vec<f64>> = (0..plane)
         .into_par_iter()
         .map(|p| {
-            if mask.is_some_and(|m| !m[p]) {
-                return Vec::new();
-            }
-            let q = pixel_quad(&v, width, p);
-            let (n, c) = (quad_normal(&q), quad_centre(&q));
-            if !n.iter().all(|x| x.is_finite()) {
-                return Vec::new();
-            }
             let rho = &albedo[p * channels..(p + 1) * channels];
-            rig.lights
-                .iter()
-                .flat_map(|l| shade(l, n, c, rho))
-                .collect()
+            match surface(p) {
+                Some((n, c)) if n.iter().chain(&c).chain(rho).all(|x| x.is_finite()) => {
+                    lights.iter().flat_map(|l| shade(l, n, c, rho)).collect()
+                }
+                _ => Vec::new(),
+            }
         })
         .collect();
     for (p, values) in per_pixel.iter().enumerate() {
         for (j, value) in values.iter().enumerate() {
-            let (i, ch) = (j / channels, j % channels);
-            out[i * stride + p * channels + ch] = *value;
+            out[(j / channels) * stride + p * channels + j % channels] = *value;
         }
     }
-    Ok(out)
+    out
 }
 
 /// Predicts the k images (k, H, W, C) of a reconstruction: each pixel shaded with its own
@@ -174,34 +185,9 @@ pub fn predict(
     } else {
         rig.lights.clone()
     };
-    let k = lights.len();
-    let stride = plane * channels;
-    let mut out = vec![0.0; k * stride];
-    let per_pixel: Vec<Vec<f64>> = (0..plane)
-        .into_par_iter()
-        .map(|p| {
-            let c = quad_centre(&pixel_quad(&v, width, p));
-            let rho = &albedo[p * channels..(p + 1) * channels];
-            let finite = c
-                .iter()
-                .chain(&normals[p])
-                .chain(rho)
-                .all(|x| x.is_finite());
-            if !inside(p) || !finite {
-                return Vec::new();
-            }
-            lights
-                .iter()
-                .flat_map(|l| shade(l, normals[p], c, rho))
-                .collect()
-        })
-        .collect();
-    for (p, values) in per_pixel.iter().enumerate() {
-        for (j, value) in values.iter().enumerate() {
-            out[(j / channels) * stride + p * channels + j % channels] = *value;
-        }
-    }
-    Ok(out)
+    Ok(shade_images(&lights, plane, channels, albedo, |p| {
+        inside(p).then(|| (normals[p], quad_centre(&pixel_quad(&v, width, p))))
+    }))
 }
 
 /// The image values (one per channel of `rho`) of a facet with normal `n` and centre `c`.
