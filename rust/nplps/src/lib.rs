@@ -8,7 +8,10 @@
 //! [local step](local) fits every facet's normal under the near-light image model
 //! `I_k = rho * max(0, n . (p_k - x)) / |p_k - x|^3` and turns it into target corner depths; a
 //! [global step](global) glues the facets back together with one sparse least-squares system,
-//! factored once per mask; the [solver] alternates the two until the depths converge.
+//! factored once per mask; the [solver] alternates the two until the depths converge. Pinhole
+//! cameras ([geometry]: log-depth unknowns), LEDs and directional lights ([rig]), colour and
+//! robust fits ([local]), depth priors ([global]) and the estimation of the working distance from
+//! the images ([distance]) extend the paper's setting.
 //!
 //! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
 //! depth = z; normals face the camera (n_z < 0). Units are the user's.
