@@ -1,0 +1,47 @@
+"""Loaders for photometric-stereo captures in published layouts.
+
+Each loader returns a plain :class:`Capture`: images (file names or a float32 stack), mask,
+camera matrix, lights and, when the dataset has them, ground-truth normals, all converted to
+the conventions of nplps:
+
+* camera frame (OpenCV): origin at the optical centre, x right (increasing column), y down
+  (increasing row), z forward along the optical axis into the scene; millimetres;
+* pinhole matrix ``K`` in the 0-based pixel-centre convention: pixel ``(r, c)`` has its centre
+  at ``(u, v) = (c, r)``;
+* normals face the camera (``n_z < 0``);
+* directional lights are unit vectors from the surface towards the light.
+
+Supported layouts:
+
+* :func:`load_near_ps` -- the near-light toolbox of Quéau et al. (``camera.mat`` with ``K``,
+  ``light.mat`` with ``S``, ``Dir``, ``Phi``, ``mu``, image files and a mask), with the helpers
+  :func:`load_hehe12` and :func:`load_queau_human1` for two published captures;
+* :func:`load_diligent` -- DiLiGenT's ``*PNG`` folders (directional lights, ground-truth normals);
+* :func:`load_folder` -- a plain folder with ``rig.json`` (nplps's own rig format), images, an
+  optional mask and an optional ambient image.
+
+The loaders only convert units and frames; radiometric corrections (ambient subtraction,
+vignetting, per-light intensities) are left to the caller, see :mod:`nplps.preprocess`.
+``scipy`` is needed for MATLAB files (it is imported on first use).
+"""
+
+from .capture import Capture, prepare
+from .diligent import load_diligent
+from .files import IMAGE_EXTENSIONS, find_images
+from .folder import load_folder
+from .matlab import load_matlab_intrinsics, standardize_K
+from .near_ps import load_hehe12, load_near_ps, load_queau_human1
+
+__all__ = [
+    "Capture",
+    "IMAGE_EXTENSIONS",
+    "find_images",
+    "standardize_K",
+    "load_matlab_intrinsics",
+    "load_near_ps",
+    "load_hehe12",
+    "load_queau_human1",
+    "load_diligent",
+    "load_folder",
+    "prepare",
+]

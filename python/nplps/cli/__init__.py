@@ -1,0 +1,177 @@
+"""The ``nplps`` command line: reconstruct from image files or capture folders, evaluate with
+held-out lights, make synthetic scenes, run a demo.
+
+Run ``nplps --help`` (or ``python -m nplps --help``) for the overview and ``nplps COMMAND --help``
+for each command. :func:`main` is the entry point; it returns the exit status instead of exiting,
+so it can be called from Python and from tests.
+
+The package holds :func:`main`, the top-level parser and the error handling; the commands are in
+:mod:`~nplps.cli.reconstruct`, :mod:`~nplps.cli.evaluate` and :mod:`~nplps.cli.synth` (``synth``
+and ``demo``), their shared input options in :mod:`~nplps.cli.inputs` (with
+:mod:`~nplps.cli.imagefiles`, :mod:`~nplps.cli.preprocessing` and :mod:`~nplps.cli.parsers`),
+and the stderr notes in :mod:`~nplps.cli.console`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import textwrap
+from typing import Any, Sequence
+
+from .. import __version__
+from ..errors import NplpsError
+from .console import PROG, describe_rig
+from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
+from .imagefiles import IMAGE_SUFFIXES, SKIPPED_WORDS, resolve_images
+from .inputs import (
+    CAPTURE_LAYOUTS,
+    CONVENTIONS,
+    Inputs,
+    add_input_options,
+    build_inputs,
+    check_input_args,
+    load_raw,
+    load_rig,
+    near_options,
+)
+from .parsers import parse_depth, parse_exposures, parse_lights
+from .preprocessing import bin_inputs, bin_rig, preprocess_images, saturation_valid, vignetting_map
+from .reconstruct import add_reconstruct_parser, cmd_reconstruct
+from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
+
+__all__ = [
+    "main",
+    "build_parser",
+    "PROG",
+    "IMAGE_SUFFIXES",
+    "SKIPPED_WORDS",
+    "CAPTURE_LAYOUTS",
+    "CONVENTIONS",
+    "EVALUATE_COLUMNS",
+    "cmd_reconstruct",
+    "cmd_evaluate",
+    "cmd_synth",
+    "cmd_demo",
+    "add_input_options",
+    "Inputs",
+    "build_inputs",
+    "check_input_args",
+    "near_options",
+    "load_rig",
+    "load_raw",
+    "resolve_images",
+    "saturation_valid",
+    "preprocess_images",
+    "vignetting_map",
+    "bin_inputs",
+    "bin_rig",
+    "parse_depth",
+    "parse_exposures",
+    "parse_lights",
+    "describe_rig",
+    "normal_errors",
+    "depth_rms",
+]
+
+MAIN_DESCRIPTION = f"""\
+nplps: photometric stereo with near point lighting (Xie, Dai & Wang, CVPR 2015).
+
+From k photographs of a still object, each lit by one small light (LED) close to the object,
+nplps recovers a metric 3-D mesh, per-pixel normals and albedo. The camera and the lights come
+from a rig file (JSON, see below), and the object's approximate distance from the camera (the
+working distance) must be given.
+
+{textwrap.fill(CONVENTIONS, 95)}
+
+Rig file (JSON, version 2; version 1 files are read too):
+  {{"version": 2,
+   "camera": {{"model": "orthographic", "pixel_size": [w, h], "origin": [x0, y0]}},
+   "lights": [{{"type": "point", "position": [x, y, z], "intensity": 1.0}}, ...]}}
+  pixel_size: footprint of one pixel on the object; origin: scene (x, y) of the top-left
+  corner of pixel (0, 0); lights in the same order as the images. A pinhole camera is
+  {{"model": "pinhole", "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]}} (0-based pixel centres);
+  LEDs add "direction" and "mu", distant lights are {{"type": "directional", "direction": ...}}.
+  See README.md, section "Rig file".
+"""
+
+MAIN_EPILOG = """\
+examples:
+  nplps demo                                    # synthetic sphere: near-light vs parallel-light
+  nplps synth sphere --out scene                # write a synthetic scene (images, rig, mask)
+  nplps reconstruct scene --rig scene/rig.json --mask scene/mask.png --depth 180 --out result
+  nplps evaluate scene --rig scene/rig.json --mask scene/mask.png --depth 180 --lights 0,9,18
+  nplps reconstruct --help                      # all options of a command
+
+exit status: 0 success, 2 invalid input or usage, 1 output could not be written,
+130 interrupted.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``nplps`` command."""
+    formatter = argparse.RawDescriptionHelpFormatter
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=MAIN_DESCRIPTION, epilog=MAIN_EPILOG, formatter_class=formatter
+    )
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+    # The commands are looked up here, in this module, each time the parser is built, so that
+    # replacing nplps.cli.cmd_demo (and the others) takes effect.
+    add_reconstruct_parser(sub, formatter).set_defaults(func=cmd_reconstruct)
+    add_evaluate_parser(sub, formatter).set_defaults(func=cmd_evaluate)
+    add_synth_parser(sub, formatter).set_defaults(func=cmd_synth)
+    add_demo_parser(sub, formatter).set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs the ``nplps`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    parser = build_parser()
+    try:
+        try:
+            args = parser.parse_args(None if argv is None else list(argv))
+        except SystemExit as e:  # --help, --version, usage errors
+            return _exit_code(e.code)
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return 2
+        return int(args.func(args) or 0)
+    except NplpsError as e:
+        _error(str(e))
+        return 2
+    except BrokenPipeError:  # output piped into e.g. `head`: stop quietly
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return 1
+    except OSError as e:
+        _error(_os_message(e))
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr, flush=True)
+        return 130
+
+
+def _exit_code(code: Any) -> int:
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
+
+
+def _error(message: str) -> None:
+    message = " ".join(str(message).split()) or "unknown error"
+    print(f"{PROG}: error: {message}", file=sys.stderr, flush=True)
+
+
+def _os_message(e: OSError) -> str:
+    what = e.strerror or str(e)
+    if e.filename is not None:
+        return f"'{os.fspath(e.filename)}': {what}"
+    return what

@@ -1,0 +1,40 @@
+"""What the command line prints besides its results: the program name, notes on stderr,
+library warnings as ``nplps: warning:`` lines, and a one-line description of a rig."""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from typing import Any
+
+import numpy as np
+
+PROG = "nplps"
+
+
+def _note(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+class _warnings_to_stderr:
+    """Shows library warnings as ``nplps: warning: ...`` lines instead of Python's format."""
+
+    def __enter__(self) -> None:
+        self._ctx = warnings.catch_warnings(record=True)
+        self._caught = self._ctx.__enter__()
+        warnings.simplefilter("always")
+
+    def __exit__(self, *exc: Any) -> None:
+        caught = list(self._caught)
+        self._ctx.__exit__(*exc)
+        for w in caught:
+            _note(f"{PROG}: warning: {w.message}")
+
+
+def describe_rig(rig: Any) -> str:
+    """'pinhole camera, 18 point lights, 9 directional lights' and the like."""
+    far = int(np.count_nonzero(rig.directional))
+    near = rig.n_lights - far
+    counts = ((near, "point"), (far, "directional"))
+    lights = [f"{count} {kind} light{'s' if count != 1 else ''}" for count, kind in counts if count]
+    return f"{rig.camera.get('model', '?')} camera, {', '.join(lights) or 'no lights'}"

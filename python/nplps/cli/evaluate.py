@@ -1,0 +1,92 @@
+"""``nplps evaluate``: held-out-light errors of the near-light method and of the parallel-light
+baseline, printed as a table."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+from .console import _note, _warnings_to_stderr
+from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
+from .parsers import parse_lights
+
+EVALUATE_DESCRIPTION = f"""\
+Check a rig and its reconstruction without ground truth: leave each light out in turn,
+reconstruct from the others, predict the left-out image and compare it with the captured one.
+Runs the near-light method (nplps) and the parallel-light baseline and prints, per light:
+the relative error |prediction - image| / |image| over the masked, usable pixels, and the
+shape error (the same after the best gain, free of the light's intensity calibration), plus
+the means. Lower is better; a better light model predicts better. RGB images are averaged
+to grey.
+
+{INPUT_NOTES}"""
+
+EVALUATE_EPILOG = """\
+examples:
+  nplps evaluate shots/ --rig rig.json --mask shots/mask.png --depth 250
+  nplps evaluate --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' --depth 200 \\
+      --bin 8 --lights 0,3,5
+"""
+
+EVALUATE_COLUMNS = ("light", "near rel. error", "near shape error", "parallel rel. error", "parallel shape error")
+
+
+def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
+    """Adds the ``evaluate`` command and its options to the subparsers ``sub``; returns its parser."""
+    p = sub.add_parser(
+        "evaluate",
+        help="held-out-light errors of the near-light method and of the parallel-light baseline",
+        description=EVALUATE_DESCRIPTION,
+        epilog=EVALUATE_EPILOG,
+        formatter_class=formatter,
+    )
+    add_input_options(p)
+    p.add_argument(
+        "--lights", metavar="I,J,...", help="the lights to leave out, 0-based, e.g. 0,3,5 (default: all)"
+    )
+    return p
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from ..evaluation import held_out
+
+    inputs = build_inputs(args)
+    lights = parse_lights(args.lights, inputs.rig.n_lights)
+    if inputs.options["depth"] == "auto":
+        from ..api import reconstruct
+
+        with _warnings_to_stderr():
+            estimate = reconstruct(inputs.images, inputs.rig, inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args))
+        distances = ", ".join(f"{d:.6g}" for d in estimate.distance.distance)
+        _note(f"estimated working distance (all lights): {distances}")
+        inputs = inputs._replace(options=_estimated(estimate, inputs.options))
+    rows = []
+    for done, light in enumerate(lights):
+        start = time.perf_counter()
+        row = [light]
+        for method in ("near", "parallel"):
+            with _warnings_to_stderr():
+                (h,) = held_out(
+                    inputs.images, inputs.rig, inputs.mask, method=method, lights=[light],
+                    valid=inputs.valid, **inputs.options, **near_options(args),
+                )
+            row += [h.relative_error, h.shape_error]
+        rows.append(row)
+        if not args.quiet:
+            _note(f"light {light} left out ({done + 1}/{len(lights)}): {time.perf_counter() - start:.2f} s")
+    _print_evaluation(rows, inputs.rig.n_lights)
+    return 0
+
+
+def _print_evaluation(rows: list[list[Any]], k: int) -> None:
+    print(f"held-out lights: each reconstructed from the other {k - 1} lights and predicted")
+    print("relative error = |prediction - image| / |image|; shape error: the same after the best gain\n")
+    widths = [5] + [len(c) + 2 for c in EVALUATE_COLUMNS[1:]]
+    print("".join(f"{c:>{w}}" for c, w in zip(EVALUATE_COLUMNS, widths)))
+    for row in rows:
+        print(f"{row[0]:>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(row[1:], widths[1:])))
+    means = np.nanmean(np.array([r[1:] for r in rows], dtype=float), axis=0)
+    print(f"{'mean':>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(means, widths[1:])))

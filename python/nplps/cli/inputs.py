@@ -1,0 +1,346 @@
+"""The input options that ``reconstruct`` and ``evaluate`` share, and reading them: images or a
+capture folder, rig, mask, depth, pre-processing, binning and the solver options."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from .console import _note, describe_rig
+from .imagefiles import _is_dir_input, resolve_images
+from .parsers import _parse_list, parse_depth
+from .preprocessing import _to_gray, bin_inputs, preprocess_images, saturation_valid, vignetting_map
+
+#: Capture folder layouts of ``--capture``.
+CAPTURE_LAYOUTS = ("near_ps", "diligent")
+
+CONVENTIONS = (
+    "Conventions: camera frame as in OpenCV (x right, y down, z forward into the scene, depth = z); "
+    "the rig file gives the camera (orthographic pixel footprint, or pinhole K) and the lights in "
+    "one length unit (mm typical), and depths are in that unit too."
+)
+
+INPUT_NOTES = """\
+Input: IMAGES (one file per light in the rig's order, or one directory) and --rig; or a capture
+folder: --capture near_ps FOLDER (camera.mat, light.mat, the images, a mask and an ambient image
+found by name; the ambient image is subtracted and cos^4 vignetting compensated by default) or
+--capture diligent FOLDER (a DiLiGenT object folder with filenames.txt: directional lights,
+orthographic camera with 1-unit pixels). A .npy --depth map must match the images after --bin.
+
+Thresholds: by default, for integer images, observations at the top level (raw values, before
+any pre-processing) are saturated and left out, and values at or below one level above black
+are shadowed (0 after pre-processing, whose subtractions and scalings move the levels).
+"""
+
+
+def add_input_options(p: argparse.ArgumentParser) -> None:
+    """The options ``reconstruct`` and ``evaluate`` share: input, thresholds, pre-processing,
+    solver (read back by :func:`build_inputs` and :func:`near_options`)."""
+    p.add_argument(
+        "images",
+        nargs="*",
+        metavar="IMAGES",
+        help="one image file per light, in the rig's light order; or one directory (all its image "
+        "files sorted by name, except those with 'mask' or 'ambient' in the name); with --capture: "
+        "the capture folder [and, for near_ps, a glob pattern of its image files]",
+    )
+    p.add_argument("--rig", metavar="RIG.json", help="rig file: camera and lights (required unless --capture)")
+    p.add_argument(
+        "--capture",
+        choices=CAPTURE_LAYOUTS,
+        help="read IMAGES as one capture folder in this layout instead of image files + --rig",
+    )
+    p.add_argument(
+        "--depth",
+        required=True,
+        metavar="D",
+        help="working distance (the object's mean depth, in the rig's unit), a .npy file "
+        "with an (H+1, W+1) initial vertex depth map (NaN allowed outside the mask), or 'auto' to "
+        "estimate it from the images (needs 4+ lights, some of them point lights)",
+    )
+    p.add_argument(
+        "--depth-range",
+        metavar="NEAR,FAR",
+        help="with --depth auto: where to search (default: derived from the light positions)",
+    )
+    p.add_argument(
+        "--depth-prior",
+        metavar="PRIOR.npy",
+        help="(H+1, W+1) prior depth map (e.g. from a coarse scan; NaN where unknown) fused in the global step",
+    )
+    p.add_argument(
+        "--prior-weight",
+        type=float,
+        default=1.0,
+        metavar="W",
+        help="weight of --depth-prior relative to the facet terms (default 1)",
+    )
+    p.add_argument(
+        "--mask",
+        metavar="M",
+        help="mask image, non-zero = reconstruct (default: every pixel, or the capture's mask)",
+    )
+
+    g = p.add_argument_group("shadows, saturation, colour")
+    g.add_argument(
+        "--dark",
+        type=float,
+        metavar="X",
+        help="values (0..1 scale, after pre-processing) at or below X count as shadowed and are "
+        "left out (default: one level above black for integer images, 0 after pre-processing)",
+    )
+    g.add_argument(
+        "--saturation",
+        type=float,
+        metavar="X",
+        help="raw values (0..1 scale, before pre-processing; any channel) at or above X count as "
+        "saturated and are left out (default: the top level of integer images, none for float)",
+    )
+    g.add_argument(
+        "--robust",
+        choices=("cauchy", "tukey"),
+        help="reweight each pixel's fit so that highlights and cast shadows do not bend the normals",
+    )
+    g.add_argument("--gray", "--grey", action="store_true", help="average RGB images to grey (default: keep colour)")
+
+    g = p.add_argument_group("pre-processing (applied in this order)")
+    g.add_argument("--srgb", action="store_true", help="decode sRGB to linear (camera JPEGs); also --ambient/--flat")
+    g.add_argument("--ambient", metavar="FILE", help="subtract this image taken with every light off (clip at 0)")
+    g.add_argument("--exposures", metavar="E1,E2,...", help="divide image i by Ei (exposure times, gains)")
+    v = g.add_mutually_exclusive_group()
+    v.add_argument(
+        "--vignetting",
+        choices=("cos4", "none"),
+        help="cos4: divide by the cos^4 fall-off map of the pinhole K (default: none; cos4 for "
+        "--capture near_ps)",
+    )
+    v.add_argument("--flat", metavar="FILE", help="divide by this flat-field image, normalized to maximum 1")
+    g.add_argument(
+        "--bin",
+        type=int,
+        default=1,
+        metavar="N",
+        help="average N x N pixel blocks (mask: whole blocks only; K or the pixel size adjusted)",
+    )
+
+    g = p.add_argument_group("solver")
+    g.add_argument("--iterations", type=int, default=10, metavar="N", help="maximum iterations (default 10)")
+    g.add_argument(
+        "--tol",
+        type=float,
+        default=1e-6,
+        help="stop when the largest depth change is at most tol x the image footprint (default 1e-6)",
+    )
+    g.add_argument(
+        "--weighting",
+        choices=("image", "paper"),
+        default="image",
+        help="local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
+    )
+    g.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all cores)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+
+
+class Inputs(NamedTuple):
+    """What :func:`build_inputs` makes of the input options."""
+
+    #: Pre-processed float32 images (k, H, W) or (k, H, W, 3).
+    images: np.ndarray
+    #: The rig (camera adjusted to --bin).
+    rig: Any
+    #: (H, W) bool mask, or None for every pixel.
+    mask: np.ndarray | None
+    #: (k, H, W) bool, False where an observation is saturated; None if none is.
+    valid: np.ndarray | None
+    #: Keyword arguments for reconstruct, reconstruct_parallel and held_out: depth, dark, robust, threads.
+    options: dict[str, Any]
+
+
+class _Loaded(NamedTuple):
+    """Images, rig and mask as read, before binning."""
+
+    images: np.ndarray
+    rig: Any
+    mask: np.ndarray | None
+    valid: np.ndarray | None
+    levels: int | None
+    steps: list[str]
+
+
+def build_inputs(args: argparse.Namespace) -> Inputs:
+    """Reads and pre-processes the input that :func:`add_input_options` describes."""
+    check_input_args(args)
+    depth = parse_depth(args.depth)
+    loaded = _load_capture(args) if args.capture else _load_files(args)
+    images, rig, mask, valid = loaded.images, loaded.rig, loaded.mask, loaded.valid
+    steps = list(loaded.steps)
+    if args.bin > 1:
+        images, rig, mask, valid = bin_inputs(images, rig, mask, valid, args.bin)
+        steps.append(f"binned {args.bin} x {args.bin} to {images.shape[2]} x {images.shape[1]} pixels")
+    dark = args.dark
+    if dark is None:
+        dark = 1.0 / loaded.levels if loaded.levels and not steps else 0.0
+    if not args.quiet:
+        _note_inputs(images, rig, valid, steps, dark, loaded.levels)
+    options = {"depth": depth, "dark": dark, "robust": args.robust, "threads": args.threads}
+    return Inputs(np.ascontiguousarray(images, dtype=np.float32), rig, mask, valid, options)
+
+
+def near_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of the near-light solver only (not of the parallel-light baseline)."""
+    options: dict[str, Any] = {"iterations": args.iterations, "tol": args.tol, "weighting": args.weighting}
+    if args.depth_range is not None:
+        near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")
+        if len(near_far) != 2:
+            raise InputError(f"--depth-range needs two numbers NEAR,FAR, got {args.depth_range}")
+        options["depth_range"] = tuple(near_far)
+    if args.depth_prior is not None:
+        options["depth_prior"] = parse_depth(args.depth_prior)
+        options["prior_weight"] = args.prior_weight
+    return options
+
+
+def _estimated(result: Any, options: dict[str, Any]) -> dict[str, Any]:
+    """The options with ``depth="auto"`` replaced by the depth map that ``result`` estimated."""
+    if not isinstance(options.get("depth"), str):
+        return options
+    return dict(options, depth=result.depth)
+
+
+def check_input_args(args: argparse.Namespace) -> None:
+    """Checks the input options before anything is read: numbers, which options go together,
+    and that the named side files exist."""
+    _check_numbers(args)
+    if args.capture:
+        given = [f"--{name}" for name in ("rig", "ambient", "exposures") if getattr(args, name)]
+        given += ["--srgb"] if args.srgb else []
+        if given:
+            raise InputError(
+                f"--capture {args.capture} takes the rig and the ambient image from the folder: "
+                f"{', '.join(given)} cannot be combined with it"
+            )
+    elif not args.images:
+        raise InputError("no input: give IMAGES (image files or one directory) and --rig, or --capture LAYOUT FOLDER")
+    elif args.rig is None:
+        raise InputError("--rig is required with IMAGES (or read a capture folder with --capture LAYOUT FOLDER)")
+    for option in ("mask", "ambient", "flat"):
+        path = getattr(args, option)
+        if path is not None and not os.path.isfile(path):
+            raise InputError(f"--{option} file '{path}' not found")
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    if args.iterations < 1:
+        raise InputError(f"--iterations must be at least 1, got {args.iterations}")
+    if args.threads is not None and args.threads < 1:
+        raise InputError(f"--threads must be at least 1, got {args.threads}")
+    if not np.isfinite(args.tol) or args.tol < 0:
+        raise InputError(f"--tol must be a non-negative number, got {args.tol}")
+    if args.bin < 1:
+        raise InputError(f"--bin must be a positive integer (the block size in pixels), got {args.bin}")
+    if args.dark is not None and not np.isfinite(args.dark):
+        raise InputError(f"--dark must be a finite number, got {args.dark}")
+    if args.saturation is not None and not (np.isfinite(args.saturation) and args.saturation > 0):
+        raise InputError(f"--saturation must be a positive number (0..1 scale), got {args.saturation}")
+
+
+def _load_files(args: argparse.Namespace) -> _Loaded:
+    """IMAGES + --rig: read the images, the mask and the rig; sRGB, ambient, exposures, vignetting."""
+    rig = load_rig(args.rig)
+    exclude = [f for f in (args.ambient, args.flat) if f]
+    files = resolve_images(args.images, args.mask, quiet=args.quiet, exclude=exclude, ambient=args.ambient)
+    if len(files) != rig.n_lights:
+        source = f"found in '{args.images[0]}'" if _is_dir_input(args.images) else "given"
+        raise InputError(
+            f"{len(files)} images {source} but the rig file '{args.rig}' has {rig.n_lights} lights: "
+            "there must be exactly one image per light, in the rig's light order"
+        )
+    raw, levels = load_raw(files)
+    mask = None if args.mask is None else _mask(args.mask, raw.shape[1:3])
+    images = _to_gray(raw) if args.gray else raw
+    images, steps = preprocess_images(images, args, rig.K)
+    return _Loaded(images, rig, mask, saturation_valid(raw, levels, args.saturation), levels, steps)
+
+
+def _load_capture(args: argparse.Namespace) -> _Loaded:
+    """--capture LAYOUT FOLDER [PATTERN]: the capture's images, mask, ambient image and rig."""
+    from .. import captures
+
+    capture = _read_capture(args)
+    raw, levels = load_raw(capture.files)
+    mask = capture.mask if args.mask is None else _mask(args.mask, raw.shape[1:3])
+    images = _to_gray(raw) if args.gray else raw
+    vmap, vstep = vignetting_map(args, capture.K, images, default="cos4" if capture.K is not None else "none")
+    capture = dataclasses.replace(capture, images=images, mask=mask)
+    prepared = captures.prepare(capture, bin_factor=1, ambient=True, vignetting=vmap, gray=args.gray)
+    steps = ([f"ambient '{Path(capture.ambient).name}' subtracted"] if capture.ambient is not None else [])
+    steps += [vstep] if vstep else []
+    valid = saturation_valid(raw, levels, args.saturation)
+    return _Loaded(prepared.images, prepared.rig(), prepared.mask, valid, levels, steps)
+
+
+def _read_capture(args: argparse.Namespace) -> Any:
+    from .. import captures
+
+    items = args.images
+    if not 1 <= len(items) <= (2 if args.capture == "near_ps" else 1) or not os.path.isdir(items[0]):
+        what = "the object folder"
+        if args.capture == "near_ps":
+            what = "the capture folder and optionally a glob pattern of its images"
+        raise InputError(f"--capture {args.capture} takes {what}, got {' '.join(items) or 'nothing'}")
+    if args.capture == "diligent":
+        capture = captures.load_diligent(items[0], normals=False)
+    else:
+        try:
+            capture = captures.load_near_ps(items[0], items[1] if len(items) > 1 else None)
+        except InputError as e:
+            if "lights selected" not in str(e):
+                raise
+            head = str(e).split(": pass images=")[0]
+            hint = "give a glob pattern of the image files after the folder, e.g. 'img_[0-9]*.png'"
+            raise InputError(f"{head}: {hint}") from None
+    if not args.quiet:
+        _note(f"capture '{capture.name}' ({args.capture}): {capture.num_images} images")
+    return capture
+
+
+def load_rig(path: str) -> Any:
+    """Reads the rig file; every failure becomes a :class:`~nplps.RigError` naming the file."""
+    from ..errors import RigError
+    from ..rig import Rig
+
+    if os.path.isdir(path):
+        raise RigError(f"rig file '{path}' is a directory")
+    return Rig.load(path)
+
+
+def load_raw(files: Sequence[Any]) -> tuple[np.ndarray, int | None]:
+    """The images as float32 (k, H, W[, 3]) on the 0..1 scale, colour kept, and their levels."""
+    from ..io import load_stack
+
+    return load_stack([os.fspath(f) for f in files], color=True)
+
+
+def _mask(path: str, shape: tuple[int, int]) -> np.ndarray:
+    from ..io import load_mask
+
+    return load_mask(path, shape)
+
+
+def _note_inputs(
+    images: np.ndarray, rig: Any, valid: np.ndarray | None, steps: list[str], dark: float, levels: int | None
+) -> None:
+    k, h, w = images.shape[:3]
+    depth = f", {levels.bit_length()}-bit" if levels else ""
+    colour = "RGB" if images.ndim == 4 else "grey"
+    _note(f"{k} images of {w} x {h} pixels ({colour}{depth}); rig: {describe_rig(rig)}")
+    if steps:
+        _note(f"pre-processing: {', '.join(steps)}")
+    saturated = 0 if valid is None else int(np.count_nonzero(~valid))
+    _note(f"left out: observations at or below {dark:.4g} (shadow), {saturated} saturated")

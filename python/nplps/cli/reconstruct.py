@@ -1,0 +1,113 @@
+"""``nplps reconstruct``: reconstruct from images and a rig, write the results, print a summary."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+from .console import _warnings_to_stderr, describe_rig
+from .inputs import CONVENTIONS, INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
+
+RECONSTRUCT_DESCRIPTION = f"""\
+Reconstruct a surface from k images taken under the k lights of a rig.
+
+Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
+colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
+(16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
+normals.npy, residual.npy and summary.json. RGB images give an RGB albedo unless --gray.
+
+{INPUT_NOTES}
+{textwrap.fill(CONVENTIONS, 95)}
+"""
+
+RECONSTRUCT_EPILOG = """\
+examples:
+  # all images of a folder (sorted by name; files with 'mask' or 'ambient' in the name are skipped):
+  nplps reconstruct shots/ --rig rig.json --mask shots/mask.png --depth 250 --out result
+  # explicit files, in the rig's light order, initial depth map from a previous run:
+  nplps reconstruct a.png b.png c.png d.png --rig rig.json --depth result/depth.npy --out refined
+  # compare with conventional (parallel-light) photometric stereo, written to result/baseline:
+  nplps reconstruct shots/ --rig rig.json --depth 250 --out result --baseline
+  # camera JPEGs from a pinhole rig: decode sRGB, subtract the ambient shot, cos^4, 4 x 4 bins:
+  nplps reconstruct shots/ --rig rig.json --depth 200 --srgb --ambient shots/ambient.jpg \\
+      --vignetting cos4 --bin 4 --robust tukey --out result
+  # a near_ps capture folder (a glob pattern after the folder picks its images if needed):
+  nplps reconstruct --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' \\
+      --depth 200 --bin 4 --out hehe12-result
+  # a DiLiGenT object, grey:
+  nplps reconstruct --capture diligent ballPNG/ --depth 1000 --gray --out ball
+"""
+
+
+def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
+    """Adds the ``reconstruct`` command and its options to the subparsers ``sub``; returns its parser."""
+    p = sub.add_parser(
+        "reconstruct",
+        help="reconstruct a mesh, normals and albedo from images and a rig file",
+        description=RECONSTRUCT_DESCRIPTION,
+        epilog=RECONSTRUCT_EPILOG,
+        formatter_class=formatter,
+    )
+    add_input_options(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if needed)")
+    p.add_argument(
+        "--opengl",
+        action="store_true",
+        help="write meshes in the OpenGL frame (x right, y up, z towards the viewer)",
+    )
+    p.add_argument(
+        "--baseline",
+        action="store_true",
+        help="also run parallel-light photometric stereo and write it to DIR/baseline",
+    )
+    return p
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from ..api import reconstruct, reconstruct_parallel
+
+    inputs = build_inputs(args)
+    common = dict(inputs.options, valid=inputs.valid)
+    start = time.perf_counter()
+    with _warnings_to_stderr():
+        result = reconstruct(inputs.images, inputs.rig, inputs.mask, progress=not args.quiet, **near_options(args), **common)
+    wall = time.perf_counter() - start
+    paths = result.save(args.out, opengl=args.opengl)
+    _print_summary("near-light reconstruction (nplps)", result, wall, paths, args.iterations)
+
+    if args.baseline:
+        start = time.perf_counter()
+        with _warnings_to_stderr():
+            base = reconstruct_parallel(inputs.images, inputs.rig, inputs.mask, **_estimated(result, common))
+        wall = time.perf_counter() - start
+        base_paths = base.save(Path(args.out) / "baseline", opengl=args.opengl)
+        print()
+        _print_summary("parallel-light baseline", base, wall, base_paths, None)
+    return 0
+
+
+def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path], max_iterations: int | None) -> None:
+    s = result.summary()
+    h, w = s["shape"]
+    print(f"{title}:")
+    print(f"  rig             {describe_rig(result.rig)}")
+    print(f"  pixels          {s['pixels']} of {h} x {w}")
+    print(f"  regions         {s['regions']}")
+    if max_iterations is not None:
+        state = "yes" if s["converged"] else f"no (iteration limit {max_iterations} reached; try --iterations)"
+        print(f"  iterations      {s['iterations']}")
+        print(f"  converged       {state}")
+    if s["rms_residual"] is not None:
+        print(f"  rms residual    {s['rms_residual']:.3e} (image units, 0..1)")
+    print(f"  unfitted pixels {s['unfitted_pixels']} (fewer than 3 lit images)")
+    lo, hi = s["depth_range"]
+    print(f"  depth range     {lo:.6g} .. {hi:.6g}")
+    if s.get("estimated_distance"):
+        estimates = ", ".join(f"{d:.6g}" for d in s["estimated_distance"])
+        print(f"  distance        {estimates} (estimated; residual curve in distance_curve.csv / .svg)")
+    print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
+    files = sorted({str(p.parent) for p in paths.values()})
+    print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
