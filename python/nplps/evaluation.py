@@ -12,7 +12,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from .api import reconstruct, reconstruct_parallel
+from .api import _thresholds, reconstruct, reconstruct_parallel
 from .errors import InputError
 from .io import load_stack
 from .reconstruction import Reconstruction
@@ -60,15 +60,15 @@ def held_out(
     solve: Callable[..., Reconstruction] = reconstruct if method == "near" else reconstruct_parallel
     if method == "parallel":
         options = {k: v for k, v in options.items() if k in ("robust", "color", "threads", "valid")}
-    lo = (0.0 if levels is None else 1.0 / levels) if dark is None else dark
-    hi = (np.inf if levels is None else 1.0 - 0.5 / levels) if saturation is None else saturation
+    # Thresholds from the source's bit depth, computed once: the stack handed on is float.
+    lo, hi = _thresholds(dark, saturation, levels)
     valid = options.pop("valid", None)
     out = []
     for i in range(rig.n_lights) if lights is None else lights:
         keep = [j for j in range(rig.n_lights) if j != i]
         kept_valid = None if valid is None else np.asarray(valid)[keep]
         result = solve(
-            stack[keep], rig.subset(keep), mask, depth, dark=dark, saturation=saturation, valid=kept_valid, **options
+            stack[keep], rig.subset(keep), mask, depth, dark=lo, saturation=hi, valid=kept_valid, **options
         )
         prediction = result.predict(rig, lights=[i])[0]
         image = stack[i]
