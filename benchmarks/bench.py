@@ -7,7 +7,8 @@ Usage::
 
 Each size reconstructs the synthetic ``bumps`` scene (27 lights, 10 iterations, tol 0 so that
 every run does exactly 10 iterations) and reports the median wall time of the Rust core split into
-factorization, local steps and solves, the reference's median, and the speed-up. Timings are
+factorization, local steps and solves, the reference's median, and the speed-up; then the time of
+``depth="auto"`` (working-distance search) against a run given the distance. Timings are
 medians of repeated runs in one process; machines are shared and noisy, so compare ratios
 measured in the same run rather than absolute numbers across runs.
 """
@@ -50,12 +51,19 @@ def time_reference(scene: nplps.Scene, images: np.ndarray, repeats: int) -> dict
     return {k: statistics.median(run[k] for run in runs) for k in runs[0]}
 
 
+def _wall(run) -> float:
+    t0 = time.perf_counter()
+    run()
+    return time.perf_counter() - t0
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
     parser.add_argument("--repeats", type=int, default=5, help="runs of the Rust core per size (median reported)")
     parser.add_argument("--reference-repeats", type=int, default=1, help="runs of the numpy reference per size")
     parser.add_argument("--threads", type=int, default=None, help="worker threads of the Rust core (default: all cores)")
+    parser.add_argument("--auto-size", type=int, default=256, help="image size of the depth='auto' timing")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args()
 
@@ -73,6 +81,17 @@ def main() -> None:
         speedup = ref["wall"] / rust["wall"]
         print(f"{n:>4}x{n:<4} {rust['factorization']:8.3f} {rust['local']:8.3f} {rust['solve']:8.3f} {rust['wall']:8.3f} | {ref['wall']:8.3f} {speedup:7.1f}x")
         results.append({"size": n, "rust": rust, "numpy_reference": ref, "speedup": speedup})
+    # The working-distance search (depth="auto") against a run given the distance.
+    scene = nplps.make_scene("bumps", n=args.auto_size, camera="pinhole", led=True, noise=0.01)
+    images = scene.images.astype(np.float32)
+    known = statistics.median(
+        _wall(lambda: nplps.reconstruct(images, scene.rig, scene.mask, scene.mean_depth)) for _ in range(args.repeats)
+    )
+    auto = statistics.median(
+        _wall(lambda: nplps.reconstruct(images, scene.rig, scene.mask, "auto")) for _ in range(args.repeats)
+    )
+    print(f"\ndepth='auto' on a {args.auto_size}^2 pinhole LED scene: {auto:.3f} s, {auto / known:.1f}x a run given the distance ({known:.3f} s)")
+    results.append({"auto_size": args.auto_size, "auto": auto, "known": known, "ratio": auto / known})
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump(results, f, indent=2)
