@@ -49,6 +49,32 @@ fn depth_grid<'a>(
     Ok((shape[0] - 1, shape[1] - 1, slice(py, depth, "depth")?))
 }
 
+/// Channels of an (H, W) or (H, W, C) albedo.
+fn albedo_channels(py: Python<'_>, albedo: &PyReadonlyArrayDyn<'_, f64>) -> PyResult<usize> {
+    match albedo.shape() {
+        [_, _] => Ok(1),
+        [_, _, c] => Ok(*c),
+        s => Err(py_error(
+            py,
+            "InputError",
+            format!("albedo must be (H, W) or (H, W, 3), got shape {s:?}"),
+        )),
+    }
+}
+
+/// Images as a (k, H, W) array for one channel, (k, H, W, C) otherwise.
+fn image_stack<'py>(
+    py: Python<'py>,
+    images: Vec<f64>,
+    [k, h, w, c]: [usize; 4],
+) -> PyResult<Bound<'py, PyAny>> {
+    if c == 1 {
+        array(py, images, &[k, h, w])
+    } else {
+        array(py, images, &[k, h, w, c])
+    }
+}
+
 /// The starting depth: a working distance or an (H+1, W+1) map.
 fn initial_depth<'a>(
     py: Python<'_>,
@@ -296,28 +322,13 @@ fn render<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = lighting_from(py, camera, lights)?;
     let (h, w, depth_s) = depth_grid(py, &depth)?;
-    let channels = match albedo.shape() {
-        [_, _] => 1,
-        [_, _, c] => *c,
-        s => {
-            return Err(py_error(
-                py,
-                "InputError",
-                format!("albedo must be (H, W) or (H, W, 3), got shape {s:?}"),
-            ))
-        }
-    };
+    let channels = albedo_channels(py, &albedo)?;
     let albedo_s = slice(py, &albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
     let images = py
         .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, channels, mask)))
         .map_err(|e| to_py(py, e))?;
-    let k = rig.n_lights();
-    if channels == 1 {
-        array(py, images, &[k, h, w])
-    } else {
-        array(py, images, &[k, h, w, channels])
-    }
+    image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
 
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
@@ -336,11 +347,7 @@ fn predict<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = lighting_from(py, camera, lights)?;
     let (h, w, z) = depth_grid(py, &depth)?;
-    let channels = if albedo.ndim() == 3 {
-        albedo.shape()[2]
-    } else {
-        1
-    };
+    let channels = albedo_channels(py, &albedo)?;
     let n: Vec<[f64; 3]> = slice(py, &normals, "normals")?
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
@@ -350,12 +357,7 @@ fn predict<'py>(
     let images = py
         .detach(|| no_panic(|| nplps::predict(&rig, h, w, z, &n, a, channels, mask, parallel)))
         .map_err(|e| to_py(py, e))?;
-    let k = rig.n_lights();
-    if channels == 1 {
-        array(py, images, &[k, h, w])
-    } else {
-        array(py, images, &[k, h, w, channels])
-    }
+    image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
 
 /// Mesh normals (H, W, 3) of a vertex depth map (H+1, W+1).
