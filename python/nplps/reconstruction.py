@@ -64,7 +64,8 @@ class Reconstruction:
     regions: np.ndarray
     #: Mean vertex depth of each region (the gauge).
     gauge: np.ndarray
-    #: One entry per iteration.
+    #: One entry per iteration (with ``depth="auto"``: of the final run at the estimate; the
+    #: search's evaluations are in ``distance.curve``).
     history: list[Iteration]
     #: Whether the tolerance was reached within the iteration limit.
     converged: bool
