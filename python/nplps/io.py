@@ -235,12 +235,17 @@ def load_stack(images: np.ndarray | Sequence[ImageSource], color: bool = False) 
             )
         if images.shape[0] == 0:
             raise InputError("no input image: the image stack is empty")
-        items: list[ImageSource] = list(images)
-        labels = [f"image {i}" for i in range(len(items))]
+        # One conversion of the whole array (no per-image copies).
+        whole = to_float(images)
+        if whole.ndim == 4 and not color:
+            whole = whole.mean(axis=3, dtype=np.float32)
+        stack = np.ascontiguousarray(whole, dtype=np.float32)
+        _check_finite(stack, [f"image {i}" for i in range(stack.shape[0])])
+        return stack, (int(np.iinfo(images.dtype).max) if np.issubdtype(images.dtype, np.integer) else None)
     else:
         if isinstance(images, (str, os.PathLike)):
             raise InputError(f"expected a sequence of images, got the single path '{os.fspath(images)}'")
-        items = list(images)
+        items: list[ImageSource] = list(images)
         if not items:
             raise InputError("no input image: the image list is empty")
         labels = [_label(i, item) for i, item in enumerate(items)]
