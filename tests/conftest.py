@@ -1,4 +1,4 @@
-"""Shared fixtures and helpers of the API tests (tests/test_api.py, tests/test_rig.py).
+"""Shared fixtures and helpers of the tests (synthetic scenes, angles, the real captures).
 
 Helpers are handed out as fixtures (``angular_error``, ``active_vertices``, ...) so that test
 modules never import this file directly. Synthetic scenes are cached for the whole session: they
@@ -7,6 +7,7 @@ are read-only inputs, and building them once keeps the suite fast.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -42,6 +43,23 @@ def _active_vertices(mask: np.ndarray) -> np.ndarray:
         for dc in (0, 1):
             used[dr : dr + h, dc : dc + w] |= mask
     return used
+
+
+#: Real captures made by other people, beside the repository (see ../shared/data/README.md).
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_capture() -> Callable[[str], Path]:
+    """The folder of a real capture in ../shared/data; skips the test when it is absent."""
+
+    def folder(name: str) -> Path:
+        path = SHARED_DATA / name
+        if not path.is_dir():
+            pytest.skip(f"real capture {name!r} not available: {path} does not exist")
+        return path
+
+    return folder
 
 
 @pytest.fixture(scope="session")

@@ -22,15 +22,6 @@ from nplps import captures as cap  # noqa: E402
 from nplps import preprocess as pp  # noqa: E402
 from nplps.errors import InputError, RigError  # noqa: E402
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def _shared(name: str) -> Path:
-    folder = SHARED / name
-    if not folder.is_dir():
-        pytest.skip(f"real capture '{name}' not available: {folder} does not exist")
-    return folder
-
 
 def _write_png16_rgb(path: Path, pixels: np.ndarray) -> None:
     h, w, _ = pixels.shape
@@ -280,8 +271,8 @@ def test_capture_select_and_load(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def test_real_hehe12() -> None:
-    folder = _shared("hehe12")
+def test_real_hehe12(shared_capture) -> None:
+    folder = shared_capture("hehe12")
     start = time.perf_counter()
     c = cap.load_hehe12(folder, load=True)
     elapsed = time.perf_counter() - start
@@ -317,8 +308,8 @@ def test_real_hehe12() -> None:
     assert elapsed < 10
 
 
-def test_real_queau_human1() -> None:
-    folder = _shared("queau_human1")
+def test_real_queau_human1(shared_capture) -> None:
+    folder = shared_capture("queau_human1")
     start = time.perf_counter()
     c = cap.load_queau_human1(folder)
     elapsed = time.perf_counter() - start
@@ -347,8 +338,8 @@ def test_real_queau_human1() -> None:
     assert elapsed < 60
 
 
-def test_real_queau_human1_jpeg_grid_subset() -> None:
-    folder = _shared("queau_human1")
+def test_real_queau_human1_jpeg_grid_subset(shared_capture) -> None:
+    folder = shared_capture("queau_human1")
     c = cap.load_queau_human1(folder, grid="jpeg", lights=[5], gray=False)
     assert c.images.shape == (1, 1728, 2592, 3) and c.mask.shape == (1728, 2592)
     assert c.intensities.shape == (1, 3)
@@ -356,8 +347,8 @@ def test_real_queau_human1_jpeg_grid_subset() -> None:
         cap.load_queau_human1(folder, lights=[4])
 
 
-def test_real_diligent_ball() -> None:
-    folder = _shared("diligent_ball")
+def test_real_diligent_ball(shared_capture) -> None:
+    folder = shared_capture("diligent_ball")
     c = cap.load_diligent(folder)
     assert c.num_images == 96 and c.directional and c.name == "ball"
     assert np.all(c.directions[:, 2] < 0)

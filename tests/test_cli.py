@@ -7,7 +7,6 @@ import re
 import shlex
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -590,13 +589,9 @@ def test_capture_option_errors(tmp_path, capsys):
     assert_one_line_error(rc, stderr, "camera.mat")
 
 
-REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-@pytest.mark.skipif(not (REAL_DATA / "hehe12").is_dir(), reason="real captures (../shared/data) not present")
-def test_capture_hehe12(tmp_path, capsys):
+def test_capture_hehe12(tmp_path, capsys, shared_capture):
     rc, stdout, stderr = run(
-        capsys, "reconstruct", "--capture", "near_ps", REAL_DATA / "hehe12", "photometric_sample_raw_[0-9]*.png",
+        capsys, "reconstruct", "--capture", "near_ps", shared_capture("hehe12"), "photometric_sample_raw_[0-9]*.png",
         "--depth", "200", "--bin", "8", "--robust", "tukey", "--out", tmp_path / "r",
     )
     assert rc == 0, stderr

@@ -4,7 +4,6 @@ priors fused in the global step."""
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +12,6 @@ import nplps
 from nplps import captures
 from nplps.evaluation import held_out
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def _perturbed(rig: nplps.Rig, size: float, fraction: float, seed: int) -> nplps.Rig:
@@ -108,10 +106,6 @@ def test_depth_prior_is_fused(angular_error):
         nplps.reconstruct(s.images, rig, s.mask, s.mean_depth, depth_prior=np.ones((3, 3)))
 
 
-def _capture(name: str, loader, factor: int) -> captures.Capture:
-    if not (DATA / name).is_dir():
-        pytest.skip(f"real capture {name!r} not available in {DATA}")
-    return captures.prepare(loader(DATA / name), bin_factor=factor)
 
 
 @pytest.mark.parametrize(
@@ -121,8 +115,8 @@ def _capture(name: str, loader, factor: int) -> captures.Capture:
         ("queau_human1", captures.load_queau_human1, 8, 700.0, (700.0, 700.0)),
     ],
 )
-def test_real_capture_distance(name, loader, factor, authors, bounds, tmp_path):
-    c = _capture(name, loader, factor)
+def test_real_capture_distance(name, loader, factor, authors, bounds, tmp_path, shared_capture):
+    c = captures.prepare(loader(shared_capture(name)), bin_factor=factor)
     rig = c.rig()
     t = time.perf_counter()
     auto = nplps.reconstruct(c.images, rig, c.mask, "auto", iterations=20)

@@ -12,21 +12,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 import nplps
 from nplps import captures
 from nplps.evaluation import held_out
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def _folder(name: str) -> Path:
-    path = DATA / name
-    if not path.is_dir():
-        pytest.skip(f"real capture {name!r} not available: {path} does not exist")
-    return path
-
 
 def _pictures(tmp_path: Path, name: str) -> Path:
     root = os.environ.get("NPLPS_PICTURES")
@@ -37,8 +26,8 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
 
 
-def test_diligent_ball_beats_least_squares(tmp_path):
-    ball = captures.load_diligent(_folder("diligent_ball"), load=True)
+def test_diligent_ball_beats_least_squares(tmp_path, shared_capture):
+    ball = captures.load_diligent(shared_capture("diligent_ball"), load=True)
     mask, truth = ball.mask, ball.normals_gt
     # Plain least squares from the same 16-bit data: intensities divided out, channels averaged,
     # every light, no thresholds.
@@ -72,8 +61,8 @@ def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, n
     return {m: [(h.relative_error, h.shape_error) for h in s] for m, s in scores.items()}
 
 
-def test_hehe12_near_light_predicts_held_out_images_better(tmp_path):
-    capture = captures.prepare(captures.load_hehe12(_folder("hehe12")), bin_factor=4)
+def test_hehe12_near_light_predicts_held_out_images_better(tmp_path, shared_capture):
+    capture = captures.prepare(captures.load_hehe12(shared_capture("hehe12")), bin_factor=4)
     scores = _near_led_case(capture, 200.0, tmp_path, "hehe12")
     near, parallel = np.mean(scores["near"], axis=0), np.mean(scores["parallel"], axis=0)
     print(f"hehe12 mean: near {near}, parallel {parallel}")
@@ -81,8 +70,8 @@ def test_hehe12_near_light_predicts_held_out_images_better(tmp_path):
     assert near[1] < parallel[1]
 
 
-def test_queau_human1_near_light_predicts_held_out_images_better(tmp_path):
-    capture = captures.prepare(captures.load_queau_human1(_folder("queau_human1")), bin_factor=8)
+def test_queau_human1_near_light_predicts_held_out_images_better(tmp_path, shared_capture):
+    capture = captures.prepare(captures.load_queau_human1(shared_capture("queau_human1")), bin_factor=8)
     scores = _near_led_case(capture, 700.0, tmp_path, "queau_human1")
     near, parallel = np.mean(scores["near"], axis=0), np.mean(scores["parallel"], axis=0)
     print(f"queau_human1 mean: near {near}, parallel {parallel}")
