@@ -34,7 +34,14 @@ fn max_depth_error(scene: &Scene, result: &Reconstruction) -> f64 {
 
 /// The scene's problem with its mask, started at the true working distance.
 fn problem<'a>(scene: &'a Scene, images: &[f32]) -> Problem<'a> {
-    let stack = ImageStack::new(images, scene.rig.n_lights(), scene.height, scene.width).unwrap();
+    let stack = ImageStack::with_channels(
+        images,
+        scene.rig.n_lights(),
+        scene.height,
+        scene.width,
+        scene.channels,
+    )
+    .unwrap();
     let depth = InitialDepth::Distance(scene.mean_depth());
     Problem::new(stack, &scene.rig, Some(&scene.mask), depth).unwrap()
 }
@@ -49,18 +56,7 @@ fn exact_images(scene: &Scene) -> Vec<f32> {
 
 /// Reconstructs a scene with options from its exact images (any channels) at the true gauge.
 fn solve_scene(scene: &Scene, options: &Options) -> Reconstruction {
-    let images = exact_images(scene);
-    let stack = ImageStack::with_channels(
-        &images,
-        scene.rig.n_lights(),
-        scene.height,
-        scene.width,
-        scene.channels,
-    )
-    .unwrap();
-    let depth = InitialDepth::Distance(scene.mean_depth());
-    let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), depth).unwrap();
-    reconstruct(&problem, options, &mut |_| Control::Continue).unwrap()
+    solve(scene, &exact_images(scene), options)
 }
 
 #[test]
