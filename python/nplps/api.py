@@ -128,8 +128,8 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
     else:
         raise InputError(f"progress must be None, True or a callable, got {progress!r}")
 
-    def call(iteration: int, depth_change: float, rms: float, elapsed: float) -> None:
-        user(Iteration(iteration, depth_change, rms, elapsed))
+    def call(iteration: int, depth_change: float, rms: float, elapsed: float, level: int = 0, inner: int = 0) -> None:
+        user(Iteration(iteration, depth_change, rms, elapsed, level, inner))
 
     return call
 
@@ -153,6 +153,8 @@ def reconstruct(
     depth_guess: float | None = None,
     depth_prior: np.ndarray | None = None,
     prior_weight: float = 1.0,
+    solver: str = "auto",
+    levels: int | None = None,
 ) -> Reconstruction:
     """Reconstructs a surface from k images taken under k near lights.
 
@@ -188,12 +190,24 @@ def reconstruct(
             coarse scan, fused in the global step with ``prior_weight`` relative to the facet
             terms (the prior acts on depth, or on log-depth for a pinhole camera). ``depth`` keeps
             its meaning (start and gauge).
+        solver: how the global step's linear system is solved: "direct" (sparse Cholesky,
+            exact; its memory grows faster than the pixels), "multigrid" (conjugate gradients
+            with a multigrid preconditioner: linear time and memory) or "auto" (direct up to
+            40 000 mesh vertices, about 200 x 200 pixels, multigrid above).
+        levels: coarse-to-fine pyramid levels. The images are halved (2 x 2 averages, the
+            camera adjusted exactly) ``levels - 1`` times; the coarsest level converges from the
+            starting plane and each finer level starts from the level below, so the full
+            resolution needs only a few iterations. ``iterations`` and ``tol`` apply per level.
+            None (default): halve while the longer side stays at least 128 pixels; 1: full
+            resolution only. With ``depth="auto"`` the distance search runs on the coarsest
+            level.
 
     Returns:
         A :class:`~nplps.Reconstruction`.
     """
-    stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
-    dark_, saturation_ = _thresholds(dark, saturation, levels)
+    pyramid_levels = _levels(levels)
+    stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color)
+    dark_, saturation_ = _thresholds(dark, saturation, bit_levels)
     stack, missing = _channels(stack, color, saturation_)
     if int(iterations) < 1:
         raise InputError(f"iterations must be at least 1, got {iterations}")
@@ -209,6 +223,8 @@ def reconstruct(
         "depth_range": None if depth_range is None else tuple(float(v) for v in depth_range),
         "depth_guess": None if depth_guess is None else float(depth_guess),
         "prior_weight": float(prior_weight),
+        "solver": _solver_choice(solver),
+        "levels": pyramid_levels,
     }
     prior = None
     if depth_prior is not None:
@@ -281,6 +297,20 @@ def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: 
     rho = np.ascontiguousarray(np.broadcast_to(a, target))
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
     return _core.render(z, rig.camera, rig._core_lights(), rho, m)
+
+
+def _solver_choice(solver: str) -> str:
+    if solver not in ("auto", "direct", "multigrid"):
+        raise InputError(f'solver must be "auto", "direct" or "multigrid", got {solver!r}')
+    return solver
+
+
+def _levels(levels: int | None) -> int:
+    if levels is None:
+        return 0
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or int(levels) < 1:
+        raise InputError(f"levels must be a whole number of at least 1 (or None for automatic), got {levels!r}")
+    return int(levels)
 
 
 def _threads(threads: int | None) -> int:

@@ -42,6 +42,11 @@ class Iteration(NamedTuple):
     rms_residual: float
     #: Seconds since the solver started.
     elapsed: float
+    #: Coarse-to-fine pyramid level (0: full resolution; level l has 2**l times fewer pixels
+    #: per side).
+    level: int = 0
+    #: Conjugate-gradient iterations of the global step (0 for the direct solver).
+    inner_iterations: int = 0
 
 
 @dataclass

@@ -241,7 +241,7 @@ pub fn reconstruction_dict<'py>(
     d.set_item("lights_used", array(py, r.lights_used, &[h, w])?)?;
     d.set_item("regions", array(py, r.regions, &[h, w])?)?;
     d.set_item("gauge", PyArray1::from_vec(py, r.gauge))?;
-    let history: Vec<(usize, f64, f64, f64)> = r
+    let history: Vec<(usize, f64, f64, f64, usize, usize)> = r
         .history
         .iter()
         .map(|s| {
@@ -250,6 +250,8 @@ pub fn reconstruction_dict<'py>(
                 s.depth_change,
                 s.rms_residual,
                 s.elapsed.as_secs_f64(),
+                s.level,
+                s.inner_iterations,
             )
         })
         .collect();
@@ -260,6 +262,7 @@ pub fn reconstruction_dict<'py>(
     t.set_item("factorization", r.timings.factorization.as_secs_f64())?;
     t.set_item("local", r.timings.local.as_secs_f64())?;
     t.set_item("solve", r.timings.solve.as_secs_f64())?;
+    t.set_item("pyramid", r.timings.pyramid.as_secs_f64())?;
     t.set_item("total", r.timings.total.as_secs_f64())?;
     d.set_item("timings", t)?;
     Ok(d)

@@ -10,7 +10,7 @@
 use std::time::Instant;
 
 use crate::error::Result;
-use crate::global::GlobalSystem;
+use crate::global::GlobalStep;
 use crate::grid::{normalize, sub};
 use crate::local::{local_step, FacetFit, Model, Weighting};
 use crate::problem::Problem;
@@ -59,7 +59,12 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let grid = &problem.grid;
         let mut timings = Timings::default();
         let t = Instant::now();
-        let mut system = GlobalSystem::new(grid, sparse_par(options.parallel_sparse))?;
+        let mut system = GlobalStep::new(
+            grid,
+            options.solver,
+            sparse_par(options.parallel_sparse),
+            None,
+        )?;
         timings.factorization = t.elapsed();
 
         let lights = parallel_lights(problem);
@@ -84,7 +89,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let t = Instant::now();
         let targets: Vec<[f64; 4]> = fits.iter().map(|f| f.target).collect();
         let mut u = vec![0.0; grid.n_unknowns()];
-        system.solve(grid, &targets, &problem.u0, &mut u);
+        let inner_iterations = system.solve(grid, &targets, &problem.u0, &mut u);
         grid.apply_gauge(&mut u, &problem.gauge);
         timings.solve = t.elapsed();
         timings.total = start.elapsed();
@@ -93,6 +98,8 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             depth_change: max_depth_change(&problem.geometry, &u, &problem.u0),
             rms_residual: rms_of(&fits, problem.obs.channels),
             elapsed: timings.total,
+            level: 0,
+            inner_iterations,
         }];
         Ok(assemble(problem, &u, &fits, history, true, timings))
     })?

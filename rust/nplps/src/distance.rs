@@ -14,9 +14,12 @@
 use std::time::Instant;
 
 use crate::error::{Error, Result};
+use crate::grid::Grid;
 use crate::problem::Problem;
 use crate::rig::Light;
-use crate::solver::{with_threads, Control, IterationStats, Options, Reconstruction, Solver};
+use crate::solver::{
+    coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, Solver,
+};
 
 /// How to search for the working distance.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -265,6 +268,10 @@ fn search_with(
 }
 
 /// Estimates the working distance of every region, then reconstructs at it (warm-started).
+///
+/// With a coarse-to-fine pyramid (see [`crate::pyramid`]) the search runs on the coarsest level
+/// only; the finer levels start from its surface and keep its gauge, so the full resolution
+/// costs about what a run with a known distance costs.
 pub fn reconstruct_auto(
     problem: &Problem<'_>,
     options: &Options,
@@ -276,15 +283,50 @@ pub fn reconstruct_auto(
     let range = search_range(problem, search)?;
     with_threads(options.threads, || {
         let start = Instant::now();
+        let mut coarse_estimate: Option<(DistanceEstimate, Grid)> = None;
+        let mut at_coarsest = |solver: &mut Solver<'_>,
+                               u: &mut Vec<f64>,
+                               progress: &mut (dyn FnMut(&IterationStats) -> Control + Send)|
+         -> Result<Vec<f64>> {
+            let coarse = solver.problem();
+            let (estimate, warm) = search_with(solver, coarse, search, range, progress)?;
+            *u = warm;
+            let gauge = estimate
+                .distance
+                .iter()
+                .map(|&d| coarse.geometry.unknown(d))
+                .collect();
+            coarse_estimate = Some((estimate, coarse.grid.clone()));
+            Ok(gauge)
+        };
+        let mut u = problem.u0.clone();
+        let (mut history, coarse_timings, carried) = coarse_to_fine(
+            problem,
+            options,
+            &mut u,
+            start,
+            progress,
+            Some(&mut at_coarsest),
+        )?;
         let mut solver = Solver::new(problem, options)?;
-        let (estimate, mut u) = search_with(&mut solver, problem, search, range, progress)?;
-        let gauge: Vec<f64> = estimate
-            .distance
-            .iter()
-            .map(|&d| problem.geometry.unknown(d))
-            .collect();
-        problem.grid.apply_gauge(&mut u, &gauge);
-        let (history, converged) = solver.iterate(
+        solver.timings.add(&coarse_timings);
+        let (estimate, gauge) = if carried {
+            let (coarse, coarse_grid) = coarse_estimate.expect("the coarsest level ran the search");
+            let gauge = problem.grid.region_means(&u);
+            let estimate = fine_estimate(problem, &coarse_grid, coarse, &gauge);
+            (estimate, gauge)
+        } else {
+            let (estimate, warm) = search_with(&mut solver, problem, search, range, progress)?;
+            u = warm;
+            let gauge: Vec<f64> = estimate
+                .distance
+                .iter()
+                .map(|&d| problem.geometry.unknown(d))
+                .collect();
+            problem.grid.apply_gauge(&mut u, &gauge);
+            (estimate, gauge)
+        };
+        let (fine, converged) = solver.iterate(
             &mut u,
             &gauge,
             options.iterations,
@@ -292,6 +334,52 @@ pub fn reconstruct_auto(
             start,
             progress,
         )?;
+        history.extend(fine);
         Ok((solver.finish(&u, history, converged, start), estimate))
     })?
+}
+
+/// The estimate per full-resolution region from the coarsest level's: the distance is the
+/// region's gauge after carrying the coarse surface up; the curve is that of the coarse region
+/// holding the region's pinned vertex.
+fn fine_estimate(
+    problem: &Problem<'_>,
+    coarse_grid: &Grid,
+    coarse: DistanceEstimate,
+    gauge: &[f64],
+) -> DistanceEstimate {
+    let grid = &problem.grid;
+    let scale = 1usize << levels_below(grid, coarse_grid);
+    let curve = grid
+        .pins
+        .iter()
+        .map(|&p| {
+            let v = grid.active[p as usize];
+            let (r, c) = (v / (grid.width + 1) / scale, v % (grid.width + 1) / scale);
+            let cv = r.min(coarse_grid.height) * (coarse_grid.width + 1) + c.min(coarse_grid.width);
+            let u = coarse_grid.vertex_unknown[cv];
+            let region = if u == crate::grid::INACTIVE {
+                0
+            } else {
+                coarse_grid.region_of_unknown[u as usize] as usize
+            };
+            coarse.curve[region.min(coarse.curve.len() - 1)].clone()
+        })
+        .collect();
+    DistanceEstimate {
+        distance: gauge.iter().map(|&g| problem.geometry.depth(g)).collect(),
+        curve,
+        range: coarse.range,
+    }
+}
+
+/// How many halvings lead from `fine` to `coarse`.
+fn levels_below(fine: &Grid, coarse: &Grid) -> u32 {
+    let (mut h, mut w, mut n) = (fine.height, fine.width, 0);
+    while (h, w) != (coarse.height, coarse.width) && h > 1 {
+        h = h.div_ceil(2);
+        w = w.div_ceil(2);
+        n += 1;
+    }
+    n
 }

@@ -57,104 +57,63 @@ fn accurate(residual: f64) -> bool {
     residual <= RESIDUAL_LIMIT
 }
 
-/// The factored global system of one mask.
-pub struct GlobalSystem {
-    /// Lower triangle of the pinned normal matrix `A`.
+/// A sparse symmetric positive definite matrix, stored as its lower triangle, factored as
+/// `L L^T` by faer (used by the direct global step and by the coarsest level of the multigrid).
+pub(crate) struct Cholesky {
     lower: SparseColMat<usize, f64>,
     symbolic: SymbolicCholesky<usize>,
     l_values: Vec<f64>,
     par: Par,
     scratch: MemBuffer,
-    pins: Vec<u32>,
-    /// `weight * prior` per unknown (0 where there is no prior), added to every right side.
-    prior_rhs: Option<Vec<f64>>,
     /// Relative residual of the check solve after factorization.
     pub check_residual: f64,
     /// Whether the parallel factorization failed its check and was redone sequentially.
     pub fell_back_to_sequential: bool,
 }
 
-impl GlobalSystem {
-    /// Assembles, analyses and factors the system of `grid` with the nested-dissection
-    /// ordering, using `par` for faer's kernels.
-    pub fn new(grid: &Grid, par: Par) -> Result<GlobalSystem> {
-        GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection, None)
-    }
-
-    /// As [`GlobalSystem::new`], with a chosen fill-reducing ordering and an optional prior
-    /// (see [`Prior`]).
-    pub fn with_ordering(
-        grid: &Grid,
+impl Cholesky {
+    /// Analyses (with `ordering`) and factors `lower`, checking the factor by the relative
+    /// residual of a test solve (redone sequentially when a parallel factorization fails it).
+    pub fn new(
+        lower: SparseColMat<usize, f64>,
+        ordering: SymmetricOrdering<'_, usize>,
         par: Par,
-        ordering: FillOrdering,
-        prior: Option<&Prior>,
-    ) -> Result<GlobalSystem> {
-        let n = grid.n_unknowns();
-        // Regions that the prior covers are anchored by it and need no pin.
-        let mut anchored = vec![false; grid.n_regions];
-        if let Some(prior) = prior {
-            for (u, value) in prior.values.iter().enumerate() {
-                if value.is_finite() {
-                    anchored[grid.region_of_unknown[u] as usize] = true;
-                }
-            }
-        }
-        let pins: Vec<u32> = grid
-            .pins
-            .iter()
-            .zip(&anchored)
-            .filter(|(_, a)| !**a)
-            .map(|(p, _)| *p)
-            .collect();
-        let lower = assemble_lower(grid, &pins, prior)?;
-        let (fwd, inv) = nested_dissection(grid);
-        let ord = match ordering {
-            FillOrdering::Amd => SymmetricOrdering::Amd,
-            FillOrdering::NestedDissection => {
-                SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n))
-            }
-        };
+    ) -> Result<Cholesky> {
+        let n = lower.nrows();
         let symbolic = factorize_symbolic_cholesky(
             lower.symbolic(),
             Side::Lower,
-            ord,
+            ordering,
             CholeskySymbolicParams::default(),
         )
         .map_err(|e| Error::Solver(format!("symbolic analysis failed: {e:?}")))?;
-        let mut system = GlobalSystem {
+        let mut chol = Cholesky {
             l_values: vec![0.0; symbolic.len_val()],
             symbolic,
             lower,
             par,
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::empty()),
-            pins,
-            prior_rhs: prior.map(|p| {
-                p.values
-                    .iter()
-                    .map(|v| if v.is_finite() { p.weight * v } else { 0.0 })
-                    .collect()
-            }),
             check_residual: f64::NAN,
             fell_back_to_sequential: false,
         };
-        system.factor()?;
-        system.check_residual = system.check();
-        if !accurate(system.check_residual) && !matches!(par, Par::Seq) {
-            system.par = Par::Seq;
-            system.fell_back_to_sequential = true;
-            system.factor()?;
-            system.check_residual = system.check();
+        chol.factor()?;
+        chol.check_residual = chol.check();
+        if !accurate(chol.check_residual) && !matches!(par, Par::Seq) {
+            chol.par = Par::Seq;
+            chol.fell_back_to_sequential = true;
+            chol.factor()?;
+            chol.check_residual = chol.check();
         }
-        if !accurate(system.check_residual) {
+        if !accurate(chol.check_residual) {
             return Err(Error::Solver(format!(
                 "the factorization of the {n} x {n} system is inaccurate (relative residual {:e})",
-                system.check_residual
+                chol.check_residual
             )));
         }
-        Ok(system)
+        Ok(chol)
     }
 
-    /// Number of nonzeros of the Cholesky factor.
+    /// Number of nonzeros of the factor.
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.len_val()
     }
@@ -182,7 +141,7 @@ impl GlobalSystem {
     }
 
     /// Solves `A x = rhs` in place.
-    fn solve_in_place(&mut self, rhs: &mut [f64]) {
+    pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
         let n = rhs.len();
         let llt = LltRef::new(&self.symbolic, &self.l_values);
         llt.solve_in_place_with_conj(
@@ -219,6 +178,115 @@ impl GlobalSystem {
         }
         y
     }
+}
+
+/// The pinned unknowns: the lowest-index unknown of each region that the prior does not cover.
+pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Vec<u32> {
+    let mut anchored = vec![false; grid.n_regions];
+    if let Some(prior) = prior {
+        for (u, value) in prior.values.iter().enumerate() {
+            if value.is_finite() {
+                anchored[grid.region_of_unknown[u] as usize] = true;
+            }
+        }
+    }
+    grid.pins
+        .iter()
+        .zip(&anchored)
+        .filter(|(_, a)| !**a)
+        .map(|(p, _)| *p)
+        .collect()
+}
+
+/// `weight * prior` per unknown (0 where there is none).
+pub(crate) fn prior_right_side(prior: Option<&Prior>) -> Option<Vec<f64>> {
+    prior.map(|p| {
+        p.values
+            .iter()
+            .map(|v| if v.is_finite() { p.weight * v } else { 0.0 })
+            .collect()
+    })
+}
+
+/// The right side `b = sum_f S_f^T t_f + pins * z_current + weight * prior`, written to `out`.
+/// Returns the norm of the facet part `sum_f S_f^T t_f`.
+pub(crate) fn right_side(
+    grid: &Grid,
+    targets: &[[f64; 4]],
+    pins: &[u32],
+    prior_rhs: Option<&[f64]>,
+    z_current: &[f64],
+    out: &mut [f64],
+) -> f64 {
+    out.fill(0.0);
+    for (t, ids) in targets.iter().zip(&grid.facet_vertices) {
+        for j in 0..4 {
+            out[ids[j] as usize] += t[j];
+        }
+    }
+    let norm = out.iter().map(|v| v * v).sum::<f64>().sqrt();
+    for &p in pins {
+        out[p as usize] += z_current[p as usize];
+    }
+    if let Some(rhs) = prior_rhs {
+        for (z, r) in out.iter_mut().zip(rhs) {
+            *z += r;
+        }
+    }
+    norm
+}
+
+/// The factored global system of one mask.
+pub struct GlobalSystem {
+    chol: Cholesky,
+    pins: Vec<u32>,
+    /// `weight * prior` per unknown (0 where there is no prior), added to every right side.
+    prior_rhs: Option<Vec<f64>>,
+    /// Relative residual of the check solve after factorization.
+    pub check_residual: f64,
+    /// Whether the parallel factorization failed its check and was redone sequentially.
+    pub fell_back_to_sequential: bool,
+}
+
+impl GlobalSystem {
+    /// Assembles, analyses and factors the system of `grid` with the nested-dissection
+    /// ordering, using `par` for faer's kernels.
+    pub fn new(grid: &Grid, par: Par) -> Result<GlobalSystem> {
+        GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection, None)
+    }
+
+    /// As [`GlobalSystem::new`], with a chosen fill-reducing ordering and an optional prior
+    /// (see [`Prior`]).
+    pub fn with_ordering(
+        grid: &Grid,
+        par: Par,
+        ordering: FillOrdering,
+        prior: Option<&Prior>,
+    ) -> Result<GlobalSystem> {
+        let n = grid.n_unknowns();
+        let pins = pinned_unknowns(grid, prior);
+        let lower = assemble_lower(grid, &pins, prior)?;
+        let (fwd, inv) = nested_dissection(grid);
+        let ord = match ordering {
+            FillOrdering::Amd => SymmetricOrdering::Amd,
+            FillOrdering::NestedDissection => {
+                SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n))
+            }
+        };
+        let chol = Cholesky::new(lower, ord, par)?;
+        Ok(GlobalSystem {
+            check_residual: chol.check_residual,
+            fell_back_to_sequential: chol.fell_back_to_sequential,
+            chol,
+            pins,
+            prior_rhs: prior_right_side(prior),
+        })
+    }
+
+    /// Number of nonzeros of the Cholesky factor.
+    pub fn factor_nnz(&self) -> usize {
+        self.chol.factor_nnz()
+    }
 
     /// One global step: the depths that best glue the facets' targets `targets`, with each
     /// region's constant taken from `z_current` at its pinned vertex. Writes `z_out`.
@@ -229,21 +297,86 @@ impl GlobalSystem {
         z_current: &[f64],
         z_out: &mut [f64],
     ) {
-        z_out.fill(0.0);
-        for (t, ids) in targets.iter().zip(&grid.facet_vertices) {
-            for j in 0..4 {
-                z_out[ids[j] as usize] += t[j];
+        right_side(
+            grid,
+            targets,
+            &self.pins,
+            self.prior_rhs.as_deref(),
+            z_current,
+            z_out,
+        );
+        self.chol.solve_in_place(z_out);
+    }
+}
+
+/// How the global step's linear system is solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GlobalSolver {
+    /// Direct below [`AUTO_MULTIGRID_UNKNOWNS`] unknowns, multigrid above.
+    #[default]
+    Auto,
+    /// Sparse Cholesky factorization (nested dissection), factored once: exact, but its fill
+    /// grows faster than the pixels (about 7.5 GB at 2048 x 2048).
+    Direct,
+    /// Conjugate gradients with a multigrid preconditioner ([`crate::multigrid`]): linear cost
+    /// and memory in the pixels.
+    Multigrid,
+}
+
+/// Unknowns above which [`GlobalSolver::Auto`] takes the multigrid solver.
+pub const AUTO_MULTIGRID_UNKNOWNS: usize = 40_000;
+
+/// The global system of one mask, solved directly or by multigrid.
+pub enum GlobalStep {
+    /// Sparse Cholesky.
+    Direct(Box<GlobalSystem>),
+    /// Multigrid-preconditioned conjugate gradients.
+    Multigrid(Box<crate::multigrid::MultigridSystem>),
+}
+
+impl GlobalStep {
+    /// Sets up the solver of `grid`'s system (with an optional prior) as `choice` says.
+    pub fn new(
+        grid: &Grid,
+        choice: GlobalSolver,
+        par: Par,
+        prior: Option<&Prior>,
+    ) -> Result<GlobalStep> {
+        let multigrid = match choice {
+            GlobalSolver::Auto => grid.n_unknowns() > AUTO_MULTIGRID_UNKNOWNS,
+            GlobalSolver::Direct => false,
+            GlobalSolver::Multigrid => true,
+        };
+        Ok(if multigrid {
+            GlobalStep::Multigrid(Box::new(crate::multigrid::MultigridSystem::new(
+                grid, prior,
+            )?))
+        } else {
+            GlobalStep::Direct(Box::new(GlobalSystem::with_ordering(
+                grid,
+                par,
+                FillOrdering::NestedDissection,
+                prior,
+            )?))
+        })
+    }
+
+    /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
+    /// (0 for the direct solver).
+    pub fn solve(
+        &mut self,
+        grid: &Grid,
+        targets: &[[f64; 4]],
+        z_current: &[f64],
+        z_out: &mut [f64],
+    ) -> usize {
+        match self {
+            GlobalStep::Direct(system) => {
+                system.solve(grid, targets, z_current, z_out);
+                0
             }
+            GlobalStep::Multigrid(system) => system.solve(grid, targets, z_current, z_out),
         }
-        for &p in &self.pins {
-            z_out[p as usize] += z_current[p as usize];
-        }
-        if let Some(rhs) = &self.prior_rhs {
-            for (z, r) in z_out.iter_mut().zip(rhs) {
-                *z += r;
-            }
-        }
-        self.solve_in_place(z_out);
     }
 }
 

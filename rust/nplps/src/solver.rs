@@ -16,7 +16,7 @@ use faer::Par;
 
 use crate::error::{Error, Result};
 use crate::geometry::Geometry;
-use crate::global::{FillOrdering, GlobalSystem};
+use crate::global::{GlobalSolver, GlobalStep};
 use crate::local::{local_step, FacetFit, FitSettings, Model, Robust, Weighting};
 use crate::problem::Problem;
 
@@ -42,6 +42,11 @@ pub struct Options {
     /// on 512 x 512 images with 2 cores the parallel paths measured 20-30% slower than the
     /// sequential ones (see faer issue 211), while the local step uses every thread.
     pub parallel_sparse: bool,
+    /// How the global step's linear system is solved.
+    pub solver: GlobalSolver,
+    /// Coarse-to-fine pyramid levels (1: the full resolution only; 0: automatic, see
+    /// [`crate::pyramid`]).
+    pub levels: usize,
 }
 
 impl Options {
@@ -91,6 +96,8 @@ impl Default for Options {
             robust: Robust::None,
             threads: 0,
             parallel_sparse: false,
+            solver: GlobalSolver::Auto,
+            levels: 0,
         }
     }
 }
@@ -106,6 +113,10 @@ pub struct IterationStats {
     pub rms_residual: f64,
     /// Time since the solver started.
     pub elapsed: Duration,
+    /// Pyramid level (0: full resolution; level l has 2^l times fewer pixels per side).
+    pub level: usize,
+    /// Conjugate-gradient iterations of the global step (0 for the direct solver).
+    pub inner_iterations: usize,
 }
 
 /// Answer of a progress callback.
@@ -126,8 +137,20 @@ pub struct Timings {
     pub local: Duration,
     /// All global solves (right sides, back-substitution, gauge).
     pub solve: Duration,
+    /// Building the coarse-to-fine pyramid (its levels' own work is counted above).
+    pub pyramid: Duration,
     /// Everything.
     pub total: Duration,
+}
+
+impl Timings {
+    /// Adds the parts of `other` (not its total).
+    pub fn add(&mut self, other: &Timings) {
+        self.factorization += other.factorization;
+        self.local += other.local;
+        self.solve += other.solve;
+        self.pyramid += other.pyramid;
+    }
 }
 
 /// The result of a reconstruction. Per-pixel arrays are (H, W) row-major, per-vertex arrays
@@ -196,9 +219,15 @@ pub fn reconstruct(
     options.validate()?;
     with_threads(options.threads, || {
         let start = Instant::now();
-        let mut solver = Solver::new(problem, options)?;
         let mut u = problem.u0.clone();
-        let (history, converged) = solver.iterate(
+        let (mut history, coarse_timings, carried) =
+            coarse_to_fine(problem, options, &mut u, start, progress, None)?;
+        if carried {
+            problem.grid.apply_gauge(&mut u, &problem.gauge);
+        }
+        let mut solver = Solver::new(problem, options)?;
+        solver.timings.add(&coarse_timings);
+        let (fine, converged) = solver.iterate(
             &mut u,
             &problem.gauge,
             options.iterations,
@@ -206,8 +235,72 @@ pub fn reconstruct(
             start,
             progress,
         )?;
+        history.extend(fine);
         Ok(solver.finish(&u, history, converged, start))
     })?
+}
+
+/// What the coarsest level of a pyramid does before the iterations: given its solver and its
+/// starting unknowns, returns the gauge to iterate with (the distance search uses this).
+pub(crate) type AtCoarsest<'h> = &'h mut dyn FnMut(
+    &mut Solver<'_>,
+    &mut Vec<f64>,
+    &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<Vec<f64>>;
+
+/// Runs the coarse levels of `problem`'s pyramid (coarsest first, each to convergence) and
+/// carries the result to the full resolution in `u` (not yet gauged). With one level it does
+/// nothing (`u` keeps its value and `at_coarsest` is not called). Returns the coarse levels'
+/// history and timings, and whether there were coarse levels.
+pub(crate) fn coarse_to_fine(
+    problem: &Problem<'_>,
+    options: &Options,
+    u: &mut Vec<f64>,
+    start: Instant,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    mut at_coarsest: Option<AtCoarsest<'_>>,
+) -> Result<(Vec<IterationStats>, Timings, bool)> {
+    let levels =
+        crate::pyramid::levels_for(problem.grid.height, problem.grid.width, options.levels);
+    let mut timings = Timings::default();
+    let mut history = Vec::new();
+    if levels <= 1 {
+        return Ok((history, timings, false));
+    }
+    let t = Instant::now();
+    let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+    let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+    timings.pyramid = t.elapsed();
+    let mut current: Vec<f64> = Vec::new();
+    for (i, p) in coarse.iter().enumerate().rev() {
+        let mut solver = Solver::new(p, options)?;
+        solver.set_level(i + 1);
+        let gauge = if i + 1 == coarse.len() {
+            current = p.u0.clone();
+            match at_coarsest.as_mut() {
+                Some(hook) => hook(&mut solver, &mut current, progress)?,
+                None => p.gauge.clone(),
+            }
+        } else {
+            current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid);
+            p.grid.region_means(&current)
+        };
+        p.grid.apply_gauge(&mut current, &gauge);
+        let (h, _) = solver.iterate(
+            &mut current,
+            &gauge,
+            options.iterations,
+            options.tol,
+            start,
+            progress,
+        )?;
+        history.extend(h);
+        timings.add(&solver.timings);
+    }
+    let t = Instant::now();
+    *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid);
+    timings.pyramid += t.elapsed();
+    Ok((history, timings, true))
 }
 
 /// The iteration machinery of one problem: the factored global system and the per-facet
@@ -215,7 +308,8 @@ pub fn reconstruct(
 pub struct Solver<'p> {
     problem: &'p Problem<'p>,
     options: Options,
-    system: GlobalSystem,
+    system: GlobalStep,
+    level: usize,
     fits: Vec<FacetFit>,
     targets: Vec<[f64; 4]>,
     next: Vec<f64>,
@@ -227,10 +321,10 @@ impl<'p> Solver<'p> {
     /// Factors the global system of `problem` (with its prior, if any).
     pub fn new(problem: &'p Problem<'p>, options: &Options) -> Result<Solver<'p>> {
         let t = Instant::now();
-        let system = GlobalSystem::with_ordering(
+        let system = GlobalStep::new(
             &problem.grid,
+            options.solver,
             sparse_par(options.parallel_sparse),
-            FillOrdering::NestedDissection,
             problem.prior.as_ref(),
         )?;
         let n = problem.grid.n_facets();
@@ -238,6 +332,7 @@ impl<'p> Solver<'p> {
             problem,
             options: *options,
             system,
+            level: 0,
             fits: vec![FacetFit::EMPTY; n],
             targets: vec![[0.0; 4]; n],
             next: vec![0.0; problem.grid.n_unknowns()],
@@ -246,6 +341,11 @@ impl<'p> Solver<'p> {
                 ..Timings::default()
             },
         })
+    }
+
+    /// Sets the pyramid level reported in the iteration statistics.
+    pub fn set_level(&mut self, level: usize) {
+        self.level = level;
     }
 
     /// The problem this solver works on.
@@ -292,7 +392,7 @@ impl<'p> Solver<'p> {
             for (tg, fit) in self.targets.iter_mut().zip(&self.fits) {
                 *tg = fit.target;
             }
-            self.system.solve(&p.grid, &self.targets, u, &mut self.next);
+            let inner_iterations = self.system.solve(&p.grid, &self.targets, u, &mut self.next);
             p.grid.apply_gauge(&mut self.next, gauge);
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
             std::mem::swap(u, &mut self.next);
@@ -303,6 +403,8 @@ impl<'p> Solver<'p> {
                 depth_change,
                 rms_residual: rms_of(&self.fits, p.obs.channels),
                 elapsed: start.elapsed(),
+                level: self.level,
+                inner_iterations,
             };
             history.push(stats);
             if progress(&stats) == Control::Cancel {

@@ -1,0 +1,368 @@
+//! Coarse-to-fine: an image pyramid whose coarse levels give the finer ones their starting
+//! surface.
+//!
+//! Level `l + 1` halves level `l` in each direction: coarse pixel (R, C) averages the usable
+//! observations of its masked children `(2R + a, 2C + b)` (a child observation is usable when
+//! every channel is finite and strictly between `dark` and `saturation`; none usable: missing),
+//! and it is masked when any child is. The camera follows exactly, as binning does:
+//! orthographic pixels double in size with the same origin; a pinhole K becomes
+//! `fx / 2, fy / 2, s / 2, cx' = (cx - 1/2) / 2, cy' = (cy - 1/2) / 2`. Either way coarse vertex
+//! (R, C) lies on the same ray as fine vertex (2R, 2C), so a coarse surface is carried to the
+//! finer level by bilinear interpolation of its unknowns (depth, or log-depth for a pinhole
+//! camera), and then shifted to the finer level's gauge.
+//!
+//! The coarsest level converges from the starting plane, where low-frequency shape is cheap; each
+//! finer level then needs only the few iterations that its detail asks for (the usual `tol`
+//! rule stops it). The default number of levels halves the image while the coarser level keeps
+//! at least [`COARSEST_SIDE`] pixels along its longer side.
+
+use crate::error::Result;
+use crate::geometry::Geometry;
+use crate::global::Prior;
+use crate::grid::{Grid, INACTIVE};
+use crate::local::{FitSettings, Observations};
+use crate::problem::Problem;
+use crate::rig::{Camera, Rig};
+
+/// The automatic pyramid stops before the longer side of a level drops below this.
+pub const COARSEST_SIDE: usize = 128;
+
+/// Most pyramid levels.
+pub const MAX_LEVELS: usize = 12;
+
+/// Number of levels for an H x W image: `requested` if it is not 0, else automatic (see the
+/// module documentation). Never more than the image can be halved.
+pub fn levels_for(height: usize, width: usize, requested: usize) -> usize {
+    let mut possible = 1;
+    let (mut h, mut w) = (height, width);
+    while possible < MAX_LEVELS && h > 1 && w > 1 {
+        h = h.div_ceil(2);
+        w = w.div_ceil(2);
+        possible += 1;
+    }
+    if requested > 0 {
+        return requested.min(possible);
+    }
+    let mut levels = 1;
+    let (mut h, mut w) = (height, width);
+    while levels < possible && h.max(w).div_ceil(2) >= COARSEST_SIDE {
+        h = h.div_ceil(2);
+        w = w.div_ceil(2);
+        levels += 1;
+    }
+    levels
+}
+
+/// The camera of the level below (see the module documentation).
+pub fn coarser_camera(camera: &Camera) -> Camera {
+    match *camera {
+        Camera::Orthographic { pixel_size, origin } => Camera::Orthographic {
+            pixel_size: [2.0 * pixel_size[0], 2.0 * pixel_size[1]],
+            origin,
+        },
+        Camera::Pinhole { k, distortion } => Camera::Pinhole {
+            k: [
+                [k[0][0] / 2.0, k[0][1] / 2.0, (k[0][2] - 0.5) / 2.0],
+                [0.0, k[1][1] / 2.0, (k[1][2] - 0.5) / 2.0],
+                [0.0, 0.0, 1.0],
+            ],
+            distortion,
+        },
+    }
+}
+
+/// The data of the level below a problem, owned (the rig is built separately, since the
+/// coarse problem borrows it).
+pub struct Coarsened {
+    /// Coarse image height.
+    pub height: usize,
+    /// Coarse image width.
+    pub width: usize,
+    /// The coarse observations (facet-major, as [`Observations`]).
+    pub obs: Observations,
+    /// The coarse starting unknowns (one per coarse unknown) and the coarse grid.
+    pub grid: Grid,
+    /// Starting unknowns of the coarse grid.
+    pub u0: Vec<f64>,
+    /// The prior on the coarse unknowns, if the problem has one.
+    pub prior: Option<Prior>,
+}
+
+/// Builds the level below `problem` (see the module documentation).
+pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsened> {
+    let grid = &problem.grid;
+    let (h, w) = (grid.height, grid.width);
+    let (ch, cw) = (h.div_ceil(2), w.div_ceil(2));
+    let mut facet_of_pixel = vec![u32::MAX; h * w];
+    for (f, &p) in grid.facets.iter().enumerate() {
+        facet_of_pixel[p] = f as u32;
+    }
+    let mut mask = vec![false; ch * cw];
+    for &p in &grid.facets {
+        mask[(p / w / 2) * cw + (p % w) / 2] = true;
+    }
+    let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
+    let (k, channels) = (problem.obs.k, problem.obs.channels);
+    let per = k * channels;
+    let mut values = vec![f32::NAN; coarse_grid.n_facets() * per];
+    let usable = |o: &[f32]| {
+        o.iter().all(|&v| {
+            let v = v as f64;
+            v > settings.dark && v < settings.saturation
+        })
+    };
+    use rayon::prelude::*;
+    values
+        .par_chunks_mut(per)
+        .zip(coarse_grid.facets.par_iter())
+        .for_each(|(out, &cp)| {
+            let (cr, cc) = (cp / cw, cp % cw);
+            let mut children = [u32::MAX; 4];
+            for (slot, (a, b)) in children.iter_mut().zip([(0, 0), (0, 1), (1, 0), (1, 1)]) {
+                let (r, c) = (2 * cr + a, 2 * cc + b);
+                if r < h && c < w {
+                    *slot = facet_of_pixel[r * w + c];
+                }
+            }
+            let mut sum = [0.0f64; 3];
+            for i in 0..k {
+                let mut n = 0u32;
+                sum[..channels].fill(0.0);
+                for &f in children.iter().filter(|&&f| f != u32::MAX) {
+                    let start = f as usize * per + i * channels;
+                    let o = &problem.obs.values[start..start + channels];
+                    if usable(o) {
+                        n += 1;
+                        for (s, &v) in sum.iter_mut().zip(o) {
+                            *s += v as f64;
+                        }
+                    }
+                }
+                if n > 0 {
+                    for ch in 0..channels {
+                        out[i * channels + ch] = (sum[ch] / n as f64) as f32;
+                    }
+                }
+            }
+        });
+    let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN);
+    let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
+    let prior = problem.prior.as_ref().map(|p| Prior {
+        values: subsample(grid, &p.values, &coarse_grid, f64::NAN),
+        weight: p.weight,
+    });
+    Ok(Coarsened {
+        height: ch,
+        width: cw,
+        obs: Observations {
+            k,
+            channels,
+            values,
+        },
+        grid: coarse_grid,
+        u0,
+        prior,
+    })
+}
+
+/// Values of the coarse unknowns taken from the fine vertex on the same ray (`missing` where
+/// that fine vertex is not an unknown).
+fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Vec<f64> {
+    let (fw, cw) = (fine.width + 1, coarse.width + 1);
+    coarse
+        .active
+        .iter()
+        .map(|&v| {
+            let (r, c) = (2 * (v / cw), 2 * (v % cw));
+            if r <= fine.height && c <= fine.width {
+                let u = fine.vertex_unknown[r * fw + c];
+                if u != INACTIVE {
+                    return values[u as usize];
+                }
+            }
+            missing
+        })
+        .collect()
+}
+
+/// Replaces NaN starting unknowns by the mean of the finite ones of their region (or of the
+/// fine gauges when a region has none).
+fn fill_missing(grid: &Grid, mut u: Vec<f64>, fine_gauge: &[f64]) -> Vec<f64> {
+    let mut sum = vec![0.0; grid.n_regions];
+    let mut count = vec![0usize; grid.n_regions];
+    for (v, &r) in u.iter().zip(&grid.region_of_unknown) {
+        if v.is_finite() {
+            sum[r as usize] += v;
+            count[r as usize] += 1;
+        }
+    }
+    let fallback = fine_gauge.iter().sum::<f64>() / fine_gauge.len() as f64;
+    for (v, &r) in u.iter_mut().zip(&grid.region_of_unknown) {
+        if !v.is_finite() {
+            let r = r as usize;
+            *v = if count[r] > 0 {
+                sum[r] / count[r] as f64
+            } else {
+                fallback
+            };
+        }
+    }
+    u
+}
+
+/// The coarse problem of `data` under `rig` (the coarse rig).
+pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Problem<'_> {
+    let geometry = Geometry::new(&rig.camera, &data.grid);
+    let gauge = data.grid.region_means(&data.u0);
+    Problem {
+        rig,
+        geometry,
+        gauge,
+        grid: data.grid,
+        obs: data.obs,
+        u0: data.u0,
+        negative_observations: 0,
+        prior: data.prior,
+    }
+}
+
+/// The coarse levels 1..levels of `problem` (level 1 first) under `rigs` (the coarse rigs, level
+/// 1 first, see [`coarse_rigs`]).
+pub fn coarse_problems<'r>(
+    problem: &Problem<'_>,
+    rigs: &'r [Rig],
+    settings: &FitSettings,
+) -> Result<Vec<Problem<'r>>> {
+    let mut out: Vec<Problem<'r>> = Vec::with_capacity(rigs.len());
+    for rig in rigs {
+        let data = match out.last() {
+            None => coarsen(problem, settings)?,
+            Some(p) => coarsen(p, settings)?,
+        };
+        out.push(coarse_problem(data, rig));
+    }
+    Ok(out)
+}
+
+/// The rigs of levels 1..levels (level 1 first).
+pub fn coarse_rigs(rig: &Rig, levels: usize) -> Vec<Rig> {
+    let mut out: Vec<Rig> = Vec::with_capacity(levels.saturating_sub(1));
+    for _ in 1..levels {
+        let camera = coarser_camera(&out.last().unwrap_or(rig).camera);
+        out.push(Rig {
+            camera,
+            lights: rig.lights.clone(),
+        });
+    }
+    out
+}
+
+/// Carries the unknowns `u` of `coarse` to the unknowns of `fine` (one level up) by bilinear
+/// interpolation on the shared rays.
+pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Vec<f64> {
+    let (fw, cw) = (fine.width + 1, coarse.width + 1);
+    let value = |r: usize, c: usize| -> Option<f64> {
+        if r > coarse.height || c > coarse.width {
+            return None;
+        }
+        let i = coarse.vertex_unknown[r * cw + c];
+        (i != INACTIVE).then(|| u[i as usize])
+    };
+    let mean = u.iter().sum::<f64>() / u.len().max(1) as f64;
+    fine.active
+        .iter()
+        .map(|&v| {
+            let (r, c) = (v / fw, v % fw);
+            let rows: &[(usize, f64)] = if r % 2 == 0 {
+                &[(r / 2, 1.0)]
+            } else {
+                &[(r / 2, 0.5), (r / 2 + 1, 0.5)]
+            };
+            let cols: &[(usize, f64)] = if c % 2 == 0 {
+                &[(c / 2, 1.0)]
+            } else {
+                &[(c / 2, 0.5), (c / 2 + 1, 0.5)]
+            };
+            let (mut sum, mut weight) = (0.0, 0.0);
+            for &(rr, wr) in rows {
+                for &(cc, wc) in cols {
+                    if let Some(x) = value(rr, cc) {
+                        sum += wr * wc * x;
+                        weight += wr * wc;
+                    }
+                }
+            }
+            if weight > 0.0 {
+                sum / weight
+            } else {
+                mean
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn automatic_levels_keep_the_coarsest_side_at_least_128() {
+        assert_eq!(levels_for(100, 100, 0), 1);
+        assert_eq!(levels_for(256, 256, 0), 2);
+        assert_eq!(levels_for(512, 512, 0), 3);
+        assert_eq!(levels_for(3000, 4000, 0), 5);
+        assert_eq!(levels_for(512, 512, 2), 2);
+        assert_eq!(levels_for(4, 4, 10), 3);
+    }
+
+    /// A coarse vertex lies on the same ray as the fine vertex (2R, 2C).
+    #[test]
+    fn coarse_cameras_share_the_rays_of_even_vertices() {
+        let cameras = [
+            Camera::Orthographic {
+                pixel_size: [0.3, 0.2],
+                origin: [-5.0, 7.0],
+            },
+            Camera::Pinhole {
+                k: [[800.0, 1.5, 330.0], [0.0, 790.0, 240.0], [0.0, 0.0, 1.0]],
+                distortion: [0.1, -0.05, 0.001, 0.002, 0.01],
+            },
+        ];
+        for camera in cameras {
+            let mut fine = camera;
+            let mut scale = 1;
+            for _ in 0..3 {
+                let coarse = coarser_camera(&fine);
+                scale *= 2;
+                for (r, c) in [(0, 0), (3, 5), (17, 2)] {
+                    let a = coarse.vertex_xy(r, c);
+                    let b = camera.vertex_xy(scale * r, scale * c);
+                    assert!((a[0] - b[0]).abs() < 1e-12 && (a[1] - b[1]).abs() < 1e-12);
+                }
+                fine = coarse;
+            }
+        }
+    }
+
+    /// A plane's unknowns are carried up exactly.
+    #[test]
+    fn upsampling_reproduces_planes() {
+        let mask: Vec<bool> = (0..9 * 11).map(|p| p % 7 != 3).collect();
+        let fine = Grid::new(9, 11, Some(&mask)).unwrap();
+        let mut cmask = vec![false; 5 * 6];
+        for &p in &fine.facets {
+            cmask[(p / 11 / 2) * 6 + (p % 11) / 2] = true;
+        }
+        let coarse = Grid::new(5, 6, Some(&cmask)).unwrap();
+        let plane = |r: usize, c: usize| 3.0 + 0.5 * r as f64 - 0.25 * c as f64;
+        let u: Vec<f64> = coarse
+            .active
+            .iter()
+            .map(|&v| plane(2 * (v / 7), 2 * (v % 7)))
+            .collect();
+        let up = upsample(&coarse, &u, &fine);
+        for (&v, x) in fine.active.iter().zip(&up) {
+            assert!((x - plane(v / 12, v % 12)).abs() < 1e-12);
+        }
+    }
+}
