@@ -12,12 +12,12 @@ use std::time::Instant;
 use crate::error::Result;
 use crate::global::GlobalStep;
 use crate::grid::{normalize, sub};
-use crate::local::{local_step, FacetFit, Model, Weighting};
+use crate::local::{local_step, FacetFit, FacetStat, Model, Weighting};
 use crate::problem::Problem;
 use crate::rig::Light;
 use crate::solver::{
-    assemble, max_depth_change, rms_of, sparse_par, with_threads, IterationStats, Options,
-    Reconstruction, Timings,
+    assemble, max_depth_change, rms_of, sparse_par, with_threads, FitOutputs, IterationStats,
+    Options, Reconstruction, Timings,
 };
 
 /// `(direction, intensity)` of each light in the parallel-light model, seen from the centroid of
@@ -96,11 +96,16 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let history = vec![IterationStats {
             iteration: 1,
             depth_change: max_depth_change(&problem.geometry, &u, &problem.u0),
-            rms_residual: rms_of(&fits, problem.obs.channels),
+            rms_residual: rms_of(
+                &fits.iter().map(FacetStat::from).collect::<Vec<_>>(),
+                problem.obs.channels,
+            ),
             elapsed: timings.total,
             level: 0,
             inner_iterations,
         }];
-        Ok(assemble(problem, &u, &fits, history, true, timings))
+        let mut outputs = FitOutputs::new(problem);
+        outputs.scatter(problem, 0, &fits);
+        Ok(assemble(problem, &u, outputs, history, true, timings))
     })?
 }

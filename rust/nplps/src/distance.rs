@@ -144,7 +144,7 @@ impl Evaluator<'_, '_> {
         problem.grid.apply_gauge(&mut self.u, &gauge);
         self.solver
             .iterate(&mut self.u, &gauge, self.inner, 0.0, self.start, progress)?;
-        self.solver.local(&self.u, true);
+        self.solver.local(&self.u);
         let residuals = self.solver.region_residuals();
         for ((curve, &x), &r) in self.curve.iter_mut().zip(d).zip(&residuals) {
             curve.push((x, r));

@@ -118,15 +118,73 @@ impl FacetFit {
     }
 }
 
-/// Per-facet observations, facet-major: `values[(f * k + i) * channels + ch]`.
+/// The observations of the masked facets: borrowed from the caller's (k, H, W, C) image stack
+/// without a copy, or owned in facet-major order (the coarse levels of a pyramid). NaN marks a
+/// missing observation.
 #[derive(Debug, Clone)]
-pub struct Observations {
+pub struct Observations<'a> {
     /// Number of lights k.
     pub k: usize,
     /// Channels per observation (1 or 3).
     pub channels: usize,
-    /// Intensities, `n_facets * k * channels`; NaN marks a missing observation.
-    pub values: Vec<f32>,
+    layout: ObsLayout<'a>,
+}
+
+#[derive(Debug, Clone)]
+enum ObsLayout<'a> {
+    /// A (k, H, W, C) row-major stack; `plane` = H * W * C values per image.
+    Stack { data: &'a [f32], plane: usize },
+    /// Facet-major values, `values[(f * k + i) * C + ch]`.
+    FacetMajor(Vec<f32>),
+}
+
+impl<'a> Observations<'a> {
+    /// Borrows a (k, H, W, C) stack with `pixels` = H * W pixels per image.
+    pub fn from_stack(data: &'a [f32], k: usize, pixels: usize, channels: usize) -> Self {
+        debug_assert_eq!(data.len(), k * pixels * channels);
+        Observations {
+            k,
+            channels,
+            layout: ObsLayout::Stack {
+                data,
+                plane: pixels * channels,
+            },
+        }
+    }
+
+    /// Owns facet-major values (`n_facets * k * channels` of them).
+    pub fn facet_major(k: usize, channels: usize, values: Vec<f32>) -> Observations<'static> {
+        Observations {
+            k,
+            channels,
+            layout: ObsLayout::FacetMajor(values),
+        }
+    }
+
+    /// Values per facet, `k * channels`.
+    #[inline]
+    pub fn per_facet(&self) -> usize {
+        self.k * self.channels
+    }
+
+    /// The `k * channels` values of facet `f` at pixel index `pixel` (row-major, `r * W + c`),
+    /// light-major; gathered into `buf` (of at least that length) when the layout needs it.
+    #[inline]
+    pub fn facet<'b>(&'b self, f: usize, pixel: usize, buf: &'b mut [f32]) -> &'b [f32] {
+        let per = self.per_facet();
+        match &self.layout {
+            ObsLayout::FacetMajor(values) => &values[f * per..(f + 1) * per],
+            ObsLayout::Stack { data, plane } => {
+                let c = self.channels;
+                let start = pixel * c;
+                for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
+                    let at = i * plane + start;
+                    out.copy_from_slice(&data[at..at + c]);
+                }
+                &buf[..per]
+            }
+        }
+    }
 }
 
 /// The lighting model a facet is fitted with.
@@ -152,24 +210,52 @@ impl Model<'_> {
     }
 }
 
-/// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
-/// unknowns (see [`Geometry`]).
-pub fn local_step(
-    grid: &Grid,
-    geometry: &Geometry,
-    model: Model<'_>,
-    obs: &Observations,
-    u: &[f64],
-    settings: FitSettings,
-    fits: &mut [FacetFit],
-) {
-    let per_facet = obs.k * obs.channels;
-    fits.par_iter_mut().enumerate().for_each(|(f, fit)| {
+/// What the iterations keep of a facet's fit besides its target.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FacetStat {
+    /// Sum of squared image residuals over the usable observations.
+    pub sse: f64,
+    /// Number of usable lights.
+    pub used: u32,
+    /// Whether the fit succeeded.
+    pub valid: bool,
+}
+
+impl From<&FacetFit> for FacetStat {
+    fn from(fit: &FacetFit) -> FacetStat {
+        FacetStat {
+            sse: fit.sse,
+            used: fit.used,
+            valid: fit.valid,
+        }
+    }
+}
+
+/// The inputs of a local step.
+#[derive(Clone, Copy)]
+pub struct LocalStep<'s> {
+    /// The mesh.
+    pub grid: &'s Grid,
+    /// Vertex positions.
+    pub geometry: &'s Geometry,
+    /// The lighting model.
+    pub model: Model<'s>,
+    /// The observations.
+    pub obs: &'s Observations<'s>,
+    /// Fit settings.
+    pub settings: FitSettings,
+}
+
+impl LocalStep<'_> {
+    /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations.
+    #[inline]
+    fn fit(&self, f: usize, u: &[f64], buf: &mut [f32]) -> FacetFit {
+        let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = grid.facet_corners(geometry, f, u);
         let ids = grid.facet_vertices[f];
-        let values = &obs.values[f * per_facet..(f + 1) * per_facet];
+        let values = obs.facet(f, grid.facets[f], buf);
         let c = quad_centre(&q);
-        *fit = match fit_facet(c, model, values, obs.channels, settings) {
+        match fit_facet(c, self.model, values, obs.channels, self.settings) {
             Some(fitted) => FacetFit {
                 target: geometry.plane_target(fitted.normal, ids, c),
                 ..fitted
@@ -177,10 +263,57 @@ pub fn local_step(
             None => keep_shape(
                 &q,
                 ids.map(|i| u[i as usize]),
-                usable_count(values, obs.channels, settings),
+                usable_count(values, obs.channels, self.settings),
             ),
-        };
-    });
+        }
+    }
+
+    /// Fits facets `first..first + fits.len()` on `u` in parallel (rayon), writing `fits`.
+    pub fn run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) {
+        let per = self.obs.per_facet();
+        fits.par_iter_mut().enumerate().for_each_init(
+            || vec![0.0f32; per],
+            |buf, (i, fit)| *fit = self.fit(first + i, u, buf),
+        );
+    }
+
+    /// Fits every facet on `u` in parallel, keeping only the targets and the statistics.
+    pub fn run_targets(&self, u: &[f64], targets: &mut [[f64; 4]], stats: &mut [FacetStat]) {
+        let per = self.obs.per_facet();
+        targets
+            .par_iter_mut()
+            .zip(stats.par_iter_mut())
+            .enumerate()
+            .for_each_init(
+                || vec![0.0f32; per],
+                |buf, (f, (target, stat))| {
+                    let fit = self.fit(f, u, buf);
+                    *target = fit.target;
+                    *stat = FacetStat::from(&fit);
+                },
+            );
+    }
+}
+
+/// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
+/// unknowns (see [`Geometry`]).
+pub fn local_step(
+    grid: &Grid,
+    geometry: &Geometry,
+    model: Model<'_>,
+    obs: &Observations<'_>,
+    u: &[f64],
+    settings: FitSettings,
+    fits: &mut [FacetFit],
+) {
+    LocalStep {
+        grid,
+        geometry,
+        model,
+        obs,
+        settings,
+    }
+    .run(u, 0, fits);
 }
 
 /// Whether an observation (all its channels) can be used.

@@ -69,7 +69,8 @@ pub enum InitialDepth<'a> {
     Map(&'a [f64]),
 }
 
-/// A validated reconstruction problem.
+/// A validated reconstruction problem. It borrows the rig and the image stack (no copy of the
+/// images is made).
 pub struct Problem<'a> {
     /// The rig.
     pub rig: &'a Rig,
@@ -77,8 +78,8 @@ pub struct Problem<'a> {
     pub grid: Grid,
     /// Vertex positions and unknowns (depth or log-depth) under the rig's camera.
     pub geometry: Geometry,
-    /// Per-facet observations (facet-major).
-    pub obs: Observations,
+    /// Per-facet observations.
+    pub obs: Observations<'a>,
     /// Initial unknown of each active vertex (depth, or log-depth for a pinhole camera).
     pub u0: Vec<f64>,
     /// Gauge of each region: the mean of its unknowns (arithmetic mean depth, or log of the
@@ -93,7 +94,7 @@ pub struct Problem<'a> {
 impl<'a> Problem<'a> {
     /// Validates the input and prepares the per-facet observations.
     pub fn new(
-        images: ImageStack<'_>,
+        images: ImageStack<'a>,
         rig: &'a Rig,
         mask: Option<&[bool]>,
         depth: InitialDepth<'_>,
@@ -124,8 +125,13 @@ impl<'a> Problem<'a> {
             .map(|&u| geometry.depth(u))
             .fold(f64::INFINITY, f64::min);
         rig.check_lights_in_front(min_depth)?;
-        let obs = gather_observations(&grid, &images);
-        let negative_observations = obs.values.par_iter().filter(|v| **v < 0.0).count();
+        let obs = Observations::from_stack(
+            images.data,
+            images.k,
+            images.height * images.width,
+            images.channels,
+        );
+        let negative_observations = count_negative(&grid, &obs);
         Ok(Problem {
             rig,
             grid,
@@ -219,23 +225,15 @@ fn initial_unknowns(
     }
 }
 
-/// Transposes the masked pixels of a (k, H, W, C) stack to facet-major order.
-fn gather_observations(grid: &Grid, images: &ImageStack<'_>) -> Observations {
-    let (k, channels) = (images.k, images.channels);
-    let plane = images.height * images.width * channels;
-    let mut values = vec![0.0f32; grid.n_facets() * k * channels];
-    values
-        .par_chunks_mut(k * channels)
-        .zip(grid.facets.par_iter())
-        .for_each(|(out, &p)| {
-            for (i, o) in out.chunks_exact_mut(channels).enumerate() {
-                let start = i * plane + p * channels;
-                o.copy_from_slice(&images.data[start..start + channels]);
-            }
-        });
-    Observations {
-        k,
-        channels,
-        values,
-    }
+/// Number of negative observations of the masked facets.
+fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
+    let per = obs.per_facet();
+    grid.facets
+        .par_iter()
+        .enumerate()
+        .map_init(
+            || vec![0.0f32; per],
+            |buf, (f, &p)| obs.facet(f, p, buf).iter().filter(|v| **v < 0.0).count(),
+        )
+        .sum()
 }

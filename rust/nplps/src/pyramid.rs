@@ -78,8 +78,8 @@ pub struct Coarsened {
     pub height: usize,
     /// Coarse image width.
     pub width: usize,
-    /// The coarse observations (facet-major, as [`Observations`]).
-    pub obs: Observations,
+    /// The coarse observations (facet-major).
+    pub obs: Observations<'static>,
     /// The coarse starting unknowns (one per coarse unknown) and the coarse grid.
     pub grid: Grid,
     /// Starting unknowns of the coarse grid.
@@ -104,6 +104,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
     let (k, channels) = (problem.obs.k, problem.obs.channels);
     let per = k * channels;
+    let obs = &problem.obs;
     let mut values = vec![f32::NAN; coarse_grid.n_facets() * per];
     let usable = |o: &[f32]| {
         o.iter().all(|&v| {
@@ -115,36 +116,48 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     values
         .par_chunks_mut(per)
         .zip(coarse_grid.facets.par_iter())
-        .for_each(|(out, &cp)| {
-            let (cr, cc) = (cp / cw, cp % cw);
-            let mut children = [u32::MAX; 4];
-            for (slot, (a, b)) in children.iter_mut().zip([(0, 0), (0, 1), (1, 0), (1, 1)]) {
-                let (r, c) = (2 * cr + a, 2 * cc + b);
-                if r < h && c < w {
-                    *slot = facet_of_pixel[r * w + c];
+        .for_each_init(
+            || vec![0.0f32; 4 * per],
+            |buf, (out, &cp)| {
+                let (cr, cc) = (cp / cw, cp % cw);
+                let mut children = [u32::MAX; 4];
+                for (slot, (a, b)) in children.iter_mut().zip([(0, 0), (0, 1), (1, 0), (1, 1)]) {
+                    let (r, c) = (2 * cr + a, 2 * cc + b);
+                    if r < h && c < w {
+                        *slot = facet_of_pixel[r * w + c];
+                    }
                 }
-            }
-            let mut sum = [0.0f64; 3];
-            for i in 0..k {
-                let mut n = 0u32;
-                sum[..channels].fill(0.0);
-                for &f in children.iter().filter(|&&f| f != u32::MAX) {
-                    let start = f as usize * per + i * channels;
-                    let o = &problem.obs.values[start..start + channels];
-                    if usable(o) {
-                        n += 1;
-                        for (s, &v) in sum.iter_mut().zip(o) {
-                            *s += v as f64;
+                let mut child_values: [&[f32]; 4] = [&[]; 4];
+                let mut n_children = 0;
+                for (chunk, &f) in buf
+                    .chunks_exact_mut(per)
+                    .zip(children.iter().filter(|&&f| f != u32::MAX))
+                {
+                    child_values[n_children] =
+                        obs.facet(f as usize, grid.facets[f as usize], chunk);
+                    n_children += 1;
+                }
+                let mut sum = [0.0f64; 3];
+                for i in 0..k {
+                    let mut n = 0u32;
+                    sum[..channels].fill(0.0);
+                    for values in &child_values[..n_children] {
+                        let o = &values[i * channels..(i + 1) * channels];
+                        if usable(o) {
+                            n += 1;
+                            for (s, &v) in sum.iter_mut().zip(o) {
+                                *s += v as f64;
+                            }
+                        }
+                    }
+                    if n > 0 {
+                        for ch in 0..channels {
+                            out[i * channels + ch] = (sum[ch] / n as f64) as f32;
                         }
                     }
                 }
-                if n > 0 {
-                    for ch in 0..channels {
-                        out[i * channels + ch] = (sum[ch] / n as f64) as f32;
-                    }
-                }
-            }
-        });
+            },
+        );
     let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN);
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
     let prior = problem.prior.as_ref().map(|p| Prior {
@@ -154,11 +167,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     Ok(Coarsened {
         height: ch,
         width: cw,
-        obs: Observations {
-            k,
-            channels,
-            values,
-        },
+        obs: Observations::facet_major(k, channels, values),
         grid: coarse_grid,
         u0,
         prior,

@@ -17,7 +17,7 @@ use faer::Par;
 use crate::error::{Error, Result};
 use crate::geometry::Geometry;
 use crate::global::{GlobalSolver, GlobalStep};
-use crate::local::{local_step, FacetFit, FitSettings, Model, Robust, Weighting};
+use crate::local::{FacetFit, FacetStat, FitSettings, LocalStep, Model, Robust, Weighting};
 use crate::problem::Problem;
 
 /// Options of the iteration.
@@ -310,8 +310,8 @@ pub struct Solver<'p> {
     options: Options,
     system: GlobalStep,
     level: usize,
-    fits: Vec<FacetFit>,
     targets: Vec<[f64; 4]>,
+    stats: Vec<FacetStat>,
     next: Vec<f64>,
     /// Time spent so far.
     pub timings: Timings,
@@ -333,8 +333,8 @@ impl<'p> Solver<'p> {
             options: *options,
             system,
             level: 0,
-            fits: vec![FacetFit::EMPTY; n],
             targets: vec![[0.0; 4]; n],
+            stats: vec![FacetStat::default(); n],
             next: vec![0.0; problem.grid.n_unknowns()],
             timings: Timings {
                 factorization: t.elapsed(),
@@ -353,22 +353,28 @@ impl<'p> Solver<'p> {
         self.problem
     }
 
-    /// The local step on `u` (fast residuals for iterations, exact for reports).
-    pub fn local(&mut self, u: &[f64], fast_residual: bool) -> &[FacetFit] {
-        let t = Instant::now();
+    /// The local step of this problem with the given residual mode.
+    fn step(&self, fast_residual: bool) -> LocalStep<'_> {
         let p = self.problem;
-        let settings = self.options.fit_settings(fast_residual);
-        local_step(
-            &p.grid,
-            &p.geometry,
-            Model::Near(&p.rig.lights),
-            &p.obs,
-            u,
-            settings,
-            &mut self.fits,
+        LocalStep {
+            grid: &p.grid,
+            geometry: &p.geometry,
+            model: Model::Near(&p.rig.lights),
+            obs: &p.obs,
+            settings: self.options.fit_settings(fast_residual),
+        }
+    }
+
+    /// The local step on `u` (with fast residuals): the facets' targets and statistics.
+    pub fn local(&mut self, u: &[f64]) {
+        let t = Instant::now();
+        let (mut targets, mut stats) = (
+            std::mem::take(&mut self.targets),
+            std::mem::take(&mut self.stats),
         );
+        self.step(true).run_targets(u, &mut targets, &mut stats);
+        (self.targets, self.stats) = (targets, stats);
         self.timings.local += t.elapsed();
-        &self.fits
     }
 
     /// Runs up to `iterations` local/global iterations from `u` (updated in place) with the
@@ -385,13 +391,10 @@ impl<'p> Solver<'p> {
     ) -> Result<(Vec<IterationStats>, bool)> {
         let p = self.problem;
         let scale = lateral_size(p);
-        let mut history = Vec::with_capacity(iterations);
+        let mut history = Vec::new();
         for iteration in 1..=iterations {
-            self.local(u, true);
+            self.local(u);
             let t = Instant::now();
-            for (tg, fit) in self.targets.iter_mut().zip(&self.fits) {
-                *tg = fit.target;
-            }
             let inner_iterations = self.system.solve(&p.grid, &self.targets, u, &mut self.next);
             p.grid.apply_gauge(&mut self.next, gauge);
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
@@ -401,7 +404,7 @@ impl<'p> Solver<'p> {
             let stats = IterationStats {
                 iteration,
                 depth_change,
-                rms_residual: rms_of(&self.fits, p.obs.channels),
+                rms_residual: rms_of(&self.stats, p.obs.channels),
                 elapsed: start.elapsed(),
                 level: self.level,
                 inner_iterations,
@@ -428,7 +431,7 @@ impl<'p> Solver<'p> {
         let mut sse = vec![0.0; grid.n_regions];
         let mut count = vec![0usize; grid.n_regions];
         for (fit, ids) in self
-            .fits
+            .stats
             .iter()
             .zip(&grid.facet_vertices)
             .filter(|(f, _)| f.valid)
@@ -457,16 +460,21 @@ impl<'p> Solver<'p> {
         converged: bool,
         start: Instant,
     ) -> Reconstruction {
-        self.local(u, false);
+        let t = Instant::now();
+        let problem = self.problem;
+        let mut outputs = FitOutputs::new(problem);
+        let step = self.step(false);
+        let n = problem.grid.n_facets();
+        let mut fits = vec![FacetFit::EMPTY; n.min(FINAL_CHUNK)];
+        for first in (0..n).step_by(FINAL_CHUNK) {
+            let chunk = &mut fits[..(n - first).min(FINAL_CHUNK)];
+            step.run(u, first, chunk);
+            outputs.scatter(problem, first, chunk);
+        }
+        drop(fits);
+        self.timings.local += t.elapsed();
         self.timings.total = start.elapsed();
-        let mut result = assemble(
-            self.problem,
-            u,
-            &self.fits,
-            history,
-            converged,
-            self.timings,
-        );
+        let mut result = assemble(problem, u, outputs, history, converged, self.timings);
         result.gauge = self
             .problem
             .grid
@@ -498,8 +506,11 @@ pub(crate) fn lateral_size(problem: &Problem<'_>) -> f64 {
     (grid.width as f64 * w).max(grid.height as f64 * h)
 }
 
+/// Facets per chunk of the final, exact local step (bounds its scratch memory).
+const FINAL_CHUNK: usize = 1 << 18;
+
 /// RMS image residual over all usable observations of valid facets.
-pub(crate) fn rms_of(fits: &[FacetFit], channels: usize) -> f64 {
+pub(crate) fn rms_of(fits: &[FacetStat], channels: usize) -> f64 {
     let (sse, n) = fits
         .iter()
         .filter(|f| f.valid)
@@ -513,27 +524,49 @@ pub(crate) fn rms_of(fits: &[FacetFit], channels: usize) -> f64 {
     }
 }
 
-/// Scatters the per-facet and per-unknown results onto full image and vertex grids.
+/// The per-pixel results of the final local step (NaN, or 0 for counts, outside the mask).
+pub(crate) struct FitOutputs {
+    normals: Vec<[f64; 3]>,
+    albedo: Vec<[f64; 3]>,
+    residual: Vec<f64>,
+    lights_used: Vec<u32>,
+}
+
+impl FitOutputs {
+    /// Empty outputs for `problem`'s image size.
+    pub(crate) fn new(problem: &Problem<'_>) -> FitOutputs {
+        let n = problem.grid.height * problem.grid.width;
+        FitOutputs {
+            normals: vec![[f64::NAN; 3]; n],
+            albedo: vec![[f64::NAN; 3]; n],
+            residual: vec![f64::NAN; n],
+            lights_used: vec![0; n],
+        }
+    }
+
+    /// Writes the fits of facets `first..first + fits.len()` onto their pixels.
+    pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
+        let channels = problem.obs.channels;
+        for (fit, &p) in fits.iter().zip(&problem.grid.facets[first..]) {
+            self.normals[p] = fit.normal;
+            self.albedo[p] = fit.albedo;
+            self.residual[p] = fit.rms(channels);
+            self.lights_used[p] = fit.used;
+        }
+    }
+}
+
+/// Assembles the result: the per-pixel `outputs` and the unknowns `z` scattered onto the
+/// vertex grid.
 pub(crate) fn assemble(
     problem: &Problem<'_>,
     z: &[f64],
-    fits: &[FacetFit],
+    outputs: FitOutputs,
     history: Vec<IterationStats>,
     converged: bool,
     timings: Timings,
 ) -> Reconstruction {
     let grid = &problem.grid;
-    let n_pixels = grid.height * grid.width;
-    let mut normals = vec![[f64::NAN; 3]; n_pixels];
-    let mut albedo = vec![[f64::NAN; 3]; n_pixels];
-    let mut residual = vec![f64::NAN; n_pixels];
-    let mut lights_used = vec![0u32; n_pixels];
-    for (fit, &p) in fits.iter().zip(&grid.facets) {
-        normals[p] = fit.normal;
-        albedo[p] = fit.albedo;
-        residual[p] = fit.rms(problem.obs.channels);
-        lights_used[p] = fit.used;
-    }
     Reconstruction {
         height: grid.height,
         width: grid.width,
@@ -543,10 +576,10 @@ pub(crate) fn assemble(
                 .map(|&u| problem.geometry.depth(u))
                 .collect::<Vec<_>>(),
         ),
-        normals,
-        albedo,
-        residual,
-        lights_used,
+        normals: outputs.normals,
+        albedo: outputs.albedo,
+        residual: outputs.residual,
+        lights_used: outputs.lights_used,
         regions: grid.pixel_regions(),
         gauge: problem
             .gauge

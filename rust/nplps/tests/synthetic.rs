@@ -33,7 +33,7 @@ fn max_depth_error(scene: &Scene, result: &Reconstruction) -> f64 {
 }
 
 /// The scene's problem with its mask, started at the true working distance.
-fn problem<'a>(scene: &'a Scene, images: &[f32]) -> Problem<'a> {
+fn problem<'a>(scene: &'a Scene, images: &'a [f32]) -> Problem<'a> {
     let stack = ImageStack::with_channels(
         images,
         scene.rig.n_lights(),
@@ -188,7 +188,8 @@ fn exact_model_recovers_every_scene() {
 #[test]
 fn near_light_model_beats_the_parallel_baseline() {
     let scene = Scene::new(SceneKind::SphereCap, 40, 100.0, 200.0, 0).unwrap();
-    let problem = problem(&scene, &exact_images(&scene));
+    let images = exact_images(&scene);
+    let problem = problem(&scene, &images);
     let near = reconstruct(&problem, &Options::default(), &mut |_| Control::Continue).unwrap();
     let parallel = reconstruct_parallel(&problem, &Options::default()).unwrap();
     let (e_near, e_par) = (
@@ -202,7 +203,8 @@ fn near_light_model_beats_the_parallel_baseline() {
 #[test]
 fn cancelling_stops_the_solver() {
     let scene = Scene::new(SceneKind::Saddle, 16, 100.0, 200.0, 0).unwrap();
-    let problem = problem(&scene, &exact_images(&scene));
+    let images = exact_images(&scene);
+    let problem = problem(&scene, &images);
     let mut calls = 0;
     let result = reconstruct(&problem, &Options::default(), &mut |_| {
         calls += 1;
