@@ -21,6 +21,10 @@ use crate::solver::{
     coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, Solver,
 };
 
+/// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
+/// they are cheap: evaluations closer to convergence make the residual curve smoother.
+const COARSE_INNER: usize = 15;
+
 /// How to search for the working distance.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DistanceSearch {
@@ -289,7 +293,11 @@ pub fn reconstruct_auto(
                                progress: &mut (dyn FnMut(&IterationStats) -> Control + Send)|
          -> Result<Vec<f64>> {
             let coarse = solver.problem();
-            let (estimate, warm) = search_with(solver, coarse, search, range, progress)?;
+            let coarse_search = DistanceSearch {
+                inner: search.inner.max(COARSE_INNER),
+                ..*search
+            };
+            let (estimate, warm) = search_with(solver, coarse, &coarse_search, range, progress)?;
             *u = warm;
             let gauge = estimate
                 .distance
