@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from nplps import io
+from nplps import export, io
 from nplps.errors import InputError
 from nplps.export import (
     read_ply,
@@ -16,8 +16,10 @@ from nplps.export import (
     save_depth_npy,
     save_depth_tiff,
     save_normal_map,
+    write_meshes,
     write_obj,
     write_ply,
+    write_png16,
 )
 
 H, W = 3, 4
@@ -228,6 +230,118 @@ def test_obj_without_normals(tmp_path: Path) -> None:
     assert not any(line.startswith("vn") for line in lines)
 
 
+def _percent_obj(mesh: "export._Mesh") -> bytes:
+    """The OBJ text of ``mesh`` formatted with Python's % operator, line by line: what the
+    vectorized writer must reproduce byte for byte."""
+    lines = ["# nplps\n", f"# frame {mesh.frame}\n"]
+    for i, (x, y, z) in enumerate(mesh.points.tolist()):
+        if mesh.colors is None:
+            lines.append("v %.9g %.9g %.9g\n" % (x, y, z))
+        else:
+            r, g, b = (mesh.colors[i].astype(np.float64) / 255.0).tolist()
+            lines.append("v %.9g %.9g %.9g %.6g %.6g %.6g\n" % (x, y, z, r, g, b))
+    if mesh.normals is not None:
+        lines += ["vn %.7g %.7g %.7g\n" % tuple(n) for n in mesh.normals.tolist()]
+        lines += ["f %d//%d %d//%d %d//%d\n" % (a, a, b, b, c, c) for a, b, c in (mesh.faces + 1).tolist()]
+    else:
+        lines += ["f %d %d %d\n" % tuple(f) for f in (mesh.faces + 1).tolist()]
+    return "".join(lines).encode("ascii")
+
+
+def _wild_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices, mask, normals and albedo with values that exercise every branch of %g: signs,
+    zeros, -0, tiny and huge magnitudes, powers of ten, trailing zeros, holes in the mask."""
+    rng = np.random.default_rng(7)
+    vertices = rng.normal(0.0, 50.0, (h + 1, w + 1, 3))
+    vertices[..., 2] += 200.0
+    flat = vertices.reshape(-1)
+    specials = [0.0, -0.0, 1.0, -1.0, 0.5, 1e-4, 1.5e-5, 1e-12, -3e-20, 1e9, 123456789.0, 1e20, -3.4e38, 1e-40, 100.0, 0.1]
+    flat[: len(specials)] = specials
+    end = min(400, flat.size)
+    flat[len(specials) : end] = 10.0 ** rng.integers(-30, 30, end - len(specials))
+    normals = rng.normal(size=(h + 1, w + 1, 3))
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    normals[::3, ::2, 0] = 0.0
+    normals[1, :, 1] = -0.0
+    albedo = rng.uniform(0.0, 1.0, (h + 1, w + 1))
+    mask = rng.random((h, w)) < 0.9
+    return vertices, mask, normals, albedo
+
+
+@pytest.mark.parametrize("with_normals", [True, False])
+@pytest.mark.parametrize("with_albedo", [True, False])
+def test_obj_text_is_percent_formatting(tmp_path: Path, with_normals: bool, with_albedo: bool) -> None:
+    vertices, mask, normals, albedo = _wild_grid(40, 30)
+    normals = normals if with_normals else None
+    albedo = albedo if with_albedo else None
+    path = tmp_path / "mesh.obj"
+    write_obj(path, vertices, mask, normals, albedo)
+
+    expected = _percent_obj(export._build_mesh(vertices, mask, normals, albedo, False))
+
+    assert path.read_bytes() == expected
+
+
+def test_obj_text_is_percent_formatting_across_chunks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    vertices, mask, normals, albedo = _wild_grid(60, 50)
+    monkeypatch.setattr(export, "_OBJ_CHUNK_ROWS", 97)  # many chunks, some digit counts change inside one
+    path = tmp_path / "mesh.obj"
+    write_obj(path, vertices, mask, normals, albedo, opengl=True)
+
+    assert path.read_bytes() == _percent_obj(export._build_mesh(vertices, mask, normals, albedo, True))
+
+
+@pytest.mark.parametrize("precision", [9, 7, 6, 2, 1])
+def test_format_float32_is_percent_g(precision: int) -> None:
+    rng = np.random.default_rng(precision)
+    with np.errstate(all="ignore"):  # float32 overflow, signalling NaN bit patterns
+        powers = np.float32(10.0 ** np.arange(-45, 39))
+        values = _float32_cases(rng, powers)
+
+    text = export._lines([export._format_float32(values, precision), b"\n"])
+
+    assert text.decode("ascii").splitlines() == ["%.*g" % (precision, v) for v in values.tolist()]
+
+
+def _float32_cases(rng: np.random.Generator, powers: np.ndarray) -> np.ndarray:
+    return np.concatenate(
+        [
+            rng.integers(0, 2**32, 50000, dtype=np.uint64).astype(np.uint32).view(np.float32).astype(np.float64),  # any bits
+            rng.normal(0.0, 100.0, 20000),
+            rng.integers(-(10**6), 10**6, 20000) / 2.0 ** rng.integers(0, 24, 20000),  # exact ties
+            powers,
+            np.nextafter(powers, np.float32(0)),
+            np.nextafter(powers, np.float32(np.inf)),
+            [0.0, -0.0, np.inf, -np.inf, np.nan, 0.5, 0.25, 0.125, 9.5, 99999.995, 1e-4, 9.99999e-5],
+        ]
+    ).astype(np.float32)
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.concatenate([np.arange(0, 20001), [99999999, 10**8, 10**9, 2**32 - 1], np.arange(10**7 - 5, 10**7 + 5)]),
+        np.arange(10**6, 10**6 + 5000),  # all with 7 digits: no 0 bytes
+    ],
+)
+def test_format_int_is_percent_d(values: np.ndarray) -> None:
+    text, blanks = export._format_int(values)
+
+    lines = export._lines([b"f ", text, b"\n"], compact=blanks)
+
+    assert lines == "".join("f %d\n" % v for v in values.tolist()).encode("ascii")
+
+
+def test_write_meshes_is_write_ply_and_write_obj(tmp_path: Path) -> None:
+    vertices, mask, normals, albedo = _wild_grid(12, 9)
+    write_ply(tmp_path / "a.ply", vertices, mask, normals, albedo)
+    write_obj(tmp_path / "a.obj", vertices, mask, normals, albedo)
+    write_meshes(tmp_path / "b.ply", tmp_path / "b.obj", vertices, mask, normals, albedo)
+
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    assert (tmp_path / "a.obj").read_bytes() == (tmp_path / "b.obj").read_bytes()
+
+
 # --------------------------------------------------------------------------------------------------
 # Images
 # --------------------------------------------------------------------------------------------------
@@ -273,6 +387,30 @@ def test_albedo_png_is_16_bit(tmp_path: Path) -> None:
     finite = np.isfinite(albedo)
     expected = np.clip(albedo[finite] * scale, 0, 65535)
     np.testing.assert_allclose(image[finite], expected, atol=0.5 + 1e-9)
+
+
+@pytest.mark.parametrize("shape", [(7, 5), (6, 4, 3)])
+def test_png16_is_pypng_writer(tmp_path: Path, shape: tuple[int, ...]) -> None:
+    import png
+
+    pixels = np.random.default_rng(1).integers(0, 65536, shape).astype(np.uint16)
+    write_png16(tmp_path / "fast.png", pixels)
+    with open(tmp_path / "plain.png", "wb") as file:  # pypng from Python lists of values
+        png.Writer(shape[1], shape[0], greyscale=len(shape) == 2, bitdepth=16).write(file, pixels.reshape(shape[0], -1).tolist())
+
+    assert (tmp_path / "fast.png").read_bytes() == (tmp_path / "plain.png").read_bytes()
+
+
+def test_normal_map_in_bands_is_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    normals = np.random.default_rng(2).normal(size=(23, 17, 3))
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    normals[3, 4] = np.nan
+    mask = np.random.default_rng(3).random((23, 17)) < 0.8
+    save_normal_map(tmp_path / "one.png", normals, mask)
+    monkeypatch.setattr(export, "_GATHER_CHUNK", 40)  # bands of 2 rows
+    save_normal_map(tmp_path / "bands.png", normals, mask)
+
+    assert (tmp_path / "one.png").read_bytes() == (tmp_path / "bands.png").read_bytes()
 
 
 def test_depth_npy_round_trip(tmp_path: Path) -> None:

@@ -8,15 +8,17 @@ quad facet with corners ``00 = (r, c)``, ``01 = (r, c + 1)``, ``10 = (r + 1, c)`
 the camera (``n_z < 0`` in the OpenCV frame: x right, y down, z forward).
 
 Everything is vectorized with numpy (no Python loop per vertex or face), so meshes with millions
-of vertices are written quickly.
+of vertices are written quickly; the OBJ text is formatted by numpy too (see "Text formatting"),
+giving the same characters as Python's ``%`` operator.
 """
 
 from __future__ import annotations
 
 import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import IO, Union
+from typing import IO, Callable, Iterator, Sequence, Union
 
 import imageio.v3 as iio
 import numpy as np
@@ -30,7 +32,8 @@ PathLike = Union[str, os.PathLike]
 _OPENGL_FLIP = np.array([1.0, -1.0, -1.0], dtype=np.float32)
 _COLOR_PERCENTILE = 99.0
 _ALBEDO_PERCENTILE = 99.9
-_OBJ_CHUNK_ROWS = 65536
+_OBJ_CHUNK_ROWS = 1 << 14
+_GATHER_CHUNK = 1 << 20
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -74,17 +77,31 @@ def _build_mesh(
     """Validate the grids and build the mesh of the masked, finite facets."""
     vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
     facets = _valid_facets(vertices, mask, normals)
-    used = _used_vertices(facets)
-    index = np.full(used.shape, -1, dtype=np.int64)
-    index[used] = np.arange(np.count_nonzero(used))
-    flip = _OPENGL_FLIP if opengl else np.ones(3, dtype=np.float32)
+    used = np.flatnonzero(_used_vertices(facets))  # flat indices into the vertex grid
+    index = np.full(vertices.shape[0] * vertices.shape[1], -1, dtype=np.int32)
+    index[used] = np.arange(len(used), dtype=np.int32)
+    flip = _OPENGL_FLIP if opengl else None
     return _Mesh(
-        points=vertices[used].astype(np.float32) * flip,
-        normals=None if normals is None else normals[used].astype(np.float32) * flip,
-        colors=None if albedo is None else _grey_colors(albedo[used]),
+        points=_gather_float32(vertices, used, flip),
+        normals=None if normals is None else _gather_float32(normals, used, flip),
+        colors=None if albedo is None else _grey_colors(albedo.reshape(len(index), *albedo.shape[2:])[used]),
         faces=_triangles(index, facets),
         frame="opengl" if opengl else "opencv",
     )
+
+
+def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None) -> np.ndarray:
+    """``(n, 3)`` float32 rows ``used`` (flat indices) of an ``(H + 1, W + 1, 3)`` grid, times
+    ``flip`` if given; converted chunk by chunk (no full-size float64 copy)."""
+    rows = grid.reshape(-1, 3)
+    out = np.empty((len(used), 3), dtype=np.float32)
+    everything = len(used) == len(rows)
+    for start in range(0, len(used), _GATHER_CHUNK):
+        stop = min(start + _GATHER_CHUNK, len(used))
+        out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
+    if flip is not None:
+        out *= flip
+    return out
 
 
 def _check_mesh_inputs(
@@ -149,14 +166,25 @@ def _used_vertices(facets: np.ndarray) -> np.ndarray:
 
 
 def _triangles(index: np.ndarray, facets: np.ndarray) -> np.ndarray:
-    """Two triangles ``(00, 10, 11)``, ``(00, 11, 01)`` per facet, in row-major facet order."""
-    rows, cols = np.nonzero(facets)
-    i00 = index[rows, cols]
-    i01 = index[rows, cols + 1]
-    i10 = index[rows + 1, cols]
-    i11 = index[rows + 1, cols + 1]
-    pairs = np.stack([np.stack([i00, i10, i11], axis=1), np.stack([i00, i11, i01], axis=1)], axis=1)
-    return pairs.reshape(-1, 3).astype(np.int32)
+    """Two triangles ``(00, 10, 11)``, ``(00, 11, 01)`` per facet, in row-major facet order.
+
+    ``index`` maps the flat vertex grid ``(H + 1) * (W + 1)`` to the written vertices."""
+    flat = np.flatnonzero(facets)
+    width = facets.shape[1]
+    faces = np.empty((len(flat), 2, 3), dtype=np.int32)
+    for start in range(0, len(flat), _GATHER_CHUNK):
+        stop = min(start + _GATHER_CHUNK, len(flat))
+        v00 = flat[start:stop] + flat[start:stop] // width  # the facet's top-left vertex
+        i00 = index[v00]
+        i11 = index[v00 + (width + 2)]
+        block = faces[start:stop]
+        block[:, 0, 0] = i00
+        block[:, 0, 1] = index[v00 + (width + 1)]  # 10
+        block[:, 0, 2] = i11
+        block[:, 1, 0] = i00
+        block[:, 1, 1] = i11
+        block[:, 1, 2] = index[v00 + 1]  # 01
+    return faces.reshape(-1, 3)
 
 
 def _quantize(
@@ -216,11 +244,32 @@ def write_ply(
     Raises:
         InputError: the shapes do not match, or there is no facet to write.
     """
+    _write_ply_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
+
+
+def write_meshes(
+    ply_path: PathLike | None,
+    obj_path: PathLike | None,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray | None = None,
+    albedo: np.ndarray | None = None,
+    opengl: bool = False,
+) -> None:
+    """:func:`write_ply` and :func:`write_obj` of the same mesh (either path may be None), with
+    the mesh built once."""
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
+    if ply_path is not None:
+        _write_ply_mesh(ply_path, mesh)
+    if obj_path is not None:
+        _write_obj_mesh(obj_path, mesh)
+
+
+def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
     with open(path, "wb") as file:
         file.write(_ply_header(mesh).encode("ascii"))
-        file.write(_ply_vertex_records(mesh).tobytes())
-        file.write(_ply_face_records(mesh.faces).tobytes())
+        file.write(_ply_vertex_records(mesh).view(np.uint8).data)  # no copy of the records
+        file.write(_ply_face_records(mesh.faces).view(np.uint8).data)
 
 
 def _ply_header(mesh: _Mesh) -> str:
@@ -250,9 +299,13 @@ def _ply_vertex_records(mesh: _Mesh) -> np.ndarray:
         groups.append((("red", "green", "blue"), "u1", mesh.colors))
     dtype = np.dtype([(name, kind) for names, kind, _ in groups for name in names])
     records = np.empty(len(mesh.points), dtype=dtype)
-    for names, _, values in groups:
-        for column, name in enumerate(names):
-            records[name] = values[:, column]
+    raw = records.view(np.uint8).reshape(len(records), dtype.itemsize)
+    offset = 0
+    for _, kind, values in groups:  # one (n, 3) block per group, copied as fixed-size items
+        block = np.ascontiguousarray(values, dtype=kind)
+        width = block.itemsize * 3
+        raw[:, offset : offset + width].view(f"V{width}")[...] = block.view(f"V{width}")
+        offset += width
     return records
 
 
@@ -374,26 +427,295 @@ def write_obj(
     Raises:
         InputError: the shapes do not match, or there is no facet to write.
     """
-    mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
-    with open(path, "w", encoding="ascii", newline="\n") as file:
-        file.write(f"# nplps\n# frame {mesh.frame}\n")
-        if mesh.colors is None:
-            _write_rows(file, "v %.9g %.9g %.9g\n", mesh.points)
-        else:
-            colors = mesh.colors.astype(np.float64) / 255.0
-            _write_rows(file, "v %.9g %.9g %.9g %.6g %.6g %.6g\n", np.hstack([mesh.points, colors]))
-        if mesh.normals is not None:
-            _write_rows(file, "vn %.7g %.7g %.7g\n", mesh.normals)
-            _write_rows(file, "f %d//%d %d//%d %d//%d\n", np.repeat(mesh.faces + 1, 2, axis=1))
-        else:
-            _write_rows(file, "f %d %d %d\n", mesh.faces + 1)
+    _write_obj_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
 
 
-def _write_rows(file: IO[str], line_format: str, rows: np.ndarray) -> None:
-    """Write ``rows`` with one %-format per row, formatting a whole chunk of rows at once."""
-    for start in range(0, len(rows), _OBJ_CHUNK_ROWS):
-        chunk = rows[start : start + _OBJ_CHUNK_ROWS]
-        file.write((line_format * len(chunk)) % tuple(chunk.ravel().tolist()))
+def _write_obj_mesh(path: PathLike, mesh: _Mesh) -> None:
+    with open(path, "wb") as file:
+        file.write(f"# nplps\n# frame {mesh.frame}\n".encode("ascii"))
+        _write_text(file, _obj_chunks(mesh))
+
+
+def _obj_chunks(mesh: _Mesh) -> Iterator[Callable[[], bytes]]:
+    """The OBJ body of ``mesh`` as jobs that each format a chunk of lines, in file order.
+
+    The lines are those of the %-formats ``"v %.9g %.9g %.9g[ %.6g %.6g %.6g]"`` (points;
+    colours / 255), ``"vn %.7g %.7g %.7g"`` and ``"f %d//%d %d//%d %d//%d"`` or ``"f %d %d %d"``
+    (1-based indices)."""
+    points, normals, colors, faces = mesh.points, mesh.normals, mesh.colors, mesh.faces
+    for start in range(0, len(points), _OBJ_CHUNK_ROWS):
+        chunk = slice(start, start + _OBJ_CHUNK_ROWS)
+        yield lambda chunk=chunk: _vertex_lines(points[chunk], None if colors is None else colors[chunk])
+    if normals is not None:
+        for start in range(0, len(normals), _OBJ_CHUNK_ROWS):
+            chunk = slice(start, start + _OBJ_CHUNK_ROWS)
+            yield lambda chunk=chunk: _lines(
+                [b"vn ", *_join(b" ", [_format_float32(normals[chunk, i], 7) for i in range(3)]), b"\n"]
+            )
+    for start in range(0, len(faces), _OBJ_CHUNK_ROWS):
+        chunk = slice(start, start + _OBJ_CHUNK_ROWS)
+        yield lambda chunk=chunk: _face_lines(faces[chunk], normals is not None)
+
+
+def _vertex_lines(points: np.ndarray, colors: np.ndarray | None) -> bytes:
+    fields = [_format_float32(points[:, i], 9) for i in range(3)]
+    if colors is not None:
+        fields += [np.take(_COLOR_TEXT, colors[:, i], axis=0) for i in range(3)]
+    return _lines([b"v ", *_join(b" ", fields), b"\n"])
+
+
+def _face_lines(faces: np.ndarray, with_normals: bool) -> bytes:
+    corners, blanks = zip(*(_format_int(faces[:, i] + 1) for i in range(3)))
+    fields = [[c, b"//", c] for c in corners] if with_normals else list(corners)
+    return _lines([b"f ", *_join(b" ", fields), b"\n"], compact=any(blanks))
+
+
+def _join(separator: bytes, fields: list) -> list:
+    """``fields`` with ``separator`` between them."""
+    out: list = []
+    for i, field in enumerate(fields):
+        out += [separator, field] if i else [field]
+    return out
+
+
+def _write_text(file: IO[bytes], jobs: Iterator[Callable[[], bytes]]) -> None:
+    """Runs the formatting ``jobs`` on a few threads (numpy releases the GIL) and writes their
+    results in order, with a bounded number of chunks in flight."""
+    workers = max(1, min(4, os.cpu_count() or 1))
+    if workers == 1:
+        for job in jobs:
+            file.write(job())
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        pending: list = []
+        for job in jobs:
+            pending.append(pool.submit(job))
+            if len(pending) > 2 * workers:
+                file.write(pending.pop(0).result())
+        for future in pending:
+            file.write(future.result())
+
+
+# --------------------------------------------------------------------------------------------------
+# Text formatting
+# --------------------------------------------------------------------------------------------------
+#
+# An OBJ file of a 12-megapixel result holds about 250 million numbers, which Python's % operator
+# formats one by one in half a minute. The functions below produce the same characters as
+# "%.<P>g" (for float32 values) and "%d" (for non-negative integers) with numpy, a column of
+# characters at a time: each number becomes a row of bytes in which unused positions hold the
+# byte 0; a chunk of lines is laid out as a table of such rows and literal separators, and the
+# 0 bytes are dropped. Values the vectorized path does not cover (NaN, inf, magnitudes of 10^P
+# and above or below about 10^(P - 18)) are formatted by Python.
+
+_BLANK, _ZERO, _POINT, _MINUS, _PLUS, _E = 0, ord("0"), ord("."), ord("-"), ord("+"), ord("e")
+_POW10 = 10.0 ** np.arange(13)  # exact in float64, and 5^12 < 2^29
+_POW5 = np.array([5**k for k in range(18)], dtype=np.uint64)  # 2^24 * 5^17 < 2^64
+
+
+def _digit_tables() -> dict[str, np.ndarray]:
+    """Four-digit groups 0000..9999 as one uint32 (4 ASCII bytes) each: ``full`` zero-padded,
+    ``lead`` with its leading zeros blank (0 is all blank), ``last`` like ``lead`` but 0 is "0"."""
+    n = np.arange(10000)
+    powers = 10 ** np.arange(3, -1, -1)
+    digits = (n[:, None] // powers % 10 + _ZERO).astype(np.uint8)
+    lead = np.where(n[:, None] < powers, np.uint8(_BLANK), digits)
+    last = lead.copy()
+    last[0, 3] = _ZERO
+    return {
+        name: np.ascontiguousarray(table).view(np.uint32).ravel()
+        for name, table in (("full", digits), ("lead", lead), ("last", last))
+    }
+
+
+_DIGITS = _digit_tables()
+
+
+def _color_text() -> np.ndarray:
+    """``"%.6g" % (c / 255)`` for the 256 colour levels, as rows of bytes (0-padded)."""
+    texts = [("%.6g" % (c / 255.0)).encode("ascii") for c in range(256)]
+    table = np.zeros((256, max(map(len, texts))), dtype=np.uint8)
+    for c, text in enumerate(texts):
+        table[c, : len(text)] = np.frombuffer(text, dtype=np.uint8)
+    return table
+
+
+_COLOR_TEXT = _color_text()
+
+
+def _lines(fields: Sequence[bytes | np.ndarray | list[np.ndarray]], compact: bool = True) -> bytes:
+    """The text of lines made of ``fields``: literal bytes (the same on every line), arrays of
+    characters, ``(n,)`` or ``(n, width)`` uint8 with 0 for nothing, or lists of such arrays.
+    ``compact=False`` says that there is no 0 byte to drop."""
+    pieces = [p for f in fields for p in (f if isinstance(f, list) else [f])]
+    n = next(len(p) for p in pieces if isinstance(p, np.ndarray))
+    widths = [len(p) if isinstance(p, bytes) else (p.shape[1] if p.ndim == 2 else 1) for p in pieces]
+    table = np.empty((n, sum(widths)), dtype=np.uint8)
+    column = 0
+    for piece, width in zip(pieces, widths):
+        if isinstance(piece, bytes):  # byte by byte: faster than a broadcast row
+            for k, byte in enumerate(piece):
+                table[:, column + k] = byte
+        elif piece.ndim == 1:
+            table[:, column] = piece
+        else:  # one fixed-size item per row: faster than a 2-D copy of short rows
+            table[:, column : column + width].view(f"V{width}")[...] = piece.view(f"V{width}")
+        column += width
+    flat = table.ravel()
+    return flat[flat != _BLANK].tobytes() if compact else flat.tobytes()
+
+
+def _format_int(values: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``"%d"`` of non-negative integers below 2^32, as ``(n, width)`` characters, and whether
+    there are 0 bytes among them (not when all values have as many digits)."""
+    v = np.asarray(values).ravel()
+    top, bottom = (int(v.max()), int(v.min())) if v.size else (0, 0)
+    if bottom < 0 or top >= 2**32:
+        raise ValueError("_format_int formats integers in [0, 2^32)")
+    v = v.astype(np.uint32)
+    groups = 1 if top < 10**4 else 2 if top < 10**8 else 3
+    out = np.empty((len(v), groups), dtype=np.uint32)
+    rest = v
+    for g in range(groups - 1, -1, -1):  # least significant group first
+        higher = rest // np.uint32(10000)
+        group = rest - higher * np.uint32(10000)  # (faster than %)
+        unpadded = np.take(_DIGITS["last"] if g == groups - 1 else _DIGITS["lead"], group)
+        if g:  # zero-padded where a higher group follows (uint32 arithmetic wraps: no np.where)
+            unpadded += (higher > 0) * (np.take(_DIGITS["full"], group) - unpadded)
+        out[:, g] = unpadded
+        rest = higher
+    text = out.view(np.uint8).reshape(len(v), 4 * groups)
+    digits = len(str(top))
+    if len(str(bottom)) == digits:
+        return text[:, 4 * groups - digits :], False
+    return text, True
+
+
+def _format_float32(values: np.ndarray, precision: int) -> list[np.ndarray]:
+    """``"%.<precision>g"`` (precision 1 to 9) of float32 values, as a list of ``(n,)`` columns
+    of characters."""
+    with np.errstate(all="ignore"):
+        return _float_columns(np.ascontiguousarray(values, dtype=np.float32).ravel(), int(precision))
+
+
+def _float_columns(v: np.ndarray, p: int) -> list[np.ndarray]:
+    n = len(v)
+    bits = v.view(np.uint32)
+    negative = bits >= np.uint32(1 << 31)
+    magnitude = bits & np.uint32(0x7FFFFFFF)
+    zero = magnitude == 0
+    special = magnitude >= np.uint32(0x7F800000)  # inf, NaN
+    plain = zero | special
+    a = np.abs(v).astype(np.float64)
+    # The decimal exponent x and the p significant digits d (an integer), rounded half to even.
+    x = np.floor(np.log10(a)).astype(np.int64) * ~plain  # 0 for 0, inf, NaN
+    low, high = np.uint64(10 ** (p - 1)), np.uint64(10**p)
+    d, ok = _significand(a, bits, x, p)
+    ok &= ~plain
+    below = ok & (d < low)
+    above = ok & (d > high)
+    todo = np.flatnonzero(below | above)
+    for _ in range(2):  # log10 can be one off next to powers of ten
+        if todo.size == 0:
+            break
+        x[todo] += above[todo].astype(np.int64) - below[todo].astype(np.int64)
+        d[todo], ok[todo] = _significand(a[todo], bits[todo], x[todo], p)
+        below[todo] = ok[todo] & (d[todo] < low)
+        above[todo] = ok[todo] & (d[todo] > high)
+        todo = todo[below[todo] | above[todo]]
+    carry = np.flatnonzero(d == high)  # rounded up to 10^p: one more digit before the point
+    d[carry] = low
+    x[carry] += 1
+    fallback = special | ~(zero | (ok & (d >= low) & (d < high)))
+    any_fallback = bool(fallback.any())
+    if any_fallback:
+        d[fallback] = 0
+    # The digits as one row of characters per digit.
+    full = _DIGITS["full"]
+    d32 = d.astype(np.uint32)  # < 10^9
+    high4 = d32 // np.uint32(10**4)
+    top = high4 // np.uint32(10**4)
+    groups = np.empty((3, n), dtype=np.uint32)
+    np.take(full, top, out=groups[0])
+    np.take(full, high4 - top * np.uint32(10**4), out=groups[1])
+    np.take(full, d32 - high4 * np.uint32(10**4), out=groups[2])
+    digits = np.ascontiguousarray(groups.view(np.uint8).reshape(3, n, 4).transpose(0, 2, 1).reshape(12, n)[12 - p :])
+    # %g: fixed notation for -4 <= x < p, else d.ddde+xx; trailing zeros (and point) dropped.
+    # (Characters are made by multiplying flags: much faster than np.where with scalars.)
+    fixed = (x >= -4) & (x < p)
+    small = fixed & (x < 0)  # 0.000ddd
+    scientific = ~fixed & ~fallback
+    before = (np.maximum(x + 1, 0) * fixed + ~fixed).astype(np.int8)  # digits before the point
+    first, last = int(before.min()), int(before.max())
+    columns: list[np.ndarray] = []
+    if any_fallback or negative.any():
+        columns.append(_char(negative, _MINUS))
+    if any_fallback or small.any():
+        columns += [_char(small, _ZERO), _char(small, _POINT)]
+        columns += [_char(small & (x <= -k), _ZERO) for k in (2, 3, 4)]
+    # Right to left: a trailing zero after the point is dropped; the point after digit j is
+    # written if a digit after it is.
+    trailing = np.ones(n, dtype=bool)
+    backwards: list[np.ndarray] = []
+    for j in range(p - 1, -1, -1):
+        if j < p - 1 and (any_fallback or first <= j + 1 <= last):
+            backwards.append(_char((before == j + 1) & ~trailing, _POINT))
+        digit = digits[j]
+        trailing &= digit == _ZERO
+        drop = trailing & (before <= j) if last > j else trailing
+        backwards.append(digit * (~drop).view(np.uint8))
+    columns += backwards[::-1]
+    if any_fallback or scientific.any():
+        e = np.abs(x)
+        sign = np.where(x < 0, np.uint8(_MINUS), np.uint8(_PLUS))
+        columns.append(_char(scientific, _E))
+        columns.append(sign * scientific.view(np.uint8))
+        columns.append((_ZERO + e // 100 % 10).astype(np.uint8) * (scientific & (e >= 100)).view(np.uint8))
+        columns.append((_ZERO + e // 10 % 10).astype(np.uint8) * scientific.view(np.uint8))
+        columns.append((_ZERO + e % 10).astype(np.uint8) * scientific.view(np.uint8))
+    for i in np.flatnonzero(fallback):  # at least 2 p + 10 columns here
+        text = ("%.*g" % (p, float(v[i]))).encode("ascii")
+        for k, column in enumerate(columns):
+            column[i] = text[k] if k < len(text) else _BLANK
+    return columns
+
+
+def _char(flags: np.ndarray, char: int) -> np.ndarray:
+    """``char`` where ``flags`` (bool) is set, else 0."""
+    return flags.view(np.uint8) * np.uint8(char)
+
+
+def _significand(a: np.ndarray, bits: np.ndarray, x: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``round(a * 10^(p - 1 - x))``, ties to even, for positive float32 values ``a`` (given as
+    float64 and as their bits), and where it was computed (10^(p - 1 - x) from 1 to 5^17 2^17)."""
+    q = p - 1 - x
+    # a has 24 significant bits and 10^q = 5^q 2^q with 5^q < 2^29: the product is exact.
+    d = np.rint(a * np.take(_POW10, q, mode="clip")).astype(np.uint64)
+    ok = (q >= 0) & (q < len(_POW10))
+    slow = np.flatnonzero(~ok)
+    if slow.size:
+        d[slow], ok[slow] = _significand_exact(bits[slow], q[slow])
+    return d, ok
+
+
+def _significand_exact(bits: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``round(m 2^e 10^q)``, ties to even, in integers, for float32 ``bits`` = m 2^e and
+    0 <= q <= 17; and where it was computed."""
+    biased = ((bits >> np.uint32(23)) & np.uint32(0xFF)).astype(np.int64)
+    fraction = (bits & np.uint32(0x7FFFFF)).astype(np.uint64)
+    m = np.where(biased > 0, fraction | np.uint64(1 << 23), fraction)
+    e = np.where(biased > 0, biased - 150, -149)
+    qc = np.clip(q, 0, len(_POW5) - 1)
+    n = m * _POW5[qc]
+    t = e + qc  # the result is n 2^t
+    ok = (q >= 0) & (q < len(_POW5)) & (t <= 30) & (t > -64)
+    one = np.uint64(1)
+    s = np.clip(-t, 1, 63).astype(np.uint64)
+    down = np.right_shift(n, s)
+    rest = n & (np.left_shift(one, s) - one)
+    half = np.left_shift(one, s - one)
+    up = (rest > half) | ((rest == half) & ((down & one) == one))
+    return np.where(t >= 0, np.left_shift(n, np.clip(t, 0, 30).astype(np.uint64)), down + up), ok
 
 
 # --------------------------------------------------------------------------------------------------
@@ -416,17 +738,23 @@ def save_normal_map(path: PathLike, normals: np.ndarray, mask: np.ndarray | None
         normals: ``(H, W, 3)`` unit normals, OpenCV frame.
         mask: optional ``(H, W)`` bool of the pixels to encode.
     """
-    normals = np.asarray(normals, dtype=np.float64)
+    normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise InputError(f"normals must have shape (H, W, 3), got {normals.shape}")
-    valid = np.isfinite(normals).all(axis=2)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         _require_shape("mask", mask, normals.shape[:2])
-        valid &= mask
-    flipped = np.clip(np.where(valid[..., None], normals, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
-    encoded = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
-    encoded[~valid] = 0
+    encoded = np.empty(normals.shape, dtype=np.uint8)
+    rows = max(1, _GATHER_CHUNK // max(1, normals.shape[1]))
+    for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
+        band = slice(start, start + rows)
+        n = np.asarray(normals[band], dtype=np.float64)
+        valid = np.isfinite(n).all(axis=2)
+        if mask is not None:
+            valid &= mask[band]
+        flipped = np.clip(np.where(valid[..., None], n, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
+        encoded[band] = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
+        encoded[band][~valid] = 0
     iio.imwrite(path, encoded, extension=".png")
 
 
@@ -465,8 +793,9 @@ def write_png16(path: PathLike, pixels: np.ndarray) -> None:
     pixels = np.asarray(pixels, dtype=np.uint16)
     h, w = pixels.shape[:2]
     grey = pixels.ndim == 2
-    with open(path, "wb") as file:
-        png.Writer(w, h, greyscale=grey, bitdepth=16).write(file, pixels.reshape(h, -1).tolist())
+    rows = np.asarray(pixels, dtype=">u2").reshape(h, -1)  # PNG stores 16-bit big-endian
+    with open(path, "wb") as file:  # pre-packed rows: what Writer.write would make of the values
+        png.Writer(w, h, greyscale=grey, bitdepth=16).write_packed(file, (row.tobytes() for row in rows))
 
 
 def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:

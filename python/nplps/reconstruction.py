@@ -217,8 +217,10 @@ class Reconstruction:
             "residual_npy": out / "residual.npy",
             "summary": out / "summary.json",
         }
-        self.save_ply(paths["ply"], opengl=opengl)
-        self.save_obj(paths["obj"], opengl=opengl)
+        # One set of vertex arrays and one mesh for both files.
+        export.write_meshes(
+            paths["ply"], paths["obj"], self.vertices, self.mask, self.vertex_normals(), self.vertex_albedo(), opengl=opengl
+        )
         export.save_normal_map(paths["normal_map"], self.normals, self.mask)
         export.save_grey_png(paths["shaded"], self.shaded())
         summary = self.summary()
@@ -257,10 +259,14 @@ def _to_vertices(values: np.ndarray) -> np.ndarray:
         for dc in (0, 1):
             total[dr : dr + h, dc : dc + w] += v
             count[dr : dr + h, dc : dc + w] += finite
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    del v
+    total /= np.maximum(count, 1)  # in place: no further full-size copies
+    total[count[..., 0] == 0] = np.nan
+    return total
 
 
 def _normalize(v: np.ndarray) -> np.ndarray:
+    """``v`` (a fresh array, divided in place) scaled to unit length along the last axis."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    return v
