@@ -11,7 +11,7 @@ import pytest
 import tifffile
 from PIL import Image
 
-from nplps import io
+from nplps import _core, io
 from nplps.errors import InputError
 
 
@@ -169,6 +169,246 @@ def test_read_corrupt_file(tmp_path: Path) -> None:
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
     with pytest.raises(InputError, match=r"cannot read image .*corrupt\.png"):
         io.read_image(path)
+
+
+# --------------------------------------------------------------------------------------------------
+# The Rust PNG decoder (nplps._core.read_pngs, used by read_image and load_stack)
+# --------------------------------------------------------------------------------------------------
+
+
+def _write_png(path: Path, rows: np.ndarray, **options: object) -> Path:
+    """Write ``rows`` ((H, W * planes) integers) with pypng's Writer and the given options."""
+    height, width = rows.shape[0], options.pop("width")
+    options.setdefault("greyscale", False)
+    with open(path, "wb") as file:
+        png.Writer(width, height, **options).write(file, rows.astype(np.int64).tolist())
+    return path
+
+
+def _ramp(shape: tuple[int, ...], top: int) -> np.ndarray:
+    """Deterministic values in 0..top that hit both ends."""
+    values = (np.arange(int(np.prod(shape))) * 7919) % (top + 1)
+    values[0], values[-1] = 0, top
+    return values.reshape(shape)
+
+
+def test_rust_decoder_8bit_grey_and_rgb(tmp_path: Path) -> None:
+    grey = _ramp((3, 5), 255).astype(np.uint8)
+    rgb = _ramp((3, 5, 3), 255).astype(np.uint8)
+    paths = [
+        _write_png(tmp_path / "g8.png", grey, width=5, greyscale=True, bitdepth=8),
+        _write_png(tmp_path / "rgb8.png", rgb.reshape(3, 15), width=5, greyscale=False, bitdepth=8),
+    ]
+
+    out = _core.read_pngs(paths, io.MAX_PIXELS)
+
+    assert [a.dtype for a in out] == [np.uint8, np.uint8]
+    np.testing.assert_array_equal(out[0], grey)
+    np.testing.assert_array_equal(out[1], rgb)
+
+
+def test_rust_decoder_16bit_grey_and_rgb_keep_every_bit(tmp_path: Path) -> None:
+    grey = _ramp((4, 3), 65535).astype(np.uint16)
+    rgb = _ramp((4, 3, 3), 65535).astype(np.uint16)
+    assert np.any(grey % 257 != 0) and np.any(rgb % 257 != 0)  # the low byte matters
+    paths = [
+        _write_png(tmp_path / "g16.png", grey, width=3, greyscale=True, bitdepth=16),
+        _write_png(tmp_path / "rgb16.png", rgb.reshape(4, 9), width=3, greyscale=False, bitdepth=16),
+    ]
+
+    out = _core.read_pngs(paths, io.MAX_PIXELS)
+
+    assert [a.dtype for a in out] == [np.uint16, np.uint16]
+    np.testing.assert_array_equal(out[0], grey)
+    np.testing.assert_array_equal(out[1], rgb)
+
+
+@pytest.mark.parametrize("bitdepth", [8, 16])
+def test_rust_decoder_drops_alpha(tmp_path: Path, bitdepth: int) -> None:
+    top = 2**bitdepth - 1
+    la = _ramp((2, 4, 2), top)
+    rgba = _ramp((2, 4, 4), top)
+    paths = [
+        _write_png(tmp_path / "la.png", la.reshape(2, 8), width=4, greyscale=True, alpha=True, bitdepth=bitdepth),
+        _write_png(tmp_path / "rgba.png", rgba.reshape(2, 16), width=4, alpha=True, bitdepth=bitdepth),
+    ]
+
+    grey, colour = _core.read_pngs(paths, io.MAX_PIXELS)
+
+    np.testing.assert_array_equal(grey, la[..., 0])
+    np.testing.assert_array_equal(colour, rgba[..., :3])
+
+
+def test_rust_decoder_palettes(tmp_path: Path) -> None:
+    """Palette images are expanded; all-grey ones (hehe12's identity ramp) become (H, W); the
+    transparency of palette entries (tRNS) is dropped with the alpha channel."""
+    indices = np.array([[0, 1, 2, 3], [3, 2, 1, 0]])
+    grey_palette = [(0, 0, 0), (90, 90, 90), (180, 180, 180), (255, 255, 255)]
+    colour_palette = [(255, 0, 0, 0), (0, 255, 0, 128), (0, 0, 255, 255), (7, 7, 7, 255)]
+    paths = [
+        _write_png(tmp_path / "grey.png", indices, width=4, palette=grey_palette, bitdepth=2),
+        _write_png(tmp_path / "colour.png", indices, width=4, palette=colour_palette, bitdepth=8),
+        _write_png(tmp_path / "used_grey.png", np.full((2, 4), 3), width=4, palette=colour_palette, bitdepth=4),
+    ]
+
+    grey, colour, used_grey = _core.read_pngs(paths, io.MAX_PIXELS)
+
+    np.testing.assert_array_equal(grey, np.array(grey_palette)[indices, 0])
+    assert colour.dtype == np.uint8
+    np.testing.assert_array_equal(colour, np.array(colour_palette)[indices, :3])
+    # Only grey entries are used: grey, like the imageio-based reader before.
+    np.testing.assert_array_equal(used_grey, np.full((2, 4), 7))
+
+
+@pytest.mark.parametrize("bitdepth", [1, 2, 4])
+def test_rust_decoder_low_bit_grey_scaled_like_imageio(tmp_path: Path, bitdepth: int) -> None:
+    rows = _ramp((3, 9), 2**bitdepth - 1)
+    path = _write_png(tmp_path / "low.png", rows, width=9, greyscale=True, bitdepth=bitdepth)
+
+    (image,) = _core.read_pngs([path], io.MAX_PIXELS)
+
+    assert image.dtype == np.uint8
+    np.testing.assert_array_equal(image, rows * (255 // (2**bitdepth - 1)))
+    by_imageio = np.asarray(iio.imread(path))
+    if by_imageio.dtype == np.bool_:
+        by_imageio = by_imageio.astype(np.uint8) * 255
+    np.testing.assert_array_equal(image, by_imageio)
+
+
+@pytest.mark.parametrize("bitdepth", [8, 16])
+def test_rust_decoder_interlaced(tmp_path: Path, bitdepth: int) -> None:
+    rgb = _ramp((11, 13, 3), 2**bitdepth - 1)
+    path = _write_png(tmp_path / "adam7.png", rgb.reshape(11, 39), width=13, bitdepth=bitdepth, interlace=True)
+
+    (image,) = _core.read_pngs([path], io.MAX_PIXELS)
+
+    np.testing.assert_array_equal(image, rgb)
+
+
+def test_rust_decoder_matches_imageio_on_8bit_variants(tmp_path: Path) -> None:
+    """What read_image returned before the Rust decoder (imageio, alpha dropped, grey palette to
+    grey) for 8-bit files written by Pillow."""
+    rng = np.random.default_rng(3)
+    images = {
+        "L": rng.integers(0, 256, (6, 7), dtype=np.uint8),
+        "LA": rng.integers(0, 256, (6, 7, 2), dtype=np.uint8),
+        "RGB": rng.integers(0, 256, (6, 7, 3), dtype=np.uint8),
+        "RGBA": rng.integers(0, 256, (6, 7, 4), dtype=np.uint8),
+    }
+    paths = []
+    for mode, pixels in images.items():
+        paths.append(tmp_path / f"{mode}.png")
+        Image.fromarray(pixels).save(paths[-1])
+        assert Image.open(paths[-1]).mode == mode
+    decoded = _core.read_pngs(paths, io.MAX_PIXELS)
+    for path, image in zip(paths, decoded):
+        expected = np.asarray(iio.imread(path))
+        expected = expected[..., 0] if expected.ndim == 3 and expected.shape[2] == 2 else expected
+        expected = expected[..., :3] if expected.ndim == 3 else expected
+        np.testing.assert_array_equal(image, expected, err_msg=path.name)
+
+
+def test_rust_decoder_keeps_the_order_of_many_files(tmp_path: Path) -> None:
+    paths = []
+    for i in range(23):
+        paths.append(tmp_path / f"{i}.png")
+        _write_png(paths[-1], np.full((2, 3), 1000 * i), width=3, greyscale=True, bitdepth=16)
+
+    decoded = _core.read_pngs(paths, io.MAX_PIXELS)
+
+    assert [int(image[0, 0]) for image in decoded] == [1000 * i for i in range(23)]
+
+
+def test_rust_decoder_corrupt_files_raise_input_error_naming_them(tmp_path: Path) -> None:
+    good = _write_png(tmp_path / "good.png", np.zeros((2, 2)), width=2, greyscale=True, bitdepth=8)
+    garbage = tmp_path / "garbage.png"
+    garbage.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    whole = _write_png(tmp_path / "whole.png", _ramp((64, 64), 65535), width=64, greyscale=True, bitdepth=16)
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(whole.read_bytes()[:200])
+
+    for bad in (garbage, truncated):
+        with pytest.raises(InputError, match=rf"cannot read image '.*{bad.name}'"):
+            _core.read_pngs([good, bad, good], io.MAX_PIXELS)
+        with pytest.raises(InputError, match=rf"cannot read image '.*{bad.name}'"):
+            io.load_stack([good, bad])
+    # The first bad file in the order given is the one named.
+    with pytest.raises(InputError, match=r"garbage\.png"):
+        _core.read_pngs([good, garbage, truncated], io.MAX_PIXELS)
+    with pytest.raises(InputError, match=r"nowhere\.png': file not found"):
+        _core.read_pngs([good, tmp_path / "nowhere.png"], io.MAX_PIXELS)
+
+
+def test_pixel_limit_refuses_large_images_before_decoding(tmp_path: Path) -> None:
+    path = _write_png(tmp_path / "big.png", np.zeros((20, 30)), width=30, greyscale=True, bitdepth=16)
+
+    assert _core.read_pngs([path], 600)[0].shape == (20, 30)
+    with pytest.raises(InputError, match=r"big\.png.*30 x 20 pixels is more than the limit of 599"):
+        _core.read_pngs([path], 599)
+    with pytest.raises(InputError, match=r"big\.png.*limit of 599"):
+        io.read_image(path, max_pixels=599)
+    with pytest.raises(InputError, match=r"big\.png.*limit of 100"):
+        io.load_stack([path, path], max_pixels=100)
+    tif = tmp_path / "big.tif"
+    tifffile.imwrite(tif, np.zeros((20, 30, 3), dtype=np.uint16), photometric="rgb")
+    assert io.read_image(tif, max_pixels=600).shape == (20, 30, 3)
+    with pytest.raises(InputError, match=r"big\.tif.*600 pixels is more than the limit of 599"):
+        io.read_image(tif, max_pixels=599)
+    assert io.MAX_PIXELS == 2**28
+
+
+def test_bomb_header_is_refused_without_allocating(tmp_path: Path) -> None:
+    """A few hundred bytes that declare a 2^30 x 2^30 image: refused from the header."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", 2**30, 2**30, 16, 2, 0, 0, 0)
+    path = tmp_path / "bomb.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 1000)))
+
+    with pytest.raises(InputError, match=r"bomb\.png.*1073741824 x 1073741824 pixels is more than the limit"):
+        io.read_image(path)
+
+
+def test_load_stack_in_batches_matches_image_by_image(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Files decoded in several parallel batches, mixed with arrays and TIFF files, land in the
+    right place of the stack with the values read_image + to_float give."""
+    monkeypatch.setattr(io, "_BATCH_BYTES", 1)  # a batch per core's worth of files
+    rng = np.random.default_rng(4)
+    items: list[object] = []
+    for i in range(9):
+        rgb = rng.integers(0, 65536, (5, 6, 3), dtype=np.uint16)
+        if i == 4:
+            items.append(rgb.astype(np.float32) / 65535)
+        elif i == 6:
+            items.append(tmp_path / f"{i}.tif")
+            tifffile.imwrite(items[-1], rgb, photometric="rgb")
+        else:
+            items.append(_write_png(tmp_path / f"{i}.png", rgb.reshape(5, 18), width=6, bitdepth=16))
+    expected = [io.to_float(io.read_image(p) if isinstance(p, Path) else p) for p in items]
+
+    colour, levels = io.load_stack(items, color=True)
+    grey, _ = io.load_stack(items, color=False)
+
+    assert levels is None  # one float image
+    np.testing.assert_array_equal(colour, np.stack(expected))
+    np.testing.assert_array_equal(grey, np.stack([io.to_gray(e) for e in expected]))
+
+
+def test_load_stack_colour_then_grey_file_gives_grey(tmp_path: Path) -> None:
+    rgb = _ramp((3, 4, 3), 255).astype(np.uint8)
+    grey = _ramp((3, 4), 65535).astype(np.uint16)
+    a = _write_png(tmp_path / "a.png", rgb.reshape(3, 12), width=4, bitdepth=8)
+    b = _write_png(tmp_path / "b.png", grey, width=4, greyscale=True, bitdepth=16)
+
+    stack, levels = io.load_stack([a, a, b], color=True)
+
+    assert stack.shape == (3, 3, 4) and levels == 65535
+    np.testing.assert_array_equal(stack[0], io.to_gray(rgb))
+    np.testing.assert_array_equal(stack[2], io.to_float(grey))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -7,7 +7,8 @@
 ``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, and for the distance
 search and the prior ``auto``, ``depth_range``, ``depth_guess``, ``prior_weight``)."""
 
-from typing import Any, Callable, Mapping
+import os
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -68,3 +69,9 @@ def synth_scene(
     rgb: bool = False,
     directional: bool = False,
 ) -> dict[str, Any]: ...
+def read_pngs(
+    paths: Sequence[str | os.PathLike[str]], max_pixels: int
+) -> list[npt.NDArray[np.uint8] | npt.NDArray[np.uint16]]:
+    """Decode PNG files in parallel (GIL released): uint8 / uint16 arrays (H, W) or (H, W, 3) as
+    stored (alpha dropped, palettes expanded, grey palettes to grey, 1/2/4-bit grey to 0..255).
+    InputError names the first missing or broken file, or one above max_pixels pixels."""

@@ -6,22 +6,26 @@ passes (paths, arrays, stacks) into that stack, with :class:`~nplps.errors.Input
 that name the offending image.
 
 Precision matters: imageio's default Pillow reader returns 16-bit RGB PNG files as ``uint8``,
-silently dropping the low byte. :func:`read_image` therefore reads every 16-bit PNG with pypng and
-TIFF files with tifffile (which keeps 16-bit integers and floats); other formats go through
-imageio.
+silently dropping the low byte. :func:`read_image` therefore decodes every PNG (8 and 16 bits) in
+the Rust extension (the ``png`` crate; several files at once in parallel, see
+:func:`iter_images`) and TIFF files with tifffile (which keeps 16-bit integers and floats); other
+formats go through imageio.
+
+Memory: :func:`load_stack` converts each image straight into one preallocated float32 stack, so
+loading k files costs the stack plus a few decoded images, never a float64 copy of the stack.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Union
 
 import imageio.v3 as iio
 import numpy as np
-import png
 import tifffile
 
+from . import _core
 from .errors import InputError
 
 PathLike = Union[str, os.PathLike]
@@ -30,13 +34,22 @@ PathLike = Union[str, os.PathLike]
 ImageSource = Union[PathLike, np.ndarray]
 """One image: a file name or an array of shape ``(H, W)`` or ``(H, W, 3)``."""
 
+MAX_PIXELS = 1 << 28
+"""Default limit on the size of one image file, in pixels (H x W): 268 million, e.g.
+16384 x 16384 -- far above camera sensors (a 100-Mpixel back has 1e8 pixels). A PNG or TIFF that
+declares more is refused with :class:`~nplps.errors.InputError` before any pixel memory is
+allocated, so a small crafted file (a "decompression bomb") cannot make the reader allocate
+gigabytes. Pass ``max_pixels`` to :func:`read_image` / :func:`load_stack` to change it. Other
+formats rely on Pillow's own guard (``PIL.Image.MAX_IMAGE_PIXELS``)."""
+
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_BIT_DEPTH_OFFSET = 24
-_PNG_COLOUR_TYPE_OFFSET = 25
-_PNG_COLOUR_TYPE_PALETTE = 3
 _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _HEADER_SIZE = 32
 _MAX_LISTED = 5
+#: PNG files are decoded in parallel batches that end once they hold this many bytes of pixels
+#: and at least one file per core, so that loading a stack holds only a batch of decoded images
+#: besides the stack.
+_BATCH_BYTES = 128 << 20
 
 
 # --------------------------------------------------------------------------------------------------
@@ -44,29 +57,37 @@ _MAX_LISTED = 5
 # --------------------------------------------------------------------------------------------------
 
 
-def read_image(path: PathLike) -> np.ndarray:
+def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     """Read an image file and return its pixels in their native dtype.
 
     The result has shape ``(H, W)`` (grey) or ``(H, W, 3)`` (colour); an alpha channel is
     dropped. The dtype is the file's own (``uint8``, ``uint16``, ``float32``, ...), without any
     scaling.
 
-    * PNG: 16-bit files are read with pypng (imageio would truncate 16-bit RGB to 8 bits), other
-      bit depths with imageio. A palette PNG whose used colours are all grey becomes ``(H, W)``.
+    * PNG (any bit depth and colour type): decoded in the Rust extension, keeping all 16 bits of
+      16-bit files (the values as stored: ``sBIT`` is ignored). Grey images below 8 bits are
+      scaled to 0..255; a palette PNG becomes RGB, or ``(H, W)`` when all its pixels are grey.
     * TIFF: read with tifffile, keeping 16-bit integers and floats; planar (channel-first) files
       are returned channel-last.
     * Anything else (JPEG, BMP, ...): imageio.
 
+    Args:
+        path: the file.
+        max_pixels: refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
+            it; see :data:`MAX_PIXELS`.
+
     Raises:
-        InputError: the file is missing or cannot be decoded as a single 2-D image; the message
-            names the path and the reason.
+        InputError: the file is missing, cannot be decoded as a single 2-D image, or is larger
+            than ``max_pixels``; the message names the path and the reason.
     """
     header = _read_header(path)
+    if header.startswith(_PNG_SIGNATURE):
+        # Every PNG variant (1 to 16 bits, grey / RGB / palette, alpha, interlaced) goes to the
+        # Rust decoder: no fallback reader (pypng is only used to write 16-bit PNG).
+        return _core.read_pngs([path], int(max_pixels))[0]
     try:
-        if header.startswith(_PNG_SIGNATURE):
-            image = _read_png(path, header)
-        elif header.startswith(_TIFF_SIGNATURES):
-            image = _read_tiff(path)
+        if header.startswith(_TIFF_SIGNATURES):
+            image = _read_tiff(path, max_pixels)
         else:
             image = np.asarray(iio.imread(path))
     except InputError:
@@ -74,6 +95,67 @@ def read_image(path: PathLike) -> np.ndarray:
     except Exception as exc:  # decoders raise many unrelated types (OSError, ValueError, ...)
         raise InputError(f"cannot read image '{os.fspath(path)}': {exc}") from exc
     return _normalize_channels(image, path)
+
+
+def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iterator[np.ndarray]:
+    """Read image files like :func:`read_image`, yielding their pixels in the order of ``paths``.
+
+    PNG files are decoded several at a time, in parallel and without the GIL, in batches of a
+    bounded size: iterating (and converting each image before taking the next) keeps only a
+    batch of decoded images in memory. Errors are raised like :func:`read_image`'s, when the
+    iteration reaches the batch of the offending file.
+    """
+    batch: list[PathLike] = []
+    batch_bytes = 0
+    cores = _cores()
+    for path in paths:
+        try:
+            header = _read_header(path)
+        except InputError:
+            yield from _read_pngs(batch, max_pixels)  # report the files before this one first
+            raise
+        if not header.startswith(_PNG_SIGNATURE):
+            yield from _read_pngs(batch, max_pixels)
+            batch, batch_bytes = [], 0
+            yield read_image(path, max_pixels)
+            continue
+        batch.append(path)
+        batch_bytes += _png_bytes(header)
+        if batch_bytes >= _BATCH_BYTES and len(batch) >= cores:
+            yield from _read_pngs(batch, max_pixels)
+            batch, batch_bytes = [], 0
+    yield from _read_pngs(batch, max_pixels)
+
+
+def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
+    """Decode PNG files in parallel (Rust) and yield them in order, each dropped from the batch
+    as it is yielded (so that it is freed once the caller is done with it). InputError names the
+    first bad file."""
+    if not paths:
+        return
+    decoded = _core.read_pngs(paths, int(max_pixels))
+    decoded.reverse()
+    while decoded:
+        yield decoded.pop()
+
+
+def _png_bytes(header: bytes) -> int:
+    """The decoded size in bytes of the PNG whose first bytes are ``header`` (0 if unknown)."""
+    if len(header) < 26:
+        return 0
+    width = int.from_bytes(header[16:20], "big")
+    height = int.from_bytes(header[20:24], "big")
+    sample_bytes = 2 if header[24] == 16 else 1
+    channels = 1 if header[25] in (0, 4) else 3  # grey (+ alpha) or colour / palette
+    return width * height * channels * sample_bytes
+
+
+def _cores() -> int:
+    """The number of cores this process may use (the size of the decoder's thread pool)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
 
 
 def _read_header(path: PathLike) -> bytes:
@@ -87,41 +169,16 @@ def _read_header(path: PathLike) -> bytes:
         raise InputError(f"cannot read image '{os.fspath(path)}': {exc.strerror or exc}") from exc
 
 
-def _read_png(path: PathLike, header: bytes) -> np.ndarray:
-    """Read a PNG file: pypng for 16-bit files, imageio otherwise."""
-    if len(header) <= _PNG_COLOUR_TYPE_OFFSET:
-        raise InputError(f"cannot read image '{os.fspath(path)}': truncated PNG header")
-    if header[_PNG_BIT_DEPTH_OFFSET] == 16:
-        return _read_png16(path)
-    image = np.asarray(iio.imread(path))
-    if image.dtype == np.bool_:  # 1-bit grey PNG: keep the usual 8-bit range
-        image = image.astype(np.uint8) * np.uint8(255)
-    if header[_PNG_COLOUR_TYPE_OFFSET] == _PNG_COLOUR_TYPE_PALETTE:
-        image = _grey_palette_to_grey(_drop_alpha(image))
-    return image
-
-
-def _read_png16(path: PathLike) -> np.ndarray:
-    """Read a 16-bit PNG with pypng as ``uint16`` of shape ``(H, W, planes)``."""
-    width, height, rows, info = png.Reader(filename=os.fspath(path)).asDirect()
-    pixels = np.vstack([np.asarray(row, dtype=np.uint16) for row in rows])
-    return pixels.reshape(height, width, info["planes"])
-
-
-def _grey_palette_to_grey(image: np.ndarray) -> np.ndarray:
-    """Reduce an expanded palette image to ``(H, W)`` when all its colours are grey."""
-    if image.ndim == 3 and image.shape[2] == 3:
-        if np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(
-            image[..., 0], image[..., 2]
-        ):
-            return image[..., 0]
-    return image
-
-
-def _read_tiff(path: PathLike) -> np.ndarray:
-    """Read the first series of a TIFF file, channel-last."""
+def _read_tiff(path: PathLike, max_pixels: int) -> np.ndarray:
+    """Read the first series of a TIFF file, channel-last; refuse more than ``max_pixels``."""
     with tifffile.TiffFile(path) as tif:
         series = tif.series[0]
+        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes) if axis != "S"]))
+        if pixels > max_pixels:
+            raise InputError(
+                f"cannot read image '{os.fspath(path)}': {pixels} pixels is more than the limit "
+                f"of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
+            )
         image = series.asarray()
         axes = series.axes
     if image.ndim == 3 and axes.startswith("S"):  # planar configuration: channels first
@@ -173,10 +230,30 @@ def to_float(img: np.ndarray) -> np.ndarray:
     if img.dtype == np.bool_:
         return img.astype(np.float32)
     if np.issubdtype(img.dtype, np.integer):
-        return (img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)).astype(np.float32)
+        out = img.astype(np.float32)
+        out /= np.float32(np.iinfo(img.dtype).max)  # in place: one float32 copy of the input
+        return out
     if np.issubdtype(img.dtype, np.floating):
         return img.astype(np.float32, copy=False)
     raise InputError(f"unsupported image dtype {img.dtype}: expected integers or floats")
+
+
+def _to_float_into(img: np.ndarray, out: np.ndarray) -> None:
+    """Write :func:`to_float` of ``img`` into the float32 array ``out`` (same values, no copy)."""
+    if img.dtype == np.bool_ or np.issubdtype(img.dtype, np.floating):
+        out[...] = img
+    elif np.issubdtype(img.dtype, np.integer):
+        np.divide(img, np.float32(np.iinfo(img.dtype).max), out=out, dtype=np.float32, casting="unsafe")
+    else:
+        raise InputError(f"unsupported image dtype {img.dtype}: expected integers or floats")
+
+
+def _convert_into(img: np.ndarray, out: np.ndarray, gray: bool) -> None:
+    """Write :func:`to_gray` (``gray``) or :func:`to_float` of one image into ``out``."""
+    if gray and img.ndim == 3:
+        np.mean(to_float(img), axis=2, dtype=np.float32, out=out)
+    else:
+        _to_float_into(img, out)
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
@@ -219,44 +296,111 @@ def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
     return load_stack(images, color=False)[0]
 
 
-def load_stack(images: np.ndarray | Sequence[ImageSource], color: bool = False) -> tuple[np.ndarray, int | None]:
+def load_stack(
+    images: np.ndarray | Sequence[ImageSource], color: bool = False, *, max_pixels: int = MAX_PIXELS
+) -> tuple[np.ndarray, int | None]:
     """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set
     and every image is RGB, with integers scaled to ``[0, 1]``.
 
     Returns the stack and the number of levels of the source (``255`` for 8-bit, ``65535`` for
     16-bit input, the largest of the images' if they differ), or None for floating-point input.
-    Raises :class:`InputError` like :func:`load_images`.
+    Files are read with :func:`iter_images` (PNG decoded in parallel) and each image is converted
+    straight into the preallocated stack; a float32 ``(k, H, W[, 3])`` array that needs no
+    conversion is returned as it is (no copy). ``max_pixels`` limits the size of each file (see
+    :data:`MAX_PIXELS`). Raises :class:`InputError` like :func:`load_images`.
     """
     if isinstance(images, np.ndarray):
-        if not (images.ndim == 3 or (images.ndim == 4 and images.shape[3] == 3)):
+        return _array_stack(images, color)
+    if isinstance(images, (str, os.PathLike)):
+        raise InputError(f"expected a sequence of images, got the single path '{os.fspath(images)}'")
+    items: list[ImageSource] = list(images)
+    if not items:
+        raise InputError("no input image: the image list is empty")
+    labels = [_label(i, item) for i, item in enumerate(items)]
+    k = len(items)
+    stack: np.ndarray | None = None
+    keep_color = color
+    levels: list[int | None] = []
+    nonfinite = np.zeros(k, dtype=np.int64)
+    for i, pixels in enumerate(_sources(items, max_pixels)):
+        label = labels[i]
+        if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)):
+            raise InputError(f"{label}: expected shape (H, W) or (H, W, 3), got {pixels.shape}")
+        if stack is None:
+            keep_color = color and pixels.ndim == 3
+            stack = np.empty((k,) + (pixels.shape if keep_color else pixels.shape[:2]), dtype=np.float32)
+        elif keep_color and pixels.ndim == 2:
+            # Colour is kept only when every image is RGB: the images so far become grey.
+            stack = _gray_stack(stack, i)
+            keep_color = False
+        shape = pixels.shape if keep_color else pixels.shape[:2]
+        if shape != stack.shape[1:]:
             raise InputError(
-                "expected an image stack of shape (k, H, W) or (k, H, W, 3), "
-                f"got an array of shape {images.shape}"
+                f"images have different sizes: {label} has shape {shape} "
+                f"but {labels[0]} has shape {stack.shape[1:]}"
             )
-        if images.shape[0] == 0:
-            raise InputError("no input image: the image stack is empty")
-        # One conversion of the whole array (no per-image copies).
+        try:
+            _convert_into(pixels, stack[i], gray=not keep_color)
+        except InputError as exc:
+            raise InputError(f"{label}: {exc}") from exc
+        integer = np.issubdtype(pixels.dtype, np.integer)
+        levels.append(int(np.iinfo(pixels.dtype).max) if integer else None)
+        if not integer and pixels.dtype != np.bool_:
+            nonfinite[i] = _count_nonfinite(stack[i])
+    assert stack is not None
+    _raise_nonfinite(nonfinite, labels)
+    known = [v for v in levels if v is not None]
+    return stack, (max(known) if len(known) == k else None)
+
+
+def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | None]:
+    """:func:`load_stack` of one ``(k, H, W[, 3])`` array."""
+    if not (images.ndim == 3 or (images.ndim == 4 and images.shape[3] == 3)):
+        raise InputError(
+            "expected an image stack of shape (k, H, W) or (k, H, W, 3), "
+            f"got an array of shape {images.shape}"
+        )
+    k = images.shape[0]
+    if k == 0:
+        raise InputError("no input image: the image stack is empty")
+    if images.ndim == 4 and not color and images.dtype != np.float32:
+        # Grey from colour: image by image, so that no float32 colour copy of the stack is made.
+        stack = np.empty(images.shape[:3], dtype=np.float32)
+        for i in range(k):
+            _convert_into(images[i], stack[i], gray=True)
+    else:
+        # One conversion of the whole array; none at all for a C-contiguous float32 colour stack
+        # or grey stack.
         whole = to_float(images)
         if whole.ndim == 4 and not color:
             whole = whole.mean(axis=3, dtype=np.float32)
         stack = np.ascontiguousarray(whole, dtype=np.float32)
-        _check_finite(stack, [f"image {i}" for i in range(stack.shape[0])])
-        return stack, (int(np.iinfo(images.dtype).max) if np.issubdtype(images.dtype, np.integer) else None)
-    else:
-        if isinstance(images, (str, os.PathLike)):
-            raise InputError(f"expected a sequence of images, got the single path '{os.fspath(images)}'")
-        items: list[ImageSource] = list(images)
-        if not items:
-            raise InputError("no input image: the image list is empty")
-        labels = [_label(i, item) for i, item in enumerate(items)]
-    raw = [_read_one(item, label) for item, label in zip(items, labels)]
-    keep_color = color and all(p.ndim == 3 for p in raw)
-    converted = [to_float(p) if keep_color else _gray(p, label) for p, label in zip(raw, labels)]
-    _check_same_shape(converted, labels)
-    stack = np.ascontiguousarray(np.stack(converted), dtype=np.float32)
-    _check_finite(stack, labels)
-    levels = [np.iinfo(p.dtype).max for p in raw if np.issubdtype(p.dtype, np.integer)]
-    return stack, (max(levels) if levels and len(levels) == len(raw) else None)
+    labels = [f"image {i}" for i in range(k)]
+    if np.issubdtype(images.dtype, np.floating):
+        _raise_nonfinite(np.array([_count_nonfinite(image) for image in stack]), labels)
+    return stack, (int(np.iinfo(images.dtype).max) if np.issubdtype(images.dtype, np.integer) else None)
+
+
+def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
+    """The pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
+    run: list[PathLike] = []
+    for item in items:
+        if isinstance(item, (str, os.PathLike)):
+            run.append(item)
+            continue
+        yield from iter_images(run, max_pixels)
+        run = []
+        yield np.asarray(item)
+    yield from iter_images(run, max_pixels)
+
+
+def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:
+    """A grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of
+    ``stack``'s (the values :func:`to_gray` gives)."""
+    gray = np.empty(stack.shape[:3], dtype=np.float32)
+    for i in range(count):
+        np.mean(stack[i], axis=2, dtype=np.float32, out=gray[i])
+    return gray
 
 
 def _label(index: int, item: ImageSource) -> str:
@@ -266,39 +410,17 @@ def _label(index: int, item: ImageSource) -> str:
     return f"image {index}"
 
 
-def _read_one(item: ImageSource, label: str) -> np.ndarray:
-    """Read a file or take an array; its shape must be ``(H, W)`` or ``(H, W, 3)``."""
-    pixels = read_image(item) if isinstance(item, (str, os.PathLike)) else np.asarray(item)
-    if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)):
-        raise InputError(f"{label}: expected shape (H, W) or (H, W, 3), got {pixels.shape}")
-    return pixels
+def _count_nonfinite(image: np.ndarray) -> int:
+    """The number of NaN or infinite values of one float image."""
+    return int(np.count_nonzero(~np.isfinite(image)))
 
 
-def _gray(pixels: np.ndarray, label: str) -> np.ndarray:
-    try:
-        return to_gray(pixels)
-    except InputError as exc:
-        raise InputError(f"{label}: {exc}") from exc
-
-
-def _check_same_shape(images: list[np.ndarray], labels: list[str]) -> None:
-    """Raise InputError naming the first image whose size differs from the first image's."""
-    reference = images[0].shape
-    for image, label in zip(images[1:], labels[1:]):
-        if image.shape != reference:
-            raise InputError(
-                f"images have different sizes: {label} has shape {image.shape} "
-                f"but {labels[0]} has shape {reference}"
-            )
-
-
-def _check_finite(stack: np.ndarray, labels: list[str]) -> None:
-    """Raise InputError listing the images that contain NaN or infinite values."""
-    bad_counts = np.count_nonzero(~np.isfinite(stack.reshape(stack.shape[0], -1)), axis=1)
-    bad = np.flatnonzero(bad_counts)
+def _raise_nonfinite(counts: np.ndarray, labels: list[str]) -> None:
+    """Raise InputError listing the images with non-finite values (``counts`` per image)."""
+    bad = np.flatnonzero(counts)
     if bad.size == 0:
         return
-    listed = ", ".join(f"{labels[i]}: {bad_counts[i]}" for i in bad[:_MAX_LISTED])
+    listed = ", ".join(f"{labels[i]}: {counts[i]}" for i in bad[:_MAX_LISTED])
     more = f" and {bad.size - _MAX_LISTED} more images" if bad.size > _MAX_LISTED else ""
     raise InputError(f"non-finite values (NaN or inf) in the input images: {listed}{more}")
 

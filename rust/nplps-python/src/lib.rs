@@ -6,6 +6,7 @@
 //! GIL back briefly to check for Ctrl-C and to call the progress callback.
 
 mod convert;
+mod decode;
 mod errors;
 
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -450,5 +451,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
+    m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
     Ok(())
 }
