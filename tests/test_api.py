@@ -487,6 +487,22 @@ def test_unreadable_image_file(tmp_path, small):
         nplps.reconstruct([bad] * 27, small.rig, small.mask, 200.0)
 
 
+def test_valid_flags_leave_the_callers_images_alone(small):
+    """Flagged observations become NaN in a copy of a caller's float32 stack, in place in a stack
+    made from a list; both give the same result."""
+    images = np.ascontiguousarray(small.images, dtype=np.float32)
+    before = images.copy()
+    valid = np.ones(images.shape, dtype=bool)
+    valid[:3, 4:9, 4:9] = False
+    common = dict(rig=small.rig, mask=small.mask, depth=small.mean_depth, iterations=2, valid=valid)
+
+    from_array = nplps.reconstruct(images, **common)
+    from_list = nplps.reconstruct(list(images), **common)
+
+    np.testing.assert_array_equal(images, before)
+    np.testing.assert_array_equal(from_array.depth, from_list.depth)
+
+
 def test_bad_rig():
     with pytest.raises(nplps.RigError, match=r"at least 3 lights, the rig has 2"):
         nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [10, 0, 0]])

@@ -7,6 +7,7 @@ folder is absent.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -264,6 +265,22 @@ def test_capture_select_and_load(tmp_path: Path) -> None:
     assert loaded.select([1]).images.shape == (1, 6, 8)
     with pytest.raises(InputError, match="out of range"):
         c.select([4])
+
+
+def test_prepare_copies_a_given_stack_once_unless_overwrite(tmp_path: Path) -> None:
+    _near_ps_folder(tmp_path / "c", k=4)
+    c = cap.load_near_ps(tmp_path / "c")
+    from_files = cap.prepare(c)  # loaded here: corrected in place
+    stack = c.load().images
+    given = stack.copy()
+
+    copied = cap.prepare(dataclasses.replace(c, images=given))
+    np.testing.assert_array_equal(given, stack)  # the caller's array is left alone
+    np.testing.assert_array_equal(copied.images, from_files.images)
+
+    overwritten = cap.prepare(dataclasses.replace(c, images=given), overwrite=True)
+    assert np.shares_memory(overwritten.images, given)
+    np.testing.assert_array_equal(given, from_files.images)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -121,6 +121,29 @@ def test_cos4_map_uses_0_based_pixel_centres() -> None:
     np.testing.assert_allclose(vmap, vmap.T)
 
 
+def test_steps_write_into_out_in_place_with_the_same_values() -> None:
+    """out= (the input itself: in place) gives the values of the default path, which are those of
+    float64 arithmetic rounded to float32 (now without a float64 copy of the stack)."""
+    rng = np.random.default_rng(5)
+    stack = rng.random((3, 4, 5), dtype=np.float32)
+    ambient = rng.random((4, 5)) * 0.5  # float64
+    vmap = rng.uniform(0.3, 1.0, (4, 5)).astype(np.float32)
+    cases = [
+        (pp.subtract_ambient, ambient, np.maximum(stack - ambient, 0)),
+        (pp.scale_exposure, [1.0, 3.0, 7.0], stack / np.array([1.0, 3.0, 7.0])[:, None, None]),
+        (pp.compensate_vignetting, vmap, stack / vmap.astype(np.float64)),
+    ]
+    for step, arg, exact in cases:
+        expected = step(stack, arg)
+        assert expected.dtype == np.float32
+        np.testing.assert_array_equal(expected, exact.astype(np.float32))
+        work = stack.copy()
+        assert step(work, arg, out=work) is work
+        np.testing.assert_array_equal(work, expected)
+        with pytest.raises(InputError, match="out"):
+            step(stack, arg, out=np.empty(stack.shape))  # float64: not the images' dtype
+
+
 def test_compensate_vignetting_broadcasts() -> None:
     vmap = np.array([[1.0, 0.5], [0.25, 0.5]])
     stack = np.ones((3, 2, 2), dtype=np.float32)

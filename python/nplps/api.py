@@ -83,8 +83,15 @@ def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple
     return np.ascontiguousarray(stack.mean(axis=-1, dtype=np.float32)), missing
 
 
-def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = None) -> np.ndarray:
-    """Marks the observations where ``valid`` is False, or ``missing`` is True, as missing (NaN)."""
+def _owned(stack: np.ndarray, images: Images) -> bool:
+    """True when ``stack`` was made here (from files, a list, a conversion or the grey average),
+    not the caller's array itself: then it may be modified in place."""
+    return not (isinstance(images, np.ndarray) and np.may_share_memory(stack, images))
+
+
+def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = None, owned: bool = False) -> np.ndarray:
+    """Marks the observations where ``valid`` is False, or ``missing`` is True, as missing (NaN):
+    in ``stack`` itself when it is ``owned`` (see :func:`_owned`), in a copy otherwise."""
     if valid is None and missing is None:
         return stack
     v = np.ones(stack.shape[:3], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
@@ -92,7 +99,7 @@ def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = Non
         raise InputError(f"valid must have one flag per observation, shape {stack.shape[:3]}, got {v.shape}")
     if missing is not None:
         v = v & ~missing
-    out = stack.copy()
+    out = stack if owned else stack.copy()
     out[~v] = np.nan
     return out
 
@@ -232,7 +239,7 @@ def reconstruct(
         if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
             raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
     out = _core.reconstruct(
-        _apply_valid(stack, valid, missing),
+        _apply_valid(stack, valid, missing, _owned(stack, images)),
         rig.camera,
         rig._core_lights(),
         mask_arr,
@@ -274,7 +281,13 @@ def reconstruct_parallel(
         "threads": _threads(threads),
     }
     out = _core.reconstruct_parallel(
-        _apply_valid(stack, valid, missing), rig.camera, rig._core_lights(), mask_arr, distance, depth_map, options
+        _apply_valid(stack, valid, missing, _owned(stack, images)),
+        rig.camera,
+        rig._core_lights(),
+        mask_arr,
+        distance,
+        depth_map,
+        options,
     )
     return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 

@@ -20,8 +20,11 @@ Conventions
   are ``(H, W)`` or ``(H, W, C)``. Functions that cannot tell a grey stack from a colour image by
   the number of dimensions say how they read a 3-D array.
 * Floating-point input keeps its dtype (``float32`` in, ``float32`` out; ``float64`` in,
-  ``float64`` out). Integer input is first scaled to ``[0, 1]`` by :func:`nplps.io.to_float`
-  (``uint8`` / 255, ``uint16`` / 65535), which returns ``float32``.
+  ``float64`` out); float32 stacks are never copied to float64 (float64 arithmetic, where a
+  step uses it, runs in small buffers or one image at a time). Integer input is first scaled
+  to ``[0, 1]`` by :func:`nplps.io.to_float` (``uint8`` / 255, ``uint16`` / 65535), which
+  returns ``float32``. ``out=`` lets the stack steps write into an existing array (the input
+  itself, to work in place).
 * Pixel coordinates are 0-based pixel centres: pixel ``(r, c)`` has its centre at
   ``(u, v) = (c, r)``; the pinhole matrix ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` maps a
   camera-frame point ``(x, y, z)`` (OpenCV frame: x right, y down, z forward) to
@@ -79,6 +82,18 @@ def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:
         raise InputError(f"{name}: {exc}") from exc
 
 
+def _output(imgs: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    """The array a step writes into: ``out`` (checked; may be ``imgs`` itself) or a new one."""
+    if out is None:
+        return np.empty(imgs.shape, dtype=imgs.dtype)
+    if not isinstance(out, np.ndarray) or out.shape != imgs.shape or out.dtype != imgs.dtype:
+        raise InputError(
+            f"out: expected an array of shape {imgs.shape} and dtype {imgs.dtype}, got "
+            f"{getattr(out, 'shape', None)} {getattr(out, 'dtype', type(out).__name__)}"
+        )
+    return out
+
+
 def _spatial_axes(ndim: int, stack: bool, name: str) -> tuple[int, int]:
     """Axes (row, column) of an array of ``ndim`` dimensions.
 
@@ -117,7 +132,7 @@ def _check_K(K: np.ndarray) -> np.ndarray:
 
 
 def subtract_ambient(
-    images: np.ndarray, ambient: np.ndarray | float, clip: bool = True
+    images: np.ndarray, ambient: np.ndarray | float, clip: bool = True, *, out: np.ndarray | None = None
 ) -> np.ndarray:
     """Remove the ambient light: ``J = max(I - A, 0)``.
 
@@ -132,12 +147,15 @@ def subtract_ambient(
             ``(H, W[, C])`` for a stack, a per-image stack of the same shape as ``images``, or a
             scalar (black level).
         clip: clip the result at 0.
+        out: optional array for the result, of the shape and floating dtype of ``images``;
+            ``images`` itself (when floating) works in place, without a copy.
 
     Returns:
-        An array of the shape and floating dtype of ``images``.
+        An array of the shape and floating dtype of ``images`` (``out`` when given).
 
     Raises:
-        InputError: the shapes do not broadcast to the shape of ``images``.
+        InputError: the shapes do not broadcast to the shape of ``images``, or ``out`` does not
+            match.
     """
     imgs = _as_float(images, "images")
     amb = _as_float(ambient, "ambient")
@@ -151,13 +169,16 @@ def subtract_ambient(
         raise InputError(
             f"ambient of shape {amb.shape} does not broadcast to images of shape {imgs.shape}"
         )
-    out = (imgs - amb).astype(imgs.dtype, copy=False)
+    out = _output(imgs, out)
+    np.subtract(imgs, amb, out=out)  # a float64 ambient is applied in buffers, not a float64 stack
     if clip:
         np.maximum(out, 0, out=out)
     return out
 
 
-def scale_exposure(images: np.ndarray, exposures: Sequence[float] | np.ndarray) -> np.ndarray:
+def scale_exposure(
+    images: np.ndarray, exposures: Sequence[float] | np.ndarray, *, out: np.ndarray | None = None
+) -> np.ndarray:
     """Divide image ``i`` by ``exposures[i]``: ``J_i = I_i / e_i``.
 
     Use it to bring images taken with different exposure times, gains or ISO settings, or lit by
@@ -169,9 +190,10 @@ def scale_exposure(images: np.ndarray, exposures: Sequence[float] | np.ndarray) 
         images: a stack ``(k, H, W)`` or ``(k, H, W, C)``.
         exposures: ``(k,)`` (one factor per image) or ``(k, C)`` (one per image and channel;
             needs a colour stack). Positive and finite.
+        out: optional array for the result, as in :func:`subtract_ambient`.
 
     Returns:
-        An array of the shape and floating dtype of ``images``.
+        An array of the shape and floating dtype of ``images`` (``out`` when given).
 
     Raises:
         InputError: wrong shapes, or a factor that is not positive and finite.
@@ -192,7 +214,8 @@ def scale_exposure(images: np.ndarray, exposures: Sequence[float] | np.ndarray) 
         )
     if not np.all(np.isfinite(e)) or np.any(e <= 0):
         raise InputError("exposures must be positive and finite")
-    return (imgs / factors).astype(imgs.dtype, copy=False)
+    # Divided in float64 as before, in buffers: no float64 copy of the stack.
+    return np.divide(imgs, factors, out=_output(imgs, out))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -324,7 +347,9 @@ def flat_field_map(flat: np.ndarray, ambient: np.ndarray | float | None = None) 
     return (f / peak).astype(f.dtype, copy=False)
 
 
-def compensate_vignetting(images: np.ndarray, vignetting: np.ndarray) -> np.ndarray:
+def compensate_vignetting(
+    images: np.ndarray, vignetting: np.ndarray, *, out: np.ndarray | None = None
+) -> np.ndarray:
     """Divide by a vignetting map: ``J = I / V``.
 
     Args:
@@ -332,13 +357,14 @@ def compensate_vignetting(images: np.ndarray, vignetting: np.ndarray) -> np.ndar
         vignetting: ``(H, W)`` (a :func:`vignetting_cos4` map or a grey flat field) or
             ``(H, W, C)`` (a colour flat field from :func:`flat_field_map`, for colour images).
             Strictly positive.
+        out: optional array for the result, as in :func:`subtract_ambient`.
 
     The map's ``(H, W)`` is matched against the trailing axes of ``images``: an ``(H, W)`` map
     divides ``(k, H, W)`` and ``(H, W)`` directly, and ``(k, H, W, C)`` and ``(H, W, 3)``
     channel by channel.
 
     Returns:
-        An array of the shape and floating dtype of ``images``.
+        An array of the shape and floating dtype of ``images`` (``out`` when given).
 
     Raises:
         InputError: the map's size does not match the images, or it has values <= 0 / non-finite.
@@ -365,7 +391,8 @@ def compensate_vignetting(images: np.ndarray, vignetting: np.ndarray) -> np.ndar
         )
     if not np.all(np.isfinite(vmap)) or np.any(vmap <= 0):
         raise InputError("vignetting map must be positive and finite everywhere")
-    return (imgs / div).astype(imgs.dtype, copy=False)
+    # The division runs in float64 (the map is float64) in buffers: no float64 copy of the stack.
+    return np.divide(imgs, div, out=_output(imgs, out))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -426,7 +453,16 @@ def bin_images(images: np.ndarray, factor: int, stack: bool = True) -> np.ndarra
     ra, ca = _spatial_axes(x.ndim, stack, "images")
     blocks = _block_view(x, s, (ra, ca), "images")
     # After splitting, the block axes sit at ra + 1 and ca + 2.
-    return blocks.mean(axis=(ra + 1, ca + 2), dtype=np.float64).astype(x.dtype)
+    if ra == 0:
+        return blocks.mean(axis=(ra + 1, ca + 2), dtype=np.float64).astype(x.dtype)
+    # A stack: one image at a time, so that the float64 sums take one binned image of memory.
+    shape = list(x.shape)
+    shape[ra] //= s
+    shape[ca] //= s
+    out = np.empty(shape, dtype=x.dtype)
+    for i in range(out.shape[0]):
+        out[i] = blocks[i].mean(axis=(ra, ca + 1), dtype=np.float64)
+    return out
 
 
 def bin_mask(

@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import preprocess
 from ..errors import InputError
-from .files import _check_indices, _read_float, _read_stack
+from .files import _check_indices, _gray64, _read_float, _read_stack
 
 if TYPE_CHECKING:
     from ..rig import Rig
@@ -89,12 +89,16 @@ class Capture:
         if not isinstance(images, np.ndarray):
             images = _read_stack(images, gray=gray)
         elif gray and images.ndim == 4:
-            images = images.mean(axis=3, dtype=np.float64).astype(np.float32)
+            # Image by image: the float64 sums never take a whole stack of memory.
+            colour = images
+            images = np.empty(colour.shape[:3], dtype=np.float32)
+            for i, image in enumerate(colour):
+                images[i] = _gray64(image)
         ambient = self.ambient
         if ambient is not None and not isinstance(ambient, np.ndarray):
             ambient = _read_float(Path(ambient))
         if ambient is not None and gray and ambient.ndim == 3:
-            ambient = ambient.mean(axis=2, dtype=np.float64).astype(np.float32)
+            ambient = _gray64(ambient)
         return dataclasses.replace(self, images=images, ambient=ambient)
 
     def rig(self) -> "Rig":
@@ -146,6 +150,7 @@ def prepare(
     ambient: bool = True,
     vignetting: Literal["cos4"] | np.ndarray | None = "cos4",
     gray: bool = False,
+    overwrite: bool = False,
 ) -> Capture:
     """The usual pre-processing of a near-light capture, as the near_ps authors do it.
 
@@ -154,18 +159,32 @@ def prepare(
     (images averaged, mask kept where its whole block is, K adjusted: fx' = fx/s,
     cx' = (cx + 1/2)/s - 1/2). Returns a loaded capture on the binned grid; ``capture.rig()``
     then gives the matching rig.
+
+    Images read from files are corrected in place. A float32 stack in ``capture.images`` is
+    copied once by the first correction, unless ``overwrite=True`` hands it over to be
+    corrected in place (no copy; the caller's array then holds the corrected values).
     """
     c = capture.load(gray=gray)
     images = np.asarray(c.images, dtype=np.float32)
+    # The first step that changes the caller's array makes the one copy (unless overwrite); the
+    # others, and every step on images loaded here, work in place.
+    given = capture.images
+    owned = overwrite or not (isinstance(given, np.ndarray) and np.may_share_memory(images, given))
     if ambient and c.ambient is not None:
-        images = preprocess.subtract_ambient(images, np.asarray(c.ambient, dtype=np.float32))
+        amb = np.asarray(c.ambient, dtype=np.float32)
+        images = preprocess.subtract_ambient(images, amb, out=images if owned else None)
+        owned = True
     if isinstance(vignetting, str):
         if vignetting != "cos4":
             raise InputError(f"vignetting must be 'cos4', a map or None, got {vignetting!r}")
         if c.K is not None:
-            images = preprocess.compensate_vignetting(images, preprocess.vignetting_cos4(images.shape[1:3], c.K))
+            vmap = preprocess.vignetting_cos4(images.shape[1:3], c.K)
+            images = preprocess.compensate_vignetting(images, vmap, out=images if owned else None)
+            owned = True
     elif vignetting is not None:
-        images = preprocess.compensate_vignetting(images, np.asarray(vignetting))
+        vmap = np.asarray(vignetting)
+        images = preprocess.compensate_vignetting(images, vmap, out=images if owned else None)
+        owned = True
     K, mask, normals = c.K, c.mask, c.normals_gt
     if bin_factor != 1:
         images = preprocess.bin_images(images, bin_factor)

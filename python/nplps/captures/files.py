@@ -10,7 +10,7 @@ from typing import Any, Union
 import numpy as np
 
 from ..errors import InputError
-from ..io import PathLike, read_image, to_float
+from ..io import PathLike, _to_float_into, iter_images, read_image, to_float
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """File name extensions (lower case) that the loaders treat as images."""
@@ -99,18 +99,29 @@ def _read_float(path: Path) -> np.ndarray:
 
 
 def _read_stack(files: Sequence[PathLike], gray: bool) -> np.ndarray:
-    """Read image files into a float32 stack ``(k, H, W[, 3])``."""
-    arrays = []
-    for path in files:
-        image = _read_float(Path(path))
-        if gray and image.ndim == 3:
-            image = image.mean(axis=2, dtype=np.float64).astype(np.float32)
-        if arrays and image.shape != arrays[0].shape:
-            raise InputError(
-                f"image '{path}' has shape {image.shape} but '{files[0]}' has {arrays[0].shape}"
-            )
-        arrays.append(image)
-    return np.stack(arrays)
+    """Read image files into a float32 stack ``(k, H, W[, 3])``.
+
+    The files are decoded a few at a time (PNG in parallel, :func:`nplps.io.iter_images`) and
+    each image is converted into the preallocated stack.
+    """
+    stack: np.ndarray | None = None
+    for i, (path, raw) in enumerate(zip(files, iter_images(files))):
+        shape = raw.shape[:2] if gray else raw.shape
+        if stack is None:
+            stack = np.empty((len(files),) + shape, dtype=np.float32)
+        elif shape != stack.shape[1:]:
+            raise InputError(f"image '{path}' has shape {shape} but '{files[0]}' has {stack.shape[1:]}")
+        if gray and raw.ndim == 3:
+            stack[i] = _gray64(to_float(raw))
+        else:
+            _to_float_into(raw, stack[i])
+    assert stack is not None
+    return stack
+
+
+def _gray64(image: np.ndarray) -> np.ndarray:
+    """The channel mean of one float32 ``(H, W, C)`` image, summed in float64, as float32."""
+    return image.mean(axis=2, dtype=np.float64).astype(np.float32)
 
 
 def _read_mask(path: Path) -> np.ndarray:

@@ -263,9 +263,12 @@ def _load_files(args: argparse.Namespace) -> _Loaded:
         )
     raw, levels = load_raw(files)
     mask = None if args.mask is None else _mask(args.mask, raw.shape[1:3])
+    # Saturation is judged on the raw values, before pre-processing overwrites them in place.
+    valid = saturation_valid(raw, levels, args.saturation)
     images = _to_gray(raw) if args.gray else raw
-    images, steps = preprocess_images(images, args, rig.K)
-    return _Loaded(images, rig, mask, saturation_valid(raw, levels, args.saturation), levels, steps)
+    del raw
+    images, steps = preprocess_images(images, args, rig.K, in_place=True)
+    return _Loaded(images, rig, mask, valid, levels, steps)
 
 
 def _load_capture(args: argparse.Namespace) -> _Loaded:
@@ -275,13 +278,15 @@ def _load_capture(args: argparse.Namespace) -> _Loaded:
     capture = _read_capture(args)
     raw, levels = load_raw(capture.files)
     mask = capture.mask if args.mask is None else _mask(args.mask, raw.shape[1:3])
+    # Saturation is judged on the raw values, before pre-processing overwrites them in place.
+    valid = saturation_valid(raw, levels, args.saturation)
     images = _to_gray(raw) if args.gray else raw
+    del raw
     vmap, vstep = vignetting_map(args, capture.K, images, default="cos4" if capture.K is not None else "none")
     capture = dataclasses.replace(capture, images=images, mask=mask)
-    prepared = captures.prepare(capture, bin_factor=1, ambient=True, vignetting=vmap, gray=args.gray)
+    prepared = captures.prepare(capture, bin_factor=1, ambient=True, vignetting=vmap, gray=args.gray, overwrite=True)
     steps = ([f"ambient '{Path(capture.ambient).name}' subtracted"] if capture.ambient is not None else [])
     steps += [vstep] if vstep else []
-    valid = saturation_valid(raw, levels, args.saturation)
     return _Loaded(prepared.images, prepared.rig(), prepared.mask, valid, levels, steps)
 
 

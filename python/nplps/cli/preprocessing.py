@@ -30,25 +30,33 @@ def _to_gray(images: np.ndarray) -> np.ndarray:
     return images.mean(axis=3, dtype=np.float32) if images.ndim == 4 else images
 
 
-def preprocess_images(images: np.ndarray, args: argparse.Namespace, K: np.ndarray | None) -> tuple[np.ndarray, list[str]]:
+def preprocess_images(
+    images: np.ndarray, args: argparse.Namespace, K: np.ndarray | None, in_place: bool = False
+) -> tuple[np.ndarray, list[str]]:
     """--srgb, --ambient, --exposures, --vignetting / --flat, in this order; returns the images
-    and the list of the steps done."""
+    and the list of the steps done. ``in_place``: the caller hands ``images`` over, and the
+    steps overwrite it instead of copying it (the first step copies otherwise)."""
     from .. import preprocess
 
     steps = []
     if args.srgb:
         images = preprocess.srgb_to_linear(images)
+        in_place = True
         steps.append("sRGB decoded")
     if args.ambient:
         ambient = _side_image(args.ambient, "--ambient", images, args.srgb)
-        images = preprocess.subtract_ambient(images, ambient[..., None] if images.ndim > ambient.ndim + 1 else ambient)
+        ambient = ambient[..., None] if images.ndim > ambient.ndim + 1 else ambient
+        images = preprocess.subtract_ambient(images, ambient, out=images if in_place else None)
+        in_place = True
         steps.append(f"ambient '{args.ambient}' subtracted")
     if args.exposures:
-        images = preprocess.scale_exposure(images, parse_exposures(args.exposures, images.shape[0]))
+        exposures = parse_exposures(args.exposures, images.shape[0])
+        images = preprocess.scale_exposure(images, exposures, out=images if in_place else None)
+        in_place = True
         steps.append("divided by the exposures")
     vmap, vstep = vignetting_map(args, K, images, default="none")
     if vmap is not None:
-        images = preprocess.compensate_vignetting(images, vmap)
+        images = preprocess.compensate_vignetting(images, vmap, out=images if in_place else None)
         steps.append(vstep)
     return images, steps
 
