@@ -366,6 +366,44 @@ impl Facet<'_> {
         self.values.chunks_exact(self.channels).enumerate()
     }
 
+    /// [`Facet::accumulate`] for the common case, specialized: grey images, unit weights, the
+    /// near-light model (the same sums, without the per-light dispatch on channels and
+    /// weighting).
+    #[inline]
+    fn accumulate_grey(&self, lights: &[Light]) -> Sums {
+        let (dark, saturation) = (self.settings.dark, self.settings.saturation);
+        let mut t = [0.0f64; 6];
+        let mut s = [0.0f64; 3];
+        let (mut sum_i2, mut used) = (0.0, 0u32);
+        for (light, &v) in lights.iter().zip(self.values) {
+            let i = v as f64;
+            if !(i > dark && i < saturation) {
+                continue;
+            }
+            used += 1;
+            let (b, _) = light.beta(self.c);
+            let phi = light.intensity();
+            let p = (phi[0] + phi[1] + phi[2]) / 3.0;
+            let r = [b[0] * p, b[1] * p, b[2] * p];
+            t[0] += r[0] * r[0];
+            t[1] += r[0] * r[1];
+            t[2] += r[0] * r[2];
+            t[3] += r[1] * r[1];
+            t[4] += r[1] * r[2];
+            t[5] += r[2] * r[2];
+            s[0] += r[0] * i;
+            s[1] += r[1] * i;
+            s[2] += r[2] * i;
+            sum_i2 += i * i;
+        }
+        Sums {
+            t: [t, [0.0; 6], [0.0; 6]],
+            s: [s, [0.0; 3], [0.0; 3]],
+            sum_i2,
+            used,
+        }
+    }
+
     /// Accumulates the weighted normal equations with robust weights `rw(k)`.
     fn accumulate(&self, rw: impl Fn(usize) -> f64) -> Sums {
         let mut sums = Sums::default();
@@ -524,7 +562,16 @@ pub fn fit_facet(
         channels,
         settings,
     };
-    let sums = facet.accumulate(|_| 1.0);
+    let sums = match model {
+        Model::Near(lights)
+            if channels == 1
+                && settings.weighting == Weighting::Image
+                && settings.robust == Robust::None =>
+        {
+            facet.accumulate_grey(lights)
+        }
+        _ => facet.accumulate(|_| 1.0),
+    };
     if sums.used < 3 {
         return None;
     }
