@@ -122,8 +122,10 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
         width = len(str(iterations))
 
         def report(it: Iteration) -> None:
+            where = f"level {it.level} " if it.level else ""
+            inner = f", {it.inner_iterations} CG iterations" if it.inner_iterations else ""
             print(
-                f"iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}, "
+                f"{where}iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}{inner}, "
                 f"rms residual {it.rms_residual:.3e}, {it.elapsed:.2f} s",
                 file=sys.stderr,
                 flush=True,

@@ -138,6 +138,21 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
         help="stop when the largest depth change is at most tol x the image footprint (default 1e-6)",
     )
     g.add_argument(
+        "--solver",
+        choices=("auto", "direct", "multigrid"),
+        default="auto",
+        help="global step: sparse Cholesky (direct), multigrid-preconditioned conjugate gradients "
+        "(multigrid: linear time and memory) or direct up to ~200 x 200 pixels, multigrid above (auto)",
+    )
+    g.add_argument(
+        "--levels",
+        type=int,
+        default=None,
+        metavar="N",
+        help="coarse-to-fine pyramid levels (1: full resolution only; default: halve while the "
+        "longer side keeps at least 128 pixels); --iterations and --tol apply per level",
+    )
+    g.add_argument(
         "--weighting",
         choices=("image", "paper"),
         default="image",
@@ -194,7 +209,13 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
 
 def near_options(args: argparse.Namespace) -> dict[str, Any]:
     """The options of the near-light solver only (not of the parallel-light baseline)."""
-    options: dict[str, Any] = {"iterations": args.iterations, "tol": args.tol, "weighting": args.weighting}
+    options: dict[str, Any] = {
+        "iterations": args.iterations,
+        "tol": args.tol,
+        "weighting": args.weighting,
+        "solver": args.solver,
+        "levels": args.levels,
+    }
     if args.depth_range is not None:
         near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")
         if len(near_far) != 2:
@@ -238,6 +259,8 @@ def check_input_args(args: argparse.Namespace) -> None:
 def _check_numbers(args: argparse.Namespace) -> None:
     if args.iterations < 1:
         raise InputError(f"--iterations must be at least 1, got {args.iterations}")
+    if getattr(args, "levels", None) is not None and args.levels < 1:
+        raise InputError(f"--levels must be at least 1, got {args.levels}")
     if args.threads is not None and args.threads < 1:
         raise InputError(f"--threads must be at least 1, got {args.threads}")
     if not np.isfinite(args.tol) or args.tol < 0:

@@ -119,7 +119,21 @@ fn options_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<nplps::Option
             ))
         }
     };
+    let solver = match option(py, d, "solver", "auto".to_string())?.as_str() {
+        "auto" => nplps::GlobalSolver::Auto,
+        "direct" => nplps::GlobalSolver::Direct,
+        "multigrid" => nplps::GlobalSolver::Multigrid,
+        other => {
+            return Err(py_error(
+                py,
+                "InputError",
+                format!("solver must be \"auto\", \"direct\" or \"multigrid\", got {other:?}"),
+            ))
+        }
+    };
     Ok(nplps::Options {
+        solver,
+        levels: option(py, d, "levels", defaults.levels)?,
         iterations: option(py, d, "iterations", defaults.iterations)?,
         tol: option(py, d, "tol", defaults.tol)?,
         dark: option(py, d, "dark", defaults.dark)?,
@@ -240,6 +254,8 @@ fn reconstruct<'py>(
                                     stats.depth_change,
                                     stats.rms_residual,
                                     stats.elapsed.as_secs_f64(),
+                                    stats.level,
+                                    stats.inner_iterations,
                                 ),
                             )
                             .map(|_| ()),
