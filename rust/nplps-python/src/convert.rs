@@ -216,7 +216,7 @@ pub fn array3<'py>(
     data: Vec<[f64; 3]>,
     shape: &[usize],
 ) -> PyResult<Bound<'py, PyAny>> {
-    let flat: Vec<f64> = data.into_iter().flatten().collect();
+    let flat: Vec<f64> = data.into_flattened();
     let mut full = shape.to_vec();
     full.push(3);
     array(py, flat, &full)

@@ -527,8 +527,6 @@ pub struct MultigridSystem {
     levels: Vec<Level>,
     /// Work vectors of the levels below the fine one (`work[l - 1]` for level l).
     work: Vec<Work>,
-    /// Residual of the fine level inside a V-cycle.
-    fine_residual: Vec<f64>,
     coarsest: Coarsest,
     krylov: Krylov,
     /// Padded fine index of each unknown.
@@ -617,7 +615,6 @@ impl MultigridSystem {
         Ok(MultigridSystem {
             levels,
             work,
-            fine_residual: vec![0.0; n],
             coarsest,
             krylov: Krylov {
                 x: vec![0.0; n],
@@ -654,7 +651,8 @@ impl MultigridSystem {
             0,
             &mut k.z,
             &k.r,
-            &mut self.fine_residual,
+            // q is free while the preconditioner runs: it holds the fine level's residual.
+            &mut k.q,
         );
     }
 

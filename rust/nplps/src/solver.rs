@@ -308,7 +308,8 @@ pub(crate) fn coarse_to_fine(
 pub struct Solver<'p> {
     problem: &'p Problem<'p>,
     options: Options,
-    system: GlobalStep,
+    /// The global system (None once [`Solver::finish`] has freed it).
+    system: Option<GlobalStep>,
     level: usize,
     targets: Vec<[f64; 4]>,
     stats: Vec<FacetStat>,
@@ -331,7 +332,7 @@ impl<'p> Solver<'p> {
         Ok(Solver {
             problem,
             options: *options,
-            system,
+            system: Some(system),
             level: 0,
             targets: vec![[0.0; 4]; n],
             stats: vec![FacetStat::default(); n],
@@ -395,7 +396,8 @@ impl<'p> Solver<'p> {
         for iteration in 1..=iterations {
             self.local(u);
             let t = Instant::now();
-            let inner_iterations = self.system.solve(&p.grid, &self.targets, u, &mut self.next);
+            let system = self.system.as_mut().expect("the solver has not finished");
+            let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next);
             p.grid.apply_gauge(&mut self.next, gauge);
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
             std::mem::swap(u, &mut self.next);
@@ -452,15 +454,20 @@ impl<'p> Solver<'p> {
             .collect()
     }
 
-    /// The final (exact) local step on `u` and the assembled result.
+    /// The final (exact) local step on `u` and the assembled result. The global system and the
+    /// iteration buffers are freed first, so that the outputs do not add to their memory.
     pub fn finish(
-        &mut self,
+        mut self,
         u: &[f64],
         history: Vec<IterationStats>,
         converged: bool,
         start: Instant,
     ) -> Reconstruction {
         let t = Instant::now();
+        drop(std::mem::take(&mut self.targets));
+        drop(std::mem::take(&mut self.stats));
+        drop(std::mem::take(&mut self.next));
+        drop(self.system.take());
         let problem = self.problem;
         let mut outputs = FitOutputs::new(problem);
         let step = self.step(false);
