@@ -35,7 +35,7 @@ use faer::Par;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::global::{pinned_unknowns, prior_right_side, Cholesky, Prior};
+use crate::global::{pinned_unknowns, prior_right_side, right_side, Cholesky, Prior};
 use crate::grid::Grid;
 
 /// Rows per Gauss-Seidel band.
@@ -668,21 +668,16 @@ impl MultigridSystem {
     ) -> usize {
         let fine = &self.levels[0];
         let k = &mut self.krylov;
-        k.r.fill(0.0);
-        for (t, ids) in targets.iter().zip(&grid.facet_vertices) {
-            for j in 0..4 {
-                k.r[self.unknown_index[ids[j] as usize]] += t[j];
-            }
-        }
-        let target_norm = dot(&k.r, &k.r).sqrt();
-        for &p in &self.pins {
-            k.r[self.unknown_index[p as usize]] += z_current[p as usize];
-        }
-        if let Some(rhs) = &self.prior_rhs {
-            for (&i, v) in self.unknown_index.iter().zip(rhs) {
-                k.r[i] += v;
-            }
-        }
+        let index = &self.unknown_index;
+        let target_norm = right_side(
+            grid,
+            targets,
+            &self.pins,
+            self.prior_rhs.as_deref(),
+            z_current,
+            &mut k.r,
+            |u| index[u],
+        );
         let scale = if target_norm > 0.0 {
             target_norm
         } else {
