@@ -177,9 +177,18 @@ impl<'a> Observations<'a> {
             ObsLayout::Stack { data, plane } => {
                 let c = self.channels;
                 let start = pixel * c;
-                for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
-                    let at = i * plane + start;
-                    out.copy_from_slice(&data[at..at + c]);
+                if c == 1 {
+                    // One value per light: plain loads (a slice copy per light would be a call).
+                    for (i, out) in buf[..per].iter_mut().enumerate() {
+                        *out = data[i * plane + start];
+                    }
+                } else {
+                    for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
+                        let at = i * plane + start;
+                        for (o, &v) in out.iter_mut().zip(&data[at..at + c]) {
+                            *o = v;
+                        }
+                    }
                 }
                 &buf[..per]
             }
@@ -280,6 +289,33 @@ impl LocalStep<'_> {
     /// Fits every facet on `u` in parallel, keeping only the targets and the statistics.
     pub fn run_targets(&self, u: &[f64], targets: &mut [[f64; 4]], stats: &mut [FacetStat]) {
         let per = self.obs.per_facet();
+        if let Some(lights) = self.lane_lights() {
+            let lights = &lights[..];
+            targets
+                .par_chunks_mut(LANES)
+                .zip(stats.par_chunks_mut(LANES))
+                .enumerate()
+                .for_each_init(
+                    || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
+                    |(buf, interleaved), (chunk, (targets, stats))| {
+                        let first = chunk * LANES;
+                        if targets.len() == LANES {
+                            let fits = self.fit_lanes(lights, first, u, buf, interleaved);
+                            for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&fits) {
+                                *target = fit.target;
+                                *stat = FacetStat::from(fit);
+                            }
+                        } else {
+                            for (i, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
+                                let fit = self.fit(first + i, u, buf);
+                                *target = fit.target;
+                                *stat = FacetStat::from(&fit);
+                            }
+                        }
+                    },
+                );
+            return;
+        }
         targets
             .par_iter_mut()
             .zip(stats.par_iter_mut())
@@ -293,6 +329,221 @@ impl LocalStep<'_> {
                 },
             );
     }
+}
+
+/// Facets whose normal equations are accumulated together (one SIMD lane each).
+const LANES: usize = 4;
+
+/// A light of the vectorized accumulation: an isotropic point light, or an LED with `mu = 1`.
+#[derive(Debug, Clone, Copy)]
+struct LaneLight {
+    position: [f64; 3],
+    axis: [f64; 3],
+    /// Whether the light is an LED with `mu = 1` (else isotropic).
+    led: bool,
+    /// Grey intensity, the mean of the channels.
+    grey: f64,
+}
+
+impl LocalStep<'_> {
+    /// The lights of the vectorized accumulation, when it applies: grey images, unit weights,
+    /// no robust fit, fast residuals, and only isotropic point lights or LEDs with `mu = 1`.
+    /// It computes the same sums in the same order as [`Facet::accumulate_grey`].
+    fn lane_lights(&self) -> Option<Vec<LaneLight>> {
+        let s = self.settings;
+        let eligible = self.obs.channels == 1
+            && s.weighting == Weighting::Image
+            && s.robust == Robust::None
+            && s.fast_residual;
+        let Model::Near(lights) = self.model else {
+            return None;
+        };
+        if !eligible {
+            return None;
+        }
+        lights
+            .iter()
+            .map(|light| match *light {
+                Light::Point {
+                    position,
+                    intensity,
+                    axis,
+                    mu,
+                } if mu == 0.0 || mu == 1.0 => Some(LaneLight {
+                    position,
+                    axis,
+                    led: mu == 1.0,
+                    grey: (intensity[0] + intensity[1] + intensity[2]) / 3.0,
+                }),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Fits facets `first..first + LANES` with the vectorized accumulation.
+    fn fit_lanes(
+        &self,
+        lights: &[LaneLight],
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+    ) -> [FacetFit; LANES] {
+        let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
+        let quads: [[[f64; 3]; 4]; LANES] =
+            std::array::from_fn(|l| grid.facet_corners(geometry, first + l, u));
+        let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
+        for l in 0..LANES {
+            let f = first + l;
+            let values = obs.facet(f, grid.facets[f], buf);
+            for (slot, &v) in interleaved.iter_mut().zip(values) {
+                slot[l] = v;
+            }
+        }
+        let sums = accumulate_lanes_dispatch(
+            lights,
+            &centres,
+            interleaved,
+            self.settings.dark,
+            self.settings.saturation,
+        );
+        std::array::from_fn(|l| {
+            let f = first + l;
+            let ids = grid.facet_vertices[f];
+            match grey_fit(&sums[l]) {
+                Some(fitted) => FacetFit {
+                    target: geometry.plane_target(fitted.normal, ids, centres[l]),
+                    ..fitted
+                },
+                None => {
+                    let values = obs.facet(f, grid.facets[f], buf);
+                    keep_shape(
+                        &quads[l],
+                        ids.map(|i| u[i as usize]),
+                        usable_count(values, 1, self.settings),
+                    )
+                }
+            }
+        })
+    }
+}
+
+/// The fit of grey, unit-weight, plain sums with the residual from the normal equations (as
+/// [`fit_facet`] computes it for those settings); the target is left at zero.
+fn grey_fit(sums: &Sums) -> Option<FacetFit> {
+    if sums.used < 3 {
+        return None;
+    }
+    let (normal, albedo, g) = solve_sums(sums, 1)?;
+    Some(FacetFit {
+        target: [0.0; 4],
+        normal,
+        albedo,
+        sse: (sums.sum_i2 - dot(g, sums.s[0])).max(0.0),
+        used: sums.used,
+        valid: true,
+    })
+}
+
+/// [`accumulate_lanes`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+fn accumulate_lanes_dispatch(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    dark: f64,
+    saturation: f64,
+) -> [Sums; LANES] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor supports AVX2, checked just above.
+            return unsafe { accumulate_lanes_avx2(lights, centres, values, dark, saturation) };
+        }
+    }
+    accumulate_lanes(lights, centres, values, dark, saturation)
+}
+
+/// [`accumulate_lanes`] compiled for AVX2 (no FMA: the results are those of the scalar code).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn accumulate_lanes_avx2(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    dark: f64,
+    saturation: f64,
+) -> [Sums; LANES] {
+    accumulate_lanes(lights, centres, values, dark, saturation)
+}
+
+/// The grey unit-weight normal equations of [`LANES`] facets at once (`values[k][lane]`): per
+/// lane the same operations in the same order as [`Facet::accumulate_grey`], written so that the
+/// compiler keeps the lanes in SIMD registers.
+#[inline(always)]
+fn accumulate_lanes(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    dark: f64,
+    saturation: f64,
+) -> [Sums; LANES] {
+    let cx: [f64; LANES] = std::array::from_fn(|l| centres[l][0]);
+    let cy: [f64; LANES] = std::array::from_fn(|l| centres[l][1]);
+    let cz: [f64; LANES] = std::array::from_fn(|l| centres[l][2]);
+    let mut t = [[0.0f64; LANES]; 6];
+    let mut s = [[0.0f64; LANES]; 3];
+    let mut sum_i2 = [0.0f64; LANES];
+    let mut used = [0u32; LANES];
+    for (light, v) in lights.iter().zip(values) {
+        let [px, py, pz] = light.position;
+        let [ax, ay, az] = light.axis;
+        let p = light.grey;
+        // Straight-line code over the lanes, one operation at a time, so that the compiler
+        // turns each line into one vector instruction.
+        let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
+        let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
+        let a0: [f64; LANES] = std::array::from_fn(|l| px - cx[l]);
+        let a1: [f64; LANES] = std::array::from_fn(|l| py - cy[l]);
+        let a2: [f64; LANES] = std::array::from_fn(|l| pz - cz[l]);
+        let d2: [f64; LANES] =
+            std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+        let d: [f64; LANES] = std::array::from_fn(|l| d2[l].sqrt());
+        let d3: [f64; LANES] = std::array::from_fn(|l| d2[l] * d[l]);
+        let f: [f64; LANES] = if light.led {
+            std::array::from_fn(|l| {
+                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
+            })
+        } else {
+            std::array::from_fn(|l| 1.0 / d3[l])
+        };
+        let r0: [f64; LANES] = std::array::from_fn(|l| a0[l] * f[l] * p);
+        let r1: [f64; LANES] = std::array::from_fn(|l| a1[l] * f[l] * p);
+        let r2: [f64; LANES] = std::array::from_fn(|l| a2[l] * f[l] * p);
+        let pick = |l: usize, x: f64| if ok[l] { x } else { 0.0 };
+        for l in 0..LANES {
+            t[0][l] += pick(l, r0[l] * r0[l]);
+            t[1][l] += pick(l, r0[l] * r1[l]);
+            t[2][l] += pick(l, r0[l] * r2[l]);
+            t[3][l] += pick(l, r1[l] * r1[l]);
+            t[4][l] += pick(l, r1[l] * r2[l]);
+            t[5][l] += pick(l, r2[l] * r2[l]);
+            s[0][l] += pick(l, r0[l] * i[l]);
+            s[1][l] += pick(l, r1[l] * i[l]);
+            s[2][l] += pick(l, r2[l] * i[l]);
+            sum_i2[l] += pick(l, i[l] * i[l]);
+            used[l] += u32::from(ok[l]);
+        }
+    }
+    std::array::from_fn(|l| Sums {
+        t: [
+            [t[0][l], t[1][l], t[2][l], t[3][l], t[4][l], t[5][l]],
+            [0.0; 6],
+            [0.0; 6],
+        ],
+        s: [[s[0][l], s[1][l], s[2][l]], [0.0; 3], [0.0; 3]],
+        sum_i2: sum_i2[l],
+        used: used[l],
+    })
 }
 
 /// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
@@ -669,6 +920,72 @@ mod tests {
 
     fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
         dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
+    /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic
+    /// lights and LEDs with mu = 1, shadowed and missing observations, a partial last batch).
+    #[test]
+    fn lanes_match_the_scalar_fits_exactly() {
+        use crate::rig::{Camera, Rig};
+        let (h, w) = (9, 7);
+        let mask: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
+        let grid = Grid::new(h, w, Some(&mask)).unwrap();
+        let camera = Camera::Orthographic {
+            pixel_size: [1.5, 1.5],
+            origin: [-5.0, -7.0],
+        };
+        let geometry = Geometry::new(&camera, &grid);
+        let mut lights: Vec<Light> = lights();
+        lights.push(Light::Point {
+            position: [12.0, -8.0, 30.0],
+            intensity: [2.0, 3.0, 4.0],
+            axis: normalize([-0.2, 0.1, 1.0]),
+            mu: 1.0,
+        });
+        let _ = Rig {
+            camera,
+            lights: lights.clone(),
+        };
+        let k = lights.len();
+        let u: Vec<f64> = grid
+            .active
+            .iter()
+            .map(|&v| {
+                100.0 + 0.3 * (v % 8) as f64 - 0.2 * (v / 8) as f64 + 0.05 * ((v * 7) % 5) as f64
+            })
+            .collect();
+        let mut data = vec![0.0f32; k * h * w];
+        for (i, x) in data.iter_mut().enumerate() {
+            *x = match i % 17 {
+                0 => 0.0,
+                3 => f32::NAN,
+                _ => 1e-4 * (1.0 + ((i * 31) % 13) as f32),
+            };
+        }
+        let obs = Observations::from_stack(&data, k, h * w, 1);
+        let step = LocalStep {
+            grid: &grid,
+            geometry: &geometry,
+            model: Model::Near(&lights),
+            obs: &obs,
+            settings: FitSettings {
+                fast_residual: true,
+                ..FitSettings::default()
+            },
+        };
+        assert!(step.lane_lights().is_some());
+        let n = grid.n_facets();
+        assert!(n % LANES != 0);
+        let mut targets = vec![[0.0; 4]; n];
+        let mut stats = vec![FacetStat::default(); n];
+        step.run_targets(&u, &mut targets, &mut stats);
+        let mut buf = vec![0.0f32; k];
+        for f in 0..n {
+            let fit = step.fit(f, &u, &mut buf);
+            assert_eq!(fit.target, targets[f], "facet {f}");
+            assert_eq!(FacetStat::from(&fit), stats[f], "facet {f}");
+        }
+        assert!(stats.iter().any(|s| s.valid) && stats.iter().any(|s| s.used < k as u32));
     }
 
     #[test]
