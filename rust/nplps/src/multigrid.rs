@@ -64,6 +64,24 @@ const OFFSETS: [(isize, isize); 9] = [
 /// Index of the diagonal in a stencil.
 const CENTRE: usize = 4;
 
+/// Index of the inverse of the diagonal (0 for an inactive node), kept with the stencil so that
+/// Gauss-Seidel multiplies instead of dividing.
+const INVERSE: usize = 9;
+
+/// The 9 coefficients of a node's row over its 3 x 3 neighbourhood (row-major), then the
+/// inverse of the diagonal.
+type Stencil = [f64; 10];
+
+/// Sets a stencil's inverse diagonal from its diagonal.
+fn with_inverse(mut s: Stencil) -> Stencil {
+    s[INVERSE] = if s[CENTRE] > 0.0 {
+        1.0 / s[CENTRE]
+    } else {
+        0.0
+    };
+    s
+}
+
 /// Corner offsets `(row, column)` of a cell in the order 00, 01, 10, 11.
 const CORNERS: [(usize, usize); 4] = [(0, 0), (0, 1), (1, 0), (1, 1)];
 
@@ -156,10 +174,10 @@ fn add_element(acc: &mut Element, e: &Element) {
 }
 
 /// The 9-point stencil of a fine vertex with flags `f` and prior weight `w`.
-fn fine_stencil(f: u8, w: f64) -> [f64; 9] {
+fn fine_stencil(f: u8, w: f64) -> Stencil {
     let b = |bit: u8| if f & bit != 0 { 1.0 } else { 0.0 };
     let (nw, ne, sw, se) = (b(NW), b(NE), b(SW), b(SE));
-    [
+    with_inverse([
         -0.25 * nw,
         -0.25 * (nw + ne),
         -0.25 * ne,
@@ -169,7 +187,8 @@ fn fine_stencil(f: u8, w: f64) -> [f64; 9] {
         -0.25 * sw,
         -0.25 * (sw + se),
         -0.25 * se,
-    ]
+        0.0,
+    ])
 }
 
 /// The operator of one level: fine (stencils looked up from vertex flags) or coarse (stored).
@@ -177,15 +196,15 @@ enum Stencils {
     /// Flags of every vertex (row-major, unpadded) and the 64 stencils they select.
     Fine {
         flags: Vec<u8>,
-        table: Box<[[f64; 9]; 64]>,
+        table: Box<[Stencil; 64]>,
     },
     /// One stencil per node (row-major, unpadded); zero for an inactive node.
-    Coarse(Vec<[f64; 9]>),
+    Coarse(Vec<Stencil>),
 }
 
 impl Stencils {
     #[inline]
-    fn get(&self, node: usize) -> &[f64; 9] {
+    fn get(&self, node: usize) -> &Stencil {
         match self {
             Stencils::Fine { flags, table } => &table[flags[node] as usize],
             Stencils::Coarse(s) => &s[node],
@@ -230,11 +249,11 @@ macro_rules! with_stencils {
     ($level:expr, |$get:ident| $body:expr) => {
         match &$level.stencils {
             Stencils::Fine { flags, table } => {
-                let $get = |n: usize| -> &[f64; 9] { &table[flags[n] as usize] };
+                let $get = |n: usize| -> &Stencil { &table[flags[n] as usize] };
                 $body
             }
             Stencils::Coarse(stencils) => {
-                let $get = |n: usize| -> &[f64; 9] { &stencils[n] };
+                let $get = |n: usize| -> &Stencil { &stencils[n] };
                 $body
             }
         }
@@ -243,7 +262,7 @@ macro_rules! with_stencils {
 
 /// `s . x` over the 3 x 3 neighbourhood of padded column `j` in rows `above`, `here`, `below`.
 #[inline(always)]
-fn apply_stencil(s: &[f64; 9], above: &[f64], here: &[f64], below: &[f64], j: usize) -> f64 {
+fn apply_stencil(s: &Stencil, above: &[f64], here: &[f64], below: &[f64], j: usize) -> f64 {
     s[0] * above[j - 1]
         + s[1] * above[j]
         + s[2] * above[j + 1]
@@ -347,7 +366,7 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                                     + s[6] * below[j - 1]
                                     + s[7] * below[j]
                                     + s[8] * below[j + 1];
-                                here[j] = (b[j] - off) / s[CENTRE];
+                                here[j] = (b[j] - off) * s[INVERSE];
                             }
                         };
                         if forward {
@@ -437,6 +456,26 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
         .par_chunks(CHUNK)
         .zip(b.par_chunks(CHUNK))
         .map(|(x, y)| x.iter().zip(y).map(|(p, q)| p * q).sum())
+        .collect();
+    partial.iter().sum()
+}
+
+/// The conjugate-gradient step `x += alpha p`, `r -= alpha q` in one pass; returns `r . r`
+/// (deterministic: fixed chunks summed in order).
+fn step_and_norm(alpha: f64, p: &[f64], q: &[f64], x: &mut [f64], r: &mut [f64]) -> f64 {
+    let partial: Vec<f64> = x
+        .par_chunks_mut(CHUNK)
+        .zip(r.par_chunks_mut(CHUNK))
+        .zip(p.par_chunks(CHUNK).zip(q.par_chunks(CHUNK)))
+        .map(|((x, r), (p, q))| {
+            let mut rr = 0.0;
+            for (((x, r), p), q) in x.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
+                *x += alpha * p;
+                *r -= alpha * q;
+                rr += *r * *r;
+            }
+            rr
+        })
         .collect();
     partial.iter().sum()
 }
@@ -577,7 +616,7 @@ impl MultigridSystem {
                 }
             }
         }
-        let table: Box<[[f64; 9]; 64]> =
+        let table: Box<[Stencil; 64]> =
             Box::new(std::array::from_fn(|f| fine_stencil(f as u8, weight)));
         let unknown_index: Vec<usize> = grid
             .active
@@ -705,9 +744,7 @@ impl MultigridSystem {
                     break;
                 }
                 let alpha = rz / pq;
-                axpy(alpha, &k.p, &mut k.x);
-                axpy(-alpha, &k.q, &mut k.r);
-                if dot(&k.r, &k.r).sqrt() <= tol {
+                if step_and_norm(alpha, &k.p, &k.q, &mut k.x, &mut k.r).sqrt() <= tol {
                     break;
                 }
                 self.precondition();
@@ -786,15 +823,18 @@ fn coarsen_fine(fine: &Level, weight: f64) -> Vec<Element> {
     }
     // Which facet bit of corner j's vertex facet (r, c) is (corner 00 sees it as SE, ...).
     let bit_of_corner = [SE, SW, NE, NW];
+    // Every output is written once, never read first: reading fresh zeroed memory before
+    // writing it costs a copy-on-write page fault per page.
     let mut cells = vec![[[0.0; 4]; 4]; ch * cw];
     cells.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
-        for (cc, cell) in row.iter_mut().enumerate() {
+        for (cc, out) in row.iter_mut().enumerate() {
+            let mut cell: Element = [[0.0; 4]; 4];
             for (ab, qab) in q.iter().enumerate() {
                 let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
                 if r >= h || c >= w || flags[r * l.cols + c] & SE == 0 {
                     continue;
                 }
-                add_element(cell, &facet[ab]);
+                add_element(&mut cell, &facet[ab]);
                 for (j, &(jr, jc)) in CORNERS.iter().enumerate() {
                     let f = flags[(r + jr) * l.cols + c + jc];
                     let extra = f64::from(f & PINNED != 0) + weight * f64::from(f & PRIOR != 0);
@@ -808,6 +848,7 @@ fn coarsen_fine(fine: &Level, weight: f64) -> Vec<Element> {
                     }
                 }
             }
+            *out = cell;
         }
     });
     cells
@@ -821,7 +862,8 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Vec<Element> {
     let q = interpolations();
     let mut out = vec![[[0.0; 4]; 4]; ch * cw];
     out.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
-        for (cc, cell) in row.iter_mut().enumerate() {
+        for (cc, out) in row.iter_mut().enumerate() {
+            let mut cell: Element = [[0.0; 4]; 4];
             for (ab, qab) in q.iter().enumerate() {
                 let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
                 if r >= h || c >= w {
@@ -831,20 +873,22 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Vec<Element> {
                 if child[0][0] == 0.0 && child[3][3] == 0.0 && child[1][1] == 0.0 {
                     continue;
                 }
-                add_element(cell, &congruence(qab, child));
+                add_element(&mut cell, &congruence(qab, child));
             }
+            *out = cell;
         }
     });
     out
 }
 
 /// The nodal 9-point stencils of a level with `layout` from its cell elements.
-fn stencils_of(layout: Layout, cells: &[Element]) -> Vec<[f64; 9]> {
+fn stencils_of(layout: Layout, cells: &[Element]) -> Vec<Stencil> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
-    let mut out = vec![[0.0; 9]; rows * cols];
+    let mut out = vec![[0.0; 10]; rows * cols];
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
-        for (c, s) in row.iter_mut().enumerate() {
+        for (c, out) in row.iter_mut().enumerate() {
+            let mut s: Stencil = [0.0; 10];
             // Cell (r - 1 + jr', c - 1 + jc') holds this node as its corner (1 - jr', 1 - jc').
             for (cell_r, cell_c, j) in [
                 (r.wrapping_sub(1), c.wrapping_sub(1), 3),
@@ -862,6 +906,7 @@ fn stencils_of(layout: Layout, cells: &[Element]) -> Vec<[f64; 9]> {
                     s[k] += e[j][m];
                 }
             }
+            *out = with_inverse(s);
         }
     });
     out
@@ -1032,7 +1077,7 @@ mod tests {
                             &s[(r as isize + dr) as usize * l.cols + (c as isize + dc) as usize];
                         assert!((st[k] - other[8 - k]).abs() <= 1e-12 * st[CENTRE].max(1.0));
                     }
-                    let sum: f64 = st.iter().sum();
+                    let sum: f64 = st[..9].iter().sum();
                     if sum.abs() > 1e-9 * st[CENTRE] {
                         checked += 1;
                     }
