@@ -208,9 +208,9 @@ pub(crate) fn prior_right_side(prior: Option<&Prior>) -> Option<Vec<f64>> {
     })
 }
 
-/// The right side `b = sum_f S_f^T t_f + pins * z_current + weight * prior`, written to `out`
-/// with unknown `u` at `out[index(u)]` (the rest of `out` zero). Returns the norm of the facet
-/// part `sum_f S_f^T t_f`.
+/// The right side `b = sum_f S_f^T t_f + pins * z_current + weight * prior` of the unknowns,
+/// written to `out` (one per unknown; each gathers the targets of its facets, in parallel).
+/// Returns the norm of the facet part `sum_f S_f^T t_f`.
 pub(crate) fn right_side(
     grid: &Grid,
     targets: &[[f64; 4]],
@@ -218,22 +218,22 @@ pub(crate) fn right_side(
     prior_rhs: Option<&[f64]>,
     z_current: &[f64],
     out: &mut [f64],
-    index: impl Fn(usize) -> usize,
 ) -> f64 {
-    out.fill(0.0);
-    for (t, ids) in targets.iter().zip(&grid.facet_vertices) {
-        for j in 0..4 {
-            out[index(ids[j] as usize)] += t[j];
-        }
-    }
-    let norm = out.iter().map(|v| v * v).sum::<f64>().sqrt();
+    use rayon::prelude::*;
+    let vw = grid.width + 1;
+    out.par_iter_mut()
+        .zip(grid.active.par_iter())
+        .for_each(|(o, &v)| *o = grid.gather_targets(targets, v / vw, v % vw));
+    let partial: Vec<f64> = out
+        .par_chunks(1 << 15)
+        .map(|c| c.iter().map(|v| v * v).sum())
+        .collect();
+    let norm = partial.iter().sum::<f64>().sqrt();
     for &p in pins {
-        out[index(p as usize)] += z_current[p as usize];
+        out[p as usize] += z_current[p as usize];
     }
     if let Some(rhs) = prior_rhs {
-        for (u, r) in rhs.iter().enumerate() {
-            out[index(u)] += r;
-        }
+        out.par_iter_mut().zip(rhs).for_each(|(o, r)| *o += r);
     }
     norm
 }
@@ -306,7 +306,6 @@ impl GlobalSystem {
             self.prior_rhs.as_deref(),
             z_current,
             z_out,
-            |u| u,
         );
         self.chol.solve_in_place(z_out);
     }

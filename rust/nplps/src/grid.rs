@@ -6,6 +6,8 @@
 //! facet uses it. Regions are the connected components of facets that share a vertex
 //! (8-connectivity of pixels); each region's depth offset is fixed by the gauge.
 
+use rayon::prelude::*;
+
 use crate::error::{ensure_input, Result};
 use crate::geometry::Geometry;
 
@@ -33,6 +35,8 @@ pub struct Grid {
     pub n_regions: usize,
     /// The lowest-index unknown of each region (pinned in the global step).
     pub pins: Vec<u32>,
+    /// For each pixel `r * W + c`: its facet index, or [`INACTIVE`] outside the mask.
+    pub facet_of_pixel: Vec<u32>,
 }
 
 impl Grid {
@@ -89,9 +93,14 @@ impl Grid {
                 pins[reg as usize] = u as u32;
             }
         }
+        let mut facet_of_pixel = vec![INACTIVE; height * width];
+        for (f, &p) in facets.iter().enumerate() {
+            facet_of_pixel[p] = f as u32;
+        }
         Ok(Grid {
             height,
             width,
+            facet_of_pixel,
             facets,
             facet_vertices,
             vertex_unknown,
@@ -148,24 +157,80 @@ impl Grid {
         self.active.iter().map(|&v| full[v]).collect()
     }
 
-    /// Arithmetic mean of `values` (one per unknown) over each region.
+    /// Arithmetic mean of `values` (one per unknown) over each region. With few regions the
+    /// sums run in parallel over fixed chunks added in order, so the result does not depend on
+    /// the number of threads.
     pub fn region_means(&self, values: &[f64]) -> Vec<f64> {
-        let mut sum = vec![0.0; self.n_regions];
-        let mut count = vec![0usize; self.n_regions];
-        for (&reg, &v) in self.region_of_unknown.iter().zip(values) {
-            sum[reg as usize] += v;
-            count[reg as usize] += 1;
-        }
+        let regions = self.n_regions;
+        let (sum, count) = if regions <= PARALLEL_REGIONS {
+            let partial: Vec<(Vec<f64>, Vec<usize>)> = self
+                .region_of_unknown
+                .par_chunks(CHUNK)
+                .zip(values.par_chunks(CHUNK))
+                .map(|(reg, val)| region_sums(regions, reg, val))
+                .collect();
+            let mut sum = vec![0.0; regions];
+            let mut count = vec![0usize; regions];
+            for (s, c) in &partial {
+                for r in 0..regions {
+                    sum[r] += s[r];
+                    count[r] += c[r];
+                }
+            }
+            (sum, count)
+        } else {
+            region_sums(regions, &self.region_of_unknown, values)
+        };
         sum.iter().zip(&count).map(|(s, &n)| s / n as f64).collect()
     }
 
     /// Shifts each region by a constant so that its arithmetic mean equals `gauge[region]`.
     pub fn apply_gauge(&self, values: &mut [f64], gauge: &[f64]) {
         let means = self.region_means(values);
-        for (v, &reg) in values.iter_mut().zip(&self.region_of_unknown) {
-            *v += gauge[reg as usize] - means[reg as usize];
-        }
+        let shift: Vec<f64> = gauge.iter().zip(&means).map(|(g, m)| g - m).collect();
+        values
+            .par_iter_mut()
+            .zip(self.region_of_unknown.par_iter())
+            .for_each(|(v, &reg)| *v += shift[reg as usize]);
     }
+
+    /// `sum_f S_f^T t_f` at grid vertex `v` (row `r`, column `c`): the targets of its (up to 4)
+    /// facets, in the order NW, NE, SW, SE.
+    #[inline]
+    pub(crate) fn gather_targets(&self, targets: &[[f64; 4]], r: usize, c: usize) -> f64 {
+        let w = self.width;
+        let mut sum = 0.0;
+        let mut add = |pr: usize, pc: usize, corner: usize| {
+            if pr < self.height && pc < w {
+                let f = self.facet_of_pixel[pr * w + pc];
+                if f != INACTIVE {
+                    sum += targets[f as usize][corner];
+                }
+            }
+        };
+        add(r.wrapping_sub(1), c.wrapping_sub(1), 3);
+        add(r.wrapping_sub(1), c, 2);
+        add(r, c.wrapping_sub(1), 1);
+        add(r, c, 0);
+        sum
+    }
+}
+
+/// Regions up to which [`Grid::region_means`] sums in parallel.
+const PARALLEL_REGIONS: usize = 64;
+
+/// Elements per chunk of the deterministic parallel sums.
+const CHUNK: usize = 1 << 15;
+
+/// Per-region sums and counts of `values` labelled by `regions`.
+fn region_sums(n: usize, regions: &[u32], values: &[f64]) -> (Vec<f64>, Vec<usize>) {
+    let mut sum = vec![0.0; n];
+    let mut count = vec![0usize; n];
+    for (&reg, &v) in regions.iter().zip(values) {
+        sum[reg as usize] += v;
+        count[reg as usize] += 1;
+    }
+    (sum, count)
 }
 
 /// Geometric normal of a quad: `normalize((v10 - v01) x (v11 - v00))`, facing the camera

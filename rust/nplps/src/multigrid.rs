@@ -36,7 +36,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::global::{pinned_unknowns, prior_right_side, right_side, Cholesky, Prior};
-use crate::grid::Grid;
+use crate::grid::{Grid, INACTIVE};
 
 /// Rows per Gauss-Seidel band.
 pub const BAND: usize = 16;
@@ -460,6 +460,33 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     partial.iter().sum()
 }
 
+/// Writes per-unknown `values` onto the padded grid `out` (0 at inactive nodes and padding).
+fn to_grid(layout: Layout, grid: &Grid, values: &[f64], out: &mut [f64]) {
+    let vw = grid.width + 1;
+    out.par_chunks_mut(layout.stride)
+        .enumerate()
+        .for_each(|(pr, row)| {
+            if pr == 0 || pr > layout.rows {
+                row.fill(0.0);
+                return;
+            }
+            let r = pr - 1;
+            row[0] = 0.0;
+            for (c, o) in row[1..].iter_mut().enumerate() {
+                *o = if c < layout.cols {
+                    let u = grid.vertex_unknown[r * vw + c];
+                    if u == INACTIVE {
+                        0.0
+                    } else {
+                        values[u as usize]
+                    }
+                } else {
+                    0.0
+                };
+            }
+        });
+}
+
 /// The conjugate-gradient step `x += alpha p`, `r -= alpha q` in one pass; returns `r . r`
 /// (deterministic: fixed chunks summed in order).
 fn step_and_norm(alpha: f64, p: &[f64], q: &[f64], x: &mut [f64], r: &mut [f64]) -> f64 {
@@ -707,26 +734,24 @@ impl MultigridSystem {
     ) -> usize {
         let fine = &self.levels[0];
         let k = &mut self.krylov;
-        let index = &self.unknown_index;
+        // The right side per unknown, in z (free until the first V-cycle), then onto the grid.
+        let n = grid.n_unknowns();
         let target_norm = right_side(
             grid,
             targets,
             &self.pins,
             self.prior_rhs.as_deref(),
             z_current,
-            &mut k.r,
-            |u| index[u],
+            &mut k.z[..n],
         );
+        to_grid(fine.layout, grid, &k.z[..n], &mut k.r);
         let scale = if target_norm > 0.0 {
             target_norm
         } else {
             dot(&k.r, &k.r).sqrt()
         };
         let tol = self.rtol * scale;
-        k.x.fill(0.0);
-        for (&i, &z) in self.unknown_index.iter().zip(z_current) {
-            k.x[i] = z;
-        }
+        to_grid(fine.layout, grid, z_current, &mut k.x);
         residual(fine, &k.x, None, &mut k.q);
         axpy(-1.0, &k.q, &mut k.r);
         let mut iterations = 0;
@@ -757,9 +782,11 @@ impl MultigridSystem {
                     .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
             }
         }
-        for (o, &i) in z_out.iter_mut().zip(&self.unknown_index) {
-            *o = self.krylov.x[i];
-        }
+        let x = &self.krylov.x;
+        z_out
+            .par_iter_mut()
+            .zip(self.unknown_index.par_iter())
+            .for_each(|(o, &i)| *o = x[i]);
         iterations
     }
 }

@@ -93,10 +93,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let grid = &problem.grid;
     let (h, w) = (grid.height, grid.width);
     let (ch, cw) = (h.div_ceil(2), w.div_ceil(2));
-    let mut facet_of_pixel = vec![u32::MAX; h * w];
-    for (f, &p) in grid.facets.iter().enumerate() {
-        facet_of_pixel[p] = f as u32;
-    }
+    let facet_of_pixel = &grid.facet_of_pixel;
     let mut mask = vec![false; ch * cw];
     for &p in &grid.facets {
         mask[(p / w / 2) * cw + (p % w) / 2] = true;

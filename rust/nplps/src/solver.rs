@@ -495,10 +495,11 @@ impl<'p> Solver<'p> {
 
 /// Largest change of vertex depth between two sets of unknowns.
 pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
-    a.iter()
+    use rayon::prelude::*;
+    a.par_iter()
         .zip(b)
         .map(|(&x, &y)| (geometry.depth(x) - geometry.depth(y)).abs())
-        .fold(0.0, f64::max)
+        .reduce(|| 0.0, f64::max)
 }
 
 /// Lateral size of the image footprint, `max(W * w, H * h)`, with the pixel size taken at the
