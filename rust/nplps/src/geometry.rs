@@ -16,6 +16,8 @@
 //! (pinhole). The gauge is the arithmetic mean of `u` per region: the arithmetic mean depth
 //! (orthographic) or the geometric mean depth (pinhole).
 
+use rayon::prelude::*;
+
 use crate::grid::Grid;
 use crate::rig::Camera;
 
@@ -39,7 +41,7 @@ impl Geometry {
             perspective: camera.is_perspective(),
             base: grid
                 .active
-                .iter()
+                .par_iter()
                 .map(|&v| camera.vertex_xy(v / vw, v % vw))
                 .collect(),
         }

@@ -56,6 +56,7 @@ impl Grid {
             })?;
         }
         let facets: Vec<usize> = (0..height * width)
+            .into_par_iter()
             .filter(|&p| mask.is_none_or(|m| m[p]))
             .collect();
         ensure_input(!facets.is_empty(), || {
@@ -69,12 +70,17 @@ impl Grid {
             let v = r * vw + c;
             [v, v + 1, v + vw, v + vw + 1]
         };
-        let mut used = vec![false; n_vertices];
-        for &p in &facets {
-            for v in corners(p) {
-                used[v] = true;
-            }
-        }
+        // A vertex is used when one of its (up to 4) pixels is masked.
+        let masked =
+            |r: usize, c: usize| r < height && c < width && mask.is_none_or(|m| m[r * width + c]);
+        let used: Vec<bool> = (0..n_vertices)
+            .into_par_iter()
+            .map(|v| {
+                let (r, c) = (v / vw, v % vw);
+                let (ru, cl) = (r.wrapping_sub(1), c.wrapping_sub(1));
+                masked(ru, cl) || masked(ru, c) || masked(r, cl) || masked(r, c)
+            })
+            .collect();
         let mut vertex_unknown = vec![INACTIVE; n_vertices];
         let mut active = Vec::new();
         for (v, _) in used.iter().enumerate().filter(|(_, u)| **u) {
@@ -82,11 +88,16 @@ impl Grid {
             active.push(v);
         }
         let facet_vertices: Vec<[u32; 4]> = facets
-            .iter()
+            .par_iter()
             .map(|&p| corners(p).map(|v| vertex_unknown[v]))
             .collect();
 
-        let (region_of_unknown, n_regions) = label_regions(active.len(), &facet_vertices);
+        let (region_of_unknown, n_regions) = if facets.len() == height * width {
+            // Every pixel: one connected region.
+            (vec![0; active.len()], 1)
+        } else {
+            label_regions(active.len(), &facet_vertices)
+        };
         let mut pins = vec![u32::MAX; n_regions];
         for (u, &reg) in region_of_unknown.iter().enumerate() {
             if pins[reg as usize] == u32::MAX {

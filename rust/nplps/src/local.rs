@@ -280,6 +280,24 @@ impl LocalStep<'_> {
     /// Fits facets `first..first + fits.len()` on `u` in parallel (rayon), writing `fits`.
     pub fn run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) {
         let per = self.obs.per_facet();
+        if let Some(lights) = self.lane_lights() {
+            let lights = &lights[..];
+            fits.par_chunks_mut(LANES).enumerate().for_each_init(
+                || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
+                |(buf, interleaved), (chunk, fits)| {
+                    let start = first + chunk * LANES;
+                    if fits.len() == LANES {
+                        let lanes = self.fit_lanes(lights, start, u, buf, interleaved);
+                        fits.copy_from_slice(&lanes);
+                    } else {
+                        for (i, fit) in fits.iter_mut().enumerate() {
+                            *fit = self.fit(start + i, u, buf);
+                        }
+                    }
+                },
+            );
+            return;
+        }
         fits.par_iter_mut().enumerate().for_each_init(
             || vec![0.0f32; per],
             |buf, (i, fit)| *fit = self.fit(first + i, u, buf),
@@ -347,14 +365,12 @@ struct LaneLight {
 
 impl LocalStep<'_> {
     /// The lights of the vectorized accumulation, when it applies: grey images, unit weights,
-    /// no robust fit, fast residuals, and only isotropic point lights or LEDs with `mu = 1`.
+    /// no robust fit, and only isotropic point lights or LEDs with `mu = 1`.
     /// It computes the same sums in the same order as [`Facet::accumulate_grey`].
     fn lane_lights(&self) -> Option<Vec<LaneLight>> {
         let s = self.settings;
-        let eligible = self.obs.channels == 1
-            && s.weighting == Weighting::Image
-            && s.robust == Robust::None
-            && s.fast_residual;
+        let eligible =
+            self.obs.channels == 1 && s.weighting == Weighting::Image && s.robust == Robust::None;
         let Model::Near(lights) = self.model else {
             return None;
         };
@@ -407,10 +423,29 @@ impl LocalStep<'_> {
             self.settings.dark,
             self.settings.saturation,
         );
+        let mut fitted: [Option<FacetFit>; LANES] = std::array::from_fn(|l| grey_fit(&sums[l]));
+        if !self.settings.fast_residual {
+            // The exact residual, a second pass over the lights (as the scalar code does).
+            let normals = fitted.map(|f| f.map_or([0.0; 3], |f| f.normal));
+            let albedo = fitted.map(|f| f.map_or(0.0, |f| f.albedo[0]));
+            let sse = residual_lanes_dispatch(
+                lights,
+                &centres,
+                interleaved,
+                (self.settings.dark, self.settings.saturation),
+                &normals,
+                &albedo,
+            );
+            for (fit, sse) in fitted.iter_mut().zip(sse) {
+                if let Some(fit) = fit {
+                    fit.sse = sse;
+                }
+            }
+        }
         std::array::from_fn(|l| {
             let f = first + l;
             let ids = grid.facet_vertices[f];
-            match grey_fit(&sums[l]) {
+            match fitted[l] {
                 Some(fitted) => FacetFit {
                     target: geometry.plane_target(fitted.normal, ids, centres[l]),
                     ..fitted
@@ -544,6 +579,88 @@ fn accumulate_lanes(
         sum_i2: sum_i2[l],
         used: used[l],
     })
+}
+
+/// [`residual_lanes`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+fn residual_lanes_dispatch(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    normals: &[[f64; 3]; LANES],
+    albedo: &[f64; LANES],
+) -> [f64; LANES] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor supports AVX2, checked just above.
+            return unsafe {
+                residual_lanes_avx2(lights, centres, values, thresholds, normals, albedo)
+            };
+        }
+    }
+    residual_lanes(lights, centres, values, thresholds, normals, albedo)
+}
+
+/// [`residual_lanes`] compiled for AVX2 (no FMA: the results are those of the scalar code).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn residual_lanes_avx2(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    normals: &[[f64; 3]; LANES],
+    albedo: &[f64; LANES],
+) -> [f64; LANES] {
+    residual_lanes(lights, centres, values, thresholds, normals, albedo)
+}
+
+/// The summed squared image residuals of [`LANES`] grey fits `(normals, albedo)` over their
+/// usable observations: per lane the operations of [`Facet::sq_residual`], in its order.
+#[inline(always)]
+fn residual_lanes(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    (dark, saturation): (f64, f64),
+    normals: &[[f64; 3]; LANES],
+    albedo: &[f64; LANES],
+) -> [f64; LANES] {
+    let cx: [f64; LANES] = std::array::from_fn(|l| centres[l][0]);
+    let cy: [f64; LANES] = std::array::from_fn(|l| centres[l][1]);
+    let cz: [f64; LANES] = std::array::from_fn(|l| centres[l][2]);
+    let mut sse = [0.0f64; LANES];
+    for (light, v) in lights.iter().zip(values) {
+        let [px, py, pz] = light.position;
+        let [ax, ay, az] = light.axis;
+        let p = light.grey;
+        let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
+        let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
+        let a0: [f64; LANES] = std::array::from_fn(|l| px - cx[l]);
+        let a1: [f64; LANES] = std::array::from_fn(|l| py - cy[l]);
+        let a2: [f64; LANES] = std::array::from_fn(|l| pz - cz[l]);
+        let d2: [f64; LANES] =
+            std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+        let d: [f64; LANES] = std::array::from_fn(|l| d2[l].sqrt());
+        let d3: [f64; LANES] = std::array::from_fn(|l| d2[l] * d[l]);
+        let f: [f64; LANES] = if light.led {
+            std::array::from_fn(|l| {
+                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
+            })
+        } else {
+            std::array::from_fn(|l| 1.0 / d3[l])
+        };
+        let nb: [f64; LANES] = std::array::from_fn(|l| {
+            let n = normals[l];
+            n[0] * (a0[l] * f[l]) + n[1] * (a1[l] * f[l]) + n[2] * (a2[l] * f[l])
+        });
+        for l in 0..LANES {
+            let e = albedo[l] * p * nb[l] - i[l];
+            sse[l] += if ok[l] { e * e } else { 0.0 };
+        }
+    }
+    sse
 }
 
 /// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
@@ -986,6 +1103,21 @@ mod tests {
             assert_eq!(FacetStat::from(&fit), stats[f], "facet {f}");
         }
         assert!(stats.iter().any(|s| s.valid) && stats.iter().any(|s| s.used < k as u32));
+        // The final pass: exact residuals.
+        let exact = LocalStep {
+            settings: FitSettings::default(),
+            ..step
+        };
+        let mut fits = vec![FacetFit::EMPTY; n];
+        exact.run(&u, 0, &mut fits);
+        for (f, lane_fit) in fits.iter().enumerate() {
+            let fit = exact.fit(f, &u, &mut buf);
+            assert_eq!(fit.target, lane_fit.target, "facet {f}");
+            assert_eq!(fit.normal, lane_fit.normal, "facet {f}");
+            assert_eq!(fit.albedo[0], lane_fit.albedo[0], "facet {f}");
+            assert_eq!(fit.sse, lane_fit.sse, "facet {f}");
+            assert_eq!(fit.used, lane_fit.used, "facet {f}");
+        }
     }
 
     #[test]

@@ -107,7 +107,7 @@ impl<'a> Problem<'a> {
                 rig.n_lights()
             )
         })?;
-        if let Some(i) = images.data.iter().position(|v| v.is_infinite()) {
+        if let Some(i) = images.data.par_iter().position_first(|v| v.is_infinite()) {
             let plane = images.height * images.width * images.channels;
             let pixel = (i % plane) / images.channels;
             return Err(Error::Input(format!(
