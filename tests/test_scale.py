@@ -143,3 +143,21 @@ def test_auto_distance_on_the_coarsest_level(camera):
         estimate = r.distance.distance[0]
         print(f"\n{camera} seed {seed}: estimate {estimate:.4f}, true {s.mean_depth:.4f}")
         assert abs(estimate / s.mean_depth - 1) < 1e-3
+
+
+def test_multigrid_iteration_limit_warns(monkeypatch, scene):
+    """A global step that stops at the conjugate-gradient limit is reported, not hidden."""
+    from nplps import api
+
+    s = scene("sphere", n=32)
+    real = api._core.reconstruct
+
+    def capped(*args, **kwargs):
+        out = real(*args, **kwargs)
+        limit = api._core.MULTIGRID_MAX_ITERATIONS
+        out["history"] = [h[:5] + (limit,) for h in out["history"]]
+        return out
+
+    monkeypatch.setattr(api._core, "reconstruct", capped)
+    with pytest.warns(RuntimeWarning, match="conjugate-gradient"):
+        nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth)

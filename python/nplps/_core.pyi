@@ -4,8 +4,10 @@
 ``camera`` is the rig file's camera mapping; ``lights`` a mapping of per-light lists
 (``vectors``, ``directional``, ``intensities``, ``axes``, ``mu``: see ``Rig._core_lights``);
 ``options`` a mapping with the keyword options of :func:`nplps.reconstruct` (``iterations``,
-``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, and for the distance
-search and the prior ``auto``, ``depth_range``, ``depth_guess``, ``prior_weight``)."""
+``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, ``solver``, ``levels``,
+and for the distance search and the prior ``auto``, ``depth_range``, ``depth_guess``,
+``prior_weight``). The progress callback gets (iteration, depth change, rms residual, elapsed
+seconds, pyramid level, conjugate-gradient iterations)."""
 
 import os
 from typing import Any, Callable, Mapping, Sequence
@@ -14,10 +16,12 @@ import numpy as np
 import numpy.typing as npt
 
 __version__: str
+#: Most conjugate-gradient iterations of one multigrid global step.
+MULTIGRID_MAX_ITERATIONS: int
 
 Camera = Mapping[str, Any]
 Lights = Mapping[str, list[Any]]
-ProgressCallback = Callable[[int, float, float, float], Any]
+ProgressCallback = Callable[[int, float, float, float, int, int], Any]
 
 def reconstruct(
     images: npt.NDArray[np.float32],

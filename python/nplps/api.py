@@ -114,6 +114,21 @@ def _warn_negative(count: int, dark: float) -> None:
         )
 
 
+def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
+    """Warns when the multigrid solver stopped at its iteration limit in some global step (the
+    mask's thin structures defeat its coarsening): that step's depths are inexact."""
+    limit = _core.MULTIGRID_MAX_ITERATIONS
+    stuck = sum(1 for h in history if len(h) > 5 and h[5] >= limit)
+    if stuck:
+        warnings.warn(
+            f"the multigrid solver reached its limit of {limit} conjugate-gradient iterations in {stuck} "
+            "global step(s), so those steps are inexact; masks made of thin one-pixel strips converge slowly: "
+            'try solver="direct" (exact; its memory grows faster than the pixels)',
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
 def _progress_callback(progress: Progress, iterations: int) -> Callable[..., None] | None:
     if progress is None or progress is False:
         return None
@@ -252,6 +267,7 @@ def reconstruct(
         prior,
     )
     _warn_negative(out["negative_observations"], dark_)
+    _warn_slow_multigrid(out["history"])
     return Reconstruction._from_core(out, mask_arr, rig, "near")
 
 

@@ -459,6 +459,7 @@ fn synth_scene<'py>(
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("MULTIGRID_MAX_ITERATIONS", nplps::multigrid::MAX_ITERATIONS)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;

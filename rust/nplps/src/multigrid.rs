@@ -41,6 +41,11 @@ use crate::grid::{Grid, INACTIVE};
 /// Rows per Gauss-Seidel band.
 pub const BAND: usize = 16;
 
+/// Most conjugate-gradient iterations of one global step (the default of
+/// [`MultigridSystem::max_iterations`]). Compact masks need 0 to 10; thin one-pixel strips
+/// joined across gaps by the coarsening (a comb, a grid of lines) can need hundreds.
+pub const MAX_ITERATIONS: usize = 500;
+
 /// Largest number of active nodes of the coarsest level (factored directly).
 pub const COARSEST_NODES: usize = 4096;
 
@@ -693,7 +698,7 @@ impl MultigridSystem {
             pins,
             prior_rhs: prior_right_side(prior),
             rtol: 1e-6,
-            max_iterations: 500,
+            max_iterations: MAX_ITERATIONS,
         })
     }
 
