@@ -89,7 +89,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let t = Instant::now();
         let targets: Vec<[f64; 4]> = fits.iter().map(|f| f.target).collect();
         let mut u = vec![0.0; grid.n_unknowns()];
-        let inner_iterations = system.solve(grid, &targets, &problem.u0, &mut u);
+        let inner_iterations = system.solve(grid, &targets, &problem.u0, &mut u)?;
         grid.apply_gauge(&mut u, &problem.gauge);
         timings.solve = t.elapsed();
         timings.total = start.elapsed();

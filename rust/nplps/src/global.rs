@@ -328,12 +328,28 @@ pub enum GlobalSolver {
 /// Unknowns above which [`GlobalSolver::Auto`] takes the multigrid solver.
 pub const AUTO_MULTIGRID_UNKNOWNS: usize = 40_000;
 
+/// With [`GlobalSolver::Auto`], a multigrid solve that needs more than this many
+/// conjugate-gradient iterations (masks of thin strips joined across gaps by the coarsening,
+/// such as combs) switches the system to the direct solver, when it has at most
+/// [`FALLBACK_MAX_UNKNOWNS`] unknowns.
+pub const FALLBACK_ITERATIONS: usize = 100;
+
+/// Most unknowns for which [`GlobalSolver::Auto`] falls back to the direct solver (its factor
+/// then takes about 3 GB).
+pub const FALLBACK_MAX_UNKNOWNS: usize = 1_500_000;
+
 /// The global system of one mask, solved directly or by multigrid.
 pub enum GlobalStep {
     /// Sparse Cholesky.
     Direct(Box<GlobalSystem>),
     /// Multigrid-preconditioned conjugate gradients.
-    Multigrid(Box<crate::multigrid::MultigridSystem>),
+    Multigrid {
+        /// The multigrid system.
+        system: Box<crate::multigrid::MultigridSystem>,
+        /// What a switch to the direct solver needs (see [`FALLBACK_ITERATIONS`]); None when
+        /// the multigrid solver was asked for, or the system is too large.
+        fallback: Option<Box<(Par, Option<Prior>)>>,
+    },
 }
 
 impl GlobalStep {
@@ -344,15 +360,19 @@ impl GlobalStep {
         par: Par,
         prior: Option<&Prior>,
     ) -> Result<GlobalStep> {
+        let n = grid.n_unknowns();
         let multigrid = match choice {
-            GlobalSolver::Auto => grid.n_unknowns() > AUTO_MULTIGRID_UNKNOWNS,
+            GlobalSolver::Auto => n > AUTO_MULTIGRID_UNKNOWNS,
             GlobalSolver::Direct => false,
             GlobalSolver::Multigrid => true,
         };
         Ok(if multigrid {
-            GlobalStep::Multigrid(Box::new(crate::multigrid::MultigridSystem::new(
-                grid, prior,
-            )?))
+            let fallback = (choice == GlobalSolver::Auto && n <= FALLBACK_MAX_UNKNOWNS)
+                .then(|| Box::new((par, prior.cloned())));
+            GlobalStep::Multigrid {
+                system: Box::new(crate::multigrid::MultigridSystem::new(grid, prior)?),
+                fallback,
+            }
         } else {
             GlobalStep::Direct(Box::new(GlobalSystem::with_ordering(
                 grid,
@@ -364,20 +384,44 @@ impl GlobalStep {
     }
 
     /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
-    /// (0 for the direct solver).
+    /// (0 for the direct solver). A multigrid solve that needed more than
+    /// [`FALLBACK_ITERATIONS`] is redone, and the system kept, with the direct solver when the
+    /// fallback is allowed (see [`GlobalStep::Multigrid`]).
     pub fn solve(
         &mut self,
         grid: &Grid,
         targets: &[[f64; 4]],
         z_current: &[f64],
         z_out: &mut [f64],
-    ) -> usize {
+    ) -> Result<usize> {
         match self {
             GlobalStep::Direct(system) => {
                 system.solve(grid, targets, z_current, z_out);
-                0
+                Ok(0)
             }
-            GlobalStep::Multigrid(system) => system.solve(grid, targets, z_current, z_out),
+            GlobalStep::Multigrid { system, fallback } => {
+                // With a fallback, stop the conjugate gradients as soon as they are too slow.
+                let limit = system.max_iterations;
+                if fallback.is_some() {
+                    system.max_iterations = limit.min(FALLBACK_ITERATIONS + 1);
+                }
+                let iterations = system.solve(grid, targets, z_current, z_out);
+                system.max_iterations = limit;
+                if iterations > FALLBACK_ITERATIONS {
+                    if let Some(parts) = fallback.take() {
+                        let (par, prior) = *parts;
+                        let mut direct = GlobalSystem::with_ordering(
+                            grid,
+                            par,
+                            FillOrdering::NestedDissection,
+                            prior.as_ref(),
+                        )?;
+                        direct.solve(grid, targets, z_current, z_out);
+                        *self = GlobalStep::Direct(Box::new(direct));
+                    }
+                }
+                Ok(iterations)
+            }
         }
     }
 }
@@ -466,6 +510,39 @@ mod tests {
             amd.factor_nnz()
         );
         assert!(nd.factor_nnz() < amd.factor_nnz());
+    }
+
+    /// A comb (3-pixel teeth, 2-pixel gaps) defeats the multigrid coarsening; `Auto` then
+    /// switches to the direct solver and gives its exact solution; `Multigrid` keeps iterating.
+    #[test]
+    fn auto_falls_back_to_direct_on_a_comb() {
+        let n = 256;
+        let mask: Vec<bool> = (0..n * n).map(|p| p % n % 5 < 3 || p / n < 10).collect();
+        let grid = Grid::new(n, n, Some(&mask)).unwrap();
+        assert!(grid.n_unknowns() > AUTO_MULTIGRID_UNKNOWNS);
+        let targets: Vec<[f64; 4]> = (0..grid.n_facets())
+            .map(|f| {
+                let x = ((f * 7919) % 101) as f64 * 1e-3;
+                [x, -x, 0.5 * x, -0.5 * x]
+            })
+            .collect();
+        let current = vec![100.0; grid.n_unknowns()];
+        let mut exact = vec![0.0; grid.n_unknowns()];
+        GlobalSystem::new(&grid, Par::Seq)
+            .unwrap()
+            .solve(&grid, &targets, &current, &mut exact);
+        let mut auto = GlobalStep::new(&grid, GlobalSolver::Auto, Par::Seq, None).unwrap();
+        assert!(matches!(auto, GlobalStep::Multigrid { .. }));
+        let mut z = vec![0.0; grid.n_unknowns()];
+        let iterations = auto.solve(&grid, &targets, &current, &mut z).unwrap();
+        assert!(iterations > FALLBACK_ITERATIONS, "{iterations}");
+        assert!(matches!(auto, GlobalStep::Direct(_)));
+        for (a, b) in z.iter().zip(&exact) {
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+        }
+        let mut forced = GlobalStep::new(&grid, GlobalSolver::Multigrid, Par::Seq, None).unwrap();
+        forced.solve(&grid, &targets, &current, &mut z).unwrap();
+        assert!(matches!(forced, GlobalStep::Multigrid { .. }));
     }
 
     /// A prior on every unknown anchors the system without pins and pulls the solution towards

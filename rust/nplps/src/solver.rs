@@ -397,7 +397,7 @@ impl<'p> Solver<'p> {
             self.local(u);
             let t = Instant::now();
             let system = self.system.as_mut().expect("the solver has not finished");
-            let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next);
+            let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
             p.grid.apply_gauge(&mut self.next, gauge);
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
             std::mem::swap(u, &mut self.next);
