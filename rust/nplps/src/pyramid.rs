@@ -16,6 +16,8 @@
 //! rule stops it). The default number of levels halves the image while the coarser level keeps
 //! at least [`COARSEST_SIDE`] pixels along its longer side.
 
+use rayon::prelude::*;
+
 use crate::error::Result;
 use crate::geometry::Geometry;
 use crate::global::Prior;
@@ -109,7 +111,6 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
             v > settings.dark && v < settings.saturation
         })
     };
-    use rayon::prelude::*;
     values
         .par_chunks_mut(per)
         .zip(coarse_grid.facets.par_iter())
@@ -276,7 +277,7 @@ pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Vec<f64> {
     };
     let mean = u.iter().sum::<f64>() / u.len().max(1) as f64;
     fine.active
-        .iter()
+        .par_iter()
         .map(|&v| {
             let (r, c) = (v / fw, v % fw);
             let rows: &[(usize, f64)] = if r % 2 == 0 {
