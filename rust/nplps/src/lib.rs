@@ -11,7 +11,10 @@
 //! factored once per mask; the [solver] alternates the two until the depths converge. Pinhole
 //! cameras ([geometry]: log-depth unknowns), LEDs and directional lights ([rig]), colour and
 //! robust fits ([local]), depth priors ([global]) and the estimation of the working distance from
-//! the images ([distance]) extend the paper's setting.
+//! the images ([distance]) extend the paper's setting. At camera resolution the global system is
+//! solved by conjugate gradients with a [multigrid] preconditioner (linear time and memory in the
+//! pixels; [`GlobalSolver`]), and the solver runs coarse-to-fine over an image [pyramid]
+//! ([`Options::levels`]).
 //!
 //! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
 //! depth = z; normals face the camera (n_z < 0). Units are the user's.
