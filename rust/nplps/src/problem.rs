@@ -107,7 +107,17 @@ impl<'a> Problem<'a> {
                 rig.n_lights()
             )
         })?;
-        if let Some(i) = images.data.par_iter().position_first(|v| v.is_infinite()) {
+        const CHUNK: usize = 1 << 16;
+        let infinite = images
+            .data
+            .par_chunks(CHUNK)
+            .position_first(|c| c.iter().any(|v| v.is_infinite()))
+            .map(|chunk| {
+                let start = chunk * CHUNK;
+                let within = images.data[start..].iter().position(|v| v.is_infinite());
+                start + within.unwrap_or(0)
+            });
+        if let Some(i) = infinite {
             let plane = images.height * images.width * images.channels;
             let pixel = (i % plane) / images.channels;
             return Err(Error::Input(format!(
