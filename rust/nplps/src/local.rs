@@ -253,14 +253,27 @@ pub struct LocalStep<'s> {
     pub obs: &'s Observations<'s>,
     /// Fit settings.
     pub settings: FitSettings,
+    /// The depth of every unknown, when the caller has it (a pinhole camera's unknowns are
+    /// log-depths: this saves an `exp` per facet corner); None: from the unknowns.
+    pub depths: Option<&'s [f64]>,
 }
 
 impl LocalStep<'_> {
+    /// The 4 corners of facet `f` (see [`Grid::facet_corners`]).
+    #[inline]
+    fn corners(&self, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
+        match self.depths {
+            Some(z) => self.grid.facet_vertices[f]
+                .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
+            None => self.grid.facet_corners(self.geometry, f, u),
+        }
+    }
+
     /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations.
     #[inline]
     fn fit(&self, f: usize, u: &[f64], buf: &mut [f32]) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let q = grid.facet_corners(geometry, f, u);
+        let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
         let values = obs.facet(f, grid.facets[f], buf);
         let c = quad_centre(&q);
@@ -406,8 +419,7 @@ impl LocalStep<'_> {
         interleaved: &mut [[f32; LANES]],
     ) -> [FacetFit; LANES] {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let quads: [[[f64; 3]; 4]; LANES] =
-            std::array::from_fn(|l| grid.facet_corners(geometry, first + l, u));
+        let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
         let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
         for l in 0..LANES {
             let f = first + l;
@@ -680,6 +692,7 @@ pub fn local_step(
         model,
         obs,
         settings,
+        depths: None,
     }
     .run(u, 0, fits);
 }
@@ -1089,6 +1102,7 @@ mod tests {
                 fast_residual: true,
                 ..FitSettings::default()
             },
+            depths: None,
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();
@@ -1118,6 +1132,49 @@ mod tests {
             assert_eq!(fit.sse, lane_fit.sse, "facet {f}");
             assert_eq!(fit.used, lane_fit.used, "facet {f}");
         }
+    }
+
+    /// Precomputed depths (pinhole: log-depth unknowns) give the same fits as the unknowns.
+    #[test]
+    fn precomputed_depths_change_nothing() {
+        use crate::rig::Camera;
+        let (h, w) = (6, 9);
+        let grid = Grid::new(h, w, None).unwrap();
+        let camera = Camera::Pinhole {
+            k: [[50.0, 0.0, 4.0], [0.0, 50.0, 3.0], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        };
+        let geometry = Geometry::new(&camera, &grid);
+        let lights = lights();
+        let k = lights.len();
+        let u: Vec<f64> = (0..grid.n_unknowns())
+            .map(|i| (100.0 + 0.1 * (i % 7) as f64).ln())
+            .collect();
+        let data: Vec<f32> = (0..k * h * w)
+            .map(|i| 1e-4 * (1.0 + ((i * 13) % 7) as f32))
+            .collect();
+        let obs = Observations::from_stack(&data, k, h * w, 1);
+        let z: Vec<f64> = u.iter().map(|&x| geometry.depth(x)).collect();
+        let n = grid.n_facets();
+        let mut results = Vec::new();
+        for depths in [None, Some(&z[..])] {
+            let step = LocalStep {
+                grid: &grid,
+                geometry: &geometry,
+                model: Model::Near(&lights),
+                obs: &obs,
+                settings: FitSettings {
+                    fast_residual: true,
+                    ..FitSettings::default()
+                },
+                depths,
+            };
+            let mut targets = vec![[0.0; 4]; n];
+            let mut stats = vec![FacetStat::default(); n];
+            step.run_targets(&u, &mut targets, &mut stats);
+            results.push((targets, stats));
+        }
+        assert_eq!(results[0], results[1]);
     }
 
     #[test]

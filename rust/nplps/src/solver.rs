@@ -354,8 +354,9 @@ impl<'p> Solver<'p> {
         self.problem
     }
 
-    /// The local step of this problem with the given residual mode.
-    fn step(&self, fast_residual: bool) -> LocalStep<'_> {
+    /// The local step of this problem with the given residual mode, on unknowns whose depths
+    /// are `depths` (if computed).
+    fn step<'a>(&'a self, fast_residual: bool, depths: Option<&'a [f64]>) -> LocalStep<'a> {
         let p = self.problem;
         LocalStep {
             grid: &p.grid,
@@ -363,7 +364,18 @@ impl<'p> Solver<'p> {
             model: Model::Near(&p.rig.lights),
             obs: &p.obs,
             settings: self.options.fit_settings(fast_residual),
+            depths,
         }
+    }
+
+    /// The depth of every unknown for a pinhole camera (log-depth unknowns), computed once per
+    /// local step instead of once per facet corner; None for an orthographic camera.
+    fn depths(&self, u: &[f64]) -> Option<Vec<f64>> {
+        use rayon::prelude::*;
+        let geometry = &self.problem.geometry;
+        geometry
+            .is_perspective()
+            .then(|| u.par_iter().map(|&x| geometry.depth(x)).collect())
     }
 
     /// The local step on `u` (with fast residuals): the facets' targets and statistics.
@@ -373,7 +385,9 @@ impl<'p> Solver<'p> {
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
         );
-        self.step(true).run_targets(u, &mut targets, &mut stats);
+        let depths = self.depths(u);
+        self.step(true, depths.as_deref())
+            .run_targets(u, &mut targets, &mut stats);
         (self.targets, self.stats) = (targets, stats);
         self.timings.local += t.elapsed();
     }
@@ -470,7 +484,8 @@ impl<'p> Solver<'p> {
         drop(self.system.take());
         let problem = self.problem;
         let mut outputs = FitOutputs::new(problem);
-        let step = self.step(false);
+        let depths = self.depths(u);
+        let step = self.step(false, depths.as_deref());
         let n = problem.grid.n_facets();
         let mut fits = vec![FacetFit::EMPTY; n.min(FINAL_CHUNK)];
         for first in (0..n).step_by(FINAL_CHUNK) {
