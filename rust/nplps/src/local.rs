@@ -167,6 +167,26 @@ impl<'a> Observations<'a> {
         self.k * self.channels
     }
 
+    /// For grey observations borrowed from a stack: the values of the facets at `pixels`,
+    /// light-major and interleaved (`out[k][lane]`); returns false (and writes nothing) for
+    /// other layouts.
+    #[inline]
+    fn gather_lanes<const N: usize>(&self, pixels: &[usize; N], out: &mut [[f32; N]]) -> bool {
+        match &self.layout {
+            ObsLayout::Stack { data, plane } if self.channels == 1 => {
+                for (k, slot) in out[..self.k].iter_mut().enumerate() {
+                    let base = k * plane;
+                    for (v, &p) in slot.iter_mut().zip(pixels) {
+                        *v = data[base + p];
+                    }
+                    prefetch(data, base + pixels[N - 1] + PREFETCH_AHEAD);
+                }
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// The `k * channels` values of facet `f` at pixel index `pixel` (row-major, `r * W + c`),
     /// light-major; gathered into `buf` (of at least that length) when the layout needs it.
     #[inline]
@@ -362,6 +382,27 @@ impl LocalStep<'_> {
     }
 }
 
+/// How far ahead (in pixels) the gather of observations prefetches each image: the local step
+/// reads the k images as k streams, more than the hardware prefetchers follow.
+const PREFETCH_AHEAD: usize = 512;
+
+/// Hints the processor to load `data[i]` into the cache (nothing when `i` is out of range or
+/// on other architectures).
+#[inline(always)]
+fn prefetch(data: &[f32], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if i < data.len() {
+        // SAFETY: the address lies inside `data`; a prefetch never faults and changes no state
+        // visible to the program.
+        unsafe {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(i).cast());
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (data, i);
+}
+
 /// Facets whose normal equations are accumulated together (one SIMD lane each).
 const LANES: usize = 4;
 
@@ -421,11 +462,14 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
         let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
-        for l in 0..LANES {
-            let f = first + l;
-            let values = obs.facet(f, grid.facets[f], buf);
-            for (slot, &v) in interleaved.iter_mut().zip(values) {
-                slot[l] = v;
+        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l]);
+        if !obs.gather_lanes(&pixels, interleaved) {
+            for l in 0..LANES {
+                let f = first + l;
+                let values = obs.facet(f, grid.facets[f], buf);
+                for (slot, &v) in interleaved.iter_mut().zip(values) {
+                    slot[l] = v;
+                }
             }
         }
         let sums = accumulate_lanes_dispatch(

@@ -359,25 +359,43 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                         };
                         let b = &b[pr * stride..(pr + 1) * stride];
                         let base = r * l.cols;
-                        let mut update = |c: usize| {
-                            let s = get(base + c);
-                            if s[CENTRE] > 0.0 {
-                                let j = c + 1;
-                                let off = s[0] * above[j - 1]
-                                    + s[1] * above[j]
-                                    + s[2] * above[j + 1]
-                                    + s[3] * here[j - 1]
-                                    + s[5] * here[j + 1]
-                                    + s[6] * below[j - 1]
-                                    + s[7] * below[j]
-                                    + s[8] * below[j + 1];
-                                here[j] = (b[j] - off) * s[INVERSE];
-                            }
-                        };
+                        // The neighbour along the sweep is the only term that depends on the
+                        // previous update: it is added last, from a register, so that the
+                        // dependency chain between nodes is one multiply-subtract-multiply.
                         if forward {
-                            (0..l.cols).for_each(&mut update);
+                            let mut previous = here[0];
+                            for c in 0..l.cols {
+                                let s = get(base + c);
+                                let j = c + 1;
+                                if s[CENTRE] > 0.0 {
+                                    let rest = s[0] * above[j - 1]
+                                        + s[1] * above[j]
+                                        + s[2] * above[j + 1]
+                                        + s[5] * here[j + 1]
+                                        + s[6] * below[j - 1]
+                                        + s[7] * below[j]
+                                        + s[8] * below[j + 1];
+                                    here[j] = (b[j] - rest - s[3] * previous) * s[INVERSE];
+                                }
+                                previous = here[j];
+                            }
                         } else {
-                            (0..l.cols).rev().for_each(&mut update);
+                            let mut previous = here[l.cols + 1];
+                            for c in (0..l.cols).rev() {
+                                let s = get(base + c);
+                                let j = c + 1;
+                                if s[CENTRE] > 0.0 {
+                                    let rest = s[0] * above[j - 1]
+                                        + s[1] * above[j]
+                                        + s[2] * above[j + 1]
+                                        + s[3] * here[j - 1]
+                                        + s[6] * below[j - 1]
+                                        + s[7] * below[j]
+                                        + s[8] * below[j + 1];
+                                    here[j] = (b[j] - rest - s[5] * previous) * s[INVERSE];
+                                }
+                                previous = here[j];
+                            }
                         }
                     };
                     if forward {
