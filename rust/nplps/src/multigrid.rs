@@ -250,19 +250,32 @@ impl Work {
 }
 
 /// Calls `f` with the level's stencil lookup (node index -> stencil), monomorphized per kind.
+/// `plain(n)` tells whether node n has the interior stencil of [`plain_apply`] (a fine vertex
+/// whose 4 facets are all masked, neither pinned nor under a prior).
 macro_rules! with_stencils {
-    ($level:expr, |$get:ident| $body:expr) => {
+    ($level:expr, |$get:ident, $plain:ident| $body:expr) => {
         match &$level.stencils {
             Stencils::Fine { flags, table } => {
                 let $get = |n: usize| -> &Stencil { &table[flags[n] as usize] };
+                let $plain = |n: usize| flags[n] == NW | NE | SW | SE;
                 $body
             }
             Stencils::Coarse(stencils) => {
                 let $get = |n: usize| -> &Stencil { &stencils[n] };
+                let $plain = |_: usize| false;
                 $body
             }
         }
     };
+}
+
+/// The interior fine stencil `3 x - (edge neighbours) / 2 - (diagonal neighbours) / 4` (four
+/// masked facets) at padded column `j`, with the weights as constants.
+#[inline(always)]
+fn plain_apply(above: &[f64], here: &[f64], below: &[f64], j: usize) -> f64 {
+    3.0 * here[j]
+        - 0.5 * (above[j] + below[j] + here[j - 1] + here[j + 1])
+        - 0.25 * (above[j - 1] + above[j + 1] + below[j - 1] + below[j + 1])
 }
 
 /// `s . x` over the 3 x 3 neighbourhood of padded column `j` in rows `above`, `here`, `below`.
@@ -283,7 +296,7 @@ fn apply_stencil(s: &Stencil, above: &[f64], here: &[f64], below: &[f64], j: usi
 fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) {
     let l = level.layout;
     let stride = l.stride;
-    with_stencils!(level, |get| {
+    with_stencils!(level, |get, plain| {
         out.par_chunks_mut(stride)
             .enumerate()
             .for_each(|(pr, row)| {
@@ -300,16 +313,32 @@ fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) {
                     Some(b) => {
                         let b = &b[pr * stride + 1..pr * stride + 1 + l.cols];
                         for (c, (o, &bc)) in row.iter_mut().zip(b).enumerate() {
-                            let s = get(base + c);
-                            let ax = apply_stencil(s, above, here, below, c + 1);
-                            *o = if s[CENTRE] > 0.0 { bc - ax } else { 0.0 };
+                            *o = if plain(base + c) {
+                                bc - plain_apply(above, here, below, c + 1)
+                            } else {
+                                let s = get(base + c);
+                                let ax = apply_stencil(s, above, here, below, c + 1);
+                                if s[CENTRE] > 0.0 {
+                                    bc - ax
+                                } else {
+                                    0.0
+                                }
+                            };
                         }
                     }
                     None => {
                         for (c, o) in row.iter_mut().enumerate() {
-                            let s = get(base + c);
-                            let ax = apply_stencil(s, above, here, below, c + 1);
-                            *o = if s[CENTRE] > 0.0 { ax } else { 0.0 };
+                            *o = if plain(base + c) {
+                                plain_apply(above, here, below, c + 1)
+                            } else {
+                                let s = get(base + c);
+                                let ax = apply_stencil(s, above, here, below, c + 1);
+                                if s[CENTRE] > 0.0 {
+                                    ax
+                                } else {
+                                    0.0
+                                }
+                            };
                         }
                     }
                 }
@@ -335,7 +364,7 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
     let bands = l.rows.div_ceil(BAND);
     let ptr = Shared(x.as_mut_ptr());
     let phases: [usize; 2] = if forward { [0, 1] } else { [1, 0] };
-    with_stencils!(level, |get| {
+    with_stencils!(level, |get, plain| {
         for phase in phases {
             (0..bands)
                 .into_par_iter()
@@ -365,8 +394,19 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                         if forward {
                             let mut previous = here[0];
                             for c in 0..l.cols {
-                                let s = get(base + c);
                                 let j = c + 1;
+                                if plain(base + c) {
+                                    let rest = 0.5 * (above[j] + below[j] + here[j + 1])
+                                        + 0.25
+                                            * (above[j - 1]
+                                                + above[j + 1]
+                                                + below[j - 1]
+                                                + below[j + 1]);
+                                    here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
+                                    previous = here[j];
+                                    continue;
+                                }
+                                let s = get(base + c);
                                 if s[CENTRE] > 0.0 {
                                     let rest = s[0] * above[j - 1]
                                         + s[1] * above[j]
@@ -382,8 +422,19 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                         } else {
                             let mut previous = here[l.cols + 1];
                             for c in (0..l.cols).rev() {
-                                let s = get(base + c);
                                 let j = c + 1;
+                                if plain(base + c) {
+                                    let rest = 0.5 * (above[j] + below[j] + here[j - 1])
+                                        + 0.25
+                                            * (above[j - 1]
+                                                + above[j + 1]
+                                                + below[j - 1]
+                                                + below[j + 1]);
+                                    here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
+                                    previous = here[j];
+                                    continue;
+                                }
+                                let s = get(base + c);
                                 if s[CENTRE] > 0.0 {
                                     let rest = s[0] * above[j - 1]
                                         + s[1] * above[j]
