@@ -292,16 +292,19 @@ fn apply_stencil(s: &Stencil, above: &[f64], here: &[f64], below: &[f64], j: usi
         + s[8] * below[j + 1]
 }
 
-/// `out = b - A x` (or `A x` when `b` is None) at the active nodes, 0 elsewhere.
-fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) {
+/// `out = b - A x` (or `A x` when `b` is None) at the active nodes, 0 elsewhere. Returns
+/// `x . out` (summed per row, rows in order: deterministic), which the conjugate gradients need
+/// after `q = A p`.
+fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) -> f64 {
     let l = level.layout;
     let stride = l.stride;
     with_stencils!(level, |get, plain| {
-        out.par_chunks_mut(stride)
+        let partial: Vec<f64> = out
+            .par_chunks_mut(stride)
             .enumerate()
-            .for_each(|(pr, row)| {
+            .map(|(pr, row)| {
                 if pr == 0 || pr > l.rows {
-                    return;
+                    return 0.0;
                 }
                 let r = pr - 1;
                 let above = &x[(pr - 1) * stride..pr * stride];
@@ -342,8 +345,11 @@ fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) {
                         }
                     }
                 }
+                row.iter().zip(&here[1..]).map(|(o, x)| o * x).sum::<f64>()
             })
-    });
+            .collect();
+        partial.iter().sum()
+    })
 }
 
 /// A raw pointer shared by the Gauss-Seidel bands.
@@ -837,8 +843,7 @@ impl MultigridSystem {
             while iterations < self.max_iterations {
                 iterations += 1;
                 let k = &mut self.krylov;
-                residual(&self.levels[0], &k.p, None, &mut k.q);
-                let pq = dot(&k.p, &k.q);
+                let pq = residual(&self.levels[0], &k.p, None, &mut k.q);
                 if pq.is_nan() || pq <= 0.0 {
                     break;
                 }
