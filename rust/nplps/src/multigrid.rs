@@ -28,6 +28,12 @@
 //! (a warm start: the right side changes little between outer iterations) until
 //! `|b - A u| <= rtol |b_t|`, with `b_t` the facet part of the right side. Cost and memory are
 //! linear in the number of vertices.
+//!
+//! **Limits.** Strips of the mask separated by gaps of a pixel or two (a comb, a grille) are
+//! joined by the coarse levels, which then cannot represent their independent bending: such
+//! masks need hundreds of iterations ([`MAX_ITERATIONS`] at most). The automatic choice of
+//! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
+//! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
