@@ -17,6 +17,8 @@
 //! plane through `c` with normal `n` (see [`Geometry::plane_target`]). A facet with fewer than 3
 //! usable lights, or a singular system, keeps its current shape and reports no albedo.
 
+use std::borrow::Cow;
+
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -118,24 +120,19 @@ impl FacetFit {
     }
 }
 
-/// The observations of the masked facets: borrowed from the caller's (k, H, W, C) image stack
-/// without a copy, or owned in facet-major order (the coarse levels of a pyramid). NaN marks a
-/// missing observation.
+/// The observations of the masked facets: a (k, H, W, C) image stack, borrowed from the
+/// caller without a copy, or owned (the coarse levels of a pyramid). NaN marks a missing
+/// observation.
 #[derive(Debug, Clone)]
 pub struct Observations<'a> {
     /// Number of lights k.
     pub k: usize,
     /// Channels per observation (1 or 3).
     pub channels: usize,
-    layout: ObsLayout<'a>,
-}
-
-#[derive(Debug, Clone)]
-enum ObsLayout<'a> {
-    /// A (k, H, W, C) row-major stack; `plane` = H * W * C values per image.
-    Stack { data: &'a [f32], plane: usize },
-    /// Facet-major values, `values[(f * k + i) * C + ch]`.
-    FacetMajor(Vec<f32>),
+    /// The stack, row-major (k, H, W, C).
+    data: Cow<'a, [f32]>,
+    /// Values per image, H * W * C.
+    plane: usize,
 }
 
 impl<'a> Observations<'a> {
@@ -145,19 +142,24 @@ impl<'a> Observations<'a> {
         Observations {
             k,
             channels,
-            layout: ObsLayout::Stack {
-                data,
-                plane: pixels * channels,
-            },
+            data: Cow::Borrowed(data),
+            plane: pixels * channels,
         }
     }
 
-    /// Owns facet-major values (`n_facets * k * channels` of them).
-    pub fn facet_major(k: usize, channels: usize, values: Vec<f32>) -> Observations<'static> {
+    /// Owns a (k, H, W, C) stack with `pixels` = H * W pixels per image.
+    pub fn owned_stack(
+        data: Vec<f32>,
+        k: usize,
+        pixels: usize,
+        channels: usize,
+    ) -> Observations<'static> {
+        debug_assert_eq!(data.len(), k * pixels * channels);
         Observations {
             k,
             channels,
-            layout: ObsLayout::FacetMajor(values),
+            data: Cow::Owned(data),
+            plane: pixels * channels,
         }
     }
 
@@ -167,52 +169,53 @@ impl<'a> Observations<'a> {
         self.k * self.channels
     }
 
-    /// For grey observations borrowed from a stack: the values of the facets at `pixels`,
-    /// light-major and interleaved (`out[k][lane]`); returns false (and writes nothing) for
-    /// other layouts.
+    /// The `channels` values of light `i` at pixel index `pixel`.
     #[inline]
-    fn gather_lanes<const N: usize>(&self, pixels: &[usize; N], out: &mut [[f32; N]]) -> bool {
-        match &self.layout {
-            ObsLayout::Stack { data, plane } if self.channels == 1 => {
-                for (k, slot) in out[..self.k].iter_mut().enumerate() {
-                    let base = k * plane;
-                    for (v, &p) in slot.iter_mut().zip(pixels) {
-                        *v = data[base + p];
-                    }
-                    prefetch(data, base + pixels[N - 1] + PREFETCH_AHEAD);
-                }
-                true
-            }
-            _ => false,
-        }
+    pub fn at(&self, i: usize, pixel: usize) -> &[f32] {
+        let start = i * self.plane + pixel * self.channels;
+        &self.data[start..start + self.channels]
     }
 
-    /// The `k * channels` values of facet `f` at pixel index `pixel` (row-major, `r * W + c`),
-    /// light-major; gathered into `buf` (of at least that length) when the layout needs it.
+    /// For grey observations: the values of the facets at `pixels`, light-major and
+    /// interleaved (`out[k][lane]`); returns false (and writes nothing) for colour.
     #[inline]
-    pub fn facet<'b>(&'b self, f: usize, pixel: usize, buf: &'b mut [f32]) -> &'b [f32] {
+    fn gather_lanes<const N: usize>(&self, pixels: &[usize; N], out: &mut [[f32; N]]) -> bool {
+        if self.channels != 1 {
+            return false;
+        }
+        let data = &self.data[..];
+        for (k, slot) in out[..self.k].iter_mut().enumerate() {
+            let base = k * self.plane;
+            for (v, &p) in slot.iter_mut().zip(pixels) {
+                *v = data[base + p];
+            }
+            prefetch(data, base + pixels[N - 1] + PREFETCH_AHEAD);
+        }
+        true
+    }
+
+    /// The `k * channels` values of the facet at pixel index `pixel` (row-major, `r * W + c`),
+    /// light-major, gathered into `buf` (of at least that length).
+    #[inline]
+    pub fn facet<'b>(&self, pixel: usize, buf: &'b mut [f32]) -> &'b [f32] {
         let per = self.per_facet();
-        match &self.layout {
-            ObsLayout::FacetMajor(values) => &values[f * per..(f + 1) * per],
-            ObsLayout::Stack { data, plane } => {
-                let c = self.channels;
-                let start = pixel * c;
-                if c == 1 {
-                    // One value per light: plain loads (a slice copy per light would be a call).
-                    for (i, out) in buf[..per].iter_mut().enumerate() {
-                        *out = data[i * plane + start];
-                    }
-                } else {
-                    for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
-                        let at = i * plane + start;
-                        for (o, &v) in out.iter_mut().zip(&data[at..at + c]) {
-                            *o = v;
-                        }
-                    }
+        let (data, plane) = (&self.data[..], self.plane);
+        let c = self.channels;
+        let start = pixel * c;
+        if c == 1 {
+            // One value per light: plain loads (a slice copy per light would be a call).
+            for (i, out) in buf[..per].iter_mut().enumerate() {
+                *out = data[i * plane + start];
+            }
+        } else {
+            for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
+                let at = i * plane + start;
+                for (o, &v) in out.iter_mut().zip(&data[at..at + c]) {
+                    *o = v;
                 }
-                &buf[..per]
             }
         }
+        &buf[..per]
     }
 }
 
@@ -295,7 +298,7 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
-        let values = obs.facet(f, grid.facets[f], buf);
+        let values = obs.facet(grid.facets[f], buf);
         let c = quad_centre(&q);
         match fit_facet(c, self.model, values, obs.channels, self.settings) {
             Some(fitted) => FacetFit {
@@ -466,7 +469,7 @@ impl LocalStep<'_> {
         if !obs.gather_lanes(&pixels, interleaved) {
             for l in 0..LANES {
                 let f = first + l;
-                let values = obs.facet(f, grid.facets[f], buf);
+                let values = obs.facet(grid.facets[f], buf);
                 for (slot, &v) in interleaved.iter_mut().zip(values) {
                     slot[l] = v;
                 }
@@ -507,7 +510,7 @@ impl LocalStep<'_> {
                     ..fitted
                 },
                 None => {
-                    let values = obs.facet(f, grid.facets[f], buf);
+                    let values = obs.facet(grid.facets[f], buf);
                     keep_shape(
                         &quads[l],
                         ids.map(|i| u[i as usize]),

@@ -243,7 +243,7 @@ fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
         .enumerate()
         .map_init(
             || vec![0.0f32; per],
-            |buf, (f, &p)| obs.facet(f, p, buf).iter().filter(|v| **v < 0.0).count(),
+            |buf, (_, &p)| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
         )
         .sum()
 }

@@ -1,8 +1,8 @@
 //! Coarse-to-fine: an image pyramid whose coarse levels give the finer ones their starting
 //! surface.
 //!
-//! Level `l + 1` halves level `l` in each direction: coarse pixel (R, C) averages the usable
-//! observations of its masked children `(2R + a, 2C + b)` (a child observation is usable when
+//! Level `l + 1` halves level `l` in each direction (an owned image stack, built image by image
+//! and row by row): coarse pixel (R, C) averages the usable observations of its masked children `(2R + a, 2C + b)` (a child observation is usable when
 //! every channel is finite and strictly between `dark` and `saturation`; none usable: missing),
 //! and it is masked when any child is. The camera follows exactly, as binning does:
 //! orthographic pixels double in size with the same origin; a pinhole K becomes
@@ -80,7 +80,7 @@ pub struct Coarsened {
     pub height: usize,
     /// Coarse image width.
     pub width: usize,
-    /// The coarse observations (facet-major).
+    /// The coarse observations, an owned (k, H, W, C) stack.
     pub obs: Observations<'static>,
     /// The coarse starting unknowns (one per coarse unknown) and the coarse grid.
     pub grid: Grid,
@@ -102,60 +102,49 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     }
     let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
     let (k, channels) = (problem.obs.k, problem.obs.channels);
-    let per = k * channels;
     let obs = &problem.obs;
-    let mut values = vec![f32::NAN; coarse_grid.n_facets() * per];
     let usable = |o: &[f32]| {
         o.iter().all(|&v| {
             let v = v as f64;
             v > settings.dark && v < settings.saturation
         })
     };
+    // Image by image, coarse row by coarse row (streams through the finer stack); coarse
+    // pixels outside the coarse mask stay NaN.
+    let row_len = cw * channels;
+    let mut values = vec![f32::NAN; k * ch * row_len];
     values
-        .par_chunks_mut(per)
-        .zip(coarse_grid.facets.par_iter())
-        .for_each_init(
-            || vec![0.0f32; 4 * per],
-            |buf, (out, &cp)| {
-                let (cr, cc) = (cp / cw, cp % cw);
-                let mut children = [u32::MAX; 4];
-                for (slot, (a, b)) in children.iter_mut().zip([(0, 0), (0, 1), (1, 0), (1, 1)]) {
+        .par_chunks_mut(row_len)
+        .enumerate()
+        .for_each(|(j, out)| {
+            let (i, cr) = (j / ch, j % ch);
+            let mut sum = [0.0f64; 3];
+            for cc in 0..cw {
+                if !mask[cr * cw + cc] {
+                    continue;
+                }
+                let mut n = 0u32;
+                sum[..channels].fill(0.0);
+                for (a, b) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
                     let (r, c) = (2 * cr + a, 2 * cc + b);
-                    if r < h && c < w {
-                        *slot = facet_of_pixel[r * w + c];
+                    if r >= h || c >= w || facet_of_pixel[r * w + c] == crate::grid::INACTIVE {
+                        continue;
                     }
-                }
-                let mut child_values: [&[f32]; 4] = [&[]; 4];
-                let mut n_children = 0;
-                for (chunk, &f) in buf
-                    .chunks_exact_mut(per)
-                    .zip(children.iter().filter(|&&f| f != u32::MAX))
-                {
-                    child_values[n_children] =
-                        obs.facet(f as usize, grid.facets[f as usize], chunk);
-                    n_children += 1;
-                }
-                let mut sum = [0.0f64; 3];
-                for i in 0..k {
-                    let mut n = 0u32;
-                    sum[..channels].fill(0.0);
-                    for values in &child_values[..n_children] {
-                        let o = &values[i * channels..(i + 1) * channels];
-                        if usable(o) {
-                            n += 1;
-                            for (s, &v) in sum.iter_mut().zip(o) {
-                                *s += v as f64;
-                            }
-                        }
-                    }
-                    if n > 0 {
-                        for ch in 0..channels {
-                            out[i * channels + ch] = (sum[ch] / n as f64) as f32;
+                    let o = obs.at(i, r * w + c);
+                    if usable(o) {
+                        n += 1;
+                        for (s, &v) in sum.iter_mut().zip(o) {
+                            *s += v as f64;
                         }
                     }
                 }
-            },
-        );
+                if n > 0 {
+                    for ch in 0..channels {
+                        out[cc * channels + ch] = (sum[ch] / n as f64) as f32;
+                    }
+                }
+            }
+        });
     let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN);
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
     let prior = problem.prior.as_ref().map(|p| Prior {
@@ -165,7 +154,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     Ok(Coarsened {
         height: ch,
         width: cw,
-        obs: Observations::facet_major(k, channels, values),
+        obs: Observations::owned_stack(values, k, ch * cw, channels),
         grid: coarse_grid,
         u0,
         prior,
