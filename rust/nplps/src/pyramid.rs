@@ -112,6 +112,21 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     // Image by image, coarse row by coarse row (streams through the finer stack); coarse
     // pixels outside the coarse mask stay NaN.
     let row_len = cw * channels;
+    // Which of its 4 children (bits 0..3: (0,0), (0,1), (1,0), (1,1)) each coarse pixel has.
+    let children: Vec<u8> = (0..ch * cw)
+        .into_par_iter()
+        .map(|cp| {
+            let (cr, cc) = (cp / cw, cp % cw);
+            let mut bits = 0u8;
+            for (bit, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
+                let (r, c) = (2 * cr + a, 2 * cc + b);
+                if r < h && c < w && facet_of_pixel[r * w + c] != crate::grid::INACTIVE {
+                    bits |= 1 << bit;
+                }
+            }
+            bits
+        })
+        .collect();
     let mut values = vec![f32::NAN; k * ch * row_len];
     values
         .par_chunks_mut(row_len)
@@ -120,17 +135,17 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
             let (i, cr) = (j / ch, j % ch);
             let mut sum = [0.0f64; 3];
             for cc in 0..cw {
-                if !mask[cr * cw + cc] {
+                let bits = children[cr * cw + cc];
+                if bits == 0 {
                     continue;
                 }
                 let mut n = 0u32;
                 sum[..channels].fill(0.0);
-                for (a, b) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
-                    let (r, c) = (2 * cr + a, 2 * cc + b);
-                    if r >= h || c >= w || facet_of_pixel[r * w + c] == crate::grid::INACTIVE {
+                for (bit, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
+                    if bits & (1 << bit) == 0 {
                         continue;
                     }
-                    let o = obs.at(i, r * w + c);
+                    let o = obs.at(i, (2 * cr + a) * w + 2 * cc + b);
                     if usable(o) {
                         n += 1;
                         for (s, &v) in sum.iter_mut().zip(o) {
