@@ -403,62 +403,36 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                         // The neighbour along the sweep is the only term that depends on the
                         // previous update: it is added last, from a register, so that the
                         // dependency chain between nodes is one multiply-subtract-multiply.
-                        if forward {
-                            let mut previous = here[0];
-                            for c in 0..l.cols {
-                                let j = c + 1;
-                                if plain(base + c) {
-                                    let rest = 0.5 * (above[j] + below[j] + here[j + 1])
-                                        + 0.25
-                                            * (above[j - 1]
-                                                + above[j + 1]
-                                                + below[j - 1]
-                                                + below[j + 1]);
-                                    here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
-                                    previous = here[j];
-                                    continue;
-                                }
+                        // Forward sweeps take the west neighbour from the register and read the
+                        // east one; backward sweeps the other way round.
+                        let (behind, ahead) = if forward { (3, 5) } else { (5, 3) };
+                        let mut previous = if forward { here[0] } else { here[l.cols + 1] };
+                        for t in 0..l.cols {
+                            let c = if forward { t } else { l.cols - 1 - t };
+                            let j = c + 1;
+                            let next = if forward { here[j + 1] } else { here[j - 1] };
+                            if plain(base + c) {
+                                let rest = 0.5 * (above[j] + below[j] + next)
+                                    + 0.25
+                                        * (above[j - 1]
+                                            + above[j + 1]
+                                            + below[j - 1]
+                                            + below[j + 1]);
+                                here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
+                            } else {
                                 let s = get(base + c);
                                 if s[CENTRE] > 0.0 {
                                     let rest = s[0] * above[j - 1]
                                         + s[1] * above[j]
                                         + s[2] * above[j + 1]
-                                        + s[5] * here[j + 1]
+                                        + s[ahead] * next
                                         + s[6] * below[j - 1]
                                         + s[7] * below[j]
                                         + s[8] * below[j + 1];
-                                    here[j] = (b[j] - rest - s[3] * previous) * s[INVERSE];
+                                    here[j] = (b[j] - rest - s[behind] * previous) * s[INVERSE];
                                 }
-                                previous = here[j];
                             }
-                        } else {
-                            let mut previous = here[l.cols + 1];
-                            for c in (0..l.cols).rev() {
-                                let j = c + 1;
-                                if plain(base + c) {
-                                    let rest = 0.5 * (above[j] + below[j] + here[j - 1])
-                                        + 0.25
-                                            * (above[j - 1]
-                                                + above[j + 1]
-                                                + below[j - 1]
-                                                + below[j + 1]);
-                                    here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
-                                    previous = here[j];
-                                    continue;
-                                }
-                                let s = get(base + c);
-                                if s[CENTRE] > 0.0 {
-                                    let rest = s[0] * above[j - 1]
-                                        + s[1] * above[j]
-                                        + s[2] * above[j + 1]
-                                        + s[3] * here[j - 1]
-                                        + s[6] * below[j - 1]
-                                        + s[7] * below[j]
-                                        + s[8] * below[j + 1];
-                                    here[j] = (b[j] - rest - s[5] * previous) * s[INVERSE];
-                                }
-                                previous = here[j];
-                            }
+                            previous = here[j];
                         }
                     };
                     if forward {
