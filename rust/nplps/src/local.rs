@@ -570,6 +570,37 @@ unsafe fn accumulate_lanes_avx2(
     accumulate_lanes(lights, centres, values, dark, saturation)
 }
 
+/// The observations of one light in [`LANES`] facets as f64, and whether each is usable
+/// (strictly between `dark` and `saturation`, not NaN).
+#[inline(always)]
+fn lane_values(v: &[f32; LANES], dark: f64, saturation: f64) -> ([f64; LANES], [bool; LANES]) {
+    let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
+    let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
+    (i, ok)
+}
+
+/// For [`LANES`] facet centres: `a = p - c` and the factor `f` with `beta = a * f` (see
+/// [`Light::beta`]), computed per lane with the operations of the scalar code in its order.
+/// Straight-line code over the lanes, one operation at a time, so that the compiler turns each
+/// line into one vector instruction.
+#[inline(always)]
+fn lane_beta(light: &LaneLight, centres: &[[f64; 3]; LANES]) -> ([[f64; LANES]; 3], [f64; LANES]) {
+    let [px, py, pz] = light.position;
+    let [ax, ay, az] = light.axis;
+    let a0: [f64; LANES] = std::array::from_fn(|l| px - centres[l][0]);
+    let a1: [f64; LANES] = std::array::from_fn(|l| py - centres[l][1]);
+    let a2: [f64; LANES] = std::array::from_fn(|l| pz - centres[l][2]);
+    let d2: [f64; LANES] = std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+    let d: [f64; LANES] = std::array::from_fn(|l| d2[l].sqrt());
+    let d3: [f64; LANES] = std::array::from_fn(|l| d2[l] * d[l]);
+    let f: [f64; LANES] = if light.led {
+        std::array::from_fn(|l| (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l])
+    } else {
+        std::array::from_fn(|l| 1.0 / d3[l])
+    };
+    ([a0, a1, a2], f)
+}
+
 /// The grey unit-weight normal equations of [`LANES`] facets at once (`values[k][lane]`): per
 /// lane the same operations in the same order as [`Facet::accumulate_grey`], written so that the
 /// compiler keeps the lanes in SIMD registers.
@@ -581,35 +612,14 @@ fn accumulate_lanes(
     dark: f64,
     saturation: f64,
 ) -> [Sums; LANES] {
-    let cx: [f64; LANES] = std::array::from_fn(|l| centres[l][0]);
-    let cy: [f64; LANES] = std::array::from_fn(|l| centres[l][1]);
-    let cz: [f64; LANES] = std::array::from_fn(|l| centres[l][2]);
     let mut t = [[0.0f64; LANES]; 6];
     let mut s = [[0.0f64; LANES]; 3];
     let mut sum_i2 = [0.0f64; LANES];
     let mut used = [0u32; LANES];
     for (light, v) in lights.iter().zip(values) {
-        let [px, py, pz] = light.position;
-        let [ax, ay, az] = light.axis;
         let p = light.grey;
-        // Straight-line code over the lanes, one operation at a time, so that the compiler
-        // turns each line into one vector instruction.
-        let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
-        let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
-        let a0: [f64; LANES] = std::array::from_fn(|l| px - cx[l]);
-        let a1: [f64; LANES] = std::array::from_fn(|l| py - cy[l]);
-        let a2: [f64; LANES] = std::array::from_fn(|l| pz - cz[l]);
-        let d2: [f64; LANES] =
-            std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
-        let d: [f64; LANES] = std::array::from_fn(|l| d2[l].sqrt());
-        let d3: [f64; LANES] = std::array::from_fn(|l| d2[l] * d[l]);
-        let f: [f64; LANES] = if light.led {
-            std::array::from_fn(|l| {
-                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
-            })
-        } else {
-            std::array::from_fn(|l| 1.0 / d3[l])
-        };
+        let (i, ok) = lane_values(v, dark, saturation);
+        let ([a0, a1, a2], f) = lane_beta(light, centres);
         let r0: [f64; LANES] = std::array::from_fn(|l| a0[l] * f[l] * p);
         let r1: [f64; LANES] = std::array::from_fn(|l| a1[l] * f[l] * p);
         let r2: [f64; LANES] = std::array::from_fn(|l| a2[l] * f[l] * p);
@@ -686,30 +696,11 @@ fn residual_lanes(
     normals: &[[f64; 3]; LANES],
     albedo: &[f64; LANES],
 ) -> [f64; LANES] {
-    let cx: [f64; LANES] = std::array::from_fn(|l| centres[l][0]);
-    let cy: [f64; LANES] = std::array::from_fn(|l| centres[l][1]);
-    let cz: [f64; LANES] = std::array::from_fn(|l| centres[l][2]);
     let mut sse = [0.0f64; LANES];
     for (light, v) in lights.iter().zip(values) {
-        let [px, py, pz] = light.position;
-        let [ax, ay, az] = light.axis;
         let p = light.grey;
-        let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
-        let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
-        let a0: [f64; LANES] = std::array::from_fn(|l| px - cx[l]);
-        let a1: [f64; LANES] = std::array::from_fn(|l| py - cy[l]);
-        let a2: [f64; LANES] = std::array::from_fn(|l| pz - cz[l]);
-        let d2: [f64; LANES] =
-            std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
-        let d: [f64; LANES] = std::array::from_fn(|l| d2[l].sqrt());
-        let d3: [f64; LANES] = std::array::from_fn(|l| d2[l] * d[l]);
-        let f: [f64; LANES] = if light.led {
-            std::array::from_fn(|l| {
-                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
-            })
-        } else {
-            std::array::from_fn(|l| 1.0 / d3[l])
-        };
+        let (i, ok) = lane_values(v, dark, saturation);
+        let ([a0, a1, a2], f) = lane_beta(light, centres);
         let nb: [f64; LANES] = std::array::from_fn(|l| {
             let n = normals[l];
             n[0] * (a0[l] * f[l]) + n[1] * (a1[l] * f[l]) + n[2] * (a2[l] * f[l])
@@ -746,7 +737,7 @@ pub fn local_step(
 
 /// Whether an observation (all its channels) can be used.
 #[inline]
-fn usable(obs: &[f32], settings: &FitSettings) -> bool {
+pub(crate) fn usable(obs: &[f32], settings: &FitSettings) -> bool {
     obs.iter().all(|&v| {
         let v = v as f64;
         v > settings.dark && v < settings.saturation
