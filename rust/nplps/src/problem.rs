@@ -240,10 +240,9 @@ fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
     let per = obs.per_facet();
     grid.facets
         .par_iter()
-        .enumerate()
         .map_init(
             || vec![0.0f32; per],
-            |buf, (_, &p)| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
+            |buf, &p| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
         )
         .sum()
 }

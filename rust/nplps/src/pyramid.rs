@@ -2,7 +2,8 @@
 //! surface.
 //!
 //! Level `l + 1` halves level `l` in each direction (an owned image stack, built image by image
-//! and row by row): coarse pixel (R, C) averages the usable observations of its masked children `(2R + a, 2C + b)` (a child observation is usable when
+//! and row by row): coarse pixel (R, C) averages the usable observations of its masked
+//! children `(2R + a, 2C + b)` (a child observation is usable when
 //! every channel is finite and strictly between `dark` and `saturation`; none usable: missing),
 //! and it is masked when any child is. The camera follows exactly, as binning does:
 //! orthographic pixels double in size with the same origin; a pinhole K becomes
@@ -22,7 +23,7 @@ use crate::error::Result;
 use crate::geometry::Geometry;
 use crate::global::Prior;
 use crate::grid::{Grid, INACTIVE};
-use crate::local::{FitSettings, Observations};
+use crate::local::{usable, FitSettings, Observations};
 use crate::problem::Problem;
 use crate::rig::{Camera, Rig};
 
@@ -96,22 +97,6 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let (h, w) = (grid.height, grid.width);
     let (ch, cw) = (h.div_ceil(2), w.div_ceil(2));
     let facet_of_pixel = &grid.facet_of_pixel;
-    let mut mask = vec![false; ch * cw];
-    for &p in &grid.facets {
-        mask[(p / w / 2) * cw + (p % w) / 2] = true;
-    }
-    let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
-    let (k, channels) = (problem.obs.k, problem.obs.channels);
-    let obs = &problem.obs;
-    let usable = |o: &[f32]| {
-        o.iter().all(|&v| {
-            let v = v as f64;
-            v > settings.dark && v < settings.saturation
-        })
-    };
-    // Image by image, coarse row by coarse row (streams through the finer stack); coarse
-    // pixels outside the coarse mask stay NaN.
-    let row_len = cw * channels;
     // Which of its 4 children (bits 0..3: (0,0), (0,1), (1,0), (1,1)) each coarse pixel has.
     let children: Vec<u8> = (0..ch * cw)
         .into_par_iter()
@@ -127,6 +112,14 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
             bits
         })
         .collect();
+    // A coarse pixel is masked when any of its children is.
+    let mask: Vec<bool> = children.iter().map(|&bits| bits != 0).collect();
+    let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
+    let (k, channels) = (problem.obs.k, problem.obs.channels);
+    let obs = &problem.obs;
+    // Image by image, coarse row by coarse row (streams through the finer stack); coarse
+    // pixels outside the coarse mask stay NaN.
+    let row_len = cw * channels;
     let mut values = vec![f32::NAN; k * ch * row_len];
     values
         .par_chunks_mut(row_len)
@@ -146,7 +139,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
                         continue;
                     }
                     let o = obs.at(i, (2 * cr + a) * w + 2 * cc + b);
-                    if usable(o) {
+                    if usable(o, settings) {
                         n += 1;
                         for (s, &v) in sum.iter_mut().zip(o) {
                             *s += v as f64;
