@@ -36,6 +36,8 @@
 #![warn(missing_docs)]
 
 pub mod baseline;
+pub mod calibrate;
+pub mod calibration_scene;
 pub mod distance;
 pub mod error;
 pub mod geometry;
