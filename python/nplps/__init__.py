@@ -17,7 +17,7 @@ from . import captures, evaluation, export, io, preprocess
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .errors import InputError, NplpsError, RigError, SolverError
-from .reconstruction import Iteration, Reconstruction
+from .reconstruction import Iteration, LightRefinement, Reconstruction, light_changes
 from .rig import Rig
 from .synth import Scene, make_scene
 
@@ -25,6 +25,8 @@ __all__ = [
     "__version__",
     "Rig",
     "Reconstruction",
+    "LightRefinement",
+    "light_changes",
     "Iteration",
     "Scene",
     "make_scene",

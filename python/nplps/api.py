@@ -139,6 +139,7 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
         def report(it: Iteration) -> None:
             where = f"level {it.level} " if it.level else ""
             inner = f", {it.inner_iterations} CG iterations" if it.inner_iterations else ""
+            inner += f", light change {it.light_change:.2e}" if it.light_change else ""
             print(
                 f"{where}iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}{inner}, "
                 f"rms residual {it.rms_residual:.3e}, {it.elapsed:.2f} s",
@@ -152,8 +153,10 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
     else:
         raise InputError(f"progress must be None, True or a callable, got {progress!r}")
 
-    def call(iteration: int, depth_change: float, rms: float, elapsed: float, level: int = 0, inner: int = 0) -> None:
-        user(Iteration(iteration, depth_change, rms, elapsed, level, inner))
+    def call(
+        iteration: int, depth_change: float, rms: float, elapsed: float, level: int = 0, inner: int = 0, light: float = 0.0
+    ) -> None:
+        user(Iteration(iteration, depth_change, rms, elapsed, level, inner, light))
 
     return call
 
@@ -179,6 +182,8 @@ def reconstruct(
     prior_weight: float = 1.0,
     solver: str = "auto",
     levels: int | None = None,
+    refine_lights: str | None = None,
+    light_prior_weight: float | None = None,
 ) -> Reconstruction:
     """Reconstructs a surface from k images taken under k near lights.
 
@@ -225,11 +230,25 @@ def reconstruct(
             None (default): halve while the longer side stays at least 128 pixels; 1: full
             resolution only. With ``depth="auto"`` the distance search runs on the coarsest
             level.
+        refine_lights: self-calibration of the lights from the images: None (the rig is
+            trusted), "intensity" (a factor per light; their geometric mean stays the rig's),
+            "position" (each point light's position, held toward the rig's by
+            ``light_prior_weight``) or "both". Each iteration takes one damped Gauss-Newton step
+            on the lights with the normals eliminated per pixel (see docs/method.md). The result's
+            ``rig`` holds the refined lights, ``input_rig`` the given ones, ``refinement`` the
+            report (fallback, conditioning, standard errors). When positions are refined the
+            first level also runs without refinement, and the refinement is dropped (reported
+            as ``fell_back``) unless it lowers the photometric residual. With ``depth="auto"``
+            the distance search refines intensities only, and the common scale of the light
+            positions stays the rig's (it trades against the distance).
+        light_prior_weight: weight ``w`` of the prior ``w/2 sum |p - p0|^2 / D^2`` (D: the
+            working distance) against the relative squared residual; default 1e-3.
 
     Returns:
         A :class:`~nplps.Reconstruction`.
     """
     pyramid_levels = _levels(levels)
+    refine_mode = _refine_choice(refine_lights)
     stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, bit_levels)
     stack, missing = _channels(stack, color, saturation_)
@@ -249,7 +268,10 @@ def reconstruct(
         "prior_weight": float(prior_weight),
         "solver": _solver_choice(solver),
         "levels": pyramid_levels,
+        "refine_lights": refine_mode,
     }
+    if light_prior_weight is not None:
+        options["light_prior_weight"] = _finite_number(light_prior_weight, "light_prior_weight")
     prior = None
     if depth_prior is not None:
         prior = np.ascontiguousarray(np.asarray(depth_prior, dtype=np.float64))
@@ -282,13 +304,19 @@ def reconstruct_parallel(
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
+    refine_lights: str | None = None,
 ) -> Reconstruction:
     """The conventional baseline: parallel-light photometric stereo, then the same integration.
 
     Each point light becomes one direction, from the centroid of the initial surface (given by
     ``depth`` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
-    theirs. Useful to see what the near-light model gains. Options as in :func:`reconstruct`.
+    theirs. Useful to see what the near-light model gains. Options as in :func:`reconstruct`;
+    ``refine_lights="intensity"`` refines the intensities under this model (to convergence, the
+    model not depending on the depths); the result's ``rig`` then carries them.
     """
+    refine_mode = _refine_choice(refine_lights)
+    if refine_mode not in ("none", "intensity"):
+        raise InputError(f'the parallel-light baseline can refine only "intensity" (it has no light positions), got {refine_lights!r}')
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
     stack, missing = _channels(stack, color, saturation_)
@@ -297,6 +325,7 @@ def reconstruct_parallel(
         "saturation": saturation_,
         "robust": "none" if robust is None else robust,
         "threads": _threads(threads),
+        "refine_lights": refine_mode,
     }
     out = _core.reconstruct_parallel(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
@@ -328,6 +357,26 @@ def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: 
     rho = np.ascontiguousarray(np.broadcast_to(a, target))
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
     return _core.render(z, rig.camera, rig._core_lights(), rho, m)
+
+
+def _refine_choice(mode: str | None) -> str:
+    """Checks ``refine_lights``: None, "intensity", "position" or "both"."""
+    if mode is None or mode is False:
+        return "none"
+    if mode not in ("intensity", "position", "both"):
+        raise InputError(f'refine_lights must be None, "intensity", "position" or "both", got {mode!r}')
+    return str(mode)
+
+
+def _finite_number(value: Any, name: str) -> float:
+    """``value`` as a finite float >= 0, or InputError."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not (np.isfinite(v) and v >= 0):
+        raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
 
 
 def _solver_choice(solver: str) -> str:

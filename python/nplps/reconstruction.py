@@ -47,6 +47,77 @@ class Iteration(NamedTuple):
     level: int = 0
     #: Conjugate-gradient iterations of the global step (0 for the direct solver).
     inner_iterations: int = 0
+    #: Largest relative change of a light parameter in the iteration's light step
+    #: (``refine_lights``; 0 otherwise): ``|dPhi| / Phi`` or ``|dp| / D``.
+    light_change: float = 0.0
+
+
+@dataclass
+class LightRefinement:
+    """What the self-calibration of the lights (``refine_lights=``) did.
+
+    The refined rig is the result's :attr:`Reconstruction.rig`; the rig given to
+    :func:`nplps.reconstruct` is :attr:`Reconstruction.input_rig`.
+    """
+
+    #: "intensity", "position" or "both".
+    mode: str
+    #: Weight of the prior toward the given positions.
+    prior_weight: float
+    #: True when refining positions did not lower the photometric residual of a run without
+    #: refinement on the first pyramid level: the given lights were kept.
+    fell_back: bool
+    #: RMS residual on the first level without / with refinement (NaN when not compared: the
+    #: comparison runs only when positions are refined).
+    residual_without: float
+    residual_with: float
+    #: Singular values of the light block of the relative Jacobian after the normals are
+    #: eliminated (positions in units of the working distance), largest first. Their spread
+    #: tells how well the images determine the lights; integrability adds to it.
+    singular_values: np.ndarray | None = None
+    #: Per light: standard error of the intensity factor (relative) and of the position
+    #: (x, y, z, scene units); NaN where not refined.
+    standard_errors: np.ndarray | None = None
+
+    @property
+    def condition_number(self) -> float:
+        """Ratio of the largest to the smallest singular value (inf if one is 0)."""
+        if self.singular_values is None or len(self.singular_values) == 0:
+            return float("nan")
+        smallest = float(self.singular_values[-1])
+        return float(self.singular_values[0]) / smallest if smallest > 0 else float("inf")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "mode": self.mode,
+            "prior_weight": self.prior_weight,
+            "fell_back": self.fell_back,
+            "residual_without": _finite_or_none(self.residual_without),
+            "residual_with": _finite_or_none(self.residual_with),
+            "condition_number": _finite_or_none(self.condition_number),
+            "singular_values": None if self.singular_values is None else [float(v) for v in self.singular_values],
+            "standard_errors": None
+            if self.standard_errors is None
+            else [[_finite_or_none(v) for v in row] for row in self.standard_errors],
+        }
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def light_changes(before: Rig, after: Rig) -> list[dict[str, Any]]:
+    """Per light: the intensity factor (after / before, mean over channels) and the position
+    shift (scene units; None for directional lights) from ``before`` to ``after``."""
+    rows = []
+    for i in range(before.n_lights):
+        factor = float(np.mean(after.intensities[i] / before.intensities[i]))  # type: ignore[index]
+        shift = None
+        if not before.directional[i]:  # type: ignore[index]
+            shift = [float(v) for v in after.lights[i] - before.lights[i]]
+        rows.append({"light": i, "intensity_factor": factor, "position_shift": shift})
+    return rows
 
 
 @dataclass
@@ -84,9 +155,19 @@ class Reconstruction:
     method: str = "near"
     #: The distance search, when ``depth="auto"``.
     distance: DistanceEstimate | None = None
+    #: The self-calibration of the lights, when ``refine_lights`` was given; :attr:`rig` then
+    #: holds the refined lights.
+    refinement: LightRefinement | None = None
+    #: The rig given to the reconstruction, when the lights were refined (else None: it is
+    #: :attr:`rig`).
+    input_rig: Rig | None = None
 
     @classmethod
     def _from_core(cls, out: dict[str, Any], mask: np.ndarray, rig: Rig, method: str) -> "Reconstruction":
+        refinement = _refinement(out.get("refinement"))
+        input_rig = None
+        if refinement is not None:
+            input_rig, rig = rig, Rig._from_core_lights(rig.camera, out["lights"])
         return cls(
             depth=out["depth"],
             normals=out["normals"],
@@ -102,7 +183,16 @@ class Reconstruction:
             timings=dict(out["timings"]),
             method=method,
             distance=_distance(out.get("distance_estimate")),
+            refinement=refinement,
+            input_rig=input_rig,
         )
+
+    def light_changes(self) -> list[dict[str, Any]]:
+        """Per light, how the refinement changed it (see :func:`nplps.light_changes`); empty
+        without refinement."""
+        if self.input_rig is None:
+            return []
+        return light_changes(self.input_rig, self.rig)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -192,6 +282,9 @@ class Reconstruction:
             "depth_range": [float(np.nanmin(self.depth)), float(np.nanmax(self.depth))],
             "timings": self.timings,
             "estimated_distance": None if self.distance is None else [float(d) for d in self.distance.distance],
+            "light_refinement": None
+            if self.refinement is None
+            else {**self.refinement.to_dict(), "changes": self.light_changes()},
         }
 
     def save(self, directory: str | os.PathLike[str], stem: str = "mesh", opengl: bool = False) -> dict[str, Path]:
@@ -201,7 +294,8 @@ class Reconstruction:
         :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the camera),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64)
         and ``depth.tiff`` (float32) of the vertex depths, ``normals.npy``, ``residual.npy`` and
-        ``summary.json``. Returns the paths written.
+        ``summary.json``; with refined lights also ``rig_refined.json`` (the refined rig file).
+        Returns the paths written.
         """
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
@@ -234,8 +328,26 @@ class Reconstruction:
             paths["distance_plot"] = out / "distance_curve.svg"
             self.distance.save_curve(paths["distance_curve"])
             plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
+        if self.refinement is not None:
+            paths["rig_refined"] = out / "rig_refined.json"
+            self.rig.save(paths["rig_refined"])
         paths["summary"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
         return paths
+
+
+def _refinement(d: dict[str, Any] | None) -> LightRefinement | None:
+    if d is None:
+        return None
+    c = d.get("conditioning")
+    return LightRefinement(
+        mode=d["mode"],
+        prior_weight=float(d["prior_weight"]),
+        fell_back=bool(d["fell_back"]),
+        residual_without=float(d["residual_without"]),
+        residual_with=float(d["residual_with"]),
+        singular_values=None if c is None else np.asarray(c["singular_values"], dtype=np.float64),
+        standard_errors=None if c is None else np.asarray(c["standard_errors"], dtype=np.float64).reshape(-1, 4),
+    )
 
 
 def _distance(d: dict[str, Any] | None) -> DistanceEstimate | None:

@@ -204,6 +204,18 @@ class Rig:
             directional=self.directional[idx],  # type: ignore[index]
         )
 
+    @classmethod
+    def _from_core_lights(cls, camera: dict[str, Any], lights: dict[str, Any]) -> "Rig":
+        """A rig with ``camera`` and the lights in the compiled core's form."""
+        return cls(
+            camera=dict(camera),
+            lights=np.asarray(lights["vectors"], dtype=np.float64),
+            intensities=np.asarray(lights["intensities"], dtype=np.float64),
+            directions=np.asarray(lights["axes"], dtype=np.float64),
+            mu=np.asarray(lights["mu"], dtype=np.float64),
+            directional=np.asarray(lights["directional"], dtype=bool),
+        )
+
     def _core_lights(self) -> dict[str, list[Any]]:
         """The lights in the form the compiled core takes."""
         return {

@@ -144,6 +144,34 @@ pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<n
         .collect())
 }
 
+/// The light refinement's report as a dict.
+fn refinement_dict<'py>(
+    py: Python<'py>,
+    report: &nplps::RefinementReport,
+) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("mode", report.refine.name())?;
+    d.set_item("prior_weight", report.refine.prior_weight)?;
+    d.set_item("fell_back", report.fell_back)?;
+    d.set_item("residual_without", report.residual_without)?;
+    d.set_item("residual_with", report.residual_with)?;
+    if let Some(c) = &report.conditioning {
+        let cd = PyDict::new(py);
+        cd.set_item("singular_values", c.singular_values.clone())?;
+        cd.set_item(
+            "standard_errors",
+            c.standard_errors
+                .iter()
+                .map(|s| s.to_vec())
+                .collect::<Vec<_>>(),
+        )?;
+        cd.set_item("rms_residual", c.rms_residual)?;
+        cd.set_item("distance", c.distance)?;
+        d.set_item("conditioning", cd)?;
+    }
+    Ok(d)
+}
+
 /// The lights as the lights mapping.
 pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bound<'py, PyDict>> {
     let (mut vectors, mut directional, mut intensities, mut axes, mut mu) =
@@ -241,7 +269,7 @@ pub fn reconstruction_dict<'py>(
     d.set_item("lights_used", array(py, r.lights_used, &[h, w])?)?;
     d.set_item("regions", array(py, r.regions, &[h, w])?)?;
     d.set_item("gauge", PyArray1::from_vec(py, r.gauge))?;
-    let history: Vec<(usize, f64, f64, f64, usize, usize)> = r
+    let history: Vec<(usize, f64, f64, f64, usize, usize, f64)> = r
         .history
         .iter()
         .map(|s| {
@@ -252,6 +280,7 @@ pub fn reconstruction_dict<'py>(
                 s.elapsed.as_secs_f64(),
                 s.level,
                 s.inner_iterations,
+                s.light_change,
             )
         })
         .collect();
@@ -263,7 +292,12 @@ pub fn reconstruction_dict<'py>(
     t.set_item("local", r.timings.local.as_secs_f64())?;
     t.set_item("solve", r.timings.solve.as_secs_f64())?;
     t.set_item("pyramid", r.timings.pyramid.as_secs_f64())?;
+    t.set_item("lights", r.timings.lights.as_secs_f64())?;
     t.set_item("total", r.timings.total.as_secs_f64())?;
     d.set_item("timings", t)?;
+    d.set_item("lights", lights_dict(py, &r.lights)?)?;
+    if let Some(report) = &r.refinement {
+        d.set_item("refinement", refinement_dict(py, report)?)?;
+    }
     Ok(d)
 }

@@ -14,6 +14,7 @@ use crate::global::GlobalStep;
 use crate::grid::{normalize, sub};
 use crate::local::{local_step, FacetFit, FacetStat, Model, Weighting};
 use crate::problem::Problem;
+use crate::refine::{LightData, Refine, Refiner};
 use crate::rig::Light;
 use crate::solver::{
     assemble, max_depth_change, rms_of, sparse_par, with_threads, FitOutputs, IterationStats,
@@ -50,6 +51,58 @@ pub fn parallel_lights(problem: &Problem<'_>) -> Vec<([f64; 3], [f64; 3])> {
         .collect()
 }
 
+/// Steps of the baseline's intensity refinement (its model does not depend on the depths, so
+/// the light step is iterated to convergence once).
+const REFINE_STEPS: usize = 100;
+
+/// With `options.refine.intensity`: refines the parallel lights' intensities in place by the
+/// light step of [`crate::refine`] (positions are not refined: the model has none) and returns
+/// each light's factor.
+fn refine_intensities(
+    problem: &Problem<'_>,
+    options: &Options,
+    lights: &mut [([f64; 3], [f64; 3])],
+) -> Option<Vec<f64>> {
+    if !options.refine.intensity {
+        return None;
+    }
+    let refine = Refine {
+        intensity: true,
+        position: false,
+        ..options.refine
+    };
+    let mut directional: Vec<Light> = lights
+        .iter()
+        .map(|&(direction, intensity)| Light::Directional {
+            direction,
+            intensity,
+        })
+        .collect();
+    let data = LightData {
+        grid: &problem.grid,
+        geometry: &problem.geometry,
+        obs: &problem.obs,
+        settings: options.fit_settings(false),
+    };
+    let mut refiner = Refiner::new(refine, directional.clone());
+    for _ in 0..REFINE_STEPS {
+        let outcome = refiner.step(&data, &mut directional, &problem.u0);
+        if !outcome.accepted || outcome.change < 1e-10 {
+            break;
+        }
+    }
+    let factors = lights
+        .iter_mut()
+        .zip(&directional)
+        .map(|((_, intensity), refined)| {
+            let f = refined.intensity()[0] / intensity[0];
+            *intensity = refined.intensity();
+            f
+        })
+        .collect();
+    Some(factors)
+}
+
 /// Runs the parallel-light baseline on `problem` (`options` give the thresholds, the robust
 /// estimator and the threads; the weighting is always in image units).
 pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
@@ -67,7 +120,10 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         )?;
         timings.factorization = t.elapsed();
 
-        let lights = parallel_lights(problem);
+        let mut lights = parallel_lights(problem);
+        let t = Instant::now();
+        let factors = refine_intensities(problem, options, &mut lights);
+        timings.lights = t.elapsed();
         let mut fits: Vec<FacetFit> = vec![FacetFit::EMPTY; grid.n_facets()];
         let settings = Options {
             weighting: Weighting::Image,
@@ -103,9 +159,27 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             elapsed: timings.total,
             level: 0,
             inner_iterations,
+            light_change: 0.0,
         }];
         let mut outputs = FitOutputs::new(problem);
         outputs.scatter(problem, 0, &fits);
-        Ok(assemble(problem, &u, outputs, history, true, timings))
+        let mut result = assemble(problem, &u, outputs, history, true, timings);
+        if let Some(factors) = factors {
+            for (light, f) in result.lights.iter_mut().zip(factors) {
+                match light {
+                    Light::Point { intensity, .. } | Light::Directional { intensity, .. } => {
+                        *intensity = intensity.map(|v| v * f);
+                    }
+                }
+            }
+            result.refinement = Some(crate::solver::RefinementReport {
+                refine: options.refine,
+                fell_back: false,
+                residual_without: f64::NAN,
+                residual_with: f64::NAN,
+                conditioning: None,
+            });
+        }
+        Ok(result)
     })?
 }

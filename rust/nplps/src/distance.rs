@@ -16,6 +16,7 @@ use std::time::Instant;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::problem::Problem;
+use crate::refine::Refine;
 use crate::rig::Light;
 use crate::solver::{
     coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, Solver,
@@ -146,6 +147,9 @@ impl Evaluator<'_, '_> {
         let problem = self.solver.problem();
         let gauge: Vec<f64> = d.iter().map(|&x| problem.geometry.unknown(x)).collect();
         problem.grid.apply_gauge(&mut self.u, &gauge);
+        // Every candidate starts from the rig's lights: the residual curve must not depend on
+        // the order of the evaluations.
+        self.solver.reset_lights();
         self.solver
             .iterate(&mut self.u, &gauge, self.inner, 0.0, self.start, progress)?;
         self.solver.local(&self.u);
@@ -175,6 +179,26 @@ pub fn estimate_distance(
 
 /// The search itself; also returns the warm state at the estimate.
 fn search_with(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    search: &DistanceSearch,
+    range: (f64, f64),
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(DistanceEstimate, Vec<f64>)> {
+    // During the search only intensities are refined: positions trade against the distance.
+    let refine = solver.refine();
+    solver.set_refine(Refine {
+        position: false,
+        ..refine
+    });
+    let found = search_refined(solver, problem, search, range, progress);
+    solver.set_refine(refine);
+    solver.reset_lights();
+    found
+}
+
+/// [`search_with`] once the refinement is set.
+fn search_refined(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
     search: &DistanceSearch,
@@ -308,7 +332,16 @@ pub fn reconstruct_auto(
             Ok(gauge)
         };
         let mut u = problem.u0.clone();
-        let (mut history, coarse_timings, carried) = coarse_to_fine(
+        // The working distance is estimated with the rig's scale: a common scale of the light
+        // positions would trade against it (see [`crate::refine`]).
+        let options = &Options {
+            refine: Refine {
+                fix_scale: true,
+                ..options.refine
+            },
+            ..*options
+        };
+        let coarse = coarse_to_fine(
             problem,
             options,
             &mut u,
@@ -316,8 +349,9 @@ pub fn reconstruct_auto(
             progress,
             Some(&mut at_coarsest),
         )?;
+        let carried = coarse.carried;
         let mut solver = Solver::new(problem, options)?;
-        solver.timings.add(&coarse_timings);
+        let mut history = solver.carry(coarse);
         let (estimate, gauge) = if carried {
             let (coarse, coarse_grid) = coarse_estimate.expect("the coarsest level ran the search");
             let gauge = problem.grid.region_means(&u);
@@ -334,14 +368,18 @@ pub fn reconstruct_auto(
             problem.grid.apply_gauge(&mut u, &gauge);
             (estimate, gauge)
         };
-        let (fine, converged) = solver.iterate(
-            &mut u,
-            &gauge,
-            options.iterations,
-            options.tol,
-            start,
-            progress,
-        )?;
+        let (fine, converged) = if carried {
+            solver.iterate(
+                &mut u,
+                &gauge,
+                options.iterations,
+                options.tol,
+                start,
+                progress,
+            )?
+        } else {
+            solver.iterate_first(&mut u, &gauge, start, progress)?
+        };
         history.extend(fine);
         Ok((solver.finish(&u, history, converged, start), estimate))
     })?

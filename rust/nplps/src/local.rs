@@ -753,7 +753,7 @@ fn usable_count(values: &[f32], channels: usize, settings: FitSettings) -> u32 {
 
 /// Grey scale factor of a light's intensity for `channels` channels.
 #[inline]
-fn channel_intensity(phi: [f64; 3], channels: usize, ch: usize) -> f64 {
+pub(crate) fn channel_intensity(phi: [f64; 3], channels: usize, ch: usize) -> f64 {
     if channels == 1 {
         (phi[0] + phi[1] + phi[2]) / 3.0
     } else {
@@ -1032,12 +1032,18 @@ pub fn fit_facet(
 /// inverse keeps the dependency chain per facet short.
 #[inline]
 fn solve_spd3(t: &Matrix3<f64>, s: &Vector3<f64>) -> Option<Vector3<f64>> {
+    invert_spd3(t).map(|inv| inv * s)
+}
+
+/// The inverse of a symmetric 3 x 3 `T` under the test of [`solve_spd3`].
+#[inline]
+pub(crate) fn invert_spd3(t: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     let diag = t[(0, 0)] * t[(1, 1)] * t[(2, 2)];
     let det = t.determinant();
     if !(diag > 0.0 && det > 1e-12 * diag) {
         return None;
     }
-    t.try_inverse().map(|inv| inv * s)
+    t.try_inverse()
 }
 
 /// The fit of a facet that cannot be fitted: it keeps its current (mean-subtracted) unknowns.

@@ -14,11 +14,14 @@ use std::time::{Duration, Instant};
 
 use faer::Par;
 
+use crate::anderson::Anderson;
 use crate::error::{Error, Result};
 use crate::geometry::Geometry;
 use crate::global::{GlobalSolver, GlobalStep};
 use crate::local::{FacetFit, FacetStat, FitSettings, LocalStep, Model, Robust, Weighting};
 use crate::problem::Problem;
+use crate::refine::{LightData, Refine, Refiner};
+use crate::rig::Light;
 
 /// Options of the iteration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -47,6 +50,8 @@ pub struct Options {
     /// Coarse-to-fine pyramid levels (1: the full resolution only; 0: automatic, see
     /// [`crate::pyramid`]).
     pub levels: usize,
+    /// Self-calibration of the lights (see [`crate::refine`]).
+    pub refine: Refine,
 }
 
 impl Options {
@@ -55,6 +60,7 @@ impl Options {
         if self.tol.is_nan() || self.tol < 0.0 {
             return Err(Error::Input(format!("tol must be >= 0, got {}", self.tol)));
         }
+        self.refine.validate()?;
         check_thresholds(self.dark, self.saturation)
     }
 
@@ -98,6 +104,7 @@ impl Default for Options {
             parallel_sparse: false,
             solver: GlobalSolver::Auto,
             levels: 0,
+            refine: Refine::NONE,
         }
     }
 }
@@ -117,6 +124,9 @@ pub struct IterationStats {
     pub level: usize,
     /// Conjugate-gradient iterations of the global step (0 for the direct solver).
     pub inner_iterations: usize,
+    /// Largest relative change of a light parameter in this iteration's light step (0 without
+    /// refinement): `|delta Phi_i| / Phi_i` or `|delta p_i| / D`.
+    pub light_change: f64,
 }
 
 /// Answer of a progress callback.
@@ -139,6 +149,8 @@ pub struct Timings {
     pub solve: Duration,
     /// Building the coarse-to-fine pyramid (its levels' own work is counted above).
     pub pyramid: Duration,
+    /// Light refinement steps.
+    pub lights: Duration,
     /// Everything.
     pub total: Duration,
 }
@@ -150,6 +162,7 @@ impl Timings {
         self.local += other.local;
         self.solve += other.solve;
         self.pyramid += other.pyramid;
+        self.lights += other.lights;
     }
 }
 
@@ -187,6 +200,26 @@ pub struct Reconstruction {
     pub negative_observations: usize,
     /// Where the time went.
     pub timings: Timings,
+    /// The lights of the final fit: the rig's, or the refined ones (see [`Options::refine`]).
+    pub lights: Vec<Light>,
+    /// What the light refinement did (None without refinement).
+    pub refinement: Option<RefinementReport>,
+}
+
+/// What the self-calibration of the lights did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefinementReport {
+    /// What was refined.
+    pub refine: Refine,
+    /// Whether the refinement was dropped because it did not lower the photometric residual of
+    /// a run without it (on the first pyramid level); the rig's lights were then kept.
+    pub fell_back: bool,
+    /// RMS residual, on the first level, without refinement.
+    pub residual_without: f64,
+    /// RMS residual, on the first level, with refinement.
+    pub residual_with: f64,
+    /// How well the images determine the refined parameters at the final mesh.
+    pub conditioning: Option<crate::refine::Conditioning>,
 }
 
 /// Runs `f` on a rayon pool of `threads` workers (0: the global pool).
@@ -220,24 +253,44 @@ pub fn reconstruct(
     with_threads(options.threads, || {
         let start = Instant::now();
         let mut u = problem.u0.clone();
-        let (mut history, coarse_timings, carried) =
-            coarse_to_fine(problem, options, &mut u, start, progress, None)?;
-        if carried {
-            problem.grid.apply_gauge(&mut u, &problem.gauge);
-        }
+        let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
         let mut solver = Solver::new(problem, options)?;
-        solver.timings.add(&coarse_timings);
-        let (fine, converged) = solver.iterate(
-            &mut u,
-            &problem.gauge,
-            options.iterations,
-            options.tol,
-            start,
-            progress,
-        )?;
+        let mut history = solver.carry(coarse);
+        let (fine, converged) = if solver.carried {
+            problem.grid.apply_gauge(&mut u, &problem.gauge);
+            solver.iterate(
+                &mut u,
+                &problem.gauge,
+                options.iterations,
+                options.tol,
+                start,
+                progress,
+            )?
+        } else {
+            solver.iterate_first(&mut u, &problem.gauge, start, progress)?
+        };
         history.extend(fine);
         Ok(solver.finish(&u, history, converged, start))
     })?
+}
+
+/// What the coarse levels of a pyramid hand to the next level.
+pub(crate) struct Carried {
+    history: Vec<IterationStats>,
+    timings: Timings,
+    /// Whether there were coarse levels.
+    pub(crate) carried: bool,
+    lights: Vec<Light>,
+    refine: Refine,
+    monitor: Option<Monitor>,
+}
+
+/// The residuals of the first level's runs without and with light refinement.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Monitor {
+    without: f64,
+    with: f64,
+    fell_back: bool,
 }
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
@@ -251,7 +304,7 @@ pub(crate) type AtCoarsest<'h> = &'h mut dyn FnMut(
 /// Runs the coarse levels of `problem`'s pyramid (coarsest first, each to convergence) and
 /// carries the result to the full resolution in `u` (not yet gauged). With one level it does
 /// nothing (`u` keeps its value and `at_coarsest` is not called). Returns the coarse levels'
-/// history and timings, and whether there were coarse levels.
+/// history, timings and lights, and whether there were coarse levels.
 pub(crate) fn coarse_to_fine(
     problem: &Problem<'_>,
     options: &Options,
@@ -259,14 +312,22 @@ pub(crate) fn coarse_to_fine(
     start: Instant,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     mut at_coarsest: Option<AtCoarsest<'_>>,
-) -> Result<(Vec<IterationStats>, Timings, bool)> {
+) -> Result<Carried> {
     let levels =
         crate::pyramid::levels_for(problem.grid.height, problem.grid.width, options.levels);
+    let mut carried = Carried {
+        history: Vec::new(),
+        timings: Timings::default(),
+        carried: false,
+        lights: problem.rig.lights.clone(),
+        refine: options.refine,
+        monitor: None,
+    };
+    if levels <= 1 {
+        return Ok(carried);
+    }
     let mut timings = Timings::default();
     let mut history = Vec::new();
-    if levels <= 1 {
-        return Ok((history, timings, false));
-    }
     let t = Instant::now();
     let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
     let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
@@ -275,32 +336,46 @@ pub(crate) fn coarse_to_fine(
     for (i, p) in coarse.iter().enumerate().rev() {
         let mut solver = Solver::new(p, options)?;
         solver.set_level(i + 1);
-        let gauge = if i + 1 == coarse.len() {
+        let h = if i + 1 == coarse.len() {
             current = p.u0.clone();
-            match at_coarsest.as_mut() {
+            let gauge = match at_coarsest.as_mut() {
                 Some(hook) => hook(&mut solver, &mut current, progress)?,
                 None => p.gauge.clone(),
-            }
+            };
+            p.grid.apply_gauge(&mut current, &gauge);
+            solver
+                .iterate_first(&mut current, &gauge, start, progress)?
+                .0
         } else {
+            solver.set_lights(carried.lights.clone());
+            solver.set_refine(carried.refine);
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid);
-            p.grid.region_means(&current)
+            let gauge = p.grid.region_means(&current);
+            p.grid.apply_gauge(&mut current, &gauge);
+            solver
+                .iterate(
+                    &mut current,
+                    &gauge,
+                    options.iterations,
+                    options.tol,
+                    start,
+                    progress,
+                )?
+                .0
         };
-        p.grid.apply_gauge(&mut current, &gauge);
-        let (h, _) = solver.iterate(
-            &mut current,
-            &gauge,
-            options.iterations,
-            options.tol,
-            start,
-            progress,
-        )?;
         history.extend(h);
         timings.add(&solver.timings);
+        carried.lights = solver.lights.clone();
+        carried.refine = solver.refine();
+        carried.monitor = carried.monitor.or(solver.monitor);
     }
     let t = Instant::now();
     *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid);
     timings.pyramid += t.elapsed();
-    Ok((history, timings, true))
+    carried.history = history;
+    carried.timings = timings;
+    carried.carried = true;
+    Ok(carried)
 }
 
 /// The iteration machinery of one problem: the factored global system and the per-facet
@@ -314,6 +389,14 @@ pub struct Solver<'p> {
     targets: Vec<[f64; 4]>,
     stats: Vec<FacetStat>,
     next: Vec<f64>,
+    /// The current lights (the rig's, or refined).
+    lights: Vec<Light>,
+    /// The light refinement, when active.
+    refiner: Option<Refiner>,
+    /// The first level's comparison of runs without and with refinement.
+    monitor: Option<Monitor>,
+    /// Whether coarse levels ran before this solver's (see [`Solver::carry`]).
+    carried: bool,
     /// Time spent so far.
     pub timings: Timings,
 }
@@ -337,6 +420,13 @@ impl<'p> Solver<'p> {
             targets: vec![[0.0; 4]; n],
             stats: vec![FacetStat::default(); n],
             next: vec![0.0; problem.grid.n_unknowns()],
+            lights: problem.rig.lights.clone(),
+            refiner: options
+                .refine
+                .is_active()
+                .then(|| Refiner::new(options.refine, problem.rig.lights.clone())),
+            monitor: None,
+            carried: false,
             timings: Timings {
                 factorization: t.elapsed(),
                 ..Timings::default()
@@ -354,6 +444,179 @@ impl<'p> Solver<'p> {
         self.problem
     }
 
+    /// The current lights: the rig's, or the refined ones.
+    pub fn lights(&self) -> &[Light] {
+        &self.lights
+    }
+
+    /// Replaces the current lights (the prior's centre stays the rig's).
+    pub fn set_lights(&mut self, lights: Vec<Light>) {
+        debug_assert_eq!(lights.len(), self.lights.len());
+        self.lights = lights;
+    }
+
+    /// Goes back to the rig's lights.
+    pub fn reset_lights(&mut self) {
+        self.lights = self.problem.rig.lights.clone();
+    }
+
+    /// What is refined now.
+    pub fn refine(&self) -> Refine {
+        self.refiner.as_ref().map_or(
+            Refine {
+                intensity: false,
+                position: false,
+                ..self.options.refine
+            },
+            |r| r.refine,
+        )
+    }
+
+    /// Changes what is refined from now on.
+    pub fn set_refine(&mut self, refine: Refine) {
+        self.refiner = refine
+            .is_active()
+            .then(|| Refiner::new(refine, self.problem.rig.lights.clone()));
+    }
+
+    /// Takes over what the coarse levels carried (lights, refinement, history, timings).
+    pub(crate) fn carry(&mut self, coarse: Carried) -> Vec<IterationStats> {
+        self.timings.add(&coarse.timings);
+        self.carried = coarse.carried;
+        if coarse.carried {
+            self.lights = coarse.lights;
+            self.set_refine(coarse.refine);
+            self.monitor = coarse.monitor;
+        }
+        coarse.history
+    }
+
+    /// Anderson acceleration of the joint iteration over the unknowns and the light parameters
+    /// (when refining): the light step with the normals eliminated and the mesh deformation
+    /// are each stable, but coupled they are not (a tilt of a nearly flat surface trades
+    /// against a smooth pattern of intensities), so the plain alternation can drift.
+    fn acceleration(&self, unknowns: usize, scale: f64, distance: f64) -> Option<Anderson> {
+        let refiner = self.refiner.as_ref()?;
+        let parameters = refiner.encode(&self.lights, distance).len();
+        // Unknowns in units of the lateral size (log-depths: times the distance).
+        let unit = if self.problem.geometry.is_perspective() {
+            distance / scale
+        } else {
+            1.0 / scale
+        };
+        let mut weights = vec![unit * unit; unknowns];
+        weights.extend(std::iter::repeat_n(1.0, parameters));
+        Some(Anderson::new(ANDERSON_DEPTH, weights))
+    }
+
+    /// Mixes the iterate `(u, before)` and its image `(self.next, current lights)`; writes the
+    /// accelerated unknowns to `self.next` and lights to `self.lights`. Returns the largest
+    /// change of a light parameter.
+    fn accelerate(
+        &mut self,
+        accel: &mut Anderson,
+        u: &[f64],
+        before: &[f64],
+        distance: f64,
+    ) -> f64 {
+        let refiner = self.refiner.as_ref().expect("refining");
+        let after = refiner.encode(&self.lights, distance);
+        let n = u.len();
+        let mut z = Vec::with_capacity(n + before.len());
+        z.extend_from_slice(u);
+        z.extend_from_slice(before);
+        let mut g = Vec::with_capacity(n + after.len());
+        g.extend_from_slice(&self.next);
+        g.extend_from_slice(&after);
+        accel.mix(&z, &mut g);
+        let lights = refiner.decode(&self.lights, &g[n..], distance);
+        let min_depth = g[..n]
+            .iter()
+            .map(|&x| self.problem.geometry.depth(x))
+            .fold(f64::INFINITY, f64::min);
+        let in_front = lights.iter().all(|l| match l {
+            Light::Point { position, .. } => position[2] < min_depth,
+            Light::Directional { .. } => true,
+        });
+        if !(in_front && g.iter().all(|v| v.is_finite())) {
+            accel.restart();
+            return after
+                .iter()
+                .zip(before)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+        }
+        self.next.copy_from_slice(&g[..n]);
+        self.lights = lights;
+        g[n..]
+            .iter()
+            .zip(before)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max)
+    }
+
+    /// One light step at `u` (when refining): returns the largest relative change.
+    fn refine_lights(&mut self, u: &[f64]) -> f64 {
+        let Some(refiner) = self.refiner.as_mut() else {
+            return 0.0;
+        };
+        let t = Instant::now();
+        let p = self.problem;
+        let data = LightData {
+            grid: &p.grid,
+            geometry: &p.geometry,
+            obs: &p.obs,
+            settings: self.options.fit_settings(false),
+        };
+        let outcome = refiner.step(&data, &mut self.lights, u);
+        self.timings.lights += t.elapsed();
+        outcome.change
+    }
+
+    /// The iterations of the first (coarsest) level, from `u` with `gauge`. When light
+    /// positions are refined, the level also runs without refinement (from the same start) and
+    /// keeps the refinement only if it lowers the photometric residual; otherwise the rig's
+    /// lights are kept and refinement stops (recorded in the report).
+    pub fn iterate_first(
+        &mut self,
+        u: &mut Vec<f64>,
+        gauge: &[f64],
+        start: Instant,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<(Vec<IterationStats>, bool)> {
+        let (iterations, tol) = (self.options.iterations, self.options.tol);
+        let refine = self.options.refine;
+        self.reset_lights();
+        self.set_refine(refine);
+        if !refine.position {
+            return self.iterate(u, gauge, iterations, tol, start, progress);
+        }
+        let mut plain = u.clone();
+        self.set_refine(Refine::NONE);
+        let (mut history, plain_converged) =
+            self.iterate(&mut plain, gauge, iterations, tol, start, progress)?;
+        self.local(&plain);
+        let without = rms_of(&self.stats, self.problem.obs.channels);
+        self.set_refine(refine);
+        let (refined, converged) = self.iterate(u, gauge, iterations, tol, start, progress)?;
+        history.extend(refined);
+        self.local(u);
+        let with = rms_of(&self.stats, self.problem.obs.channels);
+        let fell_back = !(with < without);
+        self.monitor = Some(Monitor {
+            without,
+            with,
+            fell_back,
+        });
+        if fell_back {
+            *u = plain;
+            self.reset_lights();
+            self.set_refine(Refine::NONE);
+            return Ok((history, plain_converged));
+        }
+        Ok((history, converged))
+    }
+
     /// The local step of this problem with the given residual mode, on unknowns whose depths
     /// are `depths` (if computed).
     fn step<'a>(&'a self, fast_residual: bool, depths: Option<&'a [f64]>) -> LocalStep<'a> {
@@ -361,7 +624,7 @@ impl<'p> Solver<'p> {
         LocalStep {
             grid: &p.grid,
             geometry: &p.geometry,
-            model: Model::Near(&p.rig.lights),
+            model: Model::Near(&self.lights),
             obs: &p.obs,
             settings: self.options.fit_settings(fast_residual),
             depths,
@@ -407,12 +670,24 @@ impl<'p> Solver<'p> {
         let p = self.problem;
         let scale = lateral_size(p);
         let mut history = Vec::new();
+        let distance = p
+            .geometry
+            .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
+        let mut accel = self.acceleration(u.len(), scale, distance);
         for iteration in 1..=iterations {
+            let before = self
+                .refiner
+                .as_ref()
+                .map(|r| r.encode(&self.lights, distance));
+            let mut light_change = self.refine_lights(u);
             self.local(u);
             let t = Instant::now();
             let system = self.system.as_mut().expect("the solver has not finished");
             let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
             p.grid.apply_gauge(&mut self.next, gauge);
+            if let (Some(accel), Some(before)) = (accel.as_mut(), before) {
+                light_change = self.accelerate(accel, u, &before, distance);
+            }
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
             std::mem::swap(u, &mut self.next);
             self.timings.solve += t.elapsed();
@@ -424,6 +699,7 @@ impl<'p> Solver<'p> {
                 elapsed: start.elapsed(),
                 level: self.level,
                 inner_iterations,
+                light_change,
             };
             history.push(stats);
             if progress(&stats) == Control::Cancel {
@@ -434,7 +710,7 @@ impl<'p> Solver<'p> {
                     "the depths diverged at iteration {iteration}"
                 )));
             }
-            if depth_change <= tol * scale {
+            if depth_change <= tol * scale && light_change <= tol {
                 return Ok((history, true));
             }
         }
@@ -496,7 +772,10 @@ impl<'p> Solver<'p> {
         drop(fits);
         self.timings.local += t.elapsed();
         self.timings.total = start.elapsed();
+        let refinement = self.report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings);
+        result.lights = std::mem::take(&mut self.lights);
+        result.refinement = refinement;
         result.gauge = self
             .problem
             .grid
@@ -507,6 +786,35 @@ impl<'p> Solver<'p> {
         result
     }
 }
+
+impl Solver<'_> {
+    /// The refinement report at the final unknowns `u` (None without refinement).
+    fn report(&self, u: &[f64]) -> Option<RefinementReport> {
+        let refine = self.options.refine;
+        if !refine.is_active() {
+            return None;
+        }
+        let p = self.problem;
+        let data = LightData {
+            grid: &p.grid,
+            geometry: &p.geometry,
+            obs: &p.obs,
+            settings: self.options.fit_settings(false),
+        };
+        let monitor = self.monitor;
+        let fell_back = monitor.is_some_and(|m| m.fell_back);
+        Some(RefinementReport {
+            refine,
+            fell_back,
+            residual_without: monitor.map_or(f64::NAN, |m| m.without),
+            residual_with: monitor.map_or(f64::NAN, |m| m.with),
+            conditioning: crate::refine::conditioning(&data, &self.lights, u, &refine).ok(),
+        })
+    }
+}
+
+/// Memory of the Anderson acceleration of the light refinement.
+const ANDERSON_DEPTH: usize = 5;
 
 /// Largest change of vertex depth between two sets of unknowns.
 pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
@@ -613,5 +921,7 @@ pub(crate) fn assemble(
         converged,
         negative_observations: problem.negative_observations,
         timings,
+        lights: problem.rig.lights.clone(),
+        refinement: None,
     }
 }

@@ -1,0 +1,146 @@
+//! Anderson acceleration of a fixed-point iteration `z <- G(z)`.
+//!
+//! With the residuals `f_j = G(z_j) - z_j` of the last `m + 1` iterates, the next iterate is
+//!
+//! ```text
+//! z_{k+1} = G(z_k) - sum_j gamma_j (G(z_{j+1}) - G(z_j)),
+//! gamma = argmin | f_k - sum_j gamma_j (f_{j+1} - f_j) |_W
+//! ```
+//!
+//! (Walker & Ni's "type II" form) in a weighted norm `|x|_W^2 = sum_i w_i x_i^2`. It solves
+//! `G(z) = z` by a secant method on the few directions where the plain iteration is slow or
+//! even unstable, which is what coupling the light refinement to the mesh deformation creates
+//! (see [`crate::refine`]). Affine constraints that every `G(z)` satisfies (the gauge, the
+//! intensity normalization) hold for the mixed iterate too: the coefficients of the `G` values
+//! it combines sum to 1.
+
+use std::collections::VecDeque;
+
+use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
+
+/// The state of the acceleration.
+#[derive(Debug, Clone)]
+pub struct Anderson {
+    depth: usize,
+    weights: Vec<f64>,
+    previous: Option<(Vec<f64>, Vec<f64>)>,
+    delta_f: VecDeque<Vec<f64>>,
+    delta_g: VecDeque<Vec<f64>>,
+    best: f64,
+}
+
+/// Restart when the residual grows beyond this factor of the smallest one seen.
+const RESTART_GROWTH: f64 = 100.0;
+
+impl Anderson {
+    /// Acceleration with memory `depth` and per-entry weights `weights` of the norm.
+    pub fn new(depth: usize, weights: Vec<f64>) -> Anderson {
+        Anderson {
+            depth,
+            weights,
+            previous: None,
+            delta_f: VecDeque::new(),
+            delta_g: VecDeque::new(),
+            best: f64::INFINITY,
+        }
+    }
+
+    fn dot(&self, a: &[f64], b: &[f64]) -> f64 {
+        a.par_iter()
+            .zip(b)
+            .zip(&self.weights)
+            .with_min_len(1 << 14)
+            .map(|((x, y), w)| x * y * w)
+            .sum()
+    }
+
+    /// Forgets the history (the next call returns `G(z)` unchanged).
+    pub fn restart(&mut self) {
+        self.previous = None;
+        self.delta_f.clear();
+        self.delta_g.clear();
+    }
+
+    /// Given the iterate `z` and its image `g = G(z)`, overwrites `g` with the accelerated next
+    /// iterate.
+    pub fn mix(&mut self, z: &[f64], g: &mut [f64]) {
+        let f: Vec<f64> = g.par_iter().zip(z).map(|(a, b)| a - b).collect();
+        let norm = self.dot(&f, &f).sqrt();
+        if !norm.is_finite() {
+            self.restart();
+            return;
+        }
+        if norm > RESTART_GROWTH * self.best {
+            self.restart();
+        }
+        self.best = self.best.min(norm);
+        if let Some((f_prev, g_prev)) = self.previous.take() {
+            let df: Vec<f64> = f.par_iter().zip(&f_prev).map(|(a, b)| a - b).collect();
+            let dg: Vec<f64> = g.par_iter().zip(&g_prev).map(|(a, b)| a - b).collect();
+            self.delta_f.push_back(df);
+            self.delta_g.push_back(dg);
+            if self.delta_f.len() > self.depth {
+                self.delta_f.pop_front();
+                self.delta_g.pop_front();
+            }
+        }
+        self.previous = Some((f.clone(), g.to_vec()));
+        let m = self.delta_f.len();
+        if m == 0 {
+            return;
+        }
+        let mut normal = DMatrix::zeros(m, m);
+        let mut rhs = DVector::zeros(m);
+        for a in 0..m {
+            rhs[a] = self.dot(&self.delta_f[a], &f);
+            for b in a..m {
+                let v = self.dot(&self.delta_f[a], &self.delta_f[b]);
+                normal[(a, b)] = v;
+                normal[(b, a)] = v;
+            }
+        }
+        let trace = normal.trace().max(f64::MIN_POSITIVE);
+        for a in 0..m {
+            normal[(a, a)] += 1e-12 * trace;
+        }
+        let Some(gamma) = normal.cholesky().map(|c| c.solve(&rhs)) else {
+            self.restart();
+            return;
+        };
+        if !gamma.iter().all(|v| v.is_finite()) {
+            self.restart();
+            return;
+        }
+        for (a, dg) in self.delta_g.iter().enumerate() {
+            let c = gamma[a];
+            g.par_iter_mut().zip(dg).for_each(|(x, d)| *x -= c * d);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An unstable linear iteration `z <- A z + b` (spectral radius 1.4) converges.
+    #[test]
+    fn converges_where_the_plain_iteration_diverges() {
+        let a = [[1.4, 0.1, 0.0], [0.0, 0.5, 0.2], [0.1, 0.0, -0.3]];
+        let b = [1.0, -2.0, 0.5];
+        let g = |z: &[f64]| -> Vec<f64> {
+            (0..3)
+                .map(|i| (0..3).map(|j| a[i][j] * z[j]).sum::<f64>() + b[i])
+                .collect()
+        };
+        let mut acc = Anderson::new(4, vec![1.0; 3]);
+        let mut z = vec![0.0; 3];
+        for _ in 0..20 {
+            let mut next = g(&z);
+            acc.mix(&z, &mut next);
+            z = next;
+        }
+        let r: f64 = g(&z).iter().zip(&z).map(|(x, y)| (x - y).abs()).sum();
+        assert!(r < 1e-9, "residual {r}");
+    }
+}

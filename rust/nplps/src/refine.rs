@@ -1,0 +1,1014 @@
+//! Self-calibration of the lights inside the reconstruction: per-light intensities and point-light
+//! positions refined from the images themselves.
+//!
+//! # The light step
+//! With the facet centres `c_f` fixed (the current mesh), facet f and channel ch predict
+//! `I_{i,f} = a_{i,f} . g_f` with `a_{i,f} = Phi_{i,ch} beta_i(c_f; theta_i)` (see
+//! [`Light::beta`]) and a free scaled normal `g_f = rho_f n_f` per facet and channel. The light
+//! parameters `theta` (per light: the log-intensity factor `s_i`, `Phi_i <- e^{s_i} Phi_i`, and/or
+//! the position `p_i`) minimise
+//!
+//! ```text
+//! E(theta) = 1/2 sum_f min_g sum_i (I_{i,f} - a_{i,f}(theta) . g)^2 / nu
+//!          + 1/2 w sum_i |p_i - p_i^0|^2 / D^2
+//! ```
+//!
+//! over the usable observations (`nu = sum I^2`, so the data term is a relative squared residual;
+//! `D` is the mean depth of the surface; `p^0` the rig's positions; `w` the prior weight). The
+//! normals are eliminated per facet (variable projection): the Gauss-Newton matrix of the full
+//! problem in `(theta, g_1..g_F)` has 3 x 3 blocks `T_f = sum_i a_i a_i^T` for the normals, and its
+//! Schur complement on `theta` is
+//!
+//! ```text
+//! H = sum_f sum_{i,i'} d_i d_{i'}^T (delta_{ii'} - a_i^T T_f^{-1} a_{i'}),   d_i = d(a_i . g_f)/d theta_i
+//! ```
+//!
+//! with gradient `sum_f sum_i -d_i r_i` (the normals' gradient vanishes at their least-squares
+//! fit). `d(a.g)/ds_i = a_i . g`; for a point light `beta = f(v) v`, `v = p - c`,
+//! `f = t^mu / |v|^3`, `t = -v . axis / |v|`, so `d(beta . g)/dp = f g + (v . g) grad f` with
+//! `grad f = mu t^(mu-1) (-axis / |v| + (v . axis) v / |v|^3) / |v|^3 - 3 t^mu v / |v|^5`.
+//!
+//! One damped (Levenberg-Marquardt) step `(H + lambda diag H) delta = -grad` is taken per
+//! iteration of the solver, accepted only when it lowers `E` at the current mesh (else `lambda`
+//! grows and the step is retried). Because the normals are free in this step, the lights feel the
+//! mesh only through the facet positions, a weak coupling: this is not the slow alternation that
+//! fits the lights to the mesh's own normals.
+//!
+//! # What the images determine
+//! - A common factor of all intensities is the albedo's: the step keeps `sum_i s_i = 0`, i.e. the
+//!   geometric mean of the rig's intensities (a linear constraint of the step).
+//! - A common scale of all light positions about the camera centre trades against the working
+//!   distance (scaling the whole scene by `k` scales every image by `1/k^2`, absorbed by the
+//!   albedo). With a given distance the gauge fixes it; with an estimated distance
+//!   ([`Refine::fix_scale`]) the step keeps `sum_i p_i^0 . (p_i - p_i^0) = 0`: the rig's scale.
+//! - With only directional lights, intensities need 4 or more lights in general position;
+//!   directional lights have no position to refine.
+//!
+//! [`conditioning`] reports the singular values of the light block after the normals are
+//! eliminated and the standard error of every parameter.
+
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::geometry::Geometry;
+use crate::grid::{dot, quad_centre, Grid};
+use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
+use crate::rig::Light;
+
+/// Default weight of the prior that holds light positions to the rig's (see the module docs).
+pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e-3;
+
+/// At most this many facets (a regular subsample) enter a light step: the light parameters are
+/// few, and this bounds the step's cost at camera resolution.
+pub const MAX_FACETS: usize = 1 << 17;
+
+/// Which light parameters the reconstruction refines.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Refine {
+    /// Refine each light's intensity (a common factor per light, all channels).
+    pub intensity: bool,
+    /// Refine each point light's position.
+    pub position: bool,
+    /// Weight `w` of the prior toward the rig's positions.
+    pub prior_weight: f64,
+    /// Keep the common scale of the light positions (set when the distance is estimated).
+    pub fix_scale: bool,
+}
+
+impl Default for Refine {
+    fn default() -> Self {
+        Refine::NONE
+    }
+}
+
+impl Refine {
+    /// No refinement.
+    pub const NONE: Refine = Refine {
+        intensity: false,
+        position: false,
+        prior_weight: DEFAULT_PRIOR_WEIGHT,
+        fix_scale: false,
+    };
+
+    /// Whether anything is refined.
+    pub fn is_active(&self) -> bool {
+        self.intensity || self.position
+    }
+
+    /// Checks the prior weight.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
+            return Err(Error::Input(format!(
+                "light_prior_weight must be a finite number >= 0, got {}",
+                self.prior_weight
+            )));
+        }
+        Ok(())
+    }
+
+    /// Name of the mode: "none", "intensity", "position" or "both".
+    pub fn name(&self) -> &'static str {
+        match (self.intensity, self.position) {
+            (false, false) => "none",
+            (true, false) => "intensity",
+            (false, true) => "position",
+            (true, true) => "both",
+        }
+    }
+}
+
+/// Where each light's parameters sit in the parameter vector.
+#[derive(Debug, Clone)]
+struct Layout {
+    /// Index of light i's intensity parameter.
+    intensity: Vec<Option<usize>>,
+    /// Index of light i's first position parameter (x, y, z follow).
+    position: Vec<Option<usize>>,
+    n: usize,
+}
+
+impl Layout {
+    fn new(lights: &[Light], refine: &Refine) -> Layout {
+        let mut n = 0;
+        let mut intensity = Vec::with_capacity(lights.len());
+        let mut position = Vec::with_capacity(lights.len());
+        for light in lights {
+            intensity.push(refine.intensity.then(|| {
+                n += 1;
+                n - 1
+            }));
+            let point = matches!(light, Light::Point { .. });
+            position.push((refine.position && point).then(|| {
+                n += 3;
+                n - 3
+            }));
+        }
+        Layout {
+            intensity,
+            position,
+            n,
+        }
+    }
+
+    /// First index and number of light i's parameters (they are contiguous).
+    fn span(&self, i: usize) -> (usize, usize) {
+        let first = self.intensity[i].or(self.position[i]).unwrap_or(0);
+        let m = self.intensity[i].is_some() as usize + 3 * self.position[i].is_some() as usize;
+        (first, m)
+    }
+
+    /// The linear constraints of a step, as columns: the intensity gauge and, if asked, the
+    /// common scale of the positions.
+    fn constraints(&self, lights: &[Light], fix_scale: bool) -> Vec<DVector<f64>> {
+        let mut out = Vec::new();
+        if self.intensity.iter().any(Option::is_some) {
+            let mut c = DVector::zeros(self.n);
+            for j in self.intensity.iter().flatten() {
+                c[*j] = 1.0;
+            }
+            out.push(c);
+        }
+        if fix_scale && self.position.iter().any(Option::is_some) {
+            let mut c = DVector::zeros(self.n);
+            for (light, j) in lights.iter().zip(&self.position) {
+                if let (Light::Point { position, .. }, Some(j)) = (light, j) {
+                    for a in 0..3 {
+                        c[j + a] = position[a];
+                    }
+                }
+            }
+            out.push(c);
+        }
+        out
+    }
+}
+
+/// `d(a . g)/d theta` of one light at facet centre `c` for the scaled normal `g`, with `a` its
+/// row `Phi beta`: the intensity derivative first (if refined), then the position's.
+#[inline]
+fn derivatives(
+    light: &Light,
+    c: [f64; 3],
+    a: [f64; 3],
+    g: [f64; 3],
+    phi: f64,
+    intensity: bool,
+    position: bool,
+) -> [f64; 4] {
+    let mut d = [0.0; 4];
+    let mut k = 0;
+    if intensity {
+        d[0] = dot(a, g);
+        k = 1;
+    }
+    if position {
+        if let Light::Point {
+            position: p,
+            axis,
+            mu,
+            ..
+        } = *light
+        {
+            let v = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+            let d2 = dot(v, v);
+            let len = d2.sqrt();
+            let inv3 = 1.0 / (d2 * len);
+            let inv5 = inv3 / d2;
+            let vg = dot(v, g);
+            let (f, grad_f) = if mu == 0.0 {
+                (inv3, v.map(|x| -3.0 * x * inv5))
+            } else {
+                let va = dot(v, axis);
+                let t = -va / len;
+                if t <= 0.0 {
+                    return d;
+                }
+                let tm = t.powf(mu);
+                let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
+                let dm = mu * t.powf(mu - 1.0) * inv3;
+                (
+                    tm * inv3,
+                    std::array::from_fn(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
+                )
+            };
+            for j in 0..3 {
+                d[k + j] = phi * (f * g[j] + vg * grad_f[j]);
+            }
+        }
+    }
+    d
+}
+
+/// The observations and mesh a light step works on.
+#[derive(Clone, Copy)]
+pub struct LightData<'a> {
+    /// The mesh.
+    pub grid: &'a Grid,
+    /// Vertex positions.
+    pub geometry: &'a Geometry,
+    /// The images.
+    pub obs: &'a Observations<'a>,
+    /// Shadow and saturation thresholds.
+    pub settings: FitSettings,
+}
+
+/// The lights of a pass and where their parameters sit.
+#[derive(Clone, Copy)]
+struct Model<'a> {
+    lights: &'a [Light],
+    layout: &'a Layout,
+}
+
+/// Sums of one pass over the facets.
+#[derive(Debug, Clone)]
+struct Pass {
+    /// Gauss-Newton matrix (upper triangle filled during the pass), n x n row-major.
+    h: Vec<f64>,
+    grad: Vec<f64>,
+    sse: f64,
+    sum_i2: f64,
+    /// Usable observations (lights x channels) of fitted facets.
+    count: usize,
+    /// Facet-channel fits (each has 3 unknowns).
+    fits: usize,
+    sum_z: f64,
+    min_z: f64,
+    facets: usize,
+}
+
+impl Pass {
+    fn new(n: usize, with_h: bool) -> Pass {
+        Pass {
+            h: if with_h { vec![0.0; n * n] } else { Vec::new() },
+            grad: if with_h { vec![0.0; n] } else { Vec::new() },
+            sse: 0.0,
+            sum_i2: 0.0,
+            count: 0,
+            fits: 0,
+            sum_z: 0.0,
+            min_z: f64::INFINITY,
+            facets: 0,
+        }
+    }
+
+    fn merge(mut self, other: Pass) -> Pass {
+        for (a, b) in self.h.iter_mut().zip(&other.h) {
+            *a += b;
+        }
+        for (a, b) in self.grad.iter_mut().zip(&other.grad) {
+            *a += b;
+        }
+        self.sse += other.sse;
+        self.sum_i2 += other.sum_i2;
+        self.count += other.count;
+        self.fits += other.fits;
+        self.sum_z += other.sum_z;
+        self.min_z = self.min_z.min(other.min_z);
+        self.facets += other.facets;
+        self
+    }
+}
+
+/// Per-thread scratch of a pass.
+struct Scratch {
+    values: Vec<f32>,
+    used: Vec<usize>,
+    rows: Vec<[f64; 3]>,
+    obs: Vec<f64>,
+    /// The rows of `B` (see [`LightData::facet`]), one array per column.
+    b: [Vec<f64>; 3],
+}
+
+impl LightData<'_> {
+    /// The facets of a pass: a regular subsample of at most [`MAX_FACETS`], and its stride.
+    fn subsample(&self) -> (usize, usize) {
+        let n = self.grid.n_facets();
+        let stride = n.div_ceil(MAX_FACETS).max(1);
+        (n.div_ceil(stride), stride)
+    }
+
+    /// One pass over the (subsampled) facets at unknowns `u` under `lights`.
+    fn pass(&self, lights: &[Light], layout: &Layout, u: &[f64], with_h: bool) -> Pass {
+        let (count, stride) = self.subsample();
+        let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
+        let k = obs.k;
+        let channels = obs.channels;
+        let n = layout.n;
+        (0..count)
+            .into_par_iter()
+            .with_min_len(256)
+            .fold(
+                || {
+                    (
+                        Pass::new(n, with_h),
+                        Scratch {
+                            values: vec![0.0; obs.per_facet()],
+                            used: Vec::with_capacity(k),
+                            rows: Vec::with_capacity(k),
+                            obs: Vec::with_capacity(k),
+                            b: std::array::from_fn(|_| vec![0.0; n]),
+                        },
+                    )
+                },
+                |(mut acc, mut s), j| {
+                    let f = j * stride;
+                    let q = grid.facet_corners(geometry, f, u);
+                    let c = quad_centre(&q);
+                    acc.sum_z += c[2];
+                    acc.min_z = acc.min_z.min(c[2]);
+                    acc.facets += 1;
+                    let mut values = std::mem::take(&mut s.values);
+                    obs.facet(grid.facets[f], &mut values);
+                    for ch in 0..channels {
+                        self.facet(Model { lights, layout }, c, (&values, ch), &mut acc, &mut s);
+                    }
+                    s.values = values;
+                    (acc, s)
+                },
+            )
+            .map(|(acc, _)| acc)
+            .reduce(|| Pass::new(n, with_h), Pass::merge)
+    }
+
+    /// Adds channel `ch` of the facet with centre `c` and observations `values` to the pass.
+    #[inline]
+    fn facet(
+        &self,
+        model: Model<'_>,
+        c: [f64; 3],
+        (values, ch): (&[f32], usize),
+        acc: &mut Pass,
+        s: &mut Scratch,
+    ) {
+        let Model { lights, layout } = model;
+        let channels = self.obs.channels;
+        s.used.clear();
+        s.rows.clear();
+        s.obs.clear();
+        let mut t = Matrix3::zeros();
+        let mut sv = Vector3::zeros();
+        for (i, light) in lights.iter().enumerate() {
+            let o = &values[i * channels..(i + 1) * channels];
+            if !usable(o, &self.settings) {
+                continue;
+            }
+            let phi = channel_intensity(light.intensity(), channels, ch);
+            let (b, _) = light.beta(c);
+            let a = Vector3::new(b[0] * phi, b[1] * phi, b[2] * phi);
+            let v = o[ch] as f64;
+            t += a * a.transpose();
+            sv += a * v;
+            s.used.push(i);
+            s.rows.push([a.x, a.y, a.z]);
+            s.obs.push(v);
+        }
+        // Three observations fit any lights exactly: only the fourth and later carry
+        // information about them.
+        if s.used.len() < 4 {
+            return;
+        }
+        let Some(tinv) = invert_spd3(&t) else {
+            return;
+        };
+        let g = tinv * sv;
+        let g = [g.x, g.y, g.z];
+        acc.fits += 1;
+        let with_h = !acc.h.is_empty();
+        // T = L L^T; a_i^T T^-1 a_j = w_i . w_j with w = L^-1 a.
+        let chol = if with_h {
+            match t.cholesky() {
+                Some(c) => Some(c.l()),
+                None => return,
+            }
+        } else {
+            None
+        };
+        let n = layout.n;
+        if with_h {
+            s.b.iter_mut().for_each(|b| b.fill(0.0));
+        }
+        for (idx, (&i, row)) in s.used.iter().zip(&s.rows).enumerate() {
+            let v = s.obs[idx];
+            let r = v - dot(*row, g);
+            acc.sse += r * r;
+            acc.sum_i2 += v * v;
+            acc.count += 1;
+            let Some(l) = chol.as_ref() else {
+                continue;
+            };
+            let (first, m) = layout.span(i);
+            if m == 0 {
+                continue;
+            }
+            let phi = channel_intensity(lights[i].intensity(), channels, ch);
+            let d = derivatives(
+                &lights[i],
+                c,
+                *row,
+                g,
+                phi,
+                layout.intensity[i].is_some(),
+                layout.position[i].is_some(),
+            );
+            let w = l
+                .solve_lower_triangular(&Vector3::from(*row))
+                .unwrap_or_else(Vector3::zeros);
+            for a in 0..m {
+                acc.grad[first + a] -= d[a] * r;
+                s.b[0][first + a] = d[a] * w.x;
+                s.b[1][first + a] = d[a] * w.y;
+                s.b[2][first + a] = d[a] * w.z;
+                // The block-diagonal part, sum_i d_i d_i^T.
+                let h = &mut acc.h[(first + a) * n..];
+                for bb in a..m {
+                    h[first + bb] += d[a] * d[bb];
+                }
+            }
+        }
+        if !with_h {
+            return;
+        }
+        // Minus the normals' part, B B^T with the rows of B = d_ij w_i (upper triangle).
+        let [b0, b1, b2] = &s.b;
+        for r in 0..n {
+            let (x0, x1, x2) = (b0[r], b1[r], b2[r]);
+            if x0 == 0.0 && x1 == 0.0 && x2 == 0.0 {
+                continue;
+            }
+            let row = &mut acc.h[r * n + r..(r + 1) * n];
+            for (h, ((y0, y1), y2)) in row
+                .iter_mut()
+                .zip(b0[r..].iter().zip(&b1[r..]).zip(&b2[r..]))
+            {
+                *h -= x0 * y0 + x1 * y1 + x2 * y2;
+            }
+        }
+    }
+}
+
+/// The symmetric matrix of a pass (its upper triangle mirrored).
+fn symmetric(h: &[f64], n: usize) -> DMatrix<f64> {
+    DMatrix::from_fn(
+        n,
+        n,
+        |i, j| if i <= j { h[i * n + j] } else { h[j * n + i] },
+    )
+}
+
+/// What a light step did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOutcome {
+    /// Largest change: `|delta s_i|` or `|delta p_i| / D` (0 when the step was rejected).
+    pub change: f64,
+    /// The objective `E` before the step (at the current mesh).
+    pub objective: f64,
+    /// Whether a step was accepted.
+    pub accepted: bool,
+}
+
+/// The state of the light refinement across the iterations of a solver.
+#[derive(Debug, Clone)]
+pub struct Refiner {
+    /// What is refined.
+    pub refine: Refine,
+    /// The rig's lights (the prior's centre and the intensity gauge's reference).
+    pub reference: Vec<Light>,
+    lambda: f64,
+}
+
+/// Largest number of damping increases in one step.
+const MAX_TRIES: usize = 8;
+
+impl Refiner {
+    /// A refiner of `refine` around the rig's `reference` lights.
+    pub fn new(refine: Refine, reference: Vec<Light>) -> Refiner {
+        Refiner {
+            refine,
+            reference,
+            lambda: 1e-3,
+        }
+    }
+
+    /// The refined parameters of `lights` as a vector in the step's layout: `ln(Phi_i / Phi_i^0)`
+    /// (relative to the rig's intensity) and `p_i / D`.
+    pub fn encode(&self, lights: &[Light], distance: f64) -> Vec<f64> {
+        let layout = Layout::new(lights, &self.refine);
+        let mut x = vec![0.0; layout.n];
+        for (i, (light, reference)) in lights.iter().zip(&self.reference).enumerate() {
+            if let Some(j) = layout.intensity[i] {
+                x[j] = intensity_ratio(light, reference).ln();
+            }
+            if let (Some(j), Light::Point { position, .. }) = (layout.position[i], light) {
+                for a in 0..3 {
+                    x[j + a] = position[a] / distance;
+                }
+            }
+        }
+        x
+    }
+
+    /// The lights whose refined parameters are `x` (see [`Refiner::encode`]).
+    pub fn decode(&self, lights: &[Light], x: &[f64], distance: f64) -> Vec<Light> {
+        let layout = Layout::new(lights, &self.refine);
+        lights
+            .iter()
+            .zip(&self.reference)
+            .enumerate()
+            .map(|(i, (light, reference))| {
+                let mut light = *light;
+                if let Some(j) = layout.intensity[i] {
+                    let phi = reference.intensity().map(|v| v * x[j].exp());
+                    match &mut light {
+                        Light::Point { intensity, .. } | Light::Directional { intensity, .. } => {
+                            *intensity = phi;
+                        }
+                    }
+                }
+                if let (Some(j), Light::Point { position, .. }) = (layout.position[i], &mut light) {
+                    for a in 0..3 {
+                        position[a] = x[j + a] * distance;
+                    }
+                }
+                light
+            })
+            .collect()
+    }
+
+    /// The objective of `lights` from a pass (data) and the prior.
+    fn objective(&self, pass: &Pass, nu: f64, lights: &[Light], distance: f64) -> f64 {
+        0.5 * pass.sse / nu + self.prior(lights, distance)
+    }
+
+    fn prior(&self, lights: &[Light], distance: f64) -> f64 {
+        if !self.refine.position {
+            return 0.0;
+        }
+        let w = self.refine.prior_weight / (distance * distance);
+        0.5 * w
+            * lights
+                .iter()
+                .zip(&self.reference)
+                .map(|(a, b)| match (a, b) {
+                    (Light::Point { position: p, .. }, Light::Point { position: q, .. }) => {
+                        let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
+                        dot(d, d)
+                    }
+                    _ => 0.0,
+                })
+                .sum::<f64>()
+    }
+
+    /// One damped Gauss-Newton step on `lights` at unknowns `u` (see the module docs).
+    pub fn step(&mut self, data: &LightData<'_>, lights: &mut [Light], u: &[f64]) -> StepOutcome {
+        let layout = Layout::new(lights, &self.refine);
+        let n = layout.n;
+        let none = StepOutcome {
+            change: 0.0,
+            objective: f64::NAN,
+            accepted: false,
+        };
+        if n == 0 {
+            return none;
+        }
+        let pass = data.pass(lights, &layout, u, true);
+        if pass.fits == 0 || pass.sum_i2 <= 0.0 {
+            return none;
+        }
+        let nu = pass.sum_i2;
+        let distance = (pass.sum_z / pass.facets as f64)
+            .abs()
+            .max(f64::MIN_POSITIVE);
+        let e0 = self.objective(&pass, nu, lights, distance);
+        let mut h = symmetric(&pass.h, n) / nu;
+        let mut grad = DVector::from_vec(pass.grad.clone()) / nu;
+        let w = self.refine.prior_weight / (distance * distance);
+        for (light, (j, reference)) in lights
+            .iter()
+            .zip(layout.position.iter().zip(&self.reference))
+        {
+            if let (Some(j), Light::Point { position: p, .. }, Light::Point { position: q, .. }) =
+                (j, light, reference)
+            {
+                for a in 0..3 {
+                    h[(j + a, j + a)] += w;
+                    grad[j + a] += w * (p[a] - q[a]);
+                }
+            }
+        }
+        let constraints = layout.constraints(lights, self.refine.fix_scale);
+        let scale = h.diagonal().max().max(f64::MIN_POSITIVE);
+        for _ in 0..MAX_TRIES {
+            let mut a = h.clone();
+            for i in 0..n {
+                a[(i, i)] += self.lambda * h[(i, i)] + 1e-12 * scale;
+            }
+            let Some(delta) = solve_constrained(&a, &grad, &constraints) else {
+                self.lambda *= 10.0;
+                continue;
+            };
+            let (trial, change) = apply(lights, &layout, &delta, distance);
+            // Decrease predicted by the Gauss-Newton model: when it is at the rounding level of
+            // E, the lights have converged and a trial evaluation could not tell.
+            let predicted = -grad.dot(&delta) - 0.5 * delta.dot(&(&h * &delta));
+            if predicted <= 1e-13 * e0 {
+                return StepOutcome {
+                    objective: e0,
+                    ..none
+                };
+            }
+            let in_front = trial.iter().all(|l| match l {
+                Light::Point { position, .. } => position[2] < pass.min_z,
+                Light::Directional { .. } => true,
+            });
+            let e1 = if in_front {
+                let p = data.pass(&trial, &layout, u, false);
+                self.objective(&p, nu, &trial, distance)
+            } else {
+                f64::INFINITY
+            };
+            if e1 < e0 {
+                lights.copy_from_slice(&trial);
+                self.lambda = (self.lambda / 3.0).max(1e-9);
+                return StepOutcome {
+                    change,
+                    objective: e0,
+                    accepted: true,
+                };
+            }
+            self.lambda *= 5.0;
+        }
+        StepOutcome {
+            objective: e0,
+            ..none
+        }
+    }
+}
+
+/// `Phi / Phi^0` of a light whose intensity is a multiple of the reference's (its largest channel).
+fn intensity_ratio(light: &Light, reference: &Light) -> f64 {
+    let (phi, phi0) = (light.intensity(), reference.intensity());
+    let c = (0..3).fold(0, |best, c| if phi0[c] > phi0[best] { c } else { best });
+    phi[c] / phi0[c]
+}
+
+/// Solves `A x = -grad` subject to `C^T x = 0` (KKT system), or None if it is singular.
+fn solve_constrained(
+    a: &DMatrix<f64>,
+    grad: &DVector<f64>,
+    constraints: &[DVector<f64>],
+) -> Option<DVector<f64>> {
+    let n = a.nrows();
+    let m = constraints.len();
+    let mut k = DMatrix::zeros(n + m, n + m);
+    k.view_mut((0, 0), (n, n)).copy_from(a);
+    let mut rhs = DVector::zeros(n + m);
+    for i in 0..n {
+        rhs[i] = -grad[i];
+    }
+    for (j, c) in constraints.iter().enumerate() {
+        let norm = c.norm().max(f64::MIN_POSITIVE);
+        for i in 0..n {
+            k[(i, n + j)] = c[i] / norm;
+            k[(n + j, i)] = c[i] / norm;
+        }
+    }
+    let x = k.lu().solve(&rhs)?;
+    x.iter()
+        .all(|v| v.is_finite())
+        .then(|| x.rows(0, n).into_owned())
+}
+
+/// Largest change of an intensity factor per step (the step is retried when it does not help).
+const MAX_LOG_STEP: f64 = 1.0;
+
+/// `lights` moved by `delta`, and the largest relative change.
+fn apply(
+    lights: &[Light],
+    layout: &Layout,
+    delta: &DVector<f64>,
+    distance: f64,
+) -> (Vec<Light>, f64) {
+    let mut change: f64 = 0.0;
+    let out = lights
+        .iter()
+        .enumerate()
+        .map(|(i, light)| {
+            let mut light = *light;
+            if let Some(j) = layout.intensity[i] {
+                let ds = delta[j].clamp(-MAX_LOG_STEP, MAX_LOG_STEP);
+                change = change.max(ds.abs());
+                let factor = ds.exp();
+                match &mut light {
+                    Light::Point { intensity, .. } | Light::Directional { intensity, .. } => {
+                        *intensity = intensity.map(|v| v * factor);
+                    }
+                }
+            }
+            if let (Some(j), Light::Point { position, .. }) = (layout.position[i], &mut light) {
+                let d = [delta[j], delta[j + 1], delta[j + 2]];
+                change = change.max(dot(d, d).sqrt() / distance);
+                for a in 0..3 {
+                    position[a] += d[a];
+                }
+            }
+            light
+        })
+        .collect();
+    (out, change)
+}
+
+/// How well the images determine the light parameters at a mesh.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Conditioning {
+    /// Singular values of the light block of the (relative) Jacobian after the normals are
+    /// eliminated, positions measured in units of the working distance, largest first; the
+    /// directions removed by the gauge constraints are left out.
+    pub singular_values: Vec<f64>,
+    /// Per light: standard error of the intensity factor (relative) and of the position
+    /// (x, y, z, in scene units) from the residual's variance; NaN where not refined.
+    pub standard_errors: Vec<[f64; 4]>,
+    /// RMS residual of the light step's fits (image units).
+    pub rms_residual: f64,
+    /// The working distance `D` used to scale positions.
+    pub distance: f64,
+}
+
+/// The conditioning of `refine`'s light parameters for `lights` at unknowns `u` (see
+/// [`Conditioning`]). The Gauss-Newton matrix is that of the light step, scaled up from its
+/// subsample of facets; it leaves out integrability, so it bounds from below what the whole
+/// reconstruction knows.
+pub fn conditioning(
+    data: &LightData<'_>,
+    lights: &[Light],
+    u: &[f64],
+    refine: &Refine,
+) -> Result<Conditioning> {
+    let layout = Layout::new(lights, refine);
+    let n = layout.n;
+    if n == 0 {
+        return Err(Error::Input(
+            "nothing to analyse: no light parameter is refined".into(),
+        ));
+    }
+    let pass = data.pass(lights, &layout, u, true);
+    let dof = pass.count as f64 - 3.0 * pass.fits as f64 - n as f64;
+    if pass.fits == 0 || dof <= 0.0 {
+        return Err(Error::Input(
+            "too few usable observations to analyse the lights (each fitted facet needs 4 or more lit images)"
+                .into(),
+        ));
+    }
+    let (_, stride) = data.subsample();
+    let distance = (pass.sum_z / pass.facets as f64).abs();
+    let sigma2 = pass.sse / dof;
+    // Full-data J^T J, estimated from the subsample.
+    let h = symmetric(&pass.h, n) * stride as f64;
+    // Scaled parameters: positions in units of D, data relative to sum I^2.
+    let mut scale = DVector::from_element(n, 1.0);
+    for j in layout.position.iter().flatten() {
+        for a in 0..3 {
+            scale[j + a] = distance;
+        }
+    }
+    let nu = pass.sum_i2 * stride as f64;
+    let hs = DMatrix::from_fn(n, n, |i, j| h[(i, j)] * scale[i] * scale[j] / nu);
+    let constraints = layout.constraints(lights, refine.fix_scale);
+    // Project out the gauge directions (in scaled coordinates).
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    for c in &constraints {
+        let mut v = c.component_mul(&scale.map(|s| 1.0 / s));
+        for b in &basis {
+            let proj = b.dot(&v);
+            v -= b * proj;
+        }
+        let norm = v.norm();
+        if norm > 0.0 {
+            basis.push(v / norm);
+        }
+    }
+    let mut projector = DMatrix::identity(n, n);
+    for b in &basis {
+        projector -= b * b.transpose();
+    }
+    let reduced = &projector * &hs * &projector;
+    let mut eig: Vec<f64> = reduced
+        .symmetric_eigenvalues()
+        .iter()
+        .map(|&e| e.max(0.0).sqrt())
+        .collect();
+    eig.sort_by(|a, b| b.total_cmp(a));
+    eig.truncate(n - basis.len());
+    // Covariance: sigma^2 (J^T J)^+ on the constrained subspace.
+    let mut kkt = DMatrix::zeros(n + basis.len(), n + basis.len());
+    kkt.view_mut((0, 0), (n, n)).copy_from(&h);
+    for (j, b) in basis.iter().enumerate() {
+        let c = b.component_mul(&scale.map(|s| 1.0 / s));
+        for i in 0..n {
+            kkt[(i, n + j)] = c[i];
+            kkt[(n + j, i)] = c[i];
+        }
+    }
+    let inverse = kkt.try_inverse();
+    let se = |j: usize| -> f64 {
+        inverse
+            .as_ref()
+            .map_or(f64::INFINITY, |inv| (sigma2 * inv[(j, j)]).max(0.0).sqrt())
+    };
+    let standard_errors = (0..lights.len())
+        .map(|i| {
+            let mut out = [f64::NAN; 4];
+            if let Some(j) = layout.intensity[i] {
+                out[0] = se(j);
+            }
+            if let Some(j) = layout.position[i] {
+                for a in 0..3 {
+                    out[1 + a] = se(j + a);
+                }
+            }
+            out
+        })
+        .collect();
+    Ok(Conditioning {
+        singular_values: eig,
+        standard_errors,
+        rms_residual: (pass.sse / pass.count.max(1) as f64).sqrt(),
+        distance,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::problem::{ImageStack, InitialDepth, Problem};
+    use crate::synth::{Scene, SceneKind};
+
+    /// Finite-difference check of the position and intensity derivatives, isotropic and LED.
+    #[test]
+    fn derivatives_match_finite_differences() {
+        let c = [3.0, -2.0, 100.0];
+        let g = [0.2, -0.1, -0.9];
+        for mu in [0.0, 1.0, 2.5] {
+            let light = Light::Point {
+                position: [40.0, 10.0, 5.0],
+                intensity: [2.0; 3],
+                axis: crate::grid::normalize([-0.3, -0.1, 1.0]),
+                mu,
+            };
+            let pred = |l: &Light| {
+                let (b, _) = l.beta(c);
+                2.0 * dot(b, g)
+            };
+            let (b, _) = light.beta(c);
+            let a = b.map(|x| 2.0 * x);
+            let d = derivatives(&light, c, a, g, 2.0, true, true);
+            assert!((d[0] - pred(&light)).abs() < 1e-15);
+            for j in 0..3 {
+                let h = 1e-4;
+                let mut plus = light;
+                let mut minus = light;
+                if let (Light::Point { position: p, .. }, Light::Point { position: m, .. }) =
+                    (&mut plus, &mut minus)
+                {
+                    p[j] += h;
+                    m[j] -= h;
+                }
+                let fd = (pred(&plus) - pred(&minus)) / (2.0 * h);
+                assert!(
+                    (fd - d[1 + j]).abs() < 1e-6 * fd.abs().max(1e-9),
+                    "mu {mu} axis {j}: {fd} vs {}",
+                    d[1 + j]
+                );
+            }
+        }
+    }
+
+    fn scene_problem(scene: &Scene, images: &[f32]) -> Problem<'static> {
+        let stack = ImageStack::new(
+            Box::leak(images.to_vec().into_boxed_slice()),
+            scene.rig.n_lights(),
+            scene.height,
+            scene.width,
+        )
+        .unwrap();
+        let rig = Box::leak(Box::new(scene.rig.clone()));
+        let depth = Box::leak(scene.depth.clone().into_boxed_slice());
+        Problem::new(stack, rig, Some(&scene.mask), InitialDepth::Map(depth)).unwrap()
+    }
+
+    /// On the true mesh, intensity steps recover intensities that are off by up to 35 %.
+    #[test]
+    fn intensity_steps_recover_the_truth_on_the_true_mesh() {
+        let scene = Scene::new(SceneKind::SphereCap, 24, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = scene_problem(&scene, &images);
+        let mut lights = scene.rig.lights.clone();
+        for (i, l) in lights.iter_mut().enumerate() {
+            if let Light::Point { intensity, .. } = l {
+                let f = 1.0 + 0.35 * ((i as f64 * 2.1).sin());
+                *intensity = intensity.map(|v| v * f);
+            }
+        }
+        let refine = Refine {
+            intensity: true,
+            ..Refine::NONE
+        };
+        let data = LightData {
+            grid: &problem.grid,
+            geometry: &problem.geometry,
+            obs: &problem.obs,
+            settings: FitSettings::default(),
+        };
+        let mut refiner = Refiner::new(refine, lights.clone());
+        for _ in 0..15 {
+            refiner.step(&data, &mut lights, &problem.u0);
+        }
+        // Relative intensities: ratios to the geometric mean.
+        let ratio = |ls: &[Light]| -> Vec<f64> {
+            let v: Vec<f64> = ls.iter().map(|l| l.intensity()[0]).collect();
+            let g = (v.iter().map(|x| x.ln()).sum::<f64>() / v.len() as f64).exp();
+            v.iter().map(|x| x / g).collect()
+        };
+        for (a, b) in ratio(&lights).iter().zip(ratio(&scene.rig.lights)) {
+            assert!((a / b - 1.0).abs() < 1e-6, "{a} vs {b}");
+        }
+    }
+
+    /// On the true mesh, position steps recover positions off by 5 % of the distance.
+    #[test]
+    fn position_steps_recover_the_truth_on_the_true_mesh() {
+        let scene = Scene::new(SceneKind::SphereCap, 32, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = scene_problem(&scene, &images);
+        let mut lights = scene.rig.lights.clone();
+        for (i, l) in lights.iter_mut().enumerate() {
+            if let Light::Point { position, .. } = l {
+                position[i % 3] += 10.0 * if i % 2 == 0 { 1.0 } else { -1.0 };
+            }
+        }
+        let refine = Refine {
+            position: true,
+            prior_weight: 0.0,
+            ..Refine::NONE
+        };
+        let data = LightData {
+            grid: &problem.grid,
+            geometry: &problem.geometry,
+            obs: &problem.obs,
+            settings: FitSettings::default(),
+        };
+        let mut refiner = Refiner::new(refine, lights.clone());
+        for _ in 0..40 {
+            refiner.step(&data, &mut lights, &problem.u0);
+        }
+        for (a, b) in lights.iter().zip(&scene.rig.lights) {
+            if let (Light::Point { position: p, .. }, Light::Point { position: q, .. }) = (a, b) {
+                let d = crate::grid::sub(*p, *q);
+                assert!(dot(d, d).sqrt() < 0.01, "{p:?} vs {q:?}");
+            }
+        }
+        let c = conditioning(&data, &lights, &problem.u0, &refine).unwrap();
+        assert_eq!(c.singular_values.len(), 3 * lights.len());
+        assert!(c.singular_values.iter().all(|s| s.is_finite() && *s > 0.0));
+    }
+}
