@@ -131,8 +131,30 @@ fn options_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<nplps::Option
             ))
         }
     };
+    let (intensity, position) = match option(py, d, "refine_lights", "none".to_string())?.as_str() {
+        "none" => (false, false),
+        "intensity" => (true, false),
+        "position" => (false, true),
+        "both" => (true, true),
+        other => {
+            return Err(py_error(
+                py,
+                "InputError",
+                format!(
+                    "refine_lights must be None, \"intensity\", \"position\" or \"both\", got {other:?}"
+                ),
+            ))
+        }
+    };
+    let refine = nplps::Refine {
+        intensity,
+        position,
+        prior_weight: option(py, d, "light_prior_weight", defaults.refine.prior_weight)?,
+        fix_scale: false,
+    };
     Ok(nplps::Options {
         solver,
+        refine,
         levels: option(py, d, "levels", defaults.levels)?,
         iterations: option(py, d, "iterations", defaults.iterations)?,
         tol: option(py, d, "tol", defaults.tol)?,
@@ -256,6 +278,7 @@ fn reconstruct<'py>(
                                     stats.elapsed.as_secs_f64(),
                                     stats.level,
                                     stats.inner_iterations,
+                                    stats.light_change,
                                 ),
                             )
                             .map(|_| ()),

@@ -35,6 +35,7 @@
 
 #![warn(missing_docs)]
 
+pub mod anderson;
 pub mod baseline;
 pub mod calibrate;
 pub mod calibration_scene;
@@ -48,6 +49,7 @@ pub mod multigrid;
 pub mod ordering;
 pub mod problem;
 pub mod pyramid;
+pub mod refine;
 pub mod render;
 pub mod rig;
 pub mod solver;
@@ -59,7 +61,11 @@ pub use error::{Error, Result};
 pub use global::GlobalSolver;
 pub use local::{Robust, Weighting};
 pub use problem::{ImageStack, InitialDepth, Problem};
+pub use refine::{Conditioning, Refine};
 pub use render::{mesh_normals, predict, render, vertices};
 pub use rig::{Camera, Light, Rig};
-pub use solver::{reconstruct, Control, IterationStats, Options, Reconstruction, Solver, Timings};
+pub use solver::{
+    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Solver,
+    Timings,
+};
 pub use synth::{Scene, SceneKind, SceneOptions};
