@@ -63,6 +63,11 @@ pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e-3;
 /// few, and this bounds the step's cost at camera resolution.
 pub const MAX_FACETS: usize = 1 << 17;
 
+/// At most this many facets (a regular subsample of those of a pass) enter the Gauss-Newton
+/// matrix, whose cost per facet grows with the square of the light parameters; the gradient and
+/// the objective use every facet of the pass, so the fixed point is exact.
+pub const MAX_MATRIX_FACETS: usize = 4096;
+
 /// Which light parameters the reconstruction refines.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Refine {
@@ -262,7 +267,7 @@ struct Model<'a> {
 
 /// Sums of one pass over the facets.
 #[derive(Debug, Clone)]
-struct Pass {
+pub(crate) struct Pass {
     /// Gauss-Newton matrix (upper triangle filled during the pass), n x n row-major.
     h: Vec<f64>,
     grad: Vec<f64>,
@@ -316,8 +321,60 @@ struct Scratch {
     used: Vec<usize>,
     rows: Vec<[f64; 3]>,
     obs: Vec<f64>,
-    /// The rows of `B` (see [`LightData::facet`]), one array per column.
-    b: [Vec<f64>; 3],
+    /// Rows of `B^T` (see [`LightData::facet`]) of the last facets, three per facet, folded
+    /// into the pass by one matrix product every [`BATCH`] facets.
+    bt: DMatrix<f64>,
+    pending: usize,
+    /// Whether the current facet adds to the Gauss-Newton matrix.
+    want_h: bool,
+}
+
+/// `a . b` with four independent partial sums (vectorizes).
+#[inline]
+fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    acc[0] + acc[1] + acc[2] + acc[3] + tail
+}
+
+/// Facet channels whose normals' parts are subtracted from the Gauss-Newton matrix at once.
+const BATCH: usize = 64;
+
+impl Scratch {
+    /// Subtracts `B B^T` of the pending facets from `acc.h`.
+    fn flush(&mut self, acc: &mut Pass) {
+        if self.pending == 0 || acc.h.is_empty() {
+            return;
+        }
+        let n = self.bt.ncols();
+        let rows = 3 * self.pending;
+        let stride = self.bt.nrows();
+        let data = self.bt.as_slice();
+        // Upper triangle of B B^T: dot products of the (contiguous) columns of B^T.
+        for i in 0..n {
+            let ci = &data[i * stride..i * stride + rows];
+            if ci.iter().all(|v| *v == 0.0) {
+                continue;
+            }
+            let h = &mut acc.h[i * n..(i + 1) * n];
+            for (j, hj) in h.iter_mut().enumerate().skip(i) {
+                let cj = &data[j * stride..j * stride + rows];
+                *hj -= dot_slices(ci, cj);
+            }
+        }
+        self.pending = 0;
+    }
 }
 
 impl LightData<'_> {
@@ -335,7 +392,8 @@ impl LightData<'_> {
         let k = obs.k;
         let channels = obs.channels;
         let n = layout.n;
-        (0..count)
+        let h_every = count.div_ceil(MAX_MATRIX_FACETS).max(1);
+        let mut pass = (0..count)
             .into_par_iter()
             .with_min_len(256)
             .fold(
@@ -347,7 +405,9 @@ impl LightData<'_> {
                             used: Vec::with_capacity(k),
                             rows: Vec::with_capacity(k),
                             obs: Vec::with_capacity(k),
-                            b: std::array::from_fn(|_| vec![0.0; n]),
+                            bt: DMatrix::zeros(if with_h { 3 * BATCH } else { 0 }, n),
+                            pending: 0,
+                            want_h: true,
                         },
                     )
                 },
@@ -358,6 +418,7 @@ impl LightData<'_> {
                     acc.sum_z += c[2];
                     acc.min_z = acc.min_z.min(c[2]);
                     acc.facets += 1;
+                    s.want_h = j % h_every == 0;
                     let mut values = std::mem::take(&mut s.values);
                     obs.facet(grid.facets[f], &mut values);
                     for ch in 0..channels {
@@ -367,8 +428,14 @@ impl LightData<'_> {
                     (acc, s)
                 },
             )
-            .map(|(acc, _)| acc)
-            .reduce(|| Pass::new(n, with_h), Pass::merge)
+            .map(|(mut acc, mut s)| {
+                s.flush(&mut acc);
+                acc
+            })
+            .reduce(|| Pass::new(n, with_h), Pass::merge);
+        // The matrix from every `h_every`-th facet stands for all of them.
+        pass.h.iter_mut().for_each(|v| *v *= h_every as f64);
+        pass
     }
 
     /// Adds channel `ch` of the facet with centre `c` and observations `values` to the pass.
@@ -414,7 +481,8 @@ impl LightData<'_> {
         let g = tinv * sv;
         let g = [g.x, g.y, g.z];
         acc.fits += 1;
-        let with_h = !acc.h.is_empty();
+        let with_h = s.want_h && !acc.h.is_empty();
+        let with_grad = !acc.grad.is_empty();
         // T = L L^T; a_i^T T^-1 a_j = w_i . w_j with w = L^-1 a.
         let chol = if with_h {
             match t.cholesky() {
@@ -426,7 +494,7 @@ impl LightData<'_> {
         };
         let n = layout.n;
         if with_h {
-            s.b.iter_mut().for_each(|b| b.fill(0.0));
+            s.bt.rows_mut(3 * s.pending, 3).fill(0.0);
         }
         for (idx, (&i, row)) in s.used.iter().zip(&s.rows).enumerate() {
             let v = s.obs[idx];
@@ -434,9 +502,9 @@ impl LightData<'_> {
             acc.sse += r * r;
             acc.sum_i2 += v * v;
             acc.count += 1;
-            let Some(l) = chol.as_ref() else {
+            if !with_grad {
                 continue;
-            };
+            }
             let (first, m) = layout.span(i);
             if m == 0 {
                 continue;
@@ -451,14 +519,20 @@ impl LightData<'_> {
                 layout.intensity[i].is_some(),
                 layout.position[i].is_some(),
             );
+            for a in 0..m {
+                acc.grad[first + a] -= d[a] * r;
+            }
+            let Some(l) = chol.as_ref() else {
+                continue;
+            };
             let w = l
                 .solve_lower_triangular(&Vector3::from(*row))
                 .unwrap_or_else(Vector3::zeros);
             for a in 0..m {
-                acc.grad[first + a] -= d[a] * r;
-                s.b[0][first + a] = d[a] * w.x;
-                s.b[1][first + a] = d[a] * w.y;
-                s.b[2][first + a] = d[a] * w.z;
+                let col = first + a;
+                s.bt[(3 * s.pending, col)] = d[a] * w.x;
+                s.bt[(3 * s.pending + 1, col)] = d[a] * w.y;
+                s.bt[(3 * s.pending + 2, col)] = d[a] * w.z;
                 // The block-diagonal part, sum_i d_i d_i^T.
                 let h = &mut acc.h[(first + a) * n..];
                 for bb in a..m {
@@ -469,20 +543,10 @@ impl LightData<'_> {
         if !with_h {
             return;
         }
-        // Minus the normals' part, B B^T with the rows of B = d_ij w_i (upper triangle).
-        let [b0, b1, b2] = &s.b;
-        for r in 0..n {
-            let (x0, x1, x2) = (b0[r], b1[r], b2[r]);
-            if x0 == 0.0 && x1 == 0.0 && x2 == 0.0 {
-                continue;
-            }
-            let row = &mut acc.h[r * n + r..(r + 1) * n];
-            for (h, ((y0, y1), y2)) in row
-                .iter_mut()
-                .zip(b0[r..].iter().zip(&b1[r..]).zip(&b2[r..]))
-            {
-                *h -= x0 * y0 + x1 * y1 + x2 * y2;
-            }
+        // Minus the normals' part, B B^T with the rows of B = d_ij w_i, in batches.
+        s.pending += 1;
+        if s.pending == BATCH {
+            s.flush(acc);
         }
     }
 }
