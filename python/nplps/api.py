@@ -242,7 +242,10 @@ def reconstruct(
             the distance search refines intensities only, and the common scale of the light
             positions stays the rig's (it trades against the distance).
         light_prior_weight: weight ``w`` of the prior ``w/2 sum |p - p0|^2 / D^2`` (D: the
-            working distance) against the relative squared residual; default 1e-3.
+            working distance) against the squared residual in units of the noise variance
+            (estimated from the fits): a Gaussian prior of standard deviation ``D / sqrt(w)`` on
+            each coordinate of a light. Default 1000 (about 3 % of D); smaller trusts the
+            images more.
 
     Returns:
         A :class:`~nplps.Reconstruction`.

@@ -67,6 +67,10 @@ class LightRefinement:
     #: True when refining positions did not lower the photometric residual of a run without
     #: refinement on the first pyramid level: the given lights were kept.
     fell_back: bool
+    #: True when the refinement was stopped early because the photometric residual rose (the
+    #: joint iteration drifted along weakly determined light parameters): the state of lowest
+    #: residual was restored and its lights kept.
+    stopped: bool
     #: RMS residual on the first level without / with refinement (NaN when not compared: the
     #: comparison runs only when positions are refined).
     residual_without: float
@@ -93,6 +97,7 @@ class LightRefinement:
             "mode": self.mode,
             "prior_weight": self.prior_weight,
             "fell_back": self.fell_back,
+            "stopped": self.stopped,
             "residual_without": _finite_or_none(self.residual_without),
             "residual_with": _finite_or_none(self.residual_with),
             "condition_number": _finite_or_none(self.condition_number),
@@ -343,6 +348,7 @@ def _refinement(d: dict[str, Any] | None) -> LightRefinement | None:
         mode=d["mode"],
         prior_weight=float(d["prior_weight"]),
         fell_back=bool(d["fell_back"]),
+        stopped=bool(d["stopped"]),
         residual_without=float(d["residual_without"]),
         residual_with=float(d["residual_with"]),
         singular_values=None if c is None else np.asarray(c["singular_values"], dtype=np.float64),

@@ -153,6 +153,7 @@ fn refinement_dict<'py>(
     d.set_item("mode", report.refine.name())?;
     d.set_item("prior_weight", report.refine.prior_weight)?;
     d.set_item("fell_back", report.fell_back)?;
+    d.set_item("stopped", report.stopped)?;
     d.set_item("residual_without", report.residual_without)?;
     d.set_item("residual_with", report.residual_with)?;
     if let Some(c) = &report.conditioning {

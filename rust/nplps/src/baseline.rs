@@ -175,6 +175,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             result.refinement = Some(crate::solver::RefinementReport {
                 refine: options.refine,
                 fell_back: false,
+                stopped: false,
                 residual_without: f64::NAN,
                 residual_with: f64::NAN,
                 conditioning: None,

@@ -9,12 +9,15 @@
 //! the position `p_i`) minimise
 //!
 //! ```text
-//! E(theta) = 1/2 sum_f min_g sum_i (I_{i,f} - a_{i,f}(theta) . g)^2 / nu
+//! E(theta) = 1/2 sum_f min_g sum_i (I_{i,f} - a_{i,f}(theta) . g)^2 / sigma^2
 //!          + 1/2 w sum_i |p_i - p_i^0|^2 / D^2
 //! ```
 //!
-//! over the usable observations (`nu = sum I^2`, so the data term is a relative squared residual;
-//! `D` is the mean depth of the surface; `p^0` the rig's positions; `w` the prior weight). The
+//! over the usable observations: a Gaussian likelihood with the noise variance `sigma^2`
+//! estimated from the residual of the fits (at least [`NOISE_FLOOR`] of the RMS observation) and
+//! a Gaussian prior of standard deviation `D / sqrt(w)` on every coordinate of a light position
+//! (`D` is the mean depth of the surface; `p^0` the rig's positions; `w` the prior weight, default
+//! 1000: about 3 % of the working distance). The
 //! normals are eliminated per facet (variable projection): the Gauss-Newton matrix of the full
 //! problem in `(theta, g_1..g_F)` has 3 x 3 blocks `T_f = sum_i a_i a_i^T` for the normals, and its
 //! Schur complement on `theta` is
@@ -57,7 +60,7 @@ use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observat
 use crate::rig::Light;
 
 /// Default weight of the prior that holds light positions to the rig's (see the module docs).
-pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e-3;
+pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e3;
 
 /// At most this many facets (a regular subsample) enter a light step: the light parameters are
 /// few, and this bounds the step's cost at camera resolution.
@@ -67,6 +70,10 @@ pub const MAX_FACETS: usize = 1 << 17;
 /// matrix, whose cost per facet grows with the square of the light parameters; the gradient and
 /// the objective use every facet of the pass, so the fixed point is exact.
 pub const MAX_MATRIX_FACETS: usize = 4096;
+
+/// Smallest noise level assumed by the prior, relative to the RMS observation: with exact
+/// images the prior still holds the weak directions of the lights.
+pub const NOISE_FLOOR: f64 = 1e-3;
 
 /// Which light parameters the reconstruction refines.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -267,7 +274,7 @@ struct Model<'a> {
 
 /// Sums of one pass over the facets.
 #[derive(Debug, Clone)]
-pub(crate) struct Pass {
+struct Pass {
     /// Gauss-Newton matrix (upper triangle filled during the pass), n x n row-major.
     h: Vec<f64>,
     grad: Vec<f64>,
@@ -679,7 +686,13 @@ impl Refiner {
         if pass.fits == 0 || pass.sum_i2 <= 0.0 {
             return none;
         }
-        let nu = pass.sum_i2;
+        // The data term in units of the noise variance, estimated from the residual of the fits
+        // (the subsample stands for all facets): the prior then reads as a Gaussian prior with
+        // standard deviation D / sqrt(w) on each coordinate of a light.
+        let (_, stride) = data.subsample();
+        let dof = (pass.count as f64 - 3.0 * pass.fits as f64).max(1.0);
+        let floor = NOISE_FLOOR * NOISE_FLOOR * pass.sum_i2 / pass.count.max(1) as f64;
+        let nu = (pass.sse / dof).max(floor) / stride as f64;
         let distance = (pass.sum_z / pass.facets as f64)
             .abs()
             .max(f64::MIN_POSITIVE);

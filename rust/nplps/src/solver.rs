@@ -214,6 +214,10 @@ pub struct RefinementReport {
     /// Whether the refinement was dropped because it did not lower the photometric residual of
     /// a run without it (on the first pyramid level); the rig's lights were then kept.
     pub fell_back: bool,
+    /// Whether the refinement was stopped early because the photometric residual rose (the
+    /// joint iteration drifted along weakly determined light parameters): the state of lowest
+    /// residual was restored and the lights kept from then on.
+    pub stopped: bool,
     /// RMS residual, on the first level, without refinement.
     pub residual_without: f64,
     /// RMS residual, on the first level, with refinement.
@@ -283,6 +287,7 @@ pub(crate) struct Carried {
     lights: Vec<Light>,
     refine: Refine,
     monitor: Option<Monitor>,
+    diverged: bool,
 }
 
 /// The residuals of the first level's runs without and with light refinement.
@@ -322,6 +327,7 @@ pub(crate) fn coarse_to_fine(
         lights: problem.rig.lights.clone(),
         refine: options.refine,
         monitor: None,
+        diverged: false,
     };
     if levels <= 1 {
         return Ok(carried);
@@ -368,6 +374,7 @@ pub(crate) fn coarse_to_fine(
         carried.lights = solver.lights.clone();
         carried.refine = solver.refine();
         carried.monitor = carried.monitor.or(solver.monitor);
+        carried.diverged |= solver.diverged;
     }
     let t = Instant::now();
     *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid);
@@ -397,6 +404,8 @@ pub struct Solver<'p> {
     monitor: Option<Monitor>,
     /// Whether coarse levels ran before this solver's (see [`Solver::carry`]).
     carried: bool,
+    /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
+    diverged: bool,
     /// Time spent so far.
     pub timings: Timings,
 }
@@ -427,6 +436,7 @@ impl<'p> Solver<'p> {
                 .then(|| Refiner::new(options.refine, problem.rig.lights.clone())),
             monitor: None,
             carried: false,
+            diverged: false,
             timings: Timings {
                 factorization: t.elapsed(),
                 ..Timings::default()
@@ -487,6 +497,7 @@ impl<'p> Solver<'p> {
             self.lights = coarse.lights;
             self.set_refine(coarse.refine);
             self.monitor = coarse.monitor;
+            self.diverged = coarse.diverged;
         }
         coarse.history
     }
@@ -674,6 +685,9 @@ impl<'p> Solver<'p> {
             .geometry
             .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
         let mut accel = self.acceleration(u.len(), scale, distance);
+        // With refinement: the state of lowest residual so far (see `Solver::safeguard`).
+        let mut best: Option<Best> = None;
+        let mut last_rms = f64::NAN;
         for iteration in 1..=iterations {
             let before = self
                 .refiner
@@ -681,6 +695,12 @@ impl<'p> Solver<'p> {
                 .map(|r| r.encode(&self.lights, distance));
             let mut light_change = self.refine_lights(u);
             self.local(u);
+            last_rms = rms_of(&self.stats, p.obs.channels);
+            if self.safeguard(&mut best, last_rms, u) {
+                // The residual rose well above the best state's: back to it, lights frozen.
+                accel = None;
+                continue;
+            }
             let t = Instant::now();
             let system = self.system.as_mut().expect("the solver has not finished");
             let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
@@ -711,10 +731,52 @@ impl<'p> Solver<'p> {
                 )));
             }
             if depth_change <= tol * scale && light_change <= tol {
+                self.restore_best(best, last_rms, u);
                 return Ok((history, true));
             }
         }
+        self.restore_best(best, last_rms, u);
         Ok((history, false))
+    }
+
+    /// Tracks the state of lowest photometric residual while the lights are refined (`rms` is
+    /// that of the local step on `u` with the current lights). The joint iteration can drift
+    /// along weakly determined directions of the lights; when the residual rises above
+    /// [`DIVERGENCE`] times the best one, the best state is restored, the refinement stops for
+    /// the rest of the run and true is returned.
+    fn safeguard(&mut self, best: &mut Option<Best>, rms: f64, u: &mut [f64]) -> bool {
+        if self.refiner.is_none() || !rms.is_finite() {
+            return false;
+        }
+        match best {
+            Some(b) if rms > DIVERGENCE * b.rms => {
+                u.copy_from_slice(&b.u);
+                self.lights = b.lights.clone();
+                self.refiner = None;
+                self.diverged = true;
+                true
+            }
+            Some(b) if rms >= b.rms => false,
+            _ => {
+                *best = Some(Best {
+                    rms,
+                    u: u.to_vec(),
+                    lights: self.lights.clone(),
+                });
+                false
+            }
+        }
+    }
+
+    /// At the end of a run with refinement: goes back to the best state when the last one is
+    /// clearly worse (by 0.1 % in RMS residual).
+    fn restore_best(&mut self, best: Option<Best>, last_rms: f64, u: &mut [f64]) {
+        if let Some(b) = best {
+            if b.rms < last_rms * (1.0 - 1e-3) {
+                u.copy_from_slice(&b.u);
+                self.lights = b.lights;
+            }
+        }
     }
 
     /// RMS image residual of each region under the last local step.
@@ -806,12 +868,23 @@ impl Solver<'_> {
         Some(RefinementReport {
             refine,
             fell_back,
+            stopped: self.diverged,
             residual_without: monitor.map_or(f64::NAN, |m| m.without),
             residual_with: monitor.map_or(f64::NAN, |m| m.with),
             conditioning: crate::refine::conditioning(&data, &self.lights, u, &refine).ok(),
         })
     }
 }
+
+/// The state of lowest residual of a run with light refinement.
+struct Best {
+    rms: f64,
+    u: Vec<f64>,
+    lights: Vec<Light>,
+}
+
+/// Residual growth (over the best state's) at which the light refinement is stopped.
+const DIVERGENCE: f64 = 2.0;
 
 /// Memory of the Anderson acceleration of the light refinement.
 const ANDERSON_DEPTH: usize = 5;
