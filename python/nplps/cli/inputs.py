@@ -159,6 +159,23 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
         help="local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
     )
     g.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all cores)")
+    g = p.add_argument_group("light self-calibration")
+    g.add_argument(
+        "--refine-lights",
+        choices=("intensity", "position", "both"),
+        default=None,
+        help="refine the lights from the images: each light's intensity (their geometric mean stays "
+        "the rig's), each point light's position (held toward the rig's), or both; the refined rig is "
+        "written to rig_refined.json",
+    )
+    g.add_argument(
+        "--light-prior-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of the prior toward the rig's light positions: a standard deviation of D/sqrt(W) "
+        "per coordinate, D the working distance (default 1000, about 3%% of D)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
@@ -215,6 +232,8 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
         "weighting": args.weighting,
         "solver": args.solver,
         "levels": args.levels,
+        "refine_lights": getattr(args, "refine_lights", None),
+        "light_prior_weight": getattr(args, "light_prior_weight", None),
     }
     if args.depth_range is not None:
         near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")

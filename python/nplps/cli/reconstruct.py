@@ -17,7 +17,8 @@ Reconstruct a surface from k images taken under the k lights of a rig.
 Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
 colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
 (16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
-normals.npy, residual.npy and summary.json. RGB images give an RGB albedo unless --gray.
+normals.npy, residual.npy and summary.json, and with --refine-lights the refined rig
+(rig_refined.json). RGB images give an RGB albedo unless --gray.
 
 {INPUT_NOTES}
 {textwrap.fill(CONVENTIONS, 95)}
@@ -37,6 +38,9 @@ examples:
   # a near_ps capture folder (a glob pattern after the folder picks its images if needed):
   nplps reconstruct --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' \\
       --depth 200 --bin 4 --out hehe12-result
+  # LED intensities that disagree with the rig file: refine them (rig_refined.json is written):
+  nplps reconstruct --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' \\
+      --depth 200 --bin 4 --refine-lights intensity --out hehe12-refined
   # a DiLiGenT object, grey:
   nplps reconstruct --capture diligent ballPNG/ --depth 1000 --gray --out ball
 """
@@ -81,7 +85,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.baseline:
         start = time.perf_counter()
         with _warnings_to_stderr():
-            base = reconstruct_parallel(inputs.images, inputs.rig, inputs.mask, **_estimated(result, common))
+            # The baseline refines its own intensities under its own model, as the near-light run does.
+            refine = "intensity" if args.refine_lights in ("intensity", "both") else None
+            base = reconstruct_parallel(
+                inputs.images, inputs.rig, inputs.mask, refine_lights=refine, **_estimated(result, common)
+            )
         wall = time.perf_counter() - start
         base_paths = base.save(Path(args.out) / "baseline", opengl=args.opengl)
         print()
@@ -108,6 +116,40 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path],
     if s.get("estimated_distance"):
         estimates = ", ".join(f"{d:.6g}" for d in s["estimated_distance"])
         print(f"  distance        {estimates} (estimated; residual curve in distance_curve.csv / .svg)")
+    if result.refinement is not None:
+        _print_refinement(result)
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
     files = sorted({str(p.parent) for p in paths.values()})
     print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
+
+
+def _print_refinement(result: Any) -> None:
+    """The light refinement's report: what happened, then per light the change and its
+    standard error."""
+    ref = result.refinement
+    state = "refined"
+    if ref.fell_back:
+        state = (
+            f"dropped: it did not lower the residual of a run without it ({ref.residual_with:.3e} vs "
+            f"{ref.residual_without:.3e}); the rig's lights were kept"
+        )
+    elif ref.stopped:
+        state = "stopped early (the residual rose); the lights of the lowest residual were kept"
+    print(f"  lights          {ref.mode}: {state}")
+    if ref.singular_values is not None and len(ref.singular_values):
+        print(
+            f"                  conditioning {ref.condition_number:.3g} (singular values "
+            f"{ref.singular_values[0]:.3g} .. {ref.singular_values[-1]:.3g}, normals eliminated)"
+        )
+    se = ref.standard_errors
+    for row in result.light_changes():
+        i = row["light"]
+        line = f"    light {i:>2}: intensity x {row['intensity_factor']:.4f}"
+        if se is not None and se[i][0] == se[i][0]:
+            line += f" (+/- {100 * se[i][0]:.2f} %)"
+        if row["position_shift"] is not None and ref.mode in ("position", "both"):
+            dx, dy, dz = row["position_shift"]
+            line += f", moved ({dx:+.3g}, {dy:+.3g}, {dz:+.3g})"
+            if se is not None and se[i][1] == se[i][1]:
+                line += f" (+/- {se[i][1]:.2g}, {se[i][2]:.2g}, {se[i][3]:.2g})"
+        print(line)

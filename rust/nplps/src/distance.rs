@@ -136,6 +136,8 @@ struct Evaluator<'s, 'p> {
     inner: usize,
     curve: Vec<Vec<(f64, f64)>>,
     start: Instant,
+    /// The light refinement of every evaluation.
+    refine: Refine,
 }
 
 impl Evaluator<'_, '_> {
@@ -149,7 +151,7 @@ impl Evaluator<'_, '_> {
         problem.grid.apply_gauge(&mut self.u, &gauge);
         // Every candidate starts from the rig's lights: the residual curve must not depend on
         // the order of the evaluations.
-        self.solver.reset_lights();
+        self.solver.restart_lights(self.refine);
         self.solver
             .iterate(&mut self.u, &gauge, self.inner, 0.0, self.start, progress)?;
         self.solver.local(&self.u);
@@ -192,8 +194,7 @@ fn search_with(
         ..refine
     });
     let found = search_refined(solver, problem, search, range, progress);
-    solver.set_refine(refine);
-    solver.reset_lights();
+    solver.restart_lights(refine);
     found
 }
 
@@ -209,7 +210,9 @@ fn search_refined(
     let scan = search.scan.max(3);
     let (ln_near, ln_far) = (range.0.ln(), range.1.ln());
     let step = (ln_far - ln_near) / (scan - 1) as f64;
+    let refine = solver.refine();
     let mut ev = Evaluator {
+        refine,
         solver,
         u: problem.u0.clone(),
         inner: search.inner.max(1),

@@ -489,6 +489,14 @@ impl<'p> Solver<'p> {
             .then(|| Refiner::new(refine, self.problem.rig.lights.clone()));
     }
 
+    /// Starts the lights over: the rig's lights, `refine` from now on, no record of an earlier
+    /// run's drift (each evaluation of the distance search starts this way).
+    pub fn restart_lights(&mut self, refine: Refine) {
+        self.reset_lights();
+        self.set_refine(refine);
+        self.diverged = false;
+    }
+
     /// Takes over what the coarse levels carried (lights, refinement, history, timings).
     pub(crate) fn carry(&mut self, coarse: Carried) -> Vec<IterationStats> {
         self.timings.add(&coarse.timings);
