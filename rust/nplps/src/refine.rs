@@ -171,7 +171,9 @@ impl Layout {
     }
 
     /// The linear constraints of a step, as columns: the intensity gauge and, if asked, the
-    /// common scale of the positions.
+    /// common scale of the positions about the camera centre, `sum_i p_i^0 . delta p_i = 0` with
+    /// the `reference` (rig's) positions: fixed coefficients, so every step and every affine
+    /// combination of iterates keeps `sum_i p_i^0 . (p_i - p_i^0) = 0`.
     fn constraints(&self, lights: &[Light], fix_scale: bool) -> Vec<DVector<f64>> {
         let mut out = Vec::new();
         if self.intensity.iter().any(Option::is_some) {
@@ -713,7 +715,7 @@ impl Refiner {
                 }
             }
         }
-        let constraints = layout.constraints(lights, self.refine.fix_scale);
+        let constraints = layout.constraints(&self.reference, self.refine.fix_scale);
         let scale = h.diagonal().max().max(f64::MIN_POSITIVE);
         for _ in 0..MAX_TRIES {
             let mut a = h.clone();
