@@ -528,8 +528,8 @@ impl LightData<'_> {
                 layout.intensity[i].is_some(),
                 layout.position[i].is_some(),
             );
-            for a in 0..m {
-                acc.grad[first + a] -= d[a] * r;
+            for (gr, da) in acc.grad[first..first + m].iter_mut().zip(&d) {
+                *gr -= da * r;
             }
             let Some(l) = chol.as_ref() else {
                 continue;

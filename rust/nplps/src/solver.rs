@@ -621,7 +621,7 @@ impl<'p> Solver<'p> {
         history.extend(refined);
         self.local(u);
         let with = rms_of(&self.stats, self.problem.obs.channels);
-        let fell_back = !(with < without);
+        let fell_back = with.is_nan() || with >= without;
         self.monitor = Some(Monitor {
             without,
             with,
