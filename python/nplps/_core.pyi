@@ -5,9 +5,11 @@
 (``vectors``, ``directional``, ``intensities``, ``axes``, ``mu``: see ``Rig._core_lights``);
 ``options`` a mapping with the keyword options of :func:`nplps.reconstruct` (``iterations``,
 ``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, ``solver``, ``levels``,
-and for the distance search and the prior ``auto``, ``depth_range``, ``depth_guess``,
-``prior_weight``). The progress callback gets (iteration, depth change, rms residual, elapsed
-seconds, pyramid level, conjugate-gradient iterations)."""
+``refine_lights`` ("none", "intensity", "position", "both"), ``light_prior_weight``, and for the
+distance search and the prior ``auto``, ``depth_range``, ``depth_guess``, ``prior_weight``). The
+progress callback gets (iteration, depth change, rms residual, elapsed seconds, pyramid level,
+conjugate-gradient iterations, light change). The result holds ``lights`` (the final lights, as a
+lights mapping) and, when refining, ``refinement``."""
 
 import os
 from typing import Any, Callable, Mapping, Sequence
@@ -21,7 +23,7 @@ MULTIGRID_MAX_ITERATIONS: int
 
 Camera = Mapping[str, Any]
 Lights = Mapping[str, list[Any]]
-ProgressCallback = Callable[[int, float, float, float, int, int], Any]
+ProgressCallback = Callable[[int, float, float, float, int, int, float], Any]
 
 def reconstruct(
     images: npt.NDArray[np.float32],
