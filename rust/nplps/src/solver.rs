@@ -20,7 +20,7 @@ use crate::geometry::Geometry;
 use crate::global::{GlobalSolver, GlobalStep};
 use crate::local::{FacetFit, FacetStat, FitSettings, LocalStep, Model, Robust, Weighting};
 use crate::problem::Problem;
-use crate::refine::{LightData, Refine, Refiner};
+use crate::refine::{LightData, Refine, Refiner, StepOutcome};
 use crate::rig::Light;
 
 /// Options of the iteration.
@@ -354,7 +354,7 @@ pub(crate) fn coarse_to_fine(
                 .0
         } else {
             solver.set_lights(carried.lights.clone());
-            solver.set_refine(carried.refine);
+            solver.set_refine(refine_on_level(carried.refine, p));
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid);
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
@@ -372,7 +372,11 @@ pub(crate) fn coarse_to_fine(
         history.extend(h);
         timings.add(&solver.timings);
         carried.lights = solver.lights.clone();
-        carried.refine = solver.refine();
+        // A level above the refinement's size limit does not stop it for good; a fallback or a
+        // stop does.
+        if refine_on_level(carried.refine, p) == carried.refine {
+            carried.refine = solver.refine();
+        }
         carried.monitor = carried.monitor.or(solver.monitor);
         carried.diverged |= solver.diverged;
     }
@@ -503,7 +507,7 @@ impl<'p> Solver<'p> {
         self.carried = coarse.carried;
         if coarse.carried {
             self.lights = coarse.lights;
-            self.set_refine(coarse.refine);
+            self.set_refine(refine_on_level(coarse.refine, self.problem));
             self.monitor = coarse.monitor;
             self.diverged = coarse.diverged;
         }
@@ -538,7 +542,9 @@ impl<'p> Solver<'p> {
         before: &[f64],
         distance: f64,
     ) -> f64 {
-        let refiner = self.refiner.as_ref().expect("refining");
+        let Some(refiner) = self.refiner.as_ref() else {
+            return 0.0;
+        };
         let after = refiner.encode(&self.lights, distance);
         let n = u.len();
         let mut z = Vec::with_capacity(n + before.len());
@@ -575,9 +581,13 @@ impl<'p> Solver<'p> {
     }
 
     /// One light step at `u` (when refining): returns the largest relative change.
-    fn refine_lights(&mut self, u: &[f64]) -> f64 {
+    fn refine_lights(&mut self, u: &[f64]) -> StepOutcome {
         let Some(refiner) = self.refiner.as_mut() else {
-            return 0.0;
+            return StepOutcome {
+                change: 0.0,
+                objective: f64::NAN,
+                accepted: false,
+            };
         };
         let t = Instant::now();
         let p = self.problem;
@@ -589,7 +599,7 @@ impl<'p> Solver<'p> {
         };
         let outcome = refiner.step(&data, &mut self.lights, u);
         self.timings.lights += t.elapsed();
-        outcome.change
+        outcome
     }
 
     /// The iterations of the first (coarsest) level, from `u` with `gauge`. When light
@@ -696,12 +706,23 @@ impl<'p> Solver<'p> {
         // With refinement: the state of lowest residual so far (see `Solver::safeguard`).
         let mut best: Option<Best> = None;
         let mut last_rms = f64::NAN;
+        let mut lights_converged = false;
         for iteration in 1..=iterations {
-            let before = self
-                .refiner
-                .as_ref()
-                .map(|r| r.encode(&self.lights, distance));
-            let mut light_change = self.refine_lights(u);
+            // Once a light step finds nothing to improve, the lights stay for the rest of the
+            // run (the mesh then converges as with known lights).
+            let before = match (&self.refiner, lights_converged) {
+                (Some(r), false) => Some(r.encode(&self.lights, distance)),
+                _ => None,
+            };
+            let mut light_change = 0.0;
+            if before.is_some() {
+                let outcome = self.refine_lights(u);
+                light_change = outcome.change;
+                if !outcome.accepted {
+                    lights_converged = true;
+                    accel = None;
+                }
+            }
             self.local(u);
             last_rms = rms_of(&self.stats, p.obs.channels);
             if self.safeguard(&mut best, last_rms, u) {
@@ -881,6 +902,25 @@ impl Solver<'_> {
             residual_with: monitor.map_or(f64::NAN, |m| m.with),
             conditioning: crate::refine::conditioning(&data, &self.lights, u, &refine).ok(),
         })
+    }
+}
+
+/// Levels of a pyramid with more unknowns than this keep the lights refined on the coarser
+/// levels: a few dozen light parameters are determined by a million pixels as well as by ten,
+/// and the refinement's memory (the Anderson history, a few copies of the unknowns) stays
+/// bounded at camera resolution. A problem without coarser levels is refined whatever its size.
+pub const MAX_REFINE_UNKNOWNS: usize = 1 << 21;
+
+/// The refinement on a finer level of a pyramid: none above [`MAX_REFINE_UNKNOWNS`].
+fn refine_on_level(refine: Refine, problem: &Problem<'_>) -> Refine {
+    if problem.grid.n_unknowns() > MAX_REFINE_UNKNOWNS {
+        Refine {
+            intensity: false,
+            position: false,
+            ..refine
+        }
+    } else {
+        refine
     }
 }
 
