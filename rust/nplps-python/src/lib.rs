@@ -5,6 +5,7 @@
 //! of `nplps.errors`, and no panic crosses into Python. Between iterations the solver takes the
 //! GIL back briefly to check for Ctrl-C and to call the progress callback.
 
+mod calibrate;
 mod convert;
 mod decode;
 mod errors;
@@ -492,5 +493,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate::calibrate_intensities, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate::synth_spheres, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate::synth_board, m)?)?;
     Ok(())
 }

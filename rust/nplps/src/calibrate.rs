@@ -60,6 +60,9 @@
 //! direction are fitted too, by Levenberg–Marquardt with the intensities eliminated (variable
 //! projection).
 
+// Comparisons are written `!(x > 0.0)` on purpose throughout: they reject NaN as well.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use crate::error::{Error, Result};
@@ -721,6 +724,9 @@ fn otsu(values: &[f32]) -> Option<f64> {
     Some(lo + (best_t as f64 + 0.5) / (bins as f64 - 1.0) * (hi - lo))
 }
 
+/// An image circle: centre (u, v) and radius, pixels.
+pub type ImageCircle = ([f64; 2], f64);
+
 /// Sphere detection: the expected image radius range in pixels and, optionally, how many
 /// spheres each image set shows.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -743,7 +749,7 @@ pub fn detect_spheres(
     height: usize,
     width: usize,
     detection: &Detection,
-) -> Result<(Vec<([f64; 2], f64)>, Vec<String>)> {
+) -> Result<(Vec<ImageCircle>, Vec<String>)> {
     let [rmin, rmax] = detection.radius_range;
     if !(rmin > 0.0 && rmax >= rmin && rmax.is_finite()) {
         return Err(Error::Input(format!(
@@ -808,7 +814,7 @@ pub fn detect_spheres(
         }
         found.push((s.0, centre, req));
     }
-    found.sort_by(|a, b| b.0.cmp(&a.0));
+    found.sort_by_key(|f| std::cmp::Reverse(f.0));
     if let Some(n) = detection.count {
         if found.len() < n {
             return Err(Error::Input(format!(
@@ -866,6 +872,9 @@ pub struct Sphere {
     /// Orthographic: fitted radius / given radius (checks the pixel size). Pinhole with a given
     /// centre depth: distance from the outline / distance from the given depth. Otherwise 1.
     pub scale_check: f64,
+    /// How far the joint refinement moved the centre from the outline's (scene units; 0 without
+    /// refinement).
+    pub shift: f64,
 }
 
 /// The sphere of radius `radius` whose outline passes through the image points `outline`
@@ -916,6 +925,7 @@ pub fn locate_sphere(
                 fit_rms: circle.rms / px,
                 outline_points: [circle.inliers, outline.len()],
                 scale_check: circle.radius / radius,
+                shift: 0.0,
             })
         }
         Camera::Pinhole { k, .. } => {
@@ -943,6 +953,7 @@ pub fn locate_sphere(
                 fit_rms: f * cone.rms,
                 outline_points: [cone.inliers, outline.len()],
                 scale_check: check,
+                shift: 0.0,
             })
         }
     }
@@ -1018,13 +1029,18 @@ impl Default for HighlightOptions {
 /// A highlight in one image on one sphere.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Highlight {
-    /// Sub-pixel image position (u, v).
+    /// Sub-pixel image position (u, v), corrected for the sphere's curvature (see
+    /// [`correct_highlight`]).
     pub pixel: [f64; 2],
+    /// The mean area (pixels) of the level regions whose centroids make the position.
+    pub level_area: f64,
+    /// The curvature correction applied (pixels, outwards from the sphere's image centre).
+    pub correction: f64,
     /// Brightest value.
     pub peak: f64,
-    /// Background level over the sphere (median).
+    /// Local background level at the peak (a plane fitted around the blob).
     pub background: f64,
-    /// Pixels of the blob.
+    /// Pixels of the blob above the midpoint between background and peak.
     pub area: usize,
     /// Pixels of the blob at the peak value (saturated, for clipped images).
     pub saturated: usize,
@@ -1041,6 +1057,9 @@ pub enum Rejection {
     Limb,
     /// The highlight's viewing ray misses the sphere.
     Miss,
+    /// The joint refinement found the highlight inconsistent with the other observations of its
+    /// light (more than 5 robust standard deviations off).
+    Inconsistent,
 }
 
 impl Rejection {
@@ -1051,14 +1070,23 @@ impl Rejection {
             Rejection::Large => "bright region too large for a highlight",
             Rejection::Limb => "highlight at the limb",
             Rejection::Miss => "highlight off the sphere",
+            Rejection::Inconsistent => "highlight inconsistent with the other spheres",
         }
     }
 }
+
+/// The levels, as fractions of the way from the background to the peak, whose sub-pixel region
+/// centroids are averaged into the highlight position.
+const HIGHLIGHT_LEVELS: [f64; 3] = [0.25, 0.5, 0.75];
+
+/// Sub-samples per pixel and axis of the bilinear interpolant in the highlight centroid.
+const HIGHLIGHT_SUBSAMPLES: usize = 8;
 
 /// Finds the highlight of one image (H x W) inside a sphere's region (see the
 /// [module documentation](self)).
 fn find_highlight_in(
     image: &[f32],
+    height: usize,
     width: usize,
     bbox: [usize; 4],
     inside: &[bool],
@@ -1085,53 +1113,180 @@ fn find_highlight_in(
     if !(peak - background >= options.min_contrast * peak.abs()) || !(peak > background) {
         return Err(Rejection::Faint);
     }
-    let threshold = background + 0.5 * (peak - background);
-    // 8-connected blob above the threshold, from the peak.
-    let mut blob = vec![false; inside.len()];
-    let mut stack = vec![at];
-    blob[at] = true;
-    let (mut sw, mut su, mut sv, mut area, mut saturated) = (0.0, 0.0, 0.0, 0usize, 0usize);
-    let mut touches_limb = false;
-    while let Some(i) = stack.pop() {
-        let v = value(i);
-        let (br, bc) = (i / bw, i % bw);
-        area += 1;
-        if v >= peak {
-            saturated += 1;
+    // 8-connected blob of the region's pixels where `above(value, pixel)` holds, from the peak;
+    // the pixels (box indices) and the number above `count_above`.
+    let flood = |above: &dyn Fn(f64, usize) -> bool,
+                 count_above: &dyn Fn(f64, usize) -> bool|
+     -> std::result::Result<(Vec<usize>, usize, usize), Rejection> {
+        let mut blob = vec![false; inside.len()];
+        let mut stack = vec![at];
+        blob[at] = true;
+        let (mut members, mut area, mut saturated) = (Vec::new(), 0usize, 0usize);
+        let mut touches_limb = false;
+        while let Some(i) = stack.pop() {
+            let v = value(i);
+            let (br, bc) = (i / bw, i % bw);
+            members.push(i);
+            if count_above(v, i) {
+                area += 1;
+            }
+            if v >= peak {
+                saturated += 1;
+            }
+            for dr in -1isize..=1 {
+                for dc in -1isize..=1 {
+                    let (rr, cc) = (br as isize + dr, bc as isize + dc);
+                    if rr < 0 || cc < 0 || rr >= bh as isize || cc >= bw as isize {
+                        touches_limb = true;
+                        continue;
+                    }
+                    let j = rr as usize * bw + cc as usize;
+                    if !inside[j] {
+                        touches_limb = true;
+                        continue;
+                    }
+                    if !blob[j] && above(value(j), j) {
+                        blob[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+            if area as f64 > options.max_blob_fraction * region as f64 {
+                return Err(Rejection::Large);
+            }
         }
-        let w = v - threshold;
-        sw += w;
-        su += w * (c0 + bc) as f64;
-        sv += w * (r0 + br) as f64;
-        for dr in -1isize..=1 {
-            for dc in -1isize..=1 {
-                let (rr, cc) = (br as isize + dr, bc as isize + dc);
+        if touches_limb {
+            return Err(Rejection::Limb);
+        }
+        Ok((members, area, saturated))
+    };
+    // First blob: above the midpoint of the sphere's median and the peak.
+    let mid0 = background + 0.5 * (peak - background);
+    let (first, _, _) = flood(&|v, _| v > mid0, &|v, _| v > mid0)?;
+    // Local background: a plane fitted to the ring 2..4 pixels (Chebyshev) around the blob.
+    let mut near = vec![u8::MAX; inside.len()];
+    for &i in &first {
+        let (br, bc) = ((i / bw) as isize, (i % bw) as isize);
+        for dr in -4isize..=4 {
+            for dc in -4isize..=4 {
+                let (rr, cc) = (br + dr, bc + dc);
                 if rr < 0 || cc < 0 || rr >= bh as isize || cc >= bw as isize {
-                    touches_limb = true;
                     continue;
                 }
                 let j = rr as usize * bw + cc as usize;
-                if !inside[j] {
-                    touches_limb = true;
-                    continue;
-                }
-                if !blob[j] && value(j) > threshold {
-                    blob[j] = true;
-                    stack.push(j);
+                near[j] = near[j].min(dr.unsigned_abs().max(dc.unsigned_abs()) as u8);
+            }
+        }
+    }
+    let mut ata = Matrix3::<f64>::zeros();
+    let mut atb = Vector3::<f64>::zeros();
+    let mut ring = 0usize;
+    for (j, &d) in near.iter().enumerate() {
+        if (2..=4).contains(&d) && inside[j] {
+            let row = Vector3::new(1.0, (j % bw) as f64, (j / bw) as f64);
+            ata += row * row.transpose();
+            atb += row * value(j);
+            ring += 1;
+        }
+    }
+    let plane = (ring >= 12)
+        .then(|| ata.cholesky().map(|c| c.solve(&atb)))
+        .flatten()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .unwrap_or_else(|| Vector3::new(background, 0.0, 0.0));
+    // Background at box pixel (row, column) offsets, continuous.
+    let base = |bu: f64, bv: f64| plane[0] + plane[1] * bu + plane[2] * bv;
+    let excess = |v: f64, i: usize| v - base((i % bw) as f64, (i / bw) as f64);
+    let top = excess(peak, at);
+    if !(top > 0.0) || top < options.min_contrast * peak.abs() {
+        return Err(Rejection::Faint);
+    }
+    let low = HIGHLIGHT_LEVELS[0] * top;
+    let (members, area, saturated) =
+        flood(&|v, i| excess(v, i) > low, &|v, i| excess(v, i) > 0.5 * top)?;
+    // The blob dilated by one pixel, in image coordinates, bounds the sub-pixel regions.
+    let (mut rmin, mut rmax, mut cmin, mut cmax) = (usize::MAX, 0, usize::MAX, 0);
+    for &i in &members {
+        let (r, c) = (r0 + i / bw, c0 + i % bw);
+        rmin = rmin.min(r);
+        rmax = rmax.max(r);
+        cmin = cmin.min(c);
+        cmax = cmax.max(c);
+    }
+    let (wr0, wc0) = (rmin.saturating_sub(1), cmin.saturating_sub(1));
+    let (wr1, wc1) = ((rmax + 1).min(height - 1), (cmax + 1).min(width - 1));
+    let ww = wc1 - wc0 + 1;
+    let mut allowed = vec![false; (wr1 - wr0 + 1) * ww];
+    for &i in &members {
+        let (r, c) = (r0 + i / bw, c0 + i % bw);
+        for rr in r.saturating_sub(1)..=(r + 1).min(wr1) {
+            for cc in c.saturating_sub(1)..=(c + 1).min(wc1) {
+                allowed[(rr - wr0) * ww + (cc - wc0)] = true;
+            }
+        }
+    }
+    // Centroid of {bilinear interpolant - local plane > level}, sub-sampled, per level;
+    // averaged. (The plane is linear: the interpolant of the excess is the excess of the
+    // interpolant.)
+    let s = HIGHLIGHT_SUBSAMPLES;
+    let at_px = |r: usize, c: usize| image[r * width + c] as f64;
+    let mut sums = [[0.0f64; 3]; HIGHLIGHT_LEVELS.len()];
+    for r in wr0..wr1 {
+        for c in wc0..wc1 {
+            let (q00, q01, q10, q11) = (
+                at_px(r, c),
+                at_px(r, c + 1),
+                at_px(r + 1, c),
+                at_px(r + 1, c + 1),
+            );
+            for a in 0..s {
+                let fv = (a as f64 + 0.5) / s as f64;
+                let nr = r + usize::from(fv >= 0.5);
+                for b in 0..s {
+                    let fu = (b as f64 + 0.5) / s as f64;
+                    let nc = c + usize::from(fu >= 0.5);
+                    if !allowed[(nr - wr0) * ww + (nc - wc0)] {
+                        continue;
+                    }
+                    let (u, v) = (c as f64 + fu, r as f64 + fv);
+                    let e = (1.0 - fv) * ((1.0 - fu) * q00 + fu * q01)
+                        + fv * ((1.0 - fu) * q10 + fu * q11)
+                        - base(u - c0 as f64, v - r0 as f64);
+                    for (sum, f) in sums.iter_mut().zip(HIGHLIGHT_LEVELS) {
+                        if e > f * top {
+                            sum[0] += u;
+                            sum[1] += v;
+                            sum[2] += 1.0;
+                        }
+                    }
                 }
             }
         }
-        if area as f64 > options.max_blob_fraction * region as f64 {
-            return Err(Rejection::Large);
-        }
     }
-    if touches_limb {
-        return Err(Rejection::Limb);
+    let used: Vec<[f64; 3]> = sums
+        .iter()
+        .filter(|s| s[2] > 0.0)
+        .map(|s| {
+            [
+                s[0] / s[2],
+                s[1] / s[2],
+                s[2] / (HIGHLIGHT_SUBSAMPLES * HIGHLIGHT_SUBSAMPLES) as f64,
+            ]
+        })
+        .collect();
+    if used.is_empty() {
+        return Err(Rejection::Faint);
     }
+    let n = used.len() as f64;
     Ok(Highlight {
-        pixel: [su / sw, sv / sw],
+        pixel: [
+            used.iter().map(|p| p[0]).sum::<f64>() / n,
+            used.iter().map(|p| p[1]).sum::<f64>() / n,
+        ],
+        level_area: used.iter().map(|p| p[2]).sum::<f64>() / n,
+        correction: 0.0,
         peak,
-        background,
+        background: base((at % bw) as f64, (at / bw) as f64),
         area,
         saturated,
     })
@@ -1149,7 +1304,50 @@ pub fn find_highlight(
 ) -> std::result::Result<Highlight, Rejection> {
     let (bbox, inside) =
         sphere_region(camera, sphere, height, width, options.limb_margin).ok_or(Rejection::Miss)?;
-    find_highlight_in(image, width, bbox, &inside, options)
+    find_highlight_in(image, height, width, bbox, &inside, options)
+        .and_then(|h| correct_highlight(camera, sphere, h).ok_or(Rejection::Miss))
+}
+
+/// Corrects a highlight's centroid for the curvature of the sphere. The source's angular
+/// profile is symmetric about the mirror direction, so each level region of the highlight is
+/// (to second order) a small circle of normals about the mirror normal `n_m`, of angular radius
+/// `g`. Projected onto the image, such a region's area centroid lies `R_px sin(t) g^2 / 2`
+/// closer to the sphere's image centre than the image of `n_m` (half from the curvature of the
+/// cap, half from its foreshortening), where `t` is the angle between `n_m` and the viewing
+/// direction and `R_px` the sphere's image radius; with the region's area
+/// `A = pi g^2 R_px^2 cos(t)` the shift is `A tan(t) / (2 pi R_px)`. The correction moves the
+/// centroid back by that amount, away from the image of the sphere's centre. (For sources that
+/// are wider across the plane of incidence than along it, such as a Phong lobe at incidence
+/// `i`, the factor changes by `cos(i) (3 + 1 / cos^2(i)) / 4`: 2 % at 17 degrees.) None when
+/// the viewing ray misses the sphere.
+pub fn correct_highlight(
+    camera: &Camera,
+    sphere: &Sphere,
+    highlight: Highlight,
+) -> Option<Highlight> {
+    let (_, n, _) = reflected_ray(camera, sphere, highlight.pixel)?;
+    let view = pixel_ray(camera, highlight.pixel).direction;
+    let cos_t = (-dot3(n, view)).clamp(1e-6, 1.0);
+    let tan_t = (1.0 - cos_t * cos_t).sqrt() / cos_t;
+    let d = [
+        highlight.pixel[0] - sphere.image_center[0],
+        highlight.pixel[1] - sphere.image_center[1],
+    ];
+    let len = d[0].hypot(d[1]);
+    if !(len > 1e-9) || !(sphere.image_radius > 0.0) {
+        return Some(highlight);
+    }
+    let shift = highlight.level_area * tan_t / (2.0 * std::f64::consts::PI * sphere.image_radius);
+    let pixel = [
+        highlight.pixel[0] + shift * d[0] / len,
+        highlight.pixel[1] + shift * d[1] / len,
+    ];
+    reflected_ray(camera, sphere, pixel)?;
+    Some(Highlight {
+        pixel,
+        correction: shift,
+        ..highlight
+    })
 }
 
 /// The mirror ray of a highlight at image point `uv` on `sphere`: the surface point, its outward
@@ -1372,6 +1570,8 @@ pub struct SphereOptions {
     /// Fewest pixels of a mask component taken as a sphere (smaller ones are ignored with a
     /// note). Default 30.
     pub min_component: usize,
+    /// Refine the sphere centres and the lights jointly ([`refine_spheres`]). Default true.
+    pub refine: bool,
 }
 
 impl Default for SphereOptions {
@@ -1382,6 +1582,7 @@ impl Default for SphereOptions {
             parallel_tol: 0.5,
             highlight: HighlightOptions::default(),
             min_component: 30,
+            refine: true,
         }
     }
 }
@@ -1413,6 +1614,8 @@ pub struct SphereCalibration {
     /// Notes and warnings (a light seen on fewer than two spheres, a pixel size that does not
     /// match the radius, ignored mask components, ...).
     pub warnings: Vec<String>,
+    /// The joint refinement, if it ran.
+    pub refinement: Option<Refinement>,
 }
 
 impl SphereCalibration {
@@ -1508,10 +1711,12 @@ pub fn calibrate_spheres(
         )));
     }
     let h = options.highlight;
-    if !(h.min_contrast >= 0.0 && h.min_contrast < 1.0)
-        || !(h.max_blob_fraction > 0.0 && h.max_blob_fraction <= 1.0)
-        || !(h.limb_margin > 0.0 && h.limb_margin <= 1.0)
-    {
+    let valid = (0.0..1.0).contains(&h.min_contrast)
+        && h.max_blob_fraction > 0.0
+        && h.max_blob_fraction <= 1.0
+        && h.limb_margin > 0.0
+        && h.limb_margin <= 1.0;
+    if !valid {
         return Err(Error::Input(format!(
             "highlight options out of range (min_contrast in [0, 1), max_blob_fraction and limb_margin in (0, 1]): {h:?}"
         )));
@@ -1520,6 +1725,7 @@ pub fn calibrate_spheres(
     let mut warnings = Vec::new();
     let mut spheres: Vec<Sphere> = Vec::new();
     let mut regions: Vec<([usize; 4], Vec<bool>)> = Vec::new();
+    let mut outlines_all: Vec<Vec<[f64; 2]>> = Vec::new();
     for (pi, placement) in placements.iter().enumerate() {
         if placement.images.len() != k * plane {
             return Err(Error::Input(format!(
@@ -1674,50 +1880,520 @@ pub fn calibrate_spheres(
             })?;
             spheres.push(sphere);
             regions.push(region);
+            outlines_all.push(outline.clone());
         }
     }
-    // Highlights and rays, light by light.
-    let mut observations = Vec::with_capacity(k * spheres.len());
-    let mut lights = Vec::with_capacity(k);
-    let tol = options.parallel_tol.to_radians();
+    // Highlights, light by light and sphere by sphere.
+    let ns = spheres.len();
+    let mut highlights = Vec::with_capacity(k * ns);
     for i in 0..k {
-        let mut rays = Vec::new();
         for (s, sphere) in spheres.iter().enumerate() {
             let image = &placements[sphere.placement].images[i * plane..(i + 1) * plane];
             let (bbox, inside) = &regions[s];
-            let mut highlight = find_highlight_in(image, width, *bbox, inside, &options.highlight);
-            let mut ray = None;
-            let mut normal = [f64::NAN; 3];
-            if let Ok(hl) = highlight {
-                match reflected_ray(camera, sphere, hl.pixel) {
-                    Some((_, n, r)) => {
-                        ray = Some(r);
-                        normal = n;
-                        rays.push(r);
-                    }
-                    None => highlight = Err(Rejection::Miss),
-                }
-            }
-            observations.push(Observation {
-                light: i,
-                sphere: s,
-                highlight,
-                ray,
-                normal,
-            });
+            let highlight =
+                find_highlight_in(image, height, width, *bbox, inside, &options.highlight)
+                    .and_then(|h| correct_highlight(camera, sphere, h).ok_or(Rejection::Miss));
+            highlights.push(highlight);
         }
-        let report = locate_light(&rays, tol);
+    }
+    let tol = options.parallel_tol.to_radians();
+    let locate_all =
+        |spheres: &[Sphere], highlights: &[std::result::Result<Highlight, Rejection>]| {
+            (0..k)
+                .map(|i| {
+                    let rays: Vec<Ray> = (0..ns)
+                        .filter_map(|s| {
+                            let hl = highlights[i * ns + s].as_ref().ok()?;
+                            reflected_ray(camera, &spheres[s], hl.pixel).map(|(_, _, r)| r)
+                        })
+                        .collect();
+                    locate_light(&rays, tol)
+                })
+                .collect::<Vec<_>>()
+        };
+    let mut lights = locate_all(&spheres, &highlights);
+    let mut refinement = None;
+    if options.refine {
+        let obs: Vec<(usize, usize, [f64; 2])> = (0..k * ns)
+            .filter_map(|j| {
+                highlights[j]
+                    .as_ref()
+                    .ok()
+                    .map(|h| (j / ns, j % ns, h.pixel))
+            })
+            .collect();
+        let estimates: Vec<LightEstimate> = lights.iter().map(|l| l.estimate).collect();
+        let useful = estimates
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| obs.iter().filter(|o| o.0 == *i).count() >= 2)
+            .count();
+        if useful > 0 {
+            let (report, dropped) =
+                refine_spheres(camera, &mut spheres, &outlines_all, &obs, &estimates)?;
+            for j in dropped {
+                let (i, s, _) = obs[j];
+                highlights[i * ns + s] = Err(Rejection::Inconsistent);
+                warnings.push(format!(
+                    "light {i}: its highlight on sphere {s} is inconsistent with its other spheres and was left out"
+                ));
+            }
+            lights = locate_all(&spheres, &highlights);
+            refinement = Some(report);
+        }
+    }
+    let mut observations = Vec::with_capacity(k * ns);
+    for (j, highlight) in highlights.into_iter().enumerate() {
+        let (i, s) = (j / ns, j % ns);
+        let (ray, normal) = match highlight
+            .as_ref()
+            .ok()
+            .and_then(|h| reflected_ray(camera, &spheres[s], h.pixel))
+        {
+            Some((_, n, r)) => (Some(r), n),
+            None => (None, [f64::NAN; 3]),
+        };
+        observations.push(Observation {
+            light: i,
+            sphere: s,
+            highlight,
+            ray,
+            normal,
+        });
+    }
+    for (i, report) in lights.iter().enumerate() {
         if let Some(w) = &report.warning {
             warnings.push(format!("light {i}: {w}"));
         }
-        lights.push(report);
     }
     Ok(SphereCalibration {
         spheres,
         observations,
         lights,
         warnings,
+        refinement,
     })
+}
+
+// -------------------------------------------------------------------------------------------
+// Joint refinement of the spheres and the lights
+// -------------------------------------------------------------------------------------------
+
+/// What the joint refinement did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refinement {
+    /// Levenberg–Marquardt iterations (all rounds).
+    pub iterations: usize,
+    /// Highlights used (each light seen on at least two spheres).
+    pub highlights: usize,
+    /// Highlights dropped as inconsistent.
+    pub dropped: usize,
+    /// RMS highlight residual before and after, pixel-equivalent (ray angle times half the
+    /// sphere's image radius).
+    pub highlight_rms: [f64; 2],
+    /// RMS outline residual before and after, pixels.
+    pub outline_rms: [f64; 2],
+    /// The highlight noise level used to weight the highlights against the outlines, pixels.
+    pub highlight_sigma: f64,
+}
+
+/// A light's parameters in the refinement.
+#[derive(Debug, Clone, Copy)]
+enum LightParam {
+    Point,
+    /// A direction near `d0`, moved in the tangent basis (e1, e2).
+    Directional {
+        d0: [f64; 3],
+        e1: [f64; 3],
+        e2: [f64; 3],
+    },
+}
+
+/// Two unit vectors orthogonal to the unit vector `a` and to each other.
+fn tangent_basis(a: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+    let helper = if a[0].abs() < 0.9 {
+        [1.0, 0.0, 0.0]
+    } else {
+        [0.0, 1.0, 0.0]
+    };
+    let e1 = unit3(cross3(a, helper));
+    (e1, cross3(a, e1))
+}
+
+/// The least-squares problem of [`refine_spheres`].
+struct Bundle {
+    radius: f64,
+    perspective: bool,
+    /// Orthographic: the given centre depths.
+    depths: Vec<f64>,
+    /// Per sphere: outline rays (pinhole) or outline points (x, y, 0) in scene units.
+    outlines: Vec<Vec<[f64; 3]>>,
+    /// Per sphere: outline residual scale (pixels per radian, or per scene unit).
+    outline_scale: Vec<f64>,
+    /// Per sphere: outline noise level (pixels).
+    outline_sigma: Vec<f64>,
+    /// Per sphere: pixel-equivalent of one radian of ray angle (half the image radius).
+    ray_scale: Vec<f64>,
+    /// Observations: (light slot, sphere, viewing ray through the highlight).
+    obs: Vec<(usize, usize, Ray)>,
+    lights: Vec<LightParam>,
+    sigma_h: f64,
+}
+
+impl Bundle {
+    fn sphere_params(&self) -> usize {
+        if self.perspective {
+            3
+        } else {
+            2
+        }
+    }
+
+    fn light_offset(&self) -> usize {
+        self.sphere_params() * self.outlines.len()
+    }
+
+    fn center(&self, theta: &[f64], s: usize) -> [f64; 3] {
+        if self.perspective {
+            [theta[3 * s], theta[3 * s + 1], theta[3 * s + 2]]
+        } else {
+            [theta[2 * s], theta[2 * s + 1], self.depths[s]]
+        }
+    }
+
+    /// Light slot `l`: Ok(position) or Err(direction).
+    fn light(
+        &self,
+        theta: &[f64],
+        offsets: &[usize],
+        l: usize,
+    ) -> std::result::Result<[f64; 3], [f64; 3]> {
+        let o = offsets[l];
+        match self.lights[l] {
+            LightParam::Point => Ok([theta[o], theta[o + 1], theta[o + 2]]),
+            LightParam::Directional { d0, e1, e2 } => Err(unit3(add3(
+                d0,
+                add3(scale3(e1, theta[o]), scale3(e2, theta[o + 1])),
+            ))),
+        }
+    }
+
+    fn offsets(&self) -> (Vec<usize>, usize) {
+        let mut o = self.light_offset();
+        let mut offsets = Vec::with_capacity(self.lights.len());
+        for l in &self.lights {
+            offsets.push(o);
+            o += match l {
+                LightParam::Point => 3,
+                LightParam::Directional { .. } => 2,
+            };
+        }
+        (offsets, o)
+    }
+
+    /// The reflected ray of an observation for the sphere centre `c` (the viewing ray meets the
+    /// sphere, or its closest approach is pushed onto it).
+    fn ray(&self, view: &Ray, c: [f64; 3]) -> Ray {
+        let oc = sub3(view.origin, c);
+        let b = dot3(oc, view.direction);
+        let disc = (b * b - (dot3(oc, oc) - self.radius * self.radius)).max(0.0);
+        let x = view.at(-b - disc.sqrt());
+        let n = scale3(sub3(x, c), 1.0 / self.radius);
+        Ray {
+            origin: x,
+            direction: unit3(reflect(view.direction, n)),
+        }
+    }
+
+    /// Outline residuals (weighted), then highlight residuals (3 per observation, weighted).
+    fn residuals(&self, theta: &[f64], offsets: &[usize], out: &mut Vec<f64>) {
+        out.clear();
+        for (s, points) in self.outlines.iter().enumerate() {
+            let c = self.center(theta, s);
+            let w = self.outline_scale[s] / self.outline_sigma[s];
+            if self.perspective {
+                let d = norm3(c);
+                let a = scale3(c, 1.0 / d);
+                let half = (self.radius / d).clamp(-1.0, 1.0).asin();
+                out.extend(points.iter().map(|b| (angle_between(*b, a) - half) * w));
+            } else {
+                out.extend(
+                    points
+                        .iter()
+                        .map(|q| ((q[0] - c[0]).hypot(q[1] - c[1]) - self.radius) * w),
+                );
+            }
+        }
+        for &(l, s, view) in &self.obs {
+            let ray = self.ray(&view, self.center(theta, s));
+            let target = match self.light(theta, offsets, l) {
+                Ok(p) => unit3(sub3(p, ray.origin)),
+                Err(d) => d,
+            };
+            let e = sub3(target, scale3(ray.direction, dot3(target, ray.direction)));
+            let w = self.ray_scale[s] / self.sigma_h;
+            out.extend([e[0] * w, e[1] * w, e[2] * w]);
+        }
+    }
+
+    /// Levenberg–Marquardt from `theta`; returns the iterations run.
+    fn solve(&self, theta: &mut [f64], max_iterations: usize) -> usize {
+        let (offsets, n) = self.offsets();
+        let mut r = Vec::new();
+        self.residuals(theta, &offsets, &mut r);
+        let mut cost: f64 = r.iter().map(|v| v * v).sum();
+        let mut lambda = 1e-4;
+        let mut rp = Vec::new();
+        let mut done = 0;
+        for it in 0..max_iterations {
+            done = it + 1;
+            // Forward-difference Jacobian, column by column.
+            let mut jac = vec![0.0; n * r.len()];
+            for j in 0..n {
+                let h = 1e-7 * theta[j].abs().max(1.0);
+                let keep = theta[j];
+                theta[j] = keep + h;
+                self.residuals(theta, &offsets, &mut rp);
+                theta[j] = keep;
+                for (q, (a, b)) in rp.iter().zip(&r).enumerate() {
+                    jac[j * r.len() + q] = (a - b) / h;
+                }
+            }
+            let mut jtj = nalgebra::DMatrix::<f64>::zeros(n, n);
+            let mut jtr = nalgebra::DVector::<f64>::zeros(n);
+            for a in 0..n {
+                let ca = &jac[a * r.len()..(a + 1) * r.len()];
+                jtr[a] = ca.iter().zip(&r).map(|(x, y)| x * y).sum();
+                for b in a..n {
+                    let cb = &jac[b * r.len()..(b + 1) * r.len()];
+                    let v: f64 = ca.iter().zip(cb).map(|(x, y)| x * y).sum();
+                    jtj[(a, b)] = v;
+                    jtj[(b, a)] = v;
+                }
+            }
+            let mut improved = false;
+            for _ in 0..10 {
+                let mut m = jtj.clone();
+                for d in 0..n {
+                    m[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
+                }
+                let Some(step) = m.cholesky().map(|c| c.solve(&(-&jtr))) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let trial: Vec<f64> = theta.iter().zip(step.iter()).map(|(t, d)| t + d).collect();
+                self.residuals(&trial, &offsets, &mut rp);
+                let c: f64 = rp.iter().map(|v| v * v).sum();
+                if c.is_finite() && c < cost {
+                    let rel = (cost - c) / cost.max(1e-300);
+                    theta.copy_from_slice(&trial);
+                    std::mem::swap(&mut r, &mut rp);
+                    cost = c;
+                    lambda = (lambda * 0.2).max(1e-12);
+                    improved = true;
+                    if rel < 1e-10 {
+                        return done;
+                    }
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        done
+    }
+
+    /// RMS outline residual (pixels) and per-observation highlight residual norms (pixels).
+    fn report(&self, theta: &[f64]) -> (f64, Vec<f64>) {
+        let (offsets, _) = self.offsets();
+        let mut r = Vec::new();
+        self.residuals(theta, &offsets, &mut r);
+        let mut k = 0;
+        let (mut ss, mut count) = (0.0, 0usize);
+        for (s, points) in self.outlines.iter().enumerate() {
+            for _ in points {
+                ss += (r[k] * self.outline_sigma[s]).powi(2);
+                k += 1;
+                count += 1;
+            }
+        }
+        let per_obs: Vec<f64> = self
+            .obs
+            .iter()
+            .map(|_| {
+                let e = (r[k].powi(2) + r[k + 1].powi(2) + r[k + 2].powi(2)).sqrt() * self.sigma_h;
+                k += 3;
+                e
+            })
+            .collect();
+        ((ss / count.max(1) as f64).sqrt(), per_obs)
+    }
+}
+
+/// Refines the sphere centres and the lights jointly (a small bundle adjustment): minimises
+/// the outline residuals of every sphere (pixels, each point weighted by the sphere's outline
+/// fit RMS) plus the highlight residuals of every light seen on at least two spheres — the
+/// angle between the mirror ray through the observed highlight and the direction to the light,
+/// expressed in pixels (times half the sphere's image radius: the image shift of a highlight
+/// that turns the ray by that angle) and weighted by the highlight noise level. The highlights
+/// pin the sphere centres far more precisely than a binary mask's outline (whose digitisation
+/// leaves centre errors of a few hundredths of a pixel, i.e. ray errors of ~0.1 degree); the
+/// highlight noise is estimated from the residuals (two rounds), and highlights more than 5
+/// robust standard deviations off are dropped. Orthographic cameras keep the given centre
+/// depths (a common depth shift of all spheres and lights is not observable). Returns the
+/// report and the dropped observations (indices into `obs`).
+#[allow(clippy::type_complexity)]
+pub fn refine_spheres(
+    camera: &Camera,
+    spheres: &mut [Sphere],
+    outlines: &[Vec<[f64; 2]>],
+    obs: &[(usize, usize, [f64; 2])],
+    lights: &[LightEstimate],
+) -> Result<(Refinement, Vec<usize>)> {
+    let perspective = camera.is_perspective();
+    let radius = spheres.first().map_or(1.0, |s| s.radius);
+    // Light slots: the lights seen on at least two spheres.
+    let mut seen = vec![0usize; lights.len()];
+    for &(l, _, _) in obs {
+        seen[l] += 1;
+    }
+    let mut slot = vec![usize::MAX; lights.len()];
+    let mut params = Vec::new();
+    let mut init_lights = Vec::new();
+    for (l, est) in lights.iter().enumerate() {
+        if seen[l] < 2 {
+            continue;
+        }
+        match *est {
+            LightEstimate::Point(p) => {
+                slot[l] = params.len();
+                params.push(LightParam::Point);
+                init_lights.extend(p);
+            }
+            LightEstimate::Directional(d) => {
+                slot[l] = params.len();
+                let (e1, e2) = tangent_basis(d);
+                params.push(LightParam::Directional { d0: d, e1, e2 });
+                init_lights.extend([0.0, 0.0]);
+            }
+            LightEstimate::Missing => {}
+        }
+    }
+    let used: Vec<usize> = (0..obs.len())
+        .filter(|&j| slot[obs[j].0] != usize::MAX)
+        .collect();
+    let (px_per_unit, f) = match *camera {
+        Camera::Orthographic { pixel_size, .. } => {
+            (1.0 / (pixel_size[0] * pixel_size[1]).sqrt(), 0.0)
+        }
+        Camera::Pinhole { k, .. } => (0.0, (k[0][0] * k[1][1]).sqrt()),
+    };
+    let mut bundle = Bundle {
+        radius,
+        perspective,
+        depths: spheres.iter().map(|s| s.center[2]).collect(),
+        outlines: outlines
+            .iter()
+            .map(|o| {
+                o.iter()
+                    .map(|&uv| {
+                        let ray = pixel_ray(camera, uv);
+                        if perspective {
+                            ray.direction
+                        } else {
+                            ray.origin
+                        }
+                    })
+                    .collect()
+            })
+            .collect(),
+        outline_scale: vec![if perspective { f } else { px_per_unit }; spheres.len()],
+        outline_sigma: spheres.iter().map(|s| s.fit_rms.max(0.05)).collect(),
+        ray_scale: spheres.iter().map(|s| 0.5 * s.image_radius).collect(),
+        obs: used
+            .iter()
+            .map(|&j| (slot[obs[j].0], obs[j].1, pixel_ray(camera, obs[j].2)))
+            .collect(),
+        lights: params,
+        sigma_h: 0.05,
+    };
+    let mut theta: Vec<f64> = Vec::new();
+    for s in spheres.iter() {
+        if perspective {
+            theta.extend(s.center);
+        } else {
+            theta.extend([s.center[0], s.center[1]]);
+        }
+    }
+    theta.extend(init_lights);
+    let (outline_before, h_before) = bundle.report(&theta);
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    let highlight_before = rms(&h_before);
+    let mut iterations = 0;
+    let mut dropped = Vec::new();
+    for round in 0..3 {
+        iterations += bundle.solve(&mut theta, 50);
+        let (_, per_obs) = bundle.report(&theta);
+        // Noise level of the highlights: robust RMS, with the light parameters' share removed.
+        let n_obs = per_obs.len() as f64;
+        let n_light: f64 = bundle
+            .lights
+            .iter()
+            .map(|l| match l {
+                LightParam::Point => 3.0,
+                LightParam::Directional { .. } => 2.0,
+            })
+            .sum();
+        let dof = (2.0 * n_obs - n_light).max(1.0);
+        let sigma = (per_obs.iter().map(|e| e * e).sum::<f64>() / dof)
+            .sqrt()
+            .max(0.005);
+        if round == 2 {
+            break;
+        }
+        // Drop gross outliers once (highlights far off their light's other rays).
+        let mut abs = per_obs.clone();
+        let robust = (1.4826 * median(&mut abs) * std::f64::consts::SQRT_2).max(0.005);
+        let limit = 5.0 * robust;
+        let bad: Vec<usize> = (0..per_obs.len()).filter(|&q| per_obs[q] > limit).collect();
+        if round == 0 && !bad.is_empty() {
+            let mut keep = Vec::new();
+            for (q, o) in bundle.obs.iter().enumerate() {
+                if bad.contains(&q) {
+                    dropped.push(used[q]);
+                } else {
+                    keep.push(*o);
+                }
+            }
+            bundle.obs = keep;
+        }
+        bundle.sigma_h = sigma;
+    }
+    let (outline_after, h_after) = bundle.report(&theta);
+    if !theta.iter().all(|v| v.is_finite()) {
+        return Err(Error::Input(
+            "the joint refinement of spheres and lights diverged".into(),
+        ));
+    }
+    for (s, sphere) in spheres.iter_mut().enumerate() {
+        let c = bundle.center(&theta, s);
+        sphere.shift = norm3(sub3(c, sphere.center));
+        sphere.center = c;
+        sphere.image_center = project(camera, c);
+    }
+    Ok((
+        Refinement {
+            iterations,
+            highlights: bundle.obs.len(),
+            dropped: dropped.len(),
+            highlight_rms: [highlight_before, rms(&h_after)],
+            outline_rms: [outline_before, outline_after],
+            highlight_sigma: bundle.sigma_h,
+        },
+        dropped,
+    ))
 }
 
 /// Smallest edge contrast taken as an outline: 5 % of the image's range.
@@ -2441,6 +3117,7 @@ mod tests {
             fit_rms: 0.0,
             outline_points: [0, 0],
             scale_check: 1.0,
+            shift: 0.0,
         };
         let light = [30.0, -40.0, 20.0];
         // The surface point whose normal bisects the view (-z) and the light direction.
@@ -2558,6 +3235,7 @@ mod tests {
             fit_rms: 0.0,
             outline_points: [0, 0],
             scale_check: 1.0,
+            shift: 0.0,
         };
         let truth = [33.37, 18.71];
         let image: Vec<f32> = (0..h * w)
@@ -2569,7 +3247,10 @@ mod tests {
                 (0.2 + g).min(1.0) as f32
             })
             .collect();
-        let hl = find_highlight(&cam, &image, h, w, &sphere, &HighlightOptions::default()).unwrap();
+        // (Image-space symmetric: the centroid before the sphere-curvature correction.)
+        let options = HighlightOptions::default();
+        let (bbox, inside) = sphere_region(&cam, &sphere, h, w, options.limb_margin).unwrap();
+        let hl = find_highlight_in(&image, h, w, bbox, &inside, &options).unwrap();
         assert!(
             (hl.pixel[0] - truth[0]).abs() < 0.02 && (hl.pixel[1] - truth[1]).abs() < 0.02,
             "{hl:?}"
@@ -2581,6 +3262,85 @@ mod tests {
             find_highlight(&cam, &flat, h, w, &sphere, &HighlightOptions::default()),
             Err(Rejection::Faint)
         );
+    }
+
+    #[test]
+    fn highlight_symmetric_about_the_mirror_normal_lands_on_the_mirror_point() {
+        // A saturated source profile that is a function of the angle between the surface
+        // normal and the mirror normal, rendered with 4 x 4 samples per pixel.
+        for camera in [
+            Camera::Orthographic {
+                pixel_size: [0.5, 0.5],
+                origin: [-30.0, -30.0],
+            },
+            Camera::Pinhole {
+                k: [[480.0, 0.0, 59.5], [0.0, 480.0, 59.5], [0.0, 0.0, 1.0]],
+                distortion: [0.0; 5],
+            },
+        ] {
+            let (h, w) = (120, 120);
+            let center = [3.0, -2.0, 240.0];
+            let radius = 20.0;
+            let tilt = 28f64.to_radians();
+            let n_m = unit3([tilt.sin() * 0.6, -tilt.sin() * 0.8, -tilt.cos()]);
+            let image: Vec<f32> = (0..h * w)
+                .map(|p| {
+                    let (u, v) = ((p % w) as f64, (p / w) as f64);
+                    let mut acc = 0.0;
+                    for a in 0..4 {
+                        for b in 0..4 {
+                            let uv = [
+                                u + (a as f64 + 0.5) / 4.0 - 0.5,
+                                v + (b as f64 + 0.5) / 4.0 - 0.5,
+                            ];
+                            let ray = pixel_ray(&camera, uv);
+                            acc += match ray_sphere(&ray, center, radius) {
+                                Some(x) => {
+                                    let n = scale3(sub3(x, center), 1.0 / radius);
+                                    let g = angle_between(n, n_m);
+                                    0.3 + 6.0 * (-g * g / (2.0 * 0.04f64.powi(2))).exp()
+                                }
+                                None => 0.02,
+                            } / 16.0;
+                        }
+                    }
+                    acc.min(1.0) as f32
+                })
+                .collect();
+            let labels: Vec<u32> = (0..h * w)
+                .map(|p| {
+                    let ray = pixel_ray(&camera, [(p % w) as f64, (p / w) as f64]);
+                    u32::from(ray_sphere(&ray, center, radius).is_some())
+                })
+                .collect();
+            let mut sphere = locate_sphere(
+                &camera,
+                &mask_boundary(&labels, h, w, 1),
+                radius,
+                Some(center[2]),
+            )
+            .unwrap();
+            // Exact geometry: the test is about the highlight, not the outline.
+            sphere.center = center;
+            sphere.image_center = project(&camera, center);
+            let truth = project(&camera, add3(center, scale3(n_m, radius)));
+            let hl = find_highlight(&camera, &image, h, w, &sphere, &HighlightOptions::default())
+                .unwrap();
+            // Radial (towards the sphere's image centre) and total errors before and after.
+            let d = [
+                truth[0] - sphere.image_center[0],
+                truth[1] - sphere.image_center[1],
+            ];
+            let len = d[0].hypot(d[1]);
+            let radial = |p: [f64; 2]| ((p[0] - truth[0]) * d[0] + (p[1] - truth[1]) * d[1]) / len;
+            let before = radial(hl.pixel) - hl.correction;
+            let after = radial(hl.pixel);
+            let err = (hl.pixel[0] - truth[0]).hypot(hl.pixel[1] - truth[1]);
+            assert!(
+                before < -0.05 && after.abs() < 0.2 * before.abs() && err < 0.03,
+                "{camera:?}: radial error {before} px before, {after} after the correction; {err} px in all ({hl:?})"
+            );
+        }
     }
 
     #[test]

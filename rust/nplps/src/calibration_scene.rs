@@ -17,6 +17,9 @@
 //! (1 + the sphere's index), the ideal mask. Exposure, noise and quantisation are left to the
 //! caller.
 
+// `!(x > 0.0)` rejects NaN as well, on purpose.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use rayon::prelude::*;
 
 use crate::calibrate::{pixel_ray, ray_sphere, reflect, Plane, Ray};
@@ -119,6 +122,7 @@ fn incident(light: &Light, x: [f64; 3]) -> Option<([f64; 3], f64, f64)> {
 
 /// Renders k images (one per light of `rig`) of spheres of radius `radius` at `centers` in
 /// front of an optional board plane; see the [module documentation](self).
+#[allow(clippy::too_many_arguments)]
 pub fn render_spheres(
     rig: &Rig,
     height: usize,

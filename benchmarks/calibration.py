@@ -1,0 +1,177 @@
+"""Accuracy of the light calibration on synthetic scenes (prints the acceptance table).
+
+For each camera (orthographic, pinhole), light set (8, 27 of the standard lights, every third
+one distant) and sphere layout (two placements of one or of two spheres), and each seed:
+
+1. renders the sphere scene (shiny spheres of radius 20 = 40 px orthographic, 44 px pinhole, on
+   a dark board; 1 % noise, 8-bit, highlights saturated) and calibrates the lights
+   (``nplps.calibrate.calibrate_spheres`` with the scene's masks; orthographic: the given
+   centre depths);
+2. renders a flat white board at the working distance under the true lights (1 % noise, 8-bit)
+   and calibrates the intensities with the calibrated positions
+   (``calibrate_intensities``);
+3. reconstructs ``make_scene("bumps")`` (128 x 128, its true images) with the calibrated rig and
+   with the true rig.
+
+Columns: light-position error (RMS over the point lights, and the largest, in % of the
+working distance 200), direction error of the distant lights (largest, degrees), intensity
+error (relative intensities, both scaled to geometric mean 1: RMS and largest, %), mean normal
+error against the ground truth with the true and with the calibrated rig, and the mean angle
+between the two normal maps (degrees). The last row of each block gives the mean and the worst
+over the seeds.
+
+Usage: ``python benchmarks/calibration.py`` (seeds 0-9, about 5 minutes on 2 cores);
+``--seeds 3`` for a quick run; ``--refine off`` to see the effect of the joint refinement;
+``--outline images`` to use the image outlines instead of the masks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+import nplps
+from nplps import calibrate as cal
+
+WORKING_DISTANCE = 200.0
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles in degrees between rows of unit vectors."""
+    cross = np.linalg.norm(np.cross(a, b), axis=-1)
+    return np.degrees(np.arctan2(cross, np.sum(a * b, axis=-1)))
+
+
+def run_case(camera: str, lights: int, spheres: int, seed: int, refine: bool, outline: str, recon_n: int) -> dict[str, float]:
+    """One calibration + reconstruction; returns the measured errors."""
+    scene = cal.make_sphere_scene(camera, n=200, lights=lights, directional=True, spheres=spheres, noise=0.01, seed=seed)
+    t0 = time.perf_counter()
+    depth = scene.center_depths if camera == "orthographic" else None
+    res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, refine=refine, outline=outline)
+    t_spheres = time.perf_counter() - t0
+    truth = scene.rig
+    pos, dirs, wrong_kind = [], [], 0
+    for l in res.lights:
+        if truth.directional[l.index]:
+            if l.kind == "directional":
+                dirs.append(float(angle_deg(l.direction, truth.lights[l.index])))
+            else:
+                wrong_kind += 1
+        else:
+            if l.kind == "point":
+                pos.append(float(np.linalg.norm(l.position - truth.lights[l.index])))
+            else:
+                wrong_kind += 1
+    pos_a = np.array(pos)
+    # Intensities from a board under the true lights, with the calibrated positions.
+    board = cal.make_board_scene(truth, n=200, noise=0.01, seed=seed + 1000, distance=WORKING_DISTANCE)
+    t0 = time.perf_counter()
+    icl = cal.calibrate_intensities(board.images, res.rig, WORKING_DISTANCE)
+    t_board = time.perf_counter() - t0
+    true_phi = truth.intensities.mean(axis=1)
+    true_phi = true_phi / np.exp(np.mean(np.log(true_phi)))
+    phi_err = 100.0 * (icl.intensities[:, 0] / true_phi - 1.0)
+    # Reconstruction with the true and with the calibrated rig.
+    obj = nplps.make_scene("bumps", n=recon_n, camera=camera, directional=True, seed=seed)
+    idx = scene.light_indices
+    images = obj.images[idx]
+    true_rig = obj.rig.subset(idx)
+    cal_rig = nplps.Rig(
+        camera=dict(obj.rig.camera),  # the reconstruction's own image size
+        lights=icl.rig.lights,
+        intensities=icl.rig.intensities,
+        directional=icl.rig.directional,
+    )
+    depth0 = obj.mean_depth
+    r_true = nplps.reconstruct(images, true_rig, obj.mask, depth=depth0, iterations=30, tol=1e-8)
+    r_cal = nplps.reconstruct(images, cal_rig, obj.mask, depth=depth0, iterations=30, tol=1e-8)
+    m = obj.mask
+    gt = obj.normals
+    e_true = float(np.nanmean(angle_deg(r_true.normals[m], gt[m])))
+    e_cal = float(np.nanmean(angle_deg(r_cal.normals[m], gt[m])))
+    e_pair = float(np.nanmean(angle_deg(r_cal.normals[m], r_true.normals[m])))
+    return {
+        "pos_rms": 100.0 * float(np.sqrt(np.mean(pos_a**2))) / WORKING_DISTANCE if pos else float("nan"),
+        "pos_max": 100.0 * float(pos_a.max()) / WORKING_DISTANCE if pos else float("nan"),
+        "dir_max": max(dirs) if dirs else float("nan"),
+        "wrong_kind": wrong_kind,
+        "phi_rms": float(np.sqrt(np.mean(phi_err**2))),
+        "phi_max": float(np.abs(phi_err).max()),
+        "n_true": e_true,
+        "n_cal": e_cal,
+        "n_diff": e_cal - e_true,
+        "n_pair": e_pair,
+        "seen_min": min(l.spheres for l in res.lights),
+        "t_spheres": t_spheres,
+        "t_board": t_board,
+    }
+
+
+COLUMNS = [
+    ("pos RMS %WD", "pos_rms", "{:.3f}"),
+    ("pos max %WD", "pos_max", "{:.3f}"),
+    ("dir max °", "dir_max", "{:.3f}"),
+    ("Φ RMS %", "phi_rms", "{:.3f}"),
+    ("Φ max %", "phi_max", "{:.3f}"),
+    ("normals true °", "n_true", "{:.3f}"),
+    ("normals cal °", "n_cal", "{:.3f}"),
+    ("cal − true °", "n_diff", "{:+.3f}"),
+    ("cal vs true °", "n_pair", "{:.3f}"),
+    ("min spheres", "seen_min", "{:d}"),
+    ("wrong kind", "wrong_kind", "{:d}"),
+]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1 (default 10)")
+    parser.add_argument("--refine", choices=("on", "off"), default="on")
+    parser.add_argument("--outline", choices=("mask", "images"), default="mask")
+    parser.add_argument("--recon-n", type=int, default=128, help="reconstruction image size (default 128)")
+    parser.add_argument("--cameras", nargs="+", default=["orthographic", "pinhole"])
+    parser.add_argument("--lights", nargs="+", type=int, default=[8, 27])
+    parser.add_argument("--spheres", nargs="+", type=int, default=[1, 2], help="spheres per placement")
+    args = parser.parse_args()
+    print(
+        f"nplps light calibration, seeds 0-{args.seeds - 1}, 200 x 200 px, sphere radius 20 (40 px), "
+        f"1 % noise, 8-bit, two placements, joint refinement {args.refine}, outline from {args.outline}"
+    )
+    header = "| camera | lights | spheres | seed | " + " | ".join(c[0] for c in COLUMNS) + " |"
+    print()
+    print(header)
+    print("|" + "---|" * (4 + len(COLUMNS)))
+    start = time.perf_counter()
+    summary = []
+    for camera in args.cameras:
+        for lights in args.lights:
+            for spheres in args.spheres:
+                rows = []
+                for seed in range(args.seeds):
+                    r = run_case(camera, lights, spheres, seed, args.refine == "on", args.outline, args.recon_n)
+                    rows.append(r)
+                    cells = " | ".join(fmt.format(r[key]) for _, key, fmt in COLUMNS)
+                    print(f"| {camera} | {lights} | 2 x {spheres} | {seed} | {cells} |", flush=True)
+                mean = {k: float(np.mean([r[k] for r in rows])) for _, k, _ in COLUMNS}
+                worst = {
+                    k: (min if k in ("seen_min",) else max)([r[k] for r in rows]) for _, k, _ in COLUMNS
+                }
+                cells = " | ".join(
+                    f"{fmt.format(mean[k]) if 'd' not in fmt else f'{mean[k]:.1f}'} / {fmt.format(worst[k])}"
+                    for _, k, fmt in COLUMNS
+                )
+                line = f"| **{camera}** | **{lights}** | **2 x {spheres}** | **mean / worst** | {cells} |"
+                print(line, flush=True)
+                summary.append(line)
+    print()
+    print("Summary (mean / worst over the seeds):")
+    print(header)
+    print("|" + "---|" * (4 + len(COLUMNS)))
+    for line in summary:
+        print(line)
+    print(f"\nwall time {time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

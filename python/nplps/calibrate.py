@@ -1,0 +1,862 @@
+"""Light calibration: light positions from mirror-sphere highlights, intensities from a flat board.
+
+**Sphere calibration** (:func:`calibrate_spheres`, the paper's section 5). Photograph one or
+more shiny spheres of known radius once per light (the k images in the rig's light order),
+optionally at two or more *placements* (image sets with the spheres moved). Each sphere is
+located in 3-D from its outline (a mask, or detection in the images), the highlight of every
+image is found on it (intensity-weighted centroid of the brightest blob, sub-pixel, also when
+saturated), and the mirror-reflected viewing ray through the highlight points at the light.
+Each light is the least-squares point closest to its rays; rays that agree within
+``parallel_tol`` degrees make a distant (directional) light. A light needs rays from two
+spheres (in one placement or in several) for a position; one ray gives a direction with a
+warning. The result's :attr:`SphereCalibration.rig` holds the calibrated lights with unit
+intensities.
+
+*Orthographic cameras* need the depth of each sphere centre (``center_depth``): for a ball
+resting on a board at depth ``z_b`` it is ``z_b - R``, for a hemisphere lying flat on it
+``z_b``. *Pinhole cameras* get the depth from the outline: the image of a sphere is the section
+of its tangent cone, whose half-angle is ``asin(R / D)``; a given ``center_depth`` overrides it.
+
+**Intensity calibration** (:func:`calibrate_intensities`). Photograph a flat diffuse (white)
+board on a known plane ``n . X = d`` (camera frame) once per light. With the light positions
+(and LED axes and anisotropy, if known) the image model ``I = rho * Phi_i * max(0, n .
+beta_i(X))`` gives each light's intensity by linear least squares. The board's albedo and the
+exposure cannot be told apart from the intensities: the result is relative, scaled to a
+geometric mean of 1 over all lights (and channels). ``albedo="per_pixel"`` also estimates the
+board's albedo per pixel (absorbing texture and vignetting); ``fit_mu`` / ``fit_direction`` fit
+the LEDs' anisotropy and principal directions by Levenberg-Marquardt.
+
+**Synthetic scenes** (:func:`make_sphere_scene`, :func:`make_board_scene`): shiny spheres
+(Lambertian plus a Phong lobe, highlights saturating, 8-bit, noise) and a flat board, rendered
+for the same rigs as :func:`nplps.make_scene`, with the true rig for comparison.
+
+See ``docs/calibration.md`` for the method and the measured accuracy.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence, Union
+
+import numpy as np
+
+from . import _core, io
+from .errors import InputError, RigError
+from .rig import Rig
+
+ImageSet = Union[np.ndarray, Sequence[Any]]
+"""One placement's images: a (k, H, W[, 3]) array or k image files / arrays."""
+
+#: The 8 of the 27 standard lights used by ``lights=8`` (spread over the three layers; with
+#: ``directional=True`` lights 2, 14 and 23 are directional).
+LIGHTS_8 = (0, 2, 4, 7, 12, 14, 19, 23)
+
+
+# --------------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SphereReport:
+    """A located sphere."""
+
+    #: Index over all spheres of all placements.
+    index: int
+    #: Placement (image set) that shows it.
+    placement: int
+    #: Centre (x, y, z) in the camera frame.
+    center: np.ndarray
+    #: Radius (as given).
+    radius: float
+    #: Image of the centre (u, v), pixels.
+    image_center: np.ndarray
+    #: Mean image radius, pixels.
+    image_radius: float
+    #: RMS distance of the outline points from the fitted outline, pixels.
+    fit_rms: float
+    #: Outline points kept by the robust fit and found.
+    outline_points: tuple[int, int]
+    #: Orthographic: fitted radius / given radius (1 when the pixel size is right). Pinhole with
+    #: a given centre depth: distance from the outline / from the depth. Otherwise 1.
+    scale_check: float
+    #: How far the joint refinement moved the centre from the outline's (scene units).
+    shift: float = 0.0
+
+
+@dataclass(frozen=True)
+class LightReport:
+    """One light's calibration."""
+
+    index: int
+    #: "point", "directional" or "missing".
+    kind: str
+    #: Position (point lights), else None.
+    position: np.ndarray | None
+    #: Unit direction towards the light (directional lights), else None.
+    direction: np.ndarray | None
+    #: RMS distance of the rays from the position (NaN unless a point light), scene units.
+    rms_miss: float
+    #: RMS angle between each ray and the direction to the position (or the mean direction),
+    #: degrees.
+    rms_angle: float
+    #: Largest angle between two rays, degrees.
+    spread: float
+    #: Number of spheres the light was seen on.
+    spheres: int
+    #: Why the light is not a located point light, if it is not.
+    warning: str | None
+
+
+@dataclass
+class SphereCalibration:
+    """The result of :func:`calibrate_spheres`."""
+
+    #: The camera mapping of the rig file.
+    camera: dict[str, Any]
+    spheres: list[SphereReport]
+    lights: list[LightReport]
+    #: (k, S, 2) sub-pixel highlight (u, v) per light and sphere (NaN where none was taken).
+    highlights: np.ndarray = field(repr=False)
+    #: (k, S) "ok" or why no highlight was taken.
+    status: list[list[str]] = field(repr=False)
+    #: (k, S, 3) origins (surface points) and unit directions of the reflected rays (NaN where
+    #: none).
+    ray_origins: np.ndarray = field(repr=False)
+    ray_directions: np.ndarray = field(repr=False)
+    #: Notes and warnings (lights seen on fewer than two spheres, a pixel size that does not
+    #: match the radius, ignored mask regions, ...).
+    warnings: list[str] = field(default_factory=list)
+    #: The joint refinement of spheres and lights (None if it did not run): ``iterations``,
+    #: ``highlights`` used, ``dropped`` (inconsistent highlights), ``highlight_rms`` and
+    #: ``outline_rms`` before and after (pixels), ``highlight_sigma`` (pixels).
+    refinement: dict[str, Any] | None = None
+
+    @property
+    def rig(self) -> Rig:
+        """The calibrated rig: point lights at the positions, directional lights along the
+        directions, all with intensity 1. Raises :class:`RigError` when a light was not seen
+        on any sphere."""
+        missing = [l.index for l in self.lights if l.kind == "missing"]
+        if missing:
+            raise RigError(
+                f"light(s) {', '.join(map(str, missing))} were not seen on any sphere: no rig can be "
+                "written (check those images, or the highlight thresholds)"
+            )
+        vectors = np.array([l.position if l.kind == "point" else l.direction for l in self.lights], dtype=float)
+        return Rig(
+            camera=dict(self.camera),
+            lights=vectors,
+            directional=np.array([l.kind == "directional" for l in self.lights]),
+        )
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Writes the calibrated rig file (see :attr:`rig`)."""
+        self.rig.save(path)
+
+    def table(self) -> str:
+        """The per-light report as a text table."""
+        return light_table(self.lights)
+
+
+def light_table(lights: Sequence[LightReport]) -> str:
+    """A text table of light reports: kind, position or direction, spheres, miss and angle."""
+    lines = [
+        f"{'light':>5}  {'kind':<11} {'x / dx':>10} {'y / dy':>10} {'z / dz':>10} {'spheres':>7} "
+        f"{'rms miss':>9} {'rms angle':>9} {'spread':>7}  note"
+    ]
+    for l in lights:
+        vec = l.position if l.kind == "point" else l.direction
+        if vec is None:
+            cells = f"{'-':>10} {'-':>10} {'-':>10}"
+        elif l.kind == "point":
+            cells = " ".join(f"{v:>10.3f}" for v in vec)
+        else:
+            cells = " ".join(f"{v:>10.5f}" for v in vec)
+        miss = f"{l.rms_miss:>9.3f}" if np.isfinite(l.rms_miss) else f"{'-':>9}"
+        angle = f"{l.rms_angle:>8.3f}°" if np.isfinite(l.rms_angle) else f"{'-':>9}"
+        spread = f"{l.spread:>6.2f}°" if l.spheres > 1 else f"{'-':>7}"
+        note = l.warning or ""
+        lines.append(f"{l.index:>5}  {l.kind:<11} {cells} {l.spheres:>7} {miss} {angle} {spread}  {note}".rstrip())
+    return "\n".join(lines)
+
+
+@dataclass
+class IntensityCalibration:
+    """The result of :func:`calibrate_intensities`."""
+
+    #: The input rig with the fitted intensities (and LED directions and mu, if fitted).
+    rig: Rig
+    #: (k, C) relative intensities (geometric mean 1 over all lights and channels).
+    intensities: np.ndarray
+    #: (k,) anisotropy mu (as given unless fitted).
+    mu: np.ndarray
+    #: (k, 3) principal directions (as given unless fitted).
+    directions: np.ndarray
+    #: (k,) RMS residual per light, relative to the light's mean observation.
+    rms: np.ndarray
+    #: (k,) observations used per light (pixels x channels).
+    observations: np.ndarray
+    #: The factor removed from the intensities (board albedo times exposure).
+    scale: float
+    #: Relative board albedo (H, W[, 3]): 1 for a uniform board, the fitted albedo with
+    #: ``albedo="per_pixel"``; NaN outside the mask.
+    albedo: np.ndarray = field(repr=False)
+    iterations: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Writes the calibrated rig file."""
+        self.rig.save(path)
+
+    def table(self) -> str:
+        """The per-light report as a text table."""
+        c = self.intensities.shape[1]
+        head = "intensity" if c == 1 else "intensity R, G, B"
+        lines = [f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'obs':>8}"]
+        for i in range(self.intensities.shape[0]):
+            kind = "directional" if self.rig.directional[i] else "point"  # type: ignore[index]
+            phi = " ".join(f"{v:>10.5f}" for v in self.intensities[i])
+            lines.append(f"{i:>5}  {kind:<11} {phi} {self.mu[i]:>6.3f} {100 * self.rms[i]:>7.3f} {int(self.observations[i]):>8}")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------------
+# Sphere calibration
+# --------------------------------------------------------------------------------------------------
+
+
+def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
+    if isinstance(camera, Rig):
+        return dict(camera.camera)
+    if isinstance(camera, Mapping) and "model" in camera:
+        # Validate through a rig without lights.
+        Rig(camera=dict(camera), lights=np.zeros((0, 3)))
+        return dict(camera)
+    raise RigError("camera must be an nplps.Rig or a camera mapping with a 'model' key (see the rig file)")
+
+
+def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
+    """The placements: a single (k, H, W[, 3]) array is one placement; otherwise a list."""
+    if isinstance(images, np.ndarray):
+        if images.ndim in (3, 4):
+            return [images]
+        raise InputError(f"sphere images must be (k, H, W) or (k, H, W, 3), got shape {images.shape}")
+    if isinstance(images, (str, os.PathLike)):
+        raise InputError("give a list of placements, each a (k, H, W) array or a list of k image files")
+    items = list(images)
+    if not items:
+        raise InputError("no sphere images (no placement) given")
+    return items
+
+
+def _labels(mask: Any, shape: tuple[int, int], where: str) -> np.ndarray:
+    """A mask file or array as uint32 labels: a binary mask (one non-zero value) becomes 0/1
+    (each connected component a sphere); integer labels are kept."""
+    if isinstance(mask, (str, os.PathLike)):
+        a = io.read_image(mask)
+        if a.ndim == 3:
+            a = a[..., 0]
+    else:
+        a = np.asarray(mask)
+        if a.ndim == 3:
+            a = a[..., 0]
+    if a.shape != shape:
+        raise InputError(f"{where}: the mask has shape {a.shape} but the images have shape {shape} (H, W)")
+    if a.dtype == np.bool_:
+        return np.ascontiguousarray(a, dtype=np.uint32)
+    if np.issubdtype(a.dtype, np.floating):
+        a = np.nan_to_num(a, nan=0.0)
+        if np.any(a < 0):
+            raise InputError(f"{where}: mask values must be non-negative")
+    values = np.unique(a[a != 0])
+    if values.size == 0:
+        raise InputError(f"{where}: the mask is empty (marks no sphere)")
+    if values.size == 1:
+        return np.ascontiguousarray(a != 0, dtype=np.uint32)
+    if not np.all(np.equal(np.mod(values, 1), 0)):
+        raise InputError(f"{where}: a label mask needs integer labels")
+    return np.ascontiguousarray(a, dtype=np.uint32)
+
+
+def _depths(center_depth: Any, n: int) -> list[list[float]]:
+    """Per placement: [] (none), [z] (all its spheres) or [z_0, z_1, ...] (per sphere)."""
+    if center_depth is None:
+        return [[] for _ in range(n)]
+    if np.isscalar(center_depth):
+        return [[float(center_depth)] for _ in range(n)]  # type: ignore[arg-type]
+    items = list(center_depth)
+    if len(items) != n:
+        raise InputError(
+            f"center_depth must be one number, or one entry per placement ({n}), got {len(items)} entries"
+        )
+    out = []
+    for item in items:
+        if item is None:
+            out.append([])
+        elif np.isscalar(item):
+            out.append([float(item)])
+        else:
+            out.append([float(v) for v in item])
+    return out
+
+
+def calibrate_spheres(
+    images: ImageSet | Sequence[ImageSet],
+    camera: Rig | Mapping[str, Any],
+    radius: float,
+    *,
+    masks: Any = None,
+    detect: tuple[float, float] | None = None,
+    count: int | None = None,
+    center_depth: Any = None,
+    outline: str = "mask",
+    parallel_tol: float = 0.5,
+    min_contrast: float = 0.3,
+    max_blob_fraction: float = 0.05,
+    limb_margin: float = 0.97,
+    refine: bool = True,
+) -> SphereCalibration:
+    """Calibrates the light positions from images of shiny spheres.
+
+    Args:
+        images: a list of placements, each a (k, H, W[, 3]) array or a list of k image files /
+            arrays (one per light, in the rig's order; all placements the same k and size). A
+            single (k, H, W[, 3]) array is one placement. Integer images are scaled to [0, 1];
+            colour becomes grey.
+        camera: an :class:`~nplps.Rig` (its lights are ignored) or the rig file's camera mapping.
+        radius: the spheres' radius (scene units; the same for all spheres).
+        masks: per placement a mask (file or (H, W) array) or None: a binary mask marks each
+            sphere as one connected region; an integer label image marks sphere j with label j.
+            A single mask (not in a list) serves a single placement.
+        detect: (min, max) image radius in pixels: find the spheres in the mean image of each
+            placement without a mask (they must be brighter than the background).
+        count: with ``detect``, how many spheres each placement shows (default: all found).
+        center_depth: depth (z) of the sphere centres: one number for all, or per placement a
+            number or a list with one per sphere (in the order of the mask's labels, or of
+            detection: by row then column). Required for an orthographic camera; with a pinhole
+            camera it overrides the distance from the outline.
+        outline: "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
+            outline in the mean image, refined from the mask's circle). Detection always uses
+            the images.
+        parallel_tol: rays whose RMS angle about their mean direction is at most this many
+            degrees make a directional (distant) light.
+        min_contrast, max_blob_fraction, limb_margin: highlight search: the brightest value
+            must exceed the sphere's median by ``min_contrast`` times itself, the blob above
+            their midpoint may cover at most ``max_blob_fraction`` of the sphere, and only the
+            pixels whose ray passes within ``limb_margin`` radii of the centre are searched.
+        refine: refine the sphere centres and the lights jointly (a small bundle adjustment of
+            the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
+            a sphere's centre only to a few hundredths of a pixel, which turns every ray by about
+            0.1 degree; the highlights of all lights pin it much better.
+
+    Returns:
+        A :class:`SphereCalibration` with ``.rig``, per-light reports ``.lights`` (position or
+        direction, RMS miss distance, spheres seen), ``.spheres``, ``.warnings`` and ``.table()``.
+
+    Raises:
+        InputError: unreadable or inconsistent images or masks, no sphere found, a bad option.
+        RigError: an invalid camera.
+    """
+    cam = _camera_of(camera)
+    sets = _placements(images)
+    n = len(sets)
+    stacks = [np.ascontiguousarray(io.load_stack(s, color=False)[0], dtype=np.float32) for s in sets]
+    shape = stacks[0].shape
+    for i, s in enumerate(stacks):
+        if s.shape != shape:
+            raise InputError(
+                f"placement {i} has {s.shape[0]} images of {s.shape[1]} x {s.shape[2]} but placement 0 has "
+                f"{shape[0]} of {shape[1]} x {shape[2]}: every placement needs one image per light, all of one size"
+            )
+    if masks is None:
+        mask_list: list[Any] = [None] * n
+    elif isinstance(masks, (str, os.PathLike, np.ndarray)):
+        if n != 1:
+            raise InputError(f"give one mask per placement ({n}), as a list")
+        mask_list = [masks]
+    else:
+        mask_list = list(masks)
+        if len(mask_list) != n:
+            raise InputError(f"give one mask (or None) per placement: {n} placements, {len(mask_list)} masks")
+    labels: list[np.ndarray | None] = []
+    dets: list[tuple[float, float, int | None] | None] = []
+    for i, m in enumerate(mask_list):
+        if m is not None:
+            labels.append(_labels(m, shape[1:], f"placement {i}"))
+            dets.append(None)
+        elif detect is not None:
+            lo, hi = (float(v) for v in detect)
+            labels.append(None)
+            dets.append((lo, hi, None if count is None else int(count)))
+        else:
+            raise InputError(
+                f"placement {i} has no mask: give masks=..., or detect=(min, max) image radius in pixels"
+            )
+    if not (np.isfinite(radius) and radius > 0):
+        raise InputError(f"the sphere radius must be positive, got {radius}")
+    options = {
+        "outline": outline,
+        "parallel_tol": float(parallel_tol),
+        "min_contrast": float(min_contrast),
+        "max_blob_fraction": float(max_blob_fraction),
+        "limb_margin": float(limb_margin),
+        "refine": bool(refine),
+    }
+    d = _core.calibrate_spheres(stacks, labels, dets, _depths(center_depth, n), cam, float(radius), options)
+    spheres = [
+        SphereReport(
+            index=j,
+            placement=int(s["placement"]),
+            center=np.array(s["center"]),
+            radius=float(s["radius"]),
+            image_center=np.array(s["image_center"]),
+            image_radius=float(s["image_radius"]),
+            fit_rms=float(s["fit_rms"]),
+            outline_points=(int(s["outline_points"][0]), int(s["outline_points"][1])),
+            scale_check=float(s["scale_check"]),
+            shift=float(s["shift"]),
+        )
+        for j, s in enumerate(d["spheres"])
+    ]
+    lights = []
+    for i, l in enumerate(d["lights"]):
+        vec = None if l["vector"] is None else np.array(l["vector"])
+        lights.append(
+            LightReport(
+                index=i,
+                kind=l["kind"],
+                position=vec if l["kind"] == "point" else None,
+                direction=vec if l["kind"] == "directional" else None,
+                rms_miss=float(l["rms_miss"]),
+                rms_angle=float(l["rms_angle"]),
+                spread=float(l["spread"]),
+                spheres=int(l["spheres"]),
+                warning=l["warning"],
+            )
+        )
+    obs = d["observations"]
+    k, ns = obs["peak"].shape
+    status = [list(obs["status"][i * ns : (i + 1) * ns]) for i in range(k)]
+    return SphereCalibration(
+        camera=cam,
+        spheres=spheres,
+        lights=lights,
+        highlights=obs["pixel"],
+        status=status,
+        ray_origins=obs["origin"],
+        ray_directions=obs["direction"],
+        warnings=list(d["warnings"]),
+        refinement=d.get("refinement"),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Intensity calibration
+# --------------------------------------------------------------------------------------------------
+
+
+def _plane(plane: Any) -> tuple[list[float], float]:
+    """(normal, offset) from a depth, a (normal, offset) pair or a mapping."""
+    if np.isscalar(plane):
+        z = float(plane)  # type: ignore[arg-type]
+        if not (np.isfinite(z) and z > 0):
+            raise InputError(f"the board depth must be positive, got {plane}")
+        return [0.0, 0.0, -1.0], -z
+    if isinstance(plane, Mapping):
+        plane = (plane.get("normal"), plane.get("offset"))
+    try:
+        normal, offset = plane
+        n = [float(v) for v in normal]
+        d = float(offset)
+    except (TypeError, ValueError):
+        raise InputError(
+            "plane must be the board's depth, or (normal, offset) with normal . X = offset in the camera frame"
+        ) from None
+    if len(n) != 3 or not np.all(np.isfinite(n)) or not np.isfinite(d) or not np.any(n):
+        raise InputError(f"plane normal must be 3 finite numbers, not all zero, and the offset finite; got {plane!r}")
+    return n, d
+
+
+def calibrate_intensities(
+    images: ImageSet,
+    rig: Rig,
+    plane: Any,
+    *,
+    mask: Any = None,
+    fit_mu: bool = False,
+    fit_direction: bool = False,
+    albedo: str = "uniform",
+    color: bool = False,
+    dark: float | None = None,
+    saturation: float | None = None,
+    iterations: int = 100,
+) -> IntensityCalibration:
+    """Calibrates the light intensities from images of a flat diffuse board.
+
+    Args:
+        images: (k, H, W[, 3]) array or k image files, one per light of ``rig``.
+        rig: the rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
+            LEDs, their directions and mu if known.
+        plane: the board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
+            ``normal . X = offset`` in the camera frame.
+        mask: the board's pixels (file or (H, W) array; None: every pixel).
+        fit_mu: fit each point light's anisotropy mu (starting from the rig's, or 1).
+        fit_direction: with ``fit_mu``, fit each LED's principal direction too (starting from the
+            rig's, or from the LED towards the board's centre).
+        albedo: "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
+            absorbs texture and vignetting; needs the lights to differ enough).
+        color: fit the R, G, B intensities of colour images separately (the board is assumed
+            white: its colour is taken as the lights'); default grey.
+        dark, saturation: observations at or below ``dark`` or at or above ``saturation`` are
+            left out (defaults: one level above black and the top level for integer images).
+        iterations: most alternations (per-pixel albedo) or Levenberg-Marquardt steps.
+
+    Returns:
+        An :class:`IntensityCalibration` with the calibrated ``.rig`` (relative intensities,
+        geometric mean 1), per-light ``.intensities``, ``.mu``, ``.directions``, ``.rms``.
+    """
+    if not isinstance(rig, Rig):
+        raise RigError("rig must be an nplps.Rig (the light positions are needed)")
+    if albedo not in ("uniform", "per_pixel"):
+        raise InputError(f"albedo must be 'uniform' or 'per_pixel', got {albedo!r}")
+    if fit_direction and not fit_mu:
+        raise InputError("fit_direction needs fit_mu (an isotropic light has no direction)")
+    stack, levels = io.load_stack(images, color=color)
+    if stack.shape[0] != rig.n_lights:
+        raise InputError(f"{stack.shape[0]} board images but the rig has {rig.n_lights} lights: give one per light")
+    if dark is None:
+        dark = 0.0 if levels is None else 1.0 / levels
+    if saturation is None:
+        saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
+    m = None if mask is None else io.load_mask(mask, stack.shape[1:3])
+    normal, offset = _plane(plane)
+    options = {
+        "fit_mu": bool(fit_mu),
+        "fit_direction": bool(fit_direction),
+        "albedo": albedo,
+        "dark": float(dark),
+        "saturation": float(saturation),
+        "iterations": int(iterations),
+    }
+    d = _core.calibrate_intensities(
+        np.ascontiguousarray(stack, dtype=np.float32), m, rig.camera, rig._core_lights(), normal, offset, options
+    )
+    lights = d["lights"]
+    out = Rig(
+        camera=dict(rig.camera),
+        lights=np.array(lights["vectors"]),
+        intensities=np.array(lights["intensities"]),
+        directions=np.array(lights["axes"]),
+        mu=np.array(lights["mu"]),
+        directional=np.array(lights["directional"]),
+    )
+    return IntensityCalibration(
+        rig=out,
+        intensities=d["intensity"],
+        mu=np.array(d["mu"]),
+        directions=np.array(d["axes"]),
+        rms=np.array(d["rms"]),
+        observations=np.array(d["observations"]),
+        scale=float(d["scale"]),
+        albedo=d["albedo"],
+        iterations=int(d["iterations"]),
+        warnings=list(d["warnings"]),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Synthetic calibration scenes
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SphereScene:
+    """A synthetic sphere-calibration scene."""
+
+    #: Per placement, the (k, H, W) images (uint8 for 8 bits, uint16 above, float64 for 0).
+    images: list[np.ndarray] = field(repr=False)
+    #: Per placement, (H, W) uint32 labels (0 background, j + 1 for the placement's sphere j):
+    #: the pixels whose centre sees a sphere.
+    labels: list[np.ndarray] = field(repr=False)
+    #: Per placement, (S, 3) true sphere centres.
+    centers: list[np.ndarray]
+    radius: float
+    #: The true rig (camera and lights, as :func:`nplps.make_scene` builds them).
+    rig: Rig
+    #: Indices of the lights into the 27 standard lights.
+    light_indices: list[int]
+    #: Depth of the board the spheres rest on.
+    board_depth: float
+    #: Working distance of :func:`nplps.make_scene` (object size ``size``).
+    distance: float
+    size: float
+
+    @property
+    def masks(self) -> list[np.ndarray]:
+        """Per placement, the (H, W) boolean mask of the spheres."""
+        return [lab > 0 for lab in self.labels]
+
+    @property
+    def center_depths(self) -> list[list[float]]:
+        """Per placement, the true depth of each sphere centre."""
+        return [[float(c[2]) for c in cs] for cs in self.centers]
+
+    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+        """Writes ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
+        ``camera.json`` (the camera, no lights), ``rig_true.json`` and ``scene.json`` (radius,
+        centre depths, board depth)."""
+        import imageio.v3 as iio
+
+        from . import export
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        paths: dict[str, Path] = {}
+        for p, (stack, lab) in enumerate(zip(self.images, self.labels)):
+            folder = out / f"placement_{p}"
+            folder.mkdir(exist_ok=True)
+            for i, image in enumerate(stack):
+                path = folder / f"image_{i:02d}.png"
+                if image.dtype == np.uint8:
+                    iio.imwrite(path, image)
+                else:
+                    export.write_png16(path, np.asarray(image, dtype=np.uint16))
+            iio.imwrite(folder / "mask.png", ((lab > 0) * 255).astype(np.uint8))
+            paths[f"placement_{p}"] = folder
+        Rig(camera=dict(self.rig.camera), lights=np.zeros((0, 3))).save(out / "camera.json")
+        self.rig.save(out / "rig_true.json")
+        meta = {
+            "radius": self.radius,
+            "center_depths": self.center_depths,
+            "centers": [c.tolist() for c in self.centers],
+            "board_depth": self.board_depth,
+            "light_indices": self.light_indices,
+            "distance": self.distance,
+            "size": self.size,
+        }
+        (out / "scene.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+        paths.update(camera=out / "camera.json", rig_true=out / "rig_true.json", scene=out / "scene.json")
+        return paths
+
+
+@dataclass
+class BoardScene:
+    """A synthetic board for intensity calibration."""
+
+    #: (k, H, W) images.
+    images: np.ndarray = field(repr=False)
+    #: The board plane (normal, offset), ``normal . X = offset``.
+    plane: tuple[list[float], float]
+    #: The true rig.
+    rig: Rig
+    #: (H, W) board albedo.
+    albedo: np.ndarray = field(repr=False)
+
+    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+        """Writes ``image_XX.png`` and ``board.json`` (the plane) into ``directory``."""
+        import imageio.v3 as iio
+
+        from . import export
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        for i, image in enumerate(self.images):
+            path = out / f"image_{i:02d}.png"
+            if image.dtype == np.uint8:
+                iio.imwrite(path, image)
+            else:
+                export.write_png16(path, np.asarray(image, dtype=np.uint16))
+        normal, offset = self.plane
+        (out / "board.json").write_text(json.dumps({"normal": normal, "offset": offset}) + "\n", encoding="utf-8")
+        return {"board": out, "plane": out / "board.json"}
+
+
+def _light_indices(lights: int | Sequence[int]) -> list[int]:
+    if isinstance(lights, (int, np.integer)):
+        if int(lights) == 27:
+            return list(range(27))
+        if int(lights) == 8:
+            return list(LIGHTS_8)
+        raise InputError(f"lights must be 8, 27 or a list of indices into the 27 standard lights, got {lights}")
+    idx = [int(i) for i in lights]
+    if not idx or any(i < 0 or i >= 27 for i in idx) or len(set(idx)) != len(idx):
+        raise InputError("light indices must be distinct numbers 0..26")
+    return idx
+
+
+def standard_rig(
+    camera: str = "orthographic",
+    n: int = 200,
+    size: float = 100.0,
+    distance: float = 200.0,
+    lights: int | Sequence[int] = 27,
+    directional: bool = False,
+    led: bool = False,
+) -> Rig:
+    """The rig of :func:`nplps.make_scene` (``n`` x ``n`` pixels, object ``size`` at
+    ``distance``), restricted to ``lights`` (8, 27 or indices into the 27 standard lights)."""
+    if camera not in ("orthographic", "pinhole"):
+        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
+    d = _core.synth_scene("saddle", 2, float(size), float(distance), 0, pinhole=False, led=led, directional=directional)
+    # The camera must match an n x n image: rebuild it as make_scene does for n pixels.
+    if camera == "pinhole":
+        f = n * distance / size
+        c = (n - 1) / 2.0
+        cam: dict[str, Any] = {"model": "pinhole", "K": [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]], "distortion": [0.0] * 5}
+    else:
+        cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
+    idx = _light_indices(lights)
+    l = d["lights"]
+    return Rig(
+        camera=cam,
+        lights=np.array(l["vectors"])[idx],
+        intensities=np.array(l["intensities"])[idx],
+        directions=np.array(l["axes"])[idx],
+        mu=np.array(l["mu"])[idx],
+        directional=np.array(l["directional"])[idx],
+    )
+
+
+def default_placements(camera: str, radius: float, board_depth: float, spheres: int = 1) -> list[np.ndarray]:
+    """Two placements for the standard 100-wide view at depth 200 (scaled with the board depth):
+    one sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
+    other) with ``spheres=2``. The centres sit at arbitrary sub-pixel positions (not on the
+    pixel grid's symmetry points, where a mask's digitisation errors would cancel)."""
+    z = board_depth - radius
+    s = board_depth / 200.0
+    # Keep the spheres inside the view: a pinhole camera sees less at the spheres' depth.
+    if camera == "pinhole":
+        p1, p2 = (-18.37 * s, -15.21 * s), (17.73 * s, 14.63 * s)
+        q1, q2 = (-17.91 * s, 14.87 * s), (18.19 * s, -15.43 * s)
+    else:
+        p1, p2 = (-22.37 * s, -17.83 * s), (21.61 * s, 18.29 * s)
+        q1, q2 = (-21.93 * s, 18.11 * s), (22.17 * s, -17.57 * s)
+    if spheres == 1:
+        return [np.array([[*p1, z]]), np.array([[*p2, z]])]
+    if spheres == 2:
+        return [np.array([[*p1, z], [*p2, z]]), np.array([[*q1, z], [*q2, z]])]
+    raise InputError("spheres must be 1 or 2 per placement for the default placements")
+
+
+def _quantize(radiance: list[np.ndarray], scale: float, noise: float, bits: int, rng: np.random.Generator) -> list[np.ndarray]:
+    out = []
+    for r in radiance:
+        x = r * scale
+        if noise > 0:
+            x = x + rng.normal(0.0, noise, x.shape)
+        x = np.clip(x, 0.0, 1.0)
+        if bits == 0:
+            out.append(x)
+            continue
+        top = (1 << bits) - 1
+        dtype = np.uint8 if bits <= 8 else np.uint16
+        out.append(np.rint(x * top).astype(dtype))
+    return out
+
+
+def make_sphere_scene(
+    camera: str = "orthographic",
+    n: int = 200,
+    lights: int | Sequence[int] = 27,
+    *,
+    directional: bool = False,
+    led: bool = False,
+    radius: float = 20.0,
+    placements: Sequence[Any] | None = None,
+    spheres: int = 1,
+    noise: float = 0.01,
+    seed: int = 0,
+    bits: int = 8,
+    supersample: int = 4,
+    size: float = 100.0,
+    distance: float = 200.0,
+    highlight_px: float = 1.5,
+    specular: float = 20.0,
+    exposure: float = 0.5,
+    background: float = 0.05,
+) -> SphereScene:
+    """Renders a synthetic sphere-calibration scene for the rig of :func:`nplps.make_scene`.
+
+    Shiny spheres (Lambertian albedo 1 plus a Phong lobe of strength ``specular``) rest on a dark
+    board (albedo ``background``) at the working distance; every placement is rendered under
+    every light with ``supersample``² rays per pixel. The exposure maps the 99.5th percentile of
+    the sphere pixels (the diffuse part) to ``exposure``, so the highlights saturate; Gaussian
+    noise of ``noise`` times the full scale is added and the images are quantised to ``bits``
+    (0: float images in [0, 1]).
+
+    Args:
+        camera: "orthographic" or "pinhole" (as in :func:`nplps.make_scene`).
+        n: image size n x n.
+        lights: 27 (the standard lights), 8 (:data:`LIGHTS_8`) or indices into the 27.
+        directional: every third standard light is a distant light (as in make_scene).
+        led: anisotropic LEDs with unequal intensities (as in make_scene).
+        radius: sphere radius (scene units); the image radius is about ``radius * n / size``
+            pixels (orthographic), a little more for the pinhole camera.
+        placements: per placement an (S, 3) array of sphere centres; default
+            :func:`default_placements` (two placements of ``spheres`` spheres).
+        highlight_px: standard deviation of the highlight lobe in pixels (sets the Phong
+            exponent from the sphere's image radius).
+    """
+    if not (np.isfinite(noise) and noise >= 0):
+        raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
+    if not (0 <= bits <= 16):
+        raise InputError(f"bits must be 0 (float) or 1..16, got {bits}")
+    rig = standard_rig(camera, n, size, distance, lights, directional, led)
+    idx = _light_indices(lights)
+    board = distance
+    centers = (
+        default_placements(camera, radius, board, spheres)
+        if placements is None
+        else [np.asarray(c, dtype=float).reshape(-1, 3) for c in placements]
+    )
+    r_px = radius * n / size
+    if camera == "pinhole":
+        r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
+    exponent = (r_px / (2.0 * highlight_px)) ** 2
+    material = {"diffuse": 1.0, "specular": float(specular), "exponent": float(exponent), "background": float(background)}
+    radiance, labels = [], []
+    for c in centers:
+        d = _core.synth_spheres(
+            rig.camera, rig._core_lights(), n, n, c.tolist(), float(radius),
+            ([0.0, 0.0, -1.0], -board), material, int(supersample),
+        )
+        radiance.append(d["images"])
+        labels.append(d["labels"])
+    inside = np.concatenate([r[:, lab > 0].ravel() for r, lab in zip(radiance, labels)])
+    if inside.size == 0:
+        raise InputError("no sphere is visible in the images: check the placements and the radius")
+    scale = exposure / float(np.quantile(inside, 0.995))
+    rng = np.random.default_rng(seed)
+    images = _quantize(radiance, scale, float(noise), int(bits), rng)
+    return SphereScene(images, labels, centers, float(radius), rig, idx, float(board), float(distance), float(size))
+
+
+def make_board_scene(
+    rig: Rig,
+    n: int = 200,
+    plane: Any = None,
+    *,
+    albedo: float | np.ndarray = 0.8,
+    noise: float = 0.01,
+    seed: int = 0,
+    bits: int = 8,
+    exposure: float = 0.9,
+    distance: float = 200.0,
+) -> BoardScene:
+    """Renders k images (one per light of ``rig``) of a flat Lambertian board for intensity
+    calibration: the plane ``plane`` (default: facing the camera at ``distance``), albedo a
+    number or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian
+    noise of ``noise`` times the full scale, quantised to ``bits`` (0: float)."""
+    if not (np.isfinite(noise) and noise >= 0):
+        raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
+    normal, offset = _plane(distance if plane is None else plane)
+    a = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (n, n)).copy()
+    radiance = _core.synth_board(rig.camera, rig._core_lights(), normal, offset, a)
+    scale = exposure / float(radiance.max())
+    rng = np.random.default_rng(seed)
+    images = _quantize([radiance], scale, float(noise), int(bits), rng)[0]
+    return BoardScene(images, (normal, offset), rig, a)
