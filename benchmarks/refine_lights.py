@@ -7,6 +7,7 @@
   what refinement changes when the rig is right;
 - cost: time of a run with intensity refinement over one without, medians of repeated runs
   measured in this process (machines are shared and noisy: compare the ratios, not the times);
+- convergence: the residual and the light change per iteration of one run of each kind;
 - position: the paper's test, light positions off by 5 % of the working distance (RMS), seeds
   0..N-1, exact and with 1 % noise: light-position and normal errors before and after, the
   fallback/stop flags and the conditioning of the light block;
@@ -97,6 +98,20 @@ def cost_table() -> None:
         print(f"{n:4} x {n:<4}| {plain:9.3f} | {refined:11.3f} | {refined / plain:5.2f} | {its[0]} / {its[1]}")
 
 
+def convergence_traces() -> None:
+    print("\n## Convergence per iteration (bumps 80 x 80, seed 0; one light step per iteration)")
+    scene = nplps.make_scene("bumps", n=80, seed=0)
+    d, m = scene.mean_depth, scene.mask
+    for mode, bad in (
+        ("intensity", wrong_intensities(scene.rig, 0)),
+        ("position", wrong_positions(scene.rig, 0, d)),
+    ):
+        r = nplps.reconstruct(scene.images, bad, m, d, refine_lights=mode, **KW)
+        print(f"{mode}: iteration, rms residual, largest light change (relative), depth change")
+        for h in r.history:
+            print(f"  {h.iteration:3} {h.rms_residual:10.3e} {h.light_change:10.3e} {h.depth_change:10.3e}")
+
+
 def position_table(seeds: int) -> None:
     print("\n## Position refinement: the paper's test, light positions off by 5 % of the distance (RMS)")
     print("bumps, 80 x 80, 27 lights, refine_lights='position', default prior (w = 1000)")
@@ -180,13 +195,15 @@ def real_table() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=10)
-    parser.add_argument("--sections", default="intensity,cost,position,real")
+    parser.add_argument("--sections", default="intensity,cost,convergence,position,real")
     args = parser.parse_args()
     sections = args.sections.split(",")
     if "intensity" in sections:
         intensity_table(min(args.seeds, 5))
     if "cost" in sections:
         cost_table()
+    if "convergence" in sections:
+        convergence_traces()
     if "position" in sections:
         position_table(args.seeds)
     if "real" in sections:
