@@ -726,8 +726,9 @@ impl<'p> Solver<'p> {
             self.local(u);
             last_rms = rms_of(&self.stats, p.obs.channels);
             if self.safeguard(&mut best, last_rms, u) {
-                // The residual rose well above the best state's: back to it, lights frozen.
-                accel = None;
+                // The residual rose well above the best state's: back to it, with a fresh
+                // acceleration history (or, after MAX_RESTARTS, with the lights frozen).
+                accel = self.acceleration(u.len(), scale, distance);
                 continue;
             }
             let t = Instant::now();
@@ -771,8 +772,8 @@ impl<'p> Solver<'p> {
     /// Tracks the state of lowest photometric residual while the lights are refined (`rms` is
     /// that of the local step on `u` with the current lights). The joint iteration can drift
     /// along weakly determined directions of the lights; when the residual rises above
-    /// [`DIVERGENCE`] times the best one, the best state is restored, the refinement stops for
-    /// the rest of the run and true is returned.
+    /// [`DIVERGENCE`] times the best one, the best state is restored and true is returned; after
+    /// [`MAX_RESTARTS`] such returns the refinement stops for the rest of the run.
     fn safeguard(&mut self, best: &mut Option<Best>, rms: f64, u: &mut [f64]) -> bool {
         if self.refiner.is_none() || !rms.is_finite() {
             return false;
@@ -781,16 +782,21 @@ impl<'p> Solver<'p> {
             Some(b) if rms > DIVERGENCE * b.rms => {
                 u.copy_from_slice(&b.u);
                 self.lights = b.lights.clone();
-                self.refiner = None;
-                self.diverged = true;
+                b.restarts += 1;
+                if b.restarts > MAX_RESTARTS {
+                    self.refiner = None;
+                    self.diverged = true;
+                }
                 true
             }
             Some(b) if rms >= b.rms => false,
             _ => {
+                let restarts = best.as_ref().map_or(0, |b| b.restarts);
                 *best = Some(Best {
                     rms,
                     u: u.to_vec(),
                     lights: self.lights.clone(),
+                    restarts,
                 });
                 false
             }
@@ -929,7 +935,12 @@ struct Best {
     rms: f64,
     u: Vec<f64>,
     lights: Vec<Light>,
+    /// How often the iteration went back to a best state.
+    restarts: usize,
 }
+
+/// Returns to the best state (with a fresh Anderson history) before the refinement is stopped.
+const MAX_RESTARTS: usize = 2;
 
 /// Residual growth (over the best state's) at which the light refinement is stopped.
 const DIVERGENCE: f64 = 2.0;
