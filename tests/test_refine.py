@@ -206,6 +206,17 @@ def test_bad_refinement_options(kwargs, message):
         nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, **kwargs)
 
 
+def test_refinement_needs_four_lights():
+    scene = nplps.make_scene("sphere", n=16, seed=0)
+    keep = [0, 5, 10]
+    with pytest.raises(InputError, match="at least 4 lights"):
+        nplps.reconstruct(scene.images[keep], scene.rig.subset(keep), scene.mask, scene.mean_depth,
+                          refine_lights="intensity")
+    with pytest.raises(InputError, match="at least 4 lights"):
+        nplps.reconstruct_parallel(scene.images[keep], scene.rig.subset(keep), scene.mask, scene.mean_depth,
+                                   refine_lights="intensity")
+
+
 def test_cli_refine_lights(tmp_path):
     from nplps.cli import main
 

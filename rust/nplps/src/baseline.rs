@@ -107,6 +107,7 @@ fn refine_intensities(
 /// estimator and the threads; the weighting is always in image units).
 pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
     options.validate()?;
+    crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let grid = &problem.grid;

@@ -311,6 +311,7 @@ pub fn reconstruct_auto(
 ) -> Result<(Reconstruction, DistanceEstimate)> {
     options.validate()?;
     check_observable(problem)?;
+    crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     let range = search_range(problem, search)?;
     with_threads(options.threads, || {
         let start = Instant::now();

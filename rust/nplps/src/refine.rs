@@ -130,6 +130,18 @@ impl Refine {
     }
 }
 
+/// Fails when `refine` is active with fewer than 4 lights: 3 observations per pixel fit any
+/// lights exactly, so the images say nothing about them.
+pub fn check_refinable(refine: &Refine, lights: usize) -> Result<()> {
+    if refine.is_active() && lights < 4 {
+        return Err(Error::Input(format!(
+            "refining the lights needs at least 4 lights: with {lights}, every light configuration fits \
+             the images exactly"
+        )));
+    }
+    Ok(())
+}
+
 /// Where each light's parameters sit in the parameter vector.
 #[derive(Debug, Clone)]
 struct Layout {

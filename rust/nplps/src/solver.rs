@@ -254,6 +254,7 @@ pub fn reconstruct(
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
     options.validate()?;
+    crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let mut u = problem.u0.clone();
