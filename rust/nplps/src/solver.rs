@@ -554,7 +554,29 @@ impl<'p> Solver<'p> {
         let mut g = Vec::with_capacity(n + after.len());
         g.extend_from_slice(&self.next);
         g.extend_from_slice(&after);
+        let plain = g.clone();
         accel.mix(&z, &mut g);
+        // Trust region: the extrapolation may move the lights at most twice as far as the
+        // light step itself did (and no more than 1 % of a parameter's scale beyond it).
+        let step = after
+            .iter()
+            .zip(before)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        let extra = g[n..]
+            .iter()
+            .zip(&plain[n..])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        let limit = 2.0 * step + 1e-2;
+        if extra > limit {
+            let t = limit / extra;
+            for (x, p) in g.iter_mut().zip(&plain) {
+                *x = p + t * (*x - p);
+            }
+        }
         let lights = refiner.decode(&self.lights, &g[n..], distance);
         let min_depth = g[..n]
             .iter()
