@@ -22,12 +22,14 @@ over the seeds.
 
 Usage: ``python benchmarks/calibration.py`` (seeds 0-9, about 5 minutes on 2 cores);
 ``--seeds 3`` for a quick run; ``--refine off`` to see the effect of the joint refinement;
-``--outline images`` to use the image outlines instead of the masks.
+``--outline images`` to use the image outlines instead of the masks, ``--outline detect`` to
+detect the spheres (no masks).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 
 import numpy as np
@@ -44,12 +46,17 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(cross, np.sum(a * b, axis=-1)))
 
 
-def run_case(camera: str, lights: int, spheres: int, seed: int, refine: bool, outline: str, recon_n: int) -> dict[str, float]:
+def run_case(
+    camera: str, lights: int, spheres: int, directional: bool, seed: int, refine: bool, outline: str, recon_n: int
+) -> dict[str, float]:
     """One calibration + reconstruction; returns the measured errors."""
-    scene = cal.make_sphere_scene(camera, n=200, lights=lights, directional=True, spheres=spheres, noise=0.01, seed=seed)
+    scene = cal.make_sphere_scene(camera, n=200, lights=lights, directional=directional, spheres=spheres, noise=0.01, seed=seed)
     t0 = time.perf_counter()
     depth = scene.center_depths if camera == "orthographic" else None
-    res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, refine=refine, outline=outline)
+    if outline == "detect":
+        res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, detect=(30.0, 60.0), count=spheres, center_depth=depth, refine=refine)
+    else:
+        res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, refine=refine, outline=outline)
     t_spheres = time.perf_counter() - t0
     truth = scene.rig
     pos, dirs, wrong_kind = [], [], 0
@@ -74,7 +81,7 @@ def run_case(camera: str, lights: int, spheres: int, seed: int, refine: bool, ou
     true_phi = true_phi / np.exp(np.mean(np.log(true_phi)))
     phi_err = 100.0 * (icl.intensities[:, 0] / true_phi - 1.0)
     # Reconstruction with the true and with the calibrated rig.
-    obj = nplps.make_scene("bumps", n=recon_n, camera=camera, directional=True, seed=seed)
+    obj = nplps.make_scene("bumps", n=recon_n, camera=camera, directional=directional, seed=seed)
     idx = scene.light_indices
     images = obj.images[idx]
     true_rig = obj.rig.subset(idx)
@@ -128,46 +135,57 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1 (default 10)")
     parser.add_argument("--refine", choices=("on", "off"), default="on")
-    parser.add_argument("--outline", choices=("mask", "images"), default="mask")
+    parser.add_argument("--outline", choices=("mask", "images", "detect"), default="mask", help="outline from the masks, the images (from the masks' circles), or detection")
     parser.add_argument("--recon-n", type=int, default=128, help="reconstruction image size (default 128)")
     parser.add_argument("--cameras", nargs="+", default=["orthographic", "pinhole"])
     parser.add_argument("--lights", nargs="+", type=int, default=[8, 27])
     parser.add_argument("--spheres", nargs="+", type=int, default=[1, 2], help="spheres per placement")
+    parser.add_argument(
+        "--directional", nargs="+", choices=("no", "yes"), default=["no", "yes"],
+        help="every third standard light distant (yes) or all point lights (no); default both",
+    )
     args = parser.parse_args()
     print(
         f"nplps light calibration, seeds 0-{args.seeds - 1}, 200 x 200 px, sphere radius 20 (40 px), "
         f"1 % noise, 8-bit, two placements, joint refinement {args.refine}, outline from {args.outline}"
     )
-    header = "| camera | lights | spheres | seed | " + " | ".join(c[0] for c in COLUMNS) + " |"
+    header = "| camera | lights | distant | spheres | seed | " + " | ".join(c[0] for c in COLUMNS) + " |"
     print()
     print(header)
-    print("|" + "---|" * (4 + len(COLUMNS)))
+    print("|" + "---|" * (5 + len(COLUMNS)))
     start = time.perf_counter()
     summary = []
-    for camera in args.cameras:
-        for lights in args.lights:
-            for spheres in args.spheres:
-                rows = []
-                for seed in range(args.seeds):
-                    r = run_case(camera, lights, spheres, seed, args.refine == "on", args.outline, args.recon_n)
-                    rows.append(r)
-                    cells = " | ".join(fmt.format(r[key]) for _, key, fmt in COLUMNS)
-                    print(f"| {camera} | {lights} | 2 x {spheres} | {seed} | {cells} |", flush=True)
-                mean = {k: float(np.mean([r[k] for r in rows])) for _, k, _ in COLUMNS}
-                worst = {
-                    k: (min if k in ("seen_min",) else max)([r[k] for r in rows]) for _, k, _ in COLUMNS
-                }
-                cells = " | ".join(
-                    f"{fmt.format(mean[k]) if 'd' not in fmt else f'{mean[k]:.1f}'} / {fmt.format(worst[k])}"
-                    for _, k, fmt in COLUMNS
-                )
-                line = f"| **{camera}** | **{lights}** | **2 x {spheres}** | **mean / worst** | {cells} |"
-                print(line, flush=True)
-                summary.append(line)
+    for camera, lights, far, spheres in itertools.product(args.cameras, args.lights, args.directional, args.spheres):
+        rows = []
+        distant = "1/3" if far == "yes" else "0"
+        for seed in range(args.seeds):
+            r = run_case(camera, lights, spheres, far == "yes", seed, args.refine == "on", args.outline, args.recon_n)
+            rows.append(r)
+            cells = " | ".join(fmt.format(r[key]) for _, key, fmt in COLUMNS)
+            print(f"| {camera} | {lights} | {distant} | 2 x {spheres} | {seed} | {cells} |", flush=True)
+
+        def stat(key: str, worst: bool) -> float:
+            values = np.array([r[key] for r in rows], dtype=float)
+            values = values[np.isfinite(values)]
+            if values.size == 0:
+                return float("nan")
+            if not worst:
+                return float(values.mean())
+            return float(values.min() if key == "seen_min" else values.max())
+
+        cells = " | ".join(
+            f"{stat(k, False):.3f} / {fmt.format(stat(k, True)) if 'd' not in fmt else int(stat(k, True))}"
+            if "d" not in fmt
+            else f"{stat(k, False):.1f} / {int(stat(k, True))}"
+            for _, k, fmt in COLUMNS
+        )
+        line = f"| **{camera}** | **{lights}** | **{distant}** | **2 x {spheres}** | **mean / worst** | {cells} |"
+        print(line, flush=True)
+        summary.append(line)
     print()
     print("Summary (mean / worst over the seeds):")
     print(header)
-    print("|" + "---|" * (4 + len(COLUMNS)))
+    print("|" + "---|" * (5 + len(COLUMNS)))
     for line in summary:
         print(line)
     print(f"\nwall time {time.perf_counter() - start:.0f} s")

@@ -20,6 +20,8 @@ from .errors import InputError, NplpsError, RigError, SolverError
 from .reconstruction import Iteration, LightRefinement, Reconstruction, light_changes
 from .rig import Rig
 from .synth import Scene, make_scene
+from . import calibrate
+from .calibrate import IntensityCalibration, SphereCalibration, calibrate_intensities, calibrate_spheres
 
 __all__ = [
     "__version__",
@@ -42,4 +44,9 @@ __all__ = [
     "preprocess",
     "captures",
     "evaluation",
+    "calibrate",
+    "calibrate_spheres",
+    "calibrate_intensities",
+    "SphereCalibration",
+    "IntensityCalibration",
 ]

@@ -81,3 +81,59 @@ def read_pngs(
     """Decode PNG files in parallel (GIL released): uint8 / uint16 arrays (H, W) or (H, W, 3) as
     stored (alpha dropped, palettes expanded, grey palettes to grey, 1/2/4-bit grey to 0..255).
     InputError names the first missing or broken file, or one above max_pixels pixels."""
+
+# -- light calibration (nplps.calibrate) ----------------------------------------------------------
+def calibrate_spheres(
+    images: Sequence[npt.NDArray[np.float32]],
+    labels: Sequence[npt.NDArray[np.uint32] | None],
+    detect: Sequence[tuple[float, float, int | None] | None],
+    center_depth: Sequence[Sequence[float]],
+    camera: Camera,
+    radius: float,
+    options: Mapping[str, Any],
+) -> dict[str, Any]:
+    """Sphere calibration: per placement (k, H, W) images and a (H, W) label image or a detection
+    (min radius, max radius, count) in pixels, and centre depths ([], [z] or one per sphere).
+    ``options``: ``outline`` ("mask" / "images"), ``parallel_tol`` (degrees), ``min_contrast``,
+    ``max_blob_fraction``, ``limb_margin``, ``min_component``, ``refine``. Returns ``spheres``,
+    ``lights`` (kind, vector, rms_miss, rms_angle, spread, spheres, warning), ``observations``
+    ((k, S[, 2 | 3]) arrays: pixel, peak, area, saturated, correction, origin, direction; status),
+    ``warnings`` and ``refinement``."""
+
+def calibrate_intensities(
+    images: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.bool_] | None,
+    camera: Camera,
+    lights: Lights,
+    normal: Sequence[float],
+    offset: float,
+    options: Mapping[str, Any],
+) -> dict[str, Any]:
+    """Intensity calibration from (k, H, W[, 3]) images of the board ``normal . X = offset``.
+    ``options``: ``fit_mu``, ``fit_direction``, ``albedo`` ("uniform" / "per_pixel"), ``dark``,
+    ``saturation``, ``iterations``. Returns ``lights`` (the lights mapping), ``intensity``
+    (k, C), ``mu``, ``axes``, ``rms``, ``observations``, ``scale``, ``albedo``, ``iterations``,
+    ``warnings``."""
+
+def synth_spheres(
+    camera: Camera,
+    lights: Lights,
+    height: int,
+    width: int,
+    centers: Sequence[Sequence[float]],
+    radius: float,
+    board: tuple[Sequence[float], float] | None,
+    material: Mapping[str, float],
+    supersample: int,
+) -> dict[str, Any]:
+    """Renders (k, H, W) float64 radiance of shiny spheres (``material``: ``diffuse``,
+    ``specular``, ``exponent``, ``background``) and their (H, W) uint32 labels."""
+
+def synth_board(
+    camera: Camera,
+    lights: Lights,
+    normal: Sequence[float],
+    offset: float,
+    albedo: npt.NDArray[np.float64],
+) -> npt.NDArray[np.float64]:
+    """Renders (k, H, W[, 3]) images of a flat board with albedo (H, W[, 3]) by the image model."""

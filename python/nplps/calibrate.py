@@ -85,6 +85,10 @@ class SphereReport:
     scale_check: float
     #: How far the joint refinement moved the centre from the outline's (scene units).
     shift: float = 0.0
+    #: Precision of the outline's centre assumed by the joint refinement (pixels): 0.01 for a
+    #: mask that is the pixel sampling of a circle (fitted by the widest separating circle or
+    #: cone), 0.03 for a least-squares outline fit.
+    outline_sigma: float = 0.03
 
 
 @dataclass(frozen=True)
@@ -131,8 +135,9 @@ class SphereCalibration:
     #: match the radius, ignored mask regions, ...).
     warnings: list[str] = field(default_factory=list)
     #: The joint refinement of spheres and lights (None if it did not run): ``iterations``,
-    #: ``highlights`` used, ``dropped`` (inconsistent highlights), ``highlight_rms`` and
-    #: ``outline_rms`` before and after (pixels), ``highlight_sigma`` (pixels).
+    #: ``highlights`` used, ``dropped`` (inconsistent highlights), ``highlight_rms`` before and
+    #: after (pixels), ``outline_shift`` (RMS move of the spheres from their outlines' estimates,
+    #: pixels), ``highlight_sigma`` (pixels).
     refinement: dict[str, Any] | None = None
 
     @property
@@ -233,10 +238,35 @@ def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
     if isinstance(camera, Rig):
         return dict(camera.camera)
     if isinstance(camera, Mapping) and "model" in camera:
-        # Validate through a rig without lights.
-        Rig(camera=dict(camera), lights=np.zeros((0, 3)))
+        # Validate the camera through a rig with three placeholder lights.
+        Rig(camera=dict(camera), lights=np.array([[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]))
         return dict(camera)
     raise RigError("camera must be an nplps.Rig or a camera mapping with a 'model' key (see the rig file)")
+
+
+def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The camera mapping of a rig file (its lights, if any, are ignored: a file with
+    ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except OSError as e:
+        raise RigError(f"cannot read rig file {os.fspath(path)!r}: {e.strerror}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {e}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
+        raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
+    return _camera_of(data["camera"])
+
+
+def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -> None:
+    """Writes a rig file with the camera only (``"lights": []``), for :func:`load_camera`."""
+    from .rig import RIG_FILE_VERSION
+
+    cam = _camera_of(camera)
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump({"version": RIG_FILE_VERSION, "camera": cam, "lights": []}, f, indent=2)
+        f.write("\n")
 
 
 def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
@@ -267,6 +297,8 @@ def _labels(mask: Any, shape: tuple[int, int], where: str) -> np.ndarray:
     if a.shape != shape:
         raise InputError(f"{where}: the mask has shape {a.shape} but the images have shape {shape} (H, W)")
     if a.dtype == np.bool_:
+        if not a.any():
+            raise InputError(f"{where}: the mask is empty (marks no sphere)")
         return np.ascontiguousarray(a, dtype=np.uint32)
     if np.issubdtype(a.dtype, np.floating):
         a = np.nan_to_num(a, nan=0.0)
@@ -332,7 +364,8 @@ def calibrate_spheres(
         masks: per placement a mask (file or (H, W) array) or None: a binary mask marks each
             sphere as one connected region; an integer label image marks sphere j with label j.
             A single mask (not in a list) serves a single placement.
-        detect: (min, max) image radius in pixels: find the spheres in the mean image of each
+        detect: (min, max) image radius in pixels: find the spheres in the composite image (each
+            pixel's brightest value over the lights) of each
             placement without a mask (they must be brighter than the background).
         count: with ``detect``, how many spheres each placement shows (default: all found).
         center_depth: depth (z) of the sphere centres: one number for all, or per placement a
@@ -340,7 +373,7 @@ def calibrate_spheres(
             detection: by row then column). Required for an orthographic camera; with a pinhole
             camera it overrides the distance from the outline.
         outline: "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
-            outline in the mean image, refined from the mask's circle). Detection always uses
+            outline in the composite image, refined from the mask's circle). Detection always uses
             the images.
         parallel_tol: rays whose RMS angle about their mean direction is at most this many
             degrees make a directional (distant) light.
@@ -398,6 +431,11 @@ def calibrate_spheres(
             )
     if not (np.isfinite(radius) and radius > 0):
         raise InputError(f"the sphere radius must be positive, got {radius}")
+    if cam.get("model") == "orthographic" and center_depth is None:
+        raise InputError(
+            "an orthographic camera needs the depth of the sphere centres: center_depth=... (command line: "
+            "--center-depth); for balls on a board at depth z it is z - radius, for hemispheres lying on it z"
+        )
     options = {
         "outline": outline,
         "parallel_tol": float(parallel_tol),
@@ -419,6 +457,7 @@ def calibrate_spheres(
             outline_points=(int(s["outline_points"][0]), int(s["outline_points"][1])),
             scale_check=float(s["scale_check"]),
             shift=float(s["shift"]),
+            outline_sigma=float(s["outline_sigma"]),
         )
         for j, s in enumerate(d["spheres"])
     ]
@@ -627,7 +666,7 @@ class SphereScene:
                     export.write_png16(path, np.asarray(image, dtype=np.uint16))
             iio.imwrite(folder / "mask.png", ((lab > 0) * 255).astype(np.uint8))
             paths[f"placement_{p}"] = folder
-        Rig(camera=dict(self.rig.camera), lights=np.zeros((0, 3))).save(out / "camera.json")
+        save_camera(out / "camera.json", self.rig)
         self.rig.save(out / "rig_true.json")
         meta = {
             "radius": self.radius,
@@ -721,11 +760,14 @@ def standard_rig(
     )
 
 
-def default_placements(camera: str, radius: float, board_depth: float, spheres: int = 1) -> list[np.ndarray]:
+def default_placements(
+    camera: str, radius: float, board_depth: float, spheres: int = 1, seed: int | None = None
+) -> list[np.ndarray]:
     """Two placements for the standard 100-wide view at depth 200 (scaled with the board depth):
     one sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
-    other) with ``spheres=2``. The centres sit at arbitrary sub-pixel positions (not on the
-    pixel grid's symmetry points, where a mask's digitisation errors would cancel)."""
+    other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about
+    2 pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to
+    seed as it does from photograph to photograph."""
     z = board_depth - radius
     s = board_depth / 200.0
     # Keep the spheres inside the view: a pinhole camera sees less at the spheres' depth.
@@ -736,10 +778,16 @@ def default_placements(camera: str, radius: float, board_depth: float, spheres: 
         p1, p2 = (-22.37 * s, -17.83 * s), (21.61 * s, 18.29 * s)
         q1, q2 = (-21.93 * s, 18.11 * s), (22.17 * s, -17.57 * s)
     if spheres == 1:
-        return [np.array([[*p1, z]]), np.array([[*p2, z]])]
-    if spheres == 2:
-        return [np.array([[*p1, z], [*p2, z]]), np.array([[*q1, z], [*q2, z]])]
-    raise InputError("spheres must be 1 or 2 per placement for the default placements")
+        out = [np.array([[*p1, z]]), np.array([[*p2, z]])]
+    elif spheres == 2:
+        out = [np.array([[*p1, z], [*p2, z]]), np.array([[*q1, z], [*q2, z]])]
+    else:
+        raise InputError("spheres must be 1 or 2 per placement for the default placements")
+    if seed is not None:
+        rng = np.random.default_rng([int(seed), 7919])
+        for c in out:
+            c[:, :2] += rng.uniform(-1.0, 1.0, (c.shape[0], 2)) * s
+    return out
 
 
 def _quantize(radiance: list[np.ndarray], scale: float, noise: float, bits: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -797,7 +845,8 @@ def make_sphere_scene(
         radius: sphere radius (scene units); the image radius is about ``radius * n / size``
             pixels (orthographic), a little more for the pinhole camera.
         placements: per placement an (S, 3) array of sphere centres; default
-            :func:`default_placements` (two placements of ``spheres`` spheres).
+            :func:`default_placements` (two placements of ``spheres`` spheres, moved by up to 1
+            in x and y with the seed).
         highlight_px: standard deviation of the highlight lobe in pixels (sets the Phong
             exponent from the sphere's image radius).
     """
@@ -809,7 +858,7 @@ def make_sphere_scene(
     idx = _light_indices(lights)
     board = distance
     centers = (
-        default_placements(camera, radius, board, spheres)
+        default_placements(camera, radius, board, spheres, seed)
         if placements is None
         else [np.asarray(c, dtype=float).reshape(-1, 3) for c in placements]
     )
@@ -829,7 +878,7 @@ def make_sphere_scene(
     inside = np.concatenate([r[:, lab > 0].ravel() for r, lab in zip(radiance, labels)])
     if inside.size == 0:
         raise InputError("no sphere is visible in the images: check the placements and the radius")
-    scale = exposure / float(np.quantile(inside, 0.995))
+    scale = exposure / float(np.quantile(inside, 0.97))
     rng = np.random.default_rng(seed)
     images = _quantize(radiance, scale, float(noise), int(bits), rng)
     return SphereScene(images, labels, centers, float(radius), rig, idx, float(board), float(distance), float(size))

@@ -40,6 +40,7 @@ from .parsers import parse_depth, parse_exposures, parse_lights
 from .preprocessing import bin_inputs, bin_rig, preprocess_images, saturation_valid, vignetting_map
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
+from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 
 __all__ = [
     "main",
@@ -54,6 +55,8 @@ __all__ = [
     "cmd_evaluate",
     "cmd_synth",
     "cmd_demo",
+    "cmd_calibrate",
+    "cmd_synth_calibration",
     "add_input_options",
     "Inputs",
     "build_inputs",
@@ -102,6 +105,9 @@ examples:
   nplps synth sphere --out scene                # write a synthetic scene (images, rig, mask)
   nplps reconstruct scene --rig scene/rig.json --mask scene/mask.png --depth 180 --out result
   nplps evaluate scene --rig scene/rig.json --mask scene/mask.png --depth 180 --lights 0,9,18
+  nplps synth-calibration --out calib          # synthetic shiny spheres and a board
+  nplps calibrate spheres calib/placement_0 calib/placement_1 --camera calib/camera.json \
+      --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
   nplps reconstruct --help                      # all options of a command
 
 exit status: 0 success, 2 invalid input or usage, 1 output could not be written,
@@ -123,6 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_evaluate_parser(sub, formatter).set_defaults(func=cmd_evaluate)
     add_synth_parser(sub, formatter).set_defaults(func=cmd_synth)
     add_demo_parser(sub, formatter).set_defaults(func=cmd_demo)
+    add_calibrate_parser(sub, formatter).set_defaults(func=cmd_calibrate)
+    add_synth_calibration_parser(sub, formatter).set_defaults(func=cmd_synth_calibration)
     return parser
 
 

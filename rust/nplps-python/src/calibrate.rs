@@ -141,6 +141,7 @@ pub fn calibrate_spheres<'py>(
         d.set_item("outline_points", s.outline_points.to_vec())?;
         d.set_item("scale_check", s.scale_check)?;
         d.set_item("shift", s.shift)?;
+        d.set_item("outline_sigma", s.outline_sigma)?;
         spheres.append(d)?;
     }
     out.set_item("spheres", spheres)?;
@@ -167,6 +168,7 @@ pub fn calibrate_spheres<'py>(
     let mut peak = vec![f64::NAN; nl * ns];
     let mut area = vec![0u64; nl * ns];
     let mut saturated = vec![0u64; nl * ns];
+    let mut correction = vec![f64::NAN; nl * ns];
     let mut origin = vec![f64::NAN; nl * ns * 3];
     let mut direction = vec![f64::NAN; nl * ns * 3];
     let mut status = Vec::with_capacity(nl * ns);
@@ -178,6 +180,7 @@ pub fn calibrate_spheres<'py>(
                 peak[j] = hl.peak;
                 area[j] = hl.area as u64;
                 saturated[j] = hl.saturated as u64;
+                correction[j] = hl.correction;
                 status.push("ok");
             }
             Err(r) => status.push(r.describe()),
@@ -192,6 +195,7 @@ pub fn calibrate_spheres<'py>(
     obs.set_item("peak", array(py, peak, &[nl, ns])?)?;
     obs.set_item("area", array(py, area, &[nl, ns])?)?;
     obs.set_item("saturated", array(py, saturated, &[nl, ns])?)?;
+    obs.set_item("correction", array(py, correction, &[nl, ns])?)?;
     obs.set_item("origin", array(py, origin, &[nl, ns, 3])?)?;
     obs.set_item("direction", array(py, direction, &[nl, ns, 3])?)?;
     obs.set_item("status", status)?;
@@ -203,7 +207,7 @@ pub fn calibrate_spheres<'py>(
         d.set_item("highlights", r.highlights)?;
         d.set_item("dropped", r.dropped)?;
         d.set_item("highlight_rms", r.highlight_rms.to_vec())?;
-        d.set_item("outline_rms", r.outline_rms.to_vec())?;
+        d.set_item("outline_shift", r.outline_shift)?;
         d.set_item("highlight_sigma", r.highlight_sigma)?;
         out.set_item("refinement", d)?;
     }

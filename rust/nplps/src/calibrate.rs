@@ -10,9 +10,10 @@
 //!
 //! 1. **The sphere in the image.** Boundary points come from a mask ([`mask_boundary`]: the
 //!    midpoints of the cracks between an inside and an outside pixel, unbiased for a mask that
-//!    holds the pixels whose centre sees the sphere) or from the images ([`radial_edges`]: the
-//!    crossing of the half level between the inside and the outside along rays from a first
-//!    centre, sub-pixel by linear interpolation).
+//!    holds the pixels whose centre sees the sphere) or from the images ([`radial_edges`] in the
+//!    composite of the k images, each pixel's brightest value: the crossing of the half level
+//!    between the outside and the inside, extrapolated to the edge, along rays from a first
+//!    centre, sub-pixel by linear interpolation; [`detect_spheres`] finds the first circles).
 //! 2. **The sphere in 3-D.**
 //!    *Orthographic camera*: the boundary points, in scene units (x = ox + (u + 1/2) w,
 //!    y = oy + (v + 1/2) h), are fitted with a circle ([`fit_circle`]: algebraic fit, then
@@ -30,12 +31,17 @@
 //!    Tukey reweighting. The centre is `C = a R / sin(theta)`, exact at any position in the image.
 //!    A given centre depth, if any, replaces `D` (`C = a z / a_z`).
 //! 3. **The highlight** of light i on a sphere ([`find_highlight`]): inside the sphere's image
-//!    (pixels whose ray passes within 0.97 `R` of the centre), the brightest pixel, the background
-//!    level (the median), and the 8-connected blob of pixels above the midpoint of the two; its
-//!    intensity-weighted centroid (weights: value minus the threshold) is the highlight, sub-pixel
-//!    also when the blob is saturated (the plateau and its shoulders are symmetric about the
-//!    mirror point). A blob that is not compact (more than 5 % of the sphere's image), too faint,
-//!    or clipped by the limb is rejected.
+//!    (pixels whose ray passes within 0.97 `R` of the centre), the brightest pixel and the
+//!    8-connected blob above the midpoint between it and the sphere's median; a plane fitted to
+//!    a ring 2-4 pixels around the blob is the local background (the diffuse shading). The
+//!    position is the mean of the centroids of the regions where the bilinear interpolant
+//!    exceeds the background by 1/4, 1/2 and 3/4 of the peak's excess (8 x 8 samples per
+//!    pixel): sub-pixel also when the blob is saturated. A blob that is not compact (more than
+//!    5 % of the sphere's image), too faint, or clipped by the limb is rejected. Each level
+//!    region is a small circle of normals about the mirror normal, which the sphere's curvature
+//!    and foreshortening shift towards the sphere's image centre by `A tan(t) / (2 pi R_px)`
+//!    (area `A`, tilt `t` of the normal from the view, image radius `R_px`);
+//!    [`correct_highlight`] moves it back.
 //! 4. **The reflected ray.** The viewing ray `v` through the highlight meets the sphere at `X`
 //!    (nearest intersection) with outward normal `n = (X - C) / R`; the light lies on the mirror
 //!    ray from `X` along `r = v - 2 (v . n) n`.
@@ -45,6 +51,11 @@
 //!    (RMS angle about their mean direction) the light is too far to be located and is reported
 //!    as a directional light along the mean direction; likewise with a single ray (with a
 //!    warning), or when the least-squares point lies behind a sphere (diverging rays).
+//! 6. **Joint refinement** ([`refine_spheres`]): a binary mask places a sphere's centre only to
+//!    a few hundredths of a pixel, which turns all its rays by ~0.1 degree; the sphere centres
+//!    and the lights are therefore refined together by least squares on the outlines and on the
+//!    highlights of every light seen on two or more spheres (a small bundle adjustment), and
+//!    step 5 is repeated with the refined spheres.
 //!
 //! # Intensity calibration
 //!
@@ -63,7 +74,7 @@
 // Comparisons are written `!(x > 0.0)` on purpose throughout: they reject NaN as well.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, SymmetricEigen, Vector3, Vector4};
 
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
@@ -599,7 +610,8 @@ fn bilinear(image: &[f32], height: usize, width: usize, u: f64, v: f64) -> Optio
 /// profile (bilinear, steps of 1/8 pixel) within `radius +- window` gives a first edge at its
 /// steepest descent (the blob must be brighter or darker than its surroundings all around; the
 /// polarity is that of the whole profile); the edge is then the crossing, nearest to it, of the
-/// level halfway between the profile 1 pixel inside and 2 pixels outside (linear interpolation).
+/// level halfway between the profile 2 pixels outside and the inside profile (1.5 and 2.5
+/// pixels inside) extrapolated linearly to the edge, by linear interpolation.
 /// Rays with a contrast below `min_contrast` are skipped.
 pub fn radial_edges(
     image: &[f32],
@@ -659,9 +671,17 @@ pub fn radial_edges(
             }
         }
         let rough = lo + (best.0 as f64 + 0.5 * span as f64) * step;
-        let (Some(inside), Some(outside)) = (sample(rough - 1.0), sample(rough + 2.0)) else {
+        // The inside level: the profile 1.5 and 2.5 pixels inside (clear of the edge pixel),
+        // extrapolated linearly to the edge (shading often falls towards the limb; the level
+        // inside would put the half level too high and the edge too far inside).
+        let (Some(i1), Some(i2), Some(outside)) = (
+            sample(rough - 1.5),
+            sample(rough - 2.5),
+            sample(rough + 2.0),
+        ) else {
             continue;
         };
+        let inside = i1 + 1.5 * (i1 - i2);
         if sign * (inside - outside) < min_contrast {
             continue;
         }
@@ -737,13 +757,14 @@ pub struct Detection {
     pub count: Option<usize>,
 }
 
-/// Finds spheres in the mean image of a placement: Otsu's threshold splits it into bright and
+/// Finds spheres in the composite image of a placement (each pixel's brightest value over the
+/// lights): Otsu's threshold splits it into bright and
 /// dark, and the bright 8-connected components that do not touch the image border, whose
 /// equivalent radius `sqrt(area / pi)` lies in the range (+-20 %) and that are round (farthest
 /// pixel within 1.3 equivalent radii of the centroid), are the spheres. Returns their rough
 /// image circles (centre (u, v), radius) ordered by row then column of the centre, and notes
 /// about rejected candidates. (The spheres must stand out brighter than the background in the
-/// mean image, e.g. shiny balls with a diffuse part on a dark cloth; otherwise give masks.)
+/// composite, e.g. shiny balls with a diffuse part on a dark cloth; otherwise give masks.)
 pub fn detect_spheres(
     mean_image: &[f32],
     height: usize,
@@ -831,7 +852,7 @@ pub fn detect_spheres(
     }
     if found.is_empty() {
         return Err(Error::Input(format!(
-            "no sphere found in the radius range [{rmin}, {rmax}] px (the spheres must be brighter than the background in the mean image; otherwise give masks){}",
+            "no sphere found in the radius range [{rmin}, {rmax}] px (the spheres must be brighter than the background under the lights; otherwise give masks){}",
             if notes.is_empty() {
                 String::new()
             } else {
@@ -875,6 +896,10 @@ pub struct Sphere {
     /// How far the joint refinement moved the centre from the outline's (scene units; 0 without
     /// refinement).
     pub shift: f64,
+    /// Precision of the outline's centre (pixels per coordinate) that the joint refinement
+    /// assumes: [`MASK_DIGITAL_SIGMA`] for a separating fit to a mask, [`OUTLINE_FIT_SIGMA`]
+    /// otherwise.
+    pub outline_sigma: f64,
 }
 
 /// The sphere of radius `radius` whose outline passes through the image points `outline`
@@ -926,6 +951,7 @@ pub fn locate_sphere(
                 outline_points: [circle.inliers, outline.len()],
                 scale_check: circle.radius / radius,
                 shift: 0.0,
+                outline_sigma: OUTLINE_FIT_SIGMA,
             })
         }
         Camera::Pinhole { k, .. } => {
@@ -954,9 +980,274 @@ pub fn locate_sphere(
                 outline_points: [cone.inliers, outline.len()],
                 scale_check: check,
                 shift: 0.0,
+                outline_sigma: OUTLINE_FIT_SIGMA,
             })
         }
     }
+}
+
+// -------------------------------------------------------------------------------------------
+// Outlines from digitised masks
+// -------------------------------------------------------------------------------------------
+
+/// The centres of the pixels just inside and just outside the region labelled `label` (those
+/// with a 4-neighbour on the other side), (u, v).
+pub fn mask_edge_pixels(
+    labels: &[u32],
+    height: usize,
+    width: usize,
+    label: u32,
+) -> (Vec<[f64; 2]>, Vec<[f64; 2]>) {
+    let (mut inside, mut outside) = (Vec::new(), Vec::new());
+    for r in 0..height {
+        for c in 0..width {
+            let here = labels[r * width + c] == label;
+            let differs = |rr: usize, cc: usize| (labels[rr * width + cc] == label) != here;
+            let edge = (c > 0 && differs(r, c - 1))
+                || (c + 1 < width && differs(r, c + 1))
+                || (r > 0 && differs(r - 1, c))
+                || (r + 1 < height && differs(r + 1, c));
+            if edge {
+                if here {
+                    inside.push([c as f64, r as f64]);
+                } else {
+                    outside.push([c as f64, r as f64]);
+                }
+            }
+        }
+    }
+    (inside, outside)
+}
+
+/// Maximises `t = z[3]` subject to `rows[i] . z <= h[i]` by the active-set (simplex) method,
+/// starting from the feasible point `z` (one constraint active, `active`). Returns the optimum,
+/// or None when the problem is unbounded or does not converge.
+fn max_margin_lp(rows: &[[f64; 4]], h: &[f64], mut z: [f64; 4], active: usize) -> Option<[f64; 4]> {
+    let c = Vector4::new(0.0, 0.0, 0.0, 1.0);
+    let row = |i: usize| Vector4::new(rows[i][0], rows[i][1], rows[i][2], rows[i][3]);
+    let mut work = vec![active];
+    for _ in 0..(20 * rows.len() + 100) {
+        // Multipliers y of the working set (least squares c ~ G_W^T y) and the projection d of c
+        // onto the null space of G_W: the steepest feasible ascent along the working set.
+        let k = work.len();
+        let g = nalgebra::DMatrix::from_fn(k, 4, |i, j| rows[work[i]][j]);
+        let y = (&g * g.transpose()).lu().solve(&(&g * c))?;
+        let d = c - g.transpose() * &y;
+        if d.norm() < 1e-12 {
+            // A vertex or an optimal face: optimal when no multiplier is negative, otherwise
+            // leave the constraint with the most negative one.
+            let (j, &lambda) = y.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+            if lambda >= -1e-12 {
+                return Some(z);
+            }
+            work.remove(j);
+            continue;
+        }
+        // Ratio test: the first constraint the step along d meets.
+        let zv = Vector4::new(z[0], z[1], z[2], z[3]);
+        let mut best: Option<(usize, f64)> = None;
+        for (i, hi) in h.iter().enumerate() {
+            if work.contains(&i) {
+                continue;
+            }
+            let gd = row(i).dot(&d);
+            if gd > 1e-14 {
+                let step = ((hi - row(i).dot(&zv)) / gd).max(0.0);
+                if best.is_none_or(|(_, s)| step < s) {
+                    best = Some((i, step));
+                }
+            }
+        }
+        let (i, step) = best?;
+        for (zj, dj) in z.iter_mut().zip(d.iter()) {
+            *zj += step * dj;
+        }
+        work.push(i);
+    }
+    None
+}
+
+/// The circle (scene units) that separates the `inside` points from the `outside` points with
+/// the widest margin in the algebraic form `|p|^2 + D x + E y + F` (the Chebyshev centre of the
+/// set of consistent circles, a linear programme in D, E, F), started from `start`. A mask that
+/// holds the pixels whose centre sees a disc determines the disc far better this way than a
+/// least-squares fit to its boundary (about 0.01 against 0.03 pixel for a 40-pixel disc). None
+/// when no circle separates the points (a mask that is not such a digitisation).
+pub fn separating_circle(
+    inside: &[[f64; 2]],
+    outside: &[[f64; 2]],
+    start: &Circle,
+) -> Option<Circle> {
+    if inside.len() < 5 || outside.len() < 5 || !(start.radius > 0.0) {
+        return None;
+    }
+    let (c0, s) = (start.center, start.radius);
+    let mut rows = Vec::with_capacity(inside.len() + outside.len());
+    let mut h = Vec::with_capacity(rows.capacity());
+    for (points, sign) in [(inside, 1.0), (outside, -1.0)] {
+        for p in points {
+            let q = [(p[0] - c0[0]) / s, (p[1] - c0[1]) / s];
+            let norm = (q[0] * q[0] + q[1] * q[1] + 1.0).sqrt();
+            rows.push([sign * q[0] / norm, sign * q[1] / norm, sign / norm, 1.0]);
+            h.push(-sign * (q[0] * q[0] + q[1] * q[1]) / norm);
+        }
+    }
+    // The start circle (centre 0, radius 1 in normalised coordinates) with the margin that
+    // makes it feasible.
+    let x0 = [0.0, 0.0, -1.0];
+    let (active, t0) = rows
+        .iter()
+        .zip(&h)
+        .map(|(r, hi)| hi - (r[0] * x0[0] + r[1] * x0[1] + r[2] * x0[2]))
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    let z = max_margin_lp(&rows, &h, [x0[0], x0[1], x0[2], t0], active)?;
+    if !(z[3] > 0.0) {
+        return None;
+    }
+    let (cx, cy) = (-0.5 * z[0], -0.5 * z[1]);
+    let r2 = cx * cx + cy * cy - z[2];
+    if !(r2 > 0.0) {
+        return None;
+    }
+    Some(Circle {
+        center: [c0[0] + s * cx, c0[1] + s * cy],
+        radius: s * r2.sqrt(),
+        rms: start.rms,
+        inliers: inside.len() + outside.len(),
+    })
+}
+
+/// The cone (apex at the camera) that separates the `inside` unit rays from the `outside` ones
+/// with the widest margin: `b . m >= 1` inside and `<= 1` outside with `m = a / cos(theta)`, a
+/// linear programme in `m` (coordinates scaled so that a unit step turns the axis or changes
+/// the half-angle by about one radian), started from `start`. None when no cone separates them.
+pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) -> Option<Cone> {
+    if inside.len() < 5 || outside.len() < 5 {
+        return None;
+    }
+    let a0 = start.axis;
+    let (sin0, cos0) = start.half_angle.sin_cos();
+    let m0 = scale3(a0, 1.0 / cos0);
+    let (e1, e2) = tangent_basis(a0);
+    // m = m0 + e1 x1 + e2 x2 + a0 sin0 x3 (x3 changes the half-angle by ~x3 radians).
+    let basis = [e1, e2, scale3(a0, sin0)];
+    let mut rows = Vec::with_capacity(inside.len() + outside.len());
+    let mut h = Vec::with_capacity(rows.capacity());
+    for (rays, sign) in [(inside, -1.0), (outside, 1.0)] {
+        for b in rays {
+            // inside: -b . m <= -1, outside: b . m <= 1.
+            let g = [
+                sign * dot3(*b, basis[0]),
+                sign * dot3(*b, basis[1]),
+                sign * dot3(*b, basis[2]),
+            ];
+            let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+            if !(norm > 0.0) {
+                continue;
+            }
+            rows.push([g[0] / norm, g[1] / norm, g[2] / norm, 1.0]);
+            h.push((sign - sign * dot3(*b, m0)) / norm);
+        }
+    }
+    let (active, t0) = h
+        .iter()
+        .copied()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    let z = max_margin_lp(&rows, &h, [0.0, 0.0, 0.0, t0], active)?;
+    if !(z[3] > 0.0) {
+        return None;
+    }
+    let m = add3(
+        m0,
+        add3(
+            scale3(basis[0], z[0]),
+            add3(scale3(basis[1], z[1]), scale3(basis[2], z[2])),
+        ),
+    );
+    let len = norm3(m);
+    if !(len > 1.0) {
+        return None;
+    }
+    Some(Cone {
+        axis: scale3(m, 1.0 / len),
+        half_angle: (1.0 / len).acos(),
+        rms: start.rms,
+        inliers: inside.len() + outside.len(),
+    })
+}
+
+/// Outline precision (pixels, per coordinate of the centre) assumed by the joint refinement
+/// for a sphere located by [`separating_circle`] / [`separating_cone`] from its mask.
+pub const MASK_DIGITAL_SIGMA: f64 = 0.01;
+
+/// Outline precision (pixels) assumed for a least-squares outline fit (mask boundary or image
+/// edges): the digitisation leaves ~0.03 pixel even for a 40-pixel disc.
+pub const OUTLINE_FIT_SIGMA: f64 = 0.03;
+
+/// Locates a sphere from its mask region: the least-squares fit of the crack midpoints
+/// ([`locate_sphere`]), improved by the widest-margin separating circle or cone of the mask's
+/// edge pixels when the mask is consistent with one. Returns the sphere and whether the
+/// separating fit was used.
+pub fn locate_sphere_in_mask(
+    camera: &Camera,
+    labels: &[u32],
+    height: usize,
+    width: usize,
+    label: u32,
+    radius: f64,
+    center_depth: Option<f64>,
+) -> Result<(Sphere, bool)> {
+    let cracks = mask_boundary(labels, height, width, label);
+    let mut sphere = locate_sphere(camera, &cracks, radius, center_depth)?;
+    sphere.outline_sigma = OUTLINE_FIT_SIGMA;
+    let (inside, outside) = mask_edge_pixels(labels, height, width, label);
+    match *camera {
+        Camera::Orthographic { pixel_size, .. } => {
+            let to_scene = |uv: &[f64; 2]| {
+                let o = pixel_ray(camera, *uv).origin;
+                [o[0], o[1]]
+            };
+            let start = fit_circle(&cracks.iter().map(to_scene).collect::<Vec<_>>())?;
+            let ins: Vec<[f64; 2]> = inside.iter().map(to_scene).collect();
+            let outs: Vec<[f64; 2]> = outside.iter().map(to_scene).collect();
+            if let Some(circle) = separating_circle(&ins, &outs, &start) {
+                let px = (pixel_size[0] * pixel_size[1]).sqrt();
+                sphere.center = [circle.center[0], circle.center[1], sphere.center[2]];
+                sphere.image_center = project(camera, sphere.center);
+                sphere.image_radius = circle.radius / px;
+                sphere.scale_check = circle.radius / radius;
+                sphere.outline_sigma = MASK_DIGITAL_SIGMA;
+                return Ok((sphere, true));
+            }
+        }
+        Camera::Pinhole { k, .. } => {
+            let rays = |pts: &[[f64; 2]]| -> Vec<[f64; 3]> {
+                pts.iter()
+                    .map(|&uv| pixel_ray(camera, uv).direction)
+                    .collect()
+            };
+            let start = fit_cone(&rays(&cracks))?;
+            if let Some(cone) = separating_cone(&rays(&inside), &rays(&outside), &start) {
+                let distance = radius / cone.half_angle.sin();
+                let (center, check) = match center_depth {
+                    Some(z) => {
+                        let c = scale3(cone.axis, z / cone.axis[2]);
+                        (c, distance / norm3(c))
+                    }
+                    None => (scale3(cone.axis, distance), 1.0),
+                };
+                sphere.center = center;
+                sphere.image_center = project(camera, center);
+                sphere.image_radius = (k[0][0] * k[1][1]).sqrt() * cone.half_angle.tan();
+                sphere.scale_check = check;
+                sphere.outline_sigma = MASK_DIGITAL_SIGMA;
+                return Ok((sphere, true));
+            }
+        }
+    }
+    Ok((sphere, false))
 }
 
 /// The pixels of the sphere's image whose ray passes within `margin * R` of the centre, as
@@ -1528,7 +1819,7 @@ pub enum SphereSource<'a> {
     /// An H x W label image: 0 background; if every non-zero label is 1 (a binary mask), each
     /// 8-connected component is a sphere, otherwise each label is one sphere.
     Labels(&'a [u32]),
-    /// Detection in the mean image (see [`detect_spheres`]).
+    /// Detection in the composite image (see [`detect_spheres`]).
     Detect(Detection),
 }
 
@@ -1538,7 +1829,8 @@ pub enum Outline {
     /// From the mask (crack midpoints); detection then uses the images anyway.
     #[default]
     Mask,
-    /// From the mean image of the placement ([`radial_edges`]), starting from the mask's circle.
+    /// From the composite image of the placement (each pixel's brightest value over the lights;
+    /// [`radial_edges`]), starting from the mask's circle.
     Images,
 }
 
@@ -1725,7 +2017,6 @@ pub fn calibrate_spheres(
     let mut warnings = Vec::new();
     let mut spheres: Vec<Sphere> = Vec::new();
     let mut regions: Vec<([usize; 4], Vec<bool>)> = Vec::new();
-    let mut outlines_all: Vec<Vec<[f64; 2]>> = Vec::new();
     for (pi, placement) in placements.iter().enumerate() {
         if placement.images.len() != k * plane {
             return Err(Error::Input(format!(
@@ -1742,14 +2033,22 @@ pub fn calibrate_spheres(
                 i % width
             )));
         }
-        let mut mean = vec![0f32; plane];
+        // The brightest value of each pixel over the lights: every part of the limb is lit by
+        // some light, so the outline stands out all around (the mean leaves the limb dark on the
+        // side away from most lights).
+        let mut composite = vec![f32::NEG_INFINITY; plane];
         for image in placement.images.chunks_exact(plane) {
-            for (m, v) in mean.iter_mut().zip(image) {
-                *m += *v / k as f32;
+            for (x, v) in composite.iter_mut().zip(image) {
+                *x = x.max(*v);
             }
         }
-        // Outline points (pixels) of each sphere of this placement.
-        let outlines: Vec<Vec<[f64; 2]>> = match placement.spheres {
+        // Where each sphere's outline comes from: its mask region (label) or outline points.
+        enum Source {
+            Region(u32),
+            Points(Vec<[f64; 2]>),
+        }
+        let mut region_labels: Vec<u32> = Vec::new();
+        let sources: Vec<Source> = match placement.spheres {
             SphereSource::Labels(labels) => {
                 if labels.len() != plane {
                     return Err(Error::Input(format!(
@@ -1770,69 +2069,57 @@ pub fn calibrate_spheres(
                         "placement {pi}: the mask marks no sphere"
                     )));
                 }
-                let mut outlines = Vec::new();
+                let mut sources = Vec::new();
                 for l in keep {
-                    let points = mask_boundary(&labels, height, width, l);
                     match options.outline {
-                        Outline::Mask => outlines.push(points),
+                        Outline::Mask => sources.push(Source::Region(l)),
                         Outline::Images => {
+                            let points = mask_boundary(&labels, height, width, l);
                             let circle = fit_circle(&points).map_err(|e| {
                                 Error::Input(format!("placement {pi}, mask region {l}: {e}"))
                             })?;
-                            let edges = radial_edges(
-                                &mean,
+                            match image_outline(
+                                &composite,
                                 height,
                                 width,
                                 circle.center,
                                 circle.radius,
-                                (0.15 * circle.radius).max(3.0),
-                                contrast_floor(&mean),
-                            );
-                            if edges.len() < points.len().min(64) {
-                                warnings.push(format!(
-                                    "placement {pi}, mask region {l}: the sphere's outline is not visible in the images ({} edge points); the mask's outline is used",
-                                    edges.len()
-                                ));
-                                outlines.push(points);
-                            } else {
-                                outlines.push(edges);
+                            ) {
+                                Ok(edges) if edges.len() >= points.len().min(64) => {
+                                    sources.push(Source::Points(edges))
+                                }
+                                _ => {
+                                    warnings.push(format!(
+                                        "placement {pi}, mask region {l}: the sphere's outline is not visible in the images; the mask's outline is used"
+                                    ));
+                                    sources.push(Source::Region(l));
+                                }
                             }
                         }
                     }
                 }
-                outlines
+                region_labels = labels;
+                sources
             }
             SphereSource::Detect(detection) => {
-                let (circles, notes) = detect_spheres(&mean, height, width, &detection)
+                let (circles, notes) = detect_spheres(&composite, height, width, &detection)
                     .map_err(|e| Error::Input(format!("placement {pi}: {e}")))?;
                 warnings.extend(notes.into_iter().map(|n| format!("placement {pi}: {n}")));
-                let mut outlines = Vec::new();
+                let mut sources = Vec::new();
                 for (centre, radius) in circles {
-                    let floor = contrast_floor(&mean);
-                    let window = (0.25 * radius).max(4.0);
-                    let first = radial_edges(&mean, height, width, centre, radius, window, floor);
-                    let circle = fit_circle(&first).map_err(|e| {
-                        Error::Input(format!(
+                    sources.push(Source::Points(
+                        image_outline(&composite, height, width, centre, radius).map_err(|e| {
+                            Error::Input(format!(
                             "placement {pi}: the sphere detected at (u, v) = ({:.0}, {:.0}): {e}",
                             centre[0], centre[1]
                         ))
-                    })?;
-                    let window = (0.08 * circle.radius).max(3.0);
-                    let edges = radial_edges(
-                        &mean,
-                        height,
-                        width,
-                        circle.center,
-                        circle.radius,
-                        window,
-                        floor,
-                    );
-                    outlines.push(edges);
+                        })?,
+                    ));
                 }
-                outlines
+                sources
             }
         };
-        let n_here = outlines.len();
+        let n_here = sources.len();
         let depth_of = |j: usize| -> Result<Option<f64>> {
             match placement.center_depth.len() {
                 0 => Ok(None),
@@ -1843,9 +2130,28 @@ pub fn calibrate_spheres(
                 ))),
             }
         };
-        for (j, outline) in outlines.iter().enumerate() {
-            let mut sphere = locate_sphere(camera, outline, options.radius, depth_of(j)?)
-                .map_err(|e| Error::Input(format!("placement {pi}, sphere {j}: {e}")))?;
+        let mut inconsistent = 0;
+        for (j, source) in sources.iter().enumerate() {
+            let located = match source {
+                Source::Region(l) => locate_sphere_in_mask(
+                    camera,
+                    &region_labels,
+                    height,
+                    width,
+                    *l,
+                    options.radius,
+                    depth_of(j)?,
+                )
+                .map(|(sphere, digital)| {
+                    inconsistent += usize::from(!digital);
+                    sphere
+                }),
+                Source::Points(points) => {
+                    locate_sphere(camera, points, options.radius, depth_of(j)?)
+                }
+            };
+            let mut sphere =
+                located.map_err(|e| Error::Input(format!("placement {pi}, sphere {j}: {e}")))?;
             sphere.placement = pi;
             let index = spheres.len();
             if sphere.image_radius < 5.0 {
@@ -1880,7 +2186,11 @@ pub fn calibrate_spheres(
             })?;
             spheres.push(sphere);
             regions.push(region);
-            outlines_all.push(outline.clone());
+        }
+        if inconsistent > 0 {
+            warnings.push(format!(
+                "placement {pi}: {inconsistent} mask region(s) are not the pixel sampling of a circle (hand-drawn or smoothed masks?); their outlines were fitted by least squares, which is less exact"
+            ));
         }
     }
     // Highlights, light by light and sphere by sphere.
@@ -1929,8 +2239,7 @@ pub fn calibrate_spheres(
             .filter(|(i, _)| obs.iter().filter(|o| o.0 == *i).count() >= 2)
             .count();
         if useful > 0 {
-            let (report, dropped) =
-                refine_spheres(camera, &mut spheres, &outlines_all, &obs, &estimates)?;
+            let (report, dropped) = refine_spheres(camera, &mut spheres, &obs, &estimates)?;
             for j in dropped {
                 let (i, s, _) = obs[j];
                 highlights[i * ns + s] = Err(Rejection::Inconsistent);
@@ -1991,8 +2300,9 @@ pub struct Refinement {
     /// RMS highlight residual before and after, pixel-equivalent (ray angle times half the
     /// sphere's image radius).
     pub highlight_rms: [f64; 2],
-    /// RMS outline residual before and after, pixels.
-    pub outline_rms: [f64; 2],
+    /// RMS move of the sphere centres' images (and image radii, pinhole) away from the
+    /// outlines' estimates, pixels.
+    pub outline_shift: f64,
     /// The highlight noise level used to weight the highlights against the outlines, pixels.
     pub highlight_sigma: f64,
 }
@@ -2026,12 +2336,13 @@ struct Bundle {
     perspective: bool,
     /// Orthographic: the given centre depths.
     depths: Vec<f64>,
-    /// Per sphere: outline rays (pinhole) or outline points (x, y, 0) in scene units.
-    outlines: Vec<Vec<[f64; 3]>>,
-    /// Per sphere: outline residual scale (pixels per radian, or per scene unit).
-    outline_scale: Vec<f64>,
-    /// Per sphere: outline noise level (pixels).
-    outline_sigma: Vec<f64>,
+    /// Per sphere: the outline's centre (the prior).
+    prior: Vec<[f64; 3]>,
+    /// Per sphere: pixels per scene unit (orthographic) or per radian (pinhole), divided by the
+    /// outline's sigma (pixels).
+    prior_weight: Vec<f64>,
+    /// Per sphere: the outline's sigma (pixels).
+    sigma_o: Vec<f64>,
     /// Per sphere: pixel-equivalent of one radian of ray angle (half the image radius).
     ray_scale: Vec<f64>,
     /// Observations: (light slot, sphere, viewing ray through the highlight).
@@ -2047,10 +2358,6 @@ impl Bundle {
         } else {
             2
         }
-    }
-
-    fn light_offset(&self) -> usize {
-        self.sphere_params() * self.outlines.len()
     }
 
     fn center(&self, theta: &[f64], s: usize) -> [f64; 3] {
@@ -2079,7 +2386,7 @@ impl Bundle {
     }
 
     fn offsets(&self) -> (Vec<usize>, usize) {
-        let mut o = self.light_offset();
+        let mut o = self.sphere_params() * self.prior.len();
         let mut offsets = Vec::with_capacity(self.lights.len());
         for l in &self.lights {
             offsets.push(o);
@@ -2105,25 +2412,28 @@ impl Bundle {
         }
     }
 
-    /// Outline residuals (weighted), then highlight residuals (3 per observation, weighted).
-    fn residuals(&self, theta: &[f64], offsets: &[usize], out: &mut Vec<f64>) {
-        out.clear();
-        for (s, points) in self.outlines.iter().enumerate() {
+    /// Outline (prior) residuals of the spheres, in units of their sigma: orthographic, the
+    /// centre's (x, y) move; pinhole, the move of the centre's direction and of the half-angle
+    /// of the tangent cone (which sets the distance).
+    fn prior_residuals(&self, theta: &[f64], out: &mut Vec<f64>) {
+        for (s, c0) in self.prior.iter().enumerate() {
             let c = self.center(theta, s);
-            let w = self.outline_scale[s] / self.outline_sigma[s];
+            let w = self.prior_weight[s];
             if self.perspective {
-                let d = norm3(c);
-                let a = scale3(c, 1.0 / d);
-                let half = (self.radius / d).clamp(-1.0, 1.0).asin();
-                out.extend(points.iter().map(|b| (angle_between(*b, a) - half) * w));
+                let (a0, a) = (unit3(*c0), unit3(c));
+                let (e1, e2) = tangent_basis(a0);
+                let half = |p: [f64; 3]| (self.radius / norm3(p)).clamp(-1.0, 1.0).asin();
+                out.extend([dot3(a, e1) * w, dot3(a, e2) * w, (half(c) - half(*c0)) * w]);
             } else {
-                out.extend(
-                    points
-                        .iter()
-                        .map(|q| ((q[0] - c[0]).hypot(q[1] - c[1]) - self.radius) * w),
-                );
+                out.extend([(c[0] - c0[0]) * w, (c[1] - c0[1]) * w]);
             }
         }
+    }
+
+    /// Prior residuals, then highlight residuals (3 per observation, weighted).
+    fn residuals(&self, theta: &[f64], offsets: &[usize], out: &mut Vec<f64>) {
+        out.clear();
+        self.prior_residuals(theta, out);
         for &(l, s, view) in &self.obs {
             let ray = self.ray(&view, self.center(theta, s));
             let target = match self.light(theta, offsets, l) {
@@ -2205,50 +2515,52 @@ impl Bundle {
         done
     }
 
-    /// RMS outline residual (pixels) and per-observation highlight residual norms (pixels).
+    /// RMS outline move (pixels) and per-observation highlight residual norms (pixels).
     fn report(&self, theta: &[f64]) -> (f64, Vec<f64>) {
         let (offsets, _) = self.offsets();
         let mut r = Vec::new();
         self.residuals(theta, &offsets, &mut r);
-        let mut k = 0;
-        let (mut ss, mut count) = (0.0, 0usize);
-        for (s, points) in self.outlines.iter().enumerate() {
-            for _ in points {
-                ss += (r[k] * self.outline_sigma[s]).powi(2);
-                k += 1;
-                count += 1;
-            }
-        }
-        let per_obs: Vec<f64> = self
-            .obs
+        let per_sphere = if self.perspective { 3 } else { 2 };
+        let n_prior = per_sphere * self.prior.len();
+        let shift = r[..n_prior]
             .iter()
-            .map(|_| {
-                let e = (r[k].powi(2) + r[k + 1].powi(2) + r[k + 2].powi(2)).sqrt() * self.sigma_h;
-                k += 3;
-                e
+            .enumerate()
+            .map(|(q, v)| {
+                (v / self.prior_weight[q / per_sphere] * self.px_scale(q / per_sphere)).powi(2)
             })
+            .sum::<f64>()
+            / self.prior.len().max(1) as f64;
+        let per_obs: Vec<f64> = r[n_prior..]
+            .chunks_exact(3)
+            .map(|e| (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt() * self.sigma_h)
             .collect();
-        ((ss / count.max(1) as f64).sqrt(), per_obs)
+        (shift.sqrt(), per_obs)
+    }
+
+    /// Pixels per prior unit of sphere `s` (the prior weight times the outline sigma).
+    fn px_scale(&self, s: usize) -> f64 {
+        self.prior_weight[s] * self.sigma_o[s]
     }
 }
 
 /// Refines the sphere centres and the lights jointly (a small bundle adjustment): minimises
-/// the outline residuals of every sphere (pixels, each point weighted by the sphere's outline
-/// fit RMS) plus the highlight residuals of every light seen on at least two spheres — the
-/// angle between the mirror ray through the observed highlight and the direction to the light,
-/// expressed in pixels (times half the sphere's image radius: the image shift of a highlight
-/// that turns the ray by that angle) and weighted by the highlight noise level. The highlights
-/// pin the sphere centres far more precisely than a binary mask's outline (whose digitisation
-/// leaves centre errors of a few hundredths of a pixel, i.e. ray errors of ~0.1 degree); the
-/// highlight noise is estimated from the residuals (two rounds), and highlights more than 5
-/// robust standard deviations off are dropped. Orthographic cameras keep the given centre
-/// depths (a common depth shift of all spheres and lights is not observable). Returns the
+/// the highlight residuals of every light seen on at least two spheres — the angle between the
+/// mirror ray through the observed highlight and the direction to the light, expressed in
+/// pixels (times half the sphere's image radius: the image shift of a highlight that turns the
+/// ray by that angle) and weighted by the highlight noise level — plus, per sphere, the move of
+/// its centre from the outline's estimate (orthographic: x and y in pixels; pinhole: the
+/// direction of the centre and the half-angle of its tangent cone, in pixels), weighted by the
+/// outline's precision ([`Sphere::outline_sigma`]). The highlights pin the sphere centres in
+/// most directions better than a binary mask; the outline keeps the modes the highlights cannot
+/// see (a common shift of all spheres and lights, and a stretch of the spheres' separation,
+/// which turns every ray within its own plane through the baseline). The highlight noise is
+/// estimated from the residuals (two rounds), and highlights more than 5 robust standard
+/// deviations off are dropped. Orthographic cameras keep the given centre depths. Returns the
 /// report and the dropped observations (indices into `obs`).
 #[allow(clippy::type_complexity)]
 pub fn refine_spheres(
     camera: &Camera,
     spheres: &mut [Sphere],
-    outlines: &[Vec<[f64; 2]>],
     obs: &[(usize, usize, [f64; 2])],
     lights: &[LightEstimate],
 ) -> Result<(Refinement, Vec<usize>)> {
@@ -2284,33 +2596,18 @@ pub fn refine_spheres(
     let used: Vec<usize> = (0..obs.len())
         .filter(|&j| slot[obs[j].0] != usize::MAX)
         .collect();
-    let (px_per_unit, f) = match *camera {
-        Camera::Orthographic { pixel_size, .. } => {
-            (1.0 / (pixel_size[0] * pixel_size[1]).sqrt(), 0.0)
-        }
-        Camera::Pinhole { k, .. } => (0.0, (k[0][0] * k[1][1]).sqrt()),
+    let px_per = match *camera {
+        Camera::Orthographic { pixel_size, .. } => 1.0 / (pixel_size[0] * pixel_size[1]).sqrt(),
+        Camera::Pinhole { k, .. } => (k[0][0] * k[1][1]).sqrt(),
     };
+    let sigma_o: Vec<f64> = spheres.iter().map(|s| s.outline_sigma.max(1e-4)).collect();
     let mut bundle = Bundle {
         radius,
         perspective,
         depths: spheres.iter().map(|s| s.center[2]).collect(),
-        outlines: outlines
-            .iter()
-            .map(|o| {
-                o.iter()
-                    .map(|&uv| {
-                        let ray = pixel_ray(camera, uv);
-                        if perspective {
-                            ray.direction
-                        } else {
-                            ray.origin
-                        }
-                    })
-                    .collect()
-            })
-            .collect(),
-        outline_scale: vec![if perspective { f } else { px_per_unit }; spheres.len()],
-        outline_sigma: spheres.iter().map(|s| s.fit_rms.max(0.05)).collect(),
+        prior: spheres.iter().map(|s| s.center).collect(),
+        prior_weight: sigma_o.iter().map(|s| px_per / s).collect(),
+        sigma_o,
         ray_scale: spheres.iter().map(|s| 0.5 * s.image_radius).collect(),
         obs: used
             .iter()
@@ -2328,7 +2625,7 @@ pub fn refine_spheres(
         }
     }
     theta.extend(init_lights);
-    let (outline_before, h_before) = bundle.report(&theta);
+    let (_, h_before) = bundle.report(&theta);
     let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
     let highlight_before = rms(&h_before);
     let mut iterations = 0;
@@ -2336,7 +2633,7 @@ pub fn refine_spheres(
     for round in 0..3 {
         iterations += bundle.solve(&mut theta, 50);
         let (_, per_obs) = bundle.report(&theta);
-        // Noise level of the highlights: robust RMS, with the light parameters' share removed.
+        // Noise level of the highlights, with the light parameters' share removed.
         let n_obs = per_obs.len() as f64;
         let n_light: f64 = bundle
             .lights
@@ -2354,24 +2651,26 @@ pub fn refine_spheres(
             break;
         }
         // Drop gross outliers once (highlights far off their light's other rays).
-        let mut abs = per_obs.clone();
-        let robust = (1.4826 * median(&mut abs) * std::f64::consts::SQRT_2).max(0.005);
-        let limit = 5.0 * robust;
-        let bad: Vec<usize> = (0..per_obs.len()).filter(|&q| per_obs[q] > limit).collect();
-        if round == 0 && !bad.is_empty() {
-            let mut keep = Vec::new();
-            for (q, o) in bundle.obs.iter().enumerate() {
-                if bad.contains(&q) {
-                    dropped.push(used[q]);
-                } else {
-                    keep.push(*o);
+        if round == 0 {
+            let mut abs = per_obs.clone();
+            let robust = (1.4826 * median(&mut abs) * std::f64::consts::SQRT_2).max(0.005);
+            let limit = 5.0 * robust;
+            let bad: Vec<usize> = (0..per_obs.len()).filter(|&q| per_obs[q] > limit).collect();
+            if !bad.is_empty() {
+                let mut keep = Vec::new();
+                for (q, o) in bundle.obs.iter().enumerate() {
+                    if bad.contains(&q) {
+                        dropped.push(used[q]);
+                    } else {
+                        keep.push(*o);
+                    }
                 }
+                bundle.obs = keep;
             }
-            bundle.obs = keep;
         }
         bundle.sigma_h = sigma;
     }
-    let (outline_after, h_after) = bundle.report(&theta);
+    let (outline_shift, h_after) = bundle.report(&theta);
     if !theta.iter().all(|v| v.is_finite()) {
         return Err(Error::Input(
             "the joint refinement of spheres and lights diverged".into(),
@@ -2389,10 +2688,42 @@ pub fn refine_spheres(
             highlights: bundle.obs.len(),
             dropped: dropped.len(),
             highlight_rms: [highlight_before, rms(&h_after)],
-            outline_rms: [outline_before, outline_after],
+            outline_shift,
             highlight_sigma: bundle.sigma_h,
         },
         dropped,
+    ))
+}
+
+/// The outline of a sphere in the composite image from a rough image circle: radial edges in a
+/// window of a quarter radius (at least 4 pixels), a circle fit, and radial edges again in a
+/// window of 8 % of the radius (at least 3 pixels) about that circle.
+fn image_outline(
+    composite: &[f32],
+    height: usize,
+    width: usize,
+    center: [f64; 2],
+    radius: f64,
+) -> Result<Vec<[f64; 2]>> {
+    let floor = contrast_floor(composite);
+    let first = radial_edges(
+        composite,
+        height,
+        width,
+        center,
+        radius,
+        (0.25 * radius).max(4.0),
+        floor,
+    );
+    let circle = fit_circle(&first)?;
+    Ok(radial_edges(
+        composite,
+        height,
+        width,
+        circle.center,
+        circle.radius,
+        (0.08 * circle.radius).max(3.0),
+        floor,
     ))
 }
 
@@ -3118,6 +3449,7 @@ mod tests {
             outline_points: [0, 0],
             scale_check: 1.0,
             shift: 0.0,
+            outline_sigma: OUTLINE_FIT_SIGMA,
         };
         let light = [30.0, -40.0, 20.0];
         // The surface point whose normal bisects the view (-z) and the light direction.
@@ -3236,6 +3568,7 @@ mod tests {
             outline_points: [0, 0],
             scale_check: 1.0,
             shift: 0.0,
+            outline_sigma: OUTLINE_FIT_SIGMA,
         };
         let truth = [33.37, 18.71];
         let image: Vec<f32> = (0..h * w)
