@@ -1,7 +1,8 @@
 """Accuracy of the light calibration on synthetic scenes (prints the acceptance table).
 
-For each camera (orthographic, pinhole), light set (8, 27 of the standard lights, every third
-one distant) and sphere layout (two placements of one or of two spheres), and each seed:
+For each camera (orthographic, pinhole), light set (8 or 27 of the standard lights; all near, or
+every third one distant) and sphere layout (two placements of one or of two spheres, moved with
+the seed), and each seed:
 
 1. renders the sphere scene (shiny spheres of radius 20 = 40 px orthographic, 44 px pinhole, on
    a dark board; 1 % noise, 8-bit, highlights saturated) and calibrates the lights
@@ -18,9 +19,10 @@ working distance 200), direction error of the distant lights (largest, degrees),
 error (relative intensities, both scaled to geometric mean 1: RMS and largest, %), mean normal
 error against the ground truth with the true and with the calibrated rig, and the mean angle
 between the two normal maps (degrees). The last row of each block gives the mean and the worst
-over the seeds.
+over the seeds. A second table gives the intensity calibration alone, with the true positions
+(isotropic lights, and LEDs with mu and directions fitted).
 
-Usage: ``python benchmarks/calibration.py`` (seeds 0-9, about 5 minutes on 2 cores);
+Usage: ``python benchmarks/calibration.py`` (seeds 0-9, about 80 s on 2 cores);
 ``--seeds 3`` for a quick run; ``--refine off`` to see the effect of the joint refinement;
 ``--outline images`` to use the image outlines instead of the masks, ``--outline detect`` to
 detect the spheres (no masks).
@@ -59,6 +61,11 @@ def run_case(
         res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, refine=refine, outline=outline)
     t_spheres = time.perf_counter() - t0
     truth = scene.rig
+    missing = sum(l.kind == "missing" for l in res.lights)
+    if missing:
+        # No rig can be written (a light was seen on no sphere): count it as a failure.
+        nan = float("nan")
+        return {key: nan for _, key, _ in COLUMNS} | {"wrong_kind": missing, "seen_min": 0, "failed": 1}
     pos, dirs, wrong_kind = [], [], 0
     for l in res.lights:
         if truth.directional[l.index]:
@@ -113,6 +120,35 @@ def run_case(
         "seen_min": min(l.spheres for l in res.lights),
         "t_spheres": t_spheres,
         "t_board": t_board,
+        "failed": 0,
+    }
+
+
+def run_intensity(camera: str, led: bool, seed: int) -> dict[str, float]:
+    """Intensity calibration alone, with the true light positions: a tilted white board at the
+    working distance, 1 % noise, 8-bit; isotropic lights with intensities drawn in [0.65, 1.35]
+    (and every third light distant), or LEDs (mu 0.5-2, unequal RGB intensities) with mu and
+    directions fitted."""
+    rig = cal.standard_rig(camera, n=200, lights=27, directional=True, led=led)
+    if not led:
+        phi = np.random.default_rng(seed).uniform(0.65, 1.35, rig.n_lights)
+        rig = nplps.Rig(camera=rig.camera, lights=rig.lights, intensities=rig.intensities * phi[:, None], directional=rig.directional)
+    plane = ([0.05, -0.1, -1.0], -WORKING_DISTANCE)
+    board = cal.make_board_scene(rig, n=200, plane=plane, noise=0.01, seed=seed)
+    start = nplps.Rig(camera=rig.camera, lights=rig.lights, directional=rig.directional)
+    t0 = time.perf_counter()
+    res = cal.calibrate_intensities(board.images, start, plane, fit_mu=led, fit_direction=led)
+    elapsed = time.perf_counter() - t0
+    truth = rig.intensities.mean(axis=1)
+    truth = truth / np.exp(np.mean(np.log(truth)))
+    err = 100.0 * (res.intensities[:, 0] / truth - 1.0)
+    point = ~rig.directional
+    return {
+        "phi_rms": float(np.sqrt(np.mean(err**2))),
+        "phi_max": float(np.abs(err).max()),
+        "mu_max": float(np.abs(res.mu[point] - rig.mu[point]).max()) if led else float("nan"),
+        "dir_max": float(angle_deg(res.directions[point], rig.directions[point]).max()) if led else float("nan"),
+        "time": elapsed,
     }
 
 
@@ -126,8 +162,8 @@ COLUMNS = [
     ("normals cal °", "n_cal", "{:.3f}"),
     ("cal − true °", "n_diff", "{:+.3f}"),
     ("cal vs true °", "n_pair", "{:.3f}"),
-    ("min spheres", "seen_min", "{:d}"),
-    ("wrong kind", "wrong_kind", "{:d}"),
+    ("min spheres", "seen_min", "{:.0f}"),
+    ("wrong kind", "wrong_kind", "{:.0f}"),
 ]
 
 
@@ -174,14 +210,29 @@ def main() -> None:
             return float(values.min() if key == "seen_min" else values.max())
 
         cells = " | ".join(
-            f"{stat(k, False):.3f} / {fmt.format(stat(k, True)) if 'd' not in fmt else int(stat(k, True))}"
-            if "d" not in fmt
-            else f"{stat(k, False):.1f} / {int(stat(k, True))}"
+            f"{stat(k, False):.3f} / {fmt.format(stat(k, True))}" if ".0f" not in fmt
+            else f"{stat(k, False):.1f} / {fmt.format(stat(k, True))}"
             for _, k, fmt in COLUMNS
         )
-        line = f"| **{camera}** | **{lights}** | **{distant}** | **2 x {spheres}** | **mean / worst** | {cells} |"
+        failed = sum(r["failed"] for r in rows)
+        note = f" ({failed} failed: a light seen on no sphere)" if failed else ""
+        line = f"| **{camera}** | **{lights}** | **{distant}** | **2 x {spheres}** | **mean / worst{note}** | {cells} |"
         print(line, flush=True)
         summary.append(line)
+    print()
+    print("Intensity calibration alone (true positions; 200 x 200 tilted board, 1 % noise, 8-bit), mean / worst:")
+    print("| camera | lights | Φ RMS % | Φ max % | μ max error | direction max ° | time s |")
+    print("|---|---|---|---|---|---|---|")
+    for camera in args.cameras:
+        for led in (False, True):
+            rows = [run_intensity(camera, led, seed) for seed in range(args.seeds)]
+            cell = lambda k, f: f"{np.mean([r[k] for r in rows]):{f}} / {np.max([r[k] for r in rows]):{f}}"  # noqa: E731
+            kind = "LEDs (μ, directions fitted)" if led else "isotropic, 1/3 distant"
+            print(
+                f"| {camera} | {kind} | {cell('phi_rms', '.3f')} | {cell('phi_max', '.3f')} | "
+                f"{cell('mu_max', '.3f')} | {cell('dir_max', '.2f')} | {cell('time', '.2f')} |",
+                flush=True,
+            )
     print()
     print("Summary (mean / worst over the seeds):")
     print(header)

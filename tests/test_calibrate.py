@@ -358,3 +358,14 @@ def test_command_line_errors(tmp_path, capsys):
     assert "masks" in capsys.readouterr().err
     assert main(["calibrate", "intensity", str(empty), "--rig", str(cam), "--plane-depth", "100", "--out", str(tmp_path / "r.json")]) == 2
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("command", [["calibrate"], ["calibrate", "spheres"], ["calibrate", "intensity"], ["synth-calibration"]])
+def test_command_line_help(capsys, command):
+    with pytest.raises(SystemExit) as exit_info:
+        from nplps.cli import build_parser
+
+        build_parser().parse_args([*command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: nplps" in out and "example" in out

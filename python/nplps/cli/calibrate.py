@@ -28,6 +28,15 @@ Run 'nplps calibrate spheres --help' or 'nplps calibrate intensity --help' for t
 see docs/calibration.md for what to photograph.
 """
 
+CALIBRATE_EPILOG = """\
+examples:
+  nplps synth-calibration --out calib           # a synthetic scene to try it on
+  nplps calibrate spheres calib/placement_0 calib/placement_1 --camera calib/camera.json \\
+      --radius 20 --center-depth 180 --out calib/rig_spheres.json
+  nplps calibrate intensity calib/board --rig calib/rig_spheres.json --plane-depth 200 \\
+      --out calib/rig.json
+"""
+
 SPHERES_DESCRIPTION = """\
 Locate each light from its highlights on shiny spheres of known radius (the paper's section 5).
 
@@ -159,6 +168,7 @@ def add_calibrate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         "calibrate",
         help="calibrate light positions (shiny spheres) and intensities (flat board)",
         description=CALIBRATE_DESCRIPTION,
+        epilog=CALIBRATE_EPILOG,
         formatter_class=formatter,
     )
     kinds = p.add_subparsers(dest="calibration", metavar="KIND", title="kinds")
