@@ -181,24 +181,6 @@ impl Ray {
     }
 }
 
-/// Inverts OpenCV's distortion model by fixed-point iteration (as `cv::undistortPoints`).
-fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
-    if dist.iter().all(|c| *c == 0.0) {
-        return d;
-    }
-    let [k1, k2, p1, p2, k3] = dist;
-    let (mut x, mut y) = (d[0], d[1]);
-    for _ in 0..30 {
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        x = (d[0] - dx) / radial;
-        y = (d[1] - dy) / radial;
-    }
-    [x, y]
-}
-
 /// OpenCV's distortion of normalised coordinates.
 fn distort(p: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
     let [k1, k2, p1, p2, k3] = dist;
@@ -227,7 +209,7 @@ pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
         Camera::Pinhole { k, distortion } => {
             let yd = (uv[1] - k[1][2]) / k[1][1];
             let xd = (uv[0] - k[0][2] - k[0][1] * yd) / k[0][0];
-            let [x, y] = undistort([xd, yd], distortion);
+            let [x, y] = crate::rig::undistort([xd, yd], distortion);
             Ray {
                 origin: [0.0; 3],
                 direction: unit3([x, y, 1.0]),

@@ -93,7 +93,7 @@ impl Camera {
 }
 
 /// Inverts OpenCV's distortion model by fixed-point iteration (as `cv::undistortPoints` does).
-fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
+pub(crate) fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
     if dist.iter().all(|c| *c == 0.0) {
         return d;
     }
