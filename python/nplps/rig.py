@@ -278,6 +278,9 @@ class Rig:
                 mus.append(float(light.get("mu", 0.0)) if kind == "point" else 0.0)
             except (TypeError, ValueError):
                 raise RigError(f"{where}: 'mu' must be a number") from None
+            if mus[-1] > 0 and axis is None:
+                # An LED's falloff about its axis: without the axis its brightness is unknown.
+                raise RigError(f"{where}: an anisotropic LED (mu = {mus[-1]:.6g}) needs its principal 'direction'")
             flags.append(kind == "directional")
         if camera["model"] == "orthographic":
             for key in ("pixel_size", "origin"):

@@ -48,10 +48,13 @@ pub fn read_pngs<'py>(
     max_pixels: u64,
 ) -> PyResult<Bound<'py, PyList>> {
     let decoded: Vec<Result<Decoded, String>> = py.detach(|| {
-        paths
-            .par_iter()
-            .map(|path| decode_guarded(path, max_pixels))
-            .collect()
+        crate::pool::fork_safe(|| {
+            paths
+                .par_iter()
+                .map(|path| decode_guarded(path, max_pixels))
+                .collect()
+        })
+        .unwrap_or_else(|why| paths.iter().map(|_| Err(why.clone())).collect())
     });
     let mut arrays = Vec::with_capacity(decoded.len());
     for (path, image) in paths.iter().zip(decoded) {

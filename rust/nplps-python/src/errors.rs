@@ -30,9 +30,11 @@ pub fn to_py(py: Python<'_>, err: nplps::Error) -> PyErr {
     py_error(py, class, err.to_string())
 }
 
-/// Runs `f`, turning a panic into `nplps.Error::Solver` so that no panic reaches Python.
-pub fn no_panic<T>(f: impl FnOnce() -> nplps::Result<T>) -> nplps::Result<T> {
-    catch_unwind(AssertUnwindSafe(f)).unwrap_or_else(|payload| {
+/// Runs `f`, turning a panic into `nplps.Error::Solver` so that no panic reaches Python, on a
+/// thread pool that works after `fork()` (see [`crate::pool`]).
+pub fn no_panic<T: Send>(f: impl FnOnce() -> nplps::Result<T> + Send) -> nplps::Result<T> {
+    let guarded = || crate::pool::fork_safe(f).unwrap_or_else(|why| Err(nplps::Error::Solver(why)));
+    catch_unwind(AssertUnwindSafe(guarded)).unwrap_or_else(|payload| {
         let what = payload
             .downcast_ref::<&str>()
             .map(|s| s.to_string())

@@ -9,6 +9,7 @@ mod calibrate;
 mod convert;
 mod decode;
 mod errors;
+mod pool;
 
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -461,9 +462,11 @@ fn synth_scene<'py>(
         rgb,
         directional,
     };
-    let scene = nplps::SceneKind::from_name(name)
-        .and_then(|kind| nplps::Scene::with_options(kind, n, size, distance, seed, options))
-        .map_err(|e| to_py(py, e))?;
+    let scene = no_panic(|| {
+        nplps::SceneKind::from_name(name)
+            .and_then(|kind| nplps::Scene::with_options(kind, n, size, distance, seed, options))
+    })
+    .map_err(|e| to_py(py, e))?;
     let d = PyDict::new(py);
     d.set_item("depth", array(py, scene.depth, &[n + 1, n + 1])?)?;
     d.set_item("mask", array(py, scene.mask, &[n, n])?)?;
@@ -482,6 +485,7 @@ fn synth_scene<'py>(
 /// The compiled core of nplps.
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    pool::remember_process();
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("MULTIGRID_MAX_ITERATIONS", nplps::multigrid::MAX_ITERATIONS)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;

@@ -1,0 +1,71 @@
+"""Processes that never abort or hang (issue 9): fork safety, huge iteration limits, strict rig
+files. Each case runs where a failure cannot take the test session down with it (a forked or
+spawned child with a time limit)."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import nplps
+from nplps import RigError
+
+
+def _small_run(_: int = 0) -> float:
+    scene = nplps.make_scene("sphere", n=24, seed=0)
+    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, iterations=5)
+    return float(np.nanmean(result.depth))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="os.fork is POSIX only")
+def test_forked_child_does_not_hang():
+    _small_run()  # the parent has used nplps (and rayon's global pool) before the fork
+    pid = os.fork()
+    if pid == 0:  # child
+        try:
+            ok = np.isfinite(_small_run())
+            os._exit(0 if ok else 1)
+        except BaseException:
+            os._exit(2)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+            return
+        time.sleep(0.05)
+    os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    pytest.fail("nplps hung in a forked child")
+
+
+@pytest.mark.parametrize("method", [m for m in ("fork", "spawn", "forkserver") if m in multiprocessing.get_all_start_methods()])
+def test_multiprocessing_pool(method):
+    _small_run()
+    context = multiprocessing.get_context(method)
+    with context.Pool(2) as pool:
+        values = pool.map_async(_small_run, range(4)).get(timeout=180)
+    assert np.allclose(values, values[0]) and np.isfinite(values[0])
+
+
+@pytest.mark.parametrize("iterations", [10**9, sys.maxsize])
+def test_huge_iteration_limits_do_not_abort(iterations):
+    """The history grows as iterations run: no allocation for the limit up front."""
+    scene = nplps.make_scene("sphere", n=24, seed=0)
+    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, iterations=iterations, tol=1e-3)
+    assert result.converged and len(result.history) < 100
+
+
+def test_led_without_direction_in_a_rig_file_is_an_error(tmp_path):
+    data = {
+        "version": 2,
+        "camera": {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
+        "lights": [{"type": "point", "position": [i, 0, 0], "mu": 1.0} for i in range(3)],
+    }
+    with pytest.raises(RigError, match="needs its principal 'direction'"):
+        nplps.Rig.from_dict(data)
