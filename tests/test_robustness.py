@@ -69,3 +69,62 @@ def test_led_without_direction_in_a_rig_file_is_an_error(tmp_path):
     }
     with pytest.raises(RigError, match="needs its principal 'direction'"):
         nplps.Rig.from_dict(data)
+
+
+def _sphere():
+    return nplps.make_scene("sphere", n=32, seed=0)
+
+
+@pytest.mark.parametrize(
+    "lights",
+    [
+        [[0, 0, 50.0], [0, 0, 80], [0, 0, 110]],  # collinear with the object
+        [[10, 0, 50.0], [10, 0, 50], [10, 0, 50]],  # coincident
+    ],
+)
+def test_degenerate_light_geometry_is_a_rig_error(lights):
+    scene = _sphere()
+    rig = nplps.Rig(camera=scene.rig.camera, lights=np.array(lights))
+    with pytest.raises(RigError, match="cannot determine the normals"):
+        nplps.reconstruct(scene.images[:3], rig, scene.mask, 200.0)
+
+
+def test_very_distant_lights_are_a_rig_error_for_both_methods():
+    scene = _sphere()
+    far = scene.rig.lights.copy()
+    far[:, 2] = -1e6
+    rig = nplps.Rig(camera=scene.rig.camera, lights=far)
+    with pytest.raises(RigError, match="cannot determine the normals"):
+        nplps.reconstruct(scene.images, rig, scene.mask, 200.0)
+    with pytest.raises(RigError, match="cannot determine the normals"):
+        nplps.reconstruct_parallel(scene.images, rig, scene.mask, 200.0)
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["zeros", "negative", "dark above every value", "valid all False"],
+)
+def test_nothing_fittable_is_an_input_error(case):
+    scene = _sphere()
+    images, kwargs = scene.images, {}
+    if case == "zeros":
+        images = np.zeros_like(images)
+    elif case == "negative":
+        images = -np.ones_like(images)
+    elif case == "dark above every value":
+        kwargs = dict(dark=10.0, saturation=20.0)
+    else:
+        kwargs = dict(valid=np.zeros(images.shape, dtype=bool))
+    with pytest.raises(nplps.InputError, match="no masked pixel has 3 or more usable observations"):
+        nplps.reconstruct(images, scene.rig, scene.mask, 200.0, **kwargs)
+    with pytest.raises(nplps.InputError, match="no masked pixel"):
+        nplps.reconstruct_parallel(images, scene.rig, scene.mask, 200.0, **kwargs)
+
+
+def test_mostly_unfitted_result_warns():
+    scene = _sphere()
+    images = scene.images.copy()
+    images[3:] = 0.0  # only 3 lights light anything: fitted, but
+    images[:, :20] = 0.0  # most rows see nothing
+    with pytest.warns(RuntimeWarning, match="had fewer than 3 usable observations"):
+        nplps.reconstruct(images, scene.rig, scene.mask, 200.0)

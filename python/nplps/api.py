@@ -129,6 +129,19 @@ def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
         )
 
 
+def _warn_unfitted(result: Reconstruction) -> None:
+    """Warns when more than half of the masked pixels could not be fitted (fewer than 3 usable
+    observations): they kept the starting shape, which says nothing about the object."""
+    total = int(result.mask.sum())
+    if total and result.unfitted > total // 2:
+        warnings.warn(
+            f"{result.unfitted} of {total} masked pixels ({100 * result.unfitted / total:.0f} %) had fewer "
+            "than 3 usable observations and kept the starting shape; check dark, saturation, valid and the mask",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
 def _progress_callback(progress: Progress, iterations: int) -> Callable[..., None] | None:
     if progress is None or progress is False:
         return None
@@ -293,7 +306,9 @@ def reconstruct(
     )
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
-    return Reconstruction._from_core(out, mask_arr, rig, "near")
+    result = Reconstruction._from_core(out, mask_arr, rig, "near")
+    _warn_unfitted(result)
+    return result
 
 
 def reconstruct_parallel(

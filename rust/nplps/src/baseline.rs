@@ -108,6 +108,8 @@ fn refine_intensities(
 pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
     options.validate()?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
+    crate::solver::check_fittable(problem, &options.fit_settings(false))?;
+    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let grid = &problem.grid;

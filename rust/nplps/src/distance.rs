@@ -193,7 +193,11 @@ fn search_with(
         position: false,
         ..refine
     });
+    // A candidate far from the truth may pull the surface through a light: that is a high
+    // residual for the search, not an error.
+    solver.check_lights = false;
     let found = search_refined(solver, problem, search, range, progress);
+    solver.check_lights = true;
     solver.restart_lights(refine);
     found
 }
@@ -312,6 +316,7 @@ pub fn reconstruct_auto(
     options.validate()?;
     check_observable(problem)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
+    crate::solver::check_fittable(problem, &options.fit_settings(false))?;
     let range = search_range(problem, search)?;
     with_threads(options.threads, || {
         let start = Instant::now();
@@ -372,6 +377,8 @@ pub fn reconstruct_auto(
             problem.grid.apply_gauge(&mut u, &gauge);
             (estimate, gauge)
         };
+        // The lights seen from the surface at the estimated distance.
+        crate::problem::check_light_geometry(problem.rig, &problem.geometry, &u)?;
         let (fine, converged) = if carried {
             solver.iterate(
                 &mut u,

@@ -30,3 +30,37 @@ pub(crate) fn ensure_input(cond: bool, msg: impl FnOnce() -> String) -> Result<(
         Err(Error::Input(msg()))
     }
 }
+
+/// `x` with 6 significant digits, like C's `%g`: plain between 1e-4 and 1e6, else scientific
+/// (messages never print a number with hundreds of digits).
+pub(crate) fn g6(x: f64) -> String {
+    if !x.is_finite() || x == 0.0 {
+        return format!("{x}");
+    }
+    let exponent = x.abs().log10().floor() as i32;
+    if (-4..6).contains(&exponent) {
+        let decimals = (5 - exponent).max(0) as usize;
+        let text = format!("{x:.decimals$}");
+        if text.contains('.') {
+            text.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            text
+        }
+    } else {
+        format!("{x:.5e}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::g6;
+
+    #[test]
+    fn numbers_print_like_percent_g() {
+        assert_eq!(g6(200.0), "200");
+        assert_eq!(g6(0.000123456789), "0.000123457");
+        assert_eq!(g6(-3.14159265), "-3.14159");
+        assert_eq!(g6(1e300), "1.00000e300");
+        assert_eq!(g6(f64::NAN), "NaN");
+    }
+}

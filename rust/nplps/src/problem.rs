@@ -236,6 +236,53 @@ fn initial_unknowns(
 }
 
 /// Number of negative observations of the masked facets.
+/// Fails when the lights, seen from the starting surface's centroid, do not span three
+/// directions (collinear, coincident or very distant lights): then no pixel's normal is
+/// determined. The test is on the Gram matrix `sum_k l_k l_k^T` of the unit light directions:
+/// its smallest eigenvalue must exceed 1e-6 of its largest. (Not part of [`Problem::new`]: with
+/// an estimated distance the starting plane is arbitrary, so the search checks its result.)
+pub(crate) fn check_light_geometry(rig: &Rig, geometry: &Geometry, u0: &[f64]) -> Result<()> {
+    let sum = u0
+        .par_iter()
+        .enumerate()
+        .map(|(i, &u)| geometry.position(i, u))
+        .reduce(|| [0.0; 3], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2]]);
+    let n = u0.len().max(1) as f64;
+    let centroid = sum.map(|v| v / n);
+    let mut gram = nalgebra::Matrix3::zeros();
+    for light in &rig.lights {
+        let d = match *light {
+            crate::rig::Light::Point { position, .. } => crate::grid::sub(position, centroid),
+            crate::rig::Light::Directional { direction, .. } => direction,
+        };
+        let v = nalgebra::Vector3::from(d);
+        let norm = v.norm();
+        if norm > 0.0 && norm.is_finite() {
+            let l = v / norm;
+            gram += l * l.transpose();
+        }
+    }
+    let mut eig: Vec<f64> = gram.symmetric_eigenvalues().iter().copied().collect();
+    eig.sort_by(|a, b| b.total_cmp(a));
+    if !(eig[2] > 1e-6 * eig[0]) {
+        let spread: Vec<String> = eig
+            .iter()
+            .map(|e| format!("{:.3e}", e.max(0.0).sqrt()))
+            .collect();
+        return Err(Error::Rig(format!(
+            "the lights cannot determine the normals: seen from the object (centroid at \
+             ({}, {}, {})) their directions do not span three dimensions (singular \
+             values {}); collinear, coincident or very distant lights? Photometric stereo needs \
+             lights in at least three directions that do not lie in one plane",
+            crate::error::g6(centroid[0]),
+            crate::error::g6(centroid[1]),
+            crate::error::g6(centroid[2]),
+            spread.join(", ")
+        )));
+    }
+    Ok(())
+}
+
 fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
     let per = obs.per_facet();
     grid.facets

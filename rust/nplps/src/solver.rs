@@ -255,6 +255,8 @@ pub fn reconstruct(
 ) -> Result<Reconstruction> {
     options.validate()?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
+    check_fittable(problem, &options.fit_settings(false))?;
+    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let mut u = problem.u0.clone();
@@ -411,6 +413,9 @@ pub struct Solver<'p> {
     carried: bool,
     /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
     diverged: bool,
+    /// Whether every iteration checks that the surface stays in front of the point lights (off
+    /// while the distance search tries candidates, where a bad one is just a high residual).
+    pub(crate) check_lights: bool,
     /// Time spent so far.
     pub timings: Timings,
 }
@@ -442,6 +447,7 @@ impl<'p> Solver<'p> {
             monitor: None,
             carried: false,
             diverged: false,
+            check_lights: true,
             timings: Timings {
                 factorization: t.elapsed(),
                 ..Timings::default()
@@ -762,6 +768,7 @@ impl<'p> Solver<'p> {
                 light_change = self.accelerate(accel, u, &before, distance);
             }
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
+            self.check_in_front(&self.next, iteration)?;
             std::mem::swap(u, &mut self.next);
             self.timings.solve += t.elapsed();
 
@@ -790,6 +797,35 @@ impl<'p> Solver<'p> {
         }
         self.restore_best(best, last_rms, u);
         Ok((history, false))
+    }
+
+    /// Fails when the surface `u` has reached a point light (the image model then no longer
+    /// describes it; e.g. lights nearly in one plane let the surface run off).
+    fn check_in_front(&self, u: &[f64], iteration: usize) -> Result<()> {
+        use rayon::prelude::*;
+        if !self.check_lights {
+            return Ok(());
+        }
+        let geometry = &self.problem.geometry;
+        let nearest = u
+            .par_iter()
+            .map(|&x| geometry.depth(x))
+            .reduce(|| f64::INFINITY, f64::min);
+        for (i, light) in self.lights.iter().enumerate() {
+            if let Light::Point { position, .. } = light {
+                if !(position[2] < nearest) {
+                    return Err(Error::Solver(format!(
+                        "at iteration {iteration} the surface reached light {i} (light z = {}, \
+                         nearest surface depth {}): the images and the rig do not hold a surface \
+                         in front of the lights; check the light positions (units, sign of z), the \
+                         starting depth and whether the lights nearly lie in one plane",
+                        crate::error::g6(position[2]),
+                        crate::error::g6(nearest)
+                    )));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Tracks the state of lowest photometric residual while the lights are refined (`rms` is
@@ -971,6 +1007,30 @@ const DIVERGENCE: f64 = 2.0;
 /// Memory of the Anderson acceleration of the light refinement.
 const ANDERSON_DEPTH: usize = 5;
 
+/// Fails when no masked pixel has 3 usable observations: nothing could be fitted, and the
+/// result would be the starting surface.
+pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> Result<()> {
+    use rayon::prelude::*;
+    let obs = &problem.obs;
+    let fittable = problem.grid.facets.par_iter().any(|&pixel| {
+        (0..obs.k)
+            .filter(|&i| crate::local::usable(obs.at(i, pixel), settings))
+            .take(3)
+            .count()
+            >= 3
+    });
+    if fittable {
+        return Ok(());
+    }
+    Err(Error::Input(format!(
+        "no masked pixel has 3 or more usable observations (above dark = {} and below saturation = \
+         {}, not NaN, not left out by valid): the images are black, saturated or excluded, so \
+         nothing can be reconstructed",
+        crate::error::g6(settings.dark),
+        crate::error::g6(settings.saturation)
+    )))
+}
+
 /// Largest change of vertex depth between two sets of unknowns.
 pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
     use rayon::prelude::*;
@@ -1078,5 +1138,48 @@ pub(crate) fn assemble(
         timings,
         lights: problem.rig.lights.clone(),
         refinement: None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::problem::{ImageStack, InitialDepth};
+    use crate::synth::{Scene, SceneKind};
+
+    /// The surface is checked against the point lights at every iteration, not only at the
+    /// start: a light the surface has reached stops the solver with a clear error.
+    #[test]
+    fn a_surface_that_reaches_a_light_is_an_error() {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
+        let problem = Problem::new(
+            stack,
+            &scene.rig,
+            Some(&scene.mask),
+            InitialDepth::Distance(scene.mean_depth()),
+        )
+        .unwrap();
+        let options = Options {
+            levels: 1,
+            ..Options::default()
+        };
+        let mut solver = Solver::new(&problem, &options).unwrap();
+        let mut lights = scene.rig.lights.clone();
+        if let Light::Point { position, .. } = &mut lights[3] {
+            position[2] = scene.mean_depth();
+        }
+        solver.set_lights(lights);
+        let mut u = problem.u0.clone();
+        let err = solver
+            .iterate(&mut u, &problem.gauge, 5, 0.0, Instant::now(), &mut |_| {
+                Control::Continue
+            })
+            .unwrap_err();
+        assert!(
+            matches!(&err, Error::Solver(m) if m.contains("reached light 3")),
+            "{err}"
+        );
     }
 }
