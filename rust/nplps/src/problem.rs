@@ -264,7 +264,7 @@ pub(crate) fn check_light_geometry(rig: &Rig, geometry: &Geometry, u0: &[f64]) -
     }
     let mut eig: Vec<f64> = gram.symmetric_eigenvalues().iter().copied().collect();
     eig.sort_by(|a, b| b.total_cmp(a));
-    if !(eig[2] > 1e-6 * eig[0]) {
+    if eig[2].is_nan() || eig[2] <= 1e-6 * eig[0] {
         let spread: Vec<String> = eig
             .iter()
             .map(|e| format!("{:.3e}", e.max(0.0).sqrt()))

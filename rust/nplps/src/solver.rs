@@ -813,7 +813,7 @@ impl<'p> Solver<'p> {
             .reduce(|| f64::INFINITY, f64::min);
         for (i, light) in self.lights.iter().enumerate() {
             if let Light::Point { position, .. } = light {
-                if !(position[2] < nearest) {
+                if nearest.is_nan() || position[2] >= nearest {
                     return Err(Error::Solver(format!(
                         "at iteration {iteration} the surface reached light {i} (light z = {}, \
                          nearest surface depth {}): the images and the rig do not hold a surface \
