@@ -59,7 +59,7 @@ mod tests {
     fn numbers_print_like_percent_g() {
         assert_eq!(g6(200.0), "200");
         assert_eq!(g6(0.000123456789), "0.000123457");
-        assert_eq!(g6(-2.718281828), "-2.71828");
+        assert_eq!(g6(-1.23456789), "-1.23457");
         assert_eq!(g6(1e300), "1.00000e300");
         assert_eq!(g6(f64::NAN), "NaN");
     }
