@@ -128,3 +128,37 @@ def test_mostly_unfitted_result_warns():
     images[:, :20] = 0.0  # most rows see nothing
     with pytest.warns(RuntimeWarning, match="had fewer than 3 usable observations"):
         nplps.reconstruct(images, scene.rig, scene.mask, 200.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, fragment",
+    [
+        (dict(iterations="ten"), "iterations"),
+        (dict(iterations=1.5), "iterations"),
+        (dict(iterations=True), "iterations"),
+        (dict(tol="x"), "tol"),
+        (dict(depth=200 + 1j), "depth"),
+        (dict(depth=np.full((17, 17), 200 + 1j)), "real numbers"),
+        (dict(depth="auto", depth_range="100,400"), "depth_range"),
+        (dict(depth="auto", depth_range=(float("nan"), 400)), "depth_range"),
+        (dict(depth="auto", depth_range=(400, 100)), "near < far"),
+        (dict(depth="auto", depth_guess="x"), "depth_guess"),
+        (dict(prior_weight="a"), "prior_weight"),
+    ],
+)
+def test_bad_arguments_are_input_errors(kwargs, fragment):
+    scene = nplps.make_scene("sphere", n=16, seed=0)
+    kwargs = {"depth": 200.0, **kwargs}
+    with pytest.raises(nplps.InputError, match=fragment):
+        nplps.reconstruct(scene.images, scene.rig, scene.mask, **kwargs)
+
+
+def test_bad_images_scene_size_and_prediction_index_are_input_errors():
+    scene = nplps.make_scene("sphere", n=16, seed=0)
+    with pytest.raises(nplps.InputError, match="images must be"):
+        nplps.reconstruct(12, scene.rig, scene.mask, 200.0)
+    with pytest.raises(nplps.InputError, match="at least 2"):
+        nplps.make_scene("sphere", n=-4)
+    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, 200.0)
+    with pytest.raises(nplps.InputError, match="indices of the rig's 27 lights"):
+        result.predict(lights=[99])

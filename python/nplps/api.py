@@ -41,11 +41,14 @@ def _prepare(
             raise InputError(f"depth must be a number, a depth map or 'auto', got {depth!r}")
         return stack, mask_arr, _auto_start(rig), None, levels
     if np.isscalar(depth) or np.ndim(depth) == 0:
-        d = float(depth)  # type: ignore[arg-type]
+        d = _real(depth, "depth (the working distance)")
         if not np.isfinite(d) or d <= 0:
-            raise InputError(f"the working distance must be a positive finite number, got {depth!r}")
+            raise InputError(f"the working distance must be a positive finite number, got {d:.6g}")
         return stack, mask_arr, d, None, levels
-    depth_map = np.ascontiguousarray(np.asarray(depth, dtype=np.float64))
+    depth_arr = np.asarray(depth)
+    if not (np.issubdtype(depth_arr.dtype, np.integer) or np.issubdtype(depth_arr.dtype, np.floating)):
+        raise InputError(f"the initial depth map must hold real numbers, got dtype {depth_arr.dtype}")
+    depth_map = np.ascontiguousarray(depth_arr, dtype=np.float64)
     if depth_map.shape != (h + 1, w + 1):
         raise InputError(
             f"the initial depth map has shape {depth_map.shape}; it must have one value per vertex, "
@@ -268,20 +271,20 @@ def reconstruct(
     stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, bit_levels)
     stack, missing = _channels(stack, color, saturation_)
-    if int(iterations) < 1:
-        raise InputError(f"iterations must be at least 1, got {iterations}")
+    iterations = _whole(iterations, "iterations", 1)
+    tol = _real(tol, "tol")
     options = {
-        "iterations": int(iterations),
-        "tol": float(tol),
+        "iterations": iterations,
+        "tol": tol,
         "dark": dark_,
         "saturation": saturation_,
         "weighting": weighting,
         "robust": "none" if robust is None else robust,
         "threads": _threads(threads),
         "auto": isinstance(depth, str),
-        "depth_range": None if depth_range is None else tuple(float(v) for v in depth_range),
-        "depth_guess": None if depth_guess is None else float(depth_guess),
-        "prior_weight": float(prior_weight),
+        "depth_range": _depth_range(depth_range),
+        "depth_guess": None if depth_guess is None else _positive(depth_guess, "depth_guess"),
+        "prior_weight": _real(prior_weight, "prior_weight"),
         "solver": _solver_choice(solver),
         "levels": pyramid_levels,
         "refine_lights": refine_mode,
@@ -384,6 +387,52 @@ def _refine_choice(mode: str | None) -> str:
     if mode not in ("intensity", "position", "both"):
         raise InputError(f'refine_lights must be None, "intensity", "position" or "both", got {mode!r}')
     return str(mode)
+
+
+def _real(value: Any, name: str) -> float:
+    """``value`` as a float (a real number, not a string, bool or complex), or InputError."""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or np.iscomplexobj(value):
+        raise InputError(f"{name} must be a real number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name} must be a real number, got {value!r}") from None
+
+
+def _positive(value: Any, name: str) -> float:
+    """``value`` as a positive finite float, or InputError."""
+    v = _real(value, name)
+    if not (np.isfinite(v) and v > 0):
+        raise InputError(f"{name} must be a positive finite number, got {v:.6g}")
+    return v
+
+
+def _whole(value: Any, name: str, minimum: int) -> int:
+    """``value`` as an int of at least ``minimum`` (integral floats accepted), or InputError."""
+    if isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name} must be a whole number, got {value!r}")
+    if isinstance(value, (int, np.integer)):
+        v = int(value)
+    else:
+        f = _real(value, name)
+        if not (np.isfinite(f) and f == int(f)):
+            raise InputError(f"{name} must be a whole number, got {value!r}")
+        v = int(f)
+    if v < minimum:
+        raise InputError(f"{name} must be at least {minimum}, got {v}")
+    return v
+
+
+def _depth_range(value: Any) -> tuple[float, float] | None:
+    """``depth_range`` as (near, far) with 0 < near < far, both finite, or InputError."""
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes)) or np.ndim(value) != 1 or len(value) != 2:
+        raise InputError(f"depth_range must be a pair (near, far) of numbers, got {value!r}")
+    near, far = (_positive(v, "depth_range") for v in value)
+    if not near < far:
+        raise InputError(f"depth_range must have near < far, got ({near:.6g}, {far:.6g})")
+    return near, far
 
 
 def _finite_number(value: Any, name: str) -> float:

@@ -313,7 +313,12 @@ def load_stack(
         return _array_stack(images, color)
     if isinstance(images, (str, os.PathLike)):
         raise InputError(f"expected a sequence of images, got the single path '{os.fspath(images)}'")
-    items: list[ImageSource] = list(images)
+    try:
+        items: list[ImageSource] = list(images)
+    except TypeError:
+        raise InputError(
+            f"images must be a (k, H, W[, 3]) array or a sequence of image files or arrays, got {type(images).__name__}"
+        ) from None
     if not items:
         raise InputError("no input image: the image list is empty")
     labels = [_label(i, item) for i, item in enumerate(items)]

@@ -230,6 +230,11 @@ class Reconstruction:
         rig = self.rig if rig is None else rig
         light_params = rig._core_lights()
         if lights is not None:
+            bad = [i for i in lights if not isinstance(i, (int, np.integer)) or not -rig.n_lights <= i < rig.n_lights]
+            if bad:
+                from .errors import InputError
+
+                raise InputError(f"lights must be indices of the rig's {rig.n_lights} lights, got {bad}")
             light_params = {key: [values[i] for i in lights] for key, values in light_params.items()}
         return _core.predict(
             self.depth, self.normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"

@@ -110,6 +110,8 @@ def make_scene(
         rgb: colour albedo and (k, H, W, 3) images.
         directional: every third light is a distant (directional) light.
     """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+        raise InputError(f"n (the image size in pixels) must be a whole number of at least 2, got {n!r}")
     if camera not in ("orthographic", "pinhole"):
         raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
     if not noise >= 0:
