@@ -162,3 +162,17 @@ def test_bad_images_scene_size_and_prediction_index_are_input_errors():
     result = nplps.reconstruct(scene.images, scene.rig, scene.mask, 200.0)
     with pytest.raises(nplps.InputError, match="indices of the rig's 27 lights"):
         result.predict(lights=[99])
+
+
+@pytest.mark.parametrize("extension", [".jpg", ".bmp", ".png", ".tiff"])
+def test_pixel_limit_applies_to_every_image_format(tmp_path, extension):
+    """A decompression bomb is refused from the header, whatever the format."""
+    import imageio.v3 as iio
+
+    from nplps import io
+
+    path = tmp_path / f"image{extension}"
+    iio.imwrite(path, np.zeros((40, 30), dtype=np.uint8))
+    with pytest.raises(nplps.InputError, match="pixels is more than the limit of 1000 pixels"):
+        io.read_image(path, max_pixels=1000)
+    assert io.read_image(path, max_pixels=1200).shape == (40, 30)

@@ -89,6 +89,14 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
         if header.startswith(_TIFF_SIGNATURES):
             image = _read_tiff(path, max_pixels)
         else:
+            # The header first (no decoding): a small file can hold a huge image.
+            shape = iio.improps(path).shape
+            pixels = int(np.prod(shape[:2])) if len(shape) >= 2 else 0
+            if pixels > max_pixels:
+                raise InputError(
+                    f"cannot read image '{os.fspath(path)}': {shape[1]} x {shape[0]} pixels is more than "
+                    f"the limit of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
+                )
             image = np.asarray(iio.imread(path))
     except InputError:
         raise
