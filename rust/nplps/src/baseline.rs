@@ -78,12 +78,7 @@ fn refine_intensities(
             intensity,
         })
         .collect();
-    let data = LightData {
-        grid: &problem.grid,
-        geometry: &problem.geometry,
-        obs: &problem.obs,
-        settings: options.fit_settings(false),
-    };
+    let data = LightData::of(problem, options.fit_settings(false));
     let mut refiner = Refiner::new(refine, directional.clone());
     for _ in 0..REFINE_STEPS {
         let outcome = refiner.step(&data, &mut directional, &problem.u0);

@@ -57,6 +57,7 @@ use crate::error::{Error, Result};
 use crate::geometry::Geometry;
 use crate::grid::{dot, quad_centre, Grid};
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
+use crate::problem::Problem;
 use crate::rig::Light;
 
 /// Default weight of the prior that holds light positions to the rig's (see the module docs).
@@ -103,6 +104,15 @@ impl Refine {
         prior_weight: DEFAULT_PRIOR_WEIGHT,
         fix_scale: false,
     };
+
+    /// The same settings with nothing refined (the prior weight and scale rule are kept).
+    pub fn off(self) -> Refine {
+        Refine {
+            intensity: false,
+            position: false,
+            ..self
+        }
+    }
 
     /// Whether anything is refined.
     pub fn is_active(&self) -> bool {
@@ -396,6 +406,18 @@ impl Scratch {
             }
         }
         self.pending = 0;
+    }
+}
+
+impl<'a> LightData<'a> {
+    /// The mesh and images of `problem`, with the thresholds of `settings`.
+    pub fn of(problem: &'a Problem<'_>, settings: FitSettings) -> LightData<'a> {
+        LightData {
+            grid: &problem.grid,
+            geometry: &problem.geometry,
+            obs: &problem.obs,
+            settings,
+        }
     }
 }
 
@@ -753,10 +775,7 @@ impl Refiner {
                     ..none
                 };
             }
-            let in_front = trial.iter().all(|l| match l {
-                Light::Point { position, .. } => position[2] < pass.min_z,
-                Light::Directional { .. } => true,
-            });
+            let in_front = trial.iter().all(|l| l.is_in_front_of(pass.min_z));
             if in_front && self.trusted {
                 // The model predicted the last decrease well: take this step unchecked (the
                 // solver's safeguard watches the residual), and check the next one.
@@ -990,7 +1009,7 @@ pub fn conditioning(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::problem::{ImageStack, InitialDepth, Problem};
+    use crate::problem::{ImageStack, InitialDepth};
     use crate::synth::{Scene, SceneKind};
 
     /// Finite-difference check of the position and intensity derivatives, isotropic and LED.
@@ -1063,12 +1082,7 @@ mod tests {
             intensity: true,
             ..Refine::NONE
         };
-        let data = LightData {
-            grid: &problem.grid,
-            geometry: &problem.geometry,
-            obs: &problem.obs,
-            settings: FitSettings::default(),
-        };
+        let data = LightData::of(&problem, FitSettings::default());
         let mut refiner = Refiner::new(refine, lights.clone());
         for _ in 0..15 {
             refiner.step(&data, &mut lights, &problem.u0);
@@ -1162,12 +1176,7 @@ mod tests {
             prior_weight: 0.0,
             ..Refine::NONE
         };
-        let data = LightData {
-            grid: &problem.grid,
-            geometry: &problem.geometry,
-            obs: &problem.obs,
-            settings: FitSettings::default(),
-        };
+        let data = LightData::of(&problem, FitSettings::default());
         let mut refiner = Refiner::new(refine, lights.clone());
         for _ in 0..40 {
             refiner.step(&data, &mut lights, &problem.u0);

@@ -92,6 +92,18 @@ impl Camera {
     }
 }
 
+/// The first point light (index and z) that is not strictly in front of a surface whose nearest
+/// depth is `depth` (see [`Light::is_in_front_of`]).
+pub(crate) fn first_behind(lights: &[Light], depth: f64) -> Option<(usize, f64)> {
+    lights
+        .iter()
+        .enumerate()
+        .find_map(|(i, light)| match *light {
+            Light::Point { position, .. } if !light.is_in_front_of(depth) => Some((i, position[2])),
+            _ => None,
+        })
+}
+
 /// Inverts OpenCV's distortion model by fixed-point iteration (as `cv::undistortPoints` does).
 pub(crate) fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
     if dist.iter().all(|c| *c == 0.0) {
@@ -175,6 +187,17 @@ impl Light {
                 ([a[0] * f, a[1] * f, a[2] * f], d3 / aniso)
             }
             Light::Directional { direction, .. } => (direction, 1.0),
+        }
+    }
+
+    /// Whether the light stands strictly in front of a surface whose nearest depth is `depth`
+    /// (a point light's z below it; a NaN depth is in front of nothing). Directional lights are
+    /// always in front.
+    #[inline]
+    pub fn is_in_front_of(&self, depth: f64) -> bool {
+        match *self {
+            Light::Point { position, .. } => position[2] < depth,
+            Light::Directional { .. } => true,
         }
     }
 
@@ -278,18 +301,13 @@ impl Rig {
     /// Fails when a point light is not strictly in front of the surface (its z must be smaller
     /// than the smallest surface depth `min_depth`: lights stand on the camera's side).
     pub fn check_lights_in_front(&self, min_depth: f64) -> Result<()> {
-        for (i, light) in self.lights.iter().enumerate() {
-            if let Light::Point { position, .. } = light {
-                if position[2] >= min_depth {
-                    return Err(Error::Rig(format!(
-                        "light {i} at z = {} is not in front of the surface (nearest depth {min_depth}); \
-                         lights must have smaller z than the object (z grows away from the camera)",
-                        position[2]
-                    )));
-                }
-            }
+        match first_behind(&self.lights, min_depth) {
+            Some((i, z)) => Err(Error::Rig(format!(
+                "light {i} at z = {z} is not in front of the surface (nearest depth {min_depth}); \
+                 lights must have smaller z than the object (z grows away from the camera)"
+            ))),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 

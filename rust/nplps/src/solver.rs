@@ -483,14 +483,9 @@ impl<'p> Solver<'p> {
 
     /// What is refined now.
     pub fn refine(&self) -> Refine {
-        self.refiner.as_ref().map_or(
-            Refine {
-                intensity: false,
-                position: false,
-                ..self.options.refine
-            },
-            |r| r.refine,
-        )
+        self.refiner
+            .as_ref()
+            .map_or(self.options.refine.off(), |r| r.refine)
     }
 
     /// Changes what is refined from now on.
@@ -588,10 +583,7 @@ impl<'p> Solver<'p> {
             .iter()
             .map(|&x| self.problem.geometry.depth(x))
             .fold(f64::INFINITY, f64::min);
-        let in_front = lights.iter().all(|l| match l {
-            Light::Point { position, .. } => position[2] < min_depth,
-            Light::Directional { .. } => true,
-        });
+        let in_front = lights.iter().all(|l| l.is_in_front_of(min_depth));
         if !(in_front && g.iter().all(|v| v.is_finite())) {
             accel.restart();
             return after
@@ -620,12 +612,7 @@ impl<'p> Solver<'p> {
         };
         let t = Instant::now();
         let p = self.problem;
-        let data = LightData {
-            grid: &p.grid,
-            geometry: &p.geometry,
-            obs: &p.obs,
-            settings: self.options.fit_settings(false),
-        };
+        let data = LightData::of(p, self.options.fit_settings(false));
         let outcome = refiner.step(&data, &mut self.lights, u);
         self.timings.lights += t.elapsed();
         outcome
@@ -811,21 +798,17 @@ impl<'p> Solver<'p> {
             .par_iter()
             .map(|&x| geometry.depth(x))
             .reduce(|| f64::INFINITY, f64::min);
-        for (i, light) in self.lights.iter().enumerate() {
-            if let Light::Point { position, .. } = light {
-                if nearest.is_nan() || position[2] >= nearest {
-                    return Err(Error::Solver(format!(
-                        "at iteration {iteration} the surface reached light {i} (light z = {}, \
-                         nearest surface depth {}): the images and the rig do not hold a surface \
-                         in front of the lights; check the light positions (units, sign of z), the \
-                         starting depth and whether the lights nearly lie in one plane",
-                        crate::error::g6(position[2]),
-                        crate::error::g6(nearest)
-                    )));
-                }
-            }
+        match crate::rig::first_behind(&self.lights, nearest) {
+            Some((i, z)) => Err(Error::Solver(format!(
+                "at iteration {iteration} the surface reached light {i} (light z = {}, nearest \
+                 surface depth {}): the images and the rig do not hold a surface in front of the \
+                 lights; check the light positions (units, sign of z), the starting depth and \
+                 whether the lights nearly lie in one plane",
+                crate::error::g6(z),
+                crate::error::g6(nearest)
+            ))),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     /// Tracks the state of lowest photometric residual while the lights are refined (`rms` is
@@ -951,12 +934,7 @@ impl Solver<'_> {
             return None;
         }
         let p = self.problem;
-        let data = LightData {
-            grid: &p.grid,
-            geometry: &p.geometry,
-            obs: &p.obs,
-            settings: self.options.fit_settings(false),
-        };
+        let data = LightData::of(p, self.options.fit_settings(false));
         let monitor = self.monitor;
         let fell_back = monitor.is_some_and(|m| m.fell_back);
         Some(RefinementReport {
@@ -979,11 +957,7 @@ pub const MAX_REFINE_UNKNOWNS: usize = 1 << 21;
 /// The refinement on a finer level of a pyramid: none above [`MAX_REFINE_UNKNOWNS`].
 fn refine_on_level(refine: Refine, problem: &Problem<'_>) -> Refine {
     if problem.grid.n_unknowns() > MAX_REFINE_UNKNOWNS {
-        Refine {
-            intensity: false,
-            position: false,
-            ..refine
-        }
+        refine.off()
     } else {
         refine
     }
