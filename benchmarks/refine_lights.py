@@ -144,6 +144,23 @@ def position_table(seeds: int) -> None:
         )
 
 
+def calibrated_held_out(cap, d: float, mode: str | None):
+    """Each model refines its own intensities (with ``mode``) on all images, then every light is
+    left out in turn with that rig fixed. Returns both results and the mean raw and gain-free
+    held-out errors of near and parallel."""
+    rig = cap.rig()
+    near = nplps.reconstruct(cap.images, rig, cap.mask, d, iterations=20, refine_lights=mode)
+    par = nplps.reconstruct_parallel(cap.images, rig, cap.mask, d, refine_lights=mode)
+    hn = held_out(cap.images, near.rig, cap.mask, d, method="near", iterations=20)
+    hp = held_out(cap.images, par.rig, cap.mask, d, method="parallel")
+    errors = {
+        f"{field}_{model}": float(np.mean([getattr(h, f"{field}_error") for h in hs]))
+        for model, hs in (("near", hn), ("parallel", hp))
+        for field in ("relative", "shape")
+    }
+    return near, par, errors
+
+
 def real_table() -> None:
     from nplps import captures
 
@@ -154,16 +171,13 @@ def real_table() -> None:
     cap = captures.prepare(captures.load_hehe12(SHARED / "hehe12"), bin_factor=4)
     rig, d = cap.rig(), 200.0
     for mode in (None, "intensity"):
-        near = nplps.reconstruct(cap.images, rig, cap.mask, d, iterations=20, refine_lights=mode)
-        par = nplps.reconstruct_parallel(cap.images, rig, cap.mask, d, refine_lights=mode)
-        hn = held_out(cap.images, near.rig, cap.mask, d, method="near", iterations=20)
-        hp = held_out(cap.images, par.rig, cap.mask, d, method="parallel")
+        near, par, e = calibrated_held_out(cap, d, mode)
         label = "light.mat intensities" if mode is None else "calibrated intensities"
         print(
             f"{label:23}: photometric RMS near {near.history[-1].rms_residual:.4f}, parallel "
-            f"{par.history[-1].rms_residual:.4f}; held-out raw near {np.mean([h.relative_error for h in hn]):.4f}, "
-            f"parallel {np.mean([h.relative_error for h in hp]):.4f} (gain-free shape: near "
-            f"{np.mean([h.shape_error for h in hn]):.4f}, parallel {np.mean([h.shape_error for h in hp]):.4f})"
+            f"{par.history[-1].rms_residual:.4f}; held-out raw near {e['relative_near']:.4f}, "
+            f"parallel {e['relative_parallel']:.4f} (gain-free shape: near "
+            f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f})"
         )
         if mode:
             print("  near-light intensities / light.mat's (both normalised to geometric mean 1):",
@@ -176,15 +190,11 @@ def real_table() -> None:
 
     print("\n## queau_human1 (binned 8 x 8, 700 mm) and diligent_ball: with and without intensity refinement")
     cap = captures.prepare(captures.load_queau_human1(SHARED / "queau_human1"), bin_factor=8)
-    rig, d = cap.rig(), 700.0
     for mode in (None, "intensity"):
-        near = nplps.reconstruct(cap.images, rig, cap.mask, d, iterations=20, refine_lights=mode)
-        par = nplps.reconstruct_parallel(cap.images, rig, cap.mask, d, refine_lights=mode)
-        hn = held_out(cap.images, near.rig, cap.mask, d, method="near", iterations=20)
-        hp = held_out(cap.images, par.rig, cap.mask, d, method="parallel")
-        print(f"queau_human1 {str(mode):9}: held-out raw near {np.mean([h.relative_error for h in hn]):.4f}, "
-              f"parallel {np.mean([h.relative_error for h in hp]):.4f}; shape near "
-              f"{np.mean([h.shape_error for h in hn]):.4f}, parallel {np.mean([h.shape_error for h in hp]):.4f}")
+        _, _, e = calibrated_held_out(cap, 700.0, mode)
+        print(f"queau_human1 {str(mode):9}: held-out raw near {e['relative_near']:.4f}, "
+              f"parallel {e['relative_parallel']:.4f}; shape near "
+              f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f}")
     ball = captures.load_diligent(SHARED / "diligent_ball", load=True)
     for mode in (None, "intensity"):
         r = nplps.reconstruct(ball.images, ball.rig(), ball.mask, 1000.0, iterations=1, refine_lights=mode)
