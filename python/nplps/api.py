@@ -132,6 +132,12 @@ def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
         )
 
 
+def _warn_diverged(result: Reconstruction) -> None:
+    """Warns when the depth changes grew (status "diverged"): the surface is not to be trusted."""
+    if result.status == "diverged":
+        warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
+
+
 def _warn_unfitted(result: Reconstruction) -> None:
     """Warns when more than half of the masked pixels could not be fitted (fewer than 3 usable
     observations): they kept the starting shape, which says nothing about the object."""
@@ -200,6 +206,7 @@ def reconstruct(
     levels: int | None = None,
     refine_lights: str | None = None,
     light_prior_weight: float | None = None,
+    max_memory: float | str | None = None,
 ) -> Reconstruction:
     """Reconstructs a surface from k images taken under k near lights.
 
@@ -262,6 +269,12 @@ def reconstruct(
             (estimated from the fits): a Gaussian prior of standard deviation ``D / sqrt(w)`` on
             each coordinate of a light. Default 1000 (about 3 % of D); smaller trusts the
             images more.
+        max_memory: memory limit of the computation, in bytes (a number, or a string such as
+            ``"8 GB"`` or ``"512MiB"``; ``float("inf")``: no limit). A reconstruction whose
+            estimated peak memory is above it is refused with :class:`~nplps.MemoryLimitError`
+            (also a ``MemoryError``) before any large allocation. None (default): 80 % of the
+            memory available to the process (the least of the system's available memory, a
+            cgroup limit and an address-space limit).
 
     Returns:
         A :class:`~nplps.Reconstruction`.
@@ -288,6 +301,7 @@ def reconstruct(
         "solver": _solver_choice(solver),
         "levels": pyramid_levels,
         "refine_lights": refine_mode,
+        "max_memory": _memory_limit(max_memory),
     }
     if light_prior_weight is not None:
         options["light_prior_weight"] = _finite_number(light_prior_weight, "light_prior_weight")
@@ -311,6 +325,7 @@ def reconstruct(
     _warn_slow_multigrid(out["history"])
     result = Reconstruction._from_core(out, mask_arr, rig, "near")
     _warn_unfitted(result)
+    _warn_diverged(result)
     return result
 
 
@@ -326,6 +341,7 @@ def reconstruct_parallel(
     valid: Any = None,
     threads: int | None = None,
     refine_lights: str | None = None,
+    max_memory: float | str | None = None,
 ) -> Reconstruction:
     """The conventional baseline: parallel-light photometric stereo, then the same integration.
 
@@ -347,6 +363,7 @@ def reconstruct_parallel(
         "robust": "none" if robust is None else robust,
         "threads": _threads(threads),
         "refine_lights": refine_mode,
+        "max_memory": _memory_limit(max_memory),
     }
     out = _core.reconstruct_parallel(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
@@ -405,6 +422,35 @@ def _positive(value: Any, name: str) -> float:
     if not (np.isfinite(v) and v > 0):
         raise InputError(f"{name} must be a positive finite number, got {v:.6g}")
     return v
+
+
+_UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "m": 1e6, "mb": 1e6, "g": 1e9, "gb": 1e9, "t": 1e12, "tb": 1e12,
+          "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
+
+
+def _memory_limit(value: Any, name: str = "max_memory") -> float | None:
+    """A memory limit in bytes from a number or a string like "8 GB" / "512MiB" (None: the default)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        text = value.strip().lower().replace(" ", "")
+        number = text.rstrip("abcdefghijklmnopqrstuvwxyz")
+        unit = text[len(number):]
+        if unit not in _UNITS or not number:
+            raise InputError(f'{name} must be a number of bytes or a size such as "8 GB" or "512 MiB", got {value!r}')
+        v = _real(_float_text(number, value, name), name) * _UNITS[unit]
+    else:
+        v = _real(value, name)
+    if not v > 0:
+        raise InputError(f"{name} must be a positive number of bytes, got {v:.6g}")
+    return v
+
+
+def _float_text(text: str, original: str, name: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f'{name} must be a number of bytes or a size such as "8 GB" or "512 MiB", got {original!r}') from None
 
 
 def _whole(value: Any, name: str, minimum: int) -> int:

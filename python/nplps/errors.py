@@ -21,3 +21,13 @@ class RigError(InputError):
 
 class SolverError(NplpsError, RuntimeError):
     """The solver failed on valid input (for example the sparse factorization)."""
+
+
+class MemoryLimitError(NplpsError, MemoryError):
+    """The computation would need more memory than allowed, so it was refused before starting.
+
+    Raised before any large allocation when the estimated peak memory exceeds ``max_memory``
+    (by default 80 % of the memory available to the process: the system's available memory, a
+    cgroup limit or an address-space limit, whichever is least). The message gives the estimate
+    and the limit. It is also a ``MemoryError``.
+    """

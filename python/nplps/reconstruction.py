@@ -148,7 +148,8 @@ class Reconstruction:
     #: One entry per iteration (with ``depth="auto"``: of the final run at the estimate; the
     #: search's evaluations are in ``distance.curve``).
     history: list[Iteration]
-    #: Whether the tolerance was reached within the iteration limit.
+    #: Whether the tolerance was reached within the iteration limit (exactly when
+    #: :attr:`status` is "converged").
     converged: bool
     #: The mask (H, W) that was reconstructed.
     mask: np.ndarray
@@ -158,6 +159,13 @@ class Reconstruction:
     timings: dict[str, float] = field(default_factory=dict)
     #: "near" for the near-light method, "parallel" for the conventional baseline.
     method: str = "near"
+    #: How the run ended: "converged" (the depth change reached ``tol``), "stalled" (stopped at
+    #: the iteration limit, or no progress for 50 iterations), "diverged" (the depth changes
+    #: grew) or "degenerate" (more than half of the masked pixels could not be fitted and kept
+    #: the starting shape). :attr:`status_reason` says why, with the numbers.
+    status: str = "converged"
+    #: One sentence explaining :attr:`status`.
+    status_reason: str = ""
     #: The distance search, when ``depth="auto"``.
     distance: DistanceEstimate | None = None
     #: The self-calibration of the lights, when ``refine_lights`` was given; :attr:`rig` then
@@ -187,6 +195,8 @@ class Reconstruction:
             rig=rig,
             timings=dict(out["timings"]),
             method=method,
+            status=str(out["status"]),
+            status_reason=str(out["status_reason"]),
             distance=_distance(out.get("distance_estimate")),
             refinement=refinement,
             input_rig=input_rig,
@@ -286,6 +296,8 @@ class Reconstruction:
             "gauge": [float(g) for g in self.gauge],
             "iterations": len(self.history),
             "converged": self.converged,
+            "status": self.status,
+            "status_reason": self.status_reason,
             "last_depth_change": None if last is None else last.depth_change,
             "rms_residual": None if last is None else last.rms_residual,
             "unfitted_pixels": self.unfitted,

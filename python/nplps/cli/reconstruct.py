@@ -105,9 +105,8 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path],
     print(f"  pixels          {s['pixels']} of {h} x {w}")
     print(f"  regions         {s['regions']}")
     if max_iterations is not None:
-        state = "yes" if s["converged"] else f"no (iteration limit {max_iterations} reached; try --iterations)"
         print(f"  iterations      {s['iterations']}")
-        print(f"  converged       {state}")
+    print(f"  status          {s['status']}: {s['status_reason']}")
     if s["rms_residual"] is not None:
         print(f"  rms residual    {s['rms_residual']:.3e} (image units, 0..1)")
     print(f"  unfitted pixels {s['unfitted_pixels']} (fewer than 3 lit images)")

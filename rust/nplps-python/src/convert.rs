@@ -287,6 +287,8 @@ pub fn reconstruction_dict<'py>(
         .collect();
     d.set_item("history", history)?;
     d.set_item("converged", r.converged)?;
+    d.set_item("status", r.status.name())?;
+    d.set_item("status_reason", &r.status_reason)?;
     d.set_item("negative_observations", r.negative_observations)?;
     let t = PyDict::new(py);
     t.set_item("factorization", r.timings.factorization.as_secs_f64())?;

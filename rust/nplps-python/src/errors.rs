@@ -23,6 +23,7 @@ pub fn to_py(py: Python<'_>, err: nplps::Error) -> PyErr {
         nplps::Error::Input(_) => "InputError",
         nplps::Error::Rig(_) => "RigError",
         nplps::Error::Solver(_) => "SolverError",
+        nplps::Error::Memory { .. } => "MemoryLimitError",
         nplps::Error::Cancelled => {
             return pyo3::exceptions::PyKeyboardInterrupt::new_err("reconstruction cancelled")
         }

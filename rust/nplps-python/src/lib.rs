@@ -165,6 +165,7 @@ fn options_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<nplps::Option
         weighting,
         robust,
         threads: option(py, d, "threads", defaults.threads)?,
+        max_memory: option(py, d, "max_memory", defaults.max_memory)?,
         ..defaults
     })
 }
@@ -208,9 +209,15 @@ impl<'a> Input<'a> {
         })
     }
 
-    /// The validated problem (runs without the GIL).
-    fn problem(&self) -> nplps::Result<nplps::Problem<'_>> {
+    /// The validated problem (runs without the GIL), refused before any large allocation when
+    /// reconstructing it with `options` would exceed their memory limit.
+    fn problem(&self, options: &nplps::Options) -> nplps::Result<nplps::Problem<'_>> {
         let [k, h, w, c] = self.shape;
+        let facets = match self.mask {
+            Some(m) => m.iter().filter(|&&inside| inside).count(),
+            None => h.saturating_mul(w),
+        };
+        nplps::memory::check_reconstruction(h, w, facets, c, k, options)?;
         let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
         nplps::Problem::new(stack, &self.rig, self.mask, self.depth)
     }
@@ -263,7 +270,7 @@ fn reconstruct<'py>(
     let mut callback_error: Option<PyErr> = None;
     let result = py.detach(|| {
         no_panic(|| {
-            let mut problem = input.problem()?;
+            let mut problem = input.problem(&options)?;
             if let Some(map) = prior {
                 problem.set_prior(map, prior_weight)?;
             }
@@ -346,7 +353,7 @@ fn reconstruct_parallel<'py>(
     )?;
     let options = options_from(py, options)?;
     let result =
-        py.detach(|| no_panic(|| nplps::reconstruct_parallel(&input.problem()?, &options)));
+        py.detach(|| no_panic(|| nplps::reconstruct_parallel(&input.problem(&options)?, &options)));
     reconstruction_dict(py, result.map_err(|e| to_py(py, e))?)
 }
 

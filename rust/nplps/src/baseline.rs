@@ -102,6 +102,7 @@ fn refine_intensities(
 /// estimator and the threads; the weighting is always in image units).
 pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
     options.validate()?;
+    problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     crate::solver::check_fittable(problem, &options.fit_settings(false))?;
     crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
@@ -162,6 +163,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let mut outputs = FitOutputs::new(problem);
         outputs.scatter(problem, 0, &fits);
         let mut result = assemble(problem, &u, outputs, history, true, timings);
+        result.assess(f64::INFINITY, false);
         if let Some(factors) = factors {
             for (light, f) in result.lights.iter_mut().zip(factors) {
                 match light {

@@ -172,6 +172,7 @@ pub fn estimate_distance(
 ) -> Result<DistanceEstimate> {
     options.validate()?;
     check_observable(problem)?;
+    problem.check_memory(options)?;
     let range = search_range(problem, search)?;
     with_threads(options.threads, || {
         let mut solver = Solver::new(problem, options)?;
@@ -315,6 +316,7 @@ pub fn reconstruct_auto(
 ) -> Result<(Reconstruction, DistanceEstimate)> {
     options.validate()?;
     check_observable(problem)?;
+    problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     crate::solver::check_fittable(problem, &options.fit_settings(false))?;
     let range = search_range(problem, search)?;

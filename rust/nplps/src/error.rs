@@ -14,9 +14,47 @@ pub enum Error {
     /// The sparse factorization or solve failed.
     #[error("solver failed: {0}")]
     Solver(String),
+    /// The computation would need more memory than the limit allows (checked before the large
+    /// allocations; see [`crate::memory`]), or a large allocation failed.
+    #[error("{}", memory_message(what, *needed, *limit, *explicit))]
+    Memory {
+        /// What was being computed ("reconstructing 4000 x 3000 pixels ...").
+        what: String,
+        /// Estimated (or requested) bytes.
+        needed: f64,
+        /// The limit in bytes (NaN when only the allocation failed).
+        limit: f64,
+        /// Whether the limit was the caller's `max_memory` (else the default share of the
+        /// available memory).
+        explicit: bool,
+    },
     /// The caller asked the iteration to stop (for example on Ctrl-C).
     #[error("reconstruction cancelled")]
     Cancelled,
+}
+
+fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String {
+    use crate::memory::{format_bytes, DEFAULT_FRACTION};
+    if limit.is_nan() {
+        return format!(
+            "{what}: allocating {} failed (out of memory)",
+            format_bytes(needed)
+        );
+    }
+    let source = if explicit {
+        "the max_memory given".to_string()
+    } else {
+        format!(
+            "max_memory, by default {:.0}% of the memory available",
+            DEFAULT_FRACTION * 100.0
+        )
+    };
+    format!(
+        "{what} needs about {} of memory, above the limit of {} ({source}); \
+         use smaller images (bin or crop them) or raise max_memory",
+        format_bytes(needed),
+        format_bytes(limit)
+    )
 }
 
 /// Result alias used across the crate.

@@ -45,6 +45,7 @@ pub mod geometry;
 pub mod global;
 pub mod grid;
 pub mod local;
+pub mod memory;
 pub mod multigrid;
 pub mod ordering;
 pub mod problem;
@@ -66,6 +67,6 @@ pub use render::{mesh_normals, predict, render, vertices};
 pub use rig::{Camera, Light, Rig};
 pub use solver::{
     reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Solver,
-    Timings,
+    Status, Timings,
 };
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -92,6 +92,19 @@ pub struct Problem<'a> {
 }
 
 impl<'a> Problem<'a> {
+    /// Refuses with [`crate::Error::Memory`] when reconstructing this problem with `options`
+    /// would need more memory than `options.max_memory` allows (see [`crate::memory`]).
+    pub fn check_memory(&self, options: &crate::Options) -> Result<()> {
+        crate::memory::check_reconstruction(
+            self.grid.height,
+            self.grid.width,
+            self.grid.facets.len(),
+            self.obs.channels,
+            self.obs.k,
+            options,
+        )
+    }
+
     /// Validates the input and prepares the per-facet observations.
     pub fn new(
         images: ImageStack<'a>,

@@ -22,6 +22,12 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
             width + 1
         )
     })?;
+    crate::memory::check(
+        || format!("the vertices of a {height} x {width} depth map"),
+        // Grid, geometry and positions: about 100 bytes per vertex.
+        100.0 * depth.len() as f64,
+        None,
+    )?;
     let grid = Grid::new(height, width, None)?;
     let geometry = Geometry::new(camera, &grid);
     Ok(depth
@@ -95,45 +101,63 @@ pub fn render(
             format!("mask has {} values, expected H x W = {plane}", m.len())
         })?;
     }
-    Ok(shade_images(&rig.lights, plane, channels, albedo, |p| {
+    shade_images(&rig.lights, plane, channels, albedo, |p| {
         if mask.is_some_and(|m| !m[p]) {
             return None;
         }
         let q = pixel_quad(&v, width, p);
         Some((quad_normal(&q), quad_centre(&q)))
-    }))
+    })
 }
 
 /// The k images (k, H, W, C) of pixels shaded by `lights`: `surface(p)` gives the normal and the
 /// surface point of pixel p (None: 0), `albedo` its albedo per channel. Pixels with a non-finite
-/// normal, point or albedo are 0.
+/// normal, point or albedo are 0. Refused with [`crate::Error::Memory`] when the images (and the
+/// per-pixel geometry) would not fit in the memory available.
 fn shade_images(
     lights: &[Light],
     plane: usize,
     channels: usize,
     albedo: &[f64],
     surface: impl Fn(usize) -> Option<([f64; 3], [f64; 3])> + Sync,
-) -> Vec<f64> {
+) -> Result<Vec<f64>> {
     let stride = plane * channels;
-    let mut out = vec![0.0; lights.len() * stride];
-    let per_pixel: Vec<Vec<f64>> = (0..plane)
+    let values = lights.len() as f64 * stride as f64;
+    // The f64 images, the per-pixel geometry, and a copy when they are handed on.
+    let needed = 2.0 * 8.0 * values + 56.0 * plane as f64;
+    crate::memory::check(
+        || format!("rendering {} images of {plane} pixels", lights.len()),
+        needed,
+        None,
+    )?;
+    let geometry: Vec<Option<([f64; 3], [f64; 3])>> = (0..plane)
         .into_par_iter()
         .map(|p| {
             let rho = &albedo[p * channels..(p + 1) * channels];
-            match surface(p) {
-                Some((n, c)) if n.iter().chain(&c).chain(rho).all(|x| x.is_finite()) => {
-                    lights.iter().flat_map(|l| shade(l, n, c, rho)).collect()
-                }
-                _ => Vec::new(),
-            }
+            surface(p).filter(|(n, c)| n.iter().chain(c).chain(rho).all(|x| x.is_finite()))
         })
         .collect();
-    for (p, values) in per_pixel.iter().enumerate() {
-        for (j, value) in values.iter().enumerate() {
-            out[(j / channels) * stride + p * channels + j % channels] = *value;
-        }
+    let mut out = crate::memory::try_filled(lights.len() * stride, 0.0, "the rendered images")?;
+    if stride == 0 {
+        return Ok(out);
     }
-    out
+    out.par_chunks_mut(stride)
+        .zip(lights.par_iter())
+        .for_each(|(image, light)| {
+            for (p, g) in geometry.iter().enumerate() {
+                if let Some((n, c)) = *g {
+                    let rho = &albedo[p * channels..(p + 1) * channels];
+                    shade(
+                        light,
+                        n,
+                        c,
+                        rho,
+                        &mut image[p * channels..(p + 1) * channels],
+                    );
+                }
+            }
+        });
+    Ok(out)
 }
 
 /// Predicts the k images (k, H, W, C) of a reconstruction: each pixel shaded with its own
@@ -185,25 +209,23 @@ pub fn predict(
     } else {
         rig.lights.clone()
     };
-    Ok(shade_images(&lights, plane, channels, albedo, |p| {
+    shade_images(&lights, plane, channels, albedo, |p| {
         inside(p).then(|| (normals[p], quad_centre(&pixel_quad(&v, width, p))))
-    }))
+    })
 }
 
-/// The image values (one per channel of `rho`) of a facet with normal `n` and centre `c`.
-fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64]) -> Vec<f64> {
+/// Writes the image values (one per channel of `rho`) of a facet with normal `n` and centre `c`
+/// into `out`.
+fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64], out: &mut [f64]) {
     let (beta, _) = light.beta(c);
     let shading = dot(n, beta).max(0.0);
     let phi = light.intensity();
-    rho.iter()
-        .enumerate()
-        .map(|(ch, r)| {
-            let p = if rho.len() == 1 {
-                (phi[0] + phi[1] + phi[2]) / 3.0
-            } else {
-                phi[ch]
-            };
-            r * p * shading
-        })
-        .collect()
+    for (ch, (r, o)) in rho.iter().zip(out.iter_mut()).enumerate() {
+        let p = if rho.len() == 1 {
+            (phi[0] + phi[1] + phi[2]) / 3.0
+        } else {
+            phi[ch]
+        };
+        *o = r * p * shading;
+    }
 }

@@ -52,6 +52,10 @@ pub struct Options {
     pub levels: usize,
     /// Self-calibration of the lights (see [`crate::refine`]).
     pub refine: Refine,
+    /// Memory limit in bytes: a reconstruction whose estimated peak memory exceeds it is refused
+    /// with [`Error::Memory`] before the large allocations. `None`: a share of the memory the
+    /// machine has available (see [`crate::memory`]); `Some(f64::INFINITY)`: no limit.
+    pub max_memory: Option<f64>,
 }
 
 impl Options {
@@ -61,6 +65,14 @@ impl Options {
             return Err(Error::Input(format!("tol must be >= 0, got {}", self.tol)));
         }
         self.refine.validate()?;
+        if let Some(m) = self.max_memory {
+            if m.is_nan() || m <= 0.0 {
+                return Err(Error::Input(format!(
+                    "max_memory must be a positive number of bytes, got {}",
+                    crate::error::g6(m)
+                )));
+            }
+        }
         check_thresholds(self.dark, self.saturation)
     }
 
@@ -105,6 +117,7 @@ impl Default for Options {
             solver: GlobalSolver::Auto,
             levels: 0,
             refine: Refine::NONE,
+            max_memory: None,
         }
     }
 }
@@ -166,6 +179,46 @@ impl Timings {
     }
 }
 
+/// How a reconstruction ended; the result's `status_reason` gives the numbers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Status {
+    /// The largest depth change of the last iteration was at most `tol` times the lateral size.
+    Converged,
+    /// The iteration stopped without converging: at the iteration limit, or because the depth
+    /// change found no new minimum for [`STALL_WINDOW`] iterations. The surface may be usable;
+    /// the history says how far it was from converging.
+    Stalled,
+    /// The depth changes grew (the last at least [`DIVERGENCE_GROWTH`] times the smallest one of
+    /// the final level): the surface is moving away.
+    Diverged,
+    /// More than [`DEGENERATE_SHARE`] of the masked pixels could not be fitted (fewer than 3
+    /// usable observations): they kept the starting shape, which says nothing about the object.
+    Degenerate,
+}
+
+impl Status {
+    /// The status as a lowercase word ("converged", "stalled", "diverged", "degenerate").
+    pub fn name(&self) -> &'static str {
+        match self {
+            Status::Converged => "converged",
+            Status::Stalled => "stalled",
+            Status::Diverged => "diverged",
+            Status::Degenerate => "degenerate",
+        }
+    }
+}
+
+/// An iteration stops as [`Status::Stalled`] when its largest depth change has not reached a new
+/// minimum for this many iterations (so `tol = 0` with a huge iteration count cannot run forever).
+pub const STALL_WINDOW: usize = 50;
+
+/// The depth changes of the final level have grown by this factor over their minimum:
+/// [`Status::Diverged`].
+pub const DIVERGENCE_GROWTH: f64 = 10.0;
+
+/// Share of unfitted masked pixels above which a result is [`Status::Degenerate`].
+pub const DEGENERATE_SHARE: f64 = 0.5;
+
 /// The result of a reconstruction. Per-pixel arrays are (H, W) row-major, per-vertex arrays
 /// (H+1, W+1); NaN (or 0 for counts) outside the mask.
 #[derive(Debug, Clone)]
@@ -194,8 +247,12 @@ pub struct Reconstruction {
     pub gauge: Vec<f64>,
     /// One entry per iteration run.
     pub history: Vec<IterationStats>,
-    /// Whether the tolerance was reached.
+    /// Whether the tolerance was reached (exactly when `status` is [`Status::Converged`]).
     pub converged: bool,
+    /// How the run ended (see [`Status`]).
+    pub status: Status,
+    /// One sentence saying why, with the numbers.
+    pub status_reason: String,
     /// Number of negative observations inside the mask (treated as unlit).
     pub negative_observations: usize,
     /// Where the time went.
@@ -254,6 +311,7 @@ pub fn reconstruct(
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
     options.validate()?;
+    problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     check_fittable(problem, &options.fit_settings(false))?;
     crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
@@ -413,6 +471,8 @@ pub struct Solver<'p> {
     carried: bool,
     /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
     diverged: bool,
+    /// Whether the last `iterate` stopped for lack of progress (see [`STALL_WINDOW`]).
+    stalled: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
     pub(crate) check_lights: bool,
@@ -447,6 +507,7 @@ impl<'p> Solver<'p> {
             monitor: None,
             carried: false,
             diverged: false,
+            stalled: false,
             check_lights: true,
             timings: Timings {
                 factorization: t.elapsed(),
@@ -723,6 +784,8 @@ impl<'p> Solver<'p> {
         let mut best: Option<Best> = None;
         let mut last_rms = f64::NAN;
         let mut lights_converged = false;
+        let (mut smallest, mut since_smallest) = (f64::INFINITY, 0usize);
+        self.stalled = false;
         for iteration in 1..=iterations {
             // Once a light step finds nothing to improve, the lights stay for the rest of the
             // run (the mesh then converges as with known lights).
@@ -780,6 +843,15 @@ impl<'p> Solver<'p> {
             if depth_change <= tol * scale && light_change <= tol {
                 self.restore_best(best, last_rms, u);
                 return Ok((history, true));
+            }
+            if depth_change < smallest {
+                (smallest, since_smallest) = (depth_change, 0);
+            } else {
+                since_smallest += 1;
+                if since_smallest >= STALL_WINDOW {
+                    self.stalled = true;
+                    break;
+                }
             }
         }
         self.restore_best(best, last_rms, u);
@@ -913,6 +985,7 @@ impl<'p> Solver<'p> {
         self.timings.total = start.elapsed();
         let refinement = self.report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings);
+        result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = std::mem::take(&mut self.lights);
         result.refinement = refinement;
         result.gauge = self
@@ -1076,6 +1149,94 @@ impl FitOutputs {
     }
 }
 
+impl Reconstruction {
+    /// Sets `status`, `status_reason` and `converged` from the outcome: `tol_depth` is the
+    /// depth-change tolerance in depth units (`tol` times the lateral size; infinite for a
+    /// non-iterative result), `stalled` whether the iteration stopped for lack of progress.
+    pub(crate) fn assess(&mut self, tol_depth: f64, stalled: bool) {
+        use crate::error::g6;
+        let masked = self.regions.iter().filter(|&&r| r >= 0).count();
+        let unfitted = self
+            .regions
+            .iter()
+            .zip(&self.lights_used)
+            .filter(|(&r, &n)| r >= 0 && n < 3)
+            .count();
+        let level = self.history.last().map_or(0, |s| s.level);
+        let changes: Vec<f64> = self
+            .history
+            .iter()
+            .filter(|s| s.level == level)
+            .map(|s| s.depth_change)
+            .collect();
+        let last = changes.last().copied().unwrap_or(f64::NAN);
+        let smallest = changes.iter().copied().fold(f64::INFINITY, f64::min);
+        let iterations = changes.len();
+        let (status, reason) = if masked > 0 && unfitted as f64 > DEGENERATE_SHARE * masked as f64 {
+            (
+                Status::Degenerate,
+                format!(
+                    "{unfitted} of {masked} masked pixels ({:.0} %) had fewer than 3 usable \
+                     observations and kept the starting shape; check dark, saturation, valid, \
+                     the mask and the lights",
+                    100.0 * unfitted as f64 / masked as f64
+                ),
+            )
+        } else if self.converged {
+            if tol_depth.is_finite() {
+                (
+                    Status::Converged,
+                    format!(
+                        "the largest depth change of iteration {iterations} ({}) is within the \
+                         tolerance ({})",
+                        g6(last),
+                        g6(tol_depth)
+                    ),
+                )
+            } else {
+                (
+                    Status::Converged,
+                    "a direct (non-iterative) solution".to_string(),
+                )
+            }
+        } else if iterations >= 2 && last > DIVERGENCE_GROWTH * smallest && last > tol_depth {
+            (
+                Status::Diverged,
+                format!(
+                    "the depth changes grew from {} to {} at iteration {iterations}: the surface \
+                     is moving away (check the rig, the starting depth and the thresholds)",
+                    g6(smallest),
+                    g6(last)
+                ),
+            )
+        } else if stalled {
+            (
+                Status::Stalled,
+                format!(
+                    "no progress in the last {STALL_WINDOW} of {iterations} iterations: the \
+                     largest depth change stays at {} (smallest {}), above the tolerance ({})",
+                    g6(last),
+                    g6(smallest),
+                    g6(tol_depth)
+                ),
+            )
+        } else {
+            (
+                Status::Stalled,
+                format!(
+                    "stopped at the iteration limit ({iterations}) with a largest depth change \
+                     of {}, above the tolerance ({}); more iterations may help",
+                    g6(last),
+                    g6(tol_depth)
+                ),
+            )
+        };
+        self.status = status;
+        self.status_reason = reason;
+        self.converged = status == Status::Converged;
+    }
+}
+
 /// Assembles the result: the per-pixel `outputs` and the unknowns `z` scattered onto the
 /// vertex grid.
 pub(crate) fn assemble(
@@ -1108,6 +1269,12 @@ pub(crate) fn assemble(
             .collect(),
         history,
         converged,
+        status: if converged {
+            Status::Converged
+        } else {
+            Status::Stalled
+        },
+        status_reason: String::new(),
         negative_observations: problem.negative_observations,
         timings,
         lights: problem.rig.lights.clone(),

@@ -118,6 +118,13 @@ impl Scene {
                 "a scene needs n >= 2 pixels and positive size and distance, got n = {n}, size = {size}, distance = {distance}"
             )));
         }
+        let side = n as f64 + 1.0;
+        crate::memory::check(
+            || format!("a {n} x {n} synthetic scene"),
+            // Depth, lateral positions, albedo, mask and the mean-depth grid: ~100 B per vertex.
+            100.0 * side * side,
+            None,
+        )?;
         let camera = if options.pinhole {
             let f = n as f64 * distance / size;
             let c = (n as f64 - 1.0) / 2.0;

@@ -1,0 +1,277 @@
+//! Memory budget: what a computation will need, what the machine can give, and fallible buffers.
+//!
+//! Running out of memory inside Rust aborts the process, so every large computation first
+//! estimates its peak memory from the problem's size and refuses with [`Error::Memory`] when the
+//! estimate exceeds the limit: the caller's `max_memory`, or by default [`DEFAULT_FRACTION`] of
+//! what the machine has available ([`available`]). The big buffers are then allocated with
+//! [`try_filled`], which reports a failed allocation as the same error instead of aborting.
+//!
+//! The per-pixel constants of [`reconstruction`] are peak resident memory measured above the
+//! input image stack (`VmHWM`, 512² to 2048², 4 to 27 lights, orthographic and pinhole, grey and
+//! RGB): about 216 bytes per pixel with the multigrid global step (it does not grow with the
+//! number of lights: the stack is read in place), +170 with light refinement, and about 1 kB per
+//! pixel with the direct sparse Cholesky, whose fill grows slowly with the size. The estimate
+//! rounds them up; it is a guard against aborts, not an accountant.
+
+use crate::error::{Error, Result};
+use crate::global::GlobalSolver;
+use crate::solver::Options;
+
+/// Share of the available memory a computation may use when no limit is given.
+pub const DEFAULT_FRACTION: f64 = 0.8;
+
+/// Fixed overhead of a reconstruction (thread pools, small systems, the coarsest level).
+const FIXED: f64 = 64e6;
+/// Bytes per frame pixel: the full-frame output maps (normals, albedo, residuals, depth,
+/// vertices, mesh normals) as float64.
+const PER_PIXEL: f64 = 112.0;
+/// Extra bytes per frame pixel and colour channel beyond the first.
+const PER_CHANNEL: f64 = 16.0;
+/// Bytes per masked facet: per-facet fits, the vertex grid, the multigrid hierarchy.
+const PER_FACET: f64 = 128.0;
+/// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
+const PER_FACET_REFINE: f64 = 192.0;
+/// Extra bytes per facet with the direct sparse Cholesky at one megapixel (its fill grows
+/// like `n log n`: see [`reconstruction`]).
+const PER_FACET_DIRECT: f64 = 900.0;
+
+/// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
+/// masked pixels and `channels` colour channels, beyond the input images themselves.
+///
+/// `bytes = 64 MB + (112 + 16 (C - 1)) H W + (128 + 192 [refine] + 900 f(n) [direct]) n`,
+/// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
+/// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
+pub fn reconstruction(
+    height: usize,
+    width: usize,
+    facets: usize,
+    channels: usize,
+    options: &Options,
+) -> f64 {
+    let frame = height as f64 * width as f64;
+    let n = facets as f64;
+    let mut per_facet = PER_FACET;
+    if options.refine.intensity || options.refine.position {
+        per_facet += PER_FACET_REFINE;
+    }
+    if options.solver == GlobalSolver::Direct {
+        let growth = 1.0 + 0.15 * (n / (1u64 << 20) as f64).log2().max(0.0);
+        per_facet += PER_FACET_DIRECT * growth;
+    }
+    let channels = channels.max(1) as f64;
+    FIXED + (PER_PIXEL + PER_CHANNEL * (channels - 1.0)) * frame + per_facet * n
+}
+
+/// Bytes of memory this process can still use: the least of the system's available memory
+/// (`MemAvailable`), the free part of the cgroup's limit, and the free part of the address-space
+/// limit (`RLIMIT_AS`, measured against the current `VmSize`). `None` where none of them can be
+/// read (systems other than Linux).
+pub fn available() -> Option<u64> {
+    let mut best: Option<u64> = None;
+    let mut take = |v: Option<u64>| {
+        if let Some(v) = v {
+            best = Some(best.map_or(v, |b| b.min(v)));
+        }
+    };
+    take(meminfo_available());
+    take(cgroup_free());
+    take(address_space_free());
+    best
+}
+
+/// The limit in bytes that applies: `max_memory` when given, else [`DEFAULT_FRACTION`] of
+/// [`available`]; `None` means no limit is known.
+pub fn limit(max_memory: Option<f64>) -> Option<f64> {
+    match max_memory {
+        Some(m) => Some(m),
+        None => available().map(|a| a as f64 * DEFAULT_FRACTION),
+    }
+}
+
+/// Refuses with [`Error::Memory`] when `needed` bytes exceed the limit of `max_memory` (see
+/// [`limit`]); `what` describes the computation for the message.
+pub fn check(what: impl FnOnce() -> String, needed: f64, max_memory: Option<f64>) -> Result<()> {
+    match limit(max_memory) {
+        Some(limit) if needed > limit => Err(Error::Memory {
+            what: what(),
+            needed,
+            limit,
+            explicit: max_memory.is_some(),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// Checks the memory of a reconstruction (see [`reconstruction`]) against `options.max_memory`.
+pub fn check_reconstruction(
+    height: usize,
+    width: usize,
+    facets: usize,
+    channels: usize,
+    lights: usize,
+    options: &Options,
+) -> Result<()> {
+    let needed = reconstruction(height, width, facets, channels, options);
+    check(
+        || {
+            format!(
+                "reconstructing {height} x {width} pixels ({facets} in the mask) with {lights} lights"
+            )
+        },
+        needed,
+        options.max_memory,
+    )
+}
+
+/// A vector of `len` copies of `value`, or [`Error::Memory`] when the allocation fails (instead
+/// of aborting the process).
+pub fn try_filled<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
+    let bytes = len as f64 * std::mem::size_of::<T>() as f64;
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| Error::Memory {
+        what: what.to_string(),
+        needed: bytes,
+        limit: available().map_or(f64::NAN, |a| a as f64),
+        explicit: false,
+    })?;
+    v.resize(len, value);
+    Ok(v)
+}
+
+/// Human-readable bytes with three significant digits: "512 MB", "1.25 GB".
+pub fn format_bytes(bytes: f64) -> String {
+    if !bytes.is_finite() {
+        return "unknown".to_string();
+    }
+    const UNITS: [&str; 6] = ["B", "kB", "MB", "GB", "TB", "PB"];
+    let mut value = bytes.max(0.0);
+    let mut unit = 0;
+    while value >= 1000.0 && unit + 1 < UNITS.len() {
+        value /= 1000.0;
+        unit += 1;
+    }
+    if unit == 0 || value >= 100.0 {
+        format!("{value:.0} {}", UNITS[unit])
+    } else if value >= 10.0 {
+        format!("{value:.1} {}", UNITS[unit])
+    } else {
+        format!("{value:.2} {}", UNITS[unit])
+    }
+}
+
+/// A `key: value kB` field of a /proc file, in bytes.
+fn proc_field(path: &str, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    let kb: u64 = line[key.len()..]
+        .trim_start_matches(':')
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    kb.checked_mul(1024)
+}
+
+fn meminfo_available() -> Option<u64> {
+    proc_field("/proc/meminfo", "MemAvailable")
+}
+
+/// `memory.max - memory.current` of this process's cgroup (v2), when a limit is set.
+fn cgroup_free() -> Option<u64> {
+    let cgroups = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    let path = cgroups.lines().find_map(|l| l.strip_prefix("0::"))?;
+    let dir = format!("/sys/fs/cgroup{}", path.trim_end_matches('/'));
+    let read = |name: &str| std::fs::read_to_string(format!("{dir}/{name}")).ok();
+    let max: u64 = read("memory.max")?.trim().parse().ok()?; // "max" (no limit) fails to parse
+    let current: u64 = read("memory.current")?.trim().parse().ok()?;
+    Some(max.saturating_sub(current))
+}
+
+/// `RLIMIT_AS - VmSize` when an address-space limit is set.
+#[cfg(unix)]
+fn address_space_free() -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit only writes the struct we pass.
+    if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } != 0
+        || limit.rlim_cur == libc::RLIM_INFINITY
+    {
+        return None;
+    }
+    let used = proc_field("/proc/self/status", "VmSize")?;
+    Some((limit.rlim_cur as u64).saturating_sub(used))
+}
+
+#[cfg(not(unix))]
+fn address_space_free() -> Option<u64> {
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_estimate_grows_with_the_pixels_and_the_options() {
+        let plain = Options::default();
+        let small = reconstruction(512, 512, 512 * 512, 1, &plain);
+        let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
+        // Linear in the pixels beyond the fixed part; measured ~216 B/px at 2048².
+        assert!((large - FIXED) / (small - FIXED) > 15.9);
+        assert!((230.0..260.0).contains(&((large - FIXED) / (2048.0 * 2048.0))));
+        let refine = Options {
+            refine: crate::refine::Refine {
+                intensity: true,
+                ..crate::refine::Refine::NONE
+            },
+            ..plain
+        };
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &refine) > large);
+        let direct = Options {
+            solver: GlobalSolver::Direct,
+            ..plain
+        };
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &direct) > 4.0 * large);
+        // Absurd sizes give a huge number, not an overflow.
+        let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, &plain);
+        assert!(absurd.is_finite() && absurd > 1e40);
+    }
+
+    #[test]
+    fn a_limit_below_the_estimate_is_refused_with_both_numbers() {
+        let err = check(|| "rendering".into(), 3e9, Some(1e9)).unwrap_err();
+        let text = err.to_string();
+        assert!(text.contains("rendering"), "{text}");
+        assert!(
+            text.contains("3.00 GB") && text.contains("1.00 GB"),
+            "{text}"
+        );
+        assert!(text.contains("max_memory"), "{text}");
+        assert!(check(|| "x".into(), 1e6, Some(1e9)).is_ok());
+    }
+
+    #[test]
+    fn available_memory_is_known_on_linux() {
+        if cfg!(target_os = "linux") {
+            let a = available().expect("MemAvailable");
+            assert!(a > 0);
+        }
+    }
+
+    #[test]
+    fn failed_allocations_are_errors() {
+        let err = try_filled(usize::MAX / 2, 0u64, "a huge buffer").unwrap_err();
+        assert!(matches!(err, Error::Memory { .. }));
+        assert_eq!(try_filled(3, 1u8, "small").unwrap(), vec![1, 1, 1]);
+    }
+
+    #[test]
+    fn bytes_print_with_three_digits() {
+        assert_eq!(format_bytes(512.0), "512 B");
+        assert_eq!(format_bytes(1.25e9), "1.25 GB");
+        assert_eq!(format_bytes(45.6e6), "45.6 MB");
+        assert_eq!(format_bytes(f64::NAN), "unknown");
+    }
+}
