@@ -201,7 +201,7 @@ fn address_space_free() -> Option<u64> {
         return None;
     }
     let used = proc_field("/proc/self/status", "VmSize")?;
-    Some((limit.rlim_cur as u64).saturating_sub(used))
+    Some(limit.rlim_cur.saturating_sub(used))
 }
 
 #[cfg(not(unix))]
