@@ -100,6 +100,9 @@ fn decode(path: &Path, max_pixels: u64) -> Result<Decoded, String> {
         _ => e.to_string(),
     })?;
     let mut decoder = png::Decoder::new(BufReader::with_capacity(READ_BUFFER, file));
+    // Verify the chunks' CRCs and the zlib stream's Adler-32 (the crate skips the latter by
+    // default): a corrupted file is an error, not an image with a few wrong pixels.
+    decoder.ignore_checksums(false);
     let header = decoder.read_header_info().map_err(|e| e.to_string())?;
     let (width, height) = (header.width, header.height);
     if u64::from(width) * u64::from(height) > max_pixels {
@@ -155,6 +158,21 @@ fn read_rows<T: Copy + Default, R: std::io::BufRead + std::io::Seek>(
     if row_len == 0 {
         return Ok(out);
     }
+    read_frame(reader, row_len, &mut out, convert)?;
+    // Read to the end of the image data, so that its CRC and Adler-32 are verified.
+    reader
+        .finish()
+        .map_err(|e| format!("the image data is corrupt ({e})"))?;
+    Ok(out)
+}
+
+/// [`read_rows`] into `out`.
+fn read_frame<T: Copy + Default, R: std::io::BufRead + std::io::Seek>(
+    reader: &mut png::Reader<R>,
+    row_len: usize,
+    out: &mut [T],
+    convert: impl Fn(&[u8], &mut [T]),
+) -> Result<(), String> {
     if reader.info().interlaced {
         // Adam7 rows arrive pass by pass: decode the whole frame, then convert it.
         let size = reader
@@ -177,7 +195,7 @@ fn read_rows<T: Copy + Default, R: std::io::BufRead + std::io::Seek>(
             convert(row.data(), dst);
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 /// Copies the first `channels` of every pixel's `samples` 8-bit samples.

@@ -9,6 +9,7 @@ mod calibrate;
 mod convert;
 mod decode;
 mod errors;
+mod interrupt;
 mod pool;
 
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -20,6 +21,7 @@ use convert::{
     reconstruction_dict, rig_from,
 };
 use errors::{no_panic, py_error, to_py};
+use interrupt::interruptible;
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
 fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
@@ -268,9 +270,11 @@ fn reconstruct<'py>(
         .transpose()?;
     let options = options_from(py, options)?;
     let mut callback_error: Option<PyErr> = None;
-    let result = py.detach(|| {
+    let cancel = nplps::Cancel::new();
+    let result = interruptible(py, &cancel, || {
         no_panic(|| {
             let mut problem = input.problem(&options)?;
+            problem.cancel = cancel.clone();
             if let Some(map) = prior {
                 problem.set_prior(map, prior_weight)?;
             }
@@ -316,7 +320,7 @@ fn reconstruct<'py>(
     if let Some(e) = callback_error {
         return Err(e);
     }
-    let (result, estimate) = result.map_err(|e| to_py(py, e))?;
+    let (result, estimate) = result?;
     let d = reconstruction_dict(py, result)?;
     if let Some(estimate) = estimate {
         let e = PyDict::new(py);
@@ -352,9 +356,15 @@ fn reconstruct_parallel<'py>(
         depth_map.as_ref(),
     )?;
     let options = options_from(py, options)?;
-    let result =
-        py.detach(|| no_panic(|| nplps::reconstruct_parallel(&input.problem(&options)?, &options)));
-    reconstruction_dict(py, result.map_err(|e| to_py(py, e))?)
+    let cancel = nplps::Cancel::new();
+    let result = interruptible(py, &cancel, || {
+        no_panic(|| {
+            let mut problem = input.problem(&options)?;
+            problem.cancel = cancel.clone();
+            nplps::reconstruct_parallel(&problem, &options)
+        })
+    })?;
+    reconstruction_dict(py, result)
 }
 
 /// Images (k, H, W) or (k, H, W, 3) of the surface `depth` (H+1, W+1) with albedo (H, W) or

@@ -394,7 +394,7 @@ pub fn reconstruct_auto(
             solver.iterate_first(&mut u, &gauge, start, progress)?
         };
         history.extend(fine);
-        Ok((solver.finish(&u, history, converged, start), estimate))
+        Ok((solver.finish(&u, history, converged, start)?, estimate))
     })?
 }
 

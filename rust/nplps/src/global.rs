@@ -383,6 +383,14 @@ impl GlobalStep {
         })
     }
 
+    /// Makes the conjugate gradients stop early once `cancel` is cancelled (the direct solver's
+    /// factorization and solves are single library calls and run to their end).
+    pub fn set_cancel(&mut self, cancel: &crate::Cancel) {
+        if let GlobalStep::Multigrid { system, .. } = self {
+            system.cancel = cancel.clone();
+        }
+    }
+
     /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
     /// (0 for the direct solver). A multigrid solve that needed more than
     /// [`FALLBACK_ITERATIONS`] is redone, and the system kept, with the direct solver when the
@@ -407,7 +415,7 @@ impl GlobalStep {
                 }
                 let iterations = system.solve(grid, targets, z_current, z_out);
                 system.max_iterations = limit;
-                if iterations > FALLBACK_ITERATIONS {
+                if iterations > FALLBACK_ITERATIONS && !system.cancel.is_cancelled() {
                     if let Some(parts) = fallback.take() {
                         let (par, prior) = *parts;
                         let mut direct = GlobalSystem::with_ordering(

@@ -39,6 +39,7 @@ pub mod anderson;
 pub mod baseline;
 pub mod calibrate;
 pub mod calibration_scene;
+pub mod cancel;
 pub mod distance;
 pub mod error;
 pub mod geometry;
@@ -57,6 +58,7 @@ pub mod solver;
 pub mod synth;
 
 pub use baseline::reconstruct_parallel;
+pub use cancel::Cancel;
 pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
 pub use error::{Error, Result};
 pub use global::GlobalSolver;

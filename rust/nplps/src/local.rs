@@ -279,6 +279,9 @@ pub struct LocalStep<'s> {
     /// The depth of every unknown, when the caller has it (a pinhole camera's unknowns are
     /// log-depths: this saves an `exp` per facet corner); None: from the unknowns.
     pub depths: Option<&'s [f64]>,
+    /// Checked every few facets: once cancelled, the remaining facets are skipped (the caller
+    /// must then check the token and discard the step).
+    pub cancel: &'s crate::Cancel,
 }
 
 impl LocalStep<'_> {
@@ -321,6 +324,9 @@ impl LocalStep<'_> {
             fits.par_chunks_mut(LANES).enumerate().for_each_init(
                 || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
                 |(buf, interleaved), (chunk, fits)| {
+                    if self.cancel.is_cancelled() {
+                        return;
+                    }
                     let start = first + chunk * LANES;
                     if fits.len() == LANES {
                         let lanes = self.fit_lanes(lights, start, u, buf, interleaved);
@@ -336,7 +342,11 @@ impl LocalStep<'_> {
         }
         fits.par_iter_mut().enumerate().for_each_init(
             || vec![0.0f32; per],
-            |buf, (i, fit)| *fit = self.fit(first + i, u, buf),
+            |buf, (i, fit)| {
+                if !self.cancel.is_cancelled() {
+                    *fit = self.fit(first + i, u, buf);
+                }
+            },
         );
     }
 
@@ -352,6 +362,9 @@ impl LocalStep<'_> {
                 .for_each_init(
                     || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
                     |(buf, interleaved), (chunk, (targets, stats))| {
+                        if self.cancel.is_cancelled() {
+                            return;
+                        }
                         let first = chunk * LANES;
                         if targets.len() == LANES {
                             let fits = self.fit_lanes(lights, first, u, buf, interleaved);
@@ -377,6 +390,9 @@ impl LocalStep<'_> {
             .for_each_init(
                 || vec![0.0f32; per],
                 |buf, (f, (target, stat))| {
+                    if self.cancel.is_cancelled() {
+                        return;
+                    }
                     let fit = self.fit(f, u, buf);
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
@@ -731,6 +747,7 @@ pub fn local_step(
         obs,
         settings,
         depths: None,
+        cancel: crate::Cancel::never(),
     }
     .run(u, 0, fits);
 }
@@ -1147,6 +1164,7 @@ mod tests {
                 ..FitSettings::default()
             },
             depths: None,
+            cancel: crate::Cancel::never(),
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();
@@ -1212,6 +1230,7 @@ mod tests {
                     ..FitSettings::default()
                 },
                 depths,
+                cancel: crate::Cancel::never(),
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];

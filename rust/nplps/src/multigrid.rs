@@ -663,6 +663,9 @@ pub struct MultigridSystem {
     pub rtol: f64,
     /// Most conjugate-gradient iterations per solve.
     pub max_iterations: usize,
+    /// Checked at every conjugate-gradient iteration: once cancelled, the solve stops early
+    /// (the caller checks the token and discards the step).
+    pub cancel: crate::Cancel,
 }
 
 impl MultigridSystem {
@@ -754,6 +757,7 @@ impl MultigridSystem {
             prior_rhs: prior_right_side(prior),
             rtol: 1e-6,
             max_iterations: MAX_ITERATIONS,
+            cancel: crate::Cancel::default(),
         })
     }
 
@@ -820,7 +824,7 @@ impl MultigridSystem {
             let k = &mut self.krylov;
             k.p.copy_from_slice(&k.z);
             let mut rz = dot(&k.r, &k.z);
-            while iterations < self.max_iterations {
+            while iterations < self.max_iterations && !self.cancel.is_cancelled() {
                 iterations += 1;
                 let k = &mut self.krylov;
                 let pq = residual(&self.levels[0], &k.p, None, &mut k.q);

@@ -89,6 +89,8 @@ pub struct Problem<'a> {
     pub negative_observations: usize,
     /// Optional depth prior fused in the global step.
     pub prior: Option<Prior>,
+    /// Cancellation token checked while the problem is solved (never cancelled by default).
+    pub cancel: crate::Cancel,
 }
 
 impl<'a> Problem<'a> {
@@ -164,6 +166,7 @@ impl<'a> Problem<'a> {
             gauge,
             negative_observations,
             prior: None,
+            cancel: crate::Cancel::default(),
         })
     }
 }

@@ -125,6 +125,9 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         .par_chunks_mut(row_len)
         .enumerate()
         .for_each(|(j, out)| {
+            if problem.cancel.is_cancelled() {
+                return;
+            }
             let (i, cr) = (j / ch, j % ch);
             let mut sum = [0.0f64; 3];
             for cc in 0..cw {
@@ -153,6 +156,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
                 }
             }
         });
+    problem.cancel.check()?;
     let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN);
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
     let prior = problem.prior.as_ref().map(|p| Prior {
@@ -227,6 +231,7 @@ pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Problem<'_> {
         u0: data.u0,
         negative_observations: 0,
         prior: data.prior,
+        cancel: crate::Cancel::default(),
     }
 }
 
@@ -239,11 +244,14 @@ pub fn coarse_problems<'r>(
 ) -> Result<Vec<Problem<'r>>> {
     let mut out: Vec<Problem<'r>> = Vec::with_capacity(rigs.len());
     for rig in rigs {
+        problem.cancel.check()?;
         let data = match out.last() {
             None => coarsen(problem, settings)?,
             Some(p) => coarsen(p, settings)?,
         };
-        out.push(coarse_problem(data, rig));
+        let mut coarse = coarse_problem(data, rig);
+        coarse.cancel = problem.cancel.clone();
+        out.push(coarse);
     }
     Ok(out)
 }

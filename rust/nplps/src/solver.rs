@@ -335,7 +335,7 @@ pub fn reconstruct(
             solver.iterate_first(&mut u, &problem.gauge, start, progress)?
         };
         history.extend(fine);
-        Ok(solver.finish(&u, history, converged, start))
+        solver.finish(&u, history, converged, start)
     })?
 }
 
@@ -483,13 +483,16 @@ pub struct Solver<'p> {
 impl<'p> Solver<'p> {
     /// Factors the global system of `problem` (with its prior, if any).
     pub fn new(problem: &'p Problem<'p>, options: &Options) -> Result<Solver<'p>> {
+        problem.cancel.check()?;
         let t = Instant::now();
-        let system = GlobalStep::new(
+        let mut system = GlobalStep::new(
             &problem.grid,
             options.solver,
             sparse_par(options.parallel_sparse),
             problem.prior.as_ref(),
         )?;
+        system.set_cancel(&problem.cancel);
+        problem.cancel.check()?;
         let n = problem.grid.n_facets();
         Ok(Solver {
             problem,
@@ -734,6 +737,7 @@ impl<'p> Solver<'p> {
             obs: &p.obs,
             settings: self.options.fit_settings(fast_residual),
             depths,
+            cancel: &p.cancel,
         }
     }
 
@@ -803,6 +807,7 @@ impl<'p> Solver<'p> {
                 }
             }
             self.local(u);
+            p.cancel.check()?;
             last_rms = rms_of(&self.stats, p.obs.channels);
             if self.safeguard(&mut best, last_rms, u) {
                 // The residual rose well above the best state's: back to it, with a fresh
@@ -813,6 +818,7 @@ impl<'p> Solver<'p> {
             let t = Instant::now();
             let system = self.system.as_mut().expect("the solver has not finished");
             let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
+            p.cancel.check()?;
             p.grid.apply_gauge(&mut self.next, gauge);
             if let (Some(accel), Some(before)) = (accel.as_mut(), before) {
                 light_change = self.accelerate(accel, u, &before, distance);
@@ -963,7 +969,7 @@ impl<'p> Solver<'p> {
         history: Vec<IterationStats>,
         converged: bool,
         start: Instant,
-    ) -> Reconstruction {
+    ) -> Result<Reconstruction> {
         let t = Instant::now();
         drop(std::mem::take(&mut self.targets));
         drop(std::mem::take(&mut self.stats));
@@ -978,6 +984,7 @@ impl<'p> Solver<'p> {
         for first in (0..n).step_by(FINAL_CHUNK) {
             let chunk = &mut fits[..(n - first).min(FINAL_CHUNK)];
             step.run(u, first, chunk);
+            problem.cancel.check()?;
             outputs.scatter(problem, first, chunk);
         }
         drop(fits);
@@ -995,7 +1002,7 @@ impl<'p> Solver<'p> {
             .iter()
             .map(|&g| self.problem.geometry.depth(g))
             .collect();
-        result
+        Ok(result)
     }
 }
 
