@@ -299,8 +299,10 @@ class Rig:
         )
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the rig file (JSON)."""
-        with open(path, "w", encoding="utf-8") as f:
+        """Writes the rig file (JSON), under a temporary name renamed when complete."""
+        from ._atomic import atomic_write
+
+        with atomic_write(path, "w", encoding="utf-8") as f:
             json.dump(self.to_dict(), f, indent=2)
             f.write("\n")
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _core, export
+from ._outdir import result_directory
 from .api import render
 from .errors import InputError
 from .rig import Rig
@@ -57,28 +58,27 @@ class Scene:
         z = self.depth[used]
         return float(np.exp(np.log(z).mean())) if self.rig.is_pinhole else float(z.mean())
 
-    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+    def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
         """Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
-        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``.
+        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``, and the
+        manifest ``nplps-manifest.json``.
 
         Images are scaled so that their maximum is 65535; the scale is absorbed by the albedo.
+        ``directory`` must be empty unless ``overwrite=True``, as for
+        :meth:`nplps.Reconstruction.save` (an earlier scene's images are then removed).
         """
-        import imageio.v3 as iio
-
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        scale = 65535.0 / max(float(self.images.max()), 1e-300)
-        paths: dict[str, Path] = {}
-        for i, image in enumerate(self.images):
-            p = out / f"image_{i:02d}.png"
-            export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
-            paths[f"image_{i:02d}"] = p
-        self.rig.save(out / "rig.json")
-        iio.imwrite(out / "mask.png", (self.mask * 255).astype(np.uint8))
-        export.save_depth_npy(out / "depth_gt.npy", self.depth)
-        np.save(out / "normals_gt.npy", self.normals)
-        np.save(out / "albedo_gt.npy", self.albedo * scale / 65535.0)
-        paths.update(rig=out / "rig.json", mask=out / "mask.png", depth_gt=out / "depth_gt.npy")
+        with result_directory(directory, overwrite) as out:
+            scale = 65535.0 / max(float(self.images.max()), 1e-300)
+            paths: dict[str, Path] = {}
+            for i, image in enumerate(self.images):
+                p = paths[f"image_{i:02d}"] = out.file(f"image_{i:02d}.png")
+                export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
+            paths.update(rig=out.file("rig.json"), mask=out.file("mask.png"), depth_gt=out.file("depth_gt.npy"))
+            self.rig.save(paths["rig"])
+            export.write_png8(paths["mask"], (self.mask * 255).astype(np.uint8))
+            export.save_depth_npy(paths["depth_gt"], self.depth)
+            export.save_npy(out.file("normals_gt.npy"), self.normals)
+            export.save_npy(out.file("albedo_gt.npy"), self.albedo * scale / 65535.0)
         return paths
 
 
