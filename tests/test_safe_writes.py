@@ -179,7 +179,9 @@ def test_exception_in_a_writer_leaves_no_file(tmp_path: Path, result: nplps.Reco
     assert files_under(tmp_path / "r") == set()  # mesh.ply is the first file: nothing else either
 
 
-def test_exception_while_overwriting_keeps_the_old_files(tmp_path: Path, result: nplps.Reconstruction, monkeypatch) -> None:
+def test_exception_while_overwriting_keeps_the_old_files(
+    tmp_path: Path, result: nplps.Reconstruction, monkeypatch
+) -> None:
     out = tmp_path / "r"
     result.save(out)
     before = {name: (out / name).read_bytes() for name in files_under(out)}
@@ -274,6 +276,7 @@ def test_save_refuses_a_non_empty_directory(tmp_path: Path, result: nplps.Recons
     with pytest.raises(OutputExistsError, match="is not empty; pass overwrite=True") as info:
         result.save(tmp_path)
     assert isinstance(info.value, FileExistsError) and isinstance(info.value, nplps.NplpsError)
+    assert nplps.OutputExistsError is OutputExistsError
     assert info.value.filename == str(tmp_path) and str(tmp_path) in str(info.value)
     assert files_under(tmp_path) == {"notes.txt"}
     # An earlier result: the message says so.
@@ -380,7 +383,8 @@ def test_cli_overwrite_removes_an_earlier_baseline_and_distance_curve(
     assert set(read_manifest(out) or []) == now - {MANIFEST, "notes.txt", "baseline/my_notes.txt"}
 
     # Without any user file in baseline/, the emptied folder goes too.
-    rc, _, _ = run(capsys, reconstruct_argv(scene_dir, out, "--depth", repr(scene.mean_depth), "--baseline", "--overwrite"))
+    depth = repr(scene.mean_depth)
+    rc, _, _ = run(capsys, reconstruct_argv(scene_dir, out, "--depth", depth, "--baseline", "--overwrite"))
     assert rc == 0
     (out / "baseline" / "my_notes.txt").unlink()
     rc, _, _ = run(capsys, reconstruct_argv(scene_dir, out, "--depth", repr(scene.mean_depth), "--overwrite"))
@@ -407,7 +411,9 @@ def test_scene_overwrite_removes_images_of_an_earlier_scene(tmp_path: Path, scen
 # --------------------------------------------------------------------------------------------------
 
 
-def test_manifest_lists_exactly_the_files_written(tmp_path: Path, auto_result: nplps.Reconstruction, scene: nplps.Scene) -> None:
+def test_manifest_lists_exactly_the_files_written(
+    tmp_path: Path, auto_result: nplps.Reconstruction, scene: nplps.Scene
+) -> None:
     paths = auto_result.save(tmp_path / "r")
     written = {p.relative_to(tmp_path / "r").as_posix() for p in paths.values()}
     assert {"rig_refined.json", "distance_curve.csv", "distance_curve.svg", "summary.json"} <= written

@@ -56,7 +56,9 @@ def atomic_path(path: PathLike) -> Iterator[str]:
 
 
 @contextmanager
-def atomic_write(path: PathLike, mode: str = "wb", encoding: str | None = None, newline: str | None = None) -> Iterator[IO[Any]]:
+def atomic_write(
+    path: PathLike, mode: str = "wb", encoding: str | None = None, newline: str | None = None
+) -> Iterator[IO[Any]]:
     """Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under
     a temporary name and renamed to ``path`` when the block ends without an exception; on an
     exception it is removed and ``path`` is left as it was.

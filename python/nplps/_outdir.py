@@ -98,7 +98,8 @@ class ResultDirectory(os.PathLike):
         """Ends the run (a subdirectory's close does nothing): when ``complete``, removes the
         earlier run's files that this run did not write and writes the manifest of this run's
         files; otherwise (the run failed) writes a manifest of the earlier run's files and the
-        files of this run that exist, so that nothing nplps wrote is forgotten. Nothing is done if nothing was written."""
+        files of this run that exist, so that nothing nplps wrote is forgotten. Nothing is done
+        if nothing was written."""
         run = self._run
         if self._prefix or run.closed:
             return
@@ -222,7 +223,9 @@ def _remove_temporaries(root: Path, written: list[str]) -> None:
     for directory in {(root / name).parent for name in written}:
         try:
             with os.scandir(directory) as entries:
-                leftovers = [e.path for e in entries if TEMPORARY_NAME.match(e.name) and e.is_file(follow_symlinks=False)]
+                leftovers = [
+                    e.path for e in entries if TEMPORARY_NAME.match(e.name) and e.is_file(follow_symlinks=False)
+                ]
         except OSError:
             continue
         for path in leftovers:
