@@ -254,8 +254,11 @@ def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
             data = json.load(f)
     except OSError as e:
         raise RigError(f"cannot read rig file {os.fspath(path)!r}: {e.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {e}") from None
+    except RecursionError:
+        raise RigError(f"rig file {os.fspath(path)!r} is nested too deeply: not a rig file") from None
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, integers of more than 4300 digits
+        message = str(e) if len(str(e)) <= 200 else str(e)[:200] + "..."
+        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {message}") from None
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
         raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
     return _camera_of(data["camera"])

@@ -229,14 +229,13 @@ class Reconstruction:
         parallel-light result predicts with its own model (each point light seen as a direction
         from the surface's centroid). Use it to compare a held-out image with its prediction.
         """
+        from .api import _check_rig, _light_indices
+
         rig = self.rig if rig is None else rig
+        _check_rig(rig)
         light_params = rig._core_lights()
         if lights is not None:
-            bad = [i for i in lights if not isinstance(i, (int, np.integer)) or not -rig.n_lights <= i < rig.n_lights]
-            if bad:
-                from .errors import InputError
-
-                raise InputError(f"lights must be indices of the rig's {rig.n_lights} lights, got {bad}")
+            lights = _light_indices(lights, rig.n_lights)
             light_params = {key: [values[i] for i in lights] for key, values in light_params.items()}
         return _core.predict(
             self.depth, self.normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"

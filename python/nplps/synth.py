@@ -15,7 +15,7 @@ import numpy as np
 
 from . import _core, export
 from ._outdir import result_directory
-from .api import render
+from .api import _finite_number, _positive, _short, _whole, render
 from .errors import InputError
 from .rig import Rig
 
@@ -101,23 +101,29 @@ def make_scene(
             of a turned cube, the sharp edge on a pixel line) or ``bumps`` (random smooth bumps).
         n: image size n x n pixels.
         size: lateral object size; distance: working distance (same unit).
-        seed: seed of the random bumps and of the noise.
-        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity
-            (images are clipped at 0 afterwards).
+        seed: seed of the random bumps and of the noise (a whole number from 0 to 2**64 - 1).
+        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity,
+            finite and >= 0 (images are clipped at 0 afterwards).
         camera: "orthographic" or "pinhole" (a camera at the origin whose view spans the object
             at the working distance).
         led: anisotropic LEDs aimed at the object (mu 0.5 to 2) with unequal RGB intensities.
         rgb: colour albedo and (k, H, W, 3) images.
         directional: every third light is a distant (directional) light.
     """
+    if not (isinstance(name, str) and name in SCENES):
+        raise InputError(f"name must be one of the scenes {', '.join(SCENES)}, got {_short(name)}")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-        raise InputError(f"n (the image size in pixels) must be a whole number of at least 2, got {n!r}")
-    if camera not in ("orthographic", "pinhole"):
-        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
-    if not noise >= 0:
-        raise InputError(f"noise must be >= 0 (a fraction of the maximum intensity), got {noise}")
+        raise InputError(f"n (the image size in pixels) must be a whole number of at least 2, got {_short(n)}")
+    if not (isinstance(camera, str) and camera in ("orthographic", "pinhole")):
+        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {_short(camera)}")
+    size = _positive(size, "size")
+    distance = _positive(distance, "distance")
+    noise = _finite_number(noise, "noise (a fraction of the maximum intensity)")
+    seed = _whole(seed, "seed", 0)
+    if seed >= 2**64:
+        raise InputError(f"seed must be less than 2**64, got {_short(seed)}")
     d = _core.synth_scene(
-        name, int(n), float(size), float(distance), int(seed),
+        name, int(n), size, distance, seed,
         pinhole=camera == "pinhole", led=led, rgb=rgb, directional=directional,
     )
     lights = d["lights"]

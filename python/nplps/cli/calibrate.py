@@ -218,6 +218,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _placement_dirs(items: Sequence[str]) -> bool:
     """Whether the PLACEMENT arguments are directories (one placement each) or files (one)."""
+    for item in items:
+        if not os.path.exists(item):
+            raise InputError(f"placement '{item}' not found: give a directory of images per placement, or the image files of one")
     dirs = [os.path.isdir(i) for i in items]
     if any(dirs) and not all(dirs):
         raise InputError("give either directories (one per placement) or the image files of one placement, not both")
