@@ -437,7 +437,7 @@ BAD_INPUTS = {
         nplps.InputError, r"depth is required"),
     "depth negative": (
         lambda s: dict(depth=-5.0),
-        nplps.InputError, r"working distance must be a positive finite number"),
+        nplps.InputError, r"depth \(the working distance\) must be a positive finite number, got -5"),
     "depth map shape": (
         lambda s: dict(depth=np.full((16, 16), 200.0)),
         nplps.InputError, r"initial depth map has shape \(16, 16\).*\(H\+1, W\+1\) = \(17, 17\)"),

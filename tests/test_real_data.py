@@ -43,7 +43,7 @@ def test_diligent_ball_beats_least_squares(tmp_path, shared_capture):
     print(f"ball: least squares {ls:.2f} deg, nplps {ours_plain:.2f} deg, nplps robust {ours:.2f} deg")
     assert 4.0 < ls < 4.6  # the README's 4.3 deg for a 16-bit grey read
     assert ours < ls and ours_plain < ls
-    result.save(_pictures(tmp_path, "diligent_ball"))
+    result.save(_pictures(tmp_path, "diligent_ball"), overwrite=True)
 
 
 def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, name: str) -> dict[str, list]:
@@ -57,7 +57,7 @@ def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, n
               f"parallel {b.relative_error:.3f} / {b.shape_error:.3f}")
     result = nplps.reconstruct(capture.images, rig, capture.mask, distance, iterations=20)
     print(f"  photometric residual (rms, all lights): {result.history[-1].rms_residual:.4g}")
-    result.save(_pictures(tmp_path, name))
+    result.save(_pictures(tmp_path, name), overwrite=True)
     return {m: [(h.relative_error, h.shape_error) for h in s] for m, s in scores.items()}
 
 

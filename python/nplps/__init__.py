@@ -16,7 +16,7 @@ Quick start::
 from . import captures, evaluation, export, io, preprocess
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
-from .errors import InputError, NplpsError, RigError, SolverError
+from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
 from .reconstruction import Iteration, LightRefinement, Reconstruction, light_changes
 from .rig import Rig
 from .synth import Scene, make_scene
@@ -39,6 +39,8 @@ __all__ = [
     "InputError",
     "RigError",
     "SolverError",
+    "MemoryLimitError",
+    "OutputExistsError",
     "io",
     "export",
     "preprocess",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 import warnings
 from typing import Any, Callable, Sequence, Union
@@ -18,12 +19,25 @@ Images = Union[np.ndarray, Sequence[Any]]
 Depth = Union[float, np.ndarray]
 Progress = Union[None, bool, Callable[[Iteration], Any]]
 
+#: Most worker threads (``threads``). Far more than any machine's cores: a larger number is a
+#: mistake, and merely starting a million threads takes many seconds before anything is computed.
+MAX_THREADS = 1024
+
+#: A depth (the working distance, or a value of an initial depth map or a depth prior at a vertex
+#: the mask uses) may be at most this many times the rig's size (:func:`_rig_size`: the farthest
+#: point light, or for an orthographic camera image corner, from the origin). Farther, the lights
+#: seen from the object differ in direction by less than a microradian, so the near-light model
+#: has nothing to work with, and float64 depths keep fewer than 10 significant digits of the
+#: object's relief: such a depth is a mistake (a wrong unit, a corrupt map), not a scene.
+MAX_DEPTH_RATIO = 1e6
+
 
 def _prepare(
     images: Images, rig: Rig, mask: Any, depth: Depth | None, color: bool | None = None
 ) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
-    if not isinstance(rig, Rig):
-        raise InputError(f"rig must be an nplps.Rig, got {type(rig).__name__}")
+    _check_rig(rig)
+    if not (color is None or isinstance(color, (bool, np.bool_))):
+        raise InputError(f"color must be None, True or False, got {_short(color)}")
     stack, levels = load_stack(images, color=True)
     if color and stack.ndim != 4:
         raise InputError("color=True needs RGB images (k, H, W, 3)")
@@ -38,23 +52,79 @@ def _prepare(
         )
     if isinstance(depth, str):
         if depth != "auto":
-            raise InputError(f"depth must be a number, a depth map or 'auto', got {depth!r}")
+            raise InputError(f"depth must be a number, a depth map or 'auto', got {_short(depth)}")
         return stack, mask_arr, _auto_start(rig), None, levels
-    if np.isscalar(depth) or np.ndim(depth) == 0:
-        d = _real(depth, "depth (the working distance)")
-        if not np.isfinite(d) or d <= 0:
-            raise InputError(f"the working distance must be a positive finite number, got {d:.6g}")
+    try:
+        scalar = np.ndim(depth) == 0
+    except ValueError:  # a ragged nested sequence: _real_array says what is wrong
+        scalar = False
+    if scalar:
+        d = _positive(depth, "depth (the working distance)")
+        _check_depth_values(np.array([d]), None, rig, (h, w), "depth (the working distance)")
         return stack, mask_arr, d, None, levels
-    depth_arr = np.asarray(depth)
-    if not (np.issubdtype(depth_arr.dtype, np.integer) or np.issubdtype(depth_arr.dtype, np.floating)):
-        raise InputError(f"the initial depth map must hold real numbers, got dtype {depth_arr.dtype}")
-    depth_map = np.ascontiguousarray(depth_arr, dtype=np.float64)
+    depth_map = _real_array(depth, "depth (the initial depth map)")
     if depth_map.shape != (h + 1, w + 1):
         raise InputError(
             f"the initial depth map has shape {depth_map.shape}; it must have one value per vertex, "
             f"(H+1, W+1) = {(h + 1, w + 1)} for {h} x {w} images"
         )
+    _check_depth_values(depth_map, mask_arr, rig, (h, w), "depth (the initial depth map)")
     return stack, mask_arr, None, depth_map, levels
+
+
+def _check_rig(rig: Any) -> None:
+    if not isinstance(rig, Rig):
+        raise InputError(f"rig must be an nplps.Rig, got {type(rig).__name__}")
+
+
+def _used_vertices(mask: np.ndarray) -> np.ndarray:
+    """(H+1, W+1) booleans: the vertices of the pixels in ``mask`` (H, W)."""
+    h, w = mask.shape
+    used = np.zeros((h + 1, w + 1), dtype=bool)
+    for dr in (0, 1):
+        for dc in (0, 1):
+            used[dr : dr + h, dc : dc + w] |= mask
+    return used
+
+
+def _rig_size(rig: Rig, shape: tuple[int, int]) -> float:
+    """The rig's size for :data:`MAX_DEPTH_RATIO`: the largest distance from the origin (the
+    camera centre) of a point light or, for an orthographic camera, of a corner of the image
+    footprint of ``shape`` (H, W) pixels; 0 when there is neither (a pinhole camera with only
+    directional lights: then no depth is too far)."""
+    sizes = [0.0]
+    points = rig.lights[~rig.directional]  # type: ignore[index]
+    if len(points):
+        sizes.append(float(np.linalg.norm(points, axis=1).max()))
+    if not rig.is_pinhole:
+        (px, py), (ox, oy) = rig.camera["pixel_size"], rig.camera["origin"]
+        h, w = shape
+        sizes += [math.hypot(ox + a * w * px, oy + b * h * py) for a in (0, 1) for b in (0, 1)]
+    size = max(sizes)
+    return size if np.isfinite(size) else 0.0
+
+
+def _check_depth_values(
+    values: np.ndarray, mask: np.ndarray | None, rig: Rig, shape: tuple[int, int], name: str
+) -> None:
+    """Fails when a finite value of ``values`` (at the vertices ``mask`` uses, if given) is
+    farther than :data:`MAX_DEPTH_RATIO` times the rig's size (see there)."""
+    size = _rig_size(rig, shape)
+    if size <= 0:
+        return
+    limit = MAX_DEPTH_RATIO * size
+    z = values if mask is None else np.where(_used_vertices(mask), values, np.nan)
+    with np.errstate(invalid="ignore"):
+        far = np.isfinite(z) & (np.abs(z) > limit)
+    if far.any():
+        i = np.unravel_index(int(np.argmax(far)), z.shape)
+        where = f" at vertex (row {i[0]}, column {i[1]})" if z.ndim == 2 else ""
+        raise InputError(
+            f"{name} is {z[i]:.6g}{where}, more than {MAX_DEPTH_RATIO:.0e} times the rig's size "
+            f"({size:.6g}, the farthest light or image corner from the camera): at such a distance the "
+            "lights act as parallel lights and the relief is lost to rounding; check the value and its unit "
+            "(the rig's)"
+        )
 
 
 def _auto_start(rig: Rig) -> float:
@@ -74,7 +144,7 @@ def _thresholds(dark: float | None, saturation: float | None, levels: int | None
         dark = 0.0 if levels is None else 1.0 / levels
     if saturation is None:
         saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
-    return float(dark), float(saturation)
+    return _real(dark, "dark"), _real(saturation, "saturation")
 
 
 def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, np.ndarray | None]:
@@ -221,7 +291,8 @@ def reconstruct(
             Required: near-light reconstruction depends on it. "auto" estimates each region's
             gauge by minimizing the photometric residual (see ``result.distance``), searching
             ``depth_range`` (near, far), or ``depth_guess / 2`` to ``depth_guess * 2``, or a range
-            derived from the lights.
+            derived from the lights. A distance, or a map value at a vertex the mask uses, more
+            than :data:`MAX_DEPTH_RATIO` (a million) times the rig's size is refused (InputError).
         iterations: maximum number of local/global iterations.
         tol: stop when the largest depth change of an iteration is at most ``tol`` times the
             lateral size of the image footprint.
@@ -236,7 +307,7 @@ def reconstruct(
             and cast shadows.
         color: None (RGB images give RGB albedo), True (require RGB) or False (average to grey).
         valid: optional (k, H, W) booleans; False marks observations to leave out.
-        threads: worker threads (None: all cores).
+        threads: worker threads (None: all cores), at most :data:`MAX_THREADS` (1024).
         depth_range, depth_guess: where ``depth="auto"`` searches.
         depth_prior: an optional (H+1, W+1) prior depth map (NaN where unknown), e.g. from a
             coarse scan, fused in the global step with ``prior_weight`` relative to the facet
@@ -307,9 +378,10 @@ def reconstruct(
         options["light_prior_weight"] = _finite_number(light_prior_weight, "light_prior_weight")
     prior = None
     if depth_prior is not None:
-        prior = np.ascontiguousarray(np.asarray(depth_prior, dtype=np.float64))
+        prior = _real_array(depth_prior, "depth_prior")
         if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
             raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
+        _check_depth_values(prior, mask_arr, rig, mask_arr.shape, "depth_prior")
     out = _core.reconstruct(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
         rig.camera,
@@ -349,8 +421,15 @@ def reconstruct_parallel(
     ``depth`` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
     theirs. Useful to see what the near-light model gains. Options as in :func:`reconstruct`;
     ``refine_lights="intensity"`` refines the intensities under this model (to convergence, the
-    model not depending on the depths); the result's ``rig`` then carries them.
+    model not depending on the depths); the result's ``rig`` then carries them. ``depth="auto"``
+    is not supported (the parallel-light model cannot tell the distance): pass the distance
+    that ``reconstruct(..., depth="auto")`` found (``result.distance``) or its depth map.
     """
+    if isinstance(depth, str) and depth == "auto":
+        raise InputError(
+            'depth="auto" is not supported by the parallel-light baseline (it cannot tell the distance): '
+            'pass the distance found by reconstruct(..., depth="auto") (result.distance) or its depth map'
+        )
     refine_mode = _refine_choice(refine_lights)
     if refine_mode not in ("none", "intensity"):
         raise InputError(f'the parallel-light baseline can refine only "intensity" (it has no light positions), got {refine_lights!r}')
@@ -384,17 +463,33 @@ def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: 
     Each pixel is the quad between its 4 corner vertices, with the quad's mesh normal and its
     centre c as the surface point: ``I = albedo * intensity * max(0, n . beta(c))`` with the
     light's ``beta`` (point light: ``(p - c) / |p - c|^3`` times the LED factor; directional: its
-    direction); attached shadows clipped at 0. Pixels outside ``mask`` are 0.
+    direction); attached shadows clipped at 0. Pixels outside ``mask`` are 0. Pixels inside
+    ``mask`` with a non-finite corner depth (NaN: unknown) are NaN in every image: their surface
+    is unknown, which must not pass for a shadow.
     """
-    z = np.ascontiguousarray(np.asarray(depth, dtype=np.float64))
+    _check_rig(rig)
+    z = _real_array(depth, "depth")
     if z.ndim != 2 or min(z.shape) < 2:
         raise InputError(f"depth must be an (H+1, W+1) vertex depth map, got shape {z.shape}")
     shape = (z.shape[0] - 1, z.shape[1] - 1)
-    a = np.asarray(albedo, dtype=np.float64)
+    a = _real_array(albedo, "albedo")
     target = shape + (3,) if a.ndim == 3 or (a.ndim == 1 and a.shape == (3,)) else shape
-    rho = np.ascontiguousarray(np.broadcast_to(a, target))
+    try:
+        rho = np.ascontiguousarray(np.broadcast_to(a, target))
+    except ValueError:
+        raise InputError(
+            f"albedo must be a number, R, G, B, or a map of the image's shape {shape} (or {shape + (3,)}), "
+            f"got shape {a.shape}"
+        ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    return _core.render(z, rig.camera, rig._core_lights(), rho, m)
+    out = _core.render(z, rig.camera, rig._core_lights(), rho, m)
+    finite = np.isfinite(z)
+    unknown = ~(finite[:-1, :-1] & finite[1:, :-1] & finite[:-1, 1:] & finite[1:, 1:])
+    if m is not None:
+        unknown &= m
+    if unknown.any():
+        out[:, unknown] = np.nan
+    return out
 
 
 def _refine_choice(mode: str | None) -> str:
@@ -406,14 +501,63 @@ def _refine_choice(mode: str | None) -> str:
     return str(mode)
 
 
+def _short(value: Any) -> str:
+    """A short description of ``value`` for messages: never a huge repr (a long string, an
+    integer of thousands of digits, a large array)."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+        bits = int(value).bit_length()
+        return str(int(value)) if bits <= 64 else f"an integer of about {int(bits * math.log10(2)) + 1} digits"
+    if isinstance(value, (float, np.floating, complex, np.complexfloating)):
+        return f"{value:.6g}"
+    if isinstance(value, (str, bytes)):
+        return repr(value) if len(value) <= 40 else repr(value[:37]) + "..."
+    if isinstance(value, np.ndarray):
+        return f"an array of dtype {value.dtype} and shape {value.shape}"
+    if isinstance(value, (bool, np.bool_)) or value is None:
+        return repr(value)
+    return f"a value of type {type(value).__name__}"
+
+
 def _real(value: Any, name: str) -> float:
     """``value`` as a float (a real number, not a string, bool or complex), or InputError."""
     if isinstance(value, (bool, np.bool_, str, bytes)) or np.iscomplexobj(value):
-        raise InputError(f"{name} must be a real number, got {value!r}")
+        raise InputError(f"{name} must be a real number, got {_short(value)}")
     try:
         return float(value)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{name} must be a real number, got {value!r}") from None
+        raise InputError(f"{name} must be a real number, got {_short(value)}") from None
+
+
+def _light_indices(lights: Any, k: int, name: str = "lights", negative: bool = True) -> list[int]:
+    """``lights`` as a list of indices of ``k`` lights (from -k with ``negative``, else from 0),
+    or InputError."""
+    try:
+        flat = not isinstance(lights, (str, bytes)) and np.ndim(lights) == 1
+    except ValueError:  # a ragged nested sequence
+        flat = False
+    if not flat:
+        raise InputError(f"{name} must be a list of light indices, got {_short(lights)}")
+    low = -k if negative else 0
+    for i in lights:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) or not low <= i < k:
+            kind = "" if isinstance(i, (int, np.integer)) else f" ({type(i).__name__})"
+            raise InputError(
+                f"{name} must be whole-number indices of the rig's {k} lights ({low} .. {k - 1}), got {_short(i)}{kind}"
+            )
+    return [int(i) for i in lights]
+
+
+def _real_array(value: Any, name: str) -> np.ndarray:
+    """``value`` as a contiguous float64 array (of integers or floats: not bools, strings,
+    complex numbers or objects), or InputError."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nested sequences
+        raise InputError(f"{name} must be an array of real numbers, got {_short(value)}") from None
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        got = _short(value if arr.ndim == 0 and not isinstance(value, np.ndarray) else arr)
+        raise InputError(f"{name} must be an array of real numbers, got {got}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
 
 
 def _positive(value: Any, name: str) -> float:
@@ -460,12 +604,15 @@ def _whole(value: Any, name: str, minimum: int) -> int:
     if isinstance(value, (int, np.integer)):
         v = int(value)
     else:
-        f = _real(value, name)
+        try:
+            f = _real(value, name)
+        except InputError:
+            raise InputError(f"{name} must be a whole number, got {_short(value)}") from None
         if not (np.isfinite(f) and f == int(f)):
-            raise InputError(f"{name} must be a whole number, got {value!r}")
+            raise InputError(f"{name} must be a whole number, got {_short(value)}")
         v = int(f)
     if v < minimum:
-        raise InputError(f"{name} must be at least {minimum}, got {v}")
+        raise InputError(f"{name} must be at least {minimum}, got {_short(v)}")
     return v
 
 
@@ -483,12 +630,9 @@ def _depth_range(value: Any) -> tuple[float, float] | None:
 
 def _finite_number(value: Any, name: str) -> float:
     """``value`` as a finite float >= 0, or InputError."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
+    v = _real(value, name)
     if not (np.isfinite(v) and v >= 0):
-        raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
+        raise InputError(f"{name} must be a finite number >= 0, got {v:.6g}")
     return v
 
 
@@ -507,8 +651,10 @@ def _levels(levels: int | None) -> int:
 
 
 def _threads(threads: int | None) -> int:
+    """``threads`` as a whole number from 1 to :data:`MAX_THREADS`, 0 for None (all cores)."""
     if threads is None:
         return 0
-    if int(threads) < 1:
-        raise InputError(f"threads must be at least 1 (or None for all cores), got {threads}")
-    return int(threads)
+    n = _whole(threads, "threads", 1)
+    if n > MAX_THREADS:
+        raise InputError(f"threads must be at most {MAX_THREADS} (or None for all cores), got {_short(n)}")
+    return n

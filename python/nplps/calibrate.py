@@ -44,6 +44,8 @@ from typing import Any, Mapping, Sequence, Union
 import numpy as np
 
 from . import _core, io
+from ._atomic import atomic_write, write_text
+from ._outdir import result_directory
 from .errors import InputError, RigError
 from .rig import Rig
 
@@ -252,8 +254,11 @@ def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
             data = json.load(f)
     except OSError as e:
         raise RigError(f"cannot read rig file {os.fspath(path)!r}: {e.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {e}") from None
+    except RecursionError:
+        raise RigError(f"rig file {os.fspath(path)!r} is nested too deeply: not a rig file") from None
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, integers of more than 4300 digits
+        message = str(e) if len(str(e)) <= 200 else str(e)[:200] + "..."
+        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {message}") from None
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
         raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
     return _camera_of(data["camera"])
@@ -264,7 +269,7 @@ def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -
     from .rig import RIG_FILE_VERSION
 
     cam = _camera_of(camera)
-    with open(path, "w", encoding="utf-8") as f:
+    with atomic_write(path, "w", encoding="utf-8") as f:
         json.dump({"version": RIG_FILE_VERSION, "camera": cam, "lights": []}, f, indent=2)
         f.write("\n")
 
@@ -644,30 +649,13 @@ class SphereScene:
         """Per placement, the true depth of each sphere centre."""
         return [[float(c[2]) for c in cs] for cs in self.centers]
 
-    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+    def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
         """Writes ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
         ``camera.json`` (the camera, no lights), ``rig_true.json`` and ``scene.json`` (radius,
-        centre depths, board depth)."""
-        import imageio.v3 as iio
-
+        centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory``
+        must be empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`)."""
         from . import export
 
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        paths: dict[str, Path] = {}
-        for p, (stack, lab) in enumerate(zip(self.images, self.labels)):
-            folder = out / f"placement_{p}"
-            folder.mkdir(exist_ok=True)
-            for i, image in enumerate(stack):
-                path = folder / f"image_{i:02d}.png"
-                if image.dtype == np.uint8:
-                    iio.imwrite(path, image)
-                else:
-                    export.write_png16(path, np.asarray(image, dtype=np.uint16))
-            iio.imwrite(folder / "mask.png", ((lab > 0) * 255).astype(np.uint8))
-            paths[f"placement_{p}"] = folder
-        save_camera(out / "camera.json", self.rig)
-        self.rig.save(out / "rig_true.json")
         meta = {
             "radius": self.radius,
             "center_depths": self.center_depths,
@@ -677,8 +665,17 @@ class SphereScene:
             "distance": self.distance,
             "size": self.size,
         }
-        (out / "scene.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
-        paths.update(camera=out / "camera.json", rig_true=out / "rig_true.json", scene=out / "scene.json")
+        with result_directory(directory, overwrite) as out:
+            paths: dict[str, Path] = {}
+            for p, (stack, lab) in enumerate(zip(self.images, self.labels)):
+                for i, image in enumerate(stack):
+                    export.write_png(out.file(f"placement_{p}/image_{i:02d}.png"), image)
+                export.write_png8(out.file(f"placement_{p}/mask.png"), ((lab > 0) * 255).astype(np.uint8))
+                paths[f"placement_{p}"] = out.path / f"placement_{p}"
+            paths.update(camera=out.file("camera.json"), rig_true=out.file("rig_true.json"), scene=out.file("scene.json"))
+            save_camera(paths["camera"], self.rig)
+            self.rig.save(paths["rig_true"])
+            write_text(paths["scene"], json.dumps(meta, indent=2) + "\n")
         return paths
 
 
@@ -695,23 +692,19 @@ class BoardScene:
     #: (H, W) board albedo.
     albedo: np.ndarray = field(repr=False)
 
-    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
-        """Writes ``image_XX.png`` and ``board.json`` (the plane) into ``directory``."""
-        import imageio.v3 as iio
-
+    def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
+        """Writes ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the
+        manifest ``nplps-manifest.json``. ``directory`` must be empty unless ``overwrite=True``
+        (see :meth:`nplps.Reconstruction.save`)."""
         from . import export
 
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        for i, image in enumerate(self.images):
-            path = out / f"image_{i:02d}.png"
-            if image.dtype == np.uint8:
-                iio.imwrite(path, image)
-            else:
-                export.write_png16(path, np.asarray(image, dtype=np.uint16))
-        normal, offset = self.plane
-        (out / "board.json").write_text(json.dumps({"normal": normal, "offset": offset}) + "\n", encoding="utf-8")
-        return {"board": out, "plane": out / "board.json"}
+        with result_directory(directory, overwrite) as out:
+            for i, image in enumerate(self.images):
+                export.write_png(out.file(f"image_{i:02d}.png"), image)
+            normal, offset = self.plane
+            plane = out.file("board.json")
+            write_text(plane, json.dumps({"normal": normal, "offset": offset}) + "\n")
+        return {"board": out.path, "plane": plane}
 
 
 def _light_indices(lights: int | Sequence[int]) -> list[int]:

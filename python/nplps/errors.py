@@ -3,8 +3,11 @@
 Every error that nplps raises on purpose derives from :class:`NplpsError`. Problems with what the
 user passed in (images, masks, rig files, depths) are :class:`InputError`, which is also a
 ``ValueError`` so that generic handlers keep working. The Rust core's typed errors are mapped onto
-these classes at the Python boundary (see ``rust/nplps-python``).
+these classes at the Python boundary (see ``rust/nplps-python``). An output directory that holds
+files and may not be overwritten is :class:`OutputExistsError`, also a ``FileExistsError``.
 """
+
+import errno
 
 
 class NplpsError(Exception):
@@ -31,3 +34,14 @@ class MemoryLimitError(NplpsError, MemoryError):
     cgroup limit or an address-space limit, whichever is least). The message gives the estimate
     and the limit. It is also a ``MemoryError``.
     """
+
+
+class OutputExistsError(NplpsError, FileExistsError):
+    """An output directory is not empty and overwriting was not asked for (``overwrite=True``,
+    ``--overwrite`` on the command line). ``filename`` is the directory; the message names it."""
+
+    def __init__(self, message: str, directory: str) -> None:
+        super().__init__(errno.EEXIST, message, directory)
+
+    def __str__(self) -> str:
+        return str(self.strerror)

@@ -12,7 +12,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from .api import _thresholds, reconstruct, reconstruct_parallel
+from .api import _check_rig, _light_indices, _short, _thresholds, reconstruct, reconstruct_parallel
 from .errors import InputError
 from .io import load_stack
 from .reconstruction import Reconstruction
@@ -56,7 +56,16 @@ def held_out(
     """
     if isinstance(depth, str):
         raise InputError("held_out needs a distance or a depth map; estimate it first with reconstruct(depth='auto')")
+    if not (isinstance(method, str) and method in ("near", "parallel")):
+        raise InputError(f'method must be "near" or "parallel", got {_short(method)}')
+    _check_rig(rig)
+    if lights is not None:
+        lights = _light_indices(lights, rig.n_lights, negative=False)
     stack, levels = load_stack(images, color=options.get("color") is not False)
+    if len(stack) != rig.n_lights:
+        raise InputError(
+            f"{len(stack)} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order"
+        )
     solve: Callable[..., Reconstruction] = reconstruct if method == "near" else reconstruct_parallel
     if method == "parallel":
         options = {k: v for k, v in options.items() if k in ("robust", "color", "threads", "valid")}

@@ -10,6 +10,10 @@ the camera (``n_z < 0`` in the OpenCV frame: x right, y down, z forward).
 Everything is vectorized with numpy (no Python loop per vertex or face), so meshes with millions
 of vertices are written quickly; the OBJ text is formatted by numpy too (see "Text formatting"),
 giving the same characters as Python's ``%`` operator.
+
+Every file is written under a temporary name in its directory and renamed into place when
+complete (see :mod:`nplps._atomic`): an error while writing never leaves a truncated file under
+the final name, and the OSError names the final path.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import imageio.v3 as iio
 import numpy as np
 import tifffile
 
+from ._atomic import atomic_path, atomic_write
 from .errors import InputError
 
 PathLike = Union[str, os.PathLike]
@@ -266,7 +271,7 @@ def write_meshes(
 
 
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
-    with open(path, "wb") as file:
+    with atomic_write(path) as file:
         file.write(_ply_header(mesh).encode("ascii"))
         file.write(_ply_vertex_records(mesh).view(np.uint8).data)  # no copy of the records
         file.write(_ply_face_records(mesh.faces).view(np.uint8).data)
@@ -431,7 +436,7 @@ def write_obj(
 
 
 def _write_obj_mesh(path: PathLike, mesh: _Mesh) -> None:
-    with open(path, "wb") as file:
+    with atomic_write(path) as file:
         file.write(f"# nplps\n# frame {mesh.frame}\n".encode("ascii"))
         _write_text(file, _obj_chunks(mesh))
 
@@ -755,7 +760,7 @@ def save_normal_map(path: PathLike, normals: np.ndarray, mask: np.ndarray | None
         flipped = np.clip(np.where(valid[..., None], n, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
         encoded[band] = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
         encoded[band][~valid] = 0
-    iio.imwrite(path, encoded, extension=".png")
+    write_png8(path, encoded)
 
 
 def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
@@ -782,7 +787,23 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
 def save_grey_png(path: PathLike, image: np.ndarray) -> None:
     """Writes an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
     image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
-    iio.imwrite(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8), extension=".png")
+    write_png8(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8))
+
+
+def write_png(path: PathLike, pixels: np.ndarray) -> None:
+    """Writes a uint8 image as an 8-bit PNG, any other integer image as a 16-bit PNG
+    (:func:`write_png16`); grey ``(H, W)`` or RGB ``(H, W, 3)``."""
+    if np.asarray(pixels).dtype == np.uint8:
+        write_png8(path, pixels)
+    else:
+        write_png16(path, np.asarray(pixels, dtype=np.uint16))
+
+
+def write_png8(path: PathLike, pixels: np.ndarray) -> None:
+    """Writes a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG (whatever the
+    extension of ``path``)."""
+    with atomic_path(path) as temporary:
+        iio.imwrite(temporary, np.asarray(pixels, dtype=np.uint8), extension=".png")
 
 
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
@@ -794,20 +815,26 @@ def write_png16(path: PathLike, pixels: np.ndarray) -> None:
     h, w = pixels.shape[:2]
     grey = pixels.ndim == 2
     rows = np.asarray(pixels, dtype=">u2").reshape(h, -1)  # PNG stores 16-bit big-endian
-    with open(path, "wb") as file:  # pre-packed rows: what Writer.write would make of the values
+    with atomic_write(path) as file:  # pre-packed rows: what Writer.write would make of the values
         png.Writer(w, h, greyscale=grey, bitdepth=16).write_packed(file, (row.tobytes() for row in rows))
 
 
 def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:
     """Save a depth map as float64 ``.npy`` (values as is, NaN kept) exactly at ``path``."""
-    depth = _depth_array(depth, np.float64)
-    with open(path, "wb") as file:
-        np.save(file, depth)
+    save_npy(path, _depth_array(depth, np.float64))
+
+
+def save_npy(path: PathLike, array: np.ndarray) -> None:
+    """Saves an array as ``.npy`` exactly at ``path`` (no ``.npy`` appended)."""
+    with atomic_write(path) as file:
+        np.save(file, np.asarray(array))
 
 
 def save_depth_tiff(path: PathLike, depth: np.ndarray) -> None:
     """Save a depth map as a float32 TIFF (NaN kept)."""
-    tifffile.imwrite(path, _depth_array(depth, np.float32))
+    depth = _depth_array(depth, np.float32)
+    with atomic_path(path) as temporary:
+        tifffile.imwrite(temporary, depth)
 
 
 def _depth_array(depth: np.ndarray, dtype: type) -> np.ndarray:

@@ -89,19 +89,26 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
         if header.startswith(_TIFF_SIGNATURES):
             image = _read_tiff(path, max_pixels)
         else:
-            # The header first (no decoding): a small file can hold a huge image.
-            shape = iio.improps(path).shape
+            # The header first (no decoding): a small file can hold a huge image. imageio reads
+            # from files opened here: given a path, it leaves the file open when no plugin can
+            # read it (a ResourceWarning), so a bad image file would leak a handle.
+            with open(path, "rb") as file:
+                shape = iio.improps(file).shape
             pixels = int(np.prod(shape[:2])) if len(shape) >= 2 else 0
             if pixels > max_pixels:
                 raise InputError(
                     f"cannot read image '{os.fspath(path)}': {shape[1]} x {shape[0]} pixels is more than "
                     f"the limit of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
                 )
-            image = np.asarray(iio.imread(path))
+            with open(path, "rb") as file:
+                image = np.asarray(iio.imread(file))
     except InputError:
         raise
     except Exception as exc:  # decoders raise many unrelated types (OSError, ValueError, ...)
-        raise InputError(f"cannot read image '{os.fspath(path)}': {exc}") from exc
+        reason = str(exc)
+        if "Could not find a backend" in reason:  # imageio's words, naming the file object
+            reason = "not an image file of a known format (PNG, TIFF, JPEG, BMP, ...)"
+        raise InputError(f"cannot read image '{os.fspath(path)}': {reason}") from exc
     return _normalize_channels(image, path)
 
 

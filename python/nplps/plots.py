@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from ._atomic import write_text
 
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b")
 
@@ -60,4 +61,4 @@ def residual_curve_svg(
         )
         parts.append(f'<text x="{sx(estimate) + 4:.1f}" y="{top + 14 + 14 * r}" fill="{color}">region {r}: {estimate:.4g}</text>')
     parts.append("</svg>")
-    Path(path).write_text("\n".join(parts) + "\n", encoding="utf-8")
+    write_text(path, "\n".join(parts) + "\n")

@@ -11,6 +11,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import _core, export, plots
+from ._atomic import write_text
+from ._outdir import result_directory
 from .rig import Rig
 
 
@@ -29,7 +31,7 @@ class DistanceEstimate:
     def save_curve(self, path: str | os.PathLike[str]) -> None:
         """Writes the residual curve(s) as CSV (region, distance, rms_residual)."""
         rows = [f"{r},{d!r},{e!r}" for r, curve in enumerate(self.curve) for d, e in curve]
-        Path(path).write_text("region,distance,rms_residual\n" + "\n".join(rows) + "\n", encoding="utf-8")
+        write_text(path, "region,distance,rms_residual\n" + "\n".join(rows) + "\n")
 
 
 class Iteration(NamedTuple):
@@ -237,14 +239,13 @@ class Reconstruction:
         parallel-light result predicts with its own model (each point light seen as a direction
         from the surface's centroid). Use it to compare a held-out image with its prediction.
         """
+        from .api import _check_rig, _light_indices
+
         rig = self.rig if rig is None else rig
+        _check_rig(rig)
         light_params = rig._core_lights()
         if lights is not None:
-            bad = [i for i in lights if not isinstance(i, (int, np.integer)) or not -rig.n_lights <= i < rig.n_lights]
-            if bad:
-                from .errors import InputError
-
-                raise InputError(f"lights must be indices of the rig's {rig.n_lights} lights, got {bad}")
+            lights = _light_indices(lights, rig.n_lights)
             light_params = {key: [values[i] for i in lights] for key, values in light_params.items()}
         return _core.predict(
             self.depth, self.normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
@@ -309,51 +310,66 @@ class Reconstruction:
             else {**self.refinement.to_dict(), "changes": self.light_changes()},
         }
 
-    def save(self, directory: str | os.PathLike[str], stem: str = "mesh", opengl: bool = False) -> dict[str, Path]:
+    def save(
+        self, directory: str | os.PathLike[str], stem: str = "mesh", opengl: bool = False, overwrite: bool = False
+    ) -> dict[str, Path]:
         """Writes the mesh (PLY and OBJ), the maps and ``summary.json`` into ``directory``.
 
         Files: ``mesh.ply``, ``mesh.obj``, ``normals.png`` (normal map, see
         :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the camera),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64)
         and ``depth.tiff`` (float32) of the vertex depths, ``normals.npy``, ``residual.npy`` and
-        ``summary.json``; with refined lights also ``rig_refined.json`` (the refined rig file).
-        Returns the paths written.
+        ``summary.json``; with ``depth="auto"`` also ``distance_curve.csv`` and
+        ``distance_curve.svg``; with refined lights also ``rig_refined.json`` (the refined rig
+        file); and last the manifest ``nplps-manifest.json`` listing the files written.
+        Returns the paths written (without the manifest).
+
+        ``directory`` is created if needed. It must be empty unless ``overwrite=True``: then
+        files of the same names are replaced and the files of an earlier result that this one
+        does not have (listed in its manifest) are removed; other files are kept. Each file is
+        written under a temporary name and renamed when complete, so an error never leaves a
+        truncated file under its final name.
+
+        Raises:
+            OutputExistsError: ``directory`` is not empty and ``overwrite`` is False.
+            OSError: a file could not be written (``filename`` names it).
         """
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = {
-            "ply": out / f"{stem}.ply",
-            "obj": out / f"{stem}.obj",
-            "normal_map": out / "normals.png",
-            "shaded": out / "shaded.png",
-            "albedo": out / "albedo.png",
-            "depth_npy": out / "depth.npy",
-            "depth_tiff": out / "depth.tiff",
-            "normals_npy": out / "normals.npy",
-            "residual_npy": out / "residual.npy",
-            "summary": out / "summary.json",
-        }
-        # One set of vertex arrays and one mesh for both files.
-        export.write_meshes(
-            paths["ply"], paths["obj"], self.vertices, self.mask, self.vertex_normals(), self.vertex_albedo(), opengl=opengl
-        )
-        export.save_normal_map(paths["normal_map"], self.normals, self.mask)
-        export.save_grey_png(paths["shaded"], self.shaded())
-        summary = self.summary()
-        summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
-        export.save_depth_npy(paths["depth_npy"], self.depth)
-        export.save_depth_tiff(paths["depth_tiff"], self.depth)
-        np.save(paths["normals_npy"], self.normals)
-        np.save(paths["residual_npy"], self.residual)
-        if self.distance is not None:
-            paths["distance_curve"] = out / "distance_curve.csv"
-            paths["distance_plot"] = out / "distance_curve.svg"
-            self.distance.save_curve(paths["distance_curve"])
-            plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
-        if self.refinement is not None:
-            paths["rig_refined"] = out / "rig_refined.json"
-            self.rig.save(paths["rig_refined"])
-        paths["summary"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        with result_directory(directory, overwrite) as out:
+            names = {
+                "ply": f"{stem}.ply",
+                "obj": f"{stem}.obj",
+                "normal_map": "normals.png",
+                "shaded": "shaded.png",
+                "albedo": "albedo.png",
+                "depth_npy": "depth.npy",
+                "depth_tiff": "depth.tiff",
+                "normals_npy": "normals.npy",
+                "residual_npy": "residual.npy",
+            }
+            if self.distance is not None:
+                names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
+            if self.refinement is not None:
+                names["rig_refined"] = "rig_refined.json"
+            names["summary"] = "summary.json"
+            paths = {key: out.file(name) for key, name in names.items()}
+            # One set of vertex arrays and one mesh for both files.
+            export.write_meshes(
+                paths["ply"], paths["obj"], self.vertices, self.mask, self.vertex_normals(), self.vertex_albedo(), opengl=opengl
+            )
+            export.save_normal_map(paths["normal_map"], self.normals, self.mask)
+            export.save_grey_png(paths["shaded"], self.shaded())
+            summary = self.summary()
+            summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
+            export.save_depth_npy(paths["depth_npy"], self.depth)
+            export.save_depth_tiff(paths["depth_tiff"], self.depth)
+            export.save_npy(paths["normals_npy"], self.normals)
+            export.save_npy(paths["residual_npy"], self.residual)
+            if self.distance is not None:
+                self.distance.save_curve(paths["distance_curve"])
+                plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
+            if self.refinement is not None:
+                self.rig.save(paths["rig_refined"])
+            write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
         return paths
 
 

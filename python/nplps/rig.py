@@ -193,8 +193,21 @@ class Rig:
         return np.array(self.camera["K"], dtype=np.float64) if self.is_pinhole else None
 
     def subset(self, indices: Sequence[int]) -> "Rig":
-        """The rig with only the lights ``indices`` (in that order)."""
-        idx = np.asarray(indices, dtype=int)
+        """The rig with only the lights ``indices`` (in that order; from -k to k - 1 for k lights)."""
+        try:
+            idx = np.asarray(indices)
+        except ValueError:  # a ragged nested sequence
+            idx = np.asarray(None)
+        k = self.n_lights
+        if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+            raise RigError(
+                f"indices must be a list of whole-number light indices, got a {type(indices).__name__} "
+                f"of {idx.dtype}, shape {idx.shape}"
+            )
+        out = (idx < -k) | (idx >= k)
+        if out.any():
+            raise RigError(f"indices: {int(idx[out][0])} is not a light of the rig (its {k} lights are {-k} .. {k - 1})")
+        idx = idx.astype(int)
         return Rig(
             camera=dict(self.camera),
             lights=self.lights[idx],
@@ -299,14 +312,18 @@ class Rig:
         )
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the rig file (JSON)."""
-        with open(path, "w", encoding="utf-8") as f:
+        """Writes the rig file (JSON), under a temporary name renamed when complete."""
+        from ._atomic import atomic_write
+
+        with atomic_write(path, "w", encoding="utf-8") as f:
             json.dump(self.to_dict(), f, indent=2)
             f.write("\n")
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> "Rig":
         """Reads a rig file; raises :class:`RigError` when it is missing or malformed."""
+        if not isinstance(path, (str, bytes, os.PathLike)):
+            raise RigError(f"a rig file is read from a path (str or os.PathLike), got {type(path).__name__}")
         try:
             with open(path, encoding="utf-8") as f:
                 data = json.load(f)

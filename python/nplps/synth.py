@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from . import _core, export
-from .api import render
+from ._outdir import result_directory
+from .api import _finite_number, _positive, _short, _whole, render
 from .errors import InputError
 from .rig import Rig
 
@@ -57,28 +58,27 @@ class Scene:
         z = self.depth[used]
         return float(np.exp(np.log(z).mean())) if self.rig.is_pinhole else float(z.mean())
 
-    def save(self, directory: str | os.PathLike[str]) -> dict[str, Path]:
+    def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
         """Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
-        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``.
+        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``, and the
+        manifest ``nplps-manifest.json``.
 
         Images are scaled so that their maximum is 65535; the scale is absorbed by the albedo.
+        ``directory`` must be empty unless ``overwrite=True``, as for
+        :meth:`nplps.Reconstruction.save` (an earlier scene's images are then removed).
         """
-        import imageio.v3 as iio
-
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        scale = 65535.0 / max(float(self.images.max()), 1e-300)
-        paths: dict[str, Path] = {}
-        for i, image in enumerate(self.images):
-            p = out / f"image_{i:02d}.png"
-            export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
-            paths[f"image_{i:02d}"] = p
-        self.rig.save(out / "rig.json")
-        iio.imwrite(out / "mask.png", (self.mask * 255).astype(np.uint8))
-        export.save_depth_npy(out / "depth_gt.npy", self.depth)
-        np.save(out / "normals_gt.npy", self.normals)
-        np.save(out / "albedo_gt.npy", self.albedo * scale / 65535.0)
-        paths.update(rig=out / "rig.json", mask=out / "mask.png", depth_gt=out / "depth_gt.npy")
+        with result_directory(directory, overwrite) as out:
+            scale = 65535.0 / max(float(self.images.max()), 1e-300)
+            paths: dict[str, Path] = {}
+            for i, image in enumerate(self.images):
+                p = paths[f"image_{i:02d}"] = out.file(f"image_{i:02d}.png")
+                export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
+            paths.update(rig=out.file("rig.json"), mask=out.file("mask.png"), depth_gt=out.file("depth_gt.npy"))
+            self.rig.save(paths["rig"])
+            export.write_png8(paths["mask"], (self.mask * 255).astype(np.uint8))
+            export.save_depth_npy(paths["depth_gt"], self.depth)
+            export.save_npy(out.file("normals_gt.npy"), self.normals)
+            export.save_npy(out.file("albedo_gt.npy"), self.albedo * scale / 65535.0)
         return paths
 
 
@@ -101,23 +101,29 @@ def make_scene(
             of a turned cube, the sharp edge on a pixel line) or ``bumps`` (random smooth bumps).
         n: image size n x n pixels.
         size: lateral object size; distance: working distance (same unit).
-        seed: seed of the random bumps and of the noise.
-        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity
-            (images are clipped at 0 afterwards).
+        seed: seed of the random bumps and of the noise (a whole number from 0 to 2**64 - 1).
+        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity,
+            finite and >= 0 (images are clipped at 0 afterwards).
         camera: "orthographic" or "pinhole" (a camera at the origin whose view spans the object
             at the working distance).
         led: anisotropic LEDs aimed at the object (mu 0.5 to 2) with unequal RGB intensities.
         rgb: colour albedo and (k, H, W, 3) images.
         directional: every third light is a distant (directional) light.
     """
+    if not (isinstance(name, str) and name in SCENES):
+        raise InputError(f"name must be one of the scenes {', '.join(SCENES)}, got {_short(name)}")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-        raise InputError(f"n (the image size in pixels) must be a whole number of at least 2, got {n!r}")
-    if camera not in ("orthographic", "pinhole"):
-        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
-    if not noise >= 0:
-        raise InputError(f"noise must be >= 0 (a fraction of the maximum intensity), got {noise}")
+        raise InputError(f"n (the image size in pixels) must be a whole number of at least 2, got {_short(n)}")
+    if not (isinstance(camera, str) and camera in ("orthographic", "pinhole")):
+        raise InputError(f"camera must be 'orthographic' or 'pinhole', got {_short(camera)}")
+    size = _positive(size, "size")
+    distance = _positive(distance, "distance")
+    noise = _finite_number(noise, "noise (a fraction of the maximum intensity)")
+    seed = _whole(seed, "seed", 0)
+    if seed >= 2**64:
+        raise InputError(f"seed must be less than 2**64, got {_short(seed)}")
     d = _core.synth_scene(
-        name, int(n), float(size), float(distance), int(seed),
+        name, int(n), size, distance, seed,
         pinhole=camera == "pinhole", led=led, rgb=rgb, directional=directional,
     )
     lights = d["lights"]

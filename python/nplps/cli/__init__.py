@@ -9,18 +9,22 @@ The package holds :func:`main`, the top-level parser and the error handling; the
 :mod:`~nplps.cli.reconstruct`, :mod:`~nplps.cli.evaluate` and :mod:`~nplps.cli.synth` (``synth``
 and ``demo``), their shared input options in :mod:`~nplps.cli.inputs` (with
 :mod:`~nplps.cli.imagefiles`, :mod:`~nplps.cli.preprocessing` and :mod:`~nplps.cli.parsers`),
-and the stderr notes in :mod:`~nplps.cli.console`.
+the ``--out``/``--overwrite`` options in :mod:`~nplps.cli.outputs`, and the stderr notes in
+:mod:`~nplps.cli.console`.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import textwrap
-from typing import Any, Sequence
+from contextlib import contextmanager
+from typing import Any, Iterator, Sequence
 
 from .. import __version__
+from .._atomic import is_write_error
 from ..errors import NplpsError
 from .console import PROG, describe_rig
 from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
@@ -110,8 +114,15 @@ examples:
       --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
   nplps reconstruct --help                      # all options of a command
 
-exit status: 0 success, 2 invalid input or usage, 1 output could not be written,
-130 interrupted.
+results: a command with --out DIR writes only into a new or empty directory unless --overwrite
+is given; then files of the same names are replaced, the files of an earlier nplps result there
+that this run does not write (listed in its nplps-manifest.json) are removed, and every other
+file is kept. Every file is written under a temporary name and renamed when complete: an error
+or Ctrl-C never leaves a truncated file.
+
+exit status: 0 success, 2 invalid input or usage (also: --out DIR not empty without
+--overwrite), 1 output could not be written (the message names the file), 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM).
 """
 
 
@@ -135,7 +146,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Runs the ``nplps`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    """Runs the ``nplps`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    While it runs, SIGTERM (if not handled otherwise) raises an exception like Ctrl-C does, so that
+    the solver stops and no temporary file is left behind; the exit status is then 143."""
+    with _sigterm_raises():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     try:
         try:
@@ -159,9 +178,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as e:
         _error(_os_message(e))
         return 1
+    except _Terminated:
+        print("terminated", file=sys.stderr, flush=True)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr, flush=True)
         return 130
+
+
+class _Terminated(KeyboardInterrupt):
+    """Raised by SIGTERM while :func:`main` runs (a KeyboardInterrupt: code that cleans up after
+    Ctrl-C cleans up after it too)."""
+
+
+@contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """SIGTERM raises :class:`_Terminated` inside the block, if SIGTERM has its default action
+    and this is the main thread; the previous handler is restored afterwards."""
+    previous = None
+    try:
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+            previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread
+        pass
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise _Terminated()
 
 
 def _exit_code(code: Any) -> int:
@@ -181,5 +229,6 @@ def _error(message: str) -> None:
 def _os_message(e: OSError) -> str:
     what = e.strerror or str(e)
     if e.filename is not None:
-        return f"'{os.fspath(e.filename)}': {what}"
+        where = f"'{os.fspath(e.filename)}'"
+        return f"cannot write {where}: {what}" if is_write_error(e) else f"{where}: {what}"
     return what

@@ -8,14 +8,15 @@ import argparse
 import json
 import os
 import shlex
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from .._atomic import write_text
 from ..errors import InputError
 from .console import PROG, _note, _warnings_to_stderr, describe_rig
 from .imagefiles import resolve_images
+from .outputs import add_output_options, output_directory
 
 CALIBRATE_DESCRIPTION = """\
 Calibrate the lights of a rig.
@@ -91,8 +92,9 @@ Write a synthetic calibration scene for the rig of 'nplps synth' (same camera an
 shiny spheres (Lambertian plus a Phong lobe, highlights saturating) on a dark board at two
 placements (placement_0/, placement_1/: 8-bit images image_XX.png and mask.png), a flat white
 board under the same lights (board/: images and board.json), camera.json (the camera without
-lights), rig_true.json and scene.json (radius, centre depths). Prints the commands that
-calibrate it.
+lights), rig_true.json and scene.json (radius, centre depths), and nplps-manifest.json (the files
+written). --out must be empty unless --overwrite (rig files written there later by
+'nplps calibrate' are kept). Prints the commands that calibrate it.
 """
 
 SYNTH_CALIBRATION_EPILOG = """\
@@ -186,7 +188,7 @@ def add_synth_calibration_parser(sub: Any, formatter: Any) -> argparse.ArgumentP
         epilog=SYNTH_CALIBRATION_EPILOG,
         formatter_class=formatter,
     )
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if needed)")
+    add_output_options(p)
     p.add_argument("--camera", choices=("orthographic", "pinhole"), default="orthographic")
     p.add_argument("--lights", type=int, choices=(8, 27), default=27, help="8 or the 27 standard lights (default 27)")
     p.add_argument("--directional", action="store_true", help="every third standard light is a distant light")
@@ -216,6 +218,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _placement_dirs(items: Sequence[str]) -> bool:
     """Whether the PLACEMENT arguments are directories (one placement each) or files (one)."""
+    for item in items:
+        if not os.path.exists(item):
+            raise InputError(f"placement '{item}' not found: give a directory of images per placement, or the image files of one")
     dirs = [os.path.isdir(i) for i in items]
     if any(dirs) and not all(dirs):
         raise InputError("give either directories (one per placement) or the image files of one placement, not both")
@@ -348,7 +353,7 @@ def _write_report(path: str, result: Any) -> None:
         "refinement": result.refinement,
         "warnings": result.warnings,
     }
-    Path(path).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_text(path, json.dumps(report, indent=2) + "\n")
 
 
 def _cmd_intensity(args: argparse.Namespace) -> int:
@@ -389,12 +394,17 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
         raise InputError(f"--size must be at least 32 pixels, got {args.size}")
     if not (np.isfinite(args.noise) and args.noise >= 0):
         raise InputError(f"--noise must be a non-negative fraction, got {args.noise}")
-    out = Path(args.out)
+    directory = output_directory(args)
+    out = directory.path
     scene = make_sphere_scene(
         args.camera, n=args.size, lights=args.lights, directional=args.directional, led=args.led,
         radius=args.radius, spheres=args.spheres, noise=args.noise, seed=args.seed,
     )
-    scene.save(out)
+    with directory:
+        scene.save(directory)
+        if not args.no_board:
+            board = make_board_scene(scene.rig, n=args.size, noise=args.noise, seed=args.seed + 1, distance=scene.distance)
+            board.save(directory.subdirectory("board"))
     print(
         f"wrote a sphere-calibration scene ({args.size} x {args.size} pixels, {describe_rig(scene.rig)}, "
         f"{len(scene.centers)} placements of {args.spheres} sphere(s) of radius {scene.radius:g}, noise {args.noise:g}) to {out}"
@@ -408,8 +418,6 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
     print("calibrate the light positions with:")
     print("  " + " ".join(shlex.quote(c) for c in command))
     if not args.no_board:
-        board = make_board_scene(scene.rig, n=args.size, noise=args.noise, seed=args.seed + 1, distance=scene.distance)
-        board.save(out / "board")
         extra = ["--fit-mu", "--fit-direction"] if args.led else []
         command = [
             PROG, "calibrate", "intensity", str(out / "board"), "--rig", str(out / "rig_spheres.json"),

@@ -11,6 +11,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
+from ..api import MAX_THREADS
 from ..errors import InputError
 from .console import _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
@@ -158,7 +159,7 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
         default="image",
         help="local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
     )
-    g.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all cores)")
+    g.add_argument("--threads", type=int, metavar="N", help=f"worker threads, 1 to {MAX_THREADS} (default: all cores)")
     g = p.add_argument_group("light self-calibration")
     g.add_argument(
         "--refine-lights",
@@ -241,7 +242,7 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
             raise InputError(f"--depth-range needs two numbers NEAR,FAR, got {args.depth_range}")
         options["depth_range"] = tuple(near_far)
     if args.depth_prior is not None:
-        options["depth_prior"] = parse_depth(args.depth_prior)
+        options["depth_prior"] = parse_depth(args.depth_prior, "--depth-prior")
         options["prior_weight"] = args.prior_weight
     return options
 
@@ -280,8 +281,8 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise InputError(f"--iterations must be at least 1, got {args.iterations}")
     if getattr(args, "levels", None) is not None and args.levels < 1:
         raise InputError(f"--levels must be at least 1, got {args.levels}")
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads must be at least 1, got {args.threads}")
+    if args.threads is not None and not 1 <= args.threads <= MAX_THREADS:
+        raise InputError(f"--threads must be from 1 to {MAX_THREADS}, got {args.threads}")
     if not np.isfinite(args.tol) or args.tol < 0:
         raise InputError(f"--tol must be a non-negative number, got {args.tol}")
     if args.bin < 1:

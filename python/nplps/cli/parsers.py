@@ -10,9 +10,10 @@ import numpy as np
 from ..errors import InputError
 
 
-def parse_depth(value: str) -> float | np.ndarray:
-    """``--depth``: a positive number, 'auto', or the path of a .npy depth map."""
-    if value == "auto":
+def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
+    """``--depth`` (or ``option``, e.g. ``--depth-prior``): a positive number, 'auto', or the
+    path of a .npy depth map of real numbers."""
+    if value == "auto" and option == "--depth":
         return value  # type: ignore[return-value]
     try:
         number = float(value)
@@ -21,23 +22,26 @@ def parse_depth(value: str) -> float | np.ndarray:
     if number is not None:
         if not np.isfinite(number) or number <= 0:
             raise InputError(
-                f"--depth must be a positive working distance (in the rig's unit) or a .npy depth map, got {value}"
+                f"{option} must be a positive working distance (in the rig's unit) or a .npy depth map, got {value}"
             )
         return number
     if not os.path.exists(value):
         raise InputError(
-            f"--depth '{value}' is neither a number (the working distance) nor an existing .npy depth map file"
+            f"{option} '{value}' is neither a number (the working distance) nor an existing .npy depth map file"
         )
     if not value.lower().endswith(".npy"):
-        raise InputError(f"--depth '{value}' is not a .npy file: give the working distance or an (H+1, W+1) .npy depth map")
+        raise InputError(f"{option} '{value}' is not a .npy file: give the working distance or an (H+1, W+1) .npy depth map")
     try:
         depth = np.load(value, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise InputError(f"--depth: cannot read '{value}' as a .npy array: {e}") from None
-    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+    except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
+        raise InputError(f"{option}: cannot read '{value}' as a .npy array: {e}") from None
+    if not isinstance(depth, np.ndarray):  # np.load also reads .npz archives
+        raise InputError(f"{option}: '{value}' holds an archive, not a single .npy array")
+    real = np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)
+    if depth.ndim != 2 or not real:
         raise InputError(
-            f"--depth: '{value}' holds a {depth.dtype} array of shape {depth.shape}; "
-            "it must be an (H+1, W+1) map of vertex depths"
+            f"{option}: '{value}' holds a {depth.dtype} array of shape {depth.shape}; "
+            "it must be an (H+1, W+1) map of vertex depths (real numbers)"
         )
     return depth.astype(np.float64)
 

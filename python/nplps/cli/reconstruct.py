@@ -9,7 +9,16 @@ from pathlib import Path
 from typing import Any
 
 from .console import _warnings_to_stderr, describe_rig
-from .inputs import CONVENTIONS, INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
+from .inputs import (
+    CONVENTIONS,
+    INPUT_NOTES,
+    _estimated,
+    add_input_options,
+    build_inputs,
+    check_input_args,
+    near_options,
+)
+from .outputs import add_output_options, output_directory
 
 RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
@@ -18,7 +27,14 @@ Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, al
 colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
 (16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
 normals.npy, residual.npy and summary.json, and with --refine-lights the refined rig
-(rig_refined.json). RGB images give an RGB albedo unless --gray.
+(rig_refined.json); last nplps-manifest.json, the list of the files written. RGB images give
+an RGB albedo unless --gray.
+
+--out must be a new or empty directory unless --overwrite is given: then files of the same
+names are replaced, the files of an earlier nplps result there that this run does not write
+(listed in its nplps-manifest.json, e.g. distance_curve.csv or baseline/) are removed, and any
+other file is kept. Every file is written under a temporary name and renamed when complete, so
+an error or Ctrl-C never leaves a truncated file under its final name.
 
 {INPUT_NOTES}
 {textwrap.fill(CONVENTIONS, 95)}
@@ -56,7 +72,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         formatter_class=formatter,
     )
     add_input_options(p)
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if needed)")
+    add_output_options(p)
     p.add_argument(
         "--opengl",
         action="store_true",
@@ -73,27 +89,31 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..api import reconstruct, reconstruct_parallel
 
+    check_input_args(args)
+    near = near_options(args)
+    out = output_directory(args)  # refuses a non-empty --out before the images are read
     inputs = build_inputs(args)
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
     with _warnings_to_stderr():
-        result = reconstruct(inputs.images, inputs.rig, inputs.mask, progress=not args.quiet, **near_options(args), **common)
+        result = reconstruct(inputs.images, inputs.rig, inputs.mask, progress=not args.quiet, **near, **common)
     wall = time.perf_counter() - start
-    paths = result.save(args.out, opengl=args.opengl)
-    _print_summary("near-light reconstruction (nplps)", result, wall, paths, args.iterations)
+    with out:  # one run: the manifest lists the baseline's files too
+        paths = result.save(out, opengl=args.opengl)
+        _print_summary("near-light reconstruction (nplps)", result, wall, paths, args.iterations)
 
-    if args.baseline:
-        start = time.perf_counter()
-        with _warnings_to_stderr():
-            # The baseline refines its own intensities under its own model, as the near-light run does.
-            refine = "intensity" if args.refine_lights in ("intensity", "both") else None
-            base = reconstruct_parallel(
-                inputs.images, inputs.rig, inputs.mask, refine_lights=refine, **_estimated(result, common)
-            )
-        wall = time.perf_counter() - start
-        base_paths = base.save(Path(args.out) / "baseline", opengl=args.opengl)
-        print()
-        _print_summary("parallel-light baseline", base, wall, base_paths, None)
+        if args.baseline:
+            start = time.perf_counter()
+            with _warnings_to_stderr():
+                # The baseline refines its own intensities under its own model, as the near-light run does.
+                refine = "intensity" if args.refine_lights in ("intensity", "both") else None
+                base = reconstruct_parallel(
+                    inputs.images, inputs.rig, inputs.mask, refine_lights=refine, **_estimated(result, common)
+                )
+            wall = time.perf_counter() - start
+            base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl)
+            print()
+            _print_summary("parallel-light baseline", base, wall, base_paths, None)
     return 0
 
 

@@ -13,11 +13,13 @@ import numpy as np
 
 from ..errors import InputError
 from .console import PROG, _warnings_to_stderr, describe_rig
+from .outputs import add_output_options, output_directory
 
 SYNTH_DESCRIPTION = """\
 Write a synthetic scene: 16-bit images image_XX.png (RGB with --rgb) rendered by the solver's
 image model under 27 lights, rig.json, mask.png, and the ground truth (depth_gt.npy,
-normals_gt.npy, albedo_gt.npy). Prints the command that reconstructs it.
+normals_gt.npy, albedo_gt.npy), and nplps-manifest.json (the files written). --out must be
+empty unless --overwrite. Prints the command that reconstructs it.
 
 Scenes: saddle; sphere (a sphere cap in a disc mask); cube (two faces of a turned cube);
 bumps (random smooth bumps, see --seed).
@@ -34,7 +36,7 @@ DEMO_DESCRIPTION = """\
 Synthesize a scene, reconstruct it with the near-light method (nplps) and with conventional
 parallel-light photometric stereo, and compare both against the ground truth: angular error
 of the normals and RMS depth error (in % of the object size). Writes the scene and both
-reconstructions into --out (scene/, near/, baseline/).
+reconstructions into --out (scene/, near/, baseline/); --out must be empty unless --overwrite.
 """
 
 DEMO_EPILOG = """\
@@ -56,7 +58,7 @@ def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         formatter_class=formatter,
     )
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help=f"one of {', '.join(SCENES)}")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if needed)")
+    add_output_options(p)
     p.add_argument("--size", type=int, default=128, metavar="N", help="image size N x N pixels (default 128)")
     p.add_argument(
         "--noise",
@@ -96,7 +98,7 @@ def add_demo_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=128, metavar="N", help="image size N x N pixels (default 128)")
     p.add_argument("--noise", type=float, default=0.0, help="image noise as a fraction of the brightest value (default 0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the bumps scene (default 0)")
-    p.add_argument("--out", default="nplps-demo", metavar="DIR", help="output directory (default nplps-demo)")
+    add_output_options(p, default="nplps-demo")
     return p
 
 
@@ -111,11 +113,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from ..synth import make_scene
 
     _check_scene_args(args)
+    directory = output_directory(args)
     scene = make_scene(
         args.scene, args.size, args.object_size, args.distance, args.seed, args.noise,
         camera=args.camera, led=args.led, rgb=args.rgb, directional=args.directional,
     )
-    paths = scene.save(args.out)
+    with directory:
+        paths = scene.save(directory)
     out = Path(args.out)
     kind = ("RGB" if args.rgb else "grey") + (", LEDs" if args.led else "")
     print(
@@ -159,9 +163,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..synth import make_scene
 
     _check_scene_args(args)
-    out = Path(args.out)
+    out = output_directory(args)
     scene = make_scene(args.scene, args.size, seed=args.seed, noise=args.noise)
-    scene.save(out / "scene")
     distance = scene.mean_depth
     print(
         f"scene: {args.scene}, {args.size} x {args.size} pixels, {scene.rig.n_lights} near point lights, "
@@ -190,8 +193,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
             }
         )
     near, base = runs
-    near["result"].save(out / "near")
-    base["result"].save(out / "baseline")
+    with out:
+        scene.save(out.subdirectory("scene"))
+        near["result"].save(out.subdirectory("near"))
+        base["result"].save(out.subdirectory("baseline"))
 
     rows = [
         ("mean normal error [deg]", "mean", "{:.4g}"),
@@ -205,5 +210,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     its = near["result"].history
     print(f"{'iterations':28}{len(its):>20}{'1 (direct)':>20}")
     print()
-    print(f"wrote the scene to {out / 'scene'}, the reconstructions to {out / 'near'} and {out / 'baseline'}")
+    top = out.path
+    print(f"wrote the scene to {top / 'scene'}, the reconstructions to {top / 'near'} and {top / 'baseline'}")
     return 0

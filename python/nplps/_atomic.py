@@ -1,0 +1,121 @@
+"""Safe writes: every file nplps writes is written under a temporary name in its directory and
+renamed into place (:func:`os.replace`) only once it is complete.
+
+So an error while writing (a full disk, a file size limit, Ctrl-C) never leaves a truncated file
+under the final name: the final name holds either the complete new file or whatever was there
+before. On an exception the temporary file is removed; if the process is killed outright
+(SIGKILL, or a signal that is not handled) a hidden ``.NAME.nplps-XXXXXXXX[.ext]`` file may stay
+behind, never the final name.
+
+An :class:`OSError` raised while writing is re-raised with the final path as its ``filename``
+(the temporary name means nothing to the user) and marked as a write error (see
+:func:`is_write_error`), so that messages can say "cannot write PATH: REASON".
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import secrets
+from contextlib import contextmanager
+from typing import IO, Any, Iterator, Union
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: Names of the temporary files: ``.NAME.nplps-XXXXXXXX`` plus NAME's extension (so that writers
+#: that pick the format from the extension see the right one).
+TEMPORARY_NAME = re.compile(r"^\..+\.nplps-[0-9a-f]{8}(\.[^.]*)?$")
+
+_WRITE_ERROR = "_nplps_write_error"
+_MAX_NAME = 200  # of the part of the final name that is repeated in the temporary name
+
+
+@contextmanager
+def atomic_path(path: PathLike) -> Iterator[str]:
+    """Yields a new, empty temporary file name next to ``path`` with the same extension, for
+    writers that take a file name (``imageio``, ``tifffile``). When the block ends without an
+    exception the file is renamed to ``path``; otherwise it is removed.
+
+    Raises:
+        OSError: creating, writing or renaming failed; ``filename`` is ``path``.
+    """
+    final = os.fspath(path)
+    directory, name = os.path.split(os.path.abspath(final))
+    suffix = os.path.splitext(name)[1]
+    temporary = None
+    try:
+        temporary = _create(directory, name, suffix)
+        yield temporary
+        os.replace(temporary, final)
+        temporary = None
+    except OSError as e:
+        raise write_error(e, final) from e
+    finally:
+        if temporary is not None:
+            _remove(temporary)
+
+
+@contextmanager
+def atomic_write(
+    path: PathLike, mode: str = "wb", encoding: str | None = None, newline: str | None = None
+) -> Iterator[IO[Any]]:
+    """Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under
+    a temporary name and renamed to ``path`` when the block ends without an exception; on an
+    exception it is removed and ``path`` is left as it was.
+
+    Raises:
+        OSError: opening, writing or renaming failed; ``filename`` is ``path``.
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_write writes new files (mode 'w' or 'wb'), got mode {mode!r}")
+    with atomic_path(path) as temporary:
+        with open(temporary, mode, encoding=encoding, newline=newline) as file:
+            yield file
+
+
+def write_text(path: PathLike, text: str) -> None:
+    """Writes ``text`` (UTF-8) to ``path`` with :func:`atomic_write`."""
+    with atomic_write(path, "w", encoding="utf-8") as file:
+        file.write(text)
+
+
+def write_error(error: OSError, path: PathLike) -> OSError:
+    """``error`` as an OSError of the same kind (errno) naming ``path``, marked as a write error."""
+    if is_write_error(error):
+        return error
+    if error.errno is not None:
+        # OSError(errno, ...) makes the errno's subclass (PermissionError, ...).
+        new = OSError(error.errno, error.strerror or str(error), os.fspath(path))
+    else:
+        new = OSError(f"{error}: {os.fspath(path)!r}")
+        new.filename = os.fspath(path)
+    setattr(new, _WRITE_ERROR, True)
+    return new
+
+
+def is_write_error(error: BaseException) -> bool:
+    """Whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` (or was made by
+    :func:`write_error`): its ``filename`` is the file that could not be written."""
+    return bool(getattr(error, _WRITE_ERROR, False))
+
+
+def _create(directory: str, name: str, suffix: str) -> str:
+    """Creates a new empty temporary file in ``directory``; returns its name."""
+    stem = name[:_MAX_NAME]
+    for _ in range(100):
+        temporary = os.path.join(directory, f".{stem}.nplps-{secrets.token_hex(4)}{suffix}")
+        try:
+            # 0o666 and the umask: the permissions open() would give the file.
+            fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return temporary
+    raise FileExistsError(f"no free temporary name for {name!r} in {directory!r}")
+
+
+def _remove(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

@@ -1,0 +1,34 @@
+"""The ``--out DIR`` / ``--overwrite`` pair of the commands that write a result directory
+(``reconstruct``, ``synth``, ``demo``, ``synth-calibration``); see :mod:`nplps._outdir`."""
+
+from __future__ import annotations
+
+import argparse
+
+from .._outdir import MANIFEST, ResultDirectory
+
+OVERWRITE_HELP = (
+    "write into a non-empty --out directory: files of the same names are replaced, the files of an "
+    f"earlier nplps result there that this run does not write (listed in its {MANIFEST}) are "
+    "removed, other files are kept"
+)
+
+
+def add_output_options(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    """Adds ``--out DIR`` (required unless ``default``) and ``--overwrite``."""
+    where = f"default {default}; " if default else ""
+    parser.add_argument(
+        "--out",
+        required=default is None,
+        default=default,
+        metavar="DIR",
+        help=f"output directory ({where}created if needed; must be empty unless --overwrite)",
+    )
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+
+
+def output_directory(args: argparse.Namespace) -> ResultDirectory:
+    """The ``--out`` directory of a command, checked now (before any work): raises
+    :class:`~nplps.errors.OutputExistsError` (exit status 2) if it is not empty and
+    ``--overwrite`` was not given. Use it as a context manager around the writing."""
+    return ResultDirectory(args.out, overwrite=args.overwrite, option="--overwrite")
