@@ -11,7 +11,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from ..api import MAX_THREADS
+from ..api import MAX_THREADS, _memory_limit
 from ..errors import InputError
 from .console import _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
@@ -160,6 +160,13 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
         help="local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
     )
     g.add_argument("--threads", type=int, metavar="N", help=f"worker threads, 1 to {MAX_THREADS} (default: all cores)")
+    g.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        default=None,
+        help='refuse a reconstruction whose estimated peak memory is above SIZE (bytes, or e.g. "8GB", '
+        '"512MiB"; default 80%% of the memory available)',
+    )
     g = p.add_argument_group("light self-calibration")
     g.add_argument(
         "--refine-lights",
@@ -221,7 +228,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         dark = 1.0 / loaded.levels if loaded.levels and not steps else 0.0
     if not args.quiet:
         _note_inputs(images, rig, valid, steps, dark, loaded.levels)
-    options = {"depth": depth, "dark": dark, "robust": args.robust, "threads": args.threads}
+    options = {"depth": depth, "dark": dark, "robust": args.robust, "threads": args.threads, "max_memory": getattr(args, "max_memory", None)}
     return Inputs(np.ascontiguousarray(images, dtype=np.float32), rig, mask, valid, options)
 
 
@@ -281,6 +288,8 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise InputError(f"--iterations must be at least 1, got {args.iterations}")
     if getattr(args, "levels", None) is not None and args.levels < 1:
         raise InputError(f"--levels must be at least 1, got {args.levels}")
+    if getattr(args, "max_memory", None) is not None:
+        args.max_memory = _memory_limit(args.max_memory, "--max-memory")
     if args.threads is not None and not 1 <= args.threads <= MAX_THREADS:
         raise InputError(f"--threads must be from 1 to {MAX_THREADS}, got {args.threads}")
     if not np.isfinite(args.tol) or args.tol < 0:
