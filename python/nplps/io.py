@@ -484,7 +484,7 @@ def _first_channel(array: np.ndarray, name: str) -> np.ndarray:
     """Return ``array`` if 2-D, channel 0 if ``(H, W, c)``; raise InputError otherwise."""
     if array.ndim == 2:
         return array
-    if array.ndim == 3:
+    if array.ndim == 3 and array.shape[2] >= 1:
         return array[..., 0]
     raise InputError(f"{name}: expected shape (H, W) or (H, W, 3), got {array.shape}")
 

@@ -88,7 +88,11 @@ impl Cholesky {
         )
         .map_err(|e| Error::Solver(format!("symbolic analysis failed: {e:?}")))?;
         let mut chol = Cholesky {
-            l_values: vec![0.0; symbolic.len_val()],
+            l_values: crate::memory::try_filled(
+                symbolic.len_val(),
+                0.0,
+                "the sparse Cholesky factor of the global step",
+            )?,
             symbolic,
             lower,
             par,
