@@ -114,7 +114,9 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         .collect();
     // A coarse pixel is masked when any of its children is.
     let mask: Vec<bool> = children.iter().map(|&bits| bits != 0).collect();
+    problem.cancel.check()?;
     let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
+    problem.cancel.check()?;
     let (k, channels) = (problem.obs.k, problem.obs.channels);
     let obs = &problem.obs;
     // Image by image, coarse row by coarse row (streams through the finer stack); coarse

@@ -313,8 +313,11 @@ pub fn reconstruct(
     options.validate()?;
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
+    problem.cancel.check()?;
     check_fittable(problem, &options.fit_settings(false))?;
+    problem.cancel.check()?;
     crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
+    problem.cancel.check()?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let mut u = problem.u0.clone();
