@@ -485,3 +485,14 @@ def test_the_core_refuses_malformed_light_mappings():
     ]:
         with pytest.raises(nplps.RigError, match=message):
             nplps._core.check_rig(rig.camera, {**lights, key: value})
+
+
+def test_the_readme_rig_file_examples_are_read():
+    import pathlib
+    import re
+
+    readme = (pathlib.Path(__file__).parent.parent / "README.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```json\n(.*?)```", readme, re.S)
+    assert len(blocks) >= 2
+    for block in blocks:
+        assert nplps.Rig.from_dict(json.loads(block), source="README").n_lights >= 3
