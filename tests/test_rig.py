@@ -42,11 +42,12 @@ def test_rig_is_frozen():
 @pytest.mark.parametrize(
     "pixel_size, message",
     [
-        ((1.0,), r"pixel_size must be two numbers"),
-        ((1.0, 2.0, 3.0), r"pixel_size must be two numbers"),
-        (0.0, r"pixel size must be positive and finite"),
+        ((1.0,), r"camera\.pixel_size must be 2 numbers, got a tuple of 1 item"),
+        ((1.0, 2.0, 3.0), r"camera\.pixel_size must be 2 numbers, got a tuple of 3 items"),
+        (0.0, r"pixel size must be positive and finite, got \[0, 0\]"),
         ((0.5, -0.5), r"pixel size must be positive and finite"),
-        ((np.inf, 1.0), r"pixel size must be positive and finite"),
+        ((np.inf, 1.0), r"camera\.pixel_size\[0\] must be a finite number, got inf"),
+        ((True, 1.0), r"camera\.pixel_size\[0\] must be a number, got the boolean true"),
     ],
 )
 def test_orthographic_bad_pixel_size(pixel_size, message):
@@ -55,12 +56,12 @@ def test_orthographic_bad_pixel_size(pixel_size, message):
 
 
 def test_orthographic_non_numeric_scalar_pixel_size():
-    with pytest.raises(nplps.RigError, match=r"pixel_size must be"):
+    with pytest.raises(nplps.RigError, match=r"pixel_size\[0\] must be a number, got the string \"ab\""):
         nplps.Rig.orthographic("ab", lights=LIGHTS)
 
 
 def test_orthographic_bad_origin_and_lights():
-    with pytest.raises(nplps.RigError, match=r"origin must be finite"):
+    with pytest.raises(nplps.RigError, match=r"camera\.origin\[0\] must be a finite number, got NaN"):
         nplps.Rig.orthographic(1.0, origin=(np.nan, 0.0), lights=LIGHTS)
     with pytest.raises(nplps.RigError, match=r"at least 3 lights, the rig has 2"):
         nplps.Rig.orthographic(1.0, lights=LIGHTS[:2])
@@ -129,15 +130,36 @@ def test_save_load_round_trip(tmp_path):
     assert nplps.Rig.from_dict(rig.to_dict()).camera == rig.camera
 
 
-def test_load_ignores_unknown_keys(tmp_path):
+def test_load_ignores_comment_keys(tmp_path):
     data = nplps.Rig.orthographic(1.0, lights=LIGHTS).to_dict()
-    data["comment"] = "made by hand"
-    data["camera"]["serial"] = "A123"
+    data["_comment"] = "made by hand"
+    data["camera"]["_serial"] = "A123"
     data["lights"][0]["intensity"] = 0.9
+    data["lights"][1]["_note"] = {"anything": [[[1]]], "goes": None}
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(data), encoding="utf-8")
     rig = nplps.Rig.load(path)
     np.testing.assert_array_equal(rig.lights, LIGHTS)
+    assert rig.camera == {"model": "orthographic", "pixel_size": [1.0, 1.0], "origin": [0.0, 0.0]}
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d.update(comment="x"), r"rig\.json has an unknown key \"comment\" \(a rig file has version, camera and lights; keys starting with '_' are comments\)"),
+        (lambda d: d["camera"].update(serial="A123"), r"camera has an unknown key \"serial\" \(an orthographic camera has model, pixel_size and origin"),
+        (lambda d: d["camera"].update(K=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), r"camera has an unknown key \"K\""),
+        (lambda d: d["lights"][0].update(intensities=[1, 2, 3]), r"light 0 has an unknown key \"intensities\" \(a point light has type, position, intensity, direction, mu"),
+        (lambda d: d["lights"][1].update(type="directional", direction=[0, 0, -1], position=[0, 0, 0]), r"light 1 has an unknown key \"position\" \(a directional light has"),
+        (lambda d: d["lights"].__setitem__(1, {"type": "directional", "direction": [0, 0, -1], "mu": 1.0}), r"light 1 has an unknown key \"mu\""),
+    ],
+)
+def test_unknown_keys_are_errors(tmp_path, edit, message):
+    """A misspelt or misplaced key must not silently fall back to a default."""
+    data = nplps.Rig.orthographic(1.0, lights=LIGHTS).to_dict()
+    edit(data)
+    with pytest.raises(nplps.RigError, match=message):
+        nplps.Rig.load(_write(tmp_path, data))
 
 
 def _write(tmp_path, data):
@@ -161,20 +183,34 @@ def _edit(fn):
     [
         ("{not json", r"rig file '.*rig\.json' is not valid JSON"),
         ("", r"is not valid JSON"),
-        ([1, 2, 3], r"rig\.json: a rig file holds a JSON object, got list"),
+        ([1, 2, 3], r"rig\.json: a rig file holds a JSON object, got a list of 3 items"),
         (_edit(lambda d: d.pop("lights")), r"rig\.json: missing key\(s\) lights"),
         (_edit(lambda d: (d.pop("version"), d.pop("camera"))), r"missing key\(s\) version, camera"),
         (_edit(lambda d: d.update(version=3)), r"unsupported rig file version 3 \(this nplps reads 1\.\.2\)"),
         (_edit(lambda d: d.update(version=0)), r"unsupported rig file version 0"),
-        (_edit(lambda d: d.update(version="1")), r"unsupported rig file version '1'"),
-        (_edit(lambda d: d["lights"][1].pop("position")), r"light 1 position must be 3 numbers, got None"),
-        (_edit(lambda d: d["lights"][2].update(position=[1, 2])), r"light 2 position must have 3 numbers, got 2"),
-        (_edit(lambda d: d["lights"][0].update(position=["a", 0, 0])), r"light 0 position must be 3 numbers"),
+        (_edit(lambda d: d.update(version="1")), r"'version' must be an integer, got the string \"1\""),
+        (_edit(lambda d: d.update(version=2.0)), r"'version' must be an integer, got 2"),
+        (_edit(lambda d: d.update(version=True)), r"'version' must be an integer, got the boolean true"),
+        (_edit(lambda d: d["lights"][1].pop("position")), r"light 1 is missing its 'position'"),
+        (_edit(lambda d: d["lights"][2].update(position=[1, 2])), r"light 2 position must be 3 numbers, got a list of 2 items"),
+        (_edit(lambda d: d["lights"][0].update(position=["a", 0, 0])), r"light 0 position\[0\] must be a number, got the string \"a\""),
+        (_edit(lambda d: d["lights"][0].update(position=[[1], 0, 0])), r"light 0 position\[0\] must be a number, got a list of 1 item"),
+        (_edit(lambda d: d["lights"][0].update(position=[True, 0, 0])), r"light 0 position\[0\] must be a number, got the boolean true"),
+        (_edit(lambda d: d["lights"][0].update(position=[10**400, 0, 0])), r"light 0 position\[0\] is an integer too large"),
+        (_edit(lambda d: d["lights"][0].update(intensity="1")), r"light 0 intensity must be a number, got the string \"1\""),
+        (_edit(lambda d: d["lights"][0].update(intensity=[1, 2])), r"light 0 intensity must be 3 numbers, got a list of 2 items"),
+        (_edit(lambda d: d["lights"][0].update(intensity=[[1, 2, 3]])), r"light 0 intensity must be 3 numbers, got a list of 1 item"),
+        (_edit(lambda d: d["lights"][0].update(intensity=0)), r"light 0 must have positive intensities, got \[0, 0, 0\]"),
+        (_edit(lambda d: d["lights"][0].update(mu="2")), r"light 0 mu must be a number, got the string \"2\""),
+        (_edit(lambda d: d["lights"][0].update(type=1)), r"light 0 has unknown type 1 \(\"point\" or \"directional\"\)"),
+        (_edit(lambda d: d["lights"].__setitem__(0, [0, 0, 0])), r"light 0 must be an object, got a list of 3 items"),
         (_edit(lambda d: d.update(lights={"position": [0, 0, 0]})), r"'lights' must be a list"),
         (_edit(lambda d: d.update(lights=d["lights"][:2])), r"at least 3 lights, the rig has 2"),
         (_edit(lambda d: d.update(camera=[])), r"'camera' must be an object with a 'model' key"),
-        (_edit(lambda d: d["camera"].pop("pixel_size")), r"orthographic camera needs 'pixel_size'"),
-        (_edit(lambda d: d["camera"].update(origin=[0])), r"camera\.origin must be two numbers"),
+        (_edit(lambda d: d["camera"].pop("pixel_size")), r"rig\.json: camera is missing the key \"pixel_size\""),
+        (_edit(lambda d: d["camera"].update(origin=[0])), r"rig\.json: camera\.origin must be 2 numbers, got a list of 1 item"),
+        (_edit(lambda d: d["camera"].update(origin={"x": 0, "y": 0})), r"camera\.origin must be 2 numbers, got an object"),
+        (_edit(lambda d: d["camera"].update(model=["orthographic"])), r"camera\.model must be a string, got a list of 1 item"),
         (_edit(lambda d: d["camera"].update(pixel_size=[0, 1])), r"pixel size must be positive"),
         (_edit(lambda d: d["camera"].update(model="fisheye")), r"unknown camera model \"fisheye\""),
     ],
@@ -249,3 +285,214 @@ def test_pinhole_and_led_errors():
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 0.0] + [1.0] * (len(LIGHTS) - 2))
     with pytest.raises(nplps.RigError, match=r"intensities must be a number, \(k,\) or \(k, 3\)"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 2.0])
+
+
+# ------------------------------------------------------------------------------------------------
+# strict rig files (issue 9): every key checked, one meaning for Python and the core
+# ------------------------------------------------------------------------------------------------
+K_TEST = [[500.0, 0.0, 2.0], [0.0, 500.0, 2.0], [0.0, 0.0, 1.0]]
+D5 = [-0.2, 0.05, 0.001, -0.002, 0.01]
+
+
+def _pinhole_file(distortion):
+    data = nplps.Rig.pinhole(K_TEST, lights=LIGHTS).to_dict()
+    data["camera"]["distortion"] = distortion
+    return data
+
+
+@pytest.mark.parametrize(
+    "form",
+    [
+        D5,
+        [D5],  # OpenCV's 1 x 5 (numpy's dist.tolist())
+        [[v] for v in D5],  # OpenCV's 5 x 1
+        np.array([D5]),
+        tuple(D5),
+        D5 + [0.0, 0.0, 0.0],  # OpenCV's rational model with k4 = k5 = k6 = 0
+        [D5 + [0.0] * 9],  # 1 x 14, the extra terms zero
+    ],
+    ids=["flat", "1x5", "5x1", "array", "tuple", "8", "1x14"],
+)
+def test_opencv_distortion_forms_mean_the_same_to_python_and_the_core(tmp_path, form):
+    depth = np.full((4, 5), 150.0)
+    flat = {"model": "pinhole", "K": K_TEST, "distortion": D5}
+    expected = nplps._core.vertices(depth, flat)
+    camera = {"model": "pinhole", "K": K_TEST, "distortion": form}
+    # The core reads the nested forms itself (it used to drop them silently) ...
+    np.testing.assert_array_equal(nplps._core.vertices(depth, camera), expected)
+    assert nplps._core.normalize_camera(camera) == flat
+    # ... and the file reader and the constructors give the same canonical camera.
+    assert nplps.Rig.pinhole(K_TEST, lights=LIGHTS, distortion=form).camera == flat
+    if not isinstance(form, np.ndarray):
+        rig = nplps.Rig.load(_write(tmp_path, _pinhole_file(form)))
+        assert rig.camera == flat
+        np.testing.assert_array_equal(nplps._core.vertices(depth, rig.camera), expected)
+
+
+@pytest.mark.parametrize(
+    "distortion, message",
+    [
+        ([0.1, 0.0, 0.0], r"camera\.distortion has 3 coefficients, which is ambiguous"),
+        ([0.0] * 6, r"camera\.distortion has 6 coefficients; OpenCV's models have 4, 5, 8, 12 or 14"),
+        (D5 + [0.1, 0.0, 0.0], r"camera\.distortion has 8 coefficients and k4 = 0\.1 is not zero"),
+        ([[0.0] * 14 + [1.0]], r"camera\.distortion has 15 items; at most 14"),
+        ([[0.1, 0.0], [0.0, 0.0]], r"camera\.distortion must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, got a 2 x 2 matrix"),
+        ([[[0.1]]], r"camera\.distortion\[0\] must be a number, got a list of 1 item"),
+        ("abc", r"camera\.distortion must be a list, got the string \"abc\""),
+        ({"k1": 0.1}, r"camera\.distortion must be a list, got an object"),
+        (0.1, r"camera\.distortion must be a list, got 0\.1"),
+        ([0.1, True], r"camera\.distortion\[1\] must be a number, got the boolean true"),
+        ([0.1, "0"], r"camera\.distortion\[1\] must be a number, got the string \"0\""),
+        ([float("nan"), 0.0], r"camera\.distortion\[0\] must be a finite number, got NaN"),
+        ([0.1, float("inf")], r"camera\.distortion\[1\] must be a finite number, got inf"),
+        ([10**400, 0.0], r"camera\.distortion\[0\] is an integer too large for a floating-point number"),
+    ],
+)
+def test_malformed_distortion_is_a_rig_error_naming_it(tmp_path, distortion, message):
+    with pytest.raises(nplps.RigError, match=message):
+        nplps._core.vertices(np.full((3, 3), 100.0), {"model": "pinhole", "K": K_TEST, "distortion": distortion})
+    with pytest.raises(nplps.RigError, match=message):
+        nplps.Rig.load(_write(tmp_path, _pinhole_file(distortion)))
+    with pytest.raises(nplps.RigError, match=message):
+        nplps.Rig.pinhole(K_TEST, lights=LIGHTS, distortion=distortion)
+
+
+def test_distortion_that_cannot_be_undone_is_a_rig_error():
+    """Far from the centre a strong barrel distortion maps no ray: refused, not a made-up ray."""
+    camera = {"model": "pinhole", "K": [[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 1.0]], "distortion": [-0.2, 0.0]}
+    assert np.isfinite(nplps._core.vertices(np.full((5, 5), 100.0), camera)).all()
+    with pytest.raises(nplps.RigError, match=r"no ray at pixel corner \(row \d+, column \d+\): its distortion cannot be undone"):
+        nplps._core.vertices(np.full((12, 12), 100.0), camera)
+    # Vertices of unknown depth (outside a reconstruction's mask) need no ray.
+    depth = np.full((12, 12), np.nan)
+    depth[:5, :5] = 100.0
+    v = nplps._core.vertices(depth, camera)
+    assert np.isfinite(v[:5, :5]).all() and np.isnan(v[6:, 6:]).all()
+
+
+@pytest.mark.parametrize("nesting", [100, 100_000])
+def test_deeply_nested_rig_files_are_rig_errors(tmp_path, nesting):
+    path = tmp_path / "rig.json"
+    path.write_text("[" * nesting + "]" * nesting, encoding="utf-8")
+    with pytest.raises(nplps.RigError, match=rf"rig file '.*rig\.json' is nested too deeply \({nesting} levels; at most 64\)"):
+        nplps.Rig.load(path)
+    # Nested inside a comment of a good file: still too deep; at 60 levels it is read.
+    data = _good()
+    data["_note"] = _deep = []
+    for _ in range(nesting - 2):
+        _deep.append([])
+        _deep = _deep[0]
+    if nesting < 900:
+        with pytest.raises(nplps.RigError, match=r"nested too deeply"):
+            nplps.Rig.load(_write(tmp_path, data))
+    data["_note"] = json.loads("[" * 60 + "]" * 60)
+    assert nplps.Rig.load(_write(tmp_path, data)).n_lights == 4
+
+
+def test_brackets_in_strings_do_not_count_as_nesting(tmp_path):
+    data = _good()
+    data["_note"] = "[" * 1000 + "{" * 1000
+    assert nplps.Rig.load(_write(tmp_path, data)).n_lights == 4
+
+
+def test_oversized_and_odd_json_files_are_rig_errors(tmp_path):
+    path = tmp_path / "rig.json"
+    path.write_bytes(b" " * (16 * 2**20) + b"{}")
+    with pytest.raises(nplps.RigError, match=r"is larger than 16 MiB"):
+        nplps.Rig.load(path)
+    path.write_text('{"version": ' + "9" * 5000 + "}", encoding="utf-8")
+    with pytest.raises(nplps.RigError, match=r"is not valid JSON: Exceeds the limit"):
+        nplps.Rig.load(path)
+    path.write_bytes(b"\xff\xfe{}")
+    with pytest.raises(nplps.RigError, match=r"is not a JSON text file \(not UTF-8\)"):
+        nplps.Rig.load(path)
+    # A UTF-8 byte order mark (Windows editors) is fine.
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(_good()).encode())
+    assert nplps.Rig.load(path).n_lights == 4
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d["lights"][0].update(position=[float("nan"), 0, 0]), r"light 0 position\[0\] must be a finite number, got nan"),
+        (lambda d: d["lights"][1].update(intensity=float("inf")), r"light 1 intensity must be a finite number, got inf"),
+        (lambda d: d["lights"][2].update(intensity=[1, float("-inf"), 1]), r"light 2 intensity\[1\] must be a finite number, got -inf"),
+        (lambda d: d["lights"][0].update(mu=float("nan"), direction=[0, 0, 1]), r"light 0 mu must be a finite number, got nan"),
+        (lambda d: d["lights"][0].update(mu=1, direction=[0, float("nan"), 1]), r"light 0 direction\[1\] must be a finite number"),
+        (lambda d: d["camera"].update(pixel_size=[1, float("nan")]), r"camera\.pixel_size\[1\] must be a finite number, got NaN"),
+        (lambda d: d["camera"].update(origin=[float("inf"), 0]), r"camera\.origin\[0\] must be a finite number, got inf"),
+        (lambda d: d["lights"][0].update(position=[1e13, 0, 0]), r"light 0's position has the value 1\.00000e13, beyond 1\.00000e12 in magnitude"),
+        (lambda d: d["camera"].update(pixel_size=[1e-300, 1]), r"pixel size must be at least 1\.00000e-12, got \[1\.00000e-300, 1\]"),
+    ],
+)
+def test_non_finite_and_absurd_values_are_rig_errors(tmp_path, edit, message):
+    data = _good()
+    edit(data)
+    with pytest.raises(nplps.RigError, match=message) as info:
+        nplps.Rig.load(_write(tmp_path, data))
+    assert len(str(info.value)) < 300
+
+
+def test_non_finite_pinhole_values_are_rig_errors(tmp_path):
+    data = _pinhole_file(D5)
+    data["camera"]["K"][0][2] = float("nan")
+    with pytest.raises(nplps.RigError, match=r"camera\.K\[0\]\[2\] must be a finite number, got NaN"):
+        nplps.Rig.load(_write(tmp_path, data))
+    data["camera"]["K"] = [[500, 0, 2], [0, 500, 2]]
+    with pytest.raises(nplps.RigError, match=r"camera\.K must be a 3 x 3 matrix, got a list of 2 items"):
+        nplps.Rig.load(_write(tmp_path, data))
+
+
+def test_too_many_lights_are_a_rig_error(tmp_path):
+    data = _good()
+    data["lights"] = [{"position": [float(i % 100), float(i // 100), -10.0]} for i in range(nplps.rig.MAX_LIGHTS + 1)]
+    with pytest.raises(nplps.RigError, match=r"the rig has 10001 lights; at most 10000 are supported"):
+        nplps.Rig.load(_write(tmp_path, data))
+
+
+def test_anisotropic_led_needs_a_nonzero_finite_direction():
+    """A zero principal direction used to become +z silently."""
+    with pytest.raises(nplps.RigError, match=r"light 1: an anisotropic LED \(mu = 2\) needs a non-zero principal direction"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]], mu=[1, 2, 1, 1])
+    with pytest.raises(nplps.RigError, match=r"light 0 has a non-finite principal direction \[nan, 0, 1\]"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[np.nan, 0, 1]] + [[0, 0, 1]] * 3, mu=[1] * 4)
+    # An isotropic light's axis is unused: zero is fine there.
+    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 0]] * 4, mu=[0] * 4)
+    np.testing.assert_array_equal(rig.directions, [[0, 0, 1]] * 4)
+
+
+def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
+    with pytest.raises(nplps.RigError, match=r"camera must be a mapping \(the rig file's camera object\), got a list of 2 items"):
+        nplps.Rig(camera=["orthographic", 1.0], lights=LIGHTS)
+    with pytest.raises(nplps.RigError, match=r"lights must be numbers, got an array of booleans"):
+        nplps.Rig.orthographic(1.0, lights=np.ones((4, 3), dtype=bool))
+    with pytest.raises(nplps.RigError, match=r"lights must be numbers, got an array of strings"):
+        nplps.Rig.orthographic(1.0, lights=[["1", "2", "3"]] * 4)
+    with pytest.raises(nplps.RigError, match=r"directional must have one flag \(True or False\) per light"):
+        nplps.Rig(camera={"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS, directional=["yes"] * 4)
+
+
+def test_the_core_refuses_malformed_light_mappings():
+    """The core's lights mapping (built by Rig) is checked as strictly as the camera."""
+    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS)
+    lights = rig._core_lights()
+    for key, value, message in [
+        ("mu", [0, 0, "1", 0], r"lights\.mu\[2\] must be a number, got the string \"1\""),
+        ("directional", [0, 0, 0, 0], r"lights\.directional\[0\] must be a boolean, got 0"),
+        ("vectors", [[0, 0, 0]] * 3 + [[0, 0]], r"lights\.vectors\[3\] must be 3 numbers, got a list of 2 items"),
+        ("intensities", [[1, 1, True]] * 4, r"lights\.intensities\[0\]\[2\] must be a number, got the boolean true"),
+        ("extra", [], r"lights has an unknown key \"extra\""),
+    ]:
+        with pytest.raises(nplps.RigError, match=message):
+            nplps._core.check_rig(rig.camera, {**lights, key: value})
+
+
+def test_the_readme_rig_file_examples_are_read():
+    import pathlib
+    import re
+
+    readme = (pathlib.Path(__file__).parent.parent / "README.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```json\n(.*?)```", readme, re.S)
+    assert len(blocks) >= 2
+    for block in blocks:
+        assert nplps.Rig.from_dict(json.loads(block), source="README").n_lights >= 3

@@ -20,6 +20,8 @@ import numpy.typing as npt
 __version__: str
 #: Most conjugate-gradient iterations of one multigrid global step.
 MULTIGRID_MAX_ITERATIONS: int
+#: Most lights a rig may have.
+MAX_LIGHTS: int
 
 Camera = Mapping[str, Any]
 Lights = Mapping[str, list[Any]]
@@ -64,6 +66,7 @@ def predict(
 def mesh_normals(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
 def vertices(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
 def check_rig(camera: Camera, lights: Lights) -> None: ...
+def normalize_camera(camera: Camera) -> dict[str, Any]: ...
 def synth_scene(
     name: str,
     n: int,

@@ -47,7 +47,7 @@ from . import _core, io
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
-from .rig import Rig
+from .rig import Rig, read_rig_json
 
 ImageSet = Union[np.ndarray, Sequence[Any]]
 """One placement's images: a (k, H, W[, 3]) array or k image files / arrays."""
@@ -249,16 +249,7 @@ def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
 def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The camera mapping of a rig file (its lights, if any, are ignored: a file with
     ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except OSError as e:
-        raise RigError(f"cannot read rig file {os.fspath(path)!r}: {e.strerror}") from None
-    except RecursionError:
-        raise RigError(f"rig file {os.fspath(path)!r} is nested too deeply: not a rig file") from None
-    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError, integers of more than 4300 digits
-        message = str(e) if len(str(e)) <= 200 else str(e)[:200] + "..."
-        raise RigError(f"rig file {os.fspath(path)!r} is not valid JSON: {message}") from None
+    data = read_rig_json(path)  # within the rig file's limits (size, nesting), as Rig.load
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
         raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
     return _camera_of(data["camera"])

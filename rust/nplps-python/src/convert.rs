@@ -8,28 +8,330 @@
 
 use numpy::{IntoPyArray, PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::{PyDict, PyDictMethods};
+use pyo3::types::{
+    PyBool, PyBytes, PyDict, PyDictMethods, PyFloat, PyInt, PyList, PyString, PyTuple,
+};
+
+use nplps::error::g6;
 
 use crate::errors::{py_error, to_py};
 
-/// Reads `key` of `dict`; a missing or malformed value is a `RigError` naming the key.
-fn get<'py, T: FromPyObjectOwned<'py>>(
+// ------------------------------------------------------------------------------------------------
+// Strict reading of the rig mappings. Every key of the camera and lights mappings is checked for
+// its type and shape here, in one place for every function of the bindings: a malformed value is
+// a `RigError` naming it (`camera.distortion[2]`), never dropped; numbers are ints or floats
+// (numpy scalars too), never booleans or strings, and finite; lists are lists, tuples or numpy
+// arrays; keys starting with '_' are comments, any other unknown key is an error (a misspelt
+// key must not silently fall back to a default).
+// ------------------------------------------------------------------------------------------------
+
+fn rig_error(py: Python<'_>, message: String) -> PyErr {
+    py_error(py, "RigError", message)
+}
+
+/// At most 40 characters of `s` for a message.
+fn short(s: &str) -> String {
+    if s.chars().count() <= 40 {
+        format!("{s:?}")
+    } else {
+        let head: String = s.chars().take(37).collect();
+        format!("{head:?}...")
+    }
+}
+
+/// The type name of `v` (`float`, `ndarray`, ...).
+fn type_name(v: &Bound<'_, PyAny>) -> String {
+    v.get_type()
+        .name()
+        .map(|n| n.to_string())
+        .unwrap_or_else(|_| "object".to_string())
+}
+
+/// Whether `v` is a boolean (Python's or numpy's).
+fn is_bool(v: &Bound<'_, PyAny>) -> bool {
+    v.is_instance_of::<PyBool>() || matches!(type_name(v).as_str(), "bool" | "bool_")
+}
+
+/// Whether `v` is an array with at least one dimension (numpy).
+fn is_array(v: &Bound<'_, PyAny>) -> bool {
+    v.getattr("ndim")
+        .and_then(|n| n.extract::<usize>())
+        .is_ok_and(|n| n >= 1)
+        && v.hasattr("tolist").unwrap_or(false)
+}
+
+/// A short description of a value for messages: never its full repr, which may be huge or
+/// nested too deeply to print.
+fn describe(v: &Bound<'_, PyAny>) -> String {
+    if v.is_none() {
+        return "null".to_string();
+    }
+    if is_bool(v) {
+        return format!("the boolean {}", v.is_truthy().unwrap_or(false));
+    }
+    if let Ok(s) = v.cast::<PyString>() {
+        return format!("the string {}", short(&s.to_string_lossy()));
+    }
+    let count = |n: usize| format!("{n} item{}", if n == 1 { "" } else { "s" });
+    if let Ok(l) = v.cast::<PyList>() {
+        return format!("a list of {}", count(l.len()));
+    }
+    if let Ok(t) = v.cast::<PyTuple>() {
+        return format!("a tuple of {}", count(t.len()));
+    }
+    if v.is_instance_of::<PyDict>() {
+        return "an object (mapping)".to_string();
+    }
+    if is_array(v) {
+        let shape = v
+            .getattr("shape")
+            .and_then(|s| s.extract::<Vec<usize>>())
+            .unwrap_or_default();
+        return format!("an array of shape {shape:?}");
+    }
+    if v.is_instance_of::<PyInt>()
+        || v.is_instance_of::<PyFloat>()
+        || v.hasattr("__float__").unwrap_or(false)
+    {
+        if let Ok(x) = v.extract::<f64>() {
+            return g6(x);
+        }
+        if v.is_instance_of::<PyInt>() {
+            return "an integer too large for a floating-point number".to_string();
+        }
+    }
+    format!("a value of type {}", short(&type_name(v)))
+}
+
+/// A finite number: an int or a float (numpy scalars included), not a boolean or a string.
+fn number(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
+    let x = value(py, v, what)?;
+    if !x.is_finite() {
+        return Err(rig_error(
+            py,
+            format!("{what} must be a finite number, got {}", g6(x)),
+        ));
+    }
+    Ok(x)
+}
+
+/// A number, perhaps not finite (for the lights mapping, whose values the core checks naming
+/// the light and the parameter).
+fn value(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
+    let bad = || rig_error(py, format!("{what} must be a number, got {}", describe(v)));
+    let excluded = v.is_none()
+        || is_bool(v)
+        || v.is_instance_of::<PyString>()
+        || v.is_instance_of::<PyBytes>()
+        || v.is_instance_of::<PyList>()
+        || v.is_instance_of::<PyTuple>()
+        || v.is_instance_of::<PyDict>()
+        || is_array(v);
+    if excluded {
+        return Err(bad());
+    }
+    let x: f64 = match v.extract() {
+        Ok(x) => x,
+        Err(_) if v.is_instance_of::<PyInt>() => {
+            return Err(rig_error(
+                py,
+                format!("{what} is an integer too large for a floating-point number"),
+            ))
+        }
+        Err(_) => return Err(bad()),
+    };
+    Ok(x)
+}
+
+/// The items of a list (a list, a tuple or a numpy array with at least one dimension), at most
+/// `max` of them.
+fn items<'py>(
+    py: Python<'py>,
+    v: &Bound<'py, PyAny>,
+    what: &str,
+    max: usize,
+) -> PyResult<Vec<Bound<'py, PyAny>>> {
+    let list = if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
+        v.clone()
+    } else if is_array(v) {
+        let size: usize = v.getattr("size")?.extract()?;
+        if size > max.saturating_mul(16) {
+            return Err(rig_error(
+                py,
+                format!("{what} has {size} values; at most {max} items are expected"),
+            ));
+        }
+        v.call_method0("tolist")?
+    } else {
+        return Err(rig_error(
+            py,
+            format!("{what} must be a list, got {}", describe(v)),
+        ));
+    };
+    let n = list.len()?;
+    if n > max {
+        return Err(rig_error(
+            py,
+            format!("{what} has {n} items; at most {max} are allowed"),
+        ));
+    }
+    list.try_iter()?.collect()
+}
+
+/// Exactly `N` numbers, finite ones when `finite` (else see [`value`]).
+fn numbers<const N: usize>(
+    py: Python<'_>,
+    v: &Bound<'_, PyAny>,
+    what: &str,
+    finite: bool,
+) -> PyResult<[f64; N]> {
+    let wrong = || {
+        rig_error(
+            py,
+            format!("{what} must be {N} numbers, got {}", describe(v)),
+        )
+    };
+    let list = items(py, v, what, N).map_err(|_| wrong())?;
+    if list.len() != N {
+        return Err(wrong());
+    }
+    let mut out = [0.0; N];
+    for (i, (o, x)) in out.iter_mut().zip(&list).enumerate() {
+        let what = format!("{what}[{i}]");
+        *o = if finite {
+            number(py, x, &what)?
+        } else {
+            value(py, x, &what)?
+        };
+    }
+    Ok(out)
+}
+
+/// Fails on a key of `dict` that is not in `known` and does not start with '_' (a comment).
+fn check_keys(
+    py: Python<'_>,
+    dict: &Bound<'_, PyDict>,
+    what: &str,
+    known: &[&str],
+    usage: &str,
+) -> PyResult<()> {
+    for (key, _) in dict.iter() {
+        let Ok(name) = key.cast::<PyString>() else {
+            return Err(rig_error(
+                py,
+                format!("{what} has a key that is not a string ({})", describe(&key)),
+            ));
+        };
+        let name = name.to_string_lossy();
+        if !(name.starts_with('_') || known.contains(&name.as_ref())) {
+            return Err(rig_error(
+                py,
+                format!(
+                    "{what} has an unknown key {} ({usage}; keys starting with '_' are comments)",
+                    short(&name)
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The value of `key` of `dict`; missing is a `RigError` naming the key.
+fn required<'py>(
     py: Python<'py>,
     dict: &Bound<'py, PyDict>,
     what: &str,
     key: &str,
-) -> PyResult<T> {
-    let value = dict
-        .get_item(key)?
-        .ok_or_else(|| py_error(py, "RigError", format!("{what} is missing the key {key:?}")))?;
-    value.extract::<T>().map_err(|e| {
-        let e: PyErr = e.into();
-        py_error(
-            py,
-            "RigError",
-            format!("{what} key {key:?} is invalid: {e}"),
-        )
-    })
+) -> PyResult<Bound<'py, PyAny>> {
+    dict.get_item(key)?
+        .ok_or_else(|| rig_error(py, format!("{what} is missing the key {key:?}")))
+}
+
+/// OpenCV's distortion coefficients as (k1, k2, p1, p2, k3): a flat list or OpenCV's 1 x n or
+/// n x 1 matrix (`[[k1, k2, p1, p2, k3]]`), with 0, 1, 2, 4 or 5 coefficients (a prefix of
+/// (k1, k2, p1, p2, k3) that keeps p1 and p2 together; missing ones are zero), or 8, 12 or 14
+/// (OpenCV's rational, thin-prism and tilted models) when the coefficients after k3 are zero.
+/// Null (None) is no distortion.
+fn distortion(py: Python<'_>, v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
+    const WHAT: &str = "camera.distortion";
+    if v.is_none() {
+        return Ok([0.0; 5]);
+    }
+    let outer = items(py, v, WHAT, 14)?;
+    let nested = |x: &Bound<'_, PyAny>| {
+        x.is_instance_of::<PyList>() || x.is_instance_of::<PyTuple>() || is_array(x)
+    };
+    let flat = if !outer.is_empty() && outer.iter().all(nested) {
+        if outer.len() == 1 {
+            items(py, &outer[0], WHAT, 14)?
+        } else {
+            let mut column = Vec::with_capacity(outer.len());
+            for row in &outer {
+                let row = items(py, row, WHAT, 14)?;
+                if row.len() != 1 {
+                    return Err(rig_error(
+                        py,
+                        format!(
+                            "{WHAT} must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, \
+                             got a {} x {} matrix",
+                            outer.len(),
+                            row.len()
+                        ),
+                    ));
+                }
+                column.extend(row);
+            }
+            column
+        }
+    } else {
+        outer
+    };
+    let mut c = Vec::with_capacity(flat.len());
+    for (i, x) in flat.iter().enumerate() {
+        c.push(number(py, x, &format!("{WHAT}[{i}]"))?);
+    }
+    let mut d = [0.0; 5];
+    match c.len() {
+        0 | 1 | 2 | 4 | 5 => d[..c.len()].copy_from_slice(&c),
+        3 => {
+            return Err(rig_error(
+                py,
+                format!(
+                "{WHAT} has 3 coefficients, which is ambiguous (OpenCV's k1, k2, p1 or a radial \
+                     k1, k2, k3): give 4 or 5 (k1, k2, p1, p2[, k3])"
+            ),
+            ))
+        }
+        n @ (8 | 12 | 14) => {
+            const NAMES: [&str; 14] = [
+                "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x",
+                "tau_y",
+            ];
+            if let Some(i) = (5..n).find(|&i| c[i] != 0.0) {
+                return Err(rig_error(
+                    py,
+                    format!(
+                        "{WHAT} has {n} coefficients and {} = {} is not zero: nplps models k1, k2, \
+                         p1, p2, k3 only, not OpenCV's rational (k4, k5, k6), thin-prism (s1..s4) \
+                         or tilt (tau_x, tau_y) terms",
+                        NAMES[i],
+                        g6(c[i])
+                    ),
+                ));
+            }
+            d.copy_from_slice(&c[..5]);
+        }
+        n => {
+            return Err(rig_error(
+                py,
+                format!(
+                    "{WHAT} has {n} coefficients; OpenCV's models have 4, 5, 8, 12 or 14 \
+                     (nplps models k1, k2, p1, p2, k3)"
+                ),
+            ))
+        }
+    }
+    Ok(d)
 }
 
 /// Reads an optional option of an options mapping (`InputError` when malformed).
@@ -49,38 +351,78 @@ pub fn option<'py, T: FromPyObjectOwned<'py>>(
     }
 }
 
-/// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping.
+/// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping: `model` =
+/// "orthographic" with `pixel_size` (w, h) and `origin` (x, y), or "pinhole" with `K` (3 x 3)
+/// and an optional `distortion` (see [`distortion`]). Every value is checked (see above).
 pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps::Camera> {
-    let model: String = get(py, camera, "camera", "model")?;
-    let cam = match model.as_str() {
-        "orthographic" => nplps::Camera::Orthographic {
-            pixel_size: get(py, camera, "camera", "pixel_size")?,
-            origin: get(py, camera, "camera", "origin")?,
-        },
-        "pinhole" => {
-            let k: [[f64; 3]; 3] = get(py, camera, "camera", "K")?;
-            let distortion: Option<Vec<f64>> = get(py, camera, "camera", "distortion").ok();
-            let mut d = [0.0; 5];
-            if let Some(v) = distortion {
-                if v.len() > 5 {
-                    return Err(py_error(
-                        py,
-                        "RigError",
-                        format!(
-                            "distortion has {} coefficients; at most 5 (k1, k2, p1, p2, k3)",
-                            v.len()
-                        ),
-                    ));
-                }
-                d[..v.len()].copy_from_slice(&v);
+    let model = required(py, camera, "camera", "model")?;
+    let Ok(model) = model.cast::<PyString>() else {
+        return Err(rig_error(
+            py,
+            format!("camera.model must be a string, got {}", describe(&model)),
+        ));
+    };
+    let model = model.to_string_lossy();
+    let cam = match model.as_ref() {
+        "orthographic" => {
+            check_keys(
+                py,
+                camera,
+                "camera",
+                &["model", "pixel_size", "origin"],
+                "an orthographic camera has model, pixel_size and origin",
+            )?;
+            nplps::Camera::Orthographic {
+                pixel_size: numbers(
+                    py,
+                    &required(py, camera, "camera", "pixel_size")?,
+                    "camera.pixel_size",
+                    true,
+                )?,
+                origin: numbers(
+                    py,
+                    &required(py, camera, "camera", "origin")?,
+                    "camera.origin",
+                    true,
+                )?,
             }
+        }
+        "pinhole" => {
+            check_keys(
+                py,
+                camera,
+                "camera",
+                &["model", "K", "distortion"],
+                "a pinhole camera has model, K and distortion",
+            )?;
+            let matrix = required(py, camera, "camera", "K")?;
+            let wrong = || {
+                rig_error(
+                    py,
+                    format!("camera.K must be a 3 x 3 matrix, got {}", describe(&matrix)),
+                )
+            };
+            let rows = items(py, &matrix, "camera.K", 3).map_err(|_| wrong())?;
+            if rows.len() != 3 {
+                return Err(wrong());
+            }
+            let mut k = [[0.0; 3]; 3];
+            for (i, row) in rows.iter().enumerate() {
+                k[i] = numbers(py, row, &format!("camera.K[{i}]"), true)?;
+            }
+            let d = match camera.get_item("distortion")? {
+                Some(v) => distortion(py, &v)?,
+                None => [0.0; 5],
+            };
             nplps::Camera::Pinhole { k, distortion: d }
         }
-        other => {
-            return Err(py_error(
+        _ => {
+            return Err(rig_error(
                 py,
-                "RigError",
-                format!("unknown camera model {other:?}; supported: \"orthographic\", \"pinhole\""),
+                format!(
+                    "unknown camera model {}; supported: \"orthographic\", \"pinhole\"",
+                    short(&model)
+                ),
             ))
         }
     };
@@ -106,42 +448,85 @@ pub fn camera_dict<'py>(py: Python<'py>, camera: &nplps::Camera) -> PyResult<Bou
     Ok(d)
 }
 
-/// Builds the core's lights from the lights mapping (see the module documentation).
+/// Builds the core's lights from the lights mapping (see the module documentation): the keys
+/// `vectors`, `directional`, `intensities`, `axes` and `mu`, each with one item per light (at
+/// most [`nplps::rig::MAX_LIGHTS`]), every value checked (see above).
 pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
-    let what = "lights";
-    let vectors: Vec<[f64; 3]> = get(py, lights, what, "vectors")?;
-    let directional: Vec<bool> = get(py, lights, what, "directional")?;
-    let intensities: Vec<[f64; 3]> = get(py, lights, what, "intensities")?;
-    let axes: Vec<[f64; 3]> = get(py, lights, what, "axes")?;
-    let mu: Vec<f64> = get(py, lights, what, "mu")?;
+    const KEYS: [&str; 5] = ["vectors", "directional", "intensities", "axes", "mu"];
+    check_keys(
+        py,
+        lights,
+        "lights",
+        &KEYS,
+        "the lights mapping has vectors, directional, intensities, axes and mu",
+    )?;
+    let max = nplps::rig::MAX_LIGHTS;
+    let list = |key: &str| -> PyResult<Vec<Bound<'_, PyAny>>> {
+        let value = required(py, lights, "lights", key)?;
+        items(py, &value, &format!("lights.{key}"), max).map_err(|e| {
+            if value.len().is_ok_and(|n| n > max) {
+                rig_error(
+                    py,
+                    format!("the rig has more than {max} lights, the most nplps supports"),
+                )
+            } else {
+                e
+            }
+        })
+    };
+    let [vectors, directional, intensities, axes, mu] = [
+        list(KEYS[0])?,
+        list(KEYS[1])?,
+        list(KEYS[2])?,
+        list(KEYS[3])?,
+        list(KEYS[4])?,
+    ];
     let k = vectors.len();
     if [directional.len(), intensities.len(), axes.len(), mu.len()]
         .iter()
         .any(|&n| n != k)
     {
-        return Err(py_error(
+        return Err(rig_error(
             py,
-            "RigError",
             format!("every light needs all its parameters ({k} lights)"),
         ));
     }
-    Ok((0..k)
+    (0..k)
         .map(|i| {
-            if directional[i] {
+            let flag = &directional[i];
+            if !is_bool(flag) {
+                return Err(rig_error(
+                    py,
+                    format!(
+                        "lights.directional[{i}] must be a boolean, got {}",
+                        describe(flag)
+                    ),
+                ));
+            }
+            let vector = numbers(py, &vectors[i], &format!("lights.vectors[{i}]"), false)?;
+            let intensity = numbers(
+                py,
+                &intensities[i],
+                &format!("lights.intensities[{i}]"),
+                false,
+            )?;
+            let axis = numbers(py, &axes[i], &format!("lights.axes[{i}]"), false)?;
+            let mu = value(py, &mu[i], &format!("lights.mu[{i}]"))?;
+            Ok(if flag.is_truthy()? {
                 nplps::Light::Directional {
-                    direction: vectors[i],
-                    intensity: intensities[i],
+                    direction: vector,
+                    intensity,
                 }
             } else {
                 nplps::Light::Point {
-                    position: vectors[i],
-                    intensity: intensities[i],
-                    axis: axes[i],
-                    mu: mu[i],
+                    position: vector,
+                    intensity,
+                    axis,
+                    mu,
                 }
-            }
+            })
         })
-        .collect())
+        .collect()
 }
 
 /// The light refinement's report as a dict.

@@ -457,6 +457,16 @@ fn check_rig<'py>(
     rig_from(py, camera, lights).map(|_| ())
 }
 
+/// The camera mapping checked and in its canonical form (floats; a pinhole camera's distortion
+/// as the 5 coefficients k1, k2, p1, p2, k3; comment keys dropped); raises `RigError`.
+#[pyfunction]
+fn normalize_camera<'py>(
+    py: Python<'py>,
+    camera: &Bound<'py, PyDict>,
+) -> PyResult<Bound<'py, PyDict>> {
+    camera_dict(py, &camera_from(py, camera)?)
+}
+
 /// A synthetic scene with ground truth: dict of depth, mask, albedo, camera and lights.
 #[pyfunction]
 #[pyo3(signature = (name, n, size, distance, seed, pinhole=false, led=false, rgb=false, directional=false))]
@@ -512,6 +522,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
+    m.add_function(wrap_pyfunction!(normalize_camera, m)?)?;
+    m.add("MAX_LIGHTS", nplps::rig::MAX_LIGHTS)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;

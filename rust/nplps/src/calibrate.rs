@@ -77,7 +77,7 @@
 use nalgebra::{Matrix3, SymmetricEigen, Vector3, Vector4};
 
 use crate::error::{Error, Result};
-use crate::rig::{Camera, Light, Rig};
+use crate::rig::{distort, Camera, Light, Rig};
 
 // -------------------------------------------------------------------------------------------
 // Small vector helpers
@@ -179,18 +179,6 @@ impl Ray {
         let a = sub3(p, self.origin);
         norm3(sub3(a, scale3(self.direction, dot3(a, self.direction))))
     }
-}
-
-/// OpenCV's distortion of normalised coordinates.
-fn distort(p: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
-    let [k1, k2, p1, p2, k3] = dist;
-    let (x, y) = (p[0], p[1]);
-    let r2 = x * x + y * y;
-    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-    [
-        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-    ]
 }
 
 /// The viewing ray of the image point (u, v) (pixel (r, c) has its centre at (u, v) = (c, r)).

@@ -71,7 +71,7 @@ pub(crate) fn ensure_input(cond: bool, msg: impl FnOnce() -> String) -> Result<(
 
 /// `x` with 6 significant digits, like C's `%g`: plain between 1e-4 and 1e6, else scientific
 /// (messages never print a number with hundreds of digits).
-pub(crate) fn g6(x: f64) -> String {
+pub fn g6(x: f64) -> String {
     if !x.is_finite() || x == 0.0 {
         return format!("{x}");
     }

@@ -18,8 +18,9 @@
 
 use rayon::prelude::*;
 
+use crate::error::{Error, Result};
 use crate::grid::Grid;
-use crate::rig::Camera;
+use crate::rig::{Camera, MAX_MAGNITUDE};
 
 /// Largest allowed `n_z` (orthographic), or smallest `-n . r / |r|` (pinhole), when a fitted
 /// normal is turned into a plane; bounds the target slopes of grazing fits.
@@ -45,6 +46,35 @@ impl Geometry {
                 .map(|&v| camera.vertex_xy(v / vw, v % vw))
                 .collect(),
         }
+    }
+
+    /// Fails when a vertex of `grid` (the grid this geometry was made for) has no finite
+    /// position or ray, or one beyond [`MAX_MAGNITUDE`]: a pinhole camera whose distortion
+    /// cannot be undone there (see [`crate::rig::undistort_checked`]) or whose rays are nearly
+    /// parallel to the image plane, or an orthographic grid too large. Only the unknowns `i`
+    /// with `used(i)` are checked.
+    pub fn check_rays(&self, grid: &Grid, used: impl Fn(usize) -> bool + Sync) -> Result<()> {
+        let Some(i) = self.base.par_iter().enumerate().position_first(|(i, b)| {
+            used(i) && !(b[0].abs() <= MAX_MAGNITUDE && b[1].abs() <= MAX_MAGNITUDE)
+        }) else {
+            return Ok(());
+        };
+        let v = grid.active[i];
+        let (r, c) = (v / (grid.width + 1), v % (grid.width + 1));
+        Err(Error::Rig(if self.perspective {
+            format!(
+                "the camera has no ray at pixel corner (row {r}, column {c}): its distortion \
+                 cannot be undone there (OpenCV's model maps no ray there: distortion too strong \
+                 for this image size, or K and distortion for another image size?) or K puts \
+                 it at a right angle to the optical axis"
+            )
+        } else {
+            format!(
+                "the orthographic camera's grid reaches beyond {} at pixel corner (row {r}, \
+                 column {c}) (pixel_size and origin too large)",
+                crate::error::g6(MAX_MAGNITUDE)
+            )
+        }))
     }
 
     /// Whether the unknowns are log-depths.

@@ -42,7 +42,11 @@ impl<'a> ImageStack<'a> {
         ensure_input(channels == 1 || channels == 3, || {
             format!("images must have 1 (grey) or 3 (RGB) channels, got {channels}")
         })?;
-        ensure_input(data.len() == k * height * width * channels, || {
+        let expected = k
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(width))
+            .and_then(|n| n.checked_mul(channels));
+        ensure_input(expected == Some(data.len()), || {
             format!(
                 "image data has {} values, expected k * H * W * C = {k} * {height} * {width} * {channels}",
                 data.len()
@@ -144,6 +148,7 @@ impl<'a> Problem<'a> {
         }
         let grid = Grid::new(images.height, images.width, mask)?;
         let geometry = Geometry::new(&rig.camera, &grid);
+        geometry.check_rays(&grid, |_| true)?;
         let (u0, gauge) = initial_unknowns(&grid, &geometry, depth)?;
         let min_depth = u0
             .iter()
@@ -184,7 +189,10 @@ impl Problem<'_> {
             )
         })?;
         ensure_input(weight.is_finite() && weight > 0.0, || {
-            format!("the prior weight must be positive and finite, got {weight}")
+            format!(
+                "the prior weight must be positive and finite, got {}",
+                crate::error::g6(weight)
+            )
         })?;
         let values: Vec<f64> = self
             .grid
@@ -212,11 +220,18 @@ fn initial_unknowns(
     depth: InitialDepth<'_>,
 ) -> Result<(Vec<f64>, Vec<f64>)> {
     let positive = geometry.is_perspective();
-    let valid = |z: f64| z.is_finite() && (!positive || z > 0.0);
+    // Depths beyond the rig's bounds overflow (or, for a pinhole camera, collapse) the mesh.
+    let valid = |z: f64| {
+        z.abs() <= crate::rig::MAX_MAGNITUDE && (!positive || z >= crate::rig::MIN_MAGNITUDE)
+    };
     match depth {
         InitialDepth::Distance(d) => {
             ensure_input(valid(d), || {
-                format!("the working distance must be finite (and positive for a pinhole camera), got {d}")
+                format!(
+                    "the working distance must be finite (and positive for a pinhole camera) and \
+                     within [1e-12, 1e12] in magnitude, got {}",
+                    crate::error::g6(d)
+                )
             })?;
             let u = geometry.unknown(d);
             Ok((vec![u; grid.n_unknowns()], vec![u; grid.n_regions]))
@@ -235,10 +250,12 @@ fn initial_unknowns(
                 let v = grid.active[i];
                 return Err(Error::Input(format!(
                     "the initial depth map is {} at vertex (row {}, column {}) used by the mask",
-                    if z0[i].is_finite() {
-                        "not positive"
-                    } else {
+                    if !z0[i].is_finite() {
                         "not finite"
+                    } else if z0[i].abs() > crate::rig::MAX_MAGNITUDE {
+                        "beyond 1e12 in magnitude"
+                    } else {
+                        "not positive (at least 1e-12)"
                     },
                     v / w,
                     v % w

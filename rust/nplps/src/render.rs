@@ -30,6 +30,8 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
     )?;
     let grid = Grid::new(height, width, None)?;
     let geometry = Geometry::new(camera, &grid);
+    // Vertices of unknown (NaN) depth need no ray: outside a reconstruction's mask, say.
+    geometry.check_rays(&grid, |v| depth[v].is_finite())?;
     Ok(depth
         .iter()
         .enumerate()

@@ -4,8 +4,39 @@
 //! into the scene; depth is z. Units are the user's (mm typical): pixel sizes and light positions
 //! share them.
 
-use crate::error::{Error, Result};
+use crate::error::{g6, Error, Result};
 use crate::grid::{dot, sub};
+
+/// Most lights a rig may have. Real rigs have tens to a few hundred; the bound keeps a malformed
+/// rig file from asking for unbounded work (every light is one image of the stack).
+pub const MAX_LIGHTS: usize = 10_000;
+
+/// Largest magnitude of a length or pixel coordinate of a rig (camera values, light positions)
+/// and of a depth; pixel sizes, focal lengths and pinhole depths are at least [`MIN_MAGNITUDE`].
+/// No real rig comes near either bound, and values beyond them overflow or underflow the
+/// geometry (cubes of distances, cross products of vertex offsets) into NaN results.
+pub const MAX_MAGNITUDE: f64 = 1e12;
+/// Smallest pixel size, focal length and pinhole depth (see [`MAX_MAGNITUDE`]).
+pub const MIN_MAGNITUDE: f64 = 1e-12;
+
+/// Fails when a value of `values` (named `name`) is beyond [`MAX_MAGNITUDE`].
+fn check_magnitude(what: &str, values: &[f64]) -> Result<()> {
+    match values.iter().find(|v| v.abs() > MAX_MAGNITUDE) {
+        Some(v) => Err(Error::Rig(format!(
+            "{what} has the value {}, beyond {} in magnitude: no rig has such values, and they \
+             overflow the geometry",
+            g6(*v),
+            g6(MAX_MAGNITUDE)
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Numbers for messages, each with 6 significant digits: `[1, 0.5, 1.00000e300]`.
+pub(crate) fn g6_list(values: &[f64]) -> String {
+    let items: Vec<String> = values.iter().map(|&v| g6(v)).collect();
+    format!("[{}]", items.join(", "))
+}
 
 /// Camera model.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,30 +75,54 @@ impl Camera {
             Camera::Orthographic { pixel_size, origin } => {
                 if !pixel_size.iter().all(|s| s.is_finite() && *s > 0.0) {
                     return Err(Error::Rig(format!(
-                        "pixel size must be positive and finite, got {pixel_size:?}"
+                        "pixel size must be positive and finite, got {}",
+                        g6_list(&pixel_size)
                     )));
                 }
                 if !origin.iter().all(|o| o.is_finite()) {
-                    return Err(Error::Rig(format!("origin must be finite, got {origin:?}")));
+                    return Err(Error::Rig(format!(
+                        "origin must be finite, got {}",
+                        g6_list(&origin)
+                    )));
                 }
-                Ok(())
+                if pixel_size.iter().any(|s| *s < MIN_MAGNITUDE) {
+                    return Err(Error::Rig(format!(
+                        "pixel size must be at least {}, got {}",
+                        g6(MIN_MAGNITUDE),
+                        g6_list(&pixel_size)
+                    )));
+                }
+                check_magnitude("the camera's pixel_size", &pixel_size)?;
+                check_magnitude("the camera's origin", &origin)
             }
             Camera::Pinhole { k, distortion } => {
                 let finite = k.iter().flatten().chain(&distortion).all(|v| v.is_finite());
                 let shape_ok = k[1][0] == 0.0 && k[2] == [0.0, 0.0, 1.0];
                 if !(finite && shape_ok && k[0][0] > 0.0 && k[1][1] > 0.0) {
+                    let rows: Vec<String> = k.iter().map(|r| g6_list(r)).collect();
                     return Err(Error::Rig(format!(
                         "K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive finite focal \
-                         lengths (and finite distortion), got K = {k:?}, distortion = {distortion:?}"
+                         lengths (and finite distortion), got K = [{}], distortion = {}",
+                        rows.join(", "),
+                        g6_list(&distortion)
                     )));
                 }
-                Ok(())
+                if k[0][0] < MIN_MAGNITUDE || k[1][1] < MIN_MAGNITUDE {
+                    return Err(Error::Rig(format!(
+                        "the focal lengths fx, fy must be at least {}, got {}",
+                        g6(MIN_MAGNITUDE),
+                        g6_list(&[k[0][0], k[1][1]])
+                    )));
+                }
+                check_magnitude("the camera's K", k.as_flattened())?;
+                check_magnitude("the camera's distortion", &distortion)
             }
         }
     }
 
     /// Orthographic: the scene (x, y) of vertex (r, c). Pinhole: the ray (x, y) of vertex (r, c)
-    /// at z = 1, undistorted.
+    /// at z = 1, undistorted; NaN where the distortion cannot be undone (see
+    /// [`undistort_checked`]).
     pub fn vertex_xy(&self, r: usize, c: usize) -> [f64; 2] {
         match *self {
             Camera::Orthographic { pixel_size, origin } => [
@@ -78,7 +133,7 @@ impl Camera {
                 let (u, v) = (c as f64 - 0.5, r as f64 - 0.5);
                 let yd = (v - k[1][2]) / k[1][1];
                 let xd = (u - k[0][2] - k[0][1] * yd) / k[0][0];
-                undistort([xd, yd], distortion)
+                undistort_checked([xd, yd], distortion)
             }
         }
     }
@@ -102,6 +157,35 @@ pub(crate) fn first_behind(lights: &[Light], depth: f64) -> Option<(usize, f64)>
             Light::Point { position, .. } if !light.is_in_front_of(depth) => Some((i, position[2])),
             _ => None,
         })
+}
+
+/// OpenCV's distortion model: the distorted normalized point of the undistorted point `p`.
+pub(crate) fn distort(p: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
+    let [k1, k2, p1, p2, k3] = dist;
+    let (x, y) = (p[0], p[1]);
+    let r2 = x * x + y * y;
+    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    [
+        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+    ]
+}
+
+/// [`undistort`], checked: NaN unless the distortion model maps the result back onto `d` (to
+/// 1e-9 of its size). Far from the centre a strong distortion folds over and maps no point
+/// there; the fixed-point iteration then ends anywhere, and that ray would be a lie.
+pub(crate) fn undistort_checked(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
+    let x = undistort(d, dist);
+    if dist.iter().all(|c| *c == 0.0) {
+        return x;
+    }
+    let back = distort(x, dist);
+    let miss = (back[0] - d[0]).hypot(back[1] - d[1]);
+    if miss <= 1e-9 * (1.0 + d[0].hypot(d[1])) {
+        x
+    } else {
+        [f64::NAN; 2]
+    }
 }
 
 /// Inverts OpenCV's distortion model by fixed-point iteration (as `cv::undistortPoints` does).
@@ -217,31 +301,45 @@ impl Light {
         };
         if !finite(&vector) {
             return Err(Error::Rig(format!(
-                "light {i} has a non-finite {name} {vector:?}"
+                "light {i} has a non-finite {name} {}",
+                g6_list(&vector)
             )));
         }
-        if !finite(&intensity) || !finite(&axis) || !mu.is_finite() {
+        check_magnitude(&format!("light {i}'s {name}"), &vector)?;
+        if !finite(&intensity) {
             return Err(Error::Rig(format!(
-                "light {i} has a non-finite parameter: {self:?}"
+                "light {i} has a non-finite intensity {}",
+                g6_list(&intensity)
+            )));
+        }
+        if !finite(&axis) || !mu.is_finite() {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite principal direction {} or anisotropy mu = {}",
+                g6_list(&axis),
+                g6(mu)
             )));
         }
         if !intensity.iter().all(|v| *v > 0.0) {
             return Err(Error::Rig(format!(
-                "light {i} must have positive intensities, got {intensity:?}"
+                "light {i} must have positive intensities, got {}",
+                g6_list(&intensity)
             )));
         }
         if mu < 0.0 {
             return Err(Error::Rig(format!(
-                "light {i} has anisotropy mu = {mu}; it must be >= 0"
+                "light {i} has anisotropy mu = {}; it must be >= 0",
+                g6(mu)
             )));
         }
         let unit = |v: [f64; 3]| (dot(v, v).sqrt() - 1.0).abs() < 1e-6;
         match *self {
             Light::Point { axis, mu, .. } if mu > 0.0 && !unit(axis) => Err(Error::Rig(format!(
-                "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {axis:?}"
+                "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {}",
+                g6_list(&axis)
             ))),
             Light::Directional { direction, .. } if !unit(direction) => Err(Error::Rig(format!(
-                "light {i}: a directional light needs a unit direction, got {direction:?}"
+                "light {i}: a directional light needs a unit direction, got {}",
+                g6_list(&direction)
             ))),
             _ => Ok(()),
         }
@@ -288,9 +386,15 @@ impl Rig {
         self.validate_parameters()
     }
 
-    /// Checks the camera and every light's parameters, whatever their number (rendering and
-    /// prediction work with any number of lights).
+    /// Checks the camera and every light's parameters, whatever their number up to
+    /// [`MAX_LIGHTS`] (rendering and prediction work with any number of lights).
     pub fn validate_parameters(&self) -> Result<()> {
+        if self.lights.len() > MAX_LIGHTS {
+            return Err(Error::Rig(format!(
+                "the rig has {} lights; at most {MAX_LIGHTS} are supported",
+                self.lights.len()
+            )));
+        }
         self.camera.validate()?;
         self.lights
             .iter()
@@ -303,8 +407,10 @@ impl Rig {
     pub fn check_lights_in_front(&self, min_depth: f64) -> Result<()> {
         match first_behind(&self.lights, min_depth) {
             Some((i, z)) => Err(Error::Rig(format!(
-                "light {i} at z = {z} is not in front of the surface (nearest depth {min_depth}); \
-                 lights must have smaller z than the object (z grows away from the camera)"
+                "light {i} at z = {} is not in front of the surface (nearest depth {}); \
+                 lights must have smaller z than the object (z grows away from the camera)",
+                g6(z),
+                g6(min_depth)
             ))),
             None => Ok(()),
         }
@@ -348,6 +454,26 @@ mod tests {
         let yd = y * radial + dist[2] * (r2 + 2.0 * y * y) + 2.0 * dist[3] * x * y;
         let [ux, uy] = undistort([xd, yd], dist);
         assert!((ux - x).abs() < 1e-10 && (uy - y).abs() < 1e-10);
+        assert_eq!(distort([x, y], dist), [xd, yd]);
+        assert_eq!(undistort_checked([xd, yd], dist), [ux, uy]);
+    }
+
+    #[test]
+    fn distortion_that_cannot_be_undone_gives_no_ray() {
+        // k1 = -0.2 maps radius r to at most 0.86 (at r = 1.29): radius 1 has no preimage.
+        let dist = [-0.2, 0.0, 0.0, 0.0, 0.0];
+        assert!(undistort_checked([0.8, 0.6], dist)
+            .iter()
+            .all(|v| v.is_nan()));
+        assert!(undistort_checked([0.4, 0.3], dist)
+            .iter()
+            .all(|v| v.is_finite()));
+        let cam = Camera::Pinhole {
+            k: [[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 1.0]],
+            distortion: dist,
+        };
+        assert!(cam.vertex_xy(10, 10)[0].is_nan());
+        assert!(cam.vertex_xy(3, 3)[0].is_finite());
     }
 
     #[test]
