@@ -120,7 +120,8 @@ class Rig:
         directional = _flags(self.directional, k)
         set_("directional", directional)
         if np.any(directional):
-            unit = np.linalg.norm(lights[directional], axis=1)
+            with np.errstate(over="ignore"):  # a huge vector is no unit vector either
+                unit = np.linalg.norm(lights[directional], axis=1)
             if not np.allclose(unit, 1.0, atol=1e-6):
                 raise RigError("directional lights need unit directions (from the surface towards the light)")
         _core.check_rig(self.camera, self._core_lights())
@@ -198,6 +199,7 @@ class Rig:
         far = np.zeros((0, 3)) if directional_lights is None else _array(directional_lights, "directional_lights", (-1, 3))
         m = far.shape[0]
         if m:
+            far = far / np.abs(far).max(axis=1, keepdims=True)  # no overflow in the norm
             far = far / np.linalg.norm(far, axis=1, keepdims=True)
         pad3 = np.zeros((m, 3))
         dirs = None if directions is None else np.vstack([_array(directions, "directions", (k, 3)), pad3])
