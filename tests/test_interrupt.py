@@ -9,11 +9,17 @@ import pytest
 
 SCRIPT = textwrap.dedent(
     """
+    import sys, time
     import nplps
     s = nplps.make_scene("bumps", n=128)
+    def progress(it):
+        # A line per iteration, slowed down so that the run outlasts the signal (without the
+        # pause it could stop on its own, "stalled", before the signal arrives).
+        print("iteration", it.iteration, file=sys.stderr, flush=True)
+        time.sleep(0.05)
     try:
         nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth,
-                          iterations=1_000_000, tol=0.0, progress=True)
+                          iterations=1_000_000, tol=0.0, progress=progress)
     except KeyboardInterrupt:
         print("interrupted", flush=True)
         raise SystemExit(3)
