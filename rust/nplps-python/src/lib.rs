@@ -213,7 +213,11 @@ impl<'a> Input<'a> {
 
     /// The validated problem (runs without the GIL), refused before any large allocation when
     /// reconstructing it with `options` would exceed their memory limit.
-    fn problem(&self, options: &nplps::Options) -> nplps::Result<nplps::Problem<'_>> {
+    fn problem(
+        &self,
+        options: &nplps::Options,
+        cancel: &nplps::Cancel,
+    ) -> nplps::Result<nplps::Problem<'_>> {
         let [k, h, w, c] = self.shape;
         let facets = match self.mask {
             Some(m) => m.iter().filter(|&&inside| inside).count(),
@@ -221,7 +225,7 @@ impl<'a> Input<'a> {
         };
         nplps::memory::check_reconstruction(h, w, facets, c, k, options)?;
         let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
-        nplps::Problem::new(stack, &self.rig, self.mask, self.depth)
+        nplps::Problem::with_cancel(stack, &self.rig, self.mask, self.depth, cancel.clone())
     }
 }
 
@@ -273,8 +277,7 @@ fn reconstruct<'py>(
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
         no_panic(|| {
-            let mut problem = input.problem(&options)?;
-            problem.cancel = cancel.clone();
+            let mut problem = input.problem(&options, &cancel)?;
             if let Some(map) = prior {
                 problem.set_prior(map, prior_weight)?;
             }
@@ -359,8 +362,7 @@ fn reconstruct_parallel<'py>(
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
         no_panic(|| {
-            let mut problem = input.problem(&options)?;
-            problem.cancel = cancel.clone();
+            let problem = input.problem(&options, &cancel)?;
             nplps::reconstruct_parallel(&problem, &options)
         })
     })?;

@@ -118,6 +118,18 @@ impl<'a> Problem<'a> {
         mask: Option<&[bool]>,
         depth: InitialDepth<'_>,
     ) -> Result<Problem<'a>> {
+        Problem::with_cancel(images, rig, mask, depth, crate::Cancel::default())
+    }
+
+    /// As [`Problem::new`], checking `cancel` between the stages of the preparation; the
+    /// problem keeps it (see [`Problem::cancel`]).
+    pub fn with_cancel(
+        images: ImageStack<'a>,
+        rig: &'a Rig,
+        mask: Option<&[bool]>,
+        depth: InitialDepth<'_>,
+        cancel: crate::Cancel,
+    ) -> Result<Problem<'a>> {
         rig.validate()?;
         ensure_input(images.k == rig.n_lights(), || {
             format!(
@@ -146,9 +158,12 @@ impl<'a> Problem<'a> {
                 pixel % images.width
             )));
         }
+        cancel.check()?;
         let grid = Grid::new(images.height, images.width, mask)?;
+        cancel.check()?;
         let geometry = Geometry::new(&rig.camera, &grid);
         geometry.check_rays(&grid, |_| true)?;
+        cancel.check()?;
         let (u0, gauge) = initial_unknowns(&grid, &geometry, depth)?;
         let min_depth = u0
             .iter()
@@ -161,7 +176,9 @@ impl<'a> Problem<'a> {
             images.height * images.width,
             images.channels,
         );
+        cancel.check()?;
         let negative_observations = count_negative(&grid, &obs);
+        cancel.check()?;
         Ok(Problem {
             rig,
             grid,
@@ -171,7 +188,7 @@ impl<'a> Problem<'a> {
             gauge,
             negative_observations,
             prior: None,
-            cancel: crate::Cancel::default(),
+            cancel,
         })
     }
 }
