@@ -515,6 +515,10 @@ fn synth_scene<'py>(
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     pool::remember_process();
+    // Load numpy's C API now: loading it runs Python code, and a Ctrl-C arriving during that
+    // first load inside a call would surface as a panic of the numpy crate instead of a
+    // KeyboardInterrupt.
+    let _ = numpy::PyArray1::<f64>::zeros(m.py(), [0], false);
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("MULTIGRID_MAX_ITERATIONS", nplps::multigrid::MAX_ITERATIONS)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
