@@ -215,6 +215,62 @@ fn cancelling_stops_the_solver() {
 }
 
 #[test]
+fn a_cancel_token_stops_the_solver_from_another_thread() {
+    // 256^2 with 1000 iterations and tol 0 runs for seconds; a token cancelled from another
+    // thread after the first iteration stops it inside the next local or global step.
+    let scene = Scene::new(SceneKind::Bumps, 256, 100.0, 200.0, 0).unwrap();
+    let images = exact_images(&scene);
+    let stack = ImageStack::new(&images, scene.rig.n_lights(), 256, 256).unwrap();
+    let cancel = nplps::Cancel::new();
+    let problem = Problem::with_cancel(
+        stack,
+        &scene.rig,
+        Some(&scene.mask),
+        InitialDepth::Distance(scene.mean_depth()),
+        cancel.clone(),
+    )
+    .unwrap();
+    let options = Options {
+        iterations: 1000,
+        tol: 0.0,
+        levels: 1,
+        ..Options::default()
+    };
+    let mut calls = 0;
+    let result = std::thread::scope(|s| {
+        let (first, seen) = std::sync::mpsc::channel();
+        let canceller = s.spawn(move || {
+            seen.recv().unwrap();
+            cancel.cancel();
+        });
+        let result = reconstruct(&problem, &options, &mut |_| {
+            calls += 1;
+            if calls == 1 {
+                first.send(()).unwrap();
+            }
+            Control::Continue
+        });
+        canceller.join().unwrap();
+        result
+    });
+    assert_eq!(result.unwrap_err(), nplps::Error::Cancelled);
+    assert!(calls < 50, "{calls} iterations ran after the cancellation");
+
+    // A token cancelled before the start stops the problem's preparation.
+    let stopped = nplps::Cancel::new();
+    stopped.cancel();
+    let stack = ImageStack::new(&images, scene.rig.n_lights(), 256, 256).unwrap();
+    let refused = Problem::with_cancel(
+        stack,
+        &scene.rig,
+        None,
+        InitialDepth::Distance(200.0),
+        stopped,
+    );
+    assert_eq!(refused.err(), Some(nplps::Error::Cancelled));
+}
+
+#[test]
 fn working_distance_is_found_from_the_images() {
     use nplps::{reconstruct_auto, DistanceSearch};
     for pinhole in [false, true] {
