@@ -11,7 +11,6 @@ use std::time::Instant;
 
 use crate::error::Result;
 use crate::global::GlobalStep;
-use crate::grid::{normalize, sub};
 use crate::local::{local_step, FacetFit, FacetStat, Model, Weighting};
 use crate::problem::Problem;
 use crate::refine::{LightData, Refine, Refiner};
@@ -20,6 +19,7 @@ use crate::solver::{
     assemble, max_depth_change, rms_of, sparse_par, with_threads, FitOutputs, IterationStats,
     Options, Reconstruction, Timings,
 };
+use crate::vec3::{normalize, sub};
 
 /// `(direction, intensity)` of each light in the parallel-light model, seen from the centroid of
 /// the initial surface.

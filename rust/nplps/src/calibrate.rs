@@ -78,55 +78,11 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3, Vector4};
 
 use crate::error::{Error, Result};
 use crate::rig::{distort, Camera, Light, Rig};
+use crate::vec3::{add, angle, cross, dot, norm, scale, sub, unit};
 
 // -------------------------------------------------------------------------------------------
-// Small vector helpers
+// Small numeric helpers (the 3-vector ones are in `crate::vec3`)
 // -------------------------------------------------------------------------------------------
-
-#[inline]
-fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline]
-fn add3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-#[inline]
-fn scale3(a: [f64; 3], s: f64) -> [f64; 3] {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-#[inline]
-fn dot3(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline]
-fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-#[inline]
-fn norm3(a: [f64; 3]) -> f64 {
-    dot3(a, a).sqrt()
-}
-
-#[inline]
-fn unit3(a: [f64; 3]) -> [f64; 3] {
-    scale3(a, 1.0 / norm3(a))
-}
-
-/// Angle in radians between two vectors (accurate for tiny angles).
-#[inline]
-pub fn angle_between(a: [f64; 3], b: [f64; 3]) -> f64 {
-    norm3(cross3(a, b)).atan2(dot3(a, b))
-}
 
 /// Tukey's biweight for the residual `r` at scale `c` (0 beyond `c`).
 #[inline]
@@ -171,13 +127,13 @@ pub struct Ray {
 impl Ray {
     /// The point at parameter `t`.
     pub fn at(&self, t: f64) -> [f64; 3] {
-        add3(self.origin, scale3(self.direction, t))
+        add(self.origin, scale(self.direction, t))
     }
 
     /// Distance of the point `p` from the (infinite) line of the ray.
     pub fn distance_to(&self, p: [f64; 3]) -> f64 {
-        let a = sub3(p, self.origin);
-        norm3(sub3(a, scale3(self.direction, dot3(a, self.direction))))
+        let a = sub(p, self.origin);
+        norm(sub(a, scale(self.direction, dot(a, self.direction))))
     }
 }
 
@@ -200,7 +156,7 @@ pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
             let [x, y] = crate::rig::undistort([xd, yd], distortion);
             Ray {
                 origin: [0.0; 3],
-                direction: unit3([x, y, 1.0]),
+                direction: unit([x, y, 1.0]),
             }
         }
     }
@@ -225,9 +181,9 @@ pub fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
 
 /// Nearest intersection (t > 0) of a ray with the sphere of centre `c` and radius `r`.
 pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
-    let oc = sub3(ray.origin, c);
-    let b = dot3(oc, ray.direction);
-    let disc = b * b - (dot3(oc, oc) - r * r);
+    let oc = sub(ray.origin, c);
+    let b = dot(oc, ray.direction);
+    let disc = b * b - (dot(oc, oc) - r * r);
     if disc < 0.0 {
         return None;
     }
@@ -240,7 +196,7 @@ pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
 /// `v - 2 (v . n) n`.
 #[inline]
 pub fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
-    sub3(v, scale3(n, 2.0 * dot3(v, n)))
+    sub(v, scale(n, 2.0 * dot(v, n)))
 }
 
 // -------------------------------------------------------------------------------------------
@@ -466,7 +422,7 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
     if rays.iter().flatten().any(|v| !v.is_finite()) {
         return Err(Error::Input("outline rays must be finite".into()));
     }
-    let rays: Vec<[f64; 3]> = rays.iter().map(|&b| unit3(b)).collect();
+    let rays: Vec<[f64; 3]> = rays.iter().map(|&b| unit(b)).collect();
     // Linear fit: b . m = 1.
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
@@ -482,14 +438,14 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         .ok_or_else(|| {
             Error::Input("the outline rays do not form a cone (degenerate outline)".into())
         })?;
-    let mut axis = unit3([m[0], m[1], m[2]]);
+    let mut axis = unit([m[0], m[1], m[2]]);
     let mut cos_t = 1.0 / m.norm();
     let mut weights = vec![1.0; n];
     let mut residuals = vec![0.0; n];
     for iteration in 0..30 {
         let half = cos_t.clamp(-1.0, 1.0).acos();
         for (res, b) in residuals.iter_mut().zip(&rays) {
-            *res = angle_between(*b, axis) - half;
+            *res = angle(*b, axis) - half;
         }
         if iteration >= 1 {
             let s = robust_scale(&residuals, 1e-9 * half.max(1e-9));
@@ -506,11 +462,11 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         }
         let mut mean = [0.0; 3];
         for (b, w) in rays.iter().zip(&weights) {
-            mean = add3(mean, scale3(*b, *w / wsum));
+            mean = add(mean, scale(*b, *w / wsum));
         }
         let mut cov = Matrix3::<f64>::zeros();
         for (b, w) in rays.iter().zip(&weights) {
-            let d = sub3(*b, mean);
+            let d = sub(*b, mean);
             let v = Vector3::new(d[0], d[1], d[2]);
             cov += v * v.transpose() * *w;
         }
@@ -523,13 +479,13 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
             ));
         }
         let e = eig.eigenvectors.column(order[0]);
-        let mut new_axis = unit3([e[0], e[1], e[2]]);
-        if dot3(new_axis, axis) < 0.0 {
-            new_axis = scale3(new_axis, -1.0);
+        let mut new_axis = unit([e[0], e[1], e[2]]);
+        if dot(new_axis, axis) < 0.0 {
+            new_axis = scale(new_axis, -1.0);
         }
-        let change = angle_between(new_axis, axis);
+        let change = angle(new_axis, axis);
         axis = new_axis;
-        cos_t = dot3(mean, axis);
+        cos_t = dot(mean, axis);
         if iteration >= 3 && change < 1e-14 {
             break;
         }
@@ -543,7 +499,7 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
     let (mut sum, mut count) = (0.0, 0usize);
     for (b, w) in rays.iter().zip(&weights) {
         if *w > 0.0 {
-            sum += (angle_between(*b, axis) - half).powi(2);
+            sum += (angle(*b, axis) - half).powi(2);
             count += 1;
         }
     }
@@ -994,11 +950,11 @@ pub fn locate_sphere(
                 .collect();
             let cone = fit_cone(&rays)?;
             let distance = radius / cone.half_angle.sin();
-            let from_outline = scale3(cone.axis, distance);
+            let from_outline = scale(cone.axis, distance);
             let (center, check) = match center_depth {
                 Some(z) => {
-                    let c = scale3(cone.axis, z / cone.axis[2]);
-                    (c, distance / norm3(c))
+                    let c = scale(cone.axis, z / cone.axis[2]);
+                    (c, distance / norm(c))
                 }
                 None => (from_outline, 1.0),
             };
@@ -1161,26 +1117,26 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
     }
     let a0 = start.axis;
     let (sin0, cos0) = start.half_angle.sin_cos();
-    let m0 = scale3(a0, 1.0 / cos0);
+    let m0 = scale(a0, 1.0 / cos0);
     let (e1, e2) = tangent_basis(a0);
     // m = m0 + e1 x1 + e2 x2 + a0 sin0 x3 (x3 changes the half-angle by ~x3 radians).
-    let basis = [e1, e2, scale3(a0, sin0)];
+    let basis = [e1, e2, scale(a0, sin0)];
     let mut rows = Vec::with_capacity(inside.len() + outside.len());
     let mut h = Vec::with_capacity(rows.capacity());
     for (rays, sign) in [(inside, -1.0), (outside, 1.0)] {
         for b in rays {
             // inside: -b . m <= -1, outside: b . m <= 1.
             let g = [
-                sign * dot3(*b, basis[0]),
-                sign * dot3(*b, basis[1]),
-                sign * dot3(*b, basis[2]),
+                sign * dot(*b, basis[0]),
+                sign * dot(*b, basis[1]),
+                sign * dot(*b, basis[2]),
             ];
-            let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-            if !(norm > 0.0) {
+            let len = norm(g);
+            if !(len > 0.0) {
                 continue;
             }
-            rows.push([g[0] / norm, g[1] / norm, g[2] / norm, 1.0]);
-            h.push((sign - sign * dot3(*b, m0)) / norm);
+            rows.push([g[0] / len, g[1] / len, g[2] / len, 1.0]);
+            h.push((sign - sign * dot(*b, m0)) / len);
         }
     }
     let (active, t0) = h
@@ -1192,19 +1148,19 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
     if !(z[3] > 0.0) {
         return None;
     }
-    let m = add3(
+    let m = add(
         m0,
-        add3(
-            scale3(basis[0], z[0]),
-            add3(scale3(basis[1], z[1]), scale3(basis[2], z[2])),
+        add(
+            scale(basis[0], z[0]),
+            add(scale(basis[1], z[1]), scale(basis[2], z[2])),
         ),
     );
-    let len = norm3(m);
+    let len = norm(m);
     if !(len > 1.0) {
         return None;
     }
     Some(Cone {
-        axis: scale3(m, 1.0 / len),
+        axis: scale(m, 1.0 / len),
         half_angle: (1.0 / len).acos(),
         rms: start.rms,
         inliers: inside.len() + outside.len(),
@@ -1266,10 +1222,10 @@ pub fn locate_sphere_in_mask(
                 let distance = radius / cone.half_angle.sin();
                 let (center, check) = match center_depth {
                     Some(z) => {
-                        let c = scale3(cone.axis, z / cone.axis[2]);
-                        (c, distance / norm3(c))
+                        let c = scale(cone.axis, z / cone.axis[2]);
+                        (c, distance / norm(c))
                     }
-                    None => (scale3(cone.axis, distance), 1.0),
+                    None => (scale(cone.axis, distance), 1.0),
                 };
                 sphere.center = center;
                 sphere.image_center = project(camera, center);
@@ -1314,7 +1270,7 @@ fn sphere_region(
     for r in r0..=r1 {
         for c in c0..=c1 {
             let ray = pixel_ray(camera, [c as f64, r as f64]);
-            let ahead = dot3(sub3(sphere.center, ray.origin), ray.direction) > 0.0;
+            let ahead = dot(sub(sphere.center, ray.origin), ray.direction) > 0.0;
             if ahead && ray.distance_to(sphere.center) < limit {
                 inside[(r - r0) * bw + (c - c0)] = true;
                 any = true;
@@ -1651,7 +1607,7 @@ pub fn correct_highlight(
 ) -> Option<Highlight> {
     let (_, n, _) = reflected_ray(camera, sphere, highlight.pixel)?;
     let view = pixel_ray(camera, highlight.pixel).direction;
-    let cos_t = (-dot3(n, view)).clamp(1e-6, 1.0);
+    let cos_t = (-dot(n, view)).clamp(1e-6, 1.0);
     let tan_t = (1.0 - cos_t * cos_t).sqrt() / cos_t;
     let d = [
         highlight.pixel[0] - sphere.image_center[0],
@@ -1684,8 +1640,8 @@ pub fn reflected_ray(
 ) -> Option<([f64; 3], [f64; 3], Ray)> {
     let view = pixel_ray(camera, uv);
     let x = ray_sphere(&view, sphere.center, sphere.radius)?;
-    let n = scale3(sub3(x, sphere.center), 1.0 / sphere.radius);
-    let r = unit3(reflect(view.direction, n));
+    let n = scale(sub(x, sphere.center), 1.0 / sphere.radius);
+    let r = unit(reflect(view.direction, n));
     Some((
         x,
         n,
@@ -1733,15 +1689,15 @@ pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
 
 /// The normalised mean direction of the rays and the RMS angle (radians) of the rays about it.
 pub fn mean_direction(rays: &[Ray]) -> Option<([f64; 3], f64)> {
-    let sum = rays.iter().fold([0.0; 3], |acc, r| add3(acc, r.direction));
-    let n = norm3(sum);
+    let sum = rays.iter().fold([0.0; 3], |acc, r| add(acc, r.direction));
+    let n = norm(sum);
     if rays.is_empty() || !(n > 0.0) {
         return None;
     }
-    let d = scale3(sum, 1.0 / n);
+    let d = scale(sum, 1.0 / n);
     let ms = rays
         .iter()
-        .map(|r| angle_between(r.direction, d).powi(2))
+        .map(|r| angle(r.direction, d).powi(2))
         .sum::<f64>()
         / rays.len() as f64;
     Some((d, ms.sqrt()))
@@ -1786,7 +1742,7 @@ pub fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
         .flat_map(|(i, a)| {
             rays[i + 1..]
                 .iter()
-                .map(move |b| angle_between(a.direction, b.direction))
+                .map(move |b| angle(a.direction, b.direction))
         })
         .fold(0.0f64, f64::max)
         .to_degrees();
@@ -1821,7 +1777,7 @@ pub fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
     };
     if rays
         .iter()
-        .any(|r| dot3(sub3(p, r.origin), r.direction) <= 0.0)
+        .any(|r| dot(sub(p, r.origin), r.direction) <= 0.0)
     {
         return directional(Some(format!(
             "the rays diverge (their nearest point lies behind a sphere; spread {spread:.2} deg): written as a directional light"
@@ -1829,7 +1785,7 @@ pub fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
     }
     let ms_angle = rays
         .iter()
-        .map(|r| angle_between(r.direction, sub3(p, r.origin)).powi(2))
+        .map(|r| angle(r.direction, sub(p, r.origin)).powi(2))
         .sum::<f64>()
         / rays.len() as f64;
     LightReport {
@@ -2359,8 +2315,8 @@ fn tangent_basis(a: [f64; 3]) -> ([f64; 3], [f64; 3]) {
     } else {
         [0.0, 1.0, 0.0]
     };
-    let e1 = unit3(cross3(a, helper));
-    (e1, cross3(a, e1))
+    let e1 = unit(cross(a, helper));
+    (e1, cross(a, e1))
 }
 
 /// The least-squares problem of [`refine_spheres`].
@@ -2411,9 +2367,9 @@ impl Bundle {
         let o = offsets[l];
         match self.lights[l] {
             LightParam::Point => Ok([theta[o], theta[o + 1], theta[o + 2]]),
-            LightParam::Directional { d0, e1, e2 } => Err(unit3(add3(
+            LightParam::Directional { d0, e1, e2 } => Err(unit(add(
                 d0,
-                add3(scale3(e1, theta[o]), scale3(e2, theta[o + 1])),
+                add(scale(e1, theta[o]), scale(e2, theta[o + 1])),
             ))),
         }
     }
@@ -2434,14 +2390,14 @@ impl Bundle {
     /// The reflected ray of an observation for the sphere centre `c` (the viewing ray meets the
     /// sphere, or its closest approach is pushed onto it).
     fn ray(&self, view: &Ray, c: [f64; 3]) -> Ray {
-        let oc = sub3(view.origin, c);
-        let b = dot3(oc, view.direction);
-        let disc = (b * b - (dot3(oc, oc) - self.radius * self.radius)).max(0.0);
+        let oc = sub(view.origin, c);
+        let b = dot(oc, view.direction);
+        let disc = (b * b - (dot(oc, oc) - self.radius * self.radius)).max(0.0);
         let x = view.at(-b - disc.sqrt());
-        let n = scale3(sub3(x, c), 1.0 / self.radius);
+        let n = scale(sub(x, c), 1.0 / self.radius);
         Ray {
             origin: x,
-            direction: unit3(reflect(view.direction, n)),
+            direction: unit(reflect(view.direction, n)),
         }
     }
 
@@ -2453,10 +2409,10 @@ impl Bundle {
             let c = self.center(theta, s);
             let w = self.prior_weight[s];
             if self.perspective {
-                let (a0, a) = (unit3(*c0), unit3(c));
+                let (a0, a) = (unit(*c0), unit(c));
                 let (e1, e2) = tangent_basis(a0);
-                let half = |p: [f64; 3]| (self.radius / norm3(p)).clamp(-1.0, 1.0).asin();
-                out.extend([dot3(a, e1) * w, dot3(a, e2) * w, (half(c) - half(*c0)) * w]);
+                let half = |p: [f64; 3]| (self.radius / norm(p)).clamp(-1.0, 1.0).asin();
+                out.extend([dot(a, e1) * w, dot(a, e2) * w, (half(c) - half(*c0)) * w]);
             } else {
                 out.extend([(c[0] - c0[0]) * w, (c[1] - c0[1]) * w]);
             }
@@ -2470,10 +2426,10 @@ impl Bundle {
         for &(l, s, view) in &self.obs {
             let ray = self.ray(&view, self.center(theta, s));
             let target = match self.light(theta, offsets, l) {
-                Ok(p) => unit3(sub3(p, ray.origin)),
+                Ok(p) => unit(sub(p, ray.origin)),
                 Err(d) => d,
             };
-            let e = sub3(target, scale3(ray.direction, dot3(target, ray.direction)));
+            let e = sub(target, scale(ray.direction, dot(target, ray.direction)));
             let w = self.ray_scale[s] / self.sigma_h;
             out.extend([e[0] * w, e[1] * w, e[2] * w]);
         }
@@ -2711,7 +2667,7 @@ pub fn refine_spheres(
     }
     for (s, sphere) in spheres.iter_mut().enumerate() {
         let c = bundle.center(&theta, s);
-        sphere.shift = norm3(sub3(c, sphere.center));
+        sphere.shift = norm(sub(c, sphere.center));
         sphere.center = c;
         sphere.image_center = project(camera, c);
     }
@@ -2794,15 +2750,15 @@ impl Plane {
 
     /// Unit normal facing the camera (n_z < 0) and the matching offset.
     fn facing(&self) -> Result<([f64; 3], f64)> {
-        let n = norm3(self.normal);
+        let n = norm(self.normal);
         if !(n > 0.0 && n.is_finite() && self.offset.is_finite()) {
             return Err(Error::Input(format!(
                 "the board plane needs a finite non-zero normal and a finite offset, got {self:?}"
             )));
         }
-        let (mut u, mut d) = (scale3(self.normal, 1.0 / n), self.offset / n);
+        let (mut u, mut d) = (scale(self.normal, 1.0 / n), self.offset / n);
         if u[2] > 0.0 {
-            u = scale3(u, -1.0);
+            u = scale(u, -1.0);
             d = -d;
         }
         if u[2].abs() < 1e-6 {
@@ -2817,11 +2773,11 @@ impl Plane {
     pub fn intersect(&self, camera: &Camera, uv: [f64; 2]) -> Option<[f64; 3]> {
         let (n, d) = self.facing().ok()?;
         let ray = pixel_ray(camera, uv);
-        let denom = dot3(n, ray.direction);
+        let denom = dot(n, ray.direction);
         if denom == 0.0 {
             return None;
         }
-        let t = (d - dot3(n, ray.origin)) / denom;
+        let t = (d - dot(n, ray.origin)) / denom;
         (t > 0.0 || matches!(camera, Camera::Orthographic { .. })).then(|| ray.at(t))
     }
 }
@@ -2928,7 +2884,7 @@ fn with_shape(light: &Light, shape: Shape) -> Light {
 fn shading(light: &Light, n: [f64; 3], points: &[[f64; 3]]) -> Vec<f64> {
     points
         .iter()
-        .map(|&x| dot3(n, light.beta(x).0).max(0.0))
+        .map(|&x| dot(n, light.beta(x).0).max(0.0))
         .collect()
 }
 
@@ -2992,9 +2948,9 @@ fn fit_shape(
             } else {
                 [0.0, 1.0, 0.0]
             };
-            let e1 = unit3(cross3(a, helper));
-            let e2 = cross3(a, e1);
-            unit3(add3(a, add3(scale3(e1, delta[1]), scale3(e2, delta[2]))))
+            let e1 = unit(cross(a, helper));
+            let e2 = cross(a, e1);
+            unit(add(a, add(scale(e1, delta[1]), scale(e2, delta[2]))))
         } else {
             shape.axis
         };
@@ -3138,8 +3094,8 @@ pub fn calibrate_intensities(
     let m = pixels.len();
     let mut warnings = Vec::new();
     // Initial shapes.
-    let centroid = scale3(
-        points.iter().fold([0.0; 3], |a, &x| add3(a, x)),
+    let centroid = scale(
+        points.iter().fold([0.0; 3], |a, &x| add(a, x)),
         1.0 / m as f64,
     );
     let mut shapes: Vec<Shape> = lights
@@ -3151,7 +3107,7 @@ pub fn calibrate_intensities(
                 let axis = if mu > 0.0 || !options.fit_axis {
                     axis
                 } else {
-                    unit3(sub3(centroid, position))
+                    unit(sub(centroid, position))
                 };
                 let mu = if options.fit_mu && mu == 0.0 { 1.0 } else { mu };
                 Shape { mu, axis }
@@ -3472,10 +3428,10 @@ mod tests {
             let lsq =
                 locate_sphere(&cam, &mask_boundary(&labels, 200, 200, 1), 20.0, None).unwrap();
             assert!(digital);
-            let err = norm3(sub3(sphere.center, centre)) / norm3(centre);
+            let err = norm(sub(sphere.center, centre)) / norm(centre);
             worst = worst.max(err);
             sum_lp += err;
-            sum_ls += norm3(sub3(lsq.center, centre)) / norm3(centre);
+            sum_ls += norm(sub(lsq.center, centre)) / norm(centre);
         }
         assert!(worst < 1.2e-3 && sum_lp < 0.5 * sum_ls, "relative centre errors: worst {worst}, sums {sum_lp} (separating), {sum_ls} (least squares)");
     }
@@ -3485,26 +3441,23 @@ mod tests {
         let cam = pinhole();
         let (centre, radius) = ([45.0, -30.0, 260.0], 20.0);
         // Exact outline: rays tangent to the sphere.
-        let d = norm3(centre);
-        let a = unit3(centre);
+        let d = norm(centre);
+        let a = unit(centre);
         let half = (radius / d).asin();
-        let e1 = unit3(cross3(a, [0.0, 1.0, 0.0]));
-        let e2 = cross3(a, e1);
+        let e1 = unit(cross(a, [0.0, 1.0, 0.0]));
+        let e2 = cross(a, e1);
         let outline: Vec<[f64; 2]> = (0..100)
             .map(|i| {
                 let phi = i as f64 * 0.0628;
-                let dir = add3(
-                    scale3(a, half.cos()),
-                    scale3(
-                        add3(scale3(e1, phi.cos()), scale3(e2, phi.sin())),
-                        half.sin(),
-                    ),
+                let dir = add(
+                    scale(a, half.cos()),
+                    scale(add(scale(e1, phi.cos()), scale(e2, phi.sin())), half.sin()),
                 );
                 project(&cam, dir)
             })
             .collect();
         let s = locate_sphere(&cam, &outline, radius, None).unwrap();
-        assert!(norm3(sub3(s.center, centre)) < 1e-8, "{:?}", s.center);
+        assert!(norm(sub(s.center, centre)) < 1e-8, "{:?}", s.center);
         assert!(s.fit_rms < 1e-6);
         // With a given depth the centre moves along the axis to it.
         let s = locate_sphere(&cam, &outline, radius, Some(300.0)).unwrap();
@@ -3517,15 +3470,15 @@ mod tests {
             *l = u32::from(ray.distance_to(centre) <= radius);
         }
         let s = locate_sphere(&cam, &mask_boundary(&labels, h, w, 1), radius, None).unwrap();
-        let err = norm3(sub3(s.center, centre)) / d;
+        let err = norm(sub(s.center, centre)) / d;
         assert!(err < 5e-4, "relative centre error {err}");
     }
 
     #[test]
     fn reflection_and_ray_sphere() {
-        let n = unit3([0.0, -1.0, -1.0]);
+        let n = unit([0.0, -1.0, -1.0]);
         let r = reflect([0.0, 0.0, 1.0], n);
-        assert!(norm3(sub3(r, [0.0, -1.0, 0.0])) < 1e-15);
+        assert!(norm(sub(r, [0.0, -1.0, 0.0])) < 1e-15);
         let ray = Ray {
             origin: [0.0; 3],
             direction: [0.0, 0.0, 1.0],
@@ -3554,10 +3507,10 @@ mod tests {
         // The surface point whose normal bisects the view (-z) and the light direction.
         let mut n = [0.0, 0.0, -1.0];
         for _ in 0..50 {
-            let x = add3(sphere.center, scale3(n, sphere.radius));
-            n = unit3(add3([0.0, 0.0, -1.0], unit3(sub3(light, x))));
+            let x = add(sphere.center, scale(n, sphere.radius));
+            n = unit(add([0.0, 0.0, -1.0], unit(sub(light, x))));
         }
-        let x = add3(sphere.center, scale3(n, sphere.radius));
+        let x = add(sphere.center, scale(n, sphere.radius));
         let (_, _, ray) = reflected_ray(&cam, &sphere, project(&cam, x)).unwrap();
         assert!(ray.distance_to(light) < 1e-9);
     }
@@ -3570,11 +3523,11 @@ mod tests {
             .iter()
             .map(|&o| Ray {
                 origin: o,
-                direction: unit3(sub3(p, o)),
+                direction: unit(sub(p, o)),
             })
             .collect();
         let (q, rms) = nearest_point(&rays).unwrap();
-        assert!(norm3(sub3(p, q)) < 1e-9 && rms < 1e-9);
+        assert!(norm(sub(p, q)) < 1e-9 && rms < 1e-9);
         let report = locate_light(&rays, 0.5f64.to_radians());
         assert!(matches!(report.estimate, LightEstimate::Point(_)) && report.warning.is_none());
         // Two skew lines: the midpoint of their shortest segment.
@@ -3587,9 +3540,9 @@ mod tests {
             direction: [0.0, 1.0, 0.0],
         };
         let (q, rms) = nearest_point(&[a, b]).unwrap();
-        assert!(norm3(sub3(q, [0.0, 0.0, 1.0])) < 1e-12 && (rms - 1.0).abs() < 1e-12);
+        assert!(norm(sub(q, [0.0, 0.0, 1.0])) < 1e-12 && (rms - 1.0).abs() < 1e-12);
         // Parallel rays: no point; locate_light returns the direction.
-        let d = unit3([0.2, -0.1, -1.0]);
+        let d = unit([0.2, -0.1, -1.0]);
         let par: Vec<Ray> = origins
             .iter()
             .map(|&o| Ray {
@@ -3600,7 +3553,7 @@ mod tests {
         assert!(nearest_point(&par).is_none());
         let report = locate_light(&par, 0.5f64.to_radians());
         match report.estimate {
-            LightEstimate::Directional(e) => assert!(angle_between(e, d) < 1e-12),
+            LightEstimate::Directional(e) => assert!(angle(e, d) < 1e-12),
             other => panic!("{other:?}"),
         }
         // Nearly parallel (far light, 0.1 deg apart) is directional within the tolerance.
@@ -3609,7 +3562,7 @@ mod tests {
             .iter()
             .map(|&o| Ray {
                 origin: o,
-                direction: unit3(sub3(far, o)),
+                direction: unit(sub(far, o)),
             })
             .collect();
         assert!(matches!(
@@ -3627,11 +3580,11 @@ mod tests {
         let div = [
             Ray {
                 origin: [0.0, 0.0, 0.0],
-                direction: unit3([0.1, 0.0, -1.0]),
+                direction: unit([0.1, 0.0, -1.0]),
             },
             Ray {
                 origin: [10.0, 0.0, 0.0],
-                direction: unit3([0.3, 0.0, -1.0]),
+                direction: unit([0.3, 0.0, -1.0]),
             },
         ];
         let rep = locate_light(&div, 0.001);
@@ -3714,7 +3667,7 @@ mod tests {
             let center = [3.0, -2.0, 240.0];
             let radius = 20.0;
             let tilt = 28f64.to_radians();
-            let n_m = unit3([tilt.sin() * 0.6, -tilt.sin() * 0.8, -tilt.cos()]);
+            let n_m = unit([tilt.sin() * 0.6, -tilt.sin() * 0.8, -tilt.cos()]);
             let image: Vec<f32> = (0..h * w)
                 .map(|p| {
                     let (u, v) = ((p % w) as f64, (p / w) as f64);
@@ -3728,8 +3681,8 @@ mod tests {
                             let ray = pixel_ray(&camera, uv);
                             acc += match ray_sphere(&ray, center, radius) {
                                 Some(x) => {
-                                    let n = scale3(sub3(x, center), 1.0 / radius);
-                                    let g = angle_between(n, n_m);
+                                    let n = scale(sub(x, center), 1.0 / radius);
+                                    let g = angle(n, n_m);
                                     0.3 + 6.0 * (-g * g / (2.0 * 0.04f64.powi(2))).exp()
                                 }
                                 None => 0.02,
@@ -3755,7 +3708,7 @@ mod tests {
             // Exact geometry: the test is about the highlight, not the outline.
             sphere.center = center;
             sphere.image_center = project(&camera, center);
-            let truth = project(&camera, add3(center, scale3(n_m, radius)));
+            let truth = project(&camera, add(center, scale(n_m, radius)));
             let hl = find_highlight(&camera, &image, h, w, &sphere, &HighlightOptions::default())
                 .unwrap();
             // Radial (towards the sphere's image centre) and total errors before and after.
@@ -3837,17 +3790,17 @@ mod tests {
             Light::Point {
                 position: [30.0, 0.0, 0.0],
                 intensity: [2.0; 3],
-                axis: unit3([-0.2, 0.0, 1.0]),
+                axis: unit([-0.2, 0.0, 1.0]),
                 mu: 1.5,
             },
             Light::Point {
                 position: [-30.0, 10.0, 20.0],
                 intensity: [0.5; 3],
-                axis: unit3([0.2, -0.1, 1.0]),
+                axis: unit([0.2, -0.1, 1.0]),
                 mu: 0.7,
             },
             Light::Directional {
-                direction: unit3([0.3, 0.2, -1.0]),
+                direction: unit([0.3, 0.2, -1.0]),
                 intensity: [1e-4; 3],
             },
         ];
@@ -3858,7 +3811,7 @@ mod tests {
                 let x = plane
                     .intersect(&cam, [(p % w) as f64, (p / w) as f64])
                     .unwrap();
-                let s = dot3([0.0, 0.0, -1.0], l.beta(x).0).max(0.0);
+                let s = dot([0.0, 0.0, -1.0], l.beta(x).0).max(0.0);
                 images.push((rho * l.intensity()[0] * s) as f32);
             }
         }
@@ -3888,7 +3841,7 @@ mod tests {
         for (rep, l) in cal.reports.iter().zip(&lights) {
             if let Light::Point { mu, axis, .. } = *l {
                 assert!((rep.mu - mu).abs() < 1e-3, "{rep:?}");
-                assert!(angle_between(rep.axis, axis) < 1e-3, "{rep:?}");
+                assert!(angle(rep.axis, axis) < 1e-3, "{rep:?}");
             }
         }
         // Per-pixel albedo: a textured board gives the same relative intensities.

@@ -25,6 +25,7 @@ use rayon::prelude::*;
 use crate::calibrate::{pixel_ray, ray_sphere, reflect, Plane, Ray};
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
+use crate::vec3::{dot, norm, sub};
 
 /// Reflectance of the spheres and of the board behind them.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -59,10 +60,6 @@ pub struct SphereImages {
     pub labels: Vec<u32>,
 }
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
 /// Nearest sphere hit along a ray: (sphere index, point).
 fn hit(ray: &Ray, centers: &[[f64; 3]], radius: f64) -> Option<(usize, [f64; 3])> {
     centers
@@ -74,10 +71,6 @@ fn hit(ray: &Ray, centers: &[[f64; 3]], radius: f64) -> Option<(usize, [f64; 3])
             let db = dot(sub(b.1, ray.origin), ray.direction);
             da.total_cmp(&db)
         })
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 /// Whether the segment from `x` towards the light (`l` unit, `reach` its length; infinite for a
@@ -105,7 +98,7 @@ fn shadowed(
 /// Direction, magnitude and distance of a light's `beta` at `x` (None when it does not light x).
 fn incident(light: &Light, x: [f64; 3]) -> Option<([f64; 3], f64, f64)> {
     let (beta, _) = light.beta(x);
-    let b = dot(beta, beta).sqrt();
+    let b = norm(beta);
     if !(b > 0.0 && b.is_finite()) {
         return None;
     }
@@ -113,7 +106,7 @@ fn incident(light: &Light, x: [f64; 3]) -> Option<([f64; 3], f64, f64)> {
     let reach = match *light {
         Light::Point { position, .. } => {
             let d = sub(position, x);
-            dot(d, d).sqrt()
+            norm(d)
         }
         Light::Directional { .. } => f64::INFINITY,
     };
@@ -156,7 +149,7 @@ pub fn render_spheres(
     let board = board
         .map(|p| {
             let n = p.normal;
-            let len = dot(n, n).sqrt();
+            let len = norm(n);
             if !(len > 0.0) {
                 return Err(Error::Input(
                     "the board plane needs a non-zero normal".into(),
@@ -258,7 +251,7 @@ pub fn plane_depth(
     plane: &Plane,
 ) -> Result<Vec<f64>> {
     let n = plane.normal;
-    let len = dot(n, n).sqrt();
+    let len = norm(n);
     if !(len > 0.0 && len.is_finite() && plane.offset.is_finite()) {
         return Err(Error::Input(format!(
             "the board plane needs a finite non-zero normal and offset, got {plane:?}"

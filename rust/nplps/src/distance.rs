@@ -21,6 +21,7 @@ use crate::rig::Light;
 use crate::solver::{
     coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, Solver,
 };
+use crate::vec3::{norm, sub};
 
 /// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
 /// they are cheap: evaluations closer to convergence make the residual curve smoother.
@@ -107,11 +108,7 @@ fn search_range(problem: &Problem<'_>, search: &DistanceSearch) -> Result<(f64, 
         (None, None) => {
             let spread = points
                 .iter()
-                .flat_map(|a| {
-                    points.iter().map(move |b| {
-                        crate::grid::dot(crate::grid::sub(*a, *b), crate::grid::sub(*a, *b)).sqrt()
-                    })
-                })
+                .flat_map(|a| points.iter().map(move |b| norm(sub(*a, *b))))
                 .fold(0.0, f64::max)
                 .max(1e-9);
             (

@@ -15,12 +15,16 @@
 //! Grazing fits are limited: `n_z <= -NZ_MIN` (orthographic), `-n . r_j >= NZ_MIN |r_j|`
 //! (pinhole). The gauge is the arithmetic mean of `u` per region: the arithmetic mean depth
 //! (orthographic) or the geometric mean depth (pinhole).
+//!
+//! A facet's 4 corner positions ([`Geometry::facet_corners`], in the corner order of
+//! [`crate::grid`]) give its normal ([`quad_normal`]) and centre ([`quad_centre`]).
 
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::rig::{Camera, MAX_MAGNITUDE};
+use crate::vec3::{cross, normalize, sub};
 
 /// Largest allowed `n_z` (orthographic), or smallest `-n . r / |r|` (pinhole), when a fitted
 /// normal is turned into a plane; bounds the target slopes of grazing fits.
@@ -120,6 +124,13 @@ impl Geometry {
         }
     }
 
+    /// The 4 corners of facet `f` of `grid` (the grid this geometry was made for), in the order
+    /// 00, 01, 10, 11, given the unknowns `u`.
+    #[inline]
+    pub fn facet_corners(&self, grid: &Grid, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
+        grid.facet_vertices[f].map(|i| self.position(i as usize, u[i as usize]))
+    }
+
     /// Mean-subtracted targets of the corners `ids` for the plane through `centre` with unit
     /// normal `n` (see the module documentation).
     #[inline]
@@ -137,5 +148,43 @@ impl Geometry {
         };
         let mean = 0.25 * (raw[0] + raw[1] + raw[2] + raw[3]);
         raw.map(|t| t - mean)
+    }
+}
+
+/// Geometric normal of a quad: `normalize((v10 - v01) x (v11 - v00))`, facing the camera
+/// (n_z < 0) for a visible facet. It is the normal of the plane spanned by the two diagonals, i.e.
+/// the averaged finite-difference slope of the quad.
+#[inline]
+pub fn quad_normal(q: &[[f64; 3]; 4]) -> [f64; 3] {
+    let d1 = sub(q[2], q[1]);
+    let d2 = sub(q[3], q[0]);
+    normalize(cross(d1, d2))
+}
+
+/// Mean of the 4 corners.
+#[inline]
+pub fn quad_centre(q: &[[f64; 3]; 4]) -> [f64; 3] {
+    std::array::from_fn(|i| 0.25 * (q[0][i] + q[1][i] + q[2][i] + q[3][i]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quad_normal_faces_the_camera() {
+        let q = [
+            [0.0, 0.0, 5.0],
+            [1.0, 0.0, 5.0],
+            [0.0, 1.0, 5.0],
+            [1.0, 1.0, 5.0],
+        ];
+        let n = quad_normal(&q);
+        assert!((n[2] + 1.0).abs() < 1e-15);
+        // z = 5 + 0.5 x: the normal is (0.5, 0, -1) normalized.
+        let q = q.map(|p| [p[0], p[1], p[2] + 0.5 * p[0]]);
+        let n = quad_normal(&q);
+        let s = (1.25f64).sqrt();
+        assert!((n[0] - 0.5 / s).abs() < 1e-12 && (n[2] + 1.0 / s).abs() < 1e-12);
     }
 }

@@ -9,7 +9,6 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_input, Result};
-use crate::geometry::Geometry;
 
 /// Sentinel for a vertex that no masked facet uses.
 pub const INACTIVE: u32 = u32::MAX;
@@ -139,12 +138,6 @@ impl Grid {
         (p / self.width, p % self.width)
     }
 
-    /// The 4 corners of facet `f` given the unknowns `u` (see [`Geometry`]).
-    #[inline]
-    pub fn facet_corners(&self, geometry: &Geometry, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
-        self.facet_vertices[f].map(|i| geometry.position(i as usize, u[i as usize]))
-    }
-
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).
     pub fn pixel_regions(&self) -> Vec<i32> {
         let mut out = vec![-1; self.height * self.width];
@@ -244,47 +237,6 @@ fn region_sums(n: usize, regions: &[u32], values: &[f64]) -> (Vec<f64>, Vec<usiz
     (sum, count)
 }
 
-/// Geometric normal of a quad: `normalize((v10 - v01) x (v11 - v00))`, facing the camera
-/// (n_z < 0) for a visible facet. It is the normal of the plane spanned by the two diagonals, i.e.
-/// the averaged finite-difference slope of the quad.
-#[inline]
-pub fn quad_normal(q: &[[f64; 3]; 4]) -> [f64; 3] {
-    let d1 = sub(q[2], q[1]);
-    let d2 = sub(q[3], q[0]);
-    normalize(cross(d1, d2))
-}
-
-/// Mean of the 4 corners.
-#[inline]
-pub fn quad_centre(q: &[[f64; 3]; 4]) -> [f64; 3] {
-    std::array::from_fn(|i| 0.25 * (q[0][i] + q[1][i] + q[2][i] + q[3][i]))
-}
-
-#[inline]
-pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline]
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline]
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-#[inline]
-pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
-    let n = dot(a, a).sqrt();
-    [a[0] / n, a[1] / n, a[2] / n]
-}
-
 /// Connected components of the unknowns where the 4 corners of a facet are connected
 /// (union-find). Labels are numbered by first appearance in unknown order.
 fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
@@ -374,22 +326,5 @@ mod tests {
         g.apply_gauge(&mut z, &[10.0]);
         assert!((g.region_means(&z)[0] - 10.0).abs() < 1e-12);
         assert!((z[1] - z[0] - 1.0).abs() < 1e-12);
-    }
-
-    #[test]
-    fn quad_normal_faces_the_camera() {
-        let q = [
-            [0.0, 0.0, 5.0],
-            [1.0, 0.0, 5.0],
-            [0.0, 1.0, 5.0],
-            [1.0, 1.0, 5.0],
-        ];
-        let n = quad_normal(&q);
-        assert!((n[2] + 1.0).abs() < 1e-15);
-        // z = 5 + 0.5 x: the normal is (0.5, 0, -1) normalized.
-        let q = q.map(|p| [p[0], p[1], p[2] + 0.5 * p[0]]);
-        let n = quad_normal(&q);
-        let s = (1.25f64).sqrt();
-        assert!((n[0] - 0.5 / s).abs() < 1e-12 && (n[2] + 1.0 / s).abs() < 1e-12);
     }
 }

@@ -16,6 +16,14 @@
 //! pixels; [`GlobalSolver`]), and the solver runs coarse-to-fine over an image [pyramid]
 //! ([`Options::levels`]).
 //!
+//! The lower modules build on each other bottom up, each using only those listed before it (and
+//! [`error`]):
+//! `vec3` (the crate's 3-vector helpers: `sub`, `dot`, `cross`, `normalize`, ...); [`rig`] (the
+//! camera and the lights) and [`grid`] (the mesh's connectivity: which pixel corners are unknowns,
+//! the regions), which do not use each other; [`geometry`] (where the vertices are under the
+//! camera, and the facets' corners, normals and centres); then [`local`] (the per-facet fits),
+//! on which the solver's modules build.
+//!
 //! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
 //! depth = z; normals face the camera (n_z < 0). Units are the user's.
 //!
@@ -56,6 +64,7 @@ pub mod render;
 pub mod rig;
 pub mod solver;
 pub mod synth;
+mod vec3;
 
 pub use baseline::reconstruct_parallel;
 pub use cancel::Cancel;

@@ -22,9 +22,10 @@ use std::borrow::Cow;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use crate::geometry::Geometry;
-use crate::grid::{dot, quad_centre, quad_normal, Grid};
+use crate::geometry::{quad_centre, quad_normal, Geometry};
+use crate::grid::Grid;
 use crate::rig::Light;
+use crate::vec3::{dot, norm};
 
 /// How the per-facet linear system weights the lights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -285,13 +286,13 @@ pub struct LocalStep<'s> {
 }
 
 impl LocalStep<'_> {
-    /// The 4 corners of facet `f` (see [`Grid::facet_corners`]).
+    /// The 4 corners of facet `f` (see [`Geometry::facet_corners`]).
     #[inline]
     fn corners(&self, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
         match self.depths {
             Some(z) => self.grid.facet_vertices[f]
                 .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
-            None => self.grid.facet_corners(self.geometry, f, u),
+            None => self.geometry.facet_corners(self.grid, f, u),
         }
     }
 
@@ -939,14 +940,14 @@ fn solve_sums(sums: &Sums, channels: usize) -> Option<([f64; 3], [f64; 3], [f64;
     }
     if channels == 1 {
         let g = gs[0];
-        let rho = dot(g, g).sqrt();
+        let rho = norm(g);
         if !(rho.is_finite() && rho > 0.0) {
             return None;
         }
         return Some(([g[0] / rho, g[1] / rho, g[2] / rho], [rho; 3], g));
     }
     let sum: [f64; 3] = std::array::from_fn(|i| gs[0][i] + gs[1][i] + gs[2][i]);
-    let norm = dot(sum, sum).sqrt();
+    let norm = norm(sum);
     if !(norm.is_finite() && norm > 0.0) {
         return None;
     }
@@ -1079,7 +1080,7 @@ fn keep_shape(q: &[[f64; 3]; 4], u: [f64; 4], used: u32) -> FacetFit {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::grid::{normalize, sub};
+    use crate::vec3::normalize;
 
     fn lights() -> Vec<Light> {
         [
@@ -1325,7 +1326,6 @@ mod tests {
         let a = fit_facet(c, Model::Near(&l), &noisy, 1, fast).unwrap();
         let b = fit_facet(c, Model::Near(&l), &noisy, 1, FitSettings::default()).unwrap();
         assert!(b.sse > 0.0 && (a.sse / b.sse - 1.0).abs() < 1e-6);
-        let _ = sub(c, c);
     }
 
     #[test]

@@ -8,6 +8,7 @@ use crate::global::Prior;
 use crate::grid::Grid;
 use crate::local::Observations;
 use crate::rig::Rig;
+use crate::vec3::{add, sub};
 
 /// A borrowed stack of k images, laid out (k, H, W, C) row-major with C = 1 (grey) or 3 (RGB).
 /// NaN marks a missing observation (left out of the fits); infinities are errors.
@@ -296,13 +297,13 @@ pub(crate) fn check_light_geometry(rig: &Rig, geometry: &Geometry, u0: &[f64]) -
         .par_iter()
         .enumerate()
         .map(|(i, &u)| geometry.position(i, u))
-        .reduce(|| [0.0; 3], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2]]);
+        .reduce(|| [0.0; 3], add);
     let n = u0.len().max(1) as f64;
     let centroid = sum.map(|v| v / n);
     let mut gram = nalgebra::Matrix3::zeros();
     for light in &rig.lights {
         let d = match *light {
-            crate::rig::Light::Point { position, .. } => crate::grid::sub(position, centroid),
+            crate::rig::Light::Point { position, .. } => sub(position, centroid),
             crate::rig::Light::Directional { direction, .. } => direction,
         };
         let v = nalgebra::Vector3::from(d);

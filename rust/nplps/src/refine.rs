@@ -54,11 +54,13 @@ use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
+use crate::geometry::quad_centre;
 use crate::geometry::Geometry;
-use crate::grid::{dot, quad_centre, Grid};
+use crate::grid::Grid;
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
 use crate::problem::Problem;
 use crate::rig::Light;
+use crate::vec3::{dot, norm, sub};
 
 /// Default weight of the prior that holds light positions to the rig's (see the module docs).
 pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e3;
@@ -247,7 +249,7 @@ fn derivatives(
             ..
         } = *light
         {
-            let v = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+            let v = sub(p, c);
             let d2 = dot(v, v);
             let len = d2.sqrt();
             let inv3 = 1.0 / (d2 * len);
@@ -457,7 +459,7 @@ impl LightData<'_> {
                 },
                 |(mut acc, mut s), j| {
                     let f = j * stride;
-                    let q = grid.facet_corners(geometry, f, u);
+                    let q = geometry.facet_corners(grid, f, u);
                     let c = quad_centre(&q);
                     acc.sum_z += c[2];
                     acc.min_z = acc.min_z.min(c[2]);
@@ -703,7 +705,7 @@ impl Refiner {
                 .zip(&self.reference)
                 .map(|(a, b)| match (a, b) {
                     (Light::Point { position: p, .. }, Light::Point { position: q, .. }) => {
-                        let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
+                        let d = sub(*p, *q);
                         dot(d, d)
                     }
                     _ => 0.0,
@@ -876,7 +878,7 @@ fn apply(
             }
             if let (Some(j), Light::Point { position, .. }) = (layout.position[i], &mut light) {
                 let d = [delta[j], delta[j + 1], delta[j + 2]];
-                change = change.max(dot(d, d).sqrt() / distance);
+                change = change.max(norm(d) / distance);
                 for a in 0..3 {
                     position[a] += d[a];
                 }
@@ -1021,7 +1023,7 @@ mod tests {
             let light = Light::Point {
                 position: [40.0, 10.0, 5.0],
                 intensity: [2.0; 3],
-                axis: crate::grid::normalize([-0.3, -0.1, 1.0]),
+                axis: crate::vec3::normalize([-0.3, -0.1, 1.0]),
                 mu,
             };
             let pred = |l: &Light| {
@@ -1183,8 +1185,8 @@ mod tests {
         }
         for (a, b) in lights.iter().zip(&scene.rig.lights) {
             if let (Light::Point { position: p, .. }, Light::Point { position: q, .. }) = (a, b) {
-                let d = crate::grid::sub(*p, *q);
-                assert!(dot(d, d).sqrt() < 0.01, "{p:?} vs {q:?}");
+                let d = sub(*p, *q);
+                assert!(norm(d) < 0.01, "{p:?} vs {q:?}");
             }
         }
         let c = conditioning(&data, &lights, &problem.u0, &refine).unwrap();

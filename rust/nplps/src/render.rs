@@ -8,9 +8,10 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_input, Result};
-use crate::geometry::Geometry;
-use crate::grid::{dot, quad_centre, quad_normal, Grid};
+use crate::geometry::{quad_centre, quad_normal, Geometry};
+use crate::grid::Grid;
 use crate::rig::{Camera, Light, Rig};
+use crate::vec3::{dot, normalize, sub};
 
 /// Vertex positions of a full (H+1) x (W+1) depth map.
 fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
@@ -202,7 +203,7 @@ pub fn predict(
                     intensity,
                     ..
                 } => Light::Directional {
-                    direction: crate::grid::normalize(crate::grid::sub(position, centroid)),
+                    direction: normalize(sub(position, centroid)),
                     intensity,
                 },
                 other => other,

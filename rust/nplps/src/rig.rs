@@ -5,7 +5,7 @@
 //! share them.
 
 use crate::error::{g6, Error, Result};
-use crate::grid::{dot, sub};
+use crate::vec3::{dot, norm, sub};
 
 /// Most lights a rig may have. Real rigs have tens to a few hundred; the bound keeps a malformed
 /// rig file from asking for unbounded work (every light is one image of the stack).
@@ -331,7 +331,7 @@ impl Light {
                 g6(mu)
             )));
         }
-        let unit = |v: [f64; 3]| (dot(v, v).sqrt() - 1.0).abs() < 1e-6;
+        let unit = |v: [f64; 3]| (norm(v) - 1.0).abs() < 1e-6;
         match *self {
             Light::Point { axis, mu, .. } if mu > 0.0 && !unit(axis) => Err(Error::Rig(format!(
                 "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {}",

@@ -11,6 +11,7 @@ use std::f64::consts::PI;
 
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
+use crate::vec3::{dot, normalize, sub};
 
 /// The kinds of synthetic scene.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -281,18 +282,15 @@ fn scene_lights(size: f64, distance: f64, options: SceneOptions) -> Vec<Light> {
                 [1.0; 3]
             };
             if options.directional && i % 3 == 2 {
-                let to_light = crate::grid::sub(position, target);
-                let d2 = crate::grid::dot(to_light, to_light);
+                let to_light = sub(position, target);
+                let d2 = dot(to_light, to_light);
                 return Light::Directional {
-                    direction: crate::grid::normalize(to_light),
+                    direction: normalize(to_light),
                     intensity: intensity.map(|v| v / d2),
                 };
             }
             let (axis, mu) = if options.led {
-                (
-                    crate::grid::normalize(crate::grid::sub(target, position)),
-                    0.5 + 0.5 * (i % 4) as f64,
-                )
+                (normalize(sub(target, position)), 0.5 + 0.5 * (i % 4) as f64)
             } else {
                 ([0.0, 0.0, 1.0], 0.0)
             };
