@@ -54,7 +54,7 @@ impl Geometry {
 
     /// Fails when a vertex of `grid` (the grid this geometry was made for) has no finite
     /// position or ray, or one beyond [`MAX_MAGNITUDE`]: a pinhole camera whose distortion
-    /// cannot be undone there (see [`crate::rig::undistort_checked`]) or whose rays are nearly
+    /// cannot be undone there (see `undistort_checked`) or whose rays are nearly
     /// parallel to the image plane, or an orthographic grid too large. Only the unknowns `i`
     /// with `used(i)` are checked.
     pub fn check_rays(&self, grid: &Grid, used: impl Fn(usize) -> bool + Sync) -> Result<()> {

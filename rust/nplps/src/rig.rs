@@ -122,7 +122,7 @@ impl Camera {
 
     /// Orthographic: the scene (x, y) of vertex (r, c). Pinhole: the ray (x, y) of vertex (r, c)
     /// at z = 1, undistorted; NaN where the distortion cannot be undone (see
-    /// [`undistort_checked`]).
+    /// `undistort_checked`).
     pub fn vertex_xy(&self, r: usize, c: usize) -> [f64; 2] {
         match *self {
             Camera::Orthographic { pixel_size, origin } => [
