@@ -6,14 +6,14 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
 use crate::convert::{array, camera_from, lighting_from, lights_dict, option};
-use crate::errors::{no_panic, py_error, to_py};
+use crate::errors::{no_panic, to_py, InputError};
 use nplps::calibrate::{
     BoardAlbedo, Detection, HighlightOptions, LightEstimate, Outline, Placement, Plane,
     SphereOptions, SphereSource,
 };
 
-fn input_error(py: Python<'_>, message: String) -> PyErr {
-    py_error(py, "InputError", message)
+fn input_error(message: String) -> PyErr {
+    InputError::new_err(message)
 }
 
 /// Sphere calibration (see `nplps.calibrate.calibrate_spheres`). Each placement i has the
@@ -34,28 +34,22 @@ pub fn calibrate_spheres<'py>(
     radius: f64,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let cam = camera_from(py, camera)?;
+    let cam = camera_from(camera)?;
     let n = images.len();
     if labels.len() != n || detect.len() != n || center_depth.len() != n {
         return Err(input_error(
-            py,
             "every placement needs its images, a mask or a detection, and its centre depths".into(),
         ));
     }
     let Some(first) = images.first() else {
-        return Err(input_error(
-            py,
-            "no sphere images (no placement) given".into(),
-        ));
+        return Err(input_error("no sphere images (no placement) given".into()));
     };
     let [k, h, w] = [first.shape()[0], first.shape()[1], first.shape()[2]];
     let mut placements = Vec::with_capacity(n);
     for i in 0..n {
         let s = images[i].shape();
         if s != [k, h, w] {
-            return Err(input_error(
-                py,
-                format!(
+            return Err(input_error(format!(
                     "placement {i} has images of shape {s:?} but placement 0 has {:?}: every placement needs one image per light, all of one size",
                     [k, h, w]
                 ),
@@ -63,20 +57,17 @@ pub fn calibrate_spheres<'py>(
         }
         let imgs = images[i]
             .as_slice()
-            .map_err(|_| input_error(py, format!("placement {i}: images must be C-contiguous")))?;
+            .map_err(|_| input_error(format!("placement {i}: images must be C-contiguous")))?;
         let spheres = match (&labels[i], detect[i]) {
             (Some(l), None) => {
                 if l.shape() != [h, w] {
-                    return Err(input_error(
-                        py,
-                        format!(
-                            "placement {i}: the mask has shape {:?} but the images are {h} x {w}",
-                            l.shape()
-                        ),
-                    ));
+                    return Err(input_error(format!(
+                        "placement {i}: the mask has shape {:?} but the images are {h} x {w}",
+                        l.shape()
+                    )));
                 }
                 SphereSource::Labels(l.as_slice().map_err(|_| {
-                    input_error(py, format!("placement {i}: the mask must be C-contiguous"))
+                    input_error(format!("placement {i}: the mask must be C-contiguous"))
                 })?)
             }
             (None, Some((lo, hi, count))) => SphereSource::Detect(Detection {
@@ -84,12 +75,9 @@ pub fn calibrate_spheres<'py>(
                 count,
             }),
             _ => {
-                return Err(input_error(
-                    py,
-                    format!(
-                        "placement {i}: give exactly one of a mask or a detection radius range"
-                    ),
-                ))
+                return Err(input_error(format!(
+                    "placement {i}: give exactly one of a mask or a detection radius range"
+                )))
             }
         };
         placements.push(Placement {
@@ -99,34 +87,33 @@ pub fn calibrate_spheres<'py>(
         });
     }
     let defaults = SphereOptions::default();
-    let outline = match option(py, options, "outline", "mask".to_string())?.as_str() {
+    let outline = match option(options, "outline", "mask".to_string())?.as_str() {
         "mask" => Outline::Mask,
         "images" => Outline::Images,
         other => {
-            return Err(input_error(
-                py,
-                format!("outline must be \"mask\" or \"images\", got {other:?}"),
-            ))
+            return Err(input_error(format!(
+                "outline must be \"mask\" or \"images\", got {other:?}"
+            )))
         }
     };
     let hd = HighlightOptions::default();
     let opts = SphereOptions {
         radius,
         outline,
-        parallel_tol: option(py, options, "parallel_tol", defaults.parallel_tol)?,
+        parallel_tol: option(options, "parallel_tol", defaults.parallel_tol)?,
         highlight: HighlightOptions {
-            min_contrast: option(py, options, "min_contrast", hd.min_contrast)?,
-            max_blob_fraction: option(py, options, "max_blob_fraction", hd.max_blob_fraction)?,
-            limb_margin: option(py, options, "limb_margin", hd.limb_margin)?,
+            min_contrast: option(options, "min_contrast", hd.min_contrast)?,
+            max_blob_fraction: option(options, "max_blob_fraction", hd.max_blob_fraction)?,
+            limb_margin: option(options, "limb_margin", hd.limb_margin)?,
         },
-        min_component: option(py, options, "min_component", defaults.min_component)?,
-        refine: option(py, options, "refine", defaults.refine)?,
+        min_component: option(options, "min_component", defaults.min_component)?,
+        refine: option(options, "refine", defaults.refine)?,
     };
     let result = py
         .detach(|| {
             no_panic(|| nplps::calibrate::calibrate_spheres(&cam, &placements, h, w, k, &opts))
         })
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
 
     let out = PyDict::new(py);
     let spheres = PyList::empty(py);
@@ -230,56 +217,51 @@ pub fn calibrate_intensities<'py>(
     offset: f64,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = lighting_from(py, camera, lights)?;
+    let rig = lighting_from(camera, lights)?;
     let [k, h, w, c] = match *images.shape() {
         [k, h, w] => [k, h, w, 1],
         [k, h, w, c] => [k, h, w, c],
         ref s => {
-            return Err(input_error(
-                py,
-                format!("board images must be (k, H, W) or (k, H, W, 3), got shape {s:?}"),
-            ))
+            return Err(input_error(format!(
+                "board images must be (k, H, W) or (k, H, W, 3), got shape {s:?}"
+            )))
         }
     };
     let data = images
         .as_slice()
-        .map_err(|_| input_error(py, "board images must be C-contiguous".into()))?;
+        .map_err(|_| input_error("board images must be C-contiguous".into()))?;
     let mask_s = match &mask {
         Some(m) => {
             if m.shape() != [h, w] {
-                return Err(input_error(
-                    py,
-                    format!(
-                        "the mask has shape {:?} but the images are {h} x {w}",
-                        m.shape()
-                    ),
-                ));
+                return Err(input_error(format!(
+                    "the mask has shape {:?} but the images are {h} x {w}",
+                    m.shape()
+                )));
             }
             Some(
                 m.as_slice()
-                    .map_err(|_| input_error(py, "the mask must be C-contiguous".into()))?,
+                    .map_err(|_| input_error("the mask must be C-contiguous".into()))?,
             )
         }
         None => None,
     };
     let defaults = nplps::calibrate::IntensityOptions::default();
-    let albedo = match option(py, options, "albedo", "uniform".to_string())?.as_str() {
+    let albedo = match option(options, "albedo", "uniform".to_string())?.as_str() {
         "uniform" => BoardAlbedo::Uniform,
         "per_pixel" => BoardAlbedo::PerPixel,
         other => {
-            return Err(input_error(
-                py,
-                format!("albedo must be \"uniform\" or \"per_pixel\", got {other:?}"),
-            ))
+            return Err(input_error(format!(
+                "albedo must be \"uniform\" or \"per_pixel\", got {other:?}"
+            )))
         }
     };
     let opts = nplps::calibrate::IntensityOptions {
-        fit_mu: option(py, options, "fit_mu", defaults.fit_mu)?,
-        fit_axis: option(py, options, "fit_direction", defaults.fit_axis)?,
+        fit_mu: option(options, "fit_mu", defaults.fit_mu)?,
+        fit_axis: option(options, "fit_direction", defaults.fit_axis)?,
         albedo,
-        dark: option(py, options, "dark", defaults.dark)?,
-        saturation: option(py, options, "saturation", defaults.saturation)?,
-        iterations: option(py, options, "iterations", defaults.iterations)?,
+        dark: option(options, "dark", defaults.dark)?,
+        saturation: option(options, "saturation", defaults.saturation)?,
+        iterations: option(options, "iterations", defaults.iterations)?,
     };
     let plane = Plane { normal, offset };
     let result = py
@@ -299,7 +281,7 @@ pub fn calibrate_intensities<'py>(
                 )
             })
         })
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     let out = PyDict::new(py);
     out.set_item("lights", lights_dict(py, &result.lights)?)?;
     let intensity: Vec<f64> = result
@@ -357,13 +339,13 @@ pub fn synth_spheres<'py>(
     material: &Bound<'py, PyDict>,
     supersample: usize,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = lighting_from(py, camera, lights)?;
+    let rig = lighting_from(camera, lights)?;
     let d = nplps::calibration_scene::SphereMaterial::default();
     let m = nplps::calibration_scene::SphereMaterial {
-        diffuse: option(py, material, "diffuse", d.diffuse)?,
-        specular: option(py, material, "specular", d.specular)?,
-        exponent: option(py, material, "exponent", d.exponent)?,
-        background: option(py, material, "background", d.background)?,
+        diffuse: option(material, "diffuse", d.diffuse)?,
+        specular: option(material, "specular", d.specular)?,
+        exponent: option(material, "exponent", d.exponent)?,
+        background: option(material, "background", d.background)?,
     };
     let board = board.map(|(normal, offset)| Plane { normal, offset });
     let scene = py
@@ -381,7 +363,7 @@ pub fn synth_spheres<'py>(
                 )
             })
         })
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     let out = PyDict::new(py);
     out.set_item(
         "images",
@@ -403,24 +385,23 @@ pub fn synth_board<'py>(
     offset: f64,
     albedo: PyReadonlyArrayDyn<'py, f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = lighting_from(py, camera, lights)?;
+    let rig = lighting_from(camera, lights)?;
     let (h, w, c) = match *albedo.shape() {
         [h, w] => (h, w, 1),
         [h, w, c] => (h, w, c),
         ref s => {
-            return Err(input_error(
-                py,
-                format!("albedo must be (H, W) or (H, W, 3), got shape {s:?}"),
-            ))
+            return Err(input_error(format!(
+                "albedo must be (H, W) or (H, W, 3), got shape {s:?}"
+            )))
         }
     };
     let a = albedo
         .as_slice()
-        .map_err(|_| input_error(py, "albedo must be C-contiguous".into()))?;
+        .map_err(|_| input_error("albedo must be C-contiguous".into()))?;
     let plane = Plane { normal, offset };
     let images = py
         .detach(|| no_panic(|| nplps::calibration_scene::render_board(&rig, h, w, &plane, a, c)))
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     let k = rig.n_lights();
     if c == 1 {
         array(py, images, &[k, h, w])

@@ -14,7 +14,7 @@ use pyo3::types::{
 
 use nplps::error::g6;
 
-use crate::errors::{py_error, to_py};
+use crate::errors::{to_py, InputError, RigError};
 
 // ------------------------------------------------------------------------------------------------
 // Strict reading of the rig mappings. Every key of the camera and lights mappings is checked for
@@ -25,8 +25,8 @@ use crate::errors::{py_error, to_py};
 // key must not silently fall back to a default).
 // ------------------------------------------------------------------------------------------------
 
-fn rig_error(py: Python<'_>, message: String) -> PyErr {
-    py_error(py, "RigError", message)
+fn rig_error(message: String) -> PyErr {
+    RigError::new_err(message)
 }
 
 /// At most 40 characters of `s` for a message.
@@ -104,21 +104,21 @@ fn describe(v: &Bound<'_, PyAny>) -> String {
 }
 
 /// A finite number: an int or a float (numpy scalars included), not a boolean or a string.
-fn number(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
-    let x = value(py, v, what)?;
+fn number(v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
+    let x = value(v, what)?;
     if !x.is_finite() {
-        return Err(rig_error(
-            py,
-            format!("{what} must be a finite number, got {}", g6(x)),
-        ));
+        return Err(rig_error(format!(
+            "{what} must be a finite number, got {}",
+            g6(x)
+        )));
     }
     Ok(x)
 }
 
 /// A number, perhaps not finite (for the lights mapping, whose values the core checks naming
 /// the light and the parameter).
-fn value(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
-    let bad = || rig_error(py, format!("{what} must be a number, got {}", describe(v)));
+fn value(v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
+    let bad = || rig_error(format!("{what} must be a number, got {}", describe(v)));
     let excluded = v.is_none()
         || is_bool(v)
         || v.is_instance_of::<PyString>()
@@ -133,10 +133,9 @@ fn value(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
     let x: f64 = match v.extract() {
         Ok(x) => x,
         Err(_) if v.is_instance_of::<PyInt>() => {
-            return Err(rig_error(
-                py,
-                format!("{what} is an integer too large for a floating-point number"),
-            ))
+            return Err(rig_error(format!(
+                "{what} is an integer too large for a floating-point number"
+            )))
         }
         Err(_) => return Err(bad()),
     };
@@ -145,53 +144,36 @@ fn value(py: Python<'_>, v: &Bound<'_, PyAny>, what: &str) -> PyResult<f64> {
 
 /// The items of a list (a list, a tuple or a numpy array with at least one dimension), at most
 /// `max` of them.
-fn items<'py>(
-    py: Python<'py>,
-    v: &Bound<'py, PyAny>,
-    what: &str,
-    max: usize,
-) -> PyResult<Vec<Bound<'py, PyAny>>> {
+fn items<'py>(v: &Bound<'py, PyAny>, what: &str, max: usize) -> PyResult<Vec<Bound<'py, PyAny>>> {
     let list = if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
         v.clone()
     } else if is_array(v) {
         let size: usize = v.getattr("size")?.extract()?;
         if size > max.saturating_mul(16) {
-            return Err(rig_error(
-                py,
-                format!("{what} has {size} values; at most {max} items are expected"),
-            ));
+            return Err(rig_error(format!(
+                "{what} has {size} values; at most {max} items are expected"
+            )));
         }
         v.call_method0("tolist")?
     } else {
-        return Err(rig_error(
-            py,
-            format!("{what} must be a list, got {}", describe(v)),
-        ));
+        return Err(rig_error(format!(
+            "{what} must be a list, got {}",
+            describe(v)
+        )));
     };
     let n = list.len()?;
     if n > max {
-        return Err(rig_error(
-            py,
-            format!("{what} has {n} items; at most {max} are allowed"),
-        ));
+        return Err(rig_error(format!(
+            "{what} has {n} items; at most {max} are allowed"
+        )));
     }
     list.try_iter()?.collect()
 }
 
 /// Exactly `N` numbers, finite ones when `finite` (else see [`value`]).
-fn numbers<const N: usize>(
-    py: Python<'_>,
-    v: &Bound<'_, PyAny>,
-    what: &str,
-    finite: bool,
-) -> PyResult<[f64; N]> {
-    let wrong = || {
-        rig_error(
-            py,
-            format!("{what} must be {N} numbers, got {}", describe(v)),
-        )
-    };
-    let list = items(py, v, what, N).map_err(|_| wrong())?;
+fn numbers<const N: usize>(v: &Bound<'_, PyAny>, what: &str, finite: bool) -> PyResult<[f64; N]> {
+    let wrong = || rig_error(format!("{what} must be {N} numbers, got {}", describe(v)));
+    let list = items(v, what, N).map_err(|_| wrong())?;
     if list.len() != N {
         return Err(wrong());
     }
@@ -199,52 +181,38 @@ fn numbers<const N: usize>(
     for (i, (o, x)) in out.iter_mut().zip(&list).enumerate() {
         let what = format!("{what}[{i}]");
         *o = if finite {
-            number(py, x, &what)?
+            number(x, &what)?
         } else {
-            value(py, x, &what)?
+            value(x, &what)?
         };
     }
     Ok(out)
 }
 
 /// Fails on a key of `dict` that is not in `known` and does not start with '_' (a comment).
-fn check_keys(
-    py: Python<'_>,
-    dict: &Bound<'_, PyDict>,
-    what: &str,
-    known: &[&str],
-    usage: &str,
-) -> PyResult<()> {
+fn check_keys(dict: &Bound<'_, PyDict>, what: &str, known: &[&str], usage: &str) -> PyResult<()> {
     for (key, _) in dict.iter() {
         let Ok(name) = key.cast::<PyString>() else {
-            return Err(rig_error(
-                py,
-                format!("{what} has a key that is not a string ({})", describe(&key)),
-            ));
+            return Err(rig_error(format!(
+                "{what} has a key that is not a string ({})",
+                describe(&key)
+            )));
         };
         let name = name.to_string_lossy();
         if !(name.starts_with('_') || known.contains(&name.as_ref())) {
-            return Err(rig_error(
-                py,
-                format!(
-                    "{what} has an unknown key {} ({usage}; keys starting with '_' are comments)",
-                    short(&name)
-                ),
-            ));
+            return Err(rig_error(format!(
+                "{what} has an unknown key {} ({usage}; keys starting with '_' are comments)",
+                short(&name)
+            )));
         }
     }
     Ok(())
 }
 
 /// The value of `key` of `dict`; missing is a `RigError` naming the key.
-fn required<'py>(
-    py: Python<'py>,
-    dict: &Bound<'py, PyDict>,
-    what: &str,
-    key: &str,
-) -> PyResult<Bound<'py, PyAny>> {
+fn required<'py>(dict: &Bound<'py, PyDict>, what: &str, key: &str) -> PyResult<Bound<'py, PyAny>> {
     dict.get_item(key)?
-        .ok_or_else(|| rig_error(py, format!("{what} is missing the key {key:?}")))
+        .ok_or_else(|| rig_error(format!("{what} is missing the key {key:?}")))
 }
 
 /// OpenCV's distortion coefficients as (k1, k2, p1, p2, k3): a flat list or OpenCV's 1 x n or
@@ -252,32 +220,29 @@ fn required<'py>(
 /// (k1, k2, p1, p2, k3) that keeps p1 and p2 together; missing ones are zero), or 8, 12 or 14
 /// (OpenCV's rational, thin-prism and tilted models) when the coefficients after k3 are zero.
 /// Null (None) is no distortion.
-fn distortion(py: Python<'_>, v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
+fn distortion(v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
     const WHAT: &str = "camera.distortion";
     if v.is_none() {
         return Ok([0.0; 5]);
     }
-    let outer = items(py, v, WHAT, 14)?;
+    let outer = items(v, WHAT, 14)?;
     let nested = |x: &Bound<'_, PyAny>| {
         x.is_instance_of::<PyList>() || x.is_instance_of::<PyTuple>() || is_array(x)
     };
     let flat = if !outer.is_empty() && outer.iter().all(nested) {
         if outer.len() == 1 {
-            items(py, &outer[0], WHAT, 14)?
+            items(&outer[0], WHAT, 14)?
         } else {
             let mut column = Vec::with_capacity(outer.len());
             for row in &outer {
-                let row = items(py, row, WHAT, 14)?;
+                let row = items(row, WHAT, 14)?;
                 if row.len() != 1 {
-                    return Err(rig_error(
-                        py,
-                        format!(
-                            "{WHAT} must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, \
+                    return Err(rig_error(format!(
+                        "{WHAT} must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, \
                              got a {} x {} matrix",
-                            outer.len(),
-                            row.len()
-                        ),
-                    ));
+                        outer.len(),
+                        row.len()
+                    )));
                 }
                 column.extend(row);
             }
@@ -288,19 +253,16 @@ fn distortion(py: Python<'_>, v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
     };
     let mut c = Vec::with_capacity(flat.len());
     for (i, x) in flat.iter().enumerate() {
-        c.push(number(py, x, &format!("{WHAT}[{i}]"))?);
+        c.push(number(x, &format!("{WHAT}[{i}]"))?);
     }
     let mut d = [0.0; 5];
     match c.len() {
         0 | 1 | 2 | 4 | 5 => d[..c.len()].copy_from_slice(&c),
         3 => {
-            return Err(rig_error(
-                py,
-                format!(
+            return Err(rig_error(format!(
                 "{WHAT} has 3 coefficients, which is ambiguous (OpenCV's k1, k2, p1 or a radial \
                      k1, k2, k3): give 4 or 5 (k1, k2, p1, p2[, k3])"
-            ),
-            ))
+            )))
         }
         n @ (8 | 12 | 14) => {
             const NAMES: [&str; 14] = [
@@ -308,27 +270,21 @@ fn distortion(py: Python<'_>, v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
                 "tau_y",
             ];
             if let Some(i) = (5..n).find(|&i| c[i] != 0.0) {
-                return Err(rig_error(
-                    py,
-                    format!(
-                        "{WHAT} has {n} coefficients and {} = {} is not zero: nplps models k1, k2, \
+                return Err(rig_error(format!(
+                    "{WHAT} has {n} coefficients and {} = {} is not zero: nplps models k1, k2, \
                          p1, p2, k3 only, not OpenCV's rational (k4, k5, k6), thin-prism (s1..s4) \
                          or tilt (tau_x, tau_y) terms",
-                        NAMES[i],
-                        g6(c[i])
-                    ),
-                ));
+                    NAMES[i],
+                    g6(c[i])
+                )));
             }
             d.copy_from_slice(&c[..5]);
         }
         n => {
-            return Err(rig_error(
-                py,
-                format!(
-                    "{WHAT} has {n} coefficients; OpenCV's models have 4, 5, 8, 12 or 14 \
+            return Err(rig_error(format!(
+                "{WHAT} has {n} coefficients; OpenCV's models have 4, 5, 8, 12 or 14 \
                      (nplps models k1, k2, p1, p2, k3)"
-                ),
-            ))
+            )))
         }
     }
     Ok(d)
@@ -336,7 +292,6 @@ fn distortion(py: Python<'_>, v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
 
 /// Reads an optional option of an options mapping (`InputError` when malformed).
 pub fn option<'py, T: FromPyObjectOwned<'py>>(
-    py: Python<'py>,
     dict: &Bound<'py, PyDict>,
     key: &str,
     default: T,
@@ -346,7 +301,7 @@ pub fn option<'py, T: FromPyObjectOwned<'py>>(
         Some(v) if v.is_none() => Ok(default),
         Some(v) => v.extract::<T>().map_err(|e| {
             let e: PyErr = e.into();
-            py_error(py, "InputError", format!("option {key:?} is invalid: {e}"))
+            InputError::new_err(format!("option {key:?} is invalid: {e}"))
         }),
     }
 }
@@ -354,19 +309,18 @@ pub fn option<'py, T: FromPyObjectOwned<'py>>(
 /// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping: `model` =
 /// "orthographic" with `pixel_size` (w, h) and `origin` (x, y), or "pinhole" with `K` (3 x 3)
 /// and an optional `distortion` (see [`distortion`]). Every value is checked (see above).
-pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps::Camera> {
-    let model = required(py, camera, "camera", "model")?;
+pub fn camera_from(camera: &Bound<'_, PyDict>) -> PyResult<nplps::Camera> {
+    let model = required(camera, "camera", "model")?;
     let Ok(model) = model.cast::<PyString>() else {
-        return Err(rig_error(
-            py,
-            format!("camera.model must be a string, got {}", describe(&model)),
-        ));
+        return Err(rig_error(format!(
+            "camera.model must be a string, got {}",
+            describe(&model)
+        )));
     };
     let model = model.to_string_lossy();
     let cam = match model.as_ref() {
         "orthographic" => {
             check_keys(
-                py,
                 camera,
                 "camera",
                 &["model", "pixel_size", "origin"],
@@ -374,14 +328,12 @@ pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps
             )?;
             nplps::Camera::Orthographic {
                 pixel_size: numbers(
-                    py,
-                    &required(py, camera, "camera", "pixel_size")?,
+                    &required(camera, "camera", "pixel_size")?,
                     "camera.pixel_size",
                     true,
                 )?,
                 origin: numbers(
-                    py,
-                    &required(py, camera, "camera", "origin")?,
+                    &required(camera, "camera", "origin")?,
                     "camera.origin",
                     true,
                 )?,
@@ -389,44 +341,40 @@ pub fn camera_from(py: Python<'_>, camera: &Bound<'_, PyDict>) -> PyResult<nplps
         }
         "pinhole" => {
             check_keys(
-                py,
                 camera,
                 "camera",
                 &["model", "K", "distortion"],
                 "a pinhole camera has model, K and distortion",
             )?;
-            let matrix = required(py, camera, "camera", "K")?;
+            let matrix = required(camera, "camera", "K")?;
             let wrong = || {
-                rig_error(
-                    py,
-                    format!("camera.K must be a 3 x 3 matrix, got {}", describe(&matrix)),
-                )
+                rig_error(format!(
+                    "camera.K must be a 3 x 3 matrix, got {}",
+                    describe(&matrix)
+                ))
             };
-            let rows = items(py, &matrix, "camera.K", 3).map_err(|_| wrong())?;
+            let rows = items(&matrix, "camera.K", 3).map_err(|_| wrong())?;
             if rows.len() != 3 {
                 return Err(wrong());
             }
             let mut k = [[0.0; 3]; 3];
             for (i, row) in rows.iter().enumerate() {
-                k[i] = numbers(py, row, &format!("camera.K[{i}]"), true)?;
+                k[i] = numbers(row, &format!("camera.K[{i}]"), true)?;
             }
             let d = match camera.get_item("distortion")? {
-                Some(v) => distortion(py, &v)?,
+                Some(v) => distortion(&v)?,
                 None => [0.0; 5],
             };
             nplps::Camera::Pinhole { k, distortion: d }
         }
         _ => {
-            return Err(rig_error(
-                py,
-                format!(
-                    "unknown camera model {}; supported: \"orthographic\", \"pinhole\"",
-                    short(&model)
-                ),
-            ))
+            return Err(rig_error(format!(
+                "unknown camera model {}; supported: \"orthographic\", \"pinhole\"",
+                short(&model)
+            )))
         }
     };
-    cam.validate().map_err(|e| to_py(py, e))?;
+    cam.validate().map_err(to_py)?;
     Ok(cam)
 }
 
@@ -451,10 +399,9 @@ pub fn camera_dict<'py>(py: Python<'py>, camera: &nplps::Camera) -> PyResult<Bou
 /// Builds the core's lights from the lights mapping (see the module documentation): the keys
 /// `vectors`, `directional`, `intensities`, `axes` and `mu`, each with one item per light (at
 /// most [`nplps::rig::MAX_LIGHTS`]), every value checked (see above).
-pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
+pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
     const KEYS: [&str; 5] = ["vectors", "directional", "intensities", "axes", "mu"];
     check_keys(
-        py,
         lights,
         "lights",
         &KEYS,
@@ -462,13 +409,12 @@ pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<n
     )?;
     let max = nplps::rig::MAX_LIGHTS;
     let list = |key: &str| -> PyResult<Vec<Bound<'_, PyAny>>> {
-        let value = required(py, lights, "lights", key)?;
-        items(py, &value, &format!("lights.{key}"), max).map_err(|e| {
+        let value = required(lights, "lights", key)?;
+        items(&value, &format!("lights.{key}"), max).map_err(|e| {
             if value.len().is_ok_and(|n| n > max) {
-                rig_error(
-                    py,
-                    format!("the rig has more than {max} lights, the most nplps supports"),
-                )
+                rig_error(format!(
+                    "the rig has more than {max} lights, the most nplps supports"
+                ))
             } else {
                 e
             }
@@ -486,32 +432,23 @@ pub fn lights_from(py: Python<'_>, lights: &Bound<'_, PyDict>) -> PyResult<Vec<n
         .iter()
         .any(|&n| n != k)
     {
-        return Err(rig_error(
-            py,
-            format!("every light needs all its parameters ({k} lights)"),
-        ));
+        return Err(rig_error(format!(
+            "every light needs all its parameters ({k} lights)"
+        )));
     }
     (0..k)
         .map(|i| {
             let flag = &directional[i];
             if !is_bool(flag) {
-                return Err(rig_error(
-                    py,
-                    format!(
-                        "lights.directional[{i}] must be a boolean, got {}",
-                        describe(flag)
-                    ),
-                ));
+                return Err(rig_error(format!(
+                    "lights.directional[{i}] must be a boolean, got {}",
+                    describe(flag)
+                )));
             }
-            let vector = numbers(py, &vectors[i], &format!("lights.vectors[{i}]"), false)?;
-            let intensity = numbers(
-                py,
-                &intensities[i],
-                &format!("lights.intensities[{i}]"),
-                false,
-            )?;
-            let axis = numbers(py, &axes[i], &format!("lights.axes[{i}]"), false)?;
-            let mu = value(py, &mu[i], &format!("lights.mu[{i}]"))?;
+            let vector = numbers(&vectors[i], &format!("lights.vectors[{i}]"), false)?;
+            let intensity = numbers(&intensities[i], &format!("lights.intensities[{i}]"), false)?;
+            let axis = numbers(&axes[i], &format!("lights.axes[{i}]"), false)?;
+            let mu = value(&mu[i], &format!("lights.mu[{i}]"))?;
             Ok(if flag.is_truthy()? {
                 nplps::Light::Directional {
                     direction: vector,
@@ -591,27 +528,22 @@ pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bo
 }
 
 /// Builds and validates a core [`nplps::Rig`] for reconstruction (at least 3 lights).
-pub fn rig_from(
-    py: Python<'_>,
-    camera: &Bound<'_, PyDict>,
-    lights: &Bound<'_, PyDict>,
-) -> PyResult<nplps::Rig> {
-    let rig = lighting_from(py, camera, lights)?;
-    rig.validate().map_err(|e| to_py(py, e))?;
+pub fn rig_from(camera: &Bound<'_, PyDict>, lights: &Bound<'_, PyDict>) -> PyResult<nplps::Rig> {
+    let rig = lighting_from(camera, lights)?;
+    rig.validate().map_err(to_py)?;
     Ok(rig)
 }
 
 /// Builds a core [`nplps::Rig`] for rendering: any number of lights, each one valid.
 pub fn lighting_from(
-    py: Python<'_>,
     camera: &Bound<'_, PyDict>,
     lights: &Bound<'_, PyDict>,
 ) -> PyResult<nplps::Rig> {
     let rig = nplps::Rig {
-        camera: camera_from(py, camera)?,
-        lights: lights_from(py, lights)?,
+        camera: camera_from(camera)?,
+        lights: lights_from(lights)?,
     };
-    rig.validate_parameters().map_err(|e| to_py(py, e))?;
+    rig.validate_parameters().map_err(to_py)?;
     Ok(rig)
 }
 

@@ -19,7 +19,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyList;
 use rayon::prelude::*;
 
-use crate::errors::py_error;
+use crate::errors::InputError;
 
 /// Read buffer of the file reader; larger than the default 8 KiB to cut system calls.
 const READ_BUFFER: usize = 1 << 16;
@@ -59,11 +59,7 @@ pub fn read_pngs<'py>(
     let mut arrays = Vec::with_capacity(decoded.len());
     for (path, image) in paths.iter().zip(decoded) {
         let fail = |reason: String| {
-            py_error(
-                py,
-                "InputError",
-                format!("cannot read image '{}': {reason}", path.display()),
-            )
+            InputError::new_err(format!("cannot read image '{}': {reason}", path.display()))
         };
         let image = image.map_err(fail)?;
         let shape = IxDyn(&image.shape);

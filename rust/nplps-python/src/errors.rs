@@ -3,32 +3,25 @@
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use pyo3::prelude::*;
-use pyo3::types::PyType;
 
-/// Raises `nplps.errors.<class_name>(message)`.
-pub fn py_error(py: Python<'_>, class_name: &str, message: String) -> PyErr {
-    let class = py
-        .import("nplps.errors")
-        .and_then(|m| m.getattr(class_name))
-        .and_then(|c| c.cast_into::<PyType>().map_err(PyErr::from));
-    match class {
-        Ok(class) => PyErr::from_type(class, message),
-        Err(e) => e,
-    }
-}
+// The exceptions of `nplps.errors`, imported (and type-checked) on first use.
+pyo3::import_exception!(nplps.errors, InputError);
+pyo3::import_exception!(nplps.errors, RigError);
+pyo3::import_exception!(nplps.errors, SolverError);
+pyo3::import_exception!(nplps.errors, MemoryLimitError);
 
 /// Converts a core error into the matching Python exception.
-pub fn to_py(py: Python<'_>, err: nplps::Error) -> PyErr {
-    let class = match &err {
-        nplps::Error::Input(_) => "InputError",
-        nplps::Error::Rig(_) => "RigError",
-        nplps::Error::Solver(_) => "SolverError",
-        nplps::Error::Memory { .. } => "MemoryLimitError",
+pub fn to_py(err: nplps::Error) -> PyErr {
+    let message = err.to_string();
+    match err {
+        nplps::Error::Input(_) => InputError::new_err(message),
+        nplps::Error::Rig(_) => RigError::new_err(message),
+        nplps::Error::Solver(_) => SolverError::new_err(message),
+        nplps::Error::Memory { .. } => MemoryLimitError::new_err(message),
         nplps::Error::Cancelled => {
-            return pyo3::exceptions::PyKeyboardInterrupt::new_err("reconstruction cancelled")
+            pyo3::exceptions::PyKeyboardInterrupt::new_err("reconstruction cancelled")
         }
-    };
-    py_error(py, class, err.to_string())
+    }
 }
 
 /// Runs `f`, turning a panic into `nplps.Error::Solver` so that no panic reaches Python, on a

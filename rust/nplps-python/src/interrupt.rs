@@ -74,5 +74,5 @@ pub fn interruptible<T: Send>(
     if let Some(e) = signal {
         return Err(e);
     }
-    result.map_err(|e| to_py(py, e))
+    result.map_err(to_py)
 }

@@ -20,50 +20,37 @@ use convert::{
     array, array3, camera_dict, camera_from, lighting_from, lights_dict, option,
     reconstruction_dict, rig_from,
 };
-use errors::{no_panic, py_error, to_py};
+use errors::{no_panic, to_py, InputError};
 use interrupt::interruptible;
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
 fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
-    py: Python<'_>,
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
-    a.as_slice().map_err(|_| {
-        py_error(
-            py,
-            "InputError",
-            format!("{name} must be a C-contiguous array"),
-        )
-    })
+    a.as_slice()
+        .map_err(|_| InputError::new_err(format!("{name} must be a C-contiguous array")))
 }
 
 /// The image size (H, W) of an (H+1, W+1) vertex depth map, and its values.
-fn depth_grid<'a>(
-    py: Python<'_>,
-    depth: &'a PyReadonlyArray2<'_, f64>,
-) -> PyResult<(usize, usize, &'a [f64])> {
+fn depth_grid<'a>(depth: &'a PyReadonlyArray2<'_, f64>) -> PyResult<(usize, usize, &'a [f64])> {
     let shape = depth.shape();
     if shape[0] < 2 || shape[1] < 2 {
-        return Err(py_error(
-            py,
-            "InputError",
-            format!("depth must be an (H+1, W+1) vertex map, got shape {shape:?}"),
-        ));
+        return Err(InputError::new_err(format!(
+            "depth must be an (H+1, W+1) vertex map, got shape {shape:?}"
+        )));
     }
-    Ok((shape[0] - 1, shape[1] - 1, slice(py, depth, "depth")?))
+    Ok((shape[0] - 1, shape[1] - 1, slice(depth, "depth")?))
 }
 
 /// Channels of an (H, W) or (H, W, C) albedo.
-fn albedo_channels(py: Python<'_>, albedo: &PyReadonlyArrayDyn<'_, f64>) -> PyResult<usize> {
+fn albedo_channels(albedo: &PyReadonlyArrayDyn<'_, f64>) -> PyResult<usize> {
     match albedo.shape() {
         [_, _] => Ok(1),
         [_, _, c] => Ok(*c),
-        s => Err(py_error(
-            py,
-            "InputError",
-            format!("albedo must be (H, W) or (H, W, 3), got shape {s:?}"),
-        )),
+        s => Err(InputError::new_err(format!(
+            "albedo must be (H, W) or (H, W, 3), got shape {s:?}"
+        ))),
     }
 }
 
@@ -82,92 +69,79 @@ fn image_stack<'py>(
 
 /// The starting depth: a working distance or an (H+1, W+1) map.
 fn initial_depth<'a>(
-    py: Python<'_>,
     distance: Option<f64>,
     map: Option<&'a PyReadonlyArray2<'_, f64>>,
 ) -> PyResult<nplps::InitialDepth<'a>> {
     match (distance, map) {
         (Some(d), None) => Ok(nplps::InitialDepth::Distance(d)),
-        (None, Some(m)) => Ok(nplps::InitialDepth::Map(slice(py, m, "depth map")?)),
-        _ => Err(py_error(
-            py,
-            "InputError",
-            "give exactly one of a working distance or a depth map".into(),
+        (None, Some(m)) => Ok(nplps::InitialDepth::Map(slice(m, "depth map")?)),
+        _ => Err(InputError::new_err(
+            "give exactly one of a working distance or a depth map",
         )),
     }
 }
 
 /// Solver options from the options mapping (keys as in `nplps.reconstruct`).
-fn options_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
+fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
     let defaults = nplps::Options::default();
-    let weighting = match option(py, d, "weighting", "image".to_string())?.as_str() {
+    let weighting = match option(d, "weighting", "image".to_string())?.as_str() {
         "image" => nplps::Weighting::Image,
         "paper" => nplps::Weighting::Paper,
         other => {
-            return Err(py_error(
-                py,
-                "InputError",
-                format!("weighting must be \"image\" or \"paper\", got {other:?}"),
-            ))
+            return Err(InputError::new_err(format!(
+                "weighting must be \"image\" or \"paper\", got {other:?}"
+            )))
         }
     };
-    let robust = match option(py, d, "robust", "none".to_string())?.as_str() {
+    let robust = match option(d, "robust", "none".to_string())?.as_str() {
         "none" => nplps::Robust::None,
         "cauchy" => nplps::Robust::Cauchy,
         "tukey" => nplps::Robust::Tukey,
         other => {
-            return Err(py_error(
-                py,
-                "InputError",
-                format!("robust must be None, \"cauchy\" or \"tukey\", got {other:?}"),
-            ))
+            return Err(InputError::new_err(format!(
+                "robust must be None, \"cauchy\" or \"tukey\", got {other:?}"
+            )))
         }
     };
-    let solver = match option(py, d, "solver", "auto".to_string())?.as_str() {
+    let solver = match option(d, "solver", "auto".to_string())?.as_str() {
         "auto" => nplps::GlobalSolver::Auto,
         "direct" => nplps::GlobalSolver::Direct,
         "multigrid" => nplps::GlobalSolver::Multigrid,
         other => {
-            return Err(py_error(
-                py,
-                "InputError",
-                format!("solver must be \"auto\", \"direct\" or \"multigrid\", got {other:?}"),
-            ))
+            return Err(InputError::new_err(format!(
+                "solver must be \"auto\", \"direct\" or \"multigrid\", got {other:?}"
+            )))
         }
     };
-    let (intensity, position) = match option(py, d, "refine_lights", "none".to_string())?.as_str() {
+    let (intensity, position) = match option(d, "refine_lights", "none".to_string())?.as_str() {
         "none" => (false, false),
         "intensity" => (true, false),
         "position" => (false, true),
         "both" => (true, true),
         other => {
-            return Err(py_error(
-                py,
-                "InputError",
-                format!(
-                    "refine_lights must be None, \"intensity\", \"position\" or \"both\", got {other:?}"
-                ),
-            ))
+            return Err(InputError::new_err(format!(
+            "refine_lights must be None, \"intensity\", \"position\" or \"both\", got {other:?}"
+        )))
         }
     };
     let refine = nplps::Refine {
         intensity,
         position,
-        prior_weight: option(py, d, "light_prior_weight", defaults.refine.prior_weight)?,
+        prior_weight: option(d, "light_prior_weight", defaults.refine.prior_weight)?,
         fix_scale: false,
     };
     Ok(nplps::Options {
         solver,
         refine,
-        levels: option(py, d, "levels", defaults.levels)?,
-        iterations: option(py, d, "iterations", defaults.iterations)?,
-        tol: option(py, d, "tol", defaults.tol)?,
-        dark: option(py, d, "dark", defaults.dark)?,
-        saturation: option(py, d, "saturation", defaults.saturation)?,
+        levels: option(d, "levels", defaults.levels)?,
+        iterations: option(d, "iterations", defaults.iterations)?,
+        tol: option(d, "tol", defaults.tol)?,
+        dark: option(d, "dark", defaults.dark)?,
+        saturation: option(d, "saturation", defaults.saturation)?,
         weighting,
         robust,
-        threads: option(py, d, "threads", defaults.threads)?,
-        max_memory: option(py, d, "max_memory", defaults.max_memory)?,
+        threads: option(d, "threads", defaults.threads)?,
+        max_memory: option(d, "max_memory", defaults.max_memory)?,
         ..defaults
     })
 }
@@ -183,7 +157,6 @@ struct Input<'a> {
 
 impl<'a> Input<'a> {
     fn new(
-        py: Python<'_>,
         images: &'a PyReadonlyArrayDyn<'_, f32>,
         rig: nplps::Rig,
         mask: Option<&'a PyReadonlyArray2<'_, bool>>,
@@ -195,19 +168,17 @@ impl<'a> Input<'a> {
             [k, h, w] => [k, h, w, 1],
             [k, h, w, c] => [k, h, w, c],
             _ => {
-                return Err(py_error(
-                    py,
-                    "InputError",
-                    format!("images must be (k, H, W) or (k, H, W, 3), got shape {s:?}"),
-                ))
+                return Err(InputError::new_err(format!(
+                    "images must be (k, H, W) or (k, H, W, 3), got shape {s:?}"
+                )))
             }
         };
         Ok(Input {
             rig,
             shape,
-            images: slice(py, images, "images")?,
-            mask: mask.map(|m| slice(py, m, "mask")).transpose()?,
-            depth: initial_depth(py, distance, depth_map)?,
+            images: slice(images, "images")?,
+            mask: mask.map(|m| slice(m, "mask")).transpose()?,
+            depth: initial_depth(distance, depth_map)?,
         })
     }
 
@@ -230,13 +201,13 @@ impl<'a> Input<'a> {
 }
 
 /// The distance search of the options mapping (`auto`, `depth_range`, `depth_guess`), if asked.
-fn search_from(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>> {
-    if !option(py, d, "auto", false)? {
+fn search_from(d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>> {
+    if !option(d, "auto", false)? {
         return Ok(None);
     }
     Ok(Some(nplps::DistanceSearch {
-        range: option(py, d, "depth_range", None)?,
-        guess: option(py, d, "depth_guess", None)?,
+        range: option(d, "depth_range", None)?,
+        guess: option(d, "depth_guess", None)?,
         ..nplps::DistanceSearch::default()
     }))
 }
@@ -257,22 +228,15 @@ fn reconstruct<'py>(
     progress: Option<Py<PyAny>>,
     prior: Option<PyReadonlyArray2<'py, f64>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = rig_from(py, camera, lights)?;
-    let input = Input::new(
-        py,
-        &images,
-        rig,
-        mask.as_ref(),
-        distance,
-        depth_map.as_ref(),
-    )?;
-    let search = search_from(py, options)?;
-    let prior_weight: f64 = option(py, options, "prior_weight", 1.0)?;
+    let rig = rig_from(camera, lights)?;
+    let input = Input::new(&images, rig, mask.as_ref(), distance, depth_map.as_ref())?;
+    let search = search_from(options)?;
+    let prior_weight: f64 = option(options, "prior_weight", 1.0)?;
     let prior = prior
         .as_ref()
-        .map(|p| slice(py, p, "depth prior"))
+        .map(|p| slice(p, "depth prior"))
         .transpose()?;
-    let options = options_from(py, options)?;
+    let options = options_from(options)?;
     let mut callback_error: Option<PyErr> = None;
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
@@ -349,16 +313,9 @@ fn reconstruct_parallel<'py>(
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let rig = rig_from(py, camera, lights)?;
-    let input = Input::new(
-        py,
-        &images,
-        rig,
-        mask.as_ref(),
-        distance,
-        depth_map.as_ref(),
-    )?;
-    let options = options_from(py, options)?;
+    let rig = rig_from(camera, lights)?;
+    let input = Input::new(&images, rig, mask.as_ref(), distance, depth_map.as_ref())?;
+    let options = options_from(options)?;
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
         no_panic(|| {
@@ -381,14 +338,14 @@ fn render<'py>(
     albedo: PyReadonlyArrayDyn<'py, f64>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = lighting_from(py, camera, lights)?;
-    let (h, w, depth_s) = depth_grid(py, &depth)?;
-    let channels = albedo_channels(py, &albedo)?;
-    let albedo_s = slice(py, &albedo, "albedo")?;
-    let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
+    let rig = lighting_from(camera, lights)?;
+    let (h, w, depth_s) = depth_grid(&depth)?;
+    let channels = albedo_channels(&albedo)?;
+    let albedo_s = slice(&albedo, "albedo")?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
     let images = py
         .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, channels, mask)))
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
 
@@ -406,18 +363,18 @@ fn predict<'py>(
     mask: Option<PyReadonlyArray2<'py, bool>>,
     parallel: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = lighting_from(py, camera, lights)?;
-    let (h, w, z) = depth_grid(py, &depth)?;
-    let channels = albedo_channels(py, &albedo)?;
-    let n: Vec<[f64; 3]> = slice(py, &normals, "normals")?
+    let rig = lighting_from(camera, lights)?;
+    let (h, w, z) = depth_grid(&depth)?;
+    let channels = albedo_channels(&albedo)?;
+    let n: Vec<[f64; 3]> = slice(&normals, "normals")?
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect();
-    let a = slice(py, &albedo, "albedo")?;
-    let mask = mask.as_ref().map(|m| slice(py, m, "mask")).transpose()?;
+    let a = slice(&albedo, "albedo")?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
     let images = py
         .detach(|| no_panic(|| nplps::predict(&rig, h, w, z, &n, a, channels, mask, parallel)))
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
 
@@ -428,11 +385,11 @@ fn mesh_normals<'py>(
     depth: PyReadonlyArray2<'py, f64>,
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let cam = camera_from(py, camera)?;
-    let (h, w, z) = depth_grid(py, &depth)?;
+    let cam = camera_from(camera)?;
+    let (h, w, z) = depth_grid(&depth)?;
     let normals = py
         .detach(|| no_panic(|| nplps::mesh_normals(&cam, h, w, z)))
-        .map_err(|e| to_py(py, e))?;
+        .map_err(to_py)?;
     array3(py, normals, &[h, w])
 }
 
@@ -443,20 +400,16 @@ fn vertices<'py>(
     depth: PyReadonlyArray2<'py, f64>,
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let cam = camera_from(py, camera)?;
-    let (h, w, z) = depth_grid(py, &depth)?;
-    let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(|e| to_py(py, e))?;
+    let cam = camera_from(camera)?;
+    let (h, w, z) = depth_grid(&depth)?;
+    let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(to_py)?;
     array3(py, v, &[h + 1, w + 1])
 }
 
 /// Validates a rig (camera and lights mappings); raises `RigError` when it is invalid.
 #[pyfunction]
-fn check_rig<'py>(
-    py: Python<'py>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
-) -> PyResult<()> {
-    rig_from(py, camera, lights).map(|_| ())
+fn check_rig<'py>(camera: &Bound<'py, PyDict>, lights: &Bound<'py, PyDict>) -> PyResult<()> {
+    rig_from(camera, lights).map(|_| ())
 }
 
 /// The camera mapping checked and in its canonical form (floats; a pinhole camera's distortion
@@ -466,7 +419,7 @@ fn normalize_camera<'py>(
     py: Python<'py>,
     camera: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    camera_dict(py, &camera_from(py, camera)?)
+    camera_dict(py, &camera_from(camera)?)
 }
 
 /// A synthetic scene with ground truth: dict of depth, mask, albedo, camera and lights.
@@ -495,7 +448,7 @@ fn synth_scene<'py>(
         nplps::SceneKind::from_name(name)
             .and_then(|kind| nplps::Scene::with_options(kind, n, size, distance, seed, options))
     })
-    .map_err(|e| to_py(py, e))?;
+    .map_err(to_py)?;
     let d = PyDict::new(py);
     d.set_item("depth", array(py, scene.depth, &[n + 1, n + 1])?)?;
     d.set_item("mask", array(py, scene.mask, &[n, n])?)?;
