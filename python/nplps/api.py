@@ -202,23 +202,21 @@ def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
         )
 
 
-def _warn_diverged(result: Reconstruction) -> None:
-    """Warns when the depth changes grew (status "diverged"): the surface is not to be trusted."""
-    if result.status == "diverged":
-        warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
-
-
-def _warn_unfitted(result: Reconstruction) -> None:
-    """Warns when more than half of the masked pixels could not be fitted (fewer than 3 usable
-    observations): they kept the starting shape, which says nothing about the object."""
-    total = int(result.mask.sum())
-    if total and result.unfitted > total // 2:
+def _warn_status(result: Reconstruction) -> None:
+    """Warns when the result is not to be trusted: status "degenerate" (more than half of the
+    masked pixels had fewer than 3 usable observations and kept the starting shape, which says
+    nothing about the object) or "diverged" (the depth changes grew). The core decides the
+    status (see ``Reconstruction.status``)."""
+    if result.status == "degenerate":
+        total = int(result.mask.sum())
         warnings.warn(
             f"{result.unfitted} of {total} masked pixels ({100 * result.unfitted / total:.0f} %) had fewer "
             "than 3 usable observations and kept the starting shape; check dark, saturation, valid and the mask",
             RuntimeWarning,
             stacklevel=3,
         )
+    elif result.status == "diverged":
+        warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
 
 
 def _progress_callback(progress: Progress, iterations: int) -> Callable[..., None] | None:
@@ -396,8 +394,7 @@ def reconstruct(
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
     result = Reconstruction._from_core(out, mask_arr, rig, "near")
-    _warn_unfitted(result)
-    _warn_diverged(result)
+    _warn_status(result)
     return result
 
 
@@ -482,14 +479,7 @@ def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: 
             f"got shape {a.shape}"
         ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    out = _core.render(z, rig.camera, rig._core_lights(), rho, m)
-    finite = np.isfinite(z)
-    unknown = ~(finite[:-1, :-1] & finite[1:, :-1] & finite[:-1, 1:] & finite[1:, 1:])
-    if m is not None:
-        unknown &= m
-    if unknown.any():
-        out[:, unknown] = np.nan
-    return out
+    return _core.render(z, rig.camera, rig._core_lights(), rho, m)
 
 
 def _refine_choice(mode: str | None) -> str:

@@ -77,7 +77,9 @@ pub fn mesh_normals(
 }
 
 /// Renders the k images (k, H, W, C) of the surface `depth` ((H+1) x (W+1)) with per-pixel
-/// `albedo` (H x W x C, C = 1 or 3). Pixels outside `mask`, or with a NaN corner, are 0.
+/// `albedo` (H x W x C, C = 1 or 3). Pixels outside `mask` are 0; pixels inside it with a
+/// non-finite corner (an unknown depth) are NaN in every image, so that an unknown surface does
+/// not pass for a shadow.
 pub fn render(
     rig: &Rig,
     height: usize,
@@ -104,13 +106,31 @@ pub fn render(
             format!("mask has {} values, expected H x W = {plane}", m.len())
         })?;
     }
-    shade_images(&rig.lights, plane, channels, albedo, |p| {
+    let mut images = shade_images(&rig.lights, plane, channels, albedo, |p| {
         if mask.is_some_and(|m| !m[p]) {
             return None;
         }
         let q = pixel_quad(&v, width, p);
         Some((quad_normal(&q), quad_centre(&q)))
-    })
+    })?;
+    let unknown: Vec<usize> = (0..plane)
+        .into_par_iter()
+        .filter(|&p| {
+            mask.is_none_or(|m| m[p])
+                && pixel_quad(&v, width, p)
+                    .iter()
+                    .flatten()
+                    .any(|x| !x.is_finite())
+        })
+        .collect();
+    if !unknown.is_empty() {
+        for image in images.chunks_exact_mut(plane * channels) {
+            for &p in &unknown {
+                image[p * channels..(p + 1) * channels].fill(f64::NAN);
+            }
+        }
+    }
+    Ok(images)
 }
 
 /// The k images (k, H, W, C) of pixels shaded by `lights`: `surface(p)` gives the normal and the
