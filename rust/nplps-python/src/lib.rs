@@ -2,8 +2,9 @@
 //!
 //! The bindings only convert and delegate: arrays are borrowed from numpy without copies where
 //! their layout allows, the work runs with the GIL released, core errors become the exceptions
-//! of `nplps.errors`, and no panic crosses into Python. Between iterations the solver takes the
-//! GIL back briefly to check for Ctrl-C and to call the progress callback.
+//! of `nplps.errors`, and no panic crosses into Python. Reconstructions run on a worker thread
+//! while the calling thread watches for Ctrl-C (see `interrupt`); the worker takes the GIL back
+//! briefly after each iteration only to call the progress callback.
 
 mod calibrate;
 mod convert;
@@ -245,33 +246,28 @@ fn reconstruct<'py>(
             if let Some(map) = prior {
                 problem.set_prior(map, prior_weight)?;
             }
+            // Ctrl-C is watched by the calling thread (see `interrupt`); this closure runs on
+            // the worker thread and only calls the progress callback, if there is one.
             let mut on_iteration = |stats: &nplps::IterationStats| {
-                Python::attach(|py| {
-                    let outcome = py.check_signals().and_then(|_| match &progress {
-                        Some(cb) => cb
-                            .call1(
-                                py,
-                                (
-                                    stats.iteration,
-                                    stats.depth_change,
-                                    stats.rms_residual,
-                                    stats.elapsed.as_secs_f64(),
-                                    stats.level,
-                                    stats.inner_iterations,
-                                    stats.light_change,
-                                ),
-                            )
-                            .map(|_| ()),
-                        None => Ok(()),
-                    });
-                    match outcome {
-                        Ok(()) => nplps::Control::Continue,
-                        Err(e) => {
-                            callback_error = Some(e);
-                            nplps::Control::Cancel
-                        }
+                let Some(cb) = &progress else {
+                    return nplps::Control::Continue;
+                };
+                let args = (
+                    stats.iteration,
+                    stats.depth_change,
+                    stats.rms_residual,
+                    stats.elapsed.as_secs_f64(),
+                    stats.level,
+                    stats.inner_iterations,
+                    stats.light_change,
+                );
+                match Python::attach(|py| cb.call1(py, args).map(|_| ())) {
+                    Ok(()) => nplps::Control::Continue,
+                    Err(e) => {
+                        callback_error = Some(e);
+                        nplps::Control::Cancel
                     }
-                })
+                }
             };
             match &search {
                 Some(search) => {
