@@ -100,7 +100,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
         paths = result.save(out, opengl=args.opengl)
-        _print_summary("near-light reconstruction (nplps)", result, wall, paths, args.iterations)
+        _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 
         if args.baseline:
             start = time.perf_counter()
@@ -113,18 +113,18 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             wall = time.perf_counter() - start
             base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl)
             print()
-            _print_summary("parallel-light baseline", base, wall, base_paths, None)
+            _print_summary("parallel-light baseline", base, wall, base_paths)
     return 0
 
 
-def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path], max_iterations: int | None) -> None:
+def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path]) -> None:
     s = result.summary()
     h, w = s["shape"]
     print(f"{title}:")
     print(f"  rig             {describe_rig(result.rig)}")
     print(f"  pixels          {s['pixels']} of {h} x {w}")
     print(f"  regions         {s['regions']}")
-    if max_iterations is not None:
+    if result.method == "near":  # the baseline does not iterate
         print(f"  iterations      {s['iterations']}")
     print(f"  status          {s['status']}: {s['status_reason']}")
     if s["rms_residual"] is not None:
