@@ -138,7 +138,7 @@ def synthetic_case(
     for seed in seeds:
         scene = nplps.make_scene(name, n=n, seed=seed, noise=noise, camera=camera, led=led, rgb=rgb)
         rig = wrong_lights(scene.rig, seed, light_error) if light_error > 0 else scene.rig
-        result = nplps.reconstruct(scene.images, rig, scene.mask, scene.mean_depth)
+        result = nplps.reconstruct(scene.images, rig, mask=scene.mask, depth=scene.mean_depth)
         runs.append({"seed": seed, **measure(result, scene.normals, scene.mask)})
     return {
         "scene": name, "camera": camera, "n": n, "noise": noise, "light_error": light_error,
@@ -183,7 +183,7 @@ def ball_cases() -> list[dict[str, Any]]:
         return []
     cases = []
     for capture in (ball, ball.select(range(0, ball.num_images, 7))):
-        result = nplps.reconstruct(capture.images, capture.rig(), capture.mask, 1000.0)
+        result = nplps.reconstruct(capture.images, capture.rig(), mask=capture.mask, depth=1000.0)
         run = measure(result, capture.normals_gt, capture.mask)
         cases.append({"scene": f"DiLiGenT ball, {capture.num_images} lights", "camera": "orthographic",
                       "n": list(capture.mask.shape), "noise": None, "light_error": 0.0, "runs": [run],

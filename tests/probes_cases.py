@@ -260,7 +260,7 @@ api(
 api("auto.range_behind_lights", C, "rec(depth='auto', depth_range=(1, 10))", raises("InputError", ("depth_range", "light")))
 for name, value in [("negative", "-5"), ("zero", "0"), ("nan", "np.nan"), ("inf", "np.inf"), ("string", "'x'")]:
     api(f"auto.guess_{name}", C, f"rec(depth='auto', depth_guess={value})", raises("InputError", "depth_guess"))
-api("auto.pinhole", C, "r = nplps.reconstruct(PS.images, PS.rig, PS.mask, 'auto')", ok("good(r, PS)"))
+api("auto.pinhole", C, "r = nplps.reconstruct(PS.images, PS.rig, mask=PS.mask, depth='auto')", ok("good(r, PS)"))
 api("auto.guess_ok", C, "r = rec(depth='auto', depth_guess=200.0)", ok("good(r)"))
 api(
     "auto.directional_only", C,
@@ -304,7 +304,7 @@ api("prior.string", C, "rec(depth_prior='x')", raises("InputError", "depth_prior
 api("prior.inf", C, "z = S.depth.copy(); z[3, 3] = np.inf; r = rec(depth_prior=z)", either("good(r)", "InputError", "depth_prior"))
 api("prior.complex", C, "rec(depth_prior=S.depth + 1j)", raises("InputError", "depth_prior"))
 api(
-    "prior.negative_pinhole", C, "nplps.reconstruct(PS.images, PS.rig, PS.mask, 200.0, depth_prior=-PS.depth)",
+    "prior.negative_pinhole", C, "nplps.reconstruct(PS.images, PS.rig, mask=PS.mask, depth=200.0, depth_prior=-PS.depth)",
     raises("InputError", "depth_prior"),
 )
 
@@ -439,12 +439,12 @@ for name, value in [("zero", "0"), ("negative", "-200"), ("nan", "np.nan")]:
 for name, value in [("negative", "-1"), ("nan", "np.nan"), ("string", "'x'"), ("inf", "np.inf")]:
     api(f"scene.noise_{name}", C, f"nplps.make_scene('bumps', n=16, noise={value})", raises("InputError", "noise"))
 api(
-    "scene.led_rgb_reconstruct", C, "s = nplps.make_scene('bumps', n=16, led=True, rgb=True); r = nplps.reconstruct(s.images, s.rig, s.mask, 200.0)",
+    "scene.led_rgb_reconstruct", C, "s = nplps.make_scene('bumps', n=16, led=True, rgb=True); r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0)",
     ok("good(r, s) and r.albedo.shape == (16, 16, 3)"),
 )
 api(
     "scene.directional_reconstruct", C,
-    "s = nplps.make_scene('bumps', n=16, directional=True); r = nplps.reconstruct(s.images, s.rig, s.mask, 200.0)",
+    "s = nplps.make_scene('bumps', n=16, directional=True); r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0)",
     ok("good(r, s)"),
 )
 api("scene.camera_bogus", C, "nplps.make_scene('bumps', n=16, camera='fisheye')", raises("InputError", "camera"))
@@ -467,13 +467,13 @@ api(
 )
 api(
     "render.depth_nan_outside_mask", C,
-    "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[0] = np.nan; out = nplps.render(z, R, 1.0, m)",
+    "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[0] = np.nan; out = nplps.render(z, R, 1.0, mask=m)",
     ok("np.isfinite(out).all() and (out[:, :4] == 0).all()"),
 )
 api("render.albedo_wrong_shape", C, "nplps.render(S.depth, R, np.ones((5, 5)))", raises("InputError", "albedo"))
 api("render.albedo_string", C, "nplps.render(S.depth, R, 'x')", raises("InputError", "albedo"))
 api("render.rig_string", C, "nplps.render(S.depth, 'x')", raises("InputError", "rig"))
-api("render.mask_wrong_shape", C, "nplps.render(S.depth, R, 1.0, np.ones((8, 8), bool))", raises("InputError", "mask"))
+api("render.mask_wrong_shape", C, "nplps.render(S.depth, R, 1.0, mask=np.ones((8, 8), bool))", raises("InputError", "mask"))
 api("render.huge_depth", C, "nplps.render(np.broadcast_to(200.0, (20001, 20001)), R)", mem("depth"), isolate=True, budget=30)
 
 C = "predict"
@@ -486,16 +486,16 @@ api("predict.rig_string", C, "rec().predict(rig='x')", raises("InputError", "rig
 api("predict.parallel_result", C, "p = par().predict(lights=[0])", ok("p.shape == (1, 16, 16) and np.isfinite(p).all()"))
 
 C = "evaluate (held_out)"
-api("held_out.fewer_images", C, "nplps.evaluation.held_out(I[:5], R, M, 200.0, lights=[0])", raises("InputError", "image"))
-api("held_out.light_out_of_range", C, "nplps.evaluation.held_out(I, R, M, 200.0, lights=[99])", raises("InputError", "lights"))
-api("held_out.method_bogus", C, "nplps.evaluation.held_out(I, R, M, 200.0, method='bogus', lights=[0])", raises("InputError", "method"))
-api("held_out.auto", C, "nplps.evaluation.held_out(I, R, M, 'auto', lights=[0])", raises("InputError", "depth"))
+api("held_out.fewer_images", C, "nplps.evaluation.held_out(I[:5], R, mask=M, depth=200.0, lights=[0])", raises("InputError", "image"))
+api("held_out.light_out_of_range", C, "nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[99])", raises("InputError", "lights"))
+api("held_out.method_bogus", C, "nplps.evaluation.held_out(I, R, mask=M, depth=200.0, method='bogus', lights=[0])", raises("InputError", "method"))
+api("held_out.auto", C, "nplps.evaluation.held_out(I, R, mask=M, depth='auto', lights=[0])", raises("InputError", "depth"))
 api(
-    "held_out.basic", C, "h = nplps.evaluation.held_out(I, R, M, 200.0, lights=[0])",
+    "held_out.basic", C, "h = nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[0])",
     ok("len(h) == 1 and 0 <= h[0].relative_error < 0.05"),
 )
 api(
-    "held_out.black_image", C, "J = I.copy(); J[0] = 0; h = nplps.evaluation.held_out(J, R, M, 200.0, lights=[0])",
+    "held_out.black_image", C, "J = I.copy(); J[0] = 0; h = nplps.evaluation.held_out(J, R, mask=M, depth=200.0, lights=[0])",
     either("not np.isfinite(h[0].relative_error)", "InputError", ("image 0", "light 0")),
 )
 
@@ -632,13 +632,13 @@ for name, value in [
 api(
     "rigfile.distortion_nested_accepted", C,
     "d = rig_dict(PS); d['camera']['distortion'] = [[0, 0, 0, 0, 0]]; rg = Rig.load(write_json('rig.json', d))\n"
-    "r = nplps.reconstruct(PS.images, rg, PS.mask, 200.0)",
+    "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
 )
 api(
     "rigfile.distortion_four", C,
     "d = rig_dict(PS); d['camera']['distortion'] = [0, 0, 0, 0]; rg = Rig.load(write_json('rig.json', d))\n"
-    "r = nplps.reconstruct(PS.images, rg, PS.mask, 200.0)",
+    "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
 )
 for name, value in [("six", "[0] * 6"), ("string", "'abc'"), ("nan", "[np.nan, 0, 0, 0, 0]"), ("object", "{'k1': 0}"), ("nested_six", "[[0] * 6]")]:
@@ -1017,13 +1017,13 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
     def rec(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct(
             S.images if images is missing else images, S.rig if rig is missing else rig,
-            S.mask if mask is missing else mask, 200.0 if depth is missing else depth, **kw,
+            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
         )
 
     def par(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct_parallel(
             S.images if images is missing else images, S.rig if rig is missing else rig,
-            S.mask if mask is missing else mask, 200.0 if depth is missing else depth, **kw,
+            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
         )
 
     def used(mask):
@@ -1047,9 +1047,9 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
             bad = int(np.count_nonzero(~np.isfinite(r.depth[u])))
             assert bad == 0, f"converged, but {bad} depths of masked vertices are not finite"
             fitted = r.mask & (r.lights_used >= 3)
-            n = r.normals[fitted]
-            assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
-            assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6), "normals are not unit vectors"
+            for n in (r.normals[fitted], r.fit_normals[fitted]):
+                assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
+                assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6), "normals are not unit vectors"
             assert np.isfinite(r.albedo[fitted]).all(), "converged, but albedo of fitted pixels is not finite"
         return True
 
@@ -1162,7 +1162,7 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
         return Rig.orthographic(cam["pixel_size"][0], origin=cam["origin"], lights=lights, **kw)
 
     def render_for(rig):
-        return nplps.render(S.depth, rig, S.albedo, S.mask)
+        return nplps.render(S.depth, rig, S.albedo, mask=S.mask)
 
     def summary(directory):
         return json.loads((Path(directory) / "summary.json").read_text())

@@ -86,7 +86,7 @@ def test_synth_writes_scene(scene_dir):
         assert (out / name).is_file(), name
     assert command[:3] == ["nplps", "reconstruct", str(out)]
     depth = float(command[command.index("--depth") + 1])
-    scene = nplps.make_scene("bumps", SIZE, seed=1)
+    scene = nplps.make_scene("bumps", n=SIZE, seed=1)
     assert depth == pytest.approx(scene.mean_depth, rel=1e-9)
 
 
@@ -355,7 +355,7 @@ def pinhole_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("pinhole") / "scene"
     rc = cli.main(["synth", "bumps", "--size", str(REAL_SIZE), "--camera", "pinhole", "--led", "--out", str(out)])
     assert rc == 0
-    return out, nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True).mean_depth
+    return out, nplps.make_scene("bumps", n=REAL_SIZE, camera="pinhole", led=True).mean_depth
 
 
 def vertex_normals_error(result, truth_path):
@@ -467,7 +467,7 @@ def test_saturation_left_out(scene_dir, tmp_path, capsys):
 
 def test_evaluate_near_beats_parallel(tmp_path, capsys):
     synth(capsys, tmp_path / "s", "--camera", "pinhole", "--led", "--noise", "0.002")
-    depth = nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True).mean_depth
+    depth = nplps.make_scene("bumps", n=REAL_SIZE, camera="pinhole", led=True).mean_depth
     s = tmp_path / "s"
     rc, stdout, stderr = run(
         capsys, "evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", depth, "--lights", "0,5,13,26"
@@ -504,7 +504,7 @@ def test_evaluate_rgb_and_bad_lights(tmp_path, capsys):
 def test_capture_near_ps(tmp_path, capsys):
     """A near_ps folder (camera.mat, light.mat) with vignetted images and an ambient image."""
     scipy_io = pytest.importorskip("scipy.io")
-    scene = nplps.make_scene("bumps", REAL_SIZE, camera="pinhole", led=True)
+    scene = nplps.make_scene("bumps", n=REAL_SIZE, camera="pinhole", led=True)
     rig = scene.rig
     folder = tmp_path / "near"
     folder.mkdir()
@@ -557,10 +557,10 @@ def test_capture_diligent(tmp_path, capsys):
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     intensities = rng.uniform(0.6, 1.4, (k, 3))
     rig = nplps.Rig.orthographic(1.0, directional_lights=dirs, directional_intensities=intensities)
-    base = nplps.make_scene("bumps", 24)
+    base = nplps.make_scene("bumps", n=24)
     depth = base.depth / base.rig.camera["pixel_size"][0]  # in pixel units
     albedo = np.stack([base.albedo, 0.8 * base.albedo, 0.6 * base.albedo], axis=-1)
-    images = nplps.render(depth, rig, albedo, base.mask)
+    images = nplps.render(depth, rig, albedo, mask=base.mask)
     obj = tmp_path / "toyPNG"
     obj.mkdir()
     names = [f"{i + 1:03d}.png" for i in range(k)]

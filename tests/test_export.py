@@ -275,7 +275,7 @@ def test_obj_text_is_percent_formatting(tmp_path: Path, with_normals: bool, with
     normals = normals if with_normals else None
     albedo = albedo if with_albedo else None
     path = tmp_path / "mesh.obj"
-    write_obj(path, vertices, mask, normals, albedo)
+    write_obj(path, vertices, mask, normals=normals, albedo=albedo)
 
     expected = _percent_obj(export._build_mesh(vertices, mask, normals, albedo, False))
 
@@ -286,7 +286,7 @@ def test_obj_text_is_percent_formatting_across_chunks(tmp_path: Path, monkeypatc
     vertices, mask, normals, albedo = _wild_grid(60, 50)
     monkeypatch.setattr(export, "_OBJ_CHUNK_ROWS", 97)  # many chunks, some digit counts change inside one
     path = tmp_path / "mesh.obj"
-    write_obj(path, vertices, mask, normals, albedo, opengl=True)
+    write_obj(path, vertices, mask, normals=normals, albedo=albedo, opengl=True)
 
     assert path.read_bytes() == _percent_obj(export._build_mesh(vertices, mask, normals, albedo, True))
 
@@ -334,9 +334,9 @@ def test_format_int_is_percent_d(values: np.ndarray) -> None:
 
 def test_write_meshes_is_write_ply_and_write_obj(tmp_path: Path) -> None:
     vertices, mask, normals, albedo = _wild_grid(12, 9)
-    write_ply(tmp_path / "a.ply", vertices, mask, normals, albedo)
-    write_obj(tmp_path / "a.obj", vertices, mask, normals, albedo)
-    write_meshes(tmp_path / "b.ply", tmp_path / "b.obj", vertices, mask, normals, albedo)
+    write_ply(tmp_path / "a.ply", vertices, mask, normals=normals, albedo=albedo)
+    write_obj(tmp_path / "a.obj", vertices, mask, normals=normals, albedo=albedo)
+    write_meshes(tmp_path / "b.ply", tmp_path / "b.obj", vertices, mask, normals=normals, albedo=albedo)
 
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
     assert (tmp_path / "a.obj").read_bytes() == (tmp_path / "b.obj").read_bytes()
@@ -365,7 +365,7 @@ def test_normal_map_encoding(tmp_path: Path) -> None:
     np.testing.assert_array_equal(image[1, 1], (128, 255, 128))
 
     mask = np.array([[True, False], [True, True]])
-    save_normal_map(path, normals, mask)
+    save_normal_map(path, normals, mask=mask)
     np.testing.assert_array_equal(io.read_image(path)[0, 1], (0, 0, 0))
 
 
@@ -406,9 +406,9 @@ def test_normal_map_in_bands_is_one_pass(tmp_path: Path, monkeypatch: pytest.Mon
     normals /= np.linalg.norm(normals, axis=2, keepdims=True)
     normals[3, 4] = np.nan
     mask = np.random.default_rng(3).random((23, 17)) < 0.8
-    save_normal_map(tmp_path / "one.png", normals, mask)
+    save_normal_map(tmp_path / "one.png", normals, mask=mask)
     monkeypatch.setattr(export, "_GATHER_CHUNK", 40)  # bands of 2 rows
-    save_normal_map(tmp_path / "bands.png", normals, mask)
+    save_normal_map(tmp_path / "bands.png", normals, mask=mask)
 
     assert (tmp_path / "one.png").read_bytes() == (tmp_path / "bands.png").read_bytes()
 

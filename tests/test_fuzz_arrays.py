@@ -112,9 +112,9 @@ def _check_outcome(call) -> None:
     assert r.converged == (r.status == "converged")
     if r.converged:
         fitted = r.mask & (r.lights_used >= 3)
-        n = r.normals[fitted]
-        assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
-        assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6)
+        for n in (r.normals[fitted], r.fit_normals[fitted]):
+            assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
+            assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6)
         assert np.isfinite(r.albedo[fitted]).all(), "converged, but albedo of fitted pixels is not finite"
         used = np.zeros((N + 1, N + 1), bool)
         for dr in (0, 1):
