@@ -344,8 +344,9 @@ class Reconstruction:
     def mesh_normals(self) -> np.ndarray:
         """Deprecated alias of :attr:`normals` (the mesh's facet normals).
 
-        .. deprecated:: 0.1
-            ``normals`` are the mesh normals now; the per-pixel fits are ``fit_normals``.
+        .. deprecated:: after 0.1.0
+            ``normals`` are the mesh normals now (NaN outside the mask, also in holes whose
+            corners are on the mesh); the per-pixel fits are ``fit_normals``.
         """
         warnings.warn(
             "Reconstruction.mesh_normals is deprecated: the mesh's normals are now Reconstruction.normals "
