@@ -27,7 +27,7 @@ import numpy as np
 import nplps
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import reference  # noqa: E402  (tests/reference.py: the numpy oracle is not part of the package)
+import reference
 
 
 def time_rust(scene: nplps.Scene, images: np.ndarray, repeats: int, threads: int | None) -> dict[str, float]:

@@ -133,8 +133,8 @@ def position_table(seeds: int) -> None:
             rows.append(err)
             print(
                 f"{noise:5.2f} {seed:4} | {before:14.2f} -> {after:6.2f}        | "
-                f"{err[0]:8.3f} / {err[1]:6.3f} / {err[2]:6.3f}       | {str(ref.fell_back):9} | "
-                f"{str(ref.stopped):7} | {ref.condition_number:.3g}"
+                f"{err[0]:8.3f} / {err[1]:6.3f} / {err[2]:6.3f}       | {ref.fell_back!s:9} | "
+                f"{ref.stopped!s:7} | {ref.condition_number:.3g}"
             )
         rows_a = np.array(rows)
         print(
@@ -193,14 +193,14 @@ def real_table() -> None:
     cap = captures.prepare(captures.load_queau_human1(SHARED / "queau_human1"), bin_factor=8)
     for mode in (None, "intensity"):
         _, _, e = calibrated_held_out(cap, 700.0, mode)
-        print(f"queau_human1 {str(mode):9}: held-out raw near {e['relative_near']:.4f}, "
+        print(f"queau_human1 {mode!s:9}: held-out raw near {e['relative_near']:.4f}, "
               f"parallel {e['relative_parallel']:.4f}; shape near "
               f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f}")
     ball = captures.load_diligent(SHARED / "diligent_ball", load=True)
     for mode in (None, "intensity"):
         r = nplps.reconstruct(ball.images, ball.rig(), mask=ball.mask, depth=1000.0, iterations=1, refine_lights=mode)
         err = angles(r.normals[ball.mask], ball.normals_gt[ball.mask]).mean()
-        print(f"diligent_ball {str(mode):9}: mean normal error {err:.3f} deg")
+        print(f"diligent_ball {mode!s:9}: mean normal error {err:.3f} deg")
 
 
 def main() -> None:

@@ -35,7 +35,7 @@ except ImportError:  # without nplps (it needs its compiled core)
     InputError = ValueError  # type: ignore[assignment,misc]
     SolverError = RuntimeError  # type: ignore[assignment,misc]
 
-__all__ = ["NZ_MIN", "mesh_normals", "render", "reconstruct", "reconstruct_parallel"]
+__all__ = ["NZ_MIN", "mesh_normals", "reconstruct", "reconstruct_parallel", "render"]
 
 #: Facet normals are limited to ``n_z <= -NZ_MIN`` when turned into target corner depths.
 NZ_MIN = 0.01

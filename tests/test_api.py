@@ -8,6 +8,7 @@ number asserted here was measured first; the measured values are written next to
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 from pathlib import Path
@@ -316,7 +317,7 @@ def test_rust_matches_reference(case, weighting, scene):
     np.testing.assert_allclose(r.gauge, q["gauge"], rtol=1e-12)
     np.testing.assert_allclose(r.residual, q["residual"], rtol=0, atol=1e-12 * float(images.max()))
     assert len(r.history) == len(q["history"]) == 5
-    for it, (h, (dz, rms)) in enumerate(zip(r.history, q["history"]), start=1):
+    for it, (h, (dz, rms)) in enumerate(zip(r.history, q["history"], strict=True), start=1):
         assert h.iteration == it
         assert h.depth_change == pytest.approx(dz, rel=1e-9, abs=1e-9 * s.size)
         assert h.rms_residual == pytest.approx(rms, rel=1e-6, abs=1e-9 * float(images.max()))
@@ -516,7 +517,9 @@ def test_bad_rig():
         nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [10, 0, 0]])
     lights = [[0, 0, 0], [10, 0, 0], [0, 10, 0]]
     for pixel_size in (0.0, -1.0, (1.0, 0.0), (1.0, -2.0), float("nan")):
-        with pytest.raises(nplps.RigError, match=r"pixel size must be positive and finite|pixel_size\[0\] must be a finite"):
+        with pytest.raises(
+            nplps.RigError, match=r"pixel size must be positive and finite|pixel_size\[0\] must be a finite"
+        ):
             nplps.Rig.orthographic(pixel_size, lights=lights)
     with pytest.raises(nplps.RigError, match=r"light 1 has a non-finite position"):
         nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [0, 0, np.inf], [0, 1, 0]])
@@ -554,7 +557,7 @@ def test_progress_callback(scene):
     assert [it.iteration for it in seen] == list(range(1, 8))
     assert seen == r.history
     assert all(np.isfinite(it.depth_change) and np.isfinite(it.rms_residual) for it in seen)
-    assert all(a.elapsed <= b.elapsed for a, b in zip(seen, seen[1:]))
+    assert all(a.elapsed <= b.elapsed for a, b in itertools.pairwise(seen))
     assert seen[0].depth_change > seen[-1].depth_change
 
 
@@ -611,7 +614,7 @@ def _face_normals(points, faces):
 
 
 def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
-    s, r = sphere_result
+    _, r = sphere_result
     paths = r.save(tmp_path)
     for key, path in paths.items():
         assert Path(path).is_file() and Path(path).stat().st_size > 0, key
@@ -658,7 +661,7 @@ def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
 
 
 def test_save_ply_opengl(tmp_path, sphere_result, active_vertices):
-    s, r = sphere_result
+    _, r = sphere_result
     r.save_ply(tmp_path / "gl.ply", opengl=True)
     mesh = read_ply(tmp_path / "gl.ply")
     assert "frame opengl" in mesh["comments"]

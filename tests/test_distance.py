@@ -13,7 +13,6 @@ from nplps import captures
 from nplps.evaluation import held_out
 
 
-
 def _perturbed(rig: nplps.Rig, size: float, fraction: float, seed: int) -> nplps.Rig:
     rng = np.random.default_rng(seed)
     moved = rig.lights + rng.uniform(-fraction, fraction, rig.lights.shape) * size * ~rig.directional[:, None]
@@ -54,7 +53,10 @@ def test_distance_in_a_mismatched_rig(camera, angular_error):
         known = nplps.reconstruct(s.images, rig, mask=s.mask, depth=truth)
         estimate = auto.distance.distance[0]
         gap = angular_error(auto.normals, known.normals, s.mask).mean()
-        print(f"{camera} mismatched x{factor}: {estimate / truth - 1:+.2e}, normals {gap:.3f} deg from the known-distance run")
+        print(
+            f"{camera} mismatched x{factor}: {estimate / truth - 1:+.2e}, "
+            f"normals {gap:.3f} deg from the known-distance run"
+        )
         assert abs(estimate / truth - 1) < 0.03
         assert gap < 0.6
 
@@ -94,7 +96,9 @@ def test_depth_prior_is_fused(angular_error):
     s = nplps.make_scene("bumps", n=40, camera="pinhole", seed=2)
     rig = _perturbed(s.rig, s.size, 0.05, seed=7)
     plain = nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth, iterations=30)
-    fused = nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth, iterations=30, depth_prior=s.depth, prior_weight=0.1)
+    fused = nplps.reconstruct(
+        s.images, rig, mask=s.mask, depth=s.mean_depth, iterations=30, depth_prior=s.depth, prior_weight=0.1
+    )
     err_plain = np.nanmean(np.abs(plain.depth - s.depth))
     err_fused = np.nanmean(np.abs(fused.depth - s.depth))
     print(f"depth error without prior {err_plain:.4f}, with prior {err_fused:.4f}")
@@ -129,8 +133,10 @@ def test_real_capture_distance(name, loader, factor, authors, bounds, tmp_path, 
     at_authors = held_out(c.images, rig, mask=c.mask, depth=authors, iterations=20)
     e_est = np.mean([h.relative_error for h in at_estimate])
     e_auth = np.mean([h.relative_error for h in at_authors])
-    print(f"{name}: estimate {estimate:.1f} (authors {bounds}), auto took {t_auto / t_known:.1f}x a known-distance run; "
-          f"held-out error {e_est:.4f} at the estimate, {e_auth:.4f} at {authors}")
+    print(
+        f"{name}: estimate {estimate:.1f} (authors {bounds}), auto took {t_auto / t_known:.1f}x a known-distance run; "
+        f"held-out error {e_est:.4f} at the estimate, {e_auth:.4f} at {authors}"
+    )
     auto.save(tmp_path / name)
     assert 0.85 * bounds[0] <= estimate <= 1.15 * bounds[1]
     assert e_est <= e_auth * 1.001

@@ -17,6 +17,7 @@ import nplps
 from nplps import captures
 from nplps.evaluation import held_out
 
+
 def _pictures(tmp_path: Path, name: str) -> Path:
     root = os.environ.get("NPLPS_PICTURES")
     return (Path(root) if root else tmp_path) / name
@@ -52,7 +53,7 @@ def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, n
     for method in ("near", "parallel"):
         scores[method] = held_out(capture.images, rig, mask=capture.mask, depth=distance, method=method, iterations=20)
     print(f"{name} held-out error per left-out light (relative / gain-free shape):")
-    for a, b in zip(scores["near"], scores["parallel"]):
+    for a, b in zip(scores["near"], scores["parallel"], strict=True):
         print(f"  light {a.light}: near {a.relative_error:.3f} / {a.shape_error:.3f}, "
               f"parallel {b.relative_error:.3f} / {b.shape_error:.3f}")
     result = nplps.reconstruct(capture.images, rig, mask=capture.mask, depth=distance, iterations=20)

@@ -7,6 +7,7 @@ at the true mean vertex depth. Noise-free data: the method must recover the mesh
 
 import numpy as np
 import pytest
+
 import reference as ref  # tests/reference.py: pytest puts tests/ on sys.path
 
 pytest.importorskip("scipy")
@@ -299,14 +300,14 @@ def test_parallel_baseline_is_worse():
 
 
 def test_zero_iterations_reports_the_initial_plane():
-    z, mask, ps, o, L, images = make("saddle")
+    _, _, ps, o, L, images = make("saddle")
     res = ref.reconstruct(images, L, ps, o, depth=200.0, iterations=0)
     assert res["history"] == []
     assert np.all(res["depth"] == 200.0)
 
 
 def test_input_errors():
-    z, mask, ps, o, L, images = make("saddle")
+    _, mask, ps, o, L, images = make("saddle")
     with pytest.raises(ValueError):
         ref.reconstruct(images, L, ps, o)  # depth is required
     with pytest.raises(ValueError):

@@ -78,7 +78,9 @@ def test_intensity_refinement_with_leds_colour_and_directional_lights(options):
     scene = nplps.make_scene("sphere", n=64, seed=1, **options)
     truth = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, **KW)
     bad = _wrong_intensities(scene.rig, 1)
-    refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW)
+    refined = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
+    )
     ratio = refined.rig.intensities / scene.rig.intensities
     ratio /= np.exp(np.mean(np.log(ratio)))
     assert np.abs(ratio - 1).max() < 0.01
@@ -129,7 +131,9 @@ def test_auto_distance_with_wrong_intensities():
         scene = nplps.make_scene("bumps", n=96, seed=seed)
         bad = _wrong_intensities(scene.rig, seed)
         plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", iterations=30)
-        refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", refine_lights="intensity", iterations=30)
+        refined = nplps.reconstruct(
+            scene.images, bad, mask=scene.mask, depth="auto", refine_lights="intensity", iterations=30
+        )
         assert abs(refined.distance.distance[0] / scene.mean_depth - 1) < 0.002
         plain_error, refined_error = (_angles(r.normals, scene.normals)[scene.mask].mean() for r in (plain, refined))
         assert refined_error < 0.1 < plain_error
@@ -138,7 +142,9 @@ def test_auto_distance_with_wrong_intensities():
 def test_positions_with_auto_distance_keep_the_rigs_scale():
     scene = nplps.make_scene("sphere", n=96, seed=0)
     bad = _wrong_positions(scene.rig, 0, scene.mean_depth, 0.03)
-    refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", refine_lights="position", iterations=30)
+    refined = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth="auto", refine_lights="position", iterations=30
+    )
     # The common scale of the positions about the camera centre is the given rig's.
     scale = np.sum(bad.lights * refined.rig.lights) / np.sum(bad.lights**2)
     assert abs(scale - 1) < 1e-6
@@ -162,7 +168,9 @@ def test_fallback_keeps_the_rig_when_refinement_does_not_help():
 def test_parallel_baseline_refines_its_own_intensities():
     scene = nplps.make_scene("sphere", n=64, seed=0, camera="pinhole")
     bad = _wrong_intensities(scene.rig, 0)
-    base = nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity")
+    base = nplps.reconstruct_parallel(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity"
+    )
     plain = nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth)
     assert base.refinement is not None and base.refinement.mode == "intensity"
     assert base.history[-1].rms_residual < 0.5 * plain.history[-1].rms_residual
@@ -174,7 +182,9 @@ def test_parallel_baseline_refines_its_own_intensities():
 def test_refined_rig_is_saved_and_reported(tmp_path):
     scene = nplps.make_scene("sphere", n=32, seed=0)
     bad = _wrong_intensities(scene.rig, 0)
-    result = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW)
+    result = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
+    )
     paths = result.save(tmp_path)
     loaded = Rig.load(paths["rig_refined"])
     np.testing.assert_allclose(loaded.intensities, result.rig.intensities)
@@ -244,11 +254,18 @@ def test_hehe12_calibrated_intensities_beat_the_parallel_baseline(shared_capture
 
     capture = captures.prepare(captures.load_hehe12(shared_capture("hehe12")), bin_factor=4)
     rig, distance = capture.rig(), 200.0
-    near = nplps.reconstruct(capture.images, rig, mask=capture.mask, depth=distance, iterations=20, refine_lights="intensity")
-    parallel = nplps.reconstruct_parallel(capture.images, rig, mask=capture.mask, depth=distance, refine_lights="intensity")
-    near_errors = [h.relative_error for h in held_out(capture.images, near.rig, mask=capture.mask, depth=distance, iterations=20)]
+    near = nplps.reconstruct(
+        capture.images, rig, mask=capture.mask, depth=distance, iterations=20, refine_lights="intensity"
+    )
+    parallel = nplps.reconstruct_parallel(
+        capture.images, rig, mask=capture.mask, depth=distance, refine_lights="intensity"
+    )
+    near_errors = [
+        h.relative_error for h in held_out(capture.images, near.rig, mask=capture.mask, depth=distance, iterations=20)
+    ]
     parallel_errors = [
-        h.relative_error for h in held_out(capture.images, parallel.rig, mask=capture.mask, depth=distance, method="parallel")
+        h.relative_error
+        for h in held_out(capture.images, parallel.rig, mask=capture.mask, depth=distance, method="parallel")
     ]
     print(f"hehe12 held-out (raw), calibrated intensities: near {np.mean(near_errors):.4f}, "
           f"parallel {np.mean(parallel_errors):.4f}")

@@ -44,7 +44,9 @@ def test_forked_child_does_not_hang():
     pytest.fail("nplps hung in a forked child")
 
 
-@pytest.mark.parametrize("method", [m for m in ("fork", "spawn", "forkserver") if m in multiprocessing.get_all_start_methods()])
+@pytest.mark.parametrize(
+    "method", [m for m in ("fork", "spawn", "forkserver") if m in multiprocessing.get_all_start_methods()]
+)
 def test_multiprocessing_pool(method):
     _small_run()
     context = multiprocessing.get_context(method)
@@ -57,7 +59,9 @@ def test_multiprocessing_pool(method):
 def test_huge_iteration_limits_do_not_abort(iterations):
     """The history grows as iterations run: no allocation for the limit up front."""
     scene = nplps.make_scene("sphere", n=24, seed=0)
-    result = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=iterations, tol=1e-3)
+    result = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=iterations, tol=1e-3
+    )
     assert result.converged and len(result.history) < 100
 
 
@@ -237,14 +241,19 @@ def test_absurd_depth_map_values_name_the_depth(sphere16):
     s = sphere16
     z = s.depth.copy()
     z[8, 8] = 1e300
-    with pytest.raises(nplps.InputError, match=r"depth \(the initial depth map\) is 1e\+300 at vertex \(row 8, column 8\)"):
+    with pytest.raises(
+        nplps.InputError, match=r"depth \(the initial depth map\) is 1e\+300 at vertex \(row 8, column 8\)"
+    ):
         nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=z)
     # the same value at a vertex no masked pixel uses is ignored, like a NaN there
     mask = s.mask.copy()
     mask[:4] = False
     z = s.depth.copy()
     z[0, 0] = 1e300
-    assert mask[:4].sum() == 0 and nplps.reconstruct(s.images, s.rig, mask=mask, depth=z, iterations=2).depth.shape == z.shape
+    assert (
+        mask[:4].sum() == 0
+        and nplps.reconstruct(s.images, s.rig, mask=mask, depth=z, iterations=2).depth.shape == z.shape
+    )
     with pytest.raises(nplps.InputError, match=r"depth_prior is 1e\+300"):
         prior = s.depth.copy()
         prior[8, 8] = 1e300
@@ -289,7 +298,7 @@ def test_render_bad_arguments_and_unknown_depths(sphere16):
         nplps.render(s.depth, s.rig, np.ones((5, 5)))
     with pytest.raises(nplps.InputError, match="albedo must be an array of real numbers"):
         nplps.render(s.depth, s.rig, "x")
-    with pytest.raises(nplps.InputError, match="rig must be an nplps.Rig, got str"):
+    with pytest.raises(nplps.InputError, match=r"rig must be an nplps\.Rig, got str"):
         nplps.render(s.depth, "x")
     # A NaN vertex: its four pixels are unknown (NaN), not shadowed (0); outside the mask, 0.
     z = s.depth.copy()
@@ -310,7 +319,7 @@ def test_predict_and_held_out_bad_arguments(sphere16):
         result.predict(lights=5)
     with pytest.raises(nplps.InputError, match=r"got 1 \(float\)"):
         result.predict(lights=[1.0])
-    with pytest.raises(nplps.InputError, match="rig must be an nplps.Rig, got str"):
+    with pytest.raises(nplps.InputError, match=r"rig must be an nplps\.Rig, got str"):
         result.predict(rig="x")
     from nplps.evaluation import held_out
 
@@ -319,14 +328,18 @@ def test_predict_and_held_out_bad_arguments(sphere16):
         held_out(s.images[:5], s.rig, mask=s.mask, depth=200.0, lights=[0])
     with pytest.raises(nplps.InputError, match='method must be "near" or "parallel", got \'bogus\''):
         held_out(s.images, s.rig, mask=s.mask, depth=200.0, method="bogus", lights=[0])
-    with pytest.raises(nplps.InputError, match=r"lights must be whole-number indices of the rig's 27 lights \(0 .. 26\), got 99"):
+    with pytest.raises(
+        nplps.InputError, match=r"lights must be whole-number indices of the rig's 27 lights \(0 .. 26\), got 99"
+    ):
         held_out(s.images, s.rig, mask=s.mask, depth=200.0, lights=[99])
     assert time.monotonic() - start < 5  # refused before any reconstruction
 
 
 def test_rig_subset_and_load_bad_arguments(sphere16):
     rig = sphere16.rig
-    with pytest.raises(nplps.InputError, match=r"indices: 99 is not a light of the rig \(its 27 lights are -27 .. 26\)"):
+    with pytest.raises(
+        nplps.InputError, match=r"indices: 99 is not a light of the rig \(its 27 lights are -27 .. 26\)"
+    ):
         rig.subset([99])
     with pytest.raises(nplps.InputError, match="indices must be a list of whole-number light indices"):
         rig.subset([1.5])

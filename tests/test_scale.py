@@ -155,7 +155,7 @@ def test_multigrid_iteration_limit_warns(monkeypatch, scene):
     def capped(*args, **kwargs):
         out = real(*args, **kwargs)
         limit = api._core.MULTIGRID_MAX_ITERATIONS
-        out["history"] = [h[:5] + (limit,) for h in out["history"]]
+        out["history"] = [(*h[:5], limit) for h in out["history"]]
         return out
 
     monkeypatch.setattr(api._core, "reconstruct", capped)
