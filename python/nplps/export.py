@@ -861,14 +861,16 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
 
 
 def save_grey_png(path: PathLike, image: np.ndarray) -> None:
-    """Writes an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
+    """Write an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
     image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
     write_png8(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8))
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint8 image as an 8-bit PNG, any other integer image as a 16-bit PNG
-    (:func:`write_png16`); grey ``(H, W)`` or RGB ``(H, W, 3)``."""
+    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_png16`).
+
+    Grey ``(H, W)`` or RGB ``(H, W, 3)``.
+    """
     if np.asarray(pixels).dtype == np.uint8:
         write_png8(path, pixels)
     else:
@@ -876,15 +878,19 @@ def write_png(path: PathLike, pixels: np.ndarray) -> None:
 
 
 def write_png8(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG (whatever the
-    extension of ``path``)."""
+    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG.
+
+    The file is PNG whatever the extension of `path`.
+    """
     with atomic_path(path) as temporary:
         iio.imwrite(temporary, np.asarray(pixels, dtype=np.uint8), extension=".png")
 
 
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (with pypng:
-    Pillow cannot write 16-bit RGB)."""
+    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG.
+
+    Written with pypng: Pillow cannot write 16-bit RGB.
+    """
     import png
 
     pixels = np.asarray(pixels, dtype=np.uint16)
@@ -901,7 +907,7 @@ def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:
 
 
 def save_npy(path: PathLike, array: np.ndarray) -> None:
-    """Saves an array as ``.npy`` exactly at ``path`` (no ``.npy`` appended)."""
+    """Save an array as ``.npy`` exactly at `path` (no ``.npy`` appended)."""
     with atomic_write(path) as file:
         np.save(file, np.asarray(array))
 

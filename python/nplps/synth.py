@@ -68,8 +68,10 @@ class Scene:
 
     @property
     def mean_depth(self) -> float:
-        """Mean true depth of the vertices the mask uses: arithmetic (orthographic camera) or
-        geometric (pinhole camera) — the true gauge."""
+        """The true gauge: the mean true depth of the vertices the mask uses.
+
+        Arithmetic for an orthographic camera, geometric for a pinhole camera.
+        """
         h, w = self.mask.shape
         used = np.zeros((h + 1, w + 1), dtype=bool)
         for dr in (0, 1):
