@@ -23,7 +23,7 @@ VARIANTS = {
 def test_exact_model_is_recovered(variant, name, angular_error):
     s = nplps.make_scene(name, n=48, **VARIANTS[variant])
     r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=60, tol=1e-10)
-    err = angular_error(r.normals, s.normals, s.mask).mean()
+    err = angular_error(r.fit_normals, s.normals, s.mask).mean()  # the mesh's add the twisted quads' discretization
     depth_err = np.nanmax(np.abs(r.depth - s.depth)) / s.size
     print(f"{variant} {name}: {err:.2e} deg, depth {depth_err:.2e} of size, {len(r.history)} iterations")
     assert err < 0.01
