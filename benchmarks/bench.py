@@ -18,12 +18,16 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 import nplps
-from nplps import reference
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import reference
 
 
 def time_rust(scene: nplps.Scene, images: np.ndarray, repeats: int, threads: int | None) -> dict[str, float]:
@@ -85,10 +89,10 @@ def main() -> None:
     scene = nplps.make_scene("bumps", n=args.auto_size, camera="pinhole", led=True, noise=0.01)
     images = scene.images.astype(np.float32)
     known = statistics.median(
-        _wall(lambda: nplps.reconstruct(images, scene.rig, scene.mask, scene.mean_depth)) for _ in range(args.repeats)
+        _wall(lambda: nplps.reconstruct(images, scene.rig, mask=scene.mask, depth=scene.mean_depth)) for _ in range(args.repeats)
     )
     auto = statistics.median(
-        _wall(lambda: nplps.reconstruct(images, scene.rig, scene.mask, "auto")) for _ in range(args.repeats)
+        _wall(lambda: nplps.reconstruct(images, scene.rig, mask=scene.mask, depth="auto")) for _ in range(args.repeats)
     )
     print(f"\ndepth='auto' on a {args.auto_size}^2 pinhole LED scene: {auto:.3f} s, {auto / known:.1f}x a run given the distance ({known:.3f} s)")
     results.append({"auto_size": args.auto_size, "auto": auto, "known": known, "ratio": auto / known})

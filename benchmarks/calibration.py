@@ -99,8 +99,8 @@ def run_case(
         directional=icl.rig.directional,
     )
     depth0 = obj.mean_depth
-    r_true = nplps.reconstruct(images, true_rig, obj.mask, depth=depth0, iterations=30, tol=1e-8)
-    r_cal = nplps.reconstruct(images, cal_rig, obj.mask, depth=depth0, iterations=30, tol=1e-8)
+    r_true = nplps.reconstruct(images, true_rig, mask=obj.mask, depth=depth0, iterations=30, tol=1e-8)
+    r_cal = nplps.reconstruct(images, cal_rig, mask=obj.mask, depth=depth0, iterations=30, tol=1e-8)
     m = obj.mask
     gt = obj.normals
     e_true = float(np.nanmean(angle_deg(r_true.normals[m], gt[m])))

@@ -1,5 +1,5 @@
-"""Which normals to hand users: the local fits (``result.normals``) or the mesh's own
-(``result.mesh_normals``)? Issue 10's measurement.
+"""Which normals to hand users: the local fits (``result.fit_normals``) or the mesh's own
+(``result.normals``)? Issue 10's measurement, which made the mesh's the default ``normals``.
 
     python benchmarks/normals.py [--quick] [--seeds 5] [--no-ball] [--json out.json]
 
@@ -7,8 +7,8 @@ For every case it reconstructs with the default options of :func:`nplps.reconstr
 gauge (``scene.mean_depth``) and measures, against the ground truth, the angular error (degrees)
 of
 
-- local: ``result.normals``, each pixel's own least-squares fit of the final local step;
-- mesh: ``result.mesh_normals``, the facet normals of the integrated depth (cross product of the
+- local: ``result.fit_normals``, each pixel's own least-squares fit of the final local step;
+- mesh: ``result.normals``, the facet normals of the integrated depth (cross product of the
   quad's diagonals),
 
 over the fitted masked pixels (masked, at least 3 usable lights, both normals and the truth
@@ -108,7 +108,7 @@ def bends(truth: np.ndarray, mask: np.ndarray, degrees: float = 5.0) -> np.ndarr
 def measure(result: nplps.Reconstruction, truth: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
     """Mean and median errors of the local and the mesh normals over the fitted masked pixels,
     and the mean errors on the interior, the boundary band and the bend pixels."""
-    local, mesh = result.normals, result.mesh_normals
+    local, mesh = result.fit_normals, result.normals
     fitted = (
         mask
         & (result.lights_used >= 3)
@@ -138,7 +138,7 @@ def synthetic_case(
     for seed in seeds:
         scene = nplps.make_scene(name, n=n, seed=seed, noise=noise, camera=camera, led=led, rgb=rgb)
         rig = wrong_lights(scene.rig, seed, light_error) if light_error > 0 else scene.rig
-        result = nplps.reconstruct(scene.images, rig, scene.mask, scene.mean_depth)
+        result = nplps.reconstruct(scene.images, rig, mask=scene.mask, depth=scene.mean_depth)
         runs.append({"seed": seed, **measure(result, scene.normals, scene.mask)})
     return {
         "scene": name, "camera": camera, "n": n, "noise": noise, "light_error": light_error,
@@ -183,7 +183,7 @@ def ball_cases() -> list[dict[str, Any]]:
         return []
     cases = []
     for capture in (ball, ball.select(range(0, ball.num_images, 7))):
-        result = nplps.reconstruct(capture.images, capture.rig(), capture.mask, 1000.0)
+        result = nplps.reconstruct(capture.images, capture.rig(), mask=capture.mask, depth=1000.0)
         run = measure(result, capture.normals_gt, capture.mask)
         cases.append({"scene": f"DiLiGenT ball, {capture.num_images} lights", "camera": "orthographic",
                       "n": list(capture.mask.shape), "noise": None, "light_error": 0.0, "runs": [run],

@@ -59,11 +59,11 @@ def intensity_table(seeds: int) -> None:
             for seed in range(seeds):
                 scene = nplps.make_scene(name, n=80, seed=seed, noise=noise)
                 d, m = scene.mean_depth, scene.mask
-                truth = nplps.reconstruct(scene.images, scene.rig, m, d, **KW)
-                same = nplps.reconstruct(scene.images, scene.rig, m, d, refine_lights="intensity", **KW)
+                truth = nplps.reconstruct(scene.images, scene.rig, mask=m, depth=d, **KW)
+                same = nplps.reconstruct(scene.images, scene.rig, mask=m, depth=d, refine_lights="intensity", **KW)
                 bad = wrong_intensities(scene.rig, seed)
-                plain = nplps.reconstruct(scene.images, bad, m, d, **KW)
-                refined = nplps.reconstruct(scene.images, bad, m, d, refine_lights="intensity", **KW)
+                plain = nplps.reconstruct(scene.images, bad, mask=m, depth=d, **KW)
+                refined = nplps.reconstruct(scene.images, bad, mask=m, depth=d, refine_lights="intensity", **KW)
                 phi = relative(refined.rig.intensities[:, 0]) / relative(scene.rig.intensities[:, 0])
                 print(
                     f"{name:6} {noise:5.2f} {seed:4} | {100 * np.abs(phi - 1).max():20.3f} | "
@@ -89,11 +89,12 @@ def cost_table() -> None:
         scene = nplps.make_scene("bumps", n=n, seed=0)
         bad = wrong_intensities(scene.rig, 0)
         d = scene.mean_depth
-        args = (scene.images.astype(np.float32), bad, scene.mask, d)
-        plain = _median_time(lambda: nplps.reconstruct(*args, **KW), repeats)
-        refined = _median_time(lambda: nplps.reconstruct(*args, refine_lights="intensity", **KW), repeats)
-        its = len(nplps.reconstruct(*args, **KW).history), len(
-            nplps.reconstruct(*args, refine_lights="intensity", **KW).history
+        args = (scene.images.astype(np.float32), bad)
+        kw = {**KW, "mask": scene.mask, "depth": d}
+        plain = _median_time(lambda: nplps.reconstruct(*args, **kw), repeats)
+        refined = _median_time(lambda: nplps.reconstruct(*args, refine_lights="intensity", **kw), repeats)
+        its = len(nplps.reconstruct(*args, **kw).history), len(
+            nplps.reconstruct(*args, refine_lights="intensity", **kw).history
         )
         print(f"{n:4} x {n:<4}| {plain:9.3f} | {refined:11.3f} | {refined / plain:5.2f} | {its[0]} / {its[1]}")
 
@@ -106,7 +107,7 @@ def convergence_traces() -> None:
         ("intensity", wrong_intensities(scene.rig, 0)),
         ("position", wrong_positions(scene.rig, 0, d)),
     ):
-        r = nplps.reconstruct(scene.images, bad, m, d, refine_lights=mode, **KW)
+        r = nplps.reconstruct(scene.images, bad, mask=m, depth=d, refine_lights=mode, **KW)
         print(f"{mode}: iteration, rms residual, largest light change (relative), depth change")
         for h in r.history:
             print(f"  {h.iteration:3} {h.rms_residual:10.3e} {h.light_change:10.3e} {h.depth_change:10.3e}")
@@ -122,9 +123,9 @@ def position_table(seeds: int) -> None:
             scene = nplps.make_scene("bumps", n=80, seed=seed, noise=noise)
             d, m = scene.mean_depth, scene.mask
             bad = wrong_positions(scene.rig, seed, d)
-            truth = nplps.reconstruct(scene.images, scene.rig, m, d, **KW)
-            plain = nplps.reconstruct(scene.images, bad, m, d, **KW)
-            refined = nplps.reconstruct(scene.images, bad, m, d, refine_lights="position", **KW)
+            truth = nplps.reconstruct(scene.images, scene.rig, mask=m, depth=d, **KW)
+            plain = nplps.reconstruct(scene.images, bad, mask=m, depth=d, **KW)
+            refined = nplps.reconstruct(scene.images, bad, mask=m, depth=d, refine_lights="position", **KW)
             err = [angles(r.normals, scene.normals)[m].mean() for r in (truth, plain, refined)]
             before = np.sqrt(np.mean(np.sum((bad.lights - scene.rig.lights) ** 2, axis=1)))
             after = np.sqrt(np.mean(np.sum((refined.rig.lights - scene.rig.lights) ** 2, axis=1)))
@@ -132,8 +133,8 @@ def position_table(seeds: int) -> None:
             rows.append(err)
             print(
                 f"{noise:5.2f} {seed:4} | {before:14.2f} -> {after:6.2f}        | "
-                f"{err[0]:8.3f} / {err[1]:6.3f} / {err[2]:6.3f}       | {str(ref.fell_back):9} | "
-                f"{str(ref.stopped):7} | {ref.condition_number:.3g}"
+                f"{err[0]:8.3f} / {err[1]:6.3f} / {err[2]:6.3f}       | {ref.fell_back!s:9} | "
+                f"{ref.stopped!s:7} | {ref.condition_number:.3g}"
             )
         rows_a = np.array(rows)
         print(
@@ -149,10 +150,10 @@ def calibrated_held_out(cap, d: float, mode: str | None):
     left out in turn with that rig fixed. Returns both results and the mean raw and gain-free
     held-out errors of near and parallel."""
     rig = cap.rig()
-    near = nplps.reconstruct(cap.images, rig, cap.mask, d, iterations=20, refine_lights=mode)
-    par = nplps.reconstruct_parallel(cap.images, rig, cap.mask, d, refine_lights=mode)
-    hn = held_out(cap.images, near.rig, cap.mask, d, method="near", iterations=20)
-    hp = held_out(cap.images, par.rig, cap.mask, d, method="parallel")
+    near = nplps.reconstruct(cap.images, rig, mask=cap.mask, depth=d, iterations=20, refine_lights=mode)
+    par = nplps.reconstruct_parallel(cap.images, rig, mask=cap.mask, depth=d, refine_lights=mode)
+    hn = held_out(cap.images, near.rig, mask=cap.mask, depth=d, method="near", iterations=20)
+    hp = held_out(cap.images, par.rig, mask=cap.mask, depth=d, method="parallel")
     errors = {
         f"{field}_{model}": float(np.mean([getattr(h, f"{field}_error") for h in hs]))
         for model, hs in (("near", hn), ("parallel", hp))
@@ -192,14 +193,14 @@ def real_table() -> None:
     cap = captures.prepare(captures.load_queau_human1(SHARED / "queau_human1"), bin_factor=8)
     for mode in (None, "intensity"):
         _, _, e = calibrated_held_out(cap, 700.0, mode)
-        print(f"queau_human1 {str(mode):9}: held-out raw near {e['relative_near']:.4f}, "
+        print(f"queau_human1 {mode!s:9}: held-out raw near {e['relative_near']:.4f}, "
               f"parallel {e['relative_parallel']:.4f}; shape near "
               f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f}")
     ball = captures.load_diligent(SHARED / "diligent_ball", load=True)
     for mode in (None, "intensity"):
-        r = nplps.reconstruct(ball.images, ball.rig(), ball.mask, 1000.0, iterations=1, refine_lights=mode)
+        r = nplps.reconstruct(ball.images, ball.rig(), mask=ball.mask, depth=1000.0, iterations=1, refine_lights=mode)
         err = angles(r.normals[ball.mask], ball.normals_gt[ball.mask]).mean()
-        print(f"diligent_ball {str(mode):9}: mean normal error {err:.3f} deg")
+        print(f"diligent_ball {mode!s:9}: mean normal error {err:.3f} deg")
 
 
 def main() -> None:

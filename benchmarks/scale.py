@@ -312,7 +312,7 @@ def run_child(spec_path: str) -> None:
         assert levels in (None, LEVELS_16), levels
         t0 = time.perf_counter()
         result = nplps.reconstruct(
-            stack, rig, mask, depth=spec["gauge"], iterations=spec["iterations"], tol=spec["tol"],
+            stack, rig, mask=mask, depth=spec["gauge"], iterations=spec["iterations"], tol=spec["tol"],
             dark=DARK_16, saturation=SATURATION_16, threads=spec["threads"], **options,
         )
         reconstruct_s = time.perf_counter() - t0
@@ -328,18 +328,19 @@ def run_child(spec_path: str) -> None:
         hwm_after_export = hwm_mb()
         shutil.rmtree(out_dir)
         # The mesh writers alone, on precomputed vertex arrays.
-        arrays = (result.vertices, result.mask, result.vertex_normals(), result.vertex_albedo())
+        arrays = (result.vertices, result.mask)
+        vertex_data = {"normals": result.vertex_normals(), "albedo": result.vertex_albedo()}
         t0 = time.perf_counter()
-        export.write_ply(out_dir.with_suffix(".ply"), *arrays)
+        export.write_ply(out_dir.with_suffix(".ply"), *arrays, **vertex_data)
         ply_s = time.perf_counter() - t0
         out_dir.with_suffix(".ply").unlink()
         timing = {"save": save_s, "write_ply": ply_s}
         if spec["obj_alone"]:
             t0 = time.perf_counter()
-            export.write_obj(out_dir.with_suffix(".obj"), *arrays)
+            export.write_obj(out_dir.with_suffix(".obj"), *arrays, **vertex_data)
             timing["write_obj"] = time.perf_counter() - t0
             out_dir.with_suffix(".obj").unlink()
-        del arrays
+        del arrays, vertex_data
         exports.append(timing)
     assert result is not None
     report = {

@@ -162,10 +162,20 @@ api(
     "images.rgb", C, "r = rec(images=np.repeat(I[..., None], 3, axis=-1))",
     ok("good(r) and r.albedo.shape == (16, 16, 3)"),
 )
-api("images.rgba_array", C, "r = rec(images=np.repeat(I[..., None], 4, axis=-1))", either("good(r)", "InputError", "image"))
+api(
+    "images.rgba_array",
+    C,
+    "r = rec(images=np.repeat(I[..., None], 4, axis=-1))",
+    either("good(r)", "InputError", "image"),
+)
 api("images.one_channel_axis", C, "r = rec(images=I[..., None])", either("good(r)", "InputError", "image"))
 api("images.color_true_on_grey", C, "rec(color=True)", raises("InputError", "color"))
-api("images.color_string", C, "rec(images=np.repeat(I[..., None], 3, axis=-1), color='no')", raises("InputError", "color"))
+api(
+    "images.color_string",
+    C,
+    "rec(images=np.repeat(I[..., None], 3, axis=-1), color='no')",
+    raises("InputError", "color"),
+)
 api("images.uint8", C, "r = rec(images=np.round(I / I.max() * 255).astype(np.uint8))", ok("honest(r) and r.converged"))
 api("images.uint16", C, "r = rec(images=np.round(I / I.max() * 65535).astype(np.uint16))", ok("good(r)"))
 api("images.int64", C, "r = rec(images=np.round(I / I.max() * 65535).astype(np.int64))", ok("good(r)"))
@@ -205,7 +215,12 @@ api(
     "mask.file_wrong_size", C, "p = png('m.png', np.full((8, 8), 255, np.uint8)); rec(mask=str(p))",
     raises("InputError", "mask"),
 )
-api("mask.file_black", C, "p = png('m.png', np.zeros((16, 16), np.uint8)); rec(mask=str(p))", raises("InputError", "mask"))
+api(
+    "mask.file_black",
+    C,
+    "p = png('m.png', np.zeros((16, 16), np.uint8)); rec(mask=str(p))",
+    raises("InputError", "mask"),
+)
 api("mask.single_pixel", C, "m = np.zeros((16, 16), bool); m[8, 8] = True; r = rec(mask=m)", ok("honest(r)"))
 api("mask.checkerboard", C, "m = (np.indices((16, 16)).sum(0) % 2).astype(bool); r = rec(mask=m)", ok("honest(r)"))
 api("mask.one_row", C, "m = np.zeros((16, 16), bool); m[8] = True; r = rec(mask=m)", ok("honest(r)"))
@@ -242,7 +257,12 @@ api("depth.map_object", C, "rec(depth=np.full((17, 17), 200.0, dtype=object))", 
 api("depth.map_strings", C, "rec(depth=np.full((17, 17), 'a'))", raises("InputError", "depth"))
 api("depth.map_int", C, "r = rec(depth=np.full((17, 17), 200))", ok("good(r)"))
 api("depth.map_lists", C, "r = rec(depth=np.full((17, 17), 200.0).tolist())", ok("good(r)"))
-api("depth.map_outlier", C, "z = S.depth.copy(); z[8, 8] = 1e300; r = rec(depth=z)", either("honest(r)", "InputError", "depth"))
+api(
+    "depth.map_outlier",
+    C,
+    "z = S.depth.copy(); z[8, 8] = 1e300; r = rec(depth=z)",
+    either("honest(r)", "InputError", "depth"),
+)
 
 # --- reconstruct: depth="auto" ---------------------------------------------------------------------
 C = "reconstruct/auto"
@@ -257,10 +277,15 @@ api(
     "auto.range_excludes_truth", C, "r = rec(depth='auto', depth_range=(1000, 2000))",
     either("warned('range')", "InputError", "depth_range"),
 )
-api("auto.range_behind_lights", C, "rec(depth='auto', depth_range=(1, 10))", raises("InputError", ("depth_range", "light")))
+api(
+    "auto.range_behind_lights",
+    C,
+    "rec(depth='auto', depth_range=(1, 10))",
+    raises("InputError", ("depth_range", "light")),
+)
 for name, value in [("negative", "-5"), ("zero", "0"), ("nan", "np.nan"), ("inf", "np.inf"), ("string", "'x'")]:
     api(f"auto.guess_{name}", C, f"rec(depth='auto', depth_guess={value})", raises("InputError", "depth_guess"))
-api("auto.pinhole", C, "r = nplps.reconstruct(PS.images, PS.rig, PS.mask, 'auto')", ok("good(r, PS)"))
+api("auto.pinhole", C, "r = nplps.reconstruct(PS.images, PS.rig, mask=PS.mask, depth='auto')", ok("good(r, PS)"))
 api("auto.guess_ok", C, "r = rec(depth='auto', depth_guess=200.0)", ok("good(r)"))
 api(
     "auto.directional_only", C,
@@ -295,16 +320,35 @@ api("tol.zero", C, "r = rec(tol=0.0, iterations=20)", ok("honest(r)"))
 
 C = "reconstruct/prior"
 for name, value in [("negative", "-1.0"), ("nan", "np.nan"), ("inf", "np.inf"), ("string", "'a'")]:
-    api(f"prior.weight_{name}", C, f"rec(depth_prior=S.depth, prior_weight={value})", raises("InputError", "prior_weight"))
-api("prior.weight_zero", C, "r = rec(depth_prior=S.depth, prior_weight=0.0)", either("good(r)", "InputError", "prior_weight"))
+    api(
+        f"prior.weight_{name}",
+        C,
+        f"rec(depth_prior=S.depth, prior_weight={value})",
+        raises("InputError", "prior_weight"),
+    )
+api(
+    "prior.weight_zero",
+    C,
+    "r = rec(depth_prior=S.depth, prior_weight=0.0)",
+    either("good(r)", "InputError", "prior_weight"),
+)
 api("prior.exact", C, "r = rec(depth_prior=S.depth)", ok("good(r)"))
-api("prior.all_nan", C, "r = rec(depth_prior=np.full((17, 17), np.nan))", either("good(r)", "InputError", "depth_prior"))
+api(
+    "prior.all_nan", C, "r = rec(depth_prior=np.full((17, 17), np.nan))", either("good(r)", "InputError", "depth_prior")
+)
 api("prior.wrong_shape", C, "rec(depth_prior=np.ones((16, 16)))", raises("InputError", "depth_prior"))
 api("prior.string", C, "rec(depth_prior='x')", raises("InputError", "depth_prior"))
-api("prior.inf", C, "z = S.depth.copy(); z[3, 3] = np.inf; r = rec(depth_prior=z)", either("good(r)", "InputError", "depth_prior"))
+api(
+    "prior.inf",
+    C,
+    "z = S.depth.copy(); z[3, 3] = np.inf; r = rec(depth_prior=z)",
+    either("good(r)", "InputError", "depth_prior"),
+)
 api("prior.complex", C, "rec(depth_prior=S.depth + 1j)", raises("InputError", "depth_prior"))
 api(
-    "prior.negative_pinhole", C, "nplps.reconstruct(PS.images, PS.rig, PS.mask, 200.0, depth_prior=-PS.depth)",
+    "prior.negative_pinhole",
+    C,
+    "nplps.reconstruct(PS.images, PS.rig, mask=PS.mask, depth=200.0, depth_prior=-PS.depth)",
     raises("InputError", "depth_prior"),
 )
 
@@ -421,7 +465,14 @@ api("parallel.iterations_keyword", C, "par(iterations=5)", raises("TypeError", "
 
 # --- make_scene ------------------------------------------------------------------------------------
 C = "make_scene"
-for name, value in [("negative", "-4"), ("zero", "0"), ("one", "1"), ("float", "16.0"), ("string", "'16'"), ("none", "None")]:
+for name, value in [
+    ("negative", "-4"),
+    ("zero", "0"),
+    ("one", "1"),
+    ("float", "16.0"),
+    ("string", "'16'"),
+    ("none", "None"),
+]:
     api(f"scene.n_{name}", C, f"nplps.make_scene('bumps', n={value})", raises("InputError", "image size"))
 api(
     "scene.n_two", C, "s = nplps.make_scene('bumps', n=2)",
@@ -435,16 +486,26 @@ api("scene.name_none", C, "nplps.make_scene(None, n=16)", raises("InputError", (
 for name, value in [("zero", "0"), ("negative", "-1"), ("nan", "np.nan"), ("string", "'x'")]:
     api(f"scene.size_{name}", C, f"nplps.make_scene('bumps', n=16, size={value})", raises("InputError", "size"))
 for name, value in [("zero", "0"), ("negative", "-200"), ("nan", "np.nan")]:
-    api(f"scene.distance_{name}", C, f"nplps.make_scene('bumps', n=16, distance={value})", raises("InputError", "distance"))
+    api(
+        f"scene.distance_{name}",
+        C,
+        f"nplps.make_scene('bumps', n=16, distance={value})",
+        raises("InputError", "distance"),
+    )
 for name, value in [("negative", "-1"), ("nan", "np.nan"), ("string", "'x'"), ("inf", "np.inf")]:
     api(f"scene.noise_{name}", C, f"nplps.make_scene('bumps', n=16, noise={value})", raises("InputError", "noise"))
 api(
-    "scene.led_rgb_reconstruct", C, "s = nplps.make_scene('bumps', n=16, led=True, rgb=True); r = nplps.reconstruct(s.images, s.rig, s.mask, 200.0)",
+    "scene.led_rgb_reconstruct",
+    C,
+    "s = nplps.make_scene('bumps', n=16, led=True, rgb=True); "
+    "r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0)",
     ok("good(r, s) and r.albedo.shape == (16, 16, 3)"),
 )
 api(
-    "scene.directional_reconstruct", C,
-    "s = nplps.make_scene('bumps', n=16, directional=True); r = nplps.reconstruct(s.images, s.rig, s.mask, 200.0)",
+    "scene.directional_reconstruct",
+    C,
+    "s = nplps.make_scene('bumps', n=16, directional=True); "
+    "r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0)",
     ok("good(r, s)"),
 )
 api("scene.camera_bogus", C, "nplps.make_scene('bumps', n=16, camera='fisheye')", raises("InputError", "camera"))
@@ -467,46 +528,110 @@ api(
 )
 api(
     "render.depth_nan_outside_mask", C,
-    "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[0] = np.nan; out = nplps.render(z, R, 1.0, m)",
+    "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[0] = np.nan; out = nplps.render(z, R, 1.0, mask=m)",
     ok("np.isfinite(out).all() and (out[:, :4] == 0).all()"),
 )
 api("render.albedo_wrong_shape", C, "nplps.render(S.depth, R, np.ones((5, 5)))", raises("InputError", "albedo"))
 api("render.albedo_string", C, "nplps.render(S.depth, R, 'x')", raises("InputError", "albedo"))
 api("render.rig_string", C, "nplps.render(S.depth, 'x')", raises("InputError", "rig"))
-api("render.mask_wrong_shape", C, "nplps.render(S.depth, R, 1.0, np.ones((8, 8), bool))", raises("InputError", "mask"))
-api("render.huge_depth", C, "nplps.render(np.broadcast_to(200.0, (20001, 20001)), R)", mem("depth"), isolate=True, budget=30)
+api(
+    "render.mask_wrong_shape",
+    C,
+    "nplps.render(S.depth, R, 1.0, mask=np.ones((8, 8), bool))",
+    raises("InputError", "mask"),
+)
+api(
+    "render.huge_depth",
+    C,
+    "nplps.render(np.broadcast_to(200.0, (20001, 20001)), R)",
+    mem("depth"),
+    isolate=True,
+    budget=30,
+)
 
 C = "predict"
-for name, value in [("out_of_range", "[99]"), ("below_range", "[-28]"), ("float", "[1.0]"), ("string", "'0'"), ("int", "5")]:
+for name, value in [
+    ("out_of_range", "[99]"),
+    ("below_range", "[-28]"),
+    ("float", "[1.0]"),
+    ("string", "'0'"),
+    ("int", "5"),
+]:
     api(f"predict.lights_{name}", C, f"rec().predict(lights={value})", raises("InputError", "lights"))
 api("predict.lights_empty", C, "p = rec().predict(lights=[])", either("p.shape[0] == 0", "InputError", "lights"))
-api("predict.lights_array", C, "p = rec().predict(lights=np.array([0, 1]))", ok("p.shape == (2, 16, 16) and np.isfinite(p).all()"))
+api(
+    "predict.lights_array",
+    C,
+    "p = rec().predict(lights=np.array([0, 1]))",
+    ok("p.shape == (2, 16, 16) and np.isfinite(p).all()"),
+)
 api("predict.all", C, "p = rec().predict()", ok("p.shape == (27, 16, 16) and np.abs(p - I).max() < 0.05 * I.max()"))
 api("predict.rig_string", C, "rec().predict(rig='x')", raises("InputError", "rig"))
-api("predict.parallel_result", C, "p = par().predict(lights=[0])", ok("p.shape == (1, 16, 16) and np.isfinite(p).all()"))
+api(
+    "predict.parallel_result", C, "p = par().predict(lights=[0])", ok("p.shape == (1, 16, 16) and np.isfinite(p).all()")
+)
 
 C = "evaluate (held_out)"
-api("held_out.fewer_images", C, "nplps.evaluation.held_out(I[:5], R, M, 200.0, lights=[0])", raises("InputError", "image"))
-api("held_out.light_out_of_range", C, "nplps.evaluation.held_out(I, R, M, 200.0, lights=[99])", raises("InputError", "lights"))
-api("held_out.method_bogus", C, "nplps.evaluation.held_out(I, R, M, 200.0, method='bogus', lights=[0])", raises("InputError", "method"))
-api("held_out.auto", C, "nplps.evaluation.held_out(I, R, M, 'auto', lights=[0])", raises("InputError", "depth"))
 api(
-    "held_out.basic", C, "h = nplps.evaluation.held_out(I, R, M, 200.0, lights=[0])",
+    "held_out.fewer_images",
+    C,
+    "nplps.evaluation.held_out(I[:5], R, mask=M, depth=200.0, lights=[0])",
+    raises("InputError", "image"),
+)
+api(
+    "held_out.light_out_of_range",
+    C,
+    "nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[99])",
+    raises("InputError", "lights"),
+)
+api(
+    "held_out.method_bogus",
+    C,
+    "nplps.evaluation.held_out(I, R, mask=M, depth=200.0, method='bogus', lights=[0])",
+    raises("InputError", "method"),
+)
+api(
+    "held_out.auto",
+    C,
+    "nplps.evaluation.held_out(I, R, mask=M, depth='auto', lights=[0])",
+    raises("InputError", "depth"),
+)
+api(
+    "held_out.basic", C, "h = nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[0])",
     ok("len(h) == 1 and 0 <= h[0].relative_error < 0.05"),
 )
 api(
-    "held_out.black_image", C, "J = I.copy(); J[0] = 0; h = nplps.evaluation.held_out(J, R, M, 200.0, lights=[0])",
+    "held_out.black_image",
+    C,
+    "J = I.copy(); J[0] = 0; h = nplps.evaluation.held_out(J, R, mask=M, depth=200.0, lights=[0])",
     either("not np.isfinite(h[0].relative_error)", "InputError", ("image 0", "light 0")),
 )
 
 # --- Rig constructors ------------------------------------------------------------------------------
 C = "Rig constructors"
-for name, value in [("zero", "0"), ("negative", "-1.0"), ("nan", "np.nan"), ("inf", "np.inf"), ("string", "'x'"), ("triple", "(1, 2, 3)")]:
+for name, value in [
+    ("zero", "0"),
+    ("negative", "-1.0"),
+    ("nan", "np.nan"),
+    ("inf", "np.inf"),
+    ("string", "'x'"),
+    ("triple", "(1, 2, 3)"),
+]:
     api(f"rig.pixel_size_{name}", C, f"Rig.orthographic({value}, lights=L)", raises("RigError", "pixel_size"))
 api("rig.origin_nan", C, "Rig.orthographic(6.25, origin=(np.nan, 0), lights=L)", raises("RigError", "origin"))
 api("rig.origin_string", C, "Rig.orthographic(6.25, origin='ab', lights=L)", raises("RigError", "origin"))
-api("rig.lights_nan", C, "L2 = L.copy(); L2[3, 0] = np.nan; Rig.orthographic(6.25, lights=L2)", raises("RigError", "light"))
-api("rig.lights_inf", C, "L2 = L.copy(); L2[3, 2] = -np.inf; Rig.orthographic(6.25, lights=L2)", raises("RigError", "light"))
+api(
+    "rig.lights_nan",
+    C,
+    "L2 = L.copy(); L2[3, 0] = np.nan; Rig.orthographic(6.25, lights=L2)",
+    raises("RigError", "light"),
+)
+api(
+    "rig.lights_inf",
+    C,
+    "L2 = L.copy(); L2[3, 2] = -np.inf; Rig.orthographic(6.25, lights=L2)",
+    raises("RigError", "light"),
+)
 api("rig.lights_shape", C, "Rig.orthographic(6.25, lights=np.ones((5, 2)))", raises("RigError", "lights"))
 api("rig.lights_string", C, "Rig.orthographic(6.25, lights='abc')", raises("RigError", "lights"))
 api("rig.no_lights", C, "rg = Rig.orthographic(6.25, lights=[])", either("rg.n_lights == 0", "RigError", "lights"))
@@ -534,13 +659,24 @@ api(
     "rig.one_light_behind", C, "L2 = L.copy(); L2[5, 2] = 300.0; rec(rig=orth(L2))",
     raises("InputError", "light 5"),
 )
-for name, value in [("zero", "0.0"), ("negative", "-1.0"), ("nan", "np.nan"), ("wrong_shape", "np.ones(5)"), ("string", "'x'")]:
+for name, value in [
+    ("zero", "0.0"),
+    ("negative", "-1.0"),
+    ("nan", "np.nan"),
+    ("wrong_shape", "np.ones(5)"),
+    ("string", "'x'"),
+]:
     api(f"rig.intensities_{name}", C, f"orth(intensities={value})", raises("RigError", "intensit"))
 for name, value in [("negative", "-np.ones(27)"), ("nan", "np.full(27, np.nan)")]:
     api(f"rig.mu_{name}", C, f"orth(mu={value}, directions=np.tile([0, 0, 1.0], (27, 1)))", raises("RigError", "mu"))
 api("rig.mu_without_directions", C, "orth(mu=np.ones(27))", raises("RigError", "direction"))
 api("rig.led_zero_direction", C, "orth(mu=np.ones(27), directions=np.zeros((27, 3)))", raises("RigError", "direction"))
-api("rig.led_nan_direction", C, "orth(mu=np.ones(27), directions=np.full((27, 3), np.nan))", raises("RigError", "direction"))
+api(
+    "rig.led_nan_direction",
+    C,
+    "orth(mu=np.ones(27), directions=np.full((27, 3), np.nan))",
+    raises("RigError", "direction"),
+)
 api("rig.directional_zero", C, "orth(directional=[[0, 0, 0.0]])", raises("RigError", "direction"))
 api("rig.directional_nan", C, "orth(directional=[[np.nan, 0, -1.0]])", raises("RigError", "direction"))
 api(
@@ -564,7 +700,12 @@ api(
     "rig.distortion_nested", C, "rg = Rig.pinhole(KP, lights=L, distortion=[[0.01, 0, 0, 0, 0]])",
     ok("rg.camera['distortion'] == [0.01, 0, 0, 0, 0]"),
 )
-api("rig.distortion_two", C, "rg = Rig.pinhole(KP, lights=L, distortion=[0.01, 0.0])", ok("len(rg.camera['distortion']) == 5"))
+api(
+    "rig.distortion_two",
+    C,
+    "rg = Rig.pinhole(KP, lights=L, distortion=[0.01, 0.0])",
+    ok("len(rg.camera['distortion']) == 5"),
+)
 api("rig.camera_empty", C, "Rig(camera={}, lights=L)", raises("RigError", "model"))
 api("rig.camera_fisheye", C, "Rig(camera={'model': 'fisheye'}, lights=L)", raises("RigError", ("fisheye", "model")))
 api("rig.camera_string", C, "Rig(camera='orthographic', lights=L)", raises("RigError", "camera"))
@@ -592,37 +733,97 @@ api(
     "rigfile.deep_nesting_1e6", C, "Rig.load(write_text('rig.json', '{\"a\": ' * 10**6 + '1' + '}' * 10**6))",
     raises("RigError", "rig.json"), isolate=True, budget=30,
 )
-api("rigfile.huge_garbage", C, "Rig.load(write_text('rig.json', ' ' * (64 << 20) + '{'))", raises("RigError", "rig.json"), isolate=True, budget=30)
+api(
+    "rigfile.huge_garbage",
+    C,
+    "Rig.load(write_text('rig.json', ' ' * (64 << 20) + '{'))",
+    raises("RigError", "rig.json"),
+    isolate=True,
+    budget=30,
+)
 api(
     "rigfile.200k_lights", C,
     "d = rig_dict(); d['lights'] = d['lights'] * (200000 // 27 + 1); rg = Rig.load(write_json('rig.json', d))",
     either("rg.n_lights > 200000", "RigError", "rig.json"), isolate=True, budget=60,
 )
 for key in ("version", "camera", "lights"):
-    api(f"rigfile.missing_{key}", C, f"d = rig_dict(); del d['{key}']; Rig.load(write_json('rig.json', d))", raises("RigError", key))
+    api(
+        f"rigfile.missing_{key}",
+        C,
+        f"d = rig_dict(); del d['{key}']; Rig.load(write_json('rig.json', d))",
+        raises("RigError", key),
+    )
 for name, value in [("string", "'2'"), ("three", "3"), ("zero", "0"), ("bool", "True")]:
-    api(f"rigfile.version_{name}", C, f"d = rig_dict(); d['version'] = {value}; Rig.load(write_json('rig.json', d))", raises("RigError", "version"))
+    api(
+        f"rigfile.version_{name}",
+        C,
+        f"d = rig_dict(); d['version'] = {value}; Rig.load(write_json('rig.json', d))",
+        raises("RigError", "version"),
+    )
 api(
     "rigfile.version_float", C, "d = rig_dict(); d['version'] = 2.0; rg = Rig.load(write_json('rig.json', d))",
     either("rg.n_lights == 27", "RigError", "version"),
 )
 api("rigfile.v1", C, "rg = Rig.load(write_json('rig.json', rig_v1()))", ok("rg.n_lights == 27"))
 api(
-    "rigfile.round_trip_led", C, "s = nplps.make_scene('bumps', n=8, led=True); s.rig.save(tmp / 'r.json'); rg = Rig.load(tmp / 'r.json')",
+    "rigfile.round_trip_led",
+    C,
+    "s = nplps.make_scene('bumps', n=8, led=True); s.rig.save(tmp / 'r.json'); rg = Rig.load(tmp / 'r.json')",
     ok("np.allclose(rg.mu, s.rig.mu) and np.allclose(rg.lights, s.rig.lights)"),
 )
 api(
-    "rigfile.utf8_bom", C, "rg = Rig.load(write_bytes('rig.json', b'\\xef\\xbb\\xbf' + json.dumps(rig_dict()).encode()))",
+    "rigfile.utf8_bom",
+    C,
+    "rg = Rig.load(write_bytes('rig.json', b'\\xef\\xbb\\xbf' + json.dumps(rig_dict()).encode()))",
     either("rg.n_lights == 27", "RigError", "rig.json"),
 )
-api("rigfile.model_unknown", C, "d = rig_dict(); d['camera']['model'] = 'fisheye'; Rig.load(write_json('rig.json', d))", raises("RigError", ("fisheye", "model")))
-api("rigfile.model_missing", C, "d = rig_dict(); del d['camera']['model']; Rig.load(write_json('rig.json', d))", raises("RigError", "model"))
-api("rigfile.camera_list", C, "d = rig_dict(); d['camera'] = [1, 2]; Rig.load(write_json('rig.json', d))", raises("RigError", "camera"))
-for name, value in [("missing", None), ("string", "'abc'"), ("one", "[1]"), ("zero", "[0, 0]"), ("negative", "[-1, -1]"), ("nan", "[np.nan, np.nan]")]:
-    code = "d = rig_dict(); " + ("del d['camera']['pixel_size']" if value is None else f"d['camera']['pixel_size'] = {value}")
-    api(f"rigfile.pixel_size_{name}", C, code + "; Rig.load(write_json('rig.json', d))", raises("RigError", "pixel_size"))
-api("rigfile.origin_missing", C, "d = rig_dict(); del d['camera']['origin']; Rig.load(write_json('rig.json', d))", raises("RigError", "origin"))
-api("rigfile.origin_strings", C, "d = rig_dict(); d['camera']['origin'] = ['a', 'b']; Rig.load(write_json('rig.json', d))", raises("RigError", "origin"))
+api(
+    "rigfile.model_unknown",
+    C,
+    "d = rig_dict(); d['camera']['model'] = 'fisheye'; Rig.load(write_json('rig.json', d))",
+    raises("RigError", ("fisheye", "model")),
+)
+api(
+    "rigfile.model_missing",
+    C,
+    "d = rig_dict(); del d['camera']['model']; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "model"),
+)
+api(
+    "rigfile.camera_list",
+    C,
+    "d = rig_dict(); d['camera'] = [1, 2]; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "camera"),
+)
+for name, value in [
+    ("missing", None),
+    ("string", "'abc'"),
+    ("one", "[1]"),
+    ("zero", "[0, 0]"),
+    ("negative", "[-1, -1]"),
+    ("nan", "[np.nan, np.nan]"),
+]:
+    code = "d = rig_dict(); " + (
+        "del d['camera']['pixel_size']" if value is None else f"d['camera']['pixel_size'] = {value}"
+    )
+    api(
+        f"rigfile.pixel_size_{name}",
+        C,
+        code + "; Rig.load(write_json('rig.json', d))",
+        raises("RigError", "pixel_size"),
+    )
+api(
+    "rigfile.origin_missing",
+    C,
+    "d = rig_dict(); del d['camera']['origin']; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "origin"),
+)
+api(
+    "rigfile.origin_strings",
+    C,
+    "d = rig_dict(); d['camera']['origin'] = ['a', 'b']; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "origin"),
+)
 for name, value in [
     ("missing", None), ("2x2", "[[1, 0], [0, 1]]"), ("strings", "[['a'] * 3] * 3"), ("null", "None"),
     ("zeros", "[[0] * 3] * 3"), ("negative_focal", "[[-32, 0, 7.5], [0, 32, 7.5], [0, 0, 1]]"),
@@ -632,54 +833,94 @@ for name, value in [
 api(
     "rigfile.distortion_nested_accepted", C,
     "d = rig_dict(PS); d['camera']['distortion'] = [[0, 0, 0, 0, 0]]; rg = Rig.load(write_json('rig.json', d))\n"
-    "r = nplps.reconstruct(PS.images, rg, PS.mask, 200.0)",
+    "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
 )
 api(
     "rigfile.distortion_four", C,
     "d = rig_dict(PS); d['camera']['distortion'] = [0, 0, 0, 0]; rg = Rig.load(write_json('rig.json', d))\n"
-    "r = nplps.reconstruct(PS.images, rg, PS.mask, 200.0)",
+    "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
 )
-for name, value in [("six", "[0] * 6"), ("string", "'abc'"), ("nan", "[np.nan, 0, 0, 0, 0]"), ("object", "{'k1': 0}"), ("nested_six", "[[0] * 6]")]:
+for name, value in [
+    ("six", "[0] * 6"),
+    ("string", "'abc'"),
+    ("nan", "[np.nan, 0, 0, 0, 0]"),
+    ("object", "{'k1': 0}"),
+    ("nested_six", "[[0] * 6]"),
+]:
     api(
         f"rigfile.distortion_{name}", C,
         f"d = rig_dict(PS); d['camera']['distortion'] = {value}; Rig.load(write_json('rig.json', d))",
         raises("RigError", "distortion"),
     )
-api("rigfile.lights_dict", C, "d = rig_dict(); d['lights'] = {'a': 1}; Rig.load(write_json('rig.json', d))", raises("RigError", "lights"))
+api(
+    "rigfile.lights_dict",
+    C,
+    "d = rig_dict(); d['lights'] = {'a': 1}; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "lights"),
+)
 api(
     "rigfile.lights_empty", C, "d = rig_dict(); d['lights'] = []; rg = Rig.load(write_json('rig.json', d))",
     either("rg.n_lights == 0", "RigError", "lights"),
 )
-api("rigfile.light_number", C, "d = rig_dict(); d['lights'][2] = 5; Rig.load(write_json('rig.json', d))", raises("RigError", "light 2"))
+api(
+    "rigfile.light_number",
+    C,
+    "d = rig_dict(); d['lights'][2] = 5; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "light 2"),
+)
 for name, value in [
     ("missing", None), ("two", "[1, 2]"), ("strings", "['a', 'b', 'c']"), ("nan", "[np.nan, 0, 0]"),
     ("inf", "[1e400, 0, 0]"), ("huge_int", "[10**400, 0, 0]"),
 ]:
-    code = "d = rig_dict(); " + ("del d['lights'][3]['position']" if value is None else f"d['lights'][3]['position'] = {value}")
+    code = "d = rig_dict(); " + (
+        "del d['lights'][3]['position']" if value is None else f"d['lights'][3]['position'] = {value}"
+    )
     api(f"rigfile.position_{name}", C, code + "; Rig.load(write_json('rig.json', d))", raises("RigError", "position"))
-api("rigfile.light_type_spot", C, "d = rig_dict(); d['lights'][0]['type'] = 'spot'; Rig.load(write_json('rig.json', d))", raises("RigError", "spot"))
-api("rigfile.led_without_direction", C, "d = rig_dict(); d['lights'][0]['mu'] = 1.0; Rig.load(write_json('rig.json', d))", raises("RigError", "direction"))
+api(
+    "rigfile.light_type_spot",
+    C,
+    "d = rig_dict(); d['lights'][0]['type'] = 'spot'; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "spot"),
+)
+api(
+    "rigfile.led_without_direction",
+    C,
+    "d = rig_dict(); d['lights'][0]['mu'] = 1.0; Rig.load(write_json('rig.json', d))",
+    raises("RigError", "direction"),
+)
 for name, value in [("string", "'x'"), ("negative", "-1.0"), ("nan", "np.nan")]:
     api(
         f"rigfile.mu_{name}", C,
         f"d = rig_dict(); d['lights'][0].update(mu={value}, direction=[0, 0, 1]); Rig.load(write_json('rig.json', d))",
         raises("RigError", "mu"),
     )
-for name, value in [("negative", "-1.0"), ("zero", "0.0"), ("string", "'bright'"), ("pair", "[1, 2]"), ("nan", "np.nan")]:
+for name, value in [
+    ("negative", "-1.0"),
+    ("zero", "0.0"),
+    ("string", "'bright'"),
+    ("pair", "[1, 2]"),
+    ("nan", "np.nan"),
+]:
     api(
-        f"rigfile.intensity_{name}", C, f"d = rig_dict(); d['lights'][1]['intensity'] = {value}; Rig.load(write_json('rig.json', d))",
+        f"rigfile.intensity_{name}",
+        C,
+        f"d = rig_dict(); d['lights'][1]['intensity'] = {value}; Rig.load(write_json('rig.json', d))",
         raises("RigError", "intensit"),
     )
 api(
-    "rigfile.directional_zero", C,
-    "d = rig_dict(); d['lights'][4] = {'type': 'directional', 'direction': [0, 0, 0]}; Rig.load(write_json('rig.json', d))",
+    "rigfile.directional_zero",
+    C,
+    "d = rig_dict(); d['lights'][4] = {'type': 'directional', 'direction': [0, 0, 0]}; "
+    "Rig.load(write_json('rig.json', d))",
     raises("RigError", "direction"),
 )
 api(
-    "rigfile.directional_not_unit", C,
-    "d = rig_dict(); d['lights'][4] = {'type': 'directional', 'direction': [0, 0, -2]}; rg = Rig.load(write_json('rig.json', d))",
+    "rigfile.directional_not_unit",
+    C,
+    "d = rig_dict(); d['lights'][4] = {'type': 'directional', 'direction': [0, 0, -2]}; "
+    "rg = Rig.load(write_json('rig.json', d))",
     either("np.allclose(np.linalg.norm(rg.lights[4]), 1)", "RigError", "direction"),
 )
 api("rigfile.from_dict_none", C, "Rig.from_dict(None)", raises("RigError", "rig"))
@@ -689,57 +930,113 @@ api("rigfile.load_none", C, "Rig.load(None)", raises("RigError", "rig"))
 C = "image files"
 FILES = "P = imgs(); P[5] = str(BAD); rec(images=P)"
 api("files.zero_byte_png", C, "BAD = write_bytes('bad.png', b'')\n" + FILES, raises("InputError", "bad.png"))
-api("files.truncated_header", C, "BAD = write_bytes('bad.png', Path(imgs()[5]).read_bytes()[:60])\n" + FILES, raises("InputError", "bad.png"))
-api("files.truncated_data", C, "b = Path(imgs()[5]).read_bytes(); BAD = write_bytes('bad.png', b[: len(b) // 2])\n" + FILES, raises("InputError", "bad.png"))
 api(
-    "files.missing_iend", C, "BAD = write_bytes('bad.png', Path(imgs()[5]).read_bytes()[:-12])\nP = imgs(); P[5] = str(BAD); r = rec(images=P)",
-    either("good(r) and np.array_equal(nplps.io.read_image(BAD), nplps.io.read_image(imgs()[5]))", "InputError", "bad.png"),
+    "files.truncated_header",
+    C,
+    "BAD = write_bytes('bad.png', Path(imgs()[5]).read_bytes()[:60])\n" + FILES,
+    raises("InputError", "bad.png"),
 )
 api(
-    "files.corrupt_crc", C, "b = bytearray(Path(imgs()[5]).read_bytes()); b[60] ^= 0xFF; BAD = write_bytes('bad.png', bytes(b))\n" + FILES,
+    "files.truncated_data",
+    C,
+    "b = Path(imgs()[5]).read_bytes(); BAD = write_bytes('bad.png', b[: len(b) // 2])\n" + FILES,
+    raises("InputError", "bad.png"),
+)
+api(
+    "files.missing_iend",
+    C,
+    "BAD = write_bytes('bad.png', Path(imgs()[5]).read_bytes()[:-12])\nP = imgs(); P[5] = str(BAD); r = rec(images=P)",
+    either(
+        "good(r) and np.array_equal(nplps.io.read_image(BAD), nplps.io.read_image(imgs()[5]))", "InputError", "bad.png"
+    ),
+)
+api(
+    "files.corrupt_crc",
+    C,
+    "b = bytearray(Path(imgs()[5]).read_bytes()); b[60] ^= 0xFF; BAD = write_bytes('bad.png', bytes(b))\n" + FILES,
     raises("InputError", "bad.png"),
 )
 api("files.text_as_png", C, "BAD = write_text('bad.png', 'not an image')\n" + FILES, raises("InputError", "bad.png"))
 api("files.png_width_zero", C, "BAD = png_header_only('bad.png', 0, 16)\n" + FILES, raises("InputError", "bad.png"))
 api(
-    "files.png_bomb_30000", C, "BAD = png_header_only('bomb.png', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
-    raises("InputError", "bomb.png", "pixels"), budget=10,
+    "files.png_bomb_30000",
+    C,
+    "BAD = png_header_only('bomb.png', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
+    raises("InputError", "bomb.png", "pixels"),
+    budget=10,
 )
 api(
-    "files.png_bomb_under_limit", C, "BAD = png_header_only('bomb.png', 16000, 16000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
-    raises("InputError", "bomb.png"), isolate=True, budget=20,
+    "files.png_bomb_under_limit",
+    C,
+    "BAD = png_header_only('bomb.png', 16000, 16000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
+    raises("InputError", "bomb.png"),
+    isolate=True,
+    budget=20,
 )
 api(
-    "files.tiff_bomb", C, "BAD = tiff_header_only('bomb.tiff', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
-    raises("InputError", "bomb.tiff", "pixels"), budget=10,
+    "files.tiff_bomb",
+    C,
+    "BAD = tiff_header_only('bomb.tiff', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
+    raises("InputError", "bomb.tiff", "pixels"),
+    budget=10,
 )
 api(
     "files.bmp_bomb", C, "BAD = bmp_header_only('bomb.bmp', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
     raises("InputError", "bomb.bmp", "pixels"), budget=10,
 )
 api(
-    "files.jpeg_bomb", C, "BAD = jpeg_header_only('bomb.jpg', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
-    raises("InputError", "bomb.jpg", "pixels"), budget=10,
+    "files.jpeg_bomb",
+    C,
+    "BAD = jpeg_header_only('bomb.jpg', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
+    raises("InputError", "bomb.jpg", "pixels"),
+    budget=10,
 )
 api(
     "files.mismatched_size", C, "BAD = png('bad.png', np.zeros((8, 8), np.uint16))\n" + FILES,
     raises("InputError", "bad.png"),
 )
 api(
-    "files.rgb_among_grey", C, "a = nplps.io.read_image(imgs()[5]); BAD = png('bad.png', np.stack([a] * 3, -1))\nP = imgs(); P[5] = str(BAD); r = rec(images=P)",
+    "files.rgb_among_grey",
+    C,
+    "a = nplps.io.read_image(imgs()[5]); BAD = png('bad.png', np.stack([a] * 3, -1))\n"
+    "P = imgs(); P[5] = str(BAD); r = rec(images=P)",
     ok("good(r)"),
 )
-api("files.tiff_nan", C, "a = np.ones((16, 16), np.float32); a[2, 2] = np.nan; BAD = tiff('bad.tiff', a)\n" + FILES, raises("InputError", "bad.tiff"))
-api("files.tiff_complex", C, "BAD = tiff('bad.tiff', np.ones((16, 16), np.complex64))\n" + FILES, raises("InputError", "bad.tiff"))
-api("files.tiff_multipage", C, "BAD = tiff('bad.tiff', np.ones((5, 16, 16), np.uint16))\n" + FILES, raises("InputError", "bad.tiff"))
+api(
+    "files.tiff_nan",
+    C,
+    "a = np.ones((16, 16), np.float32); a[2, 2] = np.nan; BAD = tiff('bad.tiff', a)\n" + FILES,
+    raises("InputError", "bad.tiff"),
+)
+api(
+    "files.tiff_complex",
+    C,
+    "BAD = tiff('bad.tiff', np.ones((16, 16), np.complex64))\n" + FILES,
+    raises("InputError", "bad.tiff"),
+)
+api(
+    "files.tiff_multipage",
+    C,
+    "BAD = tiff('bad.tiff', np.ones((5, 16, 16), np.uint16))\n" + FILES,
+    raises("InputError", "bad.tiff"),
+)
 api("files.directory_named_png", C, "BAD = tmp / 'bad.png'; BAD.mkdir()\n" + FILES, raises("InputError", "bad.png"))
 api("files.symlink_loop", C, "BAD = tmp / 'loop.png'; os.symlink(BAD, BAD)\n" + FILES, raises("InputError", "loop.png"))
 api("files.missing", C, "BAD = tmp / 'gone.png'\n" + FILES, raises("InputError", "gone.png"))
 api("files.dev_zero", C, "BAD = '/dev/zero'\n" + FILES, raises("InputError", "/dev/zero"), isolate=True, budget=20)
-api("files.read_image_dev_zero", C, "nplps.io.read_image('/dev/zero')", raises("InputError", "/dev/zero"), isolate=True, budget=20)
 api(
-    "files.png16_grey_alpha", C,
-    "a = nplps.io.read_image(imgs()[5]); BAD = png('bad.png', np.stack([a, np.full_like(a, 65535)], -1))\nP = imgs(); P[5] = str(BAD); r = rec(images=P)",
+    "files.read_image_dev_zero",
+    C,
+    "nplps.io.read_image('/dev/zero')",
+    raises("InputError", "/dev/zero"),
+    isolate=True,
+    budget=20,
+)
+api(
+    "files.png16_grey_alpha",
+    C,
+    "a = nplps.io.read_image(imgs()[5]); BAD = png('bad.png', np.stack([a, np.full_like(a, 65535)], -1))\n"
+    "P = imgs(); P[5] = str(BAD); r = rec(images=P)",
     ok("good(r)"),
 )
 
@@ -775,7 +1072,14 @@ api("status.in_summary", C, "r = rec()", ok("r.summary().get('status') == r.stat
 C = "memory"
 BIG = "J = np.full((3, 12000, 12000), 0.5, np.float32); Rg = orth([[30, 0, 50.0], [-15, 26, 50], [-15, -26, 50]])\n"
 api("memory.reconstruct_large", C, BIG + "rec(images=J, rig=Rg, mask=None)", mem(), isolate=True, budget=90)
-api("memory.reconstruct_large_auto", C, BIG + "rec(images=J, rig=Rg, mask=None, depth='auto')", mem(), isolate=True, budget=90)
+api(
+    "memory.reconstruct_large_auto",
+    C,
+    BIG + "rec(images=J, rig=Rg, mask=None, depth='auto')",
+    mem(),
+    isolate=True,
+    budget=90,
+)
 api("memory.parallel_large", C, BIG + "par(images=J, rig=Rg, mask=None)", mem(), isolate=True, budget=90)
 
 # --- command line --------------------------------------------------------------------------------------------
@@ -784,8 +1088,20 @@ COPY = "d = copy_scene('s')\n"
 RD = "reconstruct {tmp}/s --rig {tmp}/s/rig.json --mask {tmp}/s/mask.png --out {tmp}/out -q --depth 200"
 
 C = "cli/usage"
-cli("cli.ok", C, RC + " --depth 200", exits(0, check="(tmp / 'out' / 'depth.npy').exists() and summary(tmp / 'out')['converged']"))
-cli("cli.ok_subprocess", C, RC + " --depth 200", exits(0, check="(tmp / 'out' / 'mesh.ply').exists()"), proc=True, budget=30)
+cli(
+    "cli.ok",
+    C,
+    RC + " --depth 200",
+    exits(0, check="(tmp / 'out' / 'depth.npy').exists() and summary(tmp / 'out')['converged']"),
+)
+cli(
+    "cli.ok_subprocess",
+    C,
+    RC + " --depth 200",
+    exits(0, check="(tmp / 'out' / 'mesh.ply').exists()"),
+    proc=True,
+    budget=30,
+)
 cli("cli.no_arguments", C, "", exits(2), proc=True, budget=30)
 cli("cli.version", C, "--version", exits(0), proc=True, budget=30)
 cli("cli.help", C, "reconstruct --help", exits(0))
@@ -795,20 +1111,45 @@ cli("cli.missing_depth", C, RC, exits(2, "--depth"))
 cli("cli.missing_out", C, "reconstruct {SC} --rig {SC}/rig.json --depth 200", exits(2, "--out"))
 cli("cli.missing_rig", C, "reconstruct {SC} --depth 200 --out {tmp}/out", exits(2, "--rig"))
 cli("cli.no_images", C, "reconstruct --rig {SC}/rig.json --depth 200 --out {tmp}/out", exits(2, ("IMAGES", "no input")))
-cli("cli.status_in_summary", C, RC + " --depth 200", exits(0, check="summary(tmp / 'out').get('status') == 'converged'"))
+cli(
+    "cli.status_in_summary", C, RC + " --depth 200", exits(0, check="summary(tmp / 'out').get('status') == 'converged'")
+)
 
 C = "cli/depth"
 for name, value in [("string", "abc"), ("negative", "-5"), ("zero", "0"), ("nan", "nan"), ("inf", "inf")]:
     cli(f"cli.depth_{name}", C, RC + f" --depth {value}", exits(2, "--depth"))
 cli("cli.depth_1e300", C, RC + " --depth 1e300", exits(2, "depth"))
 cli("cli.depth_auto", C, RC + " --depth auto", exits(0, check="summary(tmp / 'out')['estimated_distance'] is not None"))
-for name, value in [("reversed", "400,100"), ("string", "abc"), ("triple", "1,2,3"), ("zero", "0,400"), ("nan", "nan,400")]:
-    cli(f"cli.depth_range_{name}", C, RC + f" --depth auto --depth-range {value}", exits(2, ("--depth-range", "depth_range")))
+for name, value in [
+    ("reversed", "400,100"),
+    ("string", "abc"),
+    ("triple", "1,2,3"),
+    ("zero", "0,400"),
+    ("nan", "nan,400"),
+]:
+    cli(
+        f"cli.depth_range_{name}",
+        C,
+        RC + f" --depth auto --depth-range {value}",
+        exits(2, ("--depth-range", "depth_range")),
+    )
 cli("cli.depth_range_excludes_truth", C, RC + " --depth auto --depth-range 1000,2000", exits((0, 2), "range"))
 NPY = "reconstruct {SC} --rig {SC}/rig.json --mask {SC}/mask.png --out {tmp}/out -q --depth {tmp}/d.npy"
 cli("cli.depth_npy_ok", C, NPY, exits(0), setup="np.save(tmp / 'd.npy', np.full((17, 17), 200.0))")
-cli("cli.depth_npy_complex", C, NPY, exits(2, ("--depth", "d.npy")), setup="np.save(tmp / 'd.npy', np.full((17, 17), 200.0 + 1j))")
-cli("cli.depth_npy_pickled", C, NPY, exits(2, ("--depth", "d.npy")), setup="np.save(tmp / 'd.npy', np.array([{'a': 1}], dtype=object), allow_pickle=True)")
+cli(
+    "cli.depth_npy_complex",
+    C,
+    NPY,
+    exits(2, ("--depth", "d.npy")),
+    setup="np.save(tmp / 'd.npy', np.full((17, 17), 200.0 + 1j))",
+)
+cli(
+    "cli.depth_npy_pickled",
+    C,
+    NPY,
+    exits(2, ("--depth", "d.npy")),
+    setup="np.save(tmp / 'd.npy', np.array([{'a': 1}], dtype=object), allow_pickle=True)",
+)
 cli("cli.depth_npy_empty_file", C, NPY, exits(2, ("--depth", "d.npy")), setup="write_bytes('d.npy', b'')")
 cli(
     "cli.depth_npy_truncated", C, NPY, exits(2, ("--depth", "d.npy")),
@@ -816,7 +1157,13 @@ cli(
 )
 cli("cli.depth_npy_text", C, NPY, exits(2, ("--depth", "d.npy")), setup="write_text('d.npy', 'hello')")
 cli("cli.depth_npy_wrong_shape", C, NPY, exits(2, "depth"), setup="np.save(tmp / 'd.npy', np.full((16, 16), 200.0))")
-cli("cli.depth_npy_structured", C, NPY, exits(2, ("--depth", "d.npy")), setup="np.save(tmp / 'd.npy', np.zeros((17, 17), dtype=[('a', 'f8')]))")
+cli(
+    "cli.depth_npy_structured",
+    C,
+    NPY,
+    exits(2, ("--depth", "d.npy")),
+    setup="np.save(tmp / 'd.npy', np.zeros((17, 17), dtype=[('a', 'f8')]))",
+)
 cli(
     "cli.depth_npy_nan_inside", C, NPY, exits(2, "depth"),
     setup="z = np.full((17, 17), 200.0); z[8, 8] = np.nan; np.save(tmp / 'd.npy', z)",
@@ -834,11 +1181,22 @@ C = "cli/options"
 for name, value in [("zero", "0"), ("negative", "-1"), ("string", "ten")]:
     cli(f"cli.iterations_{name}", C, RC + f" --depth 200 --iterations {value}", exits(2, "--iterations"))
 cli("cli.iterations_1e9", C, RC + " --depth 200 --iterations 1000000000", exits(0))
-cli("cli.iterations_beyond_int64", C, RC + " --depth 200 --iterations 99999999999999999999999", exits((0, 2), check="code == 0 or 'iterations' in err"))
+cli(
+    "cli.iterations_beyond_int64",
+    C,
+    RC + " --depth 200 --iterations 99999999999999999999999",
+    exits((0, 2), check="code == 0 or 'iterations' in err"),
+)
 for name, value in [("negative", "-1"), ("nan", "nan")]:
     cli(f"cli.tol_{name}", C, RC + f" --depth 200 --tol {value}", exits(2, "--tol"))
 cli("cli.threads_zero", C, RC + " --depth 200 --threads 0", exits(2, "--threads"))
-cli("cli.threads_100000", C, RC + " --depth 200 --threads 100000", exits((0, 2), check="code == 0 or 'threads' in err"), isolate=True)
+cli(
+    "cli.threads_100000",
+    C,
+    RC + " --depth 200 --threads 100000",
+    exits((0, 2), check="code == 0 or 'threads' in err"),
+    isolate=True,
+)
 cli("cli.bin_zero", C, RC + " --depth 200 --bin 0", exits(2, "--bin"))
 cli("cli.bin_larger_than_image", C, RC + " --depth 200 --bin 1000", exits(2, "--bin"))
 cli("cli.bin_not_dividing", C, RC + " --depth 200 --bin 3", exits((0, 2), check="code == 0 or '--bin' in err"))
@@ -850,8 +1208,18 @@ cli("cli.levels_zero", C, RC + " --depth 200 --levels 0", exits(2, "--levels"))
 cli("cli.solver_bogus", C, RC + " --depth 200 --solver qr", exits(2, "--solver"))
 cli("cli.robust_bogus", C, RC + " --depth 200 --robust huber", exits(2, "--robust"))
 cli("cli.refine_bogus", C, RC + " --depth 200 --refine-lights bogus", exits(2, "--refine-lights"))
-cli("cli.light_prior_weight_negative", C, RC + " --depth 200 --refine-lights position --light-prior-weight -1", exits(2, "prior"))
-cli("cli.light_prior_weight_nan", C, RC + " --depth 200 --refine-lights position --light-prior-weight nan", exits(2, "prior"))
+cli(
+    "cli.light_prior_weight_negative",
+    C,
+    RC + " --depth 200 --refine-lights position --light-prior-weight -1",
+    exits(2, "prior"),
+)
+cli(
+    "cli.light_prior_weight_nan",
+    C,
+    RC + " --depth 200 --refine-lights position --light-prior-weight nan",
+    exits(2, "prior"),
+)
 cli("cli.exposures_count", C, RC + " --depth 200 --exposures 1,2", exits(2, "--exposures"))
 cli("cli.exposures_zero", C, RC + " --depth 200 --exposures " + ",".join(["0"] * 27), exits(2, "--exposures"))
 cli("cli.exposures_string", C, RC + " --depth 200 --exposures abc", exits(2, "--exposures"))
@@ -860,38 +1228,101 @@ cli(
     "cli.ambient_wrong_size", C, RC + " --depth 200 --ambient {tmp}/amb.png", exits(2, ("ambient", "amb.png")),
     setup="png('amb.png', np.zeros((8, 8), np.uint16))",
 )
-cli("cli.flat_zeros", C, RC + " --depth 200 --flat {tmp}/flat.png", exits(2, ("flat", "flat.png")), setup="png('flat.png', np.zeros((16, 16), np.uint16))")
+cli(
+    "cli.flat_zeros",
+    C,
+    RC + " --depth 200 --flat {tmp}/flat.png",
+    exits(2, ("flat", "flat.png")),
+    setup="png('flat.png', np.zeros((16, 16), np.uint16))",
+)
 cli("cli.vignetting_orthographic", C, RC + " --depth 200 --vignetting cos4", exits(2, "vignetting"))
 cli("cli.gray_on_grey", C, RC + " --depth 200 --gray", exits(0))
 
 C = "cli/files"
-cli("cli.folder_missing", C, "reconstruct {tmp}/nope --rig {SC}/rig.json --depth 200 --out {tmp}/out -q", exits(2, "nope"))
-cli("cli.folder_empty", C, "reconstruct {tmp}/empty --rig {SC}/rig.json --depth 200 --out {tmp}/out -q", exits(2, "empty"), setup="(tmp / 'empty').mkdir()")
+cli(
+    "cli.folder_missing",
+    C,
+    "reconstruct {tmp}/nope --rig {SC}/rig.json --depth 200 --out {tmp}/out -q",
+    exits(2, "nope"),
+)
+cli(
+    "cli.folder_empty",
+    C,
+    "reconstruct {tmp}/empty --rig {SC}/rig.json --depth 200 --out {tmp}/out -q",
+    exits(2, "empty"),
+    setup="(tmp / 'empty').mkdir()",
+)
 cli("cli.folder_one_image_short", C, RD, exits(2, ("26", "rig.json")), setup=COPY + "(d / 'image_26.png').unlink()")
 cli(
-    "cli.file_list_one_missing", C,
-    "reconstruct {SC}/image_00.png {SC}/image_01.png {tmp}/missing.png --rig {SC}/rig.json --depth 200 --out {tmp}/out -q",
+    "cli.file_list_one_missing",
+    C,
+    "reconstruct {SC}/image_00.png {SC}/image_01.png {tmp}/missing.png --rig {SC}/rig.json --depth 200 "
+    "--out {tmp}/out -q",
     exits(2, "missing.png"),
 )
-cli("cli.folder_and_files", C, "reconstruct {SC} {SC}/image_00.png --rig {SC}/rig.json --depth 200 --out {tmp}/out -q", exits(2, "director"))
-cli("cli.zero_byte_png", C, RD, exits(2, "image_05.png"), setup=COPY + "(d / 'image_05.png').write_bytes(b'')")
-cli("cli.truncated_png", C, RD, exits(2, "image_05.png"), setup=COPY + "p = d / 'image_05.png'; p.write_bytes(p.read_bytes()[:100])")
-cli("cli.text_as_png", C, RD, exits(2, "image_05.png"), setup=COPY + "(d / 'image_05.png').write_text('hello')")
-cli("cli.png_bomb", C, RD, exits(2, "image_05.png"), setup=COPY + "png_header_only(d / 'image_05.png', 30000, 30000)", budget=10)
-cli("cli.mismatched_sizes", C, RD, exits(2, "image_05.png"), setup=COPY + "png(d / 'image_05.png', np.zeros((8, 8), np.uint16))")
-cli("cli.rig_missing", C, "reconstruct {SC} --rig {tmp}/norig.json --depth 200 --out {tmp}/out -q", exits(2, "norig.json"))
-cli("cli.rig_directory", C, "reconstruct {SC} --rig {tmp} --depth 200 --out {tmp}/out -q", exits(2, "rig"))
-cli("cli.rig_invalid_json", C, "reconstruct {SC} --rig {tmp}/bad.json --depth 200 --out {tmp}/out -q", exits(2, "bad.json"), setup="write_text('bad.json', '{\"version\": 2,')")
 cli(
-    "cli.rig_deep_nesting", C, "reconstruct {SC} --rig {tmp}/deep.json --depth 200 --out {tmp}/out -q", exits(2, "deep.json"),
+    "cli.folder_and_files",
+    C,
+    "reconstruct {SC} {SC}/image_00.png --rig {SC}/rig.json --depth 200 --out {tmp}/out -q",
+    exits(2, "director"),
+)
+cli("cli.zero_byte_png", C, RD, exits(2, "image_05.png"), setup=COPY + "(d / 'image_05.png').write_bytes(b'')")
+cli(
+    "cli.truncated_png",
+    C,
+    RD,
+    exits(2, "image_05.png"),
+    setup=COPY + "p = d / 'image_05.png'; p.write_bytes(p.read_bytes()[:100])",
+)
+cli("cli.text_as_png", C, RD, exits(2, "image_05.png"), setup=COPY + "(d / 'image_05.png').write_text('hello')")
+cli(
+    "cli.png_bomb",
+    C,
+    RD,
+    exits(2, "image_05.png"),
+    setup=COPY + "png_header_only(d / 'image_05.png', 30000, 30000)",
+    budget=10,
+)
+cli(
+    "cli.mismatched_sizes",
+    C,
+    RD,
+    exits(2, "image_05.png"),
+    setup=COPY + "png(d / 'image_05.png', np.zeros((8, 8), np.uint16))",
+)
+cli(
+    "cli.rig_missing",
+    C,
+    "reconstruct {SC} --rig {tmp}/norig.json --depth 200 --out {tmp}/out -q",
+    exits(2, "norig.json"),
+)
+cli("cli.rig_directory", C, "reconstruct {SC} --rig {tmp} --depth 200 --out {tmp}/out -q", exits(2, "rig"))
+cli(
+    "cli.rig_invalid_json",
+    C,
+    "reconstruct {SC} --rig {tmp}/bad.json --depth 200 --out {tmp}/out -q",
+    exits(2, "bad.json"),
+    setup="write_text('bad.json', '{\"version\": 2,')",
+)
+cli(
+    "cli.rig_deep_nesting",
+    C,
+    "reconstruct {SC} --rig {tmp}/deep.json --depth 200 --out {tmp}/out -q",
+    exits(2, "deep.json"),
     setup="write_text('deep.json', '[' * 10000 + ']' * 10000)",
 )
 cli(
-    "cli.rig_led_without_direction", C, "reconstruct {SC} --rig {tmp}/led.json --depth 200 --out {tmp}/out -q", exits(2, "direction"),
+    "cli.rig_led_without_direction",
+    C,
+    "reconstruct {SC} --rig {tmp}/led.json --depth 200 --out {tmp}/out -q",
+    exits(2, "direction"),
     setup="d = rig_dict(); d['lights'][0]['mu'] = 1.0; write_json('led.json', d)",
 )
 cli(
-    "cli.rig_five_lights", C, "reconstruct {SC} --rig {tmp}/five.json --depth 200 --out {tmp}/out -q", exits(2, ("five.json", "27")),
+    "cli.rig_five_lights",
+    C,
+    "reconstruct {SC} --rig {tmp}/five.json --depth 200 --out {tmp}/out -q",
+    exits(2, ("five.json", "27")),
     setup="d = rig_dict(); d['lights'] = d['lights'][:5]; write_json('five.json', d)",
 )
 cli(
@@ -899,29 +1330,88 @@ cli(
     "reconstruct {PSC} --rig {tmp}/rig.json --mask {PSC}/mask.png --depth 200 --out {tmp}/out -q", exits(0),
     setup="d = rig_dict(PS); d['camera']['distortion'] = [[0, 0, 0, 0, 0]]; write_json('rig.json', d)",
 )
-cli("cli.mask_missing", C, RC.replace("{SC}/mask.png", "{tmp}/nomask.png") + " --depth 200", exits(2, ("--mask", "nomask.png")))
-cli("cli.mask_wrong_size", C, RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200", exits(2, "mask"), setup="png('m.png', np.full((8, 8), 255, np.uint8))")
-cli("cli.mask_black", C, RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200", exits(2, "mask"), setup="png('m.png', np.zeros((16, 16), np.uint8))")
-cli("cli.mask_text", C, RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200", exits(2, "m.png"), setup="write_text('m.png', 'hello')")
-cli("cli.capture_missing_folder", C, "reconstruct --capture near_ps {tmp}/nope --depth 200 --out {tmp}/out -q", exits(2, "nope"))
-cli("cli.capture_diligent_empty", C, "reconstruct --capture diligent {tmp}/obj --depth 200 --out {tmp}/out -q", exits(2, "obj"), setup="(tmp / 'obj').mkdir()")
-cli("cli.capture_with_rig", C, "reconstruct --capture near_ps {SC} --rig {SC}/rig.json --depth 200 --out {tmp}/out -q", exits(2, "--rig"))
+cli(
+    "cli.mask_missing",
+    C,
+    RC.replace("{SC}/mask.png", "{tmp}/nomask.png") + " --depth 200",
+    exits(2, ("--mask", "nomask.png")),
+)
+cli(
+    "cli.mask_wrong_size",
+    C,
+    RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200",
+    exits(2, "mask"),
+    setup="png('m.png', np.full((8, 8), 255, np.uint8))",
+)
+cli(
+    "cli.mask_black",
+    C,
+    RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200",
+    exits(2, "mask"),
+    setup="png('m.png', np.zeros((16, 16), np.uint8))",
+)
+cli(
+    "cli.mask_text",
+    C,
+    RC.replace("{SC}/mask.png", "{tmp}/m.png") + " --depth 200",
+    exits(2, "m.png"),
+    setup="write_text('m.png', 'hello')",
+)
+cli(
+    "cli.capture_missing_folder",
+    C,
+    "reconstruct --capture near_ps {tmp}/nope --depth 200 --out {tmp}/out -q",
+    exits(2, "nope"),
+)
+cli(
+    "cli.capture_diligent_empty",
+    C,
+    "reconstruct --capture diligent {tmp}/obj --depth 200 --out {tmp}/out -q",
+    exits(2, "obj"),
+    setup="(tmp / 'obj').mkdir()",
+)
+cli(
+    "cli.capture_with_rig",
+    C,
+    "reconstruct --capture near_ps {SC} --rig {SC}/rig.json --depth 200 --out {tmp}/out -q",
+    exits(2, "--rig"),
+)
 cli("cli.capture_bogus", C, "reconstruct --capture bogus {SC} --depth 200 --out {tmp}/out -q", exits(2, "--capture"))
 
 C = "cli/output"
-cli("cli.out_is_file", C, RC.replace("{tmp}/out", "{tmp}/outfile") + " --depth 200", exits((1, 2), "outfile"), setup="write_text('outfile', 'x')")
-cli("cli.out_unwritable", C, RC.replace("{tmp}/out", "/proc/nplps-probe/out") + " --depth 200", exits((1, 2), "/proc/nplps-probe"))
+cli(
+    "cli.out_is_file",
+    C,
+    RC.replace("{tmp}/out", "{tmp}/outfile") + " --depth 200",
+    exits((1, 2), "outfile"),
+    setup="write_text('outfile', 'x')",
+)
+cli(
+    "cli.out_unwritable",
+    C,
+    RC.replace("{tmp}/out", "/proc/nplps-probe/out") + " --depth 200",
+    exits((1, 2), "/proc/nplps-probe"),
+)
 cli(
     "cli.out_nonempty_refused", C, RC + " --depth 200",
     exits((1, 2), ("--overwrite", "not empty"), check="sorted(os.listdir(tmp / 'out')) == ['precious.txt']"),
     setup="(tmp / 'out').mkdir(); write_text('out/precious.txt', 'keep')",
 )
 cli(
-    "cli.out_nonempty_untouched", C, RC + " --depth 200", exits((1, 2), check="sorted(os.listdir(tmp / 'out')) == ['mesh.ply'] and (tmp / 'out' / 'mesh.ply').read_text() == 'keep'"),
+    "cli.out_nonempty_untouched",
+    C,
+    RC + " --depth 200",
+    exits(
+        (1, 2),
+        check="sorted(os.listdir(tmp / 'out')) == ['mesh.ply'] and (tmp / 'out' / 'mesh.ply').read_text() == 'keep'",
+    ),
     setup="(tmp / 'out').mkdir(); write_text('out/mesh.ply', 'keep')",
 )
 cli(
-    "cli.out_nonempty_overwrite", C, RC + " --depth 200 --overwrite", exits(0, check="(tmp / 'out' / 'depth.npy').exists()"),
+    "cli.out_nonempty_overwrite",
+    C,
+    RC + " --depth 200 --overwrite",
+    exits(0, check="(tmp / 'out' / 'depth.npy').exists()"),
     setup="(tmp / 'out').mkdir(); write_text('out/precious.txt', 'keep')",
 )
 cli("cli.out_empty_dir_ok", C, RC + " --depth 200", exits(0), setup="(tmp / 'out').mkdir()")
@@ -929,48 +1419,91 @@ cli("cli.out_empty_dir_ok", C, RC + " --depth 200", exits(0), setup="(tmp / 'out
 C = "cli/evaluate"
 EV = "evaluate {SC} --rig {SC}/rig.json --mask {SC}/mask.png -q --depth 200"
 cli("cli.evaluate_ok", C, EV + " --lights 0", exits(0, check="'mean' in out"))
-cli("cli.evaluate_auto", C, "evaluate {SC} --rig {SC}/rig.json --mask {SC}/mask.png -q --depth auto --lights 0", exits(0))
+cli(
+    "cli.evaluate_auto",
+    C,
+    "evaluate {SC} --rig {SC}/rig.json --mask {SC}/mask.png -q --depth auto --lights 0",
+    exits(0),
+)
 cli("cli.evaluate_light_99", C, EV + " --lights 99", exits(2, "--lights"))
 cli("cli.evaluate_lights_string", C, EV + " --lights abc", exits(2, "--lights"))
 cli("cli.evaluate_lights_empty", C, EV + " --lights=", exits(2, "--lights"))
 cli(
-    "cli.evaluate_rig_five_lights", C, "evaluate {SC} --rig {tmp}/five.json -q --depth 200 --lights 0", exits(2, ("five.json", "27")),
+    "cli.evaluate_rig_five_lights",
+    C,
+    "evaluate {SC} --rig {tmp}/five.json -q --depth 200 --lights 0",
+    exits(2, ("five.json", "27")),
     setup="d = rig_dict(); d['lights'] = d['lights'][:5]; write_json('five.json', d)",
 )
-cli("cli.evaluate_rig_deep", C, "evaluate {SC} --rig {tmp}/deep.json -q --depth 200", exits(2, "deep.json"), setup="write_text('deep.json', '[' * 10000 + ']' * 10000)")
+cli(
+    "cli.evaluate_rig_deep",
+    C,
+    "evaluate {SC} --rig {tmp}/deep.json -q --depth 200",
+    exits(2, "deep.json"),
+    setup="write_text('deep.json', '[' * 10000 + ']' * 10000)",
+)
 
 C = "cli/synth, demo, calibrate"
 cli("cli.synth_ok", C, "synth bumps --size 8 --out {tmp}/sc", exits(0, check="(tmp / 'sc' / 'rig.json').exists()"))
 cli("cli.synth_size_zero", C, "synth bumps --size 0 --out {tmp}/sc", exits(2, "size"))
 cli("cli.synth_size_one", C, "synth bumps --size 1 --out {tmp}/sc", exits(2, "size"))
-cli("cli.synth_size_1e6", C, "synth bumps --size 1000000 --out {tmp}/sc", exits((1, 2), ("size", "memory")), isolate=True, budget=30)
+cli(
+    "cli.synth_size_1e6",
+    C,
+    "synth bumps --size 1000000 --out {tmp}/sc",
+    exits((1, 2), ("size", "memory")),
+    isolate=True,
+    budget=30,
+)
 cli("cli.synth_noise_negative", C, "synth bumps --size 8 --noise -1 --out {tmp}/sc", exits(2, "noise"))
 cli("cli.synth_noise_nan", C, "synth bumps --size 8 --noise nan --out {tmp}/sc", exits(2, "noise"))
 cli("cli.synth_distance_zero", C, "synth bumps --size 8 --distance 0 --out {tmp}/sc", exits(2, "distance"))
 cli("cli.synth_object_size_negative", C, "synth bumps --size 8 --object-size -1 --out {tmp}/sc", exits(2, "size"))
-cli("cli.synth_out_is_file", C, "synth bumps --size 8 --out {tmp}/synthfile", exits((1, 2), "synthfile"), setup="write_text('synthfile', 'x')")
+cli(
+    "cli.synth_out_is_file",
+    C,
+    "synth bumps --size 8 --out {tmp}/synthfile",
+    exits((1, 2), "synthfile"),
+    setup="write_text('synthfile', 'x')",
+)
 cli("cli.synth_bogus_scene", C, "synth bogus --out {tmp}/sc", exits(2, "bogus"))
 cli("cli.demo_size_zero", C, "demo --size 0 --out {tmp}/demo", exits(2, "size"))
 cli("cli.calibrate_nothing", C, "calibrate", exits(2))
 cli(
-    "cli.calibrate_spheres_missing", C, "calibrate spheres {tmp}/nope --camera {SC}/rig.json --radius 20 --out {tmp}/r.json -q",
+    "cli.calibrate_spheres_missing",
+    C,
+    "calibrate spheres {tmp}/nope --camera {SC}/rig.json --radius 20 --out {tmp}/r.json -q",
     exits(2, "nope"),
 )
 cli(
-    "cli.calibrate_spheres_radius", C, "calibrate spheres {SC} --camera {SC}/rig.json --radius -1 --out {tmp}/r.json -q",
+    "cli.calibrate_spheres_radius",
+    C,
+    "calibrate spheres {SC} --camera {SC}/rig.json --radius -1 --out {tmp}/r.json -q",
     exits(2, "--radius"),
 )
 cli(
-    "cli.calibrate_spheres_camera_deep", C, "calibrate spheres {SC} --camera {tmp}/deep.json --radius 20 --out {tmp}/r.json -q",
-    exits(2, "deep.json"), setup="write_text('deep.json', '[' * 10000 + ']' * 10000)",
+    "cli.calibrate_spheres_camera_deep",
+    C,
+    "calibrate spheres {SC} --camera {tmp}/deep.json --radius 20 --out {tmp}/r.json -q",
+    exits(2, "deep.json"),
+    setup="write_text('deep.json', '[' * 10000 + ']' * 10000)",
 )
-cli("cli.calibrate_intensity_no_rig", C, "calibrate intensity {SC} --plane-depth 200 --out {tmp}/r.json -q", exits(2, "--rig"))
 cli(
-    "cli.calibrate_intensity_plane_depth", C, "calibrate intensity {SC} --rig {SC}/rig.json --plane-depth -5 --out {tmp}/r.json -q",
+    "cli.calibrate_intensity_no_rig",
+    C,
+    "calibrate intensity {SC} --plane-depth 200 --out {tmp}/r.json -q",
+    exits(2, "--rig"),
+)
+cli(
+    "cli.calibrate_intensity_plane_depth",
+    C,
+    "calibrate intensity {SC} --rig {SC}/rig.json --plane-depth -5 --out {tmp}/r.json -q",
     exits(2, "depth"),
 )
 cli(
-    "cli.calibrate_intensity_plane_zero", C, "calibrate intensity {SC} --rig {SC}/rig.json --plane 0 0 0 5 --out {tmp}/r.json -q",
+    "cli.calibrate_intensity_plane_zero",
+    C,
+    "calibrate intensity {SC} --rig {SC}/rig.json --plane 0 0 0 5 --out {tmp}/r.json -q",
     exits(2, "plane"),
 )
 cli("cli.synth_calibration_size", C, "synth-calibration --size 8 --out {tmp}/c", exits(2, "--size"))
@@ -985,7 +1518,7 @@ del C, name, value, code, key
 BY_ID = {c.id: c for c in CASES}
 
 
-def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
+def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
     """The namespace the snippets run in: numpy, nplps, a small scene and helpers."""
     import copy
     import math
@@ -1017,13 +1550,13 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
     def rec(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct(
             S.images if images is missing else images, S.rig if rig is missing else rig,
-            S.mask if mask is missing else mask, 200.0 if depth is missing else depth, **kw,
+            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
         )
 
     def par(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct_parallel(
             S.images if images is missing else images, S.rig if rig is missing else rig,
-            S.mask if mask is missing else mask, 200.0 if depth is missing else depth, **kw,
+            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
         )
 
     def used(mask):
@@ -1047,9 +1580,9 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
             bad = int(np.count_nonzero(~np.isfinite(r.depth[u])))
             assert bad == 0, f"converged, but {bad} depths of masked vertices are not finite"
             fitted = r.mask & (r.lights_used >= 3)
-            n = r.normals[fitted]
-            assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
-            assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6), "normals are not unit vectors"
+            for n in (r.normals[fitted], r.fit_normals[fitted]):
+                assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
+                assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6), "normals are not unit vectors"
             assert np.isfinite(r.albedo[fitted]).all(), "converged, but albedo of fitted pixels is not finite"
         return True
 
@@ -1100,7 +1633,9 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
             import png as pypng
 
             channels = 1 if a.ndim == 2 else a.shape[2]
-            writer = pypng.Writer(a.shape[1], a.shape[0], greyscale=channels in (1, 2), alpha=channels in (2, 4), bitdepth=16)
+            writer = pypng.Writer(
+                a.shape[1], a.shape[0], greyscale=channels in (1, 2), alpha=channels in (2, 4), bitdepth=16
+            )
             with open(p, "wb") as f:
                 writer.write(f, a.reshape(a.shape[0], -1).tolist())
         else:
@@ -1118,7 +1653,12 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
     def png_header_only(name, width, height, bit_depth=16):
         """A PNG whose header claims width x height grey pixels, with a few bytes of data."""
         ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, 0, 0, 0, 0)
-        data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 4096)) + chunk(b"IEND", b"")
+        data = (
+            b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", ihdr)
+            + chunk(b"IDAT", zlib.compress(b"\0" * 4096))
+            + chunk(b"IEND", b"")
+        )
         return write_bytes(name, data)
 
     def tiff_header_only(name, width, height):
@@ -1129,7 +1669,9 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
         ifd = struct.pack("<H", len(entries))
         for tag, kind, value in entries:
             value = offset if tag == 273 else value
-            ifd += struct.pack("<HHI", tag, kind, 1) + (struct.pack("<HH", value, 0) if kind == 3 else struct.pack("<I", value))
+            ifd += struct.pack("<HHI", tag, kind, 1) + (
+                struct.pack("<HH", value, 0) if kind == 3 else struct.pack("<I", value)
+            )
         return write_bytes(name, b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0) + b"\0" * 64)
 
     def bmp_header_only(name, width, height):
@@ -1162,7 +1704,7 @@ def _prelude(base: "os.PathLike[str]") -> dict[str, Any]:
         return Rig.orthographic(cam["pixel_size"][0], origin=cam["origin"], lights=lights, **kw)
 
     def render_for(rig):
-        return nplps.render(S.depth, rig, S.albedo, S.mask)
+        return nplps.render(S.depth, rig, S.albedo, mask=S.mask)
 
     def summary(directory):
         return json.loads((Path(directory) / "summary.json").read_text())
@@ -1215,7 +1757,7 @@ def _check(expr: str | None, ns: dict[str, Any]) -> str | None:
         value = eval(expr, ns)
     except AssertionError as e:
         return f"check failed: {e}"
-    except BaseException as e:  # noqa: BLE001 - the check itself tripped
+    except BaseException as e:
         return f"check raised {type(e).__name__}: {_short(e, 300)}"
     return None if value else f"check is false: {expr}"
 
@@ -1257,7 +1799,7 @@ def _run_api(case: Case, ns: dict[str, Any]) -> tuple[bool, str]:
         warnings.simplefilter("always")
         try:
             exec(compile(case.code, f"<probe {case.id}>", "exec"), ns)
-        except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
+        except BaseException as exc:
             error = exc
     ns["_W"] = ns["_ctx"]["W"] = [str(w.message) for w in caught]
     return _judge_api(case, ns, error)
@@ -1291,7 +1833,7 @@ def _run_cli(case: Case, ns: dict[str, Any]) -> tuple[bool, str]:
                     code = main(argv)
                 except SystemExit as exc:  # what the console script would do
                     code = exc.code if isinstance(exc.code, int) else 1
-                except BaseException as exc:  # noqa: BLE001 - escapes main: a traceback for the user
+                except BaseException as exc:
                     uncaught, code = exc, 1
         finally:
             os.chdir(cwd)
@@ -1336,10 +1878,13 @@ def worker(results_path: str, ids: list[str]) -> None:
             start = time.perf_counter()
             try:
                 passed, happened = (_run_api if case.kind == "api" else _run_cli)(case, ns)
-            except BaseException as exc:  # noqa: BLE001 - a broken setup is a failed case too
+            except BaseException as exc:
                 passed, happened = False, f"probe setup failed: {type(exc).__name__}: {_short(exc)}"
             seconds = time.perf_counter() - start
-            results.write(json.dumps({"id": case_id, "event": "end", "passed": passed, "happened": happened, "seconds": seconds}) + "\n")
+            results.write(
+                json.dumps({"id": case_id, "event": "end", "passed": passed, "happened": happened, "seconds": seconds})
+                + "\n"
+            )
             results.flush()
             shutil.rmtree(tmp, ignore_errors=True)
             del ns

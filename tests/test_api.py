@@ -8,6 +8,7 @@ number asserted here was measured first; the measured values are written next to
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 from pathlib import Path
@@ -18,10 +19,10 @@ import pytest
 import tifffile
 
 import nplps
-from nplps import reference as ref
+import reference as ref  # tests/reference.py, the numpy oracle
 from nplps.export import read_ply
 
-pytest.importorskip("scipy")  # nplps.reference needs scipy
+pytest.importorskip("scipy")  # the reference needs scipy
 
 SCENES = ("saddle", "sphere", "cube", "bumps")
 N = 48
@@ -48,12 +49,16 @@ def test_exact_model_recovers_scene(name, scene, angular_error, active_vertices)
     used = active_vertices(s.mask)
     truth = s.normals
     for kwargs in ({}, {"iterations": 50, "tol": 1e-9}):
-        r = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, **kwargs)
-        err = angular_error(r.normals, truth, s.mask)
+        r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, **kwargs)
+        err = angular_error(r.fit_normals, truth, s.mask)
+        mesh_err = angular_error(r.normals, truth, s.mask)
         dz = np.abs(r.depth[used] - s.depth[used])
         print(f"\n{name} {kwargs or 'default'}: mean {err.mean():.2e} deg, max {err.max():.2e} deg, "
-              f"max |dz| {dz.max():.2e}, {len(r.history)} iterations")
+              f"mesh normals mean {mesh_err.mean():.2e} deg, max |dz| {dz.max():.2e}, {len(r.history)} iterations")
         assert err.mean() < 0.01
+        # The mesh's normals carry the discretization error of the twisted quads (measured mean
+        # 3e-6 saddle, 5e-6 cube, 1.4e-2 sphere, 9.5e-2 bumps at 48 px; the fits 2.5e-3 on bumps).
+        assert mesh_err.mean() < (1e-4 if name in ("saddle", "cube") else 0.15)
         assert dz.max() < 1e-3 * s.size
         assert r.converged
         assert len(r.history) < (10 if not kwargs else 15)
@@ -62,22 +67,26 @@ def test_exact_model_recovers_scene(name, scene, angular_error, active_vertices)
         assert r.depth[used].mean() == pytest.approx(s.mean_depth, rel=1e-12)
         # NaN outside the mask / at inactive vertices, finite inside
         assert np.isnan(r.depth[~used]).all() and np.isfinite(r.depth[used]).all()
-        assert np.isnan(r.normals[~s.mask]).all() and np.isfinite(r.normals[s.mask]).all()
+        for normals in (r.normals, r.fit_normals):
+            assert np.isnan(normals[~s.mask]).all() and np.isfinite(normals[s.mask]).all()
         assert (r.lights_used[s.mask] == 27).all() and (r.lights_used[~s.mask] == 0).all()
         assert r.unfitted == 0
         # albedo: measured max relative error 1e-7 (saddle, cube), 9e-5 (sphere), 7e-4 (bumps)
         assert np.max(np.abs(r.albedo[s.mask] / s.albedo[s.mask] - 1)) < 2e-3
-        # normals face the camera and are unit vectors
-        assert (r.normals[s.mask][:, 2] < 0).all()
-        np.testing.assert_allclose(np.linalg.norm(r.normals[s.mask], axis=-1), 1.0, atol=1e-12)
+        # both kinds of normals face the camera and are unit vectors; the fits are as exact
+        for normals in (r.normals, r.fit_normals):
+            assert (normals[s.mask][:, 2] < 0).all()
+            np.testing.assert_allclose(np.linalg.norm(normals[s.mask], axis=-1), 1.0, atol=1e-12)
+        assert angular_error(r.fit_normals, truth, s.mask).mean() < 0.01
 
 
 def test_thread_count_does_not_change_the_result(scene):
     s = scene("bumps")
-    a = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, threads=1)
-    b = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, threads=2)
+    a = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, threads=1)
+    b = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, threads=2)
     np.testing.assert_array_equal(a.depth, b.depth)
     np.testing.assert_array_equal(a.normals, b.normals)
+    np.testing.assert_array_equal(a.fit_normals, b.fit_normals)
     assert [h[:3] for h in a.history] == [h[:3] for h in b.history]
 
 
@@ -104,7 +113,7 @@ def test_noise_image_weighting_beats_paper_weighting(scene, angular_error, activ
             s = scene(name, seed=seed, noise=0.01)
             row = {}
             for weighting in ("image", "paper"):
-                r = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, weighting=weighting)
+                r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, weighting=weighting)
                 row[weighting] = float(angular_error(r.normals, s.normals, s.mask).mean())
                 assert np.isfinite(r.depth[active_vertices(s.mask)]).all()
                 errors[weighting].append(row[weighting])
@@ -130,10 +139,10 @@ def test_paper_weighting_noise_is_the_per_pixel_estimator(scene, angular_error):
     s = scene("saddle", seed=0, noise=0.01)
     (pixel_size, origin) = _camera(s.rig)
     for weighting in ("image", "paper"):
-        r = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, weighting=weighting)
+        r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, weighting=weighting)
         q = ref.reconstruct(s.images, s.rig.lights, pixel_size, origin, s.mask, s.depth,
                             iterations=0, weighting=weighting)
-        e_npl = angular_error(r.normals, s.normals, s.mask).mean()
+        e_npl = angular_error(r.fit_normals, s.normals, s.mask).mean()  # nplps's own per-pixel fits
         e_fit = angular_error(q["normals"], s.normals, s.mask).mean()
         print(f"\n{weighting}: nplps {e_npl:.3f} deg, per-pixel fit at the true geometry {e_fit:.3f} deg")
         assert e_npl == pytest.approx(e_fit, rel=0.02)
@@ -160,7 +169,7 @@ def test_perturbed_lights(name, scene, angular_error):
     (checked below on seeds 0-4: ratio 1.05-1.14).
     """
     s = scene(name)
-    r = nplps.reconstruct(s.images, _perturbed_rig(s, 0), s.mask, s.mean_depth)
+    r = nplps.reconstruct(s.images, _perturbed_rig(s, 0), mask=s.mask, depth=s.mean_depth)
     err = angular_error(r.normals, s.normals, s.mask).mean()
     print(f"\n{name}: perturbed lights (seed 0), mean error {err:.3f} deg")
     assert err < 3.0
@@ -169,7 +178,7 @@ def test_perturbed_lights(name, scene, angular_error):
     ratios = []
     for seed in range(5):
         rig = _perturbed_rig(s, seed)
-        r = nplps.reconstruct(s.images, rig, s.mask, s.mean_depth)
+        r = nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth)
         q = ref.reconstruct(s.images, rig.lights, pixel_size, origin, s.mask, s.depth, iterations=0)
         e_npl = angular_error(r.normals, s.normals, s.mask).mean()
         e_fit = angular_error(q["normals"], s.normals, s.mask).mean()
@@ -189,8 +198,8 @@ def test_perturbed_lights(name, scene, angular_error):
 def test_parallel_baseline_is_worse(name, scene, angular_error, active_vertices):
     s = scene(name)
     used = active_vertices(s.mask)
-    npl = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth)
-    par = nplps.reconstruct_parallel(s.images, s.rig, s.mask, s.mean_depth)
+    npl = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth)
+    par = nplps.reconstruct_parallel(s.images, s.rig, mask=s.mask, depth=s.mean_depth)
     e_npl = angular_error(npl.normals, s.normals, s.mask).mean()
     e_par = angular_error(par.normals, s.normals, s.mask).mean()
     dz_npl = np.abs(npl.depth[used] - s.depth[used]).max()
@@ -239,9 +248,9 @@ def test_islands(name, diagonal, scene, angular_error, active_vertices):
         # one region: make the map's mean over the union equal the true mean, as it would be
         # for two regions (the shared vertex would otherwise be counted with one island's mean)
         depth0[shared] = mean_a + mean_b - s.depth[shared]
-    r = nplps.reconstruct(s.images, s.rig, mask, depth0, iterations=50, tol=1e-9)
+    r = nplps.reconstruct(s.images, s.rig, mask=mask, depth=depth0, iterations=50, tol=1e-9)
 
-    err = angular_error(r.normals, s.normals, mask)
+    err = angular_error(r.fit_normals, s.normals, mask)  # the mesh's: discretization error of the twisted quads
     dz = np.abs(r.depth[used] - s.depth[used]).max()
     print(f"\n{name} {'diagonal' if diagonal else 'apart'}: mean {err.mean():.2e} deg, "
           f"max {err.max():.2e} deg, max |dz| {dz:.2e}, gauge {r.gauge}")
@@ -289,15 +298,15 @@ def test_rust_matches_reference(case, weighting, scene):
         s, mask = _islands_case(scene)
     images = s.images.astype(np.float32)
     pixel_size, origin = _camera(s.rig)
-    r = nplps.reconstruct(images, s.rig, mask, s.mean_depth, iterations=5, tol=0.0, weighting=weighting)
+    r = nplps.reconstruct(images, s.rig, mask=mask, depth=s.mean_depth, iterations=5, tol=0.0, weighting=weighting)
     q = ref.reconstruct(images.astype(np.float64), s.rig.lights, pixel_size, origin, mask, s.mean_depth,
                         iterations=5, tol=0.0, weighting=weighting)
     d_depth = np.nanmax(np.abs(r.depth - q["depth"])) / s.size
-    d_normals = np.nanmax(np.abs(r.normals - q["normals"]))
+    d_normals = np.nanmax(np.abs(r.fit_normals - q["normals"]))  # the local fits: the reference's "normals"
     d_albedo = np.nanmax(np.abs(r.albedo / q["albedo"] - 1))
     print(f"\n{case} {weighting}: depth {d_depth:.1e} (rel. size), normals {d_normals:.1e}, albedo {d_albedo:.1e}")
     np.testing.assert_array_equal(np.isnan(r.depth), np.isnan(q["depth"]))
-    np.testing.assert_array_equal(np.isnan(r.normals), np.isnan(q["normals"]))
+    np.testing.assert_array_equal(np.isnan(r.fit_normals), np.isnan(q["normals"]))
     np.testing.assert_array_equal(np.isnan(r.albedo), np.isnan(q["albedo"]))
     assert d_depth < 1e-9
     assert d_normals < 1e-9
@@ -308,7 +317,7 @@ def test_rust_matches_reference(case, weighting, scene):
     np.testing.assert_allclose(r.gauge, q["gauge"], rtol=1e-12)
     np.testing.assert_allclose(r.residual, q["residual"], rtol=0, atol=1e-12 * float(images.max()))
     assert len(r.history) == len(q["history"]) == 5
-    for it, (h, (dz, rms)) in enumerate(zip(r.history, q["history"]), start=1):
+    for it, (h, (dz, rms)) in enumerate(zip(r.history, q["history"], strict=True), start=1):
         assert h.iteration == it
         assert h.depth_change == pytest.approx(dz, rel=1e-9, abs=1e-9 * s.size)
         assert h.rms_residual == pytest.approx(rms, rel=1e-6, abs=1e-9 * float(images.max()))
@@ -319,11 +328,11 @@ def test_rust_parallel_matches_reference(name, scene):
     s = scene(name)
     images = s.images.astype(np.float32)
     pixel_size, origin = _camera(s.rig)
-    r = nplps.reconstruct_parallel(images, s.rig, s.mask, s.mean_depth)
+    r = nplps.reconstruct_parallel(images, s.rig, mask=s.mask, depth=s.mean_depth)
     q = ref.reconstruct_parallel(images.astype(np.float64), s.rig.lights, pixel_size, origin, s.mask, s.mean_depth)
     np.testing.assert_array_equal(np.isnan(r.depth), np.isnan(q["depth"]))
     assert np.nanmax(np.abs(r.depth - q["depth"])) < 1e-9 * s.size
-    assert np.nanmax(np.abs(r.normals - q["normals"])) < 1e-9
+    assert np.nanmax(np.abs(r.fit_normals - q["normals"])) < 1e-9
     assert np.nanmax(np.abs(r.albedo / q["albedo"] - 1)) < 1e-9
     np.testing.assert_array_equal(r.lights_used, q["lights_used"])
     np.testing.assert_allclose(r.gauge, q["gauge"], rtol=1e-12)
@@ -336,13 +345,13 @@ def test_render_matches_reference(name, scene):
     s = scene(name, n=32)
     pixel_size, origin = _camera(s.rig)
     for albedo, mask in ((s.albedo, s.mask), (2.5, None)):
-        a = nplps.render(s.depth, s.rig, albedo, mask)
+        a = nplps.render(s.depth, s.rig, albedo, mask=mask)
         b = ref.render(s.depth, s.rig.lights, pixel_size, origin, albedo, mask)
         assert a.shape == b.shape == (27, 32, 32)
         assert a.dtype == np.float64
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
     # the scene's images are the renderer's output
-    np.testing.assert_array_equal(nplps.render(s.depth, s.rig, s.albedo, s.mask), s.images)
+    np.testing.assert_array_equal(nplps.render(s.depth, s.rig, s.albedo, mask=s.mask), s.images)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -354,7 +363,7 @@ def test_shadowed_pixels_keep_their_shape(scene, active_vertices):
     shadowed = np.zeros(s.mask.shape, dtype=bool)
     shadowed[10:13, 14:18] = True
     images[2:, shadowed] = 0.0  # lit by lights 0 and 1 only
-    r = nplps.reconstruct(images, s.rig, s.mask, s.mean_depth)
+    r = nplps.reconstruct(images, s.rig, mask=s.mask, depth=s.mean_depth)
     used = active_vertices(s.mask)
     assert np.isfinite(r.depth[used]).all()
     assert np.isfinite(r.normals[s.mask]).all()
@@ -364,8 +373,8 @@ def test_shadowed_pixels_keep_their_shape(scene, active_vertices):
     assert r.summary()["unfitted_pixels"] == 12
     assert np.isnan(r.albedo[shadowed]).all() and np.isfinite(r.albedo[s.mask & ~shadowed]).all()
     assert np.isnan(r.residual[shadowed]).all()
-    # an unfitted pixel reports the mesh's own normal
-    np.testing.assert_allclose(r.normals[shadowed], r.mesh_normals[shadowed], atol=1e-12)
+    # an unfitted pixel's fit reports the mesh's own normal
+    np.testing.assert_allclose(r.fit_normals[shadowed], r.normals[shadowed], atol=1e-12)
 
 
 def test_negative_values_warn_and_count_as_unlit(scene):
@@ -375,12 +384,12 @@ def test_negative_values_warn_and_count_as_unlit(scene):
     images[3, 5, 5] = -1e-3
     images[3, 6, 6] = -0.2
     with pytest.warns(RuntimeWarning, match="3 pixel values inside the mask are negative"):
-        r = nplps.reconstruct(images, s.rig, s.mask, s.mean_depth)
+        r = nplps.reconstruct(images, s.rig, mask=s.mask, depth=s.mean_depth)
     assert r.lights_used[5, 5] == 25
     assert r.lights_used[6, 6] == 26
     # the same as zeroing them (zero = unlit with the default dark = 0)
     zeroed = np.maximum(images, 0.0)
-    z = nplps.reconstruct(zeroed, s.rig, s.mask, s.mean_depth)
+    z = nplps.reconstruct(zeroed, s.rig, mask=s.mask, depth=s.mean_depth)
     np.testing.assert_array_equal(r.depth, z.depth)
     np.testing.assert_array_equal(r.lights_used, z.lights_used)
 
@@ -484,7 +493,7 @@ def test_unreadable_image_file(tmp_path, small):
     bad = tmp_path / "garbage.png"
     bad.write_bytes(b"this is not a PNG file")
     with pytest.raises(nplps.InputError, match=r"cannot read image '.*garbage\.png'"):
-        nplps.reconstruct([bad] * 27, small.rig, small.mask, 200.0)
+        nplps.reconstruct([bad] * 27, small.rig, mask=small.mask, depth=200.0)
 
 
 def test_valid_flags_leave_the_callers_images_alone(small):
@@ -508,7 +517,9 @@ def test_bad_rig():
         nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [10, 0, 0]])
     lights = [[0, 0, 0], [10, 0, 0], [0, 10, 0]]
     for pixel_size in (0.0, -1.0, (1.0, 0.0), (1.0, -2.0), float("nan")):
-        with pytest.raises(nplps.RigError, match=r"pixel size must be positive and finite|pixel_size\[0\] must be a finite"):
+        with pytest.raises(
+            nplps.RigError, match=r"pixel size must be positive and finite|pixel_size\[0\] must be a finite"
+        ):
             nplps.Rig.orthographic(pixel_size, lights=lights)
     with pytest.raises(nplps.RigError, match=r"light 1 has a non-finite position"):
         nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [0, 0, np.inf], [0, 1, 0]])
@@ -517,20 +528,22 @@ def test_bad_rig():
 
 
 def test_baseline_checks_its_input_too(small):
+    with pytest.raises(TypeError, match=r"depth"):
+        nplps.reconstruct_parallel(small.images, small.rig, mask=small.mask)  # type: ignore[call-arg]
     with pytest.raises(nplps.InputError, match=r"depth is required"):
-        nplps.reconstruct_parallel(small.images, small.rig, small.mask)
+        nplps.reconstruct_parallel(small.images, small.rig, mask=small.mask, depth=None)  # type: ignore[arg-type]
     with pytest.raises(nplps.RigError, match=r"not in front of the surface"):
-        nplps.reconstruct_parallel(small.images, small.rig, small.mask, 40.0)
+        nplps.reconstruct_parallel(small.images, small.rig, mask=small.mask, depth=40.0)
     with pytest.raises(nplps.InputError, match=r"non-finite values"):
-        nplps.reconstruct_parallel(_with(small.images, (0, 0, 0), np.nan), small.rig, small.mask, 200.0)
+        nplps.reconstruct_parallel(_with(small.images, (0, 0, 0), np.nan), small.rig, mask=small.mask, depth=200.0)
 
 
 def test_dark_must_be_finite(small):
     for dark in (float("nan"), float("inf")):
         with pytest.raises(nplps.InputError, match="dark"):
-            nplps.reconstruct(small.images, small.rig, small.mask, 200.0, dark=dark)
+            nplps.reconstruct(small.images, small.rig, mask=small.mask, depth=200.0, dark=dark)
         with pytest.raises(nplps.InputError, match="dark"):
-            nplps.reconstruct_parallel(small.images, small.rig, small.mask, 200.0, dark=dark)
+            nplps.reconstruct_parallel(small.images, small.rig, mask=small.mask, depth=200.0, dark=dark)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -539,12 +552,12 @@ def test_dark_must_be_finite(small):
 def test_progress_callback(scene):
     s = scene("bumps", n=32)
     seen = []
-    r = nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, iterations=7, tol=0.0, progress=seen.append)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=7, tol=0.0, progress=seen.append)
     assert all(isinstance(it, nplps.Iteration) for it in seen)
     assert [it.iteration for it in seen] == list(range(1, 8))
     assert seen == r.history
     assert all(np.isfinite(it.depth_change) and np.isfinite(it.rms_residual) for it in seen)
-    assert all(a.elapsed <= b.elapsed for a, b in zip(seen, seen[1:]))
+    assert all(a.elapsed <= b.elapsed for a, b in itertools.pairwise(seen))
     assert seen[0].depth_change > seen[-1].depth_change
 
 
@@ -562,7 +575,7 @@ def test_exception_in_progress_stops_the_solver(scene):
             raise Cancelled("stop here")
 
     with pytest.raises(Cancelled, match="stop here"):
-        nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, iterations=20, tol=0.0, progress=progress)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=20, tol=0.0, progress=progress)
     assert calls == [1, 2]
 
     def interrupt(it):
@@ -571,13 +584,13 @@ def test_exception_in_progress_stops_the_solver(scene):
 
     calls.clear()
     with pytest.raises(KeyboardInterrupt):
-        nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, iterations=20, tol=0.0, progress=interrupt)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=20, tol=0.0, progress=interrupt)
     assert calls == [1]
 
 
 def test_progress_true_prints_to_stderr(scene, capsys):
     s = scene("bumps", n=32)
-    nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, iterations=3, tol=0.0, progress=True)
+    nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=3, tol=0.0, progress=True)
     captured = capsys.readouterr()
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
@@ -592,7 +605,7 @@ def test_progress_true_prints_to_stderr(scene, capsys):
 @pytest.fixture(scope="module")
 def sphere_result():
     s = nplps.make_scene("sphere", n=32)
-    return s, nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth)
+    return s, nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth)
 
 
 def _face_normals(points, faces):
@@ -601,7 +614,7 @@ def _face_normals(points, faces):
 
 
 def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
-    s, r = sphere_result
+    _, r = sphere_result
     paths = r.save(tmp_path)
     for key, path in paths.items():
         assert Path(path).is_file() and Path(path).stat().st_size > 0, key
@@ -648,7 +661,7 @@ def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
 
 
 def test_save_ply_opengl(tmp_path, sphere_result, active_vertices):
-    s, r = sphere_result
+    _, r = sphere_result
     r.save_ply(tmp_path / "gl.ply", opengl=True)
     mesh = read_ply(tmp_path / "gl.ply")
     assert "frame opengl" in mesh["comments"]
@@ -665,6 +678,132 @@ def test_reconstruct_from_saved_files(tmp_path, scene, angular_error):
     s = scene("sphere")
     paths = s.save(tmp_path)
     images = [paths[f"image_{i:02d}"] for i in range(27)]
-    r = nplps.reconstruct(images, nplps.Rig.load(paths["rig"]), paths["mask"], s.mean_depth)
+    r = nplps.reconstruct(images, nplps.Rig.load(paths["rig"]), mask=paths["mask"], depth=s.mean_depth)
     np.testing.assert_array_equal(r.mask, s.mask)
     assert angular_error(r.normals, s.normals, s.mask).mean() < 0.05
+
+
+# ------------------------------------------------------------------------------------------------
+# 11. the public API: keyword-only options, the two kinds of normals, exported types
+# ------------------------------------------------------------------------------------------------
+def test_depth_is_required_and_options_are_keyword_only(small):
+    """``depth`` has no default and everything after the images and the rig is keyword-only: a
+    forgotten depth or a positional mask is a TypeError from Python itself."""
+    import inspect
+
+    from nplps.evaluation import held_out
+
+    for function in (nplps.reconstruct, nplps.reconstruct_parallel, held_out):
+        parameters = list(inspect.signature(function).parameters.values())
+        assert [p.name for p in parameters[:2]] == ["images", "rig"]
+        assert all(p.kind is p.KEYWORD_ONLY for p in parameters[2:] if p.kind is not p.VAR_KEYWORD), function
+        assert inspect.signature(function).parameters["depth"].default is inspect.Parameter.empty
+        with pytest.raises(TypeError, match="depth"):
+            function(small.images, small.rig, mask=small.mask)
+        with pytest.raises(TypeError, match="positional"):
+            function(small.images, small.rig, small.mask, 200.0)
+    with pytest.raises(TypeError, match="positional"):
+        nplps.make_scene("sphere", 16)  # type: ignore[misc]
+    with pytest.raises(TypeError, match="positional"):
+        nplps.render(small.depth, small.rig, 1.0, small.mask)  # type: ignore[misc]
+    # an explicit None still gets nplps's own message
+    with pytest.raises(nplps.InputError, match="depth is required"):
+        nplps.reconstruct(small.images, small.rig, depth=None)  # type: ignore[arg-type]
+
+
+def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
+    """``normals`` are the facet normals of the result's own mesh (NaN outside the mask, also in
+    a hole whose corners are all on the mesh); ``fit_normals`` are the local step's fits, the
+    ones ``predict`` shades with; ``mesh_normals`` is a deprecated alias."""
+    s = scene("bumps", n=32)
+    mask = s.mask.copy()
+    mask[15, 15] = False  # a one-pixel hole: its 4 corners belong to the mesh
+    r = nplps.reconstruct(s.images, s.rig, mask=mask, depth=s.mean_depth)
+    mesh = nplps._core.mesh_normals(r.depth, r.rig.camera)
+    assert np.isfinite(mesh[15, 15]).all()
+    np.testing.assert_array_equal(r.normals, np.where(mask[..., None], mesh, np.nan))
+    assert r.normals is r.normals  # computed once
+    assert not np.array_equal(r.normals[mask], r.fit_normals[mask])
+    assert np.isnan(r.fit_normals[~mask]).all()
+    with pytest.warns(DeprecationWarning, match="normals"):
+        np.testing.assert_array_equal(r.mesh_normals, r.normals)
+    # predict uses the fits (with the mesh normals the images would be explained worse)
+    predicted = r.predict()
+    expected = nplps._core.predict(
+        r.depth, r.fit_normals, r.albedo, r.rig.camera, r.rig._core_lights(), r.mask, False
+    )
+    np.testing.assert_array_equal(predicted, expected)
+    # the vertex normals of the meshes come from the mesh normals of the masked pixels
+    around = np.zeros((33, 33, 3))
+    for dr in (0, 1):
+        for dc in (0, 1):
+            around[dr : dr + 32, dc : dc + 32] += np.nan_to_num(r.normals)
+    with np.errstate(invalid="ignore"):
+        expected_vertex = around / np.linalg.norm(around, axis=-1, keepdims=True)
+    v = r.vertex_normals()
+    finite = np.isfinite(v).all(-1)
+    np.testing.assert_allclose(v[finite], expected_vertex[finite], atol=1e-12)
+
+
+def test_mesh_normals_are_the_more_accurate_under_noise(scene, angular_error):
+    """The reason ``normals`` are the mesh's (benchmarks/normals.py, docs/method.md): with image
+    noise the global step averages what the noise adds to each facet's fit. Measured (sphere,
+    48 px, 1 % noise, seed 0): mesh 1.03 deg against fits 1.79 deg."""
+    s = scene("sphere", noise=0.01, seed=0)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth)
+    mesh = angular_error(r.normals, s.normals, s.mask).mean()
+    fit = angular_error(r.fit_normals, s.normals, s.mask).mean()
+    print(f"\nsphere 1 % noise: mesh normals {mesh:.3f} deg, fits {fit:.3f} deg")
+    assert mesh < 0.75 * fit
+
+
+def _classes(annotation: object) -> set[type]:
+    """The classes named in a type annotation (through unions, lists, tuples, ...)."""
+    import typing
+
+    if isinstance(annotation, type) and not typing.get_args(annotation):
+        return {annotation}
+    found: set[type] = set()
+    origin = typing.get_origin(annotation)
+    if isinstance(origin, type) and origin.__module__.startswith("nplps"):
+        found.add(origin)
+    for arg in typing.get_args(annotation):
+        found |= _classes(arg)
+    return found
+
+
+def test_every_returned_type_is_exported():
+    """Whatever a public function or method returns, and the types of the attributes of what it
+    returns, is importable from ``nplps`` (or, for ``held_out``, from ``nplps.evaluation`` and
+    ``nplps``); ``__all__`` names exactly the public names."""
+    import dataclasses
+    import typing
+
+    import nplps.types
+    from nplps import evaluation
+
+    names = {**vars(nplps.types)}
+    functions = [nplps.reconstruct, nplps.reconstruct_parallel, nplps.render, nplps.make_scene,
+                 nplps.light_changes, nplps.calibrate_spheres, nplps.calibrate_intensities, evaluation.held_out]
+    seen: set[type] = set()
+    todo: list[type] = []
+    for function in functions:
+        hints = typing.get_type_hints(function, localns=names)
+        todo += _classes(hints["return"])
+    while todo:
+        cls = todo.pop()
+        if cls in seen or not cls.__module__.startswith("nplps"):
+            continue
+        seen.add(cls)
+        if dataclasses.is_dataclass(cls) or hasattr(cls, "_fields"):
+            module = vars(__import__(cls.__module__, fromlist=["_"]))
+            todo += [c for hint in typing.get_type_hints(cls, {**module, **names}).values() for c in _classes(hint)]
+    exported = {name for name in seen if getattr(nplps, name.__name__, None) is name}
+    assert seen - {nplps.Rig} >= {nplps.Reconstruction, nplps.DistanceEstimate, nplps.Iteration,
+                                  nplps.LightRefinement, nplps.Scene, evaluation.HeldOut}
+    assert seen == exported, f"returned but not exported: {sorted(c.__name__ for c in seen - exported)}"
+    assert all(hasattr(nplps, name) for name in nplps.__all__)
+    assert {cls.__name__ for cls in seen} <= set(nplps.__all__)
+    # the status values and the string options are typed
+    assert typing.get_args(nplps.types.Status) == ("converged", "stalled", "diverged", "degenerate")
+    assert typing.get_args(nplps.types.Method) == ("near", "parallel")

@@ -143,8 +143,8 @@ def test_reconstruction_with_the_calibrated_rig(camera):
             camera=obj.rig.camera, lights=rig.lights, intensities=rig.intensities, directional=rig.directional
         )
         depth = obj.mean_depth
-        r_true = nplps.reconstruct(obj.images, obj.rig, obj.mask, depth=depth, iterations=30, tol=1e-8)
-        r_cal = nplps.reconstruct(obj.images, calibrated, obj.mask, depth=depth, iterations=30, tol=1e-8)
+        r_true = nplps.reconstruct(obj.images, obj.rig, mask=obj.mask, depth=depth, iterations=30, tol=1e-8)
+        r_cal = nplps.reconstruct(obj.images, calibrated, mask=obj.mask, depth=depth, iterations=30, tol=1e-8)
         m, gt = obj.mask, obj.normals
         e_true = np.mean(_angle(r_true.normals[m], gt[m]))
         e_cal = np.mean(_angle(r_cal.normals[m], gt[m]))

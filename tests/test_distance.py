@@ -13,7 +13,6 @@ from nplps import captures
 from nplps.evaluation import held_out
 
 
-
 def _perturbed(rig: nplps.Rig, size: float, fraction: float, seed: int) -> nplps.Rig:
     rng = np.random.default_rng(seed)
     moved = rig.lights + rng.uniform(-fraction, fraction, rig.lights.shape) * size * ~rig.directional[:, None]
@@ -26,7 +25,7 @@ def _perturbed(rig: nplps.Rig, size: float, fraction: float, seed: int) -> nplps
 def test_distance_is_found_from_a_wrong_guess(camera, noise, factor):
     s = nplps.make_scene("bumps", n=48, camera=camera, noise=noise, seed=1)
     truth = s.mean_depth
-    r = nplps.reconstruct(s.images, s.rig, s.mask, "auto", depth_guess=factor * truth)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto", depth_guess=factor * truth)
     estimate = r.distance.distance[0]
     print(f"{camera} noise {noise} guess x{factor}: {estimate:.3f} vs {truth:.3f} ({estimate / truth - 1:+.2e})")
     assert abs(estimate / truth - 1) < 0.01
@@ -50,11 +49,14 @@ def test_distance_in_a_mismatched_rig(camera, angular_error):
     rig = _perturbed(s.rig, s.size, 0.02, seed=4)
     truth = s.mean_depth
     for factor in (0.7, 1.3):
-        auto = nplps.reconstruct(s.images, rig, s.mask, "auto", depth_guess=factor * truth)
-        known = nplps.reconstruct(s.images, rig, s.mask, truth)
+        auto = nplps.reconstruct(s.images, rig, mask=s.mask, depth="auto", depth_guess=factor * truth)
+        known = nplps.reconstruct(s.images, rig, mask=s.mask, depth=truth)
         estimate = auto.distance.distance[0]
         gap = angular_error(auto.normals, known.normals, s.mask).mean()
-        print(f"{camera} mismatched x{factor}: {estimate / truth - 1:+.2e}, normals {gap:.3f} deg from the known-distance run")
+        print(
+            f"{camera} mismatched x{factor}: {estimate / truth - 1:+.2e}, "
+            f"normals {gap:.3f} deg from the known-distance run"
+        )
         assert abs(estimate / truth - 1) < 0.03
         assert gap < 0.6
 
@@ -67,8 +69,8 @@ def test_each_island_gets_its_own_distance():
     # Push the second island 20 % further away along the rays.
     depth = s.depth.copy()
     depth[26:, :] *= 1.2
-    images = nplps.render(depth, s.rig, s.albedo, mask)
-    r = nplps.reconstruct(images, s.rig, mask, "auto", depth_range=(100.0, 500.0))
+    images = nplps.render(depth, s.rig, s.albedo, mask=mask)
+    r = nplps.reconstruct(images, s.rig, mask=mask, depth="auto", depth_range=(100.0, 500.0))
     assert len(r.distance.distance) == 2
     for region, rows in ((0, slice(4, 21)), (1, slice(28, 45))):
         z = depth[rows, 4:45]
@@ -80,21 +82,23 @@ def test_unobservable_distances_are_refused():
     s = nplps.make_scene("saddle", n=16)
     three = s.rig.subset([0, 9, 18])
     with pytest.raises(nplps.InputError, match="3 lights"):
-        nplps.reconstruct(s.images[[0, 9, 18]], three, s.mask, "auto")
+        nplps.reconstruct(s.images[[0, 9, 18]], three, mask=s.mask, depth="auto")
     far = nplps.Rig.orthographic(1.0, directional_lights=[[0, 0, -1], [0.3, 0, -1], [0, 0.3, -1], [-0.3, 0, -1]])
     with pytest.raises(nplps.InputError, match="directional lights only"):
-        nplps.reconstruct(np.ones((4, 8, 8)), far, None, "auto")
+        nplps.reconstruct(np.ones((4, 8, 8)), far, mask=None, depth="auto")
     with pytest.raises(nplps.InputError, match="falling towards the near end"):
-        nplps.reconstruct(s.images, s.rig, s.mask, "auto", depth_range=(250.0, 400.0))
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto", depth_range=(250.0, 400.0))
     with pytest.raises(nplps.InputError, match="'auto'"):
-        nplps.reconstruct(s.images, s.rig, s.mask, "far away")
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="far away")
 
 
 def test_depth_prior_is_fused(angular_error):
     s = nplps.make_scene("bumps", n=40, camera="pinhole", seed=2)
     rig = _perturbed(s.rig, s.size, 0.05, seed=7)
-    plain = nplps.reconstruct(s.images, rig, s.mask, s.mean_depth, iterations=30)
-    fused = nplps.reconstruct(s.images, rig, s.mask, s.mean_depth, iterations=30, depth_prior=s.depth, prior_weight=0.1)
+    plain = nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth, iterations=30)
+    fused = nplps.reconstruct(
+        s.images, rig, mask=s.mask, depth=s.mean_depth, iterations=30, depth_prior=s.depth, prior_weight=0.1
+    )
     err_plain = np.nanmean(np.abs(plain.depth - s.depth))
     err_fused = np.nanmean(np.abs(fused.depth - s.depth))
     print(f"depth error without prior {err_plain:.4f}, with prior {err_fused:.4f}")
@@ -103,7 +107,7 @@ def test_depth_prior_is_fused(angular_error):
     z = fused.depth[np.isfinite(fused.depth)]
     assert np.exp(np.log(z).mean()) == pytest.approx(s.mean_depth, rel=1e-9)
     with pytest.raises(nplps.InputError, match="depth_prior"):
-        nplps.reconstruct(s.images, rig, s.mask, s.mean_depth, depth_prior=np.ones((3, 3)))
+        nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth, depth_prior=np.ones((3, 3)))
 
 
 
@@ -119,18 +123,20 @@ def test_real_capture_distance(name, loader, factor, authors, bounds, tmp_path, 
     c = captures.prepare(loader(shared_capture(name)), bin_factor=factor)
     rig = c.rig()
     t = time.perf_counter()
-    auto = nplps.reconstruct(c.images, rig, c.mask, "auto", iterations=20)
+    auto = nplps.reconstruct(c.images, rig, mask=c.mask, depth="auto", iterations=20)
     t_auto = time.perf_counter() - t
     t = time.perf_counter()
-    nplps.reconstruct(c.images, rig, c.mask, authors, iterations=20)
+    nplps.reconstruct(c.images, rig, mask=c.mask, depth=authors, iterations=20)
     t_known = time.perf_counter() - t
     estimate = float(auto.distance.distance[0])
-    at_estimate = held_out(c.images, rig, c.mask, estimate, iterations=20)
-    at_authors = held_out(c.images, rig, c.mask, authors, iterations=20)
+    at_estimate = held_out(c.images, rig, mask=c.mask, depth=estimate, iterations=20)
+    at_authors = held_out(c.images, rig, mask=c.mask, depth=authors, iterations=20)
     e_est = np.mean([h.relative_error for h in at_estimate])
     e_auth = np.mean([h.relative_error for h in at_authors])
-    print(f"{name}: estimate {estimate:.1f} (authors {bounds}), auto took {t_auto / t_known:.1f}x a known-distance run; "
-          f"held-out error {e_est:.4f} at the estimate, {e_auth:.4f} at {authors}")
+    print(
+        f"{name}: estimate {estimate:.1f} (authors {bounds}), auto took {t_auto / t_known:.1f}x a known-distance run; "
+        f"held-out error {e_est:.4f} at the estimate, {e_auth:.4f} at {authors}"
+    )
     auto.save(tmp_path / name)
     assert 0.85 * bounds[0] <= estimate <= 1.15 * bounds[1]
     assert e_est <= e_auth * 1.001

@@ -39,7 +39,7 @@ def _grid() -> tuple[np.ndarray, np.ndarray]:
 def _expected_used(mask: np.ndarray) -> np.ndarray:
     """The vertices that are a corner of a masked facet, computed naively."""
     used = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=bool)
-    for r, c in zip(*np.nonzero(mask)):
+    for r, c in zip(*np.nonzero(mask), strict=True):
         used[r : r + 2, c : c + 2] = True
     return used
 
@@ -86,7 +86,7 @@ def test_ply_triangle_layout(tmp_path: Path) -> None:
     mesh = read_ply(path)
 
     points, faces = mesh["vertices"], mesh["faces"]
-    for i, (r, c) in enumerate(zip(*np.nonzero(mask))):  # row-major facet order
+    for i, (r, c) in enumerate(zip(*np.nonzero(mask), strict=True)):  # row-major facet order
         first = vertices[[r, r + 1, r + 1], [c, c, c + 1]]  # (00, 10, 11)
         second = vertices[[r, r + 1, r], [c, c + 1, c + 1]]  # (00, 11, 01)
         np.testing.assert_allclose(points[faces[2 * i]], first, rtol=1e-6)
@@ -230,21 +230,22 @@ def test_obj_without_normals(tmp_path: Path) -> None:
     assert not any(line.startswith("vn") for line in lines)
 
 
-def _percent_obj(mesh: "export._Mesh") -> bytes:
+def _percent_obj(mesh: export._Mesh) -> bytes:
     """The OBJ text of ``mesh`` formatted with Python's % operator, line by line: what the
     vectorized writer must reproduce byte for byte."""
     lines = ["# nplps\n", f"# frame {mesh.frame}\n"]
     for i, (x, y, z) in enumerate(mesh.points.tolist()):
         if mesh.colors is None:
-            lines.append("v %.9g %.9g %.9g\n" % (x, y, z))
+            lines.append("v %.9g %.9g %.9g\n" % (x, y, z))  # noqa: UP031 (the writer's %-formats are the spec)
         else:
             r, g, b = (mesh.colors[i].astype(np.float64) / 255.0).tolist()
-            lines.append("v %.9g %.9g %.9g %.6g %.6g %.6g\n" % (x, y, z, r, g, b))
+            lines.append("v %.9g %.9g %.9g %.6g %.6g %.6g\n" % (x, y, z, r, g, b))  # noqa: UP031
     if mesh.normals is not None:
-        lines += ["vn %.7g %.7g %.7g\n" % tuple(n) for n in mesh.normals.tolist()]
-        lines += ["f %d//%d %d//%d %d//%d\n" % (a, a, b, b, c, c) for a, b, c in (mesh.faces + 1).tolist()]
+        lines += ["vn %.7g %.7g %.7g\n" % tuple(n) for n in mesh.normals.tolist()]  # noqa: UP031
+        faces = (mesh.faces + 1).tolist()
+        lines += ["f %d//%d %d//%d %d//%d\n" % (a, a, b, b, c, c) for a, b, c in faces]  # noqa: UP031
     else:
-        lines += ["f %d %d %d\n" % tuple(f) for f in (mesh.faces + 1).tolist()]
+        lines += ["f %d %d %d\n" % tuple(f) for f in (mesh.faces + 1).tolist()]  # noqa: UP031
     return "".join(lines).encode("ascii")
 
 
@@ -255,7 +256,24 @@ def _wild_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     vertices = rng.normal(0.0, 50.0, (h + 1, w + 1, 3))
     vertices[..., 2] += 200.0
     flat = vertices.reshape(-1)
-    specials = [0.0, -0.0, 1.0, -1.0, 0.5, 1e-4, 1.5e-5, 1e-12, -3e-20, 1e9, 123456789.0, 1e20, -3.4e38, 1e-40, 100.0, 0.1]
+    specials = [
+        0.0,
+        -0.0,
+        1.0,
+        -1.0,
+        0.5,
+        1e-4,
+        1.5e-5,
+        1e-12,
+        -3e-20,
+        1e9,
+        123456789.0,
+        1e20,
+        -3.4e38,
+        1e-40,
+        100.0,
+        0.1,
+    ]
     flat[: len(specials)] = specials
     end = min(400, flat.size)
     flat[len(specials) : end] = 10.0 ** rng.integers(-30, 30, end - len(specials))
@@ -275,7 +293,7 @@ def test_obj_text_is_percent_formatting(tmp_path: Path, with_normals: bool, with
     normals = normals if with_normals else None
     albedo = albedo if with_albedo else None
     path = tmp_path / "mesh.obj"
-    write_obj(path, vertices, mask, normals, albedo)
+    write_obj(path, vertices, mask, normals=normals, albedo=albedo)
 
     expected = _percent_obj(export._build_mesh(vertices, mask, normals, albedo, False))
 
@@ -286,7 +304,7 @@ def test_obj_text_is_percent_formatting_across_chunks(tmp_path: Path, monkeypatc
     vertices, mask, normals, albedo = _wild_grid(60, 50)
     monkeypatch.setattr(export, "_OBJ_CHUNK_ROWS", 97)  # many chunks, some digit counts change inside one
     path = tmp_path / "mesh.obj"
-    write_obj(path, vertices, mask, normals, albedo, opengl=True)
+    write_obj(path, vertices, mask, normals=normals, albedo=albedo, opengl=True)
 
     assert path.read_bytes() == _percent_obj(export._build_mesh(vertices, mask, normals, albedo, True))
 
@@ -300,13 +318,16 @@ def test_format_float32_is_percent_g(precision: int) -> None:
 
     text = export._lines([export._format_float32(values, precision), b"\n"])
 
-    assert text.decode("ascii").splitlines() == ["%.*g" % (precision, v) for v in values.tolist()]
+    assert text.decode("ascii").splitlines() == ["%.*g" % (precision, v) for v in values.tolist()]  # noqa: UP031
 
 
 def _float32_cases(rng: np.random.Generator, powers: np.ndarray) -> np.ndarray:
     return np.concatenate(
         [
-            rng.integers(0, 2**32, 50000, dtype=np.uint64).astype(np.uint32).view(np.float32).astype(np.float64),  # any bits
+            rng.integers(0, 2**32, 50000, dtype=np.uint64)
+            .astype(np.uint32)
+            .view(np.float32)
+            .astype(np.float64),  # any bits
             rng.normal(0.0, 100.0, 20000),
             rng.integers(-(10**6), 10**6, 20000) / 2.0 ** rng.integers(0, 24, 20000),  # exact ties
             powers,
@@ -329,14 +350,14 @@ def test_format_int_is_percent_d(values: np.ndarray) -> None:
 
     lines = export._lines([b"f ", text, b"\n"], compact=blanks)
 
-    assert lines == "".join("f %d\n" % v for v in values.tolist()).encode("ascii")
+    assert lines == "".join("f %d\n" % v for v in values.tolist()).encode("ascii")  # noqa: UP031
 
 
 def test_write_meshes_is_write_ply_and_write_obj(tmp_path: Path) -> None:
     vertices, mask, normals, albedo = _wild_grid(12, 9)
-    write_ply(tmp_path / "a.ply", vertices, mask, normals, albedo)
-    write_obj(tmp_path / "a.obj", vertices, mask, normals, albedo)
-    write_meshes(tmp_path / "b.ply", tmp_path / "b.obj", vertices, mask, normals, albedo)
+    write_ply(tmp_path / "a.ply", vertices, mask, normals=normals, albedo=albedo)
+    write_obj(tmp_path / "a.obj", vertices, mask, normals=normals, albedo=albedo)
+    write_meshes(tmp_path / "b.ply", tmp_path / "b.obj", vertices, mask, normals=normals, albedo=albedo)
 
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
     assert (tmp_path / "a.obj").read_bytes() == (tmp_path / "b.obj").read_bytes()
@@ -365,7 +386,7 @@ def test_normal_map_encoding(tmp_path: Path) -> None:
     np.testing.assert_array_equal(image[1, 1], (128, 255, 128))
 
     mask = np.array([[True, False], [True, True]])
-    save_normal_map(path, normals, mask)
+    save_normal_map(path, normals, mask=mask)
     np.testing.assert_array_equal(io.read_image(path)[0, 1], (0, 0, 0))
 
 
@@ -396,7 +417,9 @@ def test_png16_is_pypng_writer(tmp_path: Path, shape: tuple[int, ...]) -> None:
     pixels = np.random.default_rng(1).integers(0, 65536, shape).astype(np.uint16)
     write_png16(tmp_path / "fast.png", pixels)
     with open(tmp_path / "plain.png", "wb") as file:  # pypng from Python lists of values
-        png.Writer(shape[1], shape[0], greyscale=len(shape) == 2, bitdepth=16).write(file, pixels.reshape(shape[0], -1).tolist())
+        png.Writer(shape[1], shape[0], greyscale=len(shape) == 2, bitdepth=16).write(
+            file, pixels.reshape(shape[0], -1).tolist()
+        )
 
     assert (tmp_path / "fast.png").read_bytes() == (tmp_path / "plain.png").read_bytes()
 
@@ -406,9 +429,9 @@ def test_normal_map_in_bands_is_one_pass(tmp_path: Path, monkeypatch: pytest.Mon
     normals /= np.linalg.norm(normals, axis=2, keepdims=True)
     normals[3, 4] = np.nan
     mask = np.random.default_rng(3).random((23, 17)) < 0.8
-    save_normal_map(tmp_path / "one.png", normals, mask)
+    save_normal_map(tmp_path / "one.png", normals, mask=mask)
     monkeypatch.setattr(export, "_GATHER_CHUNK", 40)  # bands of 2 rows
-    save_normal_map(tmp_path / "bands.png", normals, mask)
+    save_normal_map(tmp_path / "bands.png", normals, mask=mask)
 
     assert (tmp_path / "one.png").read_bytes() == (tmp_path / "bands.png").read_bytes()
 

@@ -17,7 +17,6 @@ import os
 import warnings
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -43,7 +42,9 @@ SPECIAL = st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -1.0, 1e30, 1e-30, 5e-3
 def images(draw: st.DrawFn) -> np.ndarray:
     base = SCENE.images.astype(np.float64) * draw(st.sampled_from([1.0, 1.0, 1.0, 1e-6, 1e6, 0.0, -1.0]))
     if draw(st.booleans()):
-        base = base + draw(st.floats(0, 0.2)) * np.random.default_rng(draw(st.integers(0, 99))).standard_normal(base.shape)
+        base = base + draw(st.floats(0, 0.2)) * np.random.default_rng(draw(st.integers(0, 99))).standard_normal(
+            base.shape
+        )
     count = draw(st.sampled_from([0, 0, 0, 1, 3, 40]))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     flat = base.reshape(-1)
@@ -84,7 +85,9 @@ def depths(draw: st.DrawFn) -> object:
         return draw(st.one_of(st.floats(100, 400), st.floats(1e-3, 1e7)))
     if kind == "special":
         return draw(SPECIAL)
-    z = np.full((N + 1, N + 1), SCENE.mean_depth) + draw(st.floats(-50, 50)) * np.random.default_rng(draw(st.integers(0, 99))).random((N + 1, N + 1))
+    z = np.full((N + 1, N + 1), SCENE.mean_depth) + draw(st.floats(-50, 50)) * np.random.default_rng(
+        draw(st.integers(0, 99))
+    ).random((N + 1, N + 1))
     if kind == "map_special":
         z.reshape(-1)[draw(st.integers(0, z.size - 1))] = draw(SPECIAL)
     return z
@@ -112,9 +115,9 @@ def _check_outcome(call) -> None:
     assert r.converged == (r.status == "converged")
     if r.converged:
         fitted = r.mask & (r.lights_used >= 3)
-        n = r.normals[fitted]
-        assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
-        assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6)
+        for n in (r.normals[fitted], r.fit_normals[fitted]):
+            assert np.isfinite(n).all(), "converged, but normals of fitted pixels are not finite"
+            assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6)
         assert np.isfinite(r.albedo[fitted]).all(), "converged, but albedo of fitted pixels is not finite"
         used = np.zeros((N + 1, N + 1), bool)
         for dr in (0, 1):

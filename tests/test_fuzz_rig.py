@@ -328,7 +328,7 @@ def test_a_small_reconstruction_fails_only_with_typed_errors(data, seed):
     rng = np.random.default_rng(seed)
     images = rng.uniform(0.1, 1.0, (rig.n_lights, 4, 4)).astype(np.float32)
     try:
-        r = nplps.reconstruct(images, rig, None, 120.0, iterations=2)
+        r = nplps.reconstruct(images, rig, mask=None, depth=120.0, iterations=2)
     except (nplps.RigError, nplps.InputError, nplps.SolverError) as e:
         _short(e)
         event(f"reconstruction: {type(e).__name__}")

@@ -1,7 +1,6 @@
 """Hard limits of issue 9: memory refused before allocation, honest status, Ctrl-C anywhere."""
 
 import json
-import signal
 import subprocess
 import sys
 import textwrap
@@ -10,7 +9,6 @@ import numpy as np
 import pytest
 
 import nplps
-from nplps import _core
 
 
 @pytest.fixture(scope="module")
@@ -99,12 +97,22 @@ def test_the_cli_takes_max_memory(tmp_path, scene, capsys):
 
     src = tmp_path / "in"
     scene.save(src)
-    args = ["reconstruct", str(src), "--rig", str(src / "rig.json"), "--mask", str(src / "mask.png"), "--depth", "200", "-q"]
-    assert main(args + ["--out", str(tmp_path / "a"), "--max-memory", "1MB"]) == 2
+    args = [
+        "reconstruct",
+        str(src),
+        "--rig",
+        str(src / "rig.json"),
+        "--mask",
+        str(src / "mask.png"),
+        "--depth",
+        "200",
+        "-q",
+    ]
+    assert main([*args, "--out", str(tmp_path / "a"), "--max-memory", "1MB"]) == 2
     assert "above the limit of 1.00 MB" in capsys.readouterr().err
-    assert main(args + ["--out", str(tmp_path / "b"), "--max-memory", "lots"]) == 2
+    assert main([*args, "--out", str(tmp_path / "b"), "--max-memory", "lots"]) == 2
     assert "--max-memory" in capsys.readouterr().err
-    assert main(args + ["--out", str(tmp_path / "c"), "--max-memory", "64GiB"]) == 0
+    assert main([*args, "--out", str(tmp_path / "c"), "--max-memory", "64GiB"]) == 0
 
 
 # --- status -------------------------------------------------------------------------------------
@@ -119,14 +127,18 @@ def test_a_converged_run_says_so_with_its_numbers(scene):
 
 
 def test_the_iteration_limit_is_stalled_not_converged(scene):
-    r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=1, tol=1e-12, levels=1)
+    r = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=1, tol=1e-12, levels=1
+    )
     assert r.status == "stalled" and not r.converged
     assert "iteration limit (1)" in r.status_reason
 
 
 @pytest.mark.parametrize("iterations", [10**9, sys.maxsize])
 def test_no_progress_stops_a_run_that_asked_for_endless_iterations(scene, iterations):
-    r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=iterations, tol=0.0, levels=1)
+    r = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=iterations, tol=0.0, levels=1
+    )
     assert r.status == "stalled" and not r.converged
     assert "no progress in the last 50" in r.status_reason
     assert len(r.history) < 10_000
@@ -151,7 +163,23 @@ def test_the_cli_prints_and_saves_the_status(tmp_path, scene, capsys):
 
     src = tmp_path / "in"
     scene.save(src)
-    assert main(["reconstruct", str(src), "--rig", str(src / "rig.json"), "--mask", str(src / "mask.png"), "--depth", "200", "--out", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(src),
+                "--rig",
+                str(src / "rig.json"),
+                "--mask",
+                str(src / "mask.png"),
+                "--depth",
+                "200",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     assert "status          converged:" in capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["status"] == "converged"
@@ -192,7 +220,9 @@ def test_sigint_stops_a_large_reconstruction_between_progress_callbacks(tmp_path
         threading.Thread(target=fire, args=(0.02,), daemon=True).start()
     start = time.perf_counter()
     try:
-        r = nplps.reconstruct(images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=1000, tol=0.0, levels=1 if "{stage}" == "iterations" else None, progress=progress)
+        levels = 1 if "{stage}" == "iterations" else None
+        r = nplps.reconstruct(images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=1000, tol=0.0,
+                              levels=levels, progress=progress)
         print("finished", r.status, len(r.history))
     except KeyboardInterrupt:
         print("interrupted after", len(fired), "signals")

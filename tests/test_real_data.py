@@ -17,6 +17,7 @@ import nplps
 from nplps import captures
 from nplps.evaluation import held_out
 
+
 def _pictures(tmp_path: Path, name: str) -> Path:
     root = os.environ.get("NPLPS_PICTURES")
     return (Path(root) if root else tmp_path) / name
@@ -36,9 +37,9 @@ def test_diligent_ball_beats_least_squares(tmp_path, shared_capture):
     ls = _angles(g / np.linalg.norm(g, axis=1, keepdims=True), truth[mask]).mean()
 
     rig = ball.rig()
-    result = nplps.reconstruct(ball.images, rig, mask, 1000.0, iterations=1, robust="tukey")
+    result = nplps.reconstruct(ball.images, rig, mask=mask, depth=1000.0, iterations=1, robust="tukey")
     ours = _angles(result.normals[mask], truth[mask]).mean()
-    plain = nplps.reconstruct(ball.images, rig, mask, 1000.0, iterations=1)
+    plain = nplps.reconstruct(ball.images, rig, mask=mask, depth=1000.0, iterations=1)
     ours_plain = _angles(plain.normals[mask], truth[mask]).mean()
     print(f"ball: least squares {ls:.2f} deg, nplps {ours_plain:.2f} deg, nplps robust {ours:.2f} deg")
     assert 4.0 < ls < 4.6  # the README's 4.3 deg for a 16-bit grey read
@@ -50,12 +51,12 @@ def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, n
     rig = capture.rig()
     scores = {}
     for method in ("near", "parallel"):
-        scores[method] = held_out(capture.images, rig, capture.mask, distance, method=method, iterations=20)
+        scores[method] = held_out(capture.images, rig, mask=capture.mask, depth=distance, method=method, iterations=20)
     print(f"{name} held-out error per left-out light (relative / gain-free shape):")
-    for a, b in zip(scores["near"], scores["parallel"]):
+    for a, b in zip(scores["near"], scores["parallel"], strict=True):
         print(f"  light {a.light}: near {a.relative_error:.3f} / {a.shape_error:.3f}, "
               f"parallel {b.relative_error:.3f} / {b.shape_error:.3f}")
-    result = nplps.reconstruct(capture.images, rig, capture.mask, distance, iterations=20)
+    result = nplps.reconstruct(capture.images, rig, mask=capture.mask, depth=distance, iterations=20)
     print(f"  photometric residual (rms, all lights): {result.history[-1].rms_residual:.4g}")
     result.save(_pictures(tmp_path, name), overwrite=True)
     return {m: [(h.relative_error, h.shape_error) for h in s] for m, s in scores.items()}

@@ -1,25 +1,16 @@
-"""Tests of the pure numpy/scipy reference implementation (nplps.reference).
+"""Tests of the pure numpy/scipy reference implementation (``tests/reference.py``).
 
 Synthetic scenes are built here with numpy (object size S = 100, mean depth about 200, 27 near
 point lights in three layers), rendered with ``reference.render`` and reconstructed from a plane
 at the true mean vertex depth. Noise-free data: the method must recover the mesh to high accuracy.
 """
 
-import importlib.util
-import pathlib
-
 import numpy as np
 import pytest
 
-pytest.importorskip("scipy")
+import reference as ref  # tests/reference.py: pytest puts tests/ on sys.path
 
-try:
-    from nplps import reference as ref
-except ImportError:  # the package needs its compiled core: load the module file on its own
-    _path = pathlib.Path(__file__).resolve().parents[1] / "python" / "nplps" / "reference.py"
-    _spec = importlib.util.spec_from_file_location("nplps_reference", _path)
-    ref = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(ref)
+pytest.importorskip("scipy")
 
 S = 100.0
 Z0 = 200.0
@@ -309,14 +300,14 @@ def test_parallel_baseline_is_worse():
 
 
 def test_zero_iterations_reports_the_initial_plane():
-    z, mask, ps, o, L, images = make("saddle")
+    _, _, ps, o, L, images = make("saddle")
     res = ref.reconstruct(images, L, ps, o, depth=200.0, iterations=0)
     assert res["history"] == []
     assert np.all(res["depth"] == 200.0)
 
 
 def test_input_errors():
-    z, mask, ps, o, L, images = make("saddle")
+    _, mask, ps, o, L, images = make("saddle")
     with pytest.raises(ValueError):
         ref.reconstruct(images, L, ps, o)  # depth is required
     with pytest.raises(ValueError):

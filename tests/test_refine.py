@@ -45,11 +45,11 @@ def _wrong_positions(rig: Rig, seed: int, distance: float, fraction: float = 0.0
 def test_intensities_off_by_35_percent_are_recovered(noise):
     for seed in SEEDS:
         scene = nplps.make_scene("bumps", n=64, seed=seed, noise=noise)
-        truth = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, **KW)
+        truth = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, **KW)
         bad = _wrong_intensities(scene.rig, seed)
-        plain = nplps.reconstruct(scene.images, bad, scene.mask, scene.mean_depth, **KW)
+        plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, **KW)
         refined = nplps.reconstruct(
-            scene.images, bad, scene.mask, scene.mean_depth, refine_lights="intensity", **KW
+            scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
         )
         phi = _relative(refined.rig.intensities[:, 0]) / _relative(scene.rig.intensities[:, 0])
         assert np.abs(phi - 1).max() < 0.01, (seed, phi)
@@ -63,9 +63,9 @@ def test_intensities_off_by_35_percent_are_recovered(noise):
 def test_intensity_refinement_changes_nothing_when_the_rig_is_right():
     for seed in SEEDS:
         scene = nplps.make_scene("sphere", n=64, seed=seed)
-        plain = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, **KW)
+        plain = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, **KW)
         refined = nplps.reconstruct(
-            scene.images, scene.rig, scene.mask, scene.mean_depth, refine_lights="intensity", **KW
+            scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
         )
         assert _angles(plain.normals, refined.normals)[scene.mask].mean() < 0.01
         np.testing.assert_allclose(refined.rig.intensities, scene.rig.intensities, rtol=1e-4)
@@ -76,9 +76,11 @@ def test_intensity_refinement_changes_nothing_when_the_rig_is_right():
 )
 def test_intensity_refinement_with_leds_colour_and_directional_lights(options):
     scene = nplps.make_scene("sphere", n=64, seed=1, **options)
-    truth = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, **KW)
+    truth = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, **KW)
     bad = _wrong_intensities(scene.rig, 1)
-    refined = nplps.reconstruct(scene.images, bad, scene.mask, scene.mean_depth, refine_lights="intensity", **KW)
+    refined = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
+    )
     ratio = refined.rig.intensities / scene.rig.intensities
     ratio /= np.exp(np.mean(np.log(ratio)))
     assert np.abs(ratio - 1).max() < 0.01
@@ -93,9 +95,9 @@ def test_positions_off_by_5_percent(noise):
         scene = nplps.make_scene("bumps", n=64, seed=seed, noise=noise)
         d = scene.mean_depth
         bad = _wrong_positions(scene.rig, seed, d)
-        truth = nplps.reconstruct(scene.images, scene.rig, scene.mask, d, **KW)
-        plain = nplps.reconstruct(scene.images, bad, scene.mask, d, **KW)
-        refined = nplps.reconstruct(scene.images, bad, scene.mask, d, refine_lights="position", **KW)
+        truth = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=d, **KW)
+        plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=d, **KW)
+        refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=d, refine_lights="position", **KW)
         m = scene.mask
         err = {k: _angles(r.normals, scene.normals)[m].mean() for k, r in
                (("truth", truth), ("plain", plain), ("refined", refined))}
@@ -117,7 +119,7 @@ def test_both_recovers_intensities_and_positions():
     scene = nplps.make_scene("sphere", n=64, seed=2)
     d = scene.mean_depth
     bad = _wrong_positions(_wrong_intensities(scene.rig, 2, 0.2), 2, d, 0.03)
-    refined = nplps.reconstruct(scene.images, bad, scene.mask, d, refine_lights="both", **KW)
+    refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=d, refine_lights="both", **KW)
     assert _angles(refined.normals, scene.normals)[scene.mask].mean() < 0.5
     phi = _relative(refined.rig.intensities[:, 0]) / _relative(scene.rig.intensities[:, 0])
     assert np.abs(phi - 1).max() < 0.02
@@ -128,8 +130,10 @@ def test_auto_distance_with_wrong_intensities():
     for seed in SEEDS:
         scene = nplps.make_scene("bumps", n=96, seed=seed)
         bad = _wrong_intensities(scene.rig, seed)
-        plain = nplps.reconstruct(scene.images, bad, scene.mask, "auto", iterations=30)
-        refined = nplps.reconstruct(scene.images, bad, scene.mask, "auto", refine_lights="intensity", iterations=30)
+        plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", iterations=30)
+        refined = nplps.reconstruct(
+            scene.images, bad, mask=scene.mask, depth="auto", refine_lights="intensity", iterations=30
+        )
         assert abs(refined.distance.distance[0] / scene.mean_depth - 1) < 0.002
         plain_error, refined_error = (_angles(r.normals, scene.normals)[scene.mask].mean() for r in (plain, refined))
         assert refined_error < 0.1 < plain_error
@@ -138,18 +142,20 @@ def test_auto_distance_with_wrong_intensities():
 def test_positions_with_auto_distance_keep_the_rigs_scale():
     scene = nplps.make_scene("sphere", n=96, seed=0)
     bad = _wrong_positions(scene.rig, 0, scene.mean_depth, 0.03)
-    refined = nplps.reconstruct(scene.images, bad, scene.mask, "auto", refine_lights="position", iterations=30)
+    refined = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth="auto", refine_lights="position", iterations=30
+    )
     # The common scale of the positions about the camera centre is the given rig's.
     scale = np.sum(bad.lights * refined.rig.lights) / np.sum(bad.lights**2)
     assert abs(scale - 1) < 1e-6
-    plain = nplps.reconstruct(scene.images, bad, scene.mask, "auto", iterations=30)
+    plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", iterations=30)
     err = lambda r: _angles(r.normals, scene.normals)[scene.mask].mean()  # noqa: E731
     assert err(refined) < err(plain)
 
 
 def test_fallback_keeps_the_rig_when_refinement_does_not_help():
     scene = nplps.make_scene("saddle", n=48, seed=0)
-    refined = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth,
+    refined = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth,
                                 refine_lights="position", **KW)
     report = refined.refinement
     assert np.isfinite(report.residual_without) and np.isfinite(report.residual_with)
@@ -162,19 +168,23 @@ def test_fallback_keeps_the_rig_when_refinement_does_not_help():
 def test_parallel_baseline_refines_its_own_intensities():
     scene = nplps.make_scene("sphere", n=64, seed=0, camera="pinhole")
     bad = _wrong_intensities(scene.rig, 0)
-    base = nplps.reconstruct_parallel(scene.images, bad, scene.mask, scene.mean_depth, refine_lights="intensity")
-    plain = nplps.reconstruct_parallel(scene.images, bad, scene.mask, scene.mean_depth)
+    base = nplps.reconstruct_parallel(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity"
+    )
+    plain = nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth)
     assert base.refinement is not None and base.refinement.mode == "intensity"
     assert base.history[-1].rms_residual < 0.5 * plain.history[-1].rms_residual
     np.testing.assert_array_equal(base.rig.lights, bad.lights)  # positions are kept
     with pytest.raises(InputError, match="only \"intensity\""):
-        nplps.reconstruct_parallel(scene.images, bad, scene.mask, scene.mean_depth, refine_lights="position")
+        nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="position")
 
 
 def test_refined_rig_is_saved_and_reported(tmp_path):
     scene = nplps.make_scene("sphere", n=32, seed=0)
     bad = _wrong_intensities(scene.rig, 0)
-    result = nplps.reconstruct(scene.images, bad, scene.mask, scene.mean_depth, refine_lights="intensity", **KW)
+    result = nplps.reconstruct(
+        scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", **KW
+    )
     paths = result.save(tmp_path)
     loaded = Rig.load(paths["rig_refined"])
     np.testing.assert_allclose(loaded.intensities, result.rig.intensities)
@@ -186,7 +196,7 @@ def test_refined_rig_is_saved_and_reported(tmp_path):
     assert summary["light_refinement"]["mode"] == "intensity"
     assert any(h.light_change > 0 for h in result.history)
     # Without refinement nothing of this is written.
-    plain = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth)
+    plain = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
     assert plain.refinement is None and plain.input_rig is None and plain.light_changes() == []
     assert "rig_refined" not in plain.save(tmp_path / "plain")
 
@@ -203,17 +213,17 @@ def test_refined_rig_is_saved_and_reported(tmp_path):
 def test_bad_refinement_options(kwargs, message):
     scene = nplps.make_scene("sphere", n=16, seed=0)
     with pytest.raises(InputError, match=message):
-        nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, **kwargs)
+        nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, **kwargs)
 
 
 def test_refinement_needs_four_lights():
     scene = nplps.make_scene("sphere", n=16, seed=0)
     keep = [0, 5, 10]
     with pytest.raises(InputError, match="at least 4 lights"):
-        nplps.reconstruct(scene.images[keep], scene.rig.subset(keep), scene.mask, scene.mean_depth,
+        nplps.reconstruct(scene.images[keep], scene.rig.subset(keep), mask=scene.mask, depth=scene.mean_depth,
                           refine_lights="intensity")
     with pytest.raises(InputError, match="at least 4 lights"):
-        nplps.reconstruct_parallel(scene.images[keep], scene.rig.subset(keep), scene.mask, scene.mean_depth,
+        nplps.reconstruct_parallel(scene.images[keep], scene.rig.subset(keep), mask=scene.mask, depth=scene.mean_depth,
                                    refine_lights="intensity")
 
 
@@ -244,11 +254,18 @@ def test_hehe12_calibrated_intensities_beat_the_parallel_baseline(shared_capture
 
     capture = captures.prepare(captures.load_hehe12(shared_capture("hehe12")), bin_factor=4)
     rig, distance = capture.rig(), 200.0
-    near = nplps.reconstruct(capture.images, rig, capture.mask, distance, iterations=20, refine_lights="intensity")
-    parallel = nplps.reconstruct_parallel(capture.images, rig, capture.mask, distance, refine_lights="intensity")
-    near_errors = [h.relative_error for h in held_out(capture.images, near.rig, capture.mask, distance, iterations=20)]
+    near = nplps.reconstruct(
+        capture.images, rig, mask=capture.mask, depth=distance, iterations=20, refine_lights="intensity"
+    )
+    parallel = nplps.reconstruct_parallel(
+        capture.images, rig, mask=capture.mask, depth=distance, refine_lights="intensity"
+    )
+    near_errors = [
+        h.relative_error for h in held_out(capture.images, near.rig, mask=capture.mask, depth=distance, iterations=20)
+    ]
     parallel_errors = [
-        h.relative_error for h in held_out(capture.images, parallel.rig, capture.mask, distance, method="parallel")
+        h.relative_error
+        for h in held_out(capture.images, parallel.rig, mask=capture.mask, depth=distance, method="parallel")
     ]
     print(f"hehe12 held-out (raw), calibrated intensities: near {np.mean(near_errors):.4f}, "
           f"parallel {np.mean(parallel_errors):.4f}")

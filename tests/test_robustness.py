@@ -18,7 +18,7 @@ from nplps import RigError
 
 def _small_run(_: int = 0) -> float:
     scene = nplps.make_scene("sphere", n=24, seed=0)
-    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, iterations=5)
+    result = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=5)
     return float(np.nanmean(result.depth))
 
 
@@ -44,7 +44,9 @@ def test_forked_child_does_not_hang():
     pytest.fail("nplps hung in a forked child")
 
 
-@pytest.mark.parametrize("method", [m for m in ("fork", "spawn", "forkserver") if m in multiprocessing.get_all_start_methods()])
+@pytest.mark.parametrize(
+    "method", [m for m in ("fork", "spawn", "forkserver") if m in multiprocessing.get_all_start_methods()]
+)
 def test_multiprocessing_pool(method):
     _small_run()
     context = multiprocessing.get_context(method)
@@ -57,7 +59,9 @@ def test_multiprocessing_pool(method):
 def test_huge_iteration_limits_do_not_abort(iterations):
     """The history grows as iterations run: no allocation for the limit up front."""
     scene = nplps.make_scene("sphere", n=24, seed=0)
-    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, scene.mean_depth, iterations=iterations, tol=1e-3)
+    result = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, iterations=iterations, tol=1e-3
+    )
     assert result.converged and len(result.history) < 100
 
 
@@ -86,7 +90,7 @@ def test_degenerate_light_geometry_is_a_rig_error(lights):
     scene = _sphere()
     rig = nplps.Rig(camera=scene.rig.camera, lights=np.array(lights))
     with pytest.raises(RigError, match="cannot determine the normals"):
-        nplps.reconstruct(scene.images[:3], rig, scene.mask, 200.0)
+        nplps.reconstruct(scene.images[:3], rig, mask=scene.mask, depth=200.0)
 
 
 def test_very_distant_lights_are_a_rig_error_for_both_methods():
@@ -95,9 +99,9 @@ def test_very_distant_lights_are_a_rig_error_for_both_methods():
     far[:, 2] = -1e6
     rig = nplps.Rig(camera=scene.rig.camera, lights=far)
     with pytest.raises(RigError, match="cannot determine the normals"):
-        nplps.reconstruct(scene.images, rig, scene.mask, 200.0)
+        nplps.reconstruct(scene.images, rig, mask=scene.mask, depth=200.0)
     with pytest.raises(RigError, match="cannot determine the normals"):
-        nplps.reconstruct_parallel(scene.images, rig, scene.mask, 200.0)
+        nplps.reconstruct_parallel(scene.images, rig, mask=scene.mask, depth=200.0)
 
 
 @pytest.mark.parametrize(
@@ -116,9 +120,9 @@ def test_nothing_fittable_is_an_input_error(case):
     else:
         kwargs = dict(valid=np.zeros(images.shape, dtype=bool))
     with pytest.raises(nplps.InputError, match="no masked pixel has 3 or more usable observations"):
-        nplps.reconstruct(images, scene.rig, scene.mask, 200.0, **kwargs)
+        nplps.reconstruct(images, scene.rig, mask=scene.mask, depth=200.0, **kwargs)
     with pytest.raises(nplps.InputError, match="no masked pixel"):
-        nplps.reconstruct_parallel(images, scene.rig, scene.mask, 200.0, **kwargs)
+        nplps.reconstruct_parallel(images, scene.rig, mask=scene.mask, depth=200.0, **kwargs)
 
 
 def test_mostly_unfitted_result_warns():
@@ -127,7 +131,7 @@ def test_mostly_unfitted_result_warns():
     images[3:] = 0.0  # only 3 lights light anything: fitted, but
     images[:, :20] = 0.0  # most rows see nothing
     with pytest.warns(RuntimeWarning, match="had fewer than 3 usable observations"):
-        nplps.reconstruct(images, scene.rig, scene.mask, 200.0)
+        nplps.reconstruct(images, scene.rig, mask=scene.mask, depth=200.0)
 
 
 @pytest.mark.parametrize(
@@ -150,16 +154,16 @@ def test_bad_arguments_are_input_errors(kwargs, fragment):
     scene = nplps.make_scene("sphere", n=16, seed=0)
     kwargs = {"depth": 200.0, **kwargs}
     with pytest.raises(nplps.InputError, match=fragment):
-        nplps.reconstruct(scene.images, scene.rig, scene.mask, **kwargs)
+        nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, **kwargs)
 
 
 def test_bad_images_scene_size_and_prediction_index_are_input_errors():
     scene = nplps.make_scene("sphere", n=16, seed=0)
     with pytest.raises(nplps.InputError, match="images must be"):
-        nplps.reconstruct(12, scene.rig, scene.mask, 200.0)
+        nplps.reconstruct(12, scene.rig, mask=scene.mask, depth=200.0)
     with pytest.raises(nplps.InputError, match="at least 2"):
         nplps.make_scene("sphere", n=-4)
-    result = nplps.reconstruct(scene.images, scene.rig, scene.mask, 200.0)
+    result = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=200.0)
     with pytest.raises(nplps.InputError, match="indices of the rig's 27 lights"):
         result.predict(lights=[99])
 
@@ -220,12 +224,12 @@ def test_bad_options_name_the_argument(sphere16, kwargs, fragment):
     s = sphere16
     start = time.monotonic()
     with pytest.raises(nplps.InputError, match=fragment) as info:
-        nplps.reconstruct(s.images, s.rig, s.mask, **{"depth": 200.0, **kwargs})
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, **{"depth": 200.0, **kwargs})
     _short_message(info.value)
     assert time.monotonic() - start < 5  # threads=10**6 fails before starting any thread
     if "depth_prior" not in kwargs:
         with pytest.raises(nplps.InputError, match=fragment):
-            nplps.reconstruct_parallel(s.images, s.rig, s.mask, **{"depth": 200.0, **kwargs})
+            nplps.reconstruct_parallel(s.images, s.rig, mask=s.mask, **{"depth": 200.0, **kwargs})
 
 
 def test_threads_bound_is_documented():
@@ -237,27 +241,32 @@ def test_absurd_depth_map_values_name_the_depth(sphere16):
     s = sphere16
     z = s.depth.copy()
     z[8, 8] = 1e300
-    with pytest.raises(nplps.InputError, match=r"depth \(the initial depth map\) is 1e\+300 at vertex \(row 8, column 8\)"):
-        nplps.reconstruct(s.images, s.rig, s.mask, z)
+    with pytest.raises(
+        nplps.InputError, match=r"depth \(the initial depth map\) is 1e\+300 at vertex \(row 8, column 8\)"
+    ):
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=z)
     # the same value at a vertex no masked pixel uses is ignored, like a NaN there
     mask = s.mask.copy()
     mask[:4] = False
     z = s.depth.copy()
     z[0, 0] = 1e300
-    assert mask[:4].sum() == 0 and nplps.reconstruct(s.images, s.rig, mask, z, iterations=2).depth.shape == z.shape
+    assert (
+        mask[:4].sum() == 0
+        and nplps.reconstruct(s.images, s.rig, mask=mask, depth=z, iterations=2).depth.shape == z.shape
+    )
     with pytest.raises(nplps.InputError, match=r"depth_prior is 1e\+300"):
         prior = s.depth.copy()
         prior[8, 8] = 1e300
-        nplps.reconstruct(s.images, s.rig, s.mask, 200.0, depth_prior=prior)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0, depth_prior=prior)
     # a plausible far distance still reaches the solver (which blames the lights' geometry)
     with pytest.raises(nplps.RigError, match="lights cannot determine the normals"):
-        nplps.reconstruct(s.images, s.rig, s.mask, 1e7)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=1e7)
 
 
 def test_parallel_baseline_refuses_auto_depth(sphere16):
     s = sphere16
     with pytest.raises(nplps.InputError, match='depth="auto" is not supported by the parallel-light baseline'):
-        nplps.reconstruct_parallel(s.images, s.rig, s.mask, "auto")
+        nplps.reconstruct_parallel(s.images, s.rig, mask=s.mask, depth="auto")
 
 
 @pytest.mark.parametrize(
@@ -289,7 +298,7 @@ def test_render_bad_arguments_and_unknown_depths(sphere16):
         nplps.render(s.depth, s.rig, np.ones((5, 5)))
     with pytest.raises(nplps.InputError, match="albedo must be an array of real numbers"):
         nplps.render(s.depth, s.rig, "x")
-    with pytest.raises(nplps.InputError, match="rig must be an nplps.Rig, got str"):
+    with pytest.raises(nplps.InputError, match=r"rig must be an nplps\.Rig, got str"):
         nplps.render(s.depth, "x")
     # A NaN vertex: its four pixels are unknown (NaN), not shadowed (0); outside the mask, 0.
     z = s.depth.copy()
@@ -299,34 +308,38 @@ def test_render_bad_arguments_and_unknown_depths(sphere16):
     assert np.isfinite(out).sum() == out.size - 4 * len(out)
     mask = np.ones((16, 16), dtype=bool)
     mask[7, 7] = False
-    out = nplps.render(z, s.rig, 1.0, mask)
+    out = nplps.render(z, s.rig, 1.0, mask=mask)
     assert (out[:, 7, 7] == 0).all() and np.isnan(out[:, 8, 8]).all()
 
 
 def test_predict_and_held_out_bad_arguments(sphere16):
     s = sphere16
-    result = nplps.reconstruct(s.images, s.rig, s.mask, 200.0, iterations=2)
+    result = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=200.0, iterations=2)
     with pytest.raises(nplps.InputError, match="lights must be a list of light indices, got 5"):
         result.predict(lights=5)
     with pytest.raises(nplps.InputError, match=r"got 1 \(float\)"):
         result.predict(lights=[1.0])
-    with pytest.raises(nplps.InputError, match="rig must be an nplps.Rig, got str"):
+    with pytest.raises(nplps.InputError, match=r"rig must be an nplps\.Rig, got str"):
         result.predict(rig="x")
     from nplps.evaluation import held_out
 
     start = time.monotonic()
     with pytest.raises(nplps.InputError, match="5 images were given for 27 lights"):
-        held_out(s.images[:5], s.rig, s.mask, 200.0, lights=[0])
+        held_out(s.images[:5], s.rig, mask=s.mask, depth=200.0, lights=[0])
     with pytest.raises(nplps.InputError, match='method must be "near" or "parallel", got \'bogus\''):
-        held_out(s.images, s.rig, s.mask, 200.0, method="bogus", lights=[0])
-    with pytest.raises(nplps.InputError, match=r"lights must be whole-number indices of the rig's 27 lights \(0 .. 26\), got 99"):
-        held_out(s.images, s.rig, s.mask, 200.0, lights=[99])
+        held_out(s.images, s.rig, mask=s.mask, depth=200.0, method="bogus", lights=[0])
+    with pytest.raises(
+        nplps.InputError, match=r"lights must be whole-number indices of the rig's 27 lights \(0 .. 26\), got 99"
+    ):
+        held_out(s.images, s.rig, mask=s.mask, depth=200.0, lights=[99])
     assert time.monotonic() - start < 5  # refused before any reconstruction
 
 
 def test_rig_subset_and_load_bad_arguments(sphere16):
     rig = sphere16.rig
-    with pytest.raises(nplps.InputError, match=r"indices: 99 is not a light of the rig \(its 27 lights are -27 .. 26\)"):
+    with pytest.raises(
+        nplps.InputError, match=r"indices: 99 is not a light of the rig \(its 27 lights are -27 .. 26\)"
+    ):
         rig.subset([99])
     with pytest.raises(nplps.InputError, match="indices must be a list of whole-number light indices"):
         rig.subset([1.5])

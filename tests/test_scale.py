@@ -78,11 +78,11 @@ CASES = _cases()
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
 def test_multigrid_and_coarse_to_fine_match_the_direct_solver(case, angular_error):
     label, images, rig, mask, depth, truth, extra = case
-    oracle = nplps.reconstruct(images, rig, mask, depth, solver="direct", levels=1, **extra)
+    oracle = nplps.reconstruct(images, rig, mask=mask, depth=depth, solver="direct", levels=1, **extra)
     depth_range = np.nanmax(oracle.depth) - np.nanmin(oracle.depth)
     oracle_error = angular_error(oracle.normals, truth.normals, mask).mean()
     for mode, options in MODES.items():
-        r = nplps.reconstruct(images, rig, mask, depth, **options, **extra)
+        r = nplps.reconstruct(images, rig, mask=mask, depth=depth, **options, **extra)
         normal_diff = angular_error(r.normals, oracle.normals, mask).mean()
         depth_diff = np.nanmax(np.abs(r.depth - oracle.depth)) / depth_range
         error = angular_error(r.normals, truth.normals, mask).mean()
@@ -104,12 +104,12 @@ def test_multigrid_and_coarse_to_fine_match_the_direct_solver(case, angular_erro
 
 def test_auto_choice_and_defaults(scene):
     small = scene("bumps", n=48)
-    r = nplps.reconstruct(small.images, small.rig, small.mask, small.mean_depth)
+    r = nplps.reconstruct(small.images, small.rig, mask=small.mask, depth=small.mean_depth)
     # 48 x 48: one level (below 2 x 128 pixels), direct solver (no CG iterations).
     assert {h.level for h in r.history} == {0}
     assert all(h.inner_iterations == 0 for h in r.history)
     big = nplps.make_scene("sphere", n=300)
-    r = nplps.reconstruct(big.images, big.rig, big.mask, big.mean_depth)
+    r = nplps.reconstruct(big.images, big.rig, mask=big.mask, depth=big.mean_depth)
     # 300 x 300: a coarse level of 150 x 150; the full resolution has > 40 000 vertices.
     assert {h.level for h in r.history} == {0, 1}
     assert any(h.inner_iterations > 0 for h in r.history if h.level == 0)
@@ -119,7 +119,7 @@ def test_auto_choice_and_defaults(scene):
 def test_progress_reports_levels(scene):
     s = scene("sphere", n=64)
     seen = []
-    nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, levels=2, progress=seen.append)
+    nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, levels=2, progress=seen.append)
     assert {it.level for it in seen} == {0, 1}
     assert seen[-1].level == 0
 
@@ -128,7 +128,7 @@ def test_progress_reports_levels(scene):
 def test_bad_solver_options(bad, scene):
     s = scene("sphere", n=16)
     with pytest.raises(InputError):
-        nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth, **bad)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, **bad)
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
@@ -138,7 +138,7 @@ def test_auto_distance_on_the_coarsest_level(camera):
     0.3 % on this scene, since its few-iteration evaluations leave the residual curve rough)."""
     for seed in range(3):
         s = nplps.make_scene("bumps", n=256, seed=seed, noise=0.01, camera=camera)
-        r = nplps.reconstruct(s.images, s.rig, s.mask, depth="auto")
+        r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto")
         assert {h.level for h in r.history} == {0, 1}
         estimate = r.distance.distance[0]
         print(f"\n{camera} seed {seed}: estimate {estimate:.4f}, true {s.mean_depth:.4f}")
@@ -155,9 +155,9 @@ def test_multigrid_iteration_limit_warns(monkeypatch, scene):
     def capped(*args, **kwargs):
         out = real(*args, **kwargs)
         limit = api._core.MULTIGRID_MAX_ITERATIONS
-        out["history"] = [h[:5] + (limit,) for h in out["history"]]
+        out["history"] = [(*h[:5], limit) for h in out["history"]]
         return out
 
     monkeypatch.setattr(api._core, "reconstruct", capped)
     with pytest.warns(RuntimeWarning, match="conjugate-gradient"):
-        nplps.reconstruct(s.images, s.rig, s.mask, s.mean_depth)
+        nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth)

@@ -9,46 +9,73 @@ Quick start::
 
     import nplps
     rig = nplps.Rig.load("rig.json")
-    result = nplps.reconstruct(["img01.png", ...], rig, mask="mask.png", depth=200.0)
+    result = nplps.reconstruct(["img01.png", ...], rig, depth=200.0, mask="mask.png")
     result.save("out/")
+
+The public names, by layer:
+
+- reconstructing: :func:`reconstruct`, :func:`reconstruct_parallel`, :func:`render`,
+  :func:`make_scene`, :func:`light_changes`; calibrating: :func:`calibrate_spheres`,
+  :func:`calibrate_intensities`;
+- what they return: :class:`Reconstruction` (with :class:`Iteration`,
+  :class:`DistanceEstimate`, :class:`LightRefinement`), :class:`Scene`,
+  :class:`~nplps.evaluation.HeldOut`, :class:`SphereCalibration` and :class:`IntensityCalibration`
+  (with :class:`SphereReport`, :class:`LightReport`);
+- the rig: :class:`Rig`;
+- errors: :class:`NplpsError` and its subclasses;
+- submodules: :mod:`~nplps.io`, :mod:`~nplps.preprocess`, :mod:`~nplps.captures`,
+  :mod:`~nplps.export`, :mod:`~nplps.evaluation`, :mod:`~nplps.calibrate` and
+  :mod:`~nplps.types` (the ``Literal`` aliases of the string options, such as ``Status``).
 """
 
-from . import captures, evaluation, export, io, preprocess
+from . import calibrate, captures, evaluation, export, io, preprocess, types
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
+from .calibrate import (
+    IntensityCalibration,
+    LightReport,
+    SphereCalibration,
+    SphereReport,
+    calibrate_intensities,
+    calibrate_spheres,
+)
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
-from .reconstruction import Iteration, LightRefinement, Reconstruction, light_changes
+from .evaluation import HeldOut
+from .reconstruction import DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
 from .rig import Rig
 from .synth import Scene, make_scene
-from . import calibrate
-from .calibrate import IntensityCalibration, SphereCalibration, calibrate_intensities, calibrate_spheres
 
 __all__ = [
-    "__version__",
-    "Rig",
-    "Reconstruction",
-    "LightRefinement",
-    "light_changes",
+    "DistanceEstimate",
+    "HeldOut",
+    "InputError",
+    "IntensityCalibration",
     "Iteration",
+    "LightRefinement",
+    "LightReport",
+    "MemoryLimitError",
+    "NplpsError",
+    "OutputExistsError",
+    "Reconstruction",
+    "Rig",
+    "RigError",
     "Scene",
+    "SolverError",
+    "SphereCalibration",
+    "SphereReport",
+    "__version__",
+    "calibrate",
+    "calibrate_intensities",
+    "calibrate_spheres",
+    "captures",
+    "evaluation",
+    "export",
+    "io",
+    "light_changes",
     "make_scene",
+    "preprocess",
     "reconstruct",
     "reconstruct_parallel",
     "render",
-    "NplpsError",
-    "InputError",
-    "RigError",
-    "SolverError",
-    "MemoryLimitError",
-    "OutputExistsError",
-    "io",
-    "export",
-    "preprocess",
-    "captures",
-    "evaluation",
-    "calibrate",
-    "calibrate_spheres",
-    "calibrate_intensities",
-    "SphereCalibration",
-    "IntensityCalibration",
+    "types",
 ]

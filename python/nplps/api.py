@@ -1,11 +1,18 @@
-"""The Python API: reconstruct, the parallel-light baseline, and rendering."""
+"""The Python API: :func:`reconstruct`, the parallel-light baseline :func:`reconstruct_parallel`,
+and :func:`render`.
+
+The images and the rig are positional; every option is keyword-only, and ``depth`` (the working
+distance, an initial depth map or ``"auto"``) is required. String options are typed with the
+:data:`~typing.Literal` aliases of :mod:`nplps.types`.
+"""
 
 from __future__ import annotations
 
 import math
 import sys
 import warnings
-from typing import Any, Callable, Sequence, Union
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -14,10 +21,9 @@ from .errors import InputError
 from .io import load_mask, load_stack
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
+from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting
 
-Images = Union[np.ndarray, Sequence[Any]]
-Depth = Union[float, np.ndarray]
-Progress = Union[None, bool, Callable[[Iteration], Any]]
+__all__ = ["MAX_DEPTH_RATIO", "MAX_THREADS", "reconstruct", "reconstruct_parallel", "render"]
 
 #: Most worker threads (``threads``). Far more than any machine's cores: a larger number is a
 #: mistake, and merely starting a million threads takes many seconds before anything is computed.
@@ -33,7 +39,7 @@ MAX_DEPTH_RATIO = 1e6
 
 
 def _prepare(
-    images: Images, rig: Rig, mask: Any, depth: Depth | None, color: bool | None = None
+    images: Images, rig: Rig, mask: Mask | None, depth: Depth | None, color: bool | None = None
 ) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
     _check_rig(rig)
     if not (color is None or isinstance(color, (bool, np.bool_))):
@@ -43,7 +49,9 @@ def _prepare(
         raise InputError("color=True needs RGB images (k, H, W, 3)")
     k, h, w = stack.shape[:3]
     if k != rig.n_lights:
-        raise InputError(f"{k} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order")
+        raise InputError(
+            f"{k} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order"
+        )
     mask_arr = np.ascontiguousarray(load_mask(mask, (h, w)))
     if depth is None:
         raise InputError(
@@ -93,7 +101,7 @@ def _rig_size(rig: Rig, shape: tuple[int, int]) -> float:
     footprint of ``shape`` (H, W) pixels; 0 when there is neither (a pinhole camera with only
     directional lights: then no depth is too far)."""
     sizes = [0.0]
-    points = rig.lights[~rig.directional]  # type: ignore[index]
+    points = rig.lights[~rig.directional]  # type: ignore[operator]
     if len(points):
         sizes.append(float(np.linalg.norm(points, axis=1).max()))
     if not rig.is_pinhole:
@@ -130,7 +138,7 @@ def _check_depth_values(
 def _auto_start(rig: Rig) -> float:
     """A starting plane for the distance search, well beyond the point lights (the search sets
     the gauge itself)."""
-    points = rig.lights[~rig.directional]  # type: ignore[index]
+    points = rig.lights[~rig.directional]  # type: ignore[operator]
     if len(points) == 0:
         return 1.0
     spread = float(np.ptp(points, axis=0).max()) or 1.0
@@ -147,7 +155,7 @@ def _thresholds(dark: float | None, saturation: float | None, levels: int | None
     return _real(dark, "dark"), _real(saturation, "saturation")
 
 
-def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, np.ndarray | None]:
+def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, Any]:
     """Averages RGB to grey when ``color`` is False; observations with a saturated channel are
     returned as missing (the grey average would hide them)."""
     if stack.ndim != 4 or color is not False:
@@ -244,7 +252,13 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
         raise InputError(f"progress must be None, True or a callable, got {progress!r}")
 
     def call(
-        iteration: int, depth_change: float, rms: float, elapsed: float, level: int = 0, inner: int = 0, light: float = 0.0
+        iteration: int,
+        depth_change: float,
+        rms: float,
+        elapsed: float,
+        level: int = 0,
+        inner: int = 0,
+        light: float = 0.0,
     ) -> None:
         user(Iteration(iteration, depth_change, rms, elapsed, level, inner, light))
 
@@ -254,15 +268,16 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
 def reconstruct(
     images: Images,
     rig: Rig,
-    mask: Any = None,
-    depth: Depth | None = None,
+    *,
+    depth: Depth,
+    mask: Mask | None = None,
     iterations: int = 10,
     tol: float = 1e-6,
     progress: Progress = None,
     dark: float | None = None,
     saturation: float | None = None,
-    weighting: str = "image",
-    robust: str | None = None,
+    weighting: Weighting = "image",
+    robust: Robust | None = None,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
@@ -270,83 +285,151 @@ def reconstruct(
     depth_guess: float | None = None,
     depth_prior: np.ndarray | None = None,
     prior_weight: float = 1.0,
-    solver: str = "auto",
+    solver: Solver = "auto",
     levels: int | None = None,
-    refine_lights: str | None = None,
+    refine_lights: RefineLights | None = None,
     light_prior_weight: float | None = None,
     max_memory: float | str | None = None,
 ) -> Reconstruction:
-    """Reconstructs a surface from k images taken under k near lights.
+    """Reconstruct a surface from k images taken under k near lights.
 
-    Args:
-        images: (k, H, W) or (k, H, W, 3) array, or k image files / arrays (8/16-bit PNG, TIFF,
-            JPEG, ...), one per light in the rig's order. Integer images are scaled to [0, 1].
-        rig: the :class:`~nplps.Rig` (camera and lights).
-        mask: (H, W) boolean array or mask image (non-zero = reconstruct); None: every pixel.
-        depth: the working distance, an (H+1, W+1) initial vertex depth map, or "auto". It sets
-            each connected region's gauge: the arithmetic mean vertex depth (orthographic camera)
-            or the geometric mean vertex depth (pinhole camera); the surface starts there.
-            Required: near-light reconstruction depends on it. "auto" estimates each region's
-            gauge by minimizing the photometric residual (see ``result.distance``), searching
-            ``depth_range`` (near, far), or ``depth_guess / 2`` to ``depth_guess * 2``, or a range
-            derived from the lights. A distance, or a map value at a vertex the mask uses, more
-            than :data:`MAX_DEPTH_RATIO` (a million) times the rig's size is refused (InputError).
-        iterations: maximum number of local/global iterations.
-        tol: stop when the largest depth change of an iteration is at most ``tol`` times the
-            lateral size of the image footprint.
-        progress: None (silent), True (a line per iteration on stderr) or a callable that gets an
-            :class:`~nplps.Iteration` after every iteration (raise in it to stop).
-        dark: observations at or below this value count as shadowed and are left out of the fits
-            (default: one level above black for integer images, 0 for float images).
-        saturation: observations at or above it count as saturated and are left out (default:
-            the top level for integer images, none for float images).
-        weighting: "image" (least squares in image units, default) or "paper" (the paper's Eq. 6).
-        robust: None, "cauchy" or "tukey": iteratively reweighted fits that resist highlights
-            and cast shadows.
-        color: None (RGB images give RGB albedo), True (require RGB) or False (average to grey).
-        valid: optional (k, H, W) booleans; False marks observations to leave out.
-        threads: worker threads (None: all cores), at most :data:`MAX_THREADS` (1024).
-        depth_range, depth_guess: where ``depth="auto"`` searches.
-        depth_prior: an optional (H+1, W+1) prior depth map (NaN where unknown), e.g. from a
-            coarse scan, fused in the global step with ``prior_weight`` relative to the facet
-            terms (the prior acts on depth, or on log-depth for a pinhole camera). ``depth`` keeps
-            its meaning (start and gauge).
-        solver: how the global step's linear system is solved: "direct" (sparse Cholesky,
-            exact; its memory grows faster than the pixels), "multigrid" (conjugate gradients
-            with a multigrid preconditioner: linear time and memory) or "auto" (direct up to
-            40 000 mesh vertices, about 200 x 200 pixels, multigrid above).
-        levels: coarse-to-fine pyramid levels. The images are halved (2 x 2 averages, the
-            camera adjusted exactly) ``levels - 1`` times; the coarsest level converges from the
-            starting plane and each finer level starts from the level below, so the full
-            resolution needs only a few iterations. ``iterations`` and ``tol`` apply per level.
-            None (default): halve while the longer side stays at least 128 pixels; 1: full
-            resolution only. With ``depth="auto"`` the distance search runs on the coarsest
-            level.
-        refine_lights: self-calibration of the lights from the images: None (the rig is
-            trusted), "intensity" (a factor per light; their geometric mean stays the rig's),
-            "position" (each point light's position, held toward the rig's by
-            ``light_prior_weight``) or "both". Each iteration takes one damped Gauss-Newton step
-            on the lights with the normals eliminated per pixel (see docs/method.md). The result's
-            ``rig`` holds the refined lights, ``input_rig`` the given ones, ``refinement`` the
-            report (fallback, conditioning, standard errors). When positions are refined the
-            first level also runs without refinement, and the refinement is dropped (reported
-            as ``fell_back``) unless it lowers the photometric residual. With ``depth="auto"``
-            the distance search refines intensities only, and the common scale of the light
-            positions stays the rig's (it trades against the distance).
-        light_prior_weight: weight ``w`` of the prior ``w/2 sum |p - p0|^2 / D^2`` (D: the
-            working distance) against the squared residual in units of the noise variance
-            (estimated from the fits): a Gaussian prior of standard deviation ``D / sqrt(w)`` on
-            each coordinate of a light. Default 1000 (about 3 % of D); smaller trusts the
-            images more.
-        max_memory: memory limit of the computation, in bytes (a number, or a string such as
-            ``"8 GB"`` or ``"512MiB"``; ``float("inf")``: no limit). A reconstruction whose
-            estimated peak memory is above it is refused with :class:`~nplps.MemoryLimitError`
-            (also a ``MemoryError``) before any large allocation. None (default): 80 % of the
-            memory available to the process (the least of the system's available memory, a
-            cgroup limit and an address-space limit).
+    Alternates the paper's local step (each pixel's normal and albedo fitted under the near-light
+    model at the current surface) and global step (one depth map fitted to all the facet planes)
+    until the depths converge; see docs/method.md.
 
-    Returns:
-        A :class:`~nplps.Reconstruction`.
+    Parameters
+    ----------
+    images : array_like or sequence of str or path-like
+        A (k, H, W) or (k, H, W, 3) array, or k image files or arrays (8/16-bit PNG, TIFF, JPEG,
+        ...), one per light in the rig's order. Integer images are scaled to [0, 1]; RGB images
+        give an RGB albedo (see `color`).
+    rig : Rig
+        The camera and the lights (:class:`~nplps.Rig`).
+    depth : float, array_like or "auto"
+        Required, keyword-only: near-light reconstruction depends on it (10 % off costs about 4
+        degrees of normal error). The working distance, an (H+1, W+1) initial vertex depth map,
+        or ``"auto"``. It sets each connected region's gauge: the arithmetic mean vertex depth
+        (orthographic camera) or the geometric mean vertex depth (pinhole camera); the surface
+        starts there. ``"auto"`` estimates each region's gauge by minimizing the photometric
+        residual (see ``result.distance``), searching `depth_range`, or ``depth_guess / 2`` to
+        ``depth_guess * 2``, or a range derived from the lights. A distance, or a map value at a
+        vertex the mask uses, more than :data:`MAX_DEPTH_RATIO` (a million) times the rig's size
+        is refused.
+    mask : array_like, str or path-like, optional
+        (H, W) boolean array or mask image (non-zero = reconstruct). Default: every pixel.
+    iterations : int, default 10
+        Most local/global iterations (per pyramid level).
+    tol : float, default 1e-6
+        Stop when the largest depth change of an iteration is at most `tol` times the lateral
+        size of the image footprint.
+    progress : None, bool or callable, optional
+        None or False (silent), True (a line per iteration on stderr) or a callable that gets an
+        :class:`~nplps.Iteration` after every iteration (raise in it to stop).
+    dark : float, optional
+        Observations at or below it count as shadowed and are left out of the fits. Default: one
+        level above black for integer images, 0 for floating-point images.
+    saturation : float, optional
+        Observations at or above it count as saturated and are left out. Default: the top level
+        for integer images, none for floating-point images.
+    weighting : {"image", "paper"}, default "image"
+        Least squares in image units, or the paper's Eq. 6.
+    robust : {None, "cauchy", "tukey"}, optional
+        Iteratively reweighted fits that resist highlights and cast shadows. Default: plain
+        least squares.
+    color : bool, optional
+        None: RGB images give an RGB albedo; True: require RGB images; False: average them to
+        grey (an observation with a saturated channel is left out).
+    valid : array_like of bool, optional
+        (k, H, W) flags; False marks an observation to leave out.
+    threads : int, optional
+        Worker threads, at most :data:`MAX_THREADS` (1024). Default: all cores.
+    depth_range : (float, float), optional
+        (near, far) range that ``depth="auto"`` searches.
+    depth_guess : float, optional
+        ``depth="auto"`` searches ``depth_guess / 2`` to ``depth_guess * 2``.
+    depth_prior : array_like, optional
+        An (H+1, W+1) prior depth map (NaN where unknown), e.g. from a coarse scan, fused in the
+        global step with `prior_weight` relative to the facet terms (on depth, or on log-depth
+        for a pinhole camera). `depth` keeps its meaning (start and gauge).
+    prior_weight : float, default 1.0
+        Weight of `depth_prior`.
+    solver : {"auto", "direct", "multigrid"}, default "auto"
+        How the global step's linear system is solved: "direct" (sparse Cholesky, exact; its
+        memory grows faster than the pixels), "multigrid" (conjugate gradients with a multigrid
+        preconditioner: linear time and memory) or "auto" (direct up to 40 000 mesh vertices,
+        about 200 x 200 pixels, multigrid above).
+    levels : int, optional
+        Coarse-to-fine pyramid levels. The images are halved (2 x 2 averages, the camera adjusted
+        exactly) ``levels - 1`` times; the coarsest level converges from the starting plane and
+        each finer level starts from the level below. Default: halve while the longer side stays
+        at least 128 pixels; 1: full resolution only. With ``depth="auto"`` the distance search
+        runs on the coarsest level.
+    refine_lights : {None, "intensity", "position", "both"}, optional
+        Self-calibration of the lights from the images. None: the rig is trusted; "intensity": a
+        factor per light (their geometric mean stays the rig's); "position": each point light's
+        position, held toward the rig's by `light_prior_weight`; "both". Each iteration takes one
+        damped Gauss-Newton step on the lights with the normals eliminated per pixel. When
+        positions are refined the first level also runs without refinement, and the refinement
+        is dropped (``refinement.fell_back``) unless it lowers the photometric residual. With
+        ``depth="auto"`` the distance search refines intensities only.
+    light_prior_weight : float, optional
+        Weight ``w`` of the prior ``w/2 sum |p - p0|^2 / D^2`` (D: the working distance) against
+        the squared residual in units of the noise variance: a Gaussian prior of standard
+        deviation ``D / sqrt(w)`` on each coordinate of a light. Default 1000 (about 3 % of D);
+        smaller trusts the images more.
+    max_memory : float or str, optional
+        Memory limit in bytes (a number, or a string such as ``"8 GB"`` or ``"512MiB"``;
+        ``float("inf")``: no limit). Default: 80 % of the memory available to the process (the
+        least of the system's available memory, a cgroup limit and an address-space limit).
+
+    Returns
+    -------
+    Reconstruction
+        Vertex depths, normals (the mesh's; the local fits are ``fit_normals``), albedo,
+        residuals, how the run ended (``status``) and, with ``depth="auto"`` or
+        `refine_lights`, the distance estimate and the refined rig.
+
+    Raises
+    ------
+    TypeError
+        `depth` is missing, or an argument after `rig` is passed by position.
+    InputError
+        An argument is invalid (the message names it); also a ``ValueError``.
+    RigError
+        The lights cannot determine a normal anywhere (collinear, coincident or very distant).
+    MemoryLimitError
+        The estimated peak memory is above `max_memory` (checked before any large allocation).
+    SolverError
+        The surface reached a light, or the solver failed on valid input.
+
+    Warns
+    -----
+    RuntimeWarning
+        The run diverged or is degenerate (more than half of the masked pixels could not be
+        fitted), pixel values inside the mask are negative, or the multigrid solver stopped at
+        its iteration limit.
+
+    See Also
+    --------
+    reconstruct_parallel : the conventional parallel-light baseline.
+    nplps.evaluation.held_out : check a result without ground truth.
+
+    Notes
+    -----
+    Pixels with fewer than 3 usable observations keep their shape; they are counted in
+    ``result.unfitted``. ``result.status`` is "converged", "stalled", "diverged" or
+    "degenerate", with the numbers in ``result.status_reason``. Ctrl-C stops a run within a
+    fraction of a second (``KeyboardInterrupt``, no partial result).
+
+    Examples
+    --------
+    >>> import nplps
+    >>> scene = nplps.make_scene("sphere", n=32)
+    >>> result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
+    >>> result.status
+    'converged'
+    >>> result.normals.shape, result.depth.shape
+    ((32, 32, 3), (33, 33))
     """
     pyramid_levels = _levels(levels)
     refine_mode = _refine_choice(refine_lights)
@@ -378,7 +461,10 @@ def reconstruct(
     if depth_prior is not None:
         prior = _real_array(depth_prior, "depth_prior")
         if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
-            raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
+            raise InputError(
+                f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, "
+                f"got {prior.shape}"
+            )
         _check_depth_values(prior, mask_arr, rig, mask_arr.shape, "depth_prior")
     out = _core.reconstruct(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
@@ -401,26 +487,66 @@ def reconstruct(
 def reconstruct_parallel(
     images: Images,
     rig: Rig,
-    mask: Any = None,
-    depth: Depth | None = None,
+    *,
+    depth: float | np.ndarray,
+    mask: Mask | None = None,
     dark: float | None = None,
     saturation: float | None = None,
-    robust: str | None = None,
+    robust: Robust | None = None,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
-    refine_lights: str | None = None,
+    refine_lights: RefineLights | None = None,
     max_memory: float | str | None = None,
 ) -> Reconstruction:
     """The conventional baseline: parallel-light photometric stereo, then the same integration.
 
     Each point light becomes one direction, from the centroid of the initial surface (given by
-    ``depth`` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
-    theirs. Useful to see what the near-light model gains. Options as in :func:`reconstruct`;
-    ``refine_lights="intensity"`` refines the intensities under this model (to convergence, the
-    model not depending on the depths); the result's ``rig`` then carries them. ``depth="auto"``
-    is not supported (the parallel-light model cannot tell the distance): pass the distance
-    that ``reconstruct(..., depth="auto")`` found (``result.distance``) or its depth map.
+    `depth` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
+    theirs. Useful to see what the near-light model gains.
+
+    Parameters
+    ----------
+    images : array_like or sequence of str or path-like
+        As in :func:`reconstruct`.
+    rig : Rig
+        The camera and the lights.
+    depth : float or array_like
+        Required, keyword-only: the working distance or an (H+1, W+1) initial depth map, as in
+        :func:`reconstruct`. ``"auto"`` is not supported (the parallel-light model cannot tell the
+        distance): pass the distance that ``reconstruct(..., depth="auto")`` found
+        (``result.distance``) or its depth map.
+    mask, dark, saturation, robust, color, valid, threads, max_memory
+        As in :func:`reconstruct`.
+    refine_lights : {None, "intensity"}, optional
+        "intensity" refines the intensities under this model (to convergence: the model does not
+        depend on the depths); the result's ``rig`` then carries them.
+
+    Returns
+    -------
+    Reconstruction
+        With ``method == "parallel"``.
+
+    Raises
+    ------
+    TypeError
+        `depth` is missing, or an argument after `rig` is passed by position.
+    InputError
+        An argument is invalid, ``depth="auto"``, or `refine_lights` is "position" or "both".
+    RigError, MemoryLimitError, SolverError
+        As in :func:`reconstruct`.
+
+    See Also
+    --------
+    reconstruct : the near-light method.
+
+    Examples
+    --------
+    >>> import nplps
+    >>> scene = nplps.make_scene("sphere", n=32)
+    >>> base = nplps.reconstruct_parallel(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
+    >>> base.method
+    'parallel'
     """
     if isinstance(depth, str) and depth == "auto":
         raise InputError(
@@ -429,7 +555,10 @@ def reconstruct_parallel(
         )
     refine_mode = _refine_choice(refine_lights)
     if refine_mode not in ("none", "intensity"):
-        raise InputError(f'the parallel-light baseline can refine only "intensity" (it has no light positions), got {refine_lights!r}')
+        raise InputError(
+            'the parallel-light baseline can refine only "intensity" (it has no light positions), '
+            f"got {refine_lights!r}"
+        )
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
     stack, missing = _channels(stack, color, saturation_)
@@ -453,16 +582,52 @@ def reconstruct_parallel(
     return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 
 
-def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: np.ndarray | None = None) -> np.ndarray:
-    """Images (k, H, W), or (k, H, W, 3) for an (H, W, 3) albedo, of the surface with vertex
-    depths ``depth`` (H+1, W+1) under ``rig``.
+def render(
+    depth: np.ndarray,
+    rig: Rig,
+    albedo: float | np.ndarray = 1.0,
+    *,
+    mask: Mask | None = None,
+) -> np.ndarray:
+    """Render the images of a surface under a rig by the solver's image model.
 
-    Each pixel is the quad between its 4 corner vertices, with the quad's mesh normal and its
-    centre c as the surface point: ``I = albedo * intensity * max(0, n . beta(c))`` with the
-    light's ``beta`` (point light: ``(p - c) / |p - c|^3`` times the LED factor; directional: its
-    direction); attached shadows clipped at 0. Pixels outside ``mask`` are 0. Pixels inside
-    ``mask`` with a non-finite corner depth (NaN: unknown) are NaN in every image: their surface
-    is unknown, which must not pass for a shadow.
+    Each pixel is the quad between its 4 corner vertices, with the quad's mesh normal ``n`` and
+    its centre ``c`` as the surface point: ``I = albedo * intensity * max(0, n . beta(c))`` with
+    the light's ``beta`` (point light: ``(p - c) / |p - c|^3`` times the LED factor; directional:
+    its direction); attached shadows are clipped at 0.
+
+    Parameters
+    ----------
+    depth : array_like
+        (H+1, W+1) vertex depths.
+    rig : Rig
+        The camera and the lights.
+    albedo : float or array_like, default 1.0
+        A number, R, G, B, an (H, W) map or an (H, W, 3) map.
+    mask : array_like, str or path-like, optional
+        (H, W) pixels to render (non-zero) or a mask image. Default: every pixel.
+
+    Returns
+    -------
+    numpy.ndarray
+        (k, H, W) images, or (k, H, W, 3) for an RGB albedo. Pixels outside `mask` are 0; pixels
+        inside with a non-finite corner depth (NaN: unknown) are NaN in every image, so an
+        unknown surface does not pass for a shadow.
+
+    Raises
+    ------
+    InputError
+        `depth` or `albedo` has the wrong shape or type.
+    MemoryLimitError
+        The images would not fit in memory.
+
+    Examples
+    --------
+    >>> import numpy as np, nplps
+    >>> scene = nplps.make_scene("sphere", n=16)
+    >>> images = nplps.render(scene.depth, scene.rig, scene.albedo, mask=scene.mask)
+    >>> images.shape == scene.images.shape
+    True
     """
     _check_rig(rig)
     z = _real_array(depth, "depth")
@@ -470,12 +635,12 @@ def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: 
         raise InputError(f"depth must be an (H+1, W+1) vertex depth map, got shape {z.shape}")
     shape = (z.shape[0] - 1, z.shape[1] - 1)
     a = _real_array(albedo, "albedo")
-    target = shape + (3,) if a.ndim == 3 or (a.ndim == 1 and a.shape == (3,)) else shape
+    target = (*shape, 3) if a.ndim == 3 or (a.ndim == 1 and a.shape == (3,)) else shape
     try:
         rho = np.ascontiguousarray(np.broadcast_to(a, target))
     except ValueError:
         raise InputError(
-            f"albedo must be a number, R, G, B, or a map of the image's shape {shape} (or {shape + (3,)}), "
+            f"albedo must be a number, R, G, B, or a map of the image's shape {shape} (or {(*shape, 3)}), "
             f"got shape {a.shape}"
         ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
@@ -584,7 +749,9 @@ def _float_text(text: str, original: str, name: str) -> float:
     try:
         return float(text)
     except ValueError:
-        raise InputError(f'{name} must be a number of bytes or a size such as "8 GB" or "512 MiB", got {original!r}') from None
+        raise InputError(
+            f'{name} must be a number of bytes or a size such as "8 GB" or "512 MiB", got {original!r}'
+        ) from None
 
 
 def _whole(value: Any, name: str, minimum: int) -> int:

@@ -9,6 +9,8 @@ files and may not be overwritten is :class:`OutputExistsError`, also a ``FileExi
 
 import errno
 
+__all__ = ["InputError", "MemoryLimitError", "NplpsError", "OutputExistsError", "RigError", "SolverError"]
+
 
 class NplpsError(Exception):
     """Base class of every error nplps raises on purpose."""
@@ -37,8 +39,17 @@ class MemoryLimitError(NplpsError, MemoryError):
 
 
 class OutputExistsError(NplpsError, FileExistsError):
-    """An output directory is not empty and overwriting was not asked for (``overwrite=True``,
-    ``--overwrite`` on the command line). ``filename`` is the directory; the message names it."""
+    """An output directory is not empty and overwriting was not asked for.
+
+    Overwriting is asked for with ``overwrite=True`` (``--overwrite`` on the command line).
+
+    Parameters
+    ----------
+    message : str
+        The message; it names the directory.
+    directory : str
+        The directory, also the exception's ``filename``.
+    """
 
     def __init__(self, message: str, directory: str) -> None:
         super().__init__(errno.EEXIST, message, directory)

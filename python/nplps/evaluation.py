@@ -8,7 +8,8 @@ captures.
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -17,42 +18,102 @@ from .errors import InputError
 from .io import load_stack
 from .reconstruction import Reconstruction
 from .rig import Rig
+from .types import Images, Mask, Method
+
+__all__ = ["HeldOut", "held_out"]
 
 
 class HeldOut(NamedTuple):
-    """The held-out error of one light."""
+    """The held-out error of one light (an entry of :func:`held_out`'s list).
+
+    Attributes
+    ----------
+    light : int
+        Index of the left-out light.
+    relative_error : float
+        ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
+        the prediction finite.
+    shape_error : float
+        The same after scaling the prediction by the least-squares `gain`: the error of the
+        shading's shape, free of the left-out light's intensity calibration, which no
+        reconstruction from the other lights can know.
+    gain : float
+        The gain ``a = <prediction, image> / <prediction, prediction>``.
+    result : Reconstruction
+        The reconstruction made without this light.
+    prediction : numpy.ndarray
+        The predicted image.
+    """
 
     light: int
-    #: ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
-    #: the prediction finite.
     relative_error: float
-    #: The same after scaling the prediction by the least-squares gain ``a`` (reported below):
-    #: the error of the shading's shape, free of the left-out light's intensity calibration,
-    #: which no reconstruction from the other lights can know.
     shape_error: float
-    #: The gain ``a = <prediction, image> / <prediction, prediction>``.
     gain: float
-    #: The reconstruction made without this light.
     result: Reconstruction
-    #: The predicted image.
     prediction: np.ndarray
 
 
 def held_out(
-    images: Any,
+    images: Images,
     rig: Rig,
-    mask: Any = None,
-    depth: Any = None,
-    method: str = "near",
+    *,
+    depth: float | np.ndarray,
+    mask: Mask | None = None,
+    method: Method = "near",
     lights: list[int] | None = None,
     dark: float | None = None,
     saturation: float | None = None,
     **options: Any,
 ) -> list[HeldOut]:
-    """Leaves each light in ``lights`` (default: all) out in turn and reports the relative error
-    of its predicted image. ``method`` is "near" (nplps) or "parallel" (the baseline); other
-    options go to :func:`nplps.reconstruct`. ``depth`` must be a distance or a depth map (estimate
-    it first with ``depth="auto"`` on all lights: leaving a light out should not move it).
+    """Leave each light out in turn and measure how well the rest predict its image.
+
+    Parameters
+    ----------
+    images : array_like or sequence of str or path-like
+        As in :func:`nplps.reconstruct`.
+    rig : Rig
+        The camera and all the lights.
+    depth : float or array_like
+        Required, keyword-only: a distance or an (H+1, W+1) depth map, as in
+        :func:`nplps.reconstruct`. ``"auto"`` is refused: estimate it first with
+        ``reconstruct(..., depth="auto")`` on all lights (leaving a light out should not move it).
+    mask : array_like, str or path-like, optional
+        As in :func:`nplps.reconstruct`.
+    method : {"near", "parallel"}, default "near"
+        nplps's near-light method or the parallel-light baseline.
+    lights : list of int, optional
+        The lights to leave out (indices from 0). Default: all.
+    dark, saturation : float, optional
+        As in :func:`nplps.reconstruct`, computed once from the images' bit depth; they also
+        select the compared pixels of the left-out image.
+    **options
+        Further keyword arguments of :func:`nplps.reconstruct` (for ``method="parallel"`` only
+        ``robust``, ``color``, ``threads`` and ``valid`` are used).
+
+    Returns
+    -------
+    list of HeldOut
+        One entry per left-out light, in the order of `lights`.
+
+    Raises
+    ------
+    InputError
+        An argument is invalid, or ``depth="auto"``.
+
+    Notes
+    -----
+    The prediction shades each pixel with the left-out reconstruction's fitted normals and
+    albedo (:attr:`~nplps.Reconstruction.fit_normals`, see :meth:`~nplps.Reconstruction.predict`):
+    the model's own explanation of the images.
+
+    Examples
+    --------
+    >>> import nplps
+    >>> from nplps.evaluation import held_out
+    >>> scene = nplps.make_scene("sphere", n=24)
+    >>> errors = held_out(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask, lights=[0, 1])
+    >>> [e.light for e in errors]
+    [0, 1]
     """
     if isinstance(depth, str):
         raise InputError("held_out needs a distance or a depth map; estimate it first with reconstruct(depth='auto')")
@@ -64,7 +125,8 @@ def held_out(
     stack, levels = load_stack(images, color=options.get("color") is not False)
     if len(stack) != rig.n_lights:
         raise InputError(
-            f"{len(stack)} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order"
+            f"{len(stack)} images were given for {rig.n_lights} lights: "
+            "there must be one image per light, in the rig's order"
         )
     solve: Callable[..., Reconstruction] = reconstruct if method == "near" else reconstruct_parallel
     if method == "parallel":
@@ -77,7 +139,7 @@ def held_out(
         keep = [j for j in range(rig.n_lights) if j != i]
         kept_valid = None if valid is None else np.asarray(valid)[keep]
         result = solve(
-            stack[keep], rig.subset(keep), mask, depth, dark=lo, saturation=hi, valid=kept_valid, **options
+            stack[keep], rig.subset(keep), mask=mask, depth=depth, dark=lo, saturation=hi, valid=kept_valid, **options
         )
         prediction = result.predict(rig, lights=[i])[0]
         image = stack[i]

@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import IO, Callable, Iterator, Sequence, Union
+from functools import partial
+from typing import IO, Any, TypeAlias
 
 import imageio.v3 as iio
 import numpy as np
@@ -31,7 +33,7 @@ import tifffile
 from ._atomic import atomic_path, atomic_write
 from .errors import InputError
 
-PathLike = Union[str, os.PathLike]
+PathLike: TypeAlias = str | os.PathLike
 """A file name: ``str`` or any :class:`os.PathLike`."""
 
 _OPENGL_FLIP = np.array([1.0, -1.0, -1.0], dtype=np.float32)
@@ -57,12 +59,18 @@ _PLY_TYPES = {
 class _Mesh:
     """A triangle mesh ready to be written.
 
-    Attributes:
-        points: ``(n, 3)`` float32 vertex positions, in the output frame.
-        normals: ``(n, 3)`` float32 vertex normals in the output frame, or None.
-        colors: ``(n, 3)`` uint8 grey vertex colours, or None.
-        faces: ``(m, 3)`` int32 vertex indices (0-based).
-        frame: ``"opencv"`` or ``"opengl"``.
+    Attributes
+    ----------
+    points : numpy.ndarray
+        ``(n, 3)`` float32 vertex positions, in the output frame.
+    normals : numpy.ndarray or None
+        ``(n, 3)`` float32 vertex normals in the output frame.
+    colors : numpy.ndarray or None
+        ``(n, 3)`` uint8 grey vertex colours.
+    faces : numpy.ndarray
+        ``(m, 3)`` int32 vertex indices (0-based).
+    frame : {"opencv", "opengl"}
+        The output frame.
     """
 
     points: np.ndarray
@@ -224,30 +232,46 @@ def write_ply(
     path: PathLike,
     vertices: np.ndarray,
     mask: np.ndarray,
+    *,
     normals: np.ndarray | None = None,
     albedo: np.ndarray | None = None,
     opengl: bool = False,
 ) -> None:
     """Write the masked part of a vertex grid as a binary little-endian PLY triangle mesh.
 
-    Args:
-        path: output file.
-        vertices: ``(H + 1, W + 1, 3)`` vertex positions (OpenCV camera frame).
-        mask: ``(H, W)`` bool; every selected pixel becomes two triangles
-            ``(00, 10, 11)`` and ``(00, 11, 01)`` (facing the camera, see the module docstring).
-        normals: optional ``(H + 1, W + 1, 3)`` per-vertex normals, written as ``nx, ny, nz``.
-        albedo: optional ``(H + 1, W + 1)`` per-vertex albedo, written as grey ``red, green,
-            blue`` uchar colours scaled so that the 99th percentile of the written finite values
-            is 255 (clipped; NaN -> 0).
-        opengl: write in the OpenGL frame (y up, z backwards): positions ``(x, -y, -z)`` and
-            normals ``(nx, -ny, -nz)``. This is a rotation, so faces keep facing the viewer.
+    Parameters
+    ----------
+    path : str or path-like
+        Output file.
+    vertices : numpy.ndarray
+        ``(H + 1, W + 1, 3)`` vertex positions (OpenCV camera frame).
+    mask : numpy.ndarray
+        ``(H, W)`` bool; every selected pixel becomes two triangles ``(00, 10, 11)`` and
+        ``(00, 11, 01)`` (facing the camera, see the module docstring).
+    normals : numpy.ndarray, optional
+        ``(H + 1, W + 1, 3)`` per-vertex normals, written as ``nx, ny, nz``.
+    albedo : numpy.ndarray, optional
+        ``(H + 1, W + 1)`` per-vertex albedo, written as grey ``red, green, blue`` uchar colours
+        scaled so that the 99th percentile of the written finite values is 255 (clipped;
+        NaN -> 0).
+    opengl : bool, default False
+        Write in the OpenGL frame (y up, z backwards): positions ``(x, -y, -z)`` and normals
+        ``(nx, -ny, -nz)``. This is a rotation, so faces keep facing the viewer.
 
-    Only the vertices used by the written facets are stored (row-major order). Masked facets with
-    a non-finite corner position (or normal) are skipped with one RuntimeWarning. The header has
-    the comments ``nplps`` and ``frame opencv`` / ``frame opengl``.
+    Raises
+    ------
+    InputError
+        The shapes do not match, or there is no facet to write.
 
-    Raises:
-        InputError: the shapes do not match, or there is no facet to write.
+    Warns
+    -----
+    RuntimeWarning
+        Masked facets with a non-finite corner position (or normal) were skipped.
+
+    Notes
+    -----
+    Only the vertices used by the written facets are stored (row-major order). The header has the
+    comments ``nplps`` and ``frame opencv`` / ``frame opengl``.
     """
     _write_ply_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
 
@@ -257,12 +281,24 @@ def write_meshes(
     obj_path: PathLike | None,
     vertices: np.ndarray,
     mask: np.ndarray,
+    *,
     normals: np.ndarray | None = None,
     albedo: np.ndarray | None = None,
     opengl: bool = False,
 ) -> None:
-    """:func:`write_ply` and :func:`write_obj` of the same mesh (either path may be None), with
-    the mesh built once."""
+    """Write the same mesh as PLY and OBJ, building it once.
+
+    Parameters
+    ----------
+    ply_path, obj_path : str or path-like or None
+        The files to write (None: not that one).
+    vertices, mask, normals, albedo, opengl
+        As in :func:`write_ply`.
+
+    See Also
+    --------
+    write_ply, write_obj
+    """
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
     if ply_path is not None:
         _write_ply_mesh(ply_path, mesh)
@@ -292,7 +328,7 @@ def _ply_header(mesh: _Mesh) -> str:
     if mesh.colors is not None:
         lines += [f"property uchar {name}" for name in ("red", "green", "blue")]
     lines += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices"]
-    return "\n".join(lines + ["end_header"]) + "\n"
+    return "\n".join([*lines, "end_header"]) + "\n"
 
 
 def _ply_vertex_records(mesh: _Mesh) -> np.ndarray:
@@ -325,12 +361,22 @@ def _ply_face_records(faces: np.ndarray) -> np.ndarray:
 def read_ply(path: PathLike) -> dict[str, np.ndarray | list[str] | None]:
     """Read a binary little-endian triangle PLY file such as those :func:`write_ply` writes.
 
-    Returns a dict with ``vertices`` (``(n, 3)`` float), ``normals`` (``(n, 3)`` float or None),
-    ``colors`` (``(n, 3)`` uint8 or None), ``faces`` (``(m, 3)`` int64, 0-based) and
-    ``comments`` (the header comment lines, without ``comment``).
+    Parameters
+    ----------
+    path : str or path-like
+        The PLY file.
 
-    Raises:
-        InputError: the file cannot be read or is not a binary little-endian triangle PLY file.
+    Returns
+    -------
+    dict
+        ``vertices`` (``(n, 3)`` float), ``normals`` (``(n, 3)`` float or None), ``colors``
+        (``(n, 3)`` uint8 or None), ``faces`` (``(m, 3)`` int64, 0-based) and ``comments`` (the
+        header comment lines, without ``comment``).
+
+    Raises
+    ------
+    InputError
+        The file cannot be read or is not a binary little-endian triangle PLY file.
     """
     try:
         with open(path, "rb") as file:
@@ -417,20 +463,29 @@ def write_obj(
     path: PathLike,
     vertices: np.ndarray,
     mask: np.ndarray,
+    *,
     normals: np.ndarray | None = None,
     albedo: np.ndarray | None = None,
     opengl: bool = False,
 ) -> None:
     """Write the masked part of a vertex grid as a Wavefront OBJ triangle mesh.
 
-    Same arguments, mesh and frames as :func:`write_ply`. Vertices are written as
-    ``v x y z`` or, with ``albedo``, ``v x y z r g b`` (grey colours as floats in 0..1, the
-    PLY colours divided by 255); normals as ``vn nx ny nz``; faces with 1-based indices as
-    ``f a//a b//b c//c`` (with normals) or ``f a b c``. The file starts with the comments
-    ``# nplps`` and ``# frame opencv`` / ``# frame opengl``.
+    Parameters
+    ----------
+    path, vertices, mask, normals, albedo, opengl
+        As in :func:`write_ply` (same mesh and frames).
 
-    Raises:
-        InputError: the shapes do not match, or there is no facet to write.
+    Raises
+    ------
+    InputError
+        The shapes do not match, or there is no facet to write.
+
+    Notes
+    -----
+    Vertices are written as ``v x y z`` or, with `albedo`, ``v x y z r g b`` (grey colours as
+    floats in 0..1, the PLY colours divided by 255); normals as ``vn nx ny nz``; faces with
+    1-based indices as ``f a//a b//b c//c`` (with normals) or ``f a b c``. The file starts with
+    the comments ``# nplps`` and ``# frame opencv`` / ``# frame opengl``.
     """
     _write_obj_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
 
@@ -450,28 +505,28 @@ def _obj_chunks(mesh: _Mesh) -> Iterator[Callable[[], bytes]]:
     points, normals, colors, faces = mesh.points, mesh.normals, mesh.colors, mesh.faces
     for start in range(0, len(points), _OBJ_CHUNK_ROWS):
         chunk = slice(start, start + _OBJ_CHUNK_ROWS)
-        yield lambda chunk=chunk: _vertex_lines(points[chunk], None if colors is None else colors[chunk])
+        yield partial(_vertex_lines, points[chunk], None if colors is None else colors[chunk])
     if normals is not None:
         for start in range(0, len(normals), _OBJ_CHUNK_ROWS):
-            chunk = slice(start, start + _OBJ_CHUNK_ROWS)
-            yield lambda chunk=chunk: _lines(
-                [b"vn ", *_join(b" ", [_format_float32(normals[chunk, i], 7) for i in range(3)]), b"\n"]
-            )
+            yield partial(_normal_lines, normals[start : start + _OBJ_CHUNK_ROWS])
     for start in range(0, len(faces), _OBJ_CHUNK_ROWS):
-        chunk = slice(start, start + _OBJ_CHUNK_ROWS)
-        yield lambda chunk=chunk: _face_lines(faces[chunk], normals is not None)
+        yield partial(_face_lines, faces[start : start + _OBJ_CHUNK_ROWS], normals is not None)
 
 
 def _vertex_lines(points: np.ndarray, colors: np.ndarray | None) -> bytes:
-    fields = [_format_float32(points[:, i], 9) for i in range(3)]
+    fields: list[Any] = [_format_float32(points[:, i], 9) for i in range(3)]
     if colors is not None:
         fields += [np.take(_COLOR_TEXT, colors[:, i], axis=0) for i in range(3)]
     return _lines([b"v ", *_join(b" ", fields), b"\n"])
 
 
+def _normal_lines(normals: np.ndarray) -> bytes:
+    return _lines([b"vn ", *_join(b" ", [_format_float32(normals[:, i], 7) for i in range(3)]), b"\n"])
+
+
 def _face_lines(faces: np.ndarray, with_normals: bool) -> bytes:
-    corners, blanks = zip(*(_format_int(faces[:, i] + 1) for i in range(3)))
-    fields = [[c, b"//", c] for c in corners] if with_normals else list(corners)
+    corners, blanks = zip(*(_format_int(faces[:, i] + 1) for i in range(3)), strict=True)
+    fields: list[Any] = [[c, b"//", c] for c in corners] if with_normals else list(corners)
     return _lines([b"f ", *_join(b" ", fields), b"\n"], compact=any(blanks))
 
 
@@ -557,7 +612,7 @@ def _lines(fields: Sequence[bytes | np.ndarray | list[np.ndarray]], compact: boo
     widths = [len(p) if isinstance(p, bytes) else (p.shape[1] if p.ndim == 2 else 1) for p in pieces]
     table = np.empty((n, sum(widths)), dtype=np.uint8)
     column = 0
-    for piece, width in zip(pieces, widths):
+    for piece, width in zip(pieces, widths, strict=True):
         if isinstance(piece, bytes):  # byte by byte: faster than a broadcast row
             for k, byte in enumerate(piece):
                 table[:, column + k] = byte
@@ -679,7 +734,7 @@ def _float_columns(v: np.ndarray, p: int) -> list[np.ndarray]:
         columns.append((_ZERO + e // 10 % 10).astype(np.uint8) * scientific.view(np.uint8))
         columns.append((_ZERO + e % 10).astype(np.uint8) * scientific.view(np.uint8))
     for i in np.flatnonzero(fallback):  # at least 2 p + 10 columns here
-        text = ("%.*g" % (p, float(v[i]))).encode("ascii")
+        text = ("%.*g" % (p, float(v[i]))).encode("ascii")  # noqa: UP031 (the % operator's characters)
         for k, column in enumerate(columns):
             column[i] = text[k] if k < len(text) else _BLANK
     return columns
@@ -728,7 +783,7 @@ def _significand_exact(bits: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.
 # --------------------------------------------------------------------------------------------------
 
 
-def save_normal_map(path: PathLike, normals: np.ndarray, mask: np.ndarray | None = None) -> None:
+def save_normal_map(path: PathLike, normals: np.ndarray, *, mask: np.ndarray | None = None) -> None:
     """Save per-pixel normals as an 8-bit RGB PNG normal map.
 
     Encoding: the OpenCV-frame normal ``(n_x, n_y, n_z)`` is first expressed in the usual
@@ -738,10 +793,19 @@ def save_normal_map(path: PathLike, normals: np.ndarray, mask: np.ndarray | None
     light-blue look) and ``(1, 0, 0)`` is ``(255, 128, 128)``. Pixels with a NaN normal or
     outside ``mask`` are ``(0, 0, 0)``.
 
-    Args:
-        path: output file (written as PNG whatever its extension).
-        normals: ``(H, W, 3)`` unit normals, OpenCV frame.
-        mask: optional ``(H, W)`` bool of the pixels to encode.
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (written as PNG whatever its extension).
+    normals : numpy.ndarray
+        ``(H, W, 3)`` unit normals, OpenCV frame.
+    mask : numpy.ndarray, optional
+        ``(H, W)`` bool of the pixels to encode.
+
+    Raises
+    ------
+    InputError
+        The shapes are wrong.
     """
     normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
@@ -754,7 +818,7 @@ def save_normal_map(path: PathLike, normals: np.ndarray, mask: np.ndarray | None
     for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
         band = slice(start, start + rows)
         n = np.asarray(normals[band], dtype=np.float64)
-        valid = np.isfinite(n).all(axis=2)
+        valid = np.asarray(np.isfinite(n).all(axis=2))
         if mask is not None:
             valid &= mask[band]
         flipped = np.clip(np.where(valid[..., None], n, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
@@ -771,10 +835,22 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
     value); NaN is written as 0. Divide the pixel values by the returned ``scale`` to recover the
     albedo.
 
-    Args:
-        path: output file (written as PNG whatever its extension).
-        albedo: ``(H, W)`` grey or ``(H, W, 3)`` RGB albedo (16-bit RGB PNG, one scale for all
-            channels).
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (written as PNG whatever its extension).
+    albedo : numpy.ndarray
+        ``(H, W)`` grey or ``(H, W, 3)`` RGB albedo (16-bit RGB PNG, one scale for all channels).
+
+    Returns
+    -------
+    float
+        The scale: divide the pixel values by it to recover the albedo.
+
+    Raises
+    ------
+    InputError
+        `albedo` has the wrong shape.
     """
     albedo = np.asarray(albedo)
     if not (albedo.ndim == 2 or (albedo.ndim == 3 and albedo.shape[2] == 3)):
@@ -785,14 +861,16 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
 
 
 def save_grey_png(path: PathLike, image: np.ndarray) -> None:
-    """Writes an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
+    """Write an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
     image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
     write_png8(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8))
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint8 image as an 8-bit PNG, any other integer image as a 16-bit PNG
-    (:func:`write_png16`); grey ``(H, W)`` or RGB ``(H, W, 3)``."""
+    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_png16`).
+
+    Grey ``(H, W)`` or RGB ``(H, W, 3)``.
+    """
     if np.asarray(pixels).dtype == np.uint8:
         write_png8(path, pixels)
     else:
@@ -800,15 +878,19 @@ def write_png(path: PathLike, pixels: np.ndarray) -> None:
 
 
 def write_png8(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG (whatever the
-    extension of ``path``)."""
+    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG.
+
+    The file is PNG whatever the extension of `path`.
+    """
     with atomic_path(path) as temporary:
         iio.imwrite(temporary, np.asarray(pixels, dtype=np.uint8), extension=".png")
 
 
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
-    """Writes a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (with pypng:
-    Pillow cannot write 16-bit RGB)."""
+    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG.
+
+    Written with pypng: Pillow cannot write 16-bit RGB.
+    """
     import png
 
     pixels = np.asarray(pixels, dtype=np.uint16)
@@ -825,7 +907,7 @@ def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:
 
 
 def save_npy(path: PathLike, array: np.ndarray) -> None:
-    """Saves an array as ``.npy`` exactly at ``path`` (no ``.npy`` appended)."""
+    """Save an array as ``.npy`` exactly at `path` (no ``.npy`` appended)."""
     with atomic_write(path) as file:
         np.save(file, np.asarray(array))
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from ._atomic import write_text
+
+__all__ = ["residual_curve_svg"]
 
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b")
 
@@ -16,16 +18,29 @@ def residual_curve_svg(
     curves: Sequence[np.ndarray],
     estimates: Sequence[float],
     path: str | os.PathLike[str],
+    *,
     width: int = 640,
     height: int = 400,
 ) -> None:
-    """Writes the photometric residual against the working distance (log-log axes), one line per
-    region, with each region's estimate marked, as an SVG file.
+    """Plot the photometric residual against the working distance as an SVG file.
 
-    Args:
-        curves: per region, an (N, 2) array of (distance, RMS residual).
-        estimates: the estimated distance of each region.
-        path: the SVG file to write.
+    Log-log axes, one line per region, each region's estimate marked by a dashed line.
+
+    Parameters
+    ----------
+    curves : sequence of numpy.ndarray
+        Per region, an (N, 2) array of (distance, RMS residual).
+    estimates : sequence of float
+        The estimated distance of each region.
+    path : str or path-like
+        The SVG file to write.
+    width, height : int, default 640, 400
+        Size of the picture in pixels.
+
+    Raises
+    ------
+    ValueError
+        No point is finite and positive.
     """
     pts = np.vstack([c for c in curves if len(c)])
     finite = pts[np.all(np.isfinite(pts), axis=1) & np.all(pts > 0, axis=1)]
@@ -38,7 +53,8 @@ def residual_curve_svg(
     sx = lambda v: left + (np.log10(v) - x0) / (x1 - x0) * (width - left - right)  # noqa: E731
     sy = lambda v: height - bottom - (np.log10(v) - y0) / (y1 - y0) * (height - top - bottom)  # noqa: E731
     parts = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="12">',
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+        'font-family="sans-serif" font-size="12">',
         '<rect width="100%" height="100%" fill="white"/>',
         f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
         f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
@@ -50,7 +66,7 @@ def residual_curve_svg(
         f'<text x="{left - 4}" y="{height - bottom}" text-anchor="end">{10**y0:.3g}</text>',
         f'<text x="{left - 4}" y="{top + 4}" text-anchor="end">{10**y1:.3g}</text>',
     ]
-    for r, (curve, estimate) in enumerate(zip(curves, estimates)):
+    for r, (curve, estimate) in enumerate(zip(curves, estimates, strict=False)):
         color = _COLORS[r % len(_COLORS)]
         ok = curve[np.all(np.isfinite(curve), axis=1) & np.all(curve > 0, axis=1)]
         line = " ".join(f"{sx(d):.1f},{sy(e):.1f}" for d, e in ok)
@@ -59,6 +75,8 @@ def residual_curve_svg(
             f'<line x1="{sx(estimate):.1f}" y1="{top}" x2="{sx(estimate):.1f}" y2="{height - bottom}" '
             f'stroke="{color}" stroke-dasharray="4 3"/>'
         )
-        parts.append(f'<text x="{sx(estimate) + 4:.1f}" y="{top + 14 + 14 * r}" fill="{color}">region {r}: {estimate:.4g}</text>')
+        parts.append(
+            f'<text x="{sx(estimate) + 4:.1f}" y="{top + 14 + 14 * r}" fill="{color}">region {r}: {estimate:.4g}</text>'
+        )
     parts.append("</svg>")
     write_text(path, "\n".join(parts) + "\n")

@@ -18,38 +18,60 @@ from ._outdir import result_directory
 from .api import _finite_number, _positive, _short, _whole, render
 from .errors import InputError
 from .rig import Rig
+from .types import Camera, SceneName
 
-SCENES = ("saddle", "sphere", "cube", "bumps")
+__all__ = ["SCENES", "Scene", "make_scene"]
+
+#: The scenes :func:`make_scene` builds.
+SCENES: tuple[SceneName, ...] = ("saddle", "sphere", "cube", "bumps")
 
 
 @dataclass
 class Scene:
-    """A synthetic scene: true surface, mask, albedo, rig and rendered images."""
+    """A synthetic scene with ground truth, as :func:`make_scene` returns it.
+
+    Attributes
+    ----------
+    name : str
+        The scene's name (one of :data:`SCENES`, or the caller's).
+    depth : numpy.ndarray
+        True vertex depths (H+1, W+1).
+    mask : numpy.ndarray
+        Mask (H, W).
+    albedo : numpy.ndarray
+        True albedo (H, W), or (H, W, 3) for a colour scene.
+    rig : Rig
+        The camera and the lights the images were rendered with.
+    size : float
+        Lateral object size (scene units).
+    images : numpy.ndarray
+        Images (k, H, W[, 3]) rendered by the model (with noise if requested).
+    """
 
     name: str
-    #: True vertex depths (H+1, W+1).
     depth: np.ndarray
-    #: Mask (H, W).
     mask: np.ndarray
-    #: True albedo (H, W).
     albedo: np.ndarray
     rig: Rig
-    #: Lateral object size (scene units).
     size: float
-    #: Images (k, H, W) rendered by the model (with noise if requested).
     images: np.ndarray = field(repr=False)
 
     @property
     def normals(self) -> np.ndarray:
-        """True mesh normals (H, W, 3), NaN outside the mask."""
+        """True normals (H, W, 3): the facet normals of the true mesh, NaN outside the mask.
+
+        These are the normals the images were rendered with.
+        """
         n = _core.mesh_normals(self.depth, self.rig.camera)
         n[~self.mask] = np.nan
         return n
 
     @property
     def mean_depth(self) -> float:
-        """Mean true depth of the vertices the mask uses: arithmetic (orthographic camera) or
-        geometric (pinhole camera) — the true gauge."""
+        """The true gauge: the mean true depth of the vertices the mask uses.
+
+        Arithmetic for an orthographic camera, geometric for a pinhole camera.
+        """
         h, w = self.mask.shape
         used = np.zeros((h + 1, w + 1), dtype=bool)
         for dr in (0, 1):
@@ -58,14 +80,31 @@ class Scene:
         z = self.depth[used]
         return float(np.exp(np.log(z).mean())) if self.rig.is_pinhole else float(z.mean())
 
-    def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
-        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``) into ``directory``, and the
-        manifest ``nplps-manifest.json``.
+    def save(self, directory: str | os.PathLike[str], *, overwrite: bool = False) -> dict[str, Path]:
+        """Write the scene as files that ``nplps reconstruct`` reads.
 
-        Images are scaled so that their maximum is 65535; the scale is absorbed by the albedo.
-        ``directory`` must be empty unless ``overwrite=True``, as for
-        :meth:`nplps.Reconstruction.save` (an earlier scene's images are then removed).
+        Writes ``image_XX.png`` (16-bit), ``rig.json``, ``mask.png`` and ground truth
+        (``depth_gt.npy``, ``normals_gt.npy``, ``albedo_gt.npy``), and the manifest
+        ``nplps-manifest.json``. Images are scaled so that their maximum is 65535; the scale is
+        absorbed by the albedo.
+
+        Parameters
+        ----------
+        directory : str or path-like
+            Created if needed; it must be empty unless `overwrite` is True.
+        overwrite : bool, default False
+            Replace the files of an earlier scene there (as for
+            :meth:`nplps.Reconstruction.save`; an earlier scene's images are removed).
+
+        Returns
+        -------
+        dict of str to pathlib.Path
+            The paths written (images, rig, mask, depth_gt), by kind.
+
+        Raises
+        ------
+        OutputExistsError
+            `directory` is not empty and `overwrite` is False.
         """
         with result_directory(directory, overwrite) as out:
             scale = 65535.0 / max(float(self.images.max()), 1e-300)
@@ -83,32 +122,70 @@ class Scene:
 
 
 def make_scene(
-    name: str,
+    name: SceneName,
+    *,
     n: int = 128,
     size: float = 100.0,
     distance: float = 200.0,
     seed: int = 0,
     noise: float = 0.0,
-    camera: str = "orthographic",
+    camera: Camera = "orthographic",
     led: bool = False,
     rgb: bool = False,
     directional: bool = False,
 ) -> Scene:
-    """Builds and renders a synthetic scene.
+    """Build and render a synthetic scene with ground truth.
 
-    Args:
-        name: one of ``saddle``, ``sphere`` (a sphere cap in a disc mask), ``cube`` (two faces
-            of a turned cube, the sharp edge on a pixel line) or ``bumps`` (random smooth bumps).
-        n: image size n x n pixels.
-        size: lateral object size; distance: working distance (same unit).
-        seed: seed of the random bumps and of the noise (a whole number from 0 to 2**64 - 1).
-        noise: standard deviation of Gaussian image noise as a fraction of the maximum intensity,
-            finite and >= 0 (images are clipped at 0 afterwards).
-        camera: "orthographic" or "pinhole" (a camera at the origin whose view spans the object
-            at the working distance).
-        led: anisotropic LEDs aimed at the object (mu 0.5 to 2) with unequal RGB intensities.
-        rgb: colour albedo and (k, H, W, 3) images.
-        directional: every third light is a distant (directional) light.
+    Parameters
+    ----------
+    name : {"saddle", "sphere", "cube", "bumps"}
+        ``"saddle"``, ``"sphere"`` (a sphere cap in a disc mask), ``"cube"`` (two faces of a
+        turned cube, the sharp edge on a pixel line) or ``"bumps"`` (random smooth bumps).
+    n : int, default 128
+        Image size, n x n pixels.
+    size : float, default 100.0
+        Lateral object size.
+    distance : float, default 200.0
+        Working distance (same unit as `size`).
+    seed : int, default 0
+        Seed of the random bumps and of the noise (a whole number from 0 to 2**64 - 1).
+    noise : float, default 0.0
+        Standard deviation of Gaussian image noise as a fraction of the maximum intensity, finite
+        and >= 0 (images are clipped at 0 afterwards).
+    camera : {"orthographic", "pinhole"}, default "orthographic"
+        A pinhole camera sits at the origin, its view spanning the object at the working
+        distance.
+    led : bool, default False
+        Anisotropic LEDs aimed at the object (mu 0.5 to 2) with unequal RGB intensities.
+    rgb : bool, default False
+        Colour albedo and (k, H, W, 3) images.
+    directional : bool, default False
+        Every third light is a distant (directional) light.
+
+    Returns
+    -------
+    Scene
+        The true surface, mask, albedo, rig and the rendered images.
+
+    Raises
+    ------
+    InputError
+        An argument is invalid.
+    MemoryLimitError
+        The scene would not fit in memory.
+
+    Notes
+    -----
+    Scenes are built by the Rust core: an object of lateral size `size` at working distance
+    `distance`, lit by 27 point lights in three layers 1.5, 2.25 and 3 object sizes in front of
+    it.
+
+    Examples
+    --------
+    >>> import nplps
+    >>> scene = nplps.make_scene("bumps", n=32, noise=0.01, seed=1)
+    >>> scene.images.shape, scene.depth.shape
+    ((27, 32, 32), (33, 33))
     """
     if not (isinstance(name, str) and name in SCENES):
         raise InputError(f"name must be one of the scenes {', '.join(SCENES)}, got {_short(name)}")
@@ -135,7 +212,7 @@ def make_scene(
         mu=np.array(lights["mu"]),
         directional=np.array(lights["directional"]),
     )
-    images = render(d["depth"], rig, d["albedo"], d["mask"])
+    images = render(d["depth"], rig, d["albedo"], mask=d["mask"])
     if noise > 0:
         rng = np.random.default_rng(seed)
         images = np.clip(images + rng.normal(0.0, noise * images.max(), images.shape), 0.0, None)

@@ -59,7 +59,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         from ..api import reconstruct
 
         with _warnings_to_stderr():
-            estimate = reconstruct(inputs.images, inputs.rig, inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args))
+            estimate = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args))
         distances = ", ".join(f"{d:.6g}" for d in estimate.distance.distance)
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
@@ -70,7 +70,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         for method in ("near", "parallel"):
             with _warnings_to_stderr():
                 (h,) = held_out(
-                    inputs.images, inputs.rig, inputs.mask, method=method, lights=[light],
+                    inputs.images, inputs.rig, mask=inputs.mask, method=method, lights=[light],
                     valid=inputs.valid, **inputs.options, **near_options(args),
                 )
             row += [h.relative_error, h.shape_error]

@@ -115,7 +115,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     _check_scene_args(args)
     directory = output_directory(args)
     scene = make_scene(
-        args.scene, args.size, args.object_size, args.distance, args.seed, args.noise,
+        args.scene, n=args.size, size=args.object_size, distance=args.distance, seed=args.seed, noise=args.noise,
         camera=args.camera, led=args.led, rgb=args.rgb, directional=args.directional,
     )
     with directory:
@@ -164,7 +164,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     _check_scene_args(args)
     out = output_directory(args)
-    scene = make_scene(args.scene, args.size, seed=args.seed, noise=args.noise)
+    scene = make_scene(args.scene, n=args.size, seed=args.seed, noise=args.noise)
     distance = scene.mean_depth
     print(
         f"scene: {args.scene}, {args.size} x {args.size} pixels, {scene.rig.n_lights} near point lights, "
@@ -174,8 +174,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     runs = []
     for label, run in (
-        ("near light (nplps)", lambda: reconstruct(scene.images, scene.rig, scene.mask, depth=distance)),
-        ("parallel light", lambda: reconstruct_parallel(scene.images, scene.rig, scene.mask, depth=distance)),
+        ("near light (nplps)", lambda: reconstruct(scene.images, scene.rig, mask=scene.mask, depth=distance)),
+        ("parallel light", lambda: reconstruct_parallel(scene.images, scene.rig, mask=scene.mask, depth=distance)),
     ):
         start = time.perf_counter()
         with _warnings_to_stderr():

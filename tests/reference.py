@@ -1,4 +1,8 @@
-"""Independent pure-numpy/scipy implementation of the nplps iteration.
+"""Independent pure-numpy/scipy implementation of the nplps iteration: the tests' oracle.
+
+It lives with the tests, not in the shipped package: it is an oracle, not an API. Tests import it
+as ``import reference`` (pytest puts ``tests/`` on ``sys.path``); ``benchmarks/bench.py`` adds
+``tests/`` to ``sys.path`` itself.
 
 This module repeats, step for step, the iteration specified in ``docs/method.md`` (near-light
 photometric stereo by mesh deformation, Xie, Dai & Wang, CVPR 2015) without using the compiled
@@ -10,7 +14,7 @@ Rust core. It serves two purposes:
   over all facets, sparse normal matrix assembled and factored once with SuperLU, one back
   substitution per iteration). It is nevertheless much slower than the Rust core.
 
-scipy is imported lazily inside the functions that need it, so ``import nplps.reference`` works
+scipy is imported lazily inside the functions that need it, so ``import reference`` works
 without scipy; :func:`mesh_normals` and :func:`render` need numpy only.
 
 Conventions (see ``docs/method.md``): images are ``(k, H, W)``, lights ``(k, 3)`` positions in the
@@ -25,13 +29,13 @@ from numbers import Integral, Real
 
 import numpy as np
 
-try:  # the package's error classes when imported as part of nplps
-    from .errors import InputError, SolverError
-except ImportError:  # loaded as a standalone file
+try:  # the package's error classes, so that the tests can expect the same exceptions
+    from nplps.errors import InputError, SolverError
+except ImportError:  # without nplps (it needs its compiled core)
     InputError = ValueError  # type: ignore[assignment,misc]
     SolverError = RuntimeError  # type: ignore[assignment,misc]
 
-__all__ = ["NZ_MIN", "mesh_normals", "render", "reconstruct", "reconstruct_parallel"]
+__all__ = ["NZ_MIN", "mesh_normals", "reconstruct", "reconstruct_parallel", "render"]
 
 #: Facet normals are limited to ``n_z <= -NZ_MIN`` when turned into target corner depths.
 NZ_MIN = 0.01

@@ -1,0 +1,65 @@
+"""Type aliases of the public API: the string options and the argument kinds.
+
+Use them to annotate code that calls nplps::
+
+    from nplps.types import Robust
+
+    def run(images, rig, robust: Robust | None = "tukey"):
+        return nplps.reconstruct(images, rig, depth="auto", robust=robust)
+
+Each string option is a :data:`typing.Literal`, so a type checker catches a misspelt value; at run
+time a wrong value is an :class:`nplps.InputError` (a ``ValueError``) that names the argument.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .reconstruction import Iteration
+
+__all__ = [
+    "Camera",
+    "Depth",
+    "Images",
+    "Mask",
+    "Method",
+    "Progress",
+    "RefineLights",
+    "Robust",
+    "SceneName",
+    "Solver",
+    "Status",
+    "Weighting",
+]
+
+#: Least squares of the local step: ``"image"`` (in image units) or ``"paper"`` (the paper's Eq. 6).
+Weighting: TypeAlias = Literal["image", "paper"]
+#: Robust reweighting of each pixel's fit (``None``: plain least squares).
+Robust: TypeAlias = Literal["cauchy", "tukey"]
+#: How the global step's linear system is solved.
+Solver: TypeAlias = Literal["auto", "direct", "multigrid"]
+#: Which light parameters ``refine_lights`` refines (``None``: none).
+RefineLights: TypeAlias = Literal["intensity", "position", "both"]
+#: The reconstruction method: ``"near"`` (nplps) or ``"parallel"`` (the conventional baseline).
+Method: TypeAlias = Literal["near", "parallel"]
+#: How a reconstruction ended (:attr:`nplps.Reconstruction.status`).
+Status: TypeAlias = Literal["converged", "stalled", "diverged", "degenerate"]
+#: Camera model of a synthetic scene (:func:`nplps.make_scene`).
+Camera: TypeAlias = Literal["orthographic", "pinhole"]
+#: The synthetic scenes (:func:`nplps.make_scene`).
+SceneName: TypeAlias = Literal["saddle", "sphere", "cube", "bumps"]
+
+#: Images: a (k, H, W) or (k, H, W, 3) array, or k image files or arrays.
+Images: TypeAlias = np.ndarray | Sequence[str | os.PathLike[str] | np.ndarray]
+#: A mask: an (H, W) array (non-zero = reconstruct) or a mask image file.
+Mask: TypeAlias = np.ndarray | str | os.PathLike[str]
+#: The working distance (a number), an (H+1, W+1) initial depth map, or ``"auto"``.
+Depth: TypeAlias = float | np.ndarray | Literal["auto"]
+#: ``None`` or ``False`` (silent), ``True`` (a line per iteration on stderr) or a callable that
+#: gets an :class:`nplps.Iteration` after every iteration.
+Progress: TypeAlias = bool | Callable[["Iteration"], Any] | None
