@@ -18,7 +18,7 @@ from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
 from .reconstruction import Iteration, LightRefinement, Reconstruction, light_changes
-from .rig import Rig
+from .rig import LED, DirectionalLight, PointLight, Rig
 from .synth import Scene, make_scene
 from . import calibrate
 from .calibrate import IntensityCalibration, SphereCalibration, calibrate_intensities, calibrate_spheres
@@ -26,6 +26,7 @@ from .calibrate import IntensityCalibration, SphereCalibration, calibrate_intens
 __all__ = [
     "__version__",
     "Rig",
+    "PointLight", "LED", "DirectionalLight",
     "Reconstruction",
     "LightRefinement",
     "light_changes",
