@@ -20,14 +20,15 @@ def test_orthographic_scalar_and_pair_pixel_size():
     scalar = nplps.Rig.orthographic(0.5, lights=LIGHTS)
     pair = nplps.Rig.orthographic((0.5, 0.5), lights=LIGHTS)
     assert scalar.camera == pair.camera == {"model": "orthographic", "pixel_size": [0.5, 0.5], "origin": [0.0, 0.0]}
-    np.testing.assert_array_equal(scalar.lights, pair.lights)
+    assert scalar.lights == pair.lights
 
     rect = nplps.Rig.orthographic((0.5, 0.25), origin=(-8.0, 4.0), lights=LIGHTS)
     assert rect.camera["pixel_size"] == [0.5, 0.25]  # (w, h): x first
     assert rect.camera["origin"] == [-8.0, 4.0]
     assert rect.n_lights == 4
-    assert rect.lights.dtype == np.float64 and rect.lights.shape == (4, 3)
-    assert rect.lights.flags["C_CONTIGUOUS"]
+    assert rect.positions.dtype == np.float64 and rect.positions.shape == (4, 3)
+    assert rect.positions.flags["C_CONTIGUOUS"]
+    assert all(isinstance(light, nplps.PointLight) for light in rect.lights)
     # integers and numpy scalars are accepted
     assert nplps.Rig.orthographic(np.float32(2), lights=LIGHTS).camera["pixel_size"] == [2.0, 2.0]
     assert nplps.Rig.orthographic(2, lights=LIGHTS).camera["pixel_size"] == [2.0, 2.0]
@@ -36,7 +37,11 @@ def test_orthographic_scalar_and_pair_pixel_size():
 def test_rig_is_frozen():
     rig = nplps.Rig.orthographic(1.0, lights=LIGHTS)
     with pytest.raises(AttributeError):
-        rig.lights = np.zeros((3, 3))  # type: ignore[misc]
+        rig.lights = ()  # type: ignore[misc]
+    with pytest.raises(AttributeError):
+        rig.lights[0].position = (0.0, 0.0, 0.0)  # type: ignore[misc]
+    with pytest.raises(ValueError, match="read-only"):
+        rig.positions[0, 0] = 1.0
 
 
 @pytest.mark.parametrize(
@@ -121,11 +126,12 @@ def test_save_load_round_trip(tmp_path):
     assert list(data) == ["version", "camera", "lights"]
     assert data["version"] == 2
     assert data["camera"] == {"model": "orthographic", "pixel_size": [0.5, 0.25], "origin": [-8.0, 4.125]}
-    assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.lights.tolist()]
+    assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.positions.tolist()]
 
     loaded = nplps.Rig.load(path)
     assert loaded.camera == rig.camera
-    np.testing.assert_array_equal(loaded.lights, rig.lights)  # exact: JSON floats round-trip
+    np.testing.assert_array_equal(loaded.positions, rig.positions)  # exact: JSON floats round-trip
+    assert loaded == rig
     assert nplps.Rig.load(str(path)).camera == rig.camera
     assert nplps.Rig.from_dict(rig.to_dict()).camera == rig.camera
 
@@ -139,7 +145,7 @@ def test_load_ignores_comment_keys(tmp_path):
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(data), encoding="utf-8")
     rig = nplps.Rig.load(path)
-    np.testing.assert_array_equal(rig.lights, LIGHTS)
+    np.testing.assert_array_equal(rig.positions, LIGHTS)
     assert rig.camera == {"model": "orthographic", "pixel_size": [1.0, 1.0], "origin": [0.0, 0.0]}
 
 
@@ -238,36 +244,40 @@ def test_version_1_files_are_read(tmp_path):
         "lights": [{"position": p} for p in LIGHTS],
     }))
     rig = nplps.Rig.load(path)
-    np.testing.assert_array_equal(rig.lights, np.array(LIGHTS, dtype=float))
+    np.testing.assert_array_equal(rig.positions, np.array(LIGHTS, dtype=float))
     np.testing.assert_array_equal(rig.intensities, 1.0)
     assert not rig.directional.any() and not rig.mu.any()
 
 
 def test_pinhole_led_rig_round_trip(tmp_path):
     K = [[800.0, 0.0, 319.5], [0.0, 810.0, 239.5], [0.0, 0.0, 1.0]]
+    nan = [np.nan] * 3
     rig = nplps.Rig.pinhole(
         K,
-        lights=[[50.0, 0.0, -10.0], [-40.0, 30.0, -5.0], [0.0, -45.0, -20.0]],
+        lights=[[50.0, 0.0, -10.0], [-40.0, 30.0, -5.0], [0.0, -45.0, -20.0], nan],
         distortion=[-0.1, 0.01],
-        intensities=[1.0, [0.9, 1.0, 1.1], 1.2],
-        directions=[[0, 0, 1], [0.1, 0, 1], [0, 0.2, 1]],
-        mu=[1.0, 0.0, 2.0],
-        directional_lights=[[0.0, 0.0, -2.0]],
-        directional_intensities=[0.5],
+        directions=[nan, nan, nan, [0.0, 0.0, -2.0]],
+        intensities=[1.0, [0.9, 1.0, 1.1], 1.2, 0.5],
+        axes=[[0, 0, 1], [0.1, 0, 1], [0, 0.2, 1], nan],
+        mu=[1.0, 0.0, 2.0, 0.0],
     )
     assert rig.n_lights == 4 and rig.is_pinhole
-    np.testing.assert_allclose(np.linalg.norm(rig.directions, axis=1), 1.0)
-    np.testing.assert_array_equal(rig.lights[3], [0.0, 0.0, -1.0])  # normalized
+    assert [type(light).__name__ for light in rig.lights] == ["LED", "PointLight", "LED", "DirectionalLight"]
+    np.testing.assert_allclose(np.linalg.norm(rig.axes[[0, 2]], axis=1), 1.0)
+    assert np.isnan(rig.axes[[1, 3]]).all()  # a point light (mu = 0: its axis is dropped) and a directional light
+    np.testing.assert_array_equal(rig.directions[3], [0.0, 0.0, -1.0])  # normalized
+    assert np.isnan(rig.positions[3]).all() and np.isnan(rig.directions[:3]).all()
     path = tmp_path / "rig.json"
     rig.save(path)
     data = json.loads(path.read_text())
     assert data["camera"]["model"] == "pinhole" and data["camera"]["distortion"] == [-0.1, 0.01, 0.0, 0.0, 0.0]
     assert [light["type"] for light in data["lights"]] == ["point", "point", "point", "directional"]
     assert "mu" not in data["lights"][1] and data["lights"][2]["mu"] == 2.0
+    assert data["lights"][2]["direction"] == list(rig.lights[2].axis)  # the file's "direction" is the LED axis
     loaded = nplps.Rig.load(path)
-    for name in ("lights", "intensities", "mu", "directional"):
-        np.testing.assert_allclose(getattr(loaded, name), getattr(rig, name))
-    np.testing.assert_allclose(loaded.directions[[0, 2]], rig.directions[[0, 2]])
+    for name in ("positions", "directions", "axes", "intensities", "mu", "directional"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(rig, name))
+    assert loaded == rig
     np.testing.assert_allclose(loaded.K, K)
 
 
@@ -277,11 +287,11 @@ def test_pinhole_and_led_errors():
         nplps.Rig.pinhole([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 1.0, 1.0]], lights=LIGHTS)
     with pytest.raises(nplps.RigError, match=r"K must be a 3 x 3 matrix"):
         nplps.Rig.pinhole(np.eye(2), lights=LIGHTS)
-    with pytest.raises(nplps.RigError, match=r"need their principal directions"):
+    with pytest.raises(nplps.RigError, match=r"light 0: an anisotropic LED \(mu = 1\) needs its axis \(axes=\.\.\.\)"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, mu=[1.0] * len(LIGHTS))
-    with pytest.raises(nplps.RigError, match=r"anisotropy mu = -1"):
-        nplps.Rig.pinhole(good_k, lights=LIGHTS, directions=[[0, 0, 1]] * len(LIGHTS), mu=[-1.0] + [1.0] * (len(LIGHTS) - 1))
-    with pytest.raises(nplps.RigError, match=r"positive intensities"):
+    with pytest.raises(nplps.RigError, match=r"light 0 has anisotropy mu = -1; it must be >= 0"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, axes=[[0, 0, 1]] * len(LIGHTS), mu=[-1.0] + [1.0] * (len(LIGHTS) - 1))
+    with pytest.raises(nplps.RigError, match=r"light 1 must have positive intensities"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 0.0] + [1.0] * (len(LIGHTS) - 2))
     with pytest.raises(nplps.RigError, match=r"intensities must be a number, \(k,\) or \(k, 3\)"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 2.0])
@@ -450,15 +460,22 @@ def test_too_many_lights_are_a_rig_error(tmp_path):
         nplps.Rig.load(_write(tmp_path, data))
 
 
-def test_anisotropic_led_needs_a_nonzero_finite_direction():
-    """A zero principal direction used to become +z silently."""
-    with pytest.raises(nplps.RigError, match=r"light 1: an anisotropic LED \(mu = 2\) needs a non-zero principal direction"):
-        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]], mu=[1, 2, 1, 1])
-    with pytest.raises(nplps.RigError, match=r"light 0 has a non-finite principal direction \[nan, 0, 1\]"):
-        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[np.nan, 0, 1]] + [[0, 0, 1]] * 3, mu=[1] * 4)
-    # An isotropic light's axis is unused: zero is fine there.
-    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 0]] * 4, mu=[0] * 4)
-    np.testing.assert_array_equal(rig.directions, [[0, 0, 1]] * 4)
+def test_anisotropic_led_needs_a_nonzero_finite_axis():
+    """A zero axis used to become +z silently."""
+    with pytest.raises(nplps.RigError, match=r"light 1: an anisotropic LED \(mu = 2\) needs a non-zero axis"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]], mu=[1, 2, 1, 1])
+    with pytest.raises(nplps.RigError, match=r"light 0 axis\[1\] must be a finite number, got inf"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, np.inf, 1]] + [[0, 0, 1]] * 3, mu=[1] * 4)
+    with pytest.raises(nplps.RigError, match=r"light 0: an anisotropic LED \(mu = 1\) needs its axis"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[np.nan] * 3] + [[0, 0, 1]] * 3, mu=[1] * 4)
+    # An isotropic light's axis is unused: it is a PointLight, whatever its axis.
+    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, 0, 0]] * 4, mu=[0] * 4)
+    assert all(type(light) is nplps.PointLight for light in rig.lights)
+    assert np.isnan(rig.axes).all()
+    # An LED of mu = 0 built by hand keeps its axis; a zero one stands for +z.
+    assert nplps.LED((0, 0, 0), axis=(0, 0, 0), mu=0).axis == (0.0, 0.0, 1.0)
+    with pytest.raises(nplps.RigError, match=r"LED: an anisotropic LED \(mu = 1\) needs a non-zero axis"):
+        nplps.LED((0, 0, 0), axis=(0, 0, 0))
 
 
 def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
@@ -468,8 +485,8 @@ def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
         nplps.Rig.orthographic(1.0, lights=np.ones((4, 3), dtype=bool))
     with pytest.raises(nplps.RigError, match=r"lights must be numbers, got an array of strings"):
         nplps.Rig.orthographic(1.0, lights=[["1", "2", "3"]] * 4)
-    with pytest.raises(nplps.RigError, match=r"directional must have one flag \(True or False\) per light"):
-        nplps.Rig(camera={"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS, directional=["yes"] * 4)
+    with pytest.raises(nplps.RigError, match=r"mu must be numbers, got an array of strings"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, mu=["yes"] * 4)
 
 
 def test_the_core_refuses_malformed_light_mappings():

@@ -404,8 +404,21 @@ class Rig:
             When an array has the wrong shape or a non-number, a light has both or neither of a
             position and a direction, an LED has no axis, or a light is invalid.
         """
+        return cls._from_arrays(camera, positions, directions, intensities, axes, mu)
+
+    @classmethod
+    def _from_arrays(
+        cls,
+        camera: Mapping[str, Any],
+        positions: ArrayLike | None,
+        directions: ArrayLike | None = None,
+        intensities: ArrayLike | None = None,
+        axes: ArrayLike | None = None,
+        mu: ArrayLike | None = None,
+        positions_name: str = "positions",
+    ) -> Rig:
         if positions is not None:
-            pos = _array(positions, "positions", (-1, 3))
+            pos = _array(positions, positions_name, (-1, 3))
             k = pos.shape[0]
             dirs = np.full((k, 3), np.nan) if directions is None else _array(directions, "directions", (k, 3))
         elif directions is not None:
@@ -539,7 +552,7 @@ class Rig:
                 raise RigError(f"{given[0]}= goes with an array of positions, not with light values")
             return cls(camera=camera, lights=lights)
         positions = None if _is_empty(lights) and arrays.get("directions") is not None else lights
-        return cls.from_arrays(camera, positions, **arrays)
+        return cls._from_arrays(camera, positions, **arrays, positions_name="lights")
 
     # -- properties -----------------------------------------------------------------------------
     @property
