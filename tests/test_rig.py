@@ -760,3 +760,13 @@ def test_lights_of_a_scene_are_typed():
     kinds = {type(light) for light in scene.rig.lights}
     assert kinds == {nplps.LED, nplps.DirectionalLight}
     assert (scene.rig.mu[~scene.rig.directional] > 0).all()
+
+
+def test_rig_pickles_without_its_views():
+    import pickle
+
+    rig = _mixed_rig()
+    assert not rig.positions.flags.writeable
+    again = pickle.loads(pickle.dumps(rig))
+    assert again == rig and "positions" not in again.__dict__
+    assert not again.positions.flags.writeable

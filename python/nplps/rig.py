@@ -360,6 +360,10 @@ class Rig:
     def __hash__(self) -> int:
         return hash((json.dumps(self.camera, sort_keys=True), self.lights))
 
+    def __getstate__(self) -> dict[str, Any]:
+        # The fields only: the array views are computed again (read-only) after unpickling.
+        return {"camera": self.camera, "lights": self.lights}
+
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
     def from_arrays(
