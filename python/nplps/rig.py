@@ -934,9 +934,24 @@ def _lights(value: Any) -> tuple[Light, ...]:
 
 
 def read_rig_json(path: str | os.PathLike[str]) -> Any:
-    """The JSON value of a rig file, read within the limits of the format (at most
-    :data:`MAX_RIG_FILE_BYTES` of UTF-8, nested at most :data:`MAX_NESTING` levels); raises
-    :class:`RigError` when the file cannot be read or is not such a JSON text."""
+    """The JSON value of a rig file, read within the limits of the format.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file: at most :data:`MAX_RIG_FILE_BYTES` of UTF-8 (a byte order mark is allowed),
+        nested at most :data:`MAX_NESTING` levels.
+
+    Returns
+    -------
+    Any
+        The parsed JSON value (not checked as a rig: see :meth:`Rig.from_dict`).
+
+    Raises
+    ------
+    RigError
+        When the file cannot be read or is not such a JSON text.
+    """
     name = os.fspath(path)
     try:
         with open(path, "rb") as f:
