@@ -46,7 +46,7 @@ def time_reference(scene: nplps.Scene, images: np.ndarray, repeats: int) -> dict
     for _ in range(repeats):
         t0 = time.perf_counter()
         out = reference.reconstruct(
-            images.astype(np.float64), scene.rig.lights, cam["pixel_size"], cam["origin"], mask=scene.mask,
+            images.astype(np.float64), scene.rig.positions, cam["pixel_size"], cam["origin"], mask=scene.mask,
             depth=scene.mean_depth, iterations=10, tol=0.0,
         )
         wall = time.perf_counter() - t0

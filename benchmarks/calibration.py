@@ -70,12 +70,12 @@ def run_case(
     for l in res.lights:
         if truth.directional[l.index]:
             if l.kind == "directional":
-                dirs.append(float(angle_deg(l.direction, truth.lights[l.index])))
+                dirs.append(float(angle_deg(l.direction, truth.directions[l.index])))
             else:
                 wrong_kind += 1
         else:
             if l.kind == "point":
-                pos.append(float(np.linalg.norm(l.position - truth.lights[l.index])))
+                pos.append(float(np.linalg.norm(l.position - truth.positions[l.index])))
             else:
                 wrong_kind += 1
     pos_a = np.array(pos)
@@ -92,12 +92,7 @@ def run_case(
     idx = scene.light_indices
     images = obj.images[idx]
     true_rig = obj.rig.subset(idx)
-    cal_rig = nplps.Rig(
-        camera=dict(obj.rig.camera),  # the reconstruction's own image size
-        lights=icl.rig.lights,
-        intensities=icl.rig.intensities,
-        directional=icl.rig.directional,
-    )
+    cal_rig = nplps.Rig(camera=dict(obj.rig.camera), lights=icl.rig.lights)  # the reconstruction's own image size
     depth0 = obj.mean_depth
     r_true = nplps.reconstruct(images, true_rig, mask=obj.mask, depth=depth0, iterations=30, tol=1e-8)
     r_cal = nplps.reconstruct(images, cal_rig, mask=obj.mask, depth=depth0, iterations=30, tol=1e-8)
@@ -132,10 +127,10 @@ def run_intensity(camera: str, led: bool, seed: int) -> dict[str, float]:
     rig = cal.standard_rig(camera, n=200, lights=27, directional=True, led=led)
     if not led:
         phi = np.random.default_rng(seed).uniform(0.65, 1.35, rig.n_lights)
-        rig = nplps.Rig(camera=rig.camera, lights=rig.lights, intensities=rig.intensities * phi[:, None], directional=rig.directional)
+        rig = rig.with_intensities(rig.intensities * phi[:, None])
     plane = ([0.05, -0.1, -1.0], -WORKING_DISTANCE)
     board = cal.make_board_scene(rig, n=200, plane=plane, noise=0.01, seed=seed)
-    start = nplps.Rig(camera=rig.camera, lights=rig.lights, directional=rig.directional)
+    start = nplps.Rig.from_arrays(rig.camera, rig.positions, directions=rig.directions)
     t0 = time.perf_counter()
     res = cal.calibrate_intensities(board.images, start, plane, fit_mu=led, fit_direction=led)
     elapsed = time.perf_counter() - t0
@@ -147,7 +142,7 @@ def run_intensity(camera: str, led: bool, seed: int) -> dict[str, float]:
         "phi_rms": float(np.sqrt(np.mean(err**2))),
         "phi_max": float(np.abs(err).max()),
         "mu_max": float(np.abs(res.mu[point] - rig.mu[point]).max()) if led else float("nan"),
-        "dir_max": float(angle_deg(res.directions[point], rig.directions[point]).max()) if led else float("nan"),
+        "dir_max": float(angle_deg(res.axes[point], rig.axes[point]).max()) if led else float("nan"),
         "time": elapsed,
     }
 

@@ -43,7 +43,6 @@ over all groups and separately with and without image noise and on real data. ``
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -71,9 +70,8 @@ def wrong_lights(rig: nplps.Rig, seed: int, fraction: float) -> nplps.Rig:
     """The rig with every point light moved by a random offset of RMS length ``fraction * DISTANCE``
     (as in benchmarks/refine_lights.py); directional lights are left alone."""
     rng = np.random.default_rng(1000 + seed)
-    shift = rng.normal(size=rig.lights.shape) * fraction * DISTANCE / np.sqrt(3.0)
-    shift[rig.directional] = 0.0
-    return dataclasses.replace(rig, lights=rig.lights + shift)
+    shift = rng.normal(size=rig.positions.shape) * fraction * DISTANCE / np.sqrt(3.0)
+    return rig.with_positions(rig.positions + shift)  # NaN rows (directional lights) stay NaN
 
 
 def boundary_band(mask: np.ndarray, width: int = 2) -> np.ndarray:

@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
@@ -42,13 +41,13 @@ def relative(phi: np.ndarray) -> np.ndarray:
 def wrong_intensities(rig: nplps.Rig, seed: int, amount: float = 0.35) -> nplps.Rig:
     rng = np.random.default_rng(100 + seed)
     factors = 1.0 + rng.uniform(-amount, amount, rig.n_lights)
-    return dataclasses.replace(rig, intensities=rig.intensities * factors[:, None])
+    return rig.with_intensities(rig.intensities * factors[:, None])
 
 
 def wrong_positions(rig: nplps.Rig, seed: int, distance: float, fraction: float = 0.05) -> nplps.Rig:
     rng = np.random.default_rng(1000 + seed)
-    shift = rng.normal(size=rig.lights.shape) * fraction * distance / np.sqrt(3.0)
-    return dataclasses.replace(rig, lights=rig.lights + shift)
+    shift = rng.normal(size=rig.positions.shape) * fraction * distance / np.sqrt(3.0)
+    return rig.with_positions(rig.positions + shift)
 
 
 def intensity_table(seeds: int) -> None:
@@ -127,8 +126,8 @@ def position_table(seeds: int) -> None:
             plain = nplps.reconstruct(scene.images, bad, mask=m, depth=d, **KW)
             refined = nplps.reconstruct(scene.images, bad, mask=m, depth=d, refine_lights="position", **KW)
             err = [angles(r.normals, scene.normals)[m].mean() for r in (truth, plain, refined)]
-            before = np.sqrt(np.mean(np.sum((bad.lights - scene.rig.lights) ** 2, axis=1)))
-            after = np.sqrt(np.mean(np.sum((refined.rig.lights - scene.rig.lights) ** 2, axis=1)))
+            before = np.sqrt(np.mean(np.sum((bad.positions - scene.rig.positions) ** 2, axis=1)))
+            after = np.sqrt(np.mean(np.sum((refined.rig.positions - scene.rig.positions) ** 2, axis=1)))
             ref = refined.refinement
             rows.append(err)
             print(

@@ -668,20 +668,20 @@ for name, value in [
 ]:
     api(f"rig.intensities_{name}", C, f"orth(intensities={value})", raises("RigError", "intensit"))
 for name, value in [("negative", "-np.ones(27)"), ("nan", "np.full(27, np.nan)")]:
-    api(f"rig.mu_{name}", C, f"orth(mu={value}, directions=np.tile([0, 0, 1.0], (27, 1)))", raises("RigError", "mu"))
-api("rig.mu_without_directions", C, "orth(mu=np.ones(27))", raises("RigError", "direction"))
-api("rig.led_zero_direction", C, "orth(mu=np.ones(27), directions=np.zeros((27, 3)))", raises("RigError", "direction"))
+    api(f"rig.mu_{name}", C, f"orth(mu={value}, axes=np.tile([0, 0, 1.0], (27, 1)))", raises("RigError", "mu"))
+api("rig.mu_without_directions", C, "orth(mu=np.ones(27))", raises("RigError", "axis"))
+api("rig.led_zero_direction", C, "orth(mu=np.ones(27), axes=np.zeros((27, 3)))", raises("RigError", "axis"))
 api(
     "rig.led_nan_direction",
     C,
-    "orth(mu=np.ones(27), directions=np.full((27, 3), np.nan))",
-    raises("RigError", "direction"),
+    "orth(mu=np.ones(27), axes=np.full((27, 3), np.nan))",
+    raises("RigError", "axis"),
 )
 api("rig.directional_zero", C, "orth(directional=[[0, 0, 0.0]])", raises("RigError", "direction"))
 api("rig.directional_nan", C, "orth(directional=[[np.nan, 0, -1.0]])", raises("RigError", "direction"))
 api(
-    "rig.directional_flags_shape", C, "Rig(camera=R.camera, lights=L, directional=[True])",
-    raises("RigError", "directional"),
+    "rig.directional_flags_shape", C, "Rig.from_arrays(R.camera, L, directions=[[0, 0, -1.0]])",
+    raises("RigError", "directions"),
 )
 api("rig.subset_out_of_range", C, "R.subset([99])", raises("InputError", ("indices", "99")))
 C = "Rig constructors/pinhole"
@@ -769,7 +769,7 @@ api(
     "rigfile.round_trip_led",
     C,
     "s = nplps.make_scene('bumps', n=8, led=True); s.rig.save(tmp / 'r.json'); rg = Rig.load(tmp / 'r.json')",
-    ok("np.allclose(rg.mu, s.rig.mu) and np.allclose(rg.lights, s.rig.lights)"),
+    ok("np.allclose(rg.mu, s.rig.mu) and np.allclose(rg.positions, s.rig.positions)"),
 )
 api(
     "rigfile.utf8_bom",
@@ -921,7 +921,7 @@ api(
     C,
     "d = rig_dict(); d['lights'][4] = {'type': 'directional', 'direction': [0, 0, -2]}; "
     "rg = Rig.load(write_json('rig.json', d))",
-    either("np.allclose(np.linalg.norm(rg.lights[4]), 1)", "RigError", "direction"),
+    either("np.allclose(np.linalg.norm(rg.directions[4]), 1)", "RigError", "direction"),
 )
 api("rigfile.from_dict_none", C, "Rig.from_dict(None)", raises("RigError", "rig"))
 api("rigfile.load_none", C, "Rig.load(None)", raises("RigError", "rig"))
@@ -1606,7 +1606,7 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
     def rig_v1():
         return {
             "version": 1, "camera": dict(S.rig.camera),
-            "lights": [{"position": [float(v) for v in p]} for p in S.rig.lights],
+            "lights": [{"position": [float(v) for v in p]} for p in S.rig.positions],
         }
 
     def path(name):
@@ -1697,9 +1697,9 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
         return Path(shutil.copytree(scene_dir, path(name)))
 
     def orth(lights=None, directional=None, **kw):
-        lights = S.rig.lights if lights is None else lights
+        lights = S.rig.positions if lights is None else lights
         if directional is not None:
-            lights, kw["directional_lights"] = np.zeros((0, 3)), directional
+            lights, kw["directions"] = (), directional
         cam = S.rig.camera
         return Rig.orthographic(cam["pixel_size"][0], origin=cam["origin"], lights=lights, **kw)
 
@@ -1712,7 +1712,7 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
     ns.update(
         np=np, nplps=nplps, Rig=Rig, InputError=InputError, RigError=RigError, SolverError=SolverError,
         NplpsError=NplpsError, json=json, os=os, sys=sys, math=math, Path=Path, warnings=warnings, iio=iio,
-        S=S, PS=PS, I=S.images, R=S.rig, M=S.mask, L=np.array(S.rig.lights), KP=PS.rig.K.tolist(), SC=SC, PSC=PSC,
+        S=S, PS=PS, I=S.images, R=S.rig, M=S.mask, L=np.array(S.rig.positions), KP=PS.rig.K.tolist(), SC=SC, PSC=PSC,
         STATUSES=STATUSES, rec=rec, par=par, honest=honest, good=good, warned=warned, rig_dict=rig_dict,
         rig_v1=rig_v1, write_text=write_text, write_bytes=write_bytes, write_json=write_json, png=png, tiff=tiff,
         png_header_only=png_header_only, tiff_header_only=tiff_header_only, bmp_header_only=bmp_header_only,

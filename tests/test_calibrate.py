@@ -35,10 +35,10 @@ def _errors(result: cal.SphereCalibration, truth: nplps.Rig) -> tuple[np.ndarray
     for l in result.lights:
         if truth.directional[l.index]:
             assert l.kind == "directional", f"light {l.index} is distant but came out {l.kind}"
-            dirs.append(float(_angle(l.direction, truth.lights[l.index])))
+            dirs.append(float(_angle(l.direction, truth.directions[l.index])))
         else:
             assert l.kind == "point", f"light {l.index} is a point light but came out {l.kind}: {l.warning}"
-            pos.append(float(np.linalg.norm(l.position - truth.lights[l.index])))
+            pos.append(float(np.linalg.norm(l.position - truth.positions[l.index])))
     return np.array(pos), np.array(dirs)
 
 
@@ -139,9 +139,7 @@ def test_reconstruction_with_the_calibrated_rig(camera):
         board = cal.make_board_scene(scene.rig, noise=0.01, seed=seed + 100)
         rig = cal.calibrate_intensities(board.images, positions.rig, WD).rig
         obj = nplps.make_scene("bumps", n=96, camera=camera, directional=True, seed=seed)
-        calibrated = nplps.Rig(
-            camera=obj.rig.camera, lights=rig.lights, intensities=rig.intensities, directional=rig.directional
-        )
+        calibrated = nplps.Rig(camera=obj.rig.camera, lights=rig.lights)  # the lights with their intensities
         depth = obj.mean_depth
         r_true = nplps.reconstruct(obj.images, obj.rig, mask=obj.mask, depth=depth, iterations=30, tol=1e-8)
         r_cal = nplps.reconstruct(obj.images, calibrated, mask=obj.mask, depth=depth, iterations=30, tol=1e-8)
@@ -161,7 +159,7 @@ def _relative(v: np.ndarray) -> np.ndarray:
 
 
 def _positions_only(rig: nplps.Rig) -> nplps.Rig:
-    return nplps.Rig(camera=rig.camera, lights=rig.lights, directional=rig.directional)
+    return nplps.Rig.from_arrays(rig.camera, rig.positions, directions=rig.directions)
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
@@ -171,13 +169,15 @@ def test_intensities_of_isotropic_lights(camera):
     for seed in SEEDS:
         rig = cal.standard_rig(camera, n=160, lights=27, directional=True)
         phi = np.random.default_rng(seed).uniform(0.65, 1.35, rig.n_lights)
-        rig = nplps.Rig(camera=rig.camera, lights=rig.lights, intensities=rig.intensities * phi[:, None], directional=rig.directional)
+        rig = rig.with_intensities(rig.intensities * phi[:, None])
         board = cal.make_board_scene(rig, n=160, plane=plane, noise=0.01, seed=seed)
-        result = cal.calibrate_intensities(board.images, _positions_only(rig), plane)
+        start = _positions_only(rig)
+        result = cal.calibrate_intensities(board.images, start, plane)
         err = np.abs(result.intensities[:, 0] / _relative(rig.intensities[:, 0]) - 1.0)
         assert err.max() < 0.01, (seed, err.max())
         np.testing.assert_allclose(np.exp(np.mean(np.log(result.intensities))), 1.0, rtol=1e-12)
-        np.testing.assert_array_equal(result.rig.lights, rig.lights)
+        np.testing.assert_array_equal(result.rig.positions, start.positions)
+        np.testing.assert_array_equal(result.rig.directions, start.directions)
 
 
 def test_intensities_mu_and_directions_of_leds():
@@ -191,14 +191,14 @@ def test_intensities_mu_and_directions_of_leds():
         assert np.abs(result.intensities[:, 0] / truth - 1.0).max() < 0.01
         point = ~rig.directional
         assert np.abs(result.mu[point] - rig.mu[point]).max() < 0.2
-        assert _angle(result.directions[point], rig.directions[point]).max() < 2.0
+        assert _angle(result.axes[point], rig.axes[point]).max() < 2.0
 
 
 def test_intensities_with_a_textured_board_and_vignetting():
     """albedo="per_pixel" absorbs a board texture and a cos^4-like falloff shared by all lights."""
     rig = cal.standard_rig("orthographic", n=120, lights=8)
     phi = np.linspace(0.7, 1.3, rig.n_lights)
-    rig = nplps.Rig(camera=rig.camera, lights=rig.lights, intensities=phi)
+    rig = rig.with_intensities(phi)
     yy, xx = np.mgrid[:120, :120] / 119.0 - 0.5
     albedo = (0.7 + 0.2 * np.sin(9 * xx) * np.cos(7 * yy)) * (1 - 0.6 * (xx**2 + yy**2))
     board = cal.make_board_scene(rig, n=120, albedo=albedo, noise=0.005, seed=1)
@@ -218,7 +218,7 @@ def test_colour_intensities():
     # Tint each light's channels by its own RGB intensity ratios.
     ratio = rig.intensities / rig.intensities.mean(axis=1, keepdims=True)
     rgb *= ratio[:, None, None, :].astype(np.float32)
-    result = cal.calibrate_intensities(rgb, rig, WD, color=True)  # the rig's LED mu and directions
+    result = cal.calibrate_intensities(rgb, rig, WD, color=True)  # the rig's LED mu and axes
     assert result.intensities.shape == (8, 3)
     np.testing.assert_allclose(result.intensities / _relative(rig.intensities), 1.0, atol=0.01)
 
@@ -235,7 +235,7 @@ def test_single_sphere_gives_directions_with_warnings(tmp_path):
     assert "directional" in table and "one sphere" in table
     result.save(tmp_path / "rig.json")
     loaded = nplps.Rig.load(tmp_path / "rig.json")
-    assert loaded.directional.all() and np.allclose(np.linalg.norm(loaded.lights, axis=1), 1.0)
+    assert loaded.directional.all() and np.allclose(np.linalg.norm(loaded.directions, axis=1), 1.0)
 
 
 def test_rig_file_and_report(tmp_path):
@@ -249,7 +249,7 @@ def test_rig_file_and_report(tmp_path):
     assert all(l["intensity"] == 1.0 for l in data["lights"])
     loaded = nplps.Rig.load(tmp_path / "rig.json")
     expected = np.array([l.position if l.kind == "point" else l.direction for l in result.lights])
-    np.testing.assert_allclose(loaded.lights, expected)
+    np.testing.assert_allclose(np.where(loaded.directional[:, None], loaded.directions, loaded.positions), expected)
     assert "spheres" in result.table().splitlines()[0]
 
 
@@ -308,7 +308,7 @@ def test_scene_generators():
         assert min(saturated) >= 3, "every highlight saturates"
         assert np.median(stack[:, labels > 0]) < 200, "the diffuse part does not"
     assert scene.rig.n_lights == 8 and scene.light_indices == list(cal.LIGHTS_8)
-    np.testing.assert_allclose(scene.rig.lights, nplps.make_scene("saddle", n=8).rig.lights[list(cal.LIGHTS_8)])
+    np.testing.assert_allclose(scene.rig.positions, nplps.make_scene("saddle", n=8).rig.positions[list(cal.LIGHTS_8)])
     board = cal.make_board_scene(scene.rig, n=160, noise=0.0, bits=16)
     assert board.images.dtype == np.uint16 and board.images.max() <= 65535 * 0.9 + 1
 
@@ -334,7 +334,7 @@ def test_command_line_end_to_end(tmp_path, capsys):
     truth = nplps.Rig.load(out / "rig_true.json")
     assert rig.n_lights == 8 and (rig.directional == truth.directional).all()
     point = ~truth.directional
-    assert np.sqrt(np.mean(np.sum((rig.lights[point] - truth.lights[point]) ** 2, axis=1))) < 0.005 * WD
+    assert np.sqrt(np.mean(np.sum((rig.positions[point] - truth.positions[point]) ** 2, axis=1))) < 0.005 * WD
     report = json.loads((out / "report.json").read_text())
     assert len(report["lights"]) == 8 and len(report["spheres"]) == 2
     assert main(["calibrate", "intensity", str(out / "board"), "--rig", str(out / "rig_spheres.json"),

@@ -516,7 +516,7 @@ def test_capture_near_ps(tmp_path, capsys):
     scipy_io.savemat(folder / "camera.mat", {"K": K1})
     scipy_io.savemat(
         folder / "light.mat",
-        {"S": rig.lights, "Dir": rig.directions, "Phi": rig.intensities, "mu": rig.mu[:, None]},
+        {"S": rig.positions, "Dir": rig.axes, "Phi": rig.intensities, "mu": rig.mu[:, None]},
     )
     vignetting = nplps.preprocess.vignetting_cos4((REAL_SIZE, REAL_SIZE), rig.K, np.float64)
     scale = 60000.0 / scene.images.max()
@@ -559,7 +559,7 @@ def test_capture_diligent(tmp_path, capsys):
     dirs = rng.normal(size=(k, 3)) * [0.5, 0.5, 0.0] + [0.0, 0.0, -1.0]  # towards the camera
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     intensities = rng.uniform(0.6, 1.4, (k, 3))
-    rig = nplps.Rig.orthographic(1.0, directional_lights=dirs, directional_intensities=intensities)
+    rig = nplps.Rig.orthographic(1.0, directions=dirs, intensities=intensities)
     base = nplps.make_scene("bumps", n=24)
     depth = base.depth / base.rig.camera["pixel_size"][0]  # in pixel units
     albedo = np.stack([base.albedo, 0.8 * base.albedo, 0.6 * base.albedo], axis=-1)

@@ -15,8 +15,8 @@ from nplps.evaluation import held_out
 
 def _perturbed(rig: nplps.Rig, size: float, fraction: float, seed: int) -> nplps.Rig:
     rng = np.random.default_rng(seed)
-    moved = rig.lights + rng.uniform(-fraction, fraction, rig.lights.shape) * size * ~rig.directional[:, None]
-    return nplps.Rig(rig.camera, moved, rig.intensities, rig.directions, rig.mu, rig.directional)
+    moved = rig.positions + rng.uniform(-fraction, fraction, rig.positions.shape) * size * ~rig.directional[:, None]
+    return rig.with_positions(moved)  # the rows of directional lights stay NaN
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
@@ -83,7 +83,7 @@ def test_unobservable_distances_are_refused():
     three = s.rig.subset([0, 9, 18])
     with pytest.raises(nplps.InputError, match="3 lights"):
         nplps.reconstruct(s.images[[0, 9, 18]], three, mask=s.mask, depth="auto")
-    far = nplps.Rig.orthographic(1.0, directional_lights=[[0, 0, -1], [0.3, 0, -1], [0, 0.3, -1], [-0.3, 0, -1]])
+    far = nplps.Rig.orthographic(1.0, directions=[[0, 0, -1], [0.3, 0, -1], [0, 0.3, -1], [-0.3, 0, -1]])
     with pytest.raises(nplps.InputError, match="directional lights only"):
         nplps.reconstruct(np.ones((4, 8, 8)), far, mask=None, depth="auto")
     with pytest.raises(nplps.InputError, match="falling towards the near end"):

@@ -6,7 +6,6 @@ tables (seeds 0-9, timings) are in ``benchmarks/refine_lights.py``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -31,14 +30,14 @@ def _relative(phi: np.ndarray) -> np.ndarray:
 def _wrong_intensities(rig: Rig, seed: int, amount: float = 0.35) -> Rig:
     rng = np.random.default_rng(100 + seed)
     factors = 1.0 + rng.uniform(-amount, amount, rig.n_lights)
-    return dataclasses.replace(rig, intensities=rig.intensities * factors[:, None])
+    return rig.with_intensities(rig.intensities * factors[:, None])
 
 
 def _wrong_positions(rig: Rig, seed: int, distance: float, fraction: float = 0.05) -> Rig:
     """Every light moved by a random vector of RMS length ``fraction * distance``."""
     rng = np.random.default_rng(1000 + seed)
-    shift = rng.normal(size=rig.lights.shape) * fraction * distance / np.sqrt(3.0)
-    return dataclasses.replace(rig, lights=rig.lights + shift)
+    shift = rng.normal(size=rig.positions.shape) * fraction * distance / np.sqrt(3.0)
+    return rig.with_positions(rig.positions + shift)
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.01])
@@ -106,8 +105,8 @@ def test_positions_off_by_5_percent(noise):
             assert err["refined"] < 1.0, (seed, err)
         else:
             assert err["refined"] < err["truth"] + 0.5, (seed, err)
-        before = np.linalg.norm(bad.lights - scene.rig.lights, axis=1)
-        after = np.linalg.norm(refined.rig.lights - scene.rig.lights, axis=1)
+        before = np.linalg.norm(bad.positions - scene.rig.positions, axis=1)
+        after = np.linalg.norm(refined.rig.positions - scene.rig.positions, axis=1)
         assert np.sqrt(np.mean(after**2)) < 0.6 * np.sqrt(np.mean(before**2))
         # Intensities are not refined in this mode.
         np.testing.assert_array_equal(refined.rig.intensities, bad.intensities)
@@ -146,7 +145,7 @@ def test_positions_with_auto_distance_keep_the_rigs_scale():
         scene.images, bad, mask=scene.mask, depth="auto", refine_lights="position", iterations=30
     )
     # The common scale of the positions about the camera centre is the given rig's.
-    scale = np.sum(bad.lights * refined.rig.lights) / np.sum(bad.lights**2)
+    scale = np.sum(bad.positions * refined.rig.positions) / np.sum(bad.positions**2)
     assert abs(scale - 1) < 1e-6
     plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth="auto", iterations=30)
     err = lambda r: _angles(r.normals, scene.normals)[scene.mask].mean()  # noqa: E731
@@ -160,7 +159,7 @@ def test_fallback_keeps_the_rig_when_refinement_does_not_help():
     report = refined.refinement
     assert np.isfinite(report.residual_without) and np.isfinite(report.residual_with)
     if report.fell_back:
-        np.testing.assert_array_equal(refined.rig.lights, scene.rig.lights)
+        np.testing.assert_array_equal(refined.rig.positions, scene.rig.positions)
     else:
         assert report.residual_with < report.residual_without
 
@@ -174,7 +173,7 @@ def test_parallel_baseline_refines_its_own_intensities():
     plain = nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth)
     assert base.refinement is not None and base.refinement.mode == "intensity"
     assert base.history[-1].rms_residual < 0.5 * plain.history[-1].rms_residual
-    np.testing.assert_array_equal(base.rig.lights, bad.lights)  # positions are kept
+    np.testing.assert_array_equal(base.rig.positions, bad.positions)  # positions are kept
     with pytest.raises(InputError, match="only \"intensity\""):
         nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="position")
 

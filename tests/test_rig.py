@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -20,14 +21,15 @@ def test_orthographic_scalar_and_pair_pixel_size():
     scalar = nplps.Rig.orthographic(0.5, lights=LIGHTS)
     pair = nplps.Rig.orthographic((0.5, 0.5), lights=LIGHTS)
     assert scalar.camera == pair.camera == {"model": "orthographic", "pixel_size": [0.5, 0.5], "origin": [0.0, 0.0]}
-    np.testing.assert_array_equal(scalar.lights, pair.lights)
+    assert scalar.lights == pair.lights
 
     rect = nplps.Rig.orthographic((0.5, 0.25), origin=(-8.0, 4.0), lights=LIGHTS)
     assert rect.camera["pixel_size"] == [0.5, 0.25]  # (w, h): x first
     assert rect.camera["origin"] == [-8.0, 4.0]
     assert rect.n_lights == 4
-    assert rect.lights.dtype == np.float64 and rect.lights.shape == (4, 3)
-    assert rect.lights.flags["C_CONTIGUOUS"]
+    assert rect.positions.dtype == np.float64 and rect.positions.shape == (4, 3)
+    assert rect.positions.flags["C_CONTIGUOUS"]
+    assert all(isinstance(light, nplps.PointLight) for light in rect.lights)
     # integers and numpy scalars are accepted
     assert nplps.Rig.orthographic(np.float32(2), lights=LIGHTS).camera["pixel_size"] == [2.0, 2.0]
     assert nplps.Rig.orthographic(2, lights=LIGHTS).camera["pixel_size"] == [2.0, 2.0]
@@ -36,7 +38,11 @@ def test_orthographic_scalar_and_pair_pixel_size():
 def test_rig_is_frozen():
     rig = nplps.Rig.orthographic(1.0, lights=LIGHTS)
     with pytest.raises(AttributeError):
-        rig.lights = np.zeros((3, 3))  # type: ignore[misc]
+        rig.lights = ()  # type: ignore[misc]
+    with pytest.raises(AttributeError):
+        rig.lights[0].position = (0.0, 0.0, 0.0)  # type: ignore[misc]
+    with pytest.raises(ValueError, match="read-only"):
+        rig.positions[0, 0] = 1.0
 
 
 @pytest.mark.parametrize(
@@ -121,11 +127,12 @@ def test_save_load_round_trip(tmp_path):
     assert list(data) == ["version", "camera", "lights"]
     assert data["version"] == 2
     assert data["camera"] == {"model": "orthographic", "pixel_size": [0.5, 0.25], "origin": [-8.0, 4.125]}
-    assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.lights.tolist()]
+    assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.positions.tolist()]
 
     loaded = nplps.Rig.load(path)
     assert loaded.camera == rig.camera
-    np.testing.assert_array_equal(loaded.lights, rig.lights)  # exact: JSON floats round-trip
+    np.testing.assert_array_equal(loaded.positions, rig.positions)  # exact: JSON floats round-trip
+    assert loaded == rig
     assert nplps.Rig.load(str(path)).camera == rig.camera
     assert nplps.Rig.from_dict(rig.to_dict()).camera == rig.camera
 
@@ -139,7 +146,7 @@ def test_load_ignores_comment_keys(tmp_path):
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(data), encoding="utf-8")
     rig = nplps.Rig.load(path)
-    np.testing.assert_array_equal(rig.lights, LIGHTS)
+    np.testing.assert_array_equal(rig.positions, LIGHTS)
     assert rig.camera == {"model": "orthographic", "pixel_size": [1.0, 1.0], "origin": [0.0, 0.0]}
 
 
@@ -238,36 +245,40 @@ def test_version_1_files_are_read(tmp_path):
         "lights": [{"position": p} for p in LIGHTS],
     }))
     rig = nplps.Rig.load(path)
-    np.testing.assert_array_equal(rig.lights, np.array(LIGHTS, dtype=float))
+    np.testing.assert_array_equal(rig.positions, np.array(LIGHTS, dtype=float))
     np.testing.assert_array_equal(rig.intensities, 1.0)
     assert not rig.directional.any() and not rig.mu.any()
 
 
 def test_pinhole_led_rig_round_trip(tmp_path):
     K = [[800.0, 0.0, 319.5], [0.0, 810.0, 239.5], [0.0, 0.0, 1.0]]
+    nan = [np.nan] * 3
     rig = nplps.Rig.pinhole(
         K,
-        lights=[[50.0, 0.0, -10.0], [-40.0, 30.0, -5.0], [0.0, -45.0, -20.0]],
+        lights=[[50.0, 0.0, -10.0], [-40.0, 30.0, -5.0], [0.0, -45.0, -20.0], nan],
         distortion=[-0.1, 0.01],
-        intensities=[1.0, [0.9, 1.0, 1.1], 1.2],
-        directions=[[0, 0, 1], [0.1, 0, 1], [0, 0.2, 1]],
-        mu=[1.0, 0.0, 2.0],
-        directional_lights=[[0.0, 0.0, -2.0]],
-        directional_intensities=[0.5],
+        directions=[nan, nan, nan, [0.0, 0.0, -2.0]],
+        intensities=[1.0, [0.9, 1.0, 1.1], 1.2, 0.5],
+        axes=[[0, 0, 1], [0.1, 0, 1], [0, 0.2, 1], nan],
+        mu=[1.0, 0.0, 2.0, 0.0],
     )
     assert rig.n_lights == 4 and rig.is_pinhole
-    np.testing.assert_allclose(np.linalg.norm(rig.directions, axis=1), 1.0)
-    np.testing.assert_array_equal(rig.lights[3], [0.0, 0.0, -1.0])  # normalized
+    assert [type(light).__name__ for light in rig.lights] == ["LED", "PointLight", "LED", "DirectionalLight"]
+    np.testing.assert_allclose(np.linalg.norm(rig.axes[[0, 2]], axis=1), 1.0)
+    assert np.isnan(rig.axes[[1, 3]]).all()  # a point light (mu = 0: its axis is dropped) and a directional light
+    np.testing.assert_array_equal(rig.directions[3], [0.0, 0.0, -1.0])  # normalized
+    assert np.isnan(rig.positions[3]).all() and np.isnan(rig.directions[:3]).all()
     path = tmp_path / "rig.json"
     rig.save(path)
     data = json.loads(path.read_text())
     assert data["camera"]["model"] == "pinhole" and data["camera"]["distortion"] == [-0.1, 0.01, 0.0, 0.0, 0.0]
     assert [light["type"] for light in data["lights"]] == ["point", "point", "point", "directional"]
     assert "mu" not in data["lights"][1] and data["lights"][2]["mu"] == 2.0
+    assert data["lights"][2]["direction"] == list(rig.lights[2].axis)  # the file's "direction" is the LED axis
     loaded = nplps.Rig.load(path)
-    for name in ("lights", "intensities", "mu", "directional"):
-        np.testing.assert_allclose(getattr(loaded, name), getattr(rig, name))
-    np.testing.assert_allclose(loaded.directions[[0, 2]], rig.directions[[0, 2]])
+    for name in ("positions", "directions", "axes", "intensities", "mu", "directional"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(rig, name))
+    assert loaded == rig
     np.testing.assert_allclose(loaded.K, K)
 
 
@@ -277,11 +288,11 @@ def test_pinhole_and_led_errors():
         nplps.Rig.pinhole([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 1.0, 1.0]], lights=LIGHTS)
     with pytest.raises(nplps.RigError, match=r"K must be a 3 x 3 matrix"):
         nplps.Rig.pinhole(np.eye(2), lights=LIGHTS)
-    with pytest.raises(nplps.RigError, match=r"need their principal directions"):
+    with pytest.raises(nplps.RigError, match=r"light 0: an anisotropic LED \(mu = 1\) needs its axis \(axes=\.\.\.\)"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, mu=[1.0] * len(LIGHTS))
-    with pytest.raises(nplps.RigError, match=r"anisotropy mu = -1"):
-        nplps.Rig.pinhole(good_k, lights=LIGHTS, directions=[[0, 0, 1]] * len(LIGHTS), mu=[-1.0] + [1.0] * (len(LIGHTS) - 1))
-    with pytest.raises(nplps.RigError, match=r"positive intensities"):
+    with pytest.raises(nplps.RigError, match=r"light 0 has anisotropy mu = -1; it must be >= 0"):
+        nplps.Rig.pinhole(good_k, lights=LIGHTS, axes=[[0, 0, 1]] * len(LIGHTS), mu=[-1.0] + [1.0] * (len(LIGHTS) - 1))
+    with pytest.raises(nplps.RigError, match=r"light 1 must have positive intensities"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 0.0] + [1.0] * (len(LIGHTS) - 2))
     with pytest.raises(nplps.RigError, match=r"intensities must be a number, \(k,\) or \(k, 3\)"):
         nplps.Rig.pinhole(good_k, lights=LIGHTS, intensities=[1.0, 2.0])
@@ -450,15 +461,22 @@ def test_too_many_lights_are_a_rig_error(tmp_path):
         nplps.Rig.load(_write(tmp_path, data))
 
 
-def test_anisotropic_led_needs_a_nonzero_finite_direction():
-    """A zero principal direction used to become +z silently."""
-    with pytest.raises(nplps.RigError, match=r"light 1: an anisotropic LED \(mu = 2\) needs a non-zero principal direction"):
-        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]], mu=[1, 2, 1, 1])
-    with pytest.raises(nplps.RigError, match=r"light 0 has a non-finite principal direction \[nan, 0, 1\]"):
-        nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[np.nan, 0, 1]] + [[0, 0, 1]] * 3, mu=[1] * 4)
-    # An isotropic light's axis is unused: zero is fine there.
-    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS, directions=[[0, 0, 0]] * 4, mu=[0] * 4)
-    np.testing.assert_array_equal(rig.directions, [[0, 0, 1]] * 4)
+def test_anisotropic_led_needs_a_nonzero_finite_axis():
+    """A zero axis used to become +z silently."""
+    with pytest.raises(nplps.RigError, match=r"light 1: an anisotropic LED \(mu = 2\) needs a non-zero axis"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]], mu=[1, 2, 1, 1])
+    with pytest.raises(nplps.RigError, match=r"light 0 axis\[1\] must be a finite number, got inf"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, np.inf, 1]] + [[0, 0, 1]] * 3, mu=[1] * 4)
+    with pytest.raises(nplps.RigError, match=r"light 0: an anisotropic LED \(mu = 1\) needs its axis"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[np.nan] * 3] + [[0, 0, 1]] * 3, mu=[1] * 4)
+    # An isotropic light's axis is unused: it is a PointLight, whatever its axis.
+    rig = nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, 0, 0]] * 4, mu=[0] * 4)
+    assert all(type(light) is nplps.PointLight for light in rig.lights)
+    assert np.isnan(rig.axes).all()
+    # An LED of mu = 0 built by hand keeps its axis; a zero one stands for +z.
+    assert nplps.LED((0, 0, 0), axis=(0, 0, 0), mu=0).axis == (0.0, 0.0, 1.0)
+    with pytest.raises(nplps.RigError, match=r"LED: an anisotropic LED \(mu = 1\) needs a non-zero axis"):
+        nplps.LED((0, 0, 0), axis=(0, 0, 0))
 
 
 def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
@@ -468,8 +486,8 @@ def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
         nplps.Rig.orthographic(1.0, lights=np.ones((4, 3), dtype=bool))
     with pytest.raises(nplps.RigError, match=r"lights must be numbers, got an array of strings"):
         nplps.Rig.orthographic(1.0, lights=[["1", "2", "3"]] * 4)
-    with pytest.raises(nplps.RigError, match=r"directional must have one flag \(True or False\) per light"):
-        nplps.Rig(camera={"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS, directional=["yes"] * 4)
+    with pytest.raises(nplps.RigError, match=r"mu must be numbers, got an array of strings"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, mu=["yes"] * 4)
 
 
 def test_the_core_refuses_malformed_light_mappings():
@@ -496,3 +514,259 @@ def test_the_readme_rig_file_examples_are_read():
     assert len(blocks) >= 2
     for block in blocks:
         assert nplps.Rig.from_dict(json.loads(block), source="README").n_lights >= 3
+
+
+# ------------------------------------------------------------------------------------------------
+# typed lights (issue 10): PointLight, LED, DirectionalLight; Rig.lights a tuple of them
+# ------------------------------------------------------------------------------------------------
+ORTHO = {"model": "orthographic", "pixel_size": [1.0, 1.0], "origin": [0.0, 0.0]}
+NAN3 = [np.nan] * 3
+
+
+def _mixed_rig():
+    return nplps.Rig(
+        ORTHO,
+        [
+            nplps.PointLight((-30.0, 0.0, 0.0)),
+            nplps.LED([30.0, 10.0, 0.0], [0.9, 1.0, 1.1], axis=(0.0, 0.0, 2.0), mu=1.5),
+            nplps.DirectionalLight(np.array([0.0, 0.0, -3.0]), intensity=0.5),
+            nplps.PointLight((5.0, 25.0, -20.0), 2),
+        ],
+    )
+
+
+def test_light_values_are_typed_frozen_and_normalized():
+    p = nplps.PointLight([1, 2, 3])
+    assert p.position == (1.0, 2.0, 3.0) and p.intensity == (1.0, 1.0, 1.0)
+    assert all(type(v) is float for v in p.position + p.intensity)
+    assert nplps.PointLight((1, 2, 3), np.float32(0.5)).intensity == (0.5, 0.5, 0.5)
+    assert nplps.PointLight((1, 2, 3), (0.5, 1, 2)).intensity == (0.5, 1.0, 2.0)
+    led = nplps.LED((0, 0, -10), axis=(0, 3, 4), mu=2)
+    assert led.axis == (0.0, 0.6, 0.8) and led.mu == 2.0 and led.intensity == (1.0, 1.0, 1.0)
+    assert nplps.LED((0, 0, 0), axis=(1e300, 0, 1e300)).axis == pytest.approx((2**-0.5, 0.0, 2**-0.5))
+    d = nplps.DirectionalLight((0, 0, -2))
+    assert d.direction == (0.0, 0.0, -1.0)
+    with pytest.raises(AttributeError):
+        p.position = (0.0, 0.0, 0.0)  # type: ignore[misc]
+    # Values: equal when their fields are, hashable.
+    assert nplps.PointLight((1, 2, 3)) == p and hash(nplps.PointLight((1, 2, 3))) == hash(p)
+    assert nplps.PointLight((1, 2, 3)) != nplps.LED((1, 2, 3), axis=(0, 0, 1), mu=0)
+    assert repr(d) == "DirectionalLight(direction=(0.0, 0.0, -1.0), intensity=(1.0, 1.0, 1.0))"
+
+
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: nplps.PointLight((0, 0)), r"PointLight position must be 3 numbers, got a tuple of 2 items"),
+        (lambda: nplps.PointLight((0, np.nan, 0)), r"PointLight position\[1\] must be a finite number, got nan"),
+        (lambda: nplps.PointLight((0, "1", 0)), r"PointLight position\[1\] must be a number, got the string \"1\""),
+        (lambda: nplps.PointLight((0, 0, 0), 0.0), r"PointLight must have positive intensities, got \[0, 0, 0\]"),
+        (lambda: nplps.PointLight((0, 0, 0), (1, -1, 1)), r"PointLight must have positive intensities"),
+        (lambda: nplps.PointLight((0, 0, 0), (1, 1)), r"PointLight intensity must be 3 numbers, got a tuple of 2 items"),
+        (lambda: nplps.PointLight((0, 0, 0), np.inf), r"PointLight intensity must be a finite number, got inf"),
+        (lambda: nplps.PointLight((0, 0, 0), True), r"PointLight intensity must be a number, got the boolean true"),
+        (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 1), mu=-1), r"LED has anisotropy mu = -1; it must be >= 0"),
+        (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 1), mu=np.nan), r"LED mu must be a finite number, got nan"),
+        (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 0), mu=1), r"LED: an anisotropic LED \(mu = 1\) needs a non-zero axis"),
+        (lambda: nplps.LED((0, 0, 0), axis=(0, np.inf, 0)), r"LED axis\[1\] must be a finite number, got inf"),
+        (lambda: nplps.DirectionalLight((0, 0, 0)), r"DirectionalLight: a directional light needs a unit direction"),
+        (lambda: nplps.DirectionalLight((0, 0, -1), -1), r"DirectionalLight must have positive intensities"),
+    ],
+)
+def test_light_values_are_validated_on_construction(build, message):
+    with pytest.raises(nplps.RigError, match=message):
+        build()
+
+
+def test_rig_holds_light_values_and_array_views():
+    rig = _mixed_rig()
+    assert isinstance(rig.lights, tuple) and rig.n_lights == 4
+    assert [type(light) for light in rig.lights] == [nplps.PointLight, nplps.LED, nplps.DirectionalLight, nplps.PointLight]
+    np.testing.assert_array_equal(rig.positions, [[-30, 0, 0], [30, 10, 0], NAN3, [5, 25, -20]])
+    np.testing.assert_array_equal(rig.directions, [NAN3, NAN3, [0, 0, -1], NAN3])
+    np.testing.assert_array_equal(rig.axes, [NAN3, [0, 0, 1], NAN3, NAN3])
+    np.testing.assert_array_equal(rig.intensities, [[1, 1, 1], [0.9, 1, 1.1], [0.5] * 3, [2] * 3])
+    np.testing.assert_array_equal(rig.mu, [0, 1.5, 0, 0])
+    np.testing.assert_array_equal(rig.directional, [False, False, True, False])
+    for name, shape, dtype in [("positions", (4, 3), np.float64), ("directions", (4, 3), np.float64),
+                               ("axes", (4, 3), np.float64), ("intensities", (4, 3), np.float64),
+                               ("mu", (4,), np.float64), ("directional", (4,), np.bool_)]:
+        view = getattr(rig, name)
+        assert view.shape == shape and view.dtype == dtype and not view.flags.writeable, name
+        assert getattr(rig, name) is view  # computed once
+    # The compiled core's form is the one the bindings take (an unused axis is +z).
+    assert rig._core_lights() == {
+        "vectors": [[-30.0, 0.0, 0.0], [30.0, 10.0, 0.0], [0.0, 0.0, -1.0], [5.0, 25.0, -20.0]],
+        "directional": [False, False, True, False],
+        "intensities": [[1.0] * 3, [0.9, 1.0, 1.1], [0.5] * 3, [2.0] * 3],
+        "axes": [[0.0, 0.0, 1.0]] * 4,
+        "mu": [0.0, 1.5, 0.0, 0.0],
+    }
+
+
+def test_rig_equality_hash_subset_and_replace():
+    rig = _mixed_rig()
+    assert rig == _mixed_rig() and hash(rig) == hash(_mixed_rig())
+    assert rig != rig.subset([0, 1, 3, 2]) and rig.subset([0, 1, 2, 3]) == rig
+    sub = rig.subset([3, 2, 1])
+    assert sub.lights == (rig.lights[3], rig.lights[2], rig.lights[1]) and sub.camera == rig.camera
+    moved = dataclasses.replace(rig, camera={**ORTHO, "pixel_size": [2.0, 2.0]})
+    assert moved.lights == rig.lights and moved.camera["pixel_size"] == [2.0, 2.0]
+    with pytest.raises(nplps.RigError, match="at least 3 lights"):
+        dataclasses.replace(rig, lights=rig.lights[:2])
+
+
+def test_rig_refuses_mixed_or_foreign_lights():
+    with pytest.raises(nplps.RigError, match=r"lights: light 1 is a list of 3 items, not a PointLight, LED or DirectionalLight"):
+        nplps.Rig(ORTHO, [nplps.PointLight((0, 0, 0)), [1.0, 0.0, 0.0], nplps.PointLight((0, 1, 0))])
+    with pytest.raises(nplps.RigError, match=r"intensities= goes with an array of positions, not with light values"):
+        nplps.Rig.orthographic(1.0, lights=list(_mixed_rig().lights), intensities=2.0)
+    with pytest.raises(TypeError, match=r"unexpected keyword argument 'directional_lights'"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS, directional_lights=[[0, 0, -1]])
+    with pytest.raises(TypeError):
+        nplps.Rig(ORTHO, LIGHTS, directional=[False] * 4)  # type: ignore[call-arg]
+
+
+def test_from_arrays_is_the_inverse_of_the_views():
+    rig = _mixed_rig()
+    views = dict(directions=rig.directions, intensities=rig.intensities, axes=rig.axes, mu=rig.mu)
+    assert nplps.Rig.from_arrays(rig.camera, rig.positions, **views) == rig
+    # Only point lights, or only directional lights.
+    points = nplps.Rig.from_arrays(ORTHO, LIGHTS, intensities=[1, 2, 3, 4])
+    assert all(type(light) is nplps.PointLight for light in points.lights)
+    np.testing.assert_array_equal(points.intensities[:, 1], [1, 2, 3, 4])
+    far = nplps.Rig.from_arrays(ORTHO, directions=[[0, 0, -1], [0.3, 0, -1], [0, 0.3, -1]])
+    assert far.directional.all() and np.isnan(far.positions).all()
+    np.testing.assert_allclose(np.linalg.norm(far.directions, axis=1), 1.0)
+    # An LED is a point light with mu > 0; mu = 0 is a PointLight whatever its axis.
+    leds = nplps.Rig.from_arrays(ORTHO, LIGHTS, axes=[[0, 0, 1]] * 4, mu=[1, 0, 2, 0])
+    assert [type(light).__name__ for light in leds.lights] == ["LED", "PointLight", "LED", "PointLight"]
+    # Orthographic and pinhole take the same arrays.
+    assert nplps.Rig.orthographic(1.0, lights=LIGHTS, axes=[[0, 0, 1]] * 4, mu=[1, 0, 2, 0]) == leds
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(positions=LIGHTS, directions=[[0, 0, -1]] * 4), r"light 0 has both a position and a direction: give NaN"),
+        (dict(positions=[NAN3] * 4, directions=[NAN3] * 4), r"light 0 has neither a position nor a direction"),
+        (dict(positions=[NAN3] + LIGHTS[1:], directions=[[0, 0, -1]] + [NAN3] * 3, mu=[1, 0, 0, 0]),
+         r"light 0 is directional: it has no anisotropy \(mu = 1\)"),
+        (dict(positions=LIGHTS, directions=[[0, 0, -1]] * 3), r"directions must be a \(4, 3\) array, got shape \(3, 3\)"),
+        (dict(positions=LIGHTS, mu=[1, 0, 0, 0]), r"light 0: an anisotropic LED \(mu = 1\) needs its axis \(axes=\.\.\.\)"),
+        (dict(positions=LIGHTS, axes=[[0, 0, 1]] * 4, mu=[0, 0, 0]), r"mu must be a \(4,\) array, got shape \(3,\)"),
+        (dict(positions=np.zeros((4, 2))), r"positions must be a \(k, 3\) array, got shape \(4, 2\)"),
+        (dict(positions=LIGHTS, intensities=[1, 1]), r"intensities must be a number, \(k,\) or \(k, 3\)"),
+        (dict(directions=[[0, 0, 0]] * 3), r"light 0: a directional light needs a unit direction"),
+        (dict(), r"at least 3 lights, the rig has 0"),
+    ],
+)
+def test_from_arrays_errors(kwargs, message):
+    with pytest.raises(nplps.RigError, match=message):
+        nplps.Rig.from_arrays(ORTHO, **kwargs)
+
+
+def test_with_positions_and_intensities():
+    rig = _mixed_rig()
+    moved = rig.with_positions(rig.positions + 1.0)  # NaN rows stay NaN
+    np.testing.assert_array_equal(moved.positions, rig.positions + 1.0)
+    assert moved.lights[2] is rig.lights[2]
+    assert moved.lights[1].axis == rig.lights[1].axis and moved.lights[1].mu == 1.5
+    with pytest.raises(nplps.RigError, match=r"positions: light 2 is a directional light: its row must be NaN"):
+        rig.with_positions(np.zeros((4, 3)))
+    with pytest.raises(nplps.RigError, match=r"light 0 position\[0\] must be a finite number"):
+        rig.with_positions([NAN3] * 4)
+    brighter = rig.with_intensities(rig.intensities * 2)
+    np.testing.assert_array_equal(brighter.intensities, rig.intensities * 2)
+    np.testing.assert_array_equal(brighter.positions, rig.positions)
+    assert rig.with_intensities(3.0).intensities.min() == 3.0
+    with pytest.raises(nplps.RigError, match=r"light 1 must have positive intensities"):
+        rig.with_intensities([1, 0, 1, 1])
+
+
+def test_rig_file_round_trip_of_typed_lights(tmp_path):
+    rig = nplps.Rig(
+        ORTHO,
+        [*_mixed_rig().lights, nplps.LED((1, 2, -3), axis=(0, 0.6, 0.8), mu=0.0)],
+    )
+    path = tmp_path / "rig.json"
+    rig.save(path)
+    data = json.loads(path.read_text())
+    assert data["lights"][1] == {"type": "point", "position": [30.0, 10.0, 0.0], "intensity": [0.9, 1.0, 1.1],
+                                 "direction": [0.0, 0.0, 1.0], "mu": 1.5}
+    assert data["lights"][2] == {"type": "directional", "direction": [0.0, 0.0, -1.0], "intensity": 0.5}
+    assert data["lights"][4]["direction"] == list(rig.lights[4].axis) and data["lights"][4]["mu"] == 0.0
+    loaded = nplps.Rig.load(path)
+    assert loaded.lights[:4] == rig.lights[:4]
+    assert type(loaded.lights[4]) is nplps.LED  # a "direction" makes an LED, also with mu = 0
+    # An LED's axis is scaled to unit length when read (as it always was), which may change
+    # its last bit: (0, 0.6, 0.8) became (0, 0.5999999999999999, 0.8) when built, and that
+    # reads back as (0, 0.6, 0.8000000000000002).
+    assert loaded.lights[4].axis == pytest.approx(rig.lights[4].axis, abs=1e-15)
+    # A rig read and written again gives the same bytes when its axes are fixed points.
+    first, again = tmp_path / "first.json", tmp_path / "again.json"
+    _mixed_rig().save(first)
+    nplps.Rig.load(first).save(again)
+    assert again.read_bytes() == first.read_bytes()
+    # A point light with "mu": 0 and no "direction" is a PointLight.
+    data["lights"][0]["mu"] = 0
+    assert type(nplps.Rig.from_dict(data).lights[0]) is nplps.PointLight
+    data["lights"][0]["mu"] = 1
+    with pytest.raises(nplps.RigError, match=r"light 0: an anisotropic LED \(mu = 1\) needs its principal 'direction'"):
+        nplps.Rig.from_dict(data)
+
+
+def test_directional_directions_in_files_must_be_unit_and_are_kept():
+    data = _mixed_rig().to_dict()
+    data["lights"][2]["direction"] = [0.0, 0.6, -0.8000001]  # within 1e-6 of unit: kept as written
+    assert nplps.Rig.from_dict(data).lights[2].direction == (0.0, 0.6, -0.8000001)
+    data["lights"][2]["direction"] = [0.0, 0.0, -2.0]
+    with pytest.raises(nplps.RigError, match=r"rig: light 2: a directional light needs a unit direction"):
+        nplps.Rig.from_dict(data)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_binned(n):
+    from nplps.cli.preprocessing import bin_rig
+
+    ortho = nplps.Rig.orthographic((0.5, 0.25), origin=(-8.0, 4.0), lights=LIGHTS)
+    b = ortho.binned(n)
+    assert b.camera == {"model": "orthographic", "pixel_size": [0.5 * n, 0.25 * n], "origin": [-8.0, 4.0]}
+    assert b.lights == ortho.lights and bin_rig(ortho, n) == b
+    K = [[800.0, 0.5, 319.5], [0.0, 810.0, 239.5], [0.0, 0.0, 1.0]]
+    pin = nplps.Rig.pinhole(K, lights=_mixed_rig().lights, distortion=[-0.1, 0.01])
+    b = pin.binned(n)
+    np.testing.assert_array_equal(b.K, nplps.preprocess.bin_intrinsics(np.array(K), n))
+    assert b.camera["distortion"] == pin.camera["distortion"] and b.lights == pin.lights
+    assert bin_rig(pin, n) == b
+
+
+def test_binned_vertices_cover_the_same_footprint():
+    """Binned vertex (r, c) is original vertex (n r, n c) for the orthographic camera."""
+    rig = nplps.Rig.orthographic((0.5, 0.25), origin=(-8.0, 4.0), lights=LIGHTS)
+    v = nplps._core.vertices(np.full((13, 13), 100.0), rig.camera)
+    vb = nplps._core.vertices(np.full((5, 5), 100.0), rig.binned(3).camera)
+    np.testing.assert_allclose(vb, v[::3, ::3][:5, :5])
+
+
+@pytest.mark.parametrize("n", [0, -2, 1.5, True, "2", None])
+def test_binned_refuses_bad_factors(n):
+    with pytest.raises(nplps.RigError, match="binning factor must be a whole number of at least 1"):
+        nplps.Rig.orthographic(1.0, lights=LIGHTS).binned(n)
+
+
+def test_lights_of_a_scene_are_typed():
+    scene = nplps.make_scene("saddle", n=8, camera="pinhole", led=True, directional=True)
+    kinds = {type(light) for light in scene.rig.lights}
+    assert kinds == {nplps.LED, nplps.DirectionalLight}
+    assert (scene.rig.mu[~scene.rig.directional] > 0).all()
+
+
+def test_rig_pickles_without_its_views():
+    import pickle
+
+    rig = _mixed_rig()
+    assert not rig.positions.flags.writeable
+    again = pickle.loads(pickle.dumps(rig))
+    assert again == rig and "positions" not in again.__dict__
+    assert not again.positions.flags.writeable

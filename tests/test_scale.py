@@ -25,7 +25,7 @@ MODES = {
 
 def _perturbed(rig: nplps.Rig, size: float, seed: int, amplitude: float = 0.05) -> nplps.Rig:
     rng = np.random.default_rng(seed)
-    lights = rig.lights + rng.uniform(-amplitude, amplitude, rig.lights.shape) * size
+    lights = rig.positions + rng.uniform(-amplitude, amplitude, rig.positions.shape) * size
     return nplps.Rig(camera=rig.camera, lights=lights)
 
 

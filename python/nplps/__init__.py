@@ -42,10 +42,12 @@ from .calibrate import (
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
 from .evaluation import HeldOut
 from .reconstruction import DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
-from .rig import Rig
+from .rig import LED, DirectionalLight, PointLight, Rig
 from .synth import Scene, make_scene
 
 __all__ = [
+    "LED",
+    "DirectionalLight",
     "DistanceEstimate",
     "HeldOut",
     "InputError",
@@ -56,6 +58,7 @@ __all__ = [
     "MemoryLimitError",
     "NplpsError",
     "OutputExistsError",
+    "PointLight",
     "Reconstruction",
     "Rig",
     "RigError",

@@ -101,7 +101,7 @@ def _rig_size(rig: Rig, shape: tuple[int, int]) -> float:
     footprint of ``shape`` (H, W) pixels; 0 when there is neither (a pinhole camera with only
     directional lights: then no depth is too far)."""
     sizes = [0.0]
-    points = rig.lights[~rig.directional]  # type: ignore[operator]
+    points = rig.positions[~rig.directional]
     if len(points):
         sizes.append(float(np.linalg.norm(points, axis=1).max()))
     if not rig.is_pinhole:
@@ -138,7 +138,7 @@ def _check_depth_values(
 def _auto_start(rig: Rig) -> float:
     """A starting plane for the distance search, well beyond the point lights (the search sets
     the gauge itself)."""
-    points = rig.lights[~rig.directional]  # type: ignore[operator]
+    points = rig.positions[~rig.directional]
     if len(points) == 0:
         return 1.0
     spread = float(np.ptp(points, axis=0).max()) or 1.0

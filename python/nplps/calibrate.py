@@ -24,7 +24,7 @@ beta_i(X))`` gives each light's intensity by linear least squares. The board's a
 exposure cannot be told apart from the intensities: the result is relative, scaled to a
 geometric mean of 1 over all lights (and channels). ``albedo="per_pixel"`` also estimates the
 board's albedo per pixel (absorbing texture and vignetting); ``fit_mu`` / ``fit_direction`` fit
-the LEDs' anisotropy and principal directions by Levenberg-Marquardt.
+the LEDs' anisotropy and axes (principal directions) by Levenberg-Marquardt.
 
 **Synthetic scenes** (:func:`make_sphere_scene`, :func:`make_board_scene`): shiny spheres
 (Lambertian plus a Phong lobe, highlights saturating, 8-bit, noise) and a flat board, rendered
@@ -37,9 +37,10 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence, Union
+from typing import Any
 
 import numpy as np
 
@@ -47,9 +48,9 @@ from . import _core, io
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
-from .rig import Rig, read_rig_json
+from .rig import DirectionalLight, Light, PointLight, Rig, read_rig_json
 
-ImageSet = Union[np.ndarray, Sequence[Any]]
+ImageSet = np.ndarray | Sequence[Any]
 """One placement's images: a (k, H, W[, 3]) array or k image files / arrays."""
 
 #: The 8 of the 27 standard lights used by ``lights=8`` (spread over the three layers; with
@@ -147,18 +148,20 @@ class SphereCalibration:
         """The calibrated rig: point lights at the positions, directional lights along the
         directions, all with intensity 1. Raises :class:`RigError` when a light was not seen
         on any sphere."""
-        missing = [l.index for l in self.lights if l.kind == "missing"]
+        missing = [rep.index for rep in self.lights if rep.kind == "missing"]
         if missing:
             raise RigError(
                 f"light(s) {', '.join(map(str, missing))} were not seen on any sphere: no rig can be "
                 "written (check those images, or the highlight thresholds)"
             )
-        vectors = np.array([l.position if l.kind == "point" else l.direction for l in self.lights], dtype=float)
-        return Rig(
-            camera=dict(self.camera),
-            lights=vectors,
-            directional=np.array([l.kind == "directional" for l in self.lights]),
-        )
+        # The core's unit directions are kept as they are (not scaled again).
+        lights: list[Light] = [
+            PointLight._checked(f"light {rep.index}", rep.position)
+            if rep.kind == "point"
+            else DirectionalLight._checked(f"light {rep.index}", rep.direction, normalize=False)
+            for rep in self.lights
+        ]
+        return Rig(camera=self.camera, lights=lights)
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Writes the calibrated rig file (see :attr:`rig`)."""
@@ -175,19 +178,20 @@ def light_table(lights: Sequence[LightReport]) -> str:
         f"{'light':>5}  {'kind':<11} {'x / dx':>10} {'y / dy':>10} {'z / dz':>10} {'spheres':>7} "
         f"{'rms miss':>9} {'rms angle':>9} {'spread':>7}  note"
     ]
-    for l in lights:
-        vec = l.position if l.kind == "point" else l.direction
+    for rep in lights:
+        vec = rep.position if rep.kind == "point" else rep.direction
         if vec is None:
             cells = f"{'-':>10} {'-':>10} {'-':>10}"
-        elif l.kind == "point":
+        elif rep.kind == "point":
             cells = " ".join(f"{v:>10.3f}" for v in vec)
         else:
             cells = " ".join(f"{v:>10.5f}" for v in vec)
-        miss = f"{l.rms_miss:>9.3f}" if np.isfinite(l.rms_miss) else f"{'-':>9}"
-        angle = f"{l.rms_angle:>8.3f}°" if np.isfinite(l.rms_angle) else f"{'-':>9}"
-        spread = f"{l.spread:>6.2f}°" if l.spheres > 1 else f"{'-':>7}"
-        note = l.warning or ""
-        lines.append(f"{l.index:>5}  {l.kind:<11} {cells} {l.spheres:>7} {miss} {angle} {spread}  {note}".rstrip())
+        miss = f"{rep.rms_miss:>9.3f}" if np.isfinite(rep.rms_miss) else f"{'-':>9}"
+        angle = f"{rep.rms_angle:>8.3f}°" if np.isfinite(rep.rms_angle) else f"{'-':>9}"
+        spread = f"{rep.spread:>6.2f}°" if rep.spheres > 1 else f"{'-':>7}"
+        note = rep.warning or ""
+        row = f"{rep.index:>5}  {rep.kind:<11} {cells} {rep.spheres:>7} {miss} {angle} {spread}  {note}"
+        lines.append(row.rstrip())
     return "\n".join(lines)
 
 
@@ -195,14 +199,15 @@ def light_table(lights: Sequence[LightReport]) -> str:
 class IntensityCalibration:
     """The result of :func:`calibrate_intensities`."""
 
-    #: The input rig with the fitted intensities (and LED directions and mu, if fitted).
+    #: The input rig with the fitted intensities (and LED axes and mu, if fitted).
     rig: Rig
     #: (k, C) relative intensities (geometric mean 1 over all lights and channels).
     intensities: np.ndarray
     #: (k,) anisotropy mu (as given unless fitted).
     mu: np.ndarray
-    #: (k, 3) principal directions (as given unless fitted).
-    directions: np.ndarray
+    #: (k, 3) LED axes (principal directions, as given unless fitted; (0, 0, 1) for lights that
+    #: are not LEDs and were not fitted).
+    axes: np.ndarray
     #: (k,) RMS residual per light, relative to the light's mean observation.
     rms: np.ndarray
     #: (k,) observations used per light (pixels x channels).
@@ -225,9 +230,10 @@ class IntensityCalibration:
         head = "intensity" if c == 1 else "intensity R, G, B"
         lines = [f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'obs':>8}"]
         for i in range(self.intensities.shape[0]):
-            kind = "directional" if self.rig.directional[i] else "point"  # type: ignore[index]
+            kind = "directional" if self.rig.directional[i] else "point"
             phi = " ".join(f"{v:>10.5f}" for v in self.intensities[i])
-            lines.append(f"{i:>5}  {kind:<11} {phi} {self.mu[i]:>6.3f} {100 * self.rms[i]:>7.3f} {int(self.observations[i]):>8}")
+            rms, obs = 100 * self.rms[i], int(self.observations[i])
+            lines.append(f"{i:>5}  {kind:<11} {phi} {self.mu[i]:>6.3f} {rms:>7.3f} {obs:>8}")
         return "\n".join(lines)
 
 
@@ -321,12 +327,13 @@ def _depths(center_depth: Any, n: int) -> list[list[float]]:
         raise InputError(
             f"center_depth must be one number, or one entry per placement ({n}), got {len(items)} entries"
         )
-    out = []
+    out: list[list[float]] = []
     for item in items:
         if item is None:
             out.append([])
         elif np.isscalar(item):
-            out.append([float(item)])
+            value: Any = item
+            out.append([float(value)])
         else:
             out.append([float(v) for v in item])
     return out
@@ -458,19 +465,19 @@ def calibrate_spheres(
         for j, s in enumerate(d["spheres"])
     ]
     lights = []
-    for i, l in enumerate(d["lights"]):
-        vec = None if l["vector"] is None else np.array(l["vector"])
+    for i, rep in enumerate(d["lights"]):
+        vec = None if rep["vector"] is None else np.array(rep["vector"])
         lights.append(
             LightReport(
                 index=i,
-                kind=l["kind"],
-                position=vec if l["kind"] == "point" else None,
-                direction=vec if l["kind"] == "directional" else None,
-                rms_miss=float(l["rms_miss"]),
-                rms_angle=float(l["rms_angle"]),
-                spread=float(l["spread"]),
-                spheres=int(l["spheres"]),
-                warning=l["warning"],
+                kind=rep["kind"],
+                position=vec if rep["kind"] == "point" else None,
+                direction=vec if rep["kind"] == "directional" else None,
+                rms_miss=float(rep["rms_miss"]),
+                rms_angle=float(rep["rms_angle"]),
+                spread=float(rep["spread"]),
+                spheres=int(rep["spheres"]),
+                warning=rep["warning"],
             )
         )
     obs = d["observations"]
@@ -497,9 +504,10 @@ def calibrate_spheres(
 def _plane(plane: Any) -> tuple[list[float], float]:
     """(normal, offset) from a depth, a (normal, offset) pair or a mapping."""
     if np.isscalar(plane):
-        z = float(plane)  # type: ignore[arg-type]
+        depth: Any = plane
+        z = float(depth)
         if not (np.isfinite(z) and z > 0):
-            raise InputError(f"the board depth must be positive, got {plane}")
+            raise InputError(f"the board depth must be positive, got {depth}")
         return [0.0, 0.0, -1.0], -z
     if isinstance(plane, Mapping):
         plane = (plane.get("normal"), plane.get("offset"))
@@ -535,13 +543,13 @@ def calibrate_intensities(
     Args:
         images: (k, H, W[, 3]) array or k image files, one per light of ``rig``.
         rig: the rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
-            LEDs, their directions and mu if known.
+            LEDs, their axes and mu if known.
         plane: the board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
             ``normal . X = offset`` in the camera frame.
         mask: the board's pixels (file or (H, W) array; None: every pixel).
         fit_mu: fit each point light's anisotropy mu (starting from the rig's, or 1).
-        fit_direction: with ``fit_mu``, fit each LED's principal direction too (starting from the
-            rig's, or from the LED towards the board's centre).
+        fit_direction: with ``fit_mu``, fit each LED's axis (principal direction) too (starting
+            from the rig's, or from the LED towards the board's centre).
         albedo: "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
             absorbs texture and vignetting; needs the lights to differ enough).
         color: fit the R, G, B intensities of colour images separately (the board is assumed
@@ -552,7 +560,7 @@ def calibrate_intensities(
 
     Returns:
         An :class:`IntensityCalibration` with the calibrated ``.rig`` (relative intensities,
-        geometric mean 1), per-light ``.intensities``, ``.mu``, ``.directions``, ``.rms``.
+        geometric mean 1), per-light ``.intensities``, ``.mu``, ``.axes``, ``.rms``.
     """
     if not isinstance(rig, Rig):
         raise RigError("rig must be an nplps.Rig (the light positions are needed)")
@@ -580,20 +588,12 @@ def calibrate_intensities(
     d = _core.calibrate_intensities(
         np.ascontiguousarray(stack, dtype=np.float32), m, rig.camera, rig._core_lights(), normal, offset, options
     )
-    lights = d["lights"]
-    out = Rig(
-        camera=dict(rig.camera),
-        lights=np.array(lights["vectors"]),
-        intensities=np.array(lights["intensities"]),
-        directions=np.array(lights["axes"]),
-        mu=np.array(lights["mu"]),
-        directional=np.array(lights["directional"]),
-    )
+    out = Rig._from_core_lights(rig.camera, d["lights"], like=rig)
     return IntensityCalibration(
         rig=out,
         intensities=d["intensity"],
         mu=np.array(d["mu"]),
-        directions=np.array(d["axes"]),
+        axes=np.array(d["axes"]),
         rms=np.array(d["rms"]),
         observations=np.array(d["observations"]),
         scale=float(d["scale"]),
@@ -658,12 +658,14 @@ class SphereScene:
         }
         with result_directory(directory, overwrite) as out:
             paths: dict[str, Path] = {}
-            for p, (stack, lab) in enumerate(zip(self.images, self.labels)):
+            for p, (stack, lab) in enumerate(zip(self.images, self.labels, strict=True)):
                 for i, image in enumerate(stack):
                     export.write_png(out.file(f"placement_{p}/image_{i:02d}.png"), image)
                 export.write_png8(out.file(f"placement_{p}/mask.png"), ((lab > 0) * 255).astype(np.uint8))
                 paths[f"placement_{p}"] = out.path / f"placement_{p}"
-            paths.update(camera=out.file("camera.json"), rig_true=out.file("rig_true.json"), scene=out.file("scene.json"))
+            paths.update(
+                camera=out.file("camera.json"), rig_true=out.file("rig_true.json"), scene=out.file("scene.json")
+            )
             save_camera(paths["camera"], self.rig)
             self.rig.save(paths["rig_true"])
             write_text(paths["scene"], json.dumps(meta, indent=2) + "\n")
@@ -729,19 +731,13 @@ def standard_rig(
     if camera == "pinhole":
         f = n * distance / size
         c = (n - 1) / 2.0
-        cam: dict[str, Any] = {"model": "pinhole", "K": [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]], "distortion": [0.0] * 5}
+        K = [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]]
+        cam: dict[str, Any] = {"model": "pinhole", "K": K, "distortion": [0.0] * 5}
     else:
         cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
     idx = _light_indices(lights)
-    l = d["lights"]
-    return Rig(
-        camera=cam,
-        lights=np.array(l["vectors"])[idx],
-        intensities=np.array(l["intensities"])[idx],
-        directions=np.array(l["axes"])[idx],
-        mu=np.array(l["mu"])[idx],
-        directional=np.array(l["directional"])[idx],
-    )
+    chosen = {key: [values[i] for i in idx] for key, values in d["lights"].items()}
+    return Rig._from_core_lights(cam, chosen)
 
 
 def default_placements(
@@ -774,7 +770,9 @@ def default_placements(
     return out
 
 
-def _quantize(radiance: list[np.ndarray], scale: float, noise: float, bits: int, rng: np.random.Generator) -> list[np.ndarray]:
+def _quantize(
+    radiance: list[np.ndarray], scale: float, noise: float, bits: int, rng: np.random.Generator
+) -> list[np.ndarray]:
     out = []
     for r in radiance:
         x = r * scale
@@ -850,7 +848,9 @@ def make_sphere_scene(
     if camera == "pinhole":
         r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
     exponent = (r_px / (2.0 * highlight_px)) ** 2
-    material = {"diffuse": 1.0, "specular": float(specular), "exponent": float(exponent), "background": float(background)}
+    material = {
+        "diffuse": 1.0, "specular": float(specular), "exponent": float(exponent), "background": float(background)
+    }
     radiance, labels = [], []
     for c in centers:
         d = _core.synth_spheres(
@@ -859,7 +859,7 @@ def make_sphere_scene(
         )
         radiance.append(d["images"])
         labels.append(d["labels"])
-    inside = np.concatenate([r[:, lab > 0].ravel() for r, lab in zip(radiance, labels)])
+    inside = np.concatenate([r[:, lab > 0].ravel() for r, lab in zip(radiance, labels, strict=True)])
     if inside.size == 0:
         raise InputError("no sphere is visible in the images: check the placements and the radius")
     scale = exposure / float(np.quantile(inside, 0.97))

@@ -187,10 +187,10 @@ def light_changes(before: Rig, after: Rig) -> list[dict[str, Any]]:
     """
     rows = []
     for i in range(before.n_lights):
-        factor = float(np.mean(after.intensities[i] / before.intensities[i]))  # type: ignore[index]
+        factor = float(np.mean(after.intensities[i] / before.intensities[i]))
         shift = None
-        if not before.directional[i]:  # type: ignore[index]
-            shift = [float(v) for v in after.lights[i] - before.lights[i]]
+        if not before.directional[i]:
+            shift = [float(v) for v in after.positions[i] - before.positions[i]]
         rows.append({"light": i, "intensity_factor": factor, "position_shift": shift})
     return rows
 
@@ -283,7 +283,7 @@ class Reconstruction:
         refinement = _refinement(out.get("refinement"))
         input_rig = None
         if refinement is not None:
-            input_rig, rig = rig, Rig._from_core_lights(rig.camera, out["lights"])
+            input_rig, rig = rig, Rig._from_core_lights(rig.camera, out["lights"], like=rig)
         return cls(
             depth=out["depth"],
             fit_normals=out["normals"],

@@ -1,5 +1,20 @@
 """The rig: camera model and lights, and the JSON rig file.
 
+A :class:`Rig` is one camera (a mapping in the rig file's form) and a tuple of lights, one per
+image, each a frozen value of one of three types that mirror the compiled core's ``enum Light``:
+
+* :class:`PointLight` -- an isotropic point light at ``position``:
+  ``I = rho * intensity * max(0, n . (p - x)) / |p - x|^3``;
+* :class:`LED` -- a point light at ``position`` emitting around its unit ``axis`` (from the LED
+  towards the scene) with anisotropy ``mu`` >= 0 (Quéau et al. 2018; ``mu = 0`` emits like a
+  point light): ``I = rho * intensity * ((x - p) . axis / |x - p|)^mu * max(0, n . (p - x)) /
+  |p - x|^3``;
+* :class:`DirectionalLight` -- a distant light along the unit ``direction`` from the surface
+  towards the light: ``I = rho * intensity * max(0, n . direction)``.
+
+``intensity`` is per channel (R, G, B; grey images use the mean). Camera frame as in OpenCV (x
+right, y down, z forward into the scene), in the user's unit (mm typical).
+
 Rig file (JSON), version 2 (version 1 files, with only light positions, are read too)::
 
     {
@@ -13,19 +28,18 @@ Rig file (JSON), version 2 (version 1 files, with only light positions, are read
       ]
     }
 
-or, for a pinhole camera, ``"camera": {"model": "pinhole", "K": [[fx, s, cx], [0, fy, cy],
-[0, 0, 1]], "distortion": [k1, k2, p1, p2, k3]}`` with K in the 0-based pixel-centre convention
-(pixel (r, c) has its centre at (u, v) = (c, r)) and OpenCV's distortion model (also as OpenCV's
-1 x n or n x 1 matrix ``[[k1, k2, p1, p2, k3]]``; 2, 4 or 5 coefficients, missing ones zero, or
-8, 12 or 14 whose rational, thin-prism and tilt terms are zero; 3 are ambiguous and refused).
+In the file an LED is a ``"point"`` light with a ``"direction"``: that key is the LED's
+:attr:`LED.axis` (``"mu"`` defaults to 0); a ``"point"`` light without it is a
+:class:`PointLight` (it may not have ``"mu"`` > 0). A ``"directional"`` light's ``"direction"``
+is :attr:`DirectionalLight.direction`. :meth:`Rig.save` writes an LED's ``"direction"`` and
+``"mu"`` and a point light's neither.
 
-Camera frame as in OpenCV (x right, y down, z forward into the scene), in the user's unit (mm
-typical). A point light (LED) at ``position`` emits ``intensity`` (a number, or R, G, B) around
-its principal ``direction`` (unit, from the LED towards the scene) with anisotropy ``mu`` (0, the
-default, is an isotropic point light):
-``I = rho * intensity * ((x - p) . d / |x - p|)^mu * max(0, n . (p - x)) / |p - x|^3``.
-A directional light has a unit ``direction`` from the surface towards the light and gives
-``I = rho * intensity * max(0, n . direction)``.
+The camera is ``"camera": {"model": "pinhole", "K": [[fx, s, cx], [0, fy, cy], [0, 0, 1]],
+"distortion": [k1, k2, p1, p2, k3]}`` for a pinhole camera, with K in the 0-based pixel-centre
+convention (pixel (r, c) has its centre at (u, v) = (c, r)) and OpenCV's distortion model (also
+as OpenCV's 1 x n or n x 1 matrix ``[[k1, k2, p1, p2, k3]]``; 2, 4 or 5 coefficients, missing
+ones zero, or 8, 12 or 14 whose rational, thin-prism and tilt terms are zero; 3 are ambiguous
+and refused).
 
 Rig files are read strictly, so that a file means one thing (the same to this module and to the
 compiled core, which checks the camera mapping with the same rules): every value must have its
@@ -43,9 +57,10 @@ import json
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from functools import cached_property
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -67,158 +82,487 @@ _LIGHT_KEYS = {
 }
 
 ArrayLike = Any
+#: Three floats: a position, a unit vector or an intensity per channel (R, G, B).
+Vec3 = tuple[float, float, float]
+#: The axis the compiled core is given for lights without one (it is unused there).
+_NO_AXIS: Vec3 = (0.0, 0.0, 1.0)
+_NAN3: Vec3 = (math.nan, math.nan, math.nan)
+
+_L = TypeVar("_L", "PointLight", "LED", "DirectionalLight")
 
 
-@dataclass(frozen=True, eq=False)
+# --------------------------------------------------------------------------------------------------
+# Lights
+# --------------------------------------------------------------------------------------------------
+
+
+def _vec3(value: Any, what: str) -> Vec3:
+    """Three finite numbers (a list, tuple or 1-D array)."""
+    x, y, z = _vector(value, what)
+    return (x, y, z)
+
+
+def _rgb(value: Any, subject: str) -> Vec3:
+    """An intensity: a positive finite number or three (R, G, B)."""
+    x, y, z = _intensity(value, f"{subject} intensity")
+    if not (x > 0 and y > 0 and z > 0):
+        raise RigError(f"{subject} must have positive intensities, got [{x:.6g}, {y:.6g}, {z:.6g}]")
+    return (x, y, z)
+
+
+def _unit(v: Vec3) -> Vec3:
+    """``v`` scaled to unit length (scaled by its largest component first, so that the norm of a
+    huge vector does not overflow); (0, 0, 0) stays zero."""
+    # The same operations (on a 1 x 3 array) as earlier versions of nplps, for the same bits.
+    a = np.array([v], dtype=np.float64)
+    a = a / np.maximum(np.abs(a).max(axis=1, keepdims=True), 1e-300)
+    n = np.linalg.norm(a, axis=1, keepdims=True)
+    if not n[0, 0] > 0:
+        return (0.0, 0.0, 0.0)
+    x, y, z = (a / n)[0].tolist()
+    return (x, y, z)
+
+
+def _is_unit(v: Vec3) -> bool:
+    with np.errstate(over="ignore"):  # a huge vector is no unit vector either
+        return bool(abs(float(np.linalg.norm(v)) - 1.0) <= 1e-6)
+
+
+def _new(cls: type[_L], **values: Any) -> _L:
+    """An instance of the frozen light type ``cls`` with the (checked) field ``values``."""
+    obj = object.__new__(cls)
+    for name, value in values.items():
+        object.__setattr__(obj, name, value)
+    return obj
+
+
+@dataclass(frozen=True, init=False)
+class PointLight:
+    """An isotropic point light.
+
+    Parameters
+    ----------
+    position : sequence of 3 float
+        Position ``p`` in the camera frame (lights stand in front of the object: smaller z).
+    intensity : float or sequence of 3 float, default 1
+        Intensity, one number or R, G, B; stored as three floats.
+
+    Raises
+    ------
+    RigError
+        When a value is not a finite number, or an intensity is not positive.
+    """
+
+    #: Position in the camera frame.
+    position: Vec3
+    #: Intensity per channel (R, G, B).
+    intensity: Vec3
+
+    def __init__(self, position: ArrayLike, intensity: float | ArrayLike = 1.0) -> None:
+        self._set(type(self).__name__, position, intensity)
+
+    def _set(self, subject: str, position: Any, intensity: Any) -> None:
+        object.__setattr__(self, "position", _vec3(position, f"{subject} position"))
+        object.__setattr__(self, "intensity", _rgb(intensity, subject))
+
+    @classmethod
+    def _checked(cls, subject: str, position: Any, intensity: Any = 1.0) -> PointLight:
+        """The light, its errors naming ``subject`` (such as ``light 3``)."""
+        light = object.__new__(cls)
+        light._set(subject, position, intensity)
+        return light
+
+
+@dataclass(frozen=True, init=False)
+class LED:
+    """A near point light with a principal axis (an anisotropic LED, Quéau et al. 2018).
+
+    Parameters
+    ----------
+    position : sequence of 3 float
+        Position ``p`` in the camera frame.
+    intensity : float or sequence of 3 float, default 1
+        Intensity, one number or R, G, B; stored as three floats.
+    axis : sequence of 3 float
+        Principal direction, from the LED towards the scene; scaled to unit length. A zero axis
+        is refused when ``mu`` > 0 and stands for +z when ``mu`` = 0 (where it is unused).
+    mu : float, default 1
+        Anisotropy, >= 0 (0 emits like a :class:`PointLight`).
+
+    Raises
+    ------
+    RigError
+        When a value is not a finite number, an intensity is not positive, ``mu`` is negative, or
+        the axis is zero while ``mu`` > 0.
+    """
+
+    #: Position in the camera frame.
+    position: Vec3
+    #: Intensity per channel (R, G, B).
+    intensity: Vec3
+    #: Unit principal direction, from the LED towards the scene.
+    axis: Vec3
+    #: Anisotropy (>= 0).
+    mu: float
+
+    def __init__(
+        self, position: ArrayLike, intensity: float | ArrayLike = 1.0, *, axis: ArrayLike, mu: float = 1.0
+    ) -> None:
+        self._set(type(self).__name__, position, intensity, axis, mu)
+
+    def _set(self, subject: str, position: Any, intensity: Any, axis: Any, mu: Any) -> None:
+        m = _number(mu, f"{subject} mu")
+        if m < 0:
+            raise RigError(f"{subject} has anisotropy mu = {m:.6g}; it must be >= 0")
+        a = _unit(_vec3(axis, f"{subject} axis"))
+        if a == (0.0, 0.0, 0.0):
+            if m > 0:
+                raise RigError(f"{subject}: an anisotropic LED (mu = {m:.6g}) needs a non-zero axis")
+            a = _NO_AXIS
+        object.__setattr__(self, "position", _vec3(position, f"{subject} position"))
+        object.__setattr__(self, "intensity", _rgb(intensity, subject))
+        object.__setattr__(self, "axis", a)
+        object.__setattr__(self, "mu", m)
+
+    @classmethod
+    def _checked(cls, subject: str, position: Any, intensity: Any, axis: Any, mu: Any) -> LED:
+        """The LED, its errors naming ``subject`` (such as ``light 3``)."""
+        light = object.__new__(cls)
+        light._set(subject, position, intensity, axis, mu)
+        return light
+
+
+@dataclass(frozen=True, init=False)
+class DirectionalLight:
+    """A distant light (parallel rays, no falloff).
+
+    Parameters
+    ----------
+    direction : sequence of 3 float
+        Direction from the surface towards the light; scaled to unit length.
+    intensity : float or sequence of 3 float, default 1
+        Intensity, one number or R, G, B; stored as three floats.
+
+    Raises
+    ------
+    RigError
+        When a value is not a finite number, the direction is zero or an intensity is not
+        positive.
+    """
+
+    #: Unit direction from the surface towards the light.
+    direction: Vec3
+    #: Intensity per channel (R, G, B).
+    intensity: Vec3
+
+    def __init__(self, direction: ArrayLike, intensity: float | ArrayLike = 1.0) -> None:
+        self._set(type(self).__name__, direction, intensity, normalize=True)
+
+    def _set(self, subject: str, direction: Any, intensity: Any, normalize: bool) -> None:
+        d = _vec3(direction, f"{subject} direction")
+        if normalize:
+            d = _unit(d)
+        if not _is_unit(d):
+            raise RigError(
+                f"{subject}: a directional light needs a unit direction (from the surface towards the light), "
+                f"got [{', '.join(f'{v:.6g}' for v in d)}]"
+            )
+        object.__setattr__(self, "direction", d)
+        object.__setattr__(self, "intensity", _rgb(intensity, subject))
+
+    @classmethod
+    def _checked(cls, subject: str, direction: Any, intensity: Any = 1.0, normalize: bool = True) -> DirectionalLight:
+        """The light, its errors naming ``subject``; ``normalize=False`` checks that the
+        direction is a unit vector (to 1e-6) and keeps it as given (rig files, results)."""
+        light = object.__new__(cls)
+        light._set(subject, direction, intensity, normalize)
+        return light
+
+
+#: A light of a rig.
+Light = PointLight | LED | DirectionalLight
+_LIGHT_TYPES = (PointLight, LED, DirectionalLight)
+
+
+def _with_position(light: Light, position: Any, subject: str) -> Light:
+    if isinstance(light, DirectionalLight):
+        raise RigError(f"{subject} is a directional light: it has no position")
+    p = _vec3(position, f"{subject} position")
+    if isinstance(light, LED):
+        return _new(LED, position=p, intensity=light.intensity, axis=light.axis, mu=light.mu)
+    return _new(PointLight, position=p, intensity=light.intensity)
+
+
+def _with_intensity(light: Light, intensity: Any, subject: str) -> Light:
+    phi = _rgb(intensity, subject)
+    if isinstance(light, LED):
+        return _new(LED, position=light.position, intensity=phi, axis=light.axis, mu=light.mu)
+    if isinstance(light, PointLight):
+        return _new(PointLight, position=light.position, intensity=phi)
+    return _new(DirectionalLight, direction=light.direction, intensity=phi)
+
+
+# --------------------------------------------------------------------------------------------------
+# Rig
+# --------------------------------------------------------------------------------------------------
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True, init=False)
 class Rig:
     """A calibrated rig: one camera and k lights, in the order of the images.
 
-    ``lights`` holds the (k, 3) positions of point lights; for a directional light (where
-    ``directional[i]`` is True) row i is its unit direction towards the light. ``intensities``
-    (k, 3) are per-channel intensities (grey images use their mean), ``directions`` (k, 3) the
-    LEDs' principal directions and ``mu`` (k,) their anisotropy.
+    Parameters
+    ----------
+    camera : mapping
+        The camera, as the rig file's ``"camera"`` object (checked by the compiled core and kept
+        in its canonical form).
+    lights : sequence of PointLight, LED and DirectionalLight, or (k, 3) array_like
+        The lights. A (k, 3) array of numbers is k isotropic unit :class:`PointLight` at those
+        positions (use :meth:`from_arrays` for anything else).
+
+    Raises
+    ------
+    RigError
+        When the camera or a light is invalid, there are fewer than 3 or more than
+        :data:`MAX_LIGHTS` lights, or ``lights`` mixes light values and numbers.
+
+    Notes
+    -----
+    Array views of the lights (read-only, computed once): :attr:`positions`, :attr:`directions`,
+    :attr:`axes` and :attr:`intensities` (k, 3), :attr:`mu` and :attr:`directional` (k,). A row
+    of a quantity a light does not have is NaN (a directional light's position, a point light's
+    direction, the axis of a light that is not an :class:`LED`), so that a direction is never
+    used as a position by mistake; :attr:`mu` is 0 for lights that are not LEDs.
+
+    Rigs compare equal when their cameras and lights are equal.
     """
 
+    #: The camera mapping (canonical form).
     camera: dict[str, Any]
-    lights: np.ndarray = field(repr=False)
-    intensities: np.ndarray | None = field(default=None, repr=False)
-    directions: np.ndarray | None = field(default=None, repr=False)
-    mu: np.ndarray | None = field(default=None, repr=False)
-    directional: np.ndarray | None = field(default=None, repr=False)
+    #: The lights, one per image.
+    lights: tuple[Light, ...] = field(repr=False)
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.camera, Mapping):
-            raise RigError(f"camera must be a mapping (the rig file's camera object), got {_describe(self.camera)}")
-        set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
+    def __init__(self, camera: Mapping[str, Any], lights: Sequence[Light] | ArrayLike = ()) -> None:
+        if not isinstance(camera, Mapping):
+            raise RigError(f"camera must be a mapping (the rig file's camera object), got {_describe(camera)}")
         # The compiled core checks the camera (every key) and gives its canonical form.
-        set_("camera", _core.normalize_camera(dict(self.camera)))
-        lights = _array(self.lights, "lights", (-1, 3))
-        k = lights.shape[0]
-        if k > MAX_LIGHTS:
-            raise RigError(f"the rig has {k} lights; at most {MAX_LIGHTS} are supported")
-        directions_given = self.directions is not None
-        set_("lights", lights)
-        set_("intensities", _intensities(self.intensities, k))
-        set_("mu", np.zeros(k) if self.mu is None else _array(self.mu, "mu", (k,)))
-        directions = np.zeros((k, 3)) if self.directions is None else _array(self.directions, "directions", (k, 3))
-        if not np.isfinite(directions).all():
-            i = int(np.argmax(~np.isfinite(directions).all(axis=1)))
-            shown = ", ".join(f"{v:.6g}" for v in directions[i])
-            raise RigError(f"light {i} has a non-finite principal direction [{shown}]")
-        # Scaled by the largest component first: the norm of a huge vector does not overflow.
-        directions = directions / np.maximum(np.abs(directions).max(axis=1, keepdims=True, initial=0.0), 1e-300)
-        norms = np.linalg.norm(directions, axis=1, keepdims=True)
-        if not directions_given and np.any(self.mu > 0):  # type: ignore[operator]
-            raise RigError("anisotropic LEDs (mu > 0) need their principal directions (directions=...)")
-        zero = (self.mu > 0) & ~(norms[:, 0] > 0)  # type: ignore[operator]
-        if np.any(zero):
-            i = int(np.argmax(zero))
-            raise RigError(f"light {i}: an anisotropic LED (mu = {self.mu[i]:.6g}) needs a non-zero principal direction")  # type: ignore[index]
-        # An isotropic light's axis is unused; a zero one stands for +z.
-        directions = np.where(norms > 0, directions / np.where(norms > 0, norms, 1.0), [0.0, 0.0, 1.0])
-        set_("directions", np.ascontiguousarray(directions))
-        directional = _flags(self.directional, k)
-        set_("directional", directional)
-        if np.any(directional):
-            with np.errstate(over="ignore"):  # a huge vector is no unit vector either
-                unit = np.linalg.norm(lights[directional], axis=1)
-            if not np.allclose(unit, 1.0, atol=1e-6):
-                raise RigError("directional lights need unit directions (from the surface towards the light)")
+        object.__setattr__(self, "camera", _core.normalize_camera(dict(camera)))
+        object.__setattr__(self, "lights", _lights(lights))
+        if len(self.lights) > MAX_LIGHTS:
+            raise RigError(f"the rig has {len(self.lights)} lights; at most {MAX_LIGHTS} are supported")
         _core.check_rig(self.camera, self._core_lights())
 
+    def __hash__(self) -> int:
+        return hash((json.dumps(self.camera, sort_keys=True), self.lights))
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The fields only: the array views are computed again (read-only) after unpickling.
+        return {"camera": self.camera, "lights": self.lights}
+
     # -- constructors ---------------------------------------------------------------------------
+    @classmethod
+    def from_arrays(
+        cls,
+        camera: Mapping[str, Any],
+        positions: ArrayLike | None = None,
+        *,
+        directions: ArrayLike | None = None,
+        intensities: ArrayLike | None = None,
+        axes: ArrayLike | None = None,
+        mu: ArrayLike | None = None,
+    ) -> Rig:
+        """A rig from per-light arrays (the inverse of the array views).
+
+        Parameters
+        ----------
+        camera : mapping
+            The camera, as the rig file's ``"camera"`` object.
+        positions : (k, 3) array_like, optional
+            Positions of the point lights; NaN rows for directional lights. None: every light is
+            directional.
+        directions : (k, 3) array_like, optional
+            Directions (from the surface towards the light; scaled to unit length) of the
+            directional lights; NaN rows for point lights. None: no light is directional.
+        intensities : float, (k,), (k, 1) or (k, 3) array_like, optional
+            Intensities (or a list of k items, each a number or R, G, B). Default 1.
+        axes : (k, 3) array_like, optional
+            LED principal directions (from the LED towards the scene; scaled to unit length).
+            Rows of lights that are not LEDs are ignored (NaN in :attr:`axes`).
+        mu : (k,) array_like, optional
+            Anisotropy per light, >= 0, default 0. A point light with ``mu`` > 0 is an
+            :class:`LED` (it needs its row of ``axes``); one with ``mu`` = 0 is a
+            :class:`PointLight` (its axis, unused, is dropped). 0 (or NaN) for directional lights.
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When an array has the wrong shape or a non-number, a light has both or neither of a
+            position and a direction, an LED has no axis, or a light is invalid.
+        """
+        return cls._from_arrays(camera, positions, directions, intensities, axes, mu)
+
+    @classmethod
+    def _from_arrays(
+        cls,
+        camera: Mapping[str, Any],
+        positions: ArrayLike | None,
+        directions: ArrayLike | None = None,
+        intensities: ArrayLike | None = None,
+        axes: ArrayLike | None = None,
+        mu: ArrayLike | None = None,
+        positions_name: str = "positions",
+    ) -> Rig:
+        if positions is not None:
+            pos = _array(positions, positions_name, (-1, 3))
+            k = pos.shape[0]
+            dirs = np.full((k, 3), np.nan) if directions is None else _array(directions, "directions", (k, 3))
+        elif directions is not None:
+            dirs = _array(directions, "directions", (-1, 3))
+            k = dirs.shape[0]
+            pos = np.full((k, 3), np.nan)
+        else:
+            k = 0
+            pos = dirs = np.zeros((0, 3))
+        if k > MAX_LIGHTS:
+            raise RigError(f"the rig has {k} lights; at most {MAX_LIGHTS} are supported")
+        phi = _intensities(intensities, k)
+        mus = np.zeros(k) if mu is None else _array(mu, "mu", (k,))
+        ax = None if axes is None else _array(axes, "axes", (k, 3))
+        lights: list[Light] = []
+        for i in range(k):
+            subject = f"light {i}"
+            has_pos, has_dir = not np.isnan(pos[i]).all(), not np.isnan(dirs[i]).all()
+            if has_pos and has_dir and directions is not None and positions is not None:
+                raise RigError(
+                    f"{subject} has both a position and a direction: give NaN in the row of the other "
+                    "(positions for point lights, directions for directional lights)"
+                )
+            if not has_pos and not has_dir and directions is not None and positions is not None:
+                raise RigError(f"{subject} has neither a position nor a direction (both rows are NaN)")
+            if has_dir or positions is None:
+                if mus[i] != 0 and not math.isnan(mus[i]):
+                    raise RigError(f"{subject} is directional: it has no anisotropy (mu = {mus[i]:.6g})")
+                lights.append(DirectionalLight._checked(subject, dirs[i], phi[i]))
+            elif not mus[i] == 0:  # an LED, or an invalid mu (negative or NaN) for LED's checks
+                if mus[i] > 0 and (ax is None or np.isnan(ax[i]).all()):
+                    raise RigError(
+                        f"{subject}: an anisotropic LED (mu = {mus[i]:.6g}) needs its axis (axes=...)"
+                    )
+                axis = _NO_AXIS if ax is None else ax[i]
+                lights.append(LED._checked(subject, pos[i], phi[i], axis, mus[i]))
+            else:
+                lights.append(PointLight._checked(subject, pos[i], phi[i]))
+        return cls(camera=camera, lights=tuple(lights))
+
     @classmethod
     def orthographic(
         cls,
         pixel_size: float | Sequence[float],
         origin: Sequence[float] = (0.0, 0.0),
-        lights: ArrayLike = (),
-        **light_options: Any,
-    ) -> "Rig":
+        lights: Sequence[Light] | ArrayLike = (),
+        **arrays: Any,
+    ) -> Rig:
         """The paper's orthographic camera looking along +z.
 
-        Args:
-            pixel_size: footprint (w, h) of a pixel on the object, or one number for square pixels.
-            origin: scene (x, y) of the top-left corner of pixel (0, 0).
-            lights: (k, 3) light positions; lights stand in front of the object (smaller z).
-            light_options: ``intensities``, ``directions``, ``mu``, ``directional_lights`` and
-                ``directional_intensities`` as in :meth:`pinhole`.
+        Parameters
+        ----------
+        pixel_size : float or (w, h)
+            Footprint of a pixel on the object, or one number for square pixels.
+        origin : (ox, oy), default (0, 0)
+            Scene (x, y) of the top-left corner of pixel (0, 0).
+        lights : sequence of lights or (k, 3) array_like
+            Light values, or the positions of point lights as in :meth:`from_arrays`; lights
+            stand in front of the object (smaller z).
+        **arrays
+            ``directions``, ``intensities``, ``axes``, ``mu`` as in :meth:`from_arrays` (only
+            with array ``lights``).
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When the camera or the lights are invalid (see :meth:`from_arrays`).
         """
-        if np.isscalar(pixel_size) or (isinstance(pixel_size, np.ndarray) and pixel_size.ndim == 0):
-            pixel_size = (pixel_size, pixel_size)  # type: ignore[assignment]
+        size: Any = pixel_size
+        if np.isscalar(size) or (isinstance(size, np.ndarray) and size.ndim == 0):
+            size = (size, size)
         # The compiled core checks the values and gives the canonical camera.
-        camera = {"model": "orthographic", "pixel_size": pixel_size, "origin": origin}
-        return cls._build(camera, lights, **light_options)
+        camera = {"model": "orthographic", "pixel_size": size, "origin": origin}
+        return cls._build(camera, lights, arrays)
 
     @classmethod
     def pinhole(
         cls,
         K: ArrayLike,
-        lights: ArrayLike = (),
+        lights: Sequence[Light] | ArrayLike = (),
         distortion: ArrayLike | None = None,
-        intensities: ArrayLike | None = None,
-        directions: ArrayLike | None = None,
-        mu: ArrayLike | None = None,
-        directional_lights: ArrayLike | None = None,
-        directional_intensities: ArrayLike | None = None,
-    ) -> "Rig":
+        **arrays: Any,
+    ) -> Rig:
         """A pinhole camera at the origin.
 
-        Args:
-            K: 3 x 3 intrinsics in the 0-based pixel-centre convention (pixel (r, c) has its
-                centre at (u, v) = (c, r); MATLAB's 1-based K has cx, cy one larger).
-            lights: (k, 3) point-light (LED) positions in the camera frame.
-            distortion: OpenCV coefficients (k1, k2[, p1, p2[, k3]]), flat or OpenCV's 1 x n or
-                n x 1 matrix (8, 12 or 14 when the terms after k3 are zero); None for none.
-            intensities: per light: a number, or R, G, B (default 1).
-            directions: (k, 3) LED principal directions (from the LED towards the scene).
-            mu: (k,) LED anisotropy (0 = isotropic, the default).
-            directional_lights: (m, 3) unit directions (from the surface towards the light) of
-                distant lights, appended after the point lights.
-            directional_intensities: their intensities (a number or R, G, B each).
+        Parameters
+        ----------
+        K : (3, 3) array_like
+            Intrinsics in the 0-based pixel-centre convention (pixel (r, c) has its centre at
+            (u, v) = (c, r); MATLAB's 1-based K has cx, cy one larger).
+        lights : sequence of lights or (k, 3) array_like
+            Light values, or the positions of point lights (LEDs) in the camera frame as in
+            :meth:`from_arrays`.
+        distortion : array_like, optional
+            OpenCV coefficients (k1, k2[, p1, p2[, k3]]), flat or OpenCV's 1 x n or n x 1
+            matrix (8, 12 or 14 when the terms after k3 are zero); None for none.
+        **arrays
+            ``directions``, ``intensities``, ``axes``, ``mu`` as in :meth:`from_arrays` (only
+            with array ``lights``).
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When the camera or the lights are invalid (see :meth:`from_arrays`).
         """
         # The compiled core checks K and the distortion and gives their canonical form.
         camera: dict[str, Any] = {"model": "pinhole", "K": K}
         if distortion is not None:
             camera["distortion"] = distortion
-        return cls._build(camera, lights, intensities, directions, mu, directional_lights, directional_intensities)
+        return cls._build(camera, lights, arrays)
 
     @classmethod
-    def _build(
-        cls,
-        camera: dict[str, Any],
-        lights: ArrayLike,
-        intensities: ArrayLike | None = None,
-        directions: ArrayLike | None = None,
-        mu: ArrayLike | None = None,
-        directional_lights: ArrayLike | None = None,
-        directional_intensities: ArrayLike | None = None,
-    ) -> "Rig":
-        points = _array(lights, "lights", (-1, 3))
-        k = points.shape[0]
-        far = np.zeros((0, 3)) if directional_lights is None else _array(directional_lights, "directional_lights", (-1, 3))
-        m = far.shape[0]
-        if m:
-            far = far / np.abs(far).max(axis=1, keepdims=True)  # no overflow in the norm
-            far = far / np.linalg.norm(far, axis=1, keepdims=True)
-        pad3 = np.zeros((m, 3))
-        dirs = None if directions is None else np.vstack([_array(directions, "directions", (k, 3)), pad3])
-        mus = None if mu is None else np.concatenate([_array(mu, "mu", (k,)), np.zeros(m)])
-        phi = np.vstack([_intensities(intensities, k), _intensities(directional_intensities, m)])
-        return cls(
-            camera=camera,
-            lights=np.vstack([points, far]),
-            intensities=phi,
-            directions=dirs,
-            mu=mus,
-            directional=np.r_[np.zeros(k, dtype=bool), np.ones(m, dtype=bool)],
-        )
+    def _build(cls, camera: dict[str, Any], lights: Any, arrays: dict[str, Any]) -> Rig:
+        unknown = sorted(set(arrays) - {"directions", "intensities", "axes", "mu"})
+        if unknown:
+            raise TypeError(
+                f"unexpected keyword argument {unknown[0]!r} "
+                "(the light arrays are directions, intensities, axes and mu)"
+            )
+        if _is_light_values(lights):
+            given = [name for name, value in arrays.items() if value is not None]
+            if given:
+                raise RigError(f"{given[0]}= goes with an array of positions, not with light values")
+            return cls(camera=camera, lights=lights)
+        positions = None if _is_empty(lights) and arrays.get("directions") is not None else lights
+        return cls._from_arrays(camera, positions, **arrays, positions_name="lights")
 
     # -- properties -----------------------------------------------------------------------------
     @property
     def n_lights(self) -> int:
         """Number of lights k."""
-        return int(self.lights.shape[0])
+        return len(self.lights)
 
     @property
     def is_pinhole(self) -> bool:
@@ -230,8 +574,60 @@ class Rig:
         """The pinhole intrinsics (0-based pixel centres), or None for an orthographic camera."""
         return np.array(self.camera["K"], dtype=np.float64) if self.is_pinhole else None
 
-    def subset(self, indices: Sequence[int]) -> "Rig":
-        """The rig with only the lights ``indices`` (in that order; from -k to k - 1 for k lights)."""
+    @cached_property
+    def positions(self) -> np.ndarray:
+        """(k, 3) positions of the point lights and LEDs; NaN rows for directional lights."""
+        rows = [_NAN3 if isinstance(light, DirectionalLight) else light.position for light in self.lights]
+        return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 3))
+
+    @cached_property
+    def directions(self) -> np.ndarray:
+        """(k, 3) unit directions (from the surface towards the light) of the directional
+        lights; NaN rows for point lights and LEDs."""
+        rows = [light.direction if isinstance(light, DirectionalLight) else _NAN3 for light in self.lights]
+        return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 3))
+
+    @cached_property
+    def axes(self) -> np.ndarray:
+        """(k, 3) unit principal directions of the LEDs; NaN rows for other lights."""
+        rows = [light.axis if isinstance(light, LED) else _NAN3 for light in self.lights]
+        return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 3))
+
+    @cached_property
+    def intensities(self) -> np.ndarray:
+        """(k, 3) intensities per channel (R, G, B)."""
+        return _readonly(np.array([light.intensity for light in self.lights], dtype=np.float64).reshape(-1, 3))
+
+    @cached_property
+    def mu(self) -> np.ndarray:
+        """(k,) anisotropy of the LEDs; 0 for other lights."""
+        mus = [light.mu if isinstance(light, LED) else 0.0 for light in self.lights]
+        return _readonly(np.array(mus, dtype=np.float64))
+
+    @cached_property
+    def directional(self) -> np.ndarray:
+        """(k,) whether each light is a :class:`DirectionalLight`."""
+        return _readonly(np.array([isinstance(light, DirectionalLight) for light in self.lights], dtype=bool))
+
+    # -- derived rigs ---------------------------------------------------------------------------
+    def subset(self, indices: Sequence[int]) -> Rig:
+        """The rig with only some lights.
+
+        Parameters
+        ----------
+        indices : sequence of int
+            The lights to keep, in that order (from -k to k - 1 for k lights).
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When an index is not a whole number or not a light of the rig, or fewer than 3
+            lights remain.
+        """
         try:
             idx = np.asarray(indices)
         except ValueError:  # a ragged nested sequence
@@ -244,61 +640,174 @@ class Rig:
             )
         out = (idx < -k) | (idx >= k)
         if out.any():
-            raise RigError(f"indices: {int(idx[out][0])} is not a light of the rig (its {k} lights are {-k} .. {k - 1})")
-        idx = idx.astype(int)
-        return Rig(
-            camera=dict(self.camera),
-            lights=self.lights[idx],
-            intensities=self.intensities[idx],  # type: ignore[index]
-            directions=self.directions[idx],  # type: ignore[index]
-            mu=self.mu[idx],  # type: ignore[index]
-            directional=self.directional[idx],  # type: ignore[index]
-        )
+            raise RigError(
+                f"indices: {int(idx[out][0])} is not a light of the rig (its {k} lights are {-k} .. {k - 1})"
+            )
+        return Rig(camera=self.camera, lights=tuple(self.lights[i] for i in idx.astype(int).tolist()))
 
+    def with_positions(self, positions: ArrayLike) -> Rig:
+        """The rig with the point lights and LEDs moved.
+
+        Parameters
+        ----------
+        positions : (k, 3) array_like
+            New positions, NaN rows for directional lights (as :attr:`positions`: ``rig.
+            with_positions(rig.positions + shift)`` moves the point lights).
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When the shape is wrong, a directional light's row is not NaN, or a point light's
+            row is not finite.
+        """
+        p = _array(positions, "positions", (self.n_lights, 3))
+        lights: list[Light] = []
+        for i, light in enumerate(self.lights):
+            if isinstance(light, DirectionalLight):
+                if not np.isnan(p[i]).all():
+                    raise RigError(f"positions: light {i} is a directional light: its row must be NaN")
+                lights.append(light)
+            else:
+                lights.append(_with_position(light, p[i], f"light {i}"))
+        return Rig(camera=self.camera, lights=tuple(lights))
+
+    def with_intensities(self, intensities: ArrayLike) -> Rig:
+        """The rig with new intensities.
+
+        Parameters
+        ----------
+        intensities : float, (k,), (k, 1) or (k, 3) array_like
+            The intensities, as in :meth:`from_arrays`.
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When the shape is wrong or an intensity is not a positive finite number.
+        """
+        phi = _intensities(intensities, self.n_lights)
+        lights = tuple(_with_intensity(light, phi[i], f"light {i}") for i, light in enumerate(self.lights))
+        return Rig(camera=self.camera, lights=lights)
+
+    def binned(self, n: int) -> Rig:
+        """The rig of the images binned ``n`` x ``n`` (blocks of pixels averaged, the remainder
+        at the bottom and right cropped).
+
+        Parameters
+        ----------
+        n : int
+            The binning factor (>= 1).
+
+        Returns
+        -------
+        Rig
+            The same lights; the pinhole K by :func:`nplps.preprocess.bin_intrinsics`, or the
+            orthographic pixel size times ``n`` with the origin kept (the top-left corner of
+            pixel (0, 0)).
+
+        Raises
+        ------
+        RigError
+            When ``n`` is not a whole number of at least 1.
+        """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise RigError(f"the binning factor must be a whole number of at least 1, got {_describe(n)}")
+        from . import preprocess
+
+        camera = dict(self.camera)
+        if self.is_pinhole:
+            camera["K"] = preprocess.bin_intrinsics(np.array(camera["K"], dtype=np.float64), int(n)).tolist()
+        else:
+            camera["pixel_size"] = [float(v) * int(n) for v in camera["pixel_size"]]
+        return Rig(camera=camera, lights=self.lights)
+
+    # -- the compiled core's form ---------------------------------------------------------------
     @classmethod
-    def _from_core_lights(cls, camera: dict[str, Any], lights: dict[str, Any]) -> "Rig":
-        """A rig with ``camera`` and the lights in the compiled core's form."""
-        return cls(
-            camera=dict(camera),
-            lights=np.asarray(lights["vectors"], dtype=np.float64),
-            intensities=np.asarray(lights["intensities"], dtype=np.float64),
-            directions=np.asarray(lights["axes"], dtype=np.float64),
-            mu=np.asarray(lights["mu"], dtype=np.float64),
-            directional=np.asarray(lights["directional"], dtype=bool),
-        )
+    def _from_core_lights(cls, camera: Mapping[str, Any], lights: Mapping[str, Any], like: Rig | None = None) -> Rig:
+        """A rig with ``camera`` and the lights in the compiled core's form (vectors,
+        directional, intensities, axes, mu): LED axes scaled to unit length, directions kept as
+        given (checked to be unit vectors). A point light is an LED when its mu > 0 or when
+        light i of ``like`` is one."""
+        out: list[Light] = []
+        n = len(lights["vectors"])
+        for i in range(n):
+            subject = f"light {i}"
+            vector, phi = lights["vectors"][i], lights["intensities"][i]
+            mu = float(lights["mu"][i])
+            if lights["directional"][i]:
+                out.append(DirectionalLight._checked(subject, vector, phi, normalize=False))
+            elif mu > 0 or (like is not None and i < like.n_lights and isinstance(like.lights[i], LED)):
+                out.append(LED._checked(subject, vector, phi, lights["axes"][i], mu))
+            else:
+                out.append(PointLight._checked(subject, vector, phi))
+        return cls(camera=camera, lights=tuple(out))
 
     def _core_lights(self) -> dict[str, list[Any]]:
-        """The lights in the form the compiled core takes."""
-        return {
-            "vectors": self.lights.tolist(),
-            "directional": self.directional.tolist(),  # type: ignore[union-attr]
-            "intensities": self.intensities.tolist(),  # type: ignore[union-attr]
-            "axes": self.directions.tolist(),  # type: ignore[union-attr]
-            "mu": self.mu.tolist(),  # type: ignore[union-attr]
-        }
+        """The lights in the form the compiled core takes (an axis of (0, 0, 1) and mu = 0 for
+        lights that are not LEDs)."""
+        vectors, directional, intensities, axes, mus = [], [], [], [], []
+        for light in self.lights:
+            if isinstance(light, DirectionalLight):
+                vectors.append(list(light.direction))
+            else:
+                vectors.append(list(light.position))
+            directional.append(isinstance(light, DirectionalLight))
+            intensities.append(list(light.intensity))
+            axes.append(list(light.axis if isinstance(light, LED) else _NO_AXIS))
+            mus.append(light.mu if isinstance(light, LED) else 0.0)
+        return {"vectors": vectors, "directional": directional, "intensities": intensities, "axes": axes, "mu": mus}
 
     # -- files ----------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """The rig as the JSON-ready mapping of the rig file."""
+        """The rig as the JSON-ready mapping of the rig file.
+
+        Returns
+        -------
+        dict
+            ``{"version": 2, "camera": ..., "lights": [...]}``: an intensity is one number when
+            its three channels are equal; an LED's axis is its ``"direction"``.
+        """
         lights = []
-        for i in range(self.n_lights):
-            phi = [float(v) for v in self.intensities[i]]  # type: ignore[index]
+        for light in self.lights:
+            phi = list(light.intensity)
             intensity: Any = phi[0] if phi[0] == phi[1] == phi[2] else phi
-            vector = [float(v) for v in self.lights[i]]
-            if self.directional[i]:  # type: ignore[index]
-                lights.append({"type": "directional", "direction": vector, "intensity": intensity})
+            if isinstance(light, DirectionalLight):
+                lights.append({"type": "directional", "direction": list(light.direction), "intensity": intensity})
                 continue
-            light: dict[str, Any] = {"type": "point", "position": vector, "intensity": intensity}
-            if self.mu[i] > 0:  # type: ignore[index]
-                light["direction"] = [float(v) for v in self.directions[i]]  # type: ignore[index]
-                light["mu"] = float(self.mu[i])  # type: ignore[index]
-            lights.append(light)
+            entry: dict[str, Any] = {"type": "point", "position": list(light.position), "intensity": intensity}
+            if isinstance(light, LED):
+                entry["direction"] = list(light.axis)
+                entry["mu"] = light.mu
+            lights.append(entry)
         return {"version": RIG_FILE_VERSION, "camera": dict(self.camera), "lights": lights}
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "rig") -> "Rig":
-        """Reads the mapping of a rig file; raises :class:`RigError` naming what is wrong (see
-        the module documentation for what is checked)."""
+    def from_dict(cls, data: Any, source: str = "rig") -> Rig:
+        """Reads the mapping of a rig file (see the module documentation for what is checked).
+
+        Parameters
+        ----------
+        data : mapping
+            The rig file's JSON object.
+        source : str, default "rig"
+            Where it comes from, for messages.
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            Naming what is wrong.
+        """
         if not isinstance(data, Mapping):
             raise RigError(f"{source}: a rig file holds a JSON object, got {_describe(data)}")
         _check_keys(data, _TOP_KEYS, source, "a rig file has version, camera and lights")
@@ -320,7 +829,7 @@ class Rig:
             raise RigError(f"{source}: 'lights' must be a list of objects (one per light), got {_describe(lights)}")
         if len(lights) > MAX_LIGHTS:
             raise RigError(f"{source}: the rig has {len(lights)} lights; at most {MAX_LIGHTS} are supported")
-        vectors, phis, axes, mus, flags = [], [], [], [], []
+        out: list[Light] = []
         for i, light in enumerate(lights):
             where = f"{source}: light {i}"
             if not isinstance(light, Mapping):
@@ -333,29 +842,41 @@ class Rig:
             key = "position" if kind == "point" else "direction"
             if key not in light:
                 raise RigError(f"{where} is missing its '{key}'")
-            vectors.append(_vector(light[key], f"{where} {key}"))
-            phis.append(_intensity(light.get("intensity", 1.0), f"{where} intensity"))
-            axis = light.get("direction") if kind == "point" else None
-            axes.append([0.0, 0.0, 0.0] if axis is None else _vector(axis, f"{where} direction"))
-            mus.append(_number(light.get("mu", 0.0), f"{where} mu"))
-            if mus[-1] > 0 and axis is None:
+            vector = _vector(light[key], f"{where} {key}")
+            intensity = _intensity(light.get("intensity", 1.0), f"{where} intensity")
+            if kind == "directional":
+                # Kept as written (checked to be a unit vector): a file reads back as it was saved.
+                out.append(DirectionalLight._checked(where, vector, intensity, normalize=False))
+                continue
+            mu = _number(light.get("mu", 0.0), f"{where} mu")
+            if "direction" in light:  # an LED; the file's "direction" is its axis
+                axis = _vector(light["direction"], f"{where} direction")
+                out.append(LED._checked(where, vector, intensity, axis, mu))
+            elif mu > 0:
                 # An LED's falloff about its axis: without the axis its brightness is unknown.
-                raise RigError(f"{where}: an anisotropic LED (mu = {mus[-1]:.6g}) needs its principal 'direction'")
-            flags.append(kind == "directional")
+                raise RigError(f"{where}: an anisotropic LED (mu = {mu:.6g}) needs its principal 'direction'")
+            elif mu < 0:
+                raise RigError(f"{where} has anisotropy mu = {mu:.6g}; it must be >= 0")
+            else:
+                out.append(PointLight._checked(where, vector, intensity))
         try:
-            return cls(
-                camera=dict(camera),
-                lights=np.array(vectors, dtype=np.float64).reshape(-1, 3),
-                intensities=np.array(phis, dtype=np.float64).reshape(-1, 3),
-                directions=np.array(axes, dtype=np.float64).reshape(-1, 3),
-                mu=np.array(mus, dtype=np.float64),
-                directional=np.array(flags, dtype=bool),
-            )
+            return cls(camera=camera, lights=tuple(out))
         except RigError as e:
             raise RigError(f"{source}: {e}") from None
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the rig file (JSON), under a temporary name renamed when complete."""
+        """Writes the rig file (JSON), under a temporary name renamed when complete.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The file.
+
+        Raises
+        ------
+        OSError
+            When the file cannot be written.
+        """
         from ._atomic import atomic_write
 
         with atomic_write(path, "w", encoding="utf-8") as f:
@@ -363,17 +884,74 @@ class Rig:
             f.write("\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> "Rig":
-        """Reads a rig file; raises :class:`RigError` when it is missing or malformed."""
+    def load(cls, path: str | os.PathLike[str]) -> Rig:
+        """Reads a rig file.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The file.
+
+        Returns
+        -------
+        Rig
+
+        Raises
+        ------
+        RigError
+            When the file is missing, unreadable or malformed (naming the problem).
+        """
         if not isinstance(path, (str, bytes, os.PathLike)):
             raise RigError(f"a rig file is read from a path (str or os.PathLike), got {type(path).__name__}")
         return cls.from_dict(read_rig_json(path), source=os.fspath(path))
 
 
+def _is_empty(value: Any) -> bool:
+    if isinstance(value, np.ndarray):
+        return value.size == 0
+    return isinstance(value, (list, tuple)) and len(value) == 0
+
+
+def _is_light_values(value: Any) -> bool:
+    """Whether ``value`` is a non-empty sequence of light values."""
+    return isinstance(value, (list, tuple)) and len(value) > 0 and any(isinstance(v, _LIGHT_TYPES) for v in value)
+
+
+def _lights(value: Any) -> tuple[Light, ...]:
+    """The lights of a rig: a sequence of light values, or a (k, 3) array of point-light positions."""
+    if _is_light_values(value):
+        for i, light in enumerate(value):
+            if not isinstance(light, _LIGHT_TYPES):
+                raise RigError(
+                    f"lights: light {i} is {_describe(light)}, not a PointLight, LED or DirectionalLight "
+                    "(give light values or a (k, 3) array of positions, not both)"
+                )
+        return tuple(value)
+    positions = _array(value, "lights", (-1, 3))
+    if positions.shape[0] > MAX_LIGHTS:
+        raise RigError(f"the rig has {positions.shape[0]} lights; at most {MAX_LIGHTS} are supported")
+    return tuple(PointLight._checked(f"light {i}", p) for i, p in enumerate(positions))
+
+
 def read_rig_json(path: str | os.PathLike[str]) -> Any:
-    """The JSON value of a rig file, read within the limits of the format (at most
-    :data:`MAX_RIG_FILE_BYTES` of UTF-8, nested at most :data:`MAX_NESTING` levels); raises
-    :class:`RigError` when the file cannot be read or is not such a JSON text."""
+    """The JSON value of a rig file, read within the limits of the format.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file: at most :data:`MAX_RIG_FILE_BYTES` of UTF-8 (a byte order mark is allowed),
+        nested at most :data:`MAX_NESTING` levels.
+
+    Returns
+    -------
+    Any
+        The parsed JSON value (not checked as a rig: see :meth:`Rig.from_dict`).
+
+    Raises
+    ------
+    RigError
+        When the file cannot be read or is not such a JSON text.
+    """
     name = os.fspath(path)
     try:
         with open(path, "rb") as f:
@@ -444,7 +1022,9 @@ def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, us
         if not isinstance(key, str):
             raise RigError(f"{where} has a key that is not a string ({_describe(key)})")
         if not (key.startswith("_") or key in known):
-            raise RigError(f"{where} has an unknown key {_describe(key)[11:]} ({usage}; keys starting with '_' are comments)")
+            raise RigError(
+                f"{where} has an unknown key {_describe(key)[11:]} ({usage}; keys starting with '_' are comments)"
+            )
 
 
 def _number(value: Any, what: str) -> float:
@@ -477,19 +1057,6 @@ def _intensity(value: Any, what: str) -> list[float]:
     return [x, x, x]
 
 
-def _flags(value: Any, k: int) -> np.ndarray:
-    """One boolean per light (None: all False)."""
-    if value is None:
-        return np.zeros(k, dtype=bool)
-    try:
-        a = _numeric(value, "directional", kinds="biu")
-    except RigError:
-        a = None
-    if a is None or a.shape != (k,) or (a.dtype.kind != "b" and not np.isin(a, (0, 1)).all()):
-        raise RigError(f"directional must have one flag (True or False) per light ({k}), got {_describe(value)}")
-    return a.astype(bool)
-
-
 def _numeric(value: Any, name: str, kinds: str = "iuf") -> np.ndarray:
     """``value`` as an array of numbers of the dtype kinds ``kinds`` (not strings, objects or,
     unless asked, booleans)."""
@@ -508,7 +1075,7 @@ def _numeric(value: Any, name: str, kinds: str = "iuf") -> np.ndarray:
 def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
     a = _numeric(value, name).astype(np.float64)
     if a.size == 0 and shape[0] == -1:
-        return np.zeros((0,) + shape[1:])
+        return np.zeros((0, *shape[1:]))
     expected = tuple(a.shape[0] if s == -1 and a.ndim else s for s in shape)
     if a.shape != expected:
         text = "(" + ", ".join("k" if s == -1 else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
@@ -521,12 +1088,15 @@ def _intensities(value: Any, k: int, where: str = "intensities") -> np.ndarray:
     list of k items each a number or three (R, G, B)."""
     if value is None:
         return np.ones((k, 3))
-    if isinstance(value, (list, tuple)) and k and len(value) == k and any(isinstance(v, (list, tuple, np.ndarray)) for v in value):
+    rows_given = isinstance(value, (list, tuple)) and k and len(value) == k
+    if rows_given and any(isinstance(v, (list, tuple, np.ndarray)) for v in value):
         rows = []
         for i, v in enumerate(value):
             a = _numeric(v, f"{where} (light {i})").astype(np.float64)
             if a.shape not in ((), (3,)):
-                raise RigError(f"{where} (light {i}): intensity must be a number or three numbers (R, G, B), got shape {a.shape}")
+                raise RigError(
+                    f"{where} (light {i}): intensity must be a number or three numbers (R, G, B), got shape {a.shape}"
+                )
             rows.append(np.broadcast_to(a, (3,)))
         out = np.array(rows, dtype=np.float64)
     else:

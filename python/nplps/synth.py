@@ -204,14 +204,7 @@ def make_scene(
         pinhole=camera == "pinhole", led=led, rgb=rgb, directional=directional,
     )
     lights = d["lights"]
-    rig = Rig(
-        camera=d["camera"],
-        lights=np.array(lights["vectors"]),
-        intensities=np.array(lights["intensities"]),
-        directions=np.array(lights["axes"]),
-        mu=np.array(lights["mu"]),
-        directional=np.array(lights["directional"]),
-    )
+    rig = Rig._from_core_lights(d["camera"], lights)
     images = render(d["depth"], rig, d["albedo"], mask=d["mask"])
     if noise > 0:
         rng = np.random.default_rng(seed)

@@ -4,7 +4,6 @@ exposures, vignetting / flat field, and binning of images, mask and rig."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from typing import Any
 
 import numpy as np
@@ -117,11 +116,4 @@ def bin_inputs(
 def bin_rig(rig: Any, n: int) -> Any:
     """The rig of images binned by n: K by :func:`nplps.preprocess.bin_intrinsics` (pinhole), or
     the pixel size times n with the origin kept at the top-left corner (orthographic)."""
-    from .. import preprocess
-
-    camera = dict(rig.camera)
-    if rig.is_pinhole:
-        camera["K"] = preprocess.bin_intrinsics(rig.K, n).tolist()
-    else:
-        camera["pixel_size"] = [float(v) * n for v in camera["pixel_size"]]
-    return dataclasses.replace(rig, camera=camera)
+    return rig.binned(n)
