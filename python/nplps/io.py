@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Sequence
-from typing import Union
+from typing import TypeAlias
 
 import imageio.v3 as iio
 import numpy as np
@@ -28,10 +28,10 @@ import tifffile
 from . import _core
 from .errors import InputError
 
-PathLike = Union[str, os.PathLike]
+PathLike: TypeAlias = str | os.PathLike
 """A file name: ``str`` or any :class:`os.PathLike`."""
 
-ImageSource = Union[PathLike, np.ndarray]
+ImageSource: TypeAlias = PathLike | np.ndarray
 """One image: a file name or an array of shape ``(H, W)`` or ``(H, W, 3)``."""
 
 MAX_PIXELS = 1 << 28
@@ -188,7 +188,7 @@ def _read_tiff(path: PathLike, max_pixels: int) -> np.ndarray:
     """Read the first series of a TIFF file, channel-last; refuse more than ``max_pixels``."""
     with tifffile.TiffFile(path) as tif:
         series = tif.series[0]
-        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes) if axis != "S"]))
+        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes, strict=True) if axis != "S"]))
         if pixels > max_pixels:
             raise InputError(
                 f"cannot read image '{os.fspath(path)}': {pixels} pixels is more than the limit "

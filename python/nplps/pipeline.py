@@ -65,7 +65,7 @@ import dataclasses
 import os
 import re
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Union
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias
 
 import numpy as np
 
@@ -78,26 +78,26 @@ if TYPE_CHECKING:
 
 __all__ = [
     "STEPS",
-    "Prepared",
     "Binned",
-    "prepare",
+    "Prepared",
+    "bin_depth",
+    "bin_inputs",
+    "correct",
+    "decode_srgb",
     "load_images",
-    "thresholds",
+    "natural_key",
+    "prepare",
     "saturated",
     "select_color",
+    "thresholds",
     "to_gray",
-    "decode_srgb",
-    "correct",
-    "bin_inputs",
-    "bin_depth",
-    "natural_key",
 ]
 
 #: The names of the pre-processing steps, in the order they run (as listed in ``steps``).
 STEPS = ("srgb", "ambient", "exposures", "flat", "vignetting", "bin")
 
-Images = Union[np.ndarray, Sequence[ImageSource]]
-SideImage = Union[PathLike, np.ndarray]
+Images: TypeAlias = np.ndarray | Sequence[ImageSource]
+SideImage: TypeAlias = PathLike | np.ndarray
 
 
 # --------------------------------------------------------------------------------------------------
@@ -154,9 +154,9 @@ def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
     """
     if not np.isfinite(saturation):
         return None
-    bad = images >= saturation
+    bad = np.asarray(images >= saturation)
     if bad.ndim == 4:
-        bad = bad.any(axis=3)
+        bad = np.asarray(bad.any(axis=3))
     return bad if bad.any() else None
 
 
@@ -213,7 +213,9 @@ def to_gray(images: np.ndarray, *, stack: bool = True) -> np.ndarray:
     return out
 
 
-def select_color(stack: np.ndarray, color: bool | None, saturation: float = float("inf")) -> tuple[np.ndarray, np.ndarray | None]:
+def select_color(
+    stack: np.ndarray, color: bool | None, saturation: float = float("inf")
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Apply the colour choice to a loaded stack.
 
     Parameters
@@ -439,8 +441,25 @@ def correct(
 # --------------------------------------------------------------------------------------------------
 
 
-class Binned(NamedTuple):
-    """What :func:`bin_inputs` returns: everything on the binned grid (None where not given)."""
+@dataclasses.dataclass
+class Binned:
+    """What :func:`bin_inputs` returns: everything on the binned grid (None where not given).
+
+    Attributes
+    ----------
+    images : ndarray
+        float32 ``(k, H, W)`` or ``(k, H, W, 3)``.
+    mask : ndarray or None
+        ``(H, W)`` bool, or None (every pixel).
+    valid : ndarray or None
+        ``(k, H, W)`` bool, False where an observation is left out; None if none is.
+    rig : Rig or None
+        The rig on the images' grid.
+    K : ndarray or None
+        The pinhole matrix on the images' grid.
+    depth : ndarray or None
+        The vertex depth map on the images' grid.
+    """
 
     images: np.ndarray
     mask: np.ndarray | None
@@ -570,23 +589,12 @@ def _binned(rig: Rig, n: int) -> Rig:
 
 
 @dataclasses.dataclass
-class Prepared:
-    """What :func:`prepare` returns: the core's input.
+class Prepared(Binned):
+    """What :func:`prepare` returns: the core's input, the fields of :class:`Binned` (``images``
+    C-contiguous float32; ``valid`` False where an observation was saturated or flagged) and:
 
     Attributes
     ----------
-    images : ndarray
-        C-contiguous float32 ``(k, H, W)`` or ``(k, H, W, 3)``.
-    mask : ndarray or None
-        ``(H, W)`` bool, or None (every pixel).
-    valid : ndarray or None
-        ``(k, H, W)`` bool, False where an observation was saturated; None if none was.
-    rig : Rig or None
-        The rig on the images' grid (binned), if one was given.
-    K : ndarray or None
-        The pinhole matrix on the images' grid, if one was given (or the rig's).
-    depth : ndarray or None
-        The vertex depth map on the images' grid, if one was given.
     levels : int or None
         The top integer value of the source images, None for floating-point ones.
     steps : tuple of str
@@ -596,15 +604,9 @@ class Prepared:
         The shadow threshold: the one given, or the default of :func:`thresholds`.
     """
 
-    images: np.ndarray
-    mask: np.ndarray | None
-    valid: np.ndarray | None
-    rig: Any
-    K: np.ndarray | None
-    depth: np.ndarray | None
-    levels: int | None
-    steps: tuple[str, ...]
-    dark: float
+    levels: int | None = None
+    steps: tuple[str, ...] = ()
+    dark: float = 0.0
 
 
 def prepare(

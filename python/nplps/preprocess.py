@@ -45,17 +45,17 @@ from .errors import InputError
 from .io import to_float
 
 __all__ = [
-    "subtract_ambient",
+    "bin_images",
+    "bin_intrinsics",
+    "bin_mask",
+    "compensate_vignetting",
+    "flat_field_map",
+    "linear_to_srgb",
+    "pad_or_crop",
     "scale_exposure",
     "srgb_to_linear",
-    "linear_to_srgb",
+    "subtract_ambient",
     "vignetting_cos4",
-    "flat_field_map",
-    "compensate_vignetting",
-    "bin_images",
-    "bin_mask",
-    "bin_intrinsics",
-    "pad_or_crop",
 ]
 
 # IEC 61966-2-1 (sRGB) transfer-function constants.
@@ -418,10 +418,7 @@ def _block_view(x: np.ndarray, factor: int, axes: tuple[int, int], name: str) ->
     index[ra] = slice(0, hb * factor)
     index[ca] = slice(0, wb * factor)
     cropped = x[tuple(index)]
-    new_shape = (
-        list(cropped.shape[:ra]) + [hb, factor] + list(cropped.shape[ra + 1 : ca])
-        + [wb, factor] + list(cropped.shape[ca + 1 :])
-    )
+    new_shape = (*cropped.shape[:ra], hb, factor, *cropped.shape[ra + 1 : ca], wb, factor, *cropped.shape[ca + 1 :])
     return cropped.reshape(new_shape)
 
 

@@ -33,15 +33,15 @@ from .matlab import load_matlab_intrinsics, standardize_K
 from .near_ps import load_hehe12, load_near_ps, load_queau_human1
 
 __all__ = [
-    "Capture",
     "IMAGE_EXTENSIONS",
+    "Capture",
     "find_images",
-    "standardize_K",
-    "load_matlab_intrinsics",
-    "load_near_ps",
-    "load_hehe12",
-    "load_queau_human1",
     "load_diligent",
     "load_folder",
+    "load_hehe12",
+    "load_matlab_intrinsics",
+    "load_near_ps",
+    "load_queau_human1",
     "prepare",
+    "standardize_K",
 ]

@@ -128,7 +128,7 @@ class Capture:
             ambient = pipeline.to_gray(ambient, stack=False)
         return dataclasses.replace(self, images=images, ambient=ambient, levels=levels)
 
-    def rig(self) -> "Rig":
+    def rig(self) -> Rig:
         """The capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
         unit pixels when K is unknown) with its point lights (LED model) or directional lights."""
         from ..rig import Rig

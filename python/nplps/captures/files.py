@@ -6,7 +6,7 @@ import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Union
+from typing import TypeAlias
 
 import numpy as np
 
@@ -18,7 +18,7 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """File name extensions (lower case) that the loaders treat as images."""
 
 _AUTO = "auto"
-MaskSpec = Union[PathLike, np.ndarray, None]
+MaskSpec: TypeAlias = PathLike | np.ndarray | None
 
 
 def find_images(
@@ -151,7 +151,7 @@ def _mask_arg(folder: Path, mask: MaskSpec | str) -> np.ndarray | None:
 
 
 def _ambient_arg(
-    folder: Path, ambient: PathLike | np.ndarray | None | str
+    folder: Path, ambient: PathLike | np.ndarray | str | None
 ) -> Path | np.ndarray | None:
     """Resolve an ``ambient`` argument: "auto" (unique 'ambient' file), path, array or None."""
     if isinstance(ambient, str) and ambient == _AUTO:

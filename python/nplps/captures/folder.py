@@ -17,7 +17,7 @@ def load_folder(
     *,
     rig: PathLike = "rig.json",
     mask: MaskSpec | str = _AUTO,
-    ambient: PathLike | np.ndarray | None | str = _AUTO,
+    ambient: PathLike | np.ndarray | str | None = _AUTO,
     load: bool = False,
     color: bool | None = None,
     gray: bool | None = None,

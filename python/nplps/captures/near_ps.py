@@ -75,7 +75,7 @@ def load_near_ps(
     *,
     lights: Sequence[int] | None = None,
     mask: MaskSpec | str = _AUTO,
-    ambient: PathLike | np.ndarray | None | str = _AUTO,
+    ambient: PathLike | np.ndarray | str | None = _AUTO,
     camera_file: PathLike = "camera.mat",
     light_file: PathLike = "light.mat",
     load: bool = False,
@@ -183,13 +183,9 @@ def load_near_ps(
     done: tuple[str, ...] = ()
     if load:
         bin_factor = int(bin_factor)
-        steps = dict(
-            srgb=srgb, bin_factor=bin_factor, grid_shape=grid_shape,
-            grid_offset=grid_offset, color=color,
-        )
-        read = [_prepare(p, **steps) for p in files]  # type: ignore[arg-type]
+        read = [_prepare(p, srgb, bin_factor, grid_shape, grid_offset, color) for p in files]
         stack = [image for image, _ in read]
-        for p, img in zip(files, stack):
+        for p, img in zip(files, stack, strict=True):
             if img.shape != stack[0].shape:
                 raise InputError(
                     f"image '{p}' has shape {img.shape} but '{files[0]}' has {stack[0].shape}"
@@ -204,7 +200,7 @@ def load_near_ps(
         if not done and None not in file_levels:
             levels = max(v for v in file_levels if v is not None)
         if isinstance(amb, Path):
-            amb = _prepare(amb, **steps)[0]  # type: ignore[arg-type]
+            amb = _prepare(amb, srgb, bin_factor, grid_shape, grid_offset, color)[0]
         if mask_arr is not None and mask_arr.shape != images_out.shape[1:3]:
             raise InputError(
                 f"the mask has shape {mask_arr.shape} but the images have {images_out.shape[1:3]}"
@@ -318,7 +314,7 @@ def load_queau_human1(
     folder = _check_folder(folder)
     files = find_images(folder, "photometric_sample_jpg_[0-9]*.png")
     if lights is not None:
-        available = dict(zip(_led_rows_from_names(files), files))
+        available = dict(zip(_led_rows_from_names(files), files, strict=True))
         missing = [int(i) for i in lights if int(i) not in available]
         if missing:
             raise InputError(
@@ -337,22 +333,24 @@ def load_queau_human1(
         "~700 mm away. Preprocess: subtract the ambient image (clip at 0), divide by the "
         "cos^4 vignetting map."
     )
-    common = dict(
+    if grid == "jpeg" and tuple(grid_offset) != (0, 0):
+        raise InputError("grid_offset applies to grid='raw' only")
+    raw = grid == "raw"
+    capture = load_near_ps(
+        folder,
+        files,
         lights=_led_rows_from_names(files),
+        mask=mask if raw else None,
         ambient="photometric_sample_jpg_ambient.png",
         srgb=True,
         bin_factor=2,
+        grid_shape=mask.shape if raw else None,
+        grid_offset=grid_offset if raw else (0, 0),
         color=color,
         name="queau_human1",
         notes=notes,
     )
-    if grid == "raw":
-        capture = load_near_ps(
-            folder, files, mask=mask, grid_shape=mask.shape, grid_offset=grid_offset, **common
-        )
-    else:
-        if tuple(grid_offset) != (0, 0):
-            raise InputError("grid_offset applies to grid='raw' only")
-        capture = load_near_ps(folder, files, mask=None, **common)
+    if not raw:
+        assert isinstance(capture.images, np.ndarray)  # srgb loads them
         capture.mask = preprocess.pad_or_crop(mask, capture.images.shape[1:3])
     return capture

@@ -21,12 +21,14 @@ import os
 import signal
 import sys
 import textwrap
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 from .. import __version__
 from .._atomic import is_write_error
 from ..errors import NplpsError
+from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 from .console import PROG, describe_rig
 from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
 from .imagefiles import IMAGE_SUFFIXES, SKIPPED_WORDS, resolve_images
@@ -43,36 +45,35 @@ from .inputs import (
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
-from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 
 __all__ = [
-    "main",
-    "build_parser",
-    "PROG",
-    "IMAGE_SUFFIXES",
-    "SKIPPED_WORDS",
     "CAPTURE_LAYOUTS",
     "CONVENTIONS",
     "EVALUATE_COLUMNS",
-    "cmd_reconstruct",
-    "cmd_evaluate",
-    "cmd_synth",
-    "cmd_demo",
-    "cmd_calibrate",
-    "cmd_synth_calibration",
-    "add_input_options",
+    "IMAGE_SUFFIXES",
+    "PROG",
+    "SKIPPED_WORDS",
     "Inputs",
+    "add_input_options",
     "build_inputs",
+    "build_parser",
     "check_input_args",
-    "near_options",
+    "cmd_calibrate",
+    "cmd_demo",
+    "cmd_evaluate",
+    "cmd_reconstruct",
+    "cmd_synth",
+    "cmd_synth_calibration",
+    "depth_rms",
+    "describe_rig",
     "load_rig",
-    "resolve_images",
+    "main",
+    "near_options",
+    "normal_errors",
     "parse_depth",
     "parse_exposures",
     "parse_lights",
-    "describe_rig",
-    "normal_errors",
-    "depth_rms",
+    "resolve_images",
 ]
 
 MAIN_DESCRIPTION = f"""\

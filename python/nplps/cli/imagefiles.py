@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import textwrap
-from typing import Sequence
+from collections.abc import Sequence
 
 from ..errors import InputError
 from ..pipeline import natural_key
@@ -74,7 +74,9 @@ def _check_files(items: Sequence[str]) -> list[str]:
 
 
 def _note_directory(folder: str, names: list[str], mask: str | None, ambient: str | None) -> None:
-    listing = textwrap.fill(", ".join(names), width=95, initial_indent="  ", subsequent_indent="  ", break_on_hyphens=False)
+    listing = textwrap.fill(
+        ", ".join(names), width=95, initial_indent="  ", subsequent_indent="  ", break_on_hyphens=False
+    )
     _note(f"using {len(names)} images from '{folder}' in this order (light 0 first):\n{listing}")
     for word, given, option in (("mask", mask, "--mask"), ("ambient", ambient, "--ambient")):
         skipped = sorted(n for n in os.listdir(folder) if word in n.lower() and _is_image_name(n))

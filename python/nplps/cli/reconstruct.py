@@ -96,7 +96,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
     with _warnings_to_stderr():
-        result = reconstruct(inputs.images, inputs.rig, inputs.mask, progress=not args.quiet, **near, **common)
+        result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=not args.quiet, **near, **common)
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
         paths = result.save(out, opengl=args.opengl)
@@ -108,7 +108,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                 # The baseline refines its own intensities under its own model, as the near-light run does.
                 refine = "intensity" if args.refine_lights in ("intensity", "both") else None
                 base = reconstruct_parallel(
-                    inputs.images, inputs.rig, inputs.mask, refine_lights=refine, **_estimated(result, common)
+                    inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
                 )
             wall = time.perf_counter() - start
             base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl)
