@@ -354,6 +354,7 @@ def correct(
     images: np.ndarray,
     *,
     srgb: bool = False,
+    color: bool | None = None,
     ambient: SideImage | None = None,
     exposures: Sequence[float] | np.ndarray | None = None,
     vignetting: Literal["cos4"] | np.ndarray | None = None,
@@ -361,7 +362,7 @@ def correct(
     K: np.ndarray | None = None,
     overwrite: bool = False,
 ) -> tuple[np.ndarray, list[str]]:
-    """The radiometric corrections, in this order: sRGB, ambient, exposures, vignetting.
+    """The radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
 
     Parameters
     ----------
@@ -369,6 +370,8 @@ def correct(
         float32 stack ``(k, H, W)`` or ``(k, H, W, 3)``.
     srgb : bool
         Decode the sRGB tone curve (also of the ambient and flat-field images).
+    color : bool or None
+        The colour choice (:func:`select_color`), applied once the values are linear.
     ambient : path or ndarray, optional
         The image with every light off, subtracted with a clip at 0 (grey for grey images; a
         grey one applies to every channel of colour images).
@@ -404,6 +407,9 @@ def correct(
         images = decode_srgb(images, out=images if owned else None)
         owned = True
         steps.append("srgb")
+    gray = select_color(images, color)[0]
+    owned = owned or gray is not images
+    images = gray
     if ambient is not None:
         amb = _side_image(ambient, images, srgb, "ambient")
         amb = amb[..., None] if images.ndim > amb.ndim + 1 else amb
@@ -686,12 +692,18 @@ def prepare(
     # Saturation is judged on the raw values, before the corrections overwrite them.
     bad = saturated(stack, threshold)
     flags = _valid_flags(valid, bad, stack.shape[:3])
-    stack, _ = select_color(stack, color)
-    owned = owned or (isinstance(images, np.ndarray) and not np.may_share_memory(stack, images))
     if K is None and rig is not None:
         K = rig.K
     stack, steps = correct(
-        stack, srgb=srgb, ambient=ambient, exposures=exposures, vignetting=vignetting, flat=flat, K=K, overwrite=owned
+        stack,
+        srgb=srgb,
+        color=color,
+        ambient=ambient,
+        exposures=exposures,
+        vignetting=vignetting,
+        flat=flat,
+        K=K,
+        overwrite=owned,
     )
     binned = bin_inputs(stack, bin_factor, mask=mask_arr, valid=flags, rig=rig, K=K, depth=depth)
     if binned.images is not stack:

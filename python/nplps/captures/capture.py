@@ -49,6 +49,8 @@ class Capture:
         files: the image files the images came from (also when ``images`` is an array).
         pixel_size: the pixel footprint of the orthographic rig used when K is unknown (grows
             with binning).
+        bin_factor: the binning :func:`prepare` applied since the files, for the grid of the rig
+            file (``rig_path``).
         levels: the top integer value of the image files (255, 65535) while ``images`` holds
             their values as read (scaled to ``[0, 1]``), else None (floating-point files, or
             values a step has changed before :func:`prepare` saw them).
@@ -75,6 +77,7 @@ class Capture:
     rig_path: Path | None = None
     files: list[Path] = field(default_factory=list)
     pixel_size: float = 1.0
+    bin_factor: int = 1
     levels: int | None = None
     preprocessed: tuple[str, ...] = ()
     valid: np.ndarray | None = None
@@ -134,7 +137,8 @@ class Capture:
         from ..rig import Rig
 
         if self.rig_path is not None:
-            return Rig.load(self.rig_path)
+            rig = Rig.load(self.rig_path)
+            return rig if self.bin_factor == 1 else pipeline._binned(rig, self.bin_factor)
         if self.directional:
             if self.K is None:
                 return Rig.orthographic(
@@ -229,6 +233,7 @@ def prepare(
         mask=out.mask,
         normals_gt=None if bin_factor != 1 else c.normals_gt,
         pixel_size=c.pixel_size * bin_factor,
+        bin_factor=c.bin_factor * bin_factor,
         preprocessed=out.steps,
         valid=out.valid,
     )
