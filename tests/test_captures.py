@@ -98,7 +98,7 @@ def test_near_ps_transposed_K_and_lights(tmp_path: Path) -> None:
 
 def test_near_ps_standard_K_light_selection_and_load(tmp_path: Path) -> None:
     truth = _near_ps_folder(tmp_path / "c", k=5, transposed=False, phi_cols=3)
-    with pytest.raises(InputError, match="5 image files .* but 3 lights"):
+    with pytest.raises(InputError, match=r"5 image files .* but 3 lights"):
         cap.load_near_ps(tmp_path / "c", lights=[0, 2, 4])
     files = ["img_1.png", "img_4.png", "img_5.png"]
     c = cap.load_near_ps(tmp_path / "c", files, lights=[0, 3, 4], load=True)
@@ -166,7 +166,7 @@ def _diligent_folder(root: Path, k: int = 3, h: int = 5, w: int = 6) -> dict:
     rng = np.random.default_rng(2)
     images = rng.integers(0, 65536, (k, h, w, 3), dtype=np.uint16)
     names = [f"{i + 1:03d}.png" for i in range(k)]
-    for name, img in zip(names, images):
+    for name, img in zip(names, images, strict=True):
         _write_png16_rgb(obj / name, img)
     (obj / "filenames.txt").write_text("\n".join(names) + "\n")
     dirs = rng.normal(size=(k, 3))
@@ -390,7 +390,7 @@ def test_real_diligent_ball(shared_capture) -> None:
     shading = np.clip(np.einsum("hwc,kc->khw", sub.normals_gt, sub.directions), 0, None)
     inner = c.mask & (c.normals_gt[..., 2] < -0.3)
     albedos = []
-    for img, sh in zip(scaled, shading):
+    for img, sh in zip(scaled, shading, strict=True):
         a, b = img[inner], sh[inner]
         keep = a < np.percentile(a, 97)
         assert np.corrcoef(a[keep], b[keep])[0, 1] > 0.99
