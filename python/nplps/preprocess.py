@@ -14,6 +14,9 @@ them as small, documented array functions:
   and the matching pinhole matrix;
 * :func:`pad_or_crop` -- bring images onto a grid of another size without moving the origin.
 
+:mod:`nplps.pipeline` decides the order of these steps, their defaults and the memory (the
+API, the capture loaders and the command line run them through it).
+
 Conventions
 -----------
 * Stacks are ``(k, H, W)`` (grey) or ``(k, H, W, C)`` (colour, normally ``C = 3``); single images

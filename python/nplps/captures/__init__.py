@@ -21,7 +21,10 @@ Supported layouts:
   optional mask and an optional ambient image.
 
 The loaders only convert units and frames; radiometric corrections (ambient subtraction,
-vignetting, per-light intensities) are left to the caller, see :mod:`nplps.preprocess`.
+vignetting, binning) are :func:`prepare`'s, which runs :func:`nplps.pipeline.prepare` -- the
+command line's pipeline -- and records what ran (``levels``, ``preprocessed``, ``valid``), so
+that ``capture.options()`` gives :func:`nplps.reconstruct` the command line's ``dark`` default
+and saturation flags. Grey or colour is ``color=`` (``gray=`` is deprecated).
 ``scipy`` is needed for MATLAB files (it is imported on first use).
 """
 
