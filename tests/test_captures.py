@@ -98,7 +98,7 @@ def test_near_ps_transposed_K_and_lights(tmp_path: Path) -> None:
 
 def test_near_ps_standard_K_light_selection_and_load(tmp_path: Path) -> None:
     truth = _near_ps_folder(tmp_path / "c", k=5, transposed=False, phi_cols=3)
-    with pytest.raises(InputError, match="5 image files .* but 3 lights"):
+    with pytest.raises(InputError, match=r"5 image files .* but 3 lights"):
         cap.load_near_ps(tmp_path / "c", lights=[0, 2, 4])
     files = ["img_1.png", "img_4.png", "img_5.png"]
     c = cap.load_near_ps(tmp_path / "c", files, lights=[0, 3, 4], load=True)
@@ -109,7 +109,7 @@ def test_near_ps_standard_K_light_selection_and_load(tmp_path: Path) -> None:
     assert c.images.dtype == np.float32 and c.images.shape == (3, 6, 8)
     np.testing.assert_allclose(c.images[:, 0, 0], np.array([10, 40, 50]) / 255, rtol=1e-6)
     np.testing.assert_allclose(c.ambient, 3 / 255, rtol=1e-6)
-    gray = cap.load_near_ps(tmp_path / "c", files, lights=[0, 3, 4], gray=True)
+    gray = cap.load_near_ps(tmp_path / "c", files, lights=[0, 3, 4], color=False)
     np.testing.assert_allclose(gray.intensities, truth["Phi"][[0, 3, 4]].mean(axis=1))
     with pytest.raises(InputError, match="out of range"):
         cap.load_near_ps(tmp_path / "c", files, lights=[0, 3, 5])
@@ -141,7 +141,7 @@ def test_near_ps_srgb_binning_and_grid(tmp_path: Path) -> None:
         names.append(f"jpg_{i + 1}.png")
         iio.imwrite(folder / names[-1], r)
     c = cap.load_near_ps(
-        folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8), gray=True, ambient=None
+        folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8), color=False, ambient=None
     )
     assert c.images.shape == (2, 6, 8) and c.images.dtype == np.float32
     lin = pp.srgb_to_linear(renders.astype(np.float64) / 255).mean(axis=3)
@@ -166,7 +166,7 @@ def _diligent_folder(root: Path, k: int = 3, h: int = 5, w: int = 6) -> dict:
     rng = np.random.default_rng(2)
     images = rng.integers(0, 65536, (k, h, w, 3), dtype=np.uint16)
     names = [f"{i + 1:03d}.png" for i in range(k)]
-    for name, img in zip(names, images):
+    for name, img in zip(names, images, strict=True):
         _write_png16_rgb(obj / name, img)
     (obj / "filenames.txt").write_text("\n".join(names) + "\n")
     dirs = rng.normal(size=(k, 3))
@@ -207,7 +207,7 @@ def test_diligent_load_keeps_16_bits_and_selects(tmp_path: Path) -> None:
     assert c.images.shape == (2, 5, 6, 3) and c.images.dtype == np.float32
     np.testing.assert_allclose(c.images, t["images"][[2, 0]] / 65535.0, rtol=1e-6)
     np.testing.assert_allclose(c.directions, t["dirs"][[2, 0]] * [1, -1, -1], atol=1e-6)
-    g = cap.load_diligent(tmp_path, load=True, gray=True, lights=[1], normals=False)
+    g = cap.load_diligent(tmp_path, load=True, color=False, lights=[1], normals=False)
     assert g.images.shape == (1, 5, 6) and g.intensities.shape == (1,)
     assert g.normals_gt is None
     np.testing.assert_allclose(g.images[0], t["images"][1].mean(axis=2) / 65535.0, rtol=1e-5)
@@ -357,7 +357,7 @@ def test_real_queau_human1(shared_capture) -> None:
 
 def test_real_queau_human1_jpeg_grid_subset(shared_capture) -> None:
     folder = shared_capture("queau_human1")
-    c = cap.load_queau_human1(folder, grid="jpeg", lights=[5], gray=False)
+    c = cap.load_queau_human1(folder, grid="jpeg", lights=[5], color=None)
     assert c.images.shape == (1, 1728, 2592, 3) and c.mask.shape == (1728, 2592)
     assert c.intensities.shape == (1, 3)
     with pytest.raises(InputError, match="LED row"):
@@ -390,7 +390,7 @@ def test_real_diligent_ball(shared_capture) -> None:
     shading = np.clip(np.einsum("hwc,kc->khw", sub.normals_gt, sub.directions), 0, None)
     inner = c.mask & (c.normals_gt[..., 2] < -0.3)
     albedos = []
-    for img, sh in zip(scaled, shading):
+    for img, sh in zip(scaled, shading, strict=True):
         a, b = img[inner], sh[inner]
         keep = a < np.percentile(a, 97)
         assert np.corrcoef(a[keep], b[keep])[0, 1] > 0.99

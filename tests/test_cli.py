@@ -108,7 +108,8 @@ def test_reconstruct_printed_command_recovers_truth(scene_dir, tmp_path, capsys)
     iteration_lines = [line for line in stderr.splitlines() if line.startswith("iteration")]
     assert iteration_lines and re.match(r"iteration\s+1/10: depth change .*, rms residual .*, .* s", iteration_lines[0])
     # summary
-    for word in ("pixels", "regions", "iterations", "converged", "rms residual", "unfitted pixels", "time", "files written"):
+    words = ("pixels", "regions", "iterations", "converged", "rms residual", "unfitted pixels", "time", "files written")
+    for word in words:
         assert word in stdout, word
 
     result = tmp_path / "result"
@@ -217,14 +218,18 @@ def test_error_missing_rig(scene_dir, tmp_path, capsys):
 
 def test_error_rig_not_json(scene_dir, tmp_path, capsys):
     out, _ = scene_dir
-    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "image_00.png", "--depth", "200", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "image_00.png", "--depth", "200", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "rig file", "image_00.png")
 
 
 def test_error_image_count_mismatch(scene_dir, tmp_path, capsys):
     out, _ = scene_dir
     images = sorted(out.glob("image_*.png"))[:5]
-    rc, _, stderr = run(capsys, "reconstruct", *images, "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", *images, "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "5 images", "27 lights")
 
 
@@ -243,7 +248,10 @@ def test_error_bad_depth(scene_dir, tmp_path, capsys, depth, words):
     out, _ = scene_dir
     np.save(out / "bad_shape.npy", np.full((SIZE, SIZE), 200.0))
     value = str(out / depth) if depth.endswith((".json", ".npy")) else depth
-    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png", "--depth", value, "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png", "--depth", value, "--out",
+        tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, *words)
 
 
@@ -251,16 +259,23 @@ def test_error_missing_image_and_mask(scene_dir, tmp_path, capsys):
     out, _ = scene_dir
     images = [str(p) for p in sorted(out.glob("image_*.png"))]
     images[3] = str(tmp_path / "gone.png")
-    rc, _, stderr = run(capsys, "reconstruct", *images, "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", *images, "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "gone.png")
-    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", tmp_path / "m.png", "--depth", "200", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", tmp_path / "m.png", "--depth", "200", "--out",
+        tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "mask", "m.png")
 
 
 def test_error_empty_directory(tmp_path, capsys, scene_dir):
     out, _ = scene_dir
     (tmp_path / "empty").mkdir()
-    rc, _, stderr = run(capsys, "reconstruct", tmp_path / "empty", "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", tmp_path / "empty", "--rig", out / "rig.json", "--depth", "200", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "no image files", "empty")
 
 
@@ -396,7 +411,7 @@ def test_gray_averages_colour(tmp_path, capsys):
 
 def test_bin_2_pinhole(pinhole_dir, tmp_path, capsys):
     out, depth = pinhole_dir
-    rc, stdout, stderr = run(
+    rc, _stdout, stderr = run(
         capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png",
         "--depth", depth, "--bin", "2", "--out", tmp_path / "r",
     )
@@ -473,7 +488,8 @@ def test_evaluate_near_beats_parallel(tmp_path, capsys):
     depth = nplps.make_scene("bumps", n=REAL_SIZE, camera="pinhole", led=True).mean_depth
     s = tmp_path / "s"
     rc, stdout, stderr = run(
-        capsys, "evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", depth, "--lights", "0,5,13,26"
+        capsys, "evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", depth,
+        "--lights", "0,5,13,26"
     )
     assert rc == 0, stderr
     rows = {}
@@ -542,11 +558,13 @@ def test_capture_near_ps(tmp_path, capsys):
 
     # a glob pattern picks the images; --bin works on captures too
     (folder / "led_all.png").write_bytes((folder / "led_01.png").read_bytes())
-    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", folder, "--depth", "200", "--out", tmp_path / "x", "-q")
+    rc, _, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", folder, "--depth", "200", "--out", tmp_path / "x", "-q"
+    )
     assert_one_line_error(rc, stderr, "28 image files", "glob pattern")
     rc, _, stderr = run(
         capsys, "reconstruct", "--capture", "near_ps", folder, "led_[0-9]*.png",
-        "--depth", scene.mean_depth, "--bin", "2", "--out", tmp_path / "b", "-q",
+        "--depth", scene.mean_depth, "--bin", "2", "--out", tmp_path / "b", "-q"
     )
     assert rc == 0, stderr
     assert np.load(tmp_path / "b" / "depth.npy").shape == (REAL_SIZE // 2 + 1,) * 2
@@ -567,7 +585,7 @@ def test_capture_diligent(tmp_path, capsys):
     obj = tmp_path / "toyPNG"
     obj.mkdir()
     names = [f"{i + 1:03d}.png" for i in range(k)]
-    for name, image in zip(names, images):
+    for name, image in zip(names, images, strict=True):
         write16(obj / name, image / images.max() * 65535)
     (obj / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(obj / "light_directions.txt", dirs * [1.0, -1.0, -1.0])  # DiLiGenT frame: y up, z to the viewer
@@ -575,7 +593,9 @@ def test_capture_diligent(tmp_path, capsys):
     iio = pytest.importorskip("imageio.v3")
     iio.imwrite(obj / "mask.png", (base.mask * 255).astype(np.uint8))
 
-    rc, stdout, stderr = run(capsys, "reconstruct", "--capture", "diligent", tmp_path, "--depth", "100", "--out", tmp_path / "r")
+    rc, stdout, stderr = run(
+        capsys, "reconstruct", "--capture", "diligent", tmp_path, "--depth", "100", "--out", tmp_path / "r"
+    )
     assert rc == 0, stderr
     assert "orthographic camera, 12 directional lights" in stdout
     truth = nplps._core.mesh_normals(depth, rig.camera)
@@ -584,11 +604,18 @@ def test_capture_diligent(tmp_path, capsys):
 
 
 def test_capture_option_errors(tmp_path, capsys):
-    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--rig", "r.json", "--depth", "1", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--rig", "r.json", "--depth", "1", "--out",
+        tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "--capture", "--rig")
-    rc, _, stderr = run(capsys, "reconstruct", "--capture", "diligent", tmp_path / "none", "--depth", "1", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", "--capture", "diligent", tmp_path / "none", "--depth", "1", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "--capture diligent", "folder")
-    rc, _, stderr = run(capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--depth", "1", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--depth", "1", "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "camera.mat")
 
 
@@ -617,7 +644,10 @@ def test_error_bad_bin(scene_dir, tmp_path, capsys):
 
 def test_error_cos4_needs_pinhole(scene_dir, tmp_path, capsys):
     out, _ = scene_dir
-    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", "--vignetting", "cos4", "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", "--vignetting", "cos4", "--out",
+        tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, "cos4", "pinhole", "orthographic")
 
 
@@ -632,7 +662,9 @@ def test_error_cos4_needs_pinhole(scene_dir, tmp_path, capsys):
 )
 def test_error_preprocessing_options(scene_dir, tmp_path, capsys, options, words):
     out, _ = scene_dir
-    rc, _, stderr = run(capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", *options, "--out", tmp_path / "r")
+    rc, _, stderr = run(
+        capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", *options, "--out", tmp_path / "r"
+    )
     assert_one_line_error(rc, stderr, *words)
 
 
@@ -650,7 +682,7 @@ def test_error_no_images_or_rig(scene_dir, tmp_path, capsys):
 
 
 def test_reconstruct_with_auto_depth(scene_dir, tmp_path, capsys):
-    out, command = scene_dir
+    _out, command = scene_dir
     truth = float(command[command.index("--depth") + 1])
     argv = command[1:]
     argv[argv.index("--depth") + 1] = "auto"

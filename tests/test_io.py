@@ -301,7 +301,7 @@ def test_rust_decoder_matches_imageio_on_8bit_variants(tmp_path: Path) -> None:
         Image.fromarray(pixels).save(paths[-1])
         assert Image.open(paths[-1]).mode == mode
     decoded = _core.read_pngs(paths, io.MAX_PIXELS)
-    for path, image in zip(paths, decoded):
+    for path, image in zip(paths, decoded, strict=True):
         expected = np.asarray(iio.imread(path))
         expected = expected[..., 0] if expected.ndim == 3 and expected.shape[2] == 2 else expected
         expected = expected[..., :3] if expected.ndim == 3 else expected

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _core
+from . import _core, pipeline
 from .errors import InputError
 from .io import load_mask, load_stack
 from .reconstruction import Iteration, Reconstruction
@@ -148,20 +148,14 @@ def _auto_start(rig: Rig) -> float:
 def _thresholds(dark: float | None, saturation: float | None, levels: int | None) -> tuple[float, float]:
     """Shadow and saturation thresholds; by default one level above black and the top level for
     integer images (values are scaled to [0, 1]), 0 and none for floating-point images."""
-    if dark is None:
-        dark = 0.0 if levels is None else 1.0 / levels
-    if saturation is None:
-        saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
+    dark, saturation = pipeline.thresholds(levels, dark=dark, saturation=saturation)
     return _real(dark, "dark"), _real(saturation, "saturation")
 
 
 def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, Any]:
     """Averages RGB to grey when ``color`` is False; observations with a saturated channel are
     returned as missing (the grey average would hide them)."""
-    if stack.ndim != 4 or color is not False:
-        return stack, None
-    missing = (stack >= saturation).any(axis=-1) if np.isfinite(saturation) else None
-    return np.ascontiguousarray(stack.mean(axis=-1, dtype=np.float32)), missing
+    return pipeline.select_color(stack, color, saturation)
 
 
 def _owned(stack: np.ndarray, images: Images) -> bool:

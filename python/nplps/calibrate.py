@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _core, io
+from . import _core, io, pipeline
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
@@ -571,10 +571,7 @@ def calibrate_intensities(
     stack, levels = io.load_stack(images, color=color)
     if stack.shape[0] != rig.n_lights:
         raise InputError(f"{stack.shape[0]} board images but the rig has {rig.n_lights} lights: give one per light")
-    if dark is None:
-        dark = 0.0 if levels is None else 1.0 / levels
-    if saturation is None:
-        saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
+    dark, saturation = pipeline.thresholds(levels, dark=dark, saturation=saturation)
     m = None if mask is None else io.load_mask(mask, stack.shape[1:3])
     normal, offset = _plane(plane)
     options = {

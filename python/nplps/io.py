@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Sequence
-from typing import Union
+from typing import TypeAlias
 
 import imageio.v3 as iio
 import numpy as np
@@ -28,10 +28,10 @@ import tifffile
 from . import _core
 from .errors import InputError
 
-PathLike = Union[str, os.PathLike]
+PathLike: TypeAlias = str | os.PathLike
 """A file name: ``str`` or any :class:`os.PathLike`."""
 
-ImageSource = Union[PathLike, np.ndarray]
+ImageSource: TypeAlias = PathLike | np.ndarray
 """One image: a file name or an array of shape ``(H, W)`` or ``(H, W, 3)``."""
 
 MAX_PIXELS = 1 << 28
@@ -188,7 +188,7 @@ def _read_tiff(path: PathLike, max_pixels: int) -> np.ndarray:
     """Read the first series of a TIFF file, channel-last; refuse more than ``max_pixels``."""
     with tifffile.TiffFile(path) as tif:
         series = tif.series[0]
-        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes) if axis != "S"]))
+        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes, strict=True) if axis != "S"]))
         if pixels > max_pixels:
             raise InputError(
                 f"cannot read image '{os.fspath(path)}': {pixels} pixels is more than the limit "
@@ -266,7 +266,7 @@ def _to_float_into(img: np.ndarray, out: np.ndarray) -> None:
 def _convert_into(img: np.ndarray, out: np.ndarray, gray: bool) -> None:
     """Write :func:`to_gray` (``gray``) or :func:`to_float` of one image into ``out``."""
     if gray and img.ndim == 3:
-        np.mean(to_float(img), axis=2, dtype=np.float32, out=out)
+        out[...] = to_gray(img)
     else:
         _to_float_into(img, out)
 
@@ -275,16 +275,17 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     """Return a float32 ``(H, W)`` image: the mean of the channels of ``(H, W, 3)`` input.
 
     ``(H, W)`` input is returned unchanged in value. The input goes through :func:`to_float`
-    first, so integer images are scaled to ``[0, 1]``.
+    first, so integer images are scaled to ``[0, 1]``. The mean is
+    :func:`nplps.pipeline.to_gray`'s (the one grey conversion of nplps).
 
     Raises:
         InputError: the shape is neither ``(H, W)`` nor ``(H, W, 3)``.
     """
-    img = to_float(img)
-    if img.ndim == 2:
-        return img
-    if img.ndim == 3 and img.shape[2] == 3:
-        return img.mean(axis=2, dtype=np.float32)
+    from .pipeline import to_gray as gray  # the pipeline imports this module
+
+    img = np.asarray(img)
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3):
+        return gray(img, stack=False)
     raise InputError(f"expected an image of shape (H, W) or (H, W, 3), got shape {img.shape}")
 
 
@@ -393,7 +394,9 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
         # or grey stack.
         whole = to_float(images)
         if whole.ndim == 4 and not color:
-            whole = whole.mean(axis=3, dtype=np.float32)
+            from .pipeline import to_gray as gray  # the pipeline imports this module
+
+            whole = gray(whole)
         stack = np.ascontiguousarray(whole, dtype=np.float32)
     labels = [f"image {i}" for i in range(k)]
     if np.issubdtype(images.dtype, np.floating):
@@ -419,7 +422,7 @@ def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:
     ``stack``'s (the values :func:`to_gray` gives)."""
     gray = np.empty(stack.shape[:3], dtype=np.float32)
     for i in range(count):
-        np.mean(stack[i], axis=2, dtype=np.float32, out=gray[i])
+        gray[i] = to_gray(stack[i])
     return gray
 
 

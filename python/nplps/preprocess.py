@@ -14,6 +14,9 @@ them as small, documented array functions:
   and the matching pinhole matrix;
 * :func:`pad_or_crop` -- bring images onto a grid of another size without moving the origin.
 
+:mod:`nplps.pipeline` decides the order of these steps, their defaults and the memory (the
+API, the capture loaders and the command line run them through it).
+
 Conventions
 -----------
 * Stacks are ``(k, H, W)`` (grey) or ``(k, H, W, C)`` (colour, normally ``C = 3``); single images
@@ -45,17 +48,17 @@ from .errors import InputError
 from .io import to_float
 
 __all__ = [
-    "subtract_ambient",
+    "bin_images",
+    "bin_intrinsics",
+    "bin_mask",
+    "compensate_vignetting",
+    "flat_field_map",
+    "linear_to_srgb",
+    "pad_or_crop",
     "scale_exposure",
     "srgb_to_linear",
-    "linear_to_srgb",
+    "subtract_ambient",
     "vignetting_cos4",
-    "flat_field_map",
-    "compensate_vignetting",
-    "bin_images",
-    "bin_mask",
-    "bin_intrinsics",
-    "pad_or_crop",
 ]
 
 # IEC 61966-2-1 (sRGB) transfer-function constants.
@@ -418,10 +421,7 @@ def _block_view(x: np.ndarray, factor: int, axes: tuple[int, int], name: str) ->
     index[ra] = slice(0, hb * factor)
     index[ca] = slice(0, wb * factor)
     cropped = x[tuple(index)]
-    new_shape = (
-        list(cropped.shape[:ra]) + [hb, factor] + list(cropped.shape[ra + 1 : ca])
-        + [wb, factor] + list(cropped.shape[ca + 1 :])
-    )
+    new_shape = (*cropped.shape[:ra], hb, factor, *cropped.shape[ra + 1 : ca], wb, factor, *cropped.shape[ca + 1 :])
     return cropped.reshape(new_shape)
 
 

@@ -21,7 +21,10 @@ Supported layouts:
   optional mask and an optional ambient image.
 
 The loaders only convert units and frames; radiometric corrections (ambient subtraction,
-vignetting, per-light intensities) are left to the caller, see :mod:`nplps.preprocess`.
+vignetting, binning) are :func:`prepare`'s, which runs :func:`nplps.pipeline.prepare` -- the
+command line's pipeline -- and records what ran (``levels``, ``preprocessed``, ``valid``), so
+that ``capture.options()`` gives :func:`nplps.reconstruct` the command line's ``dark`` default
+and saturation flags. Grey or colour is ``color=`` (``gray=`` is deprecated).
 ``scipy`` is needed for MATLAB files (it is imported on first use).
 """
 
@@ -33,15 +36,15 @@ from .matlab import load_matlab_intrinsics, standardize_K
 from .near_ps import load_hehe12, load_near_ps, load_queau_human1
 
 __all__ = [
-    "Capture",
     "IMAGE_EXTENSIONS",
+    "Capture",
     "find_images",
-    "standardize_K",
-    "load_matlab_intrinsics",
-    "load_near_ps",
-    "load_hehe12",
-    "load_queau_human1",
     "load_diligent",
     "load_folder",
+    "load_hehe12",
+    "load_matlab_intrinsics",
+    "load_near_ps",
+    "load_queau_human1",
     "prepare",
+    "standardize_K",
 ]

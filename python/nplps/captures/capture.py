@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .. import preprocess
+from .. import pipeline
 from ..errors import InputError
-from .files import _check_indices, _gray64, _read_float, _read_stack
+from .files import _check_indices, _color_arg, _read_float, _read_stack
 
 if TYPE_CHECKING:
     from ..rig import Rig
@@ -47,6 +47,18 @@ class Capture:
         rig_path: the ``rig.json`` of a :func:`load_folder` capture (read it with
             ``nplps.Rig.load``), else None.
         files: the image files the images came from (also when ``images`` is an array).
+        pixel_size: the pixel footprint of the orthographic rig used when K is unknown (grows
+            with binning).
+        bin_factor: the binning :func:`prepare` applied since the files, for the grid of the rig
+            file (``rig_path``).
+        levels: the top integer value of the image files (255, 65535) while ``images`` holds
+            their values as read (scaled to ``[0, 1]``), else None (floating-point files, or
+            values a step has changed before :func:`prepare` saw them).
+        preprocessed: the pre-processing steps that changed the values of ``images``, in order
+            (names of :data:`nplps.pipeline.STEPS`, and ``"pad"``): set by the loaders'
+            ``srgb`` / ``bin_factor`` / ``grid_shape`` and by :func:`prepare`.
+        valid: ``(k, H, W)`` bool, False where an observation was saturated in the files (judged
+            by :func:`prepare` on the values as read), or None.
     """
 
     images: list[Path] | np.ndarray
@@ -64,8 +76,11 @@ class Capture:
     notes: str = ""
     rig_path: Path | None = None
     files: list[Path] = field(default_factory=list)
-    #: Pixel footprint of the orthographic rig used when K is unknown (grows with binning).
     pixel_size: float = 1.0
+    bin_factor: int = 1
+    levels: int | None = None
+    preprocessed: tuple[str, ...] = ()
+    valid: np.ndarray | None = None
 
     @property
     def num_images(self) -> int:
@@ -77,37 +92,53 @@ class Capture:
         """True when ``images`` is an array rather than a list of file names."""
         return isinstance(self.images, np.ndarray)
 
-    def load(self, gray: bool = False) -> Capture:
+    @property
+    def dark(self) -> float:
+        """The default shadow threshold of this capture's images, as the command line sets it:
+        one level above black (``1 / levels``) while the values are as read from integer files,
+        0 once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`)."""
+        return pipeline.thresholds(self.levels, preprocessed=bool(self.preprocessed))[0]
+
+    def options(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`
+        that carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`)
+        and ``valid`` (the saturation flags). Use as
+        ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``."""
+        return {"mask": self.mask, "dark": self.dark, "valid": self.valid}
+
+    def load(self, *, color: bool | None = None, gray: bool | None = None) -> Capture:
         """Return a copy whose ``images`` (and ``ambient``) are float32 arrays.
 
-        Files are read with :func:`nplps.io.read_image` (16-bit PNG keeps 16 bits) and scaled to
-        ``[0, 1]`` by :func:`nplps.io.to_float`; no other conversion is applied (the files must
-        already be linear). ``gray=True`` averages the colour channels, giving ``(k, H, W)``.
-        An already loaded capture is returned as a copy (converted to grey if asked).
+        Files are read with :func:`nplps.io.load_stack` (16-bit PNG keeps 16 bits; integers
+        scaled to ``[0, 1]``, ``levels`` recorded); no other conversion is applied (the files
+        must already be linear). ``color=False`` averages the colour channels
+        (:func:`nplps.pipeline.to_gray`), giving ``(k, H, W)``; ``color=True`` requires RGB;
+        None keeps what the files are. An already loaded capture is returned as a copy
+        (converted to grey if asked). ``gray=True`` is the deprecated spelling of
+        ``color=False``.
         """
+        color = _color_arg(color, gray, "Capture.load")
         images = self.images
+        levels = self.levels
         if not isinstance(images, np.ndarray):
-            images = _read_stack(images, gray=gray)
-        elif gray and images.ndim == 4:
-            # Image by image: the float64 sums never take a whole stack of memory.
-            colour = images
-            images = np.empty(colour.shape[:3], dtype=np.float32)
-            for i, image in enumerate(colour):
-                images[i] = _gray64(image)
+            images, levels = _read_stack(images, color)
+        else:
+            images = pipeline.select_color(images, color)[0]
         ambient = self.ambient
         if ambient is not None and not isinstance(ambient, np.ndarray):
             ambient = _read_float(Path(ambient))
-        if ambient is not None and gray and ambient.ndim == 3:
-            ambient = _gray64(ambient)
-        return dataclasses.replace(self, images=images, ambient=ambient)
+        if ambient is not None and color is False and ambient.ndim == 3:
+            ambient = pipeline.to_gray(ambient, stack=False)
+        return dataclasses.replace(self, images=images, ambient=ambient, levels=levels)
 
-    def rig(self) -> "Rig":
+    def rig(self) -> Rig:
         """The capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
         unit pixels when K is unknown) with its point lights (LED model) or directional lights."""
         from ..rig import Rig
 
         if self.rig_path is not None:
-            return Rig.load(self.rig_path)
+            rig = Rig.load(self.rig_path)
+            return rig if self.bin_factor == 1 else pipeline._binned(rig, self.bin_factor)
         if self.directional:
             if self.K is None:
                 return Rig.orthographic(self.pixel_size, directions=self.directions, intensities=self.intensities)
@@ -137,6 +168,7 @@ class Capture:
             directions=pick(self.directions),
             intensities=pick(self.intensities),
             mu=pick(self.mu),
+            valid=pick(self.valid),
             files=files,
         )
 
@@ -147,54 +179,59 @@ def prepare(
     bin_factor: int = 1,
     ambient: bool = True,
     vignetting: Literal["cos4"] | np.ndarray | None = "cos4",
-    gray: bool = False,
+    color: bool | None = None,
+    saturation: float | None = None,
     overwrite: bool = False,
+    gray: bool | None = None,
 ) -> Capture:
     """The usual pre-processing of a near-light capture, as the near_ps authors do it.
 
-    Loads the images if needed, subtracts the ambient image (clipping at 0), divides by the
-    vignetting map (``"cos4"`` from K, a flat-field map, or None), and bins by ``bin_factor``
-    (images averaged, mask kept where its whole block is, K adjusted: fx' = fx/s,
-    cx' = (cx + 1/2)/s - 1/2). Returns a loaded capture on the binned grid; ``capture.rig()``
-    then gives the matching rig.
+    Runs :func:`nplps.pipeline.prepare` (the command line's pipeline): loads the images if
+    needed, judges saturation on the values as read (``saturation``, default the top level of
+    integer files; any channel) into ``valid``, averages to grey with ``color=False``, subtracts
+    the ambient image (clipping at 0), divides by the vignetting map (``"cos4"`` from K when K is
+    known, a flat-field map, or None), and bins by ``bin_factor`` (images averaged, mask and
+    ``valid`` kept where the whole block is, K adjusted: fx' = fx/s, cx' = (cx + 1/2)/s - 1/2).
+    Returns a loaded capture on the binned grid whose ``preprocessed`` lists the steps that
+    ran; ``capture.rig()`` gives the matching rig and ``capture.options()`` the ``mask``,
+    ``dark`` (0 after any step, as on the command line) and ``valid`` to pass to
+    :func:`nplps.reconstruct`.
 
     Images read from files are corrected in place. A float32 stack in ``capture.images`` is
     copied once by the first correction, unless ``overwrite=True`` hands it over to be
     corrected in place (no copy; the caller's array then holds the corrected values).
+    ``gray=True`` is the deprecated spelling of ``color=False``.
     """
-    c = capture.load(gray=gray)
-    images = np.asarray(c.images, dtype=np.float32)
-    # The first step that changes the caller's array makes the one copy (unless overwrite); the
-    # others, and every step on images loaded here, work in place.
+    color = _color_arg(color, gray, "prepare")
+    c = capture.load()
     given = capture.images
-    owned = overwrite or not (isinstance(given, np.ndarray) and np.may_share_memory(images, given))
-    if ambient and c.ambient is not None:
-        amb = np.asarray(c.ambient, dtype=np.float32)
-        images = preprocess.subtract_ambient(images, amb, out=images if owned else None)
-        owned = True
-    if isinstance(vignetting, str):
-        if vignetting != "cos4":
-            raise InputError(f"vignetting must be 'cos4', a map or None, got {vignetting!r}")
-        if c.K is not None:
-            vmap = preprocess.vignetting_cos4(images.shape[1:3], c.K)
-            images = preprocess.compensate_vignetting(images, vmap, out=images if owned else None)
-            owned = True
-    elif vignetting is not None:
-        vmap = np.asarray(vignetting)
-        images = preprocess.compensate_vignetting(images, vmap, out=images if owned else None)
-        owned = True
-    K, mask, normals = c.K, c.mask, c.normals_gt
-    if bin_factor != 1:
-        images = preprocess.bin_images(images, bin_factor)
-        K = None if K is None else preprocess.bin_intrinsics(K, bin_factor)
-        mask = None if mask is None else preprocess.bin_mask(mask, bin_factor)
-        normals = None
+    # Images read here (not the caller's array) are corrected in place.
+    owned = overwrite or not (isinstance(given, np.ndarray) and np.may_share_memory(c.images, given))
+    if isinstance(vignetting, str) and vignetting == "cos4" and c.K is None:
+        vignetting = None  # no K, no cos^4 map
+    out = pipeline.prepare(
+        np.asarray(c.images, dtype=np.float32),
+        K=c.K,
+        mask=c.mask,
+        color=color,
+        levels=c.levels,
+        preprocessed=c.preprocessed,
+        valid=c.valid,
+        saturation=saturation,
+        ambient=c.ambient if ambient else None,
+        vignetting=vignetting,
+        bin_factor=bin_factor,
+        overwrite=owned,
+    )
     return dataclasses.replace(
         c,
-        images=np.ascontiguousarray(images, dtype=np.float32),
+        images=out.images,
         ambient=None,
-        K=K,
-        mask=mask,
-        normals_gt=normals,
+        K=out.K,
+        mask=out.mask,
+        normals_gt=None if bin_factor != 1 else c.normals_gt,
         pixel_size=c.pixel_size * bin_factor,
+        bin_factor=c.bin_factor * bin_factor,
+        preprocessed=out.steps,
+        valid=out.valid,
     )

@@ -11,7 +11,7 @@ from .. import preprocess
 from ..errors import InputError
 from ..io import PathLike
 from .capture import Capture
-from .files import _check_folder, _check_indices, _read_mask, _read_stack, _resolve
+from .files import _check_folder, _check_indices, _color_arg, _read_mask, _read_stack, _resolve
 from .matlab import _loadmat, _mat_var
 
 
@@ -45,7 +45,8 @@ def load_diligent(
     folder: PathLike,
     *,
     load: bool = False,
-    gray: bool = False,
+    color: bool | None = None,
+    gray: bool | None = None,
     lights: Sequence[int] | None = None,
     normals: bool = True,
     K: np.ndarray | None = None,
@@ -69,14 +70,17 @@ def load_diligent(
 
     Args:
         load: return the images as a float32 stack ``(k, H, W, 3)`` (``(k, H, W)`` with
-            ``gray``) instead of file names (16-bit PNG decoded in Rust, in parallel: about
-            0.5 s for the 96 images of ballPNG).
-        gray: average the channels of loaded images and of the intensities.
+            ``color=False``) instead of file names (16-bit PNG decoded in Rust, in parallel:
+            about 0.5 s for the 96 images of ballPNG).
+        color: None (keep RGB), True (require RGB) or False: average the channels of loaded
+            images (:func:`nplps.pipeline.to_gray`) and of the intensities.
+        gray: deprecated spelling of ``color=False`` (``gray=True``).
         lights: a subset of the images/lights (0-based indices), e.g. ``range(0, 96, 8)``.
         normals: read ``Normal_gt.mat`` when present (needs scipy).
         K: an optional pinhole matrix (0-based) to attach; DiLiGenT itself gives none
             (an orthographic set-up is assumed). See :func:`load_matlab_intrinsics`.
     """
+    color = _color_arg(color, gray, "load_diligent")
     root = _diligent_folder(_check_folder(folder))
     names_path = root / "filenames.txt"
     names = [line.strip() for line in names_path.read_text().splitlines() if line.strip()]
@@ -94,7 +98,7 @@ def load_diligent(
     rows = list(range(count)) if lights is None else _check_indices(lights, count, "lights")
     files = [_resolve(root, names[i]) for i in rows]
     intensities = ints[rows]
-    if gray:
+    if color is False:
         intensities = intensities.mean(axis=1)
 
     mask_path = root / "mask.png"
@@ -110,8 +114,9 @@ def load_diligent(
         normals_gt[normals_gt == 0] = 0.0  # no negative zeros
 
     images: list[Path] | np.ndarray = list(files)
+    levels = None
     if load:
-        images = _read_stack(files, gray=gray)
+        images, levels = _read_stack(files, color)
         if mask is not None and mask.shape != images.shape[1:3]:
             raise InputError(f"mask.png has shape {mask.shape} but the images {images.shape[1:3]}")
 
@@ -130,4 +135,5 @@ def load_diligent(
             "each image by its RGB light intensity."
         ),
         files=list(files),
+        levels=levels,
     )

@@ -2,26 +2,23 @@
 
 from __future__ import annotations
 
-import re
+import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Union
+from typing import TypeAlias
 
 import numpy as np
 
 from ..errors import InputError
-from ..io import PathLike, _to_float_into, iter_images, read_image, to_float
+from ..io import PathLike, load_stack, read_image, to_float
+from ..pipeline import natural_key, select_color
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """File name extensions (lower case) that the loaders treat as images."""
 
 _AUTO = "auto"
-MaskSpec = Union[PathLike, np.ndarray, None]
-
-
-def _natural_key(path: Path) -> list[Any]:
-    """Sort key that orders embedded numbers numerically: img2 < img10."""
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
+MaskSpec: TypeAlias = PathLike | np.ndarray | None
 
 
 def find_images(
@@ -44,7 +41,7 @@ def find_images(
         and p.suffix.lower() in IMAGE_EXTENSIONS
         and not any(w in p.name.lower() for w in words)
     ]
-    return sorted(found, key=_natural_key)
+    return sorted(found, key=natural_key)
 
 
 def _find_one(folder: Path, word: str) -> Path | None:
@@ -98,30 +95,32 @@ def _read_float(path: Path) -> np.ndarray:
     return to_float(read_image(path))
 
 
-def _read_stack(files: Sequence[PathLike], gray: bool) -> np.ndarray:
-    """Read image files into a float32 stack ``(k, H, W[, 3])``.
+def _read_stack(files: Sequence[PathLike], color: bool | None) -> tuple[np.ndarray, int | None]:
+    """Read image files into a float32 stack ``(k, H, W[, 3])`` and their levels.
 
     The files are decoded a few at a time (PNG in parallel, :func:`nplps.io.iter_images`) and
-    each image is converted into the preallocated stack.
+    each image is converted into the preallocated stack (:func:`nplps.io.load_stack`);
+    ``color=False`` averages the channels of each image as it is read
+    (:func:`nplps.pipeline.to_gray`).
     """
-    stack: np.ndarray | None = None
-    for i, (path, raw) in enumerate(zip(files, iter_images(files))):
-        shape = raw.shape[:2] if gray else raw.shape
-        if stack is None:
-            stack = np.empty((len(files),) + shape, dtype=np.float32)
-        elif shape != stack.shape[1:]:
-            raise InputError(f"image '{path}' has shape {shape} but '{files[0]}' has {stack.shape[1:]}")
-        if gray and raw.ndim == 3:
-            stack[i] = _gray64(to_float(raw))
-        else:
-            _to_float_into(raw, stack[i])
-    assert stack is not None
-    return stack
+    stack, levels = load_stack([os.fspath(f) for f in files], color=color is not False)
+    return select_color(stack, color)[0], levels
 
 
-def _gray64(image: np.ndarray) -> np.ndarray:
-    """The channel mean of one float32 ``(H, W, C)`` image, summed in float64, as float32."""
-    return image.mean(axis=2, dtype=np.float64).astype(np.float32)
+def _color_arg(color: bool | None, gray: bool | None, where: str, default: bool | None = None) -> bool | None:
+    """The colour choice of a loader from ``color`` (whose default is ``default``) and the
+    deprecated ``gray`` keyword (``gray=True`` is ``color=False``, ``gray=False`` is ``color=None``)."""
+    if gray is None:
+        return color
+    warnings.warn(
+        f"{where}: gray= is deprecated, use color=False (average to grey) or color=None (keep colour)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    wanted = False if gray else None
+    if color is not default and color is not wanted:
+        raise InputError(f"{where}: gray={gray!r} contradicts color={color!r}; give color only")
+    return wanted
 
 
 def _read_mask(path: Path) -> np.ndarray:
@@ -152,7 +151,7 @@ def _mask_arg(folder: Path, mask: MaskSpec | str) -> np.ndarray | None:
 
 
 def _ambient_arg(
-    folder: Path, ambient: PathLike | np.ndarray | None | str
+    folder: Path, ambient: PathLike | np.ndarray | str | None
 ) -> Path | np.ndarray | None:
     """Resolve an ``ambient`` argument: "auto" (unique 'ambient' file), path, array or None."""
     if isinstance(ambient, str) and ambient == _AUTO:

@@ -9,7 +9,7 @@ import numpy as np
 from ..errors import RigError
 from ..io import PathLike
 from .capture import Capture
-from .files import _AUTO, MaskSpec, _ambient_arg, _check_folder, _image_list, _mask_arg
+from .files import _AUTO, MaskSpec, _ambient_arg, _check_folder, _color_arg, _image_list, _mask_arg
 
 
 def load_folder(
@@ -17,9 +17,10 @@ def load_folder(
     *,
     rig: PathLike = "rig.json",
     mask: MaskSpec | str = _AUTO,
-    ambient: PathLike | np.ndarray | None | str = _AUTO,
+    ambient: PathLike | np.ndarray | str | None = _AUTO,
     load: bool = False,
-    gray: bool = False,
+    color: bool | None = None,
+    gray: bool | None = None,
 ) -> Capture:
     """Load a plain capture folder: ``rig.json``, images, optional mask and ambient image.
 
@@ -32,8 +33,10 @@ def load_folder(
       name, else None; or a file name / array / None.
     * ambient: ``"auto"`` = the unique image file with "ambient" in its name, or None.
 
-    ``load=True`` returns the images (and ambient) as float32 arrays via :meth:`Capture.load`.
+    ``load=True`` returns the images (and ambient) as float32 arrays via :meth:`Capture.load`
+    (``color=False``: averaged to grey; ``gray=True`` is its deprecated spelling).
     """
+    color = _color_arg(color, gray, "load_folder")
     folder = _check_folder(folder)
     rig_path = Path(rig) if Path(rig).is_absolute() else folder / rig
     if not rig_path.is_file():
@@ -49,4 +52,4 @@ def load_folder(
         rig_path=rig_path,
         files=list(files),
     )
-    return capture.load(gray=gray) if load else capture
+    return capture.load(color=color) if load else capture

@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 
-from .. import preprocess
+from .. import pipeline, preprocess
 from ..errors import InputError, RigError
 from ..io import PathLike, read_image, to_float
 from .capture import Capture
@@ -19,6 +19,7 @@ from .files import (
     _ambient_arg,
     _check_folder,
     _check_indices,
+    _color_arg,
     _image_list,
     _mask_arg,
     _read_mask,
@@ -45,44 +46,27 @@ def _per_light(
     return a
 
 
-def _srgb_lut(dtype: np.dtype) -> np.ndarray:
-    """float32 lookup table of srgb_to_linear for every value of an 8- or 16-bit dtype."""
-    top = np.iinfo(dtype).max
-    return preprocess.srgb_to_linear(np.arange(top + 1, dtype=np.float64) / top).astype(np.float32)
-
-
 def _prepare(
     path: Path,
     srgb: bool,
     bin_factor: int,
     grid_shape: tuple[int, int] | None,
     grid_offset: tuple[int, int],
-    gray: bool,
-) -> np.ndarray:
-    """Read one image and bring it onto the calibration grid (see load_near_ps)."""
+    color: bool | None,
+) -> tuple[np.ndarray, int | None]:
+    """Read one image and bring it onto the calibration grid (see load_near_ps); also the top
+    integer value of the file (None for floats)."""
     raw = read_image(path)
-    if srgb and raw.dtype in (np.uint8, np.uint16):
-        # A lookup table is exact and much faster than the formula on 18-Mpixel images.
-        lut = _srgb_lut(raw.dtype)
-        if gray and raw.ndim == 3:
-            planes = np.ascontiguousarray(np.moveaxis(raw, -1, 0))
-            image = lut[planes[0]]
-            for plane in planes[1:]:
-                image += lut[plane]
-            image *= np.float32(1.0 / len(planes))
-        else:
-            image = lut[raw]
-    elif srgb:
-        image = preprocess.srgb_to_linear(to_float(raw))
-    else:
-        image = to_float(raw)
-    if gray and image.ndim == 3:
-        image = image.mean(axis=2, dtype=np.float64).astype(np.float32)
+    levels = int(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else None
+    # sRGB of 8/16-bit files by an exact lookup table (fast on 18-Mpixel images), then grey.
+    image = pipeline.decode_srgb(raw) if srgb else to_float(raw)
+    if color is False and image.ndim == 3:
+        image = pipeline.to_gray(image, stack=False)
     if bin_factor != 1:
         image = preprocess.bin_images(image, bin_factor, stack=False)
     if grid_shape is not None:
         image = preprocess.pad_or_crop(image, grid_shape, stack=False, offset=grid_offset)
-    return image.astype(np.float32, copy=False)
+    return image.astype(np.float32, copy=False), levels
 
 
 def load_near_ps(
@@ -91,7 +75,7 @@ def load_near_ps(
     *,
     lights: Sequence[int] | None = None,
     mask: MaskSpec | str = _AUTO,
-    ambient: PathLike | np.ndarray | None | str = _AUTO,
+    ambient: PathLike | np.ndarray | str | None = _AUTO,
     camera_file: PathLike = "camera.mat",
     light_file: PathLike = "light.mat",
     load: bool = False,
@@ -99,7 +83,8 @@ def load_near_ps(
     bin_factor: int = 1,
     grid_shape: tuple[int, int] | None = None,
     grid_offset: tuple[int, int] = (0, 0),
-    gray: bool = False,
+    color: bool | None = None,
+    gray: bool | None = None,
     name: str | None = None,
     notes: str = "",
 ) -> Capture:
@@ -130,21 +115,25 @@ def load_near_ps(
       an array or None. Processed like the images when they are loaded.
 
     By default the images are returned as file names. ``load=True`` -- implied by ``srgb``,
-    ``gray``, ``bin_factor != 1`` or ``grid_shape`` -- reads them into a float32 stack, each image
-    going through: :func:`nplps.io.to_float` (integers scaled to [0, 1]); ``srgb``: sRGB
-    decoding (:func:`nplps.preprocess.srgb_to_linear`); ``gray``: channel mean;
+    ``color=False``, ``bin_factor != 1`` or ``grid_shape`` -- reads them into a float32 stack,
+    each image going through: :func:`nplps.io.to_float` (integers scaled to [0, 1]); ``srgb``:
+    sRGB decoding (:func:`nplps.pipeline.decode_srgb`); ``color=False``: channel mean
+    (:func:`nplps.pipeline.to_gray`; ``gray=True`` is its deprecated spelling);
     ``bin_factor``: :func:`nplps.preprocess.bin_images`; ``grid_shape`` (with ``grid_offset``):
     :func:`nplps.preprocess.pad_or_crop` (zero fill). These steps describe how the image files
     map onto the pixel grid of ``camera.mat``; ``K`` and the mask are returned unchanged on that
-    grid (the mask must have the images' final shape).
+    grid (the mask must have the images' final shape). The capture's ``preprocessed`` lists
+    ``srgb`` / ``bin`` / ``pad`` when they ran, and ``levels`` is the files' top integer value
+    while the values are as read.
 
     Intensities are ``Phi`` as ``(k,)`` for a k x 1 ``Phi`` and ``(k, 3)`` for k x 3 (averaged
-    over R, G, B to ``(k,)`` when ``gray``).
+    over R, G, B to ``(k,)`` with ``color=False``).
 
     Raises:
         RigError: missing or malformed calibration files.
         InputError: missing images, image count != light count, shape mismatches.
     """
+    color = _color_arg(color, gray, "load_near_ps")
     folder = _check_folder(folder)
     cam_path = _resolve_calib(folder, camera_file)
     light_path = _resolve_calib(folder, light_file)
@@ -182,29 +171,36 @@ def load_near_ps(
     intensities = Phi[rows]
     if intensities.shape[1] == 1:
         intensities = intensities[:, 0]
-    elif gray:
+    elif color is False:
         intensities = intensities.mean(axis=1)
 
     mask_arr = _mask_arg(folder, mask)
     amb = _ambient_arg(folder, ambient)
 
-    load = load or srgb or gray or bin_factor != 1 or grid_shape is not None
+    load = load or srgb or color is False or bin_factor != 1 or grid_shape is not None
     images_out: list[Path] | np.ndarray = list(files)
+    levels: int | None = None
+    done: tuple[str, ...] = ()
     if load:
         bin_factor = int(bin_factor)
-        steps = dict(
-            srgb=srgb, bin_factor=bin_factor, grid_shape=grid_shape,
-            grid_offset=grid_offset, gray=gray,
-        )
-        stack = [_prepare(p, **steps) for p in files]
-        for p, img in zip(files, stack):
+        read = [_prepare(p, srgb, bin_factor, grid_shape, grid_offset, color) for p in files]
+        stack = [image for image, _ in read]
+        for p, img in zip(files, stack, strict=True):
             if img.shape != stack[0].shape:
                 raise InputError(
                     f"image '{p}' has shape {img.shape} but '{files[0]}' has {stack[0].shape}"
                 )
         images_out = np.stack(stack)
+        if color is True and images_out.ndim != 4:
+            raise InputError("color=True needs RGB images")
+        done = tuple(
+            step for step, ran in (("srgb", srgb), ("bin", bin_factor != 1), ("pad", grid_shape is not None)) if ran
+        )
+        file_levels = [v for _, v in read]
+        if not done and None not in file_levels:
+            levels = max(v for v in file_levels if v is not None)
         if isinstance(amb, Path):
-            amb = _prepare(amb, **steps)
+            amb = _prepare(amb, srgb, bin_factor, grid_shape, grid_offset, color)[0]
         if mask_arr is not None and mask_arr.shape != images_out.shape[1:3]:
             raise InputError(
                 f"the mask has shape {mask_arr.shape} but the images have {images_out.shape[1:3]}"
@@ -223,6 +219,8 @@ def load_near_ps(
         name=name if name is not None else folder.name,
         notes=notes,
         files=list(files),
+        levels=levels,
+        preprocessed=done,
     )
 
 
@@ -279,9 +277,10 @@ def load_queau_human1(
     folder: PathLike,
     *,
     grid: Literal["raw", "jpeg"] = "raw",
-    gray: bool = True,
     grid_offset: tuple[int, int] = (0, 0),
     lights: Sequence[int] | None = None,
+    color: bool | None = False,
+    gray: bool | None = None,
 ) -> Capture:
     """The ``Human1`` scene of ``yqueau/near_ps`` from its JPEG renders (7 of 8 LEDs).
 
@@ -306,14 +305,16 @@ def load_queau_human1(
     ``lights``: load only these LED rows (0-based calibration rows, e.g. ``[0, 5]``); None =
     all seven available. Loading all seven takes a few seconds (18-Mpixel PNG decoding).
 
-    ``gray=True`` (default) averages R, G, B of the images and of ``Phi``. The calibrated
-    ``Phi`` is for the RAW data; the JPEG's tone curve and white balance make the intensities
+    ``color=False`` (default) averages R, G, B of the images and of ``Phi``; ``color=None``
+    keeps them (``gray=`` is the deprecated spelling: ``gray=True`` is ``color=False``). The
+    calibrated ``Phi`` is for the RAW data; the JPEG's tone curve and white balance make the intensities
     only approximately right (a robustness test, not a benchmark).
     """
+    color = _color_arg(color, gray, "load_queau_human1", default=False)
     folder = _check_folder(folder)
     files = find_images(folder, "photometric_sample_jpg_[0-9]*.png")
     if lights is not None:
-        available = dict(zip(_led_rows_from_names(files), files))
+        available = dict(zip(_led_rows_from_names(files), files, strict=True))
         missing = [int(i) for i in lights if int(i) not in available]
         if missing:
             raise InputError(
@@ -332,22 +333,24 @@ def load_queau_human1(
         "~700 mm away. Preprocess: subtract the ambient image (clip at 0), divide by the "
         "cos^4 vignetting map."
     )
-    common = dict(
+    if grid == "jpeg" and tuple(grid_offset) != (0, 0):
+        raise InputError("grid_offset applies to grid='raw' only")
+    raw = grid == "raw"
+    capture = load_near_ps(
+        folder,
+        files,
         lights=_led_rows_from_names(files),
+        mask=mask if raw else None,
         ambient="photometric_sample_jpg_ambient.png",
         srgb=True,
         bin_factor=2,
-        gray=gray,
+        grid_shape=mask.shape if raw else None,
+        grid_offset=grid_offset if raw else (0, 0),
+        color=color,
         name="queau_human1",
         notes=notes,
     )
-    if grid == "raw":
-        capture = load_near_ps(
-            folder, files, mask=mask, grid_shape=mask.shape, grid_offset=grid_offset, **common
-        )
-    else:
-        if tuple(grid_offset) != (0, 0):
-            raise InputError("grid_offset applies to grid='raw' only")
-        capture = load_near_ps(folder, files, mask=None, **common)
+    if not raw:
+        assert isinstance(capture.images, np.ndarray)  # srgb loads them
         capture.mask = preprocess.pad_or_crop(mask, capture.images.shape[1:3])
     return capture

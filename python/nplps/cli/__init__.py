@@ -8,9 +8,10 @@ so it can be called from Python and from tests.
 The package holds :func:`main`, the top-level parser and the error handling; the commands are in
 :mod:`~nplps.cli.reconstruct`, :mod:`~nplps.cli.evaluate` and :mod:`~nplps.cli.synth` (``synth``
 and ``demo``), their shared input options in :mod:`~nplps.cli.inputs` (with
-:mod:`~nplps.cli.imagefiles`, :mod:`~nplps.cli.preprocessing` and :mod:`~nplps.cli.parsers`),
-the ``--out``/``--overwrite`` options in :mod:`~nplps.cli.outputs`, and the stderr notes in
-:mod:`~nplps.cli.console`.
+:mod:`~nplps.cli.imagefiles` and :mod:`~nplps.cli.parsers`), the ``--out``/``--overwrite``
+options in :mod:`~nplps.cli.outputs`, and the stderr notes in :mod:`~nplps.cli.console`. The
+package is argparse and printing only: what the input options do to the images is
+:func:`nplps.pipeline.prepare`.
 """
 
 from __future__ import annotations
@@ -20,12 +21,14 @@ import os
 import signal
 import sys
 import textwrap
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 from .. import __version__
 from .._atomic import is_write_error
 from ..errors import NplpsError
+from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 from .console import PROG, describe_rig
 from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
 from .imagefiles import IMAGE_SUFFIXES, SKIPPED_WORDS, resolve_images
@@ -36,50 +39,41 @@ from .inputs import (
     add_input_options,
     build_inputs,
     check_input_args,
-    load_raw,
     load_rig,
     near_options,
 )
 from .parsers import parse_depth, parse_exposures, parse_lights
-from .preprocessing import bin_inputs, bin_rig, preprocess_images, saturation_valid, vignetting_map
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
-from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 
 __all__ = [
-    "main",
-    "build_parser",
-    "PROG",
-    "IMAGE_SUFFIXES",
-    "SKIPPED_WORDS",
     "CAPTURE_LAYOUTS",
     "CONVENTIONS",
     "EVALUATE_COLUMNS",
-    "cmd_reconstruct",
-    "cmd_evaluate",
-    "cmd_synth",
-    "cmd_demo",
-    "cmd_calibrate",
-    "cmd_synth_calibration",
-    "add_input_options",
+    "IMAGE_SUFFIXES",
+    "PROG",
+    "SKIPPED_WORDS",
     "Inputs",
+    "add_input_options",
     "build_inputs",
+    "build_parser",
     "check_input_args",
-    "near_options",
+    "cmd_calibrate",
+    "cmd_demo",
+    "cmd_evaluate",
+    "cmd_reconstruct",
+    "cmd_synth",
+    "cmd_synth_calibration",
+    "depth_rms",
+    "describe_rig",
     "load_rig",
-    "load_raw",
-    "resolve_images",
-    "saturation_valid",
-    "preprocess_images",
-    "vignetting_map",
-    "bin_inputs",
-    "bin_rig",
+    "main",
+    "near_options",
+    "normal_errors",
     "parse_depth",
     "parse_exposures",
     "parse_lights",
-    "describe_rig",
-    "normal_errors",
-    "depth_rms",
+    "resolve_images",
 ]
 
 MAIN_DESCRIPTION = f"""\

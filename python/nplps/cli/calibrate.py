@@ -8,7 +8,8 @@ import argparse
 import json
 import os
 import shlex
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -112,7 +113,9 @@ def _add_spheres_parser(sub: Any, formatter: Any) -> None:
         epilog=SPHERES_EPILOG,
         formatter_class=formatter,
     )
-    p.add_argument("placements", nargs="+", metavar="PLACEMENT", help="a directory of k images per placement, or k image files")
+    p.add_argument(
+        "placements", nargs="+", metavar="PLACEMENT", help="a directory of k images per placement, or k image files"
+    )
     p.add_argument("--camera", required=True, metavar="RIG", help="rig file with the camera (its lights are ignored)")
     p.add_argument("--radius", required=True, type=float, metavar="R", help="sphere radius, in the rig's unit")
     p.add_argument(
@@ -122,17 +125,30 @@ def _add_spheres_parser(sub: Any, formatter: Any) -> None:
         help="mask of the spheres, once per placement in order (default: mask.png in each placement directory)",
     )
     p.add_argument(
-        "--detect", nargs=2, type=float, metavar=("MIN", "MAX"), help="find the spheres: their image radius range in pixels"
+        "--detect",
+        nargs=2,
+        type=float,
+        metavar=("MIN", "MAX"),
+        help="find the spheres: their image radius range in pixels",
     )
     p.add_argument("--count", type=int, help="with --detect: spheres per placement (default: all found)")
     p.add_argument(
         "--center-depth",
         action="append",
         metavar="Z[,Z...]",
-        help="depth of the sphere centres: once for all placements, or once per placement (one value, or one per sphere)",
+        help="depth of the sphere centres: once for all placements, or once per placement (one value, or one per "
+        "sphere)",
     )
-    p.add_argument("--outline", choices=("mask", "images"), default="mask", help="outline from the mask (default) or the images")
-    p.add_argument("--parallel-tol", type=float, default=0.5, metavar="DEG", help="rays within this RMS angle make a distant light (default 0.5)")
+    p.add_argument(
+        "--outline", choices=("mask", "images"), default="mask", help="outline from the mask (default) or the images"
+    )
+    p.add_argument(
+        "--parallel-tol",
+        type=float,
+        default=0.5,
+        metavar="DEG",
+        help="rays within this RMS angle make a distant light (default 0.5)",
+    )
     p.add_argument("--min-contrast", type=float, default=0.3, help="highlight contrast threshold (default 0.3)")
     p.add_argument("--no-refine", action="store_true", help="skip the joint refinement of spheres and lights")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
@@ -153,12 +169,18 @@ def _add_intensity_parser(sub: Any, formatter: Any) -> None:
     plane = p.add_mutually_exclusive_group(required=True)
     plane.add_argument("--plane-depth", type=float, metavar="Z", help="the board faces the camera at depth Z")
     plane.add_argument(
-        "--plane", nargs=4, type=float, metavar=("NX", "NY", "NZ", "D"), help="the board plane NX x + NY y + NZ z = D (camera frame)"
+        "--plane",
+        nargs=4,
+        type=float,
+        metavar=("NX", "NY", "NZ", "D"),
+        help="the board plane NX x + NY y + NZ z = D (camera frame)",
     )
     p.add_argument("--mask", metavar="FILE", help="the board's pixels (default: all)")
     p.add_argument("--fit-mu", action="store_true", help="fit each LED's anisotropy mu")
     p.add_argument("--fit-direction", action="store_true", help="with --fit-mu: fit each LED's principal direction")
-    p.add_argument("--albedo", choices=("uniform", "per_pixel"), default="uniform", help="board albedo model (default uniform)")
+    p.add_argument(
+        "--albedo", choices=("uniform", "per_pixel"), default="uniform", help="board albedo model (default uniform)"
+    )
     p.add_argument("--color", action="store_true", help="fit R, G, B intensities of colour images (a white board)")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
     p.add_argument("--quiet", "-q", action="store_true", help="no notes on stderr")
@@ -196,7 +218,9 @@ def add_synth_calibration_parser(sub: Any, formatter: Any) -> argparse.ArgumentP
     p.add_argument("--size", type=int, default=200, metavar="N", help="image size N x N (default 200)")
     p.add_argument("--radius", type=float, default=20.0, help="sphere radius (default 20: 40 px at the default size)")
     p.add_argument("--spheres", type=int, choices=(1, 2), default=1, help="spheres per placement (default 1)")
-    p.add_argument("--noise", type=float, default=0.01, help="Gaussian noise, fraction of the full scale (default 0.01)")
+    p.add_argument(
+        "--noise", type=float, default=0.01, help="Gaussian noise, fraction of the full scale (default 0.01)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-board", action="store_true", help="skip the board images")
     return p
@@ -220,7 +244,9 @@ def _placement_dirs(items: Sequence[str]) -> bool:
     """Whether the PLACEMENT arguments are directories (one placement each) or files (one)."""
     for item in items:
         if not os.path.exists(item):
-            raise InputError(f"placement '{item}' not found: give a directory of images per placement, or the image files of one")
+            raise InputError(
+                f"placement '{item}' not found: give a directory of images per placement, or the image files of one"
+            )
     dirs = [os.path.isdir(i) for i in items]
     if any(dirs) and not all(dirs):
         raise InputError("give either directories (one per placement) or the image files of one placement, not both")
@@ -264,7 +290,8 @@ def _cmd_spheres(args: argparse.Namespace) -> int:
             masks = found
         else:
             raise InputError(
-                "give the spheres' masks (--mask, once per placement, or mask.png in each placement directory) or --detect MIN MAX"
+                "give the spheres' masks (--mask, once per placement, or mask.png in each placement directory) "
+                "or --detect MIN MAX"
             )
     if dirs:
         placements = [
@@ -337,16 +364,16 @@ def _write_report(path: str, result: Any) -> None:
         ],
         "lights": [
             {
-                "kind": l.kind,
-                "position": vec(l.position),
-                "direction": vec(l.direction),
-                "rms_miss": None if not np.isfinite(l.rms_miss) else l.rms_miss,
-                "rms_angle": None if not np.isfinite(l.rms_angle) else l.rms_angle,
-                "spread": l.spread,
-                "spheres": l.spheres,
-                "warning": l.warning,
+                "kind": light.kind,
+                "position": vec(light.position),
+                "direction": vec(light.direction),
+                "rms_miss": None if not np.isfinite(light.rms_miss) else light.rms_miss,
+                "rms_angle": None if not np.isfinite(light.rms_angle) else light.rms_angle,
+                "spread": light.spread,
+                "spheres": light.spheres,
+                "warning": light.warning,
             }
-            for l in result.lights
+            for light in result.lights
         ],
         "highlights": [[vec(h) if np.all(np.isfinite(h)) else None for h in row] for row in result.highlights],
         "status": result.status,
@@ -403,14 +430,19 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
     with directory:
         scene.save(directory)
         if not args.no_board:
-            board = make_board_scene(scene.rig, n=args.size, noise=args.noise, seed=args.seed + 1, distance=scene.distance)
+            board = make_board_scene(
+                scene.rig, n=args.size, noise=args.noise, seed=args.seed + 1, distance=scene.distance
+            )
             board.save(directory.subdirectory("board"))
     print(
         f"wrote a sphere-calibration scene ({args.size} x {args.size} pixels, {describe_rig(scene.rig)}, "
-        f"{len(scene.centers)} placements of {args.spheres} sphere(s) of radius {scene.radius:g}, noise {args.noise:g}) to {out}"
+        f"{len(scene.centers)} placements of {args.spheres} sphere(s) of radius {scene.radius:g}, "
+        f"noise {args.noise:g}) to {out}"
     )
     placements = [str(out / f"placement_{i}") for i in range(len(scene.centers))]
-    command = [PROG, "calibrate", "spheres", *placements, "--camera", str(out / "camera.json"), "--radius", f"{scene.radius:g}"]
+    command = [
+        PROG, "calibrate", "spheres", *placements, "--camera", str(out / "camera.json"), "--radius", f"{scene.radius:g}"
+    ]
     if args.camera == "orthographic":
         for depths in scene.center_depths:
             command += ["--center-depth", ",".join(f"{z:g}" for z in depths)]

@@ -59,14 +59,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         from ..api import reconstruct
 
         with _warnings_to_stderr():
-            estimate = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args))
+            estimate = reconstruct(
+                inputs.images, inputs.rig, mask=inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args)
+            )
+        assert estimate.distance is not None  # depth="auto" always estimates it
         distances = ", ".join(f"{d:.6g}" for d in estimate.distance.distance)
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
     for done, light in enumerate(lights):
         start = time.perf_counter()
-        row = [light]
+        row: list[float] = [light]
         for method in ("near", "parallel"):
             with _warnings_to_stderr():
                 (h,) = held_out(
@@ -85,8 +88,8 @@ def _print_evaluation(rows: list[list[Any]], k: int) -> None:
     print(f"held-out lights: each reconstructed from the other {k - 1} lights and predicted")
     print("relative error = |prediction - image| / |image|; shape error: the same after the best gain\n")
     widths = [5] + [len(c) + 2 for c in EVALUATE_COLUMNS[1:]]
-    print("".join(f"{c:>{w}}" for c, w in zip(EVALUATE_COLUMNS, widths)))
+    print("".join(f"{c:>{w}}" for c, w in zip(EVALUATE_COLUMNS, widths, strict=True)))
     for row in rows:
-        print(f"{row[0]:>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(row[1:], widths[1:])))
+        print(f"{row[0]:>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(row[1:], widths[1:], strict=True)))
     means = np.nanmean(np.array([r[1:] for r in rows], dtype=float), axis=0)
-    print(f"{'mean':>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(means, widths[1:])))
+    print(f"{'mean':>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(means, widths[1:], strict=True)))

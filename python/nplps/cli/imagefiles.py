@@ -4,11 +4,11 @@ directory in natural order."""
 from __future__ import annotations
 
 import os
-import re
 import textwrap
-from typing import Any, Sequence
+from collections.abc import Sequence
 
 from ..errors import InputError
+from ..pipeline import natural_key
 from .console import _note
 
 #: File name endings taken as images when IMAGES is a directory.
@@ -42,7 +42,7 @@ def resolve_images(
             and os.path.isfile(os.path.join(folder, n))
             and os.path.realpath(os.path.join(folder, n)) not in skip
         ),
-        key=_natural_key,
+        key=natural_key,
     )
     if not names:
         raise InputError(
@@ -74,13 +74,11 @@ def _check_files(items: Sequence[str]) -> list[str]:
 
 
 def _note_directory(folder: str, names: list[str], mask: str | None, ambient: str | None) -> None:
-    listing = textwrap.fill(", ".join(names), width=95, initial_indent="  ", subsequent_indent="  ", break_on_hyphens=False)
+    listing = textwrap.fill(
+        ", ".join(names), width=95, initial_indent="  ", subsequent_indent="  ", break_on_hyphens=False
+    )
     _note(f"using {len(names)} images from '{folder}' in this order (light 0 first):\n{listing}")
     for word, given, option in (("mask", mask, "--mask"), ("ambient", ambient, "--ambient")):
         skipped = sorted(n for n in os.listdir(folder) if word in n.lower() and _is_image_name(n))
         if given is None and skipped:
             _note(f"note: {', '.join(skipped)} in '{folder}' was skipped; pass {option} to use it")
-
-
-def _natural_key(name: str) -> list[Any]:
-    return [(0, int(part), part) if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", name) if part]

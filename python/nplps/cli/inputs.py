@@ -4,10 +4,9 @@ capture folder, rig, mask, depth, pre-processing, binning and the solver options
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -15,8 +14,7 @@ from ..api import MAX_THREADS, _memory_limit
 from ..errors import InputError
 from .console import _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
-from .parsers import _parse_list, parse_depth
-from .preprocessing import _to_gray, bin_inputs, preprocess_images, saturation_valid, vignetting_map
+from .parsers import _parse_list, parse_depth, parse_exposures
 
 #: Capture folder layouts of ``--capture``.
 CAPTURE_LAYOUTS = ("near_ps", "diligent")
@@ -202,34 +200,94 @@ class Inputs(NamedTuple):
     options: dict[str, Any]
 
 
-class _Loaded(NamedTuple):
-    """Images, rig and mask as read, before binning."""
+class _Source(NamedTuple):
+    """Where the images come from, before anything is read: image files, rig, mask, ambient
+    image, K for cos^4 and the default vignetting correction."""
 
-    images: np.ndarray
+    files: list[str]
     rig: Any
-    mask: np.ndarray | None
-    valid: np.ndarray | None
-    levels: int | None
-    steps: list[str]
+    mask: Any
+    ambient: Any
+    K: np.ndarray | None
+    vignetting: str
+
+
+#: The pipeline's parameter names at the start of its messages, in the command line's words.
+_OPTION_WORDS = (
+    ("bin_factor ", "--bin "),
+    ("vignetting 'cos4'", "--vignetting cos4"),
+    ("vignetting and flat", "--vignetting and --flat"),
+    ("ambient ", "--ambient "),
+    ("flat ", "--flat "),
+    ("exposures", "--exposures"),
+)
 
 
 def build_inputs(args: argparse.Namespace) -> Inputs:
-    """Reads and pre-processes the input that :func:`add_input_options` describes."""
+    """Reads and pre-processes the input that :func:`add_input_options` describes, with
+    :func:`nplps.pipeline.prepare`."""
+    from .. import pipeline
+
     check_input_args(args)
     depth = parse_depth(args.depth)
-    loaded = _load_capture(args) if args.capture else _load_files(args)
-    images, rig, mask, valid = loaded.images, loaded.rig, loaded.mask, loaded.valid
-    steps = list(loaded.steps)
-    if args.bin > 1:
-        images, rig, mask, valid = bin_inputs(images, rig, mask, valid, args.bin)
-        steps.append(f"binned {args.bin} x {args.bin} to {images.shape[2]} x {images.shape[1]} pixels")
-    dark = args.dark
-    if dark is None:
-        dark = 1.0 / loaded.levels if loaded.levels and not steps else 0.0
+    source = _capture_source(args) if args.capture else _file_source(args)
+    exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
+    vignetting = args.vignetting or source.vignetting
+    try:
+        prepared = pipeline.prepare(
+            [os.fspath(f) for f in source.files],
+            rig=source.rig,
+            K=source.K,
+            mask=source.mask,
+            color=False if args.gray else None,
+            saturation=args.saturation,
+            dark=args.dark,
+            srgb=args.srgb,
+            ambient=source.ambient,
+            exposures=exposures,
+            vignetting="cos4" if vignetting == "cos4" and not args.flat else None,
+            flat=args.flat,
+            bin_factor=args.bin,
+            overwrite=True,
+        )
+    except InputError as exc:
+        raise _in_option_words(exc) from None
     if not args.quiet:
-        _note_inputs(images, rig, valid, steps, dark, loaded.levels)
-    options = {"depth": depth, "dark": dark, "robust": args.robust, "threads": args.threads, "max_memory": getattr(args, "max_memory", None)}
-    return Inputs(np.ascontiguousarray(images, dtype=np.float32), rig, mask, valid, options)
+        steps = [_step_text(step, args, source, prepared.images) for step in prepared.steps]
+        _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
+    options = {
+        "depth": depth,
+        "dark": prepared.dark,
+        "robust": args.robust,
+        "threads": args.threads,
+        "max_memory": getattr(args, "max_memory", None),
+    }
+    return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options)
+
+
+def _in_option_words(exc: InputError) -> InputError:
+    """The pipeline's error with its parameter name replaced by the command-line option."""
+    text = str(exc)
+    for word, option in _OPTION_WORDS:
+        if text.startswith(word):
+            return InputError(option + text[len(word):])
+    return exc
+
+
+def _step_text(step: str, args: argparse.Namespace, source: _Source, images: np.ndarray) -> str:
+    """How the summary names a pre-processing step."""
+    if step == "ambient":
+        return f"ambient '{args.ambient or Path(source.ambient).name}' subtracted"
+    if step == "bin":
+        return f"binned {args.bin} x {args.bin} to {images.shape[2]} x {images.shape[1]} pixels"
+    if step == "flat":
+        return f"divided by the flat field '{args.flat}'"
+    texts = {
+        "srgb": "sRGB decoded",
+        "exposures": "divided by the exposures",
+        "vignetting": "divided by the cos^4 vignetting map",
+    }
+    return texts.get(step, step)
 
 
 def near_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -302,8 +360,8 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise InputError(f"--saturation must be a positive number (0..1 scale), got {args.saturation}")
 
 
-def _load_files(args: argparse.Namespace) -> _Loaded:
-    """IMAGES + --rig: read the images, the mask and the rig; sRGB, ambient, exposures, vignetting."""
+def _file_source(args: argparse.Namespace) -> _Source:
+    """IMAGES + --rig: the image files, the rig, --mask and --ambient."""
     rig = load_rig(args.rig)
     exclude = [f for f in (args.ambient, args.flat) if f]
     files = resolve_images(args.images, args.mask, quiet=args.quiet, exclude=exclude, ambient=args.ambient)
@@ -313,33 +371,16 @@ def _load_files(args: argparse.Namespace) -> _Loaded:
             f"{len(files)} images {source} but the rig file '{args.rig}' has {rig.n_lights} lights: "
             "there must be exactly one image per light, in the rig's light order"
         )
-    raw, levels = load_raw(files)
-    mask = None if args.mask is None else _mask(args.mask, raw.shape[1:3])
-    # Saturation is judged on the raw values, before pre-processing overwrites them in place.
-    valid = saturation_valid(raw, levels, args.saturation)
-    images = _to_gray(raw) if args.gray else raw
-    del raw
-    images, steps = preprocess_images(images, args, rig.K, in_place=True)
-    return _Loaded(images, rig, mask, valid, levels, steps)
+    return _Source(list(files), rig, args.mask, args.ambient, rig.K, "none")
 
 
-def _load_capture(args: argparse.Namespace) -> _Loaded:
-    """--capture LAYOUT FOLDER [PATTERN]: the capture's images, mask, ambient image and rig."""
-    from .. import captures
-
+def _capture_source(args: argparse.Namespace) -> _Source:
+    """--capture LAYOUT FOLDER [PATTERN]: the capture's image files, rig, mask (or --mask) and
+    ambient image; cos^4 vignetting by default when the capture has K."""
     capture = _read_capture(args)
-    raw, levels = load_raw(capture.files)
-    mask = capture.mask if args.mask is None else _mask(args.mask, raw.shape[1:3])
-    # Saturation is judged on the raw values, before pre-processing overwrites them in place.
-    valid = saturation_valid(raw, levels, args.saturation)
-    images = _to_gray(raw) if args.gray else raw
-    del raw
-    vmap, vstep = vignetting_map(args, capture.K, images, default="cos4" if capture.K is not None else "none")
-    capture = dataclasses.replace(capture, images=images, mask=mask)
-    prepared = captures.prepare(capture, bin_factor=1, ambient=True, vignetting=vmap, gray=args.gray, overwrite=True)
-    steps = ([f"ambient '{Path(capture.ambient).name}' subtracted"] if capture.ambient is not None else [])
-    steps += [vstep] if vstep else []
-    return _Loaded(prepared.images, prepared.rig(), prepared.mask, valid, levels, steps)
+    mask = capture.mask if args.mask is None else args.mask
+    vignetting = "cos4" if capture.K is not None else "none"
+    return _Source([os.fspath(f) for f in capture.files], capture.rig(), mask, capture.ambient, capture.K, vignetting)
 
 
 def _read_capture(args: argparse.Namespace) -> Any:
@@ -375,19 +416,6 @@ def load_rig(path: str) -> Any:
     if os.path.isdir(path):
         raise RigError(f"rig file '{path}' is a directory")
     return Rig.load(path)
-
-
-def load_raw(files: Sequence[Any]) -> tuple[np.ndarray, int | None]:
-    """The images as float32 (k, H, W[, 3]) on the 0..1 scale, colour kept, and their levels."""
-    from ..io import load_stack
-
-    return load_stack([os.fspath(f) for f in files], color=True)
-
-
-def _mask(path: str, shape: tuple[int, int]) -> np.ndarray:
-    from ..io import load_mask
-
-    return load_mask(path, shape)
 
 
 def _note_inputs(

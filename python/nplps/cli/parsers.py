@@ -30,7 +30,9 @@ def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
             f"{option} '{value}' is neither a number (the working distance) nor an existing .npy depth map file"
         )
     if not value.lower().endswith(".npy"):
-        raise InputError(f"{option} '{value}' is not a .npy file: give the working distance or an (H+1, W+1) .npy depth map")
+        raise InputError(
+            f"{option} '{value}' is not a .npy file: give the working distance or an (H+1, W+1) .npy depth map"
+        )
     try:
         depth = np.load(value, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file

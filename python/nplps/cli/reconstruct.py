@@ -6,7 +6,7 @@ import argparse
 import textwrap
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from .console import _warnings_to_stderr, describe_rig
 from .inputs import (
@@ -106,7 +106,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             start = time.perf_counter()
             with _warnings_to_stderr():
                 # The baseline refines its own intensities under its own model, as the near-light run does.
-                refine = "intensity" if args.refine_lights in ("intensity", "both") else None
+                refine: Literal["intensity"] | None = (
+                    "intensity" if args.refine_lights in ("intensity", "both") else None
+                )
                 base = reconstruct_parallel(
                     inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
                 )

@@ -96,7 +96,9 @@ def add_demo_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--scene", choices=SCENES, default="sphere", help="synthetic scene (default sphere)")
     p.add_argument("--size", type=int, default=128, metavar="N", help="image size N x N pixels (default 128)")
-    p.add_argument("--noise", type=float, default=0.0, help="image noise as a fraction of the brightest value (default 0)")
+    p.add_argument(
+        "--noise", type=float, default=0.0, help="image noise as a fraction of the brightest value (default 0)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the bumps scene (default 0)")
     add_output_options(p, default="nplps-demo")
     return p
@@ -127,7 +129,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
         f"object size {scene.size:g}, noise {args.noise:g}) to {out}:"
     )
     n_images = sum(1 for k in paths if k.startswith("image_"))
-    print(f"  image_00.png .. image_{n_images - 1:02d}.png, rig.json, mask.png, depth_gt.npy, normals_gt.npy, albedo_gt.npy")
+    print(
+        f"  image_00.png .. image_{n_images - 1:02d}.png, rig.json, mask.png, depth_gt.npy, normals_gt.npy, "
+        "albedo_gt.npy"
+    )
     print(f"true mean depth {scene.mean_depth:.10g}; reconstruct with:")
     command = [
         PROG,
@@ -172,7 +177,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     print(f"both methods start from a plane at the true mean depth {distance:.6g}\n")
 
-    runs = []
+    runs: list[dict[str, Any]] = []
     for label, run in (
         ("near light (nplps)", lambda: reconstruct(scene.images, scene.rig, mask=scene.mask, depth=distance)),
         ("parallel light", lambda: reconstruct_parallel(scene.images, scene.rig, mask=scene.mask, depth=distance)),
