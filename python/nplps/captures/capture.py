@@ -138,7 +138,7 @@ class Capture:
 
         if self.rig_path is not None:
             rig = Rig.load(self.rig_path)
-            return rig if self.bin_factor == 1 else pipeline._binned(rig, self.bin_factor)
+            return rig if self.bin_factor == 1 else rig.binned(self.bin_factor)
         if self.directional:
             if self.K is None:
                 return Rig.orthographic(self.pixel_size, directions=self.directions, intensities=self.intensities)
