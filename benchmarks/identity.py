@@ -43,8 +43,11 @@ def _result_digests(result) -> dict[str, str]:
         fit, mesh = result.fit_normals, result.normals
     else:
         fit, mesh = result.normals, result.mesh_normals
+    # The mesh normals inside the mask (outside it, the old mesh_normals kept the normal of every
+    # quad whose corners were known; the new normals are NaN there, like the fits).
+    masked = np.where(np.asarray(result.mask)[..., None], mesh, np.nan)
     out = {"depth": _digest(result.depth), "albedo": _digest(result.albedo), "fit_normals": _digest(fit),
-           "mesh_normals": _digest(mesh)}
+           "mesh_normals": _digest(mesh), "mesh_normals_in_mask": _digest(masked)}
     if getattr(result, "residual", None) is not None:
         out["residual"] = _digest(result.residual)
     out["iterations"] = str(len(result.history))
