@@ -52,30 +52,42 @@ def run_case(
     camera: str, lights: int, spheres: int, directional: bool, seed: int, refine: bool, outline: str, recon_n: int
 ) -> dict[str, float]:
     """One calibration + reconstruction; returns the measured errors."""
-    scene = cal.make_sphere_scene(camera, n=200, lights=lights, directional=directional, spheres=spheres, noise=0.01, seed=seed)
+    scene = cal.make_sphere_scene(
+        camera, n=200, lights=lights, directional=directional, spheres=spheres, noise=0.01, seed=seed
+    )
     t0 = time.perf_counter()
     depth = scene.center_depths if camera == "orthographic" else None
     if outline == "detect":
-        res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, detect=(30.0, 60.0), count=spheres, center_depth=depth, refine=refine)
+        res = cal.calibrate_spheres(
+            scene.images, scene.rig, scene.radius, detect=(30.0, 60.0), count=spheres, center_depth=depth, refine=refine
+        )
     else:
-        res = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, refine=refine, outline=outline)
+        res = cal.calibrate_spheres(
+            scene.images,
+            scene.rig,
+            scene.radius,
+            masks=scene.labels,
+            center_depth=depth,
+            refine=refine,
+            outline=outline,
+        )
     t_spheres = time.perf_counter() - t0
     truth = scene.rig
-    missing = sum(l.kind == "missing" for l in res.lights)
+    missing = sum(light.kind == "missing" for light in res.lights)
     if missing:
         # No rig can be written (a light was seen on no sphere): count it as a failure.
         nan = float("nan")
         return {key: nan for _, key, _ in COLUMNS} | {"wrong_kind": missing, "seen_min": 0, "failed": 1}
     pos, dirs, wrong_kind = [], [], 0
-    for l in res.lights:
-        if truth.directional[l.index]:
-            if l.kind == "directional":
-                dirs.append(float(angle_deg(l.direction, truth.directions[l.index])))
+    for light in res.lights:
+        if truth.directional[light.index]:
+            if light.kind == "directional":
+                dirs.append(float(angle_deg(light.direction, truth.directions[light.index])))
             else:
                 wrong_kind += 1
         else:
-            if l.kind == "point":
-                pos.append(float(np.linalg.norm(l.position - truth.positions[l.index])))
+            if light.kind == "point":
+                pos.append(float(np.linalg.norm(light.position - truth.positions[light.index])))
             else:
                 wrong_kind += 1
     pos_a = np.array(pos)
@@ -112,7 +124,7 @@ def run_case(
         "n_cal": e_cal,
         "n_diff": e_cal - e_true,
         "n_pair": e_pair,
-        "seen_min": min(l.spheres for l in res.lights),
+        "seen_min": min(light.spheres for light in res.lights),
         "t_spheres": t_spheres,
         "t_board": t_board,
         "failed": 0,
@@ -166,13 +178,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1 (default 10)")
     parser.add_argument("--refine", choices=("on", "off"), default="on")
-    parser.add_argument("--outline", choices=("mask", "images", "detect"), default="mask", help="outline from the masks, the images (from the masks' circles), or detection")
+    parser.add_argument(
+        "--outline",
+        choices=("mask", "images", "detect"),
+        default="mask",
+        help="outline from the masks, the images (from the masks' circles), or detection",
+    )
     parser.add_argument("--recon-n", type=int, default=128, help="reconstruction image size (default 128)")
     parser.add_argument("--cameras", nargs="+", default=["orthographic", "pinhole"])
     parser.add_argument("--lights", nargs="+", type=int, default=[8, 27])
     parser.add_argument("--spheres", nargs="+", type=int, default=[1, 2], help="spheres per placement")
     parser.add_argument(
-        "--directional", nargs="+", choices=("no", "yes"), default=["no", "yes"],
+        "--directional",
+        nargs="+",
+        choices=("no", "yes"),
+        default=["no", "yes"],
         help="every third standard light distant (yes) or all point lights (no); default both",
     )
     args = parser.parse_args()
@@ -195,7 +215,7 @@ def main() -> None:
             cells = " | ".join(fmt.format(r[key]) for _, key, fmt in COLUMNS)
             print(f"| {camera} | {lights} | {distant} | 2 x {spheres} | {seed} | {cells} |", flush=True)
 
-        def stat(key: str, worst: bool) -> float:
+        def stat(key: str, worst: bool, rows: list[dict] = rows) -> float:
             values = np.array([r[key] for r in rows], dtype=float)
             values = values[np.isfinite(values)]
             if values.size == 0:
@@ -205,7 +225,8 @@ def main() -> None:
             return float(values.min() if key == "seen_min" else values.max())
 
         cells = " | ".join(
-            f"{stat(k, False):.3f} / {fmt.format(stat(k, True))}" if ".0f" not in fmt
+            f"{stat(k, False):.3f} / {fmt.format(stat(k, True))}"
+            if ".0f" not in fmt
             else f"{stat(k, False):.1f} / {fmt.format(stat(k, True))}"
             for _, k, fmt in COLUMNS
         )
@@ -221,7 +242,10 @@ def main() -> None:
     for camera in args.cameras:
         for led in (False, True):
             rows = [run_intensity(camera, led, seed) for seed in range(args.seeds)]
-            cell = lambda k, f: f"{np.mean([r[k] for r in rows]):{f}} / {np.max([r[k] for r in rows]):{f}}"  # noqa: E731
+
+            def cell(k: str, f: str, rows: list[dict] = rows) -> str:
+                return f"{np.mean([r[k] for r in rows]):{f}} / {np.max([r[k] for r in rows]):{f}}"
+
             kind = "LEDs (μ, directions fitted)" if led else "isotropic, 1/3 distant"
             print(
                 f"| {camera} | {kind} | {cell('phi_rms', '.3f')} | {cell('phi_max', '.3f')} | "

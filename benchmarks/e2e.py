@@ -42,10 +42,9 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import scale  # noqa: E402  (the scene of the scaling benchmark)
-
-import nplps  # noqa: E402
-from nplps import export  # noqa: E402
+import nplps
+import scale
+from nplps import export
 
 
 def nplps_command() -> list[str]:
@@ -56,7 +55,9 @@ def nplps_command() -> list[str]:
 
 def cli_options() -> str:
     """The help text of ``nplps reconstruct`` (to see which options it has)."""
-    return subprocess.run([*nplps_command(), "reconstruct", "--help"], capture_output=True, text=True, check=True).stdout
+    return subprocess.run(
+        [*nplps_command(), "reconstruct", "--help"], capture_output=True, text=True, check=True
+    ).stdout
 
 
 def write_inputs(directory: Path, camera: str, w: int, h: int, k: int) -> dict[str, Any]:
@@ -68,7 +69,11 @@ def write_inputs(directory: Path, camera: str, w: int, h: int, k: int) -> dict[s
         print(f"reusing the inputs in {directory}", file=sys.stderr)
         return json.loads(spec_path.read_text(encoding="utf-8"))
     directory.mkdir(parents=True, exist_ok=True)
-    print(f"writing {k} {w} x {h} 16-bit PNG images, rig.json and mask.png into {directory} ...", file=sys.stderr, flush=True)
+    print(
+        f"writing {k} {w} x {h} 16-bit PNG images, rig.json and mask.png into {directory} ...",
+        file=sys.stderr,
+        flush=True,
+    )
     t0 = time.perf_counter()
     rig = scale.make_rig(camera, w, h, scale.ring_lights(k))
     depth = scale.surface_depth(rig, w, h)
@@ -87,8 +92,21 @@ def write_inputs(directory: Path, camera: str, w: int, h: int, k: int) -> dict[s
 def make_inputs(directory: Path, camera: str, w: int, h: int, k: int) -> dict[str, Any]:
     """:func:`write_inputs` in a process of its own: rendering 12 MP images takes GB, and on Linux
     a child's ru_maxrss starts from its parent's peak."""
-    subprocess.run([sys.executable, os.path.abspath(__file__), "--make", str(directory), "--camera", camera,
-                    "--size", f"{w}x{h}", "--lights", str(k)], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            os.path.abspath(__file__),
+            "--make",
+            str(directory),
+            "--camera",
+            camera,
+            "--size",
+            f"{w}x{h}",
+            "--lights",
+            str(k),
+        ],
+        check=True,
+    )
     return json.loads((directory / "scene.json").read_text(encoding="utf-8"))
 
 
@@ -109,8 +127,14 @@ def run_once(command: list[str]) -> dict[str, Any]:
     if rss_mb is None:  # the largest child so far
         rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
-    return {"wall_s": wall, "rss_mb": rss_mb, "rss_source": "/usr/bin/time -v" if use_time else "getrusage(RUSAGE_CHILDREN)",
-            "returncode": proc.returncode, "stdout": proc.stdout, "stderr": stderr}
+    return {
+        "wall_s": wall,
+        "rss_mb": rss_mb,
+        "rss_source": "/usr/bin/time -v" if use_time else "getrusage(RUSAGE_CHILDREN)",
+        "returncode": proc.returncode,
+        "stdout": proc.stdout,
+        "stderr": stderr,
+    }
 
 
 def reported_seconds(stdout: str) -> tuple[float | None, float | None]:
@@ -180,8 +204,20 @@ def main() -> None:
             extra += ["--threads", str(args.threads)]
         extra += shlex.split(args.cli_args)
         out = directory / "out"
-        command = [*nplps_command(), "reconstruct", str(directory), "--rig", str(directory / "rig.json"),
-                   "--mask", str(directory / "mask.png"), "--depth", repr(info["gauge"]), "--out", str(out), *extra]
+        command = [
+            *nplps_command(),
+            "reconstruct",
+            str(directory),
+            "--rig",
+            str(directory / "rig.json"),
+            "--mask",
+            str(directory / "mask.png"),
+            "--depth",
+            repr(info["gauge"]),
+            "--out",
+            str(out),
+            *extra,
+        ]
         print("$ " + " ".join(shlex.quote(c) for c in command), file=sys.stderr, flush=True)
         runs = []
         for i in range(args.repeats):
@@ -192,7 +228,9 @@ def main() -> None:
                 sys.exit(f"nplps reconstruct failed with exit code {run['returncode']}")
             run["reconstruct_s"], run["solver_s"] = reported_seconds(run["stdout"])
             runs.append(run)
-            print(f"run {i + 1}: {run['wall_s']:.1f} s wall, peak RSS {run['rss_mb']:.0f} MB", file=sys.stderr, flush=True)
+            print(
+                f"run {i + 1}: {run['wall_s']:.1f} s wall, peak RSS {run['rss_mb']:.0f} MB", file=sys.stderr, flush=True
+            )
         files = {p.name: p.stat().st_size for p in sorted(out.iterdir()) if p.is_file()}
         rig = nplps.Rig.load(directory / "rig.json")
         accuracy = check_output(out, directory, rig, np.ones((h, w), dtype=bool))
@@ -212,21 +250,41 @@ def main() -> None:
     print("| measure | value |\n|---|---|")
     print(f"| wall time (median of {len(runs)}) | {wall:.2f} s ({verdict}: limit {args.limit:g} s) |")
     if call and solver:
-        print(f"| reconstruct call (reported) | {statistics.median(call):.2f} s, of which solver {statistics.median(solver):.2f} s |")
+        print(
+            f"| reconstruct call (reported) | {statistics.median(call):.2f} s"
+            f", of which solver {statistics.median(solver):.2f} s |"
+        )
         print(f"| start-up + decode + export (wall − reconstruct call) | {wall - statistics.median(call):.2f} s |")
     print(f"| peak RSS ({runs[-1]['rss_source']}) | {rss:.0f} MB ({rss * 1024 * 1024 / (w * h):.0f} bytes/pixel) |")
-    print(f"| normal error mean / median | {accuracy['normal_error_mean_deg']:.3f}° / {accuracy['normal_error_median_deg']:.3f}° |")
-    print(f"| depth error max / RMS | {accuracy['depth_error_max_pct']:.3f} % / {accuracy['depth_error_rms_pct']:.3f} % of the depth range |")
+    print(
+        f"| normal error mean / median | {accuracy['normal_error_mean_deg']:.3f}°"
+        f" / {accuracy['normal_error_median_deg']:.3f}° |"
+    )
+    print(
+        f"| depth error max / RMS | {accuracy['depth_error_max_pct']:.3f} %"
+        f" / {accuracy['depth_error_rms_pct']:.3f} % of the depth range |"
+    )
     print("\n| file | size |\n|---|---|")
     for name, size in files.items():
         print(f"| {name} | {size / 1e6:.1f} MB |")
     print(f"| total | {sum(files.values()) / 1e6:.1f} MB |")
     if args.json:
         payload = {
-            "nplps": nplps.__version__, "cpus": os.cpu_count(), "command": command, "size": [w, h], "lights": args.lights,
-            "camera": args.camera, "wall_s": wall, "reconstruct_s": statistics.median(call) if call else None,
-            "solver_s": statistics.median(solver) if solver else None, "rss_mb": rss,
-            "limit_s": args.limit, "verdict": verdict, "files": files, "accuracy": accuracy, "skipped_options": skipped,
+            "nplps": nplps.__version__,
+            "cpus": os.cpu_count(),
+            "command": command,
+            "size": [w, h],
+            "lights": args.lights,
+            "camera": args.camera,
+            "wall_s": wall,
+            "reconstruct_s": statistics.median(call) if call else None,
+            "solver_s": statistics.median(solver) if solver else None,
+            "rss_mb": rss,
+            "limit_s": args.limit,
+            "verdict": verdict,
+            "files": files,
+            "accuracy": accuracy,
+            "skipped_options": skipped,
             "runs": [{k: v for k, v in r.items() if k not in ("stdout", "stderr")} for r in runs],
             "input_write_s": info.get("write_s"),
         }

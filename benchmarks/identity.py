@@ -46,8 +46,13 @@ def _result_digests(result) -> dict[str, str]:
     # The mesh normals inside the mask (outside it, the old mesh_normals kept the normal of every
     # quad whose corners were known; the new normals are NaN there, like the fits).
     masked = np.where(np.asarray(result.mask)[..., None], mesh, np.nan)
-    out = {"depth": _digest(result.depth), "albedo": _digest(result.albedo), "fit_normals": _digest(fit),
-           "mesh_normals": _digest(mesh), "mesh_normals_in_mask": _digest(masked)}
+    out = {
+        "depth": _digest(result.depth),
+        "albedo": _digest(result.albedo),
+        "fit_normals": _digest(fit),
+        "mesh_normals": _digest(mesh),
+        "mesh_normals_in_mask": _digest(masked),
+    }
     if getattr(result, "residual", None) is not None:
         out["residual"] = _digest(result.residual)
     out["iterations"] = str(len(result.history))
@@ -75,10 +80,25 @@ def run() -> dict[str, dict[str, str]]:
     results: dict[str, dict[str, str]] = {}
     hehe = str(SHARED / "hehe12")
     ball = str(SHARED / "diligent_ball" / "ballPNG")
-    results["cli hehe12 bin4"] = _cli(["--capture", "near_ps", hehe, "photometric_sample_raw_000[0-9].png", "--bin", "4", "--depth", "200"])
+    results["cli hehe12 bin4"] = _cli(
+        ["--capture", "near_ps", hehe, "photometric_sample_raw_000[0-9].png", "--bin", "4", "--depth", "200"]
+    )
     results["cli hehe12 bin8 tukey refine"] = _cli(
-        ["--capture", "near_ps", hehe, "photometric_sample_raw_000[0-9].png", "--bin", "8", "--depth", "200", "--robust", "tukey",
-         "--refine-lights", "intensity"])
+        [
+            "--capture",
+            "near_ps",
+            hehe,
+            "photometric_sample_raw_000[0-9].png",
+            "--bin",
+            "8",
+            "--depth",
+            "200",
+            "--robust",
+            "tukey",
+            "--refine-lights",
+            "intensity",
+        ]
+    )
     results["cli diligent ball"] = _cli(["--capture", "diligent", ball, "--depth", "1000", "--iterations", "2"])
 
     cap = captures.prepare(captures.load_hehe12(hehe), bin_factor=4)

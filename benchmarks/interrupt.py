@@ -37,10 +37,10 @@ def child_script(folder: Path, options: str) -> str:
     return textwrap.dedent(
         f"""
         import sys, time, numpy as np, nplps
-        images = np.load({str(folder / 'images.npy')!r})
-        mask = np.load({str(folder / 'mask.npy')!r})
-        rig = nplps.Rig.load({str(folder / 'rig.json')!r})
-        depth = float(open({str(folder / 'depth.txt')!r}).read())
+        images = np.load({str(folder / "images.npy")!r})
+        mask = np.load({str(folder / "mask.npy")!r})
+        rig = nplps.Rig.load({str(folder / "rig.json")!r})
+        depth = float(open({str(folder / "depth.txt")!r}).read())
         print("ready", flush=True)
         try:
             nplps.reconstruct(images, rig, mask=mask, depth=depth, iterations=1000, tol=0.0{options})
@@ -89,11 +89,16 @@ def main() -> None:
                     out = proc.stdout.read()
                     proc.wait()
                     if proc.returncode != 3:
-                        print(f"  {n} {case} delay {delay}: exit {proc.returncode}, {out.strip()[:60]!r}", file=sys.stderr)
+                        print(
+                            f"  {n} {case} delay {delay}: exit {proc.returncode}, {out.strip()[:60]!r}", file=sys.stderr
+                        )
                         continue
                     latencies.append(float(out.split()[1]) - sent)
                 text = ", ".join(f"{x:.3f}" for x in latencies)
-                print(f"| {n}² | {case} | {text} | {statistics.median(latencies):.3f} | {max(latencies):.3f} |", flush=True)
+                print(
+                    f"| {n}² | {case} | {text} | {statistics.median(latencies):.3f} | {max(latencies):.3f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -129,8 +129,14 @@ def measure(result: nplps.Reconstruction, truth: np.ndarray, mask: np.ndarray) -
 
 
 def synthetic_case(
-    name: str, camera: str, noise: float, light_error: float, seeds: range, n: int = 128,
-    led: bool = False, rgb: bool = False,
+    name: str,
+    camera: str,
+    noise: float,
+    light_error: float,
+    seeds: range,
+    n: int = 128,
+    led: bool = False,
+    rgb: bool = False,
 ) -> dict[str, Any]:
     runs = []
     for seed in seeds:
@@ -139,8 +145,15 @@ def synthetic_case(
         result = nplps.reconstruct(scene.images, rig, mask=scene.mask, depth=scene.mean_depth)
         runs.append({"seed": seed, **measure(result, scene.normals, scene.mask)})
     return {
-        "scene": name, "camera": camera, "n": n, "noise": noise, "light_error": light_error,
-        "led": led, "rgb": rgb, "runs": runs, **summarize(runs),
+        "scene": name,
+        "camera": camera,
+        "n": n,
+        "noise": noise,
+        "light_error": light_error,
+        "led": led,
+        "rgb": rgb,
+        "runs": runs,
+        **summarize(runs),
     }
 
 
@@ -183,9 +196,17 @@ def ball_cases() -> list[dict[str, Any]]:
     for capture in (ball, ball.select(range(0, ball.num_images, 7))):
         result = nplps.reconstruct(capture.images, capture.rig(), mask=capture.mask, depth=1000.0)
         run = measure(result, capture.normals_gt, capture.mask)
-        cases.append({"scene": f"DiLiGenT ball, {capture.num_images} lights", "camera": "orthographic",
-                      "n": list(capture.mask.shape), "noise": None, "light_error": 0.0, "runs": [run],
-                      **summarize([run])})
+        cases.append(
+            {
+                "scene": f"DiLiGenT ball, {capture.num_images} lights",
+                "camera": "orthographic",
+                "n": list(capture.mask.shape),
+                "noise": None,
+                "light_error": 0.0,
+                "runs": [run],
+                **summarize([run]),
+            }
+        )
     return cases
 
 
@@ -205,31 +226,39 @@ def fmt(v: float | None, digits: int = 2) -> str:
 
 def table(title: str, cases: list[dict[str, Any]]) -> None:
     print(f"\n## {title}\n")
-    print("| case | camera | noise | lights off | local mean | local median | local worst | "
-          "mesh mean | mesh median | mesh worst | mesh − local | better |")
+    print(
+        "| case | camera | noise | lights off | local mean | local median | local worst | "
+        "mesh mean | mesh median | mesh worst | mesh − local | better |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for c in cases:
         lo, me, d = c["local"], c["mesh"], c["mesh_minus_local"]
         better = "tie" if abs(d) < TIE else ("mesh" if d < 0 else "local")
         noise = "–" if c["noise"] is None else f"{100 * c['noise']:g} %"
         flag = f" ({c['not_converged']} not converged)" if c["not_converged"] else ""
-        print(f"| {label(c)}{flag} | {c['camera'][:5]} | {noise} | {100 * c['light_error']:g} % | "
-              f"{fmt(lo['mean'])} | {fmt(lo['median'])} | {fmt(lo['worst'])} | "
-              f"{fmt(me['mean'])} | {fmt(me['median'])} | {fmt(me['worst'])} | {d:+.2f} | {better} |")
+        print(
+            f"| {label(c)}{flag} | {c['camera'][:5]} | {noise} | {100 * c['light_error']:g} % | "
+            f"{fmt(lo['mean'])} | {fmt(lo['median'])} | {fmt(lo['worst'])} | "
+            f"{fmt(me['mean'])} | {fmt(me['median'])} | {fmt(me['worst'])} | {d:+.2f} | {better} |"
+        )
 
 
 def where_table(cases: list[dict[str, Any]]) -> None:
     print("\n## Where the errors are (mean error in degrees, means over seeds; local / mesh)\n")
-    print("| case | camera | noise | lights off | interior | boundary band (2 px) | bend (> 5° to a neighbour) | "
-          "pixels interior / band / bend |")
+    print(
+        "| case | camera | noise | lights off | interior | boundary band (2 px) | bend (> 5° to a neighbour) | "
+        "pixels interior / band / bend |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for c in cases:
         lo, me = c["local"], c["mesh"]
         px = c["runs"][0]["local"]["pixels"]
         cells = [f"{fmt(lo[p])} / {fmt(me[p])}" for p in ("interior", "boundary", "bend")]
         noise = "–" if c["noise"] is None else f"{100 * c['noise']:g} %"
-        print(f"| {label(c)} | {c['camera'][:5]} | {noise} | {100 * c['light_error']:g} % | "
-              f"{' | '.join(cells)} | {px['interior']} / {px['boundary']} / {px['bend']} |")
+        print(
+            f"| {label(c)} | {c['camera'][:5]} | {noise} | {100 * c['light_error']:g} % | "
+            f"{' | '.join(cells)} | {px['interior']} / {px['boundary']} / {px['bend']} |"
+        )
 
 
 def case_name(c: dict[str, Any]) -> str:
@@ -238,7 +267,7 @@ def case_name(c: dict[str, Any]) -> str:
 
 
 def spread(v: np.ndarray, digits: int = 2) -> str:
-    """"a" for one value, else "min to max (median m)"."""
+    """ "a" for one value, else "min to max (median m)"."""
     if len(v) == 1:
         return f"{v[0]:.{digits}f}"
     return f"{v.min():.{digits}f} to {v.max():.{digits}f} (median {np.median(v):.{digits}f})"
@@ -255,13 +284,16 @@ def verdict(cases: list[dict[str, Any]], title: str, list_local: bool = True) ->
     medians = np.array([c["mesh"]["median"] - c["local"]["median"] for c in cases])
     lines = [f"{title}: {len(cases)} case group{'s' if len(cases) > 1 else ''}"]
     if mesh.any():
-        lines.append(f"  mesh normals more accurate in {mesh.sum()}: by {spread(-d[mesh])} degrees; "
-                     f"error ratio mesh/local {spread(ratio[mesh])}")
+        lines.append(
+            f"  mesh normals more accurate in {mesh.sum()}: by {spread(-d[mesh])} degrees; "
+            f"error ratio mesh/local {spread(ratio[mesh])}"
+        )
     if local.any():
-        worse = [case_name(c) for c, w in zip(cases, local) if w]
-        lines.append(f"  local normals more accurate in {local.sum()}: by {spread(d[local], 3)} degrees; "
-                     f"error ratio mesh/local {spread(ratio[local])}"
-                     + (" — " + "; ".join(worse) if list_local else ""))
+        worse = [case_name(c) for c, w in zip(cases, local, strict=False) if w]
+        lines.append(
+            f"  local normals more accurate in {local.sum()}: by {spread(d[local], 3)} degrees; "
+            f"error ratio mesh/local {spread(ratio[local])}" + (" — " + "; ".join(worse) if list_local else "")
+        )
     ties = len(cases) - mesh.sum() - local.sum()
     if ties:
         lines.append(f"  ties (|difference| < {TIE} degrees): {ties}")
@@ -308,13 +340,21 @@ def main(argv: list[str] | None = None) -> int:
         "size": "Bumps, 256 x 256, pinhole, 1 % noise",
         "led": "Anisotropic LEDs, unequal RGB intensities, colour albedo, pinhole, 1 % noise, 128 x 128",
     }
-    print(f"Angular error of the normals against ground truth, degrees; seeds 0..{len(seeds) - 1} "
-          "(mean = average over seeds of each run's mean; worst = the largest run mean).")
+    print(
+        f"Angular error of the normals against ground truth, degrees; seeds 0..{len(seeds) - 1} "
+        "(mean = average over seeds of each run's mean; worst = the largest run mean)."
+    )
     for key, title in titles.items():
         if key in groups:
             table(title, groups[key])
-    where_table([c for key in ("noise", "lights") for c in groups[key]
-                 if c["camera"] == "orthographic" and c["noise"] in (0.0, 0.01)])
+    where_table(
+        [
+            c
+            for key in ("noise", "lights")
+            for c in groups[key]
+            if c["camera"] == "orthographic" and c["noise"] in (0.0, 0.01)
+        ]
+    )
     ball = [] if args.no_ball else ball_cases()
     if ball:
         groups["ball"] = ball

@@ -52,7 +52,10 @@ def wrong_positions(rig: nplps.Rig, seed: int, distance: float, fraction: float 
 
 def intensity_table(seeds: int) -> None:
     print("## Intensity refinement: +-35 % intensity errors (bumps and sphere, 80 x 80, 27 lights)")
-    print("scene  noise seed | rel. intensity err % | normals vs true-intensity run (deg) | unrefined (deg) | at 0 % error (deg)")
+    print(
+        "scene  noise seed | rel. intensity err % | normals vs true-intensity run (deg)"
+        " | unrefined (deg) | at 0 % error (deg)"
+    )
     for name in ("bumps", "sphere"):
         for noise in (0.0, 0.01):
             for seed in range(seeds):
@@ -90,10 +93,13 @@ def cost_table() -> None:
         d = scene.mean_depth
         args = (scene.images.astype(np.float32), bad)
         kw = {**KW, "mask": scene.mask, "depth": d}
-        plain = _median_time(lambda: nplps.reconstruct(*args, **kw), repeats)
-        refined = _median_time(lambda: nplps.reconstruct(*args, refine_lights="intensity", **kw), repeats)
-        its = len(nplps.reconstruct(*args, **kw).history), len(
-            nplps.reconstruct(*args, refine_lights="intensity", **kw).history
+        plain = _median_time(lambda args=args, kw=kw: nplps.reconstruct(*args, **kw), repeats)
+        refined = _median_time(
+            lambda args=args, kw=kw: nplps.reconstruct(*args, refine_lights="intensity", **kw), repeats
+        )
+        its = (
+            len(nplps.reconstruct(*args, **kw).history),
+            len(nplps.reconstruct(*args, refine_lights="intensity", **kw).history),
         )
         print(f"{n:4} x {n:<4}| {plain:9.3f} | {refined:11.3f} | {refined / plain:5.2f} | {its[0]} / {its[1]}")
 
@@ -115,7 +121,10 @@ def convergence_traces() -> None:
 def position_table(seeds: int) -> None:
     print("\n## Position refinement: the paper's test, light positions off by 5 % of the distance (RMS)")
     print("bumps, 80 x 80, 27 lights, refine_lights='position', default prior (w = 1000)")
-    print("noise seed | light RMS err mm before -> after | normals deg: true rig / before / after | fell back | stopped | cond")
+    print(
+        "noise seed | light RMS err mm before -> after"
+        " | normals deg: true rig / before / after | fell back | stopped | cond"
+    )
     for noise in (0.0, 0.01):
         rows = []
         for seed in range(seeds):
@@ -167,7 +176,9 @@ def real_table() -> None:
     if not SHARED.is_dir():
         print(f"\n(real captures skipped: {SHARED} not found)")
         return
-    print("\n## hehe12 (binned 4 x 4, distance 200 mm): calibrate intensities on all 8 images, then leave-one-light-out")
+    print(
+        "\n## hehe12 (binned 4 x 4, distance 200 mm): calibrate intensities on all 8 images, then leave-one-light-out"
+    )
     cap = captures.prepare(captures.load_hehe12(SHARED / "hehe12"), bin_factor=4)
     rig, d = cap.rig(), 200.0
     for mode in (None, "intensity"):
@@ -180,21 +191,29 @@ def real_table() -> None:
             f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f})"
         )
         if mode:
-            print("  near-light intensities / light.mat's (both normalised to geometric mean 1):",
-                  np.round(relative(near.rig.intensities[:, 0]) / relative(rig.intensities[:, 0]), 3))
-            print("  parallel-model intensities / light.mat's:",
-                  np.round(relative(par.rig.intensities[:, 0]) / relative(rig.intensities[:, 0]), 3))
+            print(
+                "  near-light intensities / light.mat's (both normalised to geometric mean 1):",
+                np.round(relative(near.rig.intensities[:, 0]) / relative(rig.intensities[:, 0]), 3),
+            )
+            print(
+                "  parallel-model intensities / light.mat's:",
+                np.round(relative(par.rig.intensities[:, 0]) / relative(rig.intensities[:, 0]), 3),
+            )
             se = near.refinement.standard_errors[:, 0]
-            print(f"  standard errors of the near-light factors: {100 * se.min():.2f}..{100 * se.max():.2f} %; "
-                  f"singular values {np.round(near.refinement.singular_values, 4)}")
+            print(
+                f"  standard errors of the near-light factors: {100 * se.min():.2f}..{100 * se.max():.2f} %; "
+                f"singular values {np.round(near.refinement.singular_values, 4)}"
+            )
 
     print("\n## queau_human1 (binned 8 x 8, 700 mm) and diligent_ball: with and without intensity refinement")
     cap = captures.prepare(captures.load_queau_human1(SHARED / "queau_human1"), bin_factor=8)
     for mode in (None, "intensity"):
         _, _, e = calibrated_held_out(cap, 700.0, mode)
-        print(f"queau_human1 {mode!s:9}: held-out raw near {e['relative_near']:.4f}, "
-              f"parallel {e['relative_parallel']:.4f}; shape near "
-              f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f}")
+        print(
+            f"queau_human1 {mode!s:9}: held-out raw near {e['relative_near']:.4f}, "
+            f"parallel {e['relative_parallel']:.4f}; shape near "
+            f"{e['shape_near']:.4f}, parallel {e['shape_parallel']:.4f}"
+        )
     ball = captures.load_diligent(SHARED / "diligent_ball", load=True)
     for mode in (None, "intensity"):
         r = nplps.reconstruct(ball.images, ball.rig(), mask=ball.mask, depth=1000.0, iterations=1, refine_lights=mode)

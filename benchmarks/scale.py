@@ -149,7 +149,9 @@ def albedo_map(rig: nplps.Rig, w: int, h: int) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(0.6 + 0.4 * s, (h, w)), dtype=np.float64)
 
 
-def render_uint16(depth: np.ndarray, rig: nplps.Rig, albedo: np.ndarray, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+def render_uint16(
+    depth: np.ndarray, rig: nplps.Rig, albedo: np.ndarray, noise: float = 0.0, seed: int = 0
+) -> np.ndarray:
     """The images (k, H, W) as uint16, scaled so that the brightest value is 65535, with Gaussian
     noise of standard deviation ``noise`` times that. Rendered a few lights at a time into a
     float32 stack (a float64 stack of 12 MP x 16 is 1.5 GB)."""
@@ -194,7 +196,7 @@ def write_case(directory: Path, camera: str, w: int, h: int, k: int, files: bool
     t0 = time.perf_counter()
     if files:
         paths = [directory / f"image_{i:02d}.png" for i in range(k)]
-        for path, image in zip(paths, images):
+        for path, image in zip(paths, images, strict=False):
             export.write_png16(path, image)
         inputs = [str(p) for p in paths]
         input_bytes = sum(p.stat().st_size for p in paths)
@@ -312,14 +314,28 @@ def run_child(spec_path: str) -> None:
         assert levels in (None, LEVELS_16), levels
         t0 = time.perf_counter()
         result = nplps.reconstruct(
-            stack, rig, mask=mask, depth=spec["gauge"], iterations=spec["iterations"], tol=spec["tol"],
-            dark=DARK_16, saturation=SATURATION_16, threads=spec["threads"], **options,
+            stack,
+            rig,
+            mask=mask,
+            depth=spec["gauge"],
+            iterations=spec["iterations"],
+            tol=spec["tol"],
+            dark=DARK_16,
+            saturation=SATURATION_16,
+            threads=spec["threads"],
+            **options,
         )
         reconstruct_s = time.perf_counter() - t0
         del stack
         rss_after_reconstruct = max(rss_after_reconstruct, peak_rss_mb())
         hwm_after_reconstruct = hwm_mb()
-        runs.append({"load": load_s, "reconstruct": reconstruct_s, **{f"timings.{k}": float(v) for k, v in result.timings.items()}})
+        runs.append(
+            {
+                "load": load_s,
+                "reconstruct": reconstruct_s,
+                **{f"timings.{k}": float(v) for k, v in result.timings.items()},
+            }
+        )
         t0 = time.perf_counter()
         paths = result.save(out_dir)
         save_s = time.perf_counter() - t0
@@ -372,8 +388,15 @@ def run_make(spec_path: str) -> None:
     """Renders and writes the inputs of the case described by ``spec_path`` (in a process of its
     own, so that the parent, whose peak RSS its children inherit, stays small)."""
     spec = json.loads(Path(spec_path).read_text(encoding="utf-8"))
-    inputs = write_case(Path(spec["directory"]), spec["camera"], spec["width"], spec["height"], spec["lights"],
-                        spec["files"], spec["noise"])
+    inputs = write_case(
+        Path(spec["directory"]),
+        spec["camera"],
+        spec["width"],
+        spec["height"],
+        spec["lights"],
+        spec["files"],
+        spec["noise"],
+    )
     Path(spec_path).write_text(json.dumps({**spec, **inputs}), encoding="utf-8")
 
 
@@ -382,23 +405,45 @@ def run_case(args: argparse.Namespace, workdir: Path, camera: str, w: int, h: in
     directory.mkdir(parents=True, exist_ok=True)
     spec_path = directory / "spec.json"
     spec = {
-        "directory": str(directory), "camera": camera, "width": w, "height": h, "lights": args.lights,
-        "files": not args.no_files, "noise": args.noise, "solver": args.solver, "levels": args.levels,
-        "iterations": args.iterations, "tol": args.tol, "threads": args.threads, "repeats": args.repeats,
+        "directory": str(directory),
+        "camera": camera,
+        "width": w,
+        "height": h,
+        "lights": args.lights,
+        "files": not args.no_files,
+        "noise": args.noise,
+        "solver": args.solver,
+        "levels": args.levels,
+        "iterations": args.iterations,
+        "tol": args.tol,
+        "threads": args.threads,
+        "repeats": args.repeats,
         "obj_alone": not args.no_obj_alone,
     }
     spec_path.write_text(json.dumps(spec), encoding="utf-8")
     print(f"[{size_label(w, h)} {camera}] rendering {args.lights} images ...", file=sys.stderr, flush=True)
     subprocess.run([sys.executable, os.path.abspath(__file__), "--make", str(spec_path)], check=True)
     inputs = json.loads(spec_path.read_text(encoding="utf-8"))
-    print(f"[{size_label(w, h)} {camera}] rendered in {inputs['render_s']:.1f} s, written in {inputs['write_s']:.1f} s; "
-          f"reconstructing in a fresh process ...", file=sys.stderr, flush=True)
+    print(
+        f"[{size_label(w, h)} {camera}] rendered in {inputs['render_s']:.1f} s, written in {inputs['write_s']:.1f} s; "
+        f"reconstructing in a fresh process ...",
+        file=sys.stderr,
+        flush=True,
+    )
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", str(spec_path)])
     child_s = time.perf_counter() - t0
-    case: dict[str, Any] = {"size": size_label(w, h), "width": w, "height": h, "pixels": w * h, "camera": camera,
-                            "lights": args.lights, "input_bytes": inputs["input_bytes"], "child_wall_s": child_s,
-                            "returncode": proc.returncode}
+    case: dict[str, Any] = {
+        "size": size_label(w, h),
+        "width": w,
+        "height": h,
+        "pixels": w * h,
+        "camera": camera,
+        "lights": args.lights,
+        "input_bytes": inputs["input_bytes"],
+        "child_wall_s": child_s,
+        "returncode": proc.returncode,
+    }
     if proc.returncode == 0:
         case.update(json.loads((directory / "result.json").read_text(encoding="utf-8")))
     else:
@@ -424,20 +469,46 @@ def markdown_tables(cases: list[dict[str, Any]]) -> str:
     ok = [c for c in cases if c["returncode"] == 0]
     split_keys = sorted({k for c in ok for k in c["timings"] if k.startswith("timings.") and k != "timings.total"})
     split_names = [k.split(".", 1)[1] for k in split_keys]
-    head = (["size", "camera", "MP", "load s", "reconstruct s", *[f"{n} s" for n in split_names], "save s", "PLY s", "OBJ s",
-             "iterations (level:outer/inner)", "peak RSS MB", "RSS − base MB", "normal err ° (mean/median)",
-             "depth err % (max/RMS)"])
+    head = [
+        "size",
+        "camera",
+        "MP",
+        "load s",
+        "reconstruct s",
+        *[f"{n} s" for n in split_names],
+        "save s",
+        "PLY s",
+        "OBJ s",
+        "iterations (level:outer/inner)",
+        "peak RSS MB",
+        "RSS − base MB",
+        "normal err ° (mean/median)",
+        "depth err % (max/RMS)",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for c in cases:
         if c["returncode"] != 0:
-            lines.append(f"| {c['size']} | {c['camera']} | {c['pixels'] / MEGAPIXEL:.2f} | failed (exit {c['returncode']}) |")
+            lines.append(
+                f"| {c['size']} | {c['camera']} | {c['pixels'] / MEGAPIXEL:.2f} | failed (exit {c['returncode']}) |"
+            )
             continue
         t, e, a = c["timings"], c["export"], c["accuracy"]
-        row = [c["size"], c["camera"], f"{c['pixels'] / MEGAPIXEL:.2f}", _fmt(t["load"]), _fmt(t["reconstruct"]),
-               *[_fmt(t.get(k)) for k in split_keys], _fmt(e["save"]), _fmt(e["write_ply"]), _fmt(e.get("write_obj")),
-               _levels_text(c["levels"]), f"{c['rss_export_mb']:.0f}", f"{c['rss_export_mb'] - c['rss_base_mb']:.0f}",
-               f"{a['normal_error_mean_deg']:.3f} / {a['normal_error_median_deg']:.3f}",
-               f"{a['depth_error_max_pct']:.3f} / {a['depth_error_rms_pct']:.3f}"]
+        row = [
+            c["size"],
+            c["camera"],
+            f"{c['pixels'] / MEGAPIXEL:.2f}",
+            _fmt(t["load"]),
+            _fmt(t["reconstruct"]),
+            *[_fmt(t.get(k)) for k in split_keys],
+            _fmt(e["save"]),
+            _fmt(e["write_ply"]),
+            _fmt(e.get("write_obj")),
+            _levels_text(c["levels"]),
+            f"{c['rss_export_mb']:.0f}",
+            f"{c['rss_export_mb'] - c['rss_base_mb']:.0f}",
+            f"{a['normal_error_mean_deg']:.3f} / {a['normal_error_median_deg']:.3f}",
+            f"{a['depth_error_max_pct']:.3f} / {a['depth_error_rms_pct']:.3f}",
+        ]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
 
@@ -465,44 +536,87 @@ def growth(cases: list[dict[str, Any]]) -> list[dict[str, Any]]:
         base = per_pixel(ref)
         for c in runs:
             p = per_pixel(c)
-            rows.append({
-                "camera": camera, "size": c["size"], "reference": ref["size"], "pixels": c["pixels"],
-                "us_per_pixel_reconstruct": 1e6 * p["reconstruct"], "us_per_pixel_end_to_end": 1e6 * p["end_to_end"],
-                "bytes_per_pixel_rss": p["rss"] * 1024 * 1024,
-                **{f"growth_{k}": p[k] / base[k] for k in p},
-            })
+            rows.append(
+                {
+                    "camera": camera,
+                    "size": c["size"],
+                    "reference": ref["size"],
+                    "pixels": c["pixels"],
+                    "us_per_pixel_reconstruct": 1e6 * p["reconstruct"],
+                    "us_per_pixel_end_to_end": 1e6 * p["end_to_end"],
+                    "bytes_per_pixel_rss": p["rss"] * 1024 * 1024,
+                    **{f"growth_{k}": p[k] / base[k] for k in p},
+                }
+            )
     return rows
 
 
 def growth_table(rows: list[dict[str, Any]], limit: float) -> str:
-    head = ["camera", "size", "µs/pixel reconstruct", "µs/pixel load+reconstruct+save", "RSS bytes/pixel",
-            "growth reconstruct", "growth end-to-end", "growth RSS"]
+    head = [
+        "camera",
+        "size",
+        "µs/pixel reconstruct",
+        "µs/pixel load+reconstruct+save",
+        "RSS bytes/pixel",
+        "growth reconstruct",
+        "growth end-to-end",
+        "growth RSS",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for r in rows:
-        marks = {k: ("" if r[f"growth_{k}"] <= limit or r["pixels"] < MEGAPIXEL else " ⚠") for k in ("reconstruct", "end_to_end", "rss")}
-        lines.append("| " + " | ".join([
-            r["camera"], r["size"], f"{r['us_per_pixel_reconstruct']:.3f}", f"{r['us_per_pixel_end_to_end']:.3f}",
-            f"{r['bytes_per_pixel_rss']:.0f}", f"{r['growth_reconstruct']:.2f}{marks['reconstruct']}",
-            f"{r['growth_end_to_end']:.2f}{marks['end_to_end']}", f"{r['growth_rss']:.2f}{marks['rss']}",
-        ]) + " |")
+        marks = {
+            k: ("" if r[f"growth_{k}"] <= limit or r["pixels"] < MEGAPIXEL else " ⚠")
+            for k in ("reconstruct", "end_to_end", "rss")
+        }
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    r["camera"],
+                    r["size"],
+                    f"{r['us_per_pixel_reconstruct']:.3f}",
+                    f"{r['us_per_pixel_end_to_end']:.3f}",
+                    f"{r['bytes_per_pixel_rss']:.0f}",
+                    f"{r['growth_reconstruct']:.2f}{marks['reconstruct']}",
+                    f"{r['growth_end_to_end']:.2f}{marks['end_to_end']}",
+                    f"{r['growth_rss']:.2f}{marks['rss']}",
+                ]
+            )
+            + " |"
+        )
     return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=parse_size, nargs="+", default=[parse_size(s) for s in "256 512 1024 2048 4096 4000x3000".split()],
-                        help="N (N x N) or WxH (default: 256 512 1024 2048 4096 4000x3000)")
+    parser.add_argument(
+        "--sizes",
+        type=parse_size,
+        nargs="+",
+        default=[parse_size(s) for s in "256 512 1024 2048 4096 4000x3000".split()],
+        help="N (N x N) or WxH (default: 256 512 1024 2048 4096 4000x3000)",
+    )
     parser.add_argument("--lights", type=int, default=16, help="point lights on the ring (default 16)")
-    parser.add_argument("--cameras", nargs="+", choices=("orthographic", "pinhole"), default=["orthographic", "pinhole"])
+    parser.add_argument(
+        "--cameras", nargs="+", choices=("orthographic", "pinhole"), default=["orthographic", "pinhole"]
+    )
     parser.add_argument("--solver", help="passed to nplps.reconstruct if it has solver= (auto, direct, multigrid)")
     parser.add_argument("--levels", type=int, help="pyramid levels, passed to nplps.reconstruct if it has levels=")
-    parser.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise, a fraction of the brightest value (default 0)")
+    parser.add_argument(
+        "--noise", type=float, default=0.0, help="Gaussian image noise, a fraction of the brightest value (default 0)"
+    )
     parser.add_argument("--iterations", type=int, default=10, help="maximum iterations (per level) (default 10)")
     parser.add_argument("--tol", type=float, default=1e-6, help="stopping tolerance (default 1e-6, the library's)")
-    parser.add_argument("--repeats", type=int, default=1, help="runs per case in its process; medians reported (default 1)")
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="runs per case in its process; medians reported (default 1)"
+    )
     parser.add_argument("--threads", type=int, help="solver threads (default: all cores)")
-    parser.add_argument("--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files")
-    parser.add_argument("--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save still writes the OBJ)")
+    parser.add_argument(
+        "--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files"
+    )
+    parser.add_argument(
+        "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save still writes the OBJ)"
+    )
     parser.add_argument("--workdir", help="where the cases are written (default: a new temporary directory)")
     parser.add_argument("--keep", action="store_true", help="keep the images and rigs of every case")
     parser.add_argument("--limit", type=float, default=1.5, help="growth per pixel flagged above this (default 1.5)")
@@ -533,20 +647,30 @@ def main() -> None:
         if not args.keep and not args.workdir:
             shutil.rmtree(workdir, ignore_errors=True)
     rows = growth(cases)
-    settings = (f"solver={args.solver or 'default'}, levels={args.levels if args.levels is not None else 'default'}"
-                + (f" (unsupported: {', '.join(unsupported)})" if unsupported else ""))
-    print(f"\nnplps {nplps.__version__}, {args.lights} lights, noise {args.noise:g}, {'arrays' if args.no_files else '16-bit PNG files'}, "
-          f"{settings}, iterations {args.iterations}, tol {args.tol:g}, threads {args.threads or 'all'} "
-          f"({os.cpu_count()} CPUs); medians of {args.repeats} run(s); seconds\n")
+    settings = f"solver={args.solver or 'default'}, levels={args.levels if args.levels is not None else 'default'}" + (
+        f" (unsupported: {', '.join(unsupported)})" if unsupported else ""
+    )
+    print(
+        f"\nnplps {nplps.__version__}, {args.lights} lights, noise {args.noise:g},"
+        f" {'arrays' if args.no_files else '16-bit PNG files'}, "
+        f"{settings}, iterations {args.iterations}, tol {args.tol:g}, threads {args.threads or 'all'} "
+        f"({os.cpu_count()} CPUs); medians of {args.repeats} run(s); seconds\n"
+    )
     print(markdown_tables(cases))
-    print(f"\nPer pixel, relative to the reference size (growth ≤ {args.limit:g} is within the acceptance; ⚠ above, "
-          "for sizes of at least 1 MP):\n")
+    print(
+        f"\nPer pixel, relative to the reference size (growth ≤ {args.limit:g} is within the acceptance; ⚠ above, "
+        "for sizes of at least 1 MP):\n"
+    )
     print(growth_table(rows, args.limit))
     if args.json:
         payload = {
-            "nplps": nplps.__version__, "python": platform.python_version(), "cpus": os.cpu_count(),
-            "args": {k: v for k, v in vars(args).items() if k not in ("child", "make")}, "unsupported_options": unsupported,
-            "cases": cases, "growth": rows,
+            "nplps": nplps.__version__,
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "args": {k: v for k, v in vars(args).items() if k not in ("child", "make")},
+            "unsupported_options": unsupported,
+            "cases": cases,
+            "growth": rows,
         }
         Path(args.json).write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
 

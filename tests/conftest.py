@@ -7,8 +7,8 @@ are read-only inputs, and building them once keeps the suite fast.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest

@@ -133,13 +133,17 @@ api("images.inf", C, "J = I.copy(); J[3, 5, 5] = np.inf; rec(images=J)", raises(
 api("images.neg_inf", C, "J = I.copy(); J[4, 0, 0] = -np.inf; rec(images=J)", raises("InputError", "image 4"))
 api("images.all_nan", C, "rec(images=np.full(I.shape, np.nan))", raises("InputError", "image"))
 api(
-    "images.some_negative", C, "J = I.copy(); J[0, :4] = -0.1; r = rec(images=J)",
+    "images.some_negative",
+    C,
+    "J = I.copy(); J[0, :4] = -0.1; r = rec(images=J)",
     ok("honest(r) and r.converged and warned('negative')"),
 )
 api("images.all_negative", C, "rec(images=-np.ones_like(I))", raises("InputError", "observations"))
 api("images.all_zero", C, "rec(images=np.zeros_like(I))", raises("InputError", "observations"))
 api(
-    "images.constant", C, "r = rec(images=np.full_like(I, 0.5))",
+    "images.constant",
+    C,
+    "r = rec(images=np.full_like(I, 0.5))",
     ok("honest(r) and r.history[-1].rms_residual > 1e-2"),
 )
 api("images.complex", C, "rec(images=I.astype(complex))", raises("InputError", "image", "complex"))
@@ -159,7 +163,9 @@ api("images.int", C, "rec(images=12)", raises("InputError", "images"))
 api("images.none", C, "rec(images=None)", raises("InputError", "images"))
 api("images.dict", C, "rec(images={'a': I[0]})", raises("InputError", "image"))
 api(
-    "images.rgb", C, "r = rec(images=np.repeat(I[..., None], 3, axis=-1))",
+    "images.rgb",
+    C,
+    "r = rec(images=np.repeat(I[..., None], 3, axis=-1))",
     ok("good(r) and r.albedo.shape == (16, 16, 3)"),
 )
 api(
@@ -183,11 +189,14 @@ api("images.float16", C, "r = rec(images=I.astype(np.float16))", ok("good(r, tol
 api("images.fortran_order", C, "r = rec(images=np.asfortranarray(I))", ok("good(r)"))
 api("images.strided_view", C, "r = rec(images=np.repeat(I, 2, axis=2)[:, :, ::2])", ok("good(r)"))
 api(
-    "images.readonly", C, "J = I.astype(np.float32); J.setflags(write=False); r = rec(images=J)",
+    "images.readonly",
+    C,
+    "J = I.astype(np.float32); J.setflags(write=False); r = rec(images=J)",
     ok("good(r)"),
 )
 api(
-    "images.caller_array_untouched", C,
+    "images.caller_array_untouched",
+    C,
     "J = I.astype(np.float32); J[0, 0, 0] = 0.0; K0 = J.copy()\n"
     "v = np.ones(J.shape, bool); v[1, 2, 2] = False\n"
     "r = rec(images=J, valid=v)",
@@ -212,7 +221,9 @@ api("mask.uint8_255", C, "r = rec(mask=M.astype(np.uint8) * 255)", ok("good(r)")
 api("mask.missing_file", C, "rec(mask=str(tmp / 'nothere.png'))", raises("InputError", ("mask", "nothere.png")))
 api("mask.text_file", C, "p = write_text('m.png', 'hello'); rec(mask=str(p))", raises("InputError", ("mask", "m.png")))
 api(
-    "mask.file_wrong_size", C, "p = png('m.png', np.full((8, 8), 255, np.uint8)); rec(mask=str(p))",
+    "mask.file_wrong_size",
+    C,
+    "p = png('m.png', np.full((8, 8), 255, np.uint8)); rec(mask=str(p))",
     raises("InputError", "mask"),
 )
 api(
@@ -230,7 +241,9 @@ C = "reconstruct/depth"
 for name, value in [("nan", "np.nan"), ("inf", "np.inf"), ("negative", "-200.0"), ("zero", "0.0"), ("none", "None")]:
     api(f"depth.{name}", C, f"rec(depth={value})", raises("InputError", "depth"))
 api(
-    "depth.1e300", C, "r = rec(depth=1e300)",
+    "depth.1e300",
+    C,
+    "r = rec(depth=1e300)",
     either("r.status in ('degenerate', 'diverged')", "InputError", "depth"),
 )
 api("depth.1e-300_lights_behind", C, "rec(depth=1e-300)", raises("InputError", ("depth", "light")))
@@ -247,7 +260,8 @@ api("depth.map_wrong_shape", C, "rec(depth=np.full((16, 16), 200.0))", raises("I
 api("depth.map_3d", C, "rec(depth=np.full((17, 17, 1), 200.0))", raises("InputError", "depth"))
 api("depth.map_nan_inside_mask", C, "z = S.depth.copy(); z[8, 8] = np.nan; rec(depth=z)", raises("InputError", "depth"))
 api(
-    "depth.map_nan_outside_mask", C,
+    "depth.map_nan_outside_mask",
+    C,
     "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[:3] = np.nan; r = rec(mask=m, depth=z)",
     ok("honest(r) and r.converged"),
 )
@@ -268,13 +282,22 @@ api(
 C = "reconstruct/auto"
 api("auto.basic", C, "r = rec(depth='auto')", ok("good(r) and r.distance is not None"))
 for name, value in [
-    ("zero", "(0, 400)"), ("negative", "(-1, 400)"), ("reversed", "(400, 100)"), ("equal", "(100, 100)"),
-    ("nan", "(np.nan, 400)"), ("inf", "(100, np.inf)"), ("string", "'100,400'"), ("triple", "(100, 200, 300)"),
-    ("scalar", "300"), ("none_inside", "(100, None)"),
+    ("zero", "(0, 400)"),
+    ("negative", "(-1, 400)"),
+    ("reversed", "(400, 100)"),
+    ("equal", "(100, 100)"),
+    ("nan", "(np.nan, 400)"),
+    ("inf", "(100, np.inf)"),
+    ("string", "'100,400'"),
+    ("triple", "(100, 200, 300)"),
+    ("scalar", "300"),
+    ("none_inside", "(100, None)"),
 ]:
     api(f"auto.range_{name}", C, f"rec(depth='auto', depth_range={value})", raises("InputError", "depth_range"))
 api(
-    "auto.range_excludes_truth", C, "r = rec(depth='auto', depth_range=(1000, 2000))",
+    "auto.range_excludes_truth",
+    C,
+    "r = rec(depth='auto', depth_range=(1000, 2000))",
     either("warned('range')", "InputError", "depth_range"),
 )
 api(
@@ -288,21 +311,33 @@ for name, value in [("negative", "-5"), ("zero", "0"), ("nan", "np.nan"), ("inf"
 api("auto.pinhole", C, "r = nplps.reconstruct(PS.images, PS.rig, mask=PS.mask, depth='auto')", ok("good(r, PS)"))
 api("auto.guess_ok", C, "r = rec(depth='auto', depth_guess=200.0)", ok("good(r)"))
 api(
-    "auto.directional_only", C,
+    "auto.directional_only",
+    C,
     "Rd = orth(directional=[[0.3, 0, -1], [0, 0.3, -1], [-0.3, 0, -1], [0, -0.3, -1], [0.2, 0.2, -1]])\n"
     "rec(images=render_for(Rd), rig=Rd, depth='auto')",
     raises("InputError", ("depth", "auto")),
 )
 api(
-    "auto.three_lights", C, "rec(images=I[[0, 9, 18]], rig=R.subset([0, 9, 18]), depth='auto')",
+    "auto.three_lights",
+    C,
+    "rec(images=I[[0, 9, 18]], rig=R.subset([0, 9, 18]), depth='auto')",
     raises("InputError", ("depth", "auto")),
 )
 api("auto.parallel", C, "par(depth='auto')", raises("InputError", ("depth", "auto")))
 
 # --- reconstruct: solver options -------------------------------------------------------------------
 C = "reconstruct/iterations"
-for name, value in [("zero", "0"), ("negative", "-1"), ("string", "'ten'"), ("fraction", "2.5"), ("bool", "True"),
-                    ("none", "None"), ("inf", "np.inf"), ("numeric_string", "'10'"), ("huge_negative", "-10**30")]:
+for name, value in [
+    ("zero", "0"),
+    ("negative", "-1"),
+    ("string", "'ten'"),
+    ("fraction", "2.5"),
+    ("bool", "True"),
+    ("none", "None"),
+    ("inf", "np.inf"),
+    ("numeric_string", "'10'"),
+    ("huge_negative", "-10**30"),
+]:
     api(f"iterations.{name}", C, f"rec(iterations={value})", raises("InputError", "iterations"))
 api("iterations.1e9", C, "r = rec(iterations=10**9, tol=1e-3)", ok("good(r)"))
 api("iterations.maxsize", C, "r = rec(iterations=sys.maxsize, tol=1e-3)", ok("good(r)"))
@@ -394,7 +429,8 @@ api("threads.bool", C, "r = rec(threads=True)", either("good(r)", "InputError", 
 api("threads.million", C, "r = rec(threads=10**6)", either("good(r)", "InputError", "threads"), isolate=True)
 api("threads.2pow64", C, "r = rec(threads=2**64)", either("good(r)", "InputError", "threads"))
 api(
-    "threads.concurrent_calls", C,
+    "threads.concurrent_calls",
+    C,
     "import threading\nout = [None] * 4\n"
     "def run(i):\n    out[i] = rec().depth\n"
     "ts = [threading.Thread(target=run, args=(i,)) for i in range(4)]\n"
@@ -409,12 +445,16 @@ api("progress.true", C, "r = rec(progress=True)", ok("good(r)"))
 api("progress.callable", C, "its = []; r = rec(progress=its.append)", ok("good(r) and len(its) == len(r.history)"))
 api("progress.raises", C, "rec(progress=lambda it: 1 / 0)", raises("ZeroDivisionError"))
 api(
-    "progress.keyboard_interrupt", C,
-    "def stop(it):\n    raise KeyboardInterrupt\nrec(progress=stop)", raises("KeyboardInterrupt"),
+    "progress.keyboard_interrupt",
+    C,
+    "def stop(it):\n    raise KeyboardInterrupt\nrec(progress=stop)",
+    raises("KeyboardInterrupt"),
 )
 api("progress.wrong_signature", C, "rec(progress=lambda: None)", raises("TypeError|InputError"))
 api(
-    "progress.reentrant", C, "inner = []; r = rec(progress=lambda it: inner.append(rec(iterations=2)))",
+    "progress.reentrant",
+    C,
+    "inner = []; r = rec(progress=lambda it: inner.append(rec(iterations=2)))",
     ok("good(r) and len(inner) == len(r.history)"),
 )
 
@@ -434,11 +474,15 @@ api("refine.both", C, "r = rec(refine_lights='both')", ok("honest(r)"))
 api("refine.false", C, "r = rec(refine_lights=False)", ok("good(r)"))
 for name, value in [("negative", "-1.0"), ("nan", "np.nan"), ("inf", "np.inf"), ("string", "'x'"), ("complex", "1j")]:
     api(
-        f"refine.prior_weight_{name}", C, f"rec(refine_lights='position', light_prior_weight={value})",
+        f"refine.prior_weight_{name}",
+        C,
+        f"rec(refine_lights='position', light_prior_weight={value})",
         raises("InputError", "light_prior_weight"),
     )
 api(
-    "refine.prior_weight_zero", C, "r = rec(refine_lights='position', light_prior_weight=0.0)",
+    "refine.prior_weight_zero",
+    C,
+    "r = rec(refine_lights='position', light_prior_weight=0.0)",
     either("honest(r)", "InputError", "light_prior_weight"),
 )
 
@@ -455,7 +499,8 @@ api("parallel.threads_zero", C, "par(threads=0)", raises("InputError", "threads"
 api("parallel.valid_shape", C, "par(valid=np.ones((27, 8, 8), bool))", raises("InputError", "valid"))
 api("parallel.all_zero", C, "par(images=np.zeros_like(I))", raises("InputError", "observations"))
 api(
-    "parallel.collinear_lights", C,
+    "parallel.collinear_lights",
+    C,
     "Rc = orth([[0, 0, 50.0], [0, 0, 80], [0, 0, 110]]); par(images=I[:3], rig=Rc)",
     raises("RigError", "normals"),
 )
@@ -475,7 +520,9 @@ for name, value in [
 ]:
     api(f"scene.n_{name}", C, f"nplps.make_scene('bumps', n={value})", raises("InputError", "image size"))
 api(
-    "scene.n_two", C, "s = nplps.make_scene('bumps', n=2)",
+    "scene.n_two",
+    C,
+    "s = nplps.make_scene('bumps', n=2)",
     ok("s.images.shape == (27, 2, 2) and np.isfinite(s.images).all()"),
 )
 api("scene.n_1e6", C, "nplps.make_scene('bumps', n=10**6)", mem("image size"), isolate=True, budget=30)
@@ -511,7 +558,9 @@ api(
 api("scene.camera_bogus", C, "nplps.make_scene('bumps', n=16, camera='fisheye')", raises("InputError", "camera"))
 api("scene.seed_string", C, "nplps.make_scene('bumps', n=16, seed='x')", raises("InputError", "seed"))
 api(
-    "scene.seed_negative", C, "s = nplps.make_scene('bumps', n=16, seed=-1)",
+    "scene.seed_negative",
+    C,
+    "s = nplps.make_scene('bumps', n=16, seed=-1)",
     either("np.isfinite(s.images).all()", "InputError", "seed"),
 )
 
@@ -523,11 +572,14 @@ api("render.depth_complex", C, "nplps.render(S.depth + 1j, R)", raises("InputErr
 api("render.depth_string", C, "nplps.render('x', R)", raises("InputError", "depth"))
 api("render.depth_none", C, "nplps.render(None, R)", raises("InputError", "depth"))
 api(
-    "render.depth_nan_inside", C, "z = S.depth.copy(); z[8, 8] = np.nan; out = nplps.render(z, R)",
+    "render.depth_nan_inside",
+    C,
+    "z = S.depth.copy(); z[8, 8] = np.nan; out = nplps.render(z, R)",
     either("np.isnan(out[:, 7, 7]).all()", "InputError", "depth"),
 )
 api(
-    "render.depth_nan_outside_mask", C,
+    "render.depth_nan_outside_mask",
+    C,
     "m = M.copy(); m[:4] = False; z = S.depth.copy(); z[0] = np.nan; out = nplps.render(z, R, 1.0, mask=m)",
     ok("np.isfinite(out).all() and (out[:, :4] == 0).all()"),
 )
@@ -597,7 +649,9 @@ api(
     raises("InputError", "depth"),
 )
 api(
-    "held_out.basic", C, "h = nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[0])",
+    "held_out.basic",
+    C,
+    "h = nplps.evaluation.held_out(I, R, mask=M, depth=200.0, lights=[0])",
     ok("len(h) == 1 and 0 <= h[0].relative_error < 0.05"),
 )
 api(
@@ -636,27 +690,39 @@ api("rig.lights_shape", C, "Rig.orthographic(6.25, lights=np.ones((5, 2)))", rai
 api("rig.lights_string", C, "Rig.orthographic(6.25, lights='abc')", raises("RigError", "lights"))
 api("rig.no_lights", C, "rg = Rig.orthographic(6.25, lights=[])", either("rg.n_lights == 0", "RigError", "lights"))
 api(
-    "rig.two_lights", C, "rec(images=I[[0, 9]], rig=R.subset([0, 9]))",
+    "rig.two_lights",
+    C,
+    "rec(images=I[[0, 9]], rig=R.subset([0, 9]))",
     raises("InputError", ("light", "normals")),
 )
 api(
-    "rig.coincident_lights", C, "Rc = orth([[10, 0, 50.0]] * 3); rec(images=I[:3], rig=Rc)",
+    "rig.coincident_lights",
+    C,
+    "Rc = orth([[10, 0, 50.0]] * 3); rec(images=I[:3], rig=Rc)",
     raises("RigError", "normals"),
 )
 api(
-    "rig.collinear_lights", C, "Rc = orth([[0, 0, 50.0], [0, 0, 80], [0, 0, 110]]); rec(images=I[:3], rig=Rc)",
+    "rig.collinear_lights",
+    C,
+    "Rc = orth([[0, 0, 50.0], [0, 0, 80], [0, 0, 110]]); rec(images=I[:3], rig=Rc)",
     raises("RigError", "normals"),
 )
 api(
-    "rig.lights_behind_surface", C, "L2 = L.copy(); L2[:, 2] = 300.0; rec(rig=orth(L2))",
+    "rig.lights_behind_surface",
+    C,
+    "L2 = L.copy(); L2[:, 2] = 300.0; rec(rig=orth(L2))",
     raises("InputError", ("behind", "light")),
 )
 api(
-    "rig.lights_in_surface_plane", C, "L2 = L.copy(); L2[:, 2] = 200.0; rec(rig=orth(L2))",
+    "rig.lights_in_surface_plane",
+    C,
+    "L2 = L.copy(); L2[:, 2] = 200.0; rec(rig=orth(L2))",
     raises("InputError", ("behind", "light")),
 )
 api(
-    "rig.one_light_behind", C, "L2 = L.copy(); L2[5, 2] = 300.0; rec(rig=orth(L2))",
+    "rig.one_light_behind",
+    C,
+    "L2 = L.copy(); L2[5, 2] = 300.0; rec(rig=orth(L2))",
     raises("InputError", "light 5"),
 )
 for name, value in [
@@ -680,7 +746,9 @@ api(
 api("rig.directional_zero", C, "orth(directional=[[0, 0, 0.0]])", raises("RigError", "direction"))
 api("rig.directional_nan", C, "orth(directional=[[np.nan, 0, -1.0]])", raises("RigError", "direction"))
 api(
-    "rig.directional_flags_shape", C, "Rig.from_arrays(R.camera, L, directions=[[0, 0, -1.0]])",
+    "rig.directional_flags_shape",
+    C,
+    "Rig.from_arrays(R.camera, L, directions=[[0, 0, -1.0]])",
     raises("RigError", "directions"),
 )
 api("rig.subset_out_of_range", C, "R.subset([99])", raises("InputError", ("indices", "99")))
@@ -697,7 +765,9 @@ api("rig.distortion_six", C, "Rig.pinhole(KP, lights=L, distortion=[0] * 6)", ra
 api("rig.distortion_nan", C, "Rig.pinhole(KP, lights=L, distortion=[np.nan, 0])", raises("RigError", "distortion"))
 api("rig.distortion_string", C, "Rig.pinhole(KP, lights=L, distortion='abc')", raises("RigError", "distortion"))
 api(
-    "rig.distortion_nested", C, "rg = Rig.pinhole(KP, lights=L, distortion=[[0.01, 0, 0, 0, 0]])",
+    "rig.distortion_nested",
+    C,
+    "rg = Rig.pinhole(KP, lights=L, distortion=[[0.01, 0, 0, 0, 0]])",
     ok("rg.camera['distortion'] == [0.01, 0, 0, 0, 0]"),
 )
 api(
@@ -720,18 +790,25 @@ api("rigfile.binary", C, "Rig.load(write_bytes('rig.json', bytes(range(256))))",
 api("rigfile.top_level_list", C, "Rig.load(write_json('rig.json', [1, 2]))", raises("RigError", "rig.json"))
 api("rigfile.null", C, "Rig.load(write_json('rig.json', None))", raises("RigError", "rig.json"))
 api(
-    "rigfile.deep_nesting_10000", C, "Rig.load(write_text('rig.json', '[' * 10000 + ']' * 10000))",
+    "rigfile.deep_nesting_10000",
+    C,
+    "Rig.load(write_text('rig.json', '[' * 10000 + ']' * 10000))",
     raises("RigError", "rig.json"),
 )
 api(
-    "rigfile.deep_nesting_in_camera", C,
+    "rigfile.deep_nesting_in_camera",
+    C,
     "d = rig_dict(); t = json.dumps(d).replace('\"pixel_size\": [', '\"pixel_size\": ' + '[' * 20000 + '[', 1)\n"
     "t = t.replace(']', ']' * 20001, 1)\nRig.load(write_text('rig.json', t))",
     raises("RigError", "rig.json"),
 )
 api(
-    "rigfile.deep_nesting_1e6", C, "Rig.load(write_text('rig.json', '{\"a\": ' * 10**6 + '1' + '}' * 10**6))",
-    raises("RigError", "rig.json"), isolate=True, budget=30,
+    "rigfile.deep_nesting_1e6",
+    C,
+    "Rig.load(write_text('rig.json', '{\"a\": ' * 10**6 + '1' + '}' * 10**6))",
+    raises("RigError", "rig.json"),
+    isolate=True,
+    budget=30,
 )
 api(
     "rigfile.huge_garbage",
@@ -742,9 +819,12 @@ api(
     budget=30,
 )
 api(
-    "rigfile.200k_lights", C,
+    "rigfile.200k_lights",
+    C,
     "d = rig_dict(); d['lights'] = d['lights'] * (200000 // 27 + 1); rg = Rig.load(write_json('rig.json', d))",
-    either("rg.n_lights > 200000", "RigError", "rig.json"), isolate=True, budget=60,
+    either("rg.n_lights > 200000", "RigError", "rig.json"),
+    isolate=True,
+    budget=60,
 )
 for key in ("version", "camera", "lights"):
     api(
@@ -761,7 +841,9 @@ for name, value in [("string", "'2'"), ("three", "3"), ("zero", "0"), ("bool", "
         raises("RigError", "version"),
     )
 api(
-    "rigfile.version_float", C, "d = rig_dict(); d['version'] = 2.0; rg = Rig.load(write_json('rig.json', d))",
+    "rigfile.version_float",
+    C,
+    "d = rig_dict(); d['version'] = 2.0; rg = Rig.load(write_json('rig.json', d))",
     either("rg.n_lights == 27", "RigError", "version"),
 )
 api("rigfile.v1", C, "rg = Rig.load(write_json('rig.json', rig_v1()))", ok("rg.n_lights == 27"))
@@ -825,19 +907,25 @@ api(
     raises("RigError", "origin"),
 )
 for name, value in [
-    ("missing", None), ("2x2", "[[1, 0], [0, 1]]"), ("strings", "[['a'] * 3] * 3"), ("null", "None"),
-    ("zeros", "[[0] * 3] * 3"), ("negative_focal", "[[-32, 0, 7.5], [0, 32, 7.5], [0, 0, 1]]"),
+    ("missing", None),
+    ("2x2", "[[1, 0], [0, 1]]"),
+    ("strings", "[['a'] * 3] * 3"),
+    ("null", "None"),
+    ("zeros", "[[0] * 3] * 3"),
+    ("negative_focal", "[[-32, 0, 7.5], [0, 32, 7.5], [0, 0, 1]]"),
 ]:
     code = "d = rig_dict(PS); " + ("del d['camera']['K']" if value is None else f"d['camera']['K'] = {value}")
     api(f"rigfile.K_{name}", C, code + "; Rig.load(write_json('rig.json', d))", raises("RigError", "K"))
 api(
-    "rigfile.distortion_nested_accepted", C,
+    "rigfile.distortion_nested_accepted",
+    C,
     "d = rig_dict(PS); d['camera']['distortion'] = [[0, 0, 0, 0, 0]]; rg = Rig.load(write_json('rig.json', d))\n"
     "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
 )
 api(
-    "rigfile.distortion_four", C,
+    "rigfile.distortion_four",
+    C,
     "d = rig_dict(PS); d['camera']['distortion'] = [0, 0, 0, 0]; rg = Rig.load(write_json('rig.json', d))\n"
     "r = nplps.reconstruct(PS.images, rg, mask=PS.mask, depth=200.0)",
     ok("good(r, PS)"),
@@ -850,7 +938,8 @@ for name, value in [
     ("nested_six", "[[0] * 6]"),
 ]:
     api(
-        f"rigfile.distortion_{name}", C,
+        f"rigfile.distortion_{name}",
+        C,
         f"d = rig_dict(PS); d['camera']['distortion'] = {value}; Rig.load(write_json('rig.json', d))",
         raises("RigError", "distortion"),
     )
@@ -861,7 +950,9 @@ api(
     raises("RigError", "lights"),
 )
 api(
-    "rigfile.lights_empty", C, "d = rig_dict(); d['lights'] = []; rg = Rig.load(write_json('rig.json', d))",
+    "rigfile.lights_empty",
+    C,
+    "d = rig_dict(); d['lights'] = []; rg = Rig.load(write_json('rig.json', d))",
     either("rg.n_lights == 0", "RigError", "lights"),
 )
 api(
@@ -871,8 +962,12 @@ api(
     raises("RigError", "light 2"),
 )
 for name, value in [
-    ("missing", None), ("two", "[1, 2]"), ("strings", "['a', 'b', 'c']"), ("nan", "[np.nan, 0, 0]"),
-    ("inf", "[1e400, 0, 0]"), ("huge_int", "[10**400, 0, 0]"),
+    ("missing", None),
+    ("two", "[1, 2]"),
+    ("strings", "['a', 'b', 'c']"),
+    ("nan", "[np.nan, 0, 0]"),
+    ("inf", "[1e400, 0, 0]"),
+    ("huge_int", "[10**400, 0, 0]"),
 ]:
     code = "d = rig_dict(); " + (
         "del d['lights'][3]['position']" if value is None else f"d['lights'][3]['position'] = {value}"
@@ -892,7 +987,8 @@ api(
 )
 for name, value in [("string", "'x'"), ("negative", "-1.0"), ("nan", "np.nan")]:
     api(
-        f"rigfile.mu_{name}", C,
+        f"rigfile.mu_{name}",
+        C,
         f"d = rig_dict(); d['lights'][0].update(mu={value}, direction=[0, 0, 1]); Rig.load(write_json('rig.json', d))",
         raises("RigError", "mu"),
     )
@@ -981,8 +1077,11 @@ api(
     budget=10,
 )
 api(
-    "files.bmp_bomb", C, "BAD = bmp_header_only('bomb.bmp', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
-    raises("InputError", "bomb.bmp", "pixels"), budget=10,
+    "files.bmp_bomb",
+    C,
+    "BAD = bmp_header_only('bomb.bmp', 30000, 30000)\nP = imgs(); P[0] = str(BAD); rec(images=P)",
+    raises("InputError", "bomb.bmp", "pixels"),
+    budget=10,
 )
 api(
     "files.jpeg_bomb",
@@ -992,7 +1091,9 @@ api(
     budget=10,
 )
 api(
-    "files.mismatched_size", C, "BAD = png('bad.png', np.zeros((8, 8), np.uint16))\n" + FILES,
+    "files.mismatched_size",
+    C,
+    "BAD = png('bad.png', np.zeros((8, 8), np.uint16))\n" + FILES,
     raises("InputError", "bad.png"),
 )
 api(
@@ -1043,19 +1144,27 @@ api(
 # --- degenerate data -----------------------------------------------------------------------------------
 C = "degenerate data"
 api(
-    "degenerate.saturated_uint16", C, "rec(images=np.full(I.shape, 65535, np.uint16))",
+    "degenerate.saturated_uint16",
+    C,
+    "rec(images=np.full(I.shape, 65535, np.uint16))",
     raises("InputError", ("saturat", "observations")),
 )
 api(
-    "degenerate.very_distant_lights", C, "L2 = L.copy(); L2[:, 2] = -1e6; rec(rig=orth(L2))",
+    "degenerate.very_distant_lights",
+    C,
+    "L2 = L.copy(); L2[:, 2] = -1e6; rec(rig=orth(L2))",
     raises("RigError", "normals"),
 )
 api(
-    "degenerate.very_distant_lights_parallel", C, "L2 = L.copy(); L2[:, 2] = -1e6; par(rig=orth(L2))",
+    "degenerate.very_distant_lights_parallel",
+    C,
+    "L2 = L.copy(); L2[:, 2] = -1e6; par(rig=orth(L2))",
     raises("RigError", "normals"),
 )
 api(
-    "degenerate.reversed_light_order", C, "r = rec(images=I[::-1])",
+    "degenerate.reversed_light_order",
+    C,
+    "r = rec(images=I[::-1])",
     ok("honest(r) and r.history[-1].rms_residual > 10 * rec().history[-1].rms_residual"),
 )
 
@@ -1063,7 +1172,9 @@ api(
 C = "result status"
 api("status.converged", C, "r = rec()", ok("r.status == 'converged'"))
 api(
-    "status.iteration_limit", C, "r = rec(iterations=1, tol=1e-12)",
+    "status.iteration_limit",
+    C,
+    "r = rec(iterations=1, tol=1e-12)",
     ok("not r.converged and r.status in STATUSES and r.status != 'converged'"),
 )
 api("status.in_summary", C, "r = rec()", ok("r.summary().get('status') == r.status"))
@@ -1152,7 +1263,10 @@ cli(
 )
 cli("cli.depth_npy_empty_file", C, NPY, exits(2, ("--depth", "d.npy")), setup="write_bytes('d.npy', b'')")
 cli(
-    "cli.depth_npy_truncated", C, NPY, exits(2, ("--depth", "d.npy")),
+    "cli.depth_npy_truncated",
+    C,
+    NPY,
+    exits(2, ("--depth", "d.npy")),
     setup="np.save(tmp / 'd.npy', np.full((17, 17), 200.0)); write_bytes('d.npy', (tmp / 'd.npy').read_bytes()[:200])",
 )
 cli("cli.depth_npy_text", C, NPY, exits(2, ("--depth", "d.npy")), setup="write_text('d.npy', 'hello')")
@@ -1165,15 +1279,24 @@ cli(
     setup="np.save(tmp / 'd.npy', np.zeros((17, 17), dtype=[('a', 'f8')]))",
 )
 cli(
-    "cli.depth_npy_nan_inside", C, NPY, exits(2, "depth"),
+    "cli.depth_npy_nan_inside",
+    C,
+    NPY,
+    exits(2, "depth"),
     setup="z = np.full((17, 17), 200.0); z[8, 8] = np.nan; np.save(tmp / 'd.npy', z)",
 )
 cli(
-    "cli.depth_prior_complex", C, RC + " --depth 200 --depth-prior {tmp}/p.npy", exits(2, ("prior", "p.npy")),
+    "cli.depth_prior_complex",
+    C,
+    RC + " --depth 200 --depth-prior {tmp}/p.npy",
+    exits(2, ("prior", "p.npy")),
     setup="np.save(tmp / 'p.npy', np.full((17, 17), 200.0 + 1j))",
 )
 cli(
-    "cli.prior_weight_negative", C, RC + " --depth 200 --depth-prior {tmp}/p.npy --prior-weight -1", exits(2, "prior"),
+    "cli.prior_weight_negative",
+    C,
+    RC + " --depth 200 --depth-prior {tmp}/p.npy --prior-weight -1",
+    exits(2, "prior"),
     setup="np.save(tmp / 'p.npy', np.full((17, 17), 200.0))",
 )
 
@@ -1225,7 +1348,10 @@ cli("cli.exposures_zero", C, RC + " --depth 200 --exposures " + ",".join(["0"] *
 cli("cli.exposures_string", C, RC + " --depth 200 --exposures abc", exits(2, "--exposures"))
 cli("cli.ambient_missing", C, RC + " --depth 200 --ambient {tmp}/amb.png", exits(2, "--ambient"))
 cli(
-    "cli.ambient_wrong_size", C, RC + " --depth 200 --ambient {tmp}/amb.png", exits(2, ("ambient", "amb.png")),
+    "cli.ambient_wrong_size",
+    C,
+    RC + " --depth 200 --ambient {tmp}/amb.png",
+    exits(2, ("ambient", "amb.png")),
     setup="png('amb.png', np.zeros((8, 8), np.uint16))",
 )
 cli(
@@ -1326,8 +1452,10 @@ cli(
     setup="d = rig_dict(); d['lights'] = d['lights'][:5]; write_json('five.json', d)",
 )
 cli(
-    "cli.rig_nested_distortion_accepted", C,
-    "reconstruct {PSC} --rig {tmp}/rig.json --mask {PSC}/mask.png --depth 200 --out {tmp}/out -q", exits(0),
+    "cli.rig_nested_distortion_accepted",
+    C,
+    "reconstruct {PSC} --rig {tmp}/rig.json --mask {PSC}/mask.png --depth 200 --out {tmp}/out -q",
+    exits(0),
     setup="d = rig_dict(PS); d['camera']['distortion'] = [[0, 0, 0, 0, 0]]; write_json('rig.json', d)",
 )
 cli(
@@ -1393,7 +1521,9 @@ cli(
     exits((1, 2), "/proc/nplps-probe"),
 )
 cli(
-    "cli.out_nonempty_refused", C, RC + " --depth 200",
+    "cli.out_nonempty_refused",
+    C,
+    RC + " --depth 200",
     exits((1, 2), ("--overwrite", "not empty"), check="sorted(os.listdir(tmp / 'out')) == ['precious.txt']"),
     setup="(tmp / 'out').mkdir(); write_text('out/precious.txt', 'keep')",
 )
@@ -1549,14 +1679,20 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
 
     def rec(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct(
-            S.images if images is missing else images, S.rig if rig is missing else rig,
-            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
+            S.images if images is missing else images,
+            S.rig if rig is missing else rig,
+            mask=S.mask if mask is missing else mask,
+            depth=200.0 if depth is missing else depth,
+            **kw,
         )
 
     def par(images=missing, rig=missing, mask=missing, depth=missing, **kw):
         return nplps.reconstruct_parallel(
-            S.images if images is missing else images, S.rig if rig is missing else rig,
-            mask=S.mask if mask is missing else mask, depth=200.0 if depth is missing else depth, **kw,
+            S.images if images is missing else images,
+            S.rig if rig is missing else rig,
+            mask=S.mask if mask is missing else mask,
+            depth=200.0 if depth is missing else depth,
+            **kw,
         )
 
     def used(mask):
@@ -1605,7 +1741,8 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
 
     def rig_v1():
         return {
-            "version": 1, "camera": dict(S.rig.camera),
+            "version": 1,
+            "camera": dict(S.rig.camera),
             "lights": [{"position": [float(v) for v in p]} for p in S.rig.positions],
         }
 
@@ -1663,8 +1800,17 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
 
     def tiff_header_only(name, width, height):
         """A little-endian TIFF whose one strip claims width x height 8-bit pixels."""
-        entries = [(256, 4, width), (257, 4, height), (258, 3, 8), (259, 3, 1), (262, 3, 1), (273, 4, 0),
-                   (277, 3, 1), (278, 4, height), (279, 4, width * height)]
+        entries = [
+            (256, 4, width),
+            (257, 4, height),
+            (258, 3, 8),
+            (259, 3, 1),
+            (262, 3, 1),
+            (273, 4, 0),
+            (277, 3, 1),
+            (278, 4, height),
+            (279, 4, width * height),
+        ]
         offset = 8 + 2 + 12 * len(entries) + 4
         ifd = struct.pack("<H", len(entries))
         for tag, kind, value in entries:
@@ -1710,14 +1856,52 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
         return json.loads((Path(directory) / "summary.json").read_text())
 
     ns.update(
-        np=np, nplps=nplps, Rig=Rig, InputError=InputError, RigError=RigError, SolverError=SolverError,
-        NplpsError=NplpsError, json=json, os=os, sys=sys, math=math, Path=Path, warnings=warnings, iio=iio,
-        S=S, PS=PS, I=S.images, R=S.rig, M=S.mask, L=np.array(S.rig.positions), KP=PS.rig.K.tolist(), SC=SC, PSC=PSC,
-        STATUSES=STATUSES, rec=rec, par=par, honest=honest, good=good, warned=warned, rig_dict=rig_dict,
-        rig_v1=rig_v1, write_text=write_text, write_bytes=write_bytes, write_json=write_json, png=png, tiff=tiff,
-        png_header_only=png_header_only, tiff_header_only=tiff_header_only, bmp_header_only=bmp_header_only,
-        jpeg_header_only=jpeg_header_only, imgs=imgs, copy_scene=copy_scene, orth=orth, render_for=render_for,
-        summary=summary, _ctx=ctx,
+        np=np,
+        nplps=nplps,
+        Rig=Rig,
+        InputError=InputError,
+        RigError=RigError,
+        SolverError=SolverError,
+        NplpsError=NplpsError,
+        json=json,
+        os=os,
+        sys=sys,
+        math=math,
+        Path=Path,
+        warnings=warnings,
+        iio=iio,
+        S=S,
+        PS=PS,
+        I=S.images,
+        R=S.rig,
+        M=S.mask,
+        L=np.array(S.rig.positions),
+        KP=PS.rig.K.tolist(),
+        SC=SC,
+        PSC=PSC,
+        STATUSES=STATUSES,
+        rec=rec,
+        par=par,
+        honest=honest,
+        good=good,
+        warned=warned,
+        rig_dict=rig_dict,
+        rig_v1=rig_v1,
+        write_text=write_text,
+        write_bytes=write_bytes,
+        write_json=write_json,
+        png=png,
+        tiff=tiff,
+        png_header_only=png_header_only,
+        tiff_header_only=tiff_header_only,
+        bmp_header_only=bmp_header_only,
+        jpeg_header_only=jpeg_header_only,
+        imgs=imgs,
+        copy_scene=copy_scene,
+        orth=orth,
+        render_for=render_for,
+        summary=summary,
+        _ctx=ctx,
     )
     return ns
 

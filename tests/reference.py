@@ -135,8 +135,9 @@ def mesh_normals(depth, pixel_size, origin):
     c01 = (slice(None, -1), slice(1, None))
     c10 = (slice(1, None), slice(None, -1))
     c11 = (slice(1, None), slice(1, None))
-    return _cross_normals(X[c], X[c01], X[c10], X[c11], Y[c], Y[c01], Y[c10], Y[c11],
-                          depth[c], depth[c01], depth[c10], depth[c11])
+    return _cross_normals(
+        X[c], X[c01], X[c10], X[c11], Y[c], Y[c01], Y[c10], Y[c11], depth[c], depth[c01], depth[c10], depth[c11]
+    )
 
 
 def render(depth, lights, pixel_size, origin, albedo=1.0, mask=None):
@@ -198,8 +199,7 @@ class _Problem:
         vid = np.full((H + 1, W + 1), -1, dtype=np.int64)
         vid[active] = np.arange(self.n)  # compact index keeps row-major order
         # corners in the fixed order 00, 01, 10, 11
-        self.cid = np.stack([vid[fr, fc], vid[fr, fc + 1], vid[fr + 1, fc], vid[fr + 1, fc + 1]],
-                            axis=1)
+        self.cid = np.stack([vid[fr, fc], vid[fr, fc + 1], vid[fr + 1, fc], vid[fr + 1, fc + 1]], axis=1)
         # vertex coordinates (compact) and facet centres (x, y fixed)
         xs, ys = _grid_xy(H, W, pixel_size, origin)
         vr, vc = np.nonzero(active)
@@ -249,8 +249,7 @@ class _Problem:
         self.A = A
         try:
             # A is symmetric positive definite: symmetric ordering, no pivoting
-            self.lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                options={"SymmetricMode": True})
+            self.lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         except RuntimeError as exc:  # pragma: no cover - A is SPD by construction
             raise SolverError(f"sparse factorization failed: {exc}") from exc
 
@@ -266,9 +265,11 @@ class _Problem:
 
     def mesh_normals(self, z, idx):
         c = self.cid[idx]
-        return _cross_normals(*(self.vx[c[:, j]] for j in range(4)),
-                              *(self.vy[c[:, j]] for j in range(4)),
-                              *(z[c[:, j]] for j in range(4)))
+        return _cross_normals(
+            *(self.vx[c[:, j]] for j in range(4)),
+            *(self.vy[c[:, j]] for j in range(4)),
+            *(z[c[:, j]] for j in range(4)),
+        )
 
 
 def _chol3_solve(T00, T01, T02, T11, T12, T22, s0, s1, s2):
@@ -309,8 +310,7 @@ class _Local:
         self.Uf = self.usable.astype(np.float64)
         # chunks where every observation is usable skip the weighting by Uf
         self.chunk = _CHUNK
-        self.all_usable = [bool(self.usable[:, lo:lo + self.chunk].all())
-                           for lo in range(0, prob.F, self.chunk)]
+        self.all_usable = [bool(self.usable[:, lo : lo + self.chunk].all()) for lo in range(0, prob.F, self.chunk)]
         self.nuse = self.usable.sum(axis=0)
         self.lights = lights
         self.weighting = weighting
@@ -381,8 +381,7 @@ class _Local:
                 ssq[lo:hi] = np.einsum("kf,kf->f", e, e)
         with np.errstate(invalid="ignore", over="ignore"):
             rho = np.sqrt(g[:, 0] ** 2 + g[:, 1] ** 2 + g[:, 2] ** 2)
-            valid = ok & (self.nuse >= 3) & np.isfinite(rho) & (rho > 0) & np.all(
-                np.isfinite(g), axis=1)
+            valid = ok & (self.nuse >= 3) & np.isfinite(rho) & (rho > 0) & np.all(np.isfinite(g), axis=1)
             n = g / rho[:, None]
         nvalid = self.nuse[valid].sum()
         rms = float(np.sqrt(ssq[valid].sum() / nvalid)) if nvalid > 0 else float("nan")
@@ -462,8 +461,9 @@ def _outputs(prob, loc, res, z, g, history, timings):
     }
 
 
-def reconstruct(images, lights, pixel_size, origin, mask=None, depth=None, iterations=10,
-                tol=1e-6, dark=0.0, weighting="image"):
+def reconstruct(
+    images, lights, pixel_size, origin, mask=None, depth=None, iterations=10, tol=1e-6, dark=0.0, weighting="image"
+):
     """Near-light photometric stereo by mesh deformation (pure numpy/scipy reference).
 
     Parameters
@@ -509,8 +509,7 @@ def reconstruct(images, lights, pixel_size, origin, mask=None, depth=None, itera
     dark = float(dark)
     if not np.isfinite(dark):
         raise InputError("dark must be finite")
-    images, lights, pixel_size, origin, mask, prob, z, g = _setup(
-        images, lights, pixel_size, origin, mask, depth)
+    images, lights, pixel_size, origin, mask, prob, z, g = _setup(images, lights, pixel_size, origin, mask, depth)
     loc = _Local(prob, images, lights, dark, weighting)
     timings = {"setup": 0.0, "factor": 0.0, "local": 0.0, "solve": 0.0}
     t0 = time.perf_counter()
@@ -552,8 +551,7 @@ def reconstruct_parallel(images, lights, pixel_size, origin, mask=None, depth=No
     dark = float(dark)
     if not np.isfinite(dark):
         raise InputError("dark must be finite")
-    images, lights, pixel_size, origin, mask, prob, z, g = _setup(
-        images, lights, pixel_size, origin, mask, depth)
+    images, lights, pixel_size, origin, mask, prob, z, g = _setup(images, lights, pixel_size, origin, mask, depth)
     x0 = np.array([prob.vx.mean(), prob.vy.mean(), z.mean()])
     d = lights - x0
     dirs = d / np.sqrt((d * d).sum(axis=1))[:, None]

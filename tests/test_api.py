@@ -53,8 +53,10 @@ def test_exact_model_recovers_scene(name, scene, angular_error, active_vertices)
         err = angular_error(r.fit_normals, truth, s.mask)
         mesh_err = angular_error(r.normals, truth, s.mask)
         dz = np.abs(r.depth[used] - s.depth[used])
-        print(f"\n{name} {kwargs or 'default'}: mean {err.mean():.2e} deg, max {err.max():.2e} deg, "
-              f"mesh normals mean {mesh_err.mean():.2e} deg, max |dz| {dz.max():.2e}, {len(r.history)} iterations")
+        print(
+            f"\n{name} {kwargs or 'default'}: mean {err.mean():.2e} deg, max {err.max():.2e} deg, "
+            f"mesh normals mean {mesh_err.mean():.2e} deg, max |dz| {dz.max():.2e}, {len(r.history)} iterations"
+        )
         assert err.mean() < 0.01
         # The mesh's normals carry the discretization error of the twisted quads (measured mean
         # 3e-6 saddle, 5e-6 cube, 1.4e-2 sphere, 9.5e-2 bumps at 48 px; the fits 2.5e-3 on bumps).
@@ -140,8 +142,9 @@ def test_paper_weighting_noise_is_the_per_pixel_estimator(scene, angular_error):
     (pixel_size, origin) = _camera(s.rig)
     for weighting in ("image", "paper"):
         r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, weighting=weighting)
-        q = ref.reconstruct(s.images, s.rig.positions, pixel_size, origin, s.mask, s.depth,
-                            iterations=0, weighting=weighting)
+        q = ref.reconstruct(
+            s.images, s.rig.positions, pixel_size, origin, s.mask, s.depth, iterations=0, weighting=weighting
+        )
         e_npl = angular_error(r.fit_normals, s.normals, s.mask).mean()  # nplps's own per-pixel fits
         e_fit = angular_error(q["normals"], s.normals, s.mask).mean()
         print(f"\n{weighting}: nplps {e_npl:.3f} deg, per-pixel fit at the true geometry {e_fit:.3f} deg")
@@ -184,8 +187,7 @@ def test_perturbed_lights(name, scene, angular_error):
         e_fit = angular_error(q["normals"], s.normals, s.mask).mean()
         ratios.append(e_npl / e_fit)
         assert e_npl < 7.0
-    print(f"{name}: error / per-pixel error at the true geometry, seeds 0-4: "
-          + ", ".join(f"{x:.3f}" for x in ratios))
+    print(f"{name}: error / per-pixel error at the true geometry, seeds 0-4: " + ", ".join(f"{x:.3f}" for x in ratios))
     assert max(ratios) < 1.25
 
 
@@ -204,8 +206,10 @@ def test_parallel_baseline_is_worse(name, scene, angular_error, active_vertices)
     e_par = angular_error(par.normals, s.normals, s.mask).mean()
     dz_npl = np.abs(npl.depth[used] - s.depth[used]).max()
     dz_par = np.abs(par.depth[used] - s.depth[used]).max()
-    print(f"\n{name}: parallel baseline {e_par:.3f} deg (max |dz| {dz_par:.2f}), "
-          f"near light {e_npl:.2e} deg (max |dz| {dz_npl:.2e})")
+    print(
+        f"\n{name}: parallel baseline {e_par:.3f} deg (max |dz| {dz_par:.2f}), "
+        f"near light {e_npl:.2e} deg (max |dz| {dz_npl:.2e})"
+    )
     assert par.method == "parallel" and npl.method == "near"
     assert len(par.history) == 1
     assert e_npl < e_par
@@ -252,8 +256,10 @@ def test_islands(name, diagonal, scene, angular_error, active_vertices):
 
     err = angular_error(r.fit_normals, s.normals, mask)  # the mesh's: discretization error of the twisted quads
     dz = np.abs(r.depth[used] - s.depth[used]).max()
-    print(f"\n{name} {'diagonal' if diagonal else 'apart'}: mean {err.mean():.2e} deg, "
-          f"max {err.max():.2e} deg, max |dz| {dz:.2e}, gauge {r.gauge}")
+    print(
+        f"\n{name} {'diagonal' if diagonal else 'apart'}: mean {err.mean():.2e} deg, "
+        f"max {err.max():.2e} deg, max |dz| {dz:.2e}, gauge {r.gauge}"
+    )
     assert err.mean() < 0.05
     assert dz < 2e-3 * s.size
     if diagonal:
@@ -299,8 +305,17 @@ def test_rust_matches_reference(case, weighting, scene):
     images = s.images.astype(np.float32)
     pixel_size, origin = _camera(s.rig)
     r = nplps.reconstruct(images, s.rig, mask=mask, depth=s.mean_depth, iterations=5, tol=0.0, weighting=weighting)
-    q = ref.reconstruct(images.astype(np.float64), s.rig.positions, pixel_size, origin, mask, s.mean_depth,
-                        iterations=5, tol=0.0, weighting=weighting)
+    q = ref.reconstruct(
+        images.astype(np.float64),
+        s.rig.positions,
+        pixel_size,
+        origin,
+        mask,
+        s.mean_depth,
+        iterations=5,
+        tol=0.0,
+        weighting=weighting,
+    )
     d_depth = np.nanmax(np.abs(r.depth - q["depth"])) / s.size
     d_normals = np.nanmax(np.abs(r.fit_normals - q["normals"]))  # the local fits: the reference's "normals"
     d_albedo = np.nanmax(np.abs(r.albedo / q["albedo"] - 1))
@@ -417,63 +432,69 @@ def _with(images, index, value):
 
 
 BAD_INPUTS = {
-    "too few images": (
-        lambda s: dict(images=s.images[:-1]),
-        nplps.InputError, r"26 images were given for 27 lights"),
+    "too few images": (lambda s: dict(images=s.images[:-1]), nplps.InputError, r"26 images were given for 27 lights"),
     "different sizes": (
         lambda s: dict(images=[*s.images[:-1], np.zeros((16, 17))]),
-        nplps.InputError, r"images have different sizes: image 26 has shape \(16, 17\)"),
+        nplps.InputError,
+        r"images have different sizes: image 26 has shape \(16, 17\)",
+    ),
     "nan": (
         lambda s: dict(images=_with(s.images, (3, 2, 2), np.nan)),
-        nplps.InputError, r"non-finite values \(NaN or inf\) in the input images: image 3: 1"),
+        nplps.InputError,
+        r"non-finite values \(NaN or inf\) in the input images: image 3: 1",
+    ),
     "inf": (
         lambda s: dict(images=_with(s.images, (4, 2, 2), np.inf)),
-        nplps.InputError, r"non-finite values .* image 4: 1"),
-    "empty mask": (
-        lambda s: dict(mask=np.zeros((16, 16), dtype=bool)),
-        nplps.InputError, r"mask is empty"),
+        nplps.InputError,
+        r"non-finite values .* image 4: 1",
+    ),
+    "empty mask": (lambda s: dict(mask=np.zeros((16, 16), dtype=bool)), nplps.InputError, r"mask is empty"),
     "mask shape": (
         lambda s: dict(mask=np.ones((16, 15), dtype=bool)),
-        nplps.InputError, r"mask has shape \(16, 15\) but the images have shape \(16, 16\)"),
+        nplps.InputError,
+        r"mask has shape \(16, 15\) but the images have shape \(16, 16\)",
+    ),
     "lights behind (distance)": (
         lambda s: dict(depth=40.0),
-        nplps.RigError, r"light 0 at z = 50 is not in front of the surface \(nearest depth 40\)"),
+        nplps.RigError,
+        r"light 0 at z = 50 is not in front of the surface \(nearest depth 40\)",
+    ),
     "lights behind (map)": (
         lambda s: dict(depth=_with(np.full((17, 17), 200.0), (8, 8), 45.0)),
-        nplps.RigError, r"not in front of the surface \(nearest depth 45\)"),
-    "depth missing": (
-        lambda s: dict(depth=None),
-        nplps.InputError, r"depth is required"),
+        nplps.RigError,
+        r"not in front of the surface \(nearest depth 45\)",
+    ),
+    "depth missing": (lambda s: dict(depth=None), nplps.InputError, r"depth is required"),
     "depth negative": (
         lambda s: dict(depth=-5.0),
-        nplps.InputError, r"depth \(the working distance\) must be a positive finite number, got -5"),
+        nplps.InputError,
+        r"depth \(the working distance\) must be a positive finite number, got -5",
+    ),
     "depth map shape": (
         lambda s: dict(depth=np.full((16, 16), 200.0)),
-        nplps.InputError, r"initial depth map has shape \(16, 16\).*\(H\+1, W\+1\) = \(17, 17\)"),
+        nplps.InputError,
+        r"initial depth map has shape \(16, 16\).*\(H\+1, W\+1\) = \(17, 17\)",
+    ),
     "depth map nan": (
         lambda s: dict(depth=_with(np.full((17, 17), 200.0), (5, 5), np.nan)),
-        nplps.InputError, r"not finite at vertex \(row 5, column 5\)"),
+        nplps.InputError,
+        r"not finite at vertex \(row 5, column 5\)",
+    ),
     "weighting": (
         lambda s: dict(weighting="foo"),
-        nplps.InputError, r'weighting must be "image" or "paper", got "foo"'),
-    "iterations": (
-        lambda s: dict(iterations=0),
-        nplps.InputError, r"iterations must be at least 1, got 0"),
-    "tol": (
-        lambda s: dict(tol=-1.0),
-        nplps.InputError, r"tol must be >= 0"),
-    "progress": (
-        lambda s: dict(progress=5),
-        nplps.InputError, r"progress must be None, True or a callable"),
-    "threads": (
-        lambda s: dict(threads=0),
-        nplps.InputError, r"threads must be at least 1"),
+        nplps.InputError,
+        r'weighting must be "image" or "paper", got "foo"',
+    ),
+    "iterations": (lambda s: dict(iterations=0), nplps.InputError, r"iterations must be at least 1, got 0"),
+    "tol": (lambda s: dict(tol=-1.0), nplps.InputError, r"tol must be >= 0"),
+    "progress": (lambda s: dict(progress=5), nplps.InputError, r"progress must be None, True or a callable"),
+    "threads": (lambda s: dict(threads=0), nplps.InputError, r"threads must be at least 1"),
     "missing file": (
         lambda s: dict(images=["/nonexistent/nplps/img.png"] * 27),
-        nplps.InputError, r"cannot read image '/nonexistent/nplps/img.png': file not found"),
-    "not a rig": (
-        lambda s: dict(rig={"camera": {}}),
-        nplps.InputError, r"rig must be an nplps.Rig, got dict"),
+        nplps.InputError,
+        r"cannot read image '/nonexistent/nplps/img.png': file not found",
+    ),
+    "not a rig": (lambda s: dict(rig={"camera": {}}), nplps.InputError, r"rig must be an nplps.Rig, got dict"),
 }
 
 
@@ -656,8 +677,12 @@ def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
     assert summary["iterations"] == len(r.history)
     albedo_png = iio.imread(paths["albedo"])
     assert albedo_png.dtype == np.uint16
-    np.testing.assert_allclose(albedo_png[r.mask] / summary["albedo_png_scale"], r.albedo[r.mask],
-                               rtol=0, atol=1.0 / summary["albedo_png_scale"])
+    np.testing.assert_allclose(
+        albedo_png[r.mask] / summary["albedo_png_scale"],
+        r.albedo[r.mask],
+        rtol=0,
+        atol=1.0 / summary["albedo_png_scale"],
+    )
 
 
 def test_save_ply_opengl(tmp_path, sphere_result, active_vertices):
@@ -729,9 +754,7 @@ def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
         np.testing.assert_array_equal(r.mesh_normals, r.normals)
     # predict uses the fits (with the mesh normals the images would be explained worse)
     predicted = r.predict()
-    expected = nplps._core.predict(
-        r.depth, r.fit_normals, r.albedo, r.rig.camera, r.rig._core_lights(), r.mask, False
-    )
+    expected = nplps._core.predict(r.depth, r.fit_normals, r.albedo, r.rig.camera, r.rig._core_lights(), r.mask, False)
     np.testing.assert_array_equal(predicted, expected)
     # the vertex normals of the meshes come from the mesh normals of the masked pixels
     around = np.zeros((33, 33, 3))
@@ -783,8 +806,16 @@ def test_every_returned_type_is_exported():
     from nplps import evaluation
 
     names = {**vars(nplps.types)}
-    functions = [nplps.reconstruct, nplps.reconstruct_parallel, nplps.render, nplps.make_scene,
-                 nplps.light_changes, nplps.calibrate_spheres, nplps.calibrate_intensities, evaluation.held_out]
+    functions = [
+        nplps.reconstruct,
+        nplps.reconstruct_parallel,
+        nplps.render,
+        nplps.make_scene,
+        nplps.light_changes,
+        nplps.calibrate_spheres,
+        nplps.calibrate_intensities,
+        evaluation.held_out,
+    ]
     seen: set[type] = set()
     todo: list[type] = []
     for function in functions:
@@ -799,8 +830,14 @@ def test_every_returned_type_is_exported():
             module = vars(__import__(cls.__module__, fromlist=["_"]))
             todo += [c for hint in typing.get_type_hints(cls, {**module, **names}).values() for c in _classes(hint)]
     exported = {name for name in seen if getattr(nplps, name.__name__, None) is name}
-    assert seen - {nplps.Rig} >= {nplps.Reconstruction, nplps.DistanceEstimate, nplps.Iteration,
-                                  nplps.LightRefinement, nplps.Scene, evaluation.HeldOut}
+    assert seen - {nplps.Rig} >= {
+        nplps.Reconstruction,
+        nplps.DistanceEstimate,
+        nplps.Iteration,
+        nplps.LightRefinement,
+        nplps.Scene,
+        evaluation.HeldOut,
+    }
     assert seen == exported, f"returned but not exported: {sorted(c.__name__ for c in seen - exported)}"
     assert all(hasattr(nplps, name) for name in nplps.__all__)
     assert {cls.__name__ for cls in seen} <= set(nplps.__all__)

@@ -32,13 +32,15 @@ def _errors(result: cal.SphereCalibration, truth: nplps.Rig) -> tuple[np.ndarray
     """Position errors of the point lights and direction errors (deg) of the distant lights;
     fails if a light has the wrong kind."""
     pos, dirs = [], []
-    for l in result.lights:
-        if truth.directional[l.index]:
-            assert l.kind == "directional", f"light {l.index} is distant but came out {l.kind}"
-            dirs.append(float(_angle(l.direction, truth.directions[l.index])))
+    for light in result.lights:
+        if truth.directional[light.index]:
+            assert light.kind == "directional", f"light {light.index} is distant but came out {light.kind}"
+            dirs.append(float(_angle(light.direction, truth.directions[light.index])))
         else:
-            assert l.kind == "point", f"light {l.index} is a point light but came out {l.kind}: {l.warning}"
-            pos.append(float(np.linalg.norm(l.position - truth.positions[l.index])))
+            assert light.kind == "point", (
+                f"light {light.index} is a point light but came out {light.kind}: {light.warning}"
+            )
+            pos.append(float(np.linalg.norm(light.position - truth.positions[light.index])))
     return np.array(pos), np.array(dirs)
 
 
@@ -62,13 +64,15 @@ def test_light_positions_and_directions_over_seeds(camera, lights, distant):
     for seed in SEEDS:
         scene = cal.make_sphere_scene(camera, lights=lights, directional=distant, spheres=2, noise=0.01, seed=seed)
         result = _calibrate(scene)
-        assert all(l.spheres == 4 for l in result.lights)
+        assert all(light.spheres == 4 for light in result.lights)
         assert all(s.outline_sigma == 0.01 for s in result.spheres)  # the separating fits
         pos, dirs = _errors(result, scene.rig)
         rms.append(100.0 * np.sqrt(np.mean(pos**2)) / WD)
         worst_dir.append(dirs.max() if dirs.size else 0.0)
         assert result.refinement is not None and result.refinement["dropped"] == 0
-    assert np.mean(rms) <= 0.5 and max(rms) <= 1.0, f"position RMS, % of the working distance, per seed: {np.round(rms, 3)}"
+    assert np.mean(rms) <= 0.5 and max(rms) <= 1.0, (
+        f"position RMS, % of the working distance, per seed: {np.round(rms, 3)}"
+    )
     assert max(worst_dir) <= 0.2, f"largest direction error per seed (deg): {np.round(worst_dir, 3)}"
 
 
@@ -94,7 +98,7 @@ def test_sphere_centres_from_masks():
         scene = cal.make_sphere_scene(camera, lights=8, noise=0.01, seed=0)
         result = _calibrate(scene, refine=False)
         pixel = 100.0 / 200.0
-        for s, c in zip(result.spheres, np.concatenate(scene.centers)):
+        for s, c in zip(result.spheres, np.concatenate(scene.centers), strict=False):
             if camera == "orthographic":
                 assert np.linalg.norm(s.center[:2] - c[:2]) < 0.08 * pixel
                 assert abs(s.scale_check - 1.0) < 0.005
@@ -114,7 +118,9 @@ def test_detection_finds_the_spheres():
         for seed in range(3):
             scene = cal.make_sphere_scene(camera, lights=27, directional=True, spheres=2, noise=0.01, seed=seed)
             depth = scene.center_depths if camera == "orthographic" else None
-            result = cal.calibrate_spheres(scene.images, scene.rig, scene.radius, detect=(30, 60), count=2, center_depth=depth)
+            result = cal.calibrate_spheres(
+                scene.images, scene.rig, scene.radius, detect=(30, 60), count=2, center_depth=depth
+            )
             truth = np.concatenate(scene.centers)
             assert len(result.spheres) == 4
             for s in result.spheres:
@@ -228,8 +234,12 @@ def test_colour_intensities():
 # ------------------------------------------------------------------------------------------------
 def test_single_sphere_gives_directions_with_warnings(tmp_path):
     scene = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.0, seed=0)
-    result = cal.calibrate_spheres(scene.images[:1], scene.rig, scene.radius, masks=scene.labels[:1], center_depth=scene.center_depths[0])
-    assert all(l.kind == "directional" and l.spheres == 1 and "one sphere" in l.warning for l in result.lights)
+    result = cal.calibrate_spheres(
+        scene.images[:1], scene.rig, scene.radius, masks=scene.labels[:1], center_depth=scene.center_depths[0]
+    )
+    assert all(
+        light.kind == "directional" and light.spheres == 1 and "one sphere" in light.warning for light in result.lights
+    )
     assert len(result.warnings) == 8
     table = result.table()
     assert "directional" in table and "one sphere" in table
@@ -246,9 +256,9 @@ def test_rig_file_and_report(tmp_path):
     result.save(tmp_path / "rig.json")
     data = json.loads((tmp_path / "rig.json").read_text())
     assert data["version"] == 2 and data["camera"]["model"] == "pinhole"
-    assert all(l["intensity"] == 1.0 for l in data["lights"])
+    assert all(light["intensity"] == 1.0 for light in data["lights"])
     loaded = nplps.Rig.load(tmp_path / "rig.json")
-    expected = np.array([l.position if l.kind == "point" else l.direction for l in result.lights])
+    expected = np.array([light.position if light.kind == "point" else light.direction for light in result.lights])
     np.testing.assert_allclose(np.where(loaded.directional[:, None], loaded.directions, loaded.positions), expected)
     assert "spheres" in result.table().splitlines()[0]
 
@@ -258,11 +268,13 @@ def test_a_light_seen_nowhere_blocks_the_rig():
     images = [im.copy() for im in scene.images]
     for im in images:
         im[3] = 20  # light 3: no highlight (a flat dark image)
-    result = cal.calibrate_spheres(images, scene.rig, scene.radius, masks=scene.labels, center_depth=scene.center_depths)
+    result = cal.calibrate_spheres(
+        images, scene.rig, scene.radius, masks=scene.labels, center_depth=scene.center_depths
+    )
     assert result.lights[3].kind == "missing" and result.lights[3].spheres == 0
     assert result.status[3] == ["no highlight (too faint)"] * 2
-    with pytest.raises(nplps.RigError, match="light.*3.*not seen"):
-        result.rig
+    with pytest.raises(nplps.RigError, match=r"light.*3.*not seen"):
+        _ = result.rig
 
 
 def test_bad_input_is_reported():
@@ -270,14 +282,16 @@ def test_bad_input_is_reported():
     cam = scene.rig
     with pytest.raises(nplps.InputError, match="orthographic camera needs the depth"):
         cal.calibrate_spheres(scene.images, cam, scene.radius, masks=scene.labels)
-    with pytest.raises(nplps.InputError, match="one mask .* per placement"):
+    with pytest.raises(nplps.InputError, match=r"one mask .* per placement"):
         cal.calibrate_spheres(scene.images, cam, scene.radius, masks=scene.labels[:1], center_depth=180)
     with pytest.raises(nplps.InputError, match="has no mask"):
         cal.calibrate_spheres(scene.images, cam, scene.radius, center_depth=180)
     with pytest.raises(nplps.InputError, match="mask is empty"):
         cal.calibrate_spheres(scene.images, cam, scene.radius, masks=[np.zeros((120, 120), bool)] * 2, center_depth=180)
     with pytest.raises(nplps.InputError, match="placement 1 has 7 images"):
-        cal.calibrate_spheres([scene.images[0], scene.images[1][:7]], cam, scene.radius, masks=scene.labels, center_depth=180)
+        cal.calibrate_spheres(
+            [scene.images[0], scene.images[1][:7]], cam, scene.radius, masks=scene.labels, center_depth=180
+        )
     with pytest.raises(nplps.InputError, match="radius must be positive"):
         cal.calibrate_spheres(scene.images, cam, -1.0, masks=scene.labels, center_depth=180)
     with pytest.raises(nplps.InputError, match="parallel_tol"):
@@ -302,7 +316,7 @@ def test_bad_input_is_reported():
 def test_scene_generators():
     scene = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.01, seed=3, spheres=2)
     assert len(scene.images) == 2 and scene.images[0].shape == (8, 160, 160) and scene.images[0].dtype == np.uint8
-    for stack, labels in zip(scene.images, scene.labels):
+    for stack, labels in zip(scene.images, scene.labels, strict=False):
         assert set(np.unique(labels)) == {0, 1, 2}
         saturated = [(im[labels > 0] == 255).sum() for im in stack]
         assert min(saturated) >= 3, "every highlight saturates"
@@ -322,12 +336,25 @@ def test_command_line_end_to_end(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "nplps calibrate spheres" in printed and "nplps calibrate intensity" in printed
     scene = json.loads((out / "scene.json").read_text())
-    args = ["calibrate", "spheres", str(out / "placement_0"), str(out / "placement_1"), "--camera", str(out / "camera.json"),
-            "--radius", "20", "--out", str(out / "rig_spheres.json"), "--report", str(out / "report.json"), "-q"]
+    args = [
+        "calibrate",
+        "spheres",
+        str(out / "placement_0"),
+        str(out / "placement_1"),
+        "--camera",
+        str(out / "camera.json"),
+        "--radius",
+        "20",
+        "--out",
+        str(out / "rig_spheres.json"),
+        "--report",
+        str(out / "report.json"),
+        "-q",
+    ]
     assert main(args) == 2  # orthographic: the centre depth is missing
     assert "needs the depth of the sphere centres" in capsys.readouterr().err
     depths = [str(d[0]) for d in scene["center_depths"]]
-    assert main(args + ["--center-depth", depths[0], "--center-depth", depths[1]]) == 0
+    assert main([*args, "--center-depth", depths[0], "--center-depth", depths[1]]) == 0
     printed = capsys.readouterr().out
     assert "joint refinement" in printed and "rms miss" in printed
     rig = nplps.Rig.load(out / "rig_spheres.json")
@@ -337,8 +364,23 @@ def test_command_line_end_to_end(tmp_path, capsys):
     assert np.sqrt(np.mean(np.sum((rig.positions[point] - truth.positions[point]) ** 2, axis=1))) < 0.005 * WD
     report = json.loads((out / "report.json").read_text())
     assert len(report["lights"]) == 8 and len(report["spheres"]) == 2
-    assert main(["calibrate", "intensity", str(out / "board"), "--rig", str(out / "rig_spheres.json"),
-                 "--plane-depth", "200", "--out", str(out / "rig.json"), "-q"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "intensity",
+                str(out / "board"),
+                "--rig",
+                str(out / "rig_spheres.json"),
+                "--plane-depth",
+                "200",
+                "--out",
+                str(out / "rig.json"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert "intensity" in capsys.readouterr().out
     final = nplps.Rig.load(out / "rig.json")
     phi = final.intensities[:, 0] / _relative(truth.intensities[:, 0])
@@ -352,15 +394,65 @@ def test_command_line_errors(tmp_path, capsys):
     empty.mkdir()
     cam = tmp_path / "camera.json"
     cal.save_camera(cam, cal.standard_rig("pinhole", n=64, lights=8))
-    assert main(["calibrate", "spheres", str(empty), "--camera", str(cam), "--radius", "10", "--detect", "5", "9", "--out", str(tmp_path / "r.json")]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                "spheres",
+                str(empty),
+                "--camera",
+                str(cam),
+                "--radius",
+                "10",
+                "--detect",
+                "5",
+                "9",
+                "--out",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 2
+    )
     assert "no image files" in capsys.readouterr().err
-    assert main(["calibrate", "spheres", str(empty), "--camera", str(cam), "--radius", "10", "--out", str(tmp_path / "r.json")]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                "spheres",
+                str(empty),
+                "--camera",
+                str(cam),
+                "--radius",
+                "10",
+                "--out",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 2
+    )
     assert "masks" in capsys.readouterr().err
-    assert main(["calibrate", "intensity", str(empty), "--rig", str(cam), "--plane-depth", "100", "--out", str(tmp_path / "r.json")]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                "intensity",
+                str(empty),
+                "--rig",
+                str(cam),
+                "--plane-depth",
+                "100",
+                "--out",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 2
+    )
     capsys.readouterr()
 
 
-@pytest.mark.parametrize("command", [["calibrate"], ["calibrate", "spheres"], ["calibrate", "intensity"], ["synth-calibration"]])
+@pytest.mark.parametrize(
+    "command", [["calibrate"], ["calibrate", "spheres"], ["calibrate", "intensity"], ["synth-calibration"]]
+)
 def test_command_line_help(capsys, command):
     with pytest.raises(SystemExit) as exit_info:
         from nplps.cli import build_parser

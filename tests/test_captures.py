@@ -56,9 +56,7 @@ def test_standardize_K_one_based_and_transposed() -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def _near_ps_folder(
-    folder: Path, k: int = 4, transposed: bool = True, phi_cols: int = 1, shape=(6, 8)
-) -> dict:
+def _near_ps_folder(folder: Path, k: int = 4, transposed: bool = True, phi_cols: int = 1, shape=(6, 8)) -> dict:
     folder.mkdir(exist_ok=True)
     K1 = np.array([[500.0, 0.0, 4.5], [0.0, 505.0, 3.5], [0.0, 0.0, 1.0]])  # 1-based
     scipy_io.savemat(folder / "camera.mat", {"K": K1.T if transposed else K1})
@@ -140,9 +138,7 @@ def test_near_ps_srgb_binning_and_grid(tmp_path: Path) -> None:
     for i, r in enumerate(renders):
         names.append(f"jpg_{i + 1}.png")
         iio.imwrite(folder / names[-1], r)
-    c = cap.load_near_ps(
-        folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8), color=False, ambient=None
-    )
+    c = cap.load_near_ps(folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8), color=False, ambient=None)
     assert c.images.shape == (2, 6, 8) and c.images.dtype == np.float32
     lin = pp.srgb_to_linear(renders.astype(np.float64) / 255).mean(axis=3)
     expected = pp.pad_or_crop(pp.bin_images(lin, 2), (6, 8))

@@ -249,8 +249,17 @@ def test_error_bad_depth(scene_dir, tmp_path, capsys, depth, words):
     np.save(out / "bad_shape.npy", np.full((SIZE, SIZE), 200.0))
     value = str(out / depth) if depth.endswith((".json", ".npy")) else depth
     rc, _, stderr = run(
-        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png", "--depth", value, "--out",
-        tmp_path / "r"
+        capsys,
+        "reconstruct",
+        out,
+        "--rig",
+        out / "rig.json",
+        "--mask",
+        out / "mask.png",
+        "--depth",
+        value,
+        "--out",
+        tmp_path / "r",
     )
     assert_one_line_error(rc, stderr, *words)
 
@@ -264,8 +273,17 @@ def test_error_missing_image_and_mask(scene_dir, tmp_path, capsys):
     )
     assert_one_line_error(rc, stderr, "gone.png")
     rc, _, stderr = run(
-        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", tmp_path / "m.png", "--depth", "200", "--out",
-        tmp_path / "r"
+        capsys,
+        "reconstruct",
+        out,
+        "--rig",
+        out / "rig.json",
+        "--mask",
+        tmp_path / "m.png",
+        "--depth",
+        "200",
+        "--out",
+        tmp_path / "r",
     )
     assert_one_line_error(rc, stderr, "mask", "m.png")
 
@@ -412,8 +430,19 @@ def test_gray_averages_colour(tmp_path, capsys):
 def test_bin_2_pinhole(pinhole_dir, tmp_path, capsys):
     out, depth = pinhole_dir
     rc, _stdout, stderr = run(
-        capsys, "reconstruct", out, "--rig", out / "rig.json", "--mask", out / "mask.png",
-        "--depth", depth, "--bin", "2", "--out", tmp_path / "r",
+        capsys,
+        "reconstruct",
+        out,
+        "--rig",
+        out / "rig.json",
+        "--mask",
+        out / "mask.png",
+        "--depth",
+        depth,
+        "--bin",
+        "2",
+        "--out",
+        tmp_path / "r",
     )
     assert rc == 0, stderr
     assert "binned 2 x 2" in stderr
@@ -488,8 +517,17 @@ def test_evaluate_near_beats_parallel(tmp_path, capsys):
     depth = nplps.make_scene("bumps", n=REAL_SIZE, camera="pinhole", led=True).mean_depth
     s = tmp_path / "s"
     rc, stdout, stderr = run(
-        capsys, "evaluate", s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", depth,
-        "--lights", "0,5,13,26"
+        capsys,
+        "evaluate",
+        s,
+        "--rig",
+        s / "rig.json",
+        "--mask",
+        s / "mask.png",
+        "--depth",
+        depth,
+        "--lights",
+        "0,5,13,26",
     )
     assert rc == 0, stderr
     rows = {}
@@ -563,8 +601,19 @@ def test_capture_near_ps(tmp_path, capsys):
     )
     assert_one_line_error(rc, stderr, "28 image files", "glob pattern")
     rc, _, stderr = run(
-        capsys, "reconstruct", "--capture", "near_ps", folder, "led_[0-9]*.png",
-        "--depth", scene.mean_depth, "--bin", "2", "--out", tmp_path / "b", "-q"
+        capsys,
+        "reconstruct",
+        "--capture",
+        "near_ps",
+        folder,
+        "led_[0-9]*.png",
+        "--depth",
+        scene.mean_depth,
+        "--bin",
+        "2",
+        "--out",
+        tmp_path / "b",
+        "-q",
     )
     assert rc == 0, stderr
     assert np.load(tmp_path / "b" / "depth.npy").shape == (REAL_SIZE // 2 + 1,) * 2
@@ -605,8 +654,17 @@ def test_capture_diligent(tmp_path, capsys):
 
 def test_capture_option_errors(tmp_path, capsys):
     rc, _, stderr = run(
-        capsys, "reconstruct", "--capture", "near_ps", tmp_path, "--rig", "r.json", "--depth", "1", "--out",
-        tmp_path / "r"
+        capsys,
+        "reconstruct",
+        "--capture",
+        "near_ps",
+        tmp_path,
+        "--rig",
+        "r.json",
+        "--depth",
+        "1",
+        "--out",
+        tmp_path / "r",
     )
     assert_one_line_error(rc, stderr, "--capture", "--rig")
     rc, _, stderr = run(
@@ -621,8 +679,20 @@ def test_capture_option_errors(tmp_path, capsys):
 
 def test_capture_hehe12(tmp_path, capsys, shared_capture):
     rc, stdout, stderr = run(
-        capsys, "reconstruct", "--capture", "near_ps", shared_capture("hehe12"), "photometric_sample_raw_[0-9]*.png",
-        "--depth", "200", "--bin", "8", "--robust", "tukey", "--out", tmp_path / "r",
+        capsys,
+        "reconstruct",
+        "--capture",
+        "near_ps",
+        shared_capture("hehe12"),
+        "photometric_sample_raw_[0-9]*.png",
+        "--depth",
+        "200",
+        "--bin",
+        "8",
+        "--robust",
+        "tukey",
+        "--out",
+        tmp_path / "r",
     )
     assert rc == 0, stderr
     assert "pinhole camera, 8 point lights" in stdout
@@ -645,8 +715,17 @@ def test_error_bad_bin(scene_dir, tmp_path, capsys):
 def test_error_cos4_needs_pinhole(scene_dir, tmp_path, capsys):
     out, _ = scene_dir
     rc, _, stderr = run(
-        capsys, "reconstruct", out, "--rig", out / "rig.json", "--depth", "200", "--vignetting", "cos4", "--out",
-        tmp_path / "r"
+        capsys,
+        "reconstruct",
+        out,
+        "--rig",
+        out / "rig.json",
+        "--depth",
+        "200",
+        "--vignetting",
+        "cos4",
+        "--out",
+        tmp_path / "r",
     )
     assert_one_line_error(rc, stderr, "cos4", "pinhole", "orthographic")
 
@@ -722,8 +801,19 @@ def test_evaluate_with_auto_depth_on_colour_images(tmp_path, capsys):
     scene = tmp_path / "rgb"
     rc, _, _ = run(capsys, "synth", "bumps", "--size", 24, "--camera", "pinhole", "--led", "--rgb", "--out", scene)
     assert rc == 0
-    rc, stdout, stderr = run(capsys, "evaluate", scene, "--rig", scene / "rig.json", "--mask", scene / "mask.png",
-                             "--depth", "auto", "--lights", "0,13")
+    rc, stdout, stderr = run(
+        capsys,
+        "evaluate",
+        scene,
+        "--rig",
+        scene / "rig.json",
+        "--mask",
+        scene / "mask.png",
+        "--depth",
+        "auto",
+        "--lights",
+        "0,13",
+    )
     assert rc == 0, stderr
     assert "estimated working distance" in stderr
     assert "mean" in stdout

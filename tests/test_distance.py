@@ -110,8 +110,6 @@ def test_depth_prior_is_fused(angular_error):
         nplps.reconstruct(s.images, rig, mask=s.mask, depth=s.mean_depth, depth_prior=np.ones((3, 3)))
 
 
-
-
 @pytest.mark.parametrize(
     "name, loader, factor, authors, bounds",
     [

@@ -47,7 +47,9 @@ def _floats(lo: float, hi: float) -> st.SearchStrategy[float]:
 
 #: Values that do not belong where a number, a list or an object is expected.
 JUNK = st.one_of(
-    st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -1e308, 5e-324, 0.0, -0.0, 10**400, -(10**30), True, False, None]),
+    st.sampled_from(
+        [math.nan, math.inf, -math.inf, 1e308, -1e308, 5e-324, 0.0, -0.0, 10**400, -(10**30), True, False, None]
+    ),
     st.floats(),
     st.integers(),
     st.text(max_size=8),
@@ -135,10 +137,10 @@ def _paths(value: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
     out = [path]
     if isinstance(value, dict):
         for k, v in value.items():
-            out += _paths(v, path + (k,))
+            out += _paths(v, (*path, k))
     elif isinstance(value, list):
         for i, v in enumerate(value):
-            out += _paths(v, path + (i,))
+            out += _paths(v, (*path, i))
     return out
 
 
@@ -173,7 +175,11 @@ def corrupted(draw: st.DrawFn) -> Any:
         elif kind == "delete":
             del parent[key]
         elif kind == "add" and isinstance(parent, dict):
-            name = draw(st.sampled_from(["intensities", "distorsion", "_comment", "mu", "direction", "position", "K", "type", "serial"]))
+            name = draw(
+                st.sampled_from(
+                    ["intensities", "distorsion", "_comment", "mu", "direction", "position", "K", "type", "serial"]
+                )
+            )
             parent[name] = draw(st.one_of(JUNK, st.just([0.0, 0.0, 1.0])))
     return data
 
@@ -294,7 +300,15 @@ def _mutate_text(text: str, data: st.DataObject) -> str:
     if kind == "truncate":
         return text[:i]
     if kind == "insert":
-        return text[:i] + data.draw(st.sampled_from(["[", "]", "{", "}", ",", '"', "NaN", "Infinity", "-", "1e999", "9" * 5000, "\\", "\x00"])) + text[i:]
+        return (
+            text[:i]
+            + data.draw(
+                st.sampled_from(
+                    ["[", "]", "{", "}", ",", '"', "NaN", "Infinity", "-", "1e999", "9" * 5000, "\\", "\x00"]
+                )
+            )
+            + text[i:]
+        )
     if kind == "delete":
         return text[:i] + text[i + 1 :]
     if kind == "nest":
@@ -302,7 +316,12 @@ def _mutate_text(text: str, data: st.DataObject) -> str:
         return "[" * n + text + "]" * n
     if kind == "bom":
         return "\ufeff" + text
-    return re.sub(r"-?\d+\.\d+", lambda m: data.draw(st.sampled_from(["NaN", "-Infinity", "1e400", "true", '"1"', "null", "[]"])), text, count=1)
+    return re.sub(
+        r"-?\d+\.\d+",
+        lambda m: data.draw(st.sampled_from(["NaN", "-Infinity", "1e400", "true", '"1"', "null", "[]"])),
+        text,
+        count=1,
+    )
 
 
 @FUZZ
@@ -357,10 +376,14 @@ def test_a_small_reconstruction_fails_only_with_typed_errors(data, seed):
 def test_rig_constructors_fail_only_with_rig_errors(lights, mu, intensities):
     """The Python constructors (arrays rather than a file) refuse what they cannot use."""
     for build in (
-        lambda: nplps.Rig.orthographic(1.0, lights=lights, mu=mu, intensities=intensities, axes=None if mu is None else lights),
+        lambda: nplps.Rig.orthographic(
+            1.0, lights=lights, mu=mu, intensities=intensities, axes=None if mu is None else lights
+        ),
         lambda: nplps.Rig.from_arrays({"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, lights, mu=mu),
         lambda: nplps.Rig({"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, lights),
-        lambda: nplps.Rig.from_arrays({"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, directions=lights),
+        lambda: nplps.Rig.from_arrays(
+            {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]}, directions=lights
+        ),
         lambda: nplps.Rig.pinhole([[500, 0, 2], [0, 500, 2], [0, 0, 1]], lights=lights, distortion=intensities),
     ):
         try:

@@ -118,8 +118,9 @@ def test_correct_runs_the_steps_in_order() -> None:
     assert steps == ["srgb", "ambient", "exposures", "vignetting"]
     np.testing.assert_array_equal(out, expected)
     np.testing.assert_array_equal(given, images)  # not overwritten without overwrite=True
-    out2, _ = pipeline.correct(given, srgb=True, ambient=ambient, exposures=exposures, vignetting="cos4", K=K,
-                               overwrite=True)
+    out2, _ = pipeline.correct(
+        given, srgb=True, ambient=ambient, exposures=exposures, vignetting="cos4", K=K, overwrite=True
+    )
     assert out2 is given
     np.testing.assert_array_equal(out2, expected)
 
@@ -219,8 +220,12 @@ def test_prepare_outputs_are_float32_and_no_step_upcasts_the_stack() -> None:
     k, h, w = 32, 96, 128
     images = _stack(k, h, w)
     options = dict(
-        K=K, srgb=True, ambient=np.full((h, w), 0.01, np.float32), exposures=np.linspace(1.0, 2.0, k),
-        vignetting="cos4", bin_factor=2,
+        K=K,
+        srgb=True,
+        ambient=np.full((h, w), 0.01, np.float32),
+        exposures=np.linspace(1.0, 2.0, k),
+        vignetting="cos4",
+        bin_factor=2,
     )
     tracemalloc.start()
     try:
@@ -278,8 +283,19 @@ def _files_and_rig(folder: Path) -> tuple[list[Path], Path]:
 def test_cli_and_captures_prepare_give_the_same_input(tmp_path: Path, bin_factor: int) -> None:
     files, rig_path = _files_and_rig(tmp_path / "shots")
     args = build_parser().parse_args(
-        ["reconstruct", *map(str, files), "--rig", str(rig_path), "--depth", "100", "--bin", str(bin_factor), "-q",
-         "--out", str(tmp_path / "r")]
+        [
+            "reconstruct",
+            *map(str, files),
+            "--rig",
+            str(rig_path),
+            "--depth",
+            "100",
+            "--bin",
+            str(bin_factor),
+            "-q",
+            "--out",
+            str(tmp_path / "r"),
+        ]
     )
     cli = build_inputs(args)
     capture = captures.Capture(images=list(files), files=list(files), rig_path=rig_path)

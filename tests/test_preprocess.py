@@ -86,9 +86,7 @@ def test_srgb_to_linear_reference_values() -> None:
 
 def test_srgb_integers_and_round_trip() -> None:
     u8 = np.array([0, 128, 255], dtype=np.uint8)
-    np.testing.assert_allclose(
-        pp.srgb_to_linear(u8), [0.0, ((128 / 255 + 0.055) / 1.055) ** 2.4, 1.0], rtol=1e-6
-    )
+    np.testing.assert_allclose(pp.srgb_to_linear(u8), [0.0, ((128 / 255 + 0.055) / 1.055) ** 2.4, 1.0], rtol=1e-6)
     x = np.linspace(0.0, 1.0, 1001)
     np.testing.assert_allclose(pp.linear_to_srgb(pp.srgb_to_linear(x)), x, atol=1e-12)
     assert pp.linear_to_srgb(0.21404114048223255) == pytest.approx(0.5, abs=1e-12)
@@ -236,9 +234,7 @@ def test_bin_mask_all_and_half() -> None:
 def test_bin_intrinsics_formulas() -> None:
     K = _K(fx=1000.0, fy=1010.0, cx=319.5, cy=239.5, s=2.0)
     Kb = pp.bin_intrinsics(K, 2)
-    np.testing.assert_allclose(
-        Kb, [[500.0, 1.0, 159.5], [0.0, 505.0, 119.5], [0.0, 0.0, 1.0]], rtol=1e-15
-    )
+    np.testing.assert_allclose(Kb, [[500.0, 1.0, 159.5], [0.0, 505.0, 119.5], [0.0, 0.0, 1.0]], rtol=1e-15)
     # Binning by s then by t is binning by s t; factor 1/s undoes factor s.
     twice = pp.bin_intrinsics(pp.bin_intrinsics(K, 2), 3)
     np.testing.assert_allclose(twice, pp.bin_intrinsics(K, 6))
@@ -250,9 +246,7 @@ def test_bin_intrinsics_projects_to_binned_pixel_coordinates(factor: int) -> Non
     K = _K(fx=800.0, fy=780.0, cx=301.3, cy=198.7, s=0.0)
     Kb = pp.bin_intrinsics(K, factor)
     rng = np.random.default_rng(3)
-    X = np.column_stack(
-        [rng.uniform(-50, 50, 20), rng.uniform(-40, 40, 20), rng.uniform(150, 300, 20)]
-    )
+    X = np.column_stack([rng.uniform(-50, 50, 20), rng.uniform(-40, 40, 20), rng.uniform(150, 300, 20)])
     uv = (K @ X.T).T
     uv = uv[:, :2] / uv[:, 2:]
     uvb = (Kb @ X.T).T

@@ -98,8 +98,13 @@ def _run_worker(ids: list[str], workdir: Path) -> tuple[dict[str, Outcome], str 
     with open(log, "wb") as log_file:
         proc = subprocess.Popen(
             [sys.executable, str(HERE / "probes_cases.py"), "--worker", str(results), *ids],
-            stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
-            preexec_fn=_limit, start_new_session=True, env=env, cwd=str(workdir),
+            stdin=subprocess.DEVNULL,
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            preexec_fn=_limit,
+            start_new_session=True,
+            env=env,
+            cwd=str(workdir),
         )
         done: dict[str, Outcome] = {}
         current: str | None = None

@@ -54,8 +54,10 @@ def _near_led_case(capture: captures.Capture, distance: float, tmp_path: Path, n
         scores[method] = held_out(capture.images, rig, mask=capture.mask, depth=distance, method=method, iterations=20)
     print(f"{name} held-out error per left-out light (relative / gain-free shape):")
     for a, b in zip(scores["near"], scores["parallel"], strict=True):
-        print(f"  light {a.light}: near {a.relative_error:.3f} / {a.shape_error:.3f}, "
-              f"parallel {b.relative_error:.3f} / {b.shape_error:.3f}")
+        print(
+            f"  light {a.light}: near {a.relative_error:.3f} / {a.shape_error:.3f}, "
+            f"parallel {b.relative_error:.3f} / {b.shape_error:.3f}"
+        )
     result = nplps.reconstruct(capture.images, rig, mask=capture.mask, depth=distance, iterations=20)
     print(f"  photometric residual (rms, all lights): {result.history[-1].rms_residual:.4g}")
     result.save(_pictures(tmp_path, name), overwrite=True)

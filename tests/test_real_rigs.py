@@ -29,7 +29,7 @@ def test_exact_model_is_recovered(variant, name, angular_error):
     assert err < 0.01
     assert depth_err < 1e-3
     if variant == "rgb":
-        assert r.albedo.shape == s.mask.shape + (3,)
+        assert r.albedo.shape == (*s.mask.shape, 3)
         np.testing.assert_allclose(r.albedo[s.mask], s.albedo[s.mask], rtol=5e-3)
 
 
@@ -43,7 +43,7 @@ def test_pinhole_gauge_is_the_geometric_mean(active_vertices):
     K = s.rig.K
     v = r.vertices
     u = K[0, 0] * v[..., 0] / v[..., 2] + K[0, 2]
-    rows, cols = np.mgrid[0 : 41, 0 : 41]
+    _rows, cols = np.mgrid[0:41, 0:41]
     np.testing.assert_allclose(u[active_vertices(s.mask)], (cols - 0.5)[active_vertices(s.mask)], atol=1e-9)
 
 
@@ -73,7 +73,7 @@ def _corrupt(images, mask, seed, highlight_fraction=0.1):
     select = (rng.random(images.shape) < highlight_fraction) & mask[None]
     out[select] += 0.5 * images.max() * rng.uniform(0.5, 1.0, select.sum())
     # Cast shadows: for each light, a band of pixels darkened to 10 %.
-    h, w = mask.shape
+    h, _w = mask.shape
     for i in range(0, k, 3):
         r0 = rng.integers(0, h - h // 4)
         out[i, r0 : r0 + h // 4] *= 0.1
@@ -135,7 +135,7 @@ def test_held_out_prefers_the_near_light_model():
     s = nplps.make_scene("bumps", n=32, camera="pinhole", led=True, noise=0.005)
     near = held_out(s.images, s.rig, mask=s.mask, depth=s.mean_depth, lights=[0, 9, 20])
     parallel = held_out(s.images, s.rig, mask=s.mask, depth=s.mean_depth, method="parallel", lights=[0, 9, 20])
-    for a, b in zip(near, parallel):
+    for a, b in zip(near, parallel, strict=False):
         assert a.light == b.light
         assert a.relative_error < 0.05 < b.relative_error
 

@@ -130,8 +130,9 @@ def test_render_matches_the_image_model_and_clips():
     # one facet by hand
     r, c = 3, 5
     w, h = ps
-    corners = np.array([[o[0] + cc * w, o[1] + rr * h, z[rr, cc]]
-                        for rr, cc in [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)]])
+    corners = np.array(
+        [[o[0] + cc * w, o[1] + rr * h, z[rr, cc]] for rr, cc in [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)]]
+    )
     nrm = np.cross(corners[2] - corners[1], corners[3] - corners[0])
     nrm /= np.linalg.norm(nrm)
     cen = corners.mean(axis=0)
@@ -179,8 +180,7 @@ def test_reconstruct_recovers_the_scene(scene):
 def test_paper_weighting_converges(scene):
     z, mask, ps, o, L, images = make(scene)
     z_mean = z[active_vertices(mask)].mean()
-    res = ref.reconstruct(images, L, ps, o, mask, depth=z_mean, iterations=50, tol=1e-10,
-                          weighting="paper")
+    res = ref.reconstruct(images, L, ps, o, mask, depth=z_mean, iterations=50, tol=1e-10, weighting="paper")
     ang, dz = errors(res, z, mask, ps, o)
     assert ang < 0.01, ang
     assert dz < 1e-3 * S, dz
@@ -208,7 +208,8 @@ def test_two_islands_with_their_own_gauge():
     # left island a saddle near 190, right island a tilted plane near 225
     z = np.where(X < 0, Z0 - 10 + 0.5 * (X**2 - Y**2) / S, Z0 + 25 + 0.3 * X - 0.2 * Y)
     mask = ((XC + 0.25 * S) ** 2 + YC**2 <= (0.2 * S) ** 2) | (
-        (np.abs(XC - 0.27 * S) <= 0.2 * S) & (np.abs(YC - 0.05 * S) <= 0.3 * S))
+        (np.abs(XC - 0.27 * S) <= 0.2 * S) & (np.abs(YC - 0.05 * S) <= 0.3 * S)
+    )
     act = active_vertices(mask)
     assert not np.any(act & (np.abs(X) < 1e-9))  # the step lies in the gap
     L = lights27()
@@ -262,8 +263,7 @@ def test_facets_with_fewer_than_three_lights():
     assert np.all(np.isnan(res["albedo"][dark])) and np.all(np.isnan(res["residual"][dark]))
     assert np.all(np.isfinite(res["albedo"][~dark]))
     # invalid facets report the mesh normal of the result
-    np.testing.assert_allclose(res["normals"][dark],
-                               ref.mesh_normals(res["depth"], ps, o)[dark], atol=1e-15)
+    np.testing.assert_allclose(res["normals"][dark], ref.mesh_normals(res["depth"], ps, o)[dark], atol=1e-15)
     # the lit facets are still reconstructed well
     ang = angle_deg(res["normals"], ref.mesh_normals(z, ps, o))
     assert ang[~dark].mean() < 0.01, ang[~dark].mean()
@@ -276,8 +276,7 @@ def test_dark_threshold_and_nan_observations_are_skipped():
     images[4, 10, 10] = np.nan
     images[7, 11, 12] = -1.0
     images[9, 12, 12] = 1e-30
-    res = ref.reconstruct(images, L, ps, o, depth=z.mean(), iterations=50, tol=1e-10,
-                          dark=1e-20)
+    res = ref.reconstruct(images, L, ps, o, depth=z.mean(), iterations=50, tol=1e-10, dark=1e-20)
     assert res["lights_used"][10, 10] == 26
     assert res["lights_used"][11, 12] == 26
     assert res["lights_used"][12, 12] == 26

@@ -98,8 +98,10 @@ def test_positions_off_by_5_percent(noise):
         plain = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=d, **KW)
         refined = nplps.reconstruct(scene.images, bad, mask=scene.mask, depth=d, refine_lights="position", **KW)
         m = scene.mask
-        err = {k: _angles(r.normals, scene.normals)[m].mean() for k, r in
-               (("truth", truth), ("plain", plain), ("refined", refined))}
+        err = {
+            k: _angles(r.normals, scene.normals)[m].mean()
+            for k, r in (("truth", truth), ("plain", plain), ("refined", refined))
+        }
         assert err["refined"] < err["plain"], (seed, err)
         if noise == 0:
             assert err["refined"] < 1.0, (seed, err)
@@ -154,8 +156,9 @@ def test_positions_with_auto_distance_keep_the_rigs_scale():
 
 def test_fallback_keeps_the_rig_when_refinement_does_not_help():
     scene = nplps.make_scene("saddle", n=48, seed=0)
-    refined = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth,
-                                refine_lights="position", **KW)
+    refined = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, refine_lights="position", **KW
+    )
     report = refined.refinement
     assert np.isfinite(report.residual_without) and np.isfinite(report.residual_with)
     if report.fell_back:
@@ -174,7 +177,7 @@ def test_parallel_baseline_refines_its_own_intensities():
     assert base.refinement is not None and base.refinement.mode == "intensity"
     assert base.history[-1].rms_residual < 0.5 * plain.history[-1].rms_residual
     np.testing.assert_array_equal(base.rig.positions, bad.positions)  # positions are kept
-    with pytest.raises(InputError, match="only \"intensity\""):
+    with pytest.raises(InputError, match='only "intensity"'):
         nplps.reconstruct_parallel(scene.images, bad, mask=scene.mask, depth=scene.mean_depth, refine_lights="position")
 
 
@@ -219,11 +222,21 @@ def test_refinement_needs_four_lights():
     scene = nplps.make_scene("sphere", n=16, seed=0)
     keep = [0, 5, 10]
     with pytest.raises(InputError, match="at least 4 lights"):
-        nplps.reconstruct(scene.images[keep], scene.rig.subset(keep), mask=scene.mask, depth=scene.mean_depth,
-                          refine_lights="intensity")
+        nplps.reconstruct(
+            scene.images[keep],
+            scene.rig.subset(keep),
+            mask=scene.mask,
+            depth=scene.mean_depth,
+            refine_lights="intensity",
+        )
     with pytest.raises(InputError, match="at least 4 lights"):
-        nplps.reconstruct_parallel(scene.images[keep], scene.rig.subset(keep), mask=scene.mask, depth=scene.mean_depth,
-                                   refine_lights="intensity")
+        nplps.reconstruct_parallel(
+            scene.images[keep],
+            scene.rig.subset(keep),
+            mask=scene.mask,
+            depth=scene.mean_depth,
+            refine_lights="intensity",
+        )
 
 
 def test_cli_refine_lights(tmp_path):
@@ -234,11 +247,26 @@ def test_cli_refine_lights(tmp_path):
     files = scene.save(tmp_path / "scene")
     bad.save(tmp_path / "bad_rig.json")
     out = tmp_path / "out"
-    code = main([
-        "reconstruct", str(tmp_path / "scene"), "--rig", str(tmp_path / "bad_rig.json"),
-        "--mask", str(files["mask"]), "--depth", str(scene.mean_depth), "--refine-lights", "intensity",
-        "--iterations", "50", "--out", str(out), "-q", "--baseline",
-    ])
+    code = main(
+        [
+            "reconstruct",
+            str(tmp_path / "scene"),
+            "--rig",
+            str(tmp_path / "bad_rig.json"),
+            "--mask",
+            str(files["mask"]),
+            "--depth",
+            str(scene.mean_depth),
+            "--refine-lights",
+            "intensity",
+            "--iterations",
+            "50",
+            "--out",
+            str(out),
+            "-q",
+            "--baseline",
+        ]
+    )
     assert code == 0
     refined = Rig.load(out / "rig_refined.json")
     phi = _relative(refined.intensities[:, 0]) / _relative(scene.rig.intensities[:, 0])
@@ -266,7 +294,9 @@ def test_hehe12_calibrated_intensities_beat_the_parallel_baseline(shared_capture
         h.relative_error
         for h in held_out(capture.images, parallel.rig, mask=capture.mask, depth=distance, method="parallel")
     ]
-    print(f"hehe12 held-out (raw), calibrated intensities: near {np.mean(near_errors):.4f}, "
-          f"parallel {np.mean(parallel_errors):.4f}")
+    print(
+        f"hehe12 held-out (raw), calibrated intensities: near {np.mean(near_errors):.4f}, "
+        f"parallel {np.mean(parallel_errors):.4f}"
+    )
     assert np.mean(near_errors) < np.mean(parallel_errors)
     assert np.mean(near_errors) < 0.1  # 0.242 with light.mat's intensities

@@ -153,12 +153,28 @@ def test_load_ignores_comment_keys(tmp_path):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (lambda d: d.update(comment="x"), r"rig\.json has an unknown key \"comment\" \(a rig file has version, camera and lights; keys starting with '_' are comments\)"),
-        (lambda d: d["camera"].update(serial="A123"), r"camera has an unknown key \"serial\" \(an orthographic camera has model, pixel_size and origin"),
+        (
+            lambda d: d.update(comment="x"),
+            r"rig\.json has an unknown key \"comment\" \(a rig file has version, camera and lights"
+            r"; keys starting with '_' are comments\)",
+        ),
+        (
+            lambda d: d["camera"].update(serial="A123"),
+            r"camera has an unknown key \"serial\" \(an orthographic camera has model, pixel_size and origin",
+        ),
         (lambda d: d["camera"].update(K=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), r"camera has an unknown key \"K\""),
-        (lambda d: d["lights"][0].update(intensities=[1, 2, 3]), r"light 0 has an unknown key \"intensities\" \(a point light has type, position, intensity, direction, mu"),
-        (lambda d: d["lights"][1].update(type="directional", direction=[0, 0, -1], position=[0, 0, 0]), r"light 1 has an unknown key \"position\" \(a directional light has"),
-        (lambda d: d["lights"].__setitem__(1, {"type": "directional", "direction": [0, 0, -1], "mu": 1.0}), r"light 1 has an unknown key \"mu\""),
+        (
+            lambda d: d["lights"][0].update(intensities=[1, 2, 3]),
+            r"light 0 has an unknown key \"intensities\" \(a point light has type, position, intensity, direction, mu",
+        ),
+        (
+            lambda d: d["lights"][1].update(type="directional", direction=[0, 0, -1], position=[0, 0, 0]),
+            r"light 1 has an unknown key \"position\" \(a directional light has",
+        ),
+        (
+            lambda d: d["lights"].__setitem__(1, {"type": "directional", "direction": [0, 0, -1], "mu": 1.0}),
+            r"light 1 has an unknown key \"mu\"",
+        ),
     ],
 )
 def test_unknown_keys_are_errors(tmp_path, edit, message):
@@ -199,25 +215,64 @@ def _edit(fn):
         (_edit(lambda d: d.update(version=2.0)), r"'version' must be an integer, got 2"),
         (_edit(lambda d: d.update(version=True)), r"'version' must be an integer, got the boolean true"),
         (_edit(lambda d: d["lights"][1].pop("position")), r"light 1 is missing its 'position'"),
-        (_edit(lambda d: d["lights"][2].update(position=[1, 2])), r"light 2 position must be 3 numbers, got a list of 2 items"),
-        (_edit(lambda d: d["lights"][0].update(position=["a", 0, 0])), r"light 0 position\[0\] must be a number, got the string \"a\""),
-        (_edit(lambda d: d["lights"][0].update(position=[[1], 0, 0])), r"light 0 position\[0\] must be a number, got a list of 1 item"),
-        (_edit(lambda d: d["lights"][0].update(position=[True, 0, 0])), r"light 0 position\[0\] must be a number, got the boolean true"),
-        (_edit(lambda d: d["lights"][0].update(position=[10**400, 0, 0])), r"light 0 position\[0\] is an integer too large"),
-        (_edit(lambda d: d["lights"][0].update(intensity="1")), r"light 0 intensity must be a number, got the string \"1\""),
-        (_edit(lambda d: d["lights"][0].update(intensity=[1, 2])), r"light 0 intensity must be 3 numbers, got a list of 2 items"),
-        (_edit(lambda d: d["lights"][0].update(intensity=[[1, 2, 3]])), r"light 0 intensity must be 3 numbers, got a list of 1 item"),
-        (_edit(lambda d: d["lights"][0].update(intensity=0)), r"light 0 must have positive intensities, got \[0, 0, 0\]"),
+        (
+            _edit(lambda d: d["lights"][2].update(position=[1, 2])),
+            r"light 2 position must be 3 numbers, got a list of 2 items",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(position=["a", 0, 0])),
+            r"light 0 position\[0\] must be a number, got the string \"a\"",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(position=[[1], 0, 0])),
+            r"light 0 position\[0\] must be a number, got a list of 1 item",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(position=[True, 0, 0])),
+            r"light 0 position\[0\] must be a number, got the boolean true",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(position=[10**400, 0, 0])),
+            r"light 0 position\[0\] is an integer too large",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(intensity="1")),
+            r"light 0 intensity must be a number, got the string \"1\"",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(intensity=[1, 2])),
+            r"light 0 intensity must be 3 numbers, got a list of 2 items",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(intensity=[[1, 2, 3]])),
+            r"light 0 intensity must be 3 numbers, got a list of 1 item",
+        ),
+        (
+            _edit(lambda d: d["lights"][0].update(intensity=0)),
+            r"light 0 must have positive intensities, got \[0, 0, 0\]",
+        ),
         (_edit(lambda d: d["lights"][0].update(mu="2")), r"light 0 mu must be a number, got the string \"2\""),
-        (_edit(lambda d: d["lights"][0].update(type=1)), r"light 0 has unknown type 1 \(\"point\" or \"directional\"\)"),
+        (
+            _edit(lambda d: d["lights"][0].update(type=1)),
+            r"light 0 has unknown type 1 \(\"point\" or \"directional\"\)",
+        ),
         (_edit(lambda d: d["lights"].__setitem__(0, [0, 0, 0])), r"light 0 must be an object, got a list of 3 items"),
         (_edit(lambda d: d.update(lights={"position": [0, 0, 0]})), r"'lights' must be a list"),
         (_edit(lambda d: d.update(lights=d["lights"][:2])), r"at least 3 lights, the rig has 2"),
         (_edit(lambda d: d.update(camera=[])), r"'camera' must be an object with a 'model' key"),
         (_edit(lambda d: d["camera"].pop("pixel_size")), r"rig\.json: camera is missing the key \"pixel_size\""),
-        (_edit(lambda d: d["camera"].update(origin=[0])), r"rig\.json: camera\.origin must be 2 numbers, got a list of 1 item"),
-        (_edit(lambda d: d["camera"].update(origin={"x": 0, "y": 0})), r"camera\.origin must be 2 numbers, got an object"),
-        (_edit(lambda d: d["camera"].update(model=["orthographic"])), r"camera\.model must be a string, got a list of 1 item"),
+        (
+            _edit(lambda d: d["camera"].update(origin=[0])),
+            r"rig\.json: camera\.origin must be 2 numbers, got a list of 1 item",
+        ),
+        (
+            _edit(lambda d: d["camera"].update(origin={"x": 0, "y": 0})),
+            r"camera\.origin must be 2 numbers, got an object",
+        ),
+        (
+            _edit(lambda d: d["camera"].update(model=["orthographic"])),
+            r"camera\.model must be a string, got a list of 1 item",
+        ),
         (_edit(lambda d: d["camera"].update(pixel_size=[0, 1])), r"pixel size must be positive"),
         (_edit(lambda d: d["camera"].update(model="fisheye")), r"unknown camera model \"fisheye\""),
     ],
@@ -239,11 +294,15 @@ def test_load_missing_file(tmp_path):
 
 def test_version_1_files_are_read(tmp_path):
     path = tmp_path / "rig.json"
-    path.write_text(json.dumps({
-        "version": 1,
-        "camera": {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
-        "lights": [{"position": p} for p in LIGHTS],
-    }))
+    path.write_text(
+        json.dumps(
+            {
+                "version": 1,
+                "camera": {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
+                "lights": [{"position": p} for p in LIGHTS],
+            }
+        )
+    )
     rig = nplps.Rig.load(path)
     np.testing.assert_array_equal(rig.positions, np.array(LIGHTS, dtype=float))
     np.testing.assert_array_equal(rig.intensities, 1.0)
@@ -319,7 +378,7 @@ def _pinhole_file(distortion):
         [[v] for v in D5],  # OpenCV's 5 x 1
         np.array([D5]),
         tuple(D5),
-        D5 + [0.0, 0.0, 0.0],  # OpenCV's rational model with k4 = k5 = k6 = 0
+        [*D5, 0.0, 0.0, 0.0],  # OpenCV's rational model with k4 = k5 = k6 = 0
         [D5 + [0.0] * 9],  # 1 x 14, the extra terms zero
     ],
     ids=["flat", "1x5", "5x1", "array", "tuple", "8", "1x14"],
@@ -345,9 +404,12 @@ def test_opencv_distortion_forms_mean_the_same_to_python_and_the_core(tmp_path, 
     [
         ([0.1, 0.0, 0.0], r"camera\.distortion has 3 coefficients, which is ambiguous"),
         ([0.0] * 6, r"camera\.distortion has 6 coefficients; OpenCV's models have 4, 5, 8, 12 or 14"),
-        (D5 + [0.1, 0.0, 0.0], r"camera\.distortion has 8 coefficients and k4 = 0\.1 is not zero"),
+        ([*D5, 0.1, 0.0, 0.0], r"camera\.distortion has 8 coefficients and k4 = 0\.1 is not zero"),
         ([[0.0] * 14 + [1.0]], r"camera\.distortion has 15 items; at most 14"),
-        ([[0.1, 0.0], [0.0, 0.0]], r"camera\.distortion must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, got a 2 x 2 matrix"),
+        (
+            [[0.1, 0.0], [0.0, 0.0]],
+            r"camera\.distortion must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, got a 2 x 2 matrix",
+        ),
         ([[[0.1]]], r"camera\.distortion\[0\] must be a number, got a list of 1 item"),
         ("abc", r"camera\.distortion must be a list, got the string \"abc\""),
         ({"k1": 0.1}, r"camera\.distortion must be a list, got an object"),
@@ -372,7 +434,9 @@ def test_distortion_that_cannot_be_undone_is_a_rig_error():
     """Far from the centre a strong barrel distortion maps no ray: refused, not a made-up ray."""
     camera = {"model": "pinhole", "K": [[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 1.0]], "distortion": [-0.2, 0.0]}
     assert np.isfinite(nplps._core.vertices(np.full((5, 5), 100.0), camera)).all()
-    with pytest.raises(nplps.RigError, match=r"no ray at pixel corner \(row \d+, column \d+\): its distortion cannot be undone"):
+    with pytest.raises(
+        nplps.RigError, match=r"no ray at pixel corner \(row \d+, column \d+\): its distortion cannot be undone"
+    ):
         nplps._core.vertices(np.full((12, 12), 100.0), camera)
     # Vertices of unknown depth (outside a reconstruction's mask) need no ray.
     depth = np.full((12, 12), np.nan)
@@ -385,7 +449,9 @@ def test_distortion_that_cannot_be_undone_is_a_rig_error():
 def test_deeply_nested_rig_files_are_rig_errors(tmp_path, nesting):
     path = tmp_path / "rig.json"
     path.write_text("[" * nesting + "]" * nesting, encoding="utf-8")
-    with pytest.raises(nplps.RigError, match=rf"rig file '.*rig\.json' is nested too deeply \({nesting} levels; at most 64\)"):
+    with pytest.raises(
+        nplps.RigError, match=rf"rig file '.*rig\.json' is nested too deeply \({nesting} levels; at most 64\)"
+    ):
         nplps.Rig.load(path)
     # Nested inside a comment of a good file: still too deep; at 60 levels it is read.
     data = _good()
@@ -425,15 +491,42 @@ def test_oversized_and_odd_json_files_are_rig_errors(tmp_path):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (lambda d: d["lights"][0].update(position=[float("nan"), 0, 0]), r"light 0 position\[0\] must be a finite number, got nan"),
-        (lambda d: d["lights"][1].update(intensity=float("inf")), r"light 1 intensity must be a finite number, got inf"),
-        (lambda d: d["lights"][2].update(intensity=[1, float("-inf"), 1]), r"light 2 intensity\[1\] must be a finite number, got -inf"),
-        (lambda d: d["lights"][0].update(mu=float("nan"), direction=[0, 0, 1]), r"light 0 mu must be a finite number, got nan"),
-        (lambda d: d["lights"][0].update(mu=1, direction=[0, float("nan"), 1]), r"light 0 direction\[1\] must be a finite number"),
-        (lambda d: d["camera"].update(pixel_size=[1, float("nan")]), r"camera\.pixel_size\[1\] must be a finite number, got NaN"),
-        (lambda d: d["camera"].update(origin=[float("inf"), 0]), r"camera\.origin\[0\] must be a finite number, got inf"),
-        (lambda d: d["lights"][0].update(position=[1e13, 0, 0]), r"light 0's position has the value 1\.00000e13, beyond 1\.00000e12 in magnitude"),
-        (lambda d: d["camera"].update(pixel_size=[1e-300, 1]), r"pixel size must be at least 1\.00000e-12, got \[1\.00000e-300, 1\]"),
+        (
+            lambda d: d["lights"][0].update(position=[float("nan"), 0, 0]),
+            r"light 0 position\[0\] must be a finite number, got nan",
+        ),
+        (
+            lambda d: d["lights"][1].update(intensity=float("inf")),
+            r"light 1 intensity must be a finite number, got inf",
+        ),
+        (
+            lambda d: d["lights"][2].update(intensity=[1, float("-inf"), 1]),
+            r"light 2 intensity\[1\] must be a finite number, got -inf",
+        ),
+        (
+            lambda d: d["lights"][0].update(mu=float("nan"), direction=[0, 0, 1]),
+            r"light 0 mu must be a finite number, got nan",
+        ),
+        (
+            lambda d: d["lights"][0].update(mu=1, direction=[0, float("nan"), 1]),
+            r"light 0 direction\[1\] must be a finite number",
+        ),
+        (
+            lambda d: d["camera"].update(pixel_size=[1, float("nan")]),
+            r"camera\.pixel_size\[1\] must be a finite number, got NaN",
+        ),
+        (
+            lambda d: d["camera"].update(origin=[float("inf"), 0]),
+            r"camera\.origin\[0\] must be a finite number, got inf",
+        ),
+        (
+            lambda d: d["lights"][0].update(position=[1e13, 0, 0]),
+            r"light 0's position has the value 1\.00000e13, beyond 1\.00000e12 in magnitude",
+        ),
+        (
+            lambda d: d["camera"].update(pixel_size=[1e-300, 1]),
+            r"pixel size must be at least 1\.00000e-12, got \[1\.00000e-300, 1\]",
+        ),
     ],
 )
 def test_non_finite_and_absurd_values_are_rig_errors(tmp_path, edit, message):
@@ -480,7 +573,9 @@ def test_anisotropic_led_needs_a_nonzero_finite_axis():
 
 
 def test_non_mapping_camera_and_bool_arrays_are_rig_errors():
-    with pytest.raises(nplps.RigError, match=r"camera must be a mapping \(the rig file's camera object\), got a list of 2 items"):
+    with pytest.raises(
+        nplps.RigError, match=r"camera must be a mapping \(the rig file's camera object\), got a list of 2 items"
+    ):
         nplps.Rig(camera=["orthographic", 1.0], lights=LIGHTS)
     with pytest.raises(nplps.RigError, match=r"lights must be numbers, got an array of booleans"):
         nplps.Rig.orthographic(1.0, lights=np.ones((4, 3), dtype=bool))
@@ -562,12 +657,18 @@ def test_light_values_are_typed_frozen_and_normalized():
         (lambda: nplps.PointLight((0, "1", 0)), r"PointLight position\[1\] must be a number, got the string \"1\""),
         (lambda: nplps.PointLight((0, 0, 0), 0.0), r"PointLight must have positive intensities, got \[0, 0, 0\]"),
         (lambda: nplps.PointLight((0, 0, 0), (1, -1, 1)), r"PointLight must have positive intensities"),
-        (lambda: nplps.PointLight((0, 0, 0), (1, 1)), r"PointLight intensity must be 3 numbers, got a tuple of 2 items"),
+        (
+            lambda: nplps.PointLight((0, 0, 0), (1, 1)),
+            r"PointLight intensity must be 3 numbers, got a tuple of 2 items",
+        ),
         (lambda: nplps.PointLight((0, 0, 0), np.inf), r"PointLight intensity must be a finite number, got inf"),
         (lambda: nplps.PointLight((0, 0, 0), True), r"PointLight intensity must be a number, got the boolean true"),
         (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 1), mu=-1), r"LED has anisotropy mu = -1; it must be >= 0"),
         (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 1), mu=np.nan), r"LED mu must be a finite number, got nan"),
-        (lambda: nplps.LED((0, 0, 0), axis=(0, 0, 0), mu=1), r"LED: an anisotropic LED \(mu = 1\) needs a non-zero axis"),
+        (
+            lambda: nplps.LED((0, 0, 0), axis=(0, 0, 0), mu=1),
+            r"LED: an anisotropic LED \(mu = 1\) needs a non-zero axis",
+        ),
         (lambda: nplps.LED((0, 0, 0), axis=(0, np.inf, 0)), r"LED axis\[1\] must be a finite number, got inf"),
         (lambda: nplps.DirectionalLight((0, 0, 0)), r"DirectionalLight: a directional light needs a unit direction"),
         (lambda: nplps.DirectionalLight((0, 0, -1), -1), r"DirectionalLight must have positive intensities"),
@@ -581,16 +682,26 @@ def test_light_values_are_validated_on_construction(build, message):
 def test_rig_holds_light_values_and_array_views():
     rig = _mixed_rig()
     assert isinstance(rig.lights, tuple) and rig.n_lights == 4
-    assert [type(light) for light in rig.lights] == [nplps.PointLight, nplps.LED, nplps.DirectionalLight, nplps.PointLight]
+    assert [type(light) for light in rig.lights] == [
+        nplps.PointLight,
+        nplps.LED,
+        nplps.DirectionalLight,
+        nplps.PointLight,
+    ]
     np.testing.assert_array_equal(rig.positions, [[-30, 0, 0], [30, 10, 0], NAN3, [5, 25, -20]])
     np.testing.assert_array_equal(rig.directions, [NAN3, NAN3, [0, 0, -1], NAN3])
     np.testing.assert_array_equal(rig.axes, [NAN3, [0, 0, 1], NAN3, NAN3])
     np.testing.assert_array_equal(rig.intensities, [[1, 1, 1], [0.9, 1, 1.1], [0.5] * 3, [2] * 3])
     np.testing.assert_array_equal(rig.mu, [0, 1.5, 0, 0])
     np.testing.assert_array_equal(rig.directional, [False, False, True, False])
-    for name, shape, dtype in [("positions", (4, 3), np.float64), ("directions", (4, 3), np.float64),
-                               ("axes", (4, 3), np.float64), ("intensities", (4, 3), np.float64),
-                               ("mu", (4,), np.float64), ("directional", (4,), np.bool_)]:
+    for name, shape, dtype in [
+        ("positions", (4, 3), np.float64),
+        ("directions", (4, 3), np.float64),
+        ("axes", (4, 3), np.float64),
+        ("intensities", (4, 3), np.float64),
+        ("mu", (4,), np.float64),
+        ("directional", (4,), np.bool_),
+    ]:
         view = getattr(rig, name)
         assert view.shape == shape and view.dtype == dtype and not view.flags.writeable, name
         assert getattr(rig, name) is view  # computed once
@@ -617,7 +728,9 @@ def test_rig_equality_hash_subset_and_replace():
 
 
 def test_rig_refuses_mixed_or_foreign_lights():
-    with pytest.raises(nplps.RigError, match=r"lights: light 1 is a list of 3 items, not a PointLight, LED or DirectionalLight"):
+    with pytest.raises(
+        nplps.RigError, match=r"lights: light 1 is a list of 3 items, not a PointLight, LED or DirectionalLight"
+    ):
         nplps.Rig(ORTHO, [nplps.PointLight((0, 0, 0)), [1.0, 0.0, 0.0], nplps.PointLight((0, 1, 0))])
     with pytest.raises(nplps.RigError, match=r"intensities= goes with an array of positions, not with light values"):
         nplps.Rig.orthographic(1.0, lights=list(_mixed_rig().lights), intensities=2.0)
@@ -650,10 +763,18 @@ def test_from_arrays_is_the_inverse_of_the_views():
     [
         (dict(positions=LIGHTS, directions=[[0, 0, -1]] * 4), r"light 0 has both a position and a direction: give NaN"),
         (dict(positions=[NAN3] * 4, directions=[NAN3] * 4), r"light 0 has neither a position nor a direction"),
-        (dict(positions=[NAN3] + LIGHTS[1:], directions=[[0, 0, -1]] + [NAN3] * 3, mu=[1, 0, 0, 0]),
-         r"light 0 is directional: it has no anisotropy \(mu = 1\)"),
-        (dict(positions=LIGHTS, directions=[[0, 0, -1]] * 3), r"directions must be a \(4, 3\) array, got shape \(3, 3\)"),
-        (dict(positions=LIGHTS, mu=[1, 0, 0, 0]), r"light 0: an anisotropic LED \(mu = 1\) needs its axis \(axes=\.\.\.\)"),
+        (
+            dict(positions=[NAN3, *LIGHTS[1:]], directions=[[0, 0, -1]] + [NAN3] * 3, mu=[1, 0, 0, 0]),
+            r"light 0 is directional: it has no anisotropy \(mu = 1\)",
+        ),
+        (
+            dict(positions=LIGHTS, directions=[[0, 0, -1]] * 3),
+            r"directions must be a \(4, 3\) array, got shape \(3, 3\)",
+        ),
+        (
+            dict(positions=LIGHTS, mu=[1, 0, 0, 0]),
+            r"light 0: an anisotropic LED \(mu = 1\) needs its axis \(axes=\.\.\.\)",
+        ),
         (dict(positions=LIGHTS, axes=[[0, 0, 1]] * 4, mu=[0, 0, 0]), r"mu must be a \(4,\) array, got shape \(3,\)"),
         (dict(positions=np.zeros((4, 2))), r"positions must be a \(k, 3\) array, got shape \(4, 2\)"),
         (dict(positions=LIGHTS, intensities=[1, 1]), r"intensities must be a number, \(k,\) or \(k, 3\)"),
@@ -692,8 +813,13 @@ def test_rig_file_round_trip_of_typed_lights(tmp_path):
     path = tmp_path / "rig.json"
     rig.save(path)
     data = json.loads(path.read_text())
-    assert data["lights"][1] == {"type": "point", "position": [30.0, 10.0, 0.0], "intensity": [0.9, 1.0, 1.1],
-                                 "direction": [0.0, 0.0, 1.0], "mu": 1.5}
+    assert data["lights"][1] == {
+        "type": "point",
+        "position": [30.0, 10.0, 0.0],
+        "intensity": [0.9, 1.0, 1.1],
+        "direction": [0.0, 0.0, 1.0],
+        "mu": 1.5,
+    }
     assert data["lights"][2] == {"type": "directional", "direction": [0.0, 0.0, -1.0], "intensity": 0.5}
     assert data["lights"][4]["direction"] == list(rig.lights[4].axis) and data["lights"][4]["mu"] == 0.0
     loaded = nplps.Rig.load(path)

@@ -385,8 +385,18 @@ def test_cli_calibrate_spheres_bad_placement_and_camera(tmp_path, capsys, sphere
         load_camera(deep)
     sphere16.rig.save(tmp_path / "rig.json")
     rc = cli.main(
-        ["calibrate", "spheres", str(tmp_path / "nope"), "--camera", str(tmp_path / "rig.json"), "--radius", "20",
-         "--out", str(tmp_path / "r.json"), "-q"]
+        [
+            "calibrate",
+            "spheres",
+            str(tmp_path / "nope"),
+            "--camera",
+            str(tmp_path / "rig.json"),
+            "--radius",
+            "20",
+            "--out",
+            str(tmp_path / "r.json"),
+            "-q",
+        ]
     )
     err = capsys.readouterr().err
     assert rc == 2 and "placement '" in err and "nope' not found" in err

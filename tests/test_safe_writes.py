@@ -300,7 +300,7 @@ def test_cli_refuses_a_non_empty_out_before_reading_the_images(
         raise AssertionError("the inputs were read")
 
     monkeypatch.setattr("nplps.cli.reconstruct.build_inputs", no_reading)
-    rc, stdout, stderr = run(capsys, reconstruct_argv(scene_dir, out, "--depth", "200"))
+    rc, _stdout, stderr = run(capsys, reconstruct_argv(scene_dir, out, "--depth", "200"))
     assert rc == 2
     assert f"output directory '{out}' is not empty; pass --overwrite" in stderr
     assert files_under(out) == {"notes.txt"}

@@ -49,8 +49,9 @@ def _cases():
         s = nplps.make_scene("bumps", n=N, seed=seed, noise=0.01)
         cases.append((f"bumps noise 1% seed {seed}", s.images, s.rig, s.mask, s.mean_depth, s, {}))
         e = nplps.make_scene("sphere", n=N, seed=seed)
-        cases.append((f"sphere lights 5% seed {seed}", e.images, _perturbed(e.rig, e.size, seed), e.mask,
-                      e.mean_depth, e, {}))
+        cases.append(
+            (f"sphere lights 5% seed {seed}", e.images, _perturbed(e.rig, e.size, seed), e.mask, e.mean_depth, e, {})
+        )
     s = nplps.make_scene("bumps", n=N, camera="pinhole")
     cases.append(("pinhole", s.images, s.rig, s.mask, s.mean_depth, s, {}))
     s = nplps.make_scene("sphere", n=N, camera="pinhole", led=True)
@@ -61,8 +62,17 @@ def _cases():
     cases.append(("robust tukey", s.images, s.rig, s.mask, s.mean_depth, s, {"robust": "tukey"}))
     s = nplps.make_scene("sphere", n=N)
     prior = s.depth + 0.5
-    cases.append(("prior", s.images, _perturbed(s.rig, s.size, 4), s.mask, s.mean_depth, s,
-                  {"depth_prior": prior, "prior_weight": 0.1}))
+    cases.append(
+        (
+            "prior",
+            s.images,
+            _perturbed(s.rig, s.size, 4),
+            s.mask,
+            s.mean_depth,
+            s,
+            {"depth_prior": prior, "prior_weight": 0.1},
+        )
+    )
     # Twice the size, so that the islands hold more vertices than the multigrid's coarsest level.
     s = nplps.make_scene("bumps", n=2 * N)
     islands = np.kron(_islands(N), np.ones((2, 2), dtype=bool))
@@ -86,9 +96,11 @@ def test_multigrid_and_coarse_to_fine_match_the_direct_solver(case, angular_erro
         normal_diff = angular_error(r.normals, oracle.normals, mask).mean()
         depth_diff = np.nanmax(np.abs(r.depth - oracle.depth)) / depth_range
         error = angular_error(r.normals, truth.normals, mask).mean()
-        print(f"\n{label} {mode}: normal diff {normal_diff:.2e} deg, depth diff {depth_diff:.2e} "
-              f"of the range; error vs truth {error:.4f} (direct {oracle_error:.4f}) deg; "
-              f"iterations {[(h.level, h.inner_iterations) for h in r.history]}")
+        print(
+            f"\n{label} {mode}: normal diff {normal_diff:.2e} deg, depth diff {depth_diff:.2e} "
+            f"of the range; error vs truth {error:.4f} (direct {oracle_error:.4f}) deg; "
+            f"iterations {[(h.level, h.inner_iterations) for h in r.history]}"
+        )
         agrees = normal_diff <= 0.01 and depth_diff <= 1e-4
         assert agrees or error <= oracle_error, f"{label} {mode}"
         if mode == "multigrid":

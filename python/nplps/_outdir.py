@@ -21,11 +21,11 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from types import TracebackType
-from typing import Iterator
 
 from ._atomic import TEMPORARY_NAME, PathLike, write_error, write_text
 from .errors import OutputExistsError
@@ -82,7 +82,7 @@ class ResultDirectory(os.PathLike):
             self._run.written.append(relative)
         return path
 
-    def subdirectory(self, name: str) -> "ResultDirectory":
+    def subdirectory(self, name: str) -> ResultDirectory:
         """The subdirectory ``name``, written as part of this directory's run."""
         view = object.__new__(ResultDirectory)
         view._run = self._run
@@ -120,7 +120,7 @@ class ResultDirectory(os.PathLike):
         _remove_temporaries(run.root, run.written)
         _write_manifest(run.root, sorted(written))
 
-    def __enter__(self) -> "ResultDirectory":
+    def __enter__(self) -> ResultDirectory:
         return self
 
     def __exit__(
@@ -204,7 +204,7 @@ def _remove_stale(root: Path, stale: list[str]) -> None:
     parents: set[Path] = set()
     for name in stale:
         path = root / name
-        if not _inside(root, path) or path.is_dir() and not path.is_symlink():
+        if not _inside(root, path) or (path.is_dir() and not path.is_symlink()):
             continue
         try:
             path.unlink()

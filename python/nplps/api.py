@@ -225,7 +225,6 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
     if progress is None or progress is False:
         return None
     if progress is True:
-
         width = len(str(iterations))
 
         def report(it: Iteration) -> None:
@@ -717,8 +716,22 @@ def _positive(value: Any, name: str) -> float:
     return v
 
 
-_UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "m": 1e6, "mb": 1e6, "g": 1e9, "gb": 1e9, "t": 1e12, "tb": 1e12,
-          "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
+_UNITS = {
+    "": 1,
+    "b": 1,
+    "k": 1e3,
+    "kb": 1e3,
+    "m": 1e6,
+    "mb": 1e6,
+    "g": 1e9,
+    "gb": 1e9,
+    "t": 1e12,
+    "tb": 1e12,
+    "kib": 2**10,
+    "mib": 2**20,
+    "gib": 2**30,
+    "tib": 2**40,
+}
 
 
 def _memory_limit(value: Any, name: str = "max_memory") -> float | None:
@@ -728,7 +741,7 @@ def _memory_limit(value: Any, name: str = "max_memory") -> float | None:
     if isinstance(value, str):
         text = value.strip().lower().replace(" ", "")
         number = text.rstrip("abcdefghijklmnopqrstuvwxyz")
-        unit = text[len(number):]
+        unit = text[len(number) :]
         if unit not in _UNITS or not number:
             raise InputError(f'{name} must be a number of bytes or a size such as "8 GB" or "512 MiB", got {value!r}')
         v = _real(_float_text(number, value, name), name) * _UNITS[unit]

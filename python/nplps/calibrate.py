@@ -324,9 +324,7 @@ def _depths(center_depth: Any, n: int) -> list[list[float]]:
         return [[float(center_depth)] for _ in range(n)]  # type: ignore[arg-type]
     items = list(center_depth)
     if len(items) != n:
-        raise InputError(
-            f"center_depth must be one number, or one entry per placement ({n}), got {len(items)} entries"
-        )
+        raise InputError(f"center_depth must be one number, or one entry per placement ({n}), got {len(items)} entries")
     out: list[list[float]] = []
     for item in items:
         if item is None:
@@ -429,9 +427,7 @@ def calibrate_spheres(
             labels.append(None)
             dets.append((lo, hi, None if count is None else int(count)))
         else:
-            raise InputError(
-                f"placement {i} has no mask: give masks=..., or detect=(min, max) image radius in pixels"
-            )
+            raise InputError(f"placement {i} has no mask: give masks=..., or detect=(min, max) image radius in pixels")
     if not (np.isfinite(radius) and radius > 0):
         raise InputError(f"the sphere radius must be positive, got {radius}")
     if cam.get("model") == "orthographic" and center_depth is None:
@@ -846,13 +842,23 @@ def make_sphere_scene(
         r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
     exponent = (r_px / (2.0 * highlight_px)) ** 2
     material = {
-        "diffuse": 1.0, "specular": float(specular), "exponent": float(exponent), "background": float(background)
+        "diffuse": 1.0,
+        "specular": float(specular),
+        "exponent": float(exponent),
+        "background": float(background),
     }
     radiance, labels = [], []
     for c in centers:
         d = _core.synth_spheres(
-            rig.camera, rig._core_lights(), n, n, c.tolist(), float(radius),
-            ([0.0, 0.0, -1.0], -board), material, int(supersample),
+            rig.camera,
+            rig._core_lights(),
+            n,
+            n,
+            c.tolist(),
+            float(radius),
+            ([0.0, 0.0, -1.0], -board),
+            material,
+            int(supersample),
         )
         radiance.append(d["images"])
         labels.append(d["labels"])

@@ -147,9 +147,7 @@ def _require_shape(name: str, array: np.ndarray, shape: tuple[int, ...]) -> None
         raise InputError(f"{name} has shape {array.shape}, expected {tuple(shape)}")
 
 
-def _valid_facets(
-    vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None
-) -> np.ndarray:
+def _valid_facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
     """Masked facets whose four corners have finite positions (and normals); warn about others."""
     finite = np.isfinite(vertices).all(axis=2)
     if normals is not None:
@@ -200,9 +198,7 @@ def _triangles(index: np.ndarray, facets: np.ndarray) -> np.ndarray:
     return faces.reshape(-1, 3)
 
 
-def _quantize(
-    values: np.ndarray, percentile: float, max_value: int, dtype: type
-) -> tuple[np.ndarray, float]:
+def _quantize(values: np.ndarray, percentile: float, max_value: int, dtype: type) -> tuple[np.ndarray, float]:
     """Scale ``values`` so their ``percentile`` maps to ``max_value``; clip, round, NaN -> 0.
 
     Returns the integer array and the scale factor (pixel = value * scale). Without finite
@@ -419,17 +415,13 @@ def _ply_elements(lines: list[str]) -> list[tuple[str, int, np.dtype]]:
             elements.append((words[1], int(words[2]), []))
         elif words[:1] == ["property"] and words[1] == "list":
             count_type, item_type, name = words[2:5]
-            elements[-1][2].extend(
-                [(f"{name}_count", _PLY_TYPES[count_type]), (name, _PLY_TYPES[item_type], (3,))]
-            )
+            elements[-1][2].extend([(f"{name}_count", _PLY_TYPES[count_type]), (name, _PLY_TYPES[item_type], (3,))])
         elif words[:1] == ["property"]:
             elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
     return [(name, count, np.dtype(fields)) for name, count, fields in elements]
 
 
-def _ply_result(
-    arrays: dict[str, np.ndarray], comments: list[str]
-) -> dict[str, np.ndarray | list[str] | None]:
+def _ply_result(arrays: dict[str, np.ndarray], comments: list[str]) -> dict[str, np.ndarray | list[str] | None]:
     """Assemble the :func:`read_ply` result from the decoded elements."""
     vertex = arrays["vertex"]
     face = arrays.get("face")

@@ -357,8 +357,7 @@ def load_stack(
         shape = pixels.shape if keep_color else pixels.shape[:2]
         if shape != stack.shape[1:]:
             raise InputError(
-                f"images have different sizes: {label} has shape {shape} "
-                f"but {labels[0]} has shape {stack.shape[1:]}"
+                f"images have different sizes: {label} has shape {shape} but {labels[0]} has shape {stack.shape[1:]}"
             )
         try:
             _convert_into(pixels, stack[i], gray=not keep_color)
@@ -378,8 +377,7 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
     """:func:`load_stack` of one ``(k, H, W[, 3])`` array."""
     if not (images.ndim == 3 or (images.ndim == 4 and images.shape[3] == 3)):
         raise InputError(
-            "expected an image stack of shape (k, H, W) or (k, H, W, 3), "
-            f"got an array of shape {images.shape}"
+            f"expected an image stack of shape (k, H, W) or (k, H, W, 3), got an array of shape {images.shape}"
         )
     k = images.shape[0]
     if k == 0:
@@ -475,9 +473,7 @@ def load_mask(mask: PathLike | np.ndarray | None, shape: tuple[int, int]) -> np.
         selected = _nonzero(_first_channel(np.asarray(mask), "mask"))
         source = "mask"
     if selected.shape != shape:
-        raise InputError(
-            f"{source} has shape {selected.shape} but the images have shape {shape} (H, W)"
-        )
+        raise InputError(f"{source} has shape {selected.shape} but the images have shape {shape} (H, W)")
     if not selected.any():
         raise InputError(f"mask is empty: {source} selects no pixel")
     return selected

@@ -108,9 +108,7 @@ def _spatial_axes(ndim: int, stack: bool, name: str) -> tuple[int, int]:
         return (1, 2) if stack else (0, 1)
     if ndim == 4:
         return 1, 2
-    raise InputError(
-        f"{name}: expected an image (H, W[, C]) or a stack (k, H, W[, C]), got {ndim} dimensions"
-    )
+    raise InputError(f"{name}: expected an image (H, W[, C]) or a stack (k, H, W[, C]), got {ndim} dimensions")
 
 
 def _check_K(K: np.ndarray) -> np.ndarray:
@@ -121,9 +119,7 @@ def _check_K(K: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(K)):
         raise InputError("K: non-finite entries")
     if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-        raise InputError(
-            f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
-        )
+        raise InputError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(f"K: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
     return K
@@ -165,13 +161,9 @@ def subtract_ambient(
     try:
         shape = np.broadcast_shapes(imgs.shape, amb.shape)
     except ValueError as exc:
-        raise InputError(
-            f"ambient of shape {amb.shape} does not broadcast to images of shape {imgs.shape}"
-        ) from exc
+        raise InputError(f"ambient of shape {amb.shape} does not broadcast to images of shape {imgs.shape}") from exc
     if shape != imgs.shape:
-        raise InputError(
-            f"ambient of shape {amb.shape} does not broadcast to images of shape {imgs.shape}"
-        )
+        raise InputError(f"ambient of shape {amb.shape} does not broadcast to images of shape {imgs.shape}")
     out = _output(imgs, out)
     np.subtract(imgs, amb, out=out)  # a float64 ambient is applied in buffers, not a float64 stack
     if clip:
@@ -280,9 +272,7 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 
 
-def vignetting_cos4(
-    shape: tuple[int, int], K: np.ndarray, dtype: type = np.float32
-) -> np.ndarray:
+def vignetting_cos4(shape: tuple[int, int], K: np.ndarray, dtype: type = np.float32) -> np.ndarray:
     """The natural-vignetting ("cos^4 law") map of a pinhole camera.
 
     The irradiance that a lens delivers to a pixel whose ray makes an angle ``theta`` with the
@@ -350,9 +340,7 @@ def flat_field_map(flat: np.ndarray, ambient: np.ndarray | float | None = None) 
     return (f / peak).astype(f.dtype, copy=False)
 
 
-def compensate_vignetting(
-    images: np.ndarray, vignetting: np.ndarray, *, out: np.ndarray | None = None
-) -> np.ndarray:
+def compensate_vignetting(images: np.ndarray, vignetting: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
     """Divide by a vignetting map: ``J = I / V``.
 
     Args:
@@ -377,21 +365,14 @@ def compensate_vignetting(
     if vmap.ndim == 2:
         if imgs.ndim >= 2 and imgs.shape[-2:] == vmap.shape:
             div = vmap
-        elif imgs.shape[-3:-1] == vmap.shape and (
-            imgs.ndim == 4 or (imgs.ndim == 3 and imgs.shape[-1] == 3)
-        ):
+        elif imgs.shape[-3:-1] == vmap.shape and (imgs.ndim == 4 or (imgs.ndim == 3 and imgs.shape[-1] == 3)):
             div = vmap[..., None]
         else:
-            raise InputError(
-                f"vignetting map of shape {vmap.shape} does not match images of shape "
-                f"{imgs.shape}"
-            )
+            raise InputError(f"vignetting map of shape {vmap.shape} does not match images of shape {imgs.shape}")
     elif vmap.ndim == 3 and imgs.ndim >= 3 and imgs.shape[-3:] == vmap.shape:
         div = vmap
     else:
-        raise InputError(
-            f"vignetting map of shape {vmap.shape} does not match images of shape {imgs.shape}"
-        )
+        raise InputError(f"vignetting map of shape {vmap.shape} does not match images of shape {imgs.shape}")
     if not np.all(np.isfinite(vmap)) or np.any(vmap <= 0):
         raise InputError("vignetting map must be positive and finite everywhere")
     # The division runs in float64 (the map is float64) in buffers: no float64 copy of the stack.
@@ -465,9 +446,7 @@ def bin_images(images: np.ndarray, factor: int, stack: bool = True) -> np.ndarra
     return out
 
 
-def bin_mask(
-    mask: np.ndarray, factor: int, rule: Literal["all", "half"] = "all"
-) -> np.ndarray:
+def bin_mask(mask: np.ndarray, factor: int, rule: Literal["all", "half"] = "all") -> np.ndarray:
     """Bin a 2-D pixel mask into ``factor x factor`` blocks.
 
     With ``rule="all"`` (the default) a binned pixel is selected only if **every** pixel of its
@@ -590,9 +569,7 @@ def pad_or_crop(
         start = max(0, -shift)  # first input index kept
         stop = min(x.shape[axis], size - shift)  # one past the last input index kept
         if stop <= start:
-            raise InputError(
-                f"pad_or_crop: offset {tuple(offset)} moves the image entirely out of {target}"
-            )
+            raise InputError(f"pad_or_crop: offset {tuple(offset)} moves the image entirely out of {target}")
         index[axis] = slice(start, stop)
         before = max(0, shift)
         pad[axis] = (before, size - before - (stop - start))

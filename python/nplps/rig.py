@@ -454,9 +454,7 @@ class Rig:
                 lights.append(DirectionalLight._checked(subject, dirs[i], phi[i]))
             elif not mus[i] == 0:  # an LED, or an invalid mu (negative or NaN) for LED's checks
                 if mus[i] > 0 and (ax is None or np.isnan(ax[i]).all()):
-                    raise RigError(
-                        f"{subject}: an anisotropic LED (mu = {mus[i]:.6g}) needs its axis (axes=...)"
-                    )
+                    raise RigError(f"{subject}: an anisotropic LED (mu = {mus[i]:.6g}) needs its axis (axes=...)")
                 axis = _NO_AXIS if ax is None else ax[i]
                 lights.append(LED._checked(subject, pos[i], phi[i], axis, mus[i]))
             else:
@@ -836,7 +834,7 @@ class Rig:
                 raise RigError(f"{where} must be an object, got {_describe(light)}")
             kind = light.get("type", "point")
             if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
-                raise RigError(f"{where} has unknown type {_describe(kind)} (\"point\" or \"directional\")")
+                raise RigError(f'{where} has unknown type {_describe(kind)} ("point" or "directional")')
             known = _LIGHT_KEYS[kind]
             _check_keys(light, known, where, f"a {kind} light has {', '.join(known)}")
             key = "position" if kind == "point" else "direction"

@@ -200,8 +200,15 @@ def make_scene(
     if seed >= 2**64:
         raise InputError(f"seed must be less than 2**64, got {_short(seed)}")
     d = _core.synth_scene(
-        name, int(n), size, distance, seed,
-        pinhole=camera == "pinhole", led=led, rgb=rgb, directional=directional,
+        name,
+        int(n),
+        size,
+        distance,
+        seed,
+        pinhole=camera == "pinhole",
+        led=led,
+        rgb=rgb,
+        directional=directional,
     )
     lights = d["lights"]
     rig = Rig._from_core_lights(d["camera"], lights)

@@ -142,12 +142,19 @@ class Capture:
         if self.directional:
             if self.K is None:
                 return Rig.orthographic(self.pixel_size, directions=self.directions, intensities=self.intensities)
-            return Rig.pinhole(self.K, distortion=self.distortion, directions=self.directions,
-                               intensities=self.intensities)
+            return Rig.pinhole(
+                self.K, distortion=self.distortion, directions=self.directions, intensities=self.intensities
+            )
         if self.K is None or self.positions is None:
             raise InputError(f"capture {self.name!r} has no camera intrinsics or light positions to build a rig from")
-        return Rig.pinhole(self.K, lights=self.positions, distortion=self.distortion, intensities=self.intensities,
-                           axes=self.directions, mu=self.mu)
+        return Rig.pinhole(
+            self.K,
+            lights=self.positions,
+            distortion=self.distortion,
+            intensities=self.intensities,
+            axes=self.directions,
+            mu=self.mu,
+        )
 
     def select(self, indices: Sequence[int]) -> Capture:
         """Return a copy restricted to the images / lights ``indices`` (0-based, in order)."""

@@ -88,8 +88,7 @@ def load_diligent(
     ints = _loadtxt(root / "light_intensities.txt", 3)
     if not (len(names) == dirs.shape[0] == ints.shape[0]):
         raise InputError(
-            f"'{root}': {len(names)} file names, {dirs.shape[0]} light directions and "
-            f"{ints.shape[0]} light intensities"
+            f"'{root}': {len(names)} file names, {dirs.shape[0]} light directions and {ints.shape[0]} light intensities"
         )
     flip = np.array([1.0, -1.0, -1.0])
     dirs = dirs * flip

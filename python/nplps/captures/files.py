@@ -37,9 +37,7 @@ def find_images(
     found = [
         p
         for p in folder.glob(pattern)
-        if p.is_file()
-        and p.suffix.lower() in IMAGE_EXTENSIONS
-        and not any(w in p.name.lower() for w in words)
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not any(w in p.name.lower() for w in words)
     ]
     return sorted(found, key=natural_key)
 
@@ -53,9 +51,7 @@ def _find_one(folder: Path, word: str) -> Path | None:
     ]
     if len(hits) > 1:
         names = ", ".join(p.name for p in hits)
-        raise InputError(
-            f"several {word} images in '{folder}' ({names}): pass the one to use explicitly"
-        )
+        raise InputError(f"several {word} images in '{folder}' ({names}): pass the one to use explicitly")
     return hits[0] if hits else None
 
 
@@ -150,9 +146,7 @@ def _mask_arg(folder: Path, mask: MaskSpec | str) -> np.ndarray | None:
     return _read_mask(_resolve(folder, mask))
 
 
-def _ambient_arg(
-    folder: Path, ambient: PathLike | np.ndarray | str | None
-) -> Path | np.ndarray | None:
+def _ambient_arg(folder: Path, ambient: PathLike | np.ndarray | str | None) -> Path | np.ndarray | None:
     """Resolve an ``ambient`` argument: "auto" (unique 'ambient' file), path, array or None."""
     if isinstance(ambient, str) and ambient == _AUTO:
         return _find_one(folder, "ambient")

@@ -60,9 +60,7 @@ def standardize_K(K: np.ndarray, one_based: bool = True) -> np.ndarray:
         if np.allclose(K[:, 2], last) and np.any(K[2, :2] != 0):
             K = K.T.copy()
         else:
-            raise RigError(
-                f"K is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: {K.tolist()}"
-            )
+            raise RigError(f"K is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: {K.tolist()}")
     K[2] = last
     if K[1, 0] != 0:
         raise RigError(f"K[1, 0] must be 0, got {K[1, 0]}")
@@ -74,9 +72,7 @@ def standardize_K(K: np.ndarray, one_based: bool = True) -> np.ndarray:
     return K
 
 
-def load_matlab_intrinsics(
-    path: PathLike, variable: str = "K", one_based: bool = True
-) -> np.ndarray:
+def load_matlab_intrinsics(path: PathLike, variable: str = "K", one_based: bool = True) -> np.ndarray:
     """Read ``K`` from a MATLAB file and return it with :func:`standardize_K` applied.
 
     E.g. ``camera.mat`` of the near-light toolbox, or ``calib.mat`` of Quéau's robust_ps

@@ -29,9 +29,7 @@ from .files import (
 from .matlab import _loadmat, _mat_var, load_matlab_intrinsics
 
 
-def _per_light(
-    arr: np.ndarray, k: int, name: str, path: Path, widths: tuple[int, ...]
-) -> np.ndarray:
+def _per_light(arr: np.ndarray, k: int, name: str, path: Path, widths: tuple[int, ...]) -> np.ndarray:
     """Reshape a light.mat variable to (k, width) (column vectors and scalars broadcast)."""
     a = np.atleast_2d(arr)
     if a.shape[0] != k and a.shape[1] == k and a.shape[0] in widths:
@@ -40,8 +38,7 @@ def _per_light(
         a = np.repeat(a, k, axis=0)
     if a.shape[0] != k or a.shape[1] not in widths:
         raise RigError(
-            f"'{path}': {name} has shape {arr.shape}, expected ({k}, "
-            + " or ".join(str(w) for w in widths) + ")"
+            f"'{path}': {name} has shape {arr.shape}, expected ({k}, " + " or ".join(str(w) for w in widths) + ")"
         )
     return a
 
@@ -187,9 +184,7 @@ def load_near_ps(
         stack = [image for image, _ in read]
         for p, img in zip(files, stack, strict=True):
             if img.shape != stack[0].shape:
-                raise InputError(
-                    f"image '{p}' has shape {img.shape} but '{files[0]}' has {stack[0].shape}"
-                )
+                raise InputError(f"image '{p}' has shape {img.shape} but '{files[0]}' has {stack[0].shape}")
         images_out = np.stack(stack)
         if color is True and images_out.ndim != 4:
             raise InputError("color=True needs RGB images")
@@ -202,9 +197,7 @@ def load_near_ps(
         if isinstance(amb, Path):
             amb = _prepare(amb, srgb, bin_factor, grid_shape, grid_offset, color)[0]
         if mask_arr is not None and mask_arr.shape != images_out.shape[1:3]:
-            raise InputError(
-                f"the mask has shape {mask_arr.shape} but the images have {images_out.shape[1:3]}"
-            )
+            raise InputError(f"the mask has shape {mask_arr.shape} but the images have {images_out.shape[1:3]}")
 
     return Capture(
         images=images_out,
@@ -317,10 +310,7 @@ def load_queau_human1(
         available = dict(zip(_led_rows_from_names(files), files, strict=True))
         missing = [int(i) for i in lights if int(i) not in available]
         if missing:
-            raise InputError(
-                f"no image of LED row(s) {missing} in '{folder}' "
-                f"(available rows: {sorted(available)})"
-            )
+            raise InputError(f"no image of LED row(s) {missing} in '{folder}' (available rows: {sorted(available)})")
         files = [available[int(i)] for i in lights]
     mask_path = _resolve(folder, "photometric_sample_mask_raw.png")
     mask = _read_mask(mask_path)

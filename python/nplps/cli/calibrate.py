@@ -424,8 +424,15 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
     directory = output_directory(args)
     out = directory.path
     scene = make_sphere_scene(
-        args.camera, n=args.size, lights=args.lights, directional=args.directional, led=args.led,
-        radius=args.radius, spheres=args.spheres, noise=args.noise, seed=args.seed,
+        args.camera,
+        n=args.size,
+        lights=args.lights,
+        directional=args.directional,
+        led=args.led,
+        radius=args.radius,
+        spheres=args.spheres,
+        noise=args.noise,
+        seed=args.seed,
     )
     with directory:
         scene.save(directory)
@@ -441,7 +448,14 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
     )
     placements = [str(out / f"placement_{i}") for i in range(len(scene.centers))]
     command = [
-        PROG, "calibrate", "spheres", *placements, "--camera", str(out / "camera.json"), "--radius", f"{scene.radius:g}"
+        PROG,
+        "calibrate",
+        "spheres",
+        *placements,
+        "--camera",
+        str(out / "camera.json"),
+        "--radius",
+        f"{scene.radius:g}",
     ]
     if args.camera == "orthographic":
         for depths in scene.center_depths:
@@ -452,8 +466,17 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
     if not args.no_board:
         extra = ["--fit-mu", "--fit-direction"] if args.led else []
         command = [
-            PROG, "calibrate", "intensity", str(out / "board"), "--rig", str(out / "rig_spheres.json"),
-            "--plane-depth", f"{scene.distance:g}", *extra, "--out", str(out / "rig.json"),
+            PROG,
+            "calibrate",
+            "intensity",
+            str(out / "board"),
+            "--rig",
+            str(out / "rig_spheres.json"),
+            "--plane-depth",
+            f"{scene.distance:g}",
+            *extra,
+            "--out",
+            str(out / "rig.json"),
         ]
         print(f"wrote the board images (plane z = {scene.distance:g}) to {out / 'board'}; then the intensities with:")
         print("  " + " ".join(shlex.quote(c) for c in command))

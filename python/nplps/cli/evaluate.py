@@ -44,9 +44,7 @@ def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         formatter_class=formatter,
     )
     add_input_options(p)
-    p.add_argument(
-        "--lights", metavar="I,J,...", help="the lights to leave out, 0-based, e.g. 0,3,5 (default: all)"
-    )
+    p.add_argument("--lights", metavar="I,J,...", help="the lights to leave out, 0-based, e.g. 0,3,5 (default: all)")
     return p
 
 
@@ -73,8 +71,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         for method in ("near", "parallel"):
             with _warnings_to_stderr():
                 (h,) = held_out(
-                    inputs.images, inputs.rig, mask=inputs.mask, method=method, lights=[light],
-                    valid=inputs.valid, **inputs.options, **near_options(args),
+                    inputs.images,
+                    inputs.rig,
+                    mask=inputs.mask,
+                    method=method,
+                    lights=[light],
+                    valid=inputs.valid,
+                    **inputs.options,
+                    **near_options(args),
                 )
             row += [h.relative_error, h.shape_error]
         rows.append(row)

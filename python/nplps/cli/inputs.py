@@ -116,8 +116,7 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
     v.add_argument(
         "--vignetting",
         choices=("cos4", "none"),
-        help="cos4: divide by the cos^4 fall-off map of the pinhole K (default: none; cos4 for "
-        "--capture near_ps)",
+        help="cos4: divide by the cos^4 fall-off map of the pinhole K (default: none; cos4 for --capture near_ps)",
     )
     v.add_argument("--flat", metavar="FILE", help="divide by this flat-field image, normalized to maximum 1")
     g.add_argument(
@@ -270,7 +269,7 @@ def _in_option_words(exc: InputError) -> InputError:
     text = str(exc)
     for word, option in _OPTION_WORDS:
         if text.startswith(word):
-            return InputError(option + text[len(word):])
+            return InputError(option + text[len(word) :])
     return exc
 
 

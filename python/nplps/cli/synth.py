@@ -68,9 +68,7 @@ def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the bumps scene (default 0)")
     p.add_argument("--distance", type=float, default=200.0, help="working distance (default 200)")
-    p.add_argument(
-        "--object-size", type=float, default=100.0, metavar="S", help="lateral object size (default 100)"
-    )
+    p.add_argument("--object-size", type=float, default=100.0, metavar="S", help="lateral object size (default 100)")
     p.add_argument(
         "--camera",
         choices=("orthographic", "pinhole"),
@@ -117,8 +115,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
     _check_scene_args(args)
     directory = output_directory(args)
     scene = make_scene(
-        args.scene, n=args.size, size=args.object_size, distance=args.distance, seed=args.seed, noise=args.noise,
-        camera=args.camera, led=args.led, rgb=args.rgb, directional=args.directional,
+        args.scene,
+        n=args.size,
+        size=args.object_size,
+        distance=args.distance,
+        seed=args.seed,
+        noise=args.noise,
+        camera=args.camera,
+        led=args.led,
+        rgb=args.rgb,
+        directional=args.directional,
     )
     with directory:
         paths = scene.save(directory)
