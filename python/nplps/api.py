@@ -380,16 +380,16 @@ def reconstruct(
         if prior.shape != (mask_arr.shape[0] + 1, mask_arr.shape[1] + 1):
             raise InputError(f"depth_prior must be an (H+1, W+1) = {(mask_arr.shape[0] + 1, mask_arr.shape[1] + 1)} map, got {prior.shape}")
         _check_depth_values(prior, mask_arr, rig, mask_arr.shape, "depth_prior")
+    if prior is not None:
+        options["prior"] = prior
     out = _core.reconstruct(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
         rig.camera,
         rig._core_lights(),
         mask_arr,
-        distance,
-        depth_map,
+        distance if depth_map is None else depth_map,
         options,
         _progress_callback(progress, int(iterations)),
-        prior,
     )
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])

@@ -850,12 +850,17 @@ def make_sphere_scene(
     if camera == "pinhole":
         r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
     exponent = (r_px / (2.0 * highlight_px)) ** 2
-    material = {"diffuse": 1.0, "specular": float(specular), "exponent": float(exponent), "background": float(background)}
+    options = {
+        "diffuse": 1.0,
+        "specular": float(specular),
+        "exponent": float(exponent),
+        "background": float(background),
+        "supersample": int(supersample),
+    }
     radiance, labels = [], []
     for c in centers:
         d = _core.synth_spheres(
-            rig.camera, rig._core_lights(), n, n, c.tolist(), float(radius),
-            ([0.0, 0.0, -1.0], -board), material, int(supersample),
+            rig.camera, rig._core_lights(), (n, n), c.tolist(), float(radius), ([0.0, 0.0, -1.0], -board), options
         )
         radiance.append(d["images"])
         labels.append(d["labels"])

@@ -12,7 +12,7 @@ use pyo3::types::{
     PyBool, PyBytes, PyDict, PyDictMethods, PyFloat, PyInt, PyList, PyString, PyTuple,
 };
 
-use nplps::error::g6;
+use nplps::g6;
 
 use crate::errors::{to_py, InputError, RigError};
 
@@ -290,6 +290,31 @@ fn distortion(v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
     Ok(d)
 }
 
+/// Fails with an `InputError` naming a key of the options mapping `options` that is not one of
+/// `known` (sorted), and listing the valid ones: a misspelt option must not silently fall back
+/// to its default.
+pub fn check_options(options: &Bound<'_, PyDict>, known: &[&str]) -> PyResult<()> {
+    for (key, _) in options.iter() {
+        let name = match key.cast::<PyString>() {
+            Ok(name) => name.to_string_lossy().into_owned(),
+            Err(_) => {
+                return Err(InputError::new_err(format!(
+                    "option keys must be strings, got {}",
+                    describe(&key)
+                )))
+            }
+        };
+        if !known.contains(&name.as_str()) {
+            return Err(InputError::new_err(format!(
+                "unknown option {}; the options are {}",
+                short(&name),
+                known.join(", ")
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// Reads an optional option of an options mapping (`InputError` when malformed).
 pub fn option<'py, T: FromPyObjectOwned<'py>>(
     dict: &Bound<'py, PyDict>,
@@ -392,13 +417,18 @@ pub fn camera_dict<'py>(py: Python<'py>, camera: &nplps::Camera) -> PyResult<Bou
             d.set_item("K", k.iter().map(|r| r.to_vec()).collect::<Vec<_>>())?;
             d.set_item("distortion", distortion.to_vec())?;
         }
+        ref other => {
+            return Err(rig_error(format!(
+                "camera model {other:?} has no rig file form in this version"
+            )))
+        }
     }
     Ok(d)
 }
 
 /// Builds the core's lights from the lights mapping (see the module documentation): the keys
 /// `vectors`, `directional`, `intensities`, `axes` and `mu`, each with one item per light (at
-/// most [`nplps::rig::MAX_LIGHTS`]), every value checked (see above).
+/// most [`nplps::MAX_LIGHTS`]), every value checked (see above).
 pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
     const KEYS: [&str; 5] = ["vectors", "directional", "intensities", "axes", "mu"];
     check_keys(
@@ -407,7 +437,7 @@ pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
         &KEYS,
         "the lights mapping has vectors, directional, intensities, axes and mu",
     )?;
-    let max = nplps::rig::MAX_LIGHTS;
+    let max = nplps::MAX_LIGHTS;
     let list = |key: &str| -> PyResult<Vec<Bound<'_, PyAny>>> {
         let value = required(lights, "lights", key)?;
         items(&value, &format!("lights.{key}"), max).map_err(|e| {
@@ -511,6 +541,11 @@ pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bo
                 direction,
                 intensity,
             } => (direction, true, intensity, [0.0, 0.0, 1.0], 0.0),
+            ref other => {
+                return Err(rig_error(format!(
+                    "light {other:?} has no form in the lights mapping of this version"
+                )))
+            }
         };
         vectors.push(v.to_vec());
         directional.push(dir);

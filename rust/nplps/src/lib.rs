@@ -35,7 +35,7 @@
 //! let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
 //! let stack = ImageStack::new(&images, scene.rig.n_lights(), 32, 32).unwrap();
 //! let problem = Problem::new(stack, &scene.rig, None, InitialDepth::Distance(scene.mean_depth())).unwrap();
-//! let options = Options { iterations: 50, tol: 1e-9, ..Options::default() };
+//! let options = Options::default().with_iterations(50).with_tol(1e-9);
 //! let result = reconstruct(&problem, &options, &mut |_| nplps::Control::Continue).unwrap();
 //! let err = result.depth.iter().zip(&scene.depth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
 //! assert!(err < 0.1, "max depth error {err} mm");
@@ -43,41 +43,63 @@
 
 #![warn(missing_docs)]
 
-pub mod anderson;
-pub mod baseline;
+/// `with_FIELD(value)` builder methods on a `#[non_exhaustive]` options struct (which other crates
+/// cannot build with a struct literal): `Options::default().with_iterations(50)`.
+macro_rules! with_fields {
+    ($t:ty { $($method:ident: $field:ident: $ty:ty),* $(,)? }) => {
+        impl $t {
+            $(
+                #[doc = concat!("These options with [`", stringify!($field), "`](Self::", stringify!($field), ") set to `value`.")]
+                #[must_use]
+                pub fn $method(mut self, value: $ty) -> Self {
+                    self.$field = value;
+                    self
+                }
+            )*
+        }
+    };
+}
+
+mod anderson;
+mod baseline;
 pub mod calibrate;
+#[cfg(feature = "synth")]
 pub mod calibration_scene;
-pub mod cancel;
-pub mod distance;
-pub mod error;
-pub mod geometry;
-pub mod global;
-pub mod grid;
-pub mod local;
-pub mod memory;
-pub mod multigrid;
-pub mod ordering;
-pub mod problem;
-pub mod pyramid;
-pub mod refine;
-pub mod render;
-pub mod rig;
-pub mod solver;
-pub mod synth;
+mod cancel;
+mod distance;
+mod error;
+mod geometry;
+mod global;
+mod grid;
+mod local;
+mod memory;
+mod multigrid;
+mod ordering;
+mod problem;
+mod pyramid;
+mod refine;
+mod render;
+mod rig;
+mod solver;
+#[cfg(feature = "synth")]
+mod synth;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
 pub use cancel::Cancel;
 pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
-pub use error::{Error, Result};
+pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use local::{Robust, Weighting};
+pub use memory::check_memory;
+pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use problem::{ImageStack, InitialDepth, Problem};
 pub use refine::{Conditioning, Refine};
-pub use render::{mesh_normals, predict, render, vertices};
-pub use rig::{Camera, Light, Rig};
+pub use render::{mesh_normals, predict, render, vertices, Surface};
+pub use rig::{Camera, Light, Rig, MAX_LIGHTS};
 pub use solver::{
-    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Solver,
-    Status, Timings,
+    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Status,
+    Timings,
 };
+#[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

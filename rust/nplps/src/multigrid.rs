@@ -762,13 +762,9 @@ impl MultigridSystem {
     }
 
     /// Number of levels (the fine level included).
+    #[cfg(test)]
     pub fn n_levels(&self) -> usize {
         self.levels.len()
-    }
-
-    /// Nodes of the directly factored coarsest level.
-    pub fn coarsest_nodes(&self) -> usize {
-        self.coarsest.nodes.len()
     }
 
     /// `z ~ A^-1 r` by one V-cycle from a zero start.

@@ -40,6 +40,7 @@ pub(crate) fn g6_list(values: &[f64]) -> String {
 
 /// Camera model.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub enum Camera {
     /// Orthographic camera looking along +z. Vertex (r, c) of the mesh stands at
     /// `x = origin[0] + c * pixel_size[0]`, `y = origin[1] + r * pixel_size[1]`: `origin` is the
@@ -209,6 +210,7 @@ pub(crate) fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
 /// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
 /// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))`.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub enum Light {
     /// A near point light (an LED) at `position`, emitting around the unit `axis` with
     /// anisotropy `mu` (Quéau et al. 2018): `beta(x) = ((x - p) . axis / |x - p|)^mu *
