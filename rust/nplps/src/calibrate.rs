@@ -51,7 +51,7 @@
 //!    (RMS angle about their mean direction) the light is too far to be located and is reported
 //!    as a directional light along the mean direction; likewise with a single ray (with a
 //!    warning), or when the least-squares point lies behind a sphere (diverging rays).
-//! 6. **Joint refinement** ([`refine_spheres`]): a binary mask places a sphere's centre only to
+//! 6. **Joint refinement** (`refine_spheres`): a binary mask places a sphere's centre only to
 //!    a few hundredths of a pixel, which turns all its rays by ~0.1 degree; the sphere centres
 //!    and the lights are therefore refined together by least squares on the outlines and on the
 //!    highlights of every light seen on two or more spheres (a small bundle adjustment), and
@@ -1862,7 +1862,8 @@ pub struct SphereOptions {
     /// Fewest pixels of a mask component taken as a sphere (smaller ones are ignored with a
     /// note). Default 30.
     pub min_component: usize,
-    /// Refine the sphere centres and the lights jointly ([`refine_spheres`]). Default true.
+    /// Refine the sphere centres and the lights jointly (step 6 of the
+    /// [module documentation](self)). Default true.
     pub refine: bool,
 }
 

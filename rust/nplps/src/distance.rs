@@ -314,7 +314,7 @@ fn search_refined(
 
 /// Estimates the working distance of every region, then reconstructs at it (warm-started).
 ///
-/// With a coarse-to-fine pyramid (see [`crate::pyramid`]) the search runs on the coarsest level
+/// With a coarse-to-fine pyramid ([`Options::levels`](crate::Options::levels)) the search runs on the coarsest level
 /// only; the finer levels start from its surface and keep its gauge, so the full resolution
 /// costs about what a run with a known distance costs.
 pub fn reconstruct_auto(

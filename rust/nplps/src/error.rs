@@ -53,7 +53,7 @@ pub enum Error {
     #[error("solver failed: {0}")]
     Solver(String),
     /// The computation would need more memory than the limit allows (checked before the large
-    /// allocations; see [`crate::memory`]), or a large allocation failed.
+    /// allocations; see [`crate::check_memory`]), or a large allocation failed.
     #[error("{}", memory_message(what, *needed, *limit, *explicit))]
     Memory {
         /// What was being computed ("reconstructing 4000 x 3000 pixels ...").

@@ -318,13 +318,13 @@ impl GlobalSystem {
 /// How the global step's linear system is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum GlobalSolver {
-    /// Direct below [`AUTO_MULTIGRID_UNKNOWNS`] unknowns, multigrid above.
+    /// Direct below 40 000 unknowns (about 200 x 200 pixels), multigrid above.
     #[default]
     Auto,
     /// Sparse Cholesky factorization (nested dissection), factored once: exact, but its fill
     /// grows faster than the pixels (about 7.5 GB at 2048 x 2048).
     Direct,
-    /// Conjugate gradients with a multigrid preconditioner ([`crate::multigrid`]): linear cost
+    /// Conjugate gradients with a multigrid preconditioner: linear cost
     /// and memory in the pixels.
     Multigrid,
 }

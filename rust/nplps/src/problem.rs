@@ -223,8 +223,10 @@ impl<'a> Problem<'a> {
 
 impl Problem<'_> {
     /// Adds a per-vertex prior depth map ((H+1) x (W+1); NaN where there is none) with `weight`
-    /// relative to the facet terms (see [`Prior`]; for a pinhole camera the prior acts on
-    /// log-depth).
+    /// relative to the facet terms: the global step's energy gains
+    /// `weight * sum_v (u_v - prior_v)^2` over the vertices whose prior is finite, with `u` the
+    /// depth (for a pinhole camera the log-depth, and the prior's log). A region the prior
+    /// covers keeps no fixed gauge.
     pub fn set_prior(&mut self, map: &[f64], weight: f64) -> Result<()> {
         let (h, w) = (self.grid.height + 1, self.grid.width + 1);
         ensure_shape("depth prior", h * w, map.len(), || {

@@ -49,13 +49,13 @@ pub struct Options {
     /// How the global step's linear system is solved.
     pub solver: GlobalSolver,
     /// Coarse-to-fine pyramid levels (1: the full resolution only; 0: automatic, see
-    /// [`crate::pyramid`]).
+    /// the images are halved while the longer side keeps at least 128 pixels).
     pub levels: usize,
-    /// Self-calibration of the lights (see [`crate::refine`]).
+    /// Self-calibration of the lights (off by default).
     pub refine: Refine,
     /// Memory limit in bytes: a reconstruction whose estimated peak memory exceeds it is refused
     /// with [`Error::Memory`] before the large allocations. `None`: a share of the memory the
-    /// machine has available (see [`crate::memory`]); `Some(f64::INFINITY)`: no limit.
+    /// machine has available (see [`crate::check_memory`]); `Some(f64::INFINITY)`: no limit.
     pub max_memory: Option<f64>,
 }
 
@@ -216,13 +216,13 @@ pub enum Status {
     /// The largest depth change of the last iteration was at most `tol` times the lateral size.
     Converged,
     /// The iteration stopped without converging: at the iteration limit, or because the depth
-    /// change found no new minimum for [`STALL_WINDOW`] iterations. The surface may be usable;
+    /// change found no new minimum for 50 iterations. The surface may be usable;
     /// the history says how far it was from converging.
     Stalled,
-    /// The depth changes grew (the last at least [`DIVERGENCE_GROWTH`] times the smallest one of
+    /// The depth changes grew (the last at least 10 times the smallest one of
     /// the final level): the surface is moving away.
     Diverged,
-    /// More than [`DEGENERATE_SHARE`] of the masked pixels could not be fitted (fewer than 3
+    /// More than half of the masked pixels could not be fitted (fewer than 3
     /// usable observations): they kept the starting shape, which says nothing about the object.
     Degenerate,
 }
@@ -505,7 +505,7 @@ pub(crate) struct Solver<'p> {
     carried: bool,
     /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
     diverged: bool,
-    /// Whether the last `iterate` stopped for lack of progress (see [`STALL_WINDOW`]).
+    /// Whether the last `iterate` stopped for lack of progress (see 50).
     stalled: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
