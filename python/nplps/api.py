@@ -9,7 +9,7 @@ from typing import Any, Callable, Sequence, Union
 
 import numpy as np
 
-from . import _core
+from . import _core, _core_types
 from .errors import InputError
 from .io import load_mask, load_stack
 from .reconstruction import Iteration, Reconstruction
@@ -355,7 +355,7 @@ def reconstruct(
     stack, missing = _channels(stack, color, saturation_)
     iterations = _whole(iterations, "iterations", 1)
     tol = _real(tol, "tol")
-    options = {
+    options: _core_types.ReconstructOptions = {
         "iterations": iterations,
         "tol": tol,
         "dark": dark_,
@@ -382,18 +382,20 @@ def reconstruct(
         _check_depth_values(prior, mask_arr, rig, mask_arr.shape, "depth_prior")
     if prior is not None:
         options["prior"] = prior
+    depth_arg = distance if depth_map is None else depth_map
+    assert depth_arg is not None  # _prepare gives exactly one of them
     out = _core.reconstruct(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
         rig.camera,
         rig._core_lights(),
         mask_arr,
-        distance if depth_map is None else depth_map,
+        depth_arg,
         options,
         _progress_callback(progress, int(iterations)),
     )
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
-    result = Reconstruction._from_core(out, mask_arr, rig, "near")
+    result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
     _warn_status(result)
     return result
 
@@ -433,7 +435,7 @@ def reconstruct_parallel(
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
     stack, missing = _channels(stack, color, saturation_)
-    options = {
+    options: _core_types.SolverOptions = {
         "dark": dark_,
         "saturation": saturation_,
         "robust": "none" if robust is None else robust,
@@ -450,7 +452,7 @@ def reconstruct_parallel(
         depth_map,
         options,
     )
-    return Reconstruction._from_core(out, mask_arr, rig, "parallel")
+    return Reconstruction._from_core(dict(out), mask_arr, rig, "parallel")
 
 
 def render(depth: np.ndarray, rig: Rig, albedo: float | np.ndarray = 1.0, mask: np.ndarray | None = None) -> np.ndarray:

@@ -43,7 +43,7 @@ from typing import Any, Mapping, Sequence, Union
 
 import numpy as np
 
-from . import _core, io
+from . import _core, _core_types, io
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
@@ -432,7 +432,7 @@ def calibrate_spheres(
             "an orthographic camera needs the depth of the sphere centres: center_depth=... (command line: "
             "--center-depth); for balls on a board at depth z it is z - radius, for hemispheres lying on it z"
         )
-    options = {
+    options: _core_types.SphereOptions = {
         "outline": outline,
         "parallel_tol": float(parallel_tol),
         "min_contrast": float(min_contrast),
@@ -485,7 +485,7 @@ def calibrate_spheres(
         ray_origins=obs["origin"],
         ray_directions=obs["direction"],
         warnings=list(d["warnings"]),
-        refinement=d.get("refinement"),
+        refinement=dict(d["refinement"]) if "refinement" in d else None,
     )
 
 
@@ -569,7 +569,7 @@ def calibrate_intensities(
         saturation = float("inf") if levels is None else 1.0 - 0.5 / levels
     m = None if mask is None else io.load_mask(mask, stack.shape[1:3])
     normal, offset = _plane(plane)
-    options = {
+    options: _core_types.IntensityOptions = {
         "fit_mu": bool(fit_mu),
         "fit_direction": bool(fit_direction),
         "albedo": albedo,
@@ -850,7 +850,7 @@ def make_sphere_scene(
     if camera == "pinhole":
         r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
     exponent = (r_px / (2.0 * highlight_px)) ** 2
-    options = {
+    options: _core_types.SphereRenderOptions = {
         "diffuse": 1.0,
         "specular": float(specular),
         "exponent": float(exponent),

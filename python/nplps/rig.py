@@ -49,7 +49,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from . import _core
+from . import _core, _core_types
 from .errors import RigError
 
 RIG_FILE_VERSION = 2
@@ -267,7 +267,7 @@ class Rig:
             directional=np.asarray(lights["directional"], dtype=bool),
         )
 
-    def _core_lights(self) -> dict[str, list[Any]]:
+    def _core_lights(self) -> _core_types.LightsDict:
         """The lights in the form the compiled core takes."""
         return {
             "vectors": self.lights.tolist(),

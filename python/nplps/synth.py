@@ -128,7 +128,7 @@ def make_scene(
     )
     lights = d["lights"]
     rig = Rig(
-        camera=d["camera"],
+        camera=dict(d["camera"]),
         lights=np.array(lights["vectors"]),
         intensities=np.array(lights["intensities"]),
         directions=np.array(lights["axes"]),
