@@ -46,6 +46,14 @@ pub enum Error {
     /// a degenerate fit.
     #[error("{0}")]
     Unusable(String),
+    /// An image file cannot be read: missing, not a valid image, or above the pixel limit.
+    #[error("cannot read image '{}': {reason}", path.display())]
+    Image {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why it cannot be read.
+        reason: String,
+    },
     /// The rig (camera or lights) is invalid.
     #[error("{0}")]
     Rig(String),

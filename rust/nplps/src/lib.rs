@@ -28,6 +28,7 @@
 //!   ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
 //! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
 //! - Light calibration from sphere and board images: the [`calibrate`] module.
+//! - Files (feature `io`, on by default): the [`io`] module reads rig files and PNG images.
 //! - Errors: [`Error`] (non-exhaustive; input errors say which array or parameter is wrong),
 //!   [`Result`]; memory is checked before the large allocations ([`check_memory`]).
 //! - Cargo features: `synth` (off by default) adds synthetic scenes with ground truth (`Scene`,
@@ -38,6 +39,74 @@
 //! other; the geometry (where the vertices are under the camera, and the facets' corners, normals
 //! and centres); the per-facet fits; then the global step, the solver, the pyramid, the light
 //! refinement and the distance search. All of them are private to the crate.
+//!
+//! ## A native application
+//!
+//! With the `io` feature (on by default) an application reads a rig file and PNG images and
+//! reconstructs. Here the files are made first: 16-bit images of a dome rendered by the model.
+//!
+//! ```
+//! # #[cfg(feature = "io")] {
+//! use std::path::PathBuf;
+//! use nplps::{io, reconstruct, Control, ImageStack, InitialDepth, Options, Problem, Surface};
+//!
+//! let dir = std::env::temp_dir().join(format!("nplps-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! // The rig file: an orthographic camera (1 mm pixels) and 8 LEDs 100 mm in front of the object.
+//! let lights: Vec<String> = (0..8)
+//!     .map(|i| {
+//!         let a = i as f64 * std::f64::consts::FRAC_PI_4;
+//!         format!(r#"{{"type": "point", "position": [{}, {}, 0], "intensity": 8000}}"#,
+//!                 60.0 * a.cos(), 60.0 * a.sin())
+//!     })
+//!     .collect();
+//! let rig_file = dir.join("rig.json");
+//! std::fs::write(&rig_file, format!(
+//!     r#"{{"version": 2, "camera": {{"model": "orthographic", "pixel_size": [1, 1],
+//!          "origin": [-16, -16]}}, "lights": [{}]}}"#, lights.join(", "))).unwrap();
+//!
+//! // The images: a dome 100 mm away, rendered and written as 16-bit PNG files.
+//! let (h, w) = (32, 32);
+//! let truth: Vec<f64> = (0..(h + 1) * (w + 1))
+//!     .map(|v| {
+//!         let (x, y) = ((v % (w + 1)) as f64 - 16.0, (v / (w + 1)) as f64 - 16.0);
+//!         100.0 - 8.0 + (x * x + y * y) / 64.0
+//!     })
+//!     .collect();
+//! let rig = io::read_rig(&rig_file).unwrap();
+//! let albedo = vec![0.8; h * w];
+//! let surface = Surface { height: h, width: w, depth: &truth, albedo: &albedo, channels: 1, mask: None };
+//! let rendered = nplps::render(&rig, &surface).unwrap();
+//! let mut paths: Vec<PathBuf> = Vec::new();
+//! for (i, image) in rendered.chunks(h * w).enumerate() {
+//!     let path = dir.join(format!("led{i}.png"));
+//!     let mut encoder = png::Encoder::new(std::fs::File::create(&path).unwrap(), w as u32, h as u32);
+//!     encoder.set_color(png::ColorType::Grayscale);
+//!     encoder.set_depth(png::BitDepth::Sixteen);
+//!     let bytes: Vec<u8> = image
+//!         .iter()
+//!         .flat_map(|&v| ((v.clamp(0.0, 1.0) * 65535.0).round() as u16).to_be_bytes())
+//!         .collect();
+//!     encoder.write_header().unwrap().write_image_data(&bytes).unwrap();
+//!     paths.push(path);
+//! }
+//!
+//! // The application: read the rig and the images, reconstruct.
+//! let rig = io::read_rig(&rig_file).unwrap();
+//! let mut images: Vec<f32> = Vec::new();
+//! for image in io::read_pngs(&paths, 1 << 26) {
+//!     images.extend(image.unwrap().to_unit());
+//! }
+//! let stack = ImageStack::new(&images, rig.n_lights(), h, w).unwrap();
+//! let mean = truth.iter().sum::<f64>() / truth.len() as f64;
+//! let problem = Problem::new(stack, &rig, None, InitialDepth::Distance(mean)).unwrap();
+//! let options = Options::default().with_iterations(100).with_tol(1e-7);
+//! let result = reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap();
+//! let err = result.depth.iter().zip(&truth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+//! assert!(err < 0.05, "max depth error {err} mm");
+//! std::fs::remove_dir_all(&dir).unwrap();
+//! # }
+//! ```
 //!
 //! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
 //! depth = z; normals face the camera (n_z < 0). Units are the user's.
@@ -82,12 +151,15 @@ mod baseline;
 pub mod calibrate;
 #[cfg(feature = "synth")]
 pub mod calibration_scene;
+mod camera_map;
 mod cancel;
 mod distance;
 mod error;
 mod geometry;
 mod global;
 mod grid;
+#[cfg(feature = "io")]
+pub mod io;
 mod local;
 mod memory;
 mod multigrid;
@@ -103,6 +175,7 @@ mod synth;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
+pub use camera_map::{camera_from_map, MapValue};
 pub use cancel::Cancel;
 pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
 pub use error::{g6, Error, Result};
