@@ -130,7 +130,16 @@ fn distortion<V: MapValue>(v: &V) -> Read<[f64; 5], V> {
     Camera::distortion_from(&c).map_err(V::core_error)
 }
 
-/// Reads and validates the camera mapping `camera` (see the [module documentation](self)).
+/// Reads and validates the camera mapping `camera` of a rig file.
+///
+/// The mapping has `model` = "orthographic" with `pixel_size` (w, h) and `origin` (x, y), or
+/// "pinhole" with `K` (3 x 3) and an optional `distortion` (a flat list or OpenCV's 1 x n or
+/// n x 1 matrix; see [`Camera::distortion_from`]; null or absent is none). Every value is
+/// checked for its type and shape; a key that is not part of the model's form is an error
+/// naming it, except keys starting with `_` (comments). Every problem is a rig error
+/// ([`MapValue::rig_error`]) naming the key (`camera.distortion[2] must be a finite number, got
+/// NaN`). The one implementation of these rules, for the rig file reader (over JSON values) and
+/// the Python bindings (over Python objects).
 pub fn camera_from_map<V: MapValue>(camera: &V) -> Read<Camera, V> {
     let model = required(camera, "camera", "model")?;
     let Some(model) = model.string() else {

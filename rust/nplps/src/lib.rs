@@ -28,7 +28,7 @@
 //!   ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
 //! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
 //! - Light calibration from sphere and board images: the [`calibrate`] module.
-//! - Files (feature `io`, on by default): the [`io`] module reads rig files and PNG images.
+//! - Files (feature `io`, on by default): the `io` module reads rig files and PNG images.
 //! - Errors: [`Error`] (non-exhaustive; input errors say which array or parameter is wrong),
 //!   [`Result`]; memory is checked before the large allocations ([`check_memory`]).
 //! - Cargo features: `synth` (off by default) adds synthetic scenes with ground truth (`Scene`,

@@ -68,7 +68,7 @@ impl Camera {
     /// prefix of k1, k2, p1, p2, k3 that keeps p1 and p2 together; missing ones are zero), or 8,
     /// 12 or 14 (OpenCV's rational, thin-prism and tilted models) when the coefficients after k3
     /// are zero. 3 are ambiguous (OpenCV's k1, k2, p1 or a radial k1, k2, k3) and refused. The
-    /// one implementation of this rule for the rig file reader ([`crate::io`]) and the Python
+    /// one implementation of this rule for the rig file reader (`nplps::io`) and the Python
     /// bindings.
     pub fn distortion_from(coefficients: &[f64]) -> Result<[f64; 5]> {
         const WHAT: &str = "camera.distortion";
