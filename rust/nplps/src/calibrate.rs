@@ -8,15 +8,15 @@
 //! placements share the camera frame (OpenCV: x right, y down, z forward; pixel (r, c) has its
 //! centre at (u, v) = (c, r)).
 //!
-//! 1. **The sphere in the image.** Boundary points come from a mask ([`mask_boundary`]: the
+//! 1. **The sphere in the image.** Boundary points come from a mask (`mask_boundary`: the
 //!    midpoints of the cracks between an inside and an outside pixel, unbiased for a mask that
-//!    holds the pixels whose centre sees the sphere) or from the images ([`radial_edges`] in the
+//!    holds the pixels whose centre sees the sphere) or from the images (`radial_edges` in the
 //!    composite of the k images, each pixel's brightest value: the crossing of the half level
 //!    between the outside and the inside, extrapolated to the edge, along rays from a first
-//!    centre, sub-pixel by linear interpolation; [`detect_spheres`] finds the first circles).
+//!    centre, sub-pixel by linear interpolation; `detect_spheres` finds the first circles).
 //! 2. **The sphere in 3-D.**
 //!    *Orthographic camera*: the boundary points, in scene units (x = ox + (u + 1/2) w,
-//!    y = oy + (v + 1/2) h), are fitted with a circle ([`fit_circle`]: algebraic fit, then
+//!    y = oy + (v + 1/2) h), are fitted with a circle (`fit_circle`: algebraic fit, then
 //!    Gauss–Newton on the geometric distances with Tukey reweighting); its centre is the sphere
 //!    centre's (x, y); z is given (the depth of the sphere centre: for a ball lying on a board at
 //!    depth `z_b`, `z_b - R`; for a hemisphere lying flat on it, `z_b`). The fitted radius checks
@@ -24,7 +24,7 @@
 //!    *Pinhole camera*: the image of a sphere is an ellipse, the section of the tangent cone from
 //!    the camera centre. Each boundary point back-projects (after undistortion) to a unit ray
 //!    `b_i` on that cone: `b_i . a = cos(theta)` with `a` the unit axis, which passes through the
-//!    sphere centre, and `sin(theta) = R / D`, `D` the distance of the centre. [`fit_cone`] solves
+//!    sphere centre, and `sin(theta) = R / D`, `D` the distance of the centre. `fit_cone` solves
 //!    `b_i . m = 1` linearly (`m = a / cos(theta)`), then refines `(a, cos(theta))` as the plane
 //!    `b . a = c` closest to the points `b_i` (the smallest eigenvector of their covariance; the
 //!    plane distance is `sin(theta)` times the angular distance to the cone, to first order), with
@@ -41,11 +41,11 @@
 //!    region is a small circle of normals about the mirror normal, which the sphere's curvature
 //!    and foreshortening shift towards the sphere's image centre by `A tan(t) / (2 pi R_px)`
 //!    (area `A`, tilt `t` of the normal from the view, image radius `R_px`);
-//!    [`correct_highlight`] moves it back.
+//!    `correct_highlight` moves it back.
 //! 4. **The reflected ray.** The viewing ray `v` through the highlight meets the sphere at `X`
 //!    (nearest intersection) with outward normal `n = (X - C) / R`; the light lies on the mirror
 //!    ray from `X` along `r = v - 2 (v . n) n`.
-//! 5. **The light** ([`locate_light`]): the least-squares point closest to all its rays,
+//! 5. **The light** (`locate_light`): the least-squares point closest to all its rays,
 //!    `p = argmin sum_i |(I - r_i r_i^T)(p - X_i)|^2` (for two rays, the midpoint of their
 //!    shortest connecting segment, as in the paper). When the rays agree within `parallel_tol`
 //!    (RMS angle about their mean direction) the light is too far to be located and is reported
@@ -137,7 +137,7 @@ impl Ray {
 /// The viewing ray of the image point (u, v) (pixel (r, c) has its centre at (u, v) = (c, r)).
 /// Orthographic: from (ox + (u + 1/2) w, oy + (v + 1/2) h, 0) along +z. Pinhole: from the
 /// camera centre through the undistorted point.
-pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
+pub(crate) fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
     match *camera {
         Camera::Orthographic { pixel_size, origin } => Ray {
             origin: [
@@ -160,7 +160,7 @@ pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
 }
 
 /// The image point (u, v) of the camera-frame point `p` (pinhole: NaN behind the camera).
-pub fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
+pub(crate) fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
     match *camera {
         Camera::Orthographic { pixel_size, origin } => [
             (p[0] - origin[0]) / pixel_size[0] - 0.5,
@@ -177,7 +177,7 @@ pub fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
 }
 
 /// Nearest intersection (t > 0) of a ray with the sphere of centre `c` and radius `r`.
-pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
+pub(crate) fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
     let oc = sub(ray.origin, c);
     let b = dot(oc, ray.direction);
     let disc = b * b - (dot(oc, oc) - r * r);
@@ -192,7 +192,7 @@ pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
 /// Mirror reflection of the direction `v` (towards the surface) about the unit normal `n`:
 /// `v - 2 (v . n) n`.
 #[inline]
-pub fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
+pub(crate) fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
     sub(v, scale(n, 2.0 * dot(v, n)))
 }
 
@@ -202,7 +202,7 @@ pub fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
 
 /// A circle fitted to 2-D points.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Circle {
+pub(crate) struct Circle {
     /// Centre (x, y).
     pub center: [f64; 2],
     /// Radius.
@@ -218,7 +218,7 @@ pub struct Circle {
 /// `|p_i - c| - r`, reweighted with Tukey's biweight at 4.685 robust standard deviations so that
 /// a few wrong boundary points (an occluded or touching part of the outline) do not bend the
 /// circle. Needs at least 5 points that are not on a line.
-pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
+pub(crate) fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
     let n = points.len();
     if n < 5 {
         return Err(Error::Unusable(format!(
@@ -342,7 +342,11 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
 /// Fits the centre of a circle of known `radius` to 2-D points from `start`: Gauss–Newton on
 /// the geometric distances `|p_i - c| - radius` with Tukey reweighting (4.685 robust standard
 /// deviations). None when the fit fails.
-pub fn fit_circle_radius(points: &[[f64; 2]], start: [f64; 2], radius: f64) -> Option<Circle> {
+pub(crate) fn fit_circle_radius(
+    points: &[[f64; 2]],
+    start: [f64; 2],
+    radius: f64,
+) -> Option<Circle> {
     if points.len() < 3 || not_above(radius, 0.0) {
         return None;
     }
@@ -396,7 +400,7 @@ pub fn fit_circle_radius(points: &[[f64; 2]], start: [f64; 2], radius: f64) -> O
 
 /// A circular cone with apex at the camera centre.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Cone {
+pub(crate) struct Cone {
     /// Unit axis (towards the scene, z > 0).
     pub axis: [f64; 3],
     /// Half-angle in radians.
@@ -411,7 +415,7 @@ pub struct Cone {
 /// [module documentation](self)): the linear fit `b_i . m = 1`, then the plane `b . a = c`
 /// (|a| = 1) closest to the points `b_i` on the unit sphere, with Tukey reweighting of the
 /// angular residuals. Needs at least 5 rays that do not lie on a great circle.
-pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
+pub(crate) fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
     let n = rays.len();
     if n < 5 {
         return Err(Error::Unusable(format!(
@@ -519,7 +523,12 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
 /// unknown and give no point). For a mask holding the pixels whose centre sees the object the
 /// true outline crosses each such segment, at a uniformly distributed place: the midpoints are
 /// unbiased to within a small fraction of a pixel on average.
-pub fn mask_boundary(labels: &[u32], height: usize, width: usize, label: u32) -> Vec<[f64; 2]> {
+pub(crate) fn mask_boundary(
+    labels: &[u32],
+    height: usize,
+    width: usize,
+    label: u32,
+) -> Vec<[f64; 2]> {
     let mut points = Vec::new();
     for r in 0..height {
         for c in 0..width {
@@ -537,7 +546,7 @@ pub fn mask_boundary(labels: &[u32], height: usize, width: usize, label: u32) ->
 
 /// 8-connected components of a mask: labels 1..=count (0 outside), numbered in raster order of
 /// their first pixel, and the count.
-pub fn label_components(mask: &[bool], height: usize, width: usize) -> (Vec<u32>, usize) {
+pub(crate) fn label_components(mask: &[bool], height: usize, width: usize) -> (Vec<u32>, usize) {
     let mut labels = vec![0u32; mask.len()];
     let mut count = 0u32;
     let mut stack = Vec::new();
@@ -593,7 +602,7 @@ fn bilinear(image: &[f32], height: usize, width: usize, u: f64, v: f64) -> Optio
 /// level halfway between the profile 2 pixels outside and the inside profile (1.5 and 2.5
 /// pixels inside) extrapolated linearly to the edge, by linear interpolation.
 /// Rays with a contrast below `min_contrast` are skipped.
-pub fn radial_edges(
+pub(crate) fn radial_edges(
     image: &[f32],
     height: usize,
     width: usize,
@@ -725,7 +734,7 @@ fn otsu(values: &[f32]) -> Option<f64> {
 }
 
 /// An image circle: centre (u, v) and radius, pixels.
-pub type ImageCircle = ([f64; 2], f64);
+pub(crate) type ImageCircle = ([f64; 2], f64);
 
 /// Sphere detection: the expected image radius range in pixels and, optionally, how many
 /// spheres each image set shows.
@@ -745,7 +754,7 @@ pub struct Detection {
 /// image circles (centre (u, v), radius) ordered by row then column of the centre, and notes
 /// about rejected candidates. (The spheres must stand out brighter than the background in the
 /// composite, e.g. shiny balls with a diffuse part on a dark cloth; otherwise give masks.)
-pub fn detect_spheres(
+pub(crate) fn detect_spheres(
     mean_image: &[f32],
     height: usize,
     width: usize,
@@ -878,7 +887,7 @@ pub struct Sphere {
     /// refinement).
     pub shift: f64,
     /// Precision of the outline's centre (pixels per coordinate) that the joint refinement
-    /// assumes: [`MASK_DIGITAL_SIGMA`] for a separating fit to a mask, [`OUTLINE_FIT_SIGMA`]
+    /// assumes: `MASK_DIGITAL_SIGMA` for a separating fit to a mask, `OUTLINE_FIT_SIGMA`
     /// otherwise.
     pub outline_sigma: f64,
 }
@@ -886,7 +895,7 @@ pub struct Sphere {
 /// The sphere of radius `radius` whose outline passes through the image points `outline`
 /// (pixels). Orthographic cameras need the depth of the centre (`center_depth`); for pinhole
 /// cameras it is optional and, when given, replaces the distance derived from the outline.
-pub fn locate_sphere(
+pub(crate) fn locate_sphere(
     camera: &Camera,
     outline: &[[f64; 2]],
     radius: f64,
@@ -981,7 +990,7 @@ pub fn locate_sphere(
 
 /// The centres of the pixels just inside and just outside the region labelled `label` (those
 /// with a 4-neighbour on the other side), (u, v).
-pub fn mask_edge_pixels(
+pub(crate) fn mask_edge_pixels(
     labels: &[u32],
     height: usize,
     width: usize,
@@ -1062,7 +1071,7 @@ fn max_margin_lp(rows: &[[f64; 4]], h: &[f64], mut z: [f64; 4], active: usize) -
 /// holds the pixels whose centre sees a disc determines the disc far better this way than a
 /// least-squares fit to its boundary (about 0.01 against 0.03 pixel for a 40-pixel disc). None
 /// when no circle separates the points (a mask that is not such a digitisation).
-pub fn separating_circle(
+pub(crate) fn separating_circle(
     inside: &[[f64; 2]],
     outside: &[[f64; 2]],
     start: &Circle,
@@ -1111,7 +1120,11 @@ pub fn separating_circle(
 /// with the widest margin: `b . m >= 1` inside and `<= 1` outside with `m = a / cos(theta)`, a
 /// linear programme in `m` (coordinates scaled so that a unit step turns the axis or changes
 /// the half-angle by about one radian), started from `start`. None when no cone separates them.
-pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) -> Option<Cone> {
+pub(crate) fn separating_cone(
+    inside: &[[f64; 3]],
+    outside: &[[f64; 3]],
+    start: &Cone,
+) -> Option<Cone> {
     if inside.len() < 5 || outside.len() < 5 {
         return None;
     }
@@ -1169,17 +1182,17 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
 
 /// Outline precision (pixels, per coordinate of the centre) assumed by the joint refinement
 /// for a sphere located by [`separating_circle`] / [`separating_cone`] from its mask.
-pub const MASK_DIGITAL_SIGMA: f64 = 0.01;
+pub(crate) const MASK_DIGITAL_SIGMA: f64 = 0.01;
 
 /// Outline precision (pixels) assumed for a least-squares outline fit (mask boundary or image
 /// edges): the digitisation leaves ~0.03 pixel even for a 40-pixel disc.
-pub const OUTLINE_FIT_SIGMA: f64 = 0.03;
+pub(crate) const OUTLINE_FIT_SIGMA: f64 = 0.03;
 
 /// Locates a sphere from its mask region: the least-squares fit of the crack midpoints
 /// ([`locate_sphere`]), improved by the widest-margin separating circle or cone of the mask's
 /// edge pixels when the mask is consistent with one. Returns the sphere and whether the
 /// separating fit was used.
-pub fn locate_sphere_in_mask(
+pub(crate) fn locate_sphere_in_mask(
     camera: &Camera,
     labels: &[u32],
     height: usize,
@@ -1317,7 +1330,7 @@ with_fields!(HighlightOptions {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Highlight {
     /// Sub-pixel image position (u, v), corrected for the sphere's curvature (see
-    /// [`correct_highlight`]).
+    /// `correct_highlight`).
     pub pixel: [f64; 2],
     /// The mean area (pixels) of the level regions whose centroids make the position.
     pub level_area: f64,
@@ -1609,7 +1622,7 @@ pub fn find_highlight(
 /// are wider across the plane of incidence than along it, such as a Phong lobe at incidence
 /// `i`, the factor changes by `cos(i) (3 + 1 / cos^2(i)) / 4`: 2 % at 17 degrees.) None when
 /// the viewing ray misses the sphere.
-pub fn correct_highlight(
+pub(crate) fn correct_highlight(
     camera: &Camera,
     sphere: &Sphere,
     highlight: Highlight,
@@ -1642,7 +1655,7 @@ pub fn correct_highlight(
 /// The mirror ray of a highlight at image point `uv` on `sphere`: the surface point, its outward
 /// normal, and the ray from the surface point towards the light. None when the viewing ray
 /// misses the sphere.
-pub fn reflected_ray(
+pub(crate) fn reflected_ray(
     camera: &Camera,
     sphere: &Sphere,
     uv: [f64; 2],
@@ -1669,7 +1682,7 @@ pub fn reflected_ray(
 /// `argmin_p sum_i |(I - d_i d_i^T)(p - o_i)|^2`, and the RMS distance of the lines from it.
 /// None when fewer than two rays are given or the rays are parallel (the normal matrix is
 /// singular to working precision).
-pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
+pub(crate) fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
     if rays.len() < 2 {
         return None;
     }
@@ -1697,7 +1710,7 @@ pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
 }
 
 /// The normalised mean direction of the rays and the RMS angle (radians) of the rays about it.
-pub fn mean_direction(rays: &[Ray]) -> Option<([f64; 3], f64)> {
+pub(crate) fn mean_direction(rays: &[Ray]) -> Option<([f64; 3], f64)> {
     let sum = rays.iter().fold([0.0; 3], |acc, r| add(acc, r.direction));
     let n = norm(sum);
     if rays.is_empty() || not_above(n, 0.0) {
@@ -1745,7 +1758,7 @@ pub struct LightReport {
 /// Locates one light from its rays (see the [module documentation](self)). `parallel_tol` is
 /// the RMS angle in radians about the mean direction below which the rays are taken as
 /// parallel (a distant light).
-pub fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
+pub(crate) fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
     let spread = rays
         .iter()
         .enumerate()
@@ -1818,7 +1831,7 @@ pub enum SphereSource<'a> {
     /// An H x W label image: 0 background; if every non-zero label is 1 (a binary mask), each
     /// 8-connected component is a sphere, otherwise each label is one sphere.
     Labels(&'a [u32]),
-    /// Detection in the composite image (see [`detect_spheres`]).
+    /// Detection in the composite image (see `detect_spheres`).
     Detect(Detection),
 }
 
@@ -1829,7 +1842,7 @@ pub enum Outline {
     #[default]
     Mask,
     /// From the composite image of the placement (each pixel's brightest value over the lights;
-    /// [`radial_edges`]), starting from the mask's circle.
+    /// `radial_edges`), starting from the mask's circle.
     Images,
 }
 

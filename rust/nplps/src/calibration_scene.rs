@@ -259,7 +259,7 @@ pub fn render_spheres(
 }
 
 /// Vertex depths ((H+1) x (W+1)) of the plane `plane` seen by `camera`.
-pub fn plane_depth(
+pub(crate) fn plane_depth(
     camera: &Camera,
     height: usize,
     width: usize,
