@@ -1,21 +1,64 @@
 """Type stubs of the compiled core ``nplps._core`` (Rust, pyo3). Use the wrappers in
 :mod:`nplps` rather than these functions directly: they validate and convert the input.
 
-``camera`` is the rig file's camera mapping; ``lights`` a mapping of per-light lists
-(``vectors``, ``directional``, ``intensities``, ``axes``, ``mu``: see ``Rig._core_lights``);
-``options`` a mapping with the keyword options of :func:`nplps.reconstruct` (``iterations``,
-``tol``, ``dark``, ``saturation``, ``weighting``, ``robust``, ``threads``, ``solver``, ``levels``,
-``refine_lights`` ("none", "intensity", "position", "both"), ``light_prior_weight``, and for the
-distance search and the prior ``auto``, ``depth_range``, ``depth_guess``, ``prior_weight``). The
-progress callback gets (iteration, depth change, rms residual, elapsed seconds, pyramid level,
-conjugate-gradient iterations, light change). The result holds ``lights`` (the final lights, as a
-lights mapping) and, when refining, ``refinement``."""
+The boundary passes plain dicts, typed here as TypedDicts and checked against the compiled module
+by ``python -m mypy.stubtest nplps._core`` (pydantic-core's way). The core reads every options
+mapping strictly: a key that is not declared in its TypedDict is an ``InputError`` naming it and
+the valid keys; a missing key (or None) takes the core's default. The TypedDicts exist for type
+checkers only: import them under ``typing.TYPE_CHECKING``.
+
+``camera`` is the rig file's camera mapping (see :class:`CameraDict`; read strictly: unknown keys
+are a ``RigError``, keys starting with ``_`` are comments, values may be lists, tuples or numpy
+arrays); ``lights`` a mapping of per-light lists (:class:`LightsDict`, built by
+``Rig._core_lights``). The progress callback gets (iteration, depth change, rms residual, elapsed
+seconds, pyramid level, conjugate-gradient iterations, light change).
+"""
 
 import os
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
+from typing_extensions import Unpack
+
+from nplps._core_types import (
+    F64,
+    Camera,
+    CameraDict,
+    IntensityCalibrationDict,
+    IntensityOptions,
+    LightsDict,
+    ProgressCallback,
+    ReconstructionDict,
+    ReconstructOptions,
+    SceneDict,
+    SceneOptions,
+    SolverOptions,
+    SphereCalibrationDict,
+    SphereImagesDict,
+    SphereOptions,
+    SphereRenderOptions,
+)
+
+__all__ = [
+    "MAX_LIGHTS",
+    "MULTIGRID_MAX_ITERATIONS",
+    "__version__",
+    "calibrate_intensities",
+    "calibrate_spheres",
+    "check_rig",
+    "mesh_normals",
+    "normalize_camera",
+    "predict",
+    "read_pngs",
+    "reconstruct",
+    "reconstruct_parallel",
+    "render",
+    "synth_board",
+    "synth_scene",
+    "synth_spheres",
+    "vertices",
+]
 
 __version__: str
 #: Most conjugate-gradient iterations of one multigrid global step.
@@ -23,61 +66,53 @@ MULTIGRID_MAX_ITERATIONS: int
 #: Most lights a rig may have.
 MAX_LIGHTS: int
 
-Camera = Mapping[str, Any]
-Lights = Mapping[str, list[Any]]
-ProgressCallback = Callable[[int, float, float, float, int, int, float], Any]
+# -- functions ------------------------------------------------------------------------------------
 
 def reconstruct(
     images: npt.NDArray[np.float32],
     camera: Camera,
-    lights: Lights,
+    lights: LightsDict,
     mask: npt.NDArray[np.bool_] | None,
-    distance: float | None,
-    depth_map: npt.NDArray[np.float64] | None,
-    options: Mapping[str, Any],
+    depth: float | F64,
+    options: ReconstructOptions,
     progress: ProgressCallback | None,
-    prior: npt.NDArray[np.float64] | None = None,
-) -> dict[str, Any]: ...
+) -> ReconstructionDict:
+    """Near-light reconstruction; ``depth`` is the working distance or an (H+1, W+1) map."""
+
 def reconstruct_parallel(
     images: npt.NDArray[np.float32],
     camera: Camera,
-    lights: Lights,
+    lights: LightsDict,
     mask: npt.NDArray[np.bool_] | None,
     distance: float | None,
-    depth_map: npt.NDArray[np.float64] | None,
-    options: Mapping[str, Any],
-) -> dict[str, Any]: ...
+    depth_map: F64 | None,
+    options: SolverOptions,
+) -> ReconstructionDict:
+    """Parallel-light baseline; exactly one of ``distance`` and ``depth_map``."""
+
 def render(
-    depth: npt.NDArray[np.float64],
+    depth: F64,
     camera: Camera,
-    lights: Lights,
-    albedo: npt.NDArray[np.float64],
+    lights: LightsDict,
+    albedo: F64,
     mask: npt.NDArray[np.bool_] | None = None,
-) -> npt.NDArray[np.float64]: ...
+) -> F64: ...
 def predict(
-    depth: npt.NDArray[np.float64],
-    normals: npt.NDArray[np.float64],
-    albedo: npt.NDArray[np.float64],
+    depth: F64,
+    normals: F64,
+    albedo: F64,
     camera: Camera,
-    lights: Lights,
+    lights: LightsDict,
     mask: npt.NDArray[np.bool_] | None,
     parallel: bool,
-) -> npt.NDArray[np.float64]: ...
-def mesh_normals(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
-def vertices(depth: npt.NDArray[np.float64], camera: Camera) -> npt.NDArray[np.float64]: ...
-def check_rig(camera: Camera, lights: Lights) -> None: ...
-def normalize_camera(camera: Camera) -> dict[str, Any]: ...
+) -> F64: ...
+def mesh_normals(depth: F64, camera: Camera) -> F64: ...
+def vertices(depth: F64, camera: Camera) -> F64: ...
+def check_rig(camera: Camera, lights: LightsDict) -> None: ...
+def normalize_camera(camera: Camera) -> CameraDict: ...
 def synth_scene(
-    name: str,
-    n: int,
-    size: float,
-    distance: float,
-    seed: int,
-    pinhole: bool = False,
-    led: bool = False,
-    rgb: bool = False,
-    directional: bool = False,
-) -> dict[str, Any]: ...
+    name: str, n: int, size: float, distance: float, seed: int, **options: Unpack[SceneOptions]
+) -> SceneDict: ...
 def read_pngs(
     paths: Sequence[str | os.PathLike[str]], max_pixels: int
 ) -> list[npt.NDArray[np.uint8] | npt.NDArray[np.uint16]]:
@@ -93,50 +128,38 @@ def calibrate_spheres(
     center_depth: Sequence[Sequence[float]],
     camera: Camera,
     radius: float,
-    options: Mapping[str, Any],
-) -> dict[str, Any]:
+    options: SphereOptions,
+) -> SphereCalibrationDict:
     """Sphere calibration: per placement (k, H, W) images and a (H, W) label image or a detection
-    (min radius, max radius, count) in pixels, and centre depths ([], [z] or one per sphere).
-    ``options``: ``outline`` ("mask" / "images"), ``parallel_tol`` (degrees), ``min_contrast``,
-    ``max_blob_fraction``, ``limb_margin``, ``min_component``, ``refine``. Returns ``spheres``,
-    ``lights`` (kind, vector, rms_miss, rms_angle, spread, spheres, warning), ``observations``
-    ((k, S[, 2 | 3]) arrays: pixel, peak, area, saturated, correction, origin, direction; status),
-    ``warnings`` and ``refinement``."""
+    (min radius, max radius, count) in pixels, and centre depths ([], [z] or one per sphere)."""
 
 def calibrate_intensities(
     images: npt.NDArray[np.float32],
     mask: npt.NDArray[np.bool_] | None,
     camera: Camera,
-    lights: Lights,
+    lights: LightsDict,
     normal: Sequence[float],
     offset: float,
-    options: Mapping[str, Any],
-) -> dict[str, Any]:
-    """Intensity calibration from (k, H, W[, 3]) images of the board ``normal . X = offset``.
-    ``options``: ``fit_mu``, ``fit_direction``, ``albedo`` ("uniform" / "per_pixel"), ``dark``,
-    ``saturation``, ``iterations``. Returns ``lights`` (the lights mapping), ``intensity``
-    (k, C), ``mu``, ``axes``, ``rms``, ``observations``, ``scale``, ``albedo``, ``iterations``,
-    ``warnings``."""
+    options: IntensityOptions,
+) -> IntensityCalibrationDict:
+    """Intensity calibration from (k, H, W[, 3]) images of the board ``normal . X = offset``."""
 
 def synth_spheres(
     camera: Camera,
-    lights: Lights,
-    height: int,
-    width: int,
+    lights: LightsDict,
+    shape: tuple[int, int],
     centers: Sequence[Sequence[float]],
     radius: float,
     board: tuple[Sequence[float], float] | None,
-    material: Mapping[str, float],
-    supersample: int,
-) -> dict[str, Any]:
-    """Renders (k, H, W) float64 radiance of shiny spheres (``material``: ``diffuse``,
-    ``specular``, ``exponent``, ``background``) and their (H, W) uint32 labels."""
+    options: SphereRenderOptions,
+) -> SphereImagesDict:
+    """Renders (k, H, W) float64 radiance of shiny spheres and their (H, W) uint32 labels."""
 
 def synth_board(
     camera: Camera,
-    lights: Lights,
+    lights: LightsDict,
     normal: Sequence[float],
     offset: float,
-    albedo: npt.NDArray[np.float64],
-) -> npt.NDArray[np.float64]:
+    albedo: F64,
+) -> F64:
     """Renders (k, H, W[, 3]) images of a flat board with albedo (H, W[, 3]) by the image model."""

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _core, pipeline
+from . import _core, _core_types, pipeline
 from .errors import InputError
 from .io import load_mask, load_stack
 from .reconstruction import Iteration, Reconstruction
@@ -431,7 +431,7 @@ def reconstruct(
     stack, missing = _channels(stack, color, saturation_)
     iterations = _whole(iterations, "iterations", 1)
     tol = _real(tol, "tol")
-    options = {
+    options: _core_types.ReconstructOptions = {
         "iterations": iterations,
         "tol": tol,
         "dark": dark_,
@@ -459,20 +459,22 @@ def reconstruct(
                 f"got {prior.shape}"
             )
         _check_depth_values(prior, mask_arr, rig, mask_arr.shape, "depth_prior")
+    if prior is not None:
+        options["prior"] = prior
+    depth_arg = distance if depth_map is None else depth_map
+    assert depth_arg is not None  # _prepare gives exactly one of them
     out = _core.reconstruct(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
         rig.camera,
         rig._core_lights(),
         mask_arr,
-        distance,
-        depth_map,
+        depth_arg,
         options,
         _progress_callback(progress, int(iterations)),
-        prior,
     )
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
-    result = Reconstruction._from_core(out, mask_arr, rig, "near")
+    result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
     _warn_status(result)
     return result
 
@@ -555,7 +557,7 @@ def reconstruct_parallel(
     stack, mask_arr, distance, depth_map, levels = _prepare(images, rig, mask, depth, color)
     dark_, saturation_ = _thresholds(dark, saturation, levels)
     stack, missing = _channels(stack, color, saturation_)
-    options = {
+    options: _core_types.SolverOptions = {
         "dark": dark_,
         "saturation": saturation_,
         "robust": "none" if robust is None else robust,
@@ -572,7 +574,7 @@ def reconstruct_parallel(
         depth_map,
         options,
     )
-    return Reconstruction._from_core(out, mask_arr, rig, "parallel")
+    return Reconstruction._from_core(dict(out), mask_arr, rig, "parallel")
 
 
 def render(

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _core, io, pipeline
+from . import _core, _core_types, io, pipeline
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
@@ -435,7 +435,7 @@ def calibrate_spheres(
             "an orthographic camera needs the depth of the sphere centres: center_depth=... (command line: "
             "--center-depth); for balls on a board at depth z it is z - radius, for hemispheres lying on it z"
         )
-    options = {
+    options: _core_types.SphereOptions = {
         "outline": outline,
         "parallel_tol": float(parallel_tol),
         "min_contrast": float(min_contrast),
@@ -488,7 +488,7 @@ def calibrate_spheres(
         ray_origins=obs["origin"],
         ray_directions=obs["direction"],
         warnings=list(d["warnings"]),
-        refinement=d.get("refinement"),
+        refinement=dict(d["refinement"]) if "refinement" in d else None,
     )
 
 
@@ -570,7 +570,7 @@ def calibrate_intensities(
     dark, saturation = pipeline.thresholds(levels, dark=dark, saturation=saturation)
     m = None if mask is None else io.load_mask(mask, stack.shape[1:3])
     normal, offset = _plane(plane)
-    options = {
+    options: _core_types.IntensityOptions = {
         "fit_mu": bool(fit_mu),
         "fit_direction": bool(fit_direction),
         "albedo": albedo,
@@ -841,24 +841,23 @@ def make_sphere_scene(
     if camera == "pinhole":
         r_px *= distance / float(np.mean([c[:, 2].mean() for c in centers]))
     exponent = (r_px / (2.0 * highlight_px)) ** 2
-    material = {
+    options: _core_types.SphereRenderOptions = {
         "diffuse": 1.0,
         "specular": float(specular),
         "exponent": float(exponent),
         "background": float(background),
+        "supersample": int(supersample),
     }
     radiance, labels = [], []
     for c in centers:
         d = _core.synth_spheres(
             rig.camera,
             rig._core_lights(),
-            n,
-            n,
+            (n, n),
             c.tolist(),
             float(radius),
             ([0.0, 0.0, -1.0], -board),
-            material,
-            int(supersample),
+            options,
         )
         radiance.append(d["images"])
         labels.append(d["labels"])

@@ -64,7 +64,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from . import _core
+from . import _core, _core_types
 from .errors import RigError
 
 RIG_FILE_VERSION = 2
@@ -747,7 +747,7 @@ class Rig:
                 out.append(PointLight._checked(subject, vector, phi))
         return cls(camera=camera, lights=tuple(out))
 
-    def _core_lights(self) -> dict[str, list[Any]]:
+    def _core_lights(self) -> _core_types.LightsDict:
         """The lights in the form the compiled core takes (an axis of (0, 0, 1) and mu = 0 for
         lights that are not LEDs)."""
         vectors, directional, intensities, axes, mus = [], [], [], [], []

@@ -5,11 +5,11 @@ use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn, PyUntypedArr
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use crate::convert::{array, camera_from, lighting_from, lights_dict, option};
+use crate::convert::{array, camera_from, check_options, lighting_from, lights_dict, option};
 use crate::errors::{no_panic, to_py, InputError};
 use nplps::calibrate::{
-    BoardAlbedo, Detection, HighlightOptions, LightEstimate, Outline, Placement, Plane,
-    SphereOptions, SphereSource,
+    BoardAlbedo, BoardImages, Detection, HighlightOptions, LightEstimate, Outline, Placement,
+    Plane, SphereOptions, SphereSource,
 };
 
 fn input_error(message: String) -> PyErr {
@@ -23,9 +23,7 @@ fn input_error(message: String) -> PyErr {
 /// `warnings`.
 #[pyfunction]
 #[pyo3(signature = (images, labels, detect, center_depth, camera, radius, options))]
-#[allow(clippy::too_many_arguments)]
 pub fn calibrate_spheres<'py>(
-    py: Python<'py>,
     images: Vec<PyReadonlyArray3<'py, f32>>,
     labels: Vec<Option<PyReadonlyArray2<'py, u32>>>,
     detect: Vec<Option<(f64, f64, Option<usize>)>>,
@@ -34,6 +32,19 @@ pub fn calibrate_spheres<'py>(
     radius: f64,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let py = camera.py();
+    check_options(
+        options,
+        &[
+            "limb_margin",
+            "max_blob_fraction",
+            "min_component",
+            "min_contrast",
+            "outline",
+            "parallel_tol",
+            "refine",
+        ],
+    )?;
     let cam = camera_from(camera)?;
     let n = images.len();
     if labels.len() != n || detect.len() != n || center_depth.len() != n {
@@ -97,18 +108,17 @@ pub fn calibrate_spheres<'py>(
         }
     };
     let hd = HighlightOptions::default();
-    let opts = SphereOptions {
-        radius,
-        outline,
-        parallel_tol: option(options, "parallel_tol", defaults.parallel_tol)?,
-        highlight: HighlightOptions {
-            min_contrast: option(options, "min_contrast", hd.min_contrast)?,
-            max_blob_fraction: option(options, "max_blob_fraction", hd.max_blob_fraction)?,
-            limb_margin: option(options, "limb_margin", hd.limb_margin)?,
-        },
-        min_component: option(options, "min_component", defaults.min_component)?,
-        refine: option(options, "refine", defaults.refine)?,
-    };
+    let highlight = hd
+        .with_min_contrast(option(options, "min_contrast", hd.min_contrast)?)
+        .with_max_blob_fraction(option(options, "max_blob_fraction", hd.max_blob_fraction)?)
+        .with_limb_margin(option(options, "limb_margin", hd.limb_margin)?);
+    let opts = defaults
+        .with_radius(radius)
+        .with_outline(outline)
+        .with_parallel_tol(option(options, "parallel_tol", defaults.parallel_tol)?)
+        .with_highlight(highlight)
+        .with_min_component(option(options, "min_component", defaults.min_component)?)
+        .with_refine(option(options, "refine", defaults.refine)?);
     let result = py
         .detach(|| {
             no_panic(|| nplps::calibrate::calibrate_spheres(&cam, &placements, h, w, k, &opts))
@@ -206,9 +216,7 @@ pub fn calibrate_spheres<'py>(
 /// (normal, offset) with `normal . X = offset`.
 #[pyfunction]
 #[pyo3(signature = (images, mask, camera, lights, normal, offset, options))]
-#[allow(clippy::too_many_arguments)]
 pub fn calibrate_intensities<'py>(
-    py: Python<'py>,
     images: PyReadonlyArrayDyn<'py, f32>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     camera: &Bound<'py, PyDict>,
@@ -217,6 +225,18 @@ pub fn calibrate_intensities<'py>(
     offset: f64,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let py = images.py();
+    check_options(
+        options,
+        &[
+            "albedo",
+            "dark",
+            "fit_direction",
+            "fit_mu",
+            "iterations",
+            "saturation",
+        ],
+    )?;
     let rig = lighting_from(camera, lights)?;
     let [k, h, w, c] = match *images.shape() {
         [k, h, w] => [k, h, w, 1],
@@ -255,26 +275,28 @@ pub fn calibrate_intensities<'py>(
             )))
         }
     };
-    let opts = nplps::calibrate::IntensityOptions {
-        fit_mu: option(options, "fit_mu", defaults.fit_mu)?,
-        fit_axis: option(options, "fit_direction", defaults.fit_axis)?,
-        albedo,
-        dark: option(options, "dark", defaults.dark)?,
-        saturation: option(options, "saturation", defaults.saturation)?,
-        iterations: option(options, "iterations", defaults.iterations)?,
-    };
+    let opts = defaults
+        .with_fit_mu(option(options, "fit_mu", defaults.fit_mu)?)
+        .with_fit_axis(option(options, "fit_direction", defaults.fit_axis)?)
+        .with_albedo(albedo)
+        .with_dark(option(options, "dark", defaults.dark)?)
+        .with_saturation(option(options, "saturation", defaults.saturation)?)
+        .with_iterations(option(options, "iterations", defaults.iterations)?);
     let plane = Plane { normal, offset };
     let result = py
         .detach(|| {
             no_panic(|| {
+                let board = BoardImages {
+                    images: data,
+                    k,
+                    height: h,
+                    width: w,
+                    channels: c,
+                    mask: mask_s,
+                };
                 nplps::calibrate::calibrate_intensities(
                     &rig.camera,
-                    data,
-                    k,
-                    h,
-                    w,
-                    c,
-                    mask_s,
+                    &board,
                     &plane,
                     &rig.lights,
                     &opts,
@@ -323,44 +345,53 @@ pub fn calibrate_intensities<'py>(
 }
 
 /// Renders k images (k, H, W) of spheres (radiance, unclipped) and their (H, W) uint32 labels
-/// (see `nplps.calibrate.make_sphere_scene`).
+/// (see `nplps.calibrate.make_sphere_scene`). `shape` is (H, W); `options` holds the material
+/// (`diffuse`, `specular`, `exponent`, `background`) and `supersample` (rays per pixel and
+/// side, default 1).
 #[pyfunction]
-#[pyo3(signature = (camera, lights, height, width, centers, radius, board, material, supersample))]
-#[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (camera, lights, shape, centers, radius, board, options))]
 pub fn synth_spheres<'py>(
-    py: Python<'py>,
     camera: &Bound<'py, PyDict>,
     lights: &Bound<'py, PyDict>,
-    height: usize,
-    width: usize,
+    shape: (usize, usize),
     centers: Vec<[f64; 3]>,
     radius: f64,
     board: Option<([f64; 3], f64)>,
-    material: &Bound<'py, PyDict>,
-    supersample: usize,
+    options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let py = camera.py();
+    let (height, width) = shape;
+    check_options(
+        options,
+        &[
+            "background",
+            "diffuse",
+            "exponent",
+            "specular",
+            "supersample",
+        ],
+    )?;
     let rig = lighting_from(camera, lights)?;
     let d = nplps::calibration_scene::SphereMaterial::default();
     let m = nplps::calibration_scene::SphereMaterial {
-        diffuse: option(material, "diffuse", d.diffuse)?,
-        specular: option(material, "specular", d.specular)?,
-        exponent: option(material, "exponent", d.exponent)?,
-        background: option(material, "background", d.background)?,
+        diffuse: option(options, "diffuse", d.diffuse)?,
+        specular: option(options, "specular", d.specular)?,
+        exponent: option(options, "exponent", d.exponent)?,
+        background: option(options, "background", d.background)?,
     };
+    let supersample: usize = option(options, "supersample", 1)?;
     let board = board.map(|(normal, offset)| Plane { normal, offset });
     let scene = py
         .detach(|| {
             no_panic(|| {
-                nplps::calibration_scene::render_spheres(
-                    &rig,
+                let layout = nplps::calibration_scene::SphereLayout {
                     height,
                     width,
-                    &centers,
+                    centers: &centers,
                     radius,
                     board,
-                    &m,
-                    supersample,
-                )
+                };
+                nplps::calibration_scene::render_spheres(&rig, &layout, &m, supersample)
             })
         })
         .map_err(to_py)?;

@@ -12,7 +12,7 @@ use pyo3::types::{
     PyBool, PyBytes, PyDict, PyDictMethods, PyFloat, PyInt, PyList, PyString, PyTuple,
 };
 
-use nplps::error::g6;
+use nplps::g6;
 
 use crate::errors::{to_py, InputError, RigError};
 
@@ -215,79 +215,29 @@ fn required<'py>(dict: &Bound<'py, PyDict>, what: &str, key: &str) -> PyResult<B
         .ok_or_else(|| rig_error(format!("{what} is missing the key {key:?}")))
 }
 
-/// OpenCV's distortion coefficients as (k1, k2, p1, p2, k3): a flat list or OpenCV's 1 x n or
-/// n x 1 matrix (`[[k1, k2, p1, p2, k3]]`), with 0, 1, 2, 4 or 5 coefficients (a prefix of
-/// (k1, k2, p1, p2, k3) that keeps p1 and p2 together; missing ones are zero), or 8, 12 or 14
-/// (OpenCV's rational, thin-prism and tilted models) when the coefficients after k3 are zero.
-/// Null (None) is no distortion.
-fn distortion(v: &Bound<'_, PyAny>) -> PyResult<[f64; 5]> {
-    const WHAT: &str = "camera.distortion";
-    if v.is_none() {
-        return Ok([0.0; 5]);
-    }
-    let outer = items(v, WHAT, 14)?;
-    let nested = |x: &Bound<'_, PyAny>| {
-        x.is_instance_of::<PyList>() || x.is_instance_of::<PyTuple>() || is_array(x)
-    };
-    let flat = if !outer.is_empty() && outer.iter().all(nested) {
-        if outer.len() == 1 {
-            items(&outer[0], WHAT, 14)?
-        } else {
-            let mut column = Vec::with_capacity(outer.len());
-            for row in &outer {
-                let row = items(row, WHAT, 14)?;
-                if row.len() != 1 {
-                    return Err(rig_error(format!(
-                        "{WHAT} must be a list of numbers or OpenCV's 1 x n or n x 1 matrix, \
-                             got a {} x {} matrix",
-                        outer.len(),
-                        row.len()
-                    )));
-                }
-                column.extend(row);
+/// Fails with an `InputError` naming a key of the options mapping `options` that is not one of
+/// `known` (sorted), and listing the valid ones: a misspelt option must not silently fall back
+/// to its default.
+pub fn check_options(options: &Bound<'_, PyDict>, known: &[&str]) -> PyResult<()> {
+    for (key, _) in options.iter() {
+        let name = match key.cast::<PyString>() {
+            Ok(name) => name.to_string_lossy().into_owned(),
+            Err(_) => {
+                return Err(InputError::new_err(format!(
+                    "option keys must be strings, got {}",
+                    describe(&key)
+                )))
             }
-            column
-        }
-    } else {
-        outer
-    };
-    let mut c = Vec::with_capacity(flat.len());
-    for (i, x) in flat.iter().enumerate() {
-        c.push(number(x, &format!("{WHAT}[{i}]"))?);
-    }
-    let mut d = [0.0; 5];
-    match c.len() {
-        0 | 1 | 2 | 4 | 5 => d[..c.len()].copy_from_slice(&c),
-        3 => {
-            return Err(rig_error(format!(
-                "{WHAT} has 3 coefficients, which is ambiguous (OpenCV's k1, k2, p1 or a radial \
-                     k1, k2, k3): give 4 or 5 (k1, k2, p1, p2[, k3])"
-            )))
-        }
-        n @ (8 | 12 | 14) => {
-            const NAMES: [&str; 14] = [
-                "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x",
-                "tau_y",
-            ];
-            if let Some(i) = (5..n).find(|&i| c[i] != 0.0) {
-                return Err(rig_error(format!(
-                    "{WHAT} has {n} coefficients and {} = {} is not zero: nplps models k1, k2, \
-                         p1, p2, k3 only, not OpenCV's rational (k4, k5, k6), thin-prism (s1..s4) \
-                         or tilt (tau_x, tau_y) terms",
-                    NAMES[i],
-                    g6(c[i])
-                )));
-            }
-            d.copy_from_slice(&c[..5]);
-        }
-        n => {
-            return Err(rig_error(format!(
-                "{WHAT} has {n} coefficients; OpenCV's models have 4, 5, 8, 12 or 14 \
-                     (nplps models k1, k2, p1, p2, k3)"
-            )))
+        };
+        if !known.contains(&name.as_str()) {
+            return Err(InputError::new_err(format!(
+                "unknown option {}; the options are {}",
+                short(&name),
+                known.join(", ")
+            )));
         }
     }
-    Ok(d)
+    Ok(())
 }
 
 /// Reads an optional option of an options mapping (`InputError` when malformed).
@@ -306,76 +256,75 @@ pub fn option<'py, T: FromPyObjectOwned<'py>>(
     }
 }
 
-/// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping: `model` =
-/// "orthographic" with `pixel_size` (w, h) and `origin` (x, y), or "pinhole" with `K` (3 x 3)
-/// and an optional `distortion` (see [`distortion`]). Every value is checked (see above).
+/// A Python value read by the core's camera-mapping rules ([`nplps::camera_from_map`]): lists
+/// are lists, tuples or numpy arrays, numbers ints or floats (numpy scalars too), mappings dicts.
+struct PyValue<'py>(Bound<'py, PyAny>);
+
+impl<'py> nplps::MapValue for PyValue<'py> {
+    type Error = PyErr;
+
+    fn rig_error(message: String) -> PyErr {
+        rig_error(message)
+    }
+
+    fn core_error(error: nplps::Error) -> PyErr {
+        to_py(error)
+    }
+
+    fn describe(&self) -> String {
+        describe(&self.0)
+    }
+
+    fn number(&self, what: &str) -> PyResult<f64> {
+        number(&self.0, what)
+    }
+
+    fn items(&self, what: &str, max: usize) -> PyResult<Vec<PyValue<'py>>> {
+        Ok(items(&self.0, what, max)?
+            .into_iter()
+            .map(PyValue)
+            .collect())
+    }
+
+    fn is_list(&self) -> bool {
+        self.0.is_instance_of::<PyList>() || self.0.is_instance_of::<PyTuple>() || is_array(&self.0)
+    }
+
+    fn is_null(&self) -> bool {
+        self.0.is_none()
+    }
+
+    fn string(&self) -> Option<String> {
+        self.0
+            .cast::<PyString>()
+            .ok()
+            .map(|s| s.to_string_lossy().into_owned())
+    }
+
+    fn keys(&self, what: &str) -> PyResult<Vec<String>> {
+        let dict = self.0.cast::<PyDict>()?;
+        let mut names = Vec::with_capacity(dict.len());
+        for (key, _) in dict.iter() {
+            let Ok(name) = key.cast::<PyString>() else {
+                return Err(rig_error(format!(
+                    "{what} has a key that is not a string ({})",
+                    describe(&key)
+                )));
+            };
+            names.push(name.to_string_lossy().into_owned());
+        }
+        Ok(names)
+    }
+
+    fn get(&self, key: &str) -> PyResult<Option<PyValue<'py>>> {
+        Ok(self.0.cast::<PyDict>()?.get_item(key)?.map(PyValue))
+    }
+}
+
+/// Builds a core [`nplps::Camera`] from the rig file's `camera` mapping, by the core's rules
+/// ([`nplps::camera_from_map`], shared with the rig file reader of `nplps::io`).
 pub fn camera_from(camera: &Bound<'_, PyDict>) -> PyResult<nplps::Camera> {
-    let model = required(camera, "camera", "model")?;
-    let Ok(model) = model.cast::<PyString>() else {
-        return Err(rig_error(format!(
-            "camera.model must be a string, got {}",
-            describe(&model)
-        )));
-    };
-    let model = model.to_string_lossy();
-    let cam = match model.as_ref() {
-        "orthographic" => {
-            check_keys(
-                camera,
-                "camera",
-                &["model", "pixel_size", "origin"],
-                "an orthographic camera has model, pixel_size and origin",
-            )?;
-            nplps::Camera::Orthographic {
-                pixel_size: numbers(
-                    &required(camera, "camera", "pixel_size")?,
-                    "camera.pixel_size",
-                    true,
-                )?,
-                origin: numbers(
-                    &required(camera, "camera", "origin")?,
-                    "camera.origin",
-                    true,
-                )?,
-            }
-        }
-        "pinhole" => {
-            check_keys(
-                camera,
-                "camera",
-                &["model", "K", "distortion"],
-                "a pinhole camera has model, K and distortion",
-            )?;
-            let matrix = required(camera, "camera", "K")?;
-            let wrong = || {
-                rig_error(format!(
-                    "camera.K must be a 3 x 3 matrix, got {}",
-                    describe(&matrix)
-                ))
-            };
-            let rows = items(&matrix, "camera.K", 3).map_err(|_| wrong())?;
-            if rows.len() != 3 {
-                return Err(wrong());
-            }
-            let mut k = [[0.0; 3]; 3];
-            for (i, row) in rows.iter().enumerate() {
-                k[i] = numbers(row, &format!("camera.K[{i}]"), true)?;
-            }
-            let d = match camera.get_item("distortion")? {
-                Some(v) => distortion(&v)?,
-                None => [0.0; 5],
-            };
-            nplps::Camera::Pinhole { k, distortion: d }
-        }
-        _ => {
-            return Err(rig_error(format!(
-                "unknown camera model {}; supported: \"orthographic\", \"pinhole\"",
-                short(&model)
-            )))
-        }
-    };
-    cam.validate().map_err(to_py)?;
-    Ok(cam)
+    nplps::camera_from_map(&PyValue(camera.clone().into_any()))
 }
 
 /// The camera as the rig file's mapping.
@@ -392,13 +341,18 @@ pub fn camera_dict<'py>(py: Python<'py>, camera: &nplps::Camera) -> PyResult<Bou
             d.set_item("K", k.iter().map(|r| r.to_vec()).collect::<Vec<_>>())?;
             d.set_item("distortion", distortion.to_vec())?;
         }
+        ref other => {
+            return Err(rig_error(format!(
+                "camera model {other:?} has no rig file form in this version"
+            )))
+        }
     }
     Ok(d)
 }
 
 /// Builds the core's lights from the lights mapping (see the module documentation): the keys
 /// `vectors`, `directional`, `intensities`, `axes` and `mu`, each with one item per light (at
-/// most [`nplps::rig::MAX_LIGHTS`]), every value checked (see above).
+/// most [`nplps::MAX_LIGHTS`]), every value checked (see above).
 pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
     const KEYS: [&str; 5] = ["vectors", "directional", "intensities", "axes", "mu"];
     check_keys(
@@ -407,7 +361,7 @@ pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
         &KEYS,
         "the lights mapping has vectors, directional, intensities, axes and mu",
     )?;
-    let max = nplps::rig::MAX_LIGHTS;
+    let max = nplps::MAX_LIGHTS;
     let list = |key: &str| -> PyResult<Vec<Bound<'_, PyAny>>> {
         let value = required(lights, "lights", key)?;
         items(&value, &format!("lights.{key}"), max).map_err(|e| {
@@ -511,6 +465,11 @@ pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bo
                 direction,
                 intensity,
             } => (direction, true, intensity, [0.0, 0.0, 1.0], 0.0),
+            ref other => {
+                return Err(rig_error(format!(
+                    "light {other:?} has no form in the lights mapping of this version"
+                )))
+            }
         };
         vectors.push(v.to_vec());
         directional.push(dir);

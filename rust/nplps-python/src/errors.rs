@@ -14,13 +14,15 @@ pyo3::import_exception!(nplps.errors, MemoryLimitError);
 pub fn to_py(err: nplps::Error) -> PyErr {
     let message = err.to_string();
     match err {
-        nplps::Error::Input(_) => InputError::new_err(message),
         nplps::Error::Rig(_) => RigError::new_err(message),
         nplps::Error::Solver(_) => SolverError::new_err(message),
         nplps::Error::Memory { .. } => MemoryLimitError::new_err(message),
         nplps::Error::Cancelled => {
             pyo3::exceptions::PyKeyboardInterrupt::new_err("reconstruction cancelled")
         }
+        // Shape, NonFinite, OutOfRange, Unusable: what the caller passed in cannot be used
+        // (and any input error a later version adds).
+        _ => InputError::new_err(message),
     }
 }
 

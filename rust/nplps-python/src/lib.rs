@@ -18,7 +18,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use convert::{
-    array, array3, camera_dict, camera_from, lighting_from, lights_dict, option,
+    array, array3, camera_dict, camera_from, check_options, lighting_from, lights_dict, option,
     reconstruction_dict, rig_from,
 };
 use errors::{no_panic, to_py, InputError};
@@ -68,6 +68,15 @@ fn image_stack<'py>(
     }
 }
 
+/// The starting depth: a working distance or an (H+1, W+1) vertex depth map.
+#[derive(FromPyObject)]
+enum Depth<'py> {
+    /// An (H+1, W+1) map (tried first: a float never extracts as an array).
+    Map(PyReadonlyArray2<'py, f64>),
+    /// A working distance.
+    Distance(f64),
+}
+
 /// The starting depth: a working distance or an (H+1, W+1) map.
 fn initial_depth<'a>(
     distance: Option<f64>,
@@ -81,6 +90,44 @@ fn initial_depth<'a>(
         )),
     }
 }
+
+/// The keys of the options mapping of `reconstruct_parallel` (those of [`options_from`]).
+const SOLVER_KEYS: [&str; 12] = [
+    "dark",
+    "iterations",
+    "levels",
+    "light_prior_weight",
+    "max_memory",
+    "refine_lights",
+    "robust",
+    "saturation",
+    "solver",
+    "threads",
+    "tol",
+    "weighting",
+];
+
+/// The keys of the options mapping of `reconstruct`: the solver's and those of the distance
+/// search and the depth prior.
+const RECONSTRUCT_KEYS: [&str; 17] = [
+    "auto",
+    "dark",
+    "depth_guess",
+    "depth_range",
+    "iterations",
+    "levels",
+    "light_prior_weight",
+    "max_memory",
+    "prior",
+    "prior_weight",
+    "refine_lights",
+    "robust",
+    "saturation",
+    "solver",
+    "threads",
+    "tol",
+    "weighting",
+];
 
 /// Solver options from the options mapping (keys as in `nplps.reconstruct`).
 fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
@@ -125,26 +172,28 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         )))
         }
     };
-    let refine = nplps::Refine {
-        intensity,
-        position,
-        prior_weight: option(d, "light_prior_weight", defaults.refine.prior_weight)?,
-        fix_scale: false,
-    };
-    Ok(nplps::Options {
-        solver,
-        refine,
-        levels: option(d, "levels", defaults.levels)?,
-        iterations: option(d, "iterations", defaults.iterations)?,
-        tol: option(d, "tol", defaults.tol)?,
-        dark: option(d, "dark", defaults.dark)?,
-        saturation: option(d, "saturation", defaults.saturation)?,
-        weighting,
-        robust,
-        threads: option(d, "threads", defaults.threads)?,
-        max_memory: option(d, "max_memory", defaults.max_memory)?,
-        ..defaults
-    })
+    let refine = defaults
+        .refine
+        .with_intensity(intensity)
+        .with_position(position)
+        .with_prior_weight(option(
+            d,
+            "light_prior_weight",
+            defaults.refine.prior_weight,
+        )?)
+        .with_fix_scale(false);
+    Ok(defaults
+        .with_solver(solver)
+        .with_refine(refine)
+        .with_levels(option(d, "levels", defaults.levels)?)
+        .with_iterations(option(d, "iterations", defaults.iterations)?)
+        .with_tol(option(d, "tol", defaults.tol)?)
+        .with_dark(option(d, "dark", defaults.dark)?)
+        .with_saturation(option(d, "saturation", defaults.saturation)?)
+        .with_weighting(weighting)
+        .with_robust(robust)
+        .with_threads(option(d, "threads", defaults.threads)?)
+        .with_max_memory(option(d, "max_memory", defaults.max_memory)?))
 }
 
 /// The borrowed input of a reconstruction: rig, (k, H, W[, 3]) images, mask and starting depth.
@@ -161,8 +210,7 @@ impl<'a> Input<'a> {
         images: &'a PyReadonlyArrayDyn<'_, f32>,
         rig: nplps::Rig,
         mask: Option<&'a PyReadonlyArray2<'_, bool>>,
-        distance: Option<f64>,
-        depth_map: Option<&'a PyReadonlyArray2<'_, f64>>,
+        depth: nplps::InitialDepth<'a>,
     ) -> PyResult<Input<'a>> {
         let s = images.shape();
         let shape = match *s {
@@ -179,7 +227,7 @@ impl<'a> Input<'a> {
             shape,
             images: slice(images, "images")?,
             mask: mask.map(|m| slice(m, "mask")).transpose()?,
-            depth: initial_depth(distance, depth_map)?,
+            depth,
         })
     }
 
@@ -191,11 +239,7 @@ impl<'a> Input<'a> {
         cancel: &nplps::Cancel,
     ) -> nplps::Result<nplps::Problem<'_>> {
         let [k, h, w, c] = self.shape;
-        let facets = match self.mask {
-            Some(m) => m.iter().filter(|&&inside| inside).count(),
-            None => h.saturating_mul(w),
-        };
-        nplps::memory::check_reconstruction(h, w, facets, c, k, options)?;
+        nplps::check_memory(self.shape, self.mask, options)?;
         let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
         nplps::Problem::with_cancel(stack, &self.rig, self.mask, self.depth, cancel.clone())
     }
@@ -206,33 +250,38 @@ fn search_from(d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>>
     if !option(d, "auto", false)? {
         return Ok(None);
     }
-    Ok(Some(nplps::DistanceSearch {
-        range: option(d, "depth_range", None)?,
-        guess: option(d, "depth_guess", None)?,
-        ..nplps::DistanceSearch::default()
-    }))
+    Ok(Some(
+        nplps::DistanceSearch::default()
+            .with_range(option(d, "depth_range", None)?)
+            .with_guess(option(d, "depth_guess", None)?),
+    ))
 }
 
-/// Near-light reconstruction (see `nplps.reconstruct`). Returns a dict of arrays.
+/// Near-light reconstruction (see `nplps.reconstruct`): `depth` is the working distance or an
+/// (H+1, W+1) starting depth map; `options` may hold a depth prior (`prior`, (H+1, W+1), with
+/// `prior_weight`). Returns a dict of arrays.
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options, progress, prior=None))]
-#[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (images, camera, lights, mask, depth, options, progress))]
 fn reconstruct<'py>(
-    py: Python<'py>,
     images: PyReadonlyArrayDyn<'py, f32>,
     camera: &Bound<'py, PyDict>,
     lights: &Bound<'py, PyDict>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
-    distance: Option<f64>,
-    depth_map: Option<PyReadonlyArray2<'py, f64>>,
+    depth: Depth<'py>,
     options: &Bound<'py, PyDict>,
     progress: Option<Py<PyAny>>,
-    prior: Option<PyReadonlyArray2<'py, f64>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let py = images.py();
+    check_options(options, &RECONSTRUCT_KEYS)?;
     let rig = rig_from(camera, lights)?;
-    let input = Input::new(&images, rig, mask.as_ref(), distance, depth_map.as_ref())?;
+    let depth = match &depth {
+        Depth::Distance(d) => nplps::InitialDepth::Distance(*d),
+        Depth::Map(m) => nplps::InitialDepth::Map(slice(m, "depth map")?),
+    };
+    let input = Input::new(&images, rig, mask.as_ref(), depth)?;
     let search = search_from(options)?;
     let prior_weight: f64 = option(options, "prior_weight", 1.0)?;
+    let prior: Option<PyReadonlyArray2<'py, f64>> = option(options, "prior", None)?;
     let prior = prior
         .as_ref()
         .map(|p| slice(p, "depth prior"))
@@ -298,9 +347,7 @@ fn reconstruct<'py>(
 /// Parallel-light baseline (see `nplps.reconstruct_parallel`).
 #[pyfunction]
 #[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options))]
-#[allow(clippy::too_many_arguments)]
 fn reconstruct_parallel<'py>(
-    py: Python<'py>,
     images: PyReadonlyArrayDyn<'py, f32>,
     camera: &Bound<'py, PyDict>,
     lights: &Bound<'py, PyDict>,
@@ -309,8 +356,11 @@ fn reconstruct_parallel<'py>(
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let py = images.py();
+    check_options(options, &SOLVER_KEYS)?;
     let rig = rig_from(camera, lights)?;
-    let input = Input::new(&images, rig, mask.as_ref(), distance, depth_map.as_ref())?;
+    let depth = initial_depth(distance, depth_map.as_ref())?;
+    let input = Input::new(&images, rig, mask.as_ref(), depth)?;
     let options = options_from(options)?;
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
@@ -339,8 +389,16 @@ fn render<'py>(
     let channels = albedo_channels(&albedo)?;
     let albedo_s = slice(&albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let surface = nplps::Surface {
+        height: h,
+        width: w,
+        depth: depth_s,
+        albedo: albedo_s,
+        channels,
+        mask,
+    };
     let images = py
-        .detach(|| no_panic(|| nplps::render(&rig, h, w, depth_s, albedo_s, channels, mask)))
+        .detach(|| no_panic(|| nplps::render(&rig, &surface)))
         .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
@@ -348,9 +406,7 @@ fn render<'py>(
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
 #[pyfunction]
 #[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel))]
-#[allow(clippy::too_many_arguments)]
 fn predict<'py>(
-    py: Python<'py>,
     depth: PyReadonlyArray2<'py, f64>,
     normals: PyReadonlyArrayDyn<'py, f64>,
     albedo: PyReadonlyArrayDyn<'py, f64>,
@@ -359,6 +415,7 @@ fn predict<'py>(
     mask: Option<PyReadonlyArray2<'py, bool>>,
     parallel: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
+    let py = depth.py();
     let rig = lighting_from(camera, lights)?;
     let (h, w, z) = depth_grid(&depth)?;
     let channels = albedo_channels(&albedo)?;
@@ -368,8 +425,16 @@ fn predict<'py>(
         .collect();
     let a = slice(&albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let surface = nplps::Surface {
+        height: h,
+        width: w,
+        depth: z,
+        albedo: a,
+        channels,
+        mask,
+    };
     let images = py
-        .detach(|| no_panic(|| nplps::predict(&rig, h, w, z, &n, a, channels, mask, parallel)))
+        .detach(|| no_panic(|| nplps::predict(&rig, &surface, &n, parallel)))
         .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
@@ -419,9 +484,10 @@ fn normalize_camera<'py>(
 }
 
 /// A synthetic scene with ground truth: dict of depth, mask, albedo, camera and lights.
+/// `options` are the keyword flags `pinhole`, `led`, `rgb` and `directional` (all false by
+/// default; see `nplps::SceneOptions`).
 #[pyfunction]
-#[pyo3(signature = (name, n, size, distance, seed, pinhole=false, led=false, rgb=false, directional=false))]
-#[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (name, n, size, distance, seed, **options))]
 fn synth_scene<'py>(
     py: Python<'py>,
     name: &str,
@@ -429,17 +495,20 @@ fn synth_scene<'py>(
     size: f64,
     distance: f64,
     seed: u64,
-    pinhole: bool,
-    led: bool,
-    rgb: bool,
-    directional: bool,
+    options: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let options = nplps::SceneOptions {
-        pinhole,
-        led,
-        rgb,
-        directional,
+    let flags = match options {
+        Some(d) => {
+            check_options(d, &["directional", "led", "pinhole", "rgb"])?;
+            d.clone()
+        }
+        None => PyDict::new(py),
     };
+    let options = nplps::SceneOptions::default()
+        .with_pinhole(option(&flags, "pinhole", false)?)
+        .with_led(option(&flags, "led", false)?)
+        .with_rgb(option(&flags, "rgb", false)?)
+        .with_directional(option(&flags, "directional", false)?);
     let scene = no_panic(|| {
         nplps::SceneKind::from_name(name)
             .and_then(|kind| nplps::Scene::with_options(kind, n, size, distance, seed, options))
@@ -469,7 +538,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // KeyboardInterrupt.
     let _ = numpy::PyArray1::<f64>::zeros(m.py(), [0], false);
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
-    m.add("MULTIGRID_MAX_ITERATIONS", nplps::multigrid::MAX_ITERATIONS)?;
+    m.add("MULTIGRID_MAX_ITERATIONS", nplps::MULTIGRID_MAX_ITERATIONS)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
@@ -478,7 +547,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_camera, m)?)?;
-    m.add("MAX_LIGHTS", nplps::rig::MAX_LIGHTS)?;
+    m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;

@@ -23,11 +23,7 @@ fn main() -> nplps::Result<()> {
         Some(&scene.mask),
         InitialDepth::Distance(scene.mean_depth()),
     )?;
-    let options = Options {
-        iterations,
-        tol: 0.0,
-        ..Options::default()
-    };
+    let options = Options::default().with_iterations(iterations).with_tol(0.0);
     let result = reconstruct(&problem, &options, &mut |s| {
         eprintln!(
             "iteration {:>3}: depth change {:.3e}, rms residual {:.3e}",

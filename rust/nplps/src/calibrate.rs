@@ -8,15 +8,15 @@
 //! placements share the camera frame (OpenCV: x right, y down, z forward; pixel (r, c) has its
 //! centre at (u, v) = (c, r)).
 //!
-//! 1. **The sphere in the image.** Boundary points come from a mask ([`mask_boundary`]: the
+//! 1. **The sphere in the image.** Boundary points come from a mask (`mask_boundary`: the
 //!    midpoints of the cracks between an inside and an outside pixel, unbiased for a mask that
-//!    holds the pixels whose centre sees the sphere) or from the images ([`radial_edges`] in the
+//!    holds the pixels whose centre sees the sphere) or from the images (`radial_edges` in the
 //!    composite of the k images, each pixel's brightest value: the crossing of the half level
 //!    between the outside and the inside, extrapolated to the edge, along rays from a first
-//!    centre, sub-pixel by linear interpolation; [`detect_spheres`] finds the first circles).
+//!    centre, sub-pixel by linear interpolation; `detect_spheres` finds the first circles).
 //! 2. **The sphere in 3-D.**
 //!    *Orthographic camera*: the boundary points, in scene units (x = ox + (u + 1/2) w,
-//!    y = oy + (v + 1/2) h), are fitted with a circle ([`fit_circle`]: algebraic fit, then
+//!    y = oy + (v + 1/2) h), are fitted with a circle (`fit_circle`: algebraic fit, then
 //!    Gauss–Newton on the geometric distances with Tukey reweighting); its centre is the sphere
 //!    centre's (x, y); z is given (the depth of the sphere centre: for a ball lying on a board at
 //!    depth `z_b`, `z_b - R`; for a hemisphere lying flat on it, `z_b`). The fitted radius checks
@@ -24,7 +24,7 @@
 //!    *Pinhole camera*: the image of a sphere is an ellipse, the section of the tangent cone from
 //!    the camera centre. Each boundary point back-projects (after undistortion) to a unit ray
 //!    `b_i` on that cone: `b_i . a = cos(theta)` with `a` the unit axis, which passes through the
-//!    sphere centre, and `sin(theta) = R / D`, `D` the distance of the centre. [`fit_cone`] solves
+//!    sphere centre, and `sin(theta) = R / D`, `D` the distance of the centre. `fit_cone` solves
 //!    `b_i . m = 1` linearly (`m = a / cos(theta)`), then refines `(a, cos(theta))` as the plane
 //!    `b . a = c` closest to the points `b_i` (the smallest eigenvector of their covariance; the
 //!    plane distance is `sin(theta)` times the angular distance to the cone, to first order), with
@@ -41,17 +41,17 @@
 //!    region is a small circle of normals about the mirror normal, which the sphere's curvature
 //!    and foreshortening shift towards the sphere's image centre by `A tan(t) / (2 pi R_px)`
 //!    (area `A`, tilt `t` of the normal from the view, image radius `R_px`);
-//!    [`correct_highlight`] moves it back.
+//!    `correct_highlight` moves it back.
 //! 4. **The reflected ray.** The viewing ray `v` through the highlight meets the sphere at `X`
 //!    (nearest intersection) with outward normal `n = (X - C) / R`; the light lies on the mirror
 //!    ray from `X` along `r = v - 2 (v . n) n`.
-//! 5. **The light** ([`locate_light`]): the least-squares point closest to all its rays,
+//! 5. **The light** (`locate_light`): the least-squares point closest to all its rays,
 //!    `p = argmin sum_i |(I - r_i r_i^T)(p - X_i)|^2` (for two rays, the midpoint of their
 //!    shortest connecting segment, as in the paper). When the rays agree within `parallel_tol`
 //!    (RMS angle about their mean direction) the light is too far to be located and is reported
 //!    as a directional light along the mean direction; likewise with a single ray (with a
 //!    warning), or when the least-squares point lies behind a sphere (diverging rays).
-//! 6. **Joint refinement** ([`refine_spheres`]): a binary mask places a sphere's centre only to
+//! 6. **Joint refinement** (`refine_spheres`): a binary mask places a sphere's centre only to
 //!    a few hundredths of a pixel, which turns all its rays by ~0.1 degree; the sphere centres
 //!    and the lights are therefore refined together by least squares on the outlines and on the
 //!    highlights of every light seen on two or more spheres (a small bundle adjustment), and
@@ -71,14 +71,11 @@
 //! direction are fitted too, by Levenberg–Marquardt with the intensities eliminated (variable
 //! projection).
 
-// Comparisons are written `!(x > 0.0)` on purpose throughout: they reject NaN as well.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
-
 use nalgebra::{Matrix3, SymmetricEigen, Vector3, Vector4};
 
 use crate::error::{Error, Result};
 use crate::rig::{distort, Camera, Light, Rig};
-use crate::vec3::{add, angle, cross, dot, norm, scale, sub, unit};
+use crate::vec3::{add, angle, cross, dot, norm, not_above, not_at_least, scale, sub, unit};
 
 // -------------------------------------------------------------------------------------------
 // Small numeric helpers (the 3-vector ones are in `crate::vec3`)
@@ -140,7 +137,7 @@ impl Ray {
 /// The viewing ray of the image point (u, v) (pixel (r, c) has its centre at (u, v) = (c, r)).
 /// Orthographic: from (ox + (u + 1/2) w, oy + (v + 1/2) h, 0) along +z. Pinhole: from the
 /// camera centre through the undistorted point.
-pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
+pub(crate) fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
     match *camera {
         Camera::Orthographic { pixel_size, origin } => Ray {
             origin: [
@@ -163,7 +160,7 @@ pub fn pixel_ray(camera: &Camera, uv: [f64; 2]) -> Ray {
 }
 
 /// The image point (u, v) of the camera-frame point `p` (pinhole: NaN behind the camera).
-pub fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
+pub(crate) fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
     match *camera {
         Camera::Orthographic { pixel_size, origin } => [
             (p[0] - origin[0]) / pixel_size[0] - 0.5,
@@ -180,7 +177,7 @@ pub fn project(camera: &Camera, p: [f64; 3]) -> [f64; 2] {
 }
 
 /// Nearest intersection (t > 0) of a ray with the sphere of centre `c` and radius `r`.
-pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
+pub(crate) fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
     let oc = sub(ray.origin, c);
     let b = dot(oc, ray.direction);
     let disc = b * b - (dot(oc, oc) - r * r);
@@ -195,7 +192,7 @@ pub fn ray_sphere(ray: &Ray, c: [f64; 3], r: f64) -> Option<[f64; 3]> {
 /// Mirror reflection of the direction `v` (towards the surface) about the unit normal `n`:
 /// `v - 2 (v . n) n`.
 #[inline]
-pub fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
+pub(crate) fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
     sub(v, scale(n, 2.0 * dot(v, n)))
 }
 
@@ -205,7 +202,7 @@ pub fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
 
 /// A circle fitted to 2-D points.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Circle {
+pub(crate) struct Circle {
     /// Centre (x, y).
     pub center: [f64; 2],
     /// Radius.
@@ -221,15 +218,15 @@ pub struct Circle {
 /// `|p_i - c| - r`, reweighted with Tukey's biweight at 4.685 robust standard deviations so that
 /// a few wrong boundary points (an occluded or touching part of the outline) do not bend the
 /// circle. Needs at least 5 points that are not on a line.
-pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
+pub(crate) fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
     let n = points.len();
     if n < 5 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "a circle fit needs at least 5 boundary points, got {n}"
         )));
     }
     if points.iter().flatten().any(|v| !v.is_finite()) {
-        return Err(Error::Input("boundary points must be finite".into()));
+        return Err(Error::Unusable("boundary points must be finite".into()));
     }
     let mean = [
         points.iter().map(|p| p[0]).sum::<f64>() / n as f64,
@@ -241,8 +238,8 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
         .sum::<f64>()
         / n as f64)
         .sqrt();
-    if !(spread > 0.0) {
-        return Err(Error::Input(
+    if not_above(spread, 0.0) {
+        return Err(Error::Unusable(
             "the boundary points of a sphere all coincide".into(),
         ));
     }
@@ -266,11 +263,13 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
             .cholesky()
             .map(|c| c.solve(&atb))
             .filter(|s| s.iter().all(|v| v.is_finite()))
-            .ok_or_else(|| Error::Input("the boundary points lie on a line: no circle".into()))?;
+            .ok_or_else(|| {
+                Error::Unusable("the boundary points lie on a line: no circle".into())
+            })?;
         let (cx, cy) = (-0.5 * sol[0], -0.5 * sol[1]);
         let r2 = cx * cx + cy * cy - sol[2];
-        if !(r2 > 0.0) {
-            return Err(Error::Input(
+        if not_above(r2, 0.0) {
+            return Err(Error::Unusable(
                 "the boundary points do not outline a circle".into(),
             ));
         }
@@ -315,8 +314,8 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
         };
         c = [c[0] - step[0], c[1] - step[1]];
         r -= step[2];
-        if !(r > 0.0) || !c.iter().all(|v| v.is_finite()) {
-            return Err(Error::Input(
+        if not_above(r, 0.0) || !c.iter().all(|v| v.is_finite()) {
+            return Err(Error::Unusable(
                 "the circle fit to the sphere's boundary diverged".into(),
             ));
         }
@@ -343,8 +342,12 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<Circle> {
 /// Fits the centre of a circle of known `radius` to 2-D points from `start`: Gauss–Newton on
 /// the geometric distances `|p_i - c| - radius` with Tukey reweighting (4.685 robust standard
 /// deviations). None when the fit fails.
-pub fn fit_circle_radius(points: &[[f64; 2]], start: [f64; 2], radius: f64) -> Option<Circle> {
-    if points.len() < 3 || !(radius > 0.0) {
+pub(crate) fn fit_circle_radius(
+    points: &[[f64; 2]],
+    start: [f64; 2],
+    radius: f64,
+) -> Option<Circle> {
+    if points.len() < 3 || not_above(radius, 0.0) {
         return None;
     }
     let mut c = start;
@@ -397,7 +400,7 @@ pub fn fit_circle_radius(points: &[[f64; 2]], start: [f64; 2], radius: f64) -> O
 
 /// A circular cone with apex at the camera centre.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Cone {
+pub(crate) struct Cone {
     /// Unit axis (towards the scene, z > 0).
     pub axis: [f64; 3],
     /// Half-angle in radians.
@@ -412,15 +415,15 @@ pub struct Cone {
 /// [module documentation](self)): the linear fit `b_i . m = 1`, then the plane `b . a = c`
 /// (|a| = 1) closest to the points `b_i` on the unit sphere, with Tukey reweighting of the
 /// angular residuals. Needs at least 5 rays that do not lie on a great circle.
-pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
+pub(crate) fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
     let n = rays.len();
     if n < 5 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "a cone fit needs at least 5 outline rays, got {n}"
         )));
     }
     if rays.iter().flatten().any(|v| !v.is_finite()) {
-        return Err(Error::Input("outline rays must be finite".into()));
+        return Err(Error::Unusable("outline rays must be finite".into()));
     }
     let rays: Vec<[f64; 3]> = rays.iter().map(|&b| unit(b)).collect();
     // Linear fit: b . m = 1.
@@ -436,7 +439,7 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         .map(|c| c.solve(&atb))
         .filter(|m| m.iter().all(|v| v.is_finite()) && m.norm() > 1.0)
         .ok_or_else(|| {
-            Error::Input("the outline rays do not form a cone (degenerate outline)".into())
+            Error::Unusable("the outline rays do not form a cone (degenerate outline)".into())
         })?;
     let mut axis = unit([m[0], m[1], m[2]]);
     let mut cos_t = 1.0 / m.norm();
@@ -455,8 +458,8 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         }
         // Weighted plane fit to the points b_i.
         let wsum: f64 = weights.iter().sum();
-        if !(wsum > 0.0) {
-            return Err(Error::Input(
+        if not_above(wsum, 0.0) {
+            return Err(Error::Unusable(
                 "no consistent outline rays for the cone fit".into(),
             ));
         }
@@ -473,8 +476,8 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         let eig = SymmetricEigen::new(cov);
         let mut order = [0usize, 1, 2];
         order.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
-        if !(eig.eigenvalues[order[1]] > 1e-6 * eig.eigenvalues[order[2]]) {
-            return Err(Error::Input(
+        if not_above(eig.eigenvalues[order[1]], 1e-6 * eig.eigenvalues[order[2]]) {
+            return Err(Error::Unusable(
                 "the outline rays lie on a line: no cone".into(),
             ));
         }
@@ -491,7 +494,7 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
         }
     }
     if !(cos_t > 0.0 && cos_t < 1.0) || axis[2] <= 0.0 {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "the outline does not describe a sphere in front of the camera".into(),
         ));
     }
@@ -520,7 +523,12 @@ pub fn fit_cone(rays: &[[f64; 3]]) -> Result<Cone> {
 /// unknown and give no point). For a mask holding the pixels whose centre sees the object the
 /// true outline crosses each such segment, at a uniformly distributed place: the midpoints are
 /// unbiased to within a small fraction of a pixel on average.
-pub fn mask_boundary(labels: &[u32], height: usize, width: usize, label: u32) -> Vec<[f64; 2]> {
+pub(crate) fn mask_boundary(
+    labels: &[u32],
+    height: usize,
+    width: usize,
+    label: u32,
+) -> Vec<[f64; 2]> {
     let mut points = Vec::new();
     for r in 0..height {
         for c in 0..width {
@@ -538,7 +546,7 @@ pub fn mask_boundary(labels: &[u32], height: usize, width: usize, label: u32) ->
 
 /// 8-connected components of a mask: labels 1..=count (0 outside), numbered in raster order of
 /// their first pixel, and the count.
-pub fn label_components(mask: &[bool], height: usize, width: usize) -> (Vec<u32>, usize) {
+pub(crate) fn label_components(mask: &[bool], height: usize, width: usize) -> (Vec<u32>, usize) {
     let mut labels = vec![0u32; mask.len()];
     let mut count = 0u32;
     let mut stack = Vec::new();
@@ -594,7 +602,7 @@ fn bilinear(image: &[f32], height: usize, width: usize, u: f64, v: f64) -> Optio
 /// level halfway between the profile 2 pixels outside and the inside profile (1.5 and 2.5
 /// pixels inside) extrapolated linearly to the edge, by linear interpolation.
 /// Rays with a contrast below `min_contrast` are skipped.
-pub fn radial_edges(
+pub(crate) fn radial_edges(
     image: &[f32],
     height: usize,
     width: usize,
@@ -695,7 +703,7 @@ fn otsu(values: &[f32]) -> Option<f64> {
         lo = lo.min(v as f64);
         hi = hi.max(v as f64);
     }
-    if !(hi > lo) {
+    if not_above(hi, lo) {
         return None;
     }
     let bins = 256usize;
@@ -726,7 +734,7 @@ fn otsu(values: &[f32]) -> Option<f64> {
 }
 
 /// An image circle: centre (u, v) and radius, pixels.
-pub type ImageCircle = ([f64; 2], f64);
+pub(crate) type ImageCircle = ([f64; 2], f64);
 
 /// Sphere detection: the expected image radius range in pixels and, optionally, how many
 /// spheres each image set shows.
@@ -746,7 +754,7 @@ pub struct Detection {
 /// image circles (centre (u, v), radius) ordered by row then column of the centre, and notes
 /// about rejected candidates. (The spheres must stand out brighter than the background in the
 /// composite, e.g. shiny balls with a diffuse part on a dark cloth; otherwise give masks.)
-pub fn detect_spheres(
+pub(crate) fn detect_spheres(
     mean_image: &[f32],
     height: usize,
     width: usize,
@@ -754,12 +762,12 @@ pub fn detect_spheres(
 ) -> Result<(Vec<ImageCircle>, Vec<String>)> {
     let [rmin, rmax] = detection.radius_range;
     if !(rmin > 0.0 && rmax >= rmin && rmax.is_finite()) {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "the sphere radius range must be 0 < min <= max (pixels), got [{rmin}, {rmax}]"
         )));
     }
     let threshold = otsu(mean_image)
-        .ok_or_else(|| Error::Input("the images are uniform: no sphere to detect".into()))?;
+        .ok_or_else(|| Error::Unusable("the images are uniform: no sphere to detect".into()))?;
     let mask: Vec<bool> = mean_image.iter().map(|&v| v as f64 > threshold).collect();
     let (labels, count) = label_components(&mask, height, width);
     let mut stats = vec![(0usize, 0.0f64, 0.0f64, false); count];
@@ -819,7 +827,7 @@ pub fn detect_spheres(
     found.sort_by_key(|f| std::cmp::Reverse(f.0));
     if let Some(n) = detection.count {
         if found.len() < n {
-            return Err(Error::Input(format!(
+            return Err(Error::Unusable(format!(
                 "found {} sphere(s) but {n} were expected (radius range [{rmin}, {rmax}] px){}",
                 found.len(),
                 if notes.is_empty() {
@@ -832,7 +840,7 @@ pub fn detect_spheres(
         found.truncate(n);
     }
     if found.is_empty() {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "no sphere found in the radius range [{rmin}, {rmax}] px (the spheres must be brighter than the background under the lights; otherwise give masks){}",
             if notes.is_empty() {
                 String::new()
@@ -856,6 +864,7 @@ pub fn detect_spheres(
 
 /// A sphere located in the camera frame.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Sphere {
     /// Index of the placement (image set) that shows it.
     pub placement: usize,
@@ -878,7 +887,7 @@ pub struct Sphere {
     /// refinement).
     pub shift: f64,
     /// Precision of the outline's centre (pixels per coordinate) that the joint refinement
-    /// assumes: [`MASK_DIGITAL_SIGMA`] for a separating fit to a mask, [`OUTLINE_FIT_SIGMA`]
+    /// assumes: `MASK_DIGITAL_SIGMA` for a separating fit to a mask, `OUTLINE_FIT_SIGMA`
     /// otherwise.
     pub outline_sigma: f64,
 }
@@ -886,20 +895,20 @@ pub struct Sphere {
 /// The sphere of radius `radius` whose outline passes through the image points `outline`
 /// (pixels). Orthographic cameras need the depth of the centre (`center_depth`); for pinhole
 /// cameras it is optional and, when given, replaces the distance derived from the outline.
-pub fn locate_sphere(
+pub(crate) fn locate_sphere(
     camera: &Camera,
     outline: &[[f64; 2]],
     radius: f64,
     center_depth: Option<f64>,
 ) -> Result<Sphere> {
     if !(radius > 0.0 && radius.is_finite()) {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "the sphere radius must be positive and finite, got {radius}"
         )));
     }
     if let Some(z) = center_depth {
         if !(z.is_finite() && z > 0.0) {
-            return Err(Error::Input(format!(
+            return Err(Error::Unusable(format!(
                 "the depth of a sphere centre must be positive and finite, got {z}"
             )));
         }
@@ -907,7 +916,7 @@ pub fn locate_sphere(
     match *camera {
         Camera::Orthographic { pixel_size, .. } => {
             let z = center_depth.ok_or_else(|| {
-                Error::Input(
+                Error::Unusable(
                     "an orthographic camera needs the depth of each sphere centre (center_depth)"
                         .into(),
                 )
@@ -981,7 +990,7 @@ pub fn locate_sphere(
 
 /// The centres of the pixels just inside and just outside the region labelled `label` (those
 /// with a 4-neighbour on the other side), (u, v).
-pub fn mask_edge_pixels(
+pub(crate) fn mask_edge_pixels(
     labels: &[u32],
     height: usize,
     width: usize,
@@ -1062,12 +1071,12 @@ fn max_margin_lp(rows: &[[f64; 4]], h: &[f64], mut z: [f64; 4], active: usize) -
 /// holds the pixels whose centre sees a disc determines the disc far better this way than a
 /// least-squares fit to its boundary (about 0.01 against 0.03 pixel for a 40-pixel disc). None
 /// when no circle separates the points (a mask that is not such a digitisation).
-pub fn separating_circle(
+pub(crate) fn separating_circle(
     inside: &[[f64; 2]],
     outside: &[[f64; 2]],
     start: &Circle,
 ) -> Option<Circle> {
-    if inside.len() < 5 || outside.len() < 5 || !(start.radius > 0.0) {
+    if inside.len() < 5 || outside.len() < 5 || not_above(start.radius, 0.0) {
         return None;
     }
     let (c0, s) = (start.center, start.radius);
@@ -1091,12 +1100,12 @@ pub fn separating_circle(
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     let z = max_margin_lp(&rows, &h, [x0[0], x0[1], x0[2], t0], active)?;
-    if !(z[3] > 0.0) {
+    if not_above(z[3], 0.0) {
         return None;
     }
     let (cx, cy) = (-0.5 * z[0], -0.5 * z[1]);
     let r2 = cx * cx + cy * cy - z[2];
-    if !(r2 > 0.0) {
+    if not_above(r2, 0.0) {
         return None;
     }
     Some(Circle {
@@ -1111,7 +1120,11 @@ pub fn separating_circle(
 /// with the widest margin: `b . m >= 1` inside and `<= 1` outside with `m = a / cos(theta)`, a
 /// linear programme in `m` (coordinates scaled so that a unit step turns the axis or changes
 /// the half-angle by about one radian), started from `start`. None when no cone separates them.
-pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) -> Option<Cone> {
+pub(crate) fn separating_cone(
+    inside: &[[f64; 3]],
+    outside: &[[f64; 3]],
+    start: &Cone,
+) -> Option<Cone> {
     if inside.len() < 5 || outside.len() < 5 {
         return None;
     }
@@ -1132,7 +1145,7 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
                 sign * dot(*b, basis[2]),
             ];
             let len = norm(g);
-            if !(len > 0.0) {
+            if not_above(len, 0.0) {
                 continue;
             }
             rows.push([g[0] / len, g[1] / len, g[2] / len, 1.0]);
@@ -1145,7 +1158,7 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     let z = max_margin_lp(&rows, &h, [0.0, 0.0, 0.0, t0], active)?;
-    if !(z[3] > 0.0) {
+    if not_above(z[3], 0.0) {
         return None;
     }
     let m = add(
@@ -1156,7 +1169,7 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
         ),
     );
     let len = norm(m);
-    if !(len > 1.0) {
+    if not_above(len, 1.0) {
         return None;
     }
     Some(Cone {
@@ -1169,17 +1182,17 @@ pub fn separating_cone(inside: &[[f64; 3]], outside: &[[f64; 3]], start: &Cone) 
 
 /// Outline precision (pixels, per coordinate of the centre) assumed by the joint refinement
 /// for a sphere located by [`separating_circle`] / [`separating_cone`] from its mask.
-pub const MASK_DIGITAL_SIGMA: f64 = 0.01;
+pub(crate) const MASK_DIGITAL_SIGMA: f64 = 0.01;
 
 /// Outline precision (pixels) assumed for a least-squares outline fit (mask boundary or image
 /// edges): the digitisation leaves ~0.03 pixel even for a 40-pixel disc.
-pub const OUTLINE_FIT_SIGMA: f64 = 0.03;
+pub(crate) const OUTLINE_FIT_SIGMA: f64 = 0.03;
 
 /// Locates a sphere from its mask region: the least-squares fit of the crack midpoints
 /// ([`locate_sphere`]), improved by the widest-margin separating circle or cone of the mask's
 /// edge pixels when the mask is consistent with one. Returns the sphere and whether the
 /// separating fit was used.
-pub fn locate_sphere_in_mask(
+pub(crate) fn locate_sphere_in_mask(
     camera: &Camera,
     labels: &[u32],
     height: usize,
@@ -1286,6 +1299,7 @@ fn sphere_region(
 
 /// Thresholds of the highlight search.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct HighlightOptions {
     /// The highlight must stand out: `peak - background >= min_contrast * peak` (default 0.3).
     pub min_contrast: f64,
@@ -1306,11 +1320,17 @@ impl Default for HighlightOptions {
     }
 }
 
+with_fields!(HighlightOptions {
+    with_min_contrast: min_contrast: f64,
+    with_max_blob_fraction: max_blob_fraction: f64,
+    with_limb_margin: limb_margin: f64,
+});
+
 /// A highlight in one image on one sphere.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Highlight {
     /// Sub-pixel image position (u, v), corrected for the sphere's curvature (see
-    /// [`correct_highlight`]).
+    /// `correct_highlight`).
     pub pixel: [f64; 2],
     /// The mean area (pixels) of the level regions whose centroids make the position.
     pub level_area: f64,
@@ -1390,7 +1410,9 @@ fn find_highlight_in(
     }
     let region = values.len();
     let background = median(&mut values);
-    if !(peak - background >= options.min_contrast * peak.abs()) || !(peak > background) {
+    if not_at_least(peak - background, options.min_contrast * peak.abs())
+        || not_above(peak, background)
+    {
         return Err(Rejection::Faint);
     }
     // 8-connected blob of the region's pixels where `above(value, pixel)` holds, from the peak;
@@ -1478,7 +1500,7 @@ fn find_highlight_in(
     let base = |bu: f64, bv: f64| plane[0] + plane[1] * bu + plane[2] * bv;
     let excess = |v: f64, i: usize| v - base((i % bw) as f64, (i / bw) as f64);
     let top = excess(peak, at);
-    if !(top > 0.0) || top < options.min_contrast * peak.abs() {
+    if not_above(top, 0.0) || top < options.min_contrast * peak.abs() {
         return Err(Rejection::Faint);
     }
     let low = HIGHLIGHT_LEVELS[0] * top;
@@ -1600,7 +1622,7 @@ pub fn find_highlight(
 /// are wider across the plane of incidence than along it, such as a Phong lobe at incidence
 /// `i`, the factor changes by `cos(i) (3 + 1 / cos^2(i)) / 4`: 2 % at 17 degrees.) None when
 /// the viewing ray misses the sphere.
-pub fn correct_highlight(
+pub(crate) fn correct_highlight(
     camera: &Camera,
     sphere: &Sphere,
     highlight: Highlight,
@@ -1614,7 +1636,7 @@ pub fn correct_highlight(
         highlight.pixel[1] - sphere.image_center[1],
     ];
     let len = d[0].hypot(d[1]);
-    if !(len > 1e-9) || !(sphere.image_radius > 0.0) {
+    if not_above(len, 1e-9) || not_above(sphere.image_radius, 0.0) {
         return Some(highlight);
     }
     let shift = highlight.level_area * tan_t / (2.0 * std::f64::consts::PI * sphere.image_radius);
@@ -1633,7 +1655,7 @@ pub fn correct_highlight(
 /// The mirror ray of a highlight at image point `uv` on `sphere`: the surface point, its outward
 /// normal, and the ray from the surface point towards the light. None when the viewing ray
 /// misses the sphere.
-pub fn reflected_ray(
+pub(crate) fn reflected_ray(
     camera: &Camera,
     sphere: &Sphere,
     uv: [f64; 2],
@@ -1660,7 +1682,7 @@ pub fn reflected_ray(
 /// `argmin_p sum_i |(I - d_i d_i^T)(p - o_i)|^2`, and the RMS distance of the lines from it.
 /// None when fewer than two rays are given or the rays are parallel (the normal matrix is
 /// singular to working precision).
-pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
+pub(crate) fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
     if rays.len() < 2 {
         return None;
     }
@@ -1675,7 +1697,7 @@ pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
     }
     let eig = SymmetricEigen::new(a);
     let min = eig.eigenvalues.min();
-    if !(min > 1e-10 * rays.len() as f64) {
+    if not_above(min, 1e-10 * rays.len() as f64) {
         return None;
     }
     let p = a.cholesky()?.solve(&b);
@@ -1688,10 +1710,10 @@ pub fn nearest_point(rays: &[Ray]) -> Option<([f64; 3], f64)> {
 }
 
 /// The normalised mean direction of the rays and the RMS angle (radians) of the rays about it.
-pub fn mean_direction(rays: &[Ray]) -> Option<([f64; 3], f64)> {
+pub(crate) fn mean_direction(rays: &[Ray]) -> Option<([f64; 3], f64)> {
     let sum = rays.iter().fold([0.0; 3], |acc, r| add(acc, r.direction));
     let n = norm(sum);
-    if rays.is_empty() || !(n > 0.0) {
+    if rays.is_empty() || not_above(n, 0.0) {
         return None;
     }
     let d = scale(sum, 1.0 / n);
@@ -1716,6 +1738,7 @@ pub enum LightEstimate {
 
 /// The calibration of one light.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct LightReport {
     /// Position or direction.
     pub estimate: LightEstimate,
@@ -1735,7 +1758,7 @@ pub struct LightReport {
 /// Locates one light from its rays (see the [module documentation](self)). `parallel_tol` is
 /// the RMS angle in radians about the mean direction below which the rays are taken as
 /// parallel (a distant light).
-pub fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
+pub(crate) fn locate_light(rays: &[Ray], parallel_tol: f64) -> LightReport {
     let spread = rays
         .iter()
         .enumerate()
@@ -1808,7 +1831,7 @@ pub enum SphereSource<'a> {
     /// An H x W label image: 0 background; if every non-zero label is 1 (a binary mask), each
     /// 8-connected component is a sphere, otherwise each label is one sphere.
     Labels(&'a [u32]),
-    /// Detection in the composite image (see [`detect_spheres`]).
+    /// Detection in the composite image (see `detect_spheres`).
     Detect(Detection),
 }
 
@@ -1819,7 +1842,7 @@ pub enum Outline {
     #[default]
     Mask,
     /// From the composite image of the placement (each pixel's brightest value over the lights;
-    /// [`radial_edges`]), starting from the mask's circle.
+    /// `radial_edges`), starting from the mask's circle.
     Images,
 }
 
@@ -1838,6 +1861,7 @@ pub struct Placement<'a> {
 
 /// Options of [`calibrate_spheres`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct SphereOptions {
     /// Sphere radius (scene units), the same for every sphere.
     pub radius: f64,
@@ -1851,7 +1875,8 @@ pub struct SphereOptions {
     /// Fewest pixels of a mask component taken as a sphere (smaller ones are ignored with a
     /// note). Default 30.
     pub min_component: usize,
-    /// Refine the sphere centres and the lights jointly ([`refine_spheres`]). Default true.
+    /// Refine the sphere centres and the lights jointly (step 6 of the
+    /// [module documentation](self)). Default true.
     pub refine: bool,
 }
 
@@ -1868,8 +1893,18 @@ impl Default for SphereOptions {
     }
 }
 
+with_fields!(SphereOptions {
+    with_radius: radius: f64,
+    with_outline: outline: Outline,
+    with_parallel_tol: parallel_tol: f64,
+    with_highlight: highlight: HighlightOptions,
+    with_min_component: min_component: usize,
+    with_refine: refine: bool,
+});
+
 /// One highlight used (or rejected) for a light.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Observation {
     /// Light (image) index.
     pub light: usize,
@@ -1885,6 +1920,7 @@ pub struct Observation {
 
 /// The result of [`calibrate_spheres`].
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct SphereCalibration {
     /// The located spheres, placement by placement.
     pub spheres: Vec<Sphere>,
@@ -1972,24 +2008,34 @@ pub fn calibrate_spheres(
 ) -> Result<SphereCalibration> {
     camera.validate()?;
     if placements.is_empty() {
-        return Err(Error::Input("no sphere images (no placement) given".into()));
+        return Err(Error::Unusable(
+            "no sphere images (no placement) given".into(),
+        ));
     }
     if k == 0 || height < 3 || width < 3 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "sphere images must be at least 3 x 3 pixels and at least one per light, got k = {k}, {height} x {width}"
         )));
     }
     if !(options.radius > 0.0 && options.radius.is_finite()) {
-        return Err(Error::Input(format!(
-            "the sphere radius must be positive and finite, got {}",
-            options.radius
-        )));
+        return Err(Error::OutOfRange {
+            name: "radius",
+            value: options.radius,
+            message: format!(
+                "the sphere radius must be positive and finite, got {}",
+                options.radius
+            ),
+        });
     }
     if !(options.parallel_tol >= 0.0 && options.parallel_tol.is_finite()) {
-        return Err(Error::Input(format!(
-            "parallel_tol must be a non-negative angle in degrees, got {}",
-            options.parallel_tol
-        )));
+        return Err(Error::OutOfRange {
+            name: "parallel_tol",
+            value: options.parallel_tol,
+            message: format!(
+                "parallel_tol must be a non-negative angle in degrees, got {}",
+                options.parallel_tol
+            ),
+        });
     }
     let h = options.highlight;
     let valid = (0.0..1.0).contains(&h.min_contrast)
@@ -1998,7 +2044,7 @@ pub fn calibrate_spheres(
         && h.limb_margin > 0.0
         && h.limb_margin <= 1.0;
     if !valid {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "highlight options out of range (min_contrast in [0, 1), max_blob_fraction and limb_margin in (0, 1]): {h:?}"
         )));
     }
@@ -2008,19 +2054,28 @@ pub fn calibrate_spheres(
     let mut regions: Vec<([usize; 4], Vec<bool>)> = Vec::new();
     for (pi, placement) in placements.iter().enumerate() {
         if placement.images.len() != k * plane {
-            return Err(Error::Input(format!(
-                "placement {pi}: expected {k} images of {height} x {width} pixels ({} values), got {} values",
-                k * plane,
-                placement.images.len()
-            )));
+            return Err(Error::Shape {
+                what: "sphere images",
+                expected: k * plane,
+                got: placement.images.len(),
+                message: format!(
+                    "placement {pi}: expected {k} images of {height} x {width} pixels ({} values), got {} values",
+                    k * plane,
+                    placement.images.len()
+                ),
+            });
         }
         if let Some(i) = placement.images.iter().position(|v| !v.is_finite()) {
-            return Err(Error::Input(format!(
-                "placement {pi}: image {} has a non-finite value at pixel ({}, {})",
-                i / plane,
-                (i % plane) / width,
-                i % width
-            )));
+            return Err(Error::NonFinite {
+                what: "sphere images",
+                index: i,
+                message: format!(
+                    "placement {pi}: image {} has a non-finite value at pixel ({}, {})",
+                    i / plane,
+                    (i % plane) / width,
+                    i % width
+                ),
+            });
         }
         // The brightest value of each pixel over the lights: every part of the limb is lit by
         // some light, so the outline stands out all around (the mean leaves the limb dark on the
@@ -2040,7 +2095,7 @@ pub fn calibrate_spheres(
         let sources: Vec<Source> = match placement.spheres {
             SphereSource::Labels(labels) => {
                 if labels.len() != plane {
-                    return Err(Error::Input(format!(
+                    return Err(Error::Unusable(format!(
                         "placement {pi}: the mask has {} pixels, the images {height} x {width}",
                         labels.len()
                     )));
@@ -2054,7 +2109,7 @@ pub fn calibrate_spheres(
                     &mut warnings,
                 );
                 if keep.is_empty() {
-                    return Err(Error::Input(format!(
+                    return Err(Error::Unusable(format!(
                         "placement {pi}: the mask marks no sphere"
                     )));
                 }
@@ -2065,7 +2120,7 @@ pub fn calibrate_spheres(
                         Outline::Images => {
                             let points = mask_boundary(&labels, height, width, l);
                             let circle = fit_circle(&points).map_err(|e| {
-                                Error::Input(format!("placement {pi}, mask region {l}: {e}"))
+                                Error::Unusable(format!("placement {pi}, mask region {l}: {e}"))
                             })?;
                             match image_outline(
                                 &composite,
@@ -2092,13 +2147,13 @@ pub fn calibrate_spheres(
             }
             SphereSource::Detect(detection) => {
                 let (circles, notes) = detect_spheres(&composite, height, width, &detection)
-                    .map_err(|e| Error::Input(format!("placement {pi}: {e}")))?;
+                    .map_err(|e| Error::Unusable(format!("placement {pi}: {e}")))?;
                 warnings.extend(notes.into_iter().map(|n| format!("placement {pi}: {n}")));
                 let mut sources = Vec::new();
                 for (centre, radius) in circles {
                     sources.push(Source::Points(
                         image_outline(&composite, height, width, centre, radius).map_err(|e| {
-                            Error::Input(format!(
+                            Error::Unusable(format!(
                             "placement {pi}: the sphere detected at (u, v) = ({:.0}, {:.0}): {e}",
                             centre[0], centre[1]
                         ))
@@ -2114,7 +2169,7 @@ pub fn calibrate_spheres(
                 0 => Ok(None),
                 1 => Ok(Some(placement.center_depth[0])),
                 n if n == n_here => Ok(Some(placement.center_depth[j])),
-                n => Err(Error::Input(format!(
+                n => Err(Error::Unusable(format!(
                     "placement {pi} has {n_here} sphere(s) but {n} centre depths were given (give one for all, or one per sphere)"
                 ))),
             }
@@ -2140,11 +2195,11 @@ pub fn calibrate_spheres(
                 }
             };
             let mut sphere =
-                located.map_err(|e| Error::Input(format!("placement {pi}, sphere {j}: {e}")))?;
+                located.map_err(|e| Error::Unusable(format!("placement {pi}, sphere {j}: {e}")))?;
             sphere.placement = pi;
             let index = spheres.len();
             if sphere.image_radius < 5.0 {
-                return Err(Error::Input(format!(
+                return Err(Error::Unusable(format!(
                     "sphere {index} (placement {pi}) is only {:.1} px in radius; highlights cannot be located on it",
                     sphere.image_radius
                 )));
@@ -2169,7 +2224,7 @@ pub fn calibrate_spheres(
                 options.highlight.limb_margin,
             )
             .ok_or_else(|| {
-                Error::Input(format!(
+                Error::Unusable(format!(
                     "sphere {index} (placement {pi}) is not inside the image"
                 ))
             })?;
@@ -2213,7 +2268,7 @@ pub fn calibrate_spheres(
     let mut lights = locate_all(&spheres, &highlights);
     let mut refinement = None;
     if options.refine {
-        let obs: Vec<(usize, usize, [f64; 2])> = (0..k * ns)
+        let obs: Vec<HighlightPixel> = (0..k * ns)
             .filter_map(|j| {
                 highlights[j]
                     .as_ref()
@@ -2279,6 +2334,7 @@ pub fn calibrate_spheres(
 
 /// What the joint refinement did.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Refinement {
     /// Levenberg–Marquardt iterations (all rounds).
     pub iterations: usize,
@@ -2532,6 +2588,9 @@ impl Bundle {
     }
 }
 
+/// A located highlight: (light index, sphere index, its (u, v) pixel position).
+pub(crate) type HighlightPixel = (usize, usize, [f64; 2]);
+
 /// Refines the sphere centres and the lights jointly (a small bundle adjustment): minimises
 /// the highlight residuals of every light seen on at least two spheres — the angle between the
 /// mirror ray through the observed highlight and the direction to the light, expressed in
@@ -2546,11 +2605,10 @@ impl Bundle {
 /// estimated from the residuals (two rounds), and highlights more than 5 robust standard
 /// deviations off are dropped. Orthographic cameras keep the given centre depths. Returns the
 /// report and the dropped observations (indices into `obs`).
-#[allow(clippy::type_complexity)]
-pub fn refine_spheres(
+pub(crate) fn refine_spheres(
     camera: &Camera,
     spheres: &mut [Sphere],
-    obs: &[(usize, usize, [f64; 2])],
+    obs: &[HighlightPixel],
     lights: &[LightEstimate],
 ) -> Result<(Refinement, Vec<usize>)> {
     let perspective = camera.is_perspective();
@@ -2661,7 +2719,7 @@ pub fn refine_spheres(
     }
     let (outline_shift, h_after) = bundle.report(&theta);
     if !theta.iter().all(|v| v.is_finite()) {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "the joint refinement of spheres and lights diverged".into(),
         ));
     }
@@ -2752,7 +2810,7 @@ impl Plane {
     fn facing(&self) -> Result<([f64; 3], f64)> {
         let n = norm(self.normal);
         if !(n > 0.0 && n.is_finite() && self.offset.is_finite()) {
-            return Err(Error::Input(format!(
+            return Err(Error::Unusable(format!(
                 "the board plane needs a finite non-zero normal and a finite offset, got {self:?}"
             )));
         }
@@ -2762,7 +2820,7 @@ impl Plane {
             d = -d;
         }
         if u[2].abs() < 1e-6 {
-            return Err(Error::Input(
+            return Err(Error::Unusable(
                 "the board plane is seen edge-on (its normal is perpendicular to the view)".into(),
             ));
         }
@@ -2795,6 +2853,7 @@ pub enum BoardAlbedo {
 
 /// Options of [`calibrate_intensities`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct IntensityOptions {
     /// Fit each point light's anisotropy mu (>= 0).
     pub fit_mu: bool,
@@ -2823,8 +2882,18 @@ impl Default for IntensityOptions {
     }
 }
 
+with_fields!(IntensityOptions {
+    with_fit_mu: fit_mu: bool,
+    with_fit_axis: fit_axis: bool,
+    with_albedo: albedo: BoardAlbedo,
+    with_dark: dark: f64,
+    with_saturation: saturation: f64,
+    with_iterations: iterations: usize,
+});
+
 /// One light's fitted parameters.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct IntensityReport {
     /// Relative intensity per channel (geometric mean 1 over all lights and channels).
     pub intensity: Vec<f64>,
@@ -2840,6 +2909,7 @@ pub struct IntensityReport {
 
 /// The result of [`calibrate_intensities`].
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct IntensityCalibration {
     /// The lights with fitted intensities (and mu, axes).
     pub lights: Vec<Light>,
@@ -2914,19 +2984,32 @@ fn fit_phi(obs: &[(usize, f32)], channels: usize, s: &[f64], rho: &[f64]) -> (Ve
     (phi, rss)
 }
 
+/// What the board shows of one light: the plane's unit normal `n`, the board points of the
+/// pixels, the lit observations `(j, value)` with `j = pixel * channels + channel`, and the
+/// albedo `rho[j]` of each pixel and channel.
+struct LitBoard<'a> {
+    n: [f64; 3],
+    points: &'a [[f64; 3]],
+    obs: &'a [(usize, f32)],
+    channels: usize,
+    rho: &'a [f64],
+}
+
 /// Levenberg–Marquardt over (mu, axis) of one point light with the intensities eliminated.
-#[allow(clippy::too_many_arguments)]
 fn fit_shape(
     light: &Light,
     start: Shape,
     fit_axis: bool,
-    n: [f64; 3],
-    points: &[[f64; 3]],
-    obs: &[(usize, f32)],
-    channels: usize,
-    rho: &[f64],
+    board: &LitBoard<'_>,
     iterations: usize,
 ) -> (Shape, usize) {
+    let LitBoard {
+        n,
+        points,
+        obs,
+        channels,
+        rho,
+    } = *board;
     // Parameters: mu and two tangent offsets of the axis.
     let np = if fit_axis { 3 } else { 1 };
     let residuals = |shape: Shape| -> Vec<f64> {
@@ -3020,52 +3103,93 @@ fn fit_shape(
     (shape, done)
 }
 
+/// The board images of [`calibrate_intensities`]: k images of H x W pixels with C channels
+/// (k x H x W x C, row-major, the rig's light order) and an optional H x W mask of the board's
+/// pixels (`true` = board; None: all).
+#[derive(Debug, Clone, Copy)]
+pub struct BoardImages<'a> {
+    /// The pixel values, k x H x W x C.
+    pub images: &'a [f32],
+    /// Number of images k (one per light).
+    pub k: usize,
+    /// Image height H.
+    pub height: usize,
+    /// Image width W.
+    pub width: usize,
+    /// Channels C (1 or 3).
+    pub channels: usize,
+    /// The board's pixels (None: every pixel).
+    pub mask: Option<&'a [bool]>,
+}
+
 /// Calibrates the light intensities (and optionally LED anisotropy and axes) from k images
 /// (k x H x W x C) of a flat diffuse board on `plane`; see the [module documentation](self).
 /// `mask` (H x W) selects the board's pixels (None: all). Light positions come from `lights`.
-#[allow(clippy::too_many_arguments)]
 pub fn calibrate_intensities(
     camera: &Camera,
-    images: &[f32],
-    k: usize,
-    height: usize,
-    width: usize,
-    channels: usize,
-    mask: Option<&[bool]>,
+    board: &BoardImages<'_>,
     plane: &Plane,
     lights: &[Light],
     options: &IntensityOptions,
 ) -> Result<IntensityCalibration> {
+    let BoardImages {
+        images,
+        k,
+        height,
+        width,
+        channels,
+        mask,
+    } = *board;
     camera.validate()?;
     let (n, _) = plane.facing()?;
     let npx = height * width;
     if lights.len() != k || k == 0 {
-        return Err(Error::Input(format!(
-            "{k} board images but {} lights in the rig: give one image per light",
-            lights.len()
-        )));
+        return Err(Error::Shape {
+            what: "board images",
+            expected: lights.len(),
+            got: k,
+            message: format!(
+                "{k} board images but {} lights in the rig: give one image per light",
+                lights.len()
+            ),
+        });
     }
     if channels != 1 && channels != 3 {
-        return Err(Error::Input(format!(
-            "channels must be 1 or 3, got {channels}"
-        )));
+        return Err(Error::OutOfRange {
+            name: "channels",
+            value: channels as f64,
+            message: format!("channels must be 1 or 3, got {channels}"),
+        });
     }
     if images.len() != k * npx * channels {
-        return Err(Error::Input(format!(
-            "expected {k} x {height} x {width} x {channels} image values, got {}",
-            images.len()
-        )));
+        return Err(Error::Shape {
+            what: "board images",
+            expected: k
+                .saturating_mul(height)
+                .saturating_mul(width)
+                .saturating_mul(channels),
+            got: images.len(),
+            message: format!(
+                "expected {k} x {height} x {width} x {channels} image values, got {}",
+                images.len()
+            ),
+        });
     }
     if let Some(m) = mask {
         if m.len() != npx {
-            return Err(Error::Input(format!(
-                "the mask has {} pixels, the images {height} x {width}",
-                m.len()
-            )));
+            return Err(Error::Shape {
+                what: "mask",
+                expected: height * width,
+                got: m.len(),
+                message: format!(
+                    "the mask has {} pixels, the images {height} x {width}",
+                    m.len()
+                ),
+            });
         }
     }
     if images.iter().any(|v| !v.is_finite()) {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "the board images contain non-finite values".into(),
         ));
     }
@@ -3087,7 +3211,7 @@ pub fn calibrate_intensities(
         }
     }
     if pixels.is_empty() {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "no board pixel: the mask is empty or the plane is behind the camera".into(),
         ));
     }
@@ -3156,20 +3280,23 @@ pub fn calibrate_intensities(
                 .filter(|&(j, _)| s_all[i][j / channels] > 0.0)
                 .collect();
             if lit.len() < 3 {
-                return Err(Error::Input(format!(
+                return Err(Error::Unusable(format!(
                     "light {i}: fewer than 3 usable board pixels (all dark, saturated, or facing away from the light)"
                 )));
             }
             if fit_any_shape && is_point(&lights[i]) {
+                let board = LitBoard {
+                    n,
+                    points: &points,
+                    obs: &lit,
+                    channels,
+                    rho: &rho,
+                };
                 let (shape, steps) = fit_shape(
                     &lights[i],
                     shapes[i],
                     options.fit_axis,
-                    n,
-                    &points,
-                    &lit,
-                    channels,
-                    &rho,
+                    &board,
                     if options.albedo == BoardAlbedo::Uniform {
                         options.iterations
                     } else {
@@ -3234,7 +3361,7 @@ pub fn calibrate_intensities(
     // Normalise: geometric mean 1 over all lights and channels.
     let logs: Vec<f64> = phi.iter().flatten().map(|v| v.ln()).collect();
     if logs.iter().any(|v| !v.is_finite()) {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "a light's fitted intensity is zero or negative: its board images are dark where the model says it is lit (wrong position or plane?)".into(),
         ));
     }
@@ -3829,8 +3956,15 @@ mod tests {
             fit_axis: true,
             ..IntensityOptions::default()
         };
-        let cal = calibrate_intensities(&cam, &images, 3, h, w, 1, None, &plane, &start, &options)
-            .unwrap();
+        let board = |images| BoardImages {
+            images,
+            k: 3,
+            height: h,
+            width: w,
+            channels: 1,
+            mask: None,
+        };
+        let cal = calibrate_intensities(&cam, &board(&images), &plane, &start, &options).unwrap();
         for (i, rep) in cal.reports.iter().enumerate() {
             let expected = truth[i] / gm.exp();
             assert!(
@@ -3859,8 +3993,7 @@ mod tests {
             ..IntensityOptions::default()
         };
         let cal =
-            calibrate_intensities(&cam, &textured, 3, h, w, 1, None, &plane, &lights, &options)
-                .unwrap();
+            calibrate_intensities(&cam, &board(&textured), &plane, &lights, &options).unwrap();
         for (i, rep) in cal.reports.iter().enumerate() {
             let expected = truth[i] / gm.exp();
             assert!(
@@ -3869,26 +4002,13 @@ mod tests {
             );
         }
         // Bad input is an error, not a panic.
-        assert!(calibrate_intensities(
-            &cam,
-            &images[..10],
-            3,
-            h,
-            w,
-            1,
-            None,
-            &plane,
-            &lights,
-            &options
-        )
-        .is_err());
+        assert!(
+            calibrate_intensities(&cam, &board(&images[..10]), &plane, &lights, &options).is_err()
+        );
         let edge_on = Plane {
             normal: [1.0, 0.0, 0.0],
             offset: 0.0,
         };
-        assert!(calibrate_intensities(
-            &cam, &images, 3, h, w, 1, None, &edge_on, &lights, &options
-        )
-        .is_err());
+        assert!(calibrate_intensities(&cam, &board(&images), &edge_on, &lights, &options).is_err());
     }
 }

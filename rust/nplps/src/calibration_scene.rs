@@ -17,15 +17,12 @@
 //! (1 + the sphere's index), the ideal mask. Exposure, noise and quantisation are left to the
 //! caller.
 
-// `!(x > 0.0)` rejects NaN as well, on purpose.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
-
 use rayon::prelude::*;
 
 use crate::calibrate::{pixel_ray, ray_sphere, reflect, Plane, Ray};
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
-use crate::vec3::{dot, norm, sub};
+use crate::vec3::{dot, norm, not_above, sub};
 
 /// Reflectance of the spheres and of the board behind them.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -113,27 +110,45 @@ fn incident(light: &Light, x: [f64; 3]) -> Option<([f64; 3], f64, f64)> {
     Some((l, b, reach))
 }
 
+/// What a sphere scene shows: an H x W image of spheres of one `radius` at `centers` (camera
+/// frame), in front of an optional board plane.
+#[derive(Debug, Clone, Copy)]
+pub struct SphereLayout<'a> {
+    /// Image height H (pixels).
+    pub height: usize,
+    /// Image width W (pixels).
+    pub width: usize,
+    /// The sphere centres.
+    pub centers: &'a [[f64; 3]],
+    /// The spheres' radius (scene units).
+    pub radius: f64,
+    /// The board behind the spheres, if any.
+    pub board: Option<Plane>,
+}
+
 /// Renders k images (one per light of `rig`) of spheres of radius `radius` at `centers` in
 /// front of an optional board plane; see the [module documentation](self).
-#[allow(clippy::too_many_arguments)]
 pub fn render_spheres(
     rig: &Rig,
-    height: usize,
-    width: usize,
-    centers: &[[f64; 3]],
-    radius: f64,
-    board: Option<Plane>,
+    layout: &SphereLayout<'_>,
     material: &SphereMaterial,
     supersample: usize,
 ) -> Result<SphereImages> {
+    let SphereLayout {
+        height,
+        width,
+        centers,
+        radius,
+        board,
+    } = *layout;
     rig.validate_parameters()?;
     if height == 0 || width == 0 || supersample == 0 || supersample > 16 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "a sphere scene needs a non-empty image and 1..=16 subsamples, got {height} x {width}, {supersample}"
         )));
     }
     if !(radius > 0.0 && radius.is_finite()) || centers.iter().flatten().any(|v| !v.is_finite()) {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "sphere radius must be positive and centres finite, got radius {radius}"
         )));
     }
@@ -142,7 +157,7 @@ pub fn render_spheres(
         .iter()
         .all(|v| v.is_finite() && *v >= 0.0)
     {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "sphere material parameters must be finite and non-negative, got {m:?}"
         )));
     }
@@ -150,8 +165,8 @@ pub fn render_spheres(
         .map(|p| {
             let n = p.normal;
             let len = norm(n);
-            if !(len > 0.0) {
-                return Err(Error::Input(
+            if not_above(len, 0.0) {
+                return Err(Error::Unusable(
                     "the board plane needs a non-zero normal".into(),
                 ));
             }
@@ -244,7 +259,7 @@ pub fn render_spheres(
 }
 
 /// Vertex depths ((H+1) x (W+1)) of the plane `plane` seen by `camera`.
-pub fn plane_depth(
+pub(crate) fn plane_depth(
     camera: &Camera,
     height: usize,
     width: usize,
@@ -253,7 +268,7 @@ pub fn plane_depth(
     let n = plane.normal;
     let len = norm(n);
     if !(len > 0.0 && len.is_finite() && plane.offset.is_finite()) {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "the board plane needs a finite non-zero normal and offset, got {plane:?}"
         )));
     }
@@ -270,7 +285,7 @@ pub fn plane_depth(
         })
         .collect();
     if depth.iter().any(|z| !(z.is_finite() && *z > 0.0)) {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "the board plane is not in front of the camera over the whole image".into(),
         ));
     }
@@ -278,7 +293,7 @@ pub fn plane_depth(
 }
 
 /// Renders k images (k x H x W x C) of a flat Lambertian board on `plane` with per-pixel
-/// `albedo` (H x W x C) by the image model ([`crate::render::render`]).
+/// `albedo` (H x W x C) by the image model ([`crate::render()`]).
 pub fn render_board(
     rig: &Rig,
     height: usize,
@@ -289,7 +304,15 @@ pub fn render_board(
 ) -> Result<Vec<f64>> {
     rig.validate_parameters()?;
     let depth = plane_depth(&rig.camera, height, width, plane)?;
-    crate::render::render(rig, height, width, &depth, albedo, channels, None)
+    let surface = crate::render::Surface {
+        height,
+        width,
+        depth: &depth,
+        albedo,
+        channels,
+        mask: None,
+    };
+    crate::render::render(rig, &surface)
 }
 
 #[cfg(test)]
@@ -318,17 +341,14 @@ mod tests {
             exponent: (40.0f64 / 3.0).powi(2),
             ..SphereMaterial::default()
         };
-        let scene = render_spheres(
-            &rig,
-            160,
-            160,
-            &centers,
+        let layout = SphereLayout {
+            height: 160,
+            width: 160,
+            centers: &centers,
             radius,
-            Some(Plane::at_depth(170.0)),
-            &material,
-            4,
-        )
-        .unwrap();
+            board: Some(Plane::at_depth(170.0)),
+        };
+        let scene = render_spheres(&rig, &layout, &material, 4).unwrap();
         let peak = scene.images.iter().copied().fold(0.0, f64::max);
         // Exposure: the diffuse maximum near 0.5, highlights clipped at 1 (8-bit).
         let diffuse_max = {

@@ -29,6 +29,7 @@ const COARSE_INNER: usize = 15;
 
 /// How to search for the working distance.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct DistanceSearch {
     /// Search range (near, far) in depth units. None: from `guess`, else from the rig.
     pub range: Option<(f64, f64)>,
@@ -54,8 +55,17 @@ impl Default for DistanceSearch {
     }
 }
 
+with_fields!(DistanceSearch {
+    with_range: range: Option<(f64, f64)>,
+    with_guess: guess: Option<f64>,
+    with_scan: scan: usize,
+    with_inner: inner: usize,
+    with_precision: precision: f64,
+});
+
 /// The estimated gauge of every region and the residual curve it came from.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct DistanceEstimate {
     /// Estimated distance of each region (arithmetic mean depth, or geometric mean depth for a
     /// pinhole camera).
@@ -70,14 +80,14 @@ pub struct DistanceEstimate {
 fn check_observable(problem: &Problem<'_>) -> Result<()> {
     let lights = &problem.rig.lights;
     if !lights.iter().any(|l| matches!(l, Light::Point { .. })) {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "the working distance cannot be estimated with directional lights only: they light every \
              distance alike; give depth explicitly"
                 .into(),
         ));
     }
     if lights.len() <= 3 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "the working distance cannot be estimated from {} lights: with 3 lights every distance fits \
              the images exactly; use at least 4 lights or give depth explicitly",
             lights.len()
@@ -119,9 +129,13 @@ fn search_range(problem: &Problem<'_>, search: &DistanceSearch) -> Result<(f64, 
     };
     let near = near.max(front + 1e-6 * (far - front).abs());
     if !(near.is_finite() && far.is_finite() && near > 0.0 && far > near * (1.0 + 1e-6)) {
-        return Err(Error::Input(format!(
-            "the distance search range ({near}, {far}) is empty: it must lie beyond the point lights (z > {front})"
-        )));
+        return Err(Error::OutOfRange {
+            name: "depth_range",
+            value: near,
+            message: format!(
+                "the distance search range ({near}, {far}) is empty: it must lie beyond the point lights (z > {front})"
+            ),
+        });
     }
     Ok((near, far))
 }
@@ -132,7 +146,6 @@ struct Evaluator<'s, 'p> {
     u: Vec<f64>,
     inner: usize,
     curve: Vec<Vec<(f64, f64)>>,
-    start: Instant,
     /// The light refinement of every evaluation.
     refine: Refine,
 }
@@ -150,7 +163,7 @@ impl Evaluator<'_, '_> {
         // the order of the evaluations.
         self.solver.restart_lights(self.refine);
         self.solver
-            .iterate(&mut self.u, &gauge, self.inner, 0.0, self.start, progress)?;
+            .iterate(&mut self.u, &gauge, self.inner, 0.0, progress)?;
         self.solver.local(&self.u);
         let residuals = self.solver.region_residuals();
         for ((curve, &x), &r) in self.curve.iter_mut().zip(d).zip(&residuals) {
@@ -219,7 +232,6 @@ fn search_refined(
         u: problem.u0.clone(),
         inner: search.inner.max(1),
         curve: vec![Vec::new(); regions],
-        start: Instant::now(),
     };
     // Coarse scan from far to near (surfaces start flat; far is the gentlest start).
     let mut scanned: Vec<(f64, Vec<f64>)> = Vec::with_capacity(scan);
@@ -237,7 +249,7 @@ fn search_refined(
             .unwrap_or(0);
         if best == 0 || best == scan - 1 {
             let side = if best == 0 { "near" } else { "far" };
-            return Err(Error::Input(format!(
+            return Err(Error::Unusable(format!(
                 "the photometric residual of region {r} keeps falling towards the {side} end of the distance \
                  search range ({:.4}, {:.4}): the distance lies outside it or cannot be observed; \
                  widen depth_range",
@@ -302,7 +314,7 @@ fn search_refined(
 
 /// Estimates the working distance of every region, then reconstructs at it (warm-started).
 ///
-/// With a coarse-to-fine pyramid (see [`crate::pyramid`]) the search runs on the coarsest level
+/// With a coarse-to-fine pyramid ([`Options::levels`](crate::Options::levels)) the search runs on the coarsest level
 /// only; the finer levels start from its surface and keep its gauge, so the full resolution
 /// costs about what a run with a known distance costs.
 pub fn reconstruct_auto(
@@ -359,6 +371,7 @@ pub fn reconstruct_auto(
         )?;
         let carried = coarse.carried;
         let mut solver = Solver::new(problem, options)?;
+        solver.start = start;
         let mut history = solver.carry(coarse);
         let (estimate, gauge) = if carried {
             let (coarse, coarse_grid) = coarse_estimate.expect("the coarsest level ran the search");
@@ -379,19 +392,12 @@ pub fn reconstruct_auto(
         // The lights seen from the surface at the estimated distance.
         crate::problem::check_light_geometry(problem.rig, &problem.geometry, &u)?;
         let (fine, converged) = if carried {
-            solver.iterate(
-                &mut u,
-                &gauge,
-                options.iterations,
-                options.tol,
-                start,
-                progress,
-            )?
+            solver.iterate(&mut u, &gauge, options.iterations, options.tol, progress)?
         } else {
-            solver.iterate_first(&mut u, &gauge, start, progress)?
+            solver.iterate_first(&mut u, &gauge, progress)?
         };
         history.extend(fine);
-        Ok((solver.finish(&u, history, converged, start)?, estimate))
+        Ok((solver.finish(&u, history, converged)?, estimate))
     })?
 }
 

@@ -3,11 +3,57 @@
 use thiserror::Error;
 
 /// Everything that can go wrong in nplps, with a message that names the problem.
+///
+/// The input errors carry what they are about (which array, which value, which parameter) as
+/// fields, and the full message that [`Display`](std::fmt::Display) prints as `message`.
 #[derive(Debug, Error, Clone, PartialEq)]
+#[non_exhaustive]
 pub enum Error {
-    /// The input images, mask, depth or options are invalid.
+    /// An array or buffer does not have the number of values (or channels) it must have.
+    #[error("{message}")]
+    Shape {
+        /// Which array ("images", "mask", "depth map", ...).
+        what: &'static str,
+        /// The number it must have (of values, pixels or channels, as the message says).
+        expected: usize,
+        /// The number it has.
+        got: usize,
+        /// The message.
+        message: String,
+    },
+    /// A value that must be finite (or in the valid range of its array) is not.
+    #[error("{message}")]
+    NonFinite {
+        /// Which array ("images", "initial depth map", ...).
+        what: &'static str,
+        /// The index of the first bad value in the array (row-major).
+        index: usize,
+        /// The message.
+        message: String,
+    },
+    /// A numeric parameter is outside its valid range (the message gives the range).
+    #[error("{message}")]
+    OutOfRange {
+        /// The parameter ("tol", "max_memory", "working distance", ...).
+        name: &'static str,
+        /// Its value.
+        value: f64,
+        /// The message.
+        message: String,
+    },
+    /// The input is well-formed but cannot support the computation: an empty mask, too few
+    /// usable observations or lights, an unknown name, no sphere found in calibration images,
+    /// a degenerate fit.
     #[error("{0}")]
-    Input(String),
+    Unusable(String),
+    /// An image file cannot be read: missing, not a valid image, or above the pixel limit.
+    #[error("cannot read image '{}': {reason}", path.display())]
+    Image {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why it cannot be read.
+        reason: String,
+    },
     /// The rig (camera or lights) is invalid.
     #[error("{0}")]
     Rig(String),
@@ -15,7 +61,7 @@ pub enum Error {
     #[error("solver failed: {0}")]
     Solver(String),
     /// The computation would need more memory than the limit allows (checked before the large
-    /// allocations; see [`crate::memory`]), or a large allocation failed.
+    /// allocations; see [`crate::check_memory`]), or a large allocation failed.
     #[error("{}", memory_message(what, *needed, *limit, *explicit))]
     Memory {
         /// What was being computed ("reconstructing 4000 x 3000 pixels ...").
@@ -60,12 +106,49 @@ fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String
 /// Result alias used across the crate.
 pub type Result<T> = std::result::Result<T, Error>;
 
-/// Returns `Err(Error::Input(msg))` unless `cond` holds.
-pub(crate) fn ensure_input(cond: bool, msg: impl FnOnce() -> String) -> Result<()> {
+/// Returns [`Error::Shape`] unless `expected == got`.
+pub(crate) fn ensure_shape(
+    what: &'static str,
+    expected: usize,
+    got: usize,
+    message: impl FnOnce() -> String,
+) -> Result<()> {
+    if expected == got {
+        Ok(())
+    } else {
+        Err(Error::Shape {
+            what,
+            expected,
+            got,
+            message: message(),
+        })
+    }
+}
+
+/// Returns [`Error::OutOfRange`] for the parameter `name` unless `cond` holds.
+pub(crate) fn ensure_range(
+    cond: bool,
+    name: &'static str,
+    value: f64,
+    message: impl FnOnce() -> String,
+) -> Result<()> {
     if cond {
         Ok(())
     } else {
-        Err(Error::Input(msg()))
+        Err(Error::OutOfRange {
+            name,
+            value,
+            message: message(),
+        })
+    }
+}
+
+/// Returns [`Error::Unusable`] unless `cond` holds.
+pub(crate) fn ensure_usable(cond: bool, message: impl FnOnce() -> String) -> Result<()> {
+    if cond {
+        Ok(())
+    } else {
+        Err(Error::Unusable(message()))
     }
 }
 

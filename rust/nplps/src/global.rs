@@ -34,7 +34,8 @@ pub enum FillOrdering {
     /// Geometric nested dissection of the vertex grid (default; see [`crate::ordering`]).
     #[default]
     NestedDissection,
-    /// faer's approximate minimum degree.
+    /// faer's approximate minimum degree (compared with nested dissection by the tests).
+    #[cfg(test)]
     Amd,
 }
 
@@ -67,8 +68,6 @@ pub(crate) struct Cholesky {
     scratch: MemBuffer,
     /// Relative residual of the check solve after factorization.
     pub check_residual: f64,
-    /// Whether the parallel factorization failed its check and was redone sequentially.
-    pub fell_back_to_sequential: bool,
 }
 
 impl Cholesky {
@@ -98,13 +97,11 @@ impl Cholesky {
             par,
             scratch: MemBuffer::new(faer::dyn_stack::StackReq::empty()),
             check_residual: f64::NAN,
-            fell_back_to_sequential: false,
         };
         chol.factor()?;
         chol.check_residual = chol.check();
         if !accurate(chol.check_residual) && !matches!(par, Par::Seq) {
             chol.par = Par::Seq;
-            chol.fell_back_to_sequential = true;
             chol.factor()?;
             chol.check_residual = chol.check();
         }
@@ -118,6 +115,7 @@ impl Cholesky {
     }
 
     /// Number of nonzeros of the factor.
+    #[cfg(test)]
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.len_val()
     }
@@ -249,14 +247,14 @@ pub struct GlobalSystem {
     /// `weight * prior` per unknown (0 where there is no prior), added to every right side.
     prior_rhs: Option<Vec<f64>>,
     /// Relative residual of the check solve after factorization.
-    pub check_residual: f64,
-    /// Whether the parallel factorization failed its check and was redone sequentially.
-    pub fell_back_to_sequential: bool,
+    #[cfg(test)]
+    check_residual: f64,
 }
 
 impl GlobalSystem {
     /// Assembles, analyses and factors the system of `grid` with the nested-dissection
     /// ordering, using `par` for faer's kernels.
+    #[cfg(test)]
     pub fn new(grid: &Grid, par: Par) -> Result<GlobalSystem> {
         GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection, None)
     }
@@ -274,6 +272,7 @@ impl GlobalSystem {
         let lower = assemble_lower(grid, &pins, prior)?;
         let (fwd, inv) = nested_dissection(grid);
         let ord = match ordering {
+            #[cfg(test)]
             FillOrdering::Amd => SymmetricOrdering::Amd,
             FillOrdering::NestedDissection => {
                 SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n))
@@ -281,8 +280,8 @@ impl GlobalSystem {
         };
         let chol = Cholesky::new(lower, ord, par)?;
         Ok(GlobalSystem {
+            #[cfg(test)]
             check_residual: chol.check_residual,
-            fell_back_to_sequential: chol.fell_back_to_sequential,
             chol,
             pins,
             prior_rhs: prior_right_side(prior),
@@ -290,6 +289,7 @@ impl GlobalSystem {
     }
 
     /// Number of nonzeros of the Cholesky factor.
+    #[cfg(test)]
     pub fn factor_nnz(&self) -> usize {
         self.chol.factor_nnz()
     }
@@ -318,13 +318,13 @@ impl GlobalSystem {
 /// How the global step's linear system is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum GlobalSolver {
-    /// Direct below [`AUTO_MULTIGRID_UNKNOWNS`] unknowns, multigrid above.
+    /// Direct below 40 000 unknowns (about 200 x 200 pixels), multigrid above.
     #[default]
     Auto,
     /// Sparse Cholesky factorization (nested dissection), factored once: exact, but its fill
     /// grows faster than the pixels (about 7.5 GB at 2048 x 2048).
     Direct,
-    /// Conjugate gradients with a multigrid preconditioner ([`crate::multigrid`]): linear cost
+    /// Conjugate gradients with a multigrid preconditioner: linear cost
     /// and memory in the pixels.
     Multigrid,
 }

@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_input, Result};
+use crate::error::{ensure_shape, ensure_usable, Result};
 
 /// Sentinel for a vertex that no masked facet uses.
 pub const INACTIVE: u32 = u32::MAX;
@@ -42,11 +42,11 @@ impl Grid {
     /// Builds the mesh of a mask of H x W pixels (`None`: every pixel). Fails on an empty mask or
     /// a mask of the wrong length.
     pub fn new(height: usize, width: usize, mask: Option<&[bool]>) -> Result<Grid> {
-        ensure_input(height > 0 && width > 0, || {
+        ensure_usable(height > 0 && width > 0, || {
             format!("images must not be empty, got {height} x {width} pixels")
         })?;
         if let Some(m) = mask {
-            ensure_input(m.len() == height * width, || {
+            ensure_shape("mask", height * width, m.len(), || {
                 format!(
                     "mask has {} pixels, the images have {height} x {width} = {}",
                     m.len(),
@@ -58,7 +58,7 @@ impl Grid {
             .into_par_iter()
             .filter(|&p| mask.is_none_or(|m| m[p]))
             .collect();
-        ensure_input(!facets.is_empty(), || {
+        ensure_usable(!facets.is_empty(), || {
             "mask is empty: no pixel is selected for reconstruction".to_string()
         })?;
 
@@ -129,13 +129,6 @@ impl Grid {
     /// Number of masked facets.
     pub fn n_facets(&self) -> usize {
         self.facets.len()
-    }
-
-    /// (row, column) of facet `f`.
-    #[inline]
-    pub fn facet_rc(&self, f: usize) -> (usize, usize) {
-        let p = self.facets[f];
-        (p / self.width, p % self.width)
     }
 
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).

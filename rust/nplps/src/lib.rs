@@ -4,30 +4,115 @@
 //! point light close to it, by the mesh-deformation method of Xie, Dai & Wang, "Photometric
 //! Stereo with Near Point Lighting: A Solution by Mesh Deformation" (CVPR 2015).
 //!
-//! Each pixel is a quad facet whose corners are shared mesh vertices with unknown depth. A
-//! [local step](local) fits every facet's normal under the near-light image model
+//! Each pixel is a quad facet whose corners are shared mesh vertices with unknown depth. A local
+//! step fits every facet's normal under the near-light image model
 //! `I_k = rho * max(0, n . (p_k - x)) / |p_k - x|^3` and turns it into target corner depths; a
-//! [global step](global) glues the facets back together with one sparse least-squares system,
-//! factored once per mask; the [solver] alternates the two until the depths converge. Pinhole
-//! cameras ([geometry]: log-depth unknowns), LEDs and directional lights ([rig]), colour and
-//! robust fits ([local]), depth priors ([global]) and the estimation of the working distance from
-//! the images ([distance]) extend the paper's setting. At camera resolution the global system is
-//! solved by conjugate gradients with a [multigrid] preconditioner (linear time and memory in the
-//! pixels; [`GlobalSolver`]), and the solver runs coarse-to-fine over an image [pyramid]
-//! ([`Options::levels`]).
+//! global step glues the facets back together with one sparse least-squares system, factored
+//! once per mask; [`reconstruct`] alternates the two until the depths converge. Pinhole cameras
+//! (log-depth unknowns), LEDs and directional lights ([`Light`]), colour and robust fits
+//! ([`Robust`]), depth priors ([`Problem::set_prior`]) and the estimation of the working distance
+//! from the images ([`reconstruct_auto`]) extend the paper's setting. At camera resolution the
+//! global system is solved by conjugate gradients with a multigrid preconditioner (linear time
+//! and memory in the pixels; [`GlobalSolver`]), and the solver runs coarse-to-fine over an image
+//! pyramid ([`Options::levels`]).
 //!
-//! The lower modules build on each other bottom up, each using only those listed before it (and
-//! [`error`]):
-//! `vec3` (the crate's 3-vector helpers: `sub`, `dot`, `cross`, `normalize`, ...); [`rig`] (the
-//! camera and the lights) and [`grid`] (the mesh's connectivity: which pixel corners are unknowns,
-//! the regions), which do not use each other; [`geometry`] (where the vertices are under the
-//! camera, and the facets' corners, normals and centres); then [`local`] (the per-facet fits),
-//! on which the solver's modules build.
+//! ## The public surface
+//!
+//! - Input: [`Rig`] ([`Camera`], [`Light`]), [`ImageStack`], [`InitialDepth`], [`Problem`]
+//!   (validated once; [`Problem::with_cancel`] takes a [`Cancel`] token), [`Options`] (built from
+//!   [`Options::default`] with `with_*` methods, or by setting its public fields).
+//! - Running: [`reconstruct`], [`reconstruct_auto`] (with a [`DistanceSearch`]),
+//!   [`reconstruct_parallel`] (the parallel-light baseline); a progress callback gets
+//!   [`IterationStats`] and returns [`Control`].
+//! - Output: [`Reconstruction`] with its [`Status`], [`Timings`] and, when the lights are refined
+//!   ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
+//! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
+//! - Light calibration from sphere and board images: the [`calibrate`] module.
+//! - Files (feature `io`, on by default): the `io` module reads rig files and PNG images.
+//! - Errors: [`Error`] (non-exhaustive; input errors say which array or parameter is wrong),
+//!   [`Result`]; memory is checked before the large allocations ([`check_memory`]).
+//! - Cargo features: `synth` (off by default) adds synthetic scenes with ground truth (`Scene`,
+//!   `SceneKind`, `SceneOptions`, and the `calibration_scene` module).
+//!
+//! Inside, the modules build on each other bottom up: the 3-vector helpers; the rig and the
+//! mesh connectivity (which pixel corners are unknowns, the regions), which do not use each
+//! other; the geometry (where the vertices are under the camera, and the facets' corners, normals
+//! and centres); the per-facet fits; then the global step, the solver, the pyramid, the light
+//! refinement and the distance search. All of them are private to the crate.
+//!
+//! ## A native application
+//!
+//! With the `io` feature (on by default) an application reads a rig file and PNG images and
+//! reconstructs. Here the files are made first: 16-bit images of a dome rendered by the model.
+//!
+//! ```
+//! # #[cfg(feature = "io")] {
+//! use std::path::PathBuf;
+//! use nplps::{io, reconstruct, Control, ImageStack, InitialDepth, Options, Problem, Surface};
+//!
+//! let dir = std::env::temp_dir().join(format!("nplps-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! // The rig file: an orthographic camera (1 mm pixels) and 8 LEDs 100 mm in front of the object.
+//! let lights: Vec<String> = (0..8)
+//!     .map(|i| {
+//!         let a = i as f64 * std::f64::consts::FRAC_PI_4;
+//!         format!(r#"{{"type": "point", "position": [{}, {}, 0], "intensity": 8000}}"#,
+//!                 60.0 * a.cos(), 60.0 * a.sin())
+//!     })
+//!     .collect();
+//! let rig_file = dir.join("rig.json");
+//! std::fs::write(&rig_file, format!(
+//!     r#"{{"version": 2, "camera": {{"model": "orthographic", "pixel_size": [1, 1],
+//!          "origin": [-16, -16]}}, "lights": [{}]}}"#, lights.join(", "))).unwrap();
+//!
+//! // The images: a dome 100 mm away, rendered and written as 16-bit PNG files.
+//! let (h, w) = (32, 32);
+//! let truth: Vec<f64> = (0..(h + 1) * (w + 1))
+//!     .map(|v| {
+//!         let (x, y) = ((v % (w + 1)) as f64 - 16.0, (v / (w + 1)) as f64 - 16.0);
+//!         100.0 - 8.0 + (x * x + y * y) / 64.0
+//!     })
+//!     .collect();
+//! let rig = io::read_rig(&rig_file).unwrap();
+//! let albedo = vec![0.8; h * w];
+//! let surface = Surface { height: h, width: w, depth: &truth, albedo: &albedo, channels: 1, mask: None };
+//! let rendered = nplps::render(&rig, &surface).unwrap();
+//! let mut paths: Vec<PathBuf> = Vec::new();
+//! for (i, image) in rendered.chunks(h * w).enumerate() {
+//!     let path = dir.join(format!("led{i}.png"));
+//!     let mut encoder = png::Encoder::new(std::fs::File::create(&path).unwrap(), w as u32, h as u32);
+//!     encoder.set_color(png::ColorType::Grayscale);
+//!     encoder.set_depth(png::BitDepth::Sixteen);
+//!     let bytes: Vec<u8> = image
+//!         .iter()
+//!         .flat_map(|&v| ((v.clamp(0.0, 1.0) * 65535.0).round() as u16).to_be_bytes())
+//!         .collect();
+//!     encoder.write_header().unwrap().write_image_data(&bytes).unwrap();
+//!     paths.push(path);
+//! }
+//!
+//! // The application: read the rig and the images, reconstruct.
+//! let rig = io::read_rig(&rig_file).unwrap();
+//! let mut images: Vec<f32> = Vec::new();
+//! for image in io::read_pngs(&paths, 1 << 26) {
+//!     images.extend(image.unwrap().to_unit());
+//! }
+//! let stack = ImageStack::new(&images, rig.n_lights(), h, w).unwrap();
+//! let mean = truth.iter().sum::<f64>() / truth.len() as f64;
+//! let problem = Problem::new(stack, &rig, None, InitialDepth::Distance(mean)).unwrap();
+//! let options = Options::default().with_iterations(100).with_tol(1e-7);
+//! let result = reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap();
+//! let err = result.depth.iter().zip(&truth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+//! assert!(err < 0.05, "max depth error {err} mm");
+//! std::fs::remove_dir_all(&dir).unwrap();
+//! # }
+//! ```
 //!
 //! Camera frame as in OpenCV: x right (increasing column), y down (increasing row), z forward;
 //! depth = z; normals face the camera (n_z < 0). Units are the user's.
 //!
 //! ```
+//! # #[cfg(feature = "synth")] {
 //! use nplps::{reconstruct, ImageStack, InitialDepth, Options, Problem, Scene, SceneKind};
 //!
 //! // A synthetic saddle, 32 x 32 pixels, 100 mm wide, 200 mm away, 27 lights.
@@ -35,49 +120,76 @@
 //! let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
 //! let stack = ImageStack::new(&images, scene.rig.n_lights(), 32, 32).unwrap();
 //! let problem = Problem::new(stack, &scene.rig, None, InitialDepth::Distance(scene.mean_depth())).unwrap();
-//! let options = Options { iterations: 50, tol: 1e-9, ..Options::default() };
+//! let options = Options::default().with_iterations(50).with_tol(1e-9);
 //! let result = reconstruct(&problem, &options, &mut |_| nplps::Control::Continue).unwrap();
 //! let err = result.depth.iter().zip(&scene.depth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
 //! assert!(err < 0.1, "max depth error {err} mm");
+//! # }
 //! ```
 
 #![warn(missing_docs)]
 
-pub mod anderson;
-pub mod baseline;
+/// `with_FIELD(value)` builder methods on a `#[non_exhaustive]` options struct (which other crates
+/// cannot build with a struct literal): `Options::default().with_iterations(50)`.
+macro_rules! with_fields {
+    ($t:ty { $($method:ident: $field:ident: $ty:ty),* $(,)? }) => {
+        impl $t {
+            $(
+                #[doc = concat!("These options with [`", stringify!($field), "`](Self::", stringify!($field), ") set to `value`.")]
+                #[must_use]
+                pub fn $method(mut self, value: $ty) -> Self {
+                    self.$field = value;
+                    self
+                }
+            )*
+        }
+    };
+}
+
+mod anderson;
+mod baseline;
 pub mod calibrate;
+#[cfg(feature = "synth")]
 pub mod calibration_scene;
-pub mod cancel;
-pub mod distance;
-pub mod error;
-pub mod geometry;
-pub mod global;
-pub mod grid;
-pub mod local;
-pub mod memory;
-pub mod multigrid;
-pub mod ordering;
-pub mod problem;
-pub mod pyramid;
-pub mod refine;
-pub mod render;
-pub mod rig;
-pub mod solver;
-pub mod synth;
+mod camera_map;
+mod cancel;
+mod distance;
+mod error;
+mod geometry;
+mod global;
+mod grid;
+#[cfg(feature = "io")]
+pub mod io;
+mod local;
+mod memory;
+mod multigrid;
+mod ordering;
+mod problem;
+mod pyramid;
+mod refine;
+mod render;
+mod rig;
+mod solver;
+#[cfg(feature = "synth")]
+mod synth;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
+pub use camera_map::{camera_from_map, MapValue};
 pub use cancel::Cancel;
 pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
-pub use error::{Error, Result};
+pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use local::{Robust, Weighting};
+pub use memory::check_memory;
+pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use problem::{ImageStack, InitialDepth, Problem};
 pub use refine::{Conditioning, Refine};
-pub use render::{mesh_normals, predict, render, vertices};
-pub use rig::{Camera, Light, Rig};
+pub use render::{mesh_normals, predict, render, vertices, Surface};
+pub use rig::{Camera, Light, Rig, MAX_LIGHTS};
 pub use solver::{
-    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Solver,
-    Status, Timings,
+    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Status,
+    Timings,
 };
+#[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

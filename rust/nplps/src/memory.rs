@@ -123,6 +123,19 @@ pub fn check_reconstruction(
     )
 }
 
+/// Refuses with [`Error::Memory`] when reconstructing `shape` = (k, H, W, C) images under
+/// `mask` (H x W, `true` = reconstruct; `None` = every pixel) with `options` would need more
+/// memory than `options.max_memory` allows. Call it before [`crate::Problem::new`] to refuse
+/// before the problem's own allocations.
+pub fn check_memory(shape: [usize; 4], mask: Option<&[bool]>, options: &Options) -> Result<()> {
+    let [k, h, w, c] = shape;
+    let facets = match mask {
+        Some(m) => m.iter().filter(|&&inside| inside).count(),
+        None => h.saturating_mul(w),
+    };
+    check_reconstruction(h, w, facets, c, k, options)
+}
+
 /// A vector of `len` copies of `value`, or [`Error::Memory`] when the allocation fails (instead
 /// of aborting the process).
 pub fn try_filled<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {

@@ -47,8 +47,7 @@ use crate::grid::{Grid, INACTIVE};
 /// Rows per Gauss-Seidel band.
 pub const BAND: usize = 16;
 
-/// Most conjugate-gradient iterations of one global step (the default of
-/// [`MultigridSystem::max_iterations`]). Compact masks need 0 to 10; thin one-pixel strips
+/// Most conjugate-gradient iterations of one multigrid global step. Compact masks need 0 to 10; thin one-pixel strips
 /// joined across gaps by the coarsening (a comb, a grid of lines) can need hundreds.
 pub const MAX_ITERATIONS: usize = 500;
 
@@ -762,13 +761,9 @@ impl MultigridSystem {
     }
 
     /// Number of levels (the fine level included).
+    #[cfg(test)]
     pub fn n_levels(&self) -> usize {
         self.levels.len()
-    }
-
-    /// Nodes of the directly factored coarsest level.
-    pub fn coarsest_nodes(&self) -> usize {
-        self.coarsest.nodes.len()
     }
 
     /// `z ~ A^-1 r` by one V-cycle from a zero start.

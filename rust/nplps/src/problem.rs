@@ -2,7 +2,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_input, Error, Result};
+use crate::error::{ensure_range, ensure_shape, ensure_usable, Error, Result};
 use crate::geometry::Geometry;
 use crate::global::Prior;
 use crate::grid::Grid;
@@ -40,14 +40,17 @@ impl<'a> ImageStack<'a> {
         width: usize,
         channels: usize,
     ) -> Result<Self> {
-        ensure_input(channels == 1 || channels == 3, || {
-            format!("images must have 1 (grey) or 3 (RGB) channels, got {channels}")
-        })?;
+        ensure_range(
+            channels == 1 || channels == 3,
+            "channels",
+            channels as f64,
+            || format!("images must have 1 (grey) or 3 (RGB) channels, got {channels}"),
+        )?;
         let expected = k
             .checked_mul(height)
             .and_then(|n| n.checked_mul(width))
             .and_then(|n| n.checked_mul(channels));
-        ensure_input(expected == Some(data.len()), || {
+        ensure_shape("images", expected.unwrap_or(usize::MAX), data.len(), || {
             format!(
                 "image data has {} values, expected k * H * W * C = {k} * {height} * {width} * {channels}",
                 data.len()
@@ -78,29 +81,49 @@ pub enum InitialDepth<'a> {
 /// images is made).
 pub struct Problem<'a> {
     /// The rig.
-    pub rig: &'a Rig,
+    pub(crate) rig: &'a Rig,
     /// Mesh connectivity of the mask.
-    pub grid: Grid,
+    pub(crate) grid: Grid,
     /// Vertex positions and unknowns (depth or log-depth) under the rig's camera.
-    pub geometry: Geometry,
+    pub(crate) geometry: Geometry,
     /// Per-facet observations.
-    pub obs: Observations<'a>,
+    pub(crate) obs: Observations<'a>,
     /// Initial unknown of each active vertex (depth, or log-depth for a pinhole camera).
-    pub u0: Vec<f64>,
+    pub(crate) u0: Vec<f64>,
     /// Gauge of each region: the mean of its unknowns (arithmetic mean depth, or log of the
     /// geometric mean depth).
-    pub gauge: Vec<f64>,
+    pub(crate) gauge: Vec<f64>,
     /// Number of negative observations inside the mask (treated as unlit).
-    pub negative_observations: usize,
+    pub(crate) negative_observations: usize,
     /// Optional depth prior fused in the global step.
-    pub prior: Option<Prior>,
+    pub(crate) prior: Option<Prior>,
     /// Cancellation token checked while the problem is solved (never cancelled by default).
-    pub cancel: crate::Cancel,
+    pub(crate) cancel: crate::Cancel,
 }
 
 impl<'a> Problem<'a> {
+    /// The rig.
+    pub fn rig(&self) -> &'a Rig {
+        self.rig
+    }
+
+    /// Image height H and width W.
+    pub fn shape(&self) -> (usize, usize) {
+        (self.grid.height, self.grid.width)
+    }
+
+    /// Number of negative observations inside the mask (treated as unlit).
+    pub fn negative_observations(&self) -> usize {
+        self.negative_observations
+    }
+
+    /// The cancellation token checked while the problem is solved.
+    pub fn cancel(&self) -> &crate::Cancel {
+        &self.cancel
+    }
+
     /// Refuses with [`crate::Error::Memory`] when reconstructing this problem with `options`
-    /// would need more memory than `options.max_memory` allows (see [`crate::memory`]).
+    /// would need more memory than `options.max_memory` allows (see [`crate::check_memory`]).
     pub fn check_memory(&self, options: &crate::Options) -> Result<()> {
         crate::memory::check_reconstruction(
             self.grid.height,
@@ -132,7 +155,7 @@ impl<'a> Problem<'a> {
         cancel: crate::Cancel,
     ) -> Result<Problem<'a>> {
         rig.validate()?;
-        ensure_input(images.k == rig.n_lights(), || {
+        ensure_shape("images", rig.n_lights(), images.k, || {
             format!(
                 "{} images were given for {} lights: there must be one image per light",
                 images.k,
@@ -152,12 +175,16 @@ impl<'a> Problem<'a> {
         if let Some(i) = infinite {
             let plane = images.height * images.width * images.channels;
             let pixel = (i % plane) / images.channels;
-            return Err(Error::Input(format!(
-                "image {} has an infinite value at row {}, column {}",
-                i / plane,
-                pixel / images.width,
-                pixel % images.width
-            )));
+            return Err(Error::NonFinite {
+                what: "images",
+                index: i,
+                message: format!(
+                    "image {} has an infinite value at row {}, column {}",
+                    i / plane,
+                    pixel / images.width,
+                    pixel % images.width
+                ),
+            });
         }
         cancel.check()?;
         let grid = Grid::new(images.height, images.width, mask)?;
@@ -196,22 +223,29 @@ impl<'a> Problem<'a> {
 
 impl Problem<'_> {
     /// Adds a per-vertex prior depth map ((H+1) x (W+1); NaN where there is none) with `weight`
-    /// relative to the facet terms (see [`Prior`]; for a pinhole camera the prior acts on
-    /// log-depth).
+    /// relative to the facet terms: the global step's energy gains
+    /// `weight * sum_v (u_v - prior_v)^2` over the vertices whose prior is finite, with `u` the
+    /// depth (for a pinhole camera the log-depth, and the prior's log). A region the prior
+    /// covers keeps no fixed gauge.
     pub fn set_prior(&mut self, map: &[f64], weight: f64) -> Result<()> {
         let (h, w) = (self.grid.height + 1, self.grid.width + 1);
-        ensure_input(map.len() == h * w, || {
+        ensure_shape("depth prior", h * w, map.len(), || {
             format!(
                 "the depth prior has {} values; it must have (H+1) x (W+1) = {h} x {w}",
                 map.len()
             )
         })?;
-        ensure_input(weight.is_finite() && weight > 0.0, || {
-            format!(
-                "the prior weight must be positive and finite, got {}",
-                crate::error::g6(weight)
-            )
-        })?;
+        ensure_range(
+            weight.is_finite() && weight > 0.0,
+            "prior_weight",
+            weight,
+            || {
+                format!(
+                    "the prior weight must be positive and finite, got {}",
+                    crate::error::g6(weight)
+                )
+            },
+        )?;
         let values: Vec<f64> = self
             .grid
             .gather_vertices(map)
@@ -224,7 +258,7 @@ impl Problem<'_> {
                 }
             })
             .collect();
-        ensure_input(values.iter().any(|v| v.is_finite()), || {
+        ensure_usable(values.iter().any(|v| v.is_finite()), || {
             "the depth prior has no finite positive value inside the mask".to_string()
         })?;
         self.prior = Some(Prior { values, weight });
@@ -244,7 +278,7 @@ fn initial_unknowns(
     };
     match depth {
         InitialDepth::Distance(d) => {
-            ensure_input(valid(d), || {
+            ensure_range(valid(d), "working distance", d, || {
                 format!(
                     "the working distance must be finite (and positive for a pinhole camera) and \
                      within [1e-12, 1e12] in magnitude, got {}",
@@ -256,7 +290,7 @@ fn initial_unknowns(
         }
         InitialDepth::Map(map) => {
             let (h, w) = (grid.height + 1, grid.width + 1);
-            ensure_input(map.len() == h * w, || {
+            ensure_shape("initial depth map", h * w, map.len(), || {
                 format!(
                     "the initial depth map has {} values; it must have one per vertex, \
                      (H+1) x (W+1) = {h} x {w}",
@@ -266,7 +300,10 @@ fn initial_unknowns(
             let z0 = grid.gather_vertices(map);
             if let Some(i) = z0.iter().position(|z| !valid(*z)) {
                 let v = grid.active[i];
-                return Err(Error::Input(format!(
+                return Err(Error::NonFinite {
+                    what: "initial depth map",
+                    index: v,
+                    message: format!(
                     "the initial depth map is {} at vertex (row {}, column {}) used by the mask",
                     if !z0[i].is_finite() {
                         "not finite"
@@ -277,7 +314,8 @@ fn initial_unknowns(
                     },
                     v / w,
                     v % w
-                )));
+                ),
+                });
             }
             let u0: Vec<f64> = z0.iter().map(|&z| geometry.unknown(z)).collect();
             let gauge = grid.region_means(&u0);

@@ -77,10 +77,6 @@ pub fn coarser_camera(camera: &Camera) -> Camera {
 /// The data of the level below a problem, owned (the rig is built separately, since the
 /// coarse problem borrows it).
 pub struct Coarsened {
-    /// Coarse image height.
-    pub height: usize,
-    /// Coarse image width.
-    pub width: usize,
     /// The coarse observations, an owned (k, H, W, C) stack.
     pub obs: Observations<'static>,
     /// The coarse starting unknowns (one per coarse unknown) and the coarse grid.
@@ -166,8 +162,6 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         weight: p.weight,
     });
     Ok(Coarsened {
-        height: ch,
-        width: cw,
         obs: Observations::owned_stack(values, k, ch * cw, channels),
         grid: coarse_grid,
         u0,

@@ -81,6 +81,7 @@ pub const NOISE_FLOOR: f64 = 1e-3;
 
 /// Which light parameters the reconstruction refines.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct Refine {
     /// Refine each light's intensity (a common factor per light, all channels).
     pub intensity: bool,
@@ -124,10 +125,14 @@ impl Refine {
     /// Checks the prior weight.
     pub fn validate(&self) -> Result<()> {
         if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
-            return Err(Error::Input(format!(
-                "light_prior_weight must be a finite number >= 0, got {}",
-                self.prior_weight
-            )));
+            return Err(Error::OutOfRange {
+                name: "light_prior_weight",
+                value: self.prior_weight,
+                message: format!(
+                    "light_prior_weight must be a finite number >= 0, got {}",
+                    self.prior_weight
+                ),
+            });
         }
         Ok(())
     }
@@ -143,11 +148,18 @@ impl Refine {
     }
 }
 
+with_fields!(Refine {
+    with_intensity: intensity: bool,
+    with_position: position: bool,
+    with_prior_weight: prior_weight: f64,
+    with_fix_scale: fix_scale: bool,
+});
+
 /// Fails when `refine` is active with fewer than 4 lights: 3 observations per pixel fit any
 /// lights exactly, so the images say nothing about them.
 pub fn check_refinable(refine: &Refine, lights: usize) -> Result<()> {
     if refine.is_active() && lights < 4 {
-        return Err(Error::Input(format!(
+        return Err(Error::Unusable(format!(
             "refining the lights needs at least 4 lights: with {lights}, every light configuration fits \
              the images exactly"
         )));
@@ -891,6 +903,7 @@ fn apply(
 
 /// How well the images determine the light parameters at a mesh.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Conditioning {
     /// Singular values of the light block of the (relative) Jacobian after the normals are
     /// eliminated, positions measured in units of the working distance, largest first; the
@@ -918,14 +931,14 @@ pub fn conditioning(
     let layout = Layout::new(lights, refine);
     let n = layout.n;
     if n == 0 {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "nothing to analyse: no light parameter is refined".into(),
         ));
     }
     let pass = data.pass(lights, &layout, u, true);
     let dof = pass.count as f64 - 3.0 * pass.fits as f64 - n as f64;
     if pass.fits == 0 || dof <= 0.0 {
-        return Err(Error::Input(
+        return Err(Error::Unusable(
             "too few usable observations to analyse the lights (each fitted facet needs 4 or more lit images)"
                 .into(),
         ));
@@ -1008,7 +1021,8 @@ pub fn conditioning(
     })
 }
 
-#[cfg(test)]
+// The tests reconstruct synthetic scenes (cargo feature `synth`).
+#[cfg(all(test, feature = "synth"))]
 mod tests {
     use super::*;
     use crate::problem::{ImageStack, InitialDepth};

@@ -7,15 +7,33 @@
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_input, Result};
+use crate::error::{ensure_range, ensure_shape, Result};
 use crate::geometry::{quad_centre, quad_normal, Geometry};
 use crate::grid::Grid;
 use crate::rig::{Camera, Light, Rig};
 use crate::vec3::{dot, normalize, sub};
 
+/// A surface to shade: an (H+1) x (W+1) vertex depth map (row-major) with a per-pixel albedo
+/// (H x W x C, C = 1 or 3) and an optional H x W mask (`true` = shade the pixel).
+#[derive(Debug, Clone, Copy)]
+pub struct Surface<'a> {
+    /// Image height H (pixels).
+    pub height: usize,
+    /// Image width W (pixels).
+    pub width: usize,
+    /// Vertex depths, (H+1) x (W+1).
+    pub depth: &'a [f64],
+    /// Per-pixel albedo, H x W x C.
+    pub albedo: &'a [f64],
+    /// Channels C of the albedo and of the images (1 or 3).
+    pub channels: usize,
+    /// Pixels to shade (None: all).
+    pub mask: Option<&'a [bool]>,
+}
+
 /// Vertex positions of a full (H+1) x (W+1) depth map.
 fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
-    ensure_input(depth.len() == (height + 1) * (width + 1), || {
+    ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
         format!(
             "depth map has {} values, expected (H+1) x (W+1) = {} x {}",
             depth.len(),
@@ -80,21 +98,24 @@ pub fn mesh_normals(
 /// `albedo` (H x W x C, C = 1 or 3). Pixels outside `mask` are 0; pixels inside it with a
 /// non-finite corner (an unknown depth) are NaN in every image, so that an unknown surface does
 /// not pass for a shadow.
-pub fn render(
-    rig: &Rig,
-    height: usize,
-    width: usize,
-    depth: &[f64],
-    albedo: &[f64],
-    channels: usize,
-    mask: Option<&[bool]>,
-) -> Result<Vec<f64>> {
+pub fn render(rig: &Rig, surface: &Surface<'_>) -> Result<Vec<f64>> {
+    let Surface {
+        height,
+        width,
+        depth,
+        albedo,
+        channels,
+        mask,
+    } = *surface;
     let v = positions(&rig.camera, height, width, depth)?;
     let plane = height * width;
-    ensure_input(channels == 1 || channels == 3, || {
-        format!("channels must be 1 or 3, got {channels}")
-    })?;
-    ensure_input(albedo.len() == plane * channels, || {
+    ensure_range(
+        channels == 1 || channels == 3,
+        "channels",
+        channels as f64,
+        || format!("channels must be 1 or 3, got {channels}"),
+    )?;
+    ensure_shape("albedo", plane * channels, albedo.len(), || {
         format!(
             "albedo has {} values, expected H x W x C = {}",
             albedo.len(),
@@ -102,7 +123,7 @@ pub fn render(
         )
     })?;
     if let Some(m) = mask {
-        ensure_input(m.len() == plane, || {
+        ensure_shape("mask", plane, m.len(), || {
             format!("mask has {} values, expected H x W = {plane}", m.len())
         })?;
     }
@@ -188,24 +209,30 @@ fn shade_images(
 /// With `parallel`, each point light is replaced by a parallel light along the direction from
 /// the centroid of the surface to the light (the baseline's model). Pixels outside `mask` or
 /// with a NaN are 0.
-#[allow(clippy::too_many_arguments)]
 pub fn predict(
     rig: &Rig,
-    height: usize,
-    width: usize,
-    depth: &[f64],
+    surface: &Surface<'_>,
     normals: &[[f64; 3]],
-    albedo: &[f64],
-    channels: usize,
-    mask: Option<&[bool]>,
     parallel: bool,
 ) -> Result<Vec<f64>> {
+    let Surface {
+        height,
+        width,
+        depth,
+        albedo,
+        channels,
+        mask,
+    } = *surface;
     let v = positions(&rig.camera, height, width, depth)?;
     let plane = height * width;
-    ensure_input(
-        normals.len() == plane && albedo.len() == plane * channels,
-        || format!("normals and albedo must have H x W = {plane} pixels"),
-    )?;
+    let (what, expected, got) = if normals.len() != plane {
+        ("normals", plane, normals.len())
+    } else {
+        ("albedo", plane * channels, albedo.len())
+    };
+    ensure_shape(what, expected, got, || {
+        format!("normals and albedo must have H x W = {plane} pixels")
+    })?;
     let inside = |p: usize| mask.is_none_or(|m| m[p]);
     let lights: Vec<Light> = if parallel {
         let finite: Vec<[f64; 3]> = v

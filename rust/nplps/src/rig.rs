@@ -40,6 +40,7 @@ pub(crate) fn g6_list(values: &[f64]) -> String {
 
 /// Camera model.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub enum Camera {
     /// Orthographic camera looking along +z. Vertex (r, c) of the mesh stands at
     /// `x = origin[0] + c * pixel_size[0]`, `y = origin[1] + r * pixel_size[1]`: `origin` is the
@@ -63,6 +64,50 @@ pub enum Camera {
 }
 
 impl Camera {
+    /// OpenCV's distortion coefficients as (k1, k2, p1, p2, k3): 0, 1, 2, 4 or 5 of them (a
+    /// prefix of k1, k2, p1, p2, k3 that keeps p1 and p2 together; missing ones are zero), or 8,
+    /// 12 or 14 (OpenCV's rational, thin-prism and tilted models) when the coefficients after k3
+    /// are zero. 3 are ambiguous (OpenCV's k1, k2, p1 or a radial k1, k2, k3) and refused. The
+    /// one implementation of this rule for the rig file reader (`nplps::io`) and the Python
+    /// bindings.
+    pub fn distortion_from(coefficients: &[f64]) -> Result<[f64; 5]> {
+        const WHAT: &str = "camera.distortion";
+        let c = coefficients;
+        let mut d = [0.0; 5];
+        match c.len() {
+            0 | 1 | 2 | 4 | 5 => d[..c.len()].copy_from_slice(c),
+            3 => {
+                return Err(Error::Rig(format!(
+                "{WHAT} has 3 coefficients, which is ambiguous (OpenCV's k1, k2, p1 or a radial \
+                     k1, k2, k3): give 4 or 5 (k1, k2, p1, p2[, k3])"
+            )))
+            }
+            n @ (8 | 12 | 14) => {
+                const NAMES: [&str; 14] = [
+                    "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
+                    "tau_x", "tau_y",
+                ];
+                if let Some(i) = (5..n).find(|&i| c[i] != 0.0) {
+                    return Err(Error::Rig(format!(
+                        "{WHAT} has {n} coefficients and {} = {} is not zero: nplps models k1, k2, \
+                         p1, p2, k3 only, not OpenCV's rational (k4, k5, k6), thin-prism (s1..s4) \
+                         or tilt (tau_x, tau_y) terms",
+                        NAMES[i],
+                        crate::error::g6(c[i])
+                    )));
+                }
+                d.copy_from_slice(&c[..5]);
+            }
+            n => {
+                return Err(Error::Rig(format!(
+                    "{WHAT} has {n} coefficients; OpenCV's models have 4, 5, 8, 12 or 14 \
+                     (nplps models k1, k2, p1, p2, k3)"
+                )))
+            }
+        }
+        Ok(d)
+    }
+
     /// Whether the global step works on log-depth (pinhole) rather than depth (orthographic).
     pub fn is_perspective(&self) -> bool {
         matches!(self, Camera::Pinhole { .. })
@@ -209,6 +254,7 @@ pub(crate) fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
 /// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
 /// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))`.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub enum Light {
     /// A near point light (an LED) at `position`, emitting around the unit `axis` with
     /// anisotropy `mu` (Quéau et al. 2018): `beta(x) = ((x - p) . axis / |x - p|)^mu *

@@ -25,6 +25,7 @@ use crate::rig::Light;
 
 /// Options of the iteration.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct Options {
     /// Maximum number of local/global iterations.
     pub iterations: usize,
@@ -48,13 +49,13 @@ pub struct Options {
     /// How the global step's linear system is solved.
     pub solver: GlobalSolver,
     /// Coarse-to-fine pyramid levels (1: the full resolution only; 0: automatic, see
-    /// [`crate::pyramid`]).
+    /// the images are halved while the longer side keeps at least 128 pixels).
     pub levels: usize,
-    /// Self-calibration of the lights (see [`crate::refine`]).
+    /// Self-calibration of the lights (off by default).
     pub refine: Refine,
     /// Memory limit in bytes: a reconstruction whose estimated peak memory exceeds it is refused
     /// with [`Error::Memory`] before the large allocations. `None`: a share of the memory the
-    /// machine has available (see [`crate::memory`]); `Some(f64::INFINITY)`: no limit.
+    /// machine has available (see [`crate::check_memory`]); `Some(f64::INFINITY)`: no limit.
     pub max_memory: Option<f64>,
 }
 
@@ -62,22 +63,30 @@ impl Options {
     /// Checks the options: `tol >= 0`, `dark` finite, `saturation > dark`.
     pub fn validate(&self) -> Result<()> {
         if self.tol.is_nan() || self.tol < 0.0 {
-            return Err(Error::Input(format!("tol must be >= 0, got {}", self.tol)));
+            return Err(Error::OutOfRange {
+                name: "tol",
+                value: self.tol,
+                message: format!("tol must be >= 0, got {}", self.tol),
+            });
         }
         self.refine.validate()?;
         if let Some(m) = self.max_memory {
             if m.is_nan() || m <= 0.0 {
-                return Err(Error::Input(format!(
-                    "max_memory must be a positive number of bytes, got {}",
-                    crate::error::g6(m)
-                )));
+                return Err(Error::OutOfRange {
+                    name: "max_memory",
+                    value: m,
+                    message: format!(
+                        "max_memory must be a positive number of bytes, got {}",
+                        crate::error::g6(m)
+                    ),
+                });
             }
         }
         check_thresholds(self.dark, self.saturation)
     }
 
     /// The per-facet fit settings of these options.
-    pub fn fit_settings(&self, fast_residual: bool) -> FitSettings {
+    pub(crate) fn fit_settings(&self, fast_residual: bool) -> FitSettings {
         FitSettings {
             dark: self.dark,
             saturation: self.saturation,
@@ -88,17 +97,36 @@ impl Options {
     }
 }
 
+with_fields!(Options {
+    with_iterations: iterations: usize,
+    with_tol: tol: f64,
+    with_dark: dark: f64,
+    with_saturation: saturation: f64,
+    with_weighting: weighting: Weighting,
+    with_robust: robust: Robust,
+    with_threads: threads: usize,
+    with_parallel_sparse: parallel_sparse: bool,
+    with_solver: solver: GlobalSolver,
+    with_levels: levels: usize,
+    with_refine: refine: Refine,
+    with_max_memory: max_memory: Option<f64>,
+});
+
 /// The shadow threshold must be a finite number below the saturation threshold.
 pub(crate) fn check_thresholds(dark: f64, saturation: f64) -> Result<()> {
     if !dark.is_finite() {
-        return Err(Error::Input(format!(
-            "dark (the shadow threshold) must be a finite number, got {dark}"
-        )));
+        return Err(Error::OutOfRange {
+            name: "dark",
+            value: dark,
+            message: format!("dark (the shadow threshold) must be a finite number, got {dark}"),
+        });
     }
     if saturation.is_nan() || saturation <= dark {
-        return Err(Error::Input(format!(
-            "saturation must be above dark (= {dark}), got {saturation}"
-        )));
+        return Err(Error::OutOfRange {
+            name: "saturation",
+            value: saturation,
+            message: format!("saturation must be above dark (= {dark}), got {saturation}"),
+        });
     }
     Ok(())
 }
@@ -124,6 +152,7 @@ impl Default for Options {
 
 /// What one iteration did.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct IterationStats {
     /// 1-based iteration number.
     pub iteration: usize,
@@ -153,6 +182,7 @@ pub enum Control {
 
 /// Wall-clock time spent in each part.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[non_exhaustive]
 pub struct Timings {
     /// Assembly, analysis and factorization of the global system.
     pub factorization: Duration,
@@ -181,17 +211,18 @@ impl Timings {
 
 /// How a reconstruction ended; the result's `status_reason` gives the numbers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
 pub enum Status {
     /// The largest depth change of the last iteration was at most `tol` times the lateral size.
     Converged,
     /// The iteration stopped without converging: at the iteration limit, or because the depth
-    /// change found no new minimum for [`STALL_WINDOW`] iterations. The surface may be usable;
+    /// change found no new minimum for 50 iterations. The surface may be usable;
     /// the history says how far it was from converging.
     Stalled,
-    /// The depth changes grew (the last at least [`DIVERGENCE_GROWTH`] times the smallest one of
+    /// The depth changes grew (the last at least 10 times the smallest one of
     /// the final level): the surface is moving away.
     Diverged,
-    /// More than [`DEGENERATE_SHARE`] of the masked pixels could not be fitted (fewer than 3
+    /// More than half of the masked pixels could not be fitted (fewer than 3
     /// usable observations): they kept the starting shape, which says nothing about the object.
     Degenerate,
 }
@@ -222,6 +253,7 @@ pub const DEGENERATE_SHARE: f64 = 0.5;
 /// The result of a reconstruction. Per-pixel arrays are (H, W) row-major, per-vertex arrays
 /// (H+1, W+1); NaN (or 0 for counts) outside the mask.
 #[derive(Debug, Clone)]
+#[non_exhaustive]
 pub struct Reconstruction {
     /// Image height H.
     pub height: usize,
@@ -265,6 +297,7 @@ pub struct Reconstruction {
 
 /// What the self-calibration of the lights did.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct RefinementReport {
     /// What was refined.
     pub refine: Refine,
@@ -291,7 +324,7 @@ pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
-        .map_err(|e| Error::Input(format!("cannot start {threads} worker threads: {e}")))?;
+        .map_err(|e| Error::Unusable(format!("cannot start {threads} worker threads: {e}")))?;
     Ok(pool.install(f))
 }
 
@@ -323,6 +356,7 @@ pub fn reconstruct(
         let mut u = problem.u0.clone();
         let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
         let mut solver = Solver::new(problem, options)?;
+        solver.start = start;
         let mut history = solver.carry(coarse);
         let (fine, converged) = if solver.carried {
             problem.grid.apply_gauge(&mut u, &problem.gauge);
@@ -331,14 +365,13 @@ pub fn reconstruct(
                 &problem.gauge,
                 options.iterations,
                 options.tol,
-                start,
                 progress,
             )?
         } else {
-            solver.iterate_first(&mut u, &problem.gauge, start, progress)?
+            solver.iterate_first(&mut u, &problem.gauge, progress)?
         };
         history.extend(fine);
-        solver.finish(&u, history, converged, start)
+        solver.finish(&u, history, converged)
     })?
 }
 
@@ -405,6 +438,7 @@ pub(crate) fn coarse_to_fine(
     let mut current: Vec<f64> = Vec::new();
     for (i, p) in coarse.iter().enumerate().rev() {
         let mut solver = Solver::new(p, options)?;
+        solver.start = start;
         solver.set_level(i + 1);
         let h = if i + 1 == coarse.len() {
             current = p.u0.clone();
@@ -413,9 +447,7 @@ pub(crate) fn coarse_to_fine(
                 None => p.gauge.clone(),
             };
             p.grid.apply_gauge(&mut current, &gauge);
-            solver
-                .iterate_first(&mut current, &gauge, start, progress)?
-                .0
+            solver.iterate_first(&mut current, &gauge, progress)?.0
         } else {
             solver.set_lights(carried.lights.clone());
             solver.set_refine(refine_on_level(carried.refine, p));
@@ -428,7 +460,6 @@ pub(crate) fn coarse_to_fine(
                     &gauge,
                     options.iterations,
                     options.tol,
-                    start,
                     progress,
                 )?
                 .0
@@ -455,7 +486,7 @@ pub(crate) fn coarse_to_fine(
 
 /// The iteration machinery of one problem: the factored global system and the per-facet
 /// buffers, reusable for several runs (warm starts, other gauges).
-pub struct Solver<'p> {
+pub(crate) struct Solver<'p> {
     problem: &'p Problem<'p>,
     options: Options,
     /// The global system (None once [`Solver::finish`] has freed it).
@@ -474,13 +505,16 @@ pub struct Solver<'p> {
     carried: bool,
     /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
     diverged: bool,
-    /// Whether the last `iterate` stopped for lack of progress (see [`STALL_WINDOW`]).
+    /// Whether the last `iterate` stopped for lack of progress (see 50).
     stalled: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
     pub(crate) check_lights: bool,
     /// Time spent so far.
-    pub timings: Timings,
+    pub(crate) timings: Timings,
+    /// When the run started (by default when the solver was made; the levels of a pyramid share
+    /// the run's start): the iteration statistics' `elapsed` is measured from it.
+    pub(crate) start: Instant,
 }
 
 impl<'p> Solver<'p> {
@@ -519,6 +553,7 @@ impl<'p> Solver<'p> {
                 factorization: t.elapsed(),
                 ..Timings::default()
             },
+            start: t,
         })
     }
 
@@ -530,11 +565,6 @@ impl<'p> Solver<'p> {
     /// The problem this solver works on.
     pub fn problem(&self) -> &'p Problem<'p> {
         self.problem
-    }
-
-    /// The current lights: the rig's, or the refined ones.
-    pub fn lights(&self) -> &[Light] {
-        &self.lights
     }
 
     /// Replaces the current lights (the prior's centre stays the rig's).
@@ -693,7 +723,6 @@ impl<'p> Solver<'p> {
         &mut self,
         u: &mut Vec<f64>,
         gauge: &[f64],
-        start: Instant,
         progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     ) -> Result<(Vec<IterationStats>, bool)> {
         let (iterations, tol) = (self.options.iterations, self.options.tol);
@@ -701,16 +730,16 @@ impl<'p> Solver<'p> {
         self.reset_lights();
         self.set_refine(refine);
         if !refine.position {
-            return self.iterate(u, gauge, iterations, tol, start, progress);
+            return self.iterate(u, gauge, iterations, tol, progress);
         }
         let mut plain = u.clone();
         self.set_refine(Refine::NONE);
         let (mut history, plain_converged) =
-            self.iterate(&mut plain, gauge, iterations, tol, start, progress)?;
+            self.iterate(&mut plain, gauge, iterations, tol, progress)?;
         self.local(&plain);
         let without = rms_of(&self.stats, self.problem.obs.channels);
         self.set_refine(refine);
-        let (refined, converged) = self.iterate(u, gauge, iterations, tol, start, progress)?;
+        let (refined, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(refined);
         self.local(u);
         let with = rms_of(&self.stats, self.problem.obs.channels);
@@ -777,7 +806,6 @@ impl<'p> Solver<'p> {
         gauge: &[f64],
         iterations: usize,
         tol: f64,
-        start: Instant,
         progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     ) -> Result<(Vec<IterationStats>, bool)> {
         let p = self.problem;
@@ -835,7 +863,7 @@ impl<'p> Solver<'p> {
                 iteration,
                 depth_change,
                 rms_residual: rms_of(&self.stats, p.obs.channels),
-                elapsed: start.elapsed(),
+                elapsed: self.start.elapsed(),
                 level: self.level,
                 inner_iterations,
                 light_change,
@@ -971,7 +999,6 @@ impl<'p> Solver<'p> {
         u: &[f64],
         history: Vec<IterationStats>,
         converged: bool,
-        start: Instant,
     ) -> Result<Reconstruction> {
         let t = Instant::now();
         drop(std::mem::take(&mut self.targets));
@@ -992,7 +1019,7 @@ impl<'p> Solver<'p> {
         }
         drop(fits);
         self.timings.local += t.elapsed();
-        self.timings.total = start.elapsed();
+        self.timings.total = self.start.elapsed();
         let refinement = self.report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings);
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
@@ -1079,7 +1106,7 @@ pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> R
     if fittable {
         return Ok(());
     }
-    Err(Error::Input(format!(
+    Err(Error::Unusable(format!(
         "no masked pixel has 3 or more usable observations (above dark = {} and below saturation = \
          {}, not NaN, not left out by valid): the images are black, saturated or excluded, so \
          nothing can be reconstructed",
@@ -1292,7 +1319,8 @@ pub(crate) fn assemble(
     }
 }
 
-#[cfg(test)]
+// The tests reconstruct synthetic scenes (cargo feature `synth`).
+#[cfg(all(test, feature = "synth"))]
 mod tests {
     use super::*;
     use crate::problem::{ImageStack, InitialDepth};
@@ -1324,9 +1352,7 @@ mod tests {
         solver.set_lights(lights);
         let mut u = problem.u0.clone();
         let err = solver
-            .iterate(&mut u, &problem.gauge, 5, 0.0, Instant::now(), &mut |_| {
-                Control::Continue
-            })
+            .iterate(&mut u, &problem.gauge, 5, 0.0, &mut |_| Control::Continue)
             .unwrap_err();
         assert!(
             matches!(&err, Error::Solver(m) if m.contains("reached light 3")),

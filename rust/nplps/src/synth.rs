@@ -54,7 +54,7 @@ impl SceneKind {
             .find(|k| k.name() == name)
             .ok_or_else(|| {
                 let names: Vec<_> = SceneKind::ALL.iter().map(|k| k.name()).collect();
-                Error::Input(format!(
+                Error::Unusable(format!(
                     "unknown scene {name:?}; choose one of {}",
                     names.join(", ")
                 ))
@@ -64,6 +64,7 @@ impl SceneKind {
 
 /// Variations of the rig and images of a synthetic scene.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[non_exhaustive]
 pub struct SceneOptions {
     /// A pinhole camera at the origin (focal length so that the object spans the image) instead
     /// of the orthographic one; the surface is then `z = surface(D x_r, D y_r)` on each ray.
@@ -76,8 +77,16 @@ pub struct SceneOptions {
     pub directional: bool,
 }
 
+with_fields!(SceneOptions {
+    with_pinhole: pinhole: bool,
+    with_led: led: bool,
+    with_rgb: rgb: bool,
+    with_directional: directional: bool,
+});
+
 /// A synthetic scene: true surface, mask, albedo and rig.
 #[derive(Debug, Clone)]
+#[non_exhaustive]
 pub struct Scene {
     /// Image height H.
     pub height: usize,
@@ -115,7 +124,7 @@ impl Scene {
         options: SceneOptions,
     ) -> Result<Scene> {
         if n < 2 || size.is_nan() || size <= 0.0 || distance.is_nan() || distance <= 0.0 {
-            return Err(Error::Input(format!(
+            return Err(Error::Unusable(format!(
                 "a scene needs n >= 2 pixels and positive size and distance, got n = {n}, size = {size}, distance = {distance}"
             )));
         }
@@ -237,15 +246,15 @@ impl Scene {
 
     /// The scene's images (k, H, W, C), rendered by the model.
     pub fn render(&self) -> Result<Vec<f64>> {
-        crate::render::render(
-            &self.rig,
-            self.height,
-            self.width,
-            &self.depth,
-            &self.albedo,
-            self.channels,
-            Some(&self.mask),
-        )
+        let surface = crate::render::Surface {
+            height: self.height,
+            width: self.width,
+            depth: &self.depth,
+            albedo: &self.albedo,
+            channels: self.channels,
+            mask: Some(&self.mask),
+        };
+        crate::render::render(&self.rig, &surface)
     }
 
     /// Mean of the true vertex depths used by the mask: arithmetic (orthographic) or geometric

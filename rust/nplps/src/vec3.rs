@@ -74,6 +74,22 @@ pub(crate) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     norm(cross(a, b)).atan2(dot(a, b))
 }
 
+/// `!(a > b)`: whether `a` is not above `b`, true when either is NaN. The checks written with
+/// it reject NaN along with the values out of range.
+#[inline]
+pub(crate) fn not_above(a: f64, b: f64) -> bool {
+    !matches!(a.partial_cmp(&b), Some(std::cmp::Ordering::Greater))
+}
+
+/// `!(a >= b)`: whether `a` is not at least `b`, true when either is NaN.
+#[inline]
+pub(crate) fn not_at_least(a: f64, b: f64) -> bool {
+    !matches!(
+        a.partial_cmp(&b),
+        Some(std::cmp::Ordering::Greater | std::cmp::Ordering::Equal)
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -8,7 +8,7 @@
 
 use nplps::{
     mesh_normals, reconstruct, render, vertices, Camera, Control, Error, ImageStack, InitialDepth,
-    Light, Options, Problem, Reconstruction, Rig,
+    Light, Options, Problem, Reconstruction, Rig, Surface,
 };
 use proptest::prelude::*;
 use proptest::test_runner::Config;
@@ -201,6 +201,7 @@ fn corrupt_one(rig: &mut Rig, which: usize, value: f64) {
         Camera::Pinhole { k, distortion } => {
             slots.extend(k.iter_mut().flatten().chain(distortion.iter_mut()))
         }
+        other => panic!("a camera model this test does not know: {other:?}"),
     }
     for light in &mut rig.lights {
         match light {
@@ -222,6 +223,7 @@ fn corrupt_one(rig: &mut Rig, which: usize, value: f64) {
                 direction,
                 intensity,
             } => slots.extend(direction.iter_mut().chain(intensity.iter_mut())),
+            other => panic!("a light model this test does not know: {other:?}"),
         }
     }
     let n = slots.len();
@@ -257,6 +259,7 @@ fn check_valid(rig: &Rig) -> Result<(), TestCaseError> {
             prop_assert!(k.iter().all(|r| finite(r)) && finite(&distortion));
             prop_assert!(k[0][0] > 0.0 && k[1][1] > 0.0);
         }
+        other => prop_assert!(false, "a camera model this test does not know: {other:?}"),
     }
     for light in &rig.lights {
         prop_assert!(light.intensity().iter().all(|&p| p.is_finite() && p > 0.0));
@@ -270,6 +273,7 @@ fn check_valid(rig: &Rig) -> Result<(), TestCaseError> {
                 let n = direction.iter().map(|d| d * d).sum::<f64>().sqrt();
                 prop_assert!((n - 1.0).abs() < 1e-6);
             }
+            other => prop_assert!(false, "a light model this test does not know: {other:?}"),
         }
     }
     Ok(())
@@ -364,7 +368,8 @@ proptest! {
         let rig = Rig { camera, lights };
         if rig.validate_parameters().is_ok() {
             for channels in [1, 3] {
-                if let Err(e) = render(&rig, h, w, &depth, &albedo, channels, None) {
+                let surface = Surface { height: h, width: w, depth: &depth, albedo: &albedo, channels, mask: None };
+                if let Err(e) = render(&rig, &surface) {
                     check_message(&e)?;
                 }
             }
@@ -406,7 +411,7 @@ proptest! {
             Err(e) => check_message(&e)?,
             Ok(problem) => {
                 check_valid(&rig)?;
-                let options = Options { iterations, levels: 1, ..Options::default() };
+                let options = Options::default().with_iterations(iterations).with_levels(1);
                 match reconstruct(&problem, &options, &mut |_| Control::Continue) {
                     Err(e) => {
                         prop_assert!(!matches!(e, Error::Cancelled));
@@ -433,17 +438,17 @@ fn image_stack_sizes_that_overflow_are_errors() {
         assert!(
             matches!(
                 ImageStack::with_channels(&data, k, h, w, 1),
-                Err(Error::Input(_))
+                Err(Error::Shape { .. })
             ),
             "{k} x {h} x {w}"
         );
     }
 }
 
-/// More lights than [`nplps::rig::MAX_LIGHTS`] are refused.
+/// More lights than [`nplps::MAX_LIGHTS`] are refused.
 #[test]
 fn too_many_lights_are_refused() {
-    let lights = vec![Light::point([0.0, 0.0, -10.0]); nplps::rig::MAX_LIGHTS + 1];
+    let lights = vec![Light::point([0.0, 0.0, -10.0]); nplps::MAX_LIGHTS + 1];
     let rig = Rig {
         camera: Camera::Orthographic {
             pixel_size: [1.0, 1.0],

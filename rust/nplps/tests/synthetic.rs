@@ -61,49 +61,23 @@ fn solve_scene(scene: &Scene, options: &Options) -> Reconstruction {
 
 #[test]
 fn real_rig_variations_are_recovered_exactly() {
-    let options = Options {
-        iterations: 100,
-        tol: 1e-10,
-        ..Options::default()
-    };
+    let options = Options::default().with_iterations(100).with_tol(1e-10);
     let variations = [
-        (
-            "pinhole",
-            SceneOptions {
-                pinhole: true,
-                ..SceneOptions::default()
-            },
-        ),
+        ("pinhole", SceneOptions::default().with_pinhole(true)),
         (
             "pinhole + LEDs",
-            SceneOptions {
-                pinhole: true,
-                led: true,
-                ..SceneOptions::default()
-            },
+            SceneOptions::default().with_pinhole(true).with_led(true),
         ),
         (
             "orthographic + LEDs",
-            SceneOptions {
-                led: true,
-                ..SceneOptions::default()
-            },
+            SceneOptions::default().with_led(true),
         ),
-        (
-            "RGB",
-            SceneOptions {
-                rgb: true,
-                led: true,
-                ..SceneOptions::default()
-            },
-        ),
+        ("RGB", SceneOptions::default().with_rgb(true).with_led(true)),
         (
             "directional",
-            SceneOptions {
-                directional: true,
-                pinhole: true,
-                ..SceneOptions::default()
-            },
+            SceneOptions::default()
+                .with_directional(true)
+                .with_pinhole(true),
         ),
     ];
     for (name, variation) in variations {
@@ -145,10 +119,7 @@ fn pinhole_gauge_is_the_geometric_mean_depth() {
         100.0,
         300.0,
         5,
-        SceneOptions {
-            pinhole: true,
-            ..SceneOptions::default()
-        },
+        SceneOptions::default().with_pinhole(true),
     )
     .unwrap();
     let result = solve_scene(&scene, &Options::default());
@@ -165,11 +136,7 @@ fn pinhole_gauge_is_the_geometric_mean_depth() {
 
 #[test]
 fn exact_model_recovers_every_scene() {
-    let options = Options {
-        iterations: 200,
-        tol: 1e-9,
-        ..Options::default()
-    };
+    let options = Options::default().with_iterations(200).with_tol(1e-9);
     for kind in SceneKind::ALL {
         let scene = Scene::new(kind, 48, 100.0, 200.0, 7).unwrap();
         let result = solve(&scene, &exact_images(&scene), &options);
@@ -230,12 +197,10 @@ fn a_cancel_token_stops_the_solver_from_another_thread() {
         cancel.clone(),
     )
     .unwrap();
-    let options = Options {
-        iterations: 1000,
-        tol: 0.0,
-        levels: 1,
-        ..Options::default()
-    };
+    let options = Options::default()
+        .with_iterations(1000)
+        .with_tol(0.0)
+        .with_levels(1);
     let mut calls = 0;
     let result = std::thread::scope(|s| {
         let (first, seen) = std::sync::mpsc::channel();
@@ -274,10 +239,7 @@ fn a_cancel_token_stops_the_solver_from_another_thread() {
 fn working_distance_is_found_from_the_images() {
     use nplps::{reconstruct_auto, DistanceSearch};
     for pinhole in [false, true] {
-        let variation = SceneOptions {
-            pinhole,
-            ..SceneOptions::default()
-        };
+        let variation = SceneOptions::default().with_pinhole(pinhole);
         let scene = Scene::with_options(SceneKind::Bumps, 40, 100.0, 200.0, 2, variation).unwrap();
         let truth = scene.mean_depth();
         let images = exact_images(&scene);
@@ -290,10 +252,7 @@ fn working_distance_is_found_from_the_images() {
                 InitialDepth::Distance(truth * factor),
             )
             .unwrap();
-            let search = DistanceSearch {
-                guess: Some(truth * factor),
-                ..DistanceSearch::default()
-            };
+            let search = DistanceSearch::default().with_guess(Some(truth * factor));
             let t = std::time::Instant::now();
             let (result, estimate) =
                 reconstruct_auto(&problem, &Options::default(), &search, &mut |_| {
