@@ -25,7 +25,13 @@ def _call(scene: nplps.synth.Scene, options: dict[str, object]) -> dict[str, obj
     images = np.ascontiguousarray(scene.images, dtype=np.float32)
     return dict(
         _core.reconstruct(
-            images, scene.rig.camera, scene.rig._core_lights(), scene.mask, 200.0, options, None  # type: ignore[arg-type]
+            images,
+            scene.rig.camera,
+            scene.rig._core_lights(),
+            scene.mask,
+            200.0,
+            options,
+            None,  # type: ignore[arg-type]
         )
     )
 
@@ -38,10 +44,19 @@ def test_unknown_option_keys_are_refused(scene: nplps.synth.Scene) -> None:
     images = np.zeros((3, 8, 8), dtype=np.float32)
     with pytest.raises(InputError, match=r'unknown option "fit_axis"; the options are albedo, dark, fit_direction'):
         _core.calibrate_intensities(
-            images, None, {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
-            {"vectors": [[0, 0, -10]] * 3, "directional": [False] * 3, "intensities": [[1, 1, 1]] * 3,
-             "axes": [[0, 0, 1]] * 3, "mu": [0.0] * 3},
-            [0.0, 0.0, -1.0], -100.0, {"fit_axis": True},  # type: ignore[typeddict-unknown-key]
+            images,
+            None,
+            {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
+            {
+                "vectors": [[0, 0, -10]] * 3,
+                "directional": [False] * 3,
+                "intensities": [[1, 1, 1]] * 3,
+                "axes": [[0, 0, 1]] * 3,
+                "mu": [0.0] * 3,
+            },
+            [0.0, 0.0, -1.0],
+            -100.0,
+            {"fit_axis": True},  # type: ignore[typeddict-unknown-key]
         )
 
 

@@ -12,7 +12,7 @@ import math
 import sys
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -642,13 +642,13 @@ def render(
     return _core.render(z, rig.camera, rig._core_lights(), rho, m)
 
 
-def _refine_choice(mode: str | None) -> str:
+def _refine_choice(mode: str | None) -> Literal["none", "intensity", "position", "both"]:
     """Checks ``refine_lights``: None, "intensity", "position" or "both"."""
     if mode is None or mode is False:
         return "none"
     if mode not in ("intensity", "position", "both"):
         raise InputError(f'refine_lights must be None, "intensity", "position" or "both", got {mode!r}')
-    return str(mode)
+    return cast(Literal["intensity", "position", "both"], str(mode))
 
 
 def _short(value: Any) -> str:
@@ -802,10 +802,10 @@ def _finite_number(value: Any, name: str) -> float:
     return v
 
 
-def _solver_choice(solver: str) -> str:
+def _solver_choice(solver: str) -> Literal["auto", "direct", "multigrid"]:
     if solver not in ("auto", "direct", "multigrid"):
         raise InputError(f'solver must be "auto", "direct" or "multigrid", got {solver!r}')
-    return solver
+    return cast(Literal["auto", "direct", "multigrid"], solver)
 
 
 def _levels(levels: int | None) -> int:

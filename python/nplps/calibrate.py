@@ -40,7 +40,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -346,7 +346,7 @@ def calibrate_spheres(
     detect: tuple[float, float] | None = None,
     count: int | None = None,
     center_depth: Any = None,
-    outline: str = "mask",
+    outline: Literal["mask", "images"] = "mask",
     parallel_tol: float = 0.5,
     min_contrast: float = 0.3,
     max_blob_fraction: float = 0.05,
@@ -528,7 +528,7 @@ def calibrate_intensities(
     mask: Any = None,
     fit_mu: bool = False,
     fit_direction: bool = False,
-    albedo: str = "uniform",
+    albedo: Literal["uniform", "per_pixel"] = "uniform",
     color: bool = False,
     dark: float | None = None,
     saturation: float | None = None,
@@ -729,8 +729,7 @@ def standard_rig(
     else:
         cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
     idx = _light_indices(lights)
-    chosen = {key: [values[i] for i in idx] for key, values in d["lights"].items()}
-    return Rig._from_core_lights(cam, chosen)
+    return Rig._from_core_lights(cam, d["lights"]).subset(idx)
 
 
 def default_placements(

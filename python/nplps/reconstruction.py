@@ -396,10 +396,9 @@ class Reconstruction:
 
         rig = self.rig if rig is None else rig
         _check_rig(rig)
-        light_params = rig._core_lights()
         if lights is not None:
-            lights = _light_indices(lights, rig.n_lights)
-            light_params = {key: [values[i] for i in lights] for key, values in light_params.items()}
+            rig = rig.subset(_light_indices(lights, rig.n_lights))
+        light_params = rig._core_lights()
         return _core.predict(
             self.depth, self.fit_normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
         )
