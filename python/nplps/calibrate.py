@@ -48,7 +48,7 @@ from . import _core, _core_types, io, pipeline
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
-from .rig import DirectionalLight, Light, PointLight, Rig, read_rig_json
+from .rig import DirectionalLight, Light, PointLight, Rig, read_rig_json, select_core_lights
 
 ImageSet = np.ndarray | Sequence[Any]
 """One placement's images: a (k, H, W[, 3]) array or k image files / arrays."""
@@ -729,7 +729,7 @@ def standard_rig(
     else:
         cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
     idx = _light_indices(lights)
-    return Rig._from_core_lights(cam, d["lights"]).subset(idx)
+    return Rig._from_core_lights(cam, select_core_lights(d["lights"], idx))
 
 
 def default_placements(

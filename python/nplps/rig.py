@@ -1112,3 +1112,27 @@ def _intensities(value: Any, k: int, where: str = "intensities") -> np.ndarray:
         else:
             raise RigError(f"{where}: intensities must be a number, (k,) or (k, 3) for {k} lights, got shape {a.shape}")
     return np.ascontiguousarray(out)
+
+
+def select_core_lights(lights: _core_types.LightsDict, indices: Sequence[int]) -> _core_types.LightsDict:
+    """Select lights of the compiled core's light mapping, in the order of ``indices``.
+
+    Parameters
+    ----------
+    lights : LightsDict
+        The core's light mapping (as :meth:`Rig._core_lights` gives it).
+    indices : sequence of int
+        Light indices, already checked.
+
+    Returns
+    -------
+    LightsDict
+        The same keys, each list holding the chosen lights only.
+    """
+    return {
+        "vectors": [lights["vectors"][i] for i in indices],
+        "directional": [lights["directional"][i] for i in indices],
+        "intensities": [lights["intensities"][i] for i in indices],
+        "axes": [lights["axes"][i] for i in indices],
+        "mu": [lights["mu"][i] for i in indices],
+    }
