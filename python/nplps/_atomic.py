@@ -37,8 +37,10 @@ def atomic_path(path: PathLike) -> Iterator[str]:
     writers that take a file name (``imageio``, ``tifffile``). When the block ends without an
     exception the file is renamed to ``path``; otherwise it is removed.
 
-    Raises:
-        OSError: creating, writing or renaming failed; ``filename`` is ``path``.
+    Raises
+    ------
+    OSError
+        Creating, writing or renaming failed; ``filename`` is ``path``.
     """
     final = os.fspath(path)
     directory, name = os.path.split(os.path.abspath(final))
@@ -64,8 +66,10 @@ def atomic_write(
     a temporary name and renamed to ``path`` when the block ends without an exception; on an
     exception it is removed and ``path`` is left as it was.
 
-    Raises:
-        OSError: opening, writing or renaming failed; ``filename`` is ``path``.
+    Raises
+    ------
+    OSError
+        Opening, writing or renaming failed; ``filename`` is ``path``.
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write writes new files (mode 'w' or 'wb'), got mode {mode!r}")

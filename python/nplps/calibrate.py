@@ -355,45 +355,61 @@ def calibrate_spheres(
 ) -> SphereCalibration:
     """Calibrates the light positions from images of shiny spheres.
 
-    Args:
-        images: a list of placements, each a (k, H, W[, 3]) array or a list of k image files /
-            arrays (one per light, in the rig's order; all placements the same k and size). A
-            single (k, H, W[, 3]) array is one placement. Integer images are scaled to [0, 1];
-            colour becomes grey.
-        camera: an :class:`~nplps.Rig` (its lights are ignored) or the rig file's camera mapping.
-        radius: the spheres' radius (scene units; the same for all spheres).
-        masks: per placement a mask (file or (H, W) array) or None: a binary mask marks each
-            sphere as one connected region; an integer label image marks sphere j with label j.
-            A single mask (not in a list) serves a single placement.
-        detect: (min, max) image radius in pixels: find the spheres in the composite image (each
-            pixel's brightest value over the lights) of each
-            placement without a mask (they must be brighter than the background).
-        count: with ``detect``, how many spheres each placement shows (default: all found).
-        center_depth: depth (z) of the sphere centres: one number for all, or per placement a
-            number or a list with one per sphere (in the order of the mask's labels, or of
-            detection: by row then column). Required for an orthographic camera; with a pinhole
-            camera it overrides the distance from the outline.
-        outline: "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
-            outline in the composite image, refined from the mask's circle). Detection always uses
-            the images.
-        parallel_tol: rays whose RMS angle about their mean direction is at most this many
-            degrees make a directional (distant) light.
-        min_contrast, max_blob_fraction, limb_margin: highlight search: the brightest value
-            must exceed the sphere's median by ``min_contrast`` times itself, the blob above
-            their midpoint may cover at most ``max_blob_fraction`` of the sphere, and only the
-            pixels whose ray passes within ``limb_margin`` radii of the centre are searched.
-        refine: refine the sphere centres and the lights jointly (a small bundle adjustment of
-            the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
-            a sphere's centre only to a few hundredths of a pixel, which turns every ray by about
-            0.1 degree; the highlights of all lights pin it much better.
+    Parameters
+    ----------
+    images : ImageSet | Sequence[ImageSet]
+        A list of placements, each a (k, H, W[, 3]) array or a list of k image files /
+        arrays (one per light, in the rig's order; all placements the same k and size). A
+        single (k, H, W[, 3]) array is one placement. Integer images are scaled to [0, 1];
+        colour becomes grey.
+    camera : Rig | Mapping[str, Any]
+        An :class:`~nplps.Rig` (its lights are ignored) or the rig file's camera mapping.
+    radius : float
+        The spheres' radius (scene units; the same for all spheres).
+    masks : Any, optional
+        Per placement a mask (file or (H, W) array) or None: a binary mask marks each
+        sphere as one connected region; an integer label image marks sphere j with label j.
+        A single mask (not in a list) serves a single placement.
+    detect : tuple[float, float] | None, optional
+        (min, max) image radius in pixels: find the spheres in the composite image (each
+        pixel's brightest value over the lights) of each
+        placement without a mask (they must be brighter than the background).
+    count : int | None, optional
+        With ``detect``, how many spheres each placement shows (default: all found).
+    center_depth : Any, optional
+        Depth (z) of the sphere centres: one number for all, or per placement a
+        number or a list with one per sphere (in the order of the mask's labels, or of
+        detection: by row then column). Required for an orthographic camera; with a pinhole
+        camera it overrides the distance from the outline.
+    outline : str, optional
+        "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
+        outline in the composite image, refined from the mask's circle). Detection always uses
+        the images.
+    parallel_tol : float, optional
+        Rays whose RMS angle about their mean direction is at most this many
+        degrees make a directional (distant) light.
+    min_contrast, max_blob_fraction, limb_margin : float, optional
+        Highlight search: the brightest value must exceed the sphere's median by ``min_contrast`` times itself, the blob above
+        their midpoint may cover at most ``max_blob_fraction`` of the sphere, and only the
+        pixels whose ray passes within ``limb_margin`` radii of the centre are searched.
+    refine : bool, optional
+        Refine the sphere centres and the lights jointly (a small bundle adjustment of
+        the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
+        a sphere's centre only to a few hundredths of a pixel, which turns every ray by about
+        0.1 degree; the highlights of all lights pin it much better.
 
-    Returns:
+    Returns
+    -------
+    SphereCalibration
         A :class:`SphereCalibration` with ``.rig``, per-light reports ``.lights`` (position or
         direction, RMS miss distance, spheres seen), ``.spheres``, ``.warnings`` and ``.table()``.
 
-    Raises:
-        InputError: unreadable or inconsistent images or masks, no sphere found, a bad option.
-        RigError: an invalid camera.
+    Raises
+    ------
+    InputError
+        Unreadable or inconsistent images or masks, no sphere found, a bad option.
+    RigError
+        An invalid camera.
     """
     cam = _camera_of(camera)
     sets = _placements(images)
@@ -536,25 +552,38 @@ def calibrate_intensities(
 ) -> IntensityCalibration:
     """Calibrates the light intensities from images of a flat diffuse board.
 
-    Args:
-        images: (k, H, W[, 3]) array or k image files, one per light of ``rig``.
-        rig: the rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
-            LEDs, their axes and mu if known.
-        plane: the board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
-            ``normal . X = offset`` in the camera frame.
-        mask: the board's pixels (file or (H, W) array; None: every pixel).
-        fit_mu: fit each point light's anisotropy mu (starting from the rig's, or 1).
-        fit_direction: with ``fit_mu``, fit each LED's axis (principal direction) too (starting
-            from the rig's, or from the LED towards the board's centre).
-        albedo: "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
-            absorbs texture and vignetting; needs the lights to differ enough).
-        color: fit the R, G, B intensities of colour images separately (the board is assumed
-            white: its colour is taken as the lights'); default grey.
-        dark, saturation: observations at or below ``dark`` or at or above ``saturation`` are
-            left out (defaults: one level above black and the top level for integer images).
-        iterations: most alternations (per-pixel albedo) or Levenberg-Marquardt steps.
+    Parameters
+    ----------
+    images : ImageSet
+        (k, H, W[, 3]) array or k image files, one per light of ``rig``.
+    rig : Rig
+        The rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
+        LEDs, their axes and mu if known.
+    plane : Any
+        The board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
+        ``normal . X = offset`` in the camera frame.
+    mask : Any, optional
+        The board's pixels (file or (H, W) array; None: every pixel).
+    fit_mu : bool, optional
+        Fit each point light's anisotropy mu (starting from the rig's, or 1).
+    fit_direction : bool, optional
+        With ``fit_mu``, fit each LED's axis (principal direction) too (starting
+        from the rig's, or from the LED towards the board's centre).
+    albedo : str, optional
+        "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
+        absorbs texture and vignetting; needs the lights to differ enough).
+    color : bool, optional
+        Fit the R, G, B intensities of colour images separately (the board is assumed
+        white: its colour is taken as the lights'); default grey.
+    dark, saturation : float | None, optional
+        Observations at or below ``dark`` or at or above ``saturation`` are
+        left out (defaults: one level above black and the top level for integer images).
+    iterations : int, optional
+        Most alternations (per-pixel albedo) or Levenberg-Marquardt steps.
 
-    Returns:
+    Returns
+    -------
+    IntensityCalibration
         An :class:`IntensityCalibration` with the calibrated ``.rig`` (relative intensities,
         geometric mean 1), per-light ``.intensities``, ``.mu``, ``.axes``, ``.rms``.
     """
@@ -811,19 +840,28 @@ def make_sphere_scene(
     noise of ``noise`` times the full scale is added and the images are quantised to ``bits``
     (0: float images in [0, 1]).
 
-    Args:
-        camera: "orthographic" or "pinhole" (as in :func:`nplps.make_scene`).
-        n: image size n x n.
-        lights: 27 (the standard lights), 8 (:data:`LIGHTS_8`) or indices into the 27.
-        directional: every third standard light is a distant light (as in make_scene).
-        led: anisotropic LEDs with unequal intensities (as in make_scene).
-        radius: sphere radius (scene units); the image radius is about ``radius * n / size``
-            pixels (orthographic), a little more for the pinhole camera.
-        placements: per placement an (S, 3) array of sphere centres; default
-            :func:`default_placements` (two placements of ``spheres`` spheres, moved by up to 1
-            in x and y with the seed).
-        highlight_px: standard deviation of the highlight lobe in pixels (sets the Phong
-            exponent from the sphere's image radius).
+    Parameters
+    ----------
+    camera : str, optional
+        "orthographic" or "pinhole" (as in :func:`nplps.make_scene`).
+    n : int, optional
+        Image size n x n.
+    lights : int | Sequence[int], optional
+        27 (the standard lights), 8 (:data:`LIGHTS_8`) or indices into the 27.
+    directional : bool, optional
+        Every third standard light is a distant light (as in make_scene).
+    led : bool, optional
+        Anisotropic LEDs with unequal intensities (as in make_scene).
+    radius : float, optional
+        Sphere radius (scene units); the image radius is about ``radius * n / size``
+        pixels (orthographic), a little more for the pinhole camera.
+    placements : Sequence[Any] | None, optional
+        Per placement an (S, 3) array of sphere centres; default
+        :func:`default_placements` (two placements of ``spheres`` spheres, moved by up to 1
+        in x and y with the seed).
+    highlight_px : float, optional
+        Standard deviation of the highlight lobe in pixels (sets the Phong
+        exponent from the sphere's image radius).
     """
     if not (np.isfinite(noise) and noise >= 0):
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")

@@ -71,14 +71,19 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
       are returned channel-last.
     * Anything else (JPEG, BMP, ...): imageio.
 
-    Args:
-        path: the file.
-        max_pixels: refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
-            it; see :data:`MAX_PIXELS`.
+    Parameters
+    ----------
+    path : PathLike
+        The file.
+    max_pixels : int, optional
+        Refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
+        it; see :data:`MAX_PIXELS`.
 
-    Raises:
-        InputError: the file is missing, cannot be decoded as a single 2-D image, or is larger
-            than ``max_pixels``; the message names the path and the reason.
+    Raises
+    ------
+    InputError
+        The file is missing, cannot be decoded as a single 2-D image, or is larger
+        than ``max_pixels``; the message names the path and the reason.
     """
     header = _read_header(path)
     if header.startswith(_PNG_SIGNATURE):
@@ -238,8 +243,10 @@ def to_float(img: np.ndarray) -> np.ndarray:
     ``uint16`` / 65535, ...); booleans become 0 or 1; floats are returned unchanged (as float32).
     Works on arrays of any shape.
 
-    Raises:
-        InputError: the dtype is not numeric (complex, object, strings, ...).
+    Raises
+    ------
+    InputError
+        The dtype is not numeric (complex, object, strings, ...).
     """
     img = np.asarray(img)
     if img.dtype == np.bool_:
@@ -278,8 +285,10 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     first, so integer images are scaled to ``[0, 1]``. The mean is
     :func:`nplps.pipeline.to_gray`'s (the one grey conversion of nplps).
 
-    Raises:
-        InputError: the shape is neither ``(H, W)`` nor ``(H, W, 3)``.
+    Raises
+    ------
+    InputError
+        The shape is neither ``(H, W)`` nor ``(H, W, 3)``.
     """
     from .pipeline import to_gray as gray  # the pipeline imports this module
 
@@ -297,17 +306,21 @@ def to_gray(img: np.ndarray) -> np.ndarray:
 def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
     """Load the input images as a float32 grey stack of shape ``(k, H, W)``.
 
-    Args:
-        images: either an array of shape ``(k, H, W)`` or ``(k, H, W, 3)`` of any numeric dtype,
-            or a sequence of file names (``str`` / ``os.PathLike``, read with :func:`read_image`)
-            and/or arrays of shape ``(H, W)`` or ``(H, W, 3)``.
-
     Every image goes through :func:`to_float` (integers scaled to ``[0, 1]``) and then
     :func:`to_gray`. Negative values are allowed (the solver warns about them).
 
-    Raises:
-        InputError: no image, an image of the wrong number of dimensions, images of different
-            sizes, an unreadable file, or NaN / infinite values. The message names the image.
+    Parameters
+    ----------
+    images : np.ndarray | Sequence[ImageSource]
+        Either an array of shape ``(k, H, W)`` or ``(k, H, W, 3)`` of any numeric dtype,
+        or a sequence of file names (``str`` / ``os.PathLike``, read with :func:`read_image`)
+        and/or arrays of shape ``(H, W)`` or ``(H, W, 3)``.
+
+    Raises
+    ------
+    InputError
+        No image, an image of the wrong number of dimensions, images of different
+        sizes, an unreadable file, or NaN / infinite values. The message names the image.
     """
     return load_stack(images, color=False)[0]
 
@@ -454,14 +467,19 @@ def _raise_nonfinite(counts: np.ndarray, labels: list[str]) -> None:
 def load_mask(mask: PathLike | np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
     """Load the pixel mask as a bool array of shape ``shape`` = ``(H, W)``.
 
-    Args:
-        mask: ``None`` (every pixel selected); a file name (read with :func:`read_image`, channel
-            0 if colour, selected where ``> 0``); or an array of shape ``(H, W)`` or
-            ``(H, W, 3)`` (channel 0), selected where nonzero (NaN counts as not selected).
-        shape: the image size ``(H, W)``.
+    Parameters
+    ----------
+    mask : PathLike | np.ndarray | None
+        ``None`` (every pixel selected); a file name (read with :func:`read_image`, channel
+        0 if colour, selected where ``> 0``); or an array of shape ``(H, W)`` or
+        ``(H, W, 3)`` (channel 0), selected where nonzero (NaN counts as not selected).
+    shape : tuple[int, int]
+        The image size ``(H, W)``.
 
-    Raises:
-        InputError: the mask has the wrong shape, cannot be read, or selects no pixel.
+    Raises
+    ------
+    InputError
+        The mask has the wrong shape, cannot be read, or selects no pixel.
     """
     shape = (int(shape[0]), int(shape[1]))
     if mask is None:

@@ -126,9 +126,12 @@ def load_near_ps(
     Intensities are ``Phi`` as ``(k,)`` for a k x 1 ``Phi`` and ``(k, 3)`` for k x 3 (averaged
     over R, G, B to ``(k,)`` with ``color=False``).
 
-    Raises:
-        RigError: missing or malformed calibration files.
-        InputError: missing images, image count != light count, shape mismatches.
+    Raises
+    ------
+    RigError
+        Missing or malformed calibration files.
+    InputError
+        Missing images, image count != light count, shape mismatches.
     """
     color = _color_arg(color, gray, "load_near_ps")
     folder = _check_folder(folder)
