@@ -33,7 +33,7 @@ _MAX_NAME = 200  # of the part of the final name that is repeated in the tempora
 
 @contextmanager
 def atomic_path(path: PathLike) -> Iterator[str]:
-    """Yields a new, empty temporary file name next to ``path`` with the same extension, for
+    """Yield a new, empty temporary file name next to ``path`` with the same extension, for
     writers that take a file name (``imageio``, ``tifffile``). When the block ends without an
     exception the file is renamed to ``path``; otherwise it is removed.
 
@@ -79,7 +79,7 @@ def atomic_write(
 
 
 def write_text(path: PathLike, text: str) -> None:
-    """Writes ``text`` (UTF-8) to ``path`` with :func:`atomic_write`."""
+    """Write ``text`` (UTF-8) to ``path`` with :func:`atomic_write`."""
     with atomic_write(path, "w", encoding="utf-8") as file:
         file.write(text)
 
@@ -100,12 +100,13 @@ def write_error(error: OSError, path: PathLike) -> OSError:
 
 def is_write_error(error: BaseException) -> bool:
     """Whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` (or was made by
-    :func:`write_error`): its ``filename`` is the file that could not be written."""
+    :func:`write_error`): its ``filename`` is the file that could not be written.
+    """
     return bool(getattr(error, _WRITE_ERROR, False))
 
 
 def _create(directory: str, name: str, suffix: str) -> str:
-    """Creates a new empty temporary file in ``directory``; returns its name."""
+    """Create a new empty temporary file in ``directory``; return its name."""
     stem = name[:_MAX_NAME]
     for _ in range(100):
         temporary = os.path.join(directory, f".{stem}.nplps-{secrets.token_hex(4)}{suffix}")

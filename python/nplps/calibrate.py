@@ -147,7 +147,8 @@ class SphereCalibration:
     def rig(self) -> Rig:
         """The calibrated rig: point lights at the positions, directional lights along the
         directions, all with intensity 1. Raises :class:`RigError` when a light was not seen
-        on any sphere."""
+        on any sphere.
+        """
         missing = [rep.index for rep in self.lights if rep.kind == "missing"]
         if missing:
             raise RigError(
@@ -164,16 +165,16 @@ class SphereCalibration:
         return Rig(camera=self.camera, lights=lights)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the calibrated rig file (see :attr:`rig`)."""
+        """Write the calibrated rig file (see :attr:`rig`)."""
         self.rig.save(path)
 
     def table(self) -> str:
-        """The per-light report as a text table."""
+        """Return the per-light report as a text table."""
         return light_table(self.lights)
 
 
 def light_table(lights: Sequence[LightReport]) -> str:
-    """A text table of light reports: kind, position or direction, spheres, miss and angle."""
+    """Return a text table of light reports: kind, position or direction, spheres, miss and angle."""
     lines = [
         f"{'light':>5}  {'kind':<11} {'x / dx':>10} {'y / dy':>10} {'z / dz':>10} {'spheres':>7} "
         f"{'rms miss':>9} {'rms angle':>9} {'spread':>7}  note"
@@ -221,11 +222,11 @@ class IntensityCalibration:
     warnings: list[str] = field(default_factory=list)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the calibrated rig file."""
+        """Write the calibrated rig file."""
         self.rig.save(path)
 
     def table(self) -> str:
-        """The per-light report as a text table."""
+        """Return the per-light report as a text table."""
         c = self.intensities.shape[1]
         head = "intensity" if c == 1 else "intensity R, G, B"
         lines = [f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'obs':>8}"]
@@ -253,8 +254,9 @@ def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
 
 
 def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The camera mapping of a rig file (its lights, if any, are ignored: a file with
-    ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem."""
+    """Return the camera mapping of a rig file (its lights, if any, are ignored: a file with
+    ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem.
+    """
     data = read_rig_json(path)  # within the rig file's limits (size, nesting), as Rig.load
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
         raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
@@ -262,7 +264,7 @@ def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -> None:
-    """Writes a rig file with the camera only (``"lights": []``), for :func:`load_camera`."""
+    """Write a rig file with the camera only (``"lights": []``), for :func:`load_camera`."""
     from .rig import RIG_FILE_VERSION
 
     cam = _camera_of(camera)
@@ -272,7 +274,7 @@ def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -
 
 
 def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
-    """The placements: a single (k, H, W[, 3]) array is one placement; otherwise a list."""
+    """Return the placements: a single (k, H, W[, 3]) array is one placement; otherwise a list."""
     if isinstance(images, np.ndarray):
         if images.ndim in (3, 4):
             return [images]
@@ -286,8 +288,9 @@ def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
 
 
 def _labels(mask: Any, shape: tuple[int, int], where: str) -> np.ndarray:
-    """A mask file or array as uint32 labels: a binary mask (one non-zero value) becomes 0/1
-    (each connected component a sphere); integer labels are kept."""
+    """Read a mask file or array as uint32 labels: a binary mask (one non-zero value) becomes 0/1
+    (each connected component a sphere); integer labels are kept.
+    """
     if isinstance(mask, (str, os.PathLike)):
         a = io.read_image(mask)
         if a.ndim == 3:
@@ -389,9 +392,10 @@ def calibrate_spheres(
         Rays whose RMS angle about their mean direction is at most this many
         degrees make a directional (distant) light.
     min_contrast, max_blob_fraction, limb_margin : float, optional
-        Highlight search: the brightest value must exceed the sphere's median by ``min_contrast`` times itself, the blob above
-        their midpoint may cover at most ``max_blob_fraction`` of the sphere, and only the
-        pixels whose ray passes within ``limb_margin`` radii of the centre are searched.
+        Highlight search: the brightest value must exceed the sphere's median by ``min_contrast``
+        times itself, the blob above their midpoint may cover at most ``max_blob_fraction`` of the
+        sphere, and only the pixels whose ray passes within ``limb_margin`` radii of the centre are
+        searched.
     refine : bool, optional
         Refine the sphere centres and the lights jointly (a small bundle adjustment of
         the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
@@ -514,7 +518,7 @@ def calibrate_spheres(
 
 
 def _plane(plane: Any) -> tuple[list[float], float]:
-    """(normal, offset) from a depth, a (normal, offset) pair or a mapping."""
+    """Return (normal, offset) from a depth, a (normal, offset) pair or a mapping."""
     if np.isscalar(plane):
         depth: Any = plane
         z = float(depth)
@@ -663,10 +667,11 @@ class SphereScene:
         return [[float(c[2]) for c in cs] for cs in self.centers]
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Writes ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
+        """Write ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
         ``camera.json`` (the camera, no lights), ``rig_true.json`` and ``scene.json`` (radius,
         centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory``
-        must be empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`)."""
+        must be empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
+        """
         from . import export
 
         meta = {
@@ -708,9 +713,10 @@ class BoardScene:
     albedo: np.ndarray = field(repr=False)
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Writes ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the
+        """Write ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the
         manifest ``nplps-manifest.json``. ``directory`` must be empty unless ``overwrite=True``
-        (see :meth:`nplps.Reconstruction.save`)."""
+        (see :meth:`nplps.Reconstruction.save`).
+        """
         from . import export
 
         with result_directory(directory, overwrite) as out:
@@ -744,8 +750,9 @@ def standard_rig(
     directional: bool = False,
     led: bool = False,
 ) -> Rig:
-    """The rig of :func:`nplps.make_scene` (``n`` x ``n`` pixels, object ``size`` at
-    ``distance``), restricted to ``lights`` (8, 27 or indices into the 27 standard lights)."""
+    """Return the rig of :func:`nplps.make_scene` (``n`` x ``n`` pixels, object ``size`` at
+    ``distance``), restricted to ``lights`` (8, 27 or indices into the 27 standard lights).
+    """
     if camera not in ("orthographic", "pinhole"):
         raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
     d = _core.synth_scene("saddle", 2, float(size), float(distance), 0, pinhole=False, led=led, directional=directional)
@@ -769,7 +776,8 @@ def default_placements(
     one sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
     other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about
     2 pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to
-    seed as it does from photograph to photograph."""
+    seed as it does from photograph to photograph.
+    """
     z = board_depth - radius
     s = board_depth / 200.0
     # Keep the spheres inside the view: a pinhole camera sees less at the spheres' depth.
@@ -831,7 +839,7 @@ def make_sphere_scene(
     exposure: float = 0.5,
     background: float = 0.05,
 ) -> SphereScene:
-    """Renders a synthetic sphere-calibration scene for the rig of :func:`nplps.make_scene`.
+    """Render a synthetic sphere-calibration scene for the rig of :func:`nplps.make_scene`.
 
     Shiny spheres (Lambertian albedo 1 plus a Phong lobe of strength ``specular``) rest on a dark
     board (albedo ``background``) at the working distance; every placement is rendered under
@@ -921,10 +929,11 @@ def make_board_scene(
     exposure: float = 0.9,
     distance: float = 200.0,
 ) -> BoardScene:
-    """Renders k images (one per light of ``rig``) of a flat Lambertian board for intensity
+    """Render k images (one per light of ``rig``) of a flat Lambertian board for intensity
     calibration: the plane ``plane`` (default: facing the camera at ``distance``), albedo a
     number or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian
-    noise of ``noise`` times the full scale, quantised to ``bits`` (0: float)."""
+    noise of ``noise`` times the full scale, quantised to ``bits`` (0: float).
+    """
     if not (np.isfinite(noise) and noise >= 0):
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
     normal, offset = _plane(distance if plane is None else plane)

@@ -150,7 +150,8 @@ def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iter
 def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
     """Decode PNG files in parallel (Rust) and yield them in order, each dropped from the batch
     as it is yielded (so that it is freed once the caller is done with it). InputError names the
-    first bad file."""
+    first bad file.
+    """
     if not paths:
         return
     decoded = _core.read_pngs(paths, int(max_pixels))
@@ -160,7 +161,7 @@ def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
 
 
 def _png_bytes(header: bytes) -> int:
-    """The decoded size in bytes of the PNG whose first bytes are ``header`` (0 if unknown)."""
+    """Return the decoded size in bytes of the PNG whose first bytes are ``header`` (0 if unknown)."""
     if len(header) < 26:
         return 0
     width = int.from_bytes(header[16:20], "big")
@@ -171,7 +172,7 @@ def _png_bytes(header: bytes) -> int:
 
 
 def _cores() -> int:
-    """The number of cores this process may use (the size of the decoder's thread pool)."""
+    """Return the number of cores this process may use (the size of the decoder's thread pool)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on every platform
@@ -416,7 +417,7 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
 
 
 def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
-    """The pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
+    """Return the pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
     run: list[PathLike] = []
     for item in items:
         if isinstance(item, (str, os.PathLike)):
@@ -429,8 +430,9 @@ def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
 
 
 def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:
-    """A grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of
-    ``stack``'s (the values :func:`to_gray` gives)."""
+    """Return a grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of
+    ``stack``'s (the values :func:`to_gray` gives).
+    """
     gray = np.empty(stack.shape[:3], dtype=np.float32)
     for i in range(count):
         gray[i] = to_gray(stack[i])
@@ -445,7 +447,7 @@ def _label(index: int, item: ImageSource) -> str:
 
 
 def _count_nonfinite(image: np.ndarray) -> int:
-    """The number of NaN or infinite values of one float image."""
+    """Return the number of NaN or infinite values of one float image."""
     return int(np.count_nonzero(~np.isfinite(image)))
 
 

@@ -108,7 +108,7 @@ SideImage: TypeAlias = PathLike | np.ndarray
 def thresholds(
     levels: int | None, *, dark: float | None = None, saturation: float | None = None, preprocessed: bool = False
 ) -> tuple[float, float]:
-    """The shadow and saturation thresholds, on the ``[0, 1]`` scale of the loaded images.
+    """Return the shadow and saturation thresholds, on the ``[0, 1]`` scale of the loaded images.
 
     Parameters
     ----------
@@ -138,7 +138,7 @@ def thresholds(
 
 
 def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
-    """The observations with a value at or above ``saturation`` in any channel.
+    """Return the observations with a value at or above ``saturation`` in any channel.
 
     Parameters
     ----------
@@ -166,7 +166,7 @@ def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
 
 
 def to_gray(images: np.ndarray, *, stack: bool = True) -> np.ndarray:
-    """The channel mean of colour images, as float32.
+    """Return the channel mean of colour images, as float32.
 
     Every grey conversion of nplps goes through here, with one arithmetic: the channels are
     added in float32 in their order and the sum is multiplied by ``float32(1 / C)``
@@ -325,8 +325,9 @@ def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.nd
 
 
 def _side_image(source: SideImage, images: np.ndarray, srgb: bool, name: str) -> np.ndarray:
-    """An ambient or flat-field image on the ``[0, 1]`` scale, sRGB-decoded with ``srgb``, grey
-    for a grey stack; its size checked against the stack's."""
+    """Return an ambient or flat-field image on the ``[0, 1]`` scale, sRGB-decoded with ``srgb``, grey
+    for a grey stack; its size checked against the stack's.
+    """
     if isinstance(source, (str, os.PathLike)):
         label = f"{name} '{os.fspath(source)}'"
         image = to_float(read_image(source))
@@ -362,7 +363,7 @@ def correct(
     K: np.ndarray | None = None,
     overwrite: bool = False,
 ) -> tuple[np.ndarray, list[str]]:
-    """The radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
+    """Apply the radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
 
     Parameters
     ----------
@@ -546,7 +547,7 @@ def bin_inputs(
 
 
 def bin_depth(depth: np.ndarray, factor: int) -> np.ndarray:
-    """The vertex depth map of images binned by ``factor``: every ``factor``-th vertex.
+    """Return the vertex depth map of images binned by ``factor``: every ``factor``-th vertex.
 
     The corners of binned pixel ``(i, j)`` are the original vertices ``(n i, n j)`` to
     ``(n i + n, n j + n)``, so binned vertex ``(i, j)`` is original vertex ``(n i, n j)``

@@ -86,7 +86,7 @@ def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:
 
 
 def _output(imgs: np.ndarray, out: np.ndarray | None) -> np.ndarray:
-    """The array a step writes into: ``out`` (checked; may be ``imgs`` itself) or a new one."""
+    """Return the array a step writes into: ``out`` (checked; may be ``imgs`` itself) or a new one."""
     if out is None:
         return np.empty(imgs.shape, dtype=imgs.dtype)
     if not isinstance(out, np.ndarray) or out.shape != imgs.shape or out.dtype != imgs.dtype:
@@ -294,7 +294,7 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
 
 
 def vignetting_cos4(shape: tuple[int, int], K: np.ndarray, dtype: type = np.float32) -> np.ndarray:
-    """The natural-vignetting ("cos^4 law") map of a pinhole camera.
+    """Return the natural-vignetting ("cos^4 law") map of a pinhole camera.
 
     The irradiance that a lens delivers to a pixel whose ray makes an angle ``theta`` with the
     optical axis falls off as ``cos(theta)^4``. With ``f = (fx + fy) / 2`` and the pixel-centre
@@ -534,7 +534,7 @@ def bin_mask(mask: np.ndarray, factor: int, rule: Literal["all", "half"] = "all"
 
 
 def bin_intrinsics(K: np.ndarray, factor: float) -> np.ndarray:
-    """The pinhole matrix of images binned by ``factor`` (see :func:`bin_images`).
+    """Return the pinhole matrix of images binned by ``factor`` (see :func:`bin_images`).
 
     Binned pixel ``j`` averages the original pixels ``s j .. s j + s - 1``, whose centres have the
     mean coordinate ``s j + (s - 1) / 2``. An original coordinate ``u`` therefore becomes

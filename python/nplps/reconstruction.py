@@ -145,7 +145,7 @@ class LightRefinement:
         return float(self.singular_values[0]) / smallest if smallest > 0 else float("inf")
 
     def to_dict(self) -> dict[str, Any]:
-        """The refinement as a JSON-ready dict (non-finite numbers as None).
+        """Return the refinement as a JSON-ready dict (non-finite numbers as None).
 
         Returns
         -------
@@ -405,7 +405,7 @@ class Reconstruction:
         )
 
     def shaded(self) -> np.ndarray:
-        """A grey picture of the mesh lit from the camera.
+        """Return a grey picture of the mesh lit from the camera.
 
         Returns
         -------
@@ -478,7 +478,7 @@ class Reconstruction:
         )
 
     def summary(self) -> dict[str, Any]:
-        """A JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
+        """Return a JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
 
         Returns
         -------

@@ -117,14 +117,16 @@ class Capture:
     def dark(self) -> float:
         """The default shadow threshold of this capture's images, as the command line sets it:
         one level above black (``1 / levels``) while the values are as read from integer files,
-        0 once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`)."""
+        0 once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`).
+        """
         return pipeline.thresholds(self.levels, preprocessed=bool(self.preprocessed))[0]
 
     def options(self) -> dict[str, Any]:
         """Keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`
         that carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`)
         and ``valid`` (the saturation flags). Use as
-        ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``."""
+        ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``.
+        """
         return {"mask": self.mask, "dark": self.dark, "valid": self.valid}
 
     def load(self, *, color: bool | None = None, gray: bool | None = None) -> Capture:
@@ -153,8 +155,9 @@ class Capture:
         return dataclasses.replace(self, images=images, ambient=ambient, levels=levels)
 
     def rig(self) -> Rig:
-        """The capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
-        unit pixels when K is unknown) with its point lights (LED model) or directional lights."""
+        """Return the capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
+        unit pixels when K is unknown) with its point lights (LED model) or directional lights.
+        """
         from ..rig import Rig
 
         if self.rig_path is not None:
@@ -212,7 +215,7 @@ def prepare(
     overwrite: bool = False,
     gray: bool | None = None,
 ) -> Capture:
-    """The usual pre-processing of a near-light capture, as the near_ps authors do it.
+    """Apply the usual pre-processing of a near-light capture, as the near_ps authors do it.
 
     Runs :func:`nplps.pipeline.prepare` (the command line's pipeline): loads the images if
     needed, judges saturation on the values as read (``saturation``, default the top level of

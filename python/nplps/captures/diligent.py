@@ -16,7 +16,7 @@ from .matlab import _loadmat, _mat_var
 
 
 def _diligent_folder(folder: Path) -> Path:
-    """The folder holding filenames.txt: ``folder`` itself or its unique ``*PNG`` subfolder."""
+    """Return the folder holding filenames.txt: ``folder`` itself or its unique ``*PNG`` subfolder."""
     if (folder / "filenames.txt").is_file():
         return folder
     subs = [p for p in sorted(folder.glob("*PNG")) if (p / "filenames.txt").is_file()]

@@ -12,7 +12,8 @@ from ..errors import InputError
 
 def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
     """``--depth`` (or ``option``, e.g. ``--depth-prior``): a positive number, 'auto', or the
-    path of a .npy depth map of real numbers."""
+    path of a .npy depth map of real numbers.
+    """
     if value == "auto" and option == "--depth":
         return value  # type: ignore[return-value]
     try:

@@ -63,7 +63,7 @@ examples:
 
 
 def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``reconstruct`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``reconstruct`` command and its options to the subparsers ``sub``; return its parser."""
     p = sub.add_parser(
         "reconstruct",
         help="reconstruct a mesh, normals and albedo from images and a rig file",
@@ -145,8 +145,9 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
 
 
 def _print_refinement(result: Any) -> None:
-    """The light refinement's report: what happened, then per light the change and its
-    standard error."""
+    """Print the light refinement's report: what happened, then per light the change and its
+    standard error.
+    """
     ref = result.refinement
     state = "refined"
     if ref.fell_back:

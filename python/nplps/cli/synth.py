@@ -1,5 +1,6 @@
 """``nplps synth`` (write a synthetic scene) and ``nplps demo`` (compare the near-light method with
-parallel-light photometric stereo on a synthetic scene)."""
+parallel-light photometric stereo on a synthetic scene).
+"""
 
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ examples:
 
 
 def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``synth`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``synth`` command and its options to the subparsers ``sub``; return its parser."""
     from ..synth import SCENES
 
     p = sub.add_parser(
@@ -82,7 +83,7 @@ def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def add_demo_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``demo`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``demo`` command and its options to the subparsers ``sub``; return its parser."""
     from ..synth import SCENES
 
     p = sub.add_parser(
