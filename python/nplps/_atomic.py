@@ -1,5 +1,7 @@
-"""Safe writes: every file nplps writes is written under a temporary name in its directory and
-renamed into place (:func:`os.replace`) only once it is complete.
+"""Safe writes: every file nplps writes is written under a temporary name and renamed into place.
+
+Each file is written under a temporary name in its own directory and renamed into place
+(:func:`os.replace`) only once it is complete.
 
 So an error while writing (a full disk, a file size limit, Ctrl-C) never leaves a truncated file
 under the final name: the final name holds either the complete new file or whatever was there
@@ -33,9 +35,10 @@ _MAX_NAME = 200  # of the part of the final name that is repeated in the tempora
 
 @contextmanager
 def atomic_path(path: PathLike) -> Iterator[str]:
-    """Yield a new, empty temporary file name next to ``path`` with the same extension, for
-    writers that take a file name (``imageio``, ``tifffile``). When the block ends without an
-    exception the file is renamed to ``path``; otherwise it is removed.
+    """Yield a new, empty temporary file name next to ``path`` with the same extension.
+
+    It is for writers that take a file name (``imageio``, ``tifffile``). When the block ends without
+    an exception the file is renamed to ``path``; otherwise it is removed.
 
     Raises
     ------
@@ -62,9 +65,11 @@ def atomic_path(path: PathLike) -> Iterator[str]:
 def atomic_write(
     path: PathLike, mode: str = "wb", encoding: str | None = None, newline: str | None = None
 ) -> Iterator[IO[Any]]:
-    """Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under
-    a temporary name and renamed to ``path`` when the block ends without an exception; on an
-    exception it is removed and ``path`` is left as it was.
+    """Open ``path`` for writing under a temporary name, renamed into place when the block ends.
+
+    Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under a
+    temporary name and renamed to ``path`` when the block ends without an exception; on an exception
+    it is removed and ``path`` is left as it was.
 
     Raises
     ------
@@ -99,8 +104,9 @@ def write_error(error: OSError, path: PathLike) -> OSError:
 
 
 def is_write_error(error: BaseException) -> bool:
-    """Whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` (or was made by
-    :func:`write_error`): its ``filename`` is the file that could not be written.
+    """Tell whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` or :func:`write_error`.
+
+    If so, its ``filename`` is the file that could not be written.
     """
     return bool(getattr(error, _WRITE_ERROR, False))
 

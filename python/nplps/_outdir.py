@@ -1,5 +1,4 @@
-"""Output directories of results (``Reconstruction.save``, ``Scene.save``, ``nplps reconstruct
---out`` ...).
+"""Output directories of results (``Reconstruction.save``, ``Scene.save``, ``nplps reconstruct --out`` ...).
 
 nplps writes a result only into a new or empty directory, unless told to overwrite
 (``overwrite=True``, ``--overwrite``). Then it writes its files (replacing files of the same
@@ -70,8 +69,9 @@ class ResultDirectory(os.PathLike):
         return f"ResultDirectory({os.fspath(self.path)!r})"
 
     def file(self, name: str) -> Path:
-        """Return the path of the file ``name`` (relative, "/"-separated) in this directory, recorded as
-        written; its parent directories are created.
+        """Return the path of the file ``name`` (relative, "/"-separated) in this directory.
+
+        The file is recorded as written; its parent directories are created.
         """
         relative = self._prefix + name
         path = self._run.root / relative
@@ -96,11 +96,12 @@ class ResultDirectory(os.PathLike):
         return list(self._run.written)
 
     def close(self, complete: bool = True) -> None:
-        """End the run (a subdirectory's close does nothing): when ``complete``, removes the
-        earlier run's files that this run did not write and writes the manifest of this run's
-        files; otherwise (the run failed) writes a manifest of the earlier run's files and the
-        files of this run that exist, so that nothing nplps wrote is forgotten. Nothing is done
-        if nothing was written.
+        """End the run (a subdirectory's close does nothing).
+
+        When ``complete``, it removes the earlier run's files that this run did not write and writes
+        the manifest of this run's files; otherwise (the run failed) writes a manifest of the
+        earlier run's files and the files of this run that exist, so that nothing nplps wrote is
+        forgotten. Nothing is done if nothing was written.
         """
         run = self._run
         if self._prefix or run.closed:
@@ -133,8 +134,10 @@ class ResultDirectory(os.PathLike):
 
 @contextmanager
 def result_directory(directory: PathLike, overwrite: bool = False) -> Iterator[ResultDirectory]:
-    """Return a :class:`ResultDirectory` for a ``save`` method: ``directory`` itself if it is one (the
-    caller's run, which the caller closes), else a new one, closed at the end of the block.
+    """Return a :class:`ResultDirectory` for a ``save`` method.
+
+    It is ``directory`` itself if it is one (the caller's run, which the caller closes), else a new
+    one, closed at the end of the block.
     """
     if isinstance(directory, ResultDirectory):
         yield directory
@@ -144,8 +147,9 @@ def result_directory(directory: PathLike, overwrite: bool = False) -> Iterator[R
 
 
 def read_manifest(directory: PathLike) -> list[str] | None:
-    """Return the files listed by the manifest in ``directory`` (only safe relative paths inside it),
-    or None if there is no readable manifest.
+    """Return the files listed by the manifest in ``directory``, or None if there is no readable manifest.
+
+    Only safe relative paths inside ``directory`` are listed.
     """
     try:
         data = json.loads((Path(directory) / MANIFEST).read_text(encoding="utf-8"))

@@ -145,9 +145,10 @@ class SphereCalibration:
 
     @property
     def rig(self) -> Rig:
-        """The calibrated rig: point lights at the positions, directional lights along the
-        directions, all with intensity 1. Raises :class:`RigError` when a light was not seen
-        on any sphere.
+        """The calibrated rig.
+
+        Point lights at the positions, directional lights along the directions, all with
+        intensity 1. Raises :class:`RigError` when a light was not seen on any sphere.
         """
         missing = [rep.index for rep in self.lights if rep.kind == "missing"]
         if missing:
@@ -254,8 +255,10 @@ def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
 
 
 def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Return the camera mapping of a rig file (its lights, if any, are ignored: a file with
-    ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem.
+    """Return the camera mapping of a rig file.
+
+    Its lights, if any, are ignored (a file with ``"lights": []`` describes a camera only). Raises
+    :class:`RigError` naming the problem.
     """
     data = read_rig_json(path)  # within the rig file's limits (size, nesting), as Rig.load
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
@@ -288,8 +291,10 @@ def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
 
 
 def _labels(mask: Any, shape: tuple[int, int], where: str) -> np.ndarray:
-    """Read a mask file or array as uint32 labels: a binary mask (one non-zero value) becomes 0/1
-    (each connected component a sphere); integer labels are kept.
+    """Read a mask file or array as uint32 labels.
+
+    A binary mask (one non-zero value) becomes 0/1 (each connected component a sphere); integer
+    labels are kept.
     """
     if isinstance(mask, (str, os.PathLike)):
         a = io.read_image(mask)
@@ -667,10 +672,12 @@ class SphereScene:
         return [[float(c[2]) for c in cs] for cs in self.centers]
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Write ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
+        """Write the images, masks, camera, true rig and scene description into ``directory``.
+
+        Write ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
         ``camera.json`` (the camera, no lights), ``rig_true.json`` and ``scene.json`` (radius,
-        centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory``
-        must be empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
+        centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory`` must be
+        empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
         """
         from . import export
 
@@ -713,9 +720,10 @@ class BoardScene:
     albedo: np.ndarray = field(repr=False)
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Write ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the
-        manifest ``nplps-manifest.json``. ``directory`` must be empty unless ``overwrite=True``
-        (see :meth:`nplps.Reconstruction.save`).
+        """Write ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the manifest.
+
+        The manifest is ``nplps-manifest.json``. ``directory`` must be empty unless
+        ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
         """
         from . import export
 
@@ -750,8 +758,10 @@ def standard_rig(
     directional: bool = False,
     led: bool = False,
 ) -> Rig:
-    """Return the rig of :func:`nplps.make_scene` (``n`` x ``n`` pixels, object ``size`` at
-    ``distance``), restricted to ``lights`` (8, 27 or indices into the 27 standard lights).
+    """Return the rig of :func:`nplps.make_scene`, restricted to ``lights``.
+
+    The rig has ``n`` x ``n`` pixels, object ``size`` at ``distance``; ``lights`` is 8, 27 or
+    indices into the 27 standard lights.
     """
     if camera not in ("orthographic", "pinhole"):
         raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
@@ -772,11 +782,12 @@ def standard_rig(
 def default_placements(
     camera: str, radius: float, board_depth: float, spheres: int = 1, seed: int | None = None
 ) -> list[np.ndarray]:
-    """Two placements for the standard 100-wide view at depth 200 (scaled with the board depth):
-    one sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
-    other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about
-    2 pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to
-    seed as it does from photograph to photograph.
+    """Return two placements for the standard 100-wide view at depth 200 (scaled with the board depth).
+
+    One sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
+    other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about 2
+    pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to seed
+    as it does from photograph to photograph.
     """
     z = board_depth - radius
     s = board_depth / 200.0
@@ -929,10 +940,11 @@ def make_board_scene(
     exposure: float = 0.9,
     distance: float = 200.0,
 ) -> BoardScene:
-    """Render k images (one per light of ``rig``) of a flat Lambertian board for intensity
-    calibration: the plane ``plane`` (default: facing the camera at ``distance``), albedo a
-    number or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian
-    noise of ``noise`` times the full scale, quantised to ``bits`` (0: float).
+    """Render k images (one per light of ``rig``) of a flat Lambertian board for intensity calibration.
+
+    The board is the plane ``plane`` (default: facing the camera at ``distance``), albedo a number
+    or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian noise of
+    ``noise`` times the full scale, quantised to ``bits`` (0: float).
     """
     if not (np.isfinite(noise) and noise >= 0):
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")

@@ -148,9 +148,10 @@ def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iter
 
 
 def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
-    """Decode PNG files in parallel (Rust) and yield them in order, each dropped from the batch
-    as it is yielded (so that it is freed once the caller is done with it). InputError names the
-    first bad file.
+    """Decode PNG files in parallel (Rust) and yield them in order.
+
+    Each is dropped from the batch as it is yielded (so that it is freed once the caller is done
+    with it). InputError names the first bad file.
     """
     if not paths:
         return
@@ -329,8 +330,10 @@ def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
 def load_stack(
     images: np.ndarray | Sequence[ImageSource], color: bool = False, *, max_pixels: int = MAX_PIXELS
 ) -> tuple[np.ndarray, int | None]:
-    """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set
-    and every image is RGB, with integers scaled to ``[0, 1]``.
+    """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` in colour.
+
+    Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set and
+    every image is RGB, with integers scaled to ``[0, 1]``.
 
     Returns the stack and the number of levels of the source (``255`` for 8-bit, ``65535`` for
     16-bit input, the largest of the images' if they differ), or None for floating-point input.
@@ -430,8 +433,9 @@ def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
 
 
 def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:
-    """Return a grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of
-    ``stack``'s (the values :func:`to_gray` gives).
+    """Return a grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of ``stack``'s.
+
+    These are the values :func:`to_gray` gives.
     """
     gray = np.empty(stack.shape[:3], dtype=np.float32)
     for i in range(count):

@@ -325,8 +325,9 @@ def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.nd
 
 
 def _side_image(source: SideImage, images: np.ndarray, srgb: bool, name: str) -> np.ndarray:
-    """Return an ambient or flat-field image on the ``[0, 1]`` scale, sRGB-decoded with ``srgb``, grey
-    for a grey stack; its size checked against the stack's.
+    """Return an ambient or flat-field image on the ``[0, 1]`` scale.
+
+    It is sRGB-decoded with ``srgb``, grey for a grey stack; its size checked against the stack's.
     """
     if isinstance(source, (str, os.PathLike)):
         label = f"{name} '{os.fspath(source)}'"
@@ -586,8 +587,10 @@ def bin_depth(depth: np.ndarray, factor: int) -> np.ndarray:
 
 @dataclasses.dataclass
 class Prepared(Binned):
-    """What :func:`prepare` returns: the core's input, the fields of :class:`Binned` (``images``
-    C-contiguous float32; ``valid`` False where an observation was saturated or flagged) and:
+    """What :func:`prepare` returns.
+
+    The core's input, the fields of :class:`Binned` (``images`` C-contiguous float32; ``valid``
+    False where an observation was saturated or flagged) and:
 
     Attributes
     ----------

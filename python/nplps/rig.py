@@ -111,8 +111,10 @@ def _rgb(value: Any, subject: str) -> Vec3:
 
 
 def _unit(v: Vec3) -> Vec3:
-    """``v`` scaled to unit length (scaled by its largest component first, so that the norm of a
-    huge vector does not overflow); (0, 0, 0) stays zero.
+    """Return ``v`` scaled to unit length; (0, 0, 0) stays zero.
+
+    It is scaled by its largest component first, so that the norm of a huge vector does not
+    overflow.
     """
     # The same operations (on a 1 x 3 array) as earlier versions of nplps, for the same bits.
     a = np.array([v], dtype=np.float64)
@@ -273,8 +275,10 @@ class DirectionalLight:
 
     @classmethod
     def _checked(cls, subject: str, direction: Any, intensity: Any = 1.0, normalize: bool = True) -> DirectionalLight:
-        """Return the light, its errors naming ``subject``; ``normalize=False`` checks that the
-        direction is a unit vector (to 1e-6) and keeps it as given (rig files, results).
+        """Return the light, its errors naming ``subject``.
+
+        ``normalize=False`` checks that the direction is a unit vector (to 1e-6) and keeps it as
+        given (rig files, results).
         """
         light = object.__new__(cls)
         light._set(subject, direction, intensity, normalize)
@@ -582,8 +586,9 @@ class Rig:
 
     @cached_property
     def directions(self) -> np.ndarray:
-        """(k, 3) unit directions (from the surface towards the light) of the directional
-        lights; NaN rows for point lights and LEDs.
+        """The (k, 3) unit directions (from the surface towards the light) of the directional lights.
+
+        NaN rows for point lights and LEDs.
         """
         rows = [light.direction if isinstance(light, DirectionalLight) else _NAN3 for light in self.lights]
         return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 3))
@@ -698,8 +703,9 @@ class Rig:
         return Rig(camera=self.camera, lights=lights)
 
     def binned(self, n: int) -> Rig:
-        """Return the rig of the images binned ``n`` x ``n`` (blocks of pixels averaged, the remainder
-        at the bottom and right cropped).
+        """Return the rig of the images binned ``n`` x ``n``.
+
+        Blocks of pixels are averaged; the remainder at the bottom and right is cropped.
 
         Parameters
         ----------
@@ -732,10 +738,11 @@ class Rig:
     # -- the compiled core's form ---------------------------------------------------------------
     @classmethod
     def _from_core_lights(cls, camera: Mapping[str, Any], lights: Mapping[str, Any], like: Rig | None = None) -> Rig:
-        """Return a rig with ``camera`` and the lights in the compiled core's form (vectors,
-        directional, intensities, axes, mu): LED axes scaled to unit length, directions kept as
-        given (checked to be unit vectors). A point light is an LED when its mu > 0 or when
-        light i of ``like`` is one.
+        """Return a rig with ``camera`` and the lights in the compiled core's form.
+
+        The lights are given as (vectors, directional, intensities, axes, mu): LED axes scaled to
+        unit length, directions kept as given (checked to be unit vectors). A point light is an LED
+        when its mu > 0 or when light i of ``like`` is one.
         """
         out: list[Light] = []
         n = len(lights["vectors"])
@@ -752,8 +759,9 @@ class Rig:
         return cls(camera=camera, lights=tuple(out))
 
     def _core_lights(self) -> dict[str, list[Any]]:
-        """Return the lights in the form the compiled core takes (an axis of (0, 0, 1) and mu = 0 for
-        lights that are not LEDs).
+        """Return the lights in the form the compiled core takes.
+
+        Lights that are not LEDs get an axis of (0, 0, 1) and mu = 0.
         """
         vectors, directional, intensities, axes, mus = [], [], [], [], []
         for light in self.lights:
@@ -996,8 +1004,10 @@ def _nesting(text: str) -> int:
 
 
 def _describe(value: Any) -> str:
-    """Return a short description of a value for messages: never its full repr, which may be huge or
-    nested too deeply to print (the same words as the compiled core's).
+    """Return a short description of a value for messages.
+
+    Never its full repr, which may be huge or nested too deeply to print (the same words as the
+    compiled core's).
     """
     if value is None:
         return "null"
@@ -1062,8 +1072,9 @@ def _intensity(value: Any, what: str) -> list[float]:
 
 
 def _numeric(value: Any, name: str, kinds: str = "iuf") -> np.ndarray:
-    """``value`` as an array of numbers of the dtype kinds ``kinds`` (not strings, objects or,
-    unless asked, booleans).
+    """Return ``value`` as an array of numbers of the dtype kinds ``kinds``.
+
+    Strings and objects are refused, and booleans unless asked.
     """
     try:
         a = np.asarray(value)
@@ -1089,8 +1100,10 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _intensities(value: Any, k: int, where: str = "intensities") -> np.ndarray:
-    """Per-light RGB intensities (k, 3) from None (ones), a number, (k,), (k, 1) or (k, 3), or a
-    list of k items each a number or three (R, G, B).
+    """Return per-light RGB intensities (k, 3).
+
+    They are made from None (ones), a number, (k,), (k, 1) or (k, 3), or a list of k items each a
+    number or three (R, G, B).
     """
     if value is None:
         return np.ones((k, 3))

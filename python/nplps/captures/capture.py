@@ -115,16 +115,18 @@ class Capture:
 
     @property
     def dark(self) -> float:
-        """The default shadow threshold of this capture's images, as the command line sets it:
-        one level above black (``1 / levels``) while the values are as read from integer files,
-        0 once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`).
+        """The default shadow threshold of this capture's images, as the command line sets it.
+
+        One level above black (``1 / levels``) while the values are as read from integer files, 0
+        once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`).
         """
         return pipeline.thresholds(self.levels, preprocessed=bool(self.preprocessed))[0]
 
     def options(self) -> dict[str, Any]:
-        """Keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`
-        that carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`)
-        and ``valid`` (the saturation flags). Use as
+        """Return keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`.
+
+        They carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`) and
+        ``valid`` (the saturation flags). Use as
         ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``.
         """
         return {"mask": self.mask, "dark": self.dark, "valid": self.valid}
@@ -155,8 +157,10 @@ class Capture:
         return dataclasses.replace(self, images=images, ambient=ambient, levels=levels)
 
     def rig(self) -> Rig:
-        """Return the capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
-        unit pixels when K is unknown) with its point lights (LED model) or directional lights.
+        """Return the capture's :class:`~nplps.Rig`.
+
+        That is its rig file, or a pinhole camera (orthographic with unit pixels when K is unknown)
+        with its point lights (LED model) or directional lights.
         """
         from ..rig import Rig
 

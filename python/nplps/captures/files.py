@@ -104,8 +104,10 @@ def _read_stack(files: Sequence[PathLike], color: bool | None) -> tuple[np.ndarr
 
 
 def _color_arg(color: bool | None, gray: bool | None, where: str, default: bool | None = None) -> bool | None:
-    """Return the colour choice of a loader from ``color`` (whose default is ``default``) and the
-    deprecated ``gray`` keyword (``gray=True`` is ``color=False``, ``gray=False`` is ``color=None``).
+    """Return the colour choice of a loader from ``color`` and the deprecated ``gray`` keyword.
+
+    The default of ``color`` is ``default``; ``gray=True`` is ``color=False``, ``gray=False`` is
+    ``color=None``.
     """
     if gray is None:
         return color

@@ -51,8 +51,9 @@ def _prepare(
     grid_offset: tuple[int, int],
     color: bool | None,
 ) -> tuple[np.ndarray, int | None]:
-    """Read one image and bring it onto the calibration grid (see load_near_ps); also the top
-    integer value of the file (None for floats).
+    """Read one image and bring it onto the calibration grid (see load_near_ps).
+
+    Also return the top integer value of the file (None for floats).
     """
     raw = read_image(path)
     levels = int(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else None

@@ -1,5 +1,7 @@
-"""The ``nplps`` command line: reconstruct from image files or capture folders, evaluate with
-held-out lights, make synthetic scenes, run a demo.
+"""The ``nplps`` command line.
+
+It can reconstruct from image files or capture folders, evaluate with held-out lights, make
+synthetic scenes, run a demo.
 
 Run ``nplps --help`` (or ``python -m nplps --help``) for the overview and ``nplps COMMAND --help``
 for each command. :func:`main` is the entry point; it returns the exit status instead of exiting,
@@ -182,15 +184,18 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 class _Terminated(KeyboardInterrupt):
-    """Raised by SIGTERM while :func:`main` runs (a KeyboardInterrupt: code that cleans up after
-    Ctrl-C cleans up after it too).
+    """Raised by SIGTERM while :func:`main` runs.
+
+    It is a KeyboardInterrupt: code that cleans up after Ctrl-C cleans up after it too.
     """
 
 
 @contextmanager
 def _sigterm_raises() -> Iterator[None]:
-    """SIGTERM raises :class:`_Terminated` inside the block, if SIGTERM has its default action
-    and this is the main thread; the previous handler is restored afterwards.
+    """Make SIGTERM raise :class:`_Terminated` inside the block.
+
+    Only if SIGTERM has its default action and this is the main thread; the previous handler is
+    restored afterwards.
     """
     previous = None
     try:

@@ -1,6 +1,8 @@
-"""``nplps calibrate spheres`` (light positions from shiny-sphere images), ``nplps calibrate
-intensity`` (light intensities from images of a flat board) and ``nplps synth-calibration`` (a
-synthetic calibration scene).
+"""The ``nplps calibrate`` and ``nplps synth-calibration`` commands.
+
+``nplps calibrate spheres`` (light positions from shiny-sphere images),
+``nplps calibrate intensity`` (light intensities from images of a flat board) and
+``nplps synth-calibration`` (a synthetic calibration scene).
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
-"""What the command line prints besides its results: the program name, notes on stderr,
-library warnings as ``nplps: warning:`` lines, and a one-line description of a rig.
+"""What the command line prints besides its results.
+
+The program name, notes on stderr, library warnings as ``nplps: warning:`` lines, and a one-line
+description of a rig.
 """
 
 from __future__ import annotations

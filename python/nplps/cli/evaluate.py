@@ -1,4 +1,6 @@
-"""``nplps evaluate``: held-out-light errors of the near-light method and of the parallel-light
+"""The ``nplps evaluate`` command: held-out-light errors, printed as a table.
+
+``nplps evaluate``: held-out-light errors of the near-light method and of the parallel-light
 baseline, printed as a table.
 """
 

@@ -1,5 +1,6 @@
-"""The input options that ``reconstruct`` and ``evaluate`` share, and reading them: images or a
-capture folder, rig, mask, depth, pre-processing, binning and the solver options.
+"""The input options that ``reconstruct`` and ``evaluate`` share, and reading them.
+
+Images or a capture folder, rig, mask, depth, pre-processing, binning and the solver options.
 """
 
 from __future__ import annotations
@@ -40,8 +41,10 @@ are shadowed (0 after pre-processing, whose subtractions and scalings move the l
 
 
 def add_input_options(p: argparse.ArgumentParser) -> None:
-    """Return the options ``reconstruct`` and ``evaluate`` share: input, thresholds, pre-processing,
-    solver (read back by :func:`build_inputs` and :func:`near_options`).
+    """Add the options that ``reconstruct`` and ``evaluate`` share.
+
+    Input, thresholds, pre-processing, solver (read back by :func:`build_inputs` and
+    :func:`near_options`).
     """
     p.add_argument(
         "images",
@@ -202,8 +205,9 @@ class Inputs(NamedTuple):
 
 
 class _Source(NamedTuple):
-    """Where the images come from, before anything is read: image files, rig, mask, ambient
-    image, K for cos^4 and the default vignetting correction.
+    """Where the images come from, before anything is read.
+
+    Image files, rig, mask, ambient image, K for cos^4 and the default vignetting correction.
     """
 
     files: list[str]
@@ -226,8 +230,9 @@ _OPTION_WORDS = (
 
 
 def build_inputs(args: argparse.Namespace) -> Inputs:
-    """Read and pre-process the input that :func:`add_input_options` describes, with
-    :func:`nplps.pipeline.prepare`.
+    """Read and pre-process the input that :func:`add_input_options` describes.
+
+    This runs :func:`nplps.pipeline.prepare`.
     """
     from .. import pipeline
 
@@ -323,8 +328,9 @@ def _estimated(result: Any, options: dict[str, Any]) -> dict[str, Any]:
 
 
 def check_input_args(args: argparse.Namespace) -> None:
-    """Check the input options before anything is read: numbers, which options go together,
-    and that the named side files exist.
+    """Check the input options before anything is read.
+
+    It checks numbers, which options go together, and that the named side files exist.
     """
     _check_numbers(args)
     if args.capture:
@@ -379,8 +385,10 @@ def _file_source(args: argparse.Namespace) -> _Source:
 
 
 def _capture_source(args: argparse.Namespace) -> _Source:
-    """--capture LAYOUT FOLDER [PATTERN]: the capture's image files, rig, mask (or --mask) and
-    ambient image; cos^4 vignetting by default when the capture has K.
+    """Return the sources of ``--capture LAYOUT FOLDER [PATTERN]``.
+
+    The capture's image files, rig, mask (or --mask) and ambient image; cos^4 vignetting by default
+    when the capture has K.
     """
     capture = _read_capture(args)
     mask = capture.mask if args.mask is None else args.mask

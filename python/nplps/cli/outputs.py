@@ -1,5 +1,7 @@
-"""The ``--out DIR`` / ``--overwrite`` pair of the commands that write a result directory
-(``reconstruct``, ``synth``, ``demo``, ``synth-calibration``); see :mod:`nplps._outdir`.
+"""The ``--out DIR`` / ``--overwrite`` pair of the commands that write a result directory.
+
+These commands are ``reconstruct``, ``synth``, ``demo`` and ``synth-calibration``; see
+:mod:`nplps._outdir`.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ def add_output_options(parser: argparse.ArgumentParser, default: str | None = No
 
 
 def output_directory(args: argparse.Namespace) -> ResultDirectory:
-    """Return the ``--out`` directory of a command, checked now (before any work): raises
-    :class:`~nplps.errors.OutputExistsError` (exit status 2) if it is not empty and
+    """Return the ``--out`` directory of a command, checked now (before any work).
+
+    Raises :class:`~nplps.errors.OutputExistsError` (exit status 2) if it is not empty and
     ``--overwrite`` was not given. Use it as a context manager around the writing.
     """
     return ResultDirectory(args.out, overwrite=args.overwrite, option="--overwrite")

@@ -11,8 +11,9 @@ from ..errors import InputError
 
 
 def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
-    """``--depth`` (or ``option``, e.g. ``--depth-prior``): a positive number, 'auto', or the
-    path of a .npy depth map of real numbers.
+    """Parse ``--depth`` (or ``option``, e.g. ``--depth-prior``).
+
+    Accept a positive number, 'auto', or the path of a .npy depth map of real numbers.
     """
     if value == "auto" and option == "--depth":
         return value  # type: ignore[return-value]

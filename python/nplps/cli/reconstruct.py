@@ -145,8 +145,9 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
 
 
 def _print_refinement(result: Any) -> None:
-    """Print the light refinement's report: what happened, then per light the change and its
-    standard error.
+    """Print the light refinement's report.
+
+    First what happened, then per light the change and its standard error.
     """
     ref = result.refinement
     state = "refined"

@@ -1,4 +1,6 @@
-"""``nplps synth`` (write a synthetic scene) and ``nplps demo`` (compare the near-light method with
+"""The ``nplps synth`` and ``nplps demo`` commands.
+
+``nplps synth`` (write a synthetic scene) and ``nplps demo`` (compare the near-light method with
 parallel-light photometric stereo on a synthetic scene).
 """
 
