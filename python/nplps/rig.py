@@ -364,9 +364,11 @@ class Rig:
         _core.check_rig(self.camera, self._core_lights())
 
     def __hash__(self) -> int:
+        """Hash the camera mapping and the lights (the array views follow from them)."""
         return hash((json.dumps(self.camera, sort_keys=True), self.lights))
 
     def __getstate__(self) -> dict[str, Any]:
+        """Return the state to pickle: the fields only."""
         # The fields only: the array views are computed again (read-only) after unpickling.
         return {"camera": self.camera, "lights": self.lights}
 

@@ -52,6 +52,7 @@ def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Run ``nplps evaluate``; return the exit status."""
     from ..evaluation import held_out
 
     inputs = build_inputs(args)

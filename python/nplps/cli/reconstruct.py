@@ -87,6 +87,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    """Run ``nplps reconstruct``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
 
     check_input_args(args)

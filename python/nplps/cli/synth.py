@@ -113,6 +113,7 @@ def _check_scene_args(args: argparse.Namespace) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    """Run ``nplps synth``; return the exit status."""
     from ..synth import make_scene
 
     _check_scene_args(args)
@@ -173,6 +174,7 @@ def depth_rms(depth: np.ndarray, truth: np.ndarray) -> float:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Run ``nplps demo``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
     from ..synth import make_scene
 
