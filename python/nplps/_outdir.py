@@ -162,7 +162,7 @@ def read_manifest(directory: PathLike) -> list[str] | None:
 
 
 def _check(root: Path, overwrite: bool, option: str) -> list[str]:
-    """Refuses a non-empty ``root`` unless ``overwrite``; returns the files of its manifest."""
+    """Refuse a non-empty ``root`` unless ``overwrite``; return the files of its manifest."""
     try:
         with os.scandir(root) as entries:
             empty = next(entries, None) is None

@@ -361,7 +361,7 @@ def calibrate_spheres(
     limb_margin: float = 0.97,
     refine: bool = True,
 ) -> SphereCalibration:
-    """Calibrates the light positions from images of shiny spheres.
+    """Calibrate the light positions from images of shiny spheres.
 
     Parameters
     ----------
@@ -559,7 +559,7 @@ def calibrate_intensities(
     saturation: float | None = None,
     iterations: int = 100,
 ) -> IntensityCalibration:
-    """Calibrates the light intensities from images of a flat diffuse board.
+    """Calibrate the light intensities from images of a flat diffuse board.
 
     Parameters
     ----------

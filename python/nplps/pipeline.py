@@ -8,8 +8,10 @@ Python API (:mod:`nplps.api`), the capture loaders (:mod:`nplps.captures`) and t
 each correction lives in :mod:`nplps.preprocess`; this module decides the order, the defaults
 and the memory.
 
-Order of the steps (:func:`prepare`) and why
---------------------------------------------
+Notes
+-----
+.. rubric:: Order of the steps (:func:`prepare`) and why
+
 1. **Load** (:func:`load_images`): every image goes straight into one preallocated float32
    stack ``(k, H, W[, 3])``, integers scaled to ``[0, 1]`` by their dtype's top value; the
    number of ``levels`` of integer sources is kept (255, 65535), None for floating-point ones.
@@ -34,16 +36,16 @@ Order of the steps (:func:`prepare`) and why
    averages move the levels, and then the default is 0. The grey average does not count (its
    values stay on the levels' scale).
 
-Memory
-------
+.. rubric:: Memory
+
 Images are converted to float32 once, when they are read (float32 arrays are taken as they
 are, without a copy). No step makes a float64 copy of a stack: float64 arithmetic, where a step
 uses it (vignetting maps, binning sums), runs in numpy's buffers or one image at a time. With
 ``overwrite=True`` (and always for images read from files) the steps work in place; otherwise
 the first step that changes the caller's array makes the one copy.
 
-The dark rule for API users
----------------------------
+.. rubric:: The dark rule for API users
+
 :func:`nplps.captures.prepare` runs this pipeline and records what ran: its
 :class:`~nplps.captures.Capture` carries ``levels``, ``preprocessed`` (the steps) and ``valid``
 (the saturation flags), and ``capture.dark`` / ``capture.options()`` give the default the
@@ -51,8 +53,8 @@ command line uses, to pass on: ``nplps.reconstruct(cap.images, cap.rig(), depth=
 **cap.options())``. :func:`nplps.reconstruct` itself, given a float32 array, cannot know where
 its values came from and keeps its defaults (0 and no saturation for floating-point images).
 
-Grey or colour
---------------
+.. rubric:: Grey or colour
+
 One keyword names the choice everywhere in the Python API: ``color`` -- None (keep what the
 images are: RGB images give an RGB albedo), True (require RGB) or False (average to grey). The
 command line's ``--gray`` is ``color=False``. The loaders' former ``gray=`` keyword still works
@@ -590,7 +592,7 @@ class Prepared(Binned):
     """What :func:`prepare` returns.
 
     The core's input, the fields of :class:`Binned` (``images`` C-contiguous float32; ``valid``
-    False where an observation was saturated or flagged) and:
+    False where an observation was saturated or flagged) and the attributes below.
 
     Attributes
     ----------

@@ -17,8 +17,10 @@ them as small, documented array functions:
 :mod:`nplps.pipeline` decides the order of these steps, their defaults and the memory (the
 API, the capture loaders and the command line run them through it).
 
-Conventions
------------
+Notes
+-----
+.. rubric:: Conventions
+
 * Stacks are ``(k, H, W)`` (grey) or ``(k, H, W, C)`` (colour, normally ``C = 3``); single images
   are ``(H, W)`` or ``(H, W, C)``. Functions that cannot tell a grey stack from a colour image by
   the number of dimensions say how they read a 3-D array.
@@ -98,7 +100,7 @@ def _output(imgs: np.ndarray, out: np.ndarray | None) -> np.ndarray:
 
 
 def _spatial_axes(ndim: int, stack: bool, name: str) -> tuple[int, int]:
-    """Axes (row, column) of an array of ``ndim`` dimensions.
+    """Return the axes (row, column) of an array of ``ndim`` dimensions.
 
     2-D: ``(H, W)``; 3-D: ``(k, H, W)`` if ``stack`` else ``(H, W, C)``; 4-D: ``(k, H, W, C)``.
     """

@@ -362,7 +362,7 @@ class Reconstruction:
         return int(np.count_nonzero(self.mask & (self.lights_used < 3)))
 
     def predict(self, rig: Rig | None = None, *, lights: list[int] | None = None) -> np.ndarray:
-        """Images predicted from this result by the image model.
+        """Return the images predicted from this result by the image model.
 
         Each pixel is shaded with its fitted normal (:attr:`fit_normals`) and albedo at the
         centre of its quad: the model's own explanation of the images, which the normals and the

@@ -1033,7 +1033,7 @@ def _describe(value: Any) -> str:
 
 
 def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, usage: str) -> None:
-    """Fails on a key that is not in ``known`` and does not start with '_' (a comment)."""
+    """Fail on a key that is not in ``known`` and does not start with '_' (a comment)."""
     for key in mapping:
         if not isinstance(key, str):
             raise RigError(f"{where} has a key that is not a string ({_describe(key)})")

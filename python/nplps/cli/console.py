@@ -20,7 +20,7 @@ def _note(message: str) -> None:
 
 
 class _warnings_to_stderr:
-    """Shows library warnings as ``nplps: warning: ...`` lines instead of Python's format."""
+    """Context manager that shows library warnings as ``nplps: warning: ...`` lines instead of Python's format."""
 
     def __enter__(self) -> None:
         self._ctx = warnings.catch_warnings(record=True)
