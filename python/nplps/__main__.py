@@ -1,4 +1,4 @@
-"""Allows ``python -m nplps``: runs the command line (see :mod:`nplps.cli`)."""
+"""Entry point of ``python -m nplps``: run the command line (see :mod:`nplps.cli`)."""
 
 from .cli import main
 

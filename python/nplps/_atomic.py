@@ -1,5 +1,7 @@
-"""Safe writes: every file nplps writes is written under a temporary name in its directory and
-renamed into place (:func:`os.replace`) only once it is complete.
+"""Safe writes: every file nplps writes is written under a temporary name and renamed into place.
+
+Each file is written under a temporary name in its own directory and renamed into place
+(:func:`os.replace`) only once it is complete.
 
 So an error while writing (a full disk, a file size limit, Ctrl-C) never leaves a truncated file
 under the final name: the final name holds either the complete new file or whatever was there
@@ -33,12 +35,15 @@ _MAX_NAME = 200  # of the part of the final name that is repeated in the tempora
 
 @contextmanager
 def atomic_path(path: PathLike) -> Iterator[str]:
-    """Yields a new, empty temporary file name next to ``path`` with the same extension, for
-    writers that take a file name (``imageio``, ``tifffile``). When the block ends without an
-    exception the file is renamed to ``path``; otherwise it is removed.
+    """Yield a new, empty temporary file name next to ``path`` with the same extension.
 
-    Raises:
-        OSError: creating, writing or renaming failed; ``filename`` is ``path``.
+    It is for writers that take a file name (``imageio``, ``tifffile``). When the block ends without
+    an exception the file is renamed to ``path``; otherwise it is removed.
+
+    Raises
+    ------
+    OSError
+        Creating, writing or renaming failed; ``filename`` is ``path``.
     """
     final = os.fspath(path)
     directory, name = os.path.split(os.path.abspath(final))
@@ -60,12 +65,16 @@ def atomic_path(path: PathLike) -> Iterator[str]:
 def atomic_write(
     path: PathLike, mode: str = "wb", encoding: str | None = None, newline: str | None = None
 ) -> Iterator[IO[Any]]:
-    """Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under
-    a temporary name and renamed to ``path`` when the block ends without an exception; on an
-    exception it is removed and ``path`` is left as it was.
+    """Open ``path`` for writing under a temporary name, renamed into place when the block ends.
 
-    Raises:
-        OSError: opening, writing or renaming failed; ``filename`` is ``path``.
+    Like ``open(path, mode)`` for writing (``"w"`` or ``"wb"``), but the file is written under a
+    temporary name and renamed to ``path`` when the block ends without an exception; on an exception
+    it is removed and ``path`` is left as it was.
+
+    Raises
+    ------
+    OSError
+        Opening, writing or renaming failed; ``filename`` is ``path``.
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write writes new files (mode 'w' or 'wb'), got mode {mode!r}")
@@ -75,7 +84,7 @@ def atomic_write(
 
 
 def write_text(path: PathLike, text: str) -> None:
-    """Writes ``text`` (UTF-8) to ``path`` with :func:`atomic_write`."""
+    """Write ``text`` (UTF-8) to ``path`` with :func:`atomic_write`."""
     with atomic_write(path, "w", encoding="utf-8") as file:
         file.write(text)
 
@@ -95,13 +104,15 @@ def write_error(error: OSError, path: PathLike) -> OSError:
 
 
 def is_write_error(error: BaseException) -> bool:
-    """Whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` (or was made by
-    :func:`write_error`): its ``filename`` is the file that could not be written."""
+    """Tell whether ``error`` comes from :func:`atomic_write` / :func:`atomic_path` or :func:`write_error`.
+
+    If so, its ``filename`` is the file that could not be written.
+    """
     return bool(getattr(error, _WRITE_ERROR, False))
 
 
 def _create(directory: str, name: str, suffix: str) -> str:
-    """Creates a new empty temporary file in ``directory``; returns its name."""
+    """Create a new empty temporary file in ``directory``; return its name."""
     stem = name[:_MAX_NAME]
     for _ in range(100):
         temporary = os.path.join(directory, f".{stem}.nplps-{secrets.token_hex(4)}{suffix}")

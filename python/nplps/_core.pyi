@@ -1,5 +1,7 @@
-"""Type stubs of the compiled core ``nplps._core`` (Rust, pyo3). Use the wrappers in
-:mod:`nplps` rather than these functions directly: they validate and convert the input.
+"""Type stubs of the compiled core ``nplps._core`` (Rust, pyo3).
+
+Use the wrappers in :mod:`nplps` rather than these functions directly: they validate and
+convert the input.
 
 The boundary passes plain dicts, typed here as TypedDicts and checked against the compiled module
 by ``python -m mypy.stubtest nplps._core`` (pydantic-core's way). The core reads every options
@@ -116,9 +118,12 @@ def synth_scene(
 def read_pngs(
     paths: Sequence[str | os.PathLike[str]], max_pixels: int
 ) -> list[npt.NDArray[np.uint8] | npt.NDArray[np.uint16]]:
-    """Decode PNG files in parallel (GIL released): uint8 / uint16 arrays (H, W) or (H, W, 3) as
-    stored (alpha dropped, palettes expanded, grey palettes to grey, 1/2/4-bit grey to 0..255).
-    InputError names the first missing or broken file, or one above max_pixels pixels."""
+    """Decode PNG files in parallel (GIL released).
+
+    Returns uint8 / uint16 arrays (H, W) or (H, W, 3) as stored (alpha dropped, palettes
+    expanded, grey palettes to grey, 1/2/4-bit grey to 0..255). InputError names the first
+    missing or broken file, or one above max_pixels pixels.
+    """
 
 # -- light calibration (nplps.calibrate) ----------------------------------------------------------
 def calibrate_spheres(
@@ -130,8 +135,11 @@ def calibrate_spheres(
     radius: float,
     options: SphereOptions,
 ) -> SphereCalibrationDict:
-    """Sphere calibration: per placement (k, H, W) images and a (H, W) label image or a detection
-    (min radius, max radius, count) in pixels, and centre depths ([], [z] or one per sphere)."""
+    """Calibrate the lights from images of shiny spheres.
+
+    Per placement: (k, H, W) images and a (H, W) label image or a detection (min radius, max
+    radius, count) in pixels, and centre depths ([], [z] or one per sphere).
+    """
 
 def calibrate_intensities(
     images: npt.NDArray[np.float32],
@@ -153,7 +161,7 @@ def synth_spheres(
     board: tuple[Sequence[float], float] | None,
     options: SphereRenderOptions,
 ) -> SphereImagesDict:
-    """Renders (k, H, W) float64 radiance of shiny spheres and their (H, W) uint32 labels."""
+    """Render (k, H, W) float64 radiance of shiny spheres and their (H, W) uint32 labels."""
 
 def synth_board(
     camera: Camera,
@@ -162,4 +170,4 @@ def synth_board(
     offset: float,
     albedo: F64,
 ) -> F64:
-    """Renders (k, H, W[, 3]) images of a flat board with albedo (H, W[, 3]) by the image model."""
+    """Render (k, H, W[, 3]) images of a flat board with albedo (H, W[, 3]) by the image model."""

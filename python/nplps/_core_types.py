@@ -1,6 +1,8 @@
-"""The typed boundary of the compiled core ``nplps._core``: the TypedDicts of its option,
-rig and result mappings (pydantic-core's way: typed dicts, checked against the compiled module
-by ``python -m mypy.stubtest nplps._core``, whose stub ``_core.pyi`` uses them).
+"""The typed boundary of the compiled core ``nplps._core``.
+
+The TypedDicts of its option, rig and result mappings (pydantic-core's way: typed dicts,
+checked against the compiled module by ``python -m mypy.stubtest nplps._core``, whose stub
+``_core.pyi`` uses them).
 
 The core reads every options mapping strictly: a key that is not declared in its TypedDict is an
 ``InputError`` naming it and the valid keys; a missing key (or None) takes the core's default.
@@ -36,8 +38,11 @@ class _PinholeCameraBase(TypedDict):
 
 
 class PinholeCameraDict(_PinholeCameraBase, total=False):
-    """A pinhole camera: 3 x 3 intrinsics (0-based pixel centres) and OpenCV's (k1, k2, p1, p2,
-    k3) (the canonical form has all 5; input may omit it, or give 2, 4, 5, 8, 12 or 14)."""
+    """A pinhole camera: 3 x 3 intrinsics (0-based pixel centres) and OpenCV's distortion.
+
+    The distortion is (k1, k2, p1, p2, k3): the canonical form has all 5; input may omit it, or
+    give 2, 4, 5, 8, 12 or 14 coefficients.
+    """
 
     distortion: list[float] | list[list[float]] | None
 
@@ -51,9 +56,12 @@ Camera = Mapping[str, Any]
 
 
 class LightsDict(TypedDict):
-    """Per-light lists, one item per light: ``vectors`` (positions of point lights, unit
-    directions towards directional lights), ``directional`` flags, ``intensities`` (R, G, B),
-    ``axes`` (LED principal directions) and ``mu`` (LED anisotropy)."""
+    """Per-light lists, one item per light.
+
+    ``vectors`` (positions of point lights, unit directions towards directional lights),
+    ``directional`` flags, ``intensities`` (R, G, B), ``axes`` (LED principal directions) and
+    ``mu`` (LED anisotropy).
+    """
 
     vectors: list[list[float]]
     directional: list[bool]
@@ -83,8 +91,11 @@ class SolverOptions(TypedDict, total=False):
 
 
 class ReconstructOptions(SolverOptions, total=False):
-    """Options of ``reconstruct``: the solver's, the distance search (``auto``, ``depth_range``,
-    ``depth_guess``) and the depth prior ((H+1, W+1) ``prior`` with ``prior_weight``)."""
+    """Options of ``reconstruct``.
+
+    The solver's, the distance search (``auto``, ``depth_range``, ``depth_guess``) and the depth
+    prior ((H+1, W+1) ``prior`` with ``prior_weight``).
+    """
 
     auto: bool | None
     depth_range: tuple[float, float] | None
@@ -203,9 +214,12 @@ class _ReconstructionBase(TypedDict):
 
 
 class ReconstructionDict(_ReconstructionBase, total=False):
-    """A reconstruction: (H+1, W+1) depth, (H, W, 3) normals, (H, W[, 3]) albedo, (H, W)
-    residual, lights used and regions, the per-region gauge, the history and the status;
-    ``refinement`` when the lights were refined, ``distance_estimate`` with ``auto``."""
+    """A reconstruction as the core returns it.
+
+    (H+1, W+1) depth, (H, W, 3) normals (the local fits), (H, W[, 3]) albedo, (H, W) residual,
+    lights used and regions, the per-region gauge, the history and the status; ``refinement``
+    when the lights were refined, ``distance_estimate`` with ``auto``.
+    """
 
     refinement: RefinementDict
     distance_estimate: DistanceEstimateDict

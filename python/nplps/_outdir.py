@@ -1,5 +1,4 @@
-"""Output directories of results (``Reconstruction.save``, ``Scene.save``, ``nplps reconstruct
---out`` ...).
+"""Output directories of results (``Reconstruction.save``, ``Scene.save``, ``nplps reconstruct --out`` ...).
 
 nplps writes a result only into a new or empty directory, unless told to overwrite
 (``overwrite=True``, ``--overwrite``). Then it writes its files (replacing files of the same
@@ -70,8 +69,10 @@ class ResultDirectory(os.PathLike):
         return f"ResultDirectory({os.fspath(self.path)!r})"
 
     def file(self, name: str) -> Path:
-        """The path of the file ``name`` (relative, "/"-separated) in this directory, recorded as
-        written; its parent directories are created."""
+        """Return the path of the file ``name`` (relative, "/"-separated) in this directory.
+
+        The file is recorded as written; its parent directories are created.
+        """
         relative = self._prefix + name
         path = self._run.root / relative
         try:
@@ -83,7 +84,7 @@ class ResultDirectory(os.PathLike):
         return path
 
     def subdirectory(self, name: str) -> ResultDirectory:
-        """The subdirectory ``name``, written as part of this directory's run."""
+        """Return the subdirectory ``name``, written as part of this directory's run."""
         view = object.__new__(ResultDirectory)
         view._run = self._run
         view._prefix = f"{self._prefix}{name.strip('/')}/"
@@ -95,11 +96,13 @@ class ResultDirectory(os.PathLike):
         return list(self._run.written)
 
     def close(self, complete: bool = True) -> None:
-        """Ends the run (a subdirectory's close does nothing): when ``complete``, removes the
-        earlier run's files that this run did not write and writes the manifest of this run's
-        files; otherwise (the run failed) writes a manifest of the earlier run's files and the
-        files of this run that exist, so that nothing nplps wrote is forgotten. Nothing is done
-        if nothing was written."""
+        """End the run (a subdirectory's close does nothing).
+
+        When ``complete``, it removes the earlier run's files that this run did not write and writes
+        the manifest of this run's files; otherwise (the run failed) writes a manifest of the
+        earlier run's files and the files of this run that exist, so that nothing nplps wrote is
+        forgotten. Nothing is done if nothing was written.
+        """
         run = self._run
         if self._prefix or run.closed:
             return
@@ -131,8 +134,11 @@ class ResultDirectory(os.PathLike):
 
 @contextmanager
 def result_directory(directory: PathLike, overwrite: bool = False) -> Iterator[ResultDirectory]:
-    """A :class:`ResultDirectory` for a ``save`` method: ``directory`` itself if it is one (the
-    caller's run, which the caller closes), else a new one, closed at the end of the block."""
+    """Return a :class:`ResultDirectory` for a ``save`` method.
+
+    It is ``directory`` itself if it is one (the caller's run, which the caller closes), else a new
+    one, closed at the end of the block.
+    """
     if isinstance(directory, ResultDirectory):
         yield directory
         return
@@ -141,8 +147,10 @@ def result_directory(directory: PathLike, overwrite: bool = False) -> Iterator[R
 
 
 def read_manifest(directory: PathLike) -> list[str] | None:
-    """The files listed by the manifest in ``directory`` (only safe relative paths inside it),
-    or None if there is no readable manifest."""
+    """Return the files listed by the manifest in ``directory``, or None if there is no readable manifest.
+
+    Only safe relative paths inside ``directory`` are listed.
+    """
     try:
         data = json.loads((Path(directory) / MANIFEST).read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -154,7 +162,7 @@ def read_manifest(directory: PathLike) -> list[str] | None:
 
 
 def _check(root: Path, overwrite: bool, option: str) -> list[str]:
-    """Refuses a non-empty ``root`` unless ``overwrite``; returns the files of its manifest."""
+    """Refuse a non-empty ``root`` unless ``overwrite``; return the files of its manifest."""
     try:
         with os.scandir(root) as entries:
             empty = next(entries, None) is None
@@ -200,7 +208,7 @@ def _inside(root: Path, path: Path) -> bool:
 
 
 def _remove_stale(root: Path, stale: list[str]) -> None:
-    """Removes the files ``stale`` (relative to ``root``) and the directories they leave empty."""
+    """Remove the files ``stale`` (relative to ``root``) and the directories they leave empty."""
     parents: set[Path] = set()
     for name in stale:
         path = root / name
@@ -219,7 +227,7 @@ def _remove_stale(root: Path, stale: list[str]) -> None:
 
 
 def _remove_temporaries(root: Path, written: list[str]) -> None:
-    """Removes temporary files that an interrupted nplps run left in the directories written."""
+    """Remove temporary files that an interrupted nplps run left in the directories written."""
     for directory in {(root / name).parent for name in written}:
         try:
             with os.scandir(directory) as entries:

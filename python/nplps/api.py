@@ -1,5 +1,4 @@
-"""The Python API: :func:`reconstruct`, the parallel-light baseline :func:`reconstruct_parallel`,
-and :func:`render`.
+"""The Python API: :func:`reconstruct`, the parallel-light baseline :func:`reconstruct_parallel`, and :func:`render`.
 
 The images and the rig are positional; every option is keyword-only, and ``depth`` (the working
 distance, an initial depth map or ``"auto"``) is required. String options are typed with the
@@ -96,10 +95,12 @@ def _used_vertices(mask: np.ndarray) -> np.ndarray:
 
 
 def _rig_size(rig: Rig, shape: tuple[int, int]) -> float:
-    """The rig's size for :data:`MAX_DEPTH_RATIO`: the largest distance from the origin (the
-    camera centre) of a point light or, for an orthographic camera, of a corner of the image
-    footprint of ``shape`` (H, W) pixels; 0 when there is neither (a pinhole camera with only
-    directional lights: then no depth is too far)."""
+    """Return the rig's size for :data:`MAX_DEPTH_RATIO`.
+
+    It is the largest distance from the origin (the camera centre) of a point light or, for an
+    orthographic camera, of a corner of the image footprint of ``shape`` (H, W) pixels; 0 when there
+    is neither (a pinhole camera with only directional lights: then no depth is too far).
+    """
     sizes = [0.0]
     points = rig.positions[~rig.directional]
     if len(points):
@@ -115,8 +116,11 @@ def _rig_size(rig: Rig, shape: tuple[int, int]) -> float:
 def _check_depth_values(
     values: np.ndarray, mask: np.ndarray | None, rig: Rig, shape: tuple[int, int], name: str
 ) -> None:
-    """Fails when a finite value of ``values`` (at the vertices ``mask`` uses, if given) is
-    farther than :data:`MAX_DEPTH_RATIO` times the rig's size (see there)."""
+    """Fail when a finite value of ``values`` is too far from the rig.
+
+    Only the values at the vertices ``mask`` uses count, if given; too far is farther than
+    :data:`MAX_DEPTH_RATIO` times the rig's size (see there).
+    """
     size = _rig_size(rig, shape)
     if size <= 0:
         return
@@ -136,8 +140,10 @@ def _check_depth_values(
 
 
 def _auto_start(rig: Rig) -> float:
-    """A starting plane for the distance search, well beyond the point lights (the search sets
-    the gauge itself)."""
+    """Return a starting plane for the distance search, well beyond the point lights.
+
+    The search sets the gauge itself.
+    """
     points = rig.positions[~rig.directional]
     if len(points) == 0:
         return 1.0
@@ -146,27 +152,38 @@ def _auto_start(rig: Rig) -> float:
 
 
 def _thresholds(dark: float | None, saturation: float | None, levels: int | None) -> tuple[float, float]:
-    """Shadow and saturation thresholds; by default one level above black and the top level for
-    integer images (values are scaled to [0, 1]), 0 and none for floating-point images."""
+    """Return the shadow and saturation thresholds.
+
+    By default one level above black and the top level for integer images (values are scaled to
+    [0, 1]), 0 and none for floating-point images.
+    """
     dark, saturation = pipeline.thresholds(levels, dark=dark, saturation=saturation)
     return _real(dark, "dark"), _real(saturation, "saturation")
 
 
 def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple[np.ndarray, Any]:
-    """Averages RGB to grey when ``color`` is False; observations with a saturated channel are
-    returned as missing (the grey average would hide them)."""
+    """Average RGB to grey when ``color`` is False.
+
+    Observations with a saturated channel are returned as missing (the grey average would hide
+    them).
+    """
     return pipeline.select_color(stack, color, saturation)
 
 
 def _owned(stack: np.ndarray, images: Images) -> bool:
-    """True when ``stack`` was made here (from files, a list, a conversion or the grey average),
-    not the caller's array itself: then it may be modified in place."""
+    """Return True when ``stack`` was made here, not the caller's array itself.
+
+    Made here means from files, a list, a conversion or the grey average; then it may be modified in
+    place.
+    """
     return not (isinstance(images, np.ndarray) and np.may_share_memory(stack, images))
 
 
 def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = None, owned: bool = False) -> np.ndarray:
-    """Marks the observations where ``valid`` is False, or ``missing`` is True, as missing (NaN):
-    in ``stack`` itself when it is ``owned`` (see :func:`_owned`), in a copy otherwise."""
+    """Mark the observations where ``valid`` is False, or ``missing`` is True, as missing (NaN).
+
+    This is done in ``stack`` itself when it is ``owned`` (see :func:`_owned`), in a copy otherwise.
+    """
     if valid is None and missing is None:
         return stack
     v = np.ones(stack.shape[:3], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
@@ -190,8 +207,10 @@ def _warn_negative(count: int, dark: float) -> None:
 
 
 def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
-    """Warns when the multigrid solver stopped at its iteration limit in some global step (the
-    mask's thin structures defeat its coarsening): that step's depths are inexact."""
+    """Warn when the multigrid solver stopped at its iteration limit in some global step.
+
+    The mask's thin structures defeat its coarsening; that step's depths are inexact.
+    """
     limit = _core.MULTIGRID_MAX_ITERATIONS
     stuck = sum(1 for h in history if len(h) > 5 and h[5] >= limit)
     if stuck:
@@ -205,10 +224,12 @@ def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
 
 
 def _warn_status(result: Reconstruction) -> None:
-    """Warns when the result is not to be trusted: status "degenerate" (more than half of the
-    masked pixels had fewer than 3 usable observations and kept the starting shape, which says
-    nothing about the object) or "diverged" (the depth changes grew). The core decides the
-    status (see ``Reconstruction.status``)."""
+    """Warn when the result is not to be trusted.
+
+    That is status "degenerate" (more than half of the masked pixels had fewer than 3 usable
+    observations and kept the starting shape, which says nothing about the object) or "diverged"
+    (the depth changes grew). The core decides the status (see ``Reconstruction.status``).
+    """
     if result.status == "degenerate":
         total = int(result.mask.sum())
         warnings.warn(
@@ -494,7 +515,7 @@ def reconstruct_parallel(
     refine_lights: RefineLights | None = None,
     max_memory: float | str | None = None,
 ) -> Reconstruction:
-    """The conventional baseline: parallel-light photometric stereo, then the same integration.
+    """Reconstruct with the conventional baseline: parallel-light photometric stereo, then the same integration.
 
     Each point light becomes one direction, from the centroid of the initial surface (given by
     `depth` as in :func:`reconstruct`) to the light, with no falloff; directional lights keep
@@ -643,7 +664,7 @@ def render(
 
 
 def _refine_choice(mode: str | None) -> Literal["none", "intensity", "position", "both"]:
-    """Checks ``refine_lights``: None, "intensity", "position" or "both"."""
+    """Check ``refine_lights``: None, "intensity", "position" or "both"."""
     if mode is None or mode is False:
         return "none"
     if mode not in ("intensity", "position", "both"):
@@ -652,8 +673,10 @@ def _refine_choice(mode: str | None) -> Literal["none", "intensity", "position",
 
 
 def _short(value: Any) -> str:
-    """A short description of ``value`` for messages: never a huge repr (a long string, an
-    integer of thousands of digits, a large array)."""
+    """Return a short description of ``value`` for messages.
+
+    Never a huge repr (a long string, an integer of thousands of digits, a large array).
+    """
     if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
         bits = int(value).bit_length()
         return str(int(value)) if bits <= 64 else f"an integer of about {int(bits * math.log10(2)) + 1} digits"
@@ -679,8 +702,10 @@ def _real(value: Any, name: str) -> float:
 
 
 def _light_indices(lights: Any, k: int, name: str = "lights", negative: bool = True) -> list[int]:
-    """``lights`` as a list of indices of ``k`` lights (from -k with ``negative``, else from 0),
-    or InputError."""
+    """Return ``lights`` as a list of indices of ``k`` lights, or raise InputError.
+
+    Indices run from -k with ``negative``, else from 0.
+    """
     try:
         flat = not isinstance(lights, (str, bytes)) and np.ndim(lights) == 1
     except ValueError:  # a ragged nested sequence
@@ -698,8 +723,10 @@ def _light_indices(lights: Any, k: int, name: str = "lights", negative: bool = T
 
 
 def _real_array(value: Any, name: str) -> np.ndarray:
-    """``value`` as a contiguous float64 array (of integers or floats: not bools, strings,
-    complex numbers or objects), or InputError."""
+    """Return ``value`` as a contiguous float64 array, or raise InputError.
+
+    The values must be integers or floats: not bools, strings, complex numbers or objects.
+    """
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError):  # ragged nested sequences
@@ -737,7 +764,7 @@ _UNITS = {
 
 
 def _memory_limit(value: Any, name: str = "max_memory") -> float | None:
-    """A memory limit in bytes from a number or a string like "8 GB" / "512MiB" (None: the default)."""
+    """Return a memory limit in bytes from a number or a string like "8 GB" / "512MiB" (None: the default)."""
     if value is None:
         return None
     if isinstance(value, str):

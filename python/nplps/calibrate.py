@@ -145,9 +145,11 @@ class SphereCalibration:
 
     @property
     def rig(self) -> Rig:
-        """The calibrated rig: point lights at the positions, directional lights along the
-        directions, all with intensity 1. Raises :class:`RigError` when a light was not seen
-        on any sphere."""
+        """The calibrated rig.
+
+        Point lights at the positions, directional lights along the directions, all with
+        intensity 1. Raises :class:`RigError` when a light was not seen on any sphere.
+        """
         missing = [rep.index for rep in self.lights if rep.kind == "missing"]
         if missing:
             raise RigError(
@@ -164,16 +166,16 @@ class SphereCalibration:
         return Rig(camera=self.camera, lights=lights)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the calibrated rig file (see :attr:`rig`)."""
+        """Write the calibrated rig file (see :attr:`rig`)."""
         self.rig.save(path)
 
     def table(self) -> str:
-        """The per-light report as a text table."""
+        """Return the per-light report as a text table."""
         return light_table(self.lights)
 
 
 def light_table(lights: Sequence[LightReport]) -> str:
-    """A text table of light reports: kind, position or direction, spheres, miss and angle."""
+    """Return a text table of light reports: kind, position or direction, spheres, miss and angle."""
     lines = [
         f"{'light':>5}  {'kind':<11} {'x / dx':>10} {'y / dy':>10} {'z / dz':>10} {'spheres':>7} "
         f"{'rms miss':>9} {'rms angle':>9} {'spread':>7}  note"
@@ -221,11 +223,11 @@ class IntensityCalibration:
     warnings: list[str] = field(default_factory=list)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the calibrated rig file."""
+        """Write the calibrated rig file."""
         self.rig.save(path)
 
     def table(self) -> str:
-        """The per-light report as a text table."""
+        """Return the per-light report as a text table."""
         c = self.intensities.shape[1]
         head = "intensity" if c == 1 else "intensity R, G, B"
         lines = [f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'obs':>8}"]
@@ -253,8 +255,11 @@ def _camera_of(camera: Rig | Mapping[str, Any]) -> dict[str, Any]:
 
 
 def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The camera mapping of a rig file (its lights, if any, are ignored: a file with
-    ``"lights": []`` describes a camera only). Raises :class:`RigError` naming the problem."""
+    """Return the camera mapping of a rig file.
+
+    Its lights, if any, are ignored (a file with ``"lights": []`` describes a camera only). Raises
+    :class:`RigError` naming the problem.
+    """
     data = read_rig_json(path)  # within the rig file's limits (size, nesting), as Rig.load
     if not isinstance(data, dict) or not isinstance(data.get("camera"), dict):
         raise RigError(f"{os.fspath(path)}: a rig file holds a JSON object with a 'camera' object")
@@ -262,7 +267,7 @@ def load_camera(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -> None:
-    """Writes a rig file with the camera only (``"lights": []``), for :func:`load_camera`."""
+    """Write a rig file with the camera only (``"lights": []``), for :func:`load_camera`."""
     from .rig import RIG_FILE_VERSION
 
     cam = _camera_of(camera)
@@ -272,7 +277,7 @@ def save_camera(path: str | os.PathLike[str], camera: Rig | Mapping[str, Any]) -
 
 
 def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
-    """The placements: a single (k, H, W[, 3]) array is one placement; otherwise a list."""
+    """Return the placements: a single (k, H, W[, 3]) array is one placement; otherwise a list."""
     if isinstance(images, np.ndarray):
         if images.ndim in (3, 4):
             return [images]
@@ -286,8 +291,11 @@ def _placements(images: ImageSet | Sequence[ImageSet]) -> list[ImageSet]:
 
 
 def _labels(mask: Any, shape: tuple[int, int], where: str) -> np.ndarray:
-    """A mask file or array as uint32 labels: a binary mask (one non-zero value) becomes 0/1
-    (each connected component a sphere); integer labels are kept."""
+    """Read a mask file or array as uint32 labels.
+
+    A binary mask (one non-zero value) becomes 0/1 (each connected component a sphere); integer
+    labels are kept.
+    """
     if isinstance(mask, (str, os.PathLike)):
         a = io.read_image(mask)
         if a.ndim == 3:
@@ -353,47 +361,64 @@ def calibrate_spheres(
     limb_margin: float = 0.97,
     refine: bool = True,
 ) -> SphereCalibration:
-    """Calibrates the light positions from images of shiny spheres.
+    """Calibrate the light positions from images of shiny spheres.
 
-    Args:
-        images: a list of placements, each a (k, H, W[, 3]) array or a list of k image files /
-            arrays (one per light, in the rig's order; all placements the same k and size). A
-            single (k, H, W[, 3]) array is one placement. Integer images are scaled to [0, 1];
-            colour becomes grey.
-        camera: an :class:`~nplps.Rig` (its lights are ignored) or the rig file's camera mapping.
-        radius: the spheres' radius (scene units; the same for all spheres).
-        masks: per placement a mask (file or (H, W) array) or None: a binary mask marks each
-            sphere as one connected region; an integer label image marks sphere j with label j.
-            A single mask (not in a list) serves a single placement.
-        detect: (min, max) image radius in pixels: find the spheres in the composite image (each
-            pixel's brightest value over the lights) of each
-            placement without a mask (they must be brighter than the background).
-        count: with ``detect``, how many spheres each placement shows (default: all found).
-        center_depth: depth (z) of the sphere centres: one number for all, or per placement a
-            number or a list with one per sphere (in the order of the mask's labels, or of
-            detection: by row then column). Required for an orthographic camera; with a pinhole
-            camera it overrides the distance from the outline.
-        outline: "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
-            outline in the composite image, refined from the mask's circle). Detection always uses
-            the images.
-        parallel_tol: rays whose RMS angle about their mean direction is at most this many
-            degrees make a directional (distant) light.
-        min_contrast, max_blob_fraction, limb_margin: highlight search: the brightest value
-            must exceed the sphere's median by ``min_contrast`` times itself, the blob above
-            their midpoint may cover at most ``max_blob_fraction`` of the sphere, and only the
-            pixels whose ray passes within ``limb_margin`` radii of the centre are searched.
-        refine: refine the sphere centres and the lights jointly (a small bundle adjustment of
-            the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
-            a sphere's centre only to a few hundredths of a pixel, which turns every ray by about
-            0.1 degree; the highlights of all lights pin it much better.
+    Parameters
+    ----------
+    images : ImageSet | Sequence[ImageSet]
+        A list of placements, each a (k, H, W[, 3]) array or a list of k image files /
+        arrays (one per light, in the rig's order; all placements the same k and size). A
+        single (k, H, W[, 3]) array is one placement. Integer images are scaled to [0, 1];
+        colour becomes grey.
+    camera : Rig | Mapping[str, Any]
+        An :class:`~nplps.Rig` (its lights are ignored) or the rig file's camera mapping.
+    radius : float
+        The spheres' radius (scene units; the same for all spheres).
+    masks : Any, optional
+        Per placement a mask (file or (H, W) array) or None: a binary mask marks each
+        sphere as one connected region; an integer label image marks sphere j with label j.
+        A single mask (not in a list) serves a single placement.
+    detect : tuple[float, float] | None, optional
+        (min, max) image radius in pixels: find the spheres in the composite image (each
+        pixel's brightest value over the lights) of each
+        placement without a mask (they must be brighter than the background).
+    count : int | None, optional
+        With ``detect``, how many spheres each placement shows (default: all found).
+    center_depth : Any, optional
+        Depth (z) of the sphere centres: one number for all, or per placement a
+        number or a list with one per sphere (in the order of the mask's labels, or of
+        detection: by row then column). Required for an orthographic camera; with a pinhole
+        camera it overrides the distance from the outline.
+    outline : str, optional
+        "mask" (the mask's boundary, sub-pixel crack midpoints) or "images" (the
+        outline in the composite image, refined from the mask's circle). Detection always uses
+        the images.
+    parallel_tol : float, optional
+        Rays whose RMS angle about their mean direction is at most this many
+        degrees make a directional (distant) light.
+    min_contrast, max_blob_fraction, limb_margin : float, optional
+        Highlight search: the brightest value must exceed the sphere's median by ``min_contrast``
+        times itself, the blob above their midpoint may cover at most ``max_blob_fraction`` of the
+        sphere, and only the pixels whose ray passes within ``limb_margin`` radii of the centre are
+        searched.
+    refine : bool, optional
+        Refine the sphere centres and the lights jointly (a small bundle adjustment of
+        the outlines and the highlights; see ``docs/calibration.md``). A binary mask places
+        a sphere's centre only to a few hundredths of a pixel, which turns every ray by about
+        0.1 degree; the highlights of all lights pin it much better.
 
-    Returns:
+    Returns
+    -------
+    SphereCalibration
         A :class:`SphereCalibration` with ``.rig``, per-light reports ``.lights`` (position or
         direction, RMS miss distance, spheres seen), ``.spheres``, ``.warnings`` and ``.table()``.
 
-    Raises:
-        InputError: unreadable or inconsistent images or masks, no sphere found, a bad option.
-        RigError: an invalid camera.
+    Raises
+    ------
+    InputError
+        Unreadable or inconsistent images or masks, no sphere found, a bad option.
+    RigError
+        An invalid camera.
     """
     cam = _camera_of(camera)
     sets = _placements(images)
@@ -498,7 +523,7 @@ def calibrate_spheres(
 
 
 def _plane(plane: Any) -> tuple[list[float], float]:
-    """(normal, offset) from a depth, a (normal, offset) pair or a mapping."""
+    """Return (normal, offset) from a depth, a (normal, offset) pair or a mapping."""
     if np.isscalar(plane):
         depth: Any = plane
         z = float(depth)
@@ -534,27 +559,40 @@ def calibrate_intensities(
     saturation: float | None = None,
     iterations: int = 100,
 ) -> IntensityCalibration:
-    """Calibrates the light intensities from images of a flat diffuse board.
+    """Calibrate the light intensities from images of a flat diffuse board.
 
-    Args:
-        images: (k, H, W[, 3]) array or k image files, one per light of ``rig``.
-        rig: the rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
-            LEDs, their axes and mu if known.
-        plane: the board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
-            ``normal . X = offset`` in the camera frame.
-        mask: the board's pixels (file or (H, W) array; None: every pixel).
-        fit_mu: fit each point light's anisotropy mu (starting from the rig's, or 1).
-        fit_direction: with ``fit_mu``, fit each LED's axis (principal direction) too (starting
-            from the rig's, or from the LED towards the board's centre).
-        albedo: "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
-            absorbs texture and vignetting; needs the lights to differ enough).
-        color: fit the R, G, B intensities of colour images separately (the board is assumed
-            white: its colour is taken as the lights'); default grey.
-        dark, saturation: observations at or below ``dark`` or at or above ``saturation`` are
-            left out (defaults: one level above black and the top level for integer images).
-        iterations: most alternations (per-pixel albedo) or Levenberg-Marquardt steps.
+    Parameters
+    ----------
+    images : ImageSet
+        (k, H, W[, 3]) array or k image files, one per light of ``rig``.
+    rig : Rig
+        The rig with the light positions (e.g. from :func:`calibrate_spheres`) and, for
+        LEDs, their axes and mu if known.
+    plane : Any
+        The board: its depth z (a plane facing the camera), or ``(normal, offset)`` with
+        ``normal . X = offset`` in the camera frame.
+    mask : Any, optional
+        The board's pixels (file or (H, W) array; None: every pixel).
+    fit_mu : bool, optional
+        Fit each point light's anisotropy mu (starting from the rig's, or 1).
+    fit_direction : bool, optional
+        With ``fit_mu``, fit each LED's axis (principal direction) too (starting
+        from the rig's, or from the LED towards the board's centre).
+    albedo : str, optional
+        "uniform" (one albedo for the board) or "per_pixel" (also estimated per pixel:
+        absorbs texture and vignetting; needs the lights to differ enough).
+    color : bool, optional
+        Fit the R, G, B intensities of colour images separately (the board is assumed
+        white: its colour is taken as the lights'); default grey.
+    dark, saturation : float | None, optional
+        Observations at or below ``dark`` or at or above ``saturation`` are
+        left out (defaults: one level above black and the top level for integer images).
+    iterations : int, optional
+        Most alternations (per-pixel albedo) or Levenberg-Marquardt steps.
 
-    Returns:
+    Returns
+    -------
+    IntensityCalibration
         An :class:`IntensityCalibration` with the calibrated ``.rig`` (relative intensities,
         geometric mean 1), per-light ``.intensities``, ``.mu``, ``.axes``, ``.rms``.
     """
@@ -634,10 +672,13 @@ class SphereScene:
         return [[float(c[2]) for c in cs] for cs in self.centers]
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Writes ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
+        """Write the images, masks, camera, true rig and scene description into ``directory``.
+
+        Write ``placement_<i>/image_XX.png`` and ``placement_<i>/mask.png`` per placement,
         ``camera.json`` (the camera, no lights), ``rig_true.json`` and ``scene.json`` (radius,
-        centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory``
-        must be empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`)."""
+        centre depths, board depth), and the manifest ``nplps-manifest.json``. ``directory`` must be
+        empty unless ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
+        """
         from . import export
 
         meta = {
@@ -679,9 +720,11 @@ class BoardScene:
     albedo: np.ndarray = field(repr=False)
 
     def save(self, directory: str | os.PathLike[str], overwrite: bool = False) -> dict[str, Path]:
-        """Writes ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the
-        manifest ``nplps-manifest.json``. ``directory`` must be empty unless ``overwrite=True``
-        (see :meth:`nplps.Reconstruction.save`)."""
+        """Write ``image_XX.png`` and ``board.json`` (the plane) into ``directory``, and the manifest.
+
+        The manifest is ``nplps-manifest.json``. ``directory`` must be empty unless
+        ``overwrite=True`` (see :meth:`nplps.Reconstruction.save`).
+        """
         from . import export
 
         with result_directory(directory, overwrite) as out:
@@ -715,8 +758,11 @@ def standard_rig(
     directional: bool = False,
     led: bool = False,
 ) -> Rig:
-    """The rig of :func:`nplps.make_scene` (``n`` x ``n`` pixels, object ``size`` at
-    ``distance``), restricted to ``lights`` (8, 27 or indices into the 27 standard lights)."""
+    """Return the rig of :func:`nplps.make_scene`, restricted to ``lights``.
+
+    The rig has ``n`` x ``n`` pixels, object ``size`` at ``distance``; ``lights`` is 8, 27 or
+    indices into the 27 standard lights.
+    """
     if camera not in ("orthographic", "pinhole"):
         raise InputError(f"camera must be 'orthographic' or 'pinhole', got {camera!r}")
     d = _core.synth_scene("saddle", 2, float(size), float(distance), 0, pinhole=False, led=led, directional=directional)
@@ -735,11 +781,13 @@ def standard_rig(
 def default_placements(
     camera: str, radius: float, board_depth: float, spheres: int = 1, seed: int | None = None
 ) -> list[np.ndarray]:
-    """Two placements for the standard 100-wide view at depth 200 (scaled with the board depth):
-    one sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
-    other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about
-    2 pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to
-    seed as it does from photograph to photograph."""
+    """Return two placements for the standard 100-wide view at depth 200 (scaled with the board depth).
+
+    One sphere each (upper left, then lower right), or two spheres each (one diagonal, then the
+    other) with ``spheres=2``. With a ``seed`` every centre moves by up to 1 (scene unit, about 2
+    pixels) in x and y, so that the digitisation of the spheres' outlines differs from seed to seed
+    as it does from photograph to photograph.
+    """
     z = board_depth - radius
     s = board_depth / 200.0
     # Keep the spheres inside the view: a pinhole camera sees less at the spheres' depth.
@@ -801,7 +849,7 @@ def make_sphere_scene(
     exposure: float = 0.5,
     background: float = 0.05,
 ) -> SphereScene:
-    """Renders a synthetic sphere-calibration scene for the rig of :func:`nplps.make_scene`.
+    """Render a synthetic sphere-calibration scene for the rig of :func:`nplps.make_scene`.
 
     Shiny spheres (Lambertian albedo 1 plus a Phong lobe of strength ``specular``) rest on a dark
     board (albedo ``background``) at the working distance; every placement is rendered under
@@ -810,19 +858,28 @@ def make_sphere_scene(
     noise of ``noise`` times the full scale is added and the images are quantised to ``bits``
     (0: float images in [0, 1]).
 
-    Args:
-        camera: "orthographic" or "pinhole" (as in :func:`nplps.make_scene`).
-        n: image size n x n.
-        lights: 27 (the standard lights), 8 (:data:`LIGHTS_8`) or indices into the 27.
-        directional: every third standard light is a distant light (as in make_scene).
-        led: anisotropic LEDs with unequal intensities (as in make_scene).
-        radius: sphere radius (scene units); the image radius is about ``radius * n / size``
-            pixels (orthographic), a little more for the pinhole camera.
-        placements: per placement an (S, 3) array of sphere centres; default
-            :func:`default_placements` (two placements of ``spheres`` spheres, moved by up to 1
-            in x and y with the seed).
-        highlight_px: standard deviation of the highlight lobe in pixels (sets the Phong
-            exponent from the sphere's image radius).
+    Parameters
+    ----------
+    camera : str, optional
+        "orthographic" or "pinhole" (as in :func:`nplps.make_scene`).
+    n : int, optional
+        Image size n x n.
+    lights : int | Sequence[int], optional
+        27 (the standard lights), 8 (:data:`LIGHTS_8`) or indices into the 27.
+    directional : bool, optional
+        Every third standard light is a distant light (as in make_scene).
+    led : bool, optional
+        Anisotropic LEDs with unequal intensities (as in make_scene).
+    radius : float, optional
+        Sphere radius (scene units); the image radius is about ``radius * n / size``
+        pixels (orthographic), a little more for the pinhole camera.
+    placements : Sequence[Any] | None, optional
+        Per placement an (S, 3) array of sphere centres; default
+        :func:`default_placements` (two placements of ``spheres`` spheres, moved by up to 1
+        in x and y with the seed).
+    highlight_px : float, optional
+        Standard deviation of the highlight lobe in pixels (sets the Phong
+        exponent from the sphere's image radius).
     """
     if not (np.isfinite(noise) and noise >= 0):
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
@@ -881,10 +938,12 @@ def make_board_scene(
     exposure: float = 0.9,
     distance: float = 200.0,
 ) -> BoardScene:
-    """Renders k images (one per light of ``rig``) of a flat Lambertian board for intensity
-    calibration: the plane ``plane`` (default: facing the camera at ``distance``), albedo a
-    number or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian
-    noise of ``noise`` times the full scale, quantised to ``bits`` (0: float)."""
+    """Render k images (one per light of ``rig``) of a flat Lambertian board for intensity calibration.
+
+    The board is the plane ``plane`` (default: facing the camera at ``distance``), albedo a number
+    or (n, n) array, the brightest value mapped to ``exposure`` of the full scale, Gaussian noise of
+    ``noise`` times the full scale, quantised to ``bits`` (0: float).
+    """
     if not (np.isfinite(noise) and noise >= 0):
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
     normal, offset = _plane(distance if plane is None else plane)

@@ -55,4 +55,5 @@ class OutputExistsError(NplpsError, FileExistsError):
         super().__init__(errno.EEXIST, message, directory)
 
     def __str__(self) -> str:
+        """Return the message alone (without the ``[Errno 17]`` prefix of :class:`OSError`)."""
         return str(self.strerror)

@@ -104,8 +104,11 @@ def _build_mesh(
 
 
 def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None) -> np.ndarray:
-    """``(n, 3)`` float32 rows ``used`` (flat indices) of an ``(H + 1, W + 1, 3)`` grid, times
-    ``flip`` if given; converted chunk by chunk (no full-size float64 copy)."""
+    """Return ``(n, 3)`` float32 rows ``used`` (flat indices) of an ``(H + 1, W + 1, 3)`` grid.
+
+    The rows are multiplied by ``flip`` if given; converted chunk by chunk (no full-size float64
+    copy).
+    """
     rows = grid.reshape(-1, 3)
     out = np.empty((len(used), 3), dtype=np.float32)
     everything = len(used) == len(rows)
@@ -179,7 +182,8 @@ def _used_vertices(facets: np.ndarray) -> np.ndarray:
 def _triangles(index: np.ndarray, facets: np.ndarray) -> np.ndarray:
     """Two triangles ``(00, 10, 11)``, ``(00, 11, 01)`` per facet, in row-major facet order.
 
-    ``index`` maps the flat vertex grid ``(H + 1) * (W + 1)`` to the written vertices."""
+    ``index`` maps the flat vertex grid ``(H + 1) * (W + 1)`` to the written vertices.
+    """
     flat = np.flatnonzero(facets)
     width = facets.shape[1]
     faces = np.empty((len(flat), 2, 3), dtype=np.int32)
@@ -213,8 +217,11 @@ def _quantize(values: np.ndarray, percentile: float, max_value: int, dtype: type
 
 
 def _grey_colors(albedo: np.ndarray) -> np.ndarray:
-    """``(n, 3)`` uint8 colours: albedo (grey ``(n,)`` or RGB ``(n, 3)``) scaled by its 99th
-    percentile (over all channels) to 0..255."""
+    """Return ``(n, 3)`` uint8 colours from the albedo.
+
+    The albedo (grey ``(n,)`` or RGB ``(n, 3)``) scaled by its 99th percentile (over all channels)
+    to 0..255.
+    """
     colors, _ = _quantize(albedo, _COLOR_PERCENTILE, 255, np.uint8)
     return colors if colors.ndim == 2 else np.repeat(colors[:, None], 3, axis=1)
 
@@ -310,7 +317,7 @@ def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
 
 
 def _ply_header(mesh: _Mesh) -> str:
-    """The ASCII header of the PLY file for ``mesh``."""
+    """Return the ASCII header of the PLY file for ``mesh``."""
     lines = [
         "ply",
         "format binary_little_endian 1.0",
@@ -328,7 +335,7 @@ def _ply_header(mesh: _Mesh) -> str:
 
 
 def _ply_vertex_records(mesh: _Mesh) -> np.ndarray:
-    """The vertex element of ``mesh`` as one packed structured array."""
+    """Return the vertex element of ``mesh`` as one packed structured array."""
     groups = [(("x", "y", "z"), "<f4", mesh.points)]
     if mesh.normals is not None:
         groups.append((("nx", "ny", "nz"), "<f4", mesh.normals))
@@ -347,7 +354,7 @@ def _ply_vertex_records(mesh: _Mesh) -> np.ndarray:
 
 
 def _ply_face_records(faces: np.ndarray) -> np.ndarray:
-    """The face element: ``uchar 3`` followed by three ``int`` indices per face."""
+    """Return the face element: ``uchar 3`` followed by three ``int`` indices per face."""
     records = np.empty(len(faces), dtype=[("count", "u1"), ("vertex_indices", "<i4", (3,))])
     records["count"] = 3
     records["vertex_indices"] = faces
@@ -403,7 +410,7 @@ def _parse_ply(data: bytes) -> dict[str, np.ndarray | list[str] | None]:
 
 
 def _ply_elements(lines: list[str]) -> list[tuple[str, int, np.dtype]]:
-    """The elements declared by the header: name, count and record dtype.
+    """Return the elements declared by the header: name, count and record dtype.
 
     Scalar properties map to fields; a list property is supported only for triangles (three
     items per record), as field ``<name>_count`` plus a 3-vector field ``<name>``.
@@ -489,11 +496,12 @@ def _write_obj_mesh(path: PathLike, mesh: _Mesh) -> None:
 
 
 def _obj_chunks(mesh: _Mesh) -> Iterator[Callable[[], bytes]]:
-    """The OBJ body of ``mesh`` as jobs that each format a chunk of lines, in file order.
+    """Return the OBJ body of ``mesh`` as jobs that each format a chunk of lines, in file order.
 
     The lines are those of the %-formats ``"v %.9g %.9g %.9g[ %.6g %.6g %.6g]"`` (points;
     colours / 255), ``"vn %.7g %.7g %.7g"`` and ``"f %d//%d %d//%d %d//%d"`` or ``"f %d %d %d"``
-    (1-based indices)."""
+    (1-based indices).
+    """
     points, normals, colors, faces = mesh.points, mesh.normals, mesh.colors, mesh.faces
     for start in range(0, len(points), _OBJ_CHUNK_ROWS):
         chunk = slice(start, start + _OBJ_CHUNK_ROWS)
@@ -531,8 +539,10 @@ def _join(separator: bytes, fields: list) -> list:
 
 
 def _write_text(file: IO[bytes], jobs: Iterator[Callable[[], bytes]]) -> None:
-    """Runs the formatting ``jobs`` on a few threads (numpy releases the GIL) and writes their
-    results in order, with a bounded number of chunks in flight."""
+    """Run the formatting ``jobs`` on a few threads and write their results in order.
+
+    Numpy releases the GIL; a bounded number of chunks is in flight.
+    """
     workers = max(1, min(4, os.cpu_count() or 1))
     if workers == 1:
         for job in jobs:
@@ -566,8 +576,11 @@ _POW5 = np.array([5**k for k in range(18)], dtype=np.uint64)  # 2^24 * 5^17 < 2^
 
 
 def _digit_tables() -> dict[str, np.ndarray]:
-    """Four-digit groups 0000..9999 as one uint32 (4 ASCII bytes) each: ``full`` zero-padded,
-    ``lead`` with its leading zeros blank (0 is all blank), ``last`` like ``lead`` but 0 is "0"."""
+    """Return four-digit groups 0000..9999 as one uint32 (4 ASCII bytes) each.
+
+    ``full`` is zero-padded, ``lead`` with its leading zeros blank (0 is all blank), ``last`` like
+    ``lead`` but 0 is "0".
+    """
     n = np.arange(10000)
     powers = 10 ** np.arange(3, -1, -1)
     digits = (n[:, None] // powers % 10 + _ZERO).astype(np.uint8)
@@ -596,9 +609,12 @@ _COLOR_TEXT = _color_text()
 
 
 def _lines(fields: Sequence[bytes | np.ndarray | list[np.ndarray]], compact: bool = True) -> bytes:
-    """The text of lines made of ``fields``: literal bytes (the same on every line), arrays of
-    characters, ``(n,)`` or ``(n, width)`` uint8 with 0 for nothing, or lists of such arrays.
-    ``compact=False`` says that there is no 0 byte to drop."""
+    """Return the text of lines made of ``fields``.
+
+    Fields are literal bytes (the same on every line), arrays of characters, ``(n,)`` or
+    ``(n, width)`` uint8 with 0 for nothing, or lists of such arrays. ``compact=False`` says that
+    there is no 0 byte to drop.
+    """
     pieces = [p for f in fields for p in (f if isinstance(f, list) else [f])]
     n = next(len(p) for p in pieces if isinstance(p, np.ndarray))
     widths = [len(p) if isinstance(p, bytes) else (p.shape[1] if p.ndim == 2 else 1) for p in pieces]
@@ -618,8 +634,10 @@ def _lines(fields: Sequence[bytes | np.ndarray | list[np.ndarray]], compact: boo
 
 
 def _format_int(values: np.ndarray) -> tuple[np.ndarray, bool]:
-    """``"%d"`` of non-negative integers below 2^32, as ``(n, width)`` characters, and whether
-    there are 0 bytes among them (not when all values have as many digits)."""
+    """Return ``"%d"`` of non-negative integers below 2^32, as ``(n, width)`` characters.
+
+    Also return whether there are 0 bytes among them (not when all values have as many digits).
+    """
     v = np.asarray(values).ravel()
     top, bottom = (int(v.max()), int(v.min())) if v.size else (0, 0)
     if bottom < 0 or top >= 2**32:
@@ -644,8 +662,10 @@ def _format_int(values: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 def _format_float32(values: np.ndarray, precision: int) -> list[np.ndarray]:
-    """``"%.<precision>g"`` (precision 1 to 9) of float32 values, as a list of ``(n,)`` columns
-    of characters."""
+    """Return ``"%.<precision>g"`` (precision 1 to 9) of float32 values.
+
+    The result is a list of ``(n,)`` columns of characters.
+    """
     with np.errstate(all="ignore"):
         return _float_columns(np.ascontiguousarray(values, dtype=np.float32).ravel(), int(precision))
 
@@ -738,8 +758,11 @@ def _char(flags: np.ndarray, char: int) -> np.ndarray:
 
 
 def _significand(a: np.ndarray, bits: np.ndarray, x: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
-    """``round(a * 10^(p - 1 - x))``, ties to even, for positive float32 values ``a`` (given as
-    float64 and as their bits), and where it was computed (10^(p - 1 - x) from 1 to 5^17 2^17)."""
+    """Return ``round(a * 10^(p - 1 - x))``, ties to even, and where it was computed.
+
+    ``a`` are positive float32 values (given as float64 and as their bits); 10^(p - 1 - x) is from 1
+    to 5^17 2^17.
+    """
     q = p - 1 - x
     # a has 24 significant bits and 10^q = 5^q 2^q with 5^q < 2^29: the product is exact.
     d = np.rint(a * np.take(_POW10, q, mode="clip")).astype(np.uint64)
@@ -751,8 +774,10 @@ def _significand(a: np.ndarray, bits: np.ndarray, x: np.ndarray, p: int) -> tupl
 
 
 def _significand_exact(bits: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``round(m 2^e 10^q)``, ties to even, in integers, for float32 ``bits`` = m 2^e and
-    0 <= q <= 17; and where it was computed."""
+    """Return ``round(m 2^e 10^q)``, ties to even, in integers, and where it was computed.
+
+    Here float32 ``bits`` = m 2^e and 0 <= q <= 17.
+    """
     biased = ((bits >> np.uint32(23)) & np.uint32(0xFF)).astype(np.int64)
     fraction = (bits & np.uint32(0x7FFFFF)).astype(np.uint64)
     m = np.where(biased > 0, fraction | np.uint64(1 << 23), fraction)

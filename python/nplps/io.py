@@ -71,14 +71,19 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
       are returned channel-last.
     * Anything else (JPEG, BMP, ...): imageio.
 
-    Args:
-        path: the file.
-        max_pixels: refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
-            it; see :data:`MAX_PIXELS`.
+    Parameters
+    ----------
+    path : PathLike
+        The file.
+    max_pixels : int, optional
+        Refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
+        it; see :data:`MAX_PIXELS`.
 
-    Raises:
-        InputError: the file is missing, cannot be decoded as a single 2-D image, or is larger
-            than ``max_pixels``; the message names the path and the reason.
+    Raises
+    ------
+    InputError
+        The file is missing, cannot be decoded as a single 2-D image, or is larger
+        than ``max_pixels``; the message names the path and the reason.
     """
     header = _read_header(path)
     if header.startswith(_PNG_SIGNATURE):
@@ -143,9 +148,11 @@ def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iter
 
 
 def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
-    """Decode PNG files in parallel (Rust) and yield them in order, each dropped from the batch
-    as it is yielded (so that it is freed once the caller is done with it). InputError names the
-    first bad file."""
+    """Decode PNG files in parallel (Rust) and yield them in order.
+
+    Each is dropped from the batch as it is yielded (so that it is freed once the caller is done
+    with it). InputError names the first bad file.
+    """
     if not paths:
         return
     decoded = _core.read_pngs(paths, int(max_pixels))
@@ -155,7 +162,7 @@ def _read_pngs(paths: list[PathLike], max_pixels: int) -> Iterator[np.ndarray]:
 
 
 def _png_bytes(header: bytes) -> int:
-    """The decoded size in bytes of the PNG whose first bytes are ``header`` (0 if unknown)."""
+    """Return the decoded size in bytes of the PNG whose first bytes are ``header`` (0 if unknown)."""
     if len(header) < 26:
         return 0
     width = int.from_bytes(header[16:20], "big")
@@ -166,7 +173,7 @@ def _png_bytes(header: bytes) -> int:
 
 
 def _cores() -> int:
-    """The number of cores this process may use (the size of the decoder's thread pool)."""
+    """Return the number of cores this process may use (the size of the decoder's thread pool)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on every platform
@@ -238,8 +245,10 @@ def to_float(img: np.ndarray) -> np.ndarray:
     ``uint16`` / 65535, ...); booleans become 0 or 1; floats are returned unchanged (as float32).
     Works on arrays of any shape.
 
-    Raises:
-        InputError: the dtype is not numeric (complex, object, strings, ...).
+    Raises
+    ------
+    InputError
+        The dtype is not numeric (complex, object, strings, ...).
     """
     img = np.asarray(img)
     if img.dtype == np.bool_:
@@ -278,8 +287,10 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     first, so integer images are scaled to ``[0, 1]``. The mean is
     :func:`nplps.pipeline.to_gray`'s (the one grey conversion of nplps).
 
-    Raises:
-        InputError: the shape is neither ``(H, W)`` nor ``(H, W, 3)``.
+    Raises
+    ------
+    InputError
+        The shape is neither ``(H, W)`` nor ``(H, W, 3)``.
     """
     from .pipeline import to_gray as gray  # the pipeline imports this module
 
@@ -297,17 +308,21 @@ def to_gray(img: np.ndarray) -> np.ndarray:
 def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
     """Load the input images as a float32 grey stack of shape ``(k, H, W)``.
 
-    Args:
-        images: either an array of shape ``(k, H, W)`` or ``(k, H, W, 3)`` of any numeric dtype,
-            or a sequence of file names (``str`` / ``os.PathLike``, read with :func:`read_image`)
-            and/or arrays of shape ``(H, W)`` or ``(H, W, 3)``.
-
     Every image goes through :func:`to_float` (integers scaled to ``[0, 1]``) and then
     :func:`to_gray`. Negative values are allowed (the solver warns about them).
 
-    Raises:
-        InputError: no image, an image of the wrong number of dimensions, images of different
-            sizes, an unreadable file, or NaN / infinite values. The message names the image.
+    Parameters
+    ----------
+    images : np.ndarray | Sequence[ImageSource]
+        Either an array of shape ``(k, H, W)`` or ``(k, H, W, 3)`` of any numeric dtype,
+        or a sequence of file names (``str`` / ``os.PathLike``, read with :func:`read_image`)
+        and/or arrays of shape ``(H, W)`` or ``(H, W, 3)``.
+
+    Raises
+    ------
+    InputError
+        No image, an image of the wrong number of dimensions, images of different
+        sizes, an unreadable file, or NaN / infinite values. The message names the image.
     """
     return load_stack(images, color=False)[0]
 
@@ -315,8 +330,10 @@ def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
 def load_stack(
     images: np.ndarray | Sequence[ImageSource], color: bool = False, *, max_pixels: int = MAX_PIXELS
 ) -> tuple[np.ndarray, int | None]:
-    """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set
-    and every image is RGB, with integers scaled to ``[0, 1]``.
+    """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` in colour.
+
+    Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` when ``color`` is set and
+    every image is RGB, with integers scaled to ``[0, 1]``.
 
     Returns the stack and the number of levels of the source (``255`` for 8-bit, ``65535`` for
     16-bit input, the largest of the images' if they differ), or None for floating-point input.
@@ -403,7 +420,7 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
 
 
 def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
-    """The pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
+    """Return the pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
     run: list[PathLike] = []
     for item in items:
         if isinstance(item, (str, os.PathLike)):
@@ -416,8 +433,10 @@ def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
 
 
 def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:
-    """A grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of
-    ``stack``'s (the values :func:`to_gray` gives)."""
+    """Return a grey ``(k, H, W)`` stack whose first ``count`` images are the channel means of ``stack``'s.
+
+    These are the values :func:`to_gray` gives.
+    """
     gray = np.empty(stack.shape[:3], dtype=np.float32)
     for i in range(count):
         gray[i] = to_gray(stack[i])
@@ -432,7 +451,7 @@ def _label(index: int, item: ImageSource) -> str:
 
 
 def _count_nonfinite(image: np.ndarray) -> int:
-    """The number of NaN or infinite values of one float image."""
+    """Return the number of NaN or infinite values of one float image."""
     return int(np.count_nonzero(~np.isfinite(image)))
 
 
@@ -454,14 +473,19 @@ def _raise_nonfinite(counts: np.ndarray, labels: list[str]) -> None:
 def load_mask(mask: PathLike | np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
     """Load the pixel mask as a bool array of shape ``shape`` = ``(H, W)``.
 
-    Args:
-        mask: ``None`` (every pixel selected); a file name (read with :func:`read_image`, channel
-            0 if colour, selected where ``> 0``); or an array of shape ``(H, W)`` or
-            ``(H, W, 3)`` (channel 0), selected where nonzero (NaN counts as not selected).
-        shape: the image size ``(H, W)``.
+    Parameters
+    ----------
+    mask : PathLike | np.ndarray | None
+        ``None`` (every pixel selected); a file name (read with :func:`read_image`, channel
+        0 if colour, selected where ``> 0``); or an array of shape ``(H, W)`` or
+        ``(H, W, 3)`` (channel 0), selected where nonzero (NaN counts as not selected).
+    shape : tuple[int, int]
+        The image size ``(H, W)``.
 
-    Raises:
-        InputError: the mask has the wrong shape, cannot be read, or selects no pixel.
+    Raises
+    ------
+    InputError
+        The mask has the wrong shape, cannot be read, or selects no pixel.
     """
     shape = (int(shape[0]), int(shape[1]))
     if mask is None:

@@ -8,8 +8,10 @@ Python API (:mod:`nplps.api`), the capture loaders (:mod:`nplps.captures`) and t
 each correction lives in :mod:`nplps.preprocess`; this module decides the order, the defaults
 and the memory.
 
-Order of the steps (:func:`prepare`) and why
---------------------------------------------
+Notes
+-----
+.. rubric:: Order of the steps (:func:`prepare`) and why
+
 1. **Load** (:func:`load_images`): every image goes straight into one preallocated float32
    stack ``(k, H, W[, 3])``, integers scaled to ``[0, 1]`` by their dtype's top value; the
    number of ``levels`` of integer sources is kept (255, 65535), None for floating-point ones.
@@ -34,16 +36,16 @@ Order of the steps (:func:`prepare`) and why
    averages move the levels, and then the default is 0. The grey average does not count (its
    values stay on the levels' scale).
 
-Memory
-------
+.. rubric:: Memory
+
 Images are converted to float32 once, when they are read (float32 arrays are taken as they
 are, without a copy). No step makes a float64 copy of a stack: float64 arithmetic, where a step
 uses it (vignetting maps, binning sums), runs in numpy's buffers or one image at a time. With
 ``overwrite=True`` (and always for images read from files) the steps work in place; otherwise
 the first step that changes the caller's array makes the one copy.
 
-The dark rule for API users
----------------------------
+.. rubric:: The dark rule for API users
+
 :func:`nplps.captures.prepare` runs this pipeline and records what ran: its
 :class:`~nplps.captures.Capture` carries ``levels``, ``preprocessed`` (the steps) and ``valid``
 (the saturation flags), and ``capture.dark`` / ``capture.options()`` give the default the
@@ -51,8 +53,8 @@ command line uses, to pass on: ``nplps.reconstruct(cap.images, cap.rig(), depth=
 **cap.options())``. :func:`nplps.reconstruct` itself, given a float32 array, cannot know where
 its values came from and keeps its defaults (0 and no saturation for floating-point images).
 
-Grey or colour
---------------
+.. rubric:: Grey or colour
+
 One keyword names the choice everywhere in the Python API: ``color`` -- None (keep what the
 images are: RGB images give an RGB albedo), True (require RGB) or False (average to grey). The
 command line's ``--gray`` is ``color=False``. The loaders' former ``gray=`` keyword still works
@@ -108,7 +110,7 @@ SideImage: TypeAlias = PathLike | np.ndarray
 def thresholds(
     levels: int | None, *, dark: float | None = None, saturation: float | None = None, preprocessed: bool = False
 ) -> tuple[float, float]:
-    """The shadow and saturation thresholds, on the ``[0, 1]`` scale of the loaded images.
+    """Return the shadow and saturation thresholds, on the ``[0, 1]`` scale of the loaded images.
 
     Parameters
     ----------
@@ -138,7 +140,7 @@ def thresholds(
 
 
 def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
-    """The observations with a value at or above ``saturation`` in any channel.
+    """Return the observations with a value at or above ``saturation`` in any channel.
 
     Parameters
     ----------
@@ -166,7 +168,7 @@ def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
 
 
 def to_gray(images: np.ndarray, *, stack: bool = True) -> np.ndarray:
-    """The channel mean of colour images, as float32.
+    """Return the channel mean of colour images, as float32.
 
     Every grey conversion of nplps goes through here, with one arithmetic: the channels are
     added in float32 in their order and the sum is multiplied by ``float32(1 / C)``
@@ -325,8 +327,10 @@ def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.nd
 
 
 def _side_image(source: SideImage, images: np.ndarray, srgb: bool, name: str) -> np.ndarray:
-    """An ambient or flat-field image on the ``[0, 1]`` scale, sRGB-decoded with ``srgb``, grey
-    for a grey stack; its size checked against the stack's."""
+    """Return an ambient or flat-field image on the ``[0, 1]`` scale.
+
+    It is sRGB-decoded with ``srgb``, grey for a grey stack; its size checked against the stack's.
+    """
     if isinstance(source, (str, os.PathLike)):
         label = f"{name} '{os.fspath(source)}'"
         image = to_float(read_image(source))
@@ -362,7 +366,7 @@ def correct(
     K: np.ndarray | None = None,
     overwrite: bool = False,
 ) -> tuple[np.ndarray, list[str]]:
-    """The radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
+    """Apply the radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
 
     Parameters
     ----------
@@ -546,7 +550,7 @@ def bin_inputs(
 
 
 def bin_depth(depth: np.ndarray, factor: int) -> np.ndarray:
-    """The vertex depth map of images binned by ``factor``: every ``factor``-th vertex.
+    """Return the vertex depth map of images binned by ``factor``: every ``factor``-th vertex.
 
     The corners of binned pixel ``(i, j)`` are the original vertices ``(n i, n j)`` to
     ``(n i + n, n j + n)``, so binned vertex ``(i, j)`` is original vertex ``(n i, n j)``
@@ -585,8 +589,10 @@ def bin_depth(depth: np.ndarray, factor: int) -> np.ndarray:
 
 @dataclasses.dataclass
 class Prepared(Binned):
-    """What :func:`prepare` returns: the core's input, the fields of :class:`Binned` (``images``
-    C-contiguous float32; ``valid`` False where an observation was saturated or flagged) and:
+    """What :func:`prepare` returns.
+
+    The core's input, the fields of :class:`Binned` (``images`` C-contiguous float32; ``valid``
+    False where an observation was saturated or flagged) and the attributes below.
 
     Attributes
     ----------

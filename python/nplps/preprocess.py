@@ -17,8 +17,10 @@ them as small, documented array functions:
 :mod:`nplps.pipeline` decides the order of these steps, their defaults and the memory (the
 API, the capture loaders and the command line run them through it).
 
-Conventions
------------
+Notes
+-----
+.. rubric:: Conventions
+
 * Stacks are ``(k, H, W)`` (grey) or ``(k, H, W, C)`` (colour, normally ``C = 3``); single images
   are ``(H, W)`` or ``(H, W, C)``. Functions that cannot tell a grey stack from a colour image by
   the number of dimensions say how they read a 3-D array.
@@ -86,7 +88,7 @@ def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:
 
 
 def _output(imgs: np.ndarray, out: np.ndarray | None) -> np.ndarray:
-    """The array a step writes into: ``out`` (checked; may be ``imgs`` itself) or a new one."""
+    """Return the array a step writes into: ``out`` (checked; may be ``imgs`` itself) or a new one."""
     if out is None:
         return np.empty(imgs.shape, dtype=imgs.dtype)
     if not isinstance(out, np.ndarray) or out.shape != imgs.shape or out.dtype != imgs.dtype:
@@ -98,7 +100,7 @@ def _output(imgs: np.ndarray, out: np.ndarray | None) -> np.ndarray:
 
 
 def _spatial_axes(ndim: int, stack: bool, name: str) -> tuple[int, int]:
-    """Axes (row, column) of an array of ``ndim`` dimensions.
+    """Return the axes (row, column) of an array of ``ndim`` dimensions.
 
     2-D: ``(H, W)``; 3-D: ``(k, H, W)`` if ``stack`` else ``(H, W, C)``; 4-D: ``(k, H, W, C)``.
     """
@@ -140,21 +142,30 @@ def subtract_ambient(
     negative in dark places, hence the clip at 0 (``clip=True``), which is what the near-light
     toolboxes do. Only meaningful on linear intensities (decode sRGB first).
 
-    Args:
-        images: a stack ``(k, H, W[, C])`` or a single image ``(H, W[, C])``.
-        ambient: the image with every light off, broadcast against ``images`` with numpy rules:
-            ``(H, W[, C])`` for a stack, a per-image stack of the same shape as ``images``, or a
-            scalar (black level).
-        clip: clip the result at 0.
-        out: optional array for the result, of the shape and floating dtype of ``images``;
-            ``images`` itself (when floating) works in place, without a copy.
+    Parameters
+    ----------
+    images : np.ndarray
+        A stack ``(k, H, W[, C])`` or a single image ``(H, W[, C])``.
+    ambient : np.ndarray | float
+        The image with every light off, broadcast against ``images`` with numpy rules:
+        ``(H, W[, C])`` for a stack, a per-image stack of the same shape as ``images``, or a
+        scalar (black level).
+    clip : bool, optional
+        Clip the result at 0.
+    out : np.ndarray | None, optional
+        Optional array for the result, of the shape and floating dtype of ``images``;
+        ``images`` itself (when floating) works in place, without a copy.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         An array of the shape and floating dtype of ``images`` (``out`` when given).
 
-    Raises:
-        InputError: the shapes do not broadcast to the shape of ``images``, or ``out`` does not
-            match.
+    Raises
+    ------
+    InputError
+        The shapes do not broadcast to the shape of ``images``, or ``out`` does not
+        match.
     """
     imgs = _as_float(images, "images")
     amb = _as_float(ambient, "ambient")
@@ -181,17 +192,25 @@ def scale_exposure(
     ``light_intensities.txt`` gives one RGB triple per image: pass it as ``(k, 3)`` with a colour
     stack to divide channel by channel.
 
-    Args:
-        images: a stack ``(k, H, W)`` or ``(k, H, W, C)``.
-        exposures: ``(k,)`` (one factor per image) or ``(k, C)`` (one per image and channel;
-            needs a colour stack). Positive and finite.
-        out: optional array for the result, as in :func:`subtract_ambient`.
+    Parameters
+    ----------
+    images : np.ndarray
+        A stack ``(k, H, W)`` or ``(k, H, W, C)``.
+    exposures : Sequence[float] | np.ndarray
+        ``(k,)`` (one factor per image) or ``(k, C)`` (one per image and channel;
+        needs a colour stack). Positive and finite.
+    out : np.ndarray | None, optional
+        Optional array for the result, as in :func:`subtract_ambient`.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         An array of the shape and floating dtype of ``images`` (``out`` when given).
 
-    Raises:
-        InputError: wrong shapes, or a factor that is not positive and finite.
+    Raises
+    ------
+    InputError
+        Wrong shapes, or a factor that is not positive and finite.
     """
     imgs = _as_float(images, "images")
     if imgs.ndim not in (3, 4):
@@ -231,7 +250,9 @@ def srgb_to_linear(x: np.ndarray | float) -> np.ndarray:
     ``[0, 1]`` first. Camera JPEGs are only approximately sRGB (the camera adds its own tone
     curve), so the result is an approximation of the linear sensor signal.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         An array of the input's shape; floating input keeps its dtype, integers give float32.
     """
     v = _as_float(x, "srgb_to_linear")
@@ -252,7 +273,9 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
 
     Negative values follow the linear branch; there is no clipping.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         An array of the input's shape; floating input keeps its dtype, integers give float32.
     """
     lin = _as_float(x, "linear_to_srgb")
@@ -273,7 +296,7 @@ def linear_to_srgb(x: np.ndarray | float) -> np.ndarray:
 
 
 def vignetting_cos4(shape: tuple[int, int], K: np.ndarray, dtype: type = np.float32) -> np.ndarray:
-    """The natural-vignetting ("cos^4 law") map of a pinhole camera.
+    """Return the natural-vignetting ("cos^4 law") map of a pinhole camera.
 
     The irradiance that a lens delivers to a pixel whose ray makes an angle ``theta`` with the
     optical axis falls off as ``cos(theta)^4``. With ``f = (fx + fy) / 2`` and the pixel-centre
@@ -287,12 +310,18 @@ def vignetting_cos4(shape: tuple[int, int], K: np.ndarray, dtype: type = np.floa
     compensate. A measured flat field (:func:`flat_field_map`) also captures the lens's optical
     vignetting and is better when available.
 
-    Args:
-        shape: ``(H, W)`` of the images.
-        K: the (3, 3) pinhole matrix in the 0-based pixel-centre convention.
-        dtype: dtype of the result (float32 by default; float64 for full precision).
+    Parameters
+    ----------
+    shape : tuple[int, int]
+        ``(H, W)`` of the images.
+    K : np.ndarray
+        The (3, 3) pinhole matrix in the 0-based pixel-centre convention.
+    dtype : type, optional
+        dtype of the result (float32 by default; float64 for full precision).
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         The map, shape ``(H, W)``, values in ``(0, 1]``.
     """
     if len(shape) != 2 or shape[0] <= 0 or shape[1] <= 0:
@@ -315,15 +344,22 @@ def flat_field_map(flat: np.ndarray, ambient: np.ndarray | float | None = None) 
     ``(H, W, C)`` is normalized per channel (``F_c / max(F_c)``), which also corrects the colour
     balance of the lens's fall-off.
 
-    Args:
-        flat: ``(H, W)``, ``(H, W, C)`` or an ``(n, H, W)`` stack of grey flat fields.
-        ambient: optional dark image or scalar to subtract.
+    Parameters
+    ----------
+    flat : np.ndarray
+        ``(H, W)``, ``(H, W, C)`` or an ``(n, H, W)`` stack of grey flat fields.
+    ambient : np.ndarray | float | None, optional
+        Optional dark image or scalar to subtract.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         The map in ``(0, 1]`` (float dtype of ``flat``), shape ``(H, W)`` or ``(H, W, C)``.
 
-    Raises:
-        InputError: wrong shape, non-finite values, or a non-positive maximum.
+    Raises
+    ------
+    InputError
+        Wrong shape, non-finite values, or a non-positive maximum.
     """
     f = _as_float(flat, "flat")
     if ambient is not None:
@@ -343,22 +379,30 @@ def flat_field_map(flat: np.ndarray, ambient: np.ndarray | float | None = None) 
 def compensate_vignetting(images: np.ndarray, vignetting: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
     """Divide by a vignetting map: ``J = I / V``.
 
-    Args:
-        images: a stack ``(k, H, W[, C])`` or a single image ``(H, W[, C])``.
-        vignetting: ``(H, W)`` (a :func:`vignetting_cos4` map or a grey flat field) or
-            ``(H, W, C)`` (a colour flat field from :func:`flat_field_map`, for colour images).
-            Strictly positive.
-        out: optional array for the result, as in :func:`subtract_ambient`.
-
     The map's ``(H, W)`` is matched against the trailing axes of ``images``: an ``(H, W)`` map
     divides ``(k, H, W)`` and ``(H, W)`` directly, and ``(k, H, W, C)`` and ``(H, W, 3)``
     channel by channel.
 
-    Returns:
+    Parameters
+    ----------
+    images : np.ndarray
+        A stack ``(k, H, W[, C])`` or a single image ``(H, W[, C])``.
+    vignetting : np.ndarray
+        ``(H, W)`` (a :func:`vignetting_cos4` map or a grey flat field) or
+        ``(H, W, C)`` (a colour flat field from :func:`flat_field_map`, for colour images).
+        Strictly positive.
+    out : np.ndarray | None, optional
+        Optional array for the result, as in :func:`subtract_ambient`.
+
+    Returns
+    -------
+    np.ndarray
         An array of the shape and floating dtype of ``images`` (``out`` when given).
 
-    Raises:
-        InputError: the map's size does not match the images, or it has values <= 0 / non-finite.
+    Raises
+    ------
+    InputError
+        The map's size does not match the images, or it has values <= 0 / non-finite.
     """
     imgs = _as_float(images, "images")
     vmap = np.asarray(vignetting, dtype=np.float64)
@@ -419,14 +463,20 @@ def bin_images(images: np.ndarray, factor: int, stack: bool = True) -> np.ndarra
     so bin linear intensities (decode sRGB first); it divides the noise standard deviation by
     ``s`` and the data by ``s^2``. The sums are accumulated in float64.
 
-    Args:
-        images: ``(H, W)``, ``(k, H, W)``, ``(k, H, W, C)``; a 3-D array is a grey stack
-            ``(k, H, W)`` unless ``stack=False``, which reads it as one colour image
-            ``(H, W, C)``.
-        factor: the block size ``s >= 1`` (1 returns a copy).
-        stack: how to read a 3-D array (see above).
+    Parameters
+    ----------
+    images : np.ndarray
+        ``(H, W)``, ``(k, H, W)``, ``(k, H, W, C)``; a 3-D array is a grey stack
+        ``(k, H, W)`` unless ``stack=False``, which reads it as one colour image
+        ``(H, W, C)``.
+    factor : int
+        The block size ``s >= 1`` (1 returns a copy).
+    stack : bool, optional
+        How to read a 3-D array (see above).
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         The binned array, shape with ``H // s`` and ``W // s``; floating dtype of the input.
     """
     s = _check_factor(factor)
@@ -455,12 +505,18 @@ def bin_mask(mask: np.ndarray, factor: int, rule: Literal["all", "half"] = "all"
     is (``count >= s^2 / 2``), which keeps the silhouette's area better. The remainder rows and
     columns are cropped as in :func:`bin_images`.
 
-    Args:
-        mask: ``(H, W)`` array; nonzero (and not NaN) means selected.
-        factor: block size ``s >= 1``.
-        rule: ``"all"`` or ``"half"``.
+    Parameters
+    ----------
+    mask : np.ndarray
+        ``(H, W)`` array; nonzero (and not NaN) means selected.
+    factor : int
+        Block size ``s >= 1``.
+    rule : Literal[all, half], optional
+        ``"all"`` or ``"half"``.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         Bool array of shape ``(H // s, W // s)``.
     """
     s = _check_factor(factor)
@@ -480,7 +536,7 @@ def bin_mask(mask: np.ndarray, factor: int, rule: Literal["all", "half"] = "all"
 
 
 def bin_intrinsics(K: np.ndarray, factor: float) -> np.ndarray:
-    """The pinhole matrix of images binned by ``factor`` (see :func:`bin_images`).
+    """Return the pinhole matrix of images binned by ``factor`` (see :func:`bin_images`).
 
     Binned pixel ``j`` averages the original pixels ``s j .. s j + s - 1``, whose centres have the
     mean coordinate ``s j + (s - 1) / 2``. An original coordinate ``u`` therefore becomes
@@ -494,11 +550,16 @@ def bin_intrinsics(K: np.ndarray, factor: float) -> np.ndarray:
     number: ``1 / s`` gives the matrix of an image upsampled ``s`` times (e.g. from a 2 x 2-binned
     RAW grid back to a full-size JPEG render).
 
-    Args:
-        K: (3, 3) pinhole matrix, 0-based pixel-centre convention.
-        factor: the binning factor ``s > 0``.
+    Parameters
+    ----------
+    K : np.ndarray
+        (3, 3) pinhole matrix, 0-based pixel-centre convention.
+    factor : float
+        The binning factor ``s > 0``.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         The new (3, 3) float64 matrix.
     """
     K = _check_K(K)
@@ -541,16 +602,25 @@ def pad_or_crop(
     Added pixels are filled with ``value`` (``mode="constant"``) or with copies of the nearest
     edge row/column (``mode="edge"``). Any dtype (bool masks included) is kept.
 
-    Args:
-        image: ``(H, W)``, ``(k, H, W)``, ``(k, H, W, C)``; a 3-D array is ``(k, H, W)`` unless
-            ``stack=False`` (then ``(H, W, C)``).
-        shape: target ``(H', W')``.
-        mode: ``"constant"`` or ``"edge"``.
-        value: fill value of ``mode="constant"``.
-        stack: how to read a 3-D array.
-        offset: ``(top, left)`` shift of the content, in pixels.
+    Parameters
+    ----------
+    image : np.ndarray
+        ``(H, W)``, ``(k, H, W)``, ``(k, H, W, C)``; a 3-D array is ``(k, H, W)`` unless
+        ``stack=False`` (then ``(H, W, C)``).
+    shape : tuple[int, int]
+        Target ``(H', W')``.
+    mode : Literal[constant, edge], optional
+        ``"constant"`` or ``"edge"``.
+    value : float, optional
+        Fill value of ``mode="constant"``.
+    stack : bool, optional
+        How to read a 3-D array.
+    offset : tuple[int, int], optional
+        ``(top, left)`` shift of the content, in pixels.
 
-    Returns:
+    Returns
+    -------
+    np.ndarray
         The array with its spatial size replaced by ``shape``.
     """
     x = np.asarray(image)

@@ -145,7 +145,7 @@ class LightRefinement:
         return float(self.singular_values[0]) / smallest if smallest > 0 else float("inf")
 
     def to_dict(self) -> dict[str, Any]:
-        """The refinement as a JSON-ready dict (non-finite numbers as None).
+        """Return the refinement as a JSON-ready dict (non-finite numbers as None).
 
         Returns
         -------
@@ -362,7 +362,7 @@ class Reconstruction:
         return int(np.count_nonzero(self.mask & (self.lights_used < 3)))
 
     def predict(self, rig: Rig | None = None, *, lights: list[int] | None = None) -> np.ndarray:
-        """Images predicted from this result by the image model.
+        """Return the images predicted from this result by the image model.
 
         Each pixel is shaded with its fitted normal (:attr:`fit_normals`) and albedo at the
         centre of its quad: the model's own explanation of the images, which the normals and the
@@ -404,7 +404,7 @@ class Reconstruction:
         )
 
     def shaded(self) -> np.ndarray:
-        """A grey picture of the mesh lit from the camera.
+        """Return a grey picture of the mesh lit from the camera.
 
         Returns
         -------
@@ -477,7 +477,7 @@ class Reconstruction:
         )
 
     def summary(self) -> dict[str, Any]:
-        """A JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
+        """Return a JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
 
         Returns
         -------

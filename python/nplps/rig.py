@@ -103,7 +103,7 @@ def _vec3(value: Any, what: str) -> Vec3:
 
 
 def _rgb(value: Any, subject: str) -> Vec3:
-    """An intensity: a positive finite number or three (R, G, B)."""
+    """Return an intensity: a positive finite number or three (R, G, B)."""
     x, y, z = _intensity(value, f"{subject} intensity")
     if not (x > 0 and y > 0 and z > 0):
         raise RigError(f"{subject} must have positive intensities, got [{x:.6g}, {y:.6g}, {z:.6g}]")
@@ -111,8 +111,11 @@ def _rgb(value: Any, subject: str) -> Vec3:
 
 
 def _unit(v: Vec3) -> Vec3:
-    """``v`` scaled to unit length (scaled by its largest component first, so that the norm of a
-    huge vector does not overflow); (0, 0, 0) stays zero."""
+    """Return ``v`` scaled to unit length; (0, 0, 0) stays zero.
+
+    It is scaled by its largest component first, so that the norm of a huge vector does not
+    overflow.
+    """
     # The same operations (on a 1 x 3 array) as earlier versions of nplps, for the same bits.
     a = np.array([v], dtype=np.float64)
     a = a / np.maximum(np.abs(a).max(axis=1, keepdims=True), 1e-300)
@@ -129,7 +132,7 @@ def _is_unit(v: Vec3) -> bool:
 
 
 def _new(cls: type[_L], **values: Any) -> _L:
-    """An instance of the frozen light type ``cls`` with the (checked) field ``values``."""
+    """Return an instance of the frozen light type ``cls`` with the (checked) field ``values``."""
     obj = object.__new__(cls)
     for name, value in values.items():
         object.__setattr__(obj, name, value)
@@ -167,7 +170,7 @@ class PointLight:
 
     @classmethod
     def _checked(cls, subject: str, position: Any, intensity: Any = 1.0) -> PointLight:
-        """The light, its errors naming ``subject`` (such as ``light 3``)."""
+        """Return the light, its errors naming ``subject`` (such as ``light 3``)."""
         light = object.__new__(cls)
         light._set(subject, position, intensity)
         return light
@@ -226,7 +229,7 @@ class LED:
 
     @classmethod
     def _checked(cls, subject: str, position: Any, intensity: Any, axis: Any, mu: Any) -> LED:
-        """The LED, its errors naming ``subject`` (such as ``light 3``)."""
+        """Return the LED, its errors naming ``subject`` (such as ``light 3``)."""
         light = object.__new__(cls)
         light._set(subject, position, intensity, axis, mu)
         return light
@@ -272,8 +275,11 @@ class DirectionalLight:
 
     @classmethod
     def _checked(cls, subject: str, direction: Any, intensity: Any = 1.0, normalize: bool = True) -> DirectionalLight:
-        """The light, its errors naming ``subject``; ``normalize=False`` checks that the
-        direction is a unit vector (to 1e-6) and keeps it as given (rig files, results)."""
+        """Return the light, its errors naming ``subject``.
+
+        ``normalize=False`` checks that the direction is a unit vector (to 1e-6) and keeps it as
+        given (rig files, results).
+        """
         light = object.__new__(cls)
         light._set(subject, direction, intensity, normalize)
         return light
@@ -358,9 +364,11 @@ class Rig:
         _core.check_rig(self.camera, self._core_lights())
 
     def __hash__(self) -> int:
+        """Hash the camera mapping and the lights (the array views follow from them)."""
         return hash((json.dumps(self.camera, sort_keys=True), self.lights))
 
     def __getstate__(self) -> dict[str, Any]:
+        """Return the state to pickle: the fields only."""
         # The fields only: the array views are computed again (read-only) after unpickling.
         return {"camera": self.camera, "lights": self.lights}
 
@@ -376,7 +384,7 @@ class Rig:
         axes: ArrayLike | None = None,
         mu: ArrayLike | None = None,
     ) -> Rig:
-        """A rig from per-light arrays (the inverse of the array views).
+        """Build a rig from per-light arrays (the inverse of the array views).
 
         Parameters
         ----------
@@ -469,7 +477,7 @@ class Rig:
         lights: Sequence[Light] | ArrayLike = (),
         **arrays: Any,
     ) -> Rig:
-        """The paper's orthographic camera looking along +z.
+        """Return the paper's orthographic camera looking along +z.
 
         Parameters
         ----------
@@ -508,7 +516,7 @@ class Rig:
         distortion: ArrayLike | None = None,
         **arrays: Any,
     ) -> Rig:
-        """A pinhole camera at the origin.
+        """Return a pinhole camera at the origin.
 
         Parameters
         ----------
@@ -580,8 +588,10 @@ class Rig:
 
     @cached_property
     def directions(self) -> np.ndarray:
-        """(k, 3) unit directions (from the surface towards the light) of the directional
-        lights; NaN rows for point lights and LEDs."""
+        """The (k, 3) unit directions (from the surface towards the light) of the directional lights.
+
+        NaN rows for point lights and LEDs.
+        """
         rows = [light.direction if isinstance(light, DirectionalLight) else _NAN3 for light in self.lights]
         return _readonly(np.array(rows, dtype=np.float64).reshape(-1, 3))
 
@@ -609,7 +619,7 @@ class Rig:
 
     # -- derived rigs ---------------------------------------------------------------------------
     def subset(self, indices: Sequence[int]) -> Rig:
-        """The rig with only some lights.
+        """Return the rig with only some lights.
 
         Parameters
         ----------
@@ -644,7 +654,7 @@ class Rig:
         return Rig(camera=self.camera, lights=tuple(self.lights[i] for i in idx.astype(int).tolist()))
 
     def with_positions(self, positions: ArrayLike) -> Rig:
-        """The rig with the point lights and LEDs moved.
+        """Return the rig with the point lights and LEDs moved.
 
         Parameters
         ----------
@@ -674,7 +684,7 @@ class Rig:
         return Rig(camera=self.camera, lights=tuple(lights))
 
     def with_intensities(self, intensities: ArrayLike) -> Rig:
-        """The rig with new intensities.
+        """Return the rig with new intensities.
 
         Parameters
         ----------
@@ -695,8 +705,9 @@ class Rig:
         return Rig(camera=self.camera, lights=lights)
 
     def binned(self, n: int) -> Rig:
-        """The rig of the images binned ``n`` x ``n`` (blocks of pixels averaged, the remainder
-        at the bottom and right cropped).
+        """Return the rig of the images binned ``n`` x ``n``.
+
+        Blocks of pixels are averaged; the remainder at the bottom and right is cropped.
 
         Parameters
         ----------
@@ -729,10 +740,12 @@ class Rig:
     # -- the compiled core's form ---------------------------------------------------------------
     @classmethod
     def _from_core_lights(cls, camera: Mapping[str, Any], lights: Mapping[str, Any], like: Rig | None = None) -> Rig:
-        """A rig with ``camera`` and the lights in the compiled core's form (vectors,
-        directional, intensities, axes, mu): LED axes scaled to unit length, directions kept as
-        given (checked to be unit vectors). A point light is an LED when its mu > 0 or when
-        light i of ``like`` is one."""
+        """Return a rig with ``camera`` and the lights in the compiled core's form.
+
+        The lights are given as (vectors, directional, intensities, axes, mu): LED axes scaled to
+        unit length, directions kept as given (checked to be unit vectors). A point light is an LED
+        when its mu > 0 or when light i of ``like`` is one.
+        """
         out: list[Light] = []
         n = len(lights["vectors"])
         for i in range(n):
@@ -748,8 +761,10 @@ class Rig:
         return cls(camera=camera, lights=tuple(out))
 
     def _core_lights(self) -> _core_types.LightsDict:
-        """The lights in the form the compiled core takes (an axis of (0, 0, 1) and mu = 0 for
-        lights that are not LEDs)."""
+        """Return the lights in the form the compiled core takes.
+
+        Lights that are not LEDs get an axis of (0, 0, 1) and mu = 0.
+        """
         vectors, directional, intensities, axes, mus = [], [], [], [], []
         for light in self.lights:
             if isinstance(light, DirectionalLight):
@@ -764,7 +779,7 @@ class Rig:
 
     # -- files ----------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """The rig as the JSON-ready mapping of the rig file.
+        """Return the rig as the JSON-ready mapping of the rig file.
 
         Returns
         -------
@@ -788,7 +803,7 @@ class Rig:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "rig") -> Rig:
-        """Reads the mapping of a rig file (see the module documentation for what is checked).
+        """Read the mapping of a rig file (see the module documentation for what is checked).
 
         Parameters
         ----------
@@ -863,7 +878,7 @@ class Rig:
             raise RigError(f"{source}: {e}") from None
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Writes the rig file (JSON), under a temporary name renamed when complete.
+        """Write the rig file (JSON), under a temporary name renamed when complete.
 
         Parameters
         ----------
@@ -883,7 +898,7 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Rig:
-        """Reads a rig file.
+        """Read a rig file.
 
         Parameters
         ----------
@@ -916,7 +931,7 @@ def _is_light_values(value: Any) -> bool:
 
 
 def _lights(value: Any) -> tuple[Light, ...]:
-    """The lights of a rig: a sequence of light values, or a (k, 3) array of point-light positions."""
+    """Return the lights of a rig: a sequence of light values, or a (k, 3) array of point-light positions."""
     if _is_light_values(value):
         for i, light in enumerate(value):
             if not isinstance(light, _LIGHT_TYPES):
@@ -932,7 +947,7 @@ def _lights(value: Any) -> tuple[Light, ...]:
 
 
 def read_rig_json(path: str | os.PathLike[str]) -> Any:
-    """The JSON value of a rig file, read within the limits of the format.
+    """Return the JSON value of a rig file, read within the limits of the format.
 
     Parameters
     ----------
@@ -979,7 +994,7 @@ _JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.S)
 
 
 def _nesting(text: str) -> int:
-    """The deepest nesting of arrays and objects in the JSON text (brackets in strings left out)."""
+    """Return the deepest nesting of arrays and objects in the JSON text (brackets in strings left out)."""
     if text.count("[") + text.count("{") <= MAX_NESTING:
         return 0
     code = np.frombuffer(_JSON_STRING.sub('""', text).encode("utf-8"), dtype=np.uint8)
@@ -991,8 +1006,11 @@ def _nesting(text: str) -> int:
 
 
 def _describe(value: Any) -> str:
-    """A short description of a value for messages: never its full repr, which may be huge or
-    nested too deeply to print (the same words as the compiled core's)."""
+    """Return a short description of a value for messages.
+
+    Never its full repr, which may be huge or nested too deeply to print (the same words as the
+    compiled core's).
+    """
     if value is None:
         return "null"
     if isinstance(value, (bool, np.bool_)):
@@ -1015,7 +1033,7 @@ def _describe(value: Any) -> str:
 
 
 def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, usage: str) -> None:
-    """Fails on a key that is not in ``known`` and does not start with '_' (a comment)."""
+    """Fail on a key that is not in ``known`` and does not start with '_' (a comment)."""
     for key in mapping:
         if not isinstance(key, str):
             raise RigError(f"{where} has a key that is not a string ({_describe(key)})")
@@ -1026,7 +1044,7 @@ def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, us
 
 
 def _number(value: Any, what: str) -> float:
-    """A finite number: an int or a float (numpy scalars too), not a boolean or a string."""
+    """Return a finite number: an int or a float (numpy scalars too), not a boolean or a string."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise RigError(f"{what} must be a number, got {_describe(value)}")
     try:
@@ -1056,8 +1074,10 @@ def _intensity(value: Any, what: str) -> list[float]:
 
 
 def _numeric(value: Any, name: str, kinds: str = "iuf") -> np.ndarray:
-    """``value`` as an array of numbers of the dtype kinds ``kinds`` (not strings, objects or,
-    unless asked, booleans)."""
+    """Return ``value`` as an array of numbers of the dtype kinds ``kinds``.
+
+    Strings and objects are refused, and booleans unless asked.
+    """
     try:
         a = np.asarray(value)
     except (TypeError, ValueError, OverflowError, RecursionError):
@@ -1082,8 +1102,11 @@ def _array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _intensities(value: Any, k: int, where: str = "intensities") -> np.ndarray:
-    """Per-light RGB intensities (k, 3) from None (ones), a number, (k,), (k, 1) or (k, 3), or a
-    list of k items each a number or three (R, G, B)."""
+    """Return per-light RGB intensities (k, 3).
+
+    They are made from None (ones), a number, (k,), (k, 1) or (k, 3), or a list of k items each a
+    number or three (R, G, B).
+    """
     if value is None:
         return np.ones((k, 3))
     rows_given = isinstance(value, (list, tuple)) and k and len(value) == k

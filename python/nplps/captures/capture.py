@@ -22,43 +22,64 @@ if TYPE_CHECKING:
 class Capture:
     """One photometric-stereo capture, in nplps's conventions (see :mod:`nplps.captures`).
 
-    Attributes:
-        images: the ``k`` images, either as file names (``list[Path]``, read them with
-            :meth:`load` or :func:`nplps.io.load_images`) or as a float32 stack
-            ``(k, H, W)`` / ``(k, H, W, 3)`` of linear intensities.
-        mask: ``(H, W)`` bool, or None (no mask in the dataset).
-        K: ``(3, 3)`` float64 pinhole matrix, 0-based pixel centres, or None (unknown).
-        distortion: ``(5,)`` OpenCV distortion ``(k1, k2, p1, p2, k3)`` or None (none given).
-        positions: ``(k, 3)`` point-light positions in mm (camera frame), or None.
-        directions: ``(k, 3)`` unit vectors, or None. For point lights the LED principal axes
-            (pointing from the LED towards the scene); for ``directional`` captures the
-            directions from the surface towards each light.
-        intensities: ``(k,)`` or ``(k, 3)`` (per RGB channel) light intensities, or None. Near
-            lights: ``Phi`` of the toolbox model (image units x mm^2); directional lights:
-            the relative radiance of each light.
-        mu: ``(k,)`` anisotropy exponents of the LED model ``cos(angle to axis)^mu``, or None.
-        directional: True for distant (directional) lights, False for point lights.
-        normals_gt: ``(H, W, 3)`` ground-truth unit normals (camera frame, ``n_z < 0``; zero
-            outside the object), or None.
-        ambient: the image with every light off (a file name or an array like one image of
-            ``images``), or None.
-        name: a short name of the capture.
-        notes: free text: provenance, caveats, what the loader did.
-        rig_path: the ``rig.json`` of a :func:`load_folder` capture (read it with
-            ``nplps.Rig.load``), else None.
-        files: the image files the images came from (also when ``images`` is an array).
-        pixel_size: the pixel footprint of the orthographic rig used when K is unknown (grows
-            with binning).
-        bin_factor: the binning :func:`prepare` applied since the files, for the grid of the rig
-            file (``rig_path``).
-        levels: the top integer value of the image files (255, 65535) while ``images`` holds
-            their values as read (scaled to ``[0, 1]``), else None (floating-point files, or
-            values a step has changed before :func:`prepare` saw them).
-        preprocessed: the pre-processing steps that changed the values of ``images``, in order
-            (names of :data:`nplps.pipeline.STEPS`, and ``"pad"``): set by the loaders'
-            ``srgb`` / ``bin_factor`` / ``grid_shape`` and by :func:`prepare`.
-        valid: ``(k, H, W)`` bool, False where an observation was saturated in the files (judged
-            by :func:`prepare` on the values as read), or None.
+    Attributes
+    ----------
+    images : list[Path] | np.ndarray
+        The ``k`` images, either as file names (``list[Path]``, read them with
+        :meth:`load` or :func:`nplps.io.load_images`) or as a float32 stack
+        ``(k, H, W)`` / ``(k, H, W, 3)`` of linear intensities.
+    mask : np.ndarray | None
+        ``(H, W)`` bool, or None (no mask in the dataset).
+    K : np.ndarray | None
+        ``(3, 3)`` float64 pinhole matrix, 0-based pixel centres, or None (unknown).
+    distortion : np.ndarray | None
+        ``(5,)`` OpenCV distortion ``(k1, k2, p1, p2, k3)`` or None (none given).
+    positions : np.ndarray | None
+        ``(k, 3)`` point-light positions in mm (camera frame), or None.
+    directions : np.ndarray | None
+        ``(k, 3)`` unit vectors, or None. For point lights the LED principal axes
+        (pointing from the LED towards the scene); for ``directional`` captures the
+        directions from the surface towards each light.
+    intensities : np.ndarray | None
+        ``(k,)`` or ``(k, 3)`` (per RGB channel) light intensities, or None. Near
+        lights: ``Phi`` of the toolbox model (image units x mm^2); directional lights:
+        the relative radiance of each light.
+    mu : np.ndarray | None
+        ``(k,)`` anisotropy exponents of the LED model ``cos(angle to axis)^mu``, or None.
+    directional : bool
+        True for distant (directional) lights, False for point lights.
+    normals_gt : np.ndarray | None
+        ``(H, W, 3)`` ground-truth unit normals (camera frame, ``n_z < 0``; zero
+        outside the object), or None.
+    ambient : Path | np.ndarray | None
+        The image with every light off (a file name or an array like one image of
+        ``images``), or None.
+    name : str
+        A short name of the capture.
+    notes : str
+        Free text: provenance, caveats, what the loader did.
+    rig_path : Path | None
+        The ``rig.json`` of a :func:`load_folder` capture (read it with
+        ``nplps.Rig.load``), else None.
+    files : list[Path]
+        The image files the images came from (also when ``images`` is an array).
+    pixel_size : float
+        The pixel footprint of the orthographic rig used when K is unknown (grows
+        with binning).
+    bin_factor : int
+        The binning :func:`prepare` applied since the files, for the grid of the rig
+        file (``rig_path``).
+    levels : int | None
+        The top integer value of the image files (255, 65535) while ``images`` holds
+        their values as read (scaled to ``[0, 1]``), else None (floating-point files, or
+        values a step has changed before :func:`prepare` saw them).
+    preprocessed : tuple[str, ...]
+        The pre-processing steps that changed the values of ``images``, in order
+        (names of :data:`nplps.pipeline.STEPS`, and ``"pad"``): set by the loaders'
+        ``srgb`` / ``bin_factor`` / ``grid_shape`` and by :func:`prepare`.
+    valid : np.ndarray | None
+        ``(k, H, W)`` bool, False where an observation was saturated in the files (judged
+        by :func:`prepare` on the values as read), or None.
     """
 
     images: list[Path] | np.ndarray
@@ -94,16 +115,20 @@ class Capture:
 
     @property
     def dark(self) -> float:
-        """The default shadow threshold of this capture's images, as the command line sets it:
-        one level above black (``1 / levels``) while the values are as read from integer files,
-        0 once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`)."""
+        """The default shadow threshold of this capture's images, as the command line sets it.
+
+        One level above black (``1 / levels``) while the values are as read from integer files, 0
+        once a pre-processing step has changed them (see :func:`nplps.pipeline.thresholds`).
+        """
         return pipeline.thresholds(self.levels, preprocessed=bool(self.preprocessed))[0]
 
     def options(self) -> dict[str, Any]:
-        """Keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`
-        that carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`)
-        and ``valid`` (the saturation flags). Use as
-        ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``."""
+        """Return keyword arguments for :func:`nplps.reconstruct` and :func:`nplps.reconstruct_parallel`.
+
+        They carry what the capture knows about its images: ``mask``, ``dark`` (:attr:`dark`) and
+        ``valid`` (the saturation flags). Use as
+        ``nplps.reconstruct(cap.images, cap.rig(), depth=..., **cap.options())``.
+        """
         return {"mask": self.mask, "dark": self.dark, "valid": self.valid}
 
     def load(self, *, color: bool | None = None, gray: bool | None = None) -> Capture:
@@ -132,8 +157,11 @@ class Capture:
         return dataclasses.replace(self, images=images, ambient=ambient, levels=levels)
 
     def rig(self) -> Rig:
-        """The capture's :class:`~nplps.Rig`: its rig file, or a pinhole camera (orthographic with
-        unit pixels when K is unknown) with its point lights (LED model) or directional lights."""
+        """Return the capture's :class:`~nplps.Rig`.
+
+        That is its rig file, or a pinhole camera (orthographic with unit pixels when K is unknown)
+        with its point lights (LED model) or directional lights.
+        """
         from ..rig import Rig
 
         if self.rig_path is not None:
@@ -191,7 +219,7 @@ def prepare(
     overwrite: bool = False,
     gray: bool | None = None,
 ) -> Capture:
-    """The usual pre-processing of a near-light capture, as the near_ps authors do it.
+    """Apply the usual pre-processing of a near-light capture, as the near_ps authors do it.
 
     Runs :func:`nplps.pipeline.prepare` (the command line's pipeline): loads the images if
     needed, judges saturation on the values as read (``saturation``, default the top level of

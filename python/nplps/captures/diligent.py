@@ -16,7 +16,7 @@ from .matlab import _loadmat, _mat_var
 
 
 def _diligent_folder(folder: Path) -> Path:
-    """The folder holding filenames.txt: ``folder`` itself or its unique ``*PNG`` subfolder."""
+    """Return the folder holding filenames.txt: ``folder`` itself or its unique ``*PNG`` subfolder."""
     if (folder / "filenames.txt").is_file():
         return folder
     subs = [p for p in sorted(folder.glob("*PNG")) if (p / "filenames.txt").is_file()]
@@ -68,17 +68,24 @@ def load_diligent(
     by 180 degrees about x). Ground-truth normals then have ``n_z <= 0`` (0 on the silhouette)
     and are zero outside the object.
 
-    Args:
-        load: return the images as a float32 stack ``(k, H, W, 3)`` (``(k, H, W)`` with
-            ``color=False``) instead of file names (16-bit PNG decoded in Rust, in parallel:
-            about 0.5 s for the 96 images of ballPNG).
-        color: None (keep RGB), True (require RGB) or False: average the channels of loaded
-            images (:func:`nplps.pipeline.to_gray`) and of the intensities.
-        gray: deprecated spelling of ``color=False`` (``gray=True``).
-        lights: a subset of the images/lights (0-based indices), e.g. ``range(0, 96, 8)``.
-        normals: read ``Normal_gt.mat`` when present (needs scipy).
-        K: an optional pinhole matrix (0-based) to attach; DiLiGenT itself gives none
-            (an orthographic set-up is assumed). See :func:`load_matlab_intrinsics`.
+    Parameters
+    ----------
+    load : bool, optional
+        Return the images as a float32 stack ``(k, H, W, 3)`` (``(k, H, W)`` with
+        ``color=False``) instead of file names (16-bit PNG decoded in Rust, in parallel:
+        about 0.5 s for the 96 images of ballPNG).
+    color : bool | None, optional
+        None (keep RGB), True (require RGB) or False: average the channels of loaded
+        images (:func:`nplps.pipeline.to_gray`) and of the intensities.
+    gray : bool | None, optional
+        Deprecated spelling of ``color=False`` (``gray=True``).
+    lights : Sequence[int] | None, optional
+        A subset of the images/lights (0-based indices), e.g. ``range(0, 96, 8)``.
+    normals : bool, optional
+        Read ``Normal_gt.mat`` when present (needs scipy).
+    K : np.ndarray | None, optional
+        An optional pinhole matrix (0-based) to attach; DiLiGenT itself gives none
+        (an orthographic set-up is assumed). See :func:`load_matlab_intrinsics`.
     """
     color = _color_arg(color, gray, "load_diligent")
     root = _diligent_folder(_check_folder(folder))

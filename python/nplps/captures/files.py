@@ -43,7 +43,7 @@ def find_images(
 
 
 def _find_one(folder: Path, word: str) -> Path | None:
-    """The unique image file of ``folder`` whose name contains ``word``, or None if none."""
+    """Return the unique image file of ``folder`` whose name contains ``word``, or None if none."""
     hits = [
         p
         for p in sorted(folder.iterdir())
@@ -104,8 +104,11 @@ def _read_stack(files: Sequence[PathLike], color: bool | None) -> tuple[np.ndarr
 
 
 def _color_arg(color: bool | None, gray: bool | None, where: str, default: bool | None = None) -> bool | None:
-    """The colour choice of a loader from ``color`` (whose default is ``default``) and the
-    deprecated ``gray`` keyword (``gray=True`` is ``color=False``, ``gray=False`` is ``color=None``)."""
+    """Return the colour choice of a loader from ``color`` and the deprecated ``gray`` keyword.
+
+    The default of ``color`` is ``default``; ``gray=True`` is ``color=False``, ``gray=False`` is
+    ``color=None``.
+    """
     if gray is None:
         return color
     warnings.warn(

@@ -49,8 +49,10 @@ def standardize_K(K: np.ndarray, one_based: bool = True) -> np.ndarray:
     ``(1, 1)`` centred at ``(1, 1)``) the principal point is shifted to the 0-based
     pixel-centre convention: ``cx0 = cx - 1``, ``cy0 = cy - 1``.
 
-    Raises:
-        RigError: not a (3, 3) finite matrix of that form, or non-positive focal lengths.
+    Raises
+    ------
+    RigError
+        Not a (3, 3) finite matrix of that form, or non-positive focal lengths.
     """
     K = np.array(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):

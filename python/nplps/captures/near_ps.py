@@ -51,8 +51,10 @@ def _prepare(
     grid_offset: tuple[int, int],
     color: bool | None,
 ) -> tuple[np.ndarray, int | None]:
-    """Read one image and bring it onto the calibration grid (see load_near_ps); also the top
-    integer value of the file (None for floats)."""
+    """Read one image and bring it onto the calibration grid (see load_near_ps).
+
+    Also return the top integer value of the file (None for floats).
+    """
     raw = read_image(path)
     levels = int(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else None
     # sRGB of 8/16-bit files by an exact lookup table (fast on 18-Mpixel images), then grey.
@@ -126,9 +128,12 @@ def load_near_ps(
     Intensities are ``Phi`` as ``(k,)`` for a k x 1 ``Phi`` and ``(k, 3)`` for k x 3 (averaged
     over R, G, B to ``(k,)`` with ``color=False``).
 
-    Raises:
-        RigError: missing or malformed calibration files.
-        InputError: missing images, image count != light count, shape mismatches.
+    Raises
+    ------
+    RigError
+        Missing or malformed calibration files.
+    InputError
+        Missing images, image count != light count, shape mismatches.
     """
     color = _color_arg(color, gray, "load_near_ps")
     folder = _check_folder(folder)
@@ -218,7 +223,7 @@ def load_near_ps(
 
 
 def _resolve_calib(folder: Path, name: PathLike) -> Path:
-    """A calibration file relative to ``folder``; RigError if missing."""
+    """Return a calibration file relative to ``folder``; RigError if missing."""
     path = Path(name)
     if not path.is_absolute():
         path = folder / path
@@ -239,7 +244,7 @@ def _led_rows_from_names(files: Sequence[Path]) -> list[int]:
 
 
 def load_hehe12(folder: PathLike, *, load: bool = False) -> Capture:
-    """The ``hehe12`` capture of ``marcellliu/near_ps`` (8 LEDs, no ground truth).
+    """Load the ``hehe12`` capture of ``marcellliu/near_ps`` (8 LEDs, no ground truth).
 
     Images ``photometric_sample_raw_0001..0008.png`` (1920 x 1200, 8-bit grey, linear, dim),
     ambient ``photometric_sample_raw_ambient.png``, mask ``photometric_sample_mask_raw.png``
@@ -275,7 +280,7 @@ def load_queau_human1(
     color: bool | None = False,
     gray: bool | None = None,
 ) -> Capture:
-    """The ``Human1`` scene of ``yqueau/near_ps`` from its JPEG renders (7 of 8 LEDs).
+    """Load the ``Human1`` scene of ``yqueau/near_ps`` from its JPEG renders (7 of 8 LEDs).
 
     Only ``photometric_sample_jpg_000{1,2,3,4,6,7,8}.png`` exist (5184 x 3456 8-bit sRGB, LED 5
     missing); the LED of each file is read from its number, so rows 0, 1, 2, 3, 5, 6, 7 of the

@@ -1,5 +1,7 @@
-"""The ``nplps`` command line: reconstruct from image files or capture folders, evaluate with
-held-out lights, make synthetic scenes, run a demo.
+"""The ``nplps`` command line.
+
+It can reconstruct from image files or capture folders, evaluate with held-out lights, make
+synthetic scenes, run a demo.
 
 Run ``nplps --help`` (or ``python -m nplps --help``) for the overview and ``nplps COMMAND --help``
 for each command. :func:`main` is the entry point; it returns the exit status instead of exiting,
@@ -121,7 +123,7 @@ exit status: 0 success, 2 invalid input or usage (also: --out DIR not empty with
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``nplps`` command."""
+    """Return the argument parser of the ``nplps`` command."""
     formatter = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog=PROG, description=MAIN_DESCRIPTION, epilog=MAIN_EPILOG, formatter_class=formatter
@@ -140,10 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Runs the ``nplps`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+    """Run the ``nplps`` command with ``argv`` (default ``sys.argv[1:]``); return the exit status.
 
     While it runs, SIGTERM (if not handled otherwise) raises an exception like Ctrl-C does, so that
-    the solver stops and no temporary file is left behind; the exit status is then 143."""
+    the solver stops and no temporary file is left behind; the exit status is then 143.
+    """
     with _sigterm_raises():
         return _main(argv)
 
@@ -181,14 +184,19 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 class _Terminated(KeyboardInterrupt):
-    """Raised by SIGTERM while :func:`main` runs (a KeyboardInterrupt: code that cleans up after
-    Ctrl-C cleans up after it too)."""
+    """Raised by SIGTERM while :func:`main` runs.
+
+    It is a KeyboardInterrupt: code that cleans up after Ctrl-C cleans up after it too.
+    """
 
 
 @contextmanager
 def _sigterm_raises() -> Iterator[None]:
-    """SIGTERM raises :class:`_Terminated` inside the block, if SIGTERM has its default action
-    and this is the main thread; the previous handler is restored afterwards."""
+    """Make SIGTERM raise :class:`_Terminated` inside the block.
+
+    Only if SIGTERM has its default action and this is the main thread; the previous handler is
+    restored afterwards.
+    """
     previous = None
     try:
         if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:

@@ -1,6 +1,9 @@
-"""``nplps calibrate spheres`` (light positions from shiny-sphere images), ``nplps calibrate
-intensity`` (light intensities from images of a flat board) and ``nplps synth-calibration`` (a
-synthetic calibration scene)."""
+"""The ``nplps calibrate`` and ``nplps synth-calibration`` commands.
+
+``nplps calibrate spheres`` (light positions from shiny-sphere images),
+``nplps calibrate intensity`` (light intensities from images of a flat board) and
+``nplps synth-calibration`` (a synthetic calibration scene).
+"""
 
 from __future__ import annotations
 
@@ -187,7 +190,7 @@ def _add_intensity_parser(sub: Any, formatter: Any) -> None:
 
 
 def add_calibrate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``calibrate`` command (``spheres``, ``intensity``) to the subparsers ``sub``."""
+    """Add the ``calibrate`` command (``spheres``, ``intensity``) to the subparsers ``sub``."""
     p = sub.add_parser(
         "calibrate",
         help="calibrate light positions (shiny spheres) and intensities (flat board)",
@@ -202,7 +205,7 @@ def add_calibrate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def add_synth_calibration_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``synth-calibration`` command to the subparsers ``sub``."""
+    """Add the ``synth-calibration`` command to the subparsers ``sub``."""
     p = sub.add_parser(
         "synth-calibration",
         help="write a synthetic light-calibration scene (shiny spheres and a board)",
@@ -232,7 +235,7 @@ def add_synth_calibration_parser(sub: Any, formatter: Any) -> argparse.ArgumentP
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    """Runs ``nplps calibrate spheres`` or ``nplps calibrate intensity``."""
+    """Run ``nplps calibrate spheres`` or ``nplps calibrate intensity``."""
     if getattr(args, "calibration", None) == "spheres":
         return _cmd_spheres(args)
     if getattr(args, "calibration", None) == "intensity":
@@ -414,7 +417,7 @@ def _cmd_intensity(args: argparse.Namespace) -> int:
 
 
 def cmd_synth_calibration(args: argparse.Namespace) -> int:
-    """Runs ``nplps synth-calibration``."""
+    """Run ``nplps synth-calibration``."""
     from ..calibrate import make_board_scene, make_sphere_scene
 
     if args.size < 32:

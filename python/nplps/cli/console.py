@@ -1,5 +1,8 @@
-"""What the command line prints besides its results: the program name, notes on stderr,
-library warnings as ``nplps: warning:`` lines, and a one-line description of a rig."""
+"""What the command line prints besides its results.
+
+The program name, notes on stderr, library warnings as ``nplps: warning:`` lines, and a one-line
+description of a rig.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ def _note(message: str) -> None:
 
 
 class _warnings_to_stderr:
-    """Shows library warnings as ``nplps: warning: ...`` lines instead of Python's format."""
+    """Context manager that shows library warnings as ``nplps: warning: ...`` lines instead of Python's format."""
 
     def __enter__(self) -> None:
         self._ctx = warnings.catch_warnings(record=True)

@@ -1,5 +1,8 @@
-"""``nplps evaluate``: held-out-light errors of the near-light method and of the parallel-light
-baseline, printed as a table."""
+"""The ``nplps evaluate`` command: held-out-light errors, printed as a table.
+
+``nplps evaluate``: held-out-light errors of the near-light method and of the parallel-light
+baseline, printed as a table.
+"""
 
 from __future__ import annotations
 
@@ -35,7 +38,7 @@ EVALUATE_COLUMNS = ("light", "near rel. error", "near shape error", "parallel re
 
 
 def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``evaluate`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``evaluate`` command and its options to the subparsers ``sub``; return its parser."""
     p = sub.add_parser(
         "evaluate",
         help="held-out-light errors of the near-light method and of the parallel-light baseline",
@@ -49,6 +52,7 @@ def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Run ``nplps evaluate``; return the exit status."""
     from ..evaluation import held_out
 
     inputs = build_inputs(args)

@@ -1,5 +1,7 @@
-"""The image files that the IMAGES arguments name: a list of files, or the image files of one
-directory in natural order."""
+"""The image files that the IMAGES arguments name.
+
+A list of files, or the image files of one directory in natural order.
+"""
 
 from __future__ import annotations
 
@@ -25,10 +27,12 @@ def resolve_images(
     exclude: Sequence[str] = (),
     ambient: str | None = None,
 ) -> list[str]:
-    """The image files named by the IMAGES arguments: the files themselves, or the image files of
-    a single directory sorted by name (numbers in names compare by value; names containing
-    ``mask`` or ``ambient`` and the files ``exclude`` are skipped). Announces on stderr which
-    files a directory gave."""
+    """Return the image files named by the IMAGES arguments.
+
+    These are the files themselves, or the image files of a single directory sorted by name (numbers
+    in names compare by value; names containing ``mask`` or ``ambient`` and the files ``exclude``
+    are skipped). Announces on stderr which files a directory gave.
+    """
     if not _is_dir_input(items):
         return _check_files(items)
     folder = items[0]

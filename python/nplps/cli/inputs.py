@@ -1,5 +1,7 @@
-"""The input options that ``reconstruct`` and ``evaluate`` share, and reading them: images or a
-capture folder, rig, mask, depth, pre-processing, binning and the solver options."""
+"""The input options that ``reconstruct`` and ``evaluate`` share, and reading them.
+
+Images or a capture folder, rig, mask, depth, pre-processing, binning and the solver options.
+"""
 
 from __future__ import annotations
 
@@ -39,8 +41,11 @@ are shadowed (0 after pre-processing, whose subtractions and scalings move the l
 
 
 def add_input_options(p: argparse.ArgumentParser) -> None:
-    """The options ``reconstruct`` and ``evaluate`` share: input, thresholds, pre-processing,
-    solver (read back by :func:`build_inputs` and :func:`near_options`)."""
+    """Add the options that ``reconstruct`` and ``evaluate`` share.
+
+    Input, thresholds, pre-processing, solver (read back by :func:`build_inputs` and
+    :func:`near_options`).
+    """
     p.add_argument(
         "images",
         nargs="*",
@@ -200,8 +205,10 @@ class Inputs(NamedTuple):
 
 
 class _Source(NamedTuple):
-    """Where the images come from, before anything is read: image files, rig, mask, ambient
-    image, K for cos^4 and the default vignetting correction."""
+    """Where the images come from, before anything is read.
+
+    Image files, rig, mask, ambient image, K for cos^4 and the default vignetting correction.
+    """
 
     files: list[str]
     rig: Any
@@ -223,8 +230,10 @@ _OPTION_WORDS = (
 
 
 def build_inputs(args: argparse.Namespace) -> Inputs:
-    """Reads and pre-processes the input that :func:`add_input_options` describes, with
-    :func:`nplps.pipeline.prepare`."""
+    """Read and pre-process the input that :func:`add_input_options` describes.
+
+    This runs :func:`nplps.pipeline.prepare`.
+    """
     from .. import pipeline
 
     check_input_args(args)
@@ -265,7 +274,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
 
 
 def _in_option_words(exc: InputError) -> InputError:
-    """The pipeline's error with its parameter name replaced by the command-line option."""
+    """Return the pipeline's error with its parameter name replaced by the command-line option."""
     text = str(exc)
     for word, option in _OPTION_WORDS:
         if text.startswith(word):
@@ -290,7 +299,7 @@ def _step_text(step: str, args: argparse.Namespace, source: _Source, images: np.
 
 
 def near_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The options of the near-light solver only (not of the parallel-light baseline)."""
+    """Return the options of the near-light solver only (not of the parallel-light baseline)."""
     options: dict[str, Any] = {
         "iterations": args.iterations,
         "tol": args.tol,
@@ -312,15 +321,17 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _estimated(result: Any, options: dict[str, Any]) -> dict[str, Any]:
-    """The options with ``depth="auto"`` replaced by the depth map that ``result`` estimated."""
+    """Return the options with ``depth="auto"`` replaced by the depth map that ``result`` estimated."""
     if not isinstance(options.get("depth"), str):
         return options
     return dict(options, depth=result.depth)
 
 
 def check_input_args(args: argparse.Namespace) -> None:
-    """Checks the input options before anything is read: numbers, which options go together,
-    and that the named side files exist."""
+    """Check the input options before anything is read.
+
+    It checks numbers, which options go together, and that the named side files exist.
+    """
     _check_numbers(args)
     if args.capture:
         given = [f"--{name}" for name in ("rig", "ambient", "exposures") if getattr(args, name)]
@@ -374,8 +385,11 @@ def _file_source(args: argparse.Namespace) -> _Source:
 
 
 def _capture_source(args: argparse.Namespace) -> _Source:
-    """--capture LAYOUT FOLDER [PATTERN]: the capture's image files, rig, mask (or --mask) and
-    ambient image; cos^4 vignetting by default when the capture has K."""
+    """Return the sources of ``--capture LAYOUT FOLDER [PATTERN]``.
+
+    The capture's image files, rig, mask (or --mask) and ambient image; cos^4 vignetting by default
+    when the capture has K.
+    """
     capture = _read_capture(args)
     mask = capture.mask if args.mask is None else args.mask
     vignetting = "cos4" if capture.K is not None else "none"
@@ -408,7 +422,7 @@ def _read_capture(args: argparse.Namespace) -> Any:
 
 
 def load_rig(path: str) -> Any:
-    """Reads the rig file; every failure becomes a :class:`~nplps.RigError` naming the file."""
+    """Read the rig file; every failure becomes a :class:`~nplps.RigError` naming the file."""
     from ..errors import RigError
     from ..rig import Rig
 

@@ -1,5 +1,8 @@
-"""The ``--out DIR`` / ``--overwrite`` pair of the commands that write a result directory
-(``reconstruct``, ``synth``, ``demo``, ``synth-calibration``); see :mod:`nplps._outdir`."""
+"""The ``--out DIR`` / ``--overwrite`` pair of the commands that write a result directory.
+
+These commands are ``reconstruct``, ``synth``, ``demo`` and ``synth-calibration``; see
+:mod:`nplps._outdir`.
+"""
 
 from __future__ import annotations
 
@@ -15,7 +18,7 @@ OVERWRITE_HELP = (
 
 
 def add_output_options(parser: argparse.ArgumentParser, default: str | None = None) -> None:
-    """Adds ``--out DIR`` (required unless ``default``) and ``--overwrite``."""
+    """Add ``--out DIR`` (required unless ``default``) and ``--overwrite``."""
     where = f"default {default}; " if default else ""
     parser.add_argument(
         "--out",
@@ -28,7 +31,9 @@ def add_output_options(parser: argparse.ArgumentParser, default: str | None = No
 
 
 def output_directory(args: argparse.Namespace) -> ResultDirectory:
-    """The ``--out`` directory of a command, checked now (before any work): raises
-    :class:`~nplps.errors.OutputExistsError` (exit status 2) if it is not empty and
-    ``--overwrite`` was not given. Use it as a context manager around the writing."""
+    """Return the ``--out`` directory of a command, checked now (before any work).
+
+    Raises :class:`~nplps.errors.OutputExistsError` (exit status 2) if it is not empty and
+    ``--overwrite`` was not given. Use it as a context manager around the writing.
+    """
     return ResultDirectory(args.out, overwrite=args.overwrite, option="--overwrite")

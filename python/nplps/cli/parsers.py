@@ -11,8 +11,10 @@ from ..errors import InputError
 
 
 def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
-    """``--depth`` (or ``option``, e.g. ``--depth-prior``): a positive number, 'auto', or the
-    path of a .npy depth map of real numbers."""
+    """Parse ``--depth`` (or ``option``, e.g. ``--depth-prior``).
+
+    Accept a positive number, 'auto', or the path of a .npy depth map of real numbers.
+    """
     if value == "auto" and option == "--depth":
         return value  # type: ignore[return-value]
     try:
@@ -49,7 +51,7 @@ def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
 
 
 def parse_exposures(text: str, k: int) -> np.ndarray:
-    """--exposures E1,E2,...: k positive numbers."""
+    """Parse ``--exposures E1,E2,...``: k positive numbers."""
     values = _parse_list(text, float, "--exposures", "comma-separated numbers, e.g. 1,0.5,2")
     if len(values) != k:
         raise InputError(f"--exposures has {len(values)} values but there are {k} images: give one per image")
@@ -60,7 +62,7 @@ def parse_exposures(text: str, k: int) -> np.ndarray:
 
 
 def parse_lights(text: str | None, k: int) -> list[int]:
-    """--lights I,J,...: 0-based light indices (default: all k)."""
+    """Parse ``--lights I,J,...``: 0-based light indices (default: all k)."""
     if text is None:
         return list(range(k))
     lights = _parse_list(text, int, "--lights", "comma-separated light indices, e.g. 0,3,5")

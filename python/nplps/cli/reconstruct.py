@@ -63,7 +63,7 @@ examples:
 
 
 def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``reconstruct`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``reconstruct`` command and its options to the subparsers ``sub``; return its parser."""
     p = sub.add_parser(
         "reconstruct",
         help="reconstruct a mesh, normals and albedo from images and a rig file",
@@ -87,6 +87,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    """Run ``nplps reconstruct``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
 
     check_input_args(args)
@@ -145,8 +146,10 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
 
 
 def _print_refinement(result: Any) -> None:
-    """The light refinement's report: what happened, then per light the change and its
-    standard error."""
+    """Print the light refinement's report.
+
+    First what happened, then per light the change and its standard error.
+    """
     ref = result.refinement
     state = "refined"
     if ref.fell_back:

@@ -1,5 +1,8 @@
-"""``nplps synth`` (write a synthetic scene) and ``nplps demo`` (compare the near-light method with
-parallel-light photometric stereo on a synthetic scene)."""
+"""The ``nplps synth`` and ``nplps demo`` commands.
+
+``nplps synth`` (write a synthetic scene) and ``nplps demo`` (compare the near-light method with
+parallel-light photometric stereo on a synthetic scene).
+"""
 
 from __future__ import annotations
 
@@ -47,7 +50,7 @@ examples:
 
 
 def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``synth`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``synth`` command and its options to the subparsers ``sub``; return its parser."""
     from ..synth import SCENES
 
     p = sub.add_parser(
@@ -82,7 +85,7 @@ def add_synth_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
 
 def add_demo_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
-    """Adds the ``demo`` command and its options to the subparsers ``sub``; returns its parser."""
+    """Add the ``demo`` command and its options to the subparsers ``sub``; return its parser."""
     from ..synth import SCENES
 
     p = sub.add_parser(
@@ -110,6 +113,7 @@ def _check_scene_args(args: argparse.Namespace) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    """Run ``nplps synth``; return the exit status."""
     from ..synth import make_scene
 
     _check_scene_args(args)
@@ -170,6 +174,7 @@ def depth_rms(depth: np.ndarray, truth: np.ndarray) -> float:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Run ``nplps demo``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
     from ..synth import make_scene
 
