@@ -1,6 +1,6 @@
 //! Reconstructs a synthetic scene and prints accuracy and timings.
 //!
-//! `cargo run --release -p nplps --example synthetic -- [scene] [n] [iterations]`
+//! `cargo run --release -p nplps --features synth --example synthetic -- [scene] [n] [iterations]`
 //! (scene: saddle, sphere, cube or bumps; defaults: bumps 256 10).
 
 use nplps::{
