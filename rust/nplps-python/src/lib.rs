@@ -107,27 +107,26 @@ const SOLVER_KEYS: [&str; 12] = [
     "weighting",
 ];
 
-/// The keys of the options mapping of `reconstruct`: the solver's and those of the distance
-/// search and the depth prior.
-const RECONSTRUCT_KEYS: [&str; 17] = [
+/// The keys of the options mapping of `reconstruct` besides the solver's ([`SOLVER_KEYS`]): those
+/// of the distance search and the depth prior.
+const SEARCH_AND_PRIOR_KEYS: [&str; 5] = [
     "auto",
-    "dark",
     "depth_guess",
     "depth_range",
-    "iterations",
-    "levels",
-    "light_prior_weight",
-    "max_memory",
     "prior",
     "prior_weight",
-    "refine_lights",
-    "robust",
-    "saturation",
-    "solver",
-    "threads",
-    "tol",
-    "weighting",
 ];
+
+/// The keys of the options mapping of `reconstruct`, sorted (for the message of an unknown key).
+fn reconstruct_keys() -> Vec<&'static str> {
+    let mut keys: Vec<&str> = SOLVER_KEYS
+        .iter()
+        .chain(&SEARCH_AND_PRIOR_KEYS)
+        .copied()
+        .collect();
+    keys.sort_unstable();
+    keys
+}
 
 /// Solver options from the options mapping (keys as in `nplps.reconstruct`).
 fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
@@ -272,7 +271,7 @@ fn reconstruct<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let py = images.py();
-    check_options(options, &RECONSTRUCT_KEYS)?;
+    check_options(options, &reconstruct_keys())?;
     let rig = rig_from(camera, lights)?;
     let depth = match &depth {
         Depth::Distance(d) => nplps::InitialDepth::Distance(*d),
