@@ -28,7 +28,7 @@ The public names, by layer:
   :mod:`~nplps.types` (the ``Literal`` aliases of the string options, such as ``Status``).
 """
 
-from . import calibrate, captures, evaluation, export, io, preprocess, types
+from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, types
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .calibrate import (
@@ -76,6 +76,7 @@ __all__ = [
     "io",
     "light_changes",
     "make_scene",
+    "pipeline",
     "preprocess",
     "reconstruct",
     "reconstruct_parallel",

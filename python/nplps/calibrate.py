@@ -48,7 +48,25 @@ from . import _core, _core_types, io, pipeline
 from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
-from .rig import DirectionalLight, Light, PointLight, Rig, read_rig_json, select_core_lights
+from .rig import DirectionalLight, Light, PointLight, Rig, _select_core_lights, read_rig_json
+
+__all__ = [
+    "BoardScene",
+    "IntensityCalibration",
+    "LightReport",
+    "SphereCalibration",
+    "SphereReport",
+    "SphereScene",
+    "calibrate_intensities",
+    "calibrate_spheres",
+    "default_placements",
+    "light_table",
+    "load_camera",
+    "make_board_scene",
+    "make_sphere_scene",
+    "save_camera",
+    "standard_rig",
+]
 
 ImageSet = np.ndarray | Sequence[Any]
 """One placement's images: a (k, H, W[, 3]) array or k image files / arrays."""
@@ -775,7 +793,7 @@ def standard_rig(
     else:
         cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
     idx = _light_indices(lights)
-    return Rig._from_core_lights(cam, select_core_lights(d["lights"], idx))
+    return Rig._from_core_lights(cam, _select_core_lights(d["lights"], idx))
 
 
 def default_placements(

@@ -33,6 +33,22 @@ import tifffile
 from ._atomic import atomic_path, atomic_write
 from .errors import InputError
 
+__all__ = [
+    "read_ply",
+    "save_albedo",
+    "save_depth_npy",
+    "save_depth_tiff",
+    "save_grey_png",
+    "save_normal_map",
+    "save_npy",
+    "write_meshes",
+    "write_obj",
+    "write_ply",
+    "write_png",
+    "write_png8",
+    "write_png16",
+]
+
 PathLike: TypeAlias = str | os.PathLike
 """A file name: ``str`` or any :class:`os.PathLike`."""
 

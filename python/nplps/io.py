@@ -28,6 +28,17 @@ import tifffile
 from . import _core
 from .errors import InputError
 
+__all__ = [
+    "MAX_PIXELS",
+    "iter_images",
+    "load_images",
+    "load_mask",
+    "load_stack",
+    "read_image",
+    "to_float",
+    "to_gray",
+]
+
 PathLike: TypeAlias = str | os.PathLike
 """A file name: ``str`` or any :class:`os.PathLike`."""
 

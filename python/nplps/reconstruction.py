@@ -23,7 +23,7 @@ import numpy as np
 from . import _core, export, plots
 from ._atomic import write_text
 from ._outdir import result_directory
-from .rig import Rig, select_core_lights
+from .rig import Rig, _select_core_lights
 
 if TYPE_CHECKING:
     from .types import Method, RefineLights, Status
@@ -398,7 +398,7 @@ class Reconstruction:
         _check_rig(rig)
         light_params = rig._core_lights()
         if lights is not None:
-            light_params = select_core_lights(light_params, _light_indices(lights, rig.n_lights))
+            light_params = _select_core_lights(light_params, _light_indices(lights, rig.n_lights))
         return _core.predict(
             self.depth, self.fit_normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
         )

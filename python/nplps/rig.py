@@ -67,6 +67,19 @@ import numpy as np
 from . import _core, _core_types
 from .errors import RigError
 
+__all__ = [
+    "LED",
+    "MAX_LIGHTS",
+    "MAX_NESTING",
+    "MAX_RIG_FILE_BYTES",
+    "RIG_FILE_VERSION",
+    "DirectionalLight",
+    "Light",
+    "PointLight",
+    "Rig",
+    "read_rig_json",
+]
+
 RIG_FILE_VERSION = 2
 #: Largest rig file read (bytes).
 MAX_RIG_FILE_BYTES = 16 * 2**20
@@ -1137,7 +1150,7 @@ def _intensities(value: Any, k: int, where: str = "intensities") -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def select_core_lights(lights: _core_types.LightsDict, indices: Sequence[int]) -> _core_types.LightsDict:
+def _select_core_lights(lights: _core_types.LightsDict, indices: Sequence[int]) -> _core_types.LightsDict:
     """Select lights of the compiled core's light mapping, in the order of ``indices``.
 
     Parameters
