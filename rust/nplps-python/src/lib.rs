@@ -128,49 +128,64 @@ fn reconstruct_keys() -> Vec<&'static str> {
     keys
 }
 
+/// The value of a string option among `choices` (the first is the default, for a missing key or
+/// None); another string is an `InputError` "`expected`, got ...".
+fn choice<T: Copy>(
+    d: &Bound<'_, PyDict>,
+    key: &str,
+    choices: &[(&str, T)],
+    expected: &str,
+) -> PyResult<T> {
+    let name: String = option(d, key, choices[0].0.to_string())?;
+    match choices.iter().find(|(n, _)| *n == name) {
+        Some(&(_, value)) => Ok(value),
+        None => Err(InputError::new_err(format!("{expected}, got {name:?}"))),
+    }
+}
+
 /// Solver options from the options mapping (keys as in `nplps.reconstruct`).
 fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
     let defaults = nplps::Options::default();
-    let weighting = match option(d, "weighting", "image".to_string())?.as_str() {
-        "image" => nplps::Weighting::Image,
-        "paper" => nplps::Weighting::Paper,
-        other => {
-            return Err(InputError::new_err(format!(
-                "weighting must be \"image\" or \"paper\", got {other:?}"
-            )))
-        }
-    };
-    let robust = match option(d, "robust", "none".to_string())?.as_str() {
-        "none" => nplps::Robust::None,
-        "cauchy" => nplps::Robust::Cauchy,
-        "tukey" => nplps::Robust::Tukey,
-        other => {
-            return Err(InputError::new_err(format!(
-                "robust must be None, \"cauchy\" or \"tukey\", got {other:?}"
-            )))
-        }
-    };
-    let solver = match option(d, "solver", "auto".to_string())?.as_str() {
-        "auto" => nplps::GlobalSolver::Auto,
-        "direct" => nplps::GlobalSolver::Direct,
-        "multigrid" => nplps::GlobalSolver::Multigrid,
-        other => {
-            return Err(InputError::new_err(format!(
-                "solver must be \"auto\", \"direct\" or \"multigrid\", got {other:?}"
-            )))
-        }
-    };
-    let (intensity, position) = match option(d, "refine_lights", "none".to_string())?.as_str() {
-        "none" => (false, false),
-        "intensity" => (true, false),
-        "position" => (false, true),
-        "both" => (true, true),
-        other => {
-            return Err(InputError::new_err(format!(
-            "refine_lights must be None, \"intensity\", \"position\" or \"both\", got {other:?}"
-        )))
-        }
-    };
+    let weighting = choice(
+        d,
+        "weighting",
+        &[
+            ("image", nplps::Weighting::Image),
+            ("paper", nplps::Weighting::Paper),
+        ],
+        "weighting must be \"image\" or \"paper\"",
+    )?;
+    let robust = choice(
+        d,
+        "robust",
+        &[
+            ("none", nplps::Robust::None),
+            ("cauchy", nplps::Robust::Cauchy),
+            ("tukey", nplps::Robust::Tukey),
+        ],
+        "robust must be None, \"cauchy\" or \"tukey\"",
+    )?;
+    let solver = choice(
+        d,
+        "solver",
+        &[
+            ("auto", nplps::GlobalSolver::Auto),
+            ("direct", nplps::GlobalSolver::Direct),
+            ("multigrid", nplps::GlobalSolver::Multigrid),
+        ],
+        "solver must be \"auto\", \"direct\" or \"multigrid\"",
+    )?;
+    let (intensity, position) = choice(
+        d,
+        "refine_lights",
+        &[
+            ("none", (false, false)),
+            ("intensity", (true, false)),
+            ("position", (false, true)),
+            ("both", (true, true)),
+        ],
+        "refine_lights must be None, \"intensity\", \"position\" or \"both\"",
+    )?;
     let refine = defaults
         .refine
         .with_intensity(intensity)
