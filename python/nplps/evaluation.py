@@ -13,7 +13,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .api import _check_rig, _light_indices, _short, _thresholds, reconstruct, reconstruct_parallel
+from ._checks import _check_rig, _light_indices, _short
+from .api import _thresholds, reconstruct, reconstruct_parallel
 from .errors import InputError
 from .io import load_stack
 from .reconstruction import Reconstruction

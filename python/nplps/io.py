@@ -27,6 +27,8 @@ import tifffile
 
 from . import _core
 from .errors import InputError
+from .preprocess import to_float
+from .preprocess import to_gray as _gray
 
 __all__ = [
     "MAX_PIXELS",
@@ -249,30 +251,6 @@ def _normalize_channels(image: np.ndarray, path: PathLike) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 
 
-def to_float(img: np.ndarray) -> np.ndarray:
-    """Convert pixel values to float32.
-
-    Integer types are scaled to ``[0, 1]`` by the maximum of their dtype (``uint8`` / 255,
-    ``uint16`` / 65535, ...); booleans become 0 or 1; floats are returned unchanged (as float32).
-    Works on arrays of any shape.
-
-    Raises
-    ------
-    InputError
-        The dtype is not numeric (complex, object, strings, ...).
-    """
-    img = np.asarray(img)
-    if img.dtype == np.bool_:
-        return img.astype(np.float32)
-    if np.issubdtype(img.dtype, np.integer):
-        out = img.astype(np.float32)
-        out /= np.float32(np.iinfo(img.dtype).max)  # in place: one float32 copy of the input
-        return out
-    if np.issubdtype(img.dtype, np.floating):
-        return img.astype(np.float32, copy=False)
-    raise InputError(f"unsupported image dtype {img.dtype}: expected integers or floats")
-
-
 def _to_float_into(img: np.ndarray, out: np.ndarray) -> None:
     """Write :func:`to_float` of ``img`` into the float32 array ``out`` (same values, no copy)."""
     if img.dtype == np.bool_ or np.issubdtype(img.dtype, np.floating):
@@ -303,11 +281,9 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     InputError
         The shape is neither ``(H, W)`` nor ``(H, W, 3)``.
     """
-    from .pipeline import to_gray as gray  # the pipeline imports this module
-
     img = np.asarray(img)
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3):
-        return gray(img, stack=False)
+        return _gray(img, stack=False)
     raise InputError(f"expected an image of shape (H, W) or (H, W, 3), got shape {img.shape}")
 
 
@@ -420,9 +396,7 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
         # or grey stack.
         whole = to_float(images)
         if whole.ndim == 4 and not color:
-            from .pipeline import to_gray as gray  # the pipeline imports this module
-
-            whole = gray(whole)
+            whole = _gray(whole)
         stack = np.ascontiguousarray(whole, dtype=np.float32)
     labels = [f"image {i}" for i in range(k)]
     if np.issubdtype(images.dtype, np.floating):

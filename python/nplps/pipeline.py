@@ -74,6 +74,7 @@ import numpy as np
 from . import preprocess
 from .errors import InputError
 from .io import ImageSource, PathLike, load_mask, load_stack, read_image, to_float
+from .preprocess import to_gray
 
 if TYPE_CHECKING:
     from .rig import Rig
@@ -165,54 +166,6 @@ def saturated(images: np.ndarray, saturation: float) -> np.ndarray | None:
 # --------------------------------------------------------------------------------------------------
 # Grey and colour, sRGB
 # --------------------------------------------------------------------------------------------------
-
-
-def to_gray(images: np.ndarray, *, stack: bool = True) -> np.ndarray:
-    """Return the channel mean of colour images, as float32.
-
-    Every grey conversion of nplps goes through here, with one arithmetic: the channels are
-    added in float32 in their order and the sum is multiplied by ``float32(1 / C)``
-    (``(R + G + B) * (1/3)``), in one output array (no float64 and no colour-sized
-    temporaries). Integer input is scaled to ``[0, 1]`` first (:func:`nplps.io.to_float`).
-
-    Parameters
-    ----------
-    images : ndarray
-        A stack ``(k, H, W[, C])`` (``stack=True``) or one image ``(H, W[, C])``
-        (``stack=False``). Grey input is returned as float32 (no copy if it is float32).
-    stack : bool
-        How to read a 3-D array: a grey stack ``(k, H, W)`` (True) or a colour image
-        ``(H, W, C)`` (False).
-
-    Returns
-    -------
-    ndarray
-        float32, ``(k, H, W)`` or ``(H, W)``.
-
-    Raises
-    ------
-    InputError
-        The array has the wrong number of dimensions or a dtype that is not numeric.
-    """
-    x = np.asarray(images)
-    colour_ndim = 4 if stack else 3
-    if x.ndim == colour_ndim - 1:
-        return to_float(x)
-    if x.ndim != colour_ndim or x.shape[-1] < 1:
-        want = "(k, H, W) or (k, H, W, C)" if stack else "(H, W) or (H, W, C)"
-        raise InputError(f"expected {want}, got shape {x.shape}")
-    if not np.issubdtype(x.dtype, np.floating):
-        x = to_float(x)
-    channels = x.shape[-1]
-    out = np.empty(x.shape[:-1], dtype=np.float32)
-    if channels == 1:
-        out[...] = x[..., 0]
-        return out
-    np.add(x[..., 0], x[..., 1], out=out, dtype=np.float32, casting="same_kind")
-    for c in range(2, channels):
-        np.add(out, x[..., c], out=out, dtype=np.float32, casting="same_kind")
-    out *= np.float32(1.0 / channels)
-    return out
 
 
 def select_color(

@@ -47,7 +47,6 @@ from typing import Literal
 import numpy as np
 
 from .errors import InputError
-from .io import to_float
 
 __all__ = [
     "bin_images",
@@ -60,6 +59,8 @@ __all__ = [
     "scale_exposure",
     "srgb_to_linear",
     "subtract_ambient",
+    "to_float",
+    "to_gray",
     "vignetting_cos4",
 ]
 
@@ -74,6 +75,79 @@ _SRGB_GAMMA = 2.4
 # --------------------------------------------------------------------------------------------------
 # Helpers
 # --------------------------------------------------------------------------------------------------
+
+
+def to_float(img: np.ndarray) -> np.ndarray:
+    """Convert pixel values to float32.
+
+    Integer types are scaled to ``[0, 1]`` by the maximum of their dtype (``uint8`` / 255,
+    ``uint16`` / 65535, ...); booleans become 0 or 1; floats are returned unchanged (as float32).
+    Works on arrays of any shape.
+
+    Raises
+    ------
+    InputError
+        The dtype is not numeric (complex, object, strings, ...).
+    """
+    img = np.asarray(img)
+    if img.dtype == np.bool_:
+        return img.astype(np.float32)
+    if np.issubdtype(img.dtype, np.integer):
+        out = img.astype(np.float32)
+        out /= np.float32(np.iinfo(img.dtype).max)  # in place: one float32 copy of the input
+        return out
+    if np.issubdtype(img.dtype, np.floating):
+        return img.astype(np.float32, copy=False)
+    raise InputError(f"unsupported image dtype {img.dtype}: expected integers or floats")
+
+
+def to_gray(images: np.ndarray, *, stack: bool = True) -> np.ndarray:
+    """Return the channel mean of colour images, as float32.
+
+    Every grey conversion of nplps goes through here (also as ``nplps.pipeline.to_gray`` and
+    behind ``nplps.io.to_gray``), with one arithmetic: the channels are added in float32 in their
+    order and the sum is multiplied by ``float32(1 / C)``
+    (``(R + G + B) * (1/3)``), in one output array (no float64 and no colour-sized
+    temporaries). Integer input is scaled to ``[0, 1]`` first (:func:`to_float`).
+
+    Parameters
+    ----------
+    images : ndarray
+        A stack ``(k, H, W[, C])`` (``stack=True``) or one image ``(H, W[, C])``
+        (``stack=False``). Grey input is returned as float32 (no copy if it is float32).
+    stack : bool
+        How to read a 3-D array: a grey stack ``(k, H, W)`` (True) or a colour image
+        ``(H, W, C)`` (False).
+
+    Returns
+    -------
+    ndarray
+        float32, ``(k, H, W)`` or ``(H, W)``.
+
+    Raises
+    ------
+    InputError
+        The array has the wrong number of dimensions or a dtype that is not numeric.
+    """
+    x = np.asarray(images)
+    colour_ndim = 4 if stack else 3
+    if x.ndim == colour_ndim - 1:
+        return to_float(x)
+    if x.ndim != colour_ndim or x.shape[-1] < 1:
+        want = "(k, H, W) or (k, H, W, C)" if stack else "(H, W) or (H, W, C)"
+        raise InputError(f"expected {want}, got shape {x.shape}")
+    if not np.issubdtype(x.dtype, np.floating):
+        x = to_float(x)
+    channels = x.shape[-1]
+    out = np.empty(x.shape[:-1], dtype=np.float32)
+    if channels == 1:
+        out[...] = x[..., 0]
+        return out
+    np.add(x[..., 0], x[..., 1], out=out, dtype=np.float32, casting="same_kind")
+    for c in range(2, channels):
+        np.add(out, x[..., c], out=out, dtype=np.float32, casting="same_kind")
+    out *= np.float32(1.0 / channels)
+    return out
 
 
 def _as_float(x: np.ndarray | float, name: str) -> np.ndarray:

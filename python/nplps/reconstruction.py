@@ -22,6 +22,7 @@ import numpy as np
 
 from . import _core, export, plots
 from ._atomic import write_text
+from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
 from .rig import Rig, _select_core_lights
 
@@ -392,8 +393,6 @@ class Reconstruction:
 
             predicted = result.predict(full_rig, lights=[i])[0]
         """
-        from .api import _check_rig, _light_indices
-
         rig = self.rig if rig is None else rig
         _check_rig(rig)
         light_params = rig._core_lights()

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from . import _core, export
+from ._checks import _finite_number, _positive, _short, _whole
 from ._outdir import result_directory
-from .api import _finite_number, _positive, _short, _whole, render
+from .api import render
 from .errors import InputError
 from .rig import Rig
 from .types import Camera, SceneName

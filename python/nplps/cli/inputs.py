@@ -12,7 +12,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..api import MAX_THREADS, _memory_limit
+from .._checks import MAX_THREADS, _memory_limit
 from ..errors import InputError
 from .console import _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images

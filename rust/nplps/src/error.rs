@@ -79,8 +79,11 @@ pub enum Error {
     Cancelled,
 }
 
+/// The share of the available memory that a computation may use when no `max_memory` is given
+/// (the memory module's default limit; here for the message of [`Error::Memory`]).
+pub(crate) const DEFAULT_MEMORY_FRACTION: f64 = 0.8;
+
 fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String {
-    use crate::memory::{format_bytes, DEFAULT_FRACTION};
     if limit.is_nan() {
         return format!(
             "{what}: allocating {} failed (out of memory)",
@@ -92,7 +95,7 @@ fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String
     } else {
         format!(
             "max_memory, by default {:.0}% of the memory available",
-            DEFAULT_FRACTION * 100.0
+            DEFAULT_MEMORY_FRACTION * 100.0
         )
     };
     format!(
@@ -101,6 +104,27 @@ fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String
         format_bytes(needed),
         format_bytes(limit)
     )
+}
+
+/// Human-readable bytes with three significant digits: "512 MB", "1.25 GB".
+pub(crate) fn format_bytes(bytes: f64) -> String {
+    if !bytes.is_finite() {
+        return "unknown".to_string();
+    }
+    const UNITS: [&str; 6] = ["B", "kB", "MB", "GB", "TB", "PB"];
+    let mut value = bytes.max(0.0);
+    let mut unit = 0;
+    while value >= 1000.0 && unit + 1 < UNITS.len() {
+        value /= 1000.0;
+        unit += 1;
+    }
+    if unit == 0 || value >= 100.0 {
+        format!("{value:.0} {}", UNITS[unit])
+    } else if value >= 10.0 {
+        format!("{value:.1} {}", UNITS[unit])
+    } else {
+        format!("{value:.2} {}", UNITS[unit])
+    }
 }
 
 /// Result alias used across the crate.

@@ -18,7 +18,7 @@ use crate::global::GlobalSolver;
 use crate::solver::Options;
 
 /// Share of the available memory a computation may use when no limit is given.
-pub const DEFAULT_FRACTION: f64 = 0.8;
+pub const DEFAULT_FRACTION: f64 = crate::error::DEFAULT_MEMORY_FRACTION;
 
 /// Fixed overhead of a reconstruction (thread pools, small systems, the coarsest level).
 const FIXED: f64 = 64e6;
@@ -151,27 +151,6 @@ pub fn try_filled<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> 
     Ok(v)
 }
 
-/// Human-readable bytes with three significant digits: "512 MB", "1.25 GB".
-pub fn format_bytes(bytes: f64) -> String {
-    if !bytes.is_finite() {
-        return "unknown".to_string();
-    }
-    const UNITS: [&str; 6] = ["B", "kB", "MB", "GB", "TB", "PB"];
-    let mut value = bytes.max(0.0);
-    let mut unit = 0;
-    while value >= 1000.0 && unit + 1 < UNITS.len() {
-        value /= 1000.0;
-        unit += 1;
-    }
-    if unit == 0 || value >= 100.0 {
-        format!("{value:.0} {}", UNITS[unit])
-    } else if value >= 10.0 {
-        format!("{value:.1} {}", UNITS[unit])
-    } else {
-        format!("{value:.2} {}", UNITS[unit])
-    }
-}
-
 /// A `key: value kB` field of a /proc file, in bytes.
 fn proc_field(path: &str, key: &str) -> Option<u64> {
     let text = std::fs::read_to_string(path).ok()?;
@@ -225,6 +204,7 @@ fn address_space_free() -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::format_bytes;
 
     #[test]
     fn the_estimate_grows_with_the_pixels_and_the_options() {
