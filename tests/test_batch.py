@@ -177,3 +177,27 @@ def test_existing_scheduler(captures, tmp_path, capsys):
     assert code == 1
     assert io.out.count(": ok, ") == 7 and io.out.count("capture c5: failed: ") == 1
     assert len(list((tmp_path / "out").glob("c*/nplps-manifest.json"))) == 7
+
+
+def test_foreign_files_and_interrupt(captures, tmp_path):
+    pytest.importorskip("distributed", reason="nplps batch needs dask.distributed (pip install 'nplps[batch]')")
+    out = tmp_path / "out"
+    (out / "c1").mkdir(parents=True)
+    (out / "c1" / "notes.txt").write_text("mine")
+    items = batch.run(str(captures / "c[0-1]"), captures / "c0" / "rig.json", out, depth=200.0, workers=1)
+    assert [i.status for i in items] == ["ok", "failed"]
+    assert "not empty" in (items[1].error or "") and "--overwrite" in (items[1].error or "")
+    assert (out / "c1" / "notes.txt").read_text() == "mine" and not (out / "c1" / "summary.json").exists()
+
+    # Ctrl-C while the captures run (here: raised from the progress callback): the summary is
+    # written with the unfinished captures as "interrupted", and a rerun does the rest.
+    def stop(item, done, total, failed):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "out2"
+    with pytest.raises(KeyboardInterrupt):
+        batch.run(str(captures / "c[0-3]"), captures / "c0" / "rig.json", out, depth=200.0, workers=1, progress=stop)
+    rows = list(csv.DictReader(open(out / "batch_summary.csv", newline="")))
+    assert len(rows) == 4 and sum(r["error"] == "interrupted" for r in rows) >= 1
+    items = batch.run(str(captures / "c[0-3]"), captures / "c0" / "rig.json", out, depth=200.0, workers=2)
+    assert all(i.status in ("ok", "skipped") for i in items) and any(i.status == "skipped" for i in items)

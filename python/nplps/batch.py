@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._atomic import PathLike, write_text
-from ._outdir import read_manifest
+from ._outdir import ResultDirectory, read_manifest
 from .captures.files import _find_one, find_images
 from .errors import InputError, NplpsError
 from .rig import Rig
@@ -321,18 +321,29 @@ def run(
                     for item in todo
                 }
                 by_name = {item.name: i for i, item in enumerate(items)}
-                for future in as_completed(futures):
-                    item = futures[future]
-                    try:
-                        result = future.result()
-                    except Exception as e:  # the task raised outside _process's handler: a dead worker
-                        result = dataclasses.replace(item, status="failed", error=_message(e))
-                    result = dataclasses.replace(result, folder=item.folder, out=item.out)
-                    items[by_name[item.name]] = result
-                    done += 1
-                    failed += result.status == "failed"
-                    if progress is not None:
-                        progress(result, done, total, failed)
+                finished: set[str] = set()
+                try:
+                    for future in as_completed(futures):
+                        item = futures[future]
+                        try:
+                            result = future.result()
+                        except Exception as e:  # the task raised outside _process's handler: a dead worker
+                            result = dataclasses.replace(item, status="failed", error=_message(e))
+                        result = dataclasses.replace(result, folder=item.folder, out=item.out)
+                        items[by_name[item.name]] = result
+                        finished.add(item.name)
+                        done += 1
+                        failed += result.status == "failed"
+                        if progress is not None:
+                            progress(result, done, total, failed)
+                except BaseException:  # Ctrl-C, SIGTERM: the summary says which captures did not finish
+                    client.cancel(list(futures))
+                    for item in todo:
+                        if item.name not in finished:
+                            item.status, item.error = "failed", "interrupted"
+                    if summary:
+                        write_summary(items, out)
+                    raise
         finally:
             if cluster is not None:
                 cluster.close()
@@ -390,6 +401,10 @@ def _process(
     start = time.perf_counter()
     caught: list[str] = []
     try:
+        # Checked before the work: our own earlier (incomplete) result is replaced, a directory
+        # holding other files only with overwrite.
+        replace = overwrite or read_manifest(item.out) is not None
+        target = ResultDirectory(item.out, overwrite=replace, option="overwrite (--overwrite)")
         folder = Path(item.folder)
         files = find_images(folder)
         if not files:
@@ -415,9 +430,8 @@ def _process(
                 prepared.images, prepared.rig, depth=depth, mask=prepared.mask, valid=prepared.valid, **options
             )
         caught = [str(w.message) for w in records]
-        # Our own earlier (incomplete) result is replaced; another folder's files only with overwrite.
-        replace = overwrite or read_manifest(item.out) is not None
-        result.save(item.out, overwrite=replace)
+        with target:
+            result.save(target)
         s = result.summary()
     except Exception as e:
         return dataclasses.replace(
