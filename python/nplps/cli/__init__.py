@@ -30,6 +30,7 @@ from typing import Any
 from .. import __version__
 from .._atomic import is_write_error
 from ..errors import NplpsError
+from .batch import add_batch_parser, cmd_batch
 from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 from .console import PROG, describe_rig
 from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
@@ -60,6 +61,7 @@ __all__ = [
     "build_inputs",
     "build_parser",
     "check_input_args",
+    "cmd_batch",
     "cmd_calibrate",
     "cmd_demo",
     "cmd_evaluate",
@@ -138,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_demo_parser(sub, formatter).set_defaults(func=cmd_demo)
     add_calibrate_parser(sub, formatter).set_defaults(func=cmd_calibrate)
     add_synth_calibration_parser(sub, formatter).set_defaults(func=cmd_synth_calibration)
+    add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
     return parser
 
 

@@ -1,0 +1,525 @@
+"""Reconstruct many captures at once with Dask (``nplps batch``).
+
+Every directory that a glob pattern matches is one capture: its image files (sorted by name,
+as ``nplps reconstruct DIR`` reads a directory; names with ``mask`` or ``ambient`` left out)
+and, if present, its mask image. All captures share one rig. Each capture is one Dask task
+(:mod:`dask.distributed`, an optional dependency: ``pip install "nplps[batch]"``) that runs
+:func:`nplps.pipeline.prepare`, :func:`nplps.reconstruct` and
+:meth:`nplps.Reconstruction.save` into ``OUT/<capture name>/``.
+
+- Resumable: a capture whose result directory already holds a complete result (its
+  ``nplps-manifest.json`` lists ``summary.json`` and every file it lists exists) is skipped.
+- A capture that fails is reported and the others go on.
+- ``OUT/batch_summary.csv`` and ``OUT/batch_summary.html`` list every capture (written
+  atomically, at the end of the run).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import glob
+import html
+import inspect
+import io
+import json
+import os
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+from ._atomic import PathLike, write_text
+from ._outdir import ResultDirectory, read_manifest
+from .captures.files import _find_one, find_images
+from .errors import InputError, NplpsError
+from .rig import Rig
+
+__all__ = ["SUMMARY_COLUMNS", "BatchItem", "find_captures", "is_complete", "run", "write_summary"]
+
+#: Columns of ``batch_summary.csv``.
+SUMMARY_COLUMNS = ("capture", "status", "iterations", "solver_status", "rms_residual", "seconds", "error")
+
+#: Keyword options that go to :func:`nplps.pipeline.prepare` (the others go to :func:`nplps.reconstruct`).
+PREPARE_OPTIONS = ("color", "saturation", "srgb", "exposures", "vignetting", "flat", "bin_factor")
+
+BatchStatus = Literal["ok", "failed", "skipped"]
+
+
+@dataclasses.dataclass
+class BatchItem:
+    """The outcome of one capture of a batch.
+
+    Attributes
+    ----------
+    name : str
+        The capture's name (its directory's name); its result is in ``out``.
+    folder : str
+        The capture directory.
+    out : str
+        The result directory, ``OUT/<name>``.
+    status : {"ok", "failed", "skipped"}
+        ``"skipped"``: a complete result was already there.
+    iterations : int or None
+        Iterations of the solver (None if failed).
+    solver_status : str or None
+        How the reconstruction ended (``"converged"``, ``"stalled"``, ...; None if failed).
+    rms_residual : float or None
+        RMS residual of the last iteration (image units).
+    seconds : float or None
+        Wall time of the task (None when skipped or when the task never ran).
+    error : str or None
+        The error message of a failed capture.
+    warnings : list of str
+        Warnings the reconstruction gave (e.g. a diverged run).
+    """
+
+    name: str
+    folder: str
+    out: str
+    status: BatchStatus = "ok"
+    iterations: int | None = None
+    solver_status: str | None = None
+    rms_residual: float | None = None
+    seconds: float | None = None
+    error: str | None = None
+    warnings: list[str] = dataclasses.field(default_factory=list)
+
+    def row(self) -> dict[str, str]:
+        """Return the item as a row of ``batch_summary.csv`` (text; ``nan`` for missing numbers)."""
+        return {
+            "capture": _field(self.name),
+            "status": self.status,
+            "iterations": "nan" if self.iterations is None else str(self.iterations),
+            "solver_status": _field(self.solver_status or ""),
+            "rms_residual": "nan" if self.rms_residual is None else f"{self.rms_residual:.6e}",
+            "seconds": "nan" if self.seconds is None else f"{self.seconds:.3f}",
+            "error": _field(self.error or ""),
+        }
+
+
+#: ``progress(item, done, total, failed)``, called in the calling process as each capture finishes.
+ProgressCallback = Callable[[BatchItem, int, int, int], None]
+
+
+def find_captures(pattern: str, out: PathLike | None = None) -> list[Path]:
+    """Return the capture directories that the glob ``pattern`` matches, sorted by name.
+
+    Parameters
+    ----------
+    pattern : str
+        A glob pattern (``**`` allowed) of directories; files it matches are ignored.
+    out : path-like, optional
+        The batch's output directory: it and the directories inside it are left out.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The directories, in natural order of their names.
+
+    Raises
+    ------
+    InputError
+        Nothing matches, or two captures have the same name (their results would collide).
+    """
+    from .pipeline import natural_key
+
+    top = None if out is None else os.path.realpath(out)
+    found = []
+    for match in glob.glob(os.path.expanduser(pattern), recursive=True):
+        real = os.path.realpath(match)
+        if not os.path.isdir(match) or (top is not None and (real == top or real.startswith(top + os.sep))):
+            continue
+        found.append(Path(match))
+    if not found:
+        raise InputError(f"no capture directory matches '{pattern}'")
+    found.sort(key=lambda p: (natural_key(p.name), str(p)))
+    names: dict[str, Path] = {}
+    for path in found:
+        if path.name in names:
+            raise InputError(
+                f"two captures are named '{path.name}' ('{names[path.name]}' and '{path}'): "
+                "their results would go to the same directory"
+            )
+        names[path.name] = path
+    return found
+
+
+def is_complete(directory: PathLike) -> bool:
+    """Tell whether ``directory`` holds a complete nplps result.
+
+    Its manifest (``nplps-manifest.json``) is readable and lists ``summary.json`` (written last
+    by :meth:`~nplps.Reconstruction.save`), and every file it lists exists.
+
+    Parameters
+    ----------
+    directory : path-like
+        A result directory.
+
+    Returns
+    -------
+    bool
+        True if the result is complete.
+    """
+    files = read_manifest(directory)
+    if not files or "summary.json" not in files:
+        return False
+    return all(os.path.isfile(os.path.join(directory, f)) for f in files)
+
+
+def run(
+    pattern: str,
+    rig: Rig | PathLike,
+    out: PathLike,
+    *,
+    depth: Any,
+    mask_name: str | None = "auto",
+    ambient_name: str | None = None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    progress: ProgressCallback | None = None,
+    summary: bool = True,
+    **options: Any,
+) -> list[BatchItem]:
+    """Reconstruct every capture directory that ``pattern`` matches, one Dask task each.
+
+    Parameters
+    ----------
+    pattern : str
+        Glob pattern of the capture directories (see :func:`find_captures`). A capture's images
+        are its image files in natural order (names containing ``mask`` or ``ambient`` left
+        out), one per light of ``rig``.
+    rig : Rig or path-like
+        The rig of every capture, or its rig file.
+    out : path-like
+        Output directory: each capture's result goes to ``out/<capture name>/`` (through
+        :meth:`~nplps.Reconstruction.save`), and the summary to ``out/batch_summary.csv`` and
+        ``out/batch_summary.html``.
+    depth : float, ndarray or "auto"
+        As for :func:`nplps.reconstruct` (the same for every capture).
+    mask_name : str or None, default "auto"
+        ``"auto"``: the capture's image file with ``mask`` in its name, if there is one (no mask
+        otherwise); a file name: that file in each capture directory (a capture without it
+        fails); None: no mask.
+    ambient_name : str or None, default None
+        As ``mask_name`` for an ambient image (every light off) subtracted from the images.
+    scheduler : str, optional
+        Address of a running Dask scheduler (``"tcp://host:8786"``); default: a
+        :class:`~distributed.LocalCluster` of `workers` processes, one thread each, started
+        and closed by this call. Its workers need nplps installed.
+    workers : int, optional
+        Worker processes of the local cluster (default: the number of cores, at most the
+        number of captures to run). Unless ``threads`` is given, each reconstruction then
+        uses ``cores // workers`` threads.
+    overwrite : bool, default False
+        Reconstruct the captures with a complete result too (replacing it) instead of skipping
+        them; also write into result directories that hold files nplps did not write.
+    progress : callable, optional
+        ``progress(item, done, total, failed)``, called as each capture finishes (skipped ones
+        first).
+    summary : bool, default True
+        Write ``batch_summary.csv`` and ``batch_summary.html``.
+    **options
+        Options of :func:`nplps.pipeline.prepare` (``color``, ``saturation``, ``srgb``,
+        ``exposures``, ``vignetting``, ``flat``, ``bin_factor``) and of
+        :func:`nplps.reconstruct` (``iterations``, ``tol``, ``robust``, ``dark``, ``threads``,
+        ``solver``, ``levels``, ...).
+
+    Returns
+    -------
+    list of BatchItem
+        One per capture, in the order of :func:`find_captures`.
+
+    Raises
+    ------
+    ImportError
+        dask.distributed is not installed.
+    InputError
+        No capture matches, or two have the same name.
+    RigError
+        The rig file cannot be read.
+    TypeError
+        An unknown option.
+
+    Notes
+    -----
+    A failing capture (unreadable image, wrong number of images, solver error, ...) gives an
+    item with status ``"failed"`` and its message; the others go on. A worker that dies is
+    retried by Dask, then the capture fails.
+
+    Examples
+    --------
+    >>> items = nplps.batch.run("captures/*", "rig.json", "results", depth=200.0, workers=4)  # doctest: +SKIP
+    >>> [item.status for item in items]  # doctest: +SKIP
+    ['ok', 'ok', 'failed', ...]
+    """
+    from .api import reconstruct
+
+    known = set(inspect.signature(reconstruct).parameters) - {"images", "rig", "mask", "depth", "progress", "valid"}
+    unknown = sorted(set(options) - known - set(PREPARE_OPTIONS))
+    if unknown:
+        raise TypeError(f"run() got unknown option(s): {', '.join(unknown)}")
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as e:
+        raise ImportError(
+            'nplps batch needs dask.distributed: pip install "nplps[batch]" (or "dask[distributed]")'
+        ) from e
+
+    if not isinstance(rig, Rig):
+        if os.path.isdir(rig):
+            raise InputError(f"rig file '{os.fspath(rig)}' is a directory")
+        rig = Rig.load(rig)
+    out = Path(out)
+    folders = find_captures(pattern, out)
+    items: list[BatchItem] = []
+    todo: list[BatchItem] = []
+    for folder in folders:
+        item = BatchItem(folder.name, os.fspath(folder), os.fspath(out / folder.name))
+        items.append(item)
+        if not overwrite and is_complete(item.out):
+            _fill_skipped(item)
+        else:
+            todo.append(item)
+    total, done, failed = len(items), 0, 0
+    for item in items:
+        if item.status == "skipped":
+            done += 1
+            if progress is not None:
+                progress(item, done, total, failed)
+
+    if todo:
+        out.mkdir(parents=True, exist_ok=True)
+        prepare_options = {k: v for k, v in options.items() if k in PREPARE_OPTIONS}
+        solve_options = {k: v for k, v in options.items() if k not in PREPARE_OPTIONS}
+        cluster = None
+        if scheduler is None:
+            cores = os.cpu_count() or 1
+            n = max(1, min(workers or cores, len(todo)))
+            solve_options.setdefault("threads", max(1, cores // n))
+            cluster = LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+            )
+        try:
+            with Client(cluster if cluster is not None else scheduler) as client:
+                futures = {
+                    client.submit(
+                        _process,
+                        _absolute(item) if scheduler is not None else item,
+                        rig,
+                        depth,
+                        mask_name,
+                        ambient_name,
+                        prepare_options,
+                        solve_options,
+                        overwrite,
+                        key=f"nplps-batch-{item.name}-{os.urandom(4).hex()}",
+                        pure=False,
+                    ): item
+                    for item in todo
+                }
+                by_name = {item.name: i for i, item in enumerate(items)}
+                finished: set[str] = set()
+                try:
+                    for future in as_completed(futures):
+                        item = futures[future]
+                        try:
+                            result = future.result()
+                        except Exception as e:  # the task raised outside _process's handler: a dead worker
+                            result = dataclasses.replace(item, status="failed", error=_message(e))
+                        result = dataclasses.replace(result, folder=item.folder, out=item.out)
+                        items[by_name[item.name]] = result
+                        finished.add(item.name)
+                        done += 1
+                        failed += result.status == "failed"
+                        if progress is not None:
+                            progress(result, done, total, failed)
+                except BaseException:  # Ctrl-C, SIGTERM: the summary says which captures did not finish
+                    client.cancel(list(futures))
+                    for item in todo:
+                        if item.name not in finished:
+                            item.status, item.error = "failed", "interrupted"
+                    if summary:
+                        write_summary(items, out)
+                    raise
+        finally:
+            if cluster is not None:
+                cluster.close()
+    if summary:
+        write_summary(items, out)
+    return items
+
+
+def write_summary(items: Sequence[BatchItem], out: PathLike) -> tuple[Path, Path]:
+    """Write ``batch_summary.csv`` and ``batch_summary.html`` into ``out``, each atomically.
+
+    The CSV has the header :data:`SUMMARY_COLUMNS` and one row per item; no field holds a comma
+    or a quote (they are replaced), and missing numbers are ``nan``, so both :mod:`csv` and
+    ``numpy.loadtxt(path, delimiter=",", skiprows=1, dtype=str)`` read it.
+
+    Parameters
+    ----------
+    items : sequence of BatchItem
+        The captures.
+    out : path-like
+        The directory (created if needed).
+
+    Returns
+    -------
+    tuple of pathlib.Path
+        The CSV and the HTML file.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=SUMMARY_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for item in items:
+        writer.writerow(item.row())
+    csv_path, html_path = out / "batch_summary.csv", out / "batch_summary.html"
+    write_text(csv_path, text.getvalue())
+    write_text(html_path, _html(items))
+    return csv_path, html_path
+
+
+def _process(
+    item: BatchItem,
+    rig: Rig,
+    depth: Any,
+    mask_name: str | None,
+    ambient_name: str | None,
+    prepare_options: dict[str, Any],
+    solve_options: dict[str, Any],
+    overwrite: bool,
+) -> BatchItem:
+    """Reconstruct one capture and save it (the Dask task); errors become a failed item."""
+    from . import pipeline
+    from .api import reconstruct
+
+    start = time.perf_counter()
+    caught: list[str] = []
+    try:
+        # Checked before the work: our own earlier (incomplete) result is replaced, a directory
+        # holding other files only with overwrite.
+        replace = overwrite or read_manifest(item.out) is not None
+        target = ResultDirectory(item.out, overwrite=replace, option="overwrite (--overwrite)")
+        folder = Path(item.folder)
+        files = find_images(folder)
+        if not files:
+            raise InputError(f"no image files in '{folder}'")
+        if len(files) != rig.n_lights:
+            raise InputError(
+                f"{len(files)} images in '{folder}' but the rig has {rig.n_lights} lights: "
+                "there must be exactly one image per light"
+            )
+        prepared = pipeline.prepare(
+            [os.fspath(f) for f in files],
+            rig=rig,
+            mask=_side_file(folder, mask_name, "mask"),
+            ambient=_side_file(folder, ambient_name, "ambient"),
+            dark=solve_options.get("dark"),
+            overwrite=True,
+            **prepare_options,
+        )
+        options = dict(solve_options, dark=prepared.dark)
+        with warnings.catch_warnings(record=True) as records:
+            warnings.simplefilter("always")
+            result = reconstruct(
+                prepared.images, prepared.rig, depth=depth, mask=prepared.mask, valid=prepared.valid, **options
+            )
+        caught = [str(w.message) for w in records]
+        with target:
+            result.save(target)
+        s = result.summary()
+    except Exception as e:
+        return dataclasses.replace(
+            item, status="failed", error=_message(e), seconds=time.perf_counter() - start, warnings=caught
+        )
+    return dataclasses.replace(
+        item,
+        status="ok",
+        iterations=s["iterations"],
+        solver_status=s["status"],
+        rms_residual=s["rms_residual"],
+        seconds=time.perf_counter() - start,
+        warnings=caught,
+    )
+
+
+def _absolute(item: BatchItem) -> BatchItem:
+    """Return ``item`` with absolute paths, for workers that may run elsewhere (a shared file system)."""
+    return dataclasses.replace(item, folder=os.path.abspath(item.folder), out=os.path.abspath(item.out))
+
+
+def _side_file(folder: Path, name: str | None, word: str) -> Path | None:
+    """Return the capture's mask or ambient image: ``"auto"`` finds it by ``word``, a name must exist."""
+    if name is None:
+        return None
+    if name == "auto":
+        return _find_one(folder, word)
+    path = folder / name
+    if not path.is_file():
+        raise InputError(f"{word} file '{path}' not found")
+    return path
+
+
+def _fill_skipped(item: BatchItem) -> None:
+    """Mark ``item`` skipped and take iterations, status and residual from its ``summary.json``."""
+    item.status = "skipped"
+    try:
+        s = json.loads((Path(item.out) / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    if isinstance(s, dict):
+        item.iterations = s.get("iterations") if isinstance(s.get("iterations"), int) else None
+        item.solver_status = s.get("status") if isinstance(s.get("status"), str) else None
+        rms = s.get("rms_residual")
+        item.rms_residual = float(rms) if isinstance(rms, (int, float)) else None
+
+
+def _message(e: BaseException) -> str:
+    """One line for an exception: its message (with the type unless it is nplps's own or a ValueError)."""
+    text = " ".join(str(e).split())
+    if isinstance(e, OSError) and e.filename is not None and os.fspath(e.filename) not in text:
+        text = f"'{os.fspath(e.filename)}': {e.strerror or text}"
+    if isinstance(e, (NplpsError, ValueError)) and text:
+        return text
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _field(text: str) -> str:
+    """``text`` on one line without commas or double quotes (a CSV field that needs no quoting)."""
+    return " ".join(text.split()).replace(",", ";").replace('"', "'")
+
+
+_COLOURS = {"ok": "#e6f4ea", "failed": "#fce8e6", "skipped": "#eef1f5"}
+
+
+def _html(items: Sequence[BatchItem]) -> str:
+    """Return the summary as one self-contained HTML page."""
+    counts = {s: sum(i.status == s for i in items) for s in ("ok", "failed", "skipped")}
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in SUMMARY_COLUMNS)
+    rows = []
+    for item in items:
+        row = item.row()
+        row["error"] = html.escape(" ".join((item.error or "").split()))
+        cells = []
+        for column in SUMMARY_COLUMNS:
+            value = row[column] if column == "error" else html.escape(row[column])
+            if column == "capture" and item.status != "failed":
+                value = f'<a href="{html.escape(item.name)}/">{value}</a>'
+            cells.append(f"<td>{'' if value == 'nan' else value}</td>")
+        rows.append(f'<tr style="background:{_COLOURS[item.status]}">{"".join(cells)}</tr>')
+    title = f"nplps batch: {len(items)} captures"
+    summary = ", ".join(f"{n} {s}" for s, n in counts.items())
+    return (
+        "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+        f"<title>{html.escape(title)}</title><style>"
+        "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:4px 8px;text-align:left}"
+        "</style></head><body>"
+        f"<h1>{html.escape(title)}</h1><p>{html.escape(summary)}</p>"
+        f"<table><thead><tr>{head}</tr></thead><tbody>\n" + "\n".join(rows) + "\n</tbody></table></body></html>\n"
+    )

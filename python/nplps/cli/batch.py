@@ -1,0 +1,165 @@
+"""``nplps batch``: reconstruct every capture directory a glob matches, with Dask (:mod:`nplps.batch`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from .inputs import _check_numbers, near_options
+from .parsers import parse_depth
+
+BATCH_DESCRIPTION = """\
+Reconstruct many captures with Dask (dask.distributed: pip install "nplps[batch]").
+
+Every directory that CAPTURES_GLOB matches is one capture: its image files, sorted by name (names
+containing 'mask' or 'ambient' left out), one per light of --rig, and its mask image if it has
+one (a file with 'mask' in its name; see --mask-name). Each capture is one task on a local
+cluster (--workers processes) or on a running Dask scheduler (--scheduler ADDRESS), and its
+result goes to DIR/<capture name>/ as with 'nplps reconstruct'.
+
+Resumable: a capture whose DIR/<name>/ holds a complete result (its nplps-manifest.json lists
+summary.json and every file it lists exists) is skipped; run the same command again after a
+failure or an interruption to do the rest (--overwrite redoes them all). A failed capture is
+reported ('capture NAME: failed: MESSAGE') and the others go on. At the end DIR/batch_summary.csv
+and DIR/batch_summary.html list every capture: status (ok, failed, skipped), iterations, the
+solver's status, rms residual, seconds, error.
+
+exit status: 0 all captures ok or skipped, 1 some failed, 2 invalid input or usage.
+"""
+
+BATCH_EPILOG = """\
+examples:
+  nplps batch 'captures/*' --rig rig.json --depth 200 --out results
+  nplps batch 'shots/object_*' --rig rig.json --depth auto --bin 4 --robust tukey --workers 4 --out results
+  nplps batch 'captures/*' --rig rig.json --depth 200 --scheduler tcp://10.0.0.5:8786 --out /shared/results
+"""
+
+
+def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
+    """Add the ``batch`` command and its options to the subparsers ``sub``; return its parser."""
+    p = sub.add_parser(
+        "batch",
+        help="reconstruct every capture directory a glob matches, with Dask (resumable)",
+        description=BATCH_DESCRIPTION,
+        epilog=BATCH_EPILOG,
+        formatter_class=formatter,
+    )
+    p.add_argument("pattern", metavar="CAPTURES_GLOB", help="glob pattern of the capture directories (quote it)")
+    p.add_argument("--rig", required=True, metavar="RIG.json", help="rig file of every capture")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: DIR/<capture name>/ and the summary")
+    p.add_argument(
+        "--depth",
+        required=True,
+        metavar="D",
+        help="working distance (in the rig's unit), a .npy (H+1, W+1) vertex depth map, or 'auto'",
+    )
+    p.add_argument("--depth-range", metavar="NEAR,FAR", help="with --depth auto: where to search")
+    p.add_argument(
+        "--mask-name",
+        default="auto",
+        metavar="NAME",
+        help="mask file name in each capture (default 'auto': the image file with 'mask' in its name, "
+        "if any; 'none': no mask)",
+    )
+    p.add_argument(
+        "--ambient-name",
+        metavar="NAME",
+        help="ambient image (every light off) in each capture, subtracted "
+        "('auto': the file with 'ambient' in its name)",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="reconstruct the captures with a complete result too (replace it)"
+    )
+
+    g = p.add_argument_group("Dask")
+    g.add_argument(
+        "--scheduler", metavar="ADDRESS", help="address of a running Dask scheduler (default: a local cluster)"
+    )
+    g.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="worker processes of the local cluster (default: the number of cores, at most the number of captures)",
+    )
+
+    g = p.add_argument_group("input and solver (as for 'nplps reconstruct')")
+    g.add_argument("--dark", type=float, metavar="X", help="values at or below X count as shadowed")
+    g.add_argument("--saturation", type=float, metavar="X", help="raw values at or above X count as saturated")
+    g.add_argument("--robust", choices=("cauchy", "tukey"), help="robust reweighting of each pixel's fit")
+    g.add_argument("--gray", "--grey", action="store_true", help="average RGB images to grey")
+    g.add_argument("--srgb", action="store_true", help="decode sRGB to linear (camera JPEGs)")
+    g.add_argument("--vignetting", choices=("cos4", "none"), help="cos4: divide by the pinhole K's cos^4 map")
+    g.add_argument("--bin", type=int, default=1, metavar="N", help="average N x N pixel blocks")
+    g.add_argument("--iterations", type=int, default=10, metavar="N", help="maximum iterations (default 10)")
+    g.add_argument("--tol", type=float, default=1e-6, help="convergence tolerance (default 1e-6)")
+    g.add_argument("--weighting", choices=("image", "paper"), default="image", help="local fit weighting")
+    g.add_argument("--solver", choices=("auto", "direct", "multigrid"), default="auto", help="global step solver")
+    g.add_argument("--levels", type=int, metavar="N", help="coarse-to-fine pyramid levels")
+    g.add_argument(
+        "--threads", type=int, metavar="N", help="threads per reconstruction (default: cores / workers locally)"
+    )
+    g.add_argument("--max-memory", metavar="SIZE", help="memory limit of each reconstruction (e.g. 4GB)")
+    p.set_defaults(depth_prior=None, prior_weight=1.0, quiet=False)
+    return p
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Run ``nplps batch``; return the exit status (1 if a capture failed)."""
+    from .. import batch
+    from ..errors import InputError
+    from .inputs import load_rig
+
+    _check_numbers(args)
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
+    options = dict(near_options(args), depth=parse_depth(args.depth))
+    options.update(
+        dark=args.dark,
+        saturation=args.saturation,
+        robust=args.robust,
+        threads=args.threads,
+        max_memory=args.max_memory,
+        color=False if args.gray else None,
+        srgb=args.srgb,
+        vignetting="cos4" if args.vignetting == "cos4" else None,
+        bin_factor=args.bin,
+    )
+    options = {k: v for k, v in options.items() if v is not None or k in ("dark", "saturation", "robust")}
+    mask_name = None if args.mask_name == "none" else args.mask_name
+    try:
+        items = batch.run(
+            args.pattern,
+            load_rig(args.rig),
+            args.out,
+            mask_name=mask_name,
+            ambient_name=args.ambient_name,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            overwrite=args.overwrite,
+            progress=_print_progress,
+            **options,
+        )
+    except ImportError as e:
+        raise InputError(str(e)) from None
+    counts = {s: sum(i.status == s for i in items) for s in ("ok", "failed", "skipped")}
+    print(
+        f"{len(items)} captures: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
+        f"summary in {args.out}/batch_summary.csv and batch_summary.html",
+        flush=True,
+    )
+    return 1 if counts["failed"] else 0
+
+
+def _print_progress(item: Any, done: int, total: int, failed: int) -> None:
+    counts = f"[{done}/{total}, {failed} failed]"
+    if item.status == "failed":
+        line = f"capture {item.name}: failed: {item.error}"
+    elif item.status == "skipped":
+        line = f"capture {item.name}: skipped (complete result in {item.out})"
+    else:
+        rms = "" if item.rms_residual is None else f", rms residual {item.rms_residual:.3e}"
+        line = f"capture {item.name}: ok, {item.solver_status}, {item.iterations} iterations{rms}, {item.seconds:.2f} s"
+    print(f"{counts} {line}", flush=True)
+    for message in item.warnings:
+        print(f"capture {item.name}: warning: {' '.join(message.split())}", file=sys.stderr, flush=True)
