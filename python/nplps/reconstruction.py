@@ -58,9 +58,10 @@ class DistanceEstimate:
         ----------
         path : str or path-like
             The file to write: a header ``region,distance,rms_residual`` and one row per
-            evaluated distance.
+            evaluated distance, plain numbers at full precision (``numpy.loadtxt(path,
+            delimiter=",", skiprows=1)`` reads it).
         """
-        rows = [f"{r},{d!r},{e!r}" for r, curve in enumerate(self.curve) for d, e in curve]
+        rows = [f"{r},{float(d)!r},{float(e)!r}" for r, curve in enumerate(self.curve) for d, e in curve]
         write_text(path, "region,distance,rms_residual\n" + "\n".join(rows) + "\n")
 
 
