@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import inspect
+import textwrap
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import nplps
-from nplps import cli
+from nplps import captures, cli
 
 SIZE = 24
 
@@ -59,3 +63,43 @@ def test_cli_distance_curve_csv_parses(tmp_path, capsys):
     assert np.all(table[:, 0] == 0) and np.all(np.isfinite(table[:, 1:]))
     assert np.all(np.diff(table[:, 1]) >= 0)
     assert "np." not in (out / "distance_curve.csv").read_text()
+
+
+# --------------------------------------------------------------------------------------------------
+# 2. the documented use of a capture (intensities in the rig, images not divided)
+# --------------------------------------------------------------------------------------------------
+
+
+def _docstring_example() -> str:
+    """The code of the Examples section of ``nplps.captures``' module docstring."""
+    doc = inspect.getdoc(captures) or ""
+    after = doc.split("Examples\n--------\n", 1)[1]
+    block = after.split("::\n", 1)[1]
+    lines = []
+    for line in block.splitlines():
+        if line and not line.startswith("    "):
+            break
+        lines.append(line)
+    return textwrap.dedent("\n".join(lines)).strip()
+
+
+def test_capture_docs_do_not_divide_by_the_intensities():
+    code = _docstring_example()
+    assert "ball.rig()" in code and "intensities" not in code
+    # The README's captures section shows the same code.
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Real captures", 1)[1].split("\n## ", 1)[0]
+    assert textwrap.indent(code, "  ") in section
+    diligent_doc = inspect.getdoc(captures.load_diligent) or ""
+    assert "divide image" not in diligent_doc.lower()
+
+
+def test_documented_capture_example_on_the_ball(shared_capture, monkeypatch, angular_error):
+    folder = shared_capture("diligent_ball")
+    monkeypatch.chdir(folder.parent)
+    namespace: dict[str, object] = {}
+    exec(_docstring_example(), namespace)  # the documented example, exactly as written
+    ball, result = namespace["ball"], namespace["result"]
+    error = angular_error(result.normals, ball.normals_gt, ball.mask).mean()
+    print(f"documented example on DiLiGenT's ball: mean normal error {error:.2f} deg")
+    assert 3.5 < error < 4.6  # about 4.1 deg; dividing the images by the intensities too gave 16
