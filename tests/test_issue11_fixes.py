@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import textwrap
 from pathlib import Path
@@ -103,3 +104,48 @@ def test_documented_capture_example_on_the_ball(shared_capture, monkeypatch, ang
     error = angular_error(result.normals, ball.normals_gt, ball.mask).mean()
     print(f"documented example on DiLiGenT's ball: mean normal error {error:.2f} deg")
     assert 3.5 < error < 4.6  # about 4.1 deg; dividing the images by the intensities too gave 16
+
+
+# --------------------------------------------------------------------------------------------------
+# 3. repr is one line; _repr_html_ a compact table
+# --------------------------------------------------------------------------------------------------
+
+
+def test_repr_is_one_line(auto_result):
+    s, r = auto_result
+    text = repr(r)
+    assert "\n" not in text and "array" not in text and len(text) < 200
+    lo, hi = np.nanmin(r.depth), np.nanmax(r.depth)
+    h, w = r.shape
+    assert text.startswith(f"<Reconstruction {w} x {h} pixels, ")
+    for part in (
+        "method='near'",
+        f"status={r.status!r}",
+        f"iterations={len(r.history)}",
+        f"depth {lo:.6g} .. {hi:.6g}",
+        f"mask {int(s.mask.sum())} pixels",
+    ):
+        assert part in text
+    assert str(r) == text
+
+
+def test_repr_of_a_non_square_parallel_result(scene):
+    s = scene("sphere", n=24)
+    r = nplps.reconstruct_parallel(s.images[:, :, :16], s.rig, mask=s.mask[:, :16], depth=s.mean_depth)
+    assert repr(r).startswith("<Reconstruction 16 x 24 pixels, method='parallel', ")
+    assert f"mask {int(s.mask[:, :16].sum())} pixels>" in repr(r)
+
+
+def test_repr_html_is_a_compact_table(auto_result):
+    _s, r = auto_result
+    page = r._repr_html_()
+    assert page.startswith("<table") and page.endswith("</table>")
+    assert "<img" not in page and len(page) < 3000
+    for label in ("Size (W x H)", "Method", "Status", "Iterations", "Depth range", "Mask", "Estimated distance"):
+        assert f">{label}</th>" in page
+    h, w = r.shape
+    assert f"{w} x {h} pixels" in page and f">{len(r.history)}</td>" in page
+    assert f"{r.distance.distance[0]:.6g}" in page
+    # The status reason is escaped text.
+    r2 = dataclasses.replace(r, status_reason="a < b & c")
+    assert "a &lt; b &amp; c" in r2._repr_html_()
