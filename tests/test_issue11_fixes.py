@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 import textwrap
 from pathlib import Path
 
@@ -11,7 +12,9 @@ import numpy as np
 import pytest
 
 import nplps
+import nplps.preprocess
 from nplps import captures, cli
+from nplps.cli.console import describe_size
 
 SIZE = 24
 
@@ -21,6 +24,10 @@ def auto_result() -> tuple[nplps.Scene, nplps.Reconstruction]:
     """A small synthetic scene and its ``depth="auto"`` reconstruction."""
     s = nplps.make_scene("bumps", n=SIZE, seed=1)
     return s, nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto")
+
+
+def _four_lights() -> np.ndarray:
+    return np.array([[0.0, 0.0, -100.0], [50.0, 0.0, -100.0], [0.0, 50.0, -100.0], [-50.0, -50.0, -100.0]])
 
 
 def run(capsys, *argv):
@@ -149,3 +156,37 @@ def test_repr_html_is_a_compact_table(auto_result):
     # The status reason is escaped text.
     r2 = dataclasses.replace(r, status_reason="a < b & c")
     assert "a &lt; b &amp; c" in r2._repr_html_()
+
+
+# --------------------------------------------------------------------------------------------------
+# 4. image sizes are printed width first, "W x H pixels"
+# --------------------------------------------------------------------------------------------------
+
+
+def test_cli_prints_sizes_width_first(tmp_path, capsys):
+    """A 24-row, 16-column capture is "16 x 24 pixels" in the input note and in the summary."""
+    import imageio.v3 as iio
+
+    s = nplps.make_scene("bumps", n=24, seed=2)
+    images, mask = s.images[:, :, :16], s.mask[:, :16]
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    for i, image in enumerate(images):
+        iio.imwrite(folder / f"image_{i:02d}.png", np.round(np.clip(image, 0, 1) * 65535).astype(np.uint16))
+    iio.imwrite(tmp_path / "mask.png", mask.astype(np.uint8) * 255)
+    s.rig.save(tmp_path / "rig.json")
+    argv = ["reconstruct", folder, "--rig", tmp_path / "rig.json", "--mask", tmp_path / "mask.png"]
+    rc, stdout, stderr = run(capsys, *argv, "--depth", s.mean_depth, "--out", tmp_path / "out")
+    assert rc == 0, stderr
+    assert f"{len(images)} images of 16 x 24 pixels" in stderr
+    assert re.search(rf"pixels +{int(mask.sum())} of 16 x 24 pixels\n", stdout)
+    assert "24 x 16" not in stdout + stderr
+    assert describe_size((24, 16)) == "16 x 24 pixels" == describe_size((24, 16, 3))
+
+
+def test_library_messages_give_sizes_width_first():
+    with pytest.raises(nplps.InputError, match=r"for images of 16 x 24 pixels"):
+        rig = nplps.Rig.orthographic(1.0, lights=_four_lights())
+        nplps.reconstruct(np.ones((4, 24, 16)), rig, depth=np.ones((3, 3)))
+    with pytest.raises(nplps.InputError, match=r"3 x 2 pixels is smaller than one 4 x 4 block"):
+        nplps.preprocess.bin_images(np.ones((1, 2, 3)), 4)
