@@ -15,6 +15,7 @@ import nplps
 import nplps.preprocess
 from nplps import captures, cli
 from nplps.cli.console import describe_size
+from nplps.evaluation import reading
 
 SIZE = 24
 
@@ -190,3 +191,45 @@ def test_library_messages_give_sizes_width_first():
         nplps.reconstruct(np.ones((4, 24, 16)), rig, depth=np.ones((3, 3)))
     with pytest.raises(nplps.InputError, match=r"3 x 2 pixels is smaller than one 4 x 4 block"):
         nplps.preprocess.bin_images(np.ones((1, 2, 3)), 4)
+
+
+# --------------------------------------------------------------------------------------------------
+# 5. nplps evaluate reads its table in one line
+# --------------------------------------------------------------------------------------------------
+
+
+def test_reading_names_the_better_model_and_by_how_much():
+    text = reading((0.02, 0.01), (0.05, 0.04))
+    assert "\n" not in text
+    assert text.startswith("reading: the near-light model (nplps) predicts the held-out images better")
+    assert "mean shape error 0.01 vs 0.04 (4.0x lower)" in text and "mean relative error 0.02 vs 0.05" in text
+    text = reading((0.05, 0.06), (0.05, 0.03))
+    assert text.startswith("reading: the parallel-light baseline predicts") and "(2.0x lower)" in text
+    assert "(25x lower)" in reading((0.1, 0.002), (0.1, 0.05))
+    assert "about equally well" in reading((0.05, 0.0410), (0.05, 0.0400))
+    assert "no comparison" in reading((float("nan"), 0.01), (0.05, 0.04))
+
+
+def test_cli_evaluate_prints_a_reading(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    rc, _, stderr = run(
+        capsys, "synth", "bumps", "--size", SIZE, "--camera", "pinhole", "--led", "--noise", "0.002", "--out", scene
+    )
+    assert rc == 0, stderr
+    depth = nplps.make_scene("bumps", n=SIZE, camera="pinhole", led=True).mean_depth
+    argv = ["evaluate", scene, "--rig", scene / "rig.json", "--mask", scene / "mask.png", "--depth", depth]
+    rc, stdout, stderr = run(capsys, *argv, "--lights", "0,13", "-q")
+    assert rc == 0, stderr
+    lines = stdout.rstrip("\n").splitlines()
+    mean = [float(v) for v in lines[-3].split()[1:]]
+    assert lines[-3].split()[0] == "mean" and lines[-2] == ""
+    # The reading is the last line, and its numbers are the table's means.
+    assert lines[-1].startswith("reading: the near-light model (nplps) predicts the held-out images better")
+    m = re.search(
+        r"mean shape error (\S+) vs (\S+) \((\d+(?:\.\d)?)x lower\); mean relative error (\S+) vs (\S+)\.$", lines[-1]
+    )
+    assert m, lines[-1]
+    near_shape, par_shape, factor, near_rel, par_rel = (float(v) for v in m.groups())
+    assert near_rel == pytest.approx(mean[0], rel=5e-3) and near_shape == pytest.approx(mean[1], rel=5e-3)
+    assert par_rel == pytest.approx(mean[2], rel=5e-3) and par_shape == pytest.approx(mean[3], rel=5e-3)
+    assert factor == pytest.approx(mean[3] / mean[1], rel=0.02, abs=0.06)
