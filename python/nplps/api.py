@@ -86,7 +86,7 @@ def _prepare(
     if depth_map.shape != (h + 1, w + 1):
         raise InputError(
             f"the initial depth map has shape {depth_map.shape}; it must have one value per vertex, "
-            f"(H+1, W+1) = {(h + 1, w + 1)} for {h} x {w} images"
+            f"(H+1, W+1) = {(h + 1, w + 1)} for images of {w} x {h} pixels"
         )
     _check_depth_values(depth_map, mask_arr, rig, (h, w), "depth (the initial depth map)")
     return stack, mask_arr, None, depth_map, levels

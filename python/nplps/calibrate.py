@@ -446,8 +446,8 @@ def calibrate_spheres(
     for i, s in enumerate(stacks):
         if s.shape != shape:
             raise InputError(
-                f"placement {i} has {s.shape[0]} images of {s.shape[1]} x {s.shape[2]} but placement 0 has "
-                f"{shape[0]} of {shape[1]} x {shape[2]}: every placement needs one image per light, all of one size"
+                f"placement {i} has {s.shape[0]} images of {s.shape[2]} x {s.shape[1]} pixels but placement 0 "
+                f"has {shape[0]} of {shape[2]} x {shape[1]}: every placement needs one image per light, all of one size"
             )
     if masks is None:
         mask_list: list[Any] = [None] * n

@@ -515,7 +515,7 @@ def _block_view(x: np.ndarray, factor: int, axes: tuple[int, int], name: str) ->
     h, w = x.shape[ra], x.shape[ca]
     hb, wb = h // factor, w // factor
     if hb == 0 or wb == 0:
-        raise InputError(f"{name}: {h} x {w} pixels is smaller than one {factor} x {factor} block")
+        raise InputError(f"{name}: {w} x {h} pixels is smaller than one {factor} x {factor} block")
     index = [slice(None)] * x.ndim
     index[ra] = slice(0, hb * factor)
     index[ca] = slice(0, wb * factor)

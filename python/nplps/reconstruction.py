@@ -10,6 +10,7 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import warnings
@@ -58,9 +59,10 @@ class DistanceEstimate:
         ----------
         path : str or path-like
             The file to write: a header ``region,distance,rms_residual`` and one row per
-            evaluated distance.
+            evaluated distance, plain numbers at full precision (``numpy.loadtxt(path,
+            delimiter=",", skiprows=1)`` reads it).
         """
-        rows = [f"{r},{d!r},{e!r}" for r, curve in enumerate(self.curve) for d, e in curve]
+        rows = [f"{r},{float(d)!r},{float(e)!r}" for r, curve in enumerate(self.curve) for d, e in curve]
         write_text(path, "region,distance,rms_residual\n" + "\n".join(rows) + "\n")
 
 
@@ -196,7 +198,7 @@ def light_changes(before: Rig, after: Rig) -> list[dict[str, Any]]:
     return rows
 
 
-@dataclass
+@dataclass(repr=False)
 class Reconstruction:
     """A reconstructed surface, as :func:`nplps.reconstruct` returns it.
 
@@ -322,6 +324,45 @@ class Reconstruction:
     def shape(self) -> tuple[int, int]:
         """Image shape (H, W)."""
         return self.mask.shape
+
+    def _facts(self) -> dict[str, str]:
+        """Return the facts of :meth:`__repr__` and :meth:`_repr_html_`, as text, by label."""
+        h, w = self.shape
+        finite = self.depth[np.isfinite(self.depth)]
+        depth = f"{finite.min():.6g} .. {finite.max():.6g}" if finite.size else "none"
+        return {
+            "size": f"{w} x {h} pixels",
+            "method": self.method,
+            "status": self.status,
+            "iterations": str(len(self.history)),
+            "depth": depth,
+            "mask": f"{int(np.count_nonzero(self.mask))} pixels",
+        }
+
+    def __repr__(self) -> str:
+        """Return one line: size (W x H), method, status, iterations, depth range and mask pixels."""
+        f = self._facts()
+        return (
+            f"<Reconstruction {f['size']}, method={f['method']!r}, status={f['status']!r}, "
+            f"iterations={f['iterations']}, depth {f['depth']}, mask {f['mask']}>"
+        )
+
+    def _repr_html_(self) -> str:
+        """Return a compact HTML table of the facts of :meth:`__repr__`, for Jupyter."""
+        f = self._facts()
+        rows = [
+            ("Size (W x H)", f["size"]),
+            ("Method", f["method"]),
+            ("Status", f["status"] + (f": {self.status_reason}" if self.status_reason else "")),
+            ("Iterations", f["iterations"]),
+            ("Depth range", f["depth"]),
+            ("Mask", f["mask"]),
+        ]
+        if self.distance is not None:
+            rows.append(("Estimated distance", ", ".join(f"{d:.6g}" for d in self.distance.distance)))
+        left = "style='text-align:left'"
+        cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
+        return f"<table><caption {left}>nplps Reconstruction</caption>{cells}</table>"
 
     @property
     def vertices(self) -> np.ndarray:

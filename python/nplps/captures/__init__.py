@@ -26,6 +26,24 @@ command line's pipeline -- and records what ran (``levels``, ``preprocessed``, `
 that ``capture.options()`` gives :func:`nplps.reconstruct` the command line's ``dark`` default
 and saturation flags. Grey or colour is ``color=`` (``gray=`` is deprecated).
 ``scipy`` is needed for MATLAB files (it is imported on first use).
+
+The light intensities are part of the rig: :meth:`Capture.rig` builds the lights with
+``Capture.intensities`` (DiLiGenT's ``light_intensities.txt``, near_ps's ``Phi``), and the image
+model multiplies by them. Pass the images as loaded: do **not** divide them by the intensities
+too (that divides twice, and on DiLiGenT's ball gives about 16 degrees of mean normal error
+instead of about 4, without any warning).
+
+Examples
+--------
+DiLiGenT's ball (directional lights, so the distance only sets the gauge); run from the folder
+that holds ``diligent_ball/ballPNG``::
+
+    import nplps
+    from nplps import captures
+
+    ball = captures.load_diligent("diligent_ball", load=True)
+    result = nplps.reconstruct(ball.images, ball.rig(), depth=1000.0, **ball.options())
+    # result.normals against ball.normals_gt (inside ball.mask): about 4 degrees mean error
 """
 
 from .capture import Capture, prepare

@@ -59,8 +59,9 @@ def load_diligent(
     * ``filenames.txt``: the image names, one per line (16-bit RGB PNG, linear; read by
       :func:`nplps.io.read_image`, which keeps 16 bits, and scaled by 1/65535);
     * ``light_directions.txt``: k x 3 unit vectors from the surface towards each light;
-    * ``light_intensities.txt``: k x 3 RGB intensities (divide image i channel c by
-      ``intensities[i, c]``, e.g. with :func:`nplps.preprocess.scale_exposure`);
+    * ``light_intensities.txt``: k x 3 RGB intensities, returned as ``intensities``; the rig of
+      :meth:`Capture.rig` includes them, so the images are passed as loaded, not divided by them
+      (see :mod:`nplps.captures`);
     * ``mask.png`` (channel 0 > 0) and ``Normal_gt.mat`` (variable ``Normal_gt``, H x W x 3).
 
     DiLiGenT's frame is x right, y up, z towards the viewer; directions and normals are
@@ -137,8 +138,8 @@ def load_diligent(
         name=root.name[:-3] if root.name.endswith("PNG") else root.name,
         notes=(
             "DiLiGenT (Shi et al., CVPR 2016): directional lights, 16-bit linear RGB; "
-            "directions and normals converted to the camera frame (y, z negated). Divide "
-            "each image by its RGB light intensity."
+            "directions and normals converted to the camera frame (y, z negated). The RGB light "
+            "intensities are in the rig (Capture.rig()): do not divide the images by them."
         ),
         files=list(files),
         levels=levels,

@@ -1,7 +1,8 @@
 """What the command line prints besides its results.
 
-The program name, notes on stderr, library warnings as ``nplps: warning:`` lines, and a one-line
-description of a rig.
+The program name, notes on stderr, library warnings as ``nplps: warning:`` lines, a one-line
+description of a rig, and image sizes. Sizes are printed width first, as the README writes them:
+"W x H pixels" (a 480-row, 300-column image is "300 x 480 pixels").
 """
 
 from __future__ import annotations
@@ -32,6 +33,11 @@ class _warnings_to_stderr:
         self._ctx.__exit__(*exc)
         for w in caught:
             _note(f"{PROG}: warning: {w.message}")
+
+
+def describe_size(shape: tuple[int, ...]) -> str:
+    """'W x H pixels' for an image shape (H, W[, ...]): the order every printed size uses."""
+    return f"{shape[1]} x {shape[0]} pixels"
 
 
 def describe_rig(rig: Any) -> str:

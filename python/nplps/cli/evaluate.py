@@ -22,8 +22,9 @@ reconstruct from the others, predict the left-out image and compare it with the 
 Runs the near-light method (nplps) and the parallel-light baseline and prints, per light:
 the relative error |prediction - image| / |image| over the masked, usable pixels, and the
 shape error (the same after the best gain, free of the light's intensity calibration), plus
-the means. Lower is better; a better light model predicts better. RGB images are averaged
-to grey.
+the means, and a one-line reading: which model predicts the held-out images better, by how
+much, on the mean shape error. Lower is better; a better light model predicts better. RGB
+images are averaged to grey.
 
 {INPUT_NOTES}"""
 
@@ -93,6 +94,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _print_evaluation(rows: list[list[Any]], k: int) -> None:
+    from ..evaluation import reading
+
     print(f"held-out lights: each reconstructed from the other {k - 1} lights and predicted")
     print("relative error = |prediction - image| / |image|; shape error: the same after the best gain\n")
     widths = [5] + [len(c) + 2 for c in EVALUATE_COLUMNS[1:]]
@@ -101,3 +104,4 @@ def _print_evaluation(rows: list[list[Any]], k: int) -> None:
         print(f"{row[0]:>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(row[1:], widths[1:], strict=True)))
     means = np.nanmean(np.array([r[1:] for r in rows], dtype=float), axis=0)
     print(f"{'mean':>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(means, widths[1:], strict=True)))
+    print("\n" + reading((means[0], means[1]), (means[2], means[3])))

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from .console import _warnings_to_stderr, describe_rig
+from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
     CONVENTIONS,
     INPUT_NOTES,
@@ -122,10 +122,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path]) -> None:
     s = result.summary()
-    h, w = s["shape"]
     print(f"{title}:")
     print(f"  rig             {describe_rig(result.rig)}")
-    print(f"  pixels          {s['pixels']} of {h} x {w}")
+    print(f"  pixels          {s['pixels']} of {describe_size(s['shape'])}")
     print(f"  regions         {s['regions']}")
     if result.method == "near":  # the baseline does not iterate
         print(f"  iterations      {s['iterations']}")
