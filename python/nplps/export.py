@@ -1,4 +1,4 @@
-"""Writing reconstruction results: meshes (PLY, OBJ), normal maps, albedo and depth images.
+"""Writing reconstruction results: meshes (PLY, OBJ, STL, GLB), point clouds, normal, albedo and depth maps.
 
 Meshes are built from the vertex grid of the reconstruction: vertex ``(r, c)`` of the
 ``(H + 1, W + 1)`` grid is the top-left corner of pixel ``(r, c)``, and every masked pixel is the
@@ -18,6 +18,7 @@ the final name, and the OSError names the final path.
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -34,19 +35,24 @@ from ._atomic import atomic_path, atomic_write
 from .errors import InputError
 
 __all__ = [
+    "EXTRA_FORMATS",
     "read_ply",
     "save_albedo",
     "save_depth_npy",
     "save_depth_tiff",
     "save_grey_png",
     "save_normal_map",
+    "save_normals_tiff",
     "save_npy",
+    "write_glb",
     "write_meshes",
     "write_obj",
     "write_ply",
     "write_png",
     "write_png8",
     "write_png16",
+    "write_point_cloud",
+    "write_stl",
 ]
 
 PathLike: TypeAlias = str | os.PathLike
@@ -67,7 +73,7 @@ _PLY_TYPES = {
 
 
 # --------------------------------------------------------------------------------------------------
-# Mesh construction (shared by PLY and OBJ)
+# Mesh construction (shared by the mesh and point formats)
 # --------------------------------------------------------------------------------------------------
 
 
@@ -304,8 +310,11 @@ def write_meshes(
     normals: np.ndarray | None = None,
     albedo: np.ndarray | None = None,
     opengl: bool = False,
+    stl_path: PathLike | None = None,
+    glb_path: PathLike | None = None,
+    points_path: PathLike | None = None,
 ) -> None:
-    """Write the same mesh as PLY and OBJ, building it once.
+    """Write the same mesh as PLY and OBJ (and STL, GLB, a point cloud), building it once.
 
     Parameters
     ----------
@@ -313,16 +322,25 @@ def write_meshes(
         The files to write (None: not that one).
     vertices, mask, normals, albedo, opengl
         As in :func:`write_ply`.
+    stl_path, glb_path, points_path : str or path-like, optional
+        Also write the mesh as binary STL (:func:`write_stl`), glTF binary (:func:`write_glb`)
+        or its vertices as a PLY point cloud (:func:`write_point_cloud`).
 
     See Also
     --------
-    write_ply, write_obj
+    write_ply, write_obj, write_stl, write_glb, write_point_cloud
     """
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
     if ply_path is not None:
         _write_ply_mesh(ply_path, mesh)
     if obj_path is not None:
         _write_obj_mesh(obj_path, mesh)
+    if stl_path is not None:
+        _write_stl_mesh(stl_path, mesh)
+    if glb_path is not None:
+        _write_glb_mesh(glb_path, mesh)
+    if points_path is not None:
+        _write_points_mesh(points_path, mesh)
 
 
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
@@ -572,6 +590,233 @@ def _write_text(file: IO[bytes], jobs: Iterator[Callable[[], bytes]]) -> None:
                 file.write(pending.pop(0).result())
         for future in pending:
             file.write(future.result())
+
+
+# --------------------------------------------------------------------------------------------------
+# STL, glTF binary (GLB) and point clouds
+# --------------------------------------------------------------------------------------------------
+
+#: The optional output formats of :meth:`nplps.Reconstruction.save` (``formats=``) and
+#: ``nplps reconstruct --formats``: file name (``{stem}`` is the mesh's stem) by format.
+EXTRA_FORMATS: dict[str, str] = {
+    "stl": "{stem}.stl",
+    "glb": "{stem}.glb",
+    "points": "points.ply",
+    "normals_tiff": "normals.tiff",
+}
+
+_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+_GLB_MAGIC, _GLB_VERSION = 0x46546C67, 2  # b"glTF"
+_GLB_JSON, _GLB_BIN = 0x4E4F534A, 0x004E4942  # b"JSON", b"BIN\0"
+_GL_FLOAT, _GL_UNSIGNED_BYTE, _GL_UNSIGNED_INT = 5126, 5121, 5125
+_GL_ARRAY_BUFFER, _GL_ELEMENT_ARRAY_BUFFER, _GL_TRIANGLES = 34962, 34963, 4
+
+
+def write_stl(path: PathLike, vertices: np.ndarray, mask: np.ndarray, *, opengl: bool = False) -> None:
+    """Write the masked part of a vertex grid as a binary STL triangle mesh.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file.
+    vertices, mask, opengl
+        As in :func:`write_ply`: the same triangles, two per masked facet, in the same order.
+
+    Raises
+    ------
+    InputError
+        The shapes do not match, or there is no facet to write.
+
+    Notes
+    -----
+    Binary STL: an 80-byte header (``nplps binary STL, frame opencv`` / ``opengl``, padded with
+    spaces), the triangle count (uint32) and 50 bytes per triangle: the unit facet normal (the
+    right-hand normal of the corners, so facing the camera), the three corners (float32) and a
+    zero attribute word. STL has no vertex normals or colours. The triangles are converted and
+    written in chunks.
+    """
+    _write_stl_mesh(path, _build_mesh(vertices, mask, None, None, opengl))
+
+
+def write_glb(
+    path: PathLike,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    *,
+    normals: np.ndarray | None = None,
+    albedo: np.ndarray | None = None,
+    opengl: bool = False,
+) -> None:
+    """Write the masked part of a vertex grid as a glTF 2.0 binary file (GLB).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file.
+    vertices, mask, normals, albedo, opengl
+        As in :func:`write_ply` (same vertices, triangles and frames). glTF viewers expect y up:
+        use ``opengl=True`` for them.
+
+    Raises
+    ------
+    InputError
+        The shapes do not match, or there is no facet to write.
+
+    Notes
+    -----
+    One buffer, one mesh with one triangle primitive, one node and one scene. Attributes:
+    ``POSITION`` (float32 VEC3, with ``min`` / ``max``), ``NORMAL`` (float32 VEC3, the vertex
+    normals) and ``COLOR_0`` (normalized unsigned byte VEC4: the grey colours of the PLY file and
+    alpha 255); indices are uint32. The JSON chunk is padded with spaces and the BIN chunk with
+    zeros to 4 bytes; every accessor starts on a 4-byte boundary. ``asset.extras.frame`` names the
+    frame.
+    """
+    _write_glb_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
+
+
+def write_point_cloud(
+    path: PathLike,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    *,
+    normals: np.ndarray | None = None,
+    albedo: np.ndarray | None = None,
+    opengl: bool = False,
+) -> None:
+    """Write the vertices of the masked mesh as a binary PLY point cloud (no faces).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file.
+    vertices, mask, normals, albedo, opengl
+        As in :func:`write_ply`: the same vertex element (positions, normals, grey colours, in the
+        same order), without the face element.
+
+    Raises
+    ------
+    InputError
+        The shapes do not match, or there is no facet to write.
+    """
+    _write_points_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
+
+
+def save_normals_tiff(path: PathLike, normals: np.ndarray) -> None:
+    """Save per-pixel normals as a 32-bit float RGB TIFF (values as is, NaN kept).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (written as TIFF whatever its extension).
+    normals : numpy.ndarray
+        ``(H, W, 3)`` normals, stored as ``(H, W, 3)`` float32 in the frame given (the OpenCV frame
+        for :attr:`nplps.Reconstruction.normals`; unlike the PNG normal map, no flip).
+
+    Raises
+    ------
+    InputError
+        `normals` has the wrong shape.
+    """
+    normals = np.asarray(normals, dtype=np.float32)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise InputError(f"normals must have shape (H, W, 3), got {normals.shape}")
+    with atomic_path(path) as temporary:
+        tifffile.imwrite(temporary, normals, photometric="rgb")
+
+
+def _write_stl_mesh(path: PathLike, mesh: _Mesh) -> None:
+    header = f"nplps binary STL, frame {mesh.frame}".encode("ascii").ljust(80, b" ")
+    with atomic_write(path) as file:
+        file.write(header)
+        file.write(np.uint32(len(mesh.faces)).astype("<u4").tobytes())
+        for start in range(0, len(mesh.faces), _GATHER_CHUNK):
+            faces = mesh.faces[start : start + _GATHER_CHUNK]
+            records = np.zeros(len(faces), dtype=_STL_RECORD)
+            corners = mesh.points[faces]  # (m, 3, 3) float32
+            records["corners"] = corners
+            a, b, c = (corners[:, i].astype(np.float64) for i in range(3))
+            records["normal"] = _normalize_rows(np.cross(b - a, c - a))
+            file.write(records.view(np.uint8).data)
+
+
+def _normalize_rows(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` scaled to unit length (zero rows stay zero)."""
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    return v / np.where(length > 0, length, 1.0)
+
+
+def _glb_json(mesh: _Mesh) -> tuple[bytes, list[tuple[np.ndarray | None, int]]]:
+    """Return the padded JSON chunk data of ``mesh``'s GLB and the BIN chunk's parts.
+
+    The parts are (array or None, byte length): None stands for the colours, converted to RGBA
+    while writing.
+    """
+    n, m = len(mesh.points), len(mesh.faces)
+    parts: list[tuple[np.ndarray | None, int]] = []
+    views: list[dict[str, Any]] = []
+    accessors: list[dict[str, Any]] = []
+    attributes: dict[str, int] = {}
+
+    def add(array: np.ndarray | None, length: int, target: int, accessor: dict[str, Any]) -> int:
+        offset = sum(size for _, size in parts)
+        parts.append((array, length))
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": length, "target": target})
+        accessors.append({"bufferView": len(views) - 1, "byteOffset": 0, **accessor})
+        return len(accessors) - 1
+
+    low = [float(v) for v in mesh.points.min(axis=0)]
+    high = [float(v) for v in mesh.points.max(axis=0)]
+    vec3 = {"componentType": _GL_FLOAT, "count": n, "type": "VEC3"}
+    attributes["POSITION"] = add(mesh.points, 12 * n, _GL_ARRAY_BUFFER, {**vec3, "min": low, "max": high})
+    if mesh.normals is not None:
+        attributes["NORMAL"] = add(mesh.normals, 12 * n, _GL_ARRAY_BUFFER, vec3)
+    if mesh.colors is not None:
+        color = {"componentType": _GL_UNSIGNED_BYTE, "normalized": True, "count": n, "type": "VEC4"}
+        attributes["COLOR_0"] = add(None, 4 * n, _GL_ARRAY_BUFFER, color)
+    scalar = {"componentType": _GL_UNSIGNED_INT, "count": 3 * m, "type": "SCALAR"}
+    indices = add(mesh.faces, 12 * m, _GL_ELEMENT_ARRAY_BUFFER, scalar)
+    document = {
+        "asset": {"version": "2.0", "generator": "nplps", "extras": {"frame": mesh.frame}},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "nplps"}],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": _GL_TRIANGLES}]}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": sum(size for _, size in parts)}],
+    }
+    text = json.dumps(document, separators=(",", ":")).encode("utf-8")
+    return text + b" " * (-len(text) % 4), parts
+
+
+def _write_glb_mesh(path: PathLike, mesh: _Mesh) -> None:
+    json_chunk, parts = _glb_json(mesh)
+    binary = sum(size for _, size in parts)  # every part is a multiple of 4 bytes
+    total = 12 + 8 + len(json_chunk) + 8 + binary
+    with atomic_write(path) as file:
+        file.write(np.array([_GLB_MAGIC, _GLB_VERSION, total], dtype="<u4").tobytes())
+        file.write(np.array([len(json_chunk), _GLB_JSON], dtype="<u4").tobytes())
+        file.write(json_chunk)
+        file.write(np.array([binary, _GLB_BIN], dtype="<u4").tobytes())
+        for array, _ in parts:
+            if array is None:  # the grey colours as RGBA, in chunks
+                assert mesh.colors is not None
+                for start in range(0, len(mesh.colors), _GATHER_CHUNK):
+                    rgb = mesh.colors[start : start + _GATHER_CHUNK]
+                    rgba = np.full((len(rgb), 4), 255, dtype=np.uint8)
+                    rgba[:, :3] = rgb
+                    file.write(rgba.data)
+            else:
+                # Float32 as is; the int32 indices (all >= 0) have the bytes of uint32: no copy.
+                dtype = "<i4" if array.dtype.kind in "iu" else "<f4"
+                file.write(np.ascontiguousarray(array, dtype=dtype).view(np.uint8).data)
+
+
+def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
+    header = _ply_header(mesh).replace(f"element face {len(mesh.faces)}\nproperty list uchar int vertex_indices\n", "")
+    with atomic_write(path) as file:
+        file.write(header.encode("ascii"))
+        file.write(_ply_vertex_records(mesh).view(np.uint8).data)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import html
 import json
 import os
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -25,6 +26,7 @@ from . import _core, export, plots
 from ._atomic import write_text
 from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
+from .errors import InputError
 from .rig import Rig, _select_core_lights
 
 if TYPE_CHECKING:
@@ -516,6 +518,69 @@ class Reconstruction:
             path, self.vertices, self.mask, normals=self.vertex_normals(), albedo=self.vertex_albedo(), opengl=opengl
         )
 
+    def save_stl(self, path: str | os.PathLike[str], *, opengl: bool = False) -> None:
+        """Write the masked facets as a binary STL mesh (the triangles of :meth:`save_ply`).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write.
+        opengl : bool, default False
+            Write the OpenGL frame instead of the camera's OpenCV frame.
+
+        See Also
+        --------
+        nplps.export.write_stl
+        """
+        export.write_stl(path, self.vertices, self.mask, opengl=opengl)
+
+    def save_glb(self, path: str | os.PathLike[str], *, opengl: bool = False) -> None:
+        """Write the masked facets as a glTF 2.0 binary file (content and options as :meth:`save_ply`).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write.
+        opengl : bool, default False
+            Write the OpenGL frame instead of the camera's OpenCV frame (glTF viewers expect y
+            up: use True for them).
+
+        See Also
+        --------
+        nplps.export.write_glb
+        """
+        export.write_glb(
+            path, self.vertices, self.mask, normals=self.vertex_normals(), albedo=self.vertex_albedo(), opengl=opengl
+        )
+
+    def save_points(self, path: str | os.PathLike[str], *, opengl: bool = False) -> None:
+        """Write the mesh's vertices as a PLY point cloud with normals and colours (no faces).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write.
+        opengl : bool, default False
+            Write the OpenGL frame instead of the camera's OpenCV frame.
+
+        See Also
+        --------
+        nplps.export.write_point_cloud
+        """
+        export.write_point_cloud(
+            path, self.vertices, self.mask, normals=self.vertex_normals(), albedo=self.vertex_albedo(), opengl=opengl
+        )
+
+    def save_normals_tiff(self, path: str | os.PathLike[str]) -> None:
+        """Write :attr:`normals` as an (H, W, 3) 32-bit float TIFF (OpenCV frame, NaN outside the mask).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write.
+        """
+        export.save_normals_tiff(path, self.normals)
+
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
 
@@ -555,6 +620,7 @@ class Reconstruction:
         stem: str = "mesh",
         opengl: bool = False,
         overwrite: bool = False,
+        formats: Iterable[str] = (),
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 
@@ -567,6 +633,12 @@ class Reconstruction:
         refined lights also ``rig_refined.json`` (the refined rig file); and last the manifest
         ``nplps-manifest.json`` listing the files written.
 
+        `formats` adds files in other formats (none by default): ``"stl"`` (``mesh.stl``, binary
+        STL, :meth:`save_stl`), ``"glb"`` (``mesh.glb``, glTF 2.0 binary with vertex normals and
+        colours, :meth:`save_glb`), ``"points"`` (``points.ply``, the mesh's vertices as a point
+        cloud with normals and colours, :meth:`save_points`) and ``"normals_tiff"``
+        (``normals.tiff``, :attr:`normals` as 32-bit float, :meth:`save_normals_tiff`).
+
         Parameters
         ----------
         directory : str or path-like
@@ -578,14 +650,21 @@ class Reconstruction:
         overwrite : bool, default False
             Replace files of the same names, and remove the files of an earlier result that
             this one does not have (listed in its manifest); other files are kept.
+        formats : iterable of str, default ()
+            Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"`` and
+            ``"normals_tiff"`` (:data:`nplps.export.EXTRA_FORMATS`); `opengl` applies to the
+            mesh and point formats.
 
         Returns
         -------
         dict of str to pathlib.Path
-            The paths written (without the manifest), by kind (``"ply"``, ``"normal_map"``, ...).
+            The paths written (without the manifest), by kind (``"ply"``, ``"normal_map"``, ...,
+            and each extra format by its name).
 
         Raises
         ------
+        InputError
+            `formats` holds an unknown name (checked before anything is written).
         OutputExistsError
             `directory` is not empty and `overwrite` is False.
         OSError
@@ -596,6 +675,7 @@ class Reconstruction:
         Each file is written under a temporary name and renamed when complete, so an error never
         leaves a truncated file under its final name.
         """
+        extra = _check_formats(formats)
         with result_directory(directory, overwrite) as out:
             names = {
                 "ply": f"{stem}.ply",
@@ -608,6 +688,7 @@ class Reconstruction:
                 "normals_npy": "normals.npy",
                 "residual_npy": "residual.npy",
             }
+            names.update({name: export.EXTRA_FORMATS[name].format(stem=stem) for name in extra})
             if self.distance is not None:
                 names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
             if self.refinement is not None:
@@ -623,8 +704,13 @@ class Reconstruction:
                 normals=self.vertex_normals(),
                 albedo=self.vertex_albedo(),
                 opengl=opengl,
+                stl_path=paths.get("stl"),
+                glb_path=paths.get("glb"),
+                points_path=paths.get("points"),
             )
             export.save_normal_map(paths["normal_map"], self.normals, mask=self.mask)
+            if "normals_tiff" in paths:
+                export.save_normals_tiff(paths["normals_tiff"], self.normals)
             export.save_grey_png(paths["shaded"], self.shaded())
             summary = self.summary()
             summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
@@ -639,6 +725,18 @@ class Reconstruction:
                 self.rig.save(paths["rig_refined"])
             write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
         return paths
+
+
+def _check_formats(formats: Iterable[str]) -> list[str]:
+    """Return the extra formats of :meth:`Reconstruction.save`, checked, without repeats."""
+    if isinstance(formats, str):
+        formats = [formats]
+    chosen = list(dict.fromkeys(formats))
+    unknown = [f for f in chosen if f not in export.EXTRA_FORMATS]
+    if unknown:
+        known = ", ".join(export.EXTRA_FORMATS)
+        raise InputError(f"formats: unknown format(s) {', '.join(map(repr, unknown))}; choose from {known}")
+    return chosen
 
 
 def _refinement(d: dict[str, Any] | None) -> LightRefinement | None:

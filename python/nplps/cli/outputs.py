@@ -30,6 +30,22 @@ def add_output_options(parser: argparse.ArgumentParser, default: str | None = No
     parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
+def parse_formats(text: str) -> list[str]:
+    """Parse ``--formats``: comma-separated names of :data:`nplps.export.EXTRA_FORMATS`.
+
+    Raises :class:`argparse.ArgumentTypeError` (a usage error) for an unknown name.
+    """
+    from ..export import EXTRA_FORMATS
+
+    names = list(dict.fromkeys(word.strip() for word in text.split(",") if word.strip()))
+    unknown = [name for name in names if name not in EXTRA_FORMATS]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown format(s) {', '.join(unknown)}; choose from {', '.join(EXTRA_FORMATS)}"
+        )
+    return names
+
+
 def output_directory(args: argparse.Namespace) -> ResultDirectory:
     """Return the ``--out`` directory of a command, checked now (before any work).
 

@@ -18,7 +18,7 @@ from .inputs import (
     check_input_args,
     near_options,
 )
-from .outputs import add_output_options, output_directory
+from .outputs import add_output_options, output_directory, parse_formats
 
 RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
@@ -27,8 +27,9 @@ Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, al
 colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
 (16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
 normals.npy, residual.npy and summary.json, and with --refine-lights the refined rig
-(rig_refined.json); last nplps-manifest.json, the list of the files written. RGB images give
-an RGB albedo unless --gray.
+(rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or normals.tiff;
+last nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
+--gray.
 
 --out must be a new or empty directory unless --overwrite is given: then files of the same
 names are replaced, the files of an earlier nplps result there that this run does not write
@@ -57,6 +58,8 @@ examples:
   # LED intensities that disagree with the rig file: refine them (rig_refined.json is written):
   nplps reconstruct --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' \\
       --depth 200 --bin 4 --refine-lights intensity --out hehe12-refined
+  # also a glTF binary (y up, for web viewers), an STL and 32-bit float normals:
+  nplps reconstruct shots/ --rig rig.json --depth 250 --formats glb,stl,normals_tiff --opengl --out result
   # a DiLiGenT object, grey:
   nplps reconstruct --capture diligent ballPNG/ --depth 1000 --gray --out ball
 """
@@ -77,6 +80,15 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         "--opengl",
         action="store_true",
         help="write meshes in the OpenGL frame (x right, y up, z towards the viewer)",
+    )
+    p.add_argument(
+        "--formats",
+        type=parse_formats,
+        default=[],
+        metavar="LIST",
+        help="also write these formats, comma-separated: stl (mesh.stl), glb (mesh.glb, glTF 2.0 binary; "
+        "use --opengl for y-up viewers), points (points.ply, a point cloud with normals and colours), "
+        "normals_tiff (normals.tiff, 32-bit float normals)",
     )
     p.add_argument(
         "--baseline",
@@ -100,7 +112,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=not args.quiet, **near, **common)
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
-        paths = result.save(out, opengl=args.opengl)
+        paths = result.save(out, opengl=args.opengl, formats=args.formats)
         _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 
         if args.baseline:
@@ -114,7 +126,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                     inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
                 )
             wall = time.perf_counter() - start
-            base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl)
+            base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl, formats=args.formats)
             print()
             _print_summary("parallel-light baseline", base, wall, base_paths)
     return 0
