@@ -39,8 +39,8 @@ found by name; the ambient image is subtracted and cos^4 vignetting compensated 
 orthographic camera with 1-unit pixels). Presets of published near_ps captures: --capture hehe12
 FOLDER (its 8 raw images, ambient and mask) and --capture queau_human1 FOLDER (the 7 JPEG renders:
 sRGB decoded, grey, 2 x 2 averaged and padded to the RAW grid of camera.mat, LED rows
-0,1,2,3,5,6,7). --lights picks rows of the rig's (or the capture's) lights for the images, in
-the images' order; --grid-shape pads or crops the images to the calibration grid. The rig and
+0,1,2,3,5,6,7). --lights (evaluate: --use-lights) picks rows of the rig's (or the capture's)
+lights for the images, in the images' order; --grid-shape pads or crops the images to the calibration grid. The rig and
 the options are checked before any image is read. A .npy --depth map must match the images
 after --bin.
 
