@@ -40,9 +40,9 @@ orthographic camera with 1-unit pixels). Presets of published near_ps captures: 
 FOLDER (its 8 raw images, ambient and mask) and --capture queau_human1 FOLDER (the 7 JPEG renders:
 sRGB decoded, grey, 2 x 2 averaged and padded to the RAW grid of camera.mat, LED rows
 0,1,2,3,5,6,7). --lights (evaluate: --use-lights) picks rows of the rig's (or the capture's)
-lights for the images, in the images' order; --grid-shape pads or crops the images to the calibration grid. The rig and
-the options are checked before any image is read. A .npy --depth map must match the images
-after --bin.
+lights for the images, in the images' order; --grid-shape pads or crops the images to the
+calibration grid. The rig and the options are checked before any image is read. A .npy --depth
+map must match the images after --bin.
 
 Thresholds: by default, for integer images, observations at the top level (raw values, before
 any pre-processing) are saturated and left out, and values at or below one level above black
@@ -271,13 +271,12 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     vignetting = args.vignetting or source.vignetting
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
     images, levels, preprocessed, ambient = _read_images(args, source)
-    rig, mask = source.rig, source.mask
     try:
         prepared = pipeline.prepare(
             images,
-            rig=rig,
+            rig=source.rig,
             K=source.K,
-            mask=mask,
+            mask=source.mask,
             color=False if args.gray else None,
             levels=levels,
             preprocessed=preprocessed,
