@@ -33,6 +33,7 @@ examples:
   nplps evaluate shots/ --rig rig.json --mask shots/mask.png --depth 250
   nplps evaluate --capture near_ps hehe12/ 'photometric_sample_raw_[0-9]*.png' --depth 200 \\
       --bin 8 --lights 0,3,5
+  nplps evaluate --capture queau_human1 queau_human1/ --depth 700 --bin 16 --use-lights 0,1,2,3,5
 """
 
 EVALUATE_COLUMNS = ("light", "near rel. error", "near shape error", "parallel rel. error", "parallel shape error")
@@ -47,7 +48,7 @@ def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         epilog=EVALUATE_EPILOG,
         formatter_class=formatter,
     )
-    add_input_options(p)
+    add_input_options(p, lights_flag="--use-lights")
     p.add_argument("--lights", metavar="I,J,...", help="the lights to leave out, 0-based, e.g. 0,3,5 (default: all)")
     return p
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -18,8 +19,11 @@ from .console import _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
 from .parsers import _parse_list, parse_depth, parse_exposures
 
-#: Capture folder layouts of ``--capture``.
-CAPTURE_LAYOUTS = ("near_ps", "diligent")
+#: Capture folder layouts of ``--capture``: two general layouts and presets for published captures.
+CAPTURE_LAYOUTS = ("near_ps", "diligent", "hehe12", "queau_human1")
+
+#: The layouts that take only the folder (their images, sRGB decoding and grid are fixed).
+_PRESETS = ("diligent", "hehe12", "queau_human1")
 
 CONVENTIONS = (
     "Conventions: camera frame as in OpenCV (x right, y down, z forward into the scene, depth = z); "
@@ -32,7 +36,13 @@ Input: IMAGES (one file per light in the rig's order, or one directory) and --ri
 folder: --capture near_ps FOLDER (camera.mat, light.mat, the images, a mask and an ambient image
 found by name; the ambient image is subtracted and cos^4 vignetting compensated by default) or
 --capture diligent FOLDER (a DiLiGenT object folder with filenames.txt: directional lights,
-orthographic camera with 1-unit pixels). A .npy --depth map must match the images after --bin.
+orthographic camera with 1-unit pixels). Presets of published near_ps captures: --capture hehe12
+FOLDER (its 8 raw images, ambient and mask) and --capture queau_human1 FOLDER (the 7 JPEG renders:
+sRGB decoded, grey, 2 x 2 averaged and padded to the RAW grid of camera.mat, LED rows
+0,1,2,3,5,6,7). --lights (evaluate: --use-lights) picks rows of the rig's (or the capture's)
+lights for the images, in the images' order; --grid-shape pads or crops the images to the
+calibration grid. The rig and the options are checked before any image is read. A .npy --depth
+map must match the images after --bin.
 
 Thresholds: by default, for integer images, observations at the top level (raw values, before
 any pre-processing) are saturated and left out, and values at or below one level above black
@@ -40,11 +50,12 @@ are shadowed (0 after pre-processing, whose subtractions and scalings move the l
 """
 
 
-def add_input_options(p: argparse.ArgumentParser) -> None:
+def add_input_options(p: argparse.ArgumentParser, lights_flag: str = "--lights") -> None:
     """Add the options that ``reconstruct`` and ``evaluate`` share.
 
     Input, thresholds, pre-processing, solver (read back by :func:`build_inputs` and
-    :func:`near_options`).
+    :func:`near_options`). ``lights_flag`` names the light selection (``evaluate`` uses
+    ``--lights`` for the held-out lights).
     """
     p.add_argument(
         "images",
@@ -58,7 +69,22 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--capture",
         choices=CAPTURE_LAYOUTS,
-        help="read IMAGES as one capture folder in this layout instead of image files + --rig",
+        help="read IMAGES as one capture folder in this layout instead of image files + --rig "
+        "(hehe12, queau_human1: presets of the near_ps layout for these published captures)",
+    )
+    p.add_argument(
+        lights_flag,
+        dest="select_lights",
+        metavar="I,J,...",
+        help="the rows of the rig's lights (with --capture: of light.mat / the capture's lights) that "
+        "the images are, in the images' order, 0-based, e.g. 0,1,2,3,5,6,7 (default: all)",
+    )
+    p.set_defaults(lights_flag=lights_flag)
+    p.add_argument(
+        "--grid-shape",
+        metavar="H,W",
+        help="pad (zeros, at the bottom/right) or crop the images and the ambient image to H x W "
+        "pixels, the calibration's grid, before any other step (the mask must be on that grid)",
     )
     p.add_argument(
         "--depth",
@@ -216,6 +242,8 @@ class _Source(NamedTuple):
     ambient: Any
     K: np.ndarray | None
     vignetting: str
+    #: For a capture loaded by its loader (queau_human1): reads it, returning a loaded Capture.
+    load: Callable[[], Any] | None = None
 
 
 #: The pipeline's parameter names at the start of its messages, in the command line's words.
@@ -241,17 +269,21 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     source = _capture_source(args) if args.capture else _file_source(args)
     exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
     vignetting = args.vignetting or source.vignetting
+    _check_rig_options(args, source, depth, vignetting)  # before any image is read
+    images, levels, preprocessed, ambient = _read_images(args, source)
     try:
         prepared = pipeline.prepare(
-            [os.fspath(f) for f in source.files],
+            images,
             rig=source.rig,
             K=source.K,
             mask=source.mask,
             color=False if args.gray else None,
+            levels=levels,
+            preprocessed=preprocessed,
             saturation=args.saturation,
             dark=args.dark,
             srgb=args.srgb,
-            ambient=source.ambient,
+            ambient=ambient,
             exposures=exposures,
             vignetting="cos4" if vignetting == "cos4" and not args.flat else None,
             flat=args.flat,
@@ -271,6 +303,55 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         "max_memory": getattr(args, "max_memory", None),
     }
     return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options)
+
+
+def _check_rig_options(args: argparse.Namespace, source: _Source, depth: Any, vignetting: str) -> None:
+    """Check what the rig and the options decide before any image is read."""
+    rig = source.rig
+    if isinstance(depth, str):  # "auto"
+        if not np.any(~np.asarray(rig.directional)):
+            raise InputError(
+                "--depth auto: the working distance cannot be estimated with directional lights only "
+                "(they light every distance alike): give --depth D"
+            )
+        if rig.n_lights <= 3:
+            raise InputError(
+                f"--depth auto: the working distance cannot be estimated from {rig.n_lights} lights "
+                "(with 3 lights every distance fits the images exactly): use at least 4 lights or give --depth D"
+            )
+    if vignetting == "cos4" and not args.flat and source.K is None:
+        raise InputError(
+            "--vignetting cos4 needs a pinhole camera (K), but the camera is orthographic: "
+            "use a flat field or no vignetting correction"
+        )
+
+
+def _read_images(args: argparse.Namespace, source: _Source) -> tuple[Any, int | None, tuple[str, ...], Any]:
+    """Return the images (file names or a stack), their levels, the steps already run and the ambient image.
+
+    A capture with a loader is read by it; with --grid-shape the images and the ambient image are
+    read and padded or cropped to the grid here.
+    """
+    from .. import pipeline, preprocess
+    from ..io import read_image, to_float
+
+    if source.load is not None:
+        capture = source.load()
+        return capture.images, capture.levels, tuple(capture.preprocessed), capture.ambient
+    files = [os.fspath(f) for f in source.files]
+    if args.grid_shape is None:
+        return files, None, (), source.ambient
+    grid = parse_grid_shape(args.grid_shape)
+    try:
+        stack, levels = pipeline.load_images(files)
+    except InputError as exc:
+        raise _in_option_words(exc) from None
+    stack = preprocess.pad_or_crop(stack, grid)
+    ambient = source.ambient
+    if ambient is not None:
+        image = np.asarray(ambient) if isinstance(ambient, np.ndarray) else to_float(read_image(ambient))
+        ambient = preprocess.pad_or_crop(image, grid, stack=False)
+    return stack, levels, (), ambient
 
 
 def _in_option_words(exc: InputError) -> InputError:
@@ -333,12 +414,17 @@ def check_input_args(args: argparse.Namespace) -> None:
     It checks numbers, which options go together, and that the named side files exist.
     """
     _check_numbers(args)
+    if args.select_lights is not None:
+        parse_light_rows(args.select_lights, args.lights_flag)
+    if args.grid_shape is not None:
+        parse_grid_shape(args.grid_shape)
     if args.capture:
         given = [f"--{name}" for name in ("rig", "ambient", "exposures") if getattr(args, name)]
-        given += ["--srgb"] if args.srgb else []
+        given += ["--srgb"] if args.srgb and args.capture != "near_ps" else []
+        given += ["--grid-shape"] if args.grid_shape and args.capture == "queau_human1" else []
         if given:
             raise InputError(
-                f"--capture {args.capture} takes the rig and the ambient image from the folder: "
+                f"--capture {args.capture} takes the rig, the ambient image and its decoding from the folder: "
                 f"{', '.join(given)} cannot be combined with it"
             )
     elif not args.images:
@@ -370,15 +456,51 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise InputError(f"--saturation must be a positive number (0..1 scale), got {args.saturation}")
 
 
+def parse_light_rows(text: str, flag: str = "--lights", k: int | None = None) -> list[int]:
+    """Parse the light selection ``I,J,...``: distinct 0-based rows (below ``k`` if given)."""
+    expected = "comma-separated 0-based light indices, e.g. 0,1,2,3,5,6,7"
+    try:
+        rows = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise InputError(f"{flag} must be {expected}, got '{text}'") from None
+    negative = [i for i in rows if i < 0]
+    if negative:
+        raise InputError(f"{flag}: {negative[0]} is negative; give {expected}")
+    twice = sorted({i for i in rows if rows.count(i) > 1})
+    if twice:
+        raise InputError(f"{flag}: light {twice[0]} is given twice; each light can be one image only")
+    if k is not None and max(rows) >= k:
+        raise InputError(f"{flag}: {max(rows)} is not a light of the rig (0 .. {k - 1})")
+    return rows
+
+
+def parse_grid_shape(text: str) -> tuple[int, int]:
+    """Parse ``--grid-shape H,W``: two positive whole numbers."""
+    try:
+        h, w = (int(part) for part in text.split(","))
+    except ValueError:
+        raise InputError(
+            f"--grid-shape must be two whole numbers H,W (rows, columns), e.g. 1732,2601; got '{text}'"
+        ) from None
+    if h < 1 or w < 1:
+        raise InputError(f"--grid-shape must be positive numbers of rows and columns, got {text}")
+    return h, w
+
+
 def _file_source(args: argparse.Namespace) -> _Source:
-    """IMAGES + --rig: the image files, the rig, --mask and --ambient."""
+    """IMAGES + --rig: the image files, the rig (its --lights rows), --mask and --ambient."""
     rig = load_rig(args.rig)
+    if args.select_lights is not None:
+        rig = rig.subset(parse_light_rows(args.select_lights, args.lights_flag, rig.n_lights))
     exclude = [f for f in (args.ambient, args.flat) if f]
     files = resolve_images(args.images, args.mask, quiet=args.quiet, exclude=exclude, ambient=args.ambient)
     if len(files) != rig.n_lights:
         source = f"found in '{args.images[0]}'" if _is_dir_input(args.images) else "given"
+        lights = (
+            f"{rig.n_lights} lights selected by {args.lights_flag}" if args.select_lights else f"{rig.n_lights} lights"
+        )
         raise InputError(
-            f"{len(files)} images {source} but the rig file '{args.rig}' has {rig.n_lights} lights: "
+            f"{len(files)} images {source} but the rig file '{args.rig}' has {lights}: "
             "there must be exactly one image per light, in the rig's light order"
         )
     return _Source(list(files), rig, args.mask, args.ambient, rig.K, "none")
@@ -388,37 +510,104 @@ def _capture_source(args: argparse.Namespace) -> _Source:
     """Return the sources of ``--capture LAYOUT FOLDER [PATTERN]``.
 
     The capture's image files, rig, mask (or --mask) and ambient image; cos^4 vignetting by default
-    when the capture has K.
+    when the capture has K. Only calibration files (and the mask) are read here.
     """
     capture = _read_capture(args)
     mask = capture.mask if args.mask is None else args.mask
     vignetting = "cos4" if capture.K is not None else "none"
-    return _Source([os.fspath(f) for f in capture.files], capture.rig(), mask, capture.ambient, capture.K, vignetting)
+    load = None
+    if args.capture == "queau_human1":
+        load = _queau_loader(args, capture)
+    return _Source(
+        [os.fspath(f) for f in capture.files], capture.rig(), mask, capture.ambient, capture.K, vignetting, load
+    )
 
 
 def _read_capture(args: argparse.Namespace) -> Any:
     from .. import captures
 
     items = args.images
-    if not 1 <= len(items) <= (2 if args.capture == "near_ps" else 1) or not os.path.isdir(items[0]):
-        what = "the object folder"
+    if not 1 <= len(items) <= (1 if args.capture in _PRESETS else 2) or not os.path.isdir(items[0]):
+        what = "the object folder" if args.capture == "diligent" else "the capture folder"
         if args.capture == "near_ps":
             what = "the capture folder and optionally a glob pattern of its images"
         raise InputError(f"--capture {args.capture} takes {what}, got {' '.join(items) or 'nothing'}")
-    if args.capture == "diligent":
-        capture = captures.load_diligent(items[0], normals=False)
-    else:
-        try:
-            capture = captures.load_near_ps(items[0], items[1] if len(items) > 1 else None)
-        except InputError as e:
-            if "lights selected" not in str(e):
-                raise
-            head = str(e).split(": pass images=")[0]
-            hint = "give a glob pattern of the image files after the folder, e.g. 'img_[0-9]*.png'"
-            raise InputError(f"{head}: {hint}") from None
+    rows = None if args.select_lights is None else parse_light_rows(args.select_lights, args.lights_flag)
+    try:
+        if args.capture == "diligent":
+            capture = captures.load_diligent(items[0], normals=False, lights=rows)
+        elif args.capture in ("hehe12", "queau_human1"):
+            capture = _led_capture(args.capture, items[0], rows)
+        else:
+            try:
+                capture = captures.load_near_ps(items[0], items[1] if len(items) > 1 else None, lights=rows)
+            except InputError as e:
+                if "lights selected" not in str(e):
+                    raise
+                head = str(e).split(": pass images=")[0]
+                hint = "give a glob pattern of the image files after the folder, e.g. 'img_[0-9]*.png'"
+                if rows is not None:
+                    hint = f"give a glob pattern of the image files after the folder or fix {args.lights_flag}"
+                raise InputError(f"{head}: {hint}") from None
+    except InputError as e:
+        if str(e).startswith("lights: "):  # an index the loader's light file does not have
+            raise InputError(f"{args.lights_flag}: {str(e)[len('lights: ') :]}") from None
+        raise
     if not args.quiet:
         _note(f"capture '{capture.name}' ({args.capture}): {capture.num_images} images")
     return capture
+
+
+#: The image files of the near_ps presets (the LED row of each is the number in its name, minus 1).
+_LED_IMAGES = {"hehe12": "photometric_sample_raw_[0-9]*.png", "queau_human1": "photometric_sample_jpg_[0-9]*.png"}
+
+
+def _led_capture(layout: str, folder: str, rows: list[int] | None) -> Any:
+    """Describe a near_ps preset capture (files, calibration, mask, ambient) without reading its images.
+
+    ``rows``: the LED rows to use (default: every image of the folder); each image's LED row is
+    the number in its file name, minus 1.
+    """
+    from .. import captures
+    from ..captures.near_ps import _led_rows_from_names
+
+    if layout == "hehe12":
+        capture = captures.load_hehe12(folder)
+    else:  # the files and calibration as load_queau_human1 reads them; the images come later
+        files = captures.find_images(folder, _LED_IMAGES[layout])
+        capture = captures.load_near_ps(
+            folder,
+            files,
+            lights=_led_rows_from_names(files),
+            mask="photometric_sample_mask_raw.png",
+            ambient="photometric_sample_jpg_ambient.png",
+            color=None,
+            name=layout,
+        )
+        if capture.intensities is not None and capture.intensities.ndim == 2:
+            capture.intensities = capture.intensities.mean(axis=1)  # as loaded: grey, Phi averaged
+    if rows is None:
+        return capture
+    available = _led_rows_from_names(capture.files)
+    missing = [i for i in rows if i not in available]
+    if missing:
+        raise InputError(
+            f"--capture {layout}: no image of LED row(s) {missing} in '{folder}' (available rows: {sorted(available)})"
+        )
+    return capture.select([available.index(i) for i in rows])
+
+
+def _queau_loader(args: argparse.Namespace, capture: Any) -> Callable[[], Any]:
+    """Return the reader of --capture queau_human1: :func:`nplps.captures.load_queau_human1`."""
+    from .. import captures
+    from ..captures.near_ps import _led_rows_from_names
+
+    rows = _led_rows_from_names(capture.files)
+
+    def load() -> Any:
+        return captures.load_queau_human1(args.images[0], lights=rows)
+
+    return load
 
 
 def load_rig(path: str) -> Any:

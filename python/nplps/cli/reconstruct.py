@@ -60,6 +60,13 @@ examples:
       --depth 200 --bin 4 --refine-lights intensity --out hehe12-refined
   # also a glTF binary (y up, for web viewers), an STL and 32-bit float normals:
   nplps reconstruct shots/ --rig rig.json --depth 250 --formats glb,stl,normals_tiff --opengl --out result
+  # the presets of the shared captures (their images, sRGB decoding, light rows and grid):
+  nplps reconstruct --capture hehe12 hehe12/ --depth 200 --bin 4 --out hehe12-result
+  nplps reconstruct --capture queau_human1 queau_human1/ --depth 700 --bin 8 --out human1-result
+  # some lights only: rows of the rig's lights, one per image in the images' order:
+  nplps reconstruct a.png b.png c.png d.png --rig rig.json --lights 0,2,4,6 --depth 250 --out result
+  # images on a smaller grid than the calibration's: pad them (zeros, bottom/right) to H,W:
+  nplps reconstruct shots/ --rig rig.json --grid-shape 1732,2601 --depth 700 --out result
   # a DiLiGenT object, grey:
   nplps reconstruct --capture diligent ballPNG/ --depth 1000 --gray --out ball
 """
