@@ -13,6 +13,7 @@ import numpy as np
 
 from .errors import InputError
 from .rig import Rig
+from .types import RefineLights, Solver
 
 #: Most worker threads (``threads``). Far more than any machine's cores: a larger number is a
 #: mistake, and merely starting a million threads takes many seconds before anything is computed.
@@ -24,13 +25,13 @@ def _check_rig(rig: Any) -> None:
         raise InputError(f"rig must be an nplps.Rig, got {type(rig).__name__}")
 
 
-def _refine_choice(mode: str | None) -> Literal["none", "intensity", "position", "both"]:
+def _refine_choice(mode: str | None) -> RefineLights | Literal["none"]:
     """Check ``refine_lights``: None, "intensity", "position" or "both"."""
     if mode is None or mode is False:
         return "none"
     if mode not in ("intensity", "position", "both"):
         raise InputError(f'refine_lights must be None, "intensity", "position" or "both", got {mode!r}')
-    return cast(Literal["intensity", "position", "both"], str(mode))
+    return cast(RefineLights, str(mode))
 
 
 def _short(value: Any) -> str:
@@ -190,10 +191,10 @@ def _finite_number(value: Any, name: str) -> float:
     return v
 
 
-def _solver_choice(solver: str) -> Literal["auto", "direct", "multigrid"]:
+def _solver_choice(solver: str) -> Solver:
     if solver not in ("auto", "direct", "multigrid"):
         raise InputError(f'solver must be "auto", "direct" or "multigrid", got {solver!r}')
-    return cast(Literal["auto", "direct", "multigrid"], solver)
+    return cast(Solver, solver)
 
 
 def _levels(levels: int | None) -> int:

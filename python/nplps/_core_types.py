@@ -18,6 +18,8 @@ from typing import Any, Literal, TypedDict
 import numpy as np
 import numpy.typing as npt
 
+from .types import BoardAlbedo, Outline, RefineLights, Robust, Solver, Status, Weighting
+
 F64 = npt.NDArray[np.float64]
 
 
@@ -80,12 +82,12 @@ class SolverOptions(TypedDict, total=False):
     tol: float | None
     dark: float | None
     saturation: float | None
-    weighting: Literal["image", "paper"] | None
-    robust: Literal["none", "cauchy", "tukey"] | None
+    weighting: Weighting | None
+    robust: Robust | Literal["none"] | None
     threads: int | None
-    solver: Literal["auto", "direct", "multigrid"] | None
+    solver: Solver | None
     levels: int | None
-    refine_lights: Literal["none", "intensity", "position", "both"] | None
+    refine_lights: RefineLights | Literal["none"] | None
     light_prior_weight: float | None
     max_memory: float | None
 
@@ -116,7 +118,7 @@ class SceneOptions(TypedDict, total=False):
 class SphereOptions(TypedDict, total=False):
     """Options of ``calibrate_spheres``."""
 
-    outline: Literal["mask", "images"] | None
+    outline: Outline | None
     parallel_tol: float | None
     min_contrast: float | None
     max_blob_fraction: float | None
@@ -130,7 +132,7 @@ class IntensityOptions(TypedDict, total=False):
 
     fit_mu: bool | None
     fit_direction: bool | None
-    albedo: Literal["uniform", "per_pixel"] | None
+    albedo: BoardAlbedo | None
     dark: float | None
     saturation: float | None
     iterations: int | None
@@ -206,7 +208,7 @@ class _ReconstructionBase(TypedDict):
     gauge: F64
     history: list[IterationTuple]
     converged: bool
-    status: Literal["converged", "stalled", "diverged", "degenerate"]
+    status: Status
     status_reason: str
     negative_observations: int
     timings: TimingsDict

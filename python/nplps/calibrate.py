@@ -40,7 +40,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +49,7 @@ from ._atomic import atomic_write, write_text
 from ._outdir import result_directory
 from .errors import InputError, RigError
 from .rig import DirectionalLight, Light, PointLight, Rig, _select_core_lights, read_rig_json
+from .types import BoardAlbedo, Outline
 
 __all__ = [
     "BoardScene",
@@ -372,7 +373,7 @@ def calibrate_spheres(
     detect: tuple[float, float] | None = None,
     count: int | None = None,
     center_depth: Any = None,
-    outline: Literal["mask", "images"] = "mask",
+    outline: Outline = "mask",
     parallel_tol: float = 0.5,
     min_contrast: float = 0.3,
     max_blob_fraction: float = 0.05,
@@ -571,7 +572,7 @@ def calibrate_intensities(
     mask: Any = None,
     fit_mu: bool = False,
     fit_direction: bool = False,
-    albedo: Literal["uniform", "per_pixel"] = "uniform",
+    albedo: BoardAlbedo = "uniform",
     color: bool = False,
     dark: float | None = None,
     saturation: float | None = None,

@@ -23,11 +23,13 @@ if TYPE_CHECKING:
     from .reconstruction import Iteration
 
 __all__ = [
+    "BoardAlbedo",
     "Camera",
     "Depth",
     "Images",
     "Mask",
     "Method",
+    "Outline",
     "Progress",
     "RefineLights",
     "Robust",
@@ -53,6 +55,10 @@ Status: TypeAlias = Literal["converged", "stalled", "diverged", "degenerate"]
 Camera: TypeAlias = Literal["orthographic", "pinhole"]
 #: The synthetic scenes (:func:`nplps.make_scene`).
 SceneName: TypeAlias = Literal["saddle", "sphere", "cube", "bumps"]
+#: Where sphere calibration takes each sphere's outline (:func:`nplps.calibrate_spheres`).
+Outline: TypeAlias = Literal["mask", "images"]
+#: The board's albedo in intensity calibration (:func:`nplps.calibrate_intensities`).
+BoardAlbedo: TypeAlias = Literal["uniform", "per_pixel"]
 
 #: Images: a (k, H, W) or (k, H, W, 3) array, or k image files or arrays.
 Images: TypeAlias = np.ndarray | Sequence[str | os.PathLike[str] | np.ndarray]
