@@ -468,7 +468,7 @@ function main() {
   document.getElementById("info").textContent = meta.size + ", " + meta.triangles.toLocaleString("en") +
     " triangles; extent " + ext.join(" x ") + " " + meta.units + " (x, y, z)";
   document.getElementById("note").textContent = meta.stride > 1 ?
-    "decimated: every " + meta.stride + "th vertex row and column (" + meta.full_triangles.toLocaleString("en") +
+    "decimated on a regular grid of stride " + meta.stride + " (" + meta.full_triangles.toLocaleString("en") +
     " triangles at full resolution)" : "full resolution";
 
   var canvas = document.getElementById("view");
