@@ -13,7 +13,8 @@ reset (key R), a one-line help and the size and extent of the mesh. The object i
 as the camera saw it: the camera frame (x right, y down, z forward) is drawn with y up on the
 screen, and azimuth = elevation = 0 is the camera's own viewpoint. The initial view is oblique
 (azimuth 35, elevation 25 degrees); a URL hash sets another one, e.g. ``viewer.html#azimuth=-40&
-elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20``. The page sets its
+elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20`` (``ui=0`` hides the
+panel and the help line, for pictures). The page sets its
 ``document.title`` to ``"ready"`` after the first frame and to ``"error: ..."`` on an error
 (which it also shows), so that a headless browser can tell.
 
@@ -374,7 +375,7 @@ def _page(
         "normals": _b64(normals, "<f4"),
         "colors": _b64(colors, "u1"),
     }
-    blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    blob = json.dumps(data, separators=(",", ":")).replace("<", "\\u003c")  # no tag inside the script
     title = _escape(meta["title"])
     return (
         _HTML.replace("@TITLE@", title)
@@ -493,7 +494,8 @@ function main() {
   // Model: centre the object and turn the camera frame (y down, z forward) into GL's (y up, z to the eye).
   var model = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, -centre[0], centre[1], centre[2], 1];
   var FOV = 30 * Math.PI / 180;
-  var view0 = { azimuth: 35, elevation: 25, zoom: 1, mode: "albedo", light_azimuth: 0, light_elevation: 0 };
+  var view0 = { azimuth: 35, elevation: 25, zoom: 1, mode: "albedo", light_azimuth: -20, light_elevation: 25,
+    ui: 1 };
   var state = {};
   var target = [0, 0, 0];
   function fromHash() {
@@ -509,6 +511,7 @@ function main() {
   function reset() {
     state = fromHash(); target = [0, 0, 0];
     state.distance = radius / Math.sin(FOV / 2) * 1.05 / Math.max(state.zoom, 1e-6);
+    ["panel", "help"].forEach(function (id) { document.getElementById(id).style.display = state.ui ? "" : "none"; });
     syncControls(); draw();
   }
   function syncControls() {
