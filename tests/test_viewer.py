@@ -185,6 +185,38 @@ def test_headless_chromium_renders_the_mesh(page: Path, tmp_path: Path) -> None:
     assert np.abs(views[0] - views[1]).mean() > 0.02  # the two views differ
 
 
+INTERACTION = """<script>
+(function () {
+  var c = document.getElementById("view");
+  function ev(type, x, y, extra) {
+    var init = { clientX: x, clientY: y, pointerId: 7, button: 0, bubbles: true };
+    c.dispatchEvent(new PointerEvent(type, Object.assign(init, extra || {})));
+  }
+  ev("pointerdown", 200, 200); ev("pointermove", 260, 230); ev("pointerup", 260, 230);  // rotate
+  ev("pointerdown", 200, 200, { shiftKey: true }); ev("pointermove", 215, 190); ev("pointerup", 215, 190);  // pan
+  ev("pointerdown", 200, 200, { altKey: true }); ev("pointermove", 150, 150); ev("pointerup", 150, 150);  // light
+  c.dispatchEvent(new WheelEvent("wheel", { deltaY: -120, bubbles: true, cancelable: true }));  // zoom
+  window.dispatchEvent(new KeyboardEvent("keydown", { key: "3" }));  // normals
+  if (location.hash.indexOf("reset") >= 0) window.dispatchEvent(new KeyboardEvent("keydown", { key: "r" }));
+})();
+</script>
+</body>"""
+
+
+def test_headless_chromium_mouse_keys_and_reset(page: Path, tmp_path: Path) -> None:
+    browser = _browser()
+    profile = tmp_path / "profile"
+    interactive = tmp_path / "interactive.html"
+    interactive.write_text(page.read_text(encoding="utf-8").replace("</body>", INTERACTION), encoding="utf-8")
+    url = interactive.resolve().as_uri()
+    assert _title(browser, profile, url) == "ready"  # no error in the handlers
+    before = _screenshot(browser, profile, page.resolve().as_uri() + "#ui=0", tmp_path / "before.png")
+    moved = _screenshot(browser, profile, url + "#ui=0", tmp_path / "moved.png")
+    reset = _screenshot(browser, profile, url + "#ui=0&reset", tmp_path / "reset.png")
+    assert np.abs(moved - before).mean() > 0.02
+    assert np.abs(reset - before).max() < 0.02
+
+
 def test_headless_chromium_page_reports_errors(page: Path, tmp_path: Path) -> None:
     browser = _browser()
     broken = tmp_path / "broken.html"

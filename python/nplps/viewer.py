@@ -7,8 +7,10 @@ colours, uint32 triangle indices). The page can be opened from disk in any brows
 and sent around as one file.
 
 The page: a canvas filling the window; drag to rotate about the object, wheel or pinch to zoom,
-right-drag or shift-drag to pan, alt-drag or the two sliders to move the light (a headlight by
-default: the light comes from the eye), albedo / shaded / normals colouring (keys 1, 2, 3),
+right-drag or shift-drag to pan, alt-drag or the two sliders to move the light (it moves with
+the eye: by default 20 degrees left of and 25 degrees above the viewing direction, plus a weak
+light from the eye), albedo / shaded / normals colouring (keys 1, 2, 3; normals in the colours of
+``normals.png``),
 reset (key R), a one-line help and the size and extent of the mesh. The object is shown upright
 as the camera saw it: the camera frame (x right, y down, z forward) is drawn with y up on the
 screen, and azimuth = elevation = 0 is the camera's own viewpoint. The initial view is oblique
@@ -567,7 +569,7 @@ function main() {
   function count() { return Object.keys(pointers).length; }
   canvas.addEventListener("contextmenu", function (e) { e.preventDefault(); });
   canvas.addEventListener("pointerdown", function (e) {
-    canvas.setPointerCapture(e.pointerId);
+    try { canvas.setPointerCapture(e.pointerId); } catch (err) { /* not an active pointer */ }
     pointers[e.pointerId] = [e.clientX, e.clientY];
     mode = e.button === 2 || e.shiftKey ? "pan" : e.altKey ? "light" : "rotate";
     pinch = 0;
@@ -704,7 +706,8 @@ var FRAGMENT = [
   "  }",
   "  vec3 n = normalize(vN); float back = 1.0;",
   "  if (dot(n, vEye) > 0.0) { n = -n; back = 0.6; }  // seen from behind: light the other side, darker",
-  "  float shade = 0.12 + 0.88 * max(dot(n, normalize(uLight)), 0.0);",
+  "  float key = max(dot(n, normalize(uLight)), 0.0), fill = max(dot(n, normalize(-vEye)), 0.0);",
+  "  float shade = 0.08 + 0.64 * key + 0.28 * fill;  // the movable light and a weak headlight",
   "  vec3 base = uMode == 0 ? vCol : vec3(0.82);",
   "  gl_FragColor = vec4(base * shade * back, 1.0);",
   "}"].join("\n");

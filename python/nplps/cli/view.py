@@ -25,7 +25,7 @@ given or there is no display (CI=true, or no DISPLAY / WAYLAND_DISPLAY on Linux)
 command prints the path to open.
 
 In the page: drag to rotate, wheel or pinch to zoom, right-drag or shift-drag to pan, alt-drag
-or the sliders to move the light (a headlight by default), keys 1 2 3 colour by albedo, shaded
+or the sliders to move the light (it moves with the eye), keys 1 2 3 colour by albedo, shaded
 grey or normals, R resets the view. The object is upright as the camera saw it; the initial view
 is oblique. A URL hash sets the view, e.g. {VIEWER_FILE}#azimuth=-40&elevation=10&zoom=1.5&mode=shaded
 (also light_azimuth, light_elevation; all in degrees, azimuth = elevation = 0 is the camera's
