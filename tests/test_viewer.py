@@ -39,7 +39,7 @@ def test_page_is_self_contained(page: Path) -> None:
     text = page.read_text(encoding="utf-8")
     assert not re.search(r"https?://", text)
     assert not re.search(r"<(script|img|link|iframe)[^>]*\s(src|href)=", text, re.I)
-    assert "bumps &lt;test&gt;" in text and "<test>" not in text
+    assert "<title>bumps &lt;test&gt;</title>" in text and "<test>" not in text
 
 
 def test_page_holds_the_mesh_of_the_result(result_dir: tuple[Path, nplps.Reconstruction], page: Path) -> None:
@@ -154,9 +154,9 @@ def _chromium(browser: str, profile: Path, url: str, *args: str) -> subprocess.C
     return subprocess.run(command, capture_output=True, timeout=60, check=False)
 
 
-def _title(browser: str, profile: Path, url: str) -> str:
+def _status(browser: str, profile: Path, url: str) -> str:
     dom = _chromium(browser, profile, url, "--dump-dom").stdout.decode("utf-8", "replace")
-    found = re.search(r"<title>(.*?)</title>", dom, re.S)
+    found = re.search(r'<html[^>]* data-status="([^"]*)"', dom)
     assert found, dom[:500]
     return found.group(1)
 
@@ -171,7 +171,7 @@ def test_headless_chromium_renders_the_mesh(page: Path, tmp_path: Path) -> None:
     browser = _browser()
     profile = tmp_path / "profile"
     url = page.resolve().as_uri()
-    assert _title(browser, profile, url) == "ready"
+    assert _status(browser, profile, url) == "ready"
     background = np.array([0.125, 0.14, 0.165])
     views = []
     for name, view in (("a", "azimuth=35&elevation=25"), ("b", "azimuth=-50&elevation=-10&mode=shaded")):
@@ -209,7 +209,7 @@ def test_headless_chromium_mouse_keys_and_reset(page: Path, tmp_path: Path) -> N
     interactive = tmp_path / "interactive.html"
     interactive.write_text(page.read_text(encoding="utf-8").replace("</body>", INTERACTION), encoding="utf-8")
     url = interactive.resolve().as_uri()
-    assert _title(browser, profile, url) == "ready"  # no error in the handlers
+    assert _status(browser, profile, url) == "ready"  # no error in the handlers
     before = _screenshot(browser, profile, page.resolve().as_uri() + "#ui=0", tmp_path / "before.png")
     moved = _screenshot(browser, profile, url + "#ui=0", tmp_path / "moved.png")
     reset = _screenshot(browser, profile, url + "#ui=0&reset", tmp_path / "reset.png")
@@ -222,8 +222,8 @@ def test_headless_chromium_page_reports_errors(page: Path, tmp_path: Path) -> No
     broken = tmp_path / "broken.html"
     text = page.read_text(encoding="utf-8")
     broken.write_text(re.sub(r'"indices":"[^"]*"', '"indices":"!!"', text), encoding="utf-8")
-    title = _title(browser, tmp_path / "profile", broken.resolve().as_uri())
-    assert title.startswith("error: "), title
+    status = _status(browser, tmp_path / "profile", broken.resolve().as_uri())
+    assert status.startswith("error: "), status
 
 
 def test_can_open_browser(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -16,9 +16,9 @@ as the camera saw it: the camera frame (x right, y down, z forward) is drawn wit
 screen, and azimuth = elevation = 0 is the camera's own viewpoint. The initial view is oblique
 (azimuth 35, elevation 25 degrees); a URL hash sets another one, e.g. ``viewer.html#azimuth=-40&
 elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20`` (``ui=0`` hides the
-panel and the help line, for pictures). The page sets its
-``document.title`` to ``"ready"`` after the first frame and to ``"error: ..."`` on an error
-(which it also shows), so that a headless browser can tell.
+panel and the help line, for pictures). The page sets the ``data-status`` attribute of its
+``<html>`` element to ``"ready"`` after the first frame and to ``"error: ..."`` on an error
+(which it also shows), so that a headless browser can tell (``--dump-dom``).
 
 Large meshes are decimated on a regular grid: every ``stride``-th vertex row and column (and the
 last ones), the smallest stride that leaves at most `max_triangles` triangles; the page says so.
@@ -391,11 +391,11 @@ def _escape(text: str) -> str:
 
 
 _HTML = """<!DOCTYPE html>
-<html lang="en">
+<html lang="en" data-status="loading">
 <head>
 <meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
-<title>loading</title>
+<title>@TITLE@</title>
 <style>
 html, body { margin: 0; height: 100%; overflow: hidden; background: #20242a; font: 13px sans-serif; color: #e8e8e8; }
 canvas { position: fixed; left: 0; top: 0; width: 100%; height: 100%; touch-action: none; display: block; }
@@ -440,7 +440,8 @@ _SCRIPT = r"""(function () {
 "use strict";
 var errorBox = document.getElementById("error");
 function fail(message) {
-  document.title = "error: " + message;
+  document.documentElement.setAttribute("data-status", "error: " + message);
+  document.title = "viewer error";
   errorBox.textContent = "Viewer error: " + message;
   errorBox.style.display = "block";
 }
@@ -631,7 +632,7 @@ function main() {
   reset();
   var glError = gl.getError();
   if (glError !== gl.NO_ERROR) throw new Error("WebGL error " + glError);
-  document.title = "ready";
+  document.documentElement.setAttribute("data-status", "ready");
 }
 
 function vertexNormals(pos, idx) {  // area-weighted sums of the triangles' normals
