@@ -54,6 +54,18 @@ def test_page_holds_the_mesh_of_the_result(result_dir: tuple[Path, nplps.Reconst
     assert meta["size"] == "40 x 40 pixels" and meta["units"] == "rig units"
 
 
+def test_opengl_frame_results_give_the_same_page(
+    result_dir: tuple[Path, nplps.Reconstruction], page: Path, tmp_path: Path
+) -> None:
+    result_dir[1].save(tmp_path / "gl", opengl=True)
+    info = viewer.write_result_viewer(tmp_path / "gl")
+    assert info.path == tmp_path / "gl" / viewer.VIEWER_FILE
+    ours, theirs = viewer.read_viewer(info.path), viewer.read_viewer(page)
+    for key in ("positions", "faces", "normals"):
+        np.testing.assert_array_equal(ours[key], theirs[key])
+    assert ours["meta"]["title"] == "gl"
+
+
 def test_save_viewer_matches_the_result(result_dir: tuple[Path, nplps.Reconstruction], tmp_path: Path) -> None:
     result = result_dir[1]
     path = result.save_viewer(tmp_path / "v.html", title="api", units="mm")
