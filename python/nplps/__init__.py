@@ -28,7 +28,7 @@ The public names, by layer:
   :mod:`~nplps.types` (the ``Literal`` aliases of the string options, such as ``Status``).
 """
 
-from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, types
+from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, types, viewer
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .calibrate import (
@@ -82,4 +82,5 @@ __all__ = [
     "reconstruct_parallel",
     "render",
     "types",
+    "viewer",
 ]

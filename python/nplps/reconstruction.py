@@ -581,6 +581,48 @@ class Reconstruction:
         """
         export.save_normals_tiff(path, self.normals)
 
+    def save_viewer(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        title: str = "nplps mesh",
+        units: str | None = None,
+        max_triangles: int | None = None,
+    ) -> Path:
+        """Write a self-contained 3-D viewer page of the mesh (offline WebGL, see :mod:`nplps.viewer`).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The HTML page to write (replaced if it exists).
+        title : str, default "nplps mesh"
+            The page's title.
+        units : str, optional
+            The length unit shown with the extent (default "rig units").
+        max_triangles : int, optional
+            Decimate larger meshes on a regular grid (default
+            :data:`nplps.viewer.DEFAULT_MAX_TRIANGLES`).
+
+        Returns
+        -------
+        pathlib.Path
+            The page: open it in a browser, or in Jupyter show it with
+            ``IPython.display.IFrame(str(path), width=800, height=500)``.
+        """
+        from . import viewer
+
+        info = viewer.write_viewer(
+            path,
+            self.vertices,
+            self.mask,
+            normals=self.vertex_normals(),
+            albedo=self.vertex_albedo(),
+            title=title,
+            units=units,
+            max_triangles=viewer.DEFAULT_MAX_TRIANGLES if max_triangles is None else max_triangles,
+        )
+        return info.path
+
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary of the run (what ``summary.json`` holds, without the albedo scale).
 

@@ -48,6 +48,7 @@ from .inputs import (
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
+from .view import add_view_parser, cmd_view
 
 __all__ = [
     "CAPTURE_LAYOUTS",
@@ -68,6 +69,7 @@ __all__ = [
     "cmd_reconstruct",
     "cmd_synth",
     "cmd_synth_calibration",
+    "cmd_view",
     "depth_rms",
     "describe_rig",
     "load_rig",
@@ -110,6 +112,7 @@ examples:
   nplps synth-calibration --out calib          # synthetic shiny spheres and a board
   nplps calibrate spheres calib/placement_0 calib/placement_1 --camera calib/camera.json \
       --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
+  nplps view result                             # the mesh in 3-D: an offline page in the browser
   nplps reconstruct --help                      # all options of a command
 
 results: a command with --out DIR writes only into a new or empty directory unless --overwrite
@@ -141,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate_parser(sub, formatter).set_defaults(func=cmd_calibrate)
     add_synth_calibration_parser(sub, formatter).set_defaults(func=cmd_synth_calibration)
     add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
+    add_view_parser(sub, formatter).set_defaults(func=cmd_view)
     return parser
 
 
