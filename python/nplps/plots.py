@@ -131,7 +131,7 @@ def convergence_svg(
     y0, y1 = np.floor(ly.min()), np.ceil(ly.max())
     if y1 <= y0:
         y1 = y0 + 1
-    left, right, top, bottom = 70, 20, 20, 45
+    left, right, top, bottom = 70, 70, 20, 45
     n = len(d)
     sx = lambda i: left + (i / max(n - 1, 1)) * (width - left - right)  # noqa: E731
     sy = lambda v: height - bottom - (np.log10(v) - y0) / (y1 - y0) * (height - top - bottom)  # noqa: E731

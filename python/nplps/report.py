@@ -82,8 +82,9 @@ _STYLE = """
 body{font-family:sans-serif;margin:1.5em;color:#222;max-width:1400px}
 h1{font-size:1.4em}h2{font-size:1.15em;border-bottom:1px solid #ccc;margin-top:1.6em}
 table{border-collapse:collapse}td,th{padding:2px 10px;text-align:left;vertical-align:top;border-bottom:1px solid #eee}
-figure{display:inline-block;margin:0 1em 1em 0;vertical-align:top}figcaption{font-size:.9em;color:#555}
-img{image-rendering:pixelated;max-width:100%}.none{color:#777;font-style:italic}
+figure{display:inline-table;margin:0 1em 1em 0;vertical-align:top}
+figcaption{display:table-caption;caption-side:bottom;font-size:.9em;color:#555}
+img{image-rendering:pixelated;max-width:100%;border:1px solid #ccc}.none{color:#777;font-style:italic}
 code{font-size:.9em;word-break:break-all}
 """
 
@@ -277,19 +278,20 @@ def _colorbar_svg(lo: float, hi: float, label: str, *, height: int = 300) -> str
             np.linspace(0, 1, 17), np.rint(views.colormap(np.linspace(1, 0, 17)) * 255).astype(int), strict=True
         )
     )
-    top, bar_h, x = 14, height - 28, 8
+    top, bar_h, x = 24, height - 32, 8
+    gid = "cb-" + "".join(c if c.isalnum() else "-" for c in label)  # one bar per label in a report
     parts = [
         f'<svg xmlns="http://www.w3.org/2000/svg" class="colorbar" width="150" height="{height}" '
         f'data-min="{lo!r}" data-max="{hi!r}" font-family="sans-serif" font-size="11">',
-        f'<defs><linearGradient id="cb{id(ticks)}" x1="0" y1="0" x2="0" y2="1">{stops}</linearGradient></defs>',
-        f'<rect x="{x}" y="{top}" width="18" height="{bar_h}" fill="url(#cb{id(ticks)})" stroke="black"/>',
+        f'<defs><linearGradient id="{gid}" x1="0" y1="0" x2="0" y2="1">{stops}</linearGradient></defs>',
+        f'<rect x="{x}" y="{top}" width="18" height="{bar_h}" fill="url(#{gid})" stroke="black"/>',
     ]
     span = hi - lo if hi > lo else 1.0
     for t in ticks:
         y = top + (1 - (t - lo) / span) * bar_h
         parts.append(f'<line x1="{x + 18}" y1="{y:.1f}" x2="{x + 23}" y2="{y:.1f}" stroke="black"/>')
         parts.append(f'<text class="tick" x="{x + 26}" y="{y + 4:.1f}">{_fmt(t)}</text>')
-    parts.append(f'<text x="{x}" y="{height - 2}">{html.escape(label)}</text></svg>')
+    parts.append(f'<text x="{x}" y="12">{html.escape(label)}</text></svg>')
     return "".join(parts)
 
 
@@ -439,6 +441,37 @@ class _Data:
         return None if n is None else np.isfinite(n).all(axis=-1)
 
     @property
+    def box(self) -> tuple[int, int, int, int] | None:
+        """Return the mask's bounding box with a margin (r0, r1, c0, c1), or None for the whole image."""
+        if "box" not in self._cache:
+            mask, box = self.mask, None
+            if mask is not None and mask.any():
+                rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+                h, w = mask.shape
+                m = max(2, int(0.04 * max(rows[-1] - rows[0], cols[-1] - cols[0])))
+                box = (max(rows[0] - m, 0), min(rows[-1] + 1 + m, h), max(cols[0] - m, 0), min(cols[-1] + 1 + m, w))
+                if box == (0, h, 0, w):
+                    box = None
+            self._cache["box"] = box
+        return self._cache["box"]
+
+    def cropped(self, image: np.ndarray, vertex: bool = False) -> np.ndarray:
+        """Return a per-pixel (or, with `vertex`, per-vertex) map cut to :attr:`box`."""
+        if self.box is None:
+            return image
+        r0, r1, c0, c1 = self.box
+        e = 1 if vertex else 0
+        return image[r0 : r1 + e, c0 : c1 + e]
+
+    @property
+    def crop_note(self) -> str:
+        """Return the caption's note on the crop ("" when not cropped)."""
+        if self.box is None:
+            return ""
+        r0, r1, c0, c1 = self.box
+        return f"; cropped to the mask: rows {r0}..{r1 - 1}, columns {c0}..{c1 - 1}"
+
+    @property
     def rig(self) -> Any:
         if "rig" not in self._cache:
             from .rig import Rig
@@ -499,21 +532,21 @@ def _section_maps(d: _Data) -> str:
     figures = []
     mask = d.mask
     if mask is not None:
-        figures.append(_figure(views.downsample(mask.astype(np.uint8) * 255, MAP_SIDE).astype(np.uint8), "mask"))
+        small = views.downsample(mask.astype(np.uint8) * 255, MAP_SIDE // 2).astype(np.uint8)
+        figures.append(_figure(small, "mask (the whole image)"))
     else:
         figures.append(_none("Mask: not available (mask.png is missing)."))
     normals = d._load("normals.png")
     if normals is not None:
-        small = views.downsample(np.asarray(normals, dtype=np.float64), MAP_SIDE)
-        figures.append(
-            _figure(np.rint(small).astype(np.uint8), "normal map (mesh normals; facing the camera = light blue)")
-        )
+        small = views.downsample(np.asarray(d.cropped(normals), dtype=np.float64), MAP_SIDE)
+        caption = f"normal map (mesh normals; facing the camera = light blue){d.crop_note}"
+        figures.append(_figure(np.rint(small).astype(np.uint8), caption))
     else:
         figures.append(_none("Normal map: not available (normals.png is missing)."))
     albedo = d._load("albedo.png")
     if albedo is not None:
-        small = views.downsample(np.asarray(albedo, dtype=np.float64), MAP_SIDE)
-        figures.append(_figure(_grey_rgb(small), "albedo (scaled to its 99.5th percentile)"))
+        small = views.downsample(np.asarray(d.cropped(albedo), dtype=np.float64), MAP_SIDE)
+        figures.append(_figure(_grey_rgb(small), f"albedo (scaled to its 99.5th percentile){d.crop_note}"))
     else:
         figures.append(_none("Albedo: not available (albedo.png is missing)."))
     return _section("Mask, normal map, albedo", "".join(figures), "maps")
@@ -546,7 +579,8 @@ def _section_residual(d: _Data) -> str:
         f"RMS image residual of each pixel's fit (image units, 0..1); colour scale 0 .. {_fmt(hi)} "
         f"(the 99.5th percentile; largest {_fmt(float(finite.max()))}, median {_fmt(float(np.median(finite)))})"
     )
-    return _section("Residual", _mapped(res, 0.0, hi, caption, "residual"), "residual")
+    caption += d.crop_note
+    return _section("Residual", _mapped(d.cropped(res), 0.0, hi, caption, "residual"), "residual")
 
 
 def _section_unfitted(d: _Data) -> str:
@@ -564,9 +598,9 @@ def _section_unfitted(d: _Data) -> str:
         rgb[mask] = 200
         rgb[unfitted] = (220, 30, 30)
         body = _figure(
-            views.downsample(rgb, MAP_SIDE).astype(np.uint8),
+            views.downsample(d.cropped(rgb), MAP_SIDE).astype(np.uint8),
             f"{count} of {int(mask.sum())} masked pixels ({100 * count / max(int(mask.sum()), 1):.2f} %) had fewer "
-            "than 3 lit images and kept their starting shape (red; grey: fitted)",
+            f"than 3 lit images and kept their starting shape (red; grey: fitted){d.crop_note}",
         )
     return _section("Unfitted pixels", body, "unfitted")
 
@@ -581,7 +615,8 @@ def _section_depth(d: _Data) -> str:
         return _section("Depth", _none("Depth map: no finite depth."), "depth")
     lo, hi = float(finite.min()), float(finite.max())
     caption = f"vertex depth z (distance along the optical axis, in the rig's unit): {_fmt(lo)} .. {_fmt(hi)}"
-    return _section("Depth", _mapped(depth, lo, hi, caption, "depth z (rig unit)"), "depth")
+    caption += d.crop_note
+    return _section("Depth", _mapped(d.cropped(depth, vertex=True), lo, hi, caption, "depth z (rig unit)"), "depth")
 
 
 def _section_renders(d: _Data) -> str:

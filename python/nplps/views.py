@@ -133,9 +133,9 @@ def colorbar_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
         return [lo] if math.isfinite(lo) else []
     raw = (hi - lo) / max(count - 1, 1)
     power = 10 ** math.floor(math.log10(raw))
-    step = next(m * power for m in (1, 2, 5, 10) if m * power >= raw)
-    inner = [k * step for k in range(math.ceil(lo / step), math.floor(hi / step) + 1)]
-    gap = 0.25 * step  # leave out round numbers that would crowd the ends' labels
+    step = min((m * power for m in (1, 2, 5, 10)), key=lambda s: abs(math.log(s / raw)))
+    inner = [round(k * step, 12) for k in range(math.ceil(lo / step), math.floor(hi / step) + 1)]
+    gap = 0.4 * step  # leave out round numbers that would crowd the ends' labels
     ticks = [lo] + [t for t in inner if lo + gap < t < hi - gap] + [hi]
     return ticks
 
