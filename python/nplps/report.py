@@ -34,6 +34,7 @@ import base64
 import html
 import json
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -424,7 +425,9 @@ class _Data:
 
                     value = read_image(p)
                 elif name.endswith(".csv"):
-                    value = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+                    with warnings.catch_warnings():  # a header only: no rows, no warning
+                        warnings.simplefilter("ignore", UserWarning)
+                        value = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
                 elif name.endswith(".json"):
                     value = json.loads(p.read_text(encoding="utf-8"))
             except (OSError, ValueError):
