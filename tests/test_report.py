@@ -67,7 +67,7 @@ def test_save_writes_a_self_contained_report_with_every_section(
     assert "40 x 40 pixels (W x H)" in header and "converged" in header
     assert f"<td>{scene.rig.n_lights}</td>" in header
     assert "input images" in _section(text, "inputs")  # the thumbnails, not the "none" line
-    assert "class=\"none\"" not in _section(text, "distance")  # the depth was searched
+    assert 'class="none"' not in _section(text, "distance")  # the depth was searched
     assert "<svg" in _section(text, "convergence") and "<svg" in _section(text, "distance")
     assert _section(text, "renders").count("<img") == 3
     assert "&quot;auto&quot;" in _section(text, "options")  # the options recorded
