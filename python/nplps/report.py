@@ -760,7 +760,7 @@ def compact_html(result: Reconstruction, *, side: int = 160) -> str:
     if "total" in result.timings:
         rows.append(("Solver time", f"{result.timings['total']:.3f} s"))
     if result.distance is not None:
-        rows.append(("Estimated distance", ", ".join(_fmt(v) for v in result.distance.distance)))
+        rows.append(("Estimated distance", ", ".join(f"{v:.6g}" for v in result.distance.distance)))
     left = "style='text-align:left'"
     cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
     normals = _normal_rgb(views.downsample(result.normals, side))
