@@ -260,11 +260,10 @@ def render_mesh(
     centre = np.median(v[ok], axis=0)
     rel = v - centre
     px, py, pz = rel @ r_ax, rel @ d_ax, rel @ f_ax
-    used = ok.copy()
-    extent = max(np.ptp(px[used]), np.ptp(py[used]), 1e-12)
+    extent = max(np.ptp(px[ok]), np.ptp(py[ok]), 1e-12)
     scale = 0.9 * (size - 1) / extent
-    cx = 0.5 * (px[used].max() + px[used].min())
-    cy = 0.5 * (py[used].max() + py[used].min())
+    cx = 0.5 * (px[ok].max() + px[ok].min())
+    cy = 0.5 * (py[ok].max() + py[ok].min())
     sx = (px - cx) * scale + 0.5 * (size - 1)
     sy = (py - cy) * scale + 0.5 * (size - 1)
 
@@ -345,7 +344,6 @@ def _rasterize(
     area = (tx[:, 1] - tx[:, 0]) * (ty[:, 2] - ty[:, 0]) - (tx[:, 2] - tx[:, 0]) * (ty[:, 1] - ty[:, 0])
     count = np.where(np.abs(area) > 1e-12, bw * bh, 0)
     ends = np.cumsum(count)
-    start = 0
     first = 0
     while first < len(count):
         last = int(np.searchsorted(ends, (ends[first - 1] if first else 0) + budget, side="right"))
@@ -377,5 +375,4 @@ def _rasterize(
             closer = z < zbuf[pix]
             zbuf[pix[closer]] = z[closer]
             owner[pix[closer]] = tri[closer]
-        start += int(c.sum())
         first = last
