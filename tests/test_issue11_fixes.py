@@ -147,8 +147,9 @@ def test_repr_of_a_non_square_parallel_result(scene):
 def test_repr_html_is_a_compact_table(auto_result):
     _s, r = auto_result
     page = r._repr_html_()
-    assert page.startswith("<table") and page.endswith("</table>")
-    assert "<img" not in page and len(page) < 3000
+    # The facts, then a small normal map and albedo (item 2: compact, embedded; see test_report.py).
+    assert page.startswith("<div><table") and page.endswith("</div>")
+    assert page.count("<img") == 2 and len(page) < 100_000
     for label in ("Size (W x H)", "Method", "Status", "Iterations", "Depth range", "Mask", "Estimated distance"):
         assert f">{label}</th>" in page
     h, w = r.shape

@@ -132,9 +132,17 @@ def _check_old_or_new(root: Path) -> None:
 
 
 def _content(path: Path) -> object:
-    """The bytes of a file; for summary.json its JSON without the timings (they differ by run)."""
+    """The bytes of a file, without what differs by run.
+
+    That is: summary.json without the timings and the options (they name the output directory),
+    history.csv without its elapsed seconds, report.html (it quotes both) as present only.
+    """
     if path.name == "summary.json":
-        return {k: v for k, v in json.loads(path.read_text()).items() if k != "timings"}
+        return {k: v for k, v in json.loads(path.read_text()).items() if k not in ("timings", "options")}
+    if path.name == "history.csv":
+        return [line.split(",")[:4] + line.split(",")[5:] for line in path.read_text().splitlines()]
+    if path.name == "report.html":
+        return "report"
     return path.read_bytes()
 
 

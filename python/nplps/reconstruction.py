@@ -10,11 +10,10 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 
 from __future__ import annotations
 
-import html
 import json
 import os
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -23,6 +22,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from . import _core, export, plots
+from . import report as report_module
 from ._atomic import write_text
 from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
@@ -30,6 +30,7 @@ from .errors import InputError
 from .rig import Rig, _select_core_lights
 
 if TYPE_CHECKING:
+    from .evaluation import HeldOut
     from .types import Method, RefineLights, Status
 
 __all__ = ["DistanceEstimate", "Iteration", "LightRefinement", "Reconstruction", "light_changes"]
@@ -350,21 +351,8 @@ class Reconstruction:
         )
 
     def _repr_html_(self) -> str:
-        """Return a compact HTML table of the facts of :meth:`__repr__`, for Jupyter."""
-        f = self._facts()
-        rows = [
-            ("Size (W x H)", f["size"]),
-            ("Method", f["method"]),
-            ("Status", f["status"] + (f": {self.status_reason}" if self.status_reason else "")),
-            ("Iterations", f["iterations"]),
-            ("Depth range", f["depth"]),
-            ("Mask", f["mask"]),
-        ]
-        if self.distance is not None:
-            rows.append(("Estimated distance", ", ".join(f"{d:.6g}" for d in self.distance.distance)))
-        left = "style='text-align:left'"
-        cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
-        return f"<table><caption {left}>nplps Reconstruction</caption>{cells}</table>"
+        """Return a compact HTML view for Jupyter: the key numbers, a small normal map and albedo."""
+        return report_module.compact_html(self)
 
     @property
     def vertices(self) -> np.ndarray:
@@ -663,6 +651,10 @@ class Reconstruction:
         opengl: bool = False,
         overwrite: bool = False,
         formats: Iterable[str] = (),
+        report: bool = False,
+        inputs: np.ndarray | None = None,
+        options: dict[str, Any] | None = None,
+        held_out: tuple[Sequence[HeldOut], Sequence[HeldOut] | None] | None = None,
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 
@@ -674,6 +666,14 @@ class Reconstruction:
         with ``depth="auto"`` also ``distance_curve.csv`` and ``distance_curve.svg``; with
         refined lights also ``rig_refined.json`` (the refined rig file); and last the manifest
         ``nplps-manifest.json`` listing the files written.
+
+        What the report (:mod:`nplps.report`) needs is always written, so that ``nplps report
+        DIR`` can make it later: ``mask.png`` (8-bit, 255 in the mask), ``lights_used.npy`` (the
+        lit images of each pixel, uint16), ``history.csv`` (the convergence history,
+        :func:`nplps.report.history_csv`) and ``rig.json`` (the result's rig: the refined one
+        with ``refine_lights``). With `report`, also ``report.html``; with `inputs`,
+        ``inputs.png`` (a contact sheet of the images, :func:`nplps.report.contact_sheet`); with
+        `held_out`, ``held_out.json`` (:func:`nplps.report.held_out_record`).
 
         `formats` adds files in other formats (none by default): ``"stl"`` (``mesh.stl``, binary
         STL, :meth:`save_stl`), ``"glb"`` (``mesh.glb``, glTF 2.0 binary with vertex normals and
@@ -696,6 +696,18 @@ class Reconstruction:
             Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"`` and
             ``"normals_tiff"`` (:data:`nplps.export.EXTRA_FORMATS`); `opengl` applies to the
             mesh and point formats.
+        report : bool, default False
+            Also write ``report.html``, the self-contained report of the result
+            (:func:`nplps.report.write_report`).
+        inputs : numpy.ndarray, optional
+            The (k, H, W[, 3]) images the result was made from; a contact sheet of them
+            (``inputs.png``) is written for the report.
+        options : dict, optional
+            The options of the run (JSON-ready values; arrays are recorded by their shape),
+            stored in ``summary.json`` under ``"options"`` and listed by the report.
+        held_out : (list of HeldOut, list of HeldOut or None), optional
+            A held-out evaluation (:func:`nplps.evaluation.held_out`) of the near-light method
+            and optionally of the parallel baseline, written as ``held_out.json``.
 
         Returns
         -------
@@ -735,6 +747,11 @@ class Reconstruction:
                 names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
             if self.refinement is not None:
                 names["rig_refined"] = "rig_refined.json"
+            names.update(mask="mask.png", lights_used="lights_used.npy", history="history.csv", rig="rig.json")
+            if inputs is not None:
+                names["inputs"] = "inputs.png"
+            if held_out is not None:
+                names["held_out"] = "held_out.json"
             names["summary"] = "summary.json"
             paths = {key: out.file(name) for key, name in names.items()}
             # One set of vertex arrays and one mesh for both files.
@@ -765,8 +782,43 @@ class Reconstruction:
                 plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
             if self.refinement is not None:
                 self.rig.save(paths["rig_refined"])
+            export.save_grey_png(paths["mask"], self.mask.astype(np.float64))
+            export.save_npy(paths["lights_used"], np.minimum(self.lights_used, 65535).astype(np.uint16))
+            write_text(paths["history"], report_module.history_csv(self.history))
+            self.rig.save(paths["rig"])
+            if inputs is not None:
+                export.write_png8(paths["inputs"], report_module.contact_sheet(inputs))
+            if held_out is not None:
+                record = report_module.held_out_record(held_out[0], held_out[1])
+                write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
+            if options is not None:
+                summary["options"] = _jsonable(options)
             write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
+            if report:
+                paths["report"] = out.file(report_module.REPORT_NAME)
+                report_module.write_report(out.path, path=paths["report"])
         return paths
+
+
+def _jsonable(value: Any) -> Any:
+    """Return `value` as JSON-ready data: arrays by their shape, paths as text, numbers as numbers."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        if value.size <= 16:
+            return _jsonable(value.tolist())
+        return f"array of shape {value.shape}"
+    if isinstance(value, np.generic):
+        return _jsonable(value.item())
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return repr(value)
 
 
 def _check_formats(formats: Iterable[str]) -> list[str]:

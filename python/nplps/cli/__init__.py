@@ -47,6 +47,7 @@ from .inputs import (
 )
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
+from .report import add_report_parser, cmd_report
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
 from .view import add_view_parser, cmd_view
 
@@ -67,6 +68,7 @@ __all__ = [
     "cmd_demo",
     "cmd_evaluate",
     "cmd_reconstruct",
+    "cmd_report",
     "cmd_synth",
     "cmd_synth_calibration",
     "cmd_view",
@@ -113,6 +115,7 @@ examples:
   nplps calibrate spheres calib/placement_0 calib/placement_1 --camera calib/camera.json \
       --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
   nplps view result                             # the mesh in 3-D: an offline page in the browser
+  nplps report result                           # (re)make result/report.html
   nplps reconstruct --help                      # all options of a command
 
 results: a command with --out DIR writes only into a new or empty directory unless --overwrite
@@ -145,6 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_synth_calibration_parser(sub, formatter).set_defaults(func=cmd_synth_calibration)
     add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
     add_view_parser(sub, formatter).set_defaults(func=cmd_view)
+    add_report_parser(sub, formatter).set_defaults(func=cmd_report)
     return parser
 
 

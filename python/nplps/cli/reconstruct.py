@@ -26,9 +26,12 @@ Reconstruct a surface from k images taken under the k lights of a rig.
 Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
 colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
 (16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
-normals.npy, residual.npy and summary.json, and with --refine-lights the refined rig
-(rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or normals.tiff;
-last nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
+normals.npy, residual.npy and summary.json (with all the options), and with --refine-lights
+the refined rig (rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or
+normals.tiff; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
+and inputs.png (thumbnails of the images) for the report; report.html, one self-contained page
+to look at the result (unless --no-report; `nplps report DIR` re-makes it); last
+nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
 --gray.
 
 --out must be a new or empty directory unless --overwrite is given: then files of the same
@@ -98,6 +101,12 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         "normals_tiff (normals.tiff, 32-bit float normals)",
     )
     p.add_argument(
+        "--no-report",
+        dest="report",
+        action="store_false",
+        help="do not write report.html (nplps report DIR makes it later from the files written)",
+    )
+    p.add_argument(
         "--baseline",
         action="store_true",
         help="also run parallel-light photometric stereo and write it to DIR/baseline",
@@ -119,7 +128,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=not args.quiet, **near, **common)
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
-        paths = result.save(out, opengl=args.opengl, formats=args.formats)
+        recorded = {**_recorded_args(args), "solver_options": {**near, **common}}
+        paths = result.save(
+            out,
+            opengl=args.opengl,
+            formats=args.formats,
+            report=args.report,
+            inputs=inputs.images,
+            options=recorded,
+        )
         _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 
         if args.baseline:
@@ -137,6 +154,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             print()
             _print_summary("parallel-light baseline", base, wall, base_paths)
     return 0
+
+
+def _recorded_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Return the command's arguments as given (without the parser's internals), for summary.json."""
+    return {"command": "reconstruct", **{k: v for k, v in vars(args).items() if k not in ("func",)}}
 
 
 def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path]) -> None:

@@ -1,0 +1,772 @@
+"""The report of a result: one self-contained ``report.html`` to look at and share.
+
+:func:`write_report` makes it from the files of a result directory (what
+:meth:`nplps.Reconstruction.save` and ``nplps reconstruct`` write), so that ``nplps report DIR``
+re-makes it at any time. Every picture is embedded as a ``data:`` URI or inline SVG: the file
+needs no network, no script and no other file. Its sections, in order:
+
+1. a header: the capture (the images or ``--capture`` folder, when the options were recorded),
+   the directory, the size "W x H", the number of lights, status, iterations and solver time;
+2. the inputs (a contact sheet, ``inputs.png``, written when the images were given to ``save``);
+3. the mask, the normal map, the albedo;
+4. the residual map (RMS image residual per pixel) and the depth map, colour-mapped, each with
+   a numeric colour bar; the unfitted pixels (masked pixels with fewer than 3 lit images, which
+   kept their starting shape);
+5. three oblique shaded renders of the mesh (:func:`nplps.views.render_mesh`): turned 35
+   degrees to the left and to the right about the vertical axis through the object's centre,
+   and seen from 35 degrees above;
+6. the convergence history (the largest depth change of each iteration, log scale), the
+   distance curve (``depth="auto"``) and the held-out table with its reading (when
+   ``held_out.json`` exists);
+7. the timings, all the options used (when recorded) and the rest of ``summary.json``.
+
+A section without data says so in one line.
+
+Files the report reads (all written by ``save``): ``summary.json`` (required), ``depth.npy``,
+``normals.png``, ``albedo.png``, ``residual.npy``, ``mask.png``, ``lights_used.npy``,
+``history.csv``, ``rig.json``; and, when present, ``inputs.png``, ``distance_curve.csv`` and
+``held_out.json`` (:func:`held_out_record`).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import _core, plots, views
+from ._atomic import write_text
+from ._outdir import MANIFEST, read_manifest
+from .errors import InputError
+
+if TYPE_CHECKING:
+    from .evaluation import HeldOut
+    from .reconstruction import Reconstruction
+
+__all__ = [
+    "REPORT_NAME",
+    "compact_html",
+    "contact_sheet",
+    "held_out_record",
+    "history_csv",
+    "png_data_uri",
+    "report_html",
+    "write_report",
+]
+
+#: The report's file name in a result directory.
+REPORT_NAME = "report.html"
+
+#: Longest side of the maps embedded in the report (pixels); larger maps are shrunk.
+MAP_SIDE = 640
+
+#: Width and height of each oblique render (pixels).
+RENDER_SIZE = 420
+
+#: The oblique views: (title, azimuth, elevation) in degrees (see :func:`nplps.views.render_mesh`).
+VIEWS = (
+    ("turned 35° to the left", -35.0, 0.0),
+    ("turned 35° to the right", 35.0, 0.0),
+    ("seen from 35° above", 0.0, 35.0),
+)
+
+_HISTORY_HEADER = "level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change"
+
+_STYLE = """
+body{font-family:sans-serif;margin:1.5em;color:#222;max-width:1400px}
+h1{font-size:1.4em}h2{font-size:1.15em;border-bottom:1px solid #ccc;margin-top:1.6em}
+table{border-collapse:collapse}td,th{padding:2px 10px;text-align:left;vertical-align:top;border-bottom:1px solid #eee}
+figure{display:inline-table;margin:0 1em 1em 0;vertical-align:top}
+figcaption{display:table-caption;caption-side:bottom;font-size:.9em;color:#555}
+img{image-rendering:pixelated;max-width:100%;border:1px solid #ccc}.none{color:#777;font-style:italic}
+code{font-size:.9em;word-break:break-all}
+"""
+
+
+# --------------------------------------------------------------------------------------------------
+# Small files that save() writes for the report
+# --------------------------------------------------------------------------------------------------
+
+
+def history_csv(history: Sequence[Any]) -> str:
+    """Return the convergence history as CSV text (``history.csv``).
+
+    Parameters
+    ----------
+    history : sequence of Iteration
+        ``Reconstruction.history``.
+
+    Returns
+    -------
+    str
+        A header ``level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change``
+        and one row per iteration in the order run, plain numbers (``numpy.loadtxt(path,
+        delimiter=",", skiprows=1, ndmin=2)`` reads it).
+    """
+    rows = [
+        f"{h.level},{h.iteration},{float(h.depth_change)!r},{float(h.rms_residual)!r},{float(h.elapsed)!r},"
+        f"{h.inner_iterations},{float(h.light_change)!r}"
+        for h in history
+    ]
+    return _HISTORY_HEADER + "\n" + "".join(r + "\n" for r in rows)
+
+
+def contact_sheet(images: np.ndarray, *, max_side: int | None = None, columns: int | None = None) -> np.ndarray:
+    """Return a contact sheet of an image stack: small copies in a grid, row by row in light order.
+
+    Each image is shrunk by block means; all share one brightness scale (the 99.5th percentile
+    of the stack maps to white) and a display gamma of 1/2.2, so their relative brightness shows.
+
+    Parameters
+    ----------
+    images : numpy.ndarray
+        (k, H, W) or (k, H, W, 3) images.
+    max_side : int, optional
+        Longest side of each copy (default 128 for up to 16 images, else 72).
+    columns : int, optional
+        Copies per row (default about the square root of k, at most 12).
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows, cols, 3) uint8 RGB, 2-pixel white gaps.
+
+    Raises
+    ------
+    InputError
+        `images` is not a stack of images.
+    """
+    stack = np.asarray(images)
+    if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3) or len(stack) == 0:
+        raise InputError(f"images must be a (k, H, W) or (k, H, W, 3) stack, got shape {stack.shape}")
+    k = len(stack)
+    side = max_side or (128 if k <= 16 else 72)
+    small = [views.downsample(np.asarray(im, dtype=np.float32), side) for im in stack]
+    sample = np.concatenate([np.asarray(s, dtype=np.float64).ravel()[::7] for s in small])
+    finite = sample[np.isfinite(sample)]
+    top = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    top = top if top > 0 else 1.0
+    cols = columns or min(12, int(np.ceil(np.sqrt(k))))
+    rows = int(np.ceil(k / cols))
+    th, tw = small[0].shape[:2]
+    gap = 2
+    sheet = np.full((rows * (th + gap) - gap, cols * (tw + gap) - gap, 3), 255, dtype=np.uint8)
+    for i, s in enumerate(small):
+        v = np.clip(np.nan_to_num(np.asarray(s, dtype=np.float64) / top), 0.0, 1.0) ** (1 / 2.2)
+        rgb = np.rint(v * 255).astype(np.uint8)
+        rgb = rgb if rgb.ndim == 3 else np.repeat(rgb[..., None], 3, axis=2)
+        r, c = divmod(i, cols)
+        sheet[r * (th + gap) : r * (th + gap) + th, c * (tw + gap) : c * (tw + gap) + tw] = rgb
+    return sheet
+
+
+def held_out_record(near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None) -> dict[str, Any]:
+    """Return the held-out evaluation as the JSON-ready dict of ``held_out.json``.
+
+    Parameters
+    ----------
+    near : sequence of HeldOut
+        :func:`nplps.evaluation.held_out` of the near-light method.
+    parallel : sequence of HeldOut, optional
+        The same lights left out with ``method="parallel"``, for the comparison.
+
+    Returns
+    -------
+    dict
+        ``{"lights": [...], "near": [[relative_error, shape_error, gain], ...], "parallel": [...]
+        or None, "reading": str}``; the reading is :func:`nplps.evaluation.reading` of the means.
+    """
+    from .evaluation import reading
+
+    def rows(items: Sequence[HeldOut]) -> list[list[float | None]]:
+        return [[_num(h.relative_error), _num(h.shape_error), _num(h.gain)] for h in items]
+
+    if parallel is not None:
+        means = [
+            tuple(float(np.mean([getattr(h, a) for h in m])) for a in ("relative_error", "shape_error"))
+            for m in (near, parallel)
+        ]
+        text = reading(means[0], means[1])  # type: ignore[arg-type]
+    else:
+        text = "reading: no parallel-light baseline was evaluated, so there is nothing to compare with."
+    return {
+        "lights": [int(h.light) for h in near],
+        "near": rows(near),
+        "parallel": None if parallel is None else rows(parallel),
+        "reading": text,
+    }
+
+
+def _num(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+# --------------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------------
+
+
+def png_data_uri(pixels: np.ndarray) -> str:
+    """Return an image as a ``data:image/png;base64,...`` URI.
+
+    Parameters
+    ----------
+    pixels : numpy.ndarray
+        (H, W) or (H, W, 3) uint8.
+
+    Returns
+    -------
+    str
+        The URI, for an ``<img src=...>``.
+    """
+    import imageio.v3 as iio
+
+    data = iio.imwrite("<bytes>", np.ascontiguousarray(pixels, dtype=np.uint8), extension=".png")
+    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+
+
+def _normal_rgb(normals: np.ndarray) -> np.ndarray:
+    """Encode OpenCV-frame normals as the normal map's colours (as ``normals.png``: black where NaN)."""
+    n = np.asarray(normals, dtype=np.float64)
+    valid = np.asarray(np.isfinite(n).all(axis=-1))
+    flipped = np.clip(np.where(valid[..., None], n, 0.0) * np.array([1.0, -1.0, -1.0]), -1.0, 1.0)
+    rgb = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
+    rgb[~valid] = 0
+    return rgb
+
+
+def _grey_rgb(values: np.ndarray) -> np.ndarray:
+    """Scale values by their 99.5th percentile into 8-bit (NaN black)."""
+    v = np.asarray(values, dtype=np.float64)
+    finite = v[np.isfinite(v)]
+    top = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    out = np.rint(np.clip(np.nan_to_num(v / (top if top > 0 else 1.0)), 0.0, 1.0) * 255).astype(np.uint8)
+    return out
+
+
+#: Small maps are shown enlarged by a whole factor (pixelated) until their longer side reaches this.
+MIN_SIDE = 320
+
+
+def _zoom(shape: tuple[int, ...], min_side: int = MIN_SIDE) -> int:
+    """Return the whole factor by which a picture of `shape` is shown (1 for large ones)."""
+    return max(1, min_side // max(shape[0], shape[1], 1))
+
+
+def _img(pixels: np.ndarray, alt: str, zoom: bool = True) -> str:
+    f = _zoom(pixels.shape) if zoom else 1
+    size = f' width="{pixels.shape[1] * f}" height="{pixels.shape[0] * f}"'
+    return f'<img src="{png_data_uri(pixels)}" alt="{html.escape(alt)}"{size}>'
+
+
+def _figure(pixels: np.ndarray, caption: str, zoom: bool = True) -> str:
+    return f"<figure>{_img(pixels, caption, zoom)}<figcaption>{html.escape(caption)}</figcaption></figure>"
+
+
+def _colorbar_svg(lo: float, hi: float, label: str, *, height: int = 300) -> str:
+    """Return a vertical colour bar with its numbers as inline SVG (``data-min``, ``data-max``: the range)."""
+    ticks = views.colorbar_ticks(lo, hi)
+    stops = "".join(
+        f'<stop offset="{t:.3f}" stop-color="rgb({r},{g},{b})"/>'
+        for t, (r, g, b) in zip(
+            np.linspace(0, 1, 17), np.rint(views.colormap(np.linspace(1, 0, 17)) * 255).astype(int), strict=True
+        )
+    )
+    top, bar_h, x = 24, height - 32, 8
+    gid = "cb-" + "".join(c if c.isalnum() else "-" for c in label)  # one bar per label in a report
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" class="colorbar" width="150" height="{height}" '
+        f'data-min="{lo!r}" data-max="{hi!r}" font-family="sans-serif" font-size="11">',
+        f'<defs><linearGradient id="{gid}" x1="0" y1="0" x2="0" y2="1">{stops}</linearGradient></defs>',
+        f'<rect x="{x}" y="{top}" width="18" height="{bar_h}" fill="url(#{gid})" stroke="black"/>',
+    ]
+    span = hi - lo if hi > lo else 1.0
+    for t in ticks:
+        y = top + (1 - (t - lo) / span) * bar_h
+        parts.append(f'<line x1="{x + 18}" y1="{y:.1f}" x2="{x + 23}" y2="{y:.1f}" stroke="black"/>')
+        parts.append(f'<text class="tick" x="{x + 26}" y="{y + 4:.1f}">{_fmt(t)}</text>')
+    parts.append(f'<text x="{x}" y="12">{html.escape(label)}</text></svg>')
+    return "".join(parts)
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.4g}"
+
+
+def _none(text: str) -> str:
+    return f'<p class="none">{html.escape(text)}</p>'
+
+
+# --------------------------------------------------------------------------------------------------
+# The report
+# --------------------------------------------------------------------------------------------------
+
+
+def write_report(directory: str | os.PathLike[str], *, path: str | os.PathLike[str] | None = None) -> Path:
+    """Make ``report.html`` from the files of a result directory.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        A result directory written by :meth:`nplps.Reconstruction.save` or ``nplps reconstruct``.
+    path : str or path-like, optional
+        Where to write the report (default ``directory/report.html``; then the directory's
+        manifest lists it).
+
+    Returns
+    -------
+    pathlib.Path
+        The report's path.
+
+    Raises
+    ------
+    InputError
+        `directory` holds no ``summary.json`` (it is not a result directory).
+    OSError
+        The report could not be written.
+
+    Examples
+    --------
+    >>> import nplps, tempfile
+    >>> scene = nplps.make_scene("sphere", n=24)
+    >>> result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
+    >>> out = tempfile.mkdtemp()
+    >>> _ = result.save(out, overwrite=True)
+    >>> write_report(out).name
+    'report.html'
+    """
+    root = Path(directory)
+    target = root / REPORT_NAME if path is None else Path(path)
+    write_text(target, report_html(root))
+    if path is None:
+        files = read_manifest(root)
+        if files is not None and REPORT_NAME not in files:
+            from ._core import __version__
+
+            files = sorted([*files, REPORT_NAME])
+            write_text(root / MANIFEST, json.dumps({"nplps": __version__, "files": files}, indent=2) + "\n")
+    return target
+
+
+def report_html(directory: str | os.PathLike[str]) -> str:
+    """Return the report of a result directory as HTML text (see the module notes).
+
+    Parameters
+    ----------
+    directory : str or path-like
+        The result directory.
+
+    Returns
+    -------
+    str
+        A self-contained HTML document.
+
+    Raises
+    ------
+    InputError
+        `directory` holds no readable ``summary.json``.
+    """
+    root = Path(directory)
+    try:
+        summary = json.loads((root / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise InputError(
+            f"{os.fspath(root)!r} is not an nplps result directory (no readable summary.json: {e})"
+        ) from None
+    d = _Data(root, summary)
+    sections = [
+        _section_header(d),
+        _section_inputs(d),
+        _section_maps(d),
+        _section_residual(d),
+        _section_unfitted(d),
+        _section_depth(d),
+        _section_renders(d),
+        _section_convergence(d),
+        _section_distance(d),
+        _section_held_out(d),
+        _section_options(d),
+    ]
+    title = html.escape(f"nplps report: {d.name}")
+    return (
+        f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{title}</title>"
+        f"<style>{_STYLE}</style></head><body>\n" + "\n".join(sections) + "\n</body></html>\n"
+    )
+
+
+class _Data:
+    """The files of a result directory, read on first use (None when missing or unreadable)."""
+
+    def __init__(self, root: Path, summary: dict[str, Any]) -> None:
+        self.root = root
+        self.summary = summary
+        self.options: dict[str, Any] = summary.get("options") or {}
+        self.name = root.resolve().name or os.fspath(root)
+        self._cache: dict[str, Any] = {}
+
+    def _load(self, name: str) -> Any:
+        if name in self._cache:
+            return self._cache[name]
+        p = self.root / name
+        value: Any = None
+        if p.is_file():
+            try:
+                if name.endswith(".npy"):
+                    value = np.load(p, allow_pickle=False)
+                elif name.endswith(".png"):
+                    from .io import read_image
+
+                    value = read_image(p)
+                elif name.endswith(".csv"):
+                    with warnings.catch_warnings():  # a header only: no rows, no warning
+                        warnings.simplefilter("ignore", UserWarning)
+                        value = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+                elif name.endswith(".json"):
+                    value = json.loads(p.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                value = None
+        self._cache[name] = value
+        return value
+
+    @property
+    def mask(self) -> np.ndarray | None:
+        m = self._load("mask.png")
+        if m is not None:
+            return np.asarray(m).reshape((*m.shape[:2], -1))[..., 0] > 0
+        n = self._load("normals.npy")
+        return None if n is None else np.isfinite(n).all(axis=-1)
+
+    @property
+    def box(self) -> tuple[int, int, int, int] | None:
+        """Return the mask's bounding box with a margin (r0, r1, c0, c1), or None for the whole image."""
+        if "box" not in self._cache:
+            mask, box = self.mask, None
+            if mask is not None and mask.any():
+                rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+                h, w = mask.shape
+                m = max(2, int(0.04 * max(rows[-1] - rows[0], cols[-1] - cols[0])))
+                box = (max(rows[0] - m, 0), min(rows[-1] + 1 + m, h), max(cols[0] - m, 0), min(cols[-1] + 1 + m, w))
+                if box == (0, h, 0, w):
+                    box = None
+            self._cache["box"] = box
+        return self._cache["box"]
+
+    def cropped(self, image: np.ndarray, vertex: bool = False) -> np.ndarray:
+        """Return a per-pixel (or, with `vertex`, per-vertex) map cut to :attr:`box`."""
+        if self.box is None:
+            return image
+        r0, r1, c0, c1 = self.box
+        e = 1 if vertex else 0
+        return image[r0 : r1 + e, c0 : c1 + e]
+
+    @property
+    def crop_note(self) -> str:
+        """Return the caption's note on the crop ("" when not cropped)."""
+        if self.box is None:
+            return ""
+        r0, r1, c0, c1 = self.box
+        return f"; cropped to the mask: rows {r0}..{r1 - 1}, columns {c0}..{c1 - 1}"
+
+    @property
+    def rig(self) -> Any:
+        if "rig" not in self._cache:
+            from .rig import Rig
+
+            try:
+                self._cache["rig"] = Rig.load(self.root / "rig.json") if (self.root / "rig.json").is_file() else None
+            except (OSError, ValueError):
+                self._cache["rig"] = None
+        return self._cache["rig"]
+
+
+def _section(title: str, body: str, anchor: str) -> str:
+    return f"<section id='{anchor}'><h2>{html.escape(title)}</h2>\n{body}\n</section>"
+
+
+def _table(rows: Sequence[tuple[str, str]]) -> str:
+    cells = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    return f"<table>{cells}</table>"
+
+
+def _section_header(d: _Data) -> str:
+    s = d.summary
+    h, w = s.get("shape", [0, 0])
+    o = d.options
+    capture = o.get("capture") or o.get("images") or "not recorded (options were not given to save)"
+    if isinstance(capture, list):
+        capture = " ".join(str(c) for c in capture[:3]) + (f" ... ({len(capture)} items)" if len(capture) > 3 else "")
+    rig = d.rig
+    lights = str(rig.n_lights) if rig is not None else "unknown (no rig.json)"
+    total = s.get("timings", {}).get("total")
+    rows = [
+        ("capture", str(capture)),
+        ("result directory", os.fspath(d.root.resolve())),
+        ("size", f"{w} x {h} pixels (W x H), {s.get('pixels', '?')} in the mask, {s.get('regions', '?')} region(s)"),
+        ("lights", lights),
+        ("method", str(s.get("method"))),
+        ("status", f"{s.get('status')} (converged: {s.get('converged')}): {s.get('status_reason', '')}"),
+        ("iterations", str(s.get("iterations"))),
+        ("solver time", "unknown" if total is None else f"{total:.3f} s"),
+    ]
+    if s.get("estimated_distance"):
+        rows.append(("estimated distance", ", ".join(_fmt(v) for v in s["estimated_distance"])))
+    return f"<header><h1>nplps report: {html.escape(d.name)}</h1>{_table(rows)}</header>"
+
+
+def _section_inputs(d: _Data) -> str:
+    sheet = d._load("inputs.png")
+    if sheet is None:
+        body = _none("No input thumbnails: the images were not given to save() (inputs.png is missing).")
+    else:
+        body = _img(np.asarray(sheet, dtype=np.uint8), "input images", zoom=False) + (
+            "<p>The input images after pre-processing, in light order (row by row), one brightness scale.</p>"
+        )
+    return _section("Inputs", body, "inputs")
+
+
+def _section_maps(d: _Data) -> str:
+    figures = []
+    mask = d.mask
+    if mask is not None:
+        small = views.downsample(mask.astype(np.uint8) * 255, MAP_SIDE // 2).astype(np.uint8)
+        figures.append(_figure(small, "mask (the whole image)"))
+    else:
+        figures.append(_none("Mask: not available (mask.png is missing)."))
+    normals = d._load("normals.png")
+    if normals is not None:
+        small = views.downsample(np.asarray(d.cropped(normals), dtype=np.float64), MAP_SIDE)
+        caption = f"normal map (mesh normals; facing the camera = light blue){d.crop_note}"
+        figures.append(_figure(np.rint(small).astype(np.uint8), caption))
+    else:
+        figures.append(_none("Normal map: not available (normals.png is missing)."))
+    albedo = d._load("albedo.png")
+    if albedo is not None:
+        small = views.downsample(np.asarray(d.cropped(albedo), dtype=np.float64), MAP_SIDE)
+        figures.append(_figure(_grey_rgb(small), f"albedo (scaled to its 99.5th percentile){d.crop_note}"))
+    else:
+        figures.append(_none("Albedo: not available (albedo.png is missing)."))
+    return _section("Mask, normal map, albedo", "".join(figures), "maps")
+
+
+def _mapped(values: np.ndarray, lo: float, hi: float, caption: str, label: str) -> str:
+    small = views.downsample(values, MAP_SIDE)
+    shown = small.shape[0] * _zoom(small.shape)
+    return (
+        f"<figure><div style='display:flex;align-items:flex-start'>{_img(views.colorize(small, lo, hi), caption)}"
+        f"{_colorbar_svg(lo, hi, label, height=max(shown, 200))}</div>"
+        f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+    )
+
+
+def _section_residual(d: _Data) -> str:
+    res = d._load("residual.npy")
+    if res is None:
+        return _section("Residual", _none("Residual map: not available (residual.npy is missing)."), "residual")
+    res = np.asarray(res, dtype=np.float64)
+    mask = d.mask
+    if mask is not None and mask.shape == res.shape:
+        res = np.where(mask, res, np.nan)
+    finite = res[np.isfinite(res)]
+    if finite.size == 0:
+        return _section("Residual", _none("Residual map: no finite residual in the mask."), "residual")
+    hi = float(np.percentile(finite, 99.5))
+    hi = hi if hi > 0 else float(finite.max()) or 1.0
+    caption = (
+        f"RMS image residual of each pixel's fit (image units, 0..1); colour scale 0 .. {_fmt(hi)} "
+        f"(the 99.5th percentile; largest {_fmt(float(finite.max()))}, median {_fmt(float(np.median(finite)))})"
+    )
+    caption += d.crop_note
+    return _section("Residual", _mapped(d.cropped(res), 0.0, hi, caption, "residual"), "residual")
+
+
+def _section_unfitted(d: _Data) -> str:
+    used, mask = d._load("lights_used.npy"), d.mask
+    if used is None or mask is None:
+        return _section(
+            "Unfitted pixels", _none("Unfitted pixels: not available (lights_used.npy is missing)."), "unfitted"
+        )
+    unfitted = mask & (np.asarray(used) < 3)
+    count = int(unfitted.sum())
+    if count == 0:
+        body = _none(f"None: every one of the {int(mask.sum())} masked pixels had at least 3 lit images.")
+    else:
+        rgb = np.zeros((*mask.shape, 3), dtype=np.uint8)
+        rgb[mask] = 200
+        rgb[unfitted] = (220, 30, 30)
+        body = _figure(
+            views.downsample(d.cropped(rgb), MAP_SIDE).astype(np.uint8),
+            f"{count} of {int(mask.sum())} masked pixels ({100 * count / max(int(mask.sum()), 1):.2f} %) had fewer "
+            f"than 3 lit images and kept their starting shape (red; grey: fitted){d.crop_note}",
+        )
+    return _section("Unfitted pixels", body, "unfitted")
+
+
+def _section_depth(d: _Data) -> str:
+    depth = d._load("depth.npy")
+    if depth is None:
+        return _section("Depth", _none("Depth map: not available (depth.npy is missing)."), "depth")
+    depth = np.asarray(depth, dtype=np.float64)
+    finite = depth[np.isfinite(depth)]
+    if finite.size == 0:
+        return _section("Depth", _none("Depth map: no finite depth."), "depth")
+    lo, hi = float(finite.min()), float(finite.max())
+    caption = f"vertex depth z (distance along the optical axis, in the rig's unit): {_fmt(lo)} .. {_fmt(hi)}"
+    caption += d.crop_note
+    return _section("Depth", _mapped(d.cropped(depth, vertex=True), lo, hi, caption, "depth z (rig unit)"), "depth")
+
+
+def _section_renders(d: _Data) -> str:
+    depth, rig, mask = d._load("depth.npy"), d.rig, d.mask
+    if depth is None or rig is None or mask is None:
+        missing = ", ".join(n for n, v in (("depth.npy", depth), ("rig.json", rig), ("mask.png", mask)) if v is None)
+        return _section("Oblique views of the mesh", _none(f"No renders: {missing} missing."), "renders")
+    vertices = _core.vertices(np.asarray(depth, dtype=np.float64), rig.camera)
+    figures = [
+        _figure(
+            views.render_mesh(vertices, mask, azimuth=az, elevation=el, size=RENDER_SIZE),
+            f"{title} (azimuth {az:+.0f}°, elevation {el:+.0f}°)",
+            zoom=False,
+        )
+        for title, az, el in VIEWS
+    ]
+    note = (
+        "<p>The mesh seen from beside the camera (orthographic views about the object's centre, "
+        "grey surface lit from the viewer; back faces tinted blue).</p>"
+    )
+    return _section("Oblique views of the mesh", note + "".join(figures), "renders")
+
+
+def _section_convergence(d: _Data) -> str:
+    hist = d._load("history.csv")
+    if hist is None or len(hist) == 0:
+        return _section(
+            "Convergence", _none("No convergence history (history.csv is missing or empty)."), "convergence"
+        )
+    try:
+        svg = plots.convergence_svg(hist[:, 2], hist[:, 0].astype(int))
+    except ValueError:
+        svg = _none("No positive depth change to plot.")
+    last = hist[-1]
+    text = (
+        f"<p>{len(hist)} iterations; last: depth change {_fmt(last[2])}, RMS residual {_fmt(last[3])} "
+        f"(image units), {_fmt(last[4])} s. {html.escape(str(d.summary.get('status_reason', '')))}</p>"
+    )
+    return _section("Convergence", svg + text, "convergence")
+
+
+def _section_distance(d: _Data) -> str:
+    curve = d._load("distance_curve.csv")
+    if curve is None:
+        return _section(
+            "Working distance",
+            _none("The working distance was given, not searched (no distance_curve.csv)."),
+            "distance",
+        )
+    regions = sorted({int(r) for r in curve[:, 0]})
+    curves = [curve[curve[:, 0] == r][:, 1:] for r in regions]
+    estimates = list(d.summary.get("estimated_distance") or [np.nan] * len(curves))
+    try:
+        svg = plots.residual_curve_svg(curves, estimates)
+    except ValueError:
+        svg = _none("No finite point on the distance curve.")
+    text = (
+        "<p>RMS photometric residual against the working distance; estimate(s): "
+        + ", ".join(_fmt(e) for e in estimates)
+        + ".</p>"
+    )
+    return _section("Working distance", svg + text, "distance")
+
+
+def _section_held_out(d: _Data) -> str:
+    rec = d._load("held_out.json")
+    if not isinstance(rec, dict) or "near" not in rec:
+        return _section(
+            "Held-out lights",
+            _none("No held-out evaluation (held_out.json is missing; see nplps.evaluation.held_out)."),
+            "held-out",
+        )
+    par = rec.get("parallel")
+    head = "<tr><th>light</th><th>near: relative error</th><th>near: shape error</th><th>gain</th>"
+    head += "<th>parallel: relative error</th><th>parallel: shape error</th></tr>" if par else "</tr>"
+    rows = []
+    for i, light in enumerate(rec.get("lights", [])):
+        cells = [str(light)] + [_cell(v) for v in rec["near"][i]]
+        if par:
+            cells += [_cell(v) for v in par[i][:2]]
+        rows.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
+    body = f"<table>{head}{''.join(rows)}</table><p><b>{html.escape(str(rec.get('reading', '')))}</b></p>"
+    return _section("Held-out lights", body, "held-out")
+
+
+def _cell(v: Any) -> str:
+    return "n/a" if v is None else _fmt(float(v))
+
+
+def _section_options(d: _Data) -> str:
+    s = d.summary
+    timings = s.get("timings") or {}
+    parts = ["<h3>Timings (seconds)</h3>"]
+    parts.append(_table([(k, _fmt(float(v))) for k, v in timings.items()]) if timings else _none("No timings."))
+    parts.append("<h3>Options</h3>")
+    if d.options:
+        parts.append(_table([(k, json.dumps(v)) for k, v in d.options.items()]))
+    else:
+        parts.append(_none("The options were not recorded (saved from the Python API without options=)."))
+    parts.append("<h3>summary.json</h3>")
+    rest = [(k, json.dumps(v)) for k, v in s.items() if k not in ("timings", "options")]
+    parts.append(_table(rest))
+    return _section("Timings and options", "".join(parts), "options")
+
+
+# --------------------------------------------------------------------------------------------------
+# Jupyter
+# --------------------------------------------------------------------------------------------------
+
+
+def compact_html(result: Reconstruction, *, side: int = 160) -> str:
+    """Return the compact HTML of a result for Jupyter: small normal map and albedo, key numbers.
+
+    Parameters
+    ----------
+    result : Reconstruction
+        The result.
+    side : int, default 160
+        Longest side of the two pictures (pixels).
+
+    Returns
+    -------
+    str
+        An HTML fragment (a few tens of kilobytes).
+    """
+    facts = result._facts()
+    rows = [
+        ("Size (W x H)", facts["size"]),
+        ("Method", facts["method"]),
+        ("Status", facts["status"] + (f": {result.status_reason}" if result.status_reason else "")),
+        ("Iterations", facts["iterations"]),
+        ("Depth range", facts["depth"]),
+        ("Mask", facts["mask"]),
+        ("Unfitted", f"{result.unfitted} pixels"),
+    ]
+    if result.history:
+        rows.append(("RMS residual", _fmt(result.history[-1].rms_residual)))
+    if "total" in result.timings:
+        rows.append(("Solver time", f"{result.timings['total']:.3f} s"))
+    if result.distance is not None:
+        rows.append(("Estimated distance", ", ".join(f"{v:.6g}" for v in result.distance.distance)))
+    left = "style='text-align:left'"
+    cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
+    normals = _normal_rgb(views.downsample(result.normals, side))
+    albedo = _grey_rgb(views.downsample(np.asarray(result.albedo, dtype=np.float64), side))
+    pics = "".join(
+        f"<figure style='display:inline-block;margin:0 8px 0 0'>{_img(p, c)}<figcaption>{c}</figcaption></figure>"
+        for p, c in ((normals, "normals"), (albedo, "albedo"))
+    )
+    return f"<div><table><caption {left}>nplps Reconstruction</caption>{cells}</table>{pics}</div>"
