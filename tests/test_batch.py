@@ -86,6 +86,12 @@ def test_batch_local_cluster_failures_resume_summary(captures, tmp_path, capsys)
     assert np.isnan(numbers[5, 0])
     page = (out / "batch_summary.html").read_text()
     assert page.startswith("<!DOCTYPE html>") and page.count("<tr style=") == 8 and "7 ok, 1 failed" in page
+    # Each result has its report (with the input thumbnails and the options), linked from the summary.
+    for i in (0, 7):
+        report = (out / f"c{i}" / "report.html").read_text()
+        assert "data:image/png;base64," in report and (out / f"c{i}" / "inputs.png").is_file()
+        assert json.loads((out / f"c{i}" / "summary.json").read_text())["options"]["capture"].endswith(f"c{i}")
+    assert 'href="c0/report.html"' in page and 'href="c5/' not in page
 
     # Rerun: the 7 are skipped (their files untouched), the failed one is tried again.
     stamp = (out / "c0" / "summary.json").stat().st_mtime_ns

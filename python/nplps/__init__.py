@@ -28,7 +28,7 @@ The public names, by layer:
   :mod:`~nplps.types` (the ``Literal`` aliases of the string options, such as ``Status``).
 """
 
-from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, types, viewer
+from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, report, types, viewer, views
 from ._core import __version__
 from .api import reconstruct, reconstruct_parallel, render
 from .calibrate import (
@@ -81,6 +81,8 @@ __all__ = [
     "reconstruct",
     "reconstruct_parallel",
     "render",
+    "report",
     "types",
     "viewer",
+    "views",
 ]

@@ -179,6 +179,7 @@ def run(
     scheduler: str | None = None,
     workers: int | None = None,
     overwrite: bool = False,
+    report: bool = True,
     progress: ProgressCallback | None = None,
     summary: bool = True,
     **options: Any,
@@ -216,6 +217,9 @@ def run(
     overwrite : bool, default False
         Reconstruct the captures with a complete result too (replacing it) instead of skipping
         them; also write into result directories that hold files nplps did not write.
+    report : bool, default True
+        Write each capture's ``report.html`` (:mod:`nplps.report`) with its input thumbnails and
+        the options used.
     progress : callable, optional
         ``progress(item, done, total, failed)``, called as each capture finishes (skipped ones
         first).
@@ -315,6 +319,7 @@ def run(
                         prepare_options,
                         solve_options,
                         overwrite,
+                        report,
                         key=f"nplps-batch-{item.name}-{os.urandom(4).hex()}",
                         pure=False,
                     ): item
@@ -393,6 +398,7 @@ def _process(
     prepare_options: dict[str, Any],
     solve_options: dict[str, Any],
     overwrite: bool,
+    report: bool = True,
 ) -> BatchItem:
     """Reconstruct one capture and save it (the Dask task); errors become a failed item."""
     from . import pipeline
@@ -431,7 +437,8 @@ def _process(
             )
         caught = [str(w.message) for w in records]
         with target:
-            result.save(target)
+            recorded = {"capture": os.fspath(folder), "depth": depth, **prepare_options, **options}
+            result.save(target, report=report, inputs=prepared.images, options=recorded)
         s = result.summary()
     except Exception as e:
         return dataclasses.replace(
@@ -509,7 +516,10 @@ def _html(items: Sequence[BatchItem]) -> str:
         for column in SUMMARY_COLUMNS:
             value = row[column] if column == "error" else html.escape(row[column])
             if column == "capture" and item.status != "failed":
-                value = f'<a href="{html.escape(item.name)}/">{value}</a>'
+                # The capture's report when it has one (a result made with report=False has not).
+                has_report = (Path(item.out) / "report.html").is_file()
+                link = f"{item.name}/report.html" if has_report else f"{item.name}/"
+                value = f'<a href="{html.escape(link)}">{value}</a>'
             cells.append(f"<td>{'' if value == 'nan' else value}</td>")
         rows.append(f'<tr style="background:{_COLOURS[item.status]}">{"".join(cells)}</tr>')
     title = f"nplps batch: {len(items)} captures"

@@ -71,6 +71,12 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--overwrite", action="store_true", help="reconstruct the captures with a complete result too (replace it)"
     )
+    p.add_argument(
+        "--no-report",
+        dest="report",
+        action="store_false",
+        help="do not write each capture's report.html (written by default)",
+    )
 
     g = p.add_argument_group("Dask")
     g.add_argument(
@@ -137,6 +143,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
             scheduler=args.scheduler,
             workers=args.workers,
             overwrite=args.overwrite,
+            report=args.report,
             progress=_print_progress,
             **options,
         )
