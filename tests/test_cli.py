@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 import json
 import re
 import shlex
@@ -554,6 +555,26 @@ def test_evaluate_rgb_and_bad_lights(tmp_path, capsys):
     rc, _, stderr = run(capsys, *common, "--lights", "a")
     assert_one_line_error(rc, stderr, "--lights")
 
+
+
+def test_evaluate_out_adds_the_table_to_the_report(tmp_path, capsys):
+    synth(capsys, tmp_path / "s", "--rgb")
+    s, r = tmp_path / "s", tmp_path / "r"
+    common = [s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", "200"]
+    rc, _, stderr = run(capsys, "evaluate", *common, "--lights", "3", "-q", "--out", r)
+    assert_one_line_error(rc, stderr, "--out", "not a result directory")
+    rc, _, stderr = run(capsys, "reconstruct", *common, "--iterations", "2", "--out", r, "-q")
+    assert rc == 0, stderr
+    assert "No held-out evaluation" in (r / "report.html").read_text()
+    rc, stdout, stderr = run(capsys, "evaluate", *common, "--lights", "3,7", "-q", "--out", r)
+    assert rc == 0, stderr
+    record = json.loads((r / "held_out.json").read_text())
+    assert record["lights"] == [3, 7] and len(record["near"]) == 2 and len(record["parallel"]) == 2
+    assert record["reading"] in stdout
+    page = (r / "report.html").read_text()
+    assert "No held-out evaluation" not in page and html.escape(record["reading"]) in page
+    manifest = json.loads((r / "nplps-manifest.json").read_text())["files"]
+    assert "held_out.json" in manifest and "report.html" in manifest
 
 # -- capture folders --------------------------------------------------------------------------------
 

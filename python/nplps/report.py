@@ -58,6 +58,7 @@ __all__ = [
     "history_csv",
     "png_data_uri",
     "report_html",
+    "write_held_out",
     "write_report",
 ]
 
@@ -346,13 +347,56 @@ def write_report(directory: str | os.PathLike[str], *, path: str | os.PathLike[s
     target = root / REPORT_NAME if path is None else Path(path)
     write_text(target, report_html(root))
     if path is None:
-        files = read_manifest(root)
-        if files is not None and REPORT_NAME not in files:
-            from ._core import __version__
-
-            files = sorted([*files, REPORT_NAME])
-            write_text(root / MANIFEST, json.dumps({"nplps": __version__, "files": files}, indent=2) + "\n")
+        _list_in_manifest(root, REPORT_NAME)
     return target
+
+
+def write_held_out(
+    directory: str | os.PathLike[str], near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None
+) -> Path:
+    """Add a held-out evaluation to a result directory and re-make its report.
+
+    Writes ``held_out.json`` (:func:`held_out_record`), lists it in the directory's manifest and
+    re-makes ``report.html`` (:func:`write_report`), whose held-out section then shows the table
+    and its reading. ``nplps evaluate --out DIR`` calls it.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        A result directory written by :meth:`nplps.Reconstruction.save` or ``nplps reconstruct``.
+    near : sequence of HeldOut
+        :func:`nplps.evaluation.held_out` of the near-light method.
+    parallel : sequence of HeldOut, optional
+        The same lights left out with ``method="parallel"``.
+
+    Returns
+    -------
+    pathlib.Path
+        The path of ``held_out.json``.
+
+    Raises
+    ------
+    InputError
+        `directory` holds no ``summary.json`` (it is not a result directory).
+    """
+    root = Path(directory)
+    if not (root / "summary.json").is_file():
+        raise InputError(f"'{root}' is not a result directory (it has no summary.json): run nplps reconstruct first")
+    target = root / "held_out.json"
+    write_text(target, json.dumps(held_out_record(near, parallel), indent=2) + "\n")
+    _list_in_manifest(root, target.name)
+    write_report(root)
+    return target
+
+
+def _list_in_manifest(root: Path, name: str) -> None:
+    """Add `name` to the manifest of the result directory `root`, if it has one."""
+    files = read_manifest(root)
+    if files is not None and name not in files:
+        from ._core import __version__
+
+        files = sorted([*files, name])
+        write_text(root / MANIFEST, json.dumps({"nplps": __version__, "files": files}, indent=2) + "\n")
 
 
 def report_html(directory: str | os.PathLike[str]) -> str:

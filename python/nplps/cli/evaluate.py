@@ -7,14 +7,19 @@ baseline, printed as a table.
 from __future__ import annotations
 
 import argparse
+import os
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..errors import InputError
 from .console import _note, _warnings_to_stderr
 from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
 from .parsers import parse_lights
+
+if TYPE_CHECKING:
+    from ..evaluation import HeldOut
 
 EVALUATE_DESCRIPTION = f"""\
 Check a rig and its reconstruction without ground truth: leave each light out in turn,
@@ -50,6 +55,12 @@ def add_evaluate_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     )
     add_input_options(p, lights_flag="--use-lights")
     p.add_argument("--lights", metavar="I,J,...", help="the lights to leave out, 0-based, e.g. 0,3,5 (default: all)")
+    p.add_argument(
+        "--out",
+        metavar="RESULT_DIR",
+        help="also write the table into this result directory (of nplps reconstruct on the same "
+        "capture) as held_out.json and re-make its report.html, whose held-out section shows it",
+    )
     return p
 
 
@@ -57,6 +68,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Run ``nplps evaluate``; return the exit status."""
     from ..evaluation import held_out
 
+    if args.out is not None and not os.path.isfile(os.path.join(args.out, "summary.json")):
+        raise InputError(f"--out '{args.out}' is not a result directory (no summary.json): run nplps reconstruct first")
     inputs = build_inputs(args)
     lights = parse_lights(args.lights, inputs.rig.n_lights)
     if inputs.options["depth"] == "auto":
@@ -71,6 +84,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
+    found: dict[str, list[HeldOut]] = {"near": [], "parallel": []}
     for done, light in enumerate(lights):
         start = time.perf_counter()
         row: list[float] = [light]
@@ -87,10 +101,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     **near_options(args),
                 )
             row += [h.relative_error, h.shape_error]
+            found[method].append(h)
         rows.append(row)
         if not args.quiet:
             _note(f"light {light} left out ({done + 1}/{len(lights)}): {time.perf_counter() - start:.2f} s")
     _print_evaluation(rows, inputs.rig.n_lights)
+    if args.out is not None:
+        from ..report import write_held_out
+
+        path = write_held_out(args.out, found["near"], found["parallel"])
+        print(f"\nwrote {path} and re-made {os.path.join(args.out, 'report.html')}")
     return 0
 
 
