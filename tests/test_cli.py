@@ -556,7 +556,6 @@ def test_evaluate_rgb_and_bad_lights(tmp_path, capsys):
     assert_one_line_error(rc, stderr, "--lights")
 
 
-
 def test_evaluate_out_adds_the_table_to_the_report(tmp_path, capsys):
     synth(capsys, tmp_path / "s", "--rgb")
     s, r = tmp_path / "s", tmp_path / "r"
@@ -575,6 +574,7 @@ def test_evaluate_out_adds_the_table_to_the_report(tmp_path, capsys):
     assert "No held-out evaluation" not in page and html.escape(record["reading"]) in page
     manifest = json.loads((r / "nplps-manifest.json").read_text())["files"]
     assert "held_out.json" in manifest and "report.html" in manifest
+
 
 # -- capture folders --------------------------------------------------------------------------------
 
