@@ -733,7 +733,10 @@ def _section_held_out(d: _Data) -> str:
     if not isinstance(rec, dict) or "near" not in rec:
         return _section(
             "Held-out lights",
-            _none("No held-out evaluation (held_out.json is missing; see nplps.evaluation.held_out)."),
+            _none(
+                "No held-out evaluation (held_out.json is missing; "
+                "run nplps evaluate ... --out RESULT_DIR, or save(held_out=...))."
+            ),
             "held-out",
         )
     par = rec.get("parallel")
