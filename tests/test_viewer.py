@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -133,6 +134,18 @@ def test_cli_writes_the_page_and_opens_it_only_with_a_display(
     assert opened == [out.resolve().as_uri()]
     assert "open it in a web browser" not in capsys.readouterr().out
     assert main(["view", str(result_dir[0]), "--max-triangles", "1", "--no-open"]) == 2
+
+
+def test_the_page_in_the_result_directory_is_in_its_manifest(
+    result_dir: tuple[Path, nplps.Reconstruction], tmp_path: Path
+) -> None:
+    directory = tmp_path / "result"
+    result_dir[1].save(directory)
+    assert main(["view", str(directory), "--no-open"]) == 0
+    manifest = json.loads((directory / "nplps-manifest.json").read_text())["files"]
+    assert "viewer.html" in manifest
+    result_dir[1].save(directory, overwrite=True)  # a new result removes the old page
+    assert not (directory / "viewer.html").exists()
 
 
 # --------------------------------------------------------------------------------------------------

@@ -161,6 +161,18 @@ def read_manifest(directory: PathLike) -> list[str] | None:
     return [f for f in files if isinstance(f, str) and _is_relative(f)]
 
 
+def add_to_manifest(directory: PathLike, name: str) -> None:
+    """List ``name`` (a file just written into the result directory) in its manifest, if it has one.
+
+    For files added to a finished result later (``report.html``, ``held_out.json``,
+    ``viewer.html``), so that a later run with overwrite removes them with the rest.
+    """
+    root = Path(directory)
+    files = read_manifest(root)
+    if files is not None and name not in files:
+        _write_manifest(root, sorted([*files, name]))
+
+
 def _check(root: Path, overwrite: bool, option: str) -> list[str]:
     """Refuse a non-empty ``root`` unless ``overwrite``; return the files of its manifest."""
     try:

@@ -43,7 +43,7 @@ import numpy as np
 
 from . import _core, plots, views
 from ._atomic import write_text
-from ._outdir import MANIFEST, read_manifest
+from ._outdir import add_to_manifest
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -347,7 +347,7 @@ def write_report(directory: str | os.PathLike[str], *, path: str | os.PathLike[s
     target = root / REPORT_NAME if path is None else Path(path)
     write_text(target, report_html(root))
     if path is None:
-        _list_in_manifest(root, REPORT_NAME)
+        add_to_manifest(root, REPORT_NAME)
     return target
 
 
@@ -384,19 +384,9 @@ def write_held_out(
         raise InputError(f"'{root}' is not a result directory (it has no summary.json): run nplps reconstruct first")
     target = root / "held_out.json"
     write_text(target, json.dumps(held_out_record(near, parallel), indent=2) + "\n")
-    _list_in_manifest(root, target.name)
+    add_to_manifest(root, target.name)
     write_report(root)
     return target
-
-
-def _list_in_manifest(root: Path, name: str) -> None:
-    """Add `name` to the manifest of the result directory `root`, if it has one."""
-    files = read_manifest(root)
-    if files is not None and name not in files:
-        from ._core import __version__
-
-        files = sorted([*files, name])
-        write_text(root / MANIFEST, json.dumps({"nplps": __version__, "files": files}, indent=2) + "\n")
 
 
 def report_html(directory: str | os.PathLike[str]) -> str:

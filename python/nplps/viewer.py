@@ -46,6 +46,7 @@ import numpy as np
 
 from . import export
 from ._atomic import write_text
+from ._outdir import add_to_manifest
 from .errors import InputError
 
 __all__ = [
@@ -264,9 +265,12 @@ def write_result_viewer(
     vertices, mask, normals, albedo = _read_result(Path(directory))
     target = Path(directory) / VIEWER_FILE if out is None else Path(out)
     name = title if title is not None else Path(os.path.abspath(directory)).name
-    return write_viewer(
+    info = write_viewer(
         target, vertices, mask, normals=normals, albedo=albedo, title=name, units=units, max_triangles=max_triangles
     )
+    if out is None:
+        add_to_manifest(directory, VIEWER_FILE)
+    return info
 
 
 def _read_result(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
