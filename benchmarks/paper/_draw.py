@@ -75,7 +75,8 @@ def colorbar_svg(vmax: float, label: str, *, width: int = 420, ticks: int = 5) -
     )
     x0, x1 = 10, width - 10
     parts = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="46" font-family="sans-serif" font-size="11">',
+        f'<div><svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="54" '
+        'font-family="sans-serif" font-size="11">',
         f'<defs><linearGradient id="cb{int(vmax * 1000)}">{stops}</linearGradient></defs>',
         f'<rect x="{x0}" y="4" width="{x1 - x0}" height="14" fill="url(#cb{int(vmax * 1000)})" stroke="black"/>',
     ]
@@ -83,7 +84,7 @@ def colorbar_svg(vmax: float, label: str, *, width: int = 420, ticks: int = 5) -
         x = x0 + (x1 - x0) * i / ticks
         parts.append(f'<line x1="{x:.1f}" y1="18" x2="{x:.1f}" y2="22" stroke="black"/>')
         parts.append(f'<text x="{x:.1f}" y="33" text-anchor="middle">{vmax * i / ticks:.3g}</text>')
-    parts.append(f'<text x="{width / 2}" y="45" text-anchor="middle">{html.escape(label)}</text></svg>')
+    parts.append(f'<text x="{width / 2}" y="48" text-anchor="middle">{html.escape(label)}</text></svg></div>')
     return "".join(parts)
 
 
@@ -96,17 +97,24 @@ def curves_svg(
     width: int = 460,
     height: int = 320,
     ymax: float | None = None,
+    logy: bool = False,
 ) -> str:
-    """A linear-axes line plot as inline SVG.
+    """A line plot (linear x, linear or log y) as inline SVG.
 
     ``series``: (label, colour key or #rgb, x, y, spread or None); the spread is drawn as error bars
-    (y - spread .. y + spread).
+    (y - spread .. y + spread). With ``logy``, values are floored at 1e-6 of the largest.
     """
+    if logy:
+        top = max(float(np.nanmax(s[3])) for s in series)
+        floor = 1e-6 * top
+        series = [(a, b, x, np.log10(np.maximum(y, floor)), None) for a, b, x, y, _ in series]
     xs = np.concatenate([s[2] for s in series])
     tops = [s[3] + (s[4] if s[4] is not None else 0.0) for s in series]
     x0, x1 = 0.0, float(xs.max()) * 1.05
-    y0 = 0.0
+    y0 = float(np.floor(min(float(np.nanmin(s[3])) for s in series))) if logy else 0.0
     y1 = ymax if ymax is not None else float(np.nanmax(np.concatenate(tops))) * 1.1 + 1e-9
+    if logy:
+        y1 = float(np.ceil(y1 / 1.1))
     left, right, top, bottom = 56, 14, 26 if title else 12, 44
     sx = lambda v: left + (v - x0) / (x1 - x0) * (width - left - right)  # noqa: E731
     sy = lambda v: height - bottom - (min(v, y1) - y0) / (y1 - y0) * (height - top - bottom)  # noqa: E731
@@ -117,13 +125,20 @@ def curves_svg(
     ]
     if title:
         parts.append(f'<text x="{width / 2}" y="16" text-anchor="middle" font-size="13">{html.escape(title)}</text>')
-    for i in range(6):
-        yv = y0 + (y1 - y0) * i / 5
+    yticks = np.arange(np.floor(y0), np.ceil(y1) + 0.5) if logy else y0 + (y1 - y0) * np.arange(6) / 5
+    if logy and len(yticks) > 8:
+        yticks = yticks[:: int(np.ceil(len(yticks) / 8))]
+    for yv in yticks:
         parts.append(
             f'<line x1="{left}" y1="{sy(yv):.1f}" x2="{width - right}" y2="{sy(yv):.1f}" stroke="#ddd"/>'
-            f'<text x="{left - 4}" y="{sy(yv) + 4:.1f}" text-anchor="end">{yv:.3g}</text>'
+            f'<text x="{left - 4}" y="{sy(yv) + 4:.1f}" text-anchor="end">{10**yv if logy else yv:.3g}</text>'
         )
-    for xv in np.unique(np.round(xs, 6)):
+    xticks = np.unique(np.round(xs, 6))
+    if len(xticks) > 12:
+        step = 10 ** np.floor(np.log10(x1 / 5))
+        step *= 2 if x1 / step > 10 else 1
+        xticks = np.arange(0.0, x1, step)
+    for xv in xticks:
         parts.append(f'<text x="{sx(xv):.1f}" y="{height - bottom + 14}" text-anchor="middle">{xv:.3g}</text>')
     parts += [
         f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="black"/>',
@@ -136,8 +151,12 @@ def curves_svg(
         c = _COLORS.get(color, color)
         pts = " ".join(f"{sx(a):.1f},{sy(b):.1f}" for a, b in zip(x, y, strict=True) if np.isfinite(b))
         parts.append(f'<polyline fill="none" stroke="{c}" stroke-width="1.8" points="{pts}"/>')
+        dash = ' stroke-dasharray="5 4"' if color == "#000000" else ""
+        if dash:
+            parts[-1] = parts[-1].replace("/>", f"{dash}/>")
         for i, (a, b) in enumerate(zip(x, y, strict=True)):
-            parts.append(f'<circle cx="{sx(a):.1f}" cy="{sy(b):.1f}" r="2.6" fill="{c}"/>')
+            if len(x) <= 30:
+                parts.append(f'<circle cx="{sx(a):.1f}" cy="{sy(b):.1f}" r="2.6" fill="{c}"/>')
             if spread is not None and spread[i] > 0:
                 parts.append(
                     f'<line x1="{sx(a):.1f}" y1="{sy(b - spread[i]):.1f}" x2="{sx(a):.1f}" '
@@ -145,7 +164,8 @@ def curves_svg(
                 )
         parts.append(
             f'<line x1="{left + 10}" y1="{top + 10 + 15 * k}" x2="{left + 30}" y2="{top + 10 + 15 * k}" '
-            f'stroke="{c}" stroke-width="2"/><text x="{left + 34}" y="{top + 14 + 15 * k}">{html.escape(label)}</text>'
+            f'stroke="{c}" stroke-width="2"{dash}/>'
+            f'<text x="{left + 34}" y="{top + 14 + 15 * k}">{html.escape(label)}</text>'
         )
     parts.append("</svg>")
     return "".join(parts)

@@ -151,9 +151,30 @@ def solve_near(case: Case, **options: Any) -> nplps.Reconstruction:
     return nplps.reconstruct(case.images, case.rig, depth=case.gauge, mask=case.scene.mask, **options)
 
 
-def solve_parallel(case: Case) -> nplps.Reconstruction:
-    """The conventional baseline: parallel PS (directions from the object's centre) + our global step."""
-    return nplps.reconstruct_parallel(case.images, case.rig, depth=case.gauge, mask=case.scene.mask)
+def solve_parallel(case: Case, *, calibrated: bool = True) -> nplps.Reconstruction:
+    """The conventional baseline: parallel PS (directions from the object's centre) + our global step.
+
+    ``calibrated``: each light's intensity is divided by its squared distance to the object's centre
+    (the centre of the starting plane), as a conventional PS set-up calibrates the lights' brightness
+    at the object; otherwise the rig's intensities are used as they are (nplps.reconstruct_parallel's
+    default), which ignores that the lights stand at different distances and biases the normals even
+    far away.
+    """
+    rig = case.rig
+    if calibrated:
+        d2 = np.sum((rig.positions - np.array([0.0, 0.0, case.gauge])) ** 2, axis=1)
+        rig = rig.with_intensities(rig.intensities / (d2[:, None] if rig.intensities.ndim == 2 else d2))
+    return nplps.reconstruct_parallel(case.images, rig, depth=case.gauge, mask=case.scene.mask)
+
+
+def inputs(case: Case, count: int = 8) -> list[tuple[str, np.ndarray]]:
+    """``count`` of the input images (evenly spread over the lights), grey, on one common scale."""
+    picks = np.linspace(0, len(case.images) - 1, count).round().astype(int)
+    top = float(np.max(case.images[picks]))
+    return [
+        (f"light {i + 1}", np.repeat(np.round(255 * case.images[i] / top).astype(np.uint8)[..., None], 3, axis=-1))
+        for i in picks
+    ]
 
 
 def vmax_of(*maps: np.ndarray, q: float = 99.0) -> float:
@@ -186,7 +207,7 @@ class Page:
     def svg(self, name: str, svg: str) -> str:
         (self.out / name).write_text(svg + "\n")
         self.files.append(name)
-        return svg
+        return f"<div>{svg}</div>"
 
     def strip(self, prefix: str, cells: list[tuple[str, np.ndarray]]) -> str:
         """Save each (label, RGB) cell as a PNG and a composite row PNG; return the HTML row."""
@@ -238,18 +259,33 @@ def fig3(page: Page, n: int, shown: tuple[int, ...]) -> dict[str, Any]:
         maps[k] = angle_map(r.normals, truth, mask)
         changes[k] = float(r.history[-1].depth_change)
     means = {k: stats(m)["mean"] for k, m in maps.items()}
+    # The same with the paper's own weighting of the local fit (Eq. 6).
+    eq6 = {0: means[0]}
+    for k in range(1, last + 1):
+        r = solve_near(case, iterations=k, tol=0.0, levels=1, weighting="paper")
+        eq6[k] = stats(angle_map(r.normals, truth, mask))["mean"]
     vmax = vmax_of(*(maps[k] for k in shown if k > 0))
     cells = [(f"iteration {k}<br>mean {means[k]:.3g}°", colorize(maps[k], vmax)) for k in shown]
     strip = page.strip("fig3_errors", cells)
     curve = page.svg(
         "fig3_curve.svg",
         curves_svg(
-            [("nplps mean normal error", "near", np.arange(last + 1.0), np.array([means[k] for k in means]), None)],
+            [
+                ("nplps (default weighting)", "near", np.arange(last + 1.0), np.array([means[k] for k in means]), None),
+                (
+                    "nplps, weighting='paper' (Eq. 6)",
+                    "#ff7f0e",
+                    np.arange(last + 1.0),
+                    np.array(list(eq6.values())),
+                    None,
+                ),
+            ],
             xlabel="iteration (0 = the starting plane)",
-            ylabel="mean normal error (degrees)",
+            ylabel="mean normal error (degrees, log)",
+            logy=True,
         ),
     )
-    rows = [[k, means[k], stats(maps[k])["median"], changes.get(k, float("nan"))] for k in range(last + 1)]
+    rows = [[k, means[k], stats(maps[k])["median"], changes.get(k, float("nan")), eq6[k]] for k in range(last + 1)]
     page.sections.append(
         section(
             "Fig. 3 — progressive results on a saddle",
@@ -261,13 +297,30 @@ def fig3(page: Page, n: int, shown: tuple[int, ...]) -> dict[str, Any]:
             "pyramid level and a fixed number of iterations. Iteration 0 is the starting plane (its error is "
             "the true slope; it saturates the common colour bar). Errors are those of the mesh's facet "
             "normals.",
-            strip
+            "<h3>8 of the 27 input images</h3>"
+            + page.strip("fig3_inputs", inputs(case))
+            + "<h3>Normal error after each iteration</h3>"
+            + strip
             + colorbar_svg(vmax, "normal error (degrees)")
             + curve
-            + table(["iteration", "mean error (°)", "median (°)", "largest depth change"], rows),
+            + table(
+                [
+                    "iteration",
+                    "mean error (°)",
+                    "median (°)",
+                    "largest depth change",
+                    "mean error, Eq. 6 weighting (°)",
+                ],
+                rows,
+            ),
         )
     )
-    return {"ratio": RATIO_FIG3, "n": n, "mean_error": {str(k): v for k, v in means.items()}}
+    return {
+        "ratio": RATIO_FIG3,
+        "n": n,
+        "mean_error": {str(k): v for k, v in means.items()},
+        "mean_error_eq6": {str(k): v for k, v in eq6.items()},
+    }
 
 
 def fig4(page: Page, n: int) -> dict[str, Any]:
@@ -277,15 +330,21 @@ def fig4(page: Page, n: int) -> dict[str, Any]:
     normals: dict[str, np.ndarray] = {}
     depths: dict[str, np.ndarray] = {}
     rows = []
+    profiles: dict[str, np.ndarray] = {}
+    input_cells: list[tuple[str, np.ndarray]] = []
     for label, err in (("exact lights", 0.0), ("5 % light error", LIGHT_ERROR)):
         case = make_case("cube", n, RATIO_FIG4, light_error=err)
         truth, mask = case.scene.normals, case.scene.mask
         normals["truth"] = truth
+        true_z = centres(case.scene.depth)
+        profiles["truth"] = true_z[n // 2] - true_z.mean()
+        input_cells = input_cells or inputs(case)
         for method, r in (("nplps", solve_near(case)), ("parallel", solve_parallel(case))):
             key = f"{method}, {label}"
             maps[key] = angle_map(r.normals, truth, mask)
             normals[key] = r.normals
-            depths[key] = depth_error(centres(r.depth), centres(case.scene.depth))
+            depths[key] = depth_error(centres(r.depth), true_z)
+            profiles[key] = centres(r.depth)[n // 2] - centres(r.depth).mean()
             s, d = stats(maps[key]), stats(depths[key])
             results[key] = {"normal": s, "depth_pct": d}
             rows.append(
@@ -294,8 +353,24 @@ def fig4(page: Page, n: int) -> dict[str, Any]:
     vmax = vmax_of(*maps.values())
     dmax = vmax_of(*depths.values())
     keys = list(maps)
+    xs = (np.arange(n) + 0.5) / n * SIZE
+    lo = min(float(v.min()) for v in profiles.values())
+    colours = {"truth": "#000000", "nplps, exact lights": "near", "parallel, exact lights": "parallel"}
+    colours |= {"nplps, 5 % light error": "#ff7f0e", "parallel, 5 % light error": "#17becf"}
+    profile = curves_svg(
+        [(k, colours[k], xs, v - lo, None) for k, v in profiles.items() if k != "truth"]
+        + [("truth", "#000000", xs, profiles["truth"] - lo, None)],
+        xlabel="x from the left edge (middle row)",
+        ylabel=f"depth − mean − ({lo:.3g})",
+        width=620,
+        height=340,
+    )
     body = (
-        "<h3>Normal maps</h3>"
+        "<h3>8 of the 27 input images (exact lights)</h3>"
+        + page.strip("fig4_inputs", input_cells)
+        + "<h3>Reconstructed surface: profile of the middle row</h3>"
+        + page.svg("fig4_profile.svg", profile)
+        + "<h3>Normal maps</h3>"
         + page.strip(
             "fig4_normals", [("ground truth", shaded(normals["truth"]))] + [(k, shaded(normals[k])) for k in keys]
         )
@@ -333,7 +408,8 @@ def fig4(page: Page, n: int) -> dict[str, Any]:
             "pixels) at ratio 0.72, with exact lights and with every light moved by 5 % of the envelope "
             "width (the lateral extent of the light layout) in a random direction (seed 0). nplps "
             "(default options, true mean depth) against the parallel baseline (nplps.reconstruct_parallel: "
-            "directions from the object's centre, no fall-off, integrated by the same global step). Depth "
+            "directions from the object's centre, no fall-off, intensities calibrated at the object's centre, "
+            "integrated by the same global step). Depth "
             "errors are at pixel centres after removing the mean difference.",
             body,
         )
@@ -377,11 +453,11 @@ def fig7(page: Page, n: int) -> dict[str, Any]:
     # The profile axes start at 0 in curves_svg; shift the depths so that they are positive.
     lo = min(float(np.min(z[mid] - np.mean(z))) for z in [*list(surfaces.values())[:4], true_z])
     profile = curves_svg(
-        [("truth", "#000000", xs + SIZE / 2, true_z[mid] - true_z.mean() - lo, None)]
-        + [
+        [
             (k.split(" (")[0], c, xs + SIZE / 2, z[mid] - np.mean(z) - lo, None)
             for (k, z), c in zip(list(surfaces.items())[:4], ("dgp", "poisson", "robust", "near"), strict=True)
-        ],
+        ]
+        + [("truth", "#000000", xs + SIZE / 2, true_z[mid] - true_z.mean() - lo, None)],
         xlabel="x from the left edge (middle row)",
         ylabel=f"depth − mean − ({lo:.3g})",
         width=620,
@@ -430,7 +506,7 @@ def fig8(page: Page, n: int, ratios: tuple[float, ...], seeds: int) -> dict[str,
     """Mean normal error vs size / light distance, with and without light error; near vs parallel."""
     data: dict[str, dict[str, list[list[float]]]] = {}
     for label, err in (("exact", 0.0), ("error", LIGHT_ERROR)):
-        for method in ("near", "parallel", "parallel_ps", "near_fit"):
+        for method in ("near", "parallel", "parallel_ps", "near_fit", "parallel_raw"):
             data.setdefault(label, {})[method] = [[] for _ in ratios]
         for i, ratio in enumerate(ratios):
             for seed in range(seeds):
@@ -441,6 +517,8 @@ def fig8(page: Page, n: int, ratios: tuple[float, ...], seeds: int) -> dict[str,
                 data[label]["near_fit"][i].append(stats(angle_map(near.fit_normals, truth, mask))["mean"])
                 data[label]["parallel"][i].append(stats(angle_map(par.normals, truth, mask))["mean"])
                 data[label]["parallel_ps"][i].append(stats(angle_map(par.fit_normals, truth, mask))["mean"])
+                raw = solve_parallel(case, calibrated=False)
+                data[label]["parallel_raw"][i].append(stats(angle_map(raw.normals, truth, mask))["mean"])
     x = np.array(ratios)
     summary: dict[str, Any] = {"ratios": list(ratios), "seeds": seeds, "n": n}
     panels = []
@@ -468,14 +546,14 @@ def fig8(page: Page, n: int, ratios: tuple[float, ...], seeds: int) -> dict[str,
     for i, r in enumerate(ratios):
         cells: list[Any] = [r]
         for label in ("exact", "error"):
-            for m in ("near", "parallel", "parallel_ps"):
+            for m in ("near", "parallel", "parallel_ps", "parallel_raw"):
                 v = data[label][m][i]
                 cells.append(f"{np.mean(v):.3g} ± {np.std(v):.2g}")
         rows.append(cells)
     header = ["ratio"] + [
         f"{m} ({lab})"
         for lab in ("exact", "5 % error")
-        for m in ("nplps", "parallel + integration", "parallel PS normals")
+        for m in ("nplps", "parallel + integration", "parallel PS normals", "parallel, uncalibrated")
     ]
     page.sections.append(
         section(
@@ -488,8 +566,12 @@ def fig8(page: Page, n: int, ratios: tuple[float, ...], seeds: int) -> dict[str,
             f"the Fig. 4 cube ({n} x {n}) at each ratio with the same light layout scaled (so only the "
             f"nearness changes), {seeds} seed(s) per point: a seed turns the layout about the optical axis "
             "(seed 0 not turned) and draws the 5 % light errors. Points are the mean over seeds, bars one "
-            "standard deviation. Plotted: the normals of each method's mesh (result.normals); the table adds "
-            "the parallel PS normals before integration.",
+            "standard deviation. Plotted: the normals of each method's mesh (result.normals); the parallel "
+            "baseline's light intensities are calibrated at the object's centre (divided by the squared "
+            "distance), as a conventional set-up would. The table adds the parallel PS normals before "
+            "integration and the parallel baseline with the rig's intensities as they are (the package's "
+            "reconstruct_parallel default: it ignores that the lights stand at different distances, so it "
+            "stays biased far away).",
             '<div class="strip">' + "".join(panels) + "</div>" + table(header, rows),
         )
     )
@@ -573,11 +655,11 @@ def main(argv: list[str] | None = None) -> int:
     n = 32 if quick else 128
     seeds = args.seeds or (1 if quick else 10)
     repeats = args.repeats or (1 if quick else 5)
-    ratios = (0.1, 0.4, 0.72) if quick else (0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.72, 0.85, 1.0)
+    ratios = (0.1, 0.4, 0.72) if quick else (0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.72, 0.85, 1.0)
     sizes = (32, 64) if quick else (128, 256, 512)
     shown = (0, 1, 2, 3, 5) if quick else (0, 1, 2, 3, 4, 6, 10)
     args.out.mkdir(parents=True, exist_ok=True)
-    page = Page(args.out, scale=4 if quick else 2)
+    page = Page(args.out, scale=4 if quick else 1)
     started = time.perf_counter()
     results: dict[str, Any] = {"quick": quick, "noise": args.noise, "nplps": nplps.__version__}
     for name, job in (
@@ -597,8 +679,12 @@ def main(argv: list[str] | None = None) -> int:
         f"<p>Generated by <code>python benchmarks/paper/run.py{' --quick' if quick else ''}</code> with nplps "
         f"{html.escape(nplps.__version__)} in {results['seconds']:.0f} s. Synthetic scenes rendered by the "
         "package's image model (Lambertian, point lights with inverse-square fall-off, orthographic camera, "
-        f"image noise {args.noise:g} of the largest intensity (the paper's OpenGL set-up has none), "
-        "27 lights in three layers (README.md in "
+        + (
+            f"Gaussian image noise {args.noise:g} of the largest intensity; the paper's OpenGL set-up has none), "
+            if args.noise > 0
+            else "no image noise, as the paper's OpenGL set-up), "
+        )
+        + "27 lights in three layers (README.md in "
         "benchmarks/paper gives the layout and every difference from the paper). Normal errors in degrees "
         "against the true facet normals; every number is also in results.json.</p>"
     )
