@@ -134,7 +134,7 @@ def curves_svg(
             f'<text x="{left - 4}" y="{sy(yv) + 4:.1f}" text-anchor="end">{10**yv if logy else yv:.3g}</text>'
         )
     xticks = np.unique(np.round(xs, 6))
-    if len(xticks) > 12:
+    if len(xticks) > 12 or np.min(np.diff(xticks), initial=x1) / (x1 - x0) * (width - left - right) < 28:
         step = 10 ** np.floor(np.log10(x1 / 5))
         step *= 2 if x1 / step > 10 else 1
         xticks = np.arange(0.0, x1, step)

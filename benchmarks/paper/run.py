@@ -491,7 +491,8 @@ def fig7(page: Page, n: int) -> dict[str, Any]:
             "normal maps from linear (parallel) PS on NPL images, integrated by DGP [20], Poisson [21], an "
             "M-estimator [22] and a regularization [23]: 'all have large distortion in shape'. No numbers.",
             f"the Fig. 4 cube ({n} x {n}, ratio 0.72, exact lights). The parallel PS normals "
-            "(reconstruct_parallel's fit_normals) are integrated by the package's global step (the role of "
+            "(reconstruct_parallel's fit_normals, intensities calibrated at the object's centre) are "
+            "integrated by the package's global step (the role of "
             "the paper's DGP), by a least-squares Poisson integrator (DCT, in numpy) and by an M-estimator "
             "(Cauchy weights, IRLS, in numpy), both written in benchmarks/paper/_integrate.py; the paper's "
             "regularization [23] is not reproduced. Last row: the true normals through the Poisson "
@@ -571,7 +572,8 @@ def fig8(page: Page, n: int, ratios: tuple[float, ...], seeds: int) -> dict[str,
             "distance), as a conventional set-up would. The table adds the parallel PS normals before "
             "integration and the parallel baseline with the rig's intensities as they are (the package's "
             "reconstruct_parallel default: it ignores that the lights stand at different distances, so it "
-            "stays biased far away).",
+            "stays biased far away). The albedo grows with D² so the images keep their brightness: the "
+            "paper's 'very strong light source'.",
             '<div class="strip">' + "".join(panels) + "</div>" + table(header, rows),
         )
     )
