@@ -8,7 +8,8 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from .console import _warnings_to_stderr, describe_rig, describe_size
+from ..progress import Bar, ReconstructionProgress, format_duration
+from .console import _hint_ctrl_c, _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
     CONVENTIONS,
     INPUT_NOTES,
@@ -112,14 +113,23 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     check_input_args(args)
     near = near_options(args)
     out = output_directory(args)  # refuses a non-empty --out before the images are read
+    _hint_ctrl_c(args)
     inputs = build_inputs(args)
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
+    display = None if args.quiet else ReconstructionProgress(args.iterations)
     with _warnings_to_stderr():
-        result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=not args.quiet, **near, **common)
+        try:
+            result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=display, **near, **common)
+        except BaseException:
+            if display is not None:
+                display.abort()
+            raise
+        if display is not None:
+            display.finish(result)
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
-        paths = result.save(out, opengl=args.opengl, formats=args.formats)
+        paths = _save(result, out, args, quiet=args.quiet)
         _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 
         if args.baseline:
@@ -133,10 +143,26 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                     inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
                 )
             wall = time.perf_counter() - start
-            base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl, formats=args.formats)
+            base_paths = _save(base, out.subdirectory("baseline"), args, quiet=args.quiet)
             print()
             _print_summary("parallel-light baseline", base, wall, base_paths)
     return 0
+
+
+def _save(result: Any, directory: Any, args: argparse.Namespace, *, quiet: bool) -> dict[str, Path]:
+    """Write a result, with an export line on stderr (a bar while writing on a terminal)."""
+    bar = None if quiet else Bar("export")
+    if bar is not None:
+        bar.update(0, f"writing into {directory} ...")
+    try:
+        paths = result.save(directory, opengl=args.opengl, formats=args.formats)
+    except BaseException:
+        if bar is not None:
+            bar.abort()
+        raise
+    if bar is not None:
+        bar.close(f"{len(paths)} files written in {format_duration(bar.elapsed)}")
+    return dict(paths)
 
 
 def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path]) -> None:
@@ -145,8 +171,13 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     print(f"  rig             {describe_rig(result.rig)}")
     print(f"  pixels          {s['pixels']} of {describe_size(s['shape'])}")
     print(f"  regions         {s['regions']}")
-    if result.method == "near":  # the baseline does not iterate
-        print(f"  iterations      {s['iterations']}")
+    if result.distance is not None:
+        # The search's own iterations are not the result's: say what each number counts.
+        candidates = max((len(curve) for curve in result.distance.curve), default=0)
+        print(f"  distance search {candidates} candidate distances evaluated (a few iterations each)")
+        print(f"  iterations      {s['iterations']}{_per_level(result)} (the final solve at the estimated distance)")
+    elif result.method == "near":  # the baseline does not iterate
+        print(f"  iterations      {s['iterations']}{_per_level(result)}")
     print(f"  status          {s['status']}: {s['status_reason']}")
     if s["rms_residual"] is not None:
         print(f"  rms residual    {s['rms_residual']:.3e} (image units, 0..1)")
@@ -161,6 +192,15 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
     files = sorted({str(p.parent) for p in paths.values()})
     print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
+
+
+def _per_level(result: Any) -> str:
+    """Return ``: 3 at level 1, 2 at full resolution`` for a coarse-to-fine run, else ``""``."""
+    levels = sorted({h.level for h in result.history}, reverse=True)
+    if len(levels) < 2:
+        return ""
+    counts = [(level, sum(h.level == level for h in result.history)) for level in levels]
+    return ": " + ", ".join(f"{n} at {f'level {level}' if level else 'full resolution'}" for level, n in counts)
 
 
 def _print_refinement(result: Any) -> None:
