@@ -45,7 +45,7 @@ _REDRAW = 0.1
 _KEEPALIVE = 10.0
 #: Plain displays print a line each time a stage passes another 1/_MILESTONES of its total.
 _MILESTONES = 5
-_BAR_WIDTH = 20
+_BAR_WIDTH = 10
 
 
 def format_duration(seconds: float) -> str:
@@ -235,17 +235,17 @@ class ReconstructionProgress:
             self._best = (it.best_distance, it.best_residual)
         self._candidates = max(self._candidates, evaluated)
         self._search_seconds = it.elapsed
-        detail = f"candidate {it.distance:.5g}"
-        if math.isfinite(it.candidate_residual):
-            detail += f" residual {it.candidate_residual:.3e}"
-        else:
-            detail += f" (iteration {it.iteration})"
-        if math.isfinite(self._best[0]):
-            detail += f", best {self._best[0]:.5g} ({self._best[1]:.3e})"
+        # The most useful first: a terminal line is cut at the terminal's width.
+        parts = []
         if evaluated > 0:
-            left = (it.candidates - evaluated) * it.elapsed / evaluated
-            detail += f", ~{format_duration(left)} left"
-        self.search.update(evaluated, detail, total=max(it.candidates, it.candidate))
+            parts.append(f"~{format_duration((it.candidates - evaluated) * it.elapsed / evaluated)} left")
+        if math.isfinite(self._best[0]):
+            parts.append(f"best {self._best[0]:.5g}")
+        if math.isfinite(it.candidate_residual):
+            parts.append(f"candidate {it.distance:.5g}: residual {it.candidate_residual:.2e}")
+        else:
+            parts.append(f"candidate {it.distance:.5g}: iteration {it.iteration}")
+        self.search.update(evaluated, ", ".join(parts), total=max(it.candidates, it.candidate))
 
     def _close_search(self) -> None:
         if self.search is not None and not self.search.closed:
@@ -269,10 +269,10 @@ class ReconstructionProgress:
         self._solve_iterations = it.iteration
         per = (it.elapsed - self._level_start) / it.iteration
         left = (self.iterations - it.iteration) * per
-        detail = f"depth change {it.depth_change:.2e}, rms residual {it.rms_residual:.3e}"
+        detail = f"depth change {it.depth_change:.2e}"
         if it.iteration < self.iterations:
             detail += f", at most ~{format_duration(left)} left"
-        self.solve.update(it.iteration, detail)
+        self.solve.update(it.iteration, f"{detail}, rms residual {it.rms_residual:.2e}")
 
     def _close_solve(self, status: str = "") -> None:
         if self.solve is None or self.solve.closed or self._last is None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..progress import Bar, ReconstructionProgress, format_duration
-from .console import _hint_ctrl_c, _note, _warnings_to_stderr
+from .console import _note, _warnings_to_stderr
 from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
 from .parsers import parse_lights
 
@@ -58,7 +58,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Run ``nplps evaluate``; return the exit status."""
     from ..evaluation import held_out
 
-    _hint_ctrl_c(args)
     inputs = build_inputs(args)
     lights = parse_lights(args.lights, inputs.rig.n_lights)
     if inputs.options["depth"] == "auto":

@@ -16,7 +16,7 @@ import numpy as np
 from .._checks import MAX_THREADS, _memory_limit
 from ..errors import InputError
 from ..progress import PipelineProgress
-from .console import _note, describe_rig
+from .console import _hint_ctrl_c, _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
 from .parsers import _parse_list, parse_depth, parse_exposures
 
@@ -269,6 +269,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
     vignetting = args.vignetting or source.vignetting
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
+    _hint_ctrl_c(args)  # the long work starts here
     display = None if args.quiet else PipelineProgress()
     try:
         prepared = _read_and_prepare(args, source, exposures, vignetting, display)

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ..progress import Bar, ReconstructionProgress, format_duration
-from .console import _hint_ctrl_c, _warnings_to_stderr, describe_rig, describe_size
+from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
     CONVENTIONS,
     INPUT_NOTES,
@@ -113,7 +113,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     check_input_args(args)
     near = near_options(args)
     out = output_directory(args)  # refuses a non-empty --out before the images are read
-    _hint_ctrl_c(args)
     inputs = build_inputs(args)
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
