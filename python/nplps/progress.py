@@ -34,10 +34,10 @@ if TYPE_CHECKING:
 __all__ = ["CTRL_C_HINT", "Bar", "PipelineProgress", "ReconstructionProgress", "format_duration"]
 
 #: The hint printed once at the start of long work. It is what happens: Ctrl-C raises
-#: KeyboardInterrupt within a fraction of a second (also inside an iteration), the call leaves
-#: no partial result, and every file is written under a temporary name and renamed when
-#: complete.
-CTRL_C_HINT = "Ctrl-C stops at any time; nothing half-written is left behind"
+#: KeyboardInterrupt within a fraction of a second (also inside an iteration; a direct sparse
+#: factorization finishes first), the call leaves no partial result, and every file is written
+#: under a temporary name and renamed when complete (the command exits with status 130).
+CTRL_C_HINT = "Ctrl-C stops cleanly: no partial result, no half-written file"
 
 #: Seconds between two redraws of a terminal bar.
 _REDRAW = 0.1
