@@ -86,7 +86,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
-    bar = None if args.quiet else Bar("held-out lights", total=len(lights))
+    bar = None if args.quiet else Bar("held-out", total=len(lights))
     try:
         for done, light in enumerate(lights):
             start = time.perf_counter()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import textwrap
 import time
 from pathlib import Path
@@ -152,7 +153,7 @@ def _save(result: Any, directory: Any, args: argparse.Namespace, *, quiet: bool)
     """Write a result, with an export line on stderr (a bar while writing on a terminal)."""
     bar = None if quiet else Bar("export")
     if bar is not None:
-        bar.update(0, f"writing into {directory} ...")
+        bar.update(0, f"writing into {os.fspath(directory)} ...")
     try:
         paths = result.save(directory, opengl=args.opengl, formats=args.formats)
     except BaseException:
