@@ -187,3 +187,23 @@ def test_format_duration():
     assert format_duration(185) == "3 min 5 s"
     assert format_duration(3720) == "1 h 2 min"
     assert format_duration(float("nan")) == "?"
+
+
+def test_the_core_gives_sizes_width_first():
+    """The Rust messages print sizes "W x H" like Python's (issue 11): a 24-row, 16-column stack."""
+    scene = nplps.make_scene("bumps", n=16, seed=3)
+    images = np.concatenate([scene.images, scene.images[:, :8]], axis=1)  # (k, 24, 16)
+    with pytest.raises(nplps.MemoryLimitError, match=r"reconstructing 16 x 24 pixels"):
+        nplps.reconstruct(images, scene.rig, depth=scene.mean_depth, max_memory="1 kB")
+    from nplps import _core
+
+    with pytest.raises(nplps.InputError, match=r"the mask is 15 x 24 pixels but the images are 16 x 24"):
+        _core.calibrate_intensities(
+            np.ascontiguousarray(images, dtype=np.float32),
+            np.ones((24, 15), dtype=bool),
+            scene.rig.camera,
+            scene.rig._core_lights(),
+            [0.0, 0.0, -1.0],
+            scene.mean_depth,
+            {},
+        )
