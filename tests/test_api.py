@@ -614,10 +614,13 @@ def test_progress_true_prints_to_stderr(scene, capsys):
     nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, iterations=3, tol=0.0, progress=True)
     captured = capsys.readouterr()
     assert captured.out == ""
-    lines = captured.err.strip().splitlines()
-    assert len(lines) == 3
-    for i, line in enumerate(lines, start=1):
-        assert re.match(rf"iteration +{i}/3: depth change \d\.\d{{3}}e[+-]\d+, rms residual ", line), line
+    # Not a terminal: a plain line per fifth of the iterations at most, then the stage's summary
+    # (the Ctrl-C hint is printed once per process, so it may have been printed already).
+    lines = [line for line in captured.err.strip().splitlines() if not line.startswith("(Ctrl-C")]
+    assert 1 <= len(lines) <= 4, lines
+    for line in lines[:-1]:
+        assert re.match(r"iterations: [12]/3 depth change \d\.\d{2}e[+-]\d+, at most ~.* left, rms residual ", line)
+    assert re.match(r"iterations: 3 iterations, last depth change \d\.\d{2}e[+-]\d+, stalled, ", lines[-1]), lines
 
 
 # ------------------------------------------------------------------------------------------------

@@ -352,9 +352,27 @@ def test_pixel_limit_refuses_large_images_before_decoding(tmp_path: Path) -> Non
     tif = tmp_path / "big.tif"
     tifffile.imwrite(tif, np.zeros((20, 30, 3), dtype=np.uint16), photometric="rgb")
     assert io.read_image(tif, max_pixels=600).shape == (20, 30, 3)
-    with pytest.raises(InputError, match=r"big\.tif.*600 pixels is more than the limit of 599"):
+    with pytest.raises(InputError, match=r"big\.tif.*30 x 20 pixels is more than the limit of 599"):
         io.read_image(tif, max_pixels=599)
+    pages = tmp_path / "pages.tif"
+    tifffile.imwrite(pages, np.zeros((5, 20, 30), dtype=np.uint8))
+    with pytest.raises(InputError, match=r"pages\.tif.*30 x 20 pixels in 5 pages is more than the limit of 1000"):
+        io.read_image(pages, max_pixels=1000)
     assert io.MAX_PIXELS == 2**28
+
+
+def test_pixel_limit_of_the_imageio_formats_counts_every_frame(tmp_path: Path) -> None:
+    """JPEG, BMP, GIF, ...: the header's size (every frame of it) is checked before decoding."""
+    jpeg = tmp_path / "big.jpg"
+    iio.imwrite(jpeg, np.zeros((20, 30, 3), dtype=np.uint8))
+    assert io.read_image(jpeg, max_pixels=600).shape == (20, 30, 3)
+    with pytest.raises(InputError, match=r"big\.jpg.*30 x 20 pixels is more than the limit of 599"):
+        io.read_image(jpeg, max_pixels=599)
+    # A GIF's declared shape is (frames, H, W, 3): the old guard took (frames, H) for (H, W).
+    gif = tmp_path / "frames.gif"
+    iio.imwrite(gif, np.zeros((1, 20, 30, 3), dtype=np.uint8))
+    with pytest.raises(InputError, match=r"frames\.gif.*30 x 20 pixels.* is more than the limit of 599"):
+        io.read_image(gif, max_pixels=599)
 
 
 def test_bomb_header_is_refused_without_allocating(tmp_path: Path) -> None:

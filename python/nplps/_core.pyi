@@ -13,7 +13,9 @@ checkers only: import them under ``typing.TYPE_CHECKING``.
 are a ``RigError``, keys starting with ``_`` are comments, values may be lists, tuples or numpy
 arrays); ``lights`` a mapping of per-light lists (:class:`LightsDict`, built by
 ``Rig._core_lights``). The progress callback gets (iteration, depth change, rms residual, elapsed
-seconds, pyramid level, conjugate-gradient iterations, light change).
+seconds, pyramid level, conjugate-gradient iterations, light change, search progress): the last is
+None except for the iterations of the distance search (``SearchProgress``: candidate, candidates,
+distance, residual, best distance, best residual).
 """
 
 import os

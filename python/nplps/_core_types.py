@@ -324,6 +324,12 @@ class SphereImagesDict(TypedDict):
     labels: npt.NDArray[np.uint32]
 
 
+#: Where the distance search is, passed with each of its iterations: (candidate (1-based),
+#: candidates, the candidate's distance, its residual (NaN until its last iteration), the best
+#: distance so far, its residual (NaN before the first)).
+SearchProgress = tuple[int, int, float, float, float, float]
+
 #: The progress callback: (iteration, depth change, rms residual, elapsed seconds, pyramid level,
-#: conjugate-gradient iterations, light change); its return value is ignored.
-ProgressCallback = Callable[[int, float, float, float, int, int, float], Any]
+#: conjugate-gradient iterations, light change, search progress or None outside the distance
+#: search); its return value is ignored.
+ProgressCallback = Callable[[int, float, float, float, int, int, float, SearchProgress | None], Any]

@@ -34,6 +34,7 @@ from ._checks import (
 )
 from .errors import InputError
 from .io import load_mask, load_stack
+from .progress import CTRL_C_HINT, PipelineProgress, ReconstructionProgress
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
 from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting
@@ -51,12 +52,25 @@ MAX_DEPTH_RATIO = 1e6
 
 
 def _prepare(
-    images: Images, rig: Rig, mask: Mask | None, depth: Depth | None, color: bool | None = None
+    images: Images,
+    rig: Rig,
+    mask: Mask | None,
+    depth: Depth | None,
+    color: bool | None = None,
+    loading: PipelineProgress | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
     _check_rig(rig)
     if not (color is None or isinstance(color, (bool, np.bool_))):
         raise InputError(f"color must be None, True or False, got {_short(color)}")
-    stack, levels = load_stack(images, color=True)
+    if loading is None:
+        stack, levels = load_stack(images, color=True)
+    else:
+        try:
+            stack, levels = load_stack(images, color=True, progress=lambda i, k, name: loading("load", i, k, name))
+        except BaseException:
+            loading.abort()
+            raise
+        loading.finish()
     if color and stack.ndim != 4:
         raise InputError("color=True needs RGB images (k, H, W, 3)")
     k, h, w = stack.shape[:3]
@@ -250,24 +264,32 @@ def _warn_status(result: Reconstruction) -> None:
         warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
 
 
-def _progress_callback(progress: Progress, iterations: int) -> Callable[..., None] | None:
+_hinted = False
+
+
+def _hint_once() -> None:
+    """Print the Ctrl-C hint on stderr, the first time a call shows progress."""
+    global _hinted
+    if not _hinted:
+        _hinted = True
+        print(f"({CTRL_C_HINT})", file=sys.stderr, flush=True)
+
+
+def _progress_callback(
+    progress: Progress, iterations: int
+) -> tuple[Callable[..., None] | None, ReconstructionProgress | None]:
+    """Return the core's progress callback for `progress`, and the display of ``progress=True``.
+
+    ``True`` shows bars on stderr (:class:`nplps.progress.ReconstructionProgress`, with the
+    Ctrl-C hint once per process); a callable gets an :class:`Iteration` per iteration, with the
+    distance search's candidate fields set during the search.
+    """
+    display: ReconstructionProgress | None = None
     if progress is None or progress is False:
-        return None
+        return None, None
     if progress is True:
-        width = len(str(iterations))
-
-        def report(it: Iteration) -> None:
-            where = f"level {it.level} " if it.level else ""
-            inner = f", {it.inner_iterations} CG iterations" if it.inner_iterations else ""
-            inner += f", light change {it.light_change:.2e}" if it.light_change else ""
-            print(
-                f"{where}iteration {it.iteration:>{width}}/{iterations}: depth change {it.depth_change:.3e}{inner}, "
-                f"rms residual {it.rms_residual:.3e}, {it.elapsed:.2f} s",
-                file=sys.stderr,
-                flush=True,
-            )
-
-        user: Callable[[Iteration], Any] = report
+        display = ReconstructionProgress(iterations)
+        user: Callable[[Iteration], Any] = display
     elif callable(progress):
         user = progress
     else:
@@ -281,10 +303,11 @@ def _progress_callback(progress: Progress, iterations: int) -> Callable[..., Non
         level: int = 0,
         inner: int = 0,
         light: float = 0.0,
+        search: tuple[int, int, float, float, float, float] | None = None,
     ) -> None:
-        user(Iteration(iteration, depth_change, rms, elapsed, level, inner, light))
+        user(Iteration(iteration, depth_change, rms, elapsed, level, inner, light, *(search or ())))
 
-    return call
+    return call, display
 
 
 def reconstruct(
@@ -345,8 +368,11 @@ def reconstruct(
         Stop when the largest depth change of an iteration is at most `tol` times the lateral
         size of the image footprint.
     progress : None, bool or callable, optional
-        None or False (silent), True (a line per iteration on stderr) or a callable that gets an
-        :class:`~nplps.Iteration` after every iteration (raise in it to stop).
+        None or False (silent); True: progress bars on stderr (:mod:`nplps.progress`: image
+        files read, the distance search's candidates with the best so far and the time left,
+        the iterations with their depth change; one line redrawn in place on a terminal, a few
+        plain lines otherwise); or a callable that gets an :class:`~nplps.Iteration` after every
+        iteration, also those of the distance search (``it.candidate > 0``; raise in it to stop).
     dark : float, optional
         Observations at or below it count as shadowed and are left out of the fits. Default: one
         level above black for integer images, 0 for floating-point images.
@@ -455,7 +481,10 @@ def reconstruct(
     """
     pyramid_levels = _levels(levels)
     refine_mode = _refine_choice(refine_lights)
-    stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color)
+    if progress is True:
+        _hint_once()
+    loading = PipelineProgress() if progress is True and not isinstance(images, np.ndarray) else None
+    stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color, loading)
     dark_, saturation_ = _thresholds(dark, saturation, bit_levels)
     stack, missing = _channels(stack, color, saturation_)
     iterations = _whole(iterations, "iterations", 1)
@@ -492,18 +521,26 @@ def reconstruct(
         options["prior"] = prior
     depth_arg = distance if depth_map is None else depth_map
     assert depth_arg is not None  # _prepare gives exactly one of them
-    out = _core.reconstruct(
-        _apply_valid(stack, valid, missing, _owned(stack, images)),
-        rig.camera,
-        rig._core_lights(),
-        mask_arr,
-        depth_arg,
-        options,
-        _progress_callback(progress, int(iterations)),
-    )
+    callback, display = _progress_callback(progress, int(iterations))
+    try:
+        out = _core.reconstruct(
+            _apply_valid(stack, valid, missing, _owned(stack, images)),
+            rig.camera,
+            rig._core_lights(),
+            mask_arr,
+            depth_arg,
+            options,
+            callback,
+        )
+    except BaseException:
+        if display is not None:
+            display.abort()
+        raise
+    result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
+    if display is not None:
+        display.finish(result)
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
-    result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
     _warn_status(result)
     return result
 

@@ -18,8 +18,8 @@ loading k files costs the stack plus a few decoded images, never a float64 copy 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
-from typing import TypeAlias
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeAlias
 
 import imageio.v3 as iio
 import numpy as np
@@ -46,6 +46,9 @@ PathLike: TypeAlias = str | os.PathLike
 
 ImageSource: TypeAlias = PathLike | np.ndarray
 """One image: a file name or an array of shape ``(H, W)`` or ``(H, W, 3)``."""
+
+LoadProgress: TypeAlias = Callable[[int, int, str], Any]
+"""``progress(done, total, name)``: called by :func:`load_stack` after each image is loaded."""
 
 MAX_PIXELS = 1 << 28
 """Default limit on the size of one image file, in pixels (H x W): 268 million, e.g.
@@ -112,12 +115,7 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
             # read it (a ResourceWarning), so a bad image file would leak a handle.
             with open(path, "rb") as file:
                 shape = iio.improps(file).shape
-            pixels = int(np.prod(shape[:2])) if len(shape) >= 2 else 0
-            if pixels > max_pixels:
-                raise InputError(
-                    f"cannot read image '{os.fspath(path)}': {shape[1]} x {shape[0]} pixels is more than "
-                    f"the limit of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
-                )
+            _check_pixels(path, shape, max_pixels)
             with open(path, "rb") as file:
                 image = np.asarray(iio.imread(file))
     except InputError:
@@ -130,17 +128,22 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     return _normalize_channels(image, path)
 
 
-def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iterator[np.ndarray]:
+def iter_images(
+    paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS, *, batch_files: int = 0
+) -> Iterator[np.ndarray]:
     """Read image files like :func:`read_image`, yielding their pixels in the order of ``paths``.
 
     PNG files are decoded several at a time, in parallel and without the GIL, in batches of a
     bounded size: iterating (and converting each image before taking the next) keeps only a
-    batch of decoded images in memory. Errors are raised like :func:`read_image`'s, when the
-    iteration reaches the batch of the offending file.
+    batch of decoded images in memory. ``batch_files`` (if positive) also ends a batch at that
+    many files (at least one per core), so that a progress display sees the files arrive.
+    Errors are raised like :func:`read_image`'s, when the iteration reaches the batch of the
+    offending file.
     """
     batch: list[PathLike] = []
     batch_bytes = 0
     cores = _cores()
+    most = max(batch_files, cores) if batch_files > 0 else len(paths) + 1
     for path in paths:
         try:
             header = _read_header(path)
@@ -154,7 +157,7 @@ def iter_images(paths: Sequence[PathLike], max_pixels: int = MAX_PIXELS) -> Iter
             continue
         batch.append(path)
         batch_bytes += _png_bytes(header)
-        if batch_bytes >= _BATCH_BYTES and len(batch) >= cores:
+        if (batch_bytes >= _BATCH_BYTES and len(batch) >= cores) or len(batch) >= most:
             yield from _read_pngs(batch, max_pixels)
             batch, batch_bytes = [], 0
     yield from _read_pngs(batch, max_pixels)
@@ -204,14 +207,37 @@ def _read_header(path: PathLike) -> bytes:
         raise InputError(f"cannot read image '{os.fspath(path)}': {exc.strerror or exc}") from exc
 
 
+def _check_pixels(path: PathLike, shape: tuple[int, ...], max_pixels: int) -> None:
+    """Refuse an image whose header declares more than ``max_pixels`` pixels.
+
+    ``shape`` is the decoder's declared shape: ``(H, W)``, ``(H, W, C)`` or, for files with
+    several frames, ``(n, H, W[, C])``; every frame counts (a trailing axis of at most 4 is
+    taken as channels).
+    """
+    dims = tuple(int(n) for n in shape)
+    if len(dims) >= 3 and dims[-1] <= 4:
+        dims = dims[:-1]
+    pixels = int(np.prod(dims, dtype=np.float64)) if len(dims) >= 2 else 0
+    if pixels > max_pixels:
+        frames = f" in {pixels // max(1, dims[-1] * dims[-2])} frames" if len(dims) > 2 else ""
+        raise InputError(
+            f"cannot read image '{os.fspath(path)}': {dims[-1]} x {dims[-2]} pixels{frames} is more than "
+            f"the limit of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
+        )
+
+
 def _read_tiff(path: PathLike, max_pixels: int) -> np.ndarray:
     """Read the first series of a TIFF file, channel-last; refuse more than ``max_pixels``."""
     with tifffile.TiffFile(path) as tif:
         series = tif.series[0]
-        pixels = int(np.prod([n for n, axis in zip(series.shape, series.axes, strict=True) if axis != "S"]))
+        sizes = dict(zip(series.axes, series.shape, strict=True))
+        pixels = int(np.prod([n for axis, n in sizes.items() if axis != "S"], dtype=np.float64))
         if pixels > max_pixels:
+            size = f"{sizes['X']} x {sizes['Y']} pixels" if "X" in sizes and "Y" in sizes else f"{pixels} pixels"
+            if "X" in sizes and "Y" in sizes and pixels > sizes["X"] * sizes["Y"]:
+                size += f" in {pixels // (sizes['X'] * sizes['Y'])} pages"
             raise InputError(
-                f"cannot read image '{os.fspath(path)}': {pixels} pixels is more than the limit "
+                f"cannot read image '{os.fspath(path)}': {size} is more than the limit "
                 f"of {max_pixels} pixels (max_pixels; raise it if the image is genuine)"
             )
         image = series.asarray()
@@ -315,7 +341,11 @@ def load_images(images: np.ndarray | Sequence[ImageSource]) -> np.ndarray:
 
 
 def load_stack(
-    images: np.ndarray | Sequence[ImageSource], color: bool = False, *, max_pixels: int = MAX_PIXELS
+    images: np.ndarray | Sequence[ImageSource],
+    color: bool = False,
+    *,
+    max_pixels: int = MAX_PIXELS,
+    progress: LoadProgress | None = None,
 ) -> tuple[np.ndarray, int | None]:
     """Load the input images as float32 ``(k, H, W)``, or ``(k, H, W, 3)`` in colour.
 
@@ -327,7 +357,9 @@ def load_stack(
     Files are read with :func:`iter_images` (PNG decoded in parallel) and each image is converted
     straight into the preallocated stack; a float32 ``(k, H, W[, 3])`` array that needs no
     conversion is returned as it is (no copy). ``max_pixels`` limits the size of each file (see
-    :data:`MAX_PIXELS`). Raises :class:`InputError` like :func:`load_images`.
+    :data:`MAX_PIXELS`). ``progress(done, total, name)`` is called after each image of a
+    sequence is in the stack (``name``: the file's name, or ``image i`` for an array). Raises
+    :class:`InputError` like :func:`load_images`.
     """
     if isinstance(images, np.ndarray):
         return _array_stack(images, color)
@@ -347,7 +379,9 @@ def load_stack(
     keep_color = color
     levels: list[int | None] = []
     nonfinite = np.zeros(k, dtype=np.int64)
-    for i, pixels in enumerate(_sources(items, max_pixels)):
+    # With a progress display, batches of about a twentieth of the files (at least 4 per core).
+    batch_files = 0 if progress is None else max(4 * _cores(), -(-k // 20))
+    for i, pixels in enumerate(_sources(items, max_pixels, batch_files)):
         label = labels[i]
         if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)):
             raise InputError(f"{label}: expected shape (H, W) or (H, W, 3), got {pixels.shape}")
@@ -371,6 +405,9 @@ def load_stack(
         levels.append(int(np.iinfo(pixels.dtype).max) if integer else None)
         if not integer and pixels.dtype != np.bool_:
             nonfinite[i] = _count_nonfinite(stack[i])
+        if progress is not None:
+            item = items[i]
+            progress(i + 1, k, os.path.basename(os.fspath(item)) if isinstance(item, (str, os.PathLike)) else label)
     assert stack is not None
     _raise_nonfinite(nonfinite, labels)
     known = [v for v in levels if v is not None]
@@ -404,17 +441,17 @@ def _array_stack(images: np.ndarray, color: bool) -> tuple[np.ndarray, int | Non
     return stack, (int(np.iinfo(images.dtype).max) if np.issubdtype(images.dtype, np.integer) else None)
 
 
-def _sources(items: list[ImageSource], max_pixels: int) -> Iterator[np.ndarray]:
+def _sources(items: list[ImageSource], max_pixels: int, batch_files: int = 0) -> Iterator[np.ndarray]:
     """Return the pixels of each item in order: arrays as given, runs of files through :func:`iter_images`."""
     run: list[PathLike] = []
     for item in items:
         if isinstance(item, (str, os.PathLike)):
             run.append(item)
             continue
-        yield from iter_images(run, max_pixels)
+        yield from iter_images(run, max_pixels, batch_files=batch_files)
         run = []
         yield np.asarray(item)
-    yield from iter_images(run, max_pixels)
+    yield from iter_images(run, max_pixels, batch_files=batch_files)
 
 
 def _gray_stack(stack: np.ndarray, count: int) -> np.ndarray:

@@ -66,14 +66,14 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Literal, TypeAlias
 
 import numpy as np
 
 from . import preprocess
 from .errors import InputError
-from .io import ImageSource, PathLike, load_mask, load_stack, read_image, to_float
+from .io import ImageSource, LoadProgress, PathLike, load_mask, load_stack, read_image, to_float
 from .preprocess import to_gray
 
 if TYPE_CHECKING:
@@ -83,6 +83,7 @@ __all__ = [
     "STEPS",
     "Binned",
     "Prepared",
+    "StageProgress",
     "bin_depth",
     "bin_inputs",
     "correct",
@@ -101,6 +102,11 @@ STEPS = ("srgb", "ambient", "exposures", "flat", "vignetting", "bin")
 
 Images: TypeAlias = np.ndarray | Sequence[ImageSource]
 SideImage: TypeAlias = PathLike | np.ndarray
+#: ``progress(stage, done, total, name)`` of :func:`prepare`: ``("load", i, k, file name)`` after
+#: each image is loaded, ``("preprocess", i, 0, step)`` before each step of :data:`STEPS` runs
+#: (``i`` counts the steps; their number is not known ahead). :class:`nplps.progress.PipelineProgress`
+#: shows them.
+StageProgress: TypeAlias = Callable[[str, int, int, str], Any]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -251,7 +257,9 @@ def _srgb_lut(dtype: np.dtype) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 
 
-def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.ndarray, int | None]:
+def load_images(
+    images: Images, *, max_pixels: int | None = None, progress: LoadProgress | None = None
+) -> tuple[np.ndarray, int | None]:
     """Load images as one float32 stack, colour kept (:func:`nplps.io.load_stack`).
 
     Parameters
@@ -260,6 +268,9 @@ def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.nd
         A ``(k, H, W[, 3])`` array, or image files and/or ``(H, W[, 3])`` arrays.
     max_pixels : int, optional
         Limit on the size of one file (default :data:`nplps.io.MAX_PIXELS`).
+    progress : callable, optional
+        ``progress(done, total, name)`` after each image of a sequence is loaded (``name``: the
+        file's name).
 
     Returns
     -------
@@ -275,8 +286,8 @@ def load_images(images: Images, *, max_pixels: int | None = None) -> tuple[np.nd
         As :func:`nplps.io.load_stack`.
     """
     if max_pixels is None:
-        return load_stack(images, color=True)
-    return load_stack(images, color=True, max_pixels=max_pixels)
+        return load_stack(images, color=True, progress=progress)
+    return load_stack(images, color=True, max_pixels=max_pixels, progress=progress)
 
 
 def _side_image(source: SideImage, images: np.ndarray, srgb: bool, name: str) -> np.ndarray:
@@ -318,6 +329,7 @@ def correct(
     flat: SideImage | None = None,
     K: np.ndarray | None = None,
     overwrite: bool = False,
+    progress: Callable[[str], Any] | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """Apply the radiometric corrections, in this order: sRGB, grey, ambient, exposures, vignetting.
 
@@ -342,6 +354,8 @@ def correct(
         The (3, 3) pinhole matrix for ``vignetting="cos4"``.
     overwrite : bool
         The caller hands ``images`` over: the steps work in it. Otherwise the first step copies.
+    progress : callable, optional
+        Called with each step's name (from :data:`STEPS`) before the step runs.
 
     Returns
     -------
@@ -360,7 +374,13 @@ def correct(
         raise InputError("vignetting and flat: give one of them (a flat field is a measured vignetting map)")
     owned = overwrite
     steps: list[str] = []
+
+    def starting(step: str) -> None:
+        if progress is not None:
+            progress(step)
+
     if srgb:
+        starting("srgb")
         images = decode_srgb(images, out=images if owned else None)
         owned = True
         steps.append("srgb")
@@ -368,17 +388,20 @@ def correct(
     owned = owned or gray is not images
     images = gray
     if ambient is not None:
+        starting("ambient")
         amb = _side_image(ambient, images, srgb, "ambient")
         amb = amb[..., None] if images.ndim > amb.ndim + 1 else amb
         images = preprocess.subtract_ambient(images, amb, out=images if owned else None)
         owned = True
         steps.append("ambient")
     if exposures is not None:
+        starting("exposures")
         images = preprocess.scale_exposure(images, exposures, out=images if owned else None)
         owned = True
         steps.append("exposures")
     vmap = None
     if flat is not None:
+        starting("flat")
         vmap = preprocess.flat_field_map(_side_image(flat, images, srgb, "flat"))
         steps.append("flat")
     elif isinstance(vignetting, str):
@@ -389,9 +412,11 @@ def correct(
                 "vignetting 'cos4' needs a pinhole camera (K), but the camera is orthographic: "
                 "use a flat field or no vignetting correction"
             )
+        starting("vignetting")
         vmap = preprocess.vignetting_cos4(images.shape[1:3], K)
         steps.append("vignetting")
     elif vignetting is not None:
+        starting("vignetting")
         vmap = np.asarray(vignetting)
         steps.append("vignetting")
     if vmap is not None:
@@ -583,6 +608,7 @@ def prepare(
     flat: SideImage | None = None,
     bin_factor: int = 1,
     overwrite: bool = False,
+    progress: StageProgress | None = None,
 ) -> Prepared:
     """Turn images and options into the core's input, in the order of the module's docstring.
 
@@ -618,6 +644,8 @@ def prepare(
         Average ``n x n`` blocks (:func:`bin_inputs`).
     overwrite : bool
         A float32 stack in ``images`` is handed over and corrected in place (no copy).
+    progress : callable, optional
+        ``progress(stage, done, total, name)``, see :data:`StageProgress`.
 
     Returns
     -------
@@ -630,8 +658,16 @@ def prepare(
         Unreadable or inconsistent images, a mask or side image of the wrong size, invalid
         options, or a binning that leaves nothing.
     """
-    stack, found = load_images(images)
+    loaded = None if progress is None else (lambda i, k, name: progress("load", i, k, name))
+    stack, found = load_images(images, progress=loaded)
     levels = found if levels is None else levels
+    counted: list[str] = []
+
+    def starting(step: str) -> None:
+        if progress is not None:
+            counted.append(step)
+            progress("preprocess", len(counted), 0, step)
+
     owned = overwrite or not (isinstance(images, np.ndarray) and np.may_share_memory(stack, images))
     shape = stack.shape[1:3]
     mask_arr = None if mask is None else load_mask(mask, shape)
@@ -652,7 +688,10 @@ def prepare(
         flat=flat,
         K=K,
         overwrite=owned,
+        progress=starting,
     )
+    if bin_factor != 1:
+        starting("bin")
     binned = bin_inputs(stack, bin_factor, mask=mask_arr, valid=flags, rig=rig, K=K, depth=depth)
     if binned.images is not stack:
         steps.append("bin")

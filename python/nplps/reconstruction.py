@@ -11,6 +11,7 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
 from collections.abc import Iterable, Sequence
@@ -90,6 +91,18 @@ class Iteration(NamedTuple):
     light_change : float
         Largest relative change of a light parameter in the iteration's light step
         (``refine_lights``; 0 otherwise): ``|dPhi| / Phi`` or ``|dp| / D``.
+    candidate : int
+        0 for the reconstruction's own iterations (the ones in ``result.history``); with
+        ``depth="auto"``, the 1-based number of the candidate distance this iteration of the
+        distance search evaluates (these iterations reach only the ``progress`` callback).
+    candidates : int
+        How many candidates the distance search evaluates (0 outside it).
+    distance : float
+        The candidate's distance (the rig's unit; the mean over regions), NaN outside the search.
+    candidate_residual : float
+        The candidate's RMS photometric residual, on its last iteration only (NaN otherwise).
+    best_distance, best_residual : float
+        The evaluated candidate of lowest residual so far and its residual (NaN before the first).
     """
 
     iteration: int
@@ -99,6 +112,12 @@ class Iteration(NamedTuple):
     level: int = 0
     inner_iterations: int = 0
     light_change: float = 0.0
+    candidate: int = 0
+    candidates: int = 0
+    distance: float = math.nan
+    candidate_residual: float = math.nan
+    best_distance: float = math.nan
+    best_residual: float = math.nan
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """What the command line prints besides its results.
 
-The program name, notes on stderr, library warnings as ``nplps: warning:`` lines, a one-line
-description of a rig, and image sizes. Sizes are printed width first, as the README writes them:
+The program name, notes on stderr, the Ctrl-C hint, library warnings as ``nplps: warning:``
+lines, a one-line description of a rig, and image sizes (the progress bars are
+:mod:`nplps.progress`'s). Sizes are printed width first, as the README writes them:
 "W x H pixels" (a 480-row, 300-column image is "300 x 480 pixels").
 """
 
@@ -13,11 +14,19 @@ from typing import Any
 
 import numpy as np
 
+from ..progress import CTRL_C_HINT
+
 PROG = "nplps"
 
 
 def _note(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
+
+
+def _hint_ctrl_c(args: Any) -> None:
+    """Print the Ctrl-C hint on stderr at the start of a long command (not with --quiet)."""
+    if not getattr(args, "quiet", False):
+        _note(f"({CTRL_C_HINT})")
 
 
 class _warnings_to_stderr:

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import InputError
+from ..progress import Bar, ReconstructionProgress, format_duration
 from .console import _note, _warnings_to_stderr
 from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
 from .parsers import parse_lights
@@ -75,36 +76,60 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if inputs.options["depth"] == "auto":
         from ..api import reconstruct
 
+        display = None if args.quiet else ReconstructionProgress(args.iterations)
         with _warnings_to_stderr():
-            estimate = reconstruct(
-                inputs.images, inputs.rig, mask=inputs.mask, valid=inputs.valid, **inputs.options, **near_options(args)
-            )
+            try:
+                estimate = reconstruct(
+                    inputs.images,
+                    inputs.rig,
+                    mask=inputs.mask,
+                    valid=inputs.valid,
+                    progress=display,
+                    **inputs.options,
+                    **near_options(args),
+                )
+            except BaseException:
+                if display is not None:
+                    display.abort()
+                raise
+            if display is not None:
+                display.finish(estimate)
         assert estimate.distance is not None  # depth="auto" always estimates it
         distances = ", ".join(f"{d:.6g}" for d in estimate.distance.distance)
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
     found: dict[str, list[HeldOut]] = {"near": [], "parallel": []}
-    for done, light in enumerate(lights):
-        start = time.perf_counter()
-        row: list[float] = [light]
-        for method in ("near", "parallel"):
-            with _warnings_to_stderr():
-                (h,) = held_out(
-                    inputs.images,
-                    inputs.rig,
-                    mask=inputs.mask,
-                    method=method,
-                    lights=[light],
-                    valid=inputs.valid,
-                    **inputs.options,
-                    **near_options(args),
-                )
-            row += [h.relative_error, h.shape_error]
-            found[method].append(h)
-        rows.append(row)
-        if not args.quiet:
-            _note(f"light {light} left out ({done + 1}/{len(lights)}): {time.perf_counter() - start:.2f} s")
+    bar = None if args.quiet else Bar("held-out", total=len(lights))
+    try:
+        for done, light in enumerate(lights):
+            start = time.perf_counter()
+            row: list[float] = [light]
+            for method in ("near", "parallel"):
+                with _warnings_to_stderr():
+                    (h,) = held_out(
+                        inputs.images,
+                        inputs.rig,
+                        mask=inputs.mask,
+                        method=method,
+                        lights=[light],
+                        valid=inputs.valid,
+                        **inputs.options,
+                        **near_options(args),
+                    )
+                row += [h.relative_error, h.shape_error]
+                found[method].append(h)
+            rows.append(row)
+            if bar is not None:
+                left = (len(lights) - done - 1) * bar.elapsed / (done + 1)
+                took = format_duration(time.perf_counter() - start)
+                bar.update(done + 1, f"light {light} left out in {took}, ~{format_duration(left)} left")
+    except BaseException:
+        if bar is not None:
+            bar.abort()
+        raise
+    if bar is not None:
+        bar.close(f"{len(lights)} lights left out one at a time in {format_duration(bar.elapsed)}")
     _print_evaluation(rows, inputs.rig.n_lights)
     if args.out is not None:
         from ..report import write_held_out

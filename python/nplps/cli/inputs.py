@@ -15,7 +15,8 @@ import numpy as np
 
 from .._checks import MAX_THREADS, _memory_limit
 from ..errors import InputError
-from .console import _note, describe_rig
+from ..progress import PipelineProgress
+from .console import _hint_ctrl_c, _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
 from .parsers import _parse_list, parse_depth, parse_exposures
 
@@ -262,17 +263,44 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
 
     This runs :func:`nplps.pipeline.prepare`.
     """
-    from .. import pipeline
-
     check_input_args(args)
     depth = parse_depth(args.depth)
     source = _capture_source(args) if args.capture else _file_source(args)
     exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
     vignetting = args.vignetting or source.vignetting
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
-    images, levels, preprocessed, ambient = _read_images(args, source)
+    _hint_ctrl_c(args)  # the long work starts here
+    display = None if args.quiet else PipelineProgress()
     try:
-        prepared = pipeline.prepare(
+        prepared = _read_and_prepare(args, source, exposures, vignetting, display)
+    except BaseException:
+        if display is not None:
+            display.abort()
+        raise
+    if display is not None:
+        display.finish()
+    if not args.quiet:
+        steps = [_step_text(step, args, source, prepared.images) for step in prepared.steps]
+        _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
+    options = {
+        "depth": depth,
+        "dark": prepared.dark,
+        "robust": args.robust,
+        "threads": args.threads,
+        "max_memory": getattr(args, "max_memory", None),
+    }
+    return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options)
+
+
+def _read_and_prepare(
+    args: argparse.Namespace, source: _Source, exposures: Any, vignetting: str, display: PipelineProgress | None
+) -> Any:
+    """Read the images and run :func:`nplps.pipeline.prepare`, reporting to ``display``."""
+    from .. import pipeline
+
+    images, levels, preprocessed, ambient = _read_images(args, source, display)
+    try:
+        return pipeline.prepare(
             images,
             rig=source.rig,
             K=source.K,
@@ -289,20 +317,10 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
             flat=args.flat,
             bin_factor=args.bin,
             overwrite=True,
+            progress=display,
         )
     except InputError as exc:
         raise _in_option_words(exc) from None
-    if not args.quiet:
-        steps = [_step_text(step, args, source, prepared.images) for step in prepared.steps]
-        _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
-    options = {
-        "depth": depth,
-        "dark": prepared.dark,
-        "robust": args.robust,
-        "threads": args.threads,
-        "max_memory": getattr(args, "max_memory", None),
-    }
-    return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options)
 
 
 def _check_rig_options(args: argparse.Namespace, source: _Source, depth: Any, vignetting: str) -> None:
@@ -326,7 +344,9 @@ def _check_rig_options(args: argparse.Namespace, source: _Source, depth: Any, vi
         )
 
 
-def _read_images(args: argparse.Namespace, source: _Source) -> tuple[Any, int | None, tuple[str, ...], Any]:
+def _read_images(
+    args: argparse.Namespace, source: _Source, display: PipelineProgress | None = None
+) -> tuple[Any, int | None, tuple[str, ...], Any]:
     """Return the images (file names or a stack), their levels, the steps already run and the ambient image.
 
     A capture with a loader is read by it; with --grid-shape the images and the ambient image are
@@ -343,7 +363,8 @@ def _read_images(args: argparse.Namespace, source: _Source) -> tuple[Any, int | 
         return files, None, (), source.ambient
     grid = parse_grid_shape(args.grid_shape)
     try:
-        stack, levels = pipeline.load_images(files)
+        loaded = None if display is None else (lambda i, k, name: display("load", i, k, name))
+        stack, levels = pipeline.load_images(files, progress=loaded)
     except InputError as exc:
         raise _in_option_words(exc) from None
     stack = preprocess.pad_or_crop(stack, grid)

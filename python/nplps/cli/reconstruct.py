@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import textwrap
 import time
 from pathlib import Path
 from typing import Any, Literal
 
+from ..progress import Bar, ReconstructionProgress, format_duration
 from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
     CONVENTIONS,
@@ -124,19 +126,20 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     inputs = build_inputs(args)
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
+    display = None if args.quiet else ReconstructionProgress(args.iterations)
     with _warnings_to_stderr():
-        result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=not args.quiet, **near, **common)
+        try:
+            result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=display, **near, **common)
+        except BaseException:
+            if display is not None:
+                display.abort()
+            raise
+        if display is not None:
+            display.finish(result)
     wall = time.perf_counter() - start
     with out:  # one run: the manifest lists the baseline's files too
         recorded = {**_recorded_args(args), "solver_options": {**near, **common}}
-        paths = result.save(
-            out,
-            opengl=args.opengl,
-            formats=args.formats,
-            report=args.report,
-            inputs=inputs.images,
-            options=recorded,
-        )
+        paths = _save(result, out, args, quiet=args.quiet, report=args.report, inputs=inputs.images, options=recorded)
         _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 
         if args.baseline:
@@ -150,7 +153,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                     inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
                 )
             wall = time.perf_counter() - start
-            base_paths = base.save(out.subdirectory("baseline"), opengl=args.opengl, formats=args.formats)
+            base_paths = _save(base, out.subdirectory("baseline"), args, quiet=args.quiet)
             print()
             _print_summary("parallel-light baseline", base, wall, base_paths)
     return 0
@@ -161,14 +164,35 @@ def _recorded_args(args: argparse.Namespace) -> dict[str, Any]:
     return {"command": "reconstruct", **{k: v for k, v in vars(args).items() if k not in ("func",)}}
 
 
+def _save(result: Any, directory: Any, args: argparse.Namespace, *, quiet: bool, **extra: Any) -> dict[str, Path]:
+    """Write a result (``extra``: more keywords of ``save``), with an export line on stderr (a bar on a terminal)."""
+    bar = None if quiet else Bar("export")
+    if bar is not None:
+        bar.update(0, f"writing into {os.fspath(directory)} ...")
+    try:
+        paths = result.save(directory, opengl=args.opengl, formats=args.formats, **extra)
+    except BaseException:
+        if bar is not None:
+            bar.abort()
+        raise
+    if bar is not None:
+        bar.close(f"{len(paths)} files written in {format_duration(bar.elapsed)}")
+    return dict(paths)
+
+
 def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path]) -> None:
     s = result.summary()
     print(f"{title}:")
     print(f"  rig             {describe_rig(result.rig)}")
     print(f"  pixels          {s['pixels']} of {describe_size(s['shape'])}")
     print(f"  regions         {s['regions']}")
-    if result.method == "near":  # the baseline does not iterate
-        print(f"  iterations      {s['iterations']}")
+    if result.distance is not None:
+        # The search's own iterations are not the result's: say what each number counts.
+        candidates = max((len(curve) for curve in result.distance.curve), default=0)
+        print(f"  distance search {candidates} candidate distances evaluated (a few iterations each)")
+        print(f"  iterations      {s['iterations']}{_per_level(result)} (the final solve at the estimated distance)")
+    elif result.method == "near":  # the baseline does not iterate
+        print(f"  iterations      {s['iterations']}{_per_level(result)}")
     print(f"  status          {s['status']}: {s['status_reason']}")
     if s["rms_residual"] is not None:
         print(f"  rms residual    {s['rms_residual']:.3e} (image units, 0..1)")
@@ -183,6 +207,15 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
     files = sorted({str(p.parent) for p in paths.values()})
     print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
+
+
+def _per_level(result: Any) -> str:
+    """Return ``: 3 at level 1, 2 at full resolution`` for a coarse-to-fine run, else ``""``."""
+    levels = sorted({h.level for h in result.history}, reverse=True)
+    if len(levels) < 2:
+        return ""
+    counts = [(level, sum(h.level == level for h in result.history)) for level in levels]
+    return ": " + ", ".join(f"{n} at {f'level {level}' if level else 'full resolution'}" for level, n in counts)
 
 
 def _print_refinement(result: Any) -> None:

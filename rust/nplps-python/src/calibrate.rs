@@ -73,8 +73,9 @@ pub fn calibrate_spheres<'py>(
             (Some(l), None) => {
                 if l.shape() != [h, w] {
                     return Err(input_error(format!(
-                        "placement {i}: the mask has shape {:?} but the images are {h} x {w}",
-                        l.shape()
+                        "placement {i}: the mask is {} x {} pixels but the images are {w} x {h}",
+                        l.shape()[1],
+                        l.shape()[0]
                     )));
                 }
                 SphereSource::Labels(l.as_slice().map_err(|_| {
@@ -254,8 +255,9 @@ pub fn calibrate_intensities<'py>(
         Some(m) => {
             if m.shape() != [h, w] {
                 return Err(input_error(format!(
-                    "the mask has shape {:?} but the images are {h} x {w}",
-                    m.shape()
+                    "the mask is {} x {} pixels but the images are {w} x {h}",
+                    m.shape()[1],
+                    m.shape()[0]
                 )));
             }
             Some(

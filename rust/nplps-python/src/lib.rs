@@ -323,6 +323,16 @@ fn reconstruct<'py>(
                     stats.level,
                     stats.inner_iterations,
                     stats.light_change,
+                    stats.search.map(|s| {
+                        (
+                            s.candidate,
+                            s.candidates,
+                            s.distance,
+                            s.residual,
+                            s.best_distance,
+                            s.best_residual,
+                        )
+                    }),
                 );
                 match Python::attach(|py| cb.call1(py, args).map(|_| ())) {
                     Ok(()) => nplps::Control::Continue,

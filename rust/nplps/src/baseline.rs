@@ -159,6 +159,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             level: 0,
             inner_iterations,
             light_change: 0.0,
+            search: None,
         }];
         let mut outputs = FitOutputs::new(problem);
         outputs.scatter(problem, 0, &fits);

@@ -2014,7 +2014,7 @@ pub fn calibrate_spheres(
     }
     if k == 0 || height < 3 || width < 3 {
         return Err(Error::Unusable(format!(
-            "sphere images must be at least 3 x 3 pixels and at least one per light, got k = {k}, {height} x {width}"
+            "sphere images must be at least 3 x 3 pixels and at least one per light, got k = {k}, {width} x {height} pixels"
         )));
     }
     if !(options.radius > 0.0 && options.radius.is_finite()) {
@@ -2059,7 +2059,7 @@ pub fn calibrate_spheres(
                 expected: k * plane,
                 got: placement.images.len(),
                 message: format!(
-                    "placement {pi}: expected {k} images of {height} x {width} pixels ({} values), got {} values",
+                    "placement {pi}: expected {k} images of {width} x {height} pixels ({} values), got {} values",
                     k * plane,
                     placement.images.len()
                 ),
@@ -2096,7 +2096,7 @@ pub fn calibrate_spheres(
             SphereSource::Labels(labels) => {
                 if labels.len() != plane {
                     return Err(Error::Unusable(format!(
-                        "placement {pi}: the mask has {} pixels, the images {height} x {width}",
+                        "placement {pi}: the mask has {} pixels, the images {width} x {height}",
                         labels.len()
                     )));
                 }
@@ -3170,7 +3170,7 @@ pub fn calibrate_intensities(
                 .saturating_mul(channels),
             got: images.len(),
             message: format!(
-                "expected {k} x {height} x {width} x {channels} image values, got {}",
+                "expected {k} images x {width} x {height} pixels x {channels} channels of values, got {}",
                 images.len()
             ),
         });
@@ -3182,7 +3182,7 @@ pub fn calibrate_intensities(
                 expected: height * width,
                 got: m.len(),
                 message: format!(
-                    "the mask has {} pixels, the images {height} x {width}",
+                    "the mask has {} pixels, the images {width} x {height}",
                     m.len()
                 ),
             });

@@ -144,7 +144,7 @@ pub fn render_spheres(
     rig.validate_parameters()?;
     if height == 0 || width == 0 || supersample == 0 || supersample > 16 {
         return Err(Error::Unusable(format!(
-            "a sphere scene needs a non-empty image and 1..=16 subsamples, got {height} x {width}, {supersample}"
+            "a sphere scene needs a non-empty image and 1..=16 subsamples, got {width} x {height} pixels, {supersample}"
         )));
     }
     if !(radius > 0.0 && radius.is_finite()) || centers.iter().flatten().any(|v| !v.is_finite()) {

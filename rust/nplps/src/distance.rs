@@ -19,7 +19,8 @@ use crate::problem::Problem;
 use crate::refine::Refine;
 use crate::rig::Light;
 use crate::solver::{
-    coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, Solver,
+    coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, SearchProgress,
+    Solver,
 };
 use crate::vec3::{norm, sub};
 
@@ -148,9 +149,16 @@ struct Evaluator<'s, 'p> {
     curve: Vec<Vec<(f64, f64)>>,
     /// The light refinement of every evaluation.
     refine: Refine,
+    /// Candidates evaluated so far, and how many the search plans.
+    candidate: usize,
+    candidates: usize,
+    /// The (mean) distance and residual of the best candidate so far (NaN before the first).
+    best: (f64, f64),
 }
 
 impl Evaluator<'_, '_> {
+    /// Evaluates one candidate. Its iterations are reported with a [`SearchProgress`]; the last
+    /// one is held back until the candidate's residual is known, so that it carries it.
     fn eval(
         &mut self,
         d: &[f64],
@@ -162,15 +170,74 @@ impl Evaluator<'_, '_> {
         // Every candidate starts from the rig's lights: the residual curve must not depend on
         // the order of the evaluations.
         self.solver.restart_lights(self.refine);
-        self.solver
-            .iterate(&mut self.u, &gauge, self.inner, 0.0, progress)?;
+        self.candidate += 1;
+        self.candidates = self.candidates.max(self.candidate);
+        let info = SearchProgress {
+            candidate: self.candidate,
+            candidates: self.candidates,
+            distance: mean(d),
+            residual: f64::NAN,
+            best_distance: self.best.0,
+            best_residual: self.best.1,
+        };
+        let mut pending: Option<IterationStats> = None;
+        {
+            let mut deferred = |stats: &IterationStats| {
+                let stats = IterationStats {
+                    search: Some(info),
+                    ..*stats
+                };
+                match pending.replace(stats) {
+                    Some(previous) => progress(&previous),
+                    None => Control::Continue,
+                }
+            };
+            self.solver
+                .iterate(&mut self.u, &gauge, self.inner, 0.0, &mut deferred)?;
+        }
         self.solver.local(&self.u);
         let residuals = self.solver.region_residuals();
         for ((curve, &x), &r) in self.curve.iter_mut().zip(d).zip(&residuals) {
             curve.push((x, r));
         }
+        let residual = mean(&residuals);
+        if residual.is_finite() && (self.best.1.is_nan() || residual < self.best.1) {
+            self.best = (info.distance, residual);
+        }
+        if let Some(last) = pending {
+            let stats = IterationStats {
+                search: Some(SearchProgress {
+                    residual,
+                    best_distance: self.best.0,
+                    best_residual: self.best.1,
+                    ..info
+                }),
+                ..last
+            };
+            if progress(&stats) == Control::Cancel {
+                return Err(Error::Cancelled);
+            }
+        }
         Ok(residuals)
     }
+}
+
+/// The mean of `values` (NaN for none).
+fn mean(values: &[f64]) -> f64 {
+    values.iter().sum::<f64>() / values.len() as f64
+}
+
+/// How many candidates a search evaluates: the scan, the two first points of the golden-section
+/// refinement and one per step until the bracket (`2 * step` wide in log-distance) is below
+/// `tolerance`.
+fn planned_candidates(scan: usize, step: f64, tolerance: f64) -> usize {
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut width, mut steps) = (2.0 * step, 0);
+    while width > tolerance && steps < 10_000 {
+        width *= phi;
+        steps += 1;
+    }
+    scan + 2 + steps
 }
 
 /// Estimates each region's working distance (see the module documentation).
@@ -226,12 +293,16 @@ fn search_refined(
     let (ln_near, ln_far) = (range.0.ln(), range.1.ln());
     let step = (ln_far - ln_near) / (scan - 1) as f64;
     let refine = solver.refine();
+    let tolerance = search.precision.max(1e-9);
     let mut ev = Evaluator {
         refine,
         solver,
         u: problem.u0.clone(),
         inner: search.inner.max(1),
         curve: vec![Vec::new(); regions],
+        candidate: 0,
+        candidates: planned_candidates(scan, step, tolerance),
+        best: (f64::NAN, f64::NAN),
     };
     // Coarse scan from far to near (surfaces start flat; far is the gentlest start).
     let mut scanned: Vec<(f64, Vec<f64>)> = Vec::with_capacity(scan);
@@ -269,7 +340,6 @@ fn search_refined(
         .collect();
     let mut f1 = ev.eval(&x1.iter().map(|x| x.exp()).collect::<Vec<_>>(), progress)?;
     let mut f2 = ev.eval(&x2.iter().map(|x| x.exp()).collect::<Vec<_>>(), progress)?;
-    let tolerance = search.precision.max(1e-9);
     while (0..regions).any(|r| hi[r] - lo[r] > tolerance) {
         let mut trial = vec![0.0; regions];
         let mut left = vec![false; regions];

@@ -39,16 +39,16 @@ pub struct Grid {
 }
 
 impl Grid {
-    /// Builds the mesh of a mask of H x W pixels (`None`: every pixel). Fails on an empty mask or
+    /// Builds the mesh of a mask of (H, W) pixels (`None`: every pixel). Fails on an empty mask or
     /// a mask of the wrong length.
     pub fn new(height: usize, width: usize, mask: Option<&[bool]>) -> Result<Grid> {
         ensure_usable(height > 0 && width > 0, || {
-            format!("images must not be empty, got {height} x {width} pixels")
+            format!("images must not be empty, got {width} x {height} pixels")
         })?;
         if let Some(m) = mask {
             ensure_shape("mask", height * width, m.len(), || {
                 format!(
-                    "mask has {} pixels, the images have {height} x {width} = {}",
+                    "mask has {} pixels, the images have {width} x {height} = {}",
                     m.len(),
                     height * width
                 )

@@ -23,7 +23,8 @@
 //!   [`Options::default`] with `with_*` methods, or by setting its public fields).
 //! - Running: [`reconstruct`], [`reconstruct_auto`] (with a [`DistanceSearch`]),
 //!   [`reconstruct_parallel`] (the parallel-light baseline); a progress callback gets
-//!   [`IterationStats`] and returns [`Control`].
+//!   [`IterationStats`] (with [`SearchProgress`] while the distance search evaluates a
+//!   candidate) and returns [`Control`].
 //! - Output: [`Reconstruction`] with its [`Status`], [`Timings`] and, when the lights are refined
 //!   ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
 //! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
@@ -188,8 +189,8 @@ pub use refine::{Conditioning, Refine};
 pub use render::{mesh_normals, predict, render, vertices, Surface};
 pub use rig::{Camera, Light, Rig, MAX_LIGHTS};
 pub use solver::{
-    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport, Status,
-    Timings,
+    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport,
+    SearchProgress, Status, Timings,
 };
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

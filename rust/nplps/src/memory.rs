@@ -115,7 +115,7 @@ pub fn check_reconstruction(
     check(
         || {
             format!(
-                "reconstructing {height} x {width} pixels ({facets} in the mask) with {lights} lights"
+                "reconstructing {width} x {height} pixels ({facets} in the mask) with {lights} lights"
             )
         },
         needed,

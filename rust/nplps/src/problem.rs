@@ -231,7 +231,7 @@ impl Problem<'_> {
         let (h, w) = (self.grid.height + 1, self.grid.width + 1);
         ensure_shape("depth prior", h * w, map.len(), || {
             format!(
-                "the depth prior has {} values; it must have (H+1) x (W+1) = {h} x {w}",
+                "the depth prior has {} values; it must have (W+1) x (H+1) = {w} x {h}",
                 map.len()
             )
         })?;
@@ -293,7 +293,7 @@ fn initial_unknowns(
             ensure_shape("initial depth map", h * w, map.len(), || {
                 format!(
                     "the initial depth map has {} values; it must have one per vertex, \
-                     (H+1) x (W+1) = {h} x {w}",
+                     (W+1) x (H+1) = {w} x {h}",
                     map.len()
                 )
             })?;

@@ -35,14 +35,14 @@ pub struct Surface<'a> {
 fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
     ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
         format!(
-            "depth map has {} values, expected (H+1) x (W+1) = {} x {}",
+            "depth map has {} values, expected (W+1) x (H+1) = {} x {}",
             depth.len(),
-            height + 1,
-            width + 1
+            width + 1,
+            height + 1
         )
     })?;
     crate::memory::check(
-        || format!("the vertices of a {height} x {width} depth map"),
+        || format!("the vertices of a depth map of {width} x {height} pixels"),
         // Grid, geometry and positions: about 100 bytes per vertex.
         100.0 * depth.len() as f64,
         None,

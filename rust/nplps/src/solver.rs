@@ -169,6 +169,31 @@ pub struct IterationStats {
     /// Largest relative change of a light parameter in this iteration's light step (0 without
     /// refinement): `|delta Phi_i| / Phi_i` or `|delta p_i| / D`.
     pub light_change: f64,
+    /// The candidate of the working-distance search this iteration evaluates (None for the
+    /// reconstruction's own iterations, which are the ones in [`Reconstruction::history`]).
+    pub search: Option<SearchProgress>,
+}
+
+/// Where the working-distance search ([`crate::reconstruct_auto`]) is, reported with each of
+/// the iterations that evaluate a candidate distance. With several regions, distances and
+/// residuals are the means over the regions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub struct SearchProgress {
+    /// 1-based number of the candidate being evaluated.
+    pub candidate: usize,
+    /// How many candidates the search evaluates (the scan and the refinement's steps).
+    pub candidates: usize,
+    /// The candidate's distance (depth units).
+    pub distance: f64,
+    /// The candidate's RMS photometric residual: set on the candidate's last iteration, NaN on
+    /// the others.
+    pub residual: f64,
+    /// The evaluated candidate of lowest residual so far, including this one once its residual
+    /// is set (NaN before the first).
+    pub best_distance: f64,
+    /// The residual of `best_distance`.
+    pub best_residual: f64,
 }
 
 /// Answer of a progress callback.
@@ -867,6 +892,7 @@ impl<'p> Solver<'p> {
                 level: self.level,
                 inner_iterations,
                 light_change,
+                search: None,
             };
             history.push(stats);
             if progress(&stats) == Control::Cancel {

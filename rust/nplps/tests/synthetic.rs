@@ -271,3 +271,44 @@ fn working_distance_is_found_from_the_images() {
         }
     }
 }
+
+#[test]
+fn the_distance_search_reports_its_candidates() {
+    use nplps::{reconstruct_auto, DistanceSearch, IterationStats};
+    let scene = Scene::new(SceneKind::Bumps, 24, 100.0, 200.0, 2).unwrap();
+    let images = exact_images(&scene);
+    let problem = problem(&scene, &images);
+    let search = DistanceSearch::default().with_guess(Some(scene.mean_depth()));
+    let mut seen: Vec<IterationStats> = Vec::new();
+    let (result, estimate) = reconstruct_auto(&problem, &Options::default(), &search, &mut |s| {
+        seen.push(*s);
+        Control::Continue
+    })
+    .unwrap();
+    let searched: Vec<_> = seen.iter().filter_map(|s| s.search).collect();
+    let n = searched[0].candidates;
+    // Every evaluation is one candidate, numbered 1..=n, announced from the start.
+    assert_eq!(n, estimate.curve[0].len());
+    assert!(searched.iter().all(|s| s.candidates == n));
+    assert_eq!(searched.last().unwrap().candidate, n);
+    assert!(searched
+        .windows(2)
+        .all(|w| w[1].candidate >= w[0].candidate));
+    // The residual is set on each candidate's last iteration only, and the best follows it.
+    let finished: Vec<_> = searched.iter().filter(|s| s.residual.is_finite()).collect();
+    assert_eq!(finished.len(), n);
+    let lowest = finished
+        .iter()
+        .min_by(|a, b| a.residual.total_cmp(&b.residual))
+        .unwrap();
+    let last = finished.last().unwrap();
+    assert_eq!(
+        (last.best_distance, last.best_residual),
+        (lowest.distance, lowest.residual)
+    );
+    // The search comes first; the reconstruction's own iterations are the history.
+    let solve: Vec<_> = seen.iter().filter(|s| s.search.is_none()).collect();
+    assert_eq!(seen.len(), searched.len() + solve.len());
+    assert!(seen[..searched.len()].iter().all(|s| s.search.is_some()));
+    assert_eq!(solve.len(), result.history.len());
+}
