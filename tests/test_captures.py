@@ -144,7 +144,11 @@ def test_near_ps_srgb_binning_and_grid(tmp_path: Path) -> None:
     expected = pp.pad_or_crop(pp.bin_images(lin, 2), (6, 8))
     np.testing.assert_allclose(c.images, expected, rtol=1e-5, atol=1e-7)
     assert np.all(c.images[:, 4:] == 0) and np.all(c.images[:, :, 5:] == 0)
-    colour = cap.load_near_ps(folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8))
+    seen: list[tuple[int, int, str]] = []
+    colour = cap.load_near_ps(
+        folder, names, srgb=True, bin_factor=2, grid_shape=(6, 8), progress=lambda *a: seen.append(a)
+    )
+    assert seen == [(1, 2, "jpg_1.png"), (2, 2, "jpg_2.png")]  # load progress, once per image
     assert colour.images.shape == (2, 6, 8, 3)
     np.testing.assert_allclose(colour.images.mean(axis=3), c.images, rtol=1e-5, atol=1e-7)
     with pytest.raises(InputError, match="mask has shape"):

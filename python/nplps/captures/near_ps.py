@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import pipeline, preprocess
 from ..errors import InputError, RigError
-from ..io import PathLike, read_image, to_float
+from ..io import LoadProgress, PathLike, read_image, to_float
 from .capture import Capture
 from .files import (
     _AUTO,
@@ -86,6 +86,7 @@ def load_near_ps(
     gray: bool | None = None,
     name: str | None = None,
     notes: str = "",
+    progress: LoadProgress | None = None,
 ) -> Capture:
     """Load a capture in the layout of the near-light toolbox of Quéau et al. (``near_ps``).
 
@@ -127,6 +128,9 @@ def load_near_ps(
 
     Intensities are ``Phi`` as ``(k,)`` for a k x 1 ``Phi`` and ``(k, 3)`` for k x 3 (averaged
     over R, G, B to ``(k,)`` with ``color=False``).
+
+    ``progress``: ``progress(done, total, name)`` after each image is read, when they are loaded
+    (:data:`nplps.io.LoadProgress`).
 
     Raises
     ------
@@ -185,7 +189,11 @@ def load_near_ps(
     done: tuple[str, ...] = ()
     if load:
         bin_factor = int(bin_factor)
-        read = [_prepare(p, srgb, bin_factor, grid_shape, grid_offset, color) for p in files]
+        read = []
+        for i, p in enumerate(files):
+            read.append(_prepare(p, srgb, bin_factor, grid_shape, grid_offset, color))
+            if progress is not None:
+                progress(i + 1, len(files), Path(p).name)
         stack = [image for image, _ in read]
         for p, img in zip(files, stack, strict=True):
             if img.shape != stack[0].shape:
@@ -279,6 +287,7 @@ def load_queau_human1(
     lights: Sequence[int] | None = None,
     color: bool | None = False,
     gray: bool | None = None,
+    progress: LoadProgress | None = None,
 ) -> Capture:
     """Load the ``Human1`` scene of ``yqueau/near_ps`` from its JPEG renders (7 of 8 LEDs).
 
@@ -307,6 +316,8 @@ def load_queau_human1(
     keeps them (``gray=`` is the deprecated spelling: ``gray=True`` is ``color=False``). The
     calibrated ``Phi`` is for the RAW data; the JPEG's tone curve and white balance make the intensities
     only approximately right (a robustness test, not a benchmark).
+
+    ``progress``: ``progress(done, total, name)`` after each image is read.
     """
     color = _color_arg(color, gray, "load_queau_human1", default=False)
     folder = _check_folder(folder)
@@ -344,6 +355,7 @@ def load_queau_human1(
         color=color,
         name="queau_human1",
         notes=notes,
+        progress=progress,
     )
     if not raw:
         assert isinstance(capture.images, np.ndarray)  # srgb loads them

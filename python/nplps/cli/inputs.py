@@ -244,7 +244,7 @@ class _Source(NamedTuple):
     K: np.ndarray | None
     vignetting: str
     #: For a capture loaded by its loader (queau_human1): reads it, returning a loaded Capture.
-    load: Callable[[], Any] | None = None
+    load: Callable[[Any], Any] | None = None
 
 
 #: The pipeline's parameter names at the start of its messages, in the command line's words.
@@ -272,7 +272,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     _hint_ctrl_c(args)  # the long work starts here
     display = None if args.quiet else PipelineProgress()
     try:
-        prepared = _read_and_prepare(args, source, exposures, vignetting, display)
+        prepared, by_loader = _read_and_prepare(args, source, exposures, vignetting, display)
     except BaseException:
         if display is not None:
             display.abort()
@@ -280,7 +280,11 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     if display is not None:
         display.finish()
     if not args.quiet:
-        steps = [_step_text(step, args, source, prepared.images) for step in prepared.steps]
+        # The first steps are the capture loader's (e.g. queau_human1's 2 x 2 binning), the rest the pipeline's.
+        steps = [
+            _step_text(step, args, source, prepared.images, by_loader=i < len(by_loader))
+            for i, step in enumerate(prepared.steps)
+        ]
         _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
     options = {
         "depth": depth,
@@ -294,13 +298,16 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
 
 def _read_and_prepare(
     args: argparse.Namespace, source: _Source, exposures: Any, vignetting: str, display: PipelineProgress | None
-) -> Any:
-    """Read the images and run :func:`nplps.pipeline.prepare`, reporting to ``display``."""
+) -> tuple[Any, tuple[str, ...]]:
+    """Read the images and run :func:`nplps.pipeline.prepare`, reporting to ``display``.
+
+    Return the prepared inputs and the steps a capture loader ran before the pipeline.
+    """
     from .. import pipeline
 
     images, levels, preprocessed, ambient = _read_images(args, source, display)
     try:
-        return pipeline.prepare(
+        prepared = pipeline.prepare(
             images,
             rig=source.rig,
             K=source.K,
@@ -321,6 +328,7 @@ def _read_and_prepare(
         )
     except InputError as exc:
         raise _in_option_words(exc) from None
+    return prepared, tuple(preprocessed)
 
 
 def _check_rig_options(args: argparse.Namespace, source: _Source, depth: Any, vignetting: str) -> None:
@@ -356,7 +364,7 @@ def _read_images(
     from ..io import read_image, to_float
 
     if source.load is not None:
-        capture = source.load()
+        capture = source.load(None if display is None else (lambda i, k, name: display("load", i, k, name)))
         return capture.images, capture.levels, tuple(capture.preprocessed), capture.ambient
     files = [os.fspath(f) for f in source.files]
     if args.grid_shape is None:
@@ -384,8 +392,12 @@ def _in_option_words(exc: InputError) -> InputError:
     return exc
 
 
-def _step_text(step: str, args: argparse.Namespace, source: _Source, images: np.ndarray) -> str:
-    """How the summary names a pre-processing step."""
+def _step_text(
+    step: str, args: argparse.Namespace, source: _Source, images: np.ndarray, *, by_loader: bool = False
+) -> str:
+    """How the summary names a pre-processing step (``by_loader``: one the capture's loader ran)."""
+    if by_loader and step in ("bin", "pad"):
+        return {"bin": "binned by the capture preset", "pad": "padded to the calibration grid"}[step]
     if step == "ambient":
         return f"ambient '{args.ambient or Path(source.ambient).name}' subtracted"
     if step == "bin":
@@ -618,15 +630,18 @@ def _led_capture(layout: str, folder: str, rows: list[int] | None) -> Any:
     return capture.select([available.index(i) for i in rows])
 
 
-def _queau_loader(args: argparse.Namespace, capture: Any) -> Callable[[], Any]:
-    """Return the reader of --capture queau_human1: :func:`nplps.captures.load_queau_human1`."""
+def _queau_loader(args: argparse.Namespace, capture: Any) -> Callable[[Any], Any]:
+    """Return the reader of --capture queau_human1: :func:`nplps.captures.load_queau_human1`.
+
+    The reader takes the load progress callback (or None).
+    """
     from .. import captures
     from ..captures.near_ps import _led_rows_from_names
 
     rows = _led_rows_from_names(capture.files)
 
-    def load() -> Any:
-        return captures.load_queau_human1(args.images[0], lights=rows)
+    def load(progress: Any) -> Any:
+        return captures.load_queau_human1(args.images[0], lights=rows, progress=progress)
 
     return load
 
