@@ -234,3 +234,24 @@ def test_cli_evaluate_prints_a_reading(tmp_path, capsys):
     assert near_rel == pytest.approx(mean[0], rel=5e-3) and near_shape == pytest.approx(mean[1], rel=5e-3)
     assert par_rel == pytest.approx(mean[2], rel=5e-3) and par_shape == pytest.approx(mean[3], rel=5e-3)
     assert factor == pytest.approx(mean[3] / mean[1], rel=0.02, abs=0.06)
+
+
+def test_shaded_picture_shows_relief_not_a_silhouette() -> None:
+    # shaded.png used to be lit from the camera: a surface facing it was a white silhouette.
+    scene = nplps.make_scene("sphere", n=48)
+    result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
+    default, camera = result.shaded(), result.shaded("camera")
+    inside = scene.mask
+    h, w = inside.shape
+    upper_left = inside & (np.arange(h)[:, None] < h // 2) & (np.arange(w)[None, :] < w // 2)
+    lower_right = inside & (np.arange(h)[:, None] >= h // 2) & (np.arange(w)[None, :] >= w // 2)
+    # Lit from the upper left: that side is brighter; from the camera the two are alike.
+    assert default[upper_left].mean() > default[lower_right].mean() + 0.2
+    assert abs(camera[upper_left].mean() - camera[lower_right].mean()) < 0.05
+    # The centre faces the camera: about cos 50 deg, not white.
+    assert 0.5 < default[h // 2, w // 2] < 0.8 and camera[h // 2, w // 2] > 0.95
+    np.testing.assert_allclose(result.shaded((0, 0, -1)), camera, atol=0.05)  # near-orthographic view
+    assert np.all(default[~inside] == 0)
+    for bad in ("sun", (0, 0, 0), (1, 2), (np.nan, 0, 1)):
+        with pytest.raises(nplps.InputError, match="light must be"):
+            result.shaded(bad)

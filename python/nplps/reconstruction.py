@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -31,10 +31,18 @@ from .errors import InputError
 from .rig import Rig, _select_core_lights
 
 if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
     from .evaluation import HeldOut
     from .types import Method, RefineLights, Status
 
-__all__ = ["DistanceEstimate", "Iteration", "LightRefinement", "Reconstruction", "light_changes"]
+__all__ = ["SHADED_LIGHT", "DistanceEstimate", "Iteration", "LightRefinement", "Reconstruction", "light_changes"]
+
+#: The default light of :meth:`Reconstruction.shaded` (and ``shaded.png``): the direction towards it
+#: in the camera frame, from the upper left and in front (negative x: left, negative y: up,
+#: negative z: towards the camera),
+#: 50 degrees off the viewing axis.
+SHADED_LIGHT: tuple[float, float, float] = (-0.5417, -0.5417, -0.6428)
 
 
 @dataclass
@@ -452,23 +460,41 @@ class Reconstruction:
             self.depth, self.fit_normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
         )
 
-    def shaded(self) -> np.ndarray:
-        """Return a grey picture of the mesh lit from the camera.
+    def shaded(self, light: ArrayLike | Literal["camera"] | None = None) -> np.ndarray:
+        """Return a grey picture of the mesh (the mesh normals) under one distant light.
+
+        Parameters
+        ----------
+        light : (3,) array_like, "camera" or None, optional
+            The direction towards the light in the camera frame (x right, y down, z forward),
+            normalized here. Default (None): :data:`SHADED_LIGHT`, from the upper left and in
+            front, about 50 degrees off the viewing axis, so that relief shows as shading (a
+            surface facing the camera is mid-grey, not a white silhouette). ``"camera"``: a
+            light at the camera, along each pixel's viewing ray.
 
         Returns
         -------
         numpy.ndarray
-            (H, W) values ``max(0, -n . v)`` with the mesh normal n (:attr:`normals`) and the
-            viewing direction v of each pixel; 0 outside the mask.
+            (H, W) values ``max(0, n . l)`` with the mesh normal n (:attr:`normals`) and the
+            light direction l (``-v`` for the viewing direction v of each pixel with
+            ``"camera"``); 0 outside the mask.
         """
         n = self.normals
-        if self.rig.is_pinhole:
-            v = self.vertices
-            centre = 0.25 * (v[:-1, :-1] + v[:-1, 1:] + v[1:, :-1] + v[1:, 1:])
-            view = centre / np.linalg.norm(centre, axis=-1, keepdims=True)
+        if isinstance(light, str):
+            if light != "camera":
+                raise InputError(f'light must be a direction (3 numbers), "camera" or None, got {light!r}')
+            if self.rig.is_pinhole:
+                v = self.vertices
+                centre = 0.25 * (v[:-1, :-1] + v[:-1, 1:] + v[1:, :-1] + v[1:, 1:])
+                to_light = -centre / np.linalg.norm(centre, axis=-1, keepdims=True)
+            else:
+                to_light = np.array([0.0, 0.0, -1.0])
         else:
-            view = np.array([0.0, 0.0, 1.0])
-        shade = np.clip(-(n * view).sum(axis=-1), 0.0, 1.0)
+            d = np.asarray(SHADED_LIGHT if light is None else light, dtype=np.float64)
+            if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.linalg.norm(d) > 0:
+                raise InputError(f"light must be a non-zero direction of 3 finite numbers, got {light!r}")
+            to_light = d / np.linalg.norm(d)
+        shade = np.clip((n * to_light).sum(axis=-1), 0.0, 1.0)
         return np.where(self.mask & np.isfinite(shade), shade, 0.0)
 
     def vertex_normals(self) -> np.ndarray:
@@ -679,7 +705,7 @@ class Reconstruction:
 
         Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`),
         ``normals.png`` (the normal map of :attr:`normals`, see
-        :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the camera),
+        :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64) and ``depth.tiff`` (float32) of the
         vertex depths, ``normals.npy`` (:attr:`normals`), ``residual.npy`` and ``summary.json``;
         with ``depth="auto"`` also ``distance_curve.csv`` and ``distance_curve.svg``; with

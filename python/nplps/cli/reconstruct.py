@@ -26,7 +26,7 @@ RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
 
 Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
-colour), normals.png (normal map), shaded.png (the mesh lit from the camera), albedo.png
+colour), normals.png (normal map), shaded.png (the mesh lit from the upper left), albedo.png
 (16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
 normals.npy, residual.npy and summary.json (with all the options), and with --refine-lights
 the refined rig (rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or
