@@ -207,6 +207,24 @@ def test_tilted_plane_brightens_towards_its_normal() -> None:
     assert widths[35] >= widths[-35]
 
 
+def test_key_light_shows_the_relief_of_a_sheet_facing_the_viewer() -> None:
+    # A gently curved sheet facing the viewer: a headlight shades it almost evenly, the key light
+    # (above left of the eye) brightens the part that faces up and left.
+    h = w = 40
+    rows, cols = np.mgrid[0 : h + 1, 0 : w + 1].astype(float)
+    x, y = cols - w / 2, rows - h / 2
+    vertices = np.stack([x, y, 100 + 0.01 * (x**2 + y**2)], axis=-1)  # a dome: nearest at the centre
+    mask = np.ones((h, w), dtype=bool)
+    keyed = views.render_mesh(vertices, mask, size=160)[..., 0].astype(float)
+    head = views.render_mesh(vertices, mask, size=160, key_light=None)[..., 0].astype(float)
+    inside = keyed < 255
+    q = 160 // 4
+    # The dome's upper left faces up and left, towards the key light; its lower right away.
+    assert keyed[q, q] - keyed[3 * q, 3 * q] > 25
+    assert abs(head[3 * q, 3 * q] - head[q, q]) < 3  # the headlight: symmetric
+    assert keyed[inside].std() > 2 * head[head < 255].std()
+
+
 def test_large_mesh_renders_in_seconds() -> None:
     h, w = 1000, 1200  # 1.2 megapixels
     rows, cols = np.mgrid[0 : h + 1, 0 : w + 1].astype(float)

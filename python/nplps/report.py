@@ -672,7 +672,7 @@ def _section_renders(d: _Data) -> str:
     ]
     note = (
         "<p>The mesh seen from beside the camera (orthographic views about the object's centre, "
-        "grey surface lit from the viewer; back faces tinted blue).</p>"
+        "grey surface lit from above left of the viewer; back faces tinted blue).</p>"
     )
     return _section("Oblique views of the mesh", note + "".join(figures), "renders")
 

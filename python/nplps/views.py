@@ -18,10 +18,15 @@ orthographic camera that orbits the object's centre ``c`` (the median of the ver
   ``(p - c) . f``. ``azimuth = elevation = 0`` is the real camera's view made orthographic.
 - Triangles are rasterized with a z-buffer (per-pixel barycentric tests over each triangle's
   bounding box, the nearest triangle kept per pixel), all in vectorized numpy.
-- Shading is Lambertian with a *headlight* (a light at the viewer, direction ``-f``) plus an
-  ambient term: ``grey = albedo * (ambient + (1 - ambient) |n . f|)`` with the facet normal
-  ``n`` (cross product of the quad's diagonals); both sides of the surface are lit, the back
-  faces tinted blue so that they can be told apart. The background is white.
+- Shading is Lambertian with a *key light* that moves with the viewer, ``key_light = (a, e)``
+  degrees to the left of and above the eye (direction ``l = -cos e cos a f - cos e sin a r -
+  sin e d``), a fill light at the eye (direction ``-f``) and an ambient term:
+  ``grey = albedo * (ambient + (1 - ambient) (0.7 max(0, n' . l) + 0.3 |n . f|))`` with the
+  facet normal ``n`` (cross product of the quad's diagonals) and ``n'`` the same turned towards
+  the viewer. The key light makes the relief of surfaces that face the viewer visible (a
+  headlight alone shades a flat sheet evenly); ``key_light=None`` is the headlight alone,
+  ``grey = albedo * (ambient + (1 - ambient) |n . f|)``. Both sides of the surface are lit, the
+  back faces tinted blue so that they can be told apart. The background is white.
 - Large meshes are shown decimated: every ``stride``-th vertex row and column is kept, with
   ``stride = ceil(sqrt(masked pixels / max_facets))`` (default ``max_facets`` 250 000, about
   one facet per pixel of a 512 x 512 picture), and a coarse quad is drawn when its four
@@ -202,6 +207,7 @@ def render_mesh(
     size: int = 512,
     albedo: np.ndarray | None = None,
     ambient: float = 0.15,
+    key_light: tuple[float, float] | None = (20.0, 25.0),
     max_facets: int = 250_000,
 ) -> np.ndarray:
     """Render the mesh shaded from a turned viewpoint (see the module notes for the maths).
@@ -225,6 +231,9 @@ def render_mesh(
         default a uniform grey surface.
     ambient : float, default 0.15
         The share of ambient light.
+    key_light : (float, float) or None, default (20, 25)
+        Degrees to the left of and above the eye of the key light, which moves with the view;
+        None: a headlight only (see the module notes).
     max_facets : int, default 250000
         Meshes with more masked pixels are decimated to about this many facets.
 
@@ -267,11 +276,18 @@ def render_mesh(
     sx = (px - cx) * scale + 0.5 * (size - 1)
     sy = (py - cy) * scale + 0.5 * (size - 1)
 
-    # Facet normals (diagonals' cross product) and the headlight shading.
+    # Facet normals (diagonals' cross product) and the shading (key, fill and ambient light).
     n = np.cross(v[1:, :-1] - v[:-1, 1:], v[1:, 1:] - v[:-1, :-1])[quad]
     n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
     facing = n @ f_ax  # < 0: the front side faces the viewer
-    light = ambient + (1.0 - ambient) * np.abs(facing)
+    if key_light is None:
+        light = ambient + (1.0 - ambient) * np.abs(facing)
+    else:
+        a, e = (math.radians(x) for x in key_light)
+        to_key = -math.cos(e) * math.cos(a) * f_ax - math.cos(e) * math.sin(a) * r_ax - math.sin(e) * d_ax
+        towards_viewer = np.where((facing > 0)[:, None], -n, n)
+        key = np.clip(towards_viewer @ to_key, 0.0, None)
+        light = ambient + (1.0 - ambient) * (0.7 * key + 0.3 * np.abs(facing))
     shade = light[:, None] * colour[quad]
     shade = np.where((facing > 0)[:, None], shade * _BACK_TINT, shade)
 
