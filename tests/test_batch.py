@@ -207,3 +207,28 @@ def test_foreign_files_and_interrupt(captures, tmp_path):
     assert len(rows) == 4 and sum(r["error"] == "interrupted" for r in rows) >= 1
     items = batch.run(str(captures / "c[0-3]"), captures / "c0" / "rig.json", out, depth=200.0, workers=2)
     assert all(i.status in ("ok", "skipped") for i in items) and any(i.status == "skipped" for i in items)
+
+
+def test_cli_exposures_flat_and_light_refinement(captures, tmp_path, capsys):
+    pytest.importorskip("distributed", reason="nplps batch needs dask.distributed (pip install 'nplps[batch]')")
+    k = nplps.Rig.load(captures / "c0" / "rig.json").n_lights
+    common = ["batch", str(captures / "c0"), "--rig", str(captures / "c0" / "rig.json"), "--depth", "200"]
+    common += ["--workers", "1", "--no-report"]
+    assert main([*common, "--out", str(tmp_path / "plain")]) == 0
+    # Every image divided by 2 (the dark threshold with it): the same shape.
+    assert main([*common, "--out", str(tmp_path / "half"), "--exposures", ",".join(["2"] * k)]) == 0
+    plain, half = (np.load(tmp_path / d / "c0" / "depth.npy") for d in ("plain", "half"))
+    np.testing.assert_allclose(half, plain, rtol=1e-4, equal_nan=True)
+    options = json.loads((tmp_path / "half" / "c0" / "summary.json").read_text())["options"]
+    assert options["exposures"] == [2.0] * k
+    # The lights refined per capture: each result has its refined rig.
+    assert main([*common, "--out", str(tmp_path / "refined"), "--refine-lights", "intensity"]) == 0
+    assert (tmp_path / "refined" / "c0" / "rig_refined.json").is_file()
+    summary = json.loads((tmp_path / "refined" / "c0" / "summary.json").read_text())
+    assert summary["options"]["refine_lights"] == "intensity"
+    capsys.readouterr()
+    # Checked before any work: a wrong count of exposures and a missing flat field.
+    assert main([*common, "--out", str(tmp_path / "x"), "--exposures", "1,2"]) == 2
+    assert "--exposures has 2 values" in capsys.readouterr().err
+    assert main([*common, "--out", str(tmp_path / "x"), "--flat", str(tmp_path / "none.png")]) == 2
+    assert "--flat" in capsys.readouterr().err and not (tmp_path / "x").exists()

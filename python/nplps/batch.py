@@ -438,6 +438,8 @@ def _process(
         caught = [str(w.message) for w in records]
         with target:
             recorded = {"capture": os.fspath(folder), "depth": depth, **prepare_options, **options}
+            if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
+                recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
             result.save(target, report=report, inputs=prepared.images, options=recorded)
         s = result.summary()
     except Exception as e:

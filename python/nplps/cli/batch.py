@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Any
 
 from .inputs import _check_numbers, near_options
-from .parsers import parse_depth
+from .parsers import parse_depth, parse_exposures
 
 BATCH_DESCRIPTION = """\
 Reconstruct many captures with Dask (dask.distributed: pip install "nplps[batch]").
@@ -95,7 +96,16 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     g.add_argument("--robust", choices=("cauchy", "tukey"), help="robust reweighting of each pixel's fit")
     g.add_argument("--gray", "--grey", action="store_true", help="average RGB images to grey")
     g.add_argument("--srgb", action="store_true", help="decode sRGB to linear (camera JPEGs)")
-    g.add_argument("--vignetting", choices=("cos4", "none"), help="cos4: divide by the pinhole K's cos^4 map")
+    v = g.add_mutually_exclusive_group()
+    v.add_argument("--vignetting", choices=("cos4", "none"), help="cos4: divide by the pinhole K's cos^4 map")
+    v.add_argument("--flat", metavar="FILE", help="divide by this flat-field image, normalized to maximum 1")
+    g.add_argument("--exposures", metavar="E1,E2,...", help="divide image i of every capture by Ei")
+    g.add_argument(
+        "--refine-lights",
+        choices=("intensity", "position", "both"),
+        help="refine the lights from each capture's images (see 'nplps reconstruct --help')",
+    )
+    g.add_argument("--light-prior-weight", type=float, metavar="W", help="with --refine-lights: the position prior")
     g.add_argument("--bin", type=int, default=1, metavar="N", help="average N x N pixel blocks")
     g.add_argument("--iterations", type=int, default=10, metavar="N", help="maximum iterations (default 10)")
     g.add_argument("--tol", type=float, default=1e-6, help="convergence tolerance (default 1e-6)")
@@ -119,6 +129,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
     _check_numbers(args)
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be at least 1, got {args.workers}")
+    if args.flat is not None and not os.path.isfile(args.flat):
+        raise InputError(f"--flat '{args.flat}' is not a file")
+    rig = load_rig(args.rig)  # before any capture is read
     options = dict(near_options(args), depth=parse_depth(args.depth))
     options.update(
         dark=args.dark,
@@ -129,6 +142,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
         color=False if args.gray else None,
         srgb=args.srgb,
         vignetting="cos4" if args.vignetting == "cos4" else None,
+        flat=args.flat,
+        exposures=None if args.exposures is None else parse_exposures(args.exposures, rig.n_lights),
         bin_factor=args.bin,
     )
     options = {k: v for k, v in options.items() if v is not None or k in ("dark", "saturation", "robust")}
@@ -136,7 +151,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     try:
         items = batch.run(
             args.pattern,
-            load_rig(args.rig),
+            rig,
             args.out,
             mask_name=mask_name,
             ambient_name=args.ambient_name,
