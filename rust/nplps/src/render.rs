@@ -31,6 +31,34 @@ pub struct Surface<'a> {
     pub mask: Option<&'a [bool]>,
 }
 
+impl Surface<'_> {
+    /// Checks the channels and the lengths of the albedo and the mask against H x W, and returns
+    /// the vertex positions of the depth map (see [`positions`]).
+    fn vertices(&self, camera: &Camera) -> Result<Vec<[f64; 3]>> {
+        let (plane, channels) = (self.height * self.width, self.channels);
+        let v = positions(camera, self.height, self.width, self.depth)?;
+        ensure_range(
+            channels == 1 || channels == 3,
+            "channels",
+            channels as f64,
+            || format!("channels must be 1 or 3, got {channels}"),
+        )?;
+        ensure_shape("albedo", plane * channels, self.albedo.len(), || {
+            format!(
+                "albedo has {} values, expected H x W x C = {}",
+                self.albedo.len(),
+                plane * channels
+            )
+        })?;
+        if let Some(m) = self.mask {
+            ensure_shape("mask", plane, m.len(), || {
+                format!("mask has {} values, expected H x W = {plane}", m.len())
+            })?;
+        }
+        Ok(v)
+    }
+}
+
 /// Vertex positions of a full (H+1) x (W+1) depth map.
 fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
     ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
@@ -99,34 +127,16 @@ pub fn mesh_normals(
 /// non-finite corner (an unknown depth) are NaN in every image, so that an unknown surface does
 /// not pass for a shadow.
 pub fn render(rig: &Rig, surface: &Surface<'_>) -> Result<Vec<f64>> {
+    let v = surface.vertices(&rig.camera)?;
     let Surface {
         height,
         width,
-        depth,
         albedo,
         channels,
         mask,
+        ..
     } = *surface;
-    let v = positions(&rig.camera, height, width, depth)?;
     let plane = height * width;
-    ensure_range(
-        channels == 1 || channels == 3,
-        "channels",
-        channels as f64,
-        || format!("channels must be 1 or 3, got {channels}"),
-    )?;
-    ensure_shape("albedo", plane * channels, albedo.len(), || {
-        format!(
-            "albedo has {} values, expected H x W x C = {}",
-            albedo.len(),
-            plane * channels
-        )
-    })?;
-    if let Some(m) = mask {
-        ensure_shape("mask", plane, m.len(), || {
-            format!("mask has {} values, expected H x W = {plane}", m.len())
-        })?;
-    }
     let mut images = shade_images(&rig.lights, plane, channels, albedo, |p| {
         if mask.is_some_and(|m| !m[p]) {
             return None;
@@ -215,23 +225,21 @@ pub fn predict(
     normals: &[[f64; 3]],
     parallel: bool,
 ) -> Result<Vec<f64>> {
+    let v = surface.vertices(&rig.camera)?;
     let Surface {
         height,
         width,
-        depth,
         albedo,
         channels,
         mask,
+        ..
     } = *surface;
-    let v = positions(&rig.camera, height, width, depth)?;
     let plane = height * width;
-    let (what, expected, got) = if normals.len() != plane {
-        ("normals", plane, normals.len())
-    } else {
-        ("albedo", plane * channels, albedo.len())
-    };
-    ensure_shape(what, expected, got, || {
-        format!("normals and albedo must have H x W = {plane} pixels")
+    ensure_shape("normals", plane, normals.len(), || {
+        format!(
+            "normals has {} values, expected H x W = {plane}",
+            normals.len()
+        )
     })?;
     let inside = |p: usize| mask.is_none_or(|m| m[p]);
     let lights: Vec<Light> = if parallel {
@@ -277,5 +285,49 @@ fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64], out: &mut [f64]) 
             phi[ch]
         };
         *o = r * p * shading;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 2 x 3 surface at depth 10 (vertices 3 x 4) with unit albedo of C channels.
+    fn surface<'a>(
+        depth: &'a [f64],
+        albedo: &'a [f64],
+        channels: usize,
+        mask: Option<&'a [bool]>,
+    ) -> Surface<'a> {
+        Surface {
+            height: 2,
+            width: 3,
+            depth,
+            albedo,
+            channels,
+            mask,
+        }
+    }
+
+    #[test]
+    fn render_and_predict_check_the_surface_alike() {
+        let lights = vec![[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]];
+        let rig = Rig::orthographic([1.0, 1.0], [0.0, 0.0], lights).unwrap();
+        let (depth, albedo, normals) = (vec![10.0; 12], vec![1.0; 6], [[0.0, 0.0, -1.0]; 6]);
+        let short_mask = [true; 5];
+        // A short mask (which predict used to index past), 2 channels, an albedo too short for 3.
+        for bad in [
+            surface(&depth, &albedo, 1, Some(&short_mask)),
+            surface(&depth, &albedo, 2, None),
+            surface(&depth, &albedo, 3, None),
+        ] {
+            let rendered = render(&rig, &bad).unwrap_err();
+            assert_eq!(predict(&rig, &bad, &normals, false).unwrap_err(), rendered);
+        }
+        let good = surface(&depth, &albedo, 1, None);
+        assert!(render(&rig, &good).is_ok());
+        assert!(predict(&rig, &good, &normals, false).is_ok());
+        let err = predict(&rig, &good, &normals[..5], false).unwrap_err();
+        assert!(err.to_string().contains("normals has 5 values"), "{err}");
     }
 }
