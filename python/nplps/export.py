@@ -350,8 +350,8 @@ def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
         file.write(_ply_face_records(mesh.faces).view(np.uint8).data)
 
 
-def _ply_header(mesh: _Mesh) -> str:
-    """Return the ASCII header of the PLY file for ``mesh``."""
+def _ply_header(mesh: _Mesh, *, faces: bool = True) -> str:
+    """Return the ASCII header of the PLY file for ``mesh`` (without the face element: a point cloud)."""
     lines = [
         "ply",
         "format binary_little_endian 1.0",
@@ -364,7 +364,8 @@ def _ply_header(mesh: _Mesh) -> str:
         lines += [f"property float {name}" for name in ("nx", "ny", "nz")]
     if mesh.colors is not None:
         lines += [f"property uchar {name}" for name in ("red", "green", "blue")]
-    lines += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices"]
+    if faces:
+        lines += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices"]
     return "\n".join([*lines, "end_header"]) + "\n"
 
 
@@ -813,9 +814,8 @@ def _write_glb_mesh(path: PathLike, mesh: _Mesh) -> None:
 
 
 def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
-    header = _ply_header(mesh).replace(f"element face {len(mesh.faces)}\nproperty list uchar int vertex_indices\n", "")
     with atomic_write(path) as file:
-        file.write(header.encode("ascii"))
+        file.write(_ply_header(mesh, faces=False).encode("ascii"))
         file.write(_ply_vertex_records(mesh).view(np.uint8).data)
 
 
