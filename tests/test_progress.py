@@ -15,7 +15,7 @@ import pytest
 
 import nplps
 from nplps import cli, pipeline
-from nplps.progress import CTRL_C_HINT, Bar, PipelineProgress, ReconstructionProgress, format_duration
+from nplps.progress import CTRL_C_HINT, Bar, PipelineProgress, ReconstructionProgress, aborting, format_duration
 
 
 class FakeTerminal(io.StringIO):
@@ -207,3 +207,18 @@ def test_the_core_gives_sizes_width_first():
             scene.mean_depth,
             {},
         )
+
+
+def test_aborting_ends_the_open_line_and_reraises():
+    stream = FakeTerminal()
+    bar = Bar("load", total=4, stream=stream, clock=FakeClock(1.0))
+    bar.update(1, "a.png")
+    with pytest.raises(KeyboardInterrupt), aborting(bar):
+        raise KeyboardInterrupt
+    assert bar.closed and stream.getvalue().endswith("\n")  # the error message starts on its own line
+    with aborting(None):  # nothing shown: nothing to end
+        pass
+    ok = Bar("export", stream=FakeTerminal())
+    with aborting(ok):
+        ok.update(0, "writing")
+    assert not ok.closed  # no error: the caller closes it with its summary

@@ -34,7 +34,7 @@ from ._checks import (
 )
 from .errors import InputError
 from .io import load_mask, load_stack
-from .progress import CTRL_C_HINT, PipelineProgress, ReconstructionProgress
+from .progress import CTRL_C_HINT, PipelineProgress, ReconstructionProgress, aborting
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
 from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting
@@ -65,11 +65,8 @@ def _prepare(
     if loading is None:
         stack, levels = load_stack(images, color=True)
     else:
-        try:
+        with aborting(loading):
             stack, levels = load_stack(images, color=True, progress=lambda i, k, name: loading("load", i, k, name))
-        except BaseException:
-            loading.abort()
-            raise
         loading.finish()
     if color and stack.ndim != 4:
         raise InputError("color=True needs RGB images (k, H, W, 3)")
@@ -522,7 +519,7 @@ def reconstruct(
     depth_arg = distance if depth_map is None else depth_map
     assert depth_arg is not None  # _prepare gives exactly one of them
     callback, display = _progress_callback(progress, int(iterations))
-    try:
+    with aborting(display):
         out = _core.reconstruct(
             _apply_valid(stack, valid, missing, _owned(stack, images)),
             rig.camera,
@@ -532,10 +529,6 @@ def reconstruct(
             options,
             callback,
         )
-    except BaseException:
-        if display is not None:
-            display.abort()
-        raise
     result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
     if display is not None:
         display.finish(result)

@@ -25,13 +25,14 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TextIO
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 if TYPE_CHECKING:
     from .reconstruction import Iteration, Reconstruction
 
-__all__ = ["CTRL_C_HINT", "Bar", "PipelineProgress", "ReconstructionProgress", "format_duration"]
+__all__ = ["CTRL_C_HINT", "Bar", "PipelineProgress", "ReconstructionProgress", "aborting", "format_duration"]
 
 #: The hint printed once at the start of long work. It is what happens: Ctrl-C raises
 #: KeyboardInterrupt within a fraction of a second (also inside an iteration; a direct sparse
@@ -61,6 +62,27 @@ def format_duration(seconds: float) -> str:
         return f"{minutes} min {secs} s"
     hours, minutes = divmod(minutes, 60)
     return f"{hours} h {minutes} min"
+
+
+class _Display(Protocol):
+    def abort(self) -> None: ...
+
+
+@contextmanager
+def aborting(display: _Display | None) -> Iterator[None]:
+    """End ``display``'s open lines if the block raises (an error or Ctrl-C), then re-raise.
+
+    Parameters
+    ----------
+    display : Bar, ReconstructionProgress, PipelineProgress or None
+        The display of the work in the block (None: nothing shown, nothing to end).
+    """
+    try:
+        yield
+    except BaseException:
+        if display is not None:
+            display.abort()
+        raise
 
 
 def _isatty(stream: TextIO) -> bool:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import InputError
-from ..progress import Bar, ReconstructionProgress, format_duration
+from ..progress import Bar, ReconstructionProgress, aborting, format_duration
 from .console import _note, _warnings_to_stderr
 from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
 from .parsers import parse_lights
@@ -78,7 +78,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
         display = None if args.quiet else ReconstructionProgress(args.iterations)
         with _warnings_to_stderr():
-            try:
+            with aborting(display):
                 estimate = reconstruct(
                     inputs.images,
                     inputs.rig,
@@ -88,10 +88,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     **inputs.options,
                     **near_options(args),
                 )
-            except BaseException:
-                if display is not None:
-                    display.abort()
-                raise
             if display is not None:
                 display.finish(estimate)
         assert estimate.distance is not None  # depth="auto" always estimates it
@@ -101,7 +97,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     rows = []
     found: dict[str, list[HeldOut]] = {"near": [], "parallel": []}
     bar = None if args.quiet else Bar("held-out", total=len(lights))
-    try:
+    with aborting(bar):
         for done, light in enumerate(lights):
             start = time.perf_counter()
             row: list[float] = [light]
@@ -124,10 +120,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 left = (len(lights) - done - 1) * bar.elapsed / (done + 1)
                 took = format_duration(time.perf_counter() - start)
                 bar.update(done + 1, f"light {light} left out in {took}, ~{format_duration(left)} left")
-    except BaseException:
-        if bar is not None:
-            bar.abort()
-        raise
     if bar is not None:
         bar.close(f"{len(lights)} lights left out one at a time in {format_duration(bar.elapsed)}")
     _print_evaluation(rows, inputs.rig.n_lights)

@@ -15,7 +15,7 @@ import numpy as np
 
 from .._checks import MAX_THREADS, _memory_limit
 from ..errors import InputError
-from ..progress import PipelineProgress
+from ..progress import PipelineProgress, aborting
 from .console import _hint_ctrl_c, _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
 from .parsers import _parse_list, parse_depth, parse_exposures
@@ -271,12 +271,8 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
     _hint_ctrl_c(args)  # the long work starts here
     display = None if args.quiet else PipelineProgress()
-    try:
+    with aborting(display):
         prepared, by_loader = _read_and_prepare(args, source, exposures, vignetting, display)
-    except BaseException:
-        if display is not None:
-            display.abort()
-        raise
     if display is not None:
         display.finish()
     if not args.quiet:

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from ..progress import Bar, ReconstructionProgress, format_duration
+from ..progress import Bar, ReconstructionProgress, aborting, format_duration
 from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
     CONVENTIONS,
@@ -128,12 +128,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     display = None if args.quiet else ReconstructionProgress(args.iterations)
     with _warnings_to_stderr():
-        try:
+        with aborting(display):
             result = reconstruct(inputs.images, inputs.rig, mask=inputs.mask, progress=display, **near, **common)
-        except BaseException:
-            if display is not None:
-                display.abort()
-            raise
         if display is not None:
             display.finish(result)
     wall = time.perf_counter() - start
@@ -169,12 +165,8 @@ def _save(result: Any, directory: Any, args: argparse.Namespace, *, quiet: bool,
     bar = None if quiet else Bar("export")
     if bar is not None:
         bar.update(0, f"writing into {os.fspath(directory)} ...")
-    try:
+    with aborting(bar):
         paths = result.save(directory, opengl=args.opengl, formats=args.formats, **extra)
-    except BaseException:
-        if bar is not None:
-            bar.abort()
-        raise
     if bar is not None:
         bar.close(f"{len(paths)} files written in {format_duration(bar.elapsed)}")
     return dict(paths)
