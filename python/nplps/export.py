@@ -36,6 +36,7 @@ from .errors import InputError
 
 __all__ = [
     "EXTRA_FORMATS",
+    "normal_map_pixels",
     "read_ply",
     "save_albedo",
     "save_depth_npy",
@@ -1085,6 +1086,29 @@ def save_normal_map(path: PathLike, normals: np.ndarray, *, mask: np.ndarray | N
     InputError
         The shapes are wrong.
     """
+    write_png8(path, normal_map_pixels(normals, mask=mask))
+
+
+def normal_map_pixels(normals: np.ndarray, *, mask: np.ndarray | None = None) -> np.ndarray:
+    """Return the RGB pixels of the normal map of :func:`save_normal_map` (same encoding).
+
+    Parameters
+    ----------
+    normals : numpy.ndarray
+        ``(H, W, 3)`` unit normals, OpenCV frame.
+    mask : numpy.ndarray, optional
+        ``(H, W)`` bool of the pixels to encode; the others, and NaN normals, are black.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` uint8.
+
+    Raises
+    ------
+    InputError
+        The shapes are wrong.
+    """
     normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise InputError(f"normals must have shape (H, W, 3), got {normals.shape}")
@@ -1102,7 +1126,7 @@ def save_normal_map(path: PathLike, normals: np.ndarray, *, mask: np.ndarray | N
         flipped = np.clip(np.where(valid[..., None], n, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
         encoded[band] = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
         encoded[band][~valid] = 0
-    write_png8(path, encoded)
+    return encoded
 
 
 def save_albedo(path: PathLike, albedo: np.ndarray) -> float:

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import _core, plots, views
+from . import _core, export, plots, views
 from ._atomic import write_text
 from ._outdir import add_to_manifest
 from .errors import InputError
@@ -233,23 +233,9 @@ def png_data_uri(pixels: np.ndarray) -> str:
     return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
-def _normal_rgb(normals: np.ndarray) -> np.ndarray:
-    """Encode OpenCV-frame normals as the normal map's colours (as ``normals.png``: black where NaN)."""
-    n = np.asarray(normals, dtype=np.float64)
-    valid = np.asarray(np.isfinite(n).all(axis=-1))
-    flipped = np.clip(np.where(valid[..., None], n, 0.0) * np.array([1.0, -1.0, -1.0]), -1.0, 1.0)
-    rgb = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
-    rgb[~valid] = 0
-    return rgb
-
-
 def _grey_rgb(values: np.ndarray) -> np.ndarray:
-    """Scale values by their 99.5th percentile into 8-bit (NaN black)."""
-    v = np.asarray(values, dtype=np.float64)
-    finite = v[np.isfinite(v)]
-    top = float(np.percentile(finite, 99.5)) if finite.size else 1.0
-    out = np.rint(np.clip(np.nan_to_num(v / (top if top > 0 else 1.0)), 0.0, 1.0) * 255).astype(np.uint8)
-    return out
+    """Scale values by their 99.5th percentile into 8-bit (NaN black), as the exported maps are scaled."""
+    return export._quantize(values, 99.5, 255, np.uint8)[0]
 
 
 #: Small maps are shown enlarged by a whole factor (pixelated) until their longer side reaches this.
@@ -800,7 +786,7 @@ def compact_html(result: Reconstruction, *, side: int = 160) -> str:
         rows.append(("Estimated distance", ", ".join(f"{v:.6g}" for v in result.distance.distance)))
     left = "style='text-align:left'"
     cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
-    normals = _normal_rgb(views.downsample(result.normals, side))
+    normals = export.normal_map_pixels(views.downsample(result.normals, side))
     albedo = _grey_rgb(views.downsample(np.asarray(result.albedo, dtype=np.float64), side))
     pics = "".join(
         f"<figure style='display:inline-block;margin:0 8px 0 0'>{_img(p, c)}<figcaption>{c}</figcaption></figure>"
