@@ -1640,6 +1640,31 @@ cli("cli.synth_calibration_size", C, "synth-calibration --size 8 --out {tmp}/c",
 
 del C, name, value, code, key
 
+# More cases, one module per area (``tests/probes_<area>.py``): each defines ``add(p)``, which
+# registers its cases with ``p.api`` / ``p.cli`` (``p`` is this module, also when it runs as the
+# worker's ``__main__``).
+AREAS = ("results", "writes", "readers", "core", "rigs", "honesty")
+
+
+def _add_areas() -> None:
+    import importlib
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    this = sys.modules[__name__]
+    for area in AREAS:
+        try:
+            module = importlib.import_module(f"probes_{area}")
+        except ModuleNotFoundError as e:
+            if e.name != f"probes_{area}":
+                raise
+            continue
+        module.add(this)
+
+
+_add_areas()
+
 
 # --------------------------------------------------------------------------------------------------
 # Worker
