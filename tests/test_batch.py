@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 
 import numpy as np
@@ -91,7 +92,7 @@ def test_batch_local_cluster_failures_resume_summary(captures, tmp_path, capsys)
         report = (out / f"c{i}" / "report.html").read_text()
         assert "data:image/png;base64," in report and (out / f"c{i}" / "inputs.png").is_file()
         assert json.loads((out / f"c{i}" / "summary.json").read_text())["options"]["capture"].endswith(f"c{i}")
-    assert 'href="c0/report.html"' in page and 'href="c5/' not in page
+    assert 'href="./c0/report.html"' in page and 'href="./c5/' not in page
 
     # Rerun: the 7 are skipped (their files untouched), the failed one is tried again.
     stamp = (out / "c0" / "summary.json").stat().st_mtime_ns
@@ -155,12 +156,26 @@ def test_is_complete(tmp_path):
     assert not batch.is_complete(d)
     d.mkdir()
     (d / "mesh.ply").write_bytes(b"ply")
-    (d / "nplps-manifest.json").write_text(json.dumps({"nplps": "x", "files": ["mesh.ply"]}))
+
+    def manifest(files, state="complete", folder=None):
+        records = {name: {"size": size, "sha256": "0" * 64} for name, size in files.items()}
+        data = {"nplps": "x", "manifest": 2, "state": state, "folder": folder or os.path.realpath(d), "files": records}
+        (d / "nplps-manifest.json").write_text(json.dumps(data))
+
+    manifest({"mesh.ply": 3})
     assert not batch.is_complete(d)  # a failed run's manifest: no summary.json
-    (d / "nplps-manifest.json").write_text(json.dumps({"nplps": "x", "files": ["mesh.ply", "summary.json"]}))
+    manifest({"mesh.ply": 3, "summary.json": 2})
     assert not batch.is_complete(d)  # summary.json listed but missing
     (d / "summary.json").write_text("{}")
     assert batch.is_complete(d)
+    manifest({"mesh.ply": 3, "summary.json": 2}, state="in progress")
+    assert not batch.is_complete(d)  # not completed: an interrupted (over)write
+    manifest({"mesh.ply": 3, "summary.json": 2}, folder="/elsewhere")
+    assert not batch.is_complete(d)  # copied in from another folder: not this folder's
+    manifest({"mesh.ply": 4, "summary.json": 2})
+    assert not batch.is_complete(d)  # a file of another size
+    (d / "nplps-manifest.json").write_text(json.dumps({"nplps": "x", "files": ["mesh.ply", "summary.json"]}))
+    assert not batch.is_complete(d)  # format 1 (no sizes): not trusted
 
 
 def test_summary_fields_need_no_quoting(tmp_path):

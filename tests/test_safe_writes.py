@@ -5,6 +5,7 @@ removes only the stale files of the earlier nplps result (its ``nplps-manifest.j
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -19,7 +20,7 @@ import pytest
 import nplps
 from nplps import cli, export
 from nplps._atomic import TEMPORARY_NAME, atomic_write, is_write_error
-from nplps._outdir import MANIFEST, read_manifest
+from nplps._outdir import MANIFEST, is_complete, load_manifest, read_manifest
 from nplps.errors import OutputExistsError
 
 POSIX_ONLY = pytest.mark.skipif(sys.platform == "win32", reason="POSIX resource limits and signals")
@@ -203,8 +204,12 @@ def test_exception_while_overwriting_keeps_the_old_files(
     assert files_under(out) == set(before)
     assert not temporaries(out)
     changed = {name for name in before if (out / name).read_bytes() != before[name]}
-    assert changed == {"mesh.ply", "mesh.obj"}  # written (complete) before the failure
+    assert changed == {"mesh.ply", "mesh.obj", MANIFEST}  # written (complete) before the failure; the manifest
     assert set(read_manifest(out) or []) == set(before) - {MANIFEST}
+    # Two results mixed: the folder says "in progress", never complete.
+    manifest = load_manifest(out)
+    assert manifest is not None and manifest.state == "in progress" and not is_complete(out)
+    assert manifest.files["mesh.ply"] is not None  # finished before the failure: size and hash recorded
 
 
 def test_atomic_write_keeps_the_old_file_and_umask_permissions(tmp_path: Path) -> None:
@@ -271,7 +276,12 @@ def test_signal_during_save(tmp_path: Path, scene_dir: Path, scene: nplps.Scene,
     assert "Traceback" not in stderr
     assert files_under(out) == {"mesh.ply", MANIFEST}  # no mesh.obj, no temporary file
     export.read_ply(out / "mesh.ply")  # complete
-    assert read_manifest(out) == ["mesh.ply"]
+    manifest = load_manifest(out)  # marked unfinished, listing every file the run announced
+    assert manifest is not None and manifest.state == "in progress" and not is_complete(out)
+    assert "summary.json" in manifest.files and manifest.files["summary.json"] is None
+    record = manifest.files["mesh.ply"]
+    assert record is not None and record["size"] == (out / "mesh.ply").stat().st_size
+    assert "unfinished" in stderr and "in progress" in stderr
 
 
 # --------------------------------------------------------------------------------------------------
@@ -354,7 +364,8 @@ def test_overwrite_removes_stale_files_and_keeps_the_users(
     (tmp_path / "outside.txt").write_text("outside")
     # A tampered manifest must not reach outside the directory or into a directory.
     manifest = json.loads((out / MANIFEST).read_text())
-    manifest["files"] += ["../outside.txt", str(tmp_path / "outside.txt"), "data", "notes.txt/.."]
+    for name in ["../outside.txt", str(tmp_path / "outside.txt"), "data", "notes.txt/.."]:
+        manifest["files"][name] = None
     (out / MANIFEST).write_text(json.dumps(manifest))
 
     paths = result.save(out, overwrite=True)
@@ -405,7 +416,7 @@ def test_scene_overwrite_removes_images_of_an_earlier_scene(tmp_path: Path, scen
     (tmp_path / "image_99.png").write_bytes(b"not nplps")  # the user's
     manifest = json.loads((tmp_path / MANIFEST).read_text())
     export.write_png8(tmp_path / "image_27.png", np.zeros((2, 2), np.uint8))  # as if an earlier scene had 28 images
-    manifest["files"].append("image_27.png")
+    manifest["files"]["image_27.png"] = None  # finished by no run: removed only as not older than the run
     (tmp_path / MANIFEST).write_text(json.dumps(manifest))
     with pytest.raises(OutputExistsError):
         scene.save(tmp_path)
@@ -427,7 +438,12 @@ def test_manifest_lists_exactly_the_files_written(
     assert {"rig_refined.json", "distance_curve.csv", "distance_curve.svg", "summary.json"} <= written
     assert files_under(tmp_path / "r") == written | {MANIFEST}
     manifest = json.loads((tmp_path / "r" / MANIFEST).read_text())
-    assert manifest == {"nplps": nplps.__version__, "files": sorted(written)}
+    assert manifest["nplps"] == nplps.__version__ and manifest["state"] == "complete"
+    assert manifest["folder"] == os.path.realpath(tmp_path / "r") and list(manifest["files"]) == sorted(written)
+    for name, record in manifest["files"].items():
+        data = (tmp_path / "r" / name).read_bytes()
+        assert record == {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    assert is_complete(tmp_path / "r", verify=True)
 
     scene_paths = scene.save(tmp_path / "s")
     assert set(read_manifest(tmp_path / "s") or []) == files_under(tmp_path / "s") - {MANIFEST}

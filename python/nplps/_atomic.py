@@ -9,6 +9,12 @@ before. On an exception the temporary file is removed; if the process is killed 
 (SIGKILL, or a signal that is not handled) a hidden ``.NAME.nplps-XXXXXXXX[.ext]`` file may stay
 behind, never the final name.
 
+Only regular files are replaced. An existing target that is a character device or a FIFO
+(``/dev/null``, ``/dev/stdout``, a named pipe), or a symbolic link to one, is written directly,
+in place: renaming over it would turn the device into a regular file. Any other kind of target
+(a block device, a socket, a symbolic link to a regular file or a directory) is refused with
+"cannot write X: not a regular file": nplps does not replace links or write through them.
+
 An :class:`OSError` raised while writing is re-raised with the final path as its ``filename``
 (the temporary name means nothing to the user) and marked as a write error (see
 :func:`is_write_error`), so that messages can say "cannot write PATH: REASON".
@@ -16,9 +22,11 @@ An :class:`OSError` raised while writing is re-raised with the final path as its
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import secrets
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import IO, Any, Union
@@ -46,6 +54,16 @@ def atomic_path(path: PathLike) -> Iterator[str]:
         Creating, writing or renaming failed; ``filename`` is ``path``.
     """
     final = os.fspath(path)
+    try:
+        direct = _writes_in_place(final)
+    except OSError as e:
+        raise write_error(e, final) from e
+    if direct:
+        try:
+            yield final
+        except OSError as e:
+            raise write_error(e, final) from e
+        return
     directory, name = os.path.split(os.path.abspath(final))
     suffix = os.path.splitext(name)[1]
     temporary = None
@@ -109,6 +127,46 @@ def is_write_error(error: BaseException) -> bool:
     If so, its ``filename`` is the file that could not be written.
     """
     return bool(getattr(error, _WRITE_ERROR, False))
+
+
+def _writes_in_place(path: str) -> bool:
+    """Whether ``path`` is to be written in place (a character device or FIFO, or a link to one).
+
+    Raises
+    ------
+    OSError
+        ``path`` exists and is neither a regular file nor such a target (see the module docstring).
+    """
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        return False
+    if stat.S_ISREG(info.st_mode):
+        return False
+    target = info
+    if stat.S_ISLNK(info.st_mode):
+        try:
+            target = os.stat(path)
+        except OSError:
+            target = info  # a dangling link
+    if stat.S_ISCHR(target.st_mode) or stat.S_ISFIFO(target.st_mode):
+        return True
+    kind = (
+        "a symbolic link"
+        if stat.S_ISLNK(info.st_mode)
+        else "a directory"
+        if stat.S_ISDIR(info.st_mode)
+        else "a block device"
+        if stat.S_ISBLK(info.st_mode)
+        else "a socket"
+        if stat.S_ISSOCK(info.st_mode)
+        else "a special file"
+    )
+    raise OSError(
+        errno.EEXIST,
+        f"not a regular file (it is {kind}; nplps replaces only regular files and writes devices and pipes in place)",
+        path,
+    )
 
 
 def _create(directory: str, name: str, suffix: str) -> str:

@@ -7,8 +7,12 @@ and, if present, its mask image. All captures share one rig. Each capture is one
 :func:`nplps.pipeline.prepare`, :func:`nplps.reconstruct` and
 :meth:`nplps.Reconstruction.save` into ``OUT/<capture name>/``.
 
-- Resumable: a capture whose result directory already holds a complete result (its
-  ``nplps-manifest.json`` lists ``summary.json`` and every file it lists exists) is skipped.
+- Resumable, by fingerprint: a capture whose result directory holds a complete result (see
+  :func:`is_complete`) made from the same images, rig and options is skipped; one made from
+  other images, another rig or other options is redone (the item's ``note`` names what
+  changed). A result that an earlier run did not finish (killed, out of memory, a dead worker:
+  its manifest still says "in progress" and the folder holds only nplps's files) is redone. A
+  result directory holding other files is left alone (the capture fails) unless ``overwrite``.
 - A capture that fails is reported and the others go on.
 - ``OUT/batch_summary.csv`` and ``OUT/batch_summary.html`` list every capture (written
   atomically, at the end of the run).
@@ -25,13 +29,16 @@ import io
 import json
 import os
 import time
+import urllib.parse
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 from ._atomic import PathLike, write_text
-from ._outdir import ResultDirectory, read_manifest
+from ._outdir import ResultDirectory, file_identity, fingerprint, load_manifest, unfinished
+from ._outdir import is_complete as _is_complete
+from ._text import printable
 from .captures.files import _find_one, find_images
 from .errors import InputError, NplpsError
 from .rig import Rig
@@ -73,6 +80,8 @@ class BatchItem:
         The error message of a failed capture.
     warnings : list of str
         Warnings the reconstruction gave (e.g. a diverged run).
+    note : str or None
+        Why an existing result was redone (other options, an unfinished earlier run).
     """
 
     name: str
@@ -85,6 +94,7 @@ class BatchItem:
     seconds: float | None = None
     error: str | None = None
     warnings: list[str] = dataclasses.field(default_factory=list)
+    note: str | None = None
 
     def row(self) -> dict[str, str]:
         """Return the item as a row of ``batch_summary.csv`` (text; ``nan`` for missing numbers)."""
@@ -127,13 +137,19 @@ def find_captures(pattern: str, out: PathLike | None = None) -> list[Path]:
 
     top = None if out is None else os.path.realpath(out)
     found = []
-    for match in glob.glob(os.path.expanduser(pattern), recursive=True):
+    for match in _glob_directories(os.path.expanduser(pattern)):
         real = os.path.realpath(match)
-        if not os.path.isdir(match) or (top is not None and (real == top or real.startswith(top + os.sep))):
+        if top is not None and (real == top or real.startswith(top + os.sep)):
             continue
+        name = Path(match).name
+        if name in ("", ".", "..") or os.sep in name or (os.altsep and os.altsep in name):
+            raise InputError(
+                f"capture directory {match!r} has no name of its own ({name!r}): its result would land outside "
+                "the output directory; write the pattern without '.' or '..' parts"
+            )
         found.append(Path(match))
     if not found:
-        raise InputError(f"no capture directory matches '{pattern}'")
+        raise InputError(f"no capture directory matches {printable(pattern)!r}")
     found.sort(key=lambda p: (natural_key(p.name), str(p)))
     names: dict[str, Path] = {}
     for path in found:
@@ -146,11 +162,50 @@ def find_captures(pattern: str, out: PathLike | None = None) -> list[Path]:
     return found
 
 
+def _glob_directories(pattern: str) -> list[str]:
+    """Return the directories that the glob ``pattern`` matches, each real directory once.
+
+    As :func:`glob.glob` with ``recursive=True`` (``**`` matches any number of directories, hidden
+    ones left out), but a ``**`` walk follows each real directory once: symbolic links back to an
+    ancestor (loops) do not make it run for ever.
+    """
+    parts = pattern.split(os.sep)
+    if "**" not in parts:
+        return [m for m in glob.glob(pattern) if os.path.isdir(m)]
+    i = parts.index("**")
+    head = os.sep.join(parts[:i]) or ("" if not pattern.startswith(os.sep) else os.sep)
+    rest = os.sep.join(parts[i + 1 :])
+    bases = [head] if not glob.has_magic(head) else [m for m in glob.glob(head) if os.path.isdir(m)]
+    seen: set[str] = set()
+    found: list[str] = []
+    for base in bases or ([head] if head == "" else []):
+        start = base or os.curdir
+        if not os.path.isdir(start):
+            continue
+        for top, dirs, _ in os.walk(start, followlinks=True):
+            real = os.path.realpath(top)
+            if real in seen:
+                dirs[:] = []
+                continue
+            seen.add(real)
+            dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+            shown = top if base else os.path.relpath(top)
+            if not rest:
+                found.append(shown)
+            else:
+                found.extend(_glob_directories(os.path.join(glob.escape(shown), rest)))
+    unique: dict[str, str] = {}
+    for match in found:
+        unique.setdefault(os.path.realpath(match), match)
+    return list(unique.values())
+
+
 def is_complete(directory: PathLike) -> bool:
     """Tell whether ``directory`` holds a complete nplps result.
 
-    Its manifest (``nplps-manifest.json``) is readable and lists ``summary.json`` (written last
-    by :meth:`~nplps.Reconstruction.save`), and every file it lists exists.
+    Its manifest (``nplps-manifest.json``) is nplps's own for this directory, says the result is
+    complete (it was completed last, after every file), lists ``summary.json``, and every file
+    it lists is present with its recorded size.
 
     Parameters
     ----------
@@ -162,10 +217,53 @@ def is_complete(directory: PathLike) -> bool:
     bool
         True if the result is complete.
     """
-    files = read_manifest(directory)
-    if not files or "summary.json" not in files:
-        return False
-    return all(os.path.isfile(os.path.join(directory, f)) for f in files)
+    return _is_complete(directory)
+
+
+def _resume(item: BatchItem, fp: str, inputs: dict[str, Any]) -> tuple[bool, bool]:
+    """Decide a capture of a rerun: ``(skip, replace)``; sets ``item.note`` when a result is redone."""
+    if _is_complete(item.out):
+        manifest = load_manifest(item.out)
+        if manifest is not None and manifest.fingerprint == fp:
+            return True, False
+        earlier = (manifest.inputs if manifest is not None else None) or {}
+        changed = sorted(k for k in set(earlier) | set(inputs) if earlier.get(k) != inputs.get(k))
+        item.note = "redone: the earlier result was made from other " + (
+            ", ".join(changed) if changed else "inputs or options"
+        )
+        return False, True
+    if unfinished(item.out):
+        item.note = "redone: an earlier run did not finish it"
+        return False, True
+    return False, False
+
+
+def _capture_inputs(
+    folder: Path, rig: Rig, depth: Any, mask_name: str | None, ambient_name: str | None, options: dict[str, Any]
+) -> dict[str, Any]:
+    """Return what a capture's result is made from (for its fingerprint): image files, rig, depth and options."""
+    from .reconstruction import _jsonable
+
+    try:
+        images = [file_identity(f) for f in find_images(folder)]
+    except OSError:
+        images = []
+    side = {}
+    for word, name in (("mask", mask_name), ("ambient", ambient_name)):
+        try:
+            path = _side_file(folder, name, word)
+        except (InputError, OSError):
+            path = None
+        side[word] = None if path is None else file_identity(path)
+    ignored = ("threads", "report")  # change how fast, not what
+    return {
+        "images": images,
+        "mask": side["mask"],
+        "ambient": side["ambient"],
+        "rig": fingerprint(rig.to_dict()),
+        "depth": fingerprint({"depth": depth}) if hasattr(depth, "shape") else _jsonable(depth),
+        **{f"option {k}": _jsonable(v) for k, v in sorted(options.items()) if k not in ignored},
+    }
 
 
 def run(
@@ -280,12 +378,17 @@ def run(
     folders = find_captures(pattern, out)
     items: list[BatchItem] = []
     todo: list[BatchItem] = []
+    plans: dict[str, tuple[bool, str, dict[str, Any]]] = {}
     for folder in folders:
         item = BatchItem(folder.name, os.fspath(folder), os.fspath(out / folder.name))
         items.append(item)
-        if not overwrite and is_complete(item.out):
+        inputs = _capture_inputs(folder, rig, depth, mask_name, ambient_name, options)
+        fp = fingerprint(inputs)
+        skip, replace = (False, True) if overwrite else _resume(item, fp, inputs)
+        if skip:
             _fill_skipped(item)
         else:
+            plans[item.name] = (replace, fp, inputs)
             todo.append(item)
     total, done, failed = len(items), 0, 0
     for item in items:
@@ -318,7 +421,7 @@ def run(
                         ambient_name,
                         prepare_options,
                         solve_options,
-                        overwrite,
+                        plans[item.name],
                         report,
                         key=f"nplps-batch-{item.name}-{os.urandom(4).hex()}",
                         pure=False,
@@ -397,20 +500,26 @@ def _process(
     ambient_name: str | None,
     prepare_options: dict[str, Any],
     solve_options: dict[str, Any],
-    overwrite: bool,
+    plan: tuple[bool, str, dict[str, Any]],
     report: bool = True,
 ) -> BatchItem:
-    """Reconstruct one capture and save it (the Dask task); errors become a failed item."""
+    """Reconstruct one capture and save it (the Dask task); errors become a failed item.
+
+    ``plan`` is ``(replace, fingerprint, inputs)``: whether the result directory may hold files
+    (an earlier result of nplps's that :func:`_resume` chose to redo, or ``overwrite``), and what
+    the result is made from, recorded in its manifest.
+    """
     from . import pipeline
     from .api import reconstruct
 
     start = time.perf_counter()
     caught: list[str] = []
+    replace, fp, inputs = plan
     try:
-        # Checked before the work: our own earlier (incomplete) result is replaced, a directory
-        # holding other files only with overwrite.
-        replace = overwrite or read_manifest(item.out) is not None
-        target = ResultDirectory(item.out, overwrite=replace, option="overwrite (--overwrite)")
+        # Checked before the work: a directory holding other files only with overwrite.
+        target = ResultDirectory(
+            item.out, overwrite=replace, option="overwrite (--overwrite)", fingerprint=fp, inputs=inputs
+        )
         folder = Path(item.folder)
         files = find_images(folder)
         if not files:
@@ -520,7 +629,8 @@ def _html(items: Sequence[BatchItem]) -> str:
             if column == "capture" and item.status != "failed":
                 # The capture's report when it has one (a result made with report=False has not).
                 has_report = (Path(item.out) / "report.html").is_file()
-                link = f"{item.name}/report.html" if has_report else f"{item.name}/"
+                # Relative ("./") and percent-encoded: a capture named "javascript:..." is a path, not a URL scheme.
+                link = "./" + urllib.parse.quote(item.name) + ("/report.html" if has_report else "/")
                 value = f'<a href="{html.escape(link)}">{value}</a>'
             cells.append(f"<td>{'' if value == 'nan' else value}</td>")
         rows.append(f'<tr style="background:{_COLOURS[item.status]}">{"".join(cells)}</tr>')

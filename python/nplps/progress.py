@@ -36,9 +36,10 @@ __all__ = ["CTRL_C_HINT", "Bar", "PipelineProgress", "ReconstructionProgress", "
 
 #: The hint printed once at the start of long work. It is what happens: Ctrl-C raises
 #: KeyboardInterrupt within a fraction of a second (also inside an iteration; a direct sparse
-#: factorization finishes first), the call leaves no partial result, and every file is written
+#: factorization finishes first), an output folder is left complete or marked unfinished (its
+#: manifest says "in progress", never complete), and every file is written
 #: under a temporary name and renamed when complete (the command exits with status 130).
-CTRL_C_HINT = "Ctrl-C stops cleanly: no partial result, no half-written file"
+CTRL_C_HINT = "Ctrl-C stops cleanly: no half-written file; an output folder is left complete or marked unfinished"
 
 #: Seconds between two redraws of a terminal bar.
 _REDRAW = 0.1

@@ -775,6 +775,8 @@ class Reconstruction:
         leaves a truncated file under its final name.
         """
         extra = _check_formats(formats)
+        if not isinstance(stem, str) or not stem or stem in (".", "..") or any(c in stem for c in "/\\\0"):
+            raise InputError(f"stem must be a file name without a directory (it names mesh files), got {stem!r}")
         with result_directory(directory, overwrite) as out:
             names = {
                 "ply": f"{stem}.ply",

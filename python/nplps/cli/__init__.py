@@ -29,6 +29,7 @@ from typing import Any
 
 from .. import __version__
 from .._atomic import is_write_error
+from .._text import printable
 from ..errors import NplpsError
 from .batch import add_batch_parser, cmd_batch
 from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
@@ -235,7 +236,7 @@ def _exit_code(code: Any) -> int:
 
 
 def _error(message: str) -> None:
-    message = " ".join(str(message).split()) or "unknown error"
+    message = printable(" ".join(str(message).split())) or "unknown error"
     print(f"{PROG}: error: {message}", file=sys.stderr, flush=True)
 
 

@@ -7,6 +7,7 @@ import os
 import sys
 from typing import Any
 
+from .._text import printable
 from .inputs import _check_numbers, near_options
 from .parsers import parse_depth, parse_exposures
 
@@ -19,9 +20,12 @@ one (a file with 'mask' in its name; see --mask-name). Each capture is one task 
 cluster (--workers processes) or on a running Dask scheduler (--scheduler ADDRESS), and its
 result goes to DIR/<capture name>/ as with 'nplps reconstruct'.
 
-Resumable: a capture whose DIR/<name>/ holds a complete result (its nplps-manifest.json lists
-summary.json and every file it lists exists) is skipped; run the same command again after a
-failure or an interruption to do the rest (--overwrite redoes them all). A failed capture is
+Resumable: a capture whose DIR/<name>/ holds a complete result made from the same images, rig
+and options (its nplps-manifest.json says so) is skipped; one made with other options or another
+rig is redone (the line says which changed), and so is one that an earlier run did not finish
+(killed, out of memory). Run the same command again after a failure or an interruption to do the
+rest (--overwrite redoes them all). A DIR/<name>/ holding files that nplps did not write is left
+alone (that capture fails) unless --overwrite. A failed capture is
 reported ('capture NAME: failed: MESSAGE') and the others go on. At the end DIR/batch_summary.csv
 and DIR/batch_summary.html list every capture: status (ok, failed, skipped), iterations, the
 solver's status, rms residual, seconds, error.
@@ -175,13 +179,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 def _print_progress(item: Any, done: int, total: int, failed: int) -> None:
     counts = f"[{done}/{total}, {failed} failed]"
+    name = printable(item.name)  # a folder named with escape codes is shown, not obeyed
     if item.status == "failed":
-        line = f"capture {item.name}: failed: {item.error}"
+        line = f"capture {name}: failed: {item.error}"
     elif item.status == "skipped":
-        line = f"capture {item.name}: skipped (complete result in {item.out})"
+        line = f"capture {name}: skipped (complete result in {item.out}, made with the same inputs and options)"
     else:
         rms = "" if item.rms_residual is None else f", rms residual {item.rms_residual:.3e}"
-        line = f"capture {item.name}: ok, {item.solver_status}, {item.iterations} iterations{rms}, {item.seconds:.2f} s"
-    print(f"{counts} {line}", flush=True)
+        line = f"capture {name}: ok, {item.solver_status}, {item.iterations} iterations{rms}, {item.seconds:.2f} s"
+        if item.note:
+            line += f" ({item.note})"
+    print(printable(f"{counts} {line}"), flush=True)
     for message in item.warnings:
-        print(f"capture {item.name}: warning: {' '.join(message.split())}", file=sys.stderr, flush=True)
+        print(printable(f"capture {name}: warning: {' '.join(message.split())}"), file=sys.stderr, flush=True)

@@ -20,7 +20,7 @@ from .._atomic import write_text
 from ..errors import InputError
 from .console import PROG, _note, _warnings_to_stderr, describe_rig
 from .imagefiles import resolve_images
-from .outputs import add_output_options, output_directory
+from .outputs import add_output_options, output_directory, writing
 
 CALIBRATE_DESCRIPTION = """\
 Calibrate the lights of a rig.
@@ -437,7 +437,7 @@ def cmd_synth_calibration(args: argparse.Namespace) -> int:
         noise=args.noise,
         seed=args.seed,
     )
-    with directory:
+    with writing(directory):
         scene.save(directory)
         if not args.no_board:
             board = make_board_scene(

@@ -14,13 +14,14 @@ from typing import Any
 
 import numpy as np
 
+from .._text import printable
 from ..progress import CTRL_C_HINT
 
 PROG = "nplps"
 
 
 def _note(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    print(printable(message, keep_newlines=True), file=sys.stderr, flush=True)
 
 
 def _hint_ctrl_c(args: Any) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 from .._checks import MAX_THREADS, _memory_limit
 from ..errors import InputError
 from ..progress import PipelineProgress, aborting
-from .console import _hint_ctrl_c, _note, describe_rig
+from .console import PROG, _hint_ctrl_c, _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
 from .parsers import _parse_list, parse_depth, parse_exposures
 
@@ -229,6 +229,10 @@ class Inputs(NamedTuple):
     valid: np.ndarray | None
     #: Keyword arguments for reconstruct, reconstruct_parallel and held_out: depth, dark, robust, threads.
     options: dict[str, Any]
+    #: The files read (images, rig, mask, ambient image): a result written beside them never removes them.
+    sources: tuple[str, ...] = ()
+    #: The pre-processing steps applied, in the words the command line prints (recorded in summary.json).
+    steps: tuple[str, ...] = ()
 
 
 class _Source(NamedTuple):
@@ -275,12 +279,12 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         prepared, by_loader = _read_and_prepare(args, source, exposures, vignetting, display)
     if display is not None:
         display.finish()
+    # The first steps are the capture loader's (e.g. queau_human1's 2 x 2 binning), the rest the pipeline's.
+    steps = [
+        _step_text(step, args, source, prepared.images, by_loader=i < len(by_loader))
+        for i, step in enumerate(prepared.steps)
+    ]
     if not args.quiet:
-        # The first steps are the capture loader's (e.g. queau_human1's 2 x 2 binning), the rest the pipeline's.
-        steps = [
-            _step_text(step, args, source, prepared.images, by_loader=i < len(by_loader))
-            for i, step in enumerate(prepared.steps)
-        ]
         _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
     options = {
         "depth": depth,
@@ -289,7 +293,9 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         "threads": args.threads,
         "max_memory": getattr(args, "max_memory", None),
     }
-    return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options)
+    side = (source.mask, source.ambient, getattr(args, "rig", None))
+    sources = [*source.files, *(os.fspath(f) for f in side if isinstance(f, (str, os.PathLike)))]
+    return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options, tuple(sources), tuple(steps))
 
 
 def _read_and_prepare(
@@ -427,7 +433,22 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
     if args.depth_prior is not None:
         options["depth_prior"] = parse_depth(args.depth_prior, "--depth-prior")
         options["prior_weight"] = args.prior_weight
+    for given, needed in _no_effect(args):
+        _note(f"{PROG}: warning: {given} has no effect without {needed}; it is ignored")
     return options
+
+
+def _no_effect(args: argparse.Namespace) -> list[tuple[str, str]]:
+    """Return the options given that do nothing with the others given: ``(option, what it needs)``."""
+    found = []
+    if getattr(args, "light_prior_weight", None) is not None and getattr(args, "refine_lights", None) not in (
+        "position",
+        "both",
+    ):
+        found.append(("--light-prior-weight", "--refine-lights position or both"))
+    if getattr(args, "depth_range", None) is not None and str(getattr(args, "depth", "")).strip().lower() != "auto":
+        found.append(("--depth-range", "--depth auto"))
+    return found
 
 
 def _estimated(result: Any, options: dict[str, Any]) -> dict[str, Any]:

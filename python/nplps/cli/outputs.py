@@ -7,8 +7,12 @@ These commands are ``reconstruct``, ``synth``, ``demo`` and ``synth-calibration`
 from __future__ import annotations
 
 import argparse
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from .._outdir import MANIFEST, ResultDirectory
+from .console import _note
 
 OVERWRITE_HELP = (
     "write into a non-empty --out directory: files of the same names are replaced, the files of an "
@@ -53,3 +57,26 @@ def output_directory(args: argparse.Namespace) -> ResultDirectory:
     ``--overwrite`` was not given. Use it as a context manager around the writing.
     """
     return ResultDirectory(args.out, overwrite=args.overwrite, option="--overwrite")
+
+
+@contextmanager
+def writing(out: ResultDirectory) -> Iterator[ResultDirectory]:
+    """Write a result into ``out`` (a ``with`` block); on an error or Ctrl-C, say what the folder holds.
+
+    Either nothing was written (no trace of the run is left), or the folder is marked unfinished:
+    its manifest says "in progress", so that it is never taken for a complete result (``nplps
+    batch`` redoes it; ``--overwrite`` replaces it).
+    """
+    try:
+        with out:
+            yield out
+    except BaseException:
+        where = os.fspath(out.path)
+        if out.written and os.path.exists(os.path.join(where, MANIFEST)):
+            _note(
+                f'the result in {where} is unfinished: its {MANIFEST} says "in progress" '
+                "(run again with --overwrite to redo it)"
+            )
+        else:
+            _note(f"nothing was written into {where}")
+        raise

@@ -20,7 +20,7 @@ from .inputs import (
     check_input_args,
     near_options,
 )
-from .outputs import add_output_options, output_directory, parse_formats
+from .outputs import add_output_options, output_directory, parse_formats, writing
 
 RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
@@ -124,6 +124,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     near = near_options(args)
     out = output_directory(args)  # refuses a non-empty --out before the images are read
     inputs = build_inputs(args)
+    out.protect(inputs.sources)  # a result written beside its inputs never removes them
     common = dict(inputs.options, valid=inputs.valid)
     start = time.perf_counter()
     display = None if args.quiet else ReconstructionProgress(args.iterations)
@@ -133,8 +134,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if display is not None:
             display.finish(result)
     wall = time.perf_counter() - start
-    with out:  # one run: the manifest lists the baseline's files too
-        recorded = {**_recorded_args(args), "solver_options": {**near, **common}}
+    with writing(out):  # one run: the manifest lists the baseline's files too
+        recorded = {**_recorded_args(args), "preprocessing": list(inputs.steps), "solver_options": {**near, **common}}
         paths = _save(result, out, args, quiet=args.quiet, report=args.report, inputs=inputs.images, options=recorded)
         _print_summary("near-light reconstruction (nplps)", result, wall, paths)
 

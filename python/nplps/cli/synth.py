@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from .console import PROG, _warnings_to_stderr, describe_rig
-from .outputs import add_output_options, output_directory
+from .outputs import add_output_options, output_directory, writing
 
 SYNTH_DESCRIPTION = """\
 Write a synthetic scene: 16-bit images image_XX.png (RGB with --rgb) rendered by the solver's
@@ -130,7 +130,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         rgb=args.rgb,
         directional=args.directional,
     )
-    with directory:
+    with writing(directory):
         paths = scene.save(directory)
     out = Path(args.out)
     kind = ("RGB" if args.rgb else "grey") + (", LEDs" if args.led else "")
@@ -209,7 +209,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             }
         )
     near, base = runs
-    with out:
+    with writing(out):
         scene.save(out.subdirectory("scene"))
         near["result"].save(out.subdirectory("near"))
         base["result"].save(out.subdirectory("baseline"))
