@@ -34,14 +34,13 @@ import base64
 import html
 import json
 import os
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import _core, export, plots, views
+from . import _core, _results, export, plots, views
 from ._atomic import write_text
 from ._outdir import add_to_manifest
 from .errors import InputError
@@ -77,6 +76,15 @@ VIEWS = (
     ("turned 35° to the right", 35.0, 0.0),
     ("seen from 35° above", 0.0, 35.0),
 )
+
+#: The .npy files the report reads: allowed dtype kinds and the shape after (H, W) (the vertex
+#: grid (H + 1, W + 1) for depth.npy).
+_NPY_FILES: dict[str, tuple[str, tuple[int, ...]]] = {
+    "depth.npy": ("f", ()),
+    "residual.npy": ("f", ()),
+    "normals.npy": ("f", (3,)),
+    "lights_used.npy": ("iu", ()),
+}
 
 _HISTORY_HEADER = "level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change"
 
@@ -283,8 +291,8 @@ def _colorbar_svg(lo: float, hi: float, label: str, *, height: int = 300) -> str
     return "".join(parts)
 
 
-def _fmt(v: float) -> str:
-    return f"{v:.4g}"
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{float(v):.4g}"
 
 
 def _none(text: str) -> str:
@@ -394,13 +402,7 @@ def report_html(directory: str | os.PathLike[str]) -> str:
         `directory` holds no readable ``summary.json``.
     """
     root = Path(directory)
-    try:
-        summary = json.loads((root / "summary.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise InputError(
-            f"{os.fspath(root)!r} is not an nplps result directory (no readable summary.json: {e})"
-        ) from None
-    d = _Data(root, summary)
+    d = _Data(root, _results.read_summary(root))
     sections = [
         _section_header(d),
         _section_inputs(d),
@@ -428,30 +430,38 @@ class _Data:
         self.root = root
         self.summary = summary
         self.options: dict[str, Any] = summary.get("options") or {}
+        self.shape: tuple[int, int] = (int(summary["shape"][0]), int(summary["shape"][1]))
         self.name = root.resolve().name or os.fspath(root)
         self._cache: dict[str, Any] = {}
 
     def _load(self, name: str) -> Any:
+        """Return the checked contents of a file of the directory, or None when it is missing.
+
+        A file that is there but damaged (wrong type, shape or size, truncated) raises
+        :class:`InputError` naming it (:mod:`nplps._results`).
+        """
         if name in self._cache:
             return self._cache[name]
         p = self.root / name
         value: Any = None
-        if p.is_file():
-            try:
-                if name.endswith(".npy"):
-                    value = np.load(p, allow_pickle=False)
-                elif name.endswith(".png"):
-                    from .io import read_image
-
-                    value = read_image(p)
-                elif name.endswith(".csv"):
-                    with warnings.catch_warnings():  # a header only: no rows, no warning
-                        warnings.simplefilter("ignore", UserWarning)
-                        value = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-                elif name.endswith(".json"):
-                    value = json.loads(p.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                value = None
+        if os.path.lexists(p):
+            h, w = self.shape
+            if name in _NPY_FILES:
+                kinds, extra = _NPY_FILES[name]
+                grid = (h + 1, w + 1) if name == "depth.npy" else (h, w)
+                value = _results.read_npy(p, kinds=kinds, shape=grid + extra)
+            elif name == "inputs.png":
+                value = _results.read_png(p)
+            elif name.endswith(".png"):
+                value = _results.read_png(p, shape=(h, w))
+            elif name == "history.csv":
+                value = _results.read_history(p)
+            elif name == "distance_curve.csv":
+                value = _results.read_distance_curve(p)
+            elif name == "held_out.json":
+                value = _results.read_held_out(p)
+            else:  # pragma: no cover - every file the report reads is listed above
+                raise ValueError(f"no reader for {name}")
         self._cache[name] = value
         return value
 
@@ -497,12 +507,8 @@ class _Data:
     @property
     def rig(self) -> Any:
         if "rig" not in self._cache:
-            from .rig import Rig
-
-            try:
-                self._cache["rig"] = Rig.load(self.root / "rig.json") if (self.root / "rig.json").is_file() else None
-            except (OSError, ValueError):
-                self._cache["rig"] = None
+            path = self.root / "rig.json"
+            self._cache["rig"] = _results.read_rig(path) if os.path.lexists(path) else None
         return self._cache["rig"]
 
 
@@ -524,7 +530,7 @@ def _section_header(d: _Data) -> str:
         capture = " ".join(str(c) for c in capture[:3]) + (f" ... ({len(capture)} items)" if len(capture) > 3 else "")
     rig = d.rig
     lights = str(rig.n_lights) if rig is not None else "unknown (no rig.json)"
-    total = s.get("timings", {}).get("total")
+    total = (s.get("timings") or {}).get("total")
     rows = [
         ("capture", str(capture)),
         ("result directory", os.fspath(d.root.resolve())),
@@ -545,7 +551,7 @@ def _section_inputs(d: _Data) -> str:
     if sheet is None:
         body = _none("No input thumbnails: the images were not given to save() (inputs.png is missing).")
     else:
-        body = _img(np.asarray(sheet, dtype=np.uint8), "input images", zoom=False) + (
+        body = _img(np.clip(sheet, 0, 255).astype(np.uint8), "input images", zoom=False) + (
             "<p>The input images after pre-processing, in light order (row by row), one brightness scale.</p>"
         )
     return _section("Inputs", body, "inputs")
@@ -563,7 +569,7 @@ def _section_maps(d: _Data) -> str:
     if normals is not None:
         small = views.downsample(np.asarray(d.cropped(normals), dtype=np.float64), MAP_SIDE)
         caption = f"normal map (mesh normals; facing the camera = light blue){d.crop_note}"
-        figures.append(_figure(np.rint(small).astype(np.uint8), caption))
+        figures.append(_figure(np.rint(np.clip(np.nan_to_num(small), 0, 255)).astype(np.uint8), caption))
     else:
         figures.append(_none("Normal map: not available (normals.png is missing)."))
     albedo = d._load("albedo.png")
@@ -691,7 +697,12 @@ def _section_distance(d: _Data) -> str:
         )
     regions = sorted({int(r) for r in curve[:, 0]})
     curves = [curve[curve[:, 0] == r][:, 1:] for r in regions]
-    estimates = list(d.summary.get("estimated_distance") or [np.nan] * len(curves))
+    recorded = d.summary.get("estimated_distance") or []
+    # One estimate per region of the curve (the region's number indexes the recorded list).
+    estimates = [
+        float(recorded[r]) if r < len(recorded) and recorded[r] is not None and recorded[r] > 0 else np.nan
+        for r in regions
+    ]
     try:
         svg = plots.residual_curve_svg(curves, estimates)
     except ValueError:
@@ -736,7 +747,7 @@ def _section_options(d: _Data) -> str:
     s = d.summary
     timings = s.get("timings") or {}
     parts = ["<h3>Timings (seconds)</h3>"]
-    parts.append(_table([(k, _fmt(float(v))) for k, v in timings.items()]) if timings else _none("No timings."))
+    parts.append(_table([(str(k), _fmt(v)) for k, v in timings.items()]) if timings else _none("No timings."))
     parts.append("<h3>Options</h3>")
     if d.options:
         parts.append(_table([(k, json.dumps(v)) for k, v in d.options.items()]))

@@ -34,6 +34,7 @@ a result in memory. :func:`read_viewer` decodes the mesh of a page back into arr
 from __future__ import annotations
 
 import base64
+import html
 import json
 import math
 import os
@@ -44,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from . import export
+from . import _results, export
 from ._atomic import write_text
 from ._outdir import add_to_manifest
 from .errors import InputError
@@ -283,12 +284,12 @@ def _read_result(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
             f"'{directory}' is not a complete nplps result directory: {' and '.join(missing)} missing "
             "(write one with 'nplps reconstruct ... --out DIR')"
         )
-    ply = export.read_ply(directory / "mesh.ply")
-    try:
-        depth = np.load(directory / "depth.npy", allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read '{directory / 'depth.npy'}': {exc}") from exc
-    points = np.asarray(ply["vertices"], dtype=np.float32)
+    ply = _results.read_mesh_ply(directory / "mesh.ply")
+    depth = _results.read_npy(directory / "depth.npy", kinds="f", ndim=2)
+    raw = np.asarray(ply["vertices"], dtype=np.float64)
+    if not (np.isfinite(raw).all() and float(np.abs(raw).max(initial=0.0)) <= float(np.finfo(np.float32).max)):
+        raise InputError(f"'{directory / 'mesh.ply'}' has a vertex that is not a finite float32 position")
+    points = raw.astype(np.float32)
     faces = np.asarray(ply["faces"])
     opengl = "frame opengl" in (ply["comments"] or [])
     flip = _OPENGL_FLIP if opengl else np.ones(3, dtype=np.float32)
@@ -299,13 +300,19 @@ def _read_result(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
     if len(used) != len(points) or len(faces) % 2:
         raise InputError(f"{mismatch} ({len(points)} mesh vertices, {len(used)} finite depths)")
     points = points * flip
-    scale = max(float(np.nanmax(np.abs(depth))), 1e-30)
-    if len(points) and float(np.max(np.abs(points[:, 2] - depth.ravel()[used]))) > 1e-4 * scale:
-        raise InputError(f"{mismatch} (the vertex depths differ)")
+    if len(points):
+        finite_depth = depth.ravel()[used].astype(np.float64)
+        scale = max(float(np.max(np.abs(finite_depth))), 1e-30)
+        if float(np.max(np.abs(points[:, 2] - finite_depth))) > 1e-4 * scale:
+            raise InputError(f"{mismatch} (the vertex depths differ)")
     h1, w1 = depth.shape
     # The nplps PLY has two triangles (00, 10, 11), (00, 11, 01) per masked facet.
     f00 = used[faces[0::2, 0]]
-    if not (np.array_equal(used[faces[0::2, 1]], f00 + w1) and np.array_equal(used[faces[0::2, 2]], f00 + w1 + 1)):
+    if not (
+        np.array_equal(used[faces[0::2, 1]], f00 + w1)
+        and np.array_equal(used[faces[0::2, 2]], f00 + w1 + 1)
+        and bool(np.all(f00 % w1 < w1 - 1))
+    ):
         raise InputError(f"'{directory / 'mesh.ply'}' is not a vertex-grid mesh written by nplps")
     mask = np.zeros((h1 - 1, w1 - 1), dtype=bool)
     mask[f00 // w1, f00 % w1] = True
@@ -381,17 +388,23 @@ def _page(
         "normals": _b64(normals, "<f4"),
         "colors": _b64(colors, "u1"),
     }
-    blob = json.dumps(data, separators=(",", ":")).replace("<", "\\u003c")  # no tag inside the script
-    title = _escape(meta["title"])
-    return (
-        _HTML.replace("@TITLE@", title)
-        .replace("@SCRIPT@", _SCRIPT)
-        .replace("@DATA@", f'<script id="{_DATA_ID}" type="application/json">{blob}</script>')
-    )
+    # No tag inside the script (json.dumps writes every other character outside ASCII escaped).
+    blob = json.dumps(data, separators=(",", ":")).replace("<", "\\u003c")
+    parts = {
+        "TITLE": _escape(meta["title"]),
+        "SCRIPT": _SCRIPT,
+        "DATA": f'<script id="{_DATA_ID}" type="application/json">{blob}</script>',
+    }
+    # One pass over the template: a title holding "@SCRIPT@" or "@DATA@" stays text.
+    return _PLACEHOLDER.sub(lambda m: parts[m.group(1)], _HTML)
+
+
+_PLACEHOLDER = re.compile(r"@(TITLE|SCRIPT|DATA)@")
 
 
 def _escape(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
+    """Escape text for HTML content and attribute values (&, <, >, both quotes)."""
+    return html.escape(text, quote=True)
 
 
 _HTML = """<!DOCTYPE html>

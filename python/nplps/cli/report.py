@@ -6,6 +6,8 @@ import argparse
 import time
 from typing import Any
 
+from .console import _warnings_to_stderr
+
 REPORT_DESCRIPTION = """\
 Make report.html in a result directory (written by nplps reconstruct or Reconstruction.save)
 from the files there: one self-contained HTML file (every picture embedded, no network, no
@@ -46,6 +48,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from ..report import write_report
 
     start = time.perf_counter()
-    path = write_report(args.result, path=args.out)
+    with _warnings_to_stderr():
+        path = write_report(args.result, path=args.out)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB, {time.perf_counter() - start:.1f} s)")
     return 0

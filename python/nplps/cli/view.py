@@ -11,6 +11,7 @@ from typing import Any
 
 from ..errors import InputError
 from ..viewer import DEFAULT_MAX_TRIANGLES, VIEWER_FILE, write_result_viewer
+from .console import _warnings_to_stderr
 
 __all__ = ["add_view_parser", "can_open_browser", "cmd_view"]
 
@@ -78,9 +79,10 @@ def cmd_view(args: argparse.Namespace) -> int:
     """Run ``nplps view``; return the exit status."""
     if args.max_triangles < 2:
         raise InputError(f"--max-triangles must be at least 2, got {args.max_triangles}")
-    info = write_result_viewer(
-        args.result, args.out, title=args.title, units=args.units, max_triangles=args.max_triangles
-    )
+    with _warnings_to_stderr():
+        info = write_result_viewer(
+            args.result, args.out, title=args.title, units=args.units, max_triangles=args.max_triangles
+        )
     size = f"{info.size_bytes / 1e6:.1f} MB"
     what = f"{info.triangles:,} triangles"
     if info.stride > 1:
