@@ -135,9 +135,10 @@ def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None)
     rows = grid.reshape(-1, 3)
     out = np.empty((len(used), 3), dtype=np.float32)
     everything = len(used) == len(rows)
-    for start in range(0, len(used), _GATHER_CHUNK):
-        stop = min(start + _GATHER_CHUNK, len(used))
-        out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
+    with np.errstate(over="ignore"):  # beyond float32: inf, which STL and GLB refuse (_require_float32)
+        for start in range(0, len(used), _GATHER_CHUNK):
+            stop = min(start + _GATHER_CHUNK, len(used))
+            out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
     if flip is not None:
         out *= flip
     return out
@@ -332,6 +333,9 @@ def write_meshes(
     write_ply, write_obj, write_stl, write_glb, write_point_cloud
     """
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
+    for fmt, target in (("STL", stl_path), ("GLB", glb_path)):  # before any file is written
+        if target is not None:
+            _require_float32(mesh, fmt, target)
     if ply_path is not None:
         _write_ply_mesh(ply_path, mesh)
     if obj_path is not None:
@@ -726,7 +730,18 @@ def save_normals_tiff(path: PathLike, normals: np.ndarray) -> None:
         tifffile.imwrite(temporary, normals, photometric="rgb")
 
 
+def _require_float32(mesh: _Mesh, fmt: str, path: PathLike) -> None:
+    """Refuse a mesh whose positions do not fit float32 (they became infinite): STL and GLB store float32."""
+    bad = ~np.isfinite(mesh.points).all(axis=1)
+    if bad.any():
+        raise InputError(
+            f"cannot write {fmt} file '{os.fspath(path)}': {int(np.count_nonzero(bad))} vertex position(s) "
+            f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
+        )
+
+
 def _write_stl_mesh(path: PathLike, mesh: _Mesh) -> None:
+    _require_float32(mesh, "STL", path)
     header = f"nplps binary STL, frame {mesh.frame}".encode("ascii").ljust(80, b" ")
     with atomic_write(path) as file:
         file.write(header)
@@ -792,6 +807,7 @@ def _glb_json(mesh: _Mesh) -> tuple[bytes, list[tuple[np.ndarray | None, int]]]:
 
 
 def _write_glb_mesh(path: PathLike, mesh: _Mesh) -> None:
+    _require_float32(mesh, "GLB", path)
     json_chunk, parts = _glb_json(mesh)
     binary = sum(size for _, size in parts)  # every part is a multiple of 4 bytes
     total = 12 + 8 + len(json_chunk) + 8 + binary
