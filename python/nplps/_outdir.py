@@ -43,6 +43,7 @@ absolute paths) and no directory on the way may be a symbolic link out of it.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -194,7 +195,7 @@ class ResultDirectory(os.PathLike):
             raise write_error(e, path.parent) from e
         if not _inside(run.root, path):
             raise write_error(
-                OSError(f"a directory on the way is a symbolic link out of {os.fspath(run.root)!r}"), path
+                OSError(errno.ELOOP, f"a directory on the way is a symbolic link out of {os.fspath(run.root)!r}"), path
             )
         if relative not in run.written:
             run.written.append(relative)
