@@ -123,7 +123,8 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let t = Instant::now();
         let factors = refine_intensities(problem, options, &mut lights);
         timings.lights = t.elapsed();
-        let mut fits: Vec<FacetFit> = vec![FacetFit::EMPTY; grid.n_facets()];
+        let mut fits: Vec<FacetFit> =
+            crate::memory::try_vec(grid.n_facets(), FacetFit::EMPTY, "the per-facet fits")?;
         let settings = Options {
             weighting: Weighting::Image,
             ..*options
@@ -142,8 +143,9 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         timings.local = t.elapsed();
 
         let t = Instant::now();
-        let targets: Vec<[f64; 4]> = fits.iter().map(|f| f.target).collect();
-        let mut u = vec![0.0; grid.n_unknowns()];
+        let targets: Vec<[f64; 4]> =
+            crate::memory::try_collect(fits.iter().map(|f| f.target), "the per-facet targets")?;
+        let mut u = crate::memory::try_vec(grid.n_unknowns(), 0.0, "the depths")?;
         let inner_iterations = system.solve(grid, &targets, &problem.u0, &mut u)?;
         grid.apply_gauge(&mut u, &problem.gauge);
         timings.solve = t.elapsed();
@@ -152,7 +154,10 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             iteration: 1,
             depth_change: max_depth_change(&problem.geometry, &u, &problem.u0),
             rms_residual: rms_of(
-                &fits.iter().map(FacetStat::from).collect::<Vec<_>>(),
+                &crate::memory::try_collect(
+                    fits.iter().map(FacetStat::from),
+                    "the per-facet statistics",
+                )?,
                 problem.obs.channels,
             ),
             elapsed: timings.total,
@@ -161,9 +166,9 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             light_change: 0.0,
             search: None,
         }];
-        let mut outputs = FitOutputs::new(problem);
+        let mut outputs = FitOutputs::new(problem)?;
         outputs.scatter(problem, 0, &fits);
-        let mut result = assemble(problem, &u, outputs, history, true, timings);
+        let mut result = assemble(problem, &u, outputs, history, true, timings)?;
         result.assess(f64::INFINITY, false);
         if let Some(factors) = factors {
             for (light, f) in result.lights.iter_mut().zip(factors) {

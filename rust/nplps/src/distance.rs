@@ -195,7 +195,7 @@ impl Evaluator<'_, '_> {
             self.solver
                 .iterate(&mut self.u, &gauge, self.inner, 0.0, &mut deferred)?;
         }
-        self.solver.local(&self.u);
+        self.solver.local(&self.u)?;
         let residuals = self.solver.region_residuals();
         for ((curve, &x), &r) in self.curve.iter_mut().zip(d).zip(&residuals) {
             curve.push((x, r));

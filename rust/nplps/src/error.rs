@@ -85,9 +85,14 @@ pub(crate) const DEFAULT_MEMORY_FRACTION: f64 = 0.8;
 
 fn memory_message(what: &str, needed: f64, limit: f64, explicit: bool) -> String {
     if limit.is_nan() {
+        let size = if needed.is_finite() {
+            format!("allocating {}", format_bytes(needed))
+        } else {
+            "an allocation".to_string()
+        };
         return format!(
-            "{what}: allocating {} failed (out of memory)",
-            format_bytes(needed)
+            "{what}: {size} failed (out of memory: the process cannot get that much from the \
+             machine or its memory limit); use smaller images (bin or crop them) or free memory"
         );
     }
     let source = if explicit {

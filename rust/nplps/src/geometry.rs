@@ -40,16 +40,17 @@ pub struct Geometry {
 
 impl Geometry {
     /// The geometry of `grid`'s active vertices under `camera`.
-    pub fn new(camera: &Camera, grid: &Grid) -> Geometry {
+    pub fn new(camera: &Camera, grid: &Grid) -> Result<Geometry> {
         let vw = grid.width + 1;
-        Geometry {
+        Ok(Geometry {
             perspective: camera.is_perspective(),
-            base: grid
-                .active
-                .par_iter()
-                .map(|&v| camera.vertex_xy(v / vw, v % vw))
-                .collect(),
-        }
+            base: crate::memory::try_par_collect(
+                grid.active
+                    .par_iter()
+                    .map(|&v| camera.vertex_xy(v / vw, v % vw)),
+                "the vertex positions",
+            )?,
+        })
     }
 
     /// Fails when a vertex of `grid` (the grid this geometry was made for) has no finite

@@ -85,7 +85,13 @@ impl Cholesky {
             ordering,
             CholeskySymbolicParams::default(),
         )
-        .map_err(|e| Error::Solver(format!("symbolic analysis failed: {e:?}")))?;
+        .map_err(|e| {
+            faer_error(
+                e,
+                "the analysis of the global step's sparse system",
+                "symbolic analysis failed",
+            )
+        })?;
         let mut chol = Cholesky {
             l_values: crate::memory::try_filled(
                 symbolic.len_val(),
@@ -125,7 +131,12 @@ impl Cholesky {
             .symbolic
             .factorize_numeric_llt_scratch::<f64>(self.par, Default::default())
             .or(self.symbolic.solve_in_place_scratch::<f64>(1, self.par));
-        self.scratch = MemBuffer::new(req);
+        self.scratch = MemBuffer::try_new(req).map_err(|_| {
+            crate::memory::allocation_failed(
+                "the sparse Cholesky factorization's scratch space",
+                req.size_bytes() as f64,
+            )
+        })?;
         self.symbolic
             .factorize_numeric_llt(
                 &mut self.l_values,
@@ -184,6 +195,7 @@ impl Cholesky {
 
 /// The pinned unknowns: the lowest-index unknown of each region that the prior does not cover.
 pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Vec<u32> {
+    // One per region (at most one per unknown): small next to the per-pixel buffers.
     let mut anchored = vec![false; grid.n_regions];
     if let Some(prior) = prior {
         for (u, value) in prior.values.iter().enumerate() {
@@ -201,13 +213,26 @@ pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Vec<u32> {
 }
 
 /// `weight * prior` per unknown (0 where there is none).
-pub(crate) fn prior_right_side(prior: Option<&Prior>) -> Option<Vec<f64>> {
-    prior.map(|p| {
-        p.values
-            .iter()
-            .map(|v| if v.is_finite() { p.weight * v } else { 0.0 })
-            .collect()
-    })
+pub(crate) fn prior_right_side(prior: Option<&Prior>) -> Result<Option<Vec<f64>>> {
+    prior
+        .map(|p| {
+            crate::memory::try_collect(
+                p.values
+                    .iter()
+                    .map(|v| if v.is_finite() { p.weight * v } else { 0.0 }),
+                "the depth prior's right side",
+            )
+        })
+        .transpose()
+}
+
+/// A faer error as the crate's: [`Error::Memory`] when an allocation for `what` failed, else
+/// [`Error::Solver`] starting with `context`.
+pub(crate) fn faer_error(e: faer::sparse::FaerError, what: &str, context: &str) -> Error {
+    match e {
+        faer::sparse::FaerError::OutOfMemory => crate::memory::allocation_failed(what, f64::NAN),
+        e => Error::Solver(format!("{context}: {e:?}")),
+    }
 }
 
 /// The right side `b = sum_f S_f^T t_f + pins * z_current + weight * prior` of the unknowns,
@@ -284,7 +309,7 @@ impl GlobalSystem {
             check_residual: chol.check_residual,
             chol,
             pins,
-            prior_rhs: prior_right_side(prior),
+            prior_rhs: prior_right_side(prior)?,
         })
     }
 
@@ -446,7 +471,11 @@ fn assemble_lower(
     prior: Option<&Prior>,
 ) -> Result<SparseColMat<usize, f64>> {
     let n = grid.n_unknowns();
-    let mut triplets = Vec::with_capacity(grid.n_facets() * 10 + grid.pins.len());
+    let priors = prior.map_or(0, |p| p.values.iter().filter(|v| v.is_finite()).count());
+    let mut triplets = crate::memory::try_with_capacity(
+        grid.n_facets() * 10 + pins.len() + priors,
+        "the global step's sparse system",
+    )?;
     for ids in &grid.facet_vertices {
         for a in 0..4 {
             for b in 0..4 {
@@ -469,8 +498,14 @@ fn assemble_lower(
             }
         }
     }
-    SparseColMat::try_new_from_triplets(n, n, &triplets)
-        .map_err(|e| Error::Solver(format!("cannot assemble the normal matrix: {e:?}")))
+    SparseColMat::try_new_from_triplets(n, n, &triplets).map_err(|e| match e {
+        faer::sparse::CreationError::Generic(e) => faer_error(
+            e,
+            "the global step's sparse system",
+            "cannot assemble the normal matrix",
+        ),
+        e => Error::Solver(format!("cannot assemble the normal matrix: {e:?}")),
+    })
 }
 
 #[cfg(test)]

@@ -9,6 +9,7 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_shape, ensure_usable, Result};
+use crate::memory::{try_collect, try_par_collect, try_vec, try_with_capacity};
 
 /// Sentinel for a vertex that no masked facet uses.
 pub const INACTIVE: u32 = u32::MAX;
@@ -54,10 +55,9 @@ impl Grid {
                 )
             })?;
         }
-        let facets: Vec<usize> = (0..height * width)
-            .into_par_iter()
-            .filter(|&p| mask.is_none_or(|m| m[p]))
-            .collect();
+        let masked_count = mask.map_or(height * width, |m| m.par_iter().filter(|&&b| b).count());
+        let mut facets: Vec<usize> = try_with_capacity(masked_count, "the mesh's facets")?;
+        facets.extend((0..height * width).filter(|&p| mask.is_none_or(|m| m[p])));
         ensure_usable(!facets.is_empty(), || {
             "mask is empty: no pixel is selected for reconstruction".to_string()
         })?;
@@ -72,30 +72,36 @@ impl Grid {
         // A vertex is used when one of its (up to 4) pixels is masked.
         let masked =
             |r: usize, c: usize| r < height && c < width && mask.is_none_or(|m| m[r * width + c]);
-        let used: Vec<bool> = (0..n_vertices)
-            .into_par_iter()
-            .map(|v| {
+        let used: Vec<bool> = try_par_collect(
+            (0..n_vertices).into_par_iter().map(|v| {
                 let (r, c) = (v / vw, v % vw);
                 let (ru, cl) = (r.wrapping_sub(1), c.wrapping_sub(1));
                 masked(ru, cl) || masked(ru, c) || masked(r, cl) || masked(r, c)
-            })
-            .collect();
-        let mut vertex_unknown = vec![INACTIVE; n_vertices];
-        let mut active = Vec::new();
+            }),
+            "the mesh's vertices",
+        )?;
+        let mut vertex_unknown = try_vec(n_vertices, INACTIVE, "the mesh's vertex numbers")?;
+        let mut active = try_with_capacity(
+            used.par_iter().filter(|&&u| u).count(),
+            "the mesh's unknowns",
+        )?;
         for (v, _) in used.iter().enumerate().filter(|(_, u)| **u) {
             vertex_unknown[v] = active.len() as u32;
             active.push(v);
         }
-        let facet_vertices: Vec<[u32; 4]> = facets
-            .par_iter()
-            .map(|&p| corners(p).map(|v| vertex_unknown[v]))
-            .collect();
+        drop(used);
+        let facet_vertices: Vec<[u32; 4]> = try_par_collect(
+            facets
+                .par_iter()
+                .map(|&p| corners(p).map(|v| vertex_unknown[v])),
+            "the mesh's facet corners",
+        )?;
 
         let (region_of_unknown, n_regions) = if facets.len() == height * width {
             // Every pixel: one connected region.
-            (vec![0; active.len()], 1)
+            (try_vec(active.len(), 0, "the mesh's regions")?, 1)
         } else {
-            label_regions(active.len(), &facet_vertices)
+            label_regions(active.len(), &facet_vertices)?
         };
         let mut pins = vec![u32::MAX; n_regions];
         for (u, &reg) in region_of_unknown.iter().enumerate() {
@@ -103,7 +109,7 @@ impl Grid {
                 pins[reg as usize] = u as u32;
             }
         }
-        let mut facet_of_pixel = vec![INACTIVE; height * width];
+        let mut facet_of_pixel = try_vec(height * width, INACTIVE, "the mesh's pixel numbers")?;
         for (f, &p) in facets.iter().enumerate() {
             facet_of_pixel[p] = f as u32;
         }
@@ -132,26 +138,29 @@ impl Grid {
     }
 
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).
-    pub fn pixel_regions(&self) -> Vec<i32> {
-        let mut out = vec![-1; self.height * self.width];
+    pub fn pixel_regions(&self) -> Result<Vec<i32>> {
+        let mut out = try_vec(self.height * self.width, -1, "the region map")?;
         for (f, &p) in self.facets.iter().enumerate() {
             out[p] = self.region_of_unknown[self.facet_vertices[f][0] as usize] as i32;
         }
-        out
+        Ok(out)
     }
 
     /// Scatters per-unknown values onto the full (H+1) x (W+1) vertex grid, NaN where inactive.
-    pub fn scatter_vertices(&self, values: &[f64]) -> Vec<f64> {
-        let mut out = vec![f64::NAN; self.vertex_unknown.len()];
+    pub fn scatter_vertices(&self, values: &[f64]) -> Result<Vec<f64>> {
+        let mut out = try_vec(self.vertex_unknown.len(), f64::NAN, "a vertex map")?;
         for (u, &v) in self.active.iter().enumerate() {
             out[v] = values[u];
         }
-        out
+        Ok(out)
     }
 
     /// Gathers the unknowns' values from a full (H+1) x (W+1) vertex grid.
-    pub fn gather_vertices(&self, full: &[f64]) -> Vec<f64> {
-        self.active.iter().map(|&v| full[v]).collect()
+    pub fn gather_vertices(&self, full: &[f64]) -> Result<Vec<f64>> {
+        try_collect(
+            self.active.iter().map(|&v| full[v]),
+            "the values at the unknowns",
+        )
     }
 
     /// Arithmetic mean of `values` (one per unknown) over each region. With few regions the
@@ -232,8 +241,8 @@ fn region_sums(n: usize, regions: &[u32], values: &[f64]) -> (Vec<f64>, Vec<usiz
 
 /// Connected components of the unknowns where the 4 corners of a facet are connected
 /// (union-find). Labels are numbered by first appearance in unknown order.
-fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
-    let mut parent: Vec<u32> = (0..n as u32).collect();
+fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> Result<(Vec<u32>, usize)> {
+    let mut parent: Vec<u32> = try_collect(0..n as u32, "the mesh's region labels")?;
     fn find(parent: &mut [u32], mut x: u32) -> u32 {
         while parent[x as usize] != x {
             let up = parent[parent[x as usize] as usize];
@@ -256,8 +265,8 @@ fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
             }
         }
     }
-    let mut label = vec![u32::MAX; n];
-    let mut region = vec![0u32; n];
+    let mut label = try_vec(n, u32::MAX, "the mesh's region labels")?;
+    let mut region = try_vec(n, 0u32, "the mesh's regions")?;
     let mut n_regions = 0u32;
     for (u, reg) in region.iter_mut().enumerate() {
         let root = find(&mut parent, u as u32) as usize;
@@ -267,7 +276,7 @@ fn label_regions(n: usize, facet_vertices: &[[u32; 4]]) -> (Vec<u32>, usize) {
         }
         *reg = label[root];
     }
-    (region, n_regions as usize)
+    Ok((region, n_regions as usize))
 }
 
 #[cfg(test)]
@@ -294,7 +303,7 @@ mod tests {
         ];
         let g = Grid::new(2, 4, Some(&mask)).unwrap();
         assert_eq!(g.n_regions, 2);
-        let regions = g.pixel_regions();
+        let regions = g.pixel_regions().unwrap();
         assert_eq!(regions[0], regions[5]);
         assert_ne!(regions[0], regions[3]);
         assert_eq!(g.pins.len(), 2);

@@ -1126,7 +1126,7 @@ mod tests {
             pixel_size: [1.5, 1.5],
             origin: [-5.0, -7.0],
         };
-        let geometry = Geometry::new(&camera, &grid);
+        let geometry = Geometry::new(&camera, &grid).unwrap();
         let mut lights: Vec<Light> = lights();
         lights.push(Light::Point {
             position: [12.0, -8.0, 30.0],
@@ -1207,7 +1207,7 @@ mod tests {
             k: [[50.0, 0.0, 4.0], [0.0, 50.0, 3.0], [0.0, 0.0, 1.0]],
             distortion: [0.0; 5],
         };
-        let geometry = Geometry::new(&camera, &grid);
+        let geometry = Geometry::new(&camera, &grid).unwrap();
         let lights = lights();
         let k = lights.len();
         let u: Vec<f64> = (0..grid.n_unknowns())

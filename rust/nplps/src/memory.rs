@@ -90,6 +90,10 @@ pub fn limit(max_memory: Option<f64>) -> Option<f64> {
 
 /// Refuses with [`Error::Memory`] when `needed` bytes exceed the limit of `max_memory` (see
 /// [`limit`]); `what` describes the computation for the message.
+///
+/// Within the limit (whatever `max_memory` says, even when it is infinite) the estimate is then
+/// [`probe`]d: a process that cannot get `needed` bytes now (an address-space limit, or more
+/// than the kernel grants) is refused with [`Error::Memory`] too, before any large buffer.
 pub fn check(what: impl FnOnce() -> String, needed: f64, max_memory: Option<f64>) -> Result<()> {
     match limit(max_memory) {
         Some(limit) if needed > limit => Err(Error::Memory {
@@ -98,7 +102,7 @@ pub fn check(what: impl FnOnce() -> String, needed: f64, max_memory: Option<f64>
             limit,
             explicit: max_memory.is_some(),
         }),
-        _ => Ok(()),
+        _ => probe(what, needed),
     }
 }
 
@@ -139,16 +143,85 @@ pub fn check_memory(shape: [usize; 4], mask: Option<&[bool]>, options: &Options)
 /// A vector of `len` copies of `value`, or [`Error::Memory`] when the allocation fails (instead
 /// of aborting the process).
 pub fn try_filled<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
-    let bytes = len as f64 * std::mem::size_of::<T>() as f64;
-    let mut v = Vec::new();
-    v.try_reserve_exact(len).map_err(|_| Error::Memory {
-        what: what.to_string(),
-        needed: bytes,
-        limit: available().map_or(f64::NAN, |a| a as f64),
-        explicit: false,
-    })?;
+    let mut v = try_with_capacity(len, what)?;
     v.resize(len, value);
     Ok(v)
+}
+
+/// [`try_filled`] under the short name the modules use for their O(pixels) buffers.
+pub(crate) fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
+    try_filled(len, value, what)
+}
+
+/// An empty vector with room for exactly `len` values, or [`Error::Memory`].
+pub(crate) fn try_with_capacity<T>(len: usize, what: &str) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len)
+        .map_err(|_| allocation_failed(what, len as f64 * std::mem::size_of::<T>() as f64))?;
+    Ok(v)
+}
+
+/// The values of an exact-size iterator in a vector allocated fallibly (the reservation is
+/// exact, so collecting does not reallocate).
+pub(crate) fn try_collect<I>(iter: I, what: &str) -> Result<Vec<I::Item>>
+where
+    I: ExactSizeIterator,
+{
+    let mut v = try_with_capacity(iter.len(), what)?;
+    v.extend(iter);
+    Ok(v)
+}
+
+/// The values of an indexed parallel iterator in a vector allocated fallibly (rayon's
+/// `collect_into_vec` then finds the room reserved).
+pub(crate) fn try_par_collect<I>(iter: I, what: &str) -> Result<Vec<I::Item>>
+where
+    I: rayon::iter::IndexedParallelIterator,
+{
+    let mut v = try_with_capacity(iter.len(), what)?;
+    iter.collect_into_vec(&mut v);
+    Ok(v)
+}
+
+/// A copy of `values` allocated fallibly.
+pub(crate) fn try_copy<T: Clone>(values: &[T], what: &str) -> Result<Vec<T>> {
+    let mut v = try_with_capacity(values.len(), what)?;
+    v.extend_from_slice(values);
+    Ok(v)
+}
+
+/// The error of a failed allocation of `bytes` for `what`.
+pub(crate) fn allocation_failed(what: &str, bytes: f64) -> Error {
+    Error::Memory {
+        what: what.to_string(),
+        needed: bytes,
+        limit: f64::NAN,
+        explicit: false,
+    }
+}
+
+/// Asks the allocator for `bytes` at once and gives them back: fails with [`Error::Memory`]
+/// when the process cannot get that much memory now (its address-space limit, or an
+/// allocation above what the kernel's overcommit heuristic grants). Large allocations are
+/// mapped lazily and unmapped on release, so the probe touches no page. It is a guard before a
+/// computation whose estimated peak is `bytes`, so that exhaustion is reported before the
+/// first large buffer rather than part-way (where a small allocation could abort); under an
+/// overcommitting kernel without limits it cannot see the physical memory.
+pub(crate) fn probe(what: impl FnOnce() -> String, bytes: f64) -> Result<()> {
+    let fail = |what: String| Error::Memory {
+        what,
+        needed: bytes,
+        limit: f64::NAN,
+        explicit: false,
+    };
+    if bytes.is_nan() || bytes >= isize::MAX as f64 {
+        return Err(fail(what()));
+    }
+    let mut v: Vec<u8> = Vec::new();
+    match v.try_reserve_exact(bytes.max(0.0) as usize) {
+        Ok(()) => Ok(()),
+        Err(_) => Err(fail(what())),
+    }
 }
 
 /// A `key: value kB` field of a /proc file, in bytes.

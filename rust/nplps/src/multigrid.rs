@@ -35,6 +35,7 @@
 //! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
 //! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
+use crate::memory::{try_collect, try_vec};
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::Par;
@@ -244,13 +245,13 @@ struct Work {
 }
 
 impl Work {
-    fn new(layout: Layout) -> Work {
+    fn new(layout: Layout) -> Result<Work> {
         let n = layout.len();
-        Work {
-            x: vec![0.0; n],
-            b: vec![0.0; n],
-            r: vec![0.0; n],
-        }
+        Ok(Work {
+            x: try_vec(n, 0.0, "the multigrid levels")?,
+            b: try_vec(n, 0.0, "the multigrid levels")?,
+            r: try_vec(n, 0.0, "the multigrid levels")?,
+        })
     }
 }
 
@@ -684,7 +685,7 @@ impl MultigridSystem {
         let pins = pinned_unknowns(grid, prior);
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
-        let mut flags = vec![0u8; layout.rows * layout.cols];
+        let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;
         for &p in &grid.facets {
             let (r, c) = (p / grid.width, p % grid.width);
             let v = r * vw + c;
@@ -707,11 +708,10 @@ impl MultigridSystem {
         }
         let table: Box<[Stencil; 64]> =
             Box::new(std::array::from_fn(|f| fine_stencil(f as u8, weight)));
-        let unknown_index: Vec<usize> = grid
-            .active
-            .iter()
-            .map(|&v| layout.index(v / vw, v % vw))
-            .collect();
+        let unknown_index: Vec<usize> = try_collect(
+            grid.active.iter().map(|&v| layout.index(v / vw, v % vw)),
+            "the multigrid's fine level",
+        )?;
 
         let mut levels = vec![Level {
             layout,
@@ -725,11 +725,11 @@ impl MultigridSystem {
                 break;
             }
             let coarse_cells = match &cells {
-                None => coarsen_fine(last, weight),
-                Some(c) => coarsen_cells(l, c),
+                None => coarsen_fine(last, weight)?,
+                Some(c) => coarsen_cells(l, c)?,
             };
             let layout = l.coarser();
-            let stencils = stencils_of(layout, &coarse_cells);
+            let stencils = stencils_of(layout, &coarse_cells)?;
             levels.push(Level {
                 layout,
                 stencils: Stencils::Coarse(stencils),
@@ -738,22 +738,26 @@ impl MultigridSystem {
         }
         drop(cells);
         let coarsest = Coarsest::new(levels.last().expect("at least the fine level"))?;
-        let work = levels[1..].iter().map(|l| Work::new(l.layout)).collect();
+        let work = levels[1..]
+            .iter()
+            .map(|l| Work::new(l.layout))
+            .collect::<Result<Vec<Work>>>()?;
         let n = layout.len();
+        let krylov = || try_vec(n, 0.0, "the conjugate gradients' vectors");
         Ok(MultigridSystem {
             levels,
             work,
             coarsest,
             krylov: Krylov {
-                x: vec![0.0; n],
-                r: vec![0.0; n],
-                z: vec![0.0; n],
-                p: vec![0.0; n],
-                q: vec![0.0; n],
+                x: krylov()?,
+                r: krylov()?,
+                z: krylov()?,
+                p: krylov()?,
+                q: krylov()?,
             },
             unknown_index,
             pins,
-            prior_rhs: prior_right_side(prior),
+            prior_rhs: prior_right_side(prior)?,
             rtol: 1e-6,
             max_iterations: MAX_ITERATIONS,
             cancel: crate::Cancel::default(),
@@ -891,7 +895,7 @@ fn interpolations() -> [Element; 4] {
 /// Galerkin elements of the level-1 cells from the fine facets, with the pins' and the prior's
 /// diagonal terms (prior weight `weight`) folded into one facet of each vertex: the first
 /// masked one among its NW, NE, SW, SE facets.
-fn coarsen_fine(fine: &Level, weight: f64) -> Vec<Element> {
+fn coarsen_fine(fine: &Level, weight: f64) -> Result<Vec<Element>> {
     let Stencils::Fine { flags, .. } = &fine.stencils else {
         unreachable!("coarsen_fine takes the fine level")
     };
@@ -910,7 +914,7 @@ fn coarsen_fine(fine: &Level, weight: f64) -> Vec<Element> {
     let bit_of_corner = [SE, SW, NE, NW];
     // Every output is written once, never read first: reading fresh zeroed memory before
     // writing it costs a copy-on-write page fault per page.
-    let mut cells = vec![[[0.0; 4]; 4]; ch * cw];
+    let mut cells = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
     cells.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
         for (cc, out) in row.iter_mut().enumerate() {
             let mut cell: Element = [[0.0; 4]; 4];
@@ -936,16 +940,16 @@ fn coarsen_fine(fine: &Level, weight: f64) -> Vec<Element> {
             *out = cell;
         }
     });
-    cells
+    Ok(cells)
 }
 
 /// Galerkin elements of the next level's cells from the cells of a level with `layout`.
-fn coarsen_cells(layout: Layout, cells: &[Element]) -> Vec<Element> {
+fn coarsen_cells(layout: Layout, cells: &[Element]) -> Result<Vec<Element>> {
     let (h, w) = (layout.rows - 1, layout.cols - 1);
     let coarse = layout.coarser();
     let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
     let q = interpolations();
-    let mut out = vec![[[0.0; 4]; 4]; ch * cw];
+    let mut out = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
     out.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
         for (cc, out) in row.iter_mut().enumerate() {
             let mut cell: Element = [[0.0; 4]; 4];
@@ -963,14 +967,14 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Vec<Element> {
             *out = cell;
         }
     });
-    out
+    Ok(out)
 }
 
 /// The nodal 9-point stencils of a level with `layout` from its cell elements.
-fn stencils_of(layout: Layout, cells: &[Element]) -> Vec<Stencil> {
+fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Stencil>> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
-    let mut out = vec![[0.0; 10]; rows * cols];
+    let mut out = try_vec(rows * cols, [0.0; 10], "the multigrid levels")?;
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
         for (c, out) in row.iter_mut().enumerate() {
             let mut s: Stencil = [0.0; 10];
@@ -994,7 +998,7 @@ fn stencils_of(layout: Layout, cells: &[Element]) -> Vec<Stencil> {
             *out = with_inverse(s);
         }
     });
-    out
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@ use crate::geometry::Geometry;
 use crate::global::Prior;
 use crate::grid::Grid;
 use crate::local::Observations;
+use crate::memory::try_vec;
 use crate::rig::Rig;
 use crate::vec3::{add, sub};
 
@@ -189,7 +190,7 @@ impl<'a> Problem<'a> {
         cancel.check()?;
         let grid = Grid::new(images.height, images.width, mask)?;
         cancel.check()?;
-        let geometry = Geometry::new(&rig.camera, &grid);
+        let geometry = Geometry::new(&rig.camera, &grid)?;
         geometry.check_rays(&grid, |_| true)?;
         cancel.check()?;
         let (u0, gauge) = initial_unknowns(&grid, &geometry, depth)?;
@@ -246,18 +247,14 @@ impl Problem<'_> {
                 )
             },
         )?;
-        let values: Vec<f64> = self
-            .grid
-            .gather_vertices(map)
-            .into_iter()
-            .map(|z| {
-                if z.is_finite() && z > 0.0 {
-                    self.geometry.unknown(z)
-                } else {
-                    f64::NAN
-                }
-            })
-            .collect();
+        let mut values: Vec<f64> = self.grid.gather_vertices(map)?;
+        for z in values.iter_mut() {
+            *z = if z.is_finite() && *z > 0.0 {
+                self.geometry.unknown(*z)
+            } else {
+                f64::NAN
+            };
+        }
         ensure_usable(values.iter().any(|v| v.is_finite()), || {
             "the depth prior has no finite positive value inside the mask".to_string()
         })?;
@@ -286,7 +283,10 @@ fn initial_unknowns(
                 )
             })?;
             let u = geometry.unknown(d);
-            Ok((vec![u; grid.n_unknowns()], vec![u; grid.n_regions]))
+            Ok((
+                try_vec(grid.n_unknowns(), u, "the starting depths")?,
+                vec![u; grid.n_regions],
+            ))
         }
         InitialDepth::Map(map) => {
             let (h, w) = (grid.height + 1, grid.width + 1);
@@ -297,7 +297,7 @@ fn initial_unknowns(
                     map.len()
                 )
             })?;
-            let z0 = grid.gather_vertices(map);
+            let z0 = grid.gather_vertices(map)?;
             if let Some(i) = z0.iter().position(|z| !valid(*z)) {
                 let v = grid.active[i];
                 return Err(Error::NonFinite {
@@ -317,7 +317,10 @@ fn initial_unknowns(
                 ),
                 });
             }
-            let u0: Vec<f64> = z0.iter().map(|&z| geometry.unknown(z)).collect();
+            let mut u0 = z0;
+            for z in u0.iter_mut() {
+                *z = geometry.unknown(*z);
+            }
             let gauge = grid.region_means(&u0);
             Ok((u0, gauge))
         }

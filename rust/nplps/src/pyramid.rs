@@ -17,6 +17,7 @@
 //! rule stops it). The default number of levels halves the image while the coarser level keeps
 //! at least [`COARSEST_SIDE`] pixels along its longer side.
 
+use crate::memory::{try_collect, try_par_collect, try_vec};
 use rayon::prelude::*;
 
 use crate::error::Result;
@@ -94,9 +95,8 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let (ch, cw) = (h.div_ceil(2), w.div_ceil(2));
     let facet_of_pixel = &grid.facet_of_pixel;
     // Which of its 4 children (bits 0..3: (0,0), (0,1), (1,0), (1,1)) each coarse pixel has.
-    let children: Vec<u8> = (0..ch * cw)
-        .into_par_iter()
-        .map(|cp| {
+    let children: Vec<u8> = try_par_collect(
+        (0..ch * cw).into_par_iter().map(|cp| {
             let (cr, cc) = (cp / cw, cp % cw);
             let mut bits = 0u8;
             for (bit, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
@@ -106,10 +106,11 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
                 }
             }
             bits
-        })
-        .collect();
+        }),
+        "the coarse mask",
+    )?;
     // A coarse pixel is masked when any of its children is.
-    let mask: Vec<bool> = children.iter().map(|&bits| bits != 0).collect();
+    let mask: Vec<bool> = try_collect(children.iter().map(|&bits| bits != 0), "the coarse mask")?;
     problem.cancel.check()?;
     let coarse_grid = Grid::new(ch, cw, Some(&mask))?;
     problem.cancel.check()?;
@@ -118,7 +119,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     // Image by image, coarse row by coarse row (streams through the finer stack); coarse
     // pixels outside the coarse mask stay NaN.
     let row_len = cw * channels;
-    let mut values = vec![f32::NAN; k * ch * row_len];
+    let mut values = try_vec(k * ch * row_len, f32::NAN, "the coarse images")?;
     values
         .par_chunks_mut(row_len)
         .enumerate()
@@ -155,12 +156,15 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
             }
         });
     problem.cancel.check()?;
-    let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN);
+    let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN)?;
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
-    let prior = problem.prior.as_ref().map(|p| Prior {
-        values: subsample(grid, &p.values, &coarse_grid, f64::NAN),
-        weight: p.weight,
-    });
+    let prior = match problem.prior.as_ref() {
+        Some(p) => Some(Prior {
+            values: subsample(grid, &p.values, &coarse_grid, f64::NAN)?,
+            weight: p.weight,
+        }),
+        None => None,
+    };
     Ok(Coarsened {
         obs: Observations::owned_stack(values, k, ch * cw, channels),
         grid: coarse_grid,
@@ -171,12 +175,10 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
 
 /// Values of the coarse unknowns taken from the fine vertex on the same ray (`missing` where
 /// that fine vertex is not an unknown).
-fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Vec<f64> {
+fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Result<Vec<f64>> {
     let (fw, cw) = (fine.width + 1, coarse.width + 1);
-    coarse
-        .active
-        .iter()
-        .map(|&v| {
+    try_collect(
+        coarse.active.iter().map(|&v| {
             let (r, c) = (2 * (v / cw), 2 * (v % cw));
             if r <= fine.height && c <= fine.width {
                 let u = fine.vertex_unknown[r * fw + c];
@@ -185,8 +187,9 @@ fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Vec<f6
                 }
             }
             missing
-        })
-        .collect()
+        }),
+        "the coarse depths",
+    )
 }
 
 /// Replaces NaN starting unknowns by the mean of the finite ones of their region (or of the
@@ -215,10 +218,10 @@ fn fill_missing(grid: &Grid, mut u: Vec<f64>, fine_gauge: &[f64]) -> Vec<f64> {
 }
 
 /// The coarse problem of `data` under `rig` (the coarse rig).
-pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Problem<'_> {
-    let geometry = Geometry::new(&rig.camera, &data.grid);
+pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Result<Problem<'_>> {
+    let geometry = Geometry::new(&rig.camera, &data.grid)?;
     let gauge = data.grid.region_means(&data.u0);
-    Problem {
+    Ok(Problem {
         rig,
         geometry,
         gauge,
@@ -228,7 +231,7 @@ pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Problem<'_> {
         negative_observations: 0,
         prior: data.prior,
         cancel: crate::Cancel::default(),
-    }
+    })
 }
 
 /// The coarse levels 1..levels of `problem` (level 1 first) under `rigs` (the coarse rigs, level
@@ -245,7 +248,7 @@ pub fn coarse_problems<'r>(
             None => coarsen(problem, settings)?,
             Some(p) => coarsen(p, settings)?,
         };
-        let mut coarse = coarse_problem(data, rig);
+        let mut coarse = coarse_problem(data, rig)?;
         coarse.cancel = problem.cancel.clone();
         out.push(coarse);
     }
@@ -267,7 +270,7 @@ pub fn coarse_rigs(rig: &Rig, levels: usize) -> Vec<Rig> {
 
 /// Carries the unknowns `u` of `coarse` to the unknowns of `fine` (one level up) by bilinear
 /// interpolation on the shared rays.
-pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Vec<f64> {
+pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Result<Vec<f64>> {
     let (fw, cw) = (fine.width + 1, coarse.width + 1);
     let value = |r: usize, c: usize| -> Option<f64> {
         if r > coarse.height || c > coarse.width {
@@ -277,9 +280,8 @@ pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Vec<f64> {
         (i != INACTIVE).then(|| u[i as usize])
     };
     let mean = u.iter().sum::<f64>() / u.len().max(1) as f64;
-    fine.active
-        .par_iter()
-        .map(|&v| {
+    try_par_collect(
+        fine.active.par_iter().map(|&v| {
             let (r, c) = (v / fw, v % fw);
             let rows: &[(usize, f64)] = if r % 2 == 0 {
                 &[(r / 2, 1.0)]
@@ -305,8 +307,9 @@ pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Vec<f64> {
             } else {
                 mean
             }
-        })
-        .collect()
+        }),
+        "the carried depths",
+    )
 }
 
 #[cfg(test)]
@@ -368,7 +371,7 @@ mod tests {
             .iter()
             .map(|&v| plane(2 * (v / 7), 2 * (v % 7)))
             .collect();
-        let up = upsample(&coarse, &u, &fine);
+        let up = upsample(&coarse, &u, &fine).unwrap();
         for (&v, x) in fine.active.iter().zip(&up) {
             assert!((x - plane(v / 12, v % 12)).abs() < 1e-12);
         }

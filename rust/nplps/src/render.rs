@@ -76,14 +76,16 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
         None,
     )?;
     let grid = Grid::new(height, width, None)?;
-    let geometry = Geometry::new(camera, &grid);
+    let geometry = Geometry::new(camera, &grid)?;
     // Vertices of unknown (NaN) depth need no ray: outside a reconstruction's mask, say.
     geometry.check_rays(&grid, |v| depth[v].is_finite())?;
-    Ok(depth
-        .iter()
-        .enumerate()
-        .map(|(v, &z)| geometry.position_at_depth(v, z))
-        .collect())
+    crate::memory::try_collect(
+        depth
+            .iter()
+            .enumerate()
+            .map(|(v, &z)| geometry.position_at_depth(v, z)),
+        "the vertex positions",
+    )
 }
 
 /// The 4 corners of pixel `p` from the vertex positions.
@@ -116,10 +118,12 @@ pub fn mesh_normals(
     depth: &[f64],
 ) -> Result<Vec<[f64; 3]>> {
     let v = positions(camera, height, width, depth)?;
-    Ok((0..height * width)
-        .into_par_iter()
-        .map(|p| quad_normal(&pixel_quad(&v, width, p)))
-        .collect())
+    crate::memory::try_par_collect(
+        (0..height * width)
+            .into_par_iter()
+            .map(|p| quad_normal(&pixel_quad(&v, width, p))),
+        "the mesh normals",
+    )
 }
 
 /// Renders the k images (k, H, W, C) of the surface `depth` ((H+1) x (W+1)) with per-pixel
@@ -184,13 +188,13 @@ fn shade_images(
         needed,
         None,
     )?;
-    let geometry: Vec<Option<([f64; 3], [f64; 3])>> = (0..plane)
-        .into_par_iter()
-        .map(|p| {
+    let geometry: Vec<Option<([f64; 3], [f64; 3])>> = crate::memory::try_par_collect(
+        (0..plane).into_par_iter().map(|p| {
             let rho = &albedo[p * channels..(p + 1) * channels];
             surface(p).filter(|(n, c)| n.iter().chain(c).chain(rho).all(|x| x.is_finite()))
-        })
-        .collect();
+        }),
+        "the rendered surface",
+    )?;
     let mut out = crate::memory::try_filled(lights.len() * stride, 0.0, "the rendered images")?;
     if stride == 0 {
         return Ok(out);

@@ -19,6 +19,7 @@ use crate::error::{Error, Result};
 use crate::geometry::Geometry;
 use crate::global::{GlobalSolver, GlobalStep};
 use crate::local::{FacetFit, FacetStat, FitSettings, LocalStep, Model, Robust, Weighting};
+use crate::memory::{try_collect, try_copy, try_vec};
 use crate::problem::Problem;
 use crate::refine::{LightData, Refine, Refiner, StepOutcome};
 use crate::rig::Light;
@@ -378,7 +379,7 @@ pub fn reconstruct(
     problem.cancel.check()?;
     with_threads(options.threads, || {
         let start = Instant::now();
-        let mut u = problem.u0.clone();
+        let mut u = try_copy(&problem.u0, "the depths")?;
         let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
         let mut solver = Solver::new(problem, options)?;
         solver.start = start;
@@ -466,7 +467,7 @@ pub(crate) fn coarse_to_fine(
         solver.start = start;
         solver.set_level(i + 1);
         let h = if i + 1 == coarse.len() {
-            current = p.u0.clone();
+            current = try_copy(&p.u0, "the depths")?;
             let gauge = match at_coarsest.as_mut() {
                 Some(hook) => hook(&mut solver, &mut current, progress)?,
                 None => p.gauge.clone(),
@@ -476,7 +477,7 @@ pub(crate) fn coarse_to_fine(
         } else {
             solver.set_lights(carried.lights.clone());
             solver.set_refine(refine_on_level(carried.refine, p));
-            current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid);
+            current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
             solver
@@ -501,7 +502,7 @@ pub(crate) fn coarse_to_fine(
         carried.diverged |= solver.diverged;
     }
     let t = Instant::now();
-    *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid);
+    *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid)?;
     timings.pyramid += t.elapsed();
     carried.history = history;
     carried.timings = timings;
@@ -561,9 +562,9 @@ impl<'p> Solver<'p> {
             options: *options,
             system: Some(system),
             level: 0,
-            targets: vec![[0.0; 4]; n],
-            stats: vec![FacetStat::default(); n],
-            next: vec![0.0; problem.grid.n_unknowns()],
+            targets: try_vec(n, [0.0; 4], "the solver's per-facet targets")?,
+            stats: try_vec(n, FacetStat::default(), "the solver's per-facet statistics")?,
+            next: try_vec(problem.grid.n_unknowns(), 0.0, "the solver's depths")?,
             lights: problem.rig.lights.clone(),
             refiner: options
                 .refine
@@ -761,12 +762,12 @@ impl<'p> Solver<'p> {
         self.set_refine(Refine::NONE);
         let (mut history, plain_converged) =
             self.iterate(&mut plain, gauge, iterations, tol, progress)?;
-        self.local(&plain);
+        self.local(&plain)?;
         let without = rms_of(&self.stats, self.problem.obs.channels);
         self.set_refine(refine);
         let (refined, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(refined);
-        self.local(u);
+        self.local(u)?;
         let with = rms_of(&self.stats, self.problem.obs.channels);
         let fell_back = with.is_nan() || with >= without;
         self.monitor = Some(Monitor {
@@ -800,26 +801,32 @@ impl<'p> Solver<'p> {
 
     /// The depth of every unknown for a pinhole camera (log-depth unknowns), computed once per
     /// local step instead of once per facet corner; None for an orthographic camera.
-    fn depths(&self, u: &[f64]) -> Option<Vec<f64>> {
+    fn depths(&self, u: &[f64]) -> Result<Option<Vec<f64>>> {
         use rayon::prelude::*;
         let geometry = &self.problem.geometry;
-        geometry
-            .is_perspective()
-            .then(|| u.par_iter().map(|&x| geometry.depth(x)).collect())
+        if !geometry.is_perspective() {
+            return Ok(None);
+        }
+        crate::memory::try_par_collect(
+            u.par_iter().map(|&x| geometry.depth(x)),
+            "the vertex depths",
+        )
+        .map(Some)
     }
 
     /// The local step on `u` (with fast residuals): the facets' targets and statistics.
-    pub fn local(&mut self, u: &[f64]) {
+    pub fn local(&mut self, u: &[f64]) -> Result<()> {
         let t = Instant::now();
+        let depths = self.depths(u)?;
         let (mut targets, mut stats) = (
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
         );
-        let depths = self.depths(u);
         self.step(true, depths.as_deref())
             .run_targets(u, &mut targets, &mut stats);
         (self.targets, self.stats) = (targets, stats);
         self.timings.local += t.elapsed();
+        Ok(())
     }
 
     /// Runs up to `iterations` local/global iterations from `u` (updated in place) with the
@@ -862,7 +869,7 @@ impl<'p> Solver<'p> {
                     accel = None;
                 }
             }
-            self.local(u);
+            self.local(u)?;
             p.cancel.check()?;
             last_rms = rms_of(&self.stats, p.obs.channels);
             if self.safeguard(&mut best, last_rms, u) {
@@ -1032,11 +1039,11 @@ impl<'p> Solver<'p> {
         drop(std::mem::take(&mut self.next));
         drop(self.system.take());
         let problem = self.problem;
-        let mut outputs = FitOutputs::new(problem);
-        let depths = self.depths(u);
+        let mut outputs = FitOutputs::new(problem)?;
+        let depths = self.depths(u)?;
         let step = self.step(false, depths.as_deref());
         let n = problem.grid.n_facets();
-        let mut fits = vec![FacetFit::EMPTY; n.min(FINAL_CHUNK)];
+        let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
         for first in (0..n).step_by(FINAL_CHUNK) {
             let chunk = &mut fits[..(n - first).min(FINAL_CHUNK)];
             step.run(u, first, chunk);
@@ -1047,7 +1054,7 @@ impl<'p> Solver<'p> {
         self.timings.local += t.elapsed();
         self.timings.total = self.start.elapsed();
         let refinement = self.report(u);
-        let mut result = assemble(problem, u, outputs, history, converged, self.timings);
+        let mut result = assemble(problem, u, outputs, history, converged, self.timings)?;
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = std::mem::take(&mut self.lights);
         result.refinement = refinement;
@@ -1190,14 +1197,14 @@ pub(crate) struct FitOutputs {
 
 impl FitOutputs {
     /// Empty outputs for `problem`'s image size.
-    pub(crate) fn new(problem: &Problem<'_>) -> FitOutputs {
+    pub(crate) fn new(problem: &Problem<'_>) -> Result<FitOutputs> {
         let n = problem.grid.height * problem.grid.width;
-        FitOutputs {
-            normals: vec![[f64::NAN; 3]; n],
-            albedo: vec![[f64::NAN; 3]; n],
-            residual: vec![f64::NAN; n],
-            lights_used: vec![0; n],
-        }
+        Ok(FitOutputs {
+            normals: try_vec(n, [f64::NAN; 3], "the normal map")?,
+            albedo: try_vec(n, [f64::NAN; 3], "the albedo map")?,
+            residual: try_vec(n, f64::NAN, "the residual map")?,
+            lights_used: try_vec(n, 0, "the map of lights used")?,
+        })
     }
 
     /// Writes the fits of facets `first..first + fits.len()` onto their pixels.
@@ -1309,22 +1316,19 @@ pub(crate) fn assemble(
     history: Vec<IterationStats>,
     converged: bool,
     timings: Timings,
-) -> Reconstruction {
+) -> Result<Reconstruction> {
     let grid = &problem.grid;
-    Reconstruction {
+    let depths = try_collect(z.iter().map(|&u| problem.geometry.depth(u)), "the depths")?;
+    Ok(Reconstruction {
         height: grid.height,
         width: grid.width,
         channels: problem.obs.channels,
-        depth: grid.scatter_vertices(
-            &z.iter()
-                .map(|&u| problem.geometry.depth(u))
-                .collect::<Vec<_>>(),
-        ),
+        depth: grid.scatter_vertices(&depths)?,
         normals: outputs.normals,
         albedo: outputs.albedo,
         residual: outputs.residual,
         lights_used: outputs.lights_used,
-        regions: grid.pixel_regions(),
+        regions: grid.pixel_regions()?,
         gauge: problem
             .gauge
             .iter()
@@ -1342,7 +1346,7 @@ pub(crate) fn assemble(
         timings,
         lights: problem.rig.lights.clone(),
         refinement: None,
-    }
+    })
 }
 
 // The tests reconstruct synthetic scenes (cargo feature `synth`).

@@ -262,7 +262,9 @@ impl Scene {
     pub fn mean_depth(&self) -> f64 {
         let grid = crate::grid::Grid::new(self.height, self.width, Some(&self.mask))
             .expect("scene mask is valid");
-        let z = grid.gather_vertices(&self.depth);
+        let z = grid
+            .gather_vertices(&self.depth)
+            .expect("the scene's depths fit in memory");
         if self.rig.camera.is_perspective() {
             (z.iter().map(|v| v.ln()).sum::<f64>() / z.len() as f64).exp()
         } else {
