@@ -60,6 +60,8 @@ MAX_PLY_HEADER = 1 << 16
 #: file's size (plus a margin) cannot hold them, and is refused before decoding.
 _PNG_EXPANSION = 1100
 
+#: The largest depth (or coordinate) a result holds: the mesh files store float32.
+MAX_COORDINATE = float(np.finfo(np.float32).max)
 #: Most rows read from a CSV file (history.csv, distance_curve.csv).
 MAX_CSV_ROWS = 100_000
 #: Deepest pyramid level in history.csv.
@@ -81,16 +83,10 @@ def damaged(path: str | os.PathLike[str], problem: str) -> InputError:
 
 def _read_regular(path: Path, limit: int) -> bytes:
     """Return the bytes of a regular file of at most `limit` bytes (no FIFO or device is opened blocking)."""
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except OSError as e:
-        raise InputError(f"cannot read result file '{os.fspath(path)}': {e.strerror or e}") from None
-    with os.fdopen(fd, "rb") as file:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise damaged(path, "not a regular file")
-        if info.st_size > limit:
-            raise damaged(path, f"{info.st_size} bytes, more than the {limit >> 20} MiB such a file can have")
+    file, size = _open_regular(path)
+    with file:
+        if size > limit:
+            raise damaged(path, f"{size} bytes, more than the {limit >> 20} MiB such a file can have")
         try:
             data = file.read(limit + 1)
         except OSError as e:
@@ -101,17 +97,24 @@ def _read_regular(path: Path, limit: int) -> bytes:
 
 
 def _open_regular(path: Path) -> tuple[Any, int]:
-    """Open a regular file for reading; return the file and its size."""
+    """Open a regular file for reading; return the file and its size.
+
+    Opened without blocking (a FIFO would wait for a writer) and checked to be a regular file
+    before anything is read.
+    """
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except OSError as e:
         raise InputError(f"cannot read result file '{os.fspath(path)}': {e.strerror or e}") from None
-    file = os.fdopen(fd, "rb")
-    info = os.fstat(fd)
-    if not stat.S_ISREG(info.st_mode):
-        file.close()
-        raise damaged(path, "not a regular file")
-    return file, info.st_size
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            kind = "a directory" if stat.S_ISDIR(info.st_mode) else "not a regular file"
+            raise damaged(path, f"{kind}, not a file")
+        return os.fdopen(fd, "rb"), info.st_size
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 # --------------------------------------------------------------------------------------------------
@@ -237,7 +240,12 @@ def _shape_text(shape: Sequence[int]) -> str:
 
 
 def read_npy(
-    path: str | os.PathLike[str], *, kinds: str, shape: tuple[int, ...] | None = None, ndim: int | None = None
+    path: str | os.PathLike[str],
+    *,
+    kinds: str,
+    shape: tuple[int, ...] | None = None,
+    ndim: int | None = None,
+    max_abs: float | None = None,
 ) -> np.ndarray:
     """Read a ``.npy`` file after checking its header against the file and the expected array.
 
@@ -252,6 +260,8 @@ def read_npy(
         The expected shape.
     ndim : int, optional
         The expected number of dimensions (when the shape is not known).
+    max_abs : float, optional
+        The largest magnitude a finite value may have (NaN and infinities are left to the caller).
 
     Returns
     -------
@@ -303,6 +313,11 @@ def read_npy(
             raise InputError(f"cannot read result file '{os.fspath(p)}': {e.strerror or e}") from None
         if got != needed:
             raise damaged(p, f"truncated while reading ({got} of {needed} bytes)")
+    if max_abs is not None and array.size:
+        with np.errstate(invalid="ignore"):
+            big = np.abs(array[np.isfinite(array)]).max(initial=0)
+        if float(big) > max_abs:
+            raise damaged(p, f"holds the value {float(big):.4g}, beyond the {max_abs:.4g} such a file can hold")
     if fortran:
         return np.ascontiguousarray(array.reshape(tuple(found)[::-1]).T)
     return array.reshape(tuple(found))

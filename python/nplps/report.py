@@ -449,7 +449,8 @@ class _Data:
             if name in _NPY_FILES:
                 kinds, extra = _NPY_FILES[name]
                 grid = (h + 1, w + 1) if name == "depth.npy" else (h, w)
-                value = _results.read_npy(p, kinds=kinds, shape=grid + extra)
+                limit = _results.MAX_COORDINATE if name == "depth.npy" else None
+                value = _results.read_npy(p, kinds=kinds, shape=grid + extra, max_abs=limit)
             elif name == "inputs.png":
                 value = _results.read_png(p)
             elif name.endswith(".png"):

@@ -285,7 +285,7 @@ def _read_result(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
             "(write one with 'nplps reconstruct ... --out DIR')"
         )
     ply = _results.read_mesh_ply(directory / "mesh.ply")
-    depth = _results.read_npy(directory / "depth.npy", kinds="f", ndim=2)
+    depth = _results.read_npy(directory / "depth.npy", kinds="f", ndim=2, max_abs=_results.MAX_COORDINATE)
     raw = np.asarray(ply["vertices"], dtype=np.float64)
     if not (np.isfinite(raw).all() and float(np.abs(raw).max(initial=0.0)) <= float(np.finfo(np.float32).max)):
         raise InputError(f"'{directory / 'mesh.ply'}' has a vertex that is not a finite float32 position")
