@@ -175,10 +175,16 @@ def damage_delete(data: st.DataObject, d: Path) -> str:
     if p is None:
         return "nothing to delete"
     p.unlink()
-    if data.draw(st.booleans()):
+    kind = data.draw(st.sampled_from(["delete", "delete", "directory", "fifo", "device link", "dangling link"]))
+    if kind == "directory":
         p.mkdir()
-        return f"{p.name} made a directory"
-    return f"delete {p.name}"
+    elif kind == "fifo":  # a reader that opens it blocking would hang (the time limit catches it)
+        os.mkfifo(p)
+    elif kind == "device link":
+        p.symlink_to("/dev/zero")
+    elif kind == "dangling link":
+        p.symlink_to(d / "no such file")
+    return f"{p.name}: {kind}"
 
 
 def damage_swap(data: st.DataObject, d: Path) -> str:
