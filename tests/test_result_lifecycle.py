@@ -391,3 +391,46 @@ def test_manifest_hash_matches_every_file(tmp_path: Path, result: nplps.Reconstr
     (out / "depth.npy").write_bytes(bytes(data))
     assert is_complete(out) and not is_complete(out, verify=True)
     np.testing.assert_equal(np.load(out / "normals.npy"), result.normals)
+
+
+# --------------------------------------------------------------------------------------------------
+# 9. Rigs know their grid; comments are kept
+# --------------------------------------------------------------------------------------------------
+
+
+def test_a_binned_results_rig_is_refused_on_the_original_images(
+    tmp_path: Path, scene_dir: Path, scene: nplps.Scene, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "r"
+    depth = repr(scene.mean_depth)
+    assert cli.main(reconstruct_argv(scene_dir, out, "--depth", depth, "--bin", "4")) == 0
+    saved = nplps.Rig.load(out / "rig.json")
+    assert saved.grid == nplps.RigGrid((6, 6), 4)
+    assert json.loads((out / "rig.json").read_text())["grid"] == {"image_size": [6, 6], "binning": 4}
+    capsys.readouterr()
+    argv = reconstruct_argv(scene_dir, tmp_path / "again", "--depth", depth, "--bin", "4")
+    argv[argv.index("--rig") + 1] = str(out / "rig.json")
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "6 x 6 pixels (binned 4 x 4" in err and "24 x 24 pixels" in err
+    # On images of its own size it works.
+    small = nplps.pipeline.prepare(scene.images[:, :24:4, :24:4].copy(), rig=saved)
+    assert small.images.shape[1:3] == (6, 6)
+
+
+def test_rig_comments_and_grid_survive_save_and_derivation(tmp_path: Path, scene: nplps.Scene) -> None:
+    data = scene.rig.to_dict()
+    data["_comment"] = "LED dome 2, calibrated 2026-11-30"
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(data))
+    rig = nplps.Rig.load(path).with_grid(24, 24)
+    for derived in (rig.subset([0, 1, 2, 3]), rig.with_intensities(2.0), rig.with_positions(rig.positions)):
+        assert derived.comments == {"_comment": "LED dome 2, calibrated 2026-11-30"}
+        assert derived.grid == nplps.RigGrid((24, 24), 1)
+    assert rig.binned(2).grid == nplps.RigGrid((12, 12), 2)
+    rig.binned(3).save(tmp_path / "b.json")
+    again = json.loads((tmp_path / "b.json").read_text())
+    assert again["_comment"] == "LED dome 2, calibrated 2026-11-30" and again["grid"]["binning"] == 3
+    import pickle
+
+    assert pickle.loads(pickle.dumps(rig)).grid == rig.grid

@@ -125,7 +125,7 @@ def test_save_load_round_trip(tmp_path):
     data = json.loads(path.read_text(encoding="utf-8"))
     assert set(data) == {"version", "camera", "lights"}
     assert list(data) == ["version", "camera", "lights"]
-    assert data["version"] == 2
+    assert data["version"] == 3
     assert data["camera"] == {"model": "orthographic", "pixel_size": [0.5, 0.25], "origin": [-8.0, 4.125]}
     assert data["lights"] == [{"type": "point", "position": list(p), "intensity": 1.0} for p in rig.positions.tolist()]
 
@@ -155,7 +155,7 @@ def test_load_ignores_comment_keys(tmp_path):
     [
         (
             lambda d: d.update(comment="x"),
-            r"rig\.json has an unknown key \"comment\" \(a rig file has version, camera and lights"
+            r"rig\.json has an unknown key \"comment\" \(a rig file has version, camera, lights and optionally grid"
             r"; keys starting with '_' are comments\)",
         ),
         (
@@ -209,7 +209,7 @@ def _edit(fn):
         ([1, 2, 3], r"rig\.json: a rig file holds a JSON object, got a list of 3 items"),
         (_edit(lambda d: d.pop("lights")), r"rig\.json: missing key\(s\) lights"),
         (_edit(lambda d: (d.pop("version"), d.pop("camera"))), r"missing key\(s\) version, camera"),
-        (_edit(lambda d: d.update(version=3)), r"unsupported rig file version 3 \(this nplps reads 1\.\.2\)"),
+        (_edit(lambda d: d.update(version=4)), r"unsupported rig file version 4 \(this nplps reads 1\.\.3\)"),
         (_edit(lambda d: d.update(version=0)), r"unsupported rig file version 0"),
         (_edit(lambda d: d.update(version="1")), r"'version' must be an integer, got the string \"1\""),
         (_edit(lambda d: d.update(version=2.0)), r"'version' must be an integer, got 2"),

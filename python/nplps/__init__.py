@@ -42,7 +42,7 @@ from .calibrate import (
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
 from .evaluation import HeldOut
 from .reconstruction import DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
-from .rig import LED, DirectionalLight, PointLight, Rig
+from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid
 from .synth import Scene, make_scene
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "Reconstruction",
     "Rig",
     "RigError",
+    "RigGrid",
     "Scene",
     "SolverError",
     "SphereCalibration",

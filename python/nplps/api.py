@@ -75,6 +75,7 @@ def _prepare(
         raise InputError(
             f"{k} images were given for {rig.n_lights} lights: there must be one image per light, in the rig's order"
         )
+    rig.check_grid(w, h)  # a rig that records its images' size refuses images of another size
     mask_arr = np.ascontiguousarray(load_mask(mask, (h, w)))
     if depth is None:
         raise InputError(

@@ -690,6 +690,10 @@ def prepare(
         overwrite=owned,
         progress=starting,
     )
+    if rig is not None:
+        # A rig saved with a result knows its images' size: images of another size (say the
+        # original images with a rig whose K is already binned) are refused with both sizes.
+        rig.check_grid(stack.shape[2], stack.shape[1])
     if bin_factor != 1:
         starting("bin")
     binned = bin_inputs(stack, bin_factor, mask=mask_arr, valid=flags, rig=rig, K=K, depth=depth)

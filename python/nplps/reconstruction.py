@@ -828,11 +828,13 @@ class Reconstruction:
                 self.distance.save_curve(paths["distance_curve"])
                 plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
             if self.refinement is not None:
-                self.rig.save(paths["rig_refined"])
+                self.rig.with_grid(self.shape[1], self.shape[0]).save(paths["rig_refined"])
             export.save_grey_png(paths["mask"], self.mask.astype(np.float64))
             export.save_npy(paths["lights_used"], np.minimum(self.lights_used, 65535).astype(np.uint16))
             write_text(paths["history"], report_module.history_csv(self.history))
-            self.rig.save(paths["rig"])
+            # The rig records the image size it belongs to (and its binning): reused on images of
+            # another size it is refused with both sizes named (see nplps.rig.RigGrid).
+            self.rig.with_grid(self.shape[1], self.shape[0]).save(paths["rig"])
             if inputs is not None:
                 export.write_png8(paths["inputs"], report_module.contact_sheet(inputs))
             if held_out is not None:

@@ -15,11 +15,14 @@ image, each a frozen value of one of three types that mirror the compiled core's
 ``intensity`` is per channel (R, G, B; grey images use the mean). Camera frame as in OpenCV (x
 right, y down, z forward into the scene), in the user's unit (mm typical).
 
-Rig file (JSON), version 2 (version 1 files, with only light positions, are read too)::
+Rig file (JSON), version 3 (versions 1 and 2 are read too; 1 has only light positions, 2 no
+``"grid"``)::
 
     {
-      "version": 2,
+      "version": 3,
+      "_comment": "kept when the rig is saved again",
       "camera": {"model": "orthographic", "pixel_size": [w, h], "origin": [ox, oy]},
+      "grid": {"image_size": [W, H], "binning": 1},
       "lights": [
         {"type": "point", "position": [x, y, z], "intensity": 1.0},
         {"type": "point", "position": [x, y, z], "intensity": [r, g, b],
@@ -27,6 +30,14 @@ Rig file (JSON), version 2 (version 1 files, with only light positions, are read
         {"type": "directional", "direction": [dx, dy, dz], "intensity": 0.5}
       ]
     }
+
+The optional ``"grid"`` says which images the camera belongs to (:class:`RigGrid`):
+``"image_size"`` their width and height in pixels, ``"binning"`` how many pixels of the original
+calibration grid one pixel of them averages along each axis (1: the original; 4 after ``--bin
+4``, whose K is the binned one). nplps writes it into every rig it saves with a result, so
+that a rig reused on images of another size is refused with both sizes named instead of giving
+a silently wrong result (:func:`nplps.pipeline.prepare` checks it). Top-level keys starting with
+``_`` (comments) are kept by :meth:`Rig.to_dict` and :meth:`Rig.save`.
 
 In the file an LED is a ``"point"`` light with a ``"direction"``: that key is the LED's
 :attr:`LED.axis` (``"mu"`` defaults to 0); a ``"point"`` light without it is a
@@ -77,10 +88,11 @@ __all__ = [
     "Light",
     "PointLight",
     "Rig",
+    "RigGrid",
     "read_rig_json",
 ]
 
-RIG_FILE_VERSION = 2
+RIG_FILE_VERSION = 3
 #: Largest rig file read (bytes).
 MAX_RIG_FILE_BYTES = 16 * 2**20
 #: Deepest nesting of arrays and objects in a rig file.
@@ -88,7 +100,8 @@ MAX_NESTING = 64
 #: Most lights of a rig.
 MAX_LIGHTS: int = _core.MAX_LIGHTS
 
-_TOP_KEYS = ("version", "camera", "lights")
+_TOP_KEYS = ("version", "camera", "lights", "grid")
+_REQUIRED_KEYS = ("version", "camera", "lights")
 _LIGHT_KEYS = {
     "point": ("type", "position", "intensity", "direction", "mu"),
     "directional": ("type", "direction", "intensity"),
@@ -331,6 +344,33 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+@dataclass(frozen=True)
+class RigGrid:
+    """The image grid a rig's camera belongs to.
+
+    Attributes
+    ----------
+    image_size : (int, int) or None
+        Width and height of the images, in pixels (None: not known, only the binning).
+    binning : int
+        Pixels of the original calibration grid that one pixel averages along each axis (1: the
+        original grid; n after :meth:`Rig.binned` ``(n)``).
+    """
+
+    image_size: tuple[int, int] | None = None
+    binning: int = 1
+
+    def describe(self) -> str:
+        """Return "640 x 480 pixels (binned 4 x 4)" and the like."""
+        if self.image_size is None:
+            size = "images of unknown size"
+        else:
+            size = f"{self.image_size[0]} x {self.image_size[1]} pixels"
+        if self.binning > 1:
+            size += f" (binned {self.binning} x {self.binning} from the calibration grid)"
+        return size
+
+
 @dataclass(frozen=True, init=False)
 class Rig:
     """A calibrated rig: one camera and k lights, in the order of the images.
@@ -365,8 +405,21 @@ class Rig:
     camera: dict[str, Any]
     #: The lights, one per image.
     lights: tuple[Light, ...] = field(repr=False)
+    #: The image grid the camera belongs to, if known (:class:`RigGrid`; not compared).
+    grid: RigGrid | None = field(default=None, repr=False, compare=False)
+    #: The rig file's top-level comments (keys starting with ``_``), kept when saved (not compared).
+    comments: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
-    def __init__(self, camera: Mapping[str, Any], lights: Sequence[Light] | ArrayLike = ()) -> None:
+    def __init__(
+        self,
+        camera: Mapping[str, Any],
+        lights: Sequence[Light] | ArrayLike = (),
+        *,
+        grid: RigGrid | None = None,
+        comments: Mapping[str, Any] | None = None,
+    ) -> None:
+        object.__setattr__(self, "grid", grid)
+        object.__setattr__(self, "comments", dict(comments or {}))
         if not isinstance(camera, Mapping):
             raise RigError(f"camera must be a mapping (the rig file's camera object), got {_describe(camera)}")
         # The compiled core checks the camera (every key) and gives its canonical form.
@@ -383,7 +436,56 @@ class Rig:
     def __getstate__(self) -> dict[str, Any]:
         """Return the state to pickle: the fields only."""
         # The fields only: the array views are computed again (read-only) after unpickling.
-        return {"camera": self.camera, "lights": self.lights}
+        return {"camera": self.camera, "lights": self.lights, "grid": self.grid, "comments": self.comments}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Restore a pickled rig (also one pickled before it had a grid)."""
+        object.__setattr__(self, "camera", state["camera"])
+        object.__setattr__(self, "lights", state["lights"])
+        object.__setattr__(self, "grid", state.get("grid"))
+        object.__setattr__(self, "comments", state.get("comments", {}))
+
+    def _like_this(self, camera: Mapping[str, Any], lights: Sequence[Light], grid: RigGrid | None = None) -> Rig:
+        """Return a rig with other camera or lights that keeps this one's grid (or ``grid``) and comments."""
+        return Rig(camera=camera, lights=lights, grid=grid or self.grid, comments=self.comments)
+
+    def with_grid(self, width: int, height: int) -> Rig:
+        """Return the rig with the image size it belongs to recorded (its binning kept).
+
+        Parameters
+        ----------
+        width, height : int
+            The size of its images in pixels.
+
+        Returns
+        -------
+        Rig
+        """
+        binning = 1 if self.grid is None else self.grid.binning
+        return self._like_this(self.camera, self.lights, RigGrid((int(width), int(height)), binning))
+
+    def check_grid(self, width: int, height: int, what: str = "the images") -> None:
+        """Refuse images of another size than the rig's recorded grid (if it has one).
+
+        Raises
+        ------
+        RigError
+            The rig records an image size and ``width`` x ``height`` is another; the message
+            names both sizes and, for a rig of binned images, the binning.
+        """
+        grid = self.grid
+        if grid is None or grid.image_size is None or grid.image_size == (int(width), int(height)):
+            return
+        hint = "use the rig that was calibrated for these images"
+        if grid.binning > 1:
+            hint = (
+                f"its camera is that of images binned {grid.binning} x {grid.binning} (a rig saved with a binned "
+                "result): use the original rig file with --bin, or give it images of its size without --bin"
+            )
+        raise RigError(
+            f"the rig belongs to images of {grid.describe()}, but {what} are {int(width)} x {int(height)} pixels: "
+            f"{hint}"
+        )
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
@@ -664,7 +766,7 @@ class Rig:
             raise RigError(
                 f"indices: {int(idx[out][0])} is not a light of the rig (its {k} lights are {-k} .. {k - 1})"
             )
-        return Rig(camera=self.camera, lights=tuple(self.lights[i] for i in idx.astype(int).tolist()))
+        return self._like_this(self.camera, tuple(self.lights[i] for i in idx.astype(int).tolist()))
 
     def with_positions(self, positions: ArrayLike) -> Rig:
         """Return the rig with the point lights and LEDs moved.
@@ -694,7 +796,7 @@ class Rig:
                 lights.append(light)
             else:
                 lights.append(_with_position(light, p[i], f"light {i}"))
-        return Rig(camera=self.camera, lights=tuple(lights))
+        return self._like_this(self.camera, tuple(lights))
 
     def with_intensities(self, intensities: ArrayLike) -> Rig:
         """Return the rig with new intensities.
@@ -715,7 +817,7 @@ class Rig:
         """
         phi = _intensities(intensities, self.n_lights)
         lights = tuple(_with_intensity(light, phi[i], f"light {i}") for i, light in enumerate(self.lights))
-        return Rig(camera=self.camera, lights=lights)
+        return self._like_this(self.camera, lights)
 
     def binned(self, n: int) -> Rig:
         """Return the rig of the images binned ``n`` x ``n``.
@@ -748,7 +850,12 @@ class Rig:
             camera["K"] = preprocess.bin_intrinsics(np.array(camera["K"], dtype=np.float64), int(n)).tolist()
         else:
             camera["pixel_size"] = [float(v) * int(n) for v in camera["pixel_size"]]
-        return Rig(camera=camera, lights=self.lights)
+        n = int(n)
+        if n == 1:
+            return self
+        old = self.grid or RigGrid()
+        size = None if old.image_size is None else (old.image_size[0] // n, old.image_size[1] // n)
+        return self._like_this(camera, self.lights, RigGrid(size, old.binning * n))
 
     # -- the compiled core's form ---------------------------------------------------------------
     @classmethod
@@ -771,6 +878,8 @@ class Rig:
                 out.append(LED._checked(subject, vector, phi, lights["axes"][i], mu))
             else:
                 out.append(PointLight._checked(subject, vector, phi))
+        if like is not None:
+            return like._like_this(camera, tuple(out))
         return cls(camera=camera, lights=tuple(out))
 
     def _core_lights(self) -> _core_types.LightsDict:
@@ -797,7 +906,8 @@ class Rig:
         Returns
         -------
         dict
-            ``{"version": 2, "camera": ..., "lights": [...]}``: an intensity is one number when
+            ``{"version": 3, "_comment": ..., "camera": ..., "grid": ..., "lights": [...]}``: the
+            comments and the grid only when the rig has them; an intensity is one number when
             its three channels are equal; an LED's axis is its ``"direction"``.
         """
         lights = []
@@ -812,7 +922,14 @@ class Rig:
                 entry["direction"] = list(light.axis)
                 entry["mu"] = light.mu
             lights.append(entry)
-        return {"version": RIG_FILE_VERSION, "camera": dict(self.camera), "lights": lights}
+        data: dict[str, Any] = {"version": RIG_FILE_VERSION, **self.comments, "camera": dict(self.camera)}
+        if self.grid is not None:
+            grid: dict[str, Any] = {"binning": self.grid.binning}
+            if self.grid.image_size is not None:
+                grid = {"image_size": list(self.grid.image_size), **grid}
+            data["grid"] = grid
+        data["lights"] = lights
+        return data
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "rig") -> Rig:
@@ -836,8 +953,8 @@ class Rig:
         """
         if not isinstance(data, Mapping):
             raise RigError(f"{source}: a rig file holds a JSON object, got {_describe(data)}")
-        _check_keys(data, _TOP_KEYS, source, "a rig file has version, camera and lights")
-        missing = [k for k in _TOP_KEYS if k not in data]
+        _check_keys(data, _TOP_KEYS, source, "a rig file has version, camera, lights and optionally grid")
+        missing = [k for k in _REQUIRED_KEYS if k not in data]
         if missing:
             raise RigError(f"{source}: missing key(s) {', '.join(missing)}")
         version = data["version"]
@@ -885,8 +1002,10 @@ class Rig:
                 raise RigError(f"{where} has anisotropy mu = {mu:.6g}; it must be >= 0")
             else:
                 out.append(PointLight._checked(where, vector, intensity))
+        grid = _grid(data["grid"], f"{source}: grid") if "grid" in data else None
+        comments = {k: v for k, v in data.items() if isinstance(k, str) and k.startswith("_")}
         try:
-            return cls(camera=camera, lights=tuple(out))
+            return cls(camera=camera, lights=tuple(out), grid=grid, comments=comments)
         except RigError as e:
             raise RigError(f"{source}: {e}") from None
 
@@ -1043,6 +1162,26 @@ def _describe(value: Any) -> str:
         except OverflowError:
             return "an integer too large for a floating-point number"
     return f"a value of type {type(value).__name__}"
+
+
+def _grid(value: Any, where: str) -> RigGrid:
+    """Read a rig file's ``"grid"`` object."""
+    if not isinstance(value, Mapping):
+        raise RigError(f"{where} must be an object with image_size [W, H] and binning, got {_describe(value)}")
+    _check_keys(value, ("image_size", "binning"), where, "a grid has image_size [W, H] and binning")
+
+    def whole(v: Any, name: str) -> int:
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 2**31:
+            raise RigError(f"{where} {name} must be a whole number of at least 1, got {_describe(v)}")
+        return v
+
+    size = None
+    if "image_size" in value:
+        raw = value["image_size"]
+        if not isinstance(raw, (list, tuple)) or len(raw) != 2:
+            raise RigError(f"{where} image_size must be [width, height] in pixels, got {_describe(raw)}")
+        size = (whole(raw[0], "image_size width"), whole(raw[1], "image_size height"))
+    return RigGrid(size, whole(value.get("binning", 1), "binning"))
 
 
 def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, usage: str) -> None:

@@ -114,7 +114,7 @@ class Scene:
                 p = paths[f"image_{i:02d}"] = out.file(f"image_{i:02d}.png")
                 export.write_png16(p, np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16))
             paths.update(rig=out.file("rig.json"), mask=out.file("mask.png"), depth_gt=out.file("depth_gt.npy"))
-            self.rig.save(paths["rig"])
+            self.rig.with_grid(self.images.shape[2], self.images.shape[1]).save(paths["rig"])
             export.write_png8(paths["mask"], (self.mask * 255).astype(np.uint8))
             export.save_depth_npy(paths["depth_gt"], self.depth)
             export.save_npy(out.file("normals_gt.npy"), self.normals)

@@ -15,7 +15,7 @@ pub const MAX_RIG_FILE_BYTES: usize = 16 << 20;
 pub const MAX_NESTING: usize = 64;
 
 /// The newest rig file version (files of version 1 to this one are read).
-pub const RIG_FILE_VERSION: i64 = 2;
+pub const RIG_FILE_VERSION: i64 = 3;
 
 fn rig_error(message: String) -> Error {
     Error::Rig(message)
@@ -223,6 +223,51 @@ fn intensity(v: &Value, what: &str) -> Result<[f64; 3]> {
     }
 }
 
+/// Checks a rig file's `"grid"`: `{"image_size": [W, H], "binning": n}`, whole numbers >= 1
+/// (both optional). It says which images the camera belongs to; the native [`Rig`] does not keep
+/// it (the Python package checks images against it).
+fn check_grid(grid: &Value, place: &str) -> Result<()> {
+    let Some(map) = grid.as_object() else {
+        return Err(rig_error(format!(
+            "{place} must be an object with image_size [W, H] and binning, got {}",
+            describe(grid)
+        )));
+    };
+    check_keys(
+        grid,
+        place,
+        &["image_size", "binning"],
+        "a grid has image_size [W, H] and binning",
+    )?;
+    let whole = |v: &Value, name: &str| -> Result<()> {
+        match v.as_u64() {
+            Some(n) if (1..=1u64 << 31).contains(&n) => Ok(()),
+            _ => Err(rig_error(format!(
+                "{place} {name} must be a whole number of at least 1, got {}",
+                describe(v)
+            ))),
+        }
+    };
+    if let Some(size) = map.get("image_size") {
+        match size.as_array() {
+            Some(wh) if wh.len() == 2 => {
+                whole(&wh[0], "image_size width")?;
+                whole(&wh[1], "image_size height")?;
+            }
+            _ => {
+                return Err(rig_error(format!(
+                    "{place} image_size must be [width, height] in pixels, got {}",
+                    describe(size)
+                )))
+            }
+        }
+    }
+    if let Some(b) = map.get("binning") {
+        whole(b, "binning")?;
+    }
+    Ok(())
+}
+
 /// The rig of a rig file's JSON value; `source` names the file in the messages.
 pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
     let Some(top) = data.as_object() else {
@@ -231,14 +276,14 @@ pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
             describe(data)
         )));
     };
-    const TOP: [&str; 3] = ["version", "camera", "lights"];
+    const TOP: [&str; 4] = ["version", "camera", "lights", "grid"];
     check_keys(
         data,
         source,
         &TOP,
-        "a rig file has version, camera and lights",
+        "a rig file has version, camera, lights and optionally grid",
     )?;
-    let missing: Vec<&str> = TOP
+    let missing: Vec<&str> = TOP[..3]
         .iter()
         .copied()
         .filter(|k| !top.contains_key(*k))
@@ -260,6 +305,9 @@ pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
         return Err(rig_error(format!(
             "{source}: unsupported rig file version {v} (this nplps reads 1..{RIG_FILE_VERSION})"
         )));
+    }
+    if let Some(grid) = top.get("grid") {
+        check_grid(grid, &format!("{source}: grid"))?;
     }
     let camera = &top["camera"];
     match camera.as_object() {
@@ -383,6 +431,35 @@ mod tests {
                    {"type": "directional", "direction": [0.0, -0.6, -0.8], "intensity": 0.7}]}"#;
 
     #[test]
+    fn reads_a_version_3_file_with_its_grid() {
+        let v3 = ORTHO.replace(
+            "\"version\": 2,",
+            "\"version\": 3, \"grid\": {\"image_size\": [640, 480], \"binning\": 4},",
+        );
+        assert_eq!(parse_rig(&v3, "rig.json").unwrap().n_lights(), 3);
+        for (grid, message) in [
+            ("[640, 480]", "grid must be an object"),
+            (
+                "{\"image_size\": [640]}",
+                "image_size must be [width, height]",
+            ),
+            (
+                "{\"image_size\": [640, 0]}",
+                "image_size height must be a whole number",
+            ),
+            ("{\"binning\": 1.5}", "binning must be a whole number"),
+            ("{\"size\": 1}", "unknown key"),
+        ] {
+            let text = ORTHO.replace(
+                "\"version\": 2,",
+                &format!("\"version\": 3, \"grid\": {grid},"),
+            );
+            let error = parse_rig(&text, "rig.json").unwrap_err().to_string();
+            assert!(error.contains(message), "{grid}: {error}");
+        }
+    }
+
+    #[test]
     fn reads_a_version_2_file() {
         let rig = parse_rig(ORTHO, "rig.json").unwrap();
         assert_eq!(rig.n_lights(), 3);
@@ -407,8 +484,8 @@ mod tests {
                 "unknown key \"intensities\"",
             ),
             (
-                ORTHO.replace("\"version\": 2", "\"version\": 3"),
-                "unsupported rig file version 3",
+                ORTHO.replace("\"version\": 2", "\"version\": 4"),
+                "unsupported rig file version 4",
             ),
             (
                 ORTHO.replace("[0.2, 0.2]", "[0.2, true]"),
