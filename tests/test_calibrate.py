@@ -255,7 +255,7 @@ def test_rig_file_and_report(tmp_path):
     assert result.status == [["ok", "ok"]] * 8
     result.save(tmp_path / "rig.json")
     data = json.loads((tmp_path / "rig.json").read_text())
-    assert data["version"] == 2 and data["camera"]["model"] == "pinhole"
+    assert data["version"] == nplps.rig.RIG_FILE_VERSION and data["camera"]["model"] == "pinhole"
     assert all(light["intensity"] == 1.0 for light in data["lights"])
     loaded = nplps.Rig.load(tmp_path / "rig.json")
     expected = np.array([light.position if light.kind == "point" else light.direction for light in result.lights])
