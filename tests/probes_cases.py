@@ -833,7 +833,7 @@ for key in ("version", "camera", "lights"):
         f"d = rig_dict(); del d['{key}']; Rig.load(write_json('rig.json', d))",
         raises("RigError", key),
     )
-for name, value in [("string", "'2'"), ("three", "3"), ("zero", "0"), ("bool", "True")]:
+for name, value in [("string", "'2'"), ("four", "4"), ("zero", "0"), ("bool", "True")]:
     api(
         f"rigfile.version_{name}",
         C,

@@ -308,10 +308,15 @@ def _read_and_prepare(
     from .. import pipeline
 
     images, levels, preprocessed, ambient = _read_images(args, source, display)
+    rig = source.rig
+    if args.grid_shape is not None and getattr(rig, "grid", None) is not None:
+        # Padding or cropping at the bottom and right keeps K: the images are on the grid asked for.
+        height, width = parse_grid_shape(args.grid_shape)
+        rig = rig.with_grid(width, height)
     try:
         prepared = pipeline.prepare(
             images,
-            rig=source.rig,
+            rig=rig,
             K=source.K,
             mask=source.mask,
             color=False if args.gray else None,
