@@ -872,7 +872,13 @@ impl<'p> Solver<'p> {
             self.local(u)?;
             p.cancel.check()?;
             last_rms = rms_of(&self.stats, p.obs.channels);
-            if self.safeguard(&mut best, last_rms, u) {
+            // With position refinement the state before the first global step is the start:
+            // never kept as the "best" (restoring it would return the unrefined start, e.g. the
+            // starting plane under a stiff prior, while history and status describe the
+            // iterated run).
+            if (iteration > 1 || !self.options.refine.position)
+                && self.safeguard(&mut best, last_rms, u)
+            {
                 // The residual rose well above the best state's: back to it, with a fresh
                 // acceleration history (or, after MAX_RESTARTS, with the lights frozen).
                 accel = self.acceleration(u.len(), scale, distance);
@@ -1055,9 +1061,9 @@ impl<'p> Solver<'p> {
         self.timings.total = self.start.elapsed();
         let refinement = self.report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings)?;
+        result.refinement = refinement;
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = std::mem::take(&mut self.lights);
-        result.refinement = refinement;
         result.gauge = self
             .problem
             .grid
@@ -1220,6 +1226,15 @@ impl FitOutputs {
 }
 
 impl Reconstruction {
+    /// Whether light positions were refined and the refinement was kept because it lowered the
+    /// photometric residual: then growing depth changes follow the moving lights (the surface
+    /// is still settling at the iteration limit), they are not a divergence.
+    fn refinement_helped(&self) -> bool {
+        self.refinement.as_ref().is_some_and(|r| {
+            r.refine.position && !r.fell_back && r.residual_with < r.residual_without
+        })
+    }
+
     /// Sets `status`, `status_reason` and `converged` from the outcome: `tol_depth` is the
     /// depth-change tolerance in depth units (`tol` times the lateral size; infinite for a
     /// non-iterative result), `stalled` whether the iteration stopped for lack of progress.
@@ -1233,8 +1248,15 @@ impl Reconstruction {
             .filter(|(&r, &n)| r >= 0 && n < 3)
             .count();
         let level = self.history.last().map_or(0, |s| s.level);
-        let changes: Vec<f64> = self
+        // The last run of the last level only: with position refinement the first level runs
+        // twice (without, then with refinement, each from iteration 1), and the refined run's
+        // changes must not be judged against the converged plain run's.
+        let start = self
             .history
+            .iter()
+            .rposition(|s| s.level == level && s.iteration == 1)
+            .unwrap_or(0);
+        let changes: Vec<f64> = self.history[start..]
             .iter()
             .filter(|s| s.level == level)
             .map(|s| s.depth_change)
@@ -1269,7 +1291,11 @@ impl Reconstruction {
                     "a direct (non-iterative) solution".to_string(),
                 )
             }
-        } else if iterations >= 2 && last > DIVERGENCE_GROWTH * smallest && last > tol_depth {
+        } else if iterations >= 2
+            && last > DIVERGENCE_GROWTH * smallest
+            && last > tol_depth
+            && !self.refinement_helped()
+        {
             (
                 Status::Diverged,
                 format!(
