@@ -46,15 +46,18 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import os
 import stat
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from types import TracebackType
 from typing import Any
+
+import numpy as np
 
 from ._atomic import TEMPORARY_NAME, PathLike, write_error, write_text
 from .errors import InputError, OutputExistsError
@@ -297,26 +300,35 @@ def fingerprint(parts: dict[str, Any]) -> str:
 
     Arrays count by their shape, type and bytes; paths by their text; other objects by ``repr``.
     """
-    text = json.dumps(_canonical(parts), sort_keys=True, separators=(",", ":"))
+    text = json.dumps(jsonable(parts, _array_digest), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def _canonical(value: Any) -> Any:
-    """``value`` as JSON-ready data for :func:`fingerprint` (arrays by their content's hash)."""
-    import numpy as np
+def _array_digest(value: np.ndarray) -> dict[str, Any]:
+    data = np.ascontiguousarray(value)
+    return {"array": list(data.shape), "dtype": str(data.dtype), "sha256": hashlib.sha256(data.data).hexdigest()}
 
+
+def _array_shape(value: np.ndarray) -> Any:
+    return value.tolist() if value.size <= 16 else f"array of shape {value.shape}"
+
+
+def jsonable(value: Any, array: Callable[[np.ndarray], Any] = _array_shape) -> Any:
+    """Return ``value`` as JSON-ready data: paths as text, non-finite floats as text, numbers as numbers.
+
+    Arrays become ``array(a)`` (by default: up to 16 values as a list, else ``"array of shape
+    (...)"``); objects of other types their ``repr``.
+    """
     if isinstance(value, dict):
-        return {str(k): _canonical(v) for k, v in value.items()}
+        return {str(k): jsonable(v, array) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_canonical(v) for v in value]
+        return [jsonable(v, array) for v in value]
     if isinstance(value, np.ndarray):
-        data = np.ascontiguousarray(value)
-        return {"array": list(data.shape), "dtype": str(data.dtype), "sha256": hashlib.sha256(data.data).hexdigest()}
+        out = array(value)
+        return jsonable(out, array) if isinstance(out, list) else out
     if isinstance(value, np.generic):
-        return _canonical(value.item())
-    if isinstance(value, float) and value != value:
-        return "nan"
-    if isinstance(value, float) and value in (float("inf"), float("-inf")):
+        return jsonable(value.item(), array)
+    if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     if value is None or isinstance(value, (bool, int, float, str)):
         return value

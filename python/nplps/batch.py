@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._atomic import PathLike, write_text
-from ._outdir import ResultDirectory, file_identity, fingerprint, load_manifest, unfinished
+from ._outdir import ResultDirectory, file_identity, fingerprint, jsonable, load_manifest, unfinished
 from ._outdir import is_complete as _is_complete
 from ._text import printable
 from .captures.files import _find_one, find_images
@@ -242,8 +242,6 @@ def _capture_inputs(
     folder: Path, rig: Rig, depth: Any, mask_name: str | None, ambient_name: str | None, options: dict[str, Any]
 ) -> dict[str, Any]:
     """Return what a capture's result is made from (for its fingerprint): image files, rig, depth and options."""
-    from .reconstruction import _jsonable
-
     try:
         images = [file_identity(f) for f in find_images(folder)]
     except OSError:
@@ -261,8 +259,8 @@ def _capture_inputs(
         "mask": side["mask"],
         "ambient": side["ambient"],
         "rig": fingerprint(rig.to_dict()),
-        "depth": fingerprint({"depth": depth}) if hasattr(depth, "shape") else _jsonable(depth),
-        **{f"option {k}": _jsonable(v) for k, v in sorted(options.items()) if k not in ignored},
+        "depth": fingerprint({"depth": depth}) if hasattr(depth, "shape") else jsonable(depth),
+        **{f"option {k}": jsonable(v) for k, v in sorted(options.items()) if k not in ignored},
     }
 
 

@@ -26,6 +26,7 @@ from . import _core, export, plots
 from . import report as report_module
 from ._atomic import write_text
 from ._checks import _check_rig, _light_indices
+from ._outdir import jsonable as _jsonable
 from ._outdir import result_directory
 from .errors import InputError
 from .rig import Rig, _select_core_lights
@@ -847,27 +848,6 @@ class Reconstruction:
                 paths["report"] = out.file(report_module.REPORT_NAME)
                 report_module.write_report(out.path, path=paths["report"])
         return paths
-
-
-def _jsonable(value: Any) -> Any:
-    """Return `value` as JSON-ready data: arrays by their shape, paths as text, numbers as numbers."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        if value.size <= 16:
-            return _jsonable(value.tolist())
-        return f"array of shape {value.shape}"
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, float) and not np.isfinite(value):
-        return str(value)
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    return repr(value)
 
 
 def _check_formats(formats: Iterable[str]) -> list[str]:
