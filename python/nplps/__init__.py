@@ -18,7 +18,7 @@ The public names, by layer:
   :func:`make_scene`, :func:`light_changes`; calibrating: :func:`calibrate_spheres`,
   :func:`calibrate_intensities`;
 - what they return: :class:`Reconstruction` (with :class:`Iteration`,
-  :class:`DistanceEstimate`, :class:`LightRefinement`), :class:`Scene`,
+  :class:`DistanceEstimate`, :class:`DistanceCheck`, :class:`LightRefinement`), :class:`Scene`,
   :class:`~nplps.evaluation.HeldOut`, :class:`SphereCalibration` and :class:`IntensityCalibration`
   (with :class:`SphereReport`, :class:`LightReport`);
 - the rig: :class:`Rig`;
@@ -41,13 +41,14 @@ from .calibrate import (
 )
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
 from .evaluation import HeldOut
-from .reconstruction import DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
+from .reconstruction import DistanceCheck, DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
 from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid
 from .synth import Scene, make_scene
 
 __all__ = [
     "LED",
     "DirectionalLight",
+    "DistanceCheck",
     "DistanceEstimate",
     "HeldOut",
     "InputError",

@@ -183,6 +183,13 @@ def _depth_range(value: Any) -> tuple[float, float] | None:
     return near, far
 
 
+def _flag(value: Any, name: str) -> bool:
+    """A bool option (numpy bools too); anything else is an InputError."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name} must be True or False, got {_short(value)}")
+    return bool(value)
+
+
 def _finite_number(value: Any, name: str) -> float:
     """``value`` as a finite float >= 0, or InputError."""
     v = _real(value, name)

@@ -100,6 +100,7 @@ class ReconstructOptions(SolverOptions, total=False):
     """
 
     auto: bool | None
+    check_distance: bool | None
     depth_range: tuple[float, float] | None
     depth_guess: float | None
     prior: F64 | None
@@ -215,6 +216,17 @@ class _ReconstructionBase(TypedDict):
     lights: LightsDict
 
 
+class DistanceCheckDict(TypedDict):
+    """A given distance checked by a coarse search (``check_distance``)."""
+
+    given: float
+    found: float
+    residual_given: float
+    residual_found: float
+    side: int
+    looks_wrong: bool
+
+
 class ReconstructionDict(_ReconstructionBase, total=False):
     """A reconstruction as the core returns it.
 
@@ -225,6 +237,7 @@ class ReconstructionDict(_ReconstructionBase, total=False):
 
     refinement: RefinementDict
     distance_estimate: DistanceEstimateDict
+    distance_check: DistanceCheckDict
 
 
 class SceneDict(TypedDict):

@@ -21,6 +21,7 @@ from ._checks import (
     _check_rig,
     _depth_range,
     _finite_number,
+    _flag,
     _levels,
     _memory_limit,
     _positive,
@@ -333,6 +334,7 @@ def reconstruct(
     refine_lights: RefineLights | None = None,
     light_prior_weight: float | None = None,
     max_memory: float | str | None = None,
+    check_distance: bool = True,
 ) -> Reconstruction:
     """Reconstruct a surface from k images taken under k near lights.
 
@@ -427,6 +429,12 @@ def reconstruct(
         Memory limit in bytes (a number, or a string such as ``"8 GB"`` or ``"512MiB"``;
         ``float("inf")``: no limit). Default: 80 % of the memory available to the process (the
         least of the system's available memory, a cgroup limit and an address-space limit).
+    check_distance : bool, default True
+        With a given `depth`, compare it afterwards with the distance a quick search on a coarse
+        level (at most 64 pixels a side) prefers (``result.distance_check``), and warn "the
+        working distance looks wrong" when the images fit another distance clearly better. It
+        needs at least 4 lights, one of them a point light; its cost does not grow with the
+        image size.
 
     Returns
     -------
@@ -452,8 +460,8 @@ def reconstruct(
     -----
     RuntimeWarning
         The run diverged or is degenerate (more than half of the masked pixels could not be
-        fitted), pixel values inside the mask are negative, or the multigrid solver stopped at
-        its iteration limit.
+        fitted), pixel values inside the mask are negative, the multigrid solver stopped at
+        its iteration limit, or the working distance looks wrong (see `check_distance`).
 
     See Also
     --------
@@ -496,6 +504,7 @@ def reconstruct(
         "robust": "none" if robust is None else robust,
         "threads": _threads(threads),
         "auto": isinstance(depth, str),
+        "check_distance": _flag(check_distance, "check_distance"),
         "depth_range": _depth_range(depth_range),
         "depth_guess": None if depth_guess is None else _positive(depth_guess, "depth_guess"),
         "prior_weight": _real(prior_weight, "prior_weight"),
@@ -536,6 +545,8 @@ def reconstruct(
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(out["history"])
     _warn_status(result)
+    if result.distance_check is not None and result.distance_check.looks_wrong:
+        warnings.warn(result.distance_check.message, RuntimeWarning, stacklevel=2)
     return result
 
 

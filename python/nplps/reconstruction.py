@@ -37,7 +37,15 @@ if TYPE_CHECKING:
     from .evaluation import HeldOut
     from .types import Method, RefineLights, Status
 
-__all__ = ["SHADED_LIGHT", "DistanceEstimate", "Iteration", "LightRefinement", "Reconstruction", "light_changes"]
+__all__ = [
+    "SHADED_LIGHT",
+    "DistanceCheck",
+    "DistanceEstimate",
+    "Iteration",
+    "LightRefinement",
+    "Reconstruction",
+    "light_changes",
+]
 
 #: The default light of :meth:`Reconstruction.shaded` (and ``shaded.png``): the direction towards it
 #: in the camera frame, from the upper left and in front (negative x: left, negative y: up,
@@ -77,6 +85,66 @@ class DistanceEstimate:
         """
         rows = [f"{r},{float(d)!r},{float(e)!r}" for r, curve in enumerate(self.curve) for d, e in curve]
         write_text(path, "region,distance,rms_residual\n" + "\n".join(rows) + "\n")
+
+
+@dataclass(frozen=True)
+class DistanceCheck:
+    """A given working distance checked against the images (``reconstruct(check_distance=True)``).
+
+    After a run at a given distance, a quick distance search on a coarse level (longer side at
+    most 64 pixels) finds the distance the images fit best there; both distances are evaluated
+    the same way on that level.
+
+    Attributes
+    ----------
+    given : float
+        The given distance (mean over regions of the gauge, as a depth).
+    found : float
+        The distance the coarse search found.
+    residual_given, residual_found : float
+        RMS image residual on the coarse level at the given and at the found distance.
+    side : int
+        The coarse level's longer side in pixels.
+    looks_wrong : bool
+        The images fit the found distance clearly better: the residual ratio is above 1.5 and
+        the distances differ by more than 10 % (thresholds measured by
+        ``benchmarks/distance_check.py``). ``reconstruct`` then warns "the working distance looks
+        wrong".
+    """
+
+    given: float
+    found: float
+    residual_given: float
+    residual_found: float
+    side: int
+    looks_wrong: bool
+
+    @property
+    def ratio(self) -> float:
+        """``residual_given / residual_found``."""
+        return self.residual_given / self.residual_found if self.residual_found > 0 else math.inf
+
+    @property
+    def message(self) -> str:
+        """One sentence with the numbers (the warning's text when `looks_wrong`)."""
+        verdict = "looks wrong" if self.looks_wrong else "agrees with the images"
+        return (
+            f"the working distance {verdict}: the images fit {self.found:.4g} better than the given "
+            f"{self.given:.4g} (residual {self.ratio:.2f} times lower on a {self.side}-pixel level)"
+            + ("; try --depth auto (depth='auto')" if self.looks_wrong else "")
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The check as a JSON-ready dict (``summary.json``'s ``distance_check``)."""
+        return {
+            "given": self.given,
+            "found": self.found,
+            "residual_given": self.residual_given,
+            "residual_found": self.residual_found,
+            "ratio": self.ratio,
+            "side": self.side,
+            "looks_wrong": self.looks_wrong,
+        }
 
 
 class Iteration(NamedTuple):
@@ -277,6 +345,9 @@ class Reconstruction:
         One sentence explaining `status`, with the numbers.
     distance : DistanceEstimate or None
         The distance search, when ``depth="auto"``.
+    distance_check : DistanceCheck or None
+        With a given distance (``check_distance=True``, the default): how it compares with the
+        distance a quick coarse search prefers; None when the rig cannot reveal the distance.
     refinement : LightRefinement or None
         The self-calibration of the lights, when ``refine_lights`` was given; `rig` then holds
         the refined lights.
@@ -311,6 +382,7 @@ class Reconstruction:
     distance: DistanceEstimate | None = None
     refinement: LightRefinement | None = None
     input_rig: Rig | None = None
+    distance_check: DistanceCheck | None = None
 
     @classmethod
     def _from_core(cls, out: dict[str, Any], mask: np.ndarray, rig: Rig, method: Method) -> Reconstruction:
@@ -337,6 +409,7 @@ class Reconstruction:
             distance=_distance(out.get("distance_estimate")),
             refinement=refinement,
             input_rig=input_rig,
+            distance_check=_distance_check(out.get("distance_check")),
         )
 
     def light_changes(self) -> list[dict[str, Any]]:
@@ -684,6 +757,7 @@ class Reconstruction:
             "depth_range": [float(np.nanmin(self.depth)), float(np.nanmax(self.depth))],
             "timings": self.timings,
             "estimated_distance": None if self.distance is None else [float(d) for d in self.distance.distance],
+            "distance_check": None if self.distance_check is None else self.distance_check.to_dict(),
             "light_refinement": None
             if self.refinement is None
             else {**self.refinement.to_dict(), "changes": self.light_changes()},
@@ -885,6 +959,19 @@ def _distance(d: dict[str, Any] | None) -> DistanceEstimate | None:
         distance=np.asarray(d["distance"]),
         curve=[np.asarray(c, dtype=np.float64).reshape(-1, 2) for c in d["curve"]],
         range=tuple(d["range"]),
+    )
+
+
+def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:
+    if d is None:
+        return None
+    return DistanceCheck(
+        given=float(d["given"]),
+        found=float(d["found"]),
+        residual_given=float(d["residual_given"]),
+        residual_found=float(d["residual_found"]),
+        side=int(d["side"]),
+        looks_wrong=bool(d["looks_wrong"]),
     )
 
 

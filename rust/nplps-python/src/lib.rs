@@ -109,8 +109,9 @@ const SOLVER_KEYS: [&str; 12] = [
 
 /// The keys of the options mapping of `reconstruct` besides the solver's ([`SOLVER_KEYS`]): those
 /// of the distance search and the depth prior.
-const SEARCH_AND_PRIOR_KEYS: [&str; 5] = [
+const SEARCH_AND_PRIOR_KEYS: [&str; 6] = [
     "auto",
+    "check_distance",
     "depth_guess",
     "depth_range",
     "prior",
@@ -294,6 +295,7 @@ fn reconstruct<'py>(
     };
     let input = Input::new(&images, rig, mask.as_ref(), depth)?;
     let search = search_from(options)?;
+    let check = search.is_none() && option(options, "check_distance", false)?;
     let prior_weight: f64 = option(options, "prior_weight", 1.0)?;
     let prior: Option<PyReadonlyArray2<'py, f64>> = option(options, "prior", None)?;
     let prior = prior
@@ -345,10 +347,16 @@ fn reconstruct<'py>(
             match &search {
                 Some(search) => {
                     nplps::reconstruct_auto(&problem, &options, search, &mut on_iteration)
-                        .map(|(r, estimate)| (r, Some(estimate)))
+                        .map(|(r, estimate)| (r, Some(estimate), None))
                 }
                 None => {
-                    nplps::reconstruct(&problem, &options, &mut on_iteration).map(|r| (r, None))
+                    let r = nplps::reconstruct(&problem, &options, &mut on_iteration)?;
+                    let checked = if check {
+                        nplps::check_distance(&problem, &options)?
+                    } else {
+                        None
+                    };
+                    Ok((r, None, checked))
                 }
             }
         })
@@ -356,8 +364,18 @@ fn reconstruct<'py>(
     if let Some(e) = callback_error {
         return Err(e);
     }
-    let (result, estimate) = result?;
+    let (result, estimate, checked) = result?;
     let d = reconstruction_dict(py, result)?;
+    if let Some(c) = checked {
+        let e = PyDict::new(py);
+        e.set_item("given", c.given)?;
+        e.set_item("found", c.found)?;
+        e.set_item("residual_given", c.residual_given)?;
+        e.set_item("residual_found", c.residual_found)?;
+        e.set_item("side", c.side)?;
+        e.set_item("looks_wrong", c.looks_wrong())?;
+        d.set_item("distance_check", e)?;
+    }
     if let Some(estimate) = estimate {
         let e = PyDict::new(py);
         e.set_item("distance", estimate.distance)?;

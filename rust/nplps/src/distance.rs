@@ -22,6 +22,7 @@ use crate::solver::{
     coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, SearchProgress,
     Solver,
 };
+use crate::memory::try_copy;
 use crate::vec3::{norm, sub};
 
 /// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
@@ -514,4 +515,154 @@ fn levels_below(fine: &Grid, coarse: &Grid) -> u32 {
         n += 1;
     }
     n
+}
+
+/// The longest side, in pixels, of the level on which [`check_distance`] compares distances.
+pub const CHECK_SIDE: usize = 32;
+
+/// The factors of the given distance that [`check_distance`] evaluates (log-spaced from 1/2 to
+/// 2, the given distance among them).
+const CHECK_FACTORS: [f64; 9] = [0.5, 0.63, 0.79, 0.89, 1.0, 1.12, 1.26, 1.59, 2.0];
+
+/// Local/global iterations per evaluation of [`check_distance`] (warm-started from the previous
+/// candidate's surface, far to near).
+const CHECK_INNER: usize = 10;
+
+/// A given working distance compared with the ones around it on a coarse level.
+///
+/// Every candidate is evaluated the same way on the same coarse level (a few warm-started
+/// iterations at that distance): `residual_given` at the given gauge, `residual_found` at the
+/// best candidate, `found` the minimum of a parabola in log-distance through the best candidate
+/// and its neighbours. See [`DistanceCheck::looks_wrong`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub struct DistanceCheck {
+    /// The given distance (the mean of the regions' gauges, as depths).
+    pub given: f64,
+    /// The distance the images fit best on the coarse level (the mean over regions); at an end
+    /// of the range (half or twice the given distance) when the residual keeps falling there.
+    pub found: f64,
+    /// RMS residual on the coarse level at the given distance.
+    pub residual_given: f64,
+    /// RMS residual on the coarse level at the best candidate.
+    pub residual_found: f64,
+    /// Pixels of the coarse level's longer side.
+    pub side: usize,
+}
+
+/// The residual ratio above which, together with [`WRONG_DISTANCE_OFFSET`], a given distance
+/// looks wrong (chosen by measurement: see `benchmarks/distance_check.py`).
+pub const WRONG_DISTANCE_RATIO: f64 = 1.5;
+
+/// The relative offset `|given / found - 1|` above which, together with
+/// [`WRONG_DISTANCE_RATIO`], a given distance looks wrong.
+pub const WRONG_DISTANCE_OFFSET: f64 = 0.1;
+
+impl DistanceCheck {
+    /// `residual_given / residual_found`.
+    pub fn ratio(&self) -> f64 {
+        self.residual_given / self.residual_found
+    }
+
+    /// `given / found - 1`.
+    pub fn offset(&self) -> f64 {
+        self.given / self.found - 1.0
+    }
+
+    /// Whether the images fit another distance clearly better: the residual at the given
+    /// distance is more than [`WRONG_DISTANCE_RATIO`] times the best one, and the distances differ
+    /// by more than [`WRONG_DISTANCE_OFFSET`].
+    pub fn looks_wrong(&self) -> bool {
+        self.ratio() > WRONG_DISTANCE_RATIO && self.offset().abs() > WRONG_DISTANCE_OFFSET
+    }
+}
+
+/// Checks the working distance `problem` was given (its gauge): on a coarse level (longer side
+/// at most [`CHECK_SIDE`] pixels) the residual at the given distance is compared with those at
+/// 1/2 to 2 times it.
+///
+/// Returns None when the rig cannot reveal the distance (directional lights only, or 3 lights
+/// or fewer). The cost, 90 local/global iterations on at most `CHECK_SIDE`² pixels, does not
+/// grow with the image size.
+pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option<DistanceCheck>> {
+    options.validate()?;
+    if check_observable(problem).is_err() {
+        return Ok(None);
+    }
+    let mut levels = 1;
+    let (mut h, mut w) = (problem.grid.height, problem.grid.width);
+    while h.max(w) > CHECK_SIDE {
+        h = h.div_ceil(2);
+        w = w.div_ceil(2);
+        levels += 1;
+    }
+    let options = Options {
+        levels: 1,
+        refine: Refine {
+            position: false,
+            fix_scale: true,
+            ..options.refine
+        },
+        ..*options
+    };
+    with_threads(options.threads, || {
+        let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+        let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+        let level = coarse.last().unwrap_or(problem);
+        let given: Vec<f64> = level
+            .gauge
+            .iter()
+            .map(|&g| level.geometry.depth(g))
+            .collect();
+        let mut solver = Solver::new(level, &options)?;
+        solver.check_lights = false;
+        let mut ev = Evaluator {
+            refine: solver.refine(),
+            solver: &mut solver,
+            u: try_copy(&level.u0, "the depths")?,
+            inner: CHECK_INNER,
+            curve: vec![Vec::new(); level.grid.n_regions],
+            candidate: 0,
+            candidates: CHECK_FACTORS.len(),
+            best: (f64::NAN, f64::NAN),
+        };
+        let mut quiet = |_: &IterationStats| Control::Continue;
+        let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
+        for (i, f) in CHECK_FACTORS.iter().enumerate().rev() {
+            let d: Vec<f64> = given.iter().map(|g| g * f).collect();
+            residuals[i] = mean(&ev.eval(&d, &mut quiet)?);
+        }
+        let given_at = CHECK_FACTORS.iter().position(|&f| f == 1.0).unwrap_or(0);
+        let best = (0..residuals.len())
+            .filter(|&i| residuals[i].is_finite())
+            .min_by(|&a, &b| residuals[a].total_cmp(&residuals[b]))
+            .unwrap_or(given_at);
+        let factor = if best == 0 || best + 1 == residuals.len() {
+            CHECK_FACTORS[best]
+        } else {
+            let x = [best - 1, best, best + 1].map(|i| CHECK_FACTORS[i].ln());
+            let y = [best - 1, best, best + 1].map(|i| residuals[i]);
+            parabola_minimum(x, y).exp()
+        };
+        Ok(Some(DistanceCheck {
+            given: mean(&given),
+            found: mean(&given) * factor,
+            residual_given: residuals[given_at],
+            residual_found: residuals[best],
+            side: h.max(w),
+        }))
+    })?
+}
+
+/// The abscissa of the minimum of the parabola through three points with `y[1]` the least (the
+/// middle abscissa when the points are collinear).
+fn parabola_minimum(x: [f64; 3], y: [f64; 3]) -> f64 {
+    let (d0, d2) = (x[0] - x[1], x[2] - x[1]);
+    let (e0, e2) = (y[0] - y[1], y[2] - y[1]);
+    let denominator = d0 * e2 - d2 * e0;
+    let numerator = d0 * d0 * e2 - d2 * d2 * e0;
+    if denominator.abs() < f64::MIN_POSITIVE {
+        return x[1];
+    }
+    (x[1] + 0.5 * numerator / denominator).clamp(x[0], x[2])
 }

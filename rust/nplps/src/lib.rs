@@ -178,7 +178,10 @@ mod vec3;
 pub use baseline::reconstruct_parallel;
 pub use camera_map::{camera_from_map, MapValue};
 pub use cancel::Cancel;
-pub use distance::{estimate_distance, reconstruct_auto, DistanceEstimate, DistanceSearch};
+pub use distance::{
+    check_distance, estimate_distance, reconstruct_auto, DistanceCheck, DistanceEstimate,
+    DistanceSearch,
+};
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use local::{Robust, Weighting};
