@@ -184,7 +184,7 @@ def _depth_range(value: Any) -> tuple[float, float] | None:
 
 
 def _flag(value: Any, name: str) -> bool:
-    """A bool option (numpy bools too); anything else is an InputError."""
+    """Return a bool option (numpy bools too); anything else is an InputError."""
     if not isinstance(value, (bool, np.bool_)):
         raise InputError(f"{name} must be True or False, got {_short(value)}")
     return bool(value)

@@ -135,7 +135,7 @@ class DistanceCheck:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """The check as a JSON-ready dict (``summary.json``'s ``distance_check``)."""
+        """Return the check as a JSON-ready dict (``summary.json``'s ``distance_check``)."""
         return {
             "given": self.given,
             "found": self.found,
