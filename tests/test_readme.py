@@ -30,3 +30,46 @@ def test_readme_complete_example_runs_as_written(tmp_path: Path) -> None:
     assert found is not None, run.stdout
     assert float(found.group(1)) < 1.0
     assert (tmp_path / "result" / "mesh.ply").is_file() and (tmp_path / "scene" / "rig.json").is_file()
+
+
+def _cli_example() -> list[str]:
+    """The command lines of the README's "Use it" block (after ``nplps``)."""
+    text = README.read_text(encoding="utf-8")
+    start = text.index("## Use it")
+    match = re.search(r"```bash\n(.*?)```", text[start:], re.S)
+    assert match is not None, "no bash block under 'Use it'"
+    lines = [line.split("#")[0].strip() for line in match.group(1).splitlines()]
+    return [line for line in lines if line.startswith("nplps ")]
+
+
+def test_readme_cli_example_reconstructs_at_the_scenes_distance(tmp_path: Path) -> None:
+    """The first CLI example gives the scene's own distance: no "looks wrong" warning, converged."""
+    import json
+    import shlex
+
+    commands = _cli_example()
+    assert commands[0].startswith("nplps synth") and commands[1].startswith("nplps reconstruct")
+    for command in commands[:2]:
+        argv = shlex.split(command)[1:]
+        run = subprocess.run(
+            [sys.executable, "-m", "nplps", *argv], cwd=tmp_path, capture_output=True, text=True, timeout=600
+        )
+        assert run.returncode == 0, run.stderr
+        assert "looks wrong" not in run.stderr, run.stderr
+    summary = json.loads((tmp_path / "result" / "summary.json").read_text(encoding="utf-8"))
+    assert summary["status"] == "converged"
+    assert summary["distance_check"] is not None and not summary["distance_check"]["looks_wrong"]
+    truth = float(
+        re.search(
+            r"true mean depth ([0-9.]+)",
+            subprocess.run(
+                [sys.executable, "-m", "nplps", *shlex.split(commands[0])[1:], "--overwrite"],
+                cwd=tmp_path,
+                capture_output=True,
+                text=True,
+                timeout=600,
+            ).stdout,
+        ).group(1)
+    )
+    given = float(shlex.split(commands[1])[shlex.split(commands[1]).index("--depth") + 1])
+    assert abs(given / truth - 1) < 0.01, (given, truth)

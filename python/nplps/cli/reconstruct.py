@@ -195,6 +195,13 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     if s.get("estimated_distance"):
         estimates = ", ".join(f"{d:.6g}" for d in s["estimated_distance"])
         print(f"  distance        {estimates} (estimated; residual curve in distance_curve.csv / .svg)")
+    check = getattr(result, "distance_check", None)
+    if check is not None:
+        verdict = "LOOKS WRONG, try --depth auto" if check.looks_wrong else "agrees"
+        print(
+            f"  distance check  {verdict}: a {check.side}-pixel level fits {check.found:.4g} "
+            f"(given {check.given:.4g}, residual {check.ratio:.2f} times lower)"
+        )
     if result.refinement is not None:
         _print_refinement(result)
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
