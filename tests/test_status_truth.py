@@ -42,3 +42,24 @@ def test_a_successful_position_refinement_is_not_diverged(seed: int) -> None:
     assert refined.refinement is not None and not refined.refinement.fell_back
     assert error(refined) < 0.5 * error(plain)  # the refinement helped a lot
     assert refined.status != "diverged", refined.summary()["status_reason"]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_fallen_back_refinement_is_assessed_on_the_run_it_returns(seed: int) -> None:
+    """With exact lights the refinement cannot lower the residual and falls back: the plain run is
+    returned, so the status must quote the plain run's iterations and depth change, not the
+    discarded refined run's."""
+    import re
+
+    s = nplps.make_scene("bumps", n=32, seed=seed)
+    r = nplps.reconstruct(s.images, s.rig, depth=s.mean_depth, mask=s.mask, refine_lights="position", levels=1)
+    assert r.refinement is not None and r.refinement.fell_back
+    # Both runs are in the history (each from iteration 1); the plain one comes first.
+    starts = [i for i, h in enumerate(r.history) if h.iteration == 1]
+    assert len(starts) == 2
+    plain = r.history[: starts[1]]
+    assert r.status == "converged"
+    found = re.search(r"iteration (\d+) \(([-0-9.e+]+)\)", r.status_reason)
+    assert found is not None, r.status_reason
+    assert int(found.group(1)) == len(plain)
+    assert float(found.group(2)) == pytest.approx(plain[-1].depth_change, rel=1e-5)

@@ -1248,15 +1248,20 @@ impl Reconstruction {
             .filter(|(&r, &n)| r >= 0 && n < 3)
             .count();
         let level = self.history.last().map_or(0, |s| s.level);
-        // The last run of the last level only: with position refinement the first level runs
-        // twice (without, then with refinement, each from iteration 1), and the refined run's
-        // changes must not be judged against the converged plain run's.
-        let start = self
-            .history
-            .iter()
-            .rposition(|s| s.level == level && s.iteration == 1)
-            .unwrap_or(0);
-        let changes: Vec<f64> = self.history[start..]
+        // The run whose surface is returned, on the last level: with position refinement the
+        // first level runs twice (without, then with refinement, each from iteration 1); the
+        // refined run's changes must not be judged against the converged plain run's, and when
+        // the refinement fell back the plain run is the one returned.
+        let starts: Vec<usize> = (0..self.history.len())
+            .filter(|&i| self.history[i].level == level && self.history[i].iteration == 1)
+            .collect();
+        let fell_back = self.refinement.as_ref().is_some_and(|r| r.fell_back);
+        let (start, end) = match starts.as_slice() {
+            [.., plain, refined] if fell_back => (*plain, *refined),
+            [.., last] => (*last, self.history.len()),
+            [] => (0, self.history.len()),
+        };
+        let changes: Vec<f64> = self.history[start..end]
             .iter()
             .filter(|s| s.level == level)
             .map(|s| s.depth_change)
