@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use crate::error::{Error, Result};
 use crate::grid::Grid;
+use crate::memory::try_copy;
 use crate::problem::Problem;
 use crate::refine::Refine;
 use crate::rig::Light;
@@ -22,7 +23,6 @@ use crate::solver::{
     coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, SearchProgress,
     Solver,
 };
-use crate::memory::try_copy;
 use crate::vec3::{norm, sub};
 
 /// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
