@@ -460,6 +460,10 @@ def calibrate_spheres(
         mask_list = list(masks)
         if len(mask_list) != n:
             raise InputError(f"give one mask (or None) per placement: {n} placements, {len(mask_list)} masks")
+    if count is not None and (
+        isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= int(count) <= 1_000_000
+    ):
+        raise InputError(f"count must be a whole number of spheres per placement, at least 1, got {count!r}")
     labels: list[np.ndarray | None] = []
     dets: list[tuple[float, float, int | None] | None] = []
     for i, m in enumerate(mask_list):

@@ -41,6 +41,25 @@ def _loadtxt(path: Path, columns: int) -> np.ndarray:
     return arr
 
 
+def _read_names(path: Path) -> str:
+    """Return the text of ``filenames.txt``: UTF-8 (a byte-order mark is allowed; ASCII is UTF-8).
+
+    Raises :class:`InputError` naming the file when it is not UTF-8 text (the image names could only
+    be guessed, and a wrong guess would name other files).
+    """
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"'{path}' is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start}): "
+            "save the list of image names as UTF-8"
+        ) from None
+    if "\0" in text:
+        raise InputError(f"'{path}' is not a text file (it holds NUL bytes): it should list the image names")
+    return text
+
+
 def load_diligent(
     folder: PathLike,
     *,
@@ -56,7 +75,7 @@ def load_diligent(
     ``folder`` is the object folder (holding ``filenames.txt``) or a folder with exactly one
     ``*PNG`` subfolder. Files:
 
-    * ``filenames.txt``: the image names, one per line (16-bit RGB PNG, linear; read by
+    * ``filenames.txt``: the image names, one per line, UTF-8 text (16-bit RGB PNG, linear; read by
       :func:`nplps.io.read_image`, which keeps 16 bits, and scaled by 1/65535);
     * ``light_directions.txt``: k x 3 unit vectors from the surface towards each light;
     * ``light_intensities.txt``: k x 3 RGB intensities, returned as ``intensities``; the rig of
@@ -91,7 +110,7 @@ def load_diligent(
     color = _color_arg(color, gray, "load_diligent")
     root = _diligent_folder(_check_folder(folder))
     names_path = root / "filenames.txt"
-    names = [line.strip() for line in names_path.read_text().splitlines() if line.strip()]
+    names = [line.strip() for line in _read_names(names_path).splitlines() if line.strip()]
     dirs = _loadtxt(root / "light_directions.txt", 3)
     ints = _loadtxt(root / "light_intensities.txt", 3)
     if not (len(names) == dirs.shape[0] == ints.shape[0]):

@@ -133,6 +133,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     _check_numbers(args)
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be at least 1, got {args.workers}")
+    if args.scheduler is not None:
+        _check_scheduler(args.scheduler)
     if args.flat is not None and not os.path.isfile(args.flat):
         raise InputError(f"--flat '{args.flat}' is not a file")
     rig = load_rig(args.rig)  # before any capture is read
@@ -175,6 +177,32 @@ def cmd_batch(args: argparse.Namespace) -> int:
         flush=True,
     )
     return 1 if counts["failed"] else 0
+
+
+def _check_scheduler(address: str) -> None:
+    """Refuse a ``--scheduler`` that is not a Dask address (``tcp://HOST:PORT`` and the like).
+
+    Raises :class:`~nplps.errors.InputError` naming the option, before any capture is read. Without
+    Dask installed nothing is checked here (the batch says that Dask is missing).
+    """
+    from ..errors import InputError
+
+    try:
+        from distributed.comm.addressing import parse_address, parse_host_port
+    except ImportError:
+        return
+    example = "a Dask scheduler address such as tcp://10.0.0.5:8786"
+    try:
+        scheme, location = parse_address(address)
+        if scheme not in ("tcp", "tls", "ws", "wss", "ucx"):
+            raise ValueError(f"'{scheme}://' is not a network address")
+        host, port = parse_host_port(location)
+        if not host or any(c.isspace() for c in host):
+            raise ValueError(f"no host name in {address!r}")
+        if not 0 < int(port) < 65536:
+            raise ValueError(f"port {port} is not 1..65535")
+    except (ValueError, TypeError) as e:
+        raise InputError(f"--scheduler {printable(repr(address))} is not {example} ({printable(str(e))})") from None
 
 
 def _print_progress(item: Any, done: int, total: int, failed: int) -> None:

@@ -11,13 +11,14 @@ import argparse
 import json
 import os
 import shlex
+import stat
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from .._atomic import write_text
-from ..errors import InputError
+from ..errors import InputError, OutputExistsError
 from .console import PROG, _note, _warnings_to_stderr, describe_rig
 from .imagefiles import resolve_images
 from .outputs import add_output_options, output_directory, writing
@@ -108,6 +109,39 @@ examples:
 """
 
 
+FILE_OVERWRITE_HELP = "replace --out (and --report) if the file exists (default: refuse)"
+
+
+def _refuse_existing(args: argparse.Namespace, *options: str) -> None:
+    """Refuse an existing file as the target of ``options`` (e.g. "--out") unless ``--overwrite``.
+
+    Devices and pipes (``/dev/stdout``, a FIFO) are written in place, not replaced: they are
+    accepted. Raises :class:`~nplps.errors.OutputExistsError` (exit status 2) naming the option
+    and the file, before any work is done; a directory or two options naming one file are an
+    :class:`~nplps.errors.InputError`.
+    """
+    targets = [(option, getattr(args, option.lstrip("-").replace("-", "_"))) for option in options]
+    targets = [(option, target) for option, target in targets if target is not None]
+    if len(targets) == 2 and os.path.abspath(targets[0][1]) == os.path.abspath(targets[1][1]):
+        raise InputError(f"{targets[0][0]} and {targets[1][0]} name the same file '{targets[0][1]}'")
+    for option, target in targets:
+        if os.path.isdir(target):
+            raise InputError(f"{option} '{target}' is a directory; give the file to write")
+        if args.overwrite:
+            continue
+        try:
+            mode = os.stat(target).st_mode
+        except FileNotFoundError:
+            if not os.path.islink(target):
+                continue
+            mode = stat.S_IFLNK  # a dangling link: it would be replaced
+        except OSError:
+            continue  # not reachable (e.g. no such directory): writing names the problem
+        if stat.S_ISCHR(mode) or stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode):
+            continue
+        raise OutputExistsError(f"{option} '{target}' exists; pass --overwrite to replace it", target)
+
+
 def _add_spheres_parser(sub: Any, formatter: Any) -> None:
     p = sub.add_parser(
         "spheres",
@@ -156,6 +190,7 @@ def _add_spheres_parser(sub: Any, formatter: Any) -> None:
     p.add_argument("--no-refine", action="store_true", help="skip the joint refinement of spheres and lights")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
     p.add_argument("--report", metavar="JSON", help="also write the per-light and per-sphere report as JSON")
+    p.add_argument("--overwrite", action="store_true", help=FILE_OVERWRITE_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no notes on stderr")
 
 
@@ -186,6 +221,7 @@ def _add_intensity_parser(sub: Any, formatter: Any) -> None:
     )
     p.add_argument("--color", action="store_true", help="fit R, G, B intensities of colour images (a white board)")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
+    p.add_argument("--overwrite", action="store_true", help=FILE_OVERWRITE_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no notes on stderr")
 
 
@@ -277,6 +313,9 @@ def _cmd_spheres(args: argparse.Namespace) -> int:
 
     if not (np.isfinite(args.radius) and args.radius > 0):
         raise InputError(f"--radius must be positive, got {args.radius}")
+    if args.count is not None and args.count < 1:
+        raise InputError(f"--count must be at least 1 (spheres per placement), got {args.count}")
+    _refuse_existing(args, "--out", "--report")
     if os.path.isdir(args.camera):
         raise InputError(f"--camera '{args.camera}' is a directory, not a rig file")
     rig = load_camera(args.camera)
@@ -390,6 +429,7 @@ def _cmd_intensity(args: argparse.Namespace) -> int:
     from ..calibrate import calibrate_intensities
     from .inputs import load_rig
 
+    _refuse_existing(args, "--out")
     rig = load_rig(args.rig)
     files = resolve_images(args.images, mask=args.mask, quiet=args.quiet)
     if args.fit_direction and not args.fit_mu:

@@ -29,8 +29,9 @@ Runs the near-light method (nplps) and the parallel-light baseline and prints, p
 the relative error |prediction - image| / |image| over the masked, usable pixels, and the
 shape error (the same after the best gain, free of the light's intensity calibration), plus
 the means, and a one-line reading: which model predicts the held-out images better, by how
-much, on the mean shape error. Lower is better; a better light model predicts better. RGB
-images are averaged to grey.
+much, on the mean shape error, or "mixed" when the mean relative errors clearly say the
+opposite. Lower is better; a better light model predicts better. RGB images are averaged to
+grey.
 
 {INPUT_NOTES}"""
 
