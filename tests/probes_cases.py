@@ -1928,6 +1928,10 @@ def _prelude(base: os.PathLike[str]) -> dict[str, Any]:
         summary=summary,
         _ctx=ctx,
     )
+    # The area modules' helpers (a saved result to damage, the command line in-process, ...).
+    import probes_helpers
+
+    ns.update(probes_helpers.helpers(ns))
     return ns
 
 

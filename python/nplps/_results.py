@@ -225,7 +225,7 @@ def read_summary(directory: str | os.PathLike[str]) -> dict[str, Any]:
     path = root / "summary.json"
     if not root.is_dir():
         raise InputError(f"result directory '{os.fspath(root)}' does not exist or is not a directory")
-    if not path.exists():
+    if not os.path.lexists(path):  # a broken or looping link is there: read_json names the problem
         raise InputError(f"'{os.fspath(root)}' is not an nplps result directory (it has no summary.json)")
     return check_summary(read_json(path), path)
 
@@ -261,7 +261,7 @@ def read_npy(
     ndim : int, optional
         The expected number of dimensions (when the shape is not known).
     max_abs : float, optional
-        The largest magnitude a finite value may have (NaN and infinities are left to the caller).
+        The largest magnitude a value may have (an infinity is beyond it; NaN is left to the caller).
 
     Returns
     -------
@@ -315,7 +315,7 @@ def read_npy(
             raise damaged(p, f"truncated while reading ({got} of {needed} bytes)")
     if max_abs is not None and array.size:
         with np.errstate(invalid="ignore"):
-            big = np.abs(array[np.isfinite(array)]).max(initial=0)
+            big = np.abs(array[~np.isnan(array)]).max(initial=0)
         if float(big) > max_abs:
             raise damaged(p, f"holds the value {float(big):.4g}, beyond the {max_abs:.4g} such a file can hold")
     if fortran:

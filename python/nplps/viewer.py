@@ -278,7 +278,8 @@ def _read_result(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
     """Return the vertex grid, mask, vertex normals and vertex albedo of a result directory."""
     if not directory.is_dir():
         raise InputError(f"result directory '{directory}' does not exist or is not a directory")
-    missing = [name for name in ("mesh.ply", "depth.npy") if not (directory / name).is_file()]
+    # Missing: not there at all (a FIFO, a directory or a broken link there is named by its reader).
+    missing = [name for name in ("mesh.ply", "depth.npy") if not os.path.lexists(directory / name)]
     if missing:
         raise InputError(
             f"'{directory}' is not a complete nplps result directory: {' and '.join(missing)} missing "
