@@ -23,7 +23,7 @@ import os
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from typing import IO, Any, TypeAlias
 
@@ -94,6 +94,11 @@ class _Mesh:
         ``(m, 3)`` int32 vertex indices (0-based).
     frame : {"opencv", "opengl"}
         The output frame.
+    overflow : numpy.ndarray
+        Indices of the `points` beyond the float32 range (infinite there), in increasing order.
+    overflow_points : numpy.ndarray
+        ``(len(overflow), 3)`` float64 positions of those points (in the output frame), for the
+        text formats (OBJ); the binary float32 formats refuse them (:func:`_require_float32`).
     """
 
     points: np.ndarray
@@ -101,6 +106,8 @@ class _Mesh:
     colors: np.ndarray | None
     faces: np.ndarray
     frame: str
+    overflow: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    overflow_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def _build_mesh(
@@ -117,12 +124,18 @@ def _build_mesh(
     index = np.full(vertices.shape[0] * vertices.shape[1], -1, dtype=np.int32)
     index[used] = np.arange(len(used), dtype=np.int32)
     flip = _OPENGL_FLIP if opengl else None
+    points = _gather_float32(vertices, used, flip)
+    # The vertices used are finite (_valid_facets): an infinite float32 point overflowed.
+    overflow = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    wide = vertices.reshape(-1, 3)[used[overflow]].astype(np.float64)
     return _Mesh(
-        points=_gather_float32(vertices, used, flip),
+        points=points,
         normals=None if normals is None else _gather_float32(normals, used, flip),
         colors=None if albedo is None else _grey_colors(albedo.reshape(len(index), *albedo.shape[2:])[used]),
         faces=_triangles(index, facets),
         frame="opengl" if opengl else "opencv",
+        overflow=overflow,
+        overflow_points=wide if flip is None else wide * flip.astype(np.float64),
     )
 
 
@@ -135,7 +148,7 @@ def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None)
     rows = grid.reshape(-1, 3)
     out = np.empty((len(used), 3), dtype=np.float32)
     everything = len(used) == len(rows)
-    with np.errstate(over="ignore"):  # beyond float32: inf, which STL and GLB refuse (_require_float32)
+    with np.errstate(over="ignore"):  # beyond float32: inf, which PLY, STL and GLB refuse (_require_float32)
         for start in range(0, len(used), _GATHER_CHUNK):
             stop = min(start + _GATHER_CHUNK, len(used))
             out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
@@ -288,7 +301,8 @@ def write_ply(
     Raises
     ------
     InputError
-        The shapes do not match, or there is no facet to write.
+        The shapes do not match, there is no facet to write, or a vertex position is beyond the
+        float32 range that PLY stores.
 
     Warns
     -----
@@ -333,7 +347,8 @@ def write_meshes(
     write_ply, write_obj, write_stl, write_glb, write_point_cloud
     """
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
-    for fmt, target in (("STL", stl_path), ("GLB", glb_path)):  # before any file is written
+    float32 = (("PLY", ply_path), ("STL", stl_path), ("GLB", glb_path), ("PLY", points_path))
+    for fmt, target in float32:  # before any file is written
         if target is not None:
             _require_float32(mesh, fmt, target)
     if ply_path is not None:
@@ -349,6 +364,7 @@ def write_meshes(
 
 
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
+    _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh).encode("ascii"))
         file.write(_ply_vertex_records(mesh).view(np.uint8).data)  # no copy of the records
@@ -524,7 +540,9 @@ def write_obj(
     Vertices are written as ``v x y z`` or, with `albedo`, ``v x y z r g b`` (grey colours as
     floats in 0..1, the PLY colours divided by 255); normals as ``vn nx ny nz``; faces with
     1-based indices as ``f a//a b//b c//c`` (with normals) or ``f a b c``. The file starts with
-    the comments ``# nplps`` and ``# frame opencv`` / ``# frame opengl``.
+    the comments ``# nplps`` and ``# frame opencv`` / ``# frame opengl``. Positions are written
+    at float32 precision, as in the other formats; a position beyond the float32 range (which
+    PLY, STL and GLB refuse) is written exactly, from its float64 value.
     """
     _write_obj_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
 
@@ -539,13 +557,18 @@ def _obj_chunks(mesh: _Mesh) -> Iterator[Callable[[], bytes]]:
     """Return the OBJ body of ``mesh`` as jobs that each format a chunk of lines, in file order.
 
     The lines are those of the %-formats ``"v %.9g %.9g %.9g[ %.6g %.6g %.6g]"`` (points;
-    colours / 255), ``"vn %.7g %.7g %.7g"`` and ``"f %d//%d %d//%d %d//%d"`` or ``"f %d %d %d"``
+    colours / 255; a point beyond the float32 range as the shortest exact text of its float64
+    position), ``"vn %.7g %.7g %.7g"`` and ``"f %d//%d %d//%d %d//%d"`` or ``"f %d %d %d"``
     (1-based indices).
     """
     points, normals, colors, faces = mesh.points, mesh.normals, mesh.colors, mesh.faces
     for start in range(0, len(points), _OBJ_CHUNK_ROWS):
         chunk = slice(start, start + _OBJ_CHUNK_ROWS)
-        yield partial(_vertex_lines, points[chunk], None if colors is None else colors[chunk])
+        job = partial(_vertex_lines, points[chunk], None if colors is None else colors[chunk])
+        lo, hi = np.searchsorted(mesh.overflow, [start, start + _OBJ_CHUNK_ROWS])
+        if hi > lo:  # positions beyond float32: written in full (float64) precision
+            job = partial(_widen, job, mesh.overflow[lo:hi] - start, mesh.overflow_points[lo:hi])
+        yield job
     if normals is not None:
         for start in range(0, len(normals), _OBJ_CHUNK_ROWS):
             yield partial(_normal_lines, normals[start : start + _OBJ_CHUNK_ROWS])
@@ -558,6 +581,16 @@ def _vertex_lines(points: np.ndarray, colors: np.ndarray | None) -> bytes:
     if colors is not None:
         fields += [np.take(_COLOR_TEXT, colors[:, i], axis=0) for i in range(3)]
     return _lines([b"v ", *_join(b" ", fields), b"\n"])
+
+
+def _widen(job: Callable[[], bytes], rows: np.ndarray, points: np.ndarray) -> bytes:
+    """Return the vertex lines of ``job`` with the positions of lines ``rows`` as ``points`` (float64, exact)."""
+    lines = job().split(b"\n")
+    for row, point in zip(rows.tolist(), points, strict=True):
+        words = lines[row].split(b" ")
+        words[1:4] = [repr(float(v)).encode("ascii") for v in point]
+        lines[row] = b" ".join(words)
+    return b"\n".join(lines)
 
 
 def _normal_lines(normals: np.ndarray) -> bytes:
@@ -573,8 +606,8 @@ def _face_lines(faces: np.ndarray, with_normals: bool) -> bytes:
 def _join(separator: bytes, fields: list) -> list:
     """``fields`` with ``separator`` between them."""
     out: list = []
-    for i, field in enumerate(fields):
-        out += [separator, field] if i else [field]
+    for i, item in enumerate(fields):
+        out += [separator, item] if i else [item]
     return out
 
 
@@ -702,7 +735,8 @@ def write_point_cloud(
     Raises
     ------
     InputError
-        The shapes do not match, or there is no facet to write.
+        The shapes do not match, there is no facet to write, or a vertex position is beyond the
+        float32 range that PLY stores.
     """
     _write_points_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
 
@@ -731,11 +765,13 @@ def save_normals_tiff(path: PathLike, normals: np.ndarray) -> None:
 
 
 def _require_float32(mesh: _Mesh, fmt: str, path: PathLike) -> None:
-    """Refuse a mesh whose positions do not fit float32 (they became infinite): STL and GLB store float32."""
-    bad = ~np.isfinite(mesh.points).all(axis=1)
-    if bad.any():
+    """Refuse a mesh whose positions do not fit float32 (they became infinite): PLY, STL and GLB store float32.
+
+    OBJ (text) writes those positions in full (double) precision instead.
+    """
+    if len(mesh.overflow):
         raise InputError(
-            f"cannot write {fmt} file '{os.fspath(path)}': {int(np.count_nonzero(bad))} vertex position(s) "
+            f"cannot write {fmt} file '{os.fspath(path)}': {len(mesh.overflow)} vertex position(s) "
             f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
         )
 
@@ -831,6 +867,7 @@ def _write_glb_mesh(path: PathLike, mesh: _Mesh) -> None:
 
 
 def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
+    _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh, faces=False).encode("ascii"))
         file.write(_ply_vertex_records(mesh).view(np.uint8).data)

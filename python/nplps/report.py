@@ -542,6 +542,9 @@ def _section_header(d: _Data) -> str:
         ("iterations", str(s.get("iterations"))),
         ("solver time", "unknown" if total is None else f"{total:.3f} s"),
     ]
+    steps = _preprocessing(o)
+    if steps is not None:
+        rows.insert(1, ("pre-processing", "; ".join(steps) if steps else "none"))
     if s.get("estimated_distance"):
         rows.append(("estimated distance", ", ".join(_fmt(v) for v in s["estimated_distance"])))
     return f"<header><h1>nplps report: {html.escape(d.name)}</h1>{_table(rows)}</header>"
@@ -744,6 +747,22 @@ def _cell(v: Any) -> str:
     return "n/a" if v is None else _fmt(float(v))
 
 
+#: The options whose effect :func:`_preprocessing`'s steps describe (recorded as typed).
+_PREPROCESSING_FLAGS = ("srgb", "ambient", "exposures", "vignetting", "flat", "bin", "preprocessing")
+
+
+def _preprocessing(options: dict[str, Any]) -> list[str] | None:
+    """Return the pre-processing steps a result records (``options.preprocessing``), or None.
+
+    None when they were not recorded (older results, the Python API without them) or are not a
+    list (a hand-edited summary.json): then the options are shown as recorded.
+    """
+    steps = options.get("preprocessing")
+    if not isinstance(steps, list):
+        return None
+    return [str(step) for step in steps]
+
+
 def _section_options(d: _Data) -> str:
     s = d.summary
     timings = s.get("timings") or {}
@@ -751,7 +770,18 @@ def _section_options(d: _Data) -> str:
     parts.append(_table([(str(k), _fmt(v)) for k, v in timings.items()]) if timings else _none("No timings."))
     parts.append("<h3>Options</h3>")
     if d.options:
-        parts.append(_table([(k, json.dumps(v)) for k, v in d.options.items()]))
+        options = d.options
+        steps = _preprocessing(options)
+        if steps is not None:
+            # The steps applied say what was done; the flags as typed (srgb false, ambient null for
+            # a capture preset that decoded sRGB and subtracted its ambient image) would mislead.
+            options = {k: v for k, v in options.items() if k not in _PREPROCESSING_FLAGS}
+            parts.append(
+                "<p>Pre-processing applied: "
+                + html.escape("; ".join(steps) if steps else "none")
+                + " (the pre-processing flags as typed are left out of the table).</p>"
+            )
+        parts.append(_table([(k, json.dumps(v)) for k, v in options.items()]))
     else:
         parts.append(_none("The options were not recorded (saved from the Python API without options=)."))
     parts.append("<h3>summary.json</h3>")
