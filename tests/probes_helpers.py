@@ -10,6 +10,7 @@ without starting a cluster (the probes are about what nplps does with the result
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import json
 import os
@@ -27,35 +28,49 @@ def helpers(ns: dict[str, Any]) -> dict[str, Any]:
     ctx = ns["_ctx"]
     base = Path(ns["SC"]).parent
     cache: dict[str, Path] = {}
+    made: dict[str, Any] = {}
+    importlib.import_module("nplps.batch")  # nplps.batch in the snippets
 
     def tmp() -> Path:
         return Path(ctx["tmp"])
 
-    def _base(kind: str) -> Path:
-        if kind not in cache:
-            where = base / f"result-{kind}"
+    def _reconstruction(kind: str) -> Any:
+        if kind not in made:
             S = ns["S"]
             if kind == "plain":
-                r = nplps.reconstruct(S.images, S.rig, mask=S.mask, depth=200.0)
-                r.save(where, report=True, inputs=S.images)
+                made[kind] = nplps.reconstruct(S.images, S.rig, mask=S.mask, depth=200.0)
             elif kind == "auto":
-                r = nplps.reconstruct(
+                made[kind] = nplps.reconstruct(
                     S.images, S.rig, mask=S.mask, depth="auto", refine_lights="intensity", iterations=5
                 )
-                r.save(where, formats=("stl", "glb", "points", "normals_tiff"))
             elif kind == "pinhole":
                 P = ns["PS"]
-                r = nplps.reconstruct(P.images, P.rig, mask=P.mask, depth=200.0)
-                r.save(where)
+                made[kind] = nplps.reconstruct(P.images, P.rig, mask=P.mask, depth=200.0)
             else:
                 raise ValueError(kind)
-            cache[kind] = where
-        return cache[kind]
+        return made[kind]
 
-    def result(name: str = "r", kind: str = "plain") -> Path:
-        """A copy (in the case's directory) of a saved result: "plain" (with report.html and
-        inputs.png), "auto" (distance curve, refined rig, every extra format) or "pinhole"."""
-        return Path(shutil.copytree(_base(kind), tmp() / name, symlinks=True))
+    def _save(kind: str, where: Path) -> Path:
+        r = _reconstruction(kind)
+        if kind == "plain":
+            r.save(where, report=True, inputs=ns["S"].images)
+        elif kind == "auto":
+            r.save(where, formats=("stl", "glb", "points", "normals_tiff"))
+        else:
+            r.save(where)
+        return where
+
+    def result(name: str = "r", kind: str = "plain", fresh: bool = False) -> Path:
+        """A saved result in the case's directory: "plain" (with report.html and inputs.png),
+        "auto" (distance curve, refined rig, every extra format) or "pinhole".
+
+        A copy of one saved once per worker, unless ``fresh``: then saved there (its manifest
+        names that folder, as nplps's own; a copy's names the folder it was copied from)."""
+        if fresh:
+            return _save(kind, tmp() / name)
+        if kind not in cache:
+            cache[kind] = _save(kind, base / f"result-{kind}")
+        return Path(shutil.copytree(cache[kind], tmp() / name, symlinks=True))
 
     def run(*argv: Any) -> tuple[int, str, str]:
         """``nplps ARGV`` in-process: (exit status, stdout, stderr); exceptions escape."""

@@ -26,7 +26,9 @@ import errno
 import os
 import re
 import secrets
+import shutil
 import stat
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import IO, Any, Union
@@ -59,10 +61,18 @@ def atomic_path(path: PathLike) -> Iterator[str]:
     except OSError as e:
         raise write_error(e, final) from e
     if direct:
+        # A pipe or a device takes the bytes in order, and writers seek (numpy's tofile, tifffile):
+        # the file is made as a regular temporary file and copied to the target when complete.
+        fd, staging = tempfile.mkstemp(prefix=".nplps-", suffix=os.path.splitext(final)[1])
+        os.close(fd)
         try:
-            yield final
+            yield staging
+            with open(staging, "rb") as source, open(final, "wb") as target:
+                shutil.copyfileobj(source, target, 1 << 20)
         except OSError as e:
             raise write_error(e, final) from e
+        finally:
+            _remove(staging)
         return
     directory, name = os.path.split(os.path.abspath(final))
     suffix = os.path.splitext(name)[1]

@@ -66,6 +66,8 @@ from .errors import InputError, OutputExistsError
 MANIFEST = "nplps-manifest.json"
 #: The manifest's format (1: a bare list of files, before the lifecycle).
 FORMAT = 2
+#: A manifest larger than this is not nplps's (one lists a few dozen files).
+MAX_MANIFEST_BYTES = 16 << 20
 IN_PROGRESS = "in progress"
 COMPLETE = "complete"
 
@@ -349,9 +351,14 @@ def load_manifest(directory: PathLike) -> Manifest | None:
     Only safe relative paths inside ``directory`` are kept. A manifest of format 1 (a list of
     files) has state ``"unknown"`` and is never trusted.
     """
+    path = Path(directory) / MANIFEST
     try:
-        data = json.loads((Path(directory) / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        # Only a regular file (a FIFO would block, a device never end) of a sane size.
+        info = os.lstat(path)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_MANIFEST_BYTES:
+            return None
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
         return None
     if not isinstance(data, dict):
         return None

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+import tempfile
 import time
 from typing import Any
 
@@ -38,7 +41,10 @@ def add_report_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         "result", metavar="RESULT_DIR", help="a directory written by nplps reconstruct or Reconstruction.save"
     )
     p.add_argument(
-        "--out", metavar="FILE", default=None, help="write the report here instead of RESULT_DIR/report.html"
+        "--out",
+        metavar="FILE",
+        default=None,
+        help="write the report here instead of RESULT_DIR/report.html ('-': standard output)",
     )
     return p
 
@@ -48,6 +54,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     from ..report import write_report
 
     start = time.perf_counter()
+    if args.out == "-":  # the page on standard output, not a file named "-"
+        with tempfile.TemporaryDirectory(prefix="nplps-report-") as tmp:
+            with _warnings_to_stderr():
+                page = write_report(args.result, path=os.path.join(tmp, "report.html"))
+            sys.stdout.write(page.read_text(encoding="utf-8"))
+            sys.stdout.flush()
+        return 0
     with _warnings_to_stderr():
         path = write_report(args.result, path=args.out)
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB, {time.perf_counter() - start:.1f} s)")

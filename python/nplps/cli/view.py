@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 import webbrowser
 from pathlib import Path
 from typing import Any
@@ -52,7 +53,11 @@ def add_view_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         formatter_class=formatter,
     )
     p.add_argument("result", metavar="RESULT_DIR", help="a result directory (from 'nplps reconstruct --out')")
-    p.add_argument("--out", metavar="FILE", help=f"the page to write (default RESULT_DIR/{VIEWER_FILE}; replaced)")
+    p.add_argument(
+        "--out",
+        metavar="FILE",
+        help=f"the page to write (default RESULT_DIR/{VIEWER_FILE}; replaced; '-': standard output)",
+    )
     p.add_argument("--no-open", action="store_true", help="only write the page and print its path")
     p.add_argument(
         "--max-triangles",
@@ -79,6 +84,19 @@ def cmd_view(args: argparse.Namespace) -> int:
     """Run ``nplps view``; return the exit status."""
     if args.max_triangles < 2:
         raise InputError(f"--max-triangles must be at least 2, got {args.max_triangles}")
+    if args.out == "-":  # the page on standard output, not a file named "-"
+        with tempfile.TemporaryDirectory(prefix="nplps-view-") as tmp:
+            with _warnings_to_stderr():
+                info = write_result_viewer(
+                    args.result,
+                    os.path.join(tmp, "viewer.html"),
+                    title=args.title,
+                    units=args.units,
+                    max_triangles=args.max_triangles,
+                )
+            sys.stdout.write(Path(info.path).read_text(encoding="utf-8"))
+            sys.stdout.flush()
+        return 0
     with _warnings_to_stderr():
         info = write_result_viewer(
             args.result, args.out, title=args.title, units=args.units, max_triangles=args.max_triangles
