@@ -434,7 +434,24 @@ def unfinished(directory: PathLike) -> bool:
     manifest = load_manifest(directory)
     if manifest is None or manifest.state != IN_PROGRESS or not manifest.trusted(directory):
         return False
-    root = Path(directory)
+    return _only_listed(Path(directory), manifest)
+
+
+def damaged(directory: PathLike) -> bool:
+    """Tell whether ``directory`` is a finished nplps result that lost or changed a file since.
+
+    Its manifest is nplps's own for this directory and says "complete", but a file it lists is
+    missing or not of the recorded size (:func:`is_complete` is False), and the directory holds
+    nothing else (as for :func:`unfinished`): a resume may redo it.
+    """
+    manifest = load_manifest(directory)
+    if manifest is None or manifest.state != COMPLETE or not manifest.trusted(directory):
+        return False
+    return not is_complete(directory) and _only_listed(Path(directory), manifest)
+
+
+def _only_listed(root: Path, manifest: Manifest) -> bool:
+    """Tell whether every entry below ``root`` is a file ``manifest`` lists (or a temporary file)."""
     listed = set(manifest.files) | {MANIFEST}
     for top, dirs, names in os.walk(root):
         for name in names:

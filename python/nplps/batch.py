@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._atomic import PathLike, write_text
-from ._outdir import ResultDirectory, file_identity, fingerprint, jsonable, load_manifest, unfinished
+from ._outdir import ResultDirectory, damaged, file_identity, fingerprint, jsonable, load_manifest, unfinished
 from ._outdir import is_complete as _is_complete
 from ._text import printable
 from .captures.files import _find_one, find_images
@@ -234,6 +234,9 @@ def _resume(item: BatchItem, fp: str, inputs: dict[str, Any]) -> tuple[bool, boo
         return False, True
     if unfinished(item.out):
         item.note = "redone: an earlier run did not finish it"
+        return False, True
+    if damaged(item.out):
+        item.note = "redone: the earlier result there lost or changed a file (missing or of another size)"
         return False, True
     return False, False
 
