@@ -106,7 +106,7 @@ class DistanceCheck:
     side : int
         The coarse level's longer side in pixels.
     looks_wrong : bool
-        The images fit the found distance clearly better: the residual ratio is above 1.5 and
+        The images fit the found distance clearly better: the residual ratio is above 1.25 and
         the distances differ by more than 10 % (thresholds measured by
         ``benchmarks/distance_check.py``). ``reconstruct`` then warns "the working distance looks
         wrong".

@@ -552,7 +552,7 @@ pub struct DistanceCheck {
 
 /// The residual ratio above which, together with [`WRONG_DISTANCE_OFFSET`], a given distance
 /// looks wrong (chosen by measurement: see `benchmarks/distance_check.py`).
-pub const WRONG_DISTANCE_RATIO: f64 = 1.5;
+pub const WRONG_DISTANCE_RATIO: f64 = 1.25;
 
 /// The relative offset `|given / found - 1|` above which, together with
 /// [`WRONG_DISTANCE_RATIO`], a given distance looks wrong.
