@@ -108,7 +108,7 @@ def add_input_options(p: argparse.ArgumentParser, lights_flag: str = "--lights")
     p.add_argument(
         "--prior-weight",
         type=float,
-        default=1.0,
+        default=None,
         metavar="W",
         help="weight of --depth-prior relative to the facet terms (default 1)",
     )
@@ -437,7 +437,7 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
         options["depth_range"] = tuple(near_far)
     if args.depth_prior is not None:
         options["depth_prior"] = parse_depth(args.depth_prior, "--depth-prior")
-        options["prior_weight"] = args.prior_weight
+        options["prior_weight"] = 1.0 if args.prior_weight is None else args.prior_weight
     for given, needed in _no_effect(args):
         _note(f"{PROG}: warning: {given} has no effect without {needed}; it is ignored")
     return options
@@ -451,6 +451,9 @@ def _no_effect(args: argparse.Namespace) -> list[tuple[str, str]]:
         "both",
     ):
         found.append(("--light-prior-weight", "--refine-lights position or both"))
+    # (1.0 is the default: nplps batch sets it without a --prior-weight option)
+    if getattr(args, "prior_weight", None) not in (None, 1.0) and getattr(args, "depth_prior", None) is None:
+        found.append(("--prior-weight", "--depth-prior"))
     if getattr(args, "depth_range", None) is not None and str(getattr(args, "depth", "")).strip().lower() != "auto":
         found.append(("--depth-range", "--depth auto"))
     return found

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
+from .._text import printable
 from ..progress import Bar, ReconstructionProgress, aborting, format_duration
 from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
@@ -206,7 +207,8 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
         _print_refinement(result)
     print(f"  time            {wall:.2f} s (solver {s['timings'].get('total', float('nan')):.2f} s)")
     files = sorted({str(p.parent) for p in paths.values()})
-    print(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}")
+    # A folder named with escape codes is shown, not obeyed by the terminal.
+    print(printable(f"  files written   in {', '.join(files)}: {', '.join(p.name for p in paths.values())}"))
 
 
 def _per_level(result: Any) -> str:
