@@ -19,6 +19,9 @@ use std::collections::VecDeque;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
+use crate::error::Result;
+use crate::memory::{try_copy, try_par_collect};
+
 /// The state of the acceleration.
 #[derive(Debug, Clone)]
 pub struct Anderson {
@@ -64,20 +67,37 @@ impl Anderson {
 
     /// Given the iterate `z` and its image `g = G(z)`, overwrites `g` with the accelerated next
     /// iterate.
+    ///
+    /// When the history cannot be allocated, the acceleration restarts and `g` is left as it is
+    /// (the plain iteration's next iterate); [`Anderson::try_mix`] reports it instead.
     pub fn mix(&mut self, z: &[f64], g: &mut [f64]) {
-        let f: Vec<f64> = g.par_iter().zip(z).map(|(a, b)| a - b).collect();
+        if self.try_mix(z, g).is_err() {
+            self.restart();
+        }
+    }
+
+    /// As [`Anderson::mix`], with [`Error::Memory`](crate::Error::Memory) (and `g` unchanged)
+    /// when a vector of the history cannot be allocated.
+    pub fn try_mix(&mut self, z: &[f64], g: &mut [f64]) -> Result<()> {
+        const WHAT: &str = "the Anderson acceleration's history";
+        let f = try_par_collect(g.par_iter().zip(z).map(|(a, b)| a - b), WHAT)?;
+        let g_copy = try_copy(g, WHAT)?;
         let norm = self.dot(&f, &f).sqrt();
         if !norm.is_finite() {
             self.restart();
-            return;
+            return Ok(());
         }
         if norm > RESTART_GROWTH * self.best {
             self.restart();
         }
         self.best = self.best.min(norm);
         if let Some((f_prev, g_prev)) = self.previous.take() {
-            let df: Vec<f64> = f.par_iter().zip(&f_prev).map(|(a, b)| a - b).collect();
-            let dg: Vec<f64> = g.par_iter().zip(&g_prev).map(|(a, b)| a - b).collect();
+            // The differences overwrite the previous vectors (no new allocation).
+            let (mut df, mut dg) = (f_prev, g_prev);
+            df.par_iter_mut().zip(&f).for_each(|(d, a)| *d = a - *d);
+            dg.par_iter_mut()
+                .zip(&g_copy)
+                .for_each(|(d, a)| *d = a - *d);
             self.delta_f.push_back(df);
             self.delta_g.push_back(dg);
             if self.delta_f.len() > self.depth {
@@ -85,10 +105,10 @@ impl Anderson {
                 self.delta_g.pop_front();
             }
         }
-        self.previous = Some((f.clone(), g.to_vec()));
         let m = self.delta_f.len();
         if m == 0 {
-            return;
+            self.previous = Some((f, g_copy));
+            return Ok(());
         }
         let mut normal = DMatrix::zeros(m, m);
         let mut rhs = DVector::zeros(m);
@@ -100,22 +120,24 @@ impl Anderson {
                 normal[(b, a)] = v;
             }
         }
+        self.previous = Some((f, g_copy));
         let trace = normal.trace().max(f64::MIN_POSITIVE);
         for a in 0..m {
             normal[(a, a)] += 1e-12 * trace;
         }
         let Some(gamma) = normal.cholesky().map(|c| c.solve(&rhs)) else {
             self.restart();
-            return;
+            return Ok(());
         };
         if !gamma.iter().all(|v| v.is_finite()) {
             self.restart();
-            return;
+            return Ok(());
         }
         for (a, dg) in self.delta_g.iter().enumerate() {
             let c = gamma[a];
             g.par_iter_mut().zip(dg).for_each(|(x, d)| *x -= c * d);
         }
+        Ok(())
     }
 }
 

@@ -62,9 +62,9 @@ fn refine_intensities(
     problem: &Problem<'_>,
     options: &Options,
     lights: &mut [([f64; 3], [f64; 3])],
-) -> Option<Vec<f64>> {
+) -> Result<Option<Vec<f64>>> {
     if !options.refine.intensity {
-        return None;
+        return Ok(None);
     }
     let refine = Refine {
         intensity: true,
@@ -81,7 +81,7 @@ fn refine_intensities(
     let data = LightData::of(problem, options.fit_settings(false));
     let mut refiner = Refiner::new(refine, directional.clone());
     for _ in 0..REFINE_STEPS {
-        let outcome = refiner.step(&data, &mut directional, &problem.u0);
+        let outcome = refiner.try_step(&data, &mut directional, &problem.u0)?;
         if !outcome.accepted || outcome.change < 1e-10 {
             break;
         }
@@ -95,7 +95,7 @@ fn refine_intensities(
             f
         })
         .collect();
-    Some(factors)
+    Ok(Some(factors))
 }
 
 /// Runs the parallel-light baseline on `problem` (`options` give the thresholds, the robust
@@ -121,7 +121,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
 
         let mut lights = parallel_lights(problem);
         let t = Instant::now();
-        let factors = refine_intensities(problem, options, &mut lights);
+        let factors = refine_intensities(problem, options, &mut lights)?;
         timings.lights = t.elapsed();
         let mut fits: Vec<FacetFit> =
             crate::memory::try_vec(grid.n_facets(), FacetFit::EMPTY, "the per-facet fits")?;
@@ -139,7 +139,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             &problem.u0,
             settings,
             &mut fits,
-        );
+        )?;
         timings.local = t.elapsed();
 
         let t = Instant::now();

@@ -26,6 +26,7 @@ use faer::{Conj, MatMut, Par, Side};
 
 use crate::error::{Error, Result};
 use crate::grid::Grid;
+use crate::memory::{try_collect, try_copy, try_vec, try_with_capacity};
 use crate::ordering::nested_dissection;
 
 /// Fill-reducing ordering of the sparse Cholesky factorization.
@@ -105,11 +106,11 @@ impl Cholesky {
             check_residual: f64::NAN,
         };
         chol.factor()?;
-        chol.check_residual = chol.check();
+        chol.check_residual = chol.check()?;
         if !accurate(chol.check_residual) && !matches!(par, Par::Seq) {
             chol.par = Par::Seq;
             chol.factor()?;
-            chol.check_residual = chol.check();
+            chol.check_residual = chol.check()?;
         }
         if !accurate(chol.check_residual) {
             return Err(Error::Solver(format!(
@@ -166,21 +167,22 @@ impl Cholesky {
     }
 
     /// Relative residual `|A x - b| / |b|` of a solve with a deterministic right side.
-    fn check(&mut self) -> f64 {
+    fn check(&mut self) -> Result<f64> {
+        const WHAT: &str = "the check of the sparse Cholesky factor";
         let n = self.lower.nrows();
-        let b: Vec<f64> = (0..n).map(|i| ((i as f64) * 0.618).sin() + 0.5).collect();
-        let mut x = b.clone();
+        let b = try_collect((0..n).map(|i| ((i as f64) * 0.618).sin() + 0.5), WHAT)?;
+        let mut x = try_copy(&b, WHAT)?;
         self.solve_in_place(&mut x);
-        let ax = self.mul(&x);
+        let ax = self.mul(&x)?;
         let num: f64 = ax.iter().zip(&b).map(|(a, b)| (a - b) * (a - b)).sum();
         let den: f64 = b.iter().map(|b| b * b).sum();
-        (num / den).sqrt()
+        Ok((num / den).sqrt())
     }
 
     /// `A x` with `A` stored as its lower triangle.
-    fn mul(&self, x: &[f64]) -> Vec<f64> {
+    fn mul(&self, x: &[f64]) -> Result<Vec<f64>> {
         let a = self.lower.as_ref();
-        let mut y = vec![0.0; x.len()];
+        let mut y = try_vec(x.len(), 0.0, "the check of the sparse Cholesky factor")?;
         for j in 0..a.ncols() {
             for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
                 y[i] += v * x[j];
@@ -189,14 +191,14 @@ impl Cholesky {
                 }
             }
         }
-        y
+        Ok(y)
     }
 }
 
 /// The pinned unknowns: the lowest-index unknown of each region that the prior does not cover.
-pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Vec<u32> {
-    // One per region (at most one per unknown): small next to the per-pixel buffers.
-    let mut anchored = vec![false; grid.n_regions];
+pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Result<Vec<u32>> {
+    // One per region: up to one per few unknowns for a speckled mask.
+    let mut anchored = try_vec(grid.n_regions, false, "the pinned unknowns")?;
     if let Some(prior) = prior {
         for (u, value) in prior.values.iter().enumerate() {
             if value.is_finite() {
@@ -204,12 +206,18 @@ pub(crate) fn pinned_unknowns(grid: &Grid, prior: Option<&Prior>) -> Vec<u32> {
             }
         }
     }
-    grid.pins
-        .iter()
-        .zip(&anchored)
-        .filter(|(_, a)| !**a)
-        .map(|(p, _)| *p)
-        .collect()
+    let mut pins = try_with_capacity(
+        anchored.iter().filter(|a| !**a).count(),
+        "the pinned unknowns",
+    )?;
+    pins.extend(
+        grid.pins
+            .iter()
+            .zip(&anchored)
+            .filter(|(_, a)| !**a)
+            .map(|(p, _)| *p),
+    );
+    Ok(pins)
 }
 
 /// `weight * prior` per unknown (0 where there is none).
@@ -293,9 +301,9 @@ impl GlobalSystem {
         prior: Option<&Prior>,
     ) -> Result<GlobalSystem> {
         let n = grid.n_unknowns();
-        let pins = pinned_unknowns(grid, prior);
+        let pins = pinned_unknowns(grid, prior)?;
         let lower = assemble_lower(grid, &pins, prior)?;
-        let (fwd, inv) = nested_dissection(grid);
+        let (fwd, inv) = nested_dissection(grid)?;
         let ord = match ordering {
             #[cfg(test)]
             FillOrdering::Amd => SymmetricOrdering::Amd,

@@ -22,8 +22,10 @@ use std::borrow::Cow;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
+use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal, Geometry};
 use crate::grid::Grid;
+use crate::memory::try_vec;
 use crate::rig::Light;
 use crate::vec3::{dot, norm};
 
@@ -318,15 +320,27 @@ impl LocalStep<'_> {
     }
 
     /// Fits facets `first..first + fits.len()` on `u` in parallel (rayon), writing `fits`.
+    ///
+    /// Panics when a thread's scratch space cannot be allocated: prefer [`LocalStep::try_run`],
+    /// which reports it as [`Error::Memory`](crate::Error::Memory).
     pub fn run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) {
+        if let Err(e) = self.try_run(u, first, fits) {
+            panic!("{e}");
+        }
+    }
+
+    /// As [`LocalStep::run`], with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space (one facet's
+    /// observations) cannot be allocated.
+    pub fn try_run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) -> Result<()> {
         let per = self.obs.per_facet();
         if let Some(lights) = self.lane_lights() {
             let lights = &lights[..];
-            fits.par_chunks_mut(LANES).enumerate().for_each_init(
-                || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
-                |(buf, interleaved), (chunk, fits)| {
+            return fits.par_chunks_mut(LANES).enumerate().try_for_each_init(
+                || lane_scratch(per, self.obs.k),
+                |scratch, (chunk, fits)| {
+                    let (buf, interleaved) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
-                        return;
+                        return Ok(());
                     }
                     let start = first + chunk * LANES;
                     if fits.len() == LANES {
@@ -337,34 +351,53 @@ impl LocalStep<'_> {
                             *fit = self.fit(start + i, u, buf);
                         }
                     }
+                    Ok(())
                 },
             );
-            return;
         }
-        fits.par_iter_mut().enumerate().for_each_init(
-            || vec![0.0f32; per],
-            |buf, (i, fit)| {
+        fits.par_iter_mut().enumerate().try_for_each_init(
+            || facet_scratch(per),
+            |scratch, (i, fit)| {
+                let buf = scratch.as_mut().map_err(|e| e.clone())?;
                 if !self.cancel.is_cancelled() {
                     *fit = self.fit(first + i, u, buf);
                 }
+                Ok(())
             },
-        );
+        )
     }
 
     /// Fits every facet on `u` in parallel, keeping only the targets and the statistics.
+    ///
+    /// Panics when a thread's scratch space cannot be allocated: prefer
+    /// [`LocalStep::try_run_targets`], which reports it as [`Error::Memory`](crate::Error::Memory).
     pub fn run_targets(&self, u: &[f64], targets: &mut [[f64; 4]], stats: &mut [FacetStat]) {
+        if let Err(e) = self.try_run_targets(u, targets, stats) {
+            panic!("{e}");
+        }
+    }
+
+    /// As [`LocalStep::run_targets`], with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space
+    /// cannot be allocated.
+    pub fn try_run_targets(
+        &self,
+        u: &[f64],
+        targets: &mut [[f64; 4]],
+        stats: &mut [FacetStat],
+    ) -> Result<()> {
         let per = self.obs.per_facet();
         if let Some(lights) = self.lane_lights() {
             let lights = &lights[..];
-            targets
+            return targets
                 .par_chunks_mut(LANES)
                 .zip(stats.par_chunks_mut(LANES))
                 .enumerate()
-                .for_each_init(
-                    || (vec![0.0f32; per], vec![[0.0f32; LANES]; self.obs.k]),
-                    |(buf, interleaved), (chunk, (targets, stats))| {
+                .try_for_each_init(
+                    || lane_scratch(per, self.obs.k),
+                    |scratch, (chunk, (targets, stats))| {
+                        let (buf, interleaved) = scratch.as_mut().map_err(|e| e.clone())?;
                         if self.cancel.is_cancelled() {
-                            return;
+                            return Ok(());
                         }
                         let first = chunk * LANES;
                         if targets.len() == LANES {
@@ -380,26 +413,42 @@ impl LocalStep<'_> {
                                 *stat = FacetStat::from(&fit);
                             }
                         }
+                        Ok(())
                     },
                 );
-            return;
         }
         targets
             .par_iter_mut()
             .zip(stats.par_iter_mut())
             .enumerate()
-            .for_each_init(
-                || vec![0.0f32; per],
-                |buf, (f, (target, stat))| {
+            .try_for_each_init(
+                || facet_scratch(per),
+                |scratch, (f, (target, stat))| {
+                    let buf = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
-                        return;
+                        return Ok(());
                     }
                     let fit = self.fit(f, u, buf);
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
+                    Ok(())
                 },
-            );
+            )
     }
+}
+
+/// What a thread's scratch space is for, in the message of a failed allocation.
+const SCRATCH: &str = "the local step's per-thread scratch space";
+
+/// A thread's scratch space for one facet's `per` observations.
+fn facet_scratch(per: usize) -> Result<Vec<f32>> {
+    try_vec(per, 0.0f32, SCRATCH)
+}
+
+/// A thread's scratch space of the vectorized accumulation: one facet's `per` observations and
+/// the `k` lights' observations of [`LANES`] facets interleaved.
+fn lane_scratch(per: usize, k: usize) -> Result<(Vec<f32>, Vec<[f32; LANES]>)> {
+    Ok((facet_scratch(per)?, try_vec(k, [0.0f32; LANES], SCRATCH)?))
 }
 
 /// How far ahead (in pixels) the gather of observations prefetches each image: the local step
@@ -731,7 +780,8 @@ fn residual_lanes(
 }
 
 /// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
-/// unknowns (see [`Geometry`]).
+/// unknowns (see [`Geometry`]); [`Error::Memory`](crate::Error::Memory) when a thread's scratch space cannot be
+/// allocated.
 pub fn local_step(
     grid: &Grid,
     geometry: &Geometry,
@@ -740,7 +790,7 @@ pub fn local_step(
     u: &[f64],
     settings: FitSettings,
     fits: &mut [FacetFit],
-) {
+) -> Result<()> {
     LocalStep {
         grid,
         geometry,
@@ -750,7 +800,7 @@ pub fn local_step(
         depths: None,
         cancel: crate::Cancel::never(),
     }
-    .run(u, 0, fits);
+    .try_run(u, 0, fits)
 }
 
 /// Whether an observation (all its channels) can be used.

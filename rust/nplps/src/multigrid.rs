@@ -35,14 +35,14 @@
 //! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
 //! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
-use crate::memory::{try_collect, try_vec};
+use crate::memory::{try_collect, try_vec, try_with_capacity};
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::Par;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::global::{pinned_unknowns, prior_right_side, right_side, Cholesky, Prior};
+use crate::global::{faer_error, pinned_unknowns, prior_right_side, right_side, Cholesky, Prior};
 use crate::grid::{Grid, INACTIVE};
 
 /// Rows per Gauss-Seidel band.
@@ -584,16 +584,23 @@ struct Coarsest {
 
 impl Coarsest {
     fn new(level: &Level) -> Result<Coarsest> {
+        // The coarsest level is small, except when the image has at most 3 rows or columns and
+        // the fine level is also the coarsest: O(pixels), so allocated fallibly.
+        const WHAT: &str = "the coarsest multigrid level";
         let l = level.layout;
-        let mut number = vec![u32::MAX; l.rows * l.cols];
-        let mut nodes = Vec::new();
+        let mut number = try_vec(l.rows * l.cols, u32::MAX, WHAT)?;
+        let active = (0..l.rows * l.cols)
+            .filter(|&n| level.stencils.get(n)[CENTRE] > 0.0)
+            .count();
+        let mut nodes = try_with_capacity(active, WHAT)?;
         for (n, slot) in number.iter_mut().enumerate() {
             if level.stencils.get(n)[CENTRE] > 0.0 {
                 *slot = nodes.len() as u32;
                 nodes.push(l.index(n / l.cols, n % l.cols));
             }
         }
-        let mut triplets = Vec::new();
+        // At most the centre and half of the neighbours of each node in the lower triangle.
+        let mut triplets = try_with_capacity(active * OFFSETS.len().div_ceil(2), WHAT)?;
         for n in 0..l.rows * l.cols {
             let s = level.stencils.get(n);
             if s[CENTRE] <= 0.0 {
@@ -614,15 +621,19 @@ impl Coarsest {
             }
         }
         let n = nodes.len();
-        let lower = SparseColMat::try_new_from_triplets(n, n, &triplets).map_err(|e| {
-            Error::Solver(format!(
+        let lower = SparseColMat::try_new_from_triplets(n, n, &triplets).map_err(|e| match e {
+            faer::sparse::CreationError::Generic(e) => {
+                faer_error(e, WHAT, "cannot assemble the coarsest multigrid level")
+            }
+            e => Error::Solver(format!(
                 "cannot assemble the coarsest multigrid level: {e:?}"
-            ))
+            )),
         })?;
+        drop(triplets);
         let chol = Cholesky::new(lower, SymmetricOrdering::Amd, Par::Seq)?;
         Ok(Coarsest {
             chol,
-            rhs: vec![0.0; n],
+            rhs: try_vec(n, 0.0, WHAT)?,
             nodes,
         })
     }
@@ -682,7 +693,7 @@ impl MultigridSystem {
         prior: Option<&Prior>,
         coarsest_nodes: usize,
     ) -> Result<MultigridSystem> {
-        let pins = pinned_unknowns(grid, prior);
+        let pins = pinned_unknowns(grid, prior)?;
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
         let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;

@@ -6,7 +6,9 @@
 //! factorization work — less than approximate minimum degree on large images. Boxes of at most
 //! [`LEAF`] vertices are numbered row by row. Inactive vertices (outside the mask) are skipped.
 
+use crate::error::Result;
 use crate::grid::{Grid, INACTIVE};
+use crate::memory::{try_vec, try_with_capacity};
 
 /// Largest box (in grid vertices) that is numbered directly. Measured on a 512 x 512 grid: leaves
 /// of 2-8 vertices give 16.3 M factor nonzeros, 16 give 17.0 M, 64 give 18.9 M, 1024 give 34.6 M.
@@ -14,15 +16,18 @@ pub const LEAF: usize = 8;
 
 /// The elimination order as `(forward, inverse)`: `forward[i]` is the unknown eliminated i-th,
 /// `inverse[forward[i]] = i`.
-pub fn nested_dissection(grid: &Grid) -> (Vec<usize>, Vec<usize>) {
-    let mut forward = Vec::with_capacity(grid.n_unknowns());
+/// Both are allocated fallibly ([`Error::Memory`](crate::Error::Memory) when they do not fit);
+/// `forward` has room for every unknown, so numbering them never reallocates.
+pub fn nested_dissection(grid: &Grid) -> Result<(Vec<usize>, Vec<usize>)> {
+    const WHAT: &str = "the fill-reducing ordering of the global step";
+    let mut forward = try_with_capacity(grid.n_unknowns(), WHAT)?;
     let vw = grid.width + 1;
     dissect(grid, vw, (0, grid.height + 1), (0, vw), &mut forward);
-    let mut inverse = vec![0; forward.len()];
+    let mut inverse = try_vec(forward.len(), 0, WHAT)?;
     for (i, &u) in forward.iter().enumerate() {
         inverse[u] = i;
     }
-    (forward, inverse)
+    Ok((forward, inverse))
 }
 
 /// Numbers the active vertices of rows `rows.0..rows.1` and columns `cols.0..cols.1`.
@@ -78,7 +83,7 @@ mod tests {
     fn is_a_permutation_of_the_unknowns() {
         let mask: Vec<bool> = (0..37 * 53).map(|p| (p * 7919) % 13 != 0).collect();
         let grid = Grid::new(37, 53, Some(&mask)).unwrap();
-        let (fwd, inv) = nested_dissection(&grid);
+        let (fwd, inv) = nested_dissection(&grid).unwrap();
         assert_eq!(fwd.len(), grid.n_unknowns());
         let mut seen = vec![false; fwd.len()];
         for (i, &u) in fwd.iter().enumerate() {

@@ -157,7 +157,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         });
     problem.cancel.check()?;
     let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN)?;
-    let u0 = fill_missing(&coarse_grid, u0, &problem.gauge);
+    let u0 = fill_missing(&coarse_grid, u0, &problem.gauge)?;
     let prior = match problem.prior.as_ref() {
         Some(p) => Some(Prior {
             values: subsample(grid, &p.values, &coarse_grid, f64::NAN)?,
@@ -194,9 +194,10 @@ fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Result
 
 /// Replaces NaN starting unknowns by the mean of the finite ones of their region (or of the
 /// fine gauges when a region has none).
-fn fill_missing(grid: &Grid, mut u: Vec<f64>, fine_gauge: &[f64]) -> Vec<f64> {
-    let mut sum = vec![0.0; grid.n_regions];
-    let mut count = vec![0usize; grid.n_regions];
+fn fill_missing(grid: &Grid, mut u: Vec<f64>, fine_gauge: &[f64]) -> Result<Vec<f64>> {
+    // One per region: up to one per few unknowns for a speckled mask.
+    let mut sum = try_vec(grid.n_regions, 0.0, "the coarse depths")?;
+    let mut count = try_vec(grid.n_regions, 0usize, "the coarse depths")?;
     for (v, &r) in u.iter().zip(&grid.region_of_unknown) {
         if v.is_finite() {
             sum[r as usize] += v;
@@ -214,7 +215,7 @@ fn fill_missing(grid: &Grid, mut u: Vec<f64>, fine_gauge: &[f64]) -> Vec<f64> {
             };
         }
     }
-    u
+    Ok(u)
 }
 
 /// The coarse problem of `data` under `rig` (the coarse rig).

@@ -58,6 +58,7 @@ use crate::geometry::quad_centre;
 use crate::geometry::Geometry;
 use crate::grid::Grid;
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
+use crate::memory::{try_vec, try_with_capacity};
 use crate::problem::Problem;
 use crate::rig::Light;
 use crate::vec3::{dot, norm, sub};
@@ -328,11 +329,25 @@ struct Pass {
     facets: usize,
 }
 
+/// What the pass's buffers are for, in the message of a failed allocation.
+const PASS: &str = "the light refinement's Gauss-Newton sums";
+
 impl Pass {
-    fn new(n: usize, with_h: bool) -> Pass {
+    /// Empty sums (without the matrix and the gradient unless `with_h`).
+    fn try_new(n: usize, with_h: bool) -> Result<Pass> {
+        let mut pass = Pass::empty();
+        if with_h {
+            pass.h = try_vec(n * n, 0.0, PASS)?;
+            pass.grad = try_vec(n, 0.0, PASS)?;
+        }
+        Ok(pass)
+    }
+
+    /// Empty sums without the matrix and the gradient (the identity of [`Pass::merge`]).
+    fn empty() -> Pass {
         Pass {
-            h: if with_h { vec![0.0; n * n] } else { Vec::new() },
-            grad: if with_h { vec![0.0; n] } else { Vec::new() },
+            h: Vec::new(),
+            grad: Vec::new(),
             sse: 0.0,
             sum_i2: 0.0,
             count: 0,
@@ -343,7 +358,14 @@ impl Pass {
         }
     }
 
-    fn merge(mut self, other: Pass) -> Pass {
+    /// The sums of both passes (an [`Pass::empty`] one adds nothing and has no matrix).
+    fn merge(mut self, mut other: Pass) -> Pass {
+        if self.h.len() < other.h.len() {
+            std::mem::swap(&mut self.h, &mut other.h);
+        }
+        if self.grad.len() < other.grad.len() {
+            std::mem::swap(&mut self.grad, &mut other.grad);
+        }
         for (a, b) in self.h.iter_mut().zip(&other.h) {
             *a += b;
         }
@@ -398,6 +420,20 @@ fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
 const BATCH: usize = 64;
 
 impl Scratch {
+    /// A thread's scratch for `k` lights and `n` parameters (`per` values per facet).
+    fn try_new(per: usize, k: usize, n: usize, with_h: bool) -> Result<Scratch> {
+        let rows = if with_h { 3 * BATCH } else { 0 };
+        Ok(Scratch {
+            values: try_vec(per, 0.0, PASS)?,
+            used: try_with_capacity(k, PASS)?,
+            rows: try_with_capacity(k, PASS)?,
+            obs: try_with_capacity(k, PASS)?,
+            bt: DMatrix::from_vec(rows, n, try_vec(rows * n, 0.0, PASS)?),
+            pending: 0,
+            want_h: true,
+        })
+    }
+
     /// Subtracts `B B^T` of the pending facets from `acc.h`.
     fn flush(&mut self, acc: &mut Pass) {
         if self.pending == 0 || acc.h.is_empty() {
@@ -443,8 +479,9 @@ impl LightData<'_> {
         (n.div_ceil(stride), stride)
     }
 
-    /// One pass over the (subsampled) facets at unknowns `u` under `lights`.
-    fn pass(&self, lights: &[Light], layout: &Layout, u: &[f64], with_h: bool) -> Pass {
+    /// One pass over the (subsampled) facets at unknowns `u` under `lights`;
+    /// [`Error::Memory`] when a thread's sums or scratch cannot be allocated.
+    fn pass(&self, lights: &[Light], layout: &Layout, u: &[f64], with_h: bool) -> Result<Pass> {
         let (count, stride) = self.subsample();
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let k = obs.k;
@@ -456,20 +493,13 @@ impl LightData<'_> {
             .with_min_len(256)
             .fold(
                 || {
-                    (
-                        Pass::new(n, with_h),
-                        Scratch {
-                            values: vec![0.0; obs.per_facet()],
-                            used: Vec::with_capacity(k),
-                            rows: Vec::with_capacity(k),
-                            obs: Vec::with_capacity(k),
-                            bt: DMatrix::zeros(if with_h { 3 * BATCH } else { 0 }, n),
-                            pending: 0,
-                            want_h: true,
-                        },
-                    )
+                    Ok((
+                        Pass::try_new(n, with_h)?,
+                        Scratch::try_new(obs.per_facet(), k, n, with_h)?,
+                    ))
                 },
-                |(mut acc, mut s), j| {
+                |state: Result<(Pass, Scratch)>, j| {
+                    let (mut acc, mut s) = state?;
                     let f = j * stride;
                     let q = geometry.facet_corners(grid, f, u);
                     let c = quad_centre(&q);
@@ -483,17 +513,23 @@ impl LightData<'_> {
                         self.facet(Model { lights, layout }, c, (&values, ch), &mut acc, &mut s);
                     }
                     s.values = values;
-                    (acc, s)
+                    Ok((acc, s))
                 },
             )
-            .map(|(mut acc, mut s)| {
-                s.flush(&mut acc);
-                acc
+            .map(|state| {
+                state.map(|(mut acc, mut s)| {
+                    s.flush(&mut acc);
+                    acc
+                })
             })
-            .reduce(|| Pass::new(n, with_h), Pass::merge);
+            .try_reduce(Pass::empty, |a, b| Ok(a.merge(b)))?;
+        if with_h && pass.h.is_empty() {
+            // No facet at all: the sums are zero.
+            pass = Pass::try_new(n, with_h)?;
+        }
         // The matrix from every `h_every`-th facet stands for all of them.
         pass.h.iter_mut().for_each(|v| *v *= h_every as f64);
-        pass
+        Ok(pass)
     }
 
     /// Adds channel `ch` of the facet with centre `c` and observations `values` to the pass.
@@ -726,7 +762,24 @@ impl Refiner {
     }
 
     /// One damped Gauss-Newton step on `lights` at unknowns `u` (see the module docs).
+    ///
+    /// Panics when the sums of the step cannot be allocated: prefer [`Refiner::try_step`],
+    /// which reports it as [`Error::Memory`].
     pub fn step(&mut self, data: &LightData<'_>, lights: &mut [Light], u: &[f64]) -> StepOutcome {
+        match self.try_step(data, lights, u) {
+            Ok(outcome) => outcome,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    /// As [`Refiner::step`], with [`Error::Memory`] (and `lights` unchanged) when the sums of
+    /// the step or a thread's scratch cannot be allocated.
+    pub fn try_step(
+        &mut self,
+        data: &LightData<'_>,
+        lights: &mut [Light],
+        u: &[f64],
+    ) -> Result<StepOutcome> {
         let layout = Layout::new(lights, &self.refine);
         let n = layout.n;
         let none = StepOutcome {
@@ -735,11 +788,11 @@ impl Refiner {
             accepted: false,
         };
         if n == 0 {
-            return none;
+            return Ok(none);
         }
-        let pass = data.pass(lights, &layout, u, true);
+        let pass = data.pass(lights, &layout, u, true)?;
         if pass.fits == 0 || pass.sum_i2 <= 0.0 {
-            return none;
+            return Ok(none);
         }
         // The data term in units of the noise variance, estimated from the residual of the fits
         // (the subsample stands for all facets): the prior then reads as a Gaussian prior with
@@ -784,10 +837,10 @@ impl Refiner {
             // E, the lights have converged and a trial evaluation could not tell.
             let predicted = -grad.dot(&delta) - 0.5 * delta.dot(&(&h * &delta));
             if predicted <= 1e-13 * e0 {
-                return StepOutcome {
+                return Ok(StepOutcome {
                     objective: e0,
                     ..none
-                };
+                });
             }
             let in_front = trial.iter().all(|l| l.is_in_front_of(pass.min_z));
             if in_front && self.trusted {
@@ -795,14 +848,14 @@ impl Refiner {
                 // solver's safeguard watches the residual), and check the next one.
                 self.trusted = false;
                 lights.copy_from_slice(&trial);
-                return StepOutcome {
+                return Ok(StepOutcome {
                     change,
                     objective: e0,
                     accepted: true,
-                };
+                });
             }
             let e1 = if in_front {
-                let p = data.pass(&trial, &layout, u, false);
+                let p = data.pass(&trial, &layout, u, false)?;
                 self.objective(&p, nu, &trial, distance)
             } else {
                 f64::INFINITY
@@ -812,19 +865,19 @@ impl Refiner {
                 self.trusted = (0.5..=2.0).contains(&ratio);
                 lights.copy_from_slice(&trial);
                 self.lambda = (self.lambda / 3.0).max(1e-9);
-                return StepOutcome {
+                return Ok(StepOutcome {
                     change,
                     objective: e0,
                     accepted: true,
-                };
+                });
             }
             self.lambda *= 5.0;
             self.trusted = false;
         }
-        StepOutcome {
+        Ok(StepOutcome {
             objective: e0,
             ..none
-        }
+        })
     }
 }
 
@@ -935,7 +988,7 @@ pub fn conditioning(
             "nothing to analyse: no light parameter is refined".into(),
         ));
     }
-    let pass = data.pass(lights, &layout, u, true);
+    let pass = data.pass(lights, &layout, u, true)?;
     let dof = pass.count as f64 - 3.0 * pass.fits as f64 - n as f64;
     if pass.fits == 0 || dof <= 0.0 {
         return Err(Error::Unusable(

@@ -53,12 +53,47 @@ impl Decoded {
 }
 
 /// Decodes the PNG file `path`; fails with [`Error::Image`] naming the file when it is missing,
-/// is not a valid PNG, or declares more than `max_pixels` pixels.
+/// is not a valid PNG, or declares more than `max_pixels` pixels, and with [`Error::Memory`]
+/// when its samples cannot be allocated.
 pub fn read_png(path: &Path, max_pixels: u64) -> Result<Decoded> {
-    decode_guarded(path, max_pixels).map_err(|reason| Error::Image {
-        path: path.to_path_buf(),
-        reason,
+    decode_guarded(path, max_pixels).map_err(|failure| match failure {
+        Failure::Reason(reason) => Error::Image {
+            path: path.to_path_buf(),
+            reason,
+        },
+        Failure::Memory(bytes) => {
+            crate::memory::allocation_failed(&format!("decoding image '{}'", path.display()), bytes)
+        }
     })
+}
+
+/// Why a file cannot be decoded.
+enum Failure {
+    /// Missing, invalid, too large: the message.
+    Reason(String),
+    /// The samples (this many bytes) cannot be allocated.
+    Memory(f64),
+}
+
+impl From<String> for Failure {
+    fn from(reason: String) -> Failure {
+        Failure::Reason(reason)
+    }
+}
+
+impl From<&str> for Failure {
+    fn from(reason: &str) -> Failure {
+        Failure::Reason(reason.to_string())
+    }
+}
+
+/// A vector of `len` default values, or [`Failure::Memory`].
+fn try_buffer<T: Copy + Default>(len: usize) -> std::result::Result<Vec<T>, Failure> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len)
+        .map_err(|_| Failure::Memory(len as f64 * std::mem::size_of::<T>() as f64))?;
+    v.resize(len, T::default());
+    Ok(v)
 }
 
 /// Decodes the PNG files `paths` in parallel (on the current rayon pool), each as
@@ -71,19 +106,21 @@ pub fn read_pngs(paths: &[PathBuf], max_pixels: u64) -> Vec<Result<Decoded>> {
 }
 
 /// [`decode`], with a panic turned into an error message.
-fn decode_guarded(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, String> {
+fn decode_guarded(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, Failure> {
     catch_unwind(AssertUnwindSafe(|| decode(path, max_pixels))).unwrap_or_else(|payload| {
         let what = payload
             .downcast_ref::<&str>()
             .map(|s| s.to_string())
             .or_else(|| payload.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "unknown panic".to_string());
-        Err(format!("internal error (please report it): {what}"))
+        Err(Failure::Reason(format!(
+            "internal error (please report it): {what}"
+        )))
     })
 }
 
 /// Decodes one PNG file.
-fn decode(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, String> {
+fn decode(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, Failure> {
     let file = File::open(path).map_err(|e| match e.kind() {
         ErrorKind::NotFound => "file not found".to_string(),
         _ => e.to_string(),
@@ -95,10 +132,10 @@ fn decode(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, String> 
     let header = decoder.read_header_info().map_err(|e| e.to_string())?;
     let (width, height) = (header.width, header.height);
     if u64::from(width) * u64::from(height) > max_pixels {
-        return Err(format!(
+        return Err(Failure::Reason(format!(
             "{width} x {height} pixels is more than the limit of {max_pixels} pixels \
              (max_pixels; raise it if the image is genuine)"
-        ));
+        )));
     }
     let palette = header.color_type == ColorType::Indexed;
     // Palette to RGB(A), grey below 8 bits to 8 bits (scaled to 0..255), tRNS to alpha.
@@ -130,7 +167,11 @@ fn decode(path: &Path, max_pixels: u64) -> std::result::Result<Decoded, String> 
         BitDepth::Sixteen => Pixels::U16(read_rows(&mut reader, h, w * channels, |src, dst| {
             copy_row_u16(src, dst, samples, channels)
         })?),
-        other => return Err(format!("unexpected bit depth {other:?} after expansion")),
+        other => {
+            return Err(Failure::Reason(format!(
+                "unexpected bit depth {other:?} after expansion"
+            )))
+        }
     };
     Ok(Decoded { pixels, shape })
 }
@@ -142,8 +183,8 @@ fn read_rows<T: Copy + Default, R: std::io::BufRead + std::io::Seek>(
     h: usize,
     row_len: usize,
     convert: impl Fn(&[u8], &mut [T]),
-) -> std::result::Result<Vec<T>, String> {
-    let mut out = vec![T::default(); h * row_len];
+) -> std::result::Result<Vec<T>, Failure> {
+    let mut out = try_buffer(h * row_len)?;
     if row_len == 0 {
         return Ok(out);
     }
@@ -161,13 +202,13 @@ fn read_frame<T: Copy + Default, R: std::io::BufRead + std::io::Seek>(
     row_len: usize,
     out: &mut [T],
     convert: impl Fn(&[u8], &mut [T]),
-) -> std::result::Result<(), String> {
+) -> std::result::Result<(), Failure> {
     if reader.info().interlaced {
         // Adam7 rows arrive pass by pass: decode the whole frame, then convert it.
         let size = reader
             .output_buffer_size()
             .ok_or("the image is too large for this machine")?;
-        let mut frame = vec![0u8; size];
+        let mut frame: Vec<u8> = try_buffer(size)?;
         let info = reader.next_frame(&mut frame).map_err(|e| e.to_string())?;
         for (src, dst) in frame
             .chunks_exact(info.line_size)
