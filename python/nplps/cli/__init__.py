@@ -187,6 +187,10 @@ def _main(argv: Sequence[str] | None) -> int:
     except OSError as e:
         _error(_os_message(e))
         return 1
+    except MemoryError as e:  # numpy (or Python) could not allocate: one line, as the core's errors
+        detail = f" ({e})" if str(e) else ""
+        _error(f"out of memory{detail}: free memory, or use --bin or a smaller --mask to need less")
+        return 2
     except _Terminated:
         print("terminated", file=sys.stderr, flush=True)
         return 128 + signal.SIGTERM

@@ -70,6 +70,7 @@ impl Anderson {
     ///
     /// When the history cannot be allocated, the acceleration restarts and `g` is left as it is
     /// (the plain iteration's next iterate); [`Anderson::try_mix`] reports it instead.
+    #[cfg(test)]
     pub fn mix(&mut self, z: &[f64], g: &mut [f64]) {
         if self.try_mix(z, g).is_err() {
             self.restart();

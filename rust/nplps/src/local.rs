@@ -323,6 +323,7 @@ impl LocalStep<'_> {
     ///
     /// Panics when a thread's scratch space cannot be allocated: prefer [`LocalStep::try_run`],
     /// which reports it as [`Error::Memory`](crate::Error::Memory).
+    #[cfg(test)]
     pub fn run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) {
         if let Err(e) = self.try_run(u, first, fits) {
             panic!("{e}");
@@ -371,6 +372,7 @@ impl LocalStep<'_> {
     ///
     /// Panics when a thread's scratch space cannot be allocated: prefer
     /// [`LocalStep::try_run_targets`], which reports it as [`Error::Memory`](crate::Error::Memory).
+    #[cfg(test)]
     pub fn run_targets(&self, u: &[f64], targets: &mut [[f64; 4]], stats: &mut [FacetStat]) {
         if let Err(e) = self.try_run_targets(u, targets, stats) {
             panic!("{e}");

@@ -666,20 +666,20 @@ impl<'p> Solver<'p> {
         u: &[f64],
         before: &[f64],
         distance: f64,
-    ) -> f64 {
+    ) -> Result<f64> {
         let Some(refiner) = self.refiner.as_ref() else {
-            return 0.0;
+            return Ok(0.0);
         };
         let after = refiner.encode(&self.lights, distance);
         let n = u.len();
-        let mut z = Vec::with_capacity(n + before.len());
+        let mut z = crate::memory::try_with_capacity(n + before.len(), "the acceleration")?;
         z.extend_from_slice(u);
         z.extend_from_slice(before);
-        let mut g = Vec::with_capacity(n + after.len());
+        let mut g = crate::memory::try_with_capacity(n + after.len(), "the acceleration")?;
         g.extend_from_slice(&self.next);
         g.extend_from_slice(&after);
-        let plain = g.clone();
-        accel.mix(&z, &mut g);
+        let plain = try_copy(&g, "the acceleration")?;
+        accel.try_mix(&z, &mut g)?;
         // Trust region: the extrapolation may move the lights at most twice as far as the
         // light step itself did (and no more than 1 % of a parameter's scale beyond it).
         let step = after
@@ -709,34 +709,34 @@ impl<'p> Solver<'p> {
         let in_front = lights.iter().all(|l| l.is_in_front_of(min_depth));
         if !(in_front && g.iter().all(|v| v.is_finite())) {
             accel.restart();
-            return after
+            return Ok(after
                 .iter()
                 .zip(before)
                 .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max);
+                .fold(0.0, f64::max));
         }
         self.next.copy_from_slice(&g[..n]);
         self.lights = lights;
-        g[n..]
+        Ok(g[n..]
             .iter()
             .zip(before)
             .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max)
+            .fold(0.0, f64::max))
     }
 
     /// One light step at `u` (when refining): returns the largest relative change.
-    fn refine_lights(&mut self, u: &[f64]) -> StepOutcome {
+    fn refine_lights(&mut self, u: &[f64]) -> Result<StepOutcome> {
         let Some(refiner) = self.refiner.as_mut() else {
-            return StepOutcome {
+            return Ok(StepOutcome {
                 change: 0.0,
                 objective: f64::NAN,
                 accepted: false,
-            };
+            });
         };
         let t = Instant::now();
         let p = self.problem;
         let data = LightData::of(p, self.options.fit_settings(false));
-        let outcome = refiner.step(&data, &mut self.lights, u);
+        let outcome = refiner.try_step(&data, &mut self.lights, u);
         self.timings.lights += t.elapsed();
         outcome
     }
@@ -822,9 +822,11 @@ impl<'p> Solver<'p> {
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
         );
-        self.step(true, depths.as_deref())
-            .run_targets(u, &mut targets, &mut stats);
+        let done = self
+            .step(true, depths.as_deref())
+            .try_run_targets(u, &mut targets, &mut stats);
         (self.targets, self.stats) = (targets, stats);
+        done?;
         self.timings.local += t.elapsed();
         Ok(())
     }
@@ -862,7 +864,7 @@ impl<'p> Solver<'p> {
             };
             let mut light_change = 0.0;
             if before.is_some() {
-                let outcome = self.refine_lights(u);
+                let outcome = self.refine_lights(u)?;
                 light_change = outcome.change;
                 if !outcome.accepted {
                     lights_converged = true;
@@ -890,7 +892,7 @@ impl<'p> Solver<'p> {
             p.cancel.check()?;
             p.grid.apply_gauge(&mut self.next, gauge);
             if let (Some(accel), Some(before)) = (accel.as_mut(), before) {
-                light_change = self.accelerate(accel, u, &before, distance);
+                light_change = self.accelerate(accel, u, &before, distance)?;
             }
             let depth_change = max_depth_change(&p.geometry, u, &self.next);
             self.check_in_front(&self.next, iteration)?;
@@ -1052,7 +1054,7 @@ impl<'p> Solver<'p> {
         let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
         for first in (0..n).step_by(FINAL_CHUNK) {
             let chunk = &mut fits[..(n - first).min(FINAL_CHUNK)];
-            step.run(u, first, chunk);
+            step.try_run(u, first, chunk)?;
             problem.cancel.check()?;
             outputs.scatter(problem, first, chunk);
         }
