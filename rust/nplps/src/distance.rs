@@ -298,7 +298,7 @@ fn search_refined(
     let mut ev = Evaluator {
         refine,
         solver,
-        u: problem.u0.clone(),
+        u: try_copy(&problem.u0, "the depths")?,
         inner: search.inner.max(1),
         curve: vec![Vec::new(); regions],
         candidate: 0,
@@ -422,7 +422,7 @@ pub fn reconstruct_auto(
             coarse_estimate = Some((estimate, coarse.grid.clone()));
             Ok(gauge)
         };
-        let mut u = problem.u0.clone();
+        let mut u = try_copy(&problem.u0, "the depths")?;
         // The working distance is estimated with the rig's scale: a common scale of the light
         // positions would trade against it (see [`crate::refine`]).
         let options = &Options {

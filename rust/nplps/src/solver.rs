@@ -643,8 +643,10 @@ impl<'p> Solver<'p> {
     /// (when refining): the light step with the normals eliminated and the mesh deformation
     /// are each stable, but coupled they are not (a tilt of a nearly flat surface trades
     /// against a smooth pattern of intensities), so the plain alternation can drift.
-    fn acceleration(&self, unknowns: usize, scale: f64, distance: f64) -> Option<Anderson> {
-        let refiner = self.refiner.as_ref()?;
+    fn acceleration(&self, unknowns: usize, scale: f64, distance: f64) -> Result<Option<Anderson>> {
+        let Some(refiner) = self.refiner.as_ref() else {
+            return Ok(None);
+        };
         let parameters = refiner.encode(&self.lights, distance).len();
         // Unknowns in units of the lateral size (log-depths: times the distance).
         let unit = if self.problem.geometry.is_perspective() {
@@ -652,9 +654,9 @@ impl<'p> Solver<'p> {
         } else {
             1.0 / scale
         };
-        let mut weights = vec![unit * unit; unknowns];
-        weights.extend(std::iter::repeat_n(1.0, parameters));
-        Some(Anderson::new(ANDERSON_DEPTH, weights))
+        let mut weights = try_vec(unknowns + parameters, 1.0, "the acceleration weights")?;
+        weights[..unknowns].fill(unit * unit);
+        Ok(Some(Anderson::new(ANDERSON_DEPTH, weights)))
     }
 
     /// Mixes the iterate `(u, before)` and its image `(self.next, current lights)`; writes the
@@ -758,7 +760,7 @@ impl<'p> Solver<'p> {
         if !refine.position {
             return self.iterate(u, gauge, iterations, tol, progress);
         }
-        let mut plain = u.clone();
+        let mut plain = try_copy(u, "the depths")?;
         self.set_refine(Refine::NONE);
         let (mut history, plain_converged) =
             self.iterate(&mut plain, gauge, iterations, tol, progress)?;
@@ -848,7 +850,7 @@ impl<'p> Solver<'p> {
         let distance = p
             .geometry
             .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
-        let mut accel = self.acceleration(u.len(), scale, distance);
+        let mut accel = self.acceleration(u.len(), scale, distance)?;
         // With refinement: the state of lowest residual so far (see `Solver::safeguard`).
         let mut best: Option<Best> = None;
         let mut last_rms = f64::NAN;
@@ -879,11 +881,11 @@ impl<'p> Solver<'p> {
             // starting plane under a stiff prior, while history and status describe the
             // iterated run).
             if (iteration > 1 || !self.options.refine.position)
-                && self.safeguard(&mut best, last_rms, u)
+                && self.safeguard(&mut best, last_rms, u)?
             {
                 // The residual rose well above the best state's: back to it, with a fresh
                 // acceleration history (or, after MAX_RESTARTS, with the lights frozen).
-                accel = self.acceleration(u.len(), scale, distance);
+                accel = self.acceleration(u.len(), scale, distance)?;
                 continue;
             }
             let t = Instant::now();
@@ -966,11 +968,11 @@ impl<'p> Solver<'p> {
     /// along weakly determined directions of the lights; when the residual rises above
     /// [`DIVERGENCE`] times the best one, the best state is restored and true is returned; after
     /// [`MAX_RESTARTS`] such returns the refinement stops for the rest of the run.
-    fn safeguard(&mut self, best: &mut Option<Best>, rms: f64, u: &mut [f64]) -> bool {
+    fn safeguard(&mut self, best: &mut Option<Best>, rms: f64, u: &mut [f64]) -> Result<bool> {
         if self.refiner.is_none() || !rms.is_finite() {
-            return false;
+            return Ok(false);
         }
-        match best {
+        Ok(match best {
             Some(b) if rms > DIVERGENCE * b.rms => {
                 u.copy_from_slice(&b.u);
                 self.lights = b.lights.clone();
@@ -986,13 +988,13 @@ impl<'p> Solver<'p> {
                 let restarts = best.as_ref().map_or(0, |b| b.restarts);
                 *best = Some(Best {
                     rms,
-                    u: u.to_vec(),
+                    u: try_copy(u, "the best state")?,
                     lights: self.lights.clone(),
                     restarts,
                 });
                 false
             }
-        }
+        })
     }
 
     /// At the end of a run with refinement: goes back to the best state when the last one is
