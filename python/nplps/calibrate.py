@@ -9,8 +9,9 @@ saturated), and the mirror-reflected viewing ray through the highlight points at
 Each light is the least-squares point closest to its rays; rays that agree within
 ``parallel_tol`` degrees make a distant (directional) light. A light needs rays from two
 spheres (in one placement or in several) for a position; one ray gives a direction with a
-warning. The result's :attr:`SphereCalibration.rig` holds the calibrated lights with unit
-intensities.
+warning. Spheres of two placements at the same place (a placement given twice) and spheres
+under 40 pixels in radius in the images are named in the warnings. The result's
+:attr:`SphereCalibration.rig` holds the calibrated lights with unit intensities.
 
 *Orthographic cameras* need the depth of each sphere centre (``center_depth``): for a ball
 resting on a board at depth ``z_b`` it is ``z_b - R``, for a hemisphere lying flat on it
@@ -527,6 +528,7 @@ def calibrate_spheres(
     obs = d["observations"]
     k, ns = obs["peak"].shape
     status = [list(obs["status"][i * ns : (i + 1) * ns]) for i in range(k)]
+    notes = [*_same_places(spheres, stacks, float(radius)), *_small_spheres(spheres), *d["warnings"]]
     return SphereCalibration(
         camera=cam,
         spheres=spheres,
@@ -535,9 +537,66 @@ def calibrate_spheres(
         status=status,
         ray_origins=obs["origin"],
         ray_directions=obs["direction"],
-        warnings=list(d["warnings"]),
+        warnings=notes,
         refinement=dict(d["refinement"]) if "refinement" in d else None,
     )
+
+
+#: The smallest image radius (pixels) of a sphere that locates the lights well (docs/calibration.md).
+MIN_SPHERE_PX = 40.0
+
+# Spheres of two placements whose centres are closer than this many radii stand at the same place.
+_SAME_PLACE = 0.05
+
+
+def _same_places(spheres: Sequence[SphereReport], stacks: Sequence[np.ndarray], radius: float) -> list[str]:
+    """Return a warning per pair of placements that put a sphere at the same place.
+
+    Such placements add no second viewpoint: their rays towards a light are parallel, so the lights
+    seen only there come out directional (or badly placed). The commonest cause is one placement
+    given twice.
+    """
+    out = []
+    placements = sorted({s.placement for s in spheres})
+    for a in placements:
+        for b in placements:
+            if b <= a:
+                continue
+            pairs = [
+                (s.index, t.index, float(np.linalg.norm(s.center - t.center)))
+                for s in spheres
+                if s.placement == a
+                for t in spheres
+                if t.placement == b and np.linalg.norm(s.center - t.center) < _SAME_PLACE * radius
+            ]
+            if not pairs:
+                continue
+            same = ", ".join(f"sphere {i} and sphere {j} ({gap:.3g} apart)" for i, j, gap in pairs)
+            cause = (
+                "the images are identical: the same placement given twice?"
+                if np.array_equal(stacks[a], stacks[b])
+                else "was the sphere moved between them?"
+            )
+            out.append(
+                f"placements {a} and {b} put a sphere at the same place ({same}; {cause}): a sphere seen "
+                "twice at one place gives no second viewpoint, so the lights are located as if from one "
+                "sphere there (directional or uncertain); move the spheres between placements"
+            )
+    return out
+
+
+def _small_spheres(spheres: Sequence[SphereReport]) -> list[str]:
+    """Return a warning naming the spheres smaller than :data:`MIN_SPHERE_PX` in the images."""
+    # Half a pixel of slack: a ball made 40 px in radius measures 39.99 px.
+    small = [s for s in spheres if s.image_radius < MIN_SPHERE_PX - 0.5]
+    if not small:
+        return []
+    names = ", ".join(f"sphere {s.index} (placement {s.placement}) {s.image_radius:.1f} px" for s in small)
+    return [
+        f"sphere(s) smaller than {MIN_SPHERE_PX:g} pixels in radius in the images: {names}; the light positions "
+        f"need at least {MIN_SPHERE_PX:g} px (docs/calibration.md: smaller spheres give errors of several % "
+        "and more): use larger spheres or bring the camera closer"
+    ]
 
 
 # --------------------------------------------------------------------------------------------------
