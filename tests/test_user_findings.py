@@ -261,7 +261,7 @@ def test_calibrate_count_below_one(tmp_path: Path, calibration_folder: Path, cou
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("address", ["not a url", "tcp://host:99999", "inproc://x", ":8786"])
+@pytest.mark.parametrize("address", ["not a url", "tcp://host:99999", "http://x:8786", ":8786", "inproc://"])
 def test_batch_scheduler_that_is_not_an_address(tmp_path: Path, address: str) -> None:
     pytest.importorskip("distributed")
     scene = tmp_path / "caps" / "c1"

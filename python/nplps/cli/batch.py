@@ -194,8 +194,10 @@ def _check_scheduler(address: str) -> None:
     example = "a Dask scheduler address such as tcp://10.0.0.5:8786"
     try:
         scheme, location = parse_address(address)
+        if scheme == "inproc" and location:
+            return  # a scheduler in this process (nplps.cli.main called from Python)
         if scheme not in ("tcp", "tls", "ws", "wss", "ucx"):
-            raise ValueError(f"'{scheme}://' is not a network address")
+            raise ValueError(f"unknown scheme '{scheme}://'")
         host, port = parse_host_port(location)
         if not host or any(c.isspace() for c in host):
             raise ValueError(f"no host name in {address!r}")
