@@ -534,8 +534,11 @@ def test_valid_flags_leave_the_callers_images_alone(small):
 
 
 def test_bad_rig():
+    two = nplps.Rig.orthographic(1.0, lights=[[0, 0, 10], [10, 0, 10]])
     with pytest.raises(nplps.RigError, match=r"at least 3 lights, the rig has 2"):
-        nplps.Rig.orthographic(1.0, lights=[[0, 0, 0], [10, 0, 0]])
+        nplps.reconstruct(np.ones((2, 4, 4)), two, depth=100.0)
+    with pytest.raises(nplps.RigError, match=r"at least 3 lights, the rig has 2"):
+        nplps.reconstruct_parallel(np.ones((2, 4, 4)), two, depth=100.0)
     lights = [[0, 0, 0], [10, 0, 0], [0, 10, 0]]
     for pixel_size in (0.0, -1.0, (1.0, 0.0), (1.0, -2.0), float("nan")):
         with pytest.raises(

@@ -240,7 +240,8 @@ def test_single_sphere_gives_directions_with_warnings(tmp_path):
     assert all(
         light.kind == "directional" and light.spheres == 1 and "one sphere" in light.warning for light in result.lights
     )
-    assert len(result.warnings) == 8
+    assert sum("one sphere" in w for w in result.warnings) == 8
+    assert any("smaller than 40 pixels" in w and "25.6 px" in w for w in result.warnings)
     table = result.table()
     assert "directional" in table and "one sphere" in table
     result.save(tmp_path / "rig.json")

@@ -43,31 +43,11 @@ def assert_one_line_error(status: int, stderr: str, *words: str) -> str:
     return lines[0]
 
 
-def _rig_takes_fewer_than_3_lights() -> bool:
-    try:
-        nplps.make_scene("sphere", n=8).rig.subset([0, 1])
-    except nplps.RigError:
-        return False
-    return True
-
-
-# Rig(...) itself refuses fewer than 3 lights (python/nplps/rig.py, Rig.__init__ -> _core.check_rig,
-# whose reconstruction rig needs 3): prediction and calibration, which take any number, never see
-# the rig. Strict: once the rig takes them these tests must pass (then drop the marker).
-needs_small_rigs = pytest.mark.xfail(
-    not _rig_takes_fewer_than_3_lights(),
-    reason="nplps.Rig refuses fewer than 3 lights (rig.py Rig.__init__); prediction and calibration need them",
-    strict=True,
-    raises=nplps.RigError,
-)
-
-
 # --------------------------------------------------------------------------------------------------
 # Rigs of 1 and 2 lights: prediction, calibration
 # --------------------------------------------------------------------------------------------------
 
 
-@needs_small_rigs
 def test_predict_under_a_two_light_rig() -> None:
     scene = nplps.make_scene("bumps", n=32, seed=0)
     result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
@@ -82,7 +62,6 @@ def test_predict_under_a_two_light_rig() -> None:
         nplps.reconstruct(scene.images[[0, 9]], two, depth=scene.mean_depth, mask=scene.mask)
 
 
-@needs_small_rigs
 def test_one_light_calibration_spheres_then_board(tmp_path: Path) -> None:
     scene = cal.make_sphere_scene("orthographic", n=160, lights=[3], radius=25, seed=0)
     spheres = cal.calibrate_spheres(

@@ -21,7 +21,7 @@ use convert::{
     array, array3, camera_dict, camera_from, check_options, lighting_from, lights_dict, option,
     reconstruction_dict, rig_from,
 };
-use errors::{no_panic, to_py, InputError};
+use errors::{no_panic, to_py, InputError, RigError};
 use interrupt::interruptible;
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
@@ -509,10 +509,18 @@ fn vertices<'py>(
     array3(py, v, &[h + 1, w + 1])
 }
 
-/// Validates a rig (camera and lights mappings); raises `RigError` when it is invalid.
+/// Validates a rig (camera and lights mappings, any number of lights: rendering, prediction and
+/// calibration take one or two; reconstruction checks for 3 itself); raises `RigError` when it
+/// is invalid.
 #[pyfunction]
 fn check_rig<'py>(camera: &Bound<'py, PyDict>, lights: &Bound<'py, PyDict>) -> PyResult<()> {
-    rig_from(camera, lights).map(|_| ())
+    let rig = lighting_from(camera, lights)?;
+    if rig.lights.is_empty() {
+        return Err(RigError::new_err(
+            "a rig needs at least one light, it has none",
+        ));
+    }
+    Ok(())
 }
 
 /// The camera mapping checked and in its canonical form (floats; a pinhole camera's distortion
