@@ -106,8 +106,8 @@ class DistanceCheck:
     side : int
         The coarse level's longer side in pixels.
     looks_wrong : bool
-        The images fit the found distance clearly better: the residual ratio is above 1.25 and
-        the distances differ by more than 10 % (thresholds measured by
+        The images fit the found distance better: the residual at the given distance is more
+        than 1.02 times the best one and the distances differ by more than 10 % (thresholds measured by
         ``benchmarks/distance_check.py``). ``reconstruct`` then warns "the working distance looks
         wrong".
     """
@@ -127,11 +127,15 @@ class DistanceCheck:
     @property
     def message(self) -> str:
         """One sentence with the numbers (the warning's text when `looks_wrong`)."""
-        verdict = "looks wrong" if self.looks_wrong else "agrees with the images"
+        if self.looks_wrong:
+            return (
+                f"the working distance looks wrong: the images fit {self.found:.4g} better than the given "
+                f"{self.given:.4g} (residual {self.ratio:.3g} times higher at the given distance on a "
+                f"{self.side}-pixel level); try --depth auto (depth='auto')"
+            )
         return (
-            f"the working distance {verdict}: the images fit {self.found:.4g} better than the given "
-            f"{self.given:.4g} (residual {self.ratio:.2f} times lower on a {self.side}-pixel level)"
-            + ("; try --depth auto (depth='auto')" if self.looks_wrong else "")
+            f"the working distance agrees with the images: a {self.side}-pixel level fits {self.found:.4g}, "
+            f"the residual at the given {self.given:.4g} is {self.ratio:.3g} times the best"
         )
 
     def to_dict(self) -> dict[str, Any]:

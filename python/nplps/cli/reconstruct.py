@@ -201,7 +201,7 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
         verdict = "LOOKS WRONG, try --depth auto" if check.looks_wrong else "agrees"
         print(
             f"  distance check  {verdict}: a {check.side}-pixel level fits {check.found:.4g} "
-            f"(given {check.given:.4g}, residual {check.ratio:.2f} times lower)"
+            f"(given {check.given:.4g}: residual {check.ratio:.3g} times the best)"
         )
     if result.refinement is not None:
         _print_refinement(result)

@@ -551,8 +551,12 @@ pub struct DistanceCheck {
 }
 
 /// The residual ratio above which, together with [`WRONG_DISTANCE_OFFSET`], a given distance
-/// looks wrong (chosen by measurement: see `benchmarks/distance_check.py`).
-pub const WRONG_DISTANCE_RATIO: f64 = 1.25;
+/// looks wrong (chosen by measurement: see `benchmarks/distance_check.py`). On synthetic scenes
+/// the ratio is exactly 1 within 5 % of the true distance (the given candidate is the best) and
+/// 1.7 to 13 beyond 10 %; on real captures, whose residual is mostly model error, it is only 1.05
+/// to 1.2 at 20-25 % off, hence the low threshold; the offset guard keeps it from firing on a
+/// slightly biased minimum.
+pub const WRONG_DISTANCE_RATIO: f64 = 1.02;
 
 /// The relative offset `|given / found - 1|` above which, together with
 /// [`WRONG_DISTANCE_RATIO`], a given distance looks wrong.
