@@ -138,3 +138,17 @@ def test_a_real_capture_warns_20_percent_off_and_not_at_its_distance(
     c = r.distance_check
     assert c is not None and c.looks_wrong is wrong, c
     assert abs(c.found / 200.0 - 1) < 0.03, c
+
+
+def test_the_report_shows_the_check(tmp_path: Path) -> None:
+    from nplps.cli import main
+
+    s = nplps.make_scene("bumps", n=48, seed=1, noise=0.01)
+    r, _ = _run(s, 1.3)
+    r.save(tmp_path / "out", report=True)
+    html = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")
+    assert "distance check" in html.lower() and "LOOKS WRONG" in html
+    # Re-made from the files alone.
+    assert main(["report", str(tmp_path / "out"), "--out", str(tmp_path / "again.html")]) == 0
+    again = (tmp_path / "again.html").read_text(encoding="utf-8")
+    assert "distance check" in again and "LOOKS WRONG" in again

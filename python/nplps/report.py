@@ -547,7 +547,19 @@ def _section_header(d: _Data) -> str:
         rows.insert(1, ("pre-processing", "; ".join(steps) if steps else "none"))
     if s.get("estimated_distance"):
         rows.append(("estimated distance", ", ".join(_fmt(v) for v in s["estimated_distance"])))
+    check = s.get("distance_check")
+    if check:
+        rows.append(("distance check", _distance_check_text(check)))
     return f"<header><h1>nplps report: {html.escape(d.name)}</h1>{_table(rows)}</header>"
+
+
+def _distance_check_text(check: dict[str, Any]) -> str:
+    """Return the distance check of ``summary.json`` in one line."""
+    verdict = "LOOKS WRONG, try depth='auto'" if check["looks_wrong"] else "agrees with the images"
+    return (
+        f"{verdict}: a coarse level fits {_fmt(check['found'])} (given {_fmt(check['given'])}; "
+        f"residual there {_fmt(check['ratio'])} times the best)"
+    )
 
 
 def _section_inputs(d: _Data) -> str:
@@ -826,6 +838,8 @@ def compact_html(result: Reconstruction, *, side: int = 160) -> str:
         rows.append(("Solver time", f"{result.timings['total']:.3f} s"))
     if result.distance is not None:
         rows.append(("Estimated distance", ", ".join(f"{v:.6g}" for v in result.distance.distance)))
+    if result.distance_check is not None:
+        rows.append(("Distance check", _distance_check_text(result.distance_check.to_dict())))
     left = "style='text-align:left'"
     cells = "".join(f"<tr><th {left}>{html.escape(k)}</th><td {left}>{html.escape(v)}</td></tr>" for k, v in rows)
     normals = export.normal_map_pixels(views.downsample(result.normals, side))
