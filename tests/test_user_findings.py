@@ -364,3 +364,18 @@ def test_obj_writes_a_vertex_beyond_float32_exactly(tmp_path: Path, opengl: bool
     flip = np.array([1.0, -1.0, -1.0]) if opengl else np.ones(3)
     np.testing.assert_array_equal(points, v.reshape(-1, 3) * flip)
     assert all(len(row) == 6 for row in rows)  # the colours are kept on the widened line too
+
+
+def test_an_ignored_depth_range_does_not_fail_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--depth-range without --depth auto is ignored with a warning: even a reversed one must not
+    then fail the run (it did, in every capture of a batch)."""
+    from nplps.cli import main
+
+    s = nplps.make_scene("bumps", n=24, seed=0)
+    s.save(tmp_path / "scene")
+    sc = str(tmp_path / "scene")
+    argv = ["reconstruct", sc, "--rig", f"{sc}/rig.json", "--mask", f"{sc}/mask.png"]
+    argv += ["--depth", f"{s.mean_depth:.6g}", "--depth-range", "400,100", "--out", str(tmp_path / "out"), "-q"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "--depth-range has no effect without --depth auto" in err

@@ -434,7 +434,9 @@ def near_options(args: argparse.Namespace) -> dict[str, Any]:
         near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")
         if len(near_far) != 2:
             raise InputError(f"--depth-range needs two numbers NEAR,FAR, got {args.depth_range}")
-        options["depth_range"] = tuple(near_far)
+        if str(getattr(args, "depth", "")).strip().lower() == "auto":
+            options["depth_range"] = tuple(near_far)
+        # else: ignored, as the warning below says (a reversed range must not fail the run then)
     if args.depth_prior is not None:
         options["depth_prior"] = parse_depth(args.depth_prior, "--depth-prior")
         options["prior_weight"] = 1.0 if args.prior_weight is None else args.prior_weight
