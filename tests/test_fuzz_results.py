@@ -308,7 +308,10 @@ def damage_ply(data: st.DataObject, d: Path) -> str:
         faces = [line for line in lines if line.startswith("element face ")]
         if not faces or len(body) < 13:
             return "no faces"
-        n_faces = int(faces[0].split()[2])
+        words = faces[0].split()
+        if len(words) != 3 or not words[2].isdigit():
+            return "face count damaged already"  # an earlier step of this example edited it
+        n_faces = int(words[2])
         face = data.draw(st.integers(0, max(n_faces - 1, 0)))
         corner = data.draw(st.integers(0, 2))
         at = len(body) - 13 * (n_faces - face) + 1 + 4 * corner

@@ -391,4 +391,4 @@ def test_rig_constructors_fail_only_with_rig_errors(lights, mu, intensities):
         except ALLOWED as e:
             _short(e)
             continue
-        assert np.isfinite(_vectors(rig)).all() and rig.n_lights >= 3
+        assert np.isfinite(_vectors(rig)).all() and rig.n_lights >= 1

@@ -72,7 +72,7 @@ def test_orthographic_bad_origin_and_lights():
     # Fewer than 3 lights make a rig (prediction, rendering and calibration take them); only
     # reconstruction needs 3 (test_api.test_bad_rig). No light at all is no rig.
     assert nplps.Rig.orthographic(1.0, lights=LIGHTS[:2]).n_lights == 2
-    with pytest.raises(nplps.RigError, match=r"a rig needs at least one light, it has none"):
+    with pytest.raises(nplps.RigError, match=r"a rig needs at least one light, it has 0 lights"):
         nplps.Rig.orthographic(1.0)
     with pytest.raises(nplps.RigError, match=r"unknown camera model \"fisheye\""):
         nplps.Rig(camera={"model": "fisheye", "pixel_size": [1, 1], "origin": [0, 0]}, lights=LIGHTS)
@@ -259,7 +259,7 @@ def _edit(fn):
         ),
         (_edit(lambda d: d["lights"].__setitem__(0, [0, 0, 0])), r"light 0 must be an object, got a list of 3 items"),
         (_edit(lambda d: d.update(lights={"position": [0, 0, 0]})), r"'lights' must be a list"),
-        (_edit(lambda d: d.update(lights=[])), r"a rig needs at least one light, it has none"),
+        (_edit(lambda d: d.update(lights=[])), r"a rig needs at least one light, it has 0 lights"),
         (_edit(lambda d: d.update(camera=[])), r"'camera' must be an object with a 'model' key"),
         (_edit(lambda d: d["camera"].pop("pixel_size")), r"rig\.json: camera is missing the key \"pixel_size\""),
         (
@@ -781,7 +781,7 @@ def test_from_arrays_is_the_inverse_of_the_views():
         (dict(positions=np.zeros((4, 2))), r"positions must be a \(k, 3\) array, got shape \(4, 2\)"),
         (dict(positions=LIGHTS, intensities=[1, 1]), r"intensities must be a number, \(k,\) or \(k, 3\)"),
         (dict(directions=[[0, 0, 0]] * 3), r"light 0: a directional light needs a unit direction"),
-        (dict(), r"a rig needs at least one light, it has none"),
+        (dict(), r"a rig needs at least one light, it has 0 lights"),
     ],
 )
 def test_from_arrays_errors(kwargs, message):

@@ -517,7 +517,7 @@ fn check_rig<'py>(camera: &Bound<'py, PyDict>, lights: &Bound<'py, PyDict>) -> P
     let rig = lighting_from(camera, lights)?;
     if rig.lights.is_empty() {
         return Err(RigError::new_err(
-            "a rig needs at least one light, it has none",
+            "a rig needs at least one light, it has 0 lights",
         ));
     }
     Ok(())
