@@ -180,7 +180,7 @@ pub use camera_map::{camera_from_map, MapValue};
 pub use cancel::Cancel;
 pub use distance::{
     check_distance, estimate_distance, reconstruct_auto, DistanceCheck, DistanceEstimate,
-    DistanceSearch,
+    DistanceSearch, CHECK_SIDE,
 };
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
