@@ -50,7 +50,7 @@ fn perturbed(rig: &Rig, sd: f64, seed: u64) -> Rig {
         })
         .collect();
     Rig {
-        camera: rig.camera.clone(),
+        camera: rig.camera,
         lights,
     }
 }
@@ -156,7 +156,7 @@ fn no_check_where_the_rig_cannot_reveal_the_distance() {
         .flat_map(|&i| all[i * n..(i + 1) * n].iter().copied())
         .collect();
     let rig = Rig {
-        camera: scene.rig.camera.clone(),
+        camera: scene.rig.camera,
         lights: keep.iter().map(|&i| scene.rig.lights[i]).collect(),
     };
     let p = problem(&scene, &rig, &images, scene.mean_depth());
