@@ -12,13 +12,14 @@ use std::time::Instant;
 use crate::error::Result;
 use crate::global::GlobalStep;
 use crate::local::{local_step, FacetFit, FacetStat, Model, Weighting};
+use crate::options::{Options, Refine};
 use crate::problem::Problem;
-use crate::refine::{LightData, Refine, Refiner};
-use crate::rig::Light;
-use crate::solver::{
-    assemble, max_depth_change, rms_of, sparse_par, with_threads, FitOutputs, IterationStats,
-    Options, Reconstruction, Timings,
+use crate::reconstruction::{
+    assemble, FitOutputs, IterationStats, Reconstruction, RefinementReport, Timings,
 };
+use crate::refine::{LightData, Refiner};
+use crate::rig::Light;
+use crate::solver::{max_depth_change, rms_of, sparse_par, with_threads};
 use crate::vec3::{normalize, sub};
 
 /// `(direction, intensity)` of each light in the parallel-light model, seen from the centroid of
@@ -104,7 +105,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
     options.validate()?;
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
-    crate::solver::check_fittable(problem, &options.fit_settings(false))?;
+    crate::problem::check_fittable(problem, &options.fit_settings(false))?;
     crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
     with_threads(options.threads, || {
         let start = Instant::now();
@@ -178,7 +179,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
                     }
                 }
             }
-            result.refinement = Some(crate::solver::RefinementReport {
+            result.refinement = Some(RefinementReport {
                 refine: options.refine,
                 fell_back: false,
                 stopped: false,

@@ -16,13 +16,11 @@ use std::time::Instant;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::memory::try_copy;
+use crate::options::{Options, Refine};
 use crate::problem::Problem;
-use crate::refine::Refine;
+use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
 use crate::rig::Light;
-use crate::solver::{
-    coarse_to_fine, with_threads, Control, IterationStats, Options, Reconstruction, SearchProgress,
-    Solver,
-};
+use crate::solver::{coarse_to_fine, with_threads, Solver};
 use crate::vec3::{norm, sub};
 
 /// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
@@ -398,7 +396,7 @@ pub fn reconstruct_auto(
     check_observable(problem)?;
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
-    crate::solver::check_fittable(problem, &options.fit_settings(false))?;
+    crate::problem::check_fittable(problem, &options.fit_settings(false))?;
     let range = search_range(problem, search)?;
     with_threads(options.threads, || {
         let start = Instant::now();

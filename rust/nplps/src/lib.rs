@@ -164,15 +164,18 @@ pub mod io;
 mod local;
 mod memory;
 mod multigrid;
+mod options;
 mod ordering;
 mod problem;
 mod pyramid;
+mod reconstruction;
 mod refine;
 mod render;
 mod rig;
 mod solver;
 #[cfg(feature = "synth")]
 mod synth;
+mod system;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
@@ -185,15 +188,15 @@ pub use distance::{
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use local::{Robust, Weighting};
-pub use memory::check_memory;
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
+pub use options::{check_memory, Options, Refine};
 pub use problem::{ImageStack, InitialDepth, Problem};
-pub use refine::{Conditioning, Refine};
+pub use reconstruction::{
+    Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
+};
+pub use refine::Conditioning;
 pub use render::{mesh_normals, predict, render, vertices, Surface};
 pub use rig::{Camera, Light, Rig, MAX_LIGHTS};
-pub use solver::{
-    reconstruct, Control, IterationStats, Options, Reconstruction, RefinementReport,
-    SearchProgress, Status, Timings,
-};
+pub use solver::reconstruct;
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -6,61 +6,14 @@
 //! what the machine has available ([`available`]). The big buffers are then allocated with
 //! [`try_filled`], which reports a failed allocation as the same error instead of aborting.
 //!
-//! The per-pixel constants of [`reconstruction`] are peak resident memory measured above the
-//! input image stack (`VmHWM`, 512² to 2048², 4 to 27 lights, orthographic and pinhole, grey and
-//! RGB): about 216 bytes per pixel with the multigrid global step (it does not grow with the
-//! number of lights: the stack is read in place), +170 with light refinement, and about 1 kB per
-//! pixel with the direct sparse Cholesky, whose fill grows slowly with the size. The estimate
-//! rounds them up; it is a guard against aborts, not an accountant.
+//! The estimate of a reconstruction's peak memory is beside its options
+//! ([`crate::options::check_memory`]); this module is the ground floor below every other one:
+//! the limit, the probe and the fallible buffers.
 
 use crate::error::{Error, Result};
-use crate::global::GlobalSolver;
-use crate::solver::Options;
 
 /// Share of the available memory a computation may use when no limit is given.
 pub const DEFAULT_FRACTION: f64 = crate::error::DEFAULT_MEMORY_FRACTION;
-
-/// Fixed overhead of a reconstruction (thread pools, small systems, the coarsest level).
-const FIXED: f64 = 64e6;
-/// Bytes per frame pixel: the full-frame output maps (normals, albedo, residuals, depth,
-/// vertices, mesh normals) as float64.
-const PER_PIXEL: f64 = 112.0;
-/// Extra bytes per frame pixel and colour channel beyond the first.
-const PER_CHANNEL: f64 = 16.0;
-/// Bytes per masked facet: per-facet fits, the vertex grid, the multigrid hierarchy.
-const PER_FACET: f64 = 128.0;
-/// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
-const PER_FACET_REFINE: f64 = 192.0;
-/// Extra bytes per facet with the direct sparse Cholesky at one megapixel (its fill grows
-/// like `n log n`: see [`reconstruction`]).
-const PER_FACET_DIRECT: f64 = 900.0;
-
-/// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
-/// masked pixels and `channels` colour channels, beyond the input images themselves.
-///
-/// `bytes = 64 MB + (112 + 16 (C - 1)) H W + (128 + 192 [refine] + 900 f(n) [direct]) n`,
-/// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
-/// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
-pub fn reconstruction(
-    height: usize,
-    width: usize,
-    facets: usize,
-    channels: usize,
-    options: &Options,
-) -> f64 {
-    let frame = height as f64 * width as f64;
-    let n = facets as f64;
-    let mut per_facet = PER_FACET;
-    if options.refine.intensity || options.refine.position {
-        per_facet += PER_FACET_REFINE;
-    }
-    if options.solver == GlobalSolver::Direct {
-        let growth = 1.0 + 0.15 * (n / (1u64 << 20) as f64).log2().max(0.0);
-        per_facet += PER_FACET_DIRECT * growth;
-    }
-    let channels = channels.max(1) as f64;
-    FIXED + (PER_PIXEL + PER_CHANNEL * (channels - 1.0)) * frame + per_facet * n
-}
 
 /// Bytes of memory this process can still use: the least of the system's available memory
 /// (`MemAvailable`), the free part of the cgroup's limit, and the free part of the address-space
@@ -104,40 +57,6 @@ pub fn check(what: impl FnOnce() -> String, needed: f64, max_memory: Option<f64>
         }),
         _ => probe(what, needed),
     }
-}
-
-/// Checks the memory of a reconstruction (see [`reconstruction`]) against `options.max_memory`.
-pub fn check_reconstruction(
-    height: usize,
-    width: usize,
-    facets: usize,
-    channels: usize,
-    lights: usize,
-    options: &Options,
-) -> Result<()> {
-    let needed = reconstruction(height, width, facets, channels, options);
-    check(
-        || {
-            format!(
-                "reconstructing {width} x {height} pixels ({facets} in the mask) with {lights} lights"
-            )
-        },
-        needed,
-        options.max_memory,
-    )
-}
-
-/// Refuses with [`Error::Memory`] when reconstructing `shape` = (k, H, W, C) images under
-/// `mask` (H x W, `true` = reconstruct; `None` = every pixel) with `options` would need more
-/// memory than `options.max_memory` allows. Call it before [`crate::Problem::new`] to refuse
-/// before the problem's own allocations.
-pub fn check_memory(shape: [usize; 4], mask: Option<&[bool]>, options: &Options) -> Result<()> {
-    let [k, h, w, c] = shape;
-    let facets = match mask {
-        Some(m) => m.iter().filter(|&&inside| inside).count(),
-        None => h.saturating_mul(w),
-    };
-    check_reconstruction(h, w, facets, c, k, options)
 }
 
 /// A vector of `len` copies of `value`, or [`Error::Memory`] when the allocation fails (instead
@@ -278,32 +197,6 @@ fn address_space_free() -> Option<u64> {
 mod tests {
     use super::*;
     use crate::error::format_bytes;
-
-    #[test]
-    fn the_estimate_grows_with_the_pixels_and_the_options() {
-        let plain = Options::default();
-        let small = reconstruction(512, 512, 512 * 512, 1, &plain);
-        let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
-        // Linear in the pixels beyond the fixed part; measured ~216 B/px at 2048².
-        assert!((large - FIXED) / (small - FIXED) > 15.9);
-        assert!((230.0..260.0).contains(&((large - FIXED) / (2048.0 * 2048.0))));
-        let refine = Options {
-            refine: crate::refine::Refine {
-                intensity: true,
-                ..crate::refine::Refine::NONE
-            },
-            ..plain
-        };
-        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &refine) > large);
-        let direct = Options {
-            solver: GlobalSolver::Direct,
-            ..plain
-        };
-        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &direct) > 4.0 * large);
-        // Absurd sizes give a huge number, not an overflow.
-        let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, &plain);
-        assert!(absurd.is_finite() && absurd > 1e40);
-    }
 
     #[test]
     fn a_limit_below_the_estimate_is_refused_with_both_numbers() {

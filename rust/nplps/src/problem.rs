@@ -4,11 +4,12 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_range, ensure_shape, ensure_usable, Error, Result};
 use crate::geometry::Geometry;
-use crate::global::Prior;
 use crate::grid::Grid;
-use crate::local::Observations;
+use crate::local::{usable, FitSettings, Observations};
 use crate::memory::try_vec;
+use crate::options::Options;
 use crate::rig::Rig;
+use crate::system::Prior;
 use crate::vec3::{add, sub};
 
 /// A borrowed stack of k images, laid out (k, H, W, C) row-major with C = 1 (grey) or 3 (RGB).
@@ -125,8 +126,8 @@ impl<'a> Problem<'a> {
 
     /// Refuses with [`crate::Error::Memory`] when reconstructing this problem with `options`
     /// would need more memory than `options.max_memory` allows (see [`crate::check_memory`]).
-    pub fn check_memory(&self, options: &crate::Options) -> Result<()> {
-        crate::memory::check_reconstruction(
+    pub fn check_memory(&self, options: &Options) -> Result<()> {
+        crate::options::check_reconstruction(
             self.grid.height,
             self.grid.width,
             self.grid.facets.len(),
@@ -384,4 +385,28 @@ fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
             |buf, &p| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
         )
         .sum()
+}
+
+/// Fails when no masked pixel has 3 usable observations: nothing could be fitted, and the
+/// result would be the starting surface.
+pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> Result<()> {
+    use rayon::prelude::*;
+    let obs = &problem.obs;
+    let fittable = problem.grid.facets.par_iter().any(|&pixel| {
+        (0..obs.k)
+            .filter(|&i| usable(obs.at(i, pixel), settings))
+            .take(3)
+            .count()
+            >= 3
+    });
+    if fittable {
+        return Ok(());
+    }
+    Err(Error::Unusable(format!(
+        "no masked pixel has 3 or more usable observations (above dark = {} and below saturation = \
+         {}, not NaN, not left out by valid): the images are black, saturated or excluded, so \
+         nothing can be reconstructed",
+        crate::error::g6(settings.dark),
+        crate::error::g6(settings.saturation)
+    )))
 }

@@ -22,11 +22,11 @@ use rayon::prelude::*;
 
 use crate::error::Result;
 use crate::geometry::Geometry;
-use crate::global::Prior;
 use crate::grid::{Grid, INACTIVE};
 use crate::local::{usable, FitSettings, Observations};
 use crate::problem::Problem;
 use crate::rig::{Camera, Rig};
+use crate::system::Prior;
 
 /// The automatic pyramid stops before the longer side of a level drops below this.
 pub const COARSEST_SIDE: usize = 128;

@@ -59,12 +59,10 @@ use crate::geometry::Geometry;
 use crate::grid::Grid;
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
 use crate::memory::{try_vec, try_with_capacity};
+use crate::options::Refine;
 use crate::problem::Problem;
 use crate::rig::Light;
 use crate::vec3::{dot, norm, sub};
-
-/// Default weight of the prior that holds light positions to the rig's (see the module docs).
-pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e3;
 
 /// At most this many facets (a regular subsample) enter a light step: the light parameters are
 /// few (at 1 % image noise and 27 lights, 32 768 facets determine each intensity to about
@@ -79,82 +77,6 @@ pub const MAX_MATRIX_FACETS: usize = 4096;
 /// Smallest noise level assumed by the prior, relative to the RMS observation: with exact
 /// images the prior still holds the weak directions of the lights.
 pub const NOISE_FLOOR: f64 = 1e-3;
-
-/// Which light parameters the reconstruction refines.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[non_exhaustive]
-pub struct Refine {
-    /// Refine each light's intensity (a common factor per light, all channels).
-    pub intensity: bool,
-    /// Refine each point light's position.
-    pub position: bool,
-    /// Weight `w` of the prior toward the rig's positions.
-    pub prior_weight: f64,
-    /// Keep the common scale of the light positions (set when the distance is estimated).
-    pub fix_scale: bool,
-}
-
-impl Default for Refine {
-    fn default() -> Self {
-        Refine::NONE
-    }
-}
-
-impl Refine {
-    /// No refinement.
-    pub const NONE: Refine = Refine {
-        intensity: false,
-        position: false,
-        prior_weight: DEFAULT_PRIOR_WEIGHT,
-        fix_scale: false,
-    };
-
-    /// The same settings with nothing refined (the prior weight and scale rule are kept).
-    pub fn off(self) -> Refine {
-        Refine {
-            intensity: false,
-            position: false,
-            ..self
-        }
-    }
-
-    /// Whether anything is refined.
-    pub fn is_active(&self) -> bool {
-        self.intensity || self.position
-    }
-
-    /// Checks the prior weight.
-    pub fn validate(&self) -> Result<()> {
-        if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
-            return Err(Error::OutOfRange {
-                name: "light_prior_weight",
-                value: self.prior_weight,
-                message: format!(
-                    "light_prior_weight must be a finite number >= 0, got {}",
-                    self.prior_weight
-                ),
-            });
-        }
-        Ok(())
-    }
-
-    /// Name of the mode: "none", "intensity", "position" or "both".
-    pub fn name(&self) -> &'static str {
-        match (self.intensity, self.position) {
-            (false, false) => "none",
-            (true, false) => "intensity",
-            (false, true) => "position",
-            (true, true) => "both",
-        }
-    }
-}
-
-with_fields!(Refine {
-    with_intensity: intensity: bool,
-    with_position: position: bool,
-    with_prior_weight: prior_weight: f64,
-    with_fix_scale: fix_scale: bool,
-});
 
 /// Fails when `refine` is active with fewer than 4 lights: 3 observations per pixel fit any
 /// lights exactly, so the images say nothing about them.
@@ -1166,67 +1088,6 @@ mod tests {
         for (a, b) in ratio(&lights).iter().zip(ratio(&scene.rig.lights)) {
             assert!((a / b - 1.0).abs() < 1e-6, "{a} vs {b}");
         }
-    }
-
-    /// Through the whole solver: intensities off by up to 35 % are recovered from a flat start,
-    /// the normals match a run with the true lights, and the report is filled.
-    #[test]
-    fn reconstruct_refines_intensities() {
-        use crate::solver::{reconstruct, Control, Options};
-        let scene = Scene::new(SceneKind::SphereCap, 40, 100.0, 200.0, 0).unwrap();
-        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let mut bad = scene.rig.clone();
-        for (i, l) in bad.lights.iter_mut().enumerate() {
-            if let Light::Point { intensity, .. } = l {
-                *intensity = intensity.map(|v| v * (1.0 + 0.35 * (i as f64 * 1.7).cos()));
-            }
-        }
-        let d = scene.mean_depth();
-        let run = |rig: &crate::rig::Rig, refine: Refine| {
-            let stack = ImageStack::new(&images, rig.n_lights(), 40, 40).unwrap();
-            let problem =
-                Problem::new(stack, rig, Some(&scene.mask), InitialDepth::Distance(d)).unwrap();
-            let options = Options {
-                iterations: 50,
-                tol: 1e-8,
-                refine,
-                ..Options::default()
-            };
-            reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap()
-        };
-        let truth = run(&scene.rig, Refine::NONE);
-        let refined = run(
-            &bad,
-            Refine {
-                intensity: true,
-                ..Refine::NONE
-            },
-        );
-        let report = refined.refinement.as_ref().unwrap();
-        assert!(!report.fell_back && !report.stopped);
-        assert_eq!(
-            report.conditioning.as_ref().unwrap().singular_values.len(),
-            26
-        );
-        let ratio: Vec<f64> = refined
-            .lights
-            .iter()
-            .zip(&scene.rig.lights)
-            .map(|(a, b)| a.intensity()[0] / b.intensity()[0])
-            .collect();
-        let mean = (ratio.iter().map(|r| r.ln()).sum::<f64>() / ratio.len() as f64).exp();
-        assert!(
-            ratio.iter().all(|r| (r / mean - 1.0).abs() < 1e-4),
-            "{ratio:?}"
-        );
-        let worst = truth
-            .normals
-            .iter()
-            .zip(&refined.normals)
-            .filter(|(a, _)| a[0].is_finite())
-            .map(|(a, b)| dot(*a, *b).min(1.0).acos().to_degrees())
-            .fold(0.0, f64::max);
-        assert!(worst < 0.01, "largest normal difference {worst} degrees");
     }
 
     /// On the true mesh, position steps recover positions off by 5 % of the distance.

@@ -1,0 +1,327 @@
+//! The options of a reconstruction ([`Options`], with the light refinement's [`Refine`]), their
+//! checks, and the estimate of a reconstruction's peak memory under them ([`check_memory`]).
+//!
+//! The per-pixel constants of [`reconstruction`] are peak resident memory measured above the
+//! input image stack (`VmHWM`, 512² to 2048², 4 to 27 lights, orthographic and pinhole, grey and
+//! RGB): about 216 bytes per pixel with the multigrid global step (it does not grow with the
+//! number of lights: the stack is read in place), +170 with light refinement, and about 1 kB per
+//! pixel with the direct sparse Cholesky, whose fill grows slowly with the size. The estimate
+//! rounds them up; it is a guard against aborts, not an accountant.
+
+use crate::error::{Error, Result};
+use crate::global::GlobalSolver;
+use crate::local::{FitSettings, Robust, Weighting};
+use crate::memory::check;
+
+/// Options of the iteration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub struct Options {
+    /// Maximum number of local/global iterations.
+    pub iterations: usize,
+    /// Stop when the largest vertex depth change of an iteration is at most `tol` times the
+    /// lateral size of the grid.
+    pub tol: f64,
+    /// Observations at or below this value are treated as shadowed and left out of the fits.
+    pub dark: f64,
+    /// Observations at or above this value are treated as saturated and left out of the fits.
+    pub saturation: f64,
+    /// Weighting of the per-facet systems.
+    pub weighting: Weighting,
+    /// Robust estimator of the per-facet fits.
+    pub robust: Robust,
+    /// Worker threads (0: rayon's default, all cores).
+    pub threads: usize,
+    /// Run faer's sparse factorization and solves on the worker threads too. Off by default:
+    /// on 512 x 512 images with 2 cores the parallel paths measured 20-30% slower than the
+    /// sequential ones (see faer issue 211), while the local step uses every thread.
+    pub parallel_sparse: bool,
+    /// How the global step's linear system is solved.
+    pub solver: GlobalSolver,
+    /// Coarse-to-fine pyramid levels (1: the full resolution only; 0: automatic, see
+    /// the images are halved while the longer side keeps at least 128 pixels).
+    pub levels: usize,
+    /// Self-calibration of the lights (off by default).
+    pub refine: Refine,
+    /// Memory limit in bytes: a reconstruction whose estimated peak memory exceeds it is refused
+    /// with [`Error::Memory`] before the large allocations. `None`: a share of the memory the
+    /// machine has available (see [`crate::check_memory`]); `Some(f64::INFINITY)`: no limit.
+    pub max_memory: Option<f64>,
+}
+
+impl Options {
+    /// Checks the options: `tol >= 0`, `dark` finite, `saturation > dark`.
+    pub fn validate(&self) -> Result<()> {
+        if self.tol.is_nan() || self.tol < 0.0 {
+            return Err(Error::OutOfRange {
+                name: "tol",
+                value: self.tol,
+                message: format!("tol must be >= 0, got {}", self.tol),
+            });
+        }
+        self.refine.validate()?;
+        if let Some(m) = self.max_memory {
+            if m.is_nan() || m <= 0.0 {
+                return Err(Error::OutOfRange {
+                    name: "max_memory",
+                    value: m,
+                    message: format!(
+                        "max_memory must be a positive number of bytes, got {}",
+                        crate::error::g6(m)
+                    ),
+                });
+            }
+        }
+        check_thresholds(self.dark, self.saturation)
+    }
+
+    /// The per-facet fit settings of these options.
+    pub(crate) fn fit_settings(&self, fast_residual: bool) -> FitSettings {
+        FitSettings {
+            dark: self.dark,
+            saturation: self.saturation,
+            weighting: self.weighting,
+            robust: self.robust,
+            fast_residual,
+        }
+    }
+}
+
+with_fields!(Options {
+    with_iterations: iterations: usize,
+    with_tol: tol: f64,
+    with_dark: dark: f64,
+    with_saturation: saturation: f64,
+    with_weighting: weighting: Weighting,
+    with_robust: robust: Robust,
+    with_threads: threads: usize,
+    with_parallel_sparse: parallel_sparse: bool,
+    with_solver: solver: GlobalSolver,
+    with_levels: levels: usize,
+    with_refine: refine: Refine,
+    with_max_memory: max_memory: Option<f64>,
+});
+
+/// The shadow threshold must be a finite number below the saturation threshold.
+pub(crate) fn check_thresholds(dark: f64, saturation: f64) -> Result<()> {
+    if !dark.is_finite() {
+        return Err(Error::OutOfRange {
+            name: "dark",
+            value: dark,
+            message: format!("dark (the shadow threshold) must be a finite number, got {dark}"),
+        });
+    }
+    if saturation.is_nan() || saturation <= dark {
+        return Err(Error::OutOfRange {
+            name: "saturation",
+            value: saturation,
+            message: format!("saturation must be above dark (= {dark}), got {saturation}"),
+        });
+    }
+    Ok(())
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            iterations: 10,
+            tol: 1e-6,
+            dark: 0.0,
+            saturation: f64::INFINITY,
+            weighting: Weighting::Image,
+            robust: Robust::None,
+            threads: 0,
+            parallel_sparse: false,
+            solver: GlobalSolver::Auto,
+            levels: 0,
+            refine: Refine::NONE,
+            max_memory: None,
+        }
+    }
+}
+
+/// Default weight of the prior that holds light positions to the rig's (see the module docs).
+pub const DEFAULT_PRIOR_WEIGHT: f64 = 1e3;
+
+/// Which light parameters the reconstruction refines.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub struct Refine {
+    /// Refine each light's intensity (a common factor per light, all channels).
+    pub intensity: bool,
+    /// Refine each point light's position.
+    pub position: bool,
+    /// Weight `w` of the prior toward the rig's positions.
+    pub prior_weight: f64,
+    /// Keep the common scale of the light positions (set when the distance is estimated).
+    pub fix_scale: bool,
+}
+
+impl Default for Refine {
+    fn default() -> Self {
+        Refine::NONE
+    }
+}
+
+impl Refine {
+    /// No refinement.
+    pub const NONE: Refine = Refine {
+        intensity: false,
+        position: false,
+        prior_weight: DEFAULT_PRIOR_WEIGHT,
+        fix_scale: false,
+    };
+
+    /// The same settings with nothing refined (the prior weight and scale rule are kept).
+    pub fn off(self) -> Refine {
+        Refine {
+            intensity: false,
+            position: false,
+            ..self
+        }
+    }
+
+    /// Whether anything is refined.
+    pub fn is_active(&self) -> bool {
+        self.intensity || self.position
+    }
+
+    /// Checks the prior weight.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.prior_weight.is_finite() && self.prior_weight >= 0.0) {
+            return Err(Error::OutOfRange {
+                name: "light_prior_weight",
+                value: self.prior_weight,
+                message: format!(
+                    "light_prior_weight must be a finite number >= 0, got {}",
+                    self.prior_weight
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Name of the mode: "none", "intensity", "position" or "both".
+    pub fn name(&self) -> &'static str {
+        match (self.intensity, self.position) {
+            (false, false) => "none",
+            (true, false) => "intensity",
+            (false, true) => "position",
+            (true, true) => "both",
+        }
+    }
+}
+
+with_fields!(Refine {
+    with_intensity: intensity: bool,
+    with_position: position: bool,
+    with_prior_weight: prior_weight: f64,
+    with_fix_scale: fix_scale: bool,
+});
+
+/// Fixed overhead of a reconstruction (thread pools, small systems, the coarsest level).
+const FIXED: f64 = 64e6;
+/// Bytes per frame pixel: the full-frame output maps (normals, albedo, residuals, depth,
+/// vertices, mesh normals) as float64.
+const PER_PIXEL: f64 = 112.0;
+/// Extra bytes per frame pixel and colour channel beyond the first.
+const PER_CHANNEL: f64 = 16.0;
+/// Bytes per masked facet: per-facet fits, the vertex grid, the multigrid hierarchy.
+const PER_FACET: f64 = 128.0;
+/// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
+const PER_FACET_REFINE: f64 = 192.0;
+/// Extra bytes per facet with the direct sparse Cholesky at one megapixel (its fill grows
+/// like `n log n`: see [`reconstruction`]).
+const PER_FACET_DIRECT: f64 = 900.0;
+
+/// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
+/// masked pixels and `channels` colour channels, beyond the input images themselves.
+///
+/// `bytes = 64 MB + (112 + 16 (C - 1)) H W + (128 + 192 [refine] + 900 f(n) [direct]) n`,
+/// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
+/// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
+pub fn reconstruction(
+    height: usize,
+    width: usize,
+    facets: usize,
+    channels: usize,
+    options: &Options,
+) -> f64 {
+    let frame = height as f64 * width as f64;
+    let n = facets as f64;
+    let mut per_facet = PER_FACET;
+    if options.refine.intensity || options.refine.position {
+        per_facet += PER_FACET_REFINE;
+    }
+    if options.solver == GlobalSolver::Direct {
+        let growth = 1.0 + 0.15 * (n / (1u64 << 20) as f64).log2().max(0.0);
+        per_facet += PER_FACET_DIRECT * growth;
+    }
+    let channels = channels.max(1) as f64;
+    FIXED + (PER_PIXEL + PER_CHANNEL * (channels - 1.0)) * frame + per_facet * n
+}
+
+/// Checks the memory of a reconstruction (see [`reconstruction`]) against `options.max_memory`.
+pub fn check_reconstruction(
+    height: usize,
+    width: usize,
+    facets: usize,
+    channels: usize,
+    lights: usize,
+    options: &Options,
+) -> Result<()> {
+    let needed = reconstruction(height, width, facets, channels, options);
+    check(
+        || {
+            format!(
+                "reconstructing {width} x {height} pixels ({facets} in the mask) with {lights} lights"
+            )
+        },
+        needed,
+        options.max_memory,
+    )
+}
+
+/// Refuses with [`Error::Memory`] when reconstructing `shape` = (k, H, W, C) images under
+/// `mask` (H x W, `true` = reconstruct; `None` = every pixel) with `options` would need more
+/// memory than `options.max_memory` allows. Call it before [`crate::Problem::new`] to refuse
+/// before the problem's own allocations.
+pub fn check_memory(shape: [usize; 4], mask: Option<&[bool]>, options: &Options) -> Result<()> {
+    let [k, h, w, c] = shape;
+    let facets = match mask {
+        Some(m) => m.iter().filter(|&&inside| inside).count(),
+        None => h.saturating_mul(w),
+    };
+    check_reconstruction(h, w, facets, c, k, options)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_estimate_grows_with_the_pixels_and_the_options() {
+        let plain = Options::default();
+        let small = reconstruction(512, 512, 512 * 512, 1, &plain);
+        let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
+        // Linear in the pixels beyond the fixed part; measured ~216 B/px at 2048².
+        assert!((large - FIXED) / (small - FIXED) > 15.9);
+        assert!((230.0..260.0).contains(&((large - FIXED) / (2048.0 * 2048.0))));
+        let refine = Options {
+            refine: Refine {
+                intensity: true,
+                ..Refine::NONE
+            },
+            ..plain
+        };
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &refine) > large);
+        let direct = Options {
+            solver: GlobalSolver::Direct,
+            ..plain
+        };
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &direct) > 4.0 * large);
+        // Absurd sizes give a huge number, not an overflow.
+        let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, &plain);
+        assert!(absurd.is_finite() && absurd > 1e40);
+    }
+}
