@@ -745,7 +745,7 @@ def test_depth_is_required_and_options_are_keyword_only(small):
 def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
     """``normals`` are the facet normals of the result's own mesh (NaN outside the mask, also in
     a hole whose corners are all on the mesh); ``fit_normals`` are the local step's fits, the
-    ones ``predict`` shades with; ``mesh_normals`` is a deprecated alias."""
+    ones ``predict`` shades with."""
     s = scene("bumps", n=32)
     mask = s.mask.copy()
     mask[15, 15] = False  # a one-pixel hole: its 4 corners belong to the mesh
@@ -756,8 +756,6 @@ def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
     assert r.normals is r.normals  # computed once
     assert not np.array_equal(r.normals[mask], r.fit_normals[mask])
     assert np.isnan(r.fit_normals[~mask]).all()
-    with pytest.warns(DeprecationWarning, match="normals"):
-        np.testing.assert_array_equal(r.mesh_normals, r.normals)
     # predict uses the fits (with the mesh normals the images would be explained worse)
     predicted = r.predict()
     expected = nplps._core.predict(r.depth, r.fit_normals, r.albedo, r.rig.camera, r.rig._core_lights(), r.mask, False)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -425,22 +424,6 @@ class Reconstruction:
         n = _core.mesh_normals(self.depth, self.rig.camera)
         n[~self.mask] = np.nan
         return n
-
-    @property
-    def mesh_normals(self) -> np.ndarray:
-        """Deprecated alias of :attr:`normals` (the mesh's facet normals).
-
-        .. deprecated:: after 0.1.0
-            ``normals`` are the mesh normals now (NaN outside the mask, also in holes whose
-            corners are on the mesh); the per-pixel fits are ``fit_normals``.
-        """
-        warnings.warn(
-            "Reconstruction.mesh_normals is deprecated: the mesh's normals are now Reconstruction.normals "
-            "(and the per-pixel fits Reconstruction.fit_normals)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.normals
 
     @property
     def unfitted(self) -> int:
