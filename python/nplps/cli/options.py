@@ -106,7 +106,13 @@ _OPTIONS = (
         to_api=lambda gray: False if gray else None,
     ),
     # pre-processing
-    Option(("--srgb",), "srgb", "decode sRGB to linear (camera JPEGs); also --ambient/--flat", switch=True),
+    Option(
+        ("--srgb",),
+        "srgb",
+        "decode sRGB to linear (camera JPEGs); also --ambient/--flat",
+        switch=True,
+        batch_help="decode sRGB to linear (camera JPEGs); also the ambient image and --flat",
+    ),
     Option(("--ambient",), "ambient", "subtract this image taken with every light off (clip at 0)", metavar="FILE"),
     Option(
         ("--exposures",),
