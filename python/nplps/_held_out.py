@@ -49,6 +49,11 @@ class HeldOut(NamedTuple):
     prediction: np.ndarray
 
 
+# The public home of HeldOut: its repr, pickles and typing.get_type_hints (which resolves the
+# ``result: Reconstruction`` annotation in the module named here) are as before the move.
+HeldOut.__module__ = "nplps.evaluation"
+
+
 def reading(near: tuple[float, float], parallel: tuple[float, float]) -> str:
     """Return one sentence that reads a held-out comparison: which model predicts better, and by how much.
 

@@ -117,3 +117,7 @@ class Iteration(NamedTuple):
     candidate_residual: float = math.nan
     best_distance: float = math.nan
     best_residual: float = math.nan
+
+
+# The public home of Iteration (``nplps.Iteration``): its repr and pickles are as before the move.
+Iteration.__module__ = "nplps.reconstruction"
