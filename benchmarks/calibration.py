@@ -38,6 +38,7 @@ import numpy as np
 
 import nplps
 from nplps import calibrate as cal
+from nplps import synth_calibration as scenes
 
 WORKING_DISTANCE = 200.0
 
@@ -52,7 +53,7 @@ def run_case(
     camera: str, lights: int, spheres: int, directional: bool, seed: int, refine: bool, outline: str, recon_n: int
 ) -> dict[str, float]:
     """One calibration + reconstruction; returns the measured errors."""
-    scene = cal.make_sphere_scene(
+    scene = scenes.make_sphere_scene(
         camera, n=200, lights=lights, directional=directional, spheres=spheres, noise=0.01, seed=seed
     )
     t0 = time.perf_counter()
@@ -92,7 +93,7 @@ def run_case(
                 wrong_kind += 1
     pos_a = np.array(pos)
     # Intensities from a board under the true lights, with the calibrated positions.
-    board = cal.make_board_scene(truth, n=200, noise=0.01, seed=seed + 1000, distance=WORKING_DISTANCE)
+    board = scenes.make_board_scene(truth, n=200, noise=0.01, seed=seed + 1000, distance=WORKING_DISTANCE)
     t0 = time.perf_counter()
     icl = cal.calibrate_intensities(board.images, res.rig, WORKING_DISTANCE)
     t_board = time.perf_counter() - t0
@@ -136,12 +137,12 @@ def run_intensity(camera: str, led: bool, seed: int) -> dict[str, float]:
     working distance, 1 % noise, 8-bit; isotropic lights with intensities drawn in [0.65, 1.35]
     (and every third light distant), or LEDs (mu 0.5-2, unequal RGB intensities) with mu and
     directions fitted."""
-    rig = cal.standard_rig(camera, n=200, lights=27, directional=True, led=led)
+    rig = scenes.standard_rig(camera, n=200, lights=27, directional=True, led=led)
     if not led:
         phi = np.random.default_rng(seed).uniform(0.65, 1.35, rig.n_lights)
         rig = rig.with_intensities(rig.intensities * phi[:, None])
     plane = ([0.05, -0.1, -1.0], -WORKING_DISTANCE)
-    board = cal.make_board_scene(rig, n=200, plane=plane, noise=0.01, seed=seed)
+    board = scenes.make_board_scene(rig, n=200, plane=plane, noise=0.01, seed=seed)
     start = nplps.Rig.from_arrays(rig.camera, rig.positions, directions=rig.directions)
     t0 = time.perf_counter()
     res = cal.calibrate_intensities(board.images, start, plane, fit_mu=led, fit_direction=led)

@@ -95,3 +95,10 @@ def scene() -> Callable[..., nplps.Scene]:
         return _SCENES[key]
 
     return get
+
+
+@pytest.fixture(scope="module")
+def auto_result() -> tuple[nplps.Scene, nplps.Reconstruction]:
+    """A small synthetic scene and its ``depth="auto"`` reconstruction."""
+    s = nplps.make_scene("bumps", n=24, seed=1)
+    return s, nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto")

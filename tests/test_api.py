@@ -8,6 +8,7 @@ number asserted here was measured first; the measured values are written next to
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import re
@@ -19,6 +20,7 @@ import pytest
 import tifffile
 
 import nplps
+import nplps.preprocess
 import reference as ref  # tests/reference.py, the numpy oracle
 from nplps.export import read_ply
 
@@ -745,7 +747,7 @@ def test_depth_is_required_and_options_are_keyword_only(small):
 def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
     """``normals`` are the facet normals of the result's own mesh (NaN outside the mask, also in
     a hole whose corners are all on the mesh); ``fit_normals`` are the local step's fits, the
-    ones ``predict`` shades with; ``mesh_normals`` is a deprecated alias."""
+    ones ``predict`` shades with."""
     s = scene("bumps", n=32)
     mask = s.mask.copy()
     mask[15, 15] = False  # a one-pixel hole: its 4 corners belong to the mesh
@@ -756,8 +758,6 @@ def test_normals_are_the_mesh_normals_and_fit_normals_the_local_fits(scene):
     assert r.normals is r.normals  # computed once
     assert not np.array_equal(r.normals[mask], r.fit_normals[mask])
     assert np.isnan(r.fit_normals[~mask]).all()
-    with pytest.warns(DeprecationWarning, match="normals"):
-        np.testing.assert_array_equal(r.mesh_normals, r.normals)
     # predict uses the fits (with the mesh normals the images would be explained worse)
     predicted = r.predict()
     expected = nplps._core.predict(r.depth, r.fit_normals, r.albedo, r.rig.camera, r.rig._core_lights(), r.mask, False)
@@ -805,7 +805,6 @@ def test_every_returned_type_is_exported():
     """Whatever a public function or method returns, and the types of the attributes of what it
     returns, is importable from ``nplps`` (or, for ``held_out``, from ``nplps.evaluation`` and
     ``nplps``); ``__all__`` names exactly the public names."""
-    import dataclasses
     import typing
 
     import nplps.types
@@ -850,3 +849,82 @@ def test_every_returned_type_is_exported():
     # the status values and the string options are typed
     assert typing.get_args(nplps.types.Status) == ("converged", "stalled", "diverged", "degenerate")
     assert typing.get_args(nplps.types.Method) == ("near", "parallel")
+
+
+# --------------------------------------------------------------------------------------------------
+# repr is one line, _repr_html_ a compact table; sizes width first; the shaded picture
+# --------------------------------------------------------------------------------------------------
+
+
+def test_repr_is_one_line(auto_result):
+    s, r = auto_result
+    text = repr(r)
+    assert "\n" not in text and "array" not in text and len(text) < 200
+    lo, hi = np.nanmin(r.depth), np.nanmax(r.depth)
+    h, w = r.shape
+    assert text.startswith(f"<Reconstruction {w} x {h} pixels, ")
+    for part in (
+        "method='near'",
+        f"status={r.status!r}",
+        f"iterations={len(r.history)}",
+        f"depth {lo:.6g} .. {hi:.6g}",
+        f"mask {int(s.mask.sum())} pixels",
+    ):
+        assert part in text
+    assert str(r) == text
+
+
+def test_repr_of_a_non_square_parallel_result(scene):
+    s = scene("sphere", n=24)
+    r = nplps.reconstruct_parallel(s.images[:, :, :16], s.rig, mask=s.mask[:, :16], depth=s.mean_depth)
+    assert repr(r).startswith("<Reconstruction 16 x 24 pixels, method='parallel', ")
+    assert f"mask {int(s.mask[:, :16].sum())} pixels>" in repr(r)
+
+
+def test_repr_html_is_a_compact_table(auto_result):
+    _s, r = auto_result
+    page = r._repr_html_()
+    # The facts, then a small normal map and albedo (item 2: compact, embedded; see test_report.py).
+    assert page.startswith("<div><table") and page.endswith("</div>")
+    assert page.count("<img") == 2 and len(page) < 100_000
+    for label in ("Size (W x H)", "Method", "Status", "Iterations", "Depth range", "Mask", "Estimated distance"):
+        assert f">{label}</th>" in page
+    h, w = r.shape
+    assert f"{w} x {h} pixels" in page and f">{len(r.history)}</td>" in page
+    assert f"{r.distance.distance[0]:.6g}" in page
+    # The status reason is escaped text.
+    r2 = dataclasses.replace(r, status_reason="a < b & c")
+    assert "a &lt; b &amp; c" in r2._repr_html_()
+
+
+def _four_lights() -> np.ndarray:
+    return np.array([[0.0, 0.0, -100.0], [50.0, 0.0, -100.0], [0.0, 50.0, -100.0], [-50.0, -50.0, -100.0]])
+
+
+def test_library_messages_give_sizes_width_first():
+    with pytest.raises(nplps.InputError, match=r"for images of 16 x 24 pixels"):
+        rig = nplps.Rig.orthographic(1.0, lights=_four_lights())
+        nplps.reconstruct(np.ones((4, 24, 16)), rig, depth=np.ones((3, 3)))
+    with pytest.raises(nplps.InputError, match=r"3 x 2 pixels is smaller than one 4 x 4 block"):
+        nplps.preprocess.bin_images(np.ones((1, 2, 3)), 4)
+
+
+def test_shaded_picture_shows_relief_not_a_silhouette() -> None:
+    # shaded.png used to be lit from the camera: a surface facing it was a white silhouette.
+    scene = nplps.make_scene("sphere", n=48)
+    result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask)
+    default, camera = result.shaded(), result.shaded("camera")
+    inside = scene.mask
+    h, w = inside.shape
+    upper_left = inside & (np.arange(h)[:, None] < h // 2) & (np.arange(w)[None, :] < w // 2)
+    lower_right = inside & (np.arange(h)[:, None] >= h // 2) & (np.arange(w)[None, :] >= w // 2)
+    # Lit from the upper left: that side is brighter; from the camera the two are alike.
+    assert default[upper_left].mean() > default[lower_right].mean() + 0.2
+    assert abs(camera[upper_left].mean() - camera[lower_right].mean()) < 0.05
+    # The centre faces the camera: about cos 50 deg, not white.
+    assert 0.5 < default[h // 2, w // 2] < 0.8 and camera[h // 2, w // 2] > 0.95
+    np.testing.assert_allclose(result.shaded((0, 0, -1)), camera, atol=0.05)  # near-orthographic view
+    assert np.all(default[~inside] == 0)
+    for bad in ("sun", (0, 0, 0), (1, 2), (np.nan, 0, 1)):
+        with pytest.raises(nplps.InputError, match="light must be"):
+            result.shaded(bad)

@@ -17,6 +17,7 @@ import pytest
 
 import nplps
 from nplps import calibrate as cal
+from nplps import synth_calibration as scenes
 from nplps.cli import main
 
 WD = 200.0  # working distance of the standard scenes
@@ -44,7 +45,7 @@ def _errors(result: cal.SphereCalibration, truth: nplps.Rig) -> tuple[np.ndarray
     return np.array(pos), np.array(dirs)
 
 
-def _calibrate(scene: cal.SphereScene, **kw) -> cal.SphereCalibration:
+def _calibrate(scene: scenes.SphereScene, **kw) -> cal.SphereCalibration:
     depth = scene.center_depths if not scene.rig.is_pinhole else None
     return cal.calibrate_spheres(scene.images, scene.rig, scene.radius, masks=scene.labels, center_depth=depth, **kw)
 
@@ -62,7 +63,7 @@ def test_light_positions_and_directions_over_seeds(camera, lights, distant):
     docs/calibration.md.)"""
     rms, worst_dir = [], []
     for seed in SEEDS:
-        scene = cal.make_sphere_scene(camera, lights=lights, directional=distant, spheres=2, noise=0.01, seed=seed)
+        scene = scenes.make_sphere_scene(camera, lights=lights, directional=distant, spheres=2, noise=0.01, seed=seed)
         result = _calibrate(scene)
         assert all(light.spheres == 4 for light in result.lights)
         assert all(s.outline_sigma == 0.01 for s in result.spheres)  # the separating fits
@@ -82,7 +83,7 @@ def test_joint_refinement_corrects_image_outlines():
     seeds 0-4; benchmark: 1.83 % -> 0.40 % of the working distance)."""
     before, after = [], []
     for seed in SEEDS:
-        scene = cal.make_sphere_scene("pinhole", lights=27, directional=True, noise=0.01, seed=seed)
+        scene = scenes.make_sphere_scene("pinhole", lights=27, directional=True, noise=0.01, seed=seed)
         for refine, out in ((False, before), (True, after)):
             pos, _ = _errors(_calibrate(scene, refine=refine, outline="images"), scene.rig)
             out.append(100.0 * np.sqrt(np.mean(pos**2)) / WD)
@@ -95,7 +96,7 @@ def test_sphere_centres_from_masks():
     separating circle puts the centre's x, y within 0.08 px (orthographic; typically 0.01 px),
     the widest separating cone puts the centre within 0.1 % of its distance (pinhole)."""
     for camera in ("orthographic", "pinhole"):
-        scene = cal.make_sphere_scene(camera, lights=8, noise=0.01, seed=0)
+        scene = scenes.make_sphere_scene(camera, lights=8, noise=0.01, seed=0)
         result = _calibrate(scene, refine=False)
         pixel = 100.0 / 200.0
         for s, c in zip(result.spheres, np.concatenate(scene.centers), strict=False):
@@ -116,7 +117,7 @@ def test_detection_finds_the_spheres():
     the working distance."""
     for camera in ("orthographic", "pinhole"):
         for seed in range(3):
-            scene = cal.make_sphere_scene(camera, lights=27, directional=True, spheres=2, noise=0.01, seed=seed)
+            scene = scenes.make_sphere_scene(camera, lights=27, directional=True, spheres=2, noise=0.01, seed=seed)
             depth = scene.center_depths if camera == "orthographic" else None
             result = cal.calibrate_spheres(
                 scene.images, scene.rig, scene.radius, detect=(30, 60), count=2, center_depth=depth
@@ -140,9 +141,9 @@ def test_reconstruction_with_the_calibrated_rig(camera):
     whose reconstruction is within 0.2 degrees (mean normal error) of the true rig's, on seeds
     0-2 (27 lights, a third of them distant)."""
     for seed in range(3):
-        scene = cal.make_sphere_scene(camera, lights=27, directional=True, noise=0.01, seed=seed)
+        scene = scenes.make_sphere_scene(camera, lights=27, directional=True, noise=0.01, seed=seed)
         positions = _calibrate(scene)
-        board = cal.make_board_scene(scene.rig, noise=0.01, seed=seed + 100)
+        board = scenes.make_board_scene(scene.rig, noise=0.01, seed=seed + 100)
         rig = cal.calibrate_intensities(board.images, positions.rig, WD).rig
         obj = nplps.make_scene("bumps", n=96, camera=camera, directional=True, seed=seed)
         calibrated = nplps.Rig(camera=obj.rig.camera, lights=rig.lights)  # the lights with their intensities
@@ -173,10 +174,10 @@ def test_intensities_of_isotropic_lights(camera):
     """Relative intensities within 1 % (1 % noise, 8-bit) on seeds 0-4; a tilted board."""
     plane = ([0.05, -0.1, -1.0], -1.0 * WD)
     for seed in SEEDS:
-        rig = cal.standard_rig(camera, n=160, lights=27, directional=True)
+        rig = scenes.standard_rig(camera, n=160, lights=27, directional=True)
         phi = np.random.default_rng(seed).uniform(0.65, 1.35, rig.n_lights)
         rig = rig.with_intensities(rig.intensities * phi[:, None])
-        board = cal.make_board_scene(rig, n=160, plane=plane, noise=0.01, seed=seed)
+        board = scenes.make_board_scene(rig, n=160, plane=plane, noise=0.01, seed=seed)
         start = _positions_only(rig)
         result = cal.calibrate_intensities(board.images, start, plane)
         err = np.abs(result.intensities[:, 0] / _relative(rig.intensities[:, 0]) - 1.0)
@@ -190,8 +191,8 @@ def test_intensities_mu_and_directions_of_leds():
     """LEDs (mu 0.5-2, unequal intensities): with fit_mu and fit_direction the intensities come
     back within 1 %, mu within 0.2 and the directions within 2 degrees (seeds 0-4)."""
     for seed in SEEDS:
-        rig = cal.standard_rig("pinhole", n=160, lights=27, directional=True, led=True)
-        board = cal.make_board_scene(rig, n=160, noise=0.01, seed=seed)
+        rig = scenes.standard_rig("pinhole", n=160, lights=27, directional=True, led=True)
+        board = scenes.make_board_scene(rig, n=160, noise=0.01, seed=seed)
         result = cal.calibrate_intensities(board.images, _positions_only(rig), WD, fit_mu=True, fit_direction=True)
         truth = _relative(rig.intensities.mean(axis=1))
         assert np.abs(result.intensities[:, 0] / truth - 1.0).max() < 0.01
@@ -202,12 +203,12 @@ def test_intensities_mu_and_directions_of_leds():
 
 def test_intensities_with_a_textured_board_and_vignetting():
     """albedo="per_pixel" absorbs a board texture and a cos^4-like falloff shared by all lights."""
-    rig = cal.standard_rig("orthographic", n=120, lights=8)
+    rig = scenes.standard_rig("orthographic", n=120, lights=8)
     phi = np.linspace(0.7, 1.3, rig.n_lights)
     rig = rig.with_intensities(phi)
     yy, xx = np.mgrid[:120, :120] / 119.0 - 0.5
     albedo = (0.7 + 0.2 * np.sin(9 * xx) * np.cos(7 * yy)) * (1 - 0.6 * (xx**2 + yy**2))
-    board = cal.make_board_scene(rig, n=120, albedo=albedo, noise=0.005, seed=1)
+    board = scenes.make_board_scene(rig, n=120, albedo=albedo, noise=0.005, seed=1)
     uniform = cal.calibrate_intensities(board.images, _positions_only(rig), WD)
     per_pixel = cal.calibrate_intensities(board.images, _positions_only(rig), WD, albedo="per_pixel")
     err_u = np.abs(uniform.intensities[:, 0] / _relative(phi) - 1).max()
@@ -218,8 +219,8 @@ def test_intensities_with_a_textured_board_and_vignetting():
 
 def test_colour_intensities():
     """RGB board images give per-channel intensities (colour ratios kept)."""
-    rig = cal.standard_rig("orthographic", n=100, lights=8, led=True)
-    board = cal.make_board_scene(rig, n=100, noise=0.0, bits=0)
+    rig = scenes.standard_rig("orthographic", n=100, lights=8, led=True)
+    board = scenes.make_board_scene(rig, n=100, noise=0.0, bits=0)
     rgb = np.repeat(board.images[..., None], 3, axis=3).astype(np.float32)
     # Tint each light's channels by its own RGB intensity ratios.
     ratio = rig.intensities / rig.intensities.mean(axis=1, keepdims=True)
@@ -233,7 +234,7 @@ def test_colour_intensities():
 # reports, warnings and errors
 # ------------------------------------------------------------------------------------------------
 def test_single_sphere_gives_directions_with_warnings(tmp_path):
-    scene = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.0, seed=0)
+    scene = scenes.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.0, seed=0)
     result = cal.calibrate_spheres(
         scene.images[:1], scene.rig, scene.radius, masks=scene.labels[:1], center_depth=scene.center_depths[0]
     )
@@ -250,7 +251,7 @@ def test_single_sphere_gives_directions_with_warnings(tmp_path):
 
 
 def test_rig_file_and_report(tmp_path):
-    scene = cal.make_sphere_scene("pinhole", n=160, lights=8, radius=16, noise=0.0, seed=0)
+    scene = scenes.make_sphere_scene("pinhole", n=160, lights=8, radius=16, noise=0.0, seed=0)
     result = _calibrate(scene)
     assert result.highlights.shape == (8, 2, 2) and np.isfinite(result.highlights).all()
     assert result.status == [["ok", "ok"]] * 8
@@ -265,7 +266,7 @@ def test_rig_file_and_report(tmp_path):
 
 
 def test_a_light_seen_nowhere_blocks_the_rig():
-    scene = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.0, seed=0)
+    scene = scenes.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.0, seed=0)
     images = [im.copy() for im in scene.images]
     for im in images:
         im[3] = 20  # light 3: no highlight (a flat dark image)
@@ -279,7 +280,7 @@ def test_a_light_seen_nowhere_blocks_the_rig():
 
 
 def test_bad_input_is_reported():
-    scene = cal.make_sphere_scene("orthographic", n=120, lights=8, radius=12, noise=0.0, seed=0)
+    scene = scenes.make_sphere_scene("orthographic", n=120, lights=8, radius=12, noise=0.0, seed=0)
     cam = scene.rig
     with pytest.raises(nplps.InputError, match="orthographic camera needs the depth"):
         cal.calibrate_spheres(scene.images, cam, scene.radius, masks=scene.labels)
@@ -303,7 +304,7 @@ def test_bad_input_is_reported():
         cal.calibrate_spheres(scene.images, cam, scene.radius, detect=(2, 4), center_depth=180)
     with pytest.raises(nplps.RigError):
         cal.calibrate_spheres(scene.images, {"model": "fisheye"}, scene.radius, masks=scene.labels, center_depth=180)
-    board = cal.make_board_scene(cam, n=120, noise=0.0)
+    board = scenes.make_board_scene(cam, n=120, noise=0.0)
     with pytest.raises(nplps.InputError, match="board images but the rig has"):
         cal.calibrate_intensities(board.images[:5], cam, WD)
     with pytest.raises(nplps.InputError, match="edge-on"):
@@ -315,16 +316,18 @@ def test_bad_input_is_reported():
 
 
 def test_scene_generators():
-    scene = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.01, seed=3, spheres=2)
+    scene = scenes.make_sphere_scene("orthographic", n=160, lights=8, radius=16, noise=0.01, seed=3, spheres=2)
     assert len(scene.images) == 2 and scene.images[0].shape == (8, 160, 160) and scene.images[0].dtype == np.uint8
     for stack, labels in zip(scene.images, scene.labels, strict=False):
         assert set(np.unique(labels)) == {0, 1, 2}
         saturated = [(im[labels > 0] == 255).sum() for im in stack]
         assert min(saturated) >= 3, "every highlight saturates"
         assert np.median(stack[:, labels > 0]) < 200, "the diffuse part does not"
-    assert scene.rig.n_lights == 8 and scene.light_indices == list(cal.LIGHTS_8)
-    np.testing.assert_allclose(scene.rig.positions, nplps.make_scene("saddle", n=8).rig.positions[list(cal.LIGHTS_8)])
-    board = cal.make_board_scene(scene.rig, n=160, noise=0.0, bits=16)
+    assert scene.rig.n_lights == 8 and scene.light_indices == list(scenes.LIGHTS_8)
+    np.testing.assert_allclose(
+        scene.rig.positions, nplps.make_scene("saddle", n=8).rig.positions[list(scenes.LIGHTS_8)]
+    )
+    board = scenes.make_board_scene(scene.rig, n=160, noise=0.0, bits=16)
     assert board.images.dtype == np.uint16 and board.images.max() <= 65535 * 0.9 + 1
 
 
@@ -394,7 +397,7 @@ def test_command_line_errors(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     cam = tmp_path / "camera.json"
-    cal.save_camera(cam, cal.standard_rig("pinhole", n=64, lights=8))
+    cal.save_camera(cam, scenes.standard_rig("pinhole", n=64, lights=8))
     assert (
         main(
             [

@@ -8,7 +8,9 @@ folder is absent.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
+import textwrap
 import time
 from pathlib import Path
 
@@ -398,3 +400,43 @@ def test_real_diligent_ball(shared_capture) -> None:
     assert np.std(albedos) < 0.03 * np.mean(albedos)
     K = cap.load_matlab_intrinsics(folder / "thirdparty_queau_robust_ps" / "calib.mat")
     np.testing.assert_allclose(K[:2, 2], [304.875, 254.875])
+
+
+# --------------------------------------------------------------------------------------------------
+# the documented use of a capture (intensities in the rig, images not divided)
+# --------------------------------------------------------------------------------------------------
+
+
+def _docstring_example() -> str:
+    """The code of the Examples section of ``nplps.captures``' module docstring."""
+    doc = inspect.getdoc(cap) or ""
+    after = doc.split("Examples\n--------\n", 1)[1]
+    block = after.split("::\n", 1)[1]
+    lines = []
+    for line in block.splitlines():
+        if line and not line.startswith("    "):
+            break
+        lines.append(line)
+    return textwrap.dedent("\n".join(lines)).strip()
+
+
+def test_capture_docs_do_not_divide_by_the_intensities():
+    code = _docstring_example()
+    assert "ball.rig()" in code and "intensities" not in code
+    # The README's captures section shows the same code.
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Real captures", 1)[1].split("\n## ", 1)[0]
+    assert textwrap.indent(code, "  ") in section
+    diligent_doc = inspect.getdoc(cap.load_diligent) or ""
+    assert "divide image" not in diligent_doc.lower()
+
+
+def test_documented_capture_example_on_the_ball(shared_capture, monkeypatch, angular_error):
+    folder = shared_capture("diligent_ball")
+    monkeypatch.chdir(folder.parent)
+    namespace: dict[str, object] = {}
+    exec(_docstring_example(), namespace)  # the documented example, exactly as written
+    ball, result = namespace["ball"], namespace["result"]
+    error = angular_error(result.normals, ball.normals_gt, ball.mask).mean()
+    print(f"documented example on DiLiGenT's ball: mean normal error {error:.2f} deg")
+    assert 3.5 < error < 4.6  # about 4.1 deg; dividing the images by the intensities too gave 16

@@ -16,6 +16,7 @@ import nplps
 import nplps.io
 import nplps.preprocess
 from nplps import cli
+from nplps.cli.console import describe_size
 from nplps.export import read_ply
 
 SIZE = 40
@@ -839,3 +840,54 @@ def test_evaluate_with_auto_depth_on_colour_images(tmp_path, capsys):
     assert rc == 0, stderr
     assert "estimated working distance" in stderr
     assert "mean" in stdout
+
+
+# --------------------------------------------------------------------------------------------------
+# image sizes are printed width first; nplps evaluate reads its table in one line
+# --------------------------------------------------------------------------------------------------
+
+
+def test_cli_prints_sizes_width_first(tmp_path, capsys):
+    """A 24-row, 16-column capture is "16 x 24 pixels" in the input note and in the summary."""
+    import imageio.v3 as iio
+
+    s = nplps.make_scene("bumps", n=24, seed=2)
+    images, mask = s.images[:, :, :16], s.mask[:, :16]
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    for i, image in enumerate(images):
+        iio.imwrite(folder / f"image_{i:02d}.png", np.round(np.clip(image, 0, 1) * 65535).astype(np.uint16))
+    iio.imwrite(tmp_path / "mask.png", mask.astype(np.uint8) * 255)
+    s.rig.save(tmp_path / "rig.json")
+    argv = ["reconstruct", folder, "--rig", tmp_path / "rig.json", "--mask", tmp_path / "mask.png"]
+    rc, stdout, stderr = run(capsys, *argv, "--depth", s.mean_depth, "--out", tmp_path / "out")
+    assert rc == 0, stderr
+    assert f"{len(images)} images of 16 x 24 pixels" in stderr
+    assert re.search(rf"pixels +{int(mask.sum())} of 16 x 24 pixels\n", stdout)
+    assert "24 x 16" not in stdout + stderr
+    assert describe_size((24, 16)) == "16 x 24 pixels" == describe_size((24, 16, 3))
+
+
+def test_cli_evaluate_prints_a_reading(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    rc, _, stderr = run(
+        capsys, "synth", "bumps", "--size", 24, "--camera", "pinhole", "--led", "--noise", "0.002", "--out", scene
+    )
+    assert rc == 0, stderr
+    depth = nplps.make_scene("bumps", n=24, camera="pinhole", led=True).mean_depth
+    argv = ["evaluate", scene, "--rig", scene / "rig.json", "--mask", scene / "mask.png", "--depth", depth]
+    rc, stdout, stderr = run(capsys, *argv, "--lights", "0,13", "-q")
+    assert rc == 0, stderr
+    lines = stdout.rstrip("\n").splitlines()
+    mean = [float(v) for v in lines[-3].split()[1:]]
+    assert lines[-3].split()[0] == "mean" and lines[-2] == ""
+    # The reading is the last line, and its numbers are the table's means.
+    assert lines[-1].startswith("reading: the near-light model (nplps) predicts the held-out images better")
+    m = re.search(
+        r"mean shape error (\S+) vs (\S+) \((\d+(?:\.\d)?)x lower\); mean relative error (\S+) vs (\S+)\.$", lines[-1]
+    )
+    assert m, lines[-1]
+    near_shape, par_shape, factor, near_rel, par_rel = (float(v) for v in m.groups())
+    assert near_rel == pytest.approx(mean[0], rel=5e-3) and near_shape == pytest.approx(mean[1], rel=5e-3)
+    assert par_rel == pytest.approx(mean[2], rel=5e-3) and par_shape == pytest.approx(mean[3], rel=5e-3)
+    assert factor == pytest.approx(mean[3] / mean[1], rel=0.02, abs=0.06)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import nplps
-from nplps import captures
+from nplps import captures, cli
 from nplps.evaluation import held_out
 
 
@@ -138,3 +138,46 @@ def test_real_capture_distance(name, loader, factor, authors, bounds, tmp_path, 
     auto.save(tmp_path / name)
     assert 0.85 * bounds[0] <= estimate <= 1.15 * bounds[1]
     assert e_est <= e_auth * 1.001
+
+
+# --------------------------------------------------------------------------------------------------
+# distance_curve.csv holds plain numbers
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_curve_csv(path, curves: list[np.ndarray]) -> None:
+    text = path.read_text()
+    assert text.splitlines()[0] == "region,distance,rms_residual"
+    assert "np." not in text and "float64" not in text
+    table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    expected = np.concatenate([np.column_stack([np.full(len(c), r), c]) for r, c in enumerate(curves)])
+    # Full precision: the numbers read back are the numbers of the result, bit for bit.
+    np.testing.assert_array_equal(table, expected)
+
+
+def test_save_curve_is_plain_csv(auto_result, tmp_path):
+    _s, r = auto_result
+    assert r.distance is not None and len(r.distance.curve[0]) > 5
+    r.distance.save_curve(tmp_path / "curve.csv")
+    _check_curve_csv(tmp_path / "curve.csv", r.distance.curve)
+
+
+def _run(capsys, *argv):
+    rc = cli.main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return rc, captured.out, captured.err
+
+
+def test_cli_distance_curve_csv_parses(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    rc, _, stderr = _run(capsys, "synth", "bumps", "--size", 24, "--seed", "1", "--out", scene)
+    assert rc == 0, stderr
+    out = tmp_path / "result"
+    argv = ["reconstruct", scene, "--rig", scene / "rig.json", "--mask", scene / "mask.png"]
+    rc, _, stderr = _run(capsys, *argv, "--depth", "auto", "--out", out, "-q")
+    assert rc == 0, stderr
+    table = np.loadtxt(out / "distance_curve.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert table.shape[1] == 3 and len(table) > 5
+    assert np.all(table[:, 0] == 0) and np.all(np.isfinite(table[:, 1:]))
+    assert np.all(np.diff(table[:, 1]) >= 0)
+    assert "np." not in (out / "distance_curve.csv").read_text()

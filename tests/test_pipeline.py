@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import tracemalloc
-import warnings
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -325,26 +323,6 @@ def test_dark_rule_for_api_users(tmp_path: Path) -> None:
     rig = done.rig()
     result = nplps.reconstruct(done.images, rig, depth=100.0, iterations=1, **done.options())
     assert result.depth.shape == (9, 11)
-
-
-def test_loaders_deprecate_gray(tmp_path: Path) -> None:
-    folder = tmp_path / "f"
-    folder.mkdir()
-    for i in range(2):
-        iio.imwrite(folder / f"im{i}.png", np.full((3, 4, 3), (10 * i, 20, 30), dtype=np.uint8))
-    (folder / "rig.json").write_text(json.dumps({}))
-    with pytest.warns(DeprecationWarning, match="color=False"):
-        old = captures.load_folder(folder, load=True, gray=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        new = captures.load_folder(folder, load=True, color=False)
-    np.testing.assert_array_equal(old.images, new.images)
-    assert new.images.shape == (2, 3, 4)
-    with pytest.warns(DeprecationWarning), pytest.raises(InputError, match="contradicts"):
-        captures.load_folder(folder, load=True, gray=True, color=True)
-    c = captures.Capture(images=new.images)
-    with pytest.warns(DeprecationWarning):
-        captures.prepare(c, gray=True, vignetting=None)
 
 
 def test_natural_key_orders_numbers_by_value_and_breaks_ties() -> None:

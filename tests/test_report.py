@@ -13,7 +13,7 @@ import pytest
 
 import nplps
 from nplps import cli, report, views
-from nplps.evaluation import held_out
+from nplps.evaluation import held_out, reading
 
 SECTIONS = (
     "inputs",
@@ -258,3 +258,20 @@ def test_repr_html_is_compact(result: nplps.Reconstruction) -> None:
     assert len(text) < 200_000
     assert "512 x 512" in text and text.count("<img") == 2
     assert "\n" not in repr(big)
+
+
+# --------------------------------------------------------------------------------------------------
+# the reading of a held-out comparison
+# --------------------------------------------------------------------------------------------------
+
+
+def test_reading_names_the_better_model_and_by_how_much():
+    text = reading((0.02, 0.01), (0.05, 0.04))
+    assert "\n" not in text
+    assert text.startswith("reading: the near-light model (nplps) predicts the held-out images better")
+    assert "mean shape error 0.01 vs 0.04 (4.0x lower)" in text and "mean relative error 0.02 vs 0.05" in text
+    text = reading((0.05, 0.06), (0.05, 0.03))
+    assert text.startswith("reading: the parallel-light baseline predicts") and "(2.0x lower)" in text
+    assert "(25x lower)" in reading((0.1, 0.002), (0.1, 0.05))
+    assert "about equally well" in reading((0.05, 0.0410), (0.05, 0.0400))
+    assert "no comparison" in reading((float("nan"), 0.01), (0.05, 0.04))

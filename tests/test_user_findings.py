@@ -21,6 +21,7 @@ import pytest
 import nplps
 import nplps.calibrate as cal
 import nplps.export
+from nplps import synth_calibration as scenes
 from nplps.captures import load_diligent
 from nplps.cli import main
 from nplps.evaluation import reading
@@ -63,7 +64,7 @@ def test_predict_under_a_two_light_rig() -> None:
 
 
 def test_one_light_calibration_spheres_then_board(tmp_path: Path) -> None:
-    scene = cal.make_sphere_scene("orthographic", n=160, lights=[3], radius=25, seed=0)
+    scene = scenes.make_sphere_scene("orthographic", n=160, lights=[3], radius=25, seed=0)
     spheres = cal.calibrate_spheres(
         scene.images, scene.rig, scene.radius, masks=scene.masks, center_depth=scene.center_depths
     )
@@ -73,7 +74,7 @@ def test_one_light_calibration_spheres_then_board(tmp_path: Path) -> None:
     assert error < 0.03 * np.linalg.norm(scene.rig.positions[0]), error
     spheres.save(tmp_path / "rig.json")
     assert nplps.Rig.load(tmp_path / "rig.json").n_lights == 1
-    board = cal.make_board_scene(rig, n=160, distance=scene.distance)
+    board = scenes.make_board_scene(rig, n=160, distance=scene.distance)
     intensities = cal.calibrate_intensities(board.images, rig, board.plane)
     # One light: the relative intensity is 1 (geometric mean 1), the fit is exact.
     np.testing.assert_allclose(intensities.intensities, [[1.0]])
@@ -86,12 +87,12 @@ def test_one_light_calibration_spheres_then_board(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def spheres_40px() -> cal.SphereScene:
+def spheres_40px() -> scenes.SphereScene:
     # radius 25 at 160 pixels for 100 units: 40 px, the size the docs ask for.
-    return cal.make_sphere_scene("orthographic", n=160, lights=8, radius=25, seed=0)
+    return scenes.make_sphere_scene("orthographic", n=160, lights=8, radius=25, seed=0)
 
 
-def test_placement_given_twice_is_named_in_a_warning(spheres_40px: cal.SphereScene) -> None:
+def test_placement_given_twice_is_named_in_a_warning(spheres_40px: scenes.SphereScene) -> None:
     s = spheres_40px
     twice = cal.calibrate_spheres(
         [s.images[0], s.images[0]], s.rig, s.radius, masks=[s.masks[0]] * 2, center_depth=[s.center_depths[0]] * 2
@@ -108,7 +109,7 @@ def test_placement_given_twice_is_named_in_a_warning(spheres_40px: cal.SphereSce
 
 def test_small_spheres_are_named_with_their_measured_radius() -> None:
     # radius 15 at 160 pixels: 24 px in the images.
-    s = cal.make_sphere_scene("orthographic", n=160, lights=8, radius=15, seed=0)
+    s = scenes.make_sphere_scene("orthographic", n=160, lights=8, radius=15, seed=0)
     result = cal.calibrate_spheres(s.images, s.rig, s.radius, masks=s.masks, center_depth=s.center_depths)
     small = [w for w in result.warnings if "pixels in radius" in w]
     assert len(small) == 1, result.warnings
@@ -118,7 +119,7 @@ def test_small_spheres_are_named_with_their_measured_radius() -> None:
     assert "40" in small[0]
 
 
-def test_cli_prints_the_placement_warning(tmp_path: Path, spheres_40px: cal.SphereScene) -> None:
+def test_cli_prints_the_placement_warning(tmp_path: Path, spheres_40px: scenes.SphereScene) -> None:
     spheres_40px.save(tmp_path / "cal")
     p0 = tmp_path / "cal" / "placement_0"
     depth = ",".join(f"{z:g}" for z in spheres_40px.center_depths[0])

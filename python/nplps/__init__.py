@@ -28,22 +28,86 @@ The public names, by layer:
   :mod:`~nplps.types` (the ``Literal`` aliases of the string options, such as ``Status``).
 """
 
-from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, report, types, viewer, views
-from ._core import __version__
-from .api import reconstruct, reconstruct_parallel, render
-from .calibrate import (
-    IntensityCalibration,
-    LightReport,
-    SphereCalibration,
-    SphereReport,
-    calibrate_intensities,
-    calibrate_spheres,
-)
+from typing import TYPE_CHECKING, Any
+
 from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError, RigError, SolverError
-from .evaluation import HeldOut
-from .reconstruction import DistanceCheck, DistanceEstimate, Iteration, LightRefinement, Reconstruction, light_changes
-from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid
-from .synth import Scene, make_scene
+
+# The other public names are imported when first used (PEP 562), so that ``import nplps`` does
+# not import numpy (through the native core), imageio and tifffile for a caller that needs only a part of the package:
+# the name -> the submodule that defines it.
+_LAZY = {
+    "__version__": "_core",
+    "reconstruct": "api",
+    "reconstruct_parallel": "api",
+    "render": "api",
+    "IntensityCalibration": "calibrate",
+    "LightReport": "calibrate",
+    "SphereCalibration": "calibrate",
+    "SphereReport": "calibrate",
+    "calibrate_intensities": "calibrate",
+    "calibrate_spheres": "calibrate",
+    "HeldOut": "evaluation",
+    "DistanceCheck": "reconstruction",
+    "DistanceEstimate": "reconstruction",
+    "Iteration": "reconstruction",
+    "LightRefinement": "reconstruction",
+    "Reconstruction": "reconstruction",
+    "light_changes": "reconstruction",
+    "LED": "rig",
+    "DirectionalLight": "rig",
+    "PointLight": "rig",
+    "Rig": "rig",
+    "RigGrid": "rig",
+    "Scene": "synth",
+    "make_scene": "synth",
+}
+
+if TYPE_CHECKING:
+    from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, report, types, viewer, views
+    from ._core import __version__
+    from .api import reconstruct, reconstruct_parallel, render
+    from .calibrate import (
+        IntensityCalibration,
+        LightReport,
+        SphereCalibration,
+        SphereReport,
+        calibrate_intensities,
+        calibrate_spheres,
+    )
+    from .evaluation import HeldOut
+    from .reconstruction import (
+        DistanceCheck,
+        DistanceEstimate,
+        Iteration,
+        LightRefinement,
+        Reconstruction,
+        light_changes,
+    )
+    from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid
+    from .synth import Scene, make_scene
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name's submodule (or a submodule) when it is first used."""
+    import importlib
+
+    module = _LAZY.get(name)
+    if module is not None:
+        value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+        globals()[name] = value
+        return value
+    if not name.startswith("_"):
+        try:
+            return importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "LED",

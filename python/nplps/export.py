@@ -21,21 +21,34 @@ from __future__ import annotations
 import json
 import os
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
-from typing import IO, Any, TypeAlias
+from typing import IO, TYPE_CHECKING, Any, TypeAlias
 
 import imageio.v3 as iio
 import numpy as np
 import tifffile
 
-from ._atomic import atomic_path, atomic_write
+from . import plots, views
+from ._atomic import atomic_path, atomic_write, write_text
+from ._held_out import HeldOut, reading
+from ._outdir import jsonable
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from ._outdir import ResultDirectory
+    from .reconstruction import Reconstruction
 
 __all__ = [
     "EXTRA_FORMATS",
+    "FORMATS",
+    "OutputFormat",
+    "check_formats",
+    "formats_help",
     "normal_map_pixels",
     "read_ply",
     "save_albedo",
@@ -53,6 +66,7 @@ __all__ = [
     "write_png8",
     "write_png16",
     "write_point_cloud",
+    "write_result",
     "write_stl",
 ]
 
@@ -346,21 +360,34 @@ def write_meshes(
     --------
     write_ply, write_obj, write_stl, write_glb, write_point_cloud
     """
+    extra = {"stl": stl_path, "glb": glb_path, "points": points_path}
+    _write_meshes(ply_path, obj_path, vertices, mask, normals, albedo, opengl, extra)
+
+
+def _write_meshes(
+    ply_path: PathLike | None,
+    obj_path: PathLike | None,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray | None,
+    albedo: np.ndarray | None,
+    opengl: bool,
+    extra: Mapping[str, PathLike | None],
+) -> None:
+    """:func:`write_meshes` with the extra mesh formats by their :data:`FORMATS` name."""
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
-    float32 = (("PLY", ply_path), ("STL", stl_path), ("GLB", glb_path), ("PLY", points_path))
+    targets = [(f, extra.get(f.name)) for f in FORMATS.values() if f.mesh is not None]
+    float32 = [("PLY", ply_path)] + [(f.mesh, target) for f, target in targets]
     for fmt, target in float32:  # before any file is written
-        if target is not None:
+        if fmt is not None and target is not None:
             _require_float32(mesh, fmt, target)
     if ply_path is not None:
         _write_ply_mesh(ply_path, mesh)
     if obj_path is not None:
         _write_obj_mesh(obj_path, mesh)
-    if stl_path is not None:
-        _write_stl_mesh(stl_path, mesh)
-    if glb_path is not None:
-        _write_glb_mesh(glb_path, mesh)
-    if points_path is not None:
-        _write_points_mesh(points_path, mesh)
+    for f, target in targets:
+        if target is not None:
+            f.write(target, mesh)
 
 
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
@@ -635,15 +662,6 @@ def _write_text(file: IO[bytes], jobs: Iterator[Callable[[], bytes]]) -> None:
 # STL, glTF binary (GLB) and point clouds
 # --------------------------------------------------------------------------------------------------
 
-#: The optional output formats of :meth:`nplps.Reconstruction.save` (``formats=``) and
-#: ``nplps reconstruct --formats``: file name (``{stem}`` is the mesh's stem) by format.
-EXTRA_FORMATS: dict[str, str] = {
-    "stl": "{stem}.stl",
-    "glb": "{stem}.glb",
-    "points": "points.ply",
-    "normals_tiff": "normals.tiff",
-}
-
 _STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
 _GLB_MAGIC, _GLB_VERSION = 0x46546C67, 2  # b"glTF"
 _GLB_JSON, _GLB_BIN = 0x4E4F534A, 0x004E4942  # b"JSON", b"BIN\0"
@@ -871,6 +889,71 @@ def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
     with atomic_write(path) as file:
         file.write(_ply_header(mesh, faces=False).encode("ascii"))
         file.write(_ply_vertex_records(mesh).view(np.uint8).data)
+
+
+@dataclass(frozen=True)
+class OutputFormat:
+    """An optional output format of ``Reconstruction.save`` and ``--formats`` (an entry of :data:`FORMATS`).
+
+    Attributes
+    ----------
+    name : str
+        The format's name in ``formats=`` and ``--formats``.
+    file : str
+        The file written in the result directory (``{stem}`` is the mesh's stem).
+    help : str
+        What the file holds, for ``--formats``'s help text.
+    write : callable
+        ``write(path, data)``: the writer; `data` is the mesh built once for all mesh formats
+        (`mesh` set) or the result's :attr:`~nplps.Reconstruction.normals` (`mesh` None).
+    mesh : str or None
+        The name of a mesh format in the message that refuses positions beyond float32 (None:
+        not written from the mesh).
+    """
+
+    name: str
+    file: str
+    help: str
+    write: Callable[[PathLike, Any], None]
+    mesh: str | None = None
+
+
+#: The optional output formats by name (one declaration each: file, writer and help).
+FORMATS: dict[str, OutputFormat] = {
+    f.name: f
+    for f in (
+        OutputFormat("stl", "{stem}.stl", "", _write_stl_mesh, mesh="STL"),
+        OutputFormat(
+            "glb", "{stem}.glb", "glTF 2.0 binary; use --opengl for y-up viewers", _write_glb_mesh, mesh="GLB"
+        ),
+        OutputFormat("points", "points.ply", "a point cloud with normals and colours", _write_points_mesh, mesh="PLY"),
+        OutputFormat("normals_tiff", "normals.tiff", "32-bit float normals", save_normals_tiff),
+    )
+}
+
+#: The optional output formats of :meth:`nplps.Reconstruction.save` (``formats=``) and
+#: ``nplps reconstruct --formats``: file name (``{stem}`` is the mesh's stem) by format
+#: (made from :data:`FORMATS`).
+EXTRA_FORMATS: dict[str, str] = {name: f.file for name, f in FORMATS.items()}
+
+
+def formats_help() -> str:
+    """Return ``--formats``'s list of the formats: ``stl (mesh.stl), glb (mesh.glb, ...), ...``."""
+    return ", ".join(
+        f"{f.name} ({f.file.format(stem='mesh')}{', ' + f.help if f.help else ''})" for f in FORMATS.values()
+    )
+
+
+def check_formats(formats: Iterable[str]) -> list[str]:
+    """Return the extra formats of :meth:`nplps.Reconstruction.save`, checked, without repeats."""
+    if isinstance(formats, str):
+        formats = [formats]
+    chosen = list(dict.fromkeys(formats))
+    unknown = [f for f in chosen if f not in FORMATS]
+    if unknown:
+        known = ", ".join(FORMATS)
+        raise InputError(f"formats: unknown format(s) {', '.join(map(repr, unknown))}; choose from {known}")
+    return chosen
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1280,3 +1363,208 @@ def _depth_array(depth: np.ndarray, dtype: type) -> np.ndarray:
     if depth.ndim != 2:
         raise InputError(f"depth must be a 2-D array, got shape {depth.shape}")
     return depth
+
+
+# --------------------------------------------------------------------------------------------------
+# The result directory (Reconstruction.save) and the small files it writes for the report
+# --------------------------------------------------------------------------------------------------
+
+
+_HISTORY_HEADER = "level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change"
+
+
+def history_csv(history: Sequence[Any]) -> str:
+    """Return the convergence history as CSV text (``history.csv``).
+
+    Parameters
+    ----------
+    history : sequence of Iteration
+        ``Reconstruction.history``.
+
+    Returns
+    -------
+    str
+        A header ``level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change``
+        and one row per iteration in the order run, plain numbers (``numpy.loadtxt(path,
+        delimiter=",", skiprows=1, ndmin=2)`` reads it).
+    """
+    rows = [
+        f"{h.level},{h.iteration},{float(h.depth_change)!r},{float(h.rms_residual)!r},{float(h.elapsed)!r},"
+        f"{h.inner_iterations},{float(h.light_change)!r}"
+        for h in history
+    ]
+    return _HISTORY_HEADER + "\n" + "".join(r + "\n" for r in rows)
+
+
+def contact_sheet(images: np.ndarray, *, max_side: int | None = None, columns: int | None = None) -> np.ndarray:
+    """Return a contact sheet of an image stack: small copies in a grid, row by row in light order.
+
+    Each image is shrunk by block means; all share one brightness scale (the 99.5th percentile
+    of the stack maps to white) and a display gamma of 1/2.2, so their relative brightness shows.
+
+    Parameters
+    ----------
+    images : numpy.ndarray
+        (k, H, W) or (k, H, W, 3) images.
+    max_side : int, optional
+        Longest side of each copy (default 128 for up to 16 images, else 72).
+    columns : int, optional
+        Copies per row (default about the square root of k, at most 12).
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows, cols, 3) uint8 RGB, 2-pixel white gaps.
+
+    Raises
+    ------
+    InputError
+        `images` is not a stack of images.
+    """
+    stack = np.asarray(images)
+    if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3) or len(stack) == 0:
+        raise InputError(f"images must be a (k, H, W) or (k, H, W, 3) stack, got shape {stack.shape}")
+    k = len(stack)
+    side = max_side or (128 if k <= 16 else 72)
+    small = [views.downsample(np.asarray(im, dtype=np.float32), side) for im in stack]
+    sample = np.concatenate([np.asarray(s, dtype=np.float64).ravel()[::7] for s in small])
+    finite = sample[np.isfinite(sample)]
+    top = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    top = top if top > 0 else 1.0
+    cols = columns or min(12, int(np.ceil(np.sqrt(k))))
+    rows = int(np.ceil(k / cols))
+    th, tw = small[0].shape[:2]
+    gap = 2
+    sheet = np.full((rows * (th + gap) - gap, cols * (tw + gap) - gap, 3), 255, dtype=np.uint8)
+    for i, s in enumerate(small):
+        v = np.clip(np.nan_to_num(np.asarray(s, dtype=np.float64) / top), 0.0, 1.0) ** (1 / 2.2)
+        rgb = np.rint(v * 255).astype(np.uint8)
+        rgb = rgb if rgb.ndim == 3 else np.repeat(rgb[..., None], 3, axis=2)
+        r, c = divmod(i, cols)
+        sheet[r * (th + gap) : r * (th + gap) + th, c * (tw + gap) : c * (tw + gap) + tw] = rgb
+    return sheet
+
+
+def held_out_record(near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None) -> dict[str, Any]:
+    """Return the held-out evaluation as the JSON-ready dict of ``held_out.json``.
+
+    Parameters
+    ----------
+    near : sequence of HeldOut
+        :func:`nplps.evaluation.held_out` of the near-light method.
+    parallel : sequence of HeldOut, optional
+        The same lights left out with ``method="parallel"``, for the comparison.
+
+    Returns
+    -------
+    dict
+        ``{"lights": [...], "near": [[relative_error, shape_error, gain], ...], "parallel": [...]
+        or None, "reading": str}``; the reading is :func:`nplps.evaluation.reading` of the means.
+    """
+
+    def rows(items: Sequence[HeldOut]) -> list[list[float | None]]:
+        return [[_num(h.relative_error), _num(h.shape_error), _num(h.gain)] for h in items]
+
+    if parallel is not None:
+        means = [
+            tuple(float(np.mean([getattr(h, a) for h in m])) for a in ("relative_error", "shape_error"))
+            for m in (near, parallel)
+        ]
+        text = reading(means[0], means[1])  # type: ignore[arg-type]
+    else:
+        text = "reading: no parallel-light baseline was evaluated, so there is nothing to compare with."
+    return {
+        "lights": [int(h.light) for h in near],
+        "near": rows(near),
+        "parallel": None if parallel is None else rows(parallel),
+        "reading": text,
+    }
+
+
+def _num(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def write_result(
+    result: Reconstruction,
+    out: ResultDirectory,
+    *,
+    stem: str,
+    opengl: bool,
+    formats: Sequence[str],
+    inputs: np.ndarray | None,
+    options: dict[str, Any] | None,
+    held_out: tuple[Sequence[HeldOut], Sequence[HeldOut] | None] | None,
+) -> dict[str, Path]:
+    """Write a result's files into a result directory (the body of :meth:`nplps.Reconstruction.save`).
+
+    `formats` are checked names (:func:`check_formats`), `stem` a checked file name; the other
+    arguments are :meth:`~nplps.Reconstruction.save`'s. Returns the paths written by kind; the
+    report (written from these files) is the caller's.
+    """
+    names = {
+        "ply": f"{stem}.ply",
+        "obj": f"{stem}.obj",
+        "normal_map": "normals.png",
+        "shaded": "shaded.png",
+        "albedo": "albedo.png",
+        "depth_npy": "depth.npy",
+        "depth_tiff": "depth.tiff",
+        "normals_npy": "normals.npy",
+        "residual_npy": "residual.npy",
+    }
+    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats})
+    if result.distance is not None:
+        names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
+    if result.refinement is not None:
+        names["rig_refined"] = "rig_refined.json"
+    names.update(mask="mask.png", lights_used="lights_used.npy", history="history.csv", rig="rig.json")
+    if inputs is not None:
+        names["inputs"] = "inputs.png"
+    if held_out is not None:
+        names["held_out"] = "held_out.json"
+    names["summary"] = "summary.json"
+    paths = {key: out.file(name) for key, name in names.items()}
+    # One set of vertex arrays and one mesh for both files and the extra mesh formats.
+    mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None}
+    _write_meshes(
+        paths["ply"],
+        paths["obj"],
+        result.vertices,
+        result.mask,
+        result.vertex_normals(),
+        result.vertex_albedo(),
+        opengl,
+        mesh_formats,
+    )
+    save_normal_map(paths["normal_map"], result.normals, mask=result.mask)
+    for name in formats:
+        if FORMATS[name].mesh is None:
+            FORMATS[name].write(paths[name], result.normals)
+    save_grey_png(paths["shaded"], result.shaded())
+    summary = result.summary()
+    summary["albedo_png_scale"] = save_albedo(paths["albedo"], result.albedo)
+    save_depth_npy(paths["depth_npy"], result.depth)
+    save_depth_tiff(paths["depth_tiff"], result.depth)
+    save_npy(paths["normals_npy"], result.normals)
+    save_npy(paths["residual_npy"], result.residual)
+    if result.distance is not None:
+        result.distance.save_curve(paths["distance_curve"])
+        plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
+    if result.refinement is not None:
+        result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig_refined"])
+    save_grey_png(paths["mask"], result.mask.astype(np.float64))
+    save_npy(paths["lights_used"], np.minimum(result.lights_used, 65535).astype(np.uint16))
+    write_text(paths["history"], history_csv(result.history))
+    # The rig records the image size it belongs to (and its binning): reused on images of
+    # another size it is refused with both sizes named (see nplps.rig.RigGrid).
+    result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig"])
+    if inputs is not None:
+        write_png8(paths["inputs"], contact_sheet(inputs))
+    if held_out is not None:
+        record = held_out_record(held_out[0], held_out[1])
+        write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
+    if options is not None:
+        summary["options"] = jsonable(options)
+    write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
+    return paths

@@ -57,8 +57,7 @@ its values came from and keeps its defaults (0 and no saturation for floating-po
 
 One keyword names the choice everywhere in the Python API: ``color`` -- None (keep what the
 images are: RGB images give an RGB albedo), True (require RGB) or False (average to grey). The
-command line's ``--gray`` is ``color=False``. The loaders' former ``gray=`` keyword still works
-with a :class:`DeprecationWarning`.
+command line's ``--gray`` is ``color=False``.
 """
 
 from __future__ import annotations

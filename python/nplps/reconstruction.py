@@ -10,31 +10,29 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from . import _core, export, plots
+from . import _core, export
 from . import report as report_module
 from ._atomic import write_text
 from ._checks import _check_rig, _light_indices
-from ._outdir import jsonable as _jsonable
 from ._outdir import result_directory
 from .errors import InputError
 from .rig import Rig, _select_core_lights
+from .types import Iteration
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from .evaluation import HeldOut
+    from ._held_out import HeldOut
     from .types import Method, RefineLights, Status
 
 __all__ = [
@@ -149,56 +147,6 @@ class DistanceCheck:
             "side": self.side,
             "looks_wrong": self.looks_wrong,
         }
-
-
-class Iteration(NamedTuple):
-    """What one local/global iteration did (``result.history``, the ``progress`` callback).
-
-    Attributes
-    ----------
-    iteration : int
-        The iteration's number (from 1, per pyramid level).
-    depth_change : float
-        Largest vertex depth change of the iteration (scene units).
-    rms_residual : float
-        RMS image residual over all usable observations (image units).
-    elapsed : float
-        Seconds since the solver started.
-    level : int
-        Coarse-to-fine pyramid level (0: full resolution; level l has 2**l times fewer pixels per
-        side).
-    inner_iterations : int
-        Conjugate-gradient iterations of the global step (0 for the direct solver).
-    light_change : float
-        Largest relative change of a light parameter in the iteration's light step
-        (``refine_lights``; 0 otherwise): ``|dPhi| / Phi`` or ``|dp| / D``.
-    candidate : int
-        0 for the reconstruction's own iterations (the ones in ``result.history``); with
-        ``depth="auto"``, the 1-based number of the candidate distance this iteration of the
-        distance search evaluates (these iterations reach only the ``progress`` callback).
-    candidates : int
-        How many candidates the distance search evaluates (0 outside it).
-    distance : float
-        The candidate's distance (the rig's unit; the mean over regions), NaN outside the search.
-    candidate_residual : float
-        The candidate's RMS photometric residual, on its last iteration only (NaN otherwise).
-    best_distance, best_residual : float
-        The evaluated candidate of lowest residual so far and its residual (NaN before the first).
-    """
-
-    iteration: int
-    depth_change: float
-    rms_residual: float
-    elapsed: float
-    level: int = 0
-    inner_iterations: int = 0
-    light_change: float = 0.0
-    candidate: int = 0
-    candidates: int = 0
-    distance: float = math.nan
-    candidate_residual: float = math.nan
-    best_distance: float = math.nan
-    best_residual: float = math.nan
 
 
 @dataclass
@@ -476,22 +424,6 @@ class Reconstruction:
         n = _core.mesh_normals(self.depth, self.rig.camera)
         n[~self.mask] = np.nan
         return n
-
-    @property
-    def mesh_normals(self) -> np.ndarray:
-        """Deprecated alias of :attr:`normals` (the mesh's facet normals).
-
-        .. deprecated:: after 0.1.0
-            ``normals`` are the mesh normals now (NaN outside the mask, also in holes whose
-            corners are on the mesh); the per-pixel fits are ``fit_normals``.
-        """
-        warnings.warn(
-            "Reconstruction.mesh_normals is deprecated: the mesh's normals are now Reconstruction.normals "
-            "(and the per-pixel fits Reconstruction.fit_normals)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.normals
 
     @property
     def unfitted(self) -> int:
@@ -818,7 +750,7 @@ class Reconstruction:
             this one does not have (listed in its manifest); other files are kept.
         formats : iterable of str, default ()
             Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"`` and
-            ``"normals_tiff"`` (:data:`nplps.export.EXTRA_FORMATS`); `opengl` applies to the
+            ``"normals_tiff"`` (:data:`nplps.export.FORMATS`); `opengl` applies to the
             mesh and point formats.
         report : bool, default False
             Also write ``report.html``, the self-contained report of the result
@@ -853,91 +785,17 @@ class Reconstruction:
         Each file is written under a temporary name and renamed when complete, so an error never
         leaves a truncated file under its final name.
         """
-        extra = _check_formats(formats)
+        extra = export.check_formats(formats)
         if not isinstance(stem, str) or not stem or stem in (".", "..") or any(c in stem for c in "/\\\0"):
             raise InputError(f"stem must be a file name without a directory (it names mesh files), got {stem!r}")
         with result_directory(directory, overwrite) as out:
-            names = {
-                "ply": f"{stem}.ply",
-                "obj": f"{stem}.obj",
-                "normal_map": "normals.png",
-                "shaded": "shaded.png",
-                "albedo": "albedo.png",
-                "depth_npy": "depth.npy",
-                "depth_tiff": "depth.tiff",
-                "normals_npy": "normals.npy",
-                "residual_npy": "residual.npy",
-            }
-            names.update({name: export.EXTRA_FORMATS[name].format(stem=stem) for name in extra})
-            if self.distance is not None:
-                names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
-            if self.refinement is not None:
-                names["rig_refined"] = "rig_refined.json"
-            names.update(mask="mask.png", lights_used="lights_used.npy", history="history.csv", rig="rig.json")
-            if inputs is not None:
-                names["inputs"] = "inputs.png"
-            if held_out is not None:
-                names["held_out"] = "held_out.json"
-            names["summary"] = "summary.json"
-            paths = {key: out.file(name) for key, name in names.items()}
-            # One set of vertex arrays and one mesh for both files.
-            export.write_meshes(
-                paths["ply"],
-                paths["obj"],
-                self.vertices,
-                self.mask,
-                normals=self.vertex_normals(),
-                albedo=self.vertex_albedo(),
-                opengl=opengl,
-                stl_path=paths.get("stl"),
-                glb_path=paths.get("glb"),
-                points_path=paths.get("points"),
+            paths = export.write_result(
+                self, out, stem=stem, opengl=opengl, formats=extra, inputs=inputs, options=options, held_out=held_out
             )
-            export.save_normal_map(paths["normal_map"], self.normals, mask=self.mask)
-            if "normals_tiff" in paths:
-                export.save_normals_tiff(paths["normals_tiff"], self.normals)
-            export.save_grey_png(paths["shaded"], self.shaded())
-            summary = self.summary()
-            summary["albedo_png_scale"] = export.save_albedo(paths["albedo"], self.albedo)
-            export.save_depth_npy(paths["depth_npy"], self.depth)
-            export.save_depth_tiff(paths["depth_tiff"], self.depth)
-            export.save_npy(paths["normals_npy"], self.normals)
-            export.save_npy(paths["residual_npy"], self.residual)
-            if self.distance is not None:
-                self.distance.save_curve(paths["distance_curve"])
-                plots.residual_curve_svg(self.distance.curve, list(self.distance.distance), paths["distance_plot"])
-            if self.refinement is not None:
-                self.rig.with_grid(self.shape[1], self.shape[0]).save(paths["rig_refined"])
-            export.save_grey_png(paths["mask"], self.mask.astype(np.float64))
-            export.save_npy(paths["lights_used"], np.minimum(self.lights_used, 65535).astype(np.uint16))
-            write_text(paths["history"], report_module.history_csv(self.history))
-            # The rig records the image size it belongs to (and its binning): reused on images of
-            # another size it is refused with both sizes named (see nplps.rig.RigGrid).
-            self.rig.with_grid(self.shape[1], self.shape[0]).save(paths["rig"])
-            if inputs is not None:
-                export.write_png8(paths["inputs"], report_module.contact_sheet(inputs))
-            if held_out is not None:
-                record = report_module.held_out_record(held_out[0], held_out[1])
-                write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
-            if options is not None:
-                summary["options"] = _jsonable(options)
-            write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
             if report:
                 paths["report"] = out.file(report_module.REPORT_NAME)
                 report_module.write_report(out.path, path=paths["report"])
         return paths
-
-
-def _check_formats(formats: Iterable[str]) -> list[str]:
-    """Return the extra formats of :meth:`Reconstruction.save`, checked, without repeats."""
-    if isinstance(formats, str):
-        formats = [formats]
-    chosen = list(dict.fromkeys(formats))
-    unknown = [f for f in chosen if f not in export.EXTRA_FORMATS]
-    if unknown:
-        known = ", ".join(export.EXTRA_FORMATS)
-        raise InputError(f"formats: unknown format(s) {', '.join(map(repr, unknown))}; choose from {known}")
-    return chosen
 
 
 def _refinement(d: dict[str, Any] | None) -> LightRefinement | None:

@@ -44,9 +44,10 @@ from . import _core, _results, export, plots, views
 from ._atomic import write_text
 from ._outdir import add_to_manifest
 from .errors import InputError
+from .export import contact_sheet, held_out_record, history_csv
 
 if TYPE_CHECKING:
-    from .evaluation import HeldOut
+    from ._held_out import HeldOut
     from .reconstruction import Reconstruction
 
 __all__ = [
@@ -86,8 +87,6 @@ _NPY_FILES: dict[str, tuple[str, tuple[int, ...]]] = {
     "lights_used.npy": ("iu", ()),
 }
 
-_HISTORY_HEADER = "level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change"
-
 _STYLE = """
 body{font-family:sans-serif;margin:1.5em;color:#222;max-width:1400px}
 h1{font-size:1.4em}h2{font-size:1.15em;border-bottom:1px solid #ccc;margin-top:1.6em}
@@ -97,124 +96,6 @@ figcaption{display:table-caption;caption-side:bottom;font-size:.9em;color:#555}
 img{image-rendering:pixelated;max-width:100%;border:1px solid #ccc}.none{color:#777;font-style:italic}
 code{font-size:.9em;word-break:break-all}
 """
-
-
-# --------------------------------------------------------------------------------------------------
-# Small files that save() writes for the report
-# --------------------------------------------------------------------------------------------------
-
-
-def history_csv(history: Sequence[Any]) -> str:
-    """Return the convergence history as CSV text (``history.csv``).
-
-    Parameters
-    ----------
-    history : sequence of Iteration
-        ``Reconstruction.history``.
-
-    Returns
-    -------
-    str
-        A header ``level,iteration,depth_change,rms_residual,elapsed,inner_iterations,light_change``
-        and one row per iteration in the order run, plain numbers (``numpy.loadtxt(path,
-        delimiter=",", skiprows=1, ndmin=2)`` reads it).
-    """
-    rows = [
-        f"{h.level},{h.iteration},{float(h.depth_change)!r},{float(h.rms_residual)!r},{float(h.elapsed)!r},"
-        f"{h.inner_iterations},{float(h.light_change)!r}"
-        for h in history
-    ]
-    return _HISTORY_HEADER + "\n" + "".join(r + "\n" for r in rows)
-
-
-def contact_sheet(images: np.ndarray, *, max_side: int | None = None, columns: int | None = None) -> np.ndarray:
-    """Return a contact sheet of an image stack: small copies in a grid, row by row in light order.
-
-    Each image is shrunk by block means; all share one brightness scale (the 99.5th percentile
-    of the stack maps to white) and a display gamma of 1/2.2, so their relative brightness shows.
-
-    Parameters
-    ----------
-    images : numpy.ndarray
-        (k, H, W) or (k, H, W, 3) images.
-    max_side : int, optional
-        Longest side of each copy (default 128 for up to 16 images, else 72).
-    columns : int, optional
-        Copies per row (default about the square root of k, at most 12).
-
-    Returns
-    -------
-    numpy.ndarray
-        (rows, cols, 3) uint8 RGB, 2-pixel white gaps.
-
-    Raises
-    ------
-    InputError
-        `images` is not a stack of images.
-    """
-    stack = np.asarray(images)
-    if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3) or len(stack) == 0:
-        raise InputError(f"images must be a (k, H, W) or (k, H, W, 3) stack, got shape {stack.shape}")
-    k = len(stack)
-    side = max_side or (128 if k <= 16 else 72)
-    small = [views.downsample(np.asarray(im, dtype=np.float32), side) for im in stack]
-    sample = np.concatenate([np.asarray(s, dtype=np.float64).ravel()[::7] for s in small])
-    finite = sample[np.isfinite(sample)]
-    top = float(np.percentile(finite, 99.5)) if finite.size else 1.0
-    top = top if top > 0 else 1.0
-    cols = columns or min(12, int(np.ceil(np.sqrt(k))))
-    rows = int(np.ceil(k / cols))
-    th, tw = small[0].shape[:2]
-    gap = 2
-    sheet = np.full((rows * (th + gap) - gap, cols * (tw + gap) - gap, 3), 255, dtype=np.uint8)
-    for i, s in enumerate(small):
-        v = np.clip(np.nan_to_num(np.asarray(s, dtype=np.float64) / top), 0.0, 1.0) ** (1 / 2.2)
-        rgb = np.rint(v * 255).astype(np.uint8)
-        rgb = rgb if rgb.ndim == 3 else np.repeat(rgb[..., None], 3, axis=2)
-        r, c = divmod(i, cols)
-        sheet[r * (th + gap) : r * (th + gap) + th, c * (tw + gap) : c * (tw + gap) + tw] = rgb
-    return sheet
-
-
-def held_out_record(near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None) -> dict[str, Any]:
-    """Return the held-out evaluation as the JSON-ready dict of ``held_out.json``.
-
-    Parameters
-    ----------
-    near : sequence of HeldOut
-        :func:`nplps.evaluation.held_out` of the near-light method.
-    parallel : sequence of HeldOut, optional
-        The same lights left out with ``method="parallel"``, for the comparison.
-
-    Returns
-    -------
-    dict
-        ``{"lights": [...], "near": [[relative_error, shape_error, gain], ...], "parallel": [...]
-        or None, "reading": str}``; the reading is :func:`nplps.evaluation.reading` of the means.
-    """
-    from .evaluation import reading
-
-    def rows(items: Sequence[HeldOut]) -> list[list[float | None]]:
-        return [[_num(h.relative_error), _num(h.shape_error), _num(h.gain)] for h in items]
-
-    if parallel is not None:
-        means = [
-            tuple(float(np.mean([getattr(h, a) for h in m])) for a in ("relative_error", "shape_error"))
-            for m in (near, parallel)
-        ]
-        text = reading(means[0], means[1])  # type: ignore[arg-type]
-    else:
-        text = "reading: no parallel-light baseline was evaluated, so there is nothing to compare with."
-    return {
-        "lights": [int(h.light) for h in near],
-        "near": rows(near),
-        "parallel": None if parallel is None else rows(parallel),
-        "reading": text,
-    }
-
-
-def _num(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
 
 
 # --------------------------------------------------------------------------------------------------

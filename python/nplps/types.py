@@ -13,14 +13,12 @@ time a wrong value is an :class:`nplps.InputError` (a ``ValueError``) that names
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal, TypeAlias
+from typing import Any, Literal, NamedTuple, TypeAlias
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from .reconstruction import Iteration
 
 __all__ = [
     "BoardAlbedo",
@@ -69,3 +67,57 @@ Depth: TypeAlias = float | np.ndarray | Literal["auto"]
 #: ``None`` or ``False`` (silent), ``True`` (a line per iteration on stderr) or a callable that
 #: gets an :class:`nplps.Iteration` after every iteration.
 Progress: TypeAlias = bool | Callable[["Iteration"], Any] | None
+
+
+class Iteration(NamedTuple):
+    """What one local/global iteration did (``result.history``, the ``progress`` callback).
+
+    Attributes
+    ----------
+    iteration : int
+        The iteration's number (from 1, per pyramid level).
+    depth_change : float
+        Largest vertex depth change of the iteration (scene units).
+    rms_residual : float
+        RMS image residual over all usable observations (image units).
+    elapsed : float
+        Seconds since the solver started.
+    level : int
+        Coarse-to-fine pyramid level (0: full resolution; level l has 2**l times fewer pixels per
+        side).
+    inner_iterations : int
+        Conjugate-gradient iterations of the global step (0 for the direct solver).
+    light_change : float
+        Largest relative change of a light parameter in the iteration's light step
+        (``refine_lights``; 0 otherwise): ``|dPhi| / Phi`` or ``|dp| / D``.
+    candidate : int
+        0 for the reconstruction's own iterations (the ones in ``result.history``); with
+        ``depth="auto"``, the 1-based number of the candidate distance this iteration of the
+        distance search evaluates (these iterations reach only the ``progress`` callback).
+    candidates : int
+        How many candidates the distance search evaluates (0 outside it).
+    distance : float
+        The candidate's distance (the rig's unit; the mean over regions), NaN outside the search.
+    candidate_residual : float
+        The candidate's RMS photometric residual, on its last iteration only (NaN otherwise).
+    best_distance, best_residual : float
+        The evaluated candidate of lowest residual so far and its residual (NaN before the first).
+    """
+
+    iteration: int
+    depth_change: float
+    rms_residual: float
+    elapsed: float
+    level: int = 0
+    inner_iterations: int = 0
+    light_change: float = 0.0
+    candidate: int = 0
+    candidates: int = 0
+    distance: float = math.nan
+    candidate_residual: float = math.nan
+    best_distance: float = math.nan
+    best_residual: float = math.nan
+
+
+# The public home of Iteration (``nplps.Iteration``): its repr and pickles are as before the move.
+Iteration.__module__ = "nplps.reconstruction"

@@ -24,7 +24,7 @@ The loaders only convert units and frames; radiometric corrections (ambient subt
 vignetting, binning) are :func:`prepare`'s, which runs :func:`nplps.pipeline.prepare` -- the
 command line's pipeline -- and records what ran (``levels``, ``preprocessed``, ``valid``), so
 that ``capture.options()`` gives :func:`nplps.reconstruct` the command line's ``dark`` default
-and saturation flags. Grey or colour is ``color=`` (``gray=`` is deprecated).
+and saturation flags. Grey or colour is ``color=``.
 ``scipy`` is needed for MATLAB files (it is imported on first use).
 
 The light intensities are part of the rig: :meth:`Capture.rig` builds the lights with

@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import pipeline
 from ..errors import InputError
-from .files import _check_indices, _color_arg, _read_float, _read_stack
+from .files import _check_indices, _read_float, _read_stack
 
 if TYPE_CHECKING:
     from ..rig import Rig
@@ -131,7 +131,7 @@ class Capture:
         """
         return {"mask": self.mask, "dark": self.dark, "valid": self.valid}
 
-    def load(self, *, color: bool | None = None, gray: bool | None = None) -> Capture:
+    def load(self, *, color: bool | None = None) -> Capture:
         """Return a copy whose ``images`` (and ``ambient``) are float32 arrays.
 
         Files are read with :func:`nplps.io.load_stack` (16-bit PNG keeps 16 bits; integers
@@ -139,10 +139,8 @@ class Capture:
         must already be linear). ``color=False`` averages the colour channels
         (:func:`nplps.pipeline.to_gray`), giving ``(k, H, W)``; ``color=True`` requires RGB;
         None keeps what the files are. An already loaded capture is returned as a copy
-        (converted to grey if asked). ``gray=True`` is the deprecated spelling of
-        ``color=False``.
+        (converted to grey if asked).
         """
-        color = _color_arg(color, gray, "Capture.load")
         images = self.images
         levels = self.levels
         if not isinstance(images, np.ndarray):
@@ -217,7 +215,6 @@ def prepare(
     color: bool | None = None,
     saturation: float | None = None,
     overwrite: bool = False,
-    gray: bool | None = None,
 ) -> Capture:
     """Apply the usual pre-processing of a near-light capture, as the near_ps authors do it.
 
@@ -235,9 +232,7 @@ def prepare(
     Images read from files are corrected in place. A float32 stack in ``capture.images`` is
     copied once by the first correction, unless ``overwrite=True`` hands it over to be
     corrected in place (no copy; the caller's array then holds the corrected values).
-    ``gray=True`` is the deprecated spelling of ``color=False``.
     """
-    color = _color_arg(color, gray, "prepare")
     c = capture.load()
     given = capture.images
     # Images read here (not the caller's array) are corrected in place.

@@ -11,7 +11,7 @@ from .. import preprocess
 from ..errors import InputError
 from ..io import PathLike
 from .capture import Capture
-from .files import _check_folder, _check_indices, _color_arg, _read_mask, _read_stack, _resolve
+from .files import _check_folder, _check_indices, _read_mask, _read_stack, _resolve
 from .matlab import _loadmat, _mat_var
 
 
@@ -65,7 +65,6 @@ def load_diligent(
     *,
     load: bool = False,
     color: bool | None = None,
-    gray: bool | None = None,
     lights: Sequence[int] | None = None,
     normals: bool = True,
     K: np.ndarray | None = None,
@@ -97,8 +96,6 @@ def load_diligent(
     color : bool | None, optional
         None (keep RGB), True (require RGB) or False: average the channels of loaded
         images (:func:`nplps.pipeline.to_gray`) and of the intensities.
-    gray : bool | None, optional
-        Deprecated spelling of ``color=False`` (``gray=True``).
     lights : Sequence[int] | None, optional
         A subset of the images/lights (0-based indices), e.g. ``range(0, 96, 8)``.
     normals : bool, optional
@@ -107,7 +104,6 @@ def load_diligent(
         An optional pinhole matrix (0-based) to attach; DiLiGenT itself gives none
         (an orthographic set-up is assumed). See :func:`load_matlab_intrinsics`.
     """
-    color = _color_arg(color, gray, "load_diligent")
     root = _diligent_folder(_check_folder(folder))
     names_path = root / "filenames.txt"
     names = [line.strip() for line in _read_names(names_path).splitlines() if line.strip()]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TypeAlias
@@ -101,25 +100,6 @@ def _read_stack(files: Sequence[PathLike], color: bool | None) -> tuple[np.ndarr
     """
     stack, levels = load_stack([os.fspath(f) for f in files], color=color is not False)
     return select_color(stack, color)[0], levels
-
-
-def _color_arg(color: bool | None, gray: bool | None, where: str, default: bool | None = None) -> bool | None:
-    """Return the colour choice of a loader from ``color`` and the deprecated ``gray`` keyword.
-
-    The default of ``color`` is ``default``; ``gray=True`` is ``color=False``, ``gray=False`` is
-    ``color=None``.
-    """
-    if gray is None:
-        return color
-    warnings.warn(
-        f"{where}: gray= is deprecated, use color=False (average to grey) or color=None (keep colour)",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-    wanted = False if gray else None
-    if color is not default and color is not wanted:
-        raise InputError(f"{where}: gray={gray!r} contradicts color={color!r}; give color only")
-    return wanted
 
 
 def _read_mask(path: Path) -> np.ndarray:

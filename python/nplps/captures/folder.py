@@ -9,7 +9,7 @@ import numpy as np
 from ..errors import RigError
 from ..io import PathLike
 from .capture import Capture
-from .files import _AUTO, MaskSpec, _ambient_arg, _check_folder, _color_arg, _image_list, _mask_arg
+from .files import _AUTO, MaskSpec, _ambient_arg, _check_folder, _image_list, _mask_arg
 
 
 def load_folder(
@@ -20,7 +20,6 @@ def load_folder(
     ambient: PathLike | np.ndarray | str | None = _AUTO,
     load: bool = False,
     color: bool | None = None,
-    gray: bool | None = None,
 ) -> Capture:
     """Load a plain capture folder: ``rig.json``, images, optional mask and ambient image.
 
@@ -34,9 +33,8 @@ def load_folder(
     * ambient: ``"auto"`` = the unique image file with "ambient" in its name, or None.
 
     ``load=True`` returns the images (and ambient) as float32 arrays via :meth:`Capture.load`
-    (``color=False``: averaged to grey; ``gray=True`` is its deprecated spelling).
+    (``color=False``: averaged to grey).
     """
-    color = _color_arg(color, gray, "load_folder")
     folder = _check_folder(folder)
     rig_path = Path(rig) if Path(rig).is_absolute() else folder / rig
     if not rig_path.is_file():

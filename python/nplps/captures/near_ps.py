@@ -19,7 +19,6 @@ from .files import (
     _ambient_arg,
     _check_folder,
     _check_indices,
-    _color_arg,
     _image_list,
     _mask_arg,
     _read_mask,
@@ -83,7 +82,6 @@ def load_near_ps(
     grid_shape: tuple[int, int] | None = None,
     grid_offset: tuple[int, int] = (0, 0),
     color: bool | None = None,
-    gray: bool | None = None,
     name: str | None = None,
     notes: str = "",
     progress: LoadProgress | None = None,
@@ -118,7 +116,7 @@ def load_near_ps(
     ``color=False``, ``bin_factor != 1`` or ``grid_shape`` -- reads them into a float32 stack,
     each image going through: :func:`nplps.io.to_float` (integers scaled to [0, 1]); ``srgb``:
     sRGB decoding (:func:`nplps.pipeline.decode_srgb`); ``color=False``: channel mean
-    (:func:`nplps.pipeline.to_gray`; ``gray=True`` is its deprecated spelling);
+    (:func:`nplps.pipeline.to_gray`);
     ``bin_factor``: :func:`nplps.preprocess.bin_images`; ``grid_shape`` (with ``grid_offset``):
     :func:`nplps.preprocess.pad_or_crop` (zero fill). These steps describe how the image files
     map onto the pixel grid of ``camera.mat``; ``K`` and the mask are returned unchanged on that
@@ -139,7 +137,6 @@ def load_near_ps(
     InputError
         Missing images, image count != light count, shape mismatches.
     """
-    color = _color_arg(color, gray, "load_near_ps")
     folder = _check_folder(folder)
     cam_path = _resolve_calib(folder, camera_file)
     light_path = _resolve_calib(folder, light_file)
@@ -286,7 +283,6 @@ def load_queau_human1(
     grid_offset: tuple[int, int] = (0, 0),
     lights: Sequence[int] | None = None,
     color: bool | None = False,
-    gray: bool | None = None,
     progress: LoadProgress | None = None,
 ) -> Capture:
     """Load the ``Human1`` scene of ``yqueau/near_ps`` from its JPEG renders (7 of 8 LEDs).
@@ -313,13 +309,12 @@ def load_queau_human1(
     all seven available. Loading all seven takes a few seconds (18-Mpixel PNG decoding).
 
     ``color=False`` (default) averages R, G, B of the images and of ``Phi``; ``color=None``
-    keeps them (``gray=`` is the deprecated spelling: ``gray=True`` is ``color=False``). The
+    keeps them. The
     calibrated ``Phi`` is for the RAW data; the JPEG's tone curve and white balance make the intensities
     only approximately right (a robustness test, not a benchmark).
 
     ``progress``: ``progress(done, total, name)`` after each image is read.
     """
-    color = _color_arg(color, gray, "load_queau_human1", default=False)
     folder = _check_folder(folder)
     files = find_images(folder, "photometric_sample_jpg_[0-9]*.png")
     if lights is not None:

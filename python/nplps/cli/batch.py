@@ -9,6 +9,7 @@ from typing import Any
 
 from .._text import printable
 from .inputs import _check_numbers, near_options
+from .options import add_options, api_options
 from .parsers import parse_depth, parse_exposures
 
 BATCH_DESCRIPTION = """\
@@ -40,6 +41,40 @@ examples:
   nplps batch 'captures/*' --rig rig.json --depth 200 --scheduler tcp://10.0.0.5:8786 --out /shared/results
 """
 
+#: The input and solver options of ``nplps batch`` (declared in :data:`nplps.cli.options.OPTIONS`), in its order.
+BATCH_OPTIONS = (
+    "--dark",
+    "--saturation",
+    "--robust",
+    "--gray",
+    "--srgb",
+    "--vignetting",
+    "--flat",
+    "--exposures",
+    "--refine-lights",
+    "--light-prior-weight",
+    "--bin",
+    "--iterations",
+    "--tol",
+    "--weighting",
+    "--solver",
+    "--levels",
+    "--threads",
+    "--max-memory",
+)
+
+_PREPARE_AND_RUN = (
+    "--dark",
+    "--saturation",
+    "--robust",
+    "--threads",
+    "--max-memory",
+    "--gray",
+    "--srgb",
+    "--vignetting",
+    "--flat",
+)
+
 
 def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     """Add the ``batch`` command and its options to the subparsers ``sub``; return its parser."""
@@ -53,13 +88,7 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     p.add_argument("pattern", metavar="CAPTURES_GLOB", help="glob pattern of the capture directories (quote it)")
     p.add_argument("--rig", required=True, metavar="RIG.json", help="rig file of every capture")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: DIR/<capture name>/ and the summary")
-    p.add_argument(
-        "--depth",
-        required=True,
-        metavar="D",
-        help="working distance (in the rig's unit), a .npy (H+1, W+1) vertex depth map, or 'auto'",
-    )
-    p.add_argument("--depth-range", metavar="NEAR,FAR", help="with --depth auto: where to search")
+    add_options(p, ("--depth", "--depth-range"), batch=True)
     p.add_argument(
         "--mask-name",
         default="auto",
@@ -95,31 +124,7 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     )
 
     g = p.add_argument_group("input and solver (as for 'nplps reconstruct')")
-    g.add_argument("--dark", type=float, metavar="X", help="values at or below X count as shadowed")
-    g.add_argument("--saturation", type=float, metavar="X", help="raw values at or above X count as saturated")
-    g.add_argument("--robust", choices=("cauchy", "tukey"), help="robust reweighting of each pixel's fit")
-    g.add_argument("--gray", "--grey", action="store_true", help="average RGB images to grey")
-    g.add_argument("--srgb", action="store_true", help="decode sRGB to linear (camera JPEGs)")
-    v = g.add_mutually_exclusive_group()
-    v.add_argument("--vignetting", choices=("cos4", "none"), help="cos4: divide by the pinhole K's cos^4 map")
-    v.add_argument("--flat", metavar="FILE", help="divide by this flat-field image, normalized to maximum 1")
-    g.add_argument("--exposures", metavar="E1,E2,...", help="divide image i of every capture by Ei")
-    g.add_argument(
-        "--refine-lights",
-        choices=("intensity", "position", "both"),
-        help="refine the lights from each capture's images (see 'nplps reconstruct --help')",
-    )
-    g.add_argument("--light-prior-weight", type=float, metavar="W", help="with --refine-lights: the position prior")
-    g.add_argument("--bin", type=int, default=1, metavar="N", help="average N x N pixel blocks")
-    g.add_argument("--iterations", type=int, default=10, metavar="N", help="maximum iterations (default 10)")
-    g.add_argument("--tol", type=float, default=1e-6, help="convergence tolerance (default 1e-6)")
-    g.add_argument("--weighting", choices=("image", "paper"), default="image", help="local fit weighting")
-    g.add_argument("--solver", choices=("auto", "direct", "multigrid"), default="auto", help="global step solver")
-    g.add_argument("--levels", type=int, metavar="N", help="coarse-to-fine pyramid levels")
-    g.add_argument(
-        "--threads", type=int, metavar="N", help="threads per reconstruction (default: cores / workers locally)"
-    )
-    g.add_argument("--max-memory", metavar="SIZE", help="memory limit of each reconstruction (e.g. 4GB)")
+    add_options(g, BATCH_OPTIONS, batch=True)
     p.set_defaults(depth_prior=None, prior_weight=1.0, quiet=False)
     return p
 
@@ -139,19 +144,10 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise InputError(f"--flat '{args.flat}' is not a file")
     rig = load_rig(args.rig)  # before any capture is read
     options = dict(near_options(args), depth=parse_depth(args.depth))
-    options.update(
-        dark=args.dark,
-        saturation=args.saturation,
-        robust=args.robust,
-        threads=args.threads,
-        max_memory=args.max_memory,
-        color=False if args.gray else None,
-        srgb=args.srgb,
-        vignetting="cos4" if args.vignetting == "cos4" else None,
-        flat=args.flat,
-        exposures=None if args.exposures is None else parse_exposures(args.exposures, rig.n_lights),
-        bin_factor=args.bin,
-    )
+    # The options beside the near-light solver's, by their API keywords (in the order recorded so far).
+    options.update(api_options(args, _PREPARE_AND_RUN))
+    options["exposures"] = None if args.exposures is None else parse_exposures(args.exposures, rig.n_lights)
+    options.update(api_options(args, ("--bin",)))
     options = {k: v for k, v in options.items() if v is not None or k in ("dark", "saturation", "robust")}
     mask_name = None if args.mask_name == "none" else args.mask_name
     try:

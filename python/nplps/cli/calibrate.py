@@ -458,7 +458,7 @@ def _cmd_intensity(args: argparse.Namespace) -> int:
 
 def cmd_synth_calibration(args: argparse.Namespace) -> int:
     """Run ``nplps synth-calibration``."""
-    from ..calibrate import make_board_scene, make_sphere_scene
+    from ..synth_calibration import make_board_scene, make_sphere_scene
 
     if args.size < 32:
         raise InputError(f"--size must be at least 32 pixels, got {args.size}")

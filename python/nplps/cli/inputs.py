@@ -18,6 +18,7 @@ from ..errors import InputError
 from ..progress import PipelineProgress, aborting
 from .console import PROG, _hint_ctrl_c, _note, describe_rig
 from .imagefiles import _is_dir_input, resolve_images
+from .options import NEAR_SOLVER, add_option_groups, add_options, api_options
 from .parsers import _parse_list, parse_depth, parse_exposures
 
 #: Capture folder layouts of ``--capture``: two general layouts and presets for published captures.
@@ -87,132 +88,14 @@ def add_input_options(p: argparse.ArgumentParser, lights_flag: str = "--lights")
         help="pad (zeros, at the bottom/right) or crop the images and the ambient image to H x W "
         "pixels, the calibration's grid, before any other step (the mask must be on that grid)",
     )
-    p.add_argument(
-        "--depth",
-        required=True,
-        metavar="D",
-        help="working distance (the object's mean depth, in the rig's unit), a .npy file "
-        "with an (H+1, W+1) initial vertex depth map (NaN allowed outside the mask), or 'auto' to "
-        "estimate it from the images (needs 4+ lights, some of them point lights)",
-    )
-    p.add_argument(
-        "--depth-range",
-        metavar="NEAR,FAR",
-        help="with --depth auto: where to search (default: derived from the light positions)",
-    )
-    p.add_argument(
-        "--depth-prior",
-        metavar="PRIOR.npy",
-        help="(H+1, W+1) prior depth map (e.g. from a coarse scan; NaN where unknown) fused in the global step",
-    )
-    p.add_argument(
-        "--prior-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of --depth-prior relative to the facet terms (default 1)",
-    )
+    add_options(p, ("--depth", "--depth-range", "--depth-prior", "--prior-weight"))
     p.add_argument(
         "--mask",
         metavar="M",
         help="mask image, non-zero = reconstruct (default: every pixel, or the capture's mask)",
     )
 
-    g = p.add_argument_group("shadows, saturation, colour")
-    g.add_argument(
-        "--dark",
-        type=float,
-        metavar="X",
-        help="values (0..1 scale, after pre-processing) at or below X count as shadowed and are "
-        "left out (default: one level above black for integer images, 0 after pre-processing)",
-    )
-    g.add_argument(
-        "--saturation",
-        type=float,
-        metavar="X",
-        help="raw values (0..1 scale, before pre-processing; any channel) at or above X count as "
-        "saturated and are left out (default: the top level of integer images, none for float)",
-    )
-    g.add_argument(
-        "--robust",
-        choices=("cauchy", "tukey"),
-        help="reweight each pixel's fit so that highlights and cast shadows do not bend the normals",
-    )
-    g.add_argument("--gray", "--grey", action="store_true", help="average RGB images to grey (default: keep colour)")
-
-    g = p.add_argument_group("pre-processing (applied in this order)")
-    g.add_argument("--srgb", action="store_true", help="decode sRGB to linear (camera JPEGs); also --ambient/--flat")
-    g.add_argument("--ambient", metavar="FILE", help="subtract this image taken with every light off (clip at 0)")
-    g.add_argument("--exposures", metavar="E1,E2,...", help="divide image i by Ei (exposure times, gains)")
-    v = g.add_mutually_exclusive_group()
-    v.add_argument(
-        "--vignetting",
-        choices=("cos4", "none"),
-        help="cos4: divide by the cos^4 fall-off map of the pinhole K (default: none; cos4 for --capture near_ps)",
-    )
-    v.add_argument("--flat", metavar="FILE", help="divide by this flat-field image, normalized to maximum 1")
-    g.add_argument(
-        "--bin",
-        type=int,
-        default=1,
-        metavar="N",
-        help="average N x N pixel blocks (mask: whole blocks only; K or the pixel size adjusted)",
-    )
-
-    g = p.add_argument_group("solver")
-    g.add_argument("--iterations", type=int, default=10, metavar="N", help="maximum iterations (default 10)")
-    g.add_argument(
-        "--tol",
-        type=float,
-        default=1e-6,
-        help="stop when the largest depth change is at most tol x the image footprint (default 1e-6)",
-    )
-    g.add_argument(
-        "--solver",
-        choices=("auto", "direct", "multigrid"),
-        default="auto",
-        help="global step: sparse Cholesky (direct), multigrid-preconditioned conjugate gradients "
-        "(multigrid: linear time and memory) or direct up to ~200 x 200 pixels, multigrid above (auto)",
-    )
-    g.add_argument(
-        "--levels",
-        type=int,
-        default=None,
-        metavar="N",
-        help="coarse-to-fine pyramid levels (1: full resolution only; default: halve while the "
-        "longer side keeps at least 128 pixels); --iterations and --tol apply per level",
-    )
-    g.add_argument(
-        "--weighting",
-        choices=("image", "paper"),
-        default="image",
-        help="local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
-    )
-    g.add_argument("--threads", type=int, metavar="N", help=f"worker threads, 1 to {MAX_THREADS} (default: all cores)")
-    g.add_argument(
-        "--max-memory",
-        metavar="SIZE",
-        default=None,
-        help='refuse a reconstruction whose estimated peak memory is above SIZE (bytes, or e.g. "8GB", '
-        '"512MiB"; default 80%% of the memory available)',
-    )
-    g = p.add_argument_group("light self-calibration")
-    g.add_argument(
-        "--refine-lights",
-        choices=("intensity", "position", "both"),
-        default=None,
-        help="refine the lights from the images: each light's intensity (their geometric mean stays "
-        "the rig's), each point light's position (held toward the rig's), or both; the refined rig is "
-        "written to rig_refined.json",
-    )
-    g.add_argument(
-        "--light-prior-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of the prior toward the rig's light positions: a standard deviation of D/sqrt(W) "
-        "per coordinate, D the working distance (default 1000, about 3%% of D)",
-    )
+    add_option_groups(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
@@ -286,13 +169,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     ]
     if not args.quiet:
         _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
-    options = {
-        "depth": depth,
-        "dark": prepared.dark,
-        "robust": args.robust,
-        "threads": args.threads,
-        "max_memory": getattr(args, "max_memory", None),
-    }
+    options = {"depth": depth, "dark": prepared.dark, **api_options(args, ("--robust", "--threads", "--max-memory"))}
     side = (source.mask, source.ambient, getattr(args, "rig", None))
     sources = [*source.files, *(os.fspath(f) for f in side if isinstance(f, (str, os.PathLike)))]
     return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options, tuple(sources), tuple(steps))
@@ -421,15 +298,7 @@ def _step_text(
 
 def near_options(args: argparse.Namespace) -> dict[str, Any]:
     """Return the options of the near-light solver only (not of the parallel-light baseline)."""
-    options: dict[str, Any] = {
-        "iterations": args.iterations,
-        "tol": args.tol,
-        "weighting": args.weighting,
-        "solver": args.solver,
-        "levels": args.levels,
-        "refine_lights": getattr(args, "refine_lights", None),
-        "light_prior_weight": getattr(args, "light_prior_weight", None),
-    }
+    options: dict[str, Any] = api_options(args, NEAR_SOLVER)
     if args.depth_range is not None:
         near_far = _parse_list(args.depth_range, float, "--depth-range", "NEAR,FAR, e.g. 150,400")
         if len(near_far) != 2:

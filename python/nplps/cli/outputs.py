@@ -35,18 +35,16 @@ def add_output_options(parser: argparse.ArgumentParser, default: str | None = No
 
 
 def parse_formats(text: str) -> list[str]:
-    """Parse ``--formats``: comma-separated names of :data:`nplps.export.EXTRA_FORMATS`.
+    """Parse ``--formats``: comma-separated names of :data:`nplps.export.FORMATS`.
 
     Raises :class:`argparse.ArgumentTypeError` (a usage error) for an unknown name.
     """
-    from ..export import EXTRA_FORMATS
+    from ..export import FORMATS
 
     names = list(dict.fromkeys(word.strip() for word in text.split(",") if word.strip()))
-    unknown = [name for name in names if name not in EXTRA_FORMATS]
+    unknown = [name for name in names if name not in FORMATS]
     if unknown:
-        raise argparse.ArgumentTypeError(
-            f"unknown format(s) {', '.join(unknown)}; choose from {', '.join(EXTRA_FORMATS)}"
-        )
+        raise argparse.ArgumentTypeError(f"unknown format(s) {', '.join(unknown)}; choose from {', '.join(FORMATS)}")
     return names
 
 

@@ -80,6 +80,8 @@ examples:
 
 def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     """Add the ``reconstruct`` command and its options to the subparsers ``sub``; return its parser."""
+    from ..export import formats_help  # the format registry (imported when the parser is made)
+
     p = sub.add_parser(
         "reconstruct",
         help="reconstruct a mesh, normals and albedo from images and a rig file",
@@ -99,9 +101,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         type=parse_formats,
         default=[],
         metavar="LIST",
-        help="also write these formats, comma-separated: stl (mesh.stl), glb (mesh.glb, glTF 2.0 binary; "
-        "use --opengl for y-up viewers), points (points.ply, a point cloud with normals and colours), "
-        "normals_tiff (normals.tiff, 32-bit float normals)",
+        help=f"also write these formats, comma-separated: {formats_help()}",
     )
     p.add_argument(
         "--no-report",
