@@ -19,7 +19,7 @@
 
 use rayon::prelude::*;
 
-use crate::calibrate::{pixel_ray, ray_sphere, reflect, Plane, Ray};
+use crate::calibrate::{ray_sphere, reflect, Plane, Ray};
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
 use crate::vec3::{dot, norm, not_above, sub};
@@ -239,11 +239,10 @@ pub fn render_spheres(
                 for b in 0..s {
                     let du = (a as f64 + 0.5) / s as f64 - 0.5;
                     let dv = (b as f64 + 0.5) / s as f64 - 0.5;
-                    shade_ray(&pixel_ray(&camera, [u + du, v + dv]), &mut values);
+                    shade_ray(&camera.ray([u + du, v + dv]), &mut values);
                 }
             }
-            let label =
-                hit(&pixel_ray(&camera, [u, v]), centers, radius).map_or(0, |(i, _)| i as u32 + 1);
+            let label = hit(&camera.ray([u, v]), centers, radius).map_or(0, |(i, _)| i as u32 + 1);
             (values, label)
         })
         .collect();

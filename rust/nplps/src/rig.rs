@@ -5,7 +5,7 @@
 //! share them.
 
 use crate::error::{g6, Error, Result};
-use crate::vec3::{dot, norm, sub};
+use crate::vec3::{add, dot, norm, scale, sub, unit};
 
 /// Most lights a rig may have. Real rigs have tens to a few hundred; the bound keeps a malformed
 /// rig file from asking for unbounded work (every light is one image of the stack).
@@ -175,10 +175,53 @@ impl Camera {
                 origin[1] + r as f64 * pixel_size[1],
             ],
             Camera::Pinhole { k, distortion } => {
-                let (u, v) = (c as f64 - 0.5, r as f64 - 0.5);
-                let yd = (v - k[1][2]) / k[1][1];
-                let xd = (u - k[0][2] - k[0][1] * yd) / k[0][0];
-                undistort_checked([xd, yd], distortion)
+                let uv = [c as f64 - 0.5, r as f64 - 0.5];
+                undistort_checked(normalized_distorted(k, uv), distortion)
+            }
+        }
+    }
+
+    /// The viewing ray of the image point (u, v) in the pixel-centre convention (pixel (r, c)
+    /// has its centre at (u, v) = (c, r)): orthographic, from
+    /// `(ox + (u + 1/2) w, oy + (v + 1/2) h, 0)` along +z; pinhole, from the camera centre along
+    /// the unit direction of `(x, y, 1)`, where `(x, y)` is the undistorted normalized point
+    /// `K^-1 (u, v, 1)` (unlike [`Camera::vertex_xy`], unchecked: where the distortion folds
+    /// over, the fixed-point iteration's end point). The inverse of [`Camera::project`].
+    pub(crate) fn ray(&self, uv: [f64; 2]) -> Ray {
+        match *self {
+            Camera::Orthographic { pixel_size, origin } => Ray {
+                origin: [
+                    origin[0] + (uv[0] + 0.5) * pixel_size[0],
+                    origin[1] + (uv[1] + 0.5) * pixel_size[1],
+                    0.0,
+                ],
+                direction: [0.0, 0.0, 1.0],
+            },
+            Camera::Pinhole { k, distortion } => {
+                let [x, y] = undistort(normalized_distorted(k, uv), distortion);
+                Ray {
+                    origin: [0.0; 3],
+                    direction: unit([x, y, 1.0]),
+                }
+            }
+        }
+    }
+
+    /// The image point (u, v) (pixel-centre convention) of the camera-frame point `p`:
+    /// orthographic, `((x - ox) / w - 1/2, (y - oy) / h - 1/2)`; pinhole, `K` applied to the
+    /// distorted `(x / z, y / z)`, NaN behind the camera (`z <= 0`).
+    pub(crate) fn project(&self, p: [f64; 3]) -> [f64; 2] {
+        match *self {
+            Camera::Orthographic { pixel_size, origin } => [
+                (p[0] - origin[0]) / pixel_size[0] - 0.5,
+                (p[1] - origin[1]) / pixel_size[1] - 0.5,
+            ],
+            Camera::Pinhole { k, distortion } => {
+                if p[2] <= 0.0 {
+                    return [f64::NAN; 2];
+                }
+                let [x, y] = distort([p[0] / p[2], p[1] / p[2]], distortion);
+                [k[0][0] * x + k[0][1] * y + k[0][2], k[1][1] * y + k[1][2]]
             }
         }
     }
@@ -189,6 +232,37 @@ impl Camera {
             Camera::Orthographic { pixel_size, .. } => pixel_size,
             Camera::Pinhole { k, .. } => [z / k[0][0], z / k[1][1]],
         }
+    }
+}
+
+/// `K^-1 (u, v, 1)`: the distorted normalized point of the image point (u, v), for the upper
+/// triangular intrinsics `k` (`y = (v - cy) / fy`, `x = (u - cx - s y) / fx`).
+fn normalized_distorted(k: [[f64; 3]; 3], uv: [f64; 2]) -> [f64; 2] {
+    let yd = (uv[1] - k[1][2]) / k[1][1];
+    let xd = (uv[0] - k[0][2] - k[0][1] * yd) / k[0][0];
+    [xd, yd]
+}
+
+/// A ray: origin and unit direction (camera frame); a viewing ray of [`Camera::ray`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ray {
+    /// Origin (camera frame).
+    pub origin: [f64; 3],
+    /// Unit direction.
+    pub direction: [f64; 3],
+}
+
+impl Ray {
+    /// The point at parameter `t`: `origin + t direction`.
+    pub fn at(&self, t: f64) -> [f64; 3] {
+        add(self.origin, scale(self.direction, t))
+    }
+
+    /// Distance of the point `p` from the (infinite) line of the ray:
+    /// `|(p - o) - ((p - o) . d) d|`.
+    pub fn distance_to(&self, p: [f64; 3]) -> f64 {
+        let a = sub(p, self.origin);
+        norm(sub(a, scale(self.direction, dot(a, self.direction))))
     }
 }
 
@@ -488,6 +562,38 @@ mod tests {
         // Corner (r, c) = (20.5, 10.5) is the principal point.
         let [x, y] = cam.vertex_xy(0, 0);
         assert!((x + 10.5 / 100.0).abs() < 1e-15 && (y + 20.5 / 200.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn viewing_rays_and_projection_invert_each_other() {
+        let cameras = [
+            Camera::Orthographic {
+                pixel_size: [0.5, 0.25],
+                origin: [-10.0, 3.0],
+            },
+            Camera::Pinhole {
+                k: [[400.0, 2.0, 99.5], [0.0, 410.0, 95.5], [0.0, 0.0, 1.0]],
+                distortion: [-0.1, 0.02, 0.001, -0.002, 0.0],
+            },
+        ];
+        for cam in cameras {
+            for uv in [[0.0, 0.0], [37.25, 120.5], [199.0, 3.75]] {
+                let ray = cam.ray(uv);
+                assert!((norm(ray.direction) - 1.0).abs() < 1e-15);
+                let back = cam.project(ray.at(250.0));
+                assert!((back[0] - uv[0]).abs() < 1e-8 && (back[1] - uv[1]).abs() < 1e-8);
+            }
+            // The ray through a pixel corner is the vertex ray of the mesh.
+            let [x, y] = cam.vertex_xy(7, 11);
+            let ray = cam.ray([10.5, 6.5]);
+            if cam.is_perspective() {
+                let d = ray.direction;
+                assert!((d[0] / d[2] - x).abs() < 1e-12 && (d[1] / d[2] - y).abs() < 1e-12);
+            } else {
+                assert_eq!([ray.origin[0], ray.origin[1]], [x, y]);
+            }
+        }
+        assert!(cameras[1].project([1.0, 1.0, 0.0])[0].is_nan());
     }
 
     #[test]
