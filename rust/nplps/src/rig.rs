@@ -243,7 +243,7 @@ fn normalized_distorted(k: [[f64; 3]; 3], uv: [f64; 2]) -> [f64; 2] {
     [xd, yd]
 }
 
-/// A ray: origin and unit direction (camera frame); a viewing ray of [`Camera::ray`].
+/// A ray: origin and unit direction (camera frame), such as the viewing ray of an image point.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ray {
     /// Origin (camera frame).

@@ -14,9 +14,10 @@
 //! `rho` and the exposure are not separable from `Phi`: the intensities are relative, scaled to
 //! a geometric mean of 1 over all lights and channels.
 
+use super::fits::tangent_basis;
 use crate::error::{Error, Result};
 use crate::rig::{Camera, Light, Rig};
-use crate::vec3::{add, cross, dot, norm, scale, sub, unit};
+use crate::vec3::{add, dot, norm, scale, sub, unit};
 
 /// A plane `normal . X = offset` in the camera frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -256,13 +257,7 @@ fn fit_shape(
         let mu = (shape.mu + delta[0]).max(0.0);
         let axis = if np == 3 {
             let a = shape.axis;
-            let helper = if a[0].abs() < 0.9 {
-                [1.0, 0.0, 0.0]
-            } else {
-                [0.0, 1.0, 0.0]
-            };
-            let e1 = unit(cross(a, helper));
-            let e2 = cross(a, e1);
+            let (e1, e2) = tangent_basis(a);
             unit(add(a, add(scale(e1, delta[1]), scale(e2, delta[2]))))
         } else {
             shape.axis

@@ -62,7 +62,7 @@
 //! Given the light positions (and LED axes and anisotropy, if known), images of a flat diffuse
 //! board on the plane `n . X = d` (camera frame) determine each light's intensity: every masked
 //! pixel's ray meets the plane at `X`, and the image model is
-//! `I_i(X) = rho(X) Phi_i max(0, n . beta_i(X))` ([`Light::beta`]). With a uniform board
+//! `I_i(X) = rho(X) Phi_i max(0, n . beta_i(X))` ([`Light::beta`](crate::Light::beta)). With a uniform board
 //! (`rho` constant) `Phi_i rho` is a one-parameter linear least-squares fit per light and
 //! channel; with [`BoardAlbedo::PerPixel`] the board's albedo (which also absorbs vignetting) is
 //! estimated per pixel by alternating least squares (rank-one factorisation). `rho` and the
