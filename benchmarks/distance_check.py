@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import argparse
-import time
 import warnings
 from collections import defaultdict
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import nplps
+from refine_lights import _median_time  # same folder: the benchmarks' one timing helper
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OFFSETS = (0.7, 0.8, 0.85, 0.9, 0.95, 0.98, 1.0, 1.02, 1.05, 1.1, 1.15, 1.2, 1.3)
@@ -70,15 +70,6 @@ def rates(seeds: int, n: int) -> None:
     print(f"found distance at the true one: |error| median {100 * np.median(fa):.2f} %, max {100 * fa.max():.2f} %")
 
 
-def median_time(fn, repeats: int = 3) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
-
-
 def cost() -> None:
     print("\n## Cost of the check (bumps, 27 lights, 1 % noise; medians of 3 runs)")
     print("size  | without (s) | with (s) | ratio")
@@ -88,8 +79,8 @@ def cost() -> None:
         def run(check: bool, s: nplps.Scene = s) -> None:
             nplps.reconstruct(s.images, s.rig, depth=s.mean_depth, mask=s.mask, check_distance=check)
 
-        off = median_time(lambda: run(False))
-        on = median_time(lambda: run(True))
+        off = _median_time(lambda: run(False), 3)
+        on = _median_time(lambda: run(True), 3)
         print(f"{n:5} | {off:11.3f} | {on:8.3f} | {on / off:5.2f}")
 
 

@@ -196,7 +196,7 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     if s.get("estimated_distance"):
         estimates = ", ".join(f"{d:.6g}" for d in s["estimated_distance"])
         print(f"  distance        {estimates} (estimated; residual curve in distance_curve.csv / .svg)")
-    check = getattr(result, "distance_check", None)
+    check = result.distance_check
     if check is not None:
         verdict = "LOOKS WRONG, try --depth auto" if check.looks_wrong else "agrees"
         print(
