@@ -1,57 +1,32 @@
-"""The held-out record and its reading (re-exported by :mod:`nplps.evaluation`).
+"""What is read of a held-out record, and its reading (re-exported by :mod:`nplps.evaluation`).
 
-Below :mod:`nplps.export` and :mod:`nplps.report`, which write and list them, and
-:mod:`nplps.evaluation`, which makes them.
+Below :mod:`nplps.export` and :mod:`nplps.report`, which write and list the records, and
+:mod:`nplps.evaluation`, which makes them (:class:`nplps.evaluation.HeldOut`).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .reconstruction import Reconstruction
-
-__all__ = ["HeldOut", "reading"]
+__all__ = ["HeldOutScores", "reading"]
 
 # Mean shape errors closer than this ratio count as a tie in :func:`reading`.
 _TIE_RATIO = 1.05
 
 
-class HeldOut(NamedTuple):
-    """The held-out error of one light (an entry of :func:`held_out`'s list).
+class HeldOutScores(Protocol):
+    """What export and the report read of a held-out record (:class:`nplps.evaluation.HeldOut` is one)."""
 
-    Attributes
-    ----------
-    light : int
-        Index of the left-out light.
-    relative_error : float
-        ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
-        the prediction finite.
-    shape_error : float
-        The same after scaling the prediction by the least-squares `gain`: the error of the
-        shading's shape, free of the left-out light's intensity calibration, which no
-        reconstruction from the other lights can know.
-    gain : float
-        The gain ``a = <prediction, image> / <prediction, prediction>``.
-    result : Reconstruction
-        The reconstruction made without this light.
-    prediction : numpy.ndarray
-        The predicted image.
-    """
-
-    light: int
-    relative_error: float
-    shape_error: float
-    gain: float
-    result: Reconstruction
-    prediction: np.ndarray
-
-
-# The public home of HeldOut: its repr, pickles and typing.get_type_hints (which resolves the
-# ``result: Reconstruction`` annotation in the module named here) are as before the move.
-HeldOut.__module__ = "nplps.evaluation"
+    @property
+    def light(self) -> int: ...
+    @property
+    def relative_error(self) -> float: ...
+    @property
+    def shape_error(self) -> float: ...
+    @property
+    def gain(self) -> float: ...
 
 
 def reading(near: tuple[float, float], parallel: tuple[float, float]) -> str:

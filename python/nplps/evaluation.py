@@ -9,12 +9,12 @@ captures.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ._checks import _check_rig, _light_indices, _short
-from ._held_out import HeldOut, reading
+from ._held_out import reading
 from .api import _thresholds, reconstruct, reconstruct_parallel
 from .errors import InputError
 from .io import load_stack
@@ -23,6 +23,36 @@ from .rig import Rig
 from .types import Images, Mask, Method
 
 __all__ = ["HeldOut", "held_out", "reading"]
+
+
+class HeldOut(NamedTuple):
+    """The held-out error of one light (an entry of :func:`held_out`'s list).
+
+    Attributes
+    ----------
+    light : int
+        Index of the left-out light.
+    relative_error : float
+        ``|prediction - image| / |image|`` over the masked pixels where the image is usable and
+        the prediction finite.
+    shape_error : float
+        The same after scaling the prediction by the least-squares `gain`: the error of the
+        shading's shape, free of the left-out light's intensity calibration, which no
+        reconstruction from the other lights can know.
+    gain : float
+        The gain ``a = <prediction, image> / <prediction, prediction>``.
+    result : Reconstruction
+        The reconstruction made without this light.
+    prediction : numpy.ndarray
+        The predicted image.
+    """
+
+    light: int
+    relative_error: float
+    shape_error: float
+    gain: float
+    result: Reconstruction
+    prediction: np.ndarray
 
 
 def held_out(

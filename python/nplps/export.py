@@ -33,7 +33,7 @@ import tifffile
 
 from . import plots, views
 from ._atomic import atomic_path, atomic_write, write_text
-from ._held_out import HeldOut, reading
+from ._held_out import HeldOutScores, reading
 from ._outdir import jsonable
 from .errors import InputError
 
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from ._outdir import ResultDirectory
-    from .reconstruction import Reconstruction
+    from ._records import Result
 
 __all__ = [
     "EXTRA_FORMATS",
@@ -1445,7 +1445,7 @@ def contact_sheet(images: np.ndarray, *, max_side: int | None = None, columns: i
     return sheet
 
 
-def held_out_record(near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None) -> dict[str, Any]:
+def held_out_record(near: Sequence[HeldOutScores], parallel: Sequence[HeldOutScores] | None = None) -> dict[str, Any]:
     """Return the held-out evaluation as the JSON-ready dict of ``held_out.json``.
 
     Parameters
@@ -1462,7 +1462,7 @@ def held_out_record(near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None 
         or None, "reading": str}``; the reading is :func:`nplps.evaluation.reading` of the means.
     """
 
-    def rows(items: Sequence[HeldOut]) -> list[list[float | None]]:
+    def rows(items: Sequence[HeldOutScores]) -> list[list[float | None]]:
         return [[_num(h.relative_error), _num(h.shape_error), _num(h.gain)] for h in items]
 
     if parallel is not None:
@@ -1486,7 +1486,7 @@ def _num(v: float) -> float | None:
 
 
 def write_result(
-    result: Reconstruction,
+    result: Result,
     out: ResultDirectory,
     *,
     stem: str,
@@ -1494,7 +1494,7 @@ def write_result(
     formats: Sequence[str],
     inputs: np.ndarray | None,
     options: dict[str, Any] | None,
-    held_out: tuple[Sequence[HeldOut], Sequence[HeldOut] | None] | None,
+    held_out: tuple[Sequence[HeldOutScores], Sequence[HeldOutScores] | None] | None,
 ) -> dict[str, Path]:
     """Write a result's files into a result directory (the body of :meth:`nplps.Reconstruction.save`).
 

@@ -10,7 +10,6 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -22,9 +21,9 @@ import numpy as np
 
 from . import _core, export
 from . import report as report_module
-from ._atomic import write_text
 from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
+from ._records import DistanceCheck, DistanceEstimate, LightRefinement
 from .errors import InputError
 from .rig import Rig, _select_core_lights
 from .types import Iteration
@@ -32,8 +31,8 @@ from .types import Iteration
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from ._held_out import HeldOut
-    from .types import Method, RefineLights, Status
+    from ._held_out import HeldOutScores
+    from .types import Method, Status
 
 __all__ = [
     "SHADED_LIGHT",
@@ -50,179 +49,6 @@ __all__ = [
 #: negative z: towards the camera),
 #: 50 degrees off the viewing axis.
 SHADED_LIGHT: tuple[float, float, float] = (-0.5417, -0.5417, -0.6428)
-
-
-@dataclass
-class DistanceEstimate:
-    """The working distance estimated from the images (``depth="auto"``).
-
-    Attributes
-    ----------
-    distance : numpy.ndarray
-        Estimated distance of each region (arithmetic mean vertex depth, or geometric mean vertex
-        depth for a pinhole camera).
-    curve : list of numpy.ndarray
-        Per region, the evaluated (distance, RMS residual) pairs, sorted by distance, (N, 2).
-    range : (float, float)
-        The (near, far) range searched.
-    """
-
-    distance: np.ndarray
-    curve: list[np.ndarray]
-    range: tuple[float, float]
-
-    def save_curve(self, path: str | os.PathLike[str]) -> None:
-        """Write the residual curve(s) as CSV.
-
-        Parameters
-        ----------
-        path : str or path-like
-            The file to write: a header ``region,distance,rms_residual`` and one row per
-            evaluated distance, plain numbers at full precision (``numpy.loadtxt(path,
-            delimiter=",", skiprows=1)`` reads it).
-        """
-        rows = [f"{r},{float(d)!r},{float(e)!r}" for r, curve in enumerate(self.curve) for d, e in curve]
-        write_text(path, "region,distance,rms_residual\n" + "\n".join(rows) + "\n")
-
-
-@dataclass(frozen=True)
-class DistanceCheck:
-    """A given working distance checked against the images (``reconstruct(check_distance=True)``).
-
-    After a run at a given distance, a quick distance search on a coarse level (longer side at
-    most 64 pixels) finds the distance the images fit best there; both distances are evaluated
-    the same way on that level.
-
-    Attributes
-    ----------
-    given : float
-        The given distance (mean over regions of the gauge, as a depth).
-    found : float
-        The distance the coarse search found.
-    residual_given, residual_found : float
-        RMS image residual on the coarse level at the given and at the found distance.
-    side : int
-        The coarse level's longer side in pixels.
-    looks_wrong : bool
-        The images fit the found distance better: the residual at the given distance is more
-        than 1.02 times the best one and the distances differ by more than 10 % (thresholds measured by
-        ``benchmarks/distance_check.py``). ``reconstruct`` then warns "the working distance looks
-        wrong".
-    """
-
-    given: float
-    found: float
-    residual_given: float
-    residual_found: float
-    side: int
-    looks_wrong: bool
-
-    @property
-    def ratio(self) -> float:
-        """``residual_given / residual_found``."""
-        return self.residual_given / self.residual_found if self.residual_found > 0 else math.inf
-
-    @property
-    def message(self) -> str:
-        """One sentence with the numbers (the warning's text when `looks_wrong`)."""
-        if self.looks_wrong:
-            return (
-                f"the working distance looks wrong: the images fit {self.found:.4g} better than the given "
-                f"{self.given:.4g} (residual {self.ratio:.3g} times higher at the given distance on a "
-                f"{self.side}-pixel level); try --depth auto (depth='auto')"
-            )
-        return (
-            f"the working distance agrees with the images: a {self.side}-pixel level fits {self.found:.4g}, "
-            f"the residual at the given {self.given:.4g} is {self.ratio:.3g} times the best"
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        """Return the check as a JSON-ready dict (``summary.json``'s ``distance_check``)."""
-        return {
-            "given": self.given,
-            "found": self.found,
-            "residual_given": self.residual_given,
-            "residual_found": self.residual_found,
-            "ratio": self.ratio,
-            "side": self.side,
-            "looks_wrong": self.looks_wrong,
-        }
-
-
-@dataclass
-class LightRefinement:
-    """What the self-calibration of the lights (``refine_lights=``) did.
-
-    The refined rig is the result's :attr:`Reconstruction.rig`; the rig given to
-    :func:`nplps.reconstruct` is :attr:`Reconstruction.input_rig`.
-
-    Attributes
-    ----------
-    mode : {"intensity", "position", "both"}
-        What was refined.
-    prior_weight : float
-        Weight of the prior toward the given positions.
-    fell_back : bool
-        True when refining positions did not lower the photometric residual of a run without
-        refinement on the first pyramid level: the given lights were kept.
-    stopped : bool
-        True when the refinement was stopped early because the photometric residual rose (the
-        joint iteration drifted along weakly determined light parameters): the state of lowest
-        residual was restored and its lights kept.
-    residual_without, residual_with : float
-        RMS residual on the first level without / with refinement (NaN when not compared: the
-        comparison runs only when positions are refined).
-    singular_values : numpy.ndarray or None
-        Singular values of the light block of the relative Jacobian after the normals are
-        eliminated (positions in units of the working distance), largest first. Their spread
-        tells how well the images determine the lights; integrability adds to it.
-    standard_errors : numpy.ndarray or None
-        Per light (k, 4): standard error of the intensity factor (relative) and of the position
-        (x, y, z, scene units); NaN where not refined.
-    """
-
-    mode: RefineLights
-    prior_weight: float
-    fell_back: bool
-    stopped: bool
-    residual_without: float
-    residual_with: float
-    singular_values: np.ndarray | None = None
-    standard_errors: np.ndarray | None = None
-
-    @property
-    def condition_number(self) -> float:
-        """Ratio of the largest to the smallest singular value (inf if one is 0, NaN if none)."""
-        if self.singular_values is None or len(self.singular_values) == 0:
-            return float("nan")
-        smallest = float(self.singular_values[-1])
-        return float(self.singular_values[0]) / smallest if smallest > 0 else float("inf")
-
-    def to_dict(self) -> dict[str, Any]:
-        """Return the refinement as a JSON-ready dict (non-finite numbers as None).
-
-        Returns
-        -------
-        dict
-            The attributes, and ``condition_number``.
-        """
-        return {
-            "mode": self.mode,
-            "prior_weight": self.prior_weight,
-            "fell_back": self.fell_back,
-            "stopped": self.stopped,
-            "residual_without": _finite_or_none(self.residual_without),
-            "residual_with": _finite_or_none(self.residual_with),
-            "condition_number": _finite_or_none(self.condition_number),
-            "singular_values": None if self.singular_values is None else [float(v) for v in self.singular_values],
-            "standard_errors": None
-            if self.standard_errors is None
-            else [[_finite_or_none(v) for v in row] for row in self.standard_errors],
-        }
-
-
-def _finite_or_none(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
 
 
 def light_changes(before: Rig, after: Rig) -> list[dict[str, Any]]:
@@ -710,7 +536,7 @@ class Reconstruction:
         report: bool = False,
         inputs: np.ndarray | None = None,
         options: dict[str, Any] | None = None,
-        held_out: tuple[Sequence[HeldOut], Sequence[HeldOut] | None] | None = None,
+        held_out: tuple[Sequence[HeldOutScores], Sequence[HeldOutScores] | None] | None = None,
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 

@@ -47,8 +47,8 @@ from .errors import InputError
 from .export import contact_sheet, held_out_record, history_csv
 
 if TYPE_CHECKING:
-    from ._held_out import HeldOut
-    from .reconstruction import Reconstruction
+    from ._held_out import HeldOutScores
+    from ._records import Result
 
 __all__ = [
     "REPORT_NAME",
@@ -227,7 +227,7 @@ def write_report(directory: str | os.PathLike[str], *, path: str | os.PathLike[s
 
 
 def write_held_out(
-    directory: str | os.PathLike[str], near: Sequence[HeldOut], parallel: Sequence[HeldOut] | None = None
+    directory: str | os.PathLike[str], near: Sequence[HeldOutScores], parallel: Sequence[HeldOutScores] | None = None
 ) -> Path:
     """Add a held-out evaluation to a result directory and re-make its report.
 
@@ -688,12 +688,12 @@ def _section_options(d: _Data) -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-def compact_html(result: Reconstruction, *, side: int = 160) -> str:
+def compact_html(result: Result, *, side: int = 160) -> str:
     """Return the compact HTML of a result for Jupyter: small normal map and albedo, key numbers.
 
     Parameters
     ----------
-    result : Reconstruction
+    result : Result
         The result.
     side : int, default 160
         Longest side of the two pictures (pixels).
