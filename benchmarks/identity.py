@@ -3,8 +3,11 @@
 Runs a fixed set of reconstructions of the three captures in ``../shared/data`` through the
 command line and through the Python API, and prints (or writes, with ``--out FILE``) the SHA-256
 of every array result: vertex depths, albedo, both kinds of normals, residuals, and the
-bytes of every mesh and map file the CLI writes (``summary.json`` is left out: it holds
-timings). Run it on two commits and compare the two JSON files with ``--compare A B``::
+bytes of every mesh and map file the CLI writes, on the captures and on synthetic scenes
+(pinhole and orthographic, LEDs, colour, light refinement, the multigrid solver). Left out, as they
+hold timings: ``summary.json`` and the manifest (whose hashes cover the files compared here);
+``history.csv`` is compared without its ``elapsed`` column, ``report.html`` with its timings and
+dates blanked. Run it on two commits and compare the two JSON files with ``--compare A B``::
 
     python benchmarks/identity.py --out before.json     # on the old commit
     python benchmarks/identity.py --out after.json      # on the new one
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -68,9 +72,44 @@ def _cli(args: list[str]) -> dict[str, str]:
             if path.is_file() and path.name not in ("summary.json", "nplps-manifest.json"):
                 if path.suffix == ".npy":
                     digests[path.name] = _digest(np.load(path))
+                elif path.name == "history.csv":
+                    rows = [line.split(",") for line in path.read_text().splitlines()]
+                    keep = [i for i, name in enumerate(rows[0]) if name != "elapsed"]
+                    text = "\n".join(",".join(row[i] for i in keep) for row in rows)
+                    digests[path.name] = hashlib.sha256(text.encode()).hexdigest()[:16]
+                elif path.name == "report.html":
+                    digests[path.name] = hashlib.sha256(_without_timings(path.read_text()).encode()).hexdigest()[:16]
                 else:
                     digests[path.name] = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
         return digests
+
+
+def _without_timings(html: str) -> str:
+    """Return the report with what changes from run to run blanked: seconds and dates."""
+    html = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)? ?(s|ms)\b", "T", html)
+    return re.sub(r"\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?", "D", html)
+
+
+def _synthetic(results: dict[str, dict[str, str]]) -> None:
+    import nplps
+
+    s = nplps.make_scene("sphere", n=64, camera="pinhole", led=True, noise=0.01, seed=1)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, refine_lights="position")
+    results["api synth sphere pinhole led refine position"] = _result_digests(r)
+    s = nplps.make_scene("bumps", n=96, rgb=True, noise=0.005, seed=2)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth="auto", robust="cauchy")
+    results["api synth bumps rgb auto cauchy"] = _result_digests(r)
+    s = nplps.make_scene("saddle", n=160, camera="pinhole", seed=3)
+    r = nplps.reconstruct(s.images, s.rig, mask=s.mask, depth=s.mean_depth, solver="multigrid", levels=3)
+    results["api synth vase multigrid"] = _result_digests(r)
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = Path(tmp) / "scene"
+        subprocess.run(
+            [sys.executable, "-m", "nplps", "synth", "sphere", "--out", str(scene)],
+            stdout=subprocess.DEVNULL,
+            check=True,
+        )
+        results["cli synth sphere"] = _cli([str(scene), "--rig", str(scene / "rig.json"), "--depth", "auto"])
 
 
 def run() -> dict[str, dict[str, str]]:
@@ -114,6 +153,7 @@ def run() -> dict[str, dict[str, str]]:
     results["api diligent ball tukey"] = _result_digests(r)
     r = nplps.reconstruct_parallel(b.images, b.rig(), mask=b.mask, depth=1000.0)
     results["api diligent ball parallel"] = _result_digests(r)
+    _synthetic(results)
     return results
 
 
