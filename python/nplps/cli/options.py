@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, get_args
 
+from .. import types
 from .._checks import MAX_THREADS
 
 
@@ -96,7 +97,7 @@ _OPTIONS = (
         ("--robust",),
         "robust",
         "reweight each pixel's fit so that highlights and cast shadows do not bend the normals",
-        choices=("cauchy", "tukey"),
+        choices=get_args(types.Robust),
     ),
     Option(
         ("--gray", "--grey"),
@@ -166,7 +167,7 @@ _OPTIONS = (
         "solver",
         "global step: sparse Cholesky (direct), multigrid-preconditioned conjugate gradients "
         "(multigrid: linear time and memory) or direct up to ~200 x 200 pixels, multigrid above (auto)",
-        choices=("auto", "direct", "multigrid"),
+        choices=get_args(types.Solver),
         default="auto",
     ),
     Option(
@@ -181,7 +182,7 @@ _OPTIONS = (
         ("--weighting",),
         "weighting",
         "local fit: least squares in image units (image, default) or the paper's Eq. 6 (paper)",
-        choices=("image", "paper"),
+        choices=get_args(types.Weighting),
         default="image",
     ),
     Option(
@@ -206,7 +207,7 @@ _OPTIONS = (
         "refine the lights from the images: each light's intensity (their geometric mean stays "
         "the rig's), each point light's position (held toward the rig's), or both; the refined rig is "
         "written to rig_refined.json",
-        choices=("intensity", "position", "both"),
+        choices=get_args(types.RefineLights),
     ),
     Option(
         ("--light-prior-weight",),
