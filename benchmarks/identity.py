@@ -78,14 +78,18 @@ def _cli(args: list[str]) -> dict[str, str]:
                     text = "\n".join(",".join(row[i] for i in keep) for row in rows)
                     digests[path.name] = hashlib.sha256(text.encode()).hexdigest()[:16]
                 elif path.name == "report.html":
-                    digests[path.name] = hashlib.sha256(_without_timings(path.read_text()).encode()).hexdigest()[:16]
+                    digests[path.name] = hashlib.sha256(_without_timings(path.read_text(), out).encode()).hexdigest()[
+                        :16
+                    ]
                 else:
                     digests[path.name] = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
         return digests
 
 
-def _without_timings(html: str) -> str:
-    """Return the report with what changes from run to run blanked: seconds and dates."""
+def _without_timings(html: str, out: Path) -> str:
+    """Return the report with what changes from run to run blanked: the folder, seconds, dates."""
+    html = html.replace(str(out.parent), "TMP")
+    html = re.sub(r"<h3>Timings \(seconds\)</h3><table>.*?</table>", "TIMINGS", html, flags=re.S)
     html = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)? ?(s|ms)\b", "T", html)
     return re.sub(r"\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?", "D", html)
 
