@@ -12,14 +12,15 @@ checkers only: import them under ``typing.TYPE_CHECKING``.
 ``camera`` is the rig file's camera mapping (see :class:`CameraDict`; read strictly: unknown keys
 are a ``RigError``, keys starting with ``_`` are comments, values may be lists, tuples or numpy
 arrays); ``lights`` a mapping of per-light lists (:class:`LightsDict`, built by
-``Rig._core_lights``). The progress callback gets (iteration, depth change, rms residual, elapsed
-seconds, pyramid level, conjugate-gradient iterations, light change, search progress): the last is
-None except for the iterations of the distance search (``SearchProgress``: candidate, candidates,
-distance, residual, best distance, best residual).
+``Rig._core_lights``). The progress callback gets the :class:`IterationStats` of each
+iteration, whose ``search`` (:class:`SearchProgress`) is None except for the iterations of the
+distance search; a result's ``history`` holds the same records. Core errors carry their fields as
+attributes (``MemoryLimitError.needed`` / ``.limit``, ``InputError.argument`` / ``.value``, ...).
 """
 
 import os
 from collections.abc import Sequence
+from typing import final
 
 import numpy as np
 import numpy.typing as npt
@@ -47,6 +48,8 @@ from nplps._core_types import (
 __all__ = [
     "MAX_LIGHTS",
     "MULTIGRID_MAX_ITERATIONS",
+    "IterationStats",
+    "SearchProgress",
     "__version__",
     "calibrate_intensities",
     "calibrate_spheres",
@@ -69,6 +72,50 @@ __version__: str
 MULTIGRID_MAX_ITERATIONS: int
 #: Most lights a rig may have.
 MAX_LIGHTS: int
+
+# -- records --------------------------------------------------------------------------------------
+
+@final
+class SearchProgress:
+    """Where the distance search is, with each of its iterations.
+
+    The candidate (1-based) of how many, its distance and its residual (NaN until its last
+    iteration), the best distance so far and its residual (NaN before the first).
+    """
+
+    @property
+    def candidate(self) -> int: ...
+    @property
+    def candidates(self) -> int: ...
+    @property
+    def distance(self) -> float: ...
+    @property
+    def residual(self) -> float: ...
+    @property
+    def best_distance(self) -> float: ...
+    @property
+    def best_residual(self) -> float: ...
+
+@final
+class IterationStats:
+    """What one local/global iteration did (read by name into :class:`nplps.Iteration`)."""
+
+    @property
+    def iteration(self) -> int: ...
+    @property
+    def depth_change(self) -> float: ...
+    @property
+    def rms_residual(self) -> float: ...
+    @property
+    def elapsed(self) -> float: ...
+    @property
+    def level(self) -> int: ...
+    @property
+    def inner_iterations(self) -> int: ...
+    @property
+    def light_change(self) -> float: ...
+    @property
+    def search(self) -> SearchProgress | None: ...
 
 # -- functions ------------------------------------------------------------------------------------
 

@@ -13,12 +13,15 @@ Keys that a result holds only sometimes are in a ``total=False`` subclass (``ref
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, Literal, TypedDict
+from typing import TYPE_CHECKING, Any, Literal, TypedDict
 
 import numpy as np
 import numpy.typing as npt
 
 from .types import BoardAlbedo, Outline, RefineLights, Robust, Solver, Status, Weighting
+
+if TYPE_CHECKING:
+    from ._core import IterationStats
 
 F64 = npt.NDArray[np.float64]
 
@@ -195,10 +198,6 @@ class DistanceEstimateDict(TypedDict):
     range: tuple[float, float]
 
 
-#: (iteration, depth change, rms residual, elapsed seconds, level, CG iterations, light change)
-IterationTuple = tuple[int, float, float, float, int, int, float]
-
-
 class _ReconstructionBase(TypedDict):
     depth: F64
     normals: F64
@@ -207,7 +206,7 @@ class _ReconstructionBase(TypedDict):
     lights_used: npt.NDArray[np.uint32]
     regions: npt.NDArray[np.int32]
     gauge: F64
-    history: list[IterationTuple]
+    history: list[IterationStats]
     converged: bool
     status: Status
     status_reason: str
@@ -337,12 +336,6 @@ class SphereImagesDict(TypedDict):
     labels: npt.NDArray[np.uint32]
 
 
-#: Where the distance search is, passed with each of its iterations: (candidate (1-based),
-#: candidates, the candidate's distance, its residual (NaN until its last iteration), the best
-#: distance so far, its residual (NaN before the first)).
-SearchProgress = tuple[int, int, float, float, float, float]
-
-#: The progress callback: (iteration, depth change, rms residual, elapsed seconds, pyramid level,
-#: conjugate-gradient iterations, light change, search progress or None outside the distance
-#: search); its return value is ignored.
-ProgressCallback = Callable[[int, float, float, float, int, int, float, SearchProgress | None], Any]
+#: The progress callback: gets the :class:`nplps._core.IterationStats` of each iteration (its
+#: ``search`` is set during the distance search only); its return value is ignored.
+ProgressCallback = Callable[["IterationStats"], Any]

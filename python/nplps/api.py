@@ -38,7 +38,7 @@ from .io import load_mask, load_stack
 from .progress import CTRL_C_HINT, PipelineProgress, ReconstructionProgress, aborting
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
-from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting
+from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting, _iteration
 
 __all__ = ["MAX_DEPTH_RATIO", "MAX_THREADS", "reconstruct", "reconstruct_parallel", "render"]
 
@@ -217,6 +217,11 @@ def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = Non
     return out
 
 
+def _named(out: _core_types.ReconstructionDict) -> dict[str, Any]:
+    """Return the core's result with its history as :class:`Iteration` records (read by name)."""
+    return {**out, "history": [_iteration(s) for s in out["history"]]}
+
+
 def _warn_negative(count: int, dark: float) -> None:
     if count:
         treated = "they were treated as unlit" if dark >= 0 else f"those above dark = {dark} were used"
@@ -227,13 +232,13 @@ def _warn_negative(count: int, dark: float) -> None:
         )
 
 
-def _warn_slow_multigrid(history: Sequence[Sequence[Any]]) -> None:
+def _warn_slow_multigrid(history: Sequence[Iteration]) -> None:
     """Warn when the multigrid solver stopped at its iteration limit in some global step.
 
     The mask's thin structures defeat its coarsening; that step's depths are inexact.
     """
     limit = _core.MULTIGRID_MAX_ITERATIONS
-    stuck = sum(1 for h in history if len(h) > 5 and h[5] >= limit)
+    stuck = sum(1 for h in history if h.inner_iterations >= limit)
     if stuck:
         warnings.warn(
             f"the multigrid solver reached its limit of {limit} conjugate-gradient iterations in {stuck} "
@@ -276,7 +281,7 @@ def _hint_once() -> None:
 
 def _progress_callback(
     progress: Progress, iterations: int
-) -> tuple[Callable[..., None] | None, ReconstructionProgress | None]:
+) -> tuple[_core_types.ProgressCallback | None, ReconstructionProgress | None]:
     """Return the core's progress callback for `progress`, and the display of ``progress=True``.
 
     ``True`` shows bars on stderr (:class:`nplps.progress.ReconstructionProgress`, with the
@@ -294,17 +299,8 @@ def _progress_callback(
     else:
         raise InputError(f"progress must be None, True or a callable, got {progress!r}")
 
-    def call(
-        iteration: int,
-        depth_change: float,
-        rms: float,
-        elapsed: float,
-        level: int = 0,
-        inner: int = 0,
-        light: float = 0.0,
-        search: tuple[int, int, float, float, float, float] | None = None,
-    ) -> None:
-        user(Iteration(iteration, depth_change, rms, elapsed, level, inner, light, *(search or ())))
+    def call(stats: _core.IterationStats) -> None:
+        user(_iteration(stats))
 
     return call, display
 
@@ -539,11 +535,11 @@ def reconstruct(
             options,
             callback,
         )
-    result = Reconstruction._from_core(dict(out), mask_arr, rig, "near")
+    result = Reconstruction._from_core(_named(out), mask_arr, rig, "near")
     if display is not None:
         display.finish(result)
     _warn_negative(out["negative_observations"], dark_)
-    _warn_slow_multigrid(out["history"])
+    _warn_slow_multigrid(result.history)
     _warn_status(result)
     if result.distance_check is not None and result.distance_check.looks_wrong:
         warnings.warn(result.distance_check.message, RuntimeWarning, stacklevel=2)
@@ -645,7 +641,7 @@ def reconstruct_parallel(
         depth_map,
         options,
     )
-    return Reconstruction._from_core(dict(out), mask_arr, rig, "parallel")
+    return Reconstruction._from_core(_named(out), mask_arr, rig, "parallel")
 
 
 def render(

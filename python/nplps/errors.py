@@ -17,7 +17,31 @@ class NplpsError(Exception):
 
 
 class InputError(NplpsError, ValueError):
-    """The input (images, mask, depth, options) is invalid; the message names the problem."""
+    """The input (images, mask, depth, options) is invalid; the message names the problem.
+
+    Raised by the core, it also carries what the message is about (None when not known, as for
+    the errors raised in Python):
+
+    Attributes
+    ----------
+    argument : str or None
+        The parameter, option or array at fault (``"tol"``, ``"images"``, ``"depth map"``).
+    value : object or None
+        The value given for it (a parameter out of its range, an option of the wrong kind).
+    expected, got : int or None
+        The size an array must have and the size it has.
+    index : int or None
+        Where (row-major) an array's first bad value is.
+    path : str or None
+        The image file that cannot be read.
+    """
+
+    argument: str | None = None
+    value: object = None
+    expected: int | None = None
+    got: int | None = None
+    index: int | None = None
+    path: str | None = None
 
 
 class RigError(InputError):
@@ -35,7 +59,23 @@ class MemoryLimitError(NplpsError, MemoryError):
     (by default 80 % of the memory available to the process: the system's available memory, a
     cgroup limit or an address-space limit, whichever is least). The message gives the estimate
     and the limit. It is also a ``MemoryError``.
+
+    Attributes
+    ----------
+    what : str or None
+        What was being computed.
+    needed : int or None
+        The estimated (or requested) bytes.
+    limit : int or None
+        The limit in bytes (None when a large allocation failed without a limit being exceeded).
+    explicit : bool or None
+        Whether the limit was the ``max_memory`` given (else the default share of the memory).
     """
+
+    what: str | None = None
+    needed: int | None = None
+    limit: int | None = None
+    explicit: bool | None = None
 
 
 class OutputExistsError(NplpsError, FileExistsError):

@@ -119,5 +119,35 @@ class Iteration(NamedTuple):
     best_residual: float = math.nan
 
 
+def _iteration(stats: Any) -> Iteration:
+    """Return the :class:`Iteration` of the core's ``IterationStats`` record, read by its names."""
+    search = stats.search
+    if search is None:
+        return Iteration(
+            iteration=stats.iteration,
+            depth_change=stats.depth_change,
+            rms_residual=stats.rms_residual,
+            elapsed=stats.elapsed,
+            level=stats.level,
+            inner_iterations=stats.inner_iterations,
+            light_change=stats.light_change,
+        )
+    return Iteration(
+        iteration=stats.iteration,
+        depth_change=stats.depth_change,
+        rms_residual=stats.rms_residual,
+        elapsed=stats.elapsed,
+        level=stats.level,
+        inner_iterations=stats.inner_iterations,
+        light_change=stats.light_change,
+        candidate=search.candidate,
+        candidates=search.candidates,
+        distance=search.distance,
+        candidate_residual=search.residual,
+        best_distance=search.best_distance,
+        best_residual=search.best_residual,
+    )
+
+
 # The public home of Iteration (``nplps.Iteration``): its repr and pickles are as before the move.
 Iteration.__module__ = "nplps.reconstruction"

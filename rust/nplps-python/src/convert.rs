@@ -14,7 +14,7 @@ use pyo3::types::{
 
 use nplps::g6;
 
-use crate::errors::{to_py, InputError, RigError};
+use crate::errors::{to_py, with_fields, InputError, RigError};
 
 // ------------------------------------------------------------------------------------------------
 // Strict reading of the rig mappings. Every key of the camera and lights mappings is checked for
@@ -230,11 +230,12 @@ pub fn check_options(options: &Bound<'_, PyDict>, known: &[&str]) -> PyResult<()
             }
         };
         if !known.contains(&name.as_str()) {
-            return Err(InputError::new_err(format!(
+            let err = InputError::new_err(format!(
                 "unknown option {}; the options are {}",
                 short(&name),
                 known.join(", ")
-            )));
+            ));
+            return Err(with_fields(err, |x| x.setattr("argument", &name)));
         }
     }
     Ok(())
@@ -251,7 +252,11 @@ pub fn option<'py, T: FromPyObjectOwned<'py>>(
         Some(v) if v.is_none() => Ok(default),
         Some(v) => v.extract::<T>().map_err(|e| {
             let e: PyErr = e.into();
-            InputError::new_err(format!("option {key:?} is invalid: {e}"))
+            let err = InputError::new_err(format!("option {key:?} is invalid: {e}"));
+            with_fields(err, |x| {
+                x.setattr("argument", key)?;
+                x.setattr("value", &v)
+            })
         }),
     }
 }
@@ -546,20 +551,10 @@ pub fn reconstruction_dict<'py>(
     d.set_item("lights_used", array(py, r.lights_used, &[h, w])?)?;
     d.set_item("regions", array(py, r.regions, &[h, w])?)?;
     d.set_item("gauge", PyArray1::from_vec(py, r.gauge))?;
-    let history: Vec<(usize, f64, f64, f64, usize, usize, f64)> = r
+    let history: Vec<crate::records::IterationStats> = r
         .history
         .iter()
-        .map(|s| {
-            (
-                s.iteration,
-                s.depth_change,
-                s.rms_residual,
-                s.elapsed.as_secs_f64(),
-                s.level,
-                s.inner_iterations,
-                s.light_change,
-            )
-        })
+        .map(crate::records::IterationStats::from)
         .collect();
     d.set_item("history", history)?;
     d.set_item("converged", r.converged)?;

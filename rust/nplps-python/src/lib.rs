@@ -12,6 +12,7 @@ mod decode;
 mod errors;
 mod interrupt;
 mod pool;
+mod records;
 
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -21,7 +22,7 @@ use convert::{
     array, array3, camera_dict, camera_from, check_options, lighting_from, lights_dict, option,
     reconstruction_dict, rig_from,
 };
-use errors::{no_panic, to_py, InputError, RigError};
+use errors::{no_panic, to_py, with_fields, InputError, RigError};
 use interrupt::interruptible;
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
@@ -140,7 +141,13 @@ fn choice<T: Copy>(
     let name: String = option(d, key, choices[0].0.to_string())?;
     match choices.iter().find(|(n, _)| *n == name) {
         Some(&(_, value)) => Ok(value),
-        None => Err(InputError::new_err(format!("{expected}, got {name:?}"))),
+        None => {
+            let err = InputError::new_err(format!("{expected}, got {name:?}"));
+            Err(with_fields(err, |x| {
+                x.setattr("argument", key)?;
+                x.setattr("value", &name)
+            }))
+        }
     }
 }
 
@@ -317,25 +324,7 @@ fn reconstruct<'py>(
                 let Some(cb) = &progress else {
                     return nplps::Control::Continue;
                 };
-                let args = (
-                    stats.iteration,
-                    stats.depth_change,
-                    stats.rms_residual,
-                    stats.elapsed.as_secs_f64(),
-                    stats.level,
-                    stats.inner_iterations,
-                    stats.light_change,
-                    stats.search.map(|s| {
-                        (
-                            s.candidate,
-                            s.candidates,
-                            s.distance,
-                            s.residual,
-                            s.best_distance,
-                            s.best_residual,
-                        )
-                    }),
-                );
+                let args = (records::IterationStats::from(stats),);
                 match Python::attach(|py| cb.call1(py, args).map(|_| ())) {
                     Ok(()) => nplps::Control::Continue,
                     Err(e) => {
@@ -589,6 +578,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let _ = numpy::PyArray1::<f64>::zeros(m.py(), [0], false);
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("MULTIGRID_MAX_ITERATIONS", nplps::MULTIGRID_MAX_ITERATIONS)?;
+    m.add_class::<records::IterationStats>()?;
+    m.add_class::<records::SearchProgress>()?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
