@@ -217,11 +217,6 @@ def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = Non
     return out
 
 
-def _named(out: _core_types.ReconstructionDict) -> dict[str, Any]:
-    """Return the core's result with its history as :class:`Iteration` records (read by name)."""
-    return {**out, "history": [_iteration(s) for s in out["history"]]}
-
-
 def _warn_negative(count: int, dark: float) -> None:
     if count:
         treated = "they were treated as unlit" if dark >= 0 else f"those above dark = {dark} were used"
@@ -535,7 +530,7 @@ def reconstruct(
             options,
             callback,
         )
-    result = Reconstruction._from_core(_named(out), mask_arr, rig, "near")
+    result = Reconstruction._from_core(out, mask_arr, rig, "near")
     if display is not None:
         display.finish(result)
     _warn_negative(out["negative_observations"], dark_)
@@ -641,7 +636,7 @@ def reconstruct_parallel(
         depth_map,
         options,
     )
-    return Reconstruction._from_core(_named(out), mask_arr, rig, "parallel")
+    return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 
 
 def render(

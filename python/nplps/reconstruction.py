@@ -11,7 +11,7 @@ shades with them. On noisy images the mesh normals are the more accurate (docs/m
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,7 +26,7 @@ from ._outdir import result_directory
 from ._records import DistanceCheck, DistanceEstimate, LightRefinement
 from .errors import InputError
 from .rig import Rig, _select_core_lights
-from .types import Iteration
+from .types import Iteration, _iteration
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -163,7 +163,7 @@ class Reconstruction:
     distance_check: DistanceCheck | None = None
 
     @classmethod
-    def _from_core(cls, out: dict[str, Any], mask: np.ndarray, rig: Rig, method: Method) -> Reconstruction:
+    def _from_core(cls, out: Mapping[str, Any], mask: np.ndarray, rig: Rig, method: Method) -> Reconstruction:
         refinement = _refinement(out.get("refinement"))
         input_rig = None
         if refinement is not None:
@@ -176,7 +176,7 @@ class Reconstruction:
             lights_used=out["lights_used"],
             regions=out["regions"],
             gauge=out["gauge"],
-            history=[Iteration(*h) for h in out["history"]],
+            history=[_iteration(h) for h in out["history"]],
             converged=bool(out["converged"]),
             mask=mask,
             rig=rig,
