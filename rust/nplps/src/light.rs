@@ -77,8 +77,8 @@ pub(crate) fn channel_intensity(phi: [f64; 3], channels: usize, ch: usize) -> f6
 }
 
 /// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
-/// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))` (see the [module
-/// documentation](self)).
+/// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))` (grey images use the mean of
+/// the channels), with `beta` as given for each kind.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[non_exhaustive]
 pub enum Light {

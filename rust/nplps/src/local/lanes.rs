@@ -96,8 +96,9 @@ pub(super) const LANES: usize = 4;
 
 impl LocalStep<'_> {
     /// The lights of the vectorized accumulation, when it applies: grey images, unit weights,
-    /// no robust fit, and only isotropic point lights or LEDs with `mu = 1`.
-    /// It computes the same sums in the same order as [`Facet::accumulate_grey`].
+    /// no robust fit, and only lights with a lane form ([`LaneLight::from_light`]: isotropic
+    /// point lights or LEDs with `mu = 1`). It computes the same sums in the same order as
+    /// [`Facet::accumulate_grey`](super::Facet::accumulate_grey).
     pub(super) fn lane_lights(&self) -> Option<Vec<LaneLight>> {
         let s = self.settings;
         let eligible =
@@ -181,7 +182,7 @@ impl LocalStep<'_> {
 }
 
 /// The fit of grey, unit-weight, plain sums with the residual from the normal equations (as
-/// [`fit_facet`] computes it for those settings); the target is left at zero.
+/// [`fit_facet`](super::fit_facet) computes it for those settings); the target is left at zero.
 fn grey_fit(sums: &Sums) -> Option<FacetFit> {
     if sums.used < 3 {
         return None;
@@ -218,8 +219,9 @@ fn lane_values(v: &[f32; LANES], dark: f64, saturation: f64) -> ([f64; LANES], [
 }
 
 /// The grey unit-weight normal equations of [`LANES`] facets at once (`values[k][lane]`): per
-/// lane the same operations in the same order as [`Facet::accumulate_grey`], written so that the
-/// compiler keeps the lanes in SIMD registers.
+/// lane the same operations in the same order as
+/// [`Facet::accumulate_grey`](super::Facet::accumulate_grey), written so that the compiler keeps
+/// the lanes in SIMD registers.
 #[inline(always)]
 fn accumulate_lanes(
     lights: &[LaneLight],
@@ -279,7 +281,8 @@ simd_dispatch! {
 }
 
 /// The summed squared image residuals of [`LANES`] grey fits `(normals, albedo)` over their
-/// usable observations: per lane the operations of [`Facet::sq_residual`], in its order.
+/// usable observations: per lane the operations of
+/// [`Facet::sq_residual`](super::Facet::sq_residual), in its order.
 #[inline(always)]
 fn residual_lanes(
     lights: &[LaneLight],
