@@ -21,7 +21,8 @@ use rayon::prelude::*;
 
 use crate::calibrate::{ray_sphere, reflect, Plane, Ray};
 use crate::error::{Error, Result};
-use crate::rig::{Camera, Light, Rig};
+use crate::light::Light;
+use crate::rig::{Camera, Rig};
 use crate::vec3::{dot, norm, not_above, sub};
 
 /// Reflectance of the spheres and of the board behind them.

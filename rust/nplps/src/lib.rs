@@ -161,6 +161,7 @@ mod global;
 mod grid;
 #[cfg(feature = "io")]
 pub mod io;
+mod light;
 mod local;
 mod memory;
 mod multigrid;
@@ -187,6 +188,7 @@ pub use distance::{
 };
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
+pub use light::Light;
 pub use local::{Robust, Weighting};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use options::{check_memory, Options, Refine};
@@ -196,7 +198,7 @@ pub use reconstruction::{
 };
 pub use refine::Conditioning;
 pub use render::{mesh_normals, predict, render, vertices, Surface};
-pub use rig::{Camera, Light, Rig, MAX_LIGHTS};
+pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use solver::reconstruct;
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

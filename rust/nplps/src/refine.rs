@@ -158,62 +158,6 @@ impl Layout {
     }
 }
 
-/// `d(a . g)/d theta` of one light at facet centre `c` for the scaled normal `g`, with `a` its
-/// row `Phi beta`: the intensity derivative first (if refined), then the position's.
-#[inline]
-fn derivatives(
-    light: &Light,
-    c: [f64; 3],
-    a: [f64; 3],
-    g: [f64; 3],
-    phi: f64,
-    intensity: bool,
-    position: bool,
-) -> [f64; 4] {
-    let mut d = [0.0; 4];
-    let mut k = 0;
-    if intensity {
-        d[0] = dot(a, g);
-        k = 1;
-    }
-    if position {
-        if let Light::Point {
-            position: p,
-            axis,
-            mu,
-            ..
-        } = *light
-        {
-            let v = sub(p, c);
-            let d2 = dot(v, v);
-            let len = d2.sqrt();
-            let inv3 = 1.0 / (d2 * len);
-            let inv5 = inv3 / d2;
-            let vg = dot(v, g);
-            let (f, grad_f) = if mu == 0.0 {
-                (inv3, v.map(|x| -3.0 * x * inv5))
-            } else {
-                let va = dot(v, axis);
-                let t = -va / len;
-                if t <= 0.0 {
-                    return d;
-                }
-                let tm = t.powf(mu);
-                let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
-                let dm = mu * t.powf(mu - 1.0) * inv3;
-                (
-                    tm * inv3,
-                    std::array::from_fn(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
-                )
-            };
-            for j in 0..3 {
-                d[k + j] = phi * (f * g[j] + vg * grad_f[j]);
-            }
-        }
-    }
-    d
-}
-
 /// The observations and mesh a light step works on.
 #[derive(Clone, Copy)]
 pub struct LightData<'a> {
@@ -526,8 +470,7 @@ impl LightData<'_> {
                 continue;
             }
             let phi = channel_intensity(lights[i].intensity(), channels, ch);
-            let d = derivatives(
-                &lights[i],
+            let d = lights[i].derivatives(
                 c,
                 *row,
                 g,
@@ -1003,46 +946,6 @@ mod tests {
     use super::*;
     use crate::problem::{ImageStack, InitialDepth};
     use crate::synth::{Scene, SceneKind};
-
-    /// Finite-difference check of the position and intensity derivatives, isotropic and LED.
-    #[test]
-    fn derivatives_match_finite_differences() {
-        let c = [3.0, -2.0, 100.0];
-        let g = [0.2, -0.1, -0.9];
-        for mu in [0.0, 1.0, 2.5] {
-            let light = Light::Point {
-                position: [40.0, 10.0, 5.0],
-                intensity: [2.0; 3],
-                axis: crate::vec3::normalize([-0.3, -0.1, 1.0]),
-                mu,
-            };
-            let pred = |l: &Light| {
-                let (b, _) = l.beta(c);
-                2.0 * dot(b, g)
-            };
-            let (b, _) = light.beta(c);
-            let a = b.map(|x| 2.0 * x);
-            let d = derivatives(&light, c, a, g, 2.0, true, true);
-            assert!((d[0] - pred(&light)).abs() < 1e-15);
-            for j in 0..3 {
-                let h = 1e-4;
-                let mut plus = light;
-                let mut minus = light;
-                if let (Light::Point { position: p, .. }, Light::Point { position: m, .. }) =
-                    (&mut plus, &mut minus)
-                {
-                    p[j] += h;
-                    m[j] -= h;
-                }
-                let fd = (pred(&plus) - pred(&minus)) / (2.0 * h);
-                assert!(
-                    (fd - d[1 + j]).abs() < 1e-6 * fd.abs().max(1e-9),
-                    "mu {mu} axis {j}: {fd} vs {}",
-                    d[1 + j]
-                );
-            }
-        }
-    }
 
     fn scene_problem(scene: &Scene, images: &[f32]) -> Problem<'static> {
         let stack = ImageStack::new(

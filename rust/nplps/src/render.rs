@@ -10,8 +10,9 @@ use rayon::prelude::*;
 use crate::error::{ensure_range, ensure_shape, Result};
 use crate::geometry::{quad_centre, quad_normal, Geometry};
 use crate::grid::Grid;
-use crate::rig::{Camera, Light, Rig};
-use crate::vec3::{dot, normalize, sub};
+use crate::light::{channel_intensity, Light};
+use crate::rig::{Camera, Rig};
+use crate::vec3::{normalize, sub};
 
 /// A surface to shade: an (H+1) x (W+1) vertex depth map (row-major) with a per-pixel albedo
 /// (H x W x C, C = 1 or 3) and an optional H x W mask (`true` = shade the pixel).
@@ -279,16 +280,10 @@ pub fn predict(
 /// Writes the image values (one per channel of `rho`) of a facet with normal `n` and centre `c`
 /// into `out`.
 fn shade(light: &Light, n: [f64; 3], c: [f64; 3], rho: &[f64], out: &mut [f64]) {
-    let (beta, _) = light.beta(c);
-    let shading = dot(n, beta).max(0.0);
+    let shading = light.shading(n, c);
     let phi = light.intensity();
     for (ch, (r, o)) in rho.iter().zip(out.iter_mut()).enumerate() {
-        let p = if rho.len() == 1 {
-            (phi[0] + phi[1] + phi[2]) / 3.0
-        } else {
-            phi[ch]
-        };
-        *o = r * p * shading;
+        *o = r * channel_intensity(phi, rho.len(), ch) * shading;
     }
 }
 

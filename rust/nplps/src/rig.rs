@@ -1,42 +1,18 @@
-//! Rig: the camera model and the light sources.
+//! Rig: the camera model, and the rig (a camera and its lights; the light model is
+//! [`crate::light`]).
 //!
 //! The camera frame is OpenCV's: x right (increasing column), y down (increasing row), z forward
 //! into the scene; depth is z. Units are the user's (mm typical): pixel sizes and light positions
 //! share them.
 
 use crate::error::{g6, Error, Result};
+use crate::light::{check_magnitude, g6_list};
+pub(crate) use crate::light::{Light, MAX_MAGNITUDE, MIN_MAGNITUDE};
 use crate::vec3::{add, dot, norm, scale, sub, unit};
 
 /// Most lights a rig may have. Real rigs have tens to a few hundred; the bound keeps a malformed
 /// rig file from asking for unbounded work (every light is one image of the stack).
 pub const MAX_LIGHTS: usize = 10_000;
-
-/// Largest magnitude of a length or pixel coordinate of a rig (camera values, light positions)
-/// and of a depth; pixel sizes, focal lengths and pinhole depths are at least [`MIN_MAGNITUDE`].
-/// No real rig comes near either bound, and values beyond them overflow or underflow the
-/// geometry (cubes of distances, cross products of vertex offsets) into NaN results.
-pub const MAX_MAGNITUDE: f64 = 1e12;
-/// Smallest pixel size, focal length and pinhole depth (see [`MAX_MAGNITUDE`]).
-pub const MIN_MAGNITUDE: f64 = 1e-12;
-
-/// Fails when a value of `values` (named `name`) is beyond [`MAX_MAGNITUDE`].
-fn check_magnitude(what: &str, values: &[f64]) -> Result<()> {
-    match values.iter().find(|v| v.abs() > MAX_MAGNITUDE) {
-        Some(v) => Err(Error::Rig(format!(
-            "{what} has the value {}, beyond {} in magnitude: no rig has such values, and they \
-             overflow the geometry",
-            g6(*v),
-            g6(MAX_MAGNITUDE)
-        ))),
-        None => Ok(()),
-    }
-}
-
-/// Numbers for messages, each with 6 significant digits: `[1, 0.5, 1.00000e300]`.
-pub(crate) fn g6_list(values: &[f64]) -> String {
-    let items: Vec<String> = values.iter().map(|&v| g6(v)).collect();
-    format!("[{}]", items.join(", "))
-}
 
 /// Camera model.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -325,147 +301,6 @@ pub(crate) fn undistort(d: [f64; 2], dist: [f64; 5]) -> [f64; 2] {
     [x, y]
 }
 
-/// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
-/// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[non_exhaustive]
-pub enum Light {
-    /// A near point light (an LED) at `position`, emitting around the unit `axis` with
-    /// anisotropy `mu` (Quéau et al. 2018): `beta(x) = ((x - p) . axis / |x - p|)^mu *
-    /// (p - x) / |p - x|^3`; `mu = 0` is an isotropic point light (the axis is then unused).
-    Point {
-        /// Position p in the camera frame.
-        position: [f64; 3],
-        /// Intensity per channel (R, G, B; grey images use the mean).
-        intensity: [f64; 3],
-        /// Unit principal direction, from the LED towards the scene.
-        axis: [f64; 3],
-        /// Anisotropy mu >= 0.
-        mu: f64,
-    },
-    /// A distant light: `beta = direction` (unit, from the surface towards the light).
-    Directional {
-        /// Unit direction from the surface towards the light.
-        direction: [f64; 3],
-        /// Intensity per channel.
-        intensity: [f64; 3],
-    },
-}
-
-impl Light {
-    /// An isotropic point light of unit intensity.
-    pub fn point(position: [f64; 3]) -> Light {
-        Light::Point {
-            position,
-            intensity: [1.0; 3],
-            axis: [0.0, 0.0, 1.0],
-            mu: 0.0,
-        }
-    }
-
-    /// Intensity per channel.
-    pub fn intensity(&self) -> [f64; 3] {
-        match *self {
-            Light::Point { intensity, .. } | Light::Directional { intensity, .. } => intensity,
-        }
-    }
-
-    /// `beta(x)` (see [`Light`]) and the factor `|p - x|^3 / aniso` that turns the paper's
-    /// Eq. 6 weighting into equation weights (1 for directional lights).
-    #[inline]
-    pub fn beta(&self, x: [f64; 3]) -> ([f64; 3], f64) {
-        match *self {
-            Light::Point {
-                position, axis, mu, ..
-            } => {
-                let a = sub(position, x);
-                let d2 = dot(a, a);
-                let d = d2.sqrt();
-                let d3 = d2 * d;
-                let aniso = if mu == 0.0 {
-                    1.0
-                } else {
-                    (-dot(a, axis) / d).max(0.0).powf(mu)
-                };
-                let f = aniso / d3;
-                ([a[0] * f, a[1] * f, a[2] * f], d3 / aniso)
-            }
-            Light::Directional { direction, .. } => (direction, 1.0),
-        }
-    }
-
-    /// Whether the light stands strictly in front of a surface whose nearest depth is `depth`
-    /// (a point light's z below it; a NaN depth is in front of nothing). Directional lights are
-    /// always in front.
-    #[inline]
-    pub fn is_in_front_of(&self, depth: f64) -> bool {
-        match *self {
-            Light::Point { position, .. } => position[2] < depth,
-            Light::Directional { .. } => true,
-        }
-    }
-
-    fn validate(&self, i: usize) -> Result<()> {
-        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
-        let (vector, name, intensity, axis, mu) = match *self {
-            Light::Point {
-                position,
-                intensity,
-                axis,
-                mu,
-            } => (position, "position", intensity, axis, mu),
-            Light::Directional {
-                direction,
-                intensity,
-            } => (direction, "direction", intensity, [0.0, 0.0, 1.0], 0.0),
-        };
-        if !finite(&vector) {
-            return Err(Error::Rig(format!(
-                "light {i} has a non-finite {name} {}",
-                g6_list(&vector)
-            )));
-        }
-        check_magnitude(&format!("light {i}'s {name}"), &vector)?;
-        if !finite(&intensity) {
-            return Err(Error::Rig(format!(
-                "light {i} has a non-finite intensity {}",
-                g6_list(&intensity)
-            )));
-        }
-        if !finite(&axis) || !mu.is_finite() {
-            return Err(Error::Rig(format!(
-                "light {i} has a non-finite principal direction {} or anisotropy mu = {}",
-                g6_list(&axis),
-                g6(mu)
-            )));
-        }
-        if !intensity.iter().all(|v| *v > 0.0) {
-            return Err(Error::Rig(format!(
-                "light {i} must have positive intensities, got {}",
-                g6_list(&intensity)
-            )));
-        }
-        if mu < 0.0 {
-            return Err(Error::Rig(format!(
-                "light {i} has anisotropy mu = {}; it must be >= 0",
-                g6(mu)
-            )));
-        }
-        let unit = |v: [f64; 3]| (norm(v) - 1.0).abs() < 1e-6;
-        match *self {
-            Light::Point { axis, mu, .. } if mu > 0.0 && !unit(axis) => Err(Error::Rig(format!(
-                "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {}",
-                g6_list(&axis)
-            ))),
-            Light::Directional { direction, .. } if !unit(direction) => Err(Error::Rig(format!(
-                "light {i}: a directional light needs a unit direction, got {}",
-                g6_list(&direction)
-            ))),
-            _ => Ok(()),
-        }
-    }
-}
-
 /// A calibrated rig: one camera and k lights.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rig {
@@ -626,22 +461,6 @@ mod tests {
         };
         assert!(cam.vertex_xy(10, 10)[0].is_nan());
         assert!(cam.vertex_xy(3, 3)[0].is_finite());
-    }
-
-    #[test]
-    fn led_beta_follows_the_anisotropic_model() {
-        let led = Light::Point {
-            position: [0.0, 0.0, 0.0],
-            intensity: [1.0; 3],
-            axis: [0.0, 0.0, 1.0],
-            mu: 2.0,
-        };
-        // On the axis at distance 2: beta = (p - x) / 8; off axis at 45 degrees the factor is 1/2.
-        let (b, w) = led.beta([0.0, 0.0, 2.0]);
-        assert!((b[2] + 0.25).abs() < 1e-15 && (w - 8.0).abs() < 1e-12);
-        let (b, _) = led.beta([1.0, 0.0, 1.0]);
-        let expected = 0.5 / 2f64.powf(1.5);
-        assert!((b[0] + expected).abs() < 1e-12);
     }
 
     #[test]

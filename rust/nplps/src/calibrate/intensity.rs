@@ -16,7 +16,8 @@
 
 use super::fits::tangent_basis;
 use crate::error::{Error, Result};
-use crate::rig::{Camera, Light, Rig};
+use crate::light::Light;
+use crate::rig::{Camera, Rig};
 use crate::vec3::{add, dot, norm, scale, sub, unit};
 
 /// A plane `normal . X = offset` in the camera frame.
@@ -165,28 +166,10 @@ struct Shape {
     axis: [f64; 3],
 }
 
-fn with_shape(light: &Light, shape: Shape) -> Light {
-    match *light {
-        Light::Point {
-            position,
-            intensity,
-            ..
-        } => Light::Point {
-            position,
-            intensity,
-            axis: shape.axis,
-            mu: shape.mu,
-        },
-        other => other,
-    }
-}
-
-/// Shading `max(0, n . beta(X))` of every board point under `light` (intensity excluded).
+/// Shading `max(0, n . beta(X))` of every board point under `light` (intensity excluded; see
+/// [`Light::shading`]).
 fn shading(light: &Light, n: [f64; 3], points: &[[f64; 3]]) -> Vec<f64> {
-    points
-        .iter()
-        .map(|&x| dot(n, light.beta(x).0).max(0.0))
-        .collect()
+    points.iter().map(|&x| light.shading(n, x)).collect()
 }
 
 /// Per-channel least-squares intensities `Phi_c = sum I rho s / sum (rho s)^2` and the residual
@@ -244,7 +227,7 @@ fn fit_shape(
     // Parameters: mu and two tangent offsets of the axis.
     let np = if fit_axis { 3 } else { 1 };
     let residuals = |shape: Shape| -> Vec<f64> {
-        let s = shading(&with_shape(light, shape), n, points);
+        let s = shading(&light.with_shape(shape.mu, shape.axis), n, points);
         let (phi, _) = fit_phi(obs, channels, &s, rho);
         obs.iter()
             .map(|&(j, v)| {
@@ -486,7 +469,13 @@ pub fn calibrate_intensities(
     let fit_any_shape = options.fit_mu;
     let mut phi = vec![vec![0.0; channels]; k];
     let mut s_all: Vec<Vec<f64>> = (0..k)
-        .map(|i| shading(&with_shape(&lights[i], shapes[i]), n, &points))
+        .map(|i| {
+            shading(
+                &lights[i].with_shape(shapes[i].mu, shapes[i].axis),
+                n,
+                &points,
+            )
+        })
         .collect();
     let outer = match options.albedo {
         BoardAlbedo::Uniform => 1,
@@ -532,7 +521,7 @@ pub fn calibrate_intensities(
                     iterations = iterations.max(steps);
                 }
                 shapes[i] = shape;
-                s_all[i] = shading(&with_shape(&lights[i], shape), n, &points);
+                s_all[i] = shading(&lights[i].with_shape(shape.mu, shape.axis), n, &points);
             }
             let (p, rss) = fit_phi(&lit, channels, &s_all[i], &rho);
             phi[i] = p;
@@ -695,7 +684,7 @@ mod tests {
                 let x = plane
                     .intersect(&cam, [(p % w) as f64, (p / w) as f64])
                     .unwrap();
-                let s = dot([0.0, 0.0, -1.0], l.beta(x).0).max(0.0);
+                let s = l.shading([0.0, 0.0, -1.0], x);
                 images.push((rho * l.intensity()[0] * s) as f32);
             }
         }

@@ -1,0 +1,548 @@
+//! The light model: the one place where the irradiance of a light source is written.
+//!
+//! A surface point `x` with unit normal `n` and albedo `rho` is imaged under a light of
+//! intensity `Phi` (per channel; grey images use the mean of the channels,
+//! [`channel_intensity`]) as
+//!
+//! ```text
+//! I = rho * Phi * max(0, n . beta(x))
+//! ```
+//!
+//! with the irradiance factor `beta` of the light:
+//! - a point light (an LED) at `p` with unit principal direction `axis` and anisotropy `mu >= 0`
+//!   (Quéau et al. 2018): with `a = p - x`,
+//!   `beta(x) = aniso(x) a / |a|^3`, `aniso(x) = max(0, t)^mu`, `t = -a . axis / |a|` (the
+//!   cosine between the axis and the direction from the LED to `x`); `mu = 0` is an isotropic
+//!   point light (`aniso = 1`, the axis unused);
+//! - a directional light: `beta = direction` (unit, from the surface towards the light).
+//!
+//! What this module provides, each written once:
+//! - [`Light::beta`]: `beta(x)` and the paper's weighting factor `|a|^3 / aniso`;
+//!   [`Light::shading`]: `max(0, n . beta(x))`;
+//! - [`Light::beta_gradient`] and [`Light::beta_gradient_at`]: the gradient of `beta(x) . g`
+//!   with respect to the light position and to the surface point; [`Light::derivatives`]: the
+//!   derivatives of a prediction `Phi beta . g` with respect to the refined light parameters
+//!   (log-intensity, position);
+//! - [`Light::with_shape`]: the LED shape `(mu, axis)` that calibration fits (it differentiates
+//!   the shape by finite differences of [`Light::beta`], so no analytic shape derivative exists);
+//! - [`LaneLight`] and [`LaneLight::beta`]: the lane (SIMD) form of `beta` for several surface
+//!   points at once, with its eligibility rule ([`LaneLight::from_light`]: isotropic point
+//!   lights and LEDs with `mu = 1`), the same operations in the same order as [`Light::beta`].
+//!
+//! Adding a light model means a new [`Light`] variant here, its entry in the rig file reader and
+//! the bindings, and its Python value class.
+//!
+//! All arithmetic is written out in a fixed order: the reconstruction's results depend on it to
+//! the bit, and the lane form must agree with the scalar one exactly.
+
+use crate::error::{g6, Error, Result};
+use crate::vec3::{dot, norm, sub};
+
+/// Largest magnitude of a length or pixel coordinate of a rig (camera values, light positions)
+/// and of a depth; pixel sizes, focal lengths and pinhole depths are at least [`MIN_MAGNITUDE`].
+/// No real rig comes near either bound, and values beyond them overflow or underflow the
+/// geometry (cubes of distances, cross products of vertex offsets) into NaN results.
+pub const MAX_MAGNITUDE: f64 = 1e12;
+/// Smallest pixel size, focal length and pinhole depth (see [`MAX_MAGNITUDE`]).
+pub const MIN_MAGNITUDE: f64 = 1e-12;
+
+/// Fails when a value of `values` (named `what`) is beyond [`MAX_MAGNITUDE`].
+pub(crate) fn check_magnitude(what: &str, values: &[f64]) -> Result<()> {
+    match values.iter().find(|v| v.abs() > MAX_MAGNITUDE) {
+        Some(v) => Err(Error::Rig(format!(
+            "{what} has the value {}, beyond {} in magnitude: no rig has such values, and they \
+             overflow the geometry",
+            g6(*v),
+            g6(MAX_MAGNITUDE)
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Numbers for messages, each with 6 significant digits: `[1, 0.5, 1.00000e300]`.
+pub(crate) fn g6_list(values: &[f64]) -> String {
+    let items: Vec<String> = values.iter().map(|&v| g6(v)).collect();
+    format!("[{}]", items.join(", "))
+}
+
+/// The intensity `Phi` of a light with channel intensities `phi` in channel `ch` of images with
+/// `channels` channels: grey images (1 channel) use the mean of the three.
+#[inline]
+pub(crate) fn channel_intensity(phi: [f64; 3], channels: usize, ch: usize) -> f64 {
+    if channels == 1 {
+        (phi[0] + phi[1] + phi[2]) / 3.0
+    } else {
+        phi[ch]
+    }
+}
+
+/// A light source. Image model at surface point `x` with unit normal `n`, albedo `rho`, in
+/// channel `ch`: `I = rho * intensity[ch] * max(0, n . beta(x))` (grey images use the mean of
+/// the channels), with `beta` as given for each kind.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum Light {
+    /// A near point light (an LED) at `position`, emitting around the unit `axis` with
+    /// anisotropy `mu` (Quéau et al. 2018): `beta(x) = max(0, (x - p) . axis / |x - p|)^mu *
+    /// (p - x) / |p - x|^3`; `mu = 0` is an isotropic point light (the axis is then unused).
+    Point {
+        /// Position p in the camera frame.
+        position: [f64; 3],
+        /// Intensity per channel (R, G, B; grey images use the mean).
+        intensity: [f64; 3],
+        /// Unit principal direction, from the LED towards the scene.
+        axis: [f64; 3],
+        /// Anisotropy mu >= 0.
+        mu: f64,
+    },
+    /// A distant light: `beta = direction` (unit, from the surface towards the light).
+    Directional {
+        /// Unit direction from the surface towards the light.
+        direction: [f64; 3],
+        /// Intensity per channel.
+        intensity: [f64; 3],
+    },
+}
+
+impl Light {
+    /// An isotropic point light of unit intensity.
+    pub fn point(position: [f64; 3]) -> Light {
+        Light::Point {
+            position,
+            intensity: [1.0; 3],
+            axis: [0.0, 0.0, 1.0],
+            mu: 0.0,
+        }
+    }
+
+    /// Intensity per channel.
+    pub fn intensity(&self) -> [f64; 3] {
+        match *self {
+            Light::Point { intensity, .. } | Light::Directional { intensity, .. } => intensity,
+        }
+    }
+
+    /// This light with the LED shape `mu`, `axis` (a point light; a directional light is
+    /// returned unchanged): the parameters that intensity calibration fits.
+    pub(crate) fn with_shape(&self, mu: f64, axis: [f64; 3]) -> Light {
+        match *self {
+            Light::Point {
+                position,
+                intensity,
+                ..
+            } => Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            },
+            other => other,
+        }
+    }
+
+    /// `beta(x)` (see [`Light`]) and the factor `|p - x|^3 / aniso` that turns the paper's
+    /// Eq. 6 weighting into equation weights (1 for directional lights).
+    #[inline]
+    pub fn beta(&self, x: [f64; 3]) -> ([f64; 3], f64) {
+        match *self {
+            Light::Point {
+                position, axis, mu, ..
+            } => {
+                let a = sub(position, x);
+                let d2 = dot(a, a);
+                let d = d2.sqrt();
+                let d3 = d2 * d;
+                let aniso = if mu == 0.0 {
+                    1.0
+                } else {
+                    (-dot(a, axis) / d).max(0.0).powf(mu)
+                };
+                let f = aniso / d3;
+                ([a[0] * f, a[1] * f, a[2] * f], d3 / aniso)
+            }
+            Light::Directional { direction, .. } => (direction, 1.0),
+        }
+    }
+
+    /// The shading `max(0, n . beta(x))` of a surface point `x` with unit normal `n` (attached
+    /// shadows clipped at 0; the image is `rho * Phi` times it).
+    #[inline]
+    pub(crate) fn shading(&self, n: [f64; 3], x: [f64; 3]) -> f64 {
+        dot(n, self.beta(x).0).max(0.0)
+    }
+
+    /// For a point light at `p` and the surface point `x`: `v = p - x`, the factor
+    /// `f = aniso / |v|^3` with `beta = f v`, and its gradient with respect to `p`,
+    ///
+    /// ```text
+    /// grad f = mu t^(mu-1) (-axis / |v| + (v . axis) v / |v|^3) / |v|^3 - 3 t^mu v / |v|^5
+    /// ```
+    ///
+    /// (for `mu = 0`, `-3 v / |v|^5`). None for a directional light and for an LED outside its
+    /// cone (`t <= 0`), where `beta` and its gradient vanish.
+    #[inline]
+    fn falloff_gradient(&self, x: [f64; 3]) -> Option<([f64; 3], f64, [f64; 3])> {
+        let Light::Point {
+            position: p,
+            axis,
+            mu,
+            ..
+        } = *self
+        else {
+            return None;
+        };
+        let v = sub(p, x);
+        let d2 = dot(v, v);
+        let len = d2.sqrt();
+        let inv3 = 1.0 / (d2 * len);
+        let inv5 = inv3 / d2;
+        if mu == 0.0 {
+            return Some((v, inv3, v.map(|x| -3.0 * x * inv5)));
+        }
+        let va = dot(v, axis);
+        let t = -va / len;
+        if t <= 0.0 {
+            return None;
+        }
+        let tm = t.powf(mu);
+        let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
+        let dm = mu * t.powf(mu - 1.0) * inv3;
+        Some((
+            v,
+            tm * inv3,
+            std::array::from_fn(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
+        ))
+    }
+
+    /// The gradient of `beta(x) . g` with respect to the light's position `p`: with
+    /// `beta = f(v) v`, `v = p - x`, it is `f g + (v . g) grad f` (see
+    /// [`Light::falloff_gradient`]). None for a directional light (no position) and where
+    /// `beta` vanishes (an LED's outside, `t <= 0`: the gradient is zero).
+    #[inline]
+    pub(crate) fn beta_gradient(&self, x: [f64; 3], g: [f64; 3]) -> Option<[f64; 3]> {
+        let (v, f, grad_f) = self.falloff_gradient(x)?;
+        let vg = dot(v, g);
+        Some(std::array::from_fn(|j| f * g[j] + vg * grad_f[j]))
+    }
+
+    /// The gradient of `beta(x) . g` with respect to the surface point `x`: `beta` depends on
+    /// `p - x` only, so it is minus [`Light::beta_gradient`] for a point light, and zero for a
+    /// directional light (None, as where an LED's `beta` vanishes).
+    #[cfg_attr(not(test), allow(dead_code))]
+    #[inline]
+    pub(crate) fn beta_gradient_at(&self, x: [f64; 3], g: [f64; 3]) -> Option<[f64; 3]> {
+        self.beta_gradient(x, g).map(|d| d.map(|v| -v))
+    }
+
+    /// `d(a . g)/d theta` of this light at the surface point `c` for the scaled normal `g`,
+    /// with `a = phi beta(c)` its row and `phi` its intensity in the channel: the
+    /// log-intensity derivative `a . g` first (if `intensity`), then the position's
+    /// `phi d(beta . g)/dp` (if `position`, zero for a directional light); unused entries 0.
+    #[inline]
+    pub(crate) fn derivatives(
+        &self,
+        c: [f64; 3],
+        a: [f64; 3],
+        g: [f64; 3],
+        phi: f64,
+        intensity: bool,
+        position: bool,
+    ) -> [f64; 4] {
+        let mut d = [0.0; 4];
+        let mut k = 0;
+        if intensity {
+            d[0] = dot(a, g);
+            k = 1;
+        }
+        if position {
+            if let Some(grad) = self.beta_gradient(c, g) {
+                for j in 0..3 {
+                    d[k + j] = phi * grad[j];
+                }
+            }
+        }
+        d
+    }
+
+    /// Whether the light stands strictly in front of a surface whose nearest depth is `depth`
+    /// (a point light's z below it; a NaN depth is in front of nothing). Directional lights are
+    /// always in front.
+    #[inline]
+    pub fn is_in_front_of(&self, depth: f64) -> bool {
+        match *self {
+            Light::Point { position, .. } => position[2] < depth,
+            Light::Directional { .. } => true,
+        }
+    }
+
+    /// Checks light `i`'s parameters: finite, within [`MAX_MAGNITUDE`], positive intensities,
+    /// `mu >= 0`, a unit axis for an anisotropic LED and a unit direction.
+    pub(crate) fn validate(&self, i: usize) -> Result<()> {
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        let (vector, name, intensity, axis, mu) = match *self {
+            Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } => (position, "position", intensity, axis, mu),
+            Light::Directional {
+                direction,
+                intensity,
+            } => (direction, "direction", intensity, [0.0, 0.0, 1.0], 0.0),
+        };
+        if !finite(&vector) {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite {name} {}",
+                g6_list(&vector)
+            )));
+        }
+        check_magnitude(&format!("light {i}'s {name}"), &vector)?;
+        if !finite(&intensity) {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite intensity {}",
+                g6_list(&intensity)
+            )));
+        }
+        if !finite(&axis) || !mu.is_finite() {
+            return Err(Error::Rig(format!(
+                "light {i} has a non-finite principal direction {} or anisotropy mu = {}",
+                g6_list(&axis),
+                g6(mu)
+            )));
+        }
+        if !intensity.iter().all(|v| *v > 0.0) {
+            return Err(Error::Rig(format!(
+                "light {i} must have positive intensities, got {}",
+                g6_list(&intensity)
+            )));
+        }
+        if mu < 0.0 {
+            return Err(Error::Rig(format!(
+                "light {i} has anisotropy mu = {}; it must be >= 0",
+                g6(mu)
+            )));
+        }
+        let unit = |v: [f64; 3]| (norm(v) - 1.0).abs() < 1e-6;
+        match *self {
+            Light::Point { axis, mu, .. } if mu > 0.0 && !unit(axis) => Err(Error::Rig(format!(
+                "light {i}: the principal direction of an anisotropic LED must be a unit vector, got {}",
+                g6_list(&axis)
+            ))),
+            Light::Directional { direction, .. } if !unit(direction) => Err(Error::Rig(format!(
+                "light {i}: a directional light needs a unit direction, got {}",
+                g6_list(&direction)
+            ))),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// A light in the lane (SIMD) form of the model, which evaluates `beta` at several surface
+/// points at once: an isotropic point light, or an LED with `mu = 1` (where `t^mu = t`, no
+/// `powf`), with its grey intensity.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LaneLight {
+    position: [f64; 3],
+    axis: [f64; 3],
+    /// Whether the light is an LED with `mu = 1` (else isotropic).
+    led: bool,
+    /// Grey intensity, the mean of the channels ([`channel_intensity`] of one channel).
+    pub grey: f64,
+}
+
+impl LaneLight {
+    /// The lane form of `light`, when it has one: a point light with `mu = 0` or `mu = 1`
+    /// (None for other anisotropies and for directional lights).
+    pub fn from_light(light: &Light) -> Option<LaneLight> {
+        match *light {
+            Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } if mu == 0.0 || mu == 1.0 => Some(LaneLight {
+                position,
+                axis,
+                led: mu == 1.0,
+                grey: channel_intensity(intensity, 1, 0),
+            }),
+            _ => None,
+        }
+    }
+
+    /// For `N` surface points `x`: `a = p - x` and the factor `f` with `beta = a * f` (see
+    /// [`Light::beta`]), computed per lane with the operations of the scalar code in its order
+    /// (for `mu = 1`, `max(0, t)^1 = max(0, t)` exactly). Straight-line code over the lanes, one
+    /// operation at a time, so that the compiler turns each line into one vector instruction.
+    #[inline(always)]
+    pub fn beta<const N: usize>(&self, x: &[[f64; 3]; N]) -> ([[f64; N]; 3], [f64; N]) {
+        let [px, py, pz] = self.position;
+        let [ax, ay, az] = self.axis;
+        let a0: [f64; N] = std::array::from_fn(|l| px - x[l][0]);
+        let a1: [f64; N] = std::array::from_fn(|l| py - x[l][1]);
+        let a2: [f64; N] = std::array::from_fn(|l| pz - x[l][2]);
+        let d2: [f64; N] = std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+        let d: [f64; N] = std::array::from_fn(|l| d2[l].sqrt());
+        let d3: [f64; N] = std::array::from_fn(|l| d2[l] * d[l]);
+        let f: [f64; N] = if self.led {
+            std::array::from_fn(|l| {
+                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
+            })
+        } else {
+            std::array::from_fn(|l| 1.0 / d3[l])
+        };
+        ([a0, a1, a2], f)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vec3::normalize;
+
+    fn led(mu: f64) -> Light {
+        Light::Point {
+            position: [40.0, 10.0, 5.0],
+            intensity: [2.0; 3],
+            axis: normalize([-0.3, -0.1, 1.0]),
+            mu,
+        }
+    }
+
+    #[test]
+    fn led_beta_follows_the_anisotropic_model() {
+        let led = Light::Point {
+            position: [0.0, 0.0, 0.0],
+            intensity: [1.0; 3],
+            axis: [0.0, 0.0, 1.0],
+            mu: 2.0,
+        };
+        // On the axis at distance 2: beta = (p - x) / 8; off axis at 45 degrees the factor is 1/2.
+        let (b, w) = led.beta([0.0, 0.0, 2.0]);
+        assert!((b[2] + 0.25).abs() < 1e-15 && (w - 8.0).abs() < 1e-12);
+        let (b, _) = led.beta([1.0, 0.0, 1.0]);
+        let expected = 0.5 / 2f64.powf(1.5);
+        assert!((b[0] + expected).abs() < 1e-12);
+        // Behind the LED (t < 0) it lights nothing.
+        assert_eq!(led.beta([0.0, 0.0, -2.0]).0, [0.0; 3]);
+        assert!((led.shading([0.0, 0.0, -1.0], [1.0, 0.0, 1.0]) - expected).abs() < 1e-12);
+        assert_eq!(led.shading([0.0, 0.0, 1.0], [1.0, 0.0, 1.0]), 0.0);
+    }
+
+    /// Finite-difference check of the position and intensity derivatives, isotropic and LED.
+    #[test]
+    fn derivatives_match_finite_differences() {
+        let c = [3.0, -2.0, 100.0];
+        let g = [0.2, -0.1, -0.9];
+        for mu in [0.0, 1.0, 2.5] {
+            let light = led(mu);
+            let pred = |l: &Light| {
+                let (b, _) = l.beta(c);
+                2.0 * dot(b, g)
+            };
+            let (b, _) = light.beta(c);
+            let a = b.map(|x| 2.0 * x);
+            let d = light.derivatives(c, a, g, 2.0, true, true);
+            assert!((d[0] - pred(&light)).abs() < 1e-15);
+            for j in 0..3 {
+                let h = 1e-4;
+                let mut plus = light;
+                let mut minus = light;
+                if let (Light::Point { position: p, .. }, Light::Point { position: m, .. }) =
+                    (&mut plus, &mut minus)
+                {
+                    p[j] += h;
+                    m[j] -= h;
+                }
+                let fd = (pred(&plus) - pred(&minus)) / (2.0 * h);
+                assert!(
+                    (fd - d[1 + j]).abs() < 1e-6 * fd.abs().max(1e-9),
+                    "mu {mu} axis {j}: {fd} vs {}",
+                    d[1 + j]
+                );
+            }
+        }
+    }
+
+    /// The gradient with respect to the surface point, by finite differences; none for a
+    /// directional light or outside an LED's cone.
+    #[test]
+    fn surface_point_gradient_matches_finite_differences() {
+        let c = [3.0, -2.0, 100.0];
+        let g = [0.2, -0.1, -0.9];
+        for mu in [0.0, 1.0, 2.5] {
+            let light = led(mu);
+            let grad = light.beta_gradient_at(c, g).unwrap();
+            for j in 0..3 {
+                let h = 1e-4;
+                let (mut plus, mut minus) = (c, c);
+                plus[j] += h;
+                minus[j] -= h;
+                let fd = (dot(light.beta(plus).0, g) - dot(light.beta(minus).0, g)) / (2.0 * h);
+                assert!(
+                    (fd - grad[j]).abs() < 1e-6 * fd.abs().max(1e-9),
+                    "mu {mu} axis {j}: {fd} vs {}",
+                    grad[j]
+                );
+            }
+        }
+        let sun = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        assert!(sun.beta_gradient_at(c, g).is_none());
+        assert_eq!(sun.derivatives(c, [0.0; 3], g, 1.0, false, true), [0.0; 4]);
+        assert!(led(1.0).beta_gradient([0.0, 0.0, -100.0], g).is_none());
+    }
+
+    /// The lane form gives bit for bit the scalar `beta`, for the lights it accepts.
+    #[test]
+    fn lane_beta_matches_the_scalar_beta_exactly() {
+        let x = [
+            [3.0, -2.0, 100.0],
+            [-7.5, 4.25, 80.0],
+            [0.1, 0.2, 30.0],
+            [200.0, 0.0, 6.0],
+        ];
+        for mu in [0.0, 1.0] {
+            let light = led(mu);
+            let lane = LaneLight::from_light(&light).unwrap();
+            assert_eq!(lane.grey, 2.0);
+            let (a, f) = lane.beta(&x);
+            for l in 0..4 {
+                let b = light.beta(x[l]).0;
+                assert_eq!(
+                    [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]],
+                    b,
+                    "mu {mu}"
+                );
+            }
+        }
+        assert!(LaneLight::from_light(&led(2.5)).is_none());
+        let sun = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        assert!(LaneLight::from_light(&sun).is_none());
+    }
+
+    #[test]
+    fn with_shape_sets_the_led_shape_only() {
+        let l = led(0.0).with_shape(1.5, [0.0, 0.0, 1.0]);
+        assert_eq!(
+            l,
+            Light::Point {
+                position: [40.0, 10.0, 5.0],
+                intensity: [2.0; 3],
+                axis: [0.0, 0.0, 1.0],
+                mu: 1.5,
+            }
+        );
+        let sun = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        assert_eq!(sun.with_shape(2.0, [1.0, 0.0, 0.0]), sun);
+    }
+}
