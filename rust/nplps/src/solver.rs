@@ -409,6 +409,9 @@ impl<'p> Solver<'p> {
     /// parameter. Once a step finds nothing to improve, the lights stay for the rest of the run
     /// and the acceleration ends.
     fn refine_lights(&mut self, run: &mut Run<'_>, u: &[f64]) -> Result<f64> {
+        if !self.lights.is_active() || self.lights.settled() {
+            return Ok(0.0);
+        }
         let t = Instant::now();
         let data = LightData::of(self.problem, self.options.fit_settings(false));
         let change = self.lights.step(&data, u)?;
