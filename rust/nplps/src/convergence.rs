@@ -245,3 +245,66 @@ impl Safeguard {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The verdict: non-finite depths are an error, both changes within the tolerance converge,
+    /// and [`STALL_WINDOW`] iterations without a new smallest depth change stall the run.
+    #[test]
+    fn verdicts_follow_the_stop_rules() {
+        let mut guard = Safeguard::new();
+        let err = guard.verdict(3, f64::NAN, 0.0, 1e-3, 10.0).unwrap_err();
+        assert!(matches!(&err, Error::Solver(m) if m.contains("diverged at iteration 3")));
+        assert_eq!(
+            guard.verdict(1, 0.01, 0.0, 1e-3, 10.0).unwrap(),
+            Next::Converged
+        );
+        assert_eq!(
+            guard.verdict(1, 0.01, 0.1, 1e-3, 10.0).unwrap(),
+            Next::Continue
+        );
+        let mut stalled = Safeguard::new();
+        let verdicts: Vec<Next> = (1..=STALL_WINDOW + 1)
+            .map(|i| stalled.verdict(i, 1.0, 0.0, 1e-3, 10.0).unwrap())
+            .collect();
+        assert!(verdicts[..STALL_WINDOW]
+            .iter()
+            .all(|&v| v == Next::Continue));
+        assert_eq!(verdicts[STALL_WINDOW], Next::Stalled);
+    }
+
+    /// Without an active refinement the best state is never kept nor restored.
+    #[test]
+    fn without_refinement_the_best_state_is_left_alone() {
+        let light = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        let mut lights = LightRefinement::new(crate::options::Refine::NONE, &[light; 4]);
+        let mut guard = Safeguard::new();
+        let mut u = vec![1.0, 2.0];
+        assert!(!guard.best_state(true, 1.0, &mut u, &mut lights).unwrap());
+        assert!(!guard.best_state(true, 10.0, &mut u, &mut lights).unwrap());
+        guard.finish(&mut u, &mut lights);
+        assert_eq!(u, [1.0, 2.0]);
+    }
+
+    /// The light change and the RMS residual (NaN without a valid facet).
+    #[test]
+    fn measures() {
+        assert_eq!(max_change(&[1.0, -2.0], &[0.5, 1.0]), 3.0);
+        assert_eq!(max_change(&[], &[]), 0.0);
+        let stats = [
+            FacetStat {
+                valid: true,
+                sse: 8.0,
+                used: 2,
+            },
+            FacetStat::default(),
+        ];
+        assert_eq!(rms_of(&stats, 1), 2.0);
+        assert!(rms_of(&stats[1..], 1).is_nan());
+    }
+}

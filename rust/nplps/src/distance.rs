@@ -573,8 +573,8 @@ impl DistanceCheck {
     }
 
     /// Whether the images fit another distance clearly better: the residual at the given
-    /// distance is more than [`WRONG_DISTANCE_RATIO`] times the best one, and the distances differ
-    /// by more than [`WRONG_DISTANCE_OFFSET`].
+    /// distance is more than `WRONG_DISTANCE_RATIO` times the best one, and the distances differ
+    /// by more than `WRONG_DISTANCE_OFFSET`.
     pub fn looks_wrong(&self) -> bool {
         self.ratio() > WRONG_DISTANCE_RATIO && self.offset().abs() > WRONG_DISTANCE_OFFSET
     }
