@@ -9,7 +9,7 @@ use crate::local::FacetStat;
 use crate::memory::try_copy;
 use crate::problem::Problem;
 use crate::reconstruction::STALL_WINDOW;
-use crate::refine::LightRefinement;
+use crate::refinement::LightRefinement;
 use crate::rig::Light;
 
 /// Largest change of vertex depth between two sets of unknowns.

@@ -172,6 +172,7 @@ mod problem;
 mod pyramid;
 mod reconstruction;
 mod refine;
+mod refinement;
 mod render;
 mod rig;
 mod solver;

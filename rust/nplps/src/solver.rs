@@ -33,7 +33,8 @@ use crate::problem::{check_fittable, Problem};
 use crate::reconstruction::{
     assemble, Control, FitOutputs, IterationStats, Reconstruction, RefinementReport, Timings,
 };
-use crate::refine::{on_level, LightData, LightRefinement, Monitor};
+use crate::refine::LightData;
+use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::rig::Light;
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
