@@ -20,7 +20,7 @@ use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::memory::{try_copy, try_par_collect};
+use crate::memory::{try_copy, try_par_collect, try_vec, try_with_capacity};
 
 /// The state of the acceleration.
 #[derive(Debug, Clone)]
@@ -63,6 +63,12 @@ impl Anderson {
         self.previous = None;
         self.delta_f.clear();
         self.delta_g.clear();
+    }
+
+    /// Starts over: the history and the smallest residual seen are forgotten.
+    pub fn reset(&mut self) {
+        self.restart();
+        self.best = f64::INFINITY;
     }
 
     /// Given the iterate `z` and its image `g = G(z)`, overwrites `g` with the accelerated next
@@ -139,6 +145,106 @@ impl Anderson {
             g.par_iter_mut().zip(dg).for_each(|(x, d)| *x -= c * d);
         }
         Ok(())
+    }
+}
+
+/// How the solver's loop speeds up its fixed-point iteration over the joint state (the
+/// unknowns followed by the refined light parameters, see [`Joint`]).
+pub(crate) trait Acceleration {
+    /// The next state proposed from the state `z` and its image `g = G(z)` (the plain
+    /// iteration's next state), which it overwrites.
+    fn propose(&mut self, z: &[f64], g: &mut [f64]) -> Result<()>;
+    /// The last proposal was not usable: the next proposal is the image itself.
+    fn reject(&mut self);
+    /// Starts over, as if new (after the loop went back to an earlier state).
+    fn reset(&mut self);
+}
+
+impl Acceleration for Anderson {
+    fn propose(&mut self, z: &[f64], g: &mut [f64]) -> Result<()> {
+        self.try_mix(z, g)
+    }
+
+    fn reject(&mut self) {
+        self.restart();
+    }
+
+    fn reset(&mut self) {
+        Anderson::reset(self);
+    }
+}
+
+/// The joint state of `unknowns` followed by `lights` (light parameters).
+pub(crate) fn joint(unknowns: &[f64], lights: &[f64]) -> Result<Vec<f64>> {
+    let mut z = try_with_capacity(unknowns.len() + lights.len(), "the acceleration")?;
+    z.extend_from_slice(unknowns);
+    z.extend_from_slice(lights);
+    Ok(z)
+}
+
+/// Memory of the acceleration of the joint iteration.
+const JOINT_DEPTH: usize = 5;
+
+/// Anderson acceleration of the joint iteration over the unknowns and the light parameters
+/// (when refining): the light step with the normals eliminated and the mesh deformation are
+/// each stable, but coupled they are not (a tilt of a nearly flat surface trades against a
+/// smooth pattern of intensities), so the plain alternation can drift. A trust region keeps
+/// the extrapolation of the lights near the light step.
+#[derive(Debug, Clone)]
+pub(crate) struct Joint {
+    anderson: Anderson,
+    /// How many entries of the state are unknowns (the light parameters follow).
+    unknowns: usize,
+}
+
+impl Joint {
+    /// The acceleration of `unknowns` unknowns measured in units `unit` (1 / the lateral size,
+    /// times the distance for log-depths) and `parameters` light parameters.
+    pub fn new(unknowns: usize, parameters: usize, unit: f64) -> Result<Joint> {
+        let mut weights = try_vec(unknowns + parameters, 1.0, "the acceleration weights")?;
+        weights[..unknowns].fill(unit * unit);
+        Ok(Joint {
+            anderson: Anderson::new(JOINT_DEPTH, weights),
+            unknowns,
+        })
+    }
+}
+
+impl Acceleration for Joint {
+    fn propose(&mut self, z: &[f64], g: &mut [f64]) -> Result<()> {
+        let n = self.unknowns;
+        let plain = try_copy(g, "the acceleration")?;
+        self.anderson.try_mix(z, g)?;
+        // Trust region: the extrapolation may move the lights at most twice as far as the
+        // light step itself did (and no more than 1 % of a parameter's scale beyond it).
+        let step = plain[n..]
+            .iter()
+            .zip(&z[n..])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        let extra = g[n..]
+            .iter()
+            .zip(&plain[n..])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        let limit = 2.0 * step + 1e-2;
+        if extra > limit {
+            let t = limit / extra;
+            for (x, p) in g.iter_mut().zip(&plain) {
+                *x = p + t * (*x - p);
+            }
+        }
+        Ok(())
+    }
+
+    fn reject(&mut self) {
+        self.anderson.restart();
+    }
+
+    fn reset(&mut self) {
+        self.anderson.reset();
     }
 }
 

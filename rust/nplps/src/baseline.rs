@@ -9,17 +9,18 @@
 
 use std::time::Instant;
 
+use crate::convergence::{max_depth_change, rms_of};
 use crate::error::Result;
 use crate::global::GlobalStep;
 use crate::local::{local_step, FacetFit, FacetStat, Model, Weighting};
 use crate::options::{Options, Refine};
+use crate::parallel::{sparse_par, with_threads};
 use crate::problem::Problem;
 use crate::reconstruction::{
     assemble, FitOutputs, IterationStats, Reconstruction, RefinementReport, Timings,
 };
 use crate::refine::{LightData, Refiner};
 use crate::rig::Light;
-use crate::solver::{max_depth_change, rms_of, sparse_par, with_threads};
 use crate::vec3::{normalize, sub};
 
 /// `(direction, intensity)` of each light in the parallel-light model, seen from the centroid of

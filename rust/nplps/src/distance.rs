@@ -17,10 +17,11 @@ use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::memory::try_copy;
 use crate::options::{Options, Refine};
+use crate::parallel::with_threads;
 use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
 use crate::rig::Light;
-use crate::solver::{coarse_to_fine, with_threads, Solver};
+use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
 
 /// Iterations per evaluation when the search runs on the coarsest level of a pyramid, where
@@ -168,7 +169,7 @@ impl Evaluator<'_, '_> {
         problem.grid.apply_gauge(&mut self.u, &gauge);
         // Every candidate starts from the rig's lights: the residual curve must not depend on
         // the order of the evaluations.
-        self.solver.restart_lights(self.refine);
+        self.solver.lights.restart(self.refine);
         self.candidate += 1;
         self.candidates = self.candidates.max(self.candidate);
         let info = SearchProgress {
@@ -265,8 +266,8 @@ fn search_with(
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
     // During the search only intensities are refined: positions trade against the distance.
-    let refine = solver.refine();
-    solver.set_refine(Refine {
+    let refine = solver.lights.refine();
+    solver.lights.set_refine(Refine {
         position: false,
         ..refine
     });
@@ -275,7 +276,7 @@ fn search_with(
     solver.check_lights = false;
     let found = search_refined(solver, problem, search, range, progress);
     solver.check_lights = true;
-    solver.restart_lights(refine);
+    solver.lights.restart(refine);
     found
 }
 
@@ -291,7 +292,7 @@ fn search_refined(
     let scan = search.scan.max(3);
     let (ln_near, ln_far) = (range.0.ln(), range.1.ln());
     let step = (ln_far - ln_near) / (scan - 1) as f64;
-    let refine = solver.refine();
+    let refine = solver.lights.refine();
     let tolerance = search.precision.max(1e-9);
     let mut ev = Evaluator {
         refine,
@@ -572,8 +573,8 @@ impl DistanceCheck {
     }
 
     /// Whether the images fit another distance clearly better: the residual at the given
-    /// distance is more than [`WRONG_DISTANCE_RATIO`] times the best one, and the distances differ
-    /// by more than [`WRONG_DISTANCE_OFFSET`].
+    /// distance is more than `WRONG_DISTANCE_RATIO` times the best one, and the distances differ
+    /// by more than `WRONG_DISTANCE_OFFSET`.
     pub fn looks_wrong(&self) -> bool {
         self.ratio() > WRONG_DISTANCE_RATIO && self.offset().abs() > WRONG_DISTANCE_OFFSET
     }
@@ -619,7 +620,7 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
         let mut solver = Solver::new(level, &options)?;
         solver.check_lights = false;
         let mut ev = Evaluator {
-            refine: solver.refine(),
+            refine: solver.lights.refine(),
             solver: &mut solver,
             u: try_copy(&level.u0, "the depths")?,
             inner: CHECK_INNER,

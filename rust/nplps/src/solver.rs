@@ -2,52 +2,40 @@
 //!
 //! ```text
 //! z = initial depths (gauged per region)
-//! for it in 1..=iterations:
+//! for it in 1..=iterations:                     (Solver::step)
+//!     lights:      one light step on z (when refining; crate::refine)
 //!     local step on z  -> targets, normals, albedo, residuals
+//!     safeguard:   back to the state of lowest residual if the residual rose (refining)
 //!     global step      -> z_new, shifted so each region's mean depth is its gauge
+//!     accelerate:  mix (z, lights) and its image (crate::anderson; refining)
 //!     dz = max |z_new - z|;  z = z_new
 //!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
 //! final local step on z -> reported normals, albedo, residuals
 //! ```
+//!
+//! What the loop measures and its stop rules are in [`crate::convergence`]; a pyramid runs the
+//! loop on each level, coarsest first ([`coarse_to_fine`]).
 
 use std::time::Instant;
 
-use faer::Par;
-
-use crate::anderson::Anderson;
+use crate::anderson::{joint, Acceleration, Joint};
+use crate::convergence::{
+    check_in_front, lateral_size, max_change, max_depth_change, nearest, region_residuals, rms_of,
+    Next, Safeguard,
+};
 use crate::error::{Error, Result};
-use crate::geometry::Geometry;
 use crate::global::GlobalStep;
 use crate::local::{FacetFit, FacetStat, LocalStep, Model};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
+use crate::parallel::{sparse_par, with_threads};
 use crate::problem::{check_fittable, Problem};
 use crate::reconstruction::{
     assemble, Control, FitOutputs, IterationStats, Reconstruction, RefinementReport, Timings,
-    STALL_WINDOW,
 };
-use crate::refine::{LightData, Refiner, StepOutcome};
+use crate::refine::LightData;
+use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::rig::Light;
-
-/// Runs `f` on a rayon pool of `threads` workers (0: the global pool).
-pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> Result<T> {
-    if threads == 0 {
-        return Ok(f());
-    }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .map_err(|e| Error::Unusable(format!("cannot start {threads} worker threads: {e}")))?;
-    Ok(pool.install(f))
-}
-
-/// faer parallelism: sequential, or the current rayon pool when `parallel` is set.
-pub(crate) fn sparse_par(parallel: bool) -> Par {
-    match rayon::current_num_threads() {
-        n if parallel && n > 1 => Par::rayon(n),
-        _ => Par::Seq,
-    }
-}
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
 /// [`Control::Cancel`] stops the solver with [`Error::Cancelled`].
@@ -100,14 +88,6 @@ pub(crate) struct Carried {
     diverged: bool,
 }
 
-/// The residuals of the first level's runs without and with light refinement.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Monitor {
-    without: f64,
-    with: f64,
-    fell_back: bool,
-}
-
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
 /// starting unknowns, returns the gauge to iterate with (the distance search uses this).
 pub(crate) type AtCoarsest<'h> = &'h mut dyn FnMut(
@@ -152,7 +132,8 @@ pub(crate) fn coarse_to_fine(
     for (i, p) in coarse.iter().enumerate().rev() {
         let mut solver = Solver::new(p, options)?;
         solver.start = start;
-        solver.set_level(i + 1);
+        solver.level = i + 1;
+        let unknowns = p.grid.n_unknowns();
         let h = if i + 1 == coarse.len() {
             current = try_copy(&p.u0, "the depths")?;
             let gauge = match at_coarsest.as_mut() {
@@ -162,8 +143,8 @@ pub(crate) fn coarse_to_fine(
             p.grid.apply_gauge(&mut current, &gauge);
             solver.iterate_first(&mut current, &gauge, progress)?.0
         } else {
-            solver.set_lights(carried.lights.clone());
-            solver.set_refine(refine_on_level(carried.refine, p));
+            solver.lights.set_lights(carried.lights.clone());
+            solver.lights.set_refine(on_level(carried.refine, unknowns));
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
@@ -179,14 +160,14 @@ pub(crate) fn coarse_to_fine(
         };
         history.extend(h);
         timings.add(&solver.timings);
-        carried.lights = solver.lights.clone();
+        carried.lights = solver.lights.lights().to_vec();
         // A level above the refinement's size limit does not stop it for good; a fallback or a
         // stop does.
-        if refine_on_level(carried.refine, p) == carried.refine {
-            carried.refine = solver.refine();
+        if on_level(carried.refine, unknowns) == carried.refine {
+            carried.refine = solver.lights.refine();
         }
-        carried.monitor = carried.monitor.or(solver.monitor);
-        carried.diverged |= solver.diverged;
+        carried.monitor = carried.monitor.or(solver.lights.monitor);
+        carried.diverged |= solver.lights.diverged;
     }
     let t = Instant::now();
     *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid)?;
@@ -204,21 +185,16 @@ pub(crate) struct Solver<'p> {
     options: Options,
     /// The global system (None once [`Solver::finish`] has freed it).
     system: Option<GlobalStep>,
+    /// The pyramid level reported in the iteration statistics.
     level: usize,
     targets: Vec<[f64; 4]>,
     stats: Vec<FacetStat>,
     next: Vec<f64>,
-    /// The current lights (the rig's, or refined).
-    lights: Vec<Light>,
-    /// The light refinement, when active.
-    refiner: Option<Refiner>,
-    /// The first level's comparison of runs without and with refinement.
-    monitor: Option<Monitor>,
+    /// The current lights and their refinement.
+    pub(crate) lights: LightRefinement,
     /// Whether coarse levels ran before this solver's (see [`Solver::carry`]).
     carried: bool,
-    /// Whether the refinement was stopped because the residual rose (see `Solver::safeguard`).
-    diverged: bool,
-    /// Whether the last `iterate` stopped for lack of progress (see 50).
+    /// Whether the last `iterate` stopped for lack of progress.
     stalled: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
@@ -228,6 +204,21 @@ pub(crate) struct Solver<'p> {
     /// When the run started (by default when the solver was made; the levels of a pyramid share
     /// the run's start): the iteration statistics' `elapsed` is measured from it.
     pub(crate) start: Instant,
+}
+
+/// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
+/// one iteration to the next.
+struct Run<'g> {
+    /// The per-region gauge (in unknowns).
+    gauge: &'g [f64],
+    tol: f64,
+    /// The lateral size of the grid: the depths converge within `tol` times it.
+    scale: f64,
+    /// The acceleration of the joint iteration (while the lights are refined).
+    accel: Option<Joint>,
+    /// The best state and the progress of the depth changes.
+    guard: Safeguard,
+    history: Vec<IterationStats>,
 }
 
 impl<'p> Solver<'p> {
@@ -252,14 +243,8 @@ impl<'p> Solver<'p> {
             targets: try_vec(n, [0.0; 4], "the solver's per-facet targets")?,
             stats: try_vec(n, FacetStat::default(), "the solver's per-facet statistics")?,
             next: try_vec(problem.grid.n_unknowns(), 0.0, "the solver's depths")?,
-            lights: problem.rig.lights.clone(),
-            refiner: options
-                .refine
-                .is_active()
-                .then(|| Refiner::new(options.refine, problem.rig.lights.clone())),
-            monitor: None,
+            lights: LightRefinement::new(options.refine, &problem.rig.lights),
             carried: false,
-            diverged: false,
             stalled: false,
             check_lights: true,
             timings: Timings {
@@ -270,47 +255,9 @@ impl<'p> Solver<'p> {
         })
     }
 
-    /// Sets the pyramid level reported in the iteration statistics.
-    pub fn set_level(&mut self, level: usize) {
-        self.level = level;
-    }
-
     /// The problem this solver works on.
     pub fn problem(&self) -> &'p Problem<'p> {
         self.problem
-    }
-
-    /// Replaces the current lights (the prior's centre stays the rig's).
-    pub fn set_lights(&mut self, lights: Vec<Light>) {
-        debug_assert_eq!(lights.len(), self.lights.len());
-        self.lights = lights;
-    }
-
-    /// Goes back to the rig's lights.
-    pub fn reset_lights(&mut self) {
-        self.lights = self.problem.rig.lights.clone();
-    }
-
-    /// What is refined now.
-    pub fn refine(&self) -> Refine {
-        self.refiner
-            .as_ref()
-            .map_or(self.options.refine.off(), |r| r.refine)
-    }
-
-    /// Changes what is refined from now on.
-    pub fn set_refine(&mut self, refine: Refine) {
-        self.refiner = refine
-            .is_active()
-            .then(|| Refiner::new(refine, self.problem.rig.lights.clone()));
-    }
-
-    /// Starts the lights over: the rig's lights, `refine` from now on, no record of an earlier
-    /// run's drift (each evaluation of the distance search starts this way).
-    pub fn restart_lights(&mut self, refine: Refine) {
-        self.reset_lights();
-        self.set_refine(refine);
-        self.diverged = false;
     }
 
     /// Takes over what the coarse levels carried (lights, refinement, history, timings).
@@ -318,116 +265,13 @@ impl<'p> Solver<'p> {
         self.timings.add(&coarse.timings);
         self.carried = coarse.carried;
         if coarse.carried {
-            self.lights = coarse.lights;
-            self.set_refine(refine_on_level(coarse.refine, self.problem));
-            self.monitor = coarse.monitor;
-            self.diverged = coarse.diverged;
+            self.lights.set_lights(coarse.lights);
+            let unknowns = self.problem.grid.n_unknowns();
+            self.lights.set_refine(on_level(coarse.refine, unknowns));
+            self.lights.monitor = coarse.monitor;
+            self.lights.diverged = coarse.diverged;
         }
         coarse.history
-    }
-
-    /// Anderson acceleration of the joint iteration over the unknowns and the light parameters
-    /// (when refining): the light step with the normals eliminated and the mesh deformation
-    /// are each stable, but coupled they are not (a tilt of a nearly flat surface trades
-    /// against a smooth pattern of intensities), so the plain alternation can drift.
-    fn acceleration(&self, unknowns: usize, scale: f64, distance: f64) -> Result<Option<Anderson>> {
-        let Some(refiner) = self.refiner.as_ref() else {
-            return Ok(None);
-        };
-        let parameters = refiner.encode(&self.lights, distance).len();
-        // Unknowns in units of the lateral size (log-depths: times the distance).
-        let unit = if self.problem.geometry.is_perspective() {
-            distance / scale
-        } else {
-            1.0 / scale
-        };
-        let mut weights = try_vec(unknowns + parameters, 1.0, "the acceleration weights")?;
-        weights[..unknowns].fill(unit * unit);
-        Ok(Some(Anderson::new(ANDERSON_DEPTH, weights)))
-    }
-
-    /// Mixes the iterate `(u, before)` and its image `(self.next, current lights)`; writes the
-    /// accelerated unknowns to `self.next` and lights to `self.lights`. Returns the largest
-    /// change of a light parameter.
-    fn accelerate(
-        &mut self,
-        accel: &mut Anderson,
-        u: &[f64],
-        before: &[f64],
-        distance: f64,
-    ) -> Result<f64> {
-        let Some(refiner) = self.refiner.as_ref() else {
-            return Ok(0.0);
-        };
-        let after = refiner.encode(&self.lights, distance);
-        let n = u.len();
-        let mut z = crate::memory::try_with_capacity(n + before.len(), "the acceleration")?;
-        z.extend_from_slice(u);
-        z.extend_from_slice(before);
-        let mut g = crate::memory::try_with_capacity(n + after.len(), "the acceleration")?;
-        g.extend_from_slice(&self.next);
-        g.extend_from_slice(&after);
-        let plain = try_copy(&g, "the acceleration")?;
-        accel.try_mix(&z, &mut g)?;
-        // Trust region: the extrapolation may move the lights at most twice as far as the
-        // light step itself did (and no more than 1 % of a parameter's scale beyond it).
-        let step = after
-            .iter()
-            .zip(before)
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f64>()
-            .sqrt();
-        let extra = g[n..]
-            .iter()
-            .zip(&plain[n..])
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f64>()
-            .sqrt();
-        let limit = 2.0 * step + 1e-2;
-        if extra > limit {
-            let t = limit / extra;
-            for (x, p) in g.iter_mut().zip(&plain) {
-                *x = p + t * (*x - p);
-            }
-        }
-        let lights = refiner.decode(&self.lights, &g[n..], distance);
-        let min_depth = g[..n]
-            .iter()
-            .map(|&x| self.problem.geometry.depth(x))
-            .fold(f64::INFINITY, f64::min);
-        let in_front = lights.iter().all(|l| l.is_in_front_of(min_depth));
-        if !(in_front && g.iter().all(|v| v.is_finite())) {
-            accel.restart();
-            return Ok(after
-                .iter()
-                .zip(before)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max));
-        }
-        self.next.copy_from_slice(&g[..n]);
-        self.lights = lights;
-        Ok(g[n..]
-            .iter()
-            .zip(before)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max))
-    }
-
-    /// One light step at `u` (when refining): returns the largest relative change.
-    fn refine_lights(&mut self, u: &[f64]) -> Result<StepOutcome> {
-        let Some(refiner) = self.refiner.as_mut() else {
-            return Ok(StepOutcome {
-                change: 0.0,
-                objective: f64::NAN,
-                accepted: false,
-            });
-        };
-        let t = Instant::now();
-        let p = self.problem;
-        let data = LightData::of(p, self.options.fit_settings(false));
-        let outcome = refiner.try_step(&data, &mut self.lights, u);
-        self.timings.lights += t.elapsed();
-        outcome
     }
 
     /// The iterations of the first (coarsest) level, from `u` with `gauge`. When light
@@ -442,45 +286,264 @@ impl<'p> Solver<'p> {
     ) -> Result<(Vec<IterationStats>, bool)> {
         let (iterations, tol) = (self.options.iterations, self.options.tol);
         let refine = self.options.refine;
-        self.reset_lights();
-        self.set_refine(refine);
+        self.lights.reset();
+        self.lights.set_refine(refine);
         if !refine.position {
             return self.iterate(u, gauge, iterations, tol, progress);
         }
         let mut plain = try_copy(u, "the depths")?;
-        self.set_refine(Refine::NONE);
+        self.lights.set_refine(Refine::NONE);
         let (mut history, plain_converged) =
             self.iterate(&mut plain, gauge, iterations, tol, progress)?;
-        self.local(&plain)?;
-        let without = rms_of(&self.stats, self.problem.obs.channels);
-        self.set_refine(refine);
+        let without = self.local(&plain)?;
+        self.lights.set_refine(refine);
         let (refined, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(refined);
-        self.local(u)?;
-        let with = rms_of(&self.stats, self.problem.obs.channels);
+        let with = self.local(u)?;
         let fell_back = with.is_nan() || with >= without;
-        self.monitor = Some(Monitor {
+        self.lights.monitor = Some(Monitor {
             without,
             with,
             fell_back,
         });
         if fell_back {
             *u = plain;
-            self.reset_lights();
-            self.set_refine(Refine::NONE);
+            self.lights.reset();
+            self.lights.set_refine(Refine::NONE);
             return Ok((history, plain_converged));
         }
         Ok((history, converged))
     }
 
+    /// Runs up to `iterations` iterations ([`Solver::step`]) from `u` (updated in place) with
+    /// the per-region `gauge` (in unknowns), stopping when the largest depth change is at most
+    /// `tol` times the lateral size. Returns the history and whether it converged.
+    pub fn iterate(
+        &mut self,
+        u: &mut Vec<f64>,
+        gauge: &[f64],
+        iterations: usize,
+        tol: f64,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<(Vec<IterationStats>, bool)> {
+        let mut run = self.begin(u, gauge, tol)?;
+        let mut next = Next::Continue;
+        for iteration in 1..=iterations {
+            next = self.step(&mut run, u, iteration, progress)?;
+            if next != Next::Continue {
+                break;
+            }
+        }
+        self.stalled = next == Next::Stalled;
+        run.guard.finish(u, &mut self.lights);
+        Ok((run.history, next == Next::Converged))
+    }
+
+    /// One iteration: the paper's loop (local step, global step, converged?) with our
+    /// additions (lights, safeguard, accelerate), in this order.
+    fn step(
+        &mut self,
+        run: &mut Run<'_>,
+        u: &mut Vec<f64>,
+        iteration: usize,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<Next> {
+        let mut it = IterationStats {
+            iteration,
+            depth_change: f64::NAN,
+            rms_residual: f64::NAN,
+            elapsed: Default::default(),
+            level: self.level,
+            inner_iterations: 0,
+            light_change: 0.0,
+            search: None,
+        };
+        it.light_change = self.refine_lights(run, u)?;
+        it.rms_residual = self.local(u)?;
+        if self.safeguard(run, iteration, it.rms_residual, u)? {
+            return Ok(Next::Continue);
+        }
+        it.inner_iterations = self.global(u, run.gauge)?;
+        it.light_change = self.accelerate(run, u, it.light_change)?;
+        it.depth_change = self.advance(u, iteration)?;
+        self.report(run, it, progress)?;
+        run.guard.verdict(
+            iteration,
+            it.depth_change,
+            it.light_change,
+            run.tol,
+            run.scale,
+        )
+    }
+
+    /// A run from `u` with `gauge` and `tol`: the working distance of the lights, the
+    /// acceleration (when refining) and fresh safeguards.
+    fn begin<'g>(&mut self, u: &[f64], gauge: &'g [f64], tol: f64) -> Result<Run<'g>> {
+        let p = self.problem;
+        let scale = lateral_size(p);
+        let distance = p
+            .geometry
+            .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
+        self.lights.begin(distance);
+        self.stalled = false;
+        // Unknowns in units of the lateral size (log-depths: times the distance).
+        let unit = if p.geometry.is_perspective() {
+            distance / scale
+        } else {
+            1.0 / scale
+        };
+        let accel = match self.lights.is_active() {
+            true => Some(Joint::new(u.len(), self.lights.parameters(), unit)?),
+            false => None,
+        };
+        Ok(Run {
+            gauge,
+            tol,
+            scale,
+            accel,
+            guard: Safeguard::new(),
+            history: Vec::new(),
+        })
+    }
+
+    /// Lights: one light step at `u` (when refining); returns the largest change of a light
+    /// parameter. Once a step finds nothing to improve, the lights stay for the rest of the run
+    /// and the acceleration ends.
+    fn refine_lights(&mut self, run: &mut Run<'_>, u: &[f64]) -> Result<f64> {
+        if !self.lights.is_active() || self.lights.settled() {
+            return Ok(0.0);
+        }
+        let t = Instant::now();
+        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let change = self.lights.step(&data, u)?;
+        if self.lights.settled() {
+            run.accel = None;
+        }
+        self.timings.lights += t.elapsed();
+        Ok(change)
+    }
+
+    /// The local step on `u` (with fast residuals): the facets' targets and statistics.
+    /// Returns the RMS image residual.
+    pub fn local(&mut self, u: &[f64]) -> Result<f64> {
+        let t = Instant::now();
+        let depths = self.depths(u)?;
+        let (mut targets, mut stats) = (
+            std::mem::take(&mut self.targets),
+            std::mem::take(&mut self.stats),
+        );
+        let done =
+            self.local_step(true, depths.as_deref())
+                .try_run_targets(u, &mut targets, &mut stats);
+        (self.targets, self.stats) = (targets, stats);
+        done?;
+        self.timings.local += t.elapsed();
+        self.problem.cancel.check()?;
+        Ok(rms_of(&self.stats, self.problem.obs.channels))
+    }
+
+    /// Safeguard: with refinement, back to the state of lowest residual when the residual rose
+    /// well above it (with a fresh acceleration, or, after a few returns, with the lights
+    /// frozen); returns whether it went back (the iteration then ends here).
+    fn safeguard(
+        &mut self,
+        run: &mut Run<'_>,
+        iteration: usize,
+        rms: f64,
+        u: &mut [f64],
+    ) -> Result<bool> {
+        // With position refinement the state before the first global step is the start: never
+        // kept as the "best" (restoring it would return the unrefined start, e.g. the starting
+        // plane under a stiff prior, while history and status describe the iterated run).
+        let keep = iteration > 1 || !self.options.refine.position;
+        let back = run.guard.best_state(keep, rms, u, &mut self.lights)?;
+        if back {
+            match run.accel.as_mut() {
+                Some(accel) if self.lights.is_active() => accel.reset(),
+                _ => run.accel = None,
+            }
+        }
+        Ok(back)
+    }
+
+    /// The global step from `u` to `self.next`, gauged; returns its inner iterations.
+    fn global(&mut self, u: &[f64], gauge: &[f64]) -> Result<usize> {
+        let t = Instant::now();
+        let p = self.problem;
+        let system = self.system.as_mut().expect("the solver has not finished");
+        let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
+        p.cancel.check()?;
+        p.grid.apply_gauge(&mut self.next, gauge);
+        self.timings.solve += t.elapsed();
+        Ok(inner_iterations)
+    }
+
+    /// Accelerate (when this iteration took a light step): the acceleration proposes the next
+    /// state from the iterate (`u`, the lights before the step) and its image (`self.next`, the
+    /// lights after it); a finite proposal whose lights stay in front of the surface replaces
+    /// the image. Returns the largest change of a light parameter (`change` without a step).
+    fn accelerate(&mut self, run: &mut Run<'_>, u: &[f64], change: f64) -> Result<f64> {
+        let (Some(accel), Some((before, after))) = (run.accel.as_mut(), self.lights.moved()) else {
+            return Ok(change);
+        };
+        let t = Instant::now();
+        let n = u.len();
+        let z = joint(u, &before)?;
+        let mut g = joint(&self.next, &after)?;
+        accel.propose(&z, &mut g)?;
+        let (unknowns, lights) = g.split_at(n);
+        let usable = g.iter().all(|v| v.is_finite())
+            && self
+                .lights
+                .adopt(lights, nearest(&self.problem.geometry, unknowns));
+        let moved = if usable {
+            self.next.copy_from_slice(unknowns);
+            lights
+        } else {
+            accel.reject();
+            &after
+        };
+        self.timings.solve += t.elapsed();
+        Ok(max_change(moved, &before))
+    }
+
+    /// Moves `u` to the global step's (accelerated) state after checking that the surface
+    /// stays in front of the lights; returns the largest depth change.
+    fn advance(&mut self, u: &mut Vec<f64>, iteration: usize) -> Result<f64> {
+        let t = Instant::now();
+        let geometry = &self.problem.geometry;
+        let depth_change = max_depth_change(geometry, u, &self.next);
+        if self.check_lights {
+            check_in_front(geometry, self.lights.lights(), &self.next, iteration)?;
+        }
+        std::mem::swap(u, &mut self.next);
+        self.timings.solve += t.elapsed();
+        Ok(depth_change)
+    }
+
+    /// Records the iteration `it` and reports it to `progress` (which may cancel the run).
+    fn report(
+        &self,
+        run: &mut Run<'_>,
+        mut it: IterationStats,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<()> {
+        it.elapsed = self.start.elapsed();
+        run.history.push(it);
+        if progress(&it) == Control::Cancel {
+            return Err(Error::Cancelled);
+        }
+        Ok(())
+    }
+
     /// The local step of this problem with the given residual mode, on unknowns whose depths
     /// are `depths` (if computed).
-    fn step<'a>(&'a self, fast_residual: bool, depths: Option<&'a [f64]>) -> LocalStep<'a> {
+    fn local_step<'a>(&'a self, fast_residual: bool, depths: Option<&'a [f64]>) -> LocalStep<'a> {
         let p = self.problem;
         LocalStep {
             grid: &p.grid,
             geometry: &p.geometry,
-            model: Model::Near(&self.lights),
+            model: Model::Near(self.lights.lights()),
             obs: &p.obs,
             settings: self.options.fit_settings(fast_residual),
             depths,
@@ -503,223 +566,9 @@ impl<'p> Solver<'p> {
         .map(Some)
     }
 
-    /// The local step on `u` (with fast residuals): the facets' targets and statistics.
-    pub fn local(&mut self, u: &[f64]) -> Result<()> {
-        let t = Instant::now();
-        let depths = self.depths(u)?;
-        let (mut targets, mut stats) = (
-            std::mem::take(&mut self.targets),
-            std::mem::take(&mut self.stats),
-        );
-        let done = self
-            .step(true, depths.as_deref())
-            .try_run_targets(u, &mut targets, &mut stats);
-        (self.targets, self.stats) = (targets, stats);
-        done?;
-        self.timings.local += t.elapsed();
-        Ok(())
-    }
-
-    /// Runs up to `iterations` local/global iterations from `u` (updated in place) with the
-    /// per-region `gauge` (in unknowns), stopping when the largest depth change is at most
-    /// `tol` times the lateral size. Returns the history and whether it converged.
-    pub fn iterate(
-        &mut self,
-        u: &mut Vec<f64>,
-        gauge: &[f64],
-        iterations: usize,
-        tol: f64,
-        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-    ) -> Result<(Vec<IterationStats>, bool)> {
-        let p = self.problem;
-        let scale = lateral_size(p);
-        let mut history = Vec::new();
-        let distance = p
-            .geometry
-            .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
-        let mut accel = self.acceleration(u.len(), scale, distance)?;
-        // With refinement: the state of lowest residual so far (see `Solver::safeguard`).
-        let mut best: Option<Best> = None;
-        let mut last_rms = f64::NAN;
-        let mut lights_converged = false;
-        let (mut smallest, mut since_smallest) = (f64::INFINITY, 0usize);
-        self.stalled = false;
-        for iteration in 1..=iterations {
-            // Once a light step finds nothing to improve, the lights stay for the rest of the
-            // run (the mesh then converges as with known lights).
-            let before = match (&self.refiner, lights_converged) {
-                (Some(r), false) => Some(r.encode(&self.lights, distance)),
-                _ => None,
-            };
-            let mut light_change = 0.0;
-            if before.is_some() {
-                let outcome = self.refine_lights(u)?;
-                light_change = outcome.change;
-                if !outcome.accepted {
-                    lights_converged = true;
-                    accel = None;
-                }
-            }
-            self.local(u)?;
-            p.cancel.check()?;
-            last_rms = rms_of(&self.stats, p.obs.channels);
-            // With position refinement the state before the first global step is the start:
-            // never kept as the "best" (restoring it would return the unrefined start, e.g. the
-            // starting plane under a stiff prior, while history and status describe the
-            // iterated run).
-            if (iteration > 1 || !self.options.refine.position)
-                && self.safeguard(&mut best, last_rms, u)?
-            {
-                // The residual rose well above the best state's: back to it, with a fresh
-                // acceleration history (or, after MAX_RESTARTS, with the lights frozen).
-                accel = self.acceleration(u.len(), scale, distance)?;
-                continue;
-            }
-            let t = Instant::now();
-            let system = self.system.as_mut().expect("the solver has not finished");
-            let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
-            p.cancel.check()?;
-            p.grid.apply_gauge(&mut self.next, gauge);
-            if let (Some(accel), Some(before)) = (accel.as_mut(), before) {
-                light_change = self.accelerate(accel, u, &before, distance)?;
-            }
-            let depth_change = max_depth_change(&p.geometry, u, &self.next);
-            self.check_in_front(&self.next, iteration)?;
-            std::mem::swap(u, &mut self.next);
-            self.timings.solve += t.elapsed();
-
-            let stats = IterationStats {
-                iteration,
-                depth_change,
-                rms_residual: rms_of(&self.stats, p.obs.channels),
-                elapsed: self.start.elapsed(),
-                level: self.level,
-                inner_iterations,
-                light_change,
-                search: None,
-            };
-            history.push(stats);
-            if progress(&stats) == Control::Cancel {
-                return Err(Error::Cancelled);
-            }
-            if !depth_change.is_finite() {
-                return Err(Error::Solver(format!(
-                    "the depths diverged at iteration {iteration}"
-                )));
-            }
-            if depth_change <= tol * scale && light_change <= tol {
-                self.restore_best(best, last_rms, u);
-                return Ok((history, true));
-            }
-            if depth_change < smallest {
-                (smallest, since_smallest) = (depth_change, 0);
-            } else {
-                since_smallest += 1;
-                if since_smallest >= STALL_WINDOW {
-                    self.stalled = true;
-                    break;
-                }
-            }
-        }
-        self.restore_best(best, last_rms, u);
-        Ok((history, false))
-    }
-
-    /// Fails when the surface `u` has reached a point light (the image model then no longer
-    /// describes it; e.g. lights nearly in one plane let the surface run off).
-    fn check_in_front(&self, u: &[f64], iteration: usize) -> Result<()> {
-        use rayon::prelude::*;
-        if !self.check_lights {
-            return Ok(());
-        }
-        let geometry = &self.problem.geometry;
-        let nearest = u
-            .par_iter()
-            .map(|&x| geometry.depth(x))
-            .reduce(|| f64::INFINITY, f64::min);
-        match crate::rig::first_behind(&self.lights, nearest) {
-            Some((i, z)) => Err(Error::Solver(format!(
-                "at iteration {iteration} the surface reached light {i} (light z = {}, nearest \
-                 surface depth {}): the images and the rig do not hold a surface in front of the \
-                 lights; check the light positions (units, sign of z), the starting depth and \
-                 whether the lights nearly lie in one plane",
-                crate::error::g6(z),
-                crate::error::g6(nearest)
-            ))),
-            None => Ok(()),
-        }
-    }
-
-    /// Tracks the state of lowest photometric residual while the lights are refined (`rms` is
-    /// that of the local step on `u` with the current lights). The joint iteration can drift
-    /// along weakly determined directions of the lights; when the residual rises above
-    /// [`DIVERGENCE`] times the best one, the best state is restored and true is returned; after
-    /// [`MAX_RESTARTS`] such returns the refinement stops for the rest of the run.
-    fn safeguard(&mut self, best: &mut Option<Best>, rms: f64, u: &mut [f64]) -> Result<bool> {
-        if self.refiner.is_none() || !rms.is_finite() {
-            return Ok(false);
-        }
-        Ok(match best {
-            Some(b) if rms > DIVERGENCE * b.rms => {
-                u.copy_from_slice(&b.u);
-                self.lights = b.lights.clone();
-                b.restarts += 1;
-                if b.restarts > MAX_RESTARTS {
-                    self.refiner = None;
-                    self.diverged = true;
-                }
-                true
-            }
-            Some(b) if rms >= b.rms => false,
-            _ => {
-                let restarts = best.as_ref().map_or(0, |b| b.restarts);
-                *best = Some(Best {
-                    rms,
-                    u: try_copy(u, "the best state")?,
-                    lights: self.lights.clone(),
-                    restarts,
-                });
-                false
-            }
-        })
-    }
-
-    /// At the end of a run with refinement: goes back to the best state when the last one is
-    /// clearly worse (by 0.1 % in RMS residual).
-    fn restore_best(&mut self, best: Option<Best>, last_rms: f64, u: &mut [f64]) {
-        if let Some(b) = best {
-            if b.rms < last_rms * (1.0 - 1e-3) {
-                u.copy_from_slice(&b.u);
-                self.lights = b.lights;
-            }
-        }
-    }
-
     /// RMS image residual of each region under the last local step.
     pub fn region_residuals(&self) -> Vec<f64> {
-        let grid = &self.problem.grid;
-        let mut sse = vec![0.0; grid.n_regions];
-        let mut count = vec![0usize; grid.n_regions];
-        for (fit, ids) in self
-            .stats
-            .iter()
-            .zip(&grid.facet_vertices)
-            .filter(|(f, _)| f.valid)
-        {
-            let r = grid.region_of_unknown[ids[0] as usize] as usize;
-            sse[r] += fit.sse;
-            count[r] += fit.used as usize * self.problem.obs.channels;
-        }
-        sse.iter()
-            .zip(&count)
-            .map(|(s, &n)| {
-                if n == 0 {
-                    f64::NAN
-                } else {
-                    (s / n as f64).sqrt()
-                }
-            })
-            .collect()
+        region_residuals(&self.problem.grid, &self.stats, self.problem.obs.channels)
     }
 
     /// The final (exact) local step on `u` and the assembled result. The global system and the
@@ -738,7 +587,7 @@ impl<'p> Solver<'p> {
         let problem = self.problem;
         let mut outputs = FitOutputs::new(problem)?;
         let depths = self.depths(u)?;
-        let step = self.step(false, depths.as_deref());
+        let step = self.local_step(false, depths.as_deref());
         let n = problem.grid.n_facets();
         let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
         for first in (0..n).step_by(FINAL_CHUNK) {
@@ -750,115 +599,41 @@ impl<'p> Solver<'p> {
         drop(fits);
         self.timings.local += t.elapsed();
         self.timings.total = self.start.elapsed();
-        let refinement = self.report(u);
+        let refinement = self.refinement_report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings)?;
         result.refinement = refinement;
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
-        result.lights = std::mem::take(&mut self.lights);
-        result.gauge = self
-            .problem
+        result.lights = self.lights.take_lights();
+        result.gauge = problem
             .grid
             .region_means(u)
             .iter()
-            .map(|&g| self.problem.geometry.depth(g))
+            .map(|&g| problem.geometry.depth(g))
             .collect();
         Ok(result)
     }
-}
 
-impl Solver<'_> {
     /// The refinement report at the final unknowns `u` (None without refinement).
-    fn report(&self, u: &[f64]) -> Option<RefinementReport> {
+    fn refinement_report(&self, u: &[f64]) -> Option<RefinementReport> {
         let refine = self.options.refine;
         if !refine.is_active() {
             return None;
         }
-        let p = self.problem;
-        let data = LightData::of(p, self.options.fit_settings(false));
-        let monitor = self.monitor;
-        let fell_back = monitor.is_some_and(|m| m.fell_back);
+        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let monitor = self.lights.monitor;
         Some(RefinementReport {
             refine,
-            fell_back,
-            stopped: self.diverged,
+            fell_back: monitor.is_some_and(|m| m.fell_back),
+            stopped: self.lights.diverged,
             residual_without: monitor.map_or(f64::NAN, |m| m.without),
             residual_with: monitor.map_or(f64::NAN, |m| m.with),
-            conditioning: crate::refine::conditioning(&data, &self.lights, u, &refine).ok(),
+            conditioning: self.lights.conditioning(&data, u),
         })
     }
 }
 
-/// Levels of a pyramid with more unknowns than this keep the lights refined on the coarser
-/// levels: a few dozen light parameters are determined by a million pixels as well as by ten,
-/// and the refinement's memory (the Anderson history, a few copies of the unknowns) stays
-/// bounded at camera resolution. A problem without coarser levels is refined whatever its size.
-pub const MAX_REFINE_UNKNOWNS: usize = 1 << 21;
-
-/// The refinement on a finer level of a pyramid: none above [`MAX_REFINE_UNKNOWNS`].
-fn refine_on_level(refine: Refine, problem: &Problem<'_>) -> Refine {
-    if problem.grid.n_unknowns() > MAX_REFINE_UNKNOWNS {
-        refine.off()
-    } else {
-        refine
-    }
-}
-
-/// The state of lowest residual of a run with light refinement.
-struct Best {
-    rms: f64,
-    u: Vec<f64>,
-    lights: Vec<Light>,
-    /// How often the iteration went back to a best state.
-    restarts: usize,
-}
-
-/// Returns to the best state (with a fresh Anderson history) before the refinement is stopped.
-const MAX_RESTARTS: usize = 2;
-
-/// Residual growth (over the best state's) at which the light refinement is stopped.
-const DIVERGENCE: f64 = 2.0;
-
-/// Memory of the Anderson acceleration of the light refinement.
-const ANDERSON_DEPTH: usize = 5;
-
-/// Largest change of vertex depth between two sets of unknowns.
-pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
-    use rayon::prelude::*;
-    a.par_iter()
-        .zip(b)
-        .map(|(&x, &y)| (geometry.depth(x) - geometry.depth(y)).abs())
-        .reduce(|| 0.0, f64::max)
-}
-
-/// Lateral size of the image footprint, `max(W * w, H * h)`, with the pixel size taken at the
-/// mean gauge depth for a pinhole camera.
-pub(crate) fn lateral_size(problem: &Problem<'_>) -> f64 {
-    let grid = &problem.grid;
-    let mean_gauge = problem.gauge.iter().sum::<f64>() / problem.gauge.len() as f64;
-    let [w, h] = problem
-        .rig
-        .camera
-        .pixel_size_at(problem.geometry.depth(mean_gauge));
-    (grid.width as f64 * w).max(grid.height as f64 * h)
-}
-
 /// Facets per chunk of the final, exact local step (bounds its scratch memory).
 const FINAL_CHUNK: usize = 1 << 18;
-
-/// RMS image residual over all usable observations of valid facets.
-pub(crate) fn rms_of(fits: &[FacetStat], channels: usize) -> f64 {
-    let (sse, n) = fits
-        .iter()
-        .filter(|f| f.valid)
-        .fold((0.0, 0u64), |(s, n), f| {
-            (s + f.sse, n + (f.used as usize * channels) as u64)
-        });
-    if n == 0 {
-        f64::NAN
-    } else {
-        (sse / n as f64).sqrt()
-    }
-}
 
 // The tests reconstruct synthetic scenes (cargo feature `synth`).
 #[cfg(all(test, feature = "synth"))]
@@ -891,7 +666,7 @@ mod tests {
         if let Light::Point { position, .. } = &mut lights[3] {
             position[2] = scene.mean_depth();
         }
-        solver.set_lights(lights);
+        solver.lights.set_lights(lights);
         let mut u = problem.u0.clone();
         let err = solver
             .iterate(&mut u, &problem.gauge, 5, 0.0, &mut |_| Control::Continue)

@@ -1,0 +1,310 @@
+//! What the solver's loop measures and when it stops: the depth change, the image residual and
+//! the lateral size that scales the tolerance; the safeguards (the state of lowest residual
+//! while the lights are refined, the surface in front of the lights, divergence, stalls).
+
+use crate::error::{Error, Result};
+use crate::geometry::Geometry;
+use crate::grid::Grid;
+use crate::local::FacetStat;
+use crate::memory::try_copy;
+use crate::problem::Problem;
+use crate::reconstruction::STALL_WINDOW;
+use crate::refinement::LightRefinement;
+use crate::rig::Light;
+
+/// Largest change of vertex depth between two sets of unknowns.
+pub(crate) fn max_depth_change(geometry: &Geometry, a: &[f64], b: &[f64]) -> f64 {
+    use rayon::prelude::*;
+    a.par_iter()
+        .zip(b)
+        .map(|(&x, &y)| (geometry.depth(x) - geometry.depth(y)).abs())
+        .reduce(|| 0.0, f64::max)
+}
+
+/// Lateral size of the image footprint, `max(W * w, H * h)`, with the pixel size taken at the
+/// mean gauge depth for a pinhole camera.
+pub(crate) fn lateral_size(problem: &Problem<'_>) -> f64 {
+    let grid = &problem.grid;
+    let mean_gauge = problem.gauge.iter().sum::<f64>() / problem.gauge.len() as f64;
+    let [w, h] = problem
+        .rig
+        .camera
+        .pixel_size_at(problem.geometry.depth(mean_gauge));
+    (grid.width as f64 * w).max(grid.height as f64 * h)
+}
+
+/// RMS image residual over all usable observations of valid facets.
+pub(crate) fn rms_of(fits: &[FacetStat], channels: usize) -> f64 {
+    let (sse, n) = fits
+        .iter()
+        .filter(|f| f.valid)
+        .fold((0.0, 0u64), |(s, n), f| {
+            (s + f.sse, n + (f.used as usize * channels) as u64)
+        });
+    if n == 0 {
+        f64::NAN
+    } else {
+        (sse / n as f64).sqrt()
+    }
+}
+
+/// RMS image residual of each region of `grid` under the facet statistics `stats`.
+pub(crate) fn region_residuals(grid: &Grid, stats: &[FacetStat], channels: usize) -> Vec<f64> {
+    let mut sse = vec![0.0; grid.n_regions];
+    let mut count = vec![0usize; grid.n_regions];
+    for (fit, ids) in stats
+        .iter()
+        .zip(&grid.facet_vertices)
+        .filter(|(f, _)| f.valid)
+    {
+        let r = grid.region_of_unknown[ids[0] as usize] as usize;
+        sse[r] += fit.sse;
+        count[r] += fit.used as usize * channels;
+    }
+    sse.iter()
+        .zip(&count)
+        .map(|(s, &n)| {
+            if n == 0 {
+                f64::NAN
+            } else {
+                (s / n as f64).sqrt()
+            }
+        })
+        .collect()
+}
+
+/// Largest absolute difference of two parameter vectors (0 when empty).
+pub(crate) fn max_change(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
+}
+
+/// The smallest depth of the unknowns `u` (sequentially, NaN ignored).
+pub(crate) fn nearest(geometry: &Geometry, u: &[f64]) -> f64 {
+    u.iter()
+        .map(|&x| geometry.depth(x))
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// Fails when the surface `u` has reached a point light of `lights` (the image model then no
+/// longer describes it; e.g. lights nearly in one plane let the surface run off).
+pub(crate) fn check_in_front(
+    geometry: &Geometry,
+    lights: &[Light],
+    u: &[f64],
+    iteration: usize,
+) -> Result<()> {
+    use rayon::prelude::*;
+    let nearest = u
+        .par_iter()
+        .map(|&x| geometry.depth(x))
+        .reduce(|| f64::INFINITY, f64::min);
+    match crate::rig::first_behind(lights, nearest) {
+        Some((i, z)) => Err(Error::Solver(format!(
+            "at iteration {iteration} the surface reached light {i} (light z = {}, nearest \
+             surface depth {}): the images and the rig do not hold a surface in front of the \
+             lights; check the light positions (units, sign of z), the starting depth and \
+             whether the lights nearly lie in one plane",
+            crate::error::g6(z),
+            crate::error::g6(nearest)
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Returns to the best state (with a fresh acceleration history) before the refinement is
+/// stopped.
+const MAX_RESTARTS: usize = 2;
+
+/// Residual growth (over the best state's) at which the light refinement goes back to it.
+const DIVERGENCE: f64 = 2.0;
+
+/// The state of lowest residual of a run with light refinement.
+struct Best {
+    rms: f64,
+    u: Vec<f64>,
+    lights: Vec<Light>,
+    /// How often the iteration went back to a best state.
+    restarts: usize,
+}
+
+/// What the loop does after an iteration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Next {
+    /// Go on iterating.
+    Continue,
+    /// The depths and lights have converged.
+    Converged,
+    /// The largest depth change has not reached a new minimum for [`STALL_WINDOW`] iterations.
+    Stalled,
+}
+
+/// The safeguards of one run of the loop: the state of lowest residual while the lights are
+/// refined, and the progress of the depth changes.
+pub(crate) struct Safeguard {
+    best: Option<Best>,
+    /// The residual of the last local step.
+    last_rms: f64,
+    smallest: f64,
+    since_smallest: usize,
+}
+
+impl Safeguard {
+    /// The safeguards of a new run.
+    pub fn new() -> Safeguard {
+        Safeguard {
+            best: None,
+            last_rms: f64::NAN,
+            smallest: f64::INFINITY,
+            since_smallest: 0,
+        }
+    }
+
+    /// After the local step on `u` with residual `rms` (with the current lights): tracks the
+    /// state of lowest residual while the lights are refined. The joint iteration can drift
+    /// along weakly determined directions of the lights; when the residual rises above
+    /// [`DIVERGENCE`] times the best one, the best state is restored and true is returned; after
+    /// [`MAX_RESTARTS`] such returns the refinement stops for the rest of the run. `keep` is
+    /// false for a state never to be kept as the best.
+    pub fn best_state(
+        &mut self,
+        keep: bool,
+        rms: f64,
+        u: &mut [f64],
+        lights: &mut LightRefinement,
+    ) -> Result<bool> {
+        self.last_rms = rms;
+        if !keep || !lights.is_active() || !rms.is_finite() {
+            return Ok(false);
+        }
+        Ok(match &mut self.best {
+            Some(b) if rms > DIVERGENCE * b.rms => {
+                u.copy_from_slice(&b.u);
+                lights.set_lights(b.lights.clone());
+                b.restarts += 1;
+                if b.restarts > MAX_RESTARTS {
+                    lights.stop();
+                }
+                true
+            }
+            Some(b) if rms >= b.rms => false,
+            best => {
+                let restarts = best.as_ref().map_or(0, |b| b.restarts);
+                *best = Some(Best {
+                    rms,
+                    u: try_copy(u, "the best state")?,
+                    lights: lights.lights().to_vec(),
+                    restarts,
+                });
+                false
+            }
+        })
+    }
+
+    /// After iteration `iteration` moved the depths by at most `depth_change` and the lights by
+    /// at most `light_change`: an error when the depths diverged, else whether the run has
+    /// converged (both changes within `tol`, the depth change in units of `scale`), stalled or
+    /// goes on.
+    pub fn verdict(
+        &mut self,
+        iteration: usize,
+        depth_change: f64,
+        light_change: f64,
+        tol: f64,
+        scale: f64,
+    ) -> Result<Next> {
+        if !depth_change.is_finite() {
+            return Err(Error::Solver(format!(
+                "the depths diverged at iteration {iteration}"
+            )));
+        }
+        if depth_change <= tol * scale && light_change <= tol {
+            return Ok(Next::Converged);
+        }
+        if depth_change < self.smallest {
+            (self.smallest, self.since_smallest) = (depth_change, 0);
+        } else {
+            self.since_smallest += 1;
+            if self.since_smallest >= STALL_WINDOW {
+                return Ok(Next::Stalled);
+            }
+        }
+        Ok(Next::Continue)
+    }
+
+    /// At the end of a run: goes back to the best state when the last one is clearly worse (by
+    /// 0.1 % in RMS residual).
+    pub fn finish(self, u: &mut [f64], lights: &mut LightRefinement) {
+        if let Some(b) = self.best {
+            if b.rms < self.last_rms * (1.0 - 1e-3) {
+                u.copy_from_slice(&b.u);
+                lights.set_lights(b.lights);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The verdict: non-finite depths are an error, both changes within the tolerance converge,
+    /// and [`STALL_WINDOW`] iterations without a new smallest depth change stall the run.
+    #[test]
+    fn verdicts_follow_the_stop_rules() {
+        let mut guard = Safeguard::new();
+        let err = guard.verdict(3, f64::NAN, 0.0, 1e-3, 10.0).unwrap_err();
+        assert!(matches!(&err, Error::Solver(m) if m.contains("diverged at iteration 3")));
+        assert_eq!(
+            guard.verdict(1, 0.01, 0.0, 1e-3, 10.0).unwrap(),
+            Next::Converged
+        );
+        assert_eq!(
+            guard.verdict(1, 0.01, 0.1, 1e-3, 10.0).unwrap(),
+            Next::Continue
+        );
+        let mut stalled = Safeguard::new();
+        let verdicts: Vec<Next> = (1..=STALL_WINDOW + 1)
+            .map(|i| stalled.verdict(i, 1.0, 0.0, 1e-3, 10.0).unwrap())
+            .collect();
+        assert!(verdicts[..STALL_WINDOW]
+            .iter()
+            .all(|&v| v == Next::Continue));
+        assert_eq!(verdicts[STALL_WINDOW], Next::Stalled);
+    }
+
+    /// Without an active refinement the best state is never kept nor restored.
+    #[test]
+    fn without_refinement_the_best_state_is_left_alone() {
+        let light = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        let mut lights = LightRefinement::new(crate::options::Refine::NONE, &[light; 4]);
+        let mut guard = Safeguard::new();
+        let mut u = vec![1.0, 2.0];
+        assert!(!guard.best_state(true, 1.0, &mut u, &mut lights).unwrap());
+        assert!(!guard.best_state(true, 10.0, &mut u, &mut lights).unwrap());
+        guard.finish(&mut u, &mut lights);
+        assert_eq!(u, [1.0, 2.0]);
+    }
+
+    /// The light change and the RMS residual (NaN without a valid facet).
+    #[test]
+    fn measures() {
+        assert_eq!(max_change(&[1.0, -2.0], &[0.5, 1.0]), 3.0);
+        assert_eq!(max_change(&[], &[]), 0.0);
+        let stats = [
+            FacetStat {
+                valid: true,
+                sse: 8.0,
+                used: 2,
+            },
+            FacetStat::default(),
+        ];
+        assert_eq!(rms_of(&stats, 1), 2.0);
+        assert!(rms_of(&stats[1..], 1).is_nan());
+    }
+}
