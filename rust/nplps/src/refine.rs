@@ -630,7 +630,7 @@ impl Refiner {
     ///
     /// Panics when the sums of the step cannot be allocated: prefer [`Refiner::try_step`],
     /// which reports it as [`Error::Memory`].
-    #[cfg(test)]
+    #[cfg(all(test, feature = "synth"))]
     pub fn step(&mut self, data: &LightData<'_>, lights: &mut [Light], u: &[f64]) -> StepOutcome {
         match self.try_step(data, lights, u) {
             Ok(outcome) => outcome,

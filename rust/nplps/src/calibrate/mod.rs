@@ -100,6 +100,7 @@ pub use intensity::{
     calibrate_intensities, BoardAlbedo, BoardImages, IntensityCalibration, IntensityOptions,
     IntensityReport, Plane,
 };
+#[cfg(feature = "synth")]
 pub(crate) use rays::{ray_sphere, reflect};
 pub use sphere::Sphere;
 pub use spheres::{
