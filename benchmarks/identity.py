@@ -89,6 +89,7 @@ def _cli(args: list[str]) -> dict[str, str]:
 def _without_timings(html: str, out: Path) -> str:
     """Return the report with what changes from run to run blanked: the folder, seconds, dates."""
     html = html.replace(str(out.parent), "TMP")
+    html = re.sub(re.escape(tempfile.gettempdir()) + r"/tmp\w+", "TMP", html)
     html = re.sub(r"<h3>Timings \(seconds\)</h3><table>.*?</table>", "TIMINGS", html, flags=re.S)
     html = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)? ?(s|ms)\b", "T", html)
     return re.sub(r"\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?", "D", html)
