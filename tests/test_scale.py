@@ -10,6 +10,8 @@ accurate against the ground truth.
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pytest
 
@@ -167,7 +169,10 @@ def test_multigrid_iteration_limit_warns(monkeypatch, scene):
     def capped(*args, **kwargs):
         out = real(*args, **kwargs)
         limit = api._core.MULTIGRID_MAX_ITERATIONS
-        out["history"] = [(*h[:5], limit) for h in out["history"]]
+        fields = ("iteration", "depth_change", "rms_residual", "elapsed", "level", "light_change", "search")
+        out["history"] = [
+            types.SimpleNamespace(**{f: getattr(h, f) for f in fields}, inner_iterations=limit) for h in out["history"]
+        ]
         return out
 
     monkeypatch.setattr(api._core, "reconstruct", capped)
