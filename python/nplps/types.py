@@ -121,25 +121,20 @@ class Iteration(NamedTuple):
 
 def _iteration(stats: Any) -> Iteration:
     """Return the :class:`Iteration` of the core's ``IterationStats`` record, read by its names."""
+    plain = {
+        "iteration": stats.iteration,
+        "depth_change": stats.depth_change,
+        "rms_residual": stats.rms_residual,
+        "elapsed": stats.elapsed,
+        "level": stats.level,
+        "inner_iterations": stats.inner_iterations,
+        "light_change": stats.light_change,
+    }
     search = stats.search
     if search is None:
-        return Iteration(
-            iteration=stats.iteration,
-            depth_change=stats.depth_change,
-            rms_residual=stats.rms_residual,
-            elapsed=stats.elapsed,
-            level=stats.level,
-            inner_iterations=stats.inner_iterations,
-            light_change=stats.light_change,
-        )
+        return Iteration(**plain)
     return Iteration(
-        iteration=stats.iteration,
-        depth_change=stats.depth_change,
-        rms_residual=stats.rms_residual,
-        elapsed=stats.elapsed,
-        level=stats.level,
-        inner_iterations=stats.inner_iterations,
-        light_change=stats.light_change,
+        **plain,
         candidate=search.candidate,
         candidates=search.candidates,
         distance=search.distance,
