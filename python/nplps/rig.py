@@ -876,10 +876,13 @@ class Rig:
         like: Rig | None = None,
         grid: RigGrid | None = None,
         comments: Mapping[str, Any] | None = None,
+        unit_axes: bool = True,
     ) -> Rig:
         """Return the rig of a compiled core's rig (already validated, each light with its kind).
 
         ``like``: the rig whose grid and comments it keeps (refined or calibrated lights).
+        ``unit_axes``: scale the LED axes to unit length as LED() does (False for the rig file
+        reader's rig, which did it with the same operations).
         """
         d = native.lights
         out: list[Light] = []
@@ -892,7 +895,8 @@ class Rig:
                 out.append(_new(DirectionalLight, direction=v, intensity=rgb))
             elif kind == "led":
                 # Scaled to unit length as LED() does (a unit axis may move by a bit).
-                out.append(_new(LED, position=v, intensity=rgb, axis=_unit((axis[0], axis[1], axis[2])), mu=mu))
+                a: Vec3 = (axis[0], axis[1], axis[2])
+                out.append(_new(LED, position=v, intensity=rgb, axis=_unit(a) if unit_axes else a, mu=mu))
             else:
                 out.append(_new(PointLight, position=v, intensity=rgb))
         rig = object.__new__(cls)
@@ -1010,6 +1014,7 @@ class Rig:
             native,
             grid=None if grid is None else RigGrid(None if size is None else (size[0], size[1]), binning),
             comments={k: json.loads(v) for k, v in comments},
+            unit_axes=False,
         )
 
     def save(self, path: str | os.PathLike[str]) -> None:
