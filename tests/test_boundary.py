@@ -26,8 +26,7 @@ def _call(scene: nplps.synth.Scene, options: dict[str, object]) -> dict[str, obj
     return dict(
         _core.reconstruct(
             images,
-            scene.rig.camera,
-            scene.rig._core_lights(),
+            scene.rig._native,
             scene.mask,
             200.0,
             options,
@@ -46,14 +45,16 @@ def test_unknown_option_keys_are_refused(scene: nplps.synth.Scene) -> None:
         _core.calibrate_intensities(
             images,
             None,
-            {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
-            {
-                "vectors": [[0, 0, -10]] * 3,
-                "directional": [False] * 3,
-                "intensities": [[1, 1, 1]] * 3,
-                "axes": [[0, 0, 1]] * 3,
-                "mu": [0.0] * 3,
-            },
+            _core.Rig(
+                {"model": "orthographic", "pixel_size": [1, 1], "origin": [0, 0]},
+                {
+                    "vectors": [[0, 0, -10]] * 3,
+                    "directional": [False] * 3,
+                    "intensities": [[1, 1, 1]] * 3,
+                    "axes": [[0, 0, 1]] * 3,
+                    "mu": [0.0] * 3,
+                },
+            ),
             [0.0, 0.0, -1.0],
             -100.0,
             {"fit_axis": True},  # type: ignore[typeddict-unknown-key]
@@ -72,7 +73,9 @@ def test_results_hold_their_declared_keys(scene: nplps.synth.Scene) -> None:
     declared = _core_types.ReconstructionDict.__required_keys__
     assert declared <= out.keys() <= _keys(_core_types.ReconstructionDict)
     assert set(out["timings"]) == _keys(_core_types.TimingsDict)  # type: ignore[call-overload]
-    assert set(out["lights"]) == _keys(_core_types.LightsDict)  # type: ignore[call-overload]
+    refined = out["lights"]
+    assert isinstance(refined, _core.Rig)
+    assert set(refined.lights) == _keys(_core_types.LightsDict)
     s = _core.synth_scene("sphere", 4, 100.0, 200.0, 0, pinhole=True)
     assert set(s) == _keys(_core_types.SceneDict)
-    assert set(_core.normalize_camera(s["camera"])) == {"model", "K", "distortion"}
+    assert set(s["rig"].camera) == {"model", "K", "distortion"}

@@ -201,8 +201,7 @@ def test_the_core_gives_sizes_width_first():
         _core.calibrate_intensities(
             np.ascontiguousarray(images, dtype=np.float32),
             np.ones((24, 15), dtype=bool),
-            scene.rig.camera,
-            scene.rig._core_lights(),
+            scene.rig._native,
             [0.0, 0.0, -1.0],
             scene.mean_depth,
             {},

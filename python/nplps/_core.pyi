@@ -9,9 +9,12 @@ mapping strictly: a key that is not declared in its TypedDict is an ``InputError
 the valid keys; a missing key (or None) takes the core's default. The TypedDicts exist for type
 checkers only: import them under ``typing.TYPE_CHECKING``.
 
-``camera`` is the rig file's camera mapping (see :class:`CameraDict`; read strictly: unknown keys
-are a ``RigError``, keys starting with ``_`` are comments, values may be lists, tuples or numpy
-arrays); ``lights`` a mapping of per-light lists (:class:`LightsDict`, built by
+A rig crosses as a :class:`Rig`, built and validated once (``nplps.Rig`` holds it) and passed by
+reference to every function that takes a rig; refined and calibrated lights come back as one,
+each light of its kind. ``camera`` (of ``Rig``, ``predict``, ``mesh_normals``, ``vertices``,
+``calibrate_spheres``) is the rig file's camera mapping (see :class:`CameraDict`; read strictly:
+unknown keys are a ``RigError``, keys starting with ``_`` are comments, values may be lists,
+tuples or numpy arrays); ``lights`` a mapping of per-light lists (:class:`LightsDict`, built by
 ``Rig._core_lights``). The progress callback gets the :class:`IterationStats` of each
 iteration, whose ``search`` (:class:`SearchProgress`) is None except for the iterations of the
 distance search; a result's ``history`` holds the same records. Core errors carry their fields as
@@ -36,6 +39,7 @@ from nplps._core_types import (
     ProgressCallback,
     ReconstructionDict,
     ReconstructOptions,
+    RigFile,
     SceneDict,
     SceneOptions,
     SolverOptions,
@@ -49,6 +53,7 @@ __all__ = [
     "MAX_LIGHTS",
     "MULTIGRID_MAX_ITERATIONS",
     "IterationStats",
+    "Rig",
     "SearchProgress",
     "__version__",
     "calibrate_intensities",
@@ -56,8 +61,10 @@ __all__ = [
     "check_rig",
     "mesh_normals",
     "normalize_camera",
+    "parse_rig",
     "predict",
     "read_pngs",
+    "read_rig",
     "reconstruct",
     "reconstruct_parallel",
     "render",
@@ -117,12 +124,34 @@ class IterationStats:
     @property
     def search(self) -> SearchProgress | None: ...
 
+# -- the rig --------------------------------------------------------------------------------------
+
+@final
+class Rig:
+    """A rig validated once by the core: camera and lights, each light with its kind."""
+
+    def __new__(cls, camera: Camera, lights: LightsDict) -> Rig: ...
+    @property
+    def camera(self) -> CameraDict: ...
+    @property
+    def lights(self) -> LightsDict:
+        """The lights mapping, with ``kind``."""
+    @property
+    def n_lights(self) -> int: ...
+    def subset(self, indices: Sequence[int]) -> Rig: ...
+    def __reduce__(self) -> tuple[type[Rig], tuple[CameraDict, LightsDict]]: ...
+
+def read_rig(path: str | os.PathLike[str]) -> RigFile:
+    """Read a rig file (the core's reader); RigError names the file and the key."""
+
+def parse_rig(text: str, source: str) -> RigFile:
+    """Read the JSON text of a rig file; ``source`` names it in the messages."""
+
 # -- functions ------------------------------------------------------------------------------------
 
 def reconstruct(
     images: npt.NDArray[np.float32],
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     mask: npt.NDArray[np.bool_] | None,
     depth: float | F64,
     options: ReconstructOptions,
@@ -132,8 +161,7 @@ def reconstruct(
 
 def reconstruct_parallel(
     images: npt.NDArray[np.float32],
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     mask: npt.NDArray[np.bool_] | None,
     distance: float | None,
     depth_map: F64 | None,
@@ -143,8 +171,7 @@ def reconstruct_parallel(
 
 def render(
     depth: F64,
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     albedo: F64,
     mask: npt.NDArray[np.bool_] | None = None,
 ) -> F64: ...
@@ -193,8 +220,7 @@ def calibrate_spheres(
 def calibrate_intensities(
     images: npt.NDArray[np.float32],
     mask: npt.NDArray[np.bool_] | None,
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     normal: Sequence[float],
     offset: float,
     options: IntensityOptions,
@@ -202,8 +228,7 @@ def calibrate_intensities(
     """Intensity calibration from (k, H, W[, 3]) images of the board ``normal . X = offset``."""
 
 def synth_spheres(
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     shape: tuple[int, int],
     centers: Sequence[Sequence[float]],
     radius: float,
@@ -213,8 +238,7 @@ def synth_spheres(
     """Render (k, H, W) float64 radiance of shiny spheres and their (H, W) uint32 labels."""
 
 def synth_board(
-    camera: Camera,
-    lights: LightsDict,
+    rig: Rig,
     normal: Sequence[float],
     offset: float,
     albedo: F64,

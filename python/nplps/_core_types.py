@@ -21,7 +21,7 @@ import numpy.typing as npt
 from .types import BoardAlbedo, Outline, RefineLights, Robust, Solver, Status, Weighting
 
 if TYPE_CHECKING:
-    from ._core import IterationStats
+    from ._core import IterationStats, Rig
 
 F64 = npt.NDArray[np.float64]
 
@@ -60,19 +60,34 @@ CameraDict = OrthographicCameraDict | PinholeCameraDict
 Camera = Mapping[str, Any]
 
 
-class LightsDict(TypedDict):
-    """Per-light lists, one item per light.
+#: The type of a light (an LED with mu = 0 is still an LED).
+LightKind = Literal["point", "led", "directional"]
 
-    ``vectors`` (positions of point lights, unit directions towards directional lights),
-    ``directional`` flags, ``intensities`` (R, G, B), ``axes`` (LED principal directions) and
-    ``mu`` (LED anisotropy).
-    """
 
+class _LightsBase(TypedDict):
     vectors: list[list[float]]
     directional: list[bool]
     intensities: list[list[float]]
     axes: list[list[float]]
     mu: list[float]
+
+
+class LightsDict(_LightsBase, total=False):
+    """Per-light lists, one item per light.
+
+    ``vectors`` (positions of point lights, unit directions towards directional lights),
+    ``directional`` flags, ``intensities`` (R, G, B), ``axes`` (LED principal directions),
+    ``mu`` (LED anisotropy) and ``kind`` (each light's type; read from the lights when missing:
+    an LED when mu > 0). ``_core.Rig.lights`` always has ``kind``.
+    """
+
+    kind: list[LightKind]
+
+
+#: A rig file read by the core (``read_rig``, ``parse_rig``): the rig, the grid (None or
+#: (image_size or None, binning)) and the top-level comments as (key, JSON text of the value), in
+#: the order of the file.
+RigFile = tuple["Rig", tuple[tuple[int, int] | None, int] | None, list[tuple[str, str]]]
 
 
 # -- options --------------------------------------------------------------------------------------
@@ -212,7 +227,8 @@ class _ReconstructionBase(TypedDict):
     status_reason: str
     negative_observations: int
     timings: TimingsDict
-    lights: LightsDict
+    #: The rig with the final (refined) lights, of the input's kinds.
+    lights: Rig
 
 
 class DistanceCheckDict(TypedDict):
@@ -245,8 +261,7 @@ class SceneDict(TypedDict):
     depth: F64
     mask: npt.NDArray[np.bool_]
     albedo: F64
-    camera: CameraDict
-    lights: LightsDict
+    rig: Rig
     size: float
 
 
@@ -317,7 +332,8 @@ class SphereCalibrationDict(_SphereCalibrationBase, total=False):
 class IntensityCalibrationDict(TypedDict):
     """The result of ``calibrate_intensities``."""
 
-    lights: LightsDict
+    #: The rig with the calibrated lights (a point light given mu > 0 is an LED).
+    lights: Rig
     intensity: F64
     mu: list[float]
     axes: list[list[float]]

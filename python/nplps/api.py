@@ -523,8 +523,7 @@ def reconstruct(
     with aborting(display):
         out = _core.reconstruct(
             _apply_valid(stack, valid, missing, _owned(stack, images)),
-            rig.camera,
-            rig._core_lights(),
+            rig._native,
             mask_arr,
             depth_arg,
             options,
@@ -629,8 +628,7 @@ def reconstruct_parallel(
     }
     out = _core.reconstruct_parallel(
         _apply_valid(stack, valid, missing, _owned(stack, images)),
-        rig.camera,
-        rig._core_lights(),
+        rig._native,
         mask_arr,
         distance,
         depth_map,
@@ -701,4 +699,4 @@ def render(
             f"got shape {a.shape}"
         ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    return _core.render(z, rig.camera, rig._core_lights(), rho, m)
+    return _core.render(z, rig._native, rho, m)

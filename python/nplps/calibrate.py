@@ -685,9 +685,9 @@ def calibrate_intensities(
         "iterations": int(iterations),
     }
     d = _core.calibrate_intensities(
-        np.ascontiguousarray(stack, dtype=np.float32), m, rig.camera, rig._core_lights(), normal, offset, options
+        np.ascontiguousarray(stack, dtype=np.float32), m, rig._native, normal, offset, options
     )
-    out = Rig._from_core_lights(rig.camera, d["lights"], like=rig)
+    out = Rig._from_native(d["lights"], like=rig)
     return IntensityCalibration(
         rig=out,
         intensities=d["intensity"],

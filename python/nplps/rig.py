@@ -71,7 +71,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -100,12 +100,6 @@ MAX_NESTING = 64
 #: Most lights of a rig.
 MAX_LIGHTS: int = _core.MAX_LIGHTS
 
-_TOP_KEYS = ("version", "camera", "lights", "grid")
-_REQUIRED_KEYS = ("version", "camera", "lights")
-_LIGHT_KEYS = {
-    "point": ("type", "position", "intensity", "direction", "mu"),
-    "directional": ("type", "direction", "intensity"),
-}
 
 ArrayLike = Any
 #: Three floats: a position, a unit vector or an intensity per channel (R, G, B).
@@ -316,6 +310,13 @@ Light = PointLight | LED | DirectionalLight
 _LIGHT_TYPES = (PointLight, LED, DirectionalLight)
 
 
+def _kind(light: Light) -> _core_types.LightKind:
+    """Return the compiled core's name of the light's type."""
+    if isinstance(light, DirectionalLight):
+        return "directional"
+    return "led" if isinstance(light, LED) else "point"
+
+
 def _with_position(light: Light, position: Any, subject: str) -> Light:
     if isinstance(light, DirectionalLight):
         raise RigError(f"{subject} is a directional light: it has no position")
@@ -409,6 +410,10 @@ class Rig:
     grid: RigGrid | None = field(default=None, repr=False, compare=False)
     #: The rig file's top-level comments (keys starting with ``_``), kept when saved (not compared).
     comments: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    if TYPE_CHECKING:
+        #: The compiled core's rig (built and validated once; every ``_core`` call takes it); not
+        #: a field (it follows from the camera and the lights).
+        _native: _core.Rig = field(init=False)
 
     def __init__(
         self,
@@ -422,12 +427,17 @@ class Rig:
         object.__setattr__(self, "comments", dict(comments or {}))
         if not isinstance(camera, Mapping):
             raise RigError(f"camera must be a mapping (the rig file's camera object), got {_describe(camera)}")
-        # The compiled core checks the camera (every key) and gives its canonical form.
-        object.__setattr__(self, "camera", _core.normalize_camera(dict(camera)))
-        object.__setattr__(self, "lights", _lights(lights))
-        if len(self.lights) > MAX_LIGHTS:
-            raise RigError(f"the rig has {len(self.lights)} lights; at most {MAX_LIGHTS} are supported")
-        _core.check_rig(self.camera, self._core_lights())
+        values = _lights(lights)
+        if len(values) > MAX_LIGHTS:
+            raise RigError(f"the rig has {len(values)} lights; at most {MAX_LIGHTS} are supported")
+        object.__setattr__(self, "lights", values)
+        # The compiled core checks the camera (every key) and the lights, once, and gives the
+        # camera's canonical form.
+        self._set_native(_core.Rig(dict(camera), self._core_lights()))
+
+    def _set_native(self, native: _core.Rig) -> None:
+        object.__setattr__(self, "_native", native)
+        object.__setattr__(self, "camera", native.camera)
 
     def __hash__(self) -> int:
         """Hash the camera mapping and the lights (the array views follow from them)."""
@@ -444,6 +454,7 @@ class Rig:
         object.__setattr__(self, "lights", state["lights"])
         object.__setattr__(self, "grid", state.get("grid"))
         object.__setattr__(self, "comments", state.get("comments", {}))
+        self._set_native(_core.Rig(dict(self.camera), self._core_lights()))
 
     def _like_this(self, camera: Mapping[str, Any], lights: Sequence[Light], grid: RigGrid | None = None) -> Rig:
         """Return a rig with other camera or lights that keeps this one's grid (or ``grid``) and comments."""
@@ -859,36 +870,59 @@ class Rig:
 
     # -- the compiled core's form ---------------------------------------------------------------
     @classmethod
-    def _from_core_lights(cls, camera: Mapping[str, Any], lights: Mapping[str, Any], like: Rig | None = None) -> Rig:
-        """Return a rig with ``camera`` and the lights in the compiled core's form.
+    def _from_native(
+        cls,
+        native: _core.Rig,
+        like: Rig | None = None,
+        grid: RigGrid | None = None,
+        comments: Mapping[str, Any] | None = None,
+        unit_axes: bool = True,
+    ) -> Rig:
+        """Return the rig of a compiled core's rig (already validated, each light with its kind).
 
-        The lights are given as (vectors, directional, intensities, axes, mu): LED axes scaled to
-        unit length, directions kept as given (checked to be unit vectors). A point light is an LED
-        when its mu > 0 or when light i of ``like`` is one.
+        ``like``: the rig whose grid and comments it keeps (refined or calibrated lights).
+        ``unit_axes``: scale the LED axes to unit length as LED() does (False for the rig file
+        reader's rig, which did it with the same operations).
         """
+        d = native.lights
         out: list[Light] = []
-        n = len(lights["vectors"])
-        for i in range(n):
-            subject = f"light {i}"
-            vector, phi = lights["vectors"][i], lights["intensities"][i]
-            mu = float(lights["mu"][i])
-            if lights["directional"][i]:
-                out.append(DirectionalLight._checked(subject, vector, phi, normalize=False))
-            elif mu > 0 or (like is not None and i < like.n_lights and isinstance(like.lights[i], LED)):
-                out.append(LED._checked(subject, vector, phi, lights["axes"][i], mu))
+        for kind, vector, phi, axis, mu in zip(
+            d["kind"], d["vectors"], d["intensities"], d["axes"], d["mu"], strict=True
+        ):
+            v: Vec3 = (vector[0], vector[1], vector[2])
+            rgb: Vec3 = (phi[0], phi[1], phi[2])
+            if kind == "directional":
+                out.append(_new(DirectionalLight, direction=v, intensity=rgb))
+            elif kind == "led":
+                # Scaled to unit length as LED() does (a unit axis may move by a bit).
+                a: Vec3 = (axis[0], axis[1], axis[2])
+                out.append(_new(LED, position=v, intensity=rgb, axis=_unit(a) if unit_axes else a, mu=mu))
             else:
-                out.append(PointLight._checked(subject, vector, phi))
+                out.append(_new(PointLight, position=v, intensity=rgb))
+        rig = object.__new__(cls)
         if like is not None:
-            return like._like_this(camera, tuple(out))
-        return cls(camera=camera, lights=tuple(out))
+            grid, comments = like.grid, like.comments
+        object.__setattr__(rig, "grid", grid)
+        object.__setattr__(rig, "comments", dict(comments or {}))
+        object.__setattr__(rig, "lights", tuple(out))
+        if any(isinstance(light, LED) and light.axis != tuple(a) for light, a in zip(out, d["axes"], strict=True)):
+            native = _core.Rig(native.camera, rig._core_lights())
+        rig._set_native(native)
+        return rig
+
+    @classmethod
+    def _from_core_lights(cls, camera: Mapping[str, Any], lights: _core.Rig, like: Rig | None = None) -> Rig:
+        """Return the rig of a compiled core's rig (``camera`` is its camera; see :meth:`_from_native`)."""
+        return cls._from_native(lights, like=like)
 
     def _core_lights(self) -> _core_types.LightsDict:
         """Return the lights in the form the compiled core takes.
 
         Lights that are not LEDs get an axis of (0, 0, 1) and mu = 0.
         """
-        vectors, directional, intensities, axes, mus = [], [], [], [], []
+        vectors, directional, intensities, axes, mus, kinds = [], [], [], [], [], []
         for light in self.lights:
+            kinds.append(_kind(light))
             if isinstance(light, DirectionalLight):
                 vectors.append(list(light.direction))
             else:
@@ -897,7 +931,14 @@ class Rig:
             intensities.append(list(light.intensity))
             axes.append(list(light.axis if isinstance(light, LED) else _NO_AXIS))
             mus.append(light.mu if isinstance(light, LED) else 0.0)
-        return {"vectors": vectors, "directional": directional, "intensities": intensities, "axes": axes, "mu": mus}
+        return {
+            "vectors": vectors,
+            "directional": directional,
+            "intensities": intensities,
+            "axes": axes,
+            "mu": mus,
+            "kind": kinds,
+        }
 
     # -- files ----------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -953,61 +994,28 @@ class Rig:
         """
         if not isinstance(data, Mapping):
             raise RigError(f"{source}: a rig file holds a JSON object, got {_describe(data)}")
-        _check_keys(data, _TOP_KEYS, source, "a rig file has version, camera, lights and optionally grid")
-        missing = [k for k in _REQUIRED_KEYS if k not in data]
-        if missing:
-            raise RigError(f"{source}: missing key(s) {', '.join(missing)}")
-        version = data["version"]
-        if not isinstance(version, int) or isinstance(version, bool):
-            raise RigError(f"{source}: 'version' must be an integer, got {_describe(version)}")
-        if version < 1 or version > RIG_FILE_VERSION:
-            raise RigError(
-                f"{source}: unsupported rig file version {_describe(version)} (this nplps reads 1..{RIG_FILE_VERSION})"
-            )
-        camera = data["camera"]
-        if not isinstance(camera, Mapping) or "model" not in camera:
-            raise RigError(f"{source}: 'camera' must be an object with a 'model' key, got {_describe(camera)}")
-        lights = data["lights"]
-        if not isinstance(lights, (list, tuple)):
-            raise RigError(f"{source}: 'lights' must be a list of objects (one per light), got {_describe(lights)}")
-        if len(lights) > MAX_LIGHTS:
-            raise RigError(f"{source}: the rig has {len(lights)} lights; at most {MAX_LIGHTS} are supported")
-        out: list[Light] = []
-        for i, light in enumerate(lights):
-            where = f"{source}: light {i}"
-            if not isinstance(light, Mapping):
-                raise RigError(f"{where} must be an object, got {_describe(light)}")
-            kind = light.get("type", "point")
-            if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
-                raise RigError(f'{where} has unknown type {_describe(kind)} ("point" or "directional")')
-            known = _LIGHT_KEYS[kind]
-            _check_keys(light, known, where, f"a {kind} light has {', '.join(known)}")
-            key = "position" if kind == "point" else "direction"
-            if key not in light:
-                raise RigError(f"{where} is missing its '{key}'")
-            vector = _vector(light[key], f"{where} {key}")
-            intensity = _intensity(light.get("intensity", 1.0), f"{where} intensity")
-            if kind == "directional":
-                # Kept as written (checked to be a unit vector): a file reads back as it was saved.
-                out.append(DirectionalLight._checked(where, vector, intensity, normalize=False))
-                continue
-            mu = _number(light.get("mu", 0.0), f"{where} mu")
-            if "direction" in light:  # an LED; the file's "direction" is its axis
-                axis = _vector(light["direction"], f"{where} direction")
-                out.append(LED._checked(where, vector, intensity, axis, mu))
-            elif mu > 0:
-                # An LED's falloff about its axis: without the axis its brightness is unknown.
-                raise RigError(f"{where}: an anisotropic LED (mu = {mu:.6g}) needs its principal 'direction'")
-            elif mu < 0:
-                raise RigError(f"{where} has anisotropy mu = {mu:.6g}; it must be >= 0")
-            else:
-                out.append(PointLight._checked(where, vector, intensity))
-        grid = _grid(data["grid"], f"{source}: grid") if "grid" in data else None
-        comments = {k: v for k, v in data.items() if isinstance(k, str) and k.startswith("_")}
         try:
-            return cls(camera=camera, lights=tuple(out), grid=grid, comments=comments)
-        except RigError as e:
-            raise RigError(f"{source}: {e}") from None
+            text = json.dumps(data, default=_plain, allow_nan=False)
+        except ValueError:
+            raise RigError(f"{source}: {_nonfinite(data, '')} must be a finite number") from None
+        except RecursionError:
+            raise RigError(f"{source}: the rig is nested too deeply (at most {MAX_NESTING} levels)") from None
+        except TypeError as e:
+            raise RigError(f"{source}: not a rig file's mapping ({e})") from None
+        # The compiled core reads it (its rig file reader, the only one) and builds its rig.
+        return cls._from_file(_core.parse_rig(text, source))
+
+    @classmethod
+    def _from_file(cls, file: tuple[_core.Rig, Any, list[tuple[str, str]]]) -> Rig:
+        """Return the rig of the compiled core's reading of a rig file (rig, grid, comments)."""
+        native, grid, comments = file
+        size, binning = (None, 1) if grid is None else grid
+        return cls._from_native(
+            native,
+            grid=None if grid is None else RigGrid(None if size is None else (size[0], size[1]), binning),
+            comments={k: json.loads(v) for k, v in comments},
+            unit_axes=False,
+        )
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the rig file (JSON), under a temporary name renamed when complete.
@@ -1048,7 +1056,7 @@ class Rig:
         """
         if not isinstance(path, (str, bytes, os.PathLike)):
             raise RigError(f"a rig file is read from a path (str or os.PathLike), got {type(path).__name__}")
-        return cls.from_dict(read_rig_json(path), source=os.fspath(path))
+        return cls._from_file(_core.read_rig(os.fsdecode(path)))
 
 
 def _is_empty(value: Any) -> bool:
@@ -1164,35 +1172,27 @@ def _describe(value: Any) -> str:
     return f"a value of type {type(value).__name__}"
 
 
-def _grid(value: Any, where: str) -> RigGrid:
-    """Read a rig file's ``"grid"`` object."""
-    if not isinstance(value, Mapping):
-        raise RigError(f"{where} must be an object with image_size [W, H] and binning, got {_describe(value)}")
-    _check_keys(value, ("image_size", "binning"), where, "a grid has image_size [W, H] and binning")
-
-    def whole(v: Any, name: str) -> int:
-        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 2**31:
-            raise RigError(f"{where} {name} must be a whole number of at least 1, got {_describe(v)}")
-        return v
-
-    size = None
-    if "image_size" in value:
-        raw = value["image_size"]
-        if not isinstance(raw, (list, tuple)) or len(raw) != 2:
-            raise RigError(f"{where} image_size must be [width, height] in pixels, got {_describe(raw)}")
-        size = (whole(raw[0], "image_size width"), whole(raw[1], "image_size height"))
-    return RigGrid(size, whole(value.get("binning", 1), "binning"))
+def _plain(value: Any) -> Any:
+    """Return a numpy value of a rig mapping as the plain value ``json`` writes."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        return value.tolist()
+    raise TypeError(f"{_describe(value)} is not a JSON value")
 
 
-def _check_keys(mapping: Mapping[Any, Any], known: Sequence[str], where: str, usage: str) -> None:
-    """Fail on a key that is not in ``known`` and does not start with '_' (a comment)."""
-    for key in mapping:
-        if not isinstance(key, str):
-            raise RigError(f"{where} has a key that is not a string ({_describe(key)})")
-        if not (key.startswith("_") or key in known):
-            raise RigError(
-                f"{where} has an unknown key {_describe(key)[11:]} ({usage}; keys starting with '_' are comments)"
-            )
+def _nonfinite(value: Any, where: str) -> str:
+    """Return where in ``value`` (a mapping of a rig file) the first NaN or infinity is."""
+    items: Any = ()
+    if isinstance(value, Mapping):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in value.items())
+    elif isinstance(value, (list, tuple, np.ndarray)):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(value))
+    elif isinstance(value, (float, np.floating)) and not math.isfinite(value):
+        return where
+    for name, item in items:
+        found = _nonfinite(item, name)
+        if found:
+            return found
+    return ""
 
 
 def _number(value: Any, what: str) -> float:

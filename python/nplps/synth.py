@@ -211,8 +211,7 @@ def make_scene(
         rgb=rgb,
         directional=directional,
     )
-    lights = d["lights"]
-    rig = Rig._from_core_lights(dict(d["camera"]), lights)
+    rig = Rig._from_native(d["rig"])
     images = render(d["depth"], rig, d["albedo"], mask=d["mask"])
     if noise > 0:
         rng = np.random.default_rng(seed)

@@ -23,7 +23,7 @@ from ._atomic import write_text
 from ._outdir import result_directory
 from .calibrate import _plane, save_camera
 from .errors import InputError
-from .rig import Rig, _select_core_lights
+from .rig import Rig
 
 __all__ = [
     "LIGHTS_8",
@@ -172,7 +172,7 @@ def standard_rig(
     else:
         cam = {"model": "orthographic", "pixel_size": [size / n, size / n], "origin": [-size / 2, -size / 2]}
     idx = _light_indices(lights)
-    return Rig._from_core_lights(cam, _select_core_lights(d["lights"], idx))
+    return Rig(cam, Rig._from_native(d["rig"].subset(idx)).lights)
 
 
 def default_placements(
@@ -304,8 +304,7 @@ def make_sphere_scene(
     radiance, labels = [], []
     for c in centers:
         d = _core.synth_spheres(
-            rig.camera,
-            rig._core_lights(),
+            rig._native,
             (n, n),
             c.tolist(),
             float(radius),
@@ -345,7 +344,7 @@ def make_board_scene(
         raise InputError(f"noise must be >= 0 (a fraction of the full scale), got {noise}")
     normal, offset = _plane(distance if plane is None else plane)
     a = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (n, n)).copy()
-    radiance = _core.synth_board(rig.camera, rig._core_lights(), normal, offset, a)
+    radiance = _core.synth_board(rig._native, normal, offset, a)
     scale = exposure / float(radiance.max())
     rng = np.random.default_rng(seed)
     images = _quantize([radiance], scale, float(noise), int(bits), rng)[0]

@@ -5,8 +5,9 @@ use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn, PyUntypedArr
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use crate::convert::{array, camera_from, check_options, lighting_from, lights_dict, option};
+use crate::convert::{array, camera_from, check_options, option};
 use crate::errors::{no_panic, to_py, InputError};
+use crate::rig::Rig;
 use nplps::calibrate::{
     BoardAlbedo, BoardImages, Detection, HighlightOptions, LightEstimate, Outline, Placement,
     Plane, SphereOptions, SphereSource,
@@ -216,12 +217,11 @@ pub fn calibrate_spheres<'py>(
 /// float32 (k, H, W) or (k, H, W, 3) images, a (H, W) mask or None, the rig, the plane
 /// (normal, offset) with `normal . X = offset`.
 #[pyfunction]
-#[pyo3(signature = (images, mask, camera, lights, normal, offset, options))]
+#[pyo3(signature = (images, mask, rig, normal, offset, options))]
 pub fn calibrate_intensities<'py>(
     images: PyReadonlyArrayDyn<'py, f32>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, Rig>,
     normal: [f64; 3],
     offset: f64,
     options: &Bound<'py, PyDict>,
@@ -238,7 +238,8 @@ pub fn calibrate_intensities<'py>(
             "saturation",
         ],
     )?;
-    let rig = lighting_from(camera, lights)?;
+    let input = rig.get();
+    let rig = &input.rig;
     let [k, h, w, c] = match *images.shape() {
         [k, h, w] => [k, h, w, 1],
         [k, h, w, c] => [k, h, w, c],
@@ -307,7 +308,7 @@ pub fn calibrate_intensities<'py>(
         })
         .map_err(to_py)?;
     let out = PyDict::new(py);
-    out.set_item("lights", lights_dict(py, &result.lights)?)?;
+    out.set_item("lights", input.with_lights(result.lights))?;
     let intensity: Vec<f64> = result
         .reports
         .iter()
@@ -351,17 +352,16 @@ pub fn calibrate_intensities<'py>(
 /// (`diffuse`, `specular`, `exponent`, `background`) and `supersample` (rays per pixel and
 /// side, default 1).
 #[pyfunction]
-#[pyo3(signature = (camera, lights, shape, centers, radius, board, options))]
+#[pyo3(signature = (rig, shape, centers, radius, board, options))]
 pub fn synth_spheres<'py>(
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, Rig>,
     shape: (usize, usize),
     centers: Vec<[f64; 3]>,
     radius: f64,
     board: Option<([f64; 3], f64)>,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let py = camera.py();
+    let py = rig.py();
     let (height, width) = shape;
     check_options(
         options,
@@ -373,7 +373,7 @@ pub fn synth_spheres<'py>(
             "supersample",
         ],
     )?;
-    let rig = lighting_from(camera, lights)?;
+    let rig = &rig.get().rig;
     let d = nplps::calibration_scene::SphereMaterial::default();
     let m = nplps::calibration_scene::SphereMaterial {
         diffuse: option(options, "diffuse", d.diffuse)?,
@@ -393,7 +393,7 @@ pub fn synth_spheres<'py>(
                     radius,
                     board,
                 };
-                nplps::calibration_scene::render_spheres(&rig, &layout, &m, supersample)
+                nplps::calibration_scene::render_spheres(rig, &layout, &m, supersample)
             })
         })
         .map_err(to_py)?;
@@ -409,16 +409,15 @@ pub fn synth_spheres<'py>(
 /// Renders k images (k, H, W[, 3]) of a flat board `normal . X = offset` with albedo (H, W) or
 /// (H, W, 3) by the image model.
 #[pyfunction]
-#[pyo3(signature = (camera, lights, normal, offset, albedo))]
+#[pyo3(signature = (rig, normal, offset, albedo))]
 pub fn synth_board<'py>(
     py: Python<'py>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, Rig>,
     normal: [f64; 3],
     offset: f64,
     albedo: PyReadonlyArrayDyn<'py, f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = lighting_from(camera, lights)?;
+    let rig = &rig.get().rig;
     let (h, w, c) = match *albedo.shape() {
         [h, w] => (h, w, 1),
         [h, w, c] => (h, w, c),
@@ -433,7 +432,7 @@ pub fn synth_board<'py>(
         .map_err(|_| input_error("albedo must be C-contiguous".into()))?;
     let plane = Plane { normal, offset };
     let images = py
-        .detach(|| no_panic(|| nplps::calibration_scene::render_board(&rig, h, w, &plane, a, c)))
+        .detach(|| no_panic(|| nplps::calibration_scene::render_board(rig, h, w, &plane, a, c)))
         .map_err(to_py)?;
     let k = rig.n_lights();
     if c == 1 {

@@ -363,8 +363,15 @@ pub fn lights_from(lights: &Bound<'_, PyDict>) -> PyResult<Vec<nplps::Light>> {
     check_keys(
         lights,
         "lights",
-        &KEYS,
-        "the lights mapping has vectors, directional, intensities, axes and mu",
+        &[
+            "vectors",
+            "directional",
+            "intensities",
+            "axes",
+            "mu",
+            "kind",
+        ],
+        "the lights mapping has vectors, directional, intensities, axes, mu and optionally kind",
     )?;
     let max = nplps::MAX_LIGHTS;
     let list = |key: &str| -> PyResult<Vec<Bound<'_, PyAny>>> {
@@ -491,13 +498,6 @@ pub fn lights_dict<'py>(py: Python<'py>, lights: &[nplps::Light]) -> PyResult<Bo
     Ok(d)
 }
 
-/// Builds and validates a core [`nplps::Rig`] for reconstruction (at least 3 lights).
-pub fn rig_from(camera: &Bound<'_, PyDict>, lights: &Bound<'_, PyDict>) -> PyResult<nplps::Rig> {
-    let rig = lighting_from(camera, lights)?;
-    rig.validate().map_err(to_py)?;
-    Ok(rig)
-}
-
 /// Builds a core [`nplps::Rig`] for rendering: any number of lights, each one valid.
 pub fn lighting_from(
     camera: &Bound<'_, PyDict>,
@@ -536,6 +536,7 @@ pub fn array3<'py>(
 pub fn reconstruction_dict<'py>(
     py: Python<'py>,
     r: nplps::Reconstruction,
+    rig: &crate::rig::Rig,
 ) -> PyResult<Bound<'py, PyDict>> {
     let (h, w) = (r.height, r.width);
     let d = PyDict::new(py);
@@ -569,7 +570,7 @@ pub fn reconstruction_dict<'py>(
     t.set_item("lights", r.timings.lights.as_secs_f64())?;
     t.set_item("total", r.timings.total.as_secs_f64())?;
     d.set_item("timings", t)?;
-    d.set_item("lights", lights_dict(py, &r.lights)?)?;
+    d.set_item("lights", rig.with_lights(r.lights))?;
     if let Some(report) = &r.refinement {
         d.set_item("refinement", refinement_dict(py, report)?)?;
     }

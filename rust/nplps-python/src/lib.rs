@@ -13,14 +13,15 @@ mod errors;
 mod interrupt;
 mod pool;
 mod records;
+mod rig;
 
 use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use convert::{
-    array, array3, camera_dict, camera_from, check_options, lighting_from, lights_dict, option,
-    reconstruction_dict, rig_from,
+    array, array3, camera_dict, camera_from, check_options, lighting_from, option,
+    reconstruction_dict,
 };
 use errors::{no_panic, to_py, with_fields, InputError, RigError};
 use interrupt::interruptible;
@@ -220,7 +221,7 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
 
 /// The borrowed input of a reconstruction: rig, (k, H, W[, 3]) images, mask and starting depth.
 struct Input<'a> {
-    rig: nplps::Rig,
+    rig: &'a nplps::Rig,
     shape: [usize; 4],
     images: &'a [f32],
     mask: Option<&'a [bool]>,
@@ -230,7 +231,7 @@ struct Input<'a> {
 impl<'a> Input<'a> {
     fn new(
         images: &'a PyReadonlyArrayDyn<'_, f32>,
-        rig: nplps::Rig,
+        rig: &'a nplps::Rig,
         mask: Option<&'a PyReadonlyArray2<'_, bool>>,
         depth: nplps::InitialDepth<'a>,
     ) -> PyResult<Input<'a>> {
@@ -263,7 +264,7 @@ impl<'a> Input<'a> {
         let [k, h, w, c] = self.shape;
         nplps::check_memory(self.shape, self.mask, options)?;
         let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
-        nplps::Problem::with_cancel(stack, &self.rig, self.mask, self.depth, cancel.clone())
+        nplps::Problem::with_cancel(stack, self.rig, self.mask, self.depth, cancel.clone())
     }
 }
 
@@ -281,13 +282,13 @@ fn search_from(d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>>
 
 /// Near-light reconstruction (see `nplps.reconstruct`): `depth` is the working distance or an
 /// (H+1, W+1) starting depth map; `options` may hold a depth prior (`prior`, (H+1, W+1), with
-/// `prior_weight`). Returns a dict of arrays.
+/// `prior_weight`). Returns a dict of arrays; its `lights` is the rig with the final (refined)
+/// lights, of the kinds of `rig`'s.
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, depth, options, progress))]
+#[pyo3(signature = (images, rig, mask, depth, options, progress))]
 fn reconstruct<'py>(
     images: PyReadonlyArrayDyn<'py, f32>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, rig::Rig>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     depth: Depth<'py>,
     options: &Bound<'py, PyDict>,
@@ -295,12 +296,12 @@ fn reconstruct<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let py = images.py();
     check_options(options, &reconstruct_keys())?;
-    let rig = rig_from(camera, lights)?;
+    let rig = rig.get();
     let depth = match &depth {
         Depth::Distance(d) => nplps::InitialDepth::Distance(*d),
         Depth::Map(m) => nplps::InitialDepth::Map(slice(m, "depth map")?),
     };
-    let input = Input::new(&images, rig, mask.as_ref(), depth)?;
+    let input = Input::new(&images, &rig.rig, mask.as_ref(), depth)?;
     let search = search_from(options)?;
     let check = search.is_none() && option(options, "check_distance", false)?;
     let prior_weight: f64 = option(options, "prior_weight", 1.0)?;
@@ -354,7 +355,7 @@ fn reconstruct<'py>(
         return Err(e);
     }
     let (result, estimate, checked) = result?;
-    let d = reconstruction_dict(py, result)?;
+    let d = reconstruction_dict(py, result, rig)?;
     if let Some(c) = checked {
         let e = PyDict::new(py);
         e.set_item("given", c.given)?;
@@ -377,11 +378,10 @@ fn reconstruct<'py>(
 
 /// Parallel-light baseline (see `nplps.reconstruct_parallel`).
 #[pyfunction]
-#[pyo3(signature = (images, camera, lights, mask, distance, depth_map, options))]
+#[pyo3(signature = (images, rig, mask, distance, depth_map, options))]
 fn reconstruct_parallel<'py>(
     images: PyReadonlyArrayDyn<'py, f32>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, rig::Rig>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     distance: Option<f64>,
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
@@ -389,9 +389,9 @@ fn reconstruct_parallel<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let py = images.py();
     check_options(options, &SOLVER_KEYS)?;
-    let rig = rig_from(camera, lights)?;
+    let rig = rig.get();
     let depth = initial_depth(distance, depth_map.as_ref())?;
-    let input = Input::new(&images, rig, mask.as_ref(), depth)?;
+    let input = Input::new(&images, &rig.rig, mask.as_ref(), depth)?;
     let options = options_from(options)?;
     let cancel = nplps::Cancel::new();
     let result = interruptible(py, &cancel, || {
@@ -400,22 +400,21 @@ fn reconstruct_parallel<'py>(
             nplps::reconstruct_parallel(&problem, &options)
         })
     })?;
-    reconstruction_dict(py, result)
+    reconstruction_dict(py, result, rig)
 }
 
 /// Images (k, H, W) or (k, H, W, 3) of the surface `depth` (H+1, W+1) with albedo (H, W) or
 /// (H, W, 3) under the rig.
 #[pyfunction]
-#[pyo3(signature = (depth, camera, lights, albedo, mask=None))]
+#[pyo3(signature = (depth, rig, albedo, mask=None))]
 fn render<'py>(
     py: Python<'py>,
     depth: PyReadonlyArray2<'py, f64>,
-    camera: &Bound<'py, PyDict>,
-    lights: &Bound<'py, PyDict>,
+    rig: &Bound<'py, rig::Rig>,
     albedo: PyReadonlyArrayDyn<'py, f64>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let rig = lighting_from(camera, lights)?;
+    let rig = &rig.get().rig;
     let (h, w, depth_s) = depth_grid(&depth)?;
     let channels = albedo_channels(&albedo)?;
     let albedo_s = slice(&albedo, "albedo")?;
@@ -429,7 +428,7 @@ fn render<'py>(
         mask,
     };
     let images = py
-        .detach(|| no_panic(|| nplps::render(&rig, &surface)))
+        .detach(|| no_panic(|| nplps::render(rig, &surface)))
         .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
@@ -562,8 +561,7 @@ fn synth_scene<'py>(
         &[n, n, 3]
     };
     d.set_item("albedo", array(py, scene.albedo, albedo_shape)?)?;
-    d.set_item("camera", camera_dict(py, &scene.rig.camera)?)?;
-    d.set_item("lights", lights_dict(py, &scene.rig.lights)?)?;
+    d.set_item("rig", rig::Rig::of(scene.rig, None))?;
     d.set_item("size", scene.size)?;
     Ok(d)
 }
@@ -580,6 +578,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MULTIGRID_MAX_ITERATIONS", nplps::MULTIGRID_MAX_ITERATIONS)?;
     m.add_class::<records::IterationStats>()?;
     m.add_class::<records::SearchProgress>()?;
+    m.add_class::<rig::Rig>()?;
+    m.add_function(wrap_pyfunction!(rig::read_rig, m)?)?;
+    m.add_function(wrap_pyfunction!(rig::parse_rig, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;

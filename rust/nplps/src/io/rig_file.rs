@@ -23,13 +23,67 @@ fn rig_error(message: String) -> Error {
 
 /// Reads the rig file at `path` (see the format in the [`io`](crate::io) module).
 pub fn read_rig(path: &Path) -> Result<Rig> {
+    read_rig_file(path).map(|file| file.rig)
+}
+
+/// Reads the JSON text of a rig file; `source` names it in the messages.
+pub fn parse_rig(text: &str, source: &str) -> Result<Rig> {
+    parse_rig_file(text, source).map(|file| file.rig)
+}
+
+/// The image grid a rig file's camera belongs to (its optional `"grid"`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RigGrid {
+    /// Width and height of the images in pixels, if the file says.
+    pub image_size: Option<[u64; 2]>,
+    /// Pixels of the original calibration grid one pixel averages along each axis (default 1).
+    pub binning: u64,
+}
+
+/// A rig file as read: the rig, and what the file says besides it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RigFile {
+    /// The rig (LED axes scaled to unit length, directional directions as written).
+    pub rig: Rig,
+    /// Per light, whether it is an LED: a point light with a principal `"direction"`, even with
+    /// `mu` = 0 (the Python package keeps such a light an LED).
+    pub leds: Vec<bool>,
+    /// The file's `"grid"`, if it has one.
+    pub grid: Option<RigGrid>,
+    /// The top-level comments (keys starting with `_`), in the order of the file.
+    pub comments: Vec<(String, Value)>,
+}
+
+impl Rig {
+    /// Reads the rig file at `path` with its grid, LED flags and comments (see [`read_rig`]).
+    pub fn read_file(path: &Path) -> Result<RigFile> {
+        read_rig_file(path)
+    }
+
+    /// Reads the JSON text of a rig file with its grid, LED flags and comments (see
+    /// [`parse_rig`]); `source` names it in the messages.
+    pub fn parse_file(text: &str, source: &str) -> Result<RigFile> {
+        parse_rig_file(text, source)
+    }
+}
+
+/// The message of an I/O error without Rust's " (os error N)" suffix (the words of `strerror`).
+fn io_message(e: &std::io::Error) -> String {
+    let text = e.to_string();
+    match text.rfind(" (os error ") {
+        Some(i) if text.ends_with(')') => text[..i].to_string(),
+        _ => text,
+    }
+}
+
+fn read_rig_file(path: &Path) -> Result<RigFile> {
     let name = path.display().to_string();
     let raw = read_limited(path).map_err(|e| {
         rig_error(format!(
             "cannot read rig file '{name}': {}",
             match e.kind() {
                 std::io::ErrorKind::NotFound => "No such file or directory".to_string(),
-                _ => e.to_string(),
+                _ => io_message(&e),
             }
         ))
     })?;
@@ -44,7 +98,7 @@ pub fn read_rig(path: &Path) -> Result<Rig> {
             "rig file '{name}' is not a JSON text file (not UTF-8)"
         ))
     })?;
-    parse_rig(text.strip_prefix('\u{feff}').unwrap_or(text), &name)
+    parse_rig_file(text.strip_prefix('\u{feff}').unwrap_or(text), &name)
 }
 
 /// At most [`MAX_RIG_FILE_BYTES`] + 1 bytes of the file.
@@ -57,24 +111,152 @@ fn read_limited(path: &Path) -> std::io::Result<Vec<u8>> {
     Ok(raw)
 }
 
-/// Reads the JSON text of a rig file; `source` names it in the messages.
-pub fn parse_rig(text: &str, source: &str) -> Result<Rig> {
+fn parse_rig_file(text: &str, source: &str) -> Result<RigFile> {
     let depth = nesting(text);
     if depth > MAX_NESTING {
         return Err(rig_error(format!(
             "rig file '{source}' is nested too deeply ({depth} levels; at most {MAX_NESTING})"
         )));
     }
-    let value: Value = serde_json::from_str(text).map_err(|e| {
-        let message = e.to_string();
-        let message = if message.chars().count() <= 200 {
-            message
-        } else {
-            format!("{}...", message.chars().take(200).collect::<String>())
-        };
-        rig_error(format!("rig file '{source}' is not valid JSON: {message}"))
-    })?;
-    rig_from_value(&value, source)
+    let value: Value = match serde_json::from_str(text) {
+        Ok(value) => value,
+        // NaN, infinities and numbers beyond a double (which Python's json reads) become marks
+        // that the number readers name as non-finite, naming the key.
+        Err(e) => match with_non_finite_marked(text).and_then(|t| serde_json::from_str(&t).ok()) {
+            Some(value) => value,
+            None => {
+                let message = e.to_string();
+                let message = if message.chars().count() <= 200 {
+                    message
+                } else {
+                    format!("{}...", message.chars().take(200).collect::<String>())
+                };
+                return Err(rig_error(format!(
+                    "rig file '{source}' is not valid JSON: {message}"
+                )));
+            }
+        },
+    };
+    let mut file = rig_from_value(&value, source)?;
+    if file.comments.len() > 1 {
+        // `Value`'s objects are sorted by key: the file's order comes from its text.
+        let keys = top_level_keys(text);
+        file.comments
+            .sort_by_key(|(k, _)| keys.iter().position(|o| o == k));
+    }
+    Ok(file)
+}
+
+/// The top-level keys of the JSON object `text` (valid JSON) in the order of the text, each
+/// where it first appears (as Python's `json.loads` orders them).
+fn top_level_keys(text: &str) -> Vec<String> {
+    let bytes = text.as_bytes();
+    let (mut keys, mut depth, mut i) = (Vec::<String>::new(), 0usize, 0usize);
+    while i < bytes.len() {
+        match bytes[i] {
+            b'"' => {
+                let start = i;
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    i += if bytes[i] == b'\\' { 2 } else { 1 };
+                }
+                let end = (i + 1).min(bytes.len());
+                let rest = text[end..].trim_start();
+                if depth == 1 && rest.starts_with(':') {
+                    if let Ok(key) = serde_json::from_str::<String>(&text[start..end]) {
+                        if !keys.contains(&key) {
+                            keys.push(key);
+                        }
+                    }
+                }
+            }
+            b'[' | b'{' => depth += 1,
+            b']' | b'}' => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+        i += 1;
+    }
+    keys
+}
+
+/// The start of a string that stands for a number JSON cannot hold (see [`non_finite`]).
+const MARK: &str = "\u{0}nplps-non-finite:";
+
+/// `text` with its tokens `NaN`, `Infinity`, `-Infinity` and numbers beyond a double replaced
+/// by marked strings (`MARK` + `NaN`, `inf`, `-inf` or `integer`), or None when it has none.
+fn with_non_finite_marked(text: &str) -> Option<String> {
+    let bytes = text.as_bytes();
+    let (mut out, mut i, mut last, mut marked) = (String::new(), 0usize, 0usize, false);
+    let mark = |out: &mut String, what: &str| {
+        out.push('"');
+        out.push_str(&MARK.replace('\u{0}', "\\u0000"));
+        out.push_str(what);
+        out.push('"');
+    };
+    while i < bytes.len() {
+        let b = bytes[i];
+        if b == b'"' {
+            i += 1;
+            while i < bytes.len() && bytes[i] != b'"' {
+                i += if bytes[i] == b'\\' { 2 } else { 1 };
+            }
+            i += 1;
+            continue;
+        }
+        let rest = &text[i..];
+        let word = ["-Infinity", "Infinity", "NaN"]
+            .into_iter()
+            .find(|w| rest.starts_with(w));
+        if let Some(w) = word {
+            out.push_str(&text[last..i]);
+            mark(
+                &mut out,
+                if w == "NaN" {
+                    "NaN"
+                } else if w.starts_with('-') {
+                    "-inf"
+                } else {
+                    "inf"
+                },
+            );
+            i += w.len();
+            last = i;
+            marked = true;
+            continue;
+        }
+        if b == b'-' || b.is_ascii_digit() {
+            let end = rest
+                .find(|c: char| !(c.is_ascii_digit() || "+-.eE".contains(c)))
+                .map_or(bytes.len(), |n| i + n);
+            let token = &text[i..end];
+            if token.parse::<f64>().is_ok_and(|x| x.is_infinite()) {
+                out.push_str(&text[last..i]);
+                let integer = !token.contains(['.', 'e', 'E']);
+                let sign = if token.starts_with('-') { "-" } else { "" };
+                mark(
+                    &mut out,
+                    &if integer {
+                        "integer".to_string()
+                    } else {
+                        format!("{sign}inf")
+                    },
+                );
+                last = end;
+                marked = true;
+            }
+            i = end.max(i + 1);
+            continue;
+        }
+        i += 1;
+    }
+    out.push_str(&text[last..]);
+    marked.then_some(out)
+}
+
+/// What a marked string of [`with_non_finite_marked`] stands for: `NaN`, `inf`, `-inf` or
+/// `integer` (an integer too large for a double).
+fn non_finite(v: &Value) -> Option<&str> {
+    v.as_str().and_then(|s| s.strip_prefix(MARK))
 }
 
 /// The deepest nesting of arrays and objects in a JSON text (brackets in strings left out).
@@ -105,6 +287,12 @@ fn nesting(text: &str) -> usize {
 
 /// A short description of a JSON value for messages (the words of the Python reader).
 fn describe(v: &Value) -> String {
+    if let Some(what) = non_finite(v) {
+        return match what {
+            "integer" => "an integer too large for a floating-point number".to_string(),
+            other => other.to_string(),
+        };
+    }
     match v {
         Value::Null => "null".to_string(),
         Value::Bool(b) => format!("the boolean {b}"),
@@ -121,6 +309,19 @@ fn describe(v: &Value) -> String {
 
 /// A finite number.
 fn number(v: &Value, what: &str) -> Result<f64> {
+    match non_finite(v) {
+        Some("integer") => {
+            return Err(rig_error(format!(
+                "{what} is an integer too large for a floating-point number"
+            )))
+        }
+        Some(x) => {
+            return Err(rig_error(format!(
+                "{what} must be a finite number, got {x}"
+            )))
+        }
+        None => {}
+    }
     let Some(x) = v.as_f64() else {
         return Err(rig_error(format!(
             "{what} must be a number, got {}",
@@ -223,10 +424,10 @@ fn intensity(v: &Value, what: &str) -> Result<[f64; 3]> {
     }
 }
 
-/// Checks a rig file's `"grid"`: `{"image_size": [W, H], "binning": n}`, whole numbers >= 1
+/// Reads a rig file's `"grid"`: `{"image_size": [W, H], "binning": n}`, whole numbers >= 1
 /// (both optional). It says which images the camera belongs to; the native [`Rig`] does not keep
 /// it (the Python package checks images against it).
-fn check_grid(grid: &Value, place: &str) -> Result<()> {
+fn read_grid(grid: &Value, place: &str) -> Result<RigGrid> {
     let Some(map) = grid.as_object() else {
         return Err(rig_error(format!(
             "{place} must be an object with image_size [W, H] and binning, got {}",
@@ -239,20 +440,26 @@ fn check_grid(grid: &Value, place: &str) -> Result<()> {
         &["image_size", "binning"],
         "a grid has image_size [W, H] and binning",
     )?;
-    let whole = |v: &Value, name: &str| -> Result<()> {
+    let whole = |v: &Value, name: &str| -> Result<u64> {
         match v.as_u64() {
-            Some(n) if (1..=1u64 << 31).contains(&n) => Ok(()),
+            Some(n) if (1..=1u64 << 31).contains(&n) => Ok(n),
             _ => Err(rig_error(format!(
                 "{place} {name} must be a whole number of at least 1, got {}",
                 describe(v)
             ))),
         }
     };
+    let mut out = RigGrid {
+        image_size: None,
+        binning: 1,
+    };
     if let Some(size) = map.get("image_size") {
         match size.as_array() {
             Some(wh) if wh.len() == 2 => {
-                whole(&wh[0], "image_size width")?;
-                whole(&wh[1], "image_size height")?;
+                out.image_size = Some([
+                    whole(&wh[0], "image_size width")?,
+                    whole(&wh[1], "image_size height")?,
+                ]);
             }
             _ => {
                 return Err(rig_error(format!(
@@ -263,13 +470,13 @@ fn check_grid(grid: &Value, place: &str) -> Result<()> {
         }
     }
     if let Some(b) = map.get("binning") {
-        whole(b, "binning")?;
+        out.binning = whole(b, "binning")?;
     }
-    Ok(())
+    Ok(out)
 }
 
 /// The rig of a rig file's JSON value; `source` names the file in the messages.
-pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
+fn rig_from_value(data: &Value, source: &str) -> Result<RigFile> {
     let Some(top) = data.as_object() else {
         return Err(rig_error(format!(
             "{source}: a rig file holds a JSON object, got {}",
@@ -306,9 +513,10 @@ pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
             "{source}: unsupported rig file version {v} (this nplps reads 1..{RIG_FILE_VERSION})"
         )));
     }
-    if let Some(grid) = top.get("grid") {
-        check_grid(grid, &format!("{source}: grid"))?;
-    }
+    let grid = top
+        .get("grid")
+        .map(|grid| read_grid(grid, &format!("{source}: grid")))
+        .transpose()?;
     let camera = &top["camera"];
     match camera.as_object() {
         Some(c) if c.contains_key("model") => {}
@@ -331,11 +539,13 @@ pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
             lights.len()
         )));
     }
-    let lights = lights
+    let (lights, leds): (Vec<Light>, Vec<bool>) = lights
         .iter()
         .enumerate()
         .map(|(i, light)| light_from(light, &format!("{source}: light {i}")))
-        .collect::<Result<Vec<Light>>>()?;
+        .collect::<Result<Vec<(Light, bool)>>>()?
+        .into_iter()
+        .unzip();
     let prefixed = |e: Error| match e {
         Error::Rig(message) => rig_error(format!("{source}: {message}")),
         other => other,
@@ -345,11 +555,33 @@ pub(crate) fn rig_from_value(data: &Value, source: &str) -> Result<Rig> {
         lights,
     };
     rig.validate_parameters().map_err(prefixed)?;
-    Ok(rig)
+    let comments = top
+        .iter()
+        .filter(|(k, _)| k.starts_with('_'))
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    Ok(RigFile {
+        rig,
+        leds,
+        grid,
+        comments,
+    })
 }
 
-/// One light of a rig file.
-fn light_from(value: &Value, place: &str) -> Result<Light> {
+/// `v` scaled to unit length (by its largest component first, so that the norm of a huge vector
+/// does not overflow), by the operations of the Python package (the same bits); zero stays zero.
+pub(crate) fn unit_axis(v: [f64; 3]) -> [f64; 3] {
+    let largest = v.iter().fold(0.0f64, |m, x| m.max(x.abs())).max(1e-300);
+    let a = v.map(|x| x / largest);
+    let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    if n.is_nan() || n <= 0.0 {
+        return [0.0; 3];
+    }
+    a.map(|x| x / n)
+}
+
+/// One light of a rig file, and whether it is an LED (a point light with a principal direction).
+fn light_from(value: &Value, place: &str) -> Result<(Light, bool)> {
     let Some(light) = value.as_object() else {
         return Err(rig_error(format!(
             "{place} must be an object, got {}",
@@ -390,10 +622,20 @@ fn light_from(value: &Value, place: &str) -> Result<Light> {
         None => [1.0; 3],
     };
     if kind == "directional" {
-        return Ok(Light::Directional {
+        // Kept as written (checked to be a unit vector): a file reads back as it was saved.
+        let length = vector.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if length.is_nan() || (length - 1.0).abs() > 1e-6 {
+            return Err(rig_error(format!(
+                "{place}: a directional light needs a unit direction (from the surface towards \
+                 the light), got [{}]",
+                vector.map(g6).join(", ")
+            )));
+        }
+        let light = Light::Directional {
             direction: vector,
             intensity: phi,
-        });
+        };
+        return Ok((light, false));
     }
     let axis = light
         .get("direction")
@@ -410,12 +652,31 @@ fn light_from(value: &Value, place: &str) -> Result<Light> {
             g6(mu)
         )));
     }
-    Ok(Light::Point {
+    if mu < 0.0 {
+        return Err(rig_error(format!(
+            "{place} has anisotropy mu = {}; it must be >= 0",
+            g6(mu)
+        )));
+    }
+    // An LED's axis is scaled to unit length; a zero axis stands for +z where it is unused.
+    let axis = match axis.map(unit_axis) {
+        Some([0.0, 0.0, 0.0]) if mu > 0.0 => {
+            return Err(rig_error(format!(
+                "{place}: an anisotropic LED (mu = {}) needs a non-zero axis",
+                g6(mu)
+            )))
+        }
+        Some([0.0, 0.0, 0.0]) | None => [0.0, 0.0, 1.0],
+        Some(a) => a,
+    };
+    let led = light.contains_key("direction");
+    let light = Light::Point {
         position: vector,
         intensity: phi,
-        axis: axis.unwrap_or([0.0; 3]),
+        axis,
         mu,
-    })
+    };
+    Ok((light, led))
 }
 
 #[cfg(test)]
