@@ -167,7 +167,7 @@ class Reconstruction:
         refinement = _refinement(out.get("refinement"))
         input_rig = None
         if refinement is not None:
-            input_rig, rig = rig, Rig._from_core_lights(rig.camera, out["lights"], like=rig)
+            input_rig, rig = rig, Rig._from_native(out["lights"], like=rig)
         return cls(
             depth=out["depth"],
             fit_normals=out["normals"],

@@ -910,11 +910,6 @@ class Rig:
         rig._set_native(native)
         return rig
 
-    @classmethod
-    def _from_core_lights(cls, camera: Mapping[str, Any], lights: _core.Rig, like: Rig | None = None) -> Rig:
-        """Return the rig of a compiled core's rig (``camera`` is its camera; see :meth:`_from_native`)."""
-        return cls._from_native(lights, like=like)
-
     def _core_lights(self) -> _core_types.LightsDict:
         """Return the lights in the form the compiled core takes.
 

@@ -36,4 +36,6 @@ mod png;
 mod rig_file;
 
 pub use self::png::{read_png, read_pngs, Decoded, Pixels};
-pub use self::rig_file::{parse_rig, read_rig, MAX_NESTING, MAX_RIG_FILE_BYTES, RIG_FILE_VERSION};
+pub use self::rig_file::{
+    parse_rig, read_rig, RigFile, RigGrid, MAX_NESTING, MAX_RIG_FILE_BYTES, RIG_FILE_VERSION,
+};
