@@ -173,6 +173,7 @@ mod problem;
 mod pyramid;
 mod reconstruction;
 mod refine;
+pub mod reflectance;
 mod refinement;
 mod render;
 mod rig;

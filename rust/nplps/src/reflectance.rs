@@ -1,0 +1,426 @@
+//! The glossy reflectance model: a diffuse term with Fresnel transmittance plus a GGX specular
+//! lobe, and the per-facet fit of a normal, a diffuse and a specular albedo under it.
+//!
+//! ## The model
+//!
+//! A facet with unit normal `n` at point `x`, seen along the unit view vector `v` (towards the
+//! camera) and lit by light k from the unit direction `l` (towards the light) with attenuation
+//! `a` (for a point light `a = aniso / |p - x|^2`, so that `a l = beta(x)` of the light model),
+//! has the image
+//!
+//! ```text
+//! I = Phi a (rho_d D(n) + rho_s S(n)),
+//! D(n) = (n.l) T(n.l) T(n.v) / T(1)^2,
+//! S(n) = F(v.h) / F(1) * G(n.h) * G1(n.l) G1(n.v) / (4 n.v),      h = normalize(l + v),
+//! ```
+//!
+//! - `T(c) = 1 - F(c)` is the Fresnel transmittance of a dielectric of relative index `eta`
+//!   (unpolarised, exact): light that enters the surface, scatters below it and leaves again is
+//!   attenuated twice, more at grazing angles. `D(n) / (n.l)` is 1 at normal incidence, and
+//!   `eta = 1` gives `T = 1`: the Lambertian model exactly.
+//! - The lobe is the GGX (Trowbridge-Reitz) normal distribution
+//!   `G(c) = alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` with Smith's separable masking
+//!   `G1(c) = 2c / (c + sqrt(alpha^2 + (1 - alpha^2) c^2))`; `alpha` is the roughness.
+//! - `F(v.h) / F(1)` is the shape of the Fresnel reflectance over the half angle (its scale is in
+//!   `rho_s`); at `eta = 1` (no reflection) the shape is taken as 1.
+//! - `alpha` and `eta` are shared by the whole object (a [`Lobe`]); `n`, `rho_d` and `rho_s` are
+//!   per facet. Observations with `n.l <= 0` (attached shadow) or `n.v <= 0` carry no light.
+//!
+//! ## The fit
+//!
+//! Per facet the unknowns are `b = rho_d n` (3) and `s = rho_s`, and the model
+//! `m_k = Phi_k a_k (|b| D_k(n) + s S_k(n))` with `n = b / |b|`. [`fit`] runs damped
+//! Gauss-Newton (Levenberg-Marquardt) on the 4 unknowns from a start (the Lambertian fit, `s = 0`):
+//! `d m / d b = Phi a (D n + P grad D + (s / |b|) P grad S)` with `P = I - n n^T`, and
+//! `d m / d s = Phi a S`. A step is kept only if it lowers the squared residual; `s` is kept
+//! non-negative.
+
+use nalgebra::{Matrix4, Vector4};
+
+use crate::vec3::{dot, norm, normalize, scale};
+
+/// The shared parameters of the glossy model: GGX roughness `alpha` and relative index `eta`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lobe {
+    /// GGX roughness (0 < alpha <= 1; about 0.05 polished, 0.3 satin, 0.6 rough).
+    pub alpha: f64,
+    /// Relative index of refraction of the surface layer (1 <= eta; 1.5 for most plastics).
+    pub eta: f64,
+}
+
+impl Lobe {
+    /// A lobe of roughness `alpha` and index `eta`.
+    pub fn new(alpha: f64, eta: f64) -> Lobe {
+        Lobe { alpha, eta }
+    }
+
+    /// Unpolarised Fresnel reflectance of a dielectric of index `eta` at incidence cosine `c`
+    /// (0 < c <= 1), and its derivative with respect to `c`:
+    /// `F = (rs^2 + rp^2) / 2`, `rs = (c - eta t) / (c + eta t)`, `rp = (eta c - t) / (eta c + t)`,
+    /// `t = sqrt(1 - (1 - c^2) / eta^2)` the cosine of the refracted ray.
+    pub fn fresnel(&self, c: f64) -> (f64, f64) {
+        let eta = self.eta;
+        let t = (1.0 - (1.0 - c * c) / (eta * eta)).max(0.0).sqrt();
+        let dt = if t > 0.0 { c / (eta * eta * t) } else { 0.0 };
+        let (ds, dp) = (c + eta * t, eta * c + t);
+        let rs = (c - eta * t) / ds;
+        let rp = (eta * c - t) / dp;
+        let drs = 2.0 * eta * (t - c * dt) / (ds * ds);
+        let drp = 2.0 * eta * (t - c * dt) / (dp * dp);
+        (0.5 * (rs * rs + rp * rp), rs * drs + rp * drp)
+    }
+
+    /// `T(c) / T(1)` and its derivative, `T = 1 - F` (1 and 0 for `eta = 1`).
+    fn transmittance(&self, c: f64) -> (f64, f64) {
+        let (f1, _) = self.fresnel(1.0);
+        let (f, df) = self.fresnel(c);
+        ((1.0 - f) / (1.0 - f1), -df / (1.0 - f1))
+    }
+
+    /// `F(c) / F(1)`, the shape of the specular Fresnel term (1 where `F(1)` vanishes).
+    fn fresnel_shape(&self, c: f64) -> f64 {
+        let (f1, _) = self.fresnel(1.0);
+        if f1 > 1e-12 {
+            self.fresnel(c).0 / f1
+        } else {
+            1.0
+        }
+    }
+
+    /// GGX distribution `G(c)` of the half-vector cosine `c` and `G'(c) / G(c)`.
+    fn ggx(&self, c: f64) -> (f64, f64) {
+        let a2 = self.alpha * self.alpha;
+        let q = c * c * (a2 - 1.0) + 1.0;
+        (
+            a2 / (std::f64::consts::PI * q * q),
+            -4.0 * c * (a2 - 1.0) / q,
+        )
+    }
+
+    /// Smith masking `G1(c)` and `G1'(c) / G1(c)`.
+    fn smith(&self, c: f64) -> (f64, f64) {
+        let a2 = self.alpha * self.alpha;
+        let r = (a2 + (1.0 - a2) * c * c).sqrt();
+        let g = 2.0 * c / (c + r);
+        let dg = 2.0 * a2 / (r * (c + r) * (c + r));
+        (g, dg / g)
+    }
+
+    /// The diffuse and specular factors `D(n)`, `S(n)` of one observation (see the module
+    /// documentation) and their gradients with respect to `n` (with `l`, `v` held), or None
+    /// where the facet turns away from the light or the camera.
+    pub fn shade(&self, n: [f64; 3], l: [f64; 3], v: [f64; 3]) -> Option<Shade> {
+        let (cl, cv) = (dot(n, l), dot(n, v));
+        if cl <= 0.0 || cv <= 0.0 {
+            return None;
+        }
+        let (tl, dtl) = self.transmittance(cl);
+        let (tv, dtv) = self.transmittance(cv);
+        let diffuse = cl * tl * tv;
+        let wl = (tl + cl * dtl) * tv;
+        let wv = cl * tl * dtv;
+        let h = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
+        let ch = dot(n, h);
+        let (specular, sh, sl, sv) = if ch > 0.0 {
+            let (d, dd) = self.ggx(ch);
+            let (gl, dgl) = self.smith(cl);
+            let (gv, dgv) = self.smith(cv);
+            let s = self.fresnel_shape(dot(v, h)) * d * gl * gv / (4.0 * cv);
+            (s, s * dd, s * dgl, s * (dgv - 1.0 / cv))
+        } else {
+            (0.0, 0.0, 0.0, 0.0)
+        };
+        Some(Shade {
+            diffuse,
+            specular,
+            d_diffuse: std::array::from_fn(|j| wl * l[j] + wv * v[j]),
+            d_specular: std::array::from_fn(|j| sh * h[j] + sl * l[j] + sv * v[j]),
+        })
+    }
+}
+
+/// The factors of one observation under the glossy model (see [`Lobe::shade`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Shade {
+    /// `D(n)`.
+    pub diffuse: f64,
+    /// `S(n)`.
+    pub specular: f64,
+    /// `grad_n D`.
+    pub d_diffuse: [f64; 3],
+    /// `grad_n S`.
+    pub d_specular: [f64; 3],
+}
+
+/// One observation of a facet: the image value, the light's scale `Phi a` and its unit direction.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation {
+    /// The image value.
+    pub value: f64,
+    /// `Phi a`: the light's intensity times its attenuation at the facet.
+    pub scale: f64,
+    /// Unit vector from the facet towards the light.
+    pub light: [f64; 3],
+}
+
+/// The glossy fit of one facet.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GlossyFit {
+    /// Unit normal.
+    pub normal: [f64; 3],
+    /// Diffuse albedo `rho_d`.
+    pub diffuse: f64,
+    /// Specular albedo `rho_s`.
+    pub specular: f64,
+    /// Sum of squared residuals over the observations that carry light.
+    pub sse: f64,
+    /// How many observations carry light at the final normal.
+    pub used: u32,
+}
+
+/// The model and its derivatives at `(b, s)`: the squared residual, `J^T J`, `J^T r` and the
+/// number of observations used.
+fn normal_equations(
+    lobe: &Lobe,
+    obs: &[Observation],
+    v: [f64; 3],
+    b: [f64; 3],
+    s: f64,
+) -> (f64, Matrix4<f64>, Vector4<f64>, u32) {
+    let rho = norm(b);
+    let n = scale(b, 1.0 / rho);
+    let mut jtj = Matrix4::zeros();
+    let mut jtr = Vector4::zeros();
+    let (mut sse, mut used) = (0.0, 0);
+    for o in obs {
+        let Some(sh) = lobe.shade(n, o.light, v) else {
+            continue;
+        };
+        let r = o.value - o.scale * (rho * sh.diffuse + s * sh.specular);
+        // d m / d b = scale (D n + P grad D + (s / rho) P grad S), P = I - n n^T.
+        let g: [f64; 3] = std::array::from_fn(|j| sh.d_diffuse[j] + s / rho * sh.d_specular[j]);
+        let gn = dot(g, n);
+        let jb: [f64; 3] =
+            std::array::from_fn(|j| o.scale * (sh.diffuse * n[j] + g[j] - gn * n[j]));
+        let j = Vector4::new(jb[0], jb[1], jb[2], o.scale * sh.specular);
+        jtj += j * j.transpose();
+        jtr += j * r;
+        sse += r * r;
+        used += 1;
+    }
+    (sse, jtj, jtr, used)
+}
+
+/// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
+/// from the diffuse part alone where the specular one would be negative), or None without
+/// light.
+fn albedos_at(
+    lobe: &Lobe,
+    obs: &[Observation],
+    v: [f64; 3],
+    n: [f64; 3],
+) -> Option<([f64; 3], f64)> {
+    let (mut dd, mut ds, mut ss, mut di, mut si) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for o in obs {
+        if let Some(sh) = lobe.shade(n, o.light, v) {
+            let (d, s) = (o.scale * sh.diffuse, o.scale * sh.specular);
+            dd += d * d;
+            ds += d * s;
+            ss += s * s;
+            di += d * o.value;
+            si += s * o.value;
+        }
+    }
+    if dd <= 0.0 {
+        return None;
+    }
+    let det = dd * ss - ds * ds;
+    let (rho, s) = if det > 1e-12 * dd * ss && (dd * si - ds * di) > 0.0 {
+        ((ss * di - ds * si) / det, (dd * si - ds * di) / det)
+    } else {
+        (di / dd, 0.0)
+    };
+    (rho > 0.0).then(|| (scale(n, rho), s))
+}
+
+/// Fits `(n, rho_d, rho_s)` of one facet from the normal of `start = rho_d n` (e.g. the Lambertian
+/// fit) with the least-squares albedos there, by at most `steps` damped Gauss-Newton steps (see the module documentation).
+/// `v` is the unit vector from the facet to the camera. None if the start is not a finite,
+/// non-zero vector or fewer than 4 observations carry light.
+pub fn fit(
+    lobe: &Lobe,
+    obs: &[Observation],
+    v: [f64; 3],
+    start: [f64; 3],
+    steps: usize,
+) -> Option<GlossyFit> {
+    if !start.iter().all(|x| x.is_finite()) || norm(start) == 0.0 {
+        return None;
+    }
+    let (mut b, mut s) = albedos_at(lobe, obs, v, normalize(start)).unwrap_or((start, 0.0));
+    let (mut sse, mut jtj, mut jtr, mut used) = normal_equations(lobe, obs, v, b, s);
+    let mut lambda = 1e-3;
+    for _ in 0..steps {
+        if used < 4 {
+            return None;
+        }
+        let mut accepted = false;
+        for _ in 0..8 {
+            let mut a = jtj;
+            for i in 0..4 {
+                a[(i, i)] += lambda * jtj[(i, i)].max(1e-300);
+            }
+            let Some(step) = a.cholesky().map(|c| c.solve(&jtr)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let nb = [b[0] + step[0], b[1] + step[1], b[2] + step[2]];
+            let ns = (s + step[3]).max(0.0);
+            if norm(nb) == 0.0 || !nb.iter().all(|x| x.is_finite()) {
+                lambda *= 10.0;
+                continue;
+            }
+            let next = normal_equations(lobe, obs, v, nb, ns);
+            if next.3 >= 4 && next.0 < sse {
+                (b, s) = (nb, ns);
+                (sse, jtj, jtr, used) = next;
+                lambda = (lambda * 0.3).max(1e-9);
+                accepted = true;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !accepted {
+            break;
+        }
+    }
+    (used >= 4).then(|| {
+        let rho = norm(b);
+        GlossyFit {
+            normal: scale(b, 1.0 / rho),
+            diffuse: rho,
+            specular: s,
+            sse,
+            used,
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vec3::sub;
+
+    fn lights() -> Vec<[f64; 3]> {
+        // 16 lights on two rings around the camera, 200 mm in front of the object.
+        (0..16)
+            .map(|i| {
+                let t = i as f64 * std::f64::consts::PI / 4.0 + if i >= 8 { 0.4 } else { 0.0 };
+                let r = if i >= 8 { 120.0 } else { 60.0 };
+                [r * t.cos(), r * t.sin(), 0.0]
+            })
+            .collect()
+    }
+
+    fn observe(lobe: &Lobe, x: [f64; 3], n: [f64; 3], rho_d: f64, rho_s: f64) -> Vec<Observation> {
+        lights()
+            .iter()
+            .map(|&p| {
+                let a = sub(p, x);
+                let d2 = dot(a, a);
+                let l = normalize(a);
+                let v = normalize(scale(x, -1.0));
+                let scale = 4.0e4 / d2;
+                let value = lobe
+                    .shade(n, l, v)
+                    .map_or(0.0, |s| scale * (rho_d * s.diffuse + rho_s * s.specular));
+                Observation {
+                    value,
+                    scale,
+                    light: l,
+                }
+            })
+            .collect()
+    }
+
+    fn gradient_matches(f: impl Fn([f64; 3]) -> f64, grad: [f64; 3], n: [f64; 3]) {
+        for j in 0..3 {
+            let mut p = n;
+            let mut m = n;
+            p[j] += 1e-6;
+            m[j] -= 1e-6;
+            let fd = (f(p) - f(m)) / 2e-6;
+            assert!(
+                (fd - grad[j]).abs() < 1e-5 * (1.0 + fd.abs()),
+                "{j}: {fd} vs {}",
+                grad[j]
+            );
+        }
+    }
+
+    #[test]
+    fn eta_one_is_lambertian_and_fresnel_is_exact_at_normal_incidence() {
+        let lobe = Lobe::new(0.3, 1.0);
+        let n = normalize([0.2, -0.1, -1.0]);
+        let l = normalize([0.5, 0.3, -1.0]);
+        let v = [0.0, 0.0, -1.0];
+        let s = lobe.shade(n, l, v).unwrap();
+        assert!((s.diffuse - dot(n, l)).abs() < 1e-15);
+        let glass = Lobe::new(0.3, 1.5);
+        assert!((glass.fresnel(1.0).0 - 0.04).abs() < 1e-12);
+        // Grazing light is transmitted less.
+        assert!(glass.transmittance(0.2).0 < 0.9 && glass.transmittance(1.0).0 == 1.0);
+    }
+
+    #[test]
+    fn gradients_match_finite_differences() {
+        let v = normalize([0.05, 0.02, -1.0]);
+        let l = normalize([0.3, 0.2, -1.0]);
+        for &(alpha, eta) in &[(0.1, 1.5), (0.3, 1.3), (0.6, 1.0)] {
+            let lobe = Lobe::new(alpha, eta);
+            let (f, df) = lobe.fresnel(0.7);
+            let fd = (lobe.fresnel(0.7 + 1e-7).0 - lobe.fresnel(0.7 - 1e-7).0) / 2e-7;
+            assert!((fd - df).abs() < 1e-6, "{f} {df} {fd}");
+            for n in [normalize([0.1, 0.1, -1.0]), normalize([0.4, -0.2, -1.0])] {
+                let sh = lobe.shade(n, l, v).unwrap();
+                gradient_matches(|m| lobe.shade(m, l, v).unwrap().diffuse, sh.d_diffuse, n);
+                gradient_matches(|m| lobe.shade(m, l, v).unwrap().specular, sh.d_specular, n);
+            }
+        }
+    }
+
+    #[test]
+    fn fit_recovers_normal_and_albedos_from_the_lambertian_start() {
+        for (seed, &(alpha, eta)) in [(0.15, 1.5), (0.3, 1.4), (0.5, 1.6)].iter().enumerate() {
+            let lobe = Lobe::new(alpha, eta);
+            let mut worst: f64 = 0.0;
+            for i in 0..200 {
+                let t = (seed * 200 + i) as f64;
+                let n = normalize([0.5 * (t * 0.37).sin(), 0.5 * (t * 0.73).cos(), -1.0]);
+                let x = [10.0 * (t * 0.11).sin(), 10.0 * (t * 0.29).cos(), 200.0];
+                let obs = observe(&lobe, x, n, 0.6, 0.4);
+                let v = normalize(scale(x, -1.0));
+                // A Lambertian-like start: off by a few degrees and in albedo.
+                let start = scale(normalize([n[0] + 0.05, n[1] - 0.04, n[2]]), 0.7);
+                let f = fit(&lobe, &obs, v, start, 30).expect("a fit");
+                let angle = dot(f.normal, n).clamp(-1.0, 1.0).acos().to_degrees();
+                worst = worst.max(angle);
+                assert!(
+                    (f.diffuse - 0.6).abs() < 1e-4 && (f.specular - 0.4).abs() < 1e-3,
+                    "{f:?}"
+                );
+            }
+            assert!(worst < 1e-3, "alpha {alpha}: worst {worst} deg");
+        }
+    }
+
+    #[test]
+    fn matte_facets_get_no_specular_albedo() {
+        let lobe = Lobe::new(0.3, 1.5);
+        let n = normalize([0.2, 0.1, -1.0]);
+        let x = [5.0, -3.0, 200.0];
+        let obs = observe(&lobe, x, n, 0.5, 0.0);
+        let f = fit(&lobe, &obs, normalize(scale(x, -1.0)), scale(n, 0.5), 20).unwrap();
+        assert!(f.specular < 1e-6 && dot(f.normal, n) > 1.0 - 1e-10, "{f:?}");
+    }
+}
