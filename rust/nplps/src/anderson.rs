@@ -210,6 +210,15 @@ impl Joint {
     }
 }
 
+/// Euclidean distance `|a - b|`.
+fn distance(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum::<f64>()
+        .sqrt()
+}
+
 impl Acceleration for Joint {
     fn propose(&mut self, z: &[f64], g: &mut [f64]) -> Result<()> {
         let n = self.unknowns;
@@ -217,18 +226,8 @@ impl Acceleration for Joint {
         self.anderson.try_mix(z, g)?;
         // Trust region: the extrapolation may move the lights at most twice as far as the
         // light step itself did (and no more than 1 % of a parameter's scale beyond it).
-        let step = plain[n..]
-            .iter()
-            .zip(&z[n..])
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f64>()
-            .sqrt();
-        let extra = g[n..]
-            .iter()
-            .zip(&plain[n..])
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f64>()
-            .sqrt();
+        let step = distance(&plain[n..], &z[n..]);
+        let extra = distance(&g[n..], &plain[n..]);
         let limit = 2.0 * step + 1e-2;
         if extra > limit {
             let t = limit / extra;
