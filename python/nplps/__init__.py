@@ -51,6 +51,7 @@ _LAZY = {
     "DistanceEstimate": "reconstruction",
     "Iteration": "reconstruction",
     "LightRefinement": "reconstruction",
+    "Lobe": "reconstruction",
     "Reconstruction": "reconstruction",
     "light_changes": "reconstruction",
     "LED": "rig",
@@ -80,6 +81,7 @@ if TYPE_CHECKING:
         DistanceEstimate,
         Iteration,
         LightRefinement,
+        Lobe,
         Reconstruction,
         light_changes,
     )
@@ -120,6 +122,7 @@ __all__ = [
     "Iteration",
     "LightRefinement",
     "LightReport",
+    "Lobe",
     "MemoryLimitError",
     "NplpsError",
     "OutputExistsError",

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypedDict
 import numpy as np
 import numpy.typing as npt
 
-from .types import BoardAlbedo, Outline, RefineLights, Robust, Solver, Status, Weighting
+from .types import BoardAlbedo, Outline, RefineLights, Reflectance, Robust, Solver, Status, Weighting
 
 if TYPE_CHECKING:
     from ._core import IterationStats, Rig
@@ -102,6 +102,9 @@ class SolverOptions(TypedDict, total=False):
     saturation: float | None
     weighting: Weighting | None
     robust: Robust | Literal["none"] | None
+    reflectance: Reflectance | None
+    roughness: float | None
+    eta: float | None
     threads: int | None
     solver: Solver | None
     levels: int | None
@@ -247,12 +250,16 @@ class ReconstructionDict(_ReconstructionBase, total=False):
 
     (H+1, W+1) depth, (H, W, 3) normals (the local fits), (H, W[, 3]) albedo, (H, W) residual,
     lights used and regions, the per-region gauge, the history and the status; ``refinement``
-    when the lights were refined, ``distance_estimate`` with ``auto``.
+    when the lights were refined, ``distance_estimate`` with ``auto``, ``lobe`` and
+    ``specular`` with the glossy model.
     """
 
     refinement: RefinementDict
     distance_estimate: DistanceEstimateDict
     distance_check: DistanceCheckDict
+    #: The glossy model's shared lobe (roughness, eta) and the (H, W) specular albedo.
+    lobe: tuple[float, float]
+    specular: F64
 
 
 class SceneDict(TypedDict):

@@ -23,7 +23,24 @@ if TYPE_CHECKING:
     from .rig import Rig
     from .types import Iteration, Method, RefineLights, Status
 
-__all__ = ["DistanceCheck", "DistanceEstimate", "LightRefinement", "Result"]
+__all__ = ["DistanceCheck", "DistanceEstimate", "LightRefinement", "Lobe", "Result"]
+
+
+@dataclass(frozen=True)
+class Lobe:
+    """The specular lobe of the glossy model, shared by the whole object (``reflectance="glossy"``).
+
+    Attributes
+    ----------
+    roughness : float
+        GGX roughness alpha (about 0.05 polished, 0.3 satin, 0.6 rough).
+    eta : float
+        Relative index of refraction of the surface layer: it sets the Fresnel shape of the lobe
+        and how the diffuse part falls off at grazing angles (1: Lambertian diffuse).
+    """
+
+    roughness: float
+    eta: float
 
 
 @dataclass

@@ -38,7 +38,7 @@ from .io import load_mask, load_stack
 from .progress import CTRL_C_HINT, PipelineProgress, ReconstructionProgress, aborting
 from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
-from .types import Depth, Images, Mask, Progress, RefineLights, Robust, Solver, Weighting, _iteration
+from .types import Depth, Images, Mask, Progress, RefineLights, Reflectance, Robust, Solver, Weighting, _iteration
 
 __all__ = ["MAX_DEPTH_RATIO", "MAX_THREADS", "reconstruct", "reconstruct_parallel", "render"]
 
@@ -313,6 +313,9 @@ def reconstruct(
     saturation: float | None = None,
     weighting: Weighting = "image",
     robust: Robust | None = None,
+    reflectance: Reflectance = "lambertian",
+    roughness: float | None = None,
+    eta: float | None = None,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
@@ -375,6 +378,16 @@ def reconstruct(
     robust : {None, "cauchy", "tukey"}, optional
         Iteratively reweighted fits that resist highlights and cast shadows. Default: plain
         least squares.
+    reflectance : {"lambertian", "glossy"}, default "lambertian"
+        The image model of each pixel's fit. "glossy": a diffuse part with Fresnel transmittance
+        plus a GGX specular lobe (Smith masking, Fresnel shape), fitted per pixel from the
+        Lambertian fit by damped Gauss-Newton; the lobe's `roughness` and `eta` are shared by the
+        whole object (see docs/method.md). The result then has ``lobe`` and ``specular`` (the
+        specular albedo); `albedo` is the diffuse albedo. For shiny objects: plastics, glazes,
+        coated or polished parts.
+    roughness, eta : float, optional
+        With ``reflectance="glossy"``: the lobe's GGX roughness (0 < roughness <= 1) and relative
+        index of refraction (1 to 3), both or neither. Default: estimated from the images.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).
@@ -493,6 +506,9 @@ def reconstruct(
         "saturation": saturation_,
         "weighting": weighting,
         "robust": "none" if robust is None else robust,
+        "reflectance": reflectance,
+        "roughness": None if roughness is None else _finite_number(roughness, "roughness"),
+        "eta": None if eta is None else _finite_number(eta, "eta"),
         "threads": _threads(threads),
         "auto": isinstance(depth, str),
         "check_distance": _flag(check_distance, "check_distance"),

@@ -23,7 +23,7 @@ from . import _core, export
 from . import report as report_module
 from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
-from ._records import DistanceCheck, DistanceEstimate, LightRefinement
+from ._records import DistanceCheck, DistanceEstimate, LightRefinement, Lobe
 from .errors import InputError
 from .rig import Rig, _select_core_lights
 from .types import Iteration, _iteration
@@ -40,6 +40,7 @@ __all__ = [
     "DistanceEstimate",
     "Iteration",
     "LightRefinement",
+    "Lobe",
     "Reconstruction",
     "light_changes",
 ]
@@ -132,6 +133,11 @@ class Reconstruction:
     input_rig : Rig or None
         The rig given to the reconstruction when the lights were refined (else None: it is
         `rig`).
+    lobe : Lobe or None
+        With ``reflectance="glossy"``: the specular lobe (given, or estimated from the images).
+        `albedo` is then the diffuse albedo.
+    specular : numpy.ndarray or None
+        With ``reflectance="glossy"``: the specular albedo of each pixel (H, W).
 
     Notes
     -----
@@ -161,6 +167,8 @@ class Reconstruction:
     refinement: LightRefinement | None = None
     input_rig: Rig | None = None
     distance_check: DistanceCheck | None = None
+    lobe: Lobe | None = None
+    specular: np.ndarray | None = None
 
     @classmethod
     def _from_core(cls, out: Mapping[str, Any], mask: np.ndarray, rig: Rig, method: Method) -> Reconstruction:
@@ -188,6 +196,8 @@ class Reconstruction:
             refinement=refinement,
             input_rig=input_rig,
             distance_check=_distance_check(out.get("distance_check")),
+            lobe=None if "lobe" not in out else Lobe(*(float(v) for v in out["lobe"])),
+            specular=out.get("specular"),
         )
 
     def light_changes(self) -> list[dict[str, Any]]:

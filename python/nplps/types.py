@@ -30,6 +30,7 @@ __all__ = [
     "Outline",
     "Progress",
     "RefineLights",
+    "Reflectance",
     "Robust",
     "SceneName",
     "Solver",
@@ -41,6 +42,9 @@ __all__ = [
 Weighting: TypeAlias = Literal["image", "paper"]
 #: Robust reweighting of each pixel's fit (``None``: plain least squares).
 Robust: TypeAlias = Literal["cauchy", "tukey"]
+#: The reflectance model of each pixel's fit: ``"lambertian"`` (the method's) or ``"glossy"``
+#: (diffuse with Fresnel transmittance plus a GGX specular lobe; see docs/method.md).
+Reflectance: TypeAlias = Literal["lambertian", "glossy"]
 #: How the global step's linear system is solved.
 Solver: TypeAlias = Literal["auto", "direct", "multigrid"]
 #: Which light parameters ``refine_lights`` refines (``None``: none).

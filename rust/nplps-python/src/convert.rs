@@ -574,5 +574,9 @@ pub fn reconstruction_dict<'py>(
     if let Some(report) = &r.refinement {
         d.set_item("refinement", refinement_dict(py, report)?)?;
     }
+    if let Some(lobe) = r.lobe {
+        d.set_item("lobe", (lobe.alpha, lobe.eta))?;
+        d.set_item("specular", array(py, r.specular, &[h, w])?)?;
+    }
     Ok(d)
 }

@@ -94,14 +94,17 @@ fn initial_depth<'a>(
 }
 
 /// The keys of the options mapping of `reconstruct_parallel` (those of [`options_from`]).
-const SOLVER_KEYS: [&str; 12] = [
+const SOLVER_KEYS: [&str; 15] = [
     "dark",
+    "eta",
     "iterations",
     "levels",
     "light_prior_weight",
     "max_memory",
     "refine_lights",
+    "reflectance",
     "robust",
+    "roughness",
     "saturation",
     "solver",
     "threads",
@@ -195,6 +198,29 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         ],
         "refine_lights must be None, \"intensity\", \"position\" or \"both\"",
     )?;
+    let glossy = choice(
+        d,
+        "reflectance",
+        &[("lambertian", false), ("glossy", true)],
+        "reflectance must be \"lambertian\" or \"glossy\"",
+    )?;
+    let roughness: Option<f64> = option(d, "roughness", None)?;
+    let eta: Option<f64> = option(d, "eta", None)?;
+    let reflectance = match (glossy, roughness, eta) {
+        (false, None, None) => nplps::Reflectance::Lambertian,
+        (false, ..) => {
+            return Err(InputError::new_err(
+                "roughness and eta are options of reflectance=\"glossy\"",
+            ))
+        }
+        (true, None, None) => nplps::Reflectance::Glossy(None),
+        (true, Some(alpha), Some(eta)) => {
+            nplps::Reflectance::Glossy(Some(nplps::Lobe::new(alpha, eta)))
+        }
+        (true, ..) => return Err(InputError::new_err(
+            "give both roughness and eta (a fixed lobe), or neither (estimated from the images)",
+        )),
+    };
     let refine = defaults
         .refine
         .with_intensity(intensity)
@@ -215,6 +241,7 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         .with_saturation(option(d, "saturation", defaults.saturation)?)
         .with_weighting(weighting)
         .with_robust(robust)
+        .with_reflectance(reflectance)
         .with_threads(option(d, "threads", defaults.threads)?)
         .with_max_memory(option(d, "max_memory", defaults.max_memory)?))
 }

@@ -168,7 +168,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             light_change: 0.0,
             search: None,
         }];
-        let mut outputs = FitOutputs::new(problem)?;
+        let mut outputs = FitOutputs::new(problem, false)?;
         outputs.scatter(problem, 0, &fits);
         let mut result = assemble(problem, &u, outputs, history, true, timings)?;
         result.assess(f64::INFINITY, false);

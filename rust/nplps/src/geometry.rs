@@ -88,6 +88,17 @@ impl Geometry {
         self.perspective
     }
 
+    /// The unit vector from the surface point `x` towards the camera: `-x / |x|` for a pinhole
+    /// camera (its centre is the origin), `(0, 0, -1)` for an orthographic one.
+    #[inline]
+    pub fn view(&self, x: [f64; 3]) -> [f64; 3] {
+        if self.perspective {
+            normalize([-x[0], -x[1], -x[2]])
+        } else {
+            [0.0, 0.0, -1.0]
+        }
+    }
+
     /// The unknown of a depth.
     #[inline]
     pub fn unknown(&self, z: f64) -> f64 {

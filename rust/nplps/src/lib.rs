@@ -201,6 +201,7 @@ pub use reconstruction::{
     Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
 };
 pub use refine::Conditioning;
+pub use reflectance::{Lobe, Reflectance};
 pub use render::{mesh_normals, predict, render, vertices, Surface};
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use solver::reconstruct;

@@ -12,6 +12,7 @@ use crate::error::{Error, Result};
 use crate::global::GlobalSolver;
 use crate::local::{FitSettings, Robust, Weighting};
 use crate::memory::check;
+use crate::reflectance::Reflectance;
 
 /// Options of the iteration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,6 +31,8 @@ pub struct Options {
     pub weighting: Weighting,
     /// Robust estimator of the per-facet fits.
     pub robust: Robust,
+    /// The reflectance model of the per-facet fits (Lambertian by default).
+    pub reflectance: Reflectance,
     /// Worker threads (0: rayon's default, all cores).
     pub threads: usize,
     /// Run faer's sparse factorization and solves on the worker threads too. Off by default:
@@ -60,6 +63,9 @@ impl Options {
             });
         }
         self.refine.validate()?;
+        if let Reflectance::Glossy(Some(lobe)) = self.reflectance {
+            lobe.validate()?;
+        }
         if let Some(m) = self.max_memory {
             if m.is_nan() || m <= 0.0 {
                 return Err(Error::OutOfRange {
@@ -75,7 +81,8 @@ impl Options {
         check_thresholds(self.dark, self.saturation)
     }
 
-    /// The per-facet fit settings of these options.
+    /// The per-facet fit settings of these options: with the glossy model, its lobe when it is
+    /// given (an estimated lobe is the solver's to set).
     pub(crate) fn fit_settings(&self, fast_residual: bool) -> FitSettings {
         FitSettings {
             dark: self.dark,
@@ -83,6 +90,10 @@ impl Options {
             weighting: self.weighting,
             robust: self.robust,
             fast_residual,
+            lobe: match self.reflectance {
+                Reflectance::Glossy(lobe) => lobe,
+                Reflectance::Lambertian => None,
+            },
         }
     }
 }
@@ -94,6 +105,7 @@ with_fields!(Options {
     with_saturation: saturation: f64,
     with_weighting: weighting: Weighting,
     with_robust: robust: Robust,
+    with_reflectance: reflectance: Reflectance,
     with_threads: threads: usize,
     with_parallel_sparse: parallel_sparse: bool,
     with_solver: solver: GlobalSolver,
@@ -130,6 +142,7 @@ impl Default for Options {
             saturation: f64::INFINITY,
             weighting: Weighting::Image,
             robust: Robust::None,
+            reflectance: Reflectance::Lambertian,
             threads: 0,
             parallel_sparse: false,
             solver: GlobalSolver::Auto,

@@ -11,6 +11,7 @@ use crate::memory::{try_collect, try_vec};
 use crate::options::Refine;
 use crate::problem::Problem;
 use crate::refine::Conditioning;
+use crate::reflectance::Lobe;
 use crate::rig::Light;
 
 /// What one iteration did.
@@ -181,6 +182,11 @@ pub struct Reconstruction {
     pub lights: Vec<Light>,
     /// What the light refinement did (None without refinement).
     pub refinement: Option<RefinementReport>,
+    /// The shared lobe of the glossy model (None under the Lambertian model).
+    pub lobe: Option<Lobe>,
+    /// Specular albedo of each pixel under the glossy model (NaN where a facet could not be
+    /// fitted); empty under the Lambertian model.
+    pub specular: Vec<f64>,
 }
 
 /// What the self-calibration of the lights did.
@@ -210,13 +216,20 @@ pub(crate) struct FitOutputs {
     albedo: Vec<[f64; 3]>,
     residual: Vec<f64>,
     lights_used: Vec<u32>,
+    /// Empty unless `glossy`.
+    specular: Vec<f64>,
 }
 
 impl FitOutputs {
-    /// Empty outputs for `problem`'s image size.
-    pub(crate) fn new(problem: &Problem<'_>) -> Result<FitOutputs> {
+    /// Empty outputs for `problem`'s image size (with a specular albedo map when `glossy`).
+    pub(crate) fn new(problem: &Problem<'_>, glossy: bool) -> Result<FitOutputs> {
         let n = problem.grid.height * problem.grid.width;
         Ok(FitOutputs {
+            specular: try_vec(
+                if glossy { n } else { 0 },
+                f64::NAN,
+                "the specular albedo map",
+            )?,
             normals: try_vec(n, [f64::NAN; 3], "the normal map")?,
             albedo: try_vec(n, [f64::NAN; 3], "the albedo map")?,
             residual: try_vec(n, f64::NAN, "the residual map")?,
@@ -232,6 +245,9 @@ impl FitOutputs {
             self.albedo[p] = fit.albedo;
             self.residual[p] = fit.rms(channels);
             self.lights_used[p] = fit.used;
+            if let Some(s) = self.specular.get_mut(p) {
+                *s = fit.specular;
+            }
         }
     }
 }
@@ -388,5 +404,7 @@ pub(crate) fn assemble(
         timings,
         lights: problem.rig.lights.clone(),
         refinement: None,
+        lobe: None,
+        specular: outputs.specular,
     })
 }

@@ -39,6 +39,32 @@ use nalgebra::{Matrix4, Vector4};
 
 use crate::vec3::{dot, norm, normalize, scale};
 
+/// The reflectance model the local step fits (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum Reflectance {
+    /// `I = rho Phi max(0, n . beta)`: the method's model, the default.
+    #[default]
+    Lambertian,
+    /// Diffuse with Fresnel transmittance plus a GGX lobe: the given shared [`Lobe`], or, with
+    /// None, the lobe estimated from the images (see `crate::local::estimate_lobe`).
+    Glossy(Option<Lobe>),
+}
+
+impl Reflectance {
+    /// Whether the model is the glossy one.
+    pub fn is_glossy(&self) -> bool {
+        matches!(self, Reflectance::Glossy(_))
+    }
+
+    /// Name of the model: "lambertian" or "glossy".
+    pub fn name(&self) -> &'static str {
+        match self {
+            Reflectance::Lambertian => "lambertian",
+            Reflectance::Glossy(_) => "glossy",
+        }
+    }
+}
+
 /// The shared parameters of the glossy model: GGX roughness `alpha` and relative index `eta`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Lobe {
@@ -52,6 +78,25 @@ impl Lobe {
     /// A lobe of roughness `alpha` and index `eta`.
     pub fn new(alpha: f64, eta: f64) -> Lobe {
         Lobe { alpha, eta }
+    }
+
+    /// Checks `0 < alpha <= 1` and `1 <= eta <= 3` (finite).
+    pub fn validate(&self) -> crate::Result<()> {
+        let bad = |name: &'static str, value: f64, range: &str| crate::Error::OutOfRange {
+            name,
+            value,
+            message: format!(
+                "{name} must be a number {range}, got {}",
+                crate::error::g6(value)
+            ),
+        };
+        if !(self.alpha > 0.0 && self.alpha <= 1.0) {
+            return Err(bad("roughness", self.alpha, "in (0, 1]"));
+        }
+        if !(self.eta >= 1.0 && self.eta <= 3.0) {
+            return Err(bad("eta", self.eta, "from 1 to 3"));
+        }
+        Ok(())
     }
 
     /// Unpolarised Fresnel reflectance of a dielectric of index `eta` at incidence cosine `c`
@@ -70,16 +115,23 @@ impl Lobe {
         (0.5 * (rs * rs + rp * rp), rs * drs + rp * drp)
     }
 
+    /// `F(1) = ((eta - 1) / (eta + 1))^2`, the reflectance at normal incidence.
+    #[inline]
+    fn normal_reflectance(&self) -> f64 {
+        let r = (self.eta - 1.0) / (self.eta + 1.0);
+        r * r
+    }
+
     /// `T(c) / T(1)` and its derivative, `T = 1 - F` (1 and 0 for `eta = 1`).
     fn transmittance(&self, c: f64) -> (f64, f64) {
-        let (f1, _) = self.fresnel(1.0);
+        let f1 = self.normal_reflectance();
         let (f, df) = self.fresnel(c);
         ((1.0 - f) / (1.0 - f1), -df / (1.0 - f1))
     }
 
     /// `F(c) / F(1)`, the shape of the specular Fresnel term (1 where `F(1)` vanishes).
     fn fresnel_shape(&self, c: f64) -> f64 {
-        let (f1, _) = self.fresnel(1.0);
+        let f1 = self.normal_reflectance();
         if f1 > 1e-12 {
             self.fresnel(c).0 / f1
         } else {
@@ -274,6 +326,10 @@ pub fn fit(
                 lambda *= 10.0;
                 continue;
             };
+            // The decrease the linearised model promises: none worth a trial at a minimum.
+            if step.dot(&jtr) <= 1e-12 * sse {
+                break;
+            }
             let nb = [b[0] + step[0], b[1] + step[1], b[2] + step[2]];
             let ns = (s + step[3]).max(0.0);
             if norm(nb) == 0.0 || !nb.iter().all(|x| x.is_finite()) {
@@ -282,10 +338,12 @@ pub fn fit(
             }
             let next = normal_equations(lobe, obs, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
+                // Converged when the step no longer changes the fit noticeably.
+                let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= 1e-12 * sse;
                 (b, s) = (nb, ns);
                 (sse, jtj, jtr, used) = next;
                 lambda = (lambda * 0.3).max(1e-9);
-                accepted = true;
+                accepted = !small;
                 break;
             }
             lambda *= 10.0;

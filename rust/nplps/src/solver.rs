@@ -4,6 +4,7 @@
 //! z = initial depths (gauged per region)
 //! for it in 1..=iterations:                     (Solver::step)
 //!     lights:      one light step on z (when refining; crate::refine)
+//!     reflectance: (re-)estimate the shared glossy lobe (glossy model, lobe not given)
 //!     local step on z  -> targets, normals, albedo, residuals
 //!     safeguard:   back to the state of lowest residual if the residual rose (refining)
 //!     global step      -> z_new, shifted so each region's mean depth is its gauge
@@ -25,7 +26,7 @@ use crate::convergence::{
 };
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
-use crate::local::{FacetFit, FacetStat, LocalStep, Model};
+use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
@@ -35,6 +36,7 @@ use crate::reconstruction::{
 };
 use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
+use crate::reflectance::{Lobe, Reflectance};
 use crate::rig::Light;
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
@@ -86,7 +88,14 @@ pub(crate) struct Carried {
     refine: Refine,
     monitor: Option<Monitor>,
     diverged: bool,
+    /// The glossy lobe of the last level (None: Lambertian, or not estimated).
+    lobe: Option<Lobe>,
 }
+
+/// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
+/// has none and again at these iterations of each run (then held, so that the run converges
+/// under one model).
+pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
 /// starting unknowns, returns the gauge to iterate with (the distance search uses this).
@@ -118,6 +127,7 @@ pub(crate) fn coarse_to_fine(
         refine: options.refine,
         monitor: None,
         diverged: false,
+        lobe: None,
     };
     if levels <= 1 {
         return Ok(carried);
@@ -145,6 +155,7 @@ pub(crate) fn coarse_to_fine(
         } else {
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
+            solver.carry_lobe(carried.lobe);
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
@@ -168,6 +179,7 @@ pub(crate) fn coarse_to_fine(
         }
         carried.monitor = carried.monitor.or(solver.lights.monitor);
         carried.diverged |= solver.lights.diverged;
+        carried.lobe = solver.lobe;
     }
     let t = Instant::now();
     *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid)?;
@@ -204,6 +216,14 @@ pub(crate) struct Solver<'p> {
     /// When the run started (by default when the solver was made; the levels of a pyramid share
     /// the run's start): the iteration statistics' `elapsed` is measured from it.
     pub(crate) start: Instant,
+    /// The lobe of the glossy model in use (None: the Lambertian model, or not estimated yet).
+    pub(crate) lobe: Option<Lobe>,
+    /// Whether the estimated lobe is held as it is (the distance search holds it while it
+    /// compares candidates).
+    pub(crate) hold_lobe: bool,
+    /// Under the glossy model, each facet's glossy normal of the last local step (NaN: none),
+    /// which starts its next fit; empty under the Lambertian model.
+    warm: Vec<[f32; 3]>,
 }
 
 /// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
@@ -252,7 +272,28 @@ impl<'p> Solver<'p> {
                 ..Timings::default()
             },
             start: t,
+            lobe: match options.reflectance {
+                Reflectance::Glossy(lobe) => lobe,
+                Reflectance::Lambertian => None,
+            },
+            hold_lobe: false,
+            warm: try_vec(
+                if options.reflectance.is_glossy() {
+                    n
+                } else {
+                    0
+                },
+                [f32::NAN; 3],
+                "the glossy normals",
+            )?,
         })
+    }
+
+    /// Starts from the lobe a coarser level estimated (when there is one).
+    pub(crate) fn carry_lobe(&mut self, lobe: Option<Lobe>) {
+        if self.options.reflectance.is_glossy() {
+            self.lobe = lobe.or(self.lobe);
+        }
     }
 
     /// The problem this solver works on.
@@ -270,6 +311,7 @@ impl<'p> Solver<'p> {
             self.lights.set_refine(on_level(coarse.refine, unknowns));
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
+            self.carry_lobe(coarse.lobe);
         }
         coarse.history
     }
@@ -359,6 +401,7 @@ impl<'p> Solver<'p> {
             search: None,
         };
         it.light_change = self.refine_lights(run, u)?;
+        self.reflectance(u, iteration)?;
         it.rms_residual = self.local(u)?;
         if self.safeguard(run, iteration, it.rms_residual, u)? {
             return Ok(Next::Continue);
@@ -386,6 +429,7 @@ impl<'p> Solver<'p> {
             .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
         self.lights.begin(distance);
         self.stalled = false;
+        self.warm.fill([f32::NAN; 3]);
         // Unknowns in units of the lateral size (log-depths: times the distance).
         let unit = if p.geometry.is_perspective() {
             distance / scale
@@ -423,6 +467,26 @@ impl<'p> Solver<'p> {
         Ok(change)
     }
 
+    /// Reflectance: with the glossy model and no lobe given, estimates the shared lobe on the
+    /// surface `u` (see [`estimate_lobe`]) when the solver has none yet and at the iterations
+    /// [`LOBE_AT`], unless it is held.
+    fn reflectance(&mut self, u: &[f64], iteration: usize) -> Result<()> {
+        let due = self.lobe.is_none() || (LOBE_AT.contains(&iteration) && !self.hold_lobe);
+        if self.options.reflectance != Reflectance::Glossy(None) || !due {
+            return Ok(());
+        }
+        let t = Instant::now();
+        let depths = self.depths(u)?;
+        let step = self.local_step(true, depths.as_deref());
+        if let Some(lobe) = estimate_lobe(&step, u, self.lobe)? {
+            self.lobe = Some(lobe);
+            // A new lobe: every facet's fit starts afresh (from several starts).
+            self.warm.fill([f32::NAN; 3]);
+        }
+        self.timings.local += t.elapsed();
+        Ok(())
+    }
+
     /// The local step on `u` (with fast residuals): the facets' targets and statistics.
     /// Returns the RMS image residual.
     pub fn local(&mut self, u: &[f64]) -> Result<f64> {
@@ -432,10 +496,13 @@ impl<'p> Solver<'p> {
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
         );
-        let done =
-            self.local_step(true, depths.as_deref())
-                .try_run_targets(u, &mut targets, &mut stats);
-        (self.targets, self.stats) = (targets, stats);
+        let mut warm = std::mem::take(&mut self.warm);
+        let step = self.local_step(true, depths.as_deref());
+        let done = match step.settings.lobe {
+            Some(_) => step.try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm),
+            None => step.try_run_targets(u, &mut targets, &mut stats),
+        };
+        (self.targets, self.stats, self.warm) = (targets, stats, warm);
         done?;
         self.timings.local += t.elapsed();
         self.problem.cancel.check()?;
@@ -545,7 +612,10 @@ impl<'p> Solver<'p> {
             geometry: &p.geometry,
             model: Model::Near(self.lights.lights()),
             obs: &p.obs,
-            settings: self.options.fit_settings(fast_residual),
+            settings: FitSettings {
+                lobe: self.lobe,
+                ..self.options.fit_settings(fast_residual)
+            },
             depths,
             cancel: &p.cancel,
         }
@@ -585,7 +655,7 @@ impl<'p> Solver<'p> {
         drop(std::mem::take(&mut self.next));
         drop(self.system.take());
         let problem = self.problem;
-        let mut outputs = FitOutputs::new(problem)?;
+        let mut outputs = FitOutputs::new(problem, self.lobe.is_some())?;
         let depths = self.depths(u)?;
         let step = self.local_step(false, depths.as_deref());
         let n = problem.grid.n_facets();
@@ -604,6 +674,7 @@ impl<'p> Solver<'p> {
         result.refinement = refinement;
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = self.lights.take_lights();
+        result.lobe = self.lobe;
         result.gauge = problem
             .grid
             .region_means(u)

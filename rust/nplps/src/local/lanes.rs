@@ -67,7 +67,7 @@ impl Observations<'_> {
 /// A thread's scratch space of the vectorized accumulation: one facet's `per` observations and
 /// the `k` lights' observations of [`LANES`] facets interleaved.
 pub(super) fn lane_scratch(per: usize, k: usize) -> Result<(Vec<f32>, Vec<[f32; LANES]>)> {
-    Ok((facet_scratch(per)?, try_vec(k, [0.0f32; LANES], SCRATCH)?))
+    Ok((facet_scratch(per)?.0, try_vec(k, [0.0f32; LANES], SCRATCH)?))
 }
 
 /// How far ahead (in pixels) the gather of observations prefetches each image: the local step
@@ -101,8 +101,10 @@ impl LocalStep<'_> {
     /// [`Facet::accumulate_grey`](super::Facet::accumulate_grey).
     pub(super) fn lane_lights(&self) -> Option<Vec<LaneLight>> {
         let s = self.settings;
-        let eligible =
-            self.obs.channels == 1 && s.weighting == Weighting::Image && s.robust == Robust::None;
+        let eligible = self.obs.channels == 1
+            && s.weighting == Weighting::Image
+            && s.robust == Robust::None
+            && s.lobe.is_none();
         let Model::Near(lights) = self.model else {
             return None;
         };
@@ -192,6 +194,7 @@ fn grey_fit(sums: &Sums) -> Option<FacetFit> {
         target: [0.0; 4],
         normal,
         albedo,
+        specular: 0.0,
         sse: (sums.sum_i2 - dot(g, sums.s[0])).max(0.0),
         used: sums.used,
         valid: true,
@@ -379,7 +382,7 @@ mod tests {
         step.run_targets(&u, &mut targets, &mut stats);
         let mut buf = vec![0.0f32; k];
         for f in 0..n {
-            let fit = step.fit(f, &u, &mut buf);
+            let fit = step.fit(f, &u, &mut buf, &mut Vec::new(), None);
             assert_eq!(fit.target, targets[f], "facet {f}");
             assert_eq!(FacetStat::from(&fit), stats[f], "facet {f}");
         }
@@ -392,7 +395,7 @@ mod tests {
         let mut fits = vec![FacetFit::EMPTY; n];
         exact.run(&u, 0, &mut fits);
         for (f, lane_fit) in fits.iter().enumerate() {
-            let fit = exact.fit(f, &u, &mut buf);
+            let fit = exact.fit(f, &u, &mut buf, &mut Vec::new(), None);
             assert_eq!(fit.target, lane_fit.target, "facet {f}");
             assert_eq!(fit.normal, lane_fit.normal, "facet {f}");
             assert_eq!(fit.albedo[0], lane_fit.albedo[0], "facet {f}");

@@ -28,10 +28,13 @@ use crate::grid::Grid;
 pub(crate) use crate::light::channel_intensity;
 use crate::light::Light;
 use crate::memory::try_vec;
+use crate::reflectance::{Lobe, Observation};
 use crate::vec3::{dot, norm};
 
+mod glossy;
 mod lanes;
 
+pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS};
 use lanes::{lane_scratch, LANES};
 
 /// How the per-facet linear system weights the lights.
@@ -76,6 +79,9 @@ pub struct FitSettings {
     /// `sum (r . g - I)^2 = sum I^2 - g . s`, instead of a second pass over the lights (exact up
     /// to a cancellation of order `sqrt(eps * sum I^2)`; used for the per-iteration history).
     pub fast_residual: bool,
+    /// The shared lobe of the glossy model: each facet's Lambertian fit is then refined under
+    /// it (see the `glossy` module); None: the Lambertian model.
+    pub lobe: Option<Lobe>,
 }
 
 impl Default for FitSettings {
@@ -86,6 +92,7 @@ impl Default for FitSettings {
             weighting: Weighting::Image,
             robust: Robust::None,
             fast_residual: false,
+            lobe: None,
         }
     }
 }
@@ -97,8 +104,12 @@ pub struct FacetFit {
     pub target: [f64; 4],
     /// Fitted unit normal (the mesh normal for an invalid facet).
     pub normal: [f64; 3],
-    /// Fitted albedo per channel (grey: all three equal; NaN for an invalid facet).
+    /// Fitted albedo per channel (grey: all three equal; NaN for an invalid facet); the diffuse
+    /// albedo under the glossy model.
     pub albedo: [f64; 3],
+    /// Specular albedo of the glossy model (0 under the Lambertian model, NaN for an invalid
+    /// facet).
+    pub specular: f64,
     /// Sum of squared image residuals over the usable observations (lights x channels).
     pub sse: f64,
     /// Number of usable lights.
@@ -113,6 +124,7 @@ impl FacetFit {
         target: [0.0; 4],
         normal: [f64::NAN; 3],
         albedo: [f64::NAN; 3],
+        specular: f64::NAN,
         sse: 0.0,
         used: 0,
         valid: false,
@@ -285,15 +297,48 @@ impl LocalStep<'_> {
         }
     }
 
-    /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations.
+    /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations
+    /// (and `glossy` for the glossy model's). Under the glossy model a `warm` normal (the
+    /// facet's glossy normal of the previous local step) starts the glossy fit alone, with
+    /// [`GLOSSY_WARM_STEPS`] steps; without one the fit starts from the Lambertian normal and the
+    /// mesh normal (see `glossy::refine`).
     #[inline]
-    fn fit(&self, f: usize, u: &[f64], buf: &mut [f32]) -> FacetFit {
+    fn fit(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        glossy: &mut Vec<Observation>,
+        warm: Option<[f64; 3]>,
+    ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
         let values = obs.facet(grid.facets[f], buf);
         let c = quad_centre(&q);
-        match fit_facet(c, self.model, values, obs.channels, self.settings) {
+        let fitted = fit_facet(c, self.model, values, obs.channels, self.settings).map(|fit| {
+            let Some(lobe) = self.settings.lobe else {
+                return fit;
+            };
+            let (starts, steps) = match warm {
+                Some(n) => ([Some(n), None], GLOSSY_WARM_STEPS),
+                None => ([Some(fit.normal), Some(quad_normal(&q))], GLOSSY_STEPS),
+            };
+            glossy::refine(
+                c,
+                geometry.view(c),
+                self.model,
+                values,
+                obs.channels,
+                &self.settings,
+                &lobe,
+                fit,
+                starts,
+                steps,
+                glossy,
+            )
+        });
+        match fitted {
             Some(fitted) => FacetFit {
                 target: geometry.plane_target(fitted.normal, ids, c),
                 ..fitted
@@ -336,7 +381,8 @@ impl LocalStep<'_> {
                         fits.copy_from_slice(&lanes);
                     } else {
                         for (i, fit) in fits.iter_mut().enumerate() {
-                            *fit = self.fit(start + i, u, buf);
+                            // (no glossy observations: the lanes fit the Lambertian model)
+                            *fit = self.fit(start + i, u, buf, &mut Vec::new(), None);
                         }
                     }
                     Ok(())
@@ -346,9 +392,9 @@ impl LocalStep<'_> {
         fits.par_iter_mut().enumerate().try_for_each_init(
             || facet_scratch(per),
             |scratch, (i, fit)| {
-                let buf = scratch.as_mut().map_err(|e| e.clone())?;
+                let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                 if !self.cancel.is_cancelled() {
-                    *fit = self.fit(first + i, u, buf);
+                    *fit = self.fit(first + i, u, buf, glossy, None);
                 }
                 Ok(())
             },
@@ -397,7 +443,7 @@ impl LocalStep<'_> {
                             }
                         } else {
                             for (i, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
-                                let fit = self.fit(first + i, u, buf);
+                                let fit = self.fit(first + i, u, buf, &mut Vec::new(), None);
                                 *target = fit.target;
                                 *stat = FacetStat::from(&fit);
                             }
@@ -413,13 +459,52 @@ impl LocalStep<'_> {
             .try_for_each_init(
                 || facet_scratch(per),
                 |scratch, (f, (target, stat))| {
-                    let buf = scratch.as_mut().map_err(|e| e.clone())?;
+                    let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
                         return Ok(());
                     }
-                    let fit = self.fit(f, u, buf);
+                    let fit = self.fit(f, u, buf, glossy, None);
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
+                    Ok(())
+                },
+            )
+    }
+
+    /// As [`LocalStep::try_run_targets`] under the glossy model (`settings.lobe` set), with the
+    /// facets' glossy normals of the previous local step in `warm` (NaN: none), which start
+    /// their fits and are replaced by this step's.
+    pub fn try_run_glossy_targets(
+        &self,
+        u: &[f64],
+        targets: &mut [[f64; 4]],
+        stats: &mut [FacetStat],
+        warm: &mut [[f32; 3]],
+    ) -> Result<()> {
+        let per = self.obs.per_facet();
+        targets
+            .par_iter_mut()
+            .zip(stats.par_iter_mut())
+            .zip(warm.par_iter_mut())
+            .enumerate()
+            .try_for_each_init(
+                || facet_scratch(per),
+                |scratch, (f, ((target, stat), warm))| {
+                    let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
+                    if self.cancel.is_cancelled() {
+                        return Ok(());
+                    }
+                    let start = warm
+                        .iter()
+                        .all(|x| x.is_finite())
+                        .then(|| warm.map(f64::from));
+                    let fit = self.fit(f, u, buf, glossy, start);
+                    *target = fit.target;
+                    *stat = FacetStat::from(&fit);
+                    *warm = match fit.valid && fit.specular.is_finite() {
+                        true => fit.normal.map(|x| x as f32),
+                        false => [f32::NAN; 3],
+                    };
                     Ok(())
                 },
             )
@@ -429,9 +514,10 @@ impl LocalStep<'_> {
 /// What a thread's scratch space is for, in the message of a failed allocation.
 const SCRATCH: &str = "the local step's per-thread scratch space";
 
-/// A thread's scratch space for one facet's `per` observations.
-fn facet_scratch(per: usize) -> Result<Vec<f32>> {
-    try_vec(per, 0.0f32, SCRATCH)
+/// A thread's scratch space for one facet's `per` observations (and, filled on demand, its
+/// observations under the glossy model).
+fn facet_scratch(per: usize) -> Result<(Vec<f32>, Vec<Observation>)> {
+    Ok((try_vec(per, 0.0f32, SCRATCH)?, Vec::new()))
 }
 
 /// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
@@ -733,6 +819,7 @@ pub fn fit_facet(
         target: [0.0; 4],
         normal: n,
         albedo,
+        specular: 0.0,
         sse,
         used: sums.used,
         valid: true,
@@ -766,6 +853,7 @@ fn keep_shape(q: &[[f64; 3]; 4], u: [f64; 4], used: u32) -> FacetFit {
         target: u.map(|v| v - mean),
         normal: quad_normal(q),
         albedo: [f64::NAN; 3],
+        specular: f64::NAN,
         sse: 0.0,
         used,
         valid: false,

@@ -1,0 +1,293 @@
+//! The glossy local fit and the estimate of the shared lobe.
+//!
+//! Under [`Reflectance::Glossy`](crate::reflectance::Reflectance) each facet is first fitted
+//! with the Lambertian model (robust, if asked for), and that fit starts the glossy one: a few
+//! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit`] with the shared
+//! [`Lobe`]. Light `k` is seen by the facet with centre `c` as the observation
+//!
+//! ```text
+//! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
+//! ```
+//!
+//! and the view vector is `v = -c / |c|` (pinhole) or `(0, 0, -1)` (orthographic). Colour
+//! images are fitted through the sum of their channels (a grey specular albedo, the colour of
+//! the light, as dielectrics reflect), and each channel's diffuse albedo is then the least-squares
+//! one at the fitted normal: `rho_ch = sum_k (I_{k,ch} - Phi_{k,ch} a_k rho_s S_k) Phi_{k,ch} a_k
+//! D_k / sum_k (Phi_{k,ch} a_k D_k)^2`, `a_k = |beta_k|`. A facet whose glossy fit fails (fewer
+//! than 4 lit observations) keeps its Lambertian fit with no specular albedo.
+//!
+//! ## The shared lobe
+//!
+//! The roughness `alpha` and the index `eta` are not determined per pixel; [`estimate_lobe`]
+//! finds them for the whole object by minimising the summed squared residual of the glossy fits
+//! of a subsample of at most [`LOBE_SAMPLE`] facets: a coordinate search over `alpha` on a
+//! geometric grid, `eta` on a grid from 1 (Lambert) to 2.1, then `alpha` again, each refined by
+//! a parabola through the best grid value and its neighbours. On a matte object the specular
+//! albedo goes to 0 and every lobe fits alike; the estimate is then arbitrary and harmless.
+
+use rayon::prelude::*;
+
+use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
+use crate::error::Result;
+use crate::geometry::{quad_centre, quad_normal};
+use crate::reflectance::{fit, Lobe, Observation};
+use crate::vec3::{norm, scale};
+
+/// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
+/// fit: the steps stop earlier once one no longer lowers the residual).
+pub const GLOSSY_STEPS: usize = 10;
+
+/// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
+pub const GLOSSY_WARM_STEPS: usize = 3;
+
+/// Facets of the subsample on which [`estimate_lobe`] compares lobes.
+pub const LOBE_SAMPLE: usize = 1024;
+
+/// The roughness grid of the lobe search.
+const ALPHAS: [f64; 9] = [0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.4, 0.6, 0.85];
+/// The index grid of the lobe search (1: the diffuse part is Lambertian).
+const ETAS: [f64; 7] = [1.0, 1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
+
+/// The glossy observations of a facet with centre `c` (see the module documentation), the
+/// usable ones only, into `out`.
+fn observations(
+    c: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: &FitSettings,
+    out: &mut Vec<Observation>,
+) {
+    out.clear();
+    for (k, o) in values.chunks_exact(channels).enumerate() {
+        if !usable(o, settings) {
+            continue;
+        }
+        let (b, _, phi) = model.row(k, c);
+        let a = norm(b);
+        if !(a > 0.0 && a.is_finite()) {
+            continue;
+        }
+        let p: f64 = (0..channels)
+            .map(|ch| channel_intensity(phi, channels, ch))
+            .sum();
+        out.push(Observation {
+            value: o.iter().map(|&v| v as f64).sum(),
+            scale: p * a,
+            light: scale(b, 1.0 / a),
+        });
+    }
+}
+
+/// The glossy fit of the facet with centre `c` and view vector `v`, started from each normal of
+/// `starts` (e.g. its Lambertian fit's and the mesh normal) with the diffuse albedo of its
+/// Lambertian fit `start`, with at most `steps` Gauss-Newton steps from each: the one of lower
+/// residual; `start` itself (with no specular albedo) where the glossy fit fails. The target is
+/// left as in `start`.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn refine(
+    c: [f64; 3],
+    v: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: &FitSettings,
+    lobe: &Lobe,
+    start: FacetFit,
+    starts: [Option<[f64; 3]>; 2],
+    steps: usize,
+    scratch: &mut Vec<Observation>,
+) -> FacetFit {
+    observations(c, model, values, channels, settings, scratch);
+    let albedo = start.albedo[..channels].iter().sum::<f64>();
+    let from = |n: [f64; 3]| fit(lobe, scratch, v, scale(n, albedo), steps);
+    let fits = starts.map(|n| n.and_then(from));
+    let Some(g) = fits
+        .into_iter()
+        .flatten()
+        .min_by(|a, b| a.sse.total_cmp(&b.sse))
+    else {
+        return start;
+    };
+    if channels == 1 {
+        return FacetFit {
+            normal: g.normal,
+            albedo: [g.diffuse; 3],
+            specular: g.specular,
+            sse: g.sse,
+            used: g.used,
+            ..start
+        };
+    }
+    // Per channel: the diffuse albedo at the fitted normal, and the residual.
+    let mut num = [0.0; 3];
+    let mut den = [0.0; 3];
+    let mut terms = Vec::with_capacity(values.len() / channels);
+    for (k, o) in values.chunks_exact(channels).enumerate() {
+        if !usable(o, settings) {
+            continue;
+        }
+        let (b, _, phi) = model.row(k, c);
+        let a = norm(b);
+        let Some(sh) = (a > 0.0)
+            .then(|| lobe.shade(g.normal, scale(b, 1.0 / a), v))
+            .flatten()
+        else {
+            continue;
+        };
+        for (ch, &i) in o.iter().enumerate() {
+            let pa = channel_intensity(phi, channels, ch) * a;
+            let d = pa * sh.diffuse;
+            num[ch] += (i as f64 - pa * g.specular * sh.specular) * d;
+            den[ch] += d * d;
+        }
+        terms.push((k, a, sh));
+    }
+    let albedo: [f64; 3] = std::array::from_fn(|ch| num[ch] / den[ch]);
+    if !albedo.iter().all(|x| x.is_finite()) {
+        return start;
+    }
+    let mut sse = 0.0;
+    for &(k, a, sh) in &terms {
+        let (_, _, phi) = model.row(k, c);
+        for (ch, &i) in values[k * channels..(k + 1) * channels].iter().enumerate() {
+            let pa = channel_intensity(phi, channels, ch) * a;
+            let e = i as f64 - pa * (albedo[ch] * sh.diffuse + g.specular * sh.specular);
+            sse += e * e;
+        }
+    }
+    FacetFit {
+        normal: g.normal,
+        albedo,
+        specular: g.specular,
+        sse,
+        used: g.used,
+        ..start
+    }
+}
+
+/// One facet of the lobe search: its centre, view vector, observations and Lambertian fit.
+struct Sampled {
+    c: [f64; 3],
+    v: [f64; 3],
+    values: Vec<f32>,
+    start: FacetFit,
+    mesh: [f64; 3],
+}
+
+/// Estimates the shared lobe of the glossy model from the facets of `step` on the unknowns `u`
+/// (see the module documentation): over the whole grids, or, given a `previous` estimate, over
+/// its neighbours on them; `None` when no facet of the subsample can be fitted.
+pub fn estimate_lobe(
+    step: &LocalStep<'_>,
+    u: &[f64],
+    previous: Option<Lobe>,
+) -> Result<Option<Lobe>> {
+    let n = step.grid.n_facets();
+    let stride = n.div_ceil(LOBE_SAMPLE).max(1);
+    let per = step.obs.per_facet();
+    let channels = step.obs.channels;
+    let lambertian = FitSettings {
+        lobe: None,
+        ..step.settings
+    };
+    let sample: Vec<Sampled> = (0..n)
+        .into_par_iter()
+        .step_by(stride)
+        .filter_map(|f| {
+            let q = step.corners(f, u);
+            let c = quad_centre(&q);
+            let mut buf = vec![0.0f32; per];
+            let values = step.obs.facet(step.grid.facets[f], &mut buf).to_vec();
+            let start = fit_facet(c, step.model, &values, channels, lambertian)?;
+            Some(Sampled {
+                c,
+                v: step.geometry.view(c),
+                values,
+                start,
+                mesh: quad_normal(&q),
+            })
+        })
+        .collect();
+    step.cancel.check()?;
+    if sample.is_empty() {
+        return Ok(None);
+    }
+    let cost = |lobe: Lobe| -> f64 {
+        sample
+            .par_iter()
+            .map_init(Vec::new, |scratch, s| {
+                let g = refine(
+                    s.c,
+                    s.v,
+                    step.model,
+                    &s.values,
+                    channels,
+                    &lambertian,
+                    &lobe,
+                    s.start,
+                    [Some(s.start.normal), Some(s.mesh)],
+                    3 * GLOSSY_STEPS,
+                    scratch,
+                );
+                g.sse
+            })
+            .sum()
+    };
+    let (mut lobe, rounds) = match previous {
+        Some(lobe) => (lobe, 2),
+        None => (Lobe::new(0.2, 1.45), 3),
+    };
+    for round in 0..rounds {
+        let near = |x: f64, grid: &[f64], lo: f64, hi: f64, log: bool| -> Vec<f64> {
+            match previous {
+                None => grid.to_vec(),
+                Some(_) if log => vec![(x / 1.3).max(lo), x, (x * 1.3).min(hi)],
+                Some(_) => vec![(x - 0.1).max(lo), x, (x + 0.1).min(hi)],
+            }
+        };
+        lobe = if round % 2 == 1 {
+            let grid = near(lobe.eta, &ETAS, 1.0, 3.0, false);
+            Lobe::new(
+                lobe.alpha,
+                line_search(&grid, |eta| cost(Lobe::new(lobe.alpha, eta)), false),
+            )
+        } else {
+            let grid = near(lobe.alpha, &ALPHAS, 0.01, 1.0, true);
+            Lobe::new(
+                line_search(&grid, |alpha| cost(Lobe::new(alpha, lobe.eta)), true),
+                lobe.eta,
+            )
+        };
+        step.cancel.check()?;
+    }
+    Ok(Some(lobe))
+}
+
+/// The minimiser of `cost` over `grid` (increasing), refined by the parabola through the best
+/// grid value and its neighbours (in `log x` when `log`), kept within those neighbours and
+/// accepted only if its cost is lower.
+fn line_search(grid: &[f64], cost: impl Fn(f64) -> f64, log: bool) -> f64 {
+    let costs: Vec<f64> = grid.iter().map(|&x| cost(x)).collect();
+    let best = (0..grid.len())
+        .min_by(|&a, &b| costs[a].total_cmp(&costs[b]))
+        .unwrap_or(0);
+    if best == 0 || best + 1 == grid.len() {
+        return grid[best];
+    }
+    let t = |x: f64| if log { x.ln() } else { x };
+    let (x0, x1, x2) = (t(grid[best - 1]), t(grid[best]), t(grid[best + 1]));
+    let (y0, y1, y2) = (costs[best - 1], costs[best], costs[best + 1]);
+    let d = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0);
+    if d == 0.0 {
+        return grid[best];
+    }
+    let m = x1 - 0.5 * ((x1 - x0).powi(2) * (y1 - y2) - (x1 - x2).powi(2) * (y1 - y0)) / d;
+    let m = m.clamp(x0, x2);
+    let x = if log { m.exp() } else { m };
+    if x.is_finite() && cost(x) < y1 {
+        x
+    } else {
+        grid[best]
+    }
+}
