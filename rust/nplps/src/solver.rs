@@ -26,6 +26,7 @@ use crate::convergence::{
 };
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
+use crate::grid::Grid;
 use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
@@ -90,11 +91,49 @@ pub(crate) struct Carried {
     diverged: bool,
     /// The glossy lobe of the last level (None: Lambertian, or not estimated).
     lobe: Option<Lobe>,
+    /// The glossy normals of the last level (empty: none).
+    warm: WarmMap,
+}
+
+/// The glossy normals of a level per pixel (NaN: none), which start the fits of the next finer
+/// level's facets.
+#[derive(Default)]
+pub(crate) struct WarmMap {
+    width: usize,
+    height: usize,
+    normals: Vec<[f32; 3]>,
+}
+
+impl WarmMap {
+    /// The per-facet `warm` normals of `grid` as a map of its pixels.
+    fn of(grid: &Grid, warm: &[[f32; 3]]) -> Result<WarmMap> {
+        let mut normals = try_vec(
+            grid.height * grid.width,
+            [f32::NAN; 3],
+            "the glossy normals",
+        )?;
+        if warm.len() == grid.n_facets() {
+            for (&p, &w) in grid.facets.iter().zip(warm) {
+                normals[p] = w;
+            }
+        }
+        Ok(WarmMap {
+            width: grid.width,
+            height: grid.height,
+            normals,
+        })
+    }
+
+    /// The normal of the coarser pixel under pixel `p` of a grid `width` wide (twice as fine).
+    fn under(&self, p: usize, width: usize) -> Option<[f32; 3]> {
+        let (r, c) = (p / width / 2, p % width / 2);
+        (r < self.height && c < self.width).then(|| self.normals[r * self.width + c])
+    }
 }
 
 /// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
-/// has none and again at these iterations of each run (then held, so that the run converges
-/// under one model).
+/// has none, again at the first of these iterations of each run, and at the second too where
+/// the solver started without a lobe (then held, so that the run converges under one model).
 pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
@@ -128,6 +167,7 @@ pub(crate) fn coarse_to_fine(
         monitor: None,
         diverged: false,
         lobe: None,
+        warm: WarmMap::default(),
     };
     if levels <= 1 {
         return Ok(carried);
@@ -155,7 +195,7 @@ pub(crate) fn coarse_to_fine(
         } else {
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
-            solver.carry_lobe(carried.lobe);
+            solver.carry_glossy(carried.lobe, &carried.warm);
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
@@ -180,6 +220,9 @@ pub(crate) fn coarse_to_fine(
         carried.monitor = carried.monitor.or(solver.lights.monitor);
         carried.diverged |= solver.lights.diverged;
         carried.lobe = solver.lobe;
+        if !solver.warm.is_empty() {
+            carried.warm = WarmMap::of(&p.grid, &solver.warm)?;
+        }
     }
     let t = Instant::now();
     *u = crate::pyramid::upsample(&coarse[0].grid, &current, &problem.grid)?;
@@ -224,6 +267,10 @@ pub(crate) struct Solver<'p> {
     /// Under the glossy model, each facet's glossy normal of the last local step (NaN: none),
     /// which starts its next fit; empty under the Lambertian model.
     warm: Vec<[f32; 3]>,
+    /// Whether `warm` came from a coarser level (the first run then keeps it).
+    warm_carried: bool,
+    /// Whether this solver started without a lobe (it then estimates it more often).
+    lobe_from_scratch: bool,
 }
 
 /// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
@@ -286,14 +333,25 @@ impl<'p> Solver<'p> {
                 [f32::NAN; 3],
                 "the glossy normals",
             )?,
+            warm_carried: false,
+            lobe_from_scratch: false,
         })
     }
 
-    /// Starts from the lobe a coarser level estimated (when there is one).
-    pub(crate) fn carry_lobe(&mut self, lobe: Option<Lobe>) {
-        if self.options.reflectance.is_glossy() {
-            self.lobe = lobe.or(self.lobe);
+    /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
+    /// the glossy normal of the coarser level's pixel under it.
+    fn carry_glossy(&mut self, lobe: Option<Lobe>, warm: &WarmMap) {
+        if !self.options.reflectance.is_glossy() {
+            return;
         }
+        self.lobe = lobe.or(self.lobe);
+        let fine = &self.problem.grid;
+        for (w, &p) in self.warm.iter_mut().zip(&fine.facets) {
+            if let Some(n) = warm.under(p, fine.width) {
+                *w = n;
+            }
+        }
+        self.warm_carried = true;
     }
 
     /// The problem this solver works on.
@@ -311,7 +369,7 @@ impl<'p> Solver<'p> {
             self.lights.set_refine(on_level(coarse.refine, unknowns));
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
-            self.carry_lobe(coarse.lobe);
+            self.carry_glossy(coarse.lobe, &coarse.warm);
         }
         coarse.history
     }
@@ -429,7 +487,9 @@ impl<'p> Solver<'p> {
             .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
         self.lights.begin(distance);
         self.stalled = false;
-        self.warm.fill([f32::NAN; 3]);
+        if !std::mem::take(&mut self.warm_carried) {
+            self.warm.fill([f32::NAN; 3]);
+        }
         // Unknowns in units of the lateral size (log-depths: times the distance).
         let unit = if p.geometry.is_perspective() {
             distance / scale
@@ -471,17 +531,23 @@ impl<'p> Solver<'p> {
     /// surface `u` (see [`estimate_lobe`]) when the solver has none yet and at the iterations
     /// [`LOBE_AT`], unless it is held.
     fn reflectance(&mut self, u: &[f64], iteration: usize) -> Result<()> {
-        let due = self.lobe.is_none() || (LOBE_AT.contains(&iteration) && !self.hold_lobe);
-        if self.options.reflectance != Reflectance::Glossy(None) || !due {
+        if self.options.reflectance != Reflectance::Glossy(None) {
             return Ok(());
         }
+        let again = iteration == LOBE_AT[0] || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
+        let from_scratch = self.lobe.is_none();
+        if !(from_scratch || (again && !self.hold_lobe)) {
+            return Ok(());
+        }
+        self.lobe_from_scratch |= from_scratch;
         let t = Instant::now();
         let depths = self.depths(u)?;
-        let step = self.local_step(true, depths.as_deref());
+        let step = LocalStep {
+            warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
+            ..self.local_step(true, depths.as_deref())
+        };
         if let Some(lobe) = estimate_lobe(&step, u, self.lobe)? {
             self.lobe = Some(lobe);
-            // A new lobe: every facet's fit starts afresh (from several starts).
-            self.warm.fill([f32::NAN; 3]);
         }
         self.timings.local += t.elapsed();
         Ok(())
@@ -618,6 +684,7 @@ impl<'p> Solver<'p> {
             },
             depths,
             cancel: &p.cancel,
+            warm: None,
         }
     }
 
@@ -654,10 +721,14 @@ impl<'p> Solver<'p> {
         drop(std::mem::take(&mut self.stats));
         drop(std::mem::take(&mut self.next));
         drop(self.system.take());
+        let glossy = self.lobe.is_some();
         let problem = self.problem;
-        let mut outputs = FitOutputs::new(problem, self.lobe.is_some())?;
+        let mut outputs = FitOutputs::new(problem, glossy)?;
         let depths = self.depths(u)?;
-        let step = self.local_step(false, depths.as_deref());
+        let step = LocalStep {
+            warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
+            ..self.local_step(false, depths.as_deref())
+        };
         let n = problem.grid.n_facets();
         let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
         for first in (0..n).step_by(FINAL_CHUNK) {

@@ -38,7 +38,7 @@ use crate::vec3::{norm, scale};
 pub const GLOSSY_STEPS: usize = 10;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
-pub const GLOSSY_WARM_STEPS: usize = 3;
+pub const GLOSSY_WARM_STEPS: usize = 2;
 
 /// Facets of the subsample on which [`estimate_lobe`] compares lobes.
 pub const LOBE_SAMPLE: usize = 1024;
@@ -172,12 +172,15 @@ struct Sampled {
     v: [f64; 3],
     values: Vec<f32>,
     start: FacetFit,
-    mesh: [f64; 3],
+    /// Where its fits start: its glossy normal of an earlier local step, or its Lambertian
+    /// and mesh normals.
+    starts: [Option<[f64; 3]>; 2],
 }
 
 /// Estimates the shared lobe of the glossy model from the facets of `step` on the unknowns `u`
 /// (see the module documentation): over the whole grids, or, given a `previous` estimate, over
-/// its neighbours on them; `None` when no facet of the subsample can be fitted.
+/// its neighbours on them; `None` when no facet of the subsample can be fitted. The fits start
+/// from the step's `warm` normals where it has them.
 pub fn estimate_lobe(
     step: &LocalStep<'_>,
     u: &[f64],
@@ -200,12 +203,17 @@ pub fn estimate_lobe(
             let mut buf = vec![0.0f32; per];
             let values = step.obs.facet(step.grid.facets[f], &mut buf).to_vec();
             let start = fit_facet(c, step.model, &values, channels, lambertian)?;
+            let warm = step.warm.and_then(|w| super::warm_normal(&w[f]));
+            let starts = match warm {
+                Some(n) => [Some(n), None],
+                None => [Some(start.normal), Some(quad_normal(&q))],
+            };
             Some(Sampled {
                 c,
                 v: step.geometry.view(c),
                 values,
                 start,
-                mesh: quad_normal(&q),
+                starts,
             })
         })
         .collect();
@@ -226,8 +234,8 @@ pub fn estimate_lobe(
                     &lambertian,
                     &lobe,
                     s.start,
-                    [Some(s.start.normal), Some(s.mesh)],
-                    3 * GLOSSY_STEPS,
+                    s.starts,
+                    2 * GLOSSY_STEPS,
                     scratch,
                 );
                 g.sse

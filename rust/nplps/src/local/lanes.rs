@@ -373,6 +373,7 @@ mod tests {
             },
             depths: None,
             cancel: crate::Cancel::never(),
+            warm: None,
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();

@@ -284,6 +284,9 @@ pub struct LocalStep<'s> {
     /// Checked every few facets: once cancelled, the remaining facets are skipped (the caller
     /// must then check the token and discard the step).
     pub cancel: &'s crate::Cancel,
+    /// Under the glossy model, each facet's glossy normal of an earlier local step (NaN: none),
+    /// which starts its glossy fit in [`LocalStep::try_run`] (see [`LocalStep::fit`]).
+    pub warm: Option<&'s [[f32; 3]]>,
 }
 
 impl LocalStep<'_> {
@@ -394,7 +397,8 @@ impl LocalStep<'_> {
             |scratch, (i, fit)| {
                 let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                 if !self.cancel.is_cancelled() {
-                    *fit = self.fit(first + i, u, buf, glossy, None);
+                    let warm = self.warm.and_then(|w| warm_normal(&w[first + i]));
+                    *fit = self.fit(first + i, u, buf, glossy, warm);
                 }
                 Ok(())
             },
@@ -494,11 +498,7 @@ impl LocalStep<'_> {
                     if self.cancel.is_cancelled() {
                         return Ok(());
                     }
-                    let start = warm
-                        .iter()
-                        .all(|x| x.is_finite())
-                        .then(|| warm.map(f64::from));
-                    let fit = self.fit(f, u, buf, glossy, start);
+                    let fit = self.fit(f, u, buf, glossy, warm_normal(warm));
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
                     *warm = match fit.valid && fit.specular.is_finite() {
@@ -509,6 +509,12 @@ impl LocalStep<'_> {
                 },
             )
     }
+}
+
+/// A stored glossy normal as a start (None where none is stored: NaN).
+#[inline]
+fn warm_normal(w: &[f32; 3]) -> Option<[f64; 3]> {
+    w.iter().all(|x| x.is_finite()).then(|| w.map(f64::from))
 }
 
 /// What a thread's scratch space is for, in the message of a failed allocation.
@@ -540,6 +546,7 @@ pub fn local_step(
         settings,
         depths: None,
         cancel: crate::Cancel::never(),
+        warm: None,
     }
     .try_run(u, 0, fits)
 }
@@ -933,6 +940,7 @@ mod tests {
                 },
                 depths,
                 cancel: crate::Cancel::never(),
+                warm: None,
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];
