@@ -202,7 +202,9 @@ pub use reconstruction::{
     Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
 };
 pub use refine::Conditioning;
-pub use render::{mesh_normals, predict, render, vertices, Surface};
+pub use render::{
+    mesh_normals, predict, render, render_with, vertices, RenderOptions, Specular, Surface,
+};
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask};
 pub use solver::reconstruct;
