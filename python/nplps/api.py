@@ -658,7 +658,7 @@ def _specular_map(specular: Any, shape: tuple[int, int]) -> float | np.ndarray:
 
 
 def _lobe(roughness: Any, eta: Any) -> tuple[float, float]:
-    """The glossy lobe's ``(roughness, eta)`` checked: ``0 < roughness <= 1``, finite ``eta >= 1``."""
+    """Check the glossy lobe's ``(roughness, eta)``: ``0 < roughness <= 1``, finite ``eta >= 1``."""
     alpha = _real(roughness, "roughness")
     if not (0 < alpha <= 1):
         raise InputError(f"roughness (the GGX alpha) must be in (0, 1], got {alpha:.6g}")
