@@ -24,7 +24,7 @@ use crate::grid::Grid;
 use crate::light::{channel_intensity, Light};
 use crate::reflectance::Lobe;
 use crate::rig::{Camera, Rig};
-use crate::vec3::{norm, normalize, scale, sub};
+use crate::vec3::{norm, normalize, not_above, scale, sub};
 
 /// A surface to shade: an (H+1) x (W+1) vertex depth map (row-major) with a per-pixel albedo
 /// (H x W x C, C = 1 or 3) and an optional H x W mask (`true` = shade the pixel).
@@ -463,7 +463,7 @@ fn shade_glossy(
 ) {
     let beta = light.beta(c).0;
     let a = norm(beta);
-    if !(a > 0.0) {
+    if not_above(a, 0.0) {
         return;
     }
     let Some(shade) = lobe.shade(n, scale(beta, 1.0 / a), v) else {

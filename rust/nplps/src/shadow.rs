@@ -56,7 +56,7 @@ use crate::error::{ensure_range, ensure_shape, Result};
 use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
 use crate::rig::{Camera, Rig};
-use crate::vec3::{dot, sub};
+use crate::vec3::{dot, not_above, sub};
 
 /// Which facet is in a cast shadow of which light: `k` bits per pixel, bit-packed in
 /// `words_per_pixel = ceil(k / 64)` words per pixel (pixel-major, row-major pixels).
@@ -241,7 +241,7 @@ impl March<'_> {
         let slack = 0.25 * (hi - lo);
         for (k, light) in lights.iter().enumerate() {
             let beta = light.beta(c).0;
-            if !(dot(n, beta) > 0.0) {
+            if not_above(dot(n, beta), 0.0) {
                 continue;
             }
             if self.blocked(c, light, slack) {
@@ -288,7 +288,7 @@ impl March<'_> {
             f64::INFINITY
         };
         let t = t_end.min(t_cut);
-        if !(t > 0.0) {
+        if not_above(t, 0.0) {
             return false;
         }
         let e = [c[0] + t * dir[0], c[1] + t * dir[1], c[2] + t * dir[2]];
