@@ -58,6 +58,7 @@ __all__ = [
     "__version__",
     "calibrate_intensities",
     "calibrate_spheres",
+    "cast_shadows",
     "check_rig",
     "mesh_normals",
     "normalize_camera",
@@ -174,7 +175,19 @@ def render(
     rig: Rig,
     albedo: F64,
     mask: npt.NDArray[np.bool_] | None = None,
+    *,
+    specular: float | F64 | None = None,
+    roughness: float = 0.3,
+    eta: float = 1.5,
+    shadows: bool = False,
 ) -> F64: ...
+def cast_shadows(
+    depth: F64,
+    rig: Rig,
+    mask: npt.NDArray[np.bool_] | None = None,
+    *,
+    max_steps: int | None = None,
+) -> npt.NDArray[np.bool_]: ...
 def predict(
     depth: F64,
     normals: F64,

@@ -40,7 +40,7 @@ from .reconstruction import Iteration, Reconstruction
 from .rig import Rig
 from .types import Depth, Images, Mask, Progress, RefineLights, Reflectance, Robust, Solver, Weighting, _iteration
 
-__all__ = ["MAX_DEPTH_RATIO", "MAX_THREADS", "reconstruct", "reconstruct_parallel", "render"]
+__all__ = ["MAX_DEPTH_RATIO", "MAX_THREADS", "cast_shadows", "reconstruct", "reconstruct_parallel", "render"]
 
 
 #: A depth (the working distance, or a value of an initial depth map or a depth prior at a vertex
@@ -653,12 +653,47 @@ def reconstruct_parallel(
     return Reconstruction._from_core(out, mask_arr, rig, "parallel")
 
 
+def _vertex_depths(depth: Any) -> np.ndarray:
+    """``depth`` as a contiguous (H+1, W+1) float64 vertex depth map, or InputError."""
+    z = _real_array(depth, "depth")
+    if z.ndim != 2 or min(z.shape) < 2:
+        raise InputError(f"depth must be an (H+1, W+1) vertex depth map, got shape {z.shape}")
+    return z
+
+
+def _specular_map(specular: Any, shape: tuple[int, int]) -> float | np.ndarray:
+    """``specular`` as a number or an (H, W) float64 map, finite and >= 0, or InputError."""
+    if np.ndim(specular) == 0:
+        return _finite_number(specular, "specular (the specular albedo)")
+    s = _real_array(specular, "specular")
+    if s.shape != shape:
+        raise InputError(f"specular must be a number or a map of the image's shape {shape}, got shape {s.shape}")
+    if not (np.isfinite(s).all() and (s >= 0).all()):
+        raise InputError("specular (the specular albedo) must be finite and >= 0 everywhere")
+    return s
+
+
+def _lobe(roughness: Any, eta: Any) -> tuple[float, float]:
+    """Check the glossy lobe's ``(roughness, eta)``: ``0 < roughness <= 1``, finite ``eta >= 1``."""
+    alpha = _real(roughness, "roughness")
+    if not (0 < alpha <= 1):
+        raise InputError(f"roughness (the GGX alpha) must be in (0, 1], got {alpha:.6g}")
+    index = _real(eta, "eta")
+    if not (math.isfinite(index) and index >= 1):
+        raise InputError(f"eta (the relative index of refraction) must be a finite number >= 1, got {index:.6g}")
+    return alpha, index
+
+
 def render(
     depth: np.ndarray,
     rig: Rig,
     albedo: float | np.ndarray = 1.0,
     *,
     mask: Mask | None = None,
+    specular: float | np.ndarray | None = None,
+    roughness: float = 0.3,
+    eta: float = 1.5,
+    shadows: bool = False,
 ) -> np.ndarray:
     """Render the images of a surface under a rig by the solver's image model.
 
@@ -666,6 +701,14 @@ def render(
     its centre ``c`` as the surface point: ``I = albedo * intensity * max(0, n . beta(c))`` with
     the light's ``beta`` (point light: ``(p - c) / |p - c|^3`` times the LED factor; directional:
     its direction); attached shadows are clipped at 0.
+
+    With `specular`, the glossy model (``nplps::reflectance``) instead:
+    ``I = intensity * a * (albedo * D(n) + specular * S(n))`` with ``a = |beta(c)|``, the light
+    direction ``l = beta(c) / a`` and the view direction ``v`` from ``c`` to the camera:
+    ``D(n) = (n.l) T(n.l) T(n.v) / T(1)^2`` is the diffuse term with the Fresnel transmittance
+    ``T`` of index `eta`, ``S(n)`` the GGX specular lobe of roughness `roughness` with Smith
+    masking and the Fresnel shape. ``eta=1`` with ``specular=0`` is the Lambertian image (to
+    rounding). Facets turned away from the camera are 0 in this model.
 
     Parameters
     ----------
@@ -677,6 +720,18 @@ def render(
         A number, R, G, B, an (H, W) map or an (H, W, 3) map.
     mask : array_like, str or path-like, optional
         (H, W) pixels to render (non-zero) or a mask image. Default: every pixel.
+    specular : float or array_like, optional
+        The specular albedo (grey: the same in every channel), a number or an (H, W) map, finite
+        and >= 0, in the units of `albedo`. Default None: the Lambertian model (and `roughness`,
+        `eta` unused).
+    roughness : float, default 0.3
+        The GGX roughness ``alpha`` of the specular lobe, in (0, 1] (about 0.05 polished, 0.3
+        satin, 0.6 rough).
+    eta : float, default 1.5
+        The relative index of refraction of the surface layer, >= 1 (1.5 for most plastics).
+    shadows : bool, default False
+        Cast shadows: an observation whose path to the light passes behind the surface (see
+        :func:`cast_shadows`) is 0.
 
     Returns
     -------
@@ -688,7 +743,8 @@ def render(
     Raises
     ------
     InputError
-        `depth` or `albedo` has the wrong shape or type.
+        `depth`, `albedo` or `specular` has the wrong shape or type, `roughness` or `eta` is
+        out of range, or `shadows` is not a bool.
     MemoryLimitError
         The images would not fit in memory.
 
@@ -701,10 +757,11 @@ def render(
     True
     """
     _check_rig(rig)
-    z = _real_array(depth, "depth")
-    if z.ndim != 2 or min(z.shape) < 2:
-        raise InputError(f"depth must be an (H+1, W+1) vertex depth map, got shape {z.shape}")
+    z = _vertex_depths(depth)
     shape = (z.shape[0] - 1, z.shape[1] - 1)
+    alpha, index = _lobe(roughness, eta)
+    cast = _flag(shadows, "shadows")
+    rho_s = None if specular is None else _specular_map(specular, shape)
     a = _real_array(albedo, "albedo")
     target = (*shape, 3) if a.ndim == 3 or (a.ndim == 1 and a.shape == (3,)) else shape
     try:
@@ -715,4 +772,56 @@ def render(
             f"got shape {a.shape}"
         ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    return _core.render(z, rig._native, rho, m)
+    return _core.render(z, rig._native, rho, m, specular=rho_s, roughness=alpha, eta=index, shadows=cast)
+
+
+def cast_shadows(depth: np.ndarray, rig: Rig, mask: Mask | None = None) -> np.ndarray:
+    """Which pixels the surface itself hides from which light (cast shadows).
+
+    For each pixel's facet (the quad between its 4 corner vertices, centre ``c``) and each light,
+    the segment from ``c`` towards the light (a point light's position, or along a directional
+    light's direction) is marched through the image half a pixel at a time; the facet is in a
+    cast shadow when the segment passes behind the surface, that is when the depth of the
+    surface there (bilinear in the vertex depths) is smaller than the segment's by more than a
+    small tolerance. The march stops when the segment leaves the image or `mask`, or comes
+    nearer to the camera than the nearest vertex. Facets turned away from a light (attached
+    shadows, already dark) are not marked. The cost is at most ``k H W`` times twice the image
+    diagonal in samples (usually far less: segments from flat regions are cut at once).
+
+    Parameters
+    ----------
+    depth : array_like
+        (H+1, W+1) vertex depths (NaN: unknown; the march stops there).
+    rig : Rig
+        The camera and the lights.
+    mask : array_like, str or path-like, optional
+        (H, W) pixels of the surface (non-zero) or a mask image. Default: every pixel.
+
+    Returns
+    -------
+    numpy.ndarray
+        (k, H, W) bool: True where the pixel is in a cast shadow of the light. False outside
+        `mask` and at pixels with a non-finite corner.
+
+    Raises
+    ------
+    InputError
+        `depth` or `mask` has the wrong shape or type.
+    RigError
+        The camera has no ray at a vertex.
+    MemoryLimitError
+        The vertices or the mask would not fit in memory.
+
+    Examples
+    --------
+    >>> import nplps
+    >>> scene = nplps.make_scene("block", n=32)
+    >>> shadowed = nplps.cast_shadows(scene.depth, scene.rig, scene.mask)
+    >>> shadowed.shape, bool(shadowed.any())
+    ((27, 32, 32), True)
+    """
+    _check_rig(rig)
+    z = _vertex_depths(depth)
+    shape = (z.shape[0] - 1, z.shape[1] - 1)
+    m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
+    return _core.cast_shadows(z, rig._native, m)

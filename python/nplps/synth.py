@@ -1,6 +1,6 @@
 """Synthetic scenes with ground truth (rendered by the same image model as the solver).
 
-Scenes are built by the Rust core (``saddle``, ``sphere``, ``cube``, ``bumps``): an object of
+Scenes are built by the Rust core (``saddle``, ``sphere``, ``cube``, ``bumps``, ``block``): an object of
 lateral size ``size`` at working distance ``distance`` under an orthographic camera, lit by 27
 point lights in three layers 1.5, 2.25 and 3 object sizes in front of it.
 """
@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from . import _core, export
-from ._checks import _finite_number, _positive, _short, _whole
+from ._checks import _finite_number, _flag, _positive, _short, _whole
 from ._outdir import result_directory
-from .api import render
+from .api import _lobe, render
 from .errors import InputError
 from .rig import Rig
 from .types import Camera, SceneName
@@ -24,7 +24,7 @@ from .types import Camera, SceneName
 __all__ = ["SCENES", "Scene", "make_scene"]
 
 #: The scenes :func:`make_scene` builds.
-SCENES: tuple[SceneName, ...] = ("saddle", "sphere", "cube", "bumps")
+SCENES: tuple[SceneName, ...] = ("saddle", "sphere", "cube", "bumps", "block")
 
 
 @dataclass
@@ -134,14 +134,20 @@ def make_scene(
     led: bool = False,
     rgb: bool = False,
     directional: bool = False,
+    specular: float = 0.0,
+    roughness: float = 0.3,
+    eta: float = 1.5,
+    shadows: bool = False,
 ) -> Scene:
     """Build and render a synthetic scene with ground truth.
 
     Parameters
     ----------
-    name : {"saddle", "sphere", "cube", "bumps"}
+    name : {"saddle", "sphere", "cube", "bumps", "block"}
         ``"saddle"``, ``"sphere"`` (a sphere cap in a disc mask), ``"cube"`` (two faces of a
-        turned cube, the sharp edge on a pixel line) or ``"bumps"`` (random smooth bumps).
+        turned cube, the sharp edge on a pixel line), ``"bumps"`` (random smooth bumps) or
+        ``"block"`` (a square block, 0.4 `size` wide and 0.2 `size` tall with one-pixel walls,
+        on a plane: the one scene whose lights cast shadows, see `shadows`).
     n : int, default 128
         Image size, n x n pixels.
     size : float, default 100.0
@@ -162,6 +168,16 @@ def make_scene(
         Colour albedo and (k, H, W, 3) images.
     directional : bool, default False
         Every third light is a distant (directional) light.
+    specular : float, default 0.0
+        The specular albedo as a fraction of the diffuse albedo (of its grey mean, per pixel),
+        finite and >= 0. 0 renders the Lambertian model; above 0 the glossy model of
+        :func:`nplps.render` with `roughness` and `eta`.
+    roughness : float, default 0.3
+        The GGX roughness of the specular lobe, in (0, 1] (used when `specular` > 0).
+    eta : float, default 1.5
+        The relative index of refraction, >= 1 (used when `specular` > 0).
+    shadows : bool, default False
+        Render cast shadows (0 where the surface hides a light; see :func:`nplps.cast_shadows`).
 
     Returns
     -------
@@ -200,6 +216,9 @@ def make_scene(
     seed = _whole(seed, "seed", 0)
     if seed >= 2**64:
         raise InputError(f"seed must be less than 2**64, got {_short(seed)}")
+    specular = _finite_number(specular, "specular (a fraction of the albedo)")
+    roughness, eta = _lobe(roughness, eta)
+    shadows = _flag(shadows, "shadows")
     d = _core.synth_scene(
         name,
         int(n),
@@ -212,7 +231,11 @@ def make_scene(
         directional=directional,
     )
     rig = Rig._from_native(d["rig"])
-    images = render(d["depth"], rig, d["albedo"], mask=d["mask"])
+    albedo = d["albedo"]
+    rho_s = specular * (albedo.mean(axis=2) if albedo.ndim == 3 else albedo) if specular > 0 else None
+    images = render(
+        d["depth"], rig, albedo, mask=d["mask"], specular=rho_s, roughness=roughness, eta=eta, shadows=shadows
+    )
     if noise > 0:
         rng = np.random.default_rng(seed)
         images = np.clip(images + rng.normal(0.0, noise * images.max(), images.shape), 0.0, None)

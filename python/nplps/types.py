@@ -56,7 +56,7 @@ Status: TypeAlias = Literal["converged", "stalled", "diverged", "degenerate"]
 #: Camera model of a synthetic scene (:func:`nplps.make_scene`).
 Camera: TypeAlias = Literal["orthographic", "pinhole"]
 #: The synthetic scenes (:func:`nplps.make_scene`).
-SceneName: TypeAlias = Literal["saddle", "sphere", "cube", "bumps"]
+SceneName: TypeAlias = Literal["saddle", "sphere", "cube", "bumps", "block"]
 #: Where sphere calibration takes each sphere's outline (:func:`nplps.calibrate_spheres`).
 Outline: TypeAlias = Literal["mask", "images"]
 #: The board's albedo in intensity calibration (:func:`nplps.calibrate_intensities`).

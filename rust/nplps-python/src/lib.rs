@@ -430,22 +430,50 @@ fn reconstruct_parallel<'py>(
     reconstruction_dict(py, result, rig)
 }
 
+/// The specular albedo map (H x W) of `specular`: a number (the same everywhere) or an (H, W)
+/// array of floats.
+fn specular_map(specular: &Bound<'_, PyAny>, h: usize, w: usize) -> PyResult<Vec<f64>> {
+    if let Ok(value) = specular.extract::<f64>() {
+        return Ok(vec![value; h * w]);
+    }
+    let map: PyReadonlyArrayDyn<'_, f64> = specular.extract().map_err(|_| {
+        InputError::new_err("specular must be None, a number or an (H, W) array of floats")
+    })?;
+    if map.shape() != [h, w] {
+        return Err(InputError::new_err(format!(
+            "specular must be a number or an (H, W) = ({h}, {w}) map, got shape {:?}",
+            map.shape()
+        )));
+    }
+    Ok(slice(&map, "specular")?.to_vec())
+}
+
 /// Images (k, H, W) or (k, H, W, 3) of the surface `depth` (H+1, W+1) with albedo (H, W) or
-/// (H, W, 3) under the rig.
+/// (H, W, 3) under the rig; with `specular` (a number or an (H, W) map) the glossy model of
+/// roughness `roughness` and index `eta`; with `shadows`, cast shadows are 0.
 #[pyfunction]
-#[pyo3(signature = (depth, rig, albedo, mask=None))]
+#[pyo3(signature = (depth, rig, albedo, mask=None, *, specular=None, roughness=0.3, eta=1.5, shadows=false))]
+#[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
     depth: PyReadonlyArray2<'py, f64>,
     rig: &Bound<'py, rig::Rig>,
     albedo: PyReadonlyArrayDyn<'py, f64>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
+    specular: Option<&Bound<'py, PyAny>>,
+    roughness: f64,
+    eta: f64,
+    shadows: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = &rig.get().rig;
     let (h, w, depth_s) = depth_grid(&depth)?;
     let channels = albedo_channels(&albedo)?;
     let albedo_s = slice(&albedo, "albedo")?;
     let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let specular = specular
+        .filter(|s| !s.is_none())
+        .map(|s| specular_map(s, h, w))
+        .transpose()?;
     let surface = nplps::Surface {
         height: h,
         width: w,
@@ -454,10 +482,41 @@ fn render<'py>(
         channels,
         mask,
     };
+    let options = nplps::RenderOptions::default()
+        .with_specular(specular.as_deref().map(|albedo| nplps::Specular {
+            albedo,
+            lobe: nplps::reflectance::Lobe::new(roughness, eta),
+        }))
+        .with_cast_shadows(shadows);
     let images = py
-        .detach(|| no_panic(|| nplps::render(rig, &surface)))
+        .detach(|| no_panic(|| nplps::render_with(rig, &surface, &options)))
         .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
+}
+
+/// Cast shadows (k, H, W) bool of the surface `depth` (H+1, W+1) under the rig's lights (see
+/// `nplps::shadow`): True where the segment from the pixel's facet to the light passes behind
+/// the surface.
+#[pyfunction]
+#[pyo3(signature = (depth, rig, mask=None, *, max_steps=None))]
+fn cast_shadows<'py>(
+    py: Python<'py>,
+    depth: PyReadonlyArray2<'py, f64>,
+    rig: &Bound<'py, rig::Rig>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+    max_steps: Option<usize>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let rig = &rig.get().rig;
+    let (h, w, depth_s) = depth_grid(&depth)?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let bools = py
+        .detach(|| {
+            no_panic(|| {
+                nplps::cast_shadows(rig, h, w, depth_s, mask, max_steps).and_then(|s| s.to_bools())
+            })
+        })
+        .map_err(to_py)?;
+    array(py, bools, &[rig.n_lights(), h, w])
 }
 
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
@@ -611,6 +670,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(cast_shadows, m)?)?;
     m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;

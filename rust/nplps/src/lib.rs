@@ -177,6 +177,7 @@ mod refinement;
 pub mod reflectance;
 mod render;
 mod rig;
+pub mod shadow;
 mod solver;
 #[cfg(feature = "synth")]
 mod synth;
@@ -202,8 +203,11 @@ pub use reconstruction::{
 };
 pub use refine::Conditioning;
 pub use reflectance::{Lobe, Reflectance};
-pub use render::{mesh_normals, predict, render, vertices, Surface};
+pub use render::{
+    mesh_normals, predict, render, render_with, vertices, RenderOptions, Specular, Surface,
+};
 pub use rig::{Camera, Rig, MAX_LIGHTS};
+pub use shadow::{cast_shadows, ShadowMask};
 pub use solver::reconstruct;
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

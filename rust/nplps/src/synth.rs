@@ -26,24 +26,30 @@ pub enum SceneKind {
     Cube,
     /// A plane with 12 random Gaussian bumps and dents (seeded).
     Bumps,
+    /// A square block (0.4 size wide, 0.2 size tall, sharp walls one pixel wide) standing on a
+    /// plane: the lights cast its shadow on the plane (the scene with cast shadows; see
+    /// [`crate::shadow`]).
+    Block,
 }
 
 impl SceneKind {
     /// All kinds, in a fixed order.
-    pub const ALL: [SceneKind; 4] = [
+    pub const ALL: [SceneKind; 5] = [
         SceneKind::Saddle,
         SceneKind::SphereCap,
         SceneKind::Cube,
         SceneKind::Bumps,
+        SceneKind::Block,
     ];
 
-    /// Lower-case name (`saddle`, `sphere`, `cube`, `bumps`).
+    /// Lower-case name (`saddle`, `sphere`, `cube`, `bumps`, `block`).
     pub fn name(&self) -> &'static str {
         match self {
             SceneKind::Saddle => "saddle",
             SceneKind::SphereCap => "sphere",
             SceneKind::Cube => "cube",
             SceneKind::Bumps => "bumps",
+            SceneKind::Block => "block",
         }
     }
 
@@ -181,6 +187,10 @@ impl Scene {
                                         .exp()
                             })
                             .sum::<f64>()
+                }
+                SceneKind::Block => {
+                    let inside = x.abs() <= 0.2 * size && y.abs() <= 0.2 * size;
+                    distance + 0.05 * size - if inside { 0.2 * size } else { 0.0 }
                 }
             }
         };
@@ -367,4 +377,36 @@ fn random_bumps(size: f64, seed: u64) -> Vec<Bump> {
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Of the scenes, at the default rig, only the block casts shadows (the others' slopes stay
+    /// below the lights' angles); the block shadows a fair share of the plane.
+    #[test]
+    fn the_block_scene_casts_shadows() {
+        for kind in SceneKind::ALL {
+            for pinhole in [false, true] {
+                let options = SceneOptions::default().with_pinhole(pinhole);
+                let scene = Scene::with_options(kind, 48, 100.0, 200.0, 0, options).unwrap();
+                let shadows = crate::shadow::cast_shadows(
+                    &scene.rig,
+                    48,
+                    48,
+                    &scene.depth,
+                    Some(&scene.mask),
+                    None,
+                )
+                .unwrap();
+                let share = shadows.count() as f64 / (48.0 * 48.0 * 27.0);
+                println!("{} pinhole {pinhole}: {share:.4}", kind.name());
+                if kind == SceneKind::Block {
+                    assert!(share > 0.005, "{share}");
+                }
+            }
+        }
+        assert_eq!(SceneKind::from_name("block").unwrap(), SceneKind::Block);
+    }
 }

@@ -1,0 +1,729 @@
+//! Cast shadows of a height field: which facets does the surface itself hide from which light.
+//!
+//! ## The test
+//!
+//! The surface is the mesh of an (H+1) x (W+1) vertex depth map (vertices at pixel corners,
+//! positions from the camera, see [`crate::vertices`]). Facet (pixel) `p` with centre `c` (the
+//! mean of its 4 corners) sees light k along the segment
+//!
+//! ```text
+//! x(t) = c + t (e - c),   0 <= t <= 1,
+//! ```
+//!
+//! where `e` is the light's position (point light) or a far point `c + T d` along its direction
+//! `d` (directional light). The segment is cut where it comes nearer to the camera than the
+//! nearest vertex of the map (`z(t) < z_min`): beyond that point nothing can block it. The
+//! facet is in a cast shadow of light k when some point of the (cut) segment lies behind the
+//! surface seen along the camera ray through it:
+//!
+//! ```text
+//! z_surface(project(x(t))) < z(t) - tol,    tol = 1e-6 |z(t)| + 1/4 (max - min of the facet's corner depths),
+//! ```
+//!
+//! where `z_surface(u, v)` interpolates the vertex depths bilinearly in the image cell that
+//! contains the image point `(u, v)` (vertex (r, c) stands at `(u, v) = (c - 1/2, r - 1/2)`,
+//! for both cameras). The relative term absorbs rounding; the facet term keeps a facet from
+//! shadowing itself where the bilinear surface bends away from its plane.
+//!
+//! ## The march
+//!
+//! The segment is sampled half a pixel apart in the image (so that a sharp edge, a wall one
+//! pixel wide, is not stepped over): its image is a straight line in the undistorted image
+//! plane (`m(x) = (x / w, y / h)` orthographic, `m(x) = K (x / z, y / z)` pinhole, in pixels),
+//! of length `L` pixels; sample `i` (1, 2, ...) is at `s = i / ceil(2 L)` along it, which is
+//! the 3-D point `c + w (e - c)` with the perspective-correct
+//! `w = s z_c / ((1 - s) z_e + s z_c)` (pinhole; `w = s` orthographic), projected with the
+//! camera's distortion to find its cell. The march stops (unblocked) when the sample leaves the
+//! image, enters a pixel outside the mask or a cell with a non-finite corner, or after
+//! `max_steps` pixels (`2 max_steps` samples); it stops (blocked) at the first sample behind the
+//! surface.
+//!
+//! Facets that turn away from the light (`n . beta(c) <= 0`, an attached shadow, already dark
+//! in the image model) and facets outside the mask or with a non-finite corner are never
+//! marked.
+//!
+//! ## Cost
+//!
+//! At most `min(2 max_steps, ceil(2 L))` samples per facet and light, each a projection and a
+//! bilinear interpolation: `O(H W k min(max_steps, D))` with `D` the image diagonal, parallel
+//! over pixels. The default `max_steps = 2 max(H, W)` exceeds every path inside the image
+//! (its diagonal is at most `sqrt(2) max(H, W)`), so it never truncates a march that stays in
+//! the image. Flat regions cost nothing: a segment from a facet at `z_min` is cut at once.
+//! Without lens distortion (samples evenly spaced in pixels) the march also skips, in one step,
+//! the samples that stay inside an 8 x 8 pixel tile whose nearest vertex is not nearer than
+//! them (they cannot be blocked there): the same result, with far fewer samples over open
+//! ground.
+
+use rayon::prelude::*;
+
+use crate::error::{ensure_range, ensure_shape, Result};
+use crate::geometry::{quad_centre, quad_normal};
+use crate::light::Light;
+use crate::rig::{Camera, Rig};
+use crate::vec3::{dot, not_above, sub};
+
+/// Which facet is in a cast shadow of which light: `k` bits per pixel, bit-packed in
+/// `words_per_pixel = ceil(k / 64)` words per pixel (pixel-major, row-major pixels).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ShadowMask {
+    height: usize,
+    width: usize,
+    lights: usize,
+    words: usize,
+    bits: Vec<u64>,
+}
+
+impl ShadowMask {
+    /// Image height H.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Image width W.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Number of lights k.
+    pub fn lights(&self) -> usize {
+        self.lights
+    }
+
+    /// Words (u64) per pixel, `ceil(k / 64)`.
+    pub fn words_per_pixel(&self) -> usize {
+        self.words
+    }
+
+    /// Whether pixel `pixel` (row-major index) is in a cast shadow of light `light`.
+    ///
+    /// # Panics
+    /// When `pixel >= H W` or `light >= k`.
+    #[inline]
+    pub fn is_shadowed(&self, pixel: usize, light: usize) -> bool {
+        assert!(
+            pixel < self.height * self.width && light < self.lights,
+            "pixel or light out of range"
+        );
+        self.bits[pixel * self.words + light / 64] >> (light % 64) & 1 == 1
+    }
+
+    /// Number of (pixel, light) pairs in a cast shadow.
+    pub fn count(&self) -> usize {
+        self.bits.iter().map(|w| w.count_ones() as usize).sum()
+    }
+
+    /// The mask as booleans in the layout of an image stack, (k, H, W).
+    pub fn to_bools(&self) -> Result<Vec<bool>> {
+        let plane = self.height * self.width;
+        let mut out = crate::memory::try_vec(self.lights * plane, false, "the shadow mask")?;
+        if plane > 0 {
+            out.par_chunks_mut(plane)
+                .enumerate()
+                .for_each(|(k, image)| {
+                    for (p, o) in image.iter_mut().enumerate() {
+                        *o = self.bits[p * self.words + k / 64] >> (k % 64) & 1 == 1;
+                    }
+                });
+        }
+        Ok(out)
+    }
+}
+
+/// The cast shadows of the surface `depth` ((H+1) x (W+1) vertex depths, row-major) under the
+/// rig's lights, for the pixels of `mask` (H x W; None: all), marching at most `max_steps`
+/// pixels per facet and light (None: `2 max(H, W)`, more than any path inside the image). See
+/// the module documentation.
+pub fn cast_shadows(
+    rig: &Rig,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+    mask: Option<&[bool]>,
+    max_steps: Option<usize>,
+) -> Result<ShadowMask> {
+    let plane = height * width;
+    if let Some(m) = mask {
+        ensure_shape("mask", plane, m.len(), || {
+            format!("mask has {} values, expected H x W = {plane}", m.len())
+        })?;
+    }
+    let vertices = crate::render::vertices(&rig.camera, height, width, depth)?;
+    shadows_of_vertices(rig, height, width, &vertices, mask, max_steps)
+}
+
+/// [`cast_shadows`] from the vertex positions ((H+1) x (W+1)); the mask's length is checked
+/// by the caller.
+pub(crate) fn shadows_of_vertices(
+    rig: &Rig,
+    height: usize,
+    width: usize,
+    vertices: &[[f64; 3]],
+    mask: Option<&[bool]>,
+    max_steps: Option<usize>,
+) -> Result<ShadowMask> {
+    march_all(rig, height, width, vertices, mask, max_steps, true)
+}
+
+/// [`shadows_of_vertices`], skipping through tiles (see [`Tiles`]) when `skip`; the result is
+/// the same either way.
+fn march_all(
+    rig: &Rig,
+    height: usize,
+    width: usize,
+    vertices: &[[f64; 3]],
+    mask: Option<&[bool]>,
+    max_steps: Option<usize>,
+    skip: bool,
+) -> Result<ShadowMask> {
+    let max_steps = max_steps.unwrap_or(2 * height.max(width));
+    ensure_range(max_steps >= 1, "max_steps", max_steps as f64, || {
+        "max_steps must be at least 1".to_string()
+    })?;
+    let plane = height * width;
+    let lights = rig.lights.len();
+    let words = lights.div_ceil(64);
+    crate::memory::check(
+        || format!("the cast shadows of {lights} lights on {plane} pixels"),
+        8.0 * (plane * words) as f64,
+        None,
+    )?;
+    let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
+    let z_min = vertices
+        .iter()
+        .map(|v| v[2])
+        .filter(|z| z.is_finite())
+        .fold(f64::INFINITY, f64::min);
+    if words > 0 && z_min.is_finite() {
+        let undistorted = match rig.camera {
+            Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+            _ => true,
+        };
+        let tiles = if skip && undistorted {
+            Some(Tiles::new(height, width, vertices, mask)?)
+        } else {
+            None
+        };
+        let march = March {
+            camera: &rig.camera,
+            height,
+            width,
+            vertices,
+            mask,
+            z_min,
+            max_steps,
+            tiles,
+        };
+        bits.par_chunks_mut(words)
+            .enumerate()
+            .for_each(|(p, out)| march.pixel(p, &rig.lights, out));
+    }
+    Ok(ShadowMask {
+        height,
+        width,
+        lights,
+        words,
+        bits,
+    })
+}
+
+/// Side of a tile of [`Tiles`], in pixels.
+const TILE: usize = 8;
+
+/// The nearest vertex depth of each tile of `TILE` x `TILE` pixels (`-inf` where a pixel of the
+/// tile is outside the mask or a vertex is not finite): a march whose samples stay within a
+/// tile and above its nearest depth (`z - tol <= min`) cannot be blocked there and skips to the
+/// tile's edge. Only for cameras without distortion, whose samples are evenly spaced in pixels.
+/// Skipping changes no result: it passes over only samples that could not stop the march.
+struct Tiles {
+    cols: usize,
+    min: Vec<f64>,
+}
+
+impl Tiles {
+    fn new(
+        height: usize,
+        width: usize,
+        vertices: &[[f64; 3]],
+        mask: Option<&[bool]>,
+    ) -> Result<Tiles> {
+        let (rows, cols) = (height.div_ceil(TILE), width.div_ceil(TILE));
+        let min = crate::memory::try_par_collect(
+            (0..rows * cols).into_par_iter().map(|t| {
+                let (r0, c0) = ((t / cols) * TILE, (t % cols) * TILE);
+                let (r1, c1) = ((r0 + TILE).min(height), (c0 + TILE).min(width));
+                let masked =
+                    mask.is_some_and(|m| (r0..r1).any(|r| (c0..c1).any(|c| !m[r * width + c])));
+                if masked {
+                    return f64::NEG_INFINITY;
+                }
+                let mut lo = f64::INFINITY;
+                for r in r0..=r1 {
+                    for c in c0..=c1 {
+                        let z = vertices[r * (width + 1) + c][2];
+                        if !z.is_finite() {
+                            return f64::NEG_INFINITY;
+                        }
+                        lo = lo.min(z);
+                    }
+                }
+                lo
+            }),
+            "the tiles of the shadow march",
+        )?;
+        Ok(Tiles { cols, min })
+    }
+}
+
+/// What one march needs: the camera, the mesh, the mask and the bounds.
+struct March<'a> {
+    camera: &'a Camera,
+    height: usize,
+    width: usize,
+    vertices: &'a [[f64; 3]],
+    mask: Option<&'a [bool]>,
+    z_min: f64,
+    max_steps: usize,
+    tiles: Option<Tiles>,
+}
+
+impl March<'_> {
+    /// The 4 corners of pixel (row, col): (r, c), (r, c+1), (r+1, c), (r+1, c+1).
+    #[inline]
+    fn quad(&self, row: usize, col: usize) -> [[f64; 3]; 4] {
+        let v = row * (self.width + 1) + col;
+        let w = self.width + 1;
+        [
+            self.vertices[v],
+            self.vertices[v + 1],
+            self.vertices[v + w],
+            self.vertices[v + w + 1],
+        ]
+    }
+
+    /// Sets the bits of pixel `p`'s shadowed lights in `out`.
+    fn pixel(&self, p: usize, lights: &[Light], out: &mut [u64]) {
+        if self.mask.is_some_and(|m| !m[p]) {
+            return;
+        }
+        let q = self.quad(p / self.width, p % self.width);
+        if !q.iter().flatten().all(|x| x.is_finite()) {
+            return;
+        }
+        let (c, n) = (quad_centre(&q), quad_normal(&q));
+        let (lo, hi) = q
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
+                (lo.min(x[2]), hi.max(x[2]))
+            });
+        let slack = 0.25 * (hi - lo);
+        for (k, light) in lights.iter().enumerate() {
+            let beta = light.beta(c).0;
+            if not_above(dot(n, beta), 0.0) {
+                continue;
+            }
+            if self.blocked(c, light, slack) {
+                out[k / 64] |= 1 << (k % 64);
+            }
+        }
+    }
+
+    /// The undistorted image-plane point of `x` in pixels (see the module documentation).
+    #[inline]
+    fn plane_point(&self, x: [f64; 3]) -> [f64; 2] {
+        match *self.camera {
+            Camera::Orthographic { pixel_size, .. } => [x[0] / pixel_size[0], x[1] / pixel_size[1]],
+            Camera::Pinhole { k, .. } => {
+                let (a, b) = (x[0] / x[2], x[1] / x[2]);
+                [k[0][0] * a + k[0][1] * b, k[1][1] * b]
+            }
+        }
+    }
+
+    /// Whether the segment from `c` towards `light` passes behind the surface.
+    fn blocked(&self, c: [f64; 3], light: &Light, slack: f64) -> bool {
+        let perspective = self.camera.is_perspective();
+        // The far end e of the segment, before the cut at z_min.
+        let (dir, t_end) = match *light {
+            Light::Point { position, .. } => (sub(position, c), 1.0),
+            Light::Directional { direction, .. } => {
+                // Far enough that the image of c + T d is many image sizes away (or at the
+                // vanishing point, for a pinhole camera).
+                let reach = (self.height + self.width) as f64 * 1e3;
+                let scale = if perspective {
+                    c[2].abs()
+                } else {
+                    let [u, v] = self.plane_point(direction);
+                    1.0 / u.hypot(v).max(1e-300)
+                };
+                (direction, (reach * scale).min(1e300))
+            }
+        };
+        // Cut where the segment comes nearer than z_min.
+        let t_cut = if dir[2] < 0.0 {
+            ((self.z_min - c[2]) / dir[2]).max(0.0)
+        } else {
+            f64::INFINITY
+        };
+        let t = t_end.min(t_cut);
+        if not_above(t, 0.0) {
+            return false;
+        }
+        let e = [c[0] + t * dir[0], c[1] + t * dir[1], c[2] + t * dir[2]];
+        let (m0, m1) = (self.plane_point(c), self.plane_point(e));
+        let length = (m1[0] - m0[0]).hypot(m1[1] - m0[1]);
+        if !length.is_finite() {
+            return false;
+        }
+        // Samples half a pixel apart, at most 2 max_steps of them (max_steps pixels).
+        let total = (2.0 * length).ceil().max(1.0);
+        let steps = (total as usize).min(2 * self.max_steps);
+        let d = sub(e, c);
+        let point = |i: usize| {
+            let s = i as f64 / total;
+            let w = if perspective {
+                s * c[2] / ((1.0 - s) * e[2] + s * c[2])
+            } else {
+                s
+            };
+            [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]]
+        };
+        // Blocked where the surface is nearer than `z - tol(z)`, which grows with z.
+        let reach = |z: f64| z - (1e-6 * z.abs() + slack);
+        // The image step of one sample, in pixels (exact without distortion).
+        let step = [(m1[0] - m0[0]) / total, (m1[1] - m0[1]) / total];
+        let mut i = 1;
+        while i <= steps {
+            let x = point(i);
+            let [u, v] = self.camera.project(x);
+            let (gx, gy) = (u + 0.5, v + 0.5);
+            let Some(z_surface) = self.surface_depth(gx, gy) else {
+                return false;
+            };
+            if z_surface < reach(x[2]) {
+                return true;
+            }
+            if let Some(k) = self.samples_in_tile(gx, gy, step).filter(|&k| k > 0) {
+                // z is monotone along the segment: its largest value over the skipped samples
+                // is at one end of them.
+                let j = (i + k).min(steps);
+                let tile_min = self.tile_min(gx, gy);
+                if reach(x[2].max(point(j)[2])) <= tile_min {
+                    i = j + 1;
+                    continue;
+                }
+            }
+            i += 1;
+        }
+        false
+    }
+
+    /// The cell (row, col) of the grid point (gx, gy) inside the image.
+    #[inline]
+    fn cell(&self, gx: f64, gy: f64) -> (usize, usize) {
+        (
+            (gy as usize).min(self.height - 1),
+            (gx as usize).min(self.width - 1),
+        )
+    }
+
+    /// The nearest depth of the tile of (gx, gy) (`-inf` without tiles).
+    #[inline]
+    fn tile_min(&self, gx: f64, gy: f64) -> f64 {
+        let Some(tiles) = &self.tiles else {
+            return f64::NEG_INFINITY;
+        };
+        let (row, col) = self.cell(gx, gy);
+        tiles.min[(row / TILE) * tiles.cols + col / TILE]
+    }
+
+    /// How many of the next samples, `step` pixels apart, stay strictly inside the tile of
+    /// (gx, gy) (None without tiles).
+    #[inline]
+    fn samples_in_tile(&self, gx: f64, gy: f64, step: [f64; 2]) -> Option<usize> {
+        self.tiles.as_ref()?;
+        let (row, col) = self.cell(gx, gy);
+        let along = |g: f64, d: f64, lo: usize, size: usize| {
+            let hi = (lo + TILE).min(size) as f64;
+            if d > 0.0 {
+                (hi - g) / d
+            } else if d < 0.0 {
+                (g - lo as f64) / -d
+            } else {
+                f64::INFINITY
+            }
+        };
+        let room = along(gx, step[0], (col / TILE) * TILE, self.width).min(along(
+            gy,
+            step[1],
+            (row / TILE) * TILE,
+            self.height,
+        ));
+        if !room.is_finite() {
+            return Some(self.max_steps);
+        }
+        Some(((room - 1e-6).ceil().max(0.0) as usize).saturating_sub(1))
+    }
+
+    /// The bilinear surface depth at the grid point (gx, gy) (the image point plus 1/2), or
+    /// None outside the image, the mask or the finite vertices.
+    #[inline]
+    fn surface_depth(&self, gx: f64, gy: f64) -> Option<f64> {
+        let (w, h) = (self.width as f64, self.height as f64);
+        if !(gx >= 0.0 && gx <= w && gy >= 0.0 && gy <= h) {
+            return None;
+        }
+        let (row, col) = self.cell(gx, gy);
+        if self.mask.is_some_and(|m| !m[row * self.width + col]) {
+            return None;
+        }
+        let q = self.quad(row, col);
+        let (fx, fy) = (gx - col as f64, gy - row as f64);
+        let z = (1.0 - fy) * ((1.0 - fx) * q[0][2] + fx * q[1][2])
+            + fy * ((1.0 - fx) * q[2][2] + fx * q[3][2]);
+        z.is_finite().then_some(z)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vec3::normalize;
+
+    const N: usize = 40;
+
+    /// A plane at depth `z0` with a square block (vertex columns and rows `lo..=hi`) raised by
+    /// `h` towards the camera.
+    fn block(z0: f64, h: f64, lo: usize, hi: usize) -> Vec<f64> {
+        (0..(N + 1) * (N + 1))
+            .map(|v| {
+                let (r, c) = (v / (N + 1), v % (N + 1));
+                if (lo..=hi).contains(&r) && (lo..=hi).contains(&c) {
+                    z0 - h
+                } else {
+                    z0
+                }
+            })
+            .collect()
+    }
+
+    fn ortho(lights: Vec<Light>) -> Rig {
+        Rig {
+            camera: Camera::Orthographic {
+                pixel_size: [1.0, 1.0],
+                origin: [0.0, 0.0],
+            },
+            lights,
+        }
+    }
+
+    fn pinhole(lights: Vec<Light>) -> Rig {
+        let cx = (N as f64 - 1.0) / 2.0;
+        Rig {
+            camera: Camera::Pinhole {
+                k: [[100.0, 0.0, cx], [0.0, 100.0, cx], [0.0, 0.0, 1.0]],
+                distortion: [0.0; 5],
+            },
+            lights,
+        }
+    }
+
+    fn sun(direction: [f64; 3]) -> Light {
+        Light::Directional {
+            direction: normalize(direction),
+            intensity: [1.0; 3],
+        }
+    }
+
+    /// The shadowed columns of row `row` for light `k`.
+    fn shadowed_columns(s: &ShadowMask, row: usize, k: usize) -> Vec<usize> {
+        (0..N).filter(|&c| s.is_shadowed(row * N + c, k)).collect()
+    }
+
+    #[test]
+    fn a_plane_casts_no_shadows() {
+        let lights = vec![
+            Light::point([5.0, 30.0, 10.0]),
+            Light::point([-50.0, 20.0, 60.0]),
+            sun([1.0, 0.3, -0.5]),
+            sun([0.0, 0.0, -1.0]),
+        ];
+        // Flat and tilted planes, orthographic.
+        for slope in [0.0, 0.4] {
+            let depth: Vec<f64> = (0..(N + 1) * (N + 1))
+                .map(|v| 100.0 + slope * (v % (N + 1)) as f64)
+                .collect();
+            let s = cast_shadows(&ortho(lights.clone()), N, N, &depth, None, None).unwrap();
+            assert_eq!(s.count(), 0, "slope {slope}");
+        }
+        // A plane seen by a pinhole camera, lights in front of it.
+        let lights = vec![
+            Light::point([50.0, 30.0, 100.0]),
+            Light::point([-300.0, 20.0, 400.0]),
+            sun([1.0, 0.3, -0.5]),
+        ];
+        let s = cast_shadows(
+            &pinhole(lights),
+            N,
+            N,
+            &vec![1000.0; (N + 1) * (N + 1)],
+            None,
+            None,
+        )
+        .unwrap();
+        assert_eq!(s.count(), 0);
+    }
+
+    /// A block of height 10 on a plane at 100, orthographic, 1-unit pixels: a light at 45
+    /// degrees on the +x side shadows the plane 10 units to the block's -x side (the wall is
+    /// the facet between vertex columns 19 and 20, the top edge at x = 20); an overhead light
+    /// shadows nothing.
+    #[test]
+    fn a_block_shadows_the_plane_on_the_far_side_of_a_low_light() {
+        let depth = block(100.0, 10.0, 20, 30);
+        let (rig_low, rig_high) = (
+            ortho(vec![
+                sun([1.0, 0.0, -1.0]),
+                Light::point([125.0, 25.0, 0.0]),
+            ]),
+            ortho(vec![Light::point([25.0, 25.0, 0.0]), sun([0.0, 0.0, -1.0])]),
+        );
+        let s = cast_shadows(&rig_low, N, N, &depth, None, None).unwrap();
+        // Directional at 45 degrees: plane pixels with centre x0 in (10, 19) are shadowed
+        // (analytic shadow [10, 20], less the wall pixel 19), the first within a pixel.
+        let cols = shadowed_columns(&s, 25, 0);
+        assert!((cols[0] as f64 + 0.5 - 10.0).abs() <= 1.0, "{cols:?}");
+        assert_eq!(cols.last().copied(), Some(18), "{cols:?}");
+        assert!((cols.len() as f64 - 9.0).abs() <= 1.0, "{cols:?}");
+        // Rows outside the block's span see the light.
+        assert!(shadowed_columns(&s, 5, 0).is_empty());
+        // Point light at x = 125, z = 0: from the plane at x0 the segment passes behind the
+        // edge (x = 20, z = 90) when 100 (20 - x0) / (125 - x0) < 10, i.e.
+        // x0 > 20 - 10 (125 - 20) / 90.
+        // The shadow on the plane runs from there to the wall's foot (x = 19): its length in
+        // pixels within a pixel of the analytic one.
+        let cols = shadowed_columns(&s, 25, 1);
+        let analytic = 19.0 - (20.0 - 10.0 * (125.0 - 20.0) / 90.0);
+        assert_eq!(cols.last().copied(), Some(18), "{cols:?}");
+        assert!(
+            (cols.len() as f64 - analytic).abs() <= 1.0,
+            "{cols:?} vs {analytic}"
+        );
+        let high = cast_shadows(&rig_high, N, N, &depth, None, None).unwrap();
+        assert_eq!(high.count(), 0);
+    }
+
+    #[test]
+    fn a_block_under_a_pinhole_camera() {
+        // Plane at 1000, block 100 taller; f = 100 px, centre pixel 19.5: the top edge (vertex
+        // column 20, u = 19.5) stands at x = 0; a 45-degree light from +x shadows the plane from
+        // x = -100, i.e. u = -100 / 10 + 19.5 = 9.5, to the wall's foot (vertex column 19).
+        let depth = block(1000.0, 100.0, 20, 30);
+        let s = cast_shadows(
+            &pinhole(vec![sun([1.0, 0.0, -1.0])]),
+            N,
+            N,
+            &depth,
+            None,
+            None,
+        )
+        .unwrap();
+        let cols = shadowed_columns(&s, 25, 0);
+        assert!(
+            (cols[0] as f64 - 9.5).abs() <= 1.0 && cols.last() == Some(&18),
+            "{cols:?}"
+        );
+        // A point light high over the block's centre (u = v = 25 at z = 900: x = y = 49.5),
+        // at z = 100: the segments from the plane rise more steeply than the walls, nothing.
+        let s = cast_shadows(
+            &pinhole(vec![Light::point([49.5, 49.5, 100.0])]),
+            N,
+            N,
+            &depth,
+            None,
+            None,
+        )
+        .unwrap();
+        assert_eq!(s.count(), 0);
+    }
+
+    #[test]
+    fn max_steps_bounds_the_march_and_the_mask_stops_it() {
+        let depth = block(100.0, 10.0, 20, 30);
+        let rig = ortho(vec![sun([1.0, 0.0, -1.0])]);
+        let s = cast_shadows(&rig, N, N, &depth, None, Some(3)).unwrap();
+        // Only pixels whose blocker is within 3 pixels are found.
+        let cols = shadowed_columns(&s, 25, 0);
+        assert!(
+            !cols.is_empty() && cols.len() <= 3 && cols[0] >= 15,
+            "{cols:?}"
+        );
+        // Masking the block out: the march stops at its edge, no shadow.
+        let mask: Vec<bool> = (0..N * N).map(|p| p % N < 19).collect();
+        let s = cast_shadows(&rig, N, N, &depth, Some(&mask), None).unwrap();
+        assert_eq!(s.count(), 0);
+        let err = cast_shadows(&rig, N, N, &depth, Some(&mask[1..]), None).unwrap_err();
+        assert!(err.to_string().contains("mask has"), "{err}");
+        assert!(cast_shadows(&rig, N, N, &depth, None, Some(0)).is_err());
+    }
+
+    /// Skipping through tiles changes no result: bumps and a block, both cameras, with a mask.
+    #[test]
+    fn tiles_change_nothing() {
+        let bumpy: Vec<f64> = (0..(N + 1) * (N + 1))
+            .map(|v| {
+                let (r, c) = ((v / (N + 1)) as f64, (v % (N + 1)) as f64);
+                100.0
+                    - 6.0 * (-((r - 12.0).powi(2) + (c - 25.0).powi(2)) / 20.0).exp()
+                    - 4.0 * (-((r - 30.0).powi(2) + (c - 10.0).powi(2)) / 8.0).exp()
+            })
+            .collect();
+        let mask: Vec<bool> = (0..N * N).map(|p| (p / N + p % N) % 17 != 3).collect();
+        let lights = vec![
+            sun([1.0, 0.2, -1.0]),
+            sun([-0.4, -1.0, -0.8]),
+            Light::point([60.0, 10.0, 60.0]),
+            Light::point([-20.0, 50.0, 80.0]),
+        ];
+        let mut found = 0;
+        for depth in [bumpy, block(100.0, 10.0, 20, 30)] {
+            let depth_pinhole: Vec<f64> = depth.iter().map(|z| 10.0 * z).collect();
+            for (rig, z) in [
+                (ortho(lights.clone()), &depth),
+                (pinhole(lights.clone()), &depth_pinhole),
+            ] {
+                let v = crate::render::vertices(&rig.camera, N, N, z).unwrap();
+                for m in [None, Some(&mask[..])] {
+                    let fast = march_all(&rig, N, N, &v, m, None, true).unwrap();
+                    let slow = march_all(&rig, N, N, &v, m, None, false).unwrap();
+                    assert_eq!(fast, slow);
+                    found += fast.count();
+                }
+            }
+        }
+        assert!(found > 100, "{found}");
+    }
+
+    #[test]
+    fn the_mask_packs_many_lights() {
+        let depth = block(100.0, 10.0, 20, 30);
+        let lights: Vec<Light> = (0..70)
+            .map(|i| {
+                if i % 2 == 0 {
+                    sun([1.0, 0.0, -1.0])
+                } else {
+                    sun([0.0, 0.0, -1.0])
+                }
+            })
+            .collect();
+        let s = cast_shadows(&ortho(lights), N, N, &depth, None, None).unwrap();
+        assert_eq!(s.words_per_pixel(), 2);
+        let bools = s.to_bools().unwrap();
+        assert_eq!(bools.len(), 70 * N * N);
+        assert_eq!(bools.iter().filter(|&&b| b).count(), s.count());
+        for k in [0, 1, 64, 65, 69] {
+            let p = 25 * N + 12;
+            assert_eq!(s.is_shadowed(p, k), k % 2 == 0);
+            assert_eq!(bools[k * N * N + p], k % 2 == 0);
+        }
+    }
+}
