@@ -540,13 +540,20 @@ impl<'p> Solver<'p> {
             return Ok(());
         }
         self.lobe_from_scratch |= from_scratch;
+        // A solver without a lobe searches the whole grids twice: first on its starting
+        // surface, then on the surface of its first iterations; later estimates search near
+        // the last one.
+        let near = match iteration == LOBE_AT[0] && self.lobe_from_scratch {
+            true => None,
+            false => self.lobe,
+        };
         let t = Instant::now();
         let depths = self.depths(u)?;
         let step = LocalStep {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
             ..self.local_step(true, depths.as_deref())
         };
-        if let Some(lobe) = estimate_lobe(&step, u, self.lobe)? {
+        if let Some(lobe) = estimate_lobe(&step, u, near)? {
             self.lobe = Some(lobe);
         }
         self.timings.local += t.elapsed();
