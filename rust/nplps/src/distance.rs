@@ -274,10 +274,36 @@ fn search_with(
     // A candidate far from the truth may pull the surface through a light: that is a high
     // residual for the search, not an error.
     solver.check_lights = false;
-    let found = search_refined(solver, problem, search, range, progress);
+    let found = hold_lobe(solver, problem, (range.0 * range.1).sqrt(), search.inner)
+        .and_then(|()| search_refined(solver, problem, search, range, progress));
+    solver.hold_lobe = false;
     solver.check_lights = true;
     solver.lights.restart(refine);
     found
+}
+
+/// Under the glossy model with a lobe to estimate, the candidates are compared under one lobe
+/// (the caller releases it): the one estimated by a run at `distance` (the middle of the
+/// search's range, or the distance checked) with at least `inner` iterations. The final run
+/// of a search estimates it again at the distance found.
+fn hold_lobe(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    distance: f64,
+    inner: usize,
+) -> Result<()> {
+    if !solver.estimates_lobe() {
+        return Ok(());
+    }
+    if solver.lobe.is_none() {
+        let gauge = vec![problem.geometry.unknown(distance); problem.grid.n_regions];
+        let mut u = try_copy(&problem.u0, "the depths")?;
+        problem.grid.apply_gauge(&mut u, &gauge);
+        let iterations = inner.max(crate::solver::LOBE_AT[1]);
+        solver.iterate(&mut u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
+    }
+    solver.hold_lobe = true;
+    Ok(())
 }
 
 /// [`search_with`] once the refinement is set.
@@ -619,6 +645,7 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
             .collect();
         let mut solver = Solver::new(level, &options)?;
         solver.check_lights = false;
+        hold_lobe(&mut solver, level, mean(&given), CHECK_INNER)?;
         let mut ev = Evaluator {
             refine: solver.lights.refine(),
             solver: &mut solver,

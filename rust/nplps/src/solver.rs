@@ -527,11 +527,16 @@ impl<'p> Solver<'p> {
         Ok(change)
     }
 
+    /// Whether the solver fits the glossy model with a lobe it estimates.
+    pub(crate) fn estimates_lobe(&self) -> bool {
+        self.options.reflectance == Reflectance::Glossy(None)
+    }
+
     /// Reflectance: with the glossy model and no lobe given, estimates the shared lobe on the
     /// surface `u` (see [`estimate_lobe`]) when the solver has none yet and at the iterations
     /// [`LOBE_AT`], unless it is held.
     fn reflectance(&mut self, u: &[f64], iteration: usize) -> Result<()> {
-        if self.options.reflectance != Reflectance::Glossy(None) {
+        if !self.estimates_lobe() {
             return Ok(());
         }
         let again = iteration == LOBE_AT[0] || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
