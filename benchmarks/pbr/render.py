@@ -26,7 +26,8 @@ light only (the control must be); larger values add interreflections.
 
 The .npz holds images (k, H, W) float32 (or float16 with ``--float16``), the rig as JSON, the
 true vertex depth (H+1, W+1), ``distance`` (the gauge nplps's ``depth=`` takes: the geometric
-mean depth of the vertices the mask uses), the true facet normals (H, W, 3), the mask, the shape,
+mean depth of the vertices the mask uses), the true facet normals (H, W, 3), the mask, ``shadow``
+(k, H, W) float16, the share of each pixel in each light's cast shadow (``cast_shadows``), the shape,
 material, spp, max_depth, variant and render seconds. ``benchmarks/pbr/run.py`` reconstructs it.
 """
 
@@ -247,8 +248,8 @@ def set_variant() -> str:
 
 def render(
     depth: np.ndarray, mask: np.ndarray, rig: nplps.Rig, material: str, spp: int, max_depth: int
-) -> tuple[np.ndarray, float]:
-    """Render one image per light of the rig; return them (k, H, W) and the seconds taken.
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Render one image per light of the rig; return them (k, H, W), the cast shadows and the render seconds.
 
     One Mitsuba scene with one point emitter is built; the emitter is moved from light to
     light (each image with its own sampler seed).
@@ -297,7 +298,41 @@ def render(
         scene_params.update()
         image = np.asarray(mi.render(world, seed=i, spp=spp))
         images.append(image[..., 0])
-    return np.asarray(images, dtype=np.float32), time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    return np.asarray(images, dtype=np.float32), cast_shadows(world, rig, mask), seconds
+
+
+def cast_shadows(world: Any, rig: nplps.Rig, mask: np.ndarray, sub: int = 4) -> np.ndarray:
+    """Return the share of each pixel in each light's cast shadow (k, H, W), from Mitsuba ray casts.
+
+    The camera rays through ``sub`` x ``sub`` points of each pixel meet the mesh; a point that
+    faces a light (its triangle's normal towards it) but whose ray to the light is blocked by the
+    mesh is in that light's cast shadow. Attached shadows (facing away) are not counted: the
+    image model has them. 0: no cast shadow in the pixel, 1: all of it; in between the pixel is
+    partly shadowed (an edge crosses it).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    K = np.asarray(rig.camera["K"], dtype=np.float64)
+    h, w = mask.shape
+    offsets = (np.arange(sub) + 0.5) / sub - 0.5
+    rows, cols = np.nonzero(mask)
+    u = (cols[:, None, None] + offsets[None, None, :]) * np.ones((1, sub, 1))
+    v = (rows[:, None, None] + offsets[None, :, None]) * np.ones((1, 1, sub))
+    x, y = ((u - K[0, 2]) / K[0, 0]).ravel(), ((v - K[1, 2]) / K[1, 1]).ravel()
+    norm = np.sqrt(x * x + y * y + 1)
+    zero = np.zeros_like(x)
+    rays = mi.Ray3f(mi.Point3f(zero, zero, zero), mi.Vector3f(x / norm, y / norm, 1 / norm))
+    hits = world.ray_intersect(rays)
+    found = np.asarray(hits.is_valid())
+    shadow = np.zeros((len(rig.lights), h, w), dtype=np.float32)
+    for i, position in enumerate(rig.positions):
+        target = mi.Point3f(*(float(c) for c in position))
+        facing = np.asarray(dr.dot(hits.n, target - hits.p)) > 0
+        blocked = np.asarray(world.ray_test(hits.spawn_ray_to(target))) & facing & found
+        shadow[i, rows, cols] = blocked.reshape(-1, sub * sub).mean(1)
+    return shadow
 
 
 def render_file(shape: str, material: str, n: int, spp: int, max_depth: int, out: Path, float16: bool) -> float:
@@ -306,7 +341,7 @@ def render_file(shape: str, material: str, n: int, spp: int, max_depth: int, out
 
     depth, mask = surface(shape, n)
     rig = make_rig(n).with_grid(n, n)
-    images, seconds = render(depth, mask, rig, material, spp, max_depth)
+    images, shadow, seconds = render(depth, mask, rig, material, spp, max_depth)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         out,
@@ -316,6 +351,7 @@ def render_file(shape: str, material: str, n: int, spp: int, max_depth: int, out
         distance=mean_depth(depth, mask),
         normals=np.where(mask[..., None], facet_normals(depth, n), np.nan),
         mask=mask,
+        shadow=shadow.astype(np.float16),
         shape=shape,
         material=material,
         spp=spp,

@@ -12,6 +12,11 @@ that its geometric mean over the vertices the mask uses is the truth's) at the t
 with ``--auto`` also ``depth="auto"``: its mean normal error and the error of the distance it
 found in percent; and the wall seconds of each run.
 
+``--noise S`` adds Gaussian noise of S times each file's maximum (clipped at 0, as
+``make_scene``), ``--seed`` its seed. ``--oracle-shadows`` drops the observations of pixels that
+lie partly or wholly in a true cast shadow (the renders' ``shadow`` array, as ``valid``): what a
+perfect shadow detection would give.
+
 ``--check`` compares the diffuse controls with ``nplps.render`` of the true surface (albedo
 0.5): the median and 95th percentile of the relative difference over the lit observations, the
 number of observations more than 5 % off (partial cast shadows within a pixel, the terminator),
@@ -72,8 +77,22 @@ def reconstruct(data: Any, rig: nplps.Rig, depth: Any, options: dict[str, Any]) 
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = nplps.reconstruct(data["images"].astype(np.float32), rig, depth=depth, mask=data["mask"], **options)
+        result = nplps.reconstruct(data["images"], rig, depth=depth, mask=data["mask"], **options)
     return result, time.perf_counter() - start
+
+
+def prepare(data: dict[str, Any], noise: float, seed: int, oracle: bool, options: dict[str, Any]) -> dict[str, Any]:
+    """Return the options with the true cast shadows as ``valid`` (if asked) and noisy images in `data`."""
+    images = data["images"].astype(np.float32)
+    if noise > 0:
+        rng = np.random.default_rng(seed)
+        images = np.clip(images + rng.normal(0.0, noise * images.max(), images.shape), 0.0, None).astype(np.float32)
+    data["images"] = images
+    if oracle:
+        if "shadow" not in data:
+            raise SystemExit("--oracle-shadows needs renders with the 'shadow' array")
+        options = {**options, "valid": data["shadow"] == 0}
+    return options
 
 
 def check(data: Any, rig: nplps.Rig, options: dict[str, Any]) -> dict[str, float]:
@@ -100,10 +119,17 @@ def main() -> None:
     parser.add_argument("--opt", action="append", default=[], help="key=value, an option of nplps.reconstruct")
     parser.add_argument("--auto", action="store_true", help='also run depth="auto"')
     parser.add_argument("--check", action="store_true", help="compare diffuse controls with nplps.render")
+    parser.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, a fraction of the maximum")
+    parser.add_argument("--seed", type=int, default=0, help="of the noise")
+    parser.add_argument(
+        "--oracle-shadows", action="store_true", help="drop the observations in a true cast shadow (valid=)"
+    )
     parser.add_argument("--json", help="write the numbers to this file")
     args = parser.parse_args()
-    options = parse_options(args.opt)
-    print(f"options: {options or 'defaults'}\n")
+    shared = parse_options(args.opt)
+    extra = f", noise {args.noise}" if args.noise else ""
+    extra += ", true cast shadows dropped" if args.oracle_shadows else ""
+    print(f"options: {shared or 'defaults'}{extra}\n")
     header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | s |"
     if args.auto:
         header += " auto mean (deg) | auto distance error | auto s |"
@@ -111,7 +137,9 @@ def main() -> None:
     print("|" + "---|" * (header.count("|") - 1))
     rows = []
     for path in args.files:
-        data = dict(np.load(path))
+        with np.load(path) as f:
+            data = dict(f)
+        options = prepare(data, args.noise, args.seed, args.oracle_shadows, shared)
         rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
         mask, truth = data["mask"], data["normals"]
         distance = float(data["distance"])
@@ -123,7 +151,9 @@ def main() -> None:
             "material": str(data["material"]),
             "size": int(mask.shape[0]),
             "pixels": int(mask.sum()),
-            "options": options,
+            "options": {key: value for key, value in options.items() if key != "valid"},
+            "noise": args.noise,
+            "oracle_shadows": args.oracle_shadows,
             "mean_deg": float(error.mean()),
             "median_deg": float(np.median(error)),
             "depth_rms_mm": depth_rms(known.depth, data["depth"], mask),
