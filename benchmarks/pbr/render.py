@@ -265,8 +265,9 @@ def render(
     points, triangles = mesh_of(depth, mask)
     mesh = mi.Mesh("surface", vertex_count=len(points), face_count=len(triangles))
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(points.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(triangles.astype(np.uint32).ravel())
+    # The buffers' own types: mi.Float / mi.UInt32 (JIT variants) or dynamic arrays (scalar).
+    params["vertex_positions"] = type(params["vertex_positions"])(points.astype(np.float32).ravel())
+    params["faces"] = type(params["faces"])(triangles.astype(np.uint32).ravel())
     params.update()
     mesh.set_bsdf(mi.load_dict(bsdf(material)))
     sensor = {
@@ -322,11 +323,24 @@ def cast_shadows(world: Any, rig: nplps.Rig, mask: np.ndarray, sub: int = 4) -> 
     v = (rows[:, None, None] + offsets[None, :, None]) * np.ones((1, 1, sub))
     x, y = ((u - K[0, 2]) / K[0, 0]).ravel(), ((v - K[1, 2]) / K[1, 1]).ravel()
     norm = np.sqrt(x * x + y * y + 1)
+    shadow = np.zeros((len(rig.lights), h, w), dtype=np.float32)
+    if str(mi.variant()).startswith("scalar"):
+        # One ray at a time (slow: about a minute per light at 256 x 256).
+        blocked = np.zeros((len(rig.lights), len(x)), dtype=bool)
+        for j in range(len(x)):
+            hit = world.ray_intersect(mi.Ray3f([0.0, 0.0, 0.0], [x[j] / norm[j], y[j] / norm[j], 1 / norm[j]]))
+            if not hit.is_valid():
+                continue
+            for i, position in enumerate(rig.positions):
+                target = mi.Point3f(*(float(c) for c in position))
+                if dr.dot(hit.n, target - hit.p) > 0:
+                    blocked[i, j] = world.ray_test(hit.spawn_ray_to(target))
+        shadow[:, rows, cols] = blocked.reshape(len(rig.lights), -1, sub * sub).mean(2)
+        return shadow
     zero = np.zeros_like(x)
     rays = mi.Ray3f(mi.Point3f(zero, zero, zero), mi.Vector3f(x / norm, y / norm, 1 / norm))
     hits = world.ray_intersect(rays)
     found = np.asarray(hits.is_valid())
-    shadow = np.zeros((len(rig.lights), h, w), dtype=np.float32)
     for i, position in enumerate(rig.positions):
         target = mi.Point3f(*(float(c) for c in position))
         facing = np.asarray(dr.dot(hits.n, target - hits.p)) > 0
