@@ -13,9 +13,9 @@ with ``--auto`` also ``depth="auto"``: its mean normal error and the error of th
 found in percent; and the wall seconds of each run.
 
 ``--noise S`` adds Gaussian noise of S times each file's maximum (clipped at 0, as
-``make_scene``), ``--seed`` its seed. ``--oracle-shadows`` drops the observations of pixels that
-lie partly or wholly in a true cast shadow (the renders' ``shadow`` array, as ``valid``): what a
-perfect shadow detection would give.
+``make_scene``), ``--seed`` its seed, ``--dark-sigmas K`` sets ``dark`` to K noise sigmas.
+``--oracle-shadows`` drops the observations of pixels that lie partly or wholly in a true cast
+shadow (the renders' ``shadow`` array, as ``valid``): what a perfect shadow detection would give.
 
 ``--check`` compares the diffuse controls with ``nplps.render`` of the true surface (albedo
 0.5): the median and 95th percentile of the relative difference over the lit observations, the
@@ -81,13 +81,17 @@ def reconstruct(data: Any, rig: nplps.Rig, depth: Any, options: dict[str, Any]) 
     return result, time.perf_counter() - start
 
 
-def prepare(data: dict[str, Any], noise: float, seed: int, oracle: bool, options: dict[str, Any]) -> dict[str, Any]:
+def prepare(data: dict[str, Any], args: argparse.Namespace, options: dict[str, Any]) -> dict[str, Any]:
     """Return the options with the true cast shadows as ``valid`` (if asked) and noisy images in `data`."""
     images = data["images"].astype(np.float32)
-    if noise > 0:
-        rng = np.random.default_rng(seed)
-        images = np.clip(images + rng.normal(0.0, noise * images.max(), images.shape), 0.0, None).astype(np.float32)
+    if args.noise > 0:
+        sigma = args.noise * float(images.max())
+        rng = np.random.default_rng(args.seed)
+        images = np.clip(images + rng.normal(0.0, sigma, images.shape), 0.0, None).astype(np.float32)
+        if args.dark_sigmas is not None:
+            options = {**options, "dark": args.dark_sigmas * sigma}
     data["images"] = images
+    oracle = args.oracle_shadows
     if oracle:
         if "shadow" not in data:
             raise SystemExit("--oracle-shadows needs renders with the 'shadow' array")
@@ -121,6 +125,7 @@ def main() -> None:
     parser.add_argument("--check", action="store_true", help="compare diffuse controls with nplps.render")
     parser.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, a fraction of the maximum")
     parser.add_argument("--seed", type=int, default=0, help="of the noise")
+    parser.add_argument("--dark-sigmas", type=float, help="with --noise: dark = this many noise sigmas")
     parser.add_argument(
         "--oracle-shadows", action="store_true", help="drop the observations in a true cast shadow (valid=)"
     )
@@ -128,6 +133,7 @@ def main() -> None:
     args = parser.parse_args()
     shared = parse_options(args.opt)
     extra = f", noise {args.noise}" if args.noise else ""
+    extra += f", dark {args.dark_sigmas} sigmas" if args.noise and args.dark_sigmas is not None else ""
     extra += ", true cast shadows dropped" if args.oracle_shadows else ""
     print(f"options: {shared or 'defaults'}{extra}\n")
     header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | s |"
@@ -139,7 +145,7 @@ def main() -> None:
     for path in args.files:
         with np.load(path) as f:
             data = dict(f)
-        options = prepare(data, args.noise, args.seed, args.oracle_shadows, shared)
+        options = prepare(data, args, shared)
         rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
         mask, truth = data["mask"], data["normals"]
         distance = float(data["distance"])
@@ -153,6 +159,7 @@ def main() -> None:
             "pixels": int(mask.sum()),
             "options": {key: value for key, value in options.items() if key != "valid"},
             "noise": args.noise,
+            "dark": options.get("dark"),
             "oracle_shadows": args.oracle_shadows,
             "mean_deg": float(error.mean()),
             "median_deg": float(np.median(error)),
