@@ -1,0 +1,119 @@
+"""The committed Mitsuba 3 renders of benchmarks/pbr (tests/data/pbr): well-formed, and the control.
+
+The files were written by ``benchmarks/pbr/render.py --size 64 --spp 256 --float16`` (Mitsuba
+3.9.1, llvm_ad_rgb, direct light only); Mitsuba is not needed here. The Lambertian control
+(``diffuse``) must agree with nplps's own image model and reconstruct at the true distance to
+≤ 0.1° on a surface without cast shadows. Glossy assertions are for the reflectance work.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import nplps
+
+DATA = Path(__file__).parent / "data" / "pbr"
+FILES = {
+    "sphere-diffuse": ("sphere", "diffuse"),
+    "sphere-roughplastic-0.3": ("sphere", "roughplastic-0.3"),
+    "bumps-roughplastic-0.1": ("bumps", "roughplastic-0.1"),
+    "shadows-diffuse": ("shadows", "diffuse"),
+    "shadows-roughplastic-0.3": ("shadows", "roughplastic-0.3"),
+}
+
+
+def load(name: str) -> tuple[dict[str, np.ndarray], nplps.Rig]:
+    """Return the arrays of a committed render and its rig."""
+    with np.load(DATA / f"{name}-64.npz") as f:
+        data = dict(f)
+    return data, nplps.Rig.from_dict(json.loads(str(data["rig"])))
+
+
+def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles in degrees between unit vectors (..., 3)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def reconstruct(images: np.ndarray, rig: nplps.Rig, data: dict[str, np.ndarray], **options: object) -> np.ndarray:
+    """Return the per-pixel normal errors (degrees, inside the mask) at the true distance."""
+    mask = data["mask"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = nplps.reconstruct(images, rig, depth=float(data["distance"]), mask=mask, **options)
+    return angles(result.normals[mask], data["normals"][mask])
+
+
+def test_total_size_is_small() -> None:
+    assert sum(p.stat().st_size for p in DATA.glob("*.npz")) < 3_000_000
+
+
+@pytest.mark.parametrize("name", sorted(FILES))
+def test_files_are_well_formed(name: str) -> None:
+    data, rig = load(name)
+    shape, material = FILES[name]
+    images, mask, depth, normals = data["images"], data["mask"], data["depth"], data["normals"]
+    assert str(data["shape"]) == shape and str(data["material"]) == material
+    assert images.shape == (16, 64, 64) and len(rig.lights) == 16 and rig.is_pinhole
+    assert np.isfinite(images).all() and images.min() >= 0 and images[:, mask].max() > 0.05
+    assert (images[:, ~mask] == 0).all()
+    assert mask.shape == (64, 64) and mask.dtype == bool and mask.sum() > 1000
+    assert depth.shape == (65, 65) and np.isfinite(depth).all() and 150 < depth.min() and depth.max() < 250
+    assert normals.shape == (64, 64, 3) and np.isnan(normals[~mask]).all()
+    assert np.allclose(np.linalg.norm(normals[mask], axis=-1), 1) and (normals[mask][:, 2] < 0).all()
+    # The gauge is nplps's: the geometric mean depth of the vertices the mask uses.
+    used = np.zeros((65, 65), dtype=bool)
+    for dr in (0, 1):
+        for dc in (0, 1):
+            used[dr : dr + 64, dc : dc + 64] |= mask
+    assert float(data["distance"]) == pytest.approx(np.exp(np.log(depth[used]).mean()), rel=1e-12)
+    assert int(data["max_depth"]) == 2 and int(data["spp"]) > 0 and float(data["seconds"]) > 0
+    # The share of each pixel in each light's cast shadow: none on the sphere (convex), in 3 % of
+    # the observations on "shadows".
+    shadow = data["shadow"].astype(np.float32)
+    assert shadow.shape == images.shape and shadow.min() >= 0 and shadow.max() <= 1 and (shadow[:, ~mask] == 0).all()
+    if shape == "sphere":
+        assert (shadow == 0).all()
+    if shape == "shadows":
+        assert 0.01 < (shadow > 0).mean() < 0.1
+
+
+def test_true_normals_are_the_mesh_normals() -> None:
+    # nplps's own renders of the true surface at the true distance give back the stored normals.
+    data, rig = load("sphere-diffuse")
+    images = nplps.render(data["depth"], rig, 0.5, mask=data["mask"])
+    assert reconstruct(images, rig, data).mean() < 0.01
+
+
+def test_lambertian_control_matches_nplps_render() -> None:
+    # The frame, the principal point and the intensities: Mitsuba's diffuse render equals
+    # nplps.render of the true surface with albedo 0.5 (float16 storage: ~3e-4 rounding).
+    data, rig = load("sphere-diffuse")
+    mask = data["mask"]
+    reference = nplps.render(data["depth"], rig, 0.5, mask=mask)
+    lit = mask[None] & (reference > 0.05 * reference.max())
+    relative = data["images"][lit] / reference[lit] - 1
+    assert abs(np.median(relative)) < 2e-4
+    assert np.percentile(np.abs(relative), 95) < 3e-3
+
+
+def test_lambertian_control_sphere() -> None:
+    data, rig = load("sphere-diffuse")
+    error = reconstruct(data["images"].astype(np.float32), rig, data)
+    assert error.mean() < 0.1
+
+
+def test_lambertian_control_with_cast_shadows() -> None:
+    # At 64 x 64 a pixel is 1.6 mm: the pixels a shadow edge crosses are partly lit, which the
+    # local image model cannot explain and dark=0 does not drop (measured: 0.67° mean at 64 x 64,
+    # 0.20° at 256 x 256). Without the observations in a true cast shadow (the renders' "shadow"
+    # array) the control is within 0.1° (measured 0.08°): the renderer agrees with nplps's model
+    # everywhere else.
+    data, rig = load("shadows-diffuse")
+    images = data["images"].astype(np.float32)
+    assert reconstruct(images, rig, data).mean() < 1.0
+    assert reconstruct(images, rig, data, valid=data["shadow"] == 0).mean() < 0.1
