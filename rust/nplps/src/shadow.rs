@@ -726,4 +726,53 @@ mod tests {
             assert_eq!(bools[k * N * N + p], k % 2 == 0);
         }
     }
+
+    /// Timings of [`cast_shadows`] on the block and bumps scenes with 16 lights (medians of 3):
+    /// `cargo test -p nplps --release --features synth --lib shadow -- --ignored --nocapture`.
+    /// `NPLPS_SHADOW_SIZES` (comma-separated, default `256,1024`) picks the sizes.
+    #[cfg(feature = "synth")]
+    #[test]
+    #[ignore = "timings"]
+    fn timings() {
+        use crate::synth::{Scene, SceneKind, SceneOptions};
+        let sizes: Vec<usize> = std::env::var("NPLPS_SHADOW_SIZES")
+            .unwrap_or_else(|_| "256,1024".to_string())
+            .split(',')
+            .map(|s| s.trim().parse().unwrap())
+            .collect();
+        for n in sizes {
+            for kind in [SceneKind::Block, SceneKind::Bumps] {
+                for pinhole in [false, true] {
+                    let options = SceneOptions::default().with_pinhole(pinhole);
+                    let mut scene =
+                        Scene::with_options(kind, n, 100.0, 200.0, 0, options).unwrap();
+                    scene.rig.lights.truncate(16);
+                    let mut times = Vec::new();
+                    let mut count = 0;
+                    for _ in 0..3 {
+                        let start = std::time::Instant::now();
+                        let s = cast_shadows(
+                            &scene.rig,
+                            n,
+                            n,
+                            &scene.depth,
+                            Some(&scene.mask),
+                            None,
+                        )
+                        .unwrap();
+                        times.push(start.elapsed().as_secs_f64());
+                        count = s.count();
+                    }
+                    times.sort_by(f64::total_cmp);
+                    println!(
+                        "shadow timing: {n}x{n} {} {} 16 lights: median {:.3} s (min {:.3}), {count} shadowed",
+                        kind.name(),
+                        if pinhole { "pinhole" } else { "ortho" },
+                        times[1],
+                        times[0]
+                    );
+                }
+            }
+        }
+    }
 }
