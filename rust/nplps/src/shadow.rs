@@ -164,7 +164,7 @@ pub(crate) fn shadows_of_vertices(
     march_all(rig, height, width, vertices, mask, max_steps, true)
 }
 
-/// [`shadows_of_vertices`], skipping through tiles (see [`Tiles`]) when `skip`; the result is
+/// [`shadows_of_vertices`], skipping through the cells of a [`Pyramid`] when `skip`; the result is
 /// the same either way.
 fn march_all(
     rig: &Rig,
@@ -198,8 +198,8 @@ fn march_all(
             Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
             _ => true,
         };
-        let tiles = if skip && undistorted {
-            Some(Tiles::new(height, width, vertices, mask)?)
+        let pyramid = if skip && undistorted {
+            Some(Pyramid::new(height, width, vertices, mask)?)
         } else {
             None
         };
@@ -211,11 +211,38 @@ fn march_all(
             mask,
             z_min,
             max_steps,
-            tiles,
+            pyramid,
         };
-        bits.par_chunks_mut(words)
+        // Bands of BAND rows in parallel, blocks of BAND x BLOCK pixels in each, one light after
+        // the other in each block: the marches of a block under a light cross nearby cells.
+        bits.par_chunks_mut(words * width * BAND)
             .enumerate()
-            .for_each(|(p, out)| march.pixel(p, &rig.lights, out));
+            .for_each(|(b, out)| {
+                let rows = out.len() / (words * width);
+                let mut facets = Vec::with_capacity(BAND * BLOCK);
+                for c0 in (0..width).step_by(BLOCK) {
+                    facets.clear();
+                    for r in b * BAND..b * BAND + rows {
+                        for col in c0..(c0 + BLOCK).min(width) {
+                            let p = r * width + col;
+                            if let Some(f) = march.facet(p) {
+                                facets.push((p - b * BAND * width, f));
+                            }
+                        }
+                    }
+                    for (k, light) in rig.lights.iter().enumerate() {
+                        for &(p, (c, n, slack)) in &facets {
+                            let beta = light.beta(c).0;
+                            if not_above(dot(n, beta), 0.0) {
+                                continue;
+                            }
+                            if march.blocked(c, light, slack) {
+                                out[p * words + k / 64] |= 1 << (k % 64);
+                            }
+                        }
+                    }
+                }
+            });
     }
     Ok(ShadowMask {
         height,
@@ -226,51 +253,84 @@ fn march_all(
     })
 }
 
-/// Side of a tile of [`Tiles`], in pixels.
-const TILE: usize = 8;
+/// Rows of a band and columns of a block of the pixels' order (see [`march_all`]).
+const BAND: usize = 8;
+const BLOCK: usize = 32;
 
-/// The nearest vertex depth of each tile of `TILE` x `TILE` pixels (`-inf` where a pixel of the
-/// tile is outside the mask or a vertex is not finite): a march whose samples stay within a
-/// tile and above its nearest depth (`z - tol <= min`) cannot be blocked there and skips to the
-/// tile's edge. Only for cameras without distortion, whose samples are evenly spaced in pixels.
-/// Skipping changes no result: it passes over only samples that could not stop the march.
-struct Tiles {
-    cols: usize,
-    min: Vec<f64>,
+/// The nearest vertex depth of the cells of a quadtree over the pixels: level `l` has cells of
+/// `2^l` x `2^l` pixels, level 0 one cell a pixel (the nearest of its 4 corners), level `l + 1`
+/// the nearest of the 4 cells of level `l` under each of its cells; `-inf` where a pixel of the
+/// cell is outside the mask or has a non-finite corner. A march whose samples stay within a cell
+/// and above its nearest depth (`z - tol <= min`) cannot be blocked there and skips to the
+/// cell's edge: the coarsest such cell gives the longest jump. Only for cameras without
+/// distortion, whose samples are evenly spaced in pixels. Skipping changes no result: it passes
+/// over only samples that could not stop the march.
+struct Pyramid {
+    /// Per level: its columns and its minima (row-major).
+    levels: Vec<(usize, Vec<f64>)>,
+    /// The vertex depths, (H+1) x (W+1): a third of the memory of the positions, for the
+    /// march's bilinear depths.
+    z: Vec<f64>,
 }
 
-impl Tiles {
+impl Pyramid {
     fn new(
         height: usize,
         width: usize,
         vertices: &[[f64; 3]],
         mask: Option<&[bool]>,
-    ) -> Result<Tiles> {
-        let (rows, cols) = (height.div_ceil(TILE), width.div_ceil(TILE));
-        let min = crate::memory::try_par_collect(
-            (0..rows * cols).into_par_iter().map(|t| {
-                let (r0, c0) = ((t / cols) * TILE, (t % cols) * TILE);
-                let (r1, c1) = ((r0 + TILE).min(height), (c0 + TILE).min(width));
-                let masked =
-                    mask.is_some_and(|m| (r0..r1).any(|r| (c0..c1).any(|c| !m[r * width + c])));
-                if masked {
+    ) -> Result<Pyramid> {
+        crate::memory::check(
+            || format!("the depth pyramid of a {height} x {width} image"),
+            // Levels 0, 1, ...: 1 + 1/4 + 1/16 + ... < 4/3 values a pixel.
+            // and the vertex depths.
+            8.0 * (1.34 * (height * width) as f64 + ((height + 1) * (width + 1)) as f64),
+            None,
+        )?;
+        let vw = width + 1;
+        let z = crate::memory::try_par_collect(
+            vertices.par_iter().map(|v| v[2]),
+            "the depths of the shadow march",
+        )?;
+        let base = crate::memory::try_par_collect(
+            (0..height * width).into_par_iter().map(|p| {
+                if mask.is_some_and(|m| !m[p]) {
                     return f64::NEG_INFINITY;
                 }
+                let v = (p / width) * vw + p % width;
                 let mut lo = f64::INFINITY;
-                for r in r0..=r1 {
-                    for c in c0..=c1 {
-                        let z = vertices[r * (width + 1) + c][2];
-                        if !z.is_finite() {
-                            return f64::NEG_INFINITY;
-                        }
-                        lo = lo.min(z);
+                for z in [v, v + 1, v + vw, v + vw + 1].map(|v| vertices[v][2]) {
+                    if !z.is_finite() {
+                        return f64::NEG_INFINITY;
                     }
+                    lo = lo.min(z);
                 }
                 lo
             }),
-            "the tiles of the shadow march",
+            "the depth pyramid",
         )?;
-        Ok(Tiles { cols, min })
+        let mut levels = vec![(width, base)];
+        let (mut rows, mut cols) = (height, width);
+        while rows > 1 || cols > 1 {
+            let (r2, c2) = (rows.div_ceil(2), cols.div_ceil(2));
+            let below = &levels.last().expect("level 0").1;
+            let next = crate::memory::try_par_collect(
+                (0..r2 * c2).into_par_iter().map(|t| {
+                    let (r, c) = (2 * (t / c2), 2 * (t % c2));
+                    let mut lo = f64::INFINITY;
+                    for rr in r..(r + 2).min(rows) {
+                        for cc in c..(c + 2).min(cols) {
+                            lo = lo.min(below[rr * cols + cc]);
+                        }
+                    }
+                    lo
+                }),
+                "the depth pyramid",
+            )?;
+            levels.push((c2, next));
+            (rows, cols) = (r2, c2);
+        }
+        Ok(Pyramid { levels, z })
     }
 }
 
@@ -283,7 +343,7 @@ struct March<'a> {
     mask: Option<&'a [bool]>,
     z_min: f64,
     max_steps: usize,
-    tiles: Option<Tiles>,
+    pyramid: Option<Pyramid>,
 }
 
 impl March<'_> {
@@ -300,14 +360,15 @@ impl March<'_> {
         ]
     }
 
-    /// Sets the bits of pixel `p`'s shadowed lights in `out`.
-    fn pixel(&self, p: usize, lights: &[Light], out: &mut [u64]) {
+    /// The centre, normal and self-shadow slack (a quarter of the spread of its corner
+    /// depths) of facet `p`, or None outside the mask or with a non-finite corner.
+    fn facet(&self, p: usize) -> Option<([f64; 3], [f64; 3], f64)> {
         if self.mask.is_some_and(|m| !m[p]) {
-            return;
+            return None;
         }
         let q = self.quad(p / self.width, p % self.width);
         if !q.iter().flatten().all(|x| x.is_finite()) {
-            return;
+            return None;
         }
         let (c, n) = (quad_centre(&q), quad_normal(&q));
         let (lo, hi) = q
@@ -315,16 +376,7 @@ impl March<'_> {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
                 (lo.min(x[2]), hi.max(x[2]))
             });
-        let slack = 0.25 * (hi - lo);
-        for (k, light) in lights.iter().enumerate() {
-            let beta = light.beta(c).0;
-            if not_above(dot(n, beta), 0.0) {
-                continue;
-            }
-            if self.blocked(c, light, slack) {
-                out[k / 64] |= 1 << (k % 64);
-            }
-        }
+        Some((c, n, 0.25 * (hi - lo)))
     }
 
     /// The undistorted image-plane point of `x` in pixels (see the module documentation).
@@ -391,28 +443,62 @@ impl March<'_> {
         let reach = |z: f64| z - (1e-6 * z.abs() + slack);
         // The image step of one sample, in pixels (exact without distortion).
         let step = [(m1[0] - m0[0]) / total, (m1[1] - m0[1]) / total];
+        // Without a pyramid: the plain march, every sample.
+        let Some(pyramid) = &self.pyramid else {
+            for i in 1..=steps {
+                let x = point(i);
+                let [u, v] = self.camera.project(x);
+                let Some(z_surface) = self.surface_depth(u + 0.5, v + 0.5) else {
+                    return false;
+                };
+                if z_surface < reach(x[2]) {
+                    return true;
+                }
+            }
+            return false;
+        };
+        let top = pyramid.levels.len() - 1;
+        let inverse = [1.0 / step[0], 1.0 / step[1]];
+        // z is monotone along the segment: its largest value over a run of samples is at the
+        // run's start (the segment comes nearer the camera) or its end.
+        let rising = d[2] > 0.0;
+        let mut level = 0;
         let mut i = 1;
         while i <= steps {
             let x = point(i);
-            let [u, v] = self.camera.project(x);
+            let [u, v] = self.project_undistorted(x);
             let (gx, gy) = (u + 0.5, v + 0.5);
-            let Some(z_surface) = self.surface_depth(gx, gy) else {
+            let Some(z_surface) = self.pyramid_depth(pyramid, gx, gy) else {
                 return false;
             };
             if z_surface < reach(x[2]) {
                 return true;
             }
-            if let Some(k) = self.samples_in_tile(gx, gy, step).filter(|&k| k > 0) {
-                // z is monotone along the segment: its largest value over the skipped samples
-                // is at one end of them.
-                let j = (i + k).min(steps);
-                let tile_min = self.tile_min(gx, gy);
-                if reach(x[2].max(point(j)[2])) <= tile_min {
-                    i = j + 1;
-                    continue;
+            // The coarsest cell (from one level above the last jump's, down) that the next
+            // samples stay in and pass in front of: jump over them.
+            let (row, col) = self.cell(gx, gy);
+            let mut l = (level + 1).min(top);
+            loop {
+                let k = self.samples_in_cell(l, row, col, gx, gy, step, inverse);
+                if k > 0 {
+                    let j = (i + k).min(steps);
+                    let z = if rising { point(j)[2].max(x[2]) } else { x[2] };
+                    let (cols, min) = &pyramid.levels[l];
+                    let m = min[(row >> l) * cols + (col >> l)];
+                    // A margin for the rounding of the bilinear depth and of z.
+                    if reach(z) <= m - 1e-12 * m.abs() {
+                        i = j + 1;
+                        level = l;
+                        break;
+                    }
                 }
+                if l == 0 {
+                    i += 1;
+                    level = 0;
+                    break;
+                }
+                l -= 1;
             }
-            i += 1;
         }
         false
     }
@@ -426,42 +512,87 @@ impl March<'_> {
         )
     }
 
-    /// The nearest depth of the tile of (gx, gy) (`-inf` without tiles).
+    /// How many of the next samples, `step` pixels apart (`inverse` their inverses), stay
+    /// strictly inside the cell of level `level` of the pyramid that holds pixel (row, col),
+    /// from the grid point (gx, gy). Rounding moves the samples by far less than the margin of
+    /// 1e-6 samples.
+    #[allow(clippy::too_many_arguments)]
     #[inline]
-    fn tile_min(&self, gx: f64, gy: f64) -> f64 {
-        let Some(tiles) = &self.tiles else {
-            return f64::NEG_INFINITY;
-        };
-        let (row, col) = self.cell(gx, gy);
-        tiles.min[(row / TILE) * tiles.cols + col / TILE]
-    }
-
-    /// How many of the next samples, `step` pixels apart, stay strictly inside the tile of
-    /// (gx, gy) (None without tiles).
-    #[inline]
-    fn samples_in_tile(&self, gx: f64, gy: f64, step: [f64; 2]) -> Option<usize> {
-        self.tiles.as_ref()?;
-        let (row, col) = self.cell(gx, gy);
-        let along = |g: f64, d: f64, lo: usize, size: usize| {
-            let hi = (lo + TILE).min(size) as f64;
+    fn samples_in_cell(
+        &self,
+        level: usize,
+        row: usize,
+        col: usize,
+        gx: f64,
+        gy: f64,
+        step: [f64; 2],
+        inverse: [f64; 2],
+    ) -> usize {
+        let along = |g: f64, d: f64, inv: f64, lo: usize, size: usize| {
             if d > 0.0 {
-                (hi - g) / d
+                ((lo + (1 << level)).min(size) as f64 - g) * inv
             } else if d < 0.0 {
-                (g - lo as f64) / -d
+                (lo as f64 - g) * inv
             } else {
                 f64::INFINITY
             }
         };
-        let room = along(gx, step[0], (col / TILE) * TILE, self.width).min(along(
-            gy,
-            step[1],
-            (row / TILE) * TILE,
-            self.height,
-        ));
-        if !room.is_finite() {
-            return Some(self.max_steps);
+        let room = along(gx, step[0], inverse[0], (col >> level) << level, self.width).min(
+            along(gy, step[1], inverse[1], (row >> level) << level, self.height),
+        );
+        // The samples m >= 1 with m < room - 1e-6: ceil(room - 1e-6) - 1 of them.
+        let r = room - 1e-6;
+        if !(r > 0.0) {
+            return 0;
         }
-        Some(((room - 1e-6).ceil().max(0.0) as usize).saturating_sub(1))
+        if r >= (2 * self.max_steps) as f64 {
+            return 2 * self.max_steps;
+        }
+        let f = r as usize;
+        if f as f64 == r {
+            f - 1
+        } else {
+            f
+        }
+    }
+
+    /// [`Camera::project`] for a camera without distortion, inlined: the same values (the
+    /// distortion of zero coefficients multiplies by 1 and adds 0).
+    #[inline(always)]
+    fn project_undistorted(&self, p: [f64; 3]) -> [f64; 2] {
+        match *self.camera {
+            Camera::Orthographic { pixel_size, origin } => [
+                (p[0] - origin[0]) / pixel_size[0] - 0.5,
+                (p[1] - origin[1]) / pixel_size[1] - 0.5,
+            ],
+            Camera::Pinhole { k, .. } => {
+                if p[2] <= 0.0 {
+                    return [f64::NAN; 2];
+                }
+                let (x, y) = (p[0] / p[2], p[1] / p[2]);
+                [k[0][0] * x + k[0][1] * y + k[0][2], k[1][1] * y + k[1][2]]
+            }
+        }
+    }
+
+    /// [`March::surface_depth`] from the pyramid's depths and cells (a cell at `-inf` is
+    /// outside the mask or has a non-finite corner): the same value.
+    #[inline]
+    fn pyramid_depth(&self, pyramid: &Pyramid, gx: f64, gy: f64) -> Option<f64> {
+        let (w, h) = (self.width as f64, self.height as f64);
+        if !(gx >= 0.0 && gx <= w && gy >= 0.0 && gy <= h) {
+            return None;
+        }
+        let (row, col) = self.cell(gx, gy);
+        if pyramid.levels[0].1[row * self.width + col] == f64::NEG_INFINITY {
+            return None;
+        }
+        let v = row * (self.width + 1) + col;
+        let z = &pyramid.z[v..v + self.width + 3];
+        let (fx, fy) = (gx - col as f64, gy - row as f64);
+        let z = (1.0 - fy) * ((1.0 - fx) * z[0] + fx * z[1])
+            + fy * ((1.0 - fx) * z[self.width + 1] + fx * z[self.width + 2]);
+        z.is_finite().then_some(z)
     }
 
     /// The bilinear surface depth at the grid point (gx, gy) (the image point plus 1/2), or
