@@ -537,9 +537,13 @@ impl March<'_> {
                 f64::INFINITY
             }
         };
-        let room = along(gx, step[0], inverse[0], (col >> level) << level, self.width).min(
-            along(gy, step[1], inverse[1], (row >> level) << level, self.height),
-        );
+        let room = along(gx, step[0], inverse[0], (col >> level) << level, self.width).min(along(
+            gy,
+            step[1],
+            inverse[1],
+            (row >> level) << level,
+            self.height,
+        ));
         // The samples m >= 1 with m < room - 1e-6: ceil(room - 1e-6) - 1 of them.
         let r = room - 1e-6;
         if !(r > 0.0) {
@@ -875,22 +879,15 @@ mod tests {
             for kind in [SceneKind::Block, SceneKind::Bumps] {
                 for pinhole in [false, true] {
                     let options = SceneOptions::default().with_pinhole(pinhole);
-                    let mut scene =
-                        Scene::with_options(kind, n, 100.0, 200.0, 0, options).unwrap();
+                    let mut scene = Scene::with_options(kind, n, 100.0, 200.0, 0, options).unwrap();
                     scene.rig.lights.truncate(16);
                     let mut times = Vec::new();
                     let mut count = 0;
                     for _ in 0..3 {
                         let start = std::time::Instant::now();
-                        let s = cast_shadows(
-                            &scene.rig,
-                            n,
-                            n,
-                            &scene.depth,
-                            Some(&scene.mask),
-                            None,
-                        )
-                        .unwrap();
+                        let s =
+                            cast_shadows(&scene.rig, n, n, &scene.depth, Some(&scene.mask), None)
+                                .unwrap();
                         times.push(start.elapsed().as_secs_f64());
                         count = s.count();
                     }
