@@ -546,7 +546,7 @@ impl March<'_> {
         ));
         // The samples m >= 1 with m < room - 1e-6: ceil(room - 1e-6) - 1 of them.
         let r = room - 1e-6;
-        if !(r > 0.0) {
+        if not_above(r, 0.0) {
             return 0;
         }
         if r >= (2 * self.max_steps) as f64 {
