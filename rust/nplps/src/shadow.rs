@@ -55,8 +55,8 @@
 //! nearest vertex depth of each cell of `2^l` x `2^l` pixels (`-inf` where a pixel is outside
 //! the mask or has a non-finite corner). After each sample it looks, from one level above the
 //! last jump's down to level 0, for the coarsest cell that holds the sample and the next ones
-//! (strictly inside, with a margin of 1e-6 samples for rounding) and that the segment passes
-//! in front of over them (`z - tol <= min - 1e-12 |min|`, with `z` the segment's farthest depth
+//! (strictly inside, with margins of 1e-9 pixels and 1e-6 samples for rounding) and that the
+//! segment passes in front of over them (`z - tol <= min - 1e-12 |min|`, with `z` the segment's farthest depth
 //! over them, at one end since `z` is monotone along it); it then jumps to the first sample
 //! past the cell. The skipped samples could not stop the march (the bilinear depth is never
 //! nearer than the cell's nearest corner, and the cell is inside the image and the mask), so
@@ -526,8 +526,8 @@ impl March<'_> {
 
     /// How many of the next samples, `step` pixels apart (`inverse` their inverses), stay
     /// strictly inside the cell of level `level` of the pyramid that holds pixel (row, col),
-    /// from the grid point (gx, gy). Rounding moves the samples by far less than the margin of
-    /// 1e-6 samples.
+    /// from the grid point (gx, gy). Rounding moves the samples by far less than the margins of
+    /// 1e-9 pixels and 1e-6 samples.
     #[allow(clippy::too_many_arguments)]
     #[inline]
     fn samples_in_cell(
@@ -540,11 +540,13 @@ impl March<'_> {
         step: [f64; 2],
         inverse: [f64; 2],
     ) -> usize {
+        // The distance to the cell's edge less 1e-9 pixels (far more than the rounding of the
+        // samples' positions), in samples.
         let along = |g: f64, d: f64, inv: f64, lo: usize, size: usize| {
             if d > 0.0 {
-                ((lo + (1 << level)).min(size) as f64 - g) * inv
+                ((lo + (1 << level)).min(size) as f64 - g - 1e-9) * inv
             } else if d < 0.0 {
-                (lo as f64 - g) * inv
+                (lo as f64 - g + 1e-9) * inv
             } else {
                 f64::INFINITY
             }
