@@ -188,6 +188,7 @@ def cast_shadows(
     *,
     max_steps: int | None = None,
 ) -> npt.NDArray[np.bool_]: ...
+def estimate_noise(images: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None) -> float: ...
 def predict(
     depth: F64,
     normals: F64,
