@@ -76,7 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n", type=int, default=96)
     args = parser.parse_args(argv)
     print(f"pinhole, n={args.n}, medians over seeds 0..{args.seeds - 1}; errors in degrees")
-    header = f"{'scene':8} {'noise':>6} {'sigma/true':>10} {'dark/max':>9} {'err dark=0':>11} {'err default':>12} {'gain':>7} {'same':>5}"
+    header = (
+        f"{'scene':8} {'noise':>6} {'sigma/true':>10} {'dark/max':>9} {'err dark=0':>11} "
+        f"{'err default':>12} {'gain':>7} {'same':>5}"
+    )
     print(header)
     print("-" * len(header))
     ok = True

@@ -15,8 +15,8 @@ Quick start::
 The public names, by layer:
 
 - reconstructing: :func:`reconstruct`, :func:`reconstruct_parallel`, :func:`render`,
-  :func:`cast_shadows`, :func:`estimate_noise`, :func:`make_scene`, :func:`light_changes`; calibrating: :func:`calibrate_spheres`,
-  :func:`calibrate_intensities`;
+  :func:`cast_shadows`, :func:`estimate_noise`, :func:`make_scene`, :func:`light_changes`;
+  calibrating: :func:`calibrate_spheres`, :func:`calibrate_intensities`;
 - what they return: :class:`Reconstruction` (with :class:`Iteration`,
   :class:`DistanceEstimate`, :class:`DistanceCheck`, :class:`LightRefinement`), :class:`Scene`,
   :class:`~nplps.evaluation.HeldOut`, :class:`SphereCalibration` and :class:`IntensityCalibration`

@@ -60,6 +60,7 @@ __all__ = [
     "calibrate_spheres",
     "cast_shadows",
     "check_rig",
+    "estimate_noise",
     "mesh_normals",
     "normalize_camera",
     "parse_rig",
