@@ -804,7 +804,7 @@ def estimate_noise(images: Images, mask: Mask | None = None) -> float:
     inside `mask` whose 9 values are positive (images clipped at black have no Gaussian noise in
     their shadows) gives a first estimate; it is then measured again on the darkest quarter of
     the windows whose mean is at least 4 times that estimate, where it matters for the shadow
-    threshold. The cost is linear in the pixels (at most 4 Mi windows, evenly strided, are
+    threshold. The cost is linear in the pixels (at most 1 Mi windows, evenly strided, are
     measured). See ``rust/nplps/src/noise.rs`` for the details.
 
     Parameters
