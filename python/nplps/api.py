@@ -800,9 +800,10 @@ def estimate_noise(images: Images, mask: Mask | None = None) -> float:
 
     Each image (and colour channel) is filtered with the 3 x 3 kernel ``[1, -2, 1]`` (x)
     ``[1, -2, 1]`` / 6, which passes white noise with its variance and removes smooth shading up
-    to its third-order terms. The median absolute residual (divided by 0.6745) over the windows
-    inside `mask` whose 9 values are positive (images clipped at black have no Gaussian noise in
-    their shadows) gives a first estimate; it is then measured again on the darkest quarter of
+    to its third-order terms. The lower quartile of the absolute residuals (divided by 0.3186,
+    so that edges and highlights in up to 3 of 4 windows do not count) over the windows inside
+    `mask` whose 9 values are positive (images clipped at black have no Gaussian noise in their
+    shadows) gives a first estimate; it is then measured again on the darkest quarter of
     the windows whose mean is at least 4 times that estimate, where it matters for the shadow
     threshold. The cost is linear in the pixels (at most 1 Mi windows, evenly strided, are
     measured). See ``rust/nplps/src/noise.rs`` for the details.

@@ -579,8 +579,7 @@ class Prepared(Binned):
         The pre-processing steps that changed the values (:data:`STEPS`), including those a
         loader ran before (``preprocessed``).
     dark : float
-        The shadow threshold: the one given, or the larger of the default of :func:`thresholds`
-        and 3 times the noise :func:`nplps.estimate_noise` measures in the prepared images.
+        The shadow threshold: the one given, or the default of :func:`thresholds`.
     """
 
     levels: int | None = None
@@ -701,15 +700,8 @@ def prepare(
         steps.append("bin")
     done = tuple(preprocessed) + tuple(steps)
     dark_, _ = thresholds(levels, dark=dark, preprocessed=bool(done))
-    images_out = np.ascontiguousarray(binned.images, dtype=np.float32)
-    if dark is None:
-        # The noise-derived default (see nplps.reconstruct's dark): 3 sigma of the images as fitted.
-        from . import _core
-
-        m = None if binned.mask is None else np.ascontiguousarray(binned.mask, dtype=bool)
-        dark_ = max(dark_, 3.0 * float(_core.estimate_noise(images_out, m)))
     return Prepared(
-        images=images_out,
+        images=np.ascontiguousarray(binned.images, dtype=np.float32),
         mask=binned.mask,
         valid=binned.valid,
         rig=binned.rig,

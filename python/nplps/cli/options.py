@@ -81,8 +81,7 @@ _OPTIONS = (
         ("--dark",),
         "dark",
         "values (0..1 scale, after pre-processing) at or below X count as shadowed and are "
-        "left out (default: 3 times the measured image noise, at least one level above black for "
-        "integer images before pre-processing)",
+        "left out (default: one level above black for integer images, 0 after pre-processing)",
         type=float,
         metavar="X",
     ),
