@@ -15,9 +15,9 @@ import numpy as np
 
 from ._checks import _check_rig, _light_indices, _short
 from ._held_out import reading
-from .api import _thresholds, estimate_noise, reconstruct, reconstruct_parallel
+from .api import _thresholds, reconstruct, reconstruct_parallel
 from .errors import InputError
-from .io import load_mask, load_stack
+from .io import load_stack
 from .reconstruction import Reconstruction
 from .rig import Rig
 from .types import Images, Mask, Method
@@ -86,8 +86,8 @@ def held_out(
     lights : list of int, optional
         The lights to leave out (indices from 0). Default: all.
     dark, saturation : float, optional
-        As in :func:`nplps.reconstruct`, computed once from the images' bit depth and (``dark``)
-        their noise; they also select the compared pixels of the left-out image.
+        As in :func:`nplps.reconstruct`, computed once from the images' bit depth; they also
+        select the compared pixels of the left-out image.
     **options
         Further keyword arguments of :func:`nplps.reconstruct` (for ``method="parallel"`` only
         ``robust``, ``color``, ``threads`` and ``valid`` are used).
@@ -135,8 +135,6 @@ def held_out(
         options = {k: v for k, v in options.items() if k in ("robust", "color", "threads", "valid")}
     # Thresholds from the source's bit depth, computed once: the stack handed on is float.
     lo, hi = _thresholds(dark, saturation, levels)
-    if dark is None:  # the noise-derived default of reconstruct, measured on all the images
-        lo = max(lo, 3.0 * estimate_noise(stack, None if mask is None else load_mask(mask, stack.shape[1:3])))
     valid = options.pop("valid", None)
     out = []
     for i in range(rig.n_lights) if lights is None else lights:
