@@ -15,8 +15,8 @@ Quick start::
 The public names, by layer:
 
 - reconstructing: :func:`reconstruct`, :func:`reconstruct_parallel`, :func:`render`,
-  :func:`cast_shadows`, :func:`make_scene`, :func:`light_changes`; calibrating: :func:`calibrate_spheres`,
-  :func:`calibrate_intensities`;
+  :func:`cast_shadows`, :func:`estimate_noise`, :func:`make_scene`, :func:`light_changes`;
+  calibrating: :func:`calibrate_spheres`, :func:`calibrate_intensities`;
 - what they return: :class:`Reconstruction` (with :class:`Iteration`,
   :class:`DistanceEstimate`, :class:`DistanceCheck`, :class:`LightRefinement`), :class:`Scene`,
   :class:`~nplps.evaluation.HeldOut`, :class:`SphereCalibration` and :class:`IntensityCalibration`
@@ -38,6 +38,7 @@ from .errors import InputError, MemoryLimitError, NplpsError, OutputExistsError,
 _LAZY = {
     "__version__": "_core",
     "cast_shadows": "api",
+    "estimate_noise": "api",
     "reconstruct": "api",
     "reconstruct_parallel": "api",
     "render": "api",
@@ -67,7 +68,7 @@ _LAZY = {
 if TYPE_CHECKING:
     from . import calibrate, captures, evaluation, export, io, pipeline, preprocess, report, types, viewer, views
     from ._core import __version__
-    from .api import cast_shadows, reconstruct, reconstruct_parallel, render
+    from .api import cast_shadows, estimate_noise, reconstruct, reconstruct_parallel, render
     from .calibrate import (
         IntensityCalibration,
         LightReport,
@@ -142,6 +143,7 @@ __all__ = [
     "calibrate_spheres",
     "captures",
     "cast_shadows",
+    "estimate_noise",
     "evaluation",
     "export",
     "io",

@@ -60,6 +60,7 @@ __all__ = [
     "calibrate_spheres",
     "cast_shadows",
     "check_rig",
+    "estimate_noise",
     "mesh_normals",
     "normalize_camera",
     "parse_rig",
@@ -188,6 +189,7 @@ def cast_shadows(
     *,
     max_steps: int | None = None,
 ) -> npt.NDArray[np.bool_]: ...
+def estimate_noise(images: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None) -> float: ...
 def predict(
     depth: F64,
     normals: F64,

@@ -138,6 +138,13 @@ class Reconstruction:
         `albedo` is then the diffuse albedo.
     specular : numpy.ndarray or None
         With ``reflectance="glossy"``: the specular albedo of each pixel (H, W).
+    dark : float or None
+        The shadow threshold the fits used (observations at or below it were left out): the
+        given ``dark``, or by default 3 times `noise` (at least one level above black for integer
+        images). None for a result read back without it.
+    noise : float or None
+        The image noise (standard deviation, on the scale of the loaded images) that
+        :func:`nplps.estimate_noise` measured for the default `dark`; None when ``dark`` was given.
 
     Notes
     -----
@@ -169,9 +176,20 @@ class Reconstruction:
     distance_check: DistanceCheck | None = None
     lobe: Lobe | None = None
     specular: np.ndarray | None = None
+    dark: float | None = None
+    noise: float | None = None
 
     @classmethod
-    def _from_core(cls, out: Mapping[str, Any], mask: np.ndarray, rig: Rig, method: Method) -> Reconstruction:
+    def _from_core(
+        cls,
+        out: Mapping[str, Any],
+        mask: np.ndarray,
+        rig: Rig,
+        method: Method,
+        *,
+        dark: float | None = None,
+        noise: float | None = None,
+    ) -> Reconstruction:
         refinement = _refinement(out.get("refinement"))
         input_rig = None
         if refinement is not None:
@@ -198,6 +216,8 @@ class Reconstruction:
             distance_check=_distance_check(out.get("distance_check")),
             lobe=None if "lobe" not in out else Lobe(*(float(v) for v in out["lobe"])),
             specular=out.get("specular"),
+            dark=dark,
+            noise=noise,
         )
 
     def light_changes(self) -> list[dict[str, Any]]:
@@ -509,8 +529,8 @@ class Reconstruction:
         -------
         dict
             Method, shape, pixels, regions and gauge, iterations, status, last depth change and
-            residual, unfitted pixels, depth range, timings, estimated distance and light
-            refinement.
+            residual, unfitted pixels, depth range, timings, estimated distance, light
+            refinement, the shadow threshold used (``dark``) and the noise estimate (``noise``).
         """
         last = self.history[-1] if self.history else None
         return {
@@ -533,6 +553,8 @@ class Reconstruction:
             "light_refinement": None
             if self.refinement is None
             else {**self.refinement.to_dict(), "changes": self.light_changes()},
+            "dark": None if self.dark is None else float(self.dark),
+            "noise": None if self.noise is None else float(self.noise),
         }
 
     def save(

@@ -519,6 +519,36 @@ fn cast_shadows<'py>(
     array(py, bools, &[rig.n_lights(), h, w])
 }
 
+/// Standard deviation of the image noise of a (k, H, W[, C]) float32 stack inside `mask`
+/// (see `nplps::noise`); 0 for noise-free images.
+#[pyfunction]
+#[pyo3(signature = (images, mask=None))]
+fn estimate_noise<'py>(
+    images: PyReadonlyArrayDyn<'py, f32>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+) -> PyResult<f64> {
+    let py = images.py();
+    let shape = match *images.shape() {
+        [k, h, w] => [k, h, w, 1],
+        [k, h, w, c] => [k, h, w, c],
+        ref s => {
+            return Err(InputError::new_err(format!(
+                "images must be (k, H, W) or (k, H, W, C), got shape {s:?}"
+            )))
+        }
+    };
+    let data = slice(&images, "images")?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let [k, h, w, c] = shape;
+    py.detach(|| {
+        no_panic(|| {
+            let stack = nplps::ImageStack::with_channels(data, k, h, w, c)?;
+            nplps::estimate_noise(&stack, mask)
+        })
+    })
+    .map_err(to_py)
+}
+
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
 #[pyfunction]
 #[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel))]
@@ -671,6 +701,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(reconstruct_parallel, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(cast_shadows, m)?)?;
+    m.add_function(wrap_pyfunction!(estimate_noise, m)?)?;
     m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;

@@ -166,6 +166,7 @@ mod light;
 mod local;
 mod memory;
 mod multigrid;
+pub mod noise;
 mod options;
 mod ordering;
 mod parallel;
@@ -196,6 +197,7 @@ pub use global::GlobalSolver;
 pub use light::Light;
 pub use local::{Robust, Weighting};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
+pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};
 pub use problem::{ImageStack, InitialDepth, Problem};
 pub use reconstruction::{
