@@ -181,11 +181,7 @@ struct Sampled {
 /// (see the module documentation): over the whole grids, or, given a `near` estimate, over its
 /// neighbours on them; `None` when no facet of the subsample can be fitted. The fits start from
 /// the step's `warm` normals where it has them.
-pub fn estimate_lobe(
-    step: &LocalStep<'_>,
-    u: &[f64],
-    near: Option<Lobe>,
-) -> Result<Option<Lobe>> {
+pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Result<Option<Lobe>> {
     let previous = near;
     let n = step.grid.n_facets();
     let stride = n.div_ceil(LOBE_SAMPLE).max(1);
