@@ -105,6 +105,7 @@ class SolverOptions(TypedDict, total=False):
     reflectance: Reflectance | None
     roughness: float | None
     eta: float | None
+    shadows: bool | None
     threads: int | None
     solver: Solver | None
     levels: int | None
@@ -181,6 +182,7 @@ class TimingsDict(TypedDict):
     solve: float
     pyramid: float
     lights: float
+    shadows: float
     total: float
 
 
@@ -260,6 +262,9 @@ class ReconstructionDict(_ReconstructionBase, total=False):
     #: The glossy model's shared lobe (roughness, eta) and the (H, W) specular albedo.
     lobe: tuple[float, float]
     specular: F64
+    #: With ``shadows``: the final level's cast shadows, bit-packed (H, W, ceil(k / 64)) words
+    #: (bit k % 64 of word k // 64 is light k).
+    shadow_bits: npt.NDArray[np.uint64]
 
 
 class SceneDict(TypedDict):

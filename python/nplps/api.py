@@ -337,6 +337,7 @@ def reconstruct(
     reflectance: Reflectance = "lambertian",
     roughness: float | None = None,
     eta: float | None = None,
+    shadows: bool = False,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
@@ -411,6 +412,11 @@ def reconstruct(
     roughness, eta : float, optional
         With ``reflectance="glossy"``: the lobe's GGX roughness (0 < roughness <= 1) and relative
         index of refraction (1 to 3), both or neither. Default: estimated from the images.
+    shadows : bool, default False
+        Predict cast shadows from the current mesh: at the first, third and eighth iteration of
+        each pyramid level every pixel's path to every light is marched over the mesh's depth map, and the observations the surface itself hides are left out of the fits (as
+        below `dark`). For objects that shadow themselves: steps, pockets, deep relief. The masks
+        of the final level are ``result.shadows``.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).
@@ -534,6 +540,7 @@ def reconstruct(
         "reflectance": reflectance,
         "roughness": None if roughness is None else _finite_number(roughness, "roughness"),
         "eta": None if eta is None else _finite_number(eta, "eta"),
+        "shadows": _flag(shadows, "shadows"),
         "threads": _threads(threads),
         "auto": isinstance(depth, str),
         "check_distance": _flag(check_distance, "check_distance"),

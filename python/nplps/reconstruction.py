@@ -138,6 +138,10 @@ class Reconstruction:
         `albedo` is then the diffuse albedo.
     specular : numpy.ndarray or None
         With ``reflectance="glossy"``: the specular albedo of each pixel (H, W).
+    shadow_bits : numpy.ndarray or None
+        With ``shadows=True``: the cast shadows the last local steps used, bit-packed (H, W,
+        ceil(k / 64)) uint64 (bit ``k % 64`` of word ``k // 64`` is light k); :attr:`shadows`
+        unpacks them.
     dark : float or None
         The shadow threshold the fits used (observations at or below it were left out): the
         given ``dark``, or by default 3 times `noise` (at least one level above black for integer
@@ -176,6 +180,7 @@ class Reconstruction:
     distance_check: DistanceCheck | None = None
     lobe: Lobe | None = None
     specular: np.ndarray | None = None
+    shadow_bits: np.ndarray | None = None
     dark: float | None = None
     noise: float | None = None
 
@@ -216,6 +221,7 @@ class Reconstruction:
             distance_check=_distance_check(out.get("distance_check")),
             lobe=None if "lobe" not in out else Lobe(*(float(v) for v in out["lobe"])),
             specular=out.get("specular"),
+            shadow_bits=out.get("shadow_bits"),
             dark=dark,
             noise=noise,
         )
@@ -231,6 +237,20 @@ class Reconstruction:
         if self.input_rig is None:
             return []
         return light_changes(self.input_rig, self.rig)
+
+    @property
+    def shadows(self) -> np.ndarray | None:
+        """The cast shadows (k, H, W) bool the fits left out (``shadows=True``; else None).
+
+        True where the final mesh (as the last local steps saw it) hides the pixel from the light;
+        unpacked from :attr:`shadow_bits` on each access (k bytes a pixel).
+        """
+        if self.shadow_bits is None:
+            return None
+        k = self.rig.n_lights
+        bits = np.ascontiguousarray(self.shadow_bits, dtype="<u8")
+        flat = np.unpackbits(bits.view(np.uint8), axis=-1, bitorder="little")[..., :k]
+        return np.moveaxis(flat.astype(bool), -1, 0)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -568,11 +568,21 @@ pub fn reconstruction_dict<'py>(
     t.set_item("solve", r.timings.solve.as_secs_f64())?;
     t.set_item("pyramid", r.timings.pyramid.as_secs_f64())?;
     t.set_item("lights", r.timings.lights.as_secs_f64())?;
+    t.set_item("shadows", r.timings.shadows.as_secs_f64())?;
     t.set_item("total", r.timings.total.as_secs_f64())?;
     d.set_item("timings", t)?;
     d.set_item("lights", rig.with_lights(r.lights))?;
     if let Some(report) = &r.refinement {
         d.set_item("refinement", refinement_dict(py, report)?)?;
+    }
+    if let Some(shadows) = &r.shadows {
+        // Bit-packed: bit k % 64 of word k / 64 of pixel (r, c) is light k (unpacked on demand
+        // in Python).
+        let words = shadows.words_per_pixel();
+        d.set_item(
+            "shadow_bits",
+            array(py, shadows.bits().to_vec(), &[h, w, words])?,
+        )?;
     }
     if let Some(lobe) = r.lobe {
         d.set_item("lobe", (lobe.alpha, lobe.eta))?;

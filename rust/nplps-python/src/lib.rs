@@ -94,7 +94,7 @@ fn initial_depth<'a>(
 }
 
 /// The keys of the options mapping of `reconstruct_parallel` (those of [`options_from`]).
-const SOLVER_KEYS: [&str; 15] = [
+const SOLVER_KEYS: [&str; 16] = [
     "dark",
     "eta",
     "iterations",
@@ -106,6 +106,7 @@ const SOLVER_KEYS: [&str; 15] = [
     "robust",
     "roughness",
     "saturation",
+    "shadows",
     "solver",
     "threads",
     "tol",
@@ -242,6 +243,7 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         .with_weighting(weighting)
         .with_robust(robust)
         .with_reflectance(reflectance)
+        .with_shadows(option(d, "shadows", defaults.shadows)?)
         .with_threads(option(d, "threads", defaults.threads)?)
         .with_max_memory(option(d, "max_memory", defaults.max_memory)?))
 }

@@ -468,7 +468,7 @@ pub fn reconstruct_auto(
         let carried = coarse.carried;
         let mut solver = Solver::new(problem, options)?;
         solver.start = start;
-        let mut history = solver.carry(coarse);
+        let mut history = solver.carry(coarse)?;
         let (estimate, gauge) = if carried {
             let (coarse, coarse_grid) = coarse_estimate.expect("the coarsest level ran the search");
             let gauge = problem.grid.region_means(&u);

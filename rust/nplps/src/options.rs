@@ -33,6 +33,10 @@ pub struct Options {
     pub robust: Robust,
     /// The reflectance model of the per-facet fits (Lambertian by default).
     pub reflectance: Reflectance,
+    /// Cast shadows predicted from the current mesh (see [`crate::shadow`]): the observations a
+    /// facet's own surface hides from a light are left out of its fits. The masks are computed
+    /// at a few iterations of each pyramid level ([`crate::solver::SHADOWS_AT`]).
+    pub shadows: bool,
     /// Worker threads (0: rayon's default, all cores).
     pub threads: usize,
     /// Run faer's sparse factorization and solves on the worker threads too. Off by default:
@@ -106,6 +110,7 @@ with_fields!(Options {
     with_weighting: weighting: Weighting,
     with_robust: robust: Robust,
     with_reflectance: reflectance: Reflectance,
+    with_shadows: shadows: bool,
     with_threads: threads: usize,
     with_parallel_sparse: parallel_sparse: bool,
     with_solver: solver: GlobalSolver,
@@ -143,6 +148,7 @@ impl Default for Options {
             weighting: Weighting::Image,
             robust: Robust::None,
             reflectance: Reflectance::Lambertian,
+            shadows: false,
             threads: 0,
             parallel_sparse: false,
             solver: GlobalSolver::Auto,

@@ -13,6 +13,7 @@ use crate::problem::Problem;
 use crate::refine::Conditioning;
 use crate::reflectance::Lobe;
 use crate::rig::Light;
+use crate::shadow::ShadowMask;
 
 /// What one iteration did.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -83,6 +84,8 @@ pub struct Timings {
     pub pyramid: Duration,
     /// Light refinement steps.
     pub lights: Duration,
+    /// The cast-shadow marches (with [`Options::shadows`](crate::Options::shadows)).
+    pub shadows: Duration,
     /// Everything.
     pub total: Duration,
 }
@@ -95,6 +98,7 @@ impl Timings {
         self.solve += other.solve;
         self.pyramid += other.pyramid;
         self.lights += other.lights;
+        self.shadows += other.shadows;
     }
 }
 
@@ -187,6 +191,9 @@ pub struct Reconstruction {
     /// Specular albedo of each pixel under the glossy model (NaN where a facet could not be
     /// fitted); empty under the Lambertian model.
     pub specular: Vec<f64>,
+    /// The cast shadows of the final mesh's level, as the last local steps used them (with
+    /// [`Options::shadows`](crate::Options::shadows); None without).
+    pub shadows: Option<ShadowMask>,
 }
 
 /// What the self-calibration of the lights did.
@@ -406,5 +413,6 @@ pub(crate) fn assemble(
         refinement: None,
         lobe: None,
         specular: outputs.specular,
+        shadows: None,
     })
 }

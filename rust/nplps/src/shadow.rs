@@ -119,6 +119,42 @@ impl ShadowMask {
         self.bits[pixel * self.words + light / 64] >> (light % 64) & 1 == 1
     }
 
+    /// The `words_per_pixel` words of pixel `pixel`: bit `k % 64` of word `k / 64` is light k.
+    #[inline]
+    pub fn pixel_bits(&self, pixel: usize) -> &[u64] {
+        &self.bits[pixel * self.words..(pixel + 1) * self.words]
+    }
+
+    /// All words, pixel-major ((H, W, words_per_pixel), row-major).
+    pub fn bits(&self) -> &[u64] {
+        &self.bits
+    }
+
+    /// The mask of an image of `height` x `width` pixels twice as fine: pixel (r, c) takes the
+    /// bits of pixel (r / 2, c / 2) (clamped to this image).
+    pub fn upsample(&self, height: usize, width: usize) -> Result<ShadowMask> {
+        let words = self.words;
+        let mut bits = crate::memory::try_vec(height * width * words, 0u64, "the shadow mask")?;
+        if self.height > 0 && self.width > 0 && words > 0 {
+            bits.par_chunks_mut(width * words)
+                .enumerate()
+                .for_each(|(r, row)| {
+                    let rc = (r / 2).min(self.height - 1);
+                    for (c, out) in row.chunks_exact_mut(words).enumerate() {
+                        let p = rc * self.width + (c / 2).min(self.width - 1);
+                        out.copy_from_slice(self.pixel_bits(p));
+                    }
+                });
+        }
+        Ok(ShadowMask {
+            height,
+            width,
+            lights: self.lights,
+            words,
+            bits,
+        })
+    }
+
     /// Number of (pixel, light) pairs in a cast shadow.
     pub fn count(&self) -> usize {
         self.bits.iter().map(|w| w.count_ones() as usize).sum()
@@ -173,13 +209,60 @@ pub(crate) fn shadows_of_vertices(
     mask: Option<&[bool]>,
     max_steps: Option<usize>,
 ) -> Result<ShadowMask> {
-    march_all(rig, height, width, vertices, mask, max_steps, true)
+    march_all(
+        &rig.camera,
+        &rig.lights,
+        height,
+        width,
+        vertices,
+        mask,
+        max_steps,
+        true,
+    )
+}
+
+/// The cast shadows of the current mesh of a solver: the surface of the unknowns `u` on `grid`
+/// (its facets are the mask; vertices without an unknown are missing) under `lights`, marching
+/// at most `max_steps` pixels (None: the default of [`cast_shadows`]).
+pub(crate) fn mesh_shadows(
+    camera: &Camera,
+    lights: &[Light],
+    grid: &crate::grid::Grid,
+    geometry: &crate::geometry::Geometry,
+    u: &[f64],
+    max_steps: Option<usize>,
+) -> Result<ShadowMask> {
+    let (height, width) = (grid.height, grid.width);
+    let mut vertices = crate::memory::try_vec(
+        (height + 1) * (width + 1),
+        [f64::NAN; 3],
+        "the vertices of the shadow march",
+    )?;
+    for (i, &v) in grid.active.iter().enumerate() {
+        vertices[v] = geometry.position(i, u[i]);
+    }
+    let mut mask = crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
+    for &p in &grid.facets {
+        mask[p] = true;
+    }
+    march_all(
+        camera,
+        lights,
+        height,
+        width,
+        &vertices,
+        Some(&mask),
+        max_steps,
+        true,
+    )
 }
 
 /// [`shadows_of_vertices`], skipping through the cells of a [`Pyramid`] when `skip`; the result is
 /// the same either way.
+#[allow(clippy::too_many_arguments)]
 fn march_all(
-    rig: &Rig,
+    camera: &Camera,
+    lights: &[Light],
     height: usize,
     width: usize,
     vertices: &[[f64; 3]],
@@ -192,7 +275,8 @@ fn march_all(
         "max_steps must be at least 1".to_string()
     })?;
     let plane = height * width;
-    let lights = rig.lights.len();
+    let rig_lights = lights;
+    let lights = rig_lights.len();
     let words = lights.div_ceil(64);
     crate::memory::check(
         || format!("the cast shadows of {lights} lights on {plane} pixels"),
@@ -206,7 +290,7 @@ fn march_all(
         .filter(|z| z.is_finite())
         .fold(f64::INFINITY, f64::min);
     if words > 0 && z_min.is_finite() {
-        let undistorted = match rig.camera {
+        let undistorted = match *camera {
             Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
             _ => true,
         };
@@ -216,7 +300,7 @@ fn march_all(
             None
         };
         let march = March {
-            camera: &rig.camera,
+            camera,
             height,
             width,
             vertices,
@@ -242,7 +326,7 @@ fn march_all(
                             }
                         }
                     }
-                    for (k, light) in rig.lights.iter().enumerate() {
+                    for (k, light) in rig_lights.iter().enumerate() {
                         for &(p, (c, n, slack)) in &facets {
                             let beta = light.beta(c).0;
                             if not_above(dot(n, beta), 0.0) {
@@ -842,8 +926,10 @@ mod tests {
             ] {
                 let v = crate::render::vertices(&rig.camera, N, N, z).unwrap();
                 for m in [None, Some(&mask[..])] {
-                    let fast = march_all(&rig, N, N, &v, m, None, true).unwrap();
-                    let slow = march_all(&rig, N, N, &v, m, None, false).unwrap();
+                    let fast =
+                        march_all(&rig.camera, &rig.lights, N, N, &v, m, None, true).unwrap();
+                    let slow =
+                        march_all(&rig.camera, &rig.lights, N, N, &v, m, None, false).unwrap();
                     assert_eq!(fast, slow);
                     found += fast.count();
                 }
@@ -903,8 +989,10 @@ mod tests {
                     (Some(&holes[..]), None),
                     (None, Some(5)),
                 ] {
-                    let fast = march_all(rig, n, n, &v, m, steps, true).unwrap();
-                    let slow = march_all(rig, n, n, &v, m, steps, false).unwrap();
+                    let fast =
+                        march_all(&rig.camera, &rig.lights, n, n, &v, m, steps, true).unwrap();
+                    let slow =
+                        march_all(&rig.camera, &rig.lights, n, n, &v, m, steps, false).unwrap();
                     assert_eq!(fast, slow, "{} seed {seed} pinhole {pinhole}", kind.name());
                     found += fast.count();
                 }

@@ -198,7 +198,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             let q = step.corners(f, u);
             let c = quad_centre(&q);
             let mut buf = vec![0.0f32; per];
-            let values = step.obs.facet(step.grid.facets[f], &mut buf).to_vec();
+            let values = step.facet_values(f, &mut buf).to_vec();
             let start = fit_facet(c, step.model, &values, channels, lambertian)?;
             let warm = step.warm.and_then(|w| super::warm_normal(&w[f]));
             let starts = match warm {

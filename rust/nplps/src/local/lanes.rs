@@ -136,6 +136,18 @@ impl LocalStep<'_> {
                 }
             }
         }
+        if let Some(shadows) = self.shadows {
+            // One channel: light k is row k of the interleaved values.
+            for (l, &pixel) in pixels.iter().enumerate() {
+                for (w, &word) in shadows.pixel_bits(pixel).iter().enumerate() {
+                    let mut bits = word;
+                    while bits != 0 {
+                        interleaved[64 * w + bits.trailing_zeros() as usize][l] = f32::NAN;
+                        bits &= bits - 1;
+                    }
+                }
+            }
+        }
         let sums = accumulate_lanes_dispatch(
             lights,
             &centres,
@@ -171,7 +183,7 @@ impl LocalStep<'_> {
                     ..fitted
                 },
                 None => {
-                    let values = obs.facet(grid.facets[f], buf);
+                    let values = self.facet_values(f, buf);
                     keep_shape(
                         &quads[l],
                         ids.map(|i| u[i as usize]),
@@ -374,6 +386,7 @@ mod tests {
             depths: None,
             cancel: crate::Cancel::never(),
             warm: None,
+            shadows: None,
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();

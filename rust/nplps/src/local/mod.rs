@@ -29,6 +29,7 @@ pub(crate) use crate::light::channel_intensity;
 use crate::light::Light;
 use crate::memory::try_vec;
 use crate::reflectance::{Lobe, Observation};
+use crate::shadow::ShadowMask;
 use crate::vec3::{dot, norm};
 
 mod glossy;
@@ -287,6 +288,10 @@ pub struct LocalStep<'s> {
     /// Under the glossy model, each facet's glossy normal of an earlier local step (NaN: none),
     /// which starts its glossy fit in [`LocalStep::try_run`] (see [`LocalStep::fit`]).
     pub warm: Option<&'s [[f32; 3]]>,
+    /// The cast shadows of the current mesh (per pixel of the grid's image and light): the
+    /// observations in a cast shadow are left out of every fit as if missing (NaN); None: all
+    /// observations are used.
+    pub shadows: Option<&'s ShadowMask>,
 }
 
 impl LocalStep<'_> {
@@ -298,6 +303,26 @@ impl LocalStep<'_> {
                 .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
             None => self.geometry.facet_corners(self.grid, f, u),
         }
+    }
+
+    /// The observations of facet `f` gathered into `buf`, those in a cast shadow (see
+    /// [`LocalStep::shadows`]) set to NaN.
+    #[inline]
+    pub(super) fn facet_values<'b>(&self, f: usize, buf: &'b mut [f32]) -> &'b [f32] {
+        let pixel = self.grid.facets[f];
+        let per = self.obs.facet(pixel, buf).len();
+        if let Some(shadows) = self.shadows {
+            let c = self.obs.channels;
+            for (w, &word) in shadows.pixel_bits(pixel).iter().enumerate() {
+                let mut bits = word;
+                while bits != 0 {
+                    let k = 64 * w + bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    buf[k * c..(k + 1) * c].fill(f32::NAN);
+                }
+            }
+        }
+        &buf[..per]
     }
 
     /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations
@@ -317,7 +342,7 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
-        let values = obs.facet(grid.facets[f], buf);
+        let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
         let fitted = fit_facet(c, self.model, values, obs.channels, self.settings).map(|fit| {
             let Some(lobe) = self.settings.lobe else {
@@ -547,6 +572,7 @@ pub fn local_step(
         depths: None,
         cancel: crate::Cancel::never(),
         warm: None,
+        shadows: None,
     }
     .try_run(u, 0, fits)
 }
@@ -941,6 +967,7 @@ mod tests {
                 depths,
                 cancel: crate::Cancel::never(),
                 warm: None,
+                shadows: None,
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];
