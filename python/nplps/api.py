@@ -414,9 +414,11 @@ def reconstruct(
         index of refraction (1 to 3), both or neither. Default: estimated from the images.
     shadows : bool, default False
         Predict cast shadows from the current mesh: at the first, third and eighth iteration of
-        each pyramid level every pixel's path to every light is marched over the mesh's depth map, and the observations the surface itself hides are left out of the fits (as
-        below `dark`). For objects that shadow themselves: steps, pockets, deep relief. The masks
-        of the final level are ``result.shadows``.
+        each pyramid level every pixel's path to every light is marched over the mesh's depth
+        map, and the observations the surface itself hides are left out of the fits (as below
+        `dark`). For objects that shadow themselves: steps, pockets, deep relief. It costs one
+        to three marches a level (measured 0.3-0.7 s at 256 x 256 x 16 lights, 12-20 s at 1 MP on
+        a 2-core machine); the masks of the final level are ``result.shadows``.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).
