@@ -54,13 +54,14 @@ use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::quad_centre;
 use crate::geometry::Geometry;
+use crate::geometry::{quad_centre, quad_normal};
 use crate::grid::Grid;
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
 use crate::memory::{try_vec, try_with_capacity};
 use crate::options::Refine;
 use crate::problem::Problem;
+use crate::reflectance::Lobe;
 use crate::rig::Light;
 use crate::vec3::{dot, norm, sub};
 
@@ -77,6 +78,39 @@ pub const MAX_MATRIX_FACETS: usize = 4096;
 /// Smallest noise level assumed by the prior, relative to the RMS observation: with exact
 /// images the prior still holds the weak directions of the lights.
 pub const NOISE_FLOOR: f64 = 1e-3;
+
+/// How the light step treats the specular part the glossy model predicts (experiment).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[allow(dead_code)]
+enum GlossyMode {
+    Subtract,
+    Exclude,
+    Both,
+    Off,
+}
+
+fn glossy_mode() -> GlossyMode {
+    static MODE: std::sync::OnceLock<GlossyMode> = std::sync::OnceLock::new();
+    *MODE.get_or_init(|| match std::env::var("NPLPS_GLOSSY_MODE").as_deref() {
+        Ok("exclude") => GlossyMode::Exclude,
+        Ok("both") => GlossyMode::Both,
+        Ok("off") => GlossyMode::Off,
+        _ => GlossyMode::Subtract,
+    })
+}
+
+fn max_share() -> f64 {
+    static S: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
+    *S.get_or_init(|| {
+        std::env::var("NPLPS_GLOSSY_SHARE")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(MAX_SPECULAR_SHARE)
+    })
+}
+
+/// Observations whose predicted specular share is above this are left out of the light step.
+const MAX_SPECULAR_SHARE: f64 = 0.1;
 
 /// Fails when `refine` is active with fewer than 4 lights: 3 observations per pixel fit any
 /// lights exactly, so the images say nothing about them.
@@ -176,6 +210,9 @@ pub struct LightData<'a> {
 struct Model<'a> {
     lights: &'a [Light],
     layout: &'a Layout,
+    /// The lights that predict the specular part under the glossy model (the step's current
+    /// lights: one step's passes compare the same corrected observations).
+    shading: &'a [Light],
 }
 
 /// Sums of one pass over the facets.
@@ -255,6 +292,9 @@ struct Scratch {
     used: Vec<usize>,
     rows: Vec<[f64; 3]>,
     obs: Vec<f64>,
+    /// Under the glossy model, per light: the observation's correction `(offset, factor)`
+    /// (`I' = (I - offset) * factor`), None where it is left out (see [`LightData::glossy`]).
+    glossy: Vec<Option<(f64, f64)>>,
     /// Rows of `B^T` (see [`LightData::facet`]) of the last facets, three per facet, folded
     /// into the pass by one matrix product every [`BATCH`] facets.
     bt: DMatrix<f64>,
@@ -294,6 +334,7 @@ impl Scratch {
             used: try_with_capacity(k, PASS)?,
             rows: try_with_capacity(k, PASS)?,
             obs: try_with_capacity(k, PASS)?,
+            glossy: try_with_capacity(k, PASS)?,
             bt: DMatrix::from_vec(rows, n, try_vec(rows * n, 0.0, PASS)?),
             pending: 0,
             want_h: true,
@@ -347,7 +388,13 @@ impl LightData<'_> {
 
     /// One pass over the (subsampled) facets at unknowns `u` under `lights`;
     /// [`Error::Memory`] when a thread's sums or scratch cannot be allocated.
-    fn pass(&self, lights: &[Light], layout: &Layout, u: &[f64], with_h: bool) -> Result<Pass> {
+    fn pass(
+        &self,
+        (lights, shading): (&[Light], &[Light]),
+        layout: &Layout,
+        u: &[f64],
+        with_h: bool,
+    ) -> Result<Pass> {
         let (count, stride) = self.subsample();
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let k = obs.k;
@@ -369,14 +416,20 @@ impl LightData<'_> {
                     let f = j * stride;
                     let q = geometry.facet_corners(grid, f, u);
                     let c = quad_centre(&q);
+                    let n = quad_normal(&q);
                     acc.sum_z += c[2];
                     acc.min_z = acc.min_z.min(c[2]);
                     acc.facets += 1;
                     s.want_h = j % h_every == 0;
                     let mut values = std::mem::take(&mut s.values);
                     obs.facet(grid.facets[f], &mut values);
+                    let model = Model {
+                        lights,
+                        layout,
+                        shading,
+                    };
                     for ch in 0..channels {
-                        self.facet(Model { lights, layout }, c, (&values, ch), &mut acc, &mut s);
+                        self.facet(model, (c, n), (&values, ch), &mut acc, &mut s);
                     }
                     s.values = values;
                     Ok((acc, s))
@@ -398,21 +451,97 @@ impl LightData<'_> {
         Ok(pass)
     }
 
-    /// Adds channel `ch` of the facet with centre `c` and observations `values` to the pass.
+    /// Under the glossy model (`lobe`), the correction of each observation of channel `ch` of
+    /// the facet with centre `c` and mesh normal `n` into `out` (see the module docs): `None`
+    /// for an unusable one and, with [`GLOSSY_MODE`] leaving highlights out, where the
+    /// predicted specular share exceeds [`MAX_SPECULAR_SHARE`].
+    fn glossy(
+        &self,
+        lobe: &Lobe,
+        shading: &[Light],
+        (c, n): ([f64; 3], [f64; 3]),
+        (values, ch): (&[f32], usize),
+        out: &mut Vec<Option<(f64, f64)>>,
+    ) {
+        let channels = self.obs.channels;
+        let view = self.geometry.view(c);
+        out.clear();
+        // (Phi a D, Phi a S, (n . l) / D, I) of each usable observation lit at the mesh normal.
+        let terms = |i: usize, light: &Light| -> Option<(f64, f64, f64, f64)> {
+            let o = &values[i * channels..(i + 1) * channels];
+            if !usable(o, &self.settings) {
+                return None;
+            }
+            let (b, _) = light.beta(c);
+            let a = norm(b);
+            if !(a > 0.0 && a.is_finite()) {
+                return None;
+            }
+            let l = b.map(|x| x / a);
+            let sh = lobe.shade(n, l, view)?;
+            let pa = channel_intensity(light.intensity(), channels, ch) * a;
+            let lambert = dot(n, l) / sh.diffuse;
+            Some((pa * sh.diffuse, pa * sh.specular, lambert, o[ch] as f64))
+        };
+        // The least-squares albedos (rho_d, rho_s >= 0) at the mesh normal.
+        let (mut dd, mut ds, mut ss, mut di, mut si) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (i, light) in shading.iter().enumerate() {
+            if let Some((d, s, _, v)) = terms(i, light) {
+                dd += d * d;
+                ds += d * s;
+                ss += s * s;
+                di += d * v;
+                si += s * v;
+            }
+        }
+        let det = dd * ss - ds * ds;
+        let (rho_d, rho_s) = if det > 1e-12 * dd * ss && dd * si - ds * di > 0.0 {
+            ((ss * di - ds * si) / det, (dd * si - ds * di) / det)
+        } else if dd > 0.0 {
+            (di / dd, 0.0)
+        } else {
+            (0.0, 0.0)
+        };
+        for (i, light) in shading.iter().enumerate() {
+            out.push(terms(i, light).and_then(|(d, s, lambert, _)| {
+                let (spec, diffuse) = (rho_s * s, rho_d * d);
+                match glossy_mode() {
+                    GlossyMode::Off => Some((0.0, 1.0)),
+                    GlossyMode::Subtract => Some((spec, lambert)),
+                    GlossyMode::Exclude => {
+                        (spec <= max_share() * (spec + diffuse)).then_some((0.0, 1.0))
+                    }
+                    GlossyMode::Both => (spec <= max_share() * (spec + diffuse))
+                        .then_some((spec, lambert)),
+                }
+            }));
+        }
+    }
+
+    /// Adds channel `ch` of the facet with centre `c`, mesh normal `n` and observations
+    /// `values` to the pass.
     #[inline]
     fn facet(
         &self,
         model: Model<'_>,
-        c: [f64; 3],
+        (c, n): ([f64; 3], [f64; 3]),
         (values, ch): (&[f32], usize),
         acc: &mut Pass,
         s: &mut Scratch,
     ) {
-        let Model { lights, layout } = model;
+        let Model {
+            lights,
+            layout,
+            shading,
+        } = model;
         let channels = self.obs.channels;
         s.used.clear();
         s.rows.clear();
         s.obs.clear();
+        let lobe = self.settings.lobe;
+        if let Some(lobe) = &lobe {
+            self.glossy(lobe, shading, (c, n), (values, ch), &mut s.glossy);
+        }
         let mut t = Matrix3::zeros();
         let mut sv = Vector3::zeros();
         for (i, light) in lights.iter().enumerate() {
@@ -420,10 +549,16 @@ impl LightData<'_> {
             if !usable(o, &self.settings) {
                 continue;
             }
+            let mut v = o[ch] as f64;
+            if lobe.is_some() {
+                let Some((offset, factor)) = s.glossy[i] else {
+                    continue;
+                };
+                v = (v - offset) * factor;
+            }
             let phi = channel_intensity(light.intensity(), channels, ch);
             let (b, _) = light.beta(c);
             let a = Vector3::new(b[0] * phi, b[1] * phi, b[2] * phi);
-            let v = o[ch] as f64;
             t += a * a.transpose();
             sv += a * v;
             s.used.push(i);
@@ -656,7 +791,7 @@ impl Refiner {
         if n == 0 {
             return Ok(none);
         }
-        let pass = data.pass(lights, &layout, u, true)?;
+        let pass = data.pass((lights, lights), &layout, u, true)?;
         if pass.fits == 0 || pass.sum_i2 <= 0.0 {
             return Ok(none);
         }
@@ -721,7 +856,7 @@ impl Refiner {
                 });
             }
             let e1 = if in_front {
-                let p = data.pass(&trial, &layout, u, false)?;
+                let p = data.pass((&trial, lights), &layout, u, false)?;
                 self.objective(&p, nu, &trial, distance)
             } else {
                 f64::INFINITY
@@ -854,7 +989,7 @@ pub fn conditioning(
             "nothing to analyse: no light parameter is refined".into(),
         ));
     }
-    let pass = data.pass(lights, &layout, u, true)?;
+    let pass = data.pass((lights, lights), &layout, u, true)?;
     let dof = pass.count as f64 - 3.0 * pass.fits as f64 - n as f64;
     if pass.fits == 0 || dof <= 0.0 {
         return Err(Error::Unusable(

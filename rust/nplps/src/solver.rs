@@ -518,13 +518,22 @@ impl<'p> Solver<'p> {
             return Ok(0.0);
         }
         let t = Instant::now();
-        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let data = LightData::of(self.problem, self.light_settings());
         let change = self.lights.step(&data, u)?;
         if self.lights.settled() {
             run.accel = None;
         }
         self.timings.lights += t.elapsed();
         Ok(change)
+    }
+
+    /// The settings of the light step: the glossy model's lobe in use (estimated or given),
+    /// so that it predicts the specular part (see [`crate::refine`]).
+    fn light_settings(&self) -> FitSettings {
+        FitSettings {
+            lobe: self.lobe,
+            ..self.options.fit_settings(false)
+        }
     }
 
     /// Whether the solver fits the glossy model with a lobe it estimates.
@@ -773,7 +782,7 @@ impl<'p> Solver<'p> {
         if !refine.is_active() {
             return None;
         }
-        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let data = LightData::of(self.problem, self.light_settings());
         let monitor = self.lights.monitor;
         Some(RefinementReport {
             refine,
