@@ -403,6 +403,7 @@ def _check_reflectance(args: argparse.Namespace) -> None:
             f"{given[0]} needs {missing} too: give both (a fixed lobe) or neither (the lobe is then "
             "estimated from the images)"
         )
+    assert roughness is not None and eta is not None  # both given (checked above)
     if not (np.isfinite(roughness) and 0 < roughness <= 1):
         raise InputError(f"--roughness (the GGX alpha) must be a number in (0, 1], got {roughness}")
     if not (np.isfinite(eta) and 1 <= eta <= 3):

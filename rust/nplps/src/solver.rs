@@ -518,7 +518,7 @@ impl<'p> Solver<'p> {
             return Ok(0.0);
         }
         let t = Instant::now();
-        let data = LightData::of(self.problem, self.light_settings());
+        let data = Self::light_data(self.problem, &self.options, self.lobe, &self.warm);
         let change = self.lights.step(&data, u)?;
         if self.lights.settled() {
             run.accel = None;
@@ -527,13 +527,20 @@ impl<'p> Solver<'p> {
         Ok(change)
     }
 
-    /// The settings of the light step: the glossy model's lobe in use (estimated or given),
-    /// so that it predicts the specular part (see [`crate::refine`]).
-    fn light_settings(&self) -> FitSettings {
-        FitSettings {
-            lobe: self.lobe,
-            ..self.options.fit_settings(false)
-        }
+    /// The data of the light step: under the glossy model with the lobe in use (estimated or
+    /// given) and the facets' glossy normals of the last local step, from which it predicts the
+    /// specular part (see [`crate::refine`]).
+    fn light_data<'a>(
+        problem: &'a Problem<'a>,
+        options: &Options,
+        lobe: Option<Lobe>,
+        warm: &'a [[f32; 3]],
+    ) -> LightData<'a> {
+        let settings = FitSettings {
+            lobe,
+            ..options.fit_settings(false)
+        };
+        LightData::of(problem, settings).with_normals(Some(warm))
     }
 
     /// Whether the solver fits the glossy model with a lobe it estimates.
@@ -782,7 +789,7 @@ impl<'p> Solver<'p> {
         if !refine.is_active() {
             return None;
         }
-        let data = LightData::of(self.problem, self.light_settings());
+        let data = Self::light_data(self.problem, &self.options, self.lobe, &self.warm);
         let monitor = self.lights.monitor;
         Some(RefinementReport {
             refine,
