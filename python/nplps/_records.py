@@ -243,6 +243,8 @@ class Result(Protocol):
     distance: DistanceEstimate | None
     refinement: LightRefinement | None
     distance_check: DistanceCheck | None
+    lobe: Lobe | None
+    specular: np.ndarray | None
 
     @property
     def shape(self) -> tuple[int, int]: ...

@@ -185,6 +185,12 @@ _SUMMARY_TYPES: dict[str, tuple[str, Any]] = {
         lambda v: v is None or (isinstance(v, list) and all(x is None or _is_number(x) for x in v)),
     ),
     "options": ("null or an object", lambda v: v is None or isinstance(v, dict)),
+    "reflectance": ('"lambertian", "glossy" or null', lambda v: v in (None, "lambertian", "glossy")),
+    "lobe": (
+        "null or an object with numbers roughness and eta",
+        lambda v: v is None or (isinstance(v, dict) and all(_is_number(v.get(k)) for k in ("roughness", "eta"))),
+    ),
+    "specular_png_scale": ("a number or null", lambda v: v is None or _is_number(v)),
     "distance_check": (
         "null or an object with numbers given, found, ratio and looks_wrong true or false",
         lambda v: (

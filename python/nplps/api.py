@@ -599,6 +599,9 @@ def reconstruct_parallel(
     dark: float | None = None,
     saturation: float | None = None,
     robust: Robust | None = None,
+    reflectance: Reflectance = "lambertian",
+    roughness: float | None = None,
+    eta: float | None = None,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
@@ -624,6 +627,13 @@ def reconstruct_parallel(
         (``result.distance``) or its depth map.
     mask, dark, saturation, robust, color, valid, threads, max_memory
         As in :func:`reconstruct`.
+    reflectance : {"lambertian", "glossy"}, default "lambertian"
+        As in :func:`reconstruct`: "glossy" fits the diffuse + GGX model with each light's one
+        direction and the view vector at the initial surface; a lobe not given (`roughness`,
+        `eta`) is estimated once, on the initial surface with the rig's intensities. The result
+        then has ``lobe`` and ``specular``.
+    roughness, eta : float, optional
+        With ``reflectance="glossy"``: the lobe, both or neither, as in :func:`reconstruct`.
     refine_lights : {None, "intensity"}, optional
         "intensity" refines the intensities under this model (to convergence: the model does not
         depend on the depths); the result's ``rig`` then carries them.
@@ -674,6 +684,9 @@ def reconstruct_parallel(
         "dark": dark_,
         "saturation": saturation_,
         "robust": "none" if robust is None else robust,
+        "reflectance": reflectance,
+        "roughness": None if roughness is None else _finite_number(roughness, "roughness"),
+        "eta": None if eta is None else _finite_number(eta, "eta"),
         "threads": _threads(threads),
         "refine_lights": refine_mode,
         "max_memory": _memory_limit(max_memory),

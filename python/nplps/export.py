@@ -1514,6 +1514,8 @@ def write_result(
         "residual_npy": "residual.npy",
     }
     names.update({name: FORMATS[name].file.format(stem=stem) for name in formats})
+    if result.specular is not None:  # the glossy model's specular albedo (none for Lambertian results)
+        names.update(specular_npy="specular.npy", specular="specular.png")
     if result.distance is not None:
         names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
     if result.refinement is not None:
@@ -1548,6 +1550,9 @@ def write_result(
     save_depth_tiff(paths["depth_tiff"], result.depth)
     save_npy(paths["normals_npy"], result.normals)
     save_npy(paths["residual_npy"], result.residual)
+    if result.specular is not None:
+        save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
+        summary["specular_png_scale"] = save_albedo(paths["specular"], result.specular)
     if result.distance is not None:
         result.distance.save_curve(paths["distance_curve"])
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])

@@ -550,7 +550,9 @@ class Reconstruction:
         dict
             Method, shape, pixels, regions and gauge, iterations, status, last depth change and
             residual, unfitted pixels, depth range, timings, estimated distance, light
-            refinement, the shadow threshold used (``dark``) and the noise estimate (``noise``).
+            refinement, the shadow threshold used (``dark``), the noise estimate (``noise``), the
+            reflectance model (``reflectance``: "lambertian" or "glossy") and the glossy model's
+            lobe (``lobe``: ``{"roughness": ..., "eta": ...}``, None under the Lambertian model).
         """
         last = self.history[-1] if self.history else None
         return {
@@ -575,6 +577,8 @@ class Reconstruction:
             else {**self.refinement.to_dict(), "changes": self.light_changes()},
             "dark": None if self.dark is None else float(self.dark),
             "noise": None if self.noise is None else float(self.noise),
+            "reflectance": "lambertian" if self.lobe is None else "glossy",
+            "lobe": None if self.lobe is None else {"roughness": self.lobe.roughness, "eta": self.lobe.eta},
         }
 
     def save(
@@ -597,6 +601,9 @@ class Reconstruction:
         :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64) and ``depth.tiff`` (float32) of the
         vertex depths, ``normals.npy`` (:attr:`normals`), ``residual.npy`` and ``summary.json``;
+        under the glossy model also ``specular.npy`` (:attr:`specular`, float64, NaN where
+        unfitted) and ``specular.png`` (16-bit, scaled as ``albedo.png``; the scale is
+        ``specular_png_scale`` in ``summary.json``);
         with ``depth="auto"`` also ``distance_curve.csv`` and ``distance_curve.svg``; with
         refined lights also ``rig_refined.json`` (the refined rig file); and last the manifest
         ``nplps-manifest.json`` listing the files written.

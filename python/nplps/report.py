@@ -8,7 +8,8 @@ needs no network, no script and no other file. Its sections, in order:
 1. a header: the capture (the images or ``--capture`` folder, when the options were recorded),
    the directory, the size "W x H", the number of lights, status, iterations and solver time;
 2. the inputs (a contact sheet, ``inputs.png``, written when the images were given to ``save``);
-3. the mask, the normal map, the albedo;
+3. the mask, the normal map, the albedo (and, under the glossy model, the specular albedo; the
+   header then names the model and its lobe);
 4. the residual map (RMS image residual per pixel) and the depth map, colour-mapped, each with
    a numeric colour bar; the unfitted pixels (masked pixels with fewer than 3 lit images, which
    kept their starting shape);
@@ -24,8 +25,8 @@ A section without data says so in one line.
 
 Files the report reads (all written by ``save``): ``summary.json`` (required), ``depth.npy``,
 ``normals.png``, ``albedo.png``, ``residual.npy``, ``mask.png``, ``lights_used.npy``,
-``history.csv``, ``rig.json``; and, when present, ``inputs.png``, ``distance_curve.csv`` and
-``held_out.json`` (:func:`held_out_record`).
+``history.csv``, ``rig.json``; and, when present, ``inputs.png``, ``distance_curve.csv``,
+``held_out.json`` (:func:`held_out_record`) and, for the glossy model, ``specular.png``.
 """
 
 from __future__ import annotations
@@ -426,12 +427,25 @@ def _section_header(d: _Data) -> str:
     steps = _preprocessing(o)
     if steps is not None:
         rows.insert(1, ("pre-processing", "; ".join(steps) if steps else "none"))
+    if s.get("reflectance") is not None:
+        rows.append(("reflectance", _reflectance_text(s)))
     if s.get("estimated_distance"):
         rows.append(("estimated distance", ", ".join(_fmt(v) for v in s["estimated_distance"])))
     check = s.get("distance_check")
     if check:
         rows.append(("distance check", _distance_check_text(check)))
     return f"<header><h1>nplps report: {html.escape(d.name)}</h1>{_table(rows)}</header>"
+
+
+def _reflectance_text(summary: dict[str, Any]) -> str:
+    """Return the reflectance model of ``summary.json`` and its lobe in one line."""
+    lobe = summary.get("lobe")
+    if summary.get("reflectance") != "glossy" or not lobe:
+        return "lambertian"
+    return (
+        f"glossy (diffuse with Fresnel transmittance + GGX specular lobe): lobe roughness "
+        f"{_fmt(lobe['roughness'])}, eta {_fmt(lobe['eta'])}"
+    )
 
 
 def _distance_check_text(check: dict[str, Any]) -> str:
@@ -469,13 +483,24 @@ def _section_maps(d: _Data) -> str:
         figures.append(_figure(np.rint(np.clip(np.nan_to_num(small), 0, 255)).astype(np.uint8), caption))
     else:
         figures.append(_none("Normal map: not available (normals.png is missing)."))
+    glossy = d.summary.get("reflectance") == "glossy"
     albedo = d._load("albedo.png")
+    name = "diffuse albedo" if glossy else "albedo"
     if albedo is not None:
         small = views.downsample(np.asarray(d.cropped(albedo), dtype=np.float64), MAP_SIDE)
-        figures.append(_figure(_grey_rgb(small), f"albedo (scaled to its 99.5th percentile){d.crop_note}"))
+        figures.append(_figure(_grey_rgb(small), f"{name} (scaled to its 99.5th percentile){d.crop_note}"))
     else:
         figures.append(_none("Albedo: not available (albedo.png is missing)."))
-    return _section("Mask, normal map, albedo", "".join(figures), "maps")
+    if not glossy:
+        return _section("Mask, normal map, albedo", "".join(figures), "maps")
+    specular = d._load("specular.png")
+    if specular is not None:
+        small = views.downsample(np.asarray(d.cropped(specular), dtype=np.float64), MAP_SIDE)
+        caption = f"specular albedo (scaled to its 99.5th percentile; the values are in specular.npy){d.crop_note}"
+        figures.append(_figure(_grey_rgb(small), caption))
+    else:
+        figures.append(_none("Specular albedo: not available (specular.png is missing)."))
+    return _section("Mask, normal map, albedo, specular albedo", "".join(figures), "maps")
 
 
 def _mapped(values: np.ndarray, lo: float, hi: float, caption: str, label: str) -> str:

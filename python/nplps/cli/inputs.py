@@ -383,6 +383,31 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise InputError(f"--dark must be a finite number, got {args.dark}")
     if args.saturation is not None and not (np.isfinite(args.saturation) and args.saturation > 0):
         raise InputError(f"--saturation must be a positive number (0..1 scale), got {args.saturation}")
+    _check_reflectance(args)
+
+
+def _check_reflectance(args: argparse.Namespace) -> None:
+    """Check --reflectance, --roughness and --eta: the lobe is glossy's, given whole or not at all."""
+    roughness, eta = getattr(args, "roughness", None), getattr(args, "eta", None)
+    given = [flag for flag, value in (("--roughness", roughness), ("--eta", eta)) if value is not None]
+    if not given:
+        return
+    if getattr(args, "reflectance", None) != "glossy":
+        raise InputError(
+            f"{' and '.join(given)} {'is an option' if len(given) == 1 else 'are options'} of the glossy model: "
+            "add --reflectance glossy (the lambertian model has no specular lobe)"
+        )
+    if len(given) == 1:
+        missing = "--eta" if given[0] == "--roughness" else "--roughness"
+        raise InputError(
+            f"{given[0]} needs {missing} too: give both (a fixed lobe) or neither (the lobe is then "
+            "estimated from the images)"
+        )
+    assert roughness is not None and eta is not None  # both given (checked above)
+    if not (np.isfinite(roughness) and 0 < roughness <= 1):
+        raise InputError(f"--roughness (the GGX alpha) must be a number in (0, 1], got {roughness}")
+    if not (np.isfinite(eta) and 1 <= eta <= 3):
+        raise InputError(f"--eta (the relative index of refraction) must be a number from 1 to 3, got {eta}")
 
 
 def parse_light_rows(text: str, flag: str = "--lights", k: int | None = None) -> list[int]:

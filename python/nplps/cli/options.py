@@ -99,6 +99,35 @@ _OPTIONS = (
         "reweight each pixel's fit so that highlights and cast shadows do not bend the normals",
         choices=get_args(types.Robust),
     ),
+    # reflectance
+    Option(
+        ("--reflectance",),
+        "reflectance",
+        "the image model of each pixel's fit: lambertian (default; matte surfaces) or glossy: a "
+        "diffuse part with Fresnel transmittance plus a GGX specular lobe (Smith masking, Fresnel "
+        "shape; grey specular albedo, the light's colour), for plastics, glazes, coated or polished "
+        "parts. The lobe (--roughness, --eta) is shared by the whole object: one material; "
+        "highlights must not be saturated (saturated values are left out). Writes specular.npy "
+        "and specular.png (the specular albedo); albedo.png is then the diffuse albedo. Several "
+        "times slower than lambertian",
+        choices=get_args(types.Reflectance),
+    ),
+    Option(
+        ("--roughness",),
+        "roughness",
+        "with --reflectance glossy and --eta: the lobe's GGX roughness alpha, 0 < A <= 1 (about 0.05 "
+        "polished, 0.3 satin, 0.6 rough; default: estimated from the images)",
+        type=float,
+        metavar="A",
+    ),
+    Option(
+        ("--eta",),
+        "eta",
+        "with --reflectance glossy and --roughness: the relative index of refraction of the surface "
+        "layer, 1 <= E <= 3 (1.5 for most plastics; default: estimated from the images)",
+        type=float,
+        metavar="E",
+    ),
     Option(
         ("--gray", "--grey"),
         "color",
@@ -225,6 +254,7 @@ OPTIONS: dict[str, Option] = {o.flags[0]: o for o in _OPTIONS}
 #: The option groups of ``nplps reconstruct`` and ``nplps evaluate``, in their order.
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("shadows, saturation, colour", ("--dark", "--saturation", "--robust", "--gray")),
+    ("reflectance", ("--reflectance", "--roughness", "--eta")),
     (
         "pre-processing (applied in this order)",
         ("--srgb", "--ambient", "--exposures", "--vignetting", "--flat", "--bin"),
@@ -235,6 +265,9 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 
 #: The options of the near-light solver only (not of the parallel-light baseline).
 NEAR_SOLVER = (
+    "--reflectance",
+    "--roughness",
+    "--eta",
     "--iterations",
     "--tol",
     "--weighting",

@@ -147,8 +147,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                 refine: Literal["intensity"] | None = (
                     "intensity" if args.refine_lights in ("intensity", "both") else None
                 )
+                # ... and fits the same reflectance model (its own lobe, unless one is given).
+                glossy = {k: near[k] for k in ("reflectance", "roughness", "eta") if near.get(k) is not None}
                 base = reconstruct_parallel(
-                    inputs.images, inputs.rig, mask=inputs.mask, refine_lights=refine, **_estimated(result, common)
+                    inputs.images,
+                    inputs.rig,
+                    mask=inputs.mask,
+                    refine_lights=refine,
+                    **glossy,
+                    **_estimated(result, common),
                 )
             wall = time.perf_counter() - start
             base_paths = _save(base, out.subdirectory("baseline"), args, quiet=args.quiet)

@@ -555,7 +555,13 @@ impl<'p> Solver<'p> {
             return Ok(0.0);
         }
         let t = Instant::now();
-        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let data = Self::light_data(
+            self.problem,
+            &self.options,
+            self.lobe,
+            &self.warm,
+            self.shadows.as_ref(),
+        );
         let change = self.lights.step(&data, u)?;
         if self.lights.settled() {
             run.accel = None;
@@ -586,6 +592,26 @@ impl<'p> Solver<'p> {
         )?);
         self.timings.shadows += t.elapsed();
         p.cancel.check()
+    }
+
+    /// The data of the light step: under the glossy model with the lobe in use (estimated or
+    /// given) and the facets' glossy normals of the last local step, from which it predicts the
+    /// specular part (see [`crate::refine`]); without the observations in the cast `shadows`
+    /// the local steps leave out.
+    fn light_data<'a>(
+        problem: &'a Problem<'a>,
+        options: &Options,
+        lobe: Option<Lobe>,
+        warm: &'a [[f32; 3]],
+        shadows: Option<&'a ShadowMask>,
+    ) -> LightData<'a> {
+        let settings = FitSettings {
+            lobe,
+            ..options.fit_settings(false)
+        };
+        LightData::of(problem, settings)
+            .with_normals(Some(warm))
+            .with_shadows(shadows)
     }
 
     /// Whether the solver fits the glossy model with a lobe it estimates.
@@ -836,7 +862,13 @@ impl<'p> Solver<'p> {
         if !refine.is_active() {
             return None;
         }
-        let data = LightData::of(self.problem, self.options.fit_settings(false));
+        let data = Self::light_data(
+            self.problem,
+            &self.options,
+            self.lobe,
+            &self.warm,
+            self.shadows.as_ref(),
+        );
         let monitor = self.lights.monitor;
         Some(RefinementReport {
             refine,
