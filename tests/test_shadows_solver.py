@@ -89,3 +89,31 @@ def test_shadows_must_be_a_flag() -> None:
     scene = nplps.make_scene("sphere", n=16)
     with pytest.raises(nplps.InputError, match="shadows"):
         nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, shadows="yes")  # type: ignore[arg-type]
+
+
+def test_the_command_line_flag_and_the_result_folder(tmp_path, capsys) -> None:
+    from nplps import cli
+
+    scene = nplps.make_scene("block", n=32, camera="pinhole", shadows=True)
+    scene.save(tmp_path / "block")
+    folder = tmp_path / "block"
+    argv = ["reconstruct", str(folder), "--rig", str(folder / "rig.json"), "--mask", str(folder / "mask.png")]
+    argv += ["--depth", repr(scene.mean_depth), "-q", "--shadows", "--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    out = tmp_path / "out"
+    summary = json.loads((out / "summary.json").read_text())
+    cast = summary["cast_shadows"]
+    truth = nplps.cast_shadows(scene.depth, scene.rig, mask=scene.mask)
+    assert cast["share"] == pytest.approx(truth[:, scene.mask].mean(), rel=0.3)
+    assert len(cast["per_light"]) == scene.rig.n_lights
+    assert summary["options"]["shadows"] is True
+    bits = np.load(out / "shadows.npy")
+    assert bits.shape == (32, 32, 1) and bits.dtype == np.uint64
+    assert (out / "shadows.png").is_file()
+    assert "cast shadows predicted from the mesh" in (out / "report.html").read_text()
+    # Without the flag: no shadow files, and null in the summary.
+    argv = [a for a in argv if a != "--shadows"]
+    argv[-1] = str(tmp_path / "plain")
+    assert cli.main(argv) == 0
+    assert json.loads((tmp_path / "plain" / "summary.json").read_text())["cast_shadows"] is None
+    assert not (tmp_path / "plain" / "shadows.npy").exists()

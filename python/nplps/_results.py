@@ -186,6 +186,18 @@ _SUMMARY_TYPES: dict[str, tuple[str, Any]] = {
     ),
     "options": ("null or an object", lambda v: v is None or isinstance(v, dict)),
     "reflectance": ('"lambertian", "glossy" or null', lambda v: v in (None, "lambertian", "glossy")),
+    "cast_shadows": (
+        "null or an object with a number share and a list of numbers per_light",
+        lambda v: (
+            v is None
+            or (
+                isinstance(v, dict)
+                and _is_number(v.get("share"))
+                and isinstance(v.get("per_light"), list)
+                and all(_is_number(x) for x in v["per_light"])
+            )
+        ),
+    ),
     "lobe": (
         "null or an object with numbers roughness and eta",
         lambda v: v is None or (isinstance(v, dict) and all(_is_number(v.get(k)) for k in ("roughness", "eta"))),

@@ -1516,6 +1516,8 @@ def write_result(
     names.update({name: FORMATS[name].file.format(stem=stem) for name in formats})
     if result.specular is not None:  # the glossy model's specular albedo (none for Lambertian results)
         names.update(specular_npy="specular.npy", specular="specular.png")
+    if result.shadow_bits is not None:  # shadows=True: the cast shadows the fits left out
+        names.update(shadows_npy="shadows.npy", shadows="shadows.png")
     if result.distance is not None:
         names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
     if result.refinement is not None:
@@ -1553,6 +1555,12 @@ def write_result(
     if result.specular is not None:
         save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
         summary["specular_png_scale"] = save_albedo(paths["specular"], result.specular)
+    if result.shadow_bits is not None:
+        save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
+        shadowed = result.shadows
+        assert shadowed is not None
+        share = np.where(result.mask, shadowed.mean(axis=0), 0.0)
+        save_grey_png(paths["shadows"], share)
     if result.distance is not None:
         result.distance.save_curve(paths["distance_curve"])
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])

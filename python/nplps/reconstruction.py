@@ -238,6 +238,15 @@ class Reconstruction:
             return []
         return light_changes(self.input_rig, self.rig)
 
+    def _shadow_summary(self) -> dict[str, Any] | None:
+        """With ``shadows=True``: the share of the masked observations in a cast shadow, overall and per light."""
+        shadows = self.shadows
+        if shadows is None:
+            return None
+        inside = shadows[:, self.mask]
+        per_light = inside.mean(axis=1) if inside.size else np.zeros(len(shadows))
+        return {"share": float(inside.mean()) if inside.size else 0.0, "per_light": [float(v) for v in per_light]}
+
     @property
     def shadows(self) -> np.ndarray | None:
         """The cast shadows (k, H, W) bool the fits left out (``shadows=True``; else None).
@@ -577,6 +586,7 @@ class Reconstruction:
             else {**self.refinement.to_dict(), "changes": self.light_changes()},
             "dark": None if self.dark is None else float(self.dark),
             "noise": None if self.noise is None else float(self.noise),
+            "cast_shadows": self._shadow_summary(),
             "reflectance": "lambertian" if self.lobe is None else "glossy",
             "lobe": None if self.lobe is None else {"roughness": self.lobe.roughness, "eta": self.lobe.eta},
         }

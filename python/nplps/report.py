@@ -491,6 +491,17 @@ def _section_maps(d: _Data) -> str:
         figures.append(_figure(_grey_rgb(small), f"{name} (scaled to its 99.5th percentile){d.crop_note}"))
     else:
         figures.append(_none("Albedo: not available (albedo.png is missing)."))
+    cast = d.summary.get("cast_shadows")
+    if isinstance(cast, dict):
+        shadows = d._load("shadows.png")
+        if shadows is not None:
+            small = views.downsample(np.asarray(d.cropped(shadows), dtype=np.float64), MAP_SIDE)
+            caption = (
+                f"cast shadows predicted from the mesh: the share of the lights each pixel is hidden from "
+                f"(black none, white all; {100 * float(cast.get('share', 0.0)):.1f} % of the observations "
+                f"left out){d.crop_note}"
+            )
+            figures.append(_figure(np.rint(np.clip(np.nan_to_num(small), 0, 255)).astype(np.uint8), caption))
     if not glossy:
         return _section("Mask, normal map, albedo", "".join(figures), "maps")
     specular = d._load("specular.png")

@@ -46,6 +46,7 @@ BATCH_OPTIONS = (
     "--dark",
     "--saturation",
     "--robust",
+    "--shadows",
     "--reflectance",
     "--roughness",
     "--eta",
