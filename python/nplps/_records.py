@@ -245,9 +245,12 @@ class Result(Protocol):
     distance_check: DistanceCheck | None
     lobe: Lobe | None
     specular: np.ndarray | None
+    shadow_bits: np.ndarray | None
 
     @property
     def shape(self) -> tuple[int, int]: ...
+    @property
+    def shadows(self) -> np.ndarray | None: ...
     @property
     def vertices(self) -> np.ndarray: ...
     @property
