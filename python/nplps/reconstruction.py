@@ -319,7 +319,8 @@ class Reconstruction:
         """Return the images predicted from this result by the image model.
 
         Each pixel is shaded with its fitted normal (:attr:`fit_normals`) and albedo at the
-        centre of its quad: the model's own explanation of the images, which the normals and the
+        centre of its quad (under the glossy model with its specular albedo and the lobe too):
+        the model's own explanation of the images, which the normals and the
         albedo were fitted for jointly. A parallel-light result predicts with its own model (each
         point light seen as a direction from the surface's centroid).
 
@@ -351,8 +352,17 @@ class Reconstruction:
         light_params = rig._core_lights()
         if lights is not None:
             light_params = _select_core_lights(light_params, _light_indices(lights, rig.n_lights))
+        glossy = self.lobe is not None and self.specular is not None
         return _core.predict(
-            self.depth, self.fit_normals, self.albedo, rig.camera, light_params, self.mask, self.method == "parallel"
+            self.depth,
+            self.fit_normals,
+            self.albedo,
+            rig.camera,
+            light_params,
+            self.mask,
+            self.method == "parallel",
+            specular=np.nan_to_num(np.asarray(self.specular, dtype=np.float64), nan=0.0) if glossy else None,
+            lobe=(self.lobe.roughness, self.lobe.eta) if glossy and self.lobe is not None else None,
         )
 
     def shaded(self, light: ArrayLike | Literal["camera"] | None = None) -> np.ndarray:

@@ -553,7 +553,8 @@ fn estimate_noise<'py>(
 
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
 #[pyfunction]
-#[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel))]
+#[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel, specular=None, lobe=None))]
+#[allow(clippy::too_many_arguments)]
 fn predict<'py>(
     depth: PyReadonlyArray2<'py, f64>,
     normals: PyReadonlyArrayDyn<'py, f64>,
@@ -562,10 +563,21 @@ fn predict<'py>(
     lights: &Bound<'py, PyDict>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     parallel: bool,
+    specular: Option<&Bound<'py, PyAny>>,
+    lobe: Option<(f64, f64)>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let py = depth.py();
     let rig = lighting_from(camera, lights)?;
     let (h, w, z) = depth_grid(&depth)?;
+    let specular = match (specular, lobe) {
+        (Some(s), Some(lobe)) => Some((specular_map(s, h, w)?, lobe)),
+        (None, None) => None,
+        _ => {
+            return Err(InputError::new_err(
+                "give the specular albedo and the lobe together (a glossy result's), or neither",
+            ))
+        }
+    };
     let channels = albedo_channels(&albedo)?;
     let n: Vec<[f64; 3]> = slice(&normals, "normals")?
         .chunks_exact(3)
@@ -582,7 +594,17 @@ fn predict<'py>(
         mask,
     };
     let images = py
-        .detach(|| no_panic(|| nplps::predict(&rig, &surface, &n, parallel)))
+        .detach(|| {
+            no_panic(|| {
+                let layer = specular
+                    .as_ref()
+                    .map(|(albedo, (alpha, eta))| nplps::Specular {
+                        albedo,
+                        lobe: nplps::reflectance::Lobe::new(*alpha, *eta),
+                    });
+                nplps::predict_with(&rig, &surface, &n, parallel, layer)
+            })
+        })
         .map_err(to_py)?;
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }

@@ -206,7 +206,8 @@ pub use reconstruction::{
 pub use refine::Conditioning;
 pub use reflectance::{Lobe, Reflectance};
 pub use render::{
-    mesh_normals, predict, render, render_with, vertices, RenderOptions, Specular, Surface,
+    mesh_normals, predict, predict_with, render, render_with, vertices, RenderOptions, Specular,
+    Surface,
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask};

@@ -389,6 +389,19 @@ pub fn predict(
     normals: &[[f64; 3]],
     parallel: bool,
 ) -> Result<Vec<f64>> {
+    predict_with(rig, surface, normals, parallel, None)
+}
+
+/// As [`predict`], under the glossy model with the specular layer `specular` of a glossy
+/// reconstruction (its specular albedo map and lobe; `surface.albedo` is then the diffuse
+/// albedo); None: the Lambertian model, as [`predict`].
+pub fn predict_with(
+    rig: &Rig,
+    surface: &Surface<'_>,
+    normals: &[[f64; 3]],
+    parallel: bool,
+    specular: Option<Specular<'_>>,
+) -> Result<Vec<f64>> {
     let v = surface.vertices(&rig.camera)?;
     let Surface {
         height,
@@ -431,7 +444,18 @@ pub fn predict(
     } else {
         rig.lights.clone()
     };
-    shade_images(&lights, plane, channels, albedo, Model::Lambert, |p| {
+    let model = match specular {
+        Some(specular) => {
+            specular.check(plane)?;
+            Model::Glossy {
+                specular: specular.albedo,
+                lobe: specular.lobe,
+                perspective: rig.camera.is_perspective(),
+            }
+        }
+        None => Model::Lambert,
+    };
+    shade_images(&lights, plane, channels, albedo, model, |p| {
         inside(p).then(|| (normals[p], quad_centre(&pixel_quad(&v, width, p))))
     })
 }
