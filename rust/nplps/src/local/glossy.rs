@@ -31,7 +31,7 @@ use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalSt
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::reflectance::{fit, Lobe, Observation};
-use crate::vec3::{norm, scale};
+use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
 /// fit: the steps stop earlier once one no longer lowers the residual).
@@ -39,6 +39,10 @@ pub const GLOSSY_STEPS: usize = 10;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
 pub const GLOSSY_WARM_STEPS: usize = 2;
+
+/// A facet's second start (see [`refine`]) is tried only where the fit from its first ends
+/// farther than this from it (degrees).
+pub const AGREE_DEGREES: f64 = 3.0;
 
 /// Facets of the subsample on which [`estimate_lobe`] compares lobes.
 pub const LOBE_SAMPLE: usize = 1024;
@@ -48,10 +52,13 @@ const ALPHAS: [f64; 9] = [0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.4, 0.6, 0.85];
 /// The index grid of the lobe search (1: the diffuse part is Lambertian).
 const ETAS: [f64; 7] = [1.0, 1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
 
-/// The glossy observations of a facet with centre `c` (see the module documentation), the
-/// usable ones only, into `out`.
+/// The glossy observations of a facet with centre `c` and view vector `v` under `lobe` (see the
+/// module documentation), the usable ones only, into `out`.
+#[allow(clippy::too_many_arguments)]
 fn observations(
     c: [f64; 3],
+    v: [f64; 3],
+    lobe: &Lobe,
     model: Model<'_>,
     values: &[f32],
     channels: usize,
@@ -71,19 +78,23 @@ fn observations(
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(Observation {
-            value: o.iter().map(|&v| v as f64).sum(),
-            scale: p * a,
-            light: scale(b, 1.0 / a),
-        });
+        out.push(Observation::new(
+            o.iter().map(|&v| v as f64).sum(),
+            p * a,
+            scale(b, 1.0 / a),
+            v,
+            lobe,
+        ));
     }
 }
 
-/// The glossy fit of the facet with centre `c` and view vector `v`, started from each normal of
-/// `starts` (e.g. its Lambertian fit's and the mesh normal) with the diffuse albedo of its
-/// Lambertian fit `start`, with at most `steps` Gauss-Newton steps from each: the one of lower
-/// residual; `start` itself (with no specular albedo) where the glossy fit fails. The target is
-/// left as in `start`.
+/// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
+/// of `starts` (e.g. its Lambertian fit's, or its glossy normal of the previous local step) with
+/// the diffuse albedo of its Lambertian fit `start`, with at most `steps` Gauss-Newton steps;
+/// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
+/// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit), and the
+/// fit of lower residual is kept; `start` itself (with no specular albedo) where the glossy fit
+/// fails. The target is left as in `start`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn refine(
     c: [f64; 3],
@@ -98,11 +109,16 @@ pub(super) fn refine(
     steps: usize,
     scratch: &mut Vec<Observation>,
 ) -> FacetFit {
-    observations(c, model, values, channels, settings, scratch);
+    observations(c, v, lobe, model, values, channels, settings, scratch);
     let albedo = start.albedo[..channels].iter().sum::<f64>();
     let from = |n: [f64; 3]| fit(lobe, scratch, v, scale(n, albedo), steps);
-    let fits = starts.map(|n| n.and_then(from));
-    let Some(g) = fits
+    let first = starts[0].and_then(from);
+    let agree = AGREE_DEGREES.to_radians().cos();
+    let second = match (first, starts[1]) {
+        (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
+        (_, n) => n.and_then(from),
+    };
+    let Some(g) = [first, second]
         .into_iter()
         .flatten()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))
@@ -172,8 +188,8 @@ struct Sampled {
     v: [f64; 3],
     values: Vec<f32>,
     start: FacetFit,
-    /// Where its fits start: its glossy normal of an earlier local step, or its Lambertian
-    /// and mesh normals.
+    /// Where its fits start (see [`refine`]): its glossy normal of an earlier local step or its
+    /// Lambertian normal, then its mesh normal.
     starts: [Option<[f64; 3]>; 2],
 }
 
@@ -202,7 +218,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             let start = fit_facet(c, step.model, &values, channels, lambertian)?;
             let warm = step.warm.and_then(|w| super::warm_normal(&w[f]));
             let starts = match warm {
-                Some(n) => [Some(n), None],
+                Some(n) => [Some(n), Some(quad_normal(&q))],
                 None => [Some(start.normal), Some(quad_normal(&q))],
             };
             Some(Sampled {
