@@ -44,6 +44,10 @@ pub const GLOSSY_WARM_STEPS: usize = 2;
 /// farther than this from it (degrees).
 pub const AGREE_DEGREES: f64 = 3.0;
 
+/// Steps of a facet's fit under each lobe the search tries, from its fit under the lobe of the
+/// search's last line (see [`estimate_lobe`]).
+pub const LOBE_STEPS: usize = 3;
+
 /// Facets of the subsample on which [`estimate_lobe`] compares lobes.
 pub const LOBE_SAMPLE: usize = 1024;
 
@@ -234,10 +238,13 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
     if sample.is_empty() {
         return Ok(None);
     }
-    let cost = |lobe: Lobe| -> f64 {
-        sample
+    // The fits of the subsample under a lobe, each from `starts`: the summed residual and where
+    // each facet's fit ended (its next starts).
+    let fits = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]], steps: usize| {
+        let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
-            .map_init(Vec::new, |scratch, s| {
+            .zip(starts)
+            .map_init(Vec::new, |scratch, (s, &starts)| {
                 let g = refine(
                     s.c,
                     s.v,
@@ -247,18 +254,26 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                     &lambertian,
                     &lobe,
                     s.start,
-                    s.starts,
-                    2 * GLOSSY_STEPS,
+                    starts,
+                    steps,
                     scratch,
                 );
-                g.sse
+                (g.sse, [Some(g.normal), None])
             })
-            .sum()
+            .collect();
+        let sse = fitted.iter().map(|f| f.0).sum::<f64>();
+        (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
     let (mut lobe, rounds) = match previous {
         Some(lobe) => (lobe, 2),
         None => (Lobe::new(0.2, 1.45), 3),
     };
+    // The fits under the starting lobe from the facets' own starts anchor the search; each lobe
+    // tried starts from the anchors alone, and the lobe a line search keeps gives the next
+    // anchors.
+    let own: Vec<_> = sample.iter().map(|s| s.starts).collect();
+    let mut anchors = fits(lobe, &own, 2 * GLOSSY_STEPS).1;
+    step.cancel.check()?;
     for round in 0..rounds {
         let near = |x: f64, grid: &[f64], lo: f64, hi: f64, log: bool| -> Vec<f64> {
             match previous {
@@ -267,19 +282,31 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                 Some(_) => vec![(x - 0.1).max(lo), x, (x + 0.1).min(hi)],
             }
         };
-        lobe = if round % 2 == 1 {
-            let grid = near(lobe.eta, &ETAS, 1.0, 3.0, false);
-            Lobe::new(
-                lobe.alpha,
-                line_search(&grid, |eta| cost(Lobe::new(lobe.alpha, eta)), false),
-            )
-        } else {
-            let grid = near(lobe.alpha, &ALPHAS, 0.01, 1.0, true);
-            Lobe::new(
-                line_search(&grid, |alpha| cost(Lobe::new(alpha, lobe.eta)), true),
-                lobe.eta,
-            )
+        let tried = std::sync::Mutex::new(Vec::new());
+        let eta_round = round % 2 == 1;
+        let at = |x: f64| match eta_round {
+            true => Lobe::new(lobe.alpha, x),
+            false => Lobe::new(x, lobe.eta),
         };
+        let cost = |x: f64| {
+            let (sse, ends) = fits(at(x), &anchors, LOBE_STEPS);
+            if let Ok(mut tried) = tried.lock() {
+                tried.push((x, ends));
+            }
+            sse
+        };
+        let x = match eta_round {
+            true => line_search(&near(lobe.eta, &ETAS, 1.0, 3.0, false), cost, false),
+            false => line_search(&near(lobe.alpha, &ALPHAS, 0.01, 1.0, true), cost, true),
+        };
+        lobe = at(x);
+        if let Some((_, ends)) = tried
+            .into_inner()
+            .ok()
+            .and_then(|t| t.into_iter().find(|t| t.0 == x))
+        {
+            anchors = ends;
+        }
         step.cancel.check()?;
     }
     Ok(Some(lobe))
