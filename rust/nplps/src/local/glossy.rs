@@ -22,7 +22,11 @@
 //! finds them for the whole object by minimising the summed squared residual of the glossy fits
 //! of a subsample of at most [`LOBE_SAMPLE`] facets: a coordinate search over `alpha` on a
 //! geometric grid, `eta` on a grid from 1 (Lambert) to 2.1, then `alpha` again, each refined by
-//! a parabola through the best grid value and its neighbours. On a matte object the specular
+//! a parabola through the best grid value and its neighbours. The facets are fitted once under
+//! the starting lobe from their own starts; under each lobe tried, their fits go on from those
+//! normals for [`LOBE_STEPS`] steps, and the lobe a line search keeps gives the normals the next
+//! line starts from (the residual is a minimum over each facet's unknowns, so a nearby start
+//! converges to it in a few steps). On a matte object the specular
 //! albedo goes to 0 and every lobe fits alike; the estimate is then arbitrary and harmless.
 
 use rayon::prelude::*;
@@ -34,8 +38,9 @@ use crate::reflectance::{fit, Lobe, Observation};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
-/// fit: the steps stop earlier once one no longer lowers the residual).
-pub const GLOSSY_STEPS: usize = 10;
+/// fit: the steps stop earlier once one no longer lowers the residual noticeably, see
+/// [`CONVERGED`](crate::reflectance::CONVERGED)); later local steps go on from its normal.
+pub const GLOSSY_STEPS: usize = 5;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
 pub const GLOSSY_WARM_STEPS: usize = 2;
