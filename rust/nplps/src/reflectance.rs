@@ -120,7 +120,7 @@ impl Lobe {
         let e2 = eta * eta;
         let t = (1.0 - (1.0 - c * c) / e2).max(0.0).sqrt();
         let (ds, dp) = (c + eta * t, eta * c + t);
-        if !(t > 0.0) {
+        if t.is_nan() || t <= 0.0 {
             let (rs, rp) = ((c - eta * t) / ds, (eta * c - t) / dp);
             return (0.5 * (rs * rs + rp * rp), 0.0);
         }
