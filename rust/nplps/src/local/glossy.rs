@@ -22,7 +22,11 @@
 //! finds them for the whole object by minimising the summed squared residual of the glossy fits
 //! of a subsample of at most [`LOBE_SAMPLE`] facets: a coordinate search over `alpha` on a
 //! geometric grid, `eta` on a grid from 1 (Lambert) to 2.1, then `alpha` again, each refined by
-//! a parabola through the best grid value and its neighbours. On a matte object the specular
+//! a parabola through the best grid value and its neighbours. The facets are fitted once under
+//! the starting lobe from their own starts; under each lobe tried, their fits go on from those
+//! normals for [`LOBE_STEPS`] steps, and the lobe a line search keeps gives the normals the next
+//! line starts from (the residual is a minimum over each facet's unknowns, so a nearby start
+//! converges to it in a few steps). On a matte object the specular
 //! albedo goes to 0 and every lobe fits alike; the estimate is then arbitrary and harmless.
 
 use rayon::prelude::*;
@@ -31,14 +35,23 @@ use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalSt
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::reflectance::{fit, Lobe, Observation};
-use crate::vec3::{norm, scale};
+use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
-/// fit: the steps stop earlier once one no longer lowers the residual).
-pub const GLOSSY_STEPS: usize = 10;
+/// fit: the steps stop earlier once one no longer lowers the residual noticeably, see
+/// [`CONVERGED`](crate::reflectance::CONVERGED)); later local steps go on from its normal.
+pub const GLOSSY_STEPS: usize = 5;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
 pub const GLOSSY_WARM_STEPS: usize = 2;
+
+/// A facet's second start (see [`refine`]) is tried only where the fit from its first ends
+/// farther than this from it (degrees).
+pub const AGREE_DEGREES: f64 = 3.0;
+
+/// Steps of a facet's fit under each lobe the search tries, from its fit under the lobe of the
+/// search's last line (see [`estimate_lobe`]).
+pub const LOBE_STEPS: usize = 3;
 
 /// Facets of the subsample on which [`estimate_lobe`] compares lobes.
 pub const LOBE_SAMPLE: usize = 1024;
@@ -48,10 +61,13 @@ const ALPHAS: [f64; 9] = [0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.4, 0.6, 0.85];
 /// The index grid of the lobe search (1: the diffuse part is Lambertian).
 const ETAS: [f64; 7] = [1.0, 1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
 
-/// The glossy observations of a facet with centre `c` (see the module documentation), the
-/// usable ones only, into `out`.
+/// The glossy observations of a facet with centre `c` and view vector `v` under `lobe` (see the
+/// module documentation), the usable ones only, into `out`.
+#[allow(clippy::too_many_arguments)]
 fn observations(
     c: [f64; 3],
+    v: [f64; 3],
+    lobe: &Lobe,
     model: Model<'_>,
     values: &[f32],
     channels: usize,
@@ -71,19 +87,23 @@ fn observations(
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(Observation {
-            value: o.iter().map(|&v| v as f64).sum(),
-            scale: p * a,
-            light: scale(b, 1.0 / a),
-        });
+        out.push(Observation::new(
+            o.iter().map(|&v| v as f64).sum(),
+            p * a,
+            scale(b, 1.0 / a),
+            v,
+            lobe,
+        ));
     }
 }
 
-/// The glossy fit of the facet with centre `c` and view vector `v`, started from each normal of
-/// `starts` (e.g. its Lambertian fit's and the mesh normal) with the diffuse albedo of its
-/// Lambertian fit `start`, with at most `steps` Gauss-Newton steps from each: the one of lower
-/// residual; `start` itself (with no specular albedo) where the glossy fit fails. The target is
-/// left as in `start`.
+/// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
+/// of `starts` (e.g. its Lambertian fit's, or its glossy normal of the previous local step) with
+/// the diffuse albedo of its Lambertian fit `start`, with at most `steps` Gauss-Newton steps;
+/// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
+/// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit), and the
+/// fit of lower residual is kept; `start` itself (with no specular albedo) where the glossy fit
+/// fails. The target is left as in `start`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn refine(
     c: [f64; 3],
@@ -98,11 +118,16 @@ pub(super) fn refine(
     steps: usize,
     scratch: &mut Vec<Observation>,
 ) -> FacetFit {
-    observations(c, model, values, channels, settings, scratch);
+    observations(c, v, lobe, model, values, channels, settings, scratch);
     let albedo = start.albedo[..channels].iter().sum::<f64>();
     let from = |n: [f64; 3]| fit(lobe, scratch, v, scale(n, albedo), steps);
-    let fits = starts.map(|n| n.and_then(from));
-    let Some(g) = fits
+    let first = starts[0].and_then(from);
+    let agree = AGREE_DEGREES.to_radians().cos();
+    let second = match (first, starts[1]) {
+        (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
+        (_, n) => n.and_then(from),
+    };
+    let Some(g) = [first, second]
         .into_iter()
         .flatten()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))
@@ -172,8 +197,8 @@ struct Sampled {
     v: [f64; 3],
     values: Vec<f32>,
     start: FacetFit,
-    /// Where its fits start: its glossy normal of an earlier local step, or its Lambertian
-    /// and mesh normals.
+    /// Where its fits start (see [`refine`]): its glossy normal of an earlier local step or its
+    /// Lambertian normal, then its mesh normal.
     starts: [Option<[f64; 3]>; 2],
 }
 
@@ -202,7 +227,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             let start = fit_facet(c, step.model, &values, channels, lambertian)?;
             let warm = step.warm.and_then(|w| super::warm_normal(&w[f]));
             let starts = match warm {
-                Some(n) => [Some(n), None],
+                Some(n) => [Some(n), Some(quad_normal(&q))],
                 None => [Some(start.normal), Some(quad_normal(&q))],
             };
             Some(Sampled {
@@ -218,10 +243,13 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
     if sample.is_empty() {
         return Ok(None);
     }
-    let cost = |lobe: Lobe| -> f64 {
-        sample
+    // The fits of the subsample under a lobe, each from `starts`: the summed residual and where
+    // each facet's fit ended (its next starts).
+    let fits = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]], steps: usize| {
+        let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
-            .map_init(Vec::new, |scratch, s| {
+            .zip(starts)
+            .map_init(Vec::new, |scratch, (s, &starts)| {
                 let g = refine(
                     s.c,
                     s.v,
@@ -231,18 +259,26 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                     &lambertian,
                     &lobe,
                     s.start,
-                    s.starts,
-                    2 * GLOSSY_STEPS,
+                    starts,
+                    steps,
                     scratch,
                 );
-                g.sse
+                (g.sse, [Some(g.normal), None])
             })
-            .sum()
+            .collect();
+        let sse = fitted.iter().map(|f| f.0).sum::<f64>();
+        (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
     let (mut lobe, rounds) = match previous {
         Some(lobe) => (lobe, 2),
         None => (Lobe::new(0.2, 1.45), 3),
     };
+    // The fits under the starting lobe from the facets' own starts anchor the search; each lobe
+    // tried starts from the anchors alone, and the lobe a line search keeps gives the next
+    // anchors.
+    let own: Vec<_> = sample.iter().map(|s| s.starts).collect();
+    let mut anchors = fits(lobe, &own, 2 * GLOSSY_STEPS).1;
+    step.cancel.check()?;
     for round in 0..rounds {
         let near = |x: f64, grid: &[f64], lo: f64, hi: f64, log: bool| -> Vec<f64> {
             match previous {
@@ -251,19 +287,31 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                 Some(_) => vec![(x - 0.1).max(lo), x, (x + 0.1).min(hi)],
             }
         };
-        lobe = if round % 2 == 1 {
-            let grid = near(lobe.eta, &ETAS, 1.0, 3.0, false);
-            Lobe::new(
-                lobe.alpha,
-                line_search(&grid, |eta| cost(Lobe::new(lobe.alpha, eta)), false),
-            )
-        } else {
-            let grid = near(lobe.alpha, &ALPHAS, 0.01, 1.0, true);
-            Lobe::new(
-                line_search(&grid, |alpha| cost(Lobe::new(alpha, lobe.eta)), true),
-                lobe.eta,
-            )
+        let tried = std::sync::Mutex::new(Vec::new());
+        let eta_round = round % 2 == 1;
+        let at = |x: f64| match eta_round {
+            true => Lobe::new(lobe.alpha, x),
+            false => Lobe::new(x, lobe.eta),
         };
+        let cost = |x: f64| {
+            let (sse, ends) = fits(at(x), &anchors, LOBE_STEPS);
+            if let Ok(mut tried) = tried.lock() {
+                tried.push((x, ends));
+            }
+            sse
+        };
+        let x = match eta_round {
+            true => line_search(&near(lobe.eta, &ETAS, 1.0, 3.0, false), cost, false),
+            false => line_search(&near(lobe.alpha, &ALPHAS, 0.01, 1.0, true), cost, true),
+        };
+        lobe = at(x);
+        if let Some((_, ends)) = tried
+            .into_inner()
+            .ok()
+            .and_then(|t| t.into_iter().find(|t| t.0 == x))
+        {
+            anchors = ends;
+        }
         step.cancel.check()?;
     }
     Ok(Some(lobe))

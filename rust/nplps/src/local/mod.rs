@@ -327,9 +327,9 @@ impl LocalStep<'_> {
 
     /// The fit of facet `f` on the unknowns `u`, with `buf` as scratch for its observations
     /// (and `glossy` for the glossy model's). Under the glossy model a `warm` normal (the
-    /// facet's glossy normal of the previous local step) starts the glossy fit alone, with
-    /// [`GLOSSY_WARM_STEPS`] steps; without one the fit starts from the Lambertian normal and the
-    /// mesh normal (see `glossy::refine`).
+    /// facet's glossy normal of the previous local step) starts the glossy fit, with
+    /// [`GLOSSY_WARM_STEPS`] steps; without one the fit starts from the Lambertian normal; the
+    /// mesh normal is the second start (see `glossy::refine`).
     #[inline]
     fn fit(
         &self,
@@ -349,7 +349,7 @@ impl LocalStep<'_> {
                 return fit;
             };
             let (starts, steps) = match warm {
-                Some(n) => ([Some(n), None], GLOSSY_WARM_STEPS),
+                Some(n) => ([Some(n), Some(quad_normal(&q))], GLOSSY_WARM_STEPS),
                 None => ([Some(fit.normal), Some(quad_normal(&q))], GLOSSY_STEPS),
             };
             glossy::refine(

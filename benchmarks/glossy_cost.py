@@ -1,0 +1,146 @@
+"""Cost of the glossy reflectance model against the Lambertian default (issue 20).
+
+Usage::
+
+    python benchmarks/glossy_cost.py [--sizes 256 1024] [--repeats 3]
+                                     [--pbr /work/pbr-data/256/bumps-roughplastic-0.3-256.npz]
+                                     [--modes lambertian given estimated] [--json out.json]
+
+Scenes: ``nplps.make_scene("bumps", camera="pinhole", specular=0.2, roughness=0.3)`` (rendered
+by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size, and the PBR render given by
+``--pbr`` (its own size; pass ``--pbr ''`` to skip it). Modes: ``lambertian`` (the default),
+``given`` (``reflectance="glossy"`` with the true lobe; for a PBR render the roughness of its
+material name and eta 1.5) and ``estimated`` (``reflectance="glossy"``, lobe estimated), each
+with the true distance and the default ``check_distance``.
+
+Every run is one fresh Python process (its peak RSS, ``ru_maxrss``, is its own and includes the
+images and the scene's rendering), and the modes of a repeat run one after the other, so that
+the ratios compare runs under the same machine load. Per scene and mode the table has the
+median wall seconds of ``nplps.reconstruct`` over the repeats, its ratio to the Lambertian
+median, the median peak RSS, the outer iterations (``len(result.history)``, all levels), the
+mean normal error against the truth (degrees, mesh normals) and the lobe found.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+MODES = ("lambertian", "given", "estimated")
+
+
+def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the angles in degrees between unit vectors (..., 3)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def load(scene: str) -> tuple[Any, Any, np.ndarray, np.ndarray, float, tuple[float, float]]:
+    """Return images, rig, mask, true normals, true distance and the true lobe of `scene`.
+
+    `scene` is ``bumps-N`` (the synthetic glossy bumps, N x N) or the path of a PBR ``.npz``.
+    """
+    import nplps
+
+    if scene.startswith("bumps-"):
+        n = int(scene.split("-")[1])
+        s = nplps.make_scene("bumps", n=n, camera="pinhole", specular=0.2, roughness=0.3, eta=1.5)
+        return s.images, s.rig, s.mask, s.normals, s.mean_depth, (0.3, 1.5)
+    with np.load(scene) as f:
+        data = dict(f)
+    rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
+    found = re.search(r"-(0\.\d+)", str(data["material"]))
+    alpha = float(found.group(1)) if found else 0.3
+    return data["images"], rig, data["mask"], data["normals"], float(data["distance"]), (alpha, 1.5)
+
+
+def worker(scene: str, mode: str) -> dict[str, Any]:
+    """Run one reconstruction of `scene` in `mode` and return its numbers (this process's)."""
+    import nplps
+
+    images, rig, mask, normals, distance, (alpha, eta) = load(scene)
+    options: dict[str, Any] = {}
+    if mode == "given":
+        options = {"reflectance": "glossy", "roughness": alpha, "eta": eta}
+    elif mode == "estimated":
+        options = {"reflectance": "glossy"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        start = time.perf_counter()
+        result = nplps.reconstruct(images, rig, depth=distance, mask=mask, **options)
+        seconds = time.perf_counter() - start
+    lobe = None if result.lobe is None else (result.lobe.roughness, result.lobe.eta)
+    return {
+        "seconds": seconds,
+        "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "iterations": len(result.history),
+        "error": float(angles(result.normals[mask], normals[mask]).mean()),
+        "lobe": lobe,
+        "solver_seconds": result.timings.get("total", float("nan")),
+    }
+
+
+def run(scene: str, mode: str) -> dict[str, Any]:
+    """Run `worker` in a fresh process and return its numbers."""
+    out = subprocess.run(
+        [sys.executable, os.path.abspath(__file__), "--worker", scene, mode],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    """Time every scene and mode and print the table."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="*", default=[256, 1024])
+    parser.add_argument("--pbr", default="/work/pbr-data/256/bumps-roughplastic-0.3-256.npz")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    parser.add_argument("--json", help="write the numbers to this file")
+    parser.add_argument("--worker", nargs=2, metavar=("SCENE", "MODE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(*args.worker)))
+        return
+    scenes = [f"bumps-{n}" for n in args.sizes] + ([args.pbr] if args.pbr else [])
+    header = "| scene | mode | s (median) | x Lambertian | peak RSS (MB) | iterations | mean error (deg) | lobe |"
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    table: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for scene in scenes:
+        runs: dict[str, list[dict[str, Any]]] = {m: [] for m in args.modes}
+        for _ in range(args.repeats):
+            for mode in args.modes:
+                runs[mode].append(run(scene, mode))
+        table[scene] = runs
+        base = statistics.median(r["seconds"] for r in runs["lambertian"]) if "lambertian" in runs else float("nan")
+        name = os.path.basename(scene).removesuffix(".npz")
+        for mode, rs in runs.items():
+            seconds = statistics.median(r["seconds"] for r in rs)
+            rss = statistics.median(r["rss_mb"] for r in rs)
+            last = rs[-1]
+            lobe = "" if last["lobe"] is None else f"{last['lobe'][0]:.3f}, {last['lobe'][1]:.2f}"
+            print(
+                f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {rss:.0f} | {last['iterations']} "
+                f"| {last['error']:.3f} | {lobe} |",
+                flush=True,
+            )
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(table, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
