@@ -569,15 +569,14 @@ fn predict<'py>(
     let py = depth.py();
     let rig = lighting_from(camera, lights)?;
     let (h, w, z) = depth_grid(&depth)?;
-    let specular = match (specular, lobe) {
-        (Some(s), Some(lobe)) => Some((specular_map(s, h, w)?, lobe)),
-        (None, None) => None,
-        _ => {
-            return Err(InputError::new_err(
+    let specular =
+        match (specular, lobe) {
+            (Some(s), Some(lobe)) => Some((specular_map(s, h, w)?, lobe)),
+            (None, None) => None,
+            _ => return Err(InputError::new_err(
                 "give the specular albedo and the lobe together (a glossy result's), or neither",
-            ))
-        }
-    };
+            )),
+        };
     let channels = albedo_channels(&albedo)?;
     let n: Vec<[f64; 3]> = slice(&normals, "normals")?
         .chunks_exact(3)
