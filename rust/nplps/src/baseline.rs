@@ -15,6 +15,10 @@
 
 use std::time::Instant;
 
+/// Further passes of the baseline's glossy fits, each warm-started from the last (its one local
+/// step would otherwise stop the fits after their first few Gauss-Newton steps).
+const BASELINE_GLOSSY_PASSES: usize = 4;
+
 use crate::convergence::{max_depth_change, rms_of};
 use crate::error::Result;
 use crate::global::GlobalStep;
@@ -171,6 +175,36 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             settings,
             &mut fits,
         )?;
+        if settings.lobe.is_some() {
+            // The baseline has one local step: its glossy fits continue from their own normals
+            // for a few more passes, as the solver's iterations would.
+            let step = LocalStep {
+                grid,
+                geometry: &problem.geometry,
+                model: Model::Parallel(&lights),
+                obs: &problem.obs,
+                settings,
+                depths: None,
+                cancel: &problem.cancel,
+                warm: None,
+                shadows: None,
+            };
+            for _ in 0..BASELINE_GLOSSY_PASSES {
+                let warm: Vec<[f32; 3]> = crate::memory::try_collect(
+                    fits.iter().map(|f| match f.valid && f.specular.is_finite() {
+                        true => f.normal.map(|x| x as f32),
+                        false => [f32::NAN; 3],
+                    }),
+                    "the glossy normals",
+                )?;
+                let warm_step = LocalStep {
+                    warm: Some(&warm),
+                    ..step
+                };
+                warm_step.try_run(&problem.u0, 0, &mut fits)?;
+                problem.cancel.check()?;
+            }
+        }
         timings.local += t.elapsed();
 
         let t = Instant::now();
