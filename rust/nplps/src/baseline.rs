@@ -191,10 +191,11 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             };
             for _ in 0..BASELINE_GLOSSY_PASSES {
                 let warm: Vec<[f32; 3]> = crate::memory::try_collect(
-                    fits.iter().map(|f| match f.valid && f.specular.is_finite() {
-                        true => f.normal.map(|x| x as f32),
-                        false => [f32::NAN; 3],
-                    }),
+                    fits.iter()
+                        .map(|f| match f.valid && f.specular.is_finite() {
+                            true => f.normal.map(|x| x as f32),
+                            false => [f32::NAN; 3],
+                        }),
                     "the glossy normals",
                 )?;
                 let warm_step = LocalStep {
