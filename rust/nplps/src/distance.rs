@@ -408,6 +408,20 @@ fn search_refined(
     Ok((estimate, ev.u))
 }
 
+/// A solver failure after the distance search, with the distance it found (`found`) in the
+/// message: a far-off estimate (seen on glossy objects, see docs/method.md) can pull the surface
+/// through a light, and the user should then give the distance.
+fn after_search(error: Error, found: Option<f64>) -> Error {
+    match (error, found) {
+        (Error::Solver(message), Some(d)) => Error::Solver(format!(
+            "{message} (after depth=\"auto\" found a working distance of {}: if that is far from \
+             the truth, give the distance, or a depth_range that brackets it)",
+            crate::error::g6(d)
+        )),
+        (error, _) => error,
+    }
+}
+
 /// Estimates the working distance of every region, then reconstructs at it (warm-started).
 ///
 /// With a coarse-to-fine pyramid ([`Options::levels`](crate::Options::levels)) the search runs on the coarsest level
@@ -464,7 +478,9 @@ pub fn reconstruct_auto(
             start,
             progress,
             Some(&mut at_coarsest),
-        )?;
+        );
+        let found = coarse_estimate.as_ref().map(|(e, _)| mean(&e.distance));
+        let coarse = coarse.map_err(|e| after_search(e, found))?;
         let carried = coarse.carried;
         let mut solver = Solver::new(problem, options)?;
         solver.start = start;
@@ -488,10 +504,11 @@ pub fn reconstruct_auto(
         // The lights seen from the surface at the estimated distance.
         crate::problem::check_light_geometry(problem.rig, &problem.geometry, &u)?;
         let (fine, converged) = if carried {
-            solver.iterate(&mut u, &gauge, options.iterations, options.tol, progress)?
+            solver.iterate(&mut u, &gauge, options.iterations, options.tol, progress)
         } else {
-            solver.iterate_first(&mut u, &gauge, progress)?
-        };
+            solver.iterate_first(&mut u, &gauge, progress)
+        }
+        .map_err(|e| after_search(e, Some(mean(&estimate.distance))))?;
         history.extend(fine);
         Ok((solver.finish(&u, history, converged)?, estimate))
     })?
