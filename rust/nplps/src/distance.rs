@@ -713,3 +713,30 @@ fn parabola_minimum(x: [f64; 3], y: [f64; 3]) -> f64 {
     }
     (x[1] + 0.5 * numerator / denominator).clamp(x[0], x[2])
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A solver failure after the search names the distance found; other errors and failures
+    /// without a search are kept as they are.
+    #[test]
+    fn failures_after_the_search_name_the_distance_found() {
+        let e = after_search(
+            Error::Solver("the surface reached light 8".into()),
+            Some(118.074),
+        );
+        let Error::Solver(message) = e else {
+            panic!("not a solver error")
+        };
+        assert!(
+            message.starts_with("the surface reached light 8"),
+            "{message}"
+        );
+        assert!(message.contains("118.074") && message.contains("give the distance"));
+        let kept = after_search(Error::Solver("x".into()), None);
+        assert!(matches!(kept, Error::Solver(m) if m == "x"));
+        let other = after_search(Error::Cancelled, Some(1.0));
+        assert!(matches!(other, Error::Cancelled));
+    }
+}
