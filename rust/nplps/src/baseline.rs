@@ -15,6 +15,25 @@
 
 use std::time::Instant;
 
+/// The baseline's local step under the parallel `lights`.
+fn parallel_step<'a>(
+    problem: &'a Problem<'a>,
+    lights: &'a [([f64; 3], [f64; 3])],
+    settings: FitSettings,
+) -> LocalStep<'a> {
+    LocalStep {
+        grid: &problem.grid,
+        geometry: &problem.geometry,
+        model: Model::Parallel(lights),
+        obs: &problem.obs,
+        settings,
+        depths: None,
+        cancel: &problem.cancel,
+        warm: None,
+        shadows: None,
+    }
+}
+
 /// Further passes of the baseline's glossy fits, each warm-started from the last (its one local
 /// step would otherwise stop the fits after their first few Gauss-Newton steps).
 const BASELINE_GLOSSY_PASSES: usize = 4;
@@ -23,7 +42,7 @@ use crate::convergence::{max_depth_change, rms_of};
 use crate::error::Result;
 use crate::global::GlobalStep;
 use crate::local::{
-    estimate_lobe, local_step, FacetFit, FacetStat, FitSettings, LocalStep, Model, Weighting,
+    estimate_lobe, glossy_normal, FacetFit, FacetStat, FitSettings, LocalStep, Model, Weighting,
 };
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
@@ -146,17 +165,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         .fit_settings(false);
         let t = Instant::now();
         if options.reflectance.is_glossy() && settings.lobe.is_none() {
-            let step = LocalStep {
-                grid,
-                geometry: &problem.geometry,
-                model: Model::Parallel(&lights),
-                obs: &problem.obs,
-                settings,
-                depths: None,
-                cancel: &problem.cancel,
-                warm: None,
-                shadows: None,
-            };
+            let step = parallel_step(problem, &lights, settings);
             settings.lobe = estimate_lobe(&step, &problem.u0, None)?;
         }
         timings.local = t.elapsed();
@@ -166,36 +175,15 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let mut fits: Vec<FacetFit> =
             crate::memory::try_vec(grid.n_facets(), FacetFit::EMPTY, "the per-facet fits")?;
         let t = Instant::now();
-        local_step(
-            grid,
-            &problem.geometry,
-            Model::Parallel(&lights),
-            &problem.obs,
-            &problem.u0,
-            settings,
-            &mut fits,
-        )?;
+        let step = parallel_step(problem, &lights, settings);
+        step.try_run(&problem.u0, 0, &mut fits)?;
         if settings.lobe.is_some() {
             // The baseline has one local step: its glossy fits continue from their own normals
             // for a few more passes, as the solver's iterations would.
-            let step = LocalStep {
-                grid,
-                geometry: &problem.geometry,
-                model: Model::Parallel(&lights),
-                obs: &problem.obs,
-                settings,
-                depths: None,
-                cancel: &problem.cancel,
-                warm: None,
-                shadows: None,
-            };
             for _ in 0..BASELINE_GLOSSY_PASSES {
+                problem.cancel.check()?;
                 let warm: Vec<[f32; 3]> = crate::memory::try_collect(
-                    fits.iter()
-                        .map(|f| match f.valid && f.specular.is_finite() {
-                            true => f.normal.map(|x| x as f32),
-                            false => [f32::NAN; 3],
-                        }),
+                    fits.iter().map(glossy_normal),
                     "the glossy normals",
                 )?;
                 let warm_step = LocalStep {
@@ -203,9 +191,9 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
                     ..step
                 };
                 warm_step.try_run(&problem.u0, 0, &mut fits)?;
-                problem.cancel.check()?;
             }
         }
+        problem.cancel.check()?;
         timings.local += t.elapsed();
 
         let t = Instant::now();

@@ -320,21 +320,13 @@ mod tests {
     #[cfg(feature = "synth")]
     #[test]
     fn synthetic_scenes_noise_free_and_noisy() {
-        use crate::{RenderOptions, Scene, SceneKind, SceneOptions, Surface};
+        use crate::{RenderOptions, Scene, SceneKind, SceneOptions};
         for kind in SceneKind::ALL {
             for seed in 0..3u64 {
                 let options = SceneOptions::default().with_pinhole(seed % 2 == 1);
                 let scene = Scene::with_options(kind, 64, 100.0, 200.0, seed, options).unwrap();
-                let surface = Surface {
-                    height: scene.height,
-                    width: scene.width,
-                    depth: &scene.depth,
-                    albedo: &scene.albedo,
-                    channels: scene.channels,
-                    mask: Some(&scene.mask),
-                };
                 let shadows = RenderOptions::default().with_cast_shadows(kind == SceneKind::Block);
-                let clean = crate::render_with(&scene.rig, &surface, &shadows).unwrap();
+                let clean = crate::render_with(&scene.rig, &scene.surface(), &shadows).unwrap();
                 let k = scene.rig.n_lights();
                 let top = clean.iter().copied().fold(0.0, f64::max);
                 let f32s: Vec<f32> = clean.iter().map(|&v| v as f32).collect();

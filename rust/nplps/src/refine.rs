@@ -1111,19 +1111,25 @@ mod tests {
         Problem::new(stack, rig, Some(&scene.mask), InitialDepth::Map(depth)).unwrap()
     }
 
-    /// On the true mesh, intensity steps recover intensities that are off by up to 35 %.
-    #[test]
-    fn intensity_steps_recover_the_truth_on_the_true_mesh() {
-        let scene = Scene::new(SceneKind::SphereCap, 24, 100.0, 200.0, 0).unwrap();
-        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let problem = scene_problem(&scene, &images);
-        let mut lights = scene.rig.lights.clone();
+    /// `lights` with the point lights' intensities off by up to 35 % (a fixed pattern).
+    fn off_intensities(lights: &[Light]) -> Vec<Light> {
+        let mut lights = lights.to_vec();
         for (i, l) in lights.iter_mut().enumerate() {
             if let Light::Point { intensity, .. } = l {
                 let f = 1.0 + 0.35 * ((i as f64 * 2.1).sin());
                 *intensity = intensity.map(|v| v * f);
             }
         }
+        lights
+    }
+
+    /// On the true mesh, intensity steps recover intensities that are off by up to 35 %.
+    #[test]
+    fn intensity_steps_recover_the_truth_on_the_true_mesh() {
+        let scene = Scene::new(SceneKind::SphereCap, 24, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = scene_problem(&scene, &images);
+        let mut lights = off_intensities(&scene.rig.lights);
         let refine = Refine {
             intensity: true,
             ..Refine::NONE
@@ -1152,20 +1158,12 @@ mod tests {
         let scene = Scene::new(SceneKind::Bumps, 32, 100.0, 200.0, 1).unwrap();
         let lobe = Lobe::new(0.3, 1.5);
         let specular: Vec<f64> = scene.albedo.iter().map(|a| 0.2 * a).collect();
-        let surface = crate::render::Surface {
-            height: scene.height,
-            width: scene.width,
-            depth: &scene.depth,
-            albedo: &scene.albedo,
-            channels: scene.channels,
-            mask: Some(&scene.mask),
-        };
         let options =
             crate::render::RenderOptions::default().with_specular(Some(crate::render::Specular {
                 albedo: &specular,
                 lobe,
             }));
-        let images: Vec<f32> = crate::render::render_with(&scene.rig, &surface, &options)
+        let images: Vec<f32> = crate::render::render_with(&scene.rig, &scene.surface(), &options)
             .unwrap()
             .iter()
             .map(|&v| v as f32)
@@ -1186,13 +1184,7 @@ mod tests {
             v.iter().map(|x| x / g).collect()
         };
         let worst = |lobe: Option<Lobe>| -> f64 {
-            let mut lights = scene.rig.lights.clone();
-            for (i, l) in lights.iter_mut().enumerate() {
-                if let Light::Point { intensity, .. } = l {
-                    let f = 1.0 + 0.35 * ((i as f64 * 2.1).sin());
-                    *intensity = intensity.map(|v| v * f);
-                }
-            }
+            let mut lights = off_intensities(&scene.rig.lights);
             let refine = Refine {
                 intensity: true,
                 ..Refine::NONE

@@ -156,6 +156,24 @@ enum Model<'a> {
     },
 }
 
+impl<'a> Model<'a> {
+    /// The glossy model of `specular` (checked against `plane` = H x W pixels) seen by `camera`,
+    /// or the Lambertian model without it.
+    fn of(specular: Option<Specular<'a>>, camera: &Camera, plane: usize) -> Result<Model<'a>> {
+        Ok(match specular {
+            Some(specular) => {
+                specular.check(plane)?;
+                Model::Glossy {
+                    specular: specular.albedo,
+                    lobe: specular.lobe,
+                    perspective: camera.is_perspective(),
+                }
+            }
+            None => Model::Lambert,
+        })
+    }
+}
+
 /// Vertex positions of a full (H+1) x (W+1) depth map.
 fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
     ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
@@ -248,17 +266,7 @@ pub fn render_with(
         ..
     } = *surface;
     let plane = height * width;
-    let model = match options.specular {
-        Some(specular) => {
-            specular.check(plane)?;
-            Model::Glossy {
-                specular: specular.albedo,
-                lobe: specular.lobe,
-                perspective: rig.camera.is_perspective(),
-            }
-        }
-        None => Model::Lambert,
-    };
+    let model = Model::of(options.specular, &rig.camera, plane)?;
     let shadows = if options.cast_shadows {
         Some(crate::shadow::shadows_of_vertices(
             rig,
@@ -444,17 +452,7 @@ pub fn predict_with(
     } else {
         rig.lights.clone()
     };
-    let model = match specular {
-        Some(specular) => {
-            specular.check(plane)?;
-            Model::Glossy {
-                specular: specular.albedo,
-                lobe: specular.lobe,
-                perspective: rig.camera.is_perspective(),
-            }
-        }
-        None => Model::Lambert,
-    };
+    let model = Model::of(specular, &rig.camera, plane)?;
     shade_images(&lights, plane, channels, albedo, model, |p| {
         inside(p).then(|| (normals[p], quad_centre(&pixel_quad(&v, width, p))))
     })

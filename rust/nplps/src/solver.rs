@@ -892,20 +892,24 @@ mod tests {
     use crate::synth::{Scene, SceneKind};
     use crate::vec3::dot;
 
+    /// The problem of `scene`'s `images` under `rig`, in its mask, started at its true gauge.
+    fn at_true_distance<'a>(
+        scene: &'a Scene,
+        rig: &'a crate::rig::Rig,
+        images: &'a [f32],
+    ) -> Problem<'a> {
+        let stack = ImageStack::new(images, rig.n_lights(), scene.height, scene.width).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        Problem::new(stack, rig, Some(&scene.mask), start).unwrap()
+    }
+
     /// The surface is checked against the point lights at every iteration, not only at the
     /// start: a light the surface has reached stops the solver with a clear error.
     #[test]
     fn a_surface_that_reaches_a_light_is_an_error() {
         let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
         let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
-        let problem = Problem::new(
-            stack,
-            &scene.rig,
-            Some(&scene.mask),
-            InitialDepth::Distance(scene.mean_depth()),
-        )
-        .unwrap();
+        let problem = at_true_distance(&scene, &scene.rig, &images);
         let options = Options {
             levels: 1,
             ..Options::default()
@@ -955,14 +959,7 @@ mod tests {
             out
         };
         let run = |images: &[f32], shadows: bool| {
-            let stack = ImageStack::new(images, k, n, n).unwrap();
-            let problem = Problem::new(
-                stack,
-                &scene.rig,
-                Some(&scene.mask),
-                InitialDepth::Distance(scene.mean_depth()),
-            )
-            .unwrap();
+            let problem = at_true_distance(&scene, &scene.rig, images);
             let options = Options {
                 iterations: 30,
                 shadows,
@@ -1023,11 +1020,8 @@ mod tests {
                 *intensity = intensity.map(|v| v * (1.0 + 0.35 * (i as f64 * 1.7).cos()));
             }
         }
-        let d = scene.mean_depth();
         let run = |rig: &crate::rig::Rig, refine: Refine| {
-            let stack = ImageStack::new(&images, rig.n_lights(), 40, 40).unwrap();
-            let problem =
-                Problem::new(stack, rig, Some(&scene.mask), InitialDepth::Distance(d)).unwrap();
+            let problem = at_true_distance(&scene, rig, &images);
             let options = Options {
                 iterations: 50,
                 tol: 1e-8,

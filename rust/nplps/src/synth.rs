@@ -254,17 +254,21 @@ impl Scene {
         })
     }
 
-    /// The scene's images (k, H, W, C), rendered by the model.
-    pub fn render(&self) -> Result<Vec<f64>> {
-        let surface = crate::render::Surface {
+    /// The scene's true surface (depths, albedo, mask) as the renderer takes it.
+    pub fn surface(&self) -> crate::render::Surface<'_> {
+        crate::render::Surface {
             height: self.height,
             width: self.width,
             depth: &self.depth,
             albedo: &self.albedo,
             channels: self.channels,
             mask: Some(&self.mask),
-        };
-        crate::render::render(&self.rig, &surface)
+        }
+    }
+
+    /// The scene's images (k, H, W, C), rendered by the model.
+    pub fn render(&self) -> Result<Vec<f64>> {
+        crate::render::render(&self.rig, &self.surface())
     }
 
     /// Mean of the true vertex depths used by the mask: arithmetic (orthographic) or geometric

@@ -526,13 +526,20 @@ impl LocalStep<'_> {
                     let fit = self.fit(f, u, buf, glossy, warm_normal(warm));
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
-                    *warm = match fit.valid && fit.specular.is_finite() {
-                        true => fit.normal.map(|x| x as f32),
-                        false => [f32::NAN; 3],
-                    };
+                    *warm = glossy_normal(&fit);
                     Ok(())
                 },
             )
+    }
+}
+
+/// The glossy normal of a fit to store as the next step's start (NaN where the facet has none:
+/// an invalid fit, or one left Lambertian).
+#[inline]
+pub(crate) fn glossy_normal(fit: &FacetFit) -> [f32; 3] {
+    match fit.valid && fit.specular.is_finite() {
+        true => fit.normal.map(|x| x as f32),
+        false => [f32::NAN; 3],
     }
 }
 
@@ -549,32 +556,6 @@ const SCRATCH: &str = "the local step's per-thread scratch space";
 /// observations under the glossy model).
 fn facet_scratch(per: usize) -> Result<(Vec<f32>, Vec<Observation>)> {
     Ok((try_vec(per, 0.0f32, SCRATCH)?, Vec::new()))
-}
-
-/// Runs the local step on every facet in parallel (rayon), writing `fits`; `u` are the current
-/// unknowns (see [`Geometry`]); [`Error::Memory`](crate::Error::Memory) when a thread's scratch space cannot be
-/// allocated.
-pub fn local_step(
-    grid: &Grid,
-    geometry: &Geometry,
-    model: Model<'_>,
-    obs: &Observations<'_>,
-    u: &[f64],
-    settings: FitSettings,
-    fits: &mut [FacetFit],
-) -> Result<()> {
-    LocalStep {
-        grid,
-        geometry,
-        model,
-        obs,
-        settings,
-        depths: None,
-        cancel: crate::Cancel::never(),
-        warm: None,
-        shadows: None,
-    }
-    .try_run(u, 0, fits)
 }
 
 /// Whether an observation (all its channels) can be used.
