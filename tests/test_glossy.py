@@ -8,20 +8,13 @@ well under the 1.5° of the shiny-objects issue where the Lambertian model is 4-
 
 from __future__ import annotations
 
-import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import nplps
-
-DATA = Path(__file__).parent / "data" / "pbr"
-
-
-def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+from pbr_data import angles, load  # tests/pbr_data.py
 
 
 def solve(
@@ -77,9 +70,7 @@ def test_the_lobe_is_estimated_from_the_images() -> None:
 def test_physically_based_rough_plastic(name: str, before_at_least: float) -> None:
     # Measured (64 x 64, true distance): Lambertian 4.44 / 9.35 / 6.57°, glossy 0.65 / 0.53 / 0.84°
     # (0.59° on the block with shadows=True).
-    with np.load(DATA / f"{name}-64.npz") as f:
-        data = dict(f)
-    rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
+    data, rig = load(name)
     images, mask = data["images"].astype(np.float32), data["mask"]
     lambertian = solve(images, rig, float(data["distance"]), mask)
     glossy = solve(images, rig, float(data["distance"]), mask, reflectance="glossy")

@@ -8,16 +8,14 @@ The files were written by ``benchmarks/pbr/render.py --size 64 --spp 256 --float
 
 from __future__ import annotations
 
-import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import nplps
+from pbr_data import DATA, angles, load  # tests/pbr_data.py
 
-DATA = Path(__file__).parent / "data" / "pbr"
 FILES = {
     "sphere-diffuse": ("sphere", "diffuse"),
     "sphere-roughplastic-0.3": ("sphere", "roughplastic-0.3"),
@@ -25,18 +23,6 @@ FILES = {
     "shadows-diffuse": ("shadows", "diffuse"),
     "shadows-roughplastic-0.3": ("shadows", "roughplastic-0.3"),
 }
-
-
-def load(name: str) -> tuple[dict[str, np.ndarray], nplps.Rig]:
-    """Return the arrays of a committed render and its rig."""
-    with np.load(DATA / f"{name}-64.npz") as f:
-        data = dict(f)
-    return data, nplps.Rig.from_dict(json.loads(str(data["rig"])))
-
-
-def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles in degrees between unit vectors (..., 3)."""
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
 
 
 def reconstruct(images: np.ndarray, rig: nplps.Rig, data: dict[str, np.ndarray], **options: object) -> np.ndarray:

@@ -9,24 +9,12 @@ from __future__ import annotations
 
 import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import nplps
-
-DATA = Path(__file__).parent / "data" / "pbr"
-
-
-def load(name: str) -> tuple[dict[str, np.ndarray], nplps.Rig]:
-    with np.load(DATA / f"{name}-64.npz") as f:
-        data = dict(f)
-    return data, nplps.Rig.from_dict(json.loads(str(data["rig"])))
-
-
-def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+from pbr_data import angles, load  # tests/pbr_data.py
 
 
 def run(images: np.ndarray, rig: nplps.Rig, data: dict[str, np.ndarray], **options: object) -> nplps.Reconstruction:
