@@ -441,10 +441,8 @@ impl LightData<'_> {
                     obs.facet(grid.facets[f], &mut values);
                     if let Some(shadows) = self.shadows {
                         let c = obs.channels;
-                        for k in 0..obs.k {
-                            if shadows.is_shadowed(grid.facets[f], k) {
-                                values[k * c..(k + 1) * c].fill(f32::NAN);
-                            }
+                        for k in shadows.lights_at(grid.facets[f]) {
+                            values[k * c..(k + 1) * c].fill(f32::NAN);
                         }
                     }
                     let model = Model {

@@ -125,6 +125,24 @@ impl ShadowMask {
         &self.bits[pixel * self.words..(pixel + 1) * self.words]
     }
 
+    /// The lights in whose cast shadow pixel `pixel` lies, in increasing order.
+    #[inline]
+    pub fn lights_at(&self, pixel: usize) -> impl Iterator<Item = usize> + '_ {
+        self.pixel_bits(pixel)
+            .iter()
+            .enumerate()
+            .flat_map(|(w, &word)| {
+                let mut bits = word;
+                std::iter::from_fn(move || {
+                    (bits != 0).then(|| {
+                        let k = 64 * w + bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        k
+                    })
+                })
+            })
+    }
+
     /// All words, pixel-major ((H, W, words_per_pixel), row-major).
     pub fn bits(&self) -> &[u64] {
         &self.bits
@@ -1023,6 +1041,13 @@ mod tests {
             assert_eq!(s.is_shadowed(p, k), k % 2 == 0);
             assert_eq!(bools[k * N * N + p], k % 2 == 0);
         }
+        // lights_at lists exactly the set bits, across both words.
+        for p in [0, 25 * N + 12, N * N - 1] {
+            let listed: Vec<usize> = s.lights_at(p).collect();
+            let set: Vec<usize> = (0..70).filter(|&k| s.is_shadowed(p, k)).collect();
+            assert_eq!(listed, set, "pixel {p}");
+        }
+        assert!(s.lights_at(25 * N + 12).any(|k| k >= 64));
     }
 
     /// Timings of [`cast_shadows`] on the block and bumps scenes with 16 lights (medians of 3):

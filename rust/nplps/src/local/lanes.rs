@@ -139,12 +139,8 @@ impl LocalStep<'_> {
         if let Some(shadows) = self.shadows {
             // One channel: light k is row k of the interleaved values.
             for (l, &pixel) in pixels.iter().enumerate() {
-                for (w, &word) in shadows.pixel_bits(pixel).iter().enumerate() {
-                    let mut bits = word;
-                    while bits != 0 {
-                        interleaved[64 * w + bits.trailing_zeros() as usize][l] = f32::NAN;
-                        bits &= bits - 1;
-                    }
+                for k in shadows.lights_at(pixel) {
+                    interleaved[k][l] = f32::NAN;
                 }
             }
         }

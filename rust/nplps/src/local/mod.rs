@@ -313,13 +313,8 @@ impl LocalStep<'_> {
         let per = self.obs.facet(pixel, buf).len();
         if let Some(shadows) = self.shadows {
             let c = self.obs.channels;
-            for (w, &word) in shadows.pixel_bits(pixel).iter().enumerate() {
-                let mut bits = word;
-                while bits != 0 {
-                    let k = 64 * w + bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    buf[k * c..(k + 1) * c].fill(f32::NAN);
-                }
+            for k in shadows.lights_at(pixel) {
+                buf[k * c..(k + 1) * c].fill(f32::NAN);
             }
         }
         &buf[..per]
