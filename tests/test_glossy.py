@@ -79,6 +79,28 @@ def test_physically_based_rough_plastic(name: str, before_at_least: float) -> No
     assert before > before_at_least
     assert after < 1.0, after
     assert glossy.lobe is not None and 0.05 < glossy.lobe.roughness < 0.5
+    assert glossy.matte_lobe is None
+
+
+@pytest.mark.parametrize("name", ["shadows-diffuse", "sphere-diffuse"])
+def test_a_matte_object_falls_back_to_the_lambertian_model(name: str) -> None:
+    # Measured (64 x 64, true distance): the lobe found is rough (0.85) and on the block it traded
+    # with the diffuse part, 1.18° against 0.67° Lambertian, before the fallback; after it both
+    # give the Lambertian result (the glossy run's first iterations differ, so not bit for bit).
+    data, rig = load(name)
+    images, mask = data["images"].astype(np.float32), data["mask"]
+    lambertian = solve(images, rig, float(data["distance"]), mask)
+    with pytest.warns(RuntimeWarning, match="the images show no highlight"):
+        glossy = nplps.reconstruct(images, rig, depth=float(data["distance"]), mask=mask, reflectance="glossy")
+    assert glossy.lobe is None and glossy.specular is None
+    assert glossy.matte_lobe is not None and glossy.matte_lobe.roughness >= 0.5
+    before = angles(lambertian.normals[mask], data["normals"][mask]).mean()
+    after = angles(glossy.normals[mask], data["normals"][mask]).mean()
+    assert abs(after - before) < 0.01, (before, after)
+    assert lambertian.matte_lobe is None
+    # A lobe the user gives is kept, however rough.
+    given = solve(images, rig, float(data["distance"]), mask, reflectance="glossy", roughness=0.85, eta=1.5)
+    assert given.lobe == nplps.Lobe(0.85, 1.5) and given.matte_lobe is None
 
 
 @pytest.mark.parametrize(

@@ -262,6 +262,9 @@ class ReconstructionDict(_ReconstructionBase, total=False):
     #: The glossy model's shared lobe (roughness, eta) and the (H, W) specular albedo.
     lobe: tuple[float, float]
     specular: F64
+    #: With the glossy model: the estimated lobe that was too rough to be a highlight (the
+    #: result is then the Lambertian model's).
+    matte_lobe: tuple[float, float]
     #: With ``shadows``: the final level's cast shadows, bit-packed (H, W, ceil(k / 64)) words
     #: (bit k % 64 of word k // 64 is light k).
     shadow_bits: npt.NDArray[np.uint64]

@@ -282,6 +282,14 @@ def _warn_status(result: Reconstruction) -> None:
         )
     elif result.status == "diverged":
         warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
+    if result.matte_lobe is not None:
+        warnings.warn(
+            f"reflectance='glossy': the images show no highlight (the lobe they fit best has roughness "
+            f"{result.matte_lobe.roughness:.2f}, as broad as the diffuse part), so the Lambertian model "
+            "was used; give roughness= and eta= to force the glossy model",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 _hinted = False

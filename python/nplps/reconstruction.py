@@ -136,6 +136,11 @@ class Reconstruction:
     lobe : Lobe or None
         With ``reflectance="glossy"``: the specular lobe (given, or estimated from the images).
         `albedo` is then the diffuse albedo.
+    matte_lobe : Lobe or None
+        With ``reflectance="glossy"`` and the lobe estimated: the lobe found when it was too
+        rough to be a highlight (roughness 0.5 or more): the images
+        show none, so the solver went on with the Lambertian model and `lobe` is None (a
+        warning says so). None otherwise.
     specular : numpy.ndarray or None
         With ``reflectance="glossy"``: the specular albedo of each pixel (H, W).
     shadow_bits : numpy.ndarray or None
@@ -179,6 +184,7 @@ class Reconstruction:
     input_rig: Rig | None = None
     distance_check: DistanceCheck | None = None
     lobe: Lobe | None = None
+    matte_lobe: Lobe | None = None
     specular: np.ndarray | None = None
     shadow_bits: np.ndarray | None = None
     dark: float | None = None
@@ -220,6 +226,7 @@ class Reconstruction:
             input_rig=input_rig,
             distance_check=_distance_check(out.get("distance_check")),
             lobe=None if "lobe" not in out else Lobe(*(float(v) for v in out["lobe"])),
+            matte_lobe=None if "matte_lobe" not in out else Lobe(*(float(v) for v in out["matte_lobe"])),
             specular=out.get("specular"),
             shadow_bits=out.get("shadow_bits"),
             dark=dark,

@@ -584,6 +584,9 @@ pub fn reconstruction_dict<'py>(
             array(py, shadows.bits().to_vec(), &[h, w, words])?,
         )?;
     }
+    if let Some(lobe) = r.matte_lobe {
+        d.set_item("matte_lobe", (lobe.alpha, lobe.eta))?;
+    }
     if let Some(lobe) = r.lobe {
         d.set_item("lobe", (lobe.alpha, lobe.eta))?;
         d.set_item("specular", array(py, r.specular, &[h, w])?)?;

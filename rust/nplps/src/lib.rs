@@ -211,6 +211,6 @@ pub use render::{
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask};
-pub use solver::reconstruct;
+pub use solver::{reconstruct, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -188,6 +188,10 @@ pub struct Reconstruction {
     pub refinement: Option<RefinementReport>,
     /// The shared lobe of the glossy model (None under the Lambertian model).
     pub lobe: Option<Lobe>,
+    /// With the glossy model and its lobe to estimate: the lobe found when it was too rough to
+    /// be a highlight (see [`MATTE_ROUGHNESS`](crate::MATTE_ROUGHNESS)); the result
+    /// is then the Lambertian model's (`lobe` None). None otherwise.
+    pub matte_lobe: Option<Lobe>,
     /// Specular albedo of each pixel under the glossy model (NaN where a facet could not be
     /// fitted); empty under the Lambertian model.
     pub specular: Vec<f64>,
@@ -412,6 +416,7 @@ pub(crate) fn assemble(
         lights: problem.rig.lights.clone(),
         refinement: None,
         lobe: None,
+        matte_lobe: None,
         specular: outputs.specular,
         shadows: None,
     })

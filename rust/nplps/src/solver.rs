@@ -92,6 +92,8 @@ pub(crate) struct Carried {
     diverged: bool,
     /// The glossy lobe of the last level (None: Lambertian, or not estimated).
     lobe: Option<Lobe>,
+    /// The lobe that made a level drop the glossy model (see [`MATTE_ROUGHNESS`]).
+    matte: Option<Lobe>,
     /// The glossy normals of the last level (empty: none).
     warm: WarmMap,
     /// The cast shadows of the last level (with [`Options::shadows`]).
@@ -139,6 +141,16 @@ impl WarmMap {
 /// the solver started without a lobe (then held, so that the run converges under one model).
 pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
 
+/// An estimated lobe at least this rough is no highlight: the images show none, and the solver
+/// drops the glossy model for the Lambertian one. Such a lobe is nearly as broad as the diffuse
+/// part and trades with it (and with the normals) instead of modelling a highlight: on the
+/// benchmark's path-traced renders (benchmarks/pbr, 16 lights) the lobes estimated on glossy
+/// materials had roughness 0.09-0.36 and those on matte ones 0.6-1.0, and on a matte block with
+/// cast shadows the glossy model cost 1.25° against 0.20° Lambertian. Only an estimate on a
+/// surface of the iterations decides (not the first one, on the starting surface), and a lobe
+/// the user gives is kept whatever its roughness.
+pub const MATTE_ROUGHNESS: f64 = 0.5;
+
 /// With [`Options::shadows`], the cast shadows of the current mesh are computed at these
 /// iterations of every run, so at most `SHADOWS_AT.len()` marches per run: the first on its
 /// starting surface (the starting plane casts none and costs little), except where a coarser
@@ -176,6 +188,7 @@ pub(crate) fn coarse_to_fine(
         monitor: None,
         diverged: false,
         lobe: None,
+        matte: None,
         warm: WarmMap::default(),
         shadows: None,
     };
@@ -205,7 +218,7 @@ pub(crate) fn coarse_to_fine(
         } else {
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
-            solver.carry_glossy(carried.lobe, &carried.warm);
+            solver.carry_glossy(carried.lobe, carried.matte, &carried.warm);
             solver.carry_shadows(carried.shadows.take())?;
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
@@ -231,6 +244,7 @@ pub(crate) fn coarse_to_fine(
         carried.monitor = carried.monitor.or(solver.lights.monitor);
         carried.diverged |= solver.lights.diverged;
         carried.lobe = solver.lobe;
+        carried.matte = carried.matte.or(solver.matte);
         if !solver.warm.is_empty() {
             carried.warm = WarmMap::of(&p.grid, &solver.warm)?;
         }
@@ -283,6 +297,9 @@ pub(crate) struct Solver<'p> {
     warm_carried: bool,
     /// Whether this solver started without a lobe (it then estimates it more often).
     lobe_from_scratch: bool,
+    /// The estimated lobe that made this solver (or a coarser level's) drop the glossy model
+    /// for the Lambertian one (see [`MATTE_ROUGHNESS`]).
+    pub(crate) matte: Option<Lobe>,
     /// The cast shadows of the mesh at the last iteration of [`SHADOWS_AT`] (with
     /// [`Options::shadows`]).
     shadows: Option<ShadowMask>,
@@ -355,6 +372,7 @@ impl<'p> Solver<'p> {
             )?,
             warm_carried: false,
             lobe_from_scratch: false,
+            matte: None,
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
@@ -363,8 +381,13 @@ impl<'p> Solver<'p> {
 
     /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
     /// the glossy normal of the coarser level's pixel under it.
-    fn carry_glossy(&mut self, lobe: Option<Lobe>, warm: &WarmMap) {
+    /// A coarser level that dropped the glossy model (`matte`) makes this one drop it too.
+    fn carry_glossy(&mut self, lobe: Option<Lobe>, matte: Option<Lobe>, warm: &WarmMap) {
         if !self.options.reflectance.is_glossy() {
+            return;
+        }
+        if let Some(matte) = matte {
+            self.drop_glossy(matte);
             return;
         }
         self.lobe = lobe.or(self.lobe);
@@ -403,7 +426,7 @@ impl<'p> Solver<'p> {
             self.lights.set_refine(on_level(coarse.refine, unknowns));
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
-            self.carry_glossy(coarse.lobe, &coarse.warm);
+            self.carry_glossy(coarse.lobe, coarse.matte, &coarse.warm);
             self.carry_shadows(coarse.shadows)?;
         }
         Ok(coarse.history)
@@ -645,11 +668,24 @@ impl<'p> Solver<'p> {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
             ..self.local_step(true, depths.as_deref())
         };
-        if let Some(lobe) = estimate_lobe(&step, u, near)? {
-            self.lobe = Some(lobe);
+        match estimate_lobe(&step, u, near)? {
+            // An estimate on a surface of the iterations decides (see [`MATTE_ROUGHNESS`]).
+            Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch => self.drop_glossy(lobe),
+            Some(lobe) => self.lobe = Some(lobe),
+            None => {}
         }
         self.timings.local += t.elapsed();
         Ok(())
+    }
+
+    /// Drops the glossy model for the Lambertian one for the rest of the reconstruction, after
+    /// an estimated `lobe` too rough to be a highlight (see [`MATTE_ROUGHNESS`]).
+    fn drop_glossy(&mut self, lobe: Lobe) {
+        self.matte = Some(lobe);
+        self.lobe = None;
+        self.options.reflectance = Reflectance::Lambertian;
+        self.warm = Vec::new();
+        self.warm_carried = false;
     }
 
     /// The local step on `u` (with fast residuals): the facets' targets and statistics.
@@ -846,6 +882,7 @@ impl<'p> Solver<'p> {
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = self.lights.take_lights();
         result.lobe = self.lobe;
+        result.matte_lobe = self.matte;
         result.shadows = self.shadows.take();
         result.gauge = problem
             .grid
