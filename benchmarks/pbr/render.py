@@ -1,17 +1,22 @@
-"""Physically based renders with Mitsuba 3 for the glossy benchmark (issue 20, item 5).
+"""Physically based renders with Mitsuba 3 for the glossy (issue 20) and interreflection (issue 21) benchmarks.
 
     pip install mitsuba==3.9.1        # never a runtime dependency of nplps
     apt-get install libllvm19         # for the fast llvm_ad_rgb variant (else scalar_rgb, slower)
     export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
     python benchmarks/pbr/render.py sphere --material diffuse --size 64 --out pbr-sphere.npz
     python benchmarks/pbr/render.py --all --size 256 --out-dir /work/pbr-data/256
+    python benchmarks/pbr/render.py --gi --size 256 --spp 256 --out-dir /work/pbr-data/gi
 
 Scenes (``SHAPES``): ``sphere`` and ``bumps`` (the surfaces and masks of ``nplps.make_scene``),
 ``shadows`` (a tilted plane with a tall post and a step that cast shadows onto it) and ``torus``
 (a tilted torus, its visible surface found by ray casting the analytic torus through the pixel
-corners). Every surface is a pinhole height field given by its vertex depths at the pixel
-corners, the representation nplps reconstructs, so the ground truth is exact: the rendered mesh
-is that surface, each pixel's quad split into two triangles (only the pixels of the mask exist).
+corners); for interreflections (``--gi``, ``CONCAVE``) ``bowl`` (the inside of a spherical cap
+seen from above) and ``sheet`` (a corrugated sheet across the image, rendered 25 mm past it on
+every side). ``--gi`` renders ``GI_SET`` twice: with global illumination (``--max-depth``, 12 by
+default) and as the direct-only twin (2). Every surface is a pinhole height field given by its
+vertex depths at the pixel corners, the representation nplps reconstructs, so the ground truth is
+exact: the rendered mesh is that surface, each pixel's quad split into two triangles (only the
+pixels of the mask exist, except on the sheet).
 
 The camera is nplps's pinhole camera of ``make_scene`` (object 100 mm across at 200 mm); the rig
 (``make_rig``) has 16 point lights in two rings around the camera. Frames: nplps's pixel (row r,
@@ -44,19 +49,46 @@ import numpy as np
 
 import nplps
 
-SHAPES = ("sphere", "bumps", "shadows", "torus")
+SHAPES = ("sphere", "bumps", "shadows", "torus")  # the --all set (issue 20)
+CONCAVE = ("bowl", "sheet")  # the concave shapes of the interreflection set (issue 21)
 MATERIALS = ("diffuse", "roughplastic-0.1", "roughplastic-0.3", "principled-0.3", "principled-0.5")
+# The --gi set: each (shape, material) rendered with global illumination and as a direct-only twin.
+GI_SET = (
+    ("bowl", "diffuse"),
+    ("bowl", "diffuse-0.8"),
+    ("sheet", "diffuse"),
+    ("torus", "diffuse"),
+    ("shadows", "diffuse"),
+)
 SIZE_MM = 100.0  # lateral object size at the working distance
 DISTANCE_MM = 200.0  # working distance
 REFLECTANCE = 0.5  # diffuse reflectance of every material (the control's albedo)
 
 
+def reflectance(material: str) -> float:
+    """Return the diffuse reflectance of a material name (the true albedo of a ``diffuse`` one).
+
+    ``diffuse-R`` is Lambertian with reflectance R (``diffuse``: 0.5); every other material has a
+    diffuse part of reflectance 0.5.
+    """
+    kind, _, value = material.partition("-")
+    if kind == "diffuse" and value:
+        try:
+            number = float(value)
+        except ValueError:
+            number = float("nan")
+        if not 0 < number <= 1:
+            raise SystemExit(f"diffuse-R needs 0 < R <= 1, got {material!r}")
+        return number
+    return REFLECTANCE
+
+
 def bsdf(material: str) -> dict[str, Any]:
-    """Return the Mitsuba BSDF of a material name: ``diffuse``, ``roughplastic-ALPHA`` or ``principled-ROUGHNESS``."""
+    """Return the Mitsuba BSDF of a material: ``diffuse``, ``diffuse-R``, ``roughplastic-A``, ``principled-R``."""
     grey = {"type": "rgb", "value": [REFLECTANCE] * 3}
     kind, _, value = material.partition("-")
-    if kind == "diffuse" and not value:
-        return {"type": "diffuse", "reflectance": grey}
+    if kind == "diffuse":
+        return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [reflectance(material)] * 3}}
     try:
         number = float(value)
     except ValueError:
@@ -65,7 +97,7 @@ def bsdf(material: str) -> dict[str, Any]:
         return {"type": "roughplastic", "distribution": "ggx", "alpha": number, "diffuse_reflectance": grey}
     if kind == "principled" and number > 0:
         return {"type": "principled", "base_color": grey, "roughness": number, "specular": 0.5, "metallic": 0.0}
-    raise SystemExit(f"unknown material {material!r}: diffuse, roughplastic-ALPHA or principled-ROUGHNESS")
+    raise SystemExit(f"unknown material {material!r}: diffuse, diffuse-R, roughplastic-ALPHA or principled-ROUGHNESS")
 
 
 def camera(n: int) -> dict[str, Any]:
@@ -92,10 +124,14 @@ def make_rig(n: int) -> nplps.Rig:
     return nplps.Rig(camera(n), lights)
 
 
-def vertex_rays(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return the (x, y) at z = 1 of the rays through the pixel corners, each (n+1, n+1)."""
+def vertex_rays(n: int, margin: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Return the (x, y) at z = 1 of the rays through the pixel corners, each (n+1, n+1).
+
+    With a ``margin`` of m pixels the grid goes on past the image on every side: (n+1+2m)^2
+    corners, the image's corner (r, c) at [m + r, m + c].
+    """
     K = np.asarray(camera(n)["K"])
-    rows, cols = np.mgrid[0 : n + 1, 0 : n + 1].astype(np.float64)
+    rows, cols = np.mgrid[-margin : n + 1 + margin, -margin : n + 1 + margin].astype(np.float64)
     return (cols - 0.5 - K[0, 2]) / K[0, 0], (rows - 0.5 - K[1, 2]) / K[1, 1]
 
 
@@ -161,6 +197,95 @@ def torus_surface(n: int, tilt: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
     return np.where(np.isfinite(depth), depth, DISTANCE_MM), largest_part(mask)
 
 
+def facing(depth: np.ndarray, n: int) -> np.ndarray:
+    """Return the cosine (n, n) between each facet's normal and the direction to the camera."""
+    x, y = vertex_rays(n)
+    normals = facet_normals(depth, n)
+    centres = np.stack([(x[:-1, :-1] + x[1:, 1:]) / 2, (y[:-1, :-1] + y[1:, 1:]) / 2, np.ones((n, n))], -1)
+    return -(normals * centres).sum(-1) / np.linalg.norm(centres, axis=-1)
+
+
+def bowl_surface(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the vertex depths and mask of the bowl: the inside of a spherical cap seen from above.
+
+    The rim is a circle of radius 35 mm in the plane z = 200 mm, centred on the optical axis, the
+    bottom 20 mm deeper (a sphere of radius 40.6 mm centred 20.6 mm in front of the rim plane).
+    Each corner ray meets the inside at the sphere's far intersection; the rim does not hide any
+    of it from the camera (the wall below the rim leans inwards more steeply than the rays lean
+    outwards). Corners outside the rim get the rim plane's depth (not rendered). A pixel is in
+    the mask when its 4 corners lie inside the bowl and its facet faces the camera (cosine above
+    0.4, as the torus); the largest 4-connected part is kept. Only the mask is rendered: the
+    inside of the bowl is all of the surface it sees.
+    """
+    rim, radius_rim, depth_bowl = DISTANCE_MM, 35.0, 20.0
+    radius = (radius_rim**2 + depth_bowl**2) / (2 * depth_bowl)
+    centre = np.array([0.0, 0.0, rim + depth_bowl - radius])
+    x, y = vertex_rays(n)
+    d = np.stack([x, y, np.ones_like(x)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    b = d @ centre
+    disc = b * b - centre @ centre + radius**2
+    with np.errstate(invalid="ignore"):
+        far = b + np.sqrt(disc)  # the far intersection along the unit ray
+    depth = far * d[..., 2]
+    inside = (disc > 0) & (depth >= rim)
+    depth = np.where(inside, depth, rim)
+    corners = np.stack([inside[:-1, :-1], inside[:-1, 1:], inside[1:, :-1], inside[1:, 1:]]).all(0)
+    return depth, largest_part(corners & (facing(depth, n) > 0.4))
+
+
+SHEET_MARGIN_MM = 25.0  # the corrugated sheet goes on this far past the image on every side
+
+
+def sheet_depth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Return the depth of the corrugated sheet on the rays (x, y) (at z = 1).
+
+    A sine of period 20 mm and amplitude 5 mm (slopes up to 57 degrees) whose crests run at 15
+    degrees from the image's columns, on a plane at 210 mm tilted by about 5 degrees (0.08 in x,
+    0.04 in y); lateral positions are taken on the rays at the working distance, as
+    ``make_scene`` does.
+    """
+    X, Y = x * DISTANCE_MM, y * DISTANCE_MM
+    across = X * np.cos(np.radians(15.0)) + Y * np.sin(np.radians(15.0))
+    return DISTANCE_MM + 10.0 + 0.08 * X + 0.04 * Y + 5.0 * np.sin(2 * np.pi * across / 20.0)
+
+
+def sheet_margin(n: int) -> int:
+    """Return the margin in pixels of the sheet's rendered mesh past the image."""
+    return int(np.ceil(SHEET_MARGIN_MM / SIZE_MM * n))
+
+
+def sheet_surface(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the vertex depths and mask of the corrugated sheet (``sheet_depth``).
+
+    The mask keeps the facets that face the camera (cosine above 0.4, as the torus and the bowl)
+    and the largest 4-connected part. The rendered mesh (``render_mesh``) is the whole sheet:
+    every pixel of the image and a margin of 25 mm past it on every side, so that the border
+    pixels get the light of the slopes beyond the image that face them, as on a real sheet
+    larger than the view.
+    """
+    x, y = vertex_rays(n)
+    depth = sheet_depth(x, y)
+    return depth, largest_part(facing(depth, n) > 0.4)
+
+
+def render_mesh(shape: str, depth: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the vertices and triangles Mitsuba renders: the mask's pixels, or the whole sheet with its margin."""
+    if shape != "sheet":
+        return mesh_of(depth, mask)
+    n = mask.shape[0]
+    m = sheet_margin(n)
+    x, y = vertex_rays(n, m)
+    wide = sheet_depth(x, y)
+    if not np.array_equal(wide[m : m + n + 1, m : m + n + 1], depth):
+        raise SystemExit("the sheet's margin grid does not continue the image's")
+    index = np.arange(wide.size).reshape(wide.shape)
+    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
+    c, d = index[1:, 1:].ravel(), index[1:, :-1].ravel()
+    triangles = np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)])
+    return np.stack([x * wide, y * wide, wide], -1).reshape(-1, 3), triangles
+
+
 def largest_part(mask: np.ndarray) -> np.ndarray:
     """Return the largest 4-connected part of a mask (label propagation, numpy only)."""
     big = mask.size + 1
@@ -189,7 +314,11 @@ def surface(shape: str, n: int) -> tuple[np.ndarray, np.ndarray]:
         return shadows_surface(n)
     if shape == "torus":
         return torus_surface(n)
-    raise SystemExit(f"unknown shape {shape!r}: one of {', '.join(SHAPES)}")
+    if shape == "bowl":
+        return bowl_surface(n)
+    if shape == "sheet":
+        return sheet_surface(n)
+    raise SystemExit(f"unknown shape {shape!r}: one of {', '.join(SHAPES + CONCAVE)}")
 
 
 def vertices(depth: np.ndarray) -> np.ndarray:
@@ -247,12 +376,20 @@ def set_variant() -> str:
 
 
 def render(
-    depth: np.ndarray, mask: np.ndarray, rig: nplps.Rig, material: str, spp: int, max_depth: int
+    depth: np.ndarray,
+    mask: np.ndarray,
+    rig: nplps.Rig,
+    material: str,
+    spp: int,
+    max_depth: int,
+    mesh: tuple[np.ndarray, np.ndarray] | None = None,
+    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Render one image per light of the rig; return them (k, H, W), the cast shadows and the render seconds.
 
     One Mitsuba scene with one point emitter is built; the emitter is moved from light to
-    light (each image with its own sampler seed).
+    light (image i with sampler seed ``seed * 1000 + i``). ``mesh`` (vertices, triangles) is the
+    rendered surface, by default the mask's pixels (``mesh_of``).
     """
     import mitsuba as mi
 
@@ -262,14 +399,14 @@ def render(
     if abs(K[0, 2] - (w - 1) / 2) > 1e-9 or abs(K[1, 2] - (h - 1) / 2) > 1e-9 or K[0, 0] != K[1, 1] or h != w:
         raise SystemExit("the sensor needs square pixels and images and the principal point at the image centre")
     start = time.perf_counter()
-    points, triangles = mesh_of(depth, mask)
-    mesh = mi.Mesh("surface", vertex_count=len(points), face_count=len(triangles))
-    params = mi.traverse(mesh)
+    points, triangles = mesh_of(depth, mask) if mesh is None else mesh
+    shape = mi.Mesh("surface", vertex_count=len(points), face_count=len(triangles))
+    params = mi.traverse(shape)
     # The buffers' own types: mi.Float / mi.UInt32 (JIT variants) or dynamic arrays (scalar).
     params["vertex_positions"] = type(params["vertex_positions"])(points.astype(np.float32).ravel())
     params["faces"] = type(params["faces"])(triangles.astype(np.uint32).ravel())
     params.update()
-    mesh.set_bsdf(mi.load_dict(bsdf(material)))
+    shape.set_bsdf(mi.load_dict(bsdf(material)))
     sensor = {
         "type": "perspective",
         # The film's full width, w pixels, spans tan(fov / 2) = (w / 2) / f on each side of the
@@ -285,7 +422,7 @@ def render(
             "type": "scene",
             "integrator": {"type": "path", "max_depth": max_depth},
             "sensor": sensor,
-            "surface": mesh,
+            "surface": shape,
             "light": {"type": "point", "position": [0.0, 0.0, 0.0], "intensity": {"type": "uniform", "value": 1.0}},
         }
     )
@@ -297,7 +434,7 @@ def render(
         scene_params["light.position"] = mi.Point3f(*(float(v) for v in position))
         scene_params["light.intensity.value"] = float(np.pi * intensity[0])
         scene_params.update()
-        image = np.asarray(mi.render(world, seed=i, spp=spp))
+        image = np.asarray(mi.render(world, seed=seed * 1000 + i, spp=spp))
         images.append(image[..., 0])
     seconds = time.perf_counter() - start
     return np.asarray(images, dtype=np.float32), cast_shadows(world, rig, mask), seconds
@@ -349,13 +486,17 @@ def cast_shadows(world: Any, rig: nplps.Rig, mask: np.ndarray, sub: int = 4) -> 
     return shadow
 
 
-def render_file(shape: str, material: str, n: int, spp: int, max_depth: int, out: Path, float16: bool) -> float:
+def render_file(
+    shape: str, material: str, n: int, spp: int, max_depth: int, out: Path, float16: bool, seed: int = 0
+) -> float:
     """Render one scene and write its .npz; return the render seconds."""
     import mitsuba as mi
 
     depth, mask = surface(shape, n)
     rig = make_rig(n).with_grid(n, n)
-    images, shadow, seconds = render(depth, mask, rig, material, spp, max_depth)
+    images, shadow, seconds = render(
+        depth, mask, rig, material, spp, max_depth, mesh=render_mesh(shape, depth, mask), seed=seed
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         out,
@@ -368,43 +509,73 @@ def render_file(shape: str, material: str, n: int, spp: int, max_depth: int, out
         shadow=shadow.astype(np.float16),
         shape=shape,
         material=material,
+        reflectance=reflectance(material),
         spp=spp,
+        seed=seed,
         max_depth=max_depth,
         variant=set_variant(),
         mitsuba=mi.__version__,
         seconds=seconds,
     )
-    print(f"{shape} {material} {n}^2 x {len(images)} lights, {spp} spp: {seconds:.1f} s -> {out}", flush=True)
+    print(
+        f"{shape} {material} {n}^2 x {len(images)} lights, {spp} spp, max depth {max_depth}: {seconds:.1f} s -> {out}",
+        flush=True,
+    )
     return seconds
 
 
 def main() -> None:
-    """Render one scene, or with ``--all`` every shape in every material."""
+    """Render one scene, or with ``--all`` every shape in every material, or with ``--gi`` the interreflection set."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("shape", nargs="?", choices=SHAPES)
-    parser.add_argument("--material", default="diffuse", help=f"one of {', '.join(MATERIALS)} (or another value)")
+    parser.add_argument("shape", nargs="?", choices=SHAPES + CONCAVE)
+    parser.add_argument(
+        "--material", default="diffuse", help=f"one of {', '.join(MATERIALS)}, diffuse-R (or another value)"
+    )
     parser.add_argument("--size", type=int, default=64, help="image size n (n x n); the benchmark is 256")
     parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--max-depth", type=int, default=2, help="2: direct light only")
+    parser.add_argument(
+        "--max-depth", type=int, help="2 (the default): direct light only; with --gi the GI renders' depth (default 12)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="image i gets sampler seed 1000 * SEED + i")
     parser.add_argument("--float16", action="store_true", help="store the images as float16")
     parser.add_argument("--out", type=Path, help="the .npz of one scene")
     parser.add_argument("--all", action="store_true", help="render every shape in every material")
-    parser.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=SHAPES, help="with --all")
+    parser.add_argument(
+        "--gi",
+        action="store_true",
+        help="render the interreflection set (GI_SET) with global illumination (SHAPE-MATERIAL-gi-SIZE.npz) "
+        "and the direct-only twins (SHAPE-MATERIAL-direct-SIZE.npz)",
+    )
+    parser.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=SHAPES + CONCAVE, help="with --all")
     parser.add_argument("--materials", nargs="+", default=list(MATERIALS), help="with --all")
-    parser.add_argument("--out-dir", type=Path, default=Path("/work/pbr-data"), help="with --all")
+    parser.add_argument("--out-dir", type=Path, default=Path("/work/pbr-data"), help="with --all or --gi")
     args = parser.parse_args()
     print(f"variant {set_variant()}", flush=True)
+    if args.gi:
+        depth = 12 if args.max_depth is None else args.max_depth
+        if depth <= 2:
+            parser.error("--gi needs --max-depth above 2")
+        total = {"gi": 0.0, "direct": 0.0}
+        for shape, material in GI_SET:
+            for kind, max_depth in (("gi", depth), ("direct", 2)):
+                out = args.out_dir / f"{shape}-{material}-{kind}-{args.size}.npz"
+                total[kind] += render_file(
+                    shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed
+                )
+        print(f"total render time: {total['gi']:.1f} s GI, {total['direct']:.1f} s direct ({2 * len(GI_SET)} renders)")
+        return
+    max_depth = 2 if args.max_depth is None else args.max_depth
     if args.all:
         total = 0.0
         for shape in args.shapes:
             for material in args.materials:
                 out = args.out_dir / f"{shape}-{material}-{args.size}.npz"
-                total += render_file(shape, material, args.size, args.spp, args.max_depth, out, args.float16)
+                total += render_file(shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed)
         print(f"total render time: {total:.1f} s ({len(args.shapes) * len(args.materials)} renders)")
         return
     if args.shape is None or args.out is None:
-        parser.error("give a shape and --out, or --all")
-    render_file(args.shape, args.material, args.size, args.spp, args.max_depth, args.out, args.float16)
+        parser.error("give a shape and --out, or --all, or --gi")
+    render_file(args.shape, args.material, args.size, args.spp, max_depth, args.out, args.float16, args.seed)
 
 
 if __name__ == "__main__":
