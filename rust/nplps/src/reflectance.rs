@@ -343,107 +343,417 @@ pub struct GlossyFit {
     pub used: u32,
 }
 
-/// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
-type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
+/// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]).
+const W: usize = 4;
 
-/// Sums of the normal equations at `b = rho n`, `s` (see [`normal_equations`]).
-struct Sums {
-    /// The upper triangle of `J^T J`, row by row.
-    jtj: [f64; 10],
-    jtr: [f64; 4],
-    sse: f64,
-    used: u32,
+/// One value per lane of a group.
+type Lanes = [f64; W];
+
+/// `W` lanes computed by `f`: straight-line code over the lanes, which the compiler turns into
+/// vector instructions.
+#[inline(always)]
+fn lanes(f: impl FnMut(usize) -> f64) -> Lanes {
+    std::array::from_fn(f)
 }
 
-impl Sums {
-    fn new() -> Sums {
-        Sums {
-            jtj: [0.0; 10],
-            jtr: [0.0; 4],
-            sse: 0.0,
-            used: 0,
+/// `W` observations of a facet, one per lane (structure of arrays); a lane without an
+/// observation has `l = 0` and never carries light.
+#[derive(Debug, Clone, Copy, Default)]
+struct Group {
+    value: Lanes,
+    scale: Lanes,
+    /// `l`, by coordinate.
+    l: [Lanes; 3],
+    /// `h = normalize(l + v)`, by coordinate.
+    h: [Lanes; 3],
+    /// `F(v.h) / F(1)`.
+    fresnel: Lanes,
+}
+
+/// The factors of a [`Group`] at a normal (see [`Shade`]): lanes that carry no light have
+/// `lit` false (their other values are finite and unused).
+#[derive(Debug, Clone, Copy, Default)]
+struct Factors {
+    lit: [bool; W],
+    diffuse: Lanes,
+    specular: Lanes,
+    d_diffuse: [Lanes; 3],
+    d_specular: [Lanes; 3],
+}
+
+/// The observations of one facet packed for [`fit_packed`]: groups of `W` lights, one SIMD lane
+/// each, with the terms that do not depend on the normal (as [`Observation`]) computed for all
+/// lights at once by [`Packed::prepare`]. Reusable from facet to facet ([`Packed::clear`]).
+#[derive(Debug, Clone, Default)]
+pub struct Packed {
+    view: [f64; 3],
+    len: usize,
+    groups: Vec<Group>,
+    /// Scratch: the factors at the starting normal of a fit.
+    factors: Vec<Factors>,
+}
+
+impl Packed {
+    /// No observations.
+    pub fn new() -> Packed {
+        Packed::default()
+    }
+
+    /// Starts over for a facet seen along the unit vector `view` (towards the camera).
+    pub fn clear(&mut self, view: [f64; 3]) {
+        self.view = view;
+        self.len = 0;
+        self.groups.clear();
+    }
+
+    /// How many observations it holds.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether it holds no observation.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The lane of the next observation.
+    fn next_lane(&mut self) -> (&mut Group, usize) {
+        let lane = self.len % W;
+        if lane == 0 {
+            self.groups.push(Group::default());
+        }
+        self.len += 1;
+        let g = self.groups.last_mut().expect("a group was pushed");
+        (g, lane)
+    }
+
+    /// Adds the observation of image value `value` under a light of scale `Phi a` from the unit
+    /// direction `light` ([`Packed::prepare`] then computes its half vector and Fresnel factor).
+    pub fn push(&mut self, value: f64, scale: f64, light: [f64; 3]) {
+        let (g, i) = self.next_lane();
+        g.value[i] = value;
+        g.scale[i] = scale;
+        for j in 0..3 {
+            g.l[j][i] = light[j];
         }
     }
 
-    /// Adds observation `o` with its factors `sh` at `n`, `rho`, `s`.
-    #[inline]
-    fn add(&mut self, o: &Observation, sh: &Shade, n: [f64; 3], rho: f64, s: f64) {
-        let r = o.value - o.scale * (rho * sh.diffuse + s * sh.specular);
+    /// Adds `o` as it is (with its half vector and Fresnel factor; made for this view vector).
+    pub fn push_observation(&mut self, o: &Observation) {
+        let (g, i) = self.next_lane();
+        g.value[i] = o.value;
+        g.scale[i] = o.scale;
+        for j in 0..3 {
+            g.l[j][i] = o.light[j];
+            g.h[j][i] = o.half[j];
+        }
+        g.fresnel[i] = o.fresnel;
+    }
+
+    /// Computes the half vectors and `F(v.h) / F(1)` of the observations [`Packed::push`]ed
+    /// under `lobe` (as [`Observation::new`], for all lights at once).
+    pub fn prepare(&mut self, lobe: &Lobe) {
+        prepare_dispatch(&mut self.groups, self.view, lobe.eta);
+    }
+}
+
+simd_dispatch! {
+    /// [`prepare_groups`] with AVX2 when the processor has it.
+    fn prepare_dispatch => prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) -> ();
+}
+
+/// The half vectors and Fresnel factors of `groups` (see [`Packed::prepare`]).
+#[inline(always)]
+fn prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) {
+    let f1 = Lobe::new(0.0, eta).normal_reflectance();
+    let inv_f1 = 1.0 / f1;
+    for g in groups {
+        let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.l[j][i] + v[j]));
+        let inv =
+            lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+        g.h = std::array::from_fn(|j| lanes(|i| a[j][i] * inv[i]));
+        g.fresnel = if f1 > 1e-12 {
+            let c = lanes(|i| v[0] * g.h[0][i] + v[1] * g.h[1][i] + v[2] * g.h[2][i]);
+            let (f, _) = fresnel_lanes::<false>(eta, &c);
+            lanes(|i| f[i] * inv_f1)
+        } else {
+            [1.0; W]
+        };
+    }
+}
+
+/// [`Lobe::fresnel`] in lanes, for `eta > 1` and `0 <= c <= 1` (the refracted cosine is then
+/// positive); the derivative only `WITH_DERIVATIVE` (else 0).
+#[inline(always)]
+fn fresnel_lanes<const WITH_DERIVATIVE: bool>(eta: f64, c: &Lanes) -> (Lanes, Lanes) {
+    let ie2 = 1.0 / (eta * eta);
+    let t = lanes(|i| {
+        (1.0 - (1.0 - c[i] * c[i]) * ie2)
+            .max(f64::MIN_POSITIVE)
+            .sqrt()
+    });
+    let ds = lanes(|i| c[i] + eta * t[i]);
+    let dp = lanes(|i| eta * c[i] + t[i]);
+    let q = lanes(|i| 1.0 / (ds[i] * dp[i] * t[i]));
+    let ids = lanes(|i| dp[i] * t[i] * q[i]);
+    let idp = lanes(|i| ds[i] * t[i] * q[i]);
+    let rs = lanes(|i| (c[i] - eta * t[i]) * ids[i]);
+    let rp = lanes(|i| (eta * c[i] - t[i]) * idp[i]);
+    let f = lanes(|i| 0.5 * (rs[i] * rs[i] + rp[i] * rp[i]));
+    if !WITH_DERIVATIVE {
+        return (f, [0.0; W]);
+    }
+    let wf = 2.0 * (eta - 1.0 / eta);
+    let df = lanes(|i| {
+        wf * (ds[i] * dp[i] * q[i]) * (rs[i] * ids[i] * ids[i] + rp[i] * idp[i] * idp[i])
+    });
+    (f, df)
+}
+
+impl Kernel {
+    /// [`Kernel::shade`] of the observations of group `g` at the normal `n` with its shared
+    /// terms `w` (`v` the view vector), in lanes: the factors, their gradients only `GRADS`.
+    #[inline(always)]
+    fn shade_group<const GRADS: bool>(
+        &self,
+        g: &Group,
+        n: [f64; 3],
+        w: &View,
+        v: [f64; 3],
+    ) -> Factors {
+        let cl = lanes(|i| n[0] * g.l[0][i] + n[1] * g.l[1][i] + n[2] * g.l[2][i]);
+        let lit: [bool; W] = std::array::from_fn(|i| cl[i] > 0.0);
+        // Unlit lanes are evaluated at a harmless cosine and masked.
+        let c = lanes(|i| if lit[i] { cl[i] } else { 1.0 });
+        let (tl, dtl) = if self.lambert {
+            ([1.0; W], [0.0; W])
+        } else {
+            let (f, df) = fresnel_lanes::<GRADS>(self.eta, &c);
+            (
+                lanes(|i| (1.0 - f[i]) * self.inv_t1),
+                lanes(|i| -df[i] * self.inv_t1),
+            )
+        };
+        let diffuse = lanes(|i| c[i] * tl[i] * w.tv);
+        let ch = lanes(|i| n[0] * g.h[0][i] + n[1] * g.h[1][i] + n[2] * g.h[2][i]);
+        let a2 = self.a2;
+        let iq = lanes(|i| 1.0 / (ch[i] * ch[i] * (a2 - 1.0) + 1.0));
+        let r = lanes(|i| (a2 + (1.0 - a2) * c[i] * c[i]).sqrt());
+        let sw = lanes(|i| 1.0 / (c[i] * r[i] * (c[i] + r[i])));
+        let specular = lanes(|i| {
+            let d = a2 * std::f64::consts::FRAC_1_PI * iq[i] * iq[i];
+            let gl = 2.0 * c[i] * c[i] * r[i] * sw[i];
+            let s = g.fresnel[i] * d * gl * w.gv;
+            if ch[i] > 0.0 {
+                s
+            } else {
+                0.0
+            }
+        });
+        let mut out = Factors {
+            lit,
+            diffuse,
+            specular,
+            ..Factors::default()
+        };
+        if GRADS {
+            let wl = lanes(|i| (tl[i] + c[i] * dtl[i]) * w.tv);
+            let wv = lanes(|i| c[i] * tl[i] * w.dtv);
+            let sh = lanes(|i| specular[i] * (-4.0 * ch[i] * (a2 - 1.0) * iq[i]));
+            let sl = lanes(|i| specular[i] * (a2 * sw[i]));
+            let sv = lanes(|i| specular[i] * w.dgv);
+            for j in 0..3 {
+                out.d_diffuse[j] = lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]);
+                out.d_specular[j] = lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j]);
+            }
+        }
+        out
+    }
+}
+
+/// The sums of the normal equations in lanes (see [`Accumulator::add`]).
+struct Accumulator {
+    /// The upper triangle of `J^T J`, row by row.
+    jtj: [Lanes; 10],
+    jtr: [Lanes; 4],
+    sse: Lanes,
+    used: [u32; W],
+}
+
+/// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
+type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
+
+impl Accumulator {
+    #[inline(always)]
+    fn new() -> Accumulator {
+        Accumulator {
+            jtj: [[0.0; W]; 10],
+            jtr: [[0.0; W]; 4],
+            sse: [0.0; W],
+            used: [0; W],
+        }
+    }
+
+    /// Adds group `g` with its factors `f` at `n`, `rho`, `s`.
+    #[inline(always)]
+    fn add(&mut self, g: &Group, f: &Factors, n: [f64; 3], rho: f64, s: f64) {
+        let m = lanes(|i| if f.lit[i] { 1.0 } else { 0.0 });
+        let r =
+            lanes(|i| m[i] * (g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i])));
         // d m / d b = scale (D n + P grad D + (s / rho) P grad S), P = I - n n^T.
         let t = s / rho;
-        let g: [f64; 3] = std::array::from_fn(|j| sh.d_diffuse[j] + t * sh.d_specular[j]);
-        let gn = dot(g, n);
-        let j: [f64; 4] = [
-            o.scale * (sh.diffuse * n[0] + g[0] - gn * n[0]),
-            o.scale * (sh.diffuse * n[1] + g[1] - gn * n[1]),
-            o.scale * (sh.diffuse * n[2] + g[2] - gn * n[2]),
-            o.scale * sh.specular,
+        let gr: [Lanes; 3] =
+            std::array::from_fn(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
+        let gn = lanes(|i| gr[0][i] * n[0] + gr[1][i] * n[1] + gr[2][i] * n[2]);
+        let ms = lanes(|i| m[i] * g.scale[i]);
+        let j: [Lanes; 4] = [
+            lanes(|i| ms[i] * (f.diffuse[i] * n[0] + gr[0][i] - gn[i] * n[0])),
+            lanes(|i| ms[i] * (f.diffuse[i] * n[1] + gr[1][i] - gn[i] * n[1])),
+            lanes(|i| ms[i] * (f.diffuse[i] * n[2] + gr[2][i] - gn[i] * n[2])),
+            lanes(|i| ms[i] * f.specular[i]),
         ];
         let mut e = 0;
         for a in 0..4 {
             for b in a..4 {
-                self.jtj[e] += j[a] * j[b];
+                for i in 0..W {
+                    self.jtj[e][i] += j[a][i] * j[b][i];
+                }
                 e += 1;
             }
-            self.jtr[a] += j[a] * r;
+            for i in 0..W {
+                self.jtr[a][i] += j[a][i] * r[i];
+            }
         }
-        self.sse += r * r;
-        self.used += 1;
+        for i in 0..W {
+            self.sse[i] += r[i] * r[i];
+            self.used[i] += u32::from(f.lit[i]);
+        }
     }
 
+    /// The lanes summed.
     fn finish(self) -> Equations {
+        let sum = |x: &Lanes| x.iter().sum::<f64>();
         let mut m = Matrix4::zeros();
         let mut e = 0;
         for a in 0..4 {
             for b in a..4 {
-                m[(a, b)] = self.jtj[e];
-                m[(b, a)] = self.jtj[e];
+                m[(a, b)] = sum(&self.jtj[e]);
+                m[(b, a)] = m[(a, b)];
                 e += 1;
             }
         }
-        (self.sse, m, Vector4::from(self.jtr), self.used)
+        (
+            sum(&self.sse),
+            m,
+            Vector4::from(self.jtr.map(|x| sum(&x))),
+            self.used.iter().sum(),
+        )
     }
+}
+
+simd_dispatch! {
+    /// [`factors_of`] with AVX2 when the processor has it.
+    fn factors_dispatch => factors_of(
+        k: &Kernel, groups: &[Group], n: [f64; 3], w: &View, v: [f64; 3], out: &mut [Factors],
+    ) -> ();
+}
+
+/// The factors of `groups` at the normal `n` (with its shared terms `w`) into `out`.
+#[inline(always)]
+fn factors_of(
+    k: &Kernel,
+    groups: &[Group],
+    n: [f64; 3],
+    w: &View,
+    v: [f64; 3],
+    out: &mut [Factors],
+) {
+    for (g, f) in groups.iter().zip(out) {
+        *f = k.shade_group::<true>(g, n, w, v);
+    }
+}
+
+simd_dispatch! {
+    /// [`accumulate`] with AVX2 when the processor has it.
+    fn accumulate_dispatch => accumulate(
+        groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64,
+    ) -> Equations;
+}
+
+/// The normal equations at `(rho n, s)` from the factors at `n`.
+#[inline(always)]
+fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64) -> Equations {
+    let mut acc = Accumulator::new();
+    for (g, f) in groups.iter().zip(factors) {
+        acc.add(g, f, n, rho, s);
+    }
+    acc.finish()
+}
+
+simd_dispatch! {
+    /// [`equations_at`] with AVX2 when the processor has it.
+    fn equations_dispatch => equations_at(
+        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
+    ) -> Equations;
 }
 
 /// The model and its derivatives at `(b, s)`: the squared residual, `J^T J`, `J^T r` and the
 /// number of observations used.
-fn normal_equations(
-    k: &Kernel,
-    obs: &[Observation],
-    v: [f64; 3],
-    b: [f64; 3],
-    s: f64,
-) -> Equations {
+#[inline(always)]
+fn equations_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -> Equations {
     let rho = norm(b);
     let n = scale(b, 1.0 / rho);
-    let mut sums = Sums::new();
+    let mut acc = Accumulator::new();
     if let Some(w) = k.view(n, v) {
-        for o in obs {
-            if let Some(sh) = k.shade(n, &w, o) {
-                sums.add(o, &sh, n, rho, s);
+        for g in groups {
+            let f = k.shade_group::<true>(g, n, &w, v);
+            acc.add(g, &f, n, rho, s);
+        }
+    }
+    acc.finish()
+}
+
+simd_dispatch! {
+    /// [`residual_at`] with AVX2 when the processor has it.
+    fn residual_dispatch => residual_at(
+        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
+    ) -> (f64, u32);
+}
+
+/// The squared residual at `(b, s)` and the number of observations used (no derivatives).
+#[inline(always)]
+fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -> (f64, u32) {
+    let rho = norm(b);
+    let n = scale(b, 1.0 / rho);
+    let (mut sse, mut used) = ([0.0; W], [0u32; W]);
+    if let Some(w) = k.view(n, v) {
+        for g in groups {
+            let f = k.shade_group::<false>(g, n, &w, v);
+            for i in 0..W {
+                let r = g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i]);
+                sse[i] += if f.lit[i] { r * r } else { 0.0 };
+                used[i] += u32::from(f.lit[i]);
             }
         }
     }
-    sums.finish()
+    (sse.iter().sum(), used.iter().sum())
 }
 
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
-/// light; `shades` are the observations' factors at `n`.
-fn albedos_at(
-    obs: &[Observation],
-    shades: &[Option<Shade>],
-    n: [f64; 3],
-) -> Option<([f64; 3], f64)> {
+/// light; `factors` are those of `groups` at `n`.
+fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
     let (mut dd, mut ds, mut ss, mut di, mut si) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (o, sh) in obs.iter().zip(shades) {
-        if let Some(sh) = sh {
-            let (d, s) = (o.scale * sh.diffuse, o.scale * sh.specular);
-            dd += d * d;
-            ds += d * s;
-            ss += s * s;
-            di += d * o.value;
-            si += s * o.value;
+    for (g, f) in groups.iter().zip(factors) {
+        for i in 0..W {
+            if f.lit[i] {
+                let (d, s) = (g.scale[i] * f.diffuse[i], g.scale[i] * f.specular[i]);
+                dd += d * d;
+                ds += d * s;
+                ss += s * s;
+                di += d * g.value[i];
+                si += s * g.value[i];
+            }
         }
     }
     if dd <= 0.0 {
@@ -462,7 +772,8 @@ fn albedos_at(
 /// Lambertian fit) with the least-squares albedos there, by at most `steps` damped
 /// Gauss-Newton steps (see the module documentation). `v` is the unit vector from the facet to
 /// the camera, and `obs` were made for it and `lobe` ([`Observation::new`]). None if the start
-/// is not a finite, non-zero vector or fewer than 4 observations carry light.
+/// is not a finite, non-zero vector or fewer than 4 observations carry light. (The
+/// observations packed, then [`fit_packed`].)
 pub fn fit(
     lobe: &Lobe,
     obs: &[Observation],
@@ -470,32 +781,46 @@ pub fn fit(
     start: [f64; 3],
     steps: usize,
 ) -> Option<GlossyFit> {
+    let mut packed = Packed::new();
+    packed.clear(v);
+    for o in obs {
+        packed.push_observation(o);
+    }
+    fit_packed(lobe, &mut packed, start, steps)
+}
+
+/// [`fit`] on packed observations (prepared for `lobe`, see [`Packed::prepare`]): the same
+/// steps, each light's factors and the sums of the normal equations computed `W` lights at a
+/// time. The residual after the last step is evaluated without the derivatives (no step
+/// follows it).
+pub fn fit_packed(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    start: [f64; 3],
+    steps: usize,
+) -> Option<GlossyFit> {
     if !start.iter().all(|x| x.is_finite()) || norm(start) == 0.0 {
         return None;
     }
     let k = Kernel::new(lobe);
+    let v = obs.view;
     // The factors at the starting normal serve both its albedos and its normal equations.
     let n0 = normalize(start);
-    let view = k.view(n0, v);
-    let shades: Vec<Option<Shade>> = obs
-        .iter()
-        .map(|o| view.as_ref().and_then(|w| k.shade(n0, w, o)))
-        .collect();
-    let (mut b, mut s) = albedos_at(obs, &shades, n0).unwrap_or((start, 0.0));
-    let (mut sse, mut jtj, mut jtr, mut used) = {
-        let mut sums = Sums::new();
-        for (o, sh) in obs.iter().zip(&shades) {
-            if let Some(sh) = sh {
-                sums.add(o, sh, n0, norm(b), s);
-            }
-        }
-        sums.finish()
-    };
+    obs.factors.clear();
+    obs.factors.resize(obs.groups.len(), Factors::default());
+    if let Some(w) = k.view(n0, v) {
+        factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors);
+    }
+    let groups = &obs.groups[..];
+    let (mut b, mut s) = albedos_at(groups, &obs.factors, n0).unwrap_or((start, 0.0));
+    let (mut sse, mut jtj, mut jtr, mut used) =
+        accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;
-    for _ in 0..steps {
+    for step_index in 0..steps {
         if used < 4 {
             return None;
         }
+        let last = step_index + 1 == steps;
         let mut accepted = false;
         for _ in 0..8 {
             let mut a = jtj;
@@ -516,7 +841,17 @@ pub fn fit(
                 lambda *= 10.0;
                 continue;
             }
-            let next = normal_equations(&k, obs, v, nb, ns);
+            if last {
+                // No step follows: the residual alone decides.
+                let (next, n_used) = residual_dispatch(&k, groups, v, nb, ns);
+                if n_used >= 4 && next < sse {
+                    (b, s, sse, used) = (nb, ns, next, n_used);
+                    break;
+                }
+                lambda *= 10.0;
+                continue;
+            }
+            let next = equations_dispatch(&k, groups, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;

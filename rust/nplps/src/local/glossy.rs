@@ -34,7 +34,7 @@ use rayon::prelude::*;
 use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
-use crate::reflectance::{fit, Lobe, Observation};
+use crate::reflectance::{fit_packed, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -72,9 +72,9 @@ fn observations(
     values: &[f32],
     channels: usize,
     settings: &FitSettings,
-    out: &mut Vec<Observation>,
+    out: &mut Packed,
 ) {
-    out.clear();
+    out.clear(v);
     for (k, o) in values.chunks_exact(channels).enumerate() {
         if !usable(o, settings) {
             continue;
@@ -87,14 +87,9 @@ fn observations(
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(Observation::new(
-            o.iter().map(|&v| v as f64).sum(),
-            p * a,
-            scale(b, 1.0 / a),
-            v,
-            lobe,
-        ));
+        out.push(o.iter().map(|&v| v as f64).sum(), p * a, scale(b, 1.0 / a));
     }
+    out.prepare(lobe);
 }
 
 /// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
@@ -116,16 +111,16 @@ pub(super) fn refine(
     start: FacetFit,
     starts: [Option<[f64; 3]>; 2],
     steps: usize,
-    scratch: &mut Vec<Observation>,
+    scratch: &mut Packed,
 ) -> FacetFit {
     observations(c, v, lobe, model, values, channels, settings, scratch);
     let albedo = start.albedo[..channels].iter().sum::<f64>();
-    let from = |n: [f64; 3]| fit(lobe, scratch, v, scale(n, albedo), steps);
-    let first = starts[0].and_then(from);
+    let mut from = |n: [f64; 3]| fit_packed(lobe, scratch, scale(n, albedo), steps);
+    let first = starts[0].and_then(&mut from);
     let agree = AGREE_DEGREES.to_radians().cos();
     let second = match (first, starts[1]) {
         (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
-        (_, n) => n.and_then(from),
+        (_, n) => n.and_then(&mut from),
     };
     let Some(g) = [first, second]
         .into_iter()
@@ -249,7 +244,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
             .zip(starts)
-            .map_init(Vec::new, |scratch, (s, &starts)| {
+            .map_init(Packed::new, |scratch, (s, &starts)| {
                 let g = refine(
                     s.c,
                     s.v,

@@ -28,7 +28,7 @@ use crate::grid::Grid;
 pub(crate) use crate::light::channel_intensity;
 use crate::light::Light;
 use crate::memory::try_vec;
-use crate::reflectance::{Lobe, Observation};
+use crate::reflectance::{Lobe, Packed};
 use crate::shadow::ShadowMask;
 use crate::vec3::{dot, norm};
 
@@ -331,7 +331,7 @@ impl LocalStep<'_> {
         f: usize,
         u: &[f64],
         buf: &mut [f32],
-        glossy: &mut Vec<Observation>,
+        glossy: &mut Packed,
         warm: Option<[f64; 3]>,
     ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
@@ -405,7 +405,7 @@ impl LocalStep<'_> {
                     } else {
                         for (i, fit) in fits.iter_mut().enumerate() {
                             // (no glossy observations: the lanes fit the Lambertian model)
-                            *fit = self.fit(start + i, u, buf, &mut Vec::new(), None);
+                            *fit = self.fit(start + i, u, buf, &mut Packed::new(), None);
                         }
                     }
                     Ok(())
@@ -467,7 +467,7 @@ impl LocalStep<'_> {
                             }
                         } else {
                             for (i, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
-                                let fit = self.fit(first + i, u, buf, &mut Vec::new(), None);
+                                let fit = self.fit(first + i, u, buf, &mut Packed::new(), None);
                                 *target = fit.target;
                                 *stat = FacetStat::from(&fit);
                             }
@@ -549,8 +549,8 @@ const SCRATCH: &str = "the local step's per-thread scratch space";
 
 /// A thread's scratch space for one facet's `per` observations (and, filled on demand, its
 /// observations under the glossy model).
-fn facet_scratch(per: usize) -> Result<(Vec<f32>, Vec<Observation>)> {
-    Ok((try_vec(per, 0.0f32, SCRATCH)?, Vec::new()))
+fn facet_scratch(per: usize) -> Result<(Vec<f32>, Packed)> {
+    Ok((try_vec(per, 0.0f32, SCRATCH)?, Packed::new()))
 }
 
 /// Whether an observation (all its channels) can be used.
