@@ -474,7 +474,9 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) {
         g.h = std::array::from_fn(|j| lanes(|i| a[j][i] * inv[i]));
         g.fresnel = if f1 > 1e-12 {
             let c = lanes(|i| v[0] * g.h[0][i] + v[1] * g.h[1][i] + v[2] * g.h[2][i]);
-            let (f, _) = fresnel_lanes::<false>(eta, &c);
+            let d = fresnel_denominators(eta, &c);
+            let q = lanes(|i| 1.0 / (d.1[i] * d.2[i] * d.0[i]));
+            let (f, _) = fresnel_lanes::<false>(eta, &c, d, &q);
             lanes(|i| f[i] * inv_f1)
         } else {
             [1.0; W]
@@ -482,10 +484,10 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) {
     }
 }
 
-/// [`Lobe::fresnel`] in lanes, for `eta > 1` and `0 <= c <= 1` (the refracted cosine is then
-/// positive); the derivative only `WITH_DERIVATIVE` (else 0).
+/// The refracted cosines `t` and the denominators `c + eta t`, `eta c + t` of [`Lobe::fresnel`]
+/// in lanes, for `eta > 1` and `0 <= c <= 1` (`t` is then positive).
 #[inline(always)]
-fn fresnel_lanes<const WITH_DERIVATIVE: bool>(eta: f64, c: &Lanes) -> (Lanes, Lanes) {
+fn fresnel_denominators(eta: f64, c: &Lanes) -> (Lanes, Lanes, Lanes) {
     let ie2 = 1.0 / (eta * eta);
     let t = lanes(|i| {
         (1.0 - (1.0 - c[i] * c[i]) * ie2)
@@ -494,7 +496,18 @@ fn fresnel_lanes<const WITH_DERIVATIVE: bool>(eta: f64, c: &Lanes) -> (Lanes, La
     });
     let ds = lanes(|i| c[i] + eta * t[i]);
     let dp = lanes(|i| eta * c[i] + t[i]);
-    let q = lanes(|i| 1.0 / (ds[i] * dp[i] * t[i]));
+    (t, ds, dp)
+}
+
+/// [`Lobe::fresnel`] in lanes from [`fresnel_denominators`] and `q = 1 / (ds dp t)`; the
+/// derivative only `WITH_DERIVATIVE` (else 0).
+#[inline(always)]
+fn fresnel_lanes<const WITH_DERIVATIVE: bool>(
+    eta: f64,
+    c: &Lanes,
+    (t, ds, dp): (Lanes, Lanes, Lanes),
+    q: &Lanes,
+) -> (Lanes, Lanes) {
     let ids = lanes(|i| dp[i] * t[i] * q[i]);
     let idp = lanes(|i| ds[i] * t[i] * q[i]);
     let rs = lanes(|i| (c[i] - eta * t[i]) * ids[i]);
@@ -503,6 +516,7 @@ fn fresnel_lanes<const WITH_DERIVATIVE: bool>(eta: f64, c: &Lanes) -> (Lanes, La
     if !WITH_DERIVATIVE {
         return (f, [0.0; W]);
     }
+    // 2 (eta^2 - 1) / (eta t), 1 / t = ds dp q.
     let wf = 2.0 * (eta - 1.0 / eta);
     let df = lanes(|i| {
         wf * (ds[i] * dp[i] * q[i]) * (rs[i] * ids[i] * ids[i] + rp[i] * idp[i] * idp[i])
@@ -523,23 +537,37 @@ impl Kernel {
     ) -> Factors {
         let cl = lanes(|i| n[0] * g.l[0][i] + n[1] * g.l[1][i] + n[2] * g.l[2][i]);
         let lit: [bool; W] = std::array::from_fn(|i| cl[i] > 0.0);
-        // Unlit lanes are evaluated at a harmless cosine and masked.
-        let c = lanes(|i| if lit[i] { cl[i] } else { 1.0 });
-        let (tl, dtl) = if self.lambert {
-            ([1.0; W], [0.0; W])
-        } else {
-            let (f, df) = fresnel_lanes::<GRADS>(self.eta, &c);
-            (
-                lanes(|i| (1.0 - f[i]) * self.inv_t1),
-                lanes(|i| -df[i] * self.inv_t1),
-            )
-        };
-        let diffuse = lanes(|i| c[i] * tl[i] * w.tv);
+        // Unlit lanes are evaluated at a harmless cosine and masked; the least cosine keeps the
+        // product of the denominators below from underflowing (its factors are at least
+        // `c alpha^2`, `alpha^2` and about `eta - 1`).
+        let c = lanes(|i| if lit[i] { cl[i].max(1e-100) } else { 1.0 });
         let ch = lanes(|i| n[0] * g.h[0][i] + n[1] * g.h[1][i] + n[2] * g.h[2][i]);
         let a2 = self.a2;
-        let iq = lanes(|i| 1.0 / (ch[i] * ch[i] * (a2 - 1.0) + 1.0));
+        // The denominators of the Fresnel factor, the GGX distribution and Smith's masking,
+        // inverted by one division.
+        let fd = (!self.lambert).then(|| fresnel_denominators(self.eta, &c));
+        let qf = match fd {
+            Some((t, ds, dp)) => lanes(|i| ds[i] * dp[i] * t[i]),
+            None => [1.0; W],
+        };
+        let qg = lanes(|i| ch[i] * ch[i] * (a2 - 1.0) + 1.0);
         let r = lanes(|i| (a2 + (1.0 - a2) * c[i] * c[i]).sqrt());
-        let sw = lanes(|i| 1.0 / (c[i] * r[i] * (c[i] + r[i])));
+        let qs = lanes(|i| c[i] * r[i] * (c[i] + r[i]));
+        let ip = lanes(|i| 1.0 / (qf[i] * qg[i] * qs[i]));
+        let iq = lanes(|i| ip[i] * qf[i] * qs[i]);
+        let sw = lanes(|i| ip[i] * qf[i] * qg[i]);
+        let (tl, dtl) = match fd {
+            None => ([1.0; W], [0.0; W]),
+            Some(fd) => {
+                let q = lanes(|i| ip[i] * qg[i] * qs[i]);
+                let (f, df) = fresnel_lanes::<GRADS>(self.eta, &c, fd, &q);
+                (
+                    lanes(|i| (1.0 - f[i]) * self.inv_t1),
+                    lanes(|i| -df[i] * self.inv_t1),
+                )
+            }
+        };
+        let diffuse = lanes(|i| c[i] * tl[i] * w.tv);
         let specular = lanes(|i| {
             let d = a2 * std::f64::consts::FRAC_1_PI * iq[i] * iq[i];
             let gl = 2.0 * c[i] * c[i] * r[i] * sw[i];
@@ -802,17 +830,45 @@ pub fn fit_packed(
     if !start.iter().all(|x| x.is_finite()) || norm(start) == 0.0 {
         return None;
     }
+    fit_from(lobe, obs, normalize(start), Some(start), steps)
+}
+
+/// [`fit_packed`] from the unit normal `normal` with the least-squares albedos there alone: None
+/// where they cannot be found (no light, or a diffuse albedo that is not positive).
+pub fn fit_packed_at(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    normal: [f64; 3],
+    steps: usize,
+) -> Option<GlossyFit> {
+    if !normal.iter().all(|x| x.is_finite()) || norm(normal) == 0.0 {
+        return None;
+    }
+    fit_from(lobe, obs, normalize(normal), None, steps)
+}
+
+/// The fit from the unit normal `n0` with its least-squares albedos, or, where they cannot be
+/// found, from `fallback` (None: no fit).
+fn fit_from(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    n0: [f64; 3],
+    fallback: Option<[f64; 3]>,
+    steps: usize,
+) -> Option<GlossyFit> {
     let k = Kernel::new(lobe);
     let v = obs.view;
     // The factors at the starting normal serve both its albedos and its normal equations.
-    let n0 = normalize(start);
     obs.factors.clear();
     obs.factors.resize(obs.groups.len(), Factors::default());
     if let Some(w) = k.view(n0, v) {
         factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors);
     }
     let groups = &obs.groups[..];
-    let (mut b, mut s) = albedos_at(groups, &obs.factors, n0).unwrap_or((start, 0.0));
+    let (mut b, mut s) = match albedos_at(groups, &obs.factors, n0) {
+        Some(albedos) => albedos,
+        None => (fallback?, 0.0),
+    };
     let (mut sse, mut jtj, mut jtr, mut used) =
         accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;

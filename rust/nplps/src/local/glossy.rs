@@ -34,7 +34,7 @@ use rayon::prelude::*;
 use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
-use crate::reflectance::{fit_packed, Lobe, Packed};
+use crate::reflectance::{fit_packed, fit_packed_at, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -43,7 +43,7 @@ use crate::vec3::{dot, norm, scale};
 pub const GLOSSY_STEPS: usize = 5;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
-pub const GLOSSY_WARM_STEPS: usize = 2;
+pub const GLOSSY_WARM_STEPS: usize = 3;
 
 /// A facet's second start (see [`refine`]) is tried only where the fit from its first ends
 /// farther than this from it (degrees).
@@ -94,11 +94,11 @@ fn observations(
 
 /// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
 /// of `starts` (e.g. its Lambertian fit's, or its glossy normal of the previous local step) with
-/// the diffuse albedo of its Lambertian fit `start`, with at most `steps` Gauss-Newton steps;
+/// the diffuse albedo of its Lambertian fit `start` (without one: with the least-squares albedos
+/// at the starting normal, see [`fit_packed_at`]), with at most `steps` Gauss-Newton steps;
 /// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
 /// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit), and the
-/// fit of lower residual is kept; `start` itself (with no specular albedo) where the glossy fit
-/// fails. The target is left as in `start`.
+/// fit of lower residual is kept; None where the glossy fit fails. The target is left at zero.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn refine(
     c: [f64; 3],
@@ -108,36 +108,37 @@ pub(super) fn refine(
     channels: usize,
     settings: &FitSettings,
     lobe: &Lobe,
-    start: FacetFit,
+    start: Option<&FacetFit>,
     starts: [Option<[f64; 3]>; 2],
     steps: usize,
     scratch: &mut Packed,
-) -> FacetFit {
+) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
-    let albedo = start.albedo[..channels].iter().sum::<f64>();
-    let mut from = |n: [f64; 3]| fit_packed(lobe, scratch, scale(n, albedo), steps);
+    let albedo = start.map(|s| s.albedo[..channels].iter().sum::<f64>());
+    let mut from = |n: [f64; 3]| match albedo {
+        Some(a) => fit_packed(lobe, scratch, scale(n, a), steps),
+        None => fit_packed_at(lobe, scratch, n, steps),
+    };
     let first = starts[0].and_then(&mut from);
     let agree = AGREE_DEGREES.to_radians().cos();
     let second = match (first, starts[1]) {
         (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
         (_, n) => n.and_then(&mut from),
     };
-    let Some(g) = [first, second]
+    let g = [first, second]
         .into_iter()
         .flatten()
-        .min_by(|a, b| a.sse.total_cmp(&b.sse))
-    else {
-        return start;
-    };
+        .min_by(|a, b| a.sse.total_cmp(&b.sse))?;
     if channels == 1 {
-        return FacetFit {
+        return Some(FacetFit {
+            target: [0.0; 4],
             normal: g.normal,
             albedo: [g.diffuse; 3],
             specular: g.specular,
             sse: g.sse,
             used: g.used,
-            ..start
-        };
+            valid: true,
+        });
     }
     // Per channel: the diffuse albedo at the fitted normal, and the residual.
     let mut num = [0.0; 3];
@@ -165,7 +166,7 @@ pub(super) fn refine(
     }
     let albedo: [f64; 3] = std::array::from_fn(|ch| num[ch] / den[ch]);
     if !albedo.iter().all(|x| x.is_finite()) {
-        return start;
+        return None;
     }
     let mut sse = 0.0;
     for &(k, a, sh) in &terms {
@@ -176,14 +177,15 @@ pub(super) fn refine(
             sse += e * e;
         }
     }
-    FacetFit {
+    Some(FacetFit {
+        target: [0.0; 4],
         normal: g.normal,
         albedo,
         specular: g.specular,
         sse,
         used: g.used,
-        ..start
-    }
+        valid: true,
+    })
 }
 
 /// One facet of the lobe search: its centre, view vector, observations and Lambertian fit.
@@ -253,11 +255,12 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                     channels,
                     &lambertian,
                     &lobe,
-                    s.start,
+                    Some(&s.start),
                     starts,
                     steps,
                     scratch,
-                );
+                )
+                .unwrap_or(s.start);
                 (g.sse, [Some(g.normal), None])
             })
             .collect();

@@ -339,28 +339,39 @@ impl LocalStep<'_> {
         let ids = grid.facet_vertices[f];
         let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
-        let fitted = fit_facet(c, self.model, values, obs.channels, self.settings).map(|fit| {
-            let Some(lobe) = self.settings.lobe else {
-                return fit;
-            };
-            let (starts, steps) = match warm {
-                Some(n) => ([Some(n), Some(quad_normal(&q))], GLOSSY_WARM_STEPS),
-                None => ([Some(fit.normal), Some(quad_normal(&q))], GLOSSY_STEPS),
-            };
-            glossy::refine(
-                c,
-                geometry.view(c),
-                self.model,
-                values,
-                obs.channels,
-                &self.settings,
-                &lobe,
-                fit,
-                starts,
-                steps,
-                glossy,
-            )
-        });
+        let lambertian = || fit_facet(c, self.model, values, obs.channels, self.settings);
+        let fitted = match self.settings.lobe {
+            None => lambertian(),
+            Some(lobe) => {
+                let mut refine = |start: Option<&FacetFit>, first: [f64; 3], steps: usize| {
+                    glossy::refine(
+                        c,
+                        geometry.view(c),
+                        self.model,
+                        values,
+                        obs.channels,
+                        &self.settings,
+                        &lobe,
+                        start,
+                        [Some(first), Some(quad_normal(&q))],
+                        steps,
+                        glossy,
+                    )
+                };
+                // From a warm normal the Lambertian fit is needed only where the glossy fit
+                // fails: it then starts it again, or is kept.
+                let from_warm = warm.and_then(|n| refine(None, n, GLOSSY_WARM_STEPS));
+                from_warm.or_else(|| {
+                    lambertian().map(|fit| {
+                        let (n, steps) = match warm {
+                            Some(n) => (n, GLOSSY_WARM_STEPS),
+                            None => (fit.normal, GLOSSY_STEPS),
+                        };
+                        refine(Some(&fit), n, steps).unwrap_or(fit)
+                    })
+                })
+            }
+        };
         match fitted {
             Some(fitted) => FacetFit {
                 target: geometry.plane_target(fitted.normal, ids, c),
