@@ -135,8 +135,9 @@ impl WarmMap {
 }
 
 /// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
-/// has none, again at the first of these iterations of each run, and at the second too where
-/// the solver started without a lobe (then held, so that the run converges under one model).
+/// has none, again at the first of these iterations of each run (at its first iteration where
+/// the lobe came from a coarser level), and at the second too where the solver started without
+/// a lobe (then held, so that the run converges under one model).
 pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
 
 /// With [`Options::shadows`], the cast shadows of the current mesh are computed at these
@@ -283,6 +284,9 @@ pub(crate) struct Solver<'p> {
     warm_carried: bool,
     /// Whether this solver started without a lobe (it then estimates it more often).
     lobe_from_scratch: bool,
+    /// Whether its lobe came from a coarser level (it then estimates it again at the first
+    /// iteration instead of at `LOBE_AT[0]`).
+    lobe_carried: bool,
     /// The cast shadows of the mesh at the last iteration of [`SHADOWS_AT`] (with
     /// [`Options::shadows`]).
     shadows: Option<ShadowMask>,
@@ -355,6 +359,7 @@ impl<'p> Solver<'p> {
             )?,
             warm_carried: false,
             lobe_from_scratch: false,
+            lobe_carried: false,
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
@@ -367,6 +372,7 @@ impl<'p> Solver<'p> {
         if !self.options.reflectance.is_glossy() {
             return;
         }
+        self.lobe_carried |= lobe.is_some();
         self.lobe = lobe.or(self.lobe);
         let fine = &self.problem.grid;
         for (w, &p) in self.warm.iter_mut().zip(&fine.facets) {
@@ -626,7 +632,11 @@ impl<'p> Solver<'p> {
         if !self.estimates_lobe() {
             return Ok(());
         }
-        let again = iteration == LOBE_AT[0] || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
+        // A lobe carried from a coarser level is estimated again at once, on the surface and
+        // the glossy normals carried with it (close to this level's already), so that the
+        // level's iterations fit under the lobe it keeps.
+        let first = if self.lobe_carried { 1 } else { LOBE_AT[0] };
+        let again = iteration == first || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
         let from_scratch = self.lobe.is_none();
         if !(from_scratch || (again && !self.hold_lobe)) {
             return Ok(());
