@@ -368,6 +368,12 @@ struct Group {
     h: [Lanes; 3],
     /// `F(v.h) / F(1)`.
     fresnel: Lanes,
+    /// Whether the lane's light is a point light whose direction and scale [`Packed::prepare`]
+    /// computes (from `position`, `axis`, `led` and the intensity in `scale`).
+    point: [bool; W],
+    position: [Lanes; 3],
+    axis: [Lanes; 3],
+    led: [bool; W],
 }
 
 /// The factors of a [`Group`] at a normal (see [`Shade`]): lanes that carry no light have
@@ -438,6 +444,29 @@ impl Packed {
         }
     }
 
+    /// Adds the observation of image value `value` under an isotropic point light (`led`
+    /// false) or an LED with `mu = 1` at `position` with axis `axis` and intensity `phi`:
+    /// [`Packed::prepare`] computes its direction and scale `Phi a` at the facet (see
+    /// [`crate::Light`]). An LED that does not light the facet never carries light.
+    pub fn push_point(
+        &mut self,
+        value: f64,
+        phi: f64,
+        position: [f64; 3],
+        axis: [f64; 3],
+        led: bool,
+    ) {
+        let (g, i) = self.next_lane();
+        g.value[i] = value;
+        g.scale[i] = phi;
+        g.point[i] = true;
+        g.led[i] = led;
+        for j in 0..3 {
+            g.position[j][i] = position[j];
+            g.axis[j][i] = axis[j];
+        }
+    }
+
     /// Adds `o` as it is (with its half vector and Fresnel factor; made for this view vector).
     pub fn push_observation(&mut self, o: &Observation) {
         let (g, i) = self.next_lane();
@@ -450,24 +479,54 @@ impl Packed {
         g.fresnel[i] = o.fresnel;
     }
 
-    /// Computes the half vectors and `F(v.h) / F(1)` of the observations [`Packed::push`]ed
-    /// under `lobe` (as [`Observation::new`], for all lights at once).
-    pub fn prepare(&mut self, lobe: &Lobe) {
-        prepare_dispatch(&mut self.groups, self.view, lobe.eta);
+    /// Computes, for the facet with centre `x`, the directions and scales of the observations
+    /// [`Packed::push_point`]ed, and the half vectors and `F(v.h) / F(1)` of all the
+    /// observations pushed, under `lobe` (as [`Observation::new`], for all lights at once).
+    pub fn prepare(&mut self, lobe: &Lobe, x: [f64; 3]) {
+        prepare_dispatch(&mut self.groups, self.view, x, lobe.eta);
     }
 }
 
 simd_dispatch! {
     /// [`prepare_groups`] with AVX2 when the processor has it.
-    fn prepare_dispatch => prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) -> ();
+    fn prepare_dispatch => prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64) -> ();
 }
 
-/// The half vectors and Fresnel factors of `groups` (see [`Packed::prepare`]).
+/// The point lights' directions and scales at `x`, the half vectors and the Fresnel factors of
+/// `groups` (see [`Packed::prepare`]).
 #[inline(always)]
-fn prepare_groups(groups: &mut [Group], v: [f64; 3], eta: f64) {
+fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64) {
     let f1 = Lobe::new(0.0, eta).normal_reflectance();
     let inv_f1 = 1.0 / f1;
     for g in groups {
+        if g.point.iter().any(|&p| p) {
+            // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)
+            // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
+            let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.position[j][i] - x[j]));
+            let id =
+                lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+            let l: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| a[j][i] * id[i]));
+            let aniso = lanes(|i| {
+                let t = -(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]);
+                if g.led[i] {
+                    t.max(0.0)
+                } else {
+                    1.0
+                }
+            });
+            let lit: [bool; W] = std::array::from_fn(|i| aniso[i] > 0.0);
+            for j in 0..3 {
+                g.l[j] = lanes(|i| match (g.point[i], lit[i]) {
+                    (true, true) => l[j][i],
+                    (true, false) => 0.0,
+                    (false, _) => g.l[j][i],
+                });
+            }
+            g.scale = lanes(|i| match g.point[i] {
+                true => g.scale[i] * aniso[i] * id[i] * id[i],
+                false => g.scale[i],
+            });
+        }
         let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.l[j][i] + v[j]));
         let inv =
             lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
@@ -1059,6 +1118,121 @@ mod tests {
                 gradient_matches(|m| lobe.shade(m, l, v).unwrap().diffuse, sh.d_diffuse, n);
                 gradient_matches(|m| lobe.shade(m, l, v).unwrap().specular, sh.d_specular, n);
             }
+        }
+    }
+
+    fn close(a: f64, b: f64) {
+        assert!((a - b).abs() <= 1e-12 * a.abs().max(1.0), "{a} vs {b}");
+    }
+
+    /// The packed factors of [`Kernel::shade_group`] are those of [`Lobe::shade`] (a partial
+    /// last group, unlit lights and padding lanes never lit).
+    #[test]
+    fn packed_factors_match_the_scalar_ones() {
+        let v = normalize([0.05, 0.02, -1.0]);
+        let ls: Vec<[f64; 3]> = (0..11)
+            .map(|i| {
+                let t = i as f64;
+                normalize([1.2 * (t * 0.21).cos(), 1.2 * (t * 0.53).sin(), -1.0])
+            })
+            .collect();
+        for &(alpha, eta) in &[(0.05, 1.5), (0.3, 1.3), (0.6, 1.0), (1.0, 2.5)] {
+            let lobe = Lobe::new(alpha, eta);
+            let k = Kernel::new(&lobe);
+            let mut packed = Packed::new();
+            packed.clear(v);
+            for &l in &ls {
+                packed.push(1.0, 1.0, l);
+            }
+            packed.prepare(&lobe, [0.0; 3]);
+            let mut lit = 0;
+            for i in 0..30 {
+                let t = i as f64;
+                let n = normalize([0.9 * (t * 0.37).sin(), 0.9 * (t * 0.73).cos(), -1.0]);
+                let w = k.view(n, v).unwrap();
+                let mut f = vec![Factors::default(); packed.groups.len()];
+                factors_of(&k, &packed.groups, n, &w, v, &mut f);
+                for (j, &l) in ls.iter().enumerate() {
+                    let g = &f[j / W];
+                    let lane = j % W;
+                    match lobe.shade(n, l, v) {
+                        None => assert!(!g.lit[lane]),
+                        Some(sh) => {
+                            lit += 1;
+                            assert!(g.lit[lane]);
+                            close(sh.diffuse, g.diffuse[lane]);
+                            close(sh.specular, g.specular[lane]);
+                            for c in 0..3 {
+                                close(sh.d_diffuse[c], g.d_diffuse[c][lane]);
+                                close(sh.d_specular[c], g.d_specular[c][lane]);
+                            }
+                        }
+                    }
+                }
+                let last = f.last().unwrap();
+                assert!((ls.len() % W..W).all(|lane| !last.lit[lane]));
+            }
+            assert!(lit > 200 && lit < 30 * ls.len(), "{lit}");
+        }
+    }
+
+    /// The point lights' directions, scales, half vectors and Fresnel factors of
+    /// [`Packed::prepare`] are those of [`Observation::new`] from [`crate::Light::beta`].
+    #[test]
+    fn packed_point_lights_match_the_observations() {
+        use crate::Light;
+        let lobe = Lobe::new(0.3, 1.5);
+        let x = [3.0, -2.0, 150.0];
+        let v = normalize(scale(x, -1.0));
+        let lights: Vec<(Light, bool)> = (0..7)
+            .map(|i| {
+                let t = i as f64;
+                let position = [60.0 * t.cos(), 60.0 * t.sin(), 10.0 * t];
+                let led = i % 2 == 1;
+                // The last LED points away from the facet.
+                let axis = match i {
+                    5 => normalize([0.0, 0.0, -1.0]),
+                    _ => normalize([0.1 * t, -0.05, 1.0]),
+                };
+                let light = Light::Point {
+                    position,
+                    intensity: [1.0 + t, 2.0, 3.0],
+                    axis,
+                    mu: if led { 1.0 } else { 0.0 },
+                };
+                (light, led)
+            })
+            .collect();
+        let mut packed = Packed::new();
+        packed.clear(v);
+        for (light, led) in &lights {
+            let Light::Point {
+                position,
+                intensity,
+                axis,
+                ..
+            } = *light
+            else {
+                unreachable!()
+            };
+            packed.push_point(0.5, intensity[0], position, axis, *led);
+        }
+        packed.prepare(&lobe, x);
+        for (j, (light, _)) in lights.iter().enumerate() {
+            let (g, lane) = (&packed.groups[j / W], j % W);
+            let (b, _) = light.beta(x);
+            let a = norm(b);
+            if a == 0.0 {
+                assert_eq!([g.l[0][lane], g.l[1][lane], g.l[2][lane]], [0.0; 3]);
+                continue;
+            }
+            let o = Observation::new(0.5, light.intensity()[0] * a, scale(b, 1.0 / a), v, &lobe);
+            close(o.scale, g.scale[lane]);
+            for c in 0..3 {
+                close(o.light[c], g.l[c][lane]);
+                close(o.half[c], g.h[c][lane]);
+            }
+            close(o.fresnel, g.fresnel[lane]);
         }
     }
 

@@ -34,6 +34,7 @@ use rayon::prelude::*;
 use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
+use crate::light::Light;
 use crate::reflectance::{fit_packed, fit_packed_at, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
@@ -79,6 +80,25 @@ fn observations(
         if !usable(o, settings) {
             continue;
         }
+        let value = o.iter().map(|&v| v as f64).sum();
+        if let Model::Near(lights) = model {
+            // The direction and scale of a point light are computed in lanes by `prepare`.
+            if let Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } = lights[k]
+            {
+                if mu == 0.0 || mu == 1.0 {
+                    let p: f64 = (0..channels)
+                        .map(|ch| channel_intensity(intensity, channels, ch))
+                        .sum();
+                    out.push_point(value, p, position, axis, mu == 1.0);
+                    continue;
+                }
+            }
+        }
         let (b, _, phi) = model.row(k, c);
         let a = norm(b);
         if !(a > 0.0 && a.is_finite()) {
@@ -87,9 +107,9 @@ fn observations(
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(o.iter().map(|&v| v as f64).sum(), p * a, scale(b, 1.0 / a));
+        out.push(value, p * a, scale(b, 1.0 / a));
     }
-    out.prepare(lobe);
+    out.prepare(lobe, c);
 }
 
 /// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
