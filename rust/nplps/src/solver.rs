@@ -366,6 +366,12 @@ impl<'p> Solver<'p> {
         })
     }
 
+    /// Under the glossy model: the next run starts each facet's glossy fit from its glossy normal
+    /// of the last local step (as a run does after its first), not from its Lambertian fit.
+    pub(crate) fn keep_glossy_normals(&mut self) {
+        self.warm_carried = self.options.reflectance.is_glossy();
+    }
+
     /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
     /// the glossy normal of the coarser level's pixel under it.
     fn carry_glossy(&mut self, lobe: Option<Lobe>, warm: &WarmMap) {
