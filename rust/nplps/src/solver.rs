@@ -137,8 +137,9 @@ impl WarmMap {
 /// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
 /// has none, again at the first of these iterations of each run (at its first iteration where
 /// the lobe came from a coarser level), and at the second too where the solver started without
-/// a lobe (then held, so that the run converges under one model).
-pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
+/// a lobe (then held, so that the run converges under one model). The second comes early enough
+/// for a run that converges in 6-8 iterations (with three warm glossy steps a facet, most do).
+pub(crate) const LOBE_AT: [usize; 2] = [3, 5];
 
 /// With [`Options::shadows`], the cast shadows of the current mesh are computed at these
 /// iterations of every run, so at most `SHADOWS_AT.len()` marches per run: the first on its
