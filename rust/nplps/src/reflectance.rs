@@ -439,8 +439,8 @@ impl Packed {
         let (g, i) = self.next_lane();
         g.value[i] = value;
         g.scale[i] = scale;
-        for j in 0..3 {
-            g.l[j][i] = light[j];
+        for (j, &x) in light.iter().enumerate() {
+            g.l[j][i] = x;
         }
     }
 
@@ -515,13 +515,13 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64) {
                 }
             });
             let lit: [bool; W] = std::array::from_fn(|i| aniso[i] > 0.0);
-            for j in 0..3 {
-                g.l[j] = lanes(|i| match (g.point[i], lit[i]) {
+            g.l = std::array::from_fn(|j| {
+                lanes(|i| match (g.point[i], lit[i]) {
                     (true, true) => l[j][i],
                     (true, false) => 0.0,
                     (false, _) => g.l[j][i],
-                });
-            }
+                })
+            });
             g.scale = lanes(|i| match g.point[i] {
                 true => g.scale[i] * aniso[i] * id[i] * id[i],
                 false => g.scale[i],
@@ -649,10 +649,10 @@ impl Kernel {
             let sh = lanes(|i| specular[i] * (-4.0 * ch[i] * (a2 - 1.0) * iq[i]));
             let sl = lanes(|i| specular[i] * (a2 * sw[i]));
             let sv = lanes(|i| specular[i] * w.dgv);
-            for j in 0..3 {
-                out.d_diffuse[j] = lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]);
-                out.d_specular[j] = lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j]);
-            }
+            out.d_diffuse = std::array::from_fn(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
+            out.d_specular = std::array::from_fn(|j| {
+                lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j])
+            });
         }
         out
     }
@@ -682,6 +682,8 @@ impl Accumulator {
     }
 
     /// Adds group `g` with its factors `f` at `n`, `rho`, `s`.
+    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn add(&mut self, g: &Group, f: &Factors, n: [f64; 3], rho: f64, s: f64) {
         let m = lanes(|i| if f.lit[i] { 1.0 } else { 0.0 });
