@@ -170,6 +170,10 @@ impl Evaluator<'_, '_> {
         // Every candidate starts from the rig's lights: the residual curve must not depend on
         // the order of the evaluations.
         self.solver.lights.restart(self.refine);
+        // Its glossy fits go on from the normals of the last candidate, as its surface does.
+        if self.candidate > 0 {
+            self.solver.keep_glossy_normals();
+        }
         self.candidate += 1;
         self.candidates = self.candidates.max(self.candidate);
         let info = SearchProgress {

@@ -147,6 +147,32 @@ macro_rules! with_fields {
     };
 }
 
+/// Defines `$name`, which runs the (`#[inline(always)]`) kernel `$kernel` compiled for AVX2 when
+/// the processor has it and as compiled for the baseline otherwise. The AVX2 copy enables no
+/// FMA: its results are those of the baseline code, with wider lanes.
+macro_rules! simd_dispatch {
+    (
+        $(#[$meta:meta])*
+        fn $name:ident => $kernel:ident($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty;
+    ) => {
+        $(#[$meta])*
+        fn $name($($arg: $ty),*) -> $ret {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                unsafe fn avx2($($arg: $ty),*) -> $ret {
+                    $kernel($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the processor supports AVX2, checked just above.
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            $kernel($($arg),*)
+        }
+    };
+}
+
 mod anderson;
 mod baseline;
 pub mod calibrate;

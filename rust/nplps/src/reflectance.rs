@@ -42,6 +42,17 @@
 //! `d m / d b = Phi a (D n + P grad D + (s / |b|) P grad S)` with `P = I - n n^T`, and
 //! `d m / d s = Phi a S` (analytic derivatives). A step is kept only if it lowers the squared
 //! residual; `s` is kept non-negative.
+//!
+//! ## Cost
+//!
+//! [`fit_packed`] holds a facet's observations as a structure of arrays in groups of 4 lights
+//! ([`Packed`]) and computes the factors, their gradients and the sums of the normal equations a
+//! group at a time, one SIMD lane per light (compiled for AVX2 where the processor has it):
+//! per light two square roots and one division (the reciprocals of the Fresnel, GGX and Smith
+//! denominators from one division of their product). [`Packed::prepare`] computes the point
+//! lights' directions and scales, the half vectors and the Fresnel factors the same way. The
+//! trial after the last step is evaluated without derivatives. The sums are accumulated per
+//! lane, so the results differ from a light-by-light sum in the last bits.
 
 use nalgebra::{Matrix4, Vector4};
 
@@ -343,107 +354,506 @@ pub struct GlossyFit {
     pub used: u32,
 }
 
-/// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
-type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
+/// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]).
+const W: usize = 4;
 
-/// Sums of the normal equations at `b = rho n`, `s` (see [`normal_equations`]).
-struct Sums {
-    /// The upper triangle of `J^T J`, row by row.
-    jtj: [f64; 10],
-    jtr: [f64; 4],
-    sse: f64,
-    used: u32,
+/// One value per lane of a group.
+type Lanes = [f64; W];
+
+/// `W` lanes computed by `f`: straight-line code over the lanes, which the compiler turns into
+/// vector instructions.
+#[inline(always)]
+fn lanes(f: impl FnMut(usize) -> f64) -> Lanes {
+    std::array::from_fn(f)
 }
 
-impl Sums {
-    fn new() -> Sums {
-        Sums {
-            jtj: [0.0; 10],
-            jtr: [0.0; 4],
-            sse: 0.0,
-            used: 0,
+/// `W` observations of a facet, one per lane (structure of arrays); a lane without an
+/// observation has `l = 0` and never carries light.
+#[derive(Debug, Clone, Copy, Default)]
+struct Group {
+    value: Lanes,
+    scale: Lanes,
+    /// `l`, by coordinate.
+    l: [Lanes; 3],
+    /// `h = normalize(l + v)`, by coordinate.
+    h: [Lanes; 3],
+    /// `F(v.h) / F(1)`.
+    fresnel: Lanes,
+    /// Whether the lane's light is a point light whose direction and scale [`Packed::prepare`]
+    /// computes (from `position`, `axis`, `led` and the intensity in `scale`).
+    point: [bool; W],
+    position: [Lanes; 3],
+    axis: [Lanes; 3],
+    led: [bool; W],
+}
+
+/// The factors of a [`Group`] at a normal (see [`Shade`]): lanes that carry no light have
+/// `lit` false (their other values are finite and unused).
+#[derive(Debug, Clone, Copy, Default)]
+struct Factors {
+    lit: [bool; W],
+    diffuse: Lanes,
+    specular: Lanes,
+    d_diffuse: [Lanes; 3],
+    d_specular: [Lanes; 3],
+}
+
+/// The observations of one facet packed for [`fit_packed`]: groups of `W` lights, one SIMD lane
+/// each, with the terms that do not depend on the normal (as [`Observation`]) computed for all
+/// lights at once by [`Packed::prepare`]. Reusable from facet to facet ([`Packed::clear`]).
+#[derive(Debug, Clone, Default)]
+pub struct Packed {
+    view: [f64; 3],
+    len: usize,
+    groups: Vec<Group>,
+    /// Scratch: the factors at the starting normal of a fit.
+    factors: Vec<Factors>,
+}
+
+impl Packed {
+    /// No observations.
+    pub fn new() -> Packed {
+        Packed::default()
+    }
+
+    /// Starts over for a facet seen along the unit vector `view` (towards the camera).
+    pub fn clear(&mut self, view: [f64; 3]) {
+        self.view = view;
+        self.len = 0;
+        self.groups.clear();
+    }
+
+    /// How many observations it holds.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether it holds no observation.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The lane of the next observation.
+    fn next_lane(&mut self) -> (&mut Group, usize) {
+        let lane = self.len % W;
+        if lane == 0 {
+            self.groups.push(Group::default());
+        }
+        self.len += 1;
+        let g = self.groups.last_mut().expect("a group was pushed");
+        (g, lane)
+    }
+
+    /// Adds the observation of image value `value` under a light of scale `Phi a` from the unit
+    /// direction `light` ([`Packed::prepare`] then computes its half vector and Fresnel factor).
+    pub fn push(&mut self, value: f64, scale: f64, light: [f64; 3]) {
+        let (g, i) = self.next_lane();
+        g.value[i] = value;
+        g.scale[i] = scale;
+        for (j, &x) in light.iter().enumerate() {
+            g.l[j][i] = x;
         }
     }
 
-    /// Adds observation `o` with its factors `sh` at `n`, `rho`, `s`.
-    #[inline]
-    fn add(&mut self, o: &Observation, sh: &Shade, n: [f64; 3], rho: f64, s: f64) {
-        let r = o.value - o.scale * (rho * sh.diffuse + s * sh.specular);
+    /// Adds the observation of image value `value` under an isotropic point light (`led`
+    /// false) or an LED with `mu = 1` at `position` with axis `axis` and intensity `phi`:
+    /// [`Packed::prepare`] computes its direction and scale `Phi a` at the facet (see
+    /// [`crate::Light`]). An LED that does not light the facet never carries light.
+    pub fn push_point(
+        &mut self,
+        value: f64,
+        phi: f64,
+        position: [f64; 3],
+        axis: [f64; 3],
+        led: bool,
+    ) {
+        let (g, i) = self.next_lane();
+        g.value[i] = value;
+        g.scale[i] = phi;
+        g.point[i] = true;
+        g.led[i] = led;
+        for j in 0..3 {
+            g.position[j][i] = position[j];
+            g.axis[j][i] = axis[j];
+        }
+    }
+
+    /// Adds `o` as it is (with its half vector and Fresnel factor; made for this view vector).
+    pub fn push_observation(&mut self, o: &Observation) {
+        let (g, i) = self.next_lane();
+        g.value[i] = o.value;
+        g.scale[i] = o.scale;
+        for j in 0..3 {
+            g.l[j][i] = o.light[j];
+            g.h[j][i] = o.half[j];
+        }
+        g.fresnel[i] = o.fresnel;
+    }
+
+    /// Computes, for the facet with centre `x`, the directions and scales of the observations
+    /// [`Packed::push_point`]ed, and the half vectors and `F(v.h) / F(1)` of all the
+    /// observations pushed, under `lobe` (as [`Observation::new`], for all lights at once).
+    pub fn prepare(&mut self, lobe: &Lobe, x: [f64; 3]) {
+        prepare_dispatch(&mut self.groups, self.view, x, lobe.eta);
+    }
+}
+
+simd_dispatch! {
+    /// [`prepare_groups`] with AVX2 when the processor has it.
+    fn prepare_dispatch => prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64) -> ();
+}
+
+/// The point lights' directions and scales at `x`, the half vectors and the Fresnel factors of
+/// `groups` (see [`Packed::prepare`]).
+#[inline(always)]
+fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64) {
+    let f1 = Lobe::new(0.0, eta).normal_reflectance();
+    let inv_f1 = 1.0 / f1;
+    for g in groups {
+        if g.point.iter().any(|&p| p) {
+            // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)
+            // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
+            let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.position[j][i] - x[j]));
+            let id =
+                lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+            let l: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| a[j][i] * id[i]));
+            let aniso = lanes(|i| {
+                let t = -(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]);
+                if g.led[i] {
+                    t.max(0.0)
+                } else {
+                    1.0
+                }
+            });
+            let lit: [bool; W] = std::array::from_fn(|i| aniso[i] > 0.0);
+            g.l = std::array::from_fn(|j| {
+                lanes(|i| match (g.point[i], lit[i]) {
+                    (true, true) => l[j][i],
+                    (true, false) => 0.0,
+                    (false, _) => g.l[j][i],
+                })
+            });
+            g.scale = lanes(|i| match g.point[i] {
+                true => g.scale[i] * aniso[i] * id[i] * id[i],
+                false => g.scale[i],
+            });
+        }
+        let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.l[j][i] + v[j]));
+        let inv =
+            lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+        g.h = std::array::from_fn(|j| lanes(|i| a[j][i] * inv[i]));
+        g.fresnel = if f1 > 1e-12 {
+            let c = lanes(|i| v[0] * g.h[0][i] + v[1] * g.h[1][i] + v[2] * g.h[2][i]);
+            let d = fresnel_denominators(eta, &c);
+            let q = lanes(|i| 1.0 / (d.1[i] * d.2[i] * d.0[i]));
+            let (f, _) = fresnel_lanes::<false>(eta, &c, d, &q);
+            lanes(|i| f[i] * inv_f1)
+        } else {
+            [1.0; W]
+        };
+    }
+}
+
+/// The refracted cosines `t` and the denominators `c + eta t`, `eta c + t` of [`Lobe::fresnel`]
+/// in lanes, for `eta > 1` and `0 <= c <= 1` (`t` is then positive).
+#[inline(always)]
+fn fresnel_denominators(eta: f64, c: &Lanes) -> (Lanes, Lanes, Lanes) {
+    let ie2 = 1.0 / (eta * eta);
+    let t = lanes(|i| {
+        (1.0 - (1.0 - c[i] * c[i]) * ie2)
+            .max(f64::MIN_POSITIVE)
+            .sqrt()
+    });
+    let ds = lanes(|i| c[i] + eta * t[i]);
+    let dp = lanes(|i| eta * c[i] + t[i]);
+    (t, ds, dp)
+}
+
+/// [`Lobe::fresnel`] in lanes from [`fresnel_denominators`] and `q = 1 / (ds dp t)`; the
+/// derivative only `WITH_DERIVATIVE` (else 0).
+#[inline(always)]
+fn fresnel_lanes<const WITH_DERIVATIVE: bool>(
+    eta: f64,
+    c: &Lanes,
+    (t, ds, dp): (Lanes, Lanes, Lanes),
+    q: &Lanes,
+) -> (Lanes, Lanes) {
+    let ids = lanes(|i| dp[i] * t[i] * q[i]);
+    let idp = lanes(|i| ds[i] * t[i] * q[i]);
+    let rs = lanes(|i| (c[i] - eta * t[i]) * ids[i]);
+    let rp = lanes(|i| (eta * c[i] - t[i]) * idp[i]);
+    let f = lanes(|i| 0.5 * (rs[i] * rs[i] + rp[i] * rp[i]));
+    if !WITH_DERIVATIVE {
+        return (f, [0.0; W]);
+    }
+    // 2 (eta^2 - 1) / (eta t), 1 / t = ds dp q.
+    let wf = 2.0 * (eta - 1.0 / eta);
+    let df = lanes(|i| {
+        wf * (ds[i] * dp[i] * q[i]) * (rs[i] * ids[i] * ids[i] + rp[i] * idp[i] * idp[i])
+    });
+    (f, df)
+}
+
+impl Kernel {
+    /// [`Kernel::shade`] of the observations of group `g` at the normal `n` with its shared
+    /// terms `w` (`v` the view vector), in lanes: the factors, their gradients only `GRADS`.
+    #[inline(always)]
+    fn shade_group<const GRADS: bool>(
+        &self,
+        g: &Group,
+        n: [f64; 3],
+        w: &View,
+        v: [f64; 3],
+    ) -> Factors {
+        let cl = lanes(|i| n[0] * g.l[0][i] + n[1] * g.l[1][i] + n[2] * g.l[2][i]);
+        let lit: [bool; W] = std::array::from_fn(|i| cl[i] > 0.0);
+        // Unlit lanes are evaluated at a harmless cosine and masked; the least cosine keeps the
+        // product of the denominators below from underflowing (its factors are at least
+        // `c alpha^2`, `alpha^2` and about `eta - 1`).
+        let c = lanes(|i| if lit[i] { cl[i].max(1e-100) } else { 1.0 });
+        let ch = lanes(|i| n[0] * g.h[0][i] + n[1] * g.h[1][i] + n[2] * g.h[2][i]);
+        let a2 = self.a2;
+        // The denominators of the Fresnel factor, the GGX distribution and Smith's masking,
+        // inverted by one division.
+        let fd = (!self.lambert).then(|| fresnel_denominators(self.eta, &c));
+        let qf = match fd {
+            Some((t, ds, dp)) => lanes(|i| ds[i] * dp[i] * t[i]),
+            None => [1.0; W],
+        };
+        let qg = lanes(|i| ch[i] * ch[i] * (a2 - 1.0) + 1.0);
+        let r = lanes(|i| (a2 + (1.0 - a2) * c[i] * c[i]).sqrt());
+        let qs = lanes(|i| c[i] * r[i] * (c[i] + r[i]));
+        let ip = lanes(|i| 1.0 / (qf[i] * qg[i] * qs[i]));
+        let iq = lanes(|i| ip[i] * qf[i] * qs[i]);
+        let sw = lanes(|i| ip[i] * qf[i] * qg[i]);
+        let (tl, dtl) = match fd {
+            None => ([1.0; W], [0.0; W]),
+            Some(fd) => {
+                let q = lanes(|i| ip[i] * qg[i] * qs[i]);
+                let (f, df) = fresnel_lanes::<GRADS>(self.eta, &c, fd, &q);
+                (
+                    lanes(|i| (1.0 - f[i]) * self.inv_t1),
+                    lanes(|i| -df[i] * self.inv_t1),
+                )
+            }
+        };
+        let diffuse = lanes(|i| c[i] * tl[i] * w.tv);
+        let specular = lanes(|i| {
+            let d = a2 * std::f64::consts::FRAC_1_PI * iq[i] * iq[i];
+            let gl = 2.0 * c[i] * c[i] * r[i] * sw[i];
+            let s = g.fresnel[i] * d * gl * w.gv;
+            if ch[i] > 0.0 {
+                s
+            } else {
+                0.0
+            }
+        });
+        let mut out = Factors {
+            lit,
+            diffuse,
+            specular,
+            ..Factors::default()
+        };
+        if GRADS {
+            let wl = lanes(|i| (tl[i] + c[i] * dtl[i]) * w.tv);
+            let wv = lanes(|i| c[i] * tl[i] * w.dtv);
+            let sh = lanes(|i| specular[i] * (-4.0 * ch[i] * (a2 - 1.0) * iq[i]));
+            let sl = lanes(|i| specular[i] * (a2 * sw[i]));
+            let sv = lanes(|i| specular[i] * w.dgv);
+            out.d_diffuse = std::array::from_fn(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
+            out.d_specular = std::array::from_fn(|j| {
+                lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j])
+            });
+        }
+        out
+    }
+}
+
+/// The sums of the normal equations in lanes (see [`Accumulator::add`]).
+struct Accumulator {
+    /// The upper triangle of `J^T J`, row by row.
+    jtj: [Lanes; 10],
+    jtr: [Lanes; 4],
+    sse: Lanes,
+    used: [u32; W],
+}
+
+/// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
+type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
+
+impl Accumulator {
+    #[inline(always)]
+    fn new() -> Accumulator {
+        Accumulator {
+            jtj: [[0.0; W]; 10],
+            jtr: [[0.0; W]; 4],
+            sse: [0.0; W],
+            used: [0; W],
+        }
+    }
+
+    /// Adds group `g` with its factors `f` at `n`, `rho`, `s`.
+    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn add(&mut self, g: &Group, f: &Factors, n: [f64; 3], rho: f64, s: f64) {
+        let m = lanes(|i| if f.lit[i] { 1.0 } else { 0.0 });
+        let r =
+            lanes(|i| m[i] * (g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i])));
         // d m / d b = scale (D n + P grad D + (s / rho) P grad S), P = I - n n^T.
         let t = s / rho;
-        let g: [f64; 3] = std::array::from_fn(|j| sh.d_diffuse[j] + t * sh.d_specular[j]);
-        let gn = dot(g, n);
-        let j: [f64; 4] = [
-            o.scale * (sh.diffuse * n[0] + g[0] - gn * n[0]),
-            o.scale * (sh.diffuse * n[1] + g[1] - gn * n[1]),
-            o.scale * (sh.diffuse * n[2] + g[2] - gn * n[2]),
-            o.scale * sh.specular,
+        let gr: [Lanes; 3] =
+            std::array::from_fn(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
+        let gn = lanes(|i| gr[0][i] * n[0] + gr[1][i] * n[1] + gr[2][i] * n[2]);
+        let ms = lanes(|i| m[i] * g.scale[i]);
+        let j: [Lanes; 4] = [
+            lanes(|i| ms[i] * (f.diffuse[i] * n[0] + gr[0][i] - gn[i] * n[0])),
+            lanes(|i| ms[i] * (f.diffuse[i] * n[1] + gr[1][i] - gn[i] * n[1])),
+            lanes(|i| ms[i] * (f.diffuse[i] * n[2] + gr[2][i] - gn[i] * n[2])),
+            lanes(|i| ms[i] * f.specular[i]),
         ];
         let mut e = 0;
         for a in 0..4 {
             for b in a..4 {
-                self.jtj[e] += j[a] * j[b];
+                for i in 0..W {
+                    self.jtj[e][i] += j[a][i] * j[b][i];
+                }
                 e += 1;
             }
-            self.jtr[a] += j[a] * r;
+            for i in 0..W {
+                self.jtr[a][i] += j[a][i] * r[i];
+            }
         }
-        self.sse += r * r;
-        self.used += 1;
+        for i in 0..W {
+            self.sse[i] += r[i] * r[i];
+            self.used[i] += u32::from(f.lit[i]);
+        }
     }
 
+    /// The lanes summed.
     fn finish(self) -> Equations {
+        let sum = |x: &Lanes| x.iter().sum::<f64>();
         let mut m = Matrix4::zeros();
         let mut e = 0;
         for a in 0..4 {
             for b in a..4 {
-                m[(a, b)] = self.jtj[e];
-                m[(b, a)] = self.jtj[e];
+                m[(a, b)] = sum(&self.jtj[e]);
+                m[(b, a)] = m[(a, b)];
                 e += 1;
             }
         }
-        (self.sse, m, Vector4::from(self.jtr), self.used)
+        (
+            sum(&self.sse),
+            m,
+            Vector4::from(self.jtr.map(|x| sum(&x))),
+            self.used.iter().sum(),
+        )
     }
+}
+
+simd_dispatch! {
+    /// [`factors_of`] with AVX2 when the processor has it.
+    fn factors_dispatch => factors_of(
+        k: &Kernel, groups: &[Group], n: [f64; 3], w: &View, v: [f64; 3], out: &mut [Factors],
+    ) -> ();
+}
+
+/// The factors of `groups` at the normal `n` (with its shared terms `w`) into `out`.
+#[inline(always)]
+fn factors_of(
+    k: &Kernel,
+    groups: &[Group],
+    n: [f64; 3],
+    w: &View,
+    v: [f64; 3],
+    out: &mut [Factors],
+) {
+    for (g, f) in groups.iter().zip(out) {
+        *f = k.shade_group::<true>(g, n, w, v);
+    }
+}
+
+simd_dispatch! {
+    /// [`accumulate`] with AVX2 when the processor has it.
+    fn accumulate_dispatch => accumulate(
+        groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64,
+    ) -> Equations;
+}
+
+/// The normal equations at `(rho n, s)` from the factors at `n`.
+#[inline(always)]
+fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64) -> Equations {
+    let mut acc = Accumulator::new();
+    for (g, f) in groups.iter().zip(factors) {
+        acc.add(g, f, n, rho, s);
+    }
+    acc.finish()
+}
+
+simd_dispatch! {
+    /// [`equations_at`] with AVX2 when the processor has it.
+    fn equations_dispatch => equations_at(
+        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
+    ) -> Equations;
 }
 
 /// The model and its derivatives at `(b, s)`: the squared residual, `J^T J`, `J^T r` and the
 /// number of observations used.
-fn normal_equations(
-    k: &Kernel,
-    obs: &[Observation],
-    v: [f64; 3],
-    b: [f64; 3],
-    s: f64,
-) -> Equations {
+#[inline(always)]
+fn equations_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -> Equations {
     let rho = norm(b);
     let n = scale(b, 1.0 / rho);
-    let mut sums = Sums::new();
+    let mut acc = Accumulator::new();
     if let Some(w) = k.view(n, v) {
-        for o in obs {
-            if let Some(sh) = k.shade(n, &w, o) {
-                sums.add(o, &sh, n, rho, s);
+        for g in groups {
+            let f = k.shade_group::<true>(g, n, &w, v);
+            acc.add(g, &f, n, rho, s);
+        }
+    }
+    acc.finish()
+}
+
+simd_dispatch! {
+    /// [`residual_at`] with AVX2 when the processor has it.
+    fn residual_dispatch => residual_at(
+        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
+    ) -> (f64, u32);
+}
+
+/// The squared residual at `(b, s)` and the number of observations used (no derivatives).
+#[inline(always)]
+fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -> (f64, u32) {
+    let rho = norm(b);
+    let n = scale(b, 1.0 / rho);
+    let (mut sse, mut used) = ([0.0; W], [0u32; W]);
+    if let Some(w) = k.view(n, v) {
+        for g in groups {
+            let f = k.shade_group::<false>(g, n, &w, v);
+            for i in 0..W {
+                let r = g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i]);
+                sse[i] += if f.lit[i] { r * r } else { 0.0 };
+                used[i] += u32::from(f.lit[i]);
             }
         }
     }
-    sums.finish()
+    (sse.iter().sum(), used.iter().sum())
 }
 
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
-/// light; `shades` are the observations' factors at `n`.
-fn albedos_at(
-    obs: &[Observation],
-    shades: &[Option<Shade>],
-    n: [f64; 3],
-) -> Option<([f64; 3], f64)> {
+/// light; `factors` are those of `groups` at `n`.
+fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
     let (mut dd, mut ds, mut ss, mut di, mut si) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (o, sh) in obs.iter().zip(shades) {
-        if let Some(sh) = sh {
-            let (d, s) = (o.scale * sh.diffuse, o.scale * sh.specular);
-            dd += d * d;
-            ds += d * s;
-            ss += s * s;
-            di += d * o.value;
-            si += s * o.value;
+    for (g, f) in groups.iter().zip(factors) {
+        for i in 0..W {
+            if f.lit[i] {
+                let (d, s) = (g.scale[i] * f.diffuse[i], g.scale[i] * f.specular[i]);
+                dd += d * d;
+                ds += d * s;
+                ss += s * s;
+                di += d * g.value[i];
+                si += s * g.value[i];
+            }
         }
     }
     if dd <= 0.0 {
@@ -462,7 +872,8 @@ fn albedos_at(
 /// Lambertian fit) with the least-squares albedos there, by at most `steps` damped
 /// Gauss-Newton steps (see the module documentation). `v` is the unit vector from the facet to
 /// the camera, and `obs` were made for it and `lobe` ([`Observation::new`]). None if the start
-/// is not a finite, non-zero vector or fewer than 4 observations carry light.
+/// is not a finite, non-zero vector or fewer than 4 observations carry light. (The
+/// observations packed, then [`fit_packed`].)
 pub fn fit(
     lobe: &Lobe,
     obs: &[Observation],
@@ -470,32 +881,74 @@ pub fn fit(
     start: [f64; 3],
     steps: usize,
 ) -> Option<GlossyFit> {
+    let mut packed = Packed::new();
+    packed.clear(v);
+    for o in obs {
+        packed.push_observation(o);
+    }
+    fit_packed(lobe, &mut packed, start, steps)
+}
+
+/// [`fit`] on packed observations (prepared for `lobe`, see [`Packed::prepare`]): the same
+/// steps, each light's factors and the sums of the normal equations computed `W` lights at a
+/// time. The residual after the last step is evaluated without the derivatives (no step
+/// follows it).
+pub fn fit_packed(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    start: [f64; 3],
+    steps: usize,
+) -> Option<GlossyFit> {
     if !start.iter().all(|x| x.is_finite()) || norm(start) == 0.0 {
         return None;
     }
+    fit_from(lobe, obs, normalize(start), Some(start), steps)
+}
+
+/// [`fit_packed`] from the unit normal `normal` with the least-squares albedos there alone: None
+/// where they cannot be found (no light, or a diffuse albedo that is not positive).
+pub fn fit_packed_at(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    normal: [f64; 3],
+    steps: usize,
+) -> Option<GlossyFit> {
+    if !normal.iter().all(|x| x.is_finite()) || norm(normal) == 0.0 {
+        return None;
+    }
+    fit_from(lobe, obs, normalize(normal), None, steps)
+}
+
+/// The fit from the unit normal `n0` with its least-squares albedos, or, where they cannot be
+/// found, from `fallback` (None: no fit).
+fn fit_from(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    n0: [f64; 3],
+    fallback: Option<[f64; 3]>,
+    steps: usize,
+) -> Option<GlossyFit> {
     let k = Kernel::new(lobe);
+    let v = obs.view;
     // The factors at the starting normal serve both its albedos and its normal equations.
-    let n0 = normalize(start);
-    let view = k.view(n0, v);
-    let shades: Vec<Option<Shade>> = obs
-        .iter()
-        .map(|o| view.as_ref().and_then(|w| k.shade(n0, w, o)))
-        .collect();
-    let (mut b, mut s) = albedos_at(obs, &shades, n0).unwrap_or((start, 0.0));
-    let (mut sse, mut jtj, mut jtr, mut used) = {
-        let mut sums = Sums::new();
-        for (o, sh) in obs.iter().zip(&shades) {
-            if let Some(sh) = sh {
-                sums.add(o, sh, n0, norm(b), s);
-            }
-        }
-        sums.finish()
+    obs.factors.clear();
+    obs.factors.resize(obs.groups.len(), Factors::default());
+    if let Some(w) = k.view(n0, v) {
+        factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors);
+    }
+    let groups = &obs.groups[..];
+    let (mut b, mut s) = match albedos_at(groups, &obs.factors, n0) {
+        Some(albedos) => albedos,
+        None => (fallback?, 0.0),
     };
+    let (mut sse, mut jtj, mut jtr, mut used) =
+        accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;
-    for _ in 0..steps {
+    for step_index in 0..steps {
         if used < 4 {
             return None;
         }
+        let last = step_index + 1 == steps;
         let mut accepted = false;
         for _ in 0..8 {
             let mut a = jtj;
@@ -516,7 +969,17 @@ pub fn fit(
                 lambda *= 10.0;
                 continue;
             }
-            let next = normal_equations(&k, obs, v, nb, ns);
+            if last {
+                // No step follows: the residual alone decides.
+                let (next, n_used) = residual_dispatch(&k, groups, v, nb, ns);
+                if n_used >= 4 && next < sse {
+                    (b, s, sse, used) = (nb, ns, next, n_used);
+                    break;
+                }
+                lambda *= 10.0;
+                continue;
+            }
+            let next = equations_dispatch(&k, groups, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
@@ -668,6 +1131,121 @@ mod tests {
                 gradient_matches(|m| lobe.shade(m, l, v).unwrap().diffuse, sh.d_diffuse, n);
                 gradient_matches(|m| lobe.shade(m, l, v).unwrap().specular, sh.d_specular, n);
             }
+        }
+    }
+
+    fn close(a: f64, b: f64) {
+        assert!((a - b).abs() <= 1e-12 * a.abs().max(1.0), "{a} vs {b}");
+    }
+
+    /// The packed factors of [`Kernel::shade_group`] are those of [`Lobe::shade`] (a partial
+    /// last group, unlit lights and padding lanes never lit).
+    #[test]
+    fn packed_factors_match_the_scalar_ones() {
+        let v = normalize([0.05, 0.02, -1.0]);
+        let ls: Vec<[f64; 3]> = (0..11)
+            .map(|i| {
+                let t = i as f64;
+                normalize([1.2 * (t * 0.21).cos(), 1.2 * (t * 0.53).sin(), -1.0])
+            })
+            .collect();
+        for &(alpha, eta) in &[(0.05, 1.5), (0.3, 1.3), (0.6, 1.0), (1.0, 2.5)] {
+            let lobe = Lobe::new(alpha, eta);
+            let k = Kernel::new(&lobe);
+            let mut packed = Packed::new();
+            packed.clear(v);
+            for &l in &ls {
+                packed.push(1.0, 1.0, l);
+            }
+            packed.prepare(&lobe, [0.0; 3]);
+            let mut lit = 0;
+            for i in 0..30 {
+                let t = i as f64;
+                let n = normalize([0.9 * (t * 0.37).sin(), 0.9 * (t * 0.73).cos(), -1.0]);
+                let w = k.view(n, v).unwrap();
+                let mut f = vec![Factors::default(); packed.groups.len()];
+                factors_of(&k, &packed.groups, n, &w, v, &mut f);
+                for (j, &l) in ls.iter().enumerate() {
+                    let g = &f[j / W];
+                    let lane = j % W;
+                    match lobe.shade(n, l, v) {
+                        None => assert!(!g.lit[lane]),
+                        Some(sh) => {
+                            lit += 1;
+                            assert!(g.lit[lane]);
+                            close(sh.diffuse, g.diffuse[lane]);
+                            close(sh.specular, g.specular[lane]);
+                            for c in 0..3 {
+                                close(sh.d_diffuse[c], g.d_diffuse[c][lane]);
+                                close(sh.d_specular[c], g.d_specular[c][lane]);
+                            }
+                        }
+                    }
+                }
+                let last = f.last().unwrap();
+                assert!((ls.len() % W..W).all(|lane| !last.lit[lane]));
+            }
+            assert!(lit > 200 && lit < 30 * ls.len(), "{lit}");
+        }
+    }
+
+    /// The point lights' directions, scales, half vectors and Fresnel factors of
+    /// [`Packed::prepare`] are those of [`Observation::new`] from [`crate::Light::beta`].
+    #[test]
+    fn packed_point_lights_match_the_observations() {
+        use crate::Light;
+        let lobe = Lobe::new(0.3, 1.5);
+        let x = [3.0, -2.0, 150.0];
+        let v = normalize(scale(x, -1.0));
+        let lights: Vec<(Light, bool)> = (0..7)
+            .map(|i| {
+                let t = i as f64;
+                let position = [60.0 * t.cos(), 60.0 * t.sin(), 10.0 * t];
+                let led = i % 2 == 1;
+                // The last LED points away from the facet.
+                let axis = match i {
+                    5 => normalize([0.0, 0.0, -1.0]),
+                    _ => normalize([0.1 * t, -0.05, 1.0]),
+                };
+                let light = Light::Point {
+                    position,
+                    intensity: [1.0 + t, 2.0, 3.0],
+                    axis,
+                    mu: if led { 1.0 } else { 0.0 },
+                };
+                (light, led)
+            })
+            .collect();
+        let mut packed = Packed::new();
+        packed.clear(v);
+        for (light, led) in &lights {
+            let Light::Point {
+                position,
+                intensity,
+                axis,
+                ..
+            } = *light
+            else {
+                unreachable!()
+            };
+            packed.push_point(0.5, intensity[0], position, axis, *led);
+        }
+        packed.prepare(&lobe, x);
+        for (j, (light, _)) in lights.iter().enumerate() {
+            let (g, lane) = (&packed.groups[j / W], j % W);
+            let (b, _) = light.beta(x);
+            let a = norm(b);
+            if a == 0.0 {
+                assert_eq!([g.l[0][lane], g.l[1][lane], g.l[2][lane]], [0.0; 3]);
+                continue;
+            }
+            let o = Observation::new(0.5, light.intensity()[0] * a, scale(b, 1.0 / a), v, &lobe);
+            close(o.scale, g.scale[lane]);
+            for c in 0..3 {
+                close(o.light[c], g.l[c][lane]);
+                close(o.half[c], g.h[c][lane]);
+            }
+            close(o.fresnel, g.fresnel[lane]);
         }
     }
 

@@ -137,9 +137,11 @@ impl WarmMap {
 }
 
 /// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
-/// has none, again at the first of these iterations of each run, and at the second too where
-/// the solver started without a lobe (then held, so that the run converges under one model).
-pub(crate) const LOBE_AT: [usize; 2] = [3, 8];
+/// has none, again at the first of these iterations of each run (at its first iteration where
+/// the lobe came from a coarser level), and at the second too where the solver started without
+/// a lobe (then held, so that the run converges under one model). The second comes early enough
+/// for a run that converges in 6-8 iterations (with three warm glossy steps a facet, most do).
+pub(crate) const LOBE_AT: [usize; 2] = [3, 5];
 
 /// An estimated lobe at least this rough is no highlight: the images show none, and the solver
 /// drops the glossy model for the Lambertian one. Such a lobe is nearly as broad as the diffuse
@@ -300,6 +302,9 @@ pub(crate) struct Solver<'p> {
     /// The estimated lobe that made this solver (or a coarser level's) drop the glossy model
     /// for the Lambertian one (see [`MATTE_ROUGHNESS`]).
     pub(crate) matte: Option<Lobe>,
+    /// Whether its lobe came from a coarser level (it then estimates it again at the first
+    /// iteration instead of at `LOBE_AT[0]`).
+    lobe_carried: bool,
     /// The cast shadows of the mesh at the last iteration of [`SHADOWS_AT`] (with
     /// [`Options::shadows`]).
     shadows: Option<ShadowMask>,
@@ -373,10 +378,17 @@ impl<'p> Solver<'p> {
             warm_carried: false,
             lobe_from_scratch: false,
             matte: None,
+            lobe_carried: false,
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
         })
+    }
+
+    /// Under the glossy model: the next run starts each facet's glossy fit from its glossy normal
+    /// of the last local step (as a run does after its first), not from its Lambertian fit.
+    pub(crate) fn keep_glossy_normals(&mut self) {
+        self.warm_carried = self.options.reflectance.is_glossy();
     }
 
     /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
@@ -390,6 +402,7 @@ impl<'p> Solver<'p> {
             self.drop_glossy(matte);
             return;
         }
+        self.lobe_carried |= lobe.is_some();
         self.lobe = lobe.or(self.lobe);
         let fine = &self.problem.grid;
         for (w, &p) in self.warm.iter_mut().zip(&fine.facets) {
@@ -649,7 +662,11 @@ impl<'p> Solver<'p> {
         if !self.estimates_lobe() {
             return Ok(());
         }
-        let again = iteration == LOBE_AT[0] || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
+        // A lobe carried from a coarser level is estimated again at once, on the surface and
+        // the glossy normals carried with it (close to this level's already), so that the
+        // level's iterations fit under the lobe it keeps.
+        let first = if self.lobe_carried { 1 } else { LOBE_AT[0] };
+        let again = iteration == first || (iteration == LOBE_AT[1] && self.lobe_from_scratch);
         let from_scratch = self.lobe.is_none();
         if !(from_scratch || (again && !self.hold_lobe)) {
             return Ok(());

@@ -2,8 +2,10 @@
 //!
 //! Under [`Reflectance::Glossy`](crate::reflectance::Reflectance) each facet is first fitted
 //! with the Lambertian model (robust, if asked for), and that fit starts the glossy one: a few
-//! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit`] with the shared
-//! [`Lobe`]. Light `k` is seen by the facet with centre `c` as the observation
+//! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit_packed`] with the shared
+//! [`Lobe`]. From the second local step on, the facet's glossy normal of the step before starts
+//! the fit instead, and the Lambertian fit is made only where that glossy fit fails. Light `k`
+//! is seen by the facet with centre `c` as the observation
 //!
 //! ```text
 //! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
@@ -34,7 +36,8 @@ use rayon::prelude::*;
 use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
-use crate::reflectance::{fit, Lobe, Observation};
+use crate::light::Light;
+use crate::reflectance::{fit_packed, fit_packed_at, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -42,8 +45,11 @@ use crate::vec3::{dot, norm, scale};
 /// [`CONVERGED`](crate::reflectance::CONVERGED)); later local steps go on from its normal.
 pub const GLOSSY_STEPS: usize = 5;
 
-/// Steps of a facet's glossy fit started from its glossy normal of the previous local step.
-pub const GLOSSY_WARM_STEPS: usize = 2;
+/// Steps of a facet's glossy fit started from its glossy normal of the previous local step
+/// (with 2, the glossy bumps of `benchmarks/glossy_cost.py` took 11 outer iterations instead of
+/// the Lambertian model's 8, with 3 the same 8: the mesh converges only as fast as the facets'
+/// fits do).
+pub const GLOSSY_WARM_STEPS: usize = 3;
 
 /// A facet's second start (see [`refine`]) is tried only where the fit from its first ends
 /// farther than this from it (degrees).
@@ -72,12 +78,31 @@ fn observations(
     values: &[f32],
     channels: usize,
     settings: &FitSettings,
-    out: &mut Vec<Observation>,
+    out: &mut Packed,
 ) {
-    out.clear();
+    out.clear(v);
     for (k, o) in values.chunks_exact(channels).enumerate() {
         if !usable(o, settings) {
             continue;
+        }
+        let value = o.iter().map(|&v| v as f64).sum();
+        if let Model::Near(lights) = model {
+            // The direction and scale of a point light are computed in lanes by `prepare`.
+            if let Light::Point {
+                position,
+                intensity,
+                axis,
+                mu,
+            } = lights[k]
+            {
+                if mu == 0.0 || mu == 1.0 {
+                    let p: f64 = (0..channels)
+                        .map(|ch| channel_intensity(intensity, channels, ch))
+                        .sum();
+                    out.push_point(value, p, position, axis, mu == 1.0);
+                    continue;
+                }
+            }
         }
         let (b, _, phi) = model.row(k, c);
         let a = norm(b);
@@ -87,23 +112,18 @@ fn observations(
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(Observation::new(
-            o.iter().map(|&v| v as f64).sum(),
-            p * a,
-            scale(b, 1.0 / a),
-            v,
-            lobe,
-        ));
+        out.push(value, p * a, scale(b, 1.0 / a));
     }
+    out.prepare(lobe, c);
 }
 
 /// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
 /// of `starts` (e.g. its Lambertian fit's, or its glossy normal of the previous local step) with
-/// the diffuse albedo of its Lambertian fit `start`, with at most `steps` Gauss-Newton steps;
+/// the diffuse albedo of its Lambertian fit `start` (without one: with the least-squares albedos
+/// at the starting normal, see [`fit_packed_at`]), with at most `steps` Gauss-Newton steps;
 /// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
 /// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit), and the
-/// fit of lower residual is kept; `start` itself (with no specular albedo) where the glossy fit
-/// fails. The target is left as in `start`.
+/// fit of lower residual is kept; None where the glossy fit fails. The target is left at zero.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn refine(
     c: [f64; 3],
@@ -113,36 +133,37 @@ pub(super) fn refine(
     channels: usize,
     settings: &FitSettings,
     lobe: &Lobe,
-    start: FacetFit,
+    start: Option<&FacetFit>,
     starts: [Option<[f64; 3]>; 2],
     steps: usize,
-    scratch: &mut Vec<Observation>,
-) -> FacetFit {
+    scratch: &mut Packed,
+) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
-    let albedo = start.albedo[..channels].iter().sum::<f64>();
-    let from = |n: [f64; 3]| fit(lobe, scratch, v, scale(n, albedo), steps);
-    let first = starts[0].and_then(from);
+    let albedo = start.map(|s| s.albedo[..channels].iter().sum::<f64>());
+    let mut from = |n: [f64; 3]| match albedo {
+        Some(a) => fit_packed(lobe, scratch, scale(n, a), steps),
+        None => fit_packed_at(lobe, scratch, n, steps),
+    };
+    let first = starts[0].and_then(&mut from);
     let agree = AGREE_DEGREES.to_radians().cos();
     let second = match (first, starts[1]) {
         (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
-        (_, n) => n.and_then(from),
+        (_, n) => n.and_then(&mut from),
     };
-    let Some(g) = [first, second]
+    let g = [first, second]
         .into_iter()
         .flatten()
-        .min_by(|a, b| a.sse.total_cmp(&b.sse))
-    else {
-        return start;
-    };
+        .min_by(|a, b| a.sse.total_cmp(&b.sse))?;
     if channels == 1 {
-        return FacetFit {
+        return Some(FacetFit {
+            target: [0.0; 4],
             normal: g.normal,
             albedo: [g.diffuse; 3],
             specular: g.specular,
             sse: g.sse,
             used: g.used,
-            ..start
-        };
+            valid: true,
+        });
     }
     // Per channel: the diffuse albedo at the fitted normal, and the residual.
     let mut num = [0.0; 3];
@@ -170,7 +191,7 @@ pub(super) fn refine(
     }
     let albedo: [f64; 3] = std::array::from_fn(|ch| num[ch] / den[ch]);
     if !albedo.iter().all(|x| x.is_finite()) {
-        return start;
+        return None;
     }
     let mut sse = 0.0;
     for &(k, a, sh) in &terms {
@@ -181,14 +202,15 @@ pub(super) fn refine(
             sse += e * e;
         }
     }
-    FacetFit {
+    Some(FacetFit {
+        target: [0.0; 4],
         normal: g.normal,
         albedo,
         specular: g.specular,
         sse,
         used: g.used,
-        ..start
-    }
+        valid: true,
+    })
 }
 
 /// One facet of the lobe search: its centre, view vector, observations and Lambertian fit.
@@ -249,7 +271,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
             .zip(starts)
-            .map_init(Vec::new, |scratch, (s, &starts)| {
+            .map_init(Packed::new, |scratch, (s, &starts)| {
                 let g = refine(
                     s.c,
                     s.v,
@@ -258,11 +280,12 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
                     channels,
                     &lambertian,
                     &lobe,
-                    s.start,
+                    Some(&s.start),
                     starts,
                     steps,
                     scratch,
-                );
+                )
+                .unwrap_or(s.start);
                 (g.sse, [Some(g.normal), None])
             })
             .collect();

@@ -14,32 +14,6 @@ use crate::light::LaneLight;
 use crate::memory::try_vec;
 use crate::vec3::dot;
 
-/// Defines `$name`, which runs the (`#[inline(always)]`) kernel `$kernel` compiled for AVX2 when
-/// the processor has it and as compiled for the baseline otherwise. The AVX2 copy enables no
-/// FMA: its results are those of the baseline code, with wider lanes.
-macro_rules! simd_dispatch {
-    (
-        $(#[$meta:meta])*
-        fn $name:ident => $kernel:ident($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty;
-    ) => {
-        $(#[$meta])*
-        fn $name($($arg: $ty),*) -> $ret {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                unsafe fn avx2($($arg: $ty),*) -> $ret {
-                    $kernel($($arg),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the processor supports AVX2, checked just above.
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            $kernel($($arg),*)
-        }
-    };
-}
-
 impl Observations<'_> {
     /// For grey observations: the values of the facets at `pixels`, light-major and
     /// interleaved (`out[k][lane]`); returns false (and writes nothing) for colour.
@@ -327,6 +301,7 @@ mod tests {
     use crate::grid::Grid;
     use crate::light::Light;
     use crate::local::{FacetStat, FitSettings};
+    use crate::reflectance::Packed;
     use crate::vec3::normalize;
 
     /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic
@@ -392,7 +367,7 @@ mod tests {
         step.run_targets(&u, &mut targets, &mut stats);
         let mut buf = vec![0.0f32; k];
         for f in 0..n {
-            let fit = step.fit(f, &u, &mut buf, &mut Vec::new(), None);
+            let fit = step.fit(f, &u, &mut buf, &mut Packed::new(), None);
             assert_eq!(fit.target, targets[f], "facet {f}");
             assert_eq!(FacetStat::from(&fit), stats[f], "facet {f}");
         }
@@ -405,7 +380,7 @@ mod tests {
         let mut fits = vec![FacetFit::EMPTY; n];
         exact.run(&u, 0, &mut fits);
         for (f, lane_fit) in fits.iter().enumerate() {
-            let fit = exact.fit(f, &u, &mut buf, &mut Vec::new(), None);
+            let fit = exact.fit(f, &u, &mut buf, &mut Packed::new(), None);
             assert_eq!(fit.target, lane_fit.target, "facet {f}");
             assert_eq!(fit.normal, lane_fit.normal, "facet {f}");
             assert_eq!(fit.albedo[0], lane_fit.albedo[0], "facet {f}");

@@ -28,7 +28,7 @@ use crate::grid::Grid;
 pub(crate) use crate::light::channel_intensity;
 use crate::light::Light;
 use crate::memory::try_vec;
-use crate::reflectance::{Lobe, Observation};
+use crate::reflectance::{Lobe, Packed};
 use crate::shadow::ShadowMask;
 use crate::vec3::{dot, norm};
 
@@ -331,7 +331,7 @@ impl LocalStep<'_> {
         f: usize,
         u: &[f64],
         buf: &mut [f32],
-        glossy: &mut Vec<Observation>,
+        glossy: &mut Packed,
         warm: Option<[f64; 3]>,
     ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
@@ -339,28 +339,39 @@ impl LocalStep<'_> {
         let ids = grid.facet_vertices[f];
         let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
-        let fitted = fit_facet(c, self.model, values, obs.channels, self.settings).map(|fit| {
-            let Some(lobe) = self.settings.lobe else {
-                return fit;
-            };
-            let (starts, steps) = match warm {
-                Some(n) => ([Some(n), Some(quad_normal(&q))], GLOSSY_WARM_STEPS),
-                None => ([Some(fit.normal), Some(quad_normal(&q))], GLOSSY_STEPS),
-            };
-            glossy::refine(
-                c,
-                geometry.view(c),
-                self.model,
-                values,
-                obs.channels,
-                &self.settings,
-                &lobe,
-                fit,
-                starts,
-                steps,
-                glossy,
-            )
-        });
+        let lambertian = || fit_facet(c, self.model, values, obs.channels, self.settings);
+        let fitted = match self.settings.lobe {
+            None => lambertian(),
+            Some(lobe) => {
+                let mut refine = |start: Option<&FacetFit>, first: [f64; 3], steps: usize| {
+                    glossy::refine(
+                        c,
+                        geometry.view(c),
+                        self.model,
+                        values,
+                        obs.channels,
+                        &self.settings,
+                        &lobe,
+                        start,
+                        [Some(first), Some(quad_normal(&q))],
+                        steps,
+                        glossy,
+                    )
+                };
+                // From a warm normal the Lambertian fit is needed only where the glossy fit
+                // fails: it then starts it again, or is kept.
+                let from_warm = warm.and_then(|n| refine(None, n, GLOSSY_WARM_STEPS));
+                from_warm.or_else(|| {
+                    lambertian().map(|fit| {
+                        let (n, steps) = match warm {
+                            Some(n) => (n, GLOSSY_WARM_STEPS),
+                            None => (fit.normal, GLOSSY_STEPS),
+                        };
+                        refine(Some(&fit), n, steps).unwrap_or(fit)
+                    })
+                })
+            }
+        };
         match fitted {
             Some(fitted) => FacetFit {
                 target: geometry.plane_target(fitted.normal, ids, c),
@@ -405,7 +416,7 @@ impl LocalStep<'_> {
                     } else {
                         for (i, fit) in fits.iter_mut().enumerate() {
                             // (no glossy observations: the lanes fit the Lambertian model)
-                            *fit = self.fit(start + i, u, buf, &mut Vec::new(), None);
+                            *fit = self.fit(start + i, u, buf, &mut Packed::new(), None);
                         }
                     }
                     Ok(())
@@ -467,7 +478,7 @@ impl LocalStep<'_> {
                             }
                         } else {
                             for (i, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
-                                let fit = self.fit(first + i, u, buf, &mut Vec::new(), None);
+                                let fit = self.fit(first + i, u, buf, &mut Packed::new(), None);
                                 *target = fit.target;
                                 *stat = FacetStat::from(&fit);
                             }
@@ -549,8 +560,8 @@ const SCRATCH: &str = "the local step's per-thread scratch space";
 
 /// A thread's scratch space for one facet's `per` observations (and, filled on demand, its
 /// observations under the glossy model).
-fn facet_scratch(per: usize) -> Result<(Vec<f32>, Vec<Observation>)> {
-    Ok((try_vec(per, 0.0f32, SCRATCH)?, Vec::new()))
+fn facet_scratch(per: usize) -> Result<(Vec<f32>, Packed)> {
+    Ok((try_vec(per, 0.0f32, SCRATCH)?, Packed::new()))
 }
 
 /// Whether an observation (all its channels) can be used.
