@@ -10,7 +10,7 @@ Scenes: ``nplps.make_scene("bumps", camera="pinhole", specular=0.2, roughness=0.
 by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size, and the PBR render given by
 ``--pbr`` (its own size; pass ``--pbr ''`` to skip it). Modes: ``lambertian`` (the default),
 ``given`` (``reflectance="glossy"`` with the true lobe; for a PBR render the roughness of its
-material name and eta 1.5) and ``estimated`` (``reflectance="glossy"``, lobe estimated), each
+material name (squared for principled) and eta 1.5) and ``estimated`` (``reflectance="glossy"``, lobe estimated), each
 with the true distance and the default ``check_distance``.
 
 Every run is one fresh Python process (its peak RSS, ``ru_maxrss``, is its own and includes the
@@ -59,8 +59,11 @@ def load(scene: str) -> tuple[Any, Any, np.ndarray, np.ndarray, float, tuple[flo
     with np.load(scene) as f:
         data = dict(f)
     rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
-    found = re.search(r"-(0\.\d+)", str(data["material"]))
+    material = str(data["material"])
+    found = re.search(r"-(0\.\d+)", material)
     alpha = float(found.group(1)) if found else 0.3
+    if material.startswith("principled"):
+        alpha = alpha**2  # Mitsuba's principled BSDF: GGX alpha = roughness^2
     return data["images"], rig, data["mask"], data["normals"], float(data["distance"]), (alpha, 1.5)
 
 
