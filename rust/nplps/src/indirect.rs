@@ -1,0 +1,948 @@
+//! Interreflections: the indirect irradiance that the facets of a height-field mesh send to each
+//! other, gathered from the observed images (issue 21, first building block; not yet used by the
+//! solver).
+//!
+//! ## The model
+//!
+//! The image model of the crate (see [`crate::Light`]) is `I = rho * Phi * max(0, n . beta(x))`:
+//! with `E = Phi n . beta(x)` the irradiance that the light sends to the surface point, an image
+//! value is `I = rho E`, the albedo times the irradiance. For a Lambertian surface of reflectance
+//! `rho` the exitance (radiosity) is `B = rho E` and the radiance is `L = B / pi`, the same in
+//! every direction: the image value is the exitance, and the radiance of facet `j` under light
+//! `k` is `L_jk = I_jk / pi`.
+//!
+//! A small facet `j` (centre `x_j`, unit normal `n_j`, area `A_j`) of radiance `L_j` gives the
+//! point `x_i` with normal `n_i` the irradiance
+//!
+//! ```text
+//! dE_ij = L_j A_j cos_i cos_j / r^2 = n_i . (L_j A_j cos_j / r^2 d_ij),
+//! d_ij = (x_j - x_i) / r,  r = |x_j - x_i|,  cos_i = n_i . d_ij,  cos_j = -n_j . d_ij,
+//! ```
+//!
+//! when both face each other (`cos_i > 0`, `cos_j > 0`) and the segment between them is not
+//! blocked by the surface (`vis_ij`). Summed over the facets, the irradiance at facet `i` under
+//! light `k` is `n_i . (Phi_k beta_k(x_i) + V_ik)`, and the image model with indirect light
+//! stays linear in the scaled normal `b = rho n`:
+//!
+//! ```text
+//! I_ik = b_i . (s_ik + V_ik),   s_ik = Phi_k beta_k(x_i),
+//! V_ik = sum_j I_jk w_ij,       w_ij = vis_ij A_j cos_j / (pi r_ij^2) d_ij,
+//! ```
+//!
+//! the *irradiance vector* `V_ik` of facet `i` (the same units as `s_ik`). `n_i . w_ij` is the
+//! point-to-facet form factor `F_ij = A_j cos_i cos_j / (pi r^2)`, and the reciprocity
+//! `A_i F_ij = A_j F_ji` holds for every pair. Gathering the **observed** images `I_jk`, which
+//! hold all the light that facet `j` sends (its direct light and its own indirect light), gives
+//! all the bounces at once, with no iteration over bounces; it assumes Lambertian emitters (with a
+//! glossy model, emit the modelled diffuse part instead) and misses the light of surfaces that
+//! the image does not show (outside the mask or the image, or hidden from the camera).
+//!
+//! `V` is linear in the observations and assumes the rig's intensities in the units that make the
+//! albedo the reflectance (a white facet facing a unit light at unit distance images to 1). When
+//! the fitted albedo is `g` times the reflectance (intensities known up to a factor), the
+//! indirect term of the model is `V / g`: pass the observations divided by `g`.
+//!
+//! ## Near pairs
+//!
+//! The point formula is accurate when the facets are small beside their distance. For pairs
+//! nearer than [`NEAR`] facet sizes (`r^2 < NEAR^2 max(A_i, A_j)`), `w_ij` is instead the mean
+//! over the receiver facet of the irradiance vector of the emitter facet, both facets split into
+//! [`SUBDIVISIONS`]² bilinear sub-facets (planar, of equal area, the facet's normal):
+//!
+//! ```text
+//! w_ij = 1/S^2 sum_a sum_b [n_i . (z_b - y_a) > 0] (A_j / S^2) max(0, n_j . (y_a - z_b)) (z_b - y_a) / (pi |z_b - y_a|^4)
+//! ```
+//!
+//! (`y_a` the receiver's sub-points, `z_b` the emitter's, `S = SUBDIVISIONS`): `A_i n_i . w_ij` is
+//! the same sum with `i` and `j` swapped, so reciprocity holds for near pairs too. The facing
+//! test and the visibility use the centres.
+//!
+//! ## Visibility
+//!
+//! The facets are the pixels of an (H+1) x (W+1) vertex mesh seen by the camera (a height field:
+//! every point of space nearer the camera than the surface along its camera ray is free). Facets
+//! `i` and `j` see each other when they face each other at their centres
+//! (`n_i . (x_j - x_i) > COS_MIN r` and `n_j . (x_i - x_j) > COS_MIN r`, [`COS_MIN`]) and the
+//! segment between the centres stays in front of the surface: sampled half a pixel apart in the
+//! image as the shadow march of [`crate::shadow`] does (the perspective-correct point of image
+//! parameter `s`, projected with the camera's distortion), it is blocked at the first sample
+//! where the bilinear surface depth is nearer than the segment's,
+//! `z_surface < z(s) - (1e-6 |z(s)| + 1e-3 sqrt(max(A_i, A_j)))`. Samples in the two end pixels
+//! are not tested (a planar facet does not hide what it faces), and samples over pixels outside
+//! the mask or with a non-finite corner neither block nor end the march (the surface there is
+//! unknown). Visibility is symmetric: each unordered pair is marched once.
+//!
+//! ## Cost and memory
+//!
+//! With `F` masked facets (e.g. `F <= 64^2` on a coarse level of the pyramid), building tests
+//! the `F (F - 1) / 2` unordered pairs (facing test: a few flops each) and marches the facing
+//! ones, `O(D)` samples each (`D` the image diagonal in pixels): `O(F^2 D)` time in the worst
+//! case, `O(F^2)` on surfaces where few pairs face each other, parallel over the facets. Near
+//! pairs cost `S^4` = 256 kernel evaluations each, `O(F NEAR^2)` of them. It is computed once
+//! per geometry.
+//!
+//! The pairs are stored sparsely, by receiver (compressed rows): a `u32` source facet and the
+//! weight vector as 3 `f32`, [`BYTES_PER_PAIR`] = 16 bytes per directed pair (each facing, visible
+//! unordered pair gives two), plus 8 bytes per pixel of row offsets and 56 bytes per pixel of
+//! facet geometry. While building, the unordered pairs are also held in per-row lists
+//! (28 bytes each, 14 per directed pair): the peak is about 30 bytes per directed pair. The dense
+//! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
+//! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
+//! with an error that names the cap beyond it (use a coarser grid, or raise the cap).
+//!
+//! The pass over the lights ([`Exchange::irradiance`]) costs `O(P k C)` multiply-adds for `P`
+//! directed pairs, `k` lights and `C` channels, parallel over the receivers; it holds the
+//! observations transposed to facet-major order (`4 F k C` bytes) and the result (`24 H W k C`
+//! bytes).
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+
+use crate::error::{ensure_shape, ensure_usable, Error, Result};
+use crate::rig::Camera;
+use crate::shadow::March;
+use crate::vec3::{cross, dot, norm, not_above, sub};
+
+/// Pairs nearer than `NEAR` facet sizes (`r^2 < NEAR^2 max(A_i, A_j)`) get the subdivided
+/// (area-averaged) weight instead of the point formula.
+pub const NEAR: f64 = 4.0;
+
+/// Sub-facets per side of a facet in the weight of a near pair.
+pub const SUBDIVISIONS: usize = 4;
+
+/// Smallest cosine at both centres for a pair to count as facing.
+pub const COS_MIN: f64 = 1e-6;
+
+/// Bytes of one stored directed pair: a `u32` source facet and 3 `f32` weights.
+pub const BYTES_PER_PAIR: usize = 16;
+
+/// Default cap on the stored directed pairs (4 M, 67 MB).
+pub const DEFAULT_MAX_PAIRS: usize = 1 << 22;
+
+/// The geometry of a facet: centre, unit normal, area, corners.
+#[derive(Debug, Clone, Copy)]
+struct Facet {
+    centre: [f64; 3],
+    normal: [f64; 3],
+    area: f64,
+    corners: [[f64; 3]; 4],
+}
+
+/// The exchange of light between the facets of a mesh: per receiver facet, the facets it sees
+/// and their weight vectors `w_ij` (see the module documentation), stored by receiver.
+#[derive(Debug, Clone)]
+pub struct Exchange {
+    height: usize,
+    width: usize,
+    /// Per pixel `p`: its pairs are `offsets[p]..offsets[p + 1]`.
+    offsets: Vec<usize>,
+    /// The source (emitter) pixel of each pair, increasing within a row.
+    sources: Vec<u32>,
+    /// The weight vector `w_ij` of each pair.
+    weights: Vec<[f32; 3]>,
+    /// Per pixel: centre, unit normal and area (NaN outside the mask or the finite vertices).
+    facets: Vec<([f64; 3], [f64; 3], f64)>,
+}
+
+impl Exchange {
+    /// The exchange between the facets (pixels) of `mask` (H x W; None: all) of the mesh with
+    /// the vertex positions `vertices` ((H+1) x (W+1), camera frame, as [`crate::vertices`]
+    /// makes them; facets with a non-finite corner take no part), seen by `camera`. At most
+    /// `max_pairs` directed pairs (None: [`DEFAULT_MAX_PAIRS`]); more is an error that names
+    /// the cap.
+    pub fn new(
+        camera: &Camera,
+        height: usize,
+        width: usize,
+        vertices: &[[f64; 3]],
+        mask: Option<&[bool]>,
+        max_pairs: Option<usize>,
+    ) -> Result<Exchange> {
+        let plane = height * width;
+        ensure_usable(plane > 0, || "the mesh has no facets".to_string())?;
+        ensure_shape(
+            "vertices",
+            (height + 1) * (width + 1),
+            vertices.len(),
+            || {
+                format!(
+                    "vertices has {} positions, expected (W+1) x (H+1) = {} x {}",
+                    vertices.len(),
+                    width + 1,
+                    height + 1
+                )
+            },
+        )?;
+        if let Some(m) = mask {
+            ensure_shape("mask", plane, m.len(), || {
+                format!("mask has {} values, expected H x W = {plane}", m.len())
+            })?;
+        }
+        let max_pairs = max_pairs.unwrap_or(DEFAULT_MAX_PAIRS);
+        let march = March {
+            camera,
+            height,
+            width,
+            vertices,
+            mask,
+            z_min: f64::NEG_INFINITY,
+            max_steps: usize::MAX / 4,
+            pyramid: None,
+        };
+        let geometry: Vec<Option<Facet>> = crate::memory::try_par_collect(
+            (0..plane).into_par_iter().map(|p| {
+                let (centre, normal, _) = march.facet(p)?;
+                let q = march.quad(p / width, p % width);
+                let area = 0.5 * norm(cross(sub(q[2], q[1]), sub(q[3], q[0])));
+                (area > 0.0 && normal.iter().all(|x| x.is_finite())).then_some(Facet {
+                    centre,
+                    normal,
+                    area,
+                    corners: q,
+                })
+            }),
+            "the facets of the light exchange",
+        )?;
+        let projected: Vec<[f64; 2]> = crate::memory::try_par_collect(
+            geometry.par_iter().map(|f| match f {
+                Some(f) => camera.project(f.centre),
+                None => [f64::NAN; 2],
+            }),
+            "the facets of the light exchange",
+        )?;
+
+        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji).
+        let count = AtomicUsize::new(0);
+        let over = AtomicBool::new(false);
+        type Row = Vec<(u32, [f32; 3], [f32; 3])>;
+        let rows: Vec<Row> = (0..plane)
+            .into_par_iter()
+            .with_max_len(1)
+            .map(|i| {
+                let mut row = Row::new();
+                if over.load(Ordering::Relaxed) {
+                    return row;
+                }
+                let Some(fi) = geometry[i] else {
+                    return row;
+                };
+                for (j, fj) in geometry.iter().enumerate().skip(i + 1) {
+                    let Some(fj) = fj else { continue };
+                    let d = sub(fj.centre, fi.centre);
+                    let r = norm(d);
+                    if !(dot(fi.normal, d) > COS_MIN * r && -dot(fj.normal, d) > COS_MIN * r) {
+                        continue;
+                    }
+                    let tol = 1e-3 * fi.area.max(fj.area).sqrt();
+                    if !visible(&march, (i, &fi, projected[i]), (j, fj, projected[j]), tol) {
+                        continue;
+                    }
+                    let Some((wij, wji)) = pair_weights(&fi, fj) else {
+                        continue;
+                    };
+                    row.push((j as u32, wij.map(|x| x as f32), wji.map(|x| x as f32)));
+                }
+                if count.fetch_add(2 * row.len(), Ordering::Relaxed) + 2 * row.len() > max_pairs {
+                    over.store(true, Ordering::Relaxed);
+                }
+                row
+            })
+            .collect();
+        let total = count.load(Ordering::Relaxed);
+        if over.load(Ordering::Relaxed) {
+            return Err(Error::Unusable(format!(
+                "the light exchange of {} facets has more than max_pairs = {max_pairs} directed \
+                 pairs of facets that see each other ({} bytes each): use a coarser grid or raise \
+                 the cap",
+                geometry.iter().flatten().count(),
+                BYTES_PER_PAIR
+            )));
+        }
+        crate::memory::check(
+            || format!("the light exchange of {total} pairs of facets"),
+            (BYTES_PER_PAIR * total + 8 * (plane + 1)) as f64,
+            None,
+        )?;
+
+        // Compressed rows by receiver: row p holds the pairs of earlier rows (i < p, in order),
+        // then its own (j > p, in order).
+        let mut offsets = crate::memory::try_vec(plane + 1, 0usize, "the light exchange")?;
+        for (i, row) in rows.iter().enumerate() {
+            offsets[i + 1] += row.len();
+            for &(j, _, _) in row {
+                offsets[j as usize + 1] += 1;
+            }
+        }
+        for p in 0..plane {
+            offsets[p + 1] += offsets[p];
+        }
+        let mut sources = crate::memory::try_vec(total, 0u32, "the light exchange")?;
+        let mut weights = crate::memory::try_vec(total, [0f32; 3], "the light exchange")?;
+        let mut next: Vec<usize> = offsets[..plane].to_vec();
+        for (i, row) in rows.into_iter().enumerate() {
+            for (j, wij, wji) in row {
+                let j = j as usize;
+                sources[next[i]] = j as u32;
+                weights[next[i]] = wij;
+                next[i] += 1;
+                sources[next[j]] = i as u32;
+                weights[next[j]] = wji;
+                next[j] += 1;
+            }
+        }
+        let facets = geometry
+            .iter()
+            .map(|f| match f {
+                Some(f) => (f.centre, f.normal, f.area),
+                None => ([f64::NAN; 3], [f64::NAN; 3], f64::NAN),
+            })
+            .collect();
+        Ok(Exchange {
+            height,
+            width,
+            offsets,
+            sources,
+            weights,
+            facets,
+        })
+    }
+
+    /// Image height H (facet rows).
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Image width W (facet columns).
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Number of stored directed pairs.
+    pub fn pairs(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Bytes held: [`BYTES_PER_PAIR`] per pair, the row offsets and the facet geometry.
+    pub fn bytes(&self) -> usize {
+        BYTES_PER_PAIR * self.pairs()
+            + std::mem::size_of::<usize>() * self.offsets.len()
+            + std::mem::size_of::<([f64; 3], [f64; 3], f64)>() * self.facets.len()
+    }
+
+    /// The pairs of receiver pixel `p`: (source pixel `j`, weight vector `w_pj`), by increasing
+    /// `j`.
+    pub fn pairs_of(&self, p: usize) -> impl Iterator<Item = (usize, [f32; 3])> + '_ {
+        let range = self.offsets[p]..self.offsets[p + 1];
+        self.sources[range.clone()]
+            .iter()
+            .zip(&self.weights[range])
+            .map(|(&j, &w)| (j as usize, w))
+    }
+
+    /// Centre, unit normal and area of facet (pixel) `p` (NaN where it takes no part).
+    pub fn facet(&self, p: usize) -> ([f64; 3], [f64; 3], f64) {
+        self.facets[p]
+    }
+
+    /// The indirect irradiance vectors `V_ik = sum_j I_jk w_ij` of every pixel under every light
+    /// from the observations `observed`, (k, H, W, C) with `C = channels` (the layout of an
+    /// image stack). Non-finite observations emit nothing. The result has the same layout,
+    /// one vector per value: (k, H, W, C); zero at pixels that see no other facet.
+    pub fn irradiance(
+        &self,
+        observed: &[f32],
+        lights: usize,
+        channels: usize,
+    ) -> Result<Vec<[f64; 3]>> {
+        let plane = self.height * self.width;
+        let kc = lights * channels;
+        ensure_shape("observations", plane * kc, observed.len(), || {
+            format!(
+                "observations has {} values, expected k x H x W x C = {lights} x {} x {} x \
+                 {channels}",
+                observed.len(),
+                self.height,
+                self.width
+            )
+        })?;
+        crate::memory::check(
+            || format!("the indirect light of {lights} lights on {plane} facets"),
+            (plane * kc) as f64 * (4.0 + 24.0 + 24.0),
+            None,
+        )?;
+        // Facet-major observations: (H W, k C).
+        let mut emit = crate::memory::try_vec(plane * kc, 0f32, "the emitted light")?;
+        if kc > 0 {
+            emit.par_chunks_mut(kc).enumerate().for_each(|(p, row)| {
+                for k in 0..lights {
+                    for ch in 0..channels {
+                        let v = observed[(k * plane + p) * channels + ch];
+                        row[k * channels + ch] = if v.is_finite() { v } else { 0.0 };
+                    }
+                }
+            });
+        }
+        let mut gathered = crate::memory::try_vec(plane * kc, [0f64; 3], "the indirect light")?;
+        if kc > 0 {
+            gathered
+                .par_chunks_mut(kc)
+                .enumerate()
+                .for_each(|(p, acc)| {
+                    for (j, w) in self.pairs_of(p) {
+                        let w = w.map(f64::from);
+                        for (a, &e) in acc.iter_mut().zip(&emit[j * kc..(j + 1) * kc]) {
+                            let e = f64::from(e);
+                            a[0] += e * w[0];
+                            a[1] += e * w[1];
+                            a[2] += e * w[2];
+                        }
+                    }
+                });
+        }
+        drop(emit);
+        let mut out = crate::memory::try_vec(plane * kc, [0f64; 3], "the indirect light")?;
+        if kc > 0 {
+            out.par_chunks_mut(plane * channels)
+                .enumerate()
+                .for_each(|(k, image)| {
+                    for (p, values) in image.chunks_mut(channels).enumerate() {
+                        let src = &gathered[p * kc + k * channels..p * kc + (k + 1) * channels];
+                        values.copy_from_slice(src);
+                    }
+                });
+        }
+        Ok(out)
+    }
+}
+
+/// Whether the segment between the centres of facets `a` and `b` (pixel, facet, projected
+/// centre) stays in front of the surface (see the module documentation).
+fn visible(
+    march: &March<'_>,
+    (pa, fa, ma): (usize, &Facet, [f64; 2]),
+    (pb, fb, mb): (usize, &Facet, [f64; 2]),
+    tol: f64,
+) -> bool {
+    let (c, e) = (fa.centre, fb.centre);
+    let length = (mb[0] - ma[0]).hypot(mb[1] - ma[1]);
+    if !length.is_finite() {
+        return true;
+    }
+    let total = (2.0 * length).ceil().max(1.0);
+    let steps = total as usize;
+    let d = sub(e, c);
+    let perspective = march.camera.is_perspective();
+    let width = march.width;
+    for i in 1..steps {
+        let s = i as f64 / total;
+        let w = if perspective {
+            s * c[2] / ((1.0 - s) * e[2] + s * c[2])
+        } else {
+            s
+        };
+        let x = [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]];
+        let [u, v] = march.camera.project(x);
+        let (gx, gy) = (u + 0.5, v + 0.5);
+        if !(gx >= 0.0 && gy >= 0.0) {
+            continue;
+        }
+        let cell = (gy as usize).min(march.height.saturating_sub(1)) * width
+            + (gx as usize).min(width.saturating_sub(1));
+        if cell == pa || cell == pb {
+            continue;
+        }
+        let Some(z_surface) = march.surface_depth(gx, gy) else {
+            continue;
+        };
+        if z_surface < x[2] - (1e-6 * x[2].abs() + tol) {
+            return false;
+        }
+    }
+    true
+}
+
+/// The weight vectors `(w_ij, w_ji)` of a facing pair (see the module documentation): the point
+/// formula, or for a near pair the two quadratures made reciprocal; None when a near pair's
+/// form factor is not positive.
+fn pair_weights(fi: &Facet, fj: &Facet) -> Option<([f64; 3], [f64; 3])> {
+    let (wij, wji) = raw_pair_weights(fi, fj);
+    if !is_near(fi, fj) {
+        return Some((wij, wji));
+    }
+    // A_i F_ij and A_j F_ji: two estimates of the same double integral; both take their mean.
+    let (a, b) = (fi.area * dot(fi.normal, wij), fj.area * dot(fj.normal, wji));
+    if !(a > 0.0 && b > 0.0) {
+        return None;
+    }
+    let mean = 0.5 * (a + b);
+    Some((wij.map(|x| x * mean / a), wji.map(|x| x * mean / b)))
+}
+
+/// Whether a pair is near: `r^2 < NEAR^2 max(A_i, A_j)`.
+fn is_near(fi: &Facet, fj: &Facet) -> bool {
+    let d = sub(fj.centre, fi.centre);
+    dot(d, d) < NEAR * NEAR * fi.area.max(fj.area)
+}
+
+/// The weight vectors before the near pairs are made reciprocal.
+fn raw_pair_weights(fi: &Facet, fj: &Facet) -> ([f64; 3], [f64; 3]) {
+    if !is_near(fi, fj) {
+        let (wij, wji) = point_kernel(fi.centre, fi.normal, fj.centre, fj.normal);
+        (wij.map(|x| x * fj.area), wji.map(|x| x * fi.area))
+    } else {
+        (near_weight(fi, fj), near_weight(fj, fi))
+    }
+}
+
+/// `w_ij` of a near pair: the mean over the receiver's sub-points `y_a` (in front of the
+/// emitter's plane) of the emitter quad's vector `(1 / pi) int d dw` by Lambert's edge formula.
+fn near_weight(receiver: &Facet, emitter: &Facet) -> [f64; 3] {
+    let q = emitter.corners;
+    let mut w = [0.0; 3];
+    for y in sub_points(&receiver.corners) {
+        if not_above(dot(emitter.normal, sub(y, emitter.centre)), 0.0) {
+            continue;
+        }
+        let v = polygon_vector(y, [q[0], q[1], q[3], q[2]]);
+        for c in 0..3 {
+            w[c] += v[c];
+        }
+    }
+    let s = (SUBDIVISIONS * SUBDIVISIONS) as f64;
+    w.map(|x| x / s)
+}
+
+/// `(1 / pi) int d dw` over the solid angle of the closed polygon `p` (straight edges) seen
+/// from `y`, `d` the unit direction: Lambert's formula `1 / (2 pi) sum_e theta_e g_e`, with
+/// `theta_e` the angle that edge `e` subtends at `y` and `g_e` the unit normal of the plane
+/// through `y` and the edge, oriented towards the polygon (Arvo 1994). Exact for any surface
+/// spanned by the polygon that stays in front of `y`.
+fn polygon_vector(y: [f64; 3], p: [[f64; 3]; 4]) -> [f64; 3] {
+    let v = p.map(|x| sub(x, y));
+    let mut sum = [0.0; 3];
+    for e in 0..4 {
+        let (a, b) = (v[e], v[(e + 1) % 4]);
+        let g = cross(a, b);
+        let len = norm(g);
+        if not_above(len, 0.0) {
+            continue;
+        }
+        let theta = crate::vec3::angle(a, b);
+        for c in 0..3 {
+            sum[c] += theta * g[c] / len;
+        }
+    }
+    // The winding decides the sign: the vector points towards the polygon.
+    let towards = v.iter().fold([0.0; 3], |acc, x| crate::vec3::add(acc, *x));
+    let sign = if dot(sum, towards) < 0.0 { -1.0 } else { 1.0 };
+    sum.map(|x| sign * x / (2.0 * std::f64::consts::PI))
+}
+
+/// Per unit emitter area, between the points `a` (normal `na`) and `b` (normal `nb`): the
+/// irradiance vectors `max(0, cos_b) d / (pi r^2)` at `a` from `b` and `max(0, cos_a) (-d) /
+/// (pi r^2)` at `b` from `a` (`d = (b - a) / r`), each zero when the receiver turns away.
+#[inline]
+fn point_kernel(a: [f64; 3], na: [f64; 3], b: [f64; 3], nb: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+    let d = sub(b, a);
+    let r2 = dot(d, d);
+    let (ca, cb) = (dot(na, d), -dot(nb, d));
+    if !(ca > 0.0 && cb > 0.0 && r2 > 0.0) {
+        return ([0.0; 3], [0.0; 3]);
+    }
+    // cos_b / r * d / r / (pi r^2) = cb d / (pi r^4).
+    let f = 1.0 / (std::f64::consts::PI * r2 * r2);
+    (d.map(|x| x * cb * f), d.map(|x| -x * ca * f))
+}
+
+/// The centres of the `SUBDIVISIONS`² bilinear sub-facets of a quad (corners 00, 01, 10, 11).
+fn sub_points(q: &[[f64; 3]; 4]) -> [[f64; 3]; SUBDIVISIONS * SUBDIVISIONS] {
+    std::array::from_fn(|t| {
+        let (a, b) = (t / SUBDIVISIONS, t % SUBDIVISIONS);
+        let fy = (a as f64 + 0.5) / SUBDIVISIONS as f64;
+        let fx = (b as f64 + 0.5) / SUBDIVISIONS as f64;
+        std::array::from_fn(|c| {
+            (1.0 - fy) * ((1.0 - fx) * q[0][c] + fx * q[1][c])
+                + fy * ((1.0 - fx) * q[2][c] + fx * q[3][c])
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::Camera;
+
+    fn ortho() -> Camera {
+        Camera::Orthographic {
+            pixel_size: [1.0, 1.0],
+            origin: [0.0, 0.0],
+        }
+    }
+
+    fn pinhole(n: usize, f: f64) -> Camera {
+        let c = (n as f64 - 1.0) / 2.0;
+        Camera::Pinhole {
+            k: [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        }
+    }
+
+    /// Vertex depths (n+1) x (n+1) from a function of the vertex (row, column).
+    fn depths(n: usize, f: impl Fn(f64, f64) -> f64) -> Vec<f64> {
+        (0..(n + 1) * (n + 1))
+            .map(|v| f((v / (n + 1)) as f64, (v % (n + 1)) as f64))
+            .collect()
+    }
+
+    /// A V-groove along the rows, orthographic 1-unit pixels: depth `z0 + slope (m - |c - m|)`
+    /// (deepest at vertex column m = n / 2), the walls at `atan(slope)` from the image plane.
+    fn groove(n: usize, slope: f64) -> Vec<f64> {
+        let m = (n / 2) as f64;
+        depths(n, |_, c| 100.0 + slope * (m - (c - m).abs()))
+    }
+
+    #[test]
+    fn a_plane_exchanges_nothing() {
+        let n = 24;
+        for (camera, depth) in [
+            (ortho(), depths(n, |_, _| 100.0)),
+            (ortho(), depths(n, |r, c| 100.0 + 0.3 * c - 0.2 * r)),
+            (pinhole(n, 40.0), depths(n, |_, _| 500.0)),
+        ] {
+            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+            assert_eq!(x.pairs(), 0);
+            let obs = vec![1.0f32; 3 * n * n];
+            let vi = x.irradiance(&obs, 3, 1).unwrap();
+            assert!(vi.iter().all(|w| *w == [0.0; 3]));
+        }
+    }
+
+    /// Two far facets on the walls of a groove (the only ones in the mask): the weight is the
+    /// point-to-point formula, `n_i . w_ij = A_j cos_i cos_j / (pi r^2)`, its direction towards
+    /// the emitter, and V is the observation times it.
+    #[test]
+    fn two_facing_facets_give_the_point_form_factor() {
+        let n = 32;
+        let slope = 1.5;
+        let depth = groove(n, slope);
+        let camera = ortho();
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let (pi, pj) = (10 * n + 2, 14 * n + 29);
+        let mut mask = vec![false; n * n];
+        mask[pi] = true;
+        mask[pj] = true;
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        assert_eq!(x.pairs(), 2);
+        let (ci, ni, ai) = x.facet(pi);
+        let (cj, nj, aj) = x.facet(pj);
+        // The walls: normals (+-slope, 0, -1) / |.|, areas sqrt(1 + slope^2).
+        let s = (1.0 + slope * slope).sqrt();
+        assert!((ai - s).abs() < 1e-12 && (aj - s).abs() < 1e-12);
+        assert!((ni[0] - slope / s).abs() < 1e-12 && (nj[0] + slope / s).abs() < 1e-12);
+        let d = sub(cj, ci);
+        let r = norm(d);
+        let (cos_i, cos_j) = (dot(ni, d) / r, -dot(nj, d) / r);
+        let f_ij = aj * cos_i * cos_j / (std::f64::consts::PI * r * r);
+        let f_ji = ai * cos_i * cos_j / (std::f64::consts::PI * r * r);
+        let (j, w) = x.pairs_of(pi).next().unwrap();
+        assert_eq!(j, pj);
+        let w = w.map(f64::from);
+        assert!(
+            (dot(ni, w) / f_ij - 1.0).abs() < 1e-6,
+            "{} {f_ij}",
+            dot(ni, w)
+        );
+        assert!((norm(w) * r / dot(w, d) - 1.0).abs() < 1e-6);
+        let (i, w) = x.pairs_of(pj).next().unwrap();
+        assert_eq!(i, pi);
+        assert!((dot(nj, w.map(f64::from)) / f_ji - 1.0).abs() < 1e-6);
+        // V at pi under 2 lights: 3 and 5 times the weight; nothing at pixels without pairs.
+        let mut obs = vec![0f32; 2 * n * n];
+        obs[pj] = 3.0;
+        obs[n * n + pj] = 5.0;
+        let vi = x.irradiance(&obs, 2, 1).unwrap();
+        let (j, w) = x.pairs_of(pi).next().unwrap();
+        assert_eq!(j, pj);
+        for (k, e) in [(0, 3.0), (1, 5.0)] {
+            for c in 0..3 {
+                assert!((vi[k * n * n + pi][c] - e * f64::from(w[c])).abs() < 1e-12);
+            }
+        }
+        assert!(vi[pj] == [0.0; 3] && vi[n * n + 5] == [0.0; 3]);
+    }
+
+    /// Brute-force irradiance vector at the point `y` with normal `ny` from the planar wall
+    /// `origin + s a + t b` (`0 <= s, t <= 1`, normal `nw`) of uniform radiance 1 / pi (an image
+    /// value of 1): `q x q` midpoint samples.
+    fn wall_irradiance(
+        y: [f64; 3],
+        ny: [f64; 3],
+        (origin, a, b, nw): ([f64; 3], [f64; 3], [f64; 3], [f64; 3]),
+        q: usize,
+    ) -> [f64; 3] {
+        let area = norm(cross(a, b)) / (q * q) as f64;
+        let mut e = [0.0; 3];
+        for u in 0..q {
+            for v in 0..q {
+                let (s, t) = ((u as f64 + 0.5) / q as f64, (v as f64 + 0.5) / q as f64);
+                let z: [f64; 3] = std::array::from_fn(|c| origin[c] + s * a[c] + t * b[c]);
+                let (w, _) = point_kernel(y, ny, z, nw);
+                for c in 0..3 {
+                    e[c] += area * w[c];
+                }
+            }
+        }
+        e
+    }
+
+    /// A V-groove lit uniformly (every facet an image value of 1): V at facets of the left
+    /// wall equals the irradiance vector of the right wall (a planar rectangle of uniform
+    /// radiance 1 / pi), integrated by brute force and averaged over the receiver facet.
+    #[test]
+    fn a_groove_matches_the_integrated_irradiance_of_the_opposite_wall() {
+        let n = 32;
+        let half = n / 2;
+        for slope in [1.0, 2.0] {
+            let depth = groove(n, slope);
+            let camera = ortho();
+            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+            let vi = x.irradiance(&vec![1f32; n * n], 1, 1).unwrap();
+            // The right wall: vertex columns m..n, rows 0..n.
+            let at = |r: usize, c: usize| v[r * (n + 1) + c];
+            let origin = at(0, half);
+            let a = sub(at(0, n), origin);
+            let b = sub(at(n, half), origin);
+            let nw = crate::vec3::normalize(cross(b, a));
+            assert!(nw[2] < 0.0 && nw[0] < 0.0);
+            let mut worst: f64 = 0.0;
+            for (r, c) in [
+                (16, 15),
+                (16, 14),
+                (16, 12),
+                (16, 8),
+                (16, 1),
+                (2, 10),
+                (0, 15),
+            ] {
+                let p = r * n + c;
+                let (_, ni, _) = x.facet(p);
+                // The reference averaged over the receiver facet (8 x 8 points).
+                let q = [at(r, c), at(r, c + 1), at(r + 1, c), at(r + 1, c + 1)];
+                let mut reference = [0.0; 3];
+                let m = 8;
+                for u in 0..m {
+                    for w in 0..m {
+                        let (fy, fx) = ((u as f64 + 0.5) / m as f64, (w as f64 + 0.5) / m as f64);
+                        let y: [f64; 3] = std::array::from_fn(|k| {
+                            (1.0 - fy) * ((1.0 - fx) * q[0][k] + fx * q[1][k])
+                                + fy * ((1.0 - fx) * q[2][k] + fx * q[3][k])
+                        });
+                        let e = wall_irradiance(y, ni, (origin, a, b, nw), 256);
+                        for k in 0..3 {
+                            reference[k] += e[k] / (m * m) as f64;
+                        }
+                    }
+                }
+                let (e, e_ref) = (dot(ni, vi[p]), dot(ni, reference));
+                let rel = (e / e_ref - 1.0).abs();
+                let angle = crate::vec3::angle(vi[p], reference);
+                println!(
+                    "groove slope {slope} facet ({r}, {c}): n.V {e:.5} reference {e_ref:.5} \
+                     ({:+.2} %), angle {:.3} deg",
+                    100.0 * (e / e_ref - 1.0),
+                    angle.to_degrees()
+                );
+                worst = worst.max(rel);
+                assert!(
+                    rel < 0.025,
+                    "slope {slope} facet ({r}, {c}): {e} vs {e_ref}"
+                );
+                assert!(angle.to_degrees() < 1.0, "{angle}");
+            }
+            assert!(worst > 0.0);
+        }
+    }
+
+    /// A wall raised at the bottom of a groove blocks two facets on opposite walls from each
+    /// other; facets high on the walls see over it. Orthographic and pinhole.
+    #[test]
+    fn a_wall_blocks_the_exchange() {
+        let n = 32;
+        let m = (n / 2) as f64;
+        for pinhole_camera in [false, true] {
+            let scale = if pinhole_camera { 10.0 } else { 1.0 };
+            let camera = if pinhole_camera {
+                pinhole(n, 100.0)
+            } else {
+                ortho()
+            };
+            let shape = |wall: f64| {
+                depths(n, move |_, c| {
+                    let z = 100.0 + 1.0 * (m - (c - m).abs());
+                    let raised = if (c - m).abs() <= 1.0 { wall } else { 0.0 };
+                    scale * (z - raised)
+                })
+            };
+            // Facets 5 columns either side of the bottom (depth about 111), and 14 columns
+            // out (depth about 102).
+            let row = 16;
+            let (low_l, low_r) = (row * n + 10, row * n + 21);
+            let (high_l, high_r) = (row * n + 1, row * n + 30);
+            let pair = |x: &Exchange, a: usize, b: usize| x.pairs_of(a).any(|(j, _)| j == b);
+            for (wall, blocked) in [(0.0, false), (12.0, true)] {
+                let v = crate::render::vertices(&camera, n, n, &shape(wall)).unwrap();
+                let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+                assert_eq!(
+                    pair(&x, low_l, low_r),
+                    !blocked,
+                    "wall {wall} {pinhole_camera}"
+                );
+                assert_eq!(
+                    pair(&x, low_r, low_l),
+                    !blocked,
+                    "wall {wall} {pinhole_camera}"
+                );
+                assert!(pair(&x, high_l, high_r), "wall {wall} {pinhole_camera}");
+            }
+        }
+    }
+
+    /// Reciprocity `A_i F_ij = A_j F_ji` (with `F_ij = n_i . w_ij`) for every pair, far and
+    /// near, on a bowl seen by a pinhole camera; the pairs come in both directions. Far pairs
+    /// are reciprocal by the formula, near pairs by construction (the two quadratures before it
+    /// are printed).
+    #[test]
+    fn reciprocity_holds_for_every_pair() {
+        let n = 24;
+        let camera = pinhole(n, 30.0);
+        let c = n as f64 / 2.0;
+        let depth = depths(n, |r, col| {
+            let q = ((r - c).powi(2) + (col - c).powi(2)) / (c * c);
+            500.0 + 150.0 * (1.0 - q).max(0.0)
+        });
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let mask: Vec<bool> = (0..n * n).map(|p| p % 7 != 3).collect();
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        assert!(x.pairs() > 10_000, "{}", x.pairs());
+        let march = March {
+            camera: &camera,
+            height: n,
+            width: n,
+            vertices: &v,
+            mask: None,
+            z_min: f64::NEG_INFINITY,
+            max_steps: 1,
+            pyramid: None,
+        };
+        let facet = |p: usize| {
+            let (centre, normal, area) = x.facet(p);
+            Facet {
+                centre,
+                normal,
+                area,
+                corners: march.quad(p / n, p % n),
+            }
+        };
+        let (mut checked, mut raw) = (0, Vec::new());
+        for i in 0..n * n {
+            let (_, ni, ai) = x.facet(i);
+            for (j, w) in x.pairs_of(i) {
+                let (_, nj, aj) = x.facet(j);
+                let (_, back) = x
+                    .pairs_of(j)
+                    .find(|&(k, _)| k == i)
+                    .expect("the reverse pair");
+                let (w, back) = (w.map(f64::from), back.map(f64::from));
+                let a = ai * dot(ni, w);
+                let b = aj * dot(nj, back);
+                assert!(a > 0.0 && b > 0.0, "{i} {j}: {a} {b}");
+                // f32 weights: the error is relative to |w|, not to n . w.
+                let scale = ai * norm(w) + aj * norm(back);
+                assert!((a - b).abs() <= 1e-6 * scale, "{i} {j}: {a} {b}");
+                let (fi, fj) = (facet(i), facet(j));
+                if is_near(&fi, &fj) && i < j {
+                    let (u, v) = raw_pair_weights(&fi, &fj);
+                    let (a, b) = (ai * dot(ni, u), aj * dot(nj, v));
+                    raw.push((a - b).abs() / (0.5 * (a + b)));
+                }
+                checked += 1;
+                assert!(mask[i] && mask[j]);
+            }
+        }
+        assert_eq!(checked, x.pairs());
+        raw.sort_by(f64::total_cmp);
+        println!(
+            "near pairs: {} of {}; before the mean, |A_i F_ij - A_j F_ji| / mean: median {:.2e}, \
+             90 % {:.2e}, max {:.2e}",
+            raw.len(),
+            checked / 2,
+            raw[raw.len() / 2],
+            raw[raw.len() * 9 / 10],
+            raw[raw.len() - 1]
+        );
+        assert!(raw.len() > 100);
+    }
+
+    #[test]
+    fn the_cap_and_the_shapes_are_checked() {
+        let n = 16;
+        let camera = ortho();
+        let v = crate::render::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
+        let err = Exchange::new(&camera, n, n, &v, None, Some(100)).unwrap_err();
+        assert!(err.to_string().contains("max_pairs = 100"), "{err}");
+        assert!(Exchange::new(&camera, n, n, &v[1..], None, None).is_err());
+        assert!(Exchange::new(&camera, n, n, &v, Some(&[true; 3]), None).is_err());
+        let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+        assert!(x.irradiance(&[1.0; 7], 1, 1).is_err());
+        assert_eq!(x.bytes(), 16 * x.pairs() + 8 * (n * n + 1) + 56 * n * n);
+    }
+
+    /// Timings at 64 x 64 facets, 16 lights, on a bowl (pinhole):
+    /// `cargo test -p nplps --release --lib indirect::tests::timings -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timings"]
+    fn timings() {
+        let n = 64;
+        let camera = pinhole(n, 80.0);
+        let c = n as f64 / 2.0;
+        // A spherical bowl: a cap of a sphere of radius R, depth 0.35 R, over the whole image.
+        let depth = depths(n, |r, col| {
+            let rr = ((r - c).powi(2) + (col - c).powi(2)).sqrt() / c;
+            let rim = 0.95;
+            let q = (rr / rim).min(1.0);
+            // 300 mm away, 100 mm wide, 40 mm deep in the middle.
+            300.0 + 40.0 * (1.0 - q * q).sqrt()
+        });
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let lights = 16;
+        let obs: Vec<f32> = (0..lights * n * n)
+            .map(|i| (i % 97) as f32 / 97.0)
+            .collect();
+        for _ in 0..2 {
+            let start = std::time::Instant::now();
+            let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+            let build = start.elapsed().as_secs_f64();
+            let mut pass = Vec::new();
+            for _ in 0..5 {
+                let start = std::time::Instant::now();
+                let vi = x.irradiance(&obs, lights, 1).unwrap();
+                pass.push(start.elapsed().as_secs_f64());
+                assert_eq!(vi.len(), lights * n * n);
+            }
+            pass.sort_by(f64::total_cmp);
+            println!(
+                "indirect timing: {n}x{n} bowl, {} threads: build {build:.3} s, {} pairs \
+                 ({:.1} MB, {:.1} pairs a facet), pass of {lights} lights median {:.4} s (min {:.4})",
+                rayon::current_num_threads(),
+                x.pairs(),
+                x.bytes() as f64 / 1e6,
+                x.pairs() as f64 / (n * n) as f64,
+                pass[2],
+                pass[0]
+            );
+        }
+    }
+}
