@@ -947,6 +947,16 @@ mod tests {
             }
         }
         assert_eq!(checked, x.pairs());
+        // Conservation: the form factors of a receiver sum to at most 1 (its whole hemisphere).
+        let sums: Vec<f64> = (0..n * n)
+            .map(|i| {
+                let (_, ni, _) = x.facet(i);
+                x.pairs_of(i).map(|(_, w)| dot(ni, w.map(f64::from))).sum()
+            })
+            .collect();
+        let most = sums.iter().copied().fold(0.0, f64::max);
+        println!("the largest sum of form factors of a receiver: {most:.4}");
+        assert!(most > 0.2 && most < 1.0, "{most}");
         raw.sort_by(f64::total_cmp);
         println!(
             "near pairs: {} of {}; before the mean, |A_i F_ij - A_j F_ji| / mean: median {:.2e}, \
@@ -1012,6 +1022,52 @@ mod tests {
             })
             .collect();
         (camera, v, mask)
+    }
+
+    /// Inside a sphere of radius R the form factor from a point to a surface element is
+    /// `dA / (4 pi R^2)` (both cosines are `r / (2 R)`): on the benchmark's bowl (a spherical
+    /// cap, every facet seeing every other), each receiver's form factors sum to the area of
+    /// the other facets over `4 pi R^2`, and each pair's is `A_j / (4 pi R^2)`.
+    #[test]
+    fn a_spherical_bowl_gives_the_sphere_form_factors() {
+        let n = 48;
+        let (camera, v, mask) = benchmark_bowl(n);
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        let facets = mask.iter().filter(|&&m| m).count();
+        assert_eq!(x.pairs(), facets * (facets - 1));
+        let radius = (35.0f64 * 35.0 + 20.0 * 20.0) / 40.0;
+        let sphere = 4.0 * std::f64::consts::PI * radius * radius;
+        let total: f64 = (0..n * n).filter(|&p| mask[p]).map(|p| x.facet(p).2).sum();
+        let (mut worst_sum, mut far, mut near): (f64, f64, Vec<f64>) = (0.0, 0.0, Vec::new());
+        for i in (0..n * n).filter(|&p| mask[p]) {
+            let (ci, ni, ai) = x.facet(i);
+            let mut sum = 0.0;
+            for (j, w) in x.pairs_of(i) {
+                let (cj, _, aj) = x.facet(j);
+                let f = dot(ni, w.map(f64::from));
+                let error = (f / (aj / sphere) - 1.0).abs();
+                let d = sub(cj, ci);
+                if dot(d, d) < NEAR * NEAR * ai.max(aj) {
+                    near.push(error);
+                } else {
+                    far = far.max(error);
+                }
+                sum += f;
+            }
+            worst_sum = worst_sum.max((sum / ((total - ai) / sphere) - 1.0).abs());
+        }
+        near.sort_by(f64::total_cmp);
+        println!(
+            "spherical bowl {n}x{n}, {facets} facets: sum of form factors within {:.3} %; each \
+             pair's against A_j / (4 pi R^2): far pairs within {:.2} %, near pairs median {:.2} \
+             %, max {:.2} %",
+            100.0 * worst_sum,
+            100.0 * far,
+            100.0 * near[near.len() / 2],
+            100.0 * near[near.len() - 1]
+        );
+        assert!(worst_sum < 0.005 && far < 0.05, "{worst_sum} {far}");
+        assert!(near[near.len() / 2] < 0.05, "{near:?}");
     }
 
     /// Timings at 64 x 64 facets, 16 lights, on the benchmark's bowl (pinhole):
