@@ -186,6 +186,7 @@ mod error;
 mod geometry;
 mod global;
 mod grid;
+pub mod indirect;
 #[cfg(feature = "io")]
 pub mod io;
 mod light;

@@ -379,7 +379,7 @@ const BLOCK: usize = 32;
 /// cell's edge: the coarsest such cell gives the longest jump. Only for cameras without
 /// distortion, whose samples are evenly spaced in pixels. Skipping changes no result: it passes
 /// over only samples that could not stop the march.
-struct Pyramid {
+pub(crate) struct Pyramid {
     /// Per level: its columns and its minima (row-major).
     levels: Vec<(usize, Vec<f64>)>,
     /// The vertex depths, (H+1) x (W+1): a third of the memory of the positions, for the
@@ -449,21 +449,21 @@ impl Pyramid {
 }
 
 /// What one march needs: the camera, the mesh, the mask and the bounds.
-struct March<'a> {
-    camera: &'a Camera,
-    height: usize,
-    width: usize,
-    vertices: &'a [[f64; 3]],
-    mask: Option<&'a [bool]>,
-    z_min: f64,
-    max_steps: usize,
-    pyramid: Option<Pyramid>,
+pub(crate) struct March<'a> {
+    pub(crate) camera: &'a Camera,
+    pub(crate) height: usize,
+    pub(crate) width: usize,
+    pub(crate) vertices: &'a [[f64; 3]],
+    pub(crate) mask: Option<&'a [bool]>,
+    pub(crate) z_min: f64,
+    pub(crate) max_steps: usize,
+    pub(crate) pyramid: Option<Pyramid>,
 }
 
 impl March<'_> {
     /// The 4 corners of pixel (row, col): (r, c), (r, c+1), (r+1, c), (r+1, c+1).
     #[inline]
-    fn quad(&self, row: usize, col: usize) -> [[f64; 3]; 4] {
+    pub(crate) fn quad(&self, row: usize, col: usize) -> [[f64; 3]; 4] {
         let v = row * (self.width + 1) + col;
         let w = self.width + 1;
         [
@@ -476,7 +476,7 @@ impl March<'_> {
 
     /// The centre, normal and self-shadow slack (a quarter of the spread of its corner
     /// depths) of facet `p`, or None outside the mask or with a non-finite corner.
-    fn facet(&self, p: usize) -> Option<([f64; 3], [f64; 3], f64)> {
+    pub(crate) fn facet(&self, p: usize) -> Option<([f64; 3], [f64; 3], f64)> {
         if self.mask.is_some_and(|m| !m[p]) {
             return None;
         }
@@ -718,7 +718,7 @@ impl March<'_> {
     /// The bilinear surface depth at the grid point (gx, gy) (the image point plus 1/2), or
     /// None outside the image, the mask or the finite vertices.
     #[inline]
-    fn surface_depth(&self, gx: f64, gy: f64) -> Option<f64> {
+    pub(crate) fn surface_depth(&self, gx: f64, gy: f64) -> Option<f64> {
         let (w, h) = (self.width as f64, self.height as f64);
         if !(gx >= 0.0 && gx <= w && gy >= 0.0 && gy <= h) {
             return None;

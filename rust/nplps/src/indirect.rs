@@ -1,0 +1,1119 @@
+//! Interreflections: the indirect irradiance that the facets of a height-field mesh send to each
+//! other, gathered from the observed images (issue 21, first building block; not yet used by the
+//! solver).
+//!
+//! ## The model
+//!
+//! The image model of the crate (see [`crate::Light`]) is `I = rho * Phi * max(0, n . beta(x))`:
+//! with `E = Phi n . beta(x)` the irradiance that the light sends to the surface point, an image
+//! value is `I = rho E`, the albedo times the irradiance. For a Lambertian surface of reflectance
+//! `rho` the exitance (radiosity) is `B = rho E` and the radiance is `L = B / pi`, the same in
+//! every direction: the image value is the exitance, and the radiance of facet `j` under light
+//! `k` is `L_jk = I_jk / pi`.
+//!
+//! A small facet `j` (centre `x_j`, unit normal `n_j`, area `A_j`) of radiance `L_j` gives the
+//! point `x_i` with normal `n_i` the irradiance
+//!
+//! ```text
+//! dE_ij = L_j A_j cos_i cos_j / r^2 = n_i . (L_j A_j cos_j / r^2 d_ij),
+//! d_ij = (x_j - x_i) / r,  r = |x_j - x_i|,  cos_i = n_i . d_ij,  cos_j = -n_j . d_ij,
+//! ```
+//!
+//! when both face each other (`cos_i > 0`, `cos_j > 0`) and the segment between them is not
+//! blocked by the surface (`vis_ij`). Summed over the facets, the irradiance at facet `i` under
+//! light `k` is `n_i . (Phi_k beta_k(x_i) + V_ik)`, and the image model with indirect light
+//! stays linear in the scaled normal `b = rho n`:
+//!
+//! ```text
+//! I_ik = b_i . (s_ik + V_ik),   s_ik = Phi_k beta_k(x_i),
+//! V_ik = sum_j I_jk w_ij,       w_ij = vis_ij A_j cos_j / (pi r_ij^2) d_ij,
+//! ```
+//!
+//! the *irradiance vector* `V_ik` of facet `i` (the same units as `s_ik`). `n_i . w_ij` is the
+//! point-to-facet form factor `F_ij = A_j cos_i cos_j / (pi r^2)`, and the reciprocity
+//! `A_i F_ij = A_j F_ji` holds for every pair. Gathering the **observed** images `I_jk`, which
+//! hold all the light that facet `j` sends (its direct light and its own indirect light), gives
+//! all the bounces at once, with no iteration over bounces; it assumes Lambertian emitters (with a
+//! glossy model, emit the modelled diffuse part instead) and misses the light of surfaces that
+//! the image does not show (outside the mask or the image, or hidden from the camera).
+//!
+//! `V` is linear in the observations and assumes the rig's intensities in the units that make the
+//! albedo the reflectance (a white facet facing a unit light at unit distance images to 1). When
+//! the fitted albedo is `g` times the reflectance (intensities known up to a factor), the
+//! indirect term of the model is `V / g`: pass the observations divided by `g`.
+//!
+//! ## Near pairs
+//!
+//! The point formula is accurate when the facets are small beside their distance; next to a
+//! crease it is not (a facet and its neighbour across a 90-degree groove: +4 %). For pairs nearer
+//! than [`NEAR`] facet sizes (`r^2 < NEAR^2 max(A_i, A_j)`), `w_ij` is instead the mean, over
+//! [`SUBDIVISIONS`]² points `y_a` of the receiver (the centres of its bilinear sub-facets), of the
+//! emitter's exact vector
+//!
+//! ```text
+//! (1 / pi) int_{A_j} cos_j d / r^2 dA = (1 / (2 pi)) sum_e theta_e g_e
+//! ```
+//!
+//! (Lambert's formula for a polygon, Arvo 1994: `theta_e` the angle that edge `e` of the quad
+//! subtends at `y_a`, `g_e` the unit normal of the plane through `y_a` and the edge, oriented
+//! towards the quad; exact for any surface spanned by the quad's 4 straight edges, e.g. its
+//! bilinear patch, seen wholly from the front). Points `y_a` behind the emitter's plane get
+//! nothing. The two directions of a pair are two quadratures of one double integral,
+//! `A_i F_ij` and `A_j F_ji` (they differ by 0.2 % in the median on a bowl, more for twisted
+//! quads): each vector is rescaled so that both equal their mean, which keeps the reciprocity
+//! exact; a near pair with a form factor that is not positive in either direction is dropped.
+//!
+//! ## Visibility
+//!
+//! The facets are the pixels of an (H+1) x (W+1) vertex mesh seen by the camera (a height field:
+//! every point of space nearer the camera than the surface along its camera ray is free). Facets
+//! `i` and `j` see each other when they face each other at their centres
+//! (`n_i . (x_j - x_i) > COS_MIN r` and `n_j . (x_i - x_j) > COS_MIN r`, [`COS_MIN`]) and the
+//! segment between the centres stays in front of the surface: sampled half a pixel apart in the
+//! image as the shadow march of [`crate::shadow`] does (the perspective-correct point of image
+//! parameter `s`, projected with the camera's distortion; without distortion the image point is
+//! interpolated on the line between the projected ends and the depth is `1 / ((1 - s) / z_i +
+//! s / z_j)`, pinhole, or linear, orthographic), it is blocked at the first sample
+//! where the bilinear surface depth is nearer than the segment's,
+//! `z_surface < z(s) - (1e-6 |z(s)| + 1e-3 sqrt(max(A_i, A_j)))`. Samples in the two end pixels
+//! are not tested (a planar facet does not hide what it faces), and samples over pixels outside
+//! the mask or with a non-finite corner neither block nor end the march (the surface there is
+//! unknown). Visibility is symmetric: each unordered pair is marched once.
+//!
+//! ## Cost and memory
+//!
+//! With `F` masked facets (e.g. `F <= 64^2` on a coarse level of the pyramid), building tests
+//! the `F (F - 1) / 2` unordered pairs (facing test: a few flops each) and marches the facing
+//! ones, `O(D)` samples each (`D` the image diagonal in pixels): `O(F^2 D)` time in the worst
+//! case, `O(F^2)` on surfaces where few pairs face each other, parallel over the facets. Near
+//! pairs cost `2 S^2` = 32 evaluations of the edge formula each, `O(F NEAR^2)` of them. It is
+//! computed once per geometry.
+//!
+//! The pairs are stored sparsely, by receiver (compressed rows): a `u32` source facet and the
+//! weight vector as 3 `f32`, [`BYTES_PER_PAIR`] = 16 bytes per directed pair (each facing, visible
+//! unordered pair gives two), plus 8 bytes per pixel of row offsets and 56 bytes per pixel of
+//! facet geometry. While building, the unordered pairs are also held in per-row lists
+//! (28 bytes each, 14 per directed pair): the peak is about 30 bytes per directed pair. The dense
+//! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
+//! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
+//! with an error that names the cap beyond it (use a coarser grid, or raise the cap).
+//!
+//! The pass over the lights ([`Exchange::irradiance`]) costs `O(P k C)` multiply-adds for `P`
+//! directed pairs, `k` lights and `C` channels, parallel over the receivers; it holds the
+//! observations transposed to facet-major order (`4 F k C` bytes) and the result (`24 H W k C`
+//! bytes, and as much again while it is reordered).
+//!
+//! Measured (test `timings`, 2 busy cores, release): the benchmark's bowl at 64² pixels, 1492
+//! facets in its mask, all of which see each other: 2.2 M directed pairs (36 MB), built in
+//! 0.9-1.2 s (the march is 3/4 of it); a pass of 16 lights 0.03 s. At 32² (356 facets): 126 k
+//! pairs, 0.07-0.1 s, 0.002 s.
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+
+use crate::error::{ensure_shape, ensure_usable, Error, Result};
+use crate::rig::Camera;
+use crate::shadow::March;
+use crate::vec3::{cross, dot, norm, not_above, sub};
+
+/// Pairs nearer than `NEAR` facet sizes (`r^2 < NEAR^2 max(A_i, A_j)`) get the subdivided
+/// (area-averaged) weight instead of the point formula.
+pub const NEAR: f64 = 4.0;
+
+/// Receiver points per side of a facet in the weight of a near pair (`SUBDIVISIONS`² points).
+pub const SUBDIVISIONS: usize = 4;
+
+/// Smallest cosine at both centres for a pair to count as facing.
+pub const COS_MIN: f64 = 1e-6;
+
+/// Bytes of one stored directed pair: a `u32` source facet and 3 `f32` weights.
+pub const BYTES_PER_PAIR: usize = 16;
+
+/// Default cap on the stored directed pairs (4 M, 67 MB).
+pub const DEFAULT_MAX_PAIRS: usize = 1 << 22;
+
+/// The geometry of a facet: centre, unit normal, area, corners.
+#[derive(Debug, Clone, Copy)]
+struct Facet {
+    centre: [f64; 3],
+    normal: [f64; 3],
+    area: f64,
+    corners: [[f64; 3]; 4],
+}
+
+/// The exchange of light between the facets of a mesh: per receiver facet, the facets it sees
+/// and their weight vectors `w_ij` (see the module documentation), stored by receiver.
+#[derive(Debug, Clone)]
+pub struct Exchange {
+    height: usize,
+    width: usize,
+    /// Per pixel `p`: its pairs are `offsets[p]..offsets[p + 1]`.
+    offsets: Vec<usize>,
+    /// The source (emitter) pixel of each pair, increasing within a row.
+    sources: Vec<u32>,
+    /// The weight vector `w_ij` of each pair.
+    weights: Vec<[f32; 3]>,
+    /// Per pixel: centre, unit normal and area (NaN outside the mask or the finite vertices).
+    facets: Vec<([f64; 3], [f64; 3], f64)>,
+}
+
+impl Exchange {
+    /// The exchange between the facets (pixels) of `mask` (H x W; None: all) of the mesh with
+    /// the vertex positions `vertices` ((H+1) x (W+1), camera frame, as [`crate::vertices`]
+    /// makes them; facets with a non-finite corner take no part), seen by `camera`. At most
+    /// `max_pairs` directed pairs (None: [`DEFAULT_MAX_PAIRS`]); more is an error that names
+    /// the cap.
+    pub fn new(
+        camera: &Camera,
+        height: usize,
+        width: usize,
+        vertices: &[[f64; 3]],
+        mask: Option<&[bool]>,
+        max_pairs: Option<usize>,
+    ) -> Result<Exchange> {
+        let plane = height * width;
+        ensure_usable(plane > 0, || "the mesh has no facets".to_string())?;
+        ensure_shape(
+            "vertices",
+            (height + 1) * (width + 1),
+            vertices.len(),
+            || {
+                format!(
+                    "vertices has {} positions, expected (W+1) x (H+1) = {} x {}",
+                    vertices.len(),
+                    width + 1,
+                    height + 1
+                )
+            },
+        )?;
+        if let Some(m) = mask {
+            ensure_shape("mask", plane, m.len(), || {
+                format!("mask has {} values, expected H x W = {plane}", m.len())
+            })?;
+        }
+        let max_pairs = max_pairs.unwrap_or(DEFAULT_MAX_PAIRS);
+        let march = March {
+            camera,
+            height,
+            width,
+            vertices,
+            mask,
+            z_min: f64::NEG_INFINITY,
+            max_steps: usize::MAX / 4,
+            pyramid: None,
+        };
+        let geometry: Vec<Option<Facet>> = crate::memory::try_par_collect(
+            (0..plane).into_par_iter().map(|p| {
+                let (centre, normal, _) = march.facet(p)?;
+                let q = march.quad(p / width, p % width);
+                let area = 0.5 * norm(cross(sub(q[2], q[1]), sub(q[3], q[0])));
+                (area > 0.0 && normal.iter().all(|x| x.is_finite())).then_some(Facet {
+                    centre,
+                    normal,
+                    area,
+                    corners: q,
+                })
+            }),
+            "the facets of the light exchange",
+        )?;
+        let projected: Vec<[f64; 2]> = crate::memory::try_par_collect(
+            geometry.par_iter().map(|f| match f {
+                Some(f) => camera.project(f.centre),
+                None => [f64::NAN; 2],
+            }),
+            "the facets of the light exchange",
+        )?;
+
+        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji).
+        let count = AtomicUsize::new(0);
+        let over = AtomicBool::new(false);
+        type Row = Vec<(u32, [f32; 3], [f32; 3])>;
+        let rows: Vec<Row> = (0..plane)
+            .into_par_iter()
+            .with_max_len(1)
+            .map(|i| {
+                let mut row = Row::new();
+                if over.load(Ordering::Relaxed) {
+                    return row;
+                }
+                let Some(fi) = geometry[i] else {
+                    return row;
+                };
+                for (j, fj) in geometry.iter().enumerate().skip(i + 1) {
+                    let Some(fj) = fj else { continue };
+                    let d = sub(fj.centre, fi.centre);
+                    let r = norm(d);
+                    if !(dot(fi.normal, d) > COS_MIN * r && -dot(fj.normal, d) > COS_MIN * r) {
+                        continue;
+                    }
+                    let tol = 1e-3 * fi.area.max(fj.area).sqrt();
+                    if !visible(&march, (i, &fi, projected[i]), (j, fj, projected[j]), tol) {
+                        continue;
+                    }
+                    let Some((wij, wji)) = pair_weights(&fi, fj) else {
+                        continue;
+                    };
+                    row.push((j as u32, wij.map(|x| x as f32), wji.map(|x| x as f32)));
+                }
+                if count.fetch_add(2 * row.len(), Ordering::Relaxed) + 2 * row.len() > max_pairs {
+                    over.store(true, Ordering::Relaxed);
+                }
+                row
+            })
+            .collect();
+        let total = count.load(Ordering::Relaxed);
+        if over.load(Ordering::Relaxed) {
+            return Err(Error::Unusable(format!(
+                "the light exchange of {} facets has more than max_pairs = {max_pairs} directed \
+                 pairs of facets that see each other ({} bytes each): use a coarser grid or raise \
+                 the cap",
+                geometry.iter().flatten().count(),
+                BYTES_PER_PAIR
+            )));
+        }
+        crate::memory::check(
+            || format!("the light exchange of {total} pairs of facets"),
+            (BYTES_PER_PAIR * total + 8 * (plane + 1)) as f64,
+            None,
+        )?;
+
+        // Compressed rows by receiver: row p holds the pairs of earlier rows (i < p, in order),
+        // then its own (j > p, in order).
+        let mut offsets = crate::memory::try_vec(plane + 1, 0usize, "the light exchange")?;
+        for (i, row) in rows.iter().enumerate() {
+            offsets[i + 1] += row.len();
+            for &(j, _, _) in row {
+                offsets[j as usize + 1] += 1;
+            }
+        }
+        for p in 0..plane {
+            offsets[p + 1] += offsets[p];
+        }
+        let mut sources = crate::memory::try_vec(total, 0u32, "the light exchange")?;
+        let mut weights = crate::memory::try_vec(total, [0f32; 3], "the light exchange")?;
+        let mut next: Vec<usize> = offsets[..plane].to_vec();
+        for (i, row) in rows.into_iter().enumerate() {
+            for (j, wij, wji) in row {
+                let j = j as usize;
+                sources[next[i]] = j as u32;
+                weights[next[i]] = wij;
+                next[i] += 1;
+                sources[next[j]] = i as u32;
+                weights[next[j]] = wji;
+                next[j] += 1;
+            }
+        }
+        let facets = geometry
+            .iter()
+            .map(|f| match f {
+                Some(f) => (f.centre, f.normal, f.area),
+                None => ([f64::NAN; 3], [f64::NAN; 3], f64::NAN),
+            })
+            .collect();
+        Ok(Exchange {
+            height,
+            width,
+            offsets,
+            sources,
+            weights,
+            facets,
+        })
+    }
+
+    /// Image height H (facet rows).
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Image width W (facet columns).
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Number of stored directed pairs.
+    pub fn pairs(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Bytes held: [`BYTES_PER_PAIR`] per pair, the row offsets and the facet geometry.
+    pub fn bytes(&self) -> usize {
+        BYTES_PER_PAIR * self.pairs()
+            + std::mem::size_of::<usize>() * self.offsets.len()
+            + std::mem::size_of::<([f64; 3], [f64; 3], f64)>() * self.facets.len()
+    }
+
+    /// The pairs of receiver pixel `p`: (source pixel `j`, weight vector `w_pj`), by increasing
+    /// `j`.
+    pub fn pairs_of(&self, p: usize) -> impl Iterator<Item = (usize, [f32; 3])> + '_ {
+        let range = self.offsets[p]..self.offsets[p + 1];
+        self.sources[range.clone()]
+            .iter()
+            .zip(&self.weights[range])
+            .map(|(&j, &w)| (j as usize, w))
+    }
+
+    /// Centre, unit normal and area of facet (pixel) `p` (NaN where it takes no part).
+    pub fn facet(&self, p: usize) -> ([f64; 3], [f64; 3], f64) {
+        self.facets[p]
+    }
+
+    /// The indirect irradiance vectors `V_ik = sum_j I_jk w_ij` of every pixel under every light
+    /// from the observations `observed`, (k, H, W, C) with `C = channels` (the layout of an
+    /// image stack). Non-finite observations emit nothing. The result has the same layout,
+    /// one vector per value: (k, H, W, C); zero at pixels that see no other facet.
+    pub fn irradiance(
+        &self,
+        observed: &[f32],
+        lights: usize,
+        channels: usize,
+    ) -> Result<Vec<[f64; 3]>> {
+        let plane = self.height * self.width;
+        let kc = lights * channels;
+        ensure_shape("observations", plane * kc, observed.len(), || {
+            format!(
+                "observations has {} values, expected k x H x W x C = {lights} x {} x {} x \
+                 {channels}",
+                observed.len(),
+                self.height,
+                self.width
+            )
+        })?;
+        crate::memory::check(
+            || format!("the indirect light of {lights} lights on {plane} facets"),
+            (plane * kc) as f64 * (4.0 + 24.0 + 24.0),
+            None,
+        )?;
+        // Facet-major observations: (H W, k C).
+        let mut emit = crate::memory::try_vec(plane * kc, 0f32, "the emitted light")?;
+        if kc > 0 {
+            emit.par_chunks_mut(kc).enumerate().for_each(|(p, row)| {
+                for k in 0..lights {
+                    for ch in 0..channels {
+                        let v = observed[(k * plane + p) * channels + ch];
+                        row[k * channels + ch] = if v.is_finite() { v } else { 0.0 };
+                    }
+                }
+            });
+        }
+        let mut gathered = crate::memory::try_vec(plane * kc, [0f64; 3], "the indirect light")?;
+        if kc > 0 {
+            gathered
+                .par_chunks_mut(kc)
+                .enumerate()
+                .for_each(|(p, acc)| {
+                    for (j, w) in self.pairs_of(p) {
+                        let w = w.map(f64::from);
+                        for (a, &e) in acc.iter_mut().zip(&emit[j * kc..(j + 1) * kc]) {
+                            let e = f64::from(e);
+                            a[0] += e * w[0];
+                            a[1] += e * w[1];
+                            a[2] += e * w[2];
+                        }
+                    }
+                });
+        }
+        drop(emit);
+        let mut out = crate::memory::try_vec(plane * kc, [0f64; 3], "the indirect light")?;
+        if kc > 0 {
+            out.par_chunks_mut(plane * channels)
+                .enumerate()
+                .for_each(|(k, image)| {
+                    for (p, values) in image.chunks_mut(channels).enumerate() {
+                        let src = &gathered[p * kc + k * channels..p * kc + (k + 1) * channels];
+                        values.copy_from_slice(src);
+                    }
+                });
+        }
+        Ok(out)
+    }
+}
+
+/// Whether the segment between the centres of facets `a` and `b` (pixel, facet, projected
+/// centre) stays in front of the surface (see the module documentation).
+fn visible(
+    march: &March<'_>,
+    (pa, fa, ma): (usize, &Facet, [f64; 2]),
+    (pb, fb, mb): (usize, &Facet, [f64; 2]),
+    tol: f64,
+) -> bool {
+    let (c, e) = (fa.centre, fb.centre);
+    let length = (mb[0] - ma[0]).hypot(mb[1] - ma[1]);
+    if !length.is_finite() {
+        return true;
+    }
+    let total = (2.0 * length).ceil().max(1.0);
+    let steps = total as usize;
+    let d = sub(e, c);
+    let perspective = march.camera.is_perspective();
+    let undistorted = match *march.camera {
+        Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+        Camera::Orthographic { .. } => true,
+    };
+    let width = march.width;
+    for i in 1..steps {
+        let s = i as f64 / total;
+        // The sample of image parameter s: without distortion its image point is on the line
+        // between the projected ends and its depth is harmonic (pinhole) or linear in s.
+        let (u, v, z) = if undistorted {
+            let z = if perspective {
+                1.0 / ((1.0 - s) / c[2] + s / e[2])
+            } else {
+                c[2] + s * d[2]
+            };
+            (ma[0] + s * (mb[0] - ma[0]), ma[1] + s * (mb[1] - ma[1]), z)
+        } else {
+            let w = if perspective {
+                s * c[2] / ((1.0 - s) * e[2] + s * c[2])
+            } else {
+                s
+            };
+            let x = [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]];
+            let [u, v] = march.camera.project(x);
+            (u, v, x[2])
+        };
+        let (gx, gy) = (u + 0.5, v + 0.5);
+        if !(gx >= 0.0 && gy >= 0.0) {
+            continue;
+        }
+        let cell = (gy as usize).min(march.height.saturating_sub(1)) * width
+            + (gx as usize).min(width.saturating_sub(1));
+        if cell == pa || cell == pb {
+            continue;
+        }
+        let Some(z_surface) = march.surface_depth(gx, gy) else {
+            continue;
+        };
+        if z_surface < z - (1e-6 * z.abs() + tol) {
+            return false;
+        }
+    }
+    true
+}
+
+/// The weight vectors `(w_ij, w_ji)` of a facing pair (see the module documentation): the point
+/// formula, or for a near pair the two quadratures made reciprocal; None when a near pair's
+/// form factor is not positive.
+fn pair_weights(fi: &Facet, fj: &Facet) -> Option<([f64; 3], [f64; 3])> {
+    let (wij, wji) = raw_pair_weights(fi, fj);
+    if !is_near(fi, fj) {
+        return Some((wij, wji));
+    }
+    // A_i F_ij and A_j F_ji: two estimates of the same double integral; both take their mean.
+    let (a, b) = (fi.area * dot(fi.normal, wij), fj.area * dot(fj.normal, wji));
+    if !(a > 0.0 && b > 0.0) {
+        return None;
+    }
+    let mean = 0.5 * (a + b);
+    Some((wij.map(|x| x * mean / a), wji.map(|x| x * mean / b)))
+}
+
+/// Whether a pair is near: `r^2 < NEAR^2 max(A_i, A_j)`.
+fn is_near(fi: &Facet, fj: &Facet) -> bool {
+    let d = sub(fj.centre, fi.centre);
+    dot(d, d) < NEAR * NEAR * fi.area.max(fj.area)
+}
+
+/// The weight vectors before the near pairs are made reciprocal.
+fn raw_pair_weights(fi: &Facet, fj: &Facet) -> ([f64; 3], [f64; 3]) {
+    if !is_near(fi, fj) {
+        let (wij, wji) = point_kernel(fi.centre, fi.normal, fj.centre, fj.normal);
+        (wij.map(|x| x * fj.area), wji.map(|x| x * fi.area))
+    } else {
+        (near_weight(fi, fj), near_weight(fj, fi))
+    }
+}
+
+/// `w_ij` of a near pair: the mean over the receiver's sub-points `y_a` (in front of the
+/// emitter's plane) of the emitter quad's vector `(1 / pi) int d dw` by Lambert's edge formula.
+fn near_weight(receiver: &Facet, emitter: &Facet) -> [f64; 3] {
+    let q = emitter.corners;
+    let mut w = [0.0; 3];
+    for y in sub_points(&receiver.corners) {
+        if not_above(dot(emitter.normal, sub(y, emitter.centre)), 0.0) {
+            continue;
+        }
+        let v = polygon_vector(y, [q[0], q[1], q[3], q[2]]);
+        for c in 0..3 {
+            w[c] += v[c];
+        }
+    }
+    let s = (SUBDIVISIONS * SUBDIVISIONS) as f64;
+    w.map(|x| x / s)
+}
+
+/// `(1 / pi) int d dw` over the solid angle of the closed polygon `p` (straight edges) seen
+/// from `y`, `d` the unit direction: Lambert's formula `1 / (2 pi) sum_e theta_e g_e`, with
+/// `theta_e` the angle that edge `e` subtends at `y` and `g_e` the unit normal of the plane
+/// through `y` and the edge, oriented towards the polygon (Arvo 1994). Exact for any surface
+/// spanned by the polygon that stays in front of `y`.
+fn polygon_vector(y: [f64; 3], p: [[f64; 3]; 4]) -> [f64; 3] {
+    let v = p.map(|x| sub(x, y));
+    let mut sum = [0.0; 3];
+    for e in 0..4 {
+        let (a, b) = (v[e], v[(e + 1) % 4]);
+        let g = cross(a, b);
+        let len = norm(g);
+        if not_above(len, 0.0) {
+            continue;
+        }
+        let theta = crate::vec3::angle(a, b);
+        for c in 0..3 {
+            sum[c] += theta * g[c] / len;
+        }
+    }
+    // The winding decides the sign: the vector points towards the polygon.
+    let towards = v.iter().fold([0.0; 3], |acc, x| crate::vec3::add(acc, *x));
+    let sign = if dot(sum, towards) < 0.0 { -1.0 } else { 1.0 };
+    sum.map(|x| sign * x / (2.0 * std::f64::consts::PI))
+}
+
+/// Per unit emitter area, between the points `a` (normal `na`) and `b` (normal `nb`): the
+/// irradiance vectors `max(0, cos_b) d / (pi r^2)` at `a` from `b` and `max(0, cos_a) (-d) /
+/// (pi r^2)` at `b` from `a` (`d = (b - a) / r`), each zero when the receiver turns away.
+#[inline]
+fn point_kernel(a: [f64; 3], na: [f64; 3], b: [f64; 3], nb: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+    let d = sub(b, a);
+    let r2 = dot(d, d);
+    let (ca, cb) = (dot(na, d), -dot(nb, d));
+    if !(ca > 0.0 && cb > 0.0 && r2 > 0.0) {
+        return ([0.0; 3], [0.0; 3]);
+    }
+    // cos_b / r * d / r / (pi r^2) = cb d / (pi r^4).
+    let f = 1.0 / (std::f64::consts::PI * r2 * r2);
+    (d.map(|x| x * cb * f), d.map(|x| -x * ca * f))
+}
+
+/// The centres of the `SUBDIVISIONS`² bilinear sub-facets of a quad (corners 00, 01, 10, 11).
+fn sub_points(q: &[[f64; 3]; 4]) -> [[f64; 3]; SUBDIVISIONS * SUBDIVISIONS] {
+    std::array::from_fn(|t| {
+        let (a, b) = (t / SUBDIVISIONS, t % SUBDIVISIONS);
+        let fy = (a as f64 + 0.5) / SUBDIVISIONS as f64;
+        let fx = (b as f64 + 0.5) / SUBDIVISIONS as f64;
+        std::array::from_fn(|c| {
+            (1.0 - fy) * ((1.0 - fx) * q[0][c] + fx * q[1][c])
+                + fy * ((1.0 - fx) * q[2][c] + fx * q[3][c])
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::Camera;
+
+    fn ortho() -> Camera {
+        Camera::Orthographic {
+            pixel_size: [1.0, 1.0],
+            origin: [0.0, 0.0],
+        }
+    }
+
+    fn pinhole(n: usize, f: f64) -> Camera {
+        let c = (n as f64 - 1.0) / 2.0;
+        Camera::Pinhole {
+            k: [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        }
+    }
+
+    /// Vertex depths (n+1) x (n+1) from a function of the vertex (row, column).
+    fn depths(n: usize, f: impl Fn(f64, f64) -> f64) -> Vec<f64> {
+        (0..(n + 1) * (n + 1))
+            .map(|v| f((v / (n + 1)) as f64, (v % (n + 1)) as f64))
+            .collect()
+    }
+
+    /// A V-groove along the rows, orthographic 1-unit pixels: depth `z0 + slope (m - |c - m|)`
+    /// (deepest at vertex column m = n / 2), the walls at `atan(slope)` from the image plane.
+    fn groove(n: usize, slope: f64) -> Vec<f64> {
+        let m = (n / 2) as f64;
+        depths(n, |_, c| 100.0 + slope * (m - (c - m).abs()))
+    }
+
+    #[test]
+    fn a_plane_exchanges_nothing() {
+        let n = 24;
+        for (camera, depth) in [
+            (ortho(), depths(n, |_, _| 100.0)),
+            (ortho(), depths(n, |r, c| 100.0 + 0.3 * c - 0.2 * r)),
+            (pinhole(n, 40.0), depths(n, |_, _| 500.0)),
+        ] {
+            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+            assert_eq!(x.pairs(), 0);
+            let obs = vec![1.0f32; 3 * n * n];
+            let vi = x.irradiance(&obs, 3, 1).unwrap();
+            assert!(vi.iter().all(|w| *w == [0.0; 3]));
+        }
+    }
+
+    /// Two far facets on the walls of a groove (the only ones in the mask): the weight is the
+    /// point-to-point formula, `n_i . w_ij = A_j cos_i cos_j / (pi r^2)`, its direction towards
+    /// the emitter, and V is the observation times it.
+    #[test]
+    fn two_facing_facets_give_the_point_form_factor() {
+        let n = 32;
+        let slope = 1.5;
+        let depth = groove(n, slope);
+        let camera = ortho();
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let (pi, pj) = (10 * n + 2, 14 * n + 29);
+        let mut mask = vec![false; n * n];
+        mask[pi] = true;
+        mask[pj] = true;
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        assert_eq!(x.pairs(), 2);
+        let (ci, ni, ai) = x.facet(pi);
+        let (cj, nj, aj) = x.facet(pj);
+        // The walls: normals (+-slope, 0, -1) / |.|, areas sqrt(1 + slope^2).
+        let s = (1.0 + slope * slope).sqrt();
+        assert!((ai - s).abs() < 1e-12 && (aj - s).abs() < 1e-12);
+        assert!((ni[0] - slope / s).abs() < 1e-12 && (nj[0] + slope / s).abs() < 1e-12);
+        let d = sub(cj, ci);
+        let r = norm(d);
+        let (cos_i, cos_j) = (dot(ni, d) / r, -dot(nj, d) / r);
+        let f_ij = aj * cos_i * cos_j / (std::f64::consts::PI * r * r);
+        let f_ji = ai * cos_i * cos_j / (std::f64::consts::PI * r * r);
+        let (j, w) = x.pairs_of(pi).next().unwrap();
+        assert_eq!(j, pj);
+        let w = w.map(f64::from);
+        assert!(
+            (dot(ni, w) / f_ij - 1.0).abs() < 1e-6,
+            "{} {f_ij}",
+            dot(ni, w)
+        );
+        assert!((norm(w) * r / dot(w, d) - 1.0).abs() < 1e-6);
+        let (i, w) = x.pairs_of(pj).next().unwrap();
+        assert_eq!(i, pi);
+        assert!((dot(nj, w.map(f64::from)) / f_ji - 1.0).abs() < 1e-6);
+        // V at pi under 2 lights: 3 and 5 times the weight; nothing at pixels without pairs.
+        let mut obs = vec![0f32; 2 * n * n];
+        obs[pj] = 3.0;
+        obs[n * n + pj] = 5.0;
+        let vi = x.irradiance(&obs, 2, 1).unwrap();
+        let (j, w) = x.pairs_of(pi).next().unwrap();
+        assert_eq!(j, pj);
+        for (k, e) in [(0, 3.0), (1, 5.0)] {
+            for c in 0..3 {
+                assert!((vi[k * n * n + pi][c] - e * f64::from(w[c])).abs() < 1e-12);
+            }
+        }
+        assert!(vi[pj] == [0.0; 3] && vi[n * n + 5] == [0.0; 3]);
+    }
+
+    /// Colour: V has the layout of the stack, (k, H, W, C), each channel gathered from the
+    /// same channel; non-finite observations emit nothing.
+    #[test]
+    fn channels_keep_the_stack_layout() {
+        let n = 16;
+        let camera = ortho();
+        let v = crate::render::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
+        let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+        let (lights, channels) = (2, 3);
+        let value = |k: usize, p: usize, ch: usize| (1 + k * 7 + ch * 3) as f32 + p as f32 / 100.0;
+        let mut obs = vec![0f32; lights * n * n * channels];
+        for k in 0..lights {
+            for p in 0..n * n {
+                for ch in 0..channels {
+                    obs[(k * n * n + p) * channels + ch] = value(k, p, ch);
+                }
+            }
+        }
+        obs[(n * n + 8 * n + 9) * channels + 2] = f32::NAN;
+        let vi = x.irradiance(&obs, lights, channels).unwrap();
+        for p in [8 * n + 4, 3 * n + 12] {
+            for k in 0..lights {
+                for ch in 0..channels {
+                    let mut expected = [0.0; 3];
+                    for (j, w) in x.pairs_of(p) {
+                        let e = if (k, j, ch) == (1, 8 * n + 9, 2) {
+                            0.0
+                        } else {
+                            f64::from(value(k, j, ch))
+                        };
+                        for c in 0..3 {
+                            expected[c] += e * f64::from(w[c]);
+                        }
+                    }
+                    let got = vi[(k * n * n + p) * channels + ch];
+                    assert!(norm(expected) > 0.0);
+                    assert!(
+                        norm(sub(got, expected)) < 1e-9 * norm(expected),
+                        "{p} {k} {ch}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Brute-force irradiance vector at the point `y` with normal `ny` from the planar wall
+    /// `origin + s a + t b` (`0 <= s, t <= 1`, normal `nw`) of uniform radiance 1 / pi (an image
+    /// value of 1): `q x q` midpoint samples.
+    fn wall_irradiance(
+        y: [f64; 3],
+        ny: [f64; 3],
+        (origin, a, b, nw): ([f64; 3], [f64; 3], [f64; 3], [f64; 3]),
+        q: usize,
+    ) -> [f64; 3] {
+        let area = norm(cross(a, b)) / (q * q) as f64;
+        let mut e = [0.0; 3];
+        for u in 0..q {
+            for v in 0..q {
+                let (s, t) = ((u as f64 + 0.5) / q as f64, (v as f64 + 0.5) / q as f64);
+                let z: [f64; 3] = std::array::from_fn(|c| origin[c] + s * a[c] + t * b[c]);
+                let (w, _) = point_kernel(y, ny, z, nw);
+                for c in 0..3 {
+                    e[c] += area * w[c];
+                }
+            }
+        }
+        e
+    }
+
+    /// A V-groove lit uniformly (every facet an image value of 1): V at facets of the left
+    /// wall equals the irradiance vector of the right wall (a planar rectangle of uniform
+    /// radiance 1 / pi), integrated by brute force and averaged over the receiver facet.
+    #[test]
+    fn a_groove_matches_the_integrated_irradiance_of_the_opposite_wall() {
+        let n = 32;
+        let half = n / 2;
+        for slope in [1.0, 2.0] {
+            let depth = groove(n, slope);
+            let camera = ortho();
+            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+            let vi = x.irradiance(&vec![1f32; n * n], 1, 1).unwrap();
+            // The right wall: vertex columns m..n, rows 0..n.
+            let at = |r: usize, c: usize| v[r * (n + 1) + c];
+            let origin = at(0, half);
+            let a = sub(at(0, n), origin);
+            let b = sub(at(n, half), origin);
+            let nw = crate::vec3::normalize(cross(b, a));
+            assert!(nw[2] < 0.0 && nw[0] < 0.0);
+            let mut worst: f64 = 0.0;
+            for (r, c) in [
+                (16, 15),
+                (16, 14),
+                (16, 12),
+                (16, 8),
+                (16, 1),
+                (2, 10),
+                (0, 15),
+            ] {
+                let p = r * n + c;
+                let (_, ni, _) = x.facet(p);
+                // The reference averaged over the receiver facet (8 x 8 points).
+                let q = [at(r, c), at(r, c + 1), at(r + 1, c), at(r + 1, c + 1)];
+                let mut reference = [0.0; 3];
+                let m = 8;
+                for u in 0..m {
+                    for w in 0..m {
+                        let (fy, fx) = ((u as f64 + 0.5) / m as f64, (w as f64 + 0.5) / m as f64);
+                        let y: [f64; 3] = std::array::from_fn(|k| {
+                            (1.0 - fy) * ((1.0 - fx) * q[0][k] + fx * q[1][k])
+                                + fy * ((1.0 - fx) * q[2][k] + fx * q[3][k])
+                        });
+                        let e = wall_irradiance(y, ni, (origin, a, b, nw), 256);
+                        for k in 0..3 {
+                            reference[k] += e[k] / (m * m) as f64;
+                        }
+                    }
+                }
+                let (e, e_ref) = (dot(ni, vi[p]), dot(ni, reference));
+                let rel = (e / e_ref - 1.0).abs();
+                let angle = crate::vec3::angle(vi[p], reference);
+                println!(
+                    "groove slope {slope} facet ({r}, {c}): n.V {e:.5} reference {e_ref:.5} \
+                     ({:+.2} %), angle {:.3} deg",
+                    100.0 * (e / e_ref - 1.0),
+                    angle.to_degrees()
+                );
+                worst = worst.max(rel);
+                assert!(
+                    rel < 0.025,
+                    "slope {slope} facet ({r}, {c}): {e} vs {e_ref}"
+                );
+                assert!(angle.to_degrees() < 1.0, "{angle}");
+            }
+            assert!(worst > 0.0);
+        }
+    }
+
+    /// A wall raised at the bottom of a groove blocks two facets on opposite walls from each
+    /// other; facets high on the walls see over it. Orthographic and pinhole.
+    #[test]
+    fn a_wall_blocks_the_exchange() {
+        let n = 32;
+        let m = (n / 2) as f64;
+        for pinhole_camera in [false, true] {
+            let scale = if pinhole_camera { 10.0 } else { 1.0 };
+            let camera = if pinhole_camera {
+                pinhole(n, 100.0)
+            } else {
+                ortho()
+            };
+            let shape = |wall: f64| {
+                depths(n, move |_, c| {
+                    let z = 100.0 + 1.0 * (m - (c - m).abs());
+                    let raised = if (c - m).abs() <= 1.0 { wall } else { 0.0 };
+                    scale * (z - raised)
+                })
+            };
+            // Facets 5 columns either side of the bottom (depth about 111), and 14 columns
+            // out (depth about 102).
+            let row = 16;
+            let (low_l, low_r) = (row * n + 10, row * n + 21);
+            let (high_l, high_r) = (row * n + 1, row * n + 30);
+            let pair = |x: &Exchange, a: usize, b: usize| x.pairs_of(a).any(|(j, _)| j == b);
+            for (wall, blocked) in [(0.0, false), (12.0, true)] {
+                let v = crate::render::vertices(&camera, n, n, &shape(wall)).unwrap();
+                let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+                assert_eq!(
+                    pair(&x, low_l, low_r),
+                    !blocked,
+                    "wall {wall} {pinhole_camera}"
+                );
+                assert_eq!(
+                    pair(&x, low_r, low_l),
+                    !blocked,
+                    "wall {wall} {pinhole_camera}"
+                );
+                assert!(pair(&x, high_l, high_r), "wall {wall} {pinhole_camera}");
+            }
+        }
+    }
+
+    /// Reciprocity `A_i F_ij = A_j F_ji` (with `F_ij = n_i . w_ij`) for every pair, far and
+    /// near, on a bowl seen by a pinhole camera; the pairs come in both directions. Far pairs
+    /// are reciprocal by the formula, near pairs by construction (the two quadratures before it
+    /// are printed).
+    #[test]
+    fn reciprocity_holds_for_every_pair() {
+        let n = 24;
+        let camera = pinhole(n, 30.0);
+        let c = n as f64 / 2.0;
+        let depth = depths(n, |r, col| {
+            let q = ((r - c).powi(2) + (col - c).powi(2)) / (c * c);
+            500.0 + 150.0 * (1.0 - q).max(0.0)
+        });
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let mask: Vec<bool> = (0..n * n).map(|p| p % 7 != 3).collect();
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        assert!(x.pairs() > 10_000, "{}", x.pairs());
+        let march = March {
+            camera: &camera,
+            height: n,
+            width: n,
+            vertices: &v,
+            mask: None,
+            z_min: f64::NEG_INFINITY,
+            max_steps: 1,
+            pyramid: None,
+        };
+        let facet = |p: usize| {
+            let (centre, normal, area) = x.facet(p);
+            Facet {
+                centre,
+                normal,
+                area,
+                corners: march.quad(p / n, p % n),
+            }
+        };
+        let (mut checked, mut raw) = (0, Vec::new());
+        for i in 0..n * n {
+            let (_, ni, ai) = x.facet(i);
+            for (j, w) in x.pairs_of(i) {
+                let (_, nj, aj) = x.facet(j);
+                let (_, back) = x
+                    .pairs_of(j)
+                    .find(|&(k, _)| k == i)
+                    .expect("the reverse pair");
+                let (w, back) = (w.map(f64::from), back.map(f64::from));
+                let a = ai * dot(ni, w);
+                let b = aj * dot(nj, back);
+                assert!(a > 0.0 && b > 0.0, "{i} {j}: {a} {b}");
+                // f32 weights: the error is relative to |w|, not to n . w.
+                let scale = ai * norm(w) + aj * norm(back);
+                assert!((a - b).abs() <= 1e-6 * scale, "{i} {j}: {a} {b}");
+                let (fi, fj) = (facet(i), facet(j));
+                if is_near(&fi, &fj) && i < j {
+                    let (u, v) = raw_pair_weights(&fi, &fj);
+                    let (a, b) = (ai * dot(ni, u), aj * dot(nj, v));
+                    raw.push((a - b).abs() / (0.5 * (a + b)));
+                }
+                checked += 1;
+                assert!(mask[i] && mask[j]);
+            }
+        }
+        assert_eq!(checked, x.pairs());
+        // Conservation: the form factors of a receiver sum to at most 1 (its whole hemisphere).
+        let sums: Vec<f64> = (0..n * n)
+            .map(|i| {
+                let (_, ni, _) = x.facet(i);
+                x.pairs_of(i).map(|(_, w)| dot(ni, w.map(f64::from))).sum()
+            })
+            .collect();
+        let most = sums.iter().copied().fold(0.0, f64::max);
+        println!("the largest sum of form factors of a receiver: {most:.4}");
+        assert!(most > 0.2 && most < 1.0, "{most}");
+        raw.sort_by(f64::total_cmp);
+        println!(
+            "near pairs: {} of {}; before the mean, |A_i F_ij - A_j F_ji| / mean: median {:.2e}, \
+             90 % {:.2e}, max {:.2e}",
+            raw.len(),
+            checked / 2,
+            raw[raw.len() / 2],
+            raw[raw.len() * 9 / 10],
+            raw[raw.len() - 1]
+        );
+        assert!(raw.len() > 100);
+    }
+
+    #[test]
+    fn the_cap_and_the_shapes_are_checked() {
+        let n = 16;
+        let camera = ortho();
+        let v = crate::render::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
+        let err = Exchange::new(&camera, n, n, &v, None, Some(100)).unwrap_err();
+        assert!(err.to_string().contains("max_pairs = 100"), "{err}");
+        assert!(Exchange::new(&camera, n, n, &v[1..], None, None).is_err());
+        assert!(Exchange::new(&camera, n, n, &v, Some(&[true; 3]), None).is_err());
+        let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
+        assert!(x.irradiance(&[1.0; 7], 1, 1).is_err());
+        assert_eq!(x.bytes(), 16 * x.pairs() + 8 * (n * n + 1) + 56 * n * n);
+    }
+
+    /// The benchmark's bowl (benchmarks/pbr/render.py, `bowl_surface`) at n x n pixels: the
+    /// inside of a spherical cap, rim of radius 35 mm at 200 mm, 20 mm deep, pinhole camera
+    /// with f = 2 n; the mask is the pixels inside the rim facing the camera (cosine > 0.4).
+    fn benchmark_bowl(n: usize) -> (Camera, Vec<[f64; 3]>, Vec<bool>) {
+        let f = 2.0 * n as f64;
+        let c = (n as f64 - 1.0) / 2.0;
+        let camera = pinhole(n, f);
+        let (rim, radius_rim, depth_bowl) = (200.0, 35.0, 20.0);
+        let radius = (radius_rim * radius_rim + depth_bowl * depth_bowl) / (2.0 * depth_bowl);
+        let centre = [0.0, 0.0, rim + depth_bowl - radius];
+        let mut inside = vec![false; (n + 1) * (n + 1)];
+        let depth = depths(n, |r, col| {
+            let d = crate::vec3::normalize([(col - 0.5 - c) / f, (r - 0.5 - c) / f, 1.0]);
+            let b = dot(d, centre);
+            let disc = b * b - dot(centre, centre) + radius * radius;
+            let z = (b + disc.max(0.0).sqrt()) * d[2];
+            if disc > 0.0 && z >= rim {
+                z
+            } else {
+                rim
+            }
+        });
+        for (v, z) in depth.iter().enumerate() {
+            inside[v] = *z > rim;
+        }
+        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let mask = (0..n * n)
+            .map(|p| {
+                let w = (p / n) * (n + 1) + p % n;
+                let corners = [w, w + 1, w + n + 1, w + n + 2];
+                let q = corners.map(|i| v[i]);
+                let centre = crate::geometry::quad_centre(&q);
+                let normal = crate::geometry::quad_normal(&q);
+                corners.iter().all(|&i| inside[i])
+                    && -dot(normal, crate::vec3::normalize(centre)) > 0.4
+            })
+            .collect();
+        (camera, v, mask)
+    }
+
+    /// Inside a sphere of radius R the form factor from a point to a surface element is
+    /// `dA / (4 pi R^2)` (both cosines are `r / (2 R)`): on the benchmark's bowl (a spherical
+    /// cap, every facet seeing every other), each receiver's form factors sum to the area of
+    /// the other facets over `4 pi R^2`, and each pair's is `A_j / (4 pi R^2)`.
+    #[test]
+    fn a_spherical_bowl_gives_the_sphere_form_factors() {
+        let n = 48;
+        let (camera, v, mask) = benchmark_bowl(n);
+        let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
+        let facets = mask.iter().filter(|&&m| m).count();
+        assert_eq!(x.pairs(), facets * (facets - 1));
+        let radius = (35.0f64 * 35.0 + 20.0 * 20.0) / 40.0;
+        let sphere = 4.0 * std::f64::consts::PI * radius * radius;
+        let total: f64 = (0..n * n).filter(|&p| mask[p]).map(|p| x.facet(p).2).sum();
+        let (mut worst_sum, mut far, mut near): (f64, f64, Vec<f64>) = (0.0, 0.0, Vec::new());
+        for i in (0..n * n).filter(|&p| mask[p]) {
+            let (ci, ni, ai) = x.facet(i);
+            let mut sum = 0.0;
+            for (j, w) in x.pairs_of(i) {
+                let (cj, _, aj) = x.facet(j);
+                let f = dot(ni, w.map(f64::from));
+                let error = (f / (aj / sphere) - 1.0).abs();
+                let d = sub(cj, ci);
+                if dot(d, d) < NEAR * NEAR * ai.max(aj) {
+                    near.push(error);
+                } else {
+                    far = far.max(error);
+                }
+                sum += f;
+            }
+            worst_sum = worst_sum.max((sum / ((total - ai) / sphere) - 1.0).abs());
+        }
+        near.sort_by(f64::total_cmp);
+        println!(
+            "spherical bowl {n}x{n}, {facets} facets: sum of form factors within {:.3} %; each \
+             pair's against A_j / (4 pi R^2): far pairs within {:.2} %, near pairs median {:.2} \
+             %, max {:.2} %",
+            100.0 * worst_sum,
+            100.0 * far,
+            100.0 * near[near.len() / 2],
+            100.0 * near[near.len() - 1]
+        );
+        assert!(worst_sum < 0.005 && far < 0.05, "{worst_sum} {far}");
+        assert!(near[near.len() / 2] < 0.05, "{near:?}");
+    }
+
+    /// Timings at 64 x 64 facets, 16 lights, on the benchmark's bowl (pinhole):
+    /// `cargo test -p nplps --release --lib indirect::tests::timings -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timings"]
+    fn timings() {
+        for n in [32, 64] {
+            let (camera, v, mask) = benchmark_bowl(n);
+            let facets = mask.iter().filter(|&&m| m).count();
+            let lights = 16;
+            let obs: Vec<f32> = (0..lights * n * n)
+                .map(|i| (i % 97) as f32 / 97.0)
+                .collect();
+            let default = Exchange::new(&camera, n, n, &v, Some(&mask), None);
+            println!(
+                "indirect timing: {n}x{n} bowl, {facets} facets; default cap: {}",
+                match &default {
+                    Ok(x) => format!("{} pairs", x.pairs()),
+                    Err(e) => e.to_string(),
+                }
+            );
+            for _ in 0..2 {
+                let start = std::time::Instant::now();
+                let x = Exchange::new(&camera, n, n, &v, Some(&mask), Some(1 << 26)).unwrap();
+                let build = start.elapsed().as_secs_f64();
+                let mut pass = Vec::new();
+                for _ in 0..5 {
+                    let start = std::time::Instant::now();
+                    let vi = x.irradiance(&obs, lights, 1).unwrap();
+                    pass.push(start.elapsed().as_secs_f64());
+                    assert_eq!(vi.len(), lights * n * n);
+                }
+                pass.sort_by(f64::total_cmp);
+                println!(
+                    "indirect timing: {n}x{n} bowl, {facets} facets, {} threads: build {build:.3} \
+                     s, {} pairs ({:.1} % of F (F - 1), {:.1} MB), pass of {lights} lights \
+                     median {:.4} s (min {:.4})",
+                    rayon::current_num_threads(),
+                    x.pairs(),
+                    100.0 * x.pairs() as f64 / (facets * (facets - 1)) as f64,
+                    x.bytes() as f64 / 1e6,
+                    pass[2],
+                    pass[0]
+                );
+            }
+        }
+    }
+}
