@@ -154,6 +154,16 @@ pub(crate) fn ensure_shape(
     }
 }
 
+/// Checks that an optional per-pixel `mask` has `plane` (H x W) values.
+pub(crate) fn ensure_mask(mask: Option<&[bool]>, plane: usize) -> Result<()> {
+    match mask {
+        Some(m) => ensure_shape("mask", plane, m.len(), || {
+            format!("mask has {} values, expected H x W = {plane}", m.len())
+        }),
+        None => Ok(()),
+    }
+}
+
 /// Returns [`Error::OutOfRange`] for the parameter `name` unless `cond` holds.
 pub(crate) fn ensure_range(
     cond: bool,

@@ -112,7 +112,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_shape, ensure_usable, Error, Result};
+use crate::error::{ensure_mask, ensure_shape, ensure_usable, Error, Result};
 use crate::rig::Camera;
 use crate::shadow::March;
 use crate::vec3::{cross, dot, norm, not_above, sub};
@@ -187,11 +187,7 @@ impl Exchange {
                 )
             },
         )?;
-        if let Some(m) = mask {
-            ensure_shape("mask", plane, m.len(), || {
-                format!("mask has {} values, expected H x W = {plane}", m.len())
-            })?;
-        }
+        ensure_mask(mask, plane)?;
         let max_pairs = max_pairs.unwrap_or(DEFAULT_MAX_PAIRS);
         let march = March {
             camera,

@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_range, ensure_shape, Result};
+use crate::error::{ensure_mask, ensure_range, ensure_shape, Result};
 use crate::geometry::{quad_centre, quad_normal, Geometry};
 use crate::grid::Grid;
 use crate::light::{channel_intensity, Light};
@@ -63,11 +63,7 @@ impl Surface<'_> {
                 plane * channels
             )
         })?;
-        if let Some(m) = self.mask {
-            ensure_shape("mask", plane, m.len(), || {
-                format!("mask has {} values, expected H x W = {plane}", m.len())
-            })?;
-        }
+        ensure_mask(self.mask, plane)?;
         Ok(v)
     }
 }

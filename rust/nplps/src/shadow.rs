@@ -68,7 +68,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{ensure_range, ensure_shape, Result};
+use crate::error::{ensure_mask, ensure_range, Result};
 use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
 use crate::rig::{Camera, Rig};
@@ -208,11 +208,7 @@ pub fn cast_shadows(
     max_steps: Option<usize>,
 ) -> Result<ShadowMask> {
     let plane = height * width;
-    if let Some(m) = mask {
-        ensure_shape("mask", plane, m.len(), || {
-            format!("mask has {} values, expected H x W = {plane}", m.len())
-        })?;
-    }
+    ensure_mask(mask, plane)?;
     let vertices = crate::render::vertices(&rig.camera, height, width, depth)?;
     shadows_of_vertices(rig, height, width, &vertices, mask, max_steps)
 }
