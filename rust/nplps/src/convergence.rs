@@ -73,6 +73,45 @@ pub(crate) fn region_residuals(grid: &Grid, stats: &[FacetStat], channels: usize
         .collect()
 }
 
+/// Median over each region's fitted facets of the facet's RMS image residual
+/// `sqrt(sse / (used * channels))` (NaN for a region without one).
+///
+/// The distance search's criterion under the glossy model: there the RMS over all observations
+/// is ruled by the few facets whose fit fails (a highlight explained by a wrong normal), and its
+/// minimum wanders by several percent of the distance, while the median's stays at the true
+/// distance (measured on the PBR renders of `benchmarks/pbr`, see docs/method.md).
+pub(crate) fn region_median_residuals(
+    grid: &Grid,
+    stats: &[FacetStat],
+    channels: usize,
+) -> Vec<f64> {
+    let mut per: Vec<Vec<f64>> = vec![Vec::new(); grid.n_regions];
+    for (fit, ids) in stats
+        .iter()
+        .zip(&grid.facet_vertices)
+        .filter(|(f, _)| f.valid && f.used > 0)
+    {
+        let r = grid.region_of_unknown[ids[0] as usize] as usize;
+        per[r].push((fit.sse / (fit.used as usize * channels) as f64).sqrt());
+    }
+    per.into_iter().map(|mut v| median(&mut v)).collect()
+}
+
+/// The median of `values` (reordered; the mean of the two middle ones for an even count, NaN
+/// for none).
+fn median(values: &mut [f64]) -> f64 {
+    let n = values.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let (low, &mut mid, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
+    if n % 2 == 1 {
+        return mid;
+    }
+    let below = low.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    0.5 * (below + mid)
+}
+
 /// Largest absolute difference of two parameter vectors (0 when empty).
 pub(crate) fn max_change(a: &[f64], b: &[f64]) -> f64 {
     a.iter()

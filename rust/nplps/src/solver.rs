@@ -21,8 +21,8 @@ use std::time::Instant;
 
 use crate::anderson::{joint, Acceleration, Joint};
 use crate::convergence::{
-    check_in_front, lateral_size, max_change, max_depth_change, nearest, region_residuals, rms_of,
-    Next, Safeguard,
+    check_in_front, lateral_size, max_change, max_depth_change, nearest, region_median_residuals,
+    region_residuals, rms_of, Next, Safeguard,
 };
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
@@ -292,6 +292,10 @@ pub(crate) struct Solver<'p> {
     /// Whether the estimated lobe is held as it is (the distance search holds it while it
     /// compares candidates).
     pub(crate) hold_lobe: bool,
+    /// Whether a rough lobe estimate keeps the glossy model (the distance search's candidates
+    /// are compared under one model; the run at the distance found decides, see
+    /// [`MATTE_ROUGHNESS`]).
+    pub(crate) keep_glossy: bool,
     /// Under the glossy model, each facet's glossy normal of the last local step (NaN: none),
     /// which starts its next fit; empty under the Lambertian model.
     warm: Vec<[f32; 3]>,
@@ -366,6 +370,7 @@ impl<'p> Solver<'p> {
                 Reflectance::Lambertian => None,
             },
             hold_lobe: false,
+            keep_glossy: false,
             warm: try_vec(
                 if options.reflectance.is_glossy() {
                     n
@@ -687,7 +692,9 @@ impl<'p> Solver<'p> {
         };
         match estimate_lobe(&step, u, near)? {
             // An estimate on a surface of the iterations decides (see [`MATTE_ROUGHNESS`]).
-            Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch => self.drop_glossy(lobe),
+            Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch && !self.keep_glossy => {
+                self.drop_glossy(lobe)
+            }
             Some(lobe) => self.lobe = Some(lobe),
             None => {}
         }
@@ -856,9 +863,15 @@ impl<'p> Solver<'p> {
         .map(Some)
     }
 
-    /// RMS image residual of each region under the last local step.
-    pub fn region_residuals(&self) -> Vec<f64> {
-        region_residuals(&self.problem.grid, &self.stats, self.problem.obs.channels)
+    /// The distance search's criterion per region under the last local step: the RMS image
+    /// residual under the Lambertian model, the median of the facets' RMS residuals under the
+    /// glossy one (see [`region_median_residuals`]).
+    pub(crate) fn search_residuals(&self) -> Vec<f64> {
+        let (grid, channels) = (&self.problem.grid, self.problem.obs.channels);
+        match self.lobe {
+            Some(_) => region_median_residuals(grid, &self.stats, channels),
+            None => region_residuals(grid, &self.stats, channels),
+        }
     }
 
     /// The final (exact) local step on `u` and the assembled result. The global system and the
