@@ -289,6 +289,15 @@ impl Safeguard {
 mod tests {
     use super::*;
 
+    /// The median of odd and even counts, and NaN for none.
+    #[test]
+    fn medians() {
+        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert_eq!(median(&mut [7.0]), 7.0);
+        assert!(median(&mut []).is_nan());
+    }
+
     /// The verdict: non-finite depths are an error, both changes within the tolerance converge,
     /// and [`STALL_WINDOW`] iterations without a new smallest depth change stall the run.
     #[test]
