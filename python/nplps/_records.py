@@ -53,7 +53,10 @@ class DistanceEstimate:
         Estimated distance of each region (arithmetic mean vertex depth, or geometric mean vertex
         depth for a pinhole camera).
     curve : list of numpy.ndarray
-        Per region, the evaluated (distance, RMS residual) pairs, sorted by distance, (N, 2).
+        Per region, the evaluated (distance, residual) pairs, sorted by distance, (N, 2): the RMS
+        image residual, or with ``reflectance="glossy"`` the median of the pixels' RMS residuals
+        (the search's criterion; see docs/method.md). The CSV column keeps the name
+        ``rms_residual``.
     range : (float, float)
         The (near, far) range searched.
     """
@@ -91,7 +94,8 @@ class DistanceCheck:
     found : float
         The distance the coarse search found.
     residual_given, residual_found : float
-        RMS image residual on the coarse level at the given and at the found distance.
+        The search's criterion (see :attr:`DistanceEstimate.curve`) on the coarse level at the
+        given and at the found distance.
     side : int
         The coarse level's longer side in pixels.
     looks_wrong : bool

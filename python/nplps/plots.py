@@ -29,7 +29,7 @@ def residual_curve_svg(
     Parameters
     ----------
     curves : sequence of numpy.ndarray
-        Per region, an (N, 2) array of (distance, RMS residual).
+        Per region, an (N, 2) array of (distance, residual) (see ``DistanceEstimate.curve``).
     estimates : sequence of float
         The estimated distance of each region.
     path : str or path-like, optional
@@ -65,7 +65,7 @@ def residual_curve_svg(
         f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="black"/>',
         f'<text x="{(width + left - right) / 2}" y="{height - 12}" text-anchor="middle">working distance (log)</text>',
         f'<text x="16" y="{(height + top - bottom) / 2}" transform="rotate(-90 16 {(height + top - bottom) / 2})" '
-        'text-anchor="middle">RMS residual (log)</text>',
+        'text-anchor="middle">residual (log)</text>',
         f'<text x="{left}" y="{height - bottom + 16}">{10**x0:.4g}</text>',
         f'<text x="{width - right}" y="{height - bottom + 16}" text-anchor="end">{10**x1:.4g}</text>',
         f'<text x="{left - 4}" y="{height - bottom}" text-anchor="end">{10**y0:.3g}</text>',

@@ -71,7 +71,10 @@ pub struct DistanceEstimate {
     /// Estimated distance of each region (arithmetic mean depth, or geometric mean depth for a
     /// pinhole camera).
     pub distance: Vec<f64>,
-    /// Per region, every evaluated `(distance, RMS residual)`, sorted by distance.
+    /// Per region, every evaluated `(distance, residual)`, sorted by distance: the RMS image
+    /// residual, or under the glossy model the median of the facets' RMS residuals (the
+    /// search's criterion, see [`search_with`]); a glossy search keeps its window's candidates
+    /// and the wide scan's outside it.
     pub curve: Vec<Vec<(f64, f64)>>,
     /// The search range used.
     pub range: (f64, f64),
@@ -769,9 +772,10 @@ pub struct DistanceCheck {
     /// The distance the images fit best on the coarse level (the mean over regions); at an end
     /// of the range (half or twice the given distance) when the residual keeps falling there.
     pub found: f64,
-    /// RMS residual on the coarse level at the given distance.
+    /// The search's criterion (see [`DistanceEstimate::curve`]) on the coarse level at the given
+    /// distance.
     pub residual_given: f64,
-    /// RMS residual on the coarse level at the best candidate.
+    /// The same at the best candidate.
     pub residual_found: f64,
     /// Pixels of the coarse level's longer side.
     pub side: usize,
