@@ -82,9 +82,7 @@ def test_physically_based_rough_plastic(name: str, before_at_least: float) -> No
     assert glossy.matte_lobe is None
 
 
-@pytest.mark.parametrize(
-    ("name", "within"), [("bumps-roughplastic-0.1", 0.01), ("shadows-roughplastic-0.3", 0.015)]
-)
+@pytest.mark.parametrize(("name", "within"), [("bumps-roughplastic-0.1", 0.01), ("shadows-roughplastic-0.3", 0.015)])
 def test_the_distance_search_uses_the_glossy_model(name: str, within: float) -> None:
     # Measured (64 x 64): the Lambertian search misses by -9.9 / -9.1 %, the glossy one by
     # -0.39 / -0.95 % (median facet residual, the lobe estimated per candidate in the window around
