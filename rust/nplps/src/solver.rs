@@ -27,6 +27,7 @@ use crate::convergence::{
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
 use crate::grid::Grid;
+use crate::indirect::IndirectField;
 use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
@@ -76,6 +77,9 @@ pub fn reconstruct(
             solver.iterate_first(&mut u, &problem.gauge, progress)?
         };
         history.extend(fine);
+        let (rounds, converged) =
+            solver.interreflect(&mut u, &problem.gauge, converged, progress)?;
+        history.extend(rounds);
         solver.finish(&u, history, converged)
     })?
 }
@@ -158,6 +162,14 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 /// starting surface (the starting plane casts none and costs little), except where a coarser
 /// level's shadows are carried (then used, upsampled, until the next).
 pub const SHADOWS_AT: [usize; 3] = [1, 3, 8];
+
+/// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
+/// the current mesh, iterate again" after the full-resolution level converged.
+pub const INDIRECT_ROUNDS: usize = 4;
+
+/// The rounds stop once one changes the depths by at most this share of the lateral size of the
+/// grid (the run's `tol` when larger).
+pub const INDIRECT_TOL: f64 = 1e-4;
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
 /// starting unknowns, returns the gauge to iterate with (the distance search uses this).
@@ -313,6 +325,9 @@ pub(crate) struct Solver<'p> {
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
+    /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
+    /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
+    indirect: Option<IndirectField>,
 }
 
 /// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
@@ -382,6 +397,7 @@ impl<'p> Solver<'p> {
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
+            indirect: None,
         })
     }
 
@@ -508,6 +524,56 @@ impl<'p> Solver<'p> {
         self.stalled = next == Next::Stalled;
         run.guard.finish(u, &mut self.lights);
         Ok((run.history, next == Next::Converged))
+    }
+
+    /// Interreflections (with [`Options::interreflections`]; else nothing): from the converged
+    /// `u`, up to [`INDIRECT_ROUNDS`] rounds of: gather the indirect light of the mesh `u` from
+    /// the observed images ([`IndirectField::of_mesh`]), then iterate again with it in the
+    /// local fits (`I = b . (s + V)`), until a round changes the depths by at most
+    /// [`INDIRECT_TOL`] times the lateral size. Returns the rounds' history and whether the last
+    /// run converged (`converged` without rounds).
+    pub(crate) fn interreflect(
+        &mut self,
+        u: &mut Vec<f64>,
+        gauge: &[f64],
+        converged: bool,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<(Vec<IterationStats>, bool)> {
+        let mut history = Vec::new();
+        if !self.options.interreflections {
+            return Ok((history, converged));
+        }
+        let p = self.problem;
+        let mut converged = converged;
+        let limit = INDIRECT_TOL.max(self.options.tol) * lateral_size(p);
+        for _ in 0..INDIRECT_ROUNDS {
+            let t = Instant::now();
+            self.indirect = None;
+            self.indirect = Some(IndirectField::of_mesh(
+                &p.rig.camera,
+                &p.grid,
+                &p.geometry,
+                u,
+                &p.obs,
+                None,
+            )?);
+            self.timings.indirect += t.elapsed();
+            p.cancel.check()?;
+            let before = try_copy(u, "the depths")?;
+            let (h, c) = self.iterate(
+                u,
+                gauge,
+                self.options.iterations,
+                self.options.tol,
+                progress,
+            )?;
+            history.extend(h);
+            converged = c;
+            if max_depth_change(&p.geometry, &before, u) <= limit {
+                break;
+            }
+        }
+        Ok((history, converged))
     }
 
     /// One iteration: the paper's loop (local step, global step, converged?) with our
@@ -838,6 +904,7 @@ impl<'p> Solver<'p> {
             cancel: &p.cancel,
             warm: None,
             shadows: self.shadows.as_ref(),
+            indirect: self.indirect.as_ref(),
         }
     }
 

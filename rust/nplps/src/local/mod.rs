@@ -292,6 +292,12 @@ pub struct LocalStep<'s> {
     /// observations in a cast shadow are left out of every fit as if missing (NaN); None: all
     /// observations are used.
     pub shadows: Option<&'s ShadowMask>,
+    /// The indirect irradiance of each facet under each light (with
+    /// [`Options::interreflections`](crate::Options::interreflections), see
+    /// [`crate::indirect::IndirectField`]): added to the light's row of the fits,
+    /// `I = b . (s + V)`; None: the direct light only. Only the scalar Lambertian fits use it
+    /// (the vectorised lanes are off, the glossy model is refused).
+    pub indirect: Option<&'s crate::indirect::IndirectField>,
 }
 
 impl LocalStep<'_> {
@@ -339,7 +345,19 @@ impl LocalStep<'_> {
         let ids = grid.facet_vertices[f];
         let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
-        let lambertian = || fit_facet(c, self.model, values, obs.channels, self.settings);
+        let indirect = self
+            .indirect
+            .map(|field| field.at(grid.facets[f], grid.width));
+        let lambertian = || {
+            fit_facet_with(
+                c,
+                self.model,
+                values,
+                obs.channels,
+                self.settings,
+                indirect.as_deref(),
+            )
+        };
         let fitted = match self.settings.lobe {
             None => lambertian(),
             Some(lobe) => {
@@ -596,6 +614,9 @@ struct Facet<'a> {
     values: &'a [f32],
     channels: usize,
     settings: FitSettings,
+    /// The indirect irradiance vector of each light and channel (`k * channels`), added to the
+    /// rows; None: none.
+    indirect: Option<&'a [[f64; 3]]>,
 }
 
 impl Facet<'_> {
@@ -658,7 +679,11 @@ impl Facet<'_> {
             for (ch, &i) in o.iter().enumerate() {
                 let i = i as f64;
                 let p = channel_intensity(phi, self.channels, ch);
-                let r = [b[0] * p, b[1] * p, b[2] * p];
+                let mut r = [b[0] * p, b[1] * p, b[2] * p];
+                if let Some(v) = self.indirect {
+                    let v = v[k * self.channels + ch];
+                    r = [r[0] + v[0], r[1] + v[1], r[2] + v[2]];
+                }
                 let w = robust
                     * match self.settings.weighting {
                         Weighting::Image => 1.0,
@@ -692,7 +717,11 @@ impl Facet<'_> {
             o.iter()
                 .enumerate()
                 .map(|(ch, &i)| {
-                    let e = albedo[ch] * channel_intensity(phi, self.channels, ch) * nb - i as f64;
+                    let mut m = channel_intensity(phi, self.channels, ch) * nb;
+                    if let Some(v) = self.indirect {
+                        m += dot(n, v[k * self.channels + ch]);
+                    }
+                    let e = albedo[ch] * m - i as f64;
                     e * e
                 })
                 .sum(),
@@ -793,16 +822,32 @@ pub fn fit_facet(
     channels: usize,
     settings: FitSettings,
 ) -> Option<FacetFit> {
+    fit_facet_with(c, model, values, channels, settings, None)
+}
+
+/// [`fit_facet`] with the indirect irradiance vectors `indirect` of each light and channel
+/// (`k * channels`, light-major) added to the rows: the model `I = rho n . (Phi beta(c) + V)`
+/// (see [`crate::indirect`]). None: exactly [`fit_facet`].
+pub fn fit_facet_with(
+    c: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: FitSettings,
+    indirect: Option<&[[f64; 3]]>,
+) -> Option<FacetFit> {
     let facet = Facet {
         c,
         model,
         values,
         channels,
         settings,
+        indirect,
     };
     let sums = match model {
         Model::Near(lights)
-            if channels == 1
+            if indirect.is_none()
+                && channels == 1
                 && settings.weighting == Weighting::Image
                 && settings.robust == Robust::None =>
         {
@@ -827,7 +872,7 @@ pub fn fit_facet(
         }
     }
     let unit_weights = settings.weighting == Weighting::Image && settings.robust == Robust::None;
-    let sse = if settings.fast_residual && unit_weights && channels == 1 {
+    let sse = if settings.fast_residual && unit_weights && channels == 1 && indirect.is_none() {
         (sums.sum_i2 - dot(g, sums.s[0])).max(0.0)
     } else {
         facet
@@ -955,6 +1000,7 @@ mod tests {
                 cancel: crate::Cancel::never(),
                 warm: None,
                 shadows: None,
+                indirect: None,
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];
