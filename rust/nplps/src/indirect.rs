@@ -652,7 +652,11 @@ impl IndirectField {
         }
         let mut factor = 1;
         let mut coarse = *camera;
-        while h.div_ceil(factor) > FIELD_SIDE || w.div_ceil(factor) > FIELD_SIDE {
+        let side: usize = std::env::var("NPLPS_FIELD_SIDE")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(FIELD_SIDE); // TEMP
+        while h.div_ceil(factor) > side || w.div_ceil(factor) > side {
             factor *= 2;
             coarse = crate::pyramid::coarser_camera(&coarse);
         }

@@ -343,11 +343,28 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
-        let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
-        let indirect = self
-            .indirect
-            .map(|field| field.at(grid.facets[f], grid.width));
+        // With indirect light, the observations in a cast shadow (and those of lights behind
+        // the mesh's facet) keep their indirect light: their rows are V alone.
+        let (values, indirect) = match self.indirect {
+            None => (self.facet_values(f, buf), None),
+            Some(field) => {
+                let pixel = grid.facets[f];
+                let n = quad_normal(&q);
+                let mut direct: Vec<bool> = (0..obs.k)
+                    .map(|k| dot(n, self.model.row(k, c).0) > 0.0)
+                    .collect();
+                if let Some(shadows) = self.shadows {
+                    for k in shadows.lights_at(pixel) {
+                        direct[k] = false;
+                    }
+                }
+                (
+                    obs.facet(pixel, buf),
+                    Some((field.at(pixel, grid.width), direct)),
+                )
+            }
+        };
         let lambertian = || {
             fit_facet_with(
                 c,
@@ -355,7 +372,9 @@ impl LocalStep<'_> {
                 values,
                 obs.channels,
                 self.settings,
-                indirect.as_deref(),
+                indirect
+                    .as_ref()
+                    .map(|(vectors, direct)| Indirect { vectors, direct }),
             )
         };
         let fitted = match self.settings.lobe {
@@ -607,6 +626,18 @@ struct Sums {
     used: u32,
 }
 
+/// The indirect light of one facet (see [`crate::indirect`]): the model of light k becomes
+/// `I = rho n . (d_k Phi_k beta_k(c) + V_k)`, `d_k` = 1 where the direct light reaches the facet
+/// and 0 where it does not (a cast shadow, or the light behind the facet), so that observations
+/// lit only by the surface's own light still count.
+#[derive(Debug, Clone, Copy)]
+pub struct Indirect<'a> {
+    /// The irradiance vector `V` of each light and channel (`k * channels`, light-major).
+    pub vectors: &'a [[f64; 3]],
+    /// Per light: whether its direct light reaches the facet.
+    pub direct: &'a [bool],
+}
+
 /// One facet's data during its fit.
 struct Facet<'a> {
     c: [f64; 3],
@@ -614,9 +645,8 @@ struct Facet<'a> {
     values: &'a [f32],
     channels: usize,
     settings: FitSettings,
-    /// The indirect irradiance vector of each light and channel (`k * channels`), added to the
-    /// rows; None: none.
-    indirect: Option<&'a [[f64; 3]]>,
+    /// The indirect light, added to the rows; None: none.
+    indirect: Option<Indirect<'a>>,
 }
 
 impl Facet<'_> {
@@ -675,13 +705,16 @@ impl Facet<'_> {
             if robust == 0.0 {
                 continue;
             }
-            let (b, pw, phi) = self.model.row(k, self.c);
+            let (mut b, pw, phi) = self.model.row(k, self.c);
+            if self.indirect.is_some_and(|x| !x.direct[k]) {
+                b = [0.0; 3];
+            }
             for (ch, &i) in o.iter().enumerate() {
                 let i = i as f64;
                 let p = channel_intensity(phi, self.channels, ch);
                 let mut r = [b[0] * p, b[1] * p, b[2] * p];
-                if let Some(v) = self.indirect {
-                    let v = v[k * self.channels + ch];
+                if let Some(x) = self.indirect {
+                    let v = x.vectors[k * self.channels + ch];
                     r = [r[0] + v[0], r[1] + v[1], r[2] + v[2]];
                 }
                 let w = robust
@@ -712,14 +745,17 @@ impl Facet<'_> {
             return None;
         }
         let (b, _, phi) = self.model.row(k, self.c);
-        let nb = dot(n, b);
+        let nb = match self.indirect {
+            Some(x) if !x.direct[k] => 0.0,
+            _ => dot(n, b),
+        };
         Some(
             o.iter()
                 .enumerate()
                 .map(|(ch, &i)| {
                     let mut m = channel_intensity(phi, self.channels, ch) * nb;
-                    if let Some(v) = self.indirect {
-                        m += dot(n, v[k * self.channels + ch]);
+                    if let Some(x) = self.indirect {
+                        m += dot(n, x.vectors[k * self.channels + ch]);
                     }
                     let e = albedo[ch] * m - i as f64;
                     e * e
@@ -825,16 +861,16 @@ pub fn fit_facet(
     fit_facet_with(c, model, values, channels, settings, None)
 }
 
-/// [`fit_facet`] with the indirect irradiance vectors `indirect` of each light and channel
-/// (`k * channels`, light-major) added to the rows: the model `I = rho n . (Phi beta(c) + V)`
-/// (see [`crate::indirect`]). None: exactly [`fit_facet`].
+/// [`fit_facet`] with the indirect light `indirect` added to the rows: the model
+/// `I = rho n . (d Phi beta(c) + V)` (see [`Indirect`] and [`crate::indirect`]). None: exactly
+/// [`fit_facet`].
 pub fn fit_facet_with(
     c: [f64; 3],
     model: Model<'_>,
     values: &[f32],
     channels: usize,
     settings: FitSettings,
-    indirect: Option<&[[f64; 3]]>,
+    indirect: Option<Indirect<'_>>,
 ) -> Option<FacetFit> {
     let facet = Facet {
         c,
