@@ -165,11 +165,16 @@ pub const SHADOWS_AT: [usize; 3] = [1, 3, 8];
 
 /// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
 /// the current mesh, iterate again" after the full-resolution level converged.
-pub const INDIRECT_ROUNDS: usize = 4;
+pub const INDIRECT_ROUNDS: usize = 8;
 
 /// The rounds stop once one changes the depths by at most this share of the lateral size of the
 /// grid (the run's `tol` when larger).
 pub const INDIRECT_TOL: f64 = 1e-4;
+
+/// Iterations of a round (at most the run's): the indirect light changes with the mesh, so a
+/// round need not converge. Measured on the benchmark's GI renders at 256²: 8 rounds of 2
+/// iterations gave the errors of 4 rounds of 10 (to 0.003°) in half the time.
+pub const ROUND_ITERATIONS: usize = 2;
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
 /// starting unknowns, returns the gauge to iterate with (the distance search uses this).
@@ -528,10 +533,11 @@ impl<'p> Solver<'p> {
 
     /// Interreflections (with [`Options::interreflections`]; else nothing): from the converged
     /// `u`, up to [`INDIRECT_ROUNDS`] rounds of: gather the indirect light of the mesh `u` from
-    /// the observed images ([`IndirectField::of_mesh`]), then iterate again with it in the
-    /// local fits (`I = b . (s + V)`), until a round changes the depths by at most
-    /// [`INDIRECT_TOL`] times the lateral size. Returns the rounds' history and whether the last
-    /// run converged (`converged` without rounds).
+    /// the observed images ([`IndirectField::of_mesh`]), then [`ROUND_ITERATIONS`] iterations
+    /// with it in the local fits (`I = b . (s + V)`), until a round changes the depths by at
+    /// most [`INDIRECT_TOL`] times the lateral size; then a last run with the last field to the
+    /// solver's own stop rule. Returns the rounds' history and whether the last run converged
+    /// (`converged` without rounds).
     pub(crate) fn interreflect(
         &mut self,
         u: &mut Vec<f64>,
@@ -544,8 +550,8 @@ impl<'p> Solver<'p> {
             return Ok((history, converged));
         }
         let p = self.problem;
-        let mut converged = converged;
-        let limit = INDIRECT_TOL.max(self.options.tol) * lateral_size(p);
+        let (iterations, tol) = (self.options.iterations, self.options.tol);
+        let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         for _ in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
             self.indirect = None;
@@ -560,19 +566,14 @@ impl<'p> Solver<'p> {
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
             let before = try_copy(u, "the depths")?;
-            let (h, c) = self.iterate(
-                u,
-                gauge,
-                self.options.iterations,
-                self.options.tol,
-                progress,
-            )?;
-            history.extend(h);
-            converged = c;
+            let rounds = ROUND_ITERATIONS.min(iterations);
+            history.extend(self.iterate(u, gauge, rounds, tol, progress)?.0);
             if max_depth_change(&p.geometry, &before, u) <= limit {
                 break;
             }
         }
+        let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
+        history.extend(last);
         Ok((history, converged))
     }
 
