@@ -1130,6 +1130,107 @@ mod tests {
         assert!(shadowed.timings.shadows > std::time::Duration::ZERO);
     }
 
+    /// Interreflections ([`Options::interreflections`]): a bowl (the sphere-cap scene turned
+    /// inside out, albedo 0.8) rendered with all its bounces under the model of
+    /// [`crate::indirect`] on its true mesh (the images are the fixed point `I = I_direct +
+    /// rho n . V(I)`, gathered on the grid the solver uses: at 32² pixels, the pixels
+    /// themselves; indirect light is over a tenth of the energy). Without the option the fits absorb
+    /// the indirect light (measured 0.32°, albedo +16 %); with it the solver recovers the surface
+    /// (measured 0.0005°, albedo +0.0004 %).
+    #[test]
+    fn interreflections_recover_a_bowl_lit_by_itself() {
+        let n = 32;
+        let mut scene = Scene::new(SceneKind::SphereCap, n, 100.0, 200.0, 0).unwrap();
+        let mean = scene.mean_depth();
+        for z in &mut scene.depth {
+            *z = 2.0 * mean - *z;
+        }
+        let rho = 0.8;
+        scene.albedo.fill(rho);
+        let direct = scene.render().unwrap();
+        let (k, plane) = (scene.rig.n_lights(), n * n);
+        let grid = Grid::new(n, n, Some(&scene.mask)).unwrap();
+        let geometry = crate::geometry::Geometry::new(&scene.rig.camera, &grid).unwrap();
+        let u = grid.gather_vertices(&scene.depth).unwrap();
+        let normals = crate::render::mesh_normals(&scene.rig.camera, n, n, &scene.depth).unwrap();
+        let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
+        for _ in 0..40 {
+            let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
+            let field = IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, None)
+                .unwrap();
+            assert_eq!(field.factor(), 1);
+            let mut next = images.clone();
+            for &p in &grid.facets {
+                let v = field.at(p, n);
+                for light in 0..k {
+                    let i = direct[light * plane + p] + rho * dot(normals[p], v[light]);
+                    next[light * plane + p] = i as f32;
+                }
+            }
+            images = next;
+        }
+        let indirect_share = images
+            .iter()
+            .zip(&direct)
+            .map(|(&a, &b)| f64::from(a) - b)
+            .sum::<f64>()
+            / images.iter().map(|&a| f64::from(a)).sum::<f64>();
+        assert!(indirect_share > 0.1, "{indirect_share}");
+        let run = |interreflections: bool| {
+            let problem = at_true_distance(&scene, &scene.rig, &images);
+            let options = Options {
+                iterations: 30,
+                tol: 1e-9,
+                interreflections,
+                ..Options::default()
+            };
+            reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap()
+        };
+        let errors = |r: &Reconstruction| {
+            let (mut angle, mut albedo, mut count) = (0.0, 0.0, 0);
+            for &p in &grid.facets {
+                angle += dot(r.normals[p], normals[p])
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees();
+                albedo += r.albedo[p][0] / rho - 1.0;
+                count += 1;
+            }
+            (angle / count as f64, albedo / count as f64)
+        };
+        let (plain, plain_albedo) = errors(&run(false));
+        let with = run(true);
+        let (fixed, fixed_albedo) = errors(&with);
+        assert!(plain > 0.2 && plain_albedo > 0.1, "{plain} {plain_albedo}");
+        assert!(
+            fixed < 0.05 && fixed_albedo.abs() < 0.001,
+            "{fixed} {fixed_albedo} (without the option {plain})"
+        );
+        assert!(with.timings.indirect > std::time::Duration::ZERO);
+    }
+
+    /// The option is refused with the glossy model, light refinement and the parallel-light
+    /// baseline (typed errors, before any work).
+    #[test]
+    fn interreflections_refuse_what_they_do_not_support() {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = at_true_distance(&scene, &scene.rig, &images);
+        let on = Options::default().with_interreflections(true);
+        for options in [
+            on.with_reflectance(Reflectance::Glossy(None)),
+            on.with_refine(Refine::NONE.with_intensity(true)),
+        ] {
+            let err = reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap_err();
+            assert!(
+                matches!(&err, Error::Unusable(m) if m.contains("interreflections")),
+                "{err}"
+            );
+        }
+        let err = crate::baseline::reconstruct_parallel(&problem, &on).unwrap_err();
+        assert!(matches!(&err, Error::Unusable(m) if m.contains("interreflections")));
+    }
+
     /// Light refinement ([`crate::refine`]) through the whole solver: intensities off by up to 35 % are recovered from a flat start,
     /// the normals match a run with the true lights, and the report is filled.
     #[test]
