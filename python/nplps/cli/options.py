@@ -292,6 +292,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 #: The options of the near-light solver only (not of the parallel-light baseline).
 NEAR_SOLVER = (
     "--shadows",
+    "--interreflections",
     "--reflectance",
     "--roughness",
     "--eta",
