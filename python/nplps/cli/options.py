@@ -272,14 +272,17 @@ OPTIONS: dict[str, Option] = {o.flags[0]: o for o in _OPTIONS}
 
 #: The option groups of ``nplps reconstruct`` and ``nplps evaluate``, in their order.
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("shadows, saturation, colour", (
-        "--dark",
-        "--saturation",
-        "--robust",
-        "--shadows",
-        "--interreflections",
-        "--gray",
-    ),),
+    (
+        "shadows, saturation, colour",
+        (
+            "--dark",
+            "--saturation",
+            "--robust",
+            "--shadows",
+            "--interreflections",
+            "--gray",
+        ),
+    ),
     ("reflectance", ("--reflectance", "--roughness", "--eta")),
     (
         "pre-processing (applied in this order)",
