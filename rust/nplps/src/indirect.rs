@@ -1,6 +1,8 @@
 //! Interreflections: the indirect irradiance that the facets of a height-field mesh send to each
-//! other, gathered from the observed images (issue 21, first building block; not yet used by the
-//! solver).
+//! other, gathered from the observed images (issue 21). [`Exchange`] is the light exchange of a
+//! mesh; [`IndirectField`] is what the solver uses with
+//! [`Options::interreflections`](crate::Options::interreflections): the exchange of its current
+//! mesh on a coarse grid, looked up per fine facet.
 //!
 //! ## The model
 //!
@@ -630,6 +632,10 @@ pub struct IndirectField {
     valid: Vec<bool>,
     /// Directed pairs of the exchange it came from.
     pairs: usize,
+    /// Per fine pixel, `words` bits: the lights behind its facet on the mesh the field was made
+    /// for (see [`IndirectField::with_unlit`]); empty: none.
+    unlit: Vec<u64>,
+    words: usize,
 }
 
 impl IndirectField {
@@ -644,6 +650,9 @@ impl IndirectField {
     /// of the active fine vertices within half a bin of it, on its own ray; a coarse facet takes
     /// part when its corners are known and one of its fine pixels is in the mask, and emits the
     /// mean of the finite observations of its masked fine pixels.
+    ///
+    /// Surface outside the image (or the mask) emits nothing: its light is missing (see the
+    /// module documentation).
     pub(crate) fn of_mesh(
         camera: &Camera,
         grid: &crate::grid::Grid,
@@ -693,30 +702,30 @@ impl IndirectField {
         let (hc, wc) = (h.div_ceil(factor), w.div_ceil(factor));
         let fw = w + 1;
         let half = factor / 2;
-        let vertices: Vec<[f64; 3]> = crate::memory::try_collect(
+        let depths: Vec<f64> = crate::memory::try_collect(
             (0..(hc + 1) * (wc + 1)).map(|v| {
                 let (r, c) = (v / (wc + 1) * factor, v % (wc + 1) * factor);
-                let mut z = match r <= h && c <= w {
+                let z = match r <= h && c <= w {
                     true => depth[r * fw + c],
                     false => f64::NAN,
                 };
-                if !z.is_finite() {
-                    let (mut sum, mut n) = (0.0, 0usize);
-                    for rr in r.saturating_sub(half)..=(r + half).min(h) {
-                        for cc in c.saturating_sub(half)..=(c + half).min(w) {
-                            let d = depth[rr * fw + cc];
-                            if d.is_finite() {
-                                sum += d;
-                                n += 1;
-                            }
+                if z.is_finite() {
+                    return z;
+                }
+                let (mut sum, mut n) = (0.0, 0usize);
+                for rr in r.saturating_sub(half)..=(r + half).min(h) {
+                    for cc in c.saturating_sub(half)..=(c + half).min(w) {
+                        let d = depth[rr * fw + cc];
+                        if d.is_finite() {
+                            sum += d;
+                            n += 1;
                         }
                     }
-                    z = if n > 0 { sum / n as f64 } else { f64::NAN };
                 }
-                let [x, y] = coarse.vertex_xy(v / (wc + 1), v % (wc + 1));
-                match coarse.is_perspective() {
-                    true => [x * z, y * z, z],
-                    false => [x, y, z],
+                if n > 0 {
+                    sum / n as f64
+                } else {
+                    f64::NAN
                 }
             }),
             "the coarse vertices of the light exchange",
@@ -765,6 +774,16 @@ impl IndirectField {
                 }
             }
         }
+        let vertices: Vec<[f64; 3]> = crate::memory::try_collect(
+            depths.iter().enumerate().map(|(v, &z)| {
+                let [x, y] = coarse.vertex_xy(v / (wc + 1), v % (wc + 1));
+                match coarse.is_perspective() {
+                    true => [x * z, y * z, z],
+                    false => [x, y, z],
+                }
+            }),
+            "the coarse vertices of the light exchange",
+        )?;
         let exchange = Exchange::new(coarse, hc, wc, &vertices, Some(&mask), max_pairs)?;
         let v = exchange.irradiance(&binned, k, channels)?;
         drop(binned);
@@ -778,7 +797,7 @@ impl IndirectField {
             }
         }
         let valid = (0..plane)
-            .map(|pc| exchange.facet(pc).2.is_finite())
+            .map(|pc| mask[pc] && exchange.facet(pc).2.is_finite())
             .collect();
         Ok(IndirectField {
             factor,
@@ -788,7 +807,50 @@ impl IndirectField {
             vectors,
             valid,
             pairs: exchange.pairs(),
+            unlit: Vec::new(),
+            words: 0,
         })
+    }
+
+    /// The field with the lights behind each facet of the mesh `u` (`n . beta_k(c) <= 0` for
+    /// its mesh normal `n` and centre `c`) marked, whose direct light the fits then leave out
+    /// (see [`crate::local::Indirect`]). Decided once per field rather than at every local
+    /// step: a facet whose mesh normal crosses a light's terminator from one iteration to the
+    /// next made the iteration alternate between two surfaces (on the benchmark's sheet).
+    pub(crate) fn with_unlit(
+        mut self,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        lights: &[crate::Light],
+    ) -> Result<IndirectField> {
+        let words = lights.len().div_ceil(64);
+        let mut unlit = crate::memory::try_vec(
+            grid.height * grid.width * words,
+            0u64,
+            "the unlit lights of the indirect light",
+        )?;
+        for (f, &p) in grid.facets.iter().enumerate() {
+            let q = geometry.facet_corners(grid, f, u);
+            let (c, n) = (
+                crate::geometry::quad_centre(&q),
+                crate::geometry::quad_normal(&q),
+            );
+            for (k, light) in lights.iter().enumerate() {
+                if not_above(dot(n, light.beta(c).0), 0.0) {
+                    unlit[p * words + k / 64] |= 1 << (k % 64);
+                }
+            }
+        }
+        self.unlit = unlit;
+        self.words = words;
+        Ok(self)
+    }
+
+    /// Whether light `k` is behind the facet of fine pixel `p` (see
+    /// [`IndirectField::with_unlit`]; false without it).
+    pub fn is_unlit(&self, p: usize, k: usize) -> bool {
+        self.words > 0 && self.unlit[p * self.words + k / 64] & (1 << (k % 64)) != 0
     }
 
     /// Fine pixels per coarse facet side.
@@ -895,6 +957,54 @@ mod tests {
     fn groove(n: usize, slope: f64) -> Vec<f64> {
         let m = (n / 2) as f64;
         depths(n, |_, c| 100.0 + slope * (m - (c - m).abs()))
+    }
+
+    /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit
+    /// alike: the coarse vectors are those of the exchange of the groove's own 32² mesh (the
+    /// even vertices), and a fine pixel on the boundary of two coarse facets gets their mean.
+    #[test]
+    fn the_field_of_a_groove_bins_and_interpolates() {
+        let n = 64;
+        let camera = ortho();
+        let depth = groove(n, 1.0);
+        let grid = crate::grid::Grid::new(n, n, None).unwrap();
+        let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+        let u = grid.gather_vertices(&depth).unwrap();
+        let images = vec![1.0f32; 2 * n * n];
+        let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
+        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, None).unwrap();
+        assert_eq!(field.factor(), 2);
+        let m = n / 2;
+        let coarse_camera = crate::pyramid::coarser_camera(&camera);
+        let coarse_depth = depths(m, |r, c| depth[(2 * r as usize) * (n + 1) + 2 * c as usize]);
+        let v = crate::render::vertices(&coarse_camera, m, m, &coarse_depth).unwrap();
+        let x = Exchange::new(&coarse_camera, m, m, &v, None, None).unwrap();
+        assert_eq!(field.pairs(), x.pairs());
+        let own = x.irradiance(&vec![1.0f32; m * m], 1, 1).unwrap();
+        let close = |a: [f64; 3], b: [f64; 3]| (0..3).all(|c| (a[c] - b[c]).abs() < 1e-6);
+        // Pixel (33, 17) is the lower right quarter of coarse facet (16, 8): its centre is a
+        // quarter of a coarse facet from that facet's centre towards (17, 9).
+        let at = field.at(33 * n + 17, n);
+        assert_eq!(at.len(), 2);
+        assert_eq!(at[0], at[1]);
+        let w = |r: usize, c: usize| own[r * m + c];
+        let expected: [f64; 3] = std::array::from_fn(|c| {
+            0.5625 * w(16, 8)[c]
+                + 0.1875 * w(16, 9)[c]
+                + 0.1875 * w(17, 8)[c]
+                + 0.0625 * w(17, 9)[c]
+        });
+        assert!(close(at[0], expected), "{at:?} {expected:?}");
+        // Pixel (32, 16) is on coarse facet (16, 8) too, a quarter towards (15, 7).
+        let at = field.at(32 * n + 16, n);
+        let expected: [f64; 3] = std::array::from_fn(|c| {
+            0.5625 * w(16, 8)[c]
+                + 0.1875 * w(16, 7)[c]
+                + 0.1875 * w(15, 8)[c]
+                + 0.0625 * w(15, 7)[c]
+        });
+        assert!(close(at[0], expected), "{at:?} {expected:?}");
+        assert!(expected[0].abs() > 0.01);
     }
 
     #[test]

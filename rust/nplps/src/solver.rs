@@ -555,14 +555,10 @@ impl<'p> Solver<'p> {
         for _ in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
             self.indirect = None;
-            self.indirect = Some(IndirectField::of_mesh(
-                &p.rig.camera,
-                &p.grid,
-                &p.geometry,
-                u,
-                &p.obs,
-                None,
-            )?);
+            self.indirect = Some(
+                IndirectField::of_mesh(&p.rig.camera, &p.grid, &p.geometry, u, &p.obs, None)?
+                    .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
+            );
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
             let before = try_copy(u, "the depths")?;

@@ -350,19 +350,14 @@ impl LocalStep<'_> {
             None => (self.facet_values(f, buf), None),
             Some(field) => {
                 let pixel = grid.facets[f];
-                let n = quad_normal(&q);
-                let mut direct: Vec<bool> = (0..obs.k)
-                    .map(|k| dot(n, self.model.row(k, c).0) > 0.0)
-                    .collect();
+                let mut direct: Vec<bool> = (0..obs.k).map(|k| !field.is_unlit(pixel, k)).collect();
                 if let Some(shadows) = self.shadows {
                     for k in shadows.lights_at(pixel) {
                         direct[k] = false;
                     }
                 }
-                (
-                    obs.facet(pixel, buf),
-                    Some((field.at(pixel, grid.width), direct)),
-                )
+                let values = obs.facet(pixel, buf);
+                (values, Some((field.at(pixel, grid.width), direct)))
             }
         };
         let lambertian = || {
