@@ -552,7 +552,7 @@ impl<'p> Solver<'p> {
         let p = self.problem;
         let (iterations, tol) = (self.options.iterations, self.options.tol);
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
-        for _ in 0..INDIRECT_ROUNDS {
+        for round in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
             self.indirect = None;
             self.indirect = Some(
@@ -562,6 +562,9 @@ impl<'p> Solver<'p> {
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
             let before = try_copy(u, "the depths")?;
+            // With cast shadows: the first round and the last run march (at their first
+            // iteration), the rounds between keep the masks (the mesh changes little).
+            self.shadows_carried = round > 0 && self.shadows.is_some();
             let rounds = ROUND_ITERATIONS.min(iterations);
             history.extend(self.iterate(u, gauge, rounds, tol, progress)?.0);
             if max_depth_change(&p.geometry, &before, u) <= limit {
