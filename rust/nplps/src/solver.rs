@@ -11,6 +11,7 @@
 //!     accelerate:  mix (z, lights) and its image (crate::anderson; refining)
 //!     dz = max |z_new - z|;  z = z_new
 //!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
+//! (interreflections: rounds of "gather V on z, iterate again", see Solver::interreflect)
 //! final local step on z -> reported normals, albedo, residuals
 //! ```
 //!
