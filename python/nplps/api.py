@@ -432,10 +432,10 @@ def reconstruct(
         Model the light that the surface sends to itself (concave objects: bowls, grooves,
         folds). Once the full resolution converges, the indirect irradiance of every pixel
         under every light is gathered from the observed images over the current mesh (on a
-        grid of at most 64 x 64 cells), added to the fits' light vectors, and the iteration runs
-        again, up to 4 rounds. Only for captures with real interreflections (direct-only
-        renders get worse); Lambertian model only, without ``refine_lights``. See the README
-        ("Concave objects") for its cost and limits.
+        grid of 32 x 32 to 64 x 64 cells), added to the fits' light vectors, and the iteration
+        runs again, up to 8 rounds (2-6x the time of a default run). Only for captures with
+        real interreflections (direct-only renders get worse); Lambertian model only, without
+        ``refine_lights``. See the README ("Concave objects") for its cost and limits.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).

@@ -114,7 +114,7 @@ _OPTIONS = (
         "model the light the surface sends to itself (concave objects: bowls, grooves, folds): "
         "after convergence, gather each pixel's indirect light from the images over the mesh and "
         "iterate again (for real captures only: direct-only renders get worse; Lambertian, "
-        "about 2-3x the time)",
+        "2-6x the time)",
         switch=True,
         to_api=bool,
     ),
