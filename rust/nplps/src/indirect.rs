@@ -643,8 +643,9 @@ impl IndirectField {
     /// fine grid's), from the observations `obs` (the fine stack: the observed images are the
     /// emitters; non-finite values emit nothing). The grid is binned by the smallest power of
     /// two that brings both sides to at most [`FIELD_SIDE_SMALL`] to [`FIELD_SIDE`] facets (see
-    /// [`FIELD_SIDE_SMALL`]), or further while the exchange has more than `max_pairs` pairs
-    /// (None: [`DEFAULT_MAX_PAIRS`]).
+    /// [`FIELD_SIDE_SMALL`]), at least `min_factor` (a field of the same mesh before: the
+    /// solver passes its last field's factor, so that a grid over the cap is built once), or
+    /// further while the exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]).
     ///
     /// A coarse vertex is the fine vertex it stands on when that is active, else the mean depth
     /// of the active fine vertices within half a bin of it, on its own ray; a coarse facet takes
@@ -659,6 +660,7 @@ impl IndirectField {
         geometry: &crate::geometry::Geometry,
         u: &[f64],
         obs: &crate::local::Observations<'_>,
+        min_factor: usize,
         max_pairs: Option<usize>,
     ) -> Result<IndirectField> {
         let (h, w) = (grid.height, grid.width);
@@ -670,7 +672,7 @@ impl IndirectField {
         let mut factor = 1;
         let mut coarse = *camera;
         let side = (h.max(w) / 8).clamp(FIELD_SIDE_SMALL, FIELD_SIDE);
-        while h.div_ceil(factor) > side || w.div_ceil(factor) > side {
+        while factor < min_factor || h.div_ceil(factor) > side || w.div_ceil(factor) > side {
             factor *= 2;
             coarse = crate::pyramid::coarser_camera(&coarse);
         }
@@ -868,7 +870,15 @@ impl IndirectField {
     /// part (weights renormalised); where none of the four did, those of the nearest coarse
     /// facet within two that did; else zero.
     pub fn at(&self, p: usize, width: usize) -> Vec<[f64; 3]> {
-        let mut out = vec![[0.0; 3]; self.per];
+        let mut out = Vec::new();
+        self.at_into(p, width, &mut out);
+        out
+    }
+
+    /// [`IndirectField::at`] into `out` (resized to `k C`).
+    pub fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        out.resize(self.per, [0.0; 3]);
         let f = self.factor as f64;
         let y = ((p / width) as f64 + 0.5) / f - 0.5;
         let x = ((p % width) as f64 + 0.5) / f - 0.5;
@@ -880,16 +890,16 @@ impl IndirectField {
                 let (r, c) = (y0 as i64 + dy, x0 as i64 + dx);
                 let weight = wy * wx;
                 if let Some(pc) = self.cell(r, c).filter(|_| weight > 0.0) {
-                    self.add(pc, weight, &mut out);
+                    self.add(pc, weight, out);
                     total += weight;
                 }
             }
         }
         if total > 0.0 {
-            for v in &mut out {
+            for v in out.iter_mut() {
                 *v = v.map(|x| x / total);
             }
-            return out;
+            return;
         }
         let (r, c) = (
             (p / width / self.factor) as i64,
@@ -900,9 +910,8 @@ impl IndirectField {
             .filter_map(|(dr, dc)| self.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
             .min_by_key(|&(d, _)| d);
         if let Some((_, pc)) = nearest {
-            self.add(pc, 1.0, &mut out);
+            self.add(pc, 1.0, out);
         }
-        out
     }
 
     /// The coarse facet at (r, c) when it is in the grid and took part.
@@ -972,7 +981,7 @@ mod tests {
         let u = grid.gather_vertices(&depth).unwrap();
         let images = vec![1.0f32; 2 * n * n];
         let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
-        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, None).unwrap();
+        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, 1, None).unwrap();
         assert_eq!(field.factor(), 2);
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);

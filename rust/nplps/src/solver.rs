@@ -555,10 +555,18 @@ impl<'p> Solver<'p> {
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         for round in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
-            self.indirect = None;
+            let min_factor = self.indirect.take().map_or(1, |f| f.factor());
             self.indirect = Some(
-                IndirectField::of_mesh(&p.rig.camera, &p.grid, &p.geometry, u, &p.obs, None)?
-                    .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
+                IndirectField::of_mesh(
+                    &p.rig.camera,
+                    &p.grid,
+                    &p.geometry,
+                    u,
+                    &p.obs,
+                    min_factor,
+                    None,
+                )?
+                .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
             );
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
@@ -1156,8 +1164,9 @@ mod tests {
         let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
         for _ in 0..40 {
             let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
-            let field = IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, None)
-                .unwrap();
+            let field =
+                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, 1, None)
+                    .unwrap();
             assert_eq!(field.factor(), 1);
             let mut next = images.clone();
             for &p in &grid.facets {

@@ -344,34 +344,11 @@ impl LocalStep<'_> {
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
         let c = quad_centre(&q);
-        // With indirect light, the observations in a cast shadow (and those of lights behind
-        // the mesh's facet) keep their indirect light: their rows are V alone.
-        let (values, indirect) = match self.indirect {
-            None => (self.facet_values(f, buf), None),
-            Some(field) => {
-                let pixel = grid.facets[f];
-                let mut direct: Vec<bool> = (0..obs.k).map(|k| !field.is_unlit(pixel, k)).collect();
-                if let Some(shadows) = self.shadows {
-                    for k in shadows.lights_at(pixel) {
-                        direct[k] = false;
-                    }
-                }
-                let values = obs.facet(pixel, buf);
-                (values, Some((field.at(pixel, grid.width), direct)))
-            }
-        };
-        let lambertian = || {
-            fit_facet_with(
-                c,
-                self.model,
-                values,
-                obs.channels,
-                self.settings,
-                indirect
-                    .as_ref()
-                    .map(|(vectors, direct)| Indirect { vectors, direct }),
-            )
-        };
+        if let Some(field) = self.indirect {
+            return self.fit_indirect(f, u, buf, field, &q, c);
+        }
+        let values = self.facet_values(f, buf);
+        let lambertian = || fit_facet(c, self.model, values, obs.channels, self.settings);
         let fitted = match self.settings.lobe {
             None => lambertian(),
             Some(lobe) => {
@@ -415,6 +392,58 @@ impl LocalStep<'_> {
                 usable_count(values, obs.channels, self.settings),
             ),
         }
+    }
+
+    /// [`LocalStep::fit`] with the indirect light of `field` (Lambertian model): the
+    /// observations in a cast shadow (and those of the lights behind the facet, see
+    /// [`IndirectField::with_unlit`](crate::indirect::IndirectField::with_unlit)) keep their
+    /// indirect light, as rows `V` alone. The vectors and flags live in a per-thread scratch.
+    fn fit_indirect(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        field: &crate::indirect::IndirectField,
+        q: &[[f64; 3]; 4],
+        c: [f64; 3],
+    ) -> FacetFit {
+        thread_local! {
+            static SCRATCH: std::cell::RefCell<(Vec<[f64; 3]>, Vec<bool>)> =
+                const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+        }
+        let (grid, obs) = (self.grid, self.obs);
+        let pixel = grid.facets[f];
+        let ids = grid.facet_vertices[f];
+        SCRATCH.with_borrow_mut(|(vectors, direct)| {
+            direct.clear();
+            direct.extend((0..obs.k).map(|k| !field.is_unlit(pixel, k)));
+            if let Some(shadows) = self.shadows {
+                for k in shadows.lights_at(pixel) {
+                    direct[k] = false;
+                }
+            }
+            field.at_into(pixel, grid.width, vectors);
+            let values = obs.facet(pixel, buf);
+            let indirect = Indirect { vectors, direct };
+            match fit_facet_with(
+                c,
+                self.model,
+                values,
+                obs.channels,
+                self.settings,
+                Some(indirect),
+            ) {
+                Some(fitted) => FacetFit {
+                    target: self.geometry.plane_target(fitted.normal, ids, c),
+                    ..fitted
+                },
+                None => keep_shape(
+                    q,
+                    ids.map(|i| u[i as usize]),
+                    usable_count(values, obs.channels, self.settings),
+                ),
+            }
+        })
     }
 
     /// Fits facets `first..first + fits.len()` on `u` in parallel (rayon), writing `fits`.
@@ -748,11 +777,15 @@ impl Facet<'_> {
             o.iter()
                 .enumerate()
                 .map(|(ch, &i)| {
-                    let mut m = channel_intensity(phi, self.channels, ch) * nb;
-                    if let Some(x) = self.indirect {
-                        m += dot(n, x.vectors[k * self.channels + ch]);
-                    }
-                    let e = albedo[ch] * m - i as f64;
+                    let p = channel_intensity(phi, self.channels, ch);
+                    // (without indirect light, the operations of the vectorised lanes)
+                    let e = match self.indirect {
+                        None => albedo[ch] * p * nb - i as f64,
+                        Some(x) => {
+                            albedo[ch] * (p * nb + dot(n, x.vectors[k * self.channels + ch]))
+                                - i as f64
+                        }
+                    };
                     e * e
                 })
                 .sum(),
@@ -903,7 +936,7 @@ pub fn fit_facet_with(
         }
     }
     let unit_weights = settings.weighting == Weighting::Image && settings.robust == Robust::None;
-    let sse = if settings.fast_residual && unit_weights && channels == 1 && indirect.is_none() {
+    let sse = if settings.fast_residual && unit_weights && channels == 1 {
         (sums.sum_i2 - dot(g, sums.s[0])).max(0.0)
     } else {
         facet
