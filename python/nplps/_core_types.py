@@ -106,6 +106,7 @@ class SolverOptions(TypedDict, total=False):
     roughness: float | None
     eta: float | None
     shadows: bool | None
+    interreflections: bool | None
     threads: int | None
     solver: Solver | None
     levels: int | None
@@ -183,6 +184,7 @@ class TimingsDict(TypedDict):
     pyramid: float
     lights: float
     shadows: float
+    indirect: float
     total: float
 
 

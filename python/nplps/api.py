@@ -346,6 +346,7 @@ def reconstruct(
     roughness: float | None = None,
     eta: float | None = None,
     shadows: bool = False,
+    interreflections: bool = False,
     color: bool | None = None,
     valid: Any = None,
     threads: int | None = None,
@@ -427,6 +428,14 @@ def reconstruct(
         `dark`). For objects that shadow themselves: steps, pockets, deep relief. It costs one
         to three marches a level (measured 0.3-0.7 s at 256 x 256 x 16 lights, 12-20 s at 1 MP on
         a 2-core machine); the masks of the final level are ``result.shadows``.
+    interreflections : bool, default False
+        Model the light that the surface sends to itself (concave objects: bowls, grooves,
+        folds). Once the full resolution converges, the indirect irradiance of every pixel
+        under every light is gathered from the observed images over the current mesh (on a
+        grid of 32 x 32 to 64 x 64 cells), added to the fits' light vectors, and the iteration
+        runs again, up to 8 rounds (2-6x the time of a default run). Only for captures with
+        real interreflections (direct-only renders get worse); Lambertian model only, without
+        ``refine_lights``. See the README ("Concave objects") for its cost and limits.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).
@@ -551,6 +560,7 @@ def reconstruct(
         "roughness": None if roughness is None else _finite_number(roughness, "roughness"),
         "eta": None if eta is None else _finite_number(eta, "eta"),
         "shadows": _flag(shadows, "shadows"),
+        "interreflections": _flag(interreflections, "interreflections"),
         "threads": _threads(threads),
         "auto": isinstance(depth, str),
         "check_distance": _flag(check_distance, "check_distance"),

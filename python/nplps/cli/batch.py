@@ -47,6 +47,7 @@ BATCH_OPTIONS = (
     "--saturation",
     "--robust",
     "--shadows",
+    "--interreflections",
     "--reflectance",
     "--roughness",
     "--eta",

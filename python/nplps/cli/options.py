@@ -108,6 +108,16 @@ _OPTIONS = (
         switch=True,
         to_api=bool,
     ),
+    Option(
+        ("--interreflections",),
+        "interreflections",
+        "model the light the surface sends to itself (concave objects: bowls, grooves, folds): "
+        "after convergence, gather each pixel's indirect light from the images over the mesh and "
+        "iterate again (for real captures only: direct-only renders get worse; Lambertian, "
+        "2-6x the time)",
+        switch=True,
+        to_api=bool,
+    ),
     # reflectance
     Option(
         ("--reflectance",),
@@ -262,7 +272,17 @@ OPTIONS: dict[str, Option] = {o.flags[0]: o for o in _OPTIONS}
 
 #: The option groups of ``nplps reconstruct`` and ``nplps evaluate``, in their order.
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("shadows, saturation, colour", ("--dark", "--saturation", "--robust", "--shadows", "--gray")),
+    (
+        "shadows, saturation, colour",
+        (
+            "--dark",
+            "--saturation",
+            "--robust",
+            "--shadows",
+            "--interreflections",
+            "--gray",
+        ),
+    ),
     ("reflectance", ("--reflectance", "--roughness", "--eta")),
     (
         "pre-processing (applied in this order)",
@@ -275,6 +295,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 #: The options of the near-light solver only (not of the parallel-light baseline).
 NEAR_SOLVER = (
     "--shadows",
+    "--interreflections",
     "--reflectance",
     "--roughness",
     "--eta",

@@ -569,6 +569,7 @@ pub fn reconstruction_dict<'py>(
     t.set_item("pyramid", r.timings.pyramid.as_secs_f64())?;
     t.set_item("lights", r.timings.lights.as_secs_f64())?;
     t.set_item("shadows", r.timings.shadows.as_secs_f64())?;
+    t.set_item("indirect", r.timings.indirect.as_secs_f64())?;
     t.set_item("total", r.timings.total.as_secs_f64())?;
     d.set_item("timings", t)?;
     d.set_item("lights", rig.with_lights(r.lights))?;

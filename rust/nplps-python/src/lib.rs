@@ -94,9 +94,10 @@ fn initial_depth<'a>(
 }
 
 /// The keys of the options mapping of `reconstruct_parallel` (those of [`options_from`]).
-const SOLVER_KEYS: [&str; 16] = [
+const SOLVER_KEYS: [&str; 17] = [
     "dark",
     "eta",
+    "interreflections",
     "iterations",
     "levels",
     "light_prior_weight",
@@ -244,6 +245,7 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         .with_robust(robust)
         .with_reflectance(reflectance)
         .with_shadows(option(d, "shadows", defaults.shadows)?)
+        .with_interreflections(option(d, "interreflections", defaults.interreflections)?)
         .with_threads(option(d, "threads", defaults.threads)?)
         .with_max_memory(option(d, "max_memory", defaults.max_memory)?))
 }

@@ -31,6 +31,7 @@ fn parallel_step<'a>(
         cancel: &problem.cancel,
         warm: None,
         shadows: None,
+        indirect: None,
     }
 }
 
@@ -140,6 +141,13 @@ fn refine_intensities(
 /// estimator and the threads; the weighting is always in image units).
 pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<Reconstruction> {
     options.validate()?;
+    if options.interreflections {
+        return Err(crate::Error::Unusable(
+            "interreflections are not supported by the parallel-light baseline (its lights have \
+             no position to light the mesh from): use reconstruct"
+                .to_string(),
+        ));
+    }
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     crate::problem::check_fittable(problem, &options.fit_settings(false))?;

@@ -698,6 +698,10 @@ pub fn reconstruct_auto(
         }
         .map_err(|e| after_search(e, Some(mean(&estimate.distance))))?;
         history.extend(fine);
+        let (rounds, converged) = solver
+            .interreflect(&mut u, &gauge, converged, progress)
+            .map_err(|e| after_search(e, Some(mean(&estimate.distance))))?;
+        history.extend(rounds);
         Ok((solver.finish(&u, history, converged)?, estimate))
     })?
 }

@@ -1,6 +1,8 @@
 //! Interreflections: the indirect irradiance that the facets of a height-field mesh send to each
-//! other, gathered from the observed images (issue 21, first building block; not yet used by the
-//! solver).
+//! other, gathered from the observed images (issue 21). [`Exchange`] is the light exchange of a
+//! mesh; [`IndirectField`] is what the solver uses with
+//! [`Options::interreflections`](crate::Options::interreflections): the exchange of its current
+//! mesh on a coarse grid, looked up per fine facet.
 //!
 //! ## The model
 //!
@@ -593,6 +595,345 @@ fn sub_points(q: &[[f64; 3]; 4]) -> [[f64; 3]; SUBDIVISIONS * SUBDIVISIONS] {
     })
 }
 
+/// Longest side, in facets, of the coarse grid on which the solver gathers the indirect light
+/// ([`IndirectField::of_mesh`]): the issue's prototype measured that 32² to 128² facets change
+/// the normals by at most 0.13° on the benchmark's concave scenes.
+pub const FIELD_SIDE: usize = 64;
+
+/// The coarse grid's longest side is at most `max(FIELD_SIDE_SMALL, min(FIELD_SIDE, longest /
+/// 8))` facets, so that a small image gets a small exchange: 256² images are gathered on 32²
+/// facets, 512² and more on 64² (measured on the benchmark's GI renders at 256²: 32² instead of
+/// 64² changed the mean normal errors by -0.03 to +0.21°, and cut the exchange's cost from about
+/// 1 s to 0.1 s a round on one core, where a default run takes 0.1-0.3 s).
+pub const FIELD_SIDE_SMALL: usize = 32;
+
+/// The indirect irradiance of a solver's current mesh under each light, gathered on a coarse
+/// grid (the image binned by a power of two to at most [`FIELD_SIDE`] facets a side) from the
+/// binned observations, and looked up per fine facet by bilinear interpolation
+/// ([`IndirectField::at`]).
+///
+/// Cost: binning `O(H W k C)`; the [`Exchange`] of the `F <= FIELD_SIDE^2` coarse facets
+/// `O(F^2 D)` (`D` the coarse image diagonal), independent of the image size beyond the binning;
+/// its pass `O(P k C)` for `P` pairs; each local step then adds `O(k C)` per fine facet (the
+/// lookup, and the scalar fits instead of the vectorised ones). Memory: the exchange (at most
+/// `max_pairs` pairs, [`BYTES_PER_PAIR`] each) while it is built, then `12 k C` bytes per coarse
+/// facet.
+#[derive(Debug, Clone)]
+pub struct IndirectField {
+    /// Fine pixels per coarse facet side.
+    factor: usize,
+    height: usize,
+    width: usize,
+    /// Values per coarse facet: `k C`.
+    per: usize,
+    /// Per coarse facet, light-major then channel: `V` (facet-major, (Hc Wc, k C)).
+    vectors: Vec<[f32; 3]>,
+    /// Whether each coarse facet took part in the exchange (else its vectors are not used).
+    valid: Vec<bool>,
+    /// Directed pairs of the exchange it came from.
+    pairs: usize,
+    /// Per fine pixel, `words` bits: the lights behind its facet on the mesh the field was made
+    /// for (see [`IndirectField::with_unlit`]); empty: none.
+    unlit: Vec<u64>,
+    words: usize,
+}
+
+impl IndirectField {
+    /// The field of the mesh with unknowns `u` on `grid` / `geometry` seen by `camera` (the
+    /// fine grid's), from the observations `obs` (the fine stack: the observed images are the
+    /// emitters; non-finite values emit nothing). The grid is binned by the smallest power of
+    /// two that brings both sides to at most [`FIELD_SIDE_SMALL`] to [`FIELD_SIDE`] facets (see
+    /// [`FIELD_SIDE_SMALL`]), at least `min_factor` (a field of the same mesh before: the
+    /// solver passes its last field's factor, so that a grid over the cap is built once), or
+    /// further while the exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]).
+    ///
+    /// A coarse vertex is the fine vertex it stands on when that is active, else the mean depth
+    /// of the active fine vertices within half a bin of it, on its own ray; a coarse facet takes
+    /// part when its corners are known and one of its fine pixels is in the mask, and emits the
+    /// mean of the finite observations of its masked fine pixels.
+    ///
+    /// Surface outside the image (or the mask) emits nothing: its light is missing (see the
+    /// module documentation).
+    pub(crate) fn of_mesh(
+        camera: &Camera,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        obs: &crate::local::Observations<'_>,
+        min_factor: usize,
+        max_pairs: Option<usize>,
+    ) -> Result<IndirectField> {
+        let (h, w) = (grid.height, grid.width);
+        // Fine vertex depths ((H+1) x (W+1), NaN where inactive) and the fine mask.
+        let mut depth = crate::memory::try_vec((h + 1) * (w + 1), f64::NAN, "the vertex depths")?;
+        for (i, &v) in grid.active.iter().enumerate() {
+            depth[v] = geometry.depth(u[i]);
+        }
+        let mut factor = 1;
+        let mut coarse = *camera;
+        let side = (h.max(w) / 8).clamp(FIELD_SIDE_SMALL, FIELD_SIDE);
+        while factor < min_factor || h.div_ceil(factor) > side || w.div_ceil(factor) > side {
+            factor *= 2;
+            coarse = crate::pyramid::coarser_camera(&coarse);
+        }
+        loop {
+            match Self::at_factor(&coarse, factor, grid, &depth, obs, max_pairs) {
+                Err(Error::Unusable(m))
+                    if m.contains("max_pairs")
+                        && h.div_ceil(factor) > 4
+                        && w.div_ceil(factor) > 4 =>
+                {
+                    factor *= 2;
+                    coarse = crate::pyramid::coarser_camera(&coarse);
+                }
+                other => return other,
+            }
+        }
+    }
+
+    /// [`IndirectField::of_mesh`] at one binning `factor` (`coarse`: the camera of that grid).
+    fn at_factor(
+        coarse: &Camera,
+        factor: usize,
+        grid: &crate::grid::Grid,
+        depth: &[f64],
+        obs: &crate::local::Observations<'_>,
+        max_pairs: Option<usize>,
+    ) -> Result<IndirectField> {
+        let (h, w) = (grid.height, grid.width);
+        let (hc, wc) = (h.div_ceil(factor), w.div_ceil(factor));
+        let fw = w + 1;
+        let half = factor / 2;
+        let depths: Vec<f64> = crate::memory::try_collect(
+            (0..(hc + 1) * (wc + 1)).map(|v| {
+                let (r, c) = (v / (wc + 1) * factor, v % (wc + 1) * factor);
+                let z = match r <= h && c <= w {
+                    true => depth[r * fw + c],
+                    false => f64::NAN,
+                };
+                if z.is_finite() {
+                    return z;
+                }
+                let (mut sum, mut n) = (0.0, 0usize);
+                for rr in r.saturating_sub(half)..=(r + half).min(h) {
+                    for cc in c.saturating_sub(half)..=(c + half).min(w) {
+                        let d = depth[rr * fw + cc];
+                        if d.is_finite() {
+                            sum += d;
+                            n += 1;
+                        }
+                    }
+                }
+                if n > 0 {
+                    sum / n as f64
+                } else {
+                    f64::NAN
+                }
+            }),
+            "the coarse vertices of the light exchange",
+        )?;
+        let (k, channels) = (obs.k, obs.channels);
+        let per = k * channels;
+        let plane = hc * wc;
+        // The coarse mask and the binned observations, (k, Hc, Wc, C).
+        let mut mask = crate::memory::try_vec(plane, false, "the coarse mask")?;
+        for &p in &grid.facets {
+            mask[(p / w / factor) * wc + p % w / factor] = true;
+        }
+        let mut binned = crate::memory::try_vec(plane * per, f32::NAN, "the binned images")?;
+        let mut sum = vec![0f64; per];
+        let mut count = vec![0u32; per];
+        for (pc, &inside) in mask.iter().enumerate() {
+            if !inside {
+                continue;
+            }
+            sum.fill(0.0);
+            count.fill(0);
+            let (rc, cc) = (pc / wc, pc % wc);
+            for r in rc * factor..((rc + 1) * factor).min(h) {
+                for c in cc * factor..((cc + 1) * factor).min(w) {
+                    let p = r * w + c;
+                    if grid.facet_of_pixel[p] == crate::grid::INACTIVE {
+                        continue;
+                    }
+                    for light in 0..k {
+                        for (ch, &v) in obs.at(light, p).iter().enumerate() {
+                            if v.is_finite() {
+                                sum[light * channels + ch] += f64::from(v);
+                                count[light * channels + ch] += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            for light in 0..k {
+                for ch in 0..channels {
+                    let i = light * channels + ch;
+                    if count[i] > 0 {
+                        binned[(light * plane + pc) * channels + ch] =
+                            (sum[i] / f64::from(count[i])) as f32;
+                    }
+                }
+            }
+        }
+        let vertices: Vec<[f64; 3]> = crate::memory::try_collect(
+            depths.iter().enumerate().map(|(v, &z)| {
+                let [x, y] = coarse.vertex_xy(v / (wc + 1), v % (wc + 1));
+                match coarse.is_perspective() {
+                    true => [x * z, y * z, z],
+                    false => [x, y, z],
+                }
+            }),
+            "the coarse vertices of the light exchange",
+        )?;
+        let exchange = Exchange::new(coarse, hc, wc, &vertices, Some(&mask), max_pairs)?;
+        let v = exchange.irradiance(&binned, k, channels)?;
+        drop(binned);
+        let mut vectors = crate::memory::try_vec(plane * per, [0f32; 3], "the indirect light")?;
+        for light in 0..k {
+            for pc in 0..plane {
+                for ch in 0..channels {
+                    vectors[pc * per + light * channels + ch] =
+                        v[(light * plane + pc) * channels + ch].map(|x| x as f32);
+                }
+            }
+        }
+        let valid = (0..plane)
+            .map(|pc| mask[pc] && exchange.facet(pc).2.is_finite())
+            .collect();
+        Ok(IndirectField {
+            factor,
+            height: hc,
+            width: wc,
+            per,
+            vectors,
+            valid,
+            pairs: exchange.pairs(),
+            unlit: Vec::new(),
+            words: 0,
+        })
+    }
+
+    /// The field with the lights behind each facet of the mesh `u` (`n . beta_k(c) <= 0` for
+    /// its mesh normal `n` and centre `c`) marked, whose direct light the fits then leave out
+    /// (see [`crate::local::Indirect`]). Decided once per field rather than at every local
+    /// step: a facet whose mesh normal crosses a light's terminator from one iteration to the
+    /// next made the iteration alternate between two surfaces (on the benchmark's sheet).
+    pub(crate) fn with_unlit(
+        mut self,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        lights: &[crate::Light],
+    ) -> Result<IndirectField> {
+        let words = lights.len().div_ceil(64);
+        let mut unlit = crate::memory::try_vec(
+            grid.height * grid.width * words,
+            0u64,
+            "the unlit lights of the indirect light",
+        )?;
+        for (f, &p) in grid.facets.iter().enumerate() {
+            let q = geometry.facet_corners(grid, f, u);
+            let (c, n) = (
+                crate::geometry::quad_centre(&q),
+                crate::geometry::quad_normal(&q),
+            );
+            for (k, light) in lights.iter().enumerate() {
+                if not_above(dot(n, light.beta(c).0), 0.0) {
+                    unlit[p * words + k / 64] |= 1 << (k % 64);
+                }
+            }
+        }
+        self.unlit = unlit;
+        self.words = words;
+        Ok(self)
+    }
+
+    /// Whether light `k` is behind the facet of fine pixel `p` (see
+    /// [`IndirectField::with_unlit`]; false without it).
+    pub fn is_unlit(&self, p: usize, k: usize) -> bool {
+        self.words > 0 && self.unlit[p * self.words + k / 64] & (1 << (k % 64)) != 0
+    }
+
+    /// Fine pixels per coarse facet side.
+    pub fn factor(&self) -> usize {
+        self.factor
+    }
+
+    /// Directed pairs of facets of the exchange the field came from.
+    pub fn pairs(&self) -> usize {
+        self.pairs
+    }
+
+    /// The vectors `V` of fine pixel `p` (of an image `width` wide), `k C` of them, light-major:
+    /// the bilinear interpolation of the coarse facets' around its centre, over those that took
+    /// part (weights renormalised); where none of the four did, those of the nearest coarse
+    /// facet within two that did; else zero.
+    pub fn at(&self, p: usize, width: usize) -> Vec<[f64; 3]> {
+        let mut out = Vec::new();
+        self.at_into(p, width, &mut out);
+        out
+    }
+
+    /// [`IndirectField::at`] into `out` (resized to `k C`).
+    pub fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        out.resize(self.per, [0.0; 3]);
+        let f = self.factor as f64;
+        let y = ((p / width) as f64 + 0.5) / f - 0.5;
+        let x = ((p % width) as f64 + 0.5) / f - 0.5;
+        let (y0, x0) = (y.floor(), x.floor());
+        let (ty, tx) = (y - y0, x - x0);
+        let mut total = 0.0;
+        for (dy, wy) in [(0, 1.0 - ty), (1, ty)] {
+            for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
+                let (r, c) = (y0 as i64 + dy, x0 as i64 + dx);
+                let weight = wy * wx;
+                if let Some(pc) = self.cell(r, c).filter(|_| weight > 0.0) {
+                    self.add(pc, weight, out);
+                    total += weight;
+                }
+            }
+        }
+        if total > 0.0 {
+            for v in out.iter_mut() {
+                *v = v.map(|x| x / total);
+            }
+            return;
+        }
+        let (r, c) = (
+            (p / width / self.factor) as i64,
+            (p % width / self.factor) as i64,
+        );
+        let nearest = (-2i64..=2)
+            .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
+            .filter_map(|(dr, dc)| self.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
+            .min_by_key(|&(d, _)| d);
+        if let Some((_, pc)) = nearest {
+            self.add(pc, 1.0, out);
+        }
+    }
+
+    /// The coarse facet at (r, c) when it is in the grid and took part.
+    fn cell(&self, r: i64, c: i64) -> Option<usize> {
+        let inside = r >= 0 && c >= 0 && (r as usize) < self.height && (c as usize) < self.width;
+        let pc = inside.then(|| r as usize * self.width + c as usize)?;
+        self.valid[pc].then_some(pc)
+    }
+
+    /// Adds `weight` times the vectors of coarse facet `pc` to `out`.
+    fn add(&self, pc: usize, weight: f64, out: &mut [[f64; 3]]) {
+        for (o, v) in out
+            .iter_mut()
+            .zip(&self.vectors[pc * self.per..(pc + 1) * self.per])
+        {
+            for c in 0..3 {
+                o[c] += weight * f64::from(v[c]);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -625,6 +966,54 @@ mod tests {
     fn groove(n: usize, slope: f64) -> Vec<f64> {
         let m = (n / 2) as f64;
         depths(n, |_, c| 100.0 + slope * (m - (c - m).abs()))
+    }
+
+    /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit
+    /// alike: the coarse vectors are those of the exchange of the groove's own 32² mesh (the
+    /// even vertices), and a fine pixel on the boundary of two coarse facets gets their mean.
+    #[test]
+    fn the_field_of_a_groove_bins_and_interpolates() {
+        let n = 64;
+        let camera = ortho();
+        let depth = groove(n, 1.0);
+        let grid = crate::grid::Grid::new(n, n, None).unwrap();
+        let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+        let u = grid.gather_vertices(&depth).unwrap();
+        let images = vec![1.0f32; 2 * n * n];
+        let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
+        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, 1, None).unwrap();
+        assert_eq!(field.factor(), 2);
+        let m = n / 2;
+        let coarse_camera = crate::pyramid::coarser_camera(&camera);
+        let coarse_depth = depths(m, |r, c| depth[(2 * r as usize) * (n + 1) + 2 * c as usize]);
+        let v = crate::render::vertices(&coarse_camera, m, m, &coarse_depth).unwrap();
+        let x = Exchange::new(&coarse_camera, m, m, &v, None, None).unwrap();
+        assert_eq!(field.pairs(), x.pairs());
+        let own = x.irradiance(&vec![1.0f32; m * m], 1, 1).unwrap();
+        let close = |a: [f64; 3], b: [f64; 3]| (0..3).all(|c| (a[c] - b[c]).abs() < 1e-6);
+        // Pixel (33, 17) is the lower right quarter of coarse facet (16, 8): its centre is a
+        // quarter of a coarse facet from that facet's centre towards (17, 9).
+        let at = field.at(33 * n + 17, n);
+        assert_eq!(at.len(), 2);
+        assert_eq!(at[0], at[1]);
+        let w = |r: usize, c: usize| own[r * m + c];
+        let expected: [f64; 3] = std::array::from_fn(|c| {
+            0.5625 * w(16, 8)[c]
+                + 0.1875 * w(16, 9)[c]
+                + 0.1875 * w(17, 8)[c]
+                + 0.0625 * w(17, 9)[c]
+        });
+        assert!(close(at[0], expected), "{at:?} {expected:?}");
+        // Pixel (32, 16) is on coarse facet (16, 8) too, a quarter towards (15, 7).
+        let at = field.at(32 * n + 16, n);
+        let expected: [f64; 3] = std::array::from_fn(|c| {
+            0.5625 * w(16, 8)[c]
+                + 0.1875 * w(16, 7)[c]
+                + 0.1875 * w(15, 8)[c]
+                + 0.0625 * w(15, 7)[c]
+        });
+        assert!(close(at[0], expected), "{at:?} {expected:?}");
+        assert!(expected[0].abs() > 0.01);
     }
 
     #[test]

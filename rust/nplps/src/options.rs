@@ -37,6 +37,14 @@ pub struct Options {
     /// facet's own surface hides from a light are left out of its fits. The masks are computed
     /// at a few iterations of each pyramid level ([`crate::solver::SHADOWS_AT`]).
     pub shadows: bool,
+    /// Interreflections (see [`crate::indirect`]): after the full-resolution level converges,
+    /// the indirect irradiance `V` of every facet under every light is gathered from the
+    /// observed images over the current mesh (on a grid of at most
+    /// [`FIELD_SIDE`](crate::indirect::FIELD_SIDE)² facets), added to the lights' rows of the
+    /// local fits (`I = b . (s + V)`), and the iteration runs again, up to
+    /// [`INDIRECT_ROUNDS`](crate::solver::INDIRECT_ROUNDS) rounds. Lambertian model only, without
+    /// light refinement (both are refused).
+    pub interreflections: bool,
     /// Worker threads (0: rayon's default, all cores).
     pub threads: usize,
     /// Run faer's sparse factorization and solves on the worker threads too. Off by default:
@@ -67,6 +75,20 @@ impl Options {
             });
         }
         self.refine.validate()?;
+        if self.interreflections && self.reflectance.is_glossy() {
+            return Err(Error::Unusable(
+                "interreflections are not supported with reflectance=\"glossy\" yet (the \
+                 emitted light would be the modelled diffuse part): use the Lambertian model"
+                    .to_string(),
+            ));
+        }
+        if self.interreflections && self.refine.is_active() {
+            return Err(Error::Unusable(
+                "interreflections are not supported with refine_lights yet (the light step \
+                 does not model the indirect light)"
+                    .to_string(),
+            ));
+        }
         if let Reflectance::Glossy(Some(lobe)) = self.reflectance {
             lobe.validate()?;
         }
@@ -111,6 +133,7 @@ with_fields!(Options {
     with_robust: robust: Robust,
     with_reflectance: reflectance: Reflectance,
     with_shadows: shadows: bool,
+    with_interreflections: interreflections: bool,
     with_threads: threads: usize,
     with_parallel_sparse: parallel_sparse: bool,
     with_solver: solver: GlobalSolver,
@@ -149,6 +172,7 @@ impl Default for Options {
             robust: Robust::None,
             reflectance: Reflectance::Lambertian,
             shadows: false,
+            interreflections: false,
             threads: 0,
             parallel_sparse: false,
             solver: GlobalSolver::Auto,

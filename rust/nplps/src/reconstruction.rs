@@ -86,6 +86,10 @@ pub struct Timings {
     pub lights: Duration,
     /// The cast-shadow marches (with [`Options::shadows`](crate::Options::shadows)).
     pub shadows: Duration,
+    /// Gathering the indirect light (with
+    /// [`Options::interreflections`](crate::Options::interreflections)): binning, the light
+    /// exchange and its passes.
+    pub indirect: Duration,
     /// Everything.
     pub total: Duration,
 }
@@ -99,6 +103,7 @@ impl Timings {
         self.pyramid += other.pyramid;
         self.lights += other.lights;
         self.shadows += other.shadows;
+        self.indirect += other.indirect;
     }
 }
 

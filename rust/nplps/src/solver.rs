@@ -11,6 +11,7 @@
 //!     accelerate:  mix (z, lights) and its image (crate::anderson; refining)
 //!     dz = max |z_new - z|;  z = z_new
 //!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
+//! (interreflections: rounds of "gather V on z, iterate again", see Solver::interreflect)
 //! final local step on z -> reported normals, albedo, residuals
 //! ```
 //!
@@ -27,6 +28,7 @@ use crate::convergence::{
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
 use crate::grid::Grid;
+use crate::indirect::IndirectField;
 use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
@@ -76,6 +78,9 @@ pub fn reconstruct(
             solver.iterate_first(&mut u, &problem.gauge, progress)?
         };
         history.extend(fine);
+        let (rounds, converged) =
+            solver.interreflect(&mut u, &problem.gauge, converged, progress)?;
+        history.extend(rounds);
         solver.finish(&u, history, converged)
     })?
 }
@@ -158,6 +163,19 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 /// starting surface (the starting plane casts none and costs little), except where a coarser
 /// level's shadows are carried (then used, upsampled, until the next).
 pub const SHADOWS_AT: [usize; 3] = [1, 3, 8];
+
+/// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
+/// the current mesh, iterate again" after the full-resolution level converged.
+pub const INDIRECT_ROUNDS: usize = 8;
+
+/// The rounds stop once one changes the depths by at most this share of the lateral size of the
+/// grid (the run's `tol` when larger).
+pub const INDIRECT_TOL: f64 = 1e-4;
+
+/// Iterations of a round (at most the run's): the indirect light changes with the mesh, so a
+/// round need not converge. Measured on the benchmark's GI renders at 256²: 8 rounds of 2
+/// iterations gave the errors of 4 rounds of 10 (to 0.003°) in half the time.
+pub const ROUND_ITERATIONS: usize = 2;
 
 /// What the coarsest level of a pyramid does before the iterations: given its solver and its
 /// starting unknowns, returns the gauge to iterate with (the distance search uses this).
@@ -317,6 +335,9 @@ pub(crate) struct Solver<'p> {
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
+    /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
+    /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
+    indirect: Option<IndirectField>,
 }
 
 /// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
@@ -387,6 +408,7 @@ impl<'p> Solver<'p> {
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
+            indirect: None,
         })
     }
 
@@ -513,6 +535,59 @@ impl<'p> Solver<'p> {
         self.stalled = next == Next::Stalled;
         run.guard.finish(u, &mut self.lights);
         Ok((run.history, next == Next::Converged))
+    }
+
+    /// Interreflections (with [`Options::interreflections`]; else nothing): from the converged
+    /// `u`, up to [`INDIRECT_ROUNDS`] rounds of: gather the indirect light of the mesh `u` from
+    /// the observed images ([`IndirectField::of_mesh`]), then [`ROUND_ITERATIONS`] iterations
+    /// with it in the local fits (`I = b . (s + V)`), until a round changes the depths by at
+    /// most [`INDIRECT_TOL`] times the lateral size; then a last run with the last field to the
+    /// solver's own stop rule. Returns the rounds' history and whether the last run converged
+    /// (`converged` without rounds).
+    pub(crate) fn interreflect(
+        &mut self,
+        u: &mut Vec<f64>,
+        gauge: &[f64],
+        converged: bool,
+        progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    ) -> Result<(Vec<IterationStats>, bool)> {
+        let mut history = Vec::new();
+        if !self.options.interreflections {
+            return Ok((history, converged));
+        }
+        let p = self.problem;
+        let (iterations, tol) = (self.options.iterations, self.options.tol);
+        let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
+        for round in 0..INDIRECT_ROUNDS {
+            let t = Instant::now();
+            let min_factor = self.indirect.take().map_or(1, |f| f.factor());
+            self.indirect = Some(
+                IndirectField::of_mesh(
+                    &p.rig.camera,
+                    &p.grid,
+                    &p.geometry,
+                    u,
+                    &p.obs,
+                    min_factor,
+                    None,
+                )?
+                .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
+            );
+            self.timings.indirect += t.elapsed();
+            p.cancel.check()?;
+            let before = try_copy(u, "the depths")?;
+            // With cast shadows: the first round and the last run march (at their first
+            // iteration), the rounds between keep the masks (the mesh changes little).
+            self.shadows_carried = round > 0 && self.shadows.is_some();
+            let rounds = ROUND_ITERATIONS.min(iterations);
+            history.extend(self.iterate(u, gauge, rounds, tol, progress)?.0);
+            if max_depth_change(&p.geometry, &before, u) <= limit {
+                break;
+            }
+        }
+        let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
+        history.extend(last);
+        Ok((history, converged))
     }
 
     /// One iteration: the paper's loop (local step, global step, converged?) with our
@@ -845,6 +920,7 @@ impl<'p> Solver<'p> {
             cancel: &p.cancel,
             warm: None,
             shadows: self.shadows.as_ref(),
+            indirect: self.indirect.as_ref(),
         }
     }
 
@@ -1073,6 +1149,108 @@ mod tests {
             truth.count()
         );
         assert!(shadowed.timings.shadows > std::time::Duration::ZERO);
+    }
+
+    /// Interreflections ([`Options::interreflections`]): a bowl (the sphere-cap scene turned
+    /// inside out, albedo 0.8) rendered with all its bounces under the model of
+    /// [`crate::indirect`] on its true mesh (the images are the fixed point `I = I_direct +
+    /// rho n . V(I)`, gathered on the grid the solver uses: at 32² pixels, the pixels
+    /// themselves; indirect light is over a tenth of the energy). Without the option the fits absorb
+    /// the indirect light (measured 0.32°, albedo +16 %); with it the solver recovers the surface
+    /// (measured 0.0005°, albedo +0.0004 %).
+    #[test]
+    fn interreflections_recover_a_bowl_lit_by_itself() {
+        let n = 32;
+        let mut scene = Scene::new(SceneKind::SphereCap, n, 100.0, 200.0, 0).unwrap();
+        let mean = scene.mean_depth();
+        for z in &mut scene.depth {
+            *z = 2.0 * mean - *z;
+        }
+        let rho = 0.8;
+        scene.albedo.fill(rho);
+        let direct = scene.render().unwrap();
+        let (k, plane) = (scene.rig.n_lights(), n * n);
+        let grid = Grid::new(n, n, Some(&scene.mask)).unwrap();
+        let geometry = crate::geometry::Geometry::new(&scene.rig.camera, &grid).unwrap();
+        let u = grid.gather_vertices(&scene.depth).unwrap();
+        let normals = crate::render::mesh_normals(&scene.rig.camera, n, n, &scene.depth).unwrap();
+        let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
+        for _ in 0..40 {
+            let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
+            let field =
+                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, 1, None)
+                    .unwrap();
+            assert_eq!(field.factor(), 1);
+            let mut next = images.clone();
+            for &p in &grid.facets {
+                let v = field.at(p, n);
+                for light in 0..k {
+                    let i = direct[light * plane + p] + rho * dot(normals[p], v[light]);
+                    next[light * plane + p] = i as f32;
+                }
+            }
+            images = next;
+        }
+        let indirect_share = images
+            .iter()
+            .zip(&direct)
+            .map(|(&a, &b)| f64::from(a) - b)
+            .sum::<f64>()
+            / images.iter().map(|&a| f64::from(a)).sum::<f64>();
+        assert!(indirect_share > 0.1, "{indirect_share}");
+        let run = |interreflections: bool| {
+            let problem = at_true_distance(&scene, &scene.rig, &images);
+            let options = Options {
+                iterations: 30,
+                tol: 1e-9,
+                interreflections,
+                ..Options::default()
+            };
+            reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap()
+        };
+        let errors = |r: &Reconstruction| {
+            let (mut angle, mut albedo, mut count) = (0.0, 0.0, 0);
+            for &p in &grid.facets {
+                angle += dot(r.normals[p], normals[p])
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees();
+                albedo += r.albedo[p][0] / rho - 1.0;
+                count += 1;
+            }
+            (angle / count as f64, albedo / count as f64)
+        };
+        let (plain, plain_albedo) = errors(&run(false));
+        let with = run(true);
+        let (fixed, fixed_albedo) = errors(&with);
+        assert!(plain > 0.2 && plain_albedo > 0.1, "{plain} {plain_albedo}");
+        assert!(
+            fixed < 0.05 && fixed_albedo.abs() < 0.001,
+            "{fixed} {fixed_albedo} (without the option {plain})"
+        );
+        assert!(with.timings.indirect > std::time::Duration::ZERO);
+    }
+
+    /// The option is refused with the glossy model, light refinement and the parallel-light
+    /// baseline (typed errors, before any work).
+    #[test]
+    fn interreflections_refuse_what_they_do_not_support() {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = at_true_distance(&scene, &scene.rig, &images);
+        let on = Options::default().with_interreflections(true);
+        for options in [
+            on.with_reflectance(Reflectance::Glossy(None)),
+            on.with_refine(Refine::NONE.with_intensity(true)),
+        ] {
+            let err = reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap_err();
+            assert!(
+                matches!(&err, Error::Unusable(m) if m.contains("interreflections")),
+                "{err}"
+            );
+        }
+        let err = crate::baseline::reconstruct_parallel(&problem, &on).unwrap_err();
+        assert!(matches!(&err, Error::Unusable(m) if m.contains("interreflections")));
     }
 
     /// Light refinement ([`crate::refine`]) through the whole solver: intensities off by up to 35 % are recovered from a flat start,

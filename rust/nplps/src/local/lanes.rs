@@ -78,7 +78,8 @@ impl LocalStep<'_> {
         let eligible = self.obs.channels == 1
             && s.weighting == Weighting::Image
             && s.robust == Robust::None
-            && s.lobe.is_none();
+            && s.lobe.is_none()
+            && self.indirect.is_none();
         let Model::Near(lights) = self.model else {
             return None;
         };
@@ -358,6 +359,7 @@ mod tests {
             cancel: crate::Cancel::never(),
             warm: None,
             shadows: None,
+            indirect: None,
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();

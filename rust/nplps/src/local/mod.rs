@@ -292,6 +292,12 @@ pub struct LocalStep<'s> {
     /// observations in a cast shadow are left out of every fit as if missing (NaN); None: all
     /// observations are used.
     pub shadows: Option<&'s ShadowMask>,
+    /// The indirect irradiance of each facet under each light (with
+    /// [`Options::interreflections`](crate::Options::interreflections), see
+    /// [`crate::indirect::IndirectField`]): added to the light's row of the fits,
+    /// `I = b . (s + V)`; None: the direct light only. Only the scalar Lambertian fits use it
+    /// (the vectorised lanes are off, the glossy model is refused).
+    pub indirect: Option<&'s crate::indirect::IndirectField>,
 }
 
 impl LocalStep<'_> {
@@ -337,8 +343,11 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
         let ids = grid.facet_vertices[f];
-        let values = self.facet_values(f, buf);
         let c = quad_centre(&q);
+        if let Some(field) = self.indirect {
+            return self.fit_indirect(f, u, buf, field, &q, c);
+        }
+        let values = self.facet_values(f, buf);
         let lambertian = || fit_facet(c, self.model, values, obs.channels, self.settings);
         let fitted = match self.settings.lobe {
             None => lambertian(),
@@ -383,6 +392,58 @@ impl LocalStep<'_> {
                 usable_count(values, obs.channels, self.settings),
             ),
         }
+    }
+
+    /// [`LocalStep::fit`] with the indirect light of `field` (Lambertian model): the
+    /// observations in a cast shadow (and those of the lights behind the facet, see
+    /// [`IndirectField::with_unlit`](crate::indirect::IndirectField::with_unlit)) keep their
+    /// indirect light, as rows `V` alone. The vectors and flags live in a per-thread scratch.
+    fn fit_indirect(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        field: &crate::indirect::IndirectField,
+        q: &[[f64; 3]; 4],
+        c: [f64; 3],
+    ) -> FacetFit {
+        thread_local! {
+            static SCRATCH: std::cell::RefCell<(Vec<[f64; 3]>, Vec<bool>)> =
+                const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+        }
+        let (grid, obs) = (self.grid, self.obs);
+        let pixel = grid.facets[f];
+        let ids = grid.facet_vertices[f];
+        SCRATCH.with_borrow_mut(|(vectors, direct)| {
+            direct.clear();
+            direct.extend((0..obs.k).map(|k| !field.is_unlit(pixel, k)));
+            if let Some(shadows) = self.shadows {
+                for k in shadows.lights_at(pixel) {
+                    direct[k] = false;
+                }
+            }
+            field.at_into(pixel, grid.width, vectors);
+            let values = obs.facet(pixel, buf);
+            let indirect = Indirect { vectors, direct };
+            match fit_facet_with(
+                c,
+                self.model,
+                values,
+                obs.channels,
+                self.settings,
+                Some(indirect),
+            ) {
+                Some(fitted) => FacetFit {
+                    target: self.geometry.plane_target(fitted.normal, ids, c),
+                    ..fitted
+                },
+                None => keep_shape(
+                    q,
+                    ids.map(|i| u[i as usize]),
+                    usable_count(values, obs.channels, self.settings),
+                ),
+            }
+        })
     }
 
     /// Fits facets `first..first + fits.len()` on `u` in parallel (rayon), writing `fits`.
@@ -589,6 +650,18 @@ struct Sums {
     used: u32,
 }
 
+/// The indirect light of one facet (see [`crate::indirect`]): the model of light k becomes
+/// `I = rho n . (d_k Phi_k beta_k(c) + V_k)`, `d_k` = 1 where the direct light reaches the facet
+/// and 0 where it does not (a cast shadow, or the light behind the facet), so that observations
+/// lit only by the surface's own light still count.
+#[derive(Debug, Clone, Copy)]
+pub struct Indirect<'a> {
+    /// The irradiance vector `V` of each light and channel (`k * channels`, light-major).
+    pub vectors: &'a [[f64; 3]],
+    /// Per light: whether its direct light reaches the facet.
+    pub direct: &'a [bool],
+}
+
 /// One facet's data during its fit.
 struct Facet<'a> {
     c: [f64; 3],
@@ -596,6 +669,8 @@ struct Facet<'a> {
     values: &'a [f32],
     channels: usize,
     settings: FitSettings,
+    /// The indirect light, added to the rows; None: none.
+    indirect: Option<Indirect<'a>>,
 }
 
 impl Facet<'_> {
@@ -654,11 +729,18 @@ impl Facet<'_> {
             if robust == 0.0 {
                 continue;
             }
-            let (b, pw, phi) = self.model.row(k, self.c);
+            let (mut b, pw, phi) = self.model.row(k, self.c);
+            if self.indirect.is_some_and(|x| !x.direct[k]) {
+                b = [0.0; 3];
+            }
             for (ch, &i) in o.iter().enumerate() {
                 let i = i as f64;
                 let p = channel_intensity(phi, self.channels, ch);
-                let r = [b[0] * p, b[1] * p, b[2] * p];
+                let mut r = [b[0] * p, b[1] * p, b[2] * p];
+                if let Some(x) = self.indirect {
+                    let v = x.vectors[k * self.channels + ch];
+                    r = [r[0] + v[0], r[1] + v[1], r[2] + v[2]];
+                }
                 let w = robust
                     * match self.settings.weighting {
                         Weighting::Image => 1.0,
@@ -687,12 +769,23 @@ impl Facet<'_> {
             return None;
         }
         let (b, _, phi) = self.model.row(k, self.c);
-        let nb = dot(n, b);
+        let nb = match self.indirect {
+            Some(x) if !x.direct[k] => 0.0,
+            _ => dot(n, b),
+        };
         Some(
             o.iter()
                 .enumerate()
                 .map(|(ch, &i)| {
-                    let e = albedo[ch] * channel_intensity(phi, self.channels, ch) * nb - i as f64;
+                    let p = channel_intensity(phi, self.channels, ch);
+                    // (without indirect light, the operations of the vectorised lanes)
+                    let e = match self.indirect {
+                        None => albedo[ch] * p * nb - i as f64,
+                        Some(x) => {
+                            albedo[ch] * (p * nb + dot(n, x.vectors[k * self.channels + ch]))
+                                - i as f64
+                        }
+                    };
                     e * e
                 })
                 .sum(),
@@ -793,16 +886,32 @@ pub fn fit_facet(
     channels: usize,
     settings: FitSettings,
 ) -> Option<FacetFit> {
+    fit_facet_with(c, model, values, channels, settings, None)
+}
+
+/// [`fit_facet`] with the indirect light `indirect` added to the rows: the model
+/// `I = rho n . (d Phi beta(c) + V)` (see [`Indirect`] and [`crate::indirect`]). None: exactly
+/// [`fit_facet`].
+pub fn fit_facet_with(
+    c: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: FitSettings,
+    indirect: Option<Indirect<'_>>,
+) -> Option<FacetFit> {
     let facet = Facet {
         c,
         model,
         values,
         channels,
         settings,
+        indirect,
     };
     let sums = match model {
         Model::Near(lights)
-            if channels == 1
+            if indirect.is_none()
+                && channels == 1
                 && settings.weighting == Weighting::Image
                 && settings.robust == Robust::None =>
         {
@@ -955,6 +1064,7 @@ mod tests {
                 cancel: crate::Cancel::never(),
                 warm: None,
                 shadows: None,
+                indirect: None,
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];

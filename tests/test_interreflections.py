@@ -1,0 +1,78 @@
+"""Interreflections (issue 21): ``interreflections=True`` on the committed 64² GI renders, its refusals, the CLI flag.
+
+The renders (tests/data/pbr, see tests/test_pbr_renders.py) are path traced with global
+illumination; at the true distance the default solver absorbs their indirect light. Measured on
+this build (mean normal error, albedo error in the median): the bowl 2.23° / +9.9 % without the
+option, 0.37° / +0.2 % with it; the corrugated sheet 7.58° / +1.8 % without, 2.63° / +0.9 % with
+(its remaining error is surface outside the image, which lights it and which the option cannot
+see).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import nplps
+from pbr_data import angles, load  # tests/pbr_data.py
+
+
+def run(name: str, **options: object) -> tuple[float, float, nplps.Reconstruction]:
+    """Return the mean normal error (degrees), the median albedo error (relative) and the result."""
+    data, rig = load(name)
+    mask = data["mask"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = nplps.reconstruct(
+            data["images"].astype(np.float32), rig, depth=float(data["distance"]), mask=mask, threads=1, **options
+        )
+    error = float(angles(result.normals[mask], data["normals"][mask]).mean())
+    albedo = float(np.median(result.albedo[mask] / float(data["reflectance"]) - 1))
+    return error, albedo, result
+
+
+def test_the_gi_bowl_is_recovered() -> None:
+    off, off_albedo, plain = run("bowl-diffuse-gi")
+    on, on_albedo, result = run("bowl-diffuse-gi", interreflections=True)
+    assert off > 2.0 and off_albedo > 0.08  # measured 2.23°, +9.9 %
+    assert on < 0.5 and abs(on_albedo) < 0.01  # measured 0.37°, +0.2 %
+    assert plain.timings["indirect"] == 0 and result.timings["indirect"] > 0
+    assert len(result.history) > len(plain.history)
+
+
+def test_the_gi_sheet_improves() -> None:
+    off, _, _ = run("sheet-diffuse-gi")
+    on, on_albedo, _ = run("sheet-diffuse-gi", interreflections=True)
+    assert off > 7.0  # measured 7.58°
+    assert on < 3.0 and abs(on_albedo) < 0.02  # measured 2.63°, +0.9 %
+
+
+def test_the_option_is_a_flag_and_refuses_what_it_does_not_support() -> None:
+    scene = nplps.make_scene("sphere", n=16)
+    args = (scene.images, scene.rig)
+    with pytest.raises(nplps.InputError, match="interreflections"):
+        nplps.reconstruct(*args, depth=scene.mean_depth, interreflections="yes")  # type: ignore[arg-type]
+    with pytest.raises(nplps.InputError, match="glossy"):
+        nplps.reconstruct(*args, depth=scene.mean_depth, interreflections=True, reflectance="glossy")
+    with pytest.raises(nplps.InputError, match="refine_lights"):
+        nplps.reconstruct(*args, depth=scene.mean_depth, interreflections=True, refine_lights="intensity")
+
+
+def test_the_command_line_flag(tmp_path, capsys) -> None:
+    from nplps import cli
+
+    scene = nplps.make_scene("sphere", n=32, camera="pinhole")
+    folder = tmp_path / "sphere"
+    scene.save(folder)
+    argv = ["reconstruct", str(folder), "--rig", str(folder / "rig.json"), "--mask", str(folder / "mask.png")]
+    argv += ["--depth", repr(scene.mean_depth), "-q", "--threads", "1"]
+    assert cli.main([*argv, "--interreflections", "--out", str(tmp_path / "on")]) == 0, capsys.readouterr().err
+    assert cli.main([*argv, "--out", str(tmp_path / "off")]) == 0, capsys.readouterr().err
+    on = json.loads((tmp_path / "on" / "summary.json").read_text())
+    off = json.loads((tmp_path / "off" / "summary.json").read_text())
+    assert on["options"]["interreflections"] is True and on["options"]["solver_options"]["interreflections"] is True
+    assert off["options"]["interreflections"] is False
+    assert on["timings"]["indirect"] > 0 and off["timings"]["indirect"] == 0
