@@ -76,3 +76,24 @@ def test_the_command_line_flag(tmp_path, capsys) -> None:
     assert on["options"]["interreflections"] is True and on["options"]["solver_options"]["interreflections"] is True
     assert off["options"]["interreflections"] is False
     assert on["timings"]["indirect"] > 0 and off["timings"]["indirect"] == 0
+
+
+def test_an_albedo_that_is_no_reflectance_is_warned() -> None:
+    # make_scene's rig has unit intensities at millimetre distances: its albedo is about 3e4, so
+    # the indirect light gathered from the images is out of scale with the direct light. Scaled so
+    # that the albedo is 0.5 (a reflectance), the warning goes.
+    scene = nplps.make_scene("sphere", n=24, camera="pinhole", seed=0)
+    scale = float(np.median(scene.albedo[scene.mask])) / 0.5
+    calibrated = nplps.Rig.from_dict(
+        {
+            **scene.rig.to_dict(),
+            "lights": [{**light, "intensity": light["intensity"] * scale} for light in scene.rig.to_dict()["lights"]],
+        }
+    )
+    options = {"depth": scene.mean_depth, "mask": scene.mask, "interreflections": True}
+    with pytest.warns(RuntimeWarning, match="median albedo is .* not a reflectance"):
+        nplps.reconstruct(scene.images, scene.rig, **options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        result = nplps.reconstruct(scene.images, calibrated, **options)
+    assert abs(float(np.median(result.albedo[scene.mask])) - 0.5) < 0.01

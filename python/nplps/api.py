@@ -292,6 +292,36 @@ def _warn_status(result: Reconstruction) -> None:
         )
 
 
+#: With ``interreflections=True``, a median albedo outside this range is not a reflectance.
+ALBEDO_RANGE = (0.01, 1.0)
+
+
+def _warn_albedo_scale(result: Reconstruction) -> None:
+    """Warn when the albedo is no reflectance, so that the modelled indirect light is off.
+
+    The indirect light is gathered from the observed images: it has the right strength relative to
+    the rig's light only when the fitted albedo is the surface's reflectance, i.e. the rig's
+    intensities are calibrated in those units (docs/method.md). An albedo far outside (0, 1] says
+    they are not (queau_human1: about 2e-5, where the option mostly changes which observations
+    count as lit).
+    """
+    albedo = np.asarray(result.albedo)[result.mask]
+    albedo = albedo[np.isfinite(albedo)]
+    if albedo.size == 0:
+        return
+    median = float(np.median(albedo))
+    low, high = ALBEDO_RANGE
+    if not low <= median <= high:
+        warnings.warn(
+            f"interreflections=True: the median albedo is {median:.3g}, not a reflectance in ({low}, {high}]: the "
+            "rig's intensities are not in the units the indirect light assumes (it has its true strength only "
+            "when the albedo is the reflectance); calibrate the intensities against a reference of known "
+            "reflectance, or leave the option off",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
 _hinted = False
 
 
@@ -603,6 +633,8 @@ def reconstruct(
     _warn_negative(out["negative_observations"], dark_)
     _warn_slow_multigrid(result.history)
     _warn_status(result)
+    if interreflections:
+        _warn_albedo_scale(result)
     if result.distance_check is not None and result.distance_check.looks_wrong:
         warnings.warn(result.distance_check.message, RuntimeWarning, stacklevel=2)
     return result

@@ -922,6 +922,19 @@ pub fn fit_facet_with(
     if sums.used < 3 {
         return None;
     }
+    // Rows of indirect light alone do not determine a facet: their vectors are small (a tenth of
+    // the direct light or less), so with fewer than 3 directly lit observations the fit would
+    // follow their noise to an albedo orders of magnitude off (a face of queau_human1, whose
+    // dark threshold is 0, predicted held-out images 10^4 times too bright).
+    if let Some(x) = indirect {
+        let lit = facet
+            .observations()
+            .filter(|&(k, o)| x.direct[k] && usable(o, &settings))
+            .count();
+        if lit < 3 {
+            return None;
+        }
+    }
     let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
     if settings.robust != Robust::None {
         let mut scratch = Vec::new();
