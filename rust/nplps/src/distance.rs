@@ -312,10 +312,7 @@ fn search_with(
     };
     // Before a window, the wide search need only bracket the distance.
     let wide = DistanceSearch {
-        precision: match profile {
-            true => search.precision.max(BRACKET_PRECISION),
-            false => search.precision,
-        },
+        precision: bracket,
         ..*search
     };
     let found = hold_lobe(solver, problem, (range.0 * range.1).sqrt(), search.inner)
