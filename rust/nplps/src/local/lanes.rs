@@ -251,6 +251,8 @@ fn accumulate_lanes(
         s: [[s[0][l], s[1][l], s[2][l]], [0.0; 3], [0.0; 3]],
         sum_i2: sum_i2[l],
         used: used[l],
+        // The lanes run without indirect light: every used observation is lit.
+        lit: used[l],
     })
 }
 

@@ -648,6 +648,9 @@ struct Sums {
     s: [[f64; 3]; 3],
     sum_i2: f64,
     used: u32,
+    /// Of the `used` observations, those the direct light reaches (all of them without
+    /// indirect light, see [`Indirect`]).
+    lit: u32,
 }
 
 /// The indirect light of one facet (see [`crate::indirect`]): the model of light k becomes
@@ -714,6 +717,7 @@ impl Facet<'_> {
             s: [s, [0.0; 3], [0.0; 3]],
             sum_i2,
             used,
+            lit: used,
         }
     }
 
@@ -725,6 +729,9 @@ impl Facet<'_> {
                 continue;
             }
             sums.used += 1;
+            if self.indirect.is_none_or(|x| x.direct[k]) {
+                sums.lit += 1;
+            }
             let robust = rw(k);
             if robust == 0.0 {
                 continue;
@@ -919,21 +926,13 @@ pub fn fit_facet_with(
         }
         _ => facet.accumulate(|_| 1.0),
     };
-    if sums.used < 3 {
-        return None;
-    }
     // Rows of indirect light alone do not determine a facet: their vectors are small (a tenth of
     // the direct light or less), so with fewer than 3 directly lit observations the fit would
     // follow their noise to an albedo orders of magnitude off (a face of queau_human1, whose
-    // dark threshold is 0, predicted held-out images 10^4 times too bright).
-    if let Some(x) = indirect {
-        let lit = facet
-            .observations()
-            .filter(|&(k, o)| x.direct[k] && usable(o, &settings))
-            .count();
-        if lit < 3 {
-            return None;
-        }
+    // dark threshold is 0, predicted held-out images 10^4 times too bright). Without indirect
+    // light every used observation is lit.
+    if sums.lit < 3 {
+        return None;
     }
     let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
     if settings.robust != Robust::None {
