@@ -116,7 +116,7 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_mask, ensure_shape, ensure_usable, Error, Result};
 use crate::rig::Camera;
-use crate::shadow::March;
+use crate::shadow::{hiding_depth, segment_point, March};
 use crate::vec3::{cross, dot, norm, not_above, sub};
 
 /// Pairs nearer than `NEAR` facet sizes (`r^2 < NEAR^2 max(A_i, A_j)`) get the subdivided
@@ -461,12 +461,7 @@ fn visible(
             };
             (ma[0] + s * (mb[0] - ma[0]), ma[1] + s * (mb[1] - ma[1]), z)
         } else {
-            let w = if perspective {
-                s * c[2] / ((1.0 - s) * e[2] + s * c[2])
-            } else {
-                s
-            };
-            let x = [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]];
+            let x = segment_point(c, e, d, s, perspective);
             let [u, v] = march.camera.project(x);
             (u, v, x[2])
         };
@@ -482,7 +477,7 @@ fn visible(
         let Some(z_surface) = march.surface_depth(gx, gy) else {
             continue;
         };
-        if z_surface < z - (1e-6 * z.abs() + tol) {
+        if z_surface < hiding_depth(z, tol) {
             return false;
         }
     }

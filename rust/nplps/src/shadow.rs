@@ -444,6 +444,33 @@ impl Pyramid {
     }
 }
 
+/// The point of the segment from `c` to `e` (with `d = e - c`) whose image lies at the share
+/// `s` of the way between the images of its ends: `c + s d` for an orthographic camera, and
+/// for a pinhole camera `c + w d` with `w = s c_z / ((1 - s) e_z + s c_z)` (depth is harmonic,
+/// not linear, along the image of a segment). Exact without distortion.
+#[inline]
+pub(crate) fn segment_point(
+    c: [f64; 3],
+    e: [f64; 3],
+    d: [f64; 3],
+    s: f64,
+    perspective: bool,
+) -> [f64; 3] {
+    let w = if perspective {
+        s * c[2] / ((1.0 - s) * e[2] + s * c[2])
+    } else {
+        s
+    };
+    [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]]
+}
+
+/// The depth a surface must come nearer than to hide a point at depth `z` of a march: `z`
+/// less a relative rounding margin and the march's own `slack`.
+#[inline]
+pub(crate) fn hiding_depth(z: f64, slack: f64) -> f64 {
+    z - (1e-6 * z.abs() + slack)
+}
+
 /// What one march needs: the camera, the mesh, the mask and the bounds.
 pub(crate) struct March<'a> {
     pub(crate) camera: &'a Camera,
@@ -540,17 +567,9 @@ impl March<'_> {
         let total = (2.0 * length).ceil().max(1.0);
         let steps = (total as usize).min(2 * self.max_steps);
         let d = sub(e, c);
-        let point = |i: usize| {
-            let s = i as f64 / total;
-            let w = if perspective {
-                s * c[2] / ((1.0 - s) * e[2] + s * c[2])
-            } else {
-                s
-            };
-            [c[0] + w * d[0], c[1] + w * d[1], c[2] + w * d[2]]
-        };
+        let point = |i: usize| segment_point(c, e, d, i as f64 / total, perspective);
         // Blocked where the surface is nearer than `z - tol(z)`, which grows with z.
-        let reach = |z: f64| z - (1e-6 * z.abs() + slack);
+        let reach = |z: f64| hiding_depth(z, slack);
         // The image step of one sample, in pixels (exact without distortion).
         let step = [(m1[0] - m0[0]) / total, (m1[1] - m0[1]) / total];
         // Without a pyramid: the plain march, every sample.
