@@ -1,8 +1,9 @@
-"""Cast shadows predicted from the current mesh inside the solver (``reconstruct(shadows=True)``).
+"""Cast shadows predicted from the current mesh inside the solver (``reconstruct(shadows=...)``).
 
 The committed 64 x 64 Mitsuba render of a block on a plane (tests/data/pbr, direct light only)
-casts shadows over 2.2 % of its observations. Without the option the shadow edges' partly lit
-pixels bend the normals (0.67° mean); with it the observations the mesh hides are left out.
+casts shadows over 2.2 % of its observations. Without the march (``shadows=False``) the shadow
+edges' partly lit pixels bend the normals (0.67° mean); with it (True, and the default "auto",
+whose probe finds the block's shadows) the observations the mesh hides are left out.
 """
 
 from __future__ import annotations
@@ -37,9 +38,11 @@ def test_shadows_from_the_mesh_lower_the_error(noise: float) -> None:
     for seed in range(3 if noise else 1):
         rng = np.random.default_rng(seed)
         images = np.clip(clean + rng.normal(0.0, noise * clean.max(), clean.shape), 0.0, None).astype(np.float32)
-        plain = run(images, rig, data)
+        plain = run(images, rig, data, shadows=False)
         shadowed = run(images, rig, data, shadows=True)
+        default = run(images, rig, data)
         assert plain.shadows is None and plain.shadow_bits is None
+        assert np.array_equal(default.normals, shadowed.normals, equal_nan=True)
         assert error(shadowed, data) < 0.5
         assert error(shadowed, data) < error(plain, data) - 0.2
         # The masks the fits used are those of the true surface but for a few edge pixels.
@@ -73,10 +76,25 @@ def test_shadow_bits_unpack_past_64_lights() -> None:
     assert np.mean(found[64:] != truth[64:]) < 0.01 and found[64:].any()
 
 
-def test_shadows_must_be_a_flag() -> None:
+def test_shadows_must_be_a_flag_or_auto() -> None:
     scene = nplps.make_scene("sphere", n=16)
-    with pytest.raises(nplps.InputError, match="shadows"):
-        nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, shadows="yes")  # type: ignore[arg-type]
+    for wrong in ("yes", "on", 1):
+        with pytest.raises(nplps.InputError, match='shadows must be "auto", True or False'):
+            nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, shadows=wrong)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", ["sphere", "bumps"])
+def test_automatic_shadows_change_nothing_on_objects_without_cast_shadows(name: str) -> None:
+    # The default probes a lattice of pixels; on a surface that hides no light from itself the
+    # result is that of shadows=False, bit for bit (256 x 256: two pyramid levels, probes on both).
+    scene = nplps.make_scene(name, n=256, camera="pinhole", noise=0.005, seed=1)
+    kw = {"depth": scene.mean_depth, "mask": scene.mask, "progress": False}
+    off = nplps.reconstruct(scene.images, scene.rig, shadows=False, **kw)
+    auto = nplps.reconstruct(scene.images, scene.rig, **kw)
+    assert auto.shadows is None
+    assert auto.timings["shadows"] > 0.0 and off.timings["shadows"] == 0.0
+    for a, b in ((auto.normals, off.normals), (auto.depth, off.depth), (auto.albedo, off.albedo)):
+        assert np.array_equal(a, b, equal_nan=True)
 
 
 def test_the_command_line_flag_and_the_result_folder(tmp_path, capsys) -> None:
@@ -94,14 +112,19 @@ def test_the_command_line_flag_and_the_result_folder(tmp_path, capsys) -> None:
     truth = nplps.cast_shadows(scene.depth, scene.rig, mask=scene.mask)
     assert cast["share"] == pytest.approx(truth[:, scene.mask].mean(), rel=0.3)
     assert len(cast["per_light"]) == scene.rig.n_lights
-    assert summary["options"]["shadows"] is True
+    assert summary["options"]["shadows"] == "on" and summary["options"]["solver_options"]["shadows"] is True
     bits = np.load(out / "shadows.npy")
     assert bits.shape == (32, 32, 1) and bits.dtype == np.uint64
     assert (out / "shadows.png").is_file()
     assert "cast shadows predicted from the mesh" in (out / "report.html").read_text()
-    # Without the flag: no shadow files, and null in the summary.
-    argv = [a for a in argv if a != "--shadows"]
-    argv[-1] = str(tmp_path / "plain")
-    assert cli.main(argv) == 0
-    assert json.loads((tmp_path / "plain" / "summary.json").read_text())["cast_shadows"] is None
-    assert not (tmp_path / "plain" / "shadows.npy").exists()
+    # Without the flag ("auto"): this small block hides 0.27 % of the observations, below the
+    # 0.5 % from which the default uses masks, so no shadow files and null in the summary, as
+    # with --shadows off.
+    assert cast["share"] < 0.005
+    default = [a for a in argv if a != "--shadows"]
+    off = [*default[:-2], "--shadows", "off", "--out", str(tmp_path / "plain")]
+    default[-1] = str(tmp_path / "default")
+    for args, name in ((default, "default"), (off, "plain")):
+        assert cli.main(args) == 0
+        assert json.loads((tmp_path / name / "summary.json").read_text())["cast_shadows"] is None
+        assert not (tmp_path / name / "shadows.npy").exists()

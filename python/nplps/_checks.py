@@ -190,6 +190,15 @@ def _flag(value: Any, name: str) -> bool:
     return bool(value)
 
 
+def _shadows(value: Any) -> Literal["auto", "on", "off"]:
+    """Return the cast-shadow policy of ``shadows=`` (True, False or "auto") by its core name; else InputError."""
+    if isinstance(value, str) and value == "auto":
+        return "auto"
+    if isinstance(value, (bool, np.bool_)):
+        return "on" if value else "off"
+    raise InputError(f'shadows must be "auto", True or False, got {_short(value)}')
+
+
 def _finite_number(value: Any, name: str) -> float:
     """``value`` as a finite float >= 0, or InputError."""
     v = _real(value, name)

@@ -105,7 +105,7 @@ class SolverOptions(TypedDict, total=False):
     reflectance: Reflectance | None
     roughness: float | None
     eta: float | None
-    shadows: bool | None
+    shadows: Literal["auto", "on", "off"] | None
     interreflections: bool | None
     threads: int | None
     solver: Solver | None

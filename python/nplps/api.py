@@ -11,7 +11,7 @@ import math
 import sys
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -28,6 +28,7 @@ from ._checks import (
     _real,
     _real_array,
     _refine_choice,
+    _shadows,
     _short,
     _solver_choice,
     _threads,
@@ -375,7 +376,7 @@ def reconstruct(
     reflectance: Reflectance = "lambertian",
     roughness: float | None = None,
     eta: float | None = None,
-    shadows: bool = False,
+    shadows: bool | Literal["auto"] = "auto",
     interreflections: bool = False,
     color: bool | None = None,
     valid: Any = None,
@@ -451,13 +452,18 @@ def reconstruct(
     roughness, eta : float, optional
         With ``reflectance="glossy"``: the lobe's GGX roughness (0 < roughness <= 1) and relative
         index of refraction (1 to 3), both or neither. Default: estimated from the images.
-    shadows : bool, default False
+    shadows : bool or "auto", default "auto"
         Predict cast shadows from the current mesh: at the first, third and eighth iteration of
         each pyramid level every pixel's path to every light is marched over the mesh's depth
         map, and the observations the surface itself hides are left out of the fits (as below
-        `dark`). For objects that shadow themselves: steps, pockets, deep relief. It costs one
-        to three marches a level (measured 0.3-0.7 s at 256 x 256 x 16 lights, 12-20 s at 1 MP on
-        a 2-core machine); the masks of the final level are ``result.shadows``.
+        `dark`). For objects that shadow themselves: steps, pockets, deep relief. With True it
+        costs one to three marches a level (measured 0.3-0.7 s at 256 x 256 x 16 lights, 12-20 s
+        at 1 MP on a 2-core machine). With "auto" (the default) a level without masks first
+        marches from a lattice of about 1024 pixels (1/900 of a march at 1 MP) and marches
+        every pixel only when 0.5 % or more of the lattice's observations are hidden; masks
+        below that share are not used. Objects that do not shadow themselves then get the
+        result of False, bit for bit, at the cost of the probes. False never marches. The masks
+        of the final level, when used, are ``result.shadows``.
     interreflections : bool, default False
         Model the light that the surface sends to itself (concave objects: bowls, grooves,
         folds). Once the full resolution converges, the indirect irradiance of every pixel
@@ -589,7 +595,7 @@ def reconstruct(
         "reflectance": reflectance,
         "roughness": None if roughness is None else _finite_number(roughness, "roughness"),
         "eta": None if eta is None else _finite_number(eta, "eta"),
-        "shadows": _flag(shadows, "shadows"),
+        "shadows": _shadows(shadows),
         "interreflections": _flag(interreflections, "interreflections"),
         "threads": _threads(threads),
         "auto": isinstance(depth, str),

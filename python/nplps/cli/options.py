@@ -33,6 +33,9 @@ class Option:
     choices: tuple[str, ...] | None = None
     #: A flag without a value (``store_true``).
     switch: bool = False
+    #: ``"?"``: the value may be left out, and then it is `const`.
+    nargs: str | None = None
+    const: Any = None
     required: bool = False
     #: Options of one name here are mutually exclusive (added next to each other).
     exclusive: str | None = None
@@ -102,11 +105,16 @@ _OPTIONS = (
     Option(
         ("--shadows",),
         "shadows",
-        "predict cast shadows from the current mesh and leave the observations it hides out of the "
-        "fits (for steps, pockets, deep relief; a march per pixel and light at a few iterations: "
-        "about 2x the time at 256 x 256, more at camera resolution)",
-        switch=True,
-        to_api=bool,
+        "cast shadows predicted from the current mesh, whose hidden observations are left out of "
+        "the fits (steps, pockets, deep relief): auto (default) marches every pixel to every "
+        "light only where a probe of about 1024 pixels finds 0.5 %% or more of its observations "
+        "hidden; on (or --shadows alone) always marches (a march per pixel and light at a few "
+        "iterations: about 2x the time at 256 x 256, more at camera resolution); off never",
+        choices=("auto", "on", "off"),
+        nargs="?",
+        const="on",
+        metavar="{auto,on,off}",
+        to_api=lambda value: {"on": True, "off": False}.get(value, "auto"),
     ),
     Option(
         ("--interreflections",),
@@ -329,6 +337,7 @@ def add_options(parser: Any, flags: Sequence[str], *, batch: bool = False) -> No
             kwargs["action"] = "store_true"
         else:
             kwargs.update(type=o.type, default=o.default, metavar=o.metavar, choices=o.choices)
+            kwargs.update(nargs=o.nargs, const=o.const)
         if o.required:
             kwargs["required"] = True
         target.add_argument(*o.flags, **{k: v for k, v in kwargs.items() if v is not None})

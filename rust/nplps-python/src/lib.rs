@@ -244,7 +244,16 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         .with_weighting(weighting)
         .with_robust(robust)
         .with_reflectance(reflectance)
-        .with_shadows(option(d, "shadows", defaults.shadows)?)
+        .with_shadows(choice(
+            d,
+            "shadows",
+            &[
+                ("auto", nplps::Shadows::Auto),
+                ("on", nplps::Shadows::On),
+                ("off", nplps::Shadows::Off),
+            ],
+            "shadows must be \"auto\", True or False",
+        )?)
         .with_interreflections(option(d, "interreflections", defaults.interreflections)?)
         .with_threads(option(d, "threads", defaults.threads)?)
         .with_max_memory(option(d, "max_memory", defaults.max_memory)?))

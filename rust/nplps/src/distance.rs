@@ -21,6 +21,7 @@ use crate::parallel::with_threads;
 use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
 use crate::rig::Light;
+use crate::shadow::Shadows;
 use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
 
@@ -293,6 +294,10 @@ fn search_with(
     // Candidates are compared under one model: a lobe too rough for a highlight, estimated at a
     // candidate, does not drop the glossy model (the run at the distance found decides).
     solver.keep_glossy = true;
+    // Candidates are compared without cast shadows unless the user asks for them (`On`): on the
+    // PBR block with cast shadows marching in the search found -0.68 % instead of -0.20 % at 3.6x
+    // the time. The run at the distance found uses the user's policy again.
+    let shadows = solver.search_shadows();
     let profile = solver.estimates_lobe();
     let scan = search.scan.max(3);
     let step = (range.1.ln() - range.0.ln()) / (scan - 1) as f64;
@@ -337,6 +342,7 @@ fn search_with(
     };
     solver.hold_lobe = false;
     solver.keep_glossy = false;
+    solver.restore_shadows(shadows);
     solver.check_lights = true;
     solver.lights.restart(refine);
     found
@@ -838,6 +844,11 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
             position: false,
             fix_scale: true,
             ..options.refine
+        },
+        // As the search (see `search_with`): cast shadows only when asked for.
+        shadows: match options.shadows {
+            Shadows::On => Shadows::On,
+            _ => Shadows::Off,
         },
         ..*options
     };

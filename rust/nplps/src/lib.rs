@@ -237,7 +237,7 @@ pub use render::{
     Surface,
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
-pub use shadow::{cast_shadows, ShadowMask};
+pub use shadow::{cast_shadows, ShadowMask, Shadows};
 pub use solver::{reconstruct, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -13,6 +13,7 @@ use crate::global::GlobalSolver;
 use crate::local::{FitSettings, Robust, Weighting};
 use crate::memory::check;
 use crate::reflectance::Reflectance;
+use crate::shadow::Shadows;
 
 /// Options of the iteration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -35,8 +36,9 @@ pub struct Options {
     pub reflectance: Reflectance,
     /// Cast shadows predicted from the current mesh (see [`crate::shadow`]): the observations a
     /// facet's own surface hides from a light are left out of its fits. The masks are computed
-    /// at a few iterations of each pyramid level ([`crate::solver::SHADOWS_AT`]).
-    pub shadows: bool,
+    /// at a few iterations of each pyramid level ([`crate::solver::SHADOWS_AT`]); by default
+    /// ([`Shadows::Auto`]) only where the coarsest level finds the object shadowing itself.
+    pub shadows: Shadows,
     /// Interreflections (see [`crate::indirect`]): after the full-resolution level converges,
     /// the indirect irradiance `V` of every facet under every light is gathered from the
     /// observed images over the current mesh (on a grid of at most
@@ -132,7 +134,7 @@ with_fields!(Options {
     with_weighting: weighting: Weighting,
     with_robust: robust: Robust,
     with_reflectance: reflectance: Reflectance,
-    with_shadows: shadows: bool,
+    with_shadows: shadows: Shadows,
     with_interreflections: interreflections: bool,
     with_threads: threads: usize,
     with_parallel_sparse: parallel_sparse: bool,
@@ -171,7 +173,7 @@ impl Default for Options {
             weighting: Weighting::Image,
             robust: Robust::None,
             reflectance: Reflectance::Lambertian,
-            shadows: false,
+            shadows: Shadows::Auto,
             interreflections: false,
             threads: 0,
             parallel_sparse: false,

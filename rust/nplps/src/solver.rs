@@ -41,7 +41,7 @@ use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::reflectance::{Lobe, Reflectance};
 use crate::rig::Light;
-use crate::shadow::{mesh_shadows, ShadowMask};
+use crate::shadow::{mesh_shadows, ShadowMask, Shadows, AUTO_SHARE};
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
 /// [`Control::Cancel`] stops the solver with [`Error::Cancelled`].
@@ -163,6 +163,13 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 /// starting surface (the starting plane casts none and costs little), except where a coarser
 /// level's shadows are carried (then used, upsampled, until the next).
 pub const SHADOWS_AT: [usize; 3] = [1, 3, 8];
+
+/// Under [`Shadows::Auto`], a solver without a mask probes a lattice of at least this many
+/// facets (every `s`-th row and column, `s = floor(sqrt(facets / PROBE_FACETS))`) before it
+/// marches them all: at 16 lights, 16 384 observations, of which [`AUTO_SHARE`] is 82. A probe
+/// costs `1 / s²` of a march (1/9 on a 128² level, 1/36 at 256², 1/900 at 1 MP) plus the
+/// `O(pixels)` set-up of a march (the vertices and the min-depth pyramid).
+pub const PROBE_FACETS: usize = 1024;
 
 /// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
 /// the current mesh, iterate again" after the full-resolution level converged.
@@ -335,6 +342,9 @@ pub(crate) struct Solver<'p> {
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
+    /// Whether the next iteration marches whatever [`SHADOWS_AT`] says: after the glossy model
+    /// was dropped, whose surface the last masks came from.
+    march_next: bool,
     /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
     /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
     indirect: Option<IndirectField>,
@@ -408,6 +418,7 @@ impl<'p> Solver<'p> {
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
+            march_next: false,
             indirect: None,
         })
     }
@@ -443,7 +454,7 @@ impl<'p> Solver<'p> {
     /// Starts from a coarser level's cast shadows (twice as coarse), each pixel taking those of
     /// the coarse pixel under it, until this level's first march.
     fn carry_shadows(&mut self, coarse: Option<ShadowMask>) -> Result<()> {
-        if let Some(coarse) = coarse.filter(|_| self.options.shadows) {
+        if let Some(coarse) = coarse.filter(|_| self.options.shadows.is_active()) {
             let grid = &self.problem.grid;
             self.shadows = Some(coarse.upsample(grid.height, grid.width)?);
             self.shadows_carried = true;
@@ -686,10 +697,35 @@ impl<'p> Solver<'p> {
         Ok(change)
     }
 
+    /// For the distance search: [`Shadows::Auto`] becomes [`Shadows::Off`] (the search compares
+    /// candidates without cast shadows unless they are asked for); returns the policy to give
+    /// back to [`Solver::restore_shadows`].
+    pub(crate) fn search_shadows(&mut self) -> Shadows {
+        let policy = self.options.shadows;
+        if policy == Shadows::Auto {
+            self.options.shadows = Shadows::Off;
+        }
+        policy
+    }
+
+    /// After the distance search: the user's policy again, and no mask from the candidates.
+    pub(crate) fn restore_shadows(&mut self, policy: Shadows) {
+        if self.options.shadows != policy {
+            self.options.shadows = policy;
+            self.shadows = None;
+        }
+    }
+
     /// Shadows: with [`Options::shadows`], the cast shadows of the mesh `u` under the current
-    /// lights at the iterations [`SHADOWS_AT`] (see [`crate::shadow`]).
+    /// lights at the iterations [`SHADOWS_AT`] (see [`crate::shadow`]). Under
+    /// [`Shadows::Auto`], a solver without a mask first probes a lattice of about
+    /// [`PROBE_FACETS`] facets and marches them all only when the probe finds at least
+    /// [`AUTO_SHARE`] of its observations in a cast shadow; a mask is kept only when it holds
+    /// that share.
     fn cast_shadows(&mut self, u: &[f64], iteration: usize) -> Result<()> {
-        if !self.options.shadows || !SHADOWS_AT.contains(&iteration) {
+        let policy = self.options.shadows;
+        let due = SHADOWS_AT.contains(&iteration) || std::mem::take(&mut self.march_next);
+        if !policy.is_active() || !due {
             return Ok(());
         }
         if iteration == 1 && self.skip_first_march {
@@ -697,15 +733,43 @@ impl<'p> Solver<'p> {
         }
         let t = Instant::now();
         let p = self.problem;
+        let facets = p.grid.facets.len();
+        let stride = (facets as f64 / PROBE_FACETS as f64)
+            .sqrt()
+            .floor()
+            .max(1.0) as usize;
+        let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
+        let share = |mask: &ShadowMask, stride: usize| {
+            let probed = p
+                .grid
+                .facets
+                .iter()
+                .filter(|&&f| {
+                    let (r, c) = (f / p.grid.width, f % p.grid.width);
+                    r % stride == stride / 2 && c % stride == stride / 2
+                })
+                .count();
+            mask.count() as f64 / (probed * mask.lights()).max(1) as f64
+        };
+        let march = |stride: usize| {
+            mesh_shadows(
+                &p.rig.camera,
+                self.lights.lights(),
+                &p.grid,
+                &p.geometry,
+                u,
+                None,
+                stride,
+            )
+        };
         self.shadows = None;
-        self.shadows = Some(mesh_shadows(
-            &p.rig.camera,
-            self.lights.lights(),
-            &p.grid,
-            &p.geometry,
-            u,
-            None,
-        )?);
+        let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
+        if seen {
+            let mask = march(1)?;
+            if policy == Shadows::On || share(&mask, 1) >= AUTO_SHARE {
+                self.shadows = Some(mask);
+            }
+        }
         self.timings.shadows += t.elapsed();
         p.cancel.check()
     }
@@ -785,6 +849,7 @@ impl<'p> Solver<'p> {
         self.options.reflectance = Reflectance::Lambertian;
         self.warm = Vec::new();
         self.warm_carried = false;
+        self.march_next = self.shadows.is_some();
     }
 
     /// The local step on `u` (with fast residuals): the facets' targets and statistics.
@@ -1101,7 +1166,7 @@ mod tests {
             }
             out
         };
-        let run = |images: &[f32], shadows: bool| {
+        let run = |images: &[f32], shadows: Shadows| {
             let problem = at_true_distance(&scene, &scene.rig, images);
             let options = Options {
                 iterations: 30,
@@ -1123,9 +1188,11 @@ mod tests {
             }
             sum / count as f64
         };
-        let reference = run(&images(0.0), false);
-        let plain = run(&images(0.2), false);
-        let shadowed = run(&images(0.2), true);
+        let reference = run(&images(0.0), Shadows::Off);
+        let plain = run(&images(0.2), Shadows::Off);
+        let shadowed = run(&images(0.2), Shadows::On);
+        // The default finds the block's shadows (1.3 % of the observations) worth a mask.
+        let auto = run(&images(0.2), Shadows::Auto);
         assert!(reference.shadows.is_none() && plain.shadows.is_none());
         let (bent, kept) = (
             mean_angle(&plain, &reference),
@@ -1133,6 +1200,12 @@ mod tests {
         );
         assert!(bent > 1.0, "{bent}");
         assert!(kept < 0.05, "{kept} (without the option {bent})");
+        let bits = |r: &Reconstruction| -> Vec<u64> {
+            let normals = r.normals.iter().flatten();
+            normals.chain(&r.depth).map(|x| x.to_bits()).collect()
+        };
+        assert!(bits(&auto) == bits(&shadowed));
+        assert!(auto.shadows == shadowed.shadows);
         let found = shadowed.shadows.as_ref().unwrap();
         let pairs = || (0..n * n).flat_map(|p| (0..k).map(move |l| (p, l)));
         let missed = pairs()
@@ -1149,6 +1222,50 @@ mod tests {
             truth.count()
         );
         assert!(shadowed.timings.shadows > std::time::Duration::ZERO);
+    }
+
+    /// [`Shadows::Auto`] (the default) on a pyramid: an object that does not shadow itself (the
+    /// sphere cap) gets the fits of [`Shadows::Off`] bit for bit, after marching on the coarsest
+    /// level only; the block on a plane, which does, gets the masks on every level, like
+    /// [`Shadows::On`].
+    #[test]
+    fn automatic_shadows_march_where_a_probe_finds_them() {
+        let n = 64;
+        let run = |kind: SceneKind, shadows: Shadows| {
+            let options = crate::synth::SceneOptions::default().with_pinhole(true);
+            let scene = Scene::with_options(kind, n, 100.0, 200.0, 0, options).unwrap();
+            let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+            let problem = at_true_distance(&scene, &scene.rig, &images);
+            let options = Options {
+                levels: 2,
+                shadows,
+                ..Options::default()
+            };
+            let mut levels = Vec::new();
+            let result = reconstruct(&problem, &options, &mut |it| {
+                levels.push(it.level);
+                Control::Continue
+            })
+            .unwrap();
+            (result, levels)
+        };
+        let bits = |r: &Reconstruction| -> Vec<u64> {
+            let normals = r.normals.iter().flatten();
+            normals.chain(&r.depth).map(|x| x.to_bits()).collect()
+        };
+        let (off, _) = run(SceneKind::SphereCap, Shadows::Off);
+        let (auto, levels) = run(SceneKind::SphereCap, Shadows::Auto);
+        assert!(levels.contains(&1) && levels.contains(&0), "{levels:?}");
+        assert!(bits(&auto) == bits(&off));
+        assert!(auto.shadows.is_none());
+        assert!(auto.timings.shadows > std::time::Duration::ZERO);
+        assert_eq!(off.timings.shadows, std::time::Duration::ZERO);
+        let (on, _) = run(SceneKind::Block, Shadows::On);
+        let (auto, _) = run(SceneKind::Block, Shadows::Auto);
+        let found = auto.shadows.as_ref().expect("the block's shadows");
+        let share = found.count() as f64 / (n * n * found.lights()) as f64;
+        assert!(share >= AUTO_SHARE, "{share}");
+        assert!(bits(&auto) == bits(&on));
     }
 
     /// Interreflections ([`Options::interreflections`]): a bowl (the sphere-cap scene turned
