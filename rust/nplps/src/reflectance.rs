@@ -939,11 +939,12 @@ fn fit_from(
 ) -> Option<GlossyFit> {
     let k = Kernel::new(lobe);
     let v = obs.view;
-    // The factors at the starting normal serve both its albedos and its normal equations.
-    obs.factors.clear();
+    // The factors at the starting normal serve both its albedos and its normal equations
+    // (every entry is written: no clearing first).
     obs.factors.resize(obs.groups.len(), Factors::default());
-    if let Some(w) = k.view(n0, v) {
-        factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors);
+    match k.view(n0, v) {
+        Some(w) => factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors),
+        None => obs.factors.fill(Factors::default()),
     }
     let groups = &obs.groups[..];
     let (mut b, mut s) = match albedos_at(groups, &obs.factors, n0) {
