@@ -762,9 +762,10 @@ const CHECK_INNER: usize = 10;
 /// [`CHECK_INNER`] under the glossy model, whose fits cost several times the Lambertian ones
 /// (the check's were a third of a glossy run at 256²). Each candidate's fits go on from the
 /// glossy normals of the candidate before; with 5 iterations instead of 10 the check's found
-/// distance moved by at most 0.1 % and its residual ratio by at most 7 % on the glossy scenes
-/// of `benchmarks/glossy_cost.py` and four Mitsuba renders of `benchmarks/pbr` at 0.8, 1 and
-/// 1.25 times their distance (ratios 1.34 to 76 off it, 1 at it), and no verdict changed.
+/// distance moved by at most 0.1 % and its residual ratio by at most 7 % on the synthetic
+/// glossy bumps (128², 0.5 % noise, at 0.75, 1 and 1.25 times their distance) and four Mitsuba
+/// renders of `benchmarks/pbr` (at 0.8, 1 and 1.25 times), ratios 1.34 to 76 off the distance
+/// and 1 at it, and no verdict changed.
 const CHECK_INNER_GLOSSY: usize = 5;
 
 /// A given working distance compared with the ones around it on a coarse level.
