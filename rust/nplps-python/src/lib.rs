@@ -381,7 +381,10 @@ fn reconstruct<'py>(
                 }
                 None => {
                     let r = nplps::reconstruct(&problem, &options, &mut on_iteration)?;
+                    // The check compares distances under the model of the result (its lobe:
+                    // no second estimate of it on the coarse level).
                     let checked = if check {
+                        let options = options.with_reflectance(r.reflectance());
                         nplps::check_distance(&problem, &options)?
                     } else {
                         None

@@ -11,7 +11,7 @@ use crate::memory::{try_collect, try_vec};
 use crate::options::Refine;
 use crate::problem::Problem;
 use crate::refine::Conditioning;
-use crate::reflectance::Lobe;
+use crate::reflectance::{Lobe, Reflectance};
 use crate::rig::Light;
 use crate::shadow::ShadowMask;
 
@@ -269,6 +269,18 @@ impl FitOutputs {
 }
 
 impl Reconstruction {
+    /// The reflectance model the result was fitted with: the glossy model with its lobe (given
+    /// or estimated), or the Lambertian model (asked for, or the glossy model dropped for a lobe
+    /// too rough to be a highlight). Options with it make a later run on the same images (such
+    /// as [`check_distance`](crate::check_distance)) fit under the same model without
+    /// estimating the lobe again.
+    pub fn reflectance(&self) -> Reflectance {
+        match self.lobe {
+            Some(lobe) => Reflectance::Glossy(Some(lobe)),
+            None => Reflectance::Lambertian,
+        }
+    }
+
     /// Whether light positions were refined and the refinement was kept because it lowered the
     /// photometric residual: then growing depth changes follow the moving lights (the surface
     /// is still settling at the iteration limit), they are not a divergence.
