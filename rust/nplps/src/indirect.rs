@@ -906,7 +906,7 @@ impl IndirectField {
     /// The field with the lights behind each facet of the mesh `u` (`n . beta_k(c) <= 0` for
     /// its mesh normal `n` and centre `c`), and those that the margin past the image border
     /// hides from its centre (`MarginMesh::hides`: cast shadows of surface the image does not
-    /// show), marked, whose direct light the fits then leave out
+    /// show; only when at least [`MIN_LIT`] lights are left), marked, whose direct light the fits then leave out
     /// (see [`crate::local::Indirect`]). Decided once per field rather than at every local
     /// step: a facet whose mesh normal crosses a light's terminator from one iteration to the
     /// next made the iteration alternate between two surfaces (on the benchmark's sheet).
@@ -931,12 +931,23 @@ impl IndirectField {
                     crate::geometry::quad_centre(&q),
                     crate::geometry::quad_normal(&q),
                 );
-                let mut bits = vec![0u64; words];
+                let (mut bits, mut hidden) = (vec![0u64; words], vec![0u64; words]);
                 for (k, light) in lights.iter().enumerate() {
-                    if not_above(dot(n, light.beta(c).0), 0.0)
-                        || margin.is_some_and(|m| m.hides(c, light))
-                    {
+                    if not_above(dot(n, light.beta(c).0), 0.0) {
                         bits[k / 64] |= 1 << (k % 64);
+                    } else if margin.is_some_and(|m| m.hides(c, light)) {
+                        hidden[k / 64] |= 1 << (k % 64);
+                    }
+                }
+                // The margin is a guess: it may not leave fewer than MIN_LIT lights.
+                let unlit: u32 = bits
+                    .iter()
+                    .zip(&hidden)
+                    .map(|(a, b)| (a | b).count_ones())
+                    .sum();
+                if lights.len().saturating_sub(unlit as usize) >= MIN_LIT {
+                    for (a, b) in bits.iter_mut().zip(&hidden) {
+                        *a |= b;
                     }
                 }
                 bits
@@ -1040,6 +1051,11 @@ impl IndirectField {
 /// The margin past the image border, in coarse facets a side: `ceil(MARGIN_FRACTION * longest
 /// coarse side)` (4 on the 32² grid of a 256² image).
 pub const MARGIN_FRACTION: f64 = 0.125;
+
+/// The lights that the margin past the image border hides from a facet are left out only when
+/// at least `MIN_LIT` lights still reach it (a facet with fewer rows of direct light cannot be
+/// fitted; the margin is a guess).
+pub const MIN_LIT: usize = 3;
 
 /// Passes of "model the margin's light, gather again" (see [`Margin::emit`]).
 pub const MARGIN_PASSES: usize = 2;
