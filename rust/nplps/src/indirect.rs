@@ -37,7 +37,11 @@
 //! hold all the light that facet `j` sends (its direct light and its own indirect light), gives
 //! all the bounces at once, with no iteration over bounces; it assumes Lambertian emitters (with a
 //! glossy model, emit the modelled diffuse part instead) and misses the light of surfaces that
-//! the image does not show (outside the mask or the image, or hidden from the camera).
+//! the image does not show (outside the mask, or hidden from the camera). Where the surface
+//! reaches the image border, [`IndirectField`] continues its coarse mesh past it by linear
+//! prediction and lets that margin emit what the image model predicts for it (its albedo from
+//! the border facet, its direct light from the rig, cut by the cast shadows on the extended
+//! mesh, and its own gathered light): see `IndirectField::of_mesh`.
 //!
 //! `V` is linear in the observations and assumes the rig's intensities in the units that make the
 //! albedo the reflectance (a white facet facing a unit light at unit distance images to 1). When
@@ -631,6 +635,9 @@ pub struct IndirectField {
     /// for (see [`IndirectField::with_unlit`]); empty: none.
     unlit: Vec<u64>,
     words: usize,
+    /// The coarse mesh continued past the image border, while the field is made (see
+    /// [`IndirectField::with_unlit`]); None without a margin.
+    margin: Option<MarginMesh>,
 }
 
 impl IndirectField {
@@ -647,14 +654,22 @@ impl IndirectField {
     /// part when its corners are known and one of its fine pixels is in the mask, and emits the
     /// mean of the finite observations of its masked fine pixels.
     ///
-    /// Surface outside the image (or the mask) emits nothing: its light is missing (see the
-    /// module documentation).
+    /// With `lights` (the rig's; empty: no margin), where the surface reaches the image border
+    /// the coarse mesh is continued past it by a margin of `ceil(MARGIN_FRACTION * longest
+    /// coarse side)` facets ([`extend_depths`], [`MARGIN_FRACTION`]): the margin's facets take
+    /// part in the exchange (they block, receive and emit), emit the light the image model
+    /// predicts for them ([`Margin`]: their direct light cut by the cast shadows marched on the
+    /// extended mesh), and hide lights from the image's facets ([`IndirectField::with_unlit`]).
+    /// Surface outside the mask that does not reach the border, and surface hidden from the
+    /// camera, still emit nothing: their light is missing (see the module documentation).
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn of_mesh(
         camera: &Camera,
         grid: &crate::grid::Grid,
         geometry: &crate::geometry::Geometry,
         u: &[f64],
         obs: &crate::local::Observations<'_>,
+        lights: &[crate::Light],
         min_factor: usize,
         max_pairs: Option<usize>,
     ) -> Result<IndirectField> {
@@ -672,7 +687,7 @@ impl IndirectField {
             coarse = crate::pyramid::coarser_camera(&coarse);
         }
         loop {
-            match Self::at_factor(&coarse, factor, grid, &depth, obs, max_pairs) {
+            match Self::at_factor(&coarse, factor, grid, &depth, obs, lights, max_pairs) {
                 Err(Error::Unusable(m))
                     if m.contains("max_pairs")
                         && h.div_ceil(factor) > 4
@@ -693,6 +708,7 @@ impl IndirectField {
         grid: &crate::grid::Grid,
         depth: &[f64],
         obs: &crate::local::Observations<'_>,
+        lights: &[crate::Light],
         max_pairs: Option<usize>,
     ) -> Result<IndirectField> {
         let (h, w) = (grid.height, grid.width);
@@ -771,30 +787,108 @@ impl IndirectField {
                 }
             }
         }
+        // The grid extended by the margin past the image border (see [`MARGIN_FRACTION`]):
+        // (hc + 2 m) x (wc + 2 m) facets, the image's at offset (m, m).
+        let m = if lights.is_empty() {
+            0
+        } else {
+            margin_cells(hc, wc)
+        };
+        let (he, we) = (hc + 2 * m, wc + 2 * m);
+        let extended = he * we;
+        let ext_depths = extend_depths(&depths, hc, wc, m)?;
+        drop(depths);
+        let camera = shifted_camera(coarse, m);
+        let inner = |pc: usize| (pc / wc + m) * we + pc % wc + m;
+        let in_view = |pe: usize| {
+            let (r, c) = (pe / we, pe % we);
+            r >= m && r < m + hc && c >= m && c < m + wc
+        };
+        let mut mask_e = crate::memory::try_vec(extended, false, "the coarse mask")?;
+        for (pe, inside) in mask_e.iter_mut().enumerate() {
+            *inside = if in_view(pe) {
+                mask[(pe / we - m) * wc + pe % we - m]
+            } else {
+                let v = (pe / we) * (we + 1) + pe % we;
+                [v, v + 1, v + we + 1, v + we + 2]
+                    .iter()
+                    .all(|&i| ext_depths[i].is_finite())
+            };
+        }
         let vertices: Vec<[f64; 3]> = crate::memory::try_collect(
-            depths.iter().enumerate().map(|(v, &z)| {
-                let [x, y] = coarse.vertex_xy(v / (wc + 1), v % (wc + 1));
-                match coarse.is_perspective() {
+            ext_depths.iter().enumerate().map(|(v, &z)| {
+                let [x, y] = camera.vertex_xy(v / (we + 1), v % (we + 1));
+                match camera.is_perspective() {
                     true => [x * z, y * z, z],
                     false => [x, y, z],
                 }
             }),
             "the coarse vertices of the light exchange",
         )?;
-        let exchange = Exchange::new(coarse, hc, wc, &vertices, Some(&mask), max_pairs)?;
-        let v = exchange.irradiance(&binned, k, channels)?;
+        let exchange = Exchange::new(&camera, he, we, &vertices, Some(&mask_e), max_pairs)?;
+        // The emitters, (k, He, We, C): the binned observations in the image, the model in the
+        // margin (NaN, emitting nothing, until it is set).
+        let mut emit = crate::memory::try_vec(extended * per, f32::NAN, "the emitted light")?;
+        for light in 0..k {
+            for pc in 0..plane {
+                let (from, to) = (light * plane + pc, light * extended + inner(pc));
+                emit[to * channels..(to + 1) * channels]
+                    .copy_from_slice(&binned[from * channels..(from + 1) * channels]);
+            }
+        }
         drop(binned);
+        let mut v = exchange.irradiance(&emit, k, channels)?;
+        let margin_takes_part = (0..extended).any(|pe| !in_view(pe) && mask_e[pe]);
+        if margin_takes_part {
+            let shadows = crate::shadow::march_all(
+                &camera,
+                lights,
+                he,
+                we,
+                &vertices,
+                Some(&mask_e),
+                None,
+                true,
+                1,
+            )?;
+            let margin = Margin {
+                exchange: &exchange,
+                shadows: &shadows,
+                lights,
+                channels,
+                image: (m, hc, wc),
+                mask: &mask_e,
+            };
+            for _ in 0..MARGIN_PASSES {
+                margin.emit(&v, &mut emit);
+                v = exchange.irradiance(&emit, k, channels)?;
+            }
+        }
+        drop(emit);
+        let margin = margin_takes_part.then(|| MarginMesh {
+            z_min: vertices
+                .iter()
+                .map(|v| v[2])
+                .filter(|z| z.is_finite())
+                .fold(f64::INFINITY, f64::min),
+            camera,
+            height: he,
+            width: we,
+            image: (m, hc, wc),
+            vertices,
+            mask: mask_e,
+        });
         let mut vectors = crate::memory::try_vec(plane * per, [0f32; 3], "the indirect light")?;
         for light in 0..k {
             for pc in 0..plane {
                 for ch in 0..channels {
                     vectors[pc * per + light * channels + ch] =
-                        v[(light * plane + pc) * channels + ch].map(|x| x as f32);
+                        v[(light * extended + inner(pc)) * channels + ch].map(|x| x as f32);
                 }
             }
         }
         let valid = (0..plane)
-            .map(|pc| mask[pc] && exchange.facet(pc).2.is_finite())
+            .map(|pc| mask[pc] && exchange.facet(inner(pc)).2.is_finite())
             .collect();
         Ok(IndirectField {
             factor,
@@ -806,11 +900,14 @@ impl IndirectField {
             pairs: exchange.pairs(),
             unlit: Vec::new(),
             words: 0,
+            margin,
         })
     }
 
     /// The field with the lights behind each facet of the mesh `u` (`n . beta_k(c) <= 0` for
-    /// its mesh normal `n` and centre `c`) marked, whose direct light the fits then leave out
+    /// its mesh normal `n` and centre `c`), and those that the margin past the image border
+    /// hides from its centre (`MarginMesh::hides`: cast shadows of surface the image does not
+    /// show; only when at least [`MIN_LIT`] lights are left), marked, whose direct light the fits then leave out
     /// (see [`crate::local::Indirect`]). Decided once per field rather than at every local
     /// step: a facet whose mesh normal crosses a light's terminator from one iteration to the
     /// next made the iteration alternate between two surfaces (on the benchmark's sheet).
@@ -827,18 +924,41 @@ impl IndirectField {
             0u64,
             "the unlit lights of the indirect light",
         )?;
-        for (f, &p) in grid.facets.iter().enumerate() {
-            let q = geometry.facet_corners(grid, f, u);
-            let (c, n) = (
-                crate::geometry::quad_centre(&q),
-                crate::geometry::quad_normal(&q),
-            );
-            for (k, light) in lights.iter().enumerate() {
-                if not_above(dot(n, light.beta(c).0), 0.0) {
-                    unlit[p * words + k / 64] |= 1 << (k % 64);
+        let margin = self.margin.as_ref();
+        let bits: Vec<Vec<u64>> = crate::memory::try_par_collect(
+            (0..grid.facets.len()).into_par_iter().map(|f| {
+                let q = geometry.facet_corners(grid, f, u);
+                let (c, n) = (
+                    crate::geometry::quad_centre(&q),
+                    crate::geometry::quad_normal(&q),
+                );
+                let (mut bits, mut hidden) = (vec![0u64; words], vec![0u64; words]);
+                for (k, light) in lights.iter().enumerate() {
+                    if not_above(dot(n, light.beta(c).0), 0.0) {
+                        bits[k / 64] |= 1 << (k % 64);
+                    } else if margin.is_some_and(|m| m.hides(c, light)) {
+                        hidden[k / 64] |= 1 << (k % 64);
+                    }
                 }
-            }
+                // The margin is a guess: it may not leave fewer than MIN_LIT lights.
+                let unlit: u32 = bits
+                    .iter()
+                    .zip(&hidden)
+                    .map(|(a, b)| (a | b).count_ones())
+                    .sum();
+                if lights.len().saturating_sub(unlit as usize) >= MIN_LIT {
+                    for (a, b) in bits.iter_mut().zip(&hidden) {
+                        *a |= b;
+                    }
+                }
+                bits
+            }),
+            "the unlit lights of the indirect light",
+        )?;
+        for (&p, bits) in grid.facets.iter().zip(bits) {
+            unlit[p * words..(p + 1) * words].copy_from_slice(&bits);
         }
+        self.margin = None;
         self.unlit = unlit;
         self.words = words;
         Ok(self)
@@ -929,6 +1049,361 @@ impl IndirectField {
     }
 }
 
+/// The margin past the image border, in coarse facets a side: `ceil(MARGIN_FRACTION * longest
+/// coarse side)` (4 on the 32² grid of a 256² image).
+pub const MARGIN_FRACTION: f64 = 0.125;
+
+/// The lights that the margin past the image border hides from a facet are left out only when
+/// at least `MIN_LIT` lights still reach it (a facet with fewer rows of direct light cannot be
+/// fitted; the margin is a guess).
+pub const MIN_LIT: usize = 3;
+
+/// Passes of "model the margin's light, gather again" (see [`Margin::emit`]).
+pub const MARGIN_PASSES: usize = 2;
+
+/// Order `P` of the linear prediction that continues the mesh past the image border
+/// ([`continue_line`]).
+pub const PREDICTION_ORDER: usize = 3;
+
+/// At most this many coarse vertices nearest the border (a row or column's run of known ones)
+/// fit the linear prediction ([`continue_line`]).
+pub const PREDICTION_SAMPLES: usize = 16;
+
+/// The margin width in coarse facets of a coarse grid of `hc` x `wc` facets.
+fn margin_cells(hc: usize, wc: usize) -> usize {
+    (MARGIN_FRACTION * hc.max(wc) as f64).ceil() as usize
+}
+
+/// The camera of a grid extended by `m` facets on every side: vertex `(r + m, c + m)` of the
+/// extended grid stands on the ray of vertex `(r, c)` of `camera`'s (a pinhole's principal point
+/// moves by `m` pixels, an orthographic origin by `-m` pixels).
+fn shifted_camera(camera: &Camera, m: usize) -> Camera {
+    let m = m as f64;
+    match *camera {
+        Camera::Orthographic { pixel_size, origin } => Camera::Orthographic {
+            pixel_size,
+            origin: [origin[0] - m * pixel_size[0], origin[1] - m * pixel_size[1]],
+        },
+        Camera::Pinhole { mut k, distortion } => {
+            k[0][2] += m;
+            k[1][2] += m;
+            Camera::Pinhole { k, distortion }
+        }
+    }
+}
+
+/// The coarse vertex depths `depths` ((hc+1) x (wc+1), NaN where unknown) extended by `m`
+/// facets past every side of the image: ((hc+1+2m) x (wc+1+2m)). Where a row of the image's
+/// vertices reaches the left or right border with a known depth, [`continue_line`] continues it
+/// past that border from its run of known vertices ending there; then every column (the margin
+/// columns too, which fills the corners) is continued past the top and bottom alike. Elsewhere
+/// the margin stays unknown (NaN): surface that ends inside the image (a mask's edge) is not
+/// continued.
+fn extend_depths(depths: &[f64], hc: usize, wc: usize, m: usize) -> Result<Vec<f64>> {
+    let (rows, cols) = (hc + 1 + 2 * m, wc + 1 + 2 * m);
+    let mut ext = crate::memory::try_vec(rows * cols, f64::NAN, "the extended coarse vertices")?;
+    for r in 0..=hc {
+        ext[(r + m) * cols + m..(r + m) * cols + m + wc + 1]
+            .copy_from_slice(&depths[r * (wc + 1)..(r + 1) * (wc + 1)]);
+    }
+    if m == 0 {
+        return Ok(ext);
+    }
+    let mut line = Vec::new();
+    let mut out = vec![0.0; m];
+    // Along rows (index i -> ext[r * cols + i]) and then columns.
+    for (outer, stride, step, inner) in [(rows, cols, 1, (m, m + wc)), (cols, 1, cols, (m, m + hc))]
+    {
+        let lines: Vec<usize> = if stride == cols {
+            (m..=m + hc).collect()
+        } else {
+            (0..outer).collect()
+        };
+        for l in lines {
+            let at = |i: usize| l * stride + i * step;
+            for forward in [true, false] {
+                // The run of known vertices ending at the border, ordered towards it.
+                line.clear();
+                let indices: Vec<usize> = if forward {
+                    (inner.0..=inner.1).rev().collect()
+                } else {
+                    (inner.0..=inner.1).collect()
+                };
+                for &i in &indices {
+                    let z = ext[at(i)];
+                    if !z.is_finite() || line.len() == PREDICTION_SAMPLES {
+                        break;
+                    }
+                    line.push(z);
+                }
+                if line.is_empty() {
+                    continue;
+                }
+                line.reverse();
+                continue_line(&line, &mut out);
+                for (t, &z) in out.iter().enumerate() {
+                    let i = if forward {
+                        inner.1 + 1 + t
+                    } else {
+                        inner.0 - 1 - t
+                    };
+                    ext[at(i)] = z;
+                }
+            }
+        }
+    }
+    Ok(ext)
+}
+
+/// Continues the depths `samples` (equally spaced, ordered towards the end that is continued)
+/// by `out.len()` more, each clamped to the samples' range `[min, max]` (the continuation stays
+/// within the depths the border shows).
+///
+/// Linear prediction of order `P` = [`PREDICTION_ORDER`] with a constant: `z_t = a_0 +
+/// sum_{i=1..P} a_i z_{t-i}`, the coefficients fitted by least squares to the samples (the
+/// predictions `t = P..n-1` from their `P` predecessors, with a ridge of `1e-6` times the mean
+/// diagonal), run forward from the last `P` samples, each prediction clamped before it is used
+/// for the next. Such a recurrence continues exactly a polynomial of degree < `P + 1` and a sine
+/// on a line (e.g. a corrugation on a tilted plane) as long as it stays in the range. With
+/// fewer than `2 P + 2` samples (or a singular fit) the samples' least-squares line is
+/// continued (clamped alike); one sample is continued flat. The clamp turns a plane that slopes
+/// towards the border into a flat shelf past it.
+fn continue_line(samples: &[f64], out: &mut [f64]) {
+    let n = samples.len();
+    // The line: t in 0..n, centred at t_mean.
+    let t_mean = (n as f64 - 1.0) / 2.0;
+    let z_mean = samples.iter().sum::<f64>() / n as f64;
+    let (mut stt, mut stz) = (0.0, 0.0);
+    for (t, &z) in samples.iter().enumerate() {
+        let dt = t as f64 - t_mean;
+        stt += dt * dt;
+        stz += dt * (z - z_mean);
+    }
+    let gamma = if stt > 0.0 { stz / stt } else { 0.0 };
+    let line = |t: f64| z_mean + gamma * (t - t_mean);
+    let (lo, hi) = (
+        samples.iter().copied().fold(f64::INFINITY, f64::min),
+        samples.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+    );
+    let clamp = |_: usize, z: f64| z.clamp(lo, hi);
+    let linear = |out: &mut [f64]| {
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = clamp(n + i, line((n + i) as f64));
+        }
+    };
+    const P: usize = PREDICTION_ORDER;
+    if n < 2 * P + 2 {
+        return linear(out);
+    }
+    let z: Vec<f64> = samples.iter().map(|&s| s - z_mean).collect();
+    let mut a = nalgebra::SMatrix::<f64, { P + 1 }, { P + 1 }>::zeros();
+    let mut b = nalgebra::SVector::<f64, { P + 1 }>::zeros();
+    for t in P..n {
+        let row = nalgebra::SVector::<f64, { P + 1 }>::from_fn(|i, _| match i {
+            0 => 1.0,
+            i => z[t - i],
+        });
+        a += row * row.transpose();
+        b += row * z[t];
+    }
+    let ridge = 1e-6 * a.trace() / (P + 1) as f64 + f64::MIN_POSITIVE;
+    for i in 0..=P {
+        a[(i, i)] += ridge;
+    }
+    let Some(x) = a.cholesky().map(|c| c.solve(&b)) else {
+        return linear(out);
+    };
+    if !x.iter().all(|v| v.is_finite()) {
+        return linear(out);
+    }
+    let mut history: Vec<f64> = z[n - P..].to_vec();
+    for (i, o) in out.iter_mut().enumerate() {
+        let k = history.len();
+        let mut p = x[0];
+        for j in 1..=P {
+            p += x[j] * history[k - j];
+        }
+        let p = clamp(n + i, p + z_mean);
+        *o = p;
+        history.push(p - z_mean);
+    }
+}
+
+/// The coarse mesh extended past the image border ([`extend_depths`]), kept while a field is
+/// made to find the lights that the margin hides from the image's facets.
+#[derive(Debug, Clone)]
+struct MarginMesh {
+    camera: Camera,
+    height: usize,
+    width: usize,
+    /// The margin `m` and the image's coarse facets `hc` x `wc`.
+    image: (usize, usize, usize),
+    vertices: Vec<[f64; 3]>,
+    mask: Vec<bool>,
+    /// The smallest vertex depth: a segment nearer the camera than it is not hidden.
+    z_min: f64,
+}
+
+impl MarginMesh {
+    /// Whether the margin's surface hides `light` from the point `x` (a fine facet's centre):
+    /// the segment from `x` towards the light (its position, or along its direction), cut where
+    /// it comes nearer the camera than the nearest vertex, is marched half a coarse pixel at a
+    /// time in the extended image as [`Exchange`]'s visibility march does, testing only the
+    /// samples over the margin (the image's own surface is the cast-shadow march's business,
+    /// `shadows=True`): hidden where the bilinear surface depth there is nearer than the
+    /// segment's by more than `1e-6 |z| + 1e-3` coarse facet sizes. Segments whose cut ends
+    /// both project inside the image are not marched.
+    fn hides(&self, x: [f64; 3], light: &crate::Light) -> bool {
+        let end = match *light {
+            crate::Light::Point { position, .. } => {
+                if position[2] < self.z_min && x[2] > self.z_min {
+                    let t = (x[2] - self.z_min) / (x[2] - position[2]);
+                    std::array::from_fn(|i| x[i] + t * (position[i] - x[i]))
+                } else {
+                    position
+                }
+            }
+            crate::Light::Directional { direction, .. } => {
+                if !(direction[2] < 0.0 && x[2] > self.z_min) {
+                    return false;
+                }
+                let t = (x[2] - self.z_min) / -direction[2];
+                std::array::from_fn(|i| x[i] + t * direction[i])
+            }
+        };
+        let (m, hc, wc) = self.image;
+        let inside = |[u, v]: [f64; 2]| {
+            let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
+            gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
+        };
+        let (a, b) = (self.camera.project(x), self.camera.project(end));
+        if !(a.iter().chain(&b).all(|v| v.is_finite())) || (inside(a) && inside(b)) {
+            return false;
+        }
+        let march = March {
+            camera: &self.camera,
+            height: self.height,
+            width: self.width,
+            vertices: &self.vertices,
+            mask: Some(&self.mask),
+            z_min: f64::NEG_INFINITY,
+            max_steps: usize::MAX / 4,
+            pyramid: None,
+        };
+        let size = {
+            let q = march.quad(m, m);
+            norm(sub(q[1], q[0]))
+        };
+        let tol = 1e-3 * if size.is_finite() { size } else { 0.0 };
+        let length = (b[0] - a[0]).hypot(b[1] - a[1]);
+        let total = (2.0 * length).ceil().max(1.0);
+        let d = sub(end, x);
+        let perspective = self.camera.is_perspective();
+        for i in 1..=total as usize {
+            let s = i as f64 / total;
+            let p = segment_point(x, end, d, s, perspective);
+            let uv = self.camera.project(p);
+            let (gx, gy) = (uv[0] + 0.5, uv[1] + 0.5);
+            if !(gx >= 0.0 && gy >= 0.0 && gx <= self.width as f64 && gy <= self.height as f64) {
+                break;
+            }
+            if inside(uv) {
+                continue;
+            }
+            let Some(z_surface) = march.surface_depth(gx, gy) else {
+                continue;
+            };
+            if z_surface < hiding_depth(p[2], tol) {
+                return true;
+            }
+        }
+        false
+    }
+}
+
+/// The model of the light that the margin's facets (surface continued past the image border,
+/// [`extend_depths`]) send: they are not observed, so each emits what the image model predicts
+/// for it, `I_mk = rho_s (Phi_k max(0, n_m . beta_k(c_m)) + n_m . V_mk)` per channel (its direct
+/// light, unshadowed, and the indirect light it gathers), with the albedo `rho_s` of the image's
+/// facet `s` nearest it on its row or column (the border facet it was continued from; the corner
+/// facet for the corners), fitted to that facet's binned observations by least squares over
+/// the lights that reach it under the same model:
+///
+/// ```text
+/// rho_s = sum_k I_sk a_sk / sum_k a_sk^2,   a_sk = Phi_k max(0, n_s . beta_k(c_s)) + n_s . V_sk
+/// ```
+///
+/// (the sums over the lights with a finite observation and `a_sk > 0`).
+struct Margin<'a> {
+    exchange: &'a Exchange,
+    /// The cast shadows on the extended grid's mesh: a shadowed facet gets no direct light.
+    shadows: &'a crate::shadow::ShadowMask,
+    lights: &'a [crate::Light],
+    channels: usize,
+    /// The margin `m` and the image's coarse facets `hc` x `wc`.
+    image: (usize, usize, usize),
+    /// The extended grid's facets that take part.
+    mask: &'a [bool],
+}
+
+impl Margin<'_> {
+    /// The model's irradiance `a` of facet `p` of the extended grid under light `k`, channel
+    /// `ch`, with the indirect vectors `v` ((k, He, We, C)).
+    fn shading(&self, v: &[[f64; 3]], p: usize, k: usize, ch: usize) -> f64 {
+        let (centre, normal, _) = self.exchange.facet(p);
+        let light = &self.lights[k];
+        let plane = self.exchange.height() * self.exchange.width();
+        let phi = crate::light::channel_intensity(light.intensity(), self.channels, ch);
+        let shadowed = self.shadows.is_shadowed(p, k);
+        let direct = match shadowed {
+            true => 0.0,
+            false => phi * dot(normal, light.beta(centre).0).max(0.0),
+        };
+        direct + dot(normal, v[(k * plane + p) * self.channels + ch])
+    }
+
+    /// Sets the margin's emission in `emit` ((k, He, We, C)) from the model with the indirect
+    /// vectors `v` of the last gather.
+    fn emit(&self, v: &[[f64; 3]], emit: &mut [f32]) {
+        let (m, hc, wc) = self.image;
+        let we = self.exchange.width();
+        let plane = self.exchange.height() * we;
+        let k = self.lights.len();
+        let channels = self.channels;
+        let mut rho = vec![[f64::NAN; 3]; plane];
+        for pe in 0..plane {
+            let (r, c) = (pe / we, pe % we);
+            if (r >= m && r < m + hc && c >= m && c < m + wc) || !self.mask[pe] {
+                continue;
+            }
+            let s = r.clamp(m, m + hc - 1) * we + c.clamp(m, m + wc - 1);
+            if !self.mask[s] || !self.exchange.facet(s).2.is_finite() {
+                continue;
+            }
+            if rho[s][0].is_nan() {
+                for ch in 0..channels {
+                    let (mut num, mut den) = (0.0, 0.0);
+                    for light in 0..k {
+                        let i = f64::from(emit[(light * plane + s) * channels + ch]);
+                        let a = self.shading(v, s, light, ch);
+                        if i.is_finite() && a > 0.0 {
+                            num += i * a;
+                            den += a * a;
+                        }
+                    }
+                    rho[s][ch] = if den > 0.0 { num / den } else { 0.0 };
+                }
+            }
+            for light in 0..k {
+                for ch in 0..channels {
+                    let a = self.shading(v, pe, light, ch).max(0.0);
+                    emit[(light * plane + pe) * channels + ch] = (rho[s][ch] * a) as f32;
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -976,7 +1451,8 @@ mod tests {
         let u = grid.gather_vertices(&depth).unwrap();
         let images = vec![1.0f32; 2 * n * n];
         let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
-        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, 1, None).unwrap();
+        let field =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None).unwrap();
         assert_eq!(field.factor(), 2);
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);
@@ -1218,6 +1694,114 @@ mod tests {
             }
             assert!(worst > 0.0);
         }
+    }
+
+    /// The continuation past the border: a sampled sine on a tilted line (a corrugation's
+    /// profile) is continued exactly while it stays in the samples' range, and clamped to it
+    /// beyond; a line sloping towards the border becomes a flat shelf at its last depth; a
+    /// short run continues its line, one sample stays flat.
+    #[test]
+    fn the_mesh_is_continued_past_the_border() {
+        let f = |t: f64| 200.0 + 0.2 * t + 5.0 * (2.0 * std::f64::consts::PI * t / 6.4 + 0.3).sin();
+        let samples: Vec<f64> = (0..16).map(|t| f(t as f64)).collect();
+        let (lo, hi) = (
+            samples.iter().copied().fold(f64::INFINITY, f64::min),
+            samples.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        );
+        let mut out = [0.0; 4];
+        continue_line(&samples, &mut out);
+        for (i, &z) in out.iter().enumerate() {
+            let truth = f((16 + i) as f64).clamp(lo, hi);
+            // Within 0.2 % of the amplitude (the fit's ridge).
+            assert!((z - truth).abs() < 0.01, "{i}: {z} vs {truth}");
+        }
+        assert!(out.iter().any(|&z| z < hi - 1.0), "{out:?}");
+        let ramp: Vec<f64> = (0..16).map(|t| 100.0 + t as f64).collect();
+        continue_line(&ramp, &mut out);
+        assert!(out.iter().all(|&z| (z - 115.0).abs() < 1e-9), "{out:?}");
+        continue_line(&[3.0, 2.0, 1.0], &mut out);
+        assert!(out.iter().all(|&z| (z - 1.0).abs() < 1e-12), "{out:?}");
+        continue_line(&[7.0], &mut out);
+        assert_eq!(out, [7.0; 4]);
+    }
+
+    /// The extended vertex grid: rows that reach the left and right borders are continued past
+    /// them, then every column past the top and bottom (the corners too); a surface that ends
+    /// inside the image (unknown border vertices) is not continued.
+    #[test]
+    fn the_margin_continues_only_surface_that_reaches_the_border() {
+        let (hc, wc, m) = (10, 12, 3);
+        let z = |r: f64, c: f64| 50.0 + 0.5 * r + 2.0 * (c / 2.0).sin();
+        let depths: Vec<f64> = (0..(hc + 1) * (wc + 1))
+            .map(|v| z((v / (wc + 1)) as f64, (v % (wc + 1)) as f64))
+            .collect();
+        let ext = extend_depths(&depths, hc, wc, m).unwrap();
+        let cols = wc + 1 + 2 * m;
+        assert_eq!(ext.len(), (hc + 1 + 2 * m) * cols);
+        assert!(ext.iter().all(|z| z.is_finite()));
+        for r in 0..=hc {
+            for c in 0..=wc {
+                assert_eq!(ext[(r + m) * cols + c + m], depths[r * (wc + 1) + c]);
+            }
+        }
+        // A surface inside the image only: the border vertices unknown, no margin.
+        let inner: Vec<f64> = (0..(hc + 1) * (wc + 1))
+            .map(|v| {
+                let (r, c) = (v / (wc + 1), v % (wc + 1));
+                let border = r == 0 || c == 0 || r == hc || c == wc;
+                if border {
+                    f64::NAN
+                } else {
+                    depths[v]
+                }
+            })
+            .collect();
+        let ext = extend_depths(&inner, hc, wc, m).unwrap();
+        for (v, z) in ext.iter().enumerate() {
+            let (r, c) = (v / cols, v % cols);
+            let in_view = r >= m && r <= m + hc && c >= m && c <= m + wc;
+            assert_eq!(
+                z.is_finite(),
+                in_view && inner[(r - m) * (wc + 1) + c - m].is_finite()
+            );
+        }
+    }
+
+    /// The field of a corrugated surface that fills the image (orthographic, lit by one point
+    /// light): with the lights given, the margin past the border sends light to the border
+    /// facets that face it (their `V` grows) and much less to the centre; without lights (no
+    /// margin) the field is the image's alone.
+    #[test]
+    fn the_margin_lights_the_border() {
+        let n = 64;
+        let camera = ortho();
+        let depth = depths(n, |_, c| {
+            100.0 - 6.0 * (2.0 * std::f64::consts::PI * c / 40.0).sin()
+        });
+        let grid = crate::grid::Grid::new(n, n, None).unwrap();
+        let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+        let u = grid.gather_vertices(&depth).unwrap();
+        let images = vec![0.3f32; n * n];
+        let obs = crate::local::Observations::from_stack(&images, 1, n * n, 1);
+        let lights = [crate::Light::point([32.0, 32.0, 0.0])];
+        let plain =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None).unwrap();
+        let field =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, 1, None).unwrap();
+        assert!(field.pairs() > plain.pairs());
+        let energy = |f: &IndirectField, p: usize| norm(f.at(p, n)[0]);
+        // Column 1 faces the margin past the left border (the surface rises from the left
+        // border towards its crest at column 10: its facets turn to the left).
+        let (border, centre) = (32 * n + 1, 32 * n + 32);
+        println!(
+            "border {} -> {}, centre {} -> {}",
+            energy(&plain, border),
+            energy(&field, border),
+            energy(&plain, centre),
+            energy(&field, centre)
+        );
+        let gain = |p: usize| energy(&field, p) / energy(&plain, p) - 1.0;
+        assert!(gain(border) > 0.2 && gain(border) > 2.0 * gain(centre).abs());
     }
 
     /// A wall raised at the bottom of a groove blocks two facets on opposite walls from each

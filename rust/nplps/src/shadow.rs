@@ -331,7 +331,7 @@ pub(crate) fn mesh_shadows(
 /// [`shadows_of_vertices`], skipping through the cells of a [`Pyramid`] when `skip`; the result is
 /// the same either way. Only the facets on the lattice of `stride` (see [`mesh_shadows`]) march.
 #[allow(clippy::too_many_arguments)]
-fn march_all(
+pub(crate) fn march_all(
     camera: &Camera,
     lights: &[Light],
     height: usize,

@@ -579,6 +579,7 @@ impl<'p> Solver<'p> {
                     &p.geometry,
                     u,
                     &p.obs,
+                    self.lights.lights(),
                     min_factor,
                     None,
                 )?
@@ -1295,7 +1296,7 @@ mod tests {
         for _ in 0..40 {
             let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
             let field =
-                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, 1, None)
+                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, &[], 1, None)
                     .unwrap();
             assert_eq!(field.factor(), 1);
             let mut next = images.clone();
