@@ -80,12 +80,13 @@ pub enum Shadows {
     /// Never: only the `dark` threshold and attached shadows (`n . l <= 0`) leave observations
     /// out.
     Off,
-    /// Where the object shadows itself: the solver marches on the coarsest pyramid level (at
-    /// the iterations [`crate::solver::SHADOWS_AT`]) and uses a mask only when at least
-    /// [`AUTO_SHARE`] of the facets' observations are in a cast shadow; a finer level marches
-    /// only when the level before it used a mask. On an object that does not shadow itself
-    /// this costs the coarse marches and changes nothing else (the fits are those of `Off`, bit
-    /// for bit); on one that does, it is `On` (with the same share rule at every level).
+    /// Where the object shadows itself: at the iterations [`crate::solver::SHADOWS_AT`] a
+    /// solver without a mask first marches from a lattice of about
+    /// [`crate::solver::PROBE_FACETS`] facets, and from all of them only when at least
+    /// [`AUTO_SHARE`] of the lattice's observations are in a cast shadow; a mask is used only
+    /// when it holds that share. On an object that does not shadow itself this costs the probes
+    /// and changes nothing else (the fits are those of `Off`, bit for bit); on one that does,
+    /// it works as `On` once a probe has found the shadows.
     #[default]
     Auto,
     /// Always: the masks of every march are used, at every level.
