@@ -545,6 +545,40 @@ def test_evaluate_near_beats_parallel(tmp_path, capsys):
     assert rows["mean"][0] < 0.05
 
 
+def test_evaluate_goes_on_past_a_failed_held_out_run(tmp_path, capsys, monkeypatch):
+    # A reconstruction without one light can fail (a glossy fit on a real capture pulled a surface
+    # through a light): that light's row reads nan, a warning says why, the means and the report
+    # leave it out, and the other lights are evaluated. Every near run failing is an error.
+    from nplps import evaluation
+
+    synth(capsys, tmp_path / "s", "--rgb")
+    s, r = tmp_path / "s", tmp_path / "r"
+    common = [s, "--rig", s / "rig.json", "--mask", s / "mask.png", "--depth", "200"]
+    rc, _, stderr = run(capsys, "reconstruct", *common, "--iterations", "2", "--out", r, "-q")
+    assert rc == 0, stderr
+    real = evaluation.held_out
+
+    def failing(*args, lights, method, **kwargs):
+        if lights == [7] and method == "near":
+            raise nplps.SolverError("at iteration 9 the surface reached light 0")
+        return real(*args, lights=lights, method=method, **kwargs)
+
+    monkeypatch.setattr(evaluation, "held_out", failing)
+    rc, stdout, stderr = run(capsys, "evaluate", *common, "--lights", "3,7", "-q", "--out", r)
+    assert rc == 0, stderr
+    assert "light 7 left out, near model: at iteration 9 the surface reached light 0" in stderr
+    assert re.search(r"^\s*7\s+nan\s+nan\s+\S+\s+\S+$", stdout, re.M), stdout
+    mean = re.search(r"^\s*mean\s+(\S+)\s+(\S+)", stdout, re.M)
+    three = re.search(r"^\s*3\s+(\S+)\s+(\S+)", stdout, re.M)
+    assert mean is not None and three is not None and mean.groups() == three.groups()
+    assert "1 of 4 held-out runs failed" in stdout
+    record = json.loads((r / "held_out.json").read_text())
+    assert record["lights"] == [3, 7] and record["near"][1] == [None, None, None]
+    assert all(v is not None for v in record["parallel"][1][:2])
+    rc, _, stderr = run(capsys, "evaluate", *common, "--lights", "7", "-q")
+    assert rc == 1 and "every held-out run of the near-light model failed" in stderr
+
+
 def test_evaluate_rgb_and_bad_lights(tmp_path, capsys):
     synth(capsys, tmp_path / "s", "--rgb")
     s = tmp_path / "s"

@@ -6,11 +6,11 @@ Below :mod:`nplps.export` and :mod:`nplps.report`, which write and list the reco
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
-__all__ = ["HeldOutScores", "reading"]
+__all__ = ["FailedHeldOut", "HeldOutScores", "reading"]
 
 # Mean shape errors closer than this ratio count as a tie in :func:`reading`.
 _TIE_RATIO = 1.05
@@ -27,6 +27,16 @@ class HeldOutScores(Protocol):
     def shape_error(self) -> float: ...
     @property
     def gain(self) -> float: ...
+
+
+class FailedHeldOut(NamedTuple):
+    """A held-out run that failed (the reconstruction without the light raised `reason`): NaN scores."""
+
+    light: int
+    reason: str
+    relative_error: float = float("nan")
+    shape_error: float = float("nan")
+    gain: float = float("nan")
 
 
 def reading(near: tuple[float, float], parallel: tuple[float, float]) -> str:

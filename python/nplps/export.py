@@ -1467,7 +1467,7 @@ def held_out_record(near: Sequence[HeldOutScores], parallel: Sequence[HeldOutSco
 
     if parallel is not None:
         means = [
-            tuple(float(np.mean([getattr(h, a) for h in m])) for a in ("relative_error", "shape_error"))
+            tuple(_finite_mean([getattr(h, a) for h in m]) for a in ("relative_error", "shape_error"))
             for m in (near, parallel)
         ]
         text = reading(means[0], means[1])  # type: ignore[arg-type]
@@ -1483,6 +1483,12 @@ def held_out_record(near: Sequence[HeldOutScores], parallel: Sequence[HeldOutSco
 
 def _num(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
+
+
+def _finite_mean(values: Sequence[float]) -> float:
+    """Return the mean of the finite values (a failed held-out run's NaN left out); NaN when there are none."""
+    finite = [float(v) for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def write_result(

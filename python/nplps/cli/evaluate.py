@@ -9,13 +9,15 @@ from __future__ import annotations
 import argparse
 import os
 import time
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import InputError
+from .._held_out import FailedHeldOut
+from ..errors import InputError, SolverError
 from ..progress import Bar, ReconstructionProgress, aborting, format_duration
-from .console import _note, _warnings_to_stderr
+from .console import PROG, _note, _warnings_to_stderr
 from .inputs import INPUT_NOTES, _estimated, add_input_options, build_inputs, near_options
 from .parsers import parse_lights
 
@@ -96,24 +98,31 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         _note(f"estimated working distance (all lights): {distances}")
         inputs = inputs._replace(options=_estimated(estimate, inputs.options))
     rows = []
-    found: dict[str, list[HeldOut]] = {"near": [], "parallel": []}
+    found: dict[str, list[HeldOut | FailedHeldOut]] = {"near": [], "parallel": []}
+    failed: list[str] = []
     bar = None if args.quiet else Bar("held-out", total=len(lights))
     with aborting(bar):
         for done, light in enumerate(lights):
             start = time.perf_counter()
             row: list[float] = [light]
             for method in ("near", "parallel"):
-                with _warnings_to_stderr():
-                    (h,) = held_out(
-                        inputs.images,
-                        inputs.rig,
-                        mask=inputs.mask,
-                        method=method,
-                        lights=[light],
-                        valid=inputs.valid,
-                        **inputs.options,
-                        **near_options(args),
-                    )
+                h: HeldOut | FailedHeldOut
+                try:
+                    with _warnings_to_stderr():
+                        (h,) = held_out(
+                            inputs.images,
+                            inputs.rig,
+                            mask=inputs.mask,
+                            method=method,
+                            lights=[light],
+                            valid=inputs.valid,
+                            **inputs.options,
+                            **near_options(args),
+                        )
+                except SolverError as e:
+                    # One light's run failing does not void the others': its row reads nan.
+                    failed.append(f"light {light} left out, {method} model: {e}")
+                    h = FailedHeldOut(light, str(e))
                 row += [h.relative_error, h.shape_error]
                 found[method].append(h)
             rows.append(row)
@@ -124,6 +133,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if bar is not None:
         bar.close(f"{len(lights)} lights left out one at a time in {format_duration(bar.elapsed)}")
     _print_evaluation(rows, inputs.rig.n_lights)
+    if failed:
+        for line in failed:
+            _note(f"{PROG}: warning: the reconstruction failed ({line}); its row reads nan")
+        print(f"\n{len(failed)} of {2 * len(lights)} held-out runs failed (see the warnings); the means leave them out")
+    if all(isinstance(h, FailedHeldOut) for h in found["near"]):
+        _note(f"{PROG}: error: every held-out run of the near-light model failed: nothing to evaluate")
+        return 1
     if args.out is not None:
         from ..report import write_held_out
 
@@ -141,6 +157,8 @@ def _print_evaluation(rows: list[list[Any]], k: int) -> None:
     print("".join(f"{c:>{w}}" for c, w in zip(EVALUATE_COLUMNS, widths, strict=True)))
     for row in rows:
         print(f"{row[0]:>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(row[1:], widths[1:], strict=True)))
-    means = np.nanmean(np.array([r[1:] for r in rows], dtype=float), axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a column whose runs all failed: nan
+        means = np.nanmean(np.array([r[1:] for r in rows], dtype=float), axis=0)
     print(f"{'mean':>{widths[0]}}" + "".join(f"{v:>{w}.4g}" for v, w in zip(means, widths[1:], strict=True)))
     print("\n" + reading((means[0], means[1]), (means[2], means[3])))
