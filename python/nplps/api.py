@@ -519,7 +519,7 @@ def reconstruct(
         least of the system's available memory, a cgroup limit and an address-space limit).
     check_distance : bool, default True
         With a given `depth`, compare it afterwards with the distance a quick search on a coarse
-        level (at most 64 pixels a side) prefers (``result.distance_check``), and warn "the
+        level (at most 32 pixels a side) prefers (``result.distance_check``), and warn "the
         working distance looks wrong" when the images fit another distance clearly better. It
         needs at least 4 lights, one of them a point light; its cost does not grow with the
         image size.
