@@ -42,9 +42,7 @@ use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
 /// fit: the steps stop earlier once one no longer lowers the residual noticeably, see
-/// [`CONVERGED`](crate::reflectance::CONVERGED), or would move the fit by less than
-/// [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE)); later local steps go on from its
-/// normal.
+/// [`CONVERGED`](crate::reflectance::CONVERGED)); later local steps go on from its normal.
 pub const GLOSSY_STEPS: usize = 5;
 
 /// Steps of a facet's glossy fit started from its glossy normal of the previous local step
