@@ -99,12 +99,13 @@ impl Shadows {
         self != Shadows::Off
     }
 
-    /// Name: "off", "auto" or "on".
-    pub fn name(self) -> &'static str {
+    /// The policy of the working-distance search and check: candidates are compared without
+    /// cast shadows unless they are asked for (`On`): on the PBR block with cast shadows,
+    /// marching in the search found -0.68 % instead of -0.20 % at 3.6x the time.
+    pub(crate) fn in_search(self) -> Shadows {
         match self {
-            Shadows::Off => "off",
-            Shadows::Auto => "auto",
-            Shadows::On => "on",
+            Shadows::On => Shadows::On,
+            _ => Shadows::Off,
         }
     }
 }
@@ -329,6 +330,11 @@ pub(crate) fn mesh_shadows(
     )
 }
 
+/// Whether row or column `i` is on the probe lattice of `stride` (see [`mesh_shadows`]).
+pub(crate) fn on_lattice(i: usize, stride: usize) -> bool {
+    i % stride == stride / 2
+}
+
 /// [`shadows_of_vertices`], skipping through the cells of a [`Pyramid`] when `skip`; the result is
 /// the same either way. Only the facets on the lattice of `stride` (see [`mesh_shadows`]) march.
 #[allow(clippy::too_many_arguments)]
@@ -344,7 +350,7 @@ pub(crate) fn march_all(
     stride: usize,
 ) -> Result<ShadowMask> {
     let stride = stride.max(1);
-    let on_lattice = |i: usize| i % stride == stride / 2;
+    let on_lattice = |i: usize| on_lattice(i, stride);
     let max_steps = max_steps.unwrap_or(2 * height.max(width));
     ensure_range(max_steps >= 1, "max_steps", max_steps as f64, || {
         "max_steps must be at least 1".to_string()

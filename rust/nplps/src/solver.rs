@@ -41,7 +41,7 @@ use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::reflectance::{Lobe, Reflectance};
 use crate::rig::Light;
-use crate::shadow::{mesh_shadows, ShadowMask, Shadows, AUTO_SHARE};
+use crate::shadow::{mesh_shadows, on_lattice, ShadowMask, Shadows, AUTO_SHARE};
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
 /// [`Control::Cancel`] stops the solver with [`Error::Cancelled`].
@@ -698,15 +698,11 @@ impl<'p> Solver<'p> {
         Ok(change)
     }
 
-    /// For the distance search: [`Shadows::Auto`] becomes [`Shadows::Off`] (the search compares
-    /// candidates without cast shadows unless they are asked for); returns the policy to give
+    /// For the distance search: the policy [`Shadows::in_search`]; returns the user's, to give
     /// back to [`Solver::restore_shadows`].
     pub(crate) fn search_shadows(&mut self) -> Shadows {
-        let policy = self.options.shadows;
-        if policy == Shadows::Auto {
-            self.options.shadows = Shadows::Off;
-        }
-        policy
+        let search = self.options.shadows.in_search();
+        std::mem::replace(&mut self.options.shadows, search)
     }
 
     /// After the distance search: the user's policy again, and no mask from the candidates.
@@ -747,7 +743,7 @@ impl<'p> Solver<'p> {
                 .iter()
                 .filter(|&&f| {
                     let (r, c) = (f / p.grid.width, f % p.grid.width);
-                    r % stride == stride / 2 && c % stride == stride / 2
+                    on_lattice(r, stride) && on_lattice(c, stride)
                 })
                 .count();
             mask.count() as f64 / (probed * mask.lights()).max(1) as f64
@@ -1139,6 +1135,12 @@ mod tests {
         );
     }
 
+    /// The bits of a result's normals and depths (NaN outside the mask compares equal).
+    fn bits(r: &Reconstruction) -> Vec<u64> {
+        let normals = r.normals.iter().flatten();
+        normals.chain(&r.depth).map(|x| x.to_bits()).collect()
+    }
+
     /// Cast shadows from the mesh ([`Options::shadows`]): the block scene's observations in a
     /// cast shadow are replaced by bright garbage (a fifth of the image maximum), which bends the
     /// plain fits; with the option the solver finds them on its own mesh and leaves them out,
@@ -1201,10 +1203,6 @@ mod tests {
         );
         assert!(bent > 1.0, "{bent}");
         assert!(kept < 0.05, "{kept} (without the option {bent})");
-        let bits = |r: &Reconstruction| -> Vec<u64> {
-            let normals = r.normals.iter().flatten();
-            normals.chain(&r.depth).map(|x| x.to_bits()).collect()
-        };
         assert!(bits(&auto) == bits(&shadowed));
         assert!(auto.shadows == shadowed.shadows);
         let found = shadowed.shadows.as_ref().unwrap();
@@ -1249,10 +1247,6 @@ mod tests {
             })
             .unwrap();
             (result, levels)
-        };
-        let bits = |r: &Reconstruction| -> Vec<u64> {
-            let normals = r.normals.iter().flatten();
-            normals.chain(&r.depth).map(|x| x.to_bits()).collect()
         };
         let (off, _) = run(SceneKind::SphereCap, Shadows::Off);
         let (auto, levels) = run(SceneKind::SphereCap, Shadows::Auto);
