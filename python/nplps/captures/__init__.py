@@ -25,7 +25,7 @@ vignetting, binning) are :func:`prepare`'s, which runs :func:`nplps.pipeline.pre
 command line's pipeline -- and records what ran (``levels``, ``preprocessed``, ``valid``), so
 that ``capture.options()`` gives :func:`nplps.reconstruct` the command line's ``dark`` default
 and saturation flags. Grey or colour is ``color=``.
-``scipy`` is needed for MATLAB files (it is imported on first use).
+MATLAB files are read by :func:`nplps.captures.matlab.read_mat` (version 5 / v7 MAT-files; no scipy).
 
 The light intensities are part of the rig: :meth:`Capture.rig` builds the lights with
 ``Capture.intensities`` (DiLiGenT's ``light_intensities.txt``, near_ps's ``Phi``), and the image

@@ -99,7 +99,7 @@ def load_diligent(
     lights : Sequence[int] | None, optional
         A subset of the images/lights (0-based indices), e.g. ``range(0, 96, 8)``.
     normals : bool, optional
-        Read ``Normal_gt.mat`` when present (needs scipy).
+        Read ``Normal_gt.mat`` when present.
     K : np.ndarray | None, optional
         An optional pinhole matrix (0-based) to attach; DiLiGenT itself gives none
         (an orthographic set-up is assumed). See :func:`load_matlab_intrinsics`.

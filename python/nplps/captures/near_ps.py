@@ -88,7 +88,7 @@ def load_near_ps(
 ) -> Capture:
     """Load a capture in the layout of the near-light toolbox of Quéau et al. (``near_ps``).
 
-    Calibration (MATLAB files, read with scipy):
+    Calibration (MATLAB files, read by :func:`nplps.captures.matlab.read_mat`):
 
     * ``camera.mat``: ``K``, 1-based MATLAB pixel coordinates, possibly stored transposed;
       converted with :func:`standardize_K` (``cx0 = K[0, 2] - 1``, ``cy0 = K[1, 2] - 1``).
