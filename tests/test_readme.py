@@ -73,3 +73,29 @@ def test_readme_cli_example_reconstructs_at_the_scenes_distance(tmp_path: Path) 
     )
     given = float(shlex.split(commands[1])[shlex.split(commands[1]).index("--depth") + 1])
     assert abs(given / truth - 1) < 0.01, (given, truth)
+
+
+def test_ci_runs_every_readme_command_from_the_wheel() -> None:
+    """.ci/readme_commands.py (run by .ci/run with the fresh wheel venv) finds every nplps command."""
+    import importlib.util
+
+    path = README.parent / ".ci" / "readme_commands.py"
+    spec = importlib.util.spec_from_file_location("readme_commands", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    found = module.commands(README)
+    text = README.read_text(encoding="utf-8")
+    # Every line of a bash block that starts with "nplps " is one command (continuations joined).
+    expected = sum(
+        1
+        for block in re.findall(r"```(?:bash|sh)\n(.*?)```", text, re.S)
+        for line in block.splitlines()
+        if line.strip().startswith("nplps ")
+    )
+    assert len(found) == expected >= 10
+    assert found[0] == "nplps demo"
+    assert not any(c.endswith("\\") for c in found)
+    spheres = next(c for c in found if c.startswith("nplps calibrate spheres"))
+    assert "--out calib/rig_spheres.json" in spheres  # the continuation line was joined
+    assert any("--capture diligent" in c for c in found)
