@@ -49,6 +49,7 @@ from .inputs import (
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .report import add_report_parser, cmd_report
+from .rig import add_rig_parser, cmd_rig
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
 from .view import add_view_parser, cmd_view
 
@@ -70,6 +71,7 @@ __all__ = [
     "cmd_evaluate",
     "cmd_reconstruct",
     "cmd_report",
+    "cmd_rig",
     "cmd_synth",
     "cmd_synth_calibration",
     "cmd_view",
@@ -150,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
     add_view_parser(sub, formatter).set_defaults(func=cmd_view)
     add_report_parser(sub, formatter).set_defaults(func=cmd_report)
+    add_rig_parser(sub, formatter).set_defaults(func=cmd_rig)
     return parser
 
 
