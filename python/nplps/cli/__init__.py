@@ -46,6 +46,7 @@ from .inputs import (
     load_rig,
     near_options,
 )
+from .meshroom import add_meshroom_parser, cmd_meshroom
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .report import add_report_parser, cmd_report
@@ -69,6 +70,7 @@ __all__ = [
     "cmd_calibrate",
     "cmd_demo",
     "cmd_evaluate",
+    "cmd_meshroom",
     "cmd_reconstruct",
     "cmd_report",
     "cmd_rig",
@@ -153,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_view_parser(sub, formatter).set_defaults(func=cmd_view)
     add_report_parser(sub, formatter).set_defaults(func=cmd_report)
     add_rig_parser(sub, formatter).set_defaults(func=cmd_rig)
+    add_meshroom_parser(sub, formatter).set_defaults(func=cmd_meshroom)
     return parser
 
 
