@@ -203,6 +203,13 @@ avg_reprojection_error: 2.1e-01
     assert camera["K"][1][2] == 479.25
     assert camera["distortion"] == [-0.12, 0.085, 1e-4, -2e-4, 0.0]
     assert grid.image_size == (1280, 960)
+    # as some tools write it: the matrix's keys not indented, a flow list on one line
+    flat = (
+        "%YAML:1.0\ncamera_matrix: !!opencv-matrix\nrows: 3\ncols: 3\ndt: d\n"
+        "data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+    )
+    (tmp_path / "flat.yml").write_text(flat)
+    assert rig_formats.read_camera(tmp_path / "flat.yml")[0]["K"][1] == [0.0, 500.0, 240.0]
 
 
 def test_refusals(tmp_path):

@@ -751,8 +751,8 @@ _YAML_KEY = re.compile(r"^([A-Za-z_][\w-]*)\s*:\s*(.*)$")
 def _parse_opencv_yaml(text: str, name: str) -> dict[str, Any]:
     """Parse the subset of YAML that OpenCV's FileStorage writes for a camera.
 
-    Top-level ``key: scalar`` lines and ``key: !!opencv-matrix`` blocks of indented ``rows``,
-    ``cols``, ``dt`` and ``data: [ ... ]`` (the list may span lines); ``#`` comments.
+    Top-level ``key: scalar`` lines and ``key: !!opencv-matrix`` blocks of ``rows``, ``cols``,
+    ``dt`` and ``data: [ ... ]`` (indented or not; the list may span lines); ``#`` comments.
     """
     lines = [line.split("#", 1)[0].rstrip() for line in text.splitlines()]
     if not lines or not lines[0].startswith("%YAML"):
@@ -771,8 +771,9 @@ def _parse_opencv_yaml(text: str, name: str) -> dict[str, Any]:
             raise RigError(f"camera file {name!r}, line {i}: expected 'key: value', got {line[:40]!r}")
         key, rest = m.group(1), m.group(2).strip()
         if rest.startswith("!!opencv-matrix"):
-            block = []
-            while i < len(lines) and (not lines[i].strip() or lines[i][0].isspace()):
+            # The matrix's lines (indented as OpenCV writes them, or not): up to the end of its data list.
+            block = [rest[len("!!opencv-matrix") :].strip()]
+            while i < len(lines) and not re.search(r"data\s*:\s*\[[^\]]*\]", " ".join(block), re.S):
                 block.append(lines[i].strip())
                 i += 1
             out[key] = _yaml_matrix(" ".join(block), name, key)
