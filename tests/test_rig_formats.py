@@ -63,6 +63,17 @@ def test_dome_point_lights_round_trip_exact(tmp_path, seed):
     assert q["z"] == pytest.approx(distance - p[2], abs=1e-9)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dome_unit_scale_round_trip_exact(tmp_path, seed):
+    """A rig in cm written to a .dome in mm (scale 0.1: cm per mm) and read back."""
+    rig = _point_rig(seed)
+    rig.save(tmp_path / "mm.dome", camera_distance=61.5, scale=0.1)
+    data = json.loads((tmp_path / "mm.dome").read_text())
+    p, q = rig.lights[2].position, data["positions3d"][2]
+    assert (q["x"], q["y"], q["z"]) == pytest.approx((p[0] * 10, -p[1] * 10, (61.5 - p[2]) * 10), rel=1e-12)
+    _exact(Rig.load(tmp_path / "mm.dome", camera=rig.camera, camera_distance=61.5, scale=0.1), rig)
+
+
 @pytest.mark.parametrize("seed", [0, 5])
 def test_dome_directional_round_trip_exact(tmp_path, seed):
     rig = _directional_rig(seed)

@@ -250,6 +250,7 @@ def load(
     camera_distance: float | None = None,
     light_distance: float | None = None,
     intrinsic: str | None = None,
+    scale: float | None = None,
 ) -> Rig:
     """Read a rig from a rig file or a lights file of another format.
 
@@ -272,6 +273,10 @@ def load(
         distance from the ``.dome`` frame's origin (needs `camera_distance`).
     intrinsic : str, optional
         With an SfMData `camera`: the intrinsicId to use when it has several.
+    scale : float, optional
+        Rig units per unit of the ``.dome``'s positions (default 1: the rig has the ``.dome``'s
+        unit, mm for current RelightLab files; 0.1 gives cm). `camera_distance` and
+        `light_distance` are in rig units.
 
     Returns
     -------
@@ -307,7 +312,7 @@ def load(
         )
     cam, grid = _camera_of(camera, intrinsic)
     if fmt == "dome":
-        lights, comments = _read_dome(name, camera_distance, light_distance)
+        lights, comments = _read_dome(name, camera_distance, light_distance, scale)
     elif fmt == "lp":
         lights, comments = _read_lp(name, camera_distance, light_distance)
     else:
@@ -328,6 +333,7 @@ def save(
     fmt: str | None = None,
     camera_distance: float | None = None,
     drop_intensities: bool = False,
+    scale: float | None = None,
 ) -> str:
     """Write a rig, or the part of it that a format holds.
 
@@ -346,6 +352,9 @@ def save(
         frame's origin (default: the one the rig was read with, kept in its ``"_dome"`` comment).
     drop_intensities : bool, default False
         Write a ``.lp`` even though the rig's intensities are not all 1 (a ``.lp`` has none).
+    scale : float, optional
+        For a ``.dome``: rig units per unit of the file's positions (default: the one the rig was
+        read with, else 1).
 
     Returns
     -------
@@ -363,7 +372,7 @@ def save(
     if fmt == "rig":
         rig._save_json(path)
     elif fmt == "dome":
-        _write(path, _dome_text(rig, camera_distance))
+        _write(path, _dome_text(rig, camera_distance, scale))
     elif fmt == "lp":
         _write(path, _lp_text(rig, drop_intensities))
     elif fmt == "alicevision":
@@ -416,7 +425,9 @@ def _positive(value: float | None, what: str) -> Fraction:
     return Fraction(float(value))
 
 
-def _read_dome(name: str, camera_distance: float | None, light_distance: float | None) -> tuple[list[Any], dict]:
+def _read_dome(
+    name: str, camera_distance: float | None, light_distance: float | None, scale: float | None = None
+) -> tuple[list[Any], dict]:
     data = _read_json(name, "dome file", exact=True)
     if not isinstance(data, dict):
         raise RigError(f"dome file {name!r} must hold a JSON object")
@@ -457,19 +468,24 @@ def _read_dome(name: str, camera_distance: float | None, light_distance: float |
             "give the camera's distance to that plane (camera_distance, --camera-distance) to place them"
         )
     dist = _positive(camera_distance, "camera_distance")
+    unit = Fraction(1) if scale is None else _positive(scale, "scale")
     meta["camera_distance"] = float(dist)
+    if unit != 1:
+        meta["scale"] = float(unit)
     for i, item in enumerate(items):
         x, y, z = _xyz(item, f"{key}[{i}]")
-        if config == "directional":
+        if config == "directional":  # unit directions placed at light_distance (rig units)
             assert light_distance is not None
             r = _positive(light_distance, "light_distance")
             n = math.sqrt(float(x * x + y * y + z * z))
             x, y, z = Fraction(float(x) / n) * r, Fraction(float(y) / n) * r, Fraction(float(z) / n) * r
+        else:  # positions in the .dome's unit (exact rational products, rounded once)
+            x, y, z = x * unit, y * unit, z * unit
         lights.append(PointLight._checked(f"light {i}", [float(x), -float(y), float(dist - z)], intensities[i]))
     return lights, {"_dome": meta}
 
 
-def _dome_text(rig: Rig, camera_distance: float | None) -> str:
+def _dome_text(rig: Rig, camera_distance: float | None, scale: float | None = None) -> str:
     directional, point, led = _kinds(rig)
     if led is not None:
         raise RigError(
@@ -503,12 +519,21 @@ def _dome_text(rig: Rig, camera_distance: float | None) -> str:
             "(camera_distance, --camera-distance)"
         )
     dist = _positive(camera_distance, "camera_distance")
+    if scale is None:
+        scale = meta.get("scale")
+    unit = Fraction(1) if scale is None else _positive(scale, "scale")
     positions, directions = [], []
     for light in rig.lights:
         assert isinstance(light, PointLight)
         px, py, pz = light.position
-        z = _shortest(pz, dist - Fraction(pz), lambda s: float(dist - s))
-        positions.append({"x": _text(px), "y": _text(-py), "z": z})
+        # The decimal whose reading (times the unit, from the plane) gives back the rig's double.
+        z = _shortest(pz, (dist - Fraction(pz)) / unit, lambda s: float(dist - s * unit))
+        if unit == 1:
+            x, y = _text(px), _text(-py)
+        else:
+            x = _shortest(px, Fraction(px) / unit, lambda s: float(s * unit))
+            y = _shortest(-py + 0.0, Fraction(-py) / unit, lambda s: -float(-s * unit) + 0.0)
+        positions.append({"x": x, "y": y, "z": z})
         v = (px, -py, float(dist - Fraction(pz)))
         n = math.sqrt(sum(c * c for c in v)) or 1.0
         directions.append({"x": _text(v[0] / n), "y": _text(v[1] / n), "z": _text(v[2] / n)})

@@ -63,6 +63,12 @@ def add_rig_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         metavar="R",
         help="read the directions of a .lp or directional .dome as point lights R from the .dome origin",
     )
+    c.add_argument(
+        "--scale",
+        type=float,
+        metavar="S",
+        help="rig units per unit of a .dome's positions (default 1: the .dome's mm; 0.1 for cm)",
+    )
     c.add_argument("--from", dest="fmt_in", choices=FORMATS, help="the input format (default: detected)")
     c.add_argument("--to", dest="fmt_out", choices=FORMATS, help="the output format (default: by extension)")
     c.add_argument("--drop-intensities", action="store_true", help="write a .lp although intensities are not 1")
@@ -85,6 +91,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
         camera_distance=args.camera_distance,
         light_distance=args.light_distance,
         intrinsic=args.intrinsic,
+        scale=args.scale,
     )
     fmt = rig_formats.save(
         rig,
@@ -92,6 +99,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
         fmt=args.fmt_out,
         camera_distance=args.camera_distance,
         drop_intensities=args.drop_intensities,
+        scale=args.scale,
     )
     what = "the camera" if fmt.startswith("opencv") else describe_rig(rig)
     print(f"wrote {args.output} ({fmt}): {what}")
