@@ -136,7 +136,7 @@ def test_lp_file_keeps_names_and_values(tmp_path):
     (tmp_path / "a.lp").write_text(text)
     rig = Rig.load(tmp_path / "a.lp", camera={"model": "pinhole", "K": K})
     assert isinstance(rig.lights[1], DirectionalLight)
-    assert rig.lights[1].direction == (-0.6, -0.0, -0.8)  # y and z flipped: y down, z into the scene
+    assert rig.lights[1].direction == (-0.6, 0.0, -0.8)  # y and z flipped: y down, z into the scene
     rig.save(tmp_path / "r.json")
     Rig.load(tmp_path / "r.json").save(tmp_path / "b.lp")
     out = [line.split() for line in (tmp_path / "b.lp").read_text().splitlines()[1:]]
@@ -299,6 +299,21 @@ def test_sfmdata_intrinsics(tmp_path):
         rig_formats.read_camera(fisheye)
     sfm = rig_formats.read_sfmdata(_sfmdata(tmp_path))
     assert list(sfm.poses()) == ["7"] and len(sfm.poses()["7"]) == 3
+
+
+def test_rig_file_text_round_trip(tmp_path):
+    """rig.json -> .dome -> rig.json gives the same file (no -0.0 from the flipped axes)."""
+    scene_rig = nplps.make_scene("sphere", n=8, camera="pinhole").rig.with_grid(8, 8)
+    scene_rig.save(tmp_path / "rig.json")
+    assert (
+        main(["rig", "convert", str(tmp_path / "rig.json"), str(tmp_path / "d.dome"), "--camera-distance", "200"]) == 0
+    )
+    code = main(["rig", "convert", str(tmp_path / "d.dome"), str(tmp_path / "back.json"), "--camera",
+                 str(tmp_path / "rig.json"), "--camera-distance", "200"])  # fmt: skip
+    assert code == 0
+    back = json.loads((tmp_path / "back.json").read_text())
+    assert back["lights"] == json.loads((tmp_path / "rig.json").read_text())["lights"]
+    assert json.dumps(back["lights"]) == json.dumps(json.loads((tmp_path / "rig.json").read_text())["lights"])
 
 
 def test_cli_convert(tmp_path, capsys):

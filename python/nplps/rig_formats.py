@@ -307,8 +307,9 @@ def load(
         return Rig(cam, rig.lights, grid=grid or rig.grid, comments=rig.comments)
     if camera is None:
         raise RigError(
-            f"a {_FORMAT_NAMES[fmt]} has no camera: give one (camera=..., or --camera FILE: an OpenCV "
-            "camera YAML/JSON, a rig file or an SfMData)"
+            f"{name!r} is a {_FORMAT_NAMES[fmt]}, which has no camera: give one (Rig.load(..., camera=...) with "
+            "an OpenCV camera YAML/JSON, a rig file or an SfMData), or make a rig file first: "
+            f"nplps rig convert {name} rig.json --camera CAMERA"
         )
     cam, grid = _camera_of(camera, intrinsic)
     if fmt == "dome":
@@ -460,7 +461,7 @@ def _read_dome(
     if config == "directional" and light_distance is None:
         for i, item in enumerate(items):
             x, y, z = _xyz(item, f"{key}[{i}]")
-            lights.append(_directional(f"light {i}", [float(x), -float(y), -float(z)], intensities[i]))
+            lights.append(_directional(f"light {i}", [float(x), -float(y) + 0.0, -float(z) + 0.0], intensities[i]))
         return lights, {"_dome": meta}
     if camera_distance is None:
         raise RigError(
@@ -481,7 +482,7 @@ def _read_dome(
             x, y, z = Fraction(float(x) / n) * r, Fraction(float(y) / n) * r, Fraction(float(z) / n) * r
         else:  # positions in the .dome's unit (exact rational products, rounded once)
             x, y, z = x * unit, y * unit, z * unit
-        lights.append(PointLight._checked(f"light {i}", [float(x), -float(y), float(dist - z)], intensities[i]))
+        lights.append(PointLight._checked(f"light {i}", [float(x), -float(y) + 0.0, float(dist - z)], intensities[i]))
     return lights, {"_dome": meta}
 
 
@@ -573,14 +574,14 @@ def _read_lp(name: str, camera_distance: float | None, light_distance: float | N
         dirs.append((x, y, z))
     comments: dict[str, Any] = {"_lp_files": files}
     if light_distance is None:
-        return [_directional(f"light {i}", [x, -y, -z]) for i, (x, y, z) in enumerate(dirs)], comments
+        return [_directional(f"light {i}", [x, -y + 0.0, -z + 0.0]) for i, (x, y, z) in enumerate(dirs)], comments
     dist = _positive(camera_distance, "camera_distance")
     r = _positive(light_distance, "light_distance")
     lights = []
     for i, (x, y, z) in enumerate(dirs):
         n = math.sqrt(x * x + y * y + z * z)
         px, py, pz = (float(Fraction(c / n) * r) for c in (x, y, z))
-        lights.append(PointLight._checked(f"light {i}", [px, -py, float(dist - Fraction(pz))]))
+        lights.append(PointLight._checked(f"light {i}", [px, -py + 0.0, float(dist - Fraction(pz))]))
     return lights, comments
 
 
