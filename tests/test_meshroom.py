@@ -196,3 +196,20 @@ def test_meshroom_lights_by_view_id(tmp_path):
         _pose_lights(rig, data.poses()["77"], "77", "lights.json")
     # without --lights, lights.json beside the SfMData is used
     assert main(["meshroom", str(sfm), "--output", str(tmp_path / "o")]) == 2
+
+
+def test_meshroom_with_dome_lights_gives_the_same_normals(tmp_path):
+    """The lights as a .dome (positions on the object plane's frame) give the rig file's result bit for bit."""
+    scene = nplps.make_scene("bumps", n=24, camera="pinhole", seed=4)
+    sfm = _write_sfmdata(tmp_path, [scene])
+    assert main(["rig", "convert", str(tmp_path / "lights_rig.json"), str(tmp_path / "l.dome"),
+                 "--camera-distance", "180"]) == 0  # fmt: skip
+    base = ["meshroom", str(sfm), "--depth", "200"]
+    assert main([*base, "--output", str(tmp_path / "a"), "--lights", str(tmp_path / "lights_rig.json")]) == 0
+    dome = ["--lights", str(tmp_path / "l.dome"), "--camera-distance", "180"]
+    assert main([*base, "--output", str(tmp_path / "b"), *dome]) == 0
+    a = _read_png16(tmp_path / "a" / "77_normals.png")
+    b = _read_png16(tmp_path / "b" / "77_normals.png")
+    assert np.array_equal(a, b)
+    # without the distance the .dome's positions cannot be placed
+    assert main([*base, "--output", str(tmp_path / "c"), "--lights", str(tmp_path / "l.dome")]) == 2

@@ -299,6 +299,16 @@ def test_sfmdata_intrinsics(tmp_path):
         rig_formats.read_camera(fisheye)
     sfm = rig_formats.read_sfmdata(_sfmdata(tmp_path))
     assert list(sfm.poses()) == ["7"] and len(sfm.poses()["7"]) == 3
+    # several intrinsics: choose one
+    data = json.loads(open(_sfmdata(tmp_path)).read())
+    data["intrinsics"].append(dict(data["intrinsics"][0], intrinsicId="43", focalLength="4.0"))
+    (tmp_path / "two.sfm").write_text(json.dumps(data))
+    with pytest.raises(RigError, match="choose one"):
+        rig_formats.read_camera(tmp_path / "two.sfm")
+    assert rig_formats.read_camera(tmp_path / "two.sfm", intrinsic="43")[0]["K"][0][0] == 400.0
+    # an SfMData alone is a camera, not a rig
+    with pytest.raises(RigError, match="camera only"):
+        Rig.load(tmp_path / "two.sfm")
 
 
 def test_rig_file_text_round_trip(tmp_path):
