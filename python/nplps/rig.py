@@ -1012,19 +1012,36 @@ class Rig:
             unit_axes=False,
         )
 
-    def save(self, path: str | os.PathLike[str]) -> None:
+    def save(self, path: str | os.PathLike[str], *, fmt: str | None = None, **options: Any) -> None:
         """Write the rig file (JSON), under a temporary name renamed when complete.
+
+        Other formats by extension (``.dome``, ``.lp``, ``.yml``/``.yaml``, a file named
+        ``lights.json``) or `fmt`: see :func:`nplps.rig_formats.save`.
 
         Parameters
         ----------
         path : str or os.PathLike
             The file.
+        fmt : str, optional
+            One of :data:`nplps.rig_formats.FORMATS`; default: by extension.
+        **options
+            ``camera_distance``, ``drop_intensities``: see :func:`nplps.rig_formats.save`.
 
         Raises
         ------
+        RigError
+            The format cannot represent the rig.
         OSError
             When the file cannot be written.
         """
+        from . import rig_formats
+
+        if fmt is not None or options or rig_formats._output_format(path, None) != "rig":
+            rig_formats.save(self, path, fmt=fmt, **options)
+            return
+        self._save_json(path)
+
+    def _save_json(self, path: str | os.PathLike[str]) -> None:
         from ._atomic import atomic_write
 
         with atomic_write(path, "w", encoding="utf-8") as f:
@@ -1032,13 +1049,19 @@ class Rig:
             f.write("\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> Rig:
-        """Read a rig file.
+    def load(cls, path: str | os.PathLike[str], **options: Any) -> Rig:
+        """Read a rig file, or a lights file of another format (by extension or content).
+
+        A ``.dome``, ``.lp`` or AliceVision ``lights.json`` has no camera: give one with
+        ``camera=`` (see :func:`nplps.rig_formats.load` for the options).
 
         Parameters
         ----------
         path : str or os.PathLike
             The file.
+        **options
+            ``fmt``, ``camera``, ``camera_distance``, ``light_distance``, ``intrinsic``: see
+            :func:`nplps.rig_formats.load`.
 
         Returns
         -------
@@ -1047,11 +1070,17 @@ class Rig:
         Raises
         ------
         RigError
-            When the file is missing, unreadable or malformed (naming the problem).
+            When the file is missing, unreadable or malformed (naming the problem), or a value
+            its format lacks is not given.
         """
         if not isinstance(path, (str, bytes, os.PathLike)):
             raise RigError(f"a rig file is read from a path (str or os.PathLike), got {type(path).__name__}")
-        return cls._from_file(_core.read_rig(os.fsdecode(path)))
+        name = os.fsdecode(path)
+        from . import rig_formats
+
+        if options or rig_formats.detect_format(name) != "rig":
+            return rig_formats.load(name, **options)
+        return cls._from_file(_core.read_rig(name))
 
 
 def _is_empty(value: Any) -> bool:

@@ -46,9 +46,11 @@ from .inputs import (
     load_rig,
     near_options,
 )
+from .meshroom import add_meshroom_parser, cmd_meshroom
 from .parsers import parse_depth, parse_exposures, parse_lights
 from .reconstruct import add_reconstruct_parser, cmd_reconstruct
 from .report import add_report_parser, cmd_report
+from .rig import add_rig_parser, cmd_rig
 from .synth import add_demo_parser, add_synth_parser, cmd_demo, cmd_synth, depth_rms, normal_errors
 from .view import add_view_parser, cmd_view
 
@@ -68,8 +70,10 @@ __all__ = [
     "cmd_calibrate",
     "cmd_demo",
     "cmd_evaluate",
+    "cmd_meshroom",
     "cmd_reconstruct",
     "cmd_report",
+    "cmd_rig",
     "cmd_synth",
     "cmd_synth_calibration",
     "cmd_view",
@@ -150,6 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
     add_view_parser(sub, formatter).set_defaults(func=cmd_view)
     add_report_parser(sub, formatter).set_defaults(func=cmd_report)
+    add_rig_parser(sub, formatter).set_defaults(func=cmd_rig)
+    add_meshroom_parser(sub, formatter).set_defaults(func=cmd_meshroom)
     return parser
 
 

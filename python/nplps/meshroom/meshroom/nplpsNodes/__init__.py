@@ -1,0 +1,1 @@
+"""Meshroom nodes of nplps (loaded by Meshroom from MESHROOM_PLUGINS_PATH)."""
