@@ -217,3 +217,15 @@ def test_capture_luces_on_the_command_line(tmp_path: Path, capsys: pytest.Captur
     assert np.degrees(np.arccos(dot)).mean() < 0.2
     summary = json.loads((out / "summary.json").read_text())
     assert "vignetting" not in json.dumps(summary.get("preprocessing", ""))
+
+
+def test_image_size_is_checked_against_led_params(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_luces_object(tmp_path / "A", n=16)
+    params = tmp_path / "A" / "led_params.txt"
+    lines = params.read_text().splitlines()
+    head = lines[1].split()
+    params.write_text("\n".join([lines[0], " ".join([head[0], "16", "20", *head[3:]]), *lines[2:]]) + "\n")
+    with pytest.raises(InputError, match="says nrows 16, ncols 20"):
+        load_luces(tmp_path / "A")
+    assert main(["benchmark", "luces", str(tmp_path), "--objects", "B", "--out", str(tmp_path / "o")]) == 2
+    assert "no LUCES object B" in capsys.readouterr().err

@@ -161,7 +161,9 @@ def run_luces_object(folder: Path, args: argparse.Namespace) -> dict[str, Any]:
     from ..api import reconstruct
     from ..captures import load_luces, prepare
 
-    capture = load_luces(folder, load=True, color=False if args.gray else None, one_based=args.one_based)
+    # The images are read by prepare, which corrects and bins them in place: one full-size stack at
+    # most (52 RGB float32 images of 2048 x 1536 would take 2 GB).
+    capture = load_luces(folder, color=False if args.gray else None, one_based=args.one_based)
     normals_gt, depth_gt = capture.normals_gt, capture.depth_gt
     prepared = prepare(
         capture,
