@@ -112,3 +112,19 @@ def test_layout_api_checks(tmp_path: Path) -> None:
         batch.run(str(tmp_path / "*"), None, tmp_path / "out", depth=200.0, layout="queau_human1")
     with pytest.raises(nplps.InputError, match="give no rig"):
         batch.run(str(tmp_path / "*"), nplps.make_scene("saddle", n=8).rig, tmp_path / "out", depth=1.0, layout="luces")
+
+
+def test_capture_layouts_on_real_captures(shared_capture, tmp_path: Path, scheduler: str) -> None:
+    # hehe12 (near_ps layout: cos^4 by default, the ambient image subtracted) and the DiLiGenT ball
+    # (directional lights, no K: no vignetting), each found by a glob of one folder.
+    for layout, name, depth in (("hehe12", "hehe12", "200"), ("diligent", "diligent_ball", "1000")):
+        folder = shared_capture(name)
+        out = tmp_path / layout
+        args = ["batch", str(folder), "--capture", layout, "--depth", depth, "--bin", "8", "--gray"]
+        assert main([*args, "--out", str(out), "--scheduler", scheduler, "--no-report"]) == 0
+        rows = _rows(out)
+        assert rows[name]["status"] == "ok" and rows[name]["rig"].startswith(f"{layout} calibration")
+        options = json.loads((out / name / "summary.json").read_text())["options"]
+        assert options["vignetting"] == ("cos4" if layout == "hehe12" else None)
+        if layout == "hehe12":
+            assert options["ambient"].endswith("photometric_sample_raw_ambient.png")

@@ -660,6 +660,7 @@ def _process(
         caught = [str(w.message) for w in records]
         with target:
             recorded = {"capture": os.fspath(folder), "rig": source.rig_source, "depth": depth}
+            recorded.update(mask=_described(source.mask), ambient=_described(source.ambient))
             recorded.update(prepare_options, **options)
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
@@ -683,6 +684,13 @@ def _process(
 def _absolute(item: BatchItem) -> BatchItem:
     """Return ``item`` with absolute paths, for workers that may run elsewhere (a shared file system)."""
     return dataclasses.replace(item, folder=os.path.abspath(item.folder), out=os.path.abspath(item.out))
+
+
+def _described(side: Any) -> Any:
+    """Return a mask or ambient image as a result records it: its file, None, or (from a loader) its shape."""
+    if side is None or isinstance(side, Path):
+        return None if side is None else os.fspath(side)
+    return f"array of shape {tuple(side.shape)} (from the capture's loader)"
 
 
 def _absolute_plan(plan: _Plan) -> _Plan:
