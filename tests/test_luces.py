@@ -232,6 +232,13 @@ def test_image_size_is_checked_against_led_params(tmp_path: Path, capsys: pytest
         load_luces(tmp_path / "A")
     assert main(["benchmark", "luces", str(tmp_path), "--objects", "B", "--out", str(tmp_path / "o")]) == 2
     assert "no LUCES object B" in capsys.readouterr().err
+    # A broken object folder fails alone: its row reads nan, the others run, exit status 1.
+    write_luces_object(tmp_path / "B", n=16, seed=2)
+    assert main(["benchmark", "luces", str(tmp_path), "--out", str(tmp_path / "o"), "-q"]) == 1
+    printed = capsys.readouterr()
+    table = _table(printed.out)
+    assert table["A"][1] == "nan" and float(table["B"][1]) < 1.0  # 16 x 16 bumps: coarse
+    assert "object A: " in printed.err and "nrows 16, ncols 20" in printed.err
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -32,7 +32,7 @@ from .files import _check_folder, _check_indices, _read_mask, _read_stack
 
 __all__ = [
     "LED_PARAMS",
-    "OBJECTS",
+    "N_OBJECTS",
     "PUBLISHED",
     "LedParams",
     "LucesCapture",
@@ -45,23 +45,8 @@ __all__ = [
 #: The calibration file of a LUCES object folder.
 LED_PARAMS = "led_params.txt"
 
-#: The LUCES objects as the dataset names them (in the order of its paper's tables).
-OBJECTS = (
-    "Ball",
-    "Bell",
-    "Bowl",
-    "Buddha",
-    "Bunny",
-    "Cup",
-    "Die",
-    "Hippo",
-    "House",
-    "Jar",
-    "Owl",
-    "Queen",
-    "Squirrel",
-    "Tool",
-)
+#: The number of objects in LUCES (arXiv 2210.04655, abstract), over which the published averages are taken.
+N_OBJECTS = 14
 
 #: Published mean angular errors on LUCES (degrees, mean over the 14 objects), by method. Per-object
 #: numbers could not be sourced for this module (the papers' tables were not readable here), so only
