@@ -119,6 +119,7 @@ examples:
       --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
   nplps view result                             # the mesh in 3-D: an offline page in the browser
   nplps report result                           # (re)make result/report.html
+  nplps benchmark luces LUCES/data --bin 4      # per-object errors against LUCES's ground truth
   nplps reconstruct --help                      # all options of a command
 
 results: a command with --out DIR writes only into a new or empty directory unless --overwrite
