@@ -2,7 +2,12 @@
 
 Every directory that a glob pattern matches is one capture: its image files (sorted by name,
 as ``nplps reconstruct DIR`` reads a directory; names with ``mask`` or ``ambient`` left out)
-and, if present, its mask image. All captures share one rig. Each capture is one Dask task
+and, if present, its mask image. The captures share one rig, except that a ``rig.json`` inside a
+capture directory is that capture's rig (it overrides the shared one; each item records the rig
+it used). With ``layout`` (``"near_ps"``, ``"diligent"``, ``"luces"``, ``"hehe12"``: the layouts of
+``nplps reconstruct --capture``) each directory is read by that layout's loader of
+:mod:`nplps.captures` instead: its images, calibration (the rig), mask and ambient image. Each
+capture is one Dask task
 (:mod:`dask.distributed`, an optional dependency: ``pip install "nplps[batch]"``) that runs
 :func:`nplps.pipeline.prepare`, :func:`nplps.reconstruct` and
 :meth:`nplps.Reconstruction.save` into ``OUT/<capture name>/``.
@@ -46,7 +51,14 @@ from .rig import Rig
 __all__ = ["SUMMARY_COLUMNS", "BatchItem", "find_captures", "is_complete", "run", "write_summary"]
 
 #: Columns of ``batch_summary.csv``.
-SUMMARY_COLUMNS = ("capture", "status", "iterations", "solver_status", "rms_residual", "seconds", "error")
+SUMMARY_COLUMNS = ("capture", "status", "iterations", "solver_status", "rms_residual", "seconds", "rig", "error")
+
+#: The capture layouts that :func:`run` reads with ``layout=`` (those of ``nplps reconstruct --capture``
+#: that hold one capture per directory; ``queau_human1``, one published capture, is not among them).
+LAYOUTS = ("near_ps", "diligent", "luces", "hehe12")
+
+#: A capture directory's own rig file, which overrides the batch's rig for that capture.
+RIG_FILE = "rig.json"
 
 #: Keyword options that go to :func:`nplps.pipeline.prepare` (the others go to :func:`nplps.reconstruct`).
 PREPARE_OPTIONS = ("color", "saturation", "srgb", "exposures", "vignetting", "flat", "bin_factor")
@@ -82,6 +94,9 @@ class BatchItem:
         Warnings the reconstruction gave (e.g. a diverged run).
     note : str or None
         Why an existing result was redone (other options, an unfinished earlier run).
+    rig : str or None
+        The rig the capture was reconstructed with: its own ``rig.json``, the batch's rig file
+        (or ``"given"`` for a :class:`~nplps.Rig` object) or its layout's calibration files.
     """
 
     name: str
@@ -95,6 +110,7 @@ class BatchItem:
     error: str | None = None
     warnings: list[str] = dataclasses.field(default_factory=list)
     note: str | None = None
+    rig: str | None = None
 
     def row(self) -> dict[str, str]:
         """Return the item as a row of ``batch_summary.csv`` (text; ``nan`` for missing numbers)."""
@@ -105,6 +121,7 @@ class BatchItem:
             "solver_status": _field(self.solver_status or ""),
             "rms_residual": "nan" if self.rms_residual is None else f"{self.rms_residual:.6e}",
             "seconds": "nan" if self.seconds is None else f"{self.seconds:.3f}",
+            "rig": _field(self.rig or ""),
             "error": _field(self.error or ""),
         }
 
@@ -241,27 +258,88 @@ def _resume(item: BatchItem, fp: str, inputs: dict[str, Any]) -> tuple[bool, boo
     return False, False
 
 
-def _capture_inputs(
-    folder: Path, rig: Rig, depth: Any, mask_name: str | None, ambient_name: str | None, options: dict[str, Any]
-) -> dict[str, Any]:
+@dataclasses.dataclass
+class _Plan:
+    """What one capture is read from: image files, rig (and where it came from), mask, ambient image."""
+
+    files: list[Path]
+    rig: Rig
+    rig_source: str
+    mask: Path | Any | None
+    ambient: Path | Any | None
+    vignetting: str | None = None  # the layout's default correction, used unless the options say
+
+
+def _plan_capture(
+    folder: Path,
+    rig: Rig | None,
+    rig_source: str,
+    layout: str | None,
+    mask_name: str | None,
+    ambient_name: str | None,
+) -> _Plan:
+    """Find a capture's inputs (reading only calibration files and, for a layout, the mask).
+
+    Without a layout: the image files of ``folder``, its own ``rig.json`` if it has one (else the
+    batch's ``rig``) and the mask and ambient image by ``mask_name`` / ``ambient_name``. With a
+    layout: that layout's loader gives the image files, rig, mask and ambient image; a
+    ``mask_name`` other than ``"auto"`` replaces the loader's mask.
+    """
+    if layout is None:
+        own = folder / RIG_FILE
+        if own.is_file():
+            rig, rig_source = Rig.load(own), os.fspath(own)
+        if rig is None:
+            raise InputError(f"no rig: '{folder}' has no {RIG_FILE} and the batch has no rig (--rig)")
+        files = find_images(folder)
+        return _Plan(
+            files, rig, rig_source, _side_file(folder, mask_name, "mask"), _side_file(folder, ambient_name, "ambient")
+        )
+    capture = _layout_capture(layout, folder)
+    mask = capture.mask if mask_name == "auto" else _side_file(folder, mask_name, "mask")
+    vignetting = "cos4" if capture.K is not None and layout in ("near_ps", "hehe12") else None
+    source = f"{layout} calibration in '{folder}'"
+    return _Plan(list(capture.files), capture.rig(), source, mask, capture.ambient, vignetting)
+
+
+def _layout_capture(layout: str, folder: Path) -> Any:
+    """Read a capture directory with the loader of ``layout`` (file names only, no images)."""
+    from . import captures
+
+    if layout == "near_ps":
+        return captures.load_near_ps(folder)
+    if layout == "diligent":
+        return captures.load_diligent(folder, normals=False)
+    if layout == "luces":
+        return captures.load_luces(folder, normals=False, depth=False)
+    if layout == "hehe12":
+        return captures.load_hehe12(folder)
+    raise InputError(f"unknown capture layout {layout!r}: one of {', '.join(LAYOUTS)}")
+
+
+def _capture_inputs(plan: _Plan, depth: Any, layout: str | None, options: dict[str, Any]) -> dict[str, Any]:
     """Return what a capture's result is made from (for its fingerprint): image files, rig, depth and options."""
     try:
-        images = [file_identity(f) for f in find_images(folder)]
+        images = [file_identity(f) for f in plan.files]
     except OSError:
         images = []
-    side = {}
-    for word, name in (("mask", mask_name), ("ambient", ambient_name)):
-        try:
-            path = _side_file(folder, name, word)
-        except (InputError, OSError):
-            path = None
-        side[word] = None if path is None else file_identity(path)
+    side: dict[str, Any] = {}
+    for word, value in (("mask", plan.mask), ("ambient", plan.ambient)):
+        if isinstance(value, Path):
+            try:
+                side[word] = file_identity(value)
+            except OSError:
+                side[word] = None
+        else:
+            side[word] = None if value is None else fingerprint({word: value})
     ignored = ("threads", "report")  # change how fast, not what
+    layout_part = {} if layout is None else {"layout": layout}
     return {
         "images": images,
         "mask": side["mask"],
         "ambient": side["ambient"],
-        "rig": fingerprint(rig.to_dict()),
+        "rig": fingerprint(plan.rig.to_dict()),
+        **layout_part,
         "depth": fingerprint({"depth": depth}) if hasattr(depth, "shape") else jsonable(depth),
         **{f"option {k}": jsonable(v) for k, v in sorted(options.items()) if k not in ignored},
     }
@@ -269,10 +347,11 @@ def _capture_inputs(
 
 def run(
     pattern: str,
-    rig: Rig | PathLike,
+    rig: Rig | PathLike | None,
     out: PathLike,
     *,
     depth: Any,
+    layout: str | None = None,
     mask_name: str | None = "auto",
     ambient_name: str | None = None,
     scheduler: str | None = None,
@@ -291,14 +370,22 @@ def run(
         Glob pattern of the capture directories (see :func:`find_captures`). A capture's images
         are its image files in natural order (names containing ``mask`` or ``ambient`` left
         out), one per light of ``rig``.
-    rig : Rig or path-like
-        The rig of every capture, or its rig file.
+    rig : Rig, path-like or None
+        The rig of every capture, or its rig file. A capture directory holding a ``rig.json`` is
+        reconstructed with that rig instead; None: every capture must have one (or use
+        ``layout``). Each item's ``rig`` says which rig its capture used.
     out : path-like
         Output directory: each capture's result goes to ``out/<capture name>/`` (through
         :meth:`~nplps.Reconstruction.save`), and the summary to ``out/batch_summary.csv`` and
         ``out/batch_summary.html``.
     depth : float, ndarray or "auto"
         As for :func:`nplps.reconstruct` (the same for every capture).
+    layout : str, optional
+        Read each capture directory with the loader of this layout (one of :data:`LAYOUTS`, as
+        ``nplps reconstruct --capture``): its images, rig, mask and ambient image come from the
+        layout's files (``rig`` must then be None). ``near_ps`` and ``hehe12`` captures get the
+        cos^4 vignetting correction unless ``vignetting`` (or ``flat``) is given, as on the
+        command line.
     mask_name : str or None, default "auto"
         ``"auto"``: the capture's image file with ``mask`` in its name, if there is one (no mask
         otherwise); a file name: that file in each capture directory (a capture without it
@@ -371,19 +458,45 @@ def run(
             'nplps batch needs dask.distributed: pip install "nplps[batch]" (or "dask[distributed]")'
         ) from e
 
-    if not isinstance(rig, Rig):
+    if layout is not None and layout not in LAYOUTS:
+        raise InputError(f"unknown capture layout {layout!r}: one of {', '.join(LAYOUTS)}")
+    if layout is not None and rig is not None:
+        raise InputError(f"a {layout} capture takes its rig from its calibration files: give no rig with a layout")
+    rig_source = "given"
+    if rig is not None and not isinstance(rig, Rig):
         if os.path.isdir(rig):
             raise InputError(f"rig file '{os.fspath(rig)}' is a directory")
+        rig_source = os.fspath(rig)
         rig = Rig.load(rig)
     out = Path(out)
     folders = find_captures(pattern, out)
+    if rig is None and layout is None:
+        bare = [f.name for f in folders if not (f / RIG_FILE).is_file()]
+        if bare:
+            listed = ", ".join(bare[:5]) + (", ..." if len(bare) > 5 else "")
+            raise InputError(
+                f"no rig for {len(bare)} capture(s) ({listed}): give a rig file (--rig) or put a {RIG_FILE} "
+                "in each capture directory"
+            )
+    if layout is not None and not any(k in options for k in ("vignetting", "flat")):
+        options = dict(options, vignetting="layout")  # the layout's default, per capture (see _process)
     items: list[BatchItem] = []
     todo: list[BatchItem] = []
     plans: dict[str, tuple[bool, str, dict[str, Any]]] = {}
+    sources: dict[str, _Plan] = {}
+    unreadable: list[BatchItem] = []
     for folder in folders:
         item = BatchItem(folder.name, os.fspath(folder), os.fspath(out / folder.name))
         items.append(item)
-        inputs = _capture_inputs(folder, rig, depth, mask_name, ambient_name, options)
+        try:
+            plan = _plan_capture(folder, rig, rig_source, layout, mask_name, ambient_name)
+        except (NplpsError, OSError) as e:  # this capture's calibration or side files: it fails, the others go on
+            item.status, item.error = "failed", _message(e)
+            unreadable.append(item)
+            continue
+        item.rig = plan.rig_source
+        sources[item.name] = plan
+        inputs = _capture_inputs(plan, depth, layout, options)
         fp = fingerprint(inputs)
         skip, replace = (False, True) if overwrite else _resume(item, fp, inputs)
         if skip:
@@ -393,8 +506,9 @@ def run(
             todo.append(item)
     total, done, failed = len(items), 0, 0
     for item in items:
-        if item.status == "skipped":
+        if item.status in ("skipped", "failed"):
             done += 1
+            failed += item.status == "failed"
             if progress is not None:
                 progress(item, done, total, failed)
 
@@ -416,10 +530,8 @@ def run(
                     client.submit(
                         _process,
                         _absolute(item) if scheduler is not None else item,
-                        rig,
+                        _absolute_plan(sources[item.name]) if scheduler is not None else sources[item.name],
                         depth,
-                        mask_name,
-                        ambient_name,
                         prepare_options,
                         solve_options,
                         plans[item.name],
@@ -495,10 +607,8 @@ def write_summary(items: Sequence[BatchItem], out: PathLike) -> tuple[Path, Path
 
 def _process(
     item: BatchItem,
-    rig: Rig,
+    source: _Plan,
     depth: Any,
-    mask_name: str | None,
-    ambient_name: str | None,
     prepare_options: dict[str, Any],
     solve_options: dict[str, Any],
     plan: tuple[bool, str, dict[str, Any]],
@@ -522,19 +632,21 @@ def _process(
             item.out, overwrite=replace, option="overwrite (--overwrite)", fingerprint=fp, inputs=inputs
         )
         folder = Path(item.folder)
-        files = find_images(folder)
+        files, rig = source.files, source.rig
         if not files:
             raise InputError(f"no image files in '{folder}'")
         if len(files) != rig.n_lights:
             raise InputError(
-                f"{len(files)} images in '{folder}' but the rig has {rig.n_lights} lights: "
+                f"{len(files)} images in '{folder}' but its rig ({source.rig_source}) has {rig.n_lights} lights: "
                 "there must be exactly one image per light"
             )
+        if prepare_options.get("vignetting") == "layout":
+            prepare_options = dict(prepare_options, vignetting=source.vignetting)
         prepared = pipeline.prepare(
             [os.fspath(f) for f in files],
             rig=rig,
-            mask=_side_file(folder, mask_name, "mask"),
-            ambient=_side_file(folder, ambient_name, "ambient"),
+            mask=source.mask,
+            ambient=source.ambient,
             dark=solve_options.get("dark"),
             overwrite=True,
             **prepare_options,
@@ -547,7 +659,9 @@ def _process(
             )
         caught = [str(w.message) for w in records]
         with target:
-            recorded = {"capture": os.fspath(folder), "depth": depth, **prepare_options, **options}
+            recorded = {"capture": os.fspath(folder), "rig": source.rig_source, "depth": depth}
+            recorded.update(mask=_described(source.mask), ambient=_described(source.ambient))
+            recorded.update(prepare_options, **options)
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
             result.save(target, report=report, inputs=prepared.images, options=recorded)
@@ -570,6 +684,24 @@ def _process(
 def _absolute(item: BatchItem) -> BatchItem:
     """Return ``item`` with absolute paths, for workers that may run elsewhere (a shared file system)."""
     return dataclasses.replace(item, folder=os.path.abspath(item.folder), out=os.path.abspath(item.out))
+
+
+def _described(side: Any) -> Any:
+    """Return a mask or ambient image as a result records it: its file, None, or (from a loader) its shape."""
+    if side is None or isinstance(side, Path):
+        return None if side is None else os.fspath(side)
+    return f"array of shape {tuple(side.shape)} (from the capture's loader)"
+
+
+def _absolute_plan(plan: _Plan) -> _Plan:
+    """Return ``plan`` with absolute file paths (see :func:`_absolute`)."""
+
+    def absolute(value: Any) -> Any:
+        return value.absolute() if isinstance(value, Path) else value
+
+    return dataclasses.replace(
+        plan, files=[f.absolute() for f in plan.files], mask=absolute(plan.mask), ambient=absolute(plan.ambient)
+    )
 
 
 def _side_file(folder: Path, name: str | None, word: str) -> Path | None:

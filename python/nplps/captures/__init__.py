@@ -17,6 +17,8 @@ Supported layouts:
   ``light.mat`` with ``S``, ``Dir``, ``Phi``, ``mu``, image files and a mask), with the helpers
   :func:`load_hehe12` and :func:`load_queau_human1` for two published captures;
 * :func:`load_diligent` -- DiLiGenT's ``*PNG`` folders (directional lights, ground-truth normals);
+* :func:`load_luces` -- LUCES object folders (``led_params.txt``, 52 LEDs, ground-truth normals and
+  depth; see ``docs/luces.md``);
 * :func:`load_folder` -- a plain folder with ``rig.json`` (nplps's own rig format), images, an
   optional mask and an optional ambient image.
 
@@ -50,16 +52,19 @@ from .capture import Capture, prepare
 from .diligent import load_diligent
 from .files import IMAGE_EXTENSIONS, find_images
 from .folder import load_folder
+from .luces import LucesCapture, load_luces
 from .matlab import load_matlab_intrinsics, standardize_K
 from .near_ps import load_hehe12, load_near_ps, load_queau_human1
 
 __all__ = [
     "IMAGE_EXTENSIONS",
     "Capture",
+    "LucesCapture",
     "find_images",
     "load_diligent",
     "load_folder",
     "load_hehe12",
+    "load_luces",
     "load_matlab_intrinsics",
     "load_near_ps",
     "load_queau_human1",

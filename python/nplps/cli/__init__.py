@@ -32,6 +32,7 @@ from .._atomic import is_write_error
 from .._text import printable
 from ..errors import NplpsError
 from .batch import add_batch_parser, cmd_batch
+from .benchmark import add_benchmark_parser, cmd_benchmark
 from .calibrate import add_calibrate_parser, add_synth_calibration_parser, cmd_calibrate, cmd_synth_calibration
 from .console import PROG, describe_rig
 from .evaluate import EVALUATE_COLUMNS, add_evaluate_parser, cmd_evaluate
@@ -67,6 +68,7 @@ __all__ = [
     "build_parser",
     "check_input_args",
     "cmd_batch",
+    "cmd_benchmark",
     "cmd_calibrate",
     "cmd_demo",
     "cmd_evaluate",
@@ -121,6 +123,7 @@ examples:
       --radius 20 --center-depth 180 --out rig.json   # light positions from the highlights
   nplps view result                             # the mesh in 3-D: an offline page in the browser
   nplps report result                           # (re)make result/report.html
+  nplps benchmark luces LUCES/data --bin 4      # per-object errors against LUCES's ground truth
   nplps reconstruct --help                      # all options of a command
 
 results: a command with --out DIR writes only into a new or empty directory unless --overwrite
@@ -152,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate_parser(sub, formatter).set_defaults(func=cmd_calibrate)
     add_synth_calibration_parser(sub, formatter).set_defaults(func=cmd_synth_calibration)
     add_batch_parser(sub, formatter).set_defaults(func=cmd_batch)
+    add_benchmark_parser(sub, formatter).set_defaults(func=cmd_benchmark)
     add_view_parser(sub, formatter).set_defaults(func=cmd_view)
     add_report_parser(sub, formatter).set_defaults(func=cmd_report)
     add_rig_parser(sub, formatter).set_defaults(func=cmd_rig)

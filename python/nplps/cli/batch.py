@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from .._text import printable
+from ..batch import LAYOUTS
 from .inputs import _check_numbers, near_options
 from .options import add_options, api_options
 from .parsers import parse_depth, parse_exposures
@@ -17,7 +18,12 @@ Reconstruct many captures with Dask (dask.distributed: pip install "nplps[batch]
 
 Every directory that CAPTURES_GLOB matches is one capture: its image files, sorted by name (names
 containing 'mask' or 'ambient' left out), one per light of --rig, and its mask image if it has
-one (a file with 'mask' in its name; see --mask-name). Each capture is one task on a local
+one (a file with 'mask' in its name; see --mask-name). A rig.json inside a capture directory is
+that capture's rig: it overrides --rig (which may then be left out when every capture has one);
+the summary's rig column says which rig each capture used. With --capture LAYOUT (near_ps,
+diligent, luces, hehe12: the layouts of 'nplps reconstruct --capture') each directory is read by
+that layout's loader instead (its images, calibration, mask and ambient image; no --rig; cos^4
+vignetting by default for near_ps and hehe12, as in 'nplps reconstruct'). Each capture is one task on a local
 cluster (--workers processes) or on a running Dask scheduler (--scheduler ADDRESS), and its
 result goes to DIR/<capture name>/ as with 'nplps reconstruct'.
 
@@ -29,7 +35,7 @@ rest (--overwrite redoes them all). A DIR/<name>/ holding files that nplps did n
 alone (that capture fails) unless --overwrite. A failed capture is
 reported ('capture NAME: failed: MESSAGE') and the others go on. At the end DIR/batch_summary.csv
 and DIR/batch_summary.html list every capture: status (ok, failed, skipped), iterations, the
-solver's status, rms residual, seconds, error.
+solver's status, rms residual, seconds, rig, error.
 
 exit status: 0 all captures ok or skipped, 1 some failed, 2 invalid input or usage.
 """
@@ -39,6 +45,7 @@ examples:
   nplps batch 'captures/*' --rig rig.json --depth 200 --out results
   nplps batch 'shots/object_*' --rig rig.json --depth auto --bin 4 --robust tukey --workers 4 --out results
   nplps batch 'captures/*' --rig rig.json --depth 200 --scheduler tcp://10.0.0.5:8786 --out /shared/results
+  nplps batch 'LUCES/data/*' --capture luces --depth 100 --bin 4 --out luces-results
 """
 
 #: The input and solver options of ``nplps batch`` (declared in :data:`nplps.cli.options.OPTIONS`), in its order.
@@ -91,7 +98,17 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         formatter_class=formatter,
     )
     p.add_argument("pattern", metavar="CAPTURES_GLOB", help="glob pattern of the capture directories (quote it)")
-    p.add_argument("--rig", required=True, metavar="RIG.json", help="rig file of every capture")
+    p.add_argument(
+        "--rig",
+        metavar="RIG.json",
+        help="rig file of every capture (a capture directory's own rig.json overrides it); not with --capture",
+    )
+    p.add_argument(
+        "--capture",
+        choices=LAYOUTS,
+        metavar="LAYOUT",
+        help=f"read each capture directory in this layout ({', '.join(LAYOUTS)}), as 'nplps reconstruct --capture'",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: DIR/<capture name>/ and the summary")
     add_options(p, ("--depth", "--depth-range"), batch=True)
     p.add_argument(
@@ -147,19 +164,25 @@ def cmd_batch(args: argparse.Namespace) -> int:
         _check_scheduler(args.scheduler)
     if args.flat is not None and not os.path.isfile(args.flat):
         raise InputError(f"--flat '{args.flat}' is not a file")
-    rig = load_rig(args.rig)  # before any capture is read
+    if args.capture is not None and (args.rig is not None or args.ambient_name is not None):
+        given = "--rig" if args.rig is not None else "--ambient-name"
+        raise InputError(f"--capture {args.capture} takes the rig and the ambient image from each folder: not {given}")
+    rig = None if args.rig is None else load_rig(args.rig)  # before any capture is read
     options = dict(near_options(args), depth=parse_depth(args.depth))
     # The options beside the near-light solver's, by their API keywords (in the order recorded so far).
     options.update(api_options(args, _PREPARE_AND_RUN))
-    options["exposures"] = None if args.exposures is None else parse_exposures(args.exposures, rig.n_lights)
+    exposures = args.exposures
+    options["exposures"] = None if exposures is None else _exposures(exposures, rig)
     options.update(api_options(args, ("--bin",)))
-    options = {k: v for k, v in options.items() if v is not None or k in ("dark", "saturation", "robust")}
+    keep = ("dark", "saturation", "robust") + (("vignetting",) if args.vignetting is not None else ())
+    options = {k: v for k, v in options.items() if v is not None or k in keep}
     mask_name = None if args.mask_name == "none" else args.mask_name
     try:
         items = batch.run(
             args.pattern,
-            rig,
+            args.rig,  # checked above; run() reads it again and records its path
             args.out,
+            layout=args.capture,
             mask_name=mask_name,
             ambient_name=args.ambient_name,
             scheduler=args.scheduler,
@@ -178,6 +201,11 @@ def cmd_batch(args: argparse.Namespace) -> int:
         flush=True,
     )
     return 1 if counts["failed"] else 0
+
+
+def _exposures(text: str, rig: Any) -> Any:
+    """Parse ``--exposures``: one per light of ``rig`` (without one, each capture checks the count)."""
+    return parse_exposures(text, len(text.split(",")) if rig is None else rig.n_lights)
 
 
 def _check_scheduler(address: str) -> None:

@@ -22,10 +22,10 @@ from .options import NEAR_SOLVER, add_option_groups, add_options, api_options
 from .parsers import _parse_list, parse_depth, parse_exposures
 
 #: Capture folder layouts of ``--capture``: two general layouts and presets for published captures.
-CAPTURE_LAYOUTS = ("near_ps", "diligent", "hehe12", "queau_human1")
+CAPTURE_LAYOUTS = ("near_ps", "diligent", "luces", "hehe12", "queau_human1")
 
 #: The layouts that take only the folder (their images, sRGB decoding and grid are fixed).
-_PRESETS = ("diligent", "hehe12", "queau_human1")
+_PRESETS = ("diligent", "luces", "hehe12", "queau_human1")
 
 CONVENTIONS = (
     "Conventions: camera frame as in OpenCV (x right, y down, z forward into the scene, depth = z); "
@@ -35,16 +35,17 @@ CONVENTIONS = (
 
 INPUT_NOTES = """\
 Input: IMAGES (one file per light in the rig's order, or one directory) and --rig; or a capture
-folder: --capture near_ps FOLDER (camera.mat, light.mat, the images, a mask and an ambient image
-found by name; the ambient image is subtracted and cos^4 vignetting compensated by default) or
---capture diligent FOLDER (a DiLiGenT object folder with filenames.txt: directional lights,
-orthographic camera with 1-unit pixels). Presets of published near_ps captures: --capture hehe12
-FOLDER (its 8 raw images, ambient and mask) and --capture queau_human1 FOLDER (the 7 JPEG renders:
-sRGB decoded, grey, 2 x 2 averaged and padded to the RAW grid of camera.mat, LED rows
-0,1,2,3,5,6,7). --lights (evaluate: --use-lights) picks rows of the rig's (or the capture's)
-lights for the images, in the images' order; --grid-shape pads or crops the images to the
-calibration grid. The rig and the options are checked before any image is read. A .npy --depth
-map must match the images after --bin.
+folder: --capture near_ps FOLDER (camera.mat, light.mat, the images, a mask and an ambient
+image found by name; the ambient image is subtracted and cos^4 vignetting compensated by
+default) or --capture diligent FOLDER (a DiLiGenT object folder with filenames.txt: directional
+lights, orthographic camera with 1-unit pixels) or --capture luces FOLDER (a LUCES object
+folder with led_params.txt: 52 LEDs with RGB Phi and mu; no vignetting correction by default).
+Presets of published near_ps captures: --capture hehe12 FOLDER (its 8 raw images, ambient and
+mask) and --capture queau_human1 FOLDER (the 7 JPEG renders: sRGB decoded, grey, 2 x 2 averaged
+and padded to the RAW grid of camera.mat, LED rows 0,1,2,3,5,6,7). --lights (evaluate:
+--use-lights) picks rows of the rig's (or the capture's) lights for the images, in the images'
+order; --grid-shape pads or crops the images to the calibration grid. The rig and the options
+are checked before any image is read. A .npy --depth map must match the images after --bin.
 
 Thresholds: by default, for integer images, observations at the top level (raw values, before
 any pre-processing) are saturated and left out, and values at or below one level above black
@@ -468,7 +469,8 @@ def _capture_source(args: argparse.Namespace) -> _Source:
     """
     capture = _read_capture(args)
     mask = capture.mask if args.mask is None else args.mask
-    vignetting = "cos4" if capture.K is not None else "none"
+    # LUCES's own code does not correct vignetting (docs/luces.md); --vignetting cos4 asks for it.
+    vignetting = "cos4" if capture.K is not None and args.capture != "luces" else "none"
     load = None
     if args.capture == "queau_human1":
         load = _queau_loader(args, capture)
@@ -490,6 +492,8 @@ def _read_capture(args: argparse.Namespace) -> Any:
     try:
         if args.capture == "diligent":
             capture = captures.load_diligent(items[0], normals=False, lights=rows)
+        elif args.capture == "luces":
+            capture = captures.load_luces(items[0], normals=False, depth=False, lights=rows)
         elif args.capture in ("hehe12", "queau_human1"):
             capture = _led_capture(args.capture, items[0], rows)
         else:
@@ -509,6 +513,9 @@ def _read_capture(args: argparse.Namespace) -> Any:
         raise
     if not args.quiet:
         _note(f"capture '{capture.name}' ({args.capture}): {capture.num_images} images")
+        distance = getattr(capture, "mean_distance", None)
+        if distance is not None:
+            _note(f"its mean distance is {distance:.6g} mm ({captures.luces.LED_PARAMS}): a --depth to start from")
     return capture
 
 
