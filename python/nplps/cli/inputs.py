@@ -153,7 +153,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     check_input_args(args)
     depth = parse_depth(args.depth)
     source = _capture_source(args) if args.capture else _file_source(args)
-    exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
+    exposures = _exposures(args, source)
     vignetting = args.vignetting or source.vignetting
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
     _hint_ctrl_c(args)  # the long work starts here
@@ -173,6 +173,47 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     side = (source.mask, source.ambient, getattr(args, "rig", None))
     sources = [*source.files, *(os.fspath(f) for f in side if isinstance(f, (str, os.PathLike)))]
     return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options, tuple(sources), tuple(steps))
+
+
+def _exposures(args: argparse.Namespace, source: _Source) -> np.ndarray | None:
+    """Return the ``--exposures`` values: the numbers given, or ``auto``: from the RAW files' metadata."""
+    if not args.exposures:
+        return None
+    if args.exposures.strip().lower() != "auto":
+        return parse_exposures(args.exposures, len(source.files))
+    from ..raw import exposures_from_metadata
+
+    try:
+        exposures = exposures_from_metadata(source.files)
+    except InputError as exc:
+        raise InputError(f"--exposures auto: {str(exc).removeprefix('exposures from metadata: ')}") from None
+    if not args.quiet:
+        _note(f"exposures from the RAW metadata (shutter x ISO, relative to the first image): {_listed(exposures)}")
+    return exposures
+
+
+def _listed(values: np.ndarray, most: int = 8) -> str:
+    """``1, 0.5, 2, ...``: the first ``most`` values."""
+    text = ", ".join(f"{v:.4g}" for v in values[:most])
+    return text + (f", ... ({len(values)} values)" if len(values) > most else "")
+
+
+def _raw_options(args: argparse.Namespace) -> Any:
+    """Return the :class:`nplps.raw.RawOptions` of ``--raw-wb`` and ``--raw-half-size``."""
+    from ..raw import RawOptions
+
+    return RawOptions(
+        white_balance=getattr(args, "raw_wb", None) or "none", half_size=bool(getattr(args, "raw_half_size", False))
+    )
+
+
+def _with_raw_options(args: argparse.Namespace, path: Any) -> Any:
+    """Return ``path`` as a :class:`nplps.raw.RawFile` with the RAW options if it is a RAW file, else as it is."""
+    from ..raw import RawFile, is_raw
+
+    if isinstance(path, (str, os.PathLike)) and is_raw(path):
+        return RawFile(path, _raw_options(args))
+    return path
 
 
 def _read_and_prepare(
@@ -205,7 +246,7 @@ def _read_and_prepare(
             ambient=ambient,
             exposures=exposures,
             vignetting="cos4" if vignetting == "cos4" and not args.flat else None,
-            flat=args.flat,
+            flat=_with_raw_options(args, args.flat),
             bin_factor=args.bin,
             overwrite=True,
             progress=display,
@@ -250,9 +291,9 @@ def _read_images(
     if source.load is not None:
         capture = source.load(None if display is None else (lambda i, k, name: display("load", i, k, name)))
         return capture.images, capture.levels, tuple(capture.preprocessed), capture.ambient
-    files = [os.fspath(f) for f in source.files]
+    files = [_with_raw_options(args, os.fspath(f)) for f in source.files]
     if args.grid_shape is None:
-        return files, None, (), source.ambient
+        return files, None, (), _with_raw_options(args, source.ambient)
     grid = parse_grid_shape(args.grid_shape)
     try:
         loaded = None if display is None else (lambda i, k, name: display("load", i, k, name))
@@ -262,7 +303,11 @@ def _read_images(
     stack = preprocess.pad_or_crop(stack, grid)
     ambient = source.ambient
     if ambient is not None:
-        image = np.asarray(ambient) if isinstance(ambient, np.ndarray) else to_float(read_image(ambient))
+        image = (
+            np.asarray(ambient)
+            if isinstance(ambient, np.ndarray)
+            else to_float(read_image(_with_raw_options(args, ambient)))
+        )
         ambient = preprocess.pad_or_crop(image, grid, stack=False)
     return stack, levels, (), ambient
 
