@@ -8,6 +8,7 @@ time and ISO), so that each decoded value can be checked against the sensor valu
 from __future__ import annotations
 
 import io
+import json
 import os
 import shlex
 import sys
@@ -404,7 +405,11 @@ def test_exposures_auto_from_the_dng_metadata(twin_scenes, tmp_path, capsys):
     k = len(quantized)
     by_hand = ",".join("1" if i % 3 == 0 else "0.5" for i in range(k))  # 1/100 s relative to 1/50 s
     auto, err = _reconstruct(capsys, dngs, synth, depth, tmp_path / "auto", "--raw-half-size", "--exposures", "auto")
-    assert "exposures from the RAW metadata" in err and "1, 0.5, 0.5, 1" in err
+    assert "exposures from the RAW metadata (shutter x ISO, relative to the first image): 1, 0.5, 0.5, 1" in err
+    summary = json.loads((tmp_path / "auto" / "summary.json").read_text())
+    steps = summary["options"]["preprocessing"]
+    assert steps[0] == "camera RAW decoded linearly: half size (2 x 2 superpixels), white balance none"
+    assert steps[1].startswith("exposures from the RAW metadata") and "divided by the exposures" in steps
     hand, _ = _reconstruct(capsys, dngs, synth, depth, tmp_path / "hand", "--raw-half-size", "--exposures", by_hand)
     assert np.array_equal(auto["depth"], hand["depth"], equal_nan=True)
 

@@ -167,6 +167,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         _step_text(step, args, source, prepared.images, by_loader=i < len(by_loader))
         for i, step in enumerate(prepared.steps)
     ]
+    steps = _raw_steps(args, source, exposures) + steps
     if not args.quiet:
         _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
     options = {"depth": depth, "dark": prepared.dark, **api_options(args, ("--robust", "--threads", "--max-memory"))}
@@ -184,18 +185,30 @@ def _exposures(args: argparse.Namespace, source: _Source) -> np.ndarray | None:
     from ..raw import exposures_from_metadata
 
     try:
-        exposures = exposures_from_metadata(source.files)
+        return exposures_from_metadata(source.files)  # listed with the pre-processing steps
     except InputError as exc:
         raise InputError(f"--exposures auto: {str(exc).removeprefix('exposures from metadata: ')}") from None
-    if not args.quiet:
-        _note(f"exposures from the RAW metadata (shutter x ISO, relative to the first image): {_listed(exposures)}")
-    return exposures
 
 
-def _listed(values: np.ndarray, most: int = 8) -> str:
-    """``1, 0.5, 2, ...``: the first ``most`` values."""
-    text = ", ".join(f"{v:.4g}" for v in values[:most])
-    return text + (f", ... ({len(values)} values)" if len(values) > most else "")
+def _raw_steps(args: argparse.Namespace, source: _Source, exposures: np.ndarray | None) -> list[str]:
+    """Say how camera RAW images were decoded and which exposures their metadata gave (for the summary)."""
+    from ..raw import is_raw
+
+    if source.load is not None or not any(is_raw(f) for f in source.files):
+        return []
+    options = _raw_options(args)
+    size = "half size (2 x 2 superpixels)" if options.half_size else "demosaiced at full size"
+    steps = [f"camera RAW decoded linearly: {size}, white balance {options.white_balance}"]
+    if exposures is not None and args.exposures.strip().lower() == "auto":
+        steps.append(
+            f"exposures from the RAW metadata (shutter x ISO, relative to the first image): {_listed(exposures)}"
+        )
+    return steps
+
+
+def _listed(values: np.ndarray) -> str:
+    """``1, 0.5, 2``: the values, shortly."""
+    return ", ".join(f"{v:.4g}" for v in values)
 
 
 def _raw_options(args: argparse.Namespace) -> Any:

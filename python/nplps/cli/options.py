@@ -309,11 +309,11 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         ),
     ),
     ("reflectance", ("--reflectance", "--roughness", "--eta")),
+    ("camera RAW files", ("--raw-wb", "--raw-half-size")),
     (
         "pre-processing (applied in this order)",
         ("--srgb", "--ambient", "--exposures", "--vignetting", "--flat", "--bin"),
     ),
-    ("camera RAW files", ("--raw-wb", "--raw-half-size")),
     ("solver", ("--iterations", "--tol", "--solver", "--levels", "--weighting", "--threads", "--max-memory")),
     ("light self-calibration", ("--refine-lights", "--light-prior-weight")),
 )
