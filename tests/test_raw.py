@@ -35,6 +35,7 @@ from nplps.raw import (  # noqa: E402
     is_raw,
     read_exposure,
     read_raw,
+    sensor_levels,
 )
 
 #: A 14-bit-like sensor whose usable range (white - black) is 65535 / 5: a decoded value is
@@ -185,6 +186,14 @@ def test_demosaic_is_linear_in_the_exposure_to_a_few_levels(tmp_path, seed):
     # and the slope is the scene (in decoded units) in every colour: a grey field stays grey
     truth = scene[4:-4, 4:-4, None] * SCALE
     assert np.max(np.abs(slope[4:-4, 4:-4] - truth)) / truth.max() < 2e-3
+
+
+def test_sensor_levels_from_the_header(tmp_path):
+    path = write_dng(tmp_path / "a.dng", random_mosaic(np.random.default_rng(0)))
+    assert sensor_levels(path) == WHITE - BLACK == 13107
+    mosaic = np.random.default_rng(1).integers(64, 4096, size=(32, 32)).astype(np.uint16)
+    other = write_dng(tmp_path / "b.dng", mosaic, black=64, white=4095)
+    assert sensor_levels(other) == 4031
 
 
 def test_float_output_is_uint16_over_65535(tmp_path):
@@ -385,10 +394,14 @@ def test_dng_capture_reconstructs_like_the_16bit_pngs(twin_scenes, tmp_path, cap
     decoded = read_raw(next(iter(sorted(dngs.glob("*.dng")))), half_size=True)
     assert np.array_equal(decoded, np.repeat((5 * quantized[0])[..., None], 3, -1).astype(np.uint16))
 
-    from_png, _ = _reconstruct(capsys, pngs, synth, depth, tmp_path / "png")
+    # The DNGs' levels are the sensor's (white - black = 13107, 14-bit), the PNGs' 65535: the default
+    # thresholds are one level of each; the PNG run is given the DNG's to compare like with like.
     from_dng, err = _reconstruct(capsys, dngs, synth, depth, tmp_path / "dng", "--raw-half-size", "--gray")
     assert f"using {len(quantized)} images" in err and "image_00.dng" in err
-    assert "16-bit" in err
+    assert "(grey, 14-bit)" in err and f"at or below {1 / 13107:.4g} (shadow)" in err
+    same = ("--dark", 1 / 13107, "--saturation", 1 - 0.5 / 13107)
+    from_png, err = _reconstruct(capsys, pngs, synth, depth, tmp_path / "png", *same)
+    assert "(grey, 16-bit)" in err
     # The same input up to float32 rounding: the grey of three equal channels, (v + v + v) / 3, is
     # v or 1 ulp off (6e-8; 8407 of the 27 x 32 x 32 values on this scene). Measured: depth equal
     # to 3.7e-9 relative, normals to 1.3e-7, residuals to 1e-8 (they are ~2e-5).

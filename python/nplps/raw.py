@@ -20,9 +20,11 @@ with LibRaw so that the values stay linear in those counts:
 * the image is kept as the sensor records it: the file's orientation (rotation) is not applied;
 * the size is checked against ``max_pixels`` from the file's header, before anything is decoded.
 
-The result is ``uint16`` RGB ``(H, W, 3)`` (white level = 65535), so the pipeline treats it like a
-16-bit image: 65535 levels, saturation at the top level, black at 0. ``output="float"`` gives the
-same values as float32 on ``[0, 1]``.
+The result is ``uint16`` RGB ``(H, W, 3)`` (white level = 65535); ``output="float"`` gives the
+same values as float32 on ``[0, 1]``. Loaded by :func:`nplps.io.load_stack` it counts as a 16-bit
+image (levels 65535); the command line passes the sensor's levels instead (:func:`sensor_levels`,
+``white - black``), so that its default thresholds are one sensor level: shadows at or below one
+level above black, saturation at the white level.
 
 Exposure metadata (:func:`read_exposure`, :func:`exposures_from_metadata`, the command line's
 ``--exposures auto``): LibRaw gives the shutter time and, for most formats, the ISO
@@ -55,6 +57,7 @@ __all__ = [
     "is_raw",
     "read_exposure",
     "read_raw",
+    "sensor_levels",
 ]
 
 PathLike: TypeAlias = str | os.PathLike
@@ -241,6 +244,24 @@ def read_raw(
     if options.output == "float":
         return np.divide(image, np.float32(65535), dtype=np.float32)
     return image.astype(np.uint16, copy=False)
+
+
+def sensor_levels(path: PathLike) -> int | None:
+    """Return the sensor's levels between black and white (``white - black``), from the file's header.
+
+    The decoded values are ``(raw - black) x 65535 / (white - black)``: one sensor level is
+    ``1 / sensor_levels`` of the full scale. None when the file gives no usable levels (white at or
+    below black). The black level is the smallest of the channels'.
+
+    Raises
+    ------
+    InputError
+        rawpy is not installed, the file is missing or LibRaw cannot read it.
+    """
+    with _open(path) as raw:
+        black = min(int(b) for b in raw.black_level_per_channel)
+        white = int(raw.white_level)
+    return white - black if white > black else None
 
 
 def read_exposure(path: PathLike) -> Exposure:

@@ -305,8 +305,9 @@ def _read_images(
         capture = source.load(None if display is None else (lambda i, k, name: display("load", i, k, name)))
         return capture.images, capture.levels, tuple(capture.preprocessed), capture.ambient
     files = [_with_raw_options(args, os.fspath(f)) for f in source.files]
+    sensor = _sensor_levels(files)
     if args.grid_shape is None:
-        return files, None, (), _with_raw_options(args, source.ambient)
+        return files, sensor, (), _with_raw_options(args, source.ambient)
     grid = parse_grid_shape(args.grid_shape)
     try:
         loaded = None if display is None else (lambda i, k, name: display("load", i, k, name))
@@ -322,7 +323,21 @@ def _read_images(
             else to_float(read_image(_with_raw_options(args, ambient)))
         )
         ambient = preprocess.pad_or_crop(image, grid, stack=False)
-    return stack, levels, (), ambient
+    return stack, sensor or levels, (), ambient
+
+
+def _sensor_levels(files: list[Any]) -> int | None:
+    """Return the levels of camera RAW images: the largest white - black of their sensors (None unless all are RAW).
+
+    Decoded RAW images are 16-bit, but their levels are the sensor's: the default thresholds
+    (shadows one level above black, saturation at the top level) are then one sensor level.
+    """
+    from ..raw import is_raw, sensor_levels
+
+    if not files or not all(is_raw(f) for f in files):
+        return None
+    levels = [sensor_levels(f) for f in files]
+    return None if any(n is None for n in levels) else max(n for n in levels if n is not None)
 
 
 def _in_option_words(exc: InputError) -> InputError:
