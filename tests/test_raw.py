@@ -54,8 +54,9 @@ def write_dng(
     neutral: tuple[float, float, float] = (1.0, 1.0, 1.0),
     shutter: tuple[int, int] | None = (1, 125),
     iso: int | None = 200,
+    pattern: list[int] = CFAPattern.RGGB,
 ) -> Path:
-    """Write ``mosaic`` (uint16, RGGB) as an uncompressed DNG; return its path."""
+    """Write ``mosaic`` (uint16, ``pattern`` of the 2 x 2 cell: 0 red, 1 green, 2 blue) as an uncompressed DNG."""
     height, width = mosaic.shape
     tags = DNGTags()
     tags.set(Tag.ImageWidth, width)
@@ -67,7 +68,7 @@ def write_dng(
     tags.set(Tag.SamplesPerPixel, 1)
     tags.set(Tag.BitsPerSample, 16)
     tags.set(Tag.CFARepeatPatternDim, [2, 2])
-    tags.set(Tag.CFAPattern, CFAPattern.RGGB)
+    tags.set(Tag.CFAPattern, pattern)
     tags.set(Tag.BlackLevel, black)
     tags.set(Tag.WhiteLevel, white)
     identity = [[1, 1], [0, 1], [0, 1], [0, 1], [1, 1], [0, 1], [0, 1], [0, 1], [1, 1]]
@@ -146,6 +147,19 @@ def test_half_size_is_linear_in_the_sensor_values(tmp_path, seed):
     assert np.array_equal(image[..., 1], greens // 2)
     slope, residual = _fit_through_zero(greens / 2, image[..., 1])
     assert slope == pytest.approx(1.0, abs=1e-4) and residual <= 0.5 + 1e-6
+
+
+@pytest.mark.parametrize("name", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_half_size_follows_the_colour_filter_pattern(tmp_path, name):
+    pattern = getattr(CFAPattern, name)
+    mosaic = random_mosaic(np.random.default_rng(7))
+    image = read_raw(write_dng(tmp_path / "a.dng", mosaic, pattern=pattern), half_size=True).astype(np.int64)
+    signal = 5 * (mosaic.astype(np.int64) - BLACK)
+    cells = {(r, c): signal[r::2, c::2] for r in (0, 1) for c in (0, 1)}
+    where = {colour: [rc for rc, p in zip(cells, pattern, strict=True) if p == colour] for colour in (0, 1, 2)}
+    assert np.array_equal(image[..., 0], cells[where[0][0]])
+    assert np.array_equal(image[..., 2], cells[where[2][0]])
+    assert np.array_equal(image[..., 1], (cells[where[1][0]] + cells[where[1][1]]) // 2)
 
 
 @pytest.mark.parametrize("value", [0, 1, 7, 1000, 6553, 13106, 13107])
@@ -434,3 +448,11 @@ def test_exposures_auto_refuses_png_images(twin_scenes, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc != 0
     assert "--exposures auto:" in err and "is not a camera RAW file" in err
+
+
+def test_exposures_auto_is_named_where_it_is_not_taken():
+    from nplps.cli.parsers import parse_exposures
+
+    with pytest.raises(InputError, match=r"--exposures auto .* is an option of nplps reconstruct and evaluate"):
+        parse_exposures("auto", 3)
+    assert parse_exposures("1,0.5,2", 3).tolist() == [1.0, 0.5, 2.0]
