@@ -97,8 +97,8 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     path : PathLike
         The file.
     max_pixels : int, optional
-        Refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
-        it; see :data:`MAX_PIXELS`.
+        Refuse a PNG, TIFF or camera RAW file larger than this many pixels (H x W; a RAW
+        file's sensor) before decoding it; see :data:`MAX_PIXELS`.
 
     Raises
     ------
