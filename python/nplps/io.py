@@ -29,6 +29,7 @@ from . import _core
 from .errors import InputError
 from .preprocess import to_float
 from .preprocess import to_gray as _gray
+from .raw import is_raw, read_raw
 
 __all__ = [
     "MAX_PIXELS",
@@ -85,6 +86,10 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
       scaled to 0..255; a palette PNG becomes RGB, or ``(H, W)`` when all its pixels are grey.
     * TIFF: read with tifffile, keeping 16-bit integers and floats; planar (channel-first) files
       are returned channel-last.
+    * Camera RAW (a :class:`~nplps.raw.RawFile`, or a name ending in one of
+      :data:`nplps.raw.RAW_SUFFIXES`: ``.dng``, ``.cr2``, ``.nef``, ...): decoded linearly with
+      rawpy (:func:`nplps.raw.read_raw`: black level subtracted, white level at 65535, ``uint16``
+      RGB), the sensor's size checked first. Needs the ``raw`` extra.
     * Anything else (JPEG, BMP, ...): imageio.
 
     Parameters
@@ -92,8 +97,8 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     path : PathLike
         The file.
     max_pixels : int, optional
-        Refuse a PNG or TIFF larger than this many pixels (H x W) before decoding
-        it; see :data:`MAX_PIXELS`.
+        Refuse a PNG, TIFF or camera RAW file larger than this many pixels (H x W; a RAW
+        file's sensor) before decoding it; see :data:`MAX_PIXELS`.
 
     Raises
     ------
@@ -102,6 +107,8 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
         than ``max_pixels``; the message names the path and the reason.
     """
     header = _read_header(path)
+    if is_raw(path):  # before the sniffing: most RAW formats are TIFF files
+        return read_raw(path, max_pixels=max_pixels)
     if header.startswith(_PNG_SIGNATURE):
         # Every PNG variant (1 to 16 bits, grey / RGB / palette, alpha, interlaced) goes to the
         # Rust decoder: no fallback reader (pypng is only used to write 16-bit PNG).

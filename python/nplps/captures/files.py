@@ -12,9 +12,10 @@ import numpy as np
 from ..errors import InputError
 from ..io import PathLike, load_stack, read_image, to_float
 from ..pipeline import natural_key, select_color
+from ..raw import RAW_SUFFIXES
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-"""File name extensions (lower case) that the loaders treat as images."""
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", *RAW_SUFFIXES)
+"""File name extensions (lower case) that the loaders treat as images (camera RAW: :mod:`nplps.raw`)."""
 
 _AUTO = "auto"
 MaskSpec: TypeAlias = PathLike | np.ndarray | None

@@ -11,10 +11,11 @@ from collections.abc import Sequence
 
 from ..errors import InputError
 from ..pipeline import natural_key
+from ..raw import RAW_SUFFIXES
 from .console import _note
 
 #: File name endings taken as images when IMAGES is a directory.
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm", ".webp", *RAW_SUFFIXES)
 
 #: Words that keep a file of an IMAGES directory out of the image list.
 SKIPPED_WORDS = ("mask", "ambient")

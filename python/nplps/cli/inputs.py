@@ -154,7 +154,7 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
     check_input_args(args)
     depth = parse_depth(args.depth)
     source = _capture_source(args) if args.capture else _file_source(args)
-    exposures = parse_exposures(args.exposures, len(source.files)) if args.exposures else None
+    exposures = _exposures(args, source)
     vignetting = args.vignetting or source.vignetting
     _check_rig_options(args, source, depth, vignetting)  # before any image is read
     _hint_ctrl_c(args)  # the long work starts here
@@ -168,12 +168,66 @@ def build_inputs(args: argparse.Namespace) -> Inputs:
         _step_text(step, args, source, prepared.images, by_loader=i < len(by_loader))
         for i, step in enumerate(prepared.steps)
     ]
+    steps = _raw_steps(args, source, exposures) + steps
     if not args.quiet:
         _note_inputs(prepared.images, prepared.rig, prepared.valid, steps, prepared.dark, prepared.levels)
     options = {"depth": depth, "dark": prepared.dark, **api_options(args, ("--robust", "--threads", "--max-memory"))}
     side = (source.mask, source.ambient, getattr(args, "rig", None))
     sources = [*source.files, *(os.fspath(f) for f in side if isinstance(f, (str, os.PathLike)))]
     return Inputs(prepared.images, prepared.rig, prepared.mask, prepared.valid, options, tuple(sources), tuple(steps))
+
+
+def _exposures(args: argparse.Namespace, source: _Source) -> np.ndarray | None:
+    """Return the ``--exposures`` values: the numbers given, or ``auto``: from the RAW files' metadata."""
+    if not args.exposures:
+        return None
+    if args.exposures.strip().lower() != "auto":
+        return parse_exposures(args.exposures, len(source.files))
+    from ..raw import exposures_from_metadata
+
+    try:
+        return exposures_from_metadata(source.files)  # listed with the pre-processing steps
+    except InputError as exc:
+        raise InputError(f"--exposures auto: {str(exc).removeprefix('exposures from metadata: ')}") from None
+
+
+def _raw_steps(args: argparse.Namespace, source: _Source, exposures: np.ndarray | None) -> list[str]:
+    """Say how camera RAW images were decoded and which exposures their metadata gave (for the summary)."""
+    from ..raw import is_raw
+
+    if source.load is not None or not any(is_raw(f) for f in source.files):
+        return []
+    options = _raw_options(args)
+    size = "half size (2 x 2 superpixels)" if options.half_size else "demosaiced at full size"
+    steps = [f"camera RAW decoded linearly: {size}, white balance {options.white_balance}"]
+    if exposures is not None and args.exposures.strip().lower() == "auto":
+        steps.append(
+            f"exposures from the RAW metadata (shutter x ISO, relative to the first image): {_listed(exposures)}"
+        )
+    return steps
+
+
+def _listed(values: np.ndarray) -> str:
+    """``1, 0.5, 2``: the values, shortly."""
+    return ", ".join(f"{v:.4g}" for v in values)
+
+
+def _raw_options(args: argparse.Namespace) -> Any:
+    """Return the :class:`nplps.raw.RawOptions` of ``--raw-wb`` and ``--raw-half-size``."""
+    from ..raw import RawOptions
+
+    return RawOptions(
+        white_balance=getattr(args, "raw_wb", None) or "none", half_size=bool(getattr(args, "raw_half_size", False))
+    )
+
+
+def _with_raw_options(args: argparse.Namespace, path: Any) -> Any:
+    """Return ``path`` as a :class:`nplps.raw.RawFile` with the RAW options if it is a RAW file, else as it is."""
+    from ..raw import RawFile, is_raw
+
+    if isinstance(path, (str, os.PathLike)) and is_raw(path):
+        return RawFile(path, _raw_options(args))
+    return path
 
 
 def _read_and_prepare(
@@ -206,7 +260,7 @@ def _read_and_prepare(
             ambient=ambient,
             exposures=exposures,
             vignetting="cos4" if vignetting == "cos4" and not args.flat else None,
-            flat=args.flat,
+            flat=_with_raw_options(args, args.flat),
             bin_factor=args.bin,
             overwrite=True,
             progress=display,
@@ -251,9 +305,10 @@ def _read_images(
     if source.load is not None:
         capture = source.load(None if display is None else (lambda i, k, name: display("load", i, k, name)))
         return capture.images, capture.levels, tuple(capture.preprocessed), capture.ambient
-    files = [os.fspath(f) for f in source.files]
+    files = [_with_raw_options(args, os.fspath(f)) for f in source.files]
+    sensor = _sensor_levels(files)
     if args.grid_shape is None:
-        return files, None, (), source.ambient
+        return files, sensor, (), _with_raw_options(args, source.ambient)
     grid = parse_grid_shape(args.grid_shape)
     try:
         loaded = None if display is None else (lambda i, k, name: display("load", i, k, name))
@@ -263,9 +318,27 @@ def _read_images(
     stack = preprocess.pad_or_crop(stack, grid)
     ambient = source.ambient
     if ambient is not None:
-        image = np.asarray(ambient) if isinstance(ambient, np.ndarray) else to_float(read_image(ambient))
+        image = (
+            np.asarray(ambient)
+            if isinstance(ambient, np.ndarray)
+            else to_float(read_image(_with_raw_options(args, ambient)))
+        )
         ambient = preprocess.pad_or_crop(image, grid, stack=False)
-    return stack, levels, (), ambient
+    return stack, sensor or levels, (), ambient
+
+
+def _sensor_levels(files: list[Any]) -> int | None:
+    """Return the levels of camera RAW images: the largest white - black of their sensors (None unless all are RAW).
+
+    Decoded RAW images are 16-bit, but their levels are the sensor's: the default thresholds
+    (shadows one level above black, saturation at the top level) are then one sensor level.
+    """
+    from ..raw import is_raw, sensor_levels
+
+    if not files or not all(is_raw(f) for f in files):
+        return None
+    levels = [sensor_levels(f) for f in files]
+    return None if any(n is None for n in levels) else max(n for n in levels if n is not None)
 
 
 def _in_option_words(exc: InputError) -> InputError:

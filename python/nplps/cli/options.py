@@ -174,9 +174,26 @@ _OPTIONS = (
     Option(
         ("--exposures",),
         "exposures",
-        "divide image i by Ei (exposure times, gains)",
+        "divide image i by Ei (exposure times, gains); auto: shutter time x ISO from camera RAW files, "
+        "relative to the first image",
         metavar="E1,E2,...",
         batch_help="divide image i of every capture by Ei (exposure times, gains)",
+    ),
+    # camera RAW files
+    Option(
+        ("--raw-wb",),
+        "white_balance",
+        "white balance of camera RAW files (.dng .cr2 .nef .arw ...): none (the sensor's response, default) "
+        "or camera (the as-shot multipliers); RAW files are always decoded linearly, black level subtracted",
+        choices=("none", "camera"),
+        default="none",
+    ),
+    Option(
+        ("--raw-half-size",),
+        "half_size",
+        "decode camera RAW files at half size: each 2 x 2 colour filter cell becomes one pixel (no "
+        "interpolation, exactly linear); the rig must then be the sensor's rig binned 2 x 2",
+        switch=True,
     ),
     Option(
         ("--vignetting",),
@@ -292,6 +309,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         ),
     ),
     ("reflectance", ("--reflectance", "--roughness", "--eta")),
+    ("camera RAW files", ("--raw-wb", "--raw-half-size")),
     (
         "pre-processing (applied in this order)",
         ("--srgb", "--ambient", "--exposures", "--vignetting", "--flat", "--bin"),

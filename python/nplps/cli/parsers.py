@@ -51,7 +51,12 @@ def parse_depth(value: str, option: str = "--depth") -> float | np.ndarray:
 
 
 def parse_exposures(text: str, k: int) -> np.ndarray:
-    """Parse ``--exposures E1,E2,...``: k positive numbers."""
+    """Parse ``--exposures E1,E2,...``: k positive numbers (``auto`` is read by ``reconstruct`` and ``evaluate``)."""
+    if text.strip().lower() == "auto":
+        raise InputError(
+            "--exposures auto (from camera RAW metadata) is an option of nplps reconstruct and evaluate: "
+            "give one number per image here"
+        )
     values = _parse_list(text, float, "--exposures", "comma-separated numbers, e.g. 1,0.5,2")
     if len(values) != k:
         raise InputError(f"--exposures has {len(values)} values but there are {k} images: give one per image")
