@@ -5,7 +5,9 @@ Usage: python .ci/readme_commands.py NPLPS_EXECUTABLE [--shared DIR]
 Issue 22, item 7: after the README's one install command every command it documents works.
 .ci/run installs the wheel it built into a fresh venv (no extras) and runs this script with that
 venv's ``nplps``. The commands are read from README.md (continuation lines joined), run in one
-temporary folder in the README's order (later commands use earlier results). Changes made to
+temporary folder in the README's order (later commands use earlier results): a ``bash`` block of
+the README holds commands that run as written, a ``text`` block templates that need the user's own
+files (a RAW shoot, a LUCES copy). Changes made to
 run them unattended, each printed:
 
 * ``../shared/data`` is replaced by the real folder of the shared captures (``--shared``); the
