@@ -48,29 +48,29 @@ __all__ = [
     "EXR_FILES",
     "EXTRA_FORMATS",
     "FORMATS",
+    "NORMAL_MAP_FRAMES",
     "OutputFormat",
     "check_formats",
-    "exr_available",
-    "formats_help",
-    "NORMAL_MAP_FRAMES",
     "check_normal_map",
     "decode_normal_map",
+    "exr_available",
+    "formats_help",
     "normal_map_pixels",
     "read_exr",
     "read_normal_map",
     "read_ply",
     "save_albedo",
-    "save_depth_npy",
     "save_albedo_exr",
     "save_depth_exr",
+    "save_depth_npy",
     "save_depth_tiff",
     "save_grey_png",
     "save_normal_map",
     "save_normals_exr",
     "save_normals_tiff",
+    "save_npy",
     "to_normal_frame",
     "write_exr",
-    "save_npy",
     "write_glb",
     "write_meshes",
     "write_obj",
@@ -1553,14 +1553,16 @@ def _openexr(path: PathLike | None = None) -> Any:
     try:
         import OpenEXR
     except ImportError:
-        OpenEXR = None  # noqa: N806 - the module's own name
+        OpenEXR = None
     if OpenEXR is None or not hasattr(OpenEXR, "File"):  # OpenEXR.File arrived in 3.3
         what = f"'{os.fspath(path)}'" if path is not None else "EXR files"
         raise InputError(f"writing or reading {what} needs the OpenEXR Python binding 3.3 or later: {EXR_EXTRA}")
     return OpenEXR
 
 
-def write_exr(path: PathLike, channels: Mapping[str, np.ndarray], *, attributes: Mapping[str, str] | None = None) -> None:
+def write_exr(
+    path: PathLike, channels: Mapping[str, np.ndarray], *, attributes: Mapping[str, str] | None = None
+) -> None:
     """Write float32 channels as a single-part scan-line EXR file (ZIP compression, lossless).
 
     Needs the optional OpenEXR binding (``pip install "nplps[exr]"``).

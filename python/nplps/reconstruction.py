@@ -543,7 +543,7 @@ class Reconstruction:
         title : str, default "nplps mesh"
             The page's title.
         units : str, optional
-            The length unit shown with the extent (default "rig units").
+            The length unit shown with the extent and the scale bar (default "rig units").
         max_triangles : int, optional
             Decimate larger meshes on a regular grid (default
             :data:`nplps.viewer.DEFAULT_MAX_TRIANGLES`).
@@ -629,7 +629,8 @@ class Reconstruction:
         Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`),
         ``normals.png`` (the normal map of :attr:`normals` in the `normal_map` convention, 16 bits
         per channel by default, see :func:`nplps.export.save_normal_map`; its frame and bits are
-        ``summary.json``'s ``"normal_map"``, and :func:`nplps.export.read_normal_map` decodes it), ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
+        ``summary.json``'s ``"normal_map"``, and :func:`nplps.export.read_normal_map` decodes it),
+        ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64) and ``depth.tiff`` (float32) of the
         vertex depths, ``normals.npy`` (:attr:`normals`), ``residual.npy`` and ``summary.json``;
         under the glossy model also ``specular.npy`` (:attr:`specular`, float64, NaN where

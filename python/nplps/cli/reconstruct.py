@@ -28,11 +28,12 @@ RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
 
 Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
-colour), normals.png (normal map, 16-bit, --normal-map convention), shaded.png (the mesh lit from the upper left), albedo.png
-(16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
-normals.npy, residual.npy and summary.json (with all the options), and with --refine-lights
-the refined rig (rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or
-normals.tiff, with --exr depth.exr, normals.exr and albedo.exr; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
+colour), normals.png (16-bit normal map in the --normal-map convention), shaded.png (the mesh
+lit from the upper left), albedo.png (16-bit), depth.npy / depth.tiff (vertex depths, (H+1,
+W+1), NaN where no masked pixel), normals.npy, residual.npy and summary.json (with all the
+options), and with --refine-lights the refined rig (rig_refined.json); with --formats also
+mesh.stl, mesh.glb, points.ply and/or normals.tiff, with --exr depth.exr, normals.exr and
+albedo.exr; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
 and inputs.png (thumbnails of the images) for the report; report.html, one self-contained page
 to look at the result (unless --no-report; `nplps report DIR` re-makes it); last
 nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
@@ -150,7 +151,6 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     """Run ``nplps reconstruct``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
-
     from ..export import check_formats
 
     check_input_args(args)
