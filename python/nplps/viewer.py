@@ -615,6 +615,7 @@ function main() {
     box.setAttribute("data-length", String(length));
     box.setAttribute("data-pixels", px.toFixed(2));
     box.setAttribute("data-per-pixel", String(perPixel));
+    box.setAttribute("data-view-height", String(canvas.clientHeight));
   }
   function attribute(b, l, type, normalized) {
     if (l < 0) return;
