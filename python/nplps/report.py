@@ -8,11 +8,14 @@ needs no network, no script and no other file. Its sections, in order:
 1. a header: the capture (the images or ``--capture`` folder, when the options were recorded),
    the directory, the size "W x H", the number of lights, status, iterations and solver time;
 2. the inputs (a contact sheet, ``inputs.png``, written when the images were given to ``save``);
-3. the mask, the normal map, the albedo (and, under the glossy model, the specular albedo; the
-   header then names the model and its lobe);
+3. the mask, the normal map (as written: its convention and bit depth from ``summary.json``'s
+   ``"normal_map"``), the albedo (and, under the glossy model, the specular albedo; the header
+   then names the model and its lobe);
 4. the residual map (RMS image residual per pixel) and the depth map, colour-mapped, each with
    a numeric colour bar; the unfitted pixels (masked pixels with fewer than 3 lit images, which
-   kept their starting shape);
+   kept their starting shape). The normal, albedo and depth maps have a scale bar: a round
+   length in ``summary.json``'s ``"units"`` ("rig units" without) at the object's mean depth
+   (:func:`nplps.views.pixel_footprint`);
 5. three oblique shaded renders of the mesh (:func:`nplps.views.render_mesh`): turned 35
    degrees to the left and to the right about the vertical axis through the object's centre,
    and seen from 35 degrees above;
