@@ -364,6 +364,14 @@ def test_viewer_takes_units_and_the_normal_convention_from_the_result(
     )
 
 
+def test_viewer_of_a_folder_without_summary_uses_the_defaults(result: nplps.Reconstruction, tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    result.save(out, units="mm", normal_map="opencv")
+    (out / "summary.json").unlink()
+    meta = viewer.read_viewer(viewer.write_result_viewer(out).path)["meta"]
+    assert meta["units"] == "rig units" and meta["normal_map"] == "opengl"
+
+
 def test_viewer_scale_bar_in_headless_chromium(result: nplps.Reconstruction, tmp_path: Path) -> None:
     import shutil
     import subprocess

@@ -960,7 +960,7 @@ EXR_FILES = {"depth_exr": "depth.exr", "normals_exr": "normals.exr", "albedo_exr
 
 #: The optional output formats of :meth:`nplps.Reconstruction.save` (``formats=``) and
 #: ``nplps reconstruct --formats``: file name (``{stem}`` is the mesh's stem) by format
-#: (made from :data:`FORMATS`).
+#: (made from :data:`FORMATS`; for ``"exr"`` its three names, comma-separated: :data:`EXR_FILES`).
 EXTRA_FORMATS: dict[str, str] = {name: f.file for name, f in FORMATS.items()}
 
 

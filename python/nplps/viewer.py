@@ -274,7 +274,9 @@ def write_result_viewer(
         The page could not be written.
     """
     vertices, mask, normals, albedo = _read_result(Path(directory))
-    summary = _results.read_summary(directory)
+    # summary.json names the unit and the normal map's convention; a folder without one gets the defaults.
+    has_summary = os.path.lexists(Path(directory) / "summary.json")
+    summary = _results.read_summary(directory) if has_summary else {}
     if units is None and isinstance(summary.get("units"), str) and summary["units"].strip():
         units = summary["units"]
     frame = (summary.get("normal_map") or {}).get("frame", "opengl")
