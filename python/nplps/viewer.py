@@ -12,13 +12,14 @@ the eye: by default 20 degrees left of and 25 degrees above the viewing directio
 light from the eye), albedo / shaded / normals colouring (keys 1, 2, 3; normals in the colours of
 ``normals.png``: its convention, ``summary.json``'s ``"normal_map"``, as 8-bit), reset (key R), a
 one-line help, the size and extent of the mesh, and a scale bar: a round length (1, 2 or 5 times
-a power of ten of the rig's unit, "rig units" unless known) as long on the screen as that length
-at the centre of rotation (the object's centre until panned), recomputed as the view zooms. The object is shown upright
-as the camera saw it: the camera frame (x right, y down, z forward) is drawn with y up on the
-screen, and azimuth = elevation = 0 is the camera's own viewpoint. The initial view is oblique
-(azimuth 35, elevation 25 degrees); a URL hash sets another one, e.g. ``viewer.html#azimuth=-40&
-elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20`` (``ui=0`` hides the
-panel and the help line, for pictures). The page sets the ``data-status`` attribute of its
+a power of ten of the rig's unit, "rig units" unless known; 40 to 100 screen pixels) as long on
+the screen as that length at the centre of rotation (the object's centre until panned),
+recomputed as the view zooms. The object is shown upright as the camera saw it: the camera
+frame (x right, y down, z forward) is drawn with y up on the screen, and azimuth = elevation =
+0 is the camera's own viewpoint. The initial view is oblique (azimuth 35, elevation 25
+degrees); a URL hash sets another one, e.g.
+``viewer.html#azimuth=-40&elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20``
+(``ui=0`` hides the panel and the help line, for pictures). The page sets the ``data-status`` attribute of its
 ``<html>`` element to ``"ready"`` after the first frame and to ``"error: ..."`` on an error
 (which it also shows), so that a headless browser can tell (``--dump-dom``).
 
