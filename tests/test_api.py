@@ -669,10 +669,10 @@ def test_save_writes_readable_files(tmp_path, sphere_result, active_vertices):
     np.testing.assert_array_equal(np.isnan(tiff), np.isnan(r.depth))
     np.testing.assert_allclose(tiff, r.depth, rtol=1e-7)
 
-    png = iio.imread(paths["normal_map"])
-    assert png.dtype == np.uint8 and png.shape == (*r.mask.shape, 3)
-    decoded = (png.astype(np.float64) / 255.0 * 2.0 - 1.0) * np.array([1.0, -1.0, -1.0])
-    assert np.abs(decoded[r.mask] - r.normals[r.mask]).max() <= 1.0 / 127.0
+    png = nplps.io.read_image(paths["normal_map"])  # 16-bit RGB (imageio would drop the low byte)
+    assert png.dtype == np.uint16 and png.shape == (*r.mask.shape, 3)
+    decoded = (png.astype(np.float64) / 65535.0 * 2.0 - 1.0) * np.array([1.0, -1.0, -1.0])  # OpenGL frame
+    assert np.abs(decoded[r.mask] - r.normals[r.mask]).max() <= 1.0 / 32767.0
     assert (png[~r.mask] == 0).all()
 
     np.testing.assert_array_equal(np.load(paths["normals_npy"]), r.normals)

@@ -375,7 +375,7 @@ def test_normal_map_encoding(tmp_path: Path) -> None:
     normals[1, 0] = np.nan
     normals[1, 1] = (0, -1, 0)  # up in the image
     path = tmp_path / "normals.png"
-    save_normal_map(path, normals)
+    save_normal_map(path, normals, bits=8)  # 16 bits by default: tests/test_normal_maps.py
 
     image = io.read_image(path)
 
@@ -386,7 +386,7 @@ def test_normal_map_encoding(tmp_path: Path) -> None:
     np.testing.assert_array_equal(image[1, 1], (128, 255, 128))
 
     mask = np.array([[True, False], [True, True]])
-    save_normal_map(path, normals, mask=mask)
+    save_normal_map(path, normals, mask=mask, bits=8)
     np.testing.assert_array_equal(io.read_image(path)[0, 1], (0, 0, 0))
 
 

@@ -230,6 +230,6 @@ def test_cli_formats_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     document, _ = _read_glb(tmp_path / "extra" / "mesh.glb")
     assert document["asset"]["extras"]["frame"] == "opengl"
 
-    assert cli.main([*common, "--formats", "glb,exr", "--out", str(tmp_path / "bad")]) == 2
-    assert "unknown format(s) exr" in capsys.readouterr().err
+    assert cli.main([*common, "--formats", "glb,usdz", "--out", str(tmp_path / "bad")]) == 2
+    assert "unknown format(s) usdz" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()

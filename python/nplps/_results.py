@@ -203,6 +203,19 @@ _SUMMARY_TYPES: dict[str, tuple[str, Any]] = {
         lambda v: v is None or (isinstance(v, dict) and all(_is_number(v.get(k)) for k in ("roughness", "eta"))),
     ),
     "specular_png_scale": ("a number or null", lambda v: v is None or _is_number(v)),
+    "units": ("a string or null", lambda v: v is None or isinstance(v, str)),
+    "normal_map": (
+        'null or an object with "frame" opengl, directx or opencv and "bits" 8 or 16',
+        lambda v: (
+            v is None
+            or (
+                isinstance(v, dict)
+                and v.get("frame") in ("opengl", "directx", "opencv")
+                and _is_int(v.get("bits"))
+                and v.get("bits") in (8, 16)
+            )
+        ),
+    ),
     "distance_check": (
         "null or an object with numbers given, found, ratio and looks_wrong true or false",
         lambda v: (

@@ -44,20 +44,33 @@ if TYPE_CHECKING:
     from ._records import Result
 
 __all__ = [
+    "EXR_EXTRA",
+    "EXR_FILES",
     "EXTRA_FORMATS",
     "FORMATS",
+    "NORMAL_MAP_FRAMES",
     "OutputFormat",
     "check_formats",
+    "check_normal_map",
+    "decode_normal_map",
+    "exr_available",
     "formats_help",
     "normal_map_pixels",
+    "read_exr",
+    "read_normal_map",
     "read_ply",
     "save_albedo",
+    "save_albedo_exr",
+    "save_depth_exr",
     "save_depth_npy",
     "save_depth_tiff",
     "save_grey_png",
     "save_normal_map",
+    "save_normals_exr",
     "save_normals_tiff",
     "save_npy",
+    "to_normal_frame",
+    "write_exr",
     "write_glb",
     "write_meshes",
     "write_obj",
@@ -918,6 +931,10 @@ class OutputFormat:
     mesh: str | None = None
 
 
+def _three_files(path: PathLike, data: Any) -> None:  # pragma: no cover - never called
+    raise AssertionError("the exr format's files are written by write_result")
+
+
 #: The optional output formats by name (one declaration each: file, writer and help).
 FORMATS: dict[str, OutputFormat] = {
     f.name: f
@@ -928,12 +945,22 @@ FORMATS: dict[str, OutputFormat] = {
         ),
         OutputFormat("points", "points.ply", "a point cloud with normals and colours", _write_points_mesh, mesh="PLY"),
         OutputFormat("normals_tiff", "normals.tiff", "32-bit float normals", save_normals_tiff),
+        # Three files (EXR_FILES), written by write_result itself: not through `write`.
+        OutputFormat(
+            "exr",
+            "depth.exr, normals.exr, albedo.exr",
+            "32-bit float; normals in the --normal-map frame; needs OpenEXR: pip install nplps[exr]",
+            _three_files,
+        ),
     )
 }
 
+#: The files of the ``"exr"`` format by kind (:meth:`nplps.Reconstruction.save`'s paths).
+EXR_FILES = {"depth_exr": "depth.exr", "normals_exr": "normals.exr", "albedo_exr": "albedo.exr"}
+
 #: The optional output formats of :meth:`nplps.Reconstruction.save` (``formats=``) and
 #: ``nplps reconstruct --formats``: file name (``{stem}`` is the mesh's stem) by format
-#: (made from :data:`FORMATS`).
+#: (made from :data:`FORMATS`; for ``"exr"`` its three names, comma-separated: :data:`EXR_FILES`).
 EXTRA_FORMATS: dict[str, str] = {name: f.file for name, f in FORMATS.items()}
 
 
@@ -953,6 +980,8 @@ def check_formats(formats: Iterable[str]) -> list[str]:
     if unknown:
         known = ", ".join(FORMATS)
         raise InputError(f"formats: unknown format(s) {', '.join(map(repr, unknown))}; choose from {known}")
+    if "exr" in chosen and not exr_available():
+        raise InputError(f"the exr format needs the OpenEXR Python binding 3.3 or later: {EXR_EXTRA}")
     return chosen
 
 
@@ -1198,15 +1227,80 @@ def _significand_exact(bits: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.
 # --------------------------------------------------------------------------------------------------
 
 
-def save_normal_map(path: PathLike, normals: np.ndarray, *, mask: np.ndarray | None = None) -> None:
-    """Save per-pixel normals as an 8-bit RGB PNG normal map.
+#: The encodings of a normal map (:func:`save_normal_map`, ``--normal-map``), by name: the sign
+#: each camera-frame (OpenCV: x right, y down, z forward) component is multiplied by before
+#: encoding. ``"opengl"``: x right, y up, z towards the viewer (the "OpenGL" / "Y+" maps of
+#: Blender and Unity); ``"directx"``: x right, y down, z towards the viewer (the "DirectX" / "Y-"
+#: maps of Unreal Engine); ``"opencv"``: the camera frame as is (z forward, so a normal facing the
+#: camera has ``n_z < 0`` and a blue value below one half). See docs/outputs.md.
+NORMAL_MAP_FRAMES: dict[str, tuple[float, float, float]] = {
+    "opengl": (1.0, -1.0, -1.0),
+    "directx": (1.0, 1.0, -1.0),
+    "opencv": (1.0, 1.0, 1.0),
+}
 
-    Encoding: the OpenCV-frame normal ``(n_x, n_y, n_z)`` is first expressed in the usual
-    normal-map frame (x right, y up, z towards the viewer) as ``(n_x, -n_y, -n_z)``; each
-    component ``v`` (clipped to [-1, 1]) is stored as ``round((v + 1) / 2 * 255)`` in R, G, B.
-    A normal facing the camera, ``(0, 0, -1)``, is thus ``(128, 128, 255)`` (the familiar
-    light-blue look) and ``(1, 0, 0)`` is ``(255, 128, 128)``. Pixels with a NaN normal or
-    outside ``mask`` are ``(0, 0, 0)``.
+#: The default encoding of ``normals.png``: the OpenGL convention, 16 bits per channel.
+DEFAULT_NORMAL_MAP = "opengl"
+DEFAULT_NORMAL_MAP_BITS = 16
+
+
+def check_normal_map(frame: str, bits: int = DEFAULT_NORMAL_MAP_BITS) -> tuple[str, int]:
+    """Return a normal map's ``(frame, bits)`` checked: a name of :data:`NORMAL_MAP_FRAMES` and 8 or 16.
+
+    Raises
+    ------
+    InputError
+        Naming the value and the choices.
+    """
+    if not isinstance(frame, str) or frame not in NORMAL_MAP_FRAMES:
+        raise InputError(f"normal_map must be one of {', '.join(NORMAL_MAP_FRAMES)}, got {frame!r}")
+    if isinstance(bits, bool) or bits not in (8, 16):
+        raise InputError(f"normal_map_bits must be 8 or 16, got {bits!r}")
+    return frame, int(bits)
+
+
+def to_normal_frame(normals: np.ndarray, frame: str) -> np.ndarray:
+    """Return camera-frame (OpenCV) normals expressed in a normal-map frame (float32, NaN kept).
+
+    Parameters
+    ----------
+    normals : numpy.ndarray
+        ``(..., 3)`` normals in the camera frame (x right, y down, z forward).
+    frame : {"opengl", "directx", "opencv"}
+        The frame (:data:`NORMAL_MAP_FRAMES`). The map is its own inverse: applying it to
+        normals in `frame` gives camera-frame normals back.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, same shape.
+    """
+    check_normal_map(frame)
+    return np.asarray(normals, dtype=np.float32) * np.array(NORMAL_MAP_FRAMES[frame], dtype=np.float32)
+
+
+def save_normal_map(
+    path: PathLike,
+    normals: np.ndarray,
+    *,
+    mask: np.ndarray | None = None,
+    frame: str = DEFAULT_NORMAL_MAP,
+    bits: int = DEFAULT_NORMAL_MAP_BITS,
+) -> None:
+    """Save per-pixel normals as an RGB PNG normal map (16 bits per channel by default).
+
+    Encoding: the camera-frame (OpenCV) normal ``(n_x, n_y, n_z)`` is first expressed in the
+    chosen `frame` (:data:`NORMAL_MAP_FRAMES`; ``"opengl"``: ``(n_x, -n_y, -n_z)``); each
+    component ``v`` (clipped to [-1, 1]) is stored as ``round((v + 1) / 2 * M)`` in R, G, B, with
+    ``M = 65535`` (16 bits) or ``255`` (8 bits). In the OpenGL frame a normal facing the camera,
+    ``(0, 0, -1)``, is thus ``(32768, 32768, 65535)`` (8 bits: ``(128, 128, 255)``, the familiar
+    light-blue look) and ``(1, 0, 0)`` is ``(65535, 32768, 32768)``. Pixels with a NaN normal or
+    outside ``mask`` are ``(0, 0, 0)`` (no unit normal encodes to that). :func:`read_normal_map`
+    decodes the file.
+
+    Quantisation moves a decoded normal by at most ``asin(sqrt(3) / M)``: 0.0015 degrees at 16
+    bits, 0.39 degrees at 8 bits (means over random normals 0.00066 and 0.17 degrees; see
+    docs/outputs.md).
 
     Parameters
     ----------
@@ -1216,16 +1310,22 @@ def save_normal_map(path: PathLike, normals: np.ndarray, *, mask: np.ndarray | N
         ``(H, W, 3)`` unit normals, OpenCV frame.
     mask : numpy.ndarray, optional
         ``(H, W)`` bool of the pixels to encode.
+    frame : {"opengl", "directx", "opencv"}, default "opengl"
+        The normal-map convention.
+    bits : {16, 8}, default 16
+        Bits per channel.
 
     Raises
     ------
     InputError
-        The shapes are wrong.
+        The shapes are wrong, or `frame` or `bits` is not one of the choices.
     """
-    write_png8(path, normal_map_pixels(normals, mask=mask))
+    write_png(path, normal_map_pixels(normals, mask=mask, frame=frame, bits=bits))
 
 
-def normal_map_pixels(normals: np.ndarray, *, mask: np.ndarray | None = None) -> np.ndarray:
+def normal_map_pixels(
+    normals: np.ndarray, *, mask: np.ndarray | None = None, frame: str = DEFAULT_NORMAL_MAP, bits: int = 8
+) -> np.ndarray:
     """Return the RGB pixels of the normal map of :func:`save_normal_map` (same encoding).
 
     Parameters
@@ -1234,24 +1334,31 @@ def normal_map_pixels(normals: np.ndarray, *, mask: np.ndarray | None = None) ->
         ``(H, W, 3)`` unit normals, OpenCV frame.
     mask : numpy.ndarray, optional
         ``(H, W)`` bool of the pixels to encode; the others, and NaN normals, are black.
+    frame : {"opengl", "directx", "opencv"}, default "opengl"
+        The normal-map convention (:data:`NORMAL_MAP_FRAMES`).
+    bits : {8, 16}, default 8
+        Bits per channel (8 here, for pictures; :func:`save_normal_map` writes 16 by default).
 
     Returns
     -------
     numpy.ndarray
-        ``(H, W, 3)`` uint8.
+        ``(H, W, 3)`` uint8 (8 bits) or uint16 (16 bits).
 
     Raises
     ------
     InputError
-        The shapes are wrong.
+        The shapes are wrong, or `frame` or `bits` is not one of the choices.
     """
+    frame, bits = check_normal_map(frame, bits)
     normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise InputError(f"normals must have shape (H, W, 3), got {normals.shape}")
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         _require_shape("mask", mask, normals.shape[:2])
-    encoded = np.empty(normals.shape, dtype=np.uint8)
+    top = (1 << bits) - 1
+    flip = np.array(NORMAL_MAP_FRAMES[frame])
+    encoded = np.empty(normals.shape, dtype=np.uint8 if bits == 8 else np.uint16)
     rows = max(1, _GATHER_CHUNK // max(1, normals.shape[1]))
     for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
         band = slice(start, start + rows)
@@ -1259,10 +1366,81 @@ def normal_map_pixels(normals: np.ndarray, *, mask: np.ndarray | None = None) ->
         valid = np.asarray(np.isfinite(n).all(axis=2))
         if mask is not None:
             valid &= mask[band]
-        flipped = np.clip(np.where(valid[..., None], n, 0.0) * _OPENGL_FLIP, -1.0, 1.0)
-        encoded[band] = np.rint((flipped + 1.0) / 2.0 * 255.0).astype(np.uint8)
+        flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)
+        encoded[band] = np.rint((flipped + 1.0) / 2.0 * top).astype(encoded.dtype)
         encoded[band][~valid] = 0
     return encoded
+
+
+def decode_normal_map(pixels: np.ndarray, frame: str) -> np.ndarray:
+    """Decode the pixels of a normal map into camera-frame unit normals (the inverse of :func:`normal_map_pixels`).
+
+    Parameters
+    ----------
+    pixels : numpy.ndarray
+        ``(H, W, 3)`` uint8 (8 bits) or uint16 (16 bits).
+    frame : {"opengl", "directx", "opencv"}
+        The convention the map was written in.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` float64 unit normals in the camera frame (OpenCV: x right, y down, z
+        forward); NaN where the pixel is ``(0, 0, 0)`` (no normal).
+
+    Raises
+    ------
+    InputError
+        The pixels are not an RGB image of 8 or 16 bits, or `frame` is unknown.
+    """
+    check_normal_map(frame)
+    pixels = np.asarray(pixels)
+    if pixels.ndim != 3 or pixels.shape[2] != 3 or pixels.dtype not in (np.uint8, np.uint16):
+        raise InputError(
+            f"a normal map must be an (H, W, 3) RGB image of 8 or 16 bits, got shape {pixels.shape} of {pixels.dtype}"
+        )
+    top = 255.0 if pixels.dtype == np.uint8 else 65535.0
+    n = pixels.astype(np.float64) * (2.0 / top) - 1.0
+    n *= np.array(NORMAL_MAP_FRAMES[frame])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n[~pixels.any(axis=2)] = np.nan
+    return n
+
+
+def read_normal_map(path: PathLike, frame: str) -> np.ndarray:
+    """Read a normal map (:func:`save_normal_map`, ``normals.png``) back into camera-frame normals.
+
+    An 8- or 16-bit RGB PNG (read keeping all 16 bits, :func:`nplps.io.read_image`); the frame is
+    not in the file: it is ``summary.json``'s ``"normal_map"`` ``"frame"`` for a result directory.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The PNG file.
+    frame : {"opengl", "directx", "opencv"}
+        The convention the map was written in (:data:`NORMAL_MAP_FRAMES`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` float64 unit normals in the camera frame (OpenCV), NaN where the pixel is
+        black (no normal). Within quantisation of the normals written: at most 0.0015 degrees
+        apart at 16 bits, 0.39 degrees at 8 bits.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read or is not an RGB image of 8 or 16 bits, or `frame` is unknown.
+    """
+    from .io import read_image
+
+    check_normal_map(frame)
+    pixels = np.asarray(read_image(path))
+    try:
+        return decode_normal_map(pixels, frame)
+    except InputError as e:
+        raise InputError(f"'{os.fspath(path)}': {e}") from None
 
 
 def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
@@ -1355,6 +1533,132 @@ def save_depth_tiff(path: PathLike, depth: np.ndarray) -> None:
     depth = _depth_array(depth, np.float32)
     with atomic_path(path) as temporary:
         tifffile.imwrite(temporary, depth)
+
+
+#: The optional dependency of the EXR files, as the message that asks for it names it.
+EXR_EXTRA = 'pip install "nplps[exr]" (or "OpenEXR>=3.3")'
+
+
+def exr_available() -> bool:
+    """Tell whether EXR files can be written: the OpenEXR Python binding (3.3 or later) is installed."""
+    try:
+        import OpenEXR
+    except ImportError:
+        return False
+    return hasattr(OpenEXR, "File")
+
+
+def _openexr(path: PathLike | None = None) -> Any:
+    """Import the OpenEXR binding, or raise InputError naming the extra that installs it."""
+    try:
+        import OpenEXR
+    except ImportError:
+        OpenEXR = None
+    if OpenEXR is None or not hasattr(OpenEXR, "File"):  # OpenEXR.File arrived in 3.3
+        what = f"'{os.fspath(path)}'" if path is not None else "EXR files"
+        raise InputError(f"writing or reading {what} needs the OpenEXR Python binding 3.3 or later: {EXR_EXTRA}")
+    return OpenEXR
+
+
+def write_exr(
+    path: PathLike, channels: Mapping[str, np.ndarray], *, attributes: Mapping[str, str] | None = None
+) -> None:
+    """Write float32 channels as a single-part scan-line EXR file (ZIP compression, lossless).
+
+    Needs the optional OpenEXR binding (``pip install "nplps[exr]"``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (written under a temporary name, renamed when complete).
+    channels : mapping of str to numpy.ndarray
+        Channel name (``"R"``, ``"G"``, ``"B"``, ``"Y"``, ``"Z"``, ...) to an ``(H, W)`` array, all
+        the same shape; stored as 32-bit float (NaN kept).
+    attributes : mapping of str to str, optional
+        Extra string attributes of the header (e.g. ``{"nplps_normal_frame": "opengl"}``).
+
+    Raises
+    ------
+    InputError
+        OpenEXR is not installed (the message names the extra), or the shapes differ.
+    """
+    exr = _openexr(path)
+    arrays = {name: np.ascontiguousarray(a, dtype=np.float32) for name, a in channels.items()}
+    shapes = {a.shape for a in arrays.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise InputError(f"EXR channels must be (H, W) arrays of one shape, got {sorted(shapes)}")
+    header: dict[str, Any] = {"compression": exr.ZIP_COMPRESSION, "type": exr.scanlineimage}
+    header.update({str(k): str(v) for k, v in (attributes or {}).items()})
+    with atomic_path(path) as temporary, exr.File(header, arrays) as file:
+        file.write(temporary)
+
+
+def read_exr(path: PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read an EXR file's channels (each its own ``(H, W)`` array) and header.
+
+    Needs the optional OpenEXR binding (``pip install "nplps[exr]"``).
+
+    Returns
+    -------
+    channels : dict of str to numpy.ndarray
+        By channel name, in the file's pixel type (float32 for the files nplps writes).
+    header : dict
+        The header's attributes (``nplps_normal_frame`` for ``normals.exr``).
+
+    Raises
+    ------
+    InputError
+        OpenEXR is not installed, or the file cannot be read as EXR.
+    """
+    exr = _openexr(path)
+    if not os.path.isfile(path):
+        raise InputError(f"EXR file '{os.fspath(path)}' does not exist or is not a file")
+    try:
+        with exr.File(os.fspath(path), separate_channels=True) as file:
+            channels = {name: np.array(c.pixels) for name, c in file.channels().items()}
+            header = dict(file.header())
+    except Exception as e:  # the binding raises RuntimeError and others for a file it cannot read
+        raise InputError(f"cannot read '{os.fspath(path)}' as an EXR file: {e}") from None
+    return channels, header
+
+
+def save_depth_exr(path: PathLike, depth: np.ndarray) -> None:
+    """Save a depth map as a one-channel (``"Z"``) float32 EXR file (NaN kept), as :func:`save_depth_tiff`."""
+    write_exr(path, {"Z": _depth_array(depth, np.float32)})
+
+
+def save_normals_exr(path: PathLike, normals: np.ndarray, *, frame: str = DEFAULT_NORMAL_MAP) -> None:
+    """Save per-pixel normals as a float32 RGB EXR file in a normal-map frame (NaN kept).
+
+    ``R, G, B`` hold the normal's ``x, y, z`` in `frame` (:func:`to_normal_frame`; not encoded
+    as ``(n + 1) / 2``); the frame is also the header's ``nplps_normal_frame`` attribute.
+
+    Raises
+    ------
+    InputError
+        `normals` has the wrong shape, `frame` is unknown, or OpenEXR is missing.
+    """
+    n = to_normal_frame(normals, frame)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise InputError(f"normals must have shape (H, W, 3), got {n.shape}")
+    write_exr(path, {"R": n[..., 0], "G": n[..., 1], "B": n[..., 2]}, attributes={"nplps_normal_frame": frame})
+
+
+def save_albedo_exr(path: PathLike, albedo: np.ndarray) -> None:
+    """Save an albedo map as float32 EXR, unscaled (NaN kept): ``"Y"`` for grey, ``R, G, B`` for colour.
+
+    Raises
+    ------
+    InputError
+        `albedo` has the wrong shape, or OpenEXR is missing.
+    """
+    a = np.asarray(albedo, dtype=np.float32)
+    if a.ndim == 2:
+        write_exr(path, {"Y": a})
+    elif a.ndim == 3 and a.shape[2] == 3:
+        write_exr(path, {"R": a[..., 0], "G": a[..., 1], "B": a[..., 2]})
+    else:
+        raise InputError(f"albedo must have shape (H, W) or (H, W, 3), got {a.shape}")
 
 
 def _depth_array(depth: np.ndarray, dtype: type) -> np.ndarray:
@@ -1501,6 +1805,9 @@ def write_result(
     inputs: np.ndarray | None,
     options: dict[str, Any] | None,
     held_out: tuple[Sequence[HeldOutScores], Sequence[HeldOutScores] | None] | None,
+    normal_map: str = DEFAULT_NORMAL_MAP,
+    normal_map_bits: int = DEFAULT_NORMAL_MAP_BITS,
+    units: str | None = None,
 ) -> dict[str, Path]:
     """Write a result's files into a result directory (the body of :meth:`nplps.Reconstruction.save`).
 
@@ -1519,7 +1826,9 @@ def write_result(
         "normals_npy": "normals.npy",
         "residual_npy": "residual.npy",
     }
-    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats})
+    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats if name != "exr"})
+    if "exr" in formats:
+        names.update(EXR_FILES)
     if result.specular is not None:  # the glossy model's specular albedo (none for Lambertian results)
         names.update(specular_npy="specular.npy", specular="specular.png")
     if result.shadow_bits is not None:  # shadows=True: the cast shadows the fits left out
@@ -1547,13 +1856,20 @@ def write_result(
         opengl,
         mesh_formats,
     )
-    save_normal_map(paths["normal_map"], result.normals, mask=result.mask)
+    save_normal_map(paths["normal_map"], result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
     for name in formats:
-        if FORMATS[name].mesh is None:
+        if FORMATS[name].mesh is None and name != "exr":
             FORMATS[name].write(paths[name], result.normals)
+    if "exr" in formats:
+        save_depth_exr(paths["depth_exr"], result.depth)
+        save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
+        save_albedo_exr(paths["albedo_exr"], result.albedo)
     save_grey_png(paths["shaded"], result.shaded())
     summary = result.summary()
     summary["albedo_png_scale"] = save_albedo(paths["albedo"], result.albedo)
+    # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
+    summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
+    summary["units"] = units
     save_depth_npy(paths["depth_npy"], result.depth)
     save_depth_tiff(paths["depth_tiff"], result.depth)
     save_npy(paths["normals_npy"], result.normals)

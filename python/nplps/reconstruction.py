@@ -543,7 +543,7 @@ class Reconstruction:
         title : str, default "nplps mesh"
             The page's title.
         units : str, optional
-            The length unit shown with the extent (default "rig units").
+            The length unit shown with the extent and the scale bar (default "rig units").
         max_triangles : int, optional
             Decimate larger meshes on a regular grid (default
             :data:`nplps.viewer.DEFAULT_MAX_TRIANGLES`).
@@ -620,12 +620,17 @@ class Reconstruction:
         inputs: np.ndarray | None = None,
         options: dict[str, Any] | None = None,
         held_out: tuple[Sequence[HeldOutScores], Sequence[HeldOutScores] | None] | None = None,
+        normal_map: str = "opengl",
+        normal_map_bits: int = 16,
+        units: str | None = None,
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 
         Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`),
-        ``normals.png`` (the normal map of :attr:`normals`, see
-        :func:`nplps.export.save_normal_map`), ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
+        ``normals.png`` (the normal map of :attr:`normals` in the `normal_map` convention, 16 bits
+        per channel by default, see :func:`nplps.export.save_normal_map`; its frame and bits are
+        ``summary.json``'s ``"normal_map"``, and :func:`nplps.export.read_normal_map` decodes it),
+        ``shaded.png`` (the mesh lit from the upper left, :meth:`shaded`),
         ``albedo.png`` (16-bit), ``depth.npy`` (float64) and ``depth.tiff`` (float32) of the
         vertex depths, ``normals.npy`` (:attr:`normals`), ``residual.npy`` and ``summary.json``;
         under the glossy model also ``specular.npy`` (:attr:`specular`, float64, NaN where
@@ -646,8 +651,10 @@ class Reconstruction:
         `formats` adds files in other formats (none by default): ``"stl"`` (``mesh.stl``, binary
         STL, :meth:`save_stl`), ``"glb"`` (``mesh.glb``, glTF 2.0 binary with vertex normals and
         colours, :meth:`save_glb`), ``"points"`` (``points.ply``, the mesh's vertices as a point
-        cloud with normals and colours, :meth:`save_points`) and ``"normals_tiff"``
-        (``normals.tiff``, :attr:`normals` as 32-bit float, :meth:`save_normals_tiff`).
+        cloud with normals and colours, :meth:`save_points`), ``"normals_tiff"``
+        (``normals.tiff``, :attr:`normals` as 32-bit float, :meth:`save_normals_tiff`) and
+        ``"exr"`` (``depth.exr``, ``normals.exr`` in the `normal_map` frame and ``albedo.exr``,
+        32-bit float; needs the optional OpenEXR binding, ``pip install "nplps[exr]"``).
 
         Parameters
         ----------
@@ -661,9 +668,9 @@ class Reconstruction:
             Replace files of the same names, and remove the files of an earlier result that
             this one does not have (listed in its manifest); other files are kept.
         formats : iterable of str, default ()
-            Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"`` and
-            ``"normals_tiff"`` (:data:`nplps.export.FORMATS`); `opengl` applies to the
-            mesh and point formats.
+            Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"``,
+            ``"normals_tiff"`` and ``"exr"`` (:data:`nplps.export.FORMATS`); `opengl` applies to
+            the mesh and point formats.
         report : bool, default False
             Also write ``report.html``, the self-contained report of the result
             (:func:`nplps.report.write_report`).
@@ -676,6 +683,16 @@ class Reconstruction:
         held_out : (list of HeldOut, list of HeldOut or None), optional
             A held-out evaluation (:func:`nplps.evaluation.held_out`) of the near-light method
             and optionally of the parallel baseline, written as ``held_out.json``.
+        normal_map : {"opengl", "directx", "opencv"}, default "opengl"
+            The convention of ``normals.png`` and ``normals.exr``
+            (:data:`nplps.export.NORMAL_MAP_FRAMES`): ``"opengl"`` x right, y up, z towards the
+            viewer (Blender, Unity); ``"directx"`` y down (Unreal Engine); ``"opencv"`` the camera
+            frame as is (z forward).
+        normal_map_bits : {16, 8}, default 16
+            Bits per channel of ``normals.png``.
+        units : str, optional
+            The length unit of the rig (e.g. ``"mm"``), recorded in ``summary.json`` as
+            ``"units"`` and shown by the report and the viewer (default: "rig units").
 
         Returns
         -------
@@ -686,7 +703,9 @@ class Reconstruction:
         Raises
         ------
         InputError
-            `formats` holds an unknown name (checked before anything is written).
+            `formats` holds an unknown name (checked before anything is written),
+            `normal_map` or `normal_map_bits` is not one of the choices, `units` is not a
+            string, or `formats` holds ``"exr"`` and OpenEXR is not installed.
         OutputExistsError
             `directory` is not empty and `overwrite` is False.
         OSError
@@ -698,11 +717,24 @@ class Reconstruction:
         leaves a truncated file under its final name.
         """
         extra = export.check_formats(formats)
+        export.check_normal_map(normal_map, normal_map_bits)
+        if units is not None and (not isinstance(units, str) or not units.strip()):
+            raise InputError(f"units must be a non-empty string such as 'mm', got {units!r}")
         if not isinstance(stem, str) or not stem or stem in (".", "..") or any(c in stem for c in "/\\\0"):
             raise InputError(f"stem must be a file name without a directory (it names mesh files), got {stem!r}")
         with result_directory(directory, overwrite) as out:
             paths = export.write_result(
-                self, out, stem=stem, opengl=opengl, formats=extra, inputs=inputs, options=options, held_out=held_out
+                self,
+                out,
+                stem=stem,
+                opengl=opengl,
+                formats=extra,
+                inputs=inputs,
+                options=options,
+                held_out=held_out,
+                normal_map=normal_map,
+                normal_map_bits=normal_map_bits,
+                units=units,
             )
             if report:
                 paths["report"] = out.file(report_module.REPORT_NAME)

@@ -8,11 +8,14 @@ needs no network, no script and no other file. Its sections, in order:
 1. a header: the capture (the images or ``--capture`` folder, when the options were recorded),
    the directory, the size "W x H", the number of lights, status, iterations and solver time;
 2. the inputs (a contact sheet, ``inputs.png``, written when the images were given to ``save``);
-3. the mask, the normal map, the albedo (and, under the glossy model, the specular albedo; the
-   header then names the model and its lobe);
+3. the mask, the normal map (as written: its convention and bit depth from ``summary.json``'s
+   ``"normal_map"``), the albedo (and, under the glossy model, the specular albedo; the header
+   then names the model and its lobe);
 4. the residual map (RMS image residual per pixel) and the depth map, colour-mapped, each with
    a numeric colour bar; the unfitted pixels (masked pixels with fewer than 3 lit images, which
-   kept their starting shape);
+   kept their starting shape). The normal, albedo and depth maps have a scale bar: a round
+   length in ``summary.json``'s ``"units"`` ("rig units" without) at the object's mean depth
+   (:func:`nplps.views.pixel_footprint`);
 5. three oblique shaded renders of the mesh (:func:`nplps.views.render_mesh`): turned 35
    degrees to the left and to the right about the vertical axis through the object's centre,
    and seen from 35 degrees above;
@@ -143,8 +146,38 @@ def _img(pixels: np.ndarray, alt: str, zoom: bool = True) -> str:
     return f'<img src="{png_data_uri(pixels)}" alt="{html.escape(alt)}"{size}>'
 
 
-def _figure(pixels: np.ndarray, caption: str, zoom: bool = True) -> str:
-    return f"<figure>{_img(pixels, caption, zoom)}<figcaption>{html.escape(caption)}</figcaption></figure>"
+def _figure(pixels: np.ndarray, caption: str, zoom: bool = True, scale: str = "") -> str:
+    return f"<figure>{_img(pixels, caption, zoom)}{scale}<figcaption>{html.escape(caption)}</figcaption></figure>"
+
+
+def _scale_bar(d: _Data, shape: tuple[int, ...], shown: tuple[int, ...]) -> str:
+    """Return a scale bar (inline SVG) for a map of `shape` pixels (cropped, full size) shown as `shown`.
+
+    Its length is a round number of the rig's unit (:func:`nplps.views.scale_bar_length`, about a
+    quarter of the map's width) at the object's mean depth (:func:`nplps.views.pixel_footprint`);
+    ``data-length``, ``data-units`` and ``data-pixels`` (its length in picture pixels) say what it
+    shows. "" when the footprint is unknown (no rig.json or depth.npy).
+    """
+    footprint = d.footprint
+    if footprint is None or not shape[1] or not shown[1]:
+        return ""
+    size, mean = footprint
+    zoom = _zoom(shown)
+    per_pixel = size * shape[1] / shown[1] / zoom  # length units per picture pixel
+    length = views.scale_bar_length(shown[1] * zoom * per_pixel)
+    if not np.isfinite(length):
+        return ""
+    bar = length / per_pixel
+    label = f"{length:g} {d.units}"
+    title = f"{label} at the mean depth {_fmt(mean)} {d.units} (a pixel spans {_fmt(size)} {d.units} there)"
+    return (
+        f'<svg xmlns="http://www.w3.org/2000/svg" class="scalebar" style="display:block" '
+        f'width="{bar + 12 + 7 * len(label):.0f}" '
+        f'height="20" data-length="{length!r}" data-units="{html.escape(d.units)}" data-pixels="{bar:.2f}" '
+        f'font-family="sans-serif" font-size="11"><title>{html.escape(title)}</title>'
+        f'<rect x="0" y="6" width="{bar:.2f}" height="5" fill="black"/>'
+        f'<text x="{bar + 6:.2f}" y="14">{html.escape(label)}</text></svg>'
+    )
 
 
 def _colorbar_svg(lo: float, hi: float, label: str, *, height: int = 300) -> str:
@@ -388,6 +421,20 @@ class _Data:
         return f"; cropped to the mask: rows {r0}..{r1 - 1}, columns {c0}..{c1 - 1}"
 
     @property
+    def units(self) -> str:
+        """The rig's length unit (``summary.json``'s ``"units"``), or "rig units"."""
+        units = self.summary.get("units")
+        return units if isinstance(units, str) and units.strip() else "rig units"
+
+    @property
+    def footprint(self) -> tuple[float, float] | None:
+        """A pixel's width on the surface at the mean depth, and that depth (None if unknown)."""
+        if "footprint" not in self._cache:
+            depth, rig = self._load("depth.npy"), self.rig
+            self._cache["footprint"] = None if depth is None or rig is None else views.pixel_footprint(rig, depth)
+        return self._cache["footprint"]
+
+    @property
     def rig(self) -> Any:
         if "rig" not in self._cache:
             path = self.root / "rig.json"
@@ -478,17 +525,27 @@ def _section_maps(d: _Data) -> str:
         figures.append(_none("Mask: not available (mask.png is missing)."))
     normals = d._load("normals.png")
     if normals is not None:
-        small = views.downsample(np.asarray(d.cropped(normals), dtype=np.float64), MAP_SIDE)
-        caption = f"normal map (mesh normals; facing the camera = light blue){d.crop_note}"
-        figures.append(_figure(np.rint(np.clip(np.nan_to_num(small), 0, 255)).astype(np.uint8), caption))
+        # As written: 16-bit files (and 8-bit ones of results before the "normal_map" record) shown in 8 bits.
+        record = d.summary.get("normal_map") or {"frame": "opengl", "bits": 8}
+        top = 65535.0 if np.asarray(normals).dtype == np.uint16 else 255.0
+        cropped = d.cropped(normals)
+        small = views.downsample(np.asarray(cropped, dtype=np.float64) * (255.0 / top), MAP_SIDE)
+        caption = (
+            f"normal map as written in normals.png ({record['bits']}-bit, {_FRAMES.get(record['frame'], '?')})"
+            f"{d.crop_note}"
+        )
+        pixels = np.rint(np.clip(np.nan_to_num(small), 0, 255)).astype(np.uint8)
+        figures.append(_figure(pixels, caption, scale=_scale_bar(d, cropped.shape, pixels.shape)))
     else:
         figures.append(_none("Normal map: not available (normals.png is missing)."))
     glossy = d.summary.get("reflectance") == "glossy"
     albedo = d._load("albedo.png")
     name = "diffuse albedo" if glossy else "albedo"
     if albedo is not None:
-        small = views.downsample(np.asarray(d.cropped(albedo), dtype=np.float64), MAP_SIDE)
-        figures.append(_figure(_grey_rgb(small), f"{name} (scaled to its 99.5th percentile){d.crop_note}"))
+        cropped = d.cropped(albedo)
+        small = views.downsample(np.asarray(cropped, dtype=np.float64), MAP_SIDE)
+        scale = _scale_bar(d, cropped.shape, small.shape)
+        figures.append(_figure(_grey_rgb(small), f"{name} (scaled to its 99.5th percentile){d.crop_note}", scale=scale))
     else:
         figures.append(_none("Albedo: not available (albedo.png is missing)."))
     cast = d.summary.get("cast_shadows")
@@ -514,14 +571,24 @@ def _section_maps(d: _Data) -> str:
     return _section("Mask, normal map, albedo, specular albedo", "".join(figures), "maps")
 
 
-def _mapped(values: np.ndarray, lo: float, hi: float, caption: str, label: str) -> str:
+def _mapped(values: np.ndarray, lo: float, hi: float, caption: str, label: str, d: _Data | None = None) -> str:
+    """Return a colour-mapped map with its colour bar, and with `d` a scale bar (:func:`_scale_bar`)."""
     small = views.downsample(values, MAP_SIDE)
     shown = small.shape[0] * _zoom(small.shape)
+    scale = "" if d is None else _scale_bar(d, values.shape, small.shape)
     return (
         f"<figure><div style='display:flex;align-items:flex-start'>{_img(views.colorize(small, lo, hi), caption)}"
-        f"{_colorbar_svg(lo, hi, label, height=max(shown, 200))}</div>"
+        f"{_colorbar_svg(lo, hi, label, height=max(shown, 200))}</div>{scale}"
         f"<figcaption>{html.escape(caption)}</figcaption></figure>"
     )
+
+
+#: How each normal-map convention is described in the report.
+_FRAMES = {
+    "opengl": "OpenGL convention: x right, y up, z towards the viewer; facing the camera = light blue",
+    "directx": "DirectX convention: x right, y down, z towards the viewer",
+    "opencv": "OpenCV camera frame: x right, y down, z forward",
+}
 
 
 def _section_residual(d: _Data) -> str:
@@ -576,9 +643,11 @@ def _section_depth(d: _Data) -> str:
     if finite.size == 0:
         return _section("Depth", _none("Depth map: no finite depth."), "depth")
     lo, hi = float(finite.min()), float(finite.max())
-    caption = f"vertex depth z (distance along the optical axis, in the rig's unit): {_fmt(lo)} .. {_fmt(hi)}"
+    unit = d.units
+    caption = f"vertex depth z (distance along the optical axis, in {unit}): {_fmt(lo)} .. {_fmt(hi)} {unit}"
     caption += d.crop_note
-    return _section("Depth", _mapped(d.cropped(depth, vertex=True), lo, hi, caption, "depth z (rig unit)"), "depth")
+    body = _mapped(d.cropped(depth, vertex=True), lo, hi, caption, f"depth z ({unit})", d)
+    return _section("Depth", body, "depth")
 
 
 def _section_renders(d: _Data) -> str:

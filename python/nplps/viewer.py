@@ -10,13 +10,16 @@ The page: a canvas filling the window; drag to rotate about the object, wheel or
 right-drag or shift-drag to pan, alt-drag or the two sliders to move the light (it moves with
 the eye: by default 20 degrees left of and 25 degrees above the viewing direction, plus a weak
 light from the eye), albedo / shaded / normals colouring (keys 1, 2, 3; normals in the colours of
-``normals.png``),
-reset (key R), a one-line help and the size and extent of the mesh. The object is shown upright
-as the camera saw it: the camera frame (x right, y down, z forward) is drawn with y up on the
-screen, and azimuth = elevation = 0 is the camera's own viewpoint. The initial view is oblique
-(azimuth 35, elevation 25 degrees); a URL hash sets another one, e.g. ``viewer.html#azimuth=-40&
-elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20`` (``ui=0`` hides the
-panel and the help line, for pictures). The page sets the ``data-status`` attribute of its
+``normals.png``: its convention, ``summary.json``'s ``"normal_map"``, as 8-bit), reset (key R), a
+one-line help, the size and extent of the mesh, and a scale bar: a round length (1, 2 or 5 times
+a power of ten of the rig's unit, "rig units" unless known; 40 to 100 screen pixels) as long on
+the screen as that length at the centre of rotation (the object's centre until panned),
+recomputed as the view zooms. The object is shown upright as the camera saw it: the camera
+frame (x right, y down, z forward) is drawn with y up on the screen, and azimuth = elevation =
+0 is the camera's own viewpoint. The initial view is oblique (azimuth 35, elevation 25
+degrees); a URL hash sets another one, e.g.
+``viewer.html#azimuth=-40&elevation=10&zoom=1.5&mode=normals&light_azimuth=30&light_elevation=20``
+(``ui=0`` hides the panel and the help line, for pictures). The page sets the ``data-status`` attribute of its
 ``<html>`` element to ``"ready"`` after the first frame and to ``"error: ..."`` on an error
 (which it also shows), so that a headless browser can tell (``--dump-dom``).
 
@@ -105,6 +108,7 @@ def write_viewer(
     title: str = "nplps mesh",
     units: str | None = None,
     max_triangles: int = DEFAULT_MAX_TRIANGLES,
+    normal_map: str = "opengl",
 ) -> ViewerInfo:
     """Write a self-contained HTML page that shows a vertex-grid mesh in 3-D (WebGL, offline).
 
@@ -127,10 +131,12 @@ def write_viewer(
     title : str, default "nplps mesh"
         The page's title, shown in its corner.
     units : str, optional
-        The length unit shown with the extent (e.g. ``"mm"``). Default: "rig units".
+        The length unit shown with the extent and the scale bar (e.g. ``"mm"``). Default: "rig units".
     max_triangles : int, default 2_000_000
         At most this many triangles are written: a larger mesh is decimated on a regular grid
         stride (see the module notes), and the page says so.
+    normal_map : {"opengl", "directx", "opencv"}, default "opengl"
+        The convention of the normals colouring (:data:`nplps.export.NORMAL_MAP_FRAMES`).
 
     Returns
     -------
@@ -140,7 +146,8 @@ def write_viewer(
     Raises
     ------
     InputError
-        A shape does not match, `max_triangles` is below 2, or no facet is left.
+        A shape does not match, `max_triangles` is below 2, `normal_map` is unknown, or no
+        facet is left.
     OSError
         The page could not be written (``filename`` names it).
 
@@ -153,6 +160,7 @@ def write_viewer(
     """
     if isinstance(max_triangles, bool) or not isinstance(max_triangles, (int, np.integer)) or max_triangles < 2:
         raise InputError(f"max_triangles must be an integer of at least 2, got {max_triangles!r}")
+    export.check_normal_map(normal_map)
     vertices = np.asarray(vertices)
     mask = np.asarray(mask, dtype=bool)
     if vertices.ndim != 3 or vertices.shape[2] != 3:
@@ -179,6 +187,8 @@ def write_viewer(
         "triangles": len(mesh.faces),
         "full_triangles": full,
         "stride": stride,
+        "normal_map": normal_map,
+        "normal_flip": list(export.NORMAL_MAP_FRAMES[normal_map]),
     }
     text = _page(meta, mesh.points, mesh.faces, mesh.normals, mesh.colors)
     write_text(path, text)
@@ -246,7 +256,8 @@ def write_result_viewer(
     title : str, optional
         The page's title. Default: the directory's name.
     units : str, optional
-        The length unit shown with the extent. Default: "rig units".
+        The length unit shown with the extent and the scale bar. Default: ``summary.json``'s
+        ``"units"`` (``--units`` of ``nplps reconstruct``), else "rig units".
     max_triangles : int, default 2_000_000
         Decimate larger meshes (see :func:`write_viewer`).
 
@@ -264,10 +275,24 @@ def write_result_viewer(
         The page could not be written.
     """
     vertices, mask, normals, albedo = _read_result(Path(directory))
+    # summary.json names the unit and the normal map's convention; a folder without one gets the defaults.
+    has_summary = os.path.lexists(Path(directory) / "summary.json")
+    summary = _results.read_summary(directory) if has_summary else {}
+    if units is None and isinstance(summary.get("units"), str) and summary["units"].strip():
+        units = summary["units"]
+    frame = (summary.get("normal_map") or {}).get("frame", "opengl")
     target = Path(directory) / VIEWER_FILE if out is None else Path(out)
     name = title if title is not None else Path(os.path.abspath(directory)).name
     info = write_viewer(
-        target, vertices, mask, normals=normals, albedo=albedo, title=name, units=units, max_triangles=max_triangles
+        target,
+        vertices,
+        mask,
+        normals=normals,
+        albedo=albedo,
+        title=name,
+        units=units,
+        max_triangles=max_triangles,
+        normal_map=frame,
     )
     if out is None:
         add_to_manifest(directory, VIEWER_FILE)
@@ -424,6 +449,9 @@ canvas { position: fixed; left: 0; top: 0; width: 100%; height: 100%; touch-acti
 #panel input[type=range] { width: 7em; vertical-align: middle; }
 #help { position: fixed; left: 8px; bottom: 6px; background: rgba(20, 22, 26, 0.75); padding: 3px 8px;
   border-radius: 4px; }
+#scale { position: fixed; right: 10px; bottom: 52px; background: rgba(20, 22, 26, 0.75); padding: 3px 8px;
+  border-radius: 4px; text-align: center; }
+#scalebar { height: 5px; background: #e8e8e8; margin: 2px auto 3px; }
 #error { display: none; position: fixed; left: 10%; top: 40%; width: 80%; background: #7a1f1f; color: #fff;
   padding: 12px; border-radius: 4px; font-size: 15px; }
 </style>
@@ -445,6 +473,7 @@ canvas { position: fixed; left: 0; top: 0; width: 100%; height: 100%; touch-acti
 </div>
 <div id="help">drag: rotate &middot; wheel/pinch: zoom &middot; right- or shift-drag: pan &middot;
 alt-drag or sliders: light &middot; 1 2 3: albedo/shaded/normals &middot; R: reset</div>
+<div id="scale"><div id="scalebar"></div><span id="scalelabel"></span></div>
 <div id="error"></div>
 @DATA@
 <script>
@@ -508,7 +537,7 @@ function main() {
   var bIdx = buffer(idx, gl.ELEMENT_ARRAY_BUFFER);
   var loc = {};
   ["aPos", "aNrm", "aCol"].forEach(function (n) { loc[n] = gl.getAttribLocation(prog, n); });
-  ["uModel", "uView", "uProj", "uNormal", "uLight", "uMode"].forEach(function (n) {
+  ["uModel", "uView", "uProj", "uNormal", "uLight", "uMode", "uFlip"].forEach(function (n) {
     loc[n] = gl.getUniformLocation(prog, n);
   });
 
@@ -532,7 +561,9 @@ function main() {
   function reset() {
     state = fromHash(); target = [0, 0, 0];
     state.distance = radius / Math.sin(FOV / 2) * 1.05 / Math.max(state.zoom, 1e-6);
-    ["panel", "help"].forEach(function (id) { document.getElementById(id).style.display = state.ui ? "" : "none"; });
+    ["panel", "help", "scale"].forEach(function (id) {
+      document.getElementById(id).style.display = state.ui ? "" : "none";
+    });
     syncControls(); draw();
   }
   function syncControls() {
@@ -565,12 +596,29 @@ function main() {
     gl.uniformMatrix3fv(loc.uNormal, false, normal);
     gl.uniform3f(loc.uLight, Math.sin(laz) * Math.cos(lel), Math.sin(lel), Math.cos(laz) * Math.cos(lel));
     gl.uniform1i(loc.uMode, ["albedo", "shaded", "normals"].indexOf(state.mode));
+    var flip = meta.normal_flip || [1, -1, -1];
+    gl.uniform3f(loc.uFlip, flip[0], flip[1], flip[2]);
     attribute(bPos, loc.aPos, gl.FLOAT, false);
     attribute(bNrm, loc.aNrm, gl.FLOAT, false);
     if (bCol) attribute(bCol, loc.aCol, gl.UNSIGNED_BYTE, true);
     else { gl.disableVertexAttribArray(loc.aCol); gl.vertexAttrib3f(loc.aCol, 0.8, 0.8, 0.8); }
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, bIdx);
     gl.drawElements(gl.TRIANGLES, idx.length, gl.UNSIGNED_INT, 0);
+    scaleBar(2 * d * Math.tan(FOV / 2) / Math.max(canvas.clientHeight, 1));
+  }
+  // The scale bar: a round length near 100 screen pixels at the centre of rotation (perspective:
+  // nearer parts look larger). perPixel: length units per CSS pixel at the target's distance.
+  function scaleBar(perPixel) {
+    var target = 100 * perPixel, p = Math.pow(10, Math.floor(Math.log10(target)));
+    var length = target >= 5 * p ? 5 * p : target >= 2 * p ? 2 * p : p;
+    var px = length / perPixel, box = document.getElementById("scale");
+    document.getElementById("scalebar").style.width = px.toFixed(1) + "px";
+    document.getElementById("scalelabel").textContent = +length.toPrecision(3) + " " + meta.units;
+    box.title = "at the centre of rotation (nearer parts look larger)";
+    box.setAttribute("data-length", String(length));
+    box.setAttribute("data-pixels", px.toFixed(2));
+    box.setAttribute("data-per-pixel", String(perPixel));
+    box.setAttribute("data-view-height", String(canvas.clientHeight));
   }
   function attribute(b, l, type, normalized) {
     if (l < 0) return;
@@ -718,10 +766,10 @@ var VERTEX = [
 var FRAGMENT = [
   "precision highp float;",
   "varying vec3 vEye; varying vec3 vN; varying vec3 vCam; varying vec3 vCol;",
-  "uniform vec3 uLight; uniform int uMode;",
+  "uniform vec3 uLight; uniform int uMode; uniform vec3 uFlip;",
   "void main() {",
-  "  if (uMode == 2) {  // the normal map's colours: (n_x, -n_y, -n_z) as (v + 1) / 2",
-  "    vec3 c = normalize(vCam); gl_FragColor = vec4(0.5 * vec3(c.x, -c.y, -c.z) + 0.5, 1.0); return;",
+  "  if (uMode == 2) {  // the normal map's colours: the normal in its frame (uFlip) as (v + 1) / 2",
+  "    vec3 c = normalize(vCam) * uFlip; gl_FragColor = vec4(0.5 * c + 0.5, 1.0); return;",
   "  }",
   "  vec3 n = normalize(vN); float back = 1.0;",
   "  if (dot(n, vEye) > 0.0) { n = -n; back = 0.6; }  // seen from behind: light the other side, darker",

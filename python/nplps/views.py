@@ -43,10 +43,20 @@ numeric colour bar (:func:`colorbar_ticks`).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
-__all__ = ["colorbar_ticks", "colorize", "colormap", "downsample", "render_mesh", "view_axes"]
+__all__ = [
+    "colorbar_ticks",
+    "colorize",
+    "colormap",
+    "downsample",
+    "pixel_footprint",
+    "render_mesh",
+    "scale_bar_length",
+    "view_axes",
+]
 
 # Anchor colours (sRGB, 0..1) of the sequential map, dark to light; lightness rises steadily.
 _ANCHORS = np.array(
@@ -175,6 +185,67 @@ def downsample(image: np.ndarray, max_side: int) -> np.ndarray:
     count = finite.sum(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def scale_bar_length(span: float, fraction: float = 0.25) -> float:
+    """Return a round length for a scale bar: 1, 2 or 5 times a power of ten, near ``fraction * span``.
+
+    Parameters
+    ----------
+    span : float
+        The width of the picture in length units (positive).
+    fraction : float, default 0.25
+        The wanted share of the width; the length returned lies between ``fraction / 2.5`` and
+        ``fraction * 2`` of `span` (the round number at or below ``fraction * span``).
+
+    Returns
+    -------
+    float
+        The length (NaN when `span` is not a positive finite number).
+    """
+    target = float(span) * float(fraction)
+    if not (math.isfinite(target) and target > 0):
+        return float("nan")
+    power = 10.0 ** math.floor(math.log10(target))
+    for step in (5.0, 2.0, 1.0):
+        if step * power <= target * (1 + 1e-9):
+            return step * power
+    return power  # pragma: no cover - 1 * power <= target always
+
+
+def pixel_footprint(rig: Any, depth: np.ndarray) -> tuple[float, float] | None:
+    """Return a pixel's width on the surface in the rig's length unit, and the depth it holds at.
+
+    A pinhole camera's pixel spans ``z / fx`` at depth ``z``: the mean of the finite values of
+    `depth` is used (the object's mean depth; the footprint of nearer and farther parts differs
+    by the ratio of their depths). An orthographic camera's pixel spans its ``pixel_size`` (x)
+    at every depth.
+
+    Parameters
+    ----------
+    rig : nplps.Rig
+        The result's rig (its camera).
+    depth : numpy.ndarray
+        The result's depths (the ``(H + 1, W + 1)`` vertex grid; NaN where there is none).
+
+    Returns
+    -------
+    (float, float) or None
+        ``(footprint, mean depth)``, or None when there is no finite positive depth or the camera
+        has neither ``K`` nor ``pixel_size``.
+    """
+    values = np.asarray(depth, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    mean = float(finite.mean()) if finite.size else float("nan")
+    camera = getattr(rig, "camera", {}) or {}
+    if camera.get("model") == "orthographic":
+        size = float(camera["pixel_size"][0])
+        return (size, mean) if math.isfinite(size) and size > 0 else None
+    K = camera.get("K")
+    if K is None or not (math.isfinite(mean) and mean > 0):
+        return None
+    fx = float(K[0][0])
+    return (mean / fx, mean) if math.isfinite(fx) and fx > 0 else None
 
 
 def view_axes(azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

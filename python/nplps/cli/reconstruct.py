@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .._text import printable
+from ..errors import InputError
 from ..progress import Bar, ReconstructionProgress, aborting, format_duration
 from .console import _warnings_to_stderr, describe_rig, describe_size
 from .inputs import (
@@ -27,11 +28,12 @@ RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
 
 Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
-colour), normals.png (normal map), shaded.png (the mesh lit from the upper left), albedo.png
-(16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
-normals.npy, residual.npy and summary.json (with all the options), and with --refine-lights
-the refined rig (rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or
-normals.tiff; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
+colour), normals.png (16-bit normal map in the --normal-map convention), shaded.png (the mesh
+lit from the upper left), albedo.png (16-bit), depth.npy / depth.tiff (vertex depths, (H+1,
+W+1), NaN where no masked pixel), normals.npy, residual.npy and summary.json (with all the
+options), and with --refine-lights the refined rig (rig_refined.json); with --formats also
+mesh.stl, mesh.glb, points.ply and/or normals.tiff, with --exr depth.exr, normals.exr and
+albedo.exr; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
 and inputs.png (thumbnails of the images) for the report; report.html, one self-contained page
 to look at the result (unless --no-report; `nplps report DIR` re-makes it); last
 nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
@@ -66,6 +68,8 @@ examples:
       --depth 200 --bin 4 --refine-lights intensity --out hehe12-refined
   # also a glTF binary (y up, for web viewers), an STL and 32-bit float normals:
   nplps reconstruct shots/ --rig rig.json --depth 250 --formats glb,stl,normals_tiff --opengl --out result
+  # a 16-bit normal map for Unreal Engine (DirectX, y down), float EXR maps, a scale in mm:
+  nplps reconstruct shots/ --rig rig.json --depth 250 --normal-map directx --exr --units mm --out result
   # the presets of the shared captures (their images, sRGB decoding, light rows and grid):
   nplps reconstruct --capture hehe12 hehe12/ --depth 200 --bin 4 --out hehe12-result
   nplps reconstruct --capture queau_human1 queau_human1/ --depth 700 --bin 8 --out human1-result
@@ -104,6 +108,33 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         help=f"also write these formats, comma-separated: {formats_help()}",
     )
     p.add_argument(
+        "--normal-map",
+        choices=("opengl", "directx", "opencv"),
+        default="opengl",
+        help="convention of normals.png and normals.exr: opengl = x right, y up, z towards the viewer "
+        "(Blender, Unity; the default), directx = y down (Unreal Engine), opencv = the camera frame "
+        "as is (y down, z forward); recorded in summary.json",
+    )
+    p.add_argument(
+        "--normal-map-bits",
+        type=int,
+        choices=(16, 8),
+        default=16,
+        help="bits per channel of normals.png (default 16: 0.0015° at most of quantisation, 8: 0.39°)",
+    )
+    p.add_argument(
+        "--exr",
+        action="store_true",
+        help="also write depth.exr, normals.exr and albedo.exr (32-bit float; the same as --formats exr; "
+        'needs OpenEXR: pip install "nplps[exr]")',
+    )
+    p.add_argument(
+        "--units",
+        metavar="UNIT",
+        help="the rig's length unit (e.g. mm), recorded in summary.json and shown with the scale bars "
+        "of the report and the viewer (default: 'rig units')",
+    )
+    p.add_argument(
         "--no-report",
         dest="report",
         action="store_false",
@@ -120,8 +151,14 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     """Run ``nplps reconstruct``; return the exit status."""
     from ..api import reconstruct, reconstruct_parallel
+    from ..export import check_formats
 
     check_input_args(args)
+    if args.exr and "exr" not in args.formats:
+        args.formats = [*args.formats, "exr"]
+    check_formats(args.formats)  # the exr format without OpenEXR is refused before the images are read
+    if args.units is not None and not args.units.strip():
+        raise InputError("--units must not be empty (e.g. --units mm)")
     near = near_options(args)
     out = output_directory(args)  # refuses a non-empty --out before the images are read
     inputs = build_inputs(args)
@@ -175,7 +212,15 @@ def _save(result: Any, directory: Any, args: argparse.Namespace, *, quiet: bool,
     if bar is not None:
         bar.update(0, f"writing into {os.fspath(directory)} ...")
     with aborting(bar):
-        paths = result.save(directory, opengl=args.opengl, formats=args.formats, **extra)
+        paths = result.save(
+            directory,
+            opengl=args.opengl,
+            formats=args.formats,
+            normal_map=args.normal_map,
+            normal_map_bits=args.normal_map_bits,
+            units=args.units,
+            **extra,
+        )
     if bar is not None:
         bar.close(f"{len(paths)} files written in {format_duration(bar.elapsed)}")
     return dict(paths)

@@ -66,7 +66,12 @@ def add_view_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         metavar="N",
         help=f"decimate larger meshes on a regular grid (default {DEFAULT_MAX_TRIANGLES:,}, about 50 MB of page)",
     )
-    p.add_argument("--units", metavar="UNIT", help="length unit shown with the extent, e.g. mm (default: 'rig units')")
+    p.add_argument(
+        "--units",
+        metavar="UNIT",
+        help="length unit shown with the extent and the scale bar, e.g. mm (default: the result's "
+        "--units, else 'rig units')",
+    )
     p.add_argument("--title", metavar="TEXT", help="title of the page (default: the directory's name)")
     return p
 
