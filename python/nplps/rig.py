@@ -90,6 +90,7 @@ __all__ = [
     "Rig",
     "RigGrid",
     "read_rig_json",
+    "read_small_text",
 ]
 
 RIG_FILE_VERSION = 3
@@ -1110,6 +1111,31 @@ def _lights(value: Any) -> tuple[Light, ...]:
     return tuple(PointLight._checked(f"light {i}", p) for i, p in enumerate(positions))
 
 
+def read_small_text(path: str | os.PathLike[str], what: str, kind: str = "text file") -> str:
+    """Return the UTF-8 text of a file of at most :data:`MAX_RIG_FILE_BYTES` (rig, lights, camera files).
+
+    ``what`` names the file in messages (``"rig file"``, ``".lp file"``) and ``kind`` what it should
+    be (``"JSON text file"``). A leading byte-order mark is dropped.
+
+    Raises
+    ------
+    RigError
+        The file cannot be read, is larger than the limit or is not UTF-8.
+    """
+    name = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_RIG_FILE_BYTES + 1)
+    except OSError as e:
+        raise RigError(f"cannot read {what} {name!r}: {e.strerror}") from None
+    if len(raw) > MAX_RIG_FILE_BYTES:
+        raise RigError(f"{what} {name!r} is larger than {MAX_RIG_FILE_BYTES // 2**20} MiB: not a {what}")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise RigError(f"{what} {name!r} is not a {kind} (not UTF-8)") from None
+
+
 def read_rig_json(path: str | os.PathLike[str]) -> Any:
     """Return the JSON value of a rig file, read within the limits of the format.
 
@@ -1130,17 +1156,7 @@ def read_rig_json(path: str | os.PathLike[str]) -> Any:
         When the file cannot be read or is not such a JSON text.
     """
     name = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_RIG_FILE_BYTES + 1)
-    except OSError as e:
-        raise RigError(f"cannot read rig file {name!r}: {e.strerror}") from None
-    if len(raw) > MAX_RIG_FILE_BYTES:
-        raise RigError(f"rig file {name!r} is larger than {MAX_RIG_FILE_BYTES // 2**20} MiB: not a rig file")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise RigError(f"rig file {name!r} is not a JSON text file (not UTF-8)") from None
+    text = read_small_text(path, "rig file", "JSON text file")
     depth = _nesting(text)
     if depth > MAX_NESTING:
         raise RigError(f"rig file {name!r} is nested too deeply ({depth} levels; at most {MAX_NESTING})")

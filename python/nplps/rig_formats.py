@@ -40,7 +40,7 @@ from fractions import Fraction
 from typing import Any
 
 from .errors import RigError
-from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid, read_rig_json
+from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid, read_rig_json, read_small_text
 
 __all__ = [
     "FORMATS",
@@ -58,7 +58,6 @@ __all__ = [
 FORMATS = ("rig", "dome", "lp", "alicevision", "sfmdata", "opencv-yaml", "opencv-json")
 
 _EXTENSIONS = {".dome": "dome", ".lp": "lp", ".yml": "opencv-yaml", ".yaml": "opencv-yaml", ".sfm": "sfmdata"}
-_MAX_BYTES = 16 * 2**20
 _UNIT_TOLERANCE = 1e-6
 
 
@@ -155,18 +154,7 @@ def _directional(subject: str, d: Sequence[float], intensity: Any = 1.0) -> Dire
 
 
 def _read_text(path: str | os.PathLike[str], what: str) -> str:
-    name = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(_MAX_BYTES + 1)
-    except OSError as e:
-        raise RigError(f"cannot read {what} {name!r}: {e.strerror}") from None
-    if len(raw) > _MAX_BYTES:
-        raise RigError(f"{what} {name!r} is larger than {_MAX_BYTES // 2**20} MiB")
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise RigError(f"{what} {name!r} is not a UTF-8 text file") from None
+    return read_small_text(path, what)
 
 
 def _read_json(path: str | os.PathLike[str], what: str, exact: bool = False) -> Any:
