@@ -222,7 +222,7 @@ pub use distance::{
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use light::Light;
-pub use local::{Robust, Weighting};
+pub use local::{LightTrust, Robust, Trust, Weighting};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};

@@ -1,0 +1,103 @@
+"""Trust without ground truth: the normal uncertainty and leave-one-light-out maps, the per-light table."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+import nplps
+from nplps import report
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
+
+
+@pytest.mark.parametrize("name", ["sphere", "bumps", "saddle"])
+@pytest.mark.parametrize("noise", [0.005, 0.02])
+def test_predicted_sigma_matches_the_observed_error(name: str, noise: float) -> None:
+    """Gaussian noise over three seeds: RMS observed angular error / RMS predicted sigma in 0.8 .. 1.25."""
+    for seed in (0, 1, 2):
+        scene = nplps.make_scene(name, n=48, seed=seed, noise=noise)
+        r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
+        assert r.normal_sigma is not None and r.normal_sigma.dtype == np.float32
+        inside = scene.mask & np.isfinite(r.normal_sigma)
+        assert inside.sum() == scene.mask.sum()
+        assert np.isnan(r.normal_sigma[~scene.mask]).all()
+        observed = np.sqrt(np.mean(_angles(r.fit_normals, scene.normals)[inside] ** 2))
+        predicted = np.sqrt(np.mean(r.normal_sigma[inside].astype(np.float64) ** 2))
+        assert 0.8 < observed / predicted < 1.25, (seed, observed, predicted)
+        # The leave-one-out error exceeds the in-sample one: mean |e / (1 - h)| > mean |e| of the
+        # Gaussian residual, whose RMS is `residual` (sqrt(2 / pi) = 0.80).
+        assert r.held_out_error is not None
+        ratio = np.nanmean(r.held_out_error[inside]) / np.sqrt(np.nanmean(r.residual[inside] ** 2))
+        assert 0.85 < ratio < 1.3, ratio
+
+
+def test_noise_free_images_give_near_zero_uncertainty() -> None:
+    scene = nplps.make_scene("sphere", n=32, seed=0)
+    r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
+    assert r.normal_sigma is not None
+    assert np.nanmax(r.normal_sigma) < 0.05
+
+
+def test_a_wrong_light_stands_out_in_the_per_light_table() -> None:
+    """A light whose rig position is off by 15 % of the distance has the largest held-out residual."""
+    scene = nplps.make_scene("bumps", n=48, seed=1, noise=0.002)
+    positions = scene.rig.positions.copy()
+    positions[4] += [0.15 * scene.mean_depth, 0.0, 0.0]
+    rig = scene.rig.with_positions(positions)
+    r = nplps.reconstruct(scene.images, rig, mask=scene.mask, depth=scene.mean_depth)
+    assert r.light_trust is not None
+    held = r.light_trust["held_out"]
+    assert int(np.argmax(held)) == 4
+
+
+def test_saved_maps_summary_and_report(tmp_path: Path) -> None:
+    scene = nplps.make_scene("sphere", n=40, seed=0, noise=0.01)
+    r = nplps.reconstruct(
+        scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity", shadows=True
+    )
+    paths = r.save(tmp_path / "r", report=True)
+    sigma = tifffile.imread(paths["normal_sigma"])
+    assert sigma.dtype == np.float32
+    np.testing.assert_array_equal(sigma, r.normal_sigma)
+    np.testing.assert_array_equal(tifffile.imread(paths["held_out_error"]), r.held_out_error)
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    trust = summary["trust"]
+    assert trust["pixels"] == int(scene.mask.sum())
+    finite = r.normal_sigma[np.isfinite(r.normal_sigma)]
+    assert trust["normal_sigma_deg"]["median"] == pytest.approx(float(np.median(finite)))
+    assert len(trust["lights"]) == scene.rig.n_lights
+    assert all(row["pixels"] > 0 and row["held_out"] > row["residual"] > 0 for row in trust["lights"])
+    text = paths["report"].read_text(encoding="utf-8")
+    part = re.search(r"<section id='trust'>(.*?)</section>", text, re.S)
+    assert part is not None
+    body = part.group(1)
+    assert body.count("<img") == 2 and "Predicted normal uncertainty" in body
+    rows = re.findall(r"<tr><td>(\d+)</td>", body)
+    assert rows == [str(i) for i in range(scene.rig.n_lights)]
+    assert "±" in body and "cast-shadow share" in body  # the refinement's standard errors, the shadows
+    # Order: after the held-out section.
+    assert text.index("<section id='held-out'>") < text.index("<section id='trust'>")
+    # A map removed: the section says so.
+    (tmp_path / "r" / "normal_sigma.tiff").unlink()
+    assert "normal_sigma.tiff is missing" in report.report_html(tmp_path / "r")
+    # A damaged map is refused with the file named.
+    tifffile.imwrite(tmp_path / "r" / "held_out_error.tiff", np.zeros((3, 3), np.float32))
+    with pytest.raises(nplps.InputError, match=r"held_out_error\.tiff"):
+        report.report_html(tmp_path / "r")
+
+
+def test_the_baseline_has_no_trust_maps(tmp_path: Path) -> None:
+    scene = nplps.make_scene("sphere", n=24, seed=0)
+    r = nplps.reconstruct_parallel(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
+    assert r.normal_sigma is None and r.summary()["trust"] is None
+    text = r.save(tmp_path / "r", report=True)["report"].read_text(encoding="utf-8")
+    assert "No uncertainty maps" in text
+    assert not (tmp_path / "r" / "normal_sigma.tiff").exists()
