@@ -101,3 +101,29 @@ def test_the_baseline_has_no_trust_maps(tmp_path: Path) -> None:
     text = r.save(tmp_path / "r", report=True)["report"].read_text(encoding="utf-8")
     assert "No uncertainty maps" in text
     assert not (tmp_path / "r" / "normal_sigma.tiff").exists()
+
+
+def test_robust_fits_count_their_weights() -> None:
+    """With Tukey weights, observations the robust fit rejects leave the uncertainty small.
+
+    A tenth of the pixels get a highlight (3 times the value) in one light: the plain fit's
+    uncertainty there grows several times, the robust fit's stays at the noise level and matches
+    the observed error spread on the other pixels (the plain fit's surface is bent by the spots).
+    """
+    scene = nplps.make_scene("bumps", n=48, seed=3, noise=0.005)
+    images = scene.images.copy()
+    rng = np.random.default_rng(3)
+    spots = scene.mask & (rng.random(scene.mask.shape) < 0.1)
+    images[2][spots] *= 3.0
+    sigma = {}
+    for robust in (None, "tukey"):
+        r = nplps.reconstruct(images, scene.rig, mask=scene.mask, depth=scene.mean_depth, robust=robust)
+        assert r.normal_sigma is not None
+        sigma[robust] = r.normal_sigma.astype(np.float64)
+        if robust is not None:
+            clean = scene.mask & ~spots
+            observed = np.sqrt(np.mean(_angles(r.fit_normals, scene.normals)[clean] ** 2))
+            predicted = np.sqrt(np.mean(sigma[robust][clean] ** 2))
+            assert 0.8 < observed / predicted < 1.25, (observed, predicted)
+    assert np.median(sigma[None][spots]) > 4 * np.median(sigma["tukey"][spots])
+    assert np.median(sigma["tukey"][spots]) < 1.5 * np.median(sigma["tukey"][scene.mask & ~spots])

@@ -4,7 +4,8 @@
 //!
 //! At facet f (centre `c`), channel `ch`, the scaled normal `g_ch` solves the weighted least
 //! squares `min sum_k w_k (I_k - r_k . g)^2` over the usable lights (`r_k = Phi_k beta_k(c)`, the
-//! rows of the local step; `w_k` its weighting, without robust weights), `T_ch = sum w r r^T`.
+//! rows of the local step; `w_k` its weighting times, with a robust estimator, the robust weights
+//! at the facet's robust fit, which leave out the lights of weight 0), `T_ch = sum w r r^T`.
 //! With `m` usable lights and the residual variance `s2_ch = sum w e^2 / (m - 3)`, the
 //! covariance of `g_ch` is `s2_ch T_ch^-1`; the normal `n = b / |b|` of `b = sum_ch g_ch` has,
 //! to first order, `Cov(n) = P Cov(b) P / |b|^2` with `P = I - n n^T`. The reported
@@ -24,7 +25,9 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::{channel_intensity, usable, LocalStep, Weighting};
+use super::{
+    channel_intensity, fit_facet, usable, Facet, FitSettings, LocalStep, Robust, Weighting,
+};
 use crate::error::Result;
 use crate::geometry::quad_centre;
 use crate::memory::try_vec;
@@ -139,12 +142,38 @@ impl LocalStep<'_> {
         let q = self.corners(f, u);
         let c = quad_centre(&q);
         let values = self.facet_values(f, buf);
+        // With a robust estimator: its weights at the robust fit (0 leaves a light out).
+        let robust = match self.settings.robust {
+            Robust::None => None,
+            _ => {
+                let settings = FitSettings {
+                    lobe: None,
+                    ..self.settings
+                };
+                let Some(fit) = fit_facet(c, self.model, values, channels, settings) else {
+                    return none;
+                };
+                let facet = Facet {
+                    c,
+                    model: self.model,
+                    values,
+                    channels,
+                    settings,
+                    indirect: None,
+                };
+                match facet.robust_weights(fit.normal, fit.albedo, &mut Vec::new()) {
+                    Some(weights) => Some(weights),
+                    None => return none,
+                }
+            }
+        };
         // Rows (r, w) of the usable observations, light-major; w = 0 marks an unusable one.
         let mut t = [Matrix3::<f64>::zeros(); 3];
         let mut s = [Vector3::<f64>::zeros(); 3];
         let mut used = 0usize;
         for (k, o) in values.chunks_exact(channels).enumerate() {
-            let ok = usable(o, &self.settings);
+            let rw = robust.as_ref().map_or(1.0, |w| w[k]);
+            let ok = usable(o, &self.settings) && rw > 0.0;
             let (b, pw, phi) = self.model.row(k, c);
             used += ok as usize;
             for (ch, &i) in o.iter().enumerate() {
@@ -155,10 +184,11 @@ impl LocalStep<'_> {
                 }
                 let p = channel_intensity(phi, channels, ch);
                 let r = Vector3::new(b[0] * p, b[1] * p, b[2] * p);
-                let w = match self.settings.weighting {
-                    Weighting::Image => 1.0,
-                    Weighting::Paper => (pw / p) * (pw / p),
-                };
+                let w = rw
+                    * match self.settings.weighting {
+                        Weighting::Image => 1.0,
+                        Weighting::Paper => (pw / p) * (pw / p),
+                    };
                 *row = [r.x, r.y, r.z, w];
                 t[ch] += w * r * r.transpose();
                 s[ch] += w * i as f64 * r;
