@@ -696,7 +696,9 @@ class Reconstruction:
         ``specular_png_scale`` in ``summary.json``);
         with ``depth="auto"`` also ``distance_curve.csv`` and ``distance_curve.svg``; with
         refined lights also ``rig_refined.json`` (the refined rig file); and last the manifest
-        ``nplps-manifest.json`` listing the files written.
+        ``nplps-manifest.json`` listing the files written. Near-light results also write
+        ``normal_sigma.tiff`` and ``held_out_error.tiff`` (float32 maps of :attr:`normal_sigma`
+        and :attr:`held_out_error`; docs/trust.md).
 
         What the report (:mod:`nplps.report`) needs is always written, so that ``nplps report
         DIR`` can make it later: ``mask.png`` (8-bit, 255 in the mask), ``lights_used.npy`` (the

@@ -408,7 +408,7 @@ def _cmd_spheres(args: argparse.Namespace) -> int:
             distance, what = float(args.working_distance), "given"
         else:
             distance, what = float(np.mean([sp.center[2] for sp in result.spheres])), "the spheres' mean depth"
-        comparison = _compare(args.reference, reference, result.rig_or_none(), distance, what)
+        comparison = _compare(args.reference, reference, result.rig_or_none(), distance, what, intensities=False)
     for w in result.warnings:
         _note(f"{PROG}: warning: {w}")
     if args.report:
@@ -426,17 +426,27 @@ def _load_reference(args: argparse.Namespace) -> Any:
     return None if args.reference is None else load_rig(args.reference)
 
 
-def _compare(path: str, reference: Any, calibrated: Any, distance: float, what: str) -> dict[str, Any] | None:
-    """Print the calibrated lights' errors against the `reference` rig (file `path`); return them for the report."""
+def _compare(
+    path: str, reference: Any, calibrated: Any, distance: float, what: str, intensities: bool = True
+) -> dict[str, Any] | None:
+    """Print the calibrated lights' errors against the `reference` rig (file `path`); return them for the report.
+
+    Without `intensities` (the sphere calibration writes unit intensities) the intensity errors
+    are left out.
+    """
     from ..calibrate import compare_lights, reference_summary
 
     if calibrated is None:
         _note(f"{PROG}: warning: no comparison with {path}: a light was not located")
         return None
     rows = compare_lights(calibrated, reference, distance)
+    if not intensities:
+        for row in rows:
+            row["intensity_error_percent"] = None
     summary = reference_summary(rows)
     print(f"\nagainst the reference {path} (working distance D = {distance:.4g}, {what}):")
-    print(f"{'light':>5}  {'kind':<11} {'position error':>14} {'% of D':>7} {'direction °':>11} {'intensity %':>11}")
+    head = f"{'light':>5}  {'kind':<11} {'position error':>14} {'% of D':>7} {'direction °':>11}"
+    print(head + (f" {'intensity %':>11}" if intensities else ""))
 
     def cell(v: Any, width: int, digits: int) -> str:
         return f"{'-':>{width}}" if v is None else f"{v:>{width}.{digits}f}"
@@ -444,8 +454,8 @@ def _compare(path: str, reference: Any, calibrated: Any, distance: float, what: 
     for r in rows:
         print(
             f"{r['light']:>5}  {r['kind']:<11} {cell(r['position_error'], 14, 3)} "
-            f"{cell(r['position_error_percent'], 7, 3)} {cell(r['direction_error'], 11, 3)} "
-            f"{cell(r['intensity_error_percent'], 11, 3)}"
+            f"{cell(r['position_error_percent'], 7, 3)} {cell(r['direction_error'], 11, 3)}"
+            + (f" {cell(r['intensity_error_percent'], 11, 3)}" if intensities else "")
         )
     parts = []
     if summary["position_error_rms"] is not None:
