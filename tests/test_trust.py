@@ -127,3 +127,16 @@ def test_robust_fits_count_their_weights() -> None:
             assert 0.8 < observed / predicted < 1.25, (observed, predicted)
     assert np.median(sigma[None][spots]) > 4 * np.median(sigma["tukey"][spots])
     assert np.median(sigma["tukey"][spots]) < 1.5 * np.median(sigma["tukey"][scene.mask & ~spots])
+
+
+def test_the_command_line_prints_the_uncertainty(tmp_path: Path, capsys) -> None:
+    from nplps import cli
+
+    scene = tmp_path / "scene"
+    assert cli.main(["synth", "sphere", "--size", "32", "--noise", "0.01", "--out", str(scene)]) == 0
+    args = [str(scene), "--rig", str(scene / "rig.json"), "--mask", str(scene / "mask.png"), "--depth", "200"]
+    capsys.readouterr()
+    assert cli.main(["reconstruct", *args, "--out", str(tmp_path / "out")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.strip().startswith("uncertainty"))
+    trust = json.loads((tmp_path / "out" / "summary.json").read_text())["trust"]
+    assert f"normals {trust['normal_sigma_deg']['median']:.3g}° median" in line

@@ -836,7 +836,7 @@ def _section_options(d: _Data) -> str:
     else:
         parts.append(_none("The options were not recorded (saved from the Python API without options=)."))
     parts.append("<h3>summary.json</h3>")
-    rest = [(k, json.dumps(v)) for k, v in s.items() if k not in ("timings", "options")]
+    rest = [(k, json.dumps(v)) for k, v in s.items() if k not in ("timings", "options", "trust")]  # trust: its section
     parts.append(_table(rest))
     return _section("Timings and options", "".join(parts), "options")
 
