@@ -39,6 +39,21 @@ def test_predicted_sigma_matches_the_observed_error(name: str, noise: float) -> 
         assert 0.85 < ratio < 1.3, ratio
 
 
+@pytest.mark.parametrize(
+    "kw", [{"rgb": True}, {"camera": "pinhole"}, {"led": True}, {"camera": "pinhole", "rgb": True, "led": True}]
+)
+def test_colour_pinhole_and_leds(kw: dict) -> None:
+    """Colour (channels' covariances summed), pinhole cameras and LEDs: the same match, three seeds."""
+    for seed in (0, 1, 2):
+        scene = nplps.make_scene("bumps", n=40, seed=seed, noise=0.01, **kw)
+        r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
+        assert r.normal_sigma is not None
+        inside = scene.mask & np.isfinite(r.normal_sigma)
+        observed = np.sqrt(np.mean(_angles(r.fit_normals, scene.normals)[inside] ** 2))
+        predicted = np.sqrt(np.mean(r.normal_sigma[inside].astype(np.float64) ** 2))
+        assert 0.8 < observed / predicted < 1.25, (seed, observed, predicted)
+
+
 def test_noise_free_images_give_near_zero_uncertainty() -> None:
     scene = nplps.make_scene("sphere", n=32, seed=0)
     r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth)
