@@ -155,3 +155,19 @@ def test_the_command_line_prints_the_uncertainty(tmp_path: Path, capsys) -> None
     line = next(x for x in capsys.readouterr().out.splitlines() if x.strip().startswith("uncertainty"))
     trust = json.loads((tmp_path / "out" / "summary.json").read_text())["trust"]
     assert f"normals {trust['normal_sigma_deg']['median']:.3g}° median" in line
+
+
+def test_a_damaged_summary_is_refused_or_read_safely(tmp_path: Path) -> None:
+    scene = nplps.make_scene("sphere", n=24, seed=0, noise=0.01)
+    r = nplps.reconstruct(scene.images, scene.rig, mask=scene.mask, depth=scene.mean_depth, refine_lights="intensity")
+    r.save(tmp_path / "r")
+    path = tmp_path / "r" / "summary.json"
+    good = json.loads(path.read_text())
+    for trust in ("x", {"lights": "many"}, {"lights": [{"light": "0"}]}, {"lights": [{"light": 0, "residual": "x"}]}):
+        path.write_text(json.dumps({**good, "trust": trust}))
+        with pytest.raises(nplps.InputError, match=r"summary\.json.*trust"):
+            report.report_html(tmp_path / "r")
+    # The refinement's record is read only where it is well formed.
+    for refinement in ("x", {"changes": "many"}, {"changes": [{"light": 0, "intensity_factor": "big"}]}):
+        path.write_text(json.dumps({**good, "light_refinement": refinement}))
+        assert "<section id='trust'>" in report.report_html(tmp_path / "r")

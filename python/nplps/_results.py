@@ -203,6 +203,22 @@ _SUMMARY_TYPES: dict[str, tuple[str, Any]] = {
         lambda v: v is None or (isinstance(v, dict) and all(_is_number(v.get(k)) for k in ("roughness", "eta"))),
     ),
     "specular_png_scale": ("a number or null", lambda v: v is None or _is_number(v)),
+    "trust": (
+        "null or an object with a list of lights (objects of numbers or nulls)",
+        lambda v: (
+            v is None
+            or (
+                isinstance(v, dict)
+                and isinstance(v.get("lights"), list)
+                and all(
+                    isinstance(row, dict)
+                    and _is_int(row.get("light"))
+                    and all(x is None or _is_number(x) for x in row.values())
+                    for row in v["lights"]
+                )
+            )
+        ),
+    ),
     "distance_check": (
         "null or an object with numbers given, found, ratio and looks_wrong true or false",
         lambda v: (

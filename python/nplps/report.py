@@ -754,9 +754,13 @@ def _light_table(d: _Data, trust: dict[str, Any]) -> str:
     if not lights:
         return ""
     rig = d.rig
-    refinement = d.summary.get("light_refinement") or {}
-    changes = {c.get("light"): c for c in refinement.get("changes") or []}
-    errors = refinement.get("standard_errors") or []
+    # light_refinement is not checked field by field (_results): take only well-formed parts.
+    refinement = d.summary.get("light_refinement")
+    refinement = refinement if isinstance(refinement, dict) else {}
+    listed = refinement.get("changes")
+    changes = {c.get("light"): c for c in listed if isinstance(c, dict)} if isinstance(listed, list) else {}
+    errors = refinement.get("standard_errors")
+    errors = errors if isinstance(errors, list) else []
     shadows = (d.summary.get("cast_shadows") or {}).get("per_light") or []
     head = ["light", "RMS residual", "held-out RMS residual", "mean image value", "pixels", "intensity"]
     if changes:
@@ -766,20 +770,23 @@ def _light_table(d: _Data, trust: dict[str, Any]) -> str:
     rows = []
     for row in lights:
         i = int(row["light"])
-        cells = [str(i), _cell(row.get("residual")), _cell(row.get("held_out")), _cell(row.get("mean_intensity"))]
+        cells = [str(i), *(_number_cell(row.get(k)) for k in ("residual", "held_out", "mean_intensity"))]
         cells.append(str(row.get("pixels", "")))
         intensity = "n/a"
         if rig is not None and i < rig.n_lights:
             intensity = _fmt(float(np.mean(rig.intensities[i])))
         cells.append(intensity)
         if changes:
-            c, se = changes.get(i, {}), errors[i] if i < len(errors) else [None] * 4
-            cells.append(f"{_cell(c.get('intensity_factor'))} ± {_cell(se[0])}")
+            c = changes.get(i, {})
+            se = errors[i] if i < len(errors) and isinstance(errors[i], list) and len(errors[i]) == 4 else [None] * 4
+            cells.append(f"{_number_cell(c.get('intensity_factor'))} ± {_number_cell(se[0])}")
             shift = c.get("position_shift")
-            if shift is None:
-                cells.append("n/a")
+            if isinstance(shift, list) and len(shift) == 3:
+                cells.append(
+                    ", ".join(f"{_number_cell(v)} ± {_number_cell(e)}" for v, e in zip(shift, se[1:4], strict=True))
+                )
             else:
-                cells.append(", ".join(f"{_fmt(v)} ± {_cell(e)}" for v, e in zip(shift, se[1:4], strict=False)))
+                cells.append("n/a")
         if shadows:
             cells.append(f"{100 * float(shadows[i]):.1f} %" if i < len(shadows) else "n/a")
         rows.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
@@ -792,6 +799,13 @@ def _light_table(d: _Data, trust: dict[str, Any]) -> str:
         + ". A light whose held-out residual stands out from the others is the first to check.</p>"
     )
     return f"<h3>Per light</h3>{caption}<table>{header}{''.join(rows)}</table>"
+
+
+def _number_cell(v: Any) -> str:
+    """Return a number's cell, "n/a" for None or anything that is not a number."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return "n/a"
+    return _fmt(float(v))
 
 
 def _cell(v: Any) -> str:
