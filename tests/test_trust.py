@@ -98,6 +98,7 @@ def test_saved_maps_summary_and_report(tmp_path: Path) -> None:
     rows = re.findall(r"<tr><td>(\d+)</td>", body)
     assert rows == [str(i) for i in range(scene.rig.n_lights)]
     assert "±" in body and "cast-shadow share" in body  # the refinement's standard errors, the shadows
+    assert "position shift" not in body  # intensities refined, positions not
     # Order: after the held-out section.
     assert text.index("<section id='held-out'>") < text.index("<section id='trust'>")
     # A map removed: the section says so.

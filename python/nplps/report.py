@@ -763,8 +763,9 @@ def _light_table(d: _Data, trust: dict[str, Any]) -> str:
     errors = errors if isinstance(errors, list) else []
     shadows = (d.summary.get("cast_shadows") or {}).get("per_light") or []
     head = ["light", "RMS residual", "held-out RMS residual", "mean image value", "pixels", "intensity"]
+    positions = refinement.get("mode") in ("position", "both")
     if changes:
-        head += ["refined intensity factor ± SE", "position shift ± SE"]
+        head += ["refined intensity factor ± SE"] + (["position shift ± SE"] if positions else [])
     if shadows:
         head += ["cast-shadow share"]
     rows = []
@@ -781,7 +782,9 @@ def _light_table(d: _Data, trust: dict[str, Any]) -> str:
             se = errors[i] if i < len(errors) and isinstance(errors[i], list) and len(errors[i]) == 4 else [None] * 4
             cells.append(f"{_number_cell(c.get('intensity_factor'))} ± {_number_cell(se[0])}")
             shift = c.get("position_shift")
-            if isinstance(shift, list) and len(shift) == 3:
+            if not positions:
+                pass
+            elif isinstance(shift, list) and len(shift) == 3:
                 cells.append(
                     ", ".join(f"{_number_cell(v)} ± {_number_cell(e)}" for v, e in zip(shift, se[1:4], strict=True))
                 )
