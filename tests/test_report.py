@@ -25,6 +25,7 @@ SECTIONS = (
     "convergence",
     "distance",
     "held-out",
+    "trust",
     "options",
 )
 

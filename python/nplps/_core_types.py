@@ -270,6 +270,20 @@ class ReconstructionDict(_ReconstructionBase, total=False):
     #: With ``shadows``: the final level's cast shadows, bit-packed (H, W, ceil(k / 64)) words
     #: (bit k % 64 of word k // 64 is light k).
     shadow_bits: npt.NDArray[np.uint64]
+    #: Near-light runs: the (H, W) float32 normal uncertainty (degrees) and leave-one-light-out
+    #: error (image units), and per-light residuals (see :class:`LightTrustDict`).
+    normal_sigma: npt.NDArray[np.float32]
+    held_out_error: npt.NDArray[np.float32]
+    light_trust: LightTrustDict
+
+
+class LightTrustDict(TypedDict):
+    """Per light (arrays of k): RMS residual, RMS leave-one-out residual, mean observation, facets."""
+
+    residual: F64
+    held_out: F64
+    mean_intensity: F64
+    facets: F64
 
 
 class SceneDict(TypedDict):

@@ -250,6 +250,8 @@ class Result(Protocol):
     lobe: Lobe | None
     specular: np.ndarray | None
     shadow_bits: np.ndarray | None
+    normal_sigma: np.ndarray | None
+    held_out_error: np.ndarray | None
 
     @property
     def shape(self) -> tuple[int, int]: ...

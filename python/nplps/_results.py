@@ -216,6 +216,22 @@ _SUMMARY_TYPES: dict[str, tuple[str, Any]] = {
             )
         ),
     ),
+    "trust": (
+        "null or an object with a list of lights (objects of numbers or nulls)",
+        lambda v: (
+            v is None
+            or (
+                isinstance(v, dict)
+                and isinstance(v.get("lights"), list)
+                and all(
+                    isinstance(row, dict)
+                    and _is_int(row.get("light"))
+                    and all(x is None or _is_number(x) for x in row.values())
+                    for row in v["lights"]
+                )
+            )
+        ),
+    ),
     "distance_check": (
         "null or an object with numbers given, found, ratio and looks_wrong true or false",
         lambda v: (

@@ -56,8 +56,10 @@ __all__ = [
     "SphereReport",
     "calibrate_intensities",
     "calibrate_spheres",
+    "compare_lights",
     "light_table",
     "load_camera",
+    "reference_summary",
     "save_camera",
 ]
 
@@ -122,6 +124,16 @@ class LightReport:
     spheres: int
     #: Why the light is not a located point light, if it is not.
     warning: str | None
+    #: Standard error of the position (x, y, z; scene units) that the images' precision gives
+    #: (point lights seen on 2 or more spheres, else None): each mirror ray's angle is off by
+    #: twice the sphere normal's error, ``2 sqrt(outline_sigma^2 + highlight_sigma^2) / image
+    #: radius`` (pixels: the outline's precision and the joint refinement's highlight
+    #: precision, 0.03 px without it), and the rays are triangulated with those weights. The
+    #: given centre depth, the radius and the camera are taken as exact (docs/calibration.md).
+    standard_error: np.ndarray | None = None
+    #: A distant light's direction error (degrees; NaN otherwise) from the same ray precisions:
+    #: the RMS angle between the found and the true direction (both axes).
+    direction_se: float = float("nan")
 
 
 @dataclass
@@ -171,6 +183,13 @@ class SphereCalibration:
         ]
         return Rig(camera=self.camera, lights=lights)
 
+    def rig_or_none(self) -> Rig | None:
+        """Return :attr:`rig`, or None when a light was not seen on any sphere."""
+        try:
+            return self.rig
+        except RigError:
+            return None
+
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the calibrated rig file (see :attr:`rig`)."""
         self.rig.save(path)
@@ -181,10 +200,14 @@ class SphereCalibration:
 
 
 def light_table(lights: Sequence[LightReport]) -> str:
-    """Return a text table of light reports: kind, position or direction, spheres, miss and angle."""
+    """Return a text table of light reports: kind, position or direction, spheres, miss, angle, standard error.
+
+    The ``se`` column is the length of the position's standard error (scene units) for a point
+    light, the direction's (degrees) for a distant one.
+    """
     lines = [
         f"{'light':>5}  {'kind':<11} {'x / dx':>10} {'y / dy':>10} {'z / dz':>10} {'spheres':>7} "
-        f"{'rms miss':>9} {'rms angle':>9} {'spread':>7}  note"
+        f"{'rms miss':>9} {'rms angle':>9} {'spread':>7} {'se':>9}  note"
     ]
     for rep in lights:
         vec = rep.position if rep.kind == "point" else rep.direction
@@ -198,9 +221,144 @@ def light_table(lights: Sequence[LightReport]) -> str:
         angle = f"{rep.rms_angle:>8.3f}°" if np.isfinite(rep.rms_angle) else f"{'-':>9}"
         spread = f"{rep.spread:>6.2f}°" if rep.spheres > 1 else f"{'-':>7}"
         note = rep.warning or ""
-        row = f"{rep.index:>5}  {rep.kind:<11} {cells} {rep.spheres:>7} {miss} {angle} {spread}  {note}"
+        se_value = _se_length(rep)
+        if not np.isfinite(se_value):
+            se = f"{'-':>9}"
+        elif rep.kind == "point":
+            se = f"{se_value:>9.3f}"
+        else:
+            se = f"{se_value:>8.3f}°"
+        row = f"{rep.index:>5}  {rep.kind:<11} {cells} {rep.spheres:>7} {miss} {angle} {spread} {se}  {note}"
         lines.append(row.rstrip())
     return "\n".join(lines)
+
+
+def _se_length(rep: LightReport) -> float:
+    """Return the length of a light's position standard error, or its direction's (degrees); NaN if none."""
+    if rep.kind == "point":
+        return float("nan") if rep.standard_error is None else float(np.linalg.norm(rep.standard_error))
+    return rep.direction_se
+
+
+def _ray_standard_errors(
+    kind: str, vector: np.ndarray | None, origins: np.ndarray, directions: np.ndarray, angle_sigma: np.ndarray
+) -> tuple[np.ndarray | None, float]:
+    """Return a light's position standard error (x, y, z) and direction standard error (degrees) from its rays.
+
+    `origins` and `directions` are the light's (S, 3) rays (NaN rows where none), `angle_sigma`
+    each ray's angular standard deviation (radians, see :func:`_ray_angle_sigma`). A ray at
+    distance L from a point light constrains it across the ray with the standard deviation
+    ``angle_sigma * L``; the covariance of the position is the inverse of
+    ``sum (I - d d^T) / (angle_sigma L)^2``. A distant light's direction (the rays' mean) is off
+    by ``sqrt(2 / sum angle_sigma^-2)`` RMS (two axes). See :attr:`LightReport.standard_error`.
+    """
+    ok = np.isfinite(origins).all(axis=1) & np.isfinite(directions).all(axis=1) & np.isfinite(angle_sigma)
+    o, d, sigma = origins[ok], directions[ok], angle_sigma[ok]
+    if vector is None or len(o) < (2 if kind == "point" else 1):
+        return None, float("nan")
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    if kind == "point":
+        reach = np.linalg.norm(vector[None] - o, axis=1)
+        across = np.maximum(sigma * reach, 1e-12)
+        projectors = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        a = np.sum(projectors / across[:, None, None] ** 2, axis=0)
+        try:
+            cov = np.linalg.inv(a)
+        except np.linalg.LinAlgError:
+            return None, float("nan")
+        return np.sqrt(np.maximum(np.diag(cov), 0.0)), float("nan")
+    return None, float(np.degrees(np.sqrt(2.0 / np.sum(sigma**-2.0))))
+
+
+def _ray_angle_sigma(sphere: SphereReport, highlight_sigma: float) -> float:
+    """Return the angular standard deviation (radians) of a mirror ray off `sphere`.
+
+    The sphere's normal at the highlight is off by the error of its centre (the outline's
+    precision, :attr:`SphereReport.outline_sigma`) and of the highlight's position
+    (`highlight_sigma`), both in pixels, over the sphere's image radius; the mirror ray turns by
+    twice that.
+    """
+    return 2.0 * float(np.hypot(sphere.outline_sigma, highlight_sigma)) / max(sphere.image_radius, 1e-9)
+
+
+def compare_lights(calibrated: Rig, reference: Rig, distance: float) -> list[dict[str, Any]]:
+    """Compare calibrated lights with a reference rig's (e.g. a synthetic scene's ``rig_true.json``).
+
+    Parameters
+    ----------
+    calibrated, reference : Rig
+        Rigs with the same number of lights in the same order.
+    distance : float
+        The working distance the position errors are given as a percentage of.
+
+    Returns
+    -------
+    list of dict
+        Per light: ``light``, ``kind`` ("point" or "directional", the calibrated light's),
+        ``position_error`` (the distance between the positions, scene units; None unless both
+        are point lights), ``position_error_percent`` (of `distance`), ``offset`` (calibrated -
+        reference, x, y, z), ``direction_error`` (degrees, between the directions of two distant
+        lights, else None) and ``intensity_error_percent`` (calibrated / reference - 1, in %,
+        after scaling both rigs' intensities to a geometric mean of 1 over the lights and
+        channels).
+
+    Raises
+    ------
+    InputError
+        The rigs have different numbers of lights, or `distance` is not positive.
+    """
+    if calibrated.n_lights != reference.n_lights:
+        raise InputError(
+            f"the reference rig has {reference.n_lights} lights but the calibration {calibrated.n_lights}: "
+            "give the reference of the same lights, in the same order"
+        )
+    if not (np.isfinite(distance) and distance > 0):
+        raise InputError(f"the working distance must be positive, got {distance}")
+
+    def relative(rig: Rig) -> np.ndarray:
+        phi = np.asarray(rig.intensities, dtype=np.float64)
+        return phi / np.exp(np.mean(np.log(phi)))
+
+    ratio = np.mean(relative(calibrated) / relative(reference), axis=1)
+    rows = []
+    for i in range(calibrated.n_lights):
+        row: dict[str, Any] = {
+            "light": i,
+            "kind": "directional" if calibrated.directional[i] else "point",
+            "position_error": None,
+            "position_error_percent": None,
+            "offset": None,
+            "direction_error": None,
+            "intensity_error_percent": float(100 * (ratio[i] - 1)),
+        }
+        if not calibrated.directional[i] and not reference.directional[i]:
+            offset = calibrated.positions[i] - reference.positions[i]
+            error = float(np.linalg.norm(offset))
+            row.update(
+                position_error=error,
+                position_error_percent=100 * error / distance,
+                offset=[float(v) for v in offset],
+            )
+        elif calibrated.directional[i] and reference.directional[i]:
+            cos = float(np.clip(calibrated.directions[i] @ reference.directions[i], -1.0, 1.0))
+            row["direction_error"] = float(np.degrees(np.arccos(cos)))
+        rows.append(row)
+    return rows
+
+
+def reference_summary(rows: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """Return the RMS and largest errors of :func:`compare_lights` rows (None where no light has one)."""
+
+    def stats(key: str) -> tuple[float | None, float | None]:
+        values = np.array([r[key] for r in rows if r[key] is not None], dtype=np.float64)
+        if not values.size:
+            return None, None
+        return float(np.sqrt(np.mean(values**2))), float(np.max(np.abs(values)))
+
+    out: dict[str, float | None] = {}
+    for key in ("position_error", "position_error_percent", "direction_error", "intensity_error_percent"):
+        out[f"{key}_rms"], out[f"{key}_max"] = stats(key)
+    return out
 
 
 @dataclass
@@ -228,6 +386,17 @@ class IntensityCalibration:
     iterations: int = 0
     warnings: list[str] = field(default_factory=list)
 
+    @property
+    def standard_errors(self) -> np.ndarray:
+        """(k,) relative standard error of each light's intensity from its residual: ``rms / sqrt(observations)``.
+
+        The error of a scale fitted to the light's observations alone; it leaves out the fitted
+        LED shape (mu, axis) and the error of the light positions, which the intensities
+        absorb (docs/calibration.md).
+        """
+        obs = np.maximum(np.asarray(self.observations, dtype=np.float64), 1.0)
+        return np.where(np.asarray(self.observations) > 0, np.asarray(self.rms) / np.sqrt(obs), np.nan)
+
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the calibrated rig file."""
         self.rig.save(path)
@@ -236,12 +405,15 @@ class IntensityCalibration:
         """Return the per-light report as a text table."""
         c = self.intensities.shape[1]
         head = "intensity" if c == 1 else "intensity R, G, B"
-        lines = [f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'obs':>8}"]
+        lines = [
+            f"{'light':>5}  {'kind':<11} {head:>{10 if c == 1 else 32}} {'mu':>6} {'rms %':>7} {'se %':>7} {'obs':>8}"
+        ]
+        se = self.standard_errors
         for i in range(self.intensities.shape[0]):
             kind = "directional" if self.rig.directional[i] else "point"
             phi = " ".join(f"{v:>10.5f}" for v in self.intensities[i])
             rms, obs = 100 * self.rms[i], int(self.observations[i])
-            lines.append(f"{i:>5}  {kind:<11} {phi} {self.mu[i]:>6.3f} {rms:>7.3f} {obs:>8}")
+            lines.append(f"{i:>5}  {kind:<11} {phi} {self.mu[i]:>6.3f} {rms:>7.3f} {100 * se[i]:>7.4f} {obs:>8}")
         return "\n".join(lines)
 
 
@@ -496,8 +668,20 @@ def calibrate_spheres(
         for j, s in enumerate(d["spheres"])
     ]
     lights = []
+    obs = d["observations"]
+    refinement = d.get("refinement")
+    # Highlights without the joint refinement: their sub-pixel centroid taken to 0.03 px.
+    highlight_sigma = float(refinement["highlight_sigma"]) if refinement else 0.03
+    angle_sigma = np.array([_ray_angle_sigma(sp, highlight_sigma) for sp in spheres])
     for i, rep in enumerate(d["lights"]):
         vec = None if rep["vector"] is None else np.array(rep["vector"])
+        se, direction_se = _ray_standard_errors(
+            rep["kind"],
+            vec,
+            np.asarray(obs["origin"][i], dtype=np.float64),
+            np.asarray(obs["direction"][i], dtype=np.float64),
+            angle_sigma,
+        )
         lights.append(
             LightReport(
                 index=i,
@@ -509,9 +693,10 @@ def calibrate_spheres(
                 spread=float(rep["spread"]),
                 spheres=int(rep["spheres"]),
                 warning=rep["warning"],
+                standard_error=se,
+                direction_se=direction_se,
             )
         )
-    obs = d["observations"]
     k, ns = obs["peak"].shape
     status = [list(obs["status"][i * ns : (i + 1) * ns]) for i in range(k)]
     notes = [*_same_places(spheres, stacks, float(radius)), *_small_spheres(spheres), *d["warnings"]]

@@ -1661,6 +1661,15 @@ def save_albedo_exr(path: PathLike, albedo: np.ndarray) -> None:
         raise InputError(f"albedo must have shape (H, W) or (H, W, 3), got {a.shape}")
 
 
+def save_map_tiff(path: PathLike, values: np.ndarray) -> None:
+    """Save a per-pixel (H, W) map as a float32 TIFF (NaN kept), e.g. ``normal_sigma.tiff``."""
+    values = np.asarray(values, dtype=np.float32)
+    if values.ndim != 2:
+        raise InputError(f"a map must be a 2-D array, got shape {values.shape}")
+    with atomic_path(path) as temporary:
+        tifffile.imwrite(temporary, values)
+
+
 def _depth_array(depth: np.ndarray, dtype: type) -> np.ndarray:
     """Convert ``depth`` to a 2-D array of ``dtype``; raise InputError otherwise."""
     depth = np.asarray(depth, dtype=dtype)
@@ -1833,6 +1842,8 @@ def write_result(
         names.update(specular_npy="specular.npy", specular="specular.png")
     if result.shadow_bits is not None:  # shadows=True: the cast shadows the fits left out
         names.update(shadows_npy="shadows.npy", shadows="shadows.png")
+    if result.normal_sigma is not None and result.held_out_error is not None:  # near-light runs: the trust maps
+        names.update(normal_sigma="normal_sigma.tiff", held_out_error="held_out_error.tiff")
     if result.distance is not None:
         names.update(distance_curve="distance_curve.csv", distance_plot="distance_curve.svg")
     if result.refinement is not None:
@@ -1883,6 +1894,9 @@ def write_result(
         assert shadowed is not None
         share = np.where(result.mask, shadowed.mean(axis=0), 0.0)
         save_grey_png(paths["shadows"], share)
+    if result.normal_sigma is not None and result.held_out_error is not None:
+        save_map_tiff(paths["normal_sigma"], result.normal_sigma)
+        save_map_tiff(paths["held_out_error"], result.held_out_error)
     if result.distance is not None:
         result.distance.save_curve(paths["distance_curve"])
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])

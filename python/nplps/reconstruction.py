@@ -154,6 +154,22 @@ class Reconstruction:
     noise : float or None
         The image noise (standard deviation, on the scale of the loaded images) that
         :func:`nplps.estimate_noise` measured for the default `dark`; None when ``dark`` was given.
+    normal_sigma : numpy.ndarray or None
+        Near-light runs: the predicted uncertainty of each pixel's fitted normal (H, W) float32,
+        degrees: ``sqrt(trace Cov(n))``, the RMS angle between the fitted and the true normal that
+        the image noise alone gives, from the covariance ``s^2 (S^T W S)^-1`` of the pixel's
+        linear Lambertian fit at the final surface (``s^2`` its residual variance) projected on
+        the tangent plane (docs/trust.md). NaN outside the mask and where fewer than 4 lights
+        were usable. Under the glossy model it is the Lambertian fit's. None for the baseline.
+    held_out_error : numpy.ndarray or None
+        Near-light runs: each pixel's leave-one-light-out re-rendering error (H, W) float32,
+        image units: the mean over its usable lights of ``|I_k - prediction of I_k by a fit
+        without light k|`` (the linear Lambertian fit's ``e_k / (1 - h_kk)``). NaN as
+        `normal_sigma`.
+    light_trust : dict of str to numpy.ndarray or None
+        Near-light runs, per light (arrays of k): ``residual`` (RMS residual of its observations,
+        image units), ``held_out`` (RMS leave-one-out residual), ``mean_intensity`` (mean usable
+        observation) and ``facets`` (pixels that used it), from the same fits.
 
     Notes
     -----
@@ -189,6 +205,9 @@ class Reconstruction:
     shadow_bits: np.ndarray | None = None
     dark: float | None = None
     noise: float | None = None
+    normal_sigma: np.ndarray | None = None
+    held_out_error: np.ndarray | None = None
+    light_trust: dict[str, np.ndarray] | None = None
 
     @classmethod
     def _from_core(
@@ -231,6 +250,9 @@ class Reconstruction:
             shadow_bits=out.get("shadow_bits"),
             dark=dark,
             noise=noise,
+            normal_sigma=out.get("normal_sigma"),
+            held_out_error=out.get("held_out_error"),
+            light_trust=None if "light_trust" not in out else {k: np.asarray(v) for k, v in out["light_trust"].items()},
         )
 
     def light_changes(self) -> list[dict[str, Any]]:
@@ -244,6 +266,43 @@ class Reconstruction:
         if self.input_rig is None:
             return []
         return light_changes(self.input_rig, self.rig)
+
+    def _trust_summary(self) -> dict[str, Any] | None:
+        """Return the trust figures of ``summary.json`` (None without them: the parallel baseline)."""
+        if self.normal_sigma is None or self.held_out_error is None:
+            return None
+        inside = self.mask & np.isfinite(self.normal_sigma) & np.isfinite(self.held_out_error)
+        sigma = np.asarray(self.normal_sigma, dtype=np.float64)[inside]
+        held = np.asarray(self.held_out_error, dtype=np.float64)[inside]
+        lights = []
+        if self.light_trust is not None:
+            t = self.light_trust
+            for i in range(len(t["residual"])):
+                lights.append(
+                    {
+                        "light": i,
+                        "residual": _finite(t["residual"][i]),
+                        "held_out": _finite(t["held_out"][i]),
+                        "mean_intensity": _finite(t["mean_intensity"][i]),
+                        "pixels": int(t["facets"][i]),
+                    }
+                )
+        if not sigma.size:
+            return {"pixels": 0, "normal_sigma_deg": None, "held_out_error": None, "lights": lights}
+        return {
+            "pixels": int(sigma.size),
+            "normal_sigma_deg": {
+                "median": float(np.median(sigma)),
+                "p90": float(np.percentile(sigma, 90)),
+                "rms": float(np.sqrt(np.mean(sigma**2))),
+            },
+            "held_out_error": {
+                "mean": float(np.mean(held)),
+                "median": float(np.median(held)),
+                "p90": float(np.percentile(held, 90)),
+            },
+            "lights": lights,
+        }
 
     def _shadow_summary(self) -> dict[str, Any] | None:
         """With ``shadows=True``: the share of the masked observations in a cast shadow, overall and per light."""
@@ -578,7 +637,10 @@ class Reconstruction:
             residual, unfitted pixels, depth range, timings, estimated distance, light
             refinement, the shadow threshold used (``dark``), the noise estimate (``noise``), the
             reflectance model (``reflectance``: "lambertian" or "glossy") and the glossy model's
-            lobe (``lobe``: ``{"roughness": ..., "eta": ...}``, None under the Lambertian model).
+            lobe (``lobe``: ``{"roughness": ..., "eta": ...}``, None under the Lambertian model) and
+            ``trust`` (near-light runs: ``normal_sigma_deg`` and ``held_out_error`` with their
+            median, 90th percentile and RMS or mean over the fitted pixels, and ``lights``, one
+            row per light of :attr:`light_trust`; None for the baseline).
         """
         last = self.history[-1] if self.history else None
         return {
@@ -604,6 +666,7 @@ class Reconstruction:
             "dark": None if self.dark is None else float(self.dark),
             "noise": None if self.noise is None else float(self.noise),
             "cast_shadows": self._shadow_summary(),
+            "trust": self._trust_summary(),
             "reflectance": "lambertian" if self.lobe is None else "glossy",
             "lobe": None if self.lobe is None else {"roughness": self.lobe.roughness, "eta": self.lobe.eta},
         }
@@ -638,7 +701,9 @@ class Reconstruction:
         ``specular_png_scale`` in ``summary.json``);
         with ``depth="auto"`` also ``distance_curve.csv`` and ``distance_curve.svg``; with
         refined lights also ``rig_refined.json`` (the refined rig file); and last the manifest
-        ``nplps-manifest.json`` listing the files written.
+        ``nplps-manifest.json`` listing the files written. Near-light results also write
+        ``normal_sigma.tiff`` and ``held_out_error.tiff`` (float32 maps of :attr:`normal_sigma`
+        and :attr:`held_out_error`; docs/trust.md).
 
         What the report (:mod:`nplps.report`) needs is always written, so that ``nplps report
         DIR`` can make it later: ``mask.png`` (8-bit, 255 in the mask), ``lights_used.npy`` (the
@@ -740,6 +805,11 @@ class Reconstruction:
                 paths["report"] = out.file(report_module.REPORT_NAME)
                 report_module.write_report(out.path, path=paths["report"])
         return paths
+
+
+def _finite(v: Any) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None
 
 
 def _refinement(d: dict[str, Any] | None) -> LightRefinement | None:

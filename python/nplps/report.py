@@ -21,7 +21,9 @@ needs no network, no script and no other file. Its sections, in order:
    and seen from 35 degrees above;
 6. the convergence history (the largest depth change of each iteration, log scale), the
    distance curve (``depth="auto"``) and the held-out table with its reading (when
-   ``held_out.json`` exists);
+   ``held_out.json`` exists), the normal-uncertainty and leave-one-light-out maps with the
+   per-light table (``normal_sigma.tiff``, ``held_out_error.tiff``, ``trust`` in
+   ``summary.json``; docs/trust.md);
 7. the timings, all the options used (when recorded) and the rest of ``summary.json``.
 
 A section without data says so in one line.
@@ -43,6 +45,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import tifffile
 
 from . import _core, _results, export, plots, views
 from ._atomic import write_text
@@ -329,6 +332,7 @@ def report_html(directory: str | os.PathLike[str]) -> str:
         _section_convergence(d),
         _section_distance(d),
         _section_held_out(d),
+        _section_trust(d),
         _section_options(d),
     ]
     title = html.escape(f"nplps report: {d.name}")
@@ -741,6 +745,141 @@ def _section_held_out(d: _Data) -> str:
     return _section("Held-out lights", body, "held-out")
 
 
+def _trust_map(d: _Data, name: str) -> np.ndarray | None:
+    """Return a float32 (H, W) trust map of the directory (``normal_sigma.tiff``...), or None when missing."""
+    key = f"trust:{name}"
+    if key not in d._cache:
+        p = d.root / name
+        value = None
+        if os.path.lexists(p):
+            try:
+                _results._open_regular(p)[0].close()
+                value = np.asarray(tifffile.imread(p))
+            except (OSError, ValueError) as e:
+                raise _results.damaged(p, f"not a readable TIFF ({e})") from None
+            if value.shape != d.shape or value.dtype.kind != "f":
+                raise _results.damaged(
+                    p, f"expected a float ({d.shape[0]}, {d.shape[1]}) map, got {value.dtype} {value.shape}"
+                )
+            mask = d.mask
+            value = value.astype(np.float64)
+            if mask is not None and mask.shape == value.shape:
+                value = np.where(mask, value, np.nan)
+        d._cache[key] = value
+    return d._cache[key]
+
+
+def _trust_figure(d: _Data, name: str, text: str, label: str) -> str:
+    values = _trust_map(d, name)
+    if values is None:
+        return _none(f"{text}: not available ({name} is missing).")
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return _none(f"{text}: no finite value in the mask.")
+    hi = float(np.percentile(finite, 99))
+    hi = hi if hi > 0 else float(finite.max()) or 1.0
+    caption = (
+        f"{text}; colour scale 0 .. {_fmt(hi)} (the 99th percentile; median {_fmt(float(np.median(finite)))}, "
+        f"90th percentile {_fmt(float(np.percentile(finite, 90)))})" + d.crop_note
+    )
+    return _mapped(d.cropped(values), 0.0, hi, caption, label)
+
+
+def _section_trust(d: _Data) -> str:
+    """Return the uncertainty and leave-one-light-out maps and the per-light table (``summary["trust"]``)."""
+    trust = d.summary.get("trust")
+    if not isinstance(trust, dict):
+        return _section(
+            "Uncertainty and held-out error",
+            _none("No uncertainty maps (a parallel-light baseline, or a result saved before they existed)."),
+            "trust",
+        )
+    figures = _trust_figure(
+        d,
+        "normal_sigma.tiff",
+        "Predicted normal uncertainty (degrees): the RMS angle between each pixel's fitted normal and the "
+        "true one that the image noise alone gives, from the covariance of its Lambertian fit (4 or more lights)",
+        "normal σ (°)",
+    ) + _trust_figure(
+        d,
+        "held_out_error.tiff",
+        "Leave-one-light-out error (image units): the mean over each pixel's lights of |I_k − the prediction "
+        "of I_k by a fit without light k|",
+        "held-out error",
+    )
+    note = (
+        "<p>Both maps come from each pixel's linear Lambertian fit at the final surface (under the glossy "
+        "model too). The uncertainty counts the image noise and what the model does not explain (the "
+        "residual) but not an error of the rig (lights, distance): those bend normals alike without "
+        "raising the residual. A held-out error well above the residual means the pixel's fit leans on "
+        "single lights.</p>"
+    )
+    return _section("Uncertainty and held-out error", figures + note + _light_table(d, trust), "trust")
+
+
+def _light_table(d: _Data, trust: dict[str, Any]) -> str:
+    """Per light: residual, held-out residual, mean observation, pixels, intensity, refinement ± SE, shadow share."""
+    lights = trust.get("lights") or []
+    if not lights:
+        return ""
+    rig = d.rig
+    # light_refinement is not checked field by field (_results): take only well-formed parts.
+    refinement = d.summary.get("light_refinement")
+    refinement = refinement if isinstance(refinement, dict) else {}
+    listed = refinement.get("changes")
+    changes = {c.get("light"): c for c in listed if isinstance(c, dict)} if isinstance(listed, list) else {}
+    errors = refinement.get("standard_errors")
+    errors = errors if isinstance(errors, list) else []
+    shadows = (d.summary.get("cast_shadows") or {}).get("per_light") or []
+    head = ["light", "RMS residual", "held-out RMS residual", "mean image value", "pixels", "intensity"]
+    positions = refinement.get("mode") in ("position", "both")
+    if changes:
+        head += ["refined intensity factor ± SE"] + (["position shift ± SE"] if positions else [])
+    if shadows:
+        head += ["cast-shadow share"]
+    rows = []
+    for row in lights:
+        i = int(row["light"])
+        cells = [str(i), *(_number_cell(row.get(k)) for k in ("residual", "held_out", "mean_intensity"))]
+        cells.append(str(row.get("pixels", "")))
+        intensity = "n/a"
+        if rig is not None and i < rig.n_lights:
+            intensity = _fmt(float(np.mean(rig.intensities[i])))
+        cells.append(intensity)
+        if changes:
+            c = changes.get(i, {})
+            se = errors[i] if i < len(errors) and isinstance(errors[i], list) and len(errors[i]) == 4 else [None] * 4
+            cells.append(f"{_number_cell(c.get('intensity_factor'))} ± {_number_cell(se[0])}")
+            shift = c.get("position_shift")
+            if not positions:
+                pass
+            elif isinstance(shift, list) and len(shift) == 3:
+                cells.append(
+                    ", ".join(f"{_number_cell(v)} ± {_number_cell(e)}" for v, e in zip(shift, se[1:4], strict=True))
+                )
+            else:
+                cells.append("n/a")
+        if shadows:
+            cells.append(f"{100 * float(shadows[i]):.1f} %" if i < len(shadows) else "n/a")
+        rows.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
+    header = "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"
+    caption = (
+        "<p>Per light, over the pixels whose fit used it: residuals in image units (held-out: predicted by "
+        "the pixel's fit without that light), the rig's intensity"
+        + (" (the refined rig's; the refinement's change and standard error beside it)" if changes else "")
+        + (", and the share of masked pixels in its cast shadow" if shadows else "")
+        + ". A light whose held-out residual stands out from the others is the first to check.</p>"
+    )
+    return f"<h3>Per light</h3>{caption}<table>{header}{''.join(rows)}</table>"
+
+
+def _number_cell(v: Any) -> str:
+    """Return a number's cell, "n/a" for None or anything that is not a number."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return "n/a"
+    return _fmt(float(v))
+
+
 def _cell(v: Any) -> str:
     return "n/a" if v is None else _fmt(float(v))
 
@@ -783,7 +922,7 @@ def _section_options(d: _Data) -> str:
     else:
         parts.append(_none("The options were not recorded (saved from the Python API without options=)."))
     parts.append("<h3>summary.json</h3>")
-    rest = [(k, json.dumps(v)) for k, v in s.items() if k not in ("timings", "options")]
+    rest = [(k, json.dumps(v)) for k, v in s.items() if k not in ("timings", "options", "trust")]  # trust: its section
     parts.append(_table(rest))
     return _section("Timings and options", "".join(parts), "options")
 

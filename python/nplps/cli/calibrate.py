@@ -190,8 +190,23 @@ def _add_spheres_parser(sub: Any, formatter: Any) -> None:
     p.add_argument("--no-refine", action="store_true", help="skip the joint refinement of spheres and lights")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
     p.add_argument("--report", metavar="JSON", help="also write the per-light and per-sphere report as JSON")
+    p.add_argument("--reference", metavar="RIG", help=REFERENCE_HELP)
+    p.add_argument(
+        "--working-distance",
+        type=float,
+        metavar="D",
+        help="with --reference: the distance the position errors are a percentage of (default: the mean depth "
+        "of the sphere centres)",
+    )
     p.add_argument("--overwrite", action="store_true", help=FILE_OVERWRITE_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no notes on stderr")
+
+
+REFERENCE_HELP = (
+    "a rig file with the true lights (e.g. rig_true.json of nplps synth-calibration): print and report "
+    "each light's error against it (positions in scene units and %% of the working distance, directions, "
+    "relative intensities)"
+)
 
 
 def _add_intensity_parser(sub: Any, formatter: Any) -> None:
@@ -221,6 +236,8 @@ def _add_intensity_parser(sub: Any, formatter: Any) -> None:
     )
     p.add_argument("--color", action="store_true", help="fit R, G, B intensities of colour images (a white board)")
     p.add_argument("--out", "-o", required=True, metavar="RIG", help="the calibrated rig file to write")
+    p.add_argument("--report", metavar="JSON", help="also write the per-light report as JSON")
+    p.add_argument("--reference", metavar="RIG", help=REFERENCE_HELP)
     p.add_argument("--overwrite", action="store_true", help=FILE_OVERWRITE_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no notes on stderr")
 
@@ -316,9 +333,12 @@ def _cmd_spheres(args: argparse.Namespace) -> int:
     if args.count is not None and args.count < 1:
         raise InputError(f"--count must be at least 1 (spheres per placement), got {args.count}")
     _refuse_existing(args, "--out", "--report")
+    if args.working_distance is not None and not (np.isfinite(args.working_distance) and args.working_distance > 0):
+        raise InputError(f"--working-distance must be positive, got {args.working_distance}")
     if os.path.isdir(args.camera):
         raise InputError(f"--camera '{args.camera}' is a directory, not a rig file")
     rig = load_camera(args.camera)
+    reference = _load_reference(args)
     dirs = _placement_dirs(args.placements)
     n = len(args.placements) if dirs else 1
     masks: list[Any] | None = None
@@ -378,17 +398,96 @@ def _cmd_spheres(args: argparse.Namespace) -> int:
         )
     print()
     print(result.table())
+    print(
+        "  (se: standard error of the position, scene units, or of the direction, degrees, from the scatter "
+        "of the light's rays; the spheres' own errors are not in it)"
+    )
+    comparison = None
+    if reference is not None:
+        if args.working_distance is not None:
+            distance, what = float(args.working_distance), "given"
+        else:
+            distance, what = float(np.mean([sp.center[2] for sp in result.spheres])), "the spheres' mean depth"
+        comparison = _compare(args.reference, reference, result.rig_or_none(), distance, what, intensities=False)
     for w in result.warnings:
         _note(f"{PROG}: warning: {w}")
     if args.report:
-        _write_report(args.report, result)
+        _write_report(args.report, result, comparison)
     out_rig = result.rig  # raises RigError when a light was not seen
     out_rig.save(args.out)
     print(f"\nwrote {args.out} ({describe_rig(out_rig)}, unit intensities)")
     return 0
 
 
-def _write_report(path: str, result: Any) -> None:
+def _load_reference(args: argparse.Namespace) -> Any:
+    """Return the ``--reference`` rig (read before any work, so that a bad file fails first), or None."""
+    from .inputs import load_rig
+
+    return None if args.reference is None else load_rig(args.reference)
+
+
+def _compare(
+    path: str, reference: Any, calibrated: Any, distance: float, what: str, intensities: bool = True
+) -> dict[str, Any] | None:
+    """Print the calibrated lights' errors against the `reference` rig (file `path`); return them for the report.
+
+    Without `intensities` (the sphere calibration writes unit intensities) the intensity errors
+    are left out.
+    """
+    from ..calibrate import compare_lights, reference_summary
+
+    if calibrated is None:
+        _note(f"{PROG}: warning: no comparison with {path}: a light was not located")
+        return None
+    rows = compare_lights(calibrated, reference, distance)
+    if not intensities:
+        for row in rows:
+            row["intensity_error_percent"] = None
+    summary = reference_summary(rows)
+    print(f"\nagainst the reference {path} (working distance D = {distance:.4g}, {what}):")
+    head = f"{'light':>5}  {'kind':<11} {'position error':>14} {'% of D':>7} {'direction °':>11}"
+    print(head + (f" {'intensity %':>11}" if intensities else ""))
+
+    def cell(v: Any, width: int, digits: int) -> str:
+        return f"{'-':>{width}}" if v is None else f"{v:>{width}.{digits}f}"
+
+    for r in rows:
+        print(
+            f"{r['light']:>5}  {r['kind']:<11} {cell(r['position_error'], 14, 3)} "
+            f"{cell(r['position_error_percent'], 7, 3)} {cell(r['direction_error'], 11, 3)}"
+            + (f" {cell(r['intensity_error_percent'], 11, 3)}" if intensities else "")
+        )
+    parts = []
+    if summary["position_error_rms"] is not None:
+        parts.append(
+            f"positions RMS {summary['position_error_rms']:.3f} ({summary['position_error_percent_rms']:.3f} % of D), "
+            f"max {summary['position_error_max']:.3f} ({summary['position_error_percent_max']:.3f} %)"
+        )
+    if summary["direction_error_rms"] is not None:
+        parts.append(f"directions max {summary['direction_error_max']:.3f}°")
+    if summary["intensity_error_percent_rms"] is not None:
+        parts.append(
+            f"intensities RMS {summary['intensity_error_percent_rms']:.3f} %, "
+            f"max {summary['intensity_error_percent_max']:.3f} %"
+        )
+    print("  " + "; ".join(parts))
+    return {"reference": os.fspath(path), "distance": distance, "lights": rows, "summary": summary}
+
+
+def _board_distance(plane: Any) -> float:
+    """Return the board's distance along the optical axis: its depth, or ``offset / n_z`` of ``(normal, offset)``."""
+    if isinstance(plane, tuple):
+        normal, offset = plane
+        nz = float(normal[2])
+        return abs(float(offset) / nz) if nz != 0 else float("nan")
+    return float(plane)
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def _write_report(path: str, result: Any, comparison: dict[str, Any] | None = None) -> None:
     def vec(v: Any) -> Any:
         return None if v is None else [float(x) for x in v]
 
@@ -414,6 +513,8 @@ def _write_report(path: str, result: Any) -> None:
                 "spread": light.spread,
                 "spheres": light.spheres,
                 "warning": light.warning,
+                "standard_error": None if light.standard_error is None else vec(light.standard_error),
+                "direction_se": _finite(light.direction_se),
             }
             for light in result.lights
         ],
@@ -421,6 +522,7 @@ def _write_report(path: str, result: Any) -> None:
         "status": result.status,
         "refinement": result.refinement,
         "warnings": result.warnings,
+        "reference": comparison,
     }
     write_text(path, json.dumps(report, indent=2) + "\n")
 
@@ -429,8 +531,14 @@ def _cmd_intensity(args: argparse.Namespace) -> int:
     from ..calibrate import calibrate_intensities
     from .inputs import load_rig
 
-    _refuse_existing(args, "--out")
+    _refuse_existing(args, "--out", "--report")
     rig = load_rig(args.rig)
+    reference = _load_reference(args)
+    if reference is not None and reference.n_lights != rig.n_lights:
+        raise InputError(
+            f"--reference '{args.reference}' has {reference.n_lights} lights but --rig {rig.n_lights}: "
+            "give the reference of the same lights, in the same order"
+        )
     files = resolve_images(args.images, mask=args.mask, quiet=args.quiet)
     if args.fit_direction and not args.fit_mu:
         raise InputError("--fit-direction needs --fit-mu")
@@ -449,8 +557,34 @@ def _cmd_intensity(args: argparse.Namespace) -> int:
     print(f"{rig.n_lights} lights, board scale (albedo x exposure) {result.scale:.6g}")
     print()
     print(result.table())
+    print(
+        "  (se %: relative standard error of the intensity from its residual and observations; the error of "
+        "the light positions, which the intensities absorb, is not in it)"
+    )
+    comparison = None
+    if reference is not None:
+        distance = _board_distance(plane)
+        comparison = _compare(args.reference, reference, result.rig, distance, "the board's distance along the axis")
     for w in result.warnings:
         _note(f"{PROG}: warning: {w}")
+    if args.report:
+        se = result.standard_errors
+        record = {
+            "scale": result.scale,
+            "lights": [
+                {
+                    "intensity": [float(v) for v in result.intensities[i]],
+                    "mu": float(result.mu[i]),
+                    "rms": _finite(float(result.rms[i])),
+                    "standard_error": _finite(float(se[i])),
+                    "observations": int(result.observations[i]),
+                }
+                for i in range(len(result.rms))
+            ],
+            "warnings": result.warnings,
+            "reference": comparison,
+        }
+        write_text(args.report, json.dumps(record, indent=2) + "\n")
     result.rig.save(args.out)
     print(f"\nwrote {args.out} ({describe_rig(result.rig)}, relative intensities)")
     return 0

@@ -242,6 +242,13 @@ def _print_summary(title: str, result: Any, wall: float, paths: dict[str, Path])
     print(f"  status          {s['status']}: {s['status_reason']}")
     if s["rms_residual"] is not None:
         print(f"  rms residual    {s['rms_residual']:.3e} (image units, 0..1)")
+    trust = s.get("trust") or {}
+    if trust.get("normal_sigma_deg"):
+        sigma, held = trust["normal_sigma_deg"], trust["held_out_error"]
+        print(
+            f"  uncertainty     normals {sigma['median']:.3g}° median, {sigma['p90']:.3g}° at the 90th percentile; "
+            f"held-out error {held['median']:.3e} median (normal_sigma.tiff, held_out_error.tiff)"
+        )
     print(f"  unfitted pixels {s['unfitted_pixels']} (fewer than 3 lit images)")
     lo, hi = s["depth_range"]
     print(f"  depth range     {lo:.6g} .. {hi:.6g}")

@@ -585,6 +585,23 @@ pub fn reconstruction_dict<'py>(
             array(py, shadows.bits().to_vec(), &[h, w, words])?,
         )?;
     }
+    if let Some(trust) = r.trust {
+        d.set_item("normal_sigma", array(py, trust.normal_sigma, &[h, w])?)?;
+        d.set_item("held_out_error", array(py, trust.held_out, &[h, w])?)?;
+        let lights = PyDict::new(py);
+        let column = |f: fn(&nplps::LightTrust) -> f64| trust.lights.iter().map(f).collect();
+        lights.set_item("residual", PyArray1::from_vec(py, column(|l| l.residual)))?;
+        lights.set_item("held_out", PyArray1::from_vec(py, column(|l| l.held_out)))?;
+        lights.set_item(
+            "mean_intensity",
+            PyArray1::from_vec(py, column(|l| l.mean_intensity)),
+        )?;
+        lights.set_item(
+            "facets",
+            PyArray1::from_vec(py, column(|l| l.facets as f64)),
+        )?;
+        d.set_item("light_trust", lights)?;
+    }
     if let Some(lobe) = r.matte_lobe {
         d.set_item("matte_lobe", (lobe.alpha, lobe.eta))?;
     }

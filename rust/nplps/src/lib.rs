@@ -25,8 +25,9 @@
 //!   [`reconstruct_parallel`] (the parallel-light baseline); a progress callback gets
 //!   [`IterationStats`] (with [`SearchProgress`] while the distance search evaluates a
 //!   candidate) and returns [`Control`].
-//! - Output: [`Reconstruction`] with its [`Status`], [`Timings`] and, when the lights are refined
-//!   ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
+//! - Output: [`Reconstruction`] with its [`Status`], [`Timings`], its [`Trust`] (per-pixel normal
+//!   uncertainty and leave-one-light-out error, per-light residuals: [`LightTrust`]) and, when
+//!   the lights are refined ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
 //! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
 //! - Light calibration from sphere and board images: the [`calibrate`] module.
 //! - Files (feature `io`, on by default): the `io` module reads rig files and PNG images.
@@ -222,7 +223,7 @@ pub use distance::{
 pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use light::Light;
-pub use local::{Robust, Weighting};
+pub use local::{LightTrust, Robust, Trust, Weighting};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};

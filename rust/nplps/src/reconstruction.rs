@@ -203,6 +203,10 @@ pub struct Reconstruction {
     /// The cast shadows of the final mesh's level, as the last local steps used them (with
     /// [`Options::shadows`](crate::Options::shadows); None without).
     pub shadows: Option<ShadowMask>,
+    /// How far to trust the result without ground truth: the normals' predicted uncertainty,
+    /// the leave-one-light-out re-rendering error and per-light residuals, from the Lambertian
+    /// fit at the final mesh (see [`Trust`](crate::Trust)); None for the parallel baseline.
+    pub trust: Option<crate::local::Trust>,
 }
 
 /// What the self-calibration of the lights did.
@@ -436,5 +440,6 @@ pub(crate) fn assemble(
         matte_lobe: None,
         specular: outputs.specular,
         shadows: None,
+        trust: None,
     })
 }

@@ -1042,6 +1042,9 @@ impl<'p> Solver<'p> {
             outputs.scatter(problem, first, chunk);
         }
         drop(fits);
+        // The trust maps: the plain Lambertian fit at the final mesh (no glossy warm start).
+        let trust = LocalStep { warm: None, ..step }.trust(u)?;
+        problem.cancel.check()?;
         self.timings.local += t.elapsed();
         self.timings.total = self.start.elapsed();
         let refinement = self.refinement_report(u);
@@ -1052,6 +1055,7 @@ impl<'p> Solver<'p> {
         result.lobe = self.lobe;
         result.matte_lobe = self.matte;
         result.shadows = self.shadows.take();
+        result.trust = Some(trust);
         result.gauge = problem
             .grid
             .region_means(u)

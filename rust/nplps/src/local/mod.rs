@@ -34,9 +34,11 @@ use crate::vec3::{dot, norm};
 
 mod glossy;
 mod lanes;
+mod trust;
 
 pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS};
 use lanes::{lane_scratch, LANES};
+pub use trust::{LightTrust, Trust};
 
 /// How the per-facet linear system weights the lights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
