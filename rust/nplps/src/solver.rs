@@ -23,7 +23,7 @@ use std::time::Instant;
 use crate::anderson::{joint, Acceleration, Joint};
 use crate::convergence::{
     check_in_front, lateral_size, max_change, max_depth_change, nearest, region_median_residuals,
-    region_residuals, rms_of, Next, Safeguard,
+    region_residuals, rms_of, Next, Oscillation, Safeguard,
 };
 use crate::error::{Error, Result};
 use crate::global::GlobalStep;
@@ -162,7 +162,7 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 /// iterations of every run, so at most `SHADOWS_AT.len()` marches per run: the first on its
 /// starting surface (the starting plane casts none and costs little), except where a coarser
 /// level's shadows are carried (then used, upsampled, until the next).
-pub const SHADOWS_AT: [usize; 3] = [1, 3, 8];
+pub const SHADOWS_AT: [usize; 2] = [1, 3];
 
 /// Under [`Shadows::Auto`], a solver without a mask probes a lattice of at least this many
 /// facets (every `s`-th row and column, `s = floor(sqrt(facets / PROBE_FACETS))`) before it
@@ -348,6 +348,8 @@ pub(crate) struct Solver<'p> {
     /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
     /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
     indirect: Option<IndirectField>,
+    /// Whether the run's iterations alternate between two surfaces (then they are averaged).
+    oscillation: Oscillation,
 }
 
 /// One run of the loop ([`Solver::iterate`]): its gauge and tolerance, and what it carries from
@@ -420,6 +422,7 @@ impl<'p> Solver<'p> {
             skip_first_march: false,
             march_next: false,
             indirect: None,
+            oscillation: Oscillation::default(),
         })
     }
 
@@ -630,7 +633,7 @@ impl<'p> Solver<'p> {
         }
         it.inner_iterations = self.global(u, run.gauge)?;
         it.light_change = self.accelerate(run, u, it.light_change)?;
-        it.depth_change = self.advance(u, iteration)?;
+        it.depth_change = self.advance(u, iteration, run.tol * run.scale)?;
         self.report(run, it, progress)?;
         run.guard.verdict(
             iteration,
@@ -651,6 +654,7 @@ impl<'p> Solver<'p> {
             .depth(gauge.iter().sum::<f64>() / gauge.len().max(1) as f64);
         self.lights.begin(distance);
         self.stalled = false;
+        self.oscillation.reset();
         if !std::mem::take(&mut self.warm_carried) {
             self.warm.fill([f32::NAN; 3]);
         }
@@ -936,12 +940,15 @@ impl<'p> Solver<'p> {
         Ok(max_change(moved, &before))
     }
 
-    /// Moves `u` to the global step's (accelerated) state after checking that the surface
-    /// stays in front of the lights; returns the largest depth change.
-    fn advance(&mut self, u: &mut Vec<f64>, iteration: usize) -> Result<f64> {
+    /// Moves `u` to the global step's (accelerated) state, averaged with `u` once the run
+    /// alternates between two surfaces ([`Oscillation`]; `limit` is the depth tolerance), after
+    /// checking that the surface stays in front of the lights; returns the largest depth change.
+    fn advance(&mut self, u: &mut Vec<f64>, iteration: usize, limit: f64) -> Result<f64> {
         let t = Instant::now();
         let geometry = &self.problem.geometry;
+        self.oscillation.damp(u, &mut self.next);
         let depth_change = max_depth_change(geometry, u, &self.next);
+        self.oscillation.record(u, &self.next, depth_change, limit);
         if self.check_lights {
             check_in_front(geometry, self.lights.lights(), &self.next, iteration)?;
         }
