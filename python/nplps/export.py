@@ -22,17 +22,17 @@ import json
 import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
 from typing import IO, TYPE_CHECKING, Any, TypeAlias
 
-import imageio.v3 as iio
 import numpy as np
 import tifffile
 
-from . import plots, views
-from ._atomic import atomic_path, atomic_write, write_text
+from . import _core, plots, views
+from ._atomic import atomic_path, atomic_write, write_error, write_text
 from ._held_out import HeldOutScores, reading
 from ._outdir import jsonable
 from .errors import InputError
@@ -49,6 +49,7 @@ __all__ = [
     "EXTRA_FORMATS",
     "FORMATS",
     "NORMAL_MAP_FRAMES",
+    "OBJ_MAX_FACETS",
     "OutputFormat",
     "check_formats",
     "check_normal_map",
@@ -56,6 +57,7 @@ __all__ = [
     "exr_available",
     "formats_help",
     "normal_map_pixels",
+    "obj_skipped_note",
     "read_exr",
     "read_normal_map",
     "read_ply",
@@ -78,6 +80,7 @@ __all__ = [
     "write_png",
     "write_png8",
     "write_png16",
+    "write_pngs",
     "write_point_cloud",
     "write_result",
     "write_stl",
@@ -945,6 +948,13 @@ FORMATS: dict[str, OutputFormat] = {
         ),
         OutputFormat("points", "points.ply", "a point cloud with normals and colours", _write_points_mesh, mesh="PLY"),
         OutputFormat("normals_tiff", "normals.tiff", "32-bit float normals", save_normals_tiff),
+        OutputFormat(
+            "obj",
+            "{stem}.obj",
+            "Wavefront OBJ text; written anyway up to 4 million facets (OBJ_MAX_FACETS)",
+            _write_obj_mesh,
+            mesh="OBJ",
+        ),
         # Three files (EXR_FILES), written by write_result itself: not through `write`.
         OutputFormat(
             "exr",
@@ -954,6 +964,22 @@ FORMATS: dict[str, OutputFormat] = {
         ),
     )
 }
+
+#: ``Reconstruction.save`` writes ``mesh.obj`` by default only for results of at most this many
+#: facets (masked pixels): 4 million, a 4 MP result, whose OBJ file is about 0.8 GB of text (a
+#: 12 MP result's is 2.4 GB and takes longer to write than everything else together). Larger
+#: results get it when asked for: ``formats=["obj"]``, ``nplps reconstruct --formats obj`` or
+#: ``--obj``; ``summary.json``'s ``"skipped"`` says when it was left out and how to get it.
+OBJ_MAX_FACETS = 4_000_000
+
+
+def obj_skipped_note(facets: int) -> str:
+    """Return the note of ``summary.json``'s ``"skipped"`` for an OBJ file left out (:data:`OBJ_MAX_FACETS`)."""
+    return (
+        f"not written by default: {facets} facets is more than {OBJ_MAX_FACETS} (OBJ_MAX_FACETS); "
+        'ask for it with formats=["obj"] or nplps reconstruct --obj (the same mesh is in the PLY file)'
+    )
+
 
 #: The files of the ``"exr"`` format by kind (:meth:`nplps.Reconstruction.save`'s paths).
 EXR_FILES = {"depth_exr": "depth.exr", "normals_exr": "normals.exr", "albedo_exr": "albedo.exr"}
@@ -1471,50 +1497,87 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
     albedo = np.asarray(albedo)
     if not (albedo.ndim == 2 or (albedo.ndim == 3 and albedo.shape[2] == 3)):
         raise InputError(f"albedo must have shape (H, W) or (H, W, 3), got {albedo.shape}")
-    pixels, scale = _quantize(albedo, _ALBEDO_PERCENTILE, 65535, np.uint16)
+    pixels, scale = _albedo_pixels(albedo)
     write_png16(path, pixels)
     return scale
 
 
+def _albedo_pixels(albedo: np.ndarray) -> tuple[np.ndarray, float]:
+    """Return the uint16 pixels of :func:`save_albedo` and their scale."""
+    return _quantize(np.asarray(albedo), _ALBEDO_PERCENTILE, 65535, np.uint16)
+
+
 def save_grey_png(path: PathLike, image: np.ndarray) -> None:
     """Write an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
+    write_png8(path, _grey_pixels(image))
+
+
+def _grey_pixels(image: np.ndarray) -> np.ndarray:
+    """Return the uint8 pixels of :func:`save_grey_png`: ``round(clip(image, 0, 1) * 255)``, NaN -> 0."""
     image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
-    write_png8(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8))
+    return np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+#: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
+#: rows (several hundred MB/s; files within a few percent of zlib's default level here).
+PNG_COMPRESSION = "fast"
+#: The PNG row filter (:func:`write_pngs`): per row, the one whose output is smallest.
+PNG_FILTER = "adaptive"
+
+
+def write_pngs(images: Sequence[tuple[PathLike, np.ndarray]]) -> None:
+    """Write several integer images as PNG files, encoded in parallel by the Rust extension.
+
+    Each image is grey ``(H, W)`` or RGB ``(H, W, 3)``, written with 8 bits per sample for uint8
+    and 16 bits (big-endian, as PNG stores them) for any other integer type (converted to
+    uint16), as a non-interlaced PNG that any reader reads (compression :data:`PNG_COMPRESSION`,
+    filter :data:`PNG_FILTER`). The files are encoded on the extension's threads with the GIL
+    released, each under a temporary name renamed into place when all are complete
+    (:mod:`nplps._atomic`). The file is PNG whatever the extension of its path.
+
+    Raises
+    ------
+    InputError
+        An array is not an ``(H, W)`` or ``(H, W, 3)`` image with at least one pixel.
+    OSError
+        A file could not be written (``filename`` is its path).
+    """
+    arrays = []
+    for path, pixels in images:
+        pixels = np.asarray(pixels)
+        dtype = np.uint8 if pixels.dtype == np.uint8 else np.uint16
+        if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)) or pixels.size == 0:
+            raise InputError(f"cannot write image {os.fspath(path)!r}: shape {pixels.shape} is not (H, W) or (H, W, 3)")
+        arrays.append((path, np.ascontiguousarray(pixels, dtype=dtype)))
+    with ExitStack() as stack:
+        jobs = [(stack.enter_context(atomic_path(path)), pixels) for path, pixels in arrays]
+        try:
+            _core.write_pngs(jobs, PNG_COMPRESSION, PNG_FILTER)
+        except OSError as e:  # named by its temporary file: name the final one
+            finals = {temporary: path for (temporary, _), (path, _) in zip(jobs, arrays, strict=True)}
+            final = finals.get(e.filename, arrays[0][0])
+            raise write_error(OSError(e.errno, e.strerror or str(e), os.fspath(final)), final) from None
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
-    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_png16`).
+    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_pngs`).
 
     Grey ``(H, W)`` or RGB ``(H, W, 3)``.
     """
-    if np.asarray(pixels).dtype == np.uint8:
-        write_png8(path, pixels)
-    else:
-        write_png16(path, np.asarray(pixels, dtype=np.uint16))
+    write_pngs([(path, pixels)])
 
 
 def write_png8(path: PathLike, pixels: np.ndarray) -> None:
-    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG.
+    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG (:func:`write_pngs`).
 
     The file is PNG whatever the extension of `path`.
     """
-    with atomic_path(path) as temporary:
-        iio.imwrite(temporary, np.asarray(pixels, dtype=np.uint8), extension=".png")
+    write_pngs([(path, np.asarray(pixels, dtype=np.uint8))])
 
 
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
-    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG.
-
-    Written with pypng: Pillow cannot write 16-bit RGB.
-    """
-    import png
-
-    pixels = np.asarray(pixels, dtype=np.uint16)
-    h, w = pixels.shape[:2]
-    grey = pixels.ndim == 2
-    rows = np.asarray(pixels, dtype=">u2").reshape(h, -1)  # PNG stores 16-bit big-endian
-    with atomic_write(path) as file:  # pre-packed rows: what Writer.write would make of the values
-        png.Writer(w, h, greyscale=grey, bitdepth=16).write_packed(file, (row.tobytes() for row in rows))
+    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (:func:`write_pngs`)."""
+    write_pngs([(path, np.asarray(pixels, dtype=np.uint16))])
 
 
 def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:
@@ -1815,18 +1878,22 @@ def write_result(
     arguments are :meth:`~nplps.Reconstruction.save`'s. Returns the paths written by kind; the
     report (written from these files) is the caller's.
     """
-    names = {
-        "ply": f"{stem}.ply",
-        "obj": f"{stem}.obj",
-        "normal_map": "normals.png",
-        "shaded": "shaded.png",
-        "albedo": "albedo.png",
-        "depth_npy": "depth.npy",
-        "depth_tiff": "depth.tiff",
-        "normals_npy": "normals.npy",
-        "residual_npy": "residual.npy",
-    }
-    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats if name != "exr"})
+    facets = int(np.count_nonzero(result.mask))
+    names = {"ply": f"{stem}.ply"}
+    if "obj" in formats or facets <= OBJ_MAX_FACETS:
+        names["obj"] = f"{stem}.obj"
+    names.update(
+        {
+            "normal_map": "normals.png",
+            "shaded": "shaded.png",
+            "albedo": "albedo.png",
+            "depth_npy": "depth.npy",
+            "depth_tiff": "depth.tiff",
+            "normals_npy": "normals.npy",
+            "residual_npy": "residual.npy",
+        }
+    )
+    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats if name not in ("exr", "obj")})
     if "exr" in formats:
         names.update(EXR_FILES)
     if result.specular is not None:  # the glossy model's specular albedo (none for Lambertian results)
@@ -1845,10 +1912,10 @@ def write_result(
     names["summary"] = "summary.json"
     paths = {key: out.file(name) for key, name in names.items()}
     # One set of vertex arrays and one mesh for both files and the extra mesh formats.
-    mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None}
+    mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
     _write_meshes(
         paths["ply"],
-        paths["obj"],
+        paths.get("obj"),
         result.vertices,
         result.mask,
         result.vertex_normals(),
@@ -1856,46 +1923,42 @@ def write_result(
         opengl,
         mesh_formats,
     )
-    save_normal_map(paths["normal_map"], result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
-    for name in formats:
-        if FORMATS[name].mesh is None and name != "exr":
-            FORMATS[name].write(paths[name], result.normals)
-    if "exr" in formats:
-        save_depth_exr(paths["depth_exr"], result.depth)
-        save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
-        save_albedo_exr(paths["albedo_exr"], result.albedo)
-    save_grey_png(paths["shaded"], result.shaded())
     summary = result.summary()
-    summary["albedo_png_scale"] = save_albedo(paths["albedo"], result.albedo)
+    if "obj" not in paths:
+        summary["skipped"] = {names["ply"].replace(".ply", ".obj"): obj_skipped_note(facets)}
+    # The PNG files are encoded together, in parallel and with the GIL released, on a thread of
+    # their own while the other files are written.
+    pngs = [
+        (
+            paths["normal_map"],
+            normal_map_pixels(result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits),
+        )
+    ]
+    pngs.append((paths["shaded"], _grey_pixels(result.shaded())))
+    albedo_pixels, summary["albedo_png_scale"] = _albedo_pixels(result.albedo)
+    pngs.append((paths["albedo"], albedo_pixels))
+    if result.specular is not None:
+        specular_pixels, summary["specular_png_scale"] = _albedo_pixels(result.specular)
+        pngs.append((paths["specular"], specular_pixels))
+    if result.shadow_bits is not None:
+        shadowed = result.shadows
+        assert shadowed is not None
+        pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
+    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
+    if inputs is not None:
+        pngs.append((paths["inputs"], np.asarray(contact_sheet(inputs), dtype=np.uint8)))
+    del albedo_pixels
+    with ThreadPoolExecutor(1) as pool:
+        encoded = pool.submit(write_pngs, pngs)
+        try:
+            del pngs
+            _write_other_files(result, paths, formats, normal_map)
+        finally:
+            wait([encoded])  # never leave with a file still being written
+        encoded.result()
     # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
     summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
     summary["units"] = units
-    save_depth_npy(paths["depth_npy"], result.depth)
-    save_depth_tiff(paths["depth_tiff"], result.depth)
-    save_npy(paths["normals_npy"], result.normals)
-    save_npy(paths["residual_npy"], result.residual)
-    if result.specular is not None:
-        save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
-        summary["specular_png_scale"] = save_albedo(paths["specular"], result.specular)
-    if result.shadow_bits is not None:
-        save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
-        shadowed = result.shadows
-        assert shadowed is not None
-        share = np.where(result.mask, shadowed.mean(axis=0), 0.0)
-        save_grey_png(paths["shadows"], share)
-    if result.distance is not None:
-        result.distance.save_curve(paths["distance_curve"])
-        plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
-    if result.refinement is not None:
-        result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig_refined"])
-    save_grey_png(paths["mask"], result.mask.astype(np.float64))
-    save_npy(paths["lights_used"], np.minimum(result.lights_used, 65535).astype(np.uint16))
-    write_text(paths["history"], history_csv(result.history))
-    # The rig records the image size it belongs to (and its binning): reused on images of
-    # another size it is refused with both sizes named (see nplps.rig.RigGrid).
-    result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig"])
-    if inputs is not None:
-        write_png8(paths["inputs"], contact_sheet(inputs))
     if held_out is not None:
         record = held_out_record(held_out[0], held_out[1])
         write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
@@ -1903,3 +1966,32 @@ def write_result(
         summary["options"] = jsonable(options)
     write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
     return paths
+
+
+def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence[str], normal_map: str) -> None:
+    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`)."""
+    for name in formats:
+        if FORMATS[name].mesh is None and name != "exr":
+            FORMATS[name].write(paths[name], result.normals)
+    if "exr" in formats:
+        save_depth_exr(paths["depth_exr"], result.depth)
+        save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
+        save_albedo_exr(paths["albedo_exr"], result.albedo)
+    save_depth_npy(paths["depth_npy"], result.depth)
+    save_depth_tiff(paths["depth_tiff"], result.depth)
+    save_npy(paths["normals_npy"], result.normals)
+    save_npy(paths["residual_npy"], result.residual)
+    if result.specular is not None:
+        save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
+    if result.shadow_bits is not None:
+        save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
+    if result.distance is not None:
+        result.distance.save_curve(paths["distance_curve"])
+        plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
+    if result.refinement is not None:
+        result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig_refined"])
+    save_npy(paths["lights_used"], np.minimum(result.lights_used, 65535).astype(np.uint16))
+    write_text(paths["history"], history_csv(result.history))
+    # The rig records the image size it belongs to (and its binning): reused on images of
+    # another size it is refused with both sizes named (see nplps.rig.RigGrid).
+    result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig"])

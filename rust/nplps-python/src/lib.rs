@@ -9,6 +9,7 @@
 mod calibrate;
 mod convert;
 mod decode;
+mod encode;
 mod errors;
 mod interrupt;
 mod pool;
@@ -747,6 +748,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
+    m.add_function(wrap_pyfunction!(encode::write_pngs, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_intensities, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::synth_spheres, m)?)?;
