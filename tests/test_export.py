@@ -20,7 +20,6 @@ from nplps.export import (
     write_obj,
     write_ply,
     write_png,
-    write_png16,
 )
 
 H, W = 3, 4
