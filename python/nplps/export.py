@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -1542,6 +1543,11 @@ def write_pngs(images: Sequence[tuple[PathLike, np.ndarray]]) -> None:
     OSError
         A file could not be written (``filename`` is its path).
     """
+    _write_pngs(images)
+
+
+def _write_pngs(images: Sequence[tuple[PathLike, np.ndarray]], before_rename: Callable[[], None] | None = None) -> None:
+    """:func:`write_pngs`, with ``before_rename()`` run (it may raise) once encoded, before the renames."""
     arrays = []
     for path, pixels in images:
         pixels = np.asarray(pixels)
@@ -1557,6 +1563,8 @@ def write_pngs(images: Sequence[tuple[PathLike, np.ndarray]]) -> None:
             finals = {temporary: path for (temporary, _), (path, _) in zip(jobs, arrays, strict=True)}
             final = finals.get(e.filename, arrays[0][0])
             raise write_error(OSError(e.errno, e.strerror or str(e), os.fspath(final)), final) from None
+        if before_rename is not None:
+            before_rename()
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
@@ -1911,51 +1919,43 @@ def write_result(
         names["held_out"] = "held_out.json"
     names["summary"] = "summary.json"
     paths = {key: out.file(name) for key, name in names.items()}
-    # One set of vertex arrays and one mesh for both files and the extra mesh formats.
-    mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
-    _write_meshes(
-        paths["ply"],
-        paths.get("obj"),
-        result.vertices,
-        result.mask,
-        result.vertex_normals(),
-        result.vertex_albedo(),
-        opengl,
-        mesh_formats,
-    )
     summary = result.summary()
     if "obj" not in paths:
         summary["skipped"] = {names["ply"].replace(".ply", ".obj"): obj_skipped_note(facets)}
-    # The PNG files are encoded together, in parallel and with the GIL released, on a thread of
-    # their own while the other files are written.
-    pngs = [
-        (
-            paths["normal_map"],
-            normal_map_pixels(result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits),
-        )
-    ]
-    pngs.append((paths["shaded"], _grey_pixels(result.shaded())))
-    albedo_pixels, summary["albedo_png_scale"] = _albedo_pixels(result.albedo)
-    pngs.append((paths["albedo"], albedo_pixels))
-    if result.specular is not None:
-        specular_pixels, summary["specular_png_scale"] = _albedo_pixels(result.specular)
-        pngs.append((paths["specular"], specular_pixels))
-    if result.shadow_bits is not None:
-        shadowed = result.shadows
-        assert shadowed is not None
-        pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
-    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
-    if inputs is not None:
-        pngs.append((paths["inputs"], np.asarray(contact_sheet(inputs), dtype=np.uint8)))
-    del albedo_pixels
+    _ = result.normals  # computed (and cached) once, before two threads read it
+    # The PNG images are made and encoded on a thread of their own (the encoder runs in parallel
+    # with the GIL released) while the meshes and the other files are written; they are renamed
+    # into place only after the meshes, so a mesh that fails leaves no other new file.
+    meshes_written = threading.Event()
+    state = {"meshes": False}
+
+    def after_meshes() -> None:
+        meshes_written.wait()
+        if not state["meshes"]:
+            raise _Abandoned
+
     with ThreadPoolExecutor(1) as pool:
-        encoded = pool.submit(write_pngs, pngs)
+        encoded = pool.submit(_write_result_pngs, result, paths, normal_map, normal_map_bits, inputs, after_meshes)
         try:
-            del pngs
+            # One set of vertex arrays and one mesh for both files and the extra mesh formats.
+            mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
+            _write_meshes(
+                paths["ply"],
+                paths.get("obj"),
+                result.vertices,
+                result.mask,
+                result.vertex_normals(),
+                result.vertex_albedo(),
+                opengl,
+                mesh_formats,
+            )
+            state["meshes"] = True
+            meshes_written.set()
             _write_other_files(result, paths, formats, normal_map)
         finally:
+            meshes_written.set()
             wait([encoded])  # never leave with a file still being written
-        encoded.result()
+        summary.update(encoded.result())
     # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
     summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
     summary["units"] = units
@@ -1995,3 +1995,35 @@ def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence
     # The rig records the image size it belongs to (and its binning): reused on images of
     # another size it is refused with both sizes named (see nplps.rig.RigGrid).
     result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig"])
+
+
+class _Abandoned(Exception):
+    """The PNG files of a result are not renamed into place: writing the meshes failed."""
+
+
+def _write_result_pngs(
+    result: Result,
+    paths: dict[str, Path],
+    normal_map: str,
+    normal_map_bits: int,
+    inputs: np.ndarray | None,
+    after_meshes: Callable[[], None],
+) -> dict[str, float]:
+    """Make and write a result's PNG images (:func:`write_result`); return the summary's PNG scales."""
+    scales = {}
+    normals = normal_map_pixels(result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
+    pngs = [(paths["normal_map"], normals), (paths["shaded"], _grey_pixels(result.shaded()))]
+    albedo_pixels, scales["albedo_png_scale"] = _albedo_pixels(result.albedo)
+    pngs.append((paths["albedo"], albedo_pixels))
+    if result.specular is not None:
+        specular_pixels, scales["specular_png_scale"] = _albedo_pixels(result.specular)
+        pngs.append((paths["specular"], specular_pixels))
+    if result.shadow_bits is not None:
+        shadowed = result.shadows
+        assert shadowed is not None
+        pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
+    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
+    if inputs is not None:
+        pngs.append((paths["inputs"], np.asarray(contact_sheet(inputs), dtype=np.uint8)))
+    _write_pngs(pngs, after_meshes)
+    return scales
