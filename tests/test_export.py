@@ -491,3 +491,21 @@ def test_depth_tiff_round_trip(tmp_path: Path) -> None:
     assert loaded.dtype == np.float32
     np.testing.assert_array_equal(loaded, depth.astype(np.float32))
     np.testing.assert_array_equal(io.read_image(path), loaded)
+
+
+def test_ply_written_in_blocks_is_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The PLY writers stream blocks of records: the bytes do not depend on the block size."""
+    vertices, mask = _grid()
+    normals = np.broadcast_to(np.array([0.0, 0.0, -1.0]), vertices.shape)
+    albedo = np.linspace(0.1, 0.9, vertices.shape[0] * vertices.shape[1]).reshape(vertices.shape[:2])
+    data = {"normals": normals, "albedo": albedo}
+    write_ply(tmp_path / "one.ply", vertices, mask, **data)
+    export.write_point_cloud(tmp_path / "one_points.ply", vertices, mask, **data)
+    monkeypatch.setattr(export, "_PLY_BLOCK", 3)
+    write_ply(tmp_path / "blocks.ply", vertices, mask, **data)
+    export.write_point_cloud(tmp_path / "blocks_points.ply", vertices, mask, **data)
+
+    assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "blocks.ply").read_bytes()
+    assert (tmp_path / "one_points.ply").read_bytes() == (tmp_path / "blocks_points.ply").read_bytes()
+    ply = read_ply(tmp_path / "blocks.ply")
+    assert len(ply["faces"]) == 2 * mask.sum()  # type: ignore[arg-type]

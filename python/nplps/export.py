@@ -407,12 +407,31 @@ def _write_meshes(
             f.write(target, mesh)
 
 
+#: Rows (vertices or faces) per block of the binary PLY writer.
+_PLY_BLOCK = 1 << 18
+
+
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
     _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh).encode("ascii"))
-        file.write(_ply_vertex_records(mesh).view(np.uint8).data)  # no copy of the records
-        file.write(_ply_face_records(mesh.faces).view(np.uint8).data)
+        _write_ply_vertices(file, mesh)
+        for start in range(0, len(mesh.faces), _PLY_BLOCK):
+            file.write(_ply_face_records(mesh.faces[start : start + _PLY_BLOCK]).view(np.uint8).data)
+
+
+def _write_ply_vertices(file: IO[bytes], mesh: _Mesh) -> None:
+    """Write the vertex element of ``mesh`` in blocks of :data:`_PLY_BLOCK` records (no whole-file buffer)."""
+    for start in range(0, len(mesh.points), _PLY_BLOCK):
+        block = slice(start, start + _PLY_BLOCK)
+        part = _Mesh(
+            points=mesh.points[block],
+            normals=None if mesh.normals is None else mesh.normals[block],
+            colors=None if mesh.colors is None else mesh.colors[block],
+            faces=mesh.faces[:0],
+            frame=mesh.frame,
+        )
+        file.write(_ply_vertex_records(part).view(np.uint8).data)  # no copy of the records
 
 
 def _ply_header(mesh: _Mesh, *, faces: bool = True) -> str:
@@ -905,7 +924,7 @@ def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
     _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh, faces=False).encode("ascii"))
-        file.write(_ply_vertex_records(mesh).view(np.uint8).data)
+        _write_ply_vertices(file, mesh)
 
 
 @dataclass(frozen=True)
