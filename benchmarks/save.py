@@ -11,8 +11,11 @@ depths as the result's depth, the mesh normals as the fitted normals, a small re
 light used. ``result.save`` then writes it ``--repeats`` times into a fresh directory, in a fresh
 Python process per variant, and the time of every file is recorded: from the creation of its
 temporary file to its rename into place (:mod:`nplps._atomic`), computing its content included.
-Files written in parallel overlap; "other" is the time of ``save`` outside every file (the mesh
-and vertex arrays built before the first mesh file, the checks, the manifest's bookkeeping).
+Files written in parallel overlap (the PNG images are made and encoded together on a thread of
+their own while the meshes and arrays are written: each PNG row is that batch's encoding, and
+the computation of their pixels overlaps the other files); "other" is the time of ``save`` outside every
+file (the mesh and vertex arrays built before the first mesh file, the checks, the manifest's
+hashes).
 
 ``--baseline DIR`` also runs the ``nplps`` package found in ``DIR`` (a ``python`` folder of
 another checkout, e.g. ``git worktree add /tmp/base BASE`` or ``git archive BASE python | tar -x
@@ -80,29 +83,45 @@ def synthetic_result(w: int, h: int, k: int) -> Any:
 
 @contextmanager
 def file_timer(record: list[tuple[str, float, float]]) -> Iterator[None]:
-    """Record (file name, start, end) of every file written through :mod:`nplps._atomic` in the block."""
-    from nplps import _atomic, export
+    """Record (file name, start, end) of every file written through :mod:`nplps._atomic` in the block.
+
+    A PNG file encoded by the Rust extension (``nplps._core.write_pngs``, several at once) ends
+    when its encoding does: its rename waits for the meshes, which is not its own time.
+    """
+    from nplps import _atomic, _core, export
 
     original = _atomic.atomic_path
+    encoder = getattr(_core, "write_pngs", None)
+    encoded: dict[str, float] = {}
 
     @contextmanager
     def timed(path: Any) -> Iterator[str]:
         start = time.perf_counter()
         with original(path) as temporary:
             yield temporary
-        record.append((os.path.basename(os.fspath(path)), start, time.perf_counter()))
+        end = min(time.perf_counter(), encoded.pop(temporary, float("inf")))
+        record.append((os.path.basename(os.fspath(path)), start, end))
+
+    def timed_encoder(jobs: Any, *args: Any) -> None:
+        assert encoder is not None
+        encoder(jobs, *args)
+        encoded.update((path, time.perf_counter()) for path, _ in jobs)
 
     _atomic.atomic_path = timed  # type: ignore[assignment]
     saved = export.atomic_path
     export.atomic_path = timed  # type: ignore[assignment]
+    if encoder is not None:
+        _core.write_pngs = timed_encoder
     try:
         yield
     finally:
         _atomic.atomic_path = original  # type: ignore[assignment]
         export.atomic_path = saved  # type: ignore[assignment]
+        if encoder is not None:
+            _core.write_pngs = encoder
 
 
-def _covered(intervals: list[tuple[float, float]]) -> float:
+def covered(intervals: list[tuple[float, float]]) -> float:
     """Total length of the union of ``intervals``."""
     total, end = 0.0, -float("inf")
     for a, b in sorted(intervals):
@@ -132,7 +151,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
             paths = result.save(out, **kwargs)
             total = time.perf_counter() - t0
         times = {name: b - a for name, a, b in record}
-        times["other"] = total - _covered([(a, b) for _, a, b in record])
+        times["other"] = total - covered([(a, b) for _, a, b in record])
         times["total"] = total
         runs.append(times)
         sizes = {p.name: p.stat().st_size for p in out.iterdir()}

@@ -157,7 +157,7 @@ def _build_mesh(
     flip = _OPENGL_FLIP if opengl else None
     points = _gather_float32(vertices, used, flip)
     # The vertices used are finite (_valid_facets): an infinite float32 point overflowed.
-    overflow = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    overflow = np.flatnonzero(~_all_finite(points))
     wide = vertices.reshape(-1, 3)[used[overflow]].astype(np.float64)
     return _Mesh(
         points=points,
@@ -185,6 +185,18 @@ def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None)
             out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
     if flip is not None:
         out *= flip
+    return out
+
+
+def _all_finite(values: np.ndarray) -> np.ndarray:
+    """Return whether every value along the last axis is finite (``np.isfinite(values).all(axis=-1)``, faster).
+
+    numpy's reduction over a short last axis is several times slower than combining its columns.
+    """
+    finite = np.isfinite(values)
+    out = finite[..., 0].copy()
+    for i in range(1, values.shape[-1]):
+        out &= finite[..., i]
     return out
 
 
@@ -220,9 +232,9 @@ def _require_shape(name: str, array: np.ndarray, shape: tuple[int, ...]) -> None
 
 def _valid_facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
     """Masked facets whose four corners have finite positions (and normals); warn about others."""
-    finite = np.isfinite(vertices).all(axis=2)
+    finite = _all_finite(vertices)
     if normals is not None:
-        finite &= np.isfinite(normals).all(axis=2)
+        finite &= _all_finite(normals)
     corners_finite = finite[:-1, :-1] & finite[:-1, 1:] & finite[1:, :-1] & finite[1:, 1:]
     facets = mask & corners_finite
     skipped = np.count_nonzero(mask) - np.count_nonzero(facets)
@@ -1409,7 +1421,7 @@ def normal_map_pixels(
     for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
         band = slice(start, start + rows)
         n = np.asarray(normals[band], dtype=np.float64)
-        valid = np.asarray(np.isfinite(n).all(axis=2))
+        valid = _all_finite(n)
         if mask is not None:
             valid &= mask[band]
         flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)

@@ -626,7 +626,10 @@ class Reconstruction:
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 
-        Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`),
+        Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`; ``mesh.obj``
+        only for results of at most :data:`nplps.export.OBJ_MAX_FACETS` (4 million) masked
+        pixels unless `formats` has ``"obj"``: a 12 MP result's OBJ file is 2.4 GB of text;
+        when it is left out ``summary.json``'s ``"skipped"`` says so and how to get it),
         ``normals.png`` (the normal map of :attr:`normals` in the `normal_map` convention, 16 bits
         per channel by default, see :func:`nplps.export.save_normal_map`; its frame and bits are
         ``summary.json``'s ``"normal_map"``, and :func:`nplps.export.read_normal_map` decodes it),
@@ -648,7 +651,8 @@ class Reconstruction:
         ``inputs.png`` (a contact sheet of the images, :func:`nplps.report.contact_sheet`); with
         `held_out`, ``held_out.json`` (:func:`nplps.report.held_out_record`).
 
-        `formats` adds files in other formats (none by default): ``"stl"`` (``mesh.stl``, binary
+        `formats` adds files in other formats (none by default): ``"obj"`` (``mesh.obj`` at any
+        size, :meth:`save_obj`), ``"stl"`` (``mesh.stl``, binary
         STL, :meth:`save_stl`), ``"glb"`` (``mesh.glb``, glTF 2.0 binary with vertex normals and
         colours, :meth:`save_glb`), ``"points"`` (``points.ply``, the mesh's vertices as a point
         cloud with normals and colours, :meth:`save_points`), ``"normals_tiff"``
@@ -668,7 +672,7 @@ class Reconstruction:
             Replace files of the same names, and remove the files of an earlier result that
             this one does not have (listed in its manifest); other files are kept.
         formats : iterable of str, default ()
-            Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"``,
+            Extra formats to write, any of ``"obj"``, ``"stl"``, ``"glb"``, ``"points"``,
             ``"normals_tiff"`` and ``"exr"`` (:data:`nplps.export.FORMATS`); `opengl` applies to
             the mesh and point formats.
         report : bool, default False
@@ -714,7 +718,9 @@ class Reconstruction:
         Notes
         -----
         Each file is written under a temporary name and renamed when complete, so an error never
-        leaves a truncated file under its final name.
+        leaves a truncated file under its final name. The PNG images are encoded in parallel
+        (the Rust encoder, fast DEFLATE: :func:`nplps.export.write_pngs`) while the meshes and
+        arrays are written, and renamed into place after the meshes.
         """
         extra = export.check_formats(formats)
         export.check_normal_map(normal_map, normal_map_bits)
@@ -799,7 +805,7 @@ def _to_vertices(values: np.ndarray, normalize: bool = False) -> np.ndarray:
         r1 = min(r0 + rows, h + 1)
         lo, hi = max(r0 - 1, 0), min(r1, h)  # the pixel rows around vertex rows r0..r1-1
         src = np.asarray(values[lo:hi], dtype=np.float64)
-        finite = np.isfinite(src).all(axis=-1, keepdims=True)
+        finite = export._all_finite(src)[..., None]
         v = np.where(finite, src, 0.0)
         band = total[r0:r1]
         band[...] = 0.0
