@@ -97,7 +97,7 @@ pub fn write_pngs(
     let options = PngOptions::new(compression, filter);
     let results = py.detach(|| {
         crate::pool::fork_safe(|| nplps::io::write_pngs(&images, options))
-            .map_err(|why| nplps::Error::Unusable(why))
+            .map_err(nplps::Error::Unusable)
     });
     for result in results.map_err(crate::errors::to_py)? {
         result.map_err(crate::errors::to_py)?;
