@@ -1551,7 +1551,8 @@ def _grey_pixels(image: np.ndarray) -> np.ndarray:
 
 
 #: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
-#: rows (several hundred MB/s; files within a few percent of zlib's default level here).
+#: rows. On the 12 MP benchmark's 16-bit normal map: 0.25 s and 28 MB, against 5.1 s and 12 MB
+#: at zlib's default level ("balanced") and 2.9 s and 62 MB with pypng before (docs/outputs.md).
 PNG_COMPRESSION = "fast"
 #: The PNG row filter (:func:`write_pngs`): per row, the one whose output is smallest.
 PNG_FILTER = "adaptive"
