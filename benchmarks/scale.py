@@ -642,7 +642,7 @@ def main() -> None:
         "--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files"
     )
     parser.add_argument(
-        "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save writes the OBJ up to 4 MP)"
+        "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save writes OBJ up to 4 MP)"
     )
     parser.add_argument("--workdir", help="where the cases are written (default: a new temporary directory)")
     parser.add_argument("--keep", action="store_true", help="keep the images and rigs of every case")

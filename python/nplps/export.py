@@ -292,8 +292,11 @@ def _quantize(values: np.ndarray, percentile: float, max_value: int, dtype: type
     finite = np.isfinite(values)
     reference = float(np.percentile(values[finite], percentile)) if finite.any() else 0.0
     scale = max_value / reference if reference > 0 else 1.0
-    scaled = np.where(finite, values * scale, 0.0)
-    return np.rint(np.clip(scaled, 0, max_value)).astype(dtype), scale
+    scaled = np.multiply(values, scale)  # one temporary, then in place
+    np.clip(scaled, 0, max_value, out=scaled)
+    np.rint(scaled, out=scaled)
+    scaled[~finite] = 0.0  # NaN and inf (inf * scale would clip to max_value)
+    return scaled.astype(dtype), scale
 
 
 def _grey_colors(albedo: np.ndarray) -> np.ndarray:
@@ -1546,8 +1549,12 @@ def save_grey_png(path: PathLike, image: np.ndarray) -> None:
 
 def _grey_pixels(image: np.ndarray) -> np.ndarray:
     """Return the uint8 pixels of :func:`save_grey_png`: ``round(clip(image, 0, 1) * 255)``, NaN -> 0."""
-    image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
-    return np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8)
+    image = np.array(image, dtype=np.float64)  # a copy, then in place
+    np.nan_to_num(image, copy=False, nan=0.0)
+    np.clip(image, 0.0, 1.0, out=image)
+    image *= 255
+    np.rint(image, out=image)
+    return image.astype(np.uint8)
 
 
 #: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
