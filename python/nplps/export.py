@@ -1960,7 +1960,7 @@ def write_result(
     paths = {key: out.file(name) for key, name in names.items()}
     summary = result.summary()
     if "obj" not in paths:
-        summary["skipped"] = {names["ply"].replace(".ply", ".obj"): obj_skipped_note(facets)}
+        summary["skipped"] = {f"{stem}.obj": obj_skipped_note(facets)}
     _ = result.normals  # computed (and cached) once, before two threads read it
     # The PNG images are made and encoded on a thread of their own (the encoder runs in parallel
     # with the GIL released) while the meshes and the other files are written; they are renamed
