@@ -647,7 +647,10 @@ fn vertices<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(camera)?;
     let (h, w, z) = depth_grid(&depth)?;
-    let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(to_py)?;
+    // The GIL released: `save` makes its PNG images on another thread meanwhile.
+    let v = py
+        .detach(|| no_panic(|| nplps::vertices(&cam, h, w, z)))
+        .map_err(to_py)?;
     array3(py, v, &[h + 1, w + 1])
 }
 
