@@ -509,25 +509,3 @@ def test_ply_written_in_blocks_is_one_pass(tmp_path: Path, monkeypatch: pytest.M
     assert (tmp_path / "one_points.ply").read_bytes() == (tmp_path / "blocks_points.ply").read_bytes()
     ply = read_ply(tmp_path / "blocks.ply")
     assert len(ply["faces"]) == 2 * mask.sum()  # type: ignore[arg-type]
-
-
-@pytest.mark.parametrize("with_normals", [True, False])
-@pytest.mark.parametrize("with_albedo", [True, False])
-def test_obj_rust_writer_matches_the_numpy_formatter(tmp_path: Path, with_normals: bool, with_albedo: bool) -> None:
-    """The Rust OBJ writer gives the characters of the numpy formatter ("%.9g", "%.7g", "%.6g", "%d")."""
-    rng = np.random.default_rng(7)
-    h, w = 23, 31
-    vertices = rng.normal(size=(h + 1, w + 1, 3)) * 10.0 ** rng.integers(-8, 9, size=(h + 1, w + 1, 1))
-    vertices[0, 0] = [0.0, -0.0, 1234567.125]  # signed zero, a tie at the 10th digit
-    vertices[0, 1] = [1e-5, 123456789.0, 1e30]
-    normals = rng.normal(size=(h + 1, w + 1, 3))
-    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
-    albedo = rng.random((h + 1, w + 1)) * 2.0
-    mask = rng.random((h, w)) < 0.8
-    mesh = export._build_mesh(vertices, mask, normals if with_normals else None, albedo if with_albedo else None, False)
-    assert not len(mesh.overflow)
-    export._write_obj_mesh(tmp_path / "rust.obj", mesh)
-    export._write_obj_text(tmp_path / "numpy.obj", mesh, f"# nplps\n# frame {mesh.frame}\n")
-
-    assert (tmp_path / "rust.obj").read_bytes() == (tmp_path / "numpy.obj").read_bytes()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["numpy.obj", "rust.obj"]  # no temporary left

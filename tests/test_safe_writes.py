@@ -251,8 +251,6 @@ SIGNAL_SCRIPT = textwrap.dedent(
         time.sleep(120)
 
     export._write_text = slow
-    # The OBJ file through the numpy formatter (whose _write_text is slow), not the Rust writer.
-    export._write_obj_mesh = lambda path, mesh: export._write_obj_text(path, mesh, "# nplps\\n")
     raise SystemExit(cli.main(sys.argv[1:]))
     """
 )

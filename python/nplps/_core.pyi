@@ -74,7 +74,6 @@ __all__ = [
     "synth_scene",
     "synth_spheres",
     "vertices",
-    "write_obj",
     "write_pngs",
 ]
 
@@ -218,21 +217,6 @@ def read_pngs(
     Returns uint8 / uint16 arrays (H, W) or (H, W, 3) as stored (alpha dropped, palettes
     expanded, grey palettes to grey, 1/2/4-bit grey to 0..255). InputError names the first
     missing or broken file, or one above max_pixels pixels.
-    """
-
-def write_obj(
-    path: str | os.PathLike[str],
-    header: str,
-    points: npt.NDArray[np.float32],
-    normals: npt.NDArray[np.float32] | None,
-    colors: npt.NDArray[np.uint8] | None,
-    faces: npt.NDArray[np.uint32],
-) -> None:
-    """Write a triangle mesh as Wavefront OBJ text, formatted in parallel (GIL released).
-
-    Lines "v x y z[ r g b]" (%.9g; colours / 255 as %.6g), "vn" (%.7g) and "f a//a ..." or
-    "f a b c" (1-based). OSError (with filename) when the file cannot be written; InputError
-    when the C-contiguous (n, 3) arrays do not match.
     """
 
 def write_pngs(

@@ -626,29 +626,8 @@ def write_obj(
 
 
 def _write_obj_mesh(path: PathLike, mesh: _Mesh) -> None:
-    header = f"# nplps\n# frame {mesh.frame}\n"
-    if len(mesh.overflow):  # positions beyond float32, written exactly: the numpy formatter
-        _write_obj_text(path, mesh, header)
-        return
-    # The Rust writer (lines formatted in parallel, GIL released): the same characters.
-    with atomic_path(path) as temporary:
-        try:
-            _core.write_obj(
-                temporary,
-                header,
-                np.ascontiguousarray(mesh.points, dtype=np.float32),
-                None if mesh.normals is None else np.ascontiguousarray(mesh.normals, dtype=np.float32),
-                None if mesh.colors is None else np.ascontiguousarray(mesh.colors, dtype=np.uint8),
-                np.ascontiguousarray(mesh.faces, dtype=np.int32).view(np.uint32),  # indices are >= 0
-            )
-        except OSError as e:  # named by its temporary file: name the final one
-            raise write_error(_os_error(e, path), path) from None
-
-
-def _write_obj_text(path: PathLike, mesh: _Mesh, header: str) -> None:
-    """Write the OBJ file of ``mesh`` with the numpy formatter (:func:`_obj_chunks`)."""
     with atomic_write(path) as file:
-        file.write(header.encode("ascii"))
+        file.write(f"# nplps\n# frame {mesh.frame}\n".encode("ascii"))
         _write_text(file, _obj_chunks(mesh))
 
 
@@ -1622,15 +1601,9 @@ def _write_pngs(images: Sequence[tuple[PathLike, np.ndarray]], before_rename: Ca
         except OSError as e:  # named by its temporary file: name the final one
             finals = {temporary: path for (temporary, _), (path, _) in zip(jobs, arrays, strict=True)}
             final = finals.get(e.filename, arrays[0][0])
-            raise write_error(_os_error(e, final), final) from None
+            raise write_error(OSError(e.errno, e.strerror or str(e), os.fspath(final)), final) from None
         if before_rename is not None:
             before_rename()
-
-
-def _os_error(error: OSError, path: PathLike) -> OSError:
-    """Return an OSError of the extension's writers naming ``path``, in the system's words for its errno."""
-    reason = os.strerror(error.errno) if error.errno else (error.strerror or str(error))
-    return OSError(error.errno, reason, os.fspath(path))
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use nplps::io::{Image, PngCompression, PngFilter, PngOptions, Samples};
-use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 use crate::errors::InputError;
@@ -103,45 +103,4 @@ pub fn write_pngs(
         result.map_err(crate::errors::to_py)?;
     }
     Ok(())
-}
-
-/// Writes a triangle mesh as Wavefront OBJ text (`nplps::io::write_obj`: lines formatted in
-/// parallel with the GIL released): `header`, then `v` lines of `points` (n, 3) float32 with
-/// `colors` (n, 3) uint8 / 255, `vn` lines of `normals` (n, 3) float32 and `f` lines of `faces`
-/// (m, 3) uint32 (0-based; written 1-based). Raises `OSError` (with `filename`) when the file
-/// cannot be written and `InputError` when the arrays do not match.
-#[pyfunction]
-#[pyo3(signature = (path, header, points, normals, colors, faces))]
-pub fn write_obj(
-    py: Python<'_>,
-    path: PathBuf,
-    header: &str,
-    points: PyReadonlyArray2<'_, f32>,
-    normals: Option<PyReadonlyArray2<'_, f32>>,
-    colors: Option<PyReadonlyArray2<'_, u8>>,
-    faces: PyReadonlyArray2<'_, u32>,
-) -> PyResult<()> {
-    let contiguous = |what: &str| {
-        InputError::new_err(format!(
-            "cannot write '{}': {what} must be a C-contiguous (n, 3) array",
-            path.display()
-        ))
-    };
-    let triples = |shape: &[usize]| shape.len() == 2 && shape[1] == 3;
-    if !triples(points.shape()) || !triples(faces.shape()) {
-        return Err(contiguous("points and faces"));
-    }
-    let points = points.as_slice().map_err(|_| contiguous("points"))?;
-    let faces = faces.as_slice().map_err(|_| contiguous("faces"))?;
-    let normals = match &normals {
-        Some(a) => Some(a.as_slice().map_err(|_| contiguous("normals"))?),
-        None => None,
-    };
-    let colors = match &colors {
-        Some(a) => Some(a.as_slice().map_err(|_| contiguous("colors"))?),
-        None => None,
-    };
-    let mesh = nplps::io::ObjMesh::new(header, points, normals, colors, faces);
-    py.detach(|| crate::errors::no_panic(|| nplps::io::write_obj(&path, &mesh)))
-        .map_err(crate::errors::to_py)
 }

@@ -71,15 +71,6 @@ pub fn to_py(err: nplps::Error) -> PyErr {
             reason,
             path.to_string_lossy().into_owned(),
         )),
-        nplps::Error::FileWrite {
-            path,
-            os_error: Some(errno),
-            reason,
-        } => pyo3::exceptions::PyOSError::new_err((
-            errno,
-            reason,
-            path.to_string_lossy().into_owned(),
-        )),
         // Unusable (and any input error a later version adds): what the caller passed in
         // cannot be used.
         _ => InputError::new_err(message),

@@ -752,7 +752,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
     m.add_function(wrap_pyfunction!(encode::write_pngs, m)?)?;
-    m.add_function(wrap_pyfunction!(encode::write_obj, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_intensities, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::synth_spheres, m)?)?;

@@ -65,17 +65,6 @@ pub enum Error {
         /// Why it cannot be written.
         reason: String,
     },
-    /// A file cannot be written: its directory is missing, the disk is full, or what it should
-    /// hold is inconsistent (the reason says which).
-    #[error("cannot write '{}': {reason}", path.display())]
-    FileWrite {
-        /// The file.
-        path: std::path::PathBuf,
-        /// The operating system's error number, when the system refused the write.
-        os_error: Option<i32>,
-        /// Why it cannot be written.
-        reason: String,
-    },
     /// The rig (camera or lights) is invalid.
     #[error("{0}")]
     Rig(String),

@@ -1,6 +1,6 @@
 //! Files of a native application (cargo feature `io`, on by default): the rig file (JSON,
 //! [`read_rig`]) and PNG images ([`read_png`], [`read_pngs`], [`write_png`], [`write_pngs`]; 8
-//! and 16 bits, grey or colour), and it writes OBJ meshes ([`write_obj`]).
+//! and 16 bits, grey or colour).
 //! The Python bindings decode PNG files with this code, and read camera mappings by the same
 //! rules as the rig file reader ([`crate::camera_from_map`]).
 //!
@@ -33,11 +33,9 @@
 //! [`Error::Rig`](crate::Error::Rig) whose message names the file and the key, in the words of
 //! the Python reader.
 
-mod obj;
 mod png;
 mod rig_file;
 
-pub use self::obj::{write_obj, ObjMesh};
 pub use self::png::{
     read_png, read_pngs, write_png, write_pngs, Decoded, Image, Pixels, PngCompression, PngFilter,
     PngOptions, Samples,
