@@ -1601,9 +1601,15 @@ def _write_pngs(images: Sequence[tuple[PathLike, np.ndarray]], before_rename: Ca
         except OSError as e:  # named by its temporary file: name the final one
             finals = {temporary: path for (temporary, _), (path, _) in zip(jobs, arrays, strict=True)}
             final = finals.get(e.filename, arrays[0][0])
-            raise write_error(OSError(e.errno, e.strerror or str(e), os.fspath(final)), final) from None
+            raise write_error(_os_error(e, final), final) from None
         if before_rename is not None:
             before_rename()
+
+
+def _os_error(error: OSError, path: PathLike) -> OSError:
+    """Return an OSError of the extension's writers naming ``path``, in the system's words for its errno."""
+    reason = os.strerror(error.errno) if error.errno else (error.strerror or str(error))
+    return OSError(error.errno, reason, os.fspath(path))
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
