@@ -1974,9 +1974,10 @@ def write_result(
     meshes_written = threading.Event()
     state = {"meshes": False}
 
-    def after_meshes() -> None:
-        meshes_written.wait()
-        if not state["meshes"]:
+    def after_meshes(wait: bool = True) -> None:  # raises _Abandoned once the meshes failed
+        if wait:
+            meshes_written.wait()
+        if meshes_written.is_set() and not state["meshes"]:
             raise _Abandoned
 
     with ThreadPoolExecutor(1) as pool:
@@ -2052,9 +2053,13 @@ def _write_result_pngs(
     normal_map: str,
     normal_map_bits: int,
     inputs: np.ndarray | None,
-    after_meshes: Callable[[], None],
+    after_meshes: Callable[..., None],
 ) -> dict[str, float]:
-    """Make and write a result's PNG images (:func:`write_result`); return the summary's PNG scales."""
+    """Make and write a result's PNG images (:func:`write_result`); return the summary's PNG scales.
+
+    ``after_meshes()`` waits for the meshes and raises if they failed; ``after_meshes(False)``
+    only raises if they already failed (checked before the encoding: no work for nothing).
+    """
     scales = {}
     normals = normal_map_pixels(result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
     pngs = [(paths["normal_map"], normals), (paths["shaded"], _grey_pixels(result.shaded()))]
@@ -2070,5 +2075,6 @@ def _write_result_pngs(
     pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
     if inputs is not None:
         pngs.append((paths["inputs"], np.asarray(contact_sheet(inputs), dtype=np.uint8)))
+    after_meshes(False)
     _write_pngs(pngs, after_meshes)
     return scales
