@@ -18,7 +18,9 @@ few Gaussian bumps and dents, 100 units across (the longer side) at working dist
 * load: ``nplps.io.load_stack`` of the PNG files (``--no-files``: ``np.load`` + ``load_stack``
   of the array);
 * reconstruct: wall time of ``nplps.reconstruct`` and its ``result.timings`` split;
-* export: ``result.save`` (PLY + OBJ + maps) into a temporary directory, and the mesh writers
+* export: ``result.save`` (PLY + OBJ up to 4 MP + maps) into a temporary directory, the time of
+  each file it writes (printed as the "Save, seconds per file" table; see ``benchmarks/save.py``,
+  which times ``save`` alone at camera resolution without reconstructing), and the mesh writers
   alone (``write_ply``, ``write_obj``) on precomputed vertex arrays;
 * iterations per pyramid level (``result.history``, grouped by ``level`` when entries have one);
 * peak RSS after the reconstruction and after the export, also minus the RSS before loading;
@@ -56,6 +58,9 @@ import numpy as np
 
 import nplps
 from nplps import export
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import save as save_bench  # benchmarks/save.py: the per-file timer
 
 #: Lateral size of the object (its longer side), working distance, light stand-off.
 OBJECT_SIZE = 100.0
@@ -300,6 +305,7 @@ def run_child(spec_path: str) -> None:
     mask = np.ones((h, w), dtype=bool)
     out_dir = directory / "out"
     runs, exports = [], []
+    save_runs: list[dict[str, float]] = []
     rss_after_reconstruct = rss_after_export = 0.0
     hwm_after_reconstruct = hwm_after_export = None
     result = None
@@ -336,9 +342,14 @@ def run_child(spec_path: str) -> None:
                 **{f"timings.{k}": float(v) for k, v in result.timings.items()},
             }
         )
-        t0 = time.perf_counter()
-        paths = result.save(out_dir)
-        save_s = time.perf_counter() - t0
+        record: list[tuple[str, float, float]] = []
+        with save_bench.file_timer(record):  # the time of each file (save_bench's docstring)
+            t0 = time.perf_counter()
+            paths = result.save(out_dir)
+            save_s = time.perf_counter() - t0
+        save_files = {name: b - a for name, a, b in record}
+        save_files["other"] = save_s - save_bench.covered([(a, b) for _, a, b in record])
+        save_runs.append(save_files)
         files = {p.name: p.stat().st_size for p in paths.values()}
         rss_after_export = max(rss_after_export, peak_rss_mb())
         hwm_after_export = hwm_mb()
@@ -363,6 +374,7 @@ def run_child(spec_path: str) -> None:
         "timings": _median_dict(runs),
         "export": _median_dict(exports),
         "export_files": files,
+        "save_files": _median_dict(save_runs),
         "iterations": len(result.history),
         "converged": bool(result.converged),
         "levels": iterations_per_level(result.history),
@@ -510,6 +522,21 @@ def markdown_tables(cases: list[dict[str, Any]]) -> str:
             f"{a['depth_error_max_pct']:.3f} / {a['depth_error_rms_pct']:.3f}",
         ]
         lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n\n" + save_table(ok)
+
+
+def save_table(cases: list[dict[str, Any]]) -> str:
+    """The save breakdown: seconds of each file ``result.save`` wrote, one column per case.
+
+    From the creation of a file's temporary name to its rename (content computed included);
+    the PNG images are encoded together in parallel while the other files are written, so their
+    spans overlap the others'. "other" is the time of ``save`` outside every file.
+    """
+    names = sorted({n for c in cases for n in c.get("save_files", {})}, key=lambda n: (n == "other", n))
+    head = ["file", *(f"{c['size']} {c['camera']}" for c in cases)]
+    lines = ["Save, seconds per file:", "", "| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for n in names:
+        lines.append("| " + " | ".join([n, *(_fmt(c.get("save_files", {}).get(n), 3) for c in cases)]) + " |")
     return "\n".join(lines)
 
 
@@ -615,7 +642,7 @@ def main() -> None:
         "--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files"
     )
     parser.add_argument(
-        "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save still writes the OBJ)"
+        "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save writes OBJ up to 4 MP)"
     )
     parser.add_argument("--workdir", help="where the cases are written (default: a new temporary directory)")
     parser.add_argument("--keep", action="store_true", help="keep the images and rigs of every case")

@@ -372,10 +372,10 @@ def add(p: Any) -> None:
     for tag, writer, exc in [
         ("ctrl_c_npy", "save_npy", "KeyboardInterrupt"),
         ("ctrl_c_depth", "save_depth_npy", "KeyboardInterrupt"),
-        ("ctrl_c_png", "write_png8", "KeyboardInterrupt"),
+        ("ctrl_c_png", "_write_pngs", "KeyboardInterrupt"),  # the PNG files, encoded together
         ("disk_full_npy", "save_npy", "OSError(28, 'No space left on device')"),
         ("disk_full_depth", "save_depth_npy", "OSError(28, 'No space left on device')"),
-        ("error_png", "write_png8", "RuntimeError('writer failed')"),
+        ("error_png", "_write_pngs", "RuntimeError('writer failed')"),
     ]:
         setup = (
             IC + "from nplps import export\nr = rec(); d = tmp / 'r'\n"

@@ -19,7 +19,7 @@ from nplps.export import (
     write_meshes,
     write_obj,
     write_ply,
-    write_png16,
+    write_png,
 )
 
 H, W = 3, 4
@@ -410,18 +410,52 @@ def test_albedo_png_is_16_bit(tmp_path: Path) -> None:
     np.testing.assert_allclose(image[finite], expected, atol=0.5 + 1e-9)
 
 
-@pytest.mark.parametrize("shape", [(7, 5), (6, 4, 3)])
-def test_png16_is_pypng_writer(tmp_path: Path, shape: tuple[int, ...]) -> None:
+@pytest.mark.parametrize("shape", [(7, 5), (6, 4, 3), (1, 1), (3, 200, 3)])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_png_writer_round_trips(tmp_path: Path, shape: tuple[int, ...], dtype: type) -> None:
+    """The Rust PNG writer's files read back bit for bit by the Rust reader, pypng and (8-bit) imageio."""
+    import imageio.v3 as iio
     import png
 
-    pixels = np.random.default_rng(1).integers(0, 65536, shape).astype(np.uint16)
-    write_png16(tmp_path / "fast.png", pixels)
-    with open(tmp_path / "plain.png", "wb") as file:  # pypng from Python lists of values
-        png.Writer(shape[1], shape[0], greyscale=len(shape) == 2, bitdepth=16).write(
-            file, pixels.reshape(shape[0], -1).tolist()
-        )
+    top = np.iinfo(dtype).max
+    pixels = np.random.default_rng(1).integers(0, top + 1, shape).astype(dtype)
+    pixels.flat[0], pixels.flat[-1] = 0, top
+    path = tmp_path / "a.png"
+    write_png(path, pixels)
 
-    assert (tmp_path / "fast.png").read_bytes() == (tmp_path / "plain.png").read_bytes()
+    assert path.read_bytes()[24] == 8 * np.dtype(dtype).itemsize  # bit depth
+    np.testing.assert_array_equal(io.read_image(path), pixels)
+    w, h, rows, info = png.Reader(filename=str(path)).read()
+    assert (w, h, info["bitdepth"], info["greyscale"]) == (shape[1], shape[0], 8 * pixels.itemsize, len(shape) == 2)
+    np.testing.assert_array_equal(np.array([list(r) for r in rows]).reshape(shape), pixels)
+    if dtype == np.uint8:
+        np.testing.assert_array_equal(iio.imread(path), pixels)
+
+
+def test_pngs_written_in_parallel_match_one_by_one(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    images = [rng.integers(0, 65536, (40, 30, 3)).astype(np.uint16), rng.integers(0, 256, (20, 50)).astype(np.uint8)]
+    export.write_pngs([(tmp_path / f"{i}.png", image) for i, image in enumerate(images)])
+    for i, image in enumerate(images):
+        write_png(tmp_path / f"single{i}.png", image)
+        assert (tmp_path / f"{i}.png").read_bytes() == (tmp_path / f"single{i}.png").read_bytes()
+        np.testing.assert_array_equal(io.read_image(tmp_path / f"{i}.png"), image)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0.png", "1.png", "single0.png", "single1.png"]
+
+
+def test_png_writer_errors_name_the_final_file(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="shape"):
+        write_png(tmp_path / "a.png", np.zeros((2, 3, 4), dtype=np.uint8))
+    with pytest.raises(InputError, match="shape"):
+        write_png(tmp_path / "a.png", np.zeros((0, 3), dtype=np.uint8))
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "a.png").mkdir()  # a directory where the file goes: refused, named
+    with pytest.raises(OSError) as caught:
+        export.write_pngs(
+            [(tmp_path / "b.png", np.zeros((2, 2), np.uint8)), (tmp_path / "d" / "a.png", np.zeros((2, 2), np.uint8))]
+        )
+    assert caught.value.filename == str(tmp_path / "d" / "a.png")
+    assert [p.name for p in tmp_path.iterdir() if p.is_file()] == []  # all or nothing: b.png removed too
 
 
 def test_normal_map_in_bands_is_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -457,3 +491,21 @@ def test_depth_tiff_round_trip(tmp_path: Path) -> None:
     assert loaded.dtype == np.float32
     np.testing.assert_array_equal(loaded, depth.astype(np.float32))
     np.testing.assert_array_equal(io.read_image(path), loaded)
+
+
+def test_ply_written_in_blocks_is_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The PLY writers stream blocks of records: the bytes do not depend on the block size."""
+    vertices, mask = _grid()
+    normals = np.broadcast_to(np.array([0.0, 0.0, -1.0]), vertices.shape)
+    albedo = np.linspace(0.1, 0.9, vertices.shape[0] * vertices.shape[1]).reshape(vertices.shape[:2])
+    data = {"normals": normals, "albedo": albedo}
+    write_ply(tmp_path / "one.ply", vertices, mask, **data)
+    export.write_point_cloud(tmp_path / "one_points.ply", vertices, mask, **data)
+    monkeypatch.setattr(export, "_PLY_BLOCK", 3)
+    write_ply(tmp_path / "blocks.ply", vertices, mask, **data)
+    export.write_point_cloud(tmp_path / "blocks_points.ply", vertices, mask, **data)
+
+    assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "blocks.ply").read_bytes()
+    assert (tmp_path / "one_points.ply").read_bytes() == (tmp_path / "blocks_points.ply").read_bytes()
+    ply = read_ply(tmp_path / "blocks.ply")
+    assert len(ply["faces"]) == 2 * mask.sum()  # type: ignore[arg-type]

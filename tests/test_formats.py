@@ -233,3 +233,39 @@ def test_cli_formats_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert cli.main([*common, "--formats", "glb,usdz", "--out", str(tmp_path / "bad")]) == 2
     assert "unknown format(s) usdz" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_obj_is_opt_in_above_the_size_rule(
+    tmp_path: Path, result: nplps.Reconstruction, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    facets = int(result.mask.sum())
+    small = result.save(tmp_path / "small")  # at most OBJ_MAX_FACETS: written by default
+    assert "obj" in small and "skipped" not in json.loads((tmp_path / "small" / "summary.json").read_text())
+
+    monkeypatch.setattr(export, "OBJ_MAX_FACETS", facets - 1)
+    paths = result.save(tmp_path / "large")
+    assert "obj" not in paths and not (tmp_path / "large" / "mesh.obj").exists()
+    summary = json.loads((tmp_path / "large" / "summary.json").read_text())
+    assert summary["skipped"] == {"mesh.obj": export.obj_skipped_note(facets)}
+    assert 'formats=["obj"]' in summary["skipped"]["mesh.obj"] and "--obj" in summary["skipped"]["mesh.obj"]
+    assert "mesh.obj" not in json.loads((tmp_path / "large" / "nplps-manifest.json").read_text())["files"]
+    assert set(_digests(tmp_path / "small")) - set(_digests(tmp_path / "large")) == {"mesh.obj"}
+
+    asked = result.save(tmp_path / "asked", formats=["obj"])
+    assert (tmp_path / "asked" / "mesh.obj").read_bytes() == (tmp_path / "small" / "mesh.obj").read_bytes()
+    assert asked["obj"] == tmp_path / "asked" / "mesh.obj"
+    assert "skipped" not in json.loads((tmp_path / "asked" / "summary.json").read_text())
+
+
+def test_cli_obj_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    scene = tmp_path / "scene"
+    assert cli.main(["synth", "sphere", "--size", "24", "--out", str(scene)]) == 0
+    common = ["reconstruct", str(scene), "--rig", str(scene / "rig.json"), "--mask", str(scene / "mask.png")]
+    common += ["--depth", "200", "--iterations", "2", "-q", "--no-report"]
+    monkeypatch.setattr(export, "OBJ_MAX_FACETS", 10)
+    assert cli.main([*common, "--out", str(tmp_path / "plain")]) == 0
+    assert cli.main([*common, "--obj", "--out", str(tmp_path / "obj")]) == 0
+    assert cli.main([*common, "--formats", "obj", "--out", str(tmp_path / "formats")]) == 0
+    capsys.readouterr()
+    assert not (tmp_path / "plain" / "mesh.obj").exists()
+    assert (tmp_path / "obj" / "mesh.obj").read_bytes() == (tmp_path / "formats" / "mesh.obj").read_bytes()

@@ -74,6 +74,7 @@ __all__ = [
     "synth_scene",
     "synth_spheres",
     "vertices",
+    "write_pngs",
 ]
 
 __version__: str
@@ -216,6 +217,18 @@ def read_pngs(
     Returns uint8 / uint16 arrays (H, W) or (H, W, 3) as stored (alpha dropped, palettes
     expanded, grey palettes to grey, 1/2/4-bit grey to 0..255). InputError names the first
     missing or broken file, or one above max_pixels pixels.
+    """
+
+def write_pngs(
+    jobs: Sequence[tuple[str | os.PathLike[str], npt.NDArray[np.uint8] | npt.NDArray[np.uint16]]],
+    compression: str,
+    filter: str,
+) -> None:
+    """Write (H, W) / (H, W, 3) uint8 / uint16 arrays as PNG files in parallel (GIL released).
+
+    compression: "none", "fast", "balanced" or "high"; filter: "adaptive", "none", "sub", "up"
+    or "paeth". OSError (with filename) for the first file that cannot be written; InputError
+    for an array that is not a C-contiguous 8- or 16-bit image (before anything is written).
     """
 
 # -- light calibration (nplps.calibrate) ----------------------------------------------------------

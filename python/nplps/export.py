@@ -20,19 +20,20 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
 from typing import IO, TYPE_CHECKING, Any, TypeAlias
 
-import imageio.v3 as iio
 import numpy as np
 import tifffile
 
-from . import plots, views
-from ._atomic import atomic_path, atomic_write, write_text
+from . import _core, plots, views
+from ._atomic import atomic_path, atomic_write, write_error, write_text
 from ._held_out import HeldOutScores, reading
 from ._outdir import jsonable
 from .errors import InputError
@@ -49,6 +50,7 @@ __all__ = [
     "EXTRA_FORMATS",
     "FORMATS",
     "NORMAL_MAP_FRAMES",
+    "OBJ_MAX_FACETS",
     "OutputFormat",
     "check_formats",
     "check_normal_map",
@@ -56,6 +58,7 @@ __all__ = [
     "exr_available",
     "formats_help",
     "normal_map_pixels",
+    "obj_skipped_note",
     "read_exr",
     "read_normal_map",
     "read_ply",
@@ -78,6 +81,7 @@ __all__ = [
     "write_png",
     "write_png8",
     "write_png16",
+    "write_pngs",
     "write_point_cloud",
     "write_result",
     "write_stl",
@@ -153,7 +157,7 @@ def _build_mesh(
     flip = _OPENGL_FLIP if opengl else None
     points = _gather_float32(vertices, used, flip)
     # The vertices used are finite (_valid_facets): an infinite float32 point overflowed.
-    overflow = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    overflow = np.flatnonzero(~_all_finite(points))
     wide = vertices.reshape(-1, 3)[used[overflow]].astype(np.float64)
     return _Mesh(
         points=points,
@@ -181,6 +185,18 @@ def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None)
             out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
     if flip is not None:
         out *= flip
+    return out
+
+
+def _all_finite(values: np.ndarray) -> np.ndarray:
+    """Return whether every value along the last axis is finite (``np.isfinite(values).all(axis=-1)``, faster).
+
+    numpy's reduction over a short last axis is several times slower than combining its columns.
+    """
+    finite = np.isfinite(values)
+    out = finite[..., 0].copy()
+    for i in range(1, values.shape[-1]):
+        out &= finite[..., i]
     return out
 
 
@@ -216,9 +232,9 @@ def _require_shape(name: str, array: np.ndarray, shape: tuple[int, ...]) -> None
 
 def _valid_facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
     """Masked facets whose four corners have finite positions (and normals); warn about others."""
-    finite = np.isfinite(vertices).all(axis=2)
+    finite = _all_finite(vertices)
     if normals is not None:
-        finite &= np.isfinite(normals).all(axis=2)
+        finite &= _all_finite(normals)
     corners_finite = finite[:-1, :-1] & finite[:-1, 1:] & finite[1:, :-1] & finite[1:, 1:]
     facets = mask & corners_finite
     skipped = np.count_nonzero(mask) - np.count_nonzero(facets)
@@ -276,8 +292,11 @@ def _quantize(values: np.ndarray, percentile: float, max_value: int, dtype: type
     finite = np.isfinite(values)
     reference = float(np.percentile(values[finite], percentile)) if finite.any() else 0.0
     scale = max_value / reference if reference > 0 else 1.0
-    scaled = np.where(finite, values * scale, 0.0)
-    return np.rint(np.clip(scaled, 0, max_value)).astype(dtype), scale
+    scaled = np.multiply(values, scale)  # one temporary, then in place
+    np.clip(scaled, 0, max_value, out=scaled)
+    np.rint(scaled, out=scaled)
+    scaled[~finite] = 0.0  # NaN and inf (inf * scale would clip to max_value)
+    return scaled.astype(dtype), scale
 
 
 def _grey_colors(albedo: np.ndarray) -> np.ndarray:
@@ -403,12 +422,31 @@ def _write_meshes(
             f.write(target, mesh)
 
 
+#: Rows (vertices or faces) per block of the binary PLY writer.
+_PLY_BLOCK = 1 << 18
+
+
 def _write_ply_mesh(path: PathLike, mesh: _Mesh) -> None:
     _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh).encode("ascii"))
-        file.write(_ply_vertex_records(mesh).view(np.uint8).data)  # no copy of the records
-        file.write(_ply_face_records(mesh.faces).view(np.uint8).data)
+        _write_ply_vertices(file, mesh)
+        for start in range(0, len(mesh.faces), _PLY_BLOCK):
+            file.write(_ply_face_records(mesh.faces[start : start + _PLY_BLOCK]).view(np.uint8).data)
+
+
+def _write_ply_vertices(file: IO[bytes], mesh: _Mesh) -> None:
+    """Write the vertex element of ``mesh`` in blocks of :data:`_PLY_BLOCK` records (no whole-file buffer)."""
+    for start in range(0, len(mesh.points), _PLY_BLOCK):
+        block = slice(start, start + _PLY_BLOCK)
+        part = _Mesh(
+            points=mesh.points[block],
+            normals=None if mesh.normals is None else mesh.normals[block],
+            colors=None if mesh.colors is None else mesh.colors[block],
+            faces=mesh.faces[:0],
+            frame=mesh.frame,
+        )
+        file.write(_ply_vertex_records(part).view(np.uint8).data)  # no copy of the records
 
 
 def _ply_header(mesh: _Mesh, *, faces: bool = True) -> str:
@@ -901,7 +939,7 @@ def _write_points_mesh(path: PathLike, mesh: _Mesh) -> None:
     _require_float32(mesh, "PLY", path)
     with atomic_write(path) as file:
         file.write(_ply_header(mesh, faces=False).encode("ascii"))
-        file.write(_ply_vertex_records(mesh).view(np.uint8).data)
+        _write_ply_vertices(file, mesh)
 
 
 @dataclass(frozen=True)
@@ -945,6 +983,13 @@ FORMATS: dict[str, OutputFormat] = {
         ),
         OutputFormat("points", "points.ply", "a point cloud with normals and colours", _write_points_mesh, mesh="PLY"),
         OutputFormat("normals_tiff", "normals.tiff", "32-bit float normals", save_normals_tiff),
+        OutputFormat(
+            "obj",
+            "{stem}.obj",
+            "Wavefront OBJ text; written anyway up to 4 million facets (OBJ_MAX_FACETS)",
+            _write_obj_mesh,
+            mesh="OBJ",
+        ),
         # Three files (EXR_FILES), written by write_result itself: not through `write`.
         OutputFormat(
             "exr",
@@ -954,6 +999,22 @@ FORMATS: dict[str, OutputFormat] = {
         ),
     )
 }
+
+#: ``Reconstruction.save`` writes ``mesh.obj`` by default only for results of at most this many
+#: facets (masked pixels): 4 million, a 4 MP result, whose OBJ file is about 0.8 GB of text (a
+#: 12 MP result's is 2.4 GB and takes longer to write than everything else together). Larger
+#: results get it when asked for: ``formats=["obj"]``, ``nplps reconstruct --formats obj`` or
+#: ``--obj``; ``summary.json``'s ``"skipped"`` says when it was left out and how to get it.
+OBJ_MAX_FACETS = 4_000_000
+
+
+def obj_skipped_note(facets: int) -> str:
+    """Return the note of ``summary.json``'s ``"skipped"`` for an OBJ file left out (:data:`OBJ_MAX_FACETS`)."""
+    return (
+        f"not written by default: {facets} facets is more than {OBJ_MAX_FACETS} (OBJ_MAX_FACETS); "
+        'ask for it with formats=["obj"] or nplps reconstruct --obj (the same mesh is in the PLY file)'
+    )
+
 
 #: The files of the ``"exr"`` format by kind (:meth:`nplps.Reconstruction.save`'s paths).
 EXR_FILES = {"depth_exr": "depth.exr", "normals_exr": "normals.exr", "albedo_exr": "albedo.exr"}
@@ -1363,7 +1424,7 @@ def normal_map_pixels(
     for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
         band = slice(start, start + rows)
         n = np.asarray(normals[band], dtype=np.float64)
-        valid = np.asarray(np.isfinite(n).all(axis=2))
+        valid = _all_finite(n)
         if mask is not None:
             valid &= mask[band]
         flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)
@@ -1471,50 +1532,105 @@ def save_albedo(path: PathLike, albedo: np.ndarray) -> float:
     albedo = np.asarray(albedo)
     if not (albedo.ndim == 2 or (albedo.ndim == 3 and albedo.shape[2] == 3)):
         raise InputError(f"albedo must have shape (H, W) or (H, W, 3), got {albedo.shape}")
-    pixels, scale = _quantize(albedo, _ALBEDO_PERCENTILE, 65535, np.uint16)
+    pixels, scale = _albedo_pixels(albedo)
     write_png16(path, pixels)
     return scale
 
 
+def _albedo_pixels(albedo: np.ndarray) -> tuple[np.ndarray, float]:
+    """Return the uint16 pixels of :func:`save_albedo` and their scale."""
+    return _quantize(np.asarray(albedo), _ALBEDO_PERCENTILE, 65535, np.uint16)
+
+
 def save_grey_png(path: PathLike, image: np.ndarray) -> None:
     """Write an (H, W) image with values in [0, 1] as an 8-bit grey PNG (NaN -> 0)."""
-    image = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0)
-    write_png8(path, np.rint(np.clip(image, 0.0, 1.0) * 255).astype(np.uint8))
+    write_png8(path, _grey_pixels(image))
+
+
+def _grey_pixels(image: np.ndarray) -> np.ndarray:
+    """Return the uint8 pixels of :func:`save_grey_png`: ``round(clip(image, 0, 1) * 255)``, NaN -> 0."""
+    image = np.array(image, dtype=np.float64)  # a copy, then in place
+    np.nan_to_num(image, copy=False, nan=0.0)
+    np.clip(image, 0.0, 1.0, out=image)
+    image *= 255
+    np.rint(image, out=image)
+    return image.astype(np.uint8)
+
+
+#: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
+#: rows. On the 12 MP benchmark's 16-bit normal map: 0.25 s and 28 MB, against 5.1 s and 12 MB
+#: at zlib's default level ("balanced") and 2.9 s and 62 MB with pypng before (docs/outputs.md).
+PNG_COMPRESSION = "fast"
+#: The PNG row filter (:func:`write_pngs`): per row, the one whose output is smallest.
+PNG_FILTER = "adaptive"
+
+
+def write_pngs(images: Sequence[tuple[PathLike, np.ndarray]]) -> None:
+    """Write several integer images as PNG files, encoded in parallel by the Rust extension.
+
+    Each image is grey ``(H, W)`` or RGB ``(H, W, 3)``, written with 8 bits per sample for uint8
+    and 16 bits (big-endian, as PNG stores them) for any other integer type (converted to
+    uint16), as a non-interlaced PNG that any reader reads (compression :data:`PNG_COMPRESSION`,
+    filter :data:`PNG_FILTER`). The files are encoded on the extension's threads with the GIL
+    released, each under a temporary name renamed into place when all are complete
+    (:mod:`nplps._atomic`). The file is PNG whatever the extension of its path.
+
+    Raises
+    ------
+    InputError
+        An array is not an ``(H, W)`` or ``(H, W, 3)`` image with at least one pixel.
+    OSError
+        A file could not be written (``filename`` is its path).
+    """
+    _write_pngs(images)
+
+
+def _write_pngs(images: Sequence[tuple[PathLike, np.ndarray]], before_rename: Callable[[], None] | None = None) -> None:
+    """:func:`write_pngs`, with ``before_rename()`` run (it may raise) once encoded, before the renames."""
+    arrays = []
+    for path, pixels in images:
+        pixels = np.asarray(pixels)
+        dtype = np.uint8 if pixels.dtype == np.uint8 else np.uint16
+        if not (pixels.ndim == 2 or (pixels.ndim == 3 and pixels.shape[2] == 3)) or pixels.size == 0:
+            raise InputError(f"cannot write image {os.fspath(path)!r}: shape {pixels.shape} is not (H, W) or (H, W, 3)")
+        arrays.append((path, np.ascontiguousarray(pixels, dtype=dtype)))
+    with ExitStack() as stack:
+        jobs = [(stack.enter_context(atomic_path(path)), pixels) for path, pixels in arrays]
+        try:
+            _core.write_pngs(jobs, PNG_COMPRESSION, PNG_FILTER)
+        except OSError as e:  # named by its temporary file: name the final one
+            finals = {temporary: path for (temporary, _), (path, _) in zip(jobs, arrays, strict=True)}
+            final = finals.get(e.filename, arrays[0][0])
+            raise write_error(_os_error(e, final), final) from None
+        if before_rename is not None:
+            before_rename()
+
+
+def _os_error(error: OSError, path: PathLike) -> OSError:
+    """Return an OSError of the extension's writers naming ``path``, in the system's words for its errno."""
+    reason = os.strerror(error.errno) if error.errno else (error.strerror or str(error))
+    return OSError(error.errno, reason, os.fspath(path))
 
 
 def write_png(path: PathLike, pixels: np.ndarray) -> None:
-    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_png16`).
+    """Write an integer image as a PNG: 8-bit for uint8, else 16-bit (:func:`write_pngs`).
 
     Grey ``(H, W)`` or RGB ``(H, W, 3)``.
     """
-    if np.asarray(pixels).dtype == np.uint8:
-        write_png8(path, pixels)
-    else:
-        write_png16(path, np.asarray(pixels, dtype=np.uint16))
+    write_pngs([(path, pixels)])
 
 
 def write_png8(path: PathLike, pixels: np.ndarray) -> None:
-    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG.
+    """Write a uint8 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as an 8-bit PNG (:func:`write_pngs`).
 
     The file is PNG whatever the extension of `path`.
     """
-    with atomic_path(path) as temporary:
-        iio.imwrite(temporary, np.asarray(pixels, dtype=np.uint8), extension=".png")
+    write_pngs([(path, np.asarray(pixels, dtype=np.uint8))])
 
 
 def write_png16(path: PathLike, pixels: np.ndarray) -> None:
-    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG.
-
-    Written with pypng: Pillow cannot write 16-bit RGB.
-    """
-    import png
-
-    pixels = np.asarray(pixels, dtype=np.uint16)
-    h, w = pixels.shape[:2]
-    grey = pixels.ndim == 2
-    rows = np.asarray(pixels, dtype=">u2").reshape(h, -1)  # PNG stores 16-bit big-endian
-    with atomic_write(path) as file:  # pre-packed rows: what Writer.write would make of the values
-        png.Writer(w, h, greyscale=grey, bitdepth=16).write_packed(file, (row.tobytes() for row in rows))
+    """Write a uint16 ``(H, W)`` grey or ``(H, W, 3)`` RGB image as a 16-bit PNG (:func:`write_pngs`)."""
+    write_pngs([(path, np.asarray(pixels, dtype=np.uint16))])
 
 
 def save_depth_npy(path: PathLike, depth: np.ndarray) -> None:
@@ -1824,18 +1940,22 @@ def write_result(
     arguments are :meth:`~nplps.Reconstruction.save`'s. Returns the paths written by kind; the
     report (written from these files) is the caller's.
     """
-    names = {
-        "ply": f"{stem}.ply",
-        "obj": f"{stem}.obj",
-        "normal_map": "normals.png",
-        "shaded": "shaded.png",
-        "albedo": "albedo.png",
-        "depth_npy": "depth.npy",
-        "depth_tiff": "depth.tiff",
-        "normals_npy": "normals.npy",
-        "residual_npy": "residual.npy",
-    }
-    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats if name != "exr"})
+    facets = int(np.count_nonzero(result.mask))
+    names = {"ply": f"{stem}.ply"}
+    if "obj" in formats or facets <= OBJ_MAX_FACETS:
+        names["obj"] = f"{stem}.obj"
+    names.update(
+        {
+            "normal_map": "normals.png",
+            "shaded": "shaded.png",
+            "albedo": "albedo.png",
+            "depth_npy": "depth.npy",
+            "depth_tiff": "depth.tiff",
+            "normals_npy": "normals.npy",
+            "residual_npy": "residual.npy",
+        }
+    )
+    names.update({name: FORMATS[name].file.format(stem=stem) for name in formats if name not in ("exr", "obj")})
     if "exr" in formats:
         names.update(EXR_FILES)
     if result.specular is not None:  # the glossy model's specular albedo (none for Lambertian results)
@@ -1855,19 +1975,58 @@ def write_result(
         names["held_out"] = "held_out.json"
     names["summary"] = "summary.json"
     paths = {key: out.file(name) for key, name in names.items()}
-    # One set of vertex arrays and one mesh for both files and the extra mesh formats.
-    mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None}
-    _write_meshes(
-        paths["ply"],
-        paths["obj"],
-        result.vertices,
-        result.mask,
-        result.vertex_normals(),
-        result.vertex_albedo(),
-        opengl,
-        mesh_formats,
-    )
-    save_normal_map(paths["normal_map"], result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
+    summary = result.summary()
+    if "obj" not in paths:
+        summary["skipped"] = {f"{stem}.obj": obj_skipped_note(facets)}
+    _ = result.normals  # computed (and cached) once, before two threads read it
+    # The PNG images are made and encoded on a thread of their own (the encoder runs in parallel
+    # with the GIL released) while the meshes and the other files are written; they are renamed
+    # into place only after the meshes, so a mesh that fails leaves no other new file.
+    meshes_written = threading.Event()
+    state = {"meshes": False}
+
+    def after_meshes(wait: bool = True) -> None:  # raises _Abandoned once the meshes failed
+        if wait:
+            meshes_written.wait()
+        if meshes_written.is_set() and not state["meshes"]:
+            raise _Abandoned
+
+    with ThreadPoolExecutor(1) as pool:
+        encoded = pool.submit(_write_result_pngs, result, paths, normal_map, normal_map_bits, inputs, after_meshes)
+        try:
+            # One set of vertex arrays and one mesh for both files and the extra mesh formats.
+            mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
+            _write_meshes(
+                paths["ply"],
+                paths.get("obj"),
+                result.vertices,
+                result.mask,
+                result.vertex_normals(),
+                result.vertex_albedo(),
+                opengl,
+                mesh_formats,
+            )
+            state["meshes"] = True
+            meshes_written.set()
+            _write_other_files(result, paths, formats, normal_map)
+        finally:
+            meshes_written.set()
+            wait([encoded])  # never leave with a file still being written
+        summary.update(encoded.result())
+    # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
+    summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
+    summary["units"] = units
+    if held_out is not None:
+        record = held_out_record(held_out[0], held_out[1])
+        write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
+    if options is not None:
+        summary["options"] = jsonable(options)
+    write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
+    return paths
+
+
+def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence[str], normal_map: str) -> None:
+    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`)."""
     for name in formats:
         if FORMATS[name].mesh is None and name != "exr":
             FORMATS[name].write(paths[name], result.normals)
@@ -1875,25 +2034,14 @@ def write_result(
         save_depth_exr(paths["depth_exr"], result.depth)
         save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
         save_albedo_exr(paths["albedo_exr"], result.albedo)
-    save_grey_png(paths["shaded"], result.shaded())
-    summary = result.summary()
-    summary["albedo_png_scale"] = save_albedo(paths["albedo"], result.albedo)
-    # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
-    summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
-    summary["units"] = units
     save_depth_npy(paths["depth_npy"], result.depth)
     save_depth_tiff(paths["depth_tiff"], result.depth)
     save_npy(paths["normals_npy"], result.normals)
     save_npy(paths["residual_npy"], result.residual)
     if result.specular is not None:
         save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
-        summary["specular_png_scale"] = save_albedo(paths["specular"], result.specular)
     if result.shadow_bits is not None:
         save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
-        shadowed = result.shadows
-        assert shadowed is not None
-        share = np.where(result.mask, shadowed.mean(axis=0), 0.0)
-        save_grey_png(paths["shadows"], share)
     if result.normal_sigma is not None and result.held_out_error is not None:
         save_map_tiff(paths["normal_sigma"], result.normal_sigma)
         save_map_tiff(paths["held_out_error"], result.held_out_error)
@@ -1902,18 +2050,45 @@ def write_result(
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
     if result.refinement is not None:
         result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig_refined"])
-    save_grey_png(paths["mask"], result.mask.astype(np.float64))
     save_npy(paths["lights_used"], np.minimum(result.lights_used, 65535).astype(np.uint16))
     write_text(paths["history"], history_csv(result.history))
     # The rig records the image size it belongs to (and its binning): reused on images of
     # another size it is refused with both sizes named (see nplps.rig.RigGrid).
     result.rig.with_grid(result.shape[1], result.shape[0]).save(paths["rig"])
+
+
+class _Abandoned(Exception):
+    """The PNG files of a result are not renamed into place: writing the meshes failed."""
+
+
+def _write_result_pngs(
+    result: Result,
+    paths: dict[str, Path],
+    normal_map: str,
+    normal_map_bits: int,
+    inputs: np.ndarray | None,
+    after_meshes: Callable[..., None],
+) -> dict[str, float]:
+    """Make and write a result's PNG images (:func:`write_result`); return the summary's PNG scales.
+
+    ``after_meshes()`` waits for the meshes and raises if they failed; ``after_meshes(False)``
+    only raises if they already failed (checked before the encoding: no work for nothing).
+    """
+    scales = {}
+    normals = normal_map_pixels(result.normals, mask=result.mask, frame=normal_map, bits=normal_map_bits)
+    pngs = [(paths["normal_map"], normals), (paths["shaded"], _grey_pixels(result.shaded()))]
+    albedo_pixels, scales["albedo_png_scale"] = _albedo_pixels(result.albedo)
+    pngs.append((paths["albedo"], albedo_pixels))
+    if result.specular is not None:
+        specular_pixels, scales["specular_png_scale"] = _albedo_pixels(result.specular)
+        pngs.append((paths["specular"], specular_pixels))
+    if result.shadow_bits is not None:
+        shadowed = result.shadows
+        assert shadowed is not None
+        pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
+    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
     if inputs is not None:
-        write_png8(paths["inputs"], contact_sheet(inputs))
-    if held_out is not None:
-        record = held_out_record(held_out[0], held_out[1])
-        write_text(paths["held_out"], json.dumps(record, indent=2) + "\n")
-    if options is not None:
-        summary["options"] = jsonable(options)
-    write_text(paths["summary"], json.dumps(summary, indent=2) + "\n")
-    return paths
+        pngs.append((paths["inputs"], np.asarray(contact_sheet(inputs), dtype=np.uint8)))
+    after_meshes(False)
+    _write_pngs(pngs, after_meshes)
+    return scales

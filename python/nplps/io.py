@@ -111,7 +111,7 @@ def read_image(path: PathLike, max_pixels: int = MAX_PIXELS) -> np.ndarray:
         return read_raw(path, max_pixels=max_pixels)
     if header.startswith(_PNG_SIGNATURE):
         # Every PNG variant (1 to 16 bits, grey / RGB / palette, alpha, interlaced) goes to the
-        # Rust decoder: no fallback reader (pypng is only used to write 16-bit PNG).
+        # Rust decoder: no fallback reader (PNG files are written by the Rust encoder too).
         return _core.read_pngs([path], int(max_pixels))[0]
     try:
         if header.startswith(_TIFF_SIGNATURES):

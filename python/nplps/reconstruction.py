@@ -476,7 +476,7 @@ class Reconstruction:
         numpy.ndarray
             (H+1, W+1, 3); NaN at vertices of no masked pixel.
         """
-        return _normalize(_to_vertices(self.normals))
+        return _to_vertices(self.normals, normalize=True)
 
     def vertex_albedo(self) -> np.ndarray:
         """Per-vertex albedo: the mean of the adjacent pixels' albedo.
@@ -689,7 +689,10 @@ class Reconstruction:
     ) -> dict[str, Path]:
         """Write the mesh (PLY and OBJ), the maps and ``summary.json`` into a directory.
 
-        Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`),
+        Files: ``mesh.ply`` and ``mesh.obj`` (vertex normals from :attr:`normals`; ``mesh.obj``
+        only for results of at most :data:`nplps.export.OBJ_MAX_FACETS` (4 million) masked
+        pixels unless `formats` has ``"obj"``: a 12 MP result's OBJ file is 2.4 GB of text;
+        when it is left out ``summary.json``'s ``"skipped"`` says so and how to get it),
         ``normals.png`` (the normal map of :attr:`normals` in the `normal_map` convention, 16 bits
         per channel by default, see :func:`nplps.export.save_normal_map`; its frame and bits are
         ``summary.json``'s ``"normal_map"``, and :func:`nplps.export.read_normal_map` decodes it),
@@ -713,7 +716,8 @@ class Reconstruction:
         ``inputs.png`` (a contact sheet of the images, :func:`nplps.report.contact_sheet`); with
         `held_out`, ``held_out.json`` (:func:`nplps.report.held_out_record`).
 
-        `formats` adds files in other formats (none by default): ``"stl"`` (``mesh.stl``, binary
+        `formats` adds files in other formats (none by default): ``"obj"`` (``mesh.obj`` at any
+        size, :meth:`save_obj`), ``"stl"`` (``mesh.stl``, binary
         STL, :meth:`save_stl`), ``"glb"`` (``mesh.glb``, glTF 2.0 binary with vertex normals and
         colours, :meth:`save_glb`), ``"points"`` (``points.ply``, the mesh's vertices as a point
         cloud with normals and colours, :meth:`save_points`), ``"normals_tiff"``
@@ -733,7 +737,7 @@ class Reconstruction:
             Replace files of the same names, and remove the files of an earlier result that
             this one does not have (listed in its manifest); other files are kept.
         formats : iterable of str, default ()
-            Extra formats to write, any of ``"stl"``, ``"glb"``, ``"points"``,
+            Extra formats to write, any of ``"obj"``, ``"stl"``, ``"glb"``, ``"points"``,
             ``"normals_tiff"`` and ``"exr"`` (:data:`nplps.export.FORMATS`); `opengl` applies to
             the mesh and point formats.
         report : bool, default False
@@ -779,7 +783,9 @@ class Reconstruction:
         Notes
         -----
         Each file is written under a temporary name and renamed when complete, so an error never
-        leaves a truncated file under its final name.
+        leaves a truncated file under its final name. The PNG images are encoded in parallel
+        (the Rust encoder, fast DEFLATE: :func:`nplps.export.write_pngs`) while the meshes and
+        arrays are written, and renamed into place after the meshes.
         """
         extra = export.check_formats(formats)
         export.check_normal_map(normal_map, normal_map_bits)
@@ -851,20 +857,40 @@ def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:
     )
 
 
-def _to_vertices(values: np.ndarray) -> np.ndarray:
-    """Mean of the finite values of the (up to 4) pixels around each vertex: (H, W, C) -> (H+1, W+1, C)."""
+#: Values per band of :func:`_to_vertices` (bands stay in the processor's caches).
+_VERTEX_BAND = 1 << 17
+
+
+def _to_vertices(values: np.ndarray, normalize: bool = False) -> np.ndarray:
+    """Mean of the finite values of the (up to 4) pixels around each vertex: (H, W, C) -> (H+1, W+1, C).
+
+    Computed in bands of rows (no full-size temporaries); each vertex sums its pixels in the order
+    top-left pixel (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1), the same values whatever the
+    band size. With ``normalize``, each mean is then scaled to unit length (:func:`_normalize`).
+    """
     h, w, c = values.shape
-    total = np.zeros((h + 1, w + 1, c))
-    count = np.zeros((h + 1, w + 1, 1))
-    finite = np.isfinite(values).all(axis=-1, keepdims=True)
-    v = np.where(finite, values, 0.0)
-    for dr in (0, 1):
-        for dc in (0, 1):
-            total[dr : dr + h, dc : dc + w] += v
-            count[dr : dr + h, dc : dc + w] += finite
-    del v
-    total /= np.maximum(count, 1)  # in place: no further full-size copies
-    total[count[..., 0] == 0] = np.nan
+    total = np.empty((h + 1, w + 1, c))
+    rows = max(1, _VERTEX_BAND // max(1, (w + 1) * c))
+    for r0 in range(0, h + 1, rows):
+        r1 = min(r0 + rows, h + 1)
+        lo, hi = max(r0 - 1, 0), min(r1, h)  # the pixel rows around vertex rows r0..r1-1
+        src = np.asarray(values[lo:hi], dtype=np.float64)
+        finite = export._all_finite(src)[..., None]
+        v = np.where(finite, src, 0.0)
+        band = total[r0:r1]
+        band[...] = 0.0
+        count = np.zeros((r1 - r0, w + 1, 1))
+        for dr in (0, 1):
+            a, b = max(r0, lo + dr), min(r1, hi + dr)  # vertex rows fed by pixel rows - dr
+            if b <= a:
+                continue
+            for dc in (0, 1):
+                band[a - r0 : b - r0, dc : dc + w] += v[a - dr - lo : b - dr - lo]
+                count[a - r0 : b - r0, dc : dc + w] += finite[a - dr - lo : b - dr - lo]
+        band /= np.maximum(count, 1)
+        band[count[..., 0] == 0] = np.nan
+        if normalize:
+            _normalize(band)
     return total
 
 

@@ -27,17 +27,17 @@ from .outputs import add_output_options, output_directory, parse_formats, writin
 RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
 
-Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as
-colour), normals.png (16-bit normal map in the --normal-map convention), shaded.png (the mesh
-lit from the upper left), albedo.png (16-bit), depth.npy / depth.tiff (vertex depths, (H+1,
-W+1), NaN where no masked pixel), normals.npy, residual.npy and summary.json (with all the
-options), and with --refine-lights the refined rig (rig_refined.json); with --formats also
-mesh.stl, mesh.glb, points.ply and/or normals.tiff, with --exr depth.exr, normals.exr and
-albedo.exr; mask.png, lights_used.npy, history.csv (convergence), rig.json (the result's rig)
-and inputs.png (thumbnails of the images) for the report; report.html, one self-contained page
-to look at the result (unless --no-report; `nplps report DIR` re-makes it); last
-nplps-manifest.json, the list of the files written. RGB images give an RGB albedo unless
---gray.
+Writes into --out: mesh.ply and mesh.obj (the masked surface, vertex normals, albedo as colour;
+mesh.obj only up to 4 million masked pixels unless --obj), normals.png (16-bit normal map in
+the --normal-map convention), shaded.png (the mesh lit from the upper left), albedo.png
+(16-bit), depth.npy / depth.tiff (vertex depths, (H+1, W+1), NaN where no masked pixel),
+normals.npy, residual.npy and summary.json (with all the options), and with --refine-lights the
+refined rig (rig_refined.json); with --formats also mesh.stl, mesh.glb, points.ply and/or
+normals.tiff, with --exr depth.exr, normals.exr and albedo.exr; mask.png, lights_used.npy,
+history.csv (convergence), rig.json (the result's rig) and inputs.png (thumbnails of the
+images) for the report; report.html, one self-contained page to look at the result (unless
+--no-report; `nplps report DIR` re-makes it); last nplps-manifest.json, the list of the files
+written. RGB images give an RGB albedo unless --gray.
 
 --out must be a new or empty directory unless --overwrite is given: then files of the same
 names are replaced, the files of an earlier nplps result there that this run does not write
@@ -129,6 +129,12 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         'needs OpenEXR: pip install "nplps[exr]")',
     )
     p.add_argument(
+        "--obj",
+        action="store_true",
+        help="write mesh.obj whatever the size (by default only up to 4 million masked pixels: a 12 MP "
+        "result's OBJ file is 2.4 GB of text; the same as --formats obj)",
+    )
+    p.add_argument(
         "--units",
         metavar="UNIT",
         help="the rig's length unit (e.g. mm), recorded in summary.json and shown with the scale bars "
@@ -156,6 +162,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     check_input_args(args)
     if args.exr and "exr" not in args.formats:
         args.formats = [*args.formats, "exr"]
+    if getattr(args, "obj", False) and "obj" not in args.formats:
+        args.formats = [*args.formats, "obj"]
     check_formats(args.formats)  # the exr format without OpenEXR is refused before the images are read
     if args.units is not None and not args.units.strip():
         raise InputError("--units must not be empty (e.g. --units mm)")

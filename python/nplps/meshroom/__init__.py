@@ -75,16 +75,10 @@ def normal_png16_pixels(
 def write_normals_png16(
     path: str | os.PathLike[str], normals: np.ndarray, frame: NormalFrame = "opengl", mask: np.ndarray | None = None
 ) -> None:
-    """Write a normal map as a 16-bit RGB PNG (pypng), encoded as :func:`normal_png16_pixels`."""
-    import png
+    """Write a normal map as a 16-bit RGB PNG, encoded as :func:`normal_png16_pixels`."""
+    from ..export import write_png16
 
-    from .._atomic import atomic_write
-
-    pixels = normal_png16_pixels(normals, frame, mask)
-    h, w = pixels.shape[:2]
-    rows = pixels.astype(">u2").reshape(h, -1)
-    with atomic_write(path) as file:
-        png.Writer(w, h, greyscale=False, bitdepth=16).write_packed(file, (row.tobytes() for row in rows))
+    write_png16(path, normal_png16_pixels(normals, frame, mask))
 
 
 @dataclass(frozen=True)
@@ -206,7 +200,7 @@ def run(
         images = [v.path for v in views]
         result = reconstruct(images, rig, depth=depth, mask=mask, **options)
         folder = out / str(pose_id)
-        result.save(folder, overwrite=overwrite)
+        result.save(folder, overwrite=overwrite, formats=["obj"])  # the node's output names mesh.obj: at any size
         normals = out / f"{pose_id}_normals.png"
         write_normals_png16(normals, result.normals, normal_frame, result.mask)
         results.append(PoseResult(str(pose_id), images, normals, folder, str(result.status)))

@@ -14,7 +14,8 @@ pyo3::import_exception!(nplps.errors, MemoryLimitError);
 /// attributes: `MemoryLimitError.what` / `.needed` / `.limit` (bytes, None when unknown) /
 /// `.explicit`; `InputError.argument` (the parameter or array) with `.value` (an out-of-range
 /// parameter's value), `.expected` / `.got` (a wrong size), `.index` (the first bad value) or
-/// `.path` (an unreadable image).
+/// `.path` (an unreadable image); an image file that the system cannot write is an `OSError`
+/// of its errno, with `filename` the file.
 pub fn to_py(err: nplps::Error) -> PyErr {
     let message = err.to_string();
     let bytes = |x: f64| (x.is_finite() && x >= 0.0).then(|| x.round() as u64);
@@ -60,6 +61,16 @@ pub fn to_py(err: nplps::Error) -> PyErr {
         nplps::Error::Image { path, .. } => with_fields(InputError::new_err(message), |e| {
             e.setattr("path", path.to_string_lossy().into_owned())
         }),
+        // A file the system refused to write: the OSError of its errno, naming the file.
+        nplps::Error::ImageWrite {
+            path,
+            os_error: Some(errno),
+            reason,
+        } => pyo3::exceptions::PyOSError::new_err((
+            errno,
+            reason,
+            path.to_string_lossy().into_owned(),
+        )),
         // Unusable (and any input error a later version adds): what the caller passed in
         // cannot be used.
         _ => InputError::new_err(message),

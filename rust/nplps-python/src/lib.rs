@@ -9,6 +9,7 @@
 mod calibrate;
 mod convert;
 mod decode;
+mod encode;
 mod errors;
 mod interrupt;
 mod pool;
@@ -646,7 +647,10 @@ fn vertices<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(camera)?;
     let (h, w, z) = depth_grid(&depth)?;
-    let v = no_panic(|| nplps::vertices(&cam, h, w, z)).map_err(to_py)?;
+    // The GIL released: `save` makes its PNG images on another thread meanwhile.
+    let v = py
+        .detach(|| no_panic(|| nplps::vertices(&cam, h, w, z)))
+        .map_err(to_py)?;
     array3(py, v, &[h + 1, w + 1])
 }
 
@@ -747,6 +751,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;
     m.add_function(wrap_pyfunction!(synth_scene, m)?)?;
     m.add_function(wrap_pyfunction!(decode::read_pngs, m)?)?;
+    m.add_function(wrap_pyfunction!(encode::write_pngs, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_spheres, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate_intensities, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::synth_spheres, m)?)?;

@@ -54,6 +54,17 @@ pub enum Error {
         /// Why it cannot be read.
         reason: String,
     },
+    /// An image file cannot be written: its directory is missing, the disk is full, or the
+    /// image is not one a PNG file can hold.
+    #[error("cannot write image '{}': {reason}", path.display())]
+    ImageWrite {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The operating system's error number, when the system refused the write.
+        os_error: Option<i32>,
+        /// Why it cannot be written.
+        reason: String,
+    },
     /// The rig (camera or lights) is invalid.
     #[error("{0}")]
     Rig(String),

@@ -1,5 +1,6 @@
 //! Files of a native application (cargo feature `io`, on by default): the rig file (JSON,
-//! [`read_rig`]) and PNG images ([`read_png`], [`read_pngs`]; 8 and 16 bits, grey or colour).
+//! [`read_rig`]) and PNG images ([`read_png`], [`read_pngs`], [`write_png`], [`write_pngs`]; 8
+//! and 16 bits, grey or colour).
 //! The Python bindings decode PNG files with this code, and read camera mappings by the same
 //! rules as the rig file reader ([`crate::camera_from_map`]).
 //!
@@ -35,7 +36,10 @@
 mod png;
 mod rig_file;
 
-pub use self::png::{read_png, read_pngs, Decoded, Pixels};
+pub use self::png::{
+    read_png, read_pngs, write_png, write_pngs, Decoded, Image, Pixels, PngCompression, PngFilter,
+    PngOptions, Samples,
+};
 pub use self::rig_file::{
     parse_rig, read_rig, RigFile, RigGrid, MAX_NESTING, MAX_RIG_FILE_BYTES, RIG_FILE_VERSION,
 };

@@ -1,4 +1,6 @@
-//! PNG decoding: one file, or several in parallel.
+//! PNG decoding and encoding: one file, or several in parallel.
+//!
+//! ## Reading
 //!
 //! Each image comes back exactly as the file holds it: 8 or 16 bits per sample (all 16 bits, no
 //! scaling, `sBIT` ignored), `[H, W]` for grey and `[H, W, 3]` for colour. Alpha is dropped;
@@ -7,9 +9,19 @@
 //! than `max_pixels` pixels is refused before anything is allocated (a small file can declare a
 //! huge image). The chunks' CRCs and the zlib stream's Adler-32 are verified: a corrupted file is
 //! an error, not an image with a few wrong pixels.
+//!
+//! ## Writing
+//!
+//! [`write_png`] stores 8- or 16-bit samples, grey `[H, W]` or RGB `[H, W, 3]`, as a
+//! non-interlaced PNG of the same bit depth and colour type (16-bit samples big-endian, as the
+//! format requires), row by row: no copy of the whole image is made. [`PngOptions`] choose the
+//! DEFLATE effort and the row filter; the default (fast DEFLATE, adaptive filter) writes a 12 MP
+//! 16-bit RGB normal map in a fraction of a second. [`write_pngs`] writes several files in
+//! parallel. Any reader of standard PNG files reads them back; [`read_png`] returns the samples
+//! written, bit for bit.
 
 use std::fs::File;
-use std::io::{BufReader, ErrorKind};
+use std::io::{BufReader, BufWriter, ErrorKind, Write};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 
@@ -20,6 +32,12 @@ use crate::error::{Error, Result};
 
 /// Read buffer of the file reader; larger than the default 8 KiB to cut system calls.
 const READ_BUFFER: usize = 1 << 16;
+
+/// Write buffer of the file writer.
+const WRITE_BUFFER: usize = 1 << 20;
+
+/// Bytes of compressed data per IDAT chunk of the files written.
+const IDAT_CHUNK: usize = 1 << 18;
 
 /// The samples of one decoded image, as the file stores them.
 #[derive(Debug, Clone, PartialEq)]
@@ -276,6 +294,218 @@ fn rgb_to_grey(mut rgb: Vec<u8>) -> Vec<u8> {
     rgb
 }
 
+/// How hard the PNG writer compresses (DEFLATE effort); the file is valid PNG in every case.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[non_exhaustive]
+pub enum PngCompression {
+    /// Stored (uncompressed) DEFLATE blocks: the fastest, the largest files.
+    None,
+    /// A fast DEFLATE made for PNG rows (the `fdeflate` encoder): several hundred MB/s of
+    /// samples, files typically 10-30 % larger than `Balanced`.
+    #[default]
+    Fast,
+    /// zlib's default level (6).
+    Balanced,
+    /// zlib's best level (9): the smallest files, the slowest.
+    High,
+}
+
+/// The PNG row filter: how each row is predicted from its neighbours before DEFLATE.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[non_exhaustive]
+pub enum PngFilter {
+    /// Per row, the filter whose output has the smallest sum of absolute values.
+    #[default]
+    Adaptive,
+    /// No prediction.
+    None,
+    /// Each sample minus the one to its left.
+    Sub,
+    /// Each sample minus the one above.
+    Up,
+    /// The Paeth predictor of the left, upper and upper-left samples.
+    Paeth,
+}
+
+/// The settings of [`write_png`] and [`write_pngs`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[non_exhaustive]
+pub struct PngOptions {
+    /// DEFLATE effort.
+    pub compression: PngCompression,
+    /// Row filter.
+    pub filter: PngFilter,
+}
+
+impl PngOptions {
+    /// Options with the given compression and filter.
+    pub fn new(compression: PngCompression, filter: PngFilter) -> PngOptions {
+        PngOptions {
+            compression,
+            filter,
+        }
+    }
+}
+
+/// The samples of an image to write, borrowed, in row-major order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum Samples<'a> {
+    /// 8-bit samples.
+    U8(&'a [u8]),
+    /// 16-bit samples (all 16 bits are stored).
+    U16(&'a [u16]),
+}
+
+impl Samples<'_> {
+    fn len(&self) -> usize {
+        match self {
+            Samples::U8(v) => v.len(),
+            Samples::U16(v) => v.len(),
+        }
+    }
+}
+
+/// An image to write: `height` rows of `width` pixels of `channels` samples (1: grey, 3: RGB).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub struct Image<'a> {
+    /// The samples, `height * width * channels` of them.
+    pub samples: Samples<'a>,
+    /// Rows.
+    pub height: usize,
+    /// Pixels per row.
+    pub width: usize,
+    /// Samples per pixel: 1 (grey) or 3 (RGB).
+    pub channels: usize,
+}
+
+impl<'a> Image<'a> {
+    /// An image of `height` x `width` pixels of `channels` samples.
+    pub fn new(samples: Samples<'a>, height: usize, width: usize, channels: usize) -> Image<'a> {
+        Image {
+            samples,
+            height,
+            width,
+            channels,
+        }
+    }
+}
+
+/// Writes `image` to the file `path` (created or truncated) as a PNG of the samples' bit depth,
+/// grey for one channel and RGB for three; fails with [`Error::ImageWrite`] naming the file when
+/// the image cannot be stored (no pixels, a side above 2^31 - 1, a channel count other than 1 or
+/// 3, too few or too many samples) or the file cannot be written.
+pub fn write_png(path: &Path, image: &Image<'_>, options: PngOptions) -> Result<()> {
+    let fail = |os_error: Option<i32>, reason: String| Error::ImageWrite {
+        path: path.to_path_buf(),
+        os_error,
+        reason,
+    };
+    let (w, h) = check_image(image).map_err(|reason| fail(None, reason))?;
+    let guarded = catch_unwind(AssertUnwindSafe(|| encode(path, image, w, h, options)));
+    match guarded {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(png::EncodingError::IoError(e))) => Err(fail(e.raw_os_error(), e.to_string())),
+        Ok(Err(e)) => Err(fail(None, e.to_string())),
+        Err(_) => Err(fail(None, "internal error (please report it)".to_string())),
+    }
+}
+
+/// Writes the images `jobs` (file, image) in parallel (on the current rayon pool), each as
+/// [`write_png`] does; the results in the order of `jobs`.
+pub fn write_pngs(jobs: &[(PathBuf, Image<'_>)], options: PngOptions) -> Vec<Result<()>> {
+    jobs.par_iter()
+        .map(|(path, image)| write_png(path, image, options))
+        .collect()
+}
+
+/// The image's width and height as PNG stores them, or why it cannot be stored.
+fn check_image(image: &Image<'_>) -> std::result::Result<(u32, u32), String> {
+    if image.channels != 1 && image.channels != 3 {
+        return Err(format!(
+            "{} channels: a PNG image here is grey (1) or RGB (3)",
+            image.channels
+        ));
+    }
+    let side = |n: usize| u32::try_from(n).ok().filter(|&v| v > 0 && v < (1 << 31));
+    let (Some(w), Some(h)) = (side(image.width), side(image.height)) else {
+        return Err(format!(
+            "{} x {} pixels: each side must be 1 to 2^31 - 1 pixels",
+            image.width, image.height
+        ));
+    };
+    let expected = image
+        .height
+        .checked_mul(image.width)
+        .and_then(|n| n.checked_mul(image.channels));
+    if expected != Some(image.samples.len()) {
+        return Err(format!(
+            "{} samples for {} x {} pixels of {} channels",
+            image.samples.len(),
+            image.height,
+            image.width,
+            image.channels
+        ));
+    }
+    Ok((w, h))
+}
+
+/// Encodes `image` (checked: `w` x `h` pixels) into the file `path`, row by row.
+fn encode(
+    path: &Path,
+    image: &Image<'_>,
+    w: u32,
+    h: u32,
+    options: PngOptions,
+) -> std::result::Result<(), png::EncodingError> {
+    let file = BufWriter::with_capacity(WRITE_BUFFER, File::create(path)?);
+    let mut encoder = png::Encoder::new(file, w, h);
+    encoder.set_color(if image.channels == 1 {
+        ColorType::Grayscale
+    } else {
+        ColorType::Rgb
+    });
+    encoder.set_depth(match image.samples {
+        Samples::U8(_) => BitDepth::Eight,
+        Samples::U16(_) => BitDepth::Sixteen,
+    });
+    encoder.set_compression(match options.compression {
+        PngCompression::None => png::Compression::NoCompression,
+        PngCompression::Fast => png::Compression::Fast,
+        PngCompression::Balanced => png::Compression::Balanced,
+        PngCompression::High => png::Compression::High,
+    });
+    encoder.set_filter(match options.filter {
+        PngFilter::Adaptive => png::Filter::Adaptive,
+        PngFilter::None => png::Filter::NoFilter,
+        PngFilter::Sub => png::Filter::Sub,
+        PngFilter::Up => png::Filter::Up,
+        PngFilter::Paeth => png::Filter::Paeth,
+    });
+    let row_len = image.width * image.channels;
+    let mut writer = encoder.write_header()?;
+    let mut stream = writer.stream_writer_with_size(IDAT_CHUNK)?;
+    match image.samples {
+        Samples::U8(v) => stream.write_all(v)?,
+        Samples::U16(v) => {
+            // Big-endian, one row at a time (the stream writer buffers a row itself).
+            let mut row = vec![0u8; 2 * row_len];
+            for samples in v.chunks_exact(row_len) {
+                for (bytes, &x) in row.chunks_exact_mut(2).zip(samples) {
+                    bytes.copy_from_slice(&x.to_be_bytes());
+                }
+                stream.write_all(&row)?;
+            }
+        }
+    }
+    stream.finish()?;
+    // The end chunk, and the file flushed here, not on drop: a failed write (a full disk) must
+    // be an error.
+    writer.finish()?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -295,5 +525,78 @@ mod tests {
         assert!(is_grey(&[5, 5, 5, 7, 7, 7]));
         assert!(!is_grey(&[5, 5, 5, 7, 7, 8]));
         assert_eq!(rgb_to_grey(vec![5, 5, 5, 7, 7, 7]), vec![5, 7]);
+    }
+
+    fn grey_and_rgb(dir: &Path) -> Vec<(PathBuf, Vec<u16>, usize)> {
+        let grey: Vec<u16> = (0..7 * 5).map(|i| (i * 1871 % 65536) as u16).collect();
+        let rgb: Vec<u16> = (0..7 * 5 * 3).map(|i| (i * 40503 % 65536) as u16).collect();
+        vec![(dir.join("g.png"), grey, 1), (dir.join("c.png"), rgb, 3)]
+    }
+
+    #[test]
+    fn written_images_read_back_bit_for_bit() {
+        let dir = std::env::temp_dir().join(format!("nplps-png-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cases = grey_and_rgb(&dir);
+        for compression in [
+            PngCompression::None,
+            PngCompression::Fast,
+            PngCompression::Balanced,
+            PngCompression::High,
+        ] {
+            for filter in [
+                PngFilter::Adaptive,
+                PngFilter::None,
+                PngFilter::Sub,
+                PngFilter::Up,
+                PngFilter::Paeth,
+            ] {
+                let options = PngOptions::new(compression, filter);
+                // 16 bits, in parallel.
+                let jobs: Vec<(PathBuf, Image<'_>)> = cases
+                    .iter()
+                    .map(|(p, v, c)| (p.clone(), Image::new(Samples::U16(v), 5, 7, *c)))
+                    .collect();
+                assert!(write_pngs(&jobs, options).iter().all(|r| r.is_ok()));
+                for (path, v, c) in &cases {
+                    let back = read_png(path, 1 << 20).unwrap();
+                    assert_eq!(back.pixels, Pixels::U16(v.clone()));
+                    let shape = if *c == 1 { vec![5, 7] } else { vec![5, 7, 3] };
+                    assert_eq!(back.shape, shape);
+                }
+                // 8 bits.
+                for (path, v, c) in &cases {
+                    let bytes: Vec<u8> = v.iter().map(|&x| (x >> 8) as u8).collect();
+                    write_png(path, &Image::new(Samples::U8(&bytes), 5, 7, *c), options).unwrap();
+                    assert_eq!(read_png(path, 1 << 20).unwrap().pixels, Pixels::U8(bytes));
+                }
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn unwritable_images_are_errors_naming_the_file() {
+        let path = Path::new("/nonexistent-nplps-dir/x.png");
+        let samples = [0u8; 6];
+        let image = Image::new(Samples::U8(&samples), 1, 2, 3);
+        match write_png(path, &image, PngOptions::default()) {
+            Err(Error::ImageWrite {
+                path: p, os_error, ..
+            }) => {
+                assert_eq!(p, path);
+                assert!(os_error.is_some());
+            }
+            other => panic!("{other:?}"),
+        }
+        for (h, w, c) in [(1, 2, 2), (0, 3, 1), (1, 3, 3), (2, 2, 1)] {
+            let image = Image::new(Samples::U8(&samples), h, w, c);
+            let err = write_png(path, &image, PngOptions::default()).unwrap_err();
+            assert!(
+                matches!(err, Error::ImageWrite { os_error: None, .. }),
+                "{err}"
+            );
+            assert!(err.to_string().contains("x.png"));
+        }
     }
 }
