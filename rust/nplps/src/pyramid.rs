@@ -141,9 +141,9 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
                         continue;
                     }
                     let o = obs.at(i, (2 * cr + a) * w + 2 * cc + b);
-                    if usable(o, settings) {
+                    if usable(&o, settings) {
                         n += 1;
-                        for (s, &v) in sum.iter_mut().zip(o) {
+                        for (s, &v) in sum.iter_mut().zip(o.iter()) {
                             *s += v as f64;
                         }
                     }
