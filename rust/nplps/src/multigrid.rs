@@ -695,7 +695,7 @@ impl MultigridSystem {
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
         let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;
-        for &p in &grid.facets {
+        for p in grid.facets.iter().map(|&p| p as usize) {
             let (r, c) = (p / grid.width, p % grid.width);
             let v = r * vw + c;
             flags[v] |= SE;
@@ -704,14 +704,14 @@ impl MultigridSystem {
             flags[v + vw + 1] |= NW;
         }
         for &p in &pins {
-            flags[grid.active[p as usize]] |= PINNED;
+            flags[grid.active[p as usize] as usize] |= PINNED;
         }
         let mut weight = 0.0;
         if let Some(prior) = prior {
             weight = prior.weight;
             for (u, v) in prior.values.iter().enumerate() {
                 if v.is_finite() {
-                    flags[grid.active[u]] |= PRIOR;
+                    flags[grid.active[u] as usize] |= PRIOR;
                 }
             }
         }
@@ -853,7 +853,7 @@ impl MultigridSystem {
         z_out
             .par_iter_mut()
             .zip(grid.active.par_iter())
-            .for_each(|(o, &v)| *o = x[layout.index(v / vw, v % vw)]);
+            .for_each(|(o, &v)| *o = x[layout.index(v as usize / vw, v as usize % vw)]);
         iterations
     }
 }

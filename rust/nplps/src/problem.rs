@@ -327,7 +327,7 @@ fn initial_unknowns(
             })?;
             let z0 = grid.gather_vertices(map)?;
             if let Some(i) = z0.iter().position(|z| !valid(*z)) {
-                let v = grid.active[i];
+                let v = grid.active[i] as usize;
                 return Err(Error::NonFinite {
                     what: "initial depth map",
                     index: v,
@@ -409,7 +409,12 @@ fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
         .par_iter()
         .map_init(
             || vec![0.0f32; per],
-            |buf, &p| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
+            |buf, &p| {
+                obs.facet(p as usize, buf)
+                    .iter()
+                    .filter(|v| **v < 0.0)
+                    .count()
+            },
         )
         .sum()
 }
@@ -421,7 +426,7 @@ pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> R
     let obs = &problem.obs;
     let fittable = problem.grid.facets.par_iter().any(|&pixel| {
         (0..obs.k)
-            .filter(|&i| usable(&obs.at(i, pixel), settings))
+            .filter(|&i| usable(&obs.at(i, pixel as usize), settings))
             .take(3)
             .count()
             >= 3

@@ -364,7 +364,7 @@ pub(crate) fn mesh_shadows(
     let (height, width) = (grid.height, grid.width);
     let vertices = Vertices::Mesh { grid, geometry, u };
     let mut mask = crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
-    for &p in &grid.facets {
+    for p in grid.facets.iter().map(|&p| p as usize) {
         mask[p] = true;
     }
     march_all(

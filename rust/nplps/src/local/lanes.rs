@@ -117,11 +117,11 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
         let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
-        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l]);
+        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
         if !obs.gather_lanes(&pixels, interleaved) {
             for l in 0..LANES {
                 let f = first + l;
-                let values = obs.facet(grid.facets[f], buf);
+                let values = obs.facet(grid.facets[f] as usize, buf);
                 for (slot, &v) in interleaved.iter_mut().zip(values) {
                     slot[l] = v;
                 }

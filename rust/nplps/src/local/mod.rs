@@ -434,7 +434,7 @@ impl LocalStep<'_> {
     /// [`LocalStep::shadows`]) set to NaN.
     #[inline]
     pub(super) fn facet_values<'b>(&self, f: usize, buf: &'b mut [f32]) -> &'b [f32] {
-        let pixel = self.grid.facets[f];
+        let pixel = self.grid.facets[f] as usize;
         let per = self.obs.facet(pixel, buf).len();
         if let Some(shadows) = self.shadows {
             let c = self.obs.channels;
@@ -531,7 +531,7 @@ impl LocalStep<'_> {
                 const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
         }
         let (grid, obs) = (self.grid, self.obs);
-        let pixel = grid.facets[f];
+        let pixel = grid.facets[f] as usize;
         let ids = grid.facet_vertices[f];
         SCRATCH.with_borrow_mut(|(vectors, direct)| {
             direct.clear();
