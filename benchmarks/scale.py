@@ -5,8 +5,8 @@ Usage::
     python benchmarks/scale.py [--sizes 256 512 1024 2048 4096 4000x3000] [--lights 16]
                                [--cameras orthographic pinhole] [--solver auto|direct|multigrid]
                                [--levels N] [--noise 0] [--iterations 10] [--tol 1e-6] [--repeats 1]
-                               [--threads N] [--no-files] [--no-obj-alone] [--workdir DIR] [--keep]
-                               [--json results.json]
+                               [--threads N] [--no-files] [--stack uint16|float32] [--no-obj-alone]
+                               [--workdir DIR] [--keep] [--json results.json]
 
 Every size (N for N x N, or WxH) and camera makes the same physical scene: a tilted plane with a
 few Gaussian bumps and dents, 100 units across (the longer side) at working distance 200, lit by
@@ -16,7 +16,7 @@ few Gaussian bumps and dents, 100 units across (the longer side) at working dist
 (size, camera) then runs in a fresh Python process, so that its peak RSS is its own, which times:
 
 * load: ``nplps.io.load_stack`` of the PNG files (``--no-files``: ``np.load`` + ``load_stack``
-  of the array);
+  of the array), kept as ``uint16`` (``--stack float32``: converted to float32, as before);
 * reconstruct: wall time of ``nplps.reconstruct`` and its ``result.timings`` split;
 * export: ``result.save`` (PLY + OBJ up to 4 MP + maps) into a temporary directory, the time of
   each file it writes (printed as the "Save, seconds per file" table; see ``benchmarks/save.py``,
@@ -76,7 +76,7 @@ BUMPS = (
     (0.00, 0.00, 0.03, 0.25),
 )
 TILT = (0.08, -0.05)  # dz/dx, dz/dy of the plane
-#: 16-bit thresholds, as reconstruct's defaults for 16-bit images (the stack it gets is float).
+#: 16-bit thresholds, reconstruct's defaults for 16-bit images (given, for the float32 stack of --stack float32).
 LEVELS_16 = 65535
 DARK_16 = 1.0 / LEVELS_16
 SATURATION_16 = 1.0 - 0.5 / LEVELS_16
@@ -312,10 +312,11 @@ def run_child(spec_path: str) -> None:
     for _ in range(spec["repeats"]):
         result = None  # free the previous run first
         t0 = time.perf_counter()
+        uint16 = spec.get("stack", "uint16") == "uint16"
         if isinstance(spec["inputs"], list):
-            stack, levels = nplps.io.load_stack(spec["inputs"])
+            stack, levels = nplps.io.load_stack(spec["inputs"], uint16=uint16)
         else:
-            stack, levels = nplps.io.load_stack(np.load(spec["inputs"]))
+            stack, levels = nplps.io.load_stack(np.load(spec["inputs"]), uint16=uint16)
         load_s = time.perf_counter() - t0
         assert levels in (None, LEVELS_16), levels
         t0 = time.perf_counter()
@@ -423,6 +424,7 @@ def run_case(args: argparse.Namespace, workdir: Path, camera: str, w: int, h: in
         "height": h,
         "lights": args.lights,
         "files": not args.no_files,
+        "stack": args.stack,
         "noise": args.noise,
         "solver": args.solver,
         "levels": args.levels,
@@ -640,6 +642,13 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="solver threads (default: all cores)")
     parser.add_argument(
         "--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files"
+    )
+    parser.add_argument(
+        "--stack",
+        choices=("uint16", "float32"),
+        default="uint16",
+        help="the stack reconstruct gets: the 16-bit images as they are (uint16, read in place; the "
+        "default) or converted to float32 (as before issue 23)",
     )
     parser.add_argument(
         "--no-obj-alone", action="store_true", help="skip the separate write_obj timing (save writes OBJ up to 4 MP)"

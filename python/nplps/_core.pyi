@@ -153,7 +153,7 @@ def parse_rig(text: str, source: str) -> RigFile:
 # -- functions ------------------------------------------------------------------------------------
 
 def reconstruct(
-    images: npt.NDArray[np.float32],
+    images: npt.NDArray[np.float32] | npt.NDArray[np.uint16],
     rig: Rig,
     mask: npt.NDArray[np.bool_] | None,
     depth: float | F64,
@@ -163,7 +163,7 @@ def reconstruct(
     """Near-light reconstruction; ``depth`` is the working distance or an (H+1, W+1) map."""
 
 def reconstruct_parallel(
-    images: npt.NDArray[np.float32],
+    images: npt.NDArray[np.float32] | npt.NDArray[np.uint16],
     rig: Rig,
     mask: npt.NDArray[np.bool_] | None,
     distance: float | None,
@@ -190,7 +190,9 @@ def cast_shadows(
     *,
     max_steps: int | None = None,
 ) -> npt.NDArray[np.bool_]: ...
-def estimate_noise(images: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None) -> float: ...
+def estimate_noise(
+    images: npt.NDArray[np.float32] | npt.NDArray[np.uint16], mask: npt.NDArray[np.bool_] | None = None
+) -> float: ...
 def predict(
     depth: F64,
     normals: F64,

@@ -68,15 +68,18 @@ def _prepare(
     depth: Depth | None,
     color: bool | None = None,
     loading: PipelineProgress | None = None,
+    uint16: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, float | None, np.ndarray | None, int | None]:
     _check_rig(rig)
     if not (color is None or isinstance(color, (bool, np.bool_))):
         raise InputError(f"color must be None, True or False, got {_short(color)}")
     if loading is None:
-        stack, levels = load_stack(images, color=True)
+        stack, levels = load_stack(images, color=True, uint16=uint16)
     else:
         with aborting(loading):
-            stack, levels = load_stack(images, color=True, progress=lambda i, k, name: loading("load", i, k, name))
+            stack, levels = load_stack(
+                images, color=True, progress=lambda i, k, name: loading("load", i, k, name), uint16=uint16
+            )
         loading.finish()
     if color and stack.ndim != 4:
         raise InputError("color=True needs RGB images (k, H, W, 3)")
@@ -210,7 +213,22 @@ def _channels(stack: np.ndarray, color: bool | None, saturation: float) -> tuple
     Observations with a saturated channel are returned as missing (the grey average would hide
     them).
     """
+    if stack.ndim == 4 and color is False:
+        stack = _float32(stack)
     return pipeline.select_color(stack, color, saturation)
+
+
+def _float32(stack: np.ndarray) -> np.ndarray:
+    """Return a ``uint16`` stack as float32 on ``[0, 1]``, others as they are.
+
+    The values are those :func:`nplps.io.load_stack` gives.
+    """
+    if stack.dtype != np.uint16:
+        return stack
+    out = np.empty(stack.shape, dtype=np.float32)
+    for i in range(stack.shape[0]):  # image by image: no temporary of the whole stack
+        np.divide(stack[i], np.float32(65535), out=out[i], dtype=np.float32, casting="unsafe")
+    return out
 
 
 def _owned(stack: np.ndarray, images: Images) -> bool:
@@ -234,6 +252,8 @@ def _apply_valid(stack: np.ndarray, valid: Any, missing: np.ndarray | None = Non
         raise InputError(f"valid must have one flag per observation, shape {stack.shape[:3]}, got {v.shape}")
     if missing is not None:
         v = v & ~missing
+    if stack.dtype == np.uint16:  # NaN marks a missing observation: float32 (a new array)
+        stack, owned = _float32(stack), True
     out = stack if owned else stack.copy()
     out[~v] = np.nan
     return out
@@ -578,7 +598,7 @@ def reconstruct(
     if progress is True:
         _hint_once()
     loading = PipelineProgress() if progress is True and not isinstance(images, np.ndarray) else None
-    stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color, loading)
+    stack, mask_arr, distance, depth_map, bit_levels = _prepare(images, rig, mask, depth, color, loading, uint16=True)
     dark_, saturation_ = _thresholds(dark, saturation, bit_levels)
     stack, missing = _channels(stack, color, saturation_)
     fitted = _apply_valid(stack, valid, missing, _owned(stack, images))

@@ -257,7 +257,7 @@ def _srgb_lut(dtype: np.dtype) -> np.ndarray:
 
 
 def load_images(
-    images: Images, *, max_pixels: int | None = None, progress: LoadProgress | None = None
+    images: Images, *, max_pixels: int | None = None, progress: LoadProgress | None = None, uint16: bool = False
 ) -> tuple[np.ndarray, int | None]:
     """Load images as one float32 stack, colour kept (:func:`nplps.io.load_stack`).
 
@@ -270,12 +270,15 @@ def load_images(
     progress : callable, optional
         ``progress(done, total, name)`` after each image of a sequence is loaded (``name``: the
         file's name).
+    uint16 : bool
+        Keep 16-bit images as a ``uint16`` stack (see :func:`nplps.io.load_stack`).
 
     Returns
     -------
     stack : ndarray
         float32 ``(k, H, W)`` or ``(k, H, W, 3)`` (colour only when every image is RGB);
-        a float32 array is returned as it is, without a copy.
+        a float32 array is returned as it is, without a copy; ``uint16`` with `uint16` and
+        16-bit images.
     levels : int or None
         The top integer value of the sources, None for floating-point ones.
 
@@ -285,8 +288,8 @@ def load_images(
         As :func:`nplps.io.load_stack`.
     """
     if max_pixels is None:
-        return load_stack(images, color=True, progress=progress)
-    return load_stack(images, color=True, max_pixels=max_pixels, progress=progress)
+        return load_stack(images, color=True, progress=progress, uint16=uint16)
+    return load_stack(images, color=True, max_pixels=max_pixels, progress=progress, uint16=uint16)
 
 
 def _side_image(source: SideImage, images: np.ndarray, srgb: bool, name: str) -> np.ndarray:
@@ -608,6 +611,7 @@ def prepare(
     bin_factor: int = 1,
     overwrite: bool = False,
     progress: StageProgress | None = None,
+    uint16: bool = False,
 ) -> Prepared:
     """Turn images and options into the core's input, in the order of the module's docstring.
 
@@ -645,11 +649,18 @@ def prepare(
         A float32 stack in ``images`` is handed over and corrected in place (no copy).
     progress : callable, optional
         ``progress(stage, done, total, name)``, see :data:`StageProgress`.
+    uint16 : bool
+        Keep 16-bit images as they are (a ``uint16`` stack, 2 bytes per value instead of 4, that
+        :func:`nplps.reconstruct` reads in place) when nothing changes their values: no
+        correction, no binning, no grey average, no `valid`, `levels` and `saturation` the
+        defaults. Then no saturation flags are made: the core leaves out the same values, those
+        at or above the default threshold of 16-bit images.
 
     Returns
     -------
     Prepared
-        The float32 stack, mask, flags, rig, K, depth, levels, steps and ``dark``.
+        The float32 (or, see `uint16`, ``uint16``) stack, mask, flags, rig, K, depth, levels,
+        steps and ``dark``.
 
     Raises
     ------
@@ -658,7 +669,10 @@ def prepare(
         options, or a binning that leaves nothing.
     """
     loaded = None if progress is None else (lambda i, k, name: progress("load", i, k, name))
-    stack, found = load_images(images, progress=loaded)
+    as_is = not (srgb or preprocessed or bin_factor != 1 or color is False)
+    as_is = as_is and all(v is None for v in (valid, saturation, ambient, exposures, vignetting, flat))
+    as_is = as_is and levels in (None, 65535)
+    stack, found = load_images(images, progress=loaded, uint16=uint16 and as_is)
     levels = found if levels is None else levels
     counted: list[str] = []
 
@@ -672,8 +686,9 @@ def prepare(
     mask_arr = None if mask is None else load_mask(mask, shape)
     raw = not preprocessed
     _, threshold = thresholds(levels if raw else None, saturation=saturation)
-    # Saturation is judged on the raw values, before the corrections overwrite them.
-    bad = saturated(stack, threshold)
+    # Saturation is judged on the raw values, before the corrections overwrite them; a uint16
+    # stack (no correction) is judged by the core, with the same threshold.
+    bad = None if stack.dtype == np.uint16 else saturated(stack, threshold)
     flags = _valid_flags(valid, bad, stack.shape[:3])
     if K is None and rig is not None:
         K = rig.K
@@ -701,7 +716,7 @@ def prepare(
     done = tuple(preprocessed) + tuple(steps)
     dark_, _ = thresholds(levels, dark=dark, preprocessed=bool(done))
     return Prepared(
-        images=np.ascontiguousarray(binned.images, dtype=np.float32),
+        images=np.ascontiguousarray(binned.images, dtype=np.uint16 if binned.images.dtype == np.uint16 else np.float32),
         mask=binned.mask,
         valid=binned.valid,
         rig=binned.rig,

@@ -264,6 +264,7 @@ def _read_and_prepare(
             bin_factor=args.bin,
             overwrite=True,
             progress=display,
+            uint16=True,
         )
     except InputError as exc:
         raise _in_option_words(exc) from None

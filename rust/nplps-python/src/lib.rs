@@ -260,18 +260,43 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         .with_max_memory(option(d, "max_memory", defaults.max_memory)?))
 }
 
+/// A (k, H, W[, C]) image stack as passed from Python: float32, or uint16 read in place (the
+/// local step converts each value, `v / 65535`, as `nplps.io.load_stack` does).
+#[derive(FromPyObject)]
+enum Stack<'py> {
+    F32(PyReadonlyArrayDyn<'py, f32>),
+    U16(PyReadonlyArrayDyn<'py, u16>),
+}
+
+impl Stack<'_> {
+    fn shape(&self) -> &[usize] {
+        match self {
+            Stack::F32(a) => a.shape(),
+            Stack::U16(a) => a.shape(),
+        }
+    }
+
+    /// The borrowed values, or what is wrong with the array.
+    fn samples(&self) -> PyResult<nplps::Samples<'_>> {
+        Ok(match self {
+            Stack::F32(a) => nplps::Samples::F32(slice(a, "images")?),
+            Stack::U16(a) => nplps::Samples::U16(slice(a, "images")?),
+        })
+    }
+}
+
 /// The borrowed input of a reconstruction: rig, (k, H, W[, 3]) images, mask and starting depth.
 struct Input<'a> {
     rig: &'a nplps::Rig,
     shape: [usize; 4],
-    images: &'a [f32],
+    images: nplps::Samples<'a>,
     mask: Option<&'a [bool]>,
     depth: nplps::InitialDepth<'a>,
 }
 
 impl<'a> Input<'a> {
     fn new(
-        images: &'a PyReadonlyArrayDyn<'_, f32>,
+        images: &'a Stack<'_>,
         rig: &'a nplps::Rig,
         mask: Option<&'a PyReadonlyArray2<'_, bool>>,
         depth: nplps::InitialDepth<'a>,
@@ -289,7 +314,7 @@ impl<'a> Input<'a> {
         Ok(Input {
             rig,
             shape,
-            images: slice(images, "images")?,
+            images: images.samples()?,
             mask: mask.map(|m| slice(m, "mask")).transpose()?,
             depth,
         })
@@ -304,7 +329,7 @@ impl<'a> Input<'a> {
     ) -> nplps::Result<nplps::Problem<'_>> {
         let [k, h, w, c] = self.shape;
         nplps::check_memory(self.shape, self.mask, options)?;
-        let stack = nplps::ImageStack::with_channels(self.images, k, h, w, c)?;
+        let stack = nplps::ImageStack::from_samples(self.images, k, h, w, c)?;
         nplps::Problem::with_cancel(stack, self.rig, self.mask, self.depth, cancel.clone())
     }
 }
@@ -328,14 +353,14 @@ fn search_from(d: &Bound<'_, PyDict>) -> PyResult<Option<nplps::DistanceSearch>>
 #[pyfunction]
 #[pyo3(signature = (images, rig, mask, depth, options, progress))]
 fn reconstruct<'py>(
-    images: PyReadonlyArrayDyn<'py, f32>,
+    images: Stack<'py>,
     rig: &Bound<'py, rig::Rig>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     depth: Depth<'py>,
     options: &Bound<'py, PyDict>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let py = images.py();
+    let py = rig.py();
     check_options(options, &reconstruct_keys())?;
     let rig = rig.get();
     let depth = match &depth {
@@ -424,14 +449,14 @@ fn reconstruct<'py>(
 #[pyfunction]
 #[pyo3(signature = (images, rig, mask, distance, depth_map, options))]
 fn reconstruct_parallel<'py>(
-    images: PyReadonlyArrayDyn<'py, f32>,
+    images: Stack<'py>,
     rig: &Bound<'py, rig::Rig>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
     distance: Option<f64>,
     depth_map: Option<PyReadonlyArray2<'py, f64>>,
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let py = images.py();
+    let py = rig.py();
     check_options(options, &SOLVER_KEYS)?;
     let rig = rig.get();
     let depth = initial_depth(distance, depth_map.as_ref())?;
@@ -536,15 +561,15 @@ fn cast_shadows<'py>(
     array(py, bools, &[rig.n_lights(), h, w])
 }
 
-/// Standard deviation of the image noise of a (k, H, W[, C]) float32 stack inside `mask`
+/// Standard deviation of the image noise of a (k, H, W[, C]) float32 or uint16 stack inside `mask`
 /// (see `nplps::noise`); 0 for noise-free images.
 #[pyfunction]
 #[pyo3(signature = (images, mask=None))]
 fn estimate_noise<'py>(
-    images: PyReadonlyArrayDyn<'py, f32>,
+    py: Python<'py>,
+    images: Stack<'py>,
     mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<f64> {
-    let py = images.py();
     let shape = match *images.shape() {
         [k, h, w] => [k, h, w, 1],
         [k, h, w, c] => [k, h, w, c],
@@ -554,12 +579,12 @@ fn estimate_noise<'py>(
             )))
         }
     };
-    let data = slice(&images, "images")?;
+    let data = images.samples()?;
     let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
     let [k, h, w, c] = shape;
     py.detach(|| {
         no_panic(|| {
-            let stack = nplps::ImageStack::with_channels(data, k, h, w, c)?;
+            let stack = nplps::ImageStack::from_samples(data, k, h, w, c)?;
             nplps::estimate_noise(&stack, mask)
         })
     })

@@ -722,7 +722,7 @@ fn fine_estimate(
         .pins
         .iter()
         .map(|&p| {
-            let v = grid.active[p as usize];
+            let v = grid.active[p as usize] as usize;
             let (r, c) = (v / (grid.width + 1) / scale, v % (grid.width + 1) / scale);
             let cv = r.min(coarse_grid.height) * (coarse_grid.width + 1) + c.min(coarse_grid.width);
             let u = coarse_grid.vertex_unknown[cv];

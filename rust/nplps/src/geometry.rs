@@ -47,7 +47,7 @@ impl Geometry {
             base: crate::memory::try_par_collect(
                 grid.active
                     .par_iter()
-                    .map(|&v| camera.vertex_xy(v / vw, v % vw)),
+                    .map(|&v| camera.vertex_xy(v as usize / vw, v as usize % vw)),
                 "the vertex positions",
             )?,
         })
@@ -64,7 +64,7 @@ impl Geometry {
         }) else {
             return Ok(());
         };
-        let v = grid.active[i];
+        let v = grid.active[i] as usize;
         let (r, c) = (v / (grid.width + 1), v % (grid.width + 1));
         Err(Error::Rig(if self.perspective {
             format!(

@@ -21,14 +21,15 @@ pub struct Grid {
     pub height: usize,
     /// Image width W (facet columns).
     pub width: usize,
-    /// Pixel index `r * W + c` of each masked facet, in row-major order.
-    pub facets: Vec<usize>,
+    /// Pixel index `r * W + c` of each masked facet, in row-major order (`u32`: 4 bytes a
+    /// facet; a grid has fewer than 2^32 vertices).
+    pub facets: Vec<u32>,
     /// Unknown index of the 4 corners of each facet (order 00, 01, 10, 11).
     pub facet_vertices: Vec<[u32; 4]>,
     /// For each grid vertex `r * (W+1) + c`: its unknown index, or [`INACTIVE`].
     pub vertex_unknown: Vec<u32>,
-    /// Grid vertex index of each unknown (row-major, increasing).
-    pub active: Vec<usize>,
+    /// Grid vertex index of each unknown (row-major, increasing; `u32`, as `facets`).
+    pub active: Vec<u32>,
     /// Region label of each unknown, 0..n_regions, numbered by first appearance.
     pub region_of_unknown: Vec<u32>,
     /// Number of regions.
@@ -55,9 +56,24 @@ impl Grid {
                 )
             })?;
         }
+        // Vertex, pixel and unknown numbers are u32, with u32::MAX for none.
+        ensure_usable(
+            (height + 1)
+                .checked_mul(width + 1)
+                .is_some_and(|n| n < INACTIVE as usize),
+            || {
+                format!(
+                    "images of {width} x {height} pixels have 2^32 or more mesh vertices: too large"
+                )
+            },
+        )?;
         let masked_count = mask.map_or(height * width, |m| m.par_iter().filter(|&&b| b).count());
-        let mut facets: Vec<usize> = try_with_capacity(masked_count, "the mesh's facets")?;
-        facets.extend((0..height * width).filter(|&p| mask.is_none_or(|m| m[p])));
+        let mut facets: Vec<u32> = try_with_capacity(masked_count, "the mesh's facets")?;
+        facets.extend(
+            (0..height * width)
+                .filter(|&p| mask.is_none_or(|m| m[p]))
+                .map(|p| p as u32),
+        );
         ensure_usable(!facets.is_empty(), || {
             "mask is empty: no pixel is selected for reconstruction".to_string()
         })?;
@@ -87,13 +103,13 @@ impl Grid {
         )?;
         for (v, _) in used.iter().enumerate().filter(|(_, u)| **u) {
             vertex_unknown[v] = active.len() as u32;
-            active.push(v);
+            active.push(v as u32);
         }
         drop(used);
         let facet_vertices: Vec<[u32; 4]> = try_par_collect(
             facets
                 .par_iter()
-                .map(|&p| corners(p).map(|v| vertex_unknown[v])),
+                .map(|&p| corners(p as usize).map(|v| vertex_unknown[v])),
             "the mesh's facet corners",
         )?;
 
@@ -111,7 +127,7 @@ impl Grid {
         }
         let mut facet_of_pixel = try_vec(height * width, INACTIVE, "the mesh's pixel numbers")?;
         for (f, &p) in facets.iter().enumerate() {
-            facet_of_pixel[p] = f as u32;
+            facet_of_pixel[p as usize] = f as u32;
         }
         Ok(Grid {
             height,
@@ -140,7 +156,7 @@ impl Grid {
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).
     pub fn pixel_regions(&self) -> Result<Vec<i32>> {
         let mut out = try_vec(self.height * self.width, -1, "the region map")?;
-        for (f, &p) in self.facets.iter().enumerate() {
+        for (f, p) in self.facets.iter().map(|&p| p as usize).enumerate() {
             out[p] = self.region_of_unknown[self.facet_vertices[f][0] as usize] as i32;
         }
         Ok(out)
@@ -149,7 +165,7 @@ impl Grid {
     /// Scatters per-unknown values onto the full (H+1) x (W+1) vertex grid, NaN where inactive.
     pub fn scatter_vertices(&self, values: &[f64]) -> Result<Vec<f64>> {
         let mut out = try_vec(self.vertex_unknown.len(), f64::NAN, "a vertex map")?;
-        for (u, &v) in self.active.iter().enumerate() {
+        for (u, v) in self.active.iter().map(|&v| v as usize).enumerate() {
             out[v] = values[u];
         }
         Ok(out)
@@ -158,7 +174,7 @@ impl Grid {
     /// Gathers the unknowns' values from a full (H+1) x (W+1) vertex grid.
     pub fn gather_vertices(&self, full: &[f64]) -> Result<Vec<f64>> {
         try_collect(
-            self.active.iter().map(|&v| full[v]),
+            self.active.iter().map(|&v| full[v as usize]),
             "the values at the unknowns",
         )
     }

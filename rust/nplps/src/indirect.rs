@@ -199,7 +199,7 @@ impl Exchange {
             camera,
             height,
             width,
-            vertices,
+            vertices: crate::shadow::Vertices::Positions(vertices),
             mask,
             z_min: f64::NEG_INFINITY,
             max_steps: usize::MAX / 4,
@@ -676,7 +676,7 @@ impl IndirectField {
         let (h, w) = (grid.height, grid.width);
         // Fine vertex depths ((H+1) x (W+1), NaN where inactive) and the fine mask.
         let mut depth = crate::memory::try_vec((h + 1) * (w + 1), f64::NAN, "the vertex depths")?;
-        for (i, &v) in grid.active.iter().enumerate() {
+        for (i, v) in grid.active.iter().map(|&v| v as usize).enumerate() {
             depth[v] = geometry.depth(u[i]);
         }
         let mut factor = 1;
@@ -748,7 +748,7 @@ impl IndirectField {
         let plane = hc * wc;
         // The coarse mask and the binned observations, (k, Hc, Wc, C).
         let mut mask = crate::memory::try_vec(plane, false, "the coarse mask")?;
-        for &p in &grid.facets {
+        for p in grid.facets.iter().map(|&p| p as usize) {
             mask[(p / w / factor) * wc + p % w / factor] = true;
         }
         let mut binned = crate::memory::try_vec(plane * per, f32::NAN, "the binned images")?;
@@ -845,7 +845,7 @@ impl IndirectField {
                 lights,
                 he,
                 we,
-                &vertices,
+                crate::shadow::Vertices::Positions(&vertices),
                 Some(&mask_e),
                 None,
                 true,
@@ -955,7 +955,7 @@ impl IndirectField {
             }),
             "the unlit lights of the indirect light",
         )?;
-        for (&p, bits) in grid.facets.iter().zip(bits) {
+        for (p, bits) in grid.facets.iter().map(|&p| p as usize).zip(bits) {
             unlit[p * words..(p + 1) * words].copy_from_slice(&bits);
         }
         self.margin = None;
@@ -1284,7 +1284,7 @@ impl MarginMesh {
             camera: &self.camera,
             height: self.height,
             width: self.width,
-            vertices: &self.vertices,
+            vertices: crate::shadow::Vertices::Positions(&self.vertices),
             mask: Some(&self.mask),
             z_min: f64::NEG_INFINITY,
             max_steps: usize::MAX / 4,
@@ -1869,7 +1869,7 @@ mod tests {
             camera: &camera,
             height: n,
             width: n,
-            vertices: &v,
+            vertices: crate::shadow::Vertices::Positions(&v),
             mask: None,
             z_min: f64::NEG_INFINITY,
             max_steps: 1,

@@ -227,7 +227,7 @@ pub use local::{LightTrust, Robust, Trust, Weighting};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};
-pub use problem::{ImageStack, InitialDepth, Problem};
+pub use problem::{u16_value, ImageStack, InitialDepth, Problem, Samples, U16_SCALE};
 pub use reconstruction::{
     Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
 };

@@ -35,7 +35,7 @@
 //! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
 //! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
-use crate::memory::{try_collect, try_vec, try_with_capacity};
+use crate::memory::{try_vec, try_with_capacity};
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::Par;
@@ -666,8 +666,6 @@ pub struct MultigridSystem {
     work: Vec<Work>,
     coarsest: Coarsest,
     krylov: Krylov,
-    /// Padded fine index of each unknown.
-    unknown_index: Vec<usize>,
     pins: Vec<u32>,
     prior_rhs: Option<Vec<f64>>,
     /// Stop when `|b - A u| <= rtol |b_t|`.
@@ -697,7 +695,7 @@ impl MultigridSystem {
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
         let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;
-        for &p in &grid.facets {
+        for p in grid.facets.iter().map(|&p| p as usize) {
             let (r, c) = (p / grid.width, p % grid.width);
             let v = r * vw + c;
             flags[v] |= SE;
@@ -706,23 +704,19 @@ impl MultigridSystem {
             flags[v + vw + 1] |= NW;
         }
         for &p in &pins {
-            flags[grid.active[p as usize]] |= PINNED;
+            flags[grid.active[p as usize] as usize] |= PINNED;
         }
         let mut weight = 0.0;
         if let Some(prior) = prior {
             weight = prior.weight;
             for (u, v) in prior.values.iter().enumerate() {
                 if v.is_finite() {
-                    flags[grid.active[u]] |= PRIOR;
+                    flags[grid.active[u] as usize] |= PRIOR;
                 }
             }
         }
         let table: Box<[Stencil; 64]> =
             Box::new(std::array::from_fn(|f| fine_stencil(f as u8, weight)));
-        let unknown_index: Vec<usize> = try_collect(
-            grid.active.iter().map(|&v| layout.index(v / vw, v % vw)),
-            "the multigrid's fine level",
-        )?;
 
         let mut levels = vec![Level {
             layout,
@@ -766,7 +760,6 @@ impl MultigridSystem {
                 p: krylov()?,
                 q: krylov()?,
             },
-            unknown_index,
             pins,
             prior_rhs: prior_right_side(prior)?,
             rtol: 1e-6,
@@ -855,11 +848,12 @@ impl MultigridSystem {
                     .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
             }
         }
-        let x = &self.krylov.x;
+        // The padded index of each unknown is computed from its vertex, not stored.
+        let (x, layout, vw) = (&self.krylov.x, self.levels[0].layout, grid.width + 1);
         z_out
             .par_iter_mut()
-            .zip(self.unknown_index.par_iter())
-            .for_each(|(o, &i)| *o = x[i]);
+            .zip(grid.active.par_iter())
+            .for_each(|(o, &v)| *o = x[layout.index(v as usize / vw, v as usize % vw)]);
         iterations
     }
 }

@@ -89,7 +89,7 @@ pub fn estimate_noise(images: &ImageStack<'_>, mask: Option<&[bool]>) -> Result<
     let planes = images.k * c;
     let value = |plane: usize, p: usize| {
         let (i, ch) = (plane / c, plane % c);
-        data[(i * h * w + p) * c + ch]
+        data.get((i * h * w + p) * c + ch)
     };
     let top = (0..planes)
         .into_par_iter()

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use crate::error::{ensure_range, ensure_shape, ensure_usable, Error, Result};
 use crate::geometry::Geometry;
 use crate::grid::Grid;
+pub use crate::local::{u16_value, Samples, U16_SCALE};
 use crate::local::{usable, FitSettings, Observations};
 use crate::memory::try_vec;
 use crate::options::Options;
@@ -17,7 +18,7 @@ use crate::vec3::{add, sub};
 #[derive(Debug, Clone, Copy)]
 pub struct ImageStack<'a> {
     /// Pixel values, `k * height * width * channels` of them.
-    pub data: &'a [f32],
+    pub data: Samples<'a>,
     /// Number of images k.
     pub k: usize,
     /// Image height H.
@@ -37,6 +38,29 @@ impl<'a> ImageStack<'a> {
     /// Wraps `data` as k images of H x W pixels with `channels` (1 or 3) values each.
     pub fn with_channels(
         data: &'a [f32],
+        k: usize,
+        height: usize,
+        width: usize,
+        channels: usize,
+    ) -> Result<Self> {
+        Self::from_samples(Samples::F32(data), k, height, width, channels)
+    }
+
+    /// Wraps 16-bit `data` (read as `v / 65535`, see [`u16_value`]) as k images of H x W pixels
+    /// with `channels` (1 or 3) values each, without a copy or a conversion.
+    pub fn with_channels_u16(
+        data: &'a [u16],
+        k: usize,
+        height: usize,
+        width: usize,
+        channels: usize,
+    ) -> Result<Self> {
+        Self::from_samples(Samples::U16(data), k, height, width, channels)
+    }
+
+    /// Wraps `data` as k images of H x W pixels with `channels` (1 or 3) values each.
+    pub fn from_samples(
+        data: Samples<'a>,
         k: usize,
         height: usize,
         width: usize,
@@ -165,15 +189,18 @@ impl<'a> Problem<'a> {
             )
         })?;
         const CHUNK: usize = 1 << 16;
-        let infinite = images
-            .data
-            .par_chunks(CHUNK)
-            .position_first(|c| c.iter().any(|v| v.is_infinite()))
-            .map(|chunk| {
-                let start = chunk * CHUNK;
-                let within = images.data[start..].iter().position(|v| v.is_infinite());
-                start + within.unwrap_or(0)
-            });
+        // 16-bit samples are always finite.
+        let infinite = match images.data {
+            Samples::F32(data) => data
+                .par_chunks(CHUNK)
+                .position_first(|c| c.iter().any(|v| v.is_infinite()))
+                .map(|chunk| {
+                    let start = chunk * CHUNK;
+                    let within = data[start..].iter().position(|v| v.is_infinite());
+                    start + within.unwrap_or(0)
+                }),
+            Samples::U16(_) => None,
+        };
         if let Some(i) = infinite {
             let plane = images.height * images.width * images.channels;
             let pixel = (i % plane) / images.channels;
@@ -200,7 +227,7 @@ impl<'a> Problem<'a> {
             .map(|&u| geometry.depth(u))
             .fold(f64::INFINITY, f64::min);
         rig.check_lights_in_front(min_depth)?;
-        let obs = Observations::from_stack(
+        let obs = Observations::from_samples(
             images.data,
             images.k,
             images.height * images.width,
@@ -300,7 +327,7 @@ fn initial_unknowns(
             })?;
             let z0 = grid.gather_vertices(map)?;
             if let Some(i) = z0.iter().position(|z| !valid(*z)) {
-                let v = grid.active[i];
+                let v = grid.active[i] as usize;
                 return Err(Error::NonFinite {
                     what: "initial depth map",
                     index: v,
@@ -382,7 +409,12 @@ fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
         .par_iter()
         .map_init(
             || vec![0.0f32; per],
-            |buf, &p| obs.facet(p, buf).iter().filter(|v| **v < 0.0).count(),
+            |buf, &p| {
+                obs.facet(p as usize, buf)
+                    .iter()
+                    .filter(|v| **v < 0.0)
+                    .count()
+            },
         )
         .sum()
 }
@@ -394,7 +426,7 @@ pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> R
     let obs = &problem.obs;
     let fittable = problem.grid.facets.par_iter().any(|&pixel| {
         (0..obs.k)
-            .filter(|&i| usable(obs.at(i, pixel), settings))
+            .filter(|&i| usable(&obs.at(i, pixel as usize), settings))
             .take(3)
             .count()
             >= 3
@@ -409,4 +441,56 @@ pub(crate) fn check_fittable(problem: &Problem<'_>, settings: &FitSettings) -> R
         crate::error::g6(settings.dark),
         crate::error::g6(settings.saturation)
     )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::local::Observations;
+
+    #[test]
+    fn a_16_bit_stack_reads_as_the_float_stack_of_load_stack() {
+        // k = 3 images of 2 x 3 pixels with 3 channels; values across the whole 16-bit range.
+        let (k, h, w, c) = (3, 2, 3, 3);
+        let raw: Vec<u16> = (0..k * h * w * c)
+            .map(|i| ((i * 7919) % 65536) as u16)
+            .chain([0, 1, 65534, 65535])
+            .take(k * h * w * c)
+            .collect();
+        // nplps.io.load_stack: float32(v) / float32(65535), correctly rounded.
+        let float: Vec<f32> = raw.iter().map(|&v| v as f32 / 65535.0).collect();
+        assert_eq!(u16_value(65535), 1.0);
+        assert_eq!(u16_value(0), 0.0);
+        let a = ImageStack::with_channels_u16(&raw, k, h, w, c).unwrap();
+        let b = ImageStack::with_channels(&float, k, h, w, c).unwrap();
+        assert_eq!(a.data.bytes_per_value(), 2);
+        assert_eq!(b.data.bytes_per_value(), 4);
+        for i in 0..raw.len() {
+            assert_eq!(a.data.get(i).to_bits(), b.data.get(i).to_bits());
+        }
+        let (oa, ob) = (
+            Observations::from_samples(a.data, k, h * w, c),
+            Observations::from_samples(b.data, k, h * w, c),
+        );
+        let (mut ba, mut bb) = (vec![0.0f32; k * c], vec![0.0f32; k * c]);
+        for p in 0..h * w {
+            assert_eq!(oa.facet(p, &mut ba), ob.facet(p, &mut bb));
+            for i in 0..k {
+                assert_eq!(&*oa.at(i, p), &*ob.at(i, p));
+            }
+        }
+        // Grey: the interleaved gather of the vectorized local step.
+        let grey_raw = &raw[..k * h * w];
+        let grey: Vec<f32> = grey_raw.iter().map(|&v| u16_value(v)).collect();
+        let (ga, gb) = (
+            Observations::from_samples(Samples::U16(grey_raw), k, h * w, 1),
+            Observations::from_samples(Samples::F32(&grey), k, h * w, 1),
+        );
+        let pixels = [0, 2, 3, 5];
+        let (mut ia, mut ib) = (vec![[0.0f32; 4]; k], vec![[0.0f32; 4]; k]);
+        assert!(ga.gather_lanes(&pixels, &mut ia) && gb.gather_lanes(&pixels, &mut ib));
+        assert_eq!(ia, ib);
+        // A wrong length is a shape error, as for float stacks.
+        assert!(ImageStack::with_channels_u16(&raw[1..], k, h, w, c).is_err());
+    }
 }

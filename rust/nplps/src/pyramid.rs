@@ -141,9 +141,9 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
                         continue;
                     }
                     let o = obs.at(i, (2 * cr + a) * w + 2 * cc + b);
-                    if usable(o, settings) {
+                    if usable(&o, settings) {
                         n += 1;
-                        for (s, &v) in sum.iter_mut().zip(o) {
+                        for (s, &v) in sum.iter_mut().zip(o.iter()) {
                             *s += v as f64;
                         }
                     }
@@ -179,6 +179,7 @@ fn subsample(fine: &Grid, values: &[f64], coarse: &Grid, missing: f64) -> Result
     let (fw, cw) = (fine.width + 1, coarse.width + 1);
     try_collect(
         coarse.active.iter().map(|&v| {
+            let v = v as usize;
             let (r, c) = (2 * (v / cw), 2 * (v % cw));
             if r <= fine.height && c <= fine.width {
                 let u = fine.vertex_unknown[r * fw + c];
@@ -283,6 +284,7 @@ pub fn upsample(coarse: &Grid, u: &[f64], fine: &Grid) -> Result<Vec<f64>> {
     let mean = u.iter().sum::<f64>() / u.len().max(1) as f64;
     try_par_collect(
         fine.active.par_iter().map(|&v| {
+            let v = v as usize;
             let (r, c) = (v / fw, v % fw);
             let rows: &[(usize, f64)] = if r % 2 == 0 {
                 &[(r / 2, 1.0)]
@@ -362,7 +364,7 @@ mod tests {
         let mask: Vec<bool> = (0..9 * 11).map(|p| p % 7 != 3).collect();
         let fine = Grid::new(9, 11, Some(&mask)).unwrap();
         let mut cmask = vec![false; 5 * 6];
-        for &p in &fine.facets {
+        for p in fine.facets.iter().map(|&p| p as usize) {
             cmask[(p / 11 / 2) * 6 + (p % 11) / 2] = true;
         }
         let coarse = Grid::new(5, 6, Some(&cmask)).unwrap();
@@ -370,11 +372,11 @@ mod tests {
         let u: Vec<f64> = coarse
             .active
             .iter()
-            .map(|&v| plane(2 * (v / 7), 2 * (v % 7)))
+            .map(|&v| plane(2 * (v as usize / 7), 2 * (v as usize % 7)))
             .collect();
         let up = upsample(&coarse, &u, &fine).unwrap();
         for (&v, x) in fine.active.iter().zip(&up) {
-            assert!((x - plane(v / 12, v % 12)).abs() < 1e-12);
+            assert!((x - plane(v as usize / 12, v as usize % 12)).abs() < 1e-12);
         }
     }
 }

@@ -260,7 +260,10 @@ impl FitOutputs {
     /// Writes the fits of facets `first..first + fits.len()` onto their pixels.
     pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
         let channels = problem.obs.channels;
-        for (fit, &p) in fits.iter().zip(&problem.grid.facets[first..]) {
+        for (fit, p) in fits
+            .iter()
+            .zip(problem.grid.facets[first..].iter().map(|&p| p as usize))
+        {
             self.normals[p] = fit.normal;
             self.albedo[p] = fit.albedo;
             self.residual[p] = fit.rms(channels);

@@ -438,10 +438,10 @@ impl LightData<'_> {
                     acc.facets += 1;
                     s.want_h = j % h_every == 0;
                     let mut values = std::mem::take(&mut s.values);
-                    obs.facet(grid.facets[f], &mut values);
+                    obs.facet(grid.facets[f] as usize, &mut values);
                     if let Some(shadows) = self.shadows {
                         let c = obs.channels;
-                        for k in shadows.lights_at(grid.facets[f]) {
+                        for k in shadows.lights_at(grid.facets[f] as usize) {
                             values[k * c..(k + 1) * c].fill(f32::NAN);
                         }
                     }

@@ -123,7 +123,7 @@ impl WarmMap {
             "the glossy normals",
         )?;
         if warm.len() == grid.n_facets() {
-            for (&p, &w) in grid.facets.iter().zip(warm) {
+            for (p, &w) in grid.facets.iter().map(|&p| p as usize).zip(warm) {
                 normals[p] = w;
             }
         }
@@ -446,7 +446,11 @@ impl<'p> Solver<'p> {
         self.lobe_carried |= lobe.is_some();
         self.lobe = lobe.or(self.lobe);
         let fine = &self.problem.grid;
-        for (w, &p) in self.warm.iter_mut().zip(&fine.facets) {
+        for (w, p) in self
+            .warm
+            .iter_mut()
+            .zip(fine.facets.iter().map(|&p| p as usize))
+        {
             if let Some(n) = warm.under(p, fine.width) {
                 *w = n;
             }
@@ -746,6 +750,7 @@ impl<'p> Solver<'p> {
                 .facets
                 .iter()
                 .filter(|&&f| {
+                    let f = f as usize;
                     let (r, c) = (f / p.grid.width, f % p.grid.width);
                     on_lattice(r, stride) && on_lattice(c, stride)
                 })
@@ -1305,7 +1310,7 @@ mod tests {
                     .unwrap();
             assert_eq!(field.factor(), 1);
             let mut next = images.clone();
-            for &p in &grid.facets {
+            for p in grid.facets.iter().map(|&p| p as usize) {
                 let v = field.at(p, n);
                 for light in 0..k {
                     let i = direct[light * plane + p] + rho * dot(normals[p], v[light]);
@@ -1333,7 +1338,7 @@ mod tests {
         };
         let errors = |r: &Reconstruction| {
             let (mut angle, mut albedo, mut count) = (0.0, 0.0, 0);
-            for &p in &grid.facets {
+            for p in grid.facets.iter().map(|&p| p as usize) {
                 angle += dot(r.normals[p], normals[p])
                     .clamp(-1.0, 1.0)
                     .acos()

@@ -235,7 +235,10 @@ pub(crate) fn right_side(
     let vw = grid.width + 1;
     out.par_iter_mut()
         .zip(grid.active.par_iter())
-        .for_each(|(o, &v)| *o = grid.gather_targets(targets, v / vw, v % vw));
+        .for_each(|(o, &v)| {
+            let v = v as usize;
+            *o = grid.gather_targets(targets, v / vw, v % vw);
+        });
     let partial: Vec<f64> = out
         .par_chunks(1 << 15)
         .map(|c| c.iter().map(|v| v * v).sum())

@@ -5,8 +5,8 @@
 //! The kernels run compiled for AVX2 when the processor has it (`simd_dispatch!`).
 
 use super::{
-    facet_scratch, keep_shape, solve_sums, usable_count, FacetFit, LocalStep, Model, Observations,
-    Robust, Sums, Weighting, SCRATCH,
+    facet_scratch, keep_shape, solve_sums, u16_value, usable_count, FacetFit, LocalStep, Model,
+    Observations, Robust, Stored, Sums, Weighting, SCRATCH,
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
@@ -18,7 +18,7 @@ impl Observations<'_> {
     /// For grey observations: the values of the facets at `pixels`, light-major and
     /// interleaved (`out[k][lane]`); returns false (and writes nothing) for colour.
     #[inline]
-    pub(super) fn gather_lanes<const N: usize>(
+    pub(crate) fn gather_lanes<const N: usize>(
         &self,
         pixels: &[usize; N],
         out: &mut [[f32; N]],
@@ -26,15 +26,31 @@ impl Observations<'_> {
         if self.channels != 1 {
             return false;
         }
-        let data = &self.data[..];
-        for (k, slot) in out[..self.k].iter_mut().enumerate() {
-            let base = k * self.plane;
-            for (v, &p) in slot.iter_mut().zip(pixels) {
-                *v = data[base + p];
-            }
-            prefetch(data, base + pixels[N - 1] + PREFETCH_AHEAD);
+        match &self.data {
+            Stored::F32(d) => gather_interleaved(&d[..], self.k, self.plane, pixels, out, |v| v),
+            Stored::U16(d) => gather_interleaved(d, self.k, self.plane, pixels, out, u16_value),
         }
         true
+    }
+}
+
+/// `out[k][lane] = value(data[k * plane + pixels[lane]])` for the `k` lights, prefetching each
+/// image ahead of the last pixel.
+#[inline(always)]
+fn gather_interleaved<T: Copy, const N: usize>(
+    data: &[T],
+    k: usize,
+    plane: usize,
+    pixels: &[usize; N],
+    out: &mut [[f32; N]],
+    value: impl Fn(T) -> f32,
+) {
+    for (i, slot) in out[..k].iter_mut().enumerate() {
+        let base = i * plane;
+        for (v, &p) in slot.iter_mut().zip(pixels) {
+            *v = value(data[base + p]);
+        }
+        prefetch(data, base + pixels[N - 1] + PREFETCH_AHEAD);
     }
 }
 
@@ -51,7 +67,7 @@ const PREFETCH_AHEAD: usize = 512;
 /// Hints the processor to load `data[i]` into the cache (nothing when `i` is out of range or
 /// on other architectures).
 #[inline(always)]
-fn prefetch(data: &[f32], i: usize) {
+fn prefetch<T>(data: &[T], i: usize) {
     #[cfg(target_arch = "x86_64")]
     if i < data.len() {
         // SAFETY: the address lies inside `data`; a prefetch never faults and changes no state
@@ -101,11 +117,11 @@ impl LocalStep<'_> {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
         let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
-        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l]);
+        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
         if !obs.gather_lanes(&pixels, interleaved) {
             for l in 0..LANES {
                 let f = first + l;
-                let values = obs.facet(grid.facets[f], buf);
+                let values = obs.facet(grid.facets[f] as usize, buf);
                 for (slot, &v) in interleaved.iter_mut().zip(values) {
                     slot[l] = v;
                 }

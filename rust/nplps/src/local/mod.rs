@@ -143,9 +143,91 @@ impl FacetFit {
     }
 }
 
+/// The divisor of 16-bit samples: a `u16` value `v` reads as `v as f32 / 65535.0` (the float32
+/// division that `nplps.io.load_stack` applies to 16-bit images, so both give the same bits).
+pub const U16_SCALE: f32 = 65535.0;
+
+/// The value of a 16-bit sample on the `[0, 1]` scale of the float stacks (see [`U16_SCALE`]).
+#[inline(always)]
+pub fn u16_value(v: u16) -> f32 {
+    f32::from(v) / U16_SCALE
+}
+
+/// The sample values of a borrowed image stack: float32 (NaN marks a missing observation), or
+/// 16-bit integers kept as they are read, 2 bytes per value instead of 4, and converted where
+/// they are used ([`u16_value`]; a 16-bit stack has no missing observation).
+#[derive(Debug, Clone, Copy)]
+pub enum Samples<'a> {
+    /// Float32 values.
+    F32(&'a [f32]),
+    /// 16-bit values `v`, read as `v / 65535`.
+    U16(&'a [u16]),
+}
+
+impl Samples<'_> {
+    /// Number of values.
+    #[inline]
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::F32(d) => d.len(),
+            Samples::U16(d) => d.len(),
+        }
+    }
+
+    /// Whether there is no value.
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Value `i` on the float scale.
+    #[inline(always)]
+    pub fn get(&self, i: usize) -> f32 {
+        match self {
+            Samples::F32(d) => d[i],
+            Samples::U16(d) => u16_value(d[i]),
+        }
+    }
+
+    /// Bytes per value (4 or 2).
+    pub fn bytes_per_value(&self) -> usize {
+        match self {
+            Samples::F32(_) => 4,
+            Samples::U16(_) => 2,
+        }
+    }
+}
+
+/// The values of the stack an [`Observations`] reads: float32, borrowed or owned (the coarse
+/// levels of a pyramid), or borrowed 16-bit integers read as `v / 65535` where they are used
+/// ([`u16_value`]).
+#[derive(Debug, Clone)]
+pub(crate) enum Stored<'a> {
+    /// Float32 values; NaN marks a missing observation.
+    F32(Cow<'a, [f32]>),
+    /// 16-bit values.
+    U16(&'a [u16]),
+}
+
+/// The (at most 3) channel values of one observation, by value (a 16-bit stack has no float
+/// slice to borrow); dereferences to the `channels` values.
+#[derive(Debug, Clone, Copy)]
+pub struct Sample {
+    values: [f32; 3],
+    channels: usize,
+}
+
+impl std::ops::Deref for Sample {
+    type Target = [f32];
+    #[inline]
+    fn deref(&self) -> &[f32] {
+        &self.values[..self.channels]
+    }
+}
+
 /// The observations of the masked facets: a (k, H, W, C) image stack, borrowed from the
-/// caller without a copy, or owned (the coarse levels of a pyramid). NaN marks a missing
-/// observation.
+/// caller without a copy (float32 or 16-bit), or owned (the coarse levels of a pyramid). NaN
+/// marks a missing observation.
 #[derive(Debug, Clone)]
 pub struct Observations<'a> {
     /// Number of lights k.
@@ -153,19 +235,29 @@ pub struct Observations<'a> {
     /// Channels per observation (1 or 3).
     pub channels: usize,
     /// The stack, row-major (k, H, W, C).
-    data: Cow<'a, [f32]>,
+    pub(crate) data: Stored<'a>,
     /// Values per image, H * W * C.
-    plane: usize,
+    pub(crate) plane: usize,
 }
 
 impl<'a> Observations<'a> {
-    /// Borrows a (k, H, W, C) stack with `pixels` = H * W pixels per image.
+    /// Borrows a float32 (k, H, W, C) stack with `pixels` = H * W pixels per image.
+    #[cfg(test)]
     pub fn from_stack(data: &'a [f32], k: usize, pixels: usize, channels: usize) -> Self {
+        Self::from_samples(Samples::F32(data), k, pixels, channels)
+    }
+
+    /// Borrows a (k, H, W, C) stack of float32 or 16-bit samples with `pixels` = H * W pixels
+    /// per image.
+    pub fn from_samples(data: Samples<'a>, k: usize, pixels: usize, channels: usize) -> Self {
         debug_assert_eq!(data.len(), k * pixels * channels);
         Observations {
             k,
             channels,
-            data: Cow::Borrowed(data),
+            data: match data {
+                Samples::F32(d) => Stored::F32(Cow::Borrowed(d)),
+                Samples::U16(d) => Stored::U16(d),
+            },
             plane: pixels * channels,
         }
     }
@@ -181,7 +273,7 @@ impl<'a> Observations<'a> {
         Observations {
             k,
             channels,
-            data: Cow::Owned(data),
+            data: Stored::F32(Cow::Owned(data)),
             plane: pixels * channels,
         }
     }
@@ -194,29 +286,56 @@ impl<'a> Observations<'a> {
 
     /// The `channels` values of light `i` at pixel index `pixel`.
     #[inline]
-    pub fn at(&self, i: usize, pixel: usize) -> &[f32] {
+    pub fn at(&self, i: usize, pixel: usize) -> Sample {
         let start = i * self.plane + pixel * self.channels;
-        &self.data[start..start + self.channels]
+        let mut values = [0.0f32; 3];
+        let c = self.channels;
+        match &self.data {
+            Stored::F32(d) => values[..c].copy_from_slice(&d[start..start + c]),
+            Stored::U16(d) => {
+                for (o, &v) in values[..c].iter_mut().zip(&d[start..start + c]) {
+                    *o = u16_value(v);
+                }
+            }
+        }
+        Sample {
+            values,
+            channels: c,
+        }
     }
 
     /// The `k * channels` values of the facet at pixel index `pixel` (row-major, `r * W + c`),
     /// light-major, gathered into `buf` (of at least that length).
     #[inline]
     pub fn facet<'b>(&self, pixel: usize, buf: &'b mut [f32]) -> &'b [f32] {
+        match &self.data {
+            Stored::F32(d) => self.gather_facet(&d[..], pixel, buf, |v| v),
+            Stored::U16(d) => self.gather_facet(d, pixel, buf, u16_value),
+        }
+    }
+
+    #[inline(always)]
+    fn gather_facet<'b, T: Copy>(
+        &self,
+        data: &[T],
+        pixel: usize,
+        buf: &'b mut [f32],
+        value: impl Fn(T) -> f32,
+    ) -> &'b [f32] {
         let per = self.per_facet();
-        let (data, plane) = (&self.data[..], self.plane);
+        let plane = self.plane;
         let c = self.channels;
         let start = pixel * c;
         if c == 1 {
             // One value per light: plain loads (a slice copy per light would be a call).
             for (i, out) in buf[..per].iter_mut().enumerate() {
-                *out = data[i * plane + start];
+                *out = value(data[i * plane + start]);
             }
         } else {
             for (i, out) in buf[..per].chunks_exact_mut(c).enumerate() {
                 let at = i * plane + start;
                 for (o, &v) in out.iter_mut().zip(&data[at..at + c]) {
-                    *o = v;
+                    *o = value(v);
                 }
             }
         }
@@ -317,7 +436,7 @@ impl LocalStep<'_> {
     /// [`LocalStep::shadows`]) set to NaN.
     #[inline]
     pub(super) fn facet_values<'b>(&self, f: usize, buf: &'b mut [f32]) -> &'b [f32] {
-        let pixel = self.grid.facets[f];
+        let pixel = self.grid.facets[f] as usize;
         let per = self.obs.facet(pixel, buf).len();
         if let Some(shadows) = self.shadows {
             let c = self.obs.channels;
@@ -414,7 +533,7 @@ impl LocalStep<'_> {
                 const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
         }
         let (grid, obs) = (self.grid, self.obs);
-        let pixel = grid.facets[f];
+        let pixel = grid.facets[f] as usize;
         let ids = grid.facet_vertices[f];
         SCRATCH.with_borrow_mut(|(vectors, direct)| {
             direct.clear();
