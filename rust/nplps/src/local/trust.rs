@@ -105,8 +105,8 @@ impl LocalStep<'_> {
         let mut normal_sigma = try_vec(pixels, f32::NAN, "the normal uncertainty map")?;
         let mut held_out = try_vec(pixels, f32::NAN, "the held-out error map")?;
         for (v, &p) in per_facet.iter().zip(&grid.facets) {
-            normal_sigma[p] = v[0];
-            held_out[p] = v[1];
+            normal_sigma[p as usize] = v[0];
+            held_out[p as usize] = v[1];
         }
         let lights = sums
             .iter()
@@ -326,7 +326,7 @@ mod tests {
             for (k, l) in lights.iter().enumerate() {
                 let (b, _) = l.beta(c);
                 let v = 0.7 * 2000.0 * dot(n, b).max(0.0);
-                images[k * h * w + grid.facets[f]] = (v + sigma * rng()) as f32;
+                images[k * h * w + grid.facets[f] as usize] = (v + sigma * rng()) as f32;
             }
         }
         (grid, geometry, lights, images, u, n)
@@ -363,7 +363,7 @@ mod tests {
             for (f, fit) in fits.iter().enumerate() {
                 let angle = dot(fit.normal, n_true).clamp(-1.0, 1.0).acos().to_degrees();
                 observed += angle * angle;
-                let s = trust.normal_sigma[grid.facets[f]] as f64;
+                let s = trust.normal_sigma[grid.facets[f] as usize] as f64;
                 predicted += s * s;
             }
             let ratio = (observed / predicted).sqrt();
