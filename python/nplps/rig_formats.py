@@ -153,12 +153,8 @@ def _directional(subject: str, d: Sequence[float], intensity: Any = 1.0) -> Dire
 # --------------------------------------------------------------------------------------------------
 
 
-def _read_text(path: str | os.PathLike[str], what: str) -> str:
-    return read_small_text(path, what)
-
-
 def _read_json(path: str | os.PathLike[str], what: str, exact: bool = False) -> Any:
-    text = _read_text(path, what)
+    text = read_small_text(path, what)
     try:
         if exact:
             return json.loads(text, parse_float=Decimal, parse_int=Decimal)
@@ -539,7 +535,7 @@ def _dome_text(rig: Rig, camera_distance: float | None, scale: float | None = No
 
 
 def _read_lp(name: str, camera_distance: float | None, light_distance: float | None) -> tuple[list[Any], dict]:
-    lines = [line for line in _read_text(name, ".lp file").splitlines() if line.strip()]
+    lines = [line for line in read_small_text(name, ".lp file").splitlines() if line.strip()]
     if not lines:
         raise RigError(f".lp file {name!r} is empty")
     try:
@@ -700,7 +696,7 @@ def read_camera(
     fmt = fmt or detect_format(path)
     name = os.fspath(path)
     if fmt == "opencv-yaml":
-        return _opencv_camera(_parse_opencv_yaml(_read_text(name, "camera file"), name), name)
+        return _opencv_camera(_parse_opencv_yaml(read_small_text(name, "camera file"), name), name)
     if fmt == "opencv-json":
         data = _read_json(name, "camera file")
         if not isinstance(data, dict):

@@ -12,7 +12,7 @@ from ..errors import InputError
 from ..io import PathLike
 from .capture import Capture
 from .files import _check_folder, _check_indices, _read_mask, _read_stack, _resolve
-from .matlab import _loadmat, _mat_var
+from .matlab import _mat_var, read_mat
 
 
 def _diligent_folder(folder: Path) -> Path:
@@ -129,7 +129,7 @@ def load_diligent(
     normals_gt = None
     gt_path = root / "Normal_gt.mat"
     if normals and gt_path.is_file():
-        n = _mat_var(_loadmat(gt_path), "Normal_gt", gt_path)
+        n = _mat_var(read_mat(gt_path), "Normal_gt", gt_path)
         if n.ndim != 3 or n.shape[2] != 3:
             raise InputError(f"'{gt_path}': Normal_gt has shape {n.shape}, expected (H, W, 3)")
         normals_gt = n * flip

@@ -212,11 +212,6 @@ def read_mat(path: PathLike) -> dict[str, Any]:
     return out
 
 
-def _loadmat(path: Path) -> dict[str, Any]:
-    """Read a MAT-file with :func:`read_mat` (kept as the loaders' name for it)."""
-    return read_mat(path)
-
-
 def _mat_var(data: dict[str, Any], name: str, path: Path) -> np.ndarray:
     """Variable ``name`` of a loaded .mat file as a float64 array."""
     if name not in data:
@@ -276,4 +271,4 @@ def load_matlab_intrinsics(path: PathLike, variable: str = "K", one_based: bool 
     DiLiGenT calibration. Returns a float64 (3, 3) matrix, 0-based pixel centres.
     """
     path = Path(path)
-    return standardize_K(_mat_var(_loadmat(path), variable, path), one_based=one_based)
+    return standardize_K(_mat_var(read_mat(path), variable, path), one_based=one_based)

@@ -25,7 +25,7 @@ from .files import (
     _resolve,
     find_images,
 )
-from .matlab import _loadmat, _mat_var, load_matlab_intrinsics
+from .matlab import _mat_var, load_matlab_intrinsics, read_mat
 
 
 def _per_light(arr: np.ndarray, k: int, name: str, path: Path, widths: tuple[int, ...]) -> np.ndarray:
@@ -142,7 +142,7 @@ def load_near_ps(
     light_path = _resolve_calib(folder, light_file)
     K = load_matlab_intrinsics(cam_path, "K", one_based=True)
 
-    ldata = _loadmat(light_path)
+    ldata = read_mat(light_path)
     S = _mat_var(ldata, "S", light_path)
     if S.ndim == 2 and S.shape[1] == 3:
         n = S.shape[0]
