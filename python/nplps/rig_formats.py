@@ -39,6 +39,7 @@ from decimal import Decimal, localcontext
 from fractions import Fraction
 from typing import Any
 
+from ._atomic import write_text
 from .errors import RigError
 from .rig import LED, DirectionalLight, PointLight, Rig, RigGrid, read_rig_json, read_small_text
 
@@ -161,12 +162,6 @@ def _read_json(path: str | os.PathLike[str], what: str, exact: bool = False) -> 
         return json.loads(text)
     except (ValueError, RecursionError) as e:
         raise RigError(f"{what} {os.fspath(path)!r} is not valid JSON: {str(e)[:200]}") from None
-
-
-def _write(path: str | os.PathLike[str], text: str) -> None:
-    from ._atomic import write_text
-
-    write_text(path, text)
 
 
 def detect_format(path: str | os.PathLike[str]) -> str:
@@ -357,11 +352,11 @@ def save(
     if fmt == "rig":
         rig._save_json(path)
     elif fmt == "dome":
-        _write(path, _dome_text(rig, camera_distance, scale))
+        write_text(path, _dome_text(rig, camera_distance, scale))
     elif fmt == "lp":
-        _write(path, _lp_text(rig, drop_intensities))
+        write_text(path, _lp_text(rig, drop_intensities))
     elif fmt == "alicevision":
-        _write(path, _alicevision_text(rig))
+        write_text(path, _alicevision_text(rig))
     elif fmt in ("opencv-yaml", "opencv-json"):
         write_camera(rig.camera, path, grid=rig.grid, fmt=fmt)
     else:
@@ -850,7 +845,7 @@ def write_camera(
                 "dt": "d",
                 "data": [_text(v) for v in values],
             }
-        _write(path, _dump_json(data) + "\n")
+        write_text(path, _dump_json(data) + "\n")
         return
     lines = ["%YAML:1.0", "---"]
     if size is not None:
@@ -863,7 +858,7 @@ def write_camera(
             "   dt: d",
             f"   data: [ {', '.join(_text(v) for v in values)} ]",
         ]
-    _write(path, "\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
 
 
 @dataclass(frozen=True)
