@@ -102,6 +102,17 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_option(text: str) -> tuple[str, Any]:
+    """``NAME=VALUE`` of ``--option``: the value as JSON (numbers, true/false) or else as text."""
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
+
+
 def size_label(w: int, h: int) -> str:
     return f"{w}x{h}"
 
@@ -407,7 +418,9 @@ def run_child(spec_path: str) -> None:
     directory = Path(spec["directory"])
     base_rss, base_hwm = peak_rss_mb(), hwm_mb()
     rig = nplps.Rig.load(directory / "rig.json")
-    options, unsupported = supported_options({"solver": spec["solver"], "levels": spec["levels"]})
+    options, unsupported = supported_options(
+        {"solver": spec["solver"], "levels": spec["levels"], **spec.get("options", {})}
+    )
     h, w = spec["height"], spec["width"]
     mask = np.ones((h, w), dtype=bool)
     out_dir = directory / "out"
@@ -427,18 +440,17 @@ def run_child(spec_path: str) -> None:
         load_s = time.perf_counter() - t0
         assert levels in (None, LEVELS_16), levels
         t0 = time.perf_counter()
-        result = nplps.reconstruct(
-            stack,
-            rig,
-            mask=mask,
-            depth=spec["gauge"],
-            iterations=spec["iterations"],
-            tol=spec["tol"],
-            dark=DARK_16,
-            saturation=SATURATION_16,
-            threads=spec["threads"],
-            **options,
-        )
+        keywords = {
+            "mask": mask,
+            "depth": spec["gauge"],
+            "iterations": spec["iterations"],
+            "tol": spec["tol"],
+            "dark": DARK_16,
+            "saturation": SATURATION_16,
+            "threads": spec["threads"],
+            **options,  # --option may replace any of them (e.g. depth=auto)
+        }
+        result = nplps.reconstruct(stack, rig, **keywords)
         reconstruct_s = time.perf_counter() - t0
         del stack
         rss_after_reconstruct = max(rss_after_reconstruct, peak_rss_mb())
@@ -536,6 +548,7 @@ def run_case(args: argparse.Namespace, workdir: Path, camera: str, w: int, h: in
         "noise": args.noise,
         "solver": args.solver,
         "levels": args.levels,
+        "options": dict(args.option),
         "iterations": args.iterations,
         "tol": args.tol,
         "threads": args.threads,
@@ -740,6 +753,15 @@ def main() -> None:
     parser.add_argument("--solver", help="passed to nplps.reconstruct if it has solver= (auto, direct, multigrid)")
     parser.add_argument("--levels", type=int, help="pyramid levels, passed to nplps.reconstruct if it has levels=")
     parser.add_argument(
+        "--option",
+        type=parse_option,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="another keyword of nplps.reconstruct (repeatable), e.g. reflectance=glossy, shadows=true, "
+        "interreflections=true, robust=tukey, depth_mode=auto; values are read as JSON where they parse",
+    )
+    parser.add_argument(
         "--noise", type=float, default=0.0, help="Gaussian image noise, a fraction of the brightest value (default 0)"
     )
     parser.add_argument("--iterations", type=int, default=10, help="maximum iterations (per level) (default 10)")
@@ -783,7 +805,7 @@ def main() -> None:
     if args.lights < 3 or args.repeats < 1:
         parser.error("--lights must be at least 3 and --repeats at least 1")
 
-    _, unsupported = supported_options({"solver": args.solver, "levels": args.levels})
+    _, unsupported = supported_options({"solver": args.solver, "levels": args.levels, **dict(args.option)})
     if unsupported:
         print(f"note: this nplps.reconstruct has no {', '.join(unsupported)} option; ignored", file=sys.stderr)
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="nplps-scale-"))
@@ -800,6 +822,7 @@ def main() -> None:
     settings = f"solver={args.solver or 'default'}, levels={args.levels if args.levels is not None else 'default'}" + (
         f" (unsupported: {', '.join(unsupported)})" if unsupported else ""
     )
+    settings += "".join(f", {name}={value}" for name, value in args.option)
     print(
         f"\nnplps {nplps.__version__}, {args.lights} lights, noise {args.noise:g},"
         f" {'arrays' if args.no_files else '16-bit PNG files'}, "
