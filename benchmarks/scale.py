@@ -83,6 +83,9 @@ SATURATION_16 = 1.0 - 0.5 / LEVELS_16
 MEGAPIXEL = 1_000_000
 #: A float32 render stack larger than this is a memory-mapped scratch file (50 MP and 100 MP cases).
 SCRATCH_BYTES = 2 << 30
+#: Images are rendered in bands of rows of at most this many pixels (the renderer needs ~30 B per
+#: pixel and image: 100 MP x 4 images would be 12 GB at once).
+BAND_PIXELS = 8 << 20
 
 
 # --------------------------------------------------------------------------------------------------
@@ -167,6 +170,19 @@ def albedo_map(rig: nplps.Rig, w: int, h: int) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(0.6 + 0.4 * s, (h, w)), dtype=np.float64)
 
 
+def _band_rig(rig: nplps.Rig, r0: int) -> nplps.Rig:
+    """The rig whose image row 0 is row ``r0`` of ``rig``'s image (``rig`` itself for ``r0 = 0``)."""
+    if r0 == 0:
+        return rig
+    cam = rig.camera
+    if cam["model"] == "orthographic":
+        (pw, ph), (ox, oy) = cam["pixel_size"], cam["origin"]
+        return nplps.Rig.orthographic((pw, ph), origin=(ox, oy + r0 * ph), lights=rig.lights)
+    K = np.array(cam["K"], dtype=np.float64)
+    K[1, 2] -= r0
+    return nplps.Rig.pinhole(K, lights=rig.lights)
+
+
 def render_uint16(
     depth: np.ndarray,
     rig: nplps.Rig,
@@ -186,14 +202,20 @@ def render_uint16(
         stack = np.lib.format.open_memmap(scratch, mode="w+", dtype=np.float32, shape=(k, h, w))
     else:
         stack = np.empty((k, h, w), dtype=np.float32)
-    for start in range(0, k, 4):
-        stop = min(start + 4, k)
-        group = list(range(min(start, max(0, stop - 3)), stop))  # a rig needs 3 lights
-        images = nplps.render(depth, rig.subset(group), albedo)
-        for j, light in enumerate(group):
-            if light >= start:
-                stack[light] = images[j]
-        del images
+    # Bands of rows of at most BAND_PIXELS (the model is per pixel without cast shadows, so a band
+    # rendered with the camera shifted to its first row is exactly those rows of the whole image).
+    band = max(1, min(h, BAND_PIXELS // w))
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        band_rig = _band_rig(rig, r0)
+        for start in range(0, k, 4):
+            stop = min(start + 4, k)
+            group = list(range(min(start, max(0, stop - 3)), stop))  # a rig needs 3 lights
+            images = nplps.render(depth[r0 : r1 + 1], band_rig.subset(group), albedo[r0:r1])
+            for j, light in enumerate(group):
+                if light >= start:
+                    stack[light, r0:r1] = images[j]
+            del images
     scale = np.float32(LEVELS_16 / float(stack.max()))
     rng = np.random.default_rng(seed)
     out = np.empty((k, h, w), dtype=np.uint16)
