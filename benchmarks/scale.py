@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/scale.py [--sizes 256 512 1024 2048 4096 4000x3000] [--lights 16] [--cli]
+    python benchmarks/scale.py [--sizes 256 512 1024 2048 4096 4000x3000] [--lights 16]
                                [--cameras orthographic pinhole] [--solver auto|direct|multigrid]
                                [--levels N] [--noise 0] [--iterations 10] [--tol 1e-6] [--repeats 1]
                                [--threads N] [--no-files] [--stack uint16|float32] [--no-obj-alone]
@@ -343,100 +343,9 @@ def _median_dict(runs: list[dict[str, float]]) -> dict[str, float]:
     return {k: statistics.median(r[k] for r in runs) for k in keys}
 
 
-def run_cli_child(spec: dict[str, Any]) -> None:
-    """Runs one case through the ``nplps reconstruct`` command (``--cli``): the 16-bit PNG files
-    decoded by the command itself, its default outputs (report included) written into a new
-    folder. This process only waits for the command and reads its progress lines as they come,
-    stamping them: "load" is the decoding the command reports, "save" its export, and
-    "reconstruct" the rest of the command's wall time (start-up, pre-processing, the solver and
-    its distance check); the solver's own split comes from summary.json. The peak RSS is the
-    command's own (``RUSAGE_CHILDREN``: this process has no other child). Accuracy is computed
-    afterwards from depth.npy and normals.npy."""
-    directory = Path(spec["directory"])
-    out_dir = directory / "out"
-    command = [
-        sys.executable,
-        "-m",
-        "nplps",
-        "reconstruct",
-        "--rig",
-        str(directory / "rig.json"),
-        "--depth",
-        repr(spec["gauge"]),
-        "--iterations",
-        str(spec["iterations"]),
-        "--tol",
-        repr(spec["tol"]),
-        "--out",
-        str(out_dir),
-        *(["--threads", str(spec["threads"])] if spec["threads"] else []),
-        *spec["inputs"],
-    ]
-    lines: list[tuple[float, str]] = []
-    t0 = time.perf_counter()
-    with subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) as proc:
-        assert proc.stderr is not None
-        for line in proc.stderr:
-            lines.append((time.perf_counter() - t0, line.rstrip()))
-            print(f"  [{lines[-1][0]:7.1f} s] {line.rstrip()}", file=sys.stderr, flush=True)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise SystemExit(f"nplps reconstruct failed (exit {proc.returncode})")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    peak_mb = peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
-
-    def seconds(pattern: str) -> float:
-        import re
-
-        for _, text in lines:
-            found = re.search(pattern, text)
-            if found:
-                return float(found.group(1))
-        return math.nan
-
-    load_s = seconds(r"images read in ([0-9.]+) s")
-    save_s = seconds(r"files written in ([0-9.]+) s")
-    summary = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
-    files = {p.name: p.stat().st_size for p in out_dir.iterdir() if p.is_file()}
-    rig = nplps.Rig.load(directory / "rig.json")
-    depth = np.load(out_dir / "depth.npy", mmap_mode="r")
-    normals = np.load(out_dir / "normals.npy", mmap_mode="r")
-    mask = np.isfinite(normals[..., 2])
-    fake = type("Result", (), {"normals": normals, "depth": depth, "mask": mask})()
-    report = {
-        "timings": {
-            "load": load_s,
-            "reconstruct": wall - load_s - save_s,
-            "wall": wall,
-            **{f"timings.{k}": float(v) for k, v in summary["timings"].items()},
-        },
-        "export": {"save": save_s, "write_ply": math.nan},
-        "export_files": files,
-        "save_files": {},
-        "iterations": summary["iterations"],
-        "converged": summary["converged"],
-        "levels": {},
-        "rss_base_mb": 0.0,
-        "rss_reconstruct_mb": peak_mb,
-        "rss_export_mb": peak_mb,
-        "vmhwm_base_mb": None,
-        "vmhwm_reconstruct_mb": None,
-        "vmhwm_export_mb": None,
-        "options": {},
-        "unsupported_options": [],
-        "cli_lines": lines,
-        "accuracy": accuracy(fake, np.load(directory / "depth_gt.npy"), rig),
-    }
-    shutil.rmtree(out_dir)
-    (directory / "result.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
-
-
 def run_child(spec_path: str) -> None:
     """Runs one case described by the JSON file ``spec_path``; writes ``result.json`` next to it."""
     spec = json.loads(Path(spec_path).read_text(encoding="utf-8"))
-    if spec.get("cli"):
-        run_cli_child(spec)
-        return
     directory = Path(spec["directory"])
     base_rss, base_hwm = peak_rss_mb(), hwm_mb()
     rig = nplps.Rig.load(directory / "rig.json")
@@ -564,8 +473,7 @@ def run_case(args: argparse.Namespace, workdir: Path, camera: str, w: int, h: in
         "width": w,
         "height": h,
         "lights": args.lights,
-        "files": args.cli or not args.no_files,
-        "cli": args.cli,
+        "files": not args.no_files,
         "stack": args.stack,
         "noise": args.noise,
         "solver": args.solver,
@@ -794,12 +702,6 @@ def main() -> None:
     parser.add_argument("--threads", type=int, help="solver threads (default: all cores)")
     parser.add_argument(
         "--no-files", action="store_true", help="pass the images as a uint16 array instead of PNG files"
-    )
-    parser.add_argument(
-        "--cli",
-        action="store_true",
-        help="run each case through the `nplps reconstruct` command on 16-bit PNG files (decode, solve, "
-        "default outputs and report) and report its wall time, stages and peak RSS (the issue-23 100 MP check)",
     )
     parser.add_argument(
         "--stack",
