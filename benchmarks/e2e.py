@@ -147,6 +147,17 @@ def reported_seconds(stdout: str) -> tuple[float | None, float | None]:
     return (float(match.group(1)), float(match.group(2))) if match else (None, None)
 
 
+def stage_seconds(stderr: str) -> tuple[float | None, float | None]:
+    """The decoding and export times of the command's progress lines ``load: k images read in
+    T s`` and ``export: n files written in T s`` (T as ``format_duration`` writes it: s or m s)."""
+
+    def seconds(pattern: str) -> float | None:
+        found = re.search(pattern + r" (?:(\d+) min )?([0-9.]+) s", stderr)
+        return None if found is None else 60.0 * float(found.group(1) or 0) + float(found.group(2))
+
+    return seconds(r"images read in"), seconds(r"files written in")
+
+
 def check_output(out: Path, directory: Path, rig: nplps.Rig, mask: np.ndarray) -> dict[str, float]:
     """Normal and depth errors of the written normals.npy / depth.npy against the ground truth
     (``scale.accuracy``, in bands of rows: 100 MP arrays are read memory-mapped)."""
@@ -220,6 +231,7 @@ def main() -> None:
                 sys.stderr.write(run["stderr"])
                 sys.exit(f"nplps reconstruct failed with exit code {run['returncode']}")
             run["reconstruct_s"], run["solver_s"] = reported_seconds(run["stdout"])
+            run["decode_s"], run["export_s"] = stage_seconds(run["stderr"])
             runs.append(run)
             print(
                 f"run {i + 1}: {run['wall_s']:.1f} s wall, peak RSS {run['rss_mb']:.0f} MB", file=sys.stderr, flush=True
@@ -248,6 +260,13 @@ def main() -> None:
             f", of which solver {statistics.median(solver):.2f} s |"
         )
         print(f"| start-up + decode + export (wall − reconstruct call) | {wall - statistics.median(call):.2f} s |")
+    decode = [r["decode_s"] for r in runs if r["decode_s"] is not None]
+    export_s = [r["export_s"] for r in runs if r["export_s"] is not None]
+    if decode and export_s:
+        print(
+            f"| of which decode / export (reported) | {statistics.median(decode):.2f} s"
+            f" / {statistics.median(export_s):.2f} s |"
+        )
     print(f"| peak RSS ({runs[-1]['rss_source']}) | {rss:.0f} MB ({rss * 1024 * 1024 / (w * h):.0f} bytes/pixel) |")
     print(
         f"| normal error mean / median | {accuracy['normal_error_mean_deg']:.3f}°"
@@ -272,6 +291,8 @@ def main() -> None:
             "wall_s": wall,
             "reconstruct_s": statistics.median(call) if call else None,
             "solver_s": statistics.median(solver) if solver else None,
+            "decode_s": statistics.median(decode) if decode else None,
+            "export_s": statistics.median(export_s) if export_s else None,
             "rss_mb": rss,
             "limit_s": args.limit,
             "verdict": verdict,
