@@ -72,42 +72,12 @@ pub(crate) fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<
     try_filled(len, value, what)
 }
 
-/// An empty vector with room for exactly `len` values, or [`Error::Memory`]. Large buffers are
-/// backed by transparent huge pages where the system offers them ([`advise_huge_pages`]).
+/// An empty vector with room for exactly `len` values, or [`Error::Memory`].
 pub(crate) fn try_with_capacity<T>(len: usize, what: &str) -> Result<Vec<T>> {
     let mut v = Vec::new();
     v.try_reserve_exact(len)
         .map_err(|_| allocation_failed(what, len as f64 * std::mem::size_of::<T>() as f64))?;
-    advise_huge_pages(&v);
     Ok(v)
-}
-
-/// Buffers of at least this many bytes ask for transparent huge pages.
-const HUGE_PAGES_FROM: usize = 1 << 22;
-
-/// Asks Linux to back a large buffer with transparent huge pages (`madvise(MADV_HUGEPAGE)`, as
-/// numpy does for its arrays), so that its first use faults 2 MB at a time instead of 4 KB:
-/// on virtual machines each fault is several microseconds, about 0.7 s for a 12 MP vertex grid
-/// (288 MB) in 4 KB pages (issue 23). Only advice: ignored where huge pages are off.
-fn advise_huge_pages<T>(v: &Vec<T>) {
-    let bytes = v.capacity().saturating_mul(std::mem::size_of::<T>());
-    if bytes < HUGE_PAGES_FROM {
-        return;
-    }
-    #[cfg(target_os = "linux")]
-    {
-        const PAGE: usize = 4096;
-        let start = v.as_ptr() as usize;
-        let first = start.div_ceil(PAGE) * PAGE;
-        let end = (start + bytes) / PAGE * PAGE;
-        if end > first {
-            // SAFETY: the range lies inside the vector's own allocation; the advice changes no
-            // content and no access right.
-            unsafe {
-                libc::madvise(first as *mut libc::c_void, end - first, libc::MADV_HUGEPAGE);
-            }
-        }
-    }
 }
 
 /// The values of an exact-size iterator in a vector allocated fallibly (the reservation is
