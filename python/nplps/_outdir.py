@@ -23,7 +23,9 @@ The directory's manifest, ``nplps-manifest.json``, says what state it is in::
 2. The files are written, each under a temporary name renamed into place (:mod:`nplps._atomic`).
 3. When the run ends without an error, the earlier result's stale files are removed, the
    temporaries of interrupted runs are removed, and the manifest is completed, last, with each
-   file's size and SHA-256 and ``"state": "complete"``. A run that fails or is interrupted
+   file's size and SHA-256 and ``"state": "complete"`` (the hashes of files the run marked
+   finished, :meth:`ResultDirectory.finished`, were computed meanwhile on a background thread
+   and are kept only if the file is still the one hashed). A run that fails or is interrupted
    (Ctrl-C) leaves ``"state": "in progress"`` with the size and hash of each file it finished.
 
 :func:`load_manifest` reads a manifest; :func:`is_complete` verifies one (complete, every file

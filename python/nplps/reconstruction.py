@@ -785,7 +785,9 @@ class Reconstruction:
         Each file is written under a temporary name and renamed when complete, so an error never
         leaves a truncated file under its final name. The PNG images are encoded in parallel
         (the Rust encoder, fast DEFLATE: :func:`nplps.export.write_pngs`) while the meshes and
-        arrays are written, and renamed into place after the meshes.
+        arrays are written, and renamed into place after the meshes. The vertex normals and
+        colours and the mesh arrays are built by the Rust extension; the manifest's SHA-256 of
+        the large files are computed on a background thread while the later files are written.
         """
         extra = export.check_formats(formats)
         export.check_normal_map(normal_map, normal_map_bits)
