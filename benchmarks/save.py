@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/save.py [--size 4000x3000] [--lights 16] [--repeats 3] [--formats obj ...]
-                              [--baseline DIR] [--workdir DIR] [--json results.json]
+                              [--baseline DIR [--baseline-core FILE]] [--workdir DIR] [--json results.json]
 
 A result of the requested size is made without reconstructing (so that it takes seconds): the
 scene of ``benchmarks/scale.py`` (a tilted plane with bumps, its albedo pattern), its true vertex
@@ -19,7 +19,8 @@ hashes).
 
 ``--baseline DIR`` also runs the ``nplps`` package found in ``DIR`` (a ``python`` folder of
 another checkout, e.g. ``git worktree add /tmp/base BASE`` or ``git archive BASE python | tar -x
--C /tmp/base``; the compiled ``_core`` of this checkout is used for both), so that the before and
+-C /tmp/base``; the compiled ``_core`` of this checkout is used for both unless ``--baseline-core
+FILE`` gives the baseline's own, e.g. a copy of its ``python/nplps/_core.abi3.so``), so that the before and
 after columns come from one run on one machine. Medians of the repeats; the processor time of
 the save (user + system, all threads: less sensitive than wall time to a busy machine); peak
 RSS of each process.
@@ -187,8 +188,8 @@ def _variant(args: argparse.Namespace, label: str, python_path: str | None, work
     if python_path:
         from nplps import _core
 
-        core = Path(_core.__file__ or "")  # this checkout's extension
-        shutil.copy(core, Path(python_path) / "nplps" / core.name)
+        core = Path(_core.__file__ or "")  # this checkout's extension, unless --baseline-core
+        shutil.copy(args.baseline_core or core, Path(python_path) / "nplps" / core.name)
         env["PYTHONPATH"] = os.pathsep.join([python_path, env.get("PYTHONPATH", "")])
     out = workdir / f"{label}.out.json"
     subprocess.run([sys.executable, __file__, "--child", str(spec_path), "--out", str(out)], check=True, env=env)
@@ -223,6 +224,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="saves per variant; medians (default 3)")
     parser.add_argument("--formats", nargs="*", default=[], help="passed to save(formats=...)")
     parser.add_argument("--baseline", help="a python/ folder holding another nplps package to compare with")
+    parser.add_argument(
+        "--baseline-core", help="the compiled nplps._core for --baseline (default: this checkout's, copied there)"
+    )
     parser.add_argument("--workdir", help="where the files are written (default: a temporary directory)")
     parser.add_argument("--json", help="also write the results to this JSON file")
     parser.add_argument("--child", help=argparse.SUPPRESS)

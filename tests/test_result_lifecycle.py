@@ -434,3 +434,25 @@ def test_rig_comments_and_grid_survive_save_and_derivation(tmp_path: Path, scene
     import pickle
 
     assert pickle.loads(pickle.dumps(rig)).grid == rig.grid
+
+
+def test_early_hashes_are_used_only_for_the_file_they_hashed(tmp_path: Path) -> None:
+    """Files hashed as soon as they were finished (ResultDirectory.finished) and rewritten after get their new hash."""
+    import hashlib
+
+    out = tmp_path / "run"
+    with ResultDirectory(out) as run:
+        kept, rewritten, late = run.file("kept.bin"), run.file("rewritten.bin"), run.file("late.bin")
+        write_text(kept, "kept")
+        write_text(rewritten, "first")
+        run.finished([kept, rewritten, late])  # late.bin does not exist yet: hashed at the end
+        write_text(rewritten, "second, longer")
+        write_text(late, "late")
+    files = load_manifest(out).files  # type: ignore[union-attr]
+    for name, text in (("kept.bin", "kept"), ("rewritten.bin", "second, longer"), ("late.bin", "late")):
+        assert files[name] == {"size": len(text), "sha256": hashlib.sha256(text.encode()).hexdigest()}
+
+
+def test_save_manifest_hashes_match_the_files(result: nplps.Reconstruction, tmp_path: Path) -> None:
+    result.save(tmp_path / "out")
+    assert is_complete(tmp_path / "out", verify=True)

@@ -61,6 +61,7 @@ __all__ = [
     "cast_shadows",
     "check_rig",
     "estimate_noise",
+    "mesh_arrays",
     "mesh_normals",
     "normalize_camera",
     "parse_rig",
@@ -73,6 +74,7 @@ __all__ = [
     "synth_board",
     "synth_scene",
     "synth_spheres",
+    "vertex_means",
     "vertices",
     "write_pngs",
 ]
@@ -206,6 +208,12 @@ def predict(
 ) -> F64: ...
 def mesh_normals(depth: F64, camera: Camera) -> F64: ...
 def vertices(depth: F64, camera: Camera) -> F64: ...
+def vertex_means(values: F64, normalize: bool) -> F64: ...
+def mesh_arrays(
+    vertices: F64, mask: npt.NDArray[np.bool_], normals: F64 | None, opengl: bool
+) -> tuple[
+    npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32] | None, npt.NDArray[np.int32], int
+]: ...
 def check_rig(camera: Camera, lights: LightsDict) -> None: ...
 def normalize_camera(camera: Camera) -> CameraDict: ...
 def synth_scene(

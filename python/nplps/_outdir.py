@@ -23,7 +23,9 @@ The directory's manifest, ``nplps-manifest.json``, says what state it is in::
 2. The files are written, each under a temporary name renamed into place (:mod:`nplps._atomic`).
 3. When the run ends without an error, the earlier result's stale files are removed, the
    temporaries of interrupted runs are removed, and the manifest is completed, last, with each
-   file's size and SHA-256 and ``"state": "complete"``. A run that fails or is interrupted
+   file's size and SHA-256 and ``"state": "complete"`` (the hashes of files the run marked
+   finished, :meth:`ResultDirectory.finished`, were computed meanwhile on a background thread
+   and are kept only if the file is still the one hashed). A run that fails or is interrupted
    (Ctrl-C) leaves ``"state": "in progress"`` with the size and hash of each file it finished.
 
 :func:`load_manifest` reads a manifest; :func:`is_complete` verifies one (complete, every file
@@ -51,7 +53,7 @@ import os
 import stat
 import time
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -121,6 +123,10 @@ class _Run:
     started: float = field(default_factory=time.time)
     written: list[str] = field(default_factory=list)
     closed: bool = False
+    #: Hashes started as soon as files were finished (:meth:`ResultDirectory.finished`), by name:
+    #: the file's identity when it was hashed and its record.
+    early: dict[str, Future[tuple[tuple[int, int, int], FileRecord]]] = field(default_factory=dict)
+    hasher: ThreadPoolExecutor | None = None
 
 
 class ResultDirectory(os.PathLike):
@@ -208,6 +214,22 @@ class ResultDirectory(os.PathLike):
             self._mark_in_progress()
         return path
 
+    def finished(self, paths: Iterable[PathLike]) -> None:
+        """Start hashing ``paths`` (files of this run, complete and renamed into place) on a background thread.
+
+        The manifest's hashes are then computed while the run writes its other files instead of
+        after the last one. :meth:`close` uses such a hash only if the file is still the one that
+        was hashed (same inode, size and modification time); otherwise it hashes the file again.
+        """
+        run = self._run
+        for path in paths:
+            name = Path(path).resolve().relative_to(run.root.resolve()).as_posix()
+            if name not in run.written or name in run.early:
+                continue
+            if run.hasher is None:
+                run.hasher = ThreadPoolExecutor(1, thread_name_prefix="nplps-hash")
+            run.early[name] = run.hasher.submit(_identified_record, run.root / name)
+
     def protect(self, paths: Iterable[PathLike]) -> None:
         """Never remove ``paths`` (files this run reads), even if an earlier result's manifest lists them."""
         self._run.keep.update(os.path.realpath(p) for p in paths)
@@ -248,6 +270,7 @@ class ResultDirectory(os.PathLike):
         if self._prefix or run.closed:
             return
         run.closed = True
+        early = self._early_records()
         if not run.written:
             return
         if not complete:
@@ -269,14 +292,33 @@ class ResultDirectory(os.PathLike):
         _remove_temporaries(run.root, run.written)
         records = {}
         names = sorted(written)
-        # Hashed on a few threads (hashlib releases the GIL): a 12 MP result is over a gigabyte.
+        # The files not hashed yet (or changed since) are hashed now on a few threads (hashlib
+        # releases the GIL): a 12 MP result is over a gigabyte.
+        late = [name for name in names if not _same_file(run.root / name, early.get(name))]
         with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:
-            found = list(pool.map(_record, [run.root / name for name in names]))
-        for name, record in zip(names, found, strict=True):
+            found = dict(zip(late, pool.map(_record, [run.root / name for name in late]), strict=True))
+        for name in names:
+            record = found[name] if name in found else early[name][1]
             if record is None:
                 raise write_error(FileNotFoundError(2, "a file of the result vanished"), run.root / name)
             records[name] = record
         _write_manifest(run.root, COMPLETE, records, run.started, run.fingerprint, run.inputs)
+
+    def _early_records(self) -> dict[str, tuple[tuple[int, int, int], FileRecord]]:
+        """Wait for the hashes :meth:`finished` started; return those that succeeded, by name."""
+        run = self._run
+        if run.hasher is None:
+            return {}
+        run.hasher.shutdown(wait=True)
+        run.hasher = None
+        done = {}
+        for name, future in run.early.items():
+            try:
+                done[name] = future.result()
+            except OSError:
+                pass  # hashed again (or reported) by close
+        run.early.clear()
+        return done
 
     def __enter__(self) -> ResultDirectory:
         return self
@@ -547,6 +589,26 @@ def _sha256(path: Path) -> str:
         while chunk := f.read(_CHUNK):
             digest.update(chunk)
     return digest.hexdigest()
+
+
+def _identity(info: os.stat_result) -> tuple[int, int, int]:
+    return (info.st_ino, info.st_size, info.st_mtime_ns)
+
+
+def _identified_record(path: Path) -> tuple[tuple[int, int, int], FileRecord]:
+    """Return the identity (inode, size, modification time) of ``path`` before hashing it, and its record."""
+    return _identity(os.lstat(path)), _record(path)
+
+
+def _same_file(path: Path, early: tuple[tuple[int, int, int], FileRecord] | None) -> bool:
+    """Whether an early hash ``early`` of ``path`` is still valid (the file was not replaced or changed since)."""
+    if early is None or early[1] is None:
+        return False
+    try:
+        info = os.lstat(path)
+    except OSError:
+        return False
+    return stat.S_ISREG(info.st_mode) and _identity(info) == early[0] and info.st_size == early[1]["size"]
 
 
 def _record(path: Path) -> FileRecord:

@@ -148,44 +148,44 @@ def _build_mesh(
     albedo: np.ndarray | None,
     opengl: bool,
 ) -> _Mesh:
-    """Validate the grids and build the mesh of the masked, finite facets."""
+    """Validate the grids and build the mesh of the masked, finite facets.
+
+    The facets, the vertices they use, their float32 positions and normals and the triangles
+    come from the Rust extension in one pass (``nplps._core.mesh_arrays``, the GIL released).
+    """
     vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
-    facets = _valid_facets(vertices, mask, normals)
-    used = np.flatnonzero(_used_vertices(facets))  # flat indices into the vertex grid
-    index = np.full(vertices.shape[0] * vertices.shape[1], -1, dtype=np.int32)
-    index[used] = np.arange(len(used), dtype=np.int32)
+    used, points, mesh_normals, faces, skipped = _core.mesh_arrays(
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(mask),
+        None if normals is None else np.ascontiguousarray(normals, dtype=np.float64),
+        opengl,
+    )
+    _check_facets(skipped, len(faces))
     flip = _OPENGL_FLIP if opengl else None
-    points = _gather_float32(vertices, used, flip)
-    # The vertices used are finite (_valid_facets): an infinite float32 point overflowed.
+    # The vertices used are finite: an infinite float32 point overflowed.
     overflow = np.flatnonzero(~_all_finite(points))
     wide = vertices.reshape(-1, 3)[used[overflow]].astype(np.float64)
     return _Mesh(
         points=points,
-        normals=None if normals is None else _gather_float32(normals, used, flip),
-        colors=None if albedo is None else _grey_colors(albedo.reshape(len(index), *albedo.shape[2:])[used]),
-        faces=_triangles(index, facets),
+        normals=mesh_normals,
+        colors=None if albedo is None else _grey_colors(albedo.reshape(-1, *albedo.shape[2:])[used]),
+        faces=faces,
         frame="opengl" if opengl else "opencv",
         overflow=overflow,
         overflow_points=wide if flip is None else wide * flip.astype(np.float64),
     )
 
 
-def _gather_float32(grid: np.ndarray, used: np.ndarray, flip: np.ndarray | None) -> np.ndarray:
-    """Return ``(n, 3)`` float32 rows ``used`` (flat indices) of an ``(H + 1, W + 1, 3)`` grid.
-
-    The rows are multiplied by ``flip`` if given; converted chunk by chunk (no full-size float64
-    copy).
-    """
-    rows = grid.reshape(-1, 3)
-    out = np.empty((len(used), 3), dtype=np.float32)
-    everything = len(used) == len(rows)
-    with np.errstate(over="ignore"):  # beyond float32: inf, which PLY, STL and GLB refuse (_require_float32)
-        for start in range(0, len(used), _GATHER_CHUNK):
-            stop = min(start + _GATHER_CHUNK, len(used))
-            out[start:stop] = rows[start:stop] if everything else rows[used[start:stop]]
-    if flip is not None:
-        out *= flip
-    return out
+def _check_facets(skipped: int, triangles: int) -> None:
+    """Warn about the masked facets left out for a non-finite corner; raise InputError if none is left."""
+    if skipped:
+        warnings.warn(
+            f"skipped {skipped} masked facet(s) with a non-finite corner (NaN or inf)",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+    if not triangles:
+        raise InputError("no facet to write: the mask is empty or every masked facet has NaN")
 
 
 def _all_finite(values: np.ndarray) -> np.ndarray:
@@ -230,25 +230,6 @@ def _require_shape(name: str, array: np.ndarray, shape: tuple[int, ...]) -> None
         raise InputError(f"{name} has shape {array.shape}, expected {tuple(shape)}")
 
 
-def _valid_facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
-    """Masked facets whose four corners have finite positions (and normals); warn about others."""
-    finite = _all_finite(vertices)
-    if normals is not None:
-        finite &= _all_finite(normals)
-    corners_finite = finite[:-1, :-1] & finite[:-1, 1:] & finite[1:, :-1] & finite[1:, 1:]
-    facets = mask & corners_finite
-    skipped = np.count_nonzero(mask) - np.count_nonzero(facets)
-    if skipped:
-        warnings.warn(
-            f"skipped {skipped} masked facet(s) with a non-finite corner (NaN or inf)",
-            RuntimeWarning,
-            stacklevel=4,
-        )
-    if not facets.any():
-        raise InputError("no facet to write: the mask is empty or every masked facet has NaN")
-    return facets
-
-
 def _used_vertices(facets: np.ndarray) -> np.ndarray:
     """Boolean ``(H + 1, W + 1)`` grid of the vertices that are a corner of a facet."""
     used = np.zeros((facets.shape[0] + 1, facets.shape[1] + 1), dtype=bool)
@@ -257,29 +238,6 @@ def _used_vertices(facets: np.ndarray) -> np.ndarray:
     used[1:, :-1] |= facets
     used[1:, 1:] |= facets
     return used
-
-
-def _triangles(index: np.ndarray, facets: np.ndarray) -> np.ndarray:
-    """Two triangles ``(00, 10, 11)``, ``(00, 11, 01)`` per facet, in row-major facet order.
-
-    ``index`` maps the flat vertex grid ``(H + 1) * (W + 1)`` to the written vertices.
-    """
-    flat = np.flatnonzero(facets)
-    width = facets.shape[1]
-    faces = np.empty((len(flat), 2, 3), dtype=np.int32)
-    for start in range(0, len(flat), _GATHER_CHUNK):
-        stop = min(start + _GATHER_CHUNK, len(flat))
-        v00 = flat[start:stop] + flat[start:stop] // width  # the facet's top-left vertex
-        i00 = index[v00]
-        i11 = index[v00 + (width + 2)]
-        block = faces[start:stop]
-        block[:, 0, 0] = i00
-        block[:, 0, 1] = index[v00 + (width + 1)]  # 10
-        block[:, 0, 2] = i11
-        block[:, 1, 0] = i00
-        block[:, 1, 1] = i11
-        block[:, 1, 2] = index[v00 + 1]  # 01
-    return faces.reshape(-1, 3)
 
 
 def _quantize(values: np.ndarray, percentile: float, max_value: int, dtype: type) -> tuple[np.ndarray, float]:
@@ -2008,11 +1966,14 @@ def write_result(
             )
             state["meshes"] = True
             meshes_written.set()
+            # The manifest's hashes are computed on a thread of their own as the files are done.
+            out.finished(p for k, p in paths.items() if k in ("ply", "obj") or k in mesh_formats)
             _write_other_files(result, paths, formats, normal_map)
         finally:
             meshes_written.set()
             wait([encoded])  # never leave with a file still being written
         summary.update(encoded.result())
+        out.finished(p for k, p in paths.items() if k not in ("held_out", "summary"))  # the files written by now
     # How normals.png (and normals.exr) is encoded: read_normal_map(path, frame) decodes it.
     summary["normal_map"] = {"file": names["normal_map"], "frame": normal_map, "bits": normal_map_bits}
     summary["units"] = units

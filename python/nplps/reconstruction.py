@@ -785,7 +785,9 @@ class Reconstruction:
         Each file is written under a temporary name and renamed when complete, so an error never
         leaves a truncated file under its final name. The PNG images are encoded in parallel
         (the Rust encoder, fast DEFLATE: :func:`nplps.export.write_pngs`) while the meshes and
-        arrays are written, and renamed into place after the meshes.
+        arrays are written, and renamed into place after the meshes. The vertex normals and
+        colours and the mesh arrays are built by the Rust extension; the manifest's SHA-256 of
+        the large files are computed on a background thread while the later files are written.
         """
         extra = export.check_formats(formats)
         export.check_normal_map(normal_map, normal_map_bits)
@@ -857,45 +859,12 @@ def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:
     )
 
 
-#: Values per band of :func:`_to_vertices` (bands stay in the processor's caches).
-_VERTEX_BAND = 1 << 17
-
-
 def _to_vertices(values: np.ndarray, normalize: bool = False) -> np.ndarray:
     """Mean of the finite values of the (up to 4) pixels around each vertex: (H, W, C) -> (H+1, W+1, C).
 
-    Computed in bands of rows (no full-size temporaries); each vertex sums its pixels in the order
-    top-left pixel (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1), the same values whatever the
-    band size. With ``normalize``, each mean is then scaled to unit length (:func:`_normalize`).
+    Computed by the Rust extension (``nplps._core.vertex_means``, the GIL released): each vertex
+    sums its pixels in the order top-left pixel (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1)
+    (a pixel counts when all its C values are finite) and divides by their number; NaN without
+    one. With ``normalize``, each mean is then scaled to unit length (``sqrt((x² + y²) + z²)``).
     """
-    h, w, c = values.shape
-    total = np.empty((h + 1, w + 1, c))
-    rows = max(1, _VERTEX_BAND // max(1, (w + 1) * c))
-    for r0 in range(0, h + 1, rows):
-        r1 = min(r0 + rows, h + 1)
-        lo, hi = max(r0 - 1, 0), min(r1, h)  # the pixel rows around vertex rows r0..r1-1
-        src = np.asarray(values[lo:hi], dtype=np.float64)
-        finite = export._all_finite(src)[..., None]
-        v = np.where(finite, src, 0.0)
-        band = total[r0:r1]
-        band[...] = 0.0
-        count = np.zeros((r1 - r0, w + 1, 1))
-        for dr in (0, 1):
-            a, b = max(r0, lo + dr), min(r1, hi + dr)  # vertex rows fed by pixel rows - dr
-            if b <= a:
-                continue
-            for dc in (0, 1):
-                band[a - r0 : b - r0, dc : dc + w] += v[a - dr - lo : b - dr - lo]
-                count[a - r0 : b - r0, dc : dc + w] += finite[a - dr - lo : b - dr - lo]
-        band /= np.maximum(count, 1)
-        band[count[..., 0] == 0] = np.nan
-        if normalize:
-            _normalize(band)
-    return total
-
-
-def _normalize(v: np.ndarray) -> np.ndarray:
-    """``v`` (a fresh array, divided in place) scaled to unit length along the last axis."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        v /= np.linalg.norm(v, axis=-1, keepdims=True)
-    return v
+    return _core.vertex_means(np.ascontiguousarray(values, dtype=np.float64), normalize)

@@ -1,5 +1,5 @@
 //! PNG encoding for `nplps.export`: the binding of `nplps::io::write_pngs` (several files in
-//! parallel, with the GIL released); the encoder and its rules are in the core's `io` module.
+//! parallel on a pool of threads of their own, with the GIL released); the encoder and its rules are in the core's `io` module.
 
 use std::path::PathBuf;
 
@@ -95,9 +95,18 @@ pub fn write_pngs(
         ));
     }
     let options = PngOptions::new(compression, filter);
+    // On a pool of its own: `save` encodes its images on one thread while another builds the
+    // meshes with rayon's global pool, whose work would otherwise wait behind whole encodings.
     let results = py.detach(|| {
-        crate::pool::fork_safe(|| nplps::io::write_pngs(&images, options))
-            .map_err(nplps::Error::Unusable)
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.min(images.len().max(1)))
+            .thread_name(|i| format!("nplps-png-{i}"))
+            .build()
+            .map(|pool| pool.install(|| nplps::io::write_pngs(&images, options)))
+            .map_err(|e| {
+                nplps::Error::Unusable(format!("cannot start the PNG encoding threads: {e}"))
+            })
     });
     for result in results.map_err(crate::errors::to_py)? {
         result.map_err(crate::errors::to_py)?;

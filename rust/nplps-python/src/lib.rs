@@ -16,7 +16,7 @@ mod pool;
 mod records;
 mod rig;
 
-use numpy::{PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -679,6 +679,73 @@ fn vertices<'py>(
     array3(py, v, &[h + 1, w + 1])
 }
 
+/// The mean of the finite values of the (up to 4) pixels around each vertex: an (H, W, C) map
+/// to (H+1, W+1, C), each mean scaled to unit length with `normalize` (`nplps::vertex_means`).
+#[pyfunction]
+fn vertex_means<'py>(
+    py: Python<'py>,
+    values: PyReadonlyArray3<'py, f64>,
+    normalize: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let shape = values.shape().to_vec();
+    let (h, w, c) = (shape[0], shape[1], shape[2]);
+    let data = slice(&values, "values")?;
+    let means = py
+        .detach(|| no_panic(|| nplps::vertex_means(data, h, w, c, normalize)))
+        .map_err(to_py)?;
+    array(py, means, &[h + 1, w + 1, c])
+}
+
+/// The mesh of the masked facets with finite corners (`nplps::mesh_arrays`): `(used, points,
+/// normals, faces, skipped)` with the used vertices' flat indices (int64), their positions and
+/// normals (float32, (n, 3); normals None without `normals`), the triangles (int32, (m, 3)) and
+/// the number of masked facets left out.
+#[pyfunction]
+#[pyo3(signature = (vertices, mask, normals, opengl))]
+#[allow(clippy::type_complexity)]
+fn mesh_arrays<'py>(
+    py: Python<'py>,
+    vertices: PyReadonlyArray3<'py, f64>,
+    mask: PyReadonlyArray2<'py, bool>,
+    normals: Option<PyReadonlyArray3<'py, f64>>,
+    opengl: bool,
+) -> PyResult<(
+    Bound<'py, PyAny>,
+    Bound<'py, PyAny>,
+    Option<Bound<'py, PyAny>>,
+    Bound<'py, PyAny>,
+    usize,
+)> {
+    let shape = vertices.shape().to_vec();
+    if shape[0] < 2 || shape[1] < 2 || shape[2] != 3 {
+        return Err(InputError::new_err(format!(
+            "vertices must have shape (H + 1, W + 1, 3), got {shape:?}"
+        )));
+    }
+    let (h, w) = (shape[0] - 1, shape[1] - 1);
+    let v = slice(&vertices, "vertices")?;
+    let m = slice(&mask, "mask")?;
+    let n = normals.as_ref().map(|n| slice(n, "normals")).transpose()?;
+    let mesh = py
+        .detach(|| no_panic(|| nplps::mesh_arrays(v, n, m, h, w, opengl)))
+        .map_err(to_py)?;
+    let used = mesh.used;
+    let count = used.len();
+    let points = array(py, mesh.points.into_flattened(), &[count, 3])?;
+    let normals = match normals {
+        Some(_) => Some(array(py, mesh.normals.into_flattened(), &[count, 3])?),
+        None => None,
+    };
+    let faces = mesh.faces.len();
+    Ok((
+        array(py, used, &[count])?,
+        points,
+        normals,
+        array(py, mesh.faces.into_flattened(), &[faces, 3])?,
+        mesh.skipped,
+    ))
+}
+
 /// Validates a rig (camera and lights mappings, any number of lights: rendering, prediction and
 /// calibration take one or two; reconstruction checks for 3 itself); raises `RigError` when it
 /// is invalid.
@@ -771,6 +838,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
+    m.add_function(wrap_pyfunction!(vertex_means, m)?)?;
+    m.add_function(wrap_pyfunction!(mesh_arrays, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_camera, m)?)?;
     m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;

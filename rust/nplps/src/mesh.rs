@@ -1,0 +1,315 @@
+//! What the mesh files of a result hold: per-vertex means of per-pixel maps
+//! ([`vertex_means`]) and the masked facets as triangles over the vertices they use
+//! ([`mesh_arrays`]). `nplps.export` writes PLY, OBJ, STL and glTF files from these arrays.
+//!
+//! Vertex `(r, c)` of the `(H + 1) x (W + 1)` grid is the top-left corner of pixel `(r, c)`;
+//! pixel `(r, c)` is the quad facet with corners `00 = (r, c)`, `01 = (r, c + 1)`,
+//! `10 = (r + 1, c)` and `11 = (r + 1, c + 1)`, written as the triangles `(00, 10, 11)` and
+//! `(00, 11, 01)` (counter-clockwise as seen from the camera).
+//!
+//! The arithmetic is that of the numpy code it replaces, operation for operation, so that the
+//! files are the same bytes: a mean is `((((0 + a) + b) + c) + d) / count` over the pixels
+//! `(r, c)`, `(r, c - 1)`, `(r - 1, c)`, `(r - 1, c - 1)` in this order (a pixel with a
+//! non-finite value adds 0 and does not count), and a length is `sqrt((x² + y²) + z²)`.
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::memory::{try_vec, try_with_capacity};
+
+/// The mean of the finite values of the (up to 4) pixels around each vertex: `values` is an
+/// `H x W x C` map (row-major, C values per pixel), the result `(H + 1) x (W + 1) x C`.
+///
+/// A pixel counts when all its C values are finite. A vertex without such a pixel is NaN. With
+/// `normalize`, each mean is then divided by its length `sqrt(Σ v_i²)` (C = 3: a unit normal;
+/// NaN for a zero mean).
+pub fn vertex_means(
+    values: &[f64],
+    height: usize,
+    width: usize,
+    channels: usize,
+    normalize: bool,
+) -> Result<Vec<f64>> {
+    let expected = height * width * channels;
+    if values.len() != expected || channels == 0 {
+        return Err(Error::Shape {
+            what: "per-pixel map",
+            expected,
+            got: values.len(),
+            message: format!(
+                "a per-pixel map of {height} x {width} x {channels} must have {expected} values, \
+                 got {}",
+                values.len()
+            ),
+        });
+    }
+    let mut out = try_vec(
+        (height + 1) * (width + 1) * channels,
+        0.0,
+        "the per-vertex map",
+    )?;
+    match channels {
+        1 => means::<1>(values, height, width, normalize, &mut out),
+        3 => means::<3>(values, height, width, normalize, &mut out),
+        c => {
+            // Any other number of channels, one at a time (none of nplps's maps has them).
+            let mut one = try_vec((height + 1) * (width + 1), 0.0, "the per-vertex map")?;
+            for k in 0..c {
+                let column: Vec<f64> = (0..height * width)
+                    .map(|p| {
+                        let px = &values[p * c..(p + 1) * c];
+                        if px.iter().all(|v| v.is_finite()) {
+                            px[k]
+                        } else {
+                            f64::NAN
+                        }
+                    })
+                    .collect();
+                means::<1>(&column, height, width, false, &mut one);
+                for (o, v) in out.iter_mut().skip(k).step_by(c).zip(&one) {
+                    *o = *v;
+                }
+            }
+            if normalize {
+                for cell in out.chunks_exact_mut(c) {
+                    let length = cell.iter().map(|v| v * v).fold(0.0, |a, b| a + b).sqrt();
+                    cell.iter_mut().for_each(|v| *v /= length);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// [`vertex_means`] of `N` channels into `out` ((H + 1) x (W + 1) x N), row by row in parallel.
+fn means<const N: usize>(
+    values: &[f64],
+    height: usize,
+    width: usize,
+    normalize: bool,
+    out: &mut [f64],
+) {
+    let row = width * N;
+    out.par_chunks_mut((width + 1) * N)
+        .enumerate()
+        .for_each(|(r, line)| {
+            // Pixel row r lies below vertex row r, pixel row r - 1 above it.
+            let below = (r < height).then(|| &values[r * row..(r + 1) * row]);
+            let above = (r > 0).then(|| &values[(r - 1) * row..r * row]);
+            for col in 0..=width {
+                let mut acc = [0.0f64; N];
+                let mut count = 0.0f64;
+                // The order of the numpy sum: (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1).
+                for pixels in [below, above].into_iter().flatten() {
+                    for c in [col, col.wrapping_sub(1)] {
+                        if c >= width {
+                            continue;
+                        }
+                        let px: &[f64] = &pixels[c * N..c * N + N];
+                        if px.iter().all(|v| v.is_finite()) {
+                            for k in 0..N {
+                                acc[k] += px[k];
+                            }
+                            count += 1.0;
+                        } else {
+                            for a in acc.iter_mut() {
+                                *a += 0.0;
+                            }
+                        }
+                    }
+                }
+                let cell = &mut line[col * N..col * N + N];
+                if count == 0.0 {
+                    cell.iter_mut().for_each(|v| *v = f64::NAN);
+                    continue;
+                }
+                for k in 0..N {
+                    cell[k] = acc[k] / count;
+                }
+                if normalize {
+                    let mut squares = cell[0] * cell[0];
+                    for v in &cell[1..] {
+                        squares += v * v;
+                    }
+                    let length = squares.sqrt();
+                    cell.iter_mut().for_each(|v| *v /= length);
+                }
+            }
+        });
+}
+
+/// A triangle mesh of the masked facets, as [`mesh_arrays`] returns it.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub struct MeshArrays {
+    /// Row-major flat indices (into the vertex grid) of the vertices the facets use, increasing.
+    pub used: Vec<i64>,
+    /// Their positions as `f32`, multiplied by the frame's flip (values beyond the `f32` range
+    /// are infinite).
+    pub points: Vec<[f32; 3]>,
+    /// Their normals as `f32` in the same frame (empty without normals).
+    pub normals: Vec<[f32; 3]>,
+    /// Two triangles `(00, 10, 11)`, `(00, 11, 01)` per facet, in row-major facet order, as
+    /// indices into `points`.
+    pub faces: Vec<[i32; 3]>,
+    /// Masked facets left out because a corner's position (or normal) is not finite.
+    pub skipped: usize,
+}
+
+/// The mesh of the masked facets of a vertex grid whose four corners have finite positions (and
+/// finite normals, when given): `vertices` and `normals` are `(H + 1) x (W + 1) x 3` grids
+/// (row-major, flat), `mask` is `H x W`. With `opengl`, positions and normals are written in the OpenGL frame
+/// `(x, -y, -z)` (a rotation: the triangles keep facing the viewer).
+pub fn mesh_arrays(
+    vertices: &[f64],
+    normals: Option<&[f64]>,
+    mask: &[bool],
+    height: usize,
+    width: usize,
+    opengl: bool,
+) -> Result<MeshArrays> {
+    let grid = (height + 1) * (width + 1);
+    let shape = |what: &'static str, expected: usize, got: usize| Error::Shape {
+        what,
+        expected,
+        got,
+        message: format!(
+            "the {what} of a {height} x {width} mesh must have {expected} values, got {got}"
+        ),
+    };
+    if vertices.len() != 3 * grid {
+        return Err(shape("vertex grid", 3 * grid, vertices.len()));
+    }
+    if let Some(n) = normals {
+        if n.len() != 3 * grid {
+            return Err(shape("vertex normals", 3 * grid, n.len()));
+        }
+    }
+    if mask.len() != height * width {
+        return Err(shape("mask", height * width, mask.len()));
+    }
+    let finite: Vec<bool> = {
+        let mut f = try_vec(grid, false, "the finite vertices")?;
+        f.par_iter_mut().enumerate().for_each(|(i, f)| {
+            *f = vertices[3 * i..3 * i + 3].iter().all(|v| v.is_finite())
+                && normals.is_none_or(|n| n[3 * i..3 * i + 3].iter().all(|v| v.is_finite()))
+        });
+        f
+    };
+    let w1 = width + 1;
+    // Whether pixel (r, c) is a facet of the mesh; v00 = r (W + 1) + c is its top-left vertex.
+    let facet = |p: usize, v00: usize| {
+        mask[p] && finite[v00] && finite[v00 + 1] && finite[v00 + w1] && finite[v00 + w1 + 1]
+    };
+    let pixels =
+        || (0..height).flat_map(move |r| (0..width).map(move |c| (r * width + c, r * w1 + c)));
+    // -1: not used; else the vertex's index among the used ones.
+    let mut index = try_vec(grid, -1i32, "the vertex indices")?;
+    let (mut masked, mut facets) = (0usize, 0usize);
+    for (p, v00) in pixels() {
+        if !mask[p] {
+            continue;
+        }
+        masked += 1;
+        if facet(p, v00) {
+            facets += 1;
+            for v in [v00, v00 + 1, v00 + w1, v00 + w1 + 1] {
+                index[v] = 0;
+            }
+        }
+    }
+    let count = index.iter().filter(|&&i| i == 0).count();
+    if count > i32::MAX as usize {
+        return Err(Error::Unusable(format!(
+            "a mesh of {count} vertices cannot be indexed with 32-bit integers (at most {})",
+            i32::MAX
+        )));
+    }
+    let mut used = try_with_capacity(count, "the used vertices")?;
+    for (v, i) in index.iter_mut().enumerate() {
+        if *i == 0 {
+            *i = used.len() as i32;
+            used.push(v as i64);
+        }
+    }
+    let flip: [f32; 3] = if opengl { [1.0, -1.0, -1.0] } else { [1.0; 3] };
+    let gather = |grid: &[f64]| -> Result<Vec<[f32; 3]>> {
+        let mut out = try_vec(used.len(), [0.0f32; 3], "the mesh vertices")?;
+        out.par_iter_mut().zip(used.par_iter()).for_each(|(o, &v)| {
+            let v = v as usize;
+            let g = &grid[3 * v..3 * v + 3];
+            // f64 -> f32 rounds to nearest (beyond the f32 range: infinite), then the flip.
+            *o = [
+                g[0] as f32 * flip[0],
+                g[1] as f32 * flip[1],
+                g[2] as f32 * flip[2],
+            ];
+        });
+        Ok(out)
+    };
+    let points = gather(vertices)?;
+    let normals = match normals {
+        Some(n) => gather(n)?,
+        None => Vec::new(),
+    };
+    let mut faces = try_with_capacity(2 * facets, "the mesh faces")?;
+    for (p, v00) in pixels() {
+        if facet(p, v00) {
+            let (i00, i01) = (index[v00], index[v00 + 1]);
+            let (i10, i11) = (index[v00 + w1], index[v00 + w1 + 1]);
+            faces.push([i00, i10, i11]);
+            faces.push([i00, i11, i01]);
+        }
+    }
+    Ok(MeshArrays {
+        used,
+        points,
+        normals,
+        faces,
+        skipped: masked - facets,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn means_skip_non_finite_pixels_and_normalize() {
+        // 1 x 2 pixels, 3 channels: the right pixel is NaN.
+        let values = [0.0, 0.0, -2.0, f64::NAN, 1.0, 1.0];
+        let m = vertex_means(&values, 1, 2, 3, false).unwrap();
+        assert_eq!(m.len(), 2 * 3 * 3);
+        assert_eq!(&m[0..3], &[0.0, 0.0, -2.0]);
+        assert_eq!(&m[3..6], &[0.0, 0.0, -2.0]); // the NaN pixel does not count
+        assert!(m[6..9].iter().all(|v| v.is_nan())); // only the NaN pixel
+        let n = vertex_means(&values, 1, 2, 3, true).unwrap();
+        assert_eq!(&n[0..3], &[0.0, 0.0, -1.0]);
+        // The mean of four pixels, in the documented order.
+        let grey = [1.0, 2.0, 3.0, 4.0];
+        let g = vertex_means(&grey, 2, 2, 1, false).unwrap();
+        assert_eq!(g[4], 2.5); // the centre vertex
+        assert_eq!(g[0], 1.0);
+        assert_eq!(g[8], 4.0);
+        assert!(vertex_means(&grey, 2, 3, 1, false).is_err());
+    }
+
+    #[test]
+    fn facets_become_two_triangles_over_the_used_vertices() {
+        // 2 x 2 pixels, all masked but (0, 1); vertex (2, 2) not finite: facet (1, 1) skipped.
+        let (h, w) = (2, 2);
+        let mut v = vec![0.0f64; 27];
+        for i in 0..9 {
+            v[3 * i..3 * i + 3].copy_from_slice(&[i as f64, 0.5, 1.0]);
+        }
+        v[26] = f64::NAN;
+        let mask = [true, false, true, true];
+        let m = mesh_arrays(&v, None, &mask, h, w, true).unwrap();
+        assert_eq!(m.skipped, 1);
+        assert_eq!(m.used, vec![0, 1, 3, 4, 6, 7]);
+        assert_eq!(m.faces, vec![[0, 2, 3], [0, 3, 1], [2, 4, 5], [2, 5, 3]]);
+        assert_eq!(m.points[1], [1.0, -0.5, -1.0]);
+        assert!(m.normals.is_empty());
+        assert!(mesh_arrays(&v, None, &mask[..3], h, w, false).is_err());
+    }
+}
