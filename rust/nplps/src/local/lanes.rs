@@ -501,7 +501,7 @@ impl LocalStep<'_> {
     /// [`LocalStep::try_run_final`] with the vectorized accumulation (`lights` from
     /// [`LocalStep::lane_lights`]): each batch of [`LANES`] facets is fitted and its trust values
     /// computed from one evaluation of the lights' `beta`, with the fits of
-    /// [`LocalStep::try_run`] and the trust values of [`LocalStep::trust`] (same operations, same
+    /// [`LocalStep::try_run`] and the trust values of the `trust` module (same operations, same
     /// order). Returns the per-light sums.
     pub(super) fn final_lanes(
         &self,

@@ -620,7 +620,7 @@ impl LocalStep<'_> {
 
     /// The final pass over facets `first..first + fits.len()` on `u`: their fits, as
     /// [`LocalStep::try_run`], and their trust values `[normal sigma, held-out]` into `trust`
-    /// (same length), as [`LocalStep::trust`] computes them, whose per-light sums it adds to
+    /// (same length), as the `trust` module defines them, whose per-light sums it adds to
     /// `maps` (the caller scatters `trust` into `maps`). Under the vectorized accumulation both
     /// come from one evaluation of the lights per facet; otherwise the trust values are computed
     /// after the fits.
