@@ -29,7 +29,7 @@ use crate::error::{Error, Result};
 use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::IndirectField;
-use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model};
+use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model, TrustMaps};
 use crate::memory::{try_copy, try_vec};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
@@ -1046,16 +1046,22 @@ impl<'p> Solver<'p> {
             ..self.local_step(false, depths.as_deref())
         };
         let n = problem.grid.n_facets();
+        let (k, channels) = (problem.obs.k, problem.obs.channels);
+        // The fits and the trust maps (the plain Lambertian fit at the final mesh, without the
+        // glossy warm start) in one pass over the facets.
+        let mut maps = TrustMaps::new(&problem.grid, k, channels)?;
         let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
+        let mut trust = try_vec(n.min(FINAL_CHUNK), [f32::NAN; 2], "the trust maps")?;
         for first in (0..n).step_by(FINAL_CHUNK) {
-            let chunk = &mut fits[..(n - first).min(FINAL_CHUNK)];
-            step.try_run(u, first, chunk)?;
+            let len = (n - first).min(FINAL_CHUNK);
+            let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
+            step.try_run_final(u, first, chunk, values, &mut maps)?;
             problem.cancel.check()?;
             outputs.scatter(problem, first, chunk);
+            maps.scatter(&problem.grid, first, values);
         }
-        drop(fits);
-        // The trust maps: the plain Lambertian fit at the final mesh (no glossy warm start).
-        let trust = LocalStep { warm: None, ..step }.trust(u)?;
+        drop((fits, trust));
+        let trust = maps.finish();
         problem.cancel.check()?;
         self.timings.local += t.elapsed();
         self.timings.total = self.start.elapsed();

@@ -4,14 +4,19 @@
 //! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit.
 //! The kernels run compiled for AVX2 when the processor has it (`simd_dispatch!`).
 
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+
+use super::trust::{add_sums, trust_values, LightSums, CHUNK};
 use super::{
-    facet_scratch, keep_shape, solve_sums, u16_value, usable_count, FacetFit, LocalStep, Model,
-    Observations, Robust, Stored, Sums, Weighting, SCRATCH,
+    facet_scratch, invert_spd3, keep_shape, solve_sums, u16_value, usable_count, FacetFit,
+    LocalStep, Model, Observations, Robust, Stored, Sums, Weighting, SCRATCH,
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
 use crate::light::LaneLight;
 use crate::memory::try_vec;
+use crate::reflectance::Packed;
 use crate::vec3::dot;
 
 impl Observations<'_> {
@@ -113,6 +118,7 @@ impl LocalStep<'_> {
         u: &[f64],
         buf: &mut [f32],
         interleaved: &mut [[f32; LANES]],
+        trust: Option<LaneTrust<'_>>,
     ) -> [FacetFit; LANES] {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
@@ -135,15 +141,49 @@ impl LocalStep<'_> {
                 }
             }
         }
+        let thresholds = (self.settings.dark, self.settings.saturation);
+        let mut trust = trust;
         let sums = accumulate_lanes_dispatch(
             lights,
             &centres,
             interleaved,
-            self.settings.dark,
-            self.settings.saturation,
+            thresholds,
+            trust.as_mut().map(|t| &mut t.rows[..]),
         );
         let mut fitted: [Option<FacetFit>; LANES] = std::array::from_fn(|l| grey_fit(&sums[l]));
-        if !self.settings.fast_residual {
+        if let Some(trust) = trust {
+            // One pass over the stored rows for the exact residuals and the trust values.
+            let normals = fitted.map(|f| f.map_or([0.0; 3], |f| f.normal));
+            let albedo = fitted.map(|f| f.map_or(0.0, |f| f.albedo[0]));
+            let fits = LaneFits { normals, albedo };
+            let solved = LaneSolved::new(&sums);
+            let out = final_residuals_dispatch(
+                lights,
+                trust.rows,
+                interleaved,
+                thresholds,
+                &fits,
+                &solved,
+                trust.sums,
+            );
+            for l in 0..LANES {
+                if let (false, Some(fit)) = (self.settings.fast_residual, &mut fitted[l]) {
+                    fit.sse = out[0][l];
+                }
+                trust.out[l] = match solved.active[l] {
+                    true => trust_values(
+                        &[out[1][l], 0.0, 0.0],
+                        &[solved.inverse(l), Matrix3::zeros(), Matrix3::zeros()],
+                        Vector3::zeros() + Vector3::from(solved.g[l]),
+                        sums[l].used as usize,
+                        1,
+                        out[2][l],
+                        out[3][l] as usize,
+                    ),
+                    false => [f32::NAN; 2],
+                };
+            }
+        } else if !self.settings.fast_residual {
             // The exact residual, a second pass over the lights (as the scalar code does).
             let normals = fitted.map(|f| f.map_or([0.0; 3], |f| f.normal));
             let albedo = fitted.map(|f| f.map_or(0.0, |f| f.albedo[0]));
@@ -206,8 +246,8 @@ simd_dispatch! {
         lights: &[LaneLight],
         centres: &[[f64; 3]; LANES],
         values: &[[f32; LANES]],
-        dark: f64,
-        saturation: f64,
+        thresholds: (f64, f64),
+        rows: Option<&mut [[[f64; LANES]; 3]]>,
     ) -> [Sums; LANES];
 }
 
@@ -223,26 +263,33 @@ fn lane_values(v: &[f32; LANES], dark: f64, saturation: f64) -> ([f64; LANES], [
 /// The grey unit-weight normal equations of [`LANES`] facets at once (`values[k][lane]`): per
 /// lane the same operations in the same order as
 /// [`Facet::accumulate_grey`](super::Facet::accumulate_grey), written so that the compiler keeps
-/// the lanes in SIMD registers.
+/// the lanes in SIMD registers. With `rows`, each light's `beta` of the lanes is stored in its
+/// row (for [`final_residuals`]).
 #[inline(always)]
 fn accumulate_lanes(
     lights: &[LaneLight],
     centres: &[[f64; 3]; LANES],
     values: &[[f32; LANES]],
-    dark: f64,
-    saturation: f64,
+    (dark, saturation): (f64, f64),
+    mut rows: Option<&mut [[[f64; LANES]; 3]]>,
 ) -> [Sums; LANES] {
     let mut t = [[0.0f64; LANES]; 6];
     let mut s = [[0.0f64; LANES]; 3];
     let mut sum_i2 = [0.0f64; LANES];
     let mut used = [0u32; LANES];
-    for (light, v) in lights.iter().zip(values) {
+    for (k, (light, v)) in lights.iter().zip(values).enumerate() {
         let p = light.grey;
         let (i, ok) = lane_values(v, dark, saturation);
         let ([a0, a1, a2], f) = light.beta(centres);
-        let r0: [f64; LANES] = std::array::from_fn(|l| a0[l] * f[l] * p);
-        let r1: [f64; LANES] = std::array::from_fn(|l| a1[l] * f[l] * p);
-        let r2: [f64; LANES] = std::array::from_fn(|l| a2[l] * f[l] * p);
+        let b0: [f64; LANES] = std::array::from_fn(|l| a0[l] * f[l]);
+        let b1: [f64; LANES] = std::array::from_fn(|l| a1[l] * f[l]);
+        let b2: [f64; LANES] = std::array::from_fn(|l| a2[l] * f[l]);
+        if let Some(rows) = rows.as_mut() {
+            rows[k] = [b0, b1, b2];
+        }
+        let r0: [f64; LANES] = std::array::from_fn(|l| b0[l] * p);
+        let r1: [f64; LANES] = std::array::from_fn(|l| b1[l] * p);
+        let r2: [f64; LANES] = std::array::from_fn(|l| b2[l] * p);
         let pick = |l: usize, x: f64| if ok[l] { x } else { 0.0 };
         for l in 0..LANES {
             t[0][l] += pick(l, r0[l] * r0[l]);
@@ -313,13 +360,207 @@ fn residual_lanes(
     sse
 }
 
+/// The trust part of a final pass over [`LANES`] facets (see [`LocalStep::final_lanes`]): scratch
+/// rows (`beta` of each light, per lane), the facets' `[normal sigma, held-out]` and the
+/// per-light sums they add to.
+pub(super) struct LaneTrust<'a> {
+    rows: &'a mut [[[f64; LANES]; 3]],
+    out: &'a mut [[f32; 2]],
+    sums: &'a mut [[f64; 4]],
+}
+
+/// The grey fits of [`LANES`] facets: unit normals and albedo (0 where a fit failed).
+struct LaneFits {
+    normals: [[f64; 3]; LANES],
+    albedo: [f64; LANES],
+}
+
+/// The trust's solution of [`LANES`] facets' normal equations (see the `trust` module):
+/// `T^-1` (row-major), `g = T^-1 s`, and whether the facet has a trust value (at least 4 usable
+/// lights, `T` regular).
+struct LaneSolved {
+    inverse: [[[f64; 3]; 3]; LANES],
+    g: [[f64; 3]; LANES],
+    active: [bool; LANES],
+}
+
+impl LaneSolved {
+    /// From the sums, with the operations of `LocalStep::facet_trust`.
+    fn new(sums: &[Sums; LANES]) -> LaneSolved {
+        let mut solved = LaneSolved {
+            inverse: [[[0.0; 3]; 3]; LANES],
+            g: [[0.0; 3]; LANES],
+            active: [false; LANES],
+        };
+        for (l, sums) in sums.iter().enumerate() {
+            if sums.used < 4 {
+                continue;
+            }
+            let t = &sums.t[0];
+            let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
+            let Some(inv) = invert_spd3(&tm) else {
+                continue;
+            };
+            let g = inv * Vector3::from(sums.s[0]);
+            solved.inverse[l] = std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)]));
+            solved.g[l] = [g.x, g.y, g.z];
+            solved.active[l] = true;
+        }
+        solved
+    }
+
+    /// `T^-1` of lane `l`.
+    fn inverse(&self, l: usize) -> Matrix3<f64> {
+        let m = &self.inverse[l];
+        Matrix3::new(
+            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+        )
+    }
+}
+
+simd_dispatch! {
+    /// [`final_residuals`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+    fn final_residuals_dispatch => final_residuals(
+        lights: &[LaneLight],
+        rows: &[[[f64; LANES]; 3]],
+        values: &[[f32; LANES]],
+        thresholds: (f64, f64),
+        fits: &LaneFits,
+        solved: &LaneSolved,
+        sums: &mut [[f64; 4]],
+    ) -> [[f64; LANES]; 4];
+}
+
+/// One pass over the lights of [`LANES`] facets, their rows `beta` stored by
+/// [`accumulate_lanes`]: the exact squared residuals of the fits `fits` (the operations of
+/// [`residual_lanes`]), and for the facets with a trust value (`solved`) the trust's residual
+/// `e = I - r . g`, leverage `h = r . T^-1 r` and leave-one-out residual `e / (1 - h)` (the
+/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` facet
+/// after facet. Returns per lane the fit's squared residual, the trust's, the sum of the finite
+/// `|e / (1 - h)|` and their count.
+#[inline(always)]
+fn final_residuals(
+    lights: &[LaneLight],
+    rows: &[[[f64; LANES]; 3]],
+    values: &[[f32; LANES]],
+    (dark, saturation): (f64, f64),
+    fits: &LaneFits,
+    solved: &LaneSolved,
+    sums: &mut [[f64; 4]],
+) -> [[f64; LANES]; 4] {
+    let mut sse = [0.0f64; LANES];
+    let mut trust_sse = [0.0f64; LANES];
+    let mut loo_sum = [0.0f64; LANES];
+    let mut loo_count = [0.0f64; LANES];
+    let (inv, g) = (&solved.inverse, &solved.g);
+    for (((light, v), row), sum) in lights.iter().zip(values).zip(rows).zip(sums) {
+        let p = light.grey;
+        let (i, ok) = lane_values(v, dark, saturation);
+        let [b0, b1, b2] = *row;
+        let nb: [f64; LANES] = std::array::from_fn(|l| {
+            let n = fits.normals[l];
+            n[0] * b0[l] + n[1] * b1[l] + n[2] * b2[l]
+        });
+        for l in 0..LANES {
+            let e = fits.albedo[l] * p * nb[l] - i[l];
+            sse[l] += if ok[l] { e * e } else { 0.0 };
+        }
+        let r0: [f64; LANES] = std::array::from_fn(|l| b0[l] * p);
+        let r1: [f64; LANES] = std::array::from_fn(|l| b1[l] * p);
+        let r2: [f64; LANES] = std::array::from_fn(|l| b2[l] * p);
+        let e: [f64; LANES] =
+            std::array::from_fn(|l| i[l] - (r0[l] * g[l][0] + r1[l] * g[l][1] + r2[l] * g[l][2]));
+        let ir: [[f64; LANES]; 3] = std::array::from_fn(|j| {
+            std::array::from_fn(|l| {
+                let m = inv[l][j];
+                m[0] * r0[l] + m[1] * r1[l] + m[2] * r2[l]
+            })
+        });
+        let h: [f64; LANES] =
+            std::array::from_fn(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
+        let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
+        for l in 0..LANES {
+            if !(ok[l] && solved.active[l]) {
+                continue;
+            }
+            trust_sse[l] += e[l] * e[l];
+            if loo[l].is_finite() {
+                loo_sum[l] += loo[l].abs();
+                loo_count[l] += 1.0;
+                sum[1] += loo[l] * loo[l];
+            }
+            sum[0] += e[l] * e[l];
+            sum[2] += i[l];
+            sum[3] += 1.0;
+        }
+    }
+    [sse, trust_sse, loo_sum, loo_count]
+}
+
+impl LocalStep<'_> {
+    /// [`LocalStep::try_run_final`] with the vectorized accumulation (`lights` from
+    /// [`LocalStep::lane_lights`]): each batch of [`LANES`] facets is fitted and its trust values
+    /// computed from one evaluation of the lights' `beta`, with the fits of
+    /// [`LocalStep::try_run`] and the trust values of the `trust` module (same operations, same
+    /// order). Returns the per-light sums.
+    pub(super) fn final_lanes(
+        &self,
+        lights: &[LaneLight],
+        u: &[f64],
+        first: usize,
+        fits: &mut [FacetFit],
+        trust: &mut [[f32; 2]],
+    ) -> Result<LightSums> {
+        let (per, k) = (self.obs.per_facet(), self.obs.k);
+        let scratch = || -> Result<_> {
+            let (buf, interleaved) = lane_scratch(per, k)?;
+            let rows = try_vec(k, [[0.0f64; LANES]; 3], SCRATCH)?;
+            let trust_rows = try_vec(per, [0.0f64; 4], SCRATCH)?;
+            Ok((buf, interleaved, rows, trust_rows))
+        };
+        fits.par_chunks_mut(CHUNK)
+            .zip(trust.par_chunks_mut(CHUNK))
+            .enumerate()
+            .map_init(scratch, |scratch, (chunk, (fits, trust))| {
+                let (buf, interleaved, rows, trust_rows) =
+                    scratch.as_mut().map_err(|e| e.clone())?;
+                let mut sums = vec![[0.0f64; 4]; k];
+                let start = first + chunk * CHUNK;
+                let batches = fits.chunks_mut(LANES).zip(trust.chunks_mut(LANES));
+                for (b, (fits, out)) in batches.enumerate() {
+                    if self.cancel.is_cancelled() {
+                        break;
+                    }
+                    let at = start + b * LANES;
+                    if fits.len() == LANES {
+                        let lane_trust = LaneTrust {
+                            rows,
+                            out,
+                            sums: &mut sums,
+                        };
+                        let lanes =
+                            self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
+                        fits.copy_from_slice(&lanes);
+                    } else {
+                        for (i, (fit, out)) in fits.iter_mut().zip(out).enumerate() {
+                            *fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                            *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums);
+                        }
+                    }
+                }
+                Ok(sums)
+            })
+            .try_reduce(|| vec![[0.0; 4]; k], |a, b| Ok(add_sums(a, b)))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::geometry::Geometry;
     use crate::grid::Grid;
     use crate::light::Light;
-    use crate::local::{FacetStat, FitSettings};
+    use crate::local::{FacetStat, FitSettings, TrustMaps};
     use crate::reflectance::Packed;
     use crate::vec3::normalize;
 
@@ -406,6 +647,37 @@ mod tests {
             assert_eq!(fit.albedo[0], lane_fit.albedo[0], "facet {f}");
             assert_eq!(fit.sse, lane_fit.sse, "facet {f}");
             assert_eq!(fit.used, lane_fit.used, "facet {f}");
+        }
+        // The fused final pass: the same fits, and the trust maps of `trust` bit for bit (the
+        // per-light sums up to the order of the parallel reduction), in two chunks.
+        assert!(exact.lane_lights().is_some());
+        let expected = exact.trust(&u).unwrap();
+        let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
+        let mut final_fits = vec![FacetFit::EMPTY; n];
+        let mut values = vec![[f32::NAN; 2]; n];
+        let split = 8;
+        for (first, end) in [(0, split), (split, n)] {
+            let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
+            exact
+                .try_run_final(&u, first, fits, values, &mut maps)
+                .unwrap();
+            maps.scatter(&grid, first, values);
+        }
+        assert_eq!(final_fits, fits);
+        let trust = maps.finish();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&trust.normal_sigma), bits(&expected.normal_sigma));
+        assert_eq!(bits(&trust.held_out), bits(&expected.held_out));
+        assert!(trust.normal_sigma.iter().any(|v| v.is_finite()));
+        for (a, b) in trust.lights.iter().zip(&expected.lights) {
+            assert_eq!(a.facets, b.facets);
+            for (x, y) in [
+                (a.residual, b.residual),
+                (a.held_out, b.held_out),
+                (a.mean_intensity, b.mean_intensity),
+            ] {
+                assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
+            }
         }
     }
 }

@@ -38,7 +38,7 @@ mod trust;
 
 pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS};
 use lanes::{lane_scratch, LANES};
-pub use trust::{LightTrust, Trust};
+pub use trust::{LightTrust, Trust, TrustMaps};
 
 /// How the per-facet linear system weights the lights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -593,7 +593,7 @@ impl LocalStep<'_> {
                     }
                     let start = first + chunk * LANES;
                     if fits.len() == LANES {
-                        let lanes = self.fit_lanes(lights, start, u, buf, interleaved);
+                        let lanes = self.fit_lanes(lights, start, u, buf, interleaved, None);
                         fits.copy_from_slice(&lanes);
                     } else {
                         for (i, fit) in fits.iter_mut().enumerate() {
@@ -616,6 +616,30 @@ impl LocalStep<'_> {
                 Ok(())
             },
         )
+    }
+
+    /// The final pass over facets `first..first + fits.len()` on `u`: their fits, as
+    /// [`LocalStep::try_run`], and their trust values `[normal sigma, held-out]` into `trust`
+    /// (same length), as the `trust` module defines them, whose per-light sums it adds to
+    /// `maps` (the caller scatters `trust` into `maps`). Under the vectorized accumulation both
+    /// come from one evaluation of the lights per facet; otherwise the trust values are computed
+    /// after the fits.
+    pub fn try_run_final(
+        &self,
+        u: &[f64],
+        first: usize,
+        fits: &mut [FacetFit],
+        trust: &mut [[f32; 2]],
+        maps: &mut TrustMaps,
+    ) -> Result<()> {
+        debug_assert_eq!(fits.len(), trust.len());
+        if let Some(lights) = self.lane_lights() {
+            maps.add(self.final_lanes(&lights, u, first, fits, trust)?);
+            return Ok(());
+        }
+        self.try_run(u, first, fits)?;
+        maps.add(self.trust_range(u, first, trust));
+        Ok(())
     }
 
     /// Fits every facet on `u` in parallel, keeping only the targets and the statistics.
@@ -653,7 +677,7 @@ impl LocalStep<'_> {
                         }
                         let first = chunk * LANES;
                         if targets.len() == LANES {
-                            let fits = self.fit_lanes(lights, first, u, buf, interleaved);
+                            let fits = self.fit_lanes(lights, first, u, buf, interleaved, None);
                             for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&fits) {
                                 *target = fit.target;
                                 *stat = FacetStat::from(fit);

@@ -62,53 +62,61 @@ pub struct LightTrust {
 }
 
 /// Per-light sums: squared residual, squared held-out residual, observation, count.
-type LightSums = Vec<[f64; 4]>;
+pub(super) type LightSums = Vec<[f64; 4]>;
 
 /// Facets per parallel chunk.
-const CHUNK: usize = 4096;
+pub(super) const CHUNK: usize = 4096;
 
-impl LocalStep<'_> {
-    /// The trust maps of every facet at the unknowns `u` (see the module's documentation), as
-    /// per-pixel maps of the grid's image.
-    pub fn trust(&self, u: &[f64]) -> Result<Trust> {
-        let grid = self.grid;
-        let (k, channels) = (self.obs.k, self.obs.channels);
-        let n = grid.n_facets();
-        let mut per_facet = try_vec(n, [f32::NAN; 2], "the trust maps")?;
-        let sums: LightSums = per_facet
-            .par_chunks_mut(CHUNK)
-            .enumerate()
-            .map(|(chunk, out)| {
-                let mut buf = vec![0.0f32; k * channels];
-                let mut rows = vec![[0.0f64; 4]; k * channels];
-                let mut sums = vec![[0.0f64; 4]; k];
-                for (i, o) in out.iter_mut().enumerate() {
-                    if self.cancel.is_cancelled() {
-                        break;
-                    }
-                    *o = self.facet_trust(chunk * CHUNK + i, u, &mut buf, &mut rows, &mut sums);
-                }
-                sums
-            })
-            .reduce(
-                || vec![[0.0; 4]; k],
-                |mut a, b| {
-                    for (x, y) in a.iter_mut().zip(&b) {
-                        for j in 0..4 {
-                            x[j] += y[j];
-                        }
-                    }
-                    a
-                },
-            );
-        let pixels = grid.height * grid.width;
-        let mut normal_sigma = try_vec(pixels, f32::NAN, "the normal uncertainty map")?;
-        let mut held_out = try_vec(pixels, f32::NAN, "the held-out error map")?;
-        for (v, &p) in per_facet.iter().zip(&grid.facets) {
-            normal_sigma[p as usize] = v[0];
-            held_out[p as usize] = v[1];
+/// `a += b`, light by light.
+pub(super) fn add_sums(mut a: LightSums, b: LightSums) -> LightSums {
+    for (x, y) in a.iter_mut().zip(&b) {
+        for j in 0..4 {
+            x[j] += y[j];
         }
-        let lights = sums
+    }
+    a
+}
+
+/// The trust maps of a result while they are filled, chunk by chunk of facets (see
+/// [`LocalStep::try_run_final`]), and its per-light sums.
+#[derive(Debug)]
+pub struct TrustMaps {
+    normal_sigma: Vec<f32>,
+    held_out: Vec<f32>,
+    sums: LightSums,
+    channels: usize,
+}
+
+impl TrustMaps {
+    /// Empty maps (NaN) of the grid's image for `k` lights of `channels` channels.
+    pub fn new(grid: &crate::grid::Grid, k: usize, channels: usize) -> Result<TrustMaps> {
+        let pixels = grid.height * grid.width;
+        Ok(TrustMaps {
+            normal_sigma: try_vec(pixels, f32::NAN, "the normal uncertainty map")?,
+            held_out: try_vec(pixels, f32::NAN, "the held-out error map")?,
+            sums: vec![[0.0; 4]; k],
+            channels,
+        })
+    }
+
+    /// Writes the values of facets `first..first + per_facet.len()` into the maps.
+    pub fn scatter(&mut self, grid: &crate::grid::Grid, first: usize, per_facet: &[[f32; 2]]) {
+        for (v, &p) in per_facet.iter().zip(&grid.facets[first..]) {
+            self.normal_sigma[p as usize] = v[0];
+            self.held_out[p as usize] = v[1];
+        }
+    }
+
+    /// Adds per-light sums.
+    pub(super) fn add(&mut self, sums: LightSums) {
+        self.sums = add_sums(std::mem::take(&mut self.sums), sums);
+    }
+
+    /// The trust maps and per-light figures.
+    pub fn finish(self) -> Trust {
+        let channels = self.channels;
+        let lights = self
+            .sums
             .iter()
             .map(|s| {
                 let m = s[3] * channels as f64;
@@ -120,16 +128,54 @@ impl LocalStep<'_> {
                 }
             })
             .collect();
-        Ok(Trust {
-            normal_sigma,
-            held_out,
+        Trust {
+            normal_sigma: self.normal_sigma,
+            held_out: self.held_out,
             lights,
-        })
+        }
+    }
+}
+
+impl LocalStep<'_> {
+    /// The trust maps of every facet at the unknowns `u` (see the module's documentation), as
+    /// per-pixel maps of the grid's image (the reconstruction computes them with its final fits,
+    /// [`LocalStep::try_run_final`]).
+    #[cfg(test)]
+    pub fn trust(&self, u: &[f64]) -> Result<Trust> {
+        let grid = self.grid;
+        let mut maps = TrustMaps::new(grid, self.obs.k, self.obs.channels)?;
+        let mut per_facet = try_vec(grid.n_facets(), [f32::NAN; 2], "the trust maps")?;
+        let sums = self.trust_range(u, 0, &mut per_facet);
+        maps.add(sums);
+        maps.scatter(grid, 0, &per_facet);
+        Ok(maps.finish())
+    }
+
+    /// The trust values of facets `first..first + out.len()` (`[normal sigma, held-out]`, see
+    /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits.
+    pub(super) fn trust_range(&self, u: &[f64], first: usize, out: &mut [[f32; 2]]) -> LightSums {
+        let (k, channels) = (self.obs.k, self.obs.channels);
+        out.par_chunks_mut(CHUNK)
+            .enumerate()
+            .map(|(chunk, out)| {
+                let mut buf = vec![0.0f32; k * channels];
+                let mut rows = vec![[0.0f64; 4]; k * channels];
+                let mut sums = vec![[0.0f64; 4]; k];
+                for (i, o) in out.iter_mut().enumerate() {
+                    if self.cancel.is_cancelled() {
+                        break;
+                    }
+                    let f = first + chunk * CHUNK + i;
+                    *o = self.facet_trust(f, u, &mut buf, &mut rows, &mut sums);
+                }
+                sums
+            })
+            .reduce(|| vec![[0.0; 4]; k], add_sums)
     }
 
     /// `[normal sigma (degrees), mean |leave-one-out residual|]` of facet `f`, adding its
     /// lights' residuals to `sums`; `buf` and `rows` are scratch (k * channels each).
-    fn facet_trust(
+    pub(super) fn facet_trust(
         &self,
         f: usize,
         u: &[f64],
@@ -238,25 +284,41 @@ impl LocalStep<'_> {
                 sums[k][3] += 1.0;
             }
         }
-        let dof = (used - 3) as f64;
-        let mut cov = Matrix3::<f64>::zeros();
-        for ch in 0..channels {
-            cov += (sse[ch] / dof) * inv[ch];
-        }
-        let len = norm([b.x, b.y, b.z]);
-        if !(len.is_finite() && len > 0.0) {
-            return none;
-        }
-        let n = b / len;
-        // trace(P C P) = trace(C) - n^T C n for P = I - n n^T.
-        let var = ((cov.trace() - n.dot(&(cov * n))) / (len * len)).max(0.0);
-        let held_out = if loo_count > 0 {
-            loo_sum / loo_count as f64
-        } else {
-            f64::NAN
-        };
-        [var.sqrt().to_degrees() as f32, held_out as f32]
+        trust_values(&sse, &inv, b, used, channels, loo_sum, loo_count)
     }
+}
+
+/// `[normal sigma (degrees), mean |leave-one-out residual|]` of a facet from its per-channel
+/// weighted squared residuals `sse`, inverse normal matrices `inv`, summed scaled normal `b`,
+/// `used` (>= 4) usable lights and the sum and count of its finite leave-one-out residuals.
+#[inline]
+pub(super) fn trust_values(
+    sse: &[f64; 3],
+    inv: &[Matrix3<f64>; 3],
+    b: Vector3<f64>,
+    used: usize,
+    channels: usize,
+    loo_sum: f64,
+    loo_count: usize,
+) -> [f32; 2] {
+    let dof = (used - 3) as f64;
+    let mut cov = Matrix3::<f64>::zeros();
+    for ch in 0..channels {
+        cov += (sse[ch] / dof) * inv[ch];
+    }
+    let len = norm([b.x, b.y, b.z]);
+    if !(len.is_finite() && len > 0.0) {
+        return [f32::NAN; 2];
+    }
+    let n = b / len;
+    // trace(P C P) = trace(C) - n^T C n for P = I - n n^T.
+    let var = ((cov.trace() - n.dot(&(cov * n))) / (len * len)).max(0.0);
+    let held_out = if loo_count > 0 {
+        loo_sum / loo_count as f64
+    } else {
+        f64::NAN
+    };
+    [var.sqrt().to_degrees() as f32, held_out as f32]
 }
 
 #[cfg(test)]
