@@ -83,6 +83,53 @@ const INVERSE: usize = 9;
 /// inverse of the diagonal.
 type Stencil = [f64; 10];
 
+/// A coarse stencil as stored, in single precision (half the memory of the coarse levels):
+/// the 8 neighbour coefficients in their places, at [`CENTRE`] the row sum `e = sum_k s_k`
+/// (what the pins and the prior add to the diagonal; 0 up to rounding elsewhere) and at
+/// [`INVERSE`] the inverse diagonal. The diagonal is recomputed as `e - sum_{k != centre}
+/// s_k` from the rounded neighbours ([`unpack`]), so the stored operator stays symmetric
+/// (both ends of an edge round the same value) and keeps constants in its null space away
+/// from the pins exactly as the double-precision one does. The coarse levels only
+/// precondition the conjugate gradients, which run in double precision: the rounding (a
+/// relative 6e-8 per coefficient) changes how fast they converge, not what they converge to.
+type Packed = [f32; 10];
+
+/// The single-precision form of a coarse stencil (see [`Packed`]).
+fn pack(s: &Stencil) -> Packed {
+    let mut p = [0.0f32; 10];
+    let mut sum = 0.0;
+    for k in 0..9 {
+        sum += s[k];
+        if k != CENTRE {
+            p[k] = s[k] as f32;
+        }
+    }
+    p[CENTRE] = sum as f32;
+    let centre = unpack(&p)[CENTRE];
+    p[INVERSE] = if centre > 0.0 {
+        (1.0 / centre) as f32
+    } else {
+        0.0
+    };
+    p
+}
+
+/// The double-precision stencil of a stored coarse stencil (see [`Packed`]).
+#[inline(always)]
+fn unpack(p: &Packed) -> Stencil {
+    let mut s = [0.0; 10];
+    let mut neighbours = 0.0;
+    for k in 0..9 {
+        if k != CENTRE {
+            s[k] = f64::from(p[k]);
+            neighbours += s[k];
+        }
+    }
+    s[CENTRE] = f64::from(p[CENTRE]) - neighbours;
+    s[INVERSE] = f64::from(p[INVERSE]);
+    s
+}
+
 /// Sets a stencil's inverse diagonal from its diagonal.
 fn with_inverse(mut s: Stencil) -> Stencil {
     s[INVERSE] = if s[CENTRE] > 0.0 {
@@ -209,16 +256,26 @@ enum Stencils {
         flags: Vec<u8>,
         table: Box<[Stencil; 64]>,
     },
-    /// One stencil per node (row-major, unpadded); zero for an inactive node.
-    Coarse(Vec<Stencil>),
+    /// One stencil per node (row-major, unpadded), in single precision (see [`Packed`]);
+    /// zero for an inactive node.
+    Coarse(Vec<Packed>),
 }
 
 impl Stencils {
     #[inline]
-    fn get(&self, node: usize) -> &Stencil {
+    fn get(&self, node: usize) -> Stencil {
         match self {
-            Stencils::Fine { flags, table } => &table[flags[node] as usize],
-            Stencils::Coarse(s) => &s[node],
+            Stencils::Fine { flags, table } => table[flags[node] as usize],
+            Stencils::Coarse(s) => unpack(&s[node]),
+        }
+    }
+
+    /// Whether `node` is active (its diagonal is positive).
+    #[inline]
+    fn active(&self, node: usize) -> bool {
+        match self {
+            Stencils::Fine { flags, table } => table[flags[node] as usize][INVERSE] > 0.0,
+            Stencils::Coarse(s) => s[node][INVERSE] > 0.0,
         }
     }
 }
@@ -232,16 +289,16 @@ struct Level {
 impl Level {
     fn active_nodes(&self) -> usize {
         (0..self.layout.rows * self.layout.cols)
-            .filter(|&n| self.stencils.get(n)[CENTRE] > 0.0)
+            .filter(|&n| self.stencils.active(n))
             .count()
     }
 }
 
-/// Work vectors of one level (padded): solution, right side, residual.
+/// Work vectors of one level (padded): solution and right side (its residual is restricted
+/// as it is computed, see [`restrict_residual`]).
 struct Work {
     x: Vec<f64>,
     b: Vec<f64>,
-    r: Vec<f64>,
 }
 
 impl Work {
@@ -250,7 +307,6 @@ impl Work {
         Ok(Work {
             x: try_vec(n, 0.0, "the multigrid levels")?,
             b: try_vec(n, 0.0, "the multigrid levels")?,
-            r: try_vec(n, 0.0, "the multigrid levels")?,
         })
     }
 }
@@ -262,12 +318,12 @@ macro_rules! with_stencils {
     ($level:expr, |$get:ident, $plain:ident| $body:expr) => {
         match &$level.stencils {
             Stencils::Fine { flags, table } => {
-                let $get = |n: usize| -> &Stencil { &table[flags[n] as usize] };
+                let $get = |n: usize| -> Stencil { table[flags[n] as usize] };
                 let $plain = |n: usize| flags[n] == NW | NE | SW | SE;
                 $body
             }
             Stencils::Coarse(stencils) => {
-                let $get = |n: usize| -> &Stencil { &stencils[n] };
+                let $get = |n: usize| -> Stencil { unpack(&stencils[n]) };
                 let $plain = |_: usize| false;
                 $body
             }
@@ -303,59 +359,130 @@ fn apply_stencil(s: &Stencil, above: &[f64], here: &[f64], below: &[f64], j: usi
 /// after `q = A p`.
 fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) -> f64 {
     let l = level.layout;
-    let stride = l.stride;
     with_stencils!(level, |get, plain| {
         let partial: Vec<f64> = out
-            .par_chunks_mut(stride)
+            .par_chunks_mut(l.stride)
             .enumerate()
-            .map(|(pr, row)| {
-                if pr == 0 || pr > l.rows {
-                    return 0.0;
-                }
-                let r = pr - 1;
-                let above = &x[(pr - 1) * stride..pr * stride];
-                let here = &x[pr * stride..(pr + 1) * stride];
-                let below = &x[(pr + 1) * stride..(pr + 2) * stride];
-                let base = r * l.cols;
-                let row = &mut row[1..l.cols + 1];
-                match b {
-                    Some(b) => {
-                        let b = &b[pr * stride + 1..pr * stride + 1 + l.cols];
-                        for (c, (o, &bc)) in row.iter_mut().zip(b).enumerate() {
-                            *o = if plain(base + c) {
-                                bc - plain_apply(above, here, below, c + 1)
-                            } else {
-                                let s = get(base + c);
-                                let ax = apply_stencil(s, above, here, below, c + 1);
-                                if s[CENTRE] > 0.0 {
-                                    bc - ax
-                                } else {
-                                    0.0
-                                }
-                            };
-                        }
-                    }
-                    None => {
-                        for (c, o) in row.iter_mut().enumerate() {
-                            *o = if plain(base + c) {
-                                plain_apply(above, here, below, c + 1)
-                            } else {
-                                let s = get(base + c);
-                                let ax = apply_stencil(s, above, here, below, c + 1);
-                                if s[CENTRE] > 0.0 {
-                                    ax
-                                } else {
-                                    0.0
-                                }
-                            };
-                        }
-                    }
-                }
-                row.iter().zip(&here[1..]).map(|(o, x)| o * x).sum::<f64>()
-            })
+            .map(|(pr, row)| residual_row(&get, &plain, l, x, b, pr, row))
             .collect();
         partial.iter().sum()
     })
+}
+
+/// Padded row `pr` of [`residual`] into `row` (its nodes only: the padding is left as it is);
+/// returns the row's part of `x . out` (0 for a padding row).
+#[inline(always)]
+fn residual_row(
+    get: &impl Fn(usize) -> Stencil,
+    plain: &impl Fn(usize) -> bool,
+    l: Layout,
+    x: &[f64],
+    b: Option<&[f64]>,
+    pr: usize,
+    row: &mut [f64],
+) -> f64 {
+    if pr == 0 || pr > l.rows {
+        return 0.0;
+    }
+    let stride = l.stride;
+    let r = pr - 1;
+    let above = &x[(pr - 1) * stride..pr * stride];
+    let here = &x[pr * stride..(pr + 1) * stride];
+    let below = &x[(pr + 1) * stride..(pr + 2) * stride];
+    let base = r * l.cols;
+    let row = &mut row[1..l.cols + 1];
+    match b {
+        Some(b) => {
+            let b = &b[pr * stride + 1..pr * stride + 1 + l.cols];
+            for (c, (o, &bc)) in row.iter_mut().zip(b).enumerate() {
+                *o = if plain(base + c) {
+                    bc - plain_apply(above, here, below, c + 1)
+                } else {
+                    let s = get(base + c);
+                    let ax = apply_stencil(&s, above, here, below, c + 1);
+                    if s[INVERSE] > 0.0 {
+                        bc - ax
+                    } else {
+                        0.0
+                    }
+                };
+            }
+        }
+        None => {
+            for (c, o) in row.iter_mut().enumerate() {
+                *o = if plain(base + c) {
+                    plain_apply(above, here, below, c + 1)
+                } else {
+                    let s = get(base + c);
+                    let ax = apply_stencil(&s, above, here, below, c + 1);
+                    if s[INVERSE] > 0.0 {
+                        ax
+                    } else {
+                        0.0
+                    }
+                };
+            }
+        }
+    }
+    row.iter().zip(&here[1..]).map(|(o, x)| o * x).sum::<f64>()
+}
+
+/// Coarse rows per task of [`restrict_residual`].
+const RESTRICT_ROWS: usize = 8;
+
+thread_local! {
+    /// The fine residual rows of one task of [`restrict_residual`] (kept per thread, so that
+    /// V-cycles do not allocate).
+    static RESTRICT_BUFFER: std::cell::RefCell<Vec<f64>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// `b_coarse = P^T (b - A x)` at the active coarse nodes (the residual of `fine`, restricted)
+/// without storing the fine residual: each task of [`RESTRICT_ROWS`] coarse rows computes the
+/// `2 RESTRICT_ROWS + 1` fine residual rows they read into a buffer of its own (a row shared
+/// by two tasks is computed by both, so the fine level needs no residual vector).
+fn restrict_residual(fine: &Level, coarse: &Level, x: &[f64], b: &[f64], b_coarse: &mut [f64]) {
+    let (lf, lc) = (fine.layout, coarse.layout);
+    with_stencils!(fine, |get, plain| {
+        b_coarse
+            .par_chunks_mut(lc.stride * RESTRICT_ROWS)
+            .enumerate()
+            .for_each(|(task, rows)| {
+                // Fine padded rows 2 pr_c - 2 .. 2 pr_c for coarse padded row pr_c (node row
+                // pr_c - 1 sits on fine node row 2 pr_c - 2, padded 2 pr_c - 1).
+                let first_c = task * RESTRICT_ROWS;
+                let first_f = (2 * first_c).saturating_sub(2);
+                RESTRICT_BUFFER.with_borrow_mut(|buffer| {
+                    buffer.clear();
+                    buffer.resize((2 * RESTRICT_ROWS + 1) * lf.stride, 0.0);
+                    for (t, out) in buffer.chunks_exact_mut(lf.stride).enumerate() {
+                        residual_row(&get, &plain, lf, x, Some(b), first_f + t, out);
+                    }
+                    for (t, row) in rows.chunks_exact_mut(lc.stride).enumerate() {
+                        let pr = first_c + t;
+                        if pr == 0 || pr > lc.rows {
+                            continue;
+                        }
+                        let rr = pr - 1;
+                        // Fine padded rows 2 rr, 2 rr + 1, 2 rr + 2 around the centre.
+                        let top = 2 * rr - first_f;
+                        for cc in 0..lc.cols {
+                            row[cc + 1] = if coarse.stencils.active(rr * lc.cols + cc) {
+                                let centre = 2 * cc + 1;
+                                let mut sum = 0.0;
+                                for (dr, wr) in [(0, 0.5), (1, 1.0), (2, 0.5)] {
+                                    let f = &buffer[(top + dr) * lf.stride..];
+                                    sum += wr
+                                        * (0.5 * f[centre - 1] + f[centre] + 0.5 * f[centre + 1]);
+                                }
+                                sum
+                            } else {
+                                0.0
+                            };
+                        }
+                    }
+                })
+            })
+    });
 }
 
 /// A raw pointer shared by the Gauss-Seidel bands.
@@ -421,7 +548,7 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                                 here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
                             } else {
                                 let s = get(base + c);
-                                if s[CENTRE] > 0.0 {
+                                if s[INVERSE] > 0.0 {
                                     let rest = s[0] * above[j - 1]
                                         + s[1] * above[j]
                                         + s[2] * above[j + 1]
@@ -445,35 +572,6 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
     });
 }
 
-/// `coarse = P^T fine` at the active coarse nodes.
-fn restrict(fine: &Level, coarse: &Level, r_fine: &[f64], b_coarse: &mut [f64]) {
-    let (lf, lc) = (fine.layout, coarse.layout);
-    b_coarse
-        .par_chunks_mut(lc.stride)
-        .enumerate()
-        .for_each(|(pr, row)| {
-            if pr == 0 || pr > lc.rows {
-                return;
-            }
-            let rr = pr - 1;
-            for cc in 0..lc.cols {
-                row[cc + 1] = if coarse.stencils.get(rr * lc.cols + cc)[CENTRE] > 0.0 {
-                    let centre = lf.index(2 * rr, 2 * cc) as isize;
-                    let mut sum = 0.0;
-                    for (dr, wr) in [(-1isize, 0.5), (0, 1.0), (1, 0.5)] {
-                        for (dc, wc) in [(-1isize, 0.5), (0, 1.0), (1, 0.5)] {
-                            let i = centre + dr * lf.stride as isize + dc;
-                            sum += wr * wc * r_fine[i as usize];
-                        }
-                    }
-                    sum
-                } else {
-                    0.0
-                };
-            }
-        });
-}
-
 /// `x_fine += P x_coarse` at the active fine nodes.
 fn prolongate_add(fine: &Level, coarse: &Level, x_coarse: &[f64], x_fine: &mut [f64]) {
     let (lf, lc) = (fine.layout, coarse.layout);
@@ -491,7 +589,7 @@ fn prolongate_add(fine: &Level, coarse: &Level, x_coarse: &[f64], x_fine: &mut [
                 &[(r / 2, 0.5), (r / 2 + 1, 0.5)]
             };
             for c in 0..lf.cols {
-                if fine.stencils.get(r * lf.cols + c)[CENTRE] <= 0.0 {
+                if !fine.stencils.active(r * lf.cols + c) {
                     continue;
                 }
                 let cols: &[(usize, f64)] = if c % 2 == 0 {
@@ -590,11 +688,11 @@ impl Coarsest {
         let l = level.layout;
         let mut number = try_vec(l.rows * l.cols, u32::MAX, WHAT)?;
         let active = (0..l.rows * l.cols)
-            .filter(|&n| level.stencils.get(n)[CENTRE] > 0.0)
+            .filter(|&n| level.stencils.active(n))
             .count();
         let mut nodes = try_with_capacity(active, WHAT)?;
         for (n, slot) in number.iter_mut().enumerate() {
-            if level.stencils.get(n)[CENTRE] > 0.0 {
+            if level.stencils.active(n) {
                 *slot = nodes.len() as u32;
                 nodes.push(l.index(n / l.cols, n % l.cols));
             }
@@ -650,13 +748,14 @@ impl Coarsest {
     }
 }
 
-/// Vectors of the conjugate gradients on the fine padded grid.
+/// Vectors of the conjugate gradients on the fine padded grid. `w` holds the preconditioned
+/// residual `z = M r` until the search direction `p` is updated from it, then `q = A p` until
+/// the next preconditioning: the two are never needed at the same time.
 struct Krylov {
     x: Vec<f64>,
     r: Vec<f64>,
-    z: Vec<f64>,
     p: Vec<f64>,
-    q: Vec<f64>,
+    w: Vec<f64>,
 }
 
 /// The multigrid-preconditioned global system of one mask (see the module documentation).
@@ -756,9 +855,8 @@ impl MultigridSystem {
             krylov: Krylov {
                 x: krylov()?,
                 r: krylov()?,
-                z: krylov()?,
                 p: krylov()?,
-                q: krylov()?,
+                w: krylov()?,
             },
             pins,
             prior_rhs: prior_right_side(prior)?,
@@ -774,7 +872,7 @@ impl MultigridSystem {
         self.levels.len()
     }
 
-    /// `z ~ A^-1 r` by one V-cycle from a zero start.
+    /// `z ~ A^-1 r` by one V-cycle from a zero start, into `w`.
     fn precondition(&mut self) {
         let k = &mut self.krylov;
         vcycle(
@@ -782,10 +880,8 @@ impl MultigridSystem {
             &mut self.work,
             &mut self.coarsest,
             0,
-            &mut k.z,
+            &mut k.w,
             &k.r,
-            // q is free while the preconditioner runs: it holds the fine level's residual.
-            &mut k.q,
         );
     }
 
@@ -801,7 +897,7 @@ impl MultigridSystem {
     ) -> usize {
         let fine = &self.levels[0];
         let k = &mut self.krylov;
-        // The right side per unknown, in z (free until the first V-cycle), then onto the grid.
+        // The right side per unknown, in w (free until the first V-cycle), then onto the grid.
         let n = grid.n_unknowns();
         let target_norm = right_side(
             grid,
@@ -809,9 +905,9 @@ impl MultigridSystem {
             &self.pins,
             self.prior_rhs.as_deref(),
             z_current,
-            &mut k.z[..n],
+            &mut k.w[..n],
         );
-        to_grid(fine.layout, grid, &k.z[..n], &mut k.r);
+        to_grid(fine.layout, grid, &k.w[..n], &mut k.r);
         let scale = if target_norm > 0.0 {
             target_norm
         } else {
@@ -819,32 +915,35 @@ impl MultigridSystem {
         };
         let tol = self.rtol * scale;
         to_grid(fine.layout, grid, z_current, &mut k.x);
-        residual(fine, &k.x, None, &mut k.q);
-        axpy(-1.0, &k.q, &mut k.r);
+        // The residual writes the nodes only: the padding must be zero again (the right side
+        // left values there).
+        k.w.fill(0.0);
+        residual(fine, &k.x, None, &mut k.w);
+        axpy(-1.0, &k.w, &mut k.r);
         let mut iterations = 0;
         if dot(&k.r, &k.r).sqrt() > tol {
             self.precondition();
             let k = &mut self.krylov;
-            k.p.copy_from_slice(&k.z);
-            let mut rz = dot(&k.r, &k.z);
+            k.p.copy_from_slice(&k.w);
+            let mut rz = dot(&k.r, &k.w);
             while iterations < self.max_iterations && !self.cancel.is_cancelled() {
                 iterations += 1;
                 let k = &mut self.krylov;
-                let pq = residual(&self.levels[0], &k.p, None, &mut k.q);
+                let pq = residual(&self.levels[0], &k.p, None, &mut k.w);
                 if pq.is_nan() || pq <= 0.0 {
                     break;
                 }
                 let alpha = rz / pq;
-                if step_and_norm(alpha, &k.p, &k.q, &mut k.x, &mut k.r).sqrt() <= tol {
+                if step_and_norm(alpha, &k.p, &k.w, &mut k.x, &mut k.r).sqrt() <= tol {
                     break;
                 }
                 self.precondition();
                 let k = &mut self.krylov;
-                let rz_new = dot(&k.r, &k.z);
+                let rz_new = dot(&k.r, &k.w);
                 let beta = rz_new / rz;
                 rz = rz_new;
                 k.p.par_chunks_mut(CHUNK)
-                    .zip(k.z.par_chunks(CHUNK))
+                    .zip(k.w.par_chunks(CHUNK))
                     .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
             }
         }
@@ -858,8 +957,8 @@ impl MultigridSystem {
     }
 }
 
-/// One V-cycle on level `l` from a zero start: `x ~ A_l^-1 b`; `r` is the level's residual
-/// buffer and `work` the work vectors of the levels below it.
+/// One V-cycle on level `l` from a zero start: `x ~ A_l^-1 b`; `work` holds the work vectors
+/// of the levels below it.
 fn vcycle(
     levels: &[Level],
     work: &mut [Work],
@@ -867,7 +966,6 @@ fn vcycle(
     l: usize,
     x: &mut [f64],
     b: &[f64],
-    r: &mut [f64],
 ) {
     x.fill(0.0);
     if l + 1 == levels.len() {
@@ -876,18 +974,9 @@ fn vcycle(
     }
     let (fine, coarse) = (&levels[l], &levels[l + 1]);
     gauss_seidel(fine, x, b, true);
-    residual(fine, x, Some(b), r);
     let (here, below) = work.split_first_mut().expect("a coarser level");
-    restrict(fine, coarse, r, &mut here.b);
-    vcycle(
-        levels,
-        below,
-        coarsest,
-        l + 1,
-        &mut here.x,
-        &here.b,
-        &mut here.r,
-    );
+    restrict_residual(fine, coarse, x, b, &mut here.b);
+    vcycle(levels, below, coarsest, l + 1, &mut here.x, &here.b);
     prolongate_add(fine, coarse, &here.x, x);
     gauss_seidel(fine, x, b, false);
 }
@@ -976,10 +1065,10 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Result<Vec<Element>> {
 }
 
 /// The nodal 9-point stencils of a level with `layout` from its cell elements.
-fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Stencil>> {
+fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Packed>> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
-    let mut out = try_vec(rows * cols, [0.0; 10], "the multigrid levels")?;
+    let mut out = try_vec(rows * cols, [0.0f32; 10], "the multigrid levels")?;
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
         for (c, out) in row.iter_mut().enumerate() {
             let mut s: Stencil = [0.0; 10];
@@ -1000,7 +1089,7 @@ fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Stencil>> {
                     s[k] += e[j][m];
                 }
             }
-            *out = with_inverse(s);
+            *out = pack(&s);
         }
     });
     Ok(out)
@@ -1112,10 +1201,11 @@ pub(crate) mod tests {
             let mut checked = 0;
             for r in 1..l.rows - 1 {
                 for c in 1..l.cols - 1 {
-                    let st = &s[r * l.cols + c];
+                    let st = unpack(&s[r * l.cols + c]);
                     for (k, &(dr, dc)) in OFFSETS.iter().enumerate() {
-                        let other =
-                            &s[(r as isize + dr) as usize * l.cols + (c as isize + dc) as usize];
+                        let other = unpack(
+                            &s[(r as isize + dr) as usize * l.cols + (c as isize + dc) as usize],
+                        );
                         assert!((st[k] - other[8 - k]).abs() <= 1e-12 * st[CENTRE].max(1.0));
                     }
                     let sum: f64 = st[..9].iter().sum();
