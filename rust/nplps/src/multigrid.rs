@@ -828,17 +828,28 @@ impl MultigridSystem {
             if l.rows <= 3 || l.cols <= 3 || last.active_nodes() <= coarsest_nodes {
                 break;
             }
-            let coarse_cells = match &cells {
-                None => coarsen_fine(last, weight)?,
-                Some(c) => coarsen_cells(l, c)?,
-            };
             let layout = l.coarser();
-            let stencils = stencils_of(layout, &coarse_cells)?;
+            // `cells`: the cells of the new level (after level 1), whose stencils they give,
+            // and from which the cells of the level below it are made.
+            let coarser = layout.rows > 3 && layout.cols > 3;
+            let (stencils, next) = match cells.take() {
+                // Level 1 straight from the fine flags, with the level-2 cells.
+                None if levels.len() == 1 => first_coarse_level(last, weight, coarser)?,
+                None => break,
+                Some(c) => {
+                    let stencils = stencils_of(layout, &c)?;
+                    let next = match coarser {
+                        true => Some(coarsen_cells(layout, &c)?),
+                        false => None,
+                    };
+                    (stencils, next)
+                }
+            };
             levels.push(Level {
                 layout,
                 stencils: Stencils::Coarse(stencils),
             });
-            cells = Some(coarse_cells);
+            cells = next;
         }
         drop(cells);
         let coarsest = Coarsest::new(levels.last().expect("at least the fine level"))?;
@@ -986,55 +997,161 @@ fn interpolations() -> [Element; 4] {
     std::array::from_fn(|ab| interpolation(ab / 2, ab % 2))
 }
 
-/// Galerkin elements of the level-1 cells from the fine facets, with the pins' and the prior's
-/// diagonal terms (prior weight `weight`) folded into one facet of each vertex: the first
-/// masked one among its NW, NE, SW, SE facets.
-fn coarsen_fine(fine: &Level, weight: f64) -> Result<Vec<Element>> {
-    let Stencils::Fine { flags, .. } = &fine.stencils else {
-        unreachable!("coarsen_fine takes the fine level")
-    };
-    let l = fine.layout;
-    let (h, w) = (l.rows - 1, l.cols - 1);
-    let coarse = l.coarser();
-    let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
-    let q = interpolations();
-    // The facet element N = I - ones/4 seen from the coarse corners, per child position.
-    let mut facet = [[[0.0; 4]; 4]; 4];
-    let n: Element = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(i == j) - 0.25));
-    for (ab, g) in facet.iter_mut().enumerate() {
-        *g = congruence(&q[ab], &n);
+/// What the level-1 cells are made from: the fine vertex flags, the interpolation matrices, the
+/// facet element seen from the coarse corners per child position, and the prior's weight.
+struct FineCells<'a> {
+    flags: &'a [u8],
+    layout: Layout,
+    q: [Element; 4],
+    facet: [Element; 4],
+    weight: f64,
+}
+
+impl FineCells<'_> {
+    fn new(fine: &Level, weight: f64) -> FineCells<'_> {
+        let Stencils::Fine { flags, .. } = &fine.stencils else {
+            unreachable!("the level-1 cells come from the fine level")
+        };
+        let q = interpolations();
+        // The facet element N = I - ones/4 seen from the coarse corners, per child position.
+        let mut facet = [[[0.0; 4]; 4]; 4];
+        let n: Element = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(i == j) - 0.25));
+        for (ab, g) in facet.iter_mut().enumerate() {
+            *g = congruence(&q[ab], &n);
+        }
+        FineCells {
+            flags,
+            layout: fine.layout,
+            q,
+            facet,
+            weight,
+        }
     }
-    // Which facet bit of corner j's vertex facet (r, c) is (corner 00 sees it as SE, ...).
-    let bit_of_corner = [SE, SW, NE, NW];
-    // Every output is written once, never read first: reading fresh zeroed memory before
-    // writing it costs a copy-on-write page fault per page.
-    let mut cells = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
-    cells.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
-        for (cc, out) in row.iter_mut().enumerate() {
-            let mut cell: Element = [[0.0; 4]; 4];
-            for (ab, qab) in q.iter().enumerate() {
-                let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
-                if r >= h || c >= w || flags[r * l.cols + c] & SE == 0 {
-                    continue;
-                }
-                add_element(&mut cell, &facet[ab]);
-                for (j, &(jr, jc)) in CORNERS.iter().enumerate() {
-                    let f = flags[(r + jr) * l.cols + c + jc];
-                    let extra = f64::from(f & PINNED != 0) + weight * f64::from(f & PRIOR != 0);
-                    let first = 1u8 << (f & 15).trailing_zeros();
-                    if extra != 0.0 && first == bit_of_corner[j] {
-                        for i in 0..4 {
-                            for k in 0..4 {
-                                cell[i][k] += extra * qab[j][i] * qab[j][k];
-                            }
+
+    /// The Galerkin element of level-1 cell (cr, cc) from its (up to 4) fine facets, with the
+    /// pins' and the prior's diagonal terms folded into one facet of each vertex: the first
+    /// masked one among its NW, NE, SW, SE facets.
+    #[inline]
+    fn cell(&self, cr: usize, cc: usize) -> Element {
+        let (l, flags) = (self.layout, self.flags);
+        let (h, w) = (l.rows - 1, l.cols - 1);
+        // Which facet bit of corner j's vertex facet (r, c) is (corner 00 sees it as SE, ...).
+        let bit_of_corner = [SE, SW, NE, NW];
+        let mut cell: Element = [[0.0; 4]; 4];
+        for (ab, qab) in self.q.iter().enumerate() {
+            let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
+            if r >= h || c >= w || flags[r * l.cols + c] & SE == 0 {
+                continue;
+            }
+            add_element(&mut cell, &self.facet[ab]);
+            for (j, &(jr, jc)) in CORNERS.iter().enumerate() {
+                let f = flags[(r + jr) * l.cols + c + jc];
+                let extra = f64::from(f & PINNED != 0) + self.weight * f64::from(f & PRIOR != 0);
+                let first = 1u8 << (f & 15).trailing_zeros();
+                if extra != 0.0 && first == bit_of_corner[j] {
+                    for i in 0..4 {
+                        for k in 0..4 {
+                            cell[i][k] += extra * qab[j][i] * qab[j][k];
                         }
                     }
                 }
             }
-            *out = cell;
         }
-    });
-    Ok(cells)
+        cell
+    }
+}
+
+/// Level-1 rows per task of [`first_coarse_level`] (even: a task makes whole level-2 rows).
+const SETUP_ROWS: usize = 32;
+
+/// The stencils of level 1 and, when `coarser` (level 1 has a coarser level), the Galerkin
+/// elements of the level-2 cells, without storing the level-1 cells (32 bytes a fine pixel,
+/// the largest transient of the set-up): each task of [`SETUP_ROWS`] level-1 node rows computes
+/// the level-1 cells they touch (a row of cells shared with the task above is computed by both)
+/// and makes its stencils and the level-2 cells over its rows from them.
+fn first_coarse_level(
+    fine: &Level,
+    weight: f64,
+    coarser: bool,
+) -> Result<(Vec<Packed>, Option<Vec<Element>>)> {
+    let cells = FineCells::new(fine, weight);
+    let layout = fine.layout.coarser();
+    let (h, w) = (layout.rows - 1, layout.cols - 1);
+    let mut stencils = try_vec(
+        layout.rows * layout.cols,
+        [0.0f32; 10],
+        "the multigrid levels",
+    )?;
+    let below = layout.coarser();
+    let (h2, w2) = (below.rows - 1, below.cols - 1);
+    let mut next = match coarser {
+        true => Some(try_vec(h2 * w2, [[0.0; 4]; 4], "the multigrid levels")?),
+        false => None,
+    };
+    let q = interpolations();
+    let mut next_chunks = next
+        .as_mut()
+        .map(|n| n.chunks_mut((SETUP_ROWS / 2) * w2.max(1)));
+    let tasks: Vec<(&mut [Packed], Option<&mut [Element]>)> = stencils
+        .chunks_mut(SETUP_ROWS * layout.cols)
+        .map(|s| (s, next_chunks.as_mut().and_then(|c| c.next())))
+        .collect();
+    tasks
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(task, (stencil_rows, next_rows))| {
+            let first = task * SETUP_ROWS;
+            let rows = stencil_rows.len() / layout.cols;
+            // Level-1 cell rows first - 1 .. first + rows (within 0..h).
+            let top = first.saturating_sub(1);
+            let end = (first + rows).min(h);
+            let mut local = Vec::with_capacity((end.saturating_sub(top)) * w);
+            for cr in top..end {
+                for cc in 0..w {
+                    local.push(cells.cell(cr, cc));
+                }
+            }
+            let cell = |r: usize, c: usize| -> Option<&Element> {
+                (r >= top && r < end && c < w).then(|| &local[(r - top) * w + c])
+            };
+            for (t, out) in stencil_rows.chunks_exact_mut(layout.cols).enumerate() {
+                for (c, out) in out.iter_mut().enumerate() {
+                    *out = pack(&stencil_at(first + t, c, &cell));
+                }
+            }
+            if let Some(next_rows) = next_rows {
+                for (t, out) in next_rows.chunks_exact_mut(w2).enumerate() {
+                    let r2 = first / 2 + t;
+                    for (c2, out) in out.iter_mut().enumerate() {
+                        *out = coarse_cell(r2, c2, &q, &cell);
+                    }
+                }
+            }
+        });
+    Ok((stencils, next))
+}
+
+/// The Galerkin element of cell (cr, cc) of the next level from the cells of this one
+/// (`cell(r, c)`: None outside the level).
+#[inline]
+fn coarse_cell<'e>(
+    cr: usize,
+    cc: usize,
+    q: &[Element; 4],
+    cell: &impl Fn(usize, usize) -> Option<&'e Element>,
+) -> Element {
+    let mut out: Element = [[0.0; 4]; 4];
+    for (ab, qab) in q.iter().enumerate() {
+        let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
+        let Some(child) = cell(r, c) else {
+            continue;
+        };
+        if child[0][0] == 0.0 && child[3][3] == 0.0 && child[1][1] == 0.0 {
+            continue;
+        }
+        add_element(&mut out, &congruence(qab, child));
+    }
+    out
 }
 
 /// Galerkin elements of the next level's cells from the cells of a level with `layout`.
@@ -1043,53 +1160,53 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Result<Vec<Element>> {
     let coarse = layout.coarser();
     let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
     let q = interpolations();
+    let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
     let mut out = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
     out.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
         for (cc, out) in row.iter_mut().enumerate() {
-            let mut cell: Element = [[0.0; 4]; 4];
-            for (ab, qab) in q.iter().enumerate() {
-                let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
-                if r >= h || c >= w {
-                    continue;
-                }
-                let child = &cells[r * w + c];
-                if child[0][0] == 0.0 && child[3][3] == 0.0 && child[1][1] == 0.0 {
-                    continue;
-                }
-                add_element(&mut cell, &congruence(qab, child));
-            }
-            *out = cell;
+            *out = coarse_cell(cr, cc, &q, &cell);
         }
     });
     Ok(out)
+}
+
+/// The nodal 9-point stencil of node (r, c) from the cells around it (`cell(r, c)`: None
+/// outside the level).
+#[inline]
+fn stencil_at<'e>(
+    r: usize,
+    c: usize,
+    cell: &impl Fn(usize, usize) -> Option<&'e Element>,
+) -> Stencil {
+    let mut s: Stencil = [0.0; 10];
+    // Cell (r - 1 + jr', c - 1 + jc') holds this node as its corner (1 - jr', 1 - jc').
+    for (cell_r, cell_c, j) in [
+        (r.wrapping_sub(1), c.wrapping_sub(1), 3),
+        (r.wrapping_sub(1), c, 2),
+        (r, c.wrapping_sub(1), 1),
+        (r, c, 0),
+    ] {
+        let Some(e) = cell(cell_r, cell_c) else {
+            continue;
+        };
+        let (jr, jc) = CORNERS[j];
+        for (m, &(mr, mc)) in CORNERS.iter().enumerate() {
+            let k = (mr + 1 - jr) * 3 + (mc + 1 - jc);
+            s[k] += e[j][m];
+        }
+    }
+    s
 }
 
 /// The nodal 9-point stencils of a level with `layout` from its cell elements.
 fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Packed>> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
+    let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
     let mut out = try_vec(rows * cols, [0.0f32; 10], "the multigrid levels")?;
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
         for (c, out) in row.iter_mut().enumerate() {
-            let mut s: Stencil = [0.0; 10];
-            // Cell (r - 1 + jr', c - 1 + jc') holds this node as its corner (1 - jr', 1 - jc').
-            for (cell_r, cell_c, j) in [
-                (r.wrapping_sub(1), c.wrapping_sub(1), 3),
-                (r.wrapping_sub(1), c, 2),
-                (r, c.wrapping_sub(1), 1),
-                (r, c, 0),
-            ] {
-                if cell_r >= h || cell_c >= w {
-                    continue;
-                }
-                let e = &cells[cell_r * w + cell_c];
-                let (jr, jc) = CORNERS[j];
-                for (m, &(mr, mc)) in CORNERS.iter().enumerate() {
-                    let k = (mr + 1 - jr) * 3 + (mc + 1 - jc);
-                    s[k] += e[j][m];
-                }
-            }
-            *out = pack(&s);
+            *out = pack(&stencil_at(r, c, &cell));
         }
     });
     Ok(out)
@@ -1183,6 +1300,33 @@ pub(crate) mod tests {
         let iterations = mg.solve(&grid, &targets, &a, &mut b);
         assert_eq!(iterations, 0);
         assert!(max_diff(&a, &b) == 0.0);
+    }
+
+    /// Level 1 and the level-2 cells made band by band from the fine flags are those of the
+    /// whole level-1 cells.
+    #[test]
+    fn level_one_by_bands_matches_the_whole_cells() {
+        for (h, w) in [(120, 130), (75, 41), (200, 9)] {
+            for (name, mask) in masks(h, w) {
+                let grid = Grid::new(h, w, Some(&mask)).unwrap();
+                let prior = Prior {
+                    values: (0..grid.n_unknowns())
+                        .map(|i| if i % 5 == 0 { 1.0 } else { f64::NAN })
+                        .collect(),
+                    weight: 0.3,
+                };
+                let mg = MultigridSystem::with_coarsest(&grid, Some(&prior), 1).unwrap();
+                let fine = &mg.levels[0];
+                let l1 = fine.layout.coarser();
+                let cells = FineCells::new(fine, 0.3);
+                let whole: Vec<Element> = (0..(l1.rows - 1) * (l1.cols - 1))
+                    .map(|i| cells.cell(i / (l1.cols - 1), i % (l1.cols - 1)))
+                    .collect();
+                let (stencils, next) = first_coarse_level(fine, 0.3, true).unwrap();
+                assert_eq!(stencils, stencils_of(l1, &whole).unwrap(), "{name}");
+                assert_eq!(next.unwrap(), coarsen_cells(l1, &whole).unwrap(), "{name}");
+            }
+        }
     }
 
     /// The Galerkin coarse operators are symmetric and have constants in their null space away
