@@ -140,6 +140,51 @@ fn with_inverse(mut s: Stencil) -> Stencil {
     s
 }
 
+/// Values whose bytes all zero are a valid value (zero), which [`try_zeros`] hands out.
+///
+/// # Safety
+///
+/// Only for types of which every all-zero byte pattern is a valid value.
+unsafe trait Zeroable: Clone {
+    const ZERO: Self;
+}
+// SAFETY: zero bytes are 0, 0.0 and arrays of 0.0.
+unsafe impl Zeroable for u8 {
+    const ZERO: Self = 0;
+}
+unsafe impl Zeroable for f64 {
+    const ZERO: Self = 0.0;
+}
+unsafe impl Zeroable for Packed {
+    const ZERO: Self = [0.0; 10];
+}
+unsafe impl Zeroable for Element {
+    const ZERO: Self = [[0.0; 4]; 4];
+}
+
+/// `len` zeros, or [`Error::Memory`], allocated zeroed instead of filled: the operating system
+/// hands out zero pages as they are first touched, so the set-up does not write every buffer
+/// serially before the parallel code that fills it (or the solve that uses it) does.
+fn try_zeros<T: Zeroable>(len: usize, what: &str) -> Result<Vec<T>> {
+    let Ok(layout) = std::alloc::Layout::array::<T>(len) else {
+        return try_vec(len, T::ZERO, what);
+    };
+    if layout.size() == 0 {
+        return try_vec(len, T::ZERO, what);
+    }
+    // SAFETY: the layout has a non-zero size; the memory comes from the global allocator with
+    // `T`'s layout for `len` values, which are valid zeros (`Zeroable`), so it is a vector of
+    // length and capacity `len`.
+    unsafe {
+        let data = std::alloc::alloc_zeroed(layout).cast::<T>();
+        if data.is_null() {
+            // Out of memory: the fallible path reports it.
+            return try_vec(len, T::ZERO, what);
+        }
+        Ok(Vec::from_raw_parts(data, len, len))
+    }
+}
+
 /// Corner offsets `(row, column)` of a cell in the order 00, 01, 10, 11.
 const CORNERS: [(usize, usize); 4] = [(0, 0), (0, 1), (1, 0), (1, 1)];
 
@@ -305,8 +350,8 @@ impl Work {
     fn new(layout: Layout) -> Result<Work> {
         let n = layout.len();
         Ok(Work {
-            x: try_vec(n, 0.0, "the multigrid levels")?,
-            b: try_vec(n, 0.0, "the multigrid levels")?,
+            x: try_zeros(n, "the multigrid levels")?,
+            b: try_zeros(n, "the multigrid levels")?,
         })
     }
 }
@@ -793,7 +838,7 @@ impl MultigridSystem {
         let pins = pinned_unknowns(grid, prior)?;
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
-        let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;
+        let mut flags = try_zeros(layout.rows * layout.cols, "the multigrid's fine level")?;
         for p in grid.facets.iter().map(|&p| p as usize) {
             let (r, c) = (p / grid.width, p % grid.width);
             let v = r * vw + c;
@@ -858,7 +903,7 @@ impl MultigridSystem {
             .map(|l| Work::new(l.layout))
             .collect::<Result<Vec<Work>>>()?;
         let n = layout.len();
-        let krylov = || try_vec(n, 0.0, "the conjugate gradients' vectors");
+        let krylov = || try_zeros(n, "the conjugate gradients' vectors");
         Ok(MultigridSystem {
             levels,
             work,
@@ -1077,15 +1122,11 @@ fn first_coarse_level(
     let cells = FineCells::new(fine, weight);
     let layout = fine.layout.coarser();
     let (h, w) = (layout.rows - 1, layout.cols - 1);
-    let mut stencils = try_vec(
-        layout.rows * layout.cols,
-        [0.0f32; 10],
-        "the multigrid levels",
-    )?;
+    let mut stencils = try_zeros(layout.rows * layout.cols, "the multigrid levels")?;
     let below = layout.coarser();
     let (h2, w2) = (below.rows - 1, below.cols - 1);
     let mut next = match coarser {
-        true => Some(try_vec(h2 * w2, [[0.0; 4]; 4], "the multigrid levels")?),
+        true => Some(try_zeros(h2 * w2, "the multigrid levels")?),
         false => None,
     };
     let q = interpolations();
@@ -1161,7 +1202,7 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Result<Vec<Element>> {
     let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
     let q = interpolations();
     let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
-    let mut out = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
+    let mut out = try_zeros(ch * cw, "the multigrid levels")?;
     out.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
         for (cc, out) in row.iter_mut().enumerate() {
             *out = coarse_cell(cr, cc, &q, &cell);
@@ -1203,7 +1244,7 @@ fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Packed>> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
     let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
-    let mut out = try_vec(rows * cols, [0.0f32; 10], "the multigrid levels")?;
+    let mut out = try_zeros(rows * cols, "the multigrid levels")?;
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
         for (c, out) in row.iter_mut().enumerate() {
             *out = pack(&stencil_at(r, c, &cell));
