@@ -35,7 +35,7 @@
 //! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
 //! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
-use crate::memory::{try_vec, try_with_capacity};
+use crate::memory::{try_vec, try_with_capacity, try_zeros, Zeroable};
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::Par;
@@ -140,49 +140,13 @@ fn with_inverse(mut s: Stencil) -> Stencil {
     s
 }
 
-/// Values whose bytes all zero are a valid value (zero), which [`try_zeros`] hands out.
-///
-/// # Safety
-///
-/// Only for types of which every all-zero byte pattern is a valid value.
-unsafe trait Zeroable: Clone {
-    const ZERO: Self;
-}
-// SAFETY: zero bytes are 0, 0.0 and arrays of 0.0.
-unsafe impl Zeroable for u8 {
-    const ZERO: Self = 0;
-}
-unsafe impl Zeroable for f64 {
-    const ZERO: Self = 0.0;
-}
+// SAFETY: zero bytes are arrays of 0.0.
 unsafe impl Zeroable for Packed {
     const ZERO: Self = [0.0; 10];
 }
+// SAFETY: as above.
 unsafe impl Zeroable for Element {
     const ZERO: Self = [[0.0; 4]; 4];
-}
-
-/// `len` zeros, or [`Error::Memory`], allocated zeroed instead of filled: the operating system
-/// hands out zero pages as they are first touched, so the set-up does not write every buffer
-/// serially before the parallel code that fills it (or the solve that uses it) does.
-fn try_zeros<T: Zeroable>(len: usize, what: &str) -> Result<Vec<T>> {
-    let Ok(layout) = std::alloc::Layout::array::<T>(len) else {
-        return try_vec(len, T::ZERO, what);
-    };
-    if layout.size() == 0 {
-        return try_vec(len, T::ZERO, what);
-    }
-    // SAFETY: the layout has a non-zero size; the memory comes from the global allocator with
-    // `T`'s layout for `len` values, which are valid zeros (`Zeroable`), so it is a vector of
-    // length and capacity `len`.
-    unsafe {
-        let data = std::alloc::alloc_zeroed(layout).cast::<T>();
-        if data.is_null() {
-            // Out of memory: the fallible path reports it.
-            return try_vec(len, T::ZERO, what);
-        }
-        Ok(Vec::from_raw_parts(data, len, len))
-    }
 }
 
 /// Corner offsets `(row, column)` of a cell in the order 00, 01, 10, 11.
