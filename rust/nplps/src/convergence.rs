@@ -60,18 +60,37 @@ impl Oscillation {
         }
     }
 
-    /// Records the step from `u` to `next` (as taken), whose largest depth change was `moved`:
-    /// an alternation counts only when `moved` is above the tolerance `limit`.
-    pub(crate) fn record(&mut self, u: &[f64], next: &[f64], moved: f64, limit: f64) {
+    /// Records the step from `u` to `next` (as taken) and returns its largest depth change
+    /// (as [`max_depth_change`], in the same pass that finds the unknown that moved most): an
+    /// alternation counts only when that change is above the tolerance `limit`.
+    pub(crate) fn record(
+        &mut self,
+        geometry: &Geometry,
+        u: &[f64],
+        next: &[f64],
+        limit: f64,
+    ) -> f64 {
         use rayon::prelude::*;
-        let largest = u
+        // (largest depth change, (unknown that moved most, its signed change)); ties keep the
+        // first unknown, whatever the split of the reduction.
+        let (moved, largest) = u
             .par_iter()
             .zip(next)
             .enumerate()
-            .map(|(i, (&a, &b))| (i, b - a))
+            .map(|(i, (&a, &b))| {
+                let depth = (geometry.depth(a) - geometry.depth(b)).abs();
+                (depth, (i, b - a))
+            })
             .reduce(
-                || (0, 0.0),
-                |x, y| if y.1.abs() > x.1.abs() { y } else { x },
+                || (0.0, (0, 0.0)),
+                |x, y| {
+                    let largest = if y.1 .1.abs() > x.1 .1.abs() {
+                        y.1
+                    } else {
+                        x.1
+                    };
+                    (x.0.max(y.0), largest)
+                },
             );
         let back = match self.last {
             Some((j, before)) if j < u.len() => {
@@ -89,6 +108,7 @@ impl Oscillation {
             self.damped = true;
         }
         self.last = Some(largest);
+        moved
     }
 }
 
@@ -366,14 +386,16 @@ mod tests {
         // (a + b) / 2 in one step.
         let (a, b) = ([1.0, 5.0, -2.0], [1.0, -3.0, 4.0]);
         let map = |u: &[f64]| -> Vec<f64> { (0..3).map(|i| a[i] + b[i] - u[i]).collect() };
+        // Orthographic unknowns: the depth change is the change of the unknowns.
+        let flat = Geometry::orthographic(3);
         let mut osc = Oscillation::default();
         let mut u = a.to_vec();
         let mut damped_at = None;
         for iteration in 1..=8 {
             let mut next = map(&u);
             osc.damp(&u, &mut next);
-            let moved = max_change(&u, &next);
-            osc.record(&u, &next, moved, 1e-6);
+            let moved = osc.record(&flat, &u, &next, 1e-6);
+            assert_eq!(moved, max_change(&u, &next));
             if osc.damped && damped_at.is_none() {
                 damped_at = Some(iteration);
             }
@@ -391,7 +413,7 @@ mod tests {
             let taken = next.clone();
             osc.damp(&u, &mut next);
             assert_eq!(next, taken);
-            osc.record(&u, &next, max_change(&u, &next), 1e-9);
+            osc.record(&flat, &u, &next, 1e-9);
             u = next;
         }
         assert!(!osc.damped);
@@ -400,7 +422,7 @@ mod tests {
         let mut u = a.to_vec();
         for _ in 0..8 {
             let next = map(&u);
-            osc.record(&u, &next, max_change(&u, &next), 100.0);
+            osc.record(&flat, &u, &next, 100.0);
             u = next;
         }
         assert!(!osc.damped);

@@ -53,6 +53,15 @@ impl Geometry {
         })
     }
 
+    /// An orthographic geometry of `n` unknowns at (0, 0) (tests that only need depths).
+    #[cfg(test)]
+    pub(crate) fn orthographic(n: usize) -> Geometry {
+        Geometry {
+            perspective: false,
+            base: vec![[0.0; 2]; n],
+        }
+    }
+
     /// Fails when a vertex of `grid` (the grid this geometry was made for) has no finite
     /// position or ray, or one beyond [`MAX_MAGNITUDE`]: a pinhole camera whose distortion
     /// cannot be undone there (see `undistort_checked`) or whose rays are nearly

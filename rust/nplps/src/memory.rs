@@ -67,6 +67,51 @@ pub fn try_filled<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> 
     Ok(v)
 }
 
+/// Values whose bytes all zero are a valid value (zero), which [`try_zeros`] hands out.
+///
+/// # Safety
+///
+/// Only for types of which the all-zero byte pattern is a valid value.
+pub(crate) unsafe trait Zeroable: Clone {
+    /// The zero value.
+    const ZERO: Self;
+}
+// SAFETY: zero bytes are 0, 0.0 and arrays of 0.0.
+unsafe impl Zeroable for u8 {
+    const ZERO: Self = 0;
+}
+// SAFETY: as above.
+unsafe impl Zeroable for f64 {
+    const ZERO: Self = 0.0;
+}
+// SAFETY: as above.
+unsafe impl Zeroable for [f64; 4] {
+    const ZERO: Self = [0.0; 4];
+}
+
+/// `len` zeros, or [`Error::Memory`], allocated zeroed instead of filled: the operating system
+/// hands out zero pages as they are first touched, so a large buffer is not written serially
+/// before the (parallel) code that fills it does.
+pub(crate) fn try_zeros<T: Zeroable>(len: usize, what: &str) -> Result<Vec<T>> {
+    let Ok(layout) = std::alloc::Layout::array::<T>(len) else {
+        return try_vec(len, T::ZERO, what);
+    };
+    if layout.size() == 0 {
+        return try_vec(len, T::ZERO, what);
+    }
+    // SAFETY: the layout has a non-zero size; the memory comes from the global allocator with
+    // `T`'s layout for `len` values, which are valid zeros (`Zeroable`), so it is a vector of
+    // length and capacity `len`.
+    unsafe {
+        let data = std::alloc::alloc_zeroed(layout).cast::<T>();
+        if data.is_null() {
+            // Out of memory: the fallible path reports it.
+            return try_vec(len, T::ZERO, what);
+        }
+        Ok(Vec::from_raw_parts(data, len, len))
+    }
+}
+
 /// [`try_filled`] under the short name the modules use for their O(pixels) buffers.
 pub(crate) fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
     try_filled(len, value, what)
@@ -197,6 +242,17 @@ fn address_space_free() -> Option<u64> {
 mod tests {
     use super::*;
     use crate::error::format_bytes;
+
+    /// Zeroed allocations are vectors of zeros of the asked length, empty ones included.
+    #[test]
+    fn zeroed_vectors_hold_zeros() {
+        assert_eq!(try_zeros::<f64>(1 << 20, "x").unwrap(), vec![0.0; 1 << 20]);
+        assert_eq!(try_zeros::<[f64; 4]>(3, "x").unwrap(), vec![[0.0; 4]; 3]);
+        assert!(try_zeros::<u8>(0, "x").unwrap().is_empty());
+        let mut v = try_zeros::<f64>(10, "x").unwrap();
+        v.push(1.0);
+        assert_eq!(v.len(), 11);
+    }
 
     #[test]
     fn a_limit_below_the_estimate_is_refused_with_both_numbers() {

@@ -35,7 +35,7 @@
 //! [`crate::global::GlobalStep`] switches those systems to the direct solver when they are small
 //! enough (see [`crate::global::FALLBACK_ITERATIONS`]).
 
-use crate::memory::{try_vec, try_with_capacity};
+use crate::memory::{try_vec, try_with_capacity, try_zeros, Zeroable};
 use faer::sparse::linalg::cholesky::SymmetricOrdering;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::Par;
@@ -83,6 +83,53 @@ const INVERSE: usize = 9;
 /// inverse of the diagonal.
 type Stencil = [f64; 10];
 
+/// A coarse stencil as stored, in single precision (half the memory of the coarse levels):
+/// the 8 neighbour coefficients in their places, at [`CENTRE`] the row sum `e = sum_k s_k`
+/// (what the pins and the prior add to the diagonal; 0 up to rounding elsewhere) and at
+/// [`INVERSE`] the inverse diagonal. The diagonal is recomputed as `e - sum_{k != centre}
+/// s_k` from the rounded neighbours ([`unpack`]), so the stored operator stays symmetric
+/// (both ends of an edge round the same value) and keeps constants in its null space away
+/// from the pins exactly as the double-precision one does. The coarse levels only
+/// precondition the conjugate gradients, which run in double precision: the rounding (a
+/// relative 6e-8 per coefficient) changes how fast they converge, not what they converge to.
+type Packed = [f32; 10];
+
+/// The single-precision form of a coarse stencil (see [`Packed`]).
+fn pack(s: &Stencil) -> Packed {
+    let mut p = [0.0f32; 10];
+    let mut sum = 0.0;
+    for k in 0..9 {
+        sum += s[k];
+        if k != CENTRE {
+            p[k] = s[k] as f32;
+        }
+    }
+    p[CENTRE] = sum as f32;
+    let centre = unpack(&p)[CENTRE];
+    p[INVERSE] = if centre > 0.0 {
+        (1.0 / centre) as f32
+    } else {
+        0.0
+    };
+    p
+}
+
+/// The double-precision stencil of a stored coarse stencil (see [`Packed`]).
+#[inline(always)]
+fn unpack(p: &Packed) -> Stencil {
+    let mut s = [0.0; 10];
+    let mut neighbours = 0.0;
+    for k in 0..9 {
+        if k != CENTRE {
+            s[k] = f64::from(p[k]);
+            neighbours += s[k];
+        }
+    }
+    s[CENTRE] = f64::from(p[CENTRE]) - neighbours;
+    s[INVERSE] = f64::from(p[INVERSE]);
+    s
+}
+
 /// Sets a stencil's inverse diagonal from its diagonal.
 fn with_inverse(mut s: Stencil) -> Stencil {
     s[INVERSE] = if s[CENTRE] > 0.0 {
@@ -91,6 +138,15 @@ fn with_inverse(mut s: Stencil) -> Stencil {
         0.0
     };
     s
+}
+
+// SAFETY: zero bytes are arrays of 0.0.
+unsafe impl Zeroable for Packed {
+    const ZERO: Self = [0.0; 10];
+}
+// SAFETY: as above.
+unsafe impl Zeroable for Element {
+    const ZERO: Self = [[0.0; 4]; 4];
 }
 
 /// Corner offsets `(row, column)` of a cell in the order 00, 01, 10, 11.
@@ -209,16 +265,26 @@ enum Stencils {
         flags: Vec<u8>,
         table: Box<[Stencil; 64]>,
     },
-    /// One stencil per node (row-major, unpadded); zero for an inactive node.
-    Coarse(Vec<Stencil>),
+    /// One stencil per node (row-major, unpadded), in single precision (see [`Packed`]);
+    /// zero for an inactive node.
+    Coarse(Vec<Packed>),
 }
 
 impl Stencils {
     #[inline]
-    fn get(&self, node: usize) -> &Stencil {
+    fn get(&self, node: usize) -> Stencil {
         match self {
-            Stencils::Fine { flags, table } => &table[flags[node] as usize],
-            Stencils::Coarse(s) => &s[node],
+            Stencils::Fine { flags, table } => table[flags[node] as usize],
+            Stencils::Coarse(s) => unpack(&s[node]),
+        }
+    }
+
+    /// Whether `node` is active (its diagonal is positive).
+    #[inline]
+    fn active(&self, node: usize) -> bool {
+        match self {
+            Stencils::Fine { flags, table } => table[flags[node] as usize][INVERSE] > 0.0,
+            Stencils::Coarse(s) => s[node][INVERSE] > 0.0,
         }
     }
 }
@@ -232,25 +298,24 @@ struct Level {
 impl Level {
     fn active_nodes(&self) -> usize {
         (0..self.layout.rows * self.layout.cols)
-            .filter(|&n| self.stencils.get(n)[CENTRE] > 0.0)
+            .filter(|&n| self.stencils.active(n))
             .count()
     }
 }
 
-/// Work vectors of one level (padded): solution, right side, residual.
+/// Work vectors of one level (padded): solution and right side (its residual is restricted
+/// as it is computed, see [`restrict_residual`]).
 struct Work {
     x: Vec<f64>,
     b: Vec<f64>,
-    r: Vec<f64>,
 }
 
 impl Work {
     fn new(layout: Layout) -> Result<Work> {
         let n = layout.len();
         Ok(Work {
-            x: try_vec(n, 0.0, "the multigrid levels")?,
-            b: try_vec(n, 0.0, "the multigrid levels")?,
-            r: try_vec(n, 0.0, "the multigrid levels")?,
+            x: try_zeros(n, "the multigrid levels")?,
+            b: try_zeros(n, "the multigrid levels")?,
         })
     }
 }
@@ -262,12 +327,12 @@ macro_rules! with_stencils {
     ($level:expr, |$get:ident, $plain:ident| $body:expr) => {
         match &$level.stencils {
             Stencils::Fine { flags, table } => {
-                let $get = |n: usize| -> &Stencil { &table[flags[n] as usize] };
+                let $get = |n: usize| -> Stencil { table[flags[n] as usize] };
                 let $plain = |n: usize| flags[n] == NW | NE | SW | SE;
                 $body
             }
             Stencils::Coarse(stencils) => {
-                let $get = |n: usize| -> &Stencil { &stencils[n] };
+                let $get = |n: usize| -> Stencil { unpack(&stencils[n]) };
                 let $plain = |_: usize| false;
                 $body
             }
@@ -303,59 +368,130 @@ fn apply_stencil(s: &Stencil, above: &[f64], here: &[f64], below: &[f64], j: usi
 /// after `q = A p`.
 fn residual(level: &Level, x: &[f64], b: Option<&[f64]>, out: &mut [f64]) -> f64 {
     let l = level.layout;
-    let stride = l.stride;
     with_stencils!(level, |get, plain| {
         let partial: Vec<f64> = out
-            .par_chunks_mut(stride)
+            .par_chunks_mut(l.stride)
             .enumerate()
-            .map(|(pr, row)| {
-                if pr == 0 || pr > l.rows {
-                    return 0.0;
-                }
-                let r = pr - 1;
-                let above = &x[(pr - 1) * stride..pr * stride];
-                let here = &x[pr * stride..(pr + 1) * stride];
-                let below = &x[(pr + 1) * stride..(pr + 2) * stride];
-                let base = r * l.cols;
-                let row = &mut row[1..l.cols + 1];
-                match b {
-                    Some(b) => {
-                        let b = &b[pr * stride + 1..pr * stride + 1 + l.cols];
-                        for (c, (o, &bc)) in row.iter_mut().zip(b).enumerate() {
-                            *o = if plain(base + c) {
-                                bc - plain_apply(above, here, below, c + 1)
-                            } else {
-                                let s = get(base + c);
-                                let ax = apply_stencil(s, above, here, below, c + 1);
-                                if s[CENTRE] > 0.0 {
-                                    bc - ax
-                                } else {
-                                    0.0
-                                }
-                            };
-                        }
-                    }
-                    None => {
-                        for (c, o) in row.iter_mut().enumerate() {
-                            *o = if plain(base + c) {
-                                plain_apply(above, here, below, c + 1)
-                            } else {
-                                let s = get(base + c);
-                                let ax = apply_stencil(s, above, here, below, c + 1);
-                                if s[CENTRE] > 0.0 {
-                                    ax
-                                } else {
-                                    0.0
-                                }
-                            };
-                        }
-                    }
-                }
-                row.iter().zip(&here[1..]).map(|(o, x)| o * x).sum::<f64>()
-            })
+            .map(|(pr, row)| residual_row(&get, &plain, l, x, b, pr, row))
             .collect();
         partial.iter().sum()
     })
+}
+
+/// Padded row `pr` of [`residual`] into `row` (its nodes only: the padding is left as it is);
+/// returns the row's part of `x . out` (0 for a padding row).
+#[inline(always)]
+fn residual_row(
+    get: &impl Fn(usize) -> Stencil,
+    plain: &impl Fn(usize) -> bool,
+    l: Layout,
+    x: &[f64],
+    b: Option<&[f64]>,
+    pr: usize,
+    row: &mut [f64],
+) -> f64 {
+    if pr == 0 || pr > l.rows {
+        return 0.0;
+    }
+    let stride = l.stride;
+    let r = pr - 1;
+    let above = &x[(pr - 1) * stride..pr * stride];
+    let here = &x[pr * stride..(pr + 1) * stride];
+    let below = &x[(pr + 1) * stride..(pr + 2) * stride];
+    let base = r * l.cols;
+    let row = &mut row[1..l.cols + 1];
+    match b {
+        Some(b) => {
+            let b = &b[pr * stride + 1..pr * stride + 1 + l.cols];
+            for (c, (o, &bc)) in row.iter_mut().zip(b).enumerate() {
+                *o = if plain(base + c) {
+                    bc - plain_apply(above, here, below, c + 1)
+                } else {
+                    let s = get(base + c);
+                    let ax = apply_stencil(&s, above, here, below, c + 1);
+                    if s[INVERSE] > 0.0 {
+                        bc - ax
+                    } else {
+                        0.0
+                    }
+                };
+            }
+        }
+        None => {
+            for (c, o) in row.iter_mut().enumerate() {
+                *o = if plain(base + c) {
+                    plain_apply(above, here, below, c + 1)
+                } else {
+                    let s = get(base + c);
+                    let ax = apply_stencil(&s, above, here, below, c + 1);
+                    if s[INVERSE] > 0.0 {
+                        ax
+                    } else {
+                        0.0
+                    }
+                };
+            }
+        }
+    }
+    row.iter().zip(&here[1..]).map(|(o, x)| o * x).sum::<f64>()
+}
+
+/// Coarse rows per task of [`restrict_residual`].
+const RESTRICT_ROWS: usize = 8;
+
+thread_local! {
+    /// The fine residual rows of one task of [`restrict_residual`] (kept per thread, so that
+    /// V-cycles do not allocate).
+    static RESTRICT_BUFFER: std::cell::RefCell<Vec<f64>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// `b_coarse = P^T (b - A x)` at the active coarse nodes (the residual of `fine`, restricted)
+/// without storing the fine residual: each task of [`RESTRICT_ROWS`] coarse rows computes the
+/// `2 RESTRICT_ROWS + 1` fine residual rows they read into a buffer of its own (a row shared
+/// by two tasks is computed by both, so the fine level needs no residual vector).
+fn restrict_residual(fine: &Level, coarse: &Level, x: &[f64], b: &[f64], b_coarse: &mut [f64]) {
+    let (lf, lc) = (fine.layout, coarse.layout);
+    with_stencils!(fine, |get, plain| {
+        b_coarse
+            .par_chunks_mut(lc.stride * RESTRICT_ROWS)
+            .enumerate()
+            .for_each(|(task, rows)| {
+                // Fine padded rows 2 pr_c - 2 .. 2 pr_c for coarse padded row pr_c (node row
+                // pr_c - 1 sits on fine node row 2 pr_c - 2, padded 2 pr_c - 1).
+                let first_c = task * RESTRICT_ROWS;
+                let first_f = (2 * first_c).saturating_sub(2);
+                RESTRICT_BUFFER.with_borrow_mut(|buffer| {
+                    buffer.clear();
+                    buffer.resize((2 * RESTRICT_ROWS + 1) * lf.stride, 0.0);
+                    for (t, out) in buffer.chunks_exact_mut(lf.stride).enumerate() {
+                        residual_row(&get, &plain, lf, x, Some(b), first_f + t, out);
+                    }
+                    for (t, row) in rows.chunks_exact_mut(lc.stride).enumerate() {
+                        let pr = first_c + t;
+                        if pr == 0 || pr > lc.rows {
+                            continue;
+                        }
+                        let rr = pr - 1;
+                        // Fine padded rows 2 rr, 2 rr + 1, 2 rr + 2 around the centre.
+                        let top = 2 * rr - first_f;
+                        for cc in 0..lc.cols {
+                            row[cc + 1] = if coarse.stencils.active(rr * lc.cols + cc) {
+                                let centre = 2 * cc + 1;
+                                let mut sum = 0.0;
+                                for (dr, wr) in [(0, 0.5), (1, 1.0), (2, 0.5)] {
+                                    let f = &buffer[(top + dr) * lf.stride..];
+                                    sum += wr
+                                        * (0.5 * f[centre - 1] + f[centre] + 0.5 * f[centre + 1]);
+                                }
+                                sum
+                            } else {
+                                0.0
+                            };
+                        }
+                    }
+                })
+            })
+    });
 }
 
 /// A raw pointer shared by the Gauss-Seidel bands.
@@ -421,7 +557,7 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
                                 here[j] = (b[j] + rest + 0.5 * previous) * (1.0 / 3.0);
                             } else {
                                 let s = get(base + c);
-                                if s[CENTRE] > 0.0 {
+                                if s[INVERSE] > 0.0 {
                                     let rest = s[0] * above[j - 1]
                                         + s[1] * above[j]
                                         + s[2] * above[j + 1]
@@ -445,35 +581,6 @@ fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool) {
     });
 }
 
-/// `coarse = P^T fine` at the active coarse nodes.
-fn restrict(fine: &Level, coarse: &Level, r_fine: &[f64], b_coarse: &mut [f64]) {
-    let (lf, lc) = (fine.layout, coarse.layout);
-    b_coarse
-        .par_chunks_mut(lc.stride)
-        .enumerate()
-        .for_each(|(pr, row)| {
-            if pr == 0 || pr > lc.rows {
-                return;
-            }
-            let rr = pr - 1;
-            for cc in 0..lc.cols {
-                row[cc + 1] = if coarse.stencils.get(rr * lc.cols + cc)[CENTRE] > 0.0 {
-                    let centre = lf.index(2 * rr, 2 * cc) as isize;
-                    let mut sum = 0.0;
-                    for (dr, wr) in [(-1isize, 0.5), (0, 1.0), (1, 0.5)] {
-                        for (dc, wc) in [(-1isize, 0.5), (0, 1.0), (1, 0.5)] {
-                            let i = centre + dr * lf.stride as isize + dc;
-                            sum += wr * wc * r_fine[i as usize];
-                        }
-                    }
-                    sum
-                } else {
-                    0.0
-                };
-            }
-        });
-}
-
 /// `x_fine += P x_coarse` at the active fine nodes.
 fn prolongate_add(fine: &Level, coarse: &Level, x_coarse: &[f64], x_fine: &mut [f64]) {
     let (lf, lc) = (fine.layout, coarse.layout);
@@ -491,7 +598,7 @@ fn prolongate_add(fine: &Level, coarse: &Level, x_coarse: &[f64], x_fine: &mut [
                 &[(r / 2, 0.5), (r / 2 + 1, 0.5)]
             };
             for c in 0..lf.cols {
-                if fine.stencils.get(r * lf.cols + c)[CENTRE] <= 0.0 {
+                if !fine.stencils.active(r * lf.cols + c) {
                     continue;
                 }
                 let cols: &[(usize, f64)] = if c % 2 == 0 {
@@ -590,11 +697,11 @@ impl Coarsest {
         let l = level.layout;
         let mut number = try_vec(l.rows * l.cols, u32::MAX, WHAT)?;
         let active = (0..l.rows * l.cols)
-            .filter(|&n| level.stencils.get(n)[CENTRE] > 0.0)
+            .filter(|&n| level.stencils.active(n))
             .count();
         let mut nodes = try_with_capacity(active, WHAT)?;
         for (n, slot) in number.iter_mut().enumerate() {
-            if level.stencils.get(n)[CENTRE] > 0.0 {
+            if level.stencils.active(n) {
                 *slot = nodes.len() as u32;
                 nodes.push(l.index(n / l.cols, n % l.cols));
             }
@@ -650,13 +757,14 @@ impl Coarsest {
     }
 }
 
-/// Vectors of the conjugate gradients on the fine padded grid.
+/// Vectors of the conjugate gradients on the fine padded grid. `w` holds the preconditioned
+/// residual `z = M r` until the search direction `p` is updated from it, then `q = A p` until
+/// the next preconditioning: the two are never needed at the same time.
 struct Krylov {
     x: Vec<f64>,
     r: Vec<f64>,
-    z: Vec<f64>,
     p: Vec<f64>,
-    q: Vec<f64>,
+    w: Vec<f64>,
 }
 
 /// The multigrid-preconditioned global system of one mask (see the module documentation).
@@ -694,7 +802,7 @@ impl MultigridSystem {
         let pins = pinned_unknowns(grid, prior)?;
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
-        let mut flags = try_vec(layout.rows * layout.cols, 0u8, "the multigrid's fine level")?;
+        let mut flags = try_zeros(layout.rows * layout.cols, "the multigrid's fine level")?;
         for p in grid.facets.iter().map(|&p| p as usize) {
             let (r, c) = (p / grid.width, p % grid.width);
             let v = r * vw + c;
@@ -729,17 +837,28 @@ impl MultigridSystem {
             if l.rows <= 3 || l.cols <= 3 || last.active_nodes() <= coarsest_nodes {
                 break;
             }
-            let coarse_cells = match &cells {
-                None => coarsen_fine(last, weight)?,
-                Some(c) => coarsen_cells(l, c)?,
-            };
             let layout = l.coarser();
-            let stencils = stencils_of(layout, &coarse_cells)?;
+            // `cells`: the cells of the new level (after level 1), whose stencils they give,
+            // and from which the cells of the level below it are made.
+            let coarser = layout.rows > 3 && layout.cols > 3;
+            let (stencils, next) = match cells.take() {
+                // Level 1 straight from the fine flags, with the level-2 cells.
+                None if levels.len() == 1 => first_coarse_level(last, weight, coarser)?,
+                None => break,
+                Some(c) => {
+                    let stencils = stencils_of(layout, &c)?;
+                    let next = match coarser {
+                        true => Some(coarsen_cells(layout, &c)?),
+                        false => None,
+                    };
+                    (stencils, next)
+                }
+            };
             levels.push(Level {
                 layout,
                 stencils: Stencils::Coarse(stencils),
             });
-            cells = Some(coarse_cells);
+            cells = next;
         }
         drop(cells);
         let coarsest = Coarsest::new(levels.last().expect("at least the fine level"))?;
@@ -748,7 +867,7 @@ impl MultigridSystem {
             .map(|l| Work::new(l.layout))
             .collect::<Result<Vec<Work>>>()?;
         let n = layout.len();
-        let krylov = || try_vec(n, 0.0, "the conjugate gradients' vectors");
+        let krylov = || try_zeros(n, "the conjugate gradients' vectors");
         Ok(MultigridSystem {
             levels,
             work,
@@ -756,9 +875,8 @@ impl MultigridSystem {
             krylov: Krylov {
                 x: krylov()?,
                 r: krylov()?,
-                z: krylov()?,
                 p: krylov()?,
-                q: krylov()?,
+                w: krylov()?,
             },
             pins,
             prior_rhs: prior_right_side(prior)?,
@@ -774,7 +892,7 @@ impl MultigridSystem {
         self.levels.len()
     }
 
-    /// `z ~ A^-1 r` by one V-cycle from a zero start.
+    /// `z ~ A^-1 r` by one V-cycle from a zero start, into `w`.
     fn precondition(&mut self) {
         let k = &mut self.krylov;
         vcycle(
@@ -782,10 +900,8 @@ impl MultigridSystem {
             &mut self.work,
             &mut self.coarsest,
             0,
-            &mut k.z,
+            &mut k.w,
             &k.r,
-            // q is free while the preconditioner runs: it holds the fine level's residual.
-            &mut k.q,
         );
     }
 
@@ -801,7 +917,7 @@ impl MultigridSystem {
     ) -> usize {
         let fine = &self.levels[0];
         let k = &mut self.krylov;
-        // The right side per unknown, in z (free until the first V-cycle), then onto the grid.
+        // The right side per unknown, in w (free until the first V-cycle), then onto the grid.
         let n = grid.n_unknowns();
         let target_norm = right_side(
             grid,
@@ -809,9 +925,9 @@ impl MultigridSystem {
             &self.pins,
             self.prior_rhs.as_deref(),
             z_current,
-            &mut k.z[..n],
+            &mut k.w[..n],
         );
-        to_grid(fine.layout, grid, &k.z[..n], &mut k.r);
+        to_grid(fine.layout, grid, &k.w[..n], &mut k.r);
         let scale = if target_norm > 0.0 {
             target_norm
         } else {
@@ -819,32 +935,35 @@ impl MultigridSystem {
         };
         let tol = self.rtol * scale;
         to_grid(fine.layout, grid, z_current, &mut k.x);
-        residual(fine, &k.x, None, &mut k.q);
-        axpy(-1.0, &k.q, &mut k.r);
+        // The residual writes the nodes only: the padding must be zero again (the right side
+        // left values there).
+        k.w.fill(0.0);
+        residual(fine, &k.x, None, &mut k.w);
+        axpy(-1.0, &k.w, &mut k.r);
         let mut iterations = 0;
         if dot(&k.r, &k.r).sqrt() > tol {
             self.precondition();
             let k = &mut self.krylov;
-            k.p.copy_from_slice(&k.z);
-            let mut rz = dot(&k.r, &k.z);
+            k.p.copy_from_slice(&k.w);
+            let mut rz = dot(&k.r, &k.w);
             while iterations < self.max_iterations && !self.cancel.is_cancelled() {
                 iterations += 1;
                 let k = &mut self.krylov;
-                let pq = residual(&self.levels[0], &k.p, None, &mut k.q);
+                let pq = residual(&self.levels[0], &k.p, None, &mut k.w);
                 if pq.is_nan() || pq <= 0.0 {
                     break;
                 }
                 let alpha = rz / pq;
-                if step_and_norm(alpha, &k.p, &k.q, &mut k.x, &mut k.r).sqrt() <= tol {
+                if step_and_norm(alpha, &k.p, &k.w, &mut k.x, &mut k.r).sqrt() <= tol {
                     break;
                 }
                 self.precondition();
                 let k = &mut self.krylov;
-                let rz_new = dot(&k.r, &k.z);
+                let rz_new = dot(&k.r, &k.w);
                 let beta = rz_new / rz;
                 rz = rz_new;
                 k.p.par_chunks_mut(CHUNK)
-                    .zip(k.z.par_chunks(CHUNK))
+                    .zip(k.w.par_chunks(CHUNK))
                     .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
             }
         }
@@ -858,8 +977,8 @@ impl MultigridSystem {
     }
 }
 
-/// One V-cycle on level `l` from a zero start: `x ~ A_l^-1 b`; `r` is the level's residual
-/// buffer and `work` the work vectors of the levels below it.
+/// One V-cycle on level `l` from a zero start: `x ~ A_l^-1 b`; `work` holds the work vectors
+/// of the levels below it.
 fn vcycle(
     levels: &[Level],
     work: &mut [Work],
@@ -867,7 +986,6 @@ fn vcycle(
     l: usize,
     x: &mut [f64],
     b: &[f64],
-    r: &mut [f64],
 ) {
     x.fill(0.0);
     if l + 1 == levels.len() {
@@ -876,18 +994,9 @@ fn vcycle(
     }
     let (fine, coarse) = (&levels[l], &levels[l + 1]);
     gauss_seidel(fine, x, b, true);
-    residual(fine, x, Some(b), r);
     let (here, below) = work.split_first_mut().expect("a coarser level");
-    restrict(fine, coarse, r, &mut here.b);
-    vcycle(
-        levels,
-        below,
-        coarsest,
-        l + 1,
-        &mut here.x,
-        &here.b,
-        &mut here.r,
-    );
+    restrict_residual(fine, coarse, x, b, &mut here.b);
+    vcycle(levels, below, coarsest, l + 1, &mut here.x, &here.b);
     prolongate_add(fine, coarse, &here.x, x);
     gauss_seidel(fine, x, b, false);
 }
@@ -897,55 +1006,157 @@ fn interpolations() -> [Element; 4] {
     std::array::from_fn(|ab| interpolation(ab / 2, ab % 2))
 }
 
-/// Galerkin elements of the level-1 cells from the fine facets, with the pins' and the prior's
-/// diagonal terms (prior weight `weight`) folded into one facet of each vertex: the first
-/// masked one among its NW, NE, SW, SE facets.
-fn coarsen_fine(fine: &Level, weight: f64) -> Result<Vec<Element>> {
-    let Stencils::Fine { flags, .. } = &fine.stencils else {
-        unreachable!("coarsen_fine takes the fine level")
-    };
-    let l = fine.layout;
-    let (h, w) = (l.rows - 1, l.cols - 1);
-    let coarse = l.coarser();
-    let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
-    let q = interpolations();
-    // The facet element N = I - ones/4 seen from the coarse corners, per child position.
-    let mut facet = [[[0.0; 4]; 4]; 4];
-    let n: Element = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(i == j) - 0.25));
-    for (ab, g) in facet.iter_mut().enumerate() {
-        *g = congruence(&q[ab], &n);
+/// What the level-1 cells are made from: the fine vertex flags, the interpolation matrices, the
+/// facet element seen from the coarse corners per child position, and the prior's weight.
+struct FineCells<'a> {
+    flags: &'a [u8],
+    layout: Layout,
+    q: [Element; 4],
+    facet: [Element; 4],
+    weight: f64,
+}
+
+impl FineCells<'_> {
+    fn new(fine: &Level, weight: f64) -> FineCells<'_> {
+        let Stencils::Fine { flags, .. } = &fine.stencils else {
+            unreachable!("the level-1 cells come from the fine level")
+        };
+        let q = interpolations();
+        // The facet element N = I - ones/4 seen from the coarse corners, per child position.
+        let mut facet = [[[0.0; 4]; 4]; 4];
+        let n: Element = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(i == j) - 0.25));
+        for (ab, g) in facet.iter_mut().enumerate() {
+            *g = congruence(&q[ab], &n);
+        }
+        FineCells {
+            flags,
+            layout: fine.layout,
+            q,
+            facet,
+            weight,
+        }
     }
-    // Which facet bit of corner j's vertex facet (r, c) is (corner 00 sees it as SE, ...).
-    let bit_of_corner = [SE, SW, NE, NW];
-    // Every output is written once, never read first: reading fresh zeroed memory before
-    // writing it costs a copy-on-write page fault per page.
-    let mut cells = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
-    cells.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
-        for (cc, out) in row.iter_mut().enumerate() {
-            let mut cell: Element = [[0.0; 4]; 4];
-            for (ab, qab) in q.iter().enumerate() {
-                let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
-                if r >= h || c >= w || flags[r * l.cols + c] & SE == 0 {
-                    continue;
-                }
-                add_element(&mut cell, &facet[ab]);
-                for (j, &(jr, jc)) in CORNERS.iter().enumerate() {
-                    let f = flags[(r + jr) * l.cols + c + jc];
-                    let extra = f64::from(f & PINNED != 0) + weight * f64::from(f & PRIOR != 0);
-                    let first = 1u8 << (f & 15).trailing_zeros();
-                    if extra != 0.0 && first == bit_of_corner[j] {
-                        for i in 0..4 {
-                            for k in 0..4 {
-                                cell[i][k] += extra * qab[j][i] * qab[j][k];
-                            }
+
+    /// The Galerkin element of level-1 cell (cr, cc) from its (up to 4) fine facets, with the
+    /// pins' and the prior's diagonal terms folded into one facet of each vertex: the first
+    /// masked one among its NW, NE, SW, SE facets.
+    #[inline]
+    fn cell(&self, cr: usize, cc: usize) -> Element {
+        let (l, flags) = (self.layout, self.flags);
+        let (h, w) = (l.rows - 1, l.cols - 1);
+        // Which facet bit of corner j's vertex facet (r, c) is (corner 00 sees it as SE, ...).
+        let bit_of_corner = [SE, SW, NE, NW];
+        let mut cell: Element = [[0.0; 4]; 4];
+        for (ab, qab) in self.q.iter().enumerate() {
+            let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
+            if r >= h || c >= w || flags[r * l.cols + c] & SE == 0 {
+                continue;
+            }
+            add_element(&mut cell, &self.facet[ab]);
+            for (j, &(jr, jc)) in CORNERS.iter().enumerate() {
+                let f = flags[(r + jr) * l.cols + c + jc];
+                let extra = f64::from(f & PINNED != 0) + self.weight * f64::from(f & PRIOR != 0);
+                let first = 1u8 << (f & 15).trailing_zeros();
+                if extra != 0.0 && first == bit_of_corner[j] {
+                    for i in 0..4 {
+                        for k in 0..4 {
+                            cell[i][k] += extra * qab[j][i] * qab[j][k];
                         }
                     }
                 }
             }
-            *out = cell;
         }
-    });
-    Ok(cells)
+        cell
+    }
+}
+
+/// Level-1 rows per task of [`first_coarse_level`] (even: a task makes whole level-2 rows).
+const SETUP_ROWS: usize = 32;
+
+/// The stencils of level 1 and, when `coarser` (level 1 has a coarser level), the Galerkin
+/// elements of the level-2 cells, without storing the level-1 cells (32 bytes a fine pixel,
+/// the largest transient of the set-up): each task of [`SETUP_ROWS`] level-1 node rows computes
+/// the level-1 cells they touch (a row of cells shared with the task above is computed by both)
+/// and makes its stencils and the level-2 cells over its rows from them.
+fn first_coarse_level(
+    fine: &Level,
+    weight: f64,
+    coarser: bool,
+) -> Result<(Vec<Packed>, Option<Vec<Element>>)> {
+    let cells = FineCells::new(fine, weight);
+    let layout = fine.layout.coarser();
+    let (h, w) = (layout.rows - 1, layout.cols - 1);
+    let mut stencils = try_zeros(layout.rows * layout.cols, "the multigrid levels")?;
+    let below = layout.coarser();
+    let (h2, w2) = (below.rows - 1, below.cols - 1);
+    let mut next = match coarser {
+        true => Some(try_zeros(h2 * w2, "the multigrid levels")?),
+        false => None,
+    };
+    let q = interpolations();
+    let mut next_chunks = next
+        .as_mut()
+        .map(|n| n.chunks_mut((SETUP_ROWS / 2) * w2.max(1)));
+    let tasks: Vec<(&mut [Packed], Option<&mut [Element]>)> = stencils
+        .chunks_mut(SETUP_ROWS * layout.cols)
+        .map(|s| (s, next_chunks.as_mut().and_then(|c| c.next())))
+        .collect();
+    tasks
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(task, (stencil_rows, next_rows))| {
+            let first = task * SETUP_ROWS;
+            let rows = stencil_rows.len() / layout.cols;
+            // Level-1 cell rows first - 1 .. first + rows (within 0..h).
+            let top = first.saturating_sub(1);
+            let end = (first + rows).min(h);
+            let mut local = Vec::with_capacity((end.saturating_sub(top)) * w);
+            for cr in top..end {
+                for cc in 0..w {
+                    local.push(cells.cell(cr, cc));
+                }
+            }
+            let cell = |r: usize, c: usize| -> Option<&Element> {
+                (r >= top && r < end && c < w).then(|| &local[(r - top) * w + c])
+            };
+            for (t, out) in stencil_rows.chunks_exact_mut(layout.cols).enumerate() {
+                for (c, out) in out.iter_mut().enumerate() {
+                    *out = pack(&stencil_at(first + t, c, &cell));
+                }
+            }
+            if let Some(next_rows) = next_rows {
+                for (t, out) in next_rows.chunks_exact_mut(w2).enumerate() {
+                    let r2 = first / 2 + t;
+                    for (c2, out) in out.iter_mut().enumerate() {
+                        *out = coarse_cell(r2, c2, &q, &cell);
+                    }
+                }
+            }
+        });
+    Ok((stencils, next))
+}
+
+/// The Galerkin element of cell (cr, cc) of the next level from the cells of this one
+/// (`cell(r, c)`: None outside the level).
+#[inline]
+fn coarse_cell<'e>(
+    cr: usize,
+    cc: usize,
+    q: &[Element; 4],
+    cell: &impl Fn(usize, usize) -> Option<&'e Element>,
+) -> Element {
+    let mut out: Element = [[0.0; 4]; 4];
+    for (ab, qab) in q.iter().enumerate() {
+        let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
+        let Some(child) = cell(r, c) else {
+            continue;
+        };
+        if child[0][0] == 0.0 && child[3][3] == 0.0 && child[1][1] == 0.0 {
+            continue;
+        }
+        add_element(&mut out, &congruence(qab, child));
+    }
+    out
 }
 
 /// Galerkin elements of the next level's cells from the cells of a level with `layout`.
@@ -954,53 +1165,53 @@ fn coarsen_cells(layout: Layout, cells: &[Element]) -> Result<Vec<Element>> {
     let coarse = layout.coarser();
     let (ch, cw) = (coarse.rows - 1, coarse.cols - 1);
     let q = interpolations();
-    let mut out = try_vec(ch * cw, [[0.0; 4]; 4], "the multigrid levels")?;
+    let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
+    let mut out = try_zeros(ch * cw, "the multigrid levels")?;
     out.par_chunks_mut(cw).enumerate().for_each(|(cr, row)| {
         for (cc, out) in row.iter_mut().enumerate() {
-            let mut cell: Element = [[0.0; 4]; 4];
-            for (ab, qab) in q.iter().enumerate() {
-                let (r, c) = (2 * cr + ab / 2, 2 * cc + ab % 2);
-                if r >= h || c >= w {
-                    continue;
-                }
-                let child = &cells[r * w + c];
-                if child[0][0] == 0.0 && child[3][3] == 0.0 && child[1][1] == 0.0 {
-                    continue;
-                }
-                add_element(&mut cell, &congruence(qab, child));
-            }
-            *out = cell;
+            *out = coarse_cell(cr, cc, &q, &cell);
         }
     });
     Ok(out)
 }
 
+/// The nodal 9-point stencil of node (r, c) from the cells around it (`cell(r, c)`: None
+/// outside the level).
+#[inline]
+fn stencil_at<'e>(
+    r: usize,
+    c: usize,
+    cell: &impl Fn(usize, usize) -> Option<&'e Element>,
+) -> Stencil {
+    let mut s: Stencil = [0.0; 10];
+    // Cell (r - 1 + jr', c - 1 + jc') holds this node as its corner (1 - jr', 1 - jc').
+    for (cell_r, cell_c, j) in [
+        (r.wrapping_sub(1), c.wrapping_sub(1), 3),
+        (r.wrapping_sub(1), c, 2),
+        (r, c.wrapping_sub(1), 1),
+        (r, c, 0),
+    ] {
+        let Some(e) = cell(cell_r, cell_c) else {
+            continue;
+        };
+        let (jr, jc) = CORNERS[j];
+        for (m, &(mr, mc)) in CORNERS.iter().enumerate() {
+            let k = (mr + 1 - jr) * 3 + (mc + 1 - jc);
+            s[k] += e[j][m];
+        }
+    }
+    s
+}
+
 /// The nodal 9-point stencils of a level with `layout` from its cell elements.
-fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Stencil>> {
+fn stencils_of(layout: Layout, cells: &[Element]) -> Result<Vec<Packed>> {
     let (rows, cols) = (layout.rows, layout.cols);
     let (h, w) = (rows - 1, cols - 1);
-    let mut out = try_vec(rows * cols, [0.0; 10], "the multigrid levels")?;
+    let cell = |r: usize, c: usize| (r < h && c < w).then(|| &cells[r * w + c]);
+    let mut out = try_zeros(rows * cols, "the multigrid levels")?;
     out.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
         for (c, out) in row.iter_mut().enumerate() {
-            let mut s: Stencil = [0.0; 10];
-            // Cell (r - 1 + jr', c - 1 + jc') holds this node as its corner (1 - jr', 1 - jc').
-            for (cell_r, cell_c, j) in [
-                (r.wrapping_sub(1), c.wrapping_sub(1), 3),
-                (r.wrapping_sub(1), c, 2),
-                (r, c.wrapping_sub(1), 1),
-                (r, c, 0),
-            ] {
-                if cell_r >= h || cell_c >= w {
-                    continue;
-                }
-                let e = &cells[cell_r * w + cell_c];
-                let (jr, jc) = CORNERS[j];
-                for (m, &(mr, mc)) in CORNERS.iter().enumerate() {
-                    let k = (mr + 1 - jr) * 3 + (mc + 1 - jc);
-                    s[k] += e[j][m];
-                }
-            }
-            *out = with_inverse(s);
+            *out = pack(&stencil_at(r, c, &cell));
         }
     });
     Ok(out)
@@ -1096,6 +1307,33 @@ pub(crate) mod tests {
         assert!(max_diff(&a, &b) == 0.0);
     }
 
+    /// Level 1 and the level-2 cells made band by band from the fine flags are those of the
+    /// whole level-1 cells.
+    #[test]
+    fn level_one_by_bands_matches_the_whole_cells() {
+        for (h, w) in [(120, 130), (75, 41), (200, 9)] {
+            for (name, mask) in masks(h, w) {
+                let grid = Grid::new(h, w, Some(&mask)).unwrap();
+                let prior = Prior {
+                    values: (0..grid.n_unknowns())
+                        .map(|i| if i % 5 == 0 { 1.0 } else { f64::NAN })
+                        .collect(),
+                    weight: 0.3,
+                };
+                let mg = MultigridSystem::with_coarsest(&grid, Some(&prior), 1).unwrap();
+                let fine = &mg.levels[0];
+                let l1 = fine.layout.coarser();
+                let cells = FineCells::new(fine, 0.3);
+                let whole: Vec<Element> = (0..(l1.rows - 1) * (l1.cols - 1))
+                    .map(|i| cells.cell(i / (l1.cols - 1), i % (l1.cols - 1)))
+                    .collect();
+                let (stencils, next) = first_coarse_level(fine, 0.3, true).unwrap();
+                assert_eq!(stencils, stencils_of(l1, &whole).unwrap(), "{name}");
+                assert_eq!(next.unwrap(), coarsen_cells(l1, &whole).unwrap(), "{name}");
+            }
+        }
+    }
+
     /// The Galerkin coarse operators are symmetric and have constants in their null space away
     /// from the pins (the stencil of every unpinned row sums to zero).
     #[test]
@@ -1112,10 +1350,11 @@ pub(crate) mod tests {
             let mut checked = 0;
             for r in 1..l.rows - 1 {
                 for c in 1..l.cols - 1 {
-                    let st = &s[r * l.cols + c];
+                    let st = unpack(&s[r * l.cols + c]);
                     for (k, &(dr, dc)) in OFFSETS.iter().enumerate() {
-                        let other =
-                            &s[(r as isize + dr) as usize * l.cols + (c as isize + dc) as usize];
+                        let other = unpack(
+                            &s[(r as isize + dr) as usize * l.cols + (c as isize + dc) as usize],
+                        );
                         assert!((st[k] - other[8 - k]).abs() <= 1e-12 * st[CENTRE].max(1.0));
                     }
                     let sum: f64 = st[..9].iter().sum();

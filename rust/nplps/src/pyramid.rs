@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use crate::error::Result;
 use crate::geometry::Geometry;
 use crate::grid::{Grid, INACTIVE};
-use crate::local::{usable, FitSettings, Observations};
+use crate::local::{u16_value, usable, FitSettings, Observations, Stored};
 use crate::problem::Problem;
 use crate::rig::{Camera, Rig};
 use crate::system::Prior;
@@ -116,45 +116,37 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     problem.cancel.check()?;
     let (k, channels) = (problem.obs.k, problem.obs.channels);
     let obs = &problem.obs;
-    // Image by image, coarse row by coarse row (streams through the finer stack); coarse
-    // pixels outside the coarse mask stay NaN.
-    let row_len = cw * channels;
-    let mut values = try_vec(k * ch * row_len, f32::NAN, "the coarse images")?;
-    values
-        .par_chunks_mut(row_len)
-        .enumerate()
-        .for_each(|(j, out)| {
-            if problem.cancel.is_cancelled() {
-                return;
-            }
-            let (i, cr) = (j / ch, j % ch);
-            let mut sum = [0.0f64; 3];
-            for cc in 0..cw {
-                let bits = children[cr * cw + cc];
-                if bits == 0 {
-                    continue;
-                }
-                let mut n = 0u32;
-                sum[..channels].fill(0.0);
-                for (bit, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
-                    if bits & (1 << bit) == 0 {
-                        continue;
-                    }
-                    let o = obs.at(i, (2 * cr + a) * w + 2 * cc + b);
-                    if usable(&o, settings) {
-                        n += 1;
-                        for (s, &v) in sum.iter_mut().zip(o.iter()) {
-                            *s += v as f64;
-                        }
-                    }
-                }
-                if n > 0 {
-                    for ch in 0..channels {
-                        out[cc * channels + ch] = (sum[ch] / n as f64) as f32;
-                    }
-                }
-            }
-        });
+    // Image by image, coarse row by coarse row (streams through the finer stack: each output
+    // row reads its two finer rows as slices); coarse pixels outside the coarse mask stay NaN.
+    let mut values = try_vec(k * ch * cw * channels, f32::NAN, "the coarse images")?;
+    let shape = RowShape {
+        h,
+        w,
+        ch,
+        cw,
+        channels,
+        plane: obs.plane,
+    };
+    match &obs.data {
+        Stored::F32(d) => coarsen_rows(
+            &d[..],
+            shape,
+            &children,
+            settings,
+            &mut values,
+            problem,
+            |v| v,
+        ),
+        Stored::U16(d) => coarsen_rows(
+            d,
+            shape,
+            &children,
+            settings,
+            &mut values,
+            problem,
+            u16_value,
+        ),
+    }
     problem.cancel.check()?;
     let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN)?;
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge)?;
@@ -171,6 +163,92 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         u0,
         prior,
     })
+}
+
+/// The shape of a finer stack and of its coarse rows (see [`coarsen_rows`]).
+#[derive(Clone, Copy)]
+struct RowShape {
+    /// Finer rows and columns.
+    h: usize,
+    w: usize,
+    /// Coarse rows and columns.
+    ch: usize,
+    cw: usize,
+    channels: usize,
+    /// Values per finer image.
+    plane: usize,
+}
+
+/// The coarse images (rows of `values`, image-major) from the finer stack `data`, whose
+/// samples read as `value(v)`: monomorphised per sample type, so that the inner loop reads
+/// plain slices (the same arithmetic as [`Observations::at`] and [`usable`], so the result is
+/// the same to the bit whatever the storage).
+fn coarsen_rows<T: Copy + Sync>(
+    data: &[T],
+    shape: RowShape,
+    children: &[u8],
+    settings: &FitSettings,
+    values: &mut [f32],
+    problem: &Problem<'_>,
+    value: impl Fn(T) -> f32 + Sync,
+) {
+    let RowShape {
+        h,
+        w,
+        ch,
+        cw,
+        channels,
+        plane,
+    } = shape;
+    let row_len = cw * channels;
+    let fine_row = w * channels;
+    values
+        .par_chunks_mut(row_len)
+        .enumerate()
+        .for_each(|(j, out)| {
+            if problem.cancel.is_cancelled() {
+                return;
+            }
+            let (i, cr) = (j / ch, j % ch);
+            let image = &data[i * plane..(i + 1) * plane];
+            let top = &image[2 * cr * fine_row..(2 * cr + 1) * fine_row];
+            let bottom = if 2 * cr + 1 < h {
+                &image[(2 * cr + 1) * fine_row..(2 * cr + 2) * fine_row]
+            } else {
+                &image[..0]
+            };
+            let mut sum = [0.0f64; 3];
+            let mut o = [0.0f32; 3];
+            let children = &children[cr * cw..(cr + 1) * cw];
+            for (cc, &bits) in children.iter().enumerate() {
+                if bits == 0 {
+                    continue;
+                }
+                let mut n = 0u32;
+                sum[..channels].fill(0.0);
+                for bit in 0..4 {
+                    if bits & (1 << bit) == 0 {
+                        continue;
+                    }
+                    let row = if bit < 2 { top } else { bottom };
+                    let at = (2 * cc + (bit & 1)) * channels;
+                    for (o, &v) in o[..channels].iter_mut().zip(&row[at..at + channels]) {
+                        *o = value(v);
+                    }
+                    if usable(&o[..channels], settings) {
+                        n += 1;
+                        for (s, &v) in sum.iter_mut().zip(&o[..channels]) {
+                            *s += v as f64;
+                        }
+                    }
+                }
+                if n > 0 {
+                    for ch in 0..channels {
+                        out[cc * channels + ch] = (sum[ch] / n as f64) as f32;
+                    }
+                }
+            }
+        });
 }
 
 /// Values of the coarse unknowns taken from the fine vertex on the same ray (`missing` where

@@ -489,8 +489,10 @@ const BLOCK: usize = 32;
 /// distortion, whose samples are evenly spaced in pixels. Skipping changes no result: it passes
 /// over only samples that could not stop the march.
 pub(crate) struct Pyramid {
-    /// Per level: its columns and its minima (row-major).
-    levels: Vec<(usize, Vec<f64>)>,
+    /// Per level: its columns and its minima (row-major), in single precision rounded down
+    /// ([`round_down`]: a cell's minimum is never above its nearest depth, so a skip stays
+    /// safe and the result is still the plain march's; half the memory of double precision).
+    levels: Vec<(usize, Vec<f32>)>,
     /// The vertex depths, (H+1) x (W+1): a third of the memory of the positions, for the
     /// march's bilinear depths.
     z: Vec<f64>,
@@ -505,9 +507,9 @@ impl Pyramid {
     ) -> Result<Pyramid> {
         crate::memory::check(
             || format!("the depth pyramid of a {height} x {width} image"),
-            // Levels 0, 1, ...: 1 + 1/4 + 1/16 + ... < 4/3 values a pixel.
+            // Levels 0, 1, ...: 1 + 1/4 + 1/16 + ... < 4/3 values (f32) a pixel.
             // and the vertex depths.
-            8.0 * (1.34 * (height * width) as f64 + ((height + 1) * (width + 1)) as f64),
+            4.0 * 1.34 * (height * width) as f64 + 8.0 * ((height + 1) * (width + 1)) as f64,
             None,
         )?;
         let vw = width + 1;
@@ -520,17 +522,17 @@ impl Pyramid {
         let base = crate::memory::try_par_collect(
             (0..height * width).into_par_iter().map(|p| {
                 if mask.is_some_and(|m| !m[p]) {
-                    return f64::NEG_INFINITY;
+                    return f32::NEG_INFINITY;
                 }
                 let v = (p / width) * vw + p % width;
                 let mut lo = f64::INFINITY;
                 for z in [v, v + 1, v + vw, v + vw + 1].map(|v| vertices.at(v)[2]) {
                     if !z.is_finite() {
-                        return f64::NEG_INFINITY;
+                        return f32::NEG_INFINITY;
                     }
                     lo = lo.min(z);
                 }
-                lo
+                round_down(lo)
             }),
             "the depth pyramid",
         )?;
@@ -542,7 +544,7 @@ impl Pyramid {
             let next = crate::memory::try_par_collect(
                 (0..r2 * c2).into_par_iter().map(|t| {
                     let (r, c) = (2 * (t / c2), 2 * (t % c2));
-                    let mut lo = f64::INFINITY;
+                    let mut lo = f32::INFINITY;
                     for rr in r..(r + 2).min(rows) {
                         for cc in c..(c + 2).min(cols) {
                             lo = lo.min(below[rr * cols + cc]);
@@ -556,6 +558,23 @@ impl Pyramid {
             (rows, cols) = (r2, c2);
         }
         Ok(Pyramid { levels, z })
+    }
+}
+
+/// The largest single-precision value not above `x` (for the pyramid's minima): `x` itself
+/// when it is one, infinities as they are.
+#[inline]
+fn round_down(x: f64) -> f32 {
+    let f = x as f32;
+    if f64::from(f) <= x {
+        f
+    } else if f == 0.0 {
+        -f32::from_bits(1)
+    } else if f > 0.0 {
+        // The next value towards zero (`f32::next_down`, newer than the crate's MSRV).
+        f32::from_bits(f.to_bits() - 1)
+    } else {
+        f32::from_bits(f.to_bits() + 1)
     }
 }
 
@@ -728,7 +747,7 @@ impl March<'_> {
                     let j = (i + k).min(steps);
                     let z = if rising { point(j)[2].max(x[2]) } else { x[2] };
                     let (cols, min) = &pyramid.levels[l];
-                    let m = min[(row >> l) * cols + (col >> l)];
+                    let m = f64::from(min[(row >> l) * cols + (col >> l)]);
                     // A margin for the rounding of the bilinear depth and of z.
                     if reach(z) <= m - 1e-12 * m.abs() {
                         i = j + 1;
@@ -834,7 +853,7 @@ impl March<'_> {
             return None;
         }
         let (row, col) = self.cell(gx, gy);
-        if pyramid.levels[0].1[row * self.width + col] == f64::NEG_INFINITY {
+        if pyramid.levels[0].1[row * self.width + col] == f32::NEG_INFINITY {
             return None;
         }
         let v = row * (self.width + 1) + col;
@@ -1048,6 +1067,29 @@ mod tests {
     }
 
     /// Skipping through the pyramid's cells changes no result: bumps and a block, both cameras, with a mask.
+    /// The pyramid's single-precision minima never lie above the depths they bound.
+    #[test]
+    fn minima_round_down() {
+        for x in [
+            0.0,
+            1.0,
+            0.1,
+            -0.1,
+            123.456789,
+            -7.3e-5,
+            1e30,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ] {
+            let f = round_down(x);
+            assert!(f64::from(f) <= x, "{x}");
+            assert!(x.is_infinite() || x - f64::from(f) <= 1.2e-7 * x.abs().max(1e-30));
+        }
+        assert_eq!(round_down(0.5), 0.5);
+        assert_eq!(round_down(1e300), f32::MAX);
+        assert!(round_down(-1e-50) < 0.0);
+    }
+
     #[test]
     fn the_pyramid_changes_nothing() {
         let bumpy: Vec<f64> = (0..(N + 1) * (N + 1))

@@ -386,9 +386,9 @@ impl<'p> Solver<'p> {
             options: *options,
             system: Some(system),
             level: 0,
-            targets: try_vec(n, [0.0; 4], "the solver's per-facet targets")?,
+            targets: crate::memory::try_zeros(n, "the solver's per-facet targets")?,
             stats: try_vec(n, FacetStat::default(), "the solver's per-facet statistics")?,
-            next: try_vec(problem.grid.n_unknowns(), 0.0, "the solver's depths")?,
+            next: crate::memory::try_zeros(problem.grid.n_unknowns(), "the solver's depths")?,
             lights: LightRefinement::new(options.refine, &problem.rig.lights),
             carried: false,
             stalled: false,
@@ -862,18 +862,20 @@ impl<'p> Solver<'p> {
     /// Returns the RMS image residual.
     pub fn local(&mut self, u: &[f64]) -> Result<f64> {
         let t = Instant::now();
-        let depths = self.depths(u)?;
+        // The vertex depths go into `next`, free until the global step writes it.
+        let mut depths = std::mem::take(&mut self.next);
+        let perspective = self.depths_into(u, &mut depths);
         let (mut targets, mut stats) = (
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
         );
         let mut warm = std::mem::take(&mut self.warm);
-        let step = self.local_step(true, depths.as_deref());
+        let step = self.local_step(true, perspective.then_some(&depths[..]));
         let done = match step.settings.lobe {
             Some(_) => step.try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm),
             None => step.try_run_targets(u, &mut targets, &mut stats),
         };
-        (self.targets, self.stats, self.warm) = (targets, stats, warm);
+        (self.targets, self.stats, self.warm, self.next) = (targets, stats, warm, depths);
         done?;
         self.timings.local += t.elapsed();
         self.problem.cancel.check()?;
@@ -952,8 +954,7 @@ impl<'p> Solver<'p> {
         let t = Instant::now();
         let geometry = &self.problem.geometry;
         self.oscillation.damp(u, &mut self.next);
-        let depth_change = max_depth_change(geometry, u, &self.next);
-        self.oscillation.record(u, &self.next, depth_change, limit);
+        let depth_change = self.oscillation.record(geometry, u, &self.next, limit);
         if self.check_lights {
             check_in_front(geometry, self.lights.lights(), &self.next, iteration)?;
         }
@@ -1011,6 +1012,19 @@ impl<'p> Solver<'p> {
             "the vertex depths",
         )
         .map(Some)
+    }
+
+    /// As [`Solver::depths`], into `out` (of `u.len()` values); returns whether the camera is
+    /// a pinhole (otherwise `out` is left as it is).
+    fn depths_into(&self, u: &[f64], out: &mut [f64]) -> bool {
+        use rayon::prelude::*;
+        let geometry = &self.problem.geometry;
+        if geometry.is_perspective() {
+            out.par_iter_mut()
+                .zip(u)
+                .for_each(|(z, &x)| *z = geometry.depth(x));
+        }
+        geometry.is_perspective()
     }
 
     /// The distance search's criterion per region under the last local step: the RMS image
