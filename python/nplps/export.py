@@ -318,7 +318,58 @@ def write_ply(
     Only the vertices used by the written facets are stored (row-major order). The header has the
     comments ``nplps`` and ``frame opencv`` / ``frame opengl``.
     """
-    _write_ply_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
+    _stream_ply(path, vertices, mask, normals, albedo, opengl)
+
+
+def _stream_ply(
+    path: PathLike,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray | None,
+    albedo: np.ndarray | None,
+    opengl: bool,
+) -> None:
+    """Write :func:`write_ply`'s file without whole-mesh arrays (``nplps._core.write_ply``, the GIL released).
+
+    The Rust extension counts and numbers the used vertices (4 bytes per vertex), then writes the
+    vertex and face records in blocks of rows: the same bytes as :func:`_write_ply_mesh` of
+    :func:`_build_mesh`'s mesh. Only the colours' scale (the 99th percentile of the written
+    vertices' albedo, :func:`_grey_colors`) is computed here.
+    """
+    vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    normals = None if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
+    grey, scale = None, 1.0
+    if albedo is not None:
+        grey = np.ascontiguousarray(albedo if albedo.ndim == 3 else albedo[..., None], dtype=np.float64)
+        scale = _color_scale(grey, _used_vertices(_facets(vertices, mask, normals)))
+    with atomic_path(path) as temporary:
+        _, facets, skipped, overflow = _core.write_ply(
+            temporary, vertices, np.ascontiguousarray(mask), normals, grey, scale, opengl
+        )
+        _check_facets(skipped, 2 * facets)
+        if overflow:
+            raise _float32_error("PLY", path, overflow)
+
+
+def _facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    """Boolean ``(H, W)``: the masked pixels whose four corners have finite positions (and normals)."""
+    finite = _all_finite(vertices)
+    if normals is not None:
+        finite &= _all_finite(normals)
+    facets = mask & finite[:-1, :-1]
+    facets &= finite[:-1, 1:]
+    facets &= finite[1:, :-1]
+    facets &= finite[1:, 1:]
+    return facets
+
+
+def _color_scale(albedo: np.ndarray, used: np.ndarray) -> float:
+    """Return the scale of :func:`_quantize` for the colours of the ``used`` vertices' albedo ``(H + 1, W + 1, C)``."""
+    values = albedo[used]
+    finite = np.isfinite(values)
+    reference = float(np.percentile(values[finite], _COLOR_PERCENTILE)) if finite.any() else 0.0
+    return 255 / reference if reference > 0 else 1.0
 
 
 def write_meshes(
@@ -365,6 +416,9 @@ def _write_meshes(
     extra: Mapping[str, PathLike | None],
 ) -> None:
     """:func:`write_meshes` with the extra mesh formats by their :data:`FORMATS` name."""
+    if ply_path is not None and obj_path is None and not any(extra.values()):
+        _stream_ply(ply_path, vertices, mask, normals, albedo, opengl)  # no mesh arrays
+        return
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
     targets = [(f, extra.get(f.name)) for f in FORMATS.values() if f.mesh is not None]
     float32 = [("PLY", ply_path)] + [(f.mesh, target) for f, target in targets]
@@ -797,10 +851,15 @@ def _require_float32(mesh: _Mesh, fmt: str, path: PathLike) -> None:
     OBJ (text) writes those positions in full (double) precision instead.
     """
     if len(mesh.overflow):
-        raise InputError(
-            f"cannot write {fmt} file '{os.fspath(path)}': {len(mesh.overflow)} vertex position(s) "
-            f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
-        )
+        raise _float32_error(fmt, path, len(mesh.overflow))
+
+
+def _float32_error(fmt: str, path: PathLike, count: int) -> InputError:
+    """Return the error of :func:`_require_float32` for ``count`` positions beyond the float32 range."""
+    return InputError(
+        f"cannot write {fmt} file '{os.fspath(path)}': {count} vertex position(s) "
+        f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
+    )
 
 
 def _write_stl_mesh(path: PathLike, mesh: _Mesh) -> None:

@@ -696,6 +696,75 @@ fn vertex_means<'py>(
     array(py, means, &[h + 1, w + 1, c])
 }
 
+/// Streams the PLY file of the masked facets with finite corners to `path` (`nplps::ply_plan`,
+/// then `nplps::write_ply_records` through a buffered writer), the GIL released: `albedo` is the
+/// (H+1, W+1, C) per-vertex albedo (C = 1 or 3) quantized with `scale` (None: no colours).
+/// Returns `(vertices, facets, skipped, overflow)`; nothing is written (the file is not
+/// created) when there is no facet or a written position is beyond the float32 range.
+#[pyfunction]
+#[pyo3(signature = (path, vertices, mask, normals, albedo, scale, opengl))]
+#[allow(clippy::too_many_arguments)]
+fn write_ply<'py>(
+    py: Python<'py>,
+    path: std::path::PathBuf,
+    vertices: PyReadonlyArray3<'py, f64>,
+    mask: PyReadonlyArray2<'py, bool>,
+    normals: Option<PyReadonlyArray3<'py, f64>>,
+    albedo: Option<PyReadonlyArray3<'py, f64>>,
+    scale: f64,
+    opengl: bool,
+) -> PyResult<(usize, usize, usize, usize)> {
+    let shape = vertices.shape().to_vec();
+    if shape[0] < 2 || shape[1] < 2 || shape[2] != 3 {
+        return Err(InputError::new_err(format!(
+            "vertices must have shape (H + 1, W + 1, 3), got {shape:?}"
+        )));
+    }
+    let (h, w) = (shape[0] - 1, shape[1] - 1);
+    let v = slice(&vertices, "vertices")?;
+    let m = slice(&mask, "mask")?;
+    let n = normals.as_ref().map(|n| slice(n, "normals")).transpose()?;
+    let colors = match &albedo {
+        Some(a) => Some(nplps::PlyColors {
+            albedo: slice(a, "albedo")?,
+            channels: a.shape()[2],
+            scale,
+        }),
+        None => None,
+    };
+    type Counts = (usize, usize, usize, usize);
+    let written = py.detach(|| {
+        no_panic(|| -> nplps::Result<std::io::Result<Counts>> {
+            let plan = nplps::ply_plan(v, n, m, h, w)?;
+            let counts = (plan.vertices, plan.facets, plan.skipped, plan.overflow);
+            if plan.facets == 0 || plan.overflow > 0 {
+                return Ok(Ok(counts));
+            }
+            let file = match std::fs::File::create(&path) {
+                Ok(f) => f,
+                Err(e) => return Ok(Err(e)),
+            };
+            let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
+            let done =
+                nplps::write_ply_records(&mut out, &plan, v, n, colors.as_ref(), m, h, w, opengl)?;
+            Ok(done
+                .and_then(|()| out.into_inner().map_err(|e| e.into_error()).map(drop))
+                .map(|()| counts))
+        })
+    });
+    match written.map_err(to_py)? {
+        Ok(counts) => Ok(counts),
+        Err(e) => Err(match e.raw_os_error() {
+            Some(errno) => pyo3::exceptions::PyOSError::new_err((
+                errno,
+                e.to_string(),
+                path.to_string_lossy().into_owned(),
+            )),
+            None => pyo3::exceptions::PyOSError::new_err(format!("{e}: {}", path.display())),
+        }),
+    }
+}
+
 /// The mesh of the masked facets with finite corners (`nplps::mesh_arrays`): `(used, points,
 /// normals, faces, skipped)` with the used vertices' flat indices (int64), their positions and
 /// normals (float32, (n, 3); normals None without `normals`), the triangles (int32, (m, 3)) and
@@ -840,6 +909,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(vertex_means, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_arrays, m)?)?;
+    m.add_function(wrap_pyfunction!(write_ply, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_camera, m)?)?;
     m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;

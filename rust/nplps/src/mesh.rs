@@ -1,6 +1,7 @@
 //! What the mesh files of a result hold: per-vertex means of per-pixel maps
 //! ([`vertex_means`]) and the masked facets as triangles over the vertices they use
-//! ([`mesh_arrays`]). `nplps.export` writes PLY, OBJ, STL and glTF files from these arrays.
+//! ([`mesh_arrays`]). `nplps.export` writes OBJ, STL and glTF files from these arrays; PLY files
+//! are streamed in blocks of rows ([`ply_plan`], [`write_ply_records`]) without them.
 //!
 //! Vertex `(r, c)` of the `(H + 1) x (W + 1)` grid is the top-left corner of pixel `(r, c)`;
 //! pixel `(r, c)` is the quad facet with corners `00 = (r, c)`, `01 = (r, c + 1)`,
@@ -270,6 +271,302 @@ pub fn mesh_arrays(
     })
 }
 
+/// The vertex colours of a PLY file: a per-vertex albedo grid quantized to `u8`.
+#[derive(Debug, Clone, Copy)]
+pub struct PlyColors<'a> {
+    /// `(H + 1) x (W + 1) x channels` per-vertex albedo (row-major, flat).
+    pub albedo: &'a [f64],
+    /// 1 (grey, written as three equal bytes) or 3 (RGB).
+    pub channels: usize,
+    /// The colour of a value `a` is `round_half_even(clamp(a * scale, 0, 255))`, 0 when `a`
+    /// is not finite.
+    pub scale: f64,
+}
+
+/// What a PLY file of the masked facets holds, counted by [`ply_plan`] before anything is
+/// written; [`write_ply_records`] then writes it.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub struct PlyPlan {
+    /// `(H + 1) x (W + 1)`: the index of each vertex among the written ones, `u32::MAX` for a
+    /// vertex no facet uses.
+    pub index: Vec<u32>,
+    /// The number of written vertices (used by a facet).
+    pub vertices: usize,
+    /// The number of facets written (two triangles each).
+    pub facets: usize,
+    /// Masked facets left out because a corner's position (or normal) is not finite.
+    pub skipped: usize,
+    /// Written vertices whose position is beyond the `f32` range (a PLY file cannot hold them).
+    pub overflow: usize,
+}
+
+/// Checks the shapes of the grids of [`ply_plan`] and [`write_ply_records`].
+fn check_grids(
+    vertices: &[f64],
+    normals: Option<&[f64]>,
+    colors: Option<&PlyColors<'_>>,
+    mask: &[bool],
+    height: usize,
+    width: usize,
+) -> Result<()> {
+    let grid = (height + 1) * (width + 1);
+    let shape = |what: &'static str, expected: usize, got: usize| Error::Shape {
+        what,
+        expected,
+        got,
+        message: format!(
+            "the {what} of a {height} x {width} mesh must have {expected} values, got {got}"
+        ),
+    };
+    if vertices.len() != 3 * grid {
+        return Err(shape("vertex grid", 3 * grid, vertices.len()));
+    }
+    if let Some(n) = normals {
+        if n.len() != 3 * grid {
+            return Err(shape("vertex normals", 3 * grid, n.len()));
+        }
+    }
+    if let Some(c) = colors {
+        if !matches!(c.channels, 1 | 3) || c.albedo.len() != c.channels * grid {
+            return Err(shape("vertex albedo", c.channels * grid, c.albedo.len()));
+        }
+    }
+    if mask.len() != height * width {
+        return Err(shape("mask", height * width, mask.len()));
+    }
+    Ok(())
+}
+
+/// The first pass of a streamed PLY file: which masked facets have four corners with finite
+/// positions (and normals), which vertices they use and their numbers in row-major order —
+/// the same facets, vertices and order as [`mesh_arrays`], with 5 bytes per vertex instead of
+/// whole position, normal and face arrays.
+pub fn ply_plan(
+    vertices: &[f64],
+    normals: Option<&[f64]>,
+    mask: &[bool],
+    height: usize,
+    width: usize,
+) -> Result<PlyPlan> {
+    check_grids(vertices, normals, None, mask, height, width)?;
+    let w1 = width + 1;
+    let grid = (height + 1) * w1;
+    let finite = |i: usize| {
+        vertices[3 * i..3 * i + 3].iter().all(|v| v.is_finite())
+            && normals.is_none_or(|n| n[3 * i..3 * i + 3].iter().all(|v| v.is_finite()))
+    };
+    // Whether each pixel is a written facet (1 byte per pixel), row by row in parallel.
+    let mut facet = try_vec(height * width, false, "the mesh facets")?;
+    if width > 0 {
+        facet
+            .par_chunks_mut(width)
+            .enumerate()
+            .for_each(|(r, line)| {
+                for (c, f) in line.iter_mut().enumerate() {
+                    let v00 = r * w1 + c;
+                    *f = mask[r * width + c]
+                        && finite(v00)
+                        && finite(v00 + 1)
+                        && finite(v00 + w1)
+                        && finite(v00 + w1 + 1);
+                }
+            });
+    }
+    let masked = mask.iter().filter(|&&m| m).count();
+    let facets = facet.iter().filter(|&&f| f).count();
+    // A vertex is used when one of its (up to 4) pixels is a facet.
+    let mut index = try_vec(grid, u32::MAX, "the vertex indices")?;
+    index.par_chunks_mut(w1).enumerate().for_each(|(r, line)| {
+        for (c, i) in line.iter_mut().enumerate() {
+            let mut used = false;
+            for pr in [r.wrapping_sub(1), r] {
+                for pc in [c.wrapping_sub(1), c] {
+                    used |= pr < height && pc < width && facet[pr * width + pc];
+                }
+            }
+            if used {
+                *i = 0;
+            }
+        }
+    });
+    drop(facet);
+    let mut count = 0usize;
+    let mut overflow = 0usize;
+    for (v, i) in index.iter_mut().enumerate() {
+        if *i == 0 {
+            if count >= i32::MAX as usize {
+                return Err(Error::Unusable(format!(
+                    "a mesh of more than {} vertices cannot be indexed with 32-bit integers",
+                    i32::MAX
+                )));
+            }
+            *i = count as u32;
+            count += 1;
+            if vertices[3 * v..3 * v + 3]
+                .iter()
+                .any(|&x| !(x as f32).is_finite())
+            {
+                overflow += 1;
+            }
+        }
+    }
+    Ok(PlyPlan {
+        index,
+        vertices: count,
+        facets,
+        skipped: masked - facets,
+        overflow,
+    })
+}
+
+/// The ASCII header of the binary little-endian PLY file of [`write_ply_records`] (`frame`:
+/// `"opencv"` or `"opengl"`): the same text as `nplps.export`'s.
+pub fn ply_header(plan: &PlyPlan, normals: bool, colors: bool, frame: &str) -> String {
+    let mut lines = vec![
+        "ply".to_string(),
+        "format binary_little_endian 1.0".to_string(),
+        "comment nplps".to_string(),
+        format!("comment frame {frame}"),
+        format!("element vertex {}", plan.vertices),
+    ];
+    let mut properties = |kind: &str, names: [&str; 3]| {
+        for name in names {
+            lines.push(format!("property {kind} {name}"));
+        }
+    };
+    properties("float", ["x", "y", "z"]);
+    if normals {
+        properties("float", ["nx", "ny", "nz"]);
+    }
+    if colors {
+        properties("uchar", ["red", "green", "blue"]);
+    }
+    lines.push(format!("element face {}", 2 * plan.facets));
+    lines.push("property list uchar int vertex_indices".to_string());
+    lines.push("end_header\n".to_string());
+    lines.join("\n")
+}
+
+/// Vertex rows per block of [`write_ply_records`].
+const PLY_BLOCK_ROWS: usize = 64;
+
+/// The colour byte of an albedo value (see [`PlyColors`]): numpy's `rint(clip(a * scale, 0,
+/// 255))`, 0 for a non-finite `a`.
+fn color_byte(a: f64, scale: f64) -> u8 {
+    if !a.is_finite() {
+        return 0;
+    }
+    (a * scale).clamp(0.0, 255.0).round_ties_even() as u8
+}
+
+/// The second pass: writes the header, the vertex records (`x y z` float, `nx ny nz` float,
+/// `red green blue` uchar) and the face records (`3` as uchar and three int indices: the
+/// triangles `(00, 10, 11)` and `(00, 11, 01)` of each facet in row-major order) of the
+/// mesh that `plan` ([`ply_plan`] of the same grids) describes, in blocks of rows made in
+/// parallel; the bytes are those of `nplps.export.write_ply`. With `opengl`, positions and
+/// normals are `(x, -y, -z)`.
+#[allow(clippy::too_many_arguments)]
+pub fn write_ply_records<W: std::io::Write>(
+    out: &mut W,
+    plan: &PlyPlan,
+    vertices: &[f64],
+    normals: Option<&[f64]>,
+    colors: Option<&PlyColors<'_>>,
+    mask: &[bool],
+    height: usize,
+    width: usize,
+    opengl: bool,
+) -> Result<std::io::Result<()>> {
+    check_grids(vertices, normals, colors, mask, height, width)?;
+    let w1 = width + 1;
+    if plan.index.len() != (height + 1) * w1 {
+        return Err(Error::Shape {
+            what: "vertex indices",
+            expected: (height + 1) * w1,
+            got: plan.index.len(),
+            message: "the PLY plan is not that of this grid".to_string(),
+        });
+    }
+    let index = &plan.index;
+    let frame = if opengl { "opengl" } else { "opencv" };
+    let header = ply_header(plan, normals.is_some(), colors.is_some(), frame);
+    let flip: [f32; 3] = if opengl { [1.0, -1.0, -1.0] } else { [1.0; 3] };
+    let record = 12 + if normals.is_some() { 12 } else { 0 } + if colors.is_some() { 3 } else { 0 };
+    let put3 = |bytes: &mut Vec<u8>, g: &[f64]| {
+        for k in 0..3 {
+            bytes.extend_from_slice(&((g[k] as f32) * flip[k]).to_le_bytes());
+        }
+    };
+    // One vertex row's records.
+    let vertex_row = |r: usize| -> Vec<u8> {
+        let line = &index[r * w1..(r + 1) * w1];
+        let n = line.iter().filter(|&&i| i != u32::MAX).count();
+        let mut bytes = Vec::with_capacity(n * record);
+        for (c, &i) in line.iter().enumerate() {
+            if i == u32::MAX {
+                continue;
+            }
+            let v = r * w1 + c;
+            put3(&mut bytes, &vertices[3 * v..3 * v + 3]);
+            if let Some(n) = normals {
+                put3(&mut bytes, &n[3 * v..3 * v + 3]);
+            }
+            if let Some(colors) = colors {
+                let ch = colors.channels;
+                let a = &colors.albedo[ch * v..ch * v + ch];
+                for k in 0..3 {
+                    bytes.push(color_byte(a[k.min(ch - 1)], colors.scale));
+                }
+            }
+        }
+        bytes
+    };
+    // One pixel row's face records.
+    let face_row = |r: usize| -> Vec<u8> {
+        let mut bytes = Vec::new();
+        for c in 0..width {
+            let v00 = r * w1 + c;
+            let (i00, i01) = (index[v00], index[v00 + 1]);
+            let (i10, i11) = (index[v00 + w1], index[v00 + w1 + 1]);
+            let facet = mask[r * width + c]
+                && i00 != u32::MAX
+                && i01 != u32::MAX
+                && i10 != u32::MAX
+                && i11 != u32::MAX;
+            // Used corners are finite: the pixel is a facet of the first pass.
+            if facet {
+                for tri in [[i00, i10, i11], [i00, i11, i01]] {
+                    bytes.push(3);
+                    for i in tri {
+                        bytes.extend_from_slice(&(i as i32).to_le_bytes());
+                    }
+                }
+            }
+        }
+        bytes
+    };
+    let result = (|| -> std::io::Result<()> {
+        out.write_all(header.as_bytes())?;
+        for start in (0..=height).step_by(PLY_BLOCK_ROWS) {
+            let rows = start..(start + PLY_BLOCK_ROWS).min(height + 1);
+            let blocks: Vec<Vec<u8>> = rows.into_par_iter().map(vertex_row).collect();
+            for b in &blocks {
+                out.write_all(b)?;
+            }
+        }
+        for start in (0..height).step_by(PLY_BLOCK_ROWS) {
+            let rows = start..(start + PLY_BLOCK_ROWS).min(height);
+            let blocks: Vec<Vec<u8>> = rows.into_par_iter().map(face_row).collect();
+            for b in &blocks {
+                out.write_all(b)?;
+            }
+        }
+        out.flush()
+    })();
+    Ok(result)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -311,5 +608,63 @@ mod tests {
         assert_eq!(m.points[1], [1.0, -0.5, -1.0]);
         assert!(m.normals.is_empty());
         assert!(mesh_arrays(&v, None, &mask[..3], h, w, false).is_err());
+    }
+
+    #[test]
+    fn streamed_ply_holds_the_mesh_arrays() {
+        // The facets, vertices and triangles of mesh_arrays, as PLY records.
+        let (h, w) = (2, 2);
+        let mut v = vec![0.0f64; 27];
+        for i in 0..9 {
+            v[3 * i..3 * i + 3].copy_from_slice(&[i as f64, 0.5, 1.0]);
+        }
+        v[26] = f64::NAN;
+        let mask = [true, false, true, true];
+        let plan = ply_plan(&v, None, &mask, h, w).unwrap();
+        assert_eq!(
+            (plan.vertices, plan.facets, plan.skipped, plan.overflow),
+            (6, 2, 1, 0)
+        );
+        let albedo = [0.5; 9];
+        let colors = PlyColors {
+            albedo: &albedo,
+            channels: 1,
+            scale: 255.0,
+        };
+        let mut bytes = Vec::new();
+        write_ply_records(
+            &mut bytes,
+            &plan,
+            &v,
+            None,
+            Some(&colors),
+            &mask,
+            h,
+            w,
+            true,
+        )
+        .unwrap()
+        .unwrap();
+        let header = ply_header(&plan, false, true, "opengl");
+        assert!(header.contains("element vertex 6\n") && header.contains("element face 4\n"));
+        let body = &bytes[header.len()..];
+        assert_eq!(body.len(), 6 * 15 + 4 * 13);
+        // Vertex 1 (grid vertex 1): (1, -0.5, -1) and the colour round(127.5) = 128.
+        let second = &body[15..30];
+        assert_eq!(&second[0..4], &1.0f32.to_le_bytes());
+        assert_eq!(&second[4..8], &(-0.5f32).to_le_bytes());
+        assert_eq!(&second[12..15], &[128, 128, 128]);
+        let arrays = mesh_arrays(&v, None, &mask, h, w, true).unwrap();
+        let faces = &body[6 * 15..];
+        for (k, tri) in arrays.faces.iter().enumerate() {
+            let rec = &faces[13 * k..13 * k + 13];
+            assert_eq!(rec[0], 3);
+            for j in 0..3 {
+                assert_eq!(&rec[1 + 4 * j..5 + 4 * j], &tri[j].to_le_bytes());
+            }
+        }
+        // A position beyond the f32 range is counted.
+        v[0] = 1e300;
+        assert_eq!(ply_plan(&v, None, &mask, h, w).unwrap().overflow, 1);
     }
 }
