@@ -95,3 +95,25 @@ def test_streamed_ply_warns_and_refuses_as_before(tmp_path: Path) -> None:
             export.write_ply(tmp_path / "c.ply", vertices, np.ones((6, 6), bool))
     assert not (tmp_path / "c.ply").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["a.ply"]  # no temporary file left
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_per_pixel_maps_give_the_vertex_grids_bytes(tmp_path: Path, seed: int) -> None:
+    # save streams from the per-pixel normals and albedo: their vertex means are made per vertex.
+    rng = np.random.default_rng(seed)
+    h, w = [(9, 7), (50, 61), (1, 3), (70, 66)][seed]
+    vertices, mask, _, _ = _grids(seed, h, w, rgb=False)
+    normals = rng.normal(size=(h, w, 3))
+    normals[rng.random((h, w)) < 0.05] = np.nan
+    albedo = rng.uniform(0.0, 3.0, size=(h, w, 3) if seed % 2 else (h, w))
+    albedo[rng.random(albedo.shape) < 0.05] = np.nan
+    vertex_albedo = _core.vertex_means(albedo if albedo.ndim == 3 else albedo[..., None], False)
+    if albedo.ndim == 2:
+        vertex_albedo = vertex_albedo[..., 0]
+    vertex_normals = _core.vertex_means(normals, True)
+    for opengl in (False, True):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = _array_ply(tmp_path / "a.ply", vertices, mask, vertex_normals, vertex_albedo, opengl)
+            export._stream_ply(tmp_path / "b.ply", vertices, mask, normals, albedo, opengl, per_pixel=True)
+        assert (tmp_path / "b.ply").read_bytes() == expected

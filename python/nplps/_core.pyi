@@ -221,8 +221,9 @@ def write_ply(
     mask: npt.NDArray[np.bool_],
     normals: F64 | None,
     albedo: F64 | None,
-    scale: float,
+    per_pixel: bool,
     opengl: bool,
+    scale: float | None = None,
 ) -> tuple[int, int, int, int]: ...
 def check_rig(camera: Camera, lights: LightsDict) -> None: ...
 def normalize_camera(camera: Camera) -> CameraDict: ...

@@ -328,48 +328,49 @@ def _stream_ply(
     normals: np.ndarray | None,
     albedo: np.ndarray | None,
     opengl: bool,
+    *,
+    per_pixel: bool = False,
 ) -> None:
     """Write :func:`write_ply`'s file without whole-mesh arrays (``nplps._core.write_ply``, the GIL released).
 
-    The Rust extension counts and numbers the used vertices (4 bytes per vertex), then writes the
-    vertex and face records in blocks of rows: the same bytes as :func:`_write_ply_mesh` of
-    :func:`_build_mesh`'s mesh. Only the colours' scale (the 99th percentile of the written
-    vertices' albedo, :func:`_grey_colors`) is computed here.
+    The Rust extension counts and numbers the used vertices (4 bytes per vertex) and computes the
+    colours' scale, then writes the vertex and face records in blocks of rows: the same bytes as
+    :func:`_write_ply_mesh` of :func:`_build_mesh`'s mesh. With ``per_pixel``, ``normals``
+    (``(H, W, 3)``) and ``albedo`` (``(H, W)`` or ``(H, W, 3)``) are per-pixel maps whose vertex
+    means (``Reconstruction.vertex_normals``, ``vertex_albedo``) are computed as the records are
+    written, with no per-vertex grid.
     """
-    vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
-    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    vertices = np.asarray(vertices)
+    if per_pixel:
+        vertices, mask, _, _ = _check_mesh_inputs(vertices, mask, None, None)
+        pixels = vertices.shape[:2]
+        pixels = (pixels[0] - 1, pixels[1] - 1)
+        if normals is not None:
+            _require_shape("normals", np.asarray(normals), (*pixels, 3))
+        if albedo is not None and np.ndim(albedo) == 3:
+            _require_shape("albedo", np.asarray(albedo), (*pixels, 3))
+        elif albedo is not None:
+            _require_shape("albedo", np.asarray(albedo), pixels)
+    else:
+        vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
     normals = None if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
-    grey, scale = None, 1.0
+    grey = None
     if albedo is not None:
+        albedo = np.asarray(albedo)
         grey = np.ascontiguousarray(albedo if albedo.ndim == 3 else albedo[..., None], dtype=np.float64)
-        scale = _color_scale(grey, _used_vertices(_facets(vertices, mask, normals)))
     with atomic_path(path) as temporary:
         _, facets, skipped, overflow = _core.write_ply(
-            temporary, vertices, np.ascontiguousarray(mask), normals, grey, scale, opengl
+            temporary,
+            np.ascontiguousarray(vertices, dtype=np.float64),
+            np.ascontiguousarray(mask),
+            normals,
+            grey,
+            per_pixel,
+            opengl,
         )
         _check_facets(skipped, 2 * facets)
         if overflow:
             raise _float32_error("PLY", path, overflow)
-
-
-def _facets(vertices: np.ndarray, mask: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
-    """Boolean ``(H, W)``: the masked pixels whose four corners have finite positions (and normals)."""
-    finite = _all_finite(vertices)
-    if normals is not None:
-        finite &= _all_finite(normals)
-    facets = mask & finite[:-1, :-1]
-    facets &= finite[:-1, 1:]
-    facets &= finite[1:, :-1]
-    facets &= finite[1:, 1:]
-    return facets
-
-
-def _color_scale(albedo: np.ndarray, used: np.ndarray) -> float:
-    """Return the scale of :func:`_quantize` for the colours of the ``used`` vertices' albedo ``(H + 1, W + 1, C)``."""
-    values = albedo[used]
-    finite = np.isfinite(values)
-    reference = float(np.percentile(values[finite], _COLOR_PERCENTILE)) if finite.any() else 0.0
-    return 255 / reference if reference > 0 else 1.0
 
 
 def write_meshes(
@@ -2013,16 +2014,21 @@ def write_result(
         try:
             # One set of vertex arrays and one mesh for both files and the extra mesh formats.
             mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
-            _write_meshes(
-                paths["ply"],
-                paths.get("obj"),
-                result.vertices,
-                result.mask,
-                result.vertex_normals(),
-                result.vertex_albedo(),
-                opengl,
-                mesh_formats,
-            )
+            if "obj" in paths or mesh_formats:
+                _write_meshes(
+                    paths["ply"],
+                    paths.get("obj"),
+                    result.vertices,
+                    result.mask,
+                    result.vertex_normals(),
+                    result.vertex_albedo(),
+                    opengl,
+                    mesh_formats,
+                )
+            else:  # streamed: vertex normals and colours made as the records are written
+                _stream_ply(
+                    paths["ply"], result.vertices, result.mask, result.normals, result.albedo, opengl, per_pixel=True
+                )
             state["meshes"] = True
             meshes_written.set()
             # The manifest's hashes are computed on a thread of their own as the files are done.

@@ -697,12 +697,15 @@ fn vertex_means<'py>(
 }
 
 /// Streams the PLY file of the masked facets with finite corners to `path` (`nplps::ply_plan`,
-/// then `nplps::write_ply_records` through a buffered writer), the GIL released: `albedo` is the
-/// (H+1, W+1, C) per-vertex albedo (C = 1 or 3) quantized with `scale` (None: no colours).
-/// Returns `(vertices, facets, skipped, overflow)`; nothing is written (the file is not
-/// created) when there is no facet or a written position is beyond the float32 range.
+/// then `nplps::write_ply_records` through a buffered writer), the GIL released. `normals` and
+/// `albedo` (C = 1 or 3 channels; quantized to colours) are per-vertex grids (H+1, W+1, C), or
+/// with `per_pixel` the per-pixel maps (H, W, C) whose vertex means (normalized for the normals)
+/// are written, computed as the file is written. `scale`: the colours' (None: 255 over the 99th
+/// percentile of the written vertices' finite albedo). Returns `(vertices, facets, skipped,
+/// overflow)`; nothing is written (the file is not created) when there is no facet or a
+/// written position is beyond the float32 range.
 #[pyfunction]
-#[pyo3(signature = (path, vertices, mask, normals, albedo, scale, opengl))]
+#[pyo3(signature = (path, vertices, mask, normals, albedo, per_pixel, opengl, scale=None))]
 #[allow(clippy::too_many_arguments)]
 fn write_ply<'py>(
     py: Python<'py>,
@@ -711,8 +714,9 @@ fn write_ply<'py>(
     mask: PyReadonlyArray2<'py, bool>,
     normals: Option<PyReadonlyArray3<'py, f64>>,
     albedo: Option<PyReadonlyArray3<'py, f64>>,
-    scale: f64,
+    per_pixel: bool,
     opengl: bool,
+    scale: Option<f64>,
 ) -> PyResult<(usize, usize, usize, usize)> {
     let shape = vertices.shape().to_vec();
     if shape[0] < 2 || shape[1] < 2 || shape[2] != 3 {
@@ -723,10 +727,20 @@ fn write_ply<'py>(
     let (h, w) = (shape[0] - 1, shape[1] - 1);
     let v = slice(&vertices, "vertices")?;
     let m = slice(&mask, "mask")?;
-    let n = normals.as_ref().map(|n| slice(n, "normals")).transpose()?;
+    fn map(values: &[f64], per_pixel: bool) -> nplps::VertexMap<'_> {
+        if per_pixel {
+            nplps::VertexMap::Pixels(values)
+        } else {
+            nplps::VertexMap::Vertices(values)
+        }
+    }
+    let n = match &normals {
+        Some(n) => Some(map(slice(n, "normals")?, per_pixel)),
+        None => None,
+    };
     let colors = match &albedo {
         Some(a) => Some(nplps::PlyColors {
-            albedo: slice(a, "albedo")?,
+            albedo: map(slice(a, "albedo")?, per_pixel),
             channels: a.shape()[2],
             scale,
         }),
@@ -735,7 +749,7 @@ fn write_ply<'py>(
     type Counts = (usize, usize, usize, usize);
     let written = py.detach(|| {
         no_panic(|| -> nplps::Result<std::io::Result<Counts>> {
-            let plan = nplps::ply_plan(v, n, m, h, w)?;
+            let plan = nplps::ply_plan(v, n.as_ref(), colors.as_ref(), m, h, w)?;
             let counts = (plan.vertices, plan.facets, plan.skipped, plan.overflow);
             if plan.facets == 0 || plan.overflow > 0 {
                 return Ok(Ok(counts));
@@ -745,8 +759,17 @@ fn write_ply<'py>(
                 Err(e) => return Ok(Err(e)),
             };
             let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
-            let done =
-                nplps::write_ply_records(&mut out, &plan, v, n, colors.as_ref(), m, h, w, opengl)?;
+            let done = nplps::write_ply_records(
+                &mut out,
+                &plan,
+                v,
+                n.as_ref(),
+                colors.as_ref(),
+                m,
+                h,
+                w,
+                opengl,
+            )?;
             Ok(done
                 .and_then(|()| out.into_inner().map_err(|e| e.into_error()).map(drop))
                 .map(|()| counts))

@@ -90,53 +90,67 @@ fn means<const N: usize>(
     normalize: bool,
     out: &mut [f64],
 ) {
-    let row = width * N;
     out.par_chunks_mut((width + 1) * N)
         .enumerate()
         .for_each(|(r, line)| {
-            // Pixel row r lies below vertex row r, pixel row r - 1 above it.
-            let below = (r < height).then(|| &values[r * row..(r + 1) * row]);
-            let above = (r > 0).then(|| &values[(r - 1) * row..r * row]);
             for col in 0..=width {
-                let mut acc = [0.0f64; N];
-                let mut count = 0.0f64;
-                // The order of the numpy sum: (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1).
-                for pixels in [below, above].into_iter().flatten() {
-                    for c in [col, col.wrapping_sub(1)] {
-                        if c >= width {
-                            continue;
-                        }
-                        let px: &[f64] = &pixels[c * N..c * N + N];
-                        if px.iter().all(|v| v.is_finite()) {
-                            for k in 0..N {
-                                acc[k] += px[k];
-                            }
-                            count += 1.0;
-                        } else {
-                            for a in acc.iter_mut() {
-                                *a += 0.0;
-                            }
-                        }
-                    }
-                }
-                let cell = &mut line[col * N..col * N + N];
-                if count == 0.0 {
-                    cell.iter_mut().for_each(|v| *v = f64::NAN);
-                    continue;
-                }
-                for k in 0..N {
-                    cell[k] = acc[k] / count;
-                }
-                if normalize {
-                    let mut squares = cell[0] * cell[0];
-                    for v in &cell[1..] {
-                        squares += v * v;
-                    }
-                    let length = squares.sqrt();
-                    cell.iter_mut().for_each(|v| *v /= length);
-                }
+                let mean = vertex_mean::<N>(values, height, width, r, col, normalize);
+                line[col * N..col * N + N].copy_from_slice(&mean);
             }
         });
+}
+
+/// The [`vertex_means`] value of vertex `(r, col)` of an `H x W x N` per-pixel map.
+#[inline]
+fn vertex_mean<const N: usize>(
+    values: &[f64],
+    height: usize,
+    width: usize,
+    r: usize,
+    col: usize,
+    normalize: bool,
+) -> [f64; N] {
+    let row = width * N;
+    // Pixel row r lies below vertex row r, pixel row r - 1 above it.
+    let below = (r < height).then(|| &values[r * row..(r + 1) * row]);
+    let above = (r > 0).then(|| &values[(r - 1) * row..r * row]);
+    let mut acc = [0.0f64; N];
+    let mut count = 0.0f64;
+    // The order of the numpy sum: (r, c), (r, c - 1), (r - 1, c), (r - 1, c - 1).
+    for pixels in [below, above].into_iter().flatten() {
+        for c in [col, col.wrapping_sub(1)] {
+            if c >= width {
+                continue;
+            }
+            let px: &[f64] = &pixels[c * N..c * N + N];
+            if px.iter().all(|v| v.is_finite()) {
+                for k in 0..N {
+                    acc[k] += px[k];
+                }
+                count += 1.0;
+            } else {
+                for a in acc.iter_mut() {
+                    *a += 0.0;
+                }
+            }
+        }
+    }
+    let mut cell = [f64::NAN; N];
+    if count == 0.0 {
+        return cell;
+    }
+    for k in 0..N {
+        cell[k] = acc[k] / count;
+    }
+    if normalize {
+        let mut squares = cell[0] * cell[0];
+        for v in &cell[1..] {
+            squares += v * v;
+        }
+        let length = squares.sqrt();
+        cell.iter_mut().for_each(|v| *v /= length);
+    }
+    cell
 }
 
 /// A triangle mesh of the masked facets, as [`mesh_arrays`] returns it.
@@ -271,16 +285,65 @@ pub fn mesh_arrays(
     })
 }
 
-/// The vertex colours of a PLY file: a per-vertex albedo grid quantized to `u8`.
+/// A per-vertex map of a PLY file: given at the vertices, or as the per-pixel map whose
+/// [`vertex_means`] it is (computed vertex by vertex as the file is written: no whole grid).
+#[derive(Debug, Clone, Copy)]
+pub enum VertexMap<'a> {
+    /// `(H + 1) x (W + 1) x C` values (row-major, flat).
+    Vertices(&'a [f64]),
+    /// `H x W x C` per-pixel values (row-major, flat).
+    Pixels(&'a [f64]),
+}
+
+impl VertexMap<'_> {
+    /// The `N` values of vertex `v = r (W + 1) + c` (the normalized mean with `normalize`, for
+    /// a per-pixel map).
+    #[inline]
+    fn at<const N: usize>(
+        &self,
+        height: usize,
+        width: usize,
+        v: usize,
+        normalize: bool,
+    ) -> [f64; N] {
+        match self {
+            VertexMap::Vertices(values) => {
+                let mut out = [0.0; N];
+                out.copy_from_slice(&values[N * v..N * v + N]);
+                out
+            }
+            VertexMap::Pixels(values) => vertex_mean::<N>(
+                values,
+                height,
+                width,
+                v / (width + 1),
+                v % (width + 1),
+                normalize,
+            ),
+        }
+    }
+
+    /// The number of values it must have for C channels.
+    fn expected(&self, height: usize, width: usize, channels: usize) -> (usize, usize) {
+        match self {
+            VertexMap::Vertices(values) => (channels * (height + 1) * (width + 1), values.len()),
+            VertexMap::Pixels(values) => (channels * height * width, values.len()),
+        }
+    }
+}
+
+/// The vertex colours of a PLY file: a per-vertex albedo quantized to `u8`.
 #[derive(Debug, Clone, Copy)]
 pub struct PlyColors<'a> {
-    /// `(H + 1) x (W + 1) x channels` per-vertex albedo (row-major, flat).
-    pub albedo: &'a [f64],
+    /// The per-vertex albedo (the mean of the pixels' albedo, not normalized).
+    pub albedo: VertexMap<'a>,
     /// 1 (grey, written as three equal bytes) or 3 (RGB).
     pub channels: usize,
     /// The colour of a value `a` is `round_half_even(clamp(a * scale, 0, 255))`, 0 when `a`
-    /// is not finite.
-    pub scale: f64,
+    /// is not finite; None: `255 / p99` with `p99` the 99th percentile (numpy's "linear"
+    /// percentile) of the finite albedo values of the written vertices (scale 1 when it is not
+    /// positive), computed by [`ply_plan`].
+    pub scale: Option<f64>,
 }
 
 /// What a PLY file of the masked facets holds, counted by [`ply_plan`] before anything is
@@ -299,19 +362,21 @@ pub struct PlyPlan {
     pub skipped: usize,
     /// Written vertices whose position is beyond the `f32` range (a PLY file cannot hold them).
     pub overflow: usize,
+    /// The colours' scale (see [`PlyColors::scale`]; 1 without colours).
+    pub scale: f64,
 }
 
 /// Checks the shapes of the grids of [`ply_plan`] and [`write_ply_records`].
 fn check_grids(
     vertices: &[f64],
-    normals: Option<&[f64]>,
+    normals: Option<&VertexMap<'_>>,
     colors: Option<&PlyColors<'_>>,
     mask: &[bool],
     height: usize,
     width: usize,
 ) -> Result<()> {
     let grid = (height + 1) * (width + 1);
-    let shape = |what: &'static str, expected: usize, got: usize| Error::Shape {
+    let shape = |what: &'static str, (expected, got): (usize, usize)| Error::Shape {
         what,
         expected,
         got,
@@ -320,43 +385,86 @@ fn check_grids(
         ),
     };
     if vertices.len() != 3 * grid {
-        return Err(shape("vertex grid", 3 * grid, vertices.len()));
+        return Err(shape("vertex grid", (3 * grid, vertices.len())));
     }
     if let Some(n) = normals {
-        if n.len() != 3 * grid {
-            return Err(shape("vertex normals", 3 * grid, n.len()));
+        let (expected, got) = n.expected(height, width, 3);
+        if expected != got {
+            return Err(shape("normals", (expected, got)));
         }
     }
     if let Some(c) = colors {
-        if !matches!(c.channels, 1 | 3) || c.albedo.len() != c.channels * grid {
-            return Err(shape("vertex albedo", c.channels * grid, c.albedo.len()));
+        let (expected, got) = c.albedo.expected(height, width, c.channels);
+        if !matches!(c.channels, 1 | 3) || expected != got {
+            return Err(shape("albedo", (expected, got)));
         }
     }
     if mask.len() != height * width {
-        return Err(shape("mask", height * width, mask.len()));
+        return Err(shape("mask", (height * width, mask.len())));
     }
     Ok(())
+}
+
+/// numpy's `percentile(values, q)` with its default ("linear") method, bit for bit: the
+/// virtual index `i = (n - 1) (q / 100)`, `a`, `b` the values of ranks `floor(i)` and
+/// `floor(i) + 1`, `t = i - floor(i)`, then `a + (b - a) t` for `t < 0.5` and `b - (b - a) (1 -
+/// t)` otherwise. `values` is reordered; None when empty.
+fn percentile(values: &mut [f64], q: f64) -> Option<f64> {
+    let n = values.len();
+    if n == 0 {
+        return None;
+    }
+    let index = (n - 1) as f64 * (q / 100.0);
+    let by = |a: &f64, b: &f64| a.total_cmp(b);
+    if index >= (n - 1) as f64 {
+        return values.iter().copied().max_by(by);
+    }
+    if index < 0.0 {
+        return values.iter().copied().min_by(by);
+    }
+    let below = index.floor();
+    let rank = below as usize;
+    let (_, a, right) = values.select_nth_unstable_by(rank, by);
+    let a = *a;
+    let b = right.iter().copied().min_by(by).unwrap_or(a);
+    let t = index - below;
+    let diff = b - a;
+    Some(if t >= 0.5 {
+        b - diff * (1.0 - t)
+    } else {
+        a + diff * t
+    })
 }
 
 /// The first pass of a streamed PLY file: which masked facets have four corners with finite
 /// positions (and normals), which vertices they use and their numbers in row-major order —
 /// the same facets, vertices and order as [`mesh_arrays`], with 5 bytes per vertex instead of
-/// whole position, normal and face arrays.
+/// whole position, normal and face arrays — and the colours' scale.
 pub fn ply_plan(
     vertices: &[f64],
-    normals: Option<&[f64]>,
+    normals: Option<&VertexMap<'_>>,
+    colors: Option<&PlyColors<'_>>,
     mask: &[bool],
     height: usize,
     width: usize,
 ) -> Result<PlyPlan> {
-    check_grids(vertices, normals, None, mask, height, width)?;
+    check_grids(vertices, normals, colors, mask, height, width)?;
     let w1 = width + 1;
     let grid = (height + 1) * w1;
-    let finite = |i: usize| {
-        vertices[3 * i..3 * i + 3].iter().all(|v| v.is_finite())
-            && normals.is_none_or(|n| n[3 * i..3 * i + 3].iter().all(|v| v.is_finite()))
-    };
-    // Whether each pixel is a written facet (1 byte per pixel), row by row in parallel.
+    // Whether each vertex is finite (1 byte per vertex), row by row in parallel.
+    let mut finite = try_vec(grid, false, "the finite vertices")?;
+    finite.par_chunks_mut(w1).enumerate().for_each(|(r, line)| {
+        for (c, f) in line.iter_mut().enumerate() {
+            let v = r * w1 + c;
+            *f = vertices[3 * v..3 * v + 3].iter().all(|x| x.is_finite())
+                && normals.is_none_or(|n| {
+                    n.at::<3>(height, width, v, true)
+                        .iter()
+                        .all(|x| x.is_finite())
+                });
+        }
+    });
+    // Whether each pixel is a written facet (1 byte per pixel).
     let mut facet = try_vec(height * width, false, "the mesh facets")?;
     if width > 0 {
         facet
@@ -366,13 +474,14 @@ pub fn ply_plan(
                 for (c, f) in line.iter_mut().enumerate() {
                     let v00 = r * w1 + c;
                     *f = mask[r * width + c]
-                        && finite(v00)
-                        && finite(v00 + 1)
-                        && finite(v00 + w1)
-                        && finite(v00 + w1 + 1);
+                        && finite[v00]
+                        && finite[v00 + 1]
+                        && finite[v00 + w1]
+                        && finite[v00 + w1 + 1];
                 }
             });
     }
+    drop(finite);
     let masked = mask.iter().filter(|&&m| m).count();
     let facets = facet.iter().filter(|&&f| f).count();
     // A vertex is used when one of its (up to 4) pixels is a facet.
@@ -411,14 +520,42 @@ pub fn ply_plan(
             }
         }
     }
+    let scale = match colors {
+        Some(PlyColors { scale: Some(s), .. }) => *s,
+        Some(c) => color_scale(c, &index, height, width)?,
+        None => 1.0,
+    };
     Ok(PlyPlan {
         index,
         vertices: count,
         facets,
         skipped: masked - facets,
         overflow,
+        scale,
     })
 }
+
+/// `255 / p99` of the finite albedo values of the used vertices (see [`PlyColors::scale`]).
+fn color_scale(colors: &PlyColors<'_>, index: &[u32], height: usize, width: usize) -> Result<f64> {
+    let used = index.iter().filter(|&&i| i != u32::MAX).count();
+    let mut values: Vec<f64> = try_with_capacity(used * colors.channels, "the vertex albedo")?;
+    for (v, _) in index.iter().enumerate().filter(|(_, &i)| i != u32::MAX) {
+        match colors.channels {
+            1 => values.extend(colors.albedo.at::<1>(height, width, v, false)),
+            _ => values.extend(colors.albedo.at::<3>(height, width, v, false)),
+        }
+    }
+    values.retain(|a| a.is_finite());
+    let reference = percentile(&mut values, COLOR_PERCENTILE).unwrap_or(0.0);
+    Ok(if reference > 0.0 {
+        255.0 / reference
+    } else {
+        1.0
+    })
+}
+
+/// The percentile of the albedo that becomes colour 255 (`nplps.export`'s `_COLOR_PERCENTILE`).
+const COLOR_PERCENTILE: f64 = 99.0;
 
 /// The ASCII header of the binary little-endian PLY file of [`write_ply_records`] (`frame`:
 /// `"opencv"` or `"opengl"`): the same text as `nplps.export`'s.
@@ -471,7 +608,7 @@ pub fn write_ply_records<W: std::io::Write>(
     out: &mut W,
     plan: &PlyPlan,
     vertices: &[f64],
-    normals: Option<&[f64]>,
+    normals: Option<&VertexMap<'_>>,
     colors: Option<&PlyColors<'_>>,
     mask: &[bool],
     height: usize,
@@ -493,7 +630,7 @@ pub fn write_ply_records<W: std::io::Write>(
     let header = ply_header(plan, normals.is_some(), colors.is_some(), frame);
     let flip: [f32; 3] = if opengl { [1.0, -1.0, -1.0] } else { [1.0; 3] };
     let record = 12 + if normals.is_some() { 12 } else { 0 } + if colors.is_some() { 3 } else { 0 };
-    let put3 = |bytes: &mut Vec<u8>, g: &[f64]| {
+    let put3 = |bytes: &mut Vec<u8>, g: &[f64; 3]| {
         for k in 0..3 {
             bytes.extend_from_slice(&((g[k] as f32) * flip[k]).to_le_bytes());
         }
@@ -508,15 +645,20 @@ pub fn write_ply_records<W: std::io::Write>(
                 continue;
             }
             let v = r * w1 + c;
-            put3(&mut bytes, &vertices[3 * v..3 * v + 3]);
+            put3(
+                &mut bytes,
+                &[vertices[3 * v], vertices[3 * v + 1], vertices[3 * v + 2]],
+            );
             if let Some(n) = normals {
-                put3(&mut bytes, &n[3 * v..3 * v + 3]);
+                put3(&mut bytes, &n.at::<3>(height, width, v, true));
             }
             if let Some(colors) = colors {
-                let ch = colors.channels;
-                let a = &colors.albedo[ch * v..ch * v + ch];
-                for k in 0..3 {
-                    bytes.push(color_byte(a[k.min(ch - 1)], colors.scale));
+                let a = match colors.channels {
+                    1 => [colors.albedo.at::<1>(height, width, v, false)[0]; 3],
+                    _ => colors.albedo.at::<3>(height, width, v, false),
+                };
+                for value in a {
+                    bytes.push(color_byte(value, plan.scale));
                 }
             }
         }
@@ -620,17 +762,17 @@ mod tests {
         }
         v[26] = f64::NAN;
         let mask = [true, false, true, true];
-        let plan = ply_plan(&v, None, &mask, h, w).unwrap();
+        let albedo = [0.5; 9];
+        let colors = PlyColors {
+            albedo: VertexMap::Vertices(&albedo),
+            channels: 1,
+            scale: Some(255.0),
+        };
+        let plan = ply_plan(&v, None, Some(&colors), &mask, h, w).unwrap();
         assert_eq!(
             (plan.vertices, plan.facets, plan.skipped, plan.overflow),
             (6, 2, 1, 0)
         );
-        let albedo = [0.5; 9];
-        let colors = PlyColors {
-            albedo: &albedo,
-            channels: 1,
-            scale: 255.0,
-        };
         let mut bytes = Vec::new();
         write_ply_records(
             &mut bytes,
@@ -665,6 +807,17 @@ mod tests {
         }
         // A position beyond the f32 range is counted.
         v[0] = 1e300;
-        assert_eq!(ply_plan(&v, None, &mask, h, w).unwrap().overflow, 1);
+        assert_eq!(ply_plan(&v, None, None, &mask, h, w).unwrap().overflow, 1);
+    }
+
+    #[test]
+    fn percentile_is_numpys_linear_one() {
+        // numpy.percentile([3, 1, 2, 10], 99) = 2 + ... : index 2.97 between 3 and 10.
+        let mut v = [3.0, 1.0, 2.0, 10.0];
+        let i: f64 = 3.0 * 0.99;
+        let t = i - 2.0;
+        assert_eq!(percentile(&mut v, 99.0), Some(10.0 - 7.0 * (1.0 - t)));
+        assert_eq!(percentile(&mut [5.0], 99.0), Some(5.0));
+        assert_eq!(percentile(&mut [], 99.0), None);
     }
 }
