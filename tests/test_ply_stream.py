@@ -47,7 +47,12 @@ def _grids(seed: int, h: int, w: int, rgb: bool) -> tuple[np.ndarray, ...]:
     if not rgb:
         albedo = albedo[..., 0]
     mask = rng.random((h, w)) < 0.8
+    _CAMERAS[seed, h, w] = depth, rig.camera
     return vertices, mask, normals, albedo
+
+
+#: The vertex depths and camera of each ``_grids`` case.
+_CAMERAS: dict[tuple[int, int, int], tuple[np.ndarray, dict]] = {}
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -116,4 +121,8 @@ def test_per_pixel_maps_give_the_vertex_grids_bytes(tmp_path: Path, seed: int) -
             warnings.simplefilter("ignore", RuntimeWarning)
             expected = _array_ply(tmp_path / "a.ply", vertices, mask, vertex_normals, vertex_albedo, opengl)
             export._stream_ply(tmp_path / "b.ply", vertices, mask, normals, albedo, opengl, per_pixel=True)
-        assert (tmp_path / "b.ply").read_bytes() == expected
+            assert (tmp_path / "b.ply").read_bytes() == expected
+            # The positions made from the camera and the vertex depths (as save writes them).
+            depth, camera = _CAMERAS[seed, h, w]
+            export._stream_ply(tmp_path / "c.ply", depth, mask, normals, albedo, opengl, per_pixel=True, camera=camera)
+            assert (tmp_path / "c.ply").read_bytes() == expected

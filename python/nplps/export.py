@@ -330,6 +330,7 @@ def _stream_ply(
     opengl: bool,
     *,
     per_pixel: bool = False,
+    camera: Mapping[str, Any] | None = None,
 ) -> None:
     """Write :func:`write_ply`'s file without whole-mesh arrays (``nplps._core.write_ply``, the GIL released).
 
@@ -338,13 +339,17 @@ def _stream_ply(
     :func:`_write_ply_mesh` of :func:`_build_mesh`'s mesh. With ``per_pixel``, ``normals``
     (``(H, W, 3)``) and ``albedo`` (``(H, W)`` or ``(H, W, 3)``) are per-pixel maps whose vertex
     means (``Reconstruction.vertex_normals``, ``vertex_albedo``) are computed as the records are
-    written, with no per-vertex grid.
+    written, with no per-vertex grid. With ``camera`` (per-pixel maps only), ``vertices`` is the
+    ``(H + 1, W + 1)`` vertex depth map and the positions (``_core.vertices(depth, camera)``)
+    are made vertex by vertex too.
     """
     vertices = np.asarray(vertices)
     if per_pixel:
-        vertices, mask, _, _ = _check_mesh_inputs(vertices, mask, None, None)
-        pixels = vertices.shape[:2]
-        pixels = (pixels[0] - 1, pixels[1] - 1)
+        if camera is None:
+            vertices, mask, _, _ = _check_mesh_inputs(vertices, mask, None, None)
+        mask = np.asarray(mask, dtype=bool)
+        pixels = (vertices.shape[0] - 1, vertices.shape[1] - 1)
+        _require_shape("mask", mask, pixels)
         if normals is not None:
             _require_shape("normals", np.asarray(normals), (*pixels, 3))
         if albedo is not None and np.ndim(albedo) == 3:
@@ -367,6 +372,7 @@ def _stream_ply(
             grey,
             per_pixel,
             opengl,
+            camera=None if camera is None else dict(camera),
         )
         _check_facets(skipped, 2 * facets)
         if overflow:
@@ -2027,7 +2033,14 @@ def write_result(
                 )
             else:  # streamed: vertex normals and colours made as the records are written
                 _stream_ply(
-                    paths["ply"], result.vertices, result.mask, result.normals, result.albedo, opengl, per_pixel=True
+                    paths["ply"],
+                    result.depth,
+                    result.mask,
+                    result.normals,
+                    result.albedo,
+                    opengl,
+                    per_pixel=True,
+                    camera=result.rig.camera,
                 )
             state["meshes"] = True
             meshes_written.set()

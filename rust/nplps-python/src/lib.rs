@@ -703,29 +703,44 @@ fn vertex_means<'py>(
 /// are written, computed as the file is written. `scale`: the colours' (None: 255 over the 99th
 /// percentile of the written vertices' finite albedo). Returns `(vertices, facets, skipped,
 /// overflow)`; nothing is written (the file is not created) when there is no facet or a
-/// written position is beyond the float32 range.
+/// written position is beyond the float32 range. With `camera`, `vertices` is the (H+1, W+1)
+/// vertex depth map and the positions are those of `vertices(depth, camera)`, made vertex by
+/// vertex.
 #[pyfunction]
-#[pyo3(signature = (path, vertices, mask, normals, albedo, per_pixel, opengl, scale=None))]
+#[pyo3(signature = (path, vertices, mask, normals, albedo, per_pixel, opengl, scale=None, camera=None))]
 #[allow(clippy::too_many_arguments)]
 fn write_ply<'py>(
     py: Python<'py>,
     path: std::path::PathBuf,
-    vertices: PyReadonlyArray3<'py, f64>,
+    vertices: PyReadonlyArrayDyn<'py, f64>,
     mask: PyReadonlyArray2<'py, bool>,
     normals: Option<PyReadonlyArray3<'py, f64>>,
     albedo: Option<PyReadonlyArray3<'py, f64>>,
     per_pixel: bool,
     opengl: bool,
     scale: Option<f64>,
+    camera: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(usize, usize, usize, usize)> {
     let shape = vertices.shape().to_vec();
-    if shape[0] < 2 || shape[1] < 2 || shape[2] != 3 {
-        return Err(InputError::new_err(format!(
-            "vertices must have shape (H + 1, W + 1, 3), got {shape:?}"
-        )));
+    let dims = if camera.is_some() { 2 } else { 3 };
+    if shape.len() != dims || shape[0] < 2 || shape[1] < 2 || (dims == 3 && shape[2] != 3) {
+        return Err(InputError::new_err(if camera.is_some() {
+            format!("the vertex depths must have shape (H + 1, W + 1), got {shape:?}")
+        } else {
+            format!("vertices must have shape (H + 1, W + 1, 3), got {shape:?}")
+        }));
     }
     let (h, w) = (shape[0] - 1, shape[1] - 1);
-    let v = slice(&vertices, "vertices")?;
+    let cam = camera.map(camera_from).transpose()?;
+    let values = slice(&vertices, "vertices")?;
+    let positions = match &cam {
+        Some(camera) => nplps::Positions::Camera {
+            camera,
+            depth: values,
+        },
+        None => nplps::Positions::Grid(values),
+    };
+    let v = &positions;
     let m = slice(&mask, "mask")?;
     fn map(values: &[f64], per_pixel: bool) -> nplps::VertexMap<'_> {
         if per_pixel {

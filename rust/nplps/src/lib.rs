@@ -227,7 +227,7 @@ pub use light::Light;
 pub use local::{LightTrust, Robust, Trust, Weighting};
 pub use mesh::{
     mesh_arrays, ply_header, ply_plan, vertex_means, write_ply_records, MeshArrays, PlyColors,
-    PlyPlan, VertexMap,
+    PlyPlan, Positions, VertexMap,
 };
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;

@@ -332,6 +332,49 @@ impl VertexMap<'_> {
     }
 }
 
+/// The vertex positions of a PLY file: a vertex grid, or the camera and the vertex depths (the
+/// positions of [`crate::vertices`], computed vertex by vertex as the file is written).
+#[derive(Debug, Clone, Copy)]
+pub enum Positions<'a> {
+    /// `(H + 1) x (W + 1) x 3` positions (row-major, flat).
+    Grid(&'a [f64]),
+    /// The camera and the `(H + 1) x (W + 1)` vertex depths.
+    Camera {
+        /// The camera.
+        camera: &'a crate::rig::Camera,
+        /// The depth (z) of each vertex.
+        depth: &'a [f64],
+    },
+}
+
+impl Positions<'_> {
+    /// The position of vertex `v = r (W + 1) + c`.
+    #[inline]
+    fn at(&self, width: usize, v: usize) -> [f64; 3] {
+        match self {
+            Positions::Grid(values) => [values[3 * v], values[3 * v + 1], values[3 * v + 2]],
+            Positions::Camera { camera, depth } => {
+                let z = depth[v];
+                let [x, y] = camera.vertex_xy(v / (width + 1), v % (width + 1));
+                if camera.is_perspective() {
+                    [x * z, y * z, z]
+                } else {
+                    [x, y, z]
+                }
+            }
+        }
+    }
+
+    /// The number of values it must have, and has.
+    fn expected(&self, height: usize, width: usize) -> (usize, usize) {
+        let grid = (height + 1) * (width + 1);
+        match self {
+            Positions::Grid(values) => (3 * grid, values.len()),
+            Positions::Camera { depth, .. } => (grid, depth.len()),
+        }
+    }
+}
+
 /// The vertex colours of a PLY file: a per-vertex albedo quantized to `u8`.
 #[derive(Debug, Clone, Copy)]
 pub struct PlyColors<'a> {
@@ -368,14 +411,13 @@ pub struct PlyPlan {
 
 /// Checks the shapes of the grids of [`ply_plan`] and [`write_ply_records`].
 fn check_grids(
-    vertices: &[f64],
+    vertices: &Positions<'_>,
     normals: Option<&VertexMap<'_>>,
     colors: Option<&PlyColors<'_>>,
     mask: &[bool],
     height: usize,
     width: usize,
 ) -> Result<()> {
-    let grid = (height + 1) * (width + 1);
     let shape = |what: &'static str, (expected, got): (usize, usize)| Error::Shape {
         what,
         expected,
@@ -384,8 +426,12 @@ fn check_grids(
             "the {what} of a {height} x {width} mesh must have {expected} values, got {got}"
         ),
     };
-    if vertices.len() != 3 * grid {
-        return Err(shape("vertex grid", (3 * grid, vertices.len())));
+    let (expected, got) = vertices.expected(height, width);
+    if expected != got {
+        return Err(shape("vertex positions", (expected, got)));
+    }
+    if let Positions::Camera { camera, depth } = vertices {
+        crate::render::check_vertex_rays(camera, height, width, depth)?;
     }
     if let Some(n) = normals {
         let (expected, got) = n.expected(height, width, 3);
@@ -441,7 +487,7 @@ fn percentile(values: &mut [f64], q: f64) -> Option<f64> {
 /// the same facets, vertices and order as [`mesh_arrays`], with 5 bytes per vertex instead of
 /// whole position, normal and face arrays — and the colours' scale.
 pub fn ply_plan(
-    vertices: &[f64],
+    vertices: &Positions<'_>,
     normals: Option<&VertexMap<'_>>,
     colors: Option<&PlyColors<'_>>,
     mask: &[bool],
@@ -456,7 +502,7 @@ pub fn ply_plan(
     finite.par_chunks_mut(w1).enumerate().for_each(|(r, line)| {
         for (c, f) in line.iter_mut().enumerate() {
             let v = r * w1 + c;
-            *f = vertices[3 * v..3 * v + 3].iter().all(|x| x.is_finite())
+            *f = vertices.at(width, v).iter().all(|x| x.is_finite())
                 && normals.is_none_or(|n| {
                     n.at::<3>(height, width, v, true)
                         .iter()
@@ -512,7 +558,8 @@ pub fn ply_plan(
             }
             *i = count as u32;
             count += 1;
-            if vertices[3 * v..3 * v + 3]
+            if vertices
+                .at(width, v)
                 .iter()
                 .any(|&x| !(x as f32).is_finite())
             {
@@ -607,7 +654,7 @@ fn color_byte(a: f64, scale: f64) -> u8 {
 pub fn write_ply_records<W: std::io::Write>(
     out: &mut W,
     plan: &PlyPlan,
-    vertices: &[f64],
+    vertices: &Positions<'_>,
     normals: Option<&VertexMap<'_>>,
     colors: Option<&PlyColors<'_>>,
     mask: &[bool],
@@ -645,10 +692,7 @@ pub fn write_ply_records<W: std::io::Write>(
                 continue;
             }
             let v = r * w1 + c;
-            put3(
-                &mut bytes,
-                &[vertices[3 * v], vertices[3 * v + 1], vertices[3 * v + 2]],
-            );
+            put3(&mut bytes, &vertices.at(width, v));
             if let Some(n) = normals {
                 put3(&mut bytes, &n.at::<3>(height, width, v, true));
             }
@@ -768,7 +812,7 @@ mod tests {
             channels: 1,
             scale: Some(255.0),
         };
-        let plan = ply_plan(&v, None, Some(&colors), &mask, h, w).unwrap();
+        let plan = ply_plan(&Positions::Grid(&v), None, Some(&colors), &mask, h, w).unwrap();
         assert_eq!(
             (plan.vertices, plan.facets, plan.skipped, plan.overflow),
             (6, 2, 1, 0)
@@ -777,7 +821,7 @@ mod tests {
         write_ply_records(
             &mut bytes,
             &plan,
-            &v,
+            &Positions::Grid(&v),
             None,
             Some(&colors),
             &mask,
@@ -807,7 +851,12 @@ mod tests {
         }
         // A position beyond the f32 range is counted.
         v[0] = 1e300;
-        assert_eq!(ply_plan(&v, None, None, &mask, h, w).unwrap().overflow, 1);
+        assert_eq!(
+            ply_plan(&Positions::Grid(&v), None, None, &mask, h, w)
+                .unwrap()
+                .overflow,
+            1
+        );
     }
 
     #[test]
