@@ -497,17 +497,24 @@ pub fn ply_plan(
     check_grids(vertices, normals, colors, mask, height, width)?;
     let w1 = width + 1;
     let grid = (height + 1) * w1;
-    // Whether each vertex is finite (1 byte per vertex), row by row in parallel.
-    let mut finite = try_vec(grid, false, "the finite vertices")?;
+    // Per vertex (1 byte, row by row in parallel): 0 when its position (or normal) is not
+    // finite, 2 when its position is finite but beyond the f32 range, else 1.
+    let mut finite = try_vec(grid, 0u8, "the finite vertices")?;
     finite.par_chunks_mut(w1).enumerate().for_each(|(r, line)| {
         for (c, f) in line.iter_mut().enumerate() {
             let v = r * w1 + c;
-            *f = vertices.at(width, v).iter().all(|x| x.is_finite())
+            let p = vertices.at(width, v);
+            let ok = p.iter().all(|x| x.is_finite())
                 && normals.is_none_or(|n| {
                     n.at::<3>(height, width, v, true)
                         .iter()
                         .all(|x| x.is_finite())
                 });
+            *f = match (ok, p.iter().all(|&x| (x as f32).is_finite())) {
+                (false, _) => 0,
+                (true, true) => 1,
+                (true, false) => 2,
+            };
         }
     });
     // Whether each pixel is a written facet (1 byte per pixel).
@@ -520,14 +527,13 @@ pub fn ply_plan(
                 for (c, f) in line.iter_mut().enumerate() {
                     let v00 = r * w1 + c;
                     *f = mask[r * width + c]
-                        && finite[v00]
-                        && finite[v00 + 1]
-                        && finite[v00 + w1]
-                        && finite[v00 + w1 + 1];
+                        && finite[v00] != 0
+                        && finite[v00 + 1] != 0
+                        && finite[v00 + w1] != 0
+                        && finite[v00 + w1 + 1] != 0;
                 }
             });
     }
-    drop(finite);
     let masked = mask.iter().filter(|&&m| m).count();
     let facets = facet.iter().filter(|&&f| f).count();
     // A vertex is used when one of its (up to 4) pixels is a facet.
@@ -558,15 +564,12 @@ pub fn ply_plan(
             }
             *i = count as u32;
             count += 1;
-            if vertices
-                .at(width, v)
-                .iter()
-                .any(|&x| !(x as f32).is_finite())
-            {
+            if finite[v] == 2 {
                 overflow += 1;
             }
         }
     }
+    drop(finite);
     let scale = match colors {
         Some(PlyColors { scale: Some(s), .. }) => *s,
         Some(c) => color_scale(c, &index, height, width)?,
