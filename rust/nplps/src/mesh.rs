@@ -863,6 +863,56 @@ mod tests {
     }
 
     #[test]
+    fn camera_positions_are_those_of_vertices() {
+        use crate::rig::Camera;
+        let (h, w) = (5, 7);
+        let depth: Vec<f64> = (0..(h + 1) * (w + 1))
+            .map(|i| {
+                if i == 9 {
+                    f64::NAN
+                } else {
+                    10.0 + (i % 5) as f64
+                }
+            })
+            .collect();
+        for camera in [
+            Camera::Pinhole {
+                k: [[20.0, 0.3, 4.5], [0.0, 21.0, 3.2], [0.0, 0.0, 1.0]],
+                distortion: [-0.2, 0.05, 0.001, -0.002, 0.01],
+            },
+            Camera::Orthographic {
+                pixel_size: [0.3, 0.25],
+                origin: [-1.0, 2.0],
+            },
+        ] {
+            let grid = crate::vertices(&camera, h, w, &depth).unwrap();
+            let positions = Positions::Camera {
+                camera: &camera,
+                depth: &depth,
+            };
+            for (v, p) in grid.iter().enumerate() {
+                let q = positions.at(w, v);
+                for k in 0..3 {
+                    assert_eq!(p[k].to_bits(), q[k].to_bits(), "vertex {v}");
+                }
+            }
+            // The same file from the grid and from the camera.
+            let flat: Vec<f64> = grid.iter().flatten().copied().collect();
+            let mask = vec![true; h * w];
+            let mut files = Vec::new();
+            for p in [Positions::Grid(&flat), positions] {
+                let plan = ply_plan(&p, None, None, &mask, h, w).unwrap();
+                let mut bytes = Vec::new();
+                write_ply_records(&mut bytes, &plan, &p, None, None, &mask, h, w, false)
+                    .unwrap()
+                    .unwrap();
+                files.push(bytes);
+            }
+            assert_eq!(files[0], files[1]);
+        }
+    }
+
+    #[test]
     fn percentile_is_numpys_linear_one() {
         // numpy.percentile([3, 1, 2, 10], 99) = 2 + ... : index 2.97 between 3 and 10.
         let mut v = [3.0, 1.0, 2.0, 10.0];
