@@ -76,6 +76,7 @@ __all__ = [
     "synth_spheres",
     "vertex_means",
     "vertices",
+    "write_ply",
     "write_pngs",
 ]
 
@@ -214,6 +215,17 @@ def mesh_arrays(
 ) -> tuple[
     npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32] | None, npt.NDArray[np.int32], int
 ]: ...
+def write_ply(
+    path: str | os.PathLike[str],
+    vertices: F64,
+    mask: npt.NDArray[np.bool_],
+    normals: F64 | None,
+    albedo: F64 | None,
+    per_pixel: bool,
+    opengl: bool,
+    scale: float | None = None,
+    camera: Camera | None = None,
+) -> tuple[int, int, int, int]: ...
 def check_rig(camera: Camera, lights: LightsDict) -> None: ...
 def normalize_camera(camera: Camera) -> CameraDict: ...
 def synth_scene(

@@ -318,7 +318,65 @@ def write_ply(
     Only the vertices used by the written facets are stored (row-major order). The header has the
     comments ``nplps`` and ``frame opencv`` / ``frame opengl``.
     """
-    _write_ply_mesh(path, _build_mesh(vertices, mask, normals, albedo, opengl))
+    _stream_ply(path, vertices, mask, normals, albedo, opengl)
+
+
+def _stream_ply(
+    path: PathLike,
+    vertices: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray | None,
+    albedo: np.ndarray | None,
+    opengl: bool,
+    *,
+    per_pixel: bool = False,
+    camera: Mapping[str, Any] | None = None,
+) -> None:
+    """Write :func:`write_ply`'s file without whole-mesh arrays (``nplps._core.write_ply``, the GIL released).
+
+    The Rust extension counts and numbers the used vertices (4 bytes per vertex) and computes the
+    colours' scale, then writes the vertex and face records in blocks of rows: the same bytes as
+    :func:`_write_ply_mesh` of :func:`_build_mesh`'s mesh. With ``per_pixel``, ``normals``
+    (``(H, W, 3)``) and ``albedo`` (``(H, W)`` or ``(H, W, 3)``) are per-pixel maps whose vertex
+    means (``Reconstruction.vertex_normals``, ``vertex_albedo``) are computed as the records are
+    written, with no per-vertex grid. With ``camera`` (per-pixel maps only), ``vertices`` is the
+    ``(H + 1, W + 1)`` vertex depth map and the positions (``_core.vertices(depth, camera)``)
+    are made vertex by vertex too.
+    """
+    vertices = np.asarray(vertices)
+    if per_pixel:
+        if camera is None:
+            vertices, mask, _, _ = _check_mesh_inputs(vertices, mask, None, None)
+        mask = np.asarray(mask, dtype=bool)
+        pixels = (vertices.shape[0] - 1, vertices.shape[1] - 1)
+        _require_shape("mask", mask, pixels)
+        if normals is not None:
+            _require_shape("normals", np.asarray(normals), (*pixels, 3))
+        if albedo is not None and np.ndim(albedo) == 3:
+            _require_shape("albedo", np.asarray(albedo), (*pixels, 3))
+        elif albedo is not None:
+            _require_shape("albedo", np.asarray(albedo), pixels)
+    else:
+        vertices, mask, normals, albedo = _check_mesh_inputs(vertices, mask, normals, albedo)
+    normals = None if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
+    grey = None
+    if albedo is not None:
+        albedo = np.asarray(albedo)
+        grey = np.ascontiguousarray(albedo if albedo.ndim == 3 else albedo[..., None], dtype=np.float64)
+    with atomic_path(path) as temporary:
+        _, facets, skipped, overflow = _core.write_ply(
+            temporary,
+            np.ascontiguousarray(vertices, dtype=np.float64),
+            np.ascontiguousarray(mask),
+            normals,
+            grey,
+            per_pixel,
+            opengl,
+            camera=None if camera is None else dict(camera),
+        )
+        _check_facets(skipped, 2 * facets)
+        if overflow:
+            raise _float32_error("PLY", path, overflow)
 
 
 def write_meshes(
@@ -365,6 +423,9 @@ def _write_meshes(
     extra: Mapping[str, PathLike | None],
 ) -> None:
     """:func:`write_meshes` with the extra mesh formats by their :data:`FORMATS` name."""
+    if ply_path is not None and obj_path is None and not any(extra.values()):
+        _stream_ply(ply_path, vertices, mask, normals, albedo, opengl)  # no mesh arrays
+        return
     mesh = _build_mesh(vertices, mask, normals, albedo, opengl)
     targets = [(f, extra.get(f.name)) for f in FORMATS.values() if f.mesh is not None]
     float32 = [("PLY", ply_path)] + [(f.mesh, target) for f, target in targets]
@@ -797,10 +858,15 @@ def _require_float32(mesh: _Mesh, fmt: str, path: PathLike) -> None:
     OBJ (text) writes those positions in full (double) precision instead.
     """
     if len(mesh.overflow):
-        raise InputError(
-            f"cannot write {fmt} file '{os.fspath(path)}': {len(mesh.overflow)} vertex position(s) "
-            f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
-        )
+        raise _float32_error(fmt, path, len(mesh.overflow))
+
+
+def _float32_error(fmt: str, path: PathLike, count: int) -> InputError:
+    """Return the error of :func:`_require_float32` for ``count`` positions beyond the float32 range."""
+    return InputError(
+        f"cannot write {fmt} file '{os.fspath(path)}': {count} vertex position(s) "
+        f"beyond the float32 range (|value| > {float(np.finfo(np.float32).max):.4g}) that {fmt} stores"
+    )
 
 
 def _write_stl_mesh(path: PathLike, mesh: _Mesh) -> None:
@@ -1954,16 +2020,28 @@ def write_result(
         try:
             # One set of vertex arrays and one mesh for both files and the extra mesh formats.
             mesh_formats = {name: paths[name] for name in formats if FORMATS[name].mesh is not None and name != "obj"}
-            _write_meshes(
-                paths["ply"],
-                paths.get("obj"),
-                result.vertices,
-                result.mask,
-                result.vertex_normals(),
-                result.vertex_albedo(),
-                opengl,
-                mesh_formats,
-            )
+            if "obj" in paths or mesh_formats:
+                _write_meshes(
+                    paths["ply"],
+                    paths.get("obj"),
+                    result.vertices,
+                    result.mask,
+                    result.vertex_normals(),
+                    result.vertex_albedo(),
+                    opengl,
+                    mesh_formats,
+                )
+            else:  # streamed: vertex normals and colours made as the records are written
+                _stream_ply(
+                    paths["ply"],
+                    result.depth,
+                    result.mask,
+                    result.normals,
+                    result.albedo,
+                    opengl,
+                    per_pixel=True,
+                    camera=result.rig.camera,
+                )
             state["meshes"] = True
             meshes_written.set()
             # The manifest's hashes are computed on a thread of their own as the files are done.

@@ -504,8 +504,9 @@ class Reconstruction:
             Write the OpenGL frame (x right, y up, z towards the viewer) instead of the camera's
             OpenCV frame.
         """
-        export.write_ply(
-            path, self.vertices, self.mask, normals=self.vertex_normals(), albedo=self.vertex_albedo(), opengl=opengl
+        # Streamed: the vertex normals and colours are made from the per-pixel maps as it is written.
+        export._stream_ply(
+            path, self.depth, self.mask, self.normals, self.albedo, opengl, per_pixel=True, camera=self.rig.camera
         )
 
     def save_obj(self, path: str | os.PathLike[str], *, opengl: bool = False) -> None:
@@ -785,9 +786,13 @@ class Reconstruction:
         Each file is written under a temporary name and renamed when complete, so an error never
         leaves a truncated file under its final name. The PNG images are encoded in parallel
         (the Rust encoder, fast DEFLATE: :func:`nplps.export.write_pngs`) while the meshes and
-        arrays are written, and renamed into place after the meshes. The vertex normals and
-        colours and the mesh arrays are built by the Rust extension; the manifest's SHA-256 of
-        the large files are computed on a background thread while the later files are written.
+        arrays are written, and renamed into place after the meshes. ``mesh.ply`` alone (no OBJ,
+        STL, GLB or point cloud) is streamed by the Rust extension in blocks of rows: the vertex
+        normals and colours are made vertex by vertex from the per-pixel maps as the records are
+        written, with no whole position, normal or face array (5 bytes per vertex); with other
+        mesh formats the mesh arrays are built once (in Rust) for all of them. The manifest's
+        SHA-256 of the large files are computed on a background thread while the later files are
+        written.
         """
         extra = export.check_formats(formats)
         export.check_normal_map(normal_map, normal_map_bits)

@@ -696,6 +696,113 @@ fn vertex_means<'py>(
     array(py, means, &[h + 1, w + 1, c])
 }
 
+/// Streams the PLY file of the masked facets with finite corners to `path` (`nplps::ply_plan`,
+/// then `nplps::write_ply_records` through a buffered writer), the GIL released. `normals` and
+/// `albedo` (C = 1 or 3 channels; quantized to colours) are per-vertex grids (H+1, W+1, C), or
+/// with `per_pixel` the per-pixel maps (H, W, C) whose vertex means (normalized for the normals)
+/// are written, computed as the file is written. `scale`: the colours' (None: 255 over the 99th
+/// percentile of the written vertices' finite albedo). Returns `(vertices, facets, skipped,
+/// overflow)`; nothing is written (the file is not created) when there is no facet or a
+/// written position is beyond the float32 range. With `camera`, `vertices` is the (H+1, W+1)
+/// vertex depth map and the positions are those of `vertices(depth, camera)`, made vertex by
+/// vertex.
+#[pyfunction]
+#[pyo3(signature = (path, vertices, mask, normals, albedo, per_pixel, opengl, scale=None, camera=None))]
+#[allow(clippy::too_many_arguments)]
+fn write_ply<'py>(
+    py: Python<'py>,
+    path: std::path::PathBuf,
+    vertices: PyReadonlyArrayDyn<'py, f64>,
+    mask: PyReadonlyArray2<'py, bool>,
+    normals: Option<PyReadonlyArray3<'py, f64>>,
+    albedo: Option<PyReadonlyArray3<'py, f64>>,
+    per_pixel: bool,
+    opengl: bool,
+    scale: Option<f64>,
+    camera: Option<&Bound<'py, PyDict>>,
+) -> PyResult<(usize, usize, usize, usize)> {
+    let shape = vertices.shape().to_vec();
+    let dims = if camera.is_some() { 2 } else { 3 };
+    if shape.len() != dims || shape[0] < 2 || shape[1] < 2 || (dims == 3 && shape[2] != 3) {
+        return Err(InputError::new_err(if camera.is_some() {
+            format!("the vertex depths must have shape (H + 1, W + 1), got {shape:?}")
+        } else {
+            format!("vertices must have shape (H + 1, W + 1, 3), got {shape:?}")
+        }));
+    }
+    let (h, w) = (shape[0] - 1, shape[1] - 1);
+    let cam = camera.map(camera_from).transpose()?;
+    let values = slice(&vertices, "vertices")?;
+    let positions = match &cam {
+        Some(camera) => nplps::Positions::Camera {
+            camera,
+            depth: values,
+        },
+        None => nplps::Positions::Grid(values),
+    };
+    let v = &positions;
+    let m = slice(&mask, "mask")?;
+    fn map(values: &[f64], per_pixel: bool) -> nplps::VertexMap<'_> {
+        if per_pixel {
+            nplps::VertexMap::Pixels(values)
+        } else {
+            nplps::VertexMap::Vertices(values)
+        }
+    }
+    let n = match &normals {
+        Some(n) => Some(map(slice(n, "normals")?, per_pixel)),
+        None => None,
+    };
+    let colors = match &albedo {
+        Some(a) => Some(nplps::PlyColors {
+            albedo: map(slice(a, "albedo")?, per_pixel),
+            channels: a.shape()[2],
+            scale,
+        }),
+        None => None,
+    };
+    type Counts = (usize, usize, usize, usize);
+    let written = py.detach(|| {
+        no_panic(|| -> nplps::Result<std::io::Result<Counts>> {
+            let plan = nplps::ply_plan(v, n.as_ref(), colors.as_ref(), m, h, w)?;
+            let counts = (plan.vertices, plan.facets, plan.skipped, plan.overflow);
+            if plan.facets == 0 || plan.overflow > 0 {
+                return Ok(Ok(counts));
+            }
+            let file = match std::fs::File::create(&path) {
+                Ok(f) => f,
+                Err(e) => return Ok(Err(e)),
+            };
+            let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
+            let done = nplps::write_ply_records(
+                &mut out,
+                &plan,
+                v,
+                n.as_ref(),
+                colors.as_ref(),
+                m,
+                h,
+                w,
+                opengl,
+            )?;
+            Ok(done
+                .and_then(|()| out.into_inner().map_err(|e| e.into_error()).map(drop))
+                .map(|()| counts))
+        })
+    });
+    match written.map_err(to_py)? {
+        Ok(counts) => Ok(counts),
+        Err(e) => Err(match e.raw_os_error() {
+            Some(errno) => pyo3::exceptions::PyOSError::new_err((
+                errno,
+                e.to_string(),
+                path.to_string_lossy().into_owned(),
+            )),
+            None => pyo3::exceptions::PyOSError::new_err(format!("{e}: {}", path.display())),
+        }),
+    }
+}
+
 /// The mesh of the masked facets with finite corners (`nplps::mesh_arrays`): `(used, points,
 /// normals, faces, skipped)` with the used vertices' flat indices (int64), their positions and
 /// normals (float32, (n, 3); normals None without `normals`), the triangles (int32, (m, 3)) and
@@ -840,6 +947,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(vertex_means, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_arrays, m)?)?;
+    m.add_function(wrap_pyfunction!(write_ply, m)?)?;
     m.add_function(wrap_pyfunction!(check_rig, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_camera, m)?)?;
     m.add("MAX_LIGHTS", nplps::MAX_LIGHTS)?;

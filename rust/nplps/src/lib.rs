@@ -225,7 +225,10 @@ pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use light::Light;
 pub use local::{LightTrust, Robust, Trust, Weighting};
-pub use mesh::{mesh_arrays, vertex_means, MeshArrays};
+pub use mesh::{
+    mesh_arrays, ply_header, ply_plan, vertex_means, write_ply_records, MeshArrays, PlyColors,
+    PlyPlan, Positions, VertexMap,
+};
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};

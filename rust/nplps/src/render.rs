@@ -215,6 +215,35 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
     Ok(positions)
 }
 
+/// Checks that every vertex of finite depth of an (H+1) x (W+1) depth map has a camera ray,
+/// with the error of [`vertices`], without making the positions (the PLY writer computes them
+/// vertex by vertex: `crate::mesh::Positions::Camera`).
+pub fn check_vertex_rays(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+) -> Result<()> {
+    ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
+        format!(
+            "depth map has {} values, expected (W+1) x (H+1) = {} x {}",
+            depth.len(),
+            width + 1,
+            height + 1
+        )
+    })?;
+    let vw = width + 1;
+    let no_ray = depth.par_iter().enumerate().any(|(v, &z)| {
+        let [x, y] = camera.vertex_xy(v / vw, v % vw);
+        z.is_finite() && !(x.abs() <= MAX_MAGNITUDE && y.abs() <= MAX_MAGNITUDE)
+    });
+    if no_ray {
+        let grid = Grid::new(height, width, None)?;
+        Geometry::new(camera, &grid)?.check_rays(&grid, |v| depth[v].is_finite())?;
+    }
+    Ok(())
+}
+
 /// The 4 corners of pixel `p` from the vertex positions.
 #[inline]
 fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
