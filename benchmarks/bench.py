@@ -162,7 +162,7 @@ def main() -> None:
     parser.add_argument("--auto-size", type=int, default=256, help="image size of the depth='auto' timing")
     parser.add_argument("--json", help="also write the results to this JSON file")
     parser.add_argument("--ratios", action="store_true", help="only the auto and light-refinement cost ratios")
-    parser.add_argument("--ratio-sizes", type=int, nargs="+", default=[256, 512, 1024])
+    parser.add_argument("--ratio-sizes", type=int, nargs="*", default=[256, 512, 1024])
     parser.add_argument(
         "--ratio-cases", nargs="+", default=list(CASES), help="robust/reflectance pairs of the auto ratios"
     )
