@@ -1327,7 +1327,8 @@ mod tests {
     #[test]
     fn parabolic_refinement_finds_minima_to_the_tolerance() {
         let tol = 1e-3;
-        let cases: [(&str, Box<dyn Fn(f64) -> f64>, f64); 4] = [
+        type Case = (&'static str, Box<dyn Fn(f64) -> f64>, f64);
+        let cases: [Case; 4] = [
             ("quadratic", Box::new(|x: f64| (x - 0.123).powi(2)), 0.123),
             ("v", Box::new(|x: f64| (x + 0.31).abs()), -0.31),
             (
