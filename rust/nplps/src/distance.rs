@@ -340,6 +340,11 @@ const NARROW_SCAN: usize = 3;
 /// How many times that window may move to an end where the residual keeps falling.
 const NARROW_MOVES: usize = 6;
 
+/// Local/global iterations per candidate of that window (at most the search's): its candidates
+/// start from surfaces converged nearby (the coarser level's, carried up and iterated at its
+/// distance with the search's iterations, then the nearest candidate's).
+const WINDOW_INNER: usize = 5;
+
 /// The stages of a search (see [`search_with`]).
 ///
 /// On a level larger than [`SEARCH_SIDE`] the wide search (log-spaced scan, then successive
@@ -412,7 +417,19 @@ fn search_stages(
                 Ok((estimate, try_copy(&problem.u0, "the depths")?))
             })
         }
-        Ok(wide) if halvings > 0 => {
+        Ok((wide, mut u)) if halvings > 0 => {
+            // The coarser level's surface converges at its distance on this level first; the
+            // window's candidates then start near convergence and take fewer iterations.
+            let gauge: Vec<f64> = wide
+                .distance
+                .iter()
+                .map(|&d| problem.geometry.unknown(d))
+                .collect();
+            problem.grid.apply_gauge(&mut u, &gauge);
+            solver.lights.restart(solver.lights.refine());
+            solver.iterate(&mut u, &gauge, search.inner, 0.0, &mut |_| {
+                Control::Continue
+            })?;
             let window = Window {
                 scan: NARROW_SCAN,
                 width: NARROW_WIDTH,
@@ -420,8 +437,19 @@ fn search_stages(
                 lobe: false,
                 coarser: true,
             };
+            let narrow = DistanceSearch {
+                inner: search.inner.min(WINDOW_INNER),
+                ..*search
+            };
             search_window(
-                solver, problem, search, range, wide, window, &mut count, progress,
+                solver,
+                problem,
+                &narrow,
+                range,
+                (wide, u),
+                window,
+                &mut count,
+                progress,
             )
         }
         other => other,
