@@ -326,6 +326,10 @@ fn end_search(solver: &mut Solver<'_>, (refine, shadows): (Refine, crate::shadow
 /// (see [`search_stages`]).
 pub const SEARCH_SIDE: usize = 64;
 
+/// Local/global iterations per candidate of the wide search on the [`SEARCH_SIDE`] level: it
+/// need only bracket the distance for the window on the search's own level.
+const WIDE_INNER: usize = 8;
+
 /// The precision (in log-distance) of a wide search on the [`SEARCH_SIDE`] level that a window
 /// on the search's own level refines.
 const WIDE_PRECISION: f64 = 0.01;
@@ -495,7 +499,7 @@ fn search_coarser(
         .and_then(|()| {
             let u = try_copy(&level.u0, "the depths")?;
             let wide = DistanceSearch {
-                inner: wide.inner.max(COARSE_INNER),
+                inner: WIDE_INNER,
                 ..*wide
             };
             search_refined(&mut sub, level, &wide, range, u, count, progress)
