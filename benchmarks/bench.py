@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/bench.py [--sizes 128 256 512] [--repeats 5] [--reference-repeats 1]
                                [--threads N] [--json results.json]
+    python benchmarks/bench.py --ratios [--ratio-sizes 256 512 1024] [--repeats 3]
 
 Each size reconstructs the synthetic ``bumps`` scene (27 lights, 10 iterations, tol 0 so that
 every run does exactly 10 iterations) and reports the median wall time of the Rust core split into
@@ -11,6 +12,12 @@ factorization, local steps and solves, the reference's median, and the speed-up;
 ``depth="auto"`` (working-distance search) against a run given the distance. Timings are
 medians of repeated runs in one process; machines are shared and noisy, so compare ratios
 measured in the same run rather than absolute numbers across runs.
+
+``--ratios`` measures only the cost ratios of issue 23 (item 4), medians in one process: ``depth="auto"``
+over a run given the distance (pinhole bumps, 27 lights, 1 % noise) at each ``--ratio-sizes`` with robust
+none / tukey and reflectance lambertian / glossy, with the found distance's error; and light refinement
+(intensity, position, both; intensities off by up to 20 %) over none at 256² and the largest size, with
+the mean normal error against the true normals.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import json
 import statistics
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +84,73 @@ def _wall(run) -> float:
     return time.perf_counter() - t0
 
 
+CASES = ("none/lambertian", "tukey/lambertian", "none/glossy")
+
+
+def _timed(reps: int, *args: object, **kw: object) -> tuple[float, nplps.Reconstruction]:
+    """Median wall time of ``reps`` runs of ``nplps.reconstruct(*args, **kw)`` and the first result."""
+    results: list[nplps.Reconstruction] = []
+    times = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            results.append(nplps.reconstruct(*args, **kw))  # type: ignore[arg-type]
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times), results[0]
+
+
+def ratios(
+    sizes: list[int], repeats: int, cases: list[str], largest: int | None, refine_sizes: list[int] | None
+) -> list[dict[str, object]]:
+    """Print and return the cost ratios of ``depth="auto"`` and of light refinement (see the module docstring)."""
+    out: list[dict[str, object]] = []
+    print("## depth='auto' over a known distance (bumps, pinhole, 27 lights, 1 % noise; medians)")
+    print(f"{'size':>9} {'robust':>6} {'reflectance':>11} | {'known s':>8} {'auto s':>8} {'ratio':>6} | distance error")
+    for n in sizes:
+        reps = repeats if n <= 512 else max(1, (repeats + 1) // 2)
+        for case in cases if largest is None or n <= largest else cases[:1]:
+            name, reflectance = case.split("/")
+            robust = None if name == "none" else name
+            glossy = reflectance == "glossy"
+            s = nplps.make_scene(
+                "bumps", n=n, camera="pinhole", led=not glossy, noise=0.01, specular=0.5 if glossy else 0.0
+            )
+            images = s.images.astype(np.float32)
+            kw = {"mask": s.mask, "robust": robust, "reflectance": reflectance}
+            known, _ = _timed(reps, images, s.rig, depth=s.mean_depth, **kw)
+            auto, found = _timed(reps, images, s.rig, depth="auto", **kw)
+            assert found.distance is not None
+            error = found.distance.distance[0] / s.mean_depth - 1
+            print(
+                f"{n:>4}x{n:<4} {name:>6} {reflectance:>11} | {known:8.3f} {auto:8.3f} {auto / known:6.2f}"
+                f" | {100 * error:+.3f} %",
+                flush=True,
+            )
+            out.append(
+                {"size": n, "robust": robust, "reflectance": reflectance, "known": known, "auto": auto, "error": error}
+            )
+    if not refine_sizes:
+        return out
+    print("\n## Light refinement over none (bumps, pinhole LEDs, intensities off by up to 20 %; medians)")
+    print(f"{'size':>9} {'refine':>9} | {'time s':>8} {'ratio':>6} | normals (deg)")
+    for n in refine_sizes:
+        reps = repeats if n <= 512 else max(1, (repeats + 1) // 2)
+        s = nplps.make_scene("bumps", n=n, camera="pinhole", led=True, noise=0.01)
+        rng = np.random.default_rng(1)
+        rig = s.rig.with_intensities(s.rig.intensities * (1 + rng.uniform(-0.2, 0.2, s.rig.n_lights))[:, None])
+        images = s.images.astype(np.float32)
+        base = None
+        for mode in (None, "intensity", "position", "both"):
+            t, r = _timed(reps, images, rig, depth=s.mean_depth, mask=s.mask, refine_lights=mode)
+            base = base or t
+            cos = np.clip((r.normals * s.normals).sum(-1), -1.0, 1.0)
+            error = float(np.degrees(np.arccos(cos))[s.mask].mean())
+            print(f"{n:>4}x{n:<4} {mode or 'none':>9} | {t:8.3f} {t / base:6.2f} | {error:.3f}", flush=True)
+            out.append({"size": n, "refine": mode, "time": t, "ratio": t / base, "normals": error})
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
@@ -86,7 +161,20 @@ def main() -> None:
     )
     parser.add_argument("--auto-size", type=int, default=256, help="image size of the depth='auto' timing")
     parser.add_argument("--json", help="also write the results to this JSON file")
+    parser.add_argument("--ratios", action="store_true", help="only the auto and light-refinement cost ratios")
+    parser.add_argument("--ratio-sizes", type=int, nargs="*", default=[256, 512, 1024])
+    parser.add_argument(
+        "--ratio-cases", nargs="+", default=list(CASES), help="robust/reflectance pairs of the auto ratios"
+    )
+    parser.add_argument("--refine-sizes", type=int, nargs="*", default=[256, 1024], help="light-refinement sizes")
+    parser.add_argument("--ratio-max", type=int, default=None, help="sizes above this: the first case only")
     args = parser.parse_args()
+    if args.ratios:
+        results = ratios(args.ratio_sizes, args.repeats, args.ratio_cases, args.ratio_max, args.refine_sizes)
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as f:
+                json.dump(results, f, indent=2)
+        return
 
     results = []
     header = f"{'size':>9} {'factor':>8} {'local':>8} {'solve':>8} {'total':>8} | {'numpy':>8} {'speed-up':>8}"
