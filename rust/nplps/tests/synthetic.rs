@@ -291,14 +291,14 @@ fn the_distance_search_reports_its_candidates() {
     })
     .unwrap();
     let searched: Vec<_> = seen.iter().filter_map(|s| s.search).collect();
-    let n = searched[0].candidates;
-    // Every evaluation is one candidate, numbered 1..=n, announced from the start.
+    // Every evaluation is one candidate, numbered 1..=n; a plan is announced, which grows when
+    // the search needs more candidates (and the search may end sooner).
+    let n = searched.last().unwrap().candidate;
     assert_eq!(n, estimate.curve[0].len());
-    assert!(searched.iter().all(|s| s.candidates == n));
-    assert_eq!(searched.last().unwrap().candidate, n);
+    assert!(searched.iter().all(|s| s.candidates >= s.candidate));
     assert!(searched
         .windows(2)
-        .all(|w| w[1].candidate >= w[0].candidate));
+        .all(|w| w[1].candidate >= w[0].candidate && w[1].candidates >= w[0].candidates));
     // The residual is set on each candidate's last iteration only, and the best follows it.
     let finished: Vec<_> = searched.iter().filter(|s| s.residual.is_finite()).collect();
     assert_eq!(finished.len(), n);
