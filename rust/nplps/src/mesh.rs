@@ -354,13 +354,7 @@ impl Positions<'_> {
         match self {
             Positions::Grid(values) => [values[3 * v], values[3 * v + 1], values[3 * v + 2]],
             Positions::Camera { camera, depth } => {
-                let z = depth[v];
-                let [x, y] = camera.vertex_xy(v / (width + 1), v % (width + 1));
-                if camera.is_perspective() {
-                    [x * z, y * z, z]
-                } else {
-                    [x, y, z]
-                }
+                camera.at_depth(camera.vertex_xy(v / (width + 1), v % (width + 1)), depth[v])
             }
         }
     }
@@ -780,16 +774,22 @@ mod tests {
         assert!(vertex_means(&grey, 2, 3, 1, false).is_err());
     }
 
-    #[test]
-    fn facets_become_two_triangles_over_the_used_vertices() {
-        // 2 x 2 pixels, all masked but (0, 1); vertex (2, 2) not finite: facet (1, 1) skipped.
-        let (h, w) = (2, 2);
+    /// 2 x 2 pixels, all masked but (0, 1), vertex i at (i, 0.5, 1) except vertex (2, 2), whose
+    /// z is not finite (so facet (1, 1) is skipped): the vertex grid and the mask.
+    fn two_by_two() -> (Vec<f64>, [bool; 4]) {
         let mut v = vec![0.0f64; 27];
         for i in 0..9 {
             v[3 * i..3 * i + 3].copy_from_slice(&[i as f64, 0.5, 1.0]);
         }
         v[26] = f64::NAN;
-        let mask = [true, false, true, true];
+        (v, [true, false, true, true])
+    }
+
+    #[test]
+    fn facets_become_two_triangles_over_the_used_vertices() {
+        // 2 x 2 pixels, all masked but (0, 1); vertex (2, 2) not finite: facet (1, 1) skipped.
+        let (h, w) = (2, 2);
+        let (v, mask) = two_by_two();
         let m = mesh_arrays(&v, None, &mask, h, w, true).unwrap();
         assert_eq!(m.skipped, 1);
         assert_eq!(m.used, vec![0, 1, 3, 4, 6, 7]);
@@ -803,12 +803,7 @@ mod tests {
     fn streamed_ply_holds_the_mesh_arrays() {
         // The facets, vertices and triangles of mesh_arrays, as PLY records.
         let (h, w) = (2, 2);
-        let mut v = vec![0.0f64; 27];
-        for i in 0..9 {
-            v[3 * i..3 * i + 3].copy_from_slice(&[i as f64, 0.5, 1.0]);
-        }
-        v[26] = f64::NAN;
-        let mask = [true, false, true, true];
+        let (mut v, mask) = two_by_two();
         let albedo = [0.5; 9];
         let colors = PlyColors {
             albedo: VertexMap::Vertices(&albedo),

@@ -170,8 +170,8 @@ impl<'a> Model<'a> {
     }
 }
 
-/// Vertex positions of a full (H+1) x (W+1) depth map.
-fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
+/// Checks that `depth` has the (H+1) x (W+1) values of a vertex depth map.
+fn ensure_depth_map(height: usize, width: usize, depth: &[f64]) -> Result<()> {
     ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
         format!(
             "depth map has {} values, expected (W+1) x (H+1) = {} x {}",
@@ -179,7 +179,26 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
             width + 1,
             height + 1
         )
-    })?;
+    })
+}
+
+/// Whether a vertex of depth `z` whose [`Camera::vertex_xy`] is `xy` lacks a camera ray that
+/// it needs (vertices of unknown, NaN, depth need none: outside a reconstruction's mask, say).
+#[inline]
+fn lacks_ray([x, y]: [f64; 2], z: f64) -> bool {
+    z.is_finite() && !(x.abs() <= MAX_MAGNITUDE && y.abs() <= MAX_MAGNITUDE)
+}
+
+/// The error naming the first vertex of finite depth without a ray (the geometry's own check),
+/// once [`lacks_ray`] found one.
+fn missing_ray(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<()> {
+    let grid = Grid::new(height, width, None)?;
+    Geometry::new(camera, &grid)?.check_rays(&grid, |v| depth[v].is_finite())
+}
+
+/// Vertex positions of a full (H+1) x (W+1) depth map.
+fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
+    ensure_depth_map(height, width, depth)?;
     crate::memory::check(
         || format!("the vertices of a depth map of {width} x {height} pixels"),
         // Grid, geometry and positions: about 100 bytes per vertex.
@@ -190,27 +209,19 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
     // instead of about 100, which at 12 MP is a gigabyte of pages less to fault in; issue 23),
     // with the arithmetic of `Geometry::position_at_depth`.
     let vw = width + 1;
-    let perspective = camera.is_perspective();
     let no_ray = std::sync::atomic::AtomicBool::new(false);
     let positions = crate::memory::try_par_collect(
         depth.par_iter().enumerate().map(|(v, &z)| {
-            let [x, y] = camera.vertex_xy(v / vw, v % vw);
-            // Vertices of unknown (NaN) depth need no ray: outside a reconstruction's mask, say.
-            if z.is_finite() && !(x.abs() <= MAX_MAGNITUDE && y.abs() <= MAX_MAGNITUDE) {
+            let xy = camera.vertex_xy(v / vw, v % vw);
+            if lacks_ray(xy, z) {
                 no_ray.store(true, std::sync::atomic::Ordering::Relaxed);
             }
-            if perspective {
-                [x * z, y * z, z]
-            } else {
-                [x, y, z]
-            }
+            camera.at_depth(xy, z)
         }),
         "the vertex positions",
     )?;
     if no_ray.into_inner() {
-        // The geometry's own check names the first vertex without a ray.
-        let grid = Grid::new(height, width, None)?;
-        Geometry::new(camera, &grid)?.check_rays(&grid, |v| depth[v].is_finite())?;
+        missing_ray(camera, height, width, depth)?;
     }
     Ok(positions)
 }
@@ -224,22 +235,14 @@ pub fn check_vertex_rays(
     width: usize,
     depth: &[f64],
 ) -> Result<()> {
-    ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
-        format!(
-            "depth map has {} values, expected (W+1) x (H+1) = {} x {}",
-            depth.len(),
-            width + 1,
-            height + 1
-        )
-    })?;
+    ensure_depth_map(height, width, depth)?;
     let vw = width + 1;
-    let no_ray = depth.par_iter().enumerate().any(|(v, &z)| {
-        let [x, y] = camera.vertex_xy(v / vw, v % vw);
-        z.is_finite() && !(x.abs() <= MAX_MAGNITUDE && y.abs() <= MAX_MAGNITUDE)
-    });
+    let no_ray = depth
+        .par_iter()
+        .enumerate()
+        .any(|(v, &z)| lacks_ray(camera.vertex_xy(v / vw, v % vw), z));
     if no_ray {
-        let grid = Grid::new(height, width, None)?;
-        Geometry::new(camera, &grid)?.check_rays(&grid, |v| depth[v].is_finite())?;
+        missing_ray(camera, height, width, depth)?;
     }
     Ok(())
 }

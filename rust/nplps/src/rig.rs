@@ -141,6 +141,17 @@ impl Camera {
         }
     }
 
+    /// The point at depth `z` of [`Camera::vertex_xy`]'s `xy`: `(x z, y z, z)` on a pinhole
+    /// camera's ray, `(x, y, z)` for an orthographic camera (as `Geometry::position_at_depth`).
+    #[inline]
+    pub fn at_depth(&self, [x, y]: [f64; 2], z: f64) -> [f64; 3] {
+        if self.is_perspective() {
+            [x * z, y * z, z]
+        } else {
+            [x, y, z]
+        }
+    }
+
     /// Orthographic: the scene (x, y) of vertex (r, c). Pinhole: the ray (x, y) of vertex (r, c)
     /// at z = 1, undistorted; NaN where the distortion cannot be undone (see
     /// `undistort_checked`).
