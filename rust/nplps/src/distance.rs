@@ -76,7 +76,7 @@ pub struct DistanceEstimate {
     pub distance: Vec<f64>,
     /// Per region, every evaluated `(distance, residual)`, sorted by distance: the RMS image
     /// residual, or under the glossy model the median of the facets' RMS residuals (the
-    /// search's criterion, see [`search_with`]); a search in a window (glossy, or after a scan
+    /// search's criterion, see `search_with`); a search in a window (glossy, or after a scan
     /// on a coarser level) keeps its window's candidates and the wide scan's outside it, the
     /// latter scaled to the window's residuals where they meet when they come from a coarser
     /// level.

@@ -595,7 +595,7 @@ fn sub_points(q: &[[f64; 3]; 4]) -> [[f64; 3]; SUBDIVISIONS * SUBDIVISIONS] {
 }
 
 /// Longest side, in facets, of the coarse grid on which the solver gathers the indirect light
-/// ([`IndirectField::of_mesh`]): the prototype measured that 32² to 128² facets change
+/// (`IndirectField::of_mesh`): the prototype measured that 32² to 128² facets change
 /// the normals by at most 0.13° on the benchmark's concave scenes.
 pub const FIELD_SIDE: usize = 64;
 
@@ -965,7 +965,7 @@ impl IndirectField {
     }
 
     /// Whether light `k` is behind the facet of fine pixel `p` (see
-    /// [`IndirectField::with_unlit`]; false without it).
+    /// `IndirectField::with_unlit`; false without it).
     pub fn is_unlit(&self, p: usize, k: usize) -> bool {
         self.words > 0 && self.unlit[p * self.words + k / 64] & (1 << (k % 64)) != 0
     }
@@ -1058,15 +1058,15 @@ pub const MARGIN_FRACTION: f64 = 0.125;
 /// fitted; the margin is a guess).
 pub const MIN_LIT: usize = 3;
 
-/// Passes of "model the margin's light, gather again" (see [`Margin::emit`]).
+/// Passes of "model the margin's light, gather again" (see `Margin::emit`).
 pub const MARGIN_PASSES: usize = 2;
 
 /// Order `P` of the linear prediction that continues the mesh past the image border
-/// ([`continue_line`]).
+/// (`continue_line`).
 pub const PREDICTION_ORDER: usize = 3;
 
 /// At most this many coarse vertices nearest the border (a row or column's run of known ones)
-/// fit the linear prediction ([`continue_line`]).
+/// fit the linear prediction (`continue_line`).
 pub const PREDICTION_SAMPLES: usize = 16;
 
 /// The margin width in coarse facets of a coarse grid of `hc` x `wc` facets.

@@ -36,7 +36,7 @@ pub struct Options {
     pub reflectance: Reflectance,
     /// Cast shadows predicted from the current mesh (see [`crate::shadow`]): the observations a
     /// facet's own surface hides from a light are left out of its fits. The masks are computed
-    /// at a few iterations of each pyramid level ([`crate::solver::SHADOWS_AT`]); by default
+    /// at a few iterations of each pyramid level (`solver::SHADOWS_AT`); by default
     /// ([`Shadows::Auto`]) only where the coarsest level finds the object shadowing itself.
     pub shadows: Shadows,
     /// Interreflections (see [`crate::indirect`]): after the full-resolution level converges,
@@ -44,7 +44,7 @@ pub struct Options {
     /// observed images over the current mesh (on a grid of at most
     /// [`FIELD_SIDE`](crate::indirect::FIELD_SIDE)² facets), added to the lights' rows of the
     /// local fits (`I = b . (s + V)`), and the iteration runs again, up to
-    /// [`INDIRECT_ROUNDS`](crate::solver::INDIRECT_ROUNDS) rounds. Lambertian model only, without
+    /// `INDIRECT_ROUNDS` rounds. Lambertian model only, without
     /// light refinement (both are refused).
     pub interreflections: bool,
     /// Worker threads (0: rayon's default, all cores).

@@ -30,7 +30,7 @@
 //!
 //! `h` and `F(v.h) / F(1)` do not depend on `n`: an [`Observation`] carries them, computed once
 //! per facet. `T(n.v)` and `G1(n.v)` are shared by all lights: they are computed once per normal
-//! (a [`View`]). Per light and normal there remain `T(n.l)`, `G(n.h)` and `G1(n.l)`: two square
+//! (a `View`). Per light and normal there remain `T(n.l)`, `G(n.h)` and `G1(n.l)`: two square
 //! roots and three divisions (each function's reciprocals from one division, see
 //! [`Lobe::fresnel`]).
 //!

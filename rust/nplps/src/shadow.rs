@@ -137,9 +137,9 @@ pub enum Shadows {
     /// Never: only the `dark` threshold and attached shadows (`n . l <= 0`) leave observations
     /// out.
     Off,
-    /// Where the object shadows itself: at the iterations [`crate::solver::SHADOWS_AT`] a
+    /// Where the object shadows itself: at the iterations `solver::SHADOWS_AT` a
     /// solver without a mask first marches from a lattice of about
-    /// [`crate::solver::PROBE_FACETS`] facets, and from all of them only when at least
+    /// `solver::PROBE_FACETS` facets, and from all of them only when at least
     /// [`AUTO_SHARE`] of the lattice's observations are in a cast shadow; a mask is used only
     /// when it holds that share. On an object that does not shadow itself this costs the probes
     /// and changes nothing else (the fits are those of `Off`, bit for bit); on one that does,
