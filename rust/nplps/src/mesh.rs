@@ -645,10 +645,10 @@ fn color_byte(a: f64, scale: f64) -> u8 {
 /// `red green blue` uchar) and the face records (`3` as uchar and three int indices: the
 /// triangles `(00, 10, 11)` and `(00, 11, 01)` of each facet in row-major order) of the
 /// mesh that `plan` ([`ply_plan`] of the same grids) describes, in blocks of rows made in
-/// parallel; the bytes are those of `nplps.export.write_ply`. With `opengl`, positions and
+/// parallel while a writer thread writes the previous blocks; the bytes are those of `nplps.export.write_ply`. With `opengl`, positions and
 /// normals are `(x, -y, -z)`.
 #[allow(clippy::too_many_arguments)]
-pub fn write_ply_records<W: std::io::Write>(
+pub fn write_ply_records<W: std::io::Write + Send>(
     out: &mut W,
     plan: &PlyPlan,
     vertices: &Positions<'_>,
@@ -729,24 +729,41 @@ pub fn write_ply_records<W: std::io::Write>(
         }
         bytes
     };
-    let result = (|| -> std::io::Result<()> {
-        out.write_all(header.as_bytes())?;
-        for start in (0..=height).step_by(PLY_BLOCK_ROWS) {
-            let rows = start..(start + PLY_BLOCK_ROWS).min(height + 1);
-            let blocks: Vec<Vec<u8>> = rows.into_par_iter().map(vertex_row).collect();
-            for b in &blocks {
-                out.write_all(b)?;
+    // The blocks are made on rayon's pool while a writer thread writes the previous batch: the
+    // encoding and the write overlap (one batch in flight, so memory stays two batches).
+    let result = std::thread::scope(|scope| -> std::io::Result<()> {
+        let (send, receive) = std::sync::mpsc::sync_channel::<Vec<Vec<u8>>>(1);
+        let writer = scope.spawn(move || -> std::io::Result<()> {
+            out.write_all(header.as_bytes())?;
+            for blocks in receive {
+                for b in &blocks {
+                    out.write_all(b)?;
+                }
+            }
+            out.flush()
+        });
+        let vertex_batches = (0..=height)
+            .step_by(PLY_BLOCK_ROWS)
+            .map(|start| (start, (start + PLY_BLOCK_ROWS).min(height + 1), true));
+        let face_batches = (0..height)
+            .step_by(PLY_BLOCK_ROWS)
+            .map(|start| (start, (start + PLY_BLOCK_ROWS).min(height), false));
+        for (start, end, vertex) in vertex_batches.chain(face_batches) {
+            let blocks: Vec<Vec<u8>> = if vertex {
+                (start..end).into_par_iter().map(vertex_row).collect()
+            } else {
+                (start..end).into_par_iter().map(face_row).collect()
+            };
+            if send.send(blocks).is_err() {
+                // The writer stopped on an error: it is returned below.
+                break;
             }
         }
-        for start in (0..height).step_by(PLY_BLOCK_ROWS) {
-            let rows = start..(start + PLY_BLOCK_ROWS).min(height);
-            let blocks: Vec<Vec<u8>> = rows.into_par_iter().map(face_row).collect();
-            for b in &blocks {
-                out.write_all(b)?;
-            }
-        }
-        out.flush()
-    })();
+        drop(send);
+        writer
+            .join()
+            .unwrap_or_else(|_| Err(std::io::Error::other("the PLY writer thread panicked")))
+    });
     Ok(result)
 }
 
