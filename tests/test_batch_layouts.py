@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import nplps
-from nplps import batch
+from nplps import batch, export
+from nplps.io import read_image
 from nplps.cli import main
 
 REASON = "nplps batch needs dask.distributed (pip install 'nplps[batch]')"
@@ -128,3 +129,171 @@ def test_capture_layouts_on_real_captures(shared_capture, tmp_path: Path, schedu
         assert options["vignetting"] == ("cos4" if layout == "hehe12" else None)
         if layout == "hehe12":
             assert options["ambient"].endswith("photometric_sample_raw_ambient.png")
+
+
+# --------------------------------------------------------------------------------------------------
+# The output and camera RAW options of nplps reconstruct, in nplps batch
+# --------------------------------------------------------------------------------------------------
+
+
+def _reconstruct(folder: Path, out: Path, *extra: str) -> None:
+    argv = ["reconstruct", str(folder), "--rig", str(folder / "rig.json"), "--mask", str(folder / "mask.png")]
+    assert main([*argv, "--depth", "200", "--out", str(out), "--quiet", *extra]) == 0
+
+
+def _files(out: Path) -> set[str]:
+    return {p.name for p in out.iterdir()}
+
+
+def test_help_shows_the_options_of_reconstruct(capsys: pytest.CaptureFixture[str]) -> None:
+    from nplps.cli.options import OPTIONS
+
+    with pytest.raises(SystemExit) as exit_code:
+        main(["batch", "--help"])
+    assert exit_code.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for flag in ("--normal-map", "--exr", "--units", "--raw-wb", "--raw-half-size"):
+        assert flag in text
+        o = OPTIONS[flag]
+        assert " ".join((o.batch_help or o.help).split()) in text  # the help of one place
+    assert "camera RAW files (as for 'nplps reconstruct')" in text and "output of each capture" in text
+
+
+def test_output_options_write_what_reconstruct_writes(
+    tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    nplps.make_scene("bumps", n=24, seed=4).save(tmp_path / "caps" / "obj")
+    nplps.make_scene("sphere", n=24, seed=5).save(tmp_path / "caps" / "other")
+    folder = tmp_path / "caps" / "obj"
+    flags = ["--normal-map", "directx", "--units", "mm", "--threads", "1"]
+    out = tmp_path / "out"
+    common = ["batch", str(tmp_path / "caps" / "*"), "--rig", str(folder / "rig.json"), "--depth", "200"]
+    common += ["--out", str(out), "--scheduler", scheduler]
+    assert main([*common, *flags]) == 0, capsys.readouterr()
+    _reconstruct(folder, tmp_path / "single", *flags)
+    got, want = out / "obj", tmp_path / "single"
+    assert _files(got) == _files(want)  # the same files (reports included)
+    # The same result (one image model, the same input): maps bit for bit, the same conventions recorded.
+    for name in ("depth.npy", "normals.npy", "albedo.png", "normals.png"):
+        assert (got / name).read_bytes() == (want / name).read_bytes(), name
+    a, b = (json.loads((d / "summary.json").read_text()) for d in (got, want))
+    assert a["normal_map"] == b["normal_map"] and a["normal_map"]["frame"] == "directx"
+    assert a["units"] == b["units"] == "mm"
+    decoded = export.read_normal_map(got / "normals.png", frame="directx")
+    normals = np.load(got / "normals.npy")
+    inside = np.isfinite(normals[..., 0])
+    assert np.degrees(np.arccos(np.clip(np.sum(decoded[inside] * normals[inside], -1), -1, 1))).max() < 0.01
+
+    # Resumed with other output options: redone (the line says which), not mixed with the earlier results.
+    capsys.readouterr()
+    assert main([*common, "--normal-map", "opengl", "--units", "mm", "--threads", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("redone: the earlier result was made from other option normal_map") == 2
+    assert json.loads((got / "summary.json").read_text())["normal_map"]["frame"] == "opengl"
+    # ... and again with the same options (the defaults spelled out or left out alike): skipped.
+    assert main([*common, "--units", "mm"]) == 0
+    assert capsys.readouterr().out.count("skipped (complete result") == 2
+    items = batch.run(
+        str(tmp_path / "caps" / "*"),
+        folder / "rig.json",
+        out,
+        depth=200.0,
+        scheduler=scheduler,
+        units="mm",
+        normal_map="opengl",
+        formats=[],
+        white_balance="none",
+        half_size=False,
+    )
+    assert [i.status for i in items] == ["skipped", "skipped"]
+    assert main([*common]) == 0  # without --units: redone
+    assert capsys.readouterr().out.count("from other option units") == 2
+
+
+def test_exr_option(tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("OpenEXR")
+    nplps.make_scene("saddle", n=24, seed=6).save(tmp_path / "caps" / "obj")
+    folder = tmp_path / "caps" / "obj"
+    out = tmp_path / "out"
+    args = ["batch", str(folder), "--rig", str(folder / "rig.json"), "--depth", "200", "--out", str(out)]
+    assert main([*args, "--scheduler", scheduler, "--exr", "--normal-map", "opencv", "--no-report"]) == 0
+    _reconstruct(folder, tmp_path / "single", "--exr", "--normal-map", "opencv", "--no-report")
+    assert {"depth.exr", "normals.exr", "albedo.exr"} <= _files(out / "obj")
+    assert _files(out / "obj") == _files(tmp_path / "single")
+    for name in ("depth.exr", "normals.exr", "albedo.exr"):
+        mine, theirs = (export.read_exr(d / name)[0] for d in (out / "obj", tmp_path / "single"))
+        assert mine.keys() == theirs.keys()
+        for channel in mine:
+            assert np.array_equal(mine[channel], theirs[channel], equal_nan=True), (name, channel)
+    assert json.loads((out / "obj" / "summary.json").read_text())["options"]["formats"] == ["exr"]
+    # Resumed without --exr: redone, and the .exr files of the earlier result are removed.
+    capsys.readouterr()
+    assert main([*args, "--scheduler", scheduler, "--normal-map", "opencv", "--no-report"]) == 0
+    assert "from other option formats" in capsys.readouterr().out
+    assert not {"depth.exr", "normals.exr", "albedo.exr"} & _files(out / "obj")
+
+
+def test_exr_without_openexr_is_refused_first(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sys
+
+    nplps.make_scene("saddle", n=16).save(tmp_path / "caps" / "a")
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # import OpenEXR now raises ImportError
+    rig = str(tmp_path / "caps" / "a" / "rig.json")
+    out = tmp_path / "out"
+    code = main(["batch", str(tmp_path / "caps" / "*"), "--rig", rig, "--depth", "200", "--out", str(out), "--exr"])
+    assert code == 2
+    assert 'pip install "nplps[exr]"' in capsys.readouterr().err and not out.exists()
+    with pytest.raises(nplps.InputError, match="OpenEXR"):
+        batch.run(str(tmp_path / "caps" / "*"), rig, out, depth=200.0, formats=["exr"])
+    with pytest.raises(nplps.InputError, match="normal_map"):
+        batch.run(str(tmp_path / "caps" / "*"), rig, out, depth=200.0, normal_map="y-up")
+    with pytest.raises(nplps.InputError, match="white balance"):
+        batch.run(str(tmp_path / "caps" / "*"), rig, out, depth=200.0, white_balance="auto")
+    code = main(["batch", str(tmp_path / "caps" / "*"), "--rig", rig, "--depth", "1", "--out", str(out), "--units", " "])
+    assert code == 2
+    assert "--units must not be empty" in capsys.readouterr().err and not out.exists()
+
+
+def test_raw_options_reach_the_decoder(tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("rawpy")
+    from test_raw import BLACK, superpixels, write_dng
+
+    # A DNG capture whose half-size decoding is the scene's images (quantised to the 14-bit-like
+    # sensor of tests/test_raw.py: decoded value 5 q), beside a PNG capture.
+    scene = nplps.make_scene("bumps", n=32, seed=7)
+    scene.save(tmp_path / "png" / "obj")
+    dng = tmp_path / "caps" / "dng"
+    dng.mkdir(parents=True)
+    for name in ("rig.json", "mask.png"):
+        (dng / name).write_bytes((tmp_path / "png" / "obj" / name).read_bytes())
+    for i, image in enumerate(sorted((tmp_path / "png" / "obj").glob("image_*.png"))):
+        q = np.rint(read_image(image).astype(np.float64) / 5).astype(np.int64)
+        write_dng(dng / f"image_{i:02d}.dng", (BLACK + superpixels(q)).astype(np.uint16))
+    scene.save(tmp_path / "caps" / "png")
+    out = tmp_path / "out"
+    common = ["batch", str(tmp_path / "caps" / "*"), "--depth", "200", "--out", str(out), "--scheduler", scheduler]
+    common += ["--no-report", "--gray"]
+
+    # Decoded at full size, the DNGs are twice the rig's grid: that capture fails, naming the size.
+    assert main(common) == 1
+    printed = capsys.readouterr().out
+    assert "capture dng: failed: " in printed and "capture png: ok" in printed
+    # At half size it runs, as nplps reconstruct --raw-half-size does: the same result, and the
+    # default thresholds are one level of the sensor (white - black = 13107), not of 16 bits.
+    assert main([*common, "--raw-half-size"]) == 0
+    printed = capsys.readouterr().out
+    assert "capture dng: ok" in printed and "capture png: skipped" in printed  # no RAW file: nothing changed
+    _reconstruct(dng, tmp_path / "single", "--raw-half-size", "--gray", "--no-report")
+    for name in ("depth.npy", "normals.npy", "albedo.png"):
+        assert (out / "dng" / name).read_bytes() == (tmp_path / "single" / name).read_bytes(), name
+    options = json.loads((out / "dng" / "summary.json").read_text())["options"]
+    assert options["half_size"] is True and options["white_balance"] == "none"
+    assert options["dark"] == pytest.approx(1 / 13107)
+    # Another white balance: the RAW capture is redone (the line says why), the PNG one skipped.
+    assert main([*common, "--raw-half-size", "--raw-wb", "camera"]) == 0
+    printed = capsys.readouterr().out
+    assert "capture dng: ok" in printed and "from other option white_balance" in printed
+    assert "capture png: skipped" in printed
+    assert json.loads((out / "dng" / "summary.json").read_text())["options"]["white_balance"] == "camera"

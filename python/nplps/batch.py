@@ -60,8 +60,18 @@ LAYOUTS = ("near_ps", "diligent", "luces", "hehe12")
 #: A capture directory's own rig file, which overrides the batch's rig for that capture.
 RIG_FILE = "rig.json"
 
-#: Keyword options that go to :func:`nplps.pipeline.prepare` (the others go to :func:`nplps.reconstruct`).
+#: Keyword options that go to :func:`nplps.pipeline.prepare` (the others go to :func:`nplps.reconstruct`,
+#: except those of :data:`RAW_OPTIONS` and :data:`SAVE_OPTIONS`).
 PREPARE_OPTIONS = ("color", "saturation", "srgb", "exposures", "vignetting", "flat", "bin_factor")
+
+#: Keyword options of the camera RAW decoding (:class:`nplps.raw.RawOptions`), with their defaults: as
+#: ``nplps reconstruct --raw-wb / --raw-half-size``, for the RAW files of a capture (its images, its
+#: ambient image and the flat field); they change nothing in a capture without RAW files.
+RAW_OPTIONS: dict[str, Any] = {"white_balance": "none", "half_size": False}
+
+#: Keyword options of :meth:`nplps.Reconstruction.save` (what each result directory holds), with their
+#: defaults: as ``nplps reconstruct --normal-map / --exr (formats=["exr"]) / --units``.
+SAVE_OPTIONS: dict[str, Any] = {"formats": [], "normal_map": "opengl", "units": None}
 
 BatchStatus = Literal["ok", "failed", "skipped"]
 
@@ -318,7 +328,13 @@ def _layout_capture(layout: str, folder: Path) -> Any:
 
 
 def _capture_inputs(plan: _Plan, depth: Any, layout: str | None, options: dict[str, Any]) -> dict[str, Any]:
-    """Return what a capture's result is made from (for its fingerprint): image files, rig, depth and options."""
+    """Return what a capture's result is made from (for its fingerprint): image files, rig, depth and options.
+
+    The options are those of :func:`run` without their defaults where :func:`_without_defaults`
+    left them out (the output and RAW options: results made before they existed keep their
+    fingerprint). A capture holding camera RAW files records the RAW options always (with their
+    defaults), one without them never.
+    """
     try:
         images = [file_identity(f) for f in plan.files]
     except OSError:
@@ -332,7 +348,8 @@ def _capture_inputs(plan: _Plan, depth: Any, layout: str | None, options: dict[s
                 side[word] = None
         else:
             side[word] = None if value is None else fingerprint({word: value})
-    ignored = ("threads", "report")  # change how fast, not what
+    ignored = ("threads", "report", *RAW_OPTIONS)  # how fast, not what; the RAW options: below
+    raw = _has_raw(plan, options)  # the RAW options do nothing without RAW files: no redo for them
     layout_part = {} if layout is None else {"layout": layout}
     return {
         "images": images,
@@ -342,7 +359,39 @@ def _capture_inputs(plan: _Plan, depth: Any, layout: str | None, options: dict[s
         **layout_part,
         "depth": fingerprint({"depth": depth}) if hasattr(depth, "shape") else jsonable(depth),
         **{f"option {k}": jsonable(v) for k, v in sorted(options.items()) if k not in ignored},
+        **({f"option {k}": jsonable(options.get(k, v)) for k, v in RAW_OPTIONS.items()} if raw else {}),
     }
+
+
+def _has_raw(plan: _Plan, options: dict[str, Any]) -> bool:
+    """Tell whether a capture reads a camera RAW file: an image, its ambient image or the flat field."""
+    from .raw import is_raw
+
+    return any(is_raw(f) for f in [*plan.files, plan.ambient, options.get("flat")] if isinstance(f, (str, Path)))
+
+
+def _without_defaults(options: dict[str, Any]) -> dict[str, Any]:
+    """Return ``options`` checked, without the RAW and output options that are at their defaults.
+
+    ``formats`` becomes a list without repeats (:func:`nplps.export.check_formats`: ``"exr"`` without
+    OpenEXR is refused here, before any capture runs); ``normal_map`` and the RAW options are
+    checked as :meth:`~nplps.Reconstruction.save` and :class:`~nplps.raw.RawOptions` check them.
+    """
+    from .export import check_formats, check_normal_map
+    from .raw import RawOptions
+
+    options = dict(options)
+    if "formats" in options:
+        options["formats"] = check_formats(options["formats"] or ())
+    if "normal_map" in options:
+        check_normal_map(options["normal_map"])
+    if "units" in options and options["units"] is not None and not str(options["units"]).strip():
+        raise InputError("units must not be empty (e.g. units='mm')")
+    raw = {k: options[k] for k in RAW_OPTIONS if k in options}
+    if raw:
+        RawOptions(**raw)
+    defaults = {**RAW_OPTIONS, **SAVE_OPTIONS}
+    return {k: v for k, v in options.items() if k not in defaults or v != defaults[k]}
 
 
 def run(
@@ -413,9 +462,15 @@ def run(
         Write ``batch_summary.csv`` and ``batch_summary.html``.
     **options
         Options of :func:`nplps.pipeline.prepare` (``color``, ``saturation``, ``srgb``,
-        ``exposures``, ``vignetting``, ``flat``, ``bin_factor``) and of
+        ``exposures``, ``vignetting``, ``flat``, ``bin_factor``), of
         :func:`nplps.reconstruct` (``iterations``, ``tol``, ``robust``, ``dark``, ``threads``,
-        ``solver``, ``levels``, ...).
+        ``solver``, ``levels``, ...), of the camera RAW decoding (:data:`RAW_OPTIONS`:
+        ``white_balance``, ``half_size``, as :class:`nplps.raw.RawOptions`; for the captures'
+        RAW files, whose default thresholds are then one sensor level, as in ``nplps
+        reconstruct``) and of :meth:`nplps.Reconstruction.save` (:data:`SAVE_OPTIONS`:
+        ``formats``, ``normal_map``, ``units``). All of them are part of each capture's
+        fingerprint: a result made with other ones (the output options too) is redone, not
+        skipped; options at their defaults are the same as options left out.
 
     Returns
     -------
@@ -448,9 +503,10 @@ def run(
     from .api import reconstruct
 
     known = set(inspect.signature(reconstruct).parameters) - {"images", "rig", "mask", "depth", "progress", "valid"}
-    unknown = sorted(set(options) - known - set(PREPARE_OPTIONS))
+    unknown = sorted(set(options) - known - set(PREPARE_OPTIONS) - set(RAW_OPTIONS) - set(SAVE_OPTIONS))
     if unknown:
         raise TypeError(f"run() got unknown option(s): {', '.join(unknown)}")
+    options = _without_defaults(options)
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError as e:
@@ -515,7 +571,10 @@ def run(
     if todo:
         out.mkdir(parents=True, exist_ok=True)
         prepare_options = {k: v for k, v in options.items() if k in PREPARE_OPTIONS}
-        solve_options = {k: v for k, v in options.items() if k not in PREPARE_OPTIONS}
+        raw_options = {k: v for k, v in options.items() if k in RAW_OPTIONS}
+        save_options = {k: v for k, v in options.items() if k in SAVE_OPTIONS}
+        others = (*PREPARE_OPTIONS, *RAW_OPTIONS, *SAVE_OPTIONS)
+        solve_options = {k: v for k, v in options.items() if k not in others}
         cluster = None
         if scheduler is None:
             cores = os.cpu_count() or 1
@@ -536,6 +595,8 @@ def run(
                         solve_options,
                         plans[item.name],
                         report,
+                        save_options,
+                        raw_options,
                         key=f"nplps-batch-{item.name}-{os.urandom(4).hex()}",
                         pure=False,
                     ): item
@@ -613,15 +674,23 @@ def _process(
     solve_options: dict[str, Any],
     plan: tuple[bool, str, dict[str, Any]],
     report: bool = True,
+    save_options: dict[str, Any] | None = None,
+    raw_options: dict[str, Any] | None = None,
 ) -> BatchItem:
     """Reconstruct one capture and save it (the Dask task); errors become a failed item.
 
     ``plan`` is ``(replace, fingerprint, inputs)``: whether the result directory may hold files
     (an earlier result of nplps's that :func:`_resume` chose to redo, or ``overwrite``), and what
-    the result is made from, recorded in its manifest.
+    the result is made from, recorded in its manifest. ``save_options`` go to
+    :meth:`~nplps.Reconstruction.save` (:data:`SAVE_OPTIONS`); ``raw_options`` decode the camera
+    RAW files (:data:`RAW_OPTIONS`), whose levels are then the sensor's, as in ``nplps reconstruct``.
     """
     from . import pipeline
     from .api import reconstruct
+    from .raw import RawOptions, stack_levels
+
+    save_options = save_options or {}
+    decoding = RawOptions(**(raw_options or {}))
 
     start = time.perf_counter()
     caught: list[str] = []
@@ -642,12 +711,16 @@ def _process(
             )
         if prepare_options.get("vignetting") == "layout":
             prepare_options = dict(prepare_options, vignetting=source.vignetting)
+        images = [_raw_file(os.fspath(f), decoding) for f in files]
+        if prepare_options.get("flat") is not None:
+            prepare_options = dict(prepare_options, flat=_raw_file(prepare_options["flat"], decoding))
         prepared = pipeline.prepare(
-            [os.fspath(f) for f in files],
+            images,
             rig=rig,
             mask=source.mask,
-            ambient=source.ambient,
+            ambient=_raw_file(source.ambient, decoding),
             dark=solve_options.get("dark"),
+            levels=stack_levels(images),  # the sensor's levels of RAW images, as in nplps reconstruct
             overwrite=True,
             **prepare_options,
         )
@@ -661,10 +734,11 @@ def _process(
         with target:
             recorded = {"capture": os.fspath(folder), "rig": source.rig_source, "depth": depth}
             recorded.update(mask=_described(source.mask), ambient=_described(source.ambient))
-            recorded.update(prepare_options, **options)
+            recorded.update(prepare_options, **options, **(raw_options or {}))
+            recorded.update({k: v for k, v in save_options.items() if k == "formats"})
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
-            result.save(target, report=report, inputs=prepared.images, options=recorded)
+            result.save(target, report=report, inputs=prepared.images, options=recorded, **save_options)
         s = result.summary()
     except Exception as e:
         return dataclasses.replace(
@@ -679,6 +753,15 @@ def _process(
         seconds=time.perf_counter() - start,
         warnings=caught,
     )
+
+
+def _raw_file(path: Any, options: Any) -> Any:
+    """Return ``path`` as a :class:`nplps.raw.RawFile` decoded with ``options`` if it is a RAW file, else as it is."""
+    from .raw import RawFile, is_raw
+
+    if isinstance(path, (str, os.PathLike)) and not isinstance(path, RawFile) and is_raw(path):
+        return RawFile(path, options)
+    return path
 
 
 def _absolute(item: BatchItem) -> BatchItem:

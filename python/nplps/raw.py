@@ -264,6 +264,20 @@ def sensor_levels(path: PathLike) -> int | None:
     return white - black if white > black else None
 
 
+def stack_levels(paths: Sequence[Any]) -> int | None:
+    """Return the levels of a stack of camera RAW images: the largest ``white - black`` of their sensors.
+
+    Decoded RAW images are 16-bit, but their levels are the sensor's: the default thresholds
+    (shadows one level above black, saturation at the top level, :func:`nplps.pipeline.thresholds`)
+    are then one sensor level. None unless every path is a RAW file (:func:`is_raw`) giving its
+    levels (:func:`sensor_levels`). ``nplps reconstruct`` and ``nplps batch`` both use it.
+    """
+    if not paths or not all(is_raw(p) for p in paths):
+        return None
+    levels = [sensor_levels(p) for p in paths]
+    return None if any(n is None for n in levels) else max(n for n in levels if n is not None)
+
+
 def read_exposure(path: PathLike) -> Exposure:
     """Return a RAW file's shutter time (seconds) and ISO, None where the file does not give them.
 

@@ -10,7 +10,7 @@ from typing import Any
 from .._text import printable
 from ..batch import LAYOUTS
 from .inputs import _check_numbers, near_options
-from .options import add_options, api_options
+from .options import OUTPUT, add_options, api_options
 from .parsers import parse_depth, parse_exposures
 
 BATCH_DESCRIPTION = """\
@@ -25,11 +25,12 @@ diligent, luces, hehe12: the layouts of 'nplps reconstruct --capture') each dire
 that layout's loader instead (its images, calibration, mask and ambient image; no --rig; cos^4
 vignetting by default for near_ps and hehe12, as in 'nplps reconstruct'). Each capture is one task on a local
 cluster (--workers processes) or on a running Dask scheduler (--scheduler ADDRESS), and its
-result goes to DIR/<capture name>/ as with 'nplps reconstruct'.
+result goes to DIR/<capture name>/: the files 'nplps reconstruct' writes with the same options
+(--normal-map, --exr, --units; camera RAW images decoded as --raw-wb and --raw-half-size say).
 
 Resumable: a capture whose DIR/<name>/ holds a complete result made from the same images, rig
-and options (its nplps-manifest.json says so) is skipped; one made with other options or another
-rig is redone (the line says which changed), and so is one that an earlier run did not finish
+and options (its nplps-manifest.json says so) is skipped; one made with other options (the
+output options too) or another rig is redone (the line says which changed), and so is one that an earlier run did not finish
 (killed, out of memory). Run the same command again after a failure or an interruption to do the
 rest (--overwrite redoes them all). A DIR/<name>/ holding files that nplps did not write is left
 alone (that capture fails) unless --overwrite. A failed capture is
@@ -74,6 +75,9 @@ BATCH_OPTIONS = (
     "--threads",
     "--max-memory",
 )
+
+#: The camera RAW options of ``nplps batch`` (as ``nplps reconstruct``'s: :data:`nplps.cli.options.GROUPS`).
+RAW = ("--raw-wb", "--raw-half-size")
 
 _PREPARE_AND_RUN = (
     "--dark",
@@ -147,6 +151,8 @@ def add_batch_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
 
     g = p.add_argument_group("input and solver (as for 'nplps reconstruct')")
     add_options(g, BATCH_OPTIONS, batch=True)
+    add_options(p.add_argument_group("camera RAW files (as for 'nplps reconstruct')"), RAW, batch=True)
+    add_options(p.add_argument_group("output of each capture (as for 'nplps reconstruct')"), OUTPUT, batch=True)
     p.set_defaults(depth_prior=None, prior_weight=1.0, quiet=False)
     return p
 
@@ -155,6 +161,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     """Run ``nplps batch``; return the exit status (1 if a capture failed)."""
     from .. import batch
     from ..errors import InputError
+    from ..export import check_formats
     from .inputs import load_rig
 
     _check_numbers(args)
@@ -167,6 +174,10 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if args.capture is not None and (args.rig is not None or args.ambient_name is not None):
         given = "--rig" if args.rig is not None else "--ambient-name"
         raise InputError(f"--capture {args.capture} takes the rig and the ambient image from each folder: not {given}")
+    if args.units is not None and not args.units.strip():
+        raise InputError("--units must not be empty (e.g. --units mm)")
+    output = api_options(args, OUTPUT)
+    check_formats(output["formats"])  # --exr without OpenEXR is refused before any capture is read
     rig = None if args.rig is None else load_rig(args.rig)  # before any capture is read
     options = dict(near_options(args), depth=parse_depth(args.depth))
     # The options beside the near-light solver's, by their API keywords (in the order recorded so far).
@@ -174,6 +185,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
     exposures = args.exposures
     options["exposures"] = None if exposures is None else _exposures(exposures, rig)
     options.update(api_options(args, ("--bin",)))
+    # Options at their defaults are left out (run() does too): a batch resumed with the defaults
+    # spelled out or left out does the same captures.
+    options.update(api_options(args, RAW), **output)
     keep = ("dark", "saturation", "robust") + (("vignetting",) if args.vignetting is not None else ())
     options = {k: v for k, v in options.items() if v is not None or k in keep}
     mask_name = None if args.mask_name == "none" else args.mask_name

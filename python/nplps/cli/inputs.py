@@ -334,12 +334,9 @@ def _sensor_levels(files: list[Any]) -> int | None:
     Decoded RAW images are 16-bit, but their levels are the sensor's: the default thresholds
     (shadows one level above black, saturation at the top level) are then one sensor level.
     """
-    from ..raw import is_raw, sensor_levels
+    from ..raw import stack_levels
 
-    if not files or not all(is_raw(f) for f in files):
-        return None
-    levels = [sensor_levels(f) for f in files]
-    return None if any(n is None for n in levels) else max(n for n in levels if n is not None)
+    return stack_levels(files)
 
 
 def _in_option_words(exc: InputError) -> InputError:

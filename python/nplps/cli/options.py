@@ -1,4 +1,4 @@
-"""The solver and input options of the command line, declared once.
+"""The solver, input and output options of the command line, declared once.
 
 :data:`OPTIONS` holds each option's flag, type, default, help and the keyword of the Python API
 it becomes; ``nplps reconstruct`` and ``nplps evaluate`` (:func:`nplps.cli.inputs.add_input_options`)
@@ -290,6 +290,34 @@ _OPTIONS = (
         type=float,
         metavar="W",
     ),
+    # output (what nplps reconstruct and nplps batch write: see OUTPUT)
+    Option(
+        ("--normal-map",),
+        "normal_map",
+        "convention of normals.png and normals.exr: opengl = x right, y up, z towards the viewer "
+        "(Blender, Unity; the default), directx = y down (Unreal Engine), opencv = the camera frame "
+        "as is (y down, z forward); recorded in summary.json",
+        choices=("opengl", "directx", "opencv"),
+        default="opengl",
+    ),
+    Option(
+        ("--exr",),
+        "formats",
+        "also write depth.exr, normals.exr and albedo.exr (32-bit float; the same as --formats exr; "
+        'needs OpenEXR: pip install "nplps[exr]")',
+        switch=True,
+        batch_help="also write depth.exr, normals.exr and albedo.exr for every capture (32-bit float; "
+        'needs OpenEXR: pip install "nplps[exr]")',
+        to_api=lambda exr: ["exr"] if exr else [],
+    ),
+    Option(
+        ("--units",),
+        "units",
+        "the rig's length unit (e.g. mm), recorded in summary.json and shown with the scale bars "
+        "of the report and the viewer (default: 'rig units')",
+        metavar="UNIT",
+    ),
+)
 )
 
 #: The options by their first flag.
@@ -317,6 +345,10 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("solver", ("--iterations", "--tol", "--solver", "--levels", "--weighting", "--threads", "--max-memory")),
     ("light self-calibration", ("--refine-lights", "--light-prior-weight")),
 )
+
+#: The options of what a result directory holds (:meth:`nplps.Reconstruction.save`'s ``normal_map``,
+#: ``formats`` and ``units``), of ``nplps reconstruct`` and ``nplps batch``.
+OUTPUT = ("--normal-map", "--exr", "--units")
 
 #: The options of the near-light solver only (not of the parallel-light baseline).
 NEAR_SOLVER = (

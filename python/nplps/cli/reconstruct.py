@@ -22,6 +22,7 @@ from .inputs import (
     check_input_args,
     near_options,
 )
+from .options import add_options
 from .outputs import add_output_options, output_directory, parse_formats, writing
 
 RECONSTRUCT_DESCRIPTION = f"""\
@@ -107,14 +108,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         metavar="LIST",
         help=f"also write these formats, comma-separated: {formats_help()}",
     )
-    p.add_argument(
-        "--normal-map",
-        choices=("opengl", "directx", "opencv"),
-        default="opengl",
-        help="convention of normals.png and normals.exr: opengl = x right, y up, z towards the viewer "
-        "(Blender, Unity; the default), directx = y down (Unreal Engine), opencv = the camera frame "
-        "as is (y down, z forward); recorded in summary.json",
-    )
+    add_options(p, ("--normal-map",))
     p.add_argument(
         "--normal-map-bits",
         type=int,
@@ -122,24 +116,14 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
         default=16,
         help="bits per channel of normals.png (default 16: 0.0015° at most of quantisation, 8: 0.39°)",
     )
-    p.add_argument(
-        "--exr",
-        action="store_true",
-        help="also write depth.exr, normals.exr and albedo.exr (32-bit float; the same as --formats exr; "
-        'needs OpenEXR: pip install "nplps[exr]")',
-    )
+    add_options(p, ("--exr",))
     p.add_argument(
         "--obj",
         action="store_true",
         help="write mesh.obj whatever the size (by default only up to 4 million masked pixels: a 12 MP "
         "result's OBJ file is 2.4 GB of text; the same as --formats obj)",
     )
-    p.add_argument(
-        "--units",
-        metavar="UNIT",
-        help="the rig's length unit (e.g. mm), recorded in summary.json and shown with the scale bars "
-        "of the report and the viewer (default: 'rig units')",
-    )
+    add_options(p, ("--units",))
     p.add_argument(
         "--no-report",
         dest="report",
