@@ -687,7 +687,7 @@ def _process(
     """
     from . import pipeline
     from .api import reconstruct
-    from .raw import RawOptions, stack_levels
+    from .raw import RawOptions, is_raw, stack_levels
 
     save_options = save_options or {}
     decoding = RawOptions(**(raw_options or {}))
@@ -734,7 +734,9 @@ def _process(
         with target:
             recorded = {"capture": os.fspath(folder), "rig": source.rig_source, "depth": depth}
             recorded.update(mask=_described(source.mask), ambient=_described(source.ambient))
-            recorded.update(prepare_options, **options, **(raw_options or {}))
+            recorded.update(prepare_options, **options)
+            if any(is_raw(f) for f in images):  # how they were decoded (the defaults too)
+                recorded.update(white_balance=decoding.white_balance, half_size=decoding.half_size)
             recorded.update({k: v for k, v in save_options.items() if k == "formats"})
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]

@@ -30,10 +30,10 @@ result goes to DIR/<capture name>/: the files 'nplps reconstruct' writes with th
 
 Resumable: a capture whose DIR/<name>/ holds a complete result made from the same images, rig
 and options (its nplps-manifest.json says so) is skipped; one made with other options (the
-output options too) or another rig is redone (the line says which changed), and so is one that an earlier run did not finish
-(killed, out of memory). Run the same command again after a failure or an interruption to do the
-rest (--overwrite redoes them all). A DIR/<name>/ holding files that nplps did not write is left
-alone (that capture fails) unless --overwrite. A failed capture is
+output options too) or another rig is redone (the line says which changed), and so is one that
+an earlier run did not finish (killed, out of memory). Run the same command again after a failure
+or an interruption to do the rest (--overwrite redoes them all). A DIR/<name>/ holding files that
+nplps did not write is left alone (that capture fails) unless --overwrite. A failed capture is
 reported ('capture NAME: failed: MESSAGE') and the others go on. At the end DIR/batch_summary.csv
 and DIR/batch_summary.html list every capture: status (ok, failed, skipped), iterations, the
 solver's status, rms residual, seconds, rig, error.
@@ -46,6 +46,8 @@ examples:
   nplps batch 'captures/*' --rig rig.json --depth 200 --out results
   nplps batch 'shots/object_*' --rig rig.json --depth auto --bin 4 --robust tukey --workers 4 --out results
   nplps batch 'captures/*' --rig rig.json --depth 200 --scheduler tcp://10.0.0.5:8786 --out /shared/results
+  nplps batch 'shots/*' --rig rig.json --depth 200 --normal-map directx --exr --units mm --out results
+  nplps batch 'dng_shots/*' --rig rig_half.json --depth 200 --raw-half-size --raw-wb camera --out results
   nplps batch 'LUCES/data/*' --capture luces --depth 100 --bin 4 --out luces-results
 """
 
@@ -185,8 +187,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     exposures = args.exposures
     options["exposures"] = None if exposures is None else _exposures(exposures, rig)
     options.update(api_options(args, ("--bin",)))
-    # Options at their defaults are left out (run() does too): a batch resumed with the defaults
-    # spelled out or left out does the same captures.
+    # run() leaves out the RAW and output options at their defaults (its fingerprints stay those of
+    # the results made before these options existed).
     options.update(api_options(args, RAW), **output)
     keep = ("dark", "saturation", "robust") + (("vignetting",) if args.vignetting is not None else ())
     options = {k: v for k, v in options.items() if v is not None or k in keep}

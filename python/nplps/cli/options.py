@@ -318,7 +318,6 @@ _OPTIONS = (
         metavar="UNIT",
     ),
 )
-)
 
 #: The options by their first flag.
 OPTIONS: dict[str, Option] = {o.flags[0]: o for o in _OPTIONS}
