@@ -111,9 +111,7 @@ def cost_table() -> None:
 
 
 def ratio_table(sizes: list[int], repeats: int, reflectances: list[str]) -> None:
-    print(
-        "\n## Light refinement over known lights (bumps, pinhole, 27 LEDs, 1 % noise; medians in this process)"
-    )
+    print("\n## Light refinement over known lights (bumps, pinhole, 27 LEDs, 1 % noise; medians in this process)")
     print(
         f"{'size':>9} {'reflectance':>11} {'refine':>9} | {'time s':>8} {'ratio':>6} {'its':>4} | "
         "normals deg | intensity err % | position err mm"
