@@ -1309,6 +1309,128 @@ mod tests {
         assert!(lambertian > 10.0 * glossy, "{lambertian} vs {glossy}");
     }
 
+    /// A pass with the step's cached `beta` vectors has the sums of one that computes them
+    /// per facet (Lambertian and glossy, grey and colour): the cache changes no number.
+    #[test]
+    fn cached_betas_leave_the_pass_unchanged() {
+        for rgb in [false, true] {
+            let scene = Scene::new(SceneKind::Bumps, 24, 100.0, 200.0, 2).unwrap();
+            let grey: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+            let mut problem = scene_problem(&scene, &grey);
+            // A colour stack: the grey image scaled per channel (k x H x W x 3).
+            if rgb {
+                let images: Vec<f32> = grey.iter().flat_map(|&v| [v, 0.8 * v, 1.1 * v]).collect();
+                let k = scene.rig.n_lights();
+                let images = Box::leak(images.into_boxed_slice());
+                let stack =
+                    ImageStack::with_channels(images, k, scene.height, scene.width, 3).unwrap();
+                problem = Problem::new(
+                    stack,
+                    Box::leak(Box::new(scene.rig.clone())),
+                    Some(&scene.mask),
+                    InitialDepth::Map(Box::leak(scene.depth.clone().into_boxed_slice())),
+                )
+                .unwrap();
+            }
+            let lights = off_intensities(&scene.rig.lights);
+            let layout = Layout::new(&lights, &Refine::NONE.with_intensity(true));
+            let normals: Vec<[f32; 3]> = (0..problem.grid.n_facets())
+                .map(|f| {
+                    let q = problem
+                        .geometry
+                        .facet_corners(&problem.grid, f, &problem.u0);
+                    crate::geometry::quad_normal(&q).map(|x| x as f32)
+                })
+                .collect();
+            for lobe in [None, Some(Lobe::new(0.3, 1.5))] {
+                let settings = FitSettings {
+                    lobe,
+                    ..FitSettings::default()
+                };
+                let data = LightData::of(&problem, settings).with_normals(Some(&normals));
+                let cache = data.betas(&lights, &problem.u0).unwrap().unwrap();
+                let u = &problem.u0;
+                let trial: Vec<Light> = scene.rig.lights.clone();
+                for (with_h, pair) in [(true, (&lights, &lights)), (false, (&trial, &lights))] {
+                    let pair = (&pair.0[..], &pair.1[..]);
+                    let plain = data.pass(pair, &layout, u, with_h, None).unwrap();
+                    let cached = data.pass(pair, &layout, u, with_h, Some(&cache)).unwrap();
+                    assert_eq!((plain.count, plain.fits), (cached.count, cached.fits));
+                    let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs());
+                    assert!(
+                        close(plain.sse, cached.sse),
+                        "{} vs {}",
+                        plain.sse,
+                        cached.sse
+                    );
+                    for (a, b) in plain
+                        .h
+                        .iter()
+                        .zip(&cached.h)
+                        .chain(plain.grad.iter().zip(&cached.grad))
+                    {
+                        assert!(close(*a, *b) || (a - b).abs() < 1e-300, "{a} vs {b}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// With noisy images the light steps end once a step would move the lights by a small
+    /// fraction of their standard errors ([`SETTLED_DECREASE`]), with the intensities as
+    /// close to the truth as the noise allows.
+    #[test]
+    fn noisy_light_steps_settle_near_the_truth() {
+        let scene = Scene::new(SceneKind::SphereCap, 32, 100.0, 200.0, 0).unwrap();
+        let mut images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let peak = images.iter().fold(0.0f32, |m, v| m.max(*v));
+        // 1 % noise from a fixed pseudo-random sequence.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        for v in images.iter_mut() {
+            let mut sum = 0.0;
+            for _ in 0..12 {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                sum += (state >> 11) as f64 / (1u64 << 53) as f64;
+            }
+            *v += (0.01 * peak as f64 * (sum - 6.0)) as f32;
+        }
+        let problem = scene_problem(&scene, &images);
+        let mut lights = off_intensities(&scene.rig.lights);
+        let data = LightData::of(&problem, FitSettings::default());
+        let mut refiner = Refiner::new(Refine::NONE.with_intensity(true), lights.clone());
+        let mut steps = 0;
+        while refiner.step(&data, &mut lights, &problem.u0).accepted {
+            steps += 1;
+            assert!(steps < 30, "the light steps did not settle");
+        }
+        let ratio = |ls: &[Light]| -> Vec<f64> {
+            let v: Vec<f64> = ls.iter().map(|l| l.intensity()[0]).collect();
+            let g = (v.iter().map(|x| x.ln()).sum::<f64>() / v.len() as f64).exp();
+            v.iter().map(|x| x / g).collect()
+        };
+        let c = conditioning(
+            &data,
+            &lights,
+            &problem.u0,
+            &Refine::NONE.with_intensity(true),
+        )
+        .unwrap();
+        for ((a, b), se) in ratio(&lights)
+            .iter()
+            .zip(ratio(&scene.rig.lights))
+            .zip(&c.standard_errors)
+        {
+            // Within 4 standard errors of the truth (the noise's), as a converged fit.
+            assert!(
+                (a / b - 1.0).abs() < 4.0 * se[0],
+                "{a} vs {b} (se {})",
+                se[0]
+            );
+        }
+    }
+
     /// On the true mesh, position steps recover positions off by 5 % of the distance.
     #[test]
     fn position_steps_recover_the_truth_on_the_true_mesh() {
