@@ -1,12 +1,18 @@
 """Self-calibration of the lights (``refine_lights=``): the tables of issue 8.
 
     python benchmarks/refine_lights.py [--seeds 10] [--sections intensity,cost,position,real]
+    python benchmarks/refine_lights.py --sections ratios [--ratio-sizes 128 256 1024] [--repeats 3]
 
 - intensity: per-light intensity errors of +-35 % on synthetic scenes, exact and with 1 % noise:
   the recovered relative intensities, the normals against a run with the true intensities, and
   what refinement changes when the rig is right;
 - cost: time of a run with intensity refinement over one without, medians of repeated runs
   measured in this process (machines are shared and noisy: compare the ratios, not the times);
+- ratios: the cost ratios of issue 23 (item 4), refined over known lights, at 128², 256² and
+  1 MP (``--ratio-sizes``): pinhole bumps, 27 LEDs, 1 % noise, intensity refinement (intensities
+  off by up to 20 %) and position refinement (positions off by 2 % of the distance), Lambertian
+  and glossy (specular albedo 0.5 of the diffuse) reflectance, with the errors of each run (mean
+  normal error against the truth, RMS relative intensity error, RMS position error);
 - convergence: the residual and the light change per iteration of one run of each kind;
 - position: the paper's test, light positions off by 5 % of the working distance (RMS), seeds
   0..N-1, exact and with 1 % noise: light-position and normal errors before and after, the
@@ -102,6 +108,43 @@ def cost_table() -> None:
             len(nplps.reconstruct(*args, refine_lights="intensity", **kw).history),
         )
         print(f"{n:4} x {n:<4}| {plain:9.3f} | {refined:11.3f} | {refined / plain:5.2f} | {its[0]} / {its[1]}")
+
+
+def ratio_table(sizes: list[int], repeats: int, reflectances: list[str]) -> None:
+    print("\n## Light refinement over known lights (bumps, pinhole, 27 LEDs, 1 % noise; medians in this process)")
+    print(
+        f"{'size':>9} {'reflectance':>11} {'refine':>9} | {'time s':>8} {'ratio':>6} {'its':>4} | "
+        "normals deg | intensity err % | position err mm"
+    )
+    for n in sizes:
+        reps = repeats if n <= 512 else max(2, (repeats + 1) // 2)
+        for reflectance in reflectances:
+            glossy = reflectance == "glossy"
+            s = nplps.make_scene("bumps", n=n, camera="pinhole", led=True, noise=0.01, specular=0.5 if glossy else 0.0)
+            rng = np.random.default_rng(1)
+            d = s.mean_depth
+            bad_phi = s.rig.with_intensities(s.rig.intensities * (1 + rng.uniform(-0.2, 0.2, s.rig.n_lights))[:, None])
+            bad_pos = wrong_positions(s.rig, 1, d, fraction=0.02)
+            images = s.images.astype(np.float32)
+            kw = {"mask": s.mask, "depth": d, "reflectance": reflectance}  # default iterations and tol
+            base = None
+            for mode, rig in ((None, s.rig), ("intensity", bad_phi), ("position", bad_pos)):
+                runs = []
+                for _ in range(reps):
+                    t = time.perf_counter()
+                    r = nplps.reconstruct(images, rig, refine_lights=mode, **kw)
+                    runs.append(time.perf_counter() - t)
+                t = float(np.median(runs))
+                base = base or t
+                normals = angles(r.normals, s.normals)[s.mask].mean()
+                phi = relative(r.rig.intensities[:, 0]) / relative(s.rig.intensities[:, 0])
+                pos = np.sqrt(np.mean(np.sum((r.rig.positions - s.rig.positions) ** 2, axis=1)))
+                print(
+                    f"{n:>4}x{n:<4} {reflectance:>11} {mode or 'none':>9} | {t:8.3f} {t / base:6.2f} "
+                    f"{len(r.history):4} | {normals:11.4f} | {100 * np.sqrt(np.mean((phi - 1) ** 2)):15.4f} | "
+                    f"{pos:15.3f}",
+                    flush=True,
+                )
 
 
 def convergence_traces() -> None:
@@ -225,12 +268,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--sections", default="intensity,cost,convergence,position,real")
+    parser.add_argument("--ratio-sizes", type=int, nargs="+", default=[128, 256, 1024])
+    parser.add_argument("--repeats", type=int, default=3, help="runs per case of the ratios (median)")
+    parser.add_argument("--reflectances", nargs="+", default=["lambertian", "glossy"])
     args = parser.parse_args()
     sections = args.sections.split(",")
     if "intensity" in sections:
         intensity_table(min(args.seeds, 5))
     if "cost" in sections:
         cost_table()
+    if "ratios" in sections:
+        ratio_table(args.ratio_sizes, args.repeats, args.reflectances)
     if "convergence" in sections:
         convergence_traces()
     if "position" in sections:
