@@ -156,8 +156,9 @@ impl Geometry {
     }
 
     /// Mean-subtracted targets of the corners `ids` for the plane through `centre` with unit
-    /// normal `n` (see the module documentation).
-    #[inline]
+    /// normal `n` (see the module documentation). Inlined into the local step's loops (a call
+    /// returning the 4 targets through memory stalled the loads that follow).
+    #[inline(always)]
     pub fn plane_target(&self, n: [f64; 3], ids: [u32; 4], centre: [f64; 3]) -> [f64; 4] {
         let base = ids.map(|i| self.base[i as usize]);
         let raw: [f64; 4] = if self.perspective {
@@ -188,7 +189,7 @@ impl Geometry {
 /// is below `1e-22`).
 const LN1P_SERIES_MAX: f64 = 1.0 / 128.0;
 
-/// `ln(1 + x)` for `|x| <= LN1P_SERIES_MAX` by its Taylor series to `x^9` (Horner's rule): no
+/// `ln(1 + x)` for `|x| <= LN1P_SERIES_MAX` by its Taylor series to `x^9` (Estrin's scheme): no
 /// call into libm, and within a few units of rounding of `x` of the exact value.
 #[inline(always)]
 fn ln1p_series(x: f64) -> f64 {
@@ -203,10 +204,16 @@ fn ln1p_series(x: f64) -> f64 {
         -1.0 / 8.0,
         1.0 / 9.0,
     ];
-    let mut p = C[8];
-    for &c in C[..8].iter().rev() {
-        p = p * x + c;
-    }
+    // Estrin's scheme: pairs, then powers of x^2, for a short dependency chain.
+    let x2 = x * x;
+    let x4 = x2 * x2;
+    let p01 = C[0] + C[1] * x;
+    let p23 = C[2] + C[3] * x;
+    let p45 = C[4] + C[5] * x;
+    let p67 = C[6] + C[7] * x;
+    let p0123 = p01 + p23 * x2;
+    let p4567 = p45 + p67 * x2;
+    let p = p0123 + (p4567 + C[8] * x4) * x4;
     p * x
 }
 

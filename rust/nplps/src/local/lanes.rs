@@ -237,6 +237,7 @@ impl LocalStep<'_> {
 
 /// The fit of grey, unit-weight, plain sums with the residual from the normal equations (as
 /// [`fit_facet`](super::fit_facet) computes it for those settings); the target is left at zero.
+#[inline(always)]
 fn grey_fit(sums: &Sums) -> Option<FacetFit> {
     if sums.used < 3 {
         return None;

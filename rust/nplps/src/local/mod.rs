@@ -974,7 +974,10 @@ impl Facet<'_> {
     }
 }
 
-/// Solves the accumulated system for the normal and the albedo per channel.
+/// Solves the accumulated system for the normal and the albedo per channel. Inlined: the
+/// vectorized step calls it per lane with `channels = 1`, and a call returning its arrays through
+/// memory stalled the loads that follow (store forwarding).
+#[inline(always)]
 fn solve_sums(sums: &Sums, channels: usize) -> Option<([f64; 3], [f64; 3], [f64; 3])> {
     let mut gs = [[0.0; 3]; 3];
     let mut tms = [Matrix3::zeros(); 3];
