@@ -222,7 +222,7 @@ fn ln1p_series(x: f64) -> f64 {
 /// `|x_j|` of the order of a pixel's angle times the slope, so the logarithm is [`ln1p_series`]
 /// of `x_j` (no libm call, and more accurate than the difference of two logarithms); beyond
 /// [`LN1P_SERIES_MAX`] (grazing fits, very coarse pyramid levels), or for a NaN, `-ln s_j`.
-#[inline]
+#[inline(always)]
 fn log_ratios(s: [f64; 4]) -> [f64; 4] {
     let inv = 1.0 / s[0];
     let x = s.map(|v| (v - s[0]) * inv);
