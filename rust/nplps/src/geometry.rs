@@ -168,12 +168,11 @@ impl Geometry {
                 // either side): then it is `t`, the same bits as with the root.
                 let t = -(n[0] * x + n[1] * y + n[2]);
                 let r2 = x * x + y * y + 1.0;
-                let s = if t > 0.0 && t * t >= NZ_MIN_SQ_SAFE * r2 {
+                if t > 0.0 && t * t >= NZ_MIN_SQ_SAFE * r2 {
                     t
                 } else {
                     t.max(NZ_MIN * r2.sqrt())
-                };
-                s
+                }
             });
             log_ratios(s)
         } else {

@@ -642,7 +642,7 @@ mod tests {
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();
-        assert!(n % LANES != 0);
+        assert!(!n.is_multiple_of(LANES));
         let mut targets = vec![[0.0; 4]; n];
         let mut stats = vec![FacetStat::default(); n];
         step.run_targets(&u, &mut targets, &mut stats);
