@@ -160,9 +160,12 @@ impl Geometry {
     /// returning the 4 targets through memory stalled the loads that follow).
     #[inline(always)]
     pub fn plane_target(&self, n: [f64; 3], ids: [u32; 4], centre: [f64; 3]) -> [f64; 4] {
-        let base = ids.map(|i| self.base[i as usize]);
+        // (Array literals rather than `map`: its calls, returning arrays through memory, were
+        // not inlined into the local step.)
+        let at = |j: usize| self.base[ids[j] as usize];
+        let base = [at(0), at(1), at(2), at(3)];
         let raw: [f64; 4] = if self.perspective {
-            let s = base.map(|[x, y]| {
+            let s = |[x, y]: [f64; 2]| {
                 // `max(t, NZ_MIN |r|)` without the square root where `t` clearly exceeds the
                 // bound (`t^2 >= NZ_MIN^2 |r|^2 (1 + 1e-9)`, a margin far above the rounding of
                 // either side): then it is `t`, the same bits as with the root.
@@ -173,14 +176,15 @@ impl Geometry {
                 } else {
                     t.max(NZ_MIN * r2.sqrt())
                 }
-            });
-            log_ratios(s)
+            };
+            log_ratios([s(base[0]), s(base[1]), s(base[2]), s(base[3])])
         } else {
             let nz = n[2].min(-NZ_MIN);
-            base.map(|[x, y]| -(n[0] * (x - centre[0]) + n[1] * (y - centre[1])) / nz)
+            let z = |[x, y]: [f64; 2]| -(n[0] * (x - centre[0]) + n[1] * (y - centre[1])) / nz;
+            [z(base[0]), z(base[1]), z(base[2]), z(base[3])]
         };
         let mean = 0.25 * (raw[0] + raw[1] + raw[2] + raw[3]);
-        raw.map(|t| t - mean)
+        [raw[0] - mean, raw[1] - mean, raw[2] - mean, raw[3] - mean]
     }
 }
 
@@ -224,11 +228,22 @@ fn ln1p_series(x: f64) -> f64 {
 #[inline(always)]
 fn log_ratios(s: [f64; 4]) -> [f64; 4] {
     let inv = 1.0 / s[0];
-    let x = s.map(|v| (v - s[0]) * inv);
-    if x.iter().all(|v| v.abs() <= LN1P_SERIES_MAX) {
-        x.map(|v| -ln1p_series(v))
+    let x = [
+        0.0,
+        (s[1] - s[0]) * inv,
+        (s[2] - s[0]) * inv,
+        (s[3] - s[0]) * inv,
+    ];
+    let small = |v: f64| v.abs() <= LN1P_SERIES_MAX;
+    if small(x[1]) && small(x[2]) && small(x[3]) {
+        [
+            0.0,
+            -ln1p_series(x[1]),
+            -ln1p_series(x[2]),
+            -ln1p_series(x[3]),
+        ]
     } else {
-        s.map(|v| -v.ln())
+        [-s[0].ln(), -s[1].ln(), -s[2].ln(), -s[3].ln()]
     }
 }
 

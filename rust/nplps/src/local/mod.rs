@@ -426,8 +426,15 @@ impl LocalStep<'_> {
     #[inline]
     fn corners(&self, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
         match self.depths {
-            Some(z) => self.grid.facet_vertices[f]
-                .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
+            Some(z) => {
+                // (an array literal rather than `map`, whose call was not inlined)
+                let ids = self.grid.facet_vertices[f];
+                let at = |j: usize| {
+                    let i = ids[j] as usize;
+                    self.geometry.position_at_depth(i, z[i])
+                };
+                [at(0), at(1), at(2), at(3)]
+            }
             None => self.geometry.facet_corners(self.grid, f, u),
         }
     }
