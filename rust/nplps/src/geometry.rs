@@ -30,6 +30,9 @@ use crate::vec3::{cross, normalize, sub};
 /// normal is turned into a plane; bounds the target slopes of grazing fits.
 pub const NZ_MIN: f64 = 0.01;
 
+/// `NZ_MIN^2` enlarged by a relative margin of 1e-9 (see [`Geometry::plane_target`]).
+const NZ_MIN_SQ_SAFE: f64 = NZ_MIN * NZ_MIN * (1.0 + 1e-9);
+
 /// Vertex positions of the active vertices of a grid under a camera.
 #[derive(Debug, Clone)]
 pub struct Geometry {
@@ -153,22 +156,94 @@ impl Geometry {
     }
 
     /// Mean-subtracted targets of the corners `ids` for the plane through `centre` with unit
-    /// normal `n` (see the module documentation).
-    #[inline]
+    /// normal `n` (see the module documentation). Inlined into the local step's loops (a call
+    /// returning the 4 targets through memory stalled the loads that follow).
+    #[inline(always)]
     pub fn plane_target(&self, n: [f64; 3], ids: [u32; 4], centre: [f64; 3]) -> [f64; 4] {
-        let base = ids.map(|i| self.base[i as usize]);
+        // (Array literals rather than `map`: its calls, returning arrays through memory, were
+        // not inlined into the local step.)
+        let at = |j: usize| self.base[ids[j] as usize];
+        let base = [at(0), at(1), at(2), at(3)];
         let raw: [f64; 4] = if self.perspective {
-            base.map(|[x, y]| {
-                let norm = (x * x + y * y + 1.0).sqrt();
-                let s = (-(n[0] * x + n[1] * y + n[2])).max(NZ_MIN * norm);
-                -s.ln()
-            })
+            let s = |[x, y]: [f64; 2]| {
+                // `max(t, NZ_MIN |r|)` without the square root where `t` clearly exceeds the
+                // bound (`t^2 >= NZ_MIN^2 |r|^2 (1 + 1e-9)`, a margin far above the rounding of
+                // either side): then it is `t`, the same bits as with the root.
+                let t = -(n[0] * x + n[1] * y + n[2]);
+                let r2 = x * x + y * y + 1.0;
+                if t > 0.0 && t * t >= NZ_MIN_SQ_SAFE * r2 {
+                    t
+                } else {
+                    t.max(NZ_MIN * r2.sqrt())
+                }
+            };
+            log_ratios([s(base[0]), s(base[1]), s(base[2]), s(base[3])])
         } else {
             let nz = n[2].min(-NZ_MIN);
-            base.map(|[x, y]| -(n[0] * (x - centre[0]) + n[1] * (y - centre[1])) / nz)
+            let z = |[x, y]: [f64; 2]| -(n[0] * (x - centre[0]) + n[1] * (y - centre[1])) / nz;
+            [z(base[0]), z(base[1]), z(base[2]), z(base[3])]
         };
         let mean = 0.25 * (raw[0] + raw[1] + raw[2] + raw[3]);
-        raw.map(|t| t - mean)
+        [raw[0] - mean, raw[1] - mean, raw[2] - mean, raw[3] - mean]
+    }
+}
+
+/// Largest `|x|` for which [`ln1p_series`] is used (`2^-7`: its first omitted term, `x^10 / 10`,
+/// is below `1e-22`).
+const LN1P_SERIES_MAX: f64 = 1.0 / 128.0;
+
+/// `ln(1 + x)` for `|x| <= LN1P_SERIES_MAX` by its Taylor series to `x^9` (Estrin's scheme): no
+/// call into libm, and within a few units of rounding of `x` of the exact value.
+#[inline(always)]
+fn ln1p_series(x: f64) -> f64 {
+    const C: [f64; 9] = [
+        1.0,
+        -1.0 / 2.0,
+        1.0 / 3.0,
+        -1.0 / 4.0,
+        1.0 / 5.0,
+        -1.0 / 6.0,
+        1.0 / 7.0,
+        -1.0 / 8.0,
+        1.0 / 9.0,
+    ];
+    // Estrin's scheme: pairs, then powers of x^2, for a short dependency chain.
+    let x2 = x * x;
+    let x4 = x2 * x2;
+    let p01 = C[0] + C[1] * x;
+    let p23 = C[2] + C[3] * x;
+    let p45 = C[4] + C[5] * x;
+    let p67 = C[6] + C[7] * x;
+    let p0123 = p01 + p23 * x2;
+    let p4567 = p45 + p67 * x2;
+    let p = p0123 + (p4567 + C[8] * x4) * x4;
+    p * x
+}
+
+/// The pinhole targets' `-log s_j` of the 4 corners up to a common constant (which the mean
+/// subtraction removes): `-log(s_j / s_0)`. Neighbouring rays make `s_j / s_0 = 1 + x_j` with
+/// `|x_j|` of the order of a pixel's angle times the slope, so the logarithm is [`ln1p_series`]
+/// of `x_j` (no libm call, and more accurate than the difference of two logarithms); beyond
+/// [`LN1P_SERIES_MAX`] (grazing fits, very coarse pyramid levels), or for a NaN, `-ln s_j`.
+#[inline(always)]
+fn log_ratios(s: [f64; 4]) -> [f64; 4] {
+    let inv = 1.0 / s[0];
+    let x = [
+        0.0,
+        (s[1] - s[0]) * inv,
+        (s[2] - s[0]) * inv,
+        (s[3] - s[0]) * inv,
+    ];
+    let small = |v: f64| v.abs() <= LN1P_SERIES_MAX;
+    if small(x[1]) && small(x[2]) && small(x[3]) {
+        [
+            0.0,
+            -ln1p_series(x[1]),
+            -ln1p_series(x[2]),
+            -ln1p_series(x[3]),
+        ]
+    } else {
+        [-s[0].ln(), -s[1].ln(), -s[2].ln(), -s[3].ln()]
     }
 }
 
@@ -191,6 +266,40 @@ pub fn quad_centre(q: &[[f64; 3]; 4]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The series agrees with `ln_1p` to a few units of rounding over its range, and the
+    /// targets of `log_ratios` with those of 4 logarithms once mean-subtracted.
+    #[test]
+    fn log_ratios_match_the_logarithms() {
+        let mut worst = 0.0f64;
+        for i in 0..=2000 {
+            let x = LN1P_SERIES_MAX * (i as f64 / 1000.0 - 1.0);
+            let err = (ln1p_series(x) - x.ln_1p()).abs();
+            worst = worst.max(err / (x.abs() * f64::EPSILON).max(f64::MIN_POSITIVE));
+        }
+        assert!(worst <= 4.0, "{worst} ulps of x");
+        let centred = |r: [f64; 4]| {
+            let m = 0.25 * (r[0] + r[1] + r[2] + r[3]);
+            r.map(|t| t - m)
+        };
+        for (s, series) in [
+            ([0.7, 0.7002, 0.6999, 0.70015], true),
+            ([0.02, 0.0201, 0.0199, 0.02], true),
+            ([0.02, 0.03, 0.0199, 0.02], false),
+            ([f64::NAN, 0.5, 0.5, 0.5], false),
+        ] {
+            let x = s.map(|v| (v - s[0]) / s[0]);
+            assert_eq!(x.iter().all(|v| v.abs() <= LN1P_SERIES_MAX), series);
+            let got = centred(log_ratios(s));
+            let want = centred(s.map(|v| -v.ln()));
+            for (g, w) in got.iter().zip(want) {
+                assert!(
+                    (g - w).abs() <= 1e-15 || (g.is_nan() && w.is_nan()),
+                    "{got:?} {want:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn quad_normal_faces_the_camera() {

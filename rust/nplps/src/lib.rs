@@ -150,7 +150,10 @@ macro_rules! with_fields {
 
 /// Defines `$name`, which runs the (`#[inline(always)]`) kernel `$kernel` compiled for AVX2 when
 /// the processor has it and as compiled for the baseline otherwise. The AVX2 copy enables no
-/// FMA: its results are those of the baseline code, with wider lanes.
+/// FMA: its results are those of the baseline code, with wider lanes. The `wide` form (kernels
+/// over 8 f64 lanes, see `local::lanes`) first tries AVX-512 (F, VL, DQ: one 512-bit register per
+/// 8-lane operation), again without FMA (Rust never contracts `a * b + c` on its own), so that all
+/// three copies give the same bits.
 macro_rules! simd_dispatch {
     (
         $(#[$meta:meta])*
@@ -163,6 +166,38 @@ macro_rules! simd_dispatch {
                 #[target_feature(enable = "avx2")]
                 unsafe fn avx2($($arg: $ty),*) -> $ret {
                     $kernel($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the processor supports AVX2, checked just above.
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            $kernel($($arg),*)
+        }
+    };
+    (
+        wide
+        $(#[$meta:meta])*
+        fn $name:ident => $kernel:ident($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty;
+    ) => {
+        $(#[$meta])*
+        fn $name($($arg: $ty),*) -> $ret {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f,avx512vl,avx512dq")]
+                unsafe fn avx512($($arg: $ty),*) -> $ret {
+                    $kernel($($arg),*)
+                }
+                #[target_feature(enable = "avx2")]
+                unsafe fn avx2($($arg: $ty),*) -> $ret {
+                    $kernel($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx512f")
+                    && std::arch::is_x86_feature_detected!("avx512vl")
+                    && std::arch::is_x86_feature_detected!("avx512dq")
+                {
+                    // SAFETY: the processor supports these AVX-512 subsets, checked just above.
+                    return unsafe { avx512($($arg),*) };
                 }
                 if std::arch::is_x86_feature_detected!("avx2") {
                     // SAFETY: the processor supports AVX2, checked just above.

@@ -1263,7 +1263,9 @@ pub(crate) mod tests {
                 d < 0.45 * h.min(w) as f64 && d > 0.15 * h.min(w) as f64
             })
             .collect();
-        let strips: Vec<bool> = (0..h * w).map(|p| (p / w) % 4 == 0 || p % w == 3).collect();
+        let strips: Vec<bool> = (0..h * w)
+            .map(|p| (p / w).is_multiple_of(4) || p % w == 3)
+            .collect();
         let islands: Vec<bool> = (0..h * w)
             .map(|p| {
                 let (r, c) = (p / w, p % w);

@@ -123,10 +123,13 @@ impl Vertices<'_> {
                 .map(|v| v[2])
                 .filter(|z| z.is_finite())
                 .fold(f64::INFINITY, f64::min),
+            // In parallel (a depth is an `exp` per vertex under a pinhole camera); the minimum
+            // does not depend on the order.
             Vertices::Mesh { geometry, u, .. } => (0..u.len())
+                .into_par_iter()
                 .map(|i| geometry.position(i, u[i])[2])
                 .filter(|z| z.is_finite())
-                .fold(f64::INFINITY, f64::min),
+                .reduce(|| f64::INFINITY, f64::min),
         }
     }
 }
@@ -526,7 +529,8 @@ impl Pyramid {
                 }
                 let v = (p / width) * vw + p % width;
                 let mut lo = f64::INFINITY;
-                for z in [v, v + 1, v + vw, v + vw + 1].map(|v| vertices.at(v)[2]) {
+                // (the depths just computed: `z[v]` is `vertices.at(v)[2]`)
+                for z in [v, v + 1, v + vw, v + vw + 1].map(|v| z[v]) {
                     if !z.is_finite() {
                         return f32::NEG_INFINITY;
                     }

@@ -2,7 +2,8 @@
 //! [`LANES`] facets at once, one SIMD lane per facet, with the lane form of the light model
 //! (`LaneLight`). Per lane the sums are those of the scalar code (`Facet::accumulate_grey`,
 //! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit.
-//! The kernels run compiled for AVX2 when the processor has it (`simd_dispatch!`).
+//! The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
+//! has it (`simd_dispatch!`, its `wide` form): the same operations per lane, so the same bits.
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -50,6 +51,18 @@ fn gather_interleaved<T: Copy, const N: usize>(
     out: &mut [[f32; N]],
     value: impl Fn(T) -> f32,
 ) {
+    // The facets of a batch are usually neighbours in one image row: then each light's values
+    // are one contiguous run of N samples, read (and converted) as a block.
+    let first = pixels[0];
+    if (1..N).all(|l| pixels[l] == first + l) {
+        for (i, slot) in out[..k].iter_mut().enumerate() {
+            let base = i * plane + first;
+            let run: &[T; N] = data[base..base + N].try_into().expect("a run of N samples");
+            *slot = run.map(&value);
+            prefetch(data, base + N - 1 + PREFETCH_AHEAD);
+        }
+        return;
+    }
     for (i, slot) in out[..k].iter_mut().enumerate() {
         let base = i * plane;
         for (v, &p) in slot.iter_mut().zip(pixels) {
@@ -87,7 +100,7 @@ fn prefetch<T>(data: &[T], i: usize) {
 }
 
 /// Facets whose normal equations are accumulated together (one SIMD lane each).
-pub(super) const LANES: usize = 4;
+pub(super) const LANES: usize = 8;
 
 impl LocalStep<'_> {
     /// The lights of the vectorized accumulation, when it applies: grey images, unit weights,
@@ -224,6 +237,7 @@ impl LocalStep<'_> {
 
 /// The fit of grey, unit-weight, plain sums with the residual from the normal equations (as
 /// [`fit_facet`](super::fit_facet) computes it for those settings); the target is left at zero.
+#[inline(always)]
 fn grey_fit(sums: &Sums) -> Option<FacetFit> {
     if sums.used < 3 {
         return None;
@@ -241,7 +255,9 @@ fn grey_fit(sums: &Sums) -> Option<FacetFit> {
 }
 
 simd_dispatch! {
-    /// [`accumulate_lanes`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+    wide
+    /// [`accumulate_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
     fn accumulate_lanes_dispatch => accumulate_lanes(
         lights: &[LaneLight],
         centres: &[[f64; 3]; LANES],
@@ -320,7 +336,9 @@ fn accumulate_lanes(
 }
 
 simd_dispatch! {
-    /// [`residual_lanes`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+    wide
+    /// [`residual_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
     fn residual_lanes_dispatch => residual_lanes(
         lights: &[LaneLight],
         centres: &[[f64; 3]; LANES],
@@ -419,7 +437,9 @@ impl LaneSolved {
 }
 
 simd_dispatch! {
-    /// [`final_residuals`] with AVX2 when the processor has it (same arithmetic, wider lanes).
+    wide
+    /// [`final_residuals`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
     fn final_residuals_dispatch => final_residuals(
         lights: &[LaneLight],
         rows: &[[[f64; LANES]; 3]],
@@ -622,7 +642,7 @@ mod tests {
         };
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();
-        assert!(n % LANES != 0);
+        assert!(!n.is_multiple_of(LANES));
         let mut targets = vec![[0.0; 4]; n];
         let mut stats = vec![FacetStat::default(); n];
         step.run_targets(&u, &mut targets, &mut stats);

@@ -426,8 +426,15 @@ impl LocalStep<'_> {
     #[inline]
     fn corners(&self, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
         match self.depths {
-            Some(z) => self.grid.facet_vertices[f]
-                .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
+            Some(z) => {
+                // (an array literal rather than `map`, whose call was not inlined)
+                let ids = self.grid.facet_vertices[f];
+                let at = |j: usize| {
+                    let i = ids[j] as usize;
+                    self.geometry.position_at_depth(i, z[i])
+                };
+                [at(0), at(1), at(2), at(3)]
+            }
             None => self.geometry.facet_corners(self.grid, f, u),
         }
     }
@@ -974,7 +981,10 @@ impl Facet<'_> {
     }
 }
 
-/// Solves the accumulated system for the normal and the albedo per channel.
+/// Solves the accumulated system for the normal and the albedo per channel. Inlined: the
+/// vectorized step calls it per lane with `channels = 1`, and a call returning its arrays through
+/// memory stalled the loads that follow (store forwarding).
+#[inline(always)]
 fn solve_sums(sums: &Sums, channels: usize) -> Option<([f64; 3], [f64; 3], [f64; 3])> {
     let mut gs = [[0.0; 3]; 3];
     let mut tms = [Matrix3::zeros(); 3];
