@@ -247,7 +247,7 @@ fn assemble_lower(
         grid.n_facets() * 10 + pins.len() + priors,
         "the global step's sparse system",
     )?;
-    for ids in &grid.facet_vertices {
+    for ids in grid.all_facet_vertices() {
         for a in 0..4 {
             for b in 0..4 {
                 let (i, j) = (ids[a] as usize, ids[b] as usize);
@@ -297,8 +297,7 @@ mod tests {
             .map(|&v| 3.0 + 0.2 * (v % 7) as f64 - 0.1 * (v / 7) as f64)
             .collect();
         let targets: Vec<[f64; 4]> = grid
-            .facet_vertices
-            .iter()
+            .all_facet_vertices()
             .map(|ids| {
                 let m = ids.iter().map(|&i| truth[i as usize]).sum::<f64>() / 4.0;
                 ids.map(|i| truth[i as usize] - m)

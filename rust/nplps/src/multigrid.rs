@@ -1238,8 +1238,7 @@ pub(crate) mod tests {
     pub(crate) fn problem_data(grid: &Grid, seed: u64) -> (Vec<[f64; 4]>, Vec<f64>) {
         let mut rand = lcg(seed);
         let targets = grid
-            .facet_vertices
-            .iter()
+            .all_facet_vertices()
             .map(|_| {
                 let t: [f64; 4] = std::array::from_fn(|_| rand() - 0.5);
                 let m = t.iter().sum::<f64>() / 4.0;

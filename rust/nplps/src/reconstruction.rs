@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::error::Result;
 use crate::local::FacetFit;
-use crate::memory::{try_collect, try_vec};
+use crate::memory::try_vec;
 use crate::options::Refine;
 use crate::problem::Problem;
 use crate::refine::Conditioning;
@@ -411,12 +411,11 @@ pub(crate) fn assemble(
     timings: Timings,
 ) -> Result<Reconstruction> {
     let grid = &problem.grid;
-    let depths = try_collect(z.iter().map(|&u| problem.geometry.depth(u)), "the depths")?;
     Ok(Reconstruction {
         height: grid.height,
         width: grid.width,
         channels: problem.obs.channels,
-        depth: grid.scatter_vertices(&depths)?,
+        depth: grid.scatter_vertices_with(z, |u| problem.geometry.depth(u))?,
         normals: outputs.normals,
         albedo: outputs.albedo,
         residual: outputs.residual,

@@ -426,7 +426,9 @@ impl LocalStep<'_> {
     #[inline]
     fn corners(&self, f: usize, u: &[f64]) -> [[f64; 3]; 4] {
         match self.depths {
-            Some(z) => self.grid.facet_vertices[f]
+            Some(z) => self
+                .grid
+                .facet_vertices(f)
                 .map(|i| self.geometry.position_at_depth(i as usize, z[i as usize])),
             None => self.geometry.facet_corners(self.grid, f, u),
         }
@@ -463,7 +465,7 @@ impl LocalStep<'_> {
     ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
-        let ids = grid.facet_vertices[f];
+        let ids = grid.facet_vertices(f);
         let c = quad_centre(&q);
         if let Some(field) = self.indirect {
             return self.fit_indirect(f, u, buf, field, &q, c);
@@ -534,7 +536,7 @@ impl LocalStep<'_> {
         }
         let (grid, obs) = (self.grid, self.obs);
         let pixel = grid.facets[f] as usize;
-        let ids = grid.facet_vertices[f];
+        let ids = grid.facet_vertices(f);
         SCRATCH.with_borrow_mut(|(vectors, direct)| {
             direct.clear();
             direct.extend((0..obs.k).map(|k| !field.is_unlit(pixel, k)));
