@@ -542,19 +542,11 @@ pub fn reconstruction_dict<'py>(
     let d = PyDict::new(py);
     d.set_item("depth", array(py, r.depth, &[h + 1, w + 1])?)?;
     d.set_item("normals", array3(py, r.normals, &[h, w])?)?;
+    // One value a pixel for grey images (the core keeps no three equal values).
     let albedo = if r.channels == 1 {
-        // The grey channel moved to the front in place and the rest given back: no second map
-        // of the albedo while it crosses into numpy (8 bytes a pixel at the peak of the end).
-        let mut flat = r.albedo.into_flattened();
-        let n = flat.len() / 3;
-        for i in 0..n {
-            flat[i] = flat[3 * i];
-        }
-        flat.truncate(n);
-        flat.shrink_to_fit();
-        array(py, flat, &[h, w])?
+        array(py, r.albedo, &[h, w])?
     } else {
-        array3(py, r.albedo, &[h, w])?
+        array(py, r.albedo, &[h, w, r.channels])?
     };
     d.set_item("albedo", albedo)?;
     d.set_item("residual", array(py, r.residual, &[h, w])?)?;

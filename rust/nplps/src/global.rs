@@ -191,6 +191,15 @@ impl GlobalStep {
         }
     }
 
+    /// Gives back the multigrid's work vectors until the next [`GlobalStep::solve`] (about 37
+    /// bytes a vertex; see [`crate::multigrid::MultigridSystem::release_work`]); nothing for the
+    /// direct solver.
+    pub fn release_work(&mut self) {
+        if let GlobalStep::Multigrid { system, .. } = self {
+            system.release_work();
+        }
+    }
+
     /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
     /// (0 for the direct solver). A multigrid solve that needed more than
     /// [`FALLBACK_ITERATIONS`] is redone, and the system kept, with the direct solver when the
@@ -209,6 +218,7 @@ impl GlobalStep {
             }
             GlobalStep::Multigrid { system, fallback } => {
                 // With a fallback, stop the conjugate gradients as soon as they are too slow.
+                system.reserve_work()?;
                 let limit = system.max_iterations;
                 if fallback.is_some() {
                     system.max_iterations = limit.min(FALLBACK_ITERATIONS + 1);

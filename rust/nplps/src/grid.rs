@@ -34,8 +34,10 @@ pub struct Grid {
     pub n_regions: usize,
     /// The lowest-index unknown of each region (pinned in the global step).
     pub pins: Vec<u32>,
-    /// For each pixel `r * W + c`: its facet index, or [`INACTIVE`] outside the mask.
-    pub facet_of_pixel: Vec<u32>,
+    /// For each pixel `r * W + c`: its facet index, or [`INACTIVE`] outside the mask; empty
+    /// when every pixel is a facet (then facet `p` is pixel `p`: 4 bytes a pixel less). Read
+    /// through [`Grid::facet_of_pixel`].
+    facet_index: Vec<u32>,
 }
 
 impl Grid {
@@ -122,14 +124,19 @@ impl Grid {
                 pins[reg as usize] = u as u32;
             }
         }
-        let mut facet_of_pixel = try_vec(height * width, INACTIVE, "the mesh's pixel numbers")?;
-        for (f, &p) in facets.iter().enumerate() {
-            facet_of_pixel[p as usize] = f as u32;
-        }
+        let facet_index = if facets.len() == height * width {
+            Vec::new()
+        } else {
+            let mut index = try_vec(height * width, INACTIVE, "the mesh's pixel numbers")?;
+            for (f, &p) in facets.iter().enumerate() {
+                index[p as usize] = f as u32;
+            }
+            index
+        };
         Ok(Grid {
             height,
             width,
-            facet_of_pixel,
+            facet_index,
             facets,
             vertex_unknown,
             active,
@@ -137,6 +144,15 @@ impl Grid {
             n_regions,
             pins,
         })
+    }
+
+    /// The facet of pixel `p` (`r * W + c`), or [`INACTIVE`] outside the mask.
+    #[inline]
+    pub fn facet_of_pixel(&self, p: usize) -> u32 {
+        match self.facet_index.is_empty() {
+            true => p as u32,
+            false => self.facet_index[p],
+        }
     }
 
     /// Number of unknowns (active vertices).
@@ -248,7 +264,7 @@ impl Grid {
         let mut sum = 0.0;
         let mut add = |pr: usize, pc: usize, corner: usize| {
             if pr < self.height && pc < w {
-                let f = self.facet_of_pixel[pr * w + pc];
+                let f = self.facet_of_pixel(pr * w + pc);
                 if f != INACTIVE {
                     sum += targets[f as usize][corner];
                 }
