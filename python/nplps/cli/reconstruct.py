@@ -180,10 +180,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if display is not None:
             display.finish(result)
     wall = time.perf_counter() - start
-    if not (args.report or args.baseline):
-        # Nothing reads the images any more: the stack (2 bytes a pixel and light, 3.2 GB at
-        # 100 MP x 16) is not held while the results are written.
-        inputs = inputs._replace(images=None)
     with writing(out):  # one run: the manifest lists the baseline's files too
         recorded = {**_recorded_args(args), "preprocessing": list(inputs.steps), "solver_options": {**near, **common}}
         paths = _save(result, out, args, quiet=args.quiet, report=args.report, inputs=inputs.images, options=recorded)
