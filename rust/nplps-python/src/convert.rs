@@ -542,10 +542,11 @@ pub fn reconstruction_dict<'py>(
     let d = PyDict::new(py);
     d.set_item("depth", array(py, r.depth, &[h + 1, w + 1])?)?;
     d.set_item("normals", array3(py, r.normals, &[h, w])?)?;
+    // One value a pixel for grey images (the core keeps no three equal values).
     let albedo = if r.channels == 1 {
-        array(py, r.albedo.iter().map(|a| a[0]).collect(), &[h, w])?
+        array(py, r.albedo, &[h, w])?
     } else {
-        array3(py, r.albedo, &[h, w])?
+        array(py, r.albedo, &[h, w, r.channels])?
     };
     d.set_item("albedo", albedo)?;
     d.set_item("residual", array(py, r.residual, &[h, w])?)?;

@@ -145,7 +145,7 @@ pub(crate) fn region_residuals(grid: &Grid, stats: &[FacetStat], channels: usize
     let mut count = vec![0usize; grid.n_regions];
     for (fit, ids) in stats
         .iter()
-        .zip(&grid.facet_vertices)
+        .zip(grid.all_facet_vertices())
         .filter(|(f, _)| f.valid)
     {
         let r = grid.region_of_unknown[ids[0] as usize] as usize;
@@ -179,7 +179,7 @@ pub(crate) fn region_median_residuals(
     let mut per: Vec<Vec<f64>> = vec![Vec::new(); grid.n_regions];
     for (fit, ids) in stats
         .iter()
-        .zip(&grid.facet_vertices)
+        .zip(grid.all_facet_vertices())
         .filter(|(f, _)| f.valid && f.used > 0)
     {
         let r = grid.region_of_unknown[ids[0] as usize] as usize;

@@ -191,6 +191,15 @@ impl GlobalStep {
         }
     }
 
+    /// Gives back the multigrid's work vectors until the next [`GlobalStep::solve`] (about 37
+    /// bytes a vertex; see [`crate::multigrid::MultigridSystem::release_work`]); nothing for the
+    /// direct solver.
+    pub fn release_work(&mut self) {
+        if let GlobalStep::Multigrid { system, .. } = self {
+            system.release_work();
+        }
+    }
+
     /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
     /// (0 for the direct solver). A multigrid solve that needed more than
     /// [`FALLBACK_ITERATIONS`] is redone, and the system kept, with the direct solver when the
@@ -209,6 +218,7 @@ impl GlobalStep {
             }
             GlobalStep::Multigrid { system, fallback } => {
                 // With a fallback, stop the conjugate gradients as soon as they are too slow.
+                system.reserve_work()?;
                 let limit = system.max_iterations;
                 if fallback.is_some() {
                     system.max_iterations = limit.min(FALLBACK_ITERATIONS + 1);
@@ -247,7 +257,7 @@ fn assemble_lower(
         grid.n_facets() * 10 + pins.len() + priors,
         "the global step's sparse system",
     )?;
-    for ids in &grid.facet_vertices {
+    for ids in grid.all_facet_vertices() {
         for a in 0..4 {
             for b in 0..4 {
                 let (i, j) = (ids[a] as usize, ids[b] as usize);
@@ -297,8 +307,7 @@ mod tests {
             .map(|&v| 3.0 + 0.2 * (v % 7) as f64 - 0.1 * (v / 7) as f64)
             .collect();
         let targets: Vec<[f64; 4]> = grid
-            .facet_vertices
-            .iter()
+            .all_facet_vertices()
             .map(|ids| {
                 let m = ids.iter().map(|&i| truth[i as usize]).sum::<f64>() / 4.0;
                 ids.map(|i| truth[i as usize] - m)

@@ -764,7 +764,7 @@ impl IndirectField {
             for r in rc * factor..((rc + 1) * factor).min(h) {
                 for c in cc * factor..((cc + 1) * factor).min(w) {
                     let p = r * w + c;
-                    if grid.facet_of_pixel[p] == crate::grid::INACTIVE {
+                    if grid.facet_of_pixel(p) == crate::grid::INACTIVE {
                         continue;
                     }
                     for light in 0..k {

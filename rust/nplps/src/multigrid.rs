@@ -886,6 +886,47 @@ impl MultigridSystem {
         })
     }
 
+    /// Gives back the work vectors: the conjugate gradients' four on the fine padded grid and
+    /// the two of each coarser level (`8 (4 + 2/4 + 2/16 + ...)`, about 37 bytes a vertex).
+    /// [`MultigridSystem::reserve_work`] allocates them again (zero pages, touched as the solve
+    /// runs); no solve reads what a previous one left in them. The solver gives them back
+    /// between its global steps, so that they and the local step's buffers are never held at
+    /// once (see [`crate::global::GlobalStep::release_work`]).
+    pub fn release_work(&mut self) {
+        self.krylov = Krylov {
+            x: Vec::new(),
+            r: Vec::new(),
+            p: Vec::new(),
+            w: Vec::new(),
+        };
+        for w in &mut self.work {
+            *w = Work {
+                x: Vec::new(),
+                b: Vec::new(),
+            };
+        }
+    }
+
+    /// Allocates the work vectors given back by [`MultigridSystem::release_work`] (nothing if
+    /// they are there); [`MultigridSystem::solve`] needs them.
+    pub fn reserve_work(&mut self) -> Result<()> {
+        if !self.krylov.x.is_empty() {
+            return Ok(());
+        }
+        let n = self.levels[0].layout.len();
+        let krylov = || try_zeros(n, "the conjugate gradients' vectors");
+        self.krylov = Krylov {
+            x: krylov()?,
+            r: krylov()?,
+            p: krylov()?,
+            w: krylov()?,
+        };
+        for (w, level) in self.work.iter_mut().zip(&self.levels[1..]) {
+            *w = Work::new(level.layout)?;
+        }
+        Ok(())
+    }
+
     /// Number of levels (the fine level included).
     #[cfg(test)]
     pub fn n_levels(&self) -> usize {
@@ -907,7 +948,8 @@ impl MultigridSystem {
 
     /// One global step (as [`crate::global::GlobalSystem::solve`]): solves the pinned system
     /// for the facets' `targets` from the warm start `z_current`, writing `z_out`. Returns the
-    /// number of conjugate-gradient iterations.
+    /// number of conjugate-gradient iterations. The work vectors must be there (after
+    /// [`MultigridSystem::release_work`], [`MultigridSystem::reserve_work`] first).
     pub fn solve(
         &mut self,
         grid: &Grid,
@@ -1238,8 +1280,7 @@ pub(crate) mod tests {
     pub(crate) fn problem_data(grid: &Grid, seed: u64) -> (Vec<[f64; 4]>, Vec<f64>) {
         let mut rand = lcg(seed);
         let targets = grid
-            .facet_vertices
-            .iter()
+            .all_facet_vertices()
             .map(|_| {
                 let t: [f64; 4] = std::array::from_fn(|_| rand() - 0.5);
                 let m = t.iter().sum::<f64>() / 4.0;

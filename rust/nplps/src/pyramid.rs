@@ -93,7 +93,6 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let grid = &problem.grid;
     let (h, w) = (grid.height, grid.width);
     let (ch, cw) = (h.div_ceil(2), w.div_ceil(2));
-    let facet_of_pixel = &grid.facet_of_pixel;
     // Which of its 4 children (bits 0..3: (0,0), (0,1), (1,0), (1,1)) each coarse pixel has.
     let children: Vec<u8> = try_par_collect(
         (0..ch * cw).into_par_iter().map(|cp| {
@@ -101,7 +100,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
             let mut bits = 0u8;
             for (bit, (a, b)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
                 let (r, c) = (2 * cr + a, 2 * cc + b);
-                if r < h && c < w && facet_of_pixel[r * w + c] != crate::grid::INACTIVE {
+                if r < h && c < w && grid.facet_of_pixel(r * w + c) != crate::grid::INACTIVE {
                     bits |= 1 << bit;
                 }
             }

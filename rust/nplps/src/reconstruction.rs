@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::error::Result;
 use crate::local::FacetFit;
-use crate::memory::{try_collect, try_vec};
+use crate::memory::try_vec;
 use crate::options::Refine;
 use crate::problem::Problem;
 use crate::refine::Conditioning;
@@ -163,9 +163,10 @@ pub struct Reconstruction {
     pub normals: Vec<[f64; 3]>,
     /// Channels of the images (1 or 3): the albedo has as many meaningful entries.
     pub channels: usize,
-    /// Fitted albedo per channel (grey: three equal values; NaN where a facet could not be
-    /// fitted).
-    pub albedo: Vec<[f64; 3]>,
+    /// Fitted albedo, `channels` values per pixel (row-major, the channels of a pixel
+    /// together: `albedo[p * channels + c]`; one value a pixel for grey images, not three);
+    /// NaN where a facet could not be fitted.
+    pub albedo: Vec<f64>,
     /// RMS image residual of each facet's fit.
     pub residual: Vec<f64>,
     /// Number of usable lights of each facet.
@@ -233,7 +234,8 @@ pub struct RefinementReport {
 /// The per-pixel results of the final local step (NaN, or 0 for counts, outside the mask).
 pub(crate) struct FitOutputs {
     normals: Vec<[f64; 3]>,
-    albedo: Vec<[f64; 3]>,
+    /// `channels` values a pixel.
+    albedo: Vec<f64>,
     residual: Vec<f64>,
     lights_used: Vec<u32>,
     /// Empty unless `glossy`.
@@ -251,7 +253,7 @@ impl FitOutputs {
                 "the specular albedo map",
             )?,
             normals: try_vec(n, [f64::NAN; 3], "the normal map")?,
-            albedo: try_vec(n, [f64::NAN; 3], "the albedo map")?,
+            albedo: try_vec(n * problem.obs.channels, f64::NAN, "the albedo map")?,
             residual: try_vec(n, f64::NAN, "the residual map")?,
             lights_used: try_vec(n, 0, "the map of lights used")?,
         })
@@ -265,7 +267,7 @@ impl FitOutputs {
             .zip(problem.grid.facets[first..].iter().map(|&p| p as usize))
         {
             self.normals[p] = fit.normal;
-            self.albedo[p] = fit.albedo;
+            self.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
             self.residual[p] = fit.rms(channels);
             self.lights_used[p] = fit.used;
             if let Some(s) = self.specular.get_mut(p) {
@@ -411,12 +413,11 @@ pub(crate) fn assemble(
     timings: Timings,
 ) -> Result<Reconstruction> {
     let grid = &problem.grid;
-    let depths = try_collect(z.iter().map(|&u| problem.geometry.depth(u)), "the depths")?;
     Ok(Reconstruction {
         height: grid.height,
         width: grid.width,
         channels: problem.obs.channels,
-        depth: grid.scatter_vertices(&depths)?,
+        depth: grid.scatter_vertices_with(z, |u| problem.geometry.depth(u))?,
         normals: outputs.normals,
         albedo: outputs.albedo,
         residual: outputs.residual,

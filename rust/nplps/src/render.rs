@@ -201,8 +201,11 @@ fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Res
     ensure_depth_map(height, width, depth)?;
     crate::memory::check(
         || format!("the vertices of a depth map of {width} x {height} pixels"),
-        // Grid, geometry and positions: about 100 bytes per vertex.
-        100.0 * depth.len() as f64,
+        // The positions, 24 bytes per vertex, twice for room (the grid and geometry of the
+        // error path of a missing ray allocate fallibly). It was 100, from when the positions
+        // came from a grid and its geometry, and refused a 100 MP result's mesh at the end of
+        // the run (issue 23).
+        48.0 * depth.len() as f64,
         None,
     )?;
     // Each vertex's ray straight from the camera (no grid or geometry: 24 bytes per vertex

@@ -62,8 +62,10 @@ pub fn reconstruct(
         let start = Instant::now();
         let mut u = try_copy(&problem.u0, "the depths")?;
         let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
+        crate::memory::give_back(); // the coarse levels' buffers
         let mut solver = Solver::new(problem, options)?;
         solver.start = start;
+        solver.lean = true;
         let mut history = solver.carry(coarse)?;
         let (fine, converged) = if solver.carried {
             problem.grid.apply_gauge(&mut u, &problem.gauge);
@@ -304,6 +306,13 @@ pub(crate) struct Solver<'p> {
     carried: bool,
     /// Whether the last `iterate` stopped for lack of progress.
     stalled: bool,
+    /// Whether the per-facet statistics are given back during each global step and the
+    /// multigrid's work vectors outside it (see [`Solver::global`]): off by default, on for the
+    /// full-resolution run of [`reconstruct`], whose statistics nothing reads after the
+    /// iteration's residual. The peak is then the larger of the local step's buffers and the
+    /// global step's instead of their sum, for the cost of touching fresh zero pages each
+    /// iteration.
+    pub(crate) lean: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
     pub(crate) check_lights: bool,
@@ -392,6 +401,7 @@ impl<'p> Solver<'p> {
             lights: LightRefinement::new(options.refine, &problem.rig.lights),
             carried: false,
             stalled: false,
+            lean: false,
             check_lights: true,
             timings: Timings {
                 factorization: t.elapsed(),
@@ -769,6 +779,11 @@ impl<'p> Solver<'p> {
             )
         };
         self.shadows = None;
+        // The targets are dead here (the next local step writes every facet's): their memory
+        // (32 bytes a facet) is given back while the march holds its own (the vertex depths,
+        // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
+        // otherwise set the peak of the run.
+        let facets_of_targets = std::mem::take(&mut self.targets).len();
         let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
         if seen {
             let mask = march(1)?;
@@ -776,6 +791,8 @@ impl<'p> Solver<'p> {
                 self.shadows = Some(mask);
             }
         }
+        self.targets =
+            crate::memory::try_zeros(facets_of_targets, "the solver's per-facet targets")?;
         self.timings.shadows += t.elapsed();
         p.cancel.check()
     }
@@ -865,6 +882,10 @@ impl<'p> Solver<'p> {
         // The vertex depths go into `next`, free until the global step writes it.
         let mut depths = std::mem::take(&mut self.next);
         let perspective = self.depths_into(u, &mut depths);
+        if self.stats.len() != self.targets.len() {
+            self.stats =
+                crate::memory::try_zeros(self.targets.len(), "the solver's per-facet statistics")?;
+        }
         let (mut targets, mut stats) = (
             std::mem::take(&mut self.targets),
             std::mem::take(&mut self.stats),
@@ -910,8 +931,18 @@ impl<'p> Solver<'p> {
     fn global(&mut self, u: &[f64], gauge: &[f64]) -> Result<usize> {
         let t = Instant::now();
         let p = self.problem;
+        if self.lean {
+            // Read only by the local step that wrote them (its residual) and by the distance
+            // search (which keeps them): their 16 bytes a facet are given back while the
+            // conjugate-gradient vectors are in use, and allocated again (zero pages, touched
+            // by the next local step) in `local`.
+            self.stats = Vec::new();
+        }
         let system = self.system.as_mut().expect("the solver has not finished");
         let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
+        if self.lean {
+            system.release_work();
+        }
         p.cancel.check()?;
         p.grid.apply_gauge(&mut self.next, gauge);
         self.timings.solve += t.elapsed();
@@ -1074,7 +1105,7 @@ impl<'p> Solver<'p> {
             outputs.scatter(problem, first, chunk);
             maps.scatter(&problem.grid, first, values);
         }
-        drop((fits, trust));
+        drop((fits, trust, depths));
         let trust = maps.finish();
         problem.cancel.check()?;
         self.timings.local += t.elapsed();
@@ -1363,7 +1394,7 @@ mod tests {
                     .clamp(-1.0, 1.0)
                     .acos()
                     .to_degrees();
-                albedo += r.albedo[p][0] / rho - 1.0;
+                albedo += r.albedo[p * r.channels] / rho - 1.0;
                 count += 1;
             }
             (angle / count as f64, albedo / count as f64)

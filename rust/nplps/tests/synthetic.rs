@@ -103,7 +103,7 @@ fn real_rig_variations_are_recovered_exactly() {
             if scene.channels == 3 {
                 let p = scene.mask.iter().position(|m| *m).unwrap();
                 for ch in 0..3 {
-                    let rel = result.albedo[p][ch] / scene.albedo[p * 3 + ch] - 1.0;
+                    let rel = result.albedo[p * 3 + ch] / scene.albedo[p * 3 + ch] - 1.0;
                     assert!(rel.abs() < 1e-3, "{name}: albedo channel {ch} off by {rel}");
                 }
             }

@@ -216,7 +216,7 @@ impl LocalStep<'_> {
         }
         std::array::from_fn(|l| {
             let f = first + l;
-            let ids = grid.facet_vertices[f];
+            let ids = grid.facet_vertices(f);
             match fitted[l] {
                 Some(fitted) => FacetFit {
                     target: geometry.plane_target(fitted.normal, ids, centres[l]),

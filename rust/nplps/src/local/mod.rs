@@ -428,7 +428,7 @@ impl LocalStep<'_> {
         match self.depths {
             Some(z) => {
                 // (an array literal rather than `map`, whose call was not inlined)
-                let ids = self.grid.facet_vertices[f];
+                let ids = self.grid.facet_vertices(f);
                 let at = |j: usize| {
                     let i = ids[j] as usize;
                     self.geometry.position_at_depth(i, z[i])
@@ -470,7 +470,7 @@ impl LocalStep<'_> {
     ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let q = self.corners(f, u);
-        let ids = grid.facet_vertices[f];
+        let ids = grid.facet_vertices(f);
         let c = quad_centre(&q);
         if let Some(field) = self.indirect {
             return self.fit_indirect(f, u, buf, field, &q, c);
@@ -541,7 +541,7 @@ impl LocalStep<'_> {
         }
         let (grid, obs) = (self.grid, self.obs);
         let pixel = grid.facets[f] as usize;
-        let ids = grid.facet_vertices[f];
+        let ids = grid.facet_vertices(f);
         SCRATCH.with_borrow_mut(|(vectors, direct)| {
             direct.clear();
             direct.extend((0..obs.k).map(|k| !field.is_unlit(pixel, k)));
