@@ -276,3 +276,16 @@ def test_reading_names_the_better_model_and_by_how_much():
     assert "(25x lower)" in reading((0.1, 0.002), (0.1, 0.05))
     assert "about equally well" in reading((0.05, 0.0410), (0.05, 0.0400))
     assert "no comparison" in reading((float("nan"), 0.01), (0.05, 0.04))
+
+
+def test_a_contact_sheet_made_beforehand_writes_the_same_inputs_png(
+    scene: nplps.synth.Scene, result: nplps.Reconstruction, tmp_path: Path
+) -> None:
+    # The command line makes the sheet, then frees the images before saving (issue 23).
+    sheet = nplps.export.ContactSheet.of(scene.images)
+    assert sheet.pixels.dtype == np.uint8 and sheet.pixels.ndim == 3 and sheet.pixels.shape[2] == 3
+    direct = result.save(tmp_path / "a", inputs=scene.images)["inputs"].read_bytes()
+    made = result.save(tmp_path / "b", inputs=sheet)["inputs"].read_bytes()
+    assert made == direct
+    # Without inputs there is no inputs.png.
+    assert "inputs" not in result.save(tmp_path / "c")

@@ -681,7 +681,7 @@ class Reconstruction:
         overwrite: bool = False,
         formats: Iterable[str] = (),
         report: bool = False,
-        inputs: np.ndarray | None = None,
+        inputs: np.ndarray | export.ContactSheet | None = None,
         options: dict[str, Any] | None = None,
         held_out: tuple[Sequence[HeldOutScores], Sequence[HeldOutScores] | None] | None = None,
         normal_map: str = "opengl",
@@ -746,7 +746,10 @@ class Reconstruction:
             (:func:`nplps.report.write_report`).
         inputs : numpy.ndarray, optional
             The (k, H, W[, 3]) images the result was made from; a contact sheet of them
-            (``inputs.png``) is written for the report.
+            (``inputs.png``) is written for the report. Or that contact sheet itself, made
+            beforehand by :func:`nplps.export.contact_sheet` (an (h, w, 3) ``uint8`` array wrapped
+            in :class:`nplps.export.ContactSheet`), so that the images can be freed before saving
+            (the command line does this: at 100 MP the 16-bit stack is 3.3 GB).
         options : dict, optional
             The options of the run (JSON-ready values; arrays are recorded by their shape),
             stored in ``summary.json`` under ``"options"`` and listed by the report.
