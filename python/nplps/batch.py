@@ -687,6 +687,7 @@ def _process(
     """
     from . import pipeline
     from .api import reconstruct
+    from .export import ContactSheet
     from .raw import RawOptions, is_raw, stack_levels
 
     save_options = save_options or {}
@@ -731,6 +732,10 @@ def _process(
                 prepared.images, prepared.rig, depth=depth, mask=prepared.mask, valid=prepared.valid, **options
             )
         caught = [str(w.message) for w in records]
+        # inputs.png is made now and the images go before the save, whose peak they would raise
+        # (as in nplps reconstruct).
+        sheet = ContactSheet.of(prepared.images)
+        del prepared
         with target:
             recorded = {"capture": os.fspath(folder), "rig": source.rig_source, "depth": depth}
             recorded.update(mask=_described(source.mask), ambient=_described(source.ambient))
@@ -740,7 +745,7 @@ def _process(
             recorded.update({k: v for k, v in save_options.items() if k == "formats"})
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
-            result.save(target, report=report, inputs=prepared.images, options=recorded, **save_options)
+            result.save(target, report=report, inputs=sheet, options=recorded, **save_options)
         s = result.summary()
     except Exception as e:
         return dataclasses.replace(
