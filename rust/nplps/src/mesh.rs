@@ -876,7 +876,6 @@ mod tests {
 
     #[test]
     fn camera_positions_are_those_of_vertices() {
-        use crate::rig::Camera;
         let (h, w) = (5, 7);
         let depth: Vec<f64> = (0..(h + 1) * (w + 1))
             .map(|i| {
@@ -887,16 +886,7 @@ mod tests {
                 }
             })
             .collect();
-        for camera in [
-            Camera::Pinhole {
-                k: [[20.0, 0.3, 4.5], [0.0, 21.0, 3.2], [0.0, 0.0, 1.0]],
-                distortion: [-0.2, 0.05, 0.001, -0.002, 0.01],
-            },
-            Camera::Orthographic {
-                pixel_size: [0.3, 0.25],
-                origin: [-1.0, 2.0],
-            },
-        ] {
+        for camera in crate::rig::test_cameras() {
             let grid = crate::vertices(&camera, h, w, &depth).unwrap();
             let positions = Positions::Camera {
                 camera: &camera,

@@ -1210,6 +1210,19 @@ mod tests {
         Problem::new(stack, rig, Some(&scene.mask), InitialDepth::Map(depth)).unwrap()
     }
 
+    /// The facets' normals of the problem's starting mesh (the true one in these tests, as the
+    /// renderer's).
+    fn true_normals(problem: &Problem<'_>) -> Vec<[f32; 3]> {
+        (0..problem.grid.n_facets())
+            .map(|f| {
+                let q = problem
+                    .geometry
+                    .facet_corners(&problem.grid, f, &problem.u0);
+                crate::geometry::quad_normal(&q).map(|x| x as f32)
+            })
+            .collect()
+    }
+
     /// `lights` with the point lights' intensities off by up to 35 % (a fixed pattern).
     fn off_intensities(lights: &[Light]) -> Vec<Light> {
         let mut lights = lights.to_vec();
@@ -1269,14 +1282,7 @@ mod tests {
             .collect();
         let problem = scene_problem(&scene, &images);
         // The facets' normals: those of the true mesh (as the renderer's).
-        let normals: Vec<[f32; 3]> = (0..problem.grid.n_facets())
-            .map(|f| {
-                let q = problem
-                    .geometry
-                    .facet_corners(&problem.grid, f, &problem.u0);
-                crate::geometry::quad_normal(&q).map(|x| x as f32)
-            })
-            .collect();
+        let normals = true_normals(&problem);
         let ratio = |ls: &[Light]| -> Vec<f64> {
             let v: Vec<f64> = ls.iter().map(|l| l.intensity()[0]).collect();
             let g = (v.iter().map(|x| x.ln()).sum::<f64>() / v.len() as f64).exp();
@@ -1334,14 +1340,7 @@ mod tests {
             }
             let lights = off_intensities(&scene.rig.lights);
             let layout = Layout::new(&lights, &Refine::NONE.with_intensity(true));
-            let normals: Vec<[f32; 3]> = (0..problem.grid.n_facets())
-                .map(|f| {
-                    let q = problem
-                        .geometry
-                        .facet_corners(&problem.grid, f, &problem.u0);
-                    crate::geometry::quad_normal(&q).map(|x| x as f32)
-                })
-                .collect();
+            let normals = true_normals(&problem);
             for lobe in [None, Some(Lobe::new(0.3, 1.5))] {
                 let settings = FitSettings {
                     lobe,

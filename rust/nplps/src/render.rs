@@ -600,16 +600,7 @@ mod forward_tests {
         // The direct rays of `positions` against the grid-and-geometry path they replaced, bit
         // for bit, on a distorted pinhole camera and an orthographic one, with unknown depths.
         let (h, w) = (7, 9);
-        let cameras = [
-            Camera::Pinhole {
-                k: [[20.0, 0.3, 4.5], [0.0, 21.0, 3.2], [0.0, 0.0, 1.0]],
-                distortion: [-0.2, 0.05, 0.001, -0.002, 0.01],
-            },
-            Camera::Orthographic {
-                pixel_size: [0.3, 0.25],
-                origin: [-1.0, 2.0],
-            },
-        ];
+        let cameras = crate::rig::test_cameras();
         let mut depth: Vec<f64> = (0..(h + 1) * (w + 1))
             .map(|v| 50.0 + (v as f64).sin())
             .collect();

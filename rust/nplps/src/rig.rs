@@ -383,6 +383,22 @@ impl Rig {
     }
 }
 
+/// Two cameras for tests that must hold on both kinds: a pinhole camera with skew and every
+/// distortion coefficient, and an orthographic one with unequal pixel sides.
+#[cfg(test)]
+pub(crate) fn test_cameras() -> [Camera; 2] {
+    [
+        Camera::Pinhole {
+            k: [[20.0, 0.3, 4.5], [0.0, 21.0, 3.2], [0.0, 0.0, 1.0]],
+            distortion: [-0.2, 0.05, 0.001, -0.002, 0.01],
+        },
+        Camera::Orthographic {
+            pixel_size: [0.3, 0.25],
+            origin: [-1.0, 2.0],
+        },
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
