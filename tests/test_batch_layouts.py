@@ -289,3 +289,79 @@ def test_raw_options_reach_the_decoder(tmp_path: Path, scheduler: str, capsys: p
     assert "capture dng: ok" in printed and "from other option white_balance" in printed
     assert "capture png: skipped" in printed
     assert json.loads((out / "dng" / "summary.json").read_text())["options"]["white_balance"] == "camera"
+
+
+def test_mesh_and_normal_map_options_write_what_reconstruct_writes(
+    tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    nplps.make_scene("bumps", n=24, seed=8).save(tmp_path / "caps" / "obj")
+    folder = tmp_path / "caps" / "obj"
+    flags = ["--opengl", "--formats", "stl,points", "--normal-map-bits", "8", "--obj", "--no-report", "--threads", "1"]
+    out = tmp_path / "out"
+    common = ["batch", str(folder), "--rig", str(folder / "rig.json"), "--depth", "200", "--out", str(out)]
+    common += ["--scheduler", scheduler]
+    assert main([*common, *flags]) == 0, capsys.readouterr()
+    _reconstruct(folder, tmp_path / "single", *flags)
+    got, want = out / "obj", tmp_path / "single"
+    assert {"mesh.stl", "points.ply", "mesh.obj", "mesh.ply"} <= _files(got)
+    assert _files(got) == _files(want)
+    for name in ("mesh.ply", "mesh.stl", "points.ply", "mesh.obj", "normals.png", "depth.npy"):
+        assert (got / name).read_bytes() == (want / name).read_bytes(), name
+    summary = json.loads((got / "summary.json").read_text())
+    assert summary["normal_map"]["bits"] == 8
+    assert summary["options"]["opengl"] is True and summary["options"]["formats"] == ["stl", "points", "obj"]
+    # The OpenGL frame: y up, so the meshes differ from the camera frame's.
+    _reconstruct(folder, tmp_path / "camera", "--formats", "stl", "--no-report", "--threads", "1")
+    assert (tmp_path / "camera" / "mesh.stl").read_bytes() != (got / "mesh.stl").read_bytes()
+
+    # Resumed with other output options: redone, naming the option; the same ones: skipped.
+    capsys.readouterr()
+    assert main([*common, *[f for f in flags if f not in ("--obj",)], "--formats", "stl,points,obj"]) == 0
+    assert "skipped (complete result" in capsys.readouterr().out  # --obj is --formats obj
+    assert main([*common, "--opengl", "--formats", "stl,points,obj", "--no-report", "--threads", "1"]) == 0
+    assert "from other option normal_map_bits" in capsys.readouterr().out
+    assert json.loads((got / "summary.json").read_text())["normal_map"]["bits"] == 16
+    api = {"pattern": str(folder), "rig": folder / "rig.json", "out": tmp_path / "api", "report": False}
+    assert [i.status for i in batch.run(**api, depth=200.0, scheduler=scheduler)] == ["ok"]
+    items = batch.run(**api, depth=200.0, scheduler=scheduler, opengl=False, normal_map_bits=16)
+    assert [i.status for i in items] == ["skipped"]  # the defaults given are the same as left out
+    with pytest.raises(nplps.InputError, match="normal_map_bits must be 8 or 16"):
+        batch.run(**api, depth=200.0, normal_map_bits=12)
+    with pytest.raises(nplps.InputError, match="opengl must be True or False"):
+        batch.run(**api, depth=200.0, opengl="yes")
+
+
+def test_exposures_auto_reads_each_capture_s_raw_metadata(
+    tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("rawpy")
+    from test_raw import BLACK, superpixels, write_dng
+
+    # A DNG capture whose files say two shutter times (1/50 s and 1/100 s), beside a PNG capture,
+    # which has no exposure metadata. The batch must divide by what each capture's files say, as
+    # nplps reconstruct --exposures auto does.
+    scene = nplps.make_scene("bumps", n=32, seed=9)
+    scene.save(tmp_path / "png" / "obj")
+    dng = tmp_path / "caps" / "dng"
+    dng.mkdir(parents=True)
+    for name in ("rig.json", "mask.png"):
+        (dng / name).write_bytes((tmp_path / "png" / "obj" / name).read_bytes())
+    for i, image in enumerate(sorted((tmp_path / "png" / "obj").glob("image_*.png"))):
+        q = np.rint(read_image(image).astype(np.float64) / 5).astype(np.int64)
+        shutter = (1, 100) if i % 3 else (1, 50)
+        write_dng(dng / f"image_{i:02d}.dng", (BLACK + superpixels(q)).astype(np.uint16), shutter=shutter)
+    scene.save(tmp_path / "caps" / "png")
+    out = tmp_path / "out"
+    common = ["batch", str(tmp_path / "caps" / "*"), "--depth", "200", "--out", str(out), "--scheduler", scheduler]
+    common += ["--no-report", "--gray", "--raw-half-size", "--exposures", "auto"]
+    assert main(common) == 1
+    printed = capsys.readouterr().out
+    assert "capture dng: ok" in printed
+    assert "capture png: failed: " in printed and "is not a camera RAW file" in printed
+    _reconstruct(dng, tmp_path / "single", "--raw-half-size", "--gray", "--no-report", "--exposures", "auto")
+    for name in ("depth.npy", "normals.npy", "albedo.png"):
+        assert (out / "dng" / name).read_bytes() == (tmp_path / "single" / name).read_bytes(), name
+    recorded = json.loads((out / "dng" / "summary.json").read_text())["options"]["exposures"]
+    assert recorded == [1.0 if i % 3 == 0 else 0.5 for i in range(scene.images.shape[0])]
+    with pytest.raises(nplps.InputError, match="exposures must be numbers, one per light, or 'auto'"):
+        batch.run(str(tmp_path / "caps" / "*"), None, out, depth=200.0, exposures="metadata")

@@ -70,8 +70,15 @@ PREPARE_OPTIONS = ("color", "saturation", "srgb", "exposures", "vignetting", "fl
 RAW_OPTIONS: dict[str, Any] = {"white_balance": "none", "half_size": False}
 
 #: Keyword options of :meth:`nplps.Reconstruction.save` (what each result directory holds), with their
-#: defaults: as ``nplps reconstruct --normal-map / --exr (formats=["exr"]) / --units``.
-SAVE_OPTIONS: dict[str, Any] = {"formats": [], "normal_map": "opengl", "units": None}
+#: defaults: as ``nplps reconstruct --opengl / --formats (--exr, --obj) / --normal-map /
+#: --normal-map-bits / --units``.
+SAVE_OPTIONS: dict[str, Any] = {
+    "formats": [],
+    "normal_map": "opengl",
+    "units": None,
+    "opengl": False,
+    "normal_map_bits": 16,
+}
 
 BatchStatus = Literal["ok", "failed", "skipped"]
 
@@ -383,8 +390,10 @@ def _without_defaults(options: dict[str, Any]) -> dict[str, Any]:
     options = dict(options)
     if "formats" in options:
         options["formats"] = check_formats(options["formats"] or ())
-    if "normal_map" in options:
-        check_normal_map(options["normal_map"])
+    if "normal_map" in options or "normal_map_bits" in options:
+        check_normal_map(options.get("normal_map", "opengl"), options.get("normal_map_bits", 16))
+    if "opengl" in options and not isinstance(options["opengl"], bool):
+        raise InputError(f"opengl must be True or False, got {options['opengl']!r}")
     if "units" in options and options["units"] is not None and not str(options["units"]).strip():
         raise InputError("units must not be empty (e.g. units='mm')")
     raw = {k: options[k] for k in RAW_OPTIONS if k in options}
@@ -468,7 +477,10 @@ def run(
         ``white_balance``, ``half_size``, as :class:`nplps.raw.RawOptions`; for the captures'
         RAW files, whose default thresholds are then one sensor level, as in ``nplps
         reconstruct``) and of :meth:`nplps.Reconstruction.save` (:data:`SAVE_OPTIONS`:
-        ``formats``, ``normal_map``, ``units``). All of them are part of each capture's
+        ``formats``, ``normal_map``, ``units``, ``opengl``, ``normal_map_bits``).
+        ``exposures="auto"`` reads each capture's exposures from its camera RAW files' metadata
+        (shutter time x ISO relative to its first image, :func:`nplps.raw.exposures_from_metadata`;
+        a capture without RAW files fails). All of them are part of each capture's
         fingerprint: a result made with other ones (the output options too) is redone, not
         skipped; options at their defaults are the same as options left out.
 
@@ -507,6 +519,11 @@ def run(
     if unknown:
         raise TypeError(f"run() got unknown option(s): {', '.join(unknown)}")
     options = _without_defaults(options)
+    exposures = options.get("exposures")
+    if isinstance(exposures, str):
+        if exposures.strip().lower() != "auto":
+            raise InputError(f"exposures must be numbers, one per light, or 'auto', got {exposures!r}")
+        options["exposures"] = "auto"
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError as e:
@@ -712,6 +729,10 @@ def _process(
             )
         if prepare_options.get("vignetting") == "layout":
             prepare_options = dict(prepare_options, vignetting=source.vignetting)
+        if isinstance(prepare_options.get("exposures"), str):  # "auto": this capture's RAW metadata
+            from .raw import exposures_from_metadata
+
+            prepare_options = dict(prepare_options, exposures=exposures_from_metadata(files))
         images = [_raw_file(os.fspath(f), decoding) for f in files]
         if prepare_options.get("flat") is not None:
             prepare_options = dict(prepare_options, flat=_raw_file(prepare_options["flat"], decoding))
@@ -742,7 +763,7 @@ def _process(
             recorded.update(prepare_options, **options)
             if any(is_raw(f) for f in images):  # how they were decoded (the defaults too)
                 recorded.update(white_balance=decoding.white_balance, half_size=decoding.half_size)
-            recorded.update({k: v for k, v in save_options.items() if k == "formats"})
+            recorded.update({k: v for k, v in save_options.items() if k in ("formats", "opengl")})
             if prepare_options.get("exposures") is not None:  # one per light: kept whole, not as a shape
                 recorded["exposures"] = [float(e) for e in prepare_options["exposures"]]
             result.save(target, report=report, inputs=sheet, options=recorded, **save_options)

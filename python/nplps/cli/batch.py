@@ -26,7 +26,9 @@ that layout's loader instead (its images, calibration, mask and ambient image; n
 vignetting by default for near_ps and hehe12, as in 'nplps reconstruct'). Each capture is one task on a local
 cluster (--workers processes) or on a running Dask scheduler (--scheduler ADDRESS), and its
 result goes to DIR/<capture name>/: the files 'nplps reconstruct' writes with the same options
-(--normal-map, --exr, --units; camera RAW images decoded as --raw-wb and --raw-half-size say).
+(--opengl, --formats, --normal-map, --normal-map-bits, --exr, --obj, --units; camera RAW images
+decoded as --raw-wb and --raw-half-size say; --exposures auto reads each capture's exposures
+from its RAW files' metadata).
 
 Resumable: a capture whose DIR/<name>/ holds a complete result made from the same images, rig
 and options (its nplps-manifest.json says so) is skipped; one made with other options (the
@@ -48,6 +50,7 @@ examples:
   nplps batch 'captures/*' --rig rig.json --depth 200 --scheduler tcp://10.0.0.5:8786 --out /shared/results
   nplps batch 'shots/*' --rig rig.json --depth 200 --normal-map directx --exr --units mm --out results
   nplps batch 'dng_shots/*' --rig rig_half.json --depth 200 --raw-half-size --raw-wb camera --out results
+  nplps batch 'bracketed/*' --rig rig.json --depth 200 --exposures auto --formats glb,stl --opengl --out results
   nplps batch 'LUCES/data/*' --capture luces --depth 100 --bin 4 --out luces-results
 """
 
@@ -220,7 +223,12 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
 
 def _exposures(text: str, rig: Any) -> Any:
-    """Parse ``--exposures``: one per light of ``rig`` (without one, each capture checks the count)."""
+    """Parse ``--exposures``: one per light of ``rig`` (without one, each capture checks the count).
+
+    ``auto`` stays ``"auto"``: each capture's exposures come from its RAW files' metadata.
+    """
+    if text.strip().lower() == "auto":
+        return "auto"
     return parse_exposures(text, len(text.split(",")) if rig is None else rig.n_lights)
 
 

@@ -26,11 +26,12 @@ class Option:
     #: The keyword of :func:`nplps.reconstruct`, :func:`nplps.pipeline.prepare` or
     #: :func:`nplps.batch.run` that the option's value is passed as.
     keyword: str
-    help: str
+    #: The help text (or a function making it when the parser is made).
+    help: str | Callable[[], str]
     type: Callable[[str], Any] | None = None
     default: Any = None
     metavar: str | None = None
-    choices: tuple[str, ...] | None = None
+    choices: tuple[Any, ...] | None = None
     #: A flag without a value (``store_true``).
     switch: bool = False
     #: ``"?"``: the value may be left out, and then it is `const`.
@@ -177,7 +178,8 @@ _OPTIONS = (
         "divide image i by Ei (exposure times, gains); auto: shutter time x ISO from camera RAW files, "
         "relative to the first image",
         metavar="E1,E2,...",
-        batch_help="divide image i of every capture by Ei (exposure times, gains)",
+        batch_help="divide image i of every capture by Ei (exposure times, gains); auto: each capture's "
+        "shutter time x ISO from its camera RAW files, relative to its first image",
     ),
     # camera RAW files
     Option(
@@ -292,6 +294,20 @@ _OPTIONS = (
     ),
     # output (what nplps reconstruct and nplps batch write: see OUTPUT)
     Option(
+        ("--opengl",),
+        "opengl",
+        "write meshes in the OpenGL frame (x right, y up, z towards the viewer)",
+        switch=True,
+    ),
+    Option(
+        ("--formats",),
+        "formats",
+        lambda: f"also write these formats, comma-separated: {_formats_help()}",
+        type=lambda text: _parse_formats(text),
+        default=[],
+        metavar="LIST",
+    ),
+    Option(
         ("--normal-map",),
         "normal_map",
         "convention of normals.png and normals.exr: opengl = x right, y up, z towards the viewer "
@@ -299,6 +315,14 @@ _OPTIONS = (
         "as is (y down, z forward); recorded in summary.json",
         choices=("opengl", "directx", "opencv"),
         default="opengl",
+    ),
+    Option(
+        ("--normal-map-bits",),
+        "normal_map_bits",
+        "bits per channel of normals.png (default 16: 0.0015° at most of quantisation, 8: 0.39°)",
+        type=int,
+        choices=(16, 8),
+        default=16,
     ),
     Option(
         ("--exr",),
@@ -309,6 +333,14 @@ _OPTIONS = (
         batch_help="also write depth.exr, normals.exr and albedo.exr for every capture (32-bit float; "
         'needs OpenEXR: pip install "nplps[exr]")',
         to_api=lambda exr: ["exr"] if exr else [],
+    ),
+    Option(
+        ("--obj",),
+        "formats",
+        "write mesh.obj whatever the size (by default only up to 4 million masked pixels: a 12 MP "
+        "result's OBJ file is 2.4 GB of text; the same as --formats obj)",
+        switch=True,
+        to_api=lambda obj: ["obj"] if obj else [],
     ),
     Option(
         ("--units",),
@@ -345,9 +377,11 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("light self-calibration", ("--refine-lights", "--light-prior-weight")),
 )
 
-#: The options of what a result directory holds (:meth:`nplps.Reconstruction.save`'s ``normal_map``,
-#: ``formats`` and ``units``), of ``nplps reconstruct`` and ``nplps batch``.
-OUTPUT = ("--normal-map", "--exr", "--units")
+#: The options of what a result directory holds (:meth:`nplps.Reconstruction.save`'s ``opengl``,
+#: ``formats``, ``normal_map``, ``normal_map_bits`` and ``units``), of ``nplps reconstruct`` and
+#: ``nplps batch``, in their order. ``--formats``, ``--exr`` and ``--obj`` add to one list of formats
+#: (:func:`api_options`).
+OUTPUT = ("--opengl", "--formats", "--normal-map", "--normal-map-bits", "--exr", "--obj", "--units")
 
 #: The options of the near-light solver only (not of the parallel-light baseline).
 NEAR_SOLVER = (
@@ -381,7 +415,8 @@ def add_options(parser: Any, flags: Sequence[str], *, batch: bool = False) -> No
             target = exclusive[1]
         else:
             exclusive = None
-        kwargs: dict[str, Any] = {"help": (o.batch_help if batch and o.batch_help else o.help)}
+        text = o.batch_help if batch and o.batch_help else o.help
+        kwargs: dict[str, Any] = {"help": text() if callable(text) else text}
         if o.switch:
             kwargs["action"] = "store_true"
         else:
@@ -399,10 +434,29 @@ def add_option_groups(parser: argparse.ArgumentParser) -> None:
 
 
 def api_options(args: argparse.Namespace, flags: Sequence[str]) -> dict[str, Any]:
-    """Return the values of the options `flags` by their API keywords (None for one not in `args`)."""
-    out = {}
+    """Return the values of the options `flags` by their API keywords (None for one not in `args`).
+
+    Options that become the same keyword with list values (``--formats``, ``--exr``, ``--obj``:
+    ``formats``) add to one list, in the order of `flags`, without repeats.
+    """
+    out: dict[str, Any] = {}
     for flag in flags:
         o = OPTIONS[flag]
         value = getattr(args, o.dest, None)
-        out[o.keyword] = o.to_api(value) if o.to_api is not None else value
+        value = o.to_api(value) if o.to_api is not None else value
+        if isinstance(value, list) and isinstance(out.get(o.keyword), list):
+            value = list(dict.fromkeys([*out[o.keyword], *value]))
+        out[o.keyword] = value
     return out
+
+
+def _parse_formats(text: str) -> list[str]:
+    from .outputs import parse_formats  # a usage error for an unknown name
+
+    return parse_formats(text)
+
+
+def _formats_help() -> str:
+    from ..export import formats_help  # the format registry (imported when a parser is made)
+
+    return formats_help()

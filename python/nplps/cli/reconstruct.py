@@ -24,8 +24,8 @@ from .inputs import (
     check_input_args,
     near_options,
 )
-from .options import add_options
-from .outputs import add_output_options, output_directory, parse_formats, writing
+from .options import OUTPUT, add_options, api_options
+from .outputs import add_output_options, output_directory, writing
 
 RECONSTRUCT_DESCRIPTION = f"""\
 Reconstruct a surface from k images taken under the k lights of a rig.
@@ -87,8 +87,6 @@ examples:
 
 def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     """Add the ``reconstruct`` command and its options to the subparsers ``sub``; return its parser."""
-    from ..export import formats_help  # the format registry (imported when the parser is made)
-
     p = sub.add_parser(
         "reconstruct",
         help="reconstruct a mesh, normals and albedo from images and a rig file",
@@ -98,34 +96,7 @@ def add_reconstruct_parser(sub: Any, formatter: Any) -> argparse.ArgumentParser:
     )
     add_input_options(p)
     add_output_options(p)
-    p.add_argument(
-        "--opengl",
-        action="store_true",
-        help="write meshes in the OpenGL frame (x right, y up, z towards the viewer)",
-    )
-    p.add_argument(
-        "--formats",
-        type=parse_formats,
-        default=[],
-        metavar="LIST",
-        help=f"also write these formats, comma-separated: {formats_help()}",
-    )
-    add_options(p, ("--normal-map",))
-    p.add_argument(
-        "--normal-map-bits",
-        type=int,
-        choices=(16, 8),
-        default=16,
-        help="bits per channel of normals.png (default 16: 0.0015° at most of quantisation, 8: 0.39°)",
-    )
-    add_options(p, ("--exr",))
-    p.add_argument(
-        "--obj",
-        action="store_true",
-        help="write mesh.obj whatever the size (by default only up to 4 million masked pixels: a 12 MP "
-        "result's OBJ file is 2.4 GB of text; the same as --formats obj)",
-    )
-    add_options(p, ("--units",))
+    add_options(p, OUTPUT)
     p.add_argument(
         "--no-report",
         dest="report",
@@ -146,10 +117,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..export import ContactSheet, check_formats
 
     check_input_args(args)
-    if args.exr and "exr" not in args.formats:
-        args.formats = [*args.formats, "exr"]
-    if getattr(args, "obj", False) and "obj" not in args.formats:
-        args.formats = [*args.formats, "obj"]
+    args.formats = api_options(args, ("--formats", "--exr", "--obj"))["formats"]  # one list
     check_formats(args.formats)  # the exr format without OpenEXR is refused before the images are read
     if args.units is not None and not args.units.strip():
         raise InputError("--units must not be empty (e.g. --units mm)")
