@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -141,6 +142,29 @@ def _reconstruct(folder: Path, out: Path, *extra: str) -> None:
     assert main([*argv, "--depth", "200", "--out", str(out), "--quiet", *extra]) == 0
 
 
+def _dng_capture(tmp_path: Path, seed: int, shutters: tuple[tuple[int, int], ...] = ((1, 125),)) -> tuple[Any, Path]:
+    """Make ``caps/dng`` (DNG files) and ``caps/png`` (PNG files) of one scene; return the scene and ``caps/dng``.
+
+    The DNGs' half-size decoding is the scene's images quantised to the 14-bit-like sensor of
+    tests/test_raw.py (decoded value 5 q); image i says the shutter time ``shutters[i % len]``.
+    """
+    pytest.importorskip("rawpy")
+    from test_raw import BLACK, superpixels, write_dng
+
+    scene = nplps.make_scene("bumps", n=32, seed=seed)
+    scene.save(tmp_path / "png" / "obj")
+    dng = tmp_path / "caps" / "dng"
+    dng.mkdir(parents=True)
+    for name in ("rig.json", "mask.png"):
+        (dng / name).write_bytes((tmp_path / "png" / "obj" / name).read_bytes())
+    for i, image in enumerate(sorted((tmp_path / "png" / "obj").glob("image_*.png"))):
+        q = np.rint(read_image(image).astype(np.float64) / 5).astype(np.int64)
+        shutter = shutters[i % len(shutters)]
+        write_dng(dng / f"image_{i:02d}.dng", (BLACK + superpixels(q)).astype(np.uint16), shutter=shutter)
+    scene.save(tmp_path / "caps" / "png")
+    return scene, dng
+
+
 def _files(out: Path) -> set[str]:
     return {p.name for p in out.iterdir()}
 
@@ -249,21 +273,8 @@ def test_exr_without_openexr_is_refused_first(
 
 
 def test_raw_options_reach_the_decoder(tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("rawpy")
-    from test_raw import BLACK, superpixels, write_dng
-
-    # A DNG capture whose half-size decoding is the scene's images (quantised to the 14-bit-like
-    # sensor of tests/test_raw.py: decoded value 5 q), beside a PNG capture.
-    scene = nplps.make_scene("bumps", n=32, seed=7)
-    scene.save(tmp_path / "png" / "obj")
-    dng = tmp_path / "caps" / "dng"
-    dng.mkdir(parents=True)
-    for name in ("rig.json", "mask.png"):
-        (dng / name).write_bytes((tmp_path / "png" / "obj" / name).read_bytes())
-    for i, image in enumerate(sorted((tmp_path / "png" / "obj").glob("image_*.png"))):
-        q = np.rint(read_image(image).astype(np.float64) / 5).astype(np.int64)
-        write_dng(dng / f"image_{i:02d}.dng", (BLACK + superpixels(q)).astype(np.uint16))
-    scene.save(tmp_path / "caps" / "png")
+    # A DNG capture whose half-size decoding is the scene's images, beside a PNG capture.
+    _, dng = _dng_capture(tmp_path, seed=7)
     out = tmp_path / "out"
     common = ["batch", str(tmp_path / "caps" / "*"), "--depth", "200", "--out", str(out), "--scheduler", scheduler]
     common += ["--no-report", "--gray"]
@@ -334,23 +345,10 @@ def test_mesh_and_normal_map_options_write_what_reconstruct_writes(
 def test_exposures_auto_reads_each_capture_s_raw_metadata(
     tmp_path: Path, scheduler: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    pytest.importorskip("rawpy")
-    from test_raw import BLACK, superpixels, write_dng
-
     # A DNG capture whose files say two shutter times (1/50 s and 1/100 s), beside a PNG capture,
     # which has no exposure metadata. The batch must divide by what each capture's files say, as
     # nplps reconstruct --exposures auto does.
-    scene = nplps.make_scene("bumps", n=32, seed=9)
-    scene.save(tmp_path / "png" / "obj")
-    dng = tmp_path / "caps" / "dng"
-    dng.mkdir(parents=True)
-    for name in ("rig.json", "mask.png"):
-        (dng / name).write_bytes((tmp_path / "png" / "obj" / name).read_bytes())
-    for i, image in enumerate(sorted((tmp_path / "png" / "obj").glob("image_*.png"))):
-        q = np.rint(read_image(image).astype(np.float64) / 5).astype(np.int64)
-        shutter = (1, 100) if i % 3 else (1, 50)
-        write_dng(dng / f"image_{i:02d}.dng", (BLACK + superpixels(q)).astype(np.uint16), shutter=shutter)
-    scene.save(tmp_path / "caps" / "png")
+    scene, dng = _dng_capture(tmp_path, seed=9, shutters=((1, 50), (1, 100), (1, 100)))
     out = tmp_path / "out"
     common = ["batch", str(tmp_path / "caps" / "*"), "--depth", "200", "--out", str(out), "--scheduler", scheduler]
     common += ["--no-report", "--gray", "--raw-half-size", "--exposures", "auto"]
