@@ -218,11 +218,34 @@ impl Geometry {
     /// Position of unknown `i` at depth `z`.
     #[inline]
     pub fn position_at_depth(&self, i: usize, z: f64) -> [f64; 3] {
-        let [x, y] = self.base.get(i);
+        self.position_from_base(self.base.get(i), z)
+    }
+
+    /// The position at depth `z` of the unknown whose fixed `(x, y)` (orthographic) or ray
+    /// `(x, y, 1)` (pinhole) is `base` (see [`Geometry::base`]).
+    #[inline(always)]
+    pub(crate) fn position_from_base(&self, [x, y]: [f64; 2], z: f64) -> [f64; 3] {
         if self.perspective {
             [x * z, y * z, z]
         } else {
             [x, y, z]
+        }
+    }
+
+    /// The fixed `(x, y)` (orthographic) or the ray's `(x, y)` at `z = 1` (pinhole) of unknown
+    /// `i`.
+    #[inline]
+    pub(crate) fn base(&self, i: usize) -> [f64; 2] {
+        self.base.get(i)
+    }
+
+    /// [`Geometry::base`] of unknown `i` when the caller knows its grid vertex `(row, col)`:
+    /// the same values, without the division that finds the vertex of an unknown.
+    #[inline(always)]
+    pub(crate) fn base_at_vertex(&self, i: usize, row: usize, col: usize) -> [f64; 2] {
+        match &self.base {
+            Base::Separable { xs, ys, .. } => [xs[col], ys[row]],
+            Base::Table(t) => t[i],
         }
     }
 
@@ -242,7 +265,17 @@ impl Geometry {
         // (Array literals rather than `map`: its calls, returning arrays through memory, were
         // not inlined into the local step.)
         let at = |j: usize| self.base.get(ids[j] as usize);
-        let base = [at(0), at(1), at(2), at(3)];
+        self.plane_target_at([at(0), at(1), at(2), at(3)], n, centre)
+    }
+
+    /// [`Geometry::plane_target`] of the corners whose [`Geometry::base`] values are `base`.
+    #[inline(always)]
+    pub(crate) fn plane_target_at(
+        &self,
+        base: [[f64; 2]; 4],
+        n: [f64; 3],
+        centre: [f64; 3],
+    ) -> [f64; 4] {
         let raw: [f64; 4] = if self.perspective {
             let s = |[x, y]: [f64; 2]| {
                 // `max(t, NZ_MIN |r|)` without the square root where `t` clearly exceeds the
