@@ -300,6 +300,71 @@ impl Geometry {
     }
 }
 
+impl Geometry {
+    /// [`Geometry::plane_target_at`] of `N` facets at once, one lane each (corner bases
+    /// `base`, unit normals `n` as their 3 components over the lanes, centres `centre`): per
+    /// lane the same operations in the same order, so the same bits, written as plain loops
+    /// over the lanes for the local step's vectorised kernels. Lanes whose log-ratios leave the
+    /// series' range take the logarithms, as [`log_ratios`] does.
+    #[inline(always)]
+    pub(crate) fn plane_targets<const N: usize>(
+        &self,
+        base: &[[[f64; 2]; 4]; N],
+        n: &[[f64; N]; 3],
+        centre: &[[f64; 3]; N],
+    ) -> [[f64; 4]; N] {
+        let mut raw = [[0.0f64; N]; 4];
+        if self.perspective {
+            let mut s = [[0.0f64; N]; 4];
+            for (j, s) in s.iter_mut().enumerate() {
+                for l in 0..N {
+                    let [x, y] = base[l][j];
+                    let t = -(n[0][l] * x + n[1][l] * y + n[2][l]);
+                    let r2 = x * x + y * y + 1.0;
+                    let clear = t > 0.0 && t * t >= NZ_MIN_SQ_SAFE * r2;
+                    let bound = t.max(NZ_MIN * r2.sqrt());
+                    s[l] = if clear { t } else { bound };
+                }
+            }
+            let mut series = [true; N];
+            for l in 0..N {
+                let inv = 1.0 / s[0][l];
+                for j in 1..4 {
+                    let x = (s[j][l] - s[0][l]) * inv;
+                    series[l] &= x.abs() <= LN1P_SERIES_MAX;
+                    raw[j][l] = -ln1p_series(x);
+                }
+            }
+            for l in 0..N {
+                if !series[l] {
+                    for j in 0..4 {
+                        raw[j][l] = -s[j][l].ln();
+                    }
+                }
+            }
+        } else {
+            for (j, raw) in raw.iter_mut().enumerate() {
+                for l in 0..N {
+                    let [x, y] = base[l][j];
+                    let nz = n[2][l].min(-NZ_MIN);
+                    raw[l] = -(n[0][l] * (x - centre[l][0]) + n[1][l] * (y - centre[l][1])) / nz;
+                }
+            }
+        }
+        let mut out = [[0.0f64; 4]; N];
+        for (l, out) in out.iter_mut().enumerate() {
+            let mean = 0.25 * (raw[0][l] + raw[1][l] + raw[2][l] + raw[3][l]);
+            *out = [
+                raw[0][l] - mean,
+                raw[1][l] - mean,
+                raw[2][l] - mean,
+                raw[3][l] - mean,
+            ];
+        }
+        out
+    }
+}
+
 /// Largest `|x|` for which [`ln1p_series`] is used (`2^-7`: its first omitted term, `x^10 / 10`,
 /// is below `1e-22`).
 const LN1P_SERIES_MAX: f64 = 1.0 / 128.0;
