@@ -649,8 +649,10 @@ simd_dispatch! {
 /// [`accumulate_lanes`]: the exact squared residuals of the fits `fits` (the operations of
 /// [`residual_lanes`]), and for the facets with a trust value (`solved`) the trust's residual
 /// `e = I - r . g`, leverage `h = r . T^-1 r` and leave-one-out residual `e / (1 - h)` (the
-/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` facet
-/// after facet. Returns per lane the fit's squared residual, the trust's, the sum of the finite
+/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` batch
+/// after batch, the lanes' terms summed in pairs ([`lane_total`]: the per-light sums differ
+/// from the scalar code's facet-after-facet order in the last bits, as they do with the order
+/// of the parallel reduction; the per-facet values are the scalar code's bits). Returns per lane the fit's squared residual, the trust's, the sum of the finite
 /// `|e / (1 - h)|` and their count.
 #[inline(always)]
 fn final_residuals(
@@ -694,22 +696,35 @@ fn final_residuals(
         let h: [f64; LANES] =
             std::array::from_fn(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
         let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
+        // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
+        // non-negative terms changes no bit); the light's terms of the lanes are summed in pairs
+        // and then added to its sums (no chain of 8 dependent additions per light).
+        let mut add = [[0.0f64; LANES]; 4];
         for l in 0..LANES {
-            if !(ok[l] && solved.active[l]) {
-                continue;
-            }
-            trust_sse[l] += e[l] * e[l];
-            if loo[l].is_finite() {
-                loo_sum[l] += loo[l].abs();
-                loo_count[l] += 1.0;
-                sum[1] += loo[l] * loo[l];
-            }
-            sum[0] += e[l] * e[l];
-            sum[2] += i[l];
-            sum[3] += 1.0;
+            let used = ok[l] && solved.active[l];
+            let finite = used && loo[l].is_finite();
+            let ee = e[l] * e[l];
+            trust_sse[l] += if used { ee } else { 0.0 };
+            loo_sum[l] += if finite { loo[l].abs() } else { 0.0 };
+            loo_count[l] += if finite { 1.0 } else { 0.0 };
+            add[0][l] = if used { ee } else { 0.0 };
+            add[1][l] = if finite { loo[l] * loo[l] } else { 0.0 };
+            add[2][l] = if used { i[l] } else { 0.0 };
+            add[3][l] = if used { 1.0 } else { 0.0 };
+        }
+        for (sum, add) in sum.iter_mut().zip(&add) {
+            *sum += lane_total(add);
         }
     }
     [sse, trust_sse, loo_sum, loo_count]
+}
+
+/// The sum of the [`LANES`] values `a`, in pairs: `((a0 + a1) + (a2 + a3)) + ((a4 + a5) +
+/// (a6 + a7))`.
+#[inline(always)]
+fn lane_total(a: &[f64; LANES]) -> f64 {
+    let pairs: [f64; 4] = std::array::from_fn(|j| a[2 * j] + a[2 * j + 1]);
+    (pairs[0] + pairs[1]) + (pairs[2] + pairs[3])
 }
 
 impl LocalStep<'_> {
