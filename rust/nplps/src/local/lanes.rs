@@ -1,8 +1,11 @@
 //! The vectorized local step: the grey, unit-weight normal equations and residuals of
 //! [`LANES`] facets at once, one SIMD lane per facet, with the lane form of the light model
 //! (`LaneLight`). Per lane the sums are those of the scalar code (`Facet::accumulate_grey`,
-//! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit.
-//! The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
+//! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit;
+//! so are the solves of the 3 x 3 systems, the normals and the plane targets (`solve_lanes`,
+//! nalgebra's closed-form inverse written out per lane, `Geometry::plane_targets`), which run in
+//! the lanes too, right after the sums. A batch of neighbours in one image row takes its corners
+//! from two grid rows (`LocalStep::batch_corners`). The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
 //! has it (`simd_dispatch!`, its `wide` form): the same operations per lane, so the same bits.
 
 use nalgebra::{Matrix3, Vector3};
