@@ -218,11 +218,34 @@ impl Geometry {
     /// Position of unknown `i` at depth `z`.
     #[inline]
     pub fn position_at_depth(&self, i: usize, z: f64) -> [f64; 3] {
-        let [x, y] = self.base.get(i);
+        self.position_from_base(self.base.get(i), z)
+    }
+
+    /// The position at depth `z` of the unknown whose fixed `(x, y)` (orthographic) or ray
+    /// `(x, y, 1)` (pinhole) is `base` (see [`Geometry::base`]).
+    #[inline(always)]
+    pub(crate) fn position_from_base(&self, [x, y]: [f64; 2], z: f64) -> [f64; 3] {
         if self.perspective {
             [x * z, y * z, z]
         } else {
             [x, y, z]
+        }
+    }
+
+    /// The fixed `(x, y)` (orthographic) or the ray's `(x, y)` at `z = 1` (pinhole) of unknown
+    /// `i`.
+    #[inline]
+    pub(crate) fn base(&self, i: usize) -> [f64; 2] {
+        self.base.get(i)
+    }
+
+    /// [`Geometry::base`] of unknown `i` when the caller knows its grid vertex `(row, col)`:
+    /// the same values, without the division that finds the vertex of an unknown.
+    #[inline(always)]
+    pub(crate) fn base_at_vertex(&self, i: usize, row: usize, col: usize) -> [f64; 2] {
+        match &self.base {
+            Base::Separable { xs, ys, .. } => [xs[col], ys[row]],
+            Base::Table(t) => t[i],
         }
     }
 
@@ -242,7 +265,17 @@ impl Geometry {
         // (Array literals rather than `map`: its calls, returning arrays through memory, were
         // not inlined into the local step.)
         let at = |j: usize| self.base.get(ids[j] as usize);
-        let base = [at(0), at(1), at(2), at(3)];
+        self.plane_target_at([at(0), at(1), at(2), at(3)], n, centre)
+    }
+
+    /// [`Geometry::plane_target`] of the corners whose [`Geometry::base`] values are `base`.
+    #[inline(always)]
+    pub(crate) fn plane_target_at(
+        &self,
+        base: [[f64; 2]; 4],
+        n: [f64; 3],
+        centre: [f64; 3],
+    ) -> [f64; 4] {
         let raw: [f64; 4] = if self.perspective {
             let s = |[x, y]: [f64; 2]| {
                 // `max(t, NZ_MIN |r|)` without the square root where `t` clearly exceeds the
@@ -264,6 +297,71 @@ impl Geometry {
         };
         let mean = 0.25 * (raw[0] + raw[1] + raw[2] + raw[3]);
         [raw[0] - mean, raw[1] - mean, raw[2] - mean, raw[3] - mean]
+    }
+}
+
+impl Geometry {
+    /// [`Geometry::plane_target_at`] of `N` facets at once, one lane each (corner bases
+    /// `base`, unit normals `n` as their 3 components over the lanes, centres `centre`): per
+    /// lane the same operations in the same order, so the same bits, written as plain loops
+    /// over the lanes for the local step's vectorised kernels. Lanes whose log-ratios leave the
+    /// series' range take the logarithms, as [`log_ratios`] does.
+    #[inline(always)]
+    pub(crate) fn plane_targets<const N: usize>(
+        &self,
+        base: &[[[f64; 2]; 4]; N],
+        n: &[[f64; N]; 3],
+        centre: &[[f64; 3]; N],
+    ) -> [[f64; 4]; N] {
+        let mut raw = [[0.0f64; N]; 4];
+        if self.perspective {
+            let mut s = [[0.0f64; N]; 4];
+            for (j, s) in s.iter_mut().enumerate() {
+                for l in 0..N {
+                    let [x, y] = base[l][j];
+                    let t = -(n[0][l] * x + n[1][l] * y + n[2][l]);
+                    let r2 = x * x + y * y + 1.0;
+                    let clear = t > 0.0 && t * t >= NZ_MIN_SQ_SAFE * r2;
+                    let bound = t.max(NZ_MIN * r2.sqrt());
+                    s[l] = if clear { t } else { bound };
+                }
+            }
+            let mut series = [true; N];
+            for l in 0..N {
+                let inv = 1.0 / s[0][l];
+                for j in 1..4 {
+                    let x = (s[j][l] - s[0][l]) * inv;
+                    series[l] &= x.abs() <= LN1P_SERIES_MAX;
+                    raw[j][l] = -ln1p_series(x);
+                }
+            }
+            for l in 0..N {
+                if !series[l] {
+                    for j in 0..4 {
+                        raw[j][l] = -s[j][l].ln();
+                    }
+                }
+            }
+        } else {
+            for (j, raw) in raw.iter_mut().enumerate() {
+                for l in 0..N {
+                    let [x, y] = base[l][j];
+                    let nz = n[2][l].min(-NZ_MIN);
+                    raw[l] = -(n[0][l] * (x - centre[l][0]) + n[1][l] * (y - centre[l][1])) / nz;
+                }
+            }
+        }
+        let mut out = [[0.0f64; 4]; N];
+        for (l, out) in out.iter_mut().enumerate() {
+            let mean = 0.25 * (raw[0][l] + raw[1][l] + raw[2][l] + raw[3][l]);
+            *out = [
+                raw[0][l] - mean,
+                raw[1][l] - mean,
+                raw[2][l] - mean,
+                raw[3][l] - mean,
+            ];
+        }
+        out
     }
 }
 

@@ -654,6 +654,31 @@ fn to_grid(layout: Layout, grid: &Grid, values: &[f64], out: &mut [f64]) {
         });
 }
 
+/// Reads the per-unknown `values` off the padded grid `x` (the inverse of [`to_grid`]). The
+/// padded index of each unknown is computed from its vertex, not stored: one division per
+/// chunk of unknowns, then row by row (the unknowns' vertices increase).
+fn from_grid(layout: Layout, grid: &Grid, x: &[f64], values: &mut [f64]) {
+    let vw = grid.width + 1;
+    values
+        .par_chunks_mut(CHUNK)
+        .zip(grid.active.par_chunks(CHUNK))
+        .for_each(|(values, vertices)| {
+            let Some(&first) = vertices.first() else {
+                return;
+            };
+            let mut row = first as usize / vw;
+            let mut row_start = row * vw;
+            for (o, &v) in values.iter_mut().zip(vertices) {
+                let v = v as usize;
+                while v >= row_start + vw {
+                    row += 1;
+                    row_start += vw;
+                }
+                *o = x[layout.index(row, v - row_start)];
+            }
+        });
+}
+
 /// The conjugate-gradient step `x += alpha p`, `r -= alpha q` in one pass; returns `r . r`
 /// (deterministic: fixed chunks summed in order).
 fn step_and_norm(alpha: f64, p: &[f64], q: &[f64], x: &mut [f64], r: &mut [f64]) -> f64 {
@@ -1009,12 +1034,7 @@ impl MultigridSystem {
                     .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
             }
         }
-        // The padded index of each unknown is computed from its vertex, not stored.
-        let (x, layout, vw) = (&self.krylov.x, self.levels[0].layout, grid.width + 1);
-        z_out
-            .par_iter_mut()
-            .zip(grid.active.par_iter())
-            .for_each(|(o, &v)| *o = x[layout.index(v as usize / vw, v as usize % vw)]);
+        from_grid(self.levels[0].layout, grid, &self.krylov.x, z_out);
         iterations
     }
 }

@@ -1,8 +1,11 @@
 //! The vectorized local step: the grey, unit-weight normal equations and residuals of
 //! [`LANES`] facets at once, one SIMD lane per facet, with the lane form of the light model
 //! (`LaneLight`). Per lane the sums are those of the scalar code (`Facet::accumulate_grey`,
-//! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit.
-//! The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
+//! `Facet::sq_residual`), the same operations in the same order, so the fits agree bit for bit;
+//! so are the solves of the 3 x 3 systems, the normals and the plane targets (`solve_lanes`,
+//! nalgebra's closed-form inverse written out per lane, `Geometry::plane_targets`), which run in
+//! the lanes too, right after the sums. A batch of neighbours in one image row takes its corners
+//! from two grid rows (`LocalStep::batch_corners`). The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
 //! has it (`simd_dispatch!`, its `wide` form): the same operations per lane, so the same bits.
 
 use nalgebra::{Matrix3, Vector3};
@@ -10,15 +13,14 @@ use rayon::prelude::*;
 
 use super::trust::{add_sums, trust_values, LightSums, CHUNK};
 use super::{
-    facet_scratch, invert_spd3, keep_shape, solve_sums, u16_value, usable_count, FacetFit,
-    LocalStep, Model, Observations, Robust, Stored, Sums, Weighting, SCRATCH,
+    facet_scratch, keep_shape, u16_value, usable_count, FacetFit, LocalStep, Model, Observations,
+    Robust, Stored, Weighting, SCRATCH,
 };
 use crate::error::Result;
-use crate::geometry::quad_centre;
+use crate::geometry::{quad_centre, Geometry};
 use crate::light::LaneLight;
 use crate::memory::try_vec;
 use crate::reflectance::Packed;
-use crate::vec3::dot;
 
 impl Observations<'_> {
     /// For grey observations: the values of the facets at `pixels`, light-major and
@@ -134,9 +136,10 @@ impl LocalStep<'_> {
         trust: Option<LaneTrust<'_>>,
     ) -> [FacetFit; LANES] {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let quads: [[[f64; 3]; 4]; LANES] = std::array::from_fn(|l| self.corners(first + l, u));
-        let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
         let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
+        let batch = self.batch_corners(first, &pixels, u);
+        let quads = &batch.quads;
+        let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
         if !obs.gather_lanes(&pixels, interleaved) {
             for l in 0..LANES {
                 let f = first + l;
@@ -156,20 +159,33 @@ impl LocalStep<'_> {
         }
         let thresholds = (self.settings.dark, self.settings.saturation);
         let mut trust = trust;
-        let sums = accumulate_lanes_dispatch(
+        let (sums, solved) = fit_lanes_dispatch(
             lights,
             &centres,
             interleaved,
             thresholds,
             trust.as_mut().map(|t| &mut t.rows[..]),
+            &batch.base,
+            geometry,
         );
-        let mut fitted: [Option<FacetFit>; LANES] = std::array::from_fn(|l| grey_fit(&sums[l]));
+        let mut fitted: [Option<FacetFit>; LANES] = std::array::from_fn(|l| {
+            let n = &solved.normal;
+            solved.valid[l].then_some(FacetFit {
+                target: solved.target[l],
+                normal: [n[0][l], n[1][l], n[2][l]],
+                albedo: [solved.rho[l]; 3],
+                specular: 0.0,
+                sse: solved.sse[l],
+                used: sums.used[l],
+                valid: true,
+            })
+        });
         if let Some(trust) = trust {
             // One pass over the stored rows for the exact residuals and the trust values.
             let normals = fitted.map(|f| f.map_or([0.0; 3], |f| f.normal));
             let albedo = fitted.map(|f| f.map_or(0.0, |f| f.albedo[0]));
             let fits = LaneFits { normals, albedo };
-            let solved = LaneSolved::new(&sums);
+            let solved = LaneSolved::new(&sums, &solved);
             let out = final_residuals_dispatch(
                 lights,
                 trust.rows,
@@ -187,8 +203,9 @@ impl LocalStep<'_> {
                     true => trust_values(
                         &[out[1][l], 0.0, 0.0],
                         &[solved.inverse(l), Matrix3::zeros(), Matrix3::zeros()],
-                        Vector3::zeros() + Vector3::from(solved.g[l]),
-                        sums[l].used as usize,
+                        Vector3::zeros()
+                            + Vector3::new(solved.g[0][l], solved.g[1][l], solved.g[2][l]),
+                        sums.used[l] as usize,
                         1,
                         out[2][l],
                         out[3][l] as usize,
@@ -216,12 +233,9 @@ impl LocalStep<'_> {
         }
         std::array::from_fn(|l| {
             let f = first + l;
-            let ids = grid.facet_vertices(f);
+            let ids = batch.ids[l];
             match fitted[l] {
-                Some(fitted) => FacetFit {
-                    target: geometry.plane_target(fitted.normal, ids, centres[l]),
-                    ..fitted
-                },
+                Some(fitted) => fitted,
                 None => {
                     let values = self.facet_values(f, buf);
                     keep_shape(
@@ -235,36 +249,237 @@ impl LocalStep<'_> {
     }
 }
 
-/// The fit of grey, unit-weight, plain sums with the residual from the normal equations (as
-/// [`fit_facet`](super::fit_facet) computes it for those settings); the target is left at zero.
-#[inline(always)]
-fn grey_fit(sums: &Sums) -> Option<FacetFit> {
-    if sums.used < 3 {
-        return None;
+/// The corners of [`LANES`] facets: their unknowns (as [`Grid::facet_vertices`]), the
+/// [`Geometry::base`] of each corner and the corner positions (as [`LocalStep::corners`]).
+///
+/// [`Grid::facet_vertices`]: crate::grid::Grid::facet_vertices
+/// [`Geometry::base`]: crate::geometry::Geometry::base
+struct BatchCorners {
+    ids: [[u32; 4]; LANES],
+    base: [[[f64; 2]; 4]; LANES],
+    quads: [[[f64; 3]; 4]; LANES],
+}
+
+impl LocalStep<'_> {
+    /// The depth of unknown `i` (as [`LocalStep::corners`] finds it).
+    #[inline(always)]
+    fn depth_of(&self, i: u32, u: &[f64]) -> f64 {
+        let i = i as usize;
+        match self.depths {
+            Some(z) => z[i],
+            None => self.geometry.depth(u[i]),
+        }
     }
-    let (normal, albedo, g) = solve_sums(sums, 1)?;
-    Some(FacetFit {
-        target: [0.0; 4],
-        normal,
-        albedo,
-        specular: 0.0,
-        sse: (sums.sum_i2 - dot(g, sums.s[0])).max(0.0),
-        used: sums.used,
-        valid: true,
-    })
+
+    /// The corners of facets `first..first + LANES` (at pixels `pixels`). When the facets are
+    /// [`LANES`] neighbours in one image row (the usual case), their corners are the
+    /// `LANES + 1` vertices of two grid rows: each is looked up and placed once, with one
+    /// division for the batch instead of one per corner and facet; the same values.
+    #[inline(always)]
+    fn batch_corners(&self, first: usize, pixels: &[usize; LANES], u: &[f64]) -> BatchCorners {
+        let (grid, geometry) = (self.grid, self.geometry);
+        let (w, p0) = (grid.width, pixels[0]);
+        let (row, col) = (p0 / w, p0 % w);
+        if col + LANES <= w && (1..LANES).all(|l| pixels[l] == p0 + l) {
+            let vw = w + 1;
+            let v0 = row * vw + col;
+            let line = |r: usize, v: usize| -> ([u32; LANES + 1], [[f64; 2]; LANES + 1]) {
+                let ids: [u32; LANES + 1] = std::array::from_fn(|j| grid.vertex_unknown[v + j]);
+                let base =
+                    std::array::from_fn(|j| geometry.base_at_vertex(ids[j] as usize, r, col + j));
+                (ids, base)
+            };
+            let (top, top_base) = line(row, v0);
+            let (bottom, bottom_base) = line(row + 1, v0 + vw);
+            let place = |ids: &[u32; LANES + 1], base: &[[f64; 2]; LANES + 1]| {
+                let z: [f64; LANES + 1] = std::array::from_fn(|j| self.depth_of(ids[j], u));
+                let p: [[f64; 3]; LANES + 1] =
+                    std::array::from_fn(|j| geometry.position_from_base(base[j], z[j]));
+                p
+            };
+            let (tp, bp) = (place(&top, &top_base), place(&bottom, &bottom_base));
+            return BatchCorners {
+                ids: std::array::from_fn(|l| [top[l], top[l + 1], bottom[l], bottom[l + 1]]),
+                base: std::array::from_fn(|l| {
+                    [
+                        top_base[l],
+                        top_base[l + 1],
+                        bottom_base[l],
+                        bottom_base[l + 1],
+                    ]
+                }),
+                quads: std::array::from_fn(|l| [tp[l], tp[l + 1], bp[l], bp[l + 1]]),
+            };
+        }
+        let ids: [[u32; 4]; LANES] = std::array::from_fn(|l| grid.facet_vertices(first + l));
+        let base: [[[f64; 2]; 4]; LANES] =
+            std::array::from_fn(|l| ids[l].map(|i| geometry.base(i as usize)));
+        let quads = std::array::from_fn(|l| {
+            let (ids, base) = (&ids[l], &base[l]);
+            let at = |j: usize| geometry.position_from_base(base[j], self.depth_of(ids[j], u));
+            [at(0), at(1), at(2), at(3)]
+        });
+        BatchCorners { ids, base, quads }
+    }
+}
+
+/// The grey unit-weight normal equations of [`LANES`] facets, one lane each (the sums of
+/// [`Facet::accumulate_grey`](super::Facet::accumulate_grey)): `T` as its 6 entries
+/// `t00 t01 t02 t11 t12 t22`, `s`, `sum I^2` and the usable lights.
+struct LaneSums {
+    t: [[f64; LANES]; 6],
+    s: [[f64; LANES]; 3],
+    sum_i2: [f64; LANES],
+    used: [u32; LANES],
+}
+
+/// The solutions of [`LANES`] facets' grey, unit-weight normal equations `T g = s` (see
+/// [`solve_lanes`]), one lane each.
+struct LaneSolution {
+    /// `T^-1`, its entries row-major.
+    inverse: [[f64; LANES]; 9],
+    /// Whether `T` passes the test of [`invert_spd3`](super::invert_spd3).
+    regular: [bool; LANES],
+    /// `g = T^-1 s`.
+    g: [[f64; LANES]; 3],
+    /// The unit normal `g / |g|`.
+    normal: [[f64; LANES]; 3],
+    /// The albedo `rho = |g|`.
+    rho: [f64; LANES],
+    /// The residual from the normal equations, `max(0, sum I^2 - g . s)`.
+    sse: [f64; LANES],
+    /// Whether the fit succeeded: at least 3 usable lights, `T` regular, `rho` finite and
+    /// positive.
+    valid: [bool; LANES],
+    /// The corner targets of the plane through the facet's centre with that normal (see
+    /// [`Geometry::plane_target`]).
+    target: [[f64; 4]; LANES],
 }
 
 simd_dispatch! {
     wide
-    /// [`accumulate_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
-    /// registers).
-    fn accumulate_lanes_dispatch => accumulate_lanes(
+    /// [`accumulate_lanes`] and [`solve_lanes`] with AVX-512 or AVX2 when the processor has it
+    /// (same arithmetic, wider registers): the sums stay in registers for the solve.
+    fn fit_lanes_dispatch => fit_kernel(
         lights: &[LaneLight],
         centres: &[[f64; 3]; LANES],
         values: &[[f32; LANES]],
         thresholds: (f64, f64),
         rows: Option<&mut [[[f64; LANES]; 3]]>,
-    ) -> [Sums; LANES];
+        base: &[[[f64; 2]; 4]; LANES],
+        geometry: &Geometry,
+    ) -> (LaneSums, LaneSolution);
+}
+
+simd_dispatch! {
+    wide
+    #[cfg(test)]
+    /// [`solve_lanes`] alone, dispatched as [`fit_lanes_dispatch`] (for the tests).
+    fn solve_lanes_dispatch => solve_lanes(
+        sums: &LaneSums,
+        centres: &[[f64; 3]; LANES],
+        base: &[[[f64; 2]; 4]; LANES],
+        geometry: &Geometry,
+    ) -> LaneSolution;
+}
+
+/// [`accumulate_lanes`], then [`solve_lanes`].
+#[inline(always)]
+fn fit_kernel(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    rows: Option<&mut [[[f64; LANES]; 3]]>,
+    base: &[[[f64; 2]; 4]; LANES],
+    geometry: &Geometry,
+) -> (LaneSums, LaneSolution) {
+    let sums = accumulate_lanes(lights, centres, values, thresholds, rows);
+    let solution = solve_lanes(&sums, centres, base, geometry);
+    (sums, solution)
+}
+
+/// The fits of [`LANES`] facets' grey, unit-weight sums, one lane each, with the operations of
+/// the scalar code in its order, so that they agree bit for bit: the test and closed-form
+/// inverse of [`invert_spd3`](super::invert_spd3) (nalgebra 0.34's `determinant` and
+/// `try_inverse` of a 3 x 3 matrix written out: minors `M1 = m22 m33 - m32 m23`,
+/// `M2 = m21 m33 - m31 m23`, `M3 = m21 m32 - m31 m22`, the determinant
+/// `m11 M1 - m12 M2 + m13 M3`, each entry of the adjugate divided by it), `g = T^-1 s` as
+/// nalgebra's matrix-vector product sums it (column after column), the normal and albedo of
+/// [`solve_sums`](super::solve_sums) with one channel, the fast residual of
+/// [`fit_facet`](super::fit_facet), and the targets of [`Geometry::plane_target`]. Every lane
+/// is computed (a failed fit's values are not used), with plain loops over the lanes that the
+/// compiler turns into vector instructions: the 12 divisions and the root of a facet run 8
+/// lanes to an instruction.
+#[inline(always)]
+fn solve_lanes(
+    sums: &LaneSums,
+    centres: &[[f64; 3]; LANES],
+    base: &[[[f64; 2]; 4]; LANES],
+    geometry: &Geometry,
+) -> LaneSolution {
+    let z = [0.0f64; LANES];
+    let s = &sums.s;
+    // T = [[m11 m12 m13] [m21 m22 m23] [m31 m32 m33]] = [[t0 t1 t2] [t1 t3 t4] [t2 t4 t5]].
+    let [m11, m12, m13, m22, m23, m33] = &sums.t;
+    let (m21, m31, m32) = (m12, m13, m23);
+    let (mut diag, mut det, mut regular) = (z, z, [false; LANES]);
+    // The adjugate, row-major (the first column holds the minors M1, -M2, M3).
+    let mut adj = [z; 9];
+    for l in 0..LANES {
+        diag[l] = m11[l] * m22[l] * m33[l];
+        let minor1 = m22[l] * m33[l] - m32[l] * m23[l];
+        let minor2 = m21[l] * m33[l] - m31[l] * m23[l];
+        let minor3 = m21[l] * m32[l] - m31[l] * m22[l];
+        det[l] = m11[l] * minor1 - m12[l] * minor2 + m13[l] * minor3;
+        regular[l] = diag[l] > 0.0 && det[l] > 1e-12 * diag[l];
+        adj[0][l] = minor1;
+        adj[1][l] = m13[l] * m32[l] - m33[l] * m12[l];
+        adj[2][l] = m12[l] * m23[l] - m22[l] * m13[l];
+        adj[3][l] = -minor2;
+        adj[4][l] = m11[l] * m33[l] - m31[l] * m13[l];
+        adj[5][l] = m13[l] * m21[l] - m23[l] * m11[l];
+        adj[6][l] = minor3;
+        adj[7][l] = m12[l] * m31[l] - m32[l] * m11[l];
+        adj[8][l] = m11[l] * m22[l] - m21[l] * m12[l];
+    }
+    let mut inverse = [z; 9];
+    for (inv, adj) in inverse.iter_mut().zip(&adj) {
+        for l in 0..LANES {
+            inv[l] = adj[l] / det[l];
+        }
+    }
+    let mut g = [z; 3];
+    for (i, g) in g.iter_mut().enumerate() {
+        let row = &inverse[3 * i..3 * i + 3];
+        for l in 0..LANES {
+            g[l] = row[0][l] * s[0][l] + row[1][l] * s[1][l] + row[2][l] * s[2][l];
+        }
+    }
+    let (mut rho, mut sse, mut valid) = (z, z, [false; LANES]);
+    let mut normal = [z; 3];
+    for l in 0..LANES {
+        rho[l] = (g[0][l] * g[0][l] + g[1][l] * g[1][l] + g[2][l] * g[2][l]).sqrt();
+        let gs = g[0][l] * s[0][l] + g[1][l] * s[1][l] + g[2][l] * s[2][l];
+        sse[l] = (sums.sum_i2[l] - gs).max(0.0);
+        valid[l] = sums.used[l] >= 3 && regular[l] && rho[l].is_finite() && rho[l] > 0.0;
+    }
+    for (n, g) in normal.iter_mut().zip(&g) {
+        for l in 0..LANES {
+            n[l] = g[l] / rho[l];
+        }
+    }
+    let target = geometry.plane_targets(base, &normal, centres);
+    LaneSolution {
+        inverse,
+        regular,
+        g,
+        normal,
+        rho,
+        sse,
+        valid,
+        target,
+    }
 }
 
 /// The observations of one light in [`LANES`] facets as f64, and whether each is usable
@@ -288,7 +503,7 @@ fn accumulate_lanes(
     values: &[[f32; LANES]],
     (dark, saturation): (f64, f64),
     mut rows: Option<&mut [[[f64; LANES]; 3]]>,
-) -> [Sums; LANES] {
+) -> LaneSums {
     let mut t = [[0.0f64; LANES]; 6];
     let mut s = [[0.0f64; LANES]; 3];
     let mut sum_i2 = [0.0f64; LANES];
@@ -321,18 +536,7 @@ fn accumulate_lanes(
             used[l] += u32::from(ok[l]);
         }
     }
-    std::array::from_fn(|l| Sums {
-        t: [
-            [t[0][l], t[1][l], t[2][l], t[3][l], t[4][l], t[5][l]],
-            [0.0; 6],
-            [0.0; 6],
-        ],
-        s: [[s[0][l], s[1][l], s[2][l]], [0.0; 3], [0.0; 3]],
-        sum_i2: sum_i2[l],
-        used: used[l],
-        // The lanes run without indirect light: every used observation is lit.
-        lit: used[l],
-    })
+    LaneSums { t, s, sum_i2, used }
 }
 
 simd_dispatch! {
@@ -394,44 +598,37 @@ struct LaneFits {
 }
 
 /// The trust's solution of [`LANES`] facets' normal equations (see the `trust` module):
-/// `T^-1` (row-major), `g = T^-1 s`, and whether the facet has a trust value (at least 4 usable
-/// lights, `T` regular).
+/// `T^-1` (its entries row-major, one lane each), `g = T^-1 s`, and whether the facet has a
+/// trust value (at least 4 usable lights, `T` regular).
 struct LaneSolved {
-    inverse: [[[f64; 3]; 3]; LANES],
-    g: [[f64; 3]; LANES],
+    inverse: [[f64; LANES]; 9],
+    g: [[f64; LANES]; 3],
     active: [bool; LANES],
 }
 
 impl LaneSolved {
-    /// From the sums, with the operations of `LocalStep::facet_trust`.
-    fn new(sums: &[Sums; LANES]) -> LaneSolved {
-        let mut solved = LaneSolved {
-            inverse: [[[0.0; 3]; 3]; LANES],
-            g: [[0.0; 3]; LANES],
-            active: [false; LANES],
+    /// From the sums and their lane solution, as `LocalStep::facet_trust` solves them (the
+    /// inverse of [`invert_spd3`](super::invert_spd3) and `g = T^-1 s`, which
+    /// [`solve_lanes`] computes with the same operations): active where at least 4 lights are
+    /// usable and `T` is regular (elsewhere the inverse and `g` are 0).
+    fn new(sums: &LaneSums, solution: &LaneSolution) -> LaneSolved {
+        let active: [bool; LANES] =
+            std::array::from_fn(|l| sums.used[l] >= 4 && solution.regular[l]);
+        let keep = |x: &[f64; LANES]| -> [f64; LANES] {
+            std::array::from_fn(|l| if active[l] { x[l] } else { 0.0 })
         };
-        for (l, sums) in sums.iter().enumerate() {
-            if sums.used < 4 {
-                continue;
-            }
-            let t = &sums.t[0];
-            let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
-            let Some(inv) = invert_spd3(&tm) else {
-                continue;
-            };
-            let g = inv * Vector3::from(sums.s[0]);
-            solved.inverse[l] = std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)]));
-            solved.g[l] = [g.x, g.y, g.z];
-            solved.active[l] = true;
+        LaneSolved {
+            inverse: solution.inverse.each_ref().map(keep),
+            g: solution.g.each_ref().map(keep),
+            active,
         }
-        solved
     }
 
     /// `T^-1` of lane `l`.
     fn inverse(&self, l: usize) -> Matrix3<f64> {
-        let m = &self.inverse[l];
+        let m = &self.inverse;
         Matrix3::new(
-            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+            m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l], m[6][l], m[7][l], m[8][l],
         )
     }
 }
@@ -455,8 +652,10 @@ simd_dispatch! {
 /// [`accumulate_lanes`]: the exact squared residuals of the fits `fits` (the operations of
 /// [`residual_lanes`]), and for the facets with a trust value (`solved`) the trust's residual
 /// `e = I - r . g`, leverage `h = r . T^-1 r` and leave-one-out residual `e / (1 - h)` (the
-/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` facet
-/// after facet. Returns per lane the fit's squared residual, the trust's, the sum of the finite
+/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` batch
+/// after batch, the lanes' terms summed in pairs ([`lane_total`]: the per-light sums differ
+/// from the scalar code's facet-after-facet order in the last bits, as they do with the order
+/// of the parallel reduction; the per-facet values are the scalar code's bits). Returns per lane the fit's squared residual, the trust's, the sum of the finite
 /// `|e / (1 - h)|` and their count.
 #[inline(always)]
 fn final_residuals(
@@ -489,32 +688,46 @@ fn final_residuals(
         let r1: [f64; LANES] = std::array::from_fn(|l| b1[l] * p);
         let r2: [f64; LANES] = std::array::from_fn(|l| b2[l] * p);
         let e: [f64; LANES] =
-            std::array::from_fn(|l| i[l] - (r0[l] * g[l][0] + r1[l] * g[l][1] + r2[l] * g[l][2]));
-        let ir: [[f64; LANES]; 3] = std::array::from_fn(|j| {
-            std::array::from_fn(|l| {
-                let m = inv[l][j];
-                m[0] * r0[l] + m[1] * r1[l] + m[2] * r2[l]
-            })
-        });
+            std::array::from_fn(|l| i[l] - (r0[l] * g[0][l] + r1[l] * g[1][l] + r2[l] * g[2][l]));
+        let mut ir = [[0.0f64; LANES]; 3];
+        for (j, ir) in ir.iter_mut().enumerate() {
+            let m = &inv[3 * j..3 * j + 3];
+            for l in 0..LANES {
+                ir[l] = m[0][l] * r0[l] + m[1][l] * r1[l] + m[2][l] * r2[l];
+            }
+        }
         let h: [f64; LANES] =
             std::array::from_fn(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
         let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
+        // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
+        // non-negative terms changes no bit); the light's terms of the lanes are summed in pairs
+        // and then added to its sums (no chain of 8 dependent additions per light).
+        let mut add = [[0.0f64; LANES]; 4];
         for l in 0..LANES {
-            if !(ok[l] && solved.active[l]) {
-                continue;
-            }
-            trust_sse[l] += e[l] * e[l];
-            if loo[l].is_finite() {
-                loo_sum[l] += loo[l].abs();
-                loo_count[l] += 1.0;
-                sum[1] += loo[l] * loo[l];
-            }
-            sum[0] += e[l] * e[l];
-            sum[2] += i[l];
-            sum[3] += 1.0;
+            let used = ok[l] && solved.active[l];
+            let finite = used && loo[l].is_finite();
+            let ee = e[l] * e[l];
+            trust_sse[l] += if used { ee } else { 0.0 };
+            loo_sum[l] += if finite { loo[l].abs() } else { 0.0 };
+            loo_count[l] += if finite { 1.0 } else { 0.0 };
+            add[0][l] = if used { ee } else { 0.0 };
+            add[1][l] = if finite { loo[l] * loo[l] } else { 0.0 };
+            add[2][l] = if used { i[l] } else { 0.0 };
+            add[3][l] = if used { 1.0 } else { 0.0 };
+        }
+        for (sum, add) in sum.iter_mut().zip(&add) {
+            *sum += lane_total(add);
         }
     }
     [sse, trust_sse, loo_sum, loo_count]
+}
+
+/// The sum of the [`LANES`] values `a`, in pairs: `((a0 + a1) + (a2 + a3)) + ((a4 + a5) +
+/// (a6 + a7))`.
+#[inline(always)]
+fn lane_total(a: &[f64; LANES]) -> f64 {
+    let pairs: [f64; 4] = std::array::from_fn(|j| a[2 * j] + a[2 * j + 1]);
+    (pairs[0] + pairs[1]) + (pairs[2] + pairs[3])
 }
 
 impl LocalStep<'_> {
@@ -583,6 +796,198 @@ mod tests {
     use crate::local::{FacetStat, FitSettings, TrustMaps};
     use crate::reflectance::Packed;
     use crate::vec3::normalize;
+
+    /// The lane solve gives the scalar code's solve bit for bit: regular, nearly singular,
+    /// singular, indefinite and non-finite systems, fewer than 3 lights; the normal, albedo,
+    /// fast residual, validity, inverse and `g`, and the targets (pinhole, with grazing normals
+    /// and the logarithm's fallback, and orthographic).
+    #[test]
+    fn lane_solve_matches_the_scalar_solve_exactly() {
+        use crate::local::Sums;
+        use crate::rig::Camera;
+        let mut next = crate::multigrid::tests::lcg(7);
+        let grid = Grid::new(3, 3, None).unwrap();
+        let cameras = [
+            Camera::Pinhole {
+                k: [[3.0, 0.0, 1.5], [0.0, 3.0, 1.5], [0.0, 0.0, 1.0]],
+                distortion: [0.0; 5],
+            },
+            Camera::Orthographic {
+                pixel_size: [1.0, 1.0],
+                origin: [0.0, 0.0],
+            },
+        ];
+        let mut checked = [0usize; 3];
+        for round in 0..400 {
+            let scalar: [Sums; LANES] = std::array::from_fn(|l| {
+                let r: [[f64; 3]; 5] =
+                    std::array::from_fn(|_| std::array::from_fn(|_| next() - 0.5));
+                let mut t = [0.0; 6];
+                let mut s = [0.0; 3];
+                let lights = match (round + l) % 9 {
+                    0 => 2,
+                    1 => 3,
+                    _ => 5,
+                };
+                for (k, r) in r.iter().take(lights).enumerate() {
+                    let i = 0.5 + next();
+                    let idx = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
+                    for (slot, (a, b)) in t.iter_mut().zip(idx) {
+                        *slot += r[a] * r[b];
+                    }
+                    for (slot, x) in s.iter_mut().zip(r) {
+                        *slot += x * i * (1.0 + 0.1 * k as f64);
+                    }
+                }
+                match (round * 3 + l) % 11 {
+                    0 => t = [1.0, 1.0, 0.0, 1.0, 0.0, 1.0], // singular
+                    1 => t[5] = -t[5],                       // indefinite
+                    2 => t[4] = f64::NAN,
+                    3 => t = [1.0, 1.0 - 1e-7, 0.0, 1.0, 0.0, 1.0], // nearly singular
+                    4 => s = [0.0; 3],
+                    _ => {}
+                }
+                Sums {
+                    t: [t, [0.0; 6], [0.0; 6]],
+                    s: [s, [0.0; 3], [0.0; 3]],
+                    sum_i2: 3.0 * next(),
+                    used: lights as u32,
+                    lit: lights as u32,
+                }
+            });
+            let lane = |f: &dyn Fn(&Sums) -> f64| -> [f64; LANES] {
+                std::array::from_fn(|l| f(&scalar[l]))
+            };
+            let sums = LaneSums {
+                t: std::array::from_fn(|i| lane(&|x| x.t[0][i])),
+                s: std::array::from_fn(|i| lane(&|x| x.s[0][i])),
+                sum_i2: lane(&|x| x.sum_i2),
+                used: std::array::from_fn(|l| scalar[l].used),
+            };
+            let centres: [[f64; 3]; LANES] =
+                std::array::from_fn(|_| [next() - 0.5, next() - 0.5, 5.0 + next()]);
+            let base: [[[f64; 2]; 4]; LANES] = std::array::from_fn(|_| {
+                let spread = if next() < 0.2 { 3.0 } else { 0.01 };
+                let x = [next() - 0.5, next() - 0.5];
+                std::array::from_fn(|_| [x[0] + spread * next(), x[1] + spread * next()])
+            });
+            let geometry = Geometry::new(&cameras[round % 2], &grid).unwrap();
+            let lanes = solve_lanes_dispatch(&sums, &centres, &base, &geometry);
+            let plain = solve_lanes(&sums, &centres, &base, &geometry);
+            for l in 0..LANES {
+                let sums = &scalar[l];
+                let t = &sums.t[0];
+                let tm = Matrix3::new(t[0], t[1], t[2], t[1], t[3], t[4], t[2], t[4], t[5]);
+                let inverse = super::super::invert_spd3(&tm);
+                assert_eq!(lanes.regular[l], inverse.is_some(), "{round} {l}");
+                assert_eq!(plain.regular[l], lanes.regular[l]);
+                if let Some(inv) = inverse {
+                    let g = inv * Vector3::from(sums.s[0]);
+                    let m: [[f64; 3]; 3] =
+                        std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)]));
+                    let lane_inverse: [[f64; 3]; 3] = std::array::from_fn(|i| {
+                        std::array::from_fn(|j| lanes.inverse[3 * i + j][l])
+                    });
+                    let bits = |m: [[f64; 3]; 3]| m.map(|r| r.map(f64::to_bits));
+                    assert_eq!(bits(lane_inverse), bits(m));
+                    let lane_g = [lanes.g[0][l], lanes.g[1][l], lanes.g[2][l]];
+                    assert_eq!(lane_g.map(f64::to_bits), [g.x, g.y, g.z].map(f64::to_bits));
+                    checked[0] += 1;
+                }
+                let fit = (sums.used >= 3)
+                    .then(|| super::super::solve_sums(sums, 1))
+                    .flatten();
+                assert_eq!(lanes.valid[l], fit.is_some(), "{round} {l}");
+                if let Some((normal, albedo, g)) = fit {
+                    let sse = (sums.sum_i2 - crate::vec3::dot(g, sums.s[0])).max(0.0);
+                    let lane_normal = [lanes.normal[0][l], lanes.normal[1][l], lanes.normal[2][l]];
+                    assert_eq!(lane_normal.map(f64::to_bits), normal.map(f64::to_bits));
+                    assert_eq!(lanes.rho[l].to_bits(), albedo[0].to_bits());
+                    assert_eq!(lanes.sse[l].to_bits(), sse.to_bits());
+                    let target = geometry.plane_target_at(base[l], normal, centres[l]);
+                    assert_eq!(lanes.target[l].map(f64::to_bits), target.map(f64::to_bits));
+                    assert_eq!(plain.target[l].map(f64::to_bits), target.map(f64::to_bits));
+                    checked[1] += 1;
+                    if round % 2 == 0 && normal[2] > -0.3 {
+                        checked[2] += 1;
+                    }
+                }
+            }
+        }
+        assert!(checked.iter().all(|&c| c > 100), "{checked:?}");
+    }
+
+    /// On full rows (batches of neighbours in one image row, whose corners
+    /// `LocalStep::batch_corners` takes from two grid rows, and batches across a row end),
+    /// pinhole and orthographic, with and without precomputed depths, and a mask with a hole:
+    /// the fits of the lanes are those of the scalar code bit for bit.
+    #[test]
+    fn lanes_on_full_rows_match_the_scalar_fits_exactly() {
+        use crate::rig::Camera;
+        let (h, w) = (5, 19);
+        let cameras = [
+            Camera::Pinhole {
+                k: [[60.0, 0.0, 9.0], [0.0, 55.0, 2.0], [0.0, 0.0, 1.0]],
+                distortion: [0.0; 5],
+            },
+            Camera::Pinhole {
+                k: [[60.0, 0.5, 9.0], [0.0, 55.0, 2.0], [0.0, 0.0, 1.0]],
+                distortion: [0.01, 0.0, 0.0, 0.0, 0.0],
+            },
+            Camera::Orthographic {
+                pixel_size: [1.5, 1.5],
+                origin: [-5.0, -7.0],
+            },
+        ];
+        let hole: Vec<bool> = (0..h * w).map(|p| p != 2 * w + 12).collect();
+        let lights = crate::local::tests::lights();
+        let k = lights.len();
+        let data: Vec<f32> = (0..k * h * w)
+            .map(|i| 1e-4 * (1.0 + ((i * 31) % 13) as f32))
+            .collect();
+        let obs = Observations::from_stack(&data, k, h * w, 1);
+        let mut fast_batches = 0;
+        for camera in &cameras {
+            for mask in [None, Some(&hole[..])] {
+                let grid = Grid::new(h, w, mask).unwrap();
+                let geometry = Geometry::new(camera, &grid).unwrap();
+                let u: Vec<f64> = (0..grid.n_unknowns())
+                    .map(|i| geometry.unknown(100.0 + 0.3 * (i % 8) as f64 - 0.02 * i as f64))
+                    .collect();
+                let z: Vec<f64> = u.iter().map(|&x| geometry.depth(x)).collect();
+                for depths in [None, Some(&z[..])] {
+                    let step = LocalStep {
+                        grid: &grid,
+                        geometry: &geometry,
+                        model: Model::Near(&lights),
+                        obs: &obs,
+                        settings: FitSettings::default(),
+                        depths,
+                        cancel: crate::Cancel::never(),
+                        warm: None,
+                        shadows: None,
+                        indirect: None,
+                    };
+                    let n = grid.n_facets();
+                    let mut fits = vec![FacetFit::EMPTY; n];
+                    step.run(&u, 0, &mut fits);
+                    let mut buf = vec![0.0f32; k];
+                    for (f, lane_fit) in fits.iter().enumerate() {
+                        let fit = step.fit(f, &u, &mut buf, &mut Packed::new(), None);
+                        assert_eq!(&fit, lane_fit, "facet {f}");
+                    }
+                    fast_batches += (0..n / LANES)
+                        .filter(|b| {
+                            let p0 = grid.facets[b * LANES] as usize;
+                            grid.facets[b * LANES + LANES - 1] as usize == p0 + LANES - 1
+                                && p0 % w + LANES <= w
+                        })
+                        .count();
+                }
+            }
+        }
+        assert!(fast_batches > 10, "{fast_batches}");
+    }
 
     /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic
     /// lights and LEDs with mu = 1, shadowed and missing observations, a partial last batch).
