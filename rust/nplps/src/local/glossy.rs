@@ -140,9 +140,8 @@ fn observations(
 /// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
 /// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit). Under a
 /// lobe sharper than [`CONTINUE_BELOW`], with [`CONTINUE_LIGHTS`] lights or more, and from a
-/// Lambertian fit `start` (not from a warm normal:
-/// the first local step of a reconstruction, and the lobe search), a third fit starts from the
-/// first normal under the lobe of roughness [`CONTINUE_FROM`] and the same index, and goes on
+/// Lambertian fit `start` (not from a warm normal: the first local step of a reconstruction, and
+/// the lobe search), a third fit starts from the first normal under the lobe of roughness [`CONTINUE_FROM`] and the same index, and goes on
 /// under `lobe` from where that one ends (at least [`GLOSSY_STEPS`] steps). The fit of lowest
 /// residual is kept; None where the glossy fit fails. The target is left at zero.
 #[allow(clippy::too_many_arguments)]
