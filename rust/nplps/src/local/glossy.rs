@@ -37,7 +37,7 @@ use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalSt
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
-use crate::reflectance::{fit_packed, fit_packed_at, Lobe, Packed};
+use crate::reflectance::{fit_packed, fit_packed_at, GlossyFit, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -61,6 +61,22 @@ pub const LOBE_STEPS: usize = 3;
 
 /// Facets of the subsample on which [`estimate_lobe`] compares lobes.
 pub const LOBE_SAMPLE: usize = 1024;
+
+/// Under lobes sharper than this roughness a facet's fit from its Lambertian fit is also made by
+/// continuation, from its fit under a lobe of roughness [`CONTINUE_FROM`] (see [`refine`]). On
+/// DiLiGenT's ball (roughness 0.03-0.05), whose centre sees the highlights of many of its 96
+/// lights, the fits from the Lambertian normals ended 7-9 degrees off in the centre (the
+/// residual's minimum there lies within 0.7 degrees of the truth); by continuation the mean error
+/// under a given lobe fell from 2.07 to 1.59 degrees. Lobes of 0.1 and rougher are fitted as
+/// before, bit for bit.
+pub const CONTINUE_BELOW: f64 = 0.1;
+/// The continuation (see [`CONTINUE_BELOW`]) is made only with this many lights or more. With
+/// few lights the lower residual it finds is overfitting: on hehe12 (8 LEDs) and queau_human1 (7)
+/// it made the held-out images' prediction worse (mean shape error 0.166 -> 0.169 and
+/// 0.889 -> 0.922).
+pub const CONTINUE_LIGHTS: usize = 12;
+/// The roughness of the continuation's first fit (see [`CONTINUE_BELOW`]).
+pub const CONTINUE_FROM: f64 = 0.2;
 
 /// The roughness grid of the lobe search.
 const ALPHAS: [f64; 9] = [0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.4, 0.6, 0.85];
@@ -122,8 +138,12 @@ fn observations(
 /// the diffuse albedo of its Lambertian fit `start` (without one: with the least-squares albedos
 /// at the starting normal, see [`fit_packed_at`]), with at most `steps` Gauss-Newton steps;
 /// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
-/// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit), and the
-/// fit of lower residual is kept; None where the glossy fit fails. The target is left at zero.
+/// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit). Under a
+/// lobe sharper than [`CONTINUE_BELOW`], with [`CONTINUE_LIGHTS`] lights or more, and from a
+/// Lambertian fit `start` (not from a warm normal: the first local step of a reconstruction, and
+/// the lobe search), a third fit starts from the first normal under the lobe of roughness [`CONTINUE_FROM`] and the same index, and goes on
+/// under `lobe` from where that one ends (at least [`GLOSSY_STEPS`] steps). The fit of lowest
+/// residual is kept; None where the glossy fit fails. The target is left at zero.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn refine(
     c: [f64; 3],
@@ -150,7 +170,17 @@ pub(super) fn refine(
         (Some(g), Some(n)) if dot(g.normal, n) >= agree * norm(n) => None,
         (_, n) => n.and_then(&mut from),
     };
-    let g = [first, second]
+    // Continuation: under a sharp lobe the residual has a basin around every highlight, and a
+    // start tilted by a highlight (the Lambertian fit) can end in the wrong one.
+    let third = match (albedo, starts[0]) {
+        (Some(a), Some(n))
+            if lobe.alpha < CONTINUE_BELOW && values.len() >= CONTINUE_LIGHTS * channels =>
+        {
+            continued(lobe, scratch, scale(n, a), steps.max(GLOSSY_STEPS))
+        }
+        _ => None,
+    };
+    let g = [first, second, third]
         .into_iter()
         .flatten()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))?;
@@ -211,6 +241,16 @@ pub(super) fn refine(
         used: g.used,
         valid: true,
     })
+}
+
+/// The fit under `lobe` by continuation from `start = rho_d n`: first under the lobe of
+/// roughness [`CONTINUE_FROM`] and the same index ([`GLOSSY_STEPS`] steps; it sees every nearby
+/// highlight at once), then under `lobe` from where that one ends (`steps` steps). `obs` are
+/// prepared for `lobe` (the Fresnel factors depend on the index alone).
+fn continued(lobe: &Lobe, obs: &mut Packed, start: [f64; 3], steps: usize) -> Option<GlossyFit> {
+    let rough = Lobe::new(CONTINUE_FROM, lobe.eta);
+    fit_packed(&rough, obs, start, GLOSSY_STEPS)
+        .and_then(|r| fit_packed_at(lobe, obs, r.normal, steps))
 }
 
 /// One facet of the lobe search: its centre, view vector, observations and Lambertian fit.
@@ -365,5 +405,67 @@ fn line_search(grid: &[f64], cost: impl Fn(f64) -> f64, log: bool) -> f64 {
         x
     } else {
         grid[best]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reflectance::Observation;
+    use crate::vec3::normalize;
+
+    fn degrees(a: [f64; 3], b: [f64; 3]) -> f64 {
+        (dot(a, b) / (norm(a) * norm(b)))
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    }
+
+    /// DiLiGenT's geometry in miniature: 48 distant lights within 35 degrees of the view, a
+    /// sharp lobe (0.04), exact images, and fits started 8 degrees off on the far side of the
+    /// brightest highlight: the direct fits end far off, the continuation at the truth.
+    #[test]
+    fn continuation_finds_the_normal_a_tilted_start_misses() {
+        let lobe = Lobe::new(0.04, 1.5);
+        let v = [0.0, 0.0, -1.0];
+        let lights: Vec<[f64; 3]> = (0..48)
+            .map(|i| {
+                let t = i as f64 * 2.399_963; // golden angle
+                let r = 35f64.to_radians().sin() * ((i as f64 + 0.5) / 48.0).sqrt();
+                normalize([r * t.cos(), r * t.sin(), -(1.0 - r * r).sqrt()])
+            })
+            .collect();
+        let mut worst = 0.0f64;
+        let mut direct_best = f64::INFINITY;
+        for tilt in [[0.03, -0.02], [-0.05, 0.04], [0.08, 0.01], [0.0, -0.1]] {
+            let n = normalize([tilt[0], tilt[1], -1.0]);
+            let mut packed = Packed::new();
+            packed.clear(v);
+            let mut brightest = (0.0, n);
+            for &l in &lights {
+                let s = lobe.shade(n, l, v).unwrap();
+                let value = 0.5 * s.diffuse + 0.3 * s.specular;
+                if value > brightest.0 {
+                    brightest = (value, normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]));
+                }
+                packed.push_observation(&Observation::new(value, 1.0, l, v, &lobe));
+            }
+            // The start: 8 degrees from the truth, past the brightest highlight's half vector.
+            let h = brightest.1;
+            let away = normalize(std::array::from_fn(|k| n[k] + (n[k] - h[k]) * 2.0));
+            let t = 8f64.to_radians();
+            let axis = normalize(std::array::from_fn(|k| away[k] - dot(away, n) * n[k]));
+            let start = std::array::from_fn(|k| 0.5 * (n[k] * t.cos() + axis[k] * t.sin()));
+            let direct = fit_packed(&lobe, &mut packed, start, GLOSSY_STEPS).unwrap();
+            direct_best = direct_best.min(degrees(direct.normal, n));
+            let g = continued(&lobe, &mut packed, start, GLOSSY_STEPS).unwrap();
+            worst = worst.max(degrees(g.normal, n));
+        }
+        assert!(worst < 0.05, "continuation: {worst} degrees");
+        // (17-31 degrees when written: the fits from the start climb the wrong highlights.)
+        assert!(
+            direct_best > 5.0,
+            "a direct fit found the normal: {direct_best} degrees"
+        );
     }
 }
