@@ -275,8 +275,8 @@ const PER_PIXEL: f64 = 78.0;
 /// Extra bytes per frame pixel and colour channel beyond the first.
 const PER_CHANNEL: f64 = 16.0;
 /// Bytes per masked facet beyond [`PER_PIXEL`]: the mesh's facet, unknown and region numbers
-/// (12), the current depths (8) and, through the iterations, the solver's next depths (8): 28
-/// with 15 % to spare, rounded. The solver's targets (32) are held only while the multigrid's
+/// (12), the current depths (8) and, through the iterations, the solver's next depths (8): 28,
+/// 30 with the spare of the measurement below. The solver's targets (32) are held only while the multigrid's
 /// work vectors are given back (the local step, whose statistics are summed a chunk at a time)
 /// and the work vectors only while the targets are (the global step reads them into its right
 /// side first); the shadow march's transients (about 22 a pixel) only while neither is; a
@@ -284,9 +284,9 @@ const PER_CHANNEL: f64 = 16.0;
 /// buffers of [`PER_PIXEL`] then hold the targets and the multigrid's vectors) and the end's
 /// (the result's maps) are about equal. Measured with 16 grey lights, a full mask and the
 /// default options at 12 MP (issue 23, given-back buffers forced by a `max_memory` below
-/// [`keeps_buffers`]'s share): 92 bytes a pixel beyond the stack (131 before, 204 and 271
-/// before that), which this and [`PER_PIXEL`] bound with 15 % to spare (106 a pixel).
-const PER_FACET: f64 = 28.0;
+/// [`keeps_buffers`]'s share): 92-94 bytes a pixel beyond the stack (128-131 before, 204 and 271
+/// before that), which this and [`PER_PIXEL`] bound with 15 % to spare (108 a pixel).
+const PER_FACET: f64 = 30.0;
 /// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
 const PER_FACET_REFINE: f64 = 192.0;
 /// Extra bytes per facet with the direct sparse Cholesky at one megapixel (its fill grows
@@ -296,7 +296,7 @@ const PER_FACET_DIRECT: f64 = 900.0;
 /// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
 /// masked pixels and `channels` colour channels, beyond the input images themselves.
 ///
-/// `bytes = 64 MB + (78 + 16 (C - 1)) H W + (28 + 192 [refine] + 900 f(n) [direct]) n`,
+/// `bytes = 64 MB + (78 + 16 (C - 1)) H W + (30 + 192 [refine] + 900 f(n) [direct]) n`,
 /// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
 /// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
 pub fn reconstruction(
@@ -394,7 +394,7 @@ mod tests {
         let plain = Options::default();
         let small = reconstruction(512, 512, 512 * 512, 1, &plain);
         let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
-        // Linear in the pixels beyond the fixed part; measured 92 B/px beyond the stack at
+        // Linear in the pixels beyond the fixed part; measured 92-94 B/px beyond the stack at
         // 4000 x 3000 (16 lights, full mask, buffers given back between the steps; issue 23):
         // the estimate bounds it with 15 % to spare.
         assert!((large - FIXED) / (small - FIXED) > 15.9);
