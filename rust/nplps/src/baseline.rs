@@ -60,8 +60,8 @@ use crate::vec3::{normalize, sub};
 pub fn parallel_lights(problem: &Problem<'_>) -> Vec<([f64; 3], [f64; 3])> {
     let grid = &problem.grid;
     let mut centroid = [0.0; 3];
-    for (i, &u) in problem.u0.iter().enumerate() {
-        let x = problem.geometry.position(i, u);
+    for i in 0..grid.n_unknowns() {
+        let x = problem.geometry.position(i, problem.u0.at(i));
         for (acc, val) in centroid.iter_mut().zip(x) {
             *acc += val;
         }
@@ -118,9 +118,10 @@ fn refine_intensities(
     // errors of 20 % from 30 % on glossy directional-light scenes, where the Lambertian step
     // leaves 0.6-1 %).
     let data = LightData::of(problem, settings);
+    let u0 = problem.u0.values()?;
     let mut refiner = Refiner::new(refine, directional.clone());
     for _ in 0..REFINE_STEPS {
-        let outcome = refiner.try_step(&data, &mut directional, &problem.u0)?;
+        let outcome = refiner.try_step(&data, &mut directional, &u0[..])?;
         if !outcome.accepted || outcome.change < 1e-10 {
             break;
         }
@@ -151,7 +152,8 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
     crate::problem::check_fittable(problem, &options.fit_settings(false))?;
-    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
+    let u0 = problem.u0.values()?;
+    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &u0[..])?;
     with_threads(options.threads, || {
         let start = Instant::now();
         let grid = &problem.grid;
@@ -174,7 +176,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let t = Instant::now();
         if options.reflectance.is_glossy() && settings.lobe.is_none() {
             let step = parallel_step(problem, &lights, settings);
-            settings.lobe = estimate_lobe(&step, &problem.u0, None)?;
+            settings.lobe = estimate_lobe(&step, &u0[..], None)?;
         }
         timings.local = t.elapsed();
         let t = Instant::now();
@@ -184,7 +186,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
             crate::memory::try_vec(grid.n_facets(), FacetFit::EMPTY, "the per-facet fits")?;
         let t = Instant::now();
         let step = parallel_step(problem, &lights, settings);
-        step.try_run(&problem.u0, 0, &mut fits)?;
+        step.try_run(&u0[..], 0, &mut fits)?;
         if settings.lobe.is_some() {
             // The baseline has one local step: its glossy fits continue from their own normals
             // for a few more passes, as the solver's iterations would.
@@ -198,7 +200,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
                     warm: Some(&warm),
                     ..step
                 };
-                warm_step.try_run(&problem.u0, 0, &mut fits)?;
+                warm_step.try_run(&u0[..], 0, &mut fits)?;
             }
         }
         problem.cancel.check()?;
@@ -208,13 +210,13 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         let targets: Vec<[f64; 4]> =
             crate::memory::try_collect(fits.iter().map(|f| f.target), "the per-facet targets")?;
         let mut u = crate::memory::try_vec(grid.n_unknowns(), 0.0, "the depths")?;
-        let inner_iterations = system.solve(grid, &targets, &problem.u0, &mut u)?;
+        let inner_iterations = system.solve(grid, &targets, &u0[..], &mut u)?;
         grid.apply_gauge(&mut u, &problem.gauge);
         timings.solve = t.elapsed();
         timings.total = start.elapsed();
         let history = vec![IterationStats {
             iteration: 1,
-            depth_change: max_depth_change(&problem.geometry, &u, &problem.u0),
+            depth_change: max_depth_change(&problem.geometry, &u, &u0[..]),
             rms_residual: rms_of(
                 &crate::memory::try_collect(
                     fits.iter().map(FacetStat::from),

@@ -395,7 +395,7 @@ fn search_stages(
     } else {
         hold_lobe(solver, problem, (range.0 * range.1).sqrt(), search.inner)
             .and_then(|()| {
-                let u = try_copy(&problem.u0, "the depths")?;
+                let u = problem.u0.to_vec("the depths")?;
                 search_refined(solver, problem, &wide, range, u, &mut count, progress)
             })
             .and_then(|searched| searched.found(range))
@@ -418,7 +418,7 @@ fn search_stages(
             )
             .and_then(|(estimate, _)| {
                 solver.lobe = None;
-                Ok((estimate, try_copy(&problem.u0, "the depths")?))
+                Ok((estimate, problem.u0.to_vec("the depths")?))
             })
         }
         Ok((wide, mut u)) if halvings > 0 => {
@@ -497,7 +497,7 @@ fn search_coarser(
     let saved = begin_search(&mut sub);
     let found = hold_lobe(&mut sub, level, (range.0 * range.1).sqrt(), wide.inner)
         .and_then(|()| {
-            let u = try_copy(&level.u0, "the depths")?;
+            let u = level.u0.to_vec("the depths")?;
             let wide = DistanceSearch {
                 inner: WIDE_INNER,
                 ..*wide
@@ -704,7 +704,7 @@ fn hold_lobe(
     }
     if solver.lobe.is_none() {
         let gauge = vec![problem.geometry.unknown(distance); problem.grid.n_regions];
-        let mut u = try_copy(&problem.u0, "the depths")?;
+        let mut u = problem.u0.to_vec("the depths")?;
         problem.grid.apply_gauge(&mut u, &gauge);
         let iterations = inner.max(crate::solver::LOBE_AT[1]);
         solver.iterate(&mut u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
@@ -1075,7 +1075,7 @@ pub fn reconstruct_auto(
             coarse_estimate = Some((estimate, coarse.grid.clone()));
             Ok(gauge)
         };
-        let mut u = try_copy(&problem.u0, "the depths")?;
+        let mut u = problem.u0.to_vec("the depths")?;
         let coarse = coarse_to_fine(
             problem,
             options,
@@ -1284,7 +1284,7 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
         let mut ev = Evaluator {
             refine: solver.lights.refine(),
             solver: &mut solver,
-            u: try_copy(&level.u0, "the depths")?,
+            u: level.u0.to_vec("the depths")?,
             inner,
             curve: vec![Vec::new(); level.grid.n_regions],
             candidate: 0,

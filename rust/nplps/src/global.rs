@@ -200,6 +200,43 @@ impl GlobalStep {
         }
     }
 
+    /// The right side of the next global step for `targets` from `z_current`, per unknown into
+    /// `z`; returns the norm of its target part. [`GlobalStep::solve_from`] then solves from it
+    /// without reading the targets, unless [`GlobalStep::needs_targets`] says it may redo the
+    /// step from them. [`GlobalStep::solve`] is these two calls.
+    pub fn right_side(
+        &self,
+        grid: &Grid,
+        targets: &[[f64; 4]],
+        z_current: &[f64],
+        z: &mut [f64],
+    ) -> f64 {
+        match self {
+            GlobalStep::Direct(system) => right_side(
+                grid,
+                targets,
+                &system.pins,
+                system.prior_rhs.as_deref(),
+                z_current,
+                z,
+            ),
+            GlobalStep::Multigrid { system, .. } => system.right_side(grid, targets, z_current, z),
+        }
+    }
+
+    /// Whether [`GlobalStep::solve_from`] may read the targets again: a multigrid system that
+    /// may fall back to the direct solver redoes the step from them (systems of at most
+    /// [`FALLBACK_MAX_UNKNOWNS`] unknowns).
+    pub fn needs_targets(&self) -> bool {
+        matches!(
+            self,
+            GlobalStep::Multigrid {
+                fallback: Some(_),
+                ..
+            }
+        )
+    }
+
     /// One global step (see [`GlobalSystem::solve`]); returns the conjugate-gradient iterations
     /// (0 for the direct solver). A multigrid solve that needed more than
     /// [`FALLBACK_ITERATIONS`] is redone, and the system kept, with the direct solver when the
@@ -211,19 +248,36 @@ impl GlobalStep {
         z_current: &[f64],
         z_out: &mut [f64],
     ) -> Result<usize> {
+        let norm = self.right_side(grid, targets, z_current, z_out);
+        self.solve_from(grid, norm, targets, z_current, z_out)
+    }
+
+    /// The global step from its right side in `z_out` ([`GlobalStep::right_side`], with the norm
+    /// `target_norm`), which the solution replaces; `targets` are read only where
+    /// [`GlobalStep::needs_targets`] (they may be empty otherwise). Returns as
+    /// [`GlobalStep::solve`].
+    pub fn solve_from(
+        &mut self,
+        grid: &Grid,
+        target_norm: f64,
+        targets: &[[f64; 4]],
+        z_current: &[f64],
+        z_out: &mut [f64],
+    ) -> Result<usize> {
         match self {
             GlobalStep::Direct(system) => {
-                system.solve(grid, targets, z_current, z_out);
+                system.chol.solve_in_place(z_out);
                 Ok(0)
             }
             GlobalStep::Multigrid { system, fallback } => {
                 // With a fallback, stop the conjugate gradients as soon as they are too slow.
                 system.reserve_work()?;
+                crate::memory::trace("global: work reserved");
                 let limit = system.max_iterations;
                 if fallback.is_some() {
                     system.max_iterations = limit.min(FALLBACK_ITERATIONS + 1);
                 }
-                let iterations = system.solve(grid, targets, z_current, z_out);
+                let iterations = system.solve_from(grid, target_norm, z_current, z_out);
                 system.max_iterations = limit;
                 if iterations > FALLBACK_ITERATIONS && !system.cancel.is_cancelled() {
                     if let Some(parts) = fallback.take() {

@@ -260,6 +260,8 @@ pub use error::{g6, Error, Result};
 pub use global::GlobalSolver;
 pub use light::Light;
 pub use local::{LightTrust, Robust, Trust, Weighting};
+#[doc(hidden)]
+pub use memory::trace as memtrace;
 pub use mesh::{
     mesh_arrays, ply_header, ply_plan, vertex_means, write_ply_records, MeshArrays, PlyColors,
     PlyPlan, Positions, VertexMap,

@@ -237,6 +237,27 @@ pub(crate) fn give_back() {
     }
 }
 
+/// Diagnostic: with `NPLPS_MEMTRACE` set in the environment, prints to stderr `label`, the
+/// resident memory now and its peak since the last trace (Linux: `VmRSS`, `VmHWM`; the peak is
+/// reset after reading it through `/proc/self/clear_refs`), in MiB. Nothing otherwise.
+#[doc(hidden)]
+pub fn trace(label: &str) {
+    use std::sync::OnceLock;
+    static ON: OnceLock<Option<std::time::Instant>> = OnceLock::new();
+    let Some(start) =
+        ON.get_or_init(|| std::env::var_os("NPLPS_MEMTRACE").map(|_| std::time::Instant::now()))
+    else {
+        return;
+    };
+    let mib = |key| proc_field("/proc/self/status", key).map_or(f64::NAN, |b| b as f64 / 1048576.0);
+    let (rss, hwm) = (mib("VmRSS"), mib("VmHWM"));
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+    eprintln!(
+        "memtrace {:8.3}s rss {rss:8.1} peak-since-last {hwm:8.1} MiB  {label}",
+        start.elapsed().as_secs_f64()
+    );
+}
+
 /// `RLIMIT_AS - VmSize` when an address-space limit is set.
 #[cfg(unix)]
 fn address_space_free() -> Option<u64> {

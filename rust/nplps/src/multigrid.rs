@@ -975,6 +975,7 @@ impl MultigridSystem {
     /// for the facets' `targets` from the warm start `z_current`, writing `z_out`. Returns the
     /// number of conjugate-gradient iterations. The work vectors must be there (after
     /// [`MultigridSystem::release_work`], [`MultigridSystem::reserve_work`] first).
+    #[cfg(test)]
     pub fn solve(
         &mut self,
         grid: &Grid,
@@ -982,19 +983,36 @@ impl MultigridSystem {
         z_current: &[f64],
         z_out: &mut [f64],
     ) -> usize {
+        let target_norm = self.right_side(grid, targets, z_current, z_out);
+        self.solve_from(grid, target_norm, z_current, z_out)
+    }
+
+    /// The right side of [`MultigridSystem::solve`] per unknown into `out`; returns the norm of
+    /// its target part (see [`right_side`]).
+    pub fn right_side(
+        &self,
+        grid: &Grid,
+        targets: &[[f64; 4]],
+        z_current: &[f64],
+        out: &mut [f64],
+    ) -> f64 {
+        let prior = self.prior_rhs.as_deref();
+        right_side(grid, targets, &self.pins, prior, z_current, out)
+    }
+
+    /// [`MultigridSystem::solve`] from its right side in `z` ([`MultigridSystem::right_side`],
+    /// whose norm is `target_norm`), which the solution then replaces: the targets are not
+    /// read, so the caller may give them back before the work vectors are reserved.
+    pub fn solve_from(
+        &mut self,
+        grid: &Grid,
+        target_norm: f64,
+        z_current: &[f64],
+        z_out: &mut [f64],
+    ) -> usize {
         let fine = &self.levels[0];
         let k = &mut self.krylov;
-        // The right side per unknown, in w (free until the first V-cycle), then onto the grid.
-        let n = grid.n_unknowns();
-        let target_norm = right_side(
-            grid,
-            targets,
-            &self.pins,
-            self.prior_rhs.as_deref(),
-            z_current,
-            &mut k.w[..n],
-        );
-        to_grid(fine.layout, grid, &k.w[..n], &mut k.r);
+        to_grid(fine.layout, grid, z_out, &mut k.r);
         let scale = if target_norm > 0.0 {
             target_norm
         } else {

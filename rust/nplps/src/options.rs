@@ -274,16 +274,19 @@ const FIXED: f64 = 64e6;
 const PER_PIXEL: f64 = 78.0;
 /// Extra bytes per frame pixel and colour channel beyond the first.
 const PER_CHANNEL: f64 = 16.0;
-/// Bytes per masked facet: the mesh's facet, unknown and region numbers (12), the starting
-/// and current depths (16), the solver's targets (32) and its next depths (8): 68, with 15 % to
-/// spare. The per-facet statistics (16) are held only while the multigrid's vectors are given
-/// back (the local step), the shadow march's transients (about 22 a pixel) only while the
-/// targets are; the facet corners and the vertices' (x, y) are computed, not stored. Measured
-/// with 16 grey lights, a full mask and the default options (issue 23, items 1/2): 136.5 bytes
-/// per pixel beyond the stack at 4 MP and 131.4 at 12 MP, i.e. about 129 a pixel and 33 MB
-/// fixed (204 at 4 MP before, 230 and 271 before that), which this and [`PER_PIXEL`] bound with
-/// 15 % to spare (148 a pixel).
-const PER_FACET: f64 = 70.0;
+/// Bytes per masked facet beyond [`PER_PIXEL`]: the mesh's facet, unknown and region numbers
+/// (12), the current depths (8) and, through the iterations, the solver's next depths (8): 28,
+/// 30 with the spare of the measurement below. The solver's targets (32) are held only while the multigrid's
+/// work vectors are given back (the local step, whose statistics are summed a chunk at a time)
+/// and the work vectors only while the targets are (the global step reads them into its right
+/// side first); the shadow march's transients (about 22 a pixel) only while neither is; a
+/// constant starting depth is not stored. At a full mask the iterations' peak (the frame-sized
+/// buffers of [`PER_PIXEL`] then hold the targets and the multigrid's vectors) and the end's
+/// (the result's maps) are about equal. Measured with 16 grey lights, a full mask and the
+/// default options at 12 MP (issue 23, given-back buffers forced by a `max_memory` below
+/// [`keeps_buffers`]'s share): 92-94 bytes a pixel beyond the stack (128-131 before, 204 and 271
+/// before that), which this and [`PER_PIXEL`] bound with 15 % to spare (108 a pixel).
+const PER_FACET: f64 = 30.0;
 /// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
 const PER_FACET_REFINE: f64 = 192.0;
 /// Extra bytes per facet with the direct sparse Cholesky at one megapixel (its fill grows
@@ -293,7 +296,7 @@ const PER_FACET_DIRECT: f64 = 900.0;
 /// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
 /// masked pixels and `channels` colour channels, beyond the input images themselves.
 ///
-/// `bytes = 64 MB + (78 + 16 (C - 1)) H W + (70 + 192 [refine] + 900 f(n) [direct]) n`,
+/// `bytes = 64 MB + (78 + 16 (C - 1)) H W + (30 + 192 [refine] + 900 f(n) [direct]) n`,
 /// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
 /// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
 pub fn reconstruction(
@@ -315,6 +318,37 @@ pub fn reconstruction(
     }
     let channels = channels.max(1) as f64;
     FIXED + (PER_PIXEL + PER_CHANNEL * (channels - 1.0)) * frame + per_facet * n
+}
+
+/// Extra bytes per facet of a run that keeps its iteration buffers from one step to the next
+/// (the multigrid's work vectors, about 37 a vertex, through the local step; the targets, 32,
+/// through the global step): the larger, with 15 % to spare.
+const PER_FACET_KEPT: f64 = 43.0;
+
+/// Share of the memory limit within which a run keeps its iteration buffers (see
+/// [`keeps_buffers`]): comfortably within it, the rest left to what follows the solve (the
+/// export holds the result's maps).
+const KEEP_SHARE: f64 = 0.5;
+
+/// Whether reconstructing `problem` with `options` keeps the solver's iteration buffers from
+/// one step to the next ([`crate::solver`]'s `keep_buffers`): when its estimate
+/// ([`reconstruction`]) plus [`PER_FACET_KEPT`] a facet is within [`KEEP_SHARE`] of the memory
+/// limit (see [`crate::memory::limit`]) and of the memory available now (see
+/// [`crate::memory::available`], which also sees an address-space cap; neither known: kept).
+/// Otherwise they are given back between the
+/// steps, which lowers the peak for the cost of touching fresh zero pages each iteration. The
+/// results are the same bits either way.
+pub(crate) fn keeps_buffers(problem: &crate::Problem<'_>, options: &Options) -> bool {
+    let (h, w) = problem.shape();
+    let facets = problem.grid.n_facets();
+    let needed = reconstruction(h, w, facets, problem.obs.channels, options)
+        + PER_FACET_KEPT * facets as f64;
+    let available = crate::memory::available().map(|a| a as f64);
+    let room = match (crate::memory::limit(options.max_memory), available) {
+        (Some(l), Some(a)) => Some(l.min(a)),
+        (l, a) => l.or(a),
+    };
+    room.is_none_or(|room| needed <= KEEP_SHARE * room)
 }
 
 /// Checks the memory of a reconstruction (see [`reconstruction`]) against `options.max_memory`.
@@ -360,12 +394,12 @@ mod tests {
         let plain = Options::default();
         let small = reconstruction(512, 512, 512 * 512, 1, &plain);
         let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
-        // Linear in the pixels beyond the fixed part; measured 129 B/px beyond the stack and
-        // 33 MB (136.5 B/px at 2048², 131.4 at 4000 x 3000; 16 lights, full mask, issue 23):
+        // Linear in the pixels beyond the fixed part; measured 92-94 B/px beyond the stack at
+        // 4000 x 3000 (16 lights, full mask, buffers given back between the steps; issue 23):
         // the estimate bounds it with 15 % to spare.
         assert!((large - FIXED) / (small - FIXED) > 15.9);
         let per_pixel = (large - FIXED) / (2048.0 * 2048.0);
-        assert!((145.0..152.0).contains(&per_pixel), "{per_pixel}");
+        assert!((104.0..110.0).contains(&per_pixel), "{per_pixel}");
         let refine = Options {
             refine: Refine {
                 intensity: true,

@@ -115,7 +115,7 @@ pub struct Problem<'a> {
     /// Per-facet observations.
     pub(crate) obs: Observations<'a>,
     /// Initial unknown of each active vertex (depth, or log-depth for a pinhole camera).
-    pub(crate) u0: Vec<f64>,
+    pub(crate) u0: Start,
     /// Gauge of each region: the mean of its unknowns (arithmetic mean depth, or log of the
     /// geometric mean depth).
     pub(crate) gauge: Vec<f64>,
@@ -222,10 +222,13 @@ impl<'a> Problem<'a> {
         geometry.check_rays(&grid, |_| true)?;
         cancel.check()?;
         let (u0, gauge) = initial_unknowns(&grid, &geometry, depth)?;
-        let min_depth = u0
-            .iter()
-            .map(|&u| geometry.depth(u))
-            .fold(f64::INFINITY, f64::min);
+        let min_depth = match &u0 {
+            Start::Constant { value, .. } => geometry.depth(*value),
+            Start::Values(u0) => u0
+                .iter()
+                .map(|&u| geometry.depth(u))
+                .fold(f64::INFINITY, f64::min),
+        };
         rig.check_lights_in_front(min_depth)?;
         let obs = Observations::from_samples(
             images.data,
@@ -291,11 +294,48 @@ impl Problem<'_> {
     }
 }
 
+/// The starting unknowns of a problem: one value for all of them (a working distance; computed
+/// where they are read, so that the problem does not hold 8 bytes an unknown through the run),
+/// or one each (a depth map, a coarse level's).
+#[derive(Debug, Clone)]
+pub(crate) enum Start {
+    /// Every one of the `len` unknowns starts at `value`.
+    Constant { value: f64, len: usize },
+    /// Each unknown's own.
+    Values(Vec<f64>),
+}
+
+impl Start {
+    /// The starting unknowns (allocated for a constant start, or [`crate::Error::Memory`]).
+    pub(crate) fn values(&self) -> Result<std::borrow::Cow<'_, [f64]>> {
+        Ok(match self {
+            Start::Constant { .. } => std::borrow::Cow::Owned(self.to_vec("the starting depths")?),
+            Start::Values(v) => std::borrow::Cow::Borrowed(v),
+        })
+    }
+
+    /// The starting unknown of unknown `i`.
+    pub(crate) fn at(&self, i: usize) -> f64 {
+        match self {
+            &Start::Constant { value, .. } => value,
+            Start::Values(v) => v[i],
+        }
+    }
+
+    /// A copy of the starting unknowns (`what` names it in [`crate::Error::Memory`]).
+    pub(crate) fn to_vec(&self, what: &str) -> Result<Vec<f64>> {
+        match self {
+            &Start::Constant { value, len } => try_vec(len, value, what),
+            Start::Values(v) => crate::memory::try_copy(v, what),
+        }
+    }
+}
+
 fn initial_unknowns(
     grid: &Grid,
     geometry: &Geometry,
     depth: InitialDepth<'_>,
-) -> Result<(Vec<f64>, Vec<f64>)> {
+) -> Result<(Start, Vec<f64>)> {
     let positive = geometry.is_perspective();
     // Depths beyond the rig's bounds overflow (or, for a pinhole camera, collapse) the mesh.
     let valid = |z: f64| {
@@ -311,10 +351,8 @@ fn initial_unknowns(
                 )
             })?;
             let u = geometry.unknown(d);
-            Ok((
-                try_vec(grid.n_unknowns(), u, "the starting depths")?,
-                vec![u; grid.n_regions],
-            ))
+            let len = grid.n_unknowns();
+            Ok((Start::Constant { value: u, len }, vec![u; grid.n_regions]))
         }
         InitialDepth::Map(map) => {
             let (h, w) = (grid.height + 1, grid.width + 1);
@@ -350,7 +388,7 @@ fn initial_unknowns(
                 *z = geometry.unknown(*z);
             }
             let gauge = grid.region_means(&u0);
-            Ok((u0, gauge))
+            Ok((Start::Values(u0), gauge))
         }
     }
 }

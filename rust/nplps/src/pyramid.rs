@@ -147,7 +147,7 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
         ),
     }
     problem.cancel.check()?;
-    let u0 = subsample(grid, &problem.u0, &coarse_grid, f64::NAN)?;
+    let u0 = subsample(grid, &problem.u0.values()?, &coarse_grid, f64::NAN)?;
     let u0 = fill_missing(&coarse_grid, u0, &problem.gauge)?;
     let prior = match problem.prior.as_ref() {
         Some(p) => Some(Prior {
@@ -359,7 +359,7 @@ pub fn coarse_problem(data: Coarsened, rig: &Rig) -> Result<Problem<'_>> {
         gauge,
         grid: data.grid,
         obs: data.obs,
-        u0: data.u0,
+        u0: crate::problem::Start::Values(data.u0),
         negative_observations: 0,
         prior: data.prior,
         cancel: crate::Cancel::default(),

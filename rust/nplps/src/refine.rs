@@ -1215,9 +1215,10 @@ mod tests {
     fn true_normals(problem: &Problem<'_>) -> Vec<[f32; 3]> {
         (0..problem.grid.n_facets())
             .map(|f| {
-                let q = problem
-                    .geometry
-                    .facet_corners(&problem.grid, f, &problem.u0);
+                let q =
+                    problem
+                        .geometry
+                        .facet_corners(&problem.grid, f, &problem.u0.values().unwrap());
                 crate::geometry::quad_normal(&q).map(|x| x as f32)
             })
             .collect()
@@ -1249,7 +1250,7 @@ mod tests {
         let data = LightData::of(&problem, FitSettings::default());
         let mut refiner = Refiner::new(refine, lights.clone());
         for _ in 0..15 {
-            refiner.step(&data, &mut lights, &problem.u0);
+            refiner.step(&data, &mut lights, &problem.u0.values().unwrap());
         }
         // Relative intensities: ratios to the geometric mean.
         let ratio = |ls: &[Light]| -> Vec<f64> {
@@ -1301,7 +1302,7 @@ mod tests {
             let data = LightData::of(&problem, settings).with_normals(Some(&normals));
             let mut refiner = Refiner::new(refine, lights.clone());
             for _ in 0..15 {
-                refiner.step(&data, &mut lights, &problem.u0);
+                refiner.step(&data, &mut lights, &problem.u0.values().unwrap());
             }
             ratio(&lights)
                 .iter()
@@ -1347,8 +1348,11 @@ mod tests {
                     ..FitSettings::default()
                 };
                 let data = LightData::of(&problem, settings).with_normals(Some(&normals));
-                let cache = data.betas(&lights, &problem.u0).unwrap().unwrap();
-                let u = &problem.u0;
+                let cache = data
+                    .betas(&lights, &problem.u0.values().unwrap())
+                    .unwrap()
+                    .unwrap();
+                let u = &problem.u0.values().unwrap();
                 let trial: Vec<Light> = scene.rig.lights.clone();
                 for (with_h, pair) in [(true, (&lights, &lights)), (false, (&trial, &lights))] {
                     let pair = (&pair.0[..], &pair.1[..]);
@@ -1400,7 +1404,10 @@ mod tests {
         let data = LightData::of(&problem, FitSettings::default());
         let mut refiner = Refiner::new(Refine::NONE.with_intensity(true), lights.clone());
         let mut steps = 0;
-        while refiner.step(&data, &mut lights, &problem.u0).accepted {
+        while refiner
+            .step(&data, &mut lights, &problem.u0.values().unwrap())
+            .accepted
+        {
             steps += 1;
             assert!(steps < 30, "the light steps did not settle");
         }
@@ -1412,7 +1419,7 @@ mod tests {
         let c = conditioning(
             &data,
             &lights,
-            &problem.u0,
+            &problem.u0.values().unwrap(),
             &Refine::NONE.with_intensity(true),
         )
         .unwrap();
@@ -1450,7 +1457,7 @@ mod tests {
         let data = LightData::of(&problem, FitSettings::default());
         let mut refiner = Refiner::new(refine, lights.clone());
         for _ in 0..40 {
-            refiner.step(&data, &mut lights, &problem.u0);
+            refiner.step(&data, &mut lights, &problem.u0.values().unwrap());
         }
         for (a, b) in lights.iter().zip(&scene.rig.lights) {
             if let (Light::Point { position: p, .. }, Light::Point { position: q, .. }) = (a, b) {
@@ -1458,7 +1465,7 @@ mod tests {
                 assert!(norm(d) < 0.01, "{p:?} vs {q:?}");
             }
         }
-        let c = conditioning(&data, &lights, &problem.u0, &refine).unwrap();
+        let c = conditioning(&data, &lights, &problem.u0.values().unwrap(), &refine).unwrap();
         assert_eq!(c.singular_values.len(), 3 * lights.len());
         assert!(c.singular_values.iter().all(|s| s.is_finite() && *s > 0.0));
     }

@@ -56,16 +56,21 @@ pub fn reconstruct(
     problem.cancel.check()?;
     check_fittable(problem, &options.fit_settings(false))?;
     problem.cancel.check()?;
-    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0)?;
+    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0.values()?)?;
     problem.cancel.check()?;
     with_threads(options.threads, || {
         let start = Instant::now();
-        let mut u = try_copy(&problem.u0, "the depths")?;
+        crate::memory::trace("reconstruct: start (problem made)");
+        let mut u = problem.u0.to_vec("the depths")?;
         let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
+        crate::memory::trace("coarse levels done");
         crate::memory::give_back(); // the coarse levels' buffers
+        crate::memory::trace("give_back");
         let mut solver = Solver::new(problem, options)?;
+        crate::memory::trace("fine Solver::new");
         solver.start = start;
         solver.lean = true;
+        solver.keep_buffers = crate::options::keeps_buffers(problem, options);
         let mut history = solver.carry(coarse)?;
         let (fine, converged) = if solver.carried {
             problem.grid.apply_gauge(&mut u, &problem.gauge);
@@ -237,7 +242,7 @@ pub(crate) fn coarse_to_fine(
         solver.level = i + 1;
         let unknowns = p.grid.n_unknowns();
         let h = if i + 1 == coarse.len() {
-            current = try_copy(&p.u0, "the depths")?;
+            current = p.u0.to_vec("the depths")?;
             let gauge = match at_coarsest.as_mut() {
                 Some(hook) => hook(&mut solver, &mut current, progress)?,
                 None => p.gauge.clone(),
@@ -313,6 +318,11 @@ pub(crate) struct Solver<'p> {
     /// global step's instead of their sum, for the cost of touching fresh zero pages each
     /// iteration.
     pub(crate) lean: bool,
+    /// Whether a lean solver still keeps its targets and the multigrid's work vectors from one
+    /// step to the next (when the run fits the memory limit with them, see
+    /// [`crate::options::keeps_buffers`]): giving them back costs touching fresh zero pages
+    /// (64 bytes a facet) every iteration, about a tenth of the local step.
+    pub(crate) keep_buffers: bool,
     /// Whether every iteration checks that the surface stays in front of the point lights (off
     /// while the distance search tries candidates, where a bad one is just a high residual).
     pub(crate) check_lights: bool,
@@ -402,6 +412,7 @@ impl<'p> Solver<'p> {
             carried: false,
             stalled: false,
             lean: false,
+            keep_buffers: false,
             check_lights: true,
             timings: Timings {
                 factorization: t.elapsed(),
@@ -782,17 +793,17 @@ impl<'p> Solver<'p> {
         // The targets are dead here (the next local step writes every facet's): their memory
         // (32 bytes a facet) is given back while the march holds its own (the vertex depths,
         // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
-        // otherwise set the peak of the run.
-        let facets_of_targets = std::mem::take(&mut self.targets).len();
+        // otherwise set the peak of the run; [`Solver::local`] allocates them again.
+        self.targets = Vec::new();
+        crate::memory::trace("shadows: before march");
         let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
+        crate::memory::trace("shadows: after march");
         if seen {
             let mask = march(1)?;
             if policy == Shadows::On || share(&mask, 1) >= AUTO_SHARE {
                 self.shadows = Some(mask);
             }
         }
-        self.targets =
-            crate::memory::try_zeros(facets_of_targets, "the solver's per-facet targets")?;
         self.timings.shadows += t.elapsed();
         p.cancel.check()
     }
@@ -882,9 +893,17 @@ impl<'p> Solver<'p> {
         // The vertex depths go into `next`, free until the global step writes it.
         let mut depths = std::mem::take(&mut self.next);
         let perspective = self.depths_into(u, &mut depths);
-        if self.stats.len() != self.targets.len() {
-            self.stats =
-                crate::memory::try_zeros(self.targets.len(), "the solver's per-facet statistics")?;
+        let n = self.problem.grid.n_facets();
+        if self.targets.len() != n {
+            self.targets = crate::memory::try_zeros(n, "the solver's per-facet targets")?;
+        }
+        // Lean and Lambertian, only the residual is read of the statistics: they are made a
+        // chunk at a time (see [`STAT_CHUNK`]) instead of held for every facet.
+        let chunked = self.lean && self.lobe.is_none();
+        let stats_len = if chunked { n.min(STAT_CHUNK) } else { n };
+        if self.stats.len() != stats_len {
+            self.stats = Vec::new();
+            self.stats = crate::memory::try_zeros(stats_len, "the solver's per-facet statistics")?;
         }
         let (mut targets, mut stats) = (
             std::mem::take(&mut self.targets),
@@ -892,15 +911,35 @@ impl<'p> Solver<'p> {
         );
         let mut warm = std::mem::take(&mut self.warm);
         let step = self.local_step(true, perspective.then_some(&depths[..]));
+        let channels = self.problem.obs.channels;
+        crate::memory::trace("local: before run");
         let done = match step.settings.lobe {
-            Some(_) => step.try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm),
-            None => step.try_run_targets(u, &mut targets, &mut stats),
+            Some(_) => step
+                .try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm)
+                .map(|()| rms_of(&stats, channels)),
+            None if chunked => {
+                let mut sum = RmsSum::default();
+                let mut run = || -> Result<f64> {
+                    for first in (0..n).step_by(STAT_CHUNK) {
+                        let len = (n - first).min(STAT_CHUNK);
+                        let chunk = &mut stats[..len];
+                        step.try_run_targets_at(first, u, &mut targets[first..][..len], chunk)?;
+                        sum.add(chunk, channels);
+                    }
+                    Ok(sum.rms())
+                };
+                run()
+            }
+            None => step
+                .try_run_targets(u, &mut targets, &mut stats)
+                .map(|()| rms_of(&stats, channels)),
         };
+        crate::memory::trace("local: after run");
         (self.targets, self.stats, self.warm, self.next) = (targets, stats, warm, depths);
-        done?;
+        let rms = done?;
         self.timings.local += t.elapsed();
         self.problem.cancel.check()?;
-        Ok(rms_of(&self.stats, self.problem.obs.channels))
+        Ok(rms)
     }
 
     /// Safeguard: with refinement, back to the state of lowest residual when the residual rose
@@ -933,16 +972,28 @@ impl<'p> Solver<'p> {
         let p = self.problem;
         if self.lean {
             // Read only by the local step that wrote them (its residual) and by the distance
-            // search (which keeps them): their 16 bytes a facet are given back while the
-            // conjugate-gradient vectors are in use, and allocated again (zero pages, touched
-            // by the next local step) in `local`.
+            // search (which keeps them): given back while the conjugate-gradient vectors are
+            // in use, and allocated again in `local`.
             self.stats = Vec::new();
         }
         let system = self.system.as_mut().expect("the solver has not finished");
-        let inner_iterations = system.solve(&p.grid, &self.targets, u, &mut self.next)?;
-        if self.lean {
+        // The right side goes into `next` (which the solution then replaces); after it the
+        // targets are dead until the next local step writes them all.
+        let norm = system.right_side(&p.grid, &self.targets, u, &mut self.next);
+        if self.lean && !self.keep_buffers && !system.needs_targets() {
+            // Their 32 bytes a facet are given back while the conjugate-gradient vectors are
+            // in use, and allocated again (zero pages, touched by the next local step) in
+            // `local`.
+            self.targets = Vec::new();
+        }
+        crate::memory::trace("global: before solve");
+        let inner_iterations =
+            system.solve_from(&p.grid, norm, &self.targets, u, &mut self.next)?;
+        crate::memory::trace("global: after solve");
+        if self.lean && !self.keep_buffers {
             system.release_work();
         }
+        crate::memory::trace("global: after release");
         p.cancel.check()?;
         p.grid.apply_gauge(&mut self.next, gauge);
         self.timings.solve += t.elapsed();
@@ -1082,10 +1133,14 @@ impl<'p> Solver<'p> {
         drop(std::mem::take(&mut self.stats));
         drop(std::mem::take(&mut self.next));
         drop(self.system.take());
+        // Much of the multigrid's coarse levels came from the allocator's arenas.
+        crate::memory::give_back();
+        crate::memory::trace("finish: freed");
         let glossy = self.lobe.is_some();
         let problem = self.problem;
         let mut outputs = FitOutputs::new(problem, glossy)?;
         let depths = self.depths(u)?;
+        crate::memory::trace("finish: outputs+depths");
         let step = LocalStep {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
             ..self.local_step(false, depths.as_deref())
@@ -1105,6 +1160,7 @@ impl<'p> Solver<'p> {
             outputs.scatter(problem, first, chunk);
             maps.scatter(&problem.grid, first, values);
         }
+        crate::memory::trace("finish: final local step");
         drop((fits, trust, depths));
         let trust = maps.finish();
         problem.cancel.check()?;
@@ -1112,6 +1168,7 @@ impl<'p> Solver<'p> {
         self.timings.total = self.start.elapsed();
         let refinement = self.refinement_report(u);
         let mut result = assemble(problem, u, outputs, history, converged, self.timings)?;
+        crate::memory::trace("finish: assembled");
         result.refinement = refinement;
         result.assess(self.options.tol * lateral_size(problem), self.stalled);
         result.lights = self.lights.take_lights();
@@ -1156,6 +1213,36 @@ impl<'p> Solver<'p> {
 /// Facets per chunk of the final, exact local step (bounds its scratch memory).
 const FINAL_CHUNK: usize = 1 << 18;
 
+/// Facets per chunk of a lean Lambertian local step (see [`Solver::local`]), whose statistics
+/// are summed a chunk at a time: 1 MB of them instead of 16 bytes a facet (a multiple of the
+/// lane count, so that the facets are batched as in one run).
+const STAT_CHUNK: usize = 1 << 16;
+
+/// The running sums of [`rms_of`] over the chunks of a local step: the same additions in the
+/// same order, so the same bits as [`rms_of`] of all the statistics at once.
+#[derive(Default)]
+struct RmsSum {
+    sse: f64,
+    count: u64,
+}
+
+impl RmsSum {
+    fn add(&mut self, stats: &[FacetStat], channels: usize) {
+        for f in stats.iter().filter(|f| f.valid) {
+            self.sse += f.sse;
+            self.count += (f.used as usize * channels) as u64;
+        }
+    }
+
+    fn rms(&self) -> f64 {
+        if self.count == 0 {
+            f64::NAN
+        } else {
+            (self.sse / self.count as f64).sqrt()
+        }
+    }
+}
+
 // The tests reconstruct synthetic scenes (cargo feature `synth`).
 #[cfg(all(test, feature = "synth"))]
 mod tests {
@@ -1192,7 +1279,7 @@ mod tests {
             position[2] = scene.mean_depth();
         }
         solver.lights.set_lights(lights);
-        let mut u = problem.u0.clone();
+        let mut u = problem.u0.to_vec("the depths").unwrap();
         let err = solver
             .iterate(&mut u, &problem.gauge, 5, 0.0, &mut |_| Control::Continue)
             .unwrap_err();
@@ -1200,6 +1287,40 @@ mod tests {
             matches!(&err, Error::Solver(m) if m.contains("reached light 3")),
             "{err}"
         );
+    }
+
+    /// What the lean run moves in memory (the statistics summed a chunk at a time, the targets
+    /// and the multigrid's work vectors given back between the steps) changes no bit: the
+    /// depths and residuals of the iterations are those of a solver that keeps everything.
+    #[test]
+    fn given_back_buffers_change_no_bit() {
+        // More than one chunk of statistics.
+        let scene = Scene::new(SceneKind::Bumps, 300, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = at_true_distance(&scene, &scene.rig, &images);
+        assert!(problem.grid.n_facets() > STAT_CHUNK);
+        let options = Options {
+            levels: 1,
+            solver: crate::GlobalSolver::Multigrid,
+            ..Options::default()
+        };
+        let run = |lean: bool, keep_buffers: bool| {
+            let mut solver = Solver::new(&problem, &options).unwrap();
+            solver.lean = lean;
+            solver.keep_buffers = keep_buffers;
+            let mut u = problem.u0.to_vec("the depths").unwrap();
+            let gauge = &problem.gauge;
+            let (history, _) = solver
+                .iterate(&mut u, gauge, 4, 0.0, &mut |_| Control::Continue)
+                .unwrap();
+            let residuals: Vec<u64> = history.iter().map(|h| h.rms_residual.to_bits()).collect();
+            let depths: Vec<u64> = u.iter().map(|x| x.to_bits()).collect();
+            (depths, residuals)
+        };
+        let kept = run(false, false);
+        assert_eq!(kept.1.len(), 4);
+        assert!(run(true, false) == kept);
+        assert!(run(true, true) == kept);
     }
 
     /// The bits of a result's normals and depths (NaN outside the mask compares equal).

@@ -668,6 +668,20 @@ impl LocalStep<'_> {
         targets: &mut [[f64; 4]],
         stats: &mut [FacetStat],
     ) -> Result<()> {
+        self.try_run_targets_at(0, u, targets, stats)
+    }
+
+    /// As [`LocalStep::try_run_targets`] for the facets `start..start + targets.len()` only
+    /// (`start` a multiple of the lane count, so the facets are batched as in a whole run and
+    /// the results are the same bits).
+    pub fn try_run_targets_at(
+        &self,
+        start: usize,
+        u: &[f64],
+        targets: &mut [[f64; 4]],
+        stats: &mut [FacetStat],
+    ) -> Result<()> {
+        debug_assert_eq!(start % LANES, 0);
         let per = self.obs.per_facet();
         if let Some(lights) = self.lane_lights() {
             let lights = &lights[..];
@@ -682,7 +696,7 @@ impl LocalStep<'_> {
                         if self.cancel.is_cancelled() {
                             return Ok(());
                         }
-                        let first = chunk * LANES;
+                        let first = start + chunk * LANES;
                         if targets.len() == LANES {
                             let fits = self.fit_lanes(lights, first, u, buf, interleaved, None);
                             for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&fits) {
@@ -711,7 +725,7 @@ impl LocalStep<'_> {
                     if self.cancel.is_cancelled() {
                         return Ok(());
                     }
-                    let fit = self.fit(f, u, buf, glossy, None);
+                    let fit = self.fit(start + f, u, buf, glossy, None);
                     *target = fit.target;
                     *stat = FacetStat::from(&fit);
                     Ok(())
