@@ -351,6 +351,9 @@ pub(crate) struct Solver<'p> {
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
+    /// Whether the run marches at its first iteration only (the last run of
+    /// [`Solver::interreflect`], which starts on the rounds' mesh).
+    first_march_only: bool,
     /// Whether the next iteration marches whatever [`SHADOWS_AT`] says: after the glossy model
     /// was dropped, whose surface the last masks came from.
     march_next: bool,
@@ -430,6 +433,7 @@ impl<'p> Solver<'p> {
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
+            first_march_only: false,
             march_next: false,
             indirect: None,
             oscillation: Oscillation::default(),
@@ -588,7 +592,7 @@ impl<'p> Solver<'p> {
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         for round in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
-            let min_factor = self.indirect.take().map_or(1, |f| f.factor());
+            let previous = self.indirect.take();
             self.indirect = Some(
                 IndirectField::of_mesh(
                     &p.rig.camera,
@@ -597,7 +601,7 @@ impl<'p> Solver<'p> {
                     u,
                     &p.obs,
                     self.lights.lights(),
-                    min_factor,
+                    previous,
                     None,
                 )?
                 .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
@@ -614,7 +618,15 @@ impl<'p> Solver<'p> {
                 break;
             }
         }
-        let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
+        if let Some(field) = self.indirect.as_mut() {
+            field.drop_sightlines();
+        }
+        // The last run starts from the rounds' mesh, close to its own: it marches once, at its
+        // first iteration (the rounds' masks come from an earlier mesh).
+        self.first_march_only = true;
+        let last = self.iterate(u, gauge, iterations, tol, progress);
+        self.first_march_only = false;
+        let (last, converged) = last?;
         history.extend(last);
         Ok((history, converged))
     }
@@ -739,7 +751,13 @@ impl<'p> Solver<'p> {
     /// that share.
     fn cast_shadows(&mut self, u: &[f64], iteration: usize) -> Result<()> {
         let policy = self.options.shadows;
-        let due = SHADOWS_AT.contains(&iteration) || std::mem::take(&mut self.march_next);
+        let due = match std::mem::take(&mut self.march_next) {
+            true => true,
+            false => match self.first_march_only {
+                true => iteration == 1,
+                false => SHADOWS_AT.contains(&iteration),
+            },
+        };
         if !policy.is_active() || !due {
             return Ok(());
         }
@@ -1356,9 +1374,17 @@ mod tests {
         let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
         for _ in 0..40 {
             let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
-            let field =
-                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, &[], 1, None)
-                    .unwrap();
+            let field = IndirectField::of_mesh(
+                &scene.rig.camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                None,
+                None,
+            )
+            .unwrap();
             assert_eq!(field.factor(), 1);
             let mut next = images.clone();
             for p in grid.facets.iter().map(|&p| p as usize) {
