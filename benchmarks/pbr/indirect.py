@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from render import bowl_surface, make_rig, mean_depth, reflectance  # benchmarks/pbr/render.py
+from render import bowl_surface, facet_normals, make_rig, mean_depth, reflectance  # benchmarks/pbr/render.py
 from run import angles, depth_rms, parse_options, reconstruct  # benchmarks/pbr/run.py
 
 import nplps
@@ -115,13 +115,18 @@ def errors(data: dict[str, Any], rig: nplps.Rig, depth: Any, options: dict[str, 
     return out
 
 
-def pairs(paths: list[Path]) -> list[tuple[Path, Path]]:
-    """Return the (GI, direct twin) pairs among the given files or directories."""
+def gi_files(paths: list[Path]) -> list[Path]:
+    """Return the GI renders among the given files or directories."""
     files: list[Path] = []
     for path in paths:
         files.extend(sorted(path.glob("*-gi-*.npz")) if path.is_dir() else [path])
+    return [f for f in files if NAME.search(f.name)]
+
+
+def pairs(paths: list[Path]) -> list[tuple[Path, Path]]:
+    """Return the (GI, direct twin) pairs among the given files or directories."""
     found = []
-    for gi in files:
+    for gi in gi_files(paths):
         match = NAME.search(gi.name)
         if not match:
             continue
@@ -140,8 +145,9 @@ def synthetic_bowl(n: int, paths: list[Path]) -> dict[str, Any]:
     rig = make_rig(n)
     images = nplps.render(depth, rig, 0.5, mask=mask, shadows=True).astype(np.float32)
     indirect = "none"
-    for gi_path, direct_path in pairs(paths) if paths else []:
-        if gi_path.name == "bowl-diffuse-gi-256.npz" and n % 256 == 0:
+    for gi_path in gi_files(paths):
+        direct_path = gi_path.with_name(gi_path.name.replace("-gi-", "-direct-"))
+        if gi_path.name == "bowl-diffuse-gi-256.npz" and n % 256 == 0 and direct_path.exists():
             gi, _ = load(gi_path)
             direct, _ = load(direct_path)
             extra = np.clip(gi["images"] - direct["images"], 0.0, None) * gi["mask"][None]
@@ -153,6 +159,7 @@ def synthetic_bowl(n: int, paths: list[Path]) -> dict[str, Any]:
         "mask": mask,
         "rig": json.dumps(rig.to_dict()),
         "distance": mean_depth(depth, mask),
+        "normals": facet_normals(depth, n),
         "name": f"synthetic bowl {n}² (indirect: {indirect})",
     }
 
@@ -160,7 +167,7 @@ def synthetic_bowl(n: int, paths: list[Path]) -> dict[str, Any]:
 def cost_cases(args: argparse.Namespace) -> list[tuple[str, dict[str, Any], nplps.Rig]]:
     """Return the cases of ``--cost``: (name, arrays, rig)."""
     cases = []
-    for gi_path, _ in pairs(args.paths) if args.paths else []:
+    for gi_path in gi_files(args.paths):
         data, rig = load(gi_path)
         cases.append((gi_path.name, data, rig))
     for n in args.synthetic:
@@ -169,16 +176,18 @@ def cost_cases(args: argparse.Namespace) -> list[tuple[str, dict[str, Any], nplp
     return cases
 
 
-def timed(data: dict[str, Any], rig: nplps.Rig, options: dict[str, Any]) -> tuple[float, float, int]:
-    """Return the wall seconds, the seconds on the indirect light and the iterations of one run."""
-    start = time.perf_counter()
+def timed(data: dict[str, Any], rig: nplps.Rig, options: dict[str, Any]) -> tuple[float, float, int, float, float]:
+    """Return the wall seconds, the seconds on the indirect light, the iterations, the CPU seconds and the error."""
+    start, cpu = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = nplps.reconstruct(
-            data["images"], rig, depth=float(data["distance"]), mask=data["mask"], **options
-        )
-    seconds = time.perf_counter() - start
-    return seconds, float(result.timings["indirect"]), len(result.history)
+        result = nplps.reconstruct(data["images"], rig, depth=float(data["distance"]), mask=data["mask"], **options)
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    error = float("nan")
+    if "normals" in data:
+        mask = data["mask"]
+        error = float(angles(result.normals[mask], data["normals"][mask]).mean())
+    return seconds, float(result.timings["indirect"]), len(result.history), cpu, error
 
 
 def child_peak(args: argparse.Namespace, case: int, options: dict[str, Any]) -> float:
@@ -199,7 +208,10 @@ def cost(args: argparse.Namespace, options: dict[str, Any]) -> None:
         print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
         return
     on = {**options, "interreflections": True}
-    header = "| case | default (s) | with (s) | ratio | indirect (s) | iterations | runs |"
+    header = (
+        "| case | default (s) | with (s) | ratio | CPU default (s) | CPU with (s) | CPU ratio | indirect (s) | "
+        "iterations | mean error default / with (deg) | runs |"
+    )
     if args.memory:
         header += " peak default (MB) | peak with (MB) | peak growth |"
     print(header)
@@ -212,17 +224,23 @@ def cost(args: argparse.Namespace, options: dict[str, Any]) -> None:
             with_.append(timed(data, rig, on))
         a = float(np.median([t[0] for t in plain]))
         b = float(np.median([t[0] for t in with_]))
+        ca = float(np.median([t[3] for t in plain]))
+        cb = float(np.median([t[3] for t in with_]))
         row: dict[str, Any] = {
             "case": name,
             "default_s": [t[0] for t in plain],
             "with_s": [t[0] for t in with_],
             "indirect_s": [t[1] for t in with_],
+            "default_cpu_s": [t[3] for t in plain],
+            "with_cpu_s": [t[3] for t in with_],
+            "errors_deg": (plain[0][4], with_[0][4]),
             "iterations": (plain[0][2], with_[0][2]),
             "ratio": b / a,
         }
         line = (
-            f"| {name} | {a:.2f} | {b:.2f} | {b / a:.2f}x | {np.median(row['indirect_s']):.2f} | "
-            f"{plain[0][2]} / {with_[0][2]} | {args.repeats} |"
+            f"| {name} | {a:.2f} | {b:.2f} | {b / a:.2f}x | {ca:.2f} | {cb:.2f} | {cb / ca:.2f}x | "
+            f"{np.median(row['indirect_s']):.2f} | {plain[0][2]} / {with_[0][2]} | "
+            f"{plain[0][4]:.3f} / {with_[0][4]:.3f} | {args.repeats} |"
         )
         if args.memory:
             row["peak_default_mb"] = child_peak(args, index, options)

@@ -86,6 +86,16 @@
 //! the mask or with a non-finite corner neither block nor end the march (the surface there is
 //! unknown). Visibility is symmetric: each unordered pair is marched once.
 //!
+//! A mesh that moves a little keeps most verdicts ([`Exchange::build`], used by the solver's
+//! rounds): the march of a facing pair also gives its *clearance*, the smallest margin of the
+//! surface behind the segment over its samples when visible, the deepest cut of the ridge that
+//! blocks it when blocked (the march goes on past the first blocking sample while the surface
+//! rises further in front). On a mesh whose vertices moved by at most `delta` within the
+//! bounding box of the pair's two pixels (the box holds the image of the segment and every
+//! surface point its samples read), a verdict whose clearance exceeds [`SIGHT_SLACK`] `delta`
+//! cannot have changed and is kept; the others are marched again. The exchange is then the
+//! same, bit for bit, as one built afresh.
+//!
 //! ## Cost and memory
 //!
 //! With `F` masked facets (e.g. `F <= 64^2` on a coarse level of the pyramid), building tests
@@ -93,7 +103,8 @@
 //! ones, `O(D)` samples each (`D` the image diagonal in pixels): `O(F^2 D)` time in the worst
 //! case, `O(F^2)` on surfaces where few pairs face each other, parallel over the facets. Near
 //! pairs cost `2 S^2` = 32 evaluations of the edge formula each, `O(F NEAR^2)` of them. It is
-//! computed once per geometry.
+//! computed once per geometry; with the verdicts of a nearby mesh only the pairs near its
+//! change are marched (the facing tests and the weights are computed again: `O(F^2)`).
 //!
 //! The pairs are stored sparsely, by receiver (compressed rows): a `u32` source facet and the
 //! weight vector as 3 `f32`, [`BYTES_PER_PAIR`] = 16 bytes per directed pair (each facing, visible
@@ -102,7 +113,10 @@
 //! (28 bytes each, 14 per directed pair): the peak is about 30 bytes per directed pair. The dense
 //! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
 //! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
-//! with an error that names the cap beyond it (use a coarser grid, or raise the cap).
+//! with an error that names the cap beyond it (use a coarser grid, or raise the cap). The
+//! verdicts kept for the next exchange ([`Sightlines`]) take 12 bytes per facing unordered pair
+//! (visible or not) and the mesh's vertices; beyond [`MAX_SIGHTLINES`] pairs (48 MB) none are
+//! kept. The march reads the cells' corner depths from one array (32 bytes per pixel).
 //!
 //! The pass over the lights ([`Exchange::irradiance`]) costs `O(P k C)` multiply-adds for `P`
 //! directed pairs, `k` lights and `C` channels, parallel over the receivers; it holds the

@@ -351,9 +351,6 @@ pub(crate) struct Solver<'p> {
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
-    /// Whether the run marches at its first iteration only (the last run of
-    /// [`Solver::interreflect`], which starts on the rounds' mesh).
-    first_march_only: bool,
     /// Whether the next iteration marches whatever [`SHADOWS_AT`] says: after the glossy model
     /// was dropped, whose surface the last masks came from.
     march_next: bool,
@@ -433,7 +430,6 @@ impl<'p> Solver<'p> {
             shadows: None,
             shadows_carried: false,
             skip_first_march: false,
-            first_march_only: false,
             march_next: false,
             indirect: None,
             oscillation: Oscillation::default(),
@@ -574,8 +570,9 @@ impl<'p> Solver<'p> {
     /// the observed images ([`IndirectField::of_mesh`]), then [`ROUND_ITERATIONS`] iterations
     /// with it in the local fits (`I = b . (s + V)`), until a round changes the depths by at
     /// most [`INDIRECT_TOL`] times the lateral size; then a last run with the last field to the
-    /// solver's own stop rule. Returns the rounds' history and whether the last run converged
-    /// (`converged` without rounds).
+    /// solver's own stop rule. Each round's field keeps the visibility verdicts of the one
+    /// before that its mesh cannot have changed (see [`crate::indirect`]). Returns the rounds'
+    /// history and whether the last run converged (`converged` without rounds).
     pub(crate) fn interreflect(
         &mut self,
         u: &mut Vec<f64>,
@@ -621,12 +618,7 @@ impl<'p> Solver<'p> {
         if let Some(field) = self.indirect.as_mut() {
             field.drop_sightlines();
         }
-        // The last run starts from the rounds' mesh, close to its own: it marches once, at its
-        // first iteration (the rounds' masks come from an earlier mesh).
-        self.first_march_only = true;
-        let last = self.iterate(u, gauge, iterations, tol, progress);
-        self.first_march_only = false;
-        let (last, converged) = last?;
+        let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(last);
         Ok((history, converged))
     }
@@ -751,13 +743,7 @@ impl<'p> Solver<'p> {
     /// that share.
     fn cast_shadows(&mut self, u: &[f64], iteration: usize) -> Result<()> {
         let policy = self.options.shadows;
-        let due = match std::mem::take(&mut self.march_next) {
-            true => true,
-            false => match self.first_march_only {
-                true => iteration == 1,
-                false => SHADOWS_AT.contains(&iteration),
-            },
-        };
+        let due = SHADOWS_AT.contains(&iteration) || std::mem::take(&mut self.march_next);
         if !policy.is_active() || !due {
             return Ok(());
         }
