@@ -1642,7 +1642,29 @@ impl MarginMesh {
         let total = (2.0 * length).ceil().max(1.0);
         let d = sub(end, x);
         let perspective = self.camera.is_perspective();
-        for i in 1..=total as usize {
+        // Without distortion the image point of sample s is a + s (b - a) (the segment's points
+        // are perspective-correct): the samples over the image before it leaves the image are
+        // skipped (they are not tested), from two samples before its exit on.
+        let undistorted = match self.camera {
+            Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+            Camera::Orthographic { .. } => true,
+        };
+        let first = match undistorted && inside(a) {
+            true => {
+                let exit = |from: f64, to: f64, size: usize| {
+                    let (g, step) = (from + 0.5 - m as f64, to - from);
+                    match step {
+                        s if s > 0.0 => (size as f64 - g) / s,
+                        s if s < 0.0 => -g / s,
+                        _ => f64::INFINITY,
+                    }
+                };
+                let leaves = exit(a[0], b[0], wc).min(exit(a[1], b[1], hc));
+                ((leaves * total).floor() - 2.0).clamp(1.0, total) as usize
+            }
+            false => 1,
+        };
+        for i in first..=total as usize {
             let s = i as f64 / total;
             let p = segment_point(x, end, d, s, perspective);
             let uv = self.camera.project(p);
