@@ -35,7 +35,8 @@ rendered by ``nplps.render`` with its cast shadows, plus the indirect light of t
 render, ``GI - direct``, upsampled, when the pair is among the paths), ``--repeats`` runs of each
 configuration alternating in one process (wall seconds: medians; the ratio is of the medians),
 with the seconds the solver spent on the indirect light (``timings["indirect"]``); ``--memory``
-adds the peak RSS of one run of each in a fresh process.
+adds the peak RSS of one run of each in a fresh process (on Linux from the call on: the peak is
+reset after the case is loaded or made).
 """
 
 from __future__ import annotations
@@ -165,14 +166,23 @@ def synthetic_bowl(n: int, paths: list[Path]) -> dict[str, Any]:
 
 
 def cost_cases(args: argparse.Namespace) -> list[tuple[str, dict[str, Any], nplps.Rig]]:
-    """Return the cases of ``--cost``: (name, arrays, rig)."""
-    cases = []
-    for gi_path in gi_files(args.paths):
-        data, rig = load(gi_path)
+    """Return the cases of ``--cost``: (name, arrays, rig); with ``--child``, only that one is loaded."""
+    cases: list[tuple[str, dict[str, Any], nplps.Rig]] = []
+    empty: tuple[dict[str, Any], nplps.Rig] = ({}, make_rig(2))
+
+    def wanted(i: int) -> bool:
+        return args.child is None or i == args.child
+
+    files = gi_files(args.paths)
+    for i, gi_path in enumerate(files):
+        data, rig = load(gi_path) if wanted(i) else empty
         cases.append((gi_path.name, data, rig))
-    for n in args.synthetic:
-        data = synthetic_bowl(n, args.paths)
-        cases.append((data["name"], data, nplps.Rig.from_dict(json.loads(data["rig"]))))
+    for i, n in enumerate(args.synthetic, start=len(files)):
+        if wanted(i):
+            data = synthetic_bowl(n, args.paths)
+            cases.append((data["name"], data, nplps.Rig.from_dict(json.loads(data["rig"]))))
+        else:
+            cases.append(("", *empty))
     return cases
 
 
@@ -204,8 +214,16 @@ def cost(args: argparse.Namespace, options: dict[str, Any]) -> None:
     cases = cost_cases(args)
     if args.child is not None:
         _, data, rig = cases[args.child]
+        clear = Path("/proc/self/clear_refs")
+        if clear.exists():  # Linux: the peak RSS from here on (the scene's making left out)
+            clear.write_text("5")
         timed(data, rig, options)
-        print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+        status = Path("/proc/self/status")
+        peaks = [line for line in status.read_text().splitlines() if line.startswith("VmHWM")] if clear.exists() else []
+        if peaks:
+            print(float(peaks[0].split()[1]) / 1024)
+        else:
+            print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
         return
     on = {**options, "interreflections": True}
     header = (
