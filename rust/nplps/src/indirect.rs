@@ -587,7 +587,7 @@ fn clearance(
             // top of the ridge that blocks it), the deepest cut the clearance.
             let cut = z_surface - reach;
             match blocked {
-                Some(b) if !(cut < b) => break,
+                Some(b) if not_above(b, cut) => break,
                 // (negative: z_surface < reach, and finite values differ by a nonzero amount)
                 _ => blocked = Some(cut.min(-f64::MIN_POSITIVE)),
             }
@@ -2246,13 +2246,14 @@ mod tests {
         };
         let ortho_vertices = |z: Vec<f64>| crate::render::vertices(&ortho(), n, n, &z).unwrap();
         // (camera, mask, mesh, nearby mesh, whether few pairs are marched on the nearby one)
-        let cases: Vec<(
+        type Case = (
             Camera,
             Option<Vec<bool>>,
             Vec<[f64; 3]>,
             Vec<[f64; 3]>,
             bool,
-        )> = vec![
+        );
+        let cases: Vec<Case> = vec![
             (
                 bowl_camera,
                 Some(bowl_mask),
