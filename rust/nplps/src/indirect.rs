@@ -86,7 +86,7 @@
 //! the mask or with a non-finite corner neither block nor end the march (the surface there is
 //! unknown). Visibility is symmetric: each unordered pair is marched once.
 //!
-//! A mesh that moves a little keeps most verdicts ([`Exchange::build`], used by the solver's
+//! A mesh that moves a little keeps most verdicts (`Exchange::build`, used by the solver's
 //! rounds): the march of a facing pair also gives its *clearance*, the smallest margin of the
 //! surface behind the segment over its samples when visible, the deepest cut of the ridge that
 //! blocks it when blocked (the march goes on past the first blocking sample while the surface
@@ -114,7 +114,7 @@
 //! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
 //! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
 //! with an error that names the cap beyond it (use a coarser grid, or raise the cap). The
-//! verdicts kept for the next exchange ([`Sightlines`]) take 12 bytes per facing unordered pair
+//! verdicts kept for the next exchange (`Sightlines`) take 12 bytes per facing unordered pair
 //! (visible or not) and the mesh's vertices; beyond [`MAX_SIGHTLINES`] pairs (48 MB) none are
 //! kept. The march reads the cells' corner depths from one array (32 bytes per pixel).
 //!
@@ -645,8 +645,8 @@ impl CellDepths {
     }
 }
 
-/// With [`Exchange::build`], a facing pair keeps its visibility verdict of the mesh before when
-/// its clearance ([`Sightlines`]) exceeds `SIGHT_SLACK` times the largest displacement `delta`
+/// With `Exchange::build`, a facing pair keeps its visibility verdict of the mesh before when
+/// its clearance (`Sightlines`) exceeds `SIGHT_SLACK` times the largest displacement `delta`
 /// of a vertex between the two meshes. A sample of the march moves by about `delta` in depth
 /// (its segment's ends are means of vertices that moved by at most `delta`) and the surface
 /// depth under a fixed image point by at most `delta` (a bilinear mean of vertex depths); the
