@@ -86,6 +86,16 @@
 //! the mask or with a non-finite corner neither block nor end the march (the surface there is
 //! unknown). Visibility is symmetric: each unordered pair is marched once.
 //!
+//! A mesh that moves a little keeps most verdicts (`Exchange::build`, used by the solver's
+//! rounds): the march of a facing pair also gives its *clearance*, the smallest margin of the
+//! surface behind the segment over its samples when visible, the deepest cut of the ridge that
+//! blocks it when blocked (the march goes on past the first blocking sample while the surface
+//! rises further in front). On a mesh whose vertices moved by at most `delta` within the
+//! bounding box of the pair's two pixels (the box holds the image of the segment and every
+//! surface point its samples read), a verdict whose clearance exceeds [`SIGHT_SLACK`] `delta`
+//! cannot have changed and is kept; the others are marched again. The exchange is then the
+//! same, bit for bit, as one built afresh.
+//!
 //! ## Cost and memory
 //!
 //! With `F` masked facets (e.g. `F <= 64^2` on a coarse level of the pyramid), building tests
@@ -93,7 +103,8 @@
 //! ones, `O(D)` samples each (`D` the image diagonal in pixels): `O(F^2 D)` time in the worst
 //! case, `O(F^2)` on surfaces where few pairs face each other, parallel over the facets. Near
 //! pairs cost `2 S^2` = 32 evaluations of the edge formula each, `O(F NEAR^2)` of them. It is
-//! computed once per geometry.
+//! computed once per geometry; with the verdicts of a nearby mesh only the pairs near its
+//! change are marched (the facing tests and the weights are computed again: `O(F^2)`).
 //!
 //! The pairs are stored sparsely, by receiver (compressed rows): a `u32` source facet and the
 //! weight vector as 3 `f32`, [`BYTES_PER_PAIR`] = 16 bytes per directed pair (each facing, visible
@@ -102,7 +113,10 @@
 //! (28 bytes each, 14 per directed pair): the peak is about 30 bytes per directed pair. The dense
 //! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
 //! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
-//! with an error that names the cap beyond it (use a coarser grid, or raise the cap).
+//! with an error that names the cap beyond it (use a coarser grid, or raise the cap). The
+//! verdicts kept for the next exchange (`Sightlines`) take 12 bytes per facing unordered pair
+//! (visible or not) and the mesh's vertices; beyond [`MAX_SIGHTLINES`] pairs (48 MB) none are
+//! kept. The march reads the cells' corner depths from one array (32 bytes per pixel).
 //!
 //! The pass over the lights ([`Exchange::irradiance`]) costs `O(P k C)` multiply-adds for `P`
 //! directed pairs, `k` lights and `C` channels, parallel over the receivers; it holds the
@@ -162,6 +176,9 @@ pub struct Exchange {
     weights: Vec<[f32; 3]>,
     /// Per pixel: centre, unit normal and area (NaN outside the mask or the finite vertices).
     facets: Vec<([f64; 3], [f64; 3], f64)>,
+    /// Facing pairs (unordered) whose visibility was marched while it was built (the others
+    /// kept their verdict, see [`Exchange::build`]).
+    marched: usize,
 }
 
 impl Exchange {
@@ -178,6 +195,23 @@ impl Exchange {
         mask: Option<&[bool]>,
         max_pairs: Option<usize>,
     ) -> Result<Exchange> {
+        Ok(Self::build(camera, height, width, vertices, mask, max_pairs, None)?.0)
+    }
+
+    /// [`Exchange::new`], with the visibility verdicts of an exchange of the same grid and mask
+    /// on a nearby mesh (`previous`, see [`Sightlines`]): a facing pair keeps its verdict there
+    /// when its clearance exceeds [`SIGHT_SLACK`] times the largest vertex displacement between
+    /// the two meshes, and is marched otherwise. Returns the exchange and its own verdicts
+    /// (None beyond [`MAX_SIGHTLINES`] marched pairs).
+    pub(crate) fn build(
+        camera: &Camera,
+        height: usize,
+        width: usize,
+        vertices: &[[f64; 3]],
+        mask: Option<&[bool]>,
+        max_pairs: Option<usize>,
+        previous: Option<&Sightlines>,
+    ) -> Result<(Exchange, Option<Sightlines>)> {
         let plane = height * width;
         ensure_usable(plane > 0, || "the mesh has no facets".to_string())?;
         ensure_shape(
@@ -227,21 +261,30 @@ impl Exchange {
             "the facets of the light exchange",
         )?;
 
-        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji).
-        let count = AtomicUsize::new(0);
+        let depths = CellDepths::new(&march)?;
+        // The verdicts of `previous` are valid here up to its slack (None: not the same grid).
+        let slack = previous.and_then(|p| p.slack(height, width, vertices, mask));
+        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji), and the verdicts of the
+        // facing pairs (j, samples, clearance).
+        let (count, marched) = (AtomicUsize::new(0), AtomicUsize::new(0));
         let over = AtomicBool::new(false);
         type Row = Vec<(u32, [f32; 3], [f32; 3])>;
-        let rows: Vec<Row> = (0..plane)
+        let rows: Vec<(Row, Vec<Sight>)> = (0..plane)
             .into_par_iter()
             .with_max_len(1)
             .map(|i| {
-                let mut row = Row::new();
+                let (mut row, mut sights) = (Row::new(), Vec::new());
                 if over.load(Ordering::Relaxed) {
-                    return row;
+                    return (row, sights);
                 }
                 let Some(fi) = geometry[i] else {
-                    return row;
+                    return (row, sights);
                 };
+                let before: &[Sight] = match (previous, &slack) {
+                    (Some(p), Some(_)) => &p.rows[i],
+                    _ => &[],
+                };
+                let mut cursor = 0;
                 for (j, fj) in geometry.iter().enumerate().skip(i + 1) {
                     let Some(fj) = fj else { continue };
                     let d = sub(fj.centre, fi.centre);
@@ -250,7 +293,32 @@ impl Exchange {
                         continue;
                     }
                     let tol = 1e-3 * fi.area.max(fj.area).sqrt();
-                    if !visible(&march, (i, &fi, projected[i]), (j, fj, projected[j]), tol) {
+                    let samples = march_samples(projected[i], projected[j]);
+                    while cursor < before.len() && (before[cursor].source as usize) < j {
+                        cursor += 1;
+                    }
+                    let kept = before.get(cursor).and_then(|b| {
+                        let slack = SIGHT_SLACK * slack.as_ref()?.between(i, j);
+                        let sure = b.source as usize == j
+                            && b.samples == samples
+                            && f64::from(b.clearance.abs()) > slack;
+                        // What is left of its clearance on this mesh (a lower bound).
+                        sure.then(|| b.clearance.signum() * (b.clearance.abs() - slack as f32))
+                    });
+                    let clearance = match kept {
+                        Some(c) => c,
+                        None => {
+                            marched.fetch_add(1, Ordering::Relaxed);
+                            let (a, b) = ((i, &fi, projected[i]), (j, fj, projected[j]));
+                            clearance(&march, &depths, a, b, tol) as f32
+                        }
+                    };
+                    sights.push(Sight {
+                        source: j as u32,
+                        samples,
+                        clearance,
+                    });
+                    if clearance < 0.0 {
                         continue;
                     }
                     let Some((wij, wji)) = pair_weights(&fi, fj) else {
@@ -261,9 +329,18 @@ impl Exchange {
                 if count.fetch_add(2 * row.len(), Ordering::Relaxed) + 2 * row.len() > max_pairs {
                     over.store(true, Ordering::Relaxed);
                 }
-                row
+                (row, sights)
             })
             .collect();
+        let (rows, sights): (Vec<Row>, Vec<Vec<Sight>>) = rows.into_iter().unzip();
+        let facing: usize = sights.iter().map(Vec::len).sum();
+        let sightlines = (facing <= MAX_SIGHTLINES).then(|| Sightlines {
+            height,
+            width,
+            vertices: vertices.to_vec(),
+            mask: mask.map(<[bool]>::to_vec),
+            rows: sights,
+        });
         let total = count.load(Ordering::Relaxed);
         if over.load(Ordering::Relaxed) {
             return Err(Error::Unusable(format!(
@@ -313,14 +390,16 @@ impl Exchange {
                 None => ([f64::NAN; 3], [f64::NAN; 3], f64::NAN),
             })
             .collect();
-        Ok(Exchange {
+        let exchange = Exchange {
             height,
             width,
             offsets,
             sources,
             weights,
             facets,
-        })
+            marched: marched.load(Ordering::Relaxed),
+        };
+        Ok((exchange, sightlines))
     }
 
     /// Image height H (facet rows).
@@ -331,6 +410,11 @@ impl Exchange {
     /// Image width W (facet columns).
     pub fn width(&self) -> usize {
         self.width
+    }
+
+    /// Facing pairs (unordered) whose visibility was marched while it was built.
+    pub fn marched(&self) -> usize {
+        self.marched
     }
 
     /// Number of stored directed pairs.
@@ -431,18 +515,33 @@ impl Exchange {
     }
 }
 
+/// The samples of the visibility march between two facets whose centres project to `ma` and
+/// `mb`: `ceil(2 |mb - ma|)` (at least 1; `u32::MAX` when not finite or that large).
+fn march_samples(ma: [f64; 2], mb: [f64; 2]) -> u32 {
+    let total = (2.0 * (mb[0] - ma[0]).hypot(mb[1] - ma[1])).ceil().max(1.0);
+    match total < f64::from(u32::MAX) {
+        true => total as u32,
+        false => u32::MAX,
+    }
+}
+
 /// Whether the segment between the centres of facets `a` and `b` (pixel, facet, projected
-/// centre) stays in front of the surface (see the module documentation).
-fn visible(
+/// centre) stays in front of the surface (see the module documentation), as its *clearance*:
+/// blocked, the amount (negative) by which the surface passes in front of the segment's
+/// hiding depth at the first sample that blocks it; visible, the smallest margin (>= 0) of
+/// the surface behind the segment's hiding depth over the samples tested (+inf when none is),
+/// `min_s z_surface(s) - hiding_depth(z(s), tol)`.
+fn clearance(
     march: &March<'_>,
+    depths: &CellDepths,
     (pa, fa, ma): (usize, &Facet, [f64; 2]),
     (pb, fb, mb): (usize, &Facet, [f64; 2]),
     tol: f64,
-) -> bool {
+) -> f64 {
     let (c, e) = (fa.centre, fb.centre);
     let length = (mb[0] - ma[0]).hypot(mb[1] - ma[1]);
     if !length.is_finite() {
-        return true;
+        return f64::INFINITY;
     }
     let total = (2.0 * length).ceil().max(1.0);
     let steps = total as usize;
@@ -453,6 +552,7 @@ fn visible(
         Camera::Orthographic { .. } => true,
     };
     let width = march.width;
+    let (mut clearance, mut blocked) = (f64::INFINITY, None::<f64>);
     for i in 1..steps {
         let s = i as f64 / total;
         // The sample of image parameter s: without distortion its image point is on the line
@@ -478,14 +578,228 @@ fn visible(
         if cell == pa || cell == pb {
             continue;
         }
-        let Some(z_surface) = march.surface_depth(gx, gy) else {
+        let Some(z_surface) = depths.surface_depth(gx, gy) else {
             continue;
         };
-        if z_surface < hiding_depth(z, tol) {
-            return false;
+        let reach = hiding_depth(z, tol);
+        if z_surface < reach || blocked.is_some() {
+            // Blocked: on while the surface rises further in front of the segment (to the
+            // top of the ridge that blocks it), the deepest cut the clearance.
+            let cut = z_surface - reach;
+            match blocked {
+                Some(b) if not_above(b, cut) => break,
+                // (negative: z_surface < reach, and finite values differ by a nonzero amount)
+                _ => blocked = Some(cut.min(-f64::MIN_POSITIVE)),
+            }
+            continue;
+        }
+        clearance = clearance.min(z_surface - reach);
+    }
+    blocked.unwrap_or(clearance)
+}
+
+/// The depths of the 4 corners of every cell (pixel) of an exchange's mesh, in one array for
+/// its visibility march (NaN outside the mask or with a non-finite corner).
+struct CellDepths {
+    height: usize,
+    width: usize,
+    corners: Vec<[f64; 4]>,
+}
+
+impl CellDepths {
+    fn new(march: &March<'_>) -> Result<CellDepths> {
+        let (height, width) = (march.height, march.width);
+        let corners = crate::memory::try_par_collect(
+            (0..height * width).into_par_iter().map(|p| {
+                let q = march.quad(p / width, p % width);
+                match march.mask.is_none_or(|m| m[p]) {
+                    true => [q[0][2], q[1][2], q[2][2], q[3][2]],
+                    false => [f64::NAN; 4],
+                }
+            }),
+            "the depths of the light exchange",
+        )?;
+        Ok(CellDepths {
+            height,
+            width,
+            corners,
+        })
+    }
+
+    /// [`March::surface_depth`] from the corners: the same value (None outside the image, the
+    /// mask or the finite vertices).
+    #[inline]
+    fn surface_depth(&self, gx: f64, gy: f64) -> Option<f64> {
+        let (w, h) = (self.width as f64, self.height as f64);
+        if !(gx >= 0.0 && gx <= w && gy >= 0.0 && gy <= h) {
+            return None;
+        }
+        let (row, col) = (
+            (gy as usize).min(self.height - 1),
+            (gx as usize).min(self.width - 1),
+        );
+        let q = &self.corners[row * self.width + col];
+        let (fx, fy) = (gx - col as f64, gy - row as f64);
+        let z = (1.0 - fy) * ((1.0 - fx) * q[0] + fx * q[1]) + fy * ((1.0 - fx) * q[2] + fx * q[3]);
+        z.is_finite().then_some(z)
+    }
+}
+
+/// With `Exchange::build`, a facing pair keeps its visibility verdict of the mesh before when
+/// its clearance (`Sightlines`) exceeds `SIGHT_SLACK` times the largest displacement `delta`
+/// of a vertex between the two meshes. A sample of the march moves by about `delta` in depth
+/// (its segment's ends are means of vertices that moved by at most `delta`) and the surface
+/// depth under a fixed image point by at most `delta` (a bilinear mean of vertex depths); the
+/// sample's image point moves by `O(delta / z)` pixels (the projected centres are means of
+/// vertex rays weighted by their depths), which moves the surface depth under it by far less
+/// for the slopes of a height field. A clearance changes by at most about `2 delta`: the
+/// factor 4 leaves as much again.
+pub const SIGHT_SLACK: f64 = 4.0;
+
+/// At most this many marched pairs keep their verdicts for the next exchange (12 bytes each,
+/// 48 MB; beyond, the next exchange marches them all).
+pub const MAX_SIGHTLINES: usize = 1 << 22;
+
+/// The visibility verdict of a facing pair (`i < j`, stored in row `i`).
+#[derive(Debug, Clone, Copy)]
+struct Sight {
+    /// The facet `j`.
+    source: u32,
+    /// The samples of its march ([`march_samples`]): a verdict is kept only for the same.
+    samples: u32,
+    /// Its clearance ([`clearance`]), or a lower bound of it on a later mesh.
+    clearance: f32,
+}
+
+/// The visibility verdicts of an [`Exchange`]'s facing pairs and the mesh they were marched on,
+/// to build the exchange of the same grid on a nearby mesh ([`Exchange::build`]): the light
+/// exchange of a solver's rounds of interreflections is rebuilt on meshes that move less and
+/// less, and the march is most of its cost.
+#[derive(Debug, Clone)]
+pub(crate) struct Sightlines {
+    height: usize,
+    width: usize,
+    vertices: Vec<[f64; 3]>,
+    mask: Option<Vec<bool>>,
+    /// Per facet `i`: its facing pairs `j > i`, by increasing `j`.
+    rows: Vec<Vec<Sight>>,
+}
+
+impl Sightlines {
+    /// The displacements from these verdicts' mesh to `vertices` (see [`Displacement`]), or
+    /// None when the grid, the mask or the set of finite vertices differ.
+    fn slack(
+        &self,
+        height: usize,
+        width: usize,
+        vertices: &[[f64; 3]],
+        mask: Option<&[bool]>,
+    ) -> Option<Displacement> {
+        let same = self.height == height
+            && self.width == width
+            && self.vertices.len() == vertices.len()
+            && self.mask.as_deref() == mask;
+        if !same {
+            return None;
+        }
+        let mut moved = vec![0.0; vertices.len()];
+        for ((a, b), m) in self.vertices.iter().zip(vertices).zip(&mut moved) {
+            let (fa, fb) = (
+                a.iter().all(|x| x.is_finite()),
+                b.iter().all(|x| x.is_finite()),
+            );
+            match (fa, fb) {
+                (true, true) => *m = norm(sub(*a, *b)),
+                (false, false) => {}
+                _ => return None,
+            }
+        }
+        let w = width + 1;
+        let cells: Vec<f64> = (0..height * width)
+            .map(|p| {
+                let v = (p / width) * w + p % width;
+                moved[v]
+                    .max(moved[v + 1])
+                    .max(moved[v + w])
+                    .max(moved[v + w + 1])
+            })
+            .collect();
+        cells
+            .iter()
+            .all(|x| x.is_finite())
+            .then(|| Displacement::new(height, width, cells))
+    }
+}
+
+/// The largest displacement of a vertex of each cell between two meshes, with a 2-D sparse
+/// table for the largest over a rectangle of cells in `O(1)`: the slack of a pair is
+/// [`SIGHT_SLACK`] times the largest over the bounding box of its two cells, which holds the
+/// image of its segment (the projected centres lie in their cells) and so every surface point
+/// its march samples.
+struct Displacement {
+    width: usize,
+    /// Per (a, b): the largest over 2^a x 2^b cells from each (row, col) that has them,
+    /// ((height - 2^a + 1) x (width - 2^b + 1), row-major), at `levels[a * cols_levels + b]`.
+    levels: Vec<Vec<f64>>,
+    cols_levels: usize,
+}
+
+impl Displacement {
+    fn new(height: usize, width: usize, cells: Vec<f64>) -> Displacement {
+        let (la, lb) = (height.ilog2() as usize + 1, width.ilog2() as usize + 1);
+        let mut levels: Vec<Vec<f64>> = Vec::with_capacity(la * lb);
+        for a in 0..la {
+            for b in 0..lb {
+                let (rows, cols) = (height - (1 << a) + 1, width - (1 << b) + 1);
+                let level = if a == 0 && b == 0 {
+                    cells.clone()
+                } else if b > 0 {
+                    // From (a, b - 1): two blocks side by side.
+                    let (prev, pc) = (&levels[a * lb + b - 1], width - (1 << (b - 1)) + 1);
+                    (0..rows * cols)
+                        .map(|t| {
+                            let (r, c) = (t / cols, t % cols);
+                            prev[r * pc + c].max(prev[r * pc + c + (1 << (b - 1))])
+                        })
+                        .collect()
+                } else {
+                    // From (a - 1, 0): two blocks one above the other.
+                    let prev = &levels[(a - 1) * lb];
+                    (0..rows * cols)
+                        .map(|t| {
+                            let (r, c) = (t / cols, t % cols);
+                            prev[r * cols + c].max(prev[(r + (1 << (a - 1))) * cols + c])
+                        })
+                        .collect()
+                };
+                levels.push(level);
+            }
+        }
+        Displacement {
+            width,
+            levels,
+            cols_levels: lb,
         }
     }
-    true
+
+    /// The largest displacement over the cells of the bounding box of cells `p` and `q`.
+    #[inline]
+    fn between(&self, p: usize, q: usize) -> f64 {
+        let w = self.width;
+        let (r0, r1) = ((p / w).min(q / w), (p / w).max(q / w));
+        let (c0, c1) = ((p % w).min(q % w), (p % w).max(q % w));
+        let (a, b) = (
+            (r1 - r0 + 1).ilog2() as usize,
+            (c1 - c0 + 1).ilog2() as usize,
+        );
+        let level = &self.levels[a * self.cols_levels + b];
+        let cols = w - (1 << b) + 1;
+        let (r2, c2) = (r1 + 1 - (1 << a), c1 + 1 - (1 << b));
+        level[r0 * cols + c0]
+            .max(level[r0 * cols + c2])
+            .max(level[r2 * cols + c0])
+            .max(level[r2 * cols + c2])
+    }
 }
 
 /// The weight vectors `(w_ij, w_ji)` of a facing pair (see the module documentation): the point
@@ -554,7 +868,8 @@ fn polygon_vector(y: [f64; 3], p: [[f64; 3]; 4]) -> [f64; 3] {
         if not_above(len, 0.0) {
             continue;
         }
-        let theta = crate::vec3::angle(a, b);
+        // (crate::vec3::angle(a, b), from the cross product at hand: the same bits)
+        let theta = len.atan2(dot(a, b));
         for c in 0..3 {
             sum[c] += theta * g[c] / len;
         }
@@ -638,6 +953,9 @@ pub struct IndirectField {
     /// The coarse mesh continued past the image border, while the field is made (see
     /// [`IndirectField::with_unlit`]); None without a margin.
     margin: Option<MarginMesh>,
+    /// The visibility verdicts of its exchange, for the field of the next round
+    /// ([`IndirectField::of_mesh`]'s `previous`).
+    sightlines: Option<Sightlines>,
 }
 
 impl IndirectField {
@@ -645,9 +963,11 @@ impl IndirectField {
     /// fine grid's), from the observations `obs` (the fine stack: the observed images are the
     /// emitters; non-finite values emit nothing). The grid is binned by the smallest power of
     /// two that brings both sides to at most [`FIELD_SIDE_SMALL`] to [`FIELD_SIDE`] facets (see
-    /// [`FIELD_SIDE_SMALL`]), at least `min_factor` (a field of the same mesh before: the
-    /// solver passes its last field's factor, so that a grid over the cap is built once), or
-    /// further while the exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]).
+    /// [`FIELD_SIDE_SMALL`]), at least the factor of `previous` (the field of the same solver
+    /// the round before, so that a grid over the cap is built once), or further while the
+    /// exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]). The exchange
+    /// keeps the visibility verdicts of `previous` that its mesh cannot have changed
+    /// ([`Exchange::build`]; the same pairs and weights as a fresh exchange).
     ///
     /// A coarse vertex is the fine vertex it stands on when that is active, else the mean depth
     /// of the active fine vertices within half a bin of it, on its own ray; a coarse facet takes
@@ -670,9 +990,11 @@ impl IndirectField {
         u: &[f64],
         obs: &crate::local::Observations<'_>,
         lights: &[crate::Light],
-        min_factor: usize,
+        previous: Option<IndirectField>,
         max_pairs: Option<usize>,
     ) -> Result<IndirectField> {
+        // (the rest of the field before is dropped here)
+        let (min_factor, mut sightlines) = previous.map_or((1, None), |f| (f.factor, f.sightlines));
         let (h, w) = (grid.height, grid.width);
         // Fine vertex depths ((H+1) x (W+1), NaN where inactive) and the fine mask.
         let mut depth = crate::memory::try_vec((h + 1) * (w + 1), f64::NAN, "the vertex depths")?;
@@ -687,7 +1009,10 @@ impl IndirectField {
             coarse = crate::pyramid::coarser_camera(&coarse);
         }
         loop {
-            match Self::at_factor(&coarse, factor, grid, &depth, obs, lights, max_pairs) {
+            let before = sightlines.take();
+            match Self::at_factor(
+                &coarse, factor, grid, &depth, obs, lights, max_pairs, before,
+            ) {
                 Err(Error::Unusable(m))
                     if m.contains("max_pairs")
                         && h.div_ceil(factor) > 4
@@ -701,7 +1026,9 @@ impl IndirectField {
         }
     }
 
-    /// [`IndirectField::of_mesh`] at one binning `factor` (`coarse`: the camera of that grid).
+    /// [`IndirectField::of_mesh`] at one binning `factor` (`coarse`: the camera of that grid),
+    /// with the verdicts of the exchange before (used when of the same grid).
+    #[allow(clippy::too_many_arguments)]
     fn at_factor(
         coarse: &Camera,
         factor: usize,
@@ -710,6 +1037,7 @@ impl IndirectField {
         obs: &crate::local::Observations<'_>,
         lights: &[crate::Light],
         max_pairs: Option<usize>,
+        previous: Option<Sightlines>,
     ) -> Result<IndirectField> {
         let (h, w) = (grid.height, grid.width);
         let (hc, wc) = (h.div_ceil(factor), w.div_ceil(factor));
@@ -825,7 +1153,16 @@ impl IndirectField {
             }),
             "the coarse vertices of the light exchange",
         )?;
-        let exchange = Exchange::new(&camera, he, we, &vertices, Some(&mask_e), max_pairs)?;
+        let (exchange, sightlines) = Exchange::build(
+            &camera,
+            he,
+            we,
+            &vertices,
+            Some(&mask_e),
+            max_pairs,
+            previous.as_ref(),
+        )?;
+        drop(previous);
         // The emitters, (k, He, We, C): the binned observations in the image, the model in the
         // margin (NaN, emitting nothing, until it is set).
         let mut emit = crate::memory::try_vec(extended * per, f32::NAN, "the emitted light")?;
@@ -901,6 +1238,7 @@ impl IndirectField {
             unlit: Vec::new(),
             words: 0,
             margin,
+            sightlines,
         })
     }
 
@@ -962,6 +1300,11 @@ impl IndirectField {
         self.unlit = unlit;
         self.words = words;
         Ok(self)
+    }
+
+    /// Drops the visibility verdicts kept for the next field (when there will be none).
+    pub(crate) fn drop_sightlines(&mut self) {
+        self.sightlines = None;
     }
 
     /// Whether light `k` is behind the facet of fine pixel `p` (see
@@ -1299,7 +1642,29 @@ impl MarginMesh {
         let total = (2.0 * length).ceil().max(1.0);
         let d = sub(end, x);
         let perspective = self.camera.is_perspective();
-        for i in 1..=total as usize {
+        // Without distortion the image point of sample s is a + s (b - a) (the segment's points
+        // are perspective-correct): the samples over the image before it leaves the image are
+        // skipped (they are not tested), from two samples before its exit on.
+        let undistorted = match self.camera {
+            Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+            Camera::Orthographic { .. } => true,
+        };
+        let first = match undistorted && inside(a) {
+            true => {
+                let exit = |from: f64, to: f64, size: usize| {
+                    let (g, step) = (from + 0.5 - m as f64, to - from);
+                    match step {
+                        s if s > 0.0 => (size as f64 - g) / s,
+                        s if s < 0.0 => -g / s,
+                        _ => f64::INFINITY,
+                    }
+                };
+                let leaves = exit(a[0], b[0], wc).min(exit(a[1], b[1], hc));
+                ((leaves * total).floor() - 2.0).clamp(1.0, total) as usize
+            }
+            false => 1,
+        };
+        for i in first..=total as usize {
             let s = i as f64 / total;
             let p = segment_point(x, end, d, s, perspective);
             let uv = self.camera.project(p);
@@ -1452,7 +1817,7 @@ mod tests {
         let images = vec![1.0f32; 2 * n * n];
         let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
         let field =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None).unwrap();
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None).unwrap();
         assert_eq!(field.factor(), 2);
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);
@@ -1785,9 +2150,10 @@ mod tests {
         let obs = crate::local::Observations::from_stack(&images, 1, n * n, 1);
         let lights = [crate::Light::point([32.0, 32.0, 0.0])];
         let plain =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None).unwrap();
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None).unwrap();
         let field =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, 1, None).unwrap();
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None)
+                .unwrap();
         assert!(field.pairs() > plain.pairs());
         let energy = |f: &IndirectField, p: usize| norm(f.at(p, n)[0]);
         // Column 1 faces the margin past the left border (the surface rises from the left
@@ -1846,6 +2212,98 @@ mod tests {
                 assert!(pair(&x, high_l, high_r), "wall {wall} {pinhole_camera}");
             }
         }
+    }
+
+    /// The visibility verdicts of an exchange carried to a nearby mesh ([`Exchange::build`]):
+    /// the same pairs and weights, bit for bit, as a fresh exchange of that mesh, on a bowl
+    /// (every pair visible), a corrugation (most facing pairs blocked by a ridge) and a groove
+    /// whose wall rises between the two meshes (the verdicts it changes are marched again);
+    /// only the pairs near the change are marched when the mesh moves a little.
+    #[test]
+    fn verdicts_carried_to_a_nearby_mesh_give_the_fresh_exchange() {
+        let same = |a: &Exchange, b: &Exchange| {
+            a.offsets == b.offsets
+                && a.sources == b.sources
+                && a.weights.iter().flatten().map(|x| x.to_bits()).eq(b
+                    .weights
+                    .iter()
+                    .flatten()
+                    .map(|x| x.to_bits()))
+        };
+        let n = 32;
+        let (bowl_camera, bowl, bowl_mask) = benchmark_bowl(n);
+        let ridges = |amplitude: f64| {
+            depths(n, move |r, c| {
+                200.0 + amplitude * (0.9 * c + 0.3 * r).sin() + 0.01 * (0.37 * r * c).cos()
+            })
+        };
+        let m = (n / 2) as f64;
+        let wall = |height: f64| {
+            depths(n, move |_, c| {
+                let raised = if (c - m).abs() <= 1.0 { height } else { 0.0 };
+                100.0 + (m - (c - m).abs()) - raised
+            })
+        };
+        let ortho_vertices = |z: Vec<f64>| crate::render::vertices(&ortho(), n, n, &z).unwrap();
+        // (camera, mask, mesh, nearby mesh, whether few pairs are marched on the nearby one)
+        type Case = (
+            Camera,
+            Option<Vec<bool>>,
+            Vec<[f64; 3]>,
+            Vec<[f64; 3]>,
+            bool,
+        );
+        let cases: Vec<Case> = vec![
+            (
+                bowl_camera,
+                Some(bowl_mask),
+                bowl.clone(),
+                bowl.iter()
+                    .enumerate()
+                    .map(|(v, x)| x.map(|c| c * (1.0 + 1e-4 * ((v % 7) as f64 - 3.0))))
+                    .collect(),
+                true,
+            ),
+            (
+                ortho(),
+                None,
+                ortho_vertices(ridges(3.0)),
+                ortho_vertices(ridges(3.02)),
+                true,
+            ),
+            (
+                ortho(),
+                None,
+                ortho_vertices(wall(0.0)),
+                ortho_vertices(wall(12.0)),
+                false,
+            ),
+        ];
+        for (case, (camera, mask, before, after, few)) in cases.into_iter().enumerate() {
+            let mask = mask.as_deref();
+            let (first, lines) = Exchange::build(&camera, n, n, &before, mask, None, None).unwrap();
+            let lines = lines.expect("verdicts kept");
+            let fresh = Exchange::new(&camera, n, n, &after, mask, None).unwrap();
+            let (carried, _) =
+                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines)).unwrap();
+            assert!(same(&carried, &fresh), "case {case}");
+            assert!(first.marched() > 1000, "case {case}: {}", first.marched());
+            if few {
+                assert!(
+                    carried.marched() * 5 < fresh.marched(),
+                    "case {case}: {} of {} marched",
+                    carried.marched(),
+                    fresh.marched()
+                );
+            }
+            // The same mesh keeps every verdict.
+            let (again, _) =
+                Exchange::build(&camera, n, n, &before, mask, None, Some(&lines)).unwrap();
+            assert!(same(&again, &first) && again.marched() == 0, "case {case}");
+        }
+        // The wall: the pair across it is blocked on the nearby mesh only.
+        let x = Exchange::new(&ortho(), n, n, &ortho_vertices(wall(12.0)), None, None).unwrap();
+        assert!(!x.pairs_of(16 * n + 10).any(|(j, _)| j == 16 * n + 21));
     }
 
     /// Reciprocity `A_i F_ij = A_j F_ji` (with `F_ij = n_i . w_ij`) for every pair, far and

@@ -581,8 +581,9 @@ impl<'p> Solver<'p> {
     /// the observed images ([`IndirectField::of_mesh`]), then [`ROUND_ITERATIONS`] iterations
     /// with it in the local fits (`I = b . (s + V)`), until a round changes the depths by at
     /// most [`INDIRECT_TOL`] times the lateral size; then a last run with the last field to the
-    /// solver's own stop rule. Returns the rounds' history and whether the last run converged
-    /// (`converged` without rounds).
+    /// solver's own stop rule. Each round's field keeps the visibility verdicts of the one
+    /// before that its mesh cannot have changed (see [`crate::indirect`]). Returns the rounds'
+    /// history and whether the last run converged (`converged` without rounds).
     pub(crate) fn interreflect(
         &mut self,
         u: &mut Vec<f64>,
@@ -599,7 +600,7 @@ impl<'p> Solver<'p> {
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         for round in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
-            let min_factor = self.indirect.take().map_or(1, |f| f.factor());
+            let previous = self.indirect.take();
             self.indirect = Some(
                 IndirectField::of_mesh(
                     &p.rig.camera,
@@ -608,7 +609,7 @@ impl<'p> Solver<'p> {
                     u,
                     &p.obs,
                     self.lights.lights(),
-                    min_factor,
+                    previous,
                     None,
                 )?
                 .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
@@ -624,6 +625,9 @@ impl<'p> Solver<'p> {
             if max_depth_change(&p.geometry, &before, u) <= limit {
                 break;
             }
+        }
+        if let Some(field) = self.indirect.as_mut() {
+            field.drop_sightlines();
         }
         let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(last);
@@ -1477,9 +1481,17 @@ mod tests {
         let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
         for _ in 0..40 {
             let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
-            let field =
-                IndirectField::of_mesh(&scene.rig.camera, &grid, &geometry, &u, &obs, &[], 1, None)
-                    .unwrap();
+            let field = IndirectField::of_mesh(
+                &scene.rig.camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                None,
+                None,
+            )
+            .unwrap();
             assert_eq!(field.factor(), 1);
             let mut next = images.clone();
             for p in grid.facets.iter().map(|&p| p as usize) {
