@@ -305,6 +305,8 @@ fn begin_search(solver: &mut Solver<'_>) -> (Refine, crate::shadow::Shadows) {
     // Candidates are compared under one model: a lobe too rough for a highlight, estimated at a
     // candidate, does not drop the glossy model (the run at the distance found decides).
     solver.keep_glossy = true;
+    // ... and without the glossy fits' continuation (`Solver::continuation`).
+    solver.continuation = false;
     // Candidates are compared under `Shadows::in_search`; the run at the distance found uses the
     // user's policy again.
     (refine, solver.search_shadows())
@@ -314,6 +316,7 @@ fn begin_search(solver: &mut Solver<'_>) -> (Refine, crate::shadow::Shadows) {
 fn end_search(solver: &mut Solver<'_>, (refine, shadows): (Refine, crate::shadow::Shadows)) {
     solver.hold_lobe = false;
     solver.keep_glossy = false;
+    solver.continuation = true;
     solver.restore_shadows(shadows);
     solver.check_lights = true;
     solver.lights.restart(refine);
@@ -1276,6 +1279,7 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
             .collect();
         let mut solver = Solver::new(level, &options)?;
         solver.check_lights = false;
+        solver.continuation = false; // as in the search (`begin_search`)
         let inner = match options.reflectance.is_glossy() {
             true => CHECK_INNER_GLOSSY,
             false => CHECK_INNER,

@@ -122,6 +122,7 @@ impl Options {
                 Reflectance::Glossy(lobe) => lobe,
                 Reflectance::Lambertian => None,
             },
+            continuation: true,
         }
     }
 }

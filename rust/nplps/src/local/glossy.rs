@@ -174,7 +174,9 @@ pub(super) fn refine(
     // start tilted by a highlight (the Lambertian fit) can end in the wrong one.
     let third = match (albedo, starts[0]) {
         (Some(a), Some(n))
-            if lobe.alpha < CONTINUE_BELOW && values.len() >= CONTINUE_LIGHTS * channels =>
+            if settings.continuation
+                && lobe.alpha < CONTINUE_BELOW
+                && values.len() >= CONTINUE_LIGHTS * channels =>
         {
             continued(lobe, scratch, scale(n, a), steps.max(GLOSSY_STEPS))
         }

@@ -85,6 +85,10 @@ pub struct FitSettings {
     /// The shared lobe of the glossy model: each facet's Lambertian fit is then refined under
     /// it (see the `glossy` module); None: the Lambertian model.
     pub lobe: Option<Lobe>,
+    /// Under a sharp lobe, also fit each facet from its Lambertian start by continuation from a
+    /// rough lobe (see `glossy::CONTINUE_BELOW`). The distance search compares its candidates
+    /// without it (their residual curve moved with it: see `Solver::continuation`).
+    pub continuation: bool,
 }
 
 impl Default for FitSettings {
@@ -96,6 +100,7 @@ impl Default for FitSettings {
             robust: Robust::None,
             fast_residual: false,
             lobe: None,
+            continuation: true,
         }
     }
 }
