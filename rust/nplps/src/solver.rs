@@ -342,9 +342,10 @@ pub(crate) struct Solver<'p> {
     pub(crate) keep_glossy: bool,
     /// Whether the glossy fits from a Lambertian start also try the continuation from a rough
     /// lobe ([`FitSettings::continuation`]). The distance search and the distance check turn it
-    /// off: with it the glossy searches moved on the PBR renders (256², rough plastic 0.3 bumps
-    /// -0.50 % -> -2.70 %, the principled 0.3 block -0.49 % -> +2.14 %), while the fits at a
-    /// given distance gained (see the CHANGELOG); the run at the distance found uses it.
+    /// off: with it the glossy searches moved on the PBR renders (256², rough plastic 0.1 bumps
+    /// +0.15 % -> -1.08 %, the principled 0.3 block +0.03 % -> +2.14 %; two others closer to the
+    /// truth), while the fits at a given distance gained (see the CHANGELOG); the run at the
+    /// distance found uses it.
     pub(crate) continuation: bool,
     /// Under the glossy model, each facet's glossy normal of the last local step (NaN: none),
     /// which starts its next fit; empty under the Lambertian model.
