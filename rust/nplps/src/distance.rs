@@ -1422,3 +1422,32 @@ mod tests {
         assert!(matches!(other, Error::Cancelled));
     }
 }
+
+#[cfg(all(test, feature = "synth"))]
+mod search_state_tests {
+    use super::*;
+    use crate::problem::{ImageStack, InitialDepth};
+    use crate::synth::{Scene, SceneKind};
+
+    /// The search compares its candidates without the glossy fits' continuation (their
+    /// residual curve moved with it) and gives it back to the run at the distance found.
+    #[test]
+    fn the_search_turns_the_continuation_off_and_back_on() {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let options = Options {
+            levels: 1,
+            ..Options::default()
+        };
+        let mut solver = Solver::new(&problem, &options).unwrap();
+        assert!(solver.continuation);
+        let saved = begin_search(&mut solver);
+        assert!(!solver.continuation && !solver.check_lights);
+        assert!(!solver.local_step(false, None).settings.continuation);
+        end_search(&mut solver, saved);
+        assert!(solver.continuation && solver.check_lights);
+    }
+}

@@ -1074,7 +1074,11 @@ impl<'p> Solver<'p> {
 
     /// The local step of this problem with the given residual mode, on unknowns whose depths
     /// are `depths` (if computed).
-    fn local_step<'a>(&'a self, fast_residual: bool, depths: Option<&'a [f64]>) -> LocalStep<'a> {
+    pub(crate) fn local_step<'a>(
+        &'a self,
+        fast_residual: bool,
+        depths: Option<&'a [f64]>,
+    ) -> LocalStep<'a> {
         let p = self.problem;
         LocalStep {
             grid: &p.grid,
