@@ -54,11 +54,13 @@ def test_bad_limits_are_input_errors_naming_max_memory(scene, value):
 def test_the_estimate_refuses_what_would_not_fit_under_an_address_space_limit():
     # 2000 x 2000 x 27 lights in 1.5 GB of address space used to abort the interpreter
     # ("memory allocation of ... bytes failed"); now the default limit (80 % of what is left
-    # under RLIMIT_AS) refuses it before the solver allocates.
+    # under RLIMIT_AS) refuses such a run before the solver allocates. Since the solver needs
+    # 108 bytes a pixel (issue 23; was 148) 2000 x 2000 fits there, so the case is 2600 x 2600
+    # (a 730 MB stack, an estimate of about 0.8 GB against a limit of about 0.5 GB).
     code = """
     import numpy as np, nplps
     s = nplps.make_scene("bumps", n=16)
-    images = np.zeros((27, 2000, 2000), np.float32)
+    images = np.zeros((27, 2600, 2600), np.float32)
     images[:] = 0.5
     try:
         nplps.reconstruct(images, s.rig, depth=s.mean_depth)
@@ -68,7 +70,7 @@ def test_the_estimate_refuses_what_would_not_fit_under_an_address_space_limit():
     out = _run(code, address_space=1_500_000_000)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "refused: MemoryLimitError" in out.stdout, out.stdout
-    assert "2000 x 2000" in out.stdout
+    assert "2600 x 2600" in out.stdout
 
 
 @pytest.mark.parametrize(
