@@ -56,12 +56,13 @@ pub fn reconstruct(
     problem.cancel.check()?;
     check_fittable(problem, &options.fit_settings(false))?;
     problem.cancel.check()?;
-    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &problem.u0.values()?)?;
+    // The starting depths, checked against the lights (a constant start is made once, here).
+    let mut u = problem.u0.to_vec("the depths")?;
+    crate::problem::check_light_geometry(problem.rig, &problem.geometry, &u)?;
     problem.cancel.check()?;
     with_threads(options.threads, || {
         let start = Instant::now();
         crate::memory::trace("reconstruct: start (problem made)");
-        let mut u = problem.u0.to_vec("the depths")?;
         let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
         crate::memory::trace("coarse levels done");
         crate::memory::give_back(); // the coarse levels' buffers
