@@ -22,16 +22,14 @@ fn parallel_step<'a>(
     settings: FitSettings,
 ) -> LocalStep<'a> {
     LocalStep {
-        grid: &problem.grid,
-        geometry: &problem.geometry,
-        model: Model::Parallel(lights),
-        obs: &problem.obs,
-        settings,
-        depths: None,
         cancel: &problem.cancel,
-        warm: None,
-        shadows: None,
-        indirect: None,
+        ..LocalStep::new(
+            &problem.grid,
+            &problem.geometry,
+            Model::Parallel(lights),
+            &problem.obs,
+            settings,
+        )
     }
 }
 
@@ -91,11 +89,12 @@ const REFINE_STEPS: usize = 100;
 
 /// With `options.refine.intensity`: refines the parallel lights' intensities in place by the
 /// (Lambertian) light step of [`crate::refine`] with the thresholds of `settings` (positions are
-/// not refined: the model has none) and returns each light's factor.
+/// not refined: the model has none) at the starting unknowns `u0` and returns each light's factor.
 fn refine_intensities(
     problem: &Problem<'_>,
     options: &Options,
     settings: FitSettings,
+    u0: &[f64],
     lights: &mut [([f64; 3], [f64; 3])],
 ) -> Result<Option<Vec<f64>>> {
     if !options.refine.intensity {
@@ -118,10 +117,9 @@ fn refine_intensities(
     // errors of 20 % from 30 % on glossy directional-light scenes, where the Lambertian step
     // leaves 0.6-1 %).
     let data = LightData::of(problem, settings);
-    let u0 = problem.u0.values()?;
     let mut refiner = Refiner::new(refine, directional.clone());
     for _ in 0..REFINE_STEPS {
-        let outcome = refiner.try_step(&data, &mut directional, &u0[..])?;
+        let outcome = refiner.try_step(&data, &mut directional, u0)?;
         if !outcome.accepted || outcome.change < 1e-10 {
             break;
         }
@@ -180,7 +178,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         }
         timings.local = t.elapsed();
         let t = Instant::now();
-        let factors = refine_intensities(problem, options, settings, &mut lights)?;
+        let factors = refine_intensities(problem, options, settings, &u0[..], &mut lights)?;
         timings.lights = t.elapsed();
         let mut fits: Vec<FacetFit> =
             crate::memory::try_vec(grid.n_facets(), FacetFit::EMPTY, "the per-facet fits")?;

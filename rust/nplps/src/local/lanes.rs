@@ -957,16 +957,14 @@ mod tests {
                 let z: Vec<f64> = u.iter().map(|&x| geometry.depth(x)).collect();
                 for depths in [None, Some(&z[..])] {
                     let step = LocalStep {
-                        grid: &grid,
-                        geometry: &geometry,
-                        model: Model::Near(&lights),
-                        obs: &obs,
-                        settings: FitSettings::default(),
                         depths,
-                        cancel: crate::Cancel::never(),
-                        warm: None,
-                        shadows: None,
-                        indirect: None,
+                        ..LocalStep::new(
+                            &grid,
+                            &geometry,
+                            Model::Near(&lights),
+                            &obs,
+                            FitSettings::default(),
+                        )
                     };
                     let n = grid.n_facets();
                     let mut fits = vec![FacetFit::EMPTY; n];
@@ -1030,21 +1028,16 @@ mod tests {
             };
         }
         let obs = Observations::from_stack(&data, k, h * w, 1);
-        let step = LocalStep {
-            grid: &grid,
-            geometry: &geometry,
-            model: Model::Near(&lights),
-            obs: &obs,
-            settings: FitSettings {
+        let step = LocalStep::new(
+            &grid,
+            &geometry,
+            Model::Near(&lights),
+            &obs,
+            FitSettings {
                 fast_residual: true,
                 ..FitSettings::default()
             },
-            depths: None,
-            cancel: crate::Cancel::never(),
-            warm: None,
-            shadows: None,
-            indirect: None,
-        };
+        );
         assert!(step.lane_lights().is_some());
         let n = grid.n_facets();
         assert!(!n.is_multiple_of(LANES));

@@ -426,6 +426,31 @@ pub struct LocalStep<'s> {
     pub indirect: Option<&'s crate::indirect::IndirectField>,
 }
 
+impl<'s> LocalStep<'s> {
+    /// A local step of the direct light alone: depths from the unknowns, never cancelled, no
+    /// warm start, no shadow mask, no indirect light (set those fields by struct update).
+    pub fn new(
+        grid: &'s Grid,
+        geometry: &'s Geometry,
+        model: Model<'s>,
+        obs: &'s Observations<'s>,
+        settings: FitSettings,
+    ) -> Self {
+        LocalStep {
+            grid,
+            geometry,
+            model,
+            obs,
+            settings,
+            depths: None,
+            cancel: crate::Cancel::never(),
+            warm: None,
+            shadows: None,
+            indirect: None,
+        }
+    }
+}
+
 impl LocalStep<'_> {
     /// The 4 corners of facet `f` (see [`Geometry::facet_corners`]).
     #[inline]
@@ -1238,19 +1263,17 @@ mod tests {
         let mut results = Vec::new();
         for depths in [None, Some(&z[..])] {
             let step = LocalStep {
-                grid: &grid,
-                geometry: &geometry,
-                model: Model::Near(&lights),
-                obs: &obs,
-                settings: FitSettings {
-                    fast_residual: true,
-                    ..FitSettings::default()
-                },
                 depths,
-                cancel: crate::Cancel::never(),
-                warm: None,
-                shadows: None,
-                indirect: None,
+                ..LocalStep::new(
+                    &grid,
+                    &geometry,
+                    Model::Near(&lights),
+                    &obs,
+                    FitSettings {
+                        fast_residual: true,
+                        ..FitSettings::default()
+                    },
+                )
             };
             let mut targets = vec![[0.0; 4]; n];
             let mut stats = vec![FacetStat::default(); n];

@@ -403,21 +403,16 @@ mod tests {
             let (grid, geometry, lights, images, u, n_true) = patch(sigma, seed);
             let k = lights.len();
             let obs = Observations::from_stack(&images, k, grid.height * grid.width, 1);
-            let step = LocalStep {
-                grid: &grid,
-                geometry: &geometry,
-                model: Model::Near(&lights),
-                obs: &obs,
-                settings: FitSettings {
+            let step = LocalStep::new(
+                &grid,
+                &geometry,
+                Model::Near(&lights),
+                &obs,
+                FitSettings {
                     dark: -1.0,
                     ..FitSettings::default()
                 },
-                depths: None,
-                cancel: crate::Cancel::never(),
-                warm: None,
-                shadows: None,
-                indirect: None,
-            };
+            );
             let trust = step.trust(&u).unwrap();
             let mut fits = vec![crate::local::FacetFit::EMPTY; grid.n_facets()];
             step.run(&u, 0, &mut fits);
