@@ -155,24 +155,28 @@ macro_rules! with_fields {
 /// 8-lane operation), again without FMA (Rust never contracts `a * b + c` on its own), so that all
 /// three copies give the same bits.
 macro_rules! simd_dispatch {
+    // The body both forms end with: the AVX2 copy when the processor has AVX2, else the baseline.
+    (@avx2 $kernel:ident($($arg:ident: $ty:ty),*) -> $ret:ty) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            unsafe fn avx2($($arg: $ty),*) -> $ret {
+                $kernel($($arg),*)
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the processor supports AVX2, checked just above.
+                return unsafe { avx2($($arg),*) };
+            }
+        }
+        $kernel($($arg),*)
+    }};
     (
         $(#[$meta:meta])*
         fn $name:ident => $kernel:ident($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty;
     ) => {
         $(#[$meta])*
         fn $name($($arg: $ty),*) -> $ret {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                unsafe fn avx2($($arg: $ty),*) -> $ret {
-                    $kernel($($arg),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the processor supports AVX2, checked just above.
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            $kernel($($arg),*)
+            simd_dispatch!(@avx2 $kernel($($arg: $ty),*) -> $ret)
         }
     };
     (
@@ -188,10 +192,6 @@ macro_rules! simd_dispatch {
                 unsafe fn avx512($($arg: $ty),*) -> $ret {
                     $kernel($($arg),*)
                 }
-                #[target_feature(enable = "avx2")]
-                unsafe fn avx2($($arg: $ty),*) -> $ret {
-                    $kernel($($arg),*)
-                }
                 if std::arch::is_x86_feature_detected!("avx512f")
                     && std::arch::is_x86_feature_detected!("avx512vl")
                     && std::arch::is_x86_feature_detected!("avx512dq")
@@ -199,12 +199,8 @@ macro_rules! simd_dispatch {
                     // SAFETY: the processor supports these AVX-512 subsets, checked just above.
                     return unsafe { avx512($($arg),*) };
                 }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the processor supports AVX2, checked just above.
-                    return unsafe { avx2($($arg),*) };
-                }
             }
-            $kernel($($arg),*)
+            simd_dispatch!(@avx2 $kernel($($arg: $ty),*) -> $ret)
         }
     };
 }
