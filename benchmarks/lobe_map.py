@@ -16,7 +16,9 @@ the worst 5 % of the observations. Then the estimated lobe (``--no-estimate`` sk
 What it showed (see CHANGELOG): the residual is least for sharp lobes (roughness 0.03-0.05) and
 almost flat in ``eta`` (within 1 % from 1 to 2.1 on the search's subsample), while the normals are
 best at ``eta`` 1.25; before the continuation start of the glossy fit the centre's fits ended 7-10
-degrees off under sharp lobes (3.2-3.7 with it).
+degrees off under sharp lobes (3.2-3.7 with it). Since then, with 24 lights or more, the lobe
+search chooses ``eta`` by held-out prediction (2 folds of the lights) instead of the residual:
+the estimated row went from roughness 0.031, eta 1.0, 2.27 degrees to eta 2.0, 1.53 degrees.
 """
 
 from __future__ import annotations
