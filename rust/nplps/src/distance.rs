@@ -23,7 +23,6 @@ use crate::options::{Options, Refine};
 use crate::parallel::with_threads;
 use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
-use crate::reflectance::Lobe;
 use crate::rig::Light;
 use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
@@ -163,8 +162,6 @@ struct Evaluator<'s, 'p> {
     candidates: usize,
     /// The (mean) distance and residual of the best candidate so far (NaN before the first).
     best: (f64, f64),
-    /// The lowest (mean) residual of a candidate under a glossy lobe and that lobe.
-    best_lobe: Option<(f64, Lobe)>,
 }
 
 impl Evaluator<'_, '_> {
@@ -219,7 +216,6 @@ impl Evaluator<'_, '_> {
         if residual.is_finite() && (self.best.1.is_nan() || residual < self.best.1) {
             self.best = (info.distance, residual);
         }
-        self.best_lobe = lower(self.best_lobe, residual, self.solver.lobe);
         if let Some(last) = pending {
             let stats = IterationStats {
                 search: Some(SearchProgress {
@@ -238,13 +234,12 @@ impl Evaluator<'_, '_> {
     }
 }
 
-/// `best` (a criterion and its lobe), or `(residual, lobe)` where that is lower (or the first);
-/// a finite residual under a lobe only.
-fn lower(best: Option<(f64, Lobe)>, residual: f64, lobe: Option<Lobe>) -> Option<(f64, Lobe)> {
-    match (best, lobe) {
-        (Some((r, _)), Some(l)) if residual.is_finite() && residual < r => Some((residual, l)),
-        (None, Some(l)) if residual.is_finite() => Some((residual, l)),
-        _ => best,
+/// The lower of two criteria, NaN counting as none.
+fn lower(a: f64, b: f64) -> f64 {
+    match (a.is_nan(), b.is_nan()) {
+        (true, _) => b,
+        (_, true) => a,
+        _ => a.min(b),
     }
 }
 
@@ -392,7 +387,7 @@ fn search_stages(
         (false, false) => tolerance,
     };
     let mut count = Count {
-        best_lobe: None,
+        lowest: f64::NAN,
         done: 0,
         planned: planned_candidates(scan)
             + match (profile, halvings > 0) {
@@ -438,7 +433,7 @@ fn search_stages(
                 ..*search
             };
             // Criteria are compared on this level only.
-            count.best_lobe = None;
+            count.lowest = f64::NAN;
             search_window(
                 solver, problem, &bracket, range, wide, window, &mut count, progress,
             )
@@ -647,11 +642,11 @@ fn alternate(
         inner: search.inner.min(WINDOW_INNER),
         ..*search
     };
-    // The lobe the current estimate was found under (none: the profile's, a lobe per candidate).
-    let mut found_under: Option<Lobe> = None;
+    // The estimate of the stage with the lowest criterion so far, and that criterion.
+    let mut best = (count.lowest, profiled.0.clone());
     alternation(profiled, |estimate, u| {
-        // The proposal: a run at the distance found with the lobe estimated afresh (from the
-        // whole grids of roughness and index), from the surface and glossy normals found there.
+        // The lobe is estimated afresh (from the whole grids of roughness and index) by a run
+        // at the distance found from the surface and glossy normals found there, then held.
         let gauge: Vec<f64> = estimate
             .distance
             .iter()
@@ -664,23 +659,11 @@ fn alternate(
         solver.keep_glossy_normals();
         let iterations = search.inner.max(crate::solver::LOBE_AT[1]);
         solver.iterate(u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
-        solver.local(u)?;
-        let residual = mean(&solver.search_residuals());
-        count.best_lobe = lower(count.best_lobe, residual, solver.lobe);
-        // The stage holds the lobe of the lowest criterion so far: the proposal's when it is
-        // lower, else the one that gave the distance found, which then stands.
-        let Some((_, lobe)) = count.best_lobe else {
-            return Ok(None);
-        };
-        if found_under == Some(lobe) {
-            return Ok(None);
-        }
-        found_under = Some(lobe);
-        solver.lobe = Some(lobe);
         solver.hold_lobe = true;
         count.planned += planned_candidates(NARROW_SCAN);
+        count.lowest = f64::NAN;
         let start = try_copy(u, "the depths")?;
-        search_window(
+        let next = search_window(
             solver,
             problem,
             &narrow,
@@ -689,9 +672,13 @@ fn alternate(
             window,
             count,
             progress,
-        )
-        .map(Some)
+        )?;
+        if best.0.is_nan() || count.lowest < best.0 {
+            best = (count.lowest, next.0.clone());
+        }
+        Ok(Some(next))
     })
+    .map(|(_, u)| (best.1, u))
 }
 
 /// The loop of [`alternate`]: `stage` maps an estimate (and its warm state, which it may use up)
@@ -727,9 +714,9 @@ fn alternation(
 struct Count {
     done: usize,
     planned: usize,
-    /// The lowest criterion of a candidate on the search's own level and the lobe it was
-    /// evaluated under (glossy, lobe estimated; see [`alternate`]).
-    best_lobe: Option<(f64, Lobe)>,
+    /// The lowest (mean) criterion of a candidate since it was last reset (NaN: none; see
+    /// [`alternate`]).
+    lowest: f64,
 }
 
 /// The window in which [`search_window`] refines a wide estimate.
@@ -929,12 +916,11 @@ fn search_refined(
         candidate: count.done,
         candidates: count.planned,
         best: (f64::NAN, f64::NAN),
-        best_lobe: count.best_lobe,
     };
     let searched = refine_scan(&mut ev, regions, scan, (ln_near, step), tolerance, progress);
     count.done = ev.candidate;
     count.planned = count.planned.max(ev.candidates);
-    count.best_lobe = ev.best_lobe;
+    count.lowest = lower(count.lowest, ev.best.1);
     let distance = match searched? {
         Ok(distance) => distance,
         Err((region, near)) => return Ok(Searched::Edge { region, near }),
@@ -1457,7 +1443,6 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
             candidate: 0,
             candidates: CHECK_FACTORS.len(),
             best: (f64::NAN, f64::NAN),
-            best_lobe: None,
         };
         let mut quiet = |_: &IterationStats| Control::Continue;
         let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
@@ -1604,14 +1589,11 @@ mod tests {
         // A failing stage fails the search.
         let failed = alternation(at(1.0), |_, _| Err(Error::Cancelled));
         assert!(matches!(failed, Err(Error::Cancelled)));
-        // The lowest criterion keeps its lobe; residuals without a lobe or not finite count
-        // for nothing.
-        let (a, b) = (Lobe::new(0.1, 1.0), Lobe::new(0.1, 1.2));
-        assert_eq!(lower(None, 2.0, Some(a)), Some((2.0, a)));
-        assert_eq!(lower(Some((2.0, a)), 1.0, Some(b)), Some((1.0, b)));
-        assert_eq!(lower(Some((2.0, a)), 3.0, Some(b)), Some((2.0, a)));
-        assert_eq!(lower(Some((2.0, a)), f64::NAN, Some(b)), Some((2.0, a)));
-        assert_eq!(lower(None, 1.0, None), None);
+        // The lowest criterion of a stage: NaN counts as none.
+        assert_eq!(lower(f64::NAN, 2.0), 2.0);
+        assert_eq!(lower(2.0, f64::NAN), 2.0);
+        assert_eq!(lower(2.0, 1.0), 1.0);
+        assert!(lower(f64::NAN, f64::NAN).is_nan());
     }
 
     /// A solver failure after the search names the distance found; other errors and failures
