@@ -82,11 +82,13 @@ def test_physically_based_rough_plastic(name: str, before_at_least: float) -> No
     assert glossy.matte_lobe is None
 
 
-@pytest.mark.parametrize(("name", "within"), [("bumps-roughplastic-0.1", 0.01), ("shadows-roughplastic-0.3", 0.015)])
-def test_the_distance_search_uses_the_glossy_model(name: str, within: float) -> None:
-    # Measured (64 x 64): the Lambertian search misses by -9.9 / -9.1 %, the glossy one by
-    # -0.39 / -0.95 % (median facet residual, the lobe estimated per candidate in the window around
-    # the wide search's estimate). At 256² the 16 glossy renders: README "Shiny objects".
+@pytest.mark.parametrize("name", ["bumps-roughplastic-0.1", "shadows-roughplastic-0.3"])
+def test_the_distance_search_uses_the_glossy_model(name: str) -> None:
+    # Measured (64 x 64, one thread): the Lambertian search misses by -9.9 / -9.1 %, the glossy one
+    # by -0.67 / -0.82 % (median facet residual; the lobe estimated per candidate in a window that
+    # brackets the distance, then alternation between the lobe estimated at the distance found and
+    # a search under it held; -0.81 / -0.88 % before the alternation). Within 1 %, issue 20's bound.
+    # At 256² the 16 glossy renders: README "Shiny objects".
     data, rig = load(name)
     images, mask, distance = data["images"].astype(np.float32), data["mask"], float(data["distance"])
     lambertian = solve(images, rig, "auto", mask, threads=1)
@@ -94,7 +96,7 @@ def test_the_distance_search_uses_the_glossy_model(name: str, within: float) -> 
     assert lambertian.distance is not None and glossy.distance is not None
     assert abs(lambertian.distance.distance[0] / distance - 1) > 0.05
     found = glossy.distance.distance[0] / distance - 1
-    assert abs(found) < within, found
+    assert abs(found) < 0.01, found
     assert glossy.lobe is not None and glossy.matte_lobe is None
     # The curve holds the wide scan outside the window and the window's candidates, in order.
     curve = np.asarray(glossy.distance.curve[0])
