@@ -601,15 +601,20 @@ unsafe impl Send for Shared {}
 unsafe impl Sync for Shared {}
 
 /// One Gauss-Seidel sweep on `A x = b` over bands of [`BAND`] rows (see the module
-/// documentation); `forward` selects the direction and the order of the two band phases.
+/// documentation); `FORWARD` selects the direction and the order of the two band phases.
 ///
-/// With `from_zero` (a forward sweep only), the sweep starts from `x = 0` whatever `x` holds:
+/// With `FROM_ZERO` (a forward sweep only), the sweep starts from `x = 0` whatever `x` holds:
 /// the values it has not updated yet (the east neighbour, the row below within the band, and
 /// the rows of the bands of the other phase before that phase) are read from a row of zeros,
 /// and inactive nodes are set to zero. It computes what a forward sweep of a zeroed `x` does,
 /// operation for operation, without the pass that zeroes it.
-fn gauss_seidel(level: &Level, x: &mut [f64], b: &[f64], forward: bool, from_zero: bool) {
-    debug_assert!(forward || !from_zero);
+fn gauss_seidel<const FORWARD: bool, const FROM_ZERO: bool>(
+    level: &Level,
+    x: &mut [f64],
+    b: &[f64],
+) {
+    const { assert!(FORWARD || !FROM_ZERO) };
+    let (forward, from_zero) = (FORWARD, FROM_ZERO);
     let l = level.layout;
     let zeros = &level.zeros[..];
     assert_eq!(x.len(), l.len());
@@ -832,13 +837,6 @@ fn step_and_norm(alpha: f64, p: &[f64], q: &[f64], x: &mut [f64], r: &mut [f64])
         })
         .collect();
     partial.iter().sum()
-}
-
-/// `y += alpha x`.
-fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
-    y.par_chunks_mut(CHUNK)
-        .zip(x.par_chunks(CHUNK))
-        .for_each(|(y, x)| y.iter_mut().zip(x).for_each(|(y, x)| *y += alpha * x));
 }
 
 /// The coarsest level, factored directly.
@@ -1152,11 +1150,10 @@ impl MultigridSystem {
         };
         let tol = self.rtol * scale;
         to_grid(fine.layout, grid, z_current, &mut k.x);
-        // The residual writes the nodes only: the padding must be zero again (the right side
-        // left values there).
-        k.w.fill(0.0);
-        residual(fine, &k.x, None, &mut k.w);
-        axpy(-1.0, &k.w, &mut k.r);
+        // r = b - A x into `w`, then swapped: the residual writes the nodes only, and the
+        // padding of both vectors is zero (`to_grid` wrote it in `r`, nothing writes it in `w`).
+        residual(fine, &k.x, Some(&k.r), &mut k.w);
+        std::mem::swap(&mut k.r, &mut k.w);
         let mut iterations = 0;
         if dot(&k.r, &k.r).sqrt() > tol {
             self.precondition();
@@ -1205,12 +1202,12 @@ fn vcycle(
         return;
     }
     let (fine, coarse) = (&levels[l], &levels[l + 1]);
-    gauss_seidel(fine, x, b, true, true);
+    gauss_seidel::<true, true>(fine, x, b);
     let (here, below) = work.split_first_mut().expect("a coarser level");
     restrict_residual(fine, coarse, x, b, &mut here.b);
     vcycle(levels, below, coarsest, l + 1, &mut here.x, &here.b);
     prolongate_add(fine, coarse, &here.x, x);
-    gauss_seidel(fine, x, b, false, false);
+    gauss_seidel::<false, false>(fine, x, b);
 }
 
 /// The 4 x 4 interpolation matrices of the 4 child cells, indexed `2 a + b`.
@@ -1609,13 +1606,13 @@ pub(crate) mod tests {
                     }
                 }
                 let mut zeroed = vec![0.0; l.len()];
-                gauss_seidel(level, &mut zeroed, &b, true, false);
+                gauss_seidel::<true, false>(level, &mut zeroed, &b);
                 // Garbage at the nodes; the padding stays zero, as in the solver's vectors.
                 let mut garbage: Vec<f64> = b
                     .iter()
                     .map(|v| if *v == 0.0 { 0.0 } else { 7.0 + rand() })
                     .collect();
-                gauss_seidel(level, &mut garbage, &b, true, true);
+                gauss_seidel::<true, true>(level, &mut garbage, &b);
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(
                     bits(&garbage),
