@@ -232,16 +232,31 @@ pub(crate) fn right_side(
     out: &mut [f64],
 ) -> f64 {
     use rayon::prelude::*;
+    const CHUNK: usize = 1 << 15;
     let vw = grid.width + 1;
-    out.par_iter_mut()
-        .zip(grid.active.par_iter())
-        .for_each(|(o, &v)| {
-            let v = v as usize;
-            *o = grid.gather_targets(targets, v / vw, v % vw);
-        });
+    // One pass: each chunk of unknowns finds the row of its first vertex by one division and
+    // follows the rows from there (the vertices increase), and sums its squares in order.
     let partial: Vec<f64> = out
-        .par_chunks(1 << 15)
-        .map(|c| c.iter().map(|v| v * v).sum())
+        .par_chunks_mut(CHUNK)
+        .zip(grid.active.par_chunks(CHUNK))
+        .map(|(out, vertices)| {
+            let Some(&first) = vertices.first() else {
+                return 0.0;
+            };
+            let mut row = first as usize / vw;
+            let mut row_start = row * vw;
+            let mut squares = 0.0;
+            for (o, &v) in out.iter_mut().zip(vertices) {
+                let v = v as usize;
+                while v >= row_start + vw {
+                    row += 1;
+                    row_start += vw;
+                }
+                *o = grid.gather_targets(targets, row, v - row_start);
+                squares += *o * *o;
+            }
+            squares
+        })
         .collect();
     let norm = partial.iter().sum::<f64>().sqrt();
     for &p in pins {
