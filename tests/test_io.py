@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -595,3 +597,41 @@ def test_load_mask_empty(tmp_path: Path) -> None:
 def test_load_mask_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"nomask\.png"):
         io.load_mask(tmp_path / "nomask.png", (2, 2))
+
+
+def _raises_within(call: Callable[[], object], seconds: float = 10.0) -> BaseException | None:
+    """Run ``call`` in a daemon thread; the exception it raised (None if it returned), or fail
+    the test if it is still running after ``seconds`` (a blocked open or an endless read)."""
+    import threading
+
+    outcome: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            call()
+            outcome.append(None)
+        except BaseException as exc:  # handed to the test
+            outcome.append(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert outcome, f"still running after {seconds} s"
+    return outcome[0]
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="needs FIFOs (POSIX)")
+def test_devices_pipes_and_directories_are_refused_before_they_are_read(tmp_path: Path) -> None:
+    # /dev/zero never ends (imageio's sniffing read it until the memory ran out), opening a FIFO
+    # waits for a writer: both are refused from their file type, at once, naming the path.
+    import os
+
+    fifo = tmp_path / "images.png"
+    os.mkfifo(fifo)
+    for path, kind in [("/dev/zero", "device"), (fifo, "pipe"), (tmp_path, "directory")]:
+        if not os.path.exists(path):
+            continue
+        for call in (partial(io.read_image, path), lambda p=path: list(io.iter_images([p]))):
+            exc = _raises_within(call)
+            assert isinstance(exc, InputError), exc
+            assert str(path) in str(exc) and "not a regular file" in str(exc) and kind in str(exc)

@@ -18,6 +18,7 @@ loading k files costs the stack plus a few decoded images, never a float64 copy 
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeAlias
 
@@ -204,8 +205,17 @@ def _cores() -> int:
 
 
 def _read_header(path: PathLike) -> bytes:
-    """Return the first bytes of ``path`` (for format sniffing), or raise InputError."""
+    """Return the first bytes of ``path`` (for format sniffing), or raise InputError.
+
+    Only a regular file (or a link to one) is an image file: a device such as ``/dev/zero``
+    never ends (a decoder that reads its whole input would fill the memory) and opening a FIFO
+    waits for a writer, so anything else is refused before it is opened.
+    """
     try:
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):
+            kind = "a directory" if stat.S_ISDIR(info.st_mode) else "a device, pipe or socket"
+            raise InputError(f"cannot read image '{os.fspath(path)}': not a regular file (it is {kind})")
         with open(path, "rb") as file:
             return file.read(_HEADER_SIZE)
     except FileNotFoundError as exc:
