@@ -96,25 +96,44 @@ def _read_regular(path: Path, limit: int) -> bytes:
     return data
 
 
-def _open_regular(path: Path) -> tuple[Any, int]:
-    """Open a regular file for reading; return the file and its size.
+class NotRegularFile(Exception):
+    """Raised by :func:`open_regular` for a path that is not a regular file.
 
-    Opened without blocking (a FIFO would wait for a writer) and checked to be a regular file
-    before anything is read.
+    ``directory`` tells a directory from a device, FIFO or socket.
     """
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except OSError as e:
-        raise InputError(f"cannot read result file '{os.fspath(path)}': {e.strerror or e}") from None
+
+    def __init__(self, directory: bool) -> None:
+        super().__init__("a directory" if directory else "a device, pipe or socket")
+        self.directory = directory
+
+
+def open_regular(path: str | os.PathLike[str]) -> tuple[Any, int]:
+    """Open a regular file (or a link to one) for reading; return the file and its size.
+
+    Opened without blocking (a FIFO would wait for a writer) and checked, on the open file, to
+    be a regular file before anything is read (a device such as ``/dev/zero`` never ends).
+    Raises :class:`NotRegularFile` for anything else, :class:`OSError` where it cannot be opened.
+    """
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            kind = "a directory" if stat.S_ISDIR(info.st_mode) else "not a regular file"
-            raise damaged(path, f"{kind}, not a file")
+            raise NotRegularFile(stat.S_ISDIR(info.st_mode))
         return os.fdopen(fd, "rb"), info.st_size
     except BaseException:
         os.close(fd)
         raise
+
+
+def _open_regular(path: Path) -> tuple[Any, int]:
+    """:func:`open_regular` for a result file, its failures as :class:`InputError`."""
+    try:
+        return open_regular(path)
+    except NotRegularFile as e:
+        kind = "a directory" if e.directory else "not a regular file"
+        raise damaged(path, f"{kind}, not a file") from None
+    except OSError as e:
+        raise InputError(f"cannot read result file '{os.fspath(path)}': {e.strerror or e}") from None
 
 
 # --------------------------------------------------------------------------------------------------

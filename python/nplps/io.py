@@ -18,7 +18,6 @@ loading k files costs the stack plus a few decoded images, never a float64 copy 
 from __future__ import annotations
 
 import os
-import stat
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeAlias
 
@@ -27,6 +26,7 @@ import numpy as np
 import tifffile
 
 from . import _core
+from ._results import NotRegularFile, open_regular
 from .errors import InputError
 from .preprocess import to_float
 from .preprocess import to_gray as _gray
@@ -209,15 +209,15 @@ def _read_header(path: PathLike) -> bytes:
 
     Only a regular file (or a link to one) is an image file: a device such as ``/dev/zero``
     never ends (a decoder that reads its whole input would fill the memory) and opening a FIFO
-    waits for a writer, so anything else is refused before it is opened.
+    waits for a writer, so anything else is refused before it is read
+    (:func:`nplps._results.open_regular`).
     """
     try:
-        info = os.stat(path)
-        if not stat.S_ISREG(info.st_mode):
-            kind = "a directory" if stat.S_ISDIR(info.st_mode) else "a device, pipe or socket"
-            raise InputError(f"cannot read image '{os.fspath(path)}': not a regular file (it is {kind})")
-        with open(path, "rb") as file:
+        file, _ = open_regular(path)
+        with file:
             return file.read(_HEADER_SIZE)
+    except NotRegularFile as exc:
+        raise InputError(f"cannot read image '{os.fspath(path)}': not a regular file (it is {exc})") from None
     except FileNotFoundError as exc:
         raise InputError(f"cannot read image '{os.fspath(path)}': file not found") from exc
     except OSError as exc:
