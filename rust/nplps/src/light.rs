@@ -144,6 +144,22 @@ impl Light {
     /// Eq. 6 weighting into equation weights (1 for directional lights).
     #[inline]
     pub fn beta(&self, x: [f64; 3]) -> ([f64; 3], f64) {
+        let (b, d3, aniso) = self.beta_parts(x);
+        (b, d3 / aniso)
+    }
+
+    /// `beta(x)` and the anisotropy factor `t^mu` (1 for an isotropic or directional light, 0
+    /// outside an LED's cone): the one power of the model, which
+    /// [`Light::derivatives`] can take instead of computing it again.
+    #[inline]
+    pub(crate) fn beta_anisotropy(&self, x: [f64; 3]) -> ([f64; 3], f64) {
+        let (b, _, aniso) = self.beta_parts(x);
+        (b, aniso)
+    }
+
+    /// `beta(x)`, `|p - x|^3` and `t^mu` (directional: the direction, 1, 1).
+    #[inline]
+    fn beta_parts(&self, x: [f64; 3]) -> ([f64; 3], f64, f64) {
         match *self {
             Light::Point {
                 position, axis, mu, ..
@@ -158,9 +174,9 @@ impl Light {
                     (-dot(a, axis) / d).max(0.0).powf(mu)
                 };
                 let f = aniso / d3;
-                ([a[0] * f, a[1] * f, a[2] * f], d3 / aniso)
+                ([a[0] * f, a[1] * f, a[2] * f], d3, aniso)
             }
-            Light::Directional { direction, .. } => (direction, 1.0),
+            Light::Directional { direction, .. } => (direction, 1.0, 1.0),
         }
     }
 
@@ -179,9 +195,15 @@ impl Light {
     /// ```
     ///
     /// (for `mu = 0`, `-3 v / |v|^5`). None for a directional light and for an LED outside its
-    /// cone (`t <= 0`), where `beta` and its gradient vanish.
+    /// cone (`t <= 0`), where `beta` and its gradient vanish. With `aniso = t^mu` given (from
+    /// [`Light::beta_anisotropy`] at the same `x`) no power is computed: `t^(mu-1) = t^mu / t`
+    /// (equal to `powf(mu - 1)` up to rounding).
     #[inline]
-    fn falloff_gradient(&self, x: [f64; 3]) -> Option<([f64; 3], f64, [f64; 3])> {
+    fn falloff_gradient(
+        &self,
+        x: [f64; 3],
+        aniso: Option<f64>,
+    ) -> Option<([f64; 3], f64, [f64; 3])> {
         let Light::Point {
             position: p,
             axis,
@@ -204,9 +226,12 @@ impl Light {
         if t <= 0.0 {
             return None;
         }
-        let tm = t.powf(mu);
+        let (tm, tm1) = match aniso {
+            Some(tm) => (tm, tm / t),
+            None => (t.powf(mu), t.powf(mu - 1.0)),
+        };
         let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
-        let dm = mu * t.powf(mu - 1.0) * inv3;
+        let dm = mu * tm1 * inv3;
         Some((
             v,
             tm * inv3,
@@ -220,7 +245,13 @@ impl Light {
     /// `beta` vanishes (an LED's outside, `t <= 0`: the gradient is zero).
     #[inline]
     pub(crate) fn beta_gradient(&self, x: [f64; 3], g: [f64; 3]) -> Option<[f64; 3]> {
-        let (v, f, grad_f) = self.falloff_gradient(x)?;
+        self.beta_gradient_with(x, g, None)
+    }
+
+    /// [`Light::beta_gradient`] with `t^mu` at `x` given (see [`Light::falloff_gradient`]).
+    #[inline]
+    fn beta_gradient_with(&self, x: [f64; 3], g: [f64; 3], aniso: Option<f64>) -> Option<[f64; 3]> {
+        let (v, f, grad_f) = self.falloff_gradient(x, aniso)?;
         let vg = dot(v, g);
         Some(std::array::from_fn(|j| f * g[j] + vg * grad_f[j]))
     }
@@ -238,6 +269,8 @@ impl Light {
     /// with `a = phi beta(c)` its row and `phi` its intensity in the channel: the
     /// log-intensity derivative `a . g` first (if `intensity`), then the position's
     /// `phi d(beta . g)/dp` (if `position`, zero for a directional light); unused entries 0.
+    /// `aniso`: the light's `t^mu` at `c` when known ([`Light::beta_anisotropy`]), which
+    /// spares the powers of the position's derivative.
     #[inline]
     pub(crate) fn derivatives(
         &self,
@@ -245,8 +278,8 @@ impl Light {
         a: [f64; 3],
         g: [f64; 3],
         phi: f64,
-        intensity: bool,
-        position: bool,
+        (intensity, position): (bool, bool),
+        aniso: Option<f64>,
     ) -> [f64; 4] {
         let mut d = [0.0; 4];
         let mut k = 0;
@@ -255,7 +288,7 @@ impl Light {
             k = 1;
         }
         if position {
-            if let Some(grad) = self.beta_gradient(c, g) {
+            if let Some(grad) = self.beta_gradient_with(c, g, aniso) {
                 for j in 0..3 {
                     d[k + j] = phi * grad[j];
                 }
@@ -443,7 +476,7 @@ mod tests {
             };
             let (b, _) = light.beta(c);
             let a = b.map(|x| 2.0 * x);
-            let d = light.derivatives(c, a, g, 2.0, true, true);
+            let d = light.derivatives(c, a, g, 2.0, (true, true), None);
             assert!((d[0] - pred(&light)).abs() < 1e-15);
             for j in 0..3 {
                 let h = 1e-4;
@@ -463,6 +496,38 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// With `t^mu` given (from `beta_anisotropy`, bit-identical to `beta`'s), the derivatives
+    /// are those computed with the powers, up to rounding; outside the cone both are zero.
+    #[test]
+    fn derivatives_with_the_anisotropy_given_match() {
+        let g = [0.2, -0.1, -0.9];
+        for mu in [0.0, 0.5, 1.0, 1.5, 2.0, 2.5] {
+            let light = led(mu);
+            for c in [[3.0, -2.0, 100.0], [-30.0, 12.0, 60.0], [0.0, 0.0, -100.0]] {
+                let (b, aniso) = light.beta_anisotropy(c);
+                assert_eq!(b, light.beta(c).0);
+                let a = b.map(|x| 2.0 * x);
+                let with = light.derivatives(c, a, g, 2.0, (true, true), Some(aniso));
+                let without = light.derivatives(c, a, g, 2.0, (true, true), None);
+                let scale = without.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                for (x, y) in with.iter().zip(&without) {
+                    assert!(
+                        (x - y).abs() <= 1e-14 * scale,
+                        "mu {mu}: {with:?} vs {without:?}"
+                    );
+                }
+            }
+        }
+        let sun = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            intensity: [1.0; 3],
+        };
+        assert_eq!(
+            sun.beta_anisotropy([1.0, 2.0, 3.0]),
+            ([0.0, 0.0, -1.0], 1.0)
+        );
     }
 
     /// The gradient with respect to the surface point, by finite differences; none for a
@@ -492,7 +557,10 @@ mod tests {
             intensity: [1.0; 3],
         };
         assert!(sun.beta_gradient_at(c, g).is_none());
-        assert_eq!(sun.derivatives(c, [0.0; 3], g, 1.0, false, true), [0.0; 4]);
+        assert_eq!(
+            sun.derivatives(c, [0.0; 3], g, 1.0, (false, true), None),
+            [0.0; 4]
+        );
         assert!(led(1.0).beta_gradient([0.0, 0.0, -100.0], g).is_none());
     }
 

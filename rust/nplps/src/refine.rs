@@ -316,6 +316,9 @@ struct Scratch {
     terms: Vec<Option<GlossyTerms>>,
     /// The `beta` vectors of the current facet's lights (when not cached for the step).
     betas: Vec<[f64; 3]>,
+    /// Their anisotropy factors `t^mu` (see [`Light::beta_anisotropy`]), with which the
+    /// position derivatives cost no power (empty with cached `beta` vectors).
+    aniso: Vec<f64>,
     /// Rows of `B^T` (see [`LightData::facet`]) of the last facets, three per facet, folded
     /// into the pass by one matrix product every [`BATCH`] facets.
     bt: DMatrix<f64>,
@@ -358,6 +361,7 @@ impl Scratch {
             glossy: try_with_capacity(k, PASS)?,
             terms: try_with_capacity(k, PASS)?,
             betas: try_with_capacity(k, PASS)?,
+            aniso: try_with_capacity(k, PASS)?,
             bt: DMatrix::from_vec(rows, n, try_vec(rows * n, 0.0, PASS)?),
             pending: 0,
             want_h: true,
@@ -500,19 +504,27 @@ impl LightData<'_> {
                         same_positions: cached.is_some() || std::ptr::eq(lights, shading),
                     };
                     let mut own = std::mem::take(&mut s.betas);
+                    let mut aniso = std::mem::take(&mut s.aniso);
+                    aniso.clear();
                     let betas: &Betas = match cached {
                         Some(b) => &b[j * k..(j + 1) * k],
                         None => {
                             own.clear();
-                            own.extend(lights.iter().map(|l| l.beta(c).0));
+                            for light in lights {
+                                let (b, t) = light.beta_anisotropy(c);
+                                own.push(b);
+                                aniso.push(t);
+                            }
                             &own
                         }
                     };
                     for ch in 0..channels {
+                        let betas = (betas, aniso.as_slice());
                         self.facet(model, (c, n), (&values, ch), betas, &mut acc, &mut s);
                     }
                     s.values = values;
                     s.betas = own;
+                    s.aniso = aniso;
                     Ok((acc, s))
                 },
             )
@@ -594,14 +606,15 @@ impl LightData<'_> {
     }
 
     /// Adds channel `ch` of the facet with centre `c`, glossy normal `n` (if any),
-    /// observations `values` and the lights' `betas` at `c` to the pass.
+    /// observations `values` and the lights' `betas` at `c` (with their anisotropy factors
+    /// `t^mu` when computed for this facet, else empty) to the pass.
     #[inline]
     fn facet(
         &self,
         model: Model<'_>,
         (c, n): ([f64; 3], Option<[f64; 3]>),
         (values, ch): (&[f32], usize),
-        betas: &Betas,
+        (betas, aniso): (&Betas, &[f64]),
         acc: &mut Pass,
         s: &mut Scratch,
     ) {
@@ -689,8 +702,8 @@ impl LightData<'_> {
                 *row,
                 g,
                 phi,
-                layout.intensity[i].is_some(),
-                layout.position[i].is_some(),
+                (layout.intensity[i].is_some(), layout.position[i].is_some()),
+                aniso.get(i).copied(),
             );
             for (gr, da) in acc.grad[first..first + m].iter_mut().zip(&d) {
                 *gr -= da * r;
