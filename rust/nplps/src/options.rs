@@ -268,10 +268,11 @@ with_fields!(Refine {
 /// Fixed overhead of a reconstruction (thread pools, small systems, the coarsest level).
 const FIXED: f64 = 64e6;
 /// Bytes per frame pixel: the larger of the frame-sized buffers of the iterations (the
-/// multigrid's padded vertex grid: four f64 conjugate-gradient vectors, the f32 coarse stencils
-/// and their work vectors, the vertex flags, about 51; the vertex numbers, 4) and of the end
-/// (the result's maps: normals 24, albedo 8, residual 8, depth 8, trust maps 8, lights used and
-/// regions 8, vertex numbers 4: 68), with 15 % to spare (see [`PER_FACET`]).
+/// multigrid's padded vertex grid: four f64 conjugate-gradient vectors, the coarse levels'
+/// stencils and work vectors, the vertex flags, about 40 since the coarse levels' interior nodes
+/// share one stencil (2.5 bytes a pixel for the stencils, 13 before); the vertex numbers, 4) and
+/// of the end (the result's maps: normals 24, albedo 8, residual 8, depth 8, trust maps 8, lights
+/// used and regions 8, vertex numbers 4: 68), with 15 % to spare (see [`PER_FACET`]).
 const PER_PIXEL: f64 = 78.0;
 /// Extra bytes per frame pixel and colour channel beyond the first.
 const PER_CHANNEL: f64 = 16.0;
@@ -283,10 +284,15 @@ const PER_CHANNEL: f64 = 16.0;
 /// side first); the shadow march's transients (about 22 a pixel) only while neither is; a
 /// constant starting depth is not stored. At a full mask the iterations' peak (the frame-sized
 /// buffers of [`PER_PIXEL`] then hold the targets and the multigrid's vectors) and the end's
-/// (the result's maps) are about equal. Measured with 16 grey lights, a full mask and the
-/// default options at 12 MP (issue 23, given-back buffers forced by a `max_memory` below
-/// [`keeps_buffers`]'s share): 92-94 bytes a pixel beyond the stack (128-131 before, 204 and 271
-/// before that), which this and [`PER_PIXEL`] bound with 15 % to spare (108 a pixel).
+/// (the result's maps) were about equal; since the coarse stencils shrank the end sets the peak.
+/// Measured with 16 grey lights, a full mask and the default options at 12 MP (issue 23,
+/// given-back buffers forced by a `max_memory` below [`keeps_buffers`]'s share; `NPLPS_MEMTRACE`
+/// over the stack and the interpreter): 91 bytes a pixel beyond the stack at the end, 76 through
+/// the iterations (92-94 at the iterations' peak before the shared stencils, 128-131 before that,
+/// 204 and 271 before that), which this and [`PER_PIXEL`] bound with 19 % to spare (108 a pixel;
+/// kept at the 15 % of the old measurement). At 1 MP: 100 MB beyond the stack, against an
+/// estimate of 177 MB. Kept buffers (the default where they fit): 109 bytes a pixel through the
+/// iterations at 12 MP, 91 at the end.
 const PER_FACET: f64 = 30.0;
 /// Extra bytes per facet with light refinement (light-step sensitivities and snapshots).
 const PER_FACET_REFINE: f64 = 192.0;
@@ -395,9 +401,9 @@ mod tests {
         let plain = Options::default();
         let small = reconstruction(512, 512, 512 * 512, 1, &plain);
         let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
-        // Linear in the pixels beyond the fixed part; measured 92-94 B/px beyond the stack at
-        // 4000 x 3000 (16 lights, full mask, buffers given back between the steps; issue 23):
-        // the estimate bounds it with 15 % to spare.
+        // Linear in the pixels beyond the fixed part; measured 91 B/px beyond the stack at
+        // 4000 x 3000 (16 lights, full mask, buffers given back between the steps; issue 23,
+        // the end's maps; 76 through the iterations): the estimate bounds it with 19 % to spare.
         assert!((large - FIXED) / (small - FIXED) > 15.9);
         let per_pixel = (large - FIXED) / (2048.0 * 2048.0);
         assert!((104.0..110.0).contains(&per_pixel), "{per_pixel}");
