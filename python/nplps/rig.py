@@ -76,6 +76,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from . import _core, _core_types
+from ._results import NotRegularFile, open_regular
 from .errors import RigError
 
 __all__ = [
@@ -1124,8 +1125,12 @@ def read_small_text(path: str | os.PathLike[str], what: str, kind: str = "text f
     """
     name = os.fspath(path)
     try:
-        with open(path, "rb") as f:
+        # A device or FIFO is refused before it is read (see _results.open_regular).
+        f, _ = open_regular(path)
+        with f:
             raw = f.read(MAX_RIG_FILE_BYTES + 1)
+    except NotRegularFile as e:
+        raise RigError(f"cannot read {what} {name!r}: not a regular file (it is {e})") from None
     except OSError as e:
         raise RigError(f"cannot read {what} {name!r}: {e.strerror}") from None
     if len(raw) > MAX_RIG_FILE_BYTES:
