@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import stat
 import struct
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ._files import NotRegularFile, open_regular
 from .errors import InputError, RigError
 
 __all__ = [
@@ -94,35 +94,6 @@ def _read_regular(path: Path, limit: int) -> bytes:
     if len(data) > limit:
         raise damaged(path, f"more than the {limit >> 20} MiB such a file can have")
     return data
-
-
-class NotRegularFile(Exception):
-    """Raised by :func:`open_regular` for a path that is not a regular file.
-
-    ``directory`` tells a directory from a device, FIFO or socket.
-    """
-
-    def __init__(self, directory: bool) -> None:
-        super().__init__("a directory" if directory else "a device, pipe or socket")
-        self.directory = directory
-
-
-def open_regular(path: str | os.PathLike[str]) -> tuple[Any, int]:
-    """Open a regular file (or a link to one) for reading; return the file and its size.
-
-    Opened without blocking (a FIFO would wait for a writer) and checked, on the open file, to
-    be a regular file before anything is read (a device such as ``/dev/zero`` never ends).
-    Raises :class:`NotRegularFile` for anything else, :class:`OSError` where it cannot be opened.
-    """
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise NotRegularFile(stat.S_ISDIR(info.st_mode))
-        return os.fdopen(fd, "rb"), info.st_size
-    except BaseException:
-        os.close(fd)
-        raise
 
 
 def _open_regular(path: Path) -> tuple[Any, int]:

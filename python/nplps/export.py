@@ -34,9 +34,9 @@ import tifffile
 
 from . import _core, plots, views
 from ._atomic import atomic_path, atomic_write, write_error, write_text
+from ._files import NotRegularFile, open_regular
 from ._held_out import HeldOutScores, reading
 from ._outdir import jsonable
-from ._results import NotRegularFile, open_regular
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -537,7 +537,7 @@ def read_ply(path: PathLike) -> dict[str, np.ndarray | list[str] | None]:
         The file cannot be read or is not a binary little-endian triangle PLY file.
     """
     try:
-        # A device or FIFO is refused before it is read (see _results.open_regular).
+        # A device or FIFO is refused before it is read (see _files.open_regular).
         file, _ = open_regular(path)
         with file:
             data = file.read()

@@ -46,7 +46,7 @@ from typing import Any, Literal, NamedTuple, TypeAlias
 import numpy as np
 import tifffile
 
-from ._results import NotRegularFile, open_regular
+from ._files import NotRegularFile, open_regular
 from .errors import InputError
 
 __all__ = [

@@ -76,7 +76,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from . import _core, _core_types
-from ._results import NotRegularFile, open_regular
+from ._files import NotRegularFile, open_regular
 from .errors import RigError
 
 __all__ = [
@@ -1125,7 +1125,7 @@ def read_small_text(path: str | os.PathLike[str], what: str, kind: str = "text f
     """
     name = os.fspath(path)
     try:
-        # A device or FIFO is refused before it is read (see _results.open_regular).
+        # A device or FIFO is refused before it is read (see _files.open_regular).
         f, _ = open_regular(path)
         with f:
             raw = f.read(MAX_RIG_FILE_BYTES + 1)
