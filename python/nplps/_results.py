@@ -120,7 +120,7 @@ def read_json(path: str | os.PathLike[str], limit: int = MAX_JSON_BYTES) -> Any:
     InputError
         The file cannot be read, is too large, not UTF-8 or not JSON (the message names it).
     """
-    from .rig import _nesting
+    from ._rig_values import _nesting
 
     p = Path(path)
     raw = _read_regular(p, limit)
@@ -141,7 +141,7 @@ def read_json(path: str | os.PathLike[str], limit: int = MAX_JSON_BYTES) -> Any:
 
 
 def _describe(value: Any) -> str:
-    from .rig import _describe as describe
+    from ._rig_values import _describe as describe
 
     return describe(value)
 
