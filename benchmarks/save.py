@@ -38,10 +38,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+from _timing import covered, file_timer  # benchmarks/_timing.py
 
 HERE = Path(__file__).resolve().parent
 
@@ -82,56 +82,6 @@ def synthetic_result(w: int, h: int, k: int) -> Any:
     result.fit_normals = np.ascontiguousarray(result.normals)  # the mesh normals, as fits would be
     assert isinstance(result, nplps.Reconstruction)
     return result
-
-
-@contextmanager
-def file_timer(record: list[tuple[str, float, float]]) -> Iterator[None]:
-    """Record (file name, start, end) of every file written through :mod:`nplps._atomic` in the block.
-
-    A PNG file encoded by the Rust extension (``nplps._core.write_pngs``, several at once) ends
-    when its encoding does: its rename waits for the meshes, which is not its own time.
-    """
-    from nplps import _atomic, _core, export
-
-    original = _atomic.atomic_path
-    encoder = getattr(_core, "write_pngs", None)
-    encoded: dict[str, float] = {}
-
-    @contextmanager
-    def timed(path: Any) -> Iterator[str]:
-        start = time.perf_counter()
-        with original(path) as temporary:
-            yield temporary
-        end = min(time.perf_counter(), encoded.pop(temporary, float("inf")))
-        record.append((os.path.basename(os.fspath(path)), start, end))
-
-    def timed_encoder(jobs: Any, *args: Any) -> None:
-        assert encoder is not None
-        encoder(jobs, *args)
-        encoded.update((path, time.perf_counter()) for path, _ in jobs)
-
-    _atomic.atomic_path = timed  # type: ignore[assignment]
-    saved = export.atomic_path
-    export.atomic_path = timed  # type: ignore[assignment]
-    if encoder is not None:
-        _core.write_pngs = timed_encoder
-    try:
-        yield
-    finally:
-        _atomic.atomic_path = original  # type: ignore[assignment]
-        export.atomic_path = saved  # type: ignore[assignment]
-        if encoder is not None:
-            _core.write_pngs = encoder
-
-
-def covered(intervals: list[tuple[float, float]]) -> float:
-    """Total length of the union of ``intervals``."""
-    total, end = 0.0, -float("inf")
-    for a, b in sorted(intervals):
-        if b > end:
-            total += b - max(a, end)
-            end = b
-    return total
 
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:

@@ -60,7 +60,7 @@ import nplps
 from nplps import export
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import save as save_bench  # benchmarks/save.py: the per-file timer
+import _timing  # benchmarks/_timing.py: the per-file timer
 
 #: Lateral size of the object (its longer side), working distance, light stand-off.
 OBJECT_SIZE = 100.0
@@ -394,12 +394,12 @@ def run_child(spec_path: str) -> None:
             }
         )
         record: list[tuple[str, float, float]] = []
-        with save_bench.file_timer(record):  # the time of each file (save_bench's docstring)
+        with _timing.file_timer(record):  # the time of each file (_timing.file_timer)
             t0 = time.perf_counter()
             paths = result.save(out_dir)
             save_s = time.perf_counter() - t0
         save_files = {name: b - a for name, a, b in record}
-        save_files["other"] = save_s - save_bench.covered([(a, b) for _, a, b in record])
+        save_files["other"] = save_s - _timing.covered([(a, b) for _, a, b in record])
         save_runs.append(save_files)
         files = {p.name: p.stat().st_size for p in paths.values()}
         rss_after_export = max(rss_after_export, peak_rss_mb())

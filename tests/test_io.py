@@ -635,3 +635,34 @@ def test_devices_pipes_and_directories_are_refused_before_they_are_read(tmp_path
             exc = _raises_within(call)
             assert isinstance(exc, InputError), exc
             assert str(path) in str(exc) and "not a regular file" in str(exc) and kind in str(exc)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="needs FIFOs (POSIX)")
+def test_rig_ply_and_raw_readers_refuse_devices_and_pipes(tmp_path: Path) -> None:
+    # The other readers of user files: a rig file, a PLY mesh, a camera RAW file. Each is refused
+    # from its file type at once (a FIFO would block in open, /dev/zero would be read until a limit).
+    import os
+
+    from nplps import export, raw
+    from nplps.errors import RigError
+    from nplps.rig import read_rig_json
+
+    calls: list[tuple[str, Callable[[str], object], type[Exception]]] = [
+        ("rig.json", read_rig_json, RigError),
+        ("mesh.ply", export.read_ply, InputError),
+    ]
+    try:
+        import rawpy  # noqa: F401
+
+        calls.append(("image.dng", raw.read_raw, InputError))
+    except ImportError:
+        pass
+    for name, reader, error in calls:
+        fifo = tmp_path / name
+        os.mkfifo(fifo)
+        for path, kind in [("/dev/zero", "device"), (str(fifo), "pipe")]:
+            if not os.path.exists(path):
+                continue
+            exc = _raises_within(partial(reader, path))
+            assert isinstance(exc, error), (name, exc)
+            assert path in str(exc) and "not a regular file" in str(exc) and kind in str(exc), exc

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import stat
 import struct
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ._files import NotRegularFile, open_regular
 from .errors import InputError, RigError
 
 __all__ = [
@@ -96,35 +96,6 @@ def _read_regular(path: Path, limit: int) -> bytes:
     return data
 
 
-class NotRegularFile(Exception):
-    """Raised by :func:`open_regular` for a path that is not a regular file.
-
-    ``directory`` tells a directory from a device, FIFO or socket.
-    """
-
-    def __init__(self, directory: bool) -> None:
-        super().__init__("a directory" if directory else "a device, pipe or socket")
-        self.directory = directory
-
-
-def open_regular(path: str | os.PathLike[str]) -> tuple[Any, int]:
-    """Open a regular file (or a link to one) for reading; return the file and its size.
-
-    Opened without blocking (a FIFO would wait for a writer) and checked, on the open file, to
-    be a regular file before anything is read (a device such as ``/dev/zero`` never ends).
-    Raises :class:`NotRegularFile` for anything else, :class:`OSError` where it cannot be opened.
-    """
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise NotRegularFile(stat.S_ISDIR(info.st_mode))
-        return os.fdopen(fd, "rb"), info.st_size
-    except BaseException:
-        os.close(fd)
-        raise
-
-
 def _open_regular(path: Path) -> tuple[Any, int]:
     """:func:`open_regular` for a result file, its failures as :class:`InputError`."""
     try:
@@ -149,7 +120,7 @@ def read_json(path: str | os.PathLike[str], limit: int = MAX_JSON_BYTES) -> Any:
     InputError
         The file cannot be read, is too large, not UTF-8 or not JSON (the message names it).
     """
-    from .rig import _nesting
+    from ._rig_values import _nesting
 
     p = Path(path)
     raw = _read_regular(p, limit)
@@ -170,7 +141,7 @@ def read_json(path: str | os.PathLike[str], limit: int = MAX_JSON_BYTES) -> Any:
 
 
 def _describe(value: Any) -> str:
-    from .rig import _describe as describe
+    from ._rig_values import _describe as describe
 
     return describe(value)
 

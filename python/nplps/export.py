@@ -34,6 +34,7 @@ import tifffile
 
 from . import _core, plots, views
 from ._atomic import atomic_path, atomic_write, write_error, write_text
+from ._files import NotRegularFile, open_regular
 from ._held_out import HeldOutScores, reading
 from ._outdir import jsonable
 from .errors import InputError
@@ -536,8 +537,12 @@ def read_ply(path: PathLike) -> dict[str, np.ndarray | list[str] | None]:
         The file cannot be read or is not a binary little-endian triangle PLY file.
     """
     try:
-        with open(path, "rb") as file:
+        # A device or FIFO is refused before it is read (see _files.open_regular).
+        file, _ = open_regular(path)
+        with file:
             data = file.read()
+    except NotRegularFile as exc:
+        raise InputError(f"cannot read PLY file '{os.fspath(path)}': not a regular file (it is {exc})") from None
     except OSError as exc:
         raise InputError(f"cannot read PLY file '{os.fspath(path)}': {exc}") from exc
     try:

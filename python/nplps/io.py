@@ -26,7 +26,7 @@ import numpy as np
 import tifffile
 
 from . import _core
-from ._results import NotRegularFile, open_regular
+from ._files import NotRegularFile, open_regular
 from .errors import InputError
 from .preprocess import to_float
 from .preprocess import to_gray as _gray
@@ -210,7 +210,7 @@ def _read_header(path: PathLike) -> bytes:
     Only a regular file (or a link to one) is an image file: a device such as ``/dev/zero``
     never ends (a decoder that reads its whole input would fill the memory) and opening a FIFO
     waits for a writer, so anything else is refused before it is read
-    (:func:`nplps._results.open_regular`).
+    (:func:`nplps._files.open_regular`).
     """
     try:
         file, _ = open_regular(path)

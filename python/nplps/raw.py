@@ -46,6 +46,7 @@ from typing import Any, Literal, NamedTuple, TypeAlias
 import numpy as np
 import tifffile
 
+from ._files import NotRegularFile, open_regular
 from .errors import InputError
 
 __all__ = [
@@ -167,6 +168,13 @@ def _open(path: PathLike) -> Any:
     name = os.fspath(path)
     if not os.path.exists(name):
         raise InputError(f"cannot read image '{name}': file not found")
+    try:
+        # LibRaw is given the name; a device or FIFO is refused before it reads (or waits on) it.
+        open_regular(name)[0].close()
+    except NotRegularFile as exc:
+        raise InputError(f"cannot read camera RAW file '{name}': not a regular file (it is {exc})") from None
+    except OSError:
+        pass  # LibRaw reports it below, in its words
     try:
         return rawpy.imread(name)
     except Exception as exc:  # LibRawFileUnsupportedError, LibRawIOError, OSError, ...

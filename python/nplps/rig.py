@@ -67,15 +67,37 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import _core, _core_types
+from . import _core, _core_types, _rig_codecs
+from ._atomic import write_text
+from ._rig_values import (
+    _LIGHT_TYPES,
+    _NO_AXIS,
+    LED,
+    MAX_NESTING,
+    MAX_RIG_FILE_BYTES,
+    ArrayLike,
+    DirectionalLight,
+    Light,
+    PointLight,
+    RigGrid,
+    Vec3,
+    _describe,
+    _kind,
+    _new,
+    _unit,
+    _with_intensity,
+    _with_position,
+    core_grid,
+    read_rig_json,
+    read_small_text,
+)
 from .errors import RigError
 
 __all__ = [
@@ -94,246 +116,11 @@ __all__ = [
 ]
 
 RIG_FILE_VERSION = 3
-#: Largest rig file read (bytes).
-MAX_RIG_FILE_BYTES = 16 * 2**20
-#: Deepest nesting of arrays and objects in a rig file.
-MAX_NESTING = 64
 #: Most lights of a rig.
 MAX_LIGHTS: int = _core.MAX_LIGHTS
 
 
-ArrayLike = Any
-#: Three floats: a position, a unit vector or an intensity per channel (R, G, B).
-Vec3 = tuple[float, float, float]
-#: The axis the compiled core is given for lights without one (it is unused there).
-_NO_AXIS: Vec3 = (0.0, 0.0, 1.0)
 _NAN3: Vec3 = (math.nan, math.nan, math.nan)
-
-_L = TypeVar("_L", "PointLight", "LED", "DirectionalLight")
-
-
-# --------------------------------------------------------------------------------------------------
-# Lights
-# --------------------------------------------------------------------------------------------------
-
-
-def _vec3(value: Any, what: str) -> Vec3:
-    """Three finite numbers (a list, tuple or 1-D array)."""
-    x, y, z = _vector(value, what)
-    return (x, y, z)
-
-
-def _rgb(value: Any, subject: str) -> Vec3:
-    """Return an intensity: a positive finite number or three (R, G, B)."""
-    x, y, z = _intensity(value, f"{subject} intensity")
-    if not (x > 0 and y > 0 and z > 0):
-        raise RigError(f"{subject} must have positive intensities, got [{x:.6g}, {y:.6g}, {z:.6g}]")
-    return (x, y, z)
-
-
-def _unit(v: Vec3) -> Vec3:
-    """Return ``v`` scaled to unit length; (0, 0, 0) stays zero.
-
-    It is scaled by its largest component first, so that the norm of a huge vector does not
-    overflow.
-    """
-    # The same operations (on a 1 x 3 array) as earlier versions of nplps, for the same bits.
-    a = np.array([v], dtype=np.float64)
-    a = a / np.maximum(np.abs(a).max(axis=1, keepdims=True), 1e-300)
-    n = np.linalg.norm(a, axis=1, keepdims=True)
-    if not n[0, 0] > 0:
-        return (0.0, 0.0, 0.0)
-    x, y, z = (a / n)[0].tolist()
-    return (x, y, z)
-
-
-def _is_unit(v: Vec3) -> bool:
-    with np.errstate(over="ignore"):  # a huge vector is no unit vector either
-        return bool(abs(float(np.linalg.norm(v)) - 1.0) <= 1e-6)
-
-
-def _new(cls: type[_L], **values: Any) -> _L:
-    """Return an instance of the frozen light type ``cls`` with the (checked) field ``values``."""
-    obj = object.__new__(cls)
-    for name, value in values.items():
-        object.__setattr__(obj, name, value)
-    return obj
-
-
-@dataclass(frozen=True, init=False)
-class PointLight:
-    """An isotropic point light.
-
-    Parameters
-    ----------
-    position : sequence of 3 float
-        Position ``p`` in the camera frame (lights stand in front of the object: smaller z).
-    intensity : float or sequence of 3 float, default 1
-        Intensity, one number or R, G, B; stored as three floats.
-
-    Raises
-    ------
-    RigError
-        When a value is not a finite number, or an intensity is not positive.
-    """
-
-    #: Position in the camera frame.
-    position: Vec3
-    #: Intensity per channel (R, G, B).
-    intensity: Vec3
-
-    def __init__(self, position: ArrayLike, intensity: float | ArrayLike = 1.0) -> None:
-        self._set(type(self).__name__, position, intensity)
-
-    def _set(self, subject: str, position: Any, intensity: Any) -> None:
-        object.__setattr__(self, "position", _vec3(position, f"{subject} position"))
-        object.__setattr__(self, "intensity", _rgb(intensity, subject))
-
-    @classmethod
-    def _checked(cls, subject: str, position: Any, intensity: Any = 1.0) -> PointLight:
-        """Return the light, its errors naming ``subject`` (such as ``light 3``)."""
-        light = object.__new__(cls)
-        light._set(subject, position, intensity)
-        return light
-
-
-@dataclass(frozen=True, init=False)
-class LED:
-    """A near point light with a principal axis (an anisotropic LED, Quéau et al. 2018).
-
-    Parameters
-    ----------
-    position : sequence of 3 float
-        Position ``p`` in the camera frame.
-    intensity : float or sequence of 3 float, default 1
-        Intensity, one number or R, G, B; stored as three floats.
-    axis : sequence of 3 float
-        Principal direction, from the LED towards the scene; scaled to unit length. A zero axis
-        is refused when ``mu`` > 0 and stands for +z when ``mu`` = 0 (where it is unused).
-    mu : float, default 1
-        Anisotropy, >= 0 (0 emits like a :class:`PointLight`).
-
-    Raises
-    ------
-    RigError
-        When a value is not a finite number, an intensity is not positive, ``mu`` is negative, or
-        the axis is zero while ``mu`` > 0.
-    """
-
-    #: Position in the camera frame.
-    position: Vec3
-    #: Intensity per channel (R, G, B).
-    intensity: Vec3
-    #: Unit principal direction, from the LED towards the scene.
-    axis: Vec3
-    #: Anisotropy (>= 0).
-    mu: float
-
-    def __init__(
-        self, position: ArrayLike, intensity: float | ArrayLike = 1.0, *, axis: ArrayLike, mu: float = 1.0
-    ) -> None:
-        self._set(type(self).__name__, position, intensity, axis, mu)
-
-    def _set(self, subject: str, position: Any, intensity: Any, axis: Any, mu: Any) -> None:
-        m = _number(mu, f"{subject} mu")
-        if m < 0:
-            raise RigError(f"{subject} has anisotropy mu = {m:.6g}; it must be >= 0")
-        a = _unit(_vec3(axis, f"{subject} axis"))
-        if a == (0.0, 0.0, 0.0):
-            if m > 0:
-                raise RigError(f"{subject}: an anisotropic LED (mu = {m:.6g}) needs a non-zero axis")
-            a = _NO_AXIS
-        object.__setattr__(self, "position", _vec3(position, f"{subject} position"))
-        object.__setattr__(self, "intensity", _rgb(intensity, subject))
-        object.__setattr__(self, "axis", a)
-        object.__setattr__(self, "mu", m)
-
-    @classmethod
-    def _checked(cls, subject: str, position: Any, intensity: Any, axis: Any, mu: Any) -> LED:
-        """Return the LED, its errors naming ``subject`` (such as ``light 3``)."""
-        light = object.__new__(cls)
-        light._set(subject, position, intensity, axis, mu)
-        return light
-
-
-@dataclass(frozen=True, init=False)
-class DirectionalLight:
-    """A distant light (parallel rays, no falloff).
-
-    Parameters
-    ----------
-    direction : sequence of 3 float
-        Direction from the surface towards the light; scaled to unit length.
-    intensity : float or sequence of 3 float, default 1
-        Intensity, one number or R, G, B; stored as three floats.
-
-    Raises
-    ------
-    RigError
-        When a value is not a finite number, the direction is zero or an intensity is not
-        positive.
-    """
-
-    #: Unit direction from the surface towards the light.
-    direction: Vec3
-    #: Intensity per channel (R, G, B).
-    intensity: Vec3
-
-    def __init__(self, direction: ArrayLike, intensity: float | ArrayLike = 1.0) -> None:
-        self._set(type(self).__name__, direction, intensity, normalize=True)
-
-    def _set(self, subject: str, direction: Any, intensity: Any, normalize: bool) -> None:
-        d = _vec3(direction, f"{subject} direction")
-        if normalize:
-            d = _unit(d)
-        if not _is_unit(d):
-            raise RigError(
-                f"{subject}: a directional light needs a unit direction (from the surface towards the light), "
-                f"got [{', '.join(f'{v:.6g}' for v in d)}]"
-            )
-        object.__setattr__(self, "direction", d)
-        object.__setattr__(self, "intensity", _rgb(intensity, subject))
-
-    @classmethod
-    def _checked(cls, subject: str, direction: Any, intensity: Any = 1.0, normalize: bool = True) -> DirectionalLight:
-        """Return the light, its errors naming ``subject``.
-
-        ``normalize=False`` checks that the direction is a unit vector (to 1e-6) and keeps it as
-        given (rig files, results).
-        """
-        light = object.__new__(cls)
-        light._set(subject, direction, intensity, normalize)
-        return light
-
-
-#: A light of a rig.
-Light = PointLight | LED | DirectionalLight
-_LIGHT_TYPES = (PointLight, LED, DirectionalLight)
-
-
-def _kind(light: Light) -> _core_types.LightKind:
-    """Return the compiled core's name of the light's type."""
-    if isinstance(light, DirectionalLight):
-        return "directional"
-    return "led" if isinstance(light, LED) else "point"
-
-
-def _with_position(light: Light, position: Any, subject: str) -> Light:
-    if isinstance(light, DirectionalLight):
-        raise RigError(f"{subject} is a directional light: it has no position")
-    p = _vec3(position, f"{subject} position")
-    if isinstance(light, LED):
-        return _new(LED, position=p, intensity=light.intensity, axis=light.axis, mu=light.mu)
-    return _new(PointLight, position=p, intensity=light.intensity)
-
-
-def _with_intensity(light: Light, intensity: Any, subject: str) -> Light:
-    phi = _rgb(intensity, subject)
-    if isinstance(light, LED):
-        return _new(LED, position=light.position, intensity=phi, axis=light.axis, mu=light.mu)
-    if isinstance(light, PointLight):
-        return _new(PointLight, position=light.position, intensity=phi)
-    return _new(DirectionalLight, direction=light.direction, intensity=phi)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -344,33 +131,6 @@ def _with_intensity(light: Light, intensity: Any, subject: str) -> Light:
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.flags.writeable = False
     return a
-
-
-@dataclass(frozen=True)
-class RigGrid:
-    """The image grid a rig's camera belongs to.
-
-    Attributes
-    ----------
-    image_size : (int, int) or None
-        Width and height of the images, in pixels (None: not known, only the binning).
-    binning : int
-        Pixels of the original calibration grid that one pixel averages along each axis (1: the
-        original grid; n after :meth:`Rig.binned` ``(n)``).
-    """
-
-    image_size: tuple[int, int] | None = None
-    binning: int = 1
-
-    def describe(self) -> str:
-        """Return "640 x 480 pixels (binned 4 x 4)" and the like."""
-        if self.image_size is None:
-            size = "images of unknown size"
-        else:
-            size = f"{self.image_size[0]} x {self.image_size[1]} pixels"
-        if self.binning > 1:
-            size += f" (binned {self.binning} x {self.binning} from the calibration grid)"
-        return size
 
 
 @dataclass(frozen=True, init=False)
@@ -1005,10 +765,9 @@ class Rig:
     def _from_file(cls, file: tuple[_core.Rig, Any, list[tuple[str, str]]]) -> Rig:
         """Return the rig of the compiled core's reading of a rig file (rig, grid, comments)."""
         native, grid, comments = file
-        size, binning = (None, 1) if grid is None else grid
         return cls._from_native(
             native,
-            grid=None if grid is None else RigGrid(None if size is None else (size[0], size[1]), binning),
+            grid=core_grid(grid),
             comments={k: json.loads(v) for k, v in comments},
             unit_axes=False,
         )
@@ -1035,10 +794,8 @@ class Rig:
         OSError
             When the file cannot be written.
         """
-        from . import rig_formats
-
-        if fmt is not None or options or rig_formats._output_format(path, None) != "rig":
-            rig_formats.save(self, path, fmt=fmt, **options)
+        if fmt is not None or options or _rig_codecs.output_format(path, None) != "rig":
+            _save_rig(self, path, fmt=fmt, **options)
             return
         self._save_json(path)
 
@@ -1077,11 +834,85 @@ class Rig:
         if not isinstance(path, (str, bytes, os.PathLike)):
             raise RigError(f"a rig file is read from a path (str or os.PathLike), got {type(path).__name__}")
         name = os.fsdecode(path)
-        from . import rig_formats
-
-        if options or rig_formats.detect_format(name) != "rig":
-            return rig_formats.load(name, **options)
+        if options or _rig_codecs.detect_format(name) != "rig":
+            return _load_rig(name, **options)
         return cls._from_file(_core.read_rig(name))
+
+
+# --------------------------------------------------------------------------------------------------
+# Other formats (their codecs in _rig_codecs; the public face is nplps.rig_formats)
+# --------------------------------------------------------------------------------------------------
+
+
+def _load_rig(
+    path: str | os.PathLike[str],
+    *,
+    fmt: str | None = None,
+    camera: Mapping[str, Any] | str | os.PathLike[str] | None = None,
+    camera_distance: float | None = None,
+    light_distance: float | None = None,
+    intrinsic: str | None = None,
+    scale: float | None = None,
+) -> Rig:
+    """Read a rig file or a lights file of another format: see :func:`nplps.rig_formats.load`."""
+    fmt = fmt or _rig_codecs.detect_format(path)
+    if fmt not in _rig_codecs.FORMATS:
+        raise RigError(f"unknown format {fmt!r}; the formats are {', '.join(_rig_codecs.FORMATS)}")
+    name = os.fspath(path)
+    if fmt in ("opencv-yaml", "opencv-json", "sfmdata"):
+        raise RigError(
+            f"{name!r} holds a camera only (no lights): give it as the camera of a lights file "
+            "(nplps rig convert LIGHTS OUT --camera CAMERA)"
+        )
+    if light_distance is not None and camera_distance is None:
+        raise RigError("light_distance (--light-distance) needs camera_distance (--camera-distance)")
+    if fmt == "rig":
+        rig = Rig._from_file(_core.read_rig(name))
+        if camera is None:
+            return rig
+        cam, grid = _rig_codecs.camera_of(camera, intrinsic)
+        return Rig(cam, rig.lights, grid=grid or rig.grid, comments=rig.comments)
+    if camera is None:
+        raise RigError(
+            f"{name!r} is a {_rig_codecs.FORMAT_NAMES[fmt]}, which has no camera: give one "
+            "(Rig.load(..., camera=...) with "
+            "an OpenCV camera YAML/JSON, a rig file or an SfMData), or make a rig file first: "
+            f"nplps rig convert {name} rig.json --camera CAMERA"
+        )
+    cam, grid = _rig_codecs.camera_of(camera, intrinsic)
+    if fmt == "dome":
+        lights, comments = _rig_codecs.read_dome(name, camera_distance, light_distance, scale)
+    elif fmt == "lp":
+        lights, comments = _rig_codecs.read_lp(name, camera_distance, light_distance)
+    else:
+        lights, comments = _rig_codecs.read_alicevision(name)
+    return Rig(cam, lights, grid=grid, comments=comments)
+
+
+def _save_rig(
+    rig: Rig,
+    path: str | os.PathLike[str],
+    *,
+    fmt: str | None = None,
+    camera_distance: float | None = None,
+    drop_intensities: bool = False,
+    scale: float | None = None,
+) -> str:
+    """Write a rig, or the part of it that a format holds: see :func:`nplps.rig_formats.save`."""
+    fmt = _rig_codecs.output_format(path, fmt)
+    if fmt == "rig":
+        rig._save_json(path)
+    elif fmt == "dome":
+        write_text(path, _rig_codecs.dome_text(rig, camera_distance, scale))
+    elif fmt == "lp":
+        write_text(path, _rig_codecs.lp_text(rig, drop_intensities))
+    elif fmt == "alicevision":
+        write_text(path, _rig_codecs.alicevision_text(rig))
+    elif fmt in ("opencv-yaml", "opencv-json"):
+        _rig_codecs.write_camera(rig.camera, path, grid=rig.grid, fmt=fmt)
+    else:
+        raise RigError("nplps reads SfMData files (their intrinsics) but does not write them")
+    return fmt
 
 
 def _is_empty(value: Any) -> bool:
@@ -1111,107 +942,6 @@ def _lights(value: Any) -> tuple[Light, ...]:
     return tuple(PointLight._checked(f"light {i}", p) for i, p in enumerate(positions))
 
 
-def read_small_text(path: str | os.PathLike[str], what: str, kind: str = "text file") -> str:
-    """Return the UTF-8 text of a file of at most :data:`MAX_RIG_FILE_BYTES` (rig, lights, camera files).
-
-    ``what`` names the file in messages (``"rig file"``, ``".lp file"``) and ``kind`` what it should
-    be (``"JSON text file"``). A leading byte-order mark is dropped.
-
-    Raises
-    ------
-    RigError
-        The file cannot be read, is larger than the limit or is not UTF-8.
-    """
-    name = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_RIG_FILE_BYTES + 1)
-    except OSError as e:
-        raise RigError(f"cannot read {what} {name!r}: {e.strerror}") from None
-    if len(raw) > MAX_RIG_FILE_BYTES:
-        raise RigError(f"{what} {name!r} is larger than {MAX_RIG_FILE_BYTES // 2**20} MiB: not a {what}")
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise RigError(f"{what} {name!r} is not a {kind} (not UTF-8)") from None
-
-
-def read_rig_json(path: str | os.PathLike[str]) -> Any:
-    """Return the JSON value of a rig file, read within the limits of the format.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The file: at most :data:`MAX_RIG_FILE_BYTES` of UTF-8 (a byte order mark is allowed),
-        nested at most :data:`MAX_NESTING` levels.
-
-    Returns
-    -------
-    Any
-        The parsed JSON value (not checked as a rig: see :meth:`Rig.from_dict`).
-
-    Raises
-    ------
-    RigError
-        When the file cannot be read or is not such a JSON text.
-    """
-    name = os.fspath(path)
-    text = read_small_text(path, "rig file", "JSON text file")
-    depth = _nesting(text)
-    if depth > MAX_NESTING:
-        raise RigError(f"rig file {name!r} is nested too deeply ({depth} levels; at most {MAX_NESTING})")
-    try:
-        return json.loads(text)
-    except RecursionError:
-        raise RigError(f"rig file {name!r} is nested too deeply") from None
-    except ValueError as e:  # JSONDecodeError, and integers of more than 4300 digits
-        message = str(e)
-        message = message if len(message) <= 200 else message[:200] + "..."
-        raise RigError(f"rig file {name!r} is not valid JSON: {message}") from None
-
-
-_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.S)
-
-
-def _nesting(text: str) -> int:
-    """Return the deepest nesting of arrays and objects in the JSON text (brackets in strings left out)."""
-    if text.count("[") + text.count("{") <= MAX_NESTING:
-        return 0
-    code = np.frombuffer(_JSON_STRING.sub('""', text).encode("utf-8"), dtype=np.uint8)
-    brackets = code[(code == ord("[")) | (code == ord("{")) | (code == ord("]")) | (code == ord("}"))]
-    if brackets.size == 0:
-        return 0
-    steps = np.where((brackets == ord("[")) | (brackets == ord("{")), 1, -1).astype(np.int32)
-    return int(np.cumsum(steps).max())
-
-
-def _describe(value: Any) -> str:
-    """Return a short description of a value for messages.
-
-    Never its full repr, which may be huge or nested too deeply to print (the same words as the
-    compiled core's).
-    """
-    if value is None:
-        return "null"
-    if isinstance(value, (bool, np.bool_)):
-        return f"the boolean {str(bool(value)).lower()}"
-    if isinstance(value, str):
-        return f"the string {json.dumps(value if len(value) <= 40 else value[:37] + '...')}"
-    if isinstance(value, (list, tuple)):
-        n = len(value)
-        return f"a {type(value).__name__} of {n} item{'' if n == 1 else 's'}"
-    if isinstance(value, Mapping):
-        return "an object (mapping)"
-    if isinstance(value, np.ndarray):
-        return f"an array of shape {value.shape}"
-    if isinstance(value, (int, float, np.integer, np.floating)):
-        try:
-            return f"{float(value):.6g}"
-        except OverflowError:
-            return "an integer too large for a floating-point number"
-    return f"a value of type {type(value).__name__}"
-
-
 def _plain(value: Any) -> Any:
     """Return a numpy value of a rig mapping as the plain value ``json`` writes."""
     if isinstance(value, (np.ndarray, np.generic)):
@@ -1233,36 +963,6 @@ def _nonfinite(value: Any, where: str) -> str:
         if found:
             return found
     return ""
-
-
-def _number(value: Any, what: str) -> float:
-    """Return a finite number: an int or a float (numpy scalars too), not a boolean or a string."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise RigError(f"{what} must be a number, got {_describe(value)}")
-    try:
-        x = float(value)
-    except OverflowError:
-        raise RigError(f"{what} is an integer too large for a floating-point number") from None
-    if not math.isfinite(x):
-        raise RigError(f"{what} must be a finite number, got {x:.6g}")
-    return x
-
-
-def _vector(value: Any, what: str) -> list[float]:
-    """Three finite numbers."""
-    if isinstance(value, np.ndarray) and value.ndim == 1:
-        value = list(value)
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise RigError(f"{what} must be 3 numbers, got {_describe(value)}")
-    return [_number(v, f"{what}[{i}]") for i, v in enumerate(value)]
-
-
-def _intensity(value: Any, what: str) -> list[float]:
-    """One light's intensity: a number, or three (R, G, B)."""
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return _vector(value, what)
-    x = _number(value, what)
-    return [x, x, x]
 
 
 def _numeric(value: Any, name: str, kinds: str = "iuf") -> np.ndarray:

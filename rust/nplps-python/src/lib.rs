@@ -20,12 +20,10 @@ use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn, PyUntypedArr
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use convert::{
-    array, array3, camera_dict, camera_from, check_options, lighting_from, option,
-    reconstruction_dict,
-};
+use convert::{array, array3, camera_dict, camera_from, check_options, lighting_from, option};
 use errors::{no_panic, to_py, with_fields, InputError, RigError};
 use interrupt::interruptible;
+use records::reconstruction_dict;
 
 /// Borrows a C-contiguous array as a slice, or explains what is wrong.
 fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(

@@ -958,6 +958,16 @@ pub struct IndirectField {
     sightlines: Option<Sightlines>,
 }
 
+impl crate::local::IndirectLight for IndirectField {
+    fn is_unlit(&self, p: usize, k: usize) -> bool {
+        IndirectField::is_unlit(self, p, k)
+    }
+
+    fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
+        IndirectField::at_into(self, p, width, out)
+    }
+}
+
 impl IndirectField {
     /// The field of the mesh with unknowns `u` on `grid` / `geometry` seen by `camera` (the
     /// fine grid's), from the observations `obs` (the fine stack: the observed images are the
@@ -1822,7 +1832,7 @@ mod tests {
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);
         let coarse_depth = depths(m, |r, c| depth[(2 * r as usize) * (n + 1) + 2 * c as usize]);
-        let v = crate::render::vertices(&coarse_camera, m, m, &coarse_depth).unwrap();
+        let v = crate::geometry::vertices(&coarse_camera, m, m, &coarse_depth).unwrap();
         let x = Exchange::new(&coarse_camera, m, m, &v, None, None).unwrap();
         assert_eq!(field.pairs(), x.pairs());
         let own = x.irradiance(&vec![1.0f32; m * m], 1, 1).unwrap();
@@ -1860,7 +1870,7 @@ mod tests {
             (ortho(), depths(n, |r, c| 100.0 + 0.3 * c - 0.2 * r)),
             (pinhole(n, 40.0), depths(n, |_, _| 500.0)),
         ] {
-            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
             let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
             assert_eq!(x.pairs(), 0);
             let obs = vec![1.0f32; 3 * n * n];
@@ -1878,7 +1888,7 @@ mod tests {
         let slope = 1.5;
         let depth = groove(n, slope);
         let camera = ortho();
-        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
         let (pi, pj) = (10 * n + 2, 14 * n + 29);
         let mut mask = vec![false; n * n];
         mask[pi] = true;
@@ -1929,7 +1939,7 @@ mod tests {
     fn channels_keep_the_stack_layout() {
         let n = 16;
         let camera = ortho();
-        let v = crate::render::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
         let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
         let (lights, channels) = (2, 3);
         let value = |k: usize, p: usize, ch: usize| (1 + k * 7 + ch * 3) as f32 + p as f32 / 100.0;
@@ -2002,7 +2012,7 @@ mod tests {
         for slope in [1.0, 2.0] {
             let depth = groove(n, slope);
             let camera = ortho();
-            let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+            let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
             let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
             let vi = x.irradiance(&vec![1f32; n * n], 1, 1).unwrap();
             // The right wall: vertex columns m..n, rows 0..n.
@@ -2197,7 +2207,7 @@ mod tests {
             let (high_l, high_r) = (row * n + 1, row * n + 30);
             let pair = |x: &Exchange, a: usize, b: usize| x.pairs_of(a).any(|(j, _)| j == b);
             for (wall, blocked) in [(0.0, false), (12.0, true)] {
-                let v = crate::render::vertices(&camera, n, n, &shape(wall)).unwrap();
+                let v = crate::geometry::vertices(&camera, n, n, &shape(wall)).unwrap();
                 let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
                 assert_eq!(
                     pair(&x, low_l, low_r),
@@ -2244,7 +2254,7 @@ mod tests {
                 100.0 + (m - (c - m).abs()) - raised
             })
         };
-        let ortho_vertices = |z: Vec<f64>| crate::render::vertices(&ortho(), n, n, &z).unwrap();
+        let ortho_vertices = |z: Vec<f64>| crate::geometry::vertices(&ortho(), n, n, &z).unwrap();
         // (camera, mask, mesh, nearby mesh, whether few pairs are marched on the nearby one)
         type Case = (
             Camera,
@@ -2319,7 +2329,7 @@ mod tests {
             let q = ((r - c).powi(2) + (col - c).powi(2)) / (c * c);
             500.0 + 150.0 * (1.0 - q).max(0.0)
         });
-        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
         let mask: Vec<bool> = (0..n * n).map(|p| p % 7 != 3).collect();
         let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
         assert!(x.pairs() > 10_000, "{}", x.pairs());
@@ -2396,7 +2406,7 @@ mod tests {
     fn the_cap_and_the_shapes_are_checked() {
         let n = 16;
         let camera = ortho();
-        let v = crate::render::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &groove(n, 1.0)).unwrap();
         let err = Exchange::new(&camera, n, n, &v, None, Some(100)).unwrap_err();
         assert!(err.to_string().contains("max_pairs = 100"), "{err}");
         assert!(Exchange::new(&camera, n, n, &v[1..], None, None).is_err());
@@ -2431,7 +2441,7 @@ mod tests {
         for (v, z) in depth.iter().enumerate() {
             inside[v] = *z > rim;
         }
-        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
         let mask = (0..n * n)
             .map(|p| {
                 let w = (p / n) * (n + 1) + p % n;

@@ -253,6 +253,7 @@ pub use distance::{
     DistanceSearch, CHECK_SIDE,
 };
 pub use error::{g6, Error, Result};
+pub use geometry::vertices;
 pub use global::GlobalSolver;
 pub use light::Light;
 pub use local::{LightTrust, Robust, Trust, Weighting};
@@ -272,8 +273,7 @@ pub use reconstruction::{
 pub use refine::Conditioning;
 pub use reflectance::{Lobe, Reflectance};
 pub use render::{
-    mesh_normals, predict, predict_with, render, render_with, vertices, RenderOptions, Specular,
-    Surface,
+    mesh_normals, predict, predict_with, render, render_with, RenderOptions, Specular, Surface,
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask, Shadows};

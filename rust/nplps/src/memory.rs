@@ -88,14 +88,6 @@ unsafe impl Zeroable for f64 {
 unsafe impl Zeroable for [f64; 4] {
     const ZERO: Self = [0.0; 4];
 }
-// SAFETY: zero bytes are 0.0, 0 and false (the padding bytes are never read).
-unsafe impl Zeroable for crate::local::FacetStat {
-    const ZERO: Self = crate::local::FacetStat {
-        sse: 0.0,
-        used: 0,
-        valid: false,
-    };
-}
 
 /// `len` zeros, or [`Error::Memory`], allocated zeroed instead of filled: the operating system
 /// hands out zero pages as they are first touched, so a large buffer is not written serially

@@ -425,7 +425,7 @@ fn check_grids(
         return Err(shape("vertex positions", (expected, got)));
     }
     if let Positions::Camera { camera, depth } = vertices {
-        crate::render::check_vertex_rays(camera, height, width, depth)?;
+        crate::geometry::check_vertex_rays(camera, height, width, depth)?;
     }
     if let Some(n) = normals {
         let (expected, got) = n.expected(height, width, 3);

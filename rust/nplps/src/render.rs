@@ -19,11 +19,10 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_mask, ensure_range, ensure_shape, Result};
-use crate::geometry::{quad_centre, quad_normal, Geometry};
-use crate::grid::Grid;
+use crate::geometry::{quad_centre, quad_normal, vertices};
 use crate::light::{channel_intensity, Light};
 use crate::reflectance::Lobe;
-use crate::rig::{Camera, Rig, MAX_MAGNITUDE};
+use crate::rig::{Camera, Rig};
 use crate::vec3::{norm, normalize, not_above, scale, sub};
 
 /// A surface to shade: an (H+1) x (W+1) vertex depth map (row-major) with a per-pixel albedo
@@ -49,7 +48,7 @@ impl Surface<'_> {
     /// the vertex positions of the depth map (see [`positions`]).
     fn vertices(&self, camera: &Camera) -> Result<Vec<[f64; 3]>> {
         let (plane, channels) = (self.height * self.width, self.channels);
-        let v = positions(camera, self.height, self.width, self.depth)?;
+        let v = vertices(camera, self.height, self.width, self.depth)?;
         ensure_range(
             channels == 1 || channels == 3,
             "channels",
@@ -170,86 +169,6 @@ impl<'a> Model<'a> {
     }
 }
 
-/// Checks that `depth` has the (H+1) x (W+1) values of a vertex depth map.
-fn ensure_depth_map(height: usize, width: usize, depth: &[f64]) -> Result<()> {
-    ensure_shape("depth map", (height + 1) * (width + 1), depth.len(), || {
-        format!(
-            "depth map has {} values, expected (W+1) x (H+1) = {} x {}",
-            depth.len(),
-            width + 1,
-            height + 1
-        )
-    })
-}
-
-/// Whether a vertex of depth `z` whose [`Camera::vertex_xy`] is `xy` lacks a camera ray that
-/// it needs (vertices of unknown, NaN, depth need none: outside a reconstruction's mask, say).
-#[inline]
-fn lacks_ray([x, y]: [f64; 2], z: f64) -> bool {
-    z.is_finite() && !(x.abs() <= MAX_MAGNITUDE && y.abs() <= MAX_MAGNITUDE)
-}
-
-/// The error naming the first vertex of finite depth without a ray (the geometry's own check),
-/// once [`lacks_ray`] found one.
-fn missing_ray(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<()> {
-    let grid = Grid::new(height, width, None)?;
-    Geometry::new(camera, &grid)?.check_rays(&grid, |v| depth[v].is_finite())
-}
-
-/// Vertex positions of a full (H+1) x (W+1) depth map.
-fn positions(camera: &Camera, height: usize, width: usize, depth: &[f64]) -> Result<Vec<[f64; 3]>> {
-    ensure_depth_map(height, width, depth)?;
-    crate::memory::check(
-        || format!("the vertices of a depth map of {width} x {height} pixels"),
-        // The positions, 24 bytes per vertex, twice for room (the grid and geometry of the
-        // error path of a missing ray allocate fallibly). It was 100, from when the positions
-        // came from a grid and its geometry, and refused a 100 MP result's mesh at the end of
-        // the run (issue 23).
-        48.0 * depth.len() as f64,
-        None,
-    )?;
-    // Each vertex's ray straight from the camera (no grid or geometry: 24 bytes per vertex
-    // instead of about 100, which at 12 MP is a gigabyte of pages less to fault in; issue 23),
-    // with the arithmetic of `Geometry::position_at_depth`.
-    let vw = width + 1;
-    let no_ray = std::sync::atomic::AtomicBool::new(false);
-    let positions = crate::memory::try_par_collect(
-        depth.par_iter().enumerate().map(|(v, &z)| {
-            let xy = camera.vertex_xy(v / vw, v % vw);
-            if lacks_ray(xy, z) {
-                no_ray.store(true, std::sync::atomic::Ordering::Relaxed);
-            }
-            camera.at_depth(xy, z)
-        }),
-        "the vertex positions",
-    )?;
-    if no_ray.into_inner() {
-        missing_ray(camera, height, width, depth)?;
-    }
-    Ok(positions)
-}
-
-/// Checks that every vertex of finite depth of an (H+1) x (W+1) depth map has a camera ray,
-/// with the error of [`vertices`], without making the positions (the PLY writer computes them
-/// vertex by vertex: `crate::mesh::Positions::Camera`).
-pub fn check_vertex_rays(
-    camera: &Camera,
-    height: usize,
-    width: usize,
-    depth: &[f64],
-) -> Result<()> {
-    ensure_depth_map(height, width, depth)?;
-    let vw = width + 1;
-    let no_ray = depth
-        .par_iter()
-        .enumerate()
-        .any(|(v, &z)| lacks_ray(camera.vertex_xy(v / vw, v % vw), z));
-    if no_ray {
-        missing_ray(camera, height, width, depth)?;
-    }
-    Ok(())
-}
-
 /// The 4 corners of pixel `p` from the vertex positions.
 #[inline]
 fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
@@ -262,16 +181,6 @@ fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
     ]
 }
 
-/// 3-D position of every vertex of an (H+1) x (W+1) depth map.
-pub fn vertices(
-    camera: &Camera,
-    height: usize,
-    width: usize,
-    depth: &[f64],
-) -> Result<Vec<[f64; 3]>> {
-    positions(camera, height, width, depth)
-}
-
 /// Mesh normal of every pixel of an (H+1) x (W+1) depth map (NaN where a corner is NaN).
 pub fn mesh_normals(
     camera: &Camera,
@@ -279,7 +188,7 @@ pub fn mesh_normals(
     width: usize,
     depth: &[f64],
 ) -> Result<Vec<[f64; 3]>> {
-    let v = positions(camera, height, width, depth)?;
+    let v = vertices(camera, height, width, depth)?;
     crate::memory::try_par_collect(
         (0..height * width)
             .into_par_iter()
@@ -594,29 +503,6 @@ mod tests {
 mod forward_tests {
     use super::*;
     use crate::shadow::cast_shadows;
-
-    #[test]
-    fn vertices_are_the_geometrys_positions() {
-        // The direct rays of `positions` against the grid-and-geometry path they replaced, bit
-        // for bit, on a distorted pinhole camera and an orthographic one, with unknown depths.
-        let (h, w) = (7, 9);
-        let cameras = crate::rig::test_cameras();
-        let mut depth: Vec<f64> = (0..(h + 1) * (w + 1))
-            .map(|v| 50.0 + (v as f64).sin())
-            .collect();
-        depth[5] = f64::NAN;
-        for camera in &cameras {
-            let got = vertices(camera, h, w, &depth).unwrap();
-            let grid = Grid::new(h, w, None).unwrap();
-            let geometry = Geometry::new(camera, &grid).unwrap();
-            for (v, p) in got.iter().enumerate() {
-                let want = geometry.position_at_depth(v, depth[v]);
-                for k in 0..3 {
-                    assert_eq!(p[k].to_bits(), want[k].to_bits(), "vertex {v}");
-                }
-            }
-        }
-    }
 
     const N: usize = 16;
 

@@ -323,7 +323,7 @@ pub fn cast_shadows(
 ) -> Result<ShadowMask> {
     let plane = height * width;
     ensure_mask(mask, plane)?;
-    let vertices = crate::render::vertices(&rig.camera, height, width, depth)?;
+    let vertices = crate::geometry::vertices(&rig.camera, height, width, depth)?;
     shadows_of_vertices(rig, height, width, &vertices, mask, max_steps)
 }
 
@@ -1118,7 +1118,7 @@ mod tests {
                 (ortho(lights.clone()), &depth),
                 (pinhole(lights.clone()), &depth_pinhole),
             ] {
-                let v = crate::render::vertices(&rig.camera, N, N, z).unwrap();
+                let v = crate::geometry::vertices(&rig.camera, N, N, z).unwrap();
                 for m in [None, Some(&mask[..])] {
                     let fast = march_all(
                         &rig.camera,
@@ -1195,7 +1195,7 @@ mod tests {
                     }
                 }
                 let rig = &scene.rig;
-                let v = crate::render::vertices(&rig.camera, n, n, &depth).unwrap();
+                let v = crate::geometry::vertices(&rig.camera, n, n, &depth).unwrap();
                 let holes: Vec<bool> = (0..n * n).map(|p| (p / n * 7 + p % n) % 23 != 5).collect();
                 for (m, steps) in [
                     (Some(&scene.mask[..]), None),

@@ -1120,7 +1120,10 @@ impl<'p> Solver<'p> {
             cancel: &p.cancel,
             warm: None,
             shadows: self.shadows.as_ref(),
-            indirect: self.indirect.as_ref(),
+            indirect: self
+                .indirect
+                .as_ref()
+                .map(|f| f as &dyn crate::local::IndirectLight),
         }
     }
 

@@ -371,6 +371,18 @@ impl Model<'_> {
     }
 }
 
+/// The indirect light that a local step adds to its Lambertian fits: what the fits ask of
+/// [`crate::indirect::IndirectField`], which implements it (the local step sits below the
+/// interreflection model and knows it only through these two questions).
+pub trait IndirectLight: Sync {
+    /// Whether light `k` is behind the facet of pixel `p` on the mesh the field was made for
+    /// (its observation then keeps its indirect light only).
+    fn is_unlit(&self, p: usize, k: usize) -> bool;
+    /// The indirect irradiance vectors `V` of pixel `p` (of an image `width` pixels wide), one
+    /// per light and channel, into `out` (resized to them).
+    fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>);
+}
+
 /// What the iterations keep of a facet's fit besides its target.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FacetStat {
@@ -380,6 +392,15 @@ pub struct FacetStat {
     pub used: u32,
     /// Whether the fit succeeded.
     pub valid: bool,
+}
+
+// SAFETY: zero bytes are 0.0, 0 and false (the padding bytes are never read).
+unsafe impl crate::memory::Zeroable for FacetStat {
+    const ZERO: Self = FacetStat {
+        sse: 0.0,
+        used: 0,
+        valid: false,
+    };
 }
 
 impl From<&FacetFit> for FacetStat {
@@ -423,7 +444,7 @@ pub struct LocalStep<'s> {
     /// [`crate::indirect::IndirectField`]): added to the light's row of the fits,
     /// `I = b . (s + V)`; None: the direct light only. Only the scalar Lambertian fits use it
     /// (the vectorised lanes are off, the glossy model is refused).
-    pub indirect: Option<&'s crate::indirect::IndirectField>,
+    pub indirect: Option<&'s dyn IndirectLight>,
 }
 
 impl<'s> LocalStep<'s> {
@@ -561,7 +582,7 @@ impl LocalStep<'_> {
         f: usize,
         u: &[f64],
         buf: &mut [f32],
-        field: &crate::indirect::IndirectField,
+        field: &dyn IndirectLight,
         q: &[[f64; 3]; 4],
         c: [f64; 3],
     ) -> FacetFit {
