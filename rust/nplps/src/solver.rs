@@ -630,7 +630,8 @@ impl<'p> Solver<'p> {
         let mut residual = f64::NAN;
         for round in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
-            let previous = self.indirect.take();
+            let mut previous = self.indirect.take();
+            let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
             self.indirect = Some(
                 IndirectField::of_mesh(
                     &p.rig.camera,
@@ -642,7 +643,13 @@ impl<'p> Solver<'p> {
                     previous,
                     None,
                 )?
-                .with_unlit(&p.grid, &p.geometry, u, self.lights.lights())?,
+                .with_unlit(
+                    &p.grid,
+                    &p.geometry,
+                    u,
+                    self.lights.lights(),
+                    hidden,
+                )?,
             );
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
