@@ -2473,7 +2473,7 @@ mod tests {
         let depth = depths(n, |r, col| {
             200.0 + 9.0 * (2.0 * std::f64::consts::PI * (col + 0.3 * r) / 7.0).sin()
         });
-        let v = crate::render::vertices(&camera, n, n, &depth).unwrap();
+        let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
         let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
         let march = March {
             camera: &camera,
