@@ -5,6 +5,7 @@ Usage::
     python benchmarks/glossy_cost.py [--sizes 256 1024] [--repeats 3]
                                      [--pbr /work/pbr-data/256/bumps-roughplastic-0.3-256.npz]
                                      [--modes lambertian given estimated] [--json out.json]
+                                     [--baseline DIR]
 
 Scenes: ``nplps.make_scene("bumps", camera="pinhole", specular=0.2, roughness=0.3)`` (rendered
 by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size, and the PBR render given by
@@ -19,6 +20,12 @@ the ratios compare runs under the same machine load. Per scene and mode the tabl
 median wall seconds of ``nplps.reconstruct`` over the repeats, its ratio to the Lambertian
 median, the median peak RSS, the outer iterations (``len(result.history)``, all levels), the
 mean normal error against the truth (degrees, mesh normals) and the lobe found.
+
+``--baseline DIR`` runs every mode also with another build of nplps, imported from ``DIR`` (e.g. a
+wheel of the main branch unpacked there, or a copy of its ``python/`` directory with its
+``_core`` library), alternating with this build run by run; its rows are marked ``(baseline)``
+and its ratios are to its own Lambertian median. An A/B measured in one run
+sees the same machine load.
 """
 
 from __future__ import annotations
@@ -93,13 +100,17 @@ def worker(scene: str, mode: str) -> dict[str, Any]:
     }
 
 
-def run(scene: str, mode: str) -> dict[str, Any]:
-    """Run `worker` in a fresh process and return its numbers."""
+def run(scene: str, mode: str, baseline: str | None = None) -> dict[str, Any]:
+    """Run `worker` in a fresh process (importing nplps from `baseline` if given) and return its numbers."""
+    env = dict(os.environ)
+    if baseline:
+        env["PYTHONPATH"] = os.pathsep.join([baseline, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     out = subprocess.run(
         [sys.executable, os.path.abspath(__file__), "--worker", scene, mode],
         check=True,
         capture_output=True,
         text=True,
+        env=env,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -112,6 +123,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     parser.add_argument("--json", help="write the numbers to this file")
+    parser.add_argument("--baseline", help="also run the nplps importable from this directory (A/B)")
     parser.add_argument("--worker", nargs=2, metavar=("SCENE", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -122,19 +134,26 @@ def main() -> None:
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     table: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    builds = [""] + ([" (baseline)"] if args.baseline else [])
     for scene in scenes:
-        runs: dict[str, list[dict[str, Any]]] = {m: [] for m in args.modes}
+        runs: dict[str, list[dict[str, Any]]] = {m + b: [] for b in builds for m in args.modes}
         for _ in range(args.repeats):
             for mode in args.modes:
-                runs[mode].append(run(scene, mode))
+                for b in builds:
+                    runs[mode + b].append(run(scene, mode, args.baseline if b else None))
         table[scene] = runs
-        base = statistics.median(r["seconds"] for r in runs["lambertian"]) if "lambertian" in runs else float("nan")
+        bases = {
+            b: statistics.median(r["seconds"] for r in runs["lambertian" + b])
+            for b in builds
+            if "lambertian" + b in runs
+        }
         name = os.path.basename(scene).removesuffix(".npz")
         for mode, rs in runs.items():
             seconds = statistics.median(r["seconds"] for r in rs)
             rss = statistics.median(r["rss_mb"] for r in rs)
             last = rs[-1]
             lobe = "" if last["lobe"] is None else f"{last['lobe'][0]:.3f}, {last['lobe'][1]:.2f}"
+            base = bases.get(" (baseline)" if mode.endswith(" (baseline)") else "", float("nan"))
             print(
                 f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {rss:.0f} | {last['iterations']} "
                 f"| {last['error']:.3f} | {lobe} |",

@@ -41,7 +41,9 @@
 //! Gauss-Newton (Levenberg-Marquardt) on the 4 unknowns from a start (the Lambertian fit, `s = 0`):
 //! `d m / d b = Phi a (D n + P grad D + (s / |b|) P grad S)` with `P = I - n n^T`, and
 //! `d m / d s = Phi a S` (analytic derivatives). A step is kept only if it lowers the squared
-//! residual; `s` is kept non-negative.
+//! residual; `s` is kept non-negative. [`fit_packed_within`] also stops before trying a step
+//! shorter than a tolerance of the unknowns ([`STEP_TOLERANCE`] in a reconstruction's local
+//! steps).
 //!
 //! ## Cost
 //!

@@ -4,8 +4,10 @@
 //! with the Lambertian model (robust, if asked for), and that fit starts the glossy one: a few
 //! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit_packed`] with the shared
 //! [`Lobe`]. From the second local step on, the facet's glossy normal of the step before starts
-//! the fit instead, and the Lambertian fit is made only where that glossy fit fails. Light `k`
-//! is seen by the facet with centre `c` as the observation
+//! the fit instead, and the Lambertian fit is made only where that glossy fit fails. The fits stop
+//! before a step shorter than `settings.step_tolerance` of their unknowns (see
+//! [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE); 0 in the distance and lobe
+//! searches). Light `k` is seen by the facet with centre `c` as the observation
 //!
 //! ```text
 //! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
