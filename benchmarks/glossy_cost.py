@@ -18,8 +18,10 @@ Every run is one fresh Python process (its peak RSS, ``ru_maxrss``, is its own a
 images and the scene's rendering), and the modes of a repeat run one after the other, so that
 the ratios compare runs under the same machine load. Per scene and mode the table has the
 median wall seconds of ``nplps.reconstruct`` over the repeats, its ratio to the Lambertian
-median, the median peak RSS, the outer iterations (``len(result.history)``, all levels), the
-mean normal error against the truth (degrees, mesh normals) and the lobe found.
+median, the median CPU seconds of the process during it (user + system, all threads; steadier
+than the wall time on a loaded machine) and their ratio, the median peak RSS, the outer
+iterations (``len(result.history)``, all levels), the mean normal error against the truth
+(degrees, mesh normals) and the lobe found.
 
 ``--baseline DIR`` runs every mode also with another build of nplps, imported from ``DIR`` (e.g. a
 wheel of the main branch unpacked there, or a copy of its ``python/`` directory with its
@@ -86,12 +88,15 @@ def worker(scene: str, mode: str) -> dict[str, Any]:
         options = {"reflectance": "glossy"}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         start = time.perf_counter()
         result = nplps.reconstruct(images, rig, depth=distance, mask=mask, **options)
         seconds = time.perf_counter() - start
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     lobe = None if result.lobe is None else (result.lobe.roughness, result.lobe.eta)
     return {
         "seconds": seconds,
+        "cpu_seconds": cpu1.ru_utime - cpu0.ru_utime + cpu1.ru_stime - cpu0.ru_stime,
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "iterations": len(result.history),
         "error": float(angles(result.normals[mask], normals[mask]).mean()),
@@ -130,7 +135,10 @@ def main() -> None:
         print(json.dumps(worker(*args.worker)))
         return
     scenes = [f"bumps-{n}" for n in args.sizes] + ([args.pbr] if args.pbr else [])
-    header = "| scene | mode | s (median) | x Lambertian | peak RSS (MB) | iterations | mean error (deg) | lobe |"
+    header = (
+        "| scene | mode | s (median) | x Lambertian | CPU s | x Lambertian (CPU) | peak RSS (MB) | iterations "
+        "| mean error (deg) | lobe |"
+    )
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     table: dict[str, dict[str, list[dict[str, Any]]]] = {}
@@ -142,6 +150,11 @@ def main() -> None:
                 for b in builds:
                     runs[mode + b].append(run(scene, mode, args.baseline if b else None))
         table[scene] = runs
+        cpu_bases = {
+            b: statistics.median(r["cpu_seconds"] for r in runs["lambertian" + b])
+            for b in builds
+            if "lambertian" + b in runs
+        }
         bases = {
             b: statistics.median(r["seconds"] for r in runs["lambertian" + b])
             for b in builds
@@ -153,9 +166,12 @@ def main() -> None:
             rss = statistics.median(r["rss_mb"] for r in rs)
             last = rs[-1]
             lobe = "" if last["lobe"] is None else f"{last['lobe'][0]:.3f}, {last['lobe'][1]:.2f}"
-            base = bases.get(" (baseline)" if mode.endswith(" (baseline)") else "", float("nan"))
+            build = " (baseline)" if mode.endswith(" (baseline)") else ""
+            base, cpu_base = bases.get(build, float("nan")), cpu_bases.get(build, float("nan"))
+            cpu = statistics.median(r["cpu_seconds"] for r in rs)
             print(
-                f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {rss:.0f} | {last['iterations']} "
+                f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {cpu:.2f} | {cpu / cpu_base:.2f} "
+                f"| {rss:.0f} | {last['iterations']} "
                 f"| {last['error']:.3f} | {lobe} |",
                 flush=True,
             )
