@@ -5,6 +5,7 @@ Usage::
     python benchmarks/glossy_cost.py [--sizes 256 1024] [--repeats 3]
                                      [--pbr /work/pbr-data/256/bumps-roughplastic-0.3-256.npz]
                                      [--modes lambertian given estimated] [--json out.json]
+                                     [--baseline DIR]
 
 Scenes: ``nplps.make_scene("bumps", camera="pinhole", specular=0.2, roughness=0.3)`` (rendered
 by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size, and the PBR render given by
@@ -17,8 +18,16 @@ Every run is one fresh Python process (its peak RSS, ``ru_maxrss``, is its own a
 images and the scene's rendering), and the modes of a repeat run one after the other, so that
 the ratios compare runs under the same machine load. Per scene and mode the table has the
 median wall seconds of ``nplps.reconstruct`` over the repeats, its ratio to the Lambertian
-median, the median peak RSS, the outer iterations (``len(result.history)``, all levels), the
-mean normal error against the truth (degrees, mesh normals) and the lobe found.
+median, the median CPU seconds of the process during it (user + system, all threads; steadier
+than the wall time on a loaded machine) and their ratio, the median peak RSS, the outer
+iterations (``len(result.history)``, all levels), the mean normal error against the truth
+(degrees, mesh normals) and the lobe found.
+
+``--baseline DIR`` runs every mode also with another build of nplps, imported from ``DIR`` (e.g. a
+wheel of the main branch unpacked there, or a copy of its ``python/`` directory with its
+``_core`` library), alternating with this build run by run; its rows are marked ``(baseline)``
+and its ratios are to its own Lambertian median. An A/B measured in one run
+sees the same machine load.
 """
 
 from __future__ import annotations
@@ -79,12 +88,15 @@ def worker(scene: str, mode: str) -> dict[str, Any]:
         options = {"reflectance": "glossy"}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         start = time.perf_counter()
         result = nplps.reconstruct(images, rig, depth=distance, mask=mask, **options)
         seconds = time.perf_counter() - start
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     lobe = None if result.lobe is None else (result.lobe.roughness, result.lobe.eta)
     return {
         "seconds": seconds,
+        "cpu_seconds": cpu1.ru_utime - cpu0.ru_utime + cpu1.ru_stime - cpu0.ru_stime,
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "iterations": len(result.history),
         "error": float(angles(result.normals[mask], normals[mask]).mean()),
@@ -93,13 +105,17 @@ def worker(scene: str, mode: str) -> dict[str, Any]:
     }
 
 
-def run(scene: str, mode: str) -> dict[str, Any]:
-    """Run `worker` in a fresh process and return its numbers."""
+def run(scene: str, mode: str, baseline: str | None = None) -> dict[str, Any]:
+    """Run `worker` in a fresh process (importing nplps from `baseline` if given) and return its numbers."""
+    env = dict(os.environ)
+    if baseline:
+        env["PYTHONPATH"] = os.pathsep.join([baseline, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     out = subprocess.run(
         [sys.executable, os.path.abspath(__file__), "--worker", scene, mode],
         check=True,
         capture_output=True,
         text=True,
+        env=env,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -112,31 +128,50 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     parser.add_argument("--json", help="write the numbers to this file")
+    parser.add_argument("--baseline", help="also run the nplps importable from this directory (A/B)")
     parser.add_argument("--worker", nargs=2, metavar=("SCENE", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         print(json.dumps(worker(*args.worker)))
         return
     scenes = [f"bumps-{n}" for n in args.sizes] + ([args.pbr] if args.pbr else [])
-    header = "| scene | mode | s (median) | x Lambertian | peak RSS (MB) | iterations | mean error (deg) | lobe |"
+    header = (
+        "| scene | mode | s (median) | x Lambertian | CPU s | x Lambertian (CPU) | peak RSS (MB) | iterations "
+        "| mean error (deg) | lobe |"
+    )
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     table: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    builds = [""] + ([" (baseline)"] if args.baseline else [])
     for scene in scenes:
-        runs: dict[str, list[dict[str, Any]]] = {m: [] for m in args.modes}
+        runs: dict[str, list[dict[str, Any]]] = {m + b: [] for b in builds for m in args.modes}
         for _ in range(args.repeats):
             for mode in args.modes:
-                runs[mode].append(run(scene, mode))
+                for b in builds:
+                    runs[mode + b].append(run(scene, mode, args.baseline if b else None))
         table[scene] = runs
-        base = statistics.median(r["seconds"] for r in runs["lambertian"]) if "lambertian" in runs else float("nan")
+        cpu_bases = {
+            b: statistics.median(r["cpu_seconds"] for r in runs["lambertian" + b])
+            for b in builds
+            if "lambertian" + b in runs
+        }
+        bases = {
+            b: statistics.median(r["seconds"] for r in runs["lambertian" + b])
+            for b in builds
+            if "lambertian" + b in runs
+        }
         name = os.path.basename(scene).removesuffix(".npz")
         for mode, rs in runs.items():
             seconds = statistics.median(r["seconds"] for r in rs)
             rss = statistics.median(r["rss_mb"] for r in rs)
             last = rs[-1]
             lobe = "" if last["lobe"] is None else f"{last['lobe'][0]:.3f}, {last['lobe'][1]:.2f}"
+            build = " (baseline)" if mode.endswith(" (baseline)") else ""
+            base, cpu_base = bases.get(build, float("nan")), cpu_bases.get(build, float("nan"))
+            cpu = statistics.median(r["cpu_seconds"] for r in rs)
             print(
-                f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {rss:.0f} | {last['iterations']} "
+                f"| {name} | {mode} | {seconds:.2f} | {seconds / base:.2f} | {cpu:.2f} | {cpu / cpu_base:.2f} "
+                f"| {rss:.0f} | {last['iterations']} "
                 f"| {last['error']:.3f} | {lobe} |",
                 flush=True,
             )

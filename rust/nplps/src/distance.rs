@@ -1659,7 +1659,10 @@ mod search_state_tests {
         let saved = begin_search(&mut solver);
         assert!(!solver.continuation && !solver.check_lights);
         assert!(!solver.local_step(false, None).settings.continuation);
+        // ... and its glossy fits without the step tolerance (`STEP_TOLERANCE`).
+        assert_eq!(solver.local_step(false, None).settings.step_tolerance, 0.0);
         end_search(&mut solver, saved);
         assert!(solver.continuation && solver.check_lights);
+        assert!(solver.local_step(false, None).settings.step_tolerance > 0.0);
     }
 }

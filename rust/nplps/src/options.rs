@@ -123,6 +123,7 @@ impl Options {
                 Reflectance::Lambertian => None,
             },
             continuation: true,
+            step_tolerance: 0.0,
         }
     }
 }

@@ -39,7 +39,7 @@ use crate::reconstruction::{
 };
 use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
-use crate::reflectance::{Lobe, Reflectance};
+use crate::reflectance::{Lobe, Reflectance, STEP_TOLERANCE};
 use crate::rig::Light;
 use crate::shadow::{mesh_shadows, on_lattice, ShadowMask, Shadows, AUTO_SHARE};
 
@@ -906,10 +906,12 @@ impl<'p> Solver<'p> {
         };
         let t = Instant::now();
         let depths = self.depths(u)?;
-        let step = LocalStep {
+        let mut step = LocalStep {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
             ..self.local_step(true, depths.as_deref())
         };
+        // The lobe search compares the fits' residuals across lobes: its fits converge fully.
+        step.settings.step_tolerance = 0.0;
         match estimate_lobe(&step, u, near)? {
             // An estimate on a surface of the iterations decides (see [`MATTE_ROUGHNESS`]).
             Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch && !self.keep_glossy => {
@@ -1123,6 +1125,12 @@ impl<'p> Solver<'p> {
             settings: FitSettings {
                 lobe: self.lobe,
                 continuation: self.continuation,
+                // Converged glossy fits stop early, but not where the fits' residuals are
+                // compared across candidates (continuation off: the distance search and check).
+                step_tolerance: match self.continuation {
+                    true => STEP_TOLERANCE,
+                    false => 0.0,
+                },
                 ..self.options.fit_settings(fast_residual)
             },
             depths,

@@ -4,8 +4,10 @@
 //! with the Lambertian model (robust, if asked for), and that fit starts the glossy one: a few
 //! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit_packed`] with the shared
 //! [`Lobe`]. From the second local step on, the facet's glossy normal of the step before starts
-//! the fit instead, and the Lambertian fit is made only where that glossy fit fails. Light `k`
-//! is seen by the facet with centre `c` as the observation
+//! the fit instead, and the Lambertian fit is made only where that glossy fit fails. The fits stop
+//! before a step shorter than `settings.step_tolerance` of their unknowns (see
+//! [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE); 0 in the distance and lobe
+//! searches). Light `k` is seen by the facet with centre `c` as the observation
 //!
 //! ```text
 //! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
@@ -53,7 +55,9 @@ use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalSt
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
-use crate::reflectance::{fit_packed, fit_packed_at, GlossyFit, Lobe, Packed};
+#[cfg(test)]
+use crate::reflectance::fit_packed;
+use crate::reflectance::{fit_packed_at_within, fit_packed_within, GlossyFit, Lobe, Packed};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -189,9 +193,10 @@ pub(super) fn refine(
 ) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
     let albedo = start.map(|s| s.albedo[..channels].iter().sum::<f64>());
+    let tolerance = settings.step_tolerance;
     let mut from = |n: [f64; 3]| match albedo {
-        Some(a) => fit_packed(lobe, scratch, scale(n, a), steps),
-        None => fit_packed_at(lobe, scratch, n, steps),
+        Some(a) => fit_packed_within(lobe, scratch, scale(n, a), steps, tolerance),
+        None => fit_packed_at_within(lobe, scratch, n, steps, tolerance),
     };
     let first = starts[0].and_then(&mut from);
     let agree = AGREE_DEGREES.to_radians().cos();
@@ -207,7 +212,13 @@ pub(super) fn refine(
                 && lobe.alpha < CONTINUE_BELOW
                 && values.len() >= CONTINUE_LIGHTS * channels =>
         {
-            continued(lobe, scratch, scale(n, a), steps.max(GLOSSY_STEPS))
+            continued_within(
+                lobe,
+                scratch,
+                scale(n, a),
+                steps.max(GLOSSY_STEPS),
+                tolerance,
+            )
         }
         _ => None,
     };
@@ -278,10 +289,22 @@ pub(super) fn refine(
 /// roughness [`CONTINUE_FROM`] and the same index ([`GLOSSY_STEPS`] steps; it sees every nearby
 /// highlight at once), then under `lobe` from where that one ends (`steps` steps). `obs` are
 /// prepared for `lobe` (the Fresnel factors depend on the index alone).
+#[cfg(test)]
 fn continued(lobe: &Lobe, obs: &mut Packed, start: [f64; 3], steps: usize) -> Option<GlossyFit> {
+    continued_within(lobe, obs, start, steps, 0.0)
+}
+
+/// [`continued`] with the step tolerance `tolerance` (see [`fit_packed_within`]).
+fn continued_within(
+    lobe: &Lobe,
+    obs: &mut Packed,
+    start: [f64; 3],
+    steps: usize,
+    tolerance: f64,
+) -> Option<GlossyFit> {
     let rough = Lobe::new(CONTINUE_FROM, lobe.eta);
-    fit_packed(&rough, obs, start, GLOSSY_STEPS)
-        .and_then(|r| fit_packed_at(lobe, obs, r.normal, steps))
+    fit_packed_within(&rough, obs, start, GLOSSY_STEPS, tolerance)
+        .and_then(|r| fit_packed_at_within(lobe, obs, r.normal, steps, tolerance))
 }
 
 /// The squared error of the prediction of `fit` for the observations of `values` that `held`

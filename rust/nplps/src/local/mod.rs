@@ -89,6 +89,11 @@ pub struct FitSettings {
     /// rough lobe (see `glossy::CONTINUE_BELOW`). The distance search compares its candidates
     /// without it (their residual curve moved with it: see `Solver::continuation`).
     pub continuation: bool,
+    /// The glossy fits stop before trying a Gauss-Newton step shorter than this fraction of
+    /// their unknowns (see [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE)); 0: they go
+    /// on until a step no longer lowers the residual noticeably. The solver sets it where no
+    /// residuals are compared across candidates (see `Solver::local_step`).
+    pub step_tolerance: f64,
 }
 
 impl Default for FitSettings {
@@ -101,6 +106,7 @@ impl Default for FitSettings {
             fast_residual: false,
             lobe: None,
             continuation: true,
+            step_tolerance: 0.0,
         }
     }
 }
