@@ -81,6 +81,17 @@ def reconstruct(data: Any, rig: nplps.Rig, depth: Any, options: dict[str, Any]) 
     return result, time.perf_counter() - start
 
 
+def lobe_of(result: Any) -> list[float] | None:
+    """Return the result's glossy lobe ``[roughness, eta]`` (None under the Lambertian model)."""
+    lobe = getattr(result, "lobe", None)
+    return None if lobe is None else [float(lobe.roughness), float(lobe.eta)]
+
+
+def lobe_text(lobe: list[float] | None) -> str:
+    """Return a lobe as ``roughness/eta`` (``-`` without one)."""
+    return "-" if lobe is None else f"{lobe[0]:.3g}/{lobe[1]:.3g}"
+
+
 def prepare(data: dict[str, Any], args: argparse.Namespace, options: dict[str, Any]) -> dict[str, Any]:
     """Return the options with the true cast shadows as ``valid`` (if asked) and noisy images in `data`."""
     images = data["images"].astype(np.float32)
@@ -136,9 +147,9 @@ def main() -> None:
     extra += f", dark {args.dark_sigmas} sigmas" if args.noise and args.dark_sigmas is not None else ""
     extra += ", true cast shadows dropped" if args.oracle_shadows else ""
     print(f"options: {shared or 'defaults'}{extra}\n")
-    header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | s |"
+    header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | lobe | s |"
     if args.auto:
-        header += " auto mean (deg) | auto distance error | auto s |"
+        header += " auto mean (deg) | auto distance error | auto lobe | auto s |"
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     rows = []
@@ -166,10 +177,11 @@ def main() -> None:
             "depth_rms_mm": depth_rms(known.depth, data["depth"], mask),
             "seconds": seconds,
             "status": str(known.status),
+            "lobe": lobe_of(known),
         }
         line = (
             f"| {row['shape']} | {row['material']} | {row['size']} | {row['mean_deg']:.3f} | "
-            f"{row['median_deg']:.3f} | {row['depth_rms_mm']:.3f} | {seconds:.1f} |"
+            f"{row['median_deg']:.3f} | {row['depth_rms_mm']:.3f} | {lobe_text(row['lobe'])} | {seconds:.1f} |"
         )
         if args.auto:
             auto, auto_seconds = reconstruct(data, rig, "auto", options)
@@ -179,8 +191,12 @@ def main() -> None:
                 auto_distance=found,
                 auto_distance_error_pc=100 * (found / distance - 1),
                 auto_seconds=auto_seconds,
+                auto_lobe=lobe_of(auto),
             )
-            line += f" {row['auto_mean_deg']:.3f} | {row['auto_distance_error_pc']:+.2f} % | {auto_seconds:.1f} |"
+            line += (
+                f" {row['auto_mean_deg']:.3f} | {row['auto_distance_error_pc']:+.2f} % | "
+                f"{lobe_text(row['auto_lobe'])} | {auto_seconds:.1f} |"
+            )
         print(line, flush=True)
         if args.check and row["material"] == "diffuse":
             row["check"] = check(data, rig, options)
