@@ -22,12 +22,12 @@ The camera is nplps's pinhole camera of ``make_scene`` (object 100 mm across at 
 (``make_rig``) has 16 point lights in two rings around the camera (``--lights 24`` / ``32``: three /
 four rings). Frames: nplps's pixel (row r, column c) has its centre at (u, v) = (c, r) and vertex
 (r, c) on the ray through (c - 1/2, r - 1/2); Mitsuba's film pixel (r, c) covers [c, c + 1] x
-[r, r + 1] of its continuous film coordinates, so the principal point (cx, cy) of K sits at film coordinates (cx + 1/2, cy + 1/2).
-The sensor is ``look_at(origin 0, target +z, up -y)``: film x then runs along +x and film y
-along +y, as OpenCV's. A point emitter of intensity I lights a Lambertian surface of reflectance
-rho with radiance rho / pi * I cos / r^2, so the emitter gets pi times nplps's light intensity
-and the diffuse control equals ``nplps.render(depth, rig, albedo=0.5)``. ``max_depth`` 2 is direct
-light only (the control must be); larger values add interreflections.
+[r, r + 1] of its continuous film coordinates, so the principal point (cx, cy) of K sits at film
+coordinates (cx + 1/2, cy + 1/2). The sensor is ``look_at(origin 0, target +z, up -y)``: film x then
+runs along +x and film y along +y, as OpenCV's. A point emitter of intensity I lights a Lambertian
+surface of reflectance rho with radiance rho / pi * I cos / r^2, so the emitter gets pi times
+nplps's light intensity and the diffuse control equals ``nplps.render(depth, rig, albedo=0.5)``.
+``max_depth`` 2 is direct light only (the control must be); larger values add interreflections.
 
 The .npz holds images (k, H, W) float32 (or float16 with ``--float16``), the rig as JSON, the
 true vertex depth (H+1, W+1), ``distance`` (the gauge nplps's ``depth=`` takes: the geometric
