@@ -14,8 +14,10 @@ found in percent; and the wall seconds of each run.
 
 ``--noise S`` adds Gaussian noise of S times each file's maximum (clipped at 0, as
 ``make_scene``), ``--seed`` its seed, ``--dark-sigmas K`` sets ``dark`` to K noise sigmas.
-``--oracle-shadows`` drops the observations of pixels that lie partly or wholly in a true cast
-shadow (the renders' ``shadow`` array, as ``valid``): what a perfect shadow detection would give.
+``--lights N`` uses the first N lights of each render (``render.py --lights 32`` renders hold
+the 16- and 24-light rigs as their first lights, image for image). ``--oracle-shadows`` drops
+the observations of pixels that lie partly or wholly in a true cast shadow (the renders'
+``shadow`` array, as ``valid``): what a perfect shadow detection would give.
 
 ``--check`` compares the diffuse controls with ``nplps.render`` of the true surface (albedo
 0.5): the median and 95th percentile of the relative difference over the lit observations, the
@@ -140,6 +142,11 @@ def main() -> None:
     parser.add_argument(
         "--oracle-shadows", action="store_true", help="drop the observations in a true cast shadow (valid=)"
     )
+    parser.add_argument(
+        "--lights",
+        type=int,
+        help="use the first N lights of each render (16 or 24 of a 32-light one: its first rings)",
+    )
     parser.add_argument("--json", help="write the numbers to this file")
     args = parser.parse_args()
     shared = parse_options(args.opt)
@@ -156,8 +163,15 @@ def main() -> None:
     for path in args.files:
         with np.load(path) as f:
             data = dict(f)
-        options = prepare(data, args, shared)
         rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
+        if args.lights is not None:
+            if not 0 < args.lights <= len(rig.lights):
+                raise SystemExit(f"--lights {args.lights}: {path} has {len(rig.lights)} lights")
+            rig = rig.subset(list(range(args.lights)))
+            for key in ("images", "shadow"):
+                if key in data:
+                    data[key] = data[key][: args.lights]
+        options = prepare(data, args, shared)
         mask, truth = data["mask"], data["normals"]
         distance = float(data["distance"])
         known, seconds = reconstruct(data, rig, distance, options)
@@ -169,6 +183,7 @@ def main() -> None:
             "size": int(mask.shape[0]),
             "pixels": int(mask.sum()),
             "options": {key: value for key, value in options.items() if key != "valid"},
+            "lights": len(rig.lights),
             "noise": args.noise,
             "dark": options.get("dark"),
             "oracle_shadows": args.oracle_shadows,
