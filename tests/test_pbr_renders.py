@@ -13,7 +13,11 @@ have. Only their form and the presence of that light are checked here.
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import types
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -133,3 +137,35 @@ def test_gi_files_are_well_formed(name: str) -> None:
     lit = mask[None] & (reference > 0.05 * reference.max())
     excess = np.median(images[lit].astype(np.float64) / reference[lit] - 1)
     assert 0.08 < excess < 0.2
+
+
+def _render_module() -> types.ModuleType:
+    """Import benchmarks/pbr/render.py (Mitsuba is imported only when rendering)."""
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pbr" / "render.py"
+    spec = importlib.util.spec_from_file_location("pbr_render", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_default_rig_is_the_committed_renders_rig() -> None:
+    # `--lights` (issue 20) left the 16-light benchmark rig as it was, bit for bit.
+    render = _render_module()
+    data, _ = load("sphere-diffuse")
+    assert render.make_rig(64).with_grid(64, 64).to_dict() == json.loads(str(data["rig"]))
+
+
+def test_larger_rigs_add_rings_after_the_16_lights() -> None:
+    render = _render_module()
+    base = render.make_rig(64)
+    for count in (24, 32):
+        rig = render.make_rig(64, count)
+        assert len(rig.lights) == count
+        np.testing.assert_array_equal(rig.positions[:16], base.positions)
+        np.testing.assert_array_equal(rig.intensities[:16], base.intensities)
+        radii = np.hypot(rig.positions[16:, 0], rig.positions[16:, 1])
+        np.testing.assert_allclose(radii, [140.0] * 8 + [60.0] * (count - 24), rtol=1e-12)
+    with pytest.raises(SystemExit):
+        render.make_rig(64, 20)

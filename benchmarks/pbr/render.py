@@ -19,15 +19,15 @@ exact: the rendered mesh is that surface, each pixel's quad split into two trian
 pixels of the mask exist, except on the sheet).
 
 The camera is nplps's pinhole camera of ``make_scene`` (object 100 mm across at 200 mm); the rig
-(``make_rig``) has 16 point lights in two rings around the camera. Frames: nplps's pixel (row r,
-column c) has its centre at (u, v) = (c, r) and vertex (r, c) on the ray through (c - 1/2,
-r - 1/2); Mitsuba's film pixel (r, c) covers [c, c + 1] x [r, r + 1] of its continuous film
-coordinates, so the principal point (cx, cy) of K sits at film coordinates (cx + 1/2, cy + 1/2).
-The sensor is ``look_at(origin 0, target +z, up -y)``: film x then runs along +x and film y
-along +y, as OpenCV's. A point emitter of intensity I lights a Lambertian surface of reflectance
-rho with radiance rho / pi * I cos / r^2, so the emitter gets pi times nplps's light intensity
-and the diffuse control equals ``nplps.render(depth, rig, albedo=0.5)``. ``max_depth`` 2 is direct
-light only (the control must be); larger values add interreflections.
+(``make_rig``) has 16 point lights in two rings around the camera (``--lights 24`` / ``32``: three /
+four rings). Frames: nplps's pixel (row r, column c) has its centre at (u, v) = (c, r) and vertex
+(r, c) on the ray through (c - 1/2, r - 1/2); Mitsuba's film pixel (r, c) covers [c, c + 1] x
+[r, r + 1] of its continuous film coordinates, so the principal point (cx, cy) of K sits at film
+coordinates (cx + 1/2, cy + 1/2). The sensor is ``look_at(origin 0, target +z, up -y)``: film x then
+runs along +x and film y along +y, as OpenCV's. A point emitter of intensity I lights a Lambertian
+surface of reflectance rho with radiance rho / pi * I cos / r^2, so the emitter gets pi times
+nplps's light intensity and the diffuse control equals ``nplps.render(depth, rig, albedo=0.5)``.
+``max_depth`` 2 is direct light only (the control must be); larger values add interreflections.
 
 The .npz holds images (k, H, W) float32 (or float16 with ``--float16``), the rig as JSON, the
 true vertex depth (H+1, W+1), ``distance`` (the gauge nplps's ``depth=`` takes: the geometric
@@ -107,21 +107,31 @@ def camera(n: int) -> dict[str, Any]:
     return {"model": "pinhole", "K": [[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]], "distortion": [0.0] * 5}
 
 
-def make_rig(n: int) -> nplps.Rig:
-    """Return the benchmark's rig: 16 point lights in two rings around the camera.
+# The rings of the rig, 8 lights each: (radius mm, z mm, turn in steps of 45 degrees). The first
+# two are the 16-light benchmark rig; ``--lights 24`` / ``32`` add the third / fourth.
+RINGS = ((100.0, 0.0, 0.0), (180.0, 20.0, 0.5), (140.0, 10.0, 0.25), (60.0, 0.0, 0.75))
+
+
+def make_rig(n: int, lights: int = 16) -> nplps.Rig:
+    """Return the benchmark's rig: ``lights`` point lights (16 by default) in rings around the camera.
 
     8 lights on a ring of radius 100 mm in the camera plane and 8 on a ring of radius 180 mm
-    20 mm in front of it, turned by half a step; intensities (nplps units) unequal by up to
-    +-15 % and scaled so that images are of order 0.1-1 (float16 keeps them).
+    20 mm in front of it, turned by half a step; with 24 lights also 8 on a ring of 140 mm 10 mm
+    in front (turned by a quarter step), with 32 also 8 on a ring of 60 mm in the camera plane
+    (three quarters of a step): ``RINGS``, light i on ring i // 8. The first 16 lights are the
+    same for every count. Intensities (nplps units) unequal by up to +-15 % and scaled so that
+    images are of order 0.1-1 (float16 keeps them).
     """
-    lights = []
-    for i in range(16):
+    if lights % 8 or not 16 <= lights <= 8 * len(RINGS):
+        raise SystemExit(f"--lights takes 16, 24 or 32, got {lights}")
+    points = []
+    for i in range(lights):
         ring = i // 8
-        angle = 2 * np.pi * (i % 8 + 0.5 * ring) / 8
-        radius, z = (100.0, 0.0) if ring == 0 else (180.0, 20.0)
+        radius, z, turn = RINGS[ring]
+        angle = 2 * np.pi * (i % 8 + turn) / 8
         intensity = DISTANCE_MM**2 * (1.0 + 0.15 * np.sin(1.7 * i))
-        lights.append(nplps.PointLight([radius * np.cos(angle), radius * np.sin(angle), z], float(intensity)))
-    return nplps.Rig(camera(n), lights)
+        points.append(nplps.PointLight([radius * np.cos(angle), radius * np.sin(angle), z], float(intensity)))
+    return nplps.Rig(camera(n), points)
 
 
 def vertex_rays(n: int, margin: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -487,13 +497,21 @@ def cast_shadows(world: Any, rig: nplps.Rig, mask: np.ndarray, sub: int = 4) -> 
 
 
 def render_file(
-    shape: str, material: str, n: int, spp: int, max_depth: int, out: Path, float16: bool, seed: int = 0
+    shape: str,
+    material: str,
+    n: int,
+    spp: int,
+    max_depth: int,
+    out: Path,
+    float16: bool,
+    seed: int = 0,
+    lights: int = 16,
 ) -> float:
-    """Render one scene and write its .npz; return the render seconds."""
+    """Render one scene with a rig of ``lights`` lights and write its .npz; return the render seconds."""
     import mitsuba as mi
 
     depth, mask = surface(shape, n)
-    rig = make_rig(n).with_grid(n, n)
+    rig = make_rig(n, lights).with_grid(n, n)
     images, shadow, seconds = render(
         depth, mask, rig, material, spp, max_depth, mesh=render_mesh(shape, depth, mask), seed=seed
     )
@@ -537,6 +555,9 @@ def main() -> None:
         "--max-depth", type=int, help="2 (the default): direct light only; with --gi the GI renders' depth (default 12)"
     )
     parser.add_argument("--seed", type=int, default=0, help="image i gets sampler seed 1000 * SEED + i")
+    parser.add_argument(
+        "--lights", type=int, default=16, help="16 (the benchmark), 24 or 32: rings of 8 (see make_rig)"
+    )
     parser.add_argument("--float16", action="store_true", help="store the images as float16")
     parser.add_argument("--out", type=Path, help="the .npz of one scene")
     parser.add_argument("--all", action="store_true", help="render every shape in every material")
@@ -560,7 +581,7 @@ def main() -> None:
             for kind, max_depth in (("gi", depth), ("direct", 2)):
                 out = args.out_dir / f"{shape}-{material}-{kind}-{args.size}.npz"
                 total[kind] += render_file(
-                    shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed
+                    shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed, args.lights
                 )
         print(f"total render time: {total['gi']:.1f} s GI, {total['direct']:.1f} s direct ({2 * len(GI_SET)} renders)")
         return
@@ -570,12 +591,16 @@ def main() -> None:
         for shape in args.shapes:
             for material in args.materials:
                 out = args.out_dir / f"{shape}-{material}-{args.size}.npz"
-                total += render_file(shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed)
+                total += render_file(
+                    shape, material, args.size, args.spp, max_depth, out, args.float16, args.seed, args.lights
+                )
         print(f"total render time: {total:.1f} s ({len(args.shapes) * len(args.materials)} renders)")
         return
     if args.shape is None or args.out is None:
         parser.error("give a shape and --out, or --all, or --gi")
-    render_file(args.shape, args.material, args.size, args.spp, max_depth, args.out, args.float16, args.seed)
+    render_file(
+        args.shape, args.material, args.size, args.spp, max_depth, args.out, args.float16, args.seed, args.lights
+    )
 
 
 if __name__ == "__main__":

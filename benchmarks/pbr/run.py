@@ -14,8 +14,10 @@ found in percent; and the wall seconds of each run.
 
 ``--noise S`` adds Gaussian noise of S times each file's maximum (clipped at 0, as
 ``make_scene``), ``--seed`` its seed, ``--dark-sigmas K`` sets ``dark`` to K noise sigmas.
-``--oracle-shadows`` drops the observations of pixels that lie partly or wholly in a true cast
-shadow (the renders' ``shadow`` array, as ``valid``): what a perfect shadow detection would give.
+``--lights N`` uses the first N lights of each render (``render.py --lights 32`` renders hold
+the 16- and 24-light rigs as their first lights, image for image). ``--oracle-shadows`` drops
+the observations of pixels that lie partly or wholly in a true cast shadow (the renders'
+``shadow`` array, as ``valid``): what a perfect shadow detection would give.
 
 ``--check`` compares the diffuse controls with ``nplps.render`` of the true surface (albedo
 0.5): the median and 95th percentile of the relative difference over the lit observations, the
@@ -81,6 +83,17 @@ def reconstruct(data: Any, rig: nplps.Rig, depth: Any, options: dict[str, Any]) 
     return result, time.perf_counter() - start
 
 
+def lobe_of(result: Any) -> list[float] | None:
+    """Return the result's glossy lobe ``[roughness, eta]`` (None under the Lambertian model)."""
+    lobe = getattr(result, "lobe", None)
+    return None if lobe is None else [float(lobe.roughness), float(lobe.eta)]
+
+
+def lobe_text(lobe: list[float] | None) -> str:
+    """Return a lobe as ``roughness/eta`` (``-`` without one)."""
+    return "-" if lobe is None else f"{lobe[0]:.3g}/{lobe[1]:.3g}"
+
+
 def prepare(data: dict[str, Any], args: argparse.Namespace, options: dict[str, Any]) -> dict[str, Any]:
     """Return the options with the true cast shadows as ``valid`` (if asked) and noisy images in `data`."""
     images = data["images"].astype(np.float32)
@@ -129,6 +142,11 @@ def main() -> None:
     parser.add_argument(
         "--oracle-shadows", action="store_true", help="drop the observations in a true cast shadow (valid=)"
     )
+    parser.add_argument(
+        "--lights",
+        type=int,
+        help="use the first N lights of each render (16 or 24 of a 32-light one: its first rings)",
+    )
     parser.add_argument("--json", help="write the numbers to this file")
     args = parser.parse_args()
     shared = parse_options(args.opt)
@@ -136,17 +154,24 @@ def main() -> None:
     extra += f", dark {args.dark_sigmas} sigmas" if args.noise and args.dark_sigmas is not None else ""
     extra += ", true cast shadows dropped" if args.oracle_shadows else ""
     print(f"options: {shared or 'defaults'}{extra}\n")
-    header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | s |"
+    header = "| scene | material | size | mean (deg) | median (deg) | depth RMS (mm) | lobe | s |"
     if args.auto:
-        header += " auto mean (deg) | auto distance error | auto s |"
+        header += " auto mean (deg) | auto distance error | auto lobe | auto s |"
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     rows = []
     for path in args.files:
         with np.load(path) as f:
             data = dict(f)
-        options = prepare(data, args, shared)
         rig = nplps.Rig.from_dict(json.loads(str(data["rig"])))
+        if args.lights is not None:
+            if not 0 < args.lights <= len(rig.lights):
+                raise SystemExit(f"--lights {args.lights}: {path} has {len(rig.lights)} lights")
+            rig = rig.subset(list(range(args.lights)))
+            for key in ("images", "shadow"):
+                if key in data:
+                    data[key] = data[key][: args.lights]
+        options = prepare(data, args, shared)
         mask, truth = data["mask"], data["normals"]
         distance = float(data["distance"])
         known, seconds = reconstruct(data, rig, distance, options)
@@ -158,6 +183,7 @@ def main() -> None:
             "size": int(mask.shape[0]),
             "pixels": int(mask.sum()),
             "options": {key: value for key, value in options.items() if key != "valid"},
+            "lights": len(rig.lights),
             "noise": args.noise,
             "dark": options.get("dark"),
             "oracle_shadows": args.oracle_shadows,
@@ -166,10 +192,11 @@ def main() -> None:
             "depth_rms_mm": depth_rms(known.depth, data["depth"], mask),
             "seconds": seconds,
             "status": str(known.status),
+            "lobe": lobe_of(known),
         }
         line = (
             f"| {row['shape']} | {row['material']} | {row['size']} | {row['mean_deg']:.3f} | "
-            f"{row['median_deg']:.3f} | {row['depth_rms_mm']:.3f} | {seconds:.1f} |"
+            f"{row['median_deg']:.3f} | {row['depth_rms_mm']:.3f} | {lobe_text(row['lobe'])} | {seconds:.1f} |"
         )
         if args.auto:
             auto, auto_seconds = reconstruct(data, rig, "auto", options)
@@ -179,8 +206,12 @@ def main() -> None:
                 auto_distance=found,
                 auto_distance_error_pc=100 * (found / distance - 1),
                 auto_seconds=auto_seconds,
+                auto_lobe=lobe_of(auto),
             )
-            line += f" {row['auto_mean_deg']:.3f} | {row['auto_distance_error_pc']:+.2f} % | {auto_seconds:.1f} |"
+            line += (
+                f" {row['auto_mean_deg']:.3f} | {row['auto_distance_error_pc']:+.2f} % | "
+                f"{lobe_text(row['auto_lobe'])} | {auto_seconds:.1f} |"
+            )
         print(line, flush=True)
         if args.check and row["material"] == "diffuse":
             row["check"] = check(data, rig, options)
