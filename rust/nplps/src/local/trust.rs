@@ -206,6 +206,7 @@ impl LocalStep<'_> {
                     channels,
                     settings,
                     indirect: None,
+                    rows: None,
                 };
                 match facet.robust_weights(fit.normal, fit.albedo, &mut Vec::new()) {
                     Some(weights) => Some(weights),
