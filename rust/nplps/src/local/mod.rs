@@ -1150,29 +1150,6 @@ pub fn fit_facet_with(
     settings: FitSettings,
     indirect: Option<Indirect<'_>>,
 ) -> Option<FacetFit> {
-    if settings.robust == Robust::None {
-        return fit_facet_rows(c, model, values, channels, settings, indirect, None);
-    }
-    thread_local! {
-        static ROWS: std::cell::RefCell<Vec<Row>> = const { std::cell::RefCell::new(Vec::new()) };
-    }
-    ROWS.with_borrow_mut(|rows| {
-        rows.clear();
-        rows.extend((0..values.len() / channels).map(|k| model.row(k, c)));
-        fit_facet_rows(c, model, values, channels, settings, indirect, Some(rows))
-    })
-}
-
-/// [`fit_facet_with`] with the lights' rows at `c` given (`Some`) or computed where used.
-fn fit_facet_rows(
-    c: [f64; 3],
-    model: Model<'_>,
-    values: &[f32],
-    channels: usize,
-    settings: FitSettings,
-    indirect: Option<Indirect<'_>>,
-    rows: Option<&[Row]>,
-) -> Option<FacetFit> {
     let facet = Facet {
         c,
         model,
@@ -1180,58 +1157,80 @@ fn fit_facet_rows(
         channels,
         settings,
         indirect,
-        rows,
+        rows: None,
     };
-    let sums = match model {
-        Model::Near(lights)
-            if indirect.is_none()
-                && channels == 1
-                && settings.weighting == Weighting::Image
-                && settings.robust == Robust::None =>
-        {
-            facet.accumulate_grey(lights)
-        }
-        _ => facet.accumulate(|_| 1.0),
-    };
-    // Rows of indirect light alone do not determine a facet: their vectors are small (a tenth of
-    // the direct light or less), so with fewer than 3 directly lit observations the fit would
-    // follow their noise to an albedo orders of magnitude off (a face of queau_human1, whose
-    // dark threshold is 0, predicted held-out images 10^4 times too bright). Without indirect
-    // light every used observation is lit.
-    if sums.lit < 3 {
-        return None;
+    if settings.robust == Robust::None {
+        return facet.fit();
     }
-    let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
-    if settings.robust != Robust::None {
-        let mut scratch = Vec::new();
-        for _ in 0..IRLS_ITERATIONS {
-            let Some(weights) = facet.robust_weights(n, albedo, &mut scratch) else {
-                break;
-            };
-            match solve_sums(&facet.accumulate(|k| weights[k]), channels) {
-                Some((n2, a2, _)) => (n, albedo) = (n2, a2),
-                None => break,
+    thread_local! {
+        static ROWS: std::cell::RefCell<Vec<Row>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    ROWS.with_borrow_mut(|rows| {
+        rows.clear();
+        rows.extend((0..values.len() / channels).map(|k| model.row(k, c)));
+        Facet {
+            rows: Some(rows),
+            ..facet
+        }
+        .fit()
+    })
+}
+
+impl Facet<'_> {
+    /// The fit of [`fit_facet_with`] (its rows cached or computed where used: the same bits).
+    fn fit(&self) -> Option<FacetFit> {
+        let (channels, settings) = (self.channels, self.settings);
+        let sums = match self.model {
+            Model::Near(lights)
+                if self.indirect.is_none()
+                    && channels == 1
+                    && settings.weighting == Weighting::Image
+                    && settings.robust == Robust::None =>
+            {
+                self.accumulate_grey(lights)
+            }
+            _ => self.accumulate(|_| 1.0),
+        };
+        // Rows of indirect light alone do not determine a facet: their vectors are small (a tenth of
+        // the direct light or less), so with fewer than 3 directly lit observations the fit would
+        // follow their noise to an albedo orders of magnitude off (a face of queau_human1, whose
+        // dark threshold is 0, predicted held-out images 10^4 times too bright). Without indirect
+        // light every used observation is lit.
+        if sums.lit < 3 {
+            return None;
+        }
+        let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
+        if settings.robust != Robust::None {
+            let mut scratch = Vec::new();
+            for _ in 0..IRLS_ITERATIONS {
+                let Some(weights) = self.robust_weights(n, albedo, &mut scratch) else {
+                    break;
+                };
+                match solve_sums(&self.accumulate(|k| weights[k]), channels) {
+                    Some((n2, a2, _)) => (n, albedo) = (n2, a2),
+                    None => break,
+                }
             }
         }
+        let unit_weights =
+            settings.weighting == Weighting::Image && settings.robust == Robust::None;
+        let sse = if settings.fast_residual && unit_weights && channels == 1 {
+            (sums.sum_i2 - dot(g, sums.s[0])).max(0.0)
+        } else {
+            self.observations()
+                .filter_map(|(k, o)| self.sq_residual(k, o, n, albedo))
+                .sum()
+        };
+        Some(FacetFit {
+            target: [0.0; 4],
+            normal: n,
+            albedo,
+            specular: 0.0,
+            sse,
+            used: sums.used,
+            valid: true,
+        })
     }
-    let unit_weights = settings.weighting == Weighting::Image && settings.robust == Robust::None;
-    let sse = if settings.fast_residual && unit_weights && channels == 1 {
-        (sums.sum_i2 - dot(g, sums.s[0])).max(0.0)
-    } else {
-        facet
-            .observations()
-            .filter_map(|(k, o)| facet.sq_residual(k, o, n, albedo))
-            .sum()
-    };
-    Some(FacetFit {
-        target: [0.0; 4],
-        normal: n,
-        albedo,
-        specular: 0.0,
-        sse,
-        used: sums.used,
-        valid: true,
-    })
 }
 
 /// Solves `T g = s` for a symmetric 3 x 3 `T`, or `None` when `T` is not (numerically) positive
@@ -1429,8 +1428,17 @@ mod tests {
                     };
                     let model = Model::Near(&l);
                     let cached = fit_facet(c, model, &images, channels, settings).unwrap();
-                    let each =
-                        fit_facet_rows(c, model, &images, channels, settings, None, None).unwrap();
+                    let each = Facet {
+                        c,
+                        model,
+                        values: &images,
+                        channels,
+                        settings,
+                        indirect: None,
+                        rows: None,
+                    }
+                    .fit()
+                    .unwrap();
                     assert_eq!(
                         cached.normal.map(f64::to_bits),
                         each.normal.map(f64::to_bits)
