@@ -219,7 +219,7 @@ pub(super) fn refine(
                 && lobe.alpha < CONTINUE_BELOW
                 && values.len() >= CONTINUE_LIGHTS * channels =>
         {
-            continued_within(
+            continued(
                 lobe,
                 scratch,
                 scale(n, a),
@@ -295,14 +295,9 @@ pub(super) fn refine(
 /// The fit under `lobe` by continuation from `start = rho_d n`: first under the lobe of
 /// roughness [`CONTINUE_FROM`] and the same index ([`GLOSSY_STEPS`] steps; it sees every nearby
 /// highlight at once), then under `lobe` from where that one ends (`steps` steps). `obs` are
-/// prepared for `lobe` (the Fresnel factors depend on the index alone).
-#[cfg(test)]
-fn continued(lobe: &Lobe, obs: &mut Packed, start: [f64; 3], steps: usize) -> Option<GlossyFit> {
-    continued_within(lobe, obs, start, steps, 0.0)
-}
-
-/// [`continued`] with the step tolerance `tolerance` (see [`fit_packed_within`]).
-fn continued_within(
+/// prepared for `lobe` (the Fresnel factors depend on the index alone). Both fits stop at a step
+/// within `tolerance` (see [`fit_packed_within`]; 0: none).
+fn continued(
     lobe: &Lobe,
     obs: &mut Packed,
     start: [f64; 3],
@@ -758,7 +753,7 @@ mod tests {
             let start = std::array::from_fn(|k| 0.5 * (n[k] * t.cos() + axis[k] * t.sin()));
             let direct = fit_packed(&lobe, &mut packed, start, GLOSSY_STEPS).unwrap();
             direct_best = direct_best.min(degrees(direct.normal, n));
-            let g = continued(&lobe, &mut packed, start, GLOSSY_STEPS).unwrap();
+            let g = continued(&lobe, &mut packed, start, GLOSSY_STEPS, 0.0).unwrap();
             worst = worst.max(degrees(g.normal, n));
         }
         assert!(worst < 0.05, "continuation: {worst} degrees");
