@@ -1859,6 +1859,35 @@ mod tests {
     }
 
     /// Vertex depths (n+1) x (n+1) from a function of the vertex (row, column).
+    /// Facet `p` of the exchange `x` of an n x n mesh with vertices `v`, as the pair weights
+    /// take it (its corners from the vertices).
+    fn facets_of<'a>(
+        x: &'a Exchange,
+        camera: &'a Camera,
+        n: usize,
+        v: &'a [[f64; 3]],
+    ) -> impl Fn(usize) -> Facet + 'a {
+        let march = March {
+            camera,
+            height: n,
+            width: n,
+            vertices: crate::shadow::Vertices::Positions(v),
+            mask: None,
+            z_min: f64::NEG_INFINITY,
+            max_steps: 1,
+            pyramid: None,
+        };
+        move |p| {
+            let (centre, normal, area) = x.facet(p);
+            Facet {
+                centre,
+                normal,
+                area,
+                corners: march.quad(p / n, p % n),
+            }
+        }
+    }
+
     fn depths(n: usize, f: impl Fn(f64, f64) -> f64) -> Vec<f64> {
         (0..(n + 1) * (n + 1))
             .map(|v| f((v / (n + 1)) as f64, (v % (n + 1)) as f64))
@@ -2392,25 +2421,7 @@ mod tests {
         let mask: Vec<bool> = (0..n * n).map(|p| p % 7 != 3).collect();
         let x = Exchange::new(&camera, n, n, &v, Some(&mask), None).unwrap();
         assert!(x.pairs() > 10_000, "{}", x.pairs());
-        let march = March {
-            camera: &camera,
-            height: n,
-            width: n,
-            vertices: crate::shadow::Vertices::Positions(&v),
-            mask: None,
-            z_min: f64::NEG_INFINITY,
-            max_steps: 1,
-            pyramid: None,
-        };
-        let facet = |p: usize| {
-            let (centre, normal, area) = x.facet(p);
-            Facet {
-                centre,
-                normal,
-                area,
-                corners: march.quad(p / n, p % n),
-            }
-        };
+        let facet = facets_of(&x, &camera, n, &v);
         let (mut checked, mut raw) = (0, Vec::new());
         for i in 0..n * n {
             let (_, ni, ai) = x.facet(i);
@@ -2475,25 +2486,7 @@ mod tests {
         });
         let v = crate::geometry::vertices(&camera, n, n, &depth).unwrap();
         let x = Exchange::new(&camera, n, n, &v, None, None).unwrap();
-        let march = March {
-            camera: &camera,
-            height: n,
-            width: n,
-            vertices: crate::shadow::Vertices::Positions(&v),
-            mask: None,
-            z_min: f64::NEG_INFINITY,
-            max_steps: 1,
-            pyramid: None,
-        };
-        let facet = |p: usize| {
-            let (centre, normal, area) = x.facet(p);
-            Facet {
-                centre,
-                normal,
-                area,
-                corners: march.quad(p / n, p % n),
-            }
-        };
+        let facet = facets_of(&x, &camera, n, &v);
         let (mut near, mut scaled_over) = (0, 0);
         for i in 0..n * n {
             let (_, ni, ai) = x.facet(i);
