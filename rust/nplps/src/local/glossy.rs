@@ -7,7 +7,9 @@
 //! the fit instead, and the Lambertian fit is made only where that glossy fit fails. The fits stop
 //! before a step shorter than `settings.step_tolerance` of their unknowns (see
 //! [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE); 0 in the distance and lobe
-//! searches). Light `k` is seen by the facet with centre `c` as the observation
+//! searches, and in a run's local steps before its last lobe estimate, see
+//! `Solver::lobe_pending_after`). Light `k` is seen by the facet with centre `c` as the
+//! observation
 //!
 //! ```text
 //! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
