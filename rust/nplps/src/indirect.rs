@@ -1320,10 +1320,13 @@ impl IndirectField {
                     hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
                 }
                 for (k, light) in lights.iter().enumerate() {
+                    let bit = 1 << (k % 64);
                     if not_above(dot(n, light.beta(c).0), 0.0) {
-                        bits[k / 64] |= 1 << (k % 64);
-                    } else if margin.is_some_and(|m| m.hides(c, light)) {
-                        hidden[k / 64] |= 1 << (k % 64);
+                        bits[k / 64] |= bit;
+                    } else if hidden[k / 64] & bit == 0 && margin.is_some_and(|m| m.hides(c, light))
+                    {
+                        // (a light kept hidden is not marched again: the result is the same)
+                        hidden[k / 64] |= bit;
                     }
                 }
                 // The margin is a guess: it may not leave fewer than MIN_LIT lights.

@@ -41,7 +41,9 @@ use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::reflectance::{Lobe, Reflectance, STEP_TOLERANCE};
 use crate::rig::Light;
-use crate::shadow::{mesh_shadows, on_lattice, ShadowMask, Shadows, AUTO_SHARE};
+use crate::shadow::{
+    mesh_shadows, mesh_shadows_refined, on_lattice, ShadowMask, Shadows, AUTO_SHARE,
+};
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
 /// [`Control::Cancel`] stops the solver with [`Error::Cancelled`].
@@ -619,7 +621,12 @@ impl<'p> Solver<'p> {
     /// solver's own stop rule. Each round's field keeps the visibility verdicts of the one
     /// before that its mesh cannot have changed (see [`crate::indirect`]), and the lights that
     /// its margin hid (see [`IndirectField::with_unlit`]: without them the corrugated sheet's
-    /// rounds alternated for good). Returns the rounds'
+    /// rounds alternated for good). With cast shadows (see [`Solver::cast_shadows`]) the rounds
+    /// keep the mask they start with (the converged run's, marched on the mesh they start from;
+    /// under `Auto` without one, a round probes and marches), and the last run marches the
+    /// corrected mesh (its first and third iterations); with a field, each march is the refined
+    /// one ([`mesh_shadows_refined`]: the lattice of a quarter of the facets, and the facets
+    /// near a shadow's edge). Returns the rounds'
     /// history and whether the last run converged (`converged` without rounds).
     pub(crate) fn interreflect(
         &mut self,
@@ -636,7 +643,7 @@ impl<'p> Solver<'p> {
         let (iterations, tol) = (self.options.iterations, self.options.tol);
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         let mut residual = f64::NAN;
-        for round in 0..INDIRECT_ROUNDS {
+        for _ in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
             let mut previous = self.indirect.take();
             let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
@@ -662,9 +669,11 @@ impl<'p> Solver<'p> {
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
             let before = try_copy(u, "the depths")?;
-            // With cast shadows: the first round and the last run march (at their first
-            // iteration), the rounds between keep the masks (the mesh changes little).
-            self.shadows_carried = round > 0 && self.shadows.is_some();
+            // With cast shadows: the rounds keep the mask they have (the mesh changes little
+            // in a round; before the first, the mask is the converged run's, marched on the
+            // mesh the rounds start from), a round without one probes (under `Auto`) and
+            // marches; the last run marches (at its first iteration and at its third).
+            self.shadows_carried = self.shadows.is_some();
             let rounds = ROUND_ITERATIONS.min(iterations);
             let ran = self.iterate(u, gauge, rounds, tol, progress)?.0;
             let now = ran.last().map_or(f64::NAN, |s| s.rms_residual);
@@ -853,7 +862,18 @@ impl<'p> Solver<'p> {
         let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
         crate::memory::trace("shadows: after march");
         if seen {
-            let mask = march(1)?;
+            // With a field of indirect light (the rounds of interreflections and the run
+            // after them), from a quarter of the marches (see [`mesh_shadows_refined`]).
+            let mask = match self.indirect.is_some() {
+                true => mesh_shadows_refined(
+                    &p.rig.camera,
+                    self.lights.lights(),
+                    &p.grid,
+                    &p.geometry,
+                    u,
+                )?,
+                false => march(1)?,
+            };
             if policy == Shadows::On || share(&mask, 1) >= AUTO_SHARE {
                 self.shadows = Some(mask);
             }
