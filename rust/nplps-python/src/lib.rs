@@ -405,25 +405,14 @@ fn reconstruct<'py>(
                     nplps::reconstruct_auto(&problem, &options, search, &mut on_iteration)
                         .map(|(r, estimate)| (r, Some(estimate), None))
                 }
-                None => {
-                    // The check compares distances under the model of the result (its lobe:
-                    // no second estimate of it on the coarse level). Under the Lambertian
-                    // model that is the options' own, so it runs first: its coarse levels
-                    // (about 16 bytes a pixel at 16 lights) are then not held beside the
-                    // result's maps.
-                    let early = check && !options.reflectance.is_glossy();
-                    let mut checked = None;
-                    if early {
-                        problem.check_memory(&options)?;
-                        checked = nplps::check_distance(&problem, &options)?;
-                    }
-                    let r = nplps::reconstruct(&problem, &options, &mut on_iteration)?;
-                    if check && !early {
-                        let options = options.with_reflectance(r.reflectance());
-                        checked = nplps::check_distance(&problem, &options)?;
-                    }
-                    Ok((r, None, checked))
-                }
+                // The check compares distances under the model of the result (its lobe: no
+                // second estimate of it on the coarse level). Under the Lambertian model that
+                // is the options' own, so it runs first, on the coarse levels that the
+                // reconstruction then uses (made once; see `reconstruct_checked`).
+                None if check => nplps::reconstruct_checked(&problem, &options, &mut on_iteration)
+                    .map(|(r, checked)| (r, None, checked)),
+                None => nplps::reconstruct(&problem, &options, &mut on_iteration)
+                    .map(|r| (r, None, None)),
             }
         })
     });

@@ -1251,6 +1251,7 @@ pub fn reconstruct_auto(
             start,
             progress,
             Some(&mut at_coarsest),
+            None,
         );
         let found = coarse_estimate.as_ref().map(|(e, _)| mean(&e.distance));
         let coarse = coarse.map_err(|e| after_search(e, found))?;
@@ -1412,16 +1413,39 @@ impl DistanceCheck {
 /// reconstruction at that distance ([`Reconstruction::reflectance`](crate::Reconstruction::reflectance))
 /// compare the candidates under it instead.
 pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option<DistanceCheck>> {
-    options.validate()?;
-    if check_observable(problem).is_err() {
-        return Ok(None);
-    }
+    check_distance_on(problem, options, None)
+}
+
+/// The pyramid levels of [`check_distance`] (the full resolution counted): down to a longer
+/// side of at most [`CHECK_SIDE`] pixels.
+pub(crate) fn check_levels(problem: &Problem<'_>) -> usize {
     let mut levels = 1;
     let (mut h, mut w) = (problem.grid.height, problem.grid.width);
     while h.max(w) > CHECK_SIDE {
         h = h.div_ceil(2);
         w = w.div_ceil(2);
         levels += 1;
+    }
+    levels
+}
+
+/// [`check_distance`] on the coarse levels `pyramid` when the caller has made them
+/// ([`crate::pyramid::coarse_problems`] with at least [`check_levels`] levels, see
+/// [`crate::solver::reconstruct_checked`]); made here otherwise.
+pub(crate) fn check_distance_on(
+    problem: &Problem<'_>,
+    options: &Options,
+    pyramid: Option<&[Problem<'_>]>,
+) -> Result<Option<DistanceCheck>> {
+    options.validate()?;
+    if check_observable(problem).is_err() {
+        return Ok(None);
+    }
+    let levels = check_levels(problem);
+    let (mut h, mut w) = (problem.grid.height, problem.grid.width);
+    for _ in 1..levels {
+        h = h.div_ceil(2);
+        w = w.div_ceil(2);
     }
     let options = Options {
         levels: 1,
@@ -1434,8 +1458,16 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
         ..*options
     };
     with_threads(options.threads, || {
-        let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
-        let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+        let (rigs, made);
+        let coarse = match pyramid {
+            Some(coarse) if coarse.len() + 1 >= levels => &coarse[..levels - 1],
+            _ => {
+                rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+                made =
+                    crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+                &made[..]
+            }
+        };
         let level = coarse.last().unwrap_or(problem);
         let given: Vec<f64> = level
             .gauge

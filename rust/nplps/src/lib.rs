@@ -277,6 +277,6 @@ pub use render::{
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask, Shadows};
-pub use solver::{reconstruct, MATTE_ROUGHNESS};
+pub use solver::{reconstruct, reconstruct_checked, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

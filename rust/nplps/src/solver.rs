@@ -52,6 +52,56 @@ pub fn reconstruct(
     options: &Options,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Reconstruction> {
+    reconstruct_on(problem, options, progress, None)
+}
+
+/// [`check_distance`](crate::check_distance) and then [`reconstruct`] under the Lambertian
+/// model, on one pyramid: the check's coarse levels (down to [`CHECK_SIDE`](crate::CHECK_SIDE)
+/// pixels a side) are the reconstruction's coarse levels and more (the same rigs, the same
+/// settings: `coarsen` reads only `dark` and `saturation`), so they are made once instead of
+/// twice (at 12 MP x 16 lights the level at 3 MP alone reads the whole stack). Same bits as
+/// the two calls. Under the glossy model the check compares distances under the lobe of the
+/// result: then this is the two calls, the check after the reconstruction.
+pub fn reconstruct_checked(
+    problem: &Problem<'_>,
+    options: &Options,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(Reconstruction, Option<crate::DistanceCheck>)> {
+    if options.reflectance.is_glossy() {
+        let r = reconstruct(problem, options, progress)?;
+        let options = options.with_reflectance(r.reflectance());
+        let checked = crate::check_distance(problem, &options)?;
+        return Ok((r, checked));
+    }
+    options.validate()?;
+    problem.check_memory(options)?;
+    let (h, w) = problem.shape();
+    let levels = crate::pyramid::levels_for(h, w, options.levels)
+        .max(crate::distance::check_levels(problem));
+    let t = Instant::now();
+    let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+    let coarse = with_threads(options.threads, || {
+        crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))
+    })??;
+    let made = t.elapsed();
+    let checked = crate::distance::check_distance_on(problem, options, Some(&coarse))?;
+    let mut r = reconstruct_on(problem, options, progress, Some(coarse))?;
+    // The levels were made before the run's clock started: their time counts as its pyramid's
+    // (as when the run makes them), the check's own iterations still outside the timings.
+    r.timings.pyramid += made;
+    r.timings.total += made;
+    Ok((r, checked))
+}
+
+/// [`reconstruct`], with the pyramid's coarse levels when the caller has made them
+/// ([`crate::pyramid::coarse_problems`] of [`crate::pyramid::coarse_rigs`] with at least the
+/// levels of the run; the levels beyond those are dropped unused).
+fn reconstruct_on(
+    problem: &Problem<'_>,
+    options: &Options,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+    pyramid: Option<Vec<Problem<'_>>>,
+) -> Result<Reconstruction> {
     options.validate()?;
     problem.check_memory(options)?;
     crate::refine::check_refinable(&options.refine, problem.rig.n_lights())?;
@@ -65,7 +115,7 @@ pub fn reconstruct(
     with_threads(options.threads, || {
         let start = Instant::now();
         crate::memory::trace("reconstruct: start (problem made)");
-        let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None)?;
+        let coarse = coarse_to_fine(problem, options, &mut u, start, progress, None, pyramid)?;
         crate::memory::trace("coarse levels done");
         crate::memory::give_back(); // the coarse levels' buffers
         crate::memory::trace("give_back");
@@ -232,6 +282,7 @@ pub(crate) fn coarse_to_fine(
     start: Instant,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     mut at_coarsest: Option<AtCoarsest<'_>>,
+    pyramid: Option<Vec<Problem<'_>>>,
 ) -> Result<Carried> {
     let levels =
         crate::pyramid::levels_for(problem.grid.height, problem.grid.width, options.levels);
@@ -254,8 +305,18 @@ pub(crate) fn coarse_to_fine(
     let mut timings = Timings::default();
     let mut history = Vec::new();
     let t = Instant::now();
-    let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
-    let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+    let rigs;
+    let coarse = match pyramid {
+        // Made by the caller (see [`reconstruct_checked`]): levels 1..levels of it.
+        Some(mut made) if made.len() + 1 >= levels => {
+            made.truncate(levels - 1);
+            made
+        }
+        _ => {
+            rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+            crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?
+        }
+    };
     timings.pyramid = t.elapsed();
     let mut current: Vec<f64> = Vec::new();
     for (i, p) in coarse.iter().enumerate().rev() {
@@ -1434,6 +1495,42 @@ mod tests {
         assert_eq!(kept.1.len(), 4);
         assert!(run(true, false) == kept);
         assert!(run(true, true) == kept);
+    }
+
+    /// The distance check and the reconstruction on one pyramid (`reconstruct_checked`) give
+    /// the bits of the two calls, with the default pyramid and with a requested number of
+    /// levels below and above the check's, and with a given distance off by a quarter.
+    #[test]
+    fn a_shared_pyramid_changes_no_bit() {
+        let scene = Scene::new(SceneKind::Bumps, 96, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let stack = ImageStack::new(&images, scene.rig.n_lights(), scene.height, scene.width);
+        let off = Problem::new(
+            stack.unwrap(),
+            &scene.rig,
+            Some(&scene.mask),
+            InitialDepth::Distance(1.25 * scene.mean_depth()),
+        )
+        .unwrap();
+        let exact = at_true_distance(&scene, &scene.rig, &images);
+        for (problem, levels) in [(&exact, 0), (&exact, 2), (&exact, 7), (&off, 0)] {
+            let options = Options {
+                levels,
+                iterations: 6,
+                ..Options::default()
+            };
+            let quiet = &mut |_: &IterationStats| Control::Continue;
+            let checked = crate::check_distance(problem, &options).unwrap();
+            let alone = reconstruct(problem, &options, quiet).unwrap();
+            let (shared, shared_check) = reconstruct_checked(problem, &options, quiet).unwrap();
+            assert!(checked.is_some());
+            assert_eq!(format!("{checked:?}"), format!("{shared_check:?}"));
+            assert!(bits(&alone) == bits(&shared), "levels {levels}");
+            let depths = |r: &Reconstruction| -> Vec<u64> {
+                r.history.iter().map(|h| h.depth_change.to_bits()).collect()
+            };
+            assert!(depths(&alone) == depths(&shared));
+        }
     }
 
     /// The bits of a result's normals and depths (NaN outside the mask compares equal).
