@@ -470,9 +470,12 @@ struct Transmittance {
     cubic: [[f64; 4]; TABLE_STEPS],
 }
 
+/// A lobe's table with its key, the bits of `(alpha, eta)`.
+type Keyed = ((u64, u64), Arc<Transmittance>);
+
 thread_local! {
     /// The tables of the lobes a thread used last (see [`Transmittance::cached`]).
-    static TABLES: RefCell<Vec<((u64, u64), Arc<Transmittance>)>> =
+    static TABLES: RefCell<Vec<Keyed>> =
         const { RefCell::new(Vec::new()) };
 }
 
