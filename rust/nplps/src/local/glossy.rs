@@ -518,13 +518,7 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             match previous {
                 None => grid.to_vec(),
                 Some(_) if log => vec![(x / 1.3).max(lo), x, (x * 1.3).min(hi)],
-                // The index: 1 (Lambertian) or from LEAST_ETA on (see there).
-                Some(_) if x - 0.1 < LEAST_ETA => {
-                    let mut g = vec![1.0, LEAST_ETA, x.max(LEAST_ETA), x.max(LEAST_ETA) + 0.1];
-                    g.dedup();
-                    g
-                }
-                Some(_) => vec![x - 0.1, x, (x + 0.1).min(hi)],
+                Some(_) => vec![(x - 0.1).max(lo), x, (x + 0.1).min(hi)],
             }
         };
         let tried = std::sync::Mutex::new(Vec::new());
@@ -563,27 +557,15 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
     Ok(Some(lobe))
 }
 
-/// The least index the lobe search tries above 1 (the Lambertian diffuse term). The diffuse
-/// transmittance of an index just above 1 is not nearly Lambertian: the rough interface hardly
-/// reflects, but it masks the refracted rays, which run nearly as grazing as the light (see
-/// [`rough_transmittance`](crate::reflectance::rough_transmittance)), so the model's diffuse
-/// fall-off is steepest there. A parabola through the residuals at 1 and 1.15 had the search
-/// choose 1.02-1.05 on the principled 0.5 PBR renders under `depth="auto"` (+1.9 % from the
-/// distance, 0.45 -> 1.0 degrees): the line over the index tries 1 and indices from this one on,
-/// and refines between the latter only. Dielectrics' indices lie above 1.3.
-const LEAST_ETA: f64 = 1.15;
-
 /// The minimiser of `cost` over `grid` (increasing), refined by the parabola through the best
 /// grid value and its neighbours (in `log x` when `log`), kept within those neighbours and
-/// accepted only if its cost is lower. A grid over the index (`log` false) is not refined next
-/// to 1 (see [`LEAST_ETA`]).
+/// accepted only if its cost is lower.
 fn line_search(grid: &[f64], cost: impl Fn(f64) -> f64, log: bool) -> f64 {
     let costs: Vec<f64> = grid.iter().map(|&x| cost(x)).collect();
     let best = (0..grid.len())
         .min_by(|&a, &b| costs[a].total_cmp(&costs[b]))
         .unwrap_or(0);
-    // No parabola across the Lambertian index (see [`LEAST_ETA`]).
-    if best == 0 || best + 1 == grid.len() || (!log && grid[best - 1] < LEAST_ETA) {
+    if best == 0 || best + 1 == grid.len() {
         return grid[best];
     }
     let t = |x: f64| if log { x.ln() } else { x };
