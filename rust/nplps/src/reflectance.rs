@@ -1,5 +1,5 @@
-//! The glossy reflectance model: a diffuse term with Fresnel transmittance plus a GGX specular
-//! lobe, and the per-facet fit of a normal, a diffuse and a specular albedo under it.
+//! The glossy reflectance model: a diffuse term transmitted through a rough interface plus a GGX
+//! specular lobe, and the per-facet fit of a normal, a diffuse and a specular albedo under it.
 //!
 //! ## The model
 //!
@@ -14,10 +14,15 @@
 //! S(n) = F(v.h) / F(1) * G(n.h) * G1(n.l) G1(n.v) / (4 n.v),      h = normalize(l + v),
 //! ```
 //!
-//! - `T(c) = 1 - F(c)` is the Fresnel transmittance of a dielectric of relative index `eta`
-//!   (unpolarised, exact): light that enters the surface, scatters below it and leaves again is
-//!   attenuated twice, more at grazing angles. `D(n) / (n.l)` is 1 at normal incidence, and
-//!   `eta = 1` gives `T = 1`: the Lambertian model exactly.
+//! - `T(mu)` is the transmittance of the rough interface of the lobe's own roughness and index
+//!   ([`rough_transmittance`]: over the GGX normals visible from the direction of cosine `mu`,
+//!   the Fresnel-transmitted share times Smith's masking of the refracted ray): light that
+//!   enters the surface, scatters below it and leaves again is attenuated twice, more at grazing
+//!   angles, and less so the rougher the interface (Mitsuba's `roughplastic` weighs its diffuse
+//!   part so). It is tabulated once per lobe and interpolated (`Transmittance`). `D(n) / (n.l)`
+//!   is 1 at normal incidence and at most 1 elsewhere, and `eta = 1` gives `T = 1`: the
+//!   Lambertian model exactly. (Before, `T` was the smooth interface's `1 - F`: on the
+//!   rough plastic renders no index of it matched, see docs/method.md.)
 //! - The lobe is the GGX (Trowbridge-Reitz) normal distribution
 //!   `G(c) = alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` with Smith's separable masking
 //!   `G1(c) = 2c / (c + sqrt(alpha^2 + (1 - alpha^2) c^2))`; `alpha` is the roughness.
@@ -30,8 +35,8 @@
 //!
 //! `h` and `F(v.h) / F(1)` do not depend on `n`: an [`Observation`] carries them, computed once
 //! per facet. `T(n.v)` and `G1(n.v)` are shared by all lights: they are computed once per normal
-//! (a `View`). Per light and normal there remain `T(n.l)`, `G(n.h)` and `G1(n.l)`: two square
-//! roots and three divisions (each function's reciprocals from one division, see
+//! (a `View`). Per light and normal there remain `T(n.l)` (a table look-up), `G(n.h)` and
+//! `G1(n.l)`: one square root and two divisions (each function's reciprocals from one division, see
 //! [`Lobe::fresnel`]).
 //!
 //! ## The fit
@@ -50,9 +55,9 @@
 //! [`fit_packed`] holds a facet's observations as a structure of arrays in groups of 4 lights
 //! ([`Packed`]) and computes the factors, their gradients and the sums of the normal equations a
 //! group at a time, one SIMD lane per light (compiled for AVX2 where the processor has it):
-//! per light two square roots and one division (the reciprocals of the Fresnel, GGX and Smith
-//! denominators from one division of their product). [`Packed::prepare`] computes the point
-//! lights' directions and scales, the half vectors and the Fresnel factors the same way. The
+//! per light one square root, one division (the reciprocals of the GGX and Smith denominators
+//! from one division of their product) and the transmittance's table look-up. [`Packed::prepare`] computes the point
+//! lights' directions and scales, the half vectors and the Fresnel factors in lanes too. The
 //! trial after the last step is evaluated without derivatives. The sums are accumulated per
 //! lane, so the results differ from a light-by-light sum in the last bits.
 
@@ -403,12 +408,12 @@ fn visible_normal(alpha: f64, mu: f64, (r_cos, r_sin): (f64, f64)) -> [f64; 3] {
 /// ```
 ///
 /// `c_t = sqrt(1 - (1 - (w.m)^2) / eta^2)`, integrated with `TABLE_QUADRATURE^2`
-/// Gauss-Legendre nodes over the square of [`visible_normal`]. By reciprocity the same factor
+/// Gauss-Legendre nodes over the square of `visible_normal`. By reciprocity the same factor
 /// weighs the light leaving the body towards the camera. This is what Mitsuba's `roughplastic`
 /// weighs its diffuse part by; it falls towards grazing light less than the smooth interface's
 /// `1 - F(mu)` (at `alpha = 0.3`, `eta = 1.5`: 0.81 of `T(1)` at `mu = 0.2` against 0.69), as the
 /// visible facets turn towards the light. At `eta = 1` no light is reflected but the refracted
-/// ray is still masked: the model's `eta = 1` is the Lambertian term instead (see [`Kernel`]).
+/// ray is still masked: the model's `eta = 1` is the Lambertian term instead.
 pub fn rough_transmittance(alpha: f64, eta: f64, mu: f64) -> f64 {
     transmittance_integral(
         alpha,
