@@ -62,7 +62,7 @@
 //! lane, so the results differ from a light-by-light sum in the last bits.
 
 use std::cell::RefCell;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use nalgebra::{Matrix4, Vector4};
 
@@ -478,6 +478,9 @@ struct Transmittance {
 /// A lobe's table with its key, the bits of `(alpha, eta)`.
 type Keyed = ((u64, u64), Arc<Transmittance>);
 
+/// The tables of the lobes all threads used last (see [`Transmittance::cached`]).
+static SHARED_TABLES: Mutex<Vec<Keyed>> = Mutex::new(Vec::new());
+
 thread_local! {
     /// The tables of the lobes a thread used last (see [`Transmittance::cached`]).
     static TABLES: RefCell<Vec<Keyed>> =
@@ -514,22 +517,35 @@ impl Transmittance {
         }
     }
 
-    /// The table of `lobe`, computed once per thread for the last [`TABLE_CACHE`] lobes (a
-    /// table takes about a millisecond; a fit evaluates the model a few hundred times).
+    /// The table of `lobe`, computed once for the last [`TABLE_CACHE`] lobes: each thread looks
+    /// in its own list first (no lock), then in the list all threads share, where a missing
+    /// table is computed under the lock (about 3 ms; the other threads that need it wait instead
+    /// of computing it again: the lobe search's threads all move to the same lobe at once).
     fn cached(lobe: &Lobe) -> Arc<Transmittance> {
         let key = (lobe.alpha.to_bits(), lobe.eta.to_bits());
-        TABLES.with(|tables| {
-            let mut tables = tables.borrow_mut();
-            if let Some(found) = tables.iter().find(|t| t.0 == key) {
-                return Arc::clone(&found.1);
-            }
-            let table = Arc::new(Transmittance::new(lobe));
+        let find = |tables: &[Keyed]| tables.iter().find(|t| t.0 == key).map(|t| Arc::clone(&t.1));
+        let keep = |tables: &mut Vec<Keyed>, table: &Arc<Transmittance>| {
             if tables.len() >= TABLE_CACHE {
                 tables.remove(0);
             }
-            tables.push((key, Arc::clone(&table)));
-            table
-        })
+            tables.push((key, Arc::clone(table)));
+        };
+        if let Some(table) = TABLES.with(|t| find(&t.borrow())) {
+            return table;
+        }
+        let table = {
+            let mut shared = SHARED_TABLES.lock().unwrap_or_else(|e| e.into_inner());
+            match find(&shared) {
+                Some(table) => table,
+                None => {
+                    let table = Arc::new(Transmittance::new(lobe));
+                    keep(&mut shared, &table);
+                    table
+                }
+            }
+        };
+        TABLES.with(|t| keep(&mut t.borrow_mut(), &table));
+        table
     }
 
     /// `T(c) / T(1)` and its derivative at `0 <= c <= 1`.
