@@ -101,7 +101,9 @@ def test_the_distance_search_uses_the_glossy_model(name: str) -> None:
     # The curve holds the wide scan outside the window and the window's candidates, in order.
     curve = np.asarray(glossy.distance.curve[0])
     assert np.all(np.diff(curve[:, 0]) > 0)
-    near = np.abs(curve[:, 0] / distance - 1) < 0.15
+    # The window spans about +-14 % around the wide scan's minimum, not the truth: under the rough
+    # transmittance the bumps' window ran from -13.0 % to +15.02 % of the true distance.
+    near = np.abs(curve[:, 0] / distance - 1) < 0.16
     assert near.sum() >= 7 and (~near).sum() >= 6
 
 
