@@ -121,8 +121,16 @@ def test_a_matte_object_falls_back_to_the_lambertian_model(name: str) -> None:
     assert glossy.matte_lobe is not None and glossy.matte_lobe.roughness >= 0.5
     before = angles(lambertian.normals[mask], data["normals"][mask]).mean()
     after = angles(glossy.normals[mask], data["normals"][mask]).mean()
-    assert abs(after - before) < 0.01, (before, after)
+    # With cast shadows (the block) each run marches its mask on its own mesh of iteration 3,
+    # and the glossy run's first iterations differ: the two converge to the fixed points of two
+    # masks (measured 0.28 vs 0.30 degrees since the rough transmittance, 0.0017 apart before).
+    assert abs(after - before) < 0.03, (before, after)
     assert lambertian.matte_lobe is None
+    # Without the masks' path the fallback gives the Lambertian result (measured 4e-8 degrees).
+    lambertian = solve(images, rig, float(data["distance"]), mask, shadows=False)
+    glossy = solve(images, rig, float(data["distance"]), mask, reflectance="glossy", shadows=False)
+    assert glossy.lobe is None and glossy.matte_lobe is not None
+    assert angles(lambertian.normals[mask], glossy.normals[mask]).mean() < 1e-4
     # A lobe the user gives is kept, however rough.
     given = solve(images, rig, float(data["distance"]), mask, reflectance="glossy", roughness=0.85, eta=1.5)
     assert given.lobe == nplps.Lobe(0.85, 1.5) and given.matte_lobe is None
