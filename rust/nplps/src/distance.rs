@@ -1416,6 +1416,43 @@ pub fn check_distance(problem: &Problem<'_>, options: &Options) -> Result<Option
     check_distance_on(problem, options, None)
 }
 
+/// [`check_distance`] and then [`reconstruct`](crate::reconstruct) under the Lambertian
+/// model, on one pyramid: the check's coarse levels (down to [`CHECK_SIDE`]
+/// pixels a side) are the reconstruction's coarse levels and more (the same rigs, the same
+/// settings: `coarsen` reads only `dark` and `saturation`), so they are made once instead of
+/// twice (at 12 MP x 16 lights the level at 3 MP alone reads the whole stack). Same bits as
+/// the two calls. Under the glossy model the check compares distances under the lobe of the
+/// result: then this is the two calls, the check after the reconstruction.
+pub fn reconstruct_checked(
+    problem: &Problem<'_>,
+    options: &Options,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(Reconstruction, Option<DistanceCheck>)> {
+    if options.reflectance.is_glossy() {
+        let r = crate::solver::reconstruct(problem, options, progress)?;
+        let options = options.with_reflectance(r.reflectance());
+        let checked = check_distance(problem, &options)?;
+        return Ok((r, checked));
+    }
+    options.validate()?;
+    problem.check_memory(options)?;
+    let (h, w) = problem.shape();
+    let levels = crate::pyramid::levels_for(h, w, options.levels).max(check_levels(problem));
+    let t = Instant::now();
+    let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
+    let coarse = with_threads(options.threads, || {
+        crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))
+    })??;
+    let made = t.elapsed();
+    let checked = check_distance_on(problem, options, Some(&coarse))?;
+    let mut r = crate::solver::reconstruct_on(problem, options, progress, Some(coarse))?;
+    // The levels were made before the run's clock started: their time counts as its pyramid's
+    // (as when the run makes them), the check's own iterations still outside the timings.
+    r.timings.pyramid += made;
+    r.timings.total += made;
+    Ok((r, checked))
+}
+
 /// The pyramid levels of [`check_distance`] (the full resolution counted): down to a longer
 /// side of at most [`CHECK_SIDE`] pixels.
 pub(crate) fn check_levels(problem: &Problem<'_>) -> usize {
@@ -1431,7 +1468,7 @@ pub(crate) fn check_levels(problem: &Problem<'_>) -> usize {
 
 /// [`check_distance`] on the coarse levels `pyramid` when the caller has made them
 /// ([`crate::pyramid::coarse_problems`] with at least [`check_levels`] levels, see
-/// [`crate::solver::reconstruct_checked`]); made here otherwise.
+/// [`reconstruct_checked`]); made here otherwise.
 pub(crate) fn check_distance_on(
     problem: &Problem<'_>,
     options: &Options,

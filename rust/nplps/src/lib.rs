@@ -249,8 +249,8 @@ pub use baseline::reconstruct_parallel;
 pub use camera_map::{camera_from_map, MapValue};
 pub use cancel::Cancel;
 pub use distance::{
-    check_distance, estimate_distance, reconstruct_auto, DistanceCheck, DistanceEstimate,
-    DistanceSearch, CHECK_SIDE,
+    check_distance, estimate_distance, reconstruct_auto, reconstruct_checked, DistanceCheck,
+    DistanceEstimate, DistanceSearch, CHECK_SIDE,
 };
 pub use error::{g6, Error, Result};
 pub use geometry::vertices;
@@ -277,6 +277,6 @@ pub use render::{
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask, Shadows};
-pub use solver::{reconstruct, reconstruct_checked, MATTE_ROUGHNESS};
+pub use solver::{reconstruct, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};

@@ -55,48 +55,11 @@ pub fn reconstruct(
     reconstruct_on(problem, options, progress, None)
 }
 
-/// [`check_distance`](crate::check_distance) and then [`reconstruct`] under the Lambertian
-/// model, on one pyramid: the check's coarse levels (down to [`CHECK_SIDE`](crate::CHECK_SIDE)
-/// pixels a side) are the reconstruction's coarse levels and more (the same rigs, the same
-/// settings: `coarsen` reads only `dark` and `saturation`), so they are made once instead of
-/// twice (at 12 MP x 16 lights the level at 3 MP alone reads the whole stack). Same bits as
-/// the two calls. Under the glossy model the check compares distances under the lobe of the
-/// result: then this is the two calls, the check after the reconstruction.
-pub fn reconstruct_checked(
-    problem: &Problem<'_>,
-    options: &Options,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<(Reconstruction, Option<crate::DistanceCheck>)> {
-    if options.reflectance.is_glossy() {
-        let r = reconstruct(problem, options, progress)?;
-        let options = options.with_reflectance(r.reflectance());
-        let checked = crate::check_distance(problem, &options)?;
-        return Ok((r, checked));
-    }
-    options.validate()?;
-    problem.check_memory(options)?;
-    let (h, w) = problem.shape();
-    let levels = crate::pyramid::levels_for(h, w, options.levels)
-        .max(crate::distance::check_levels(problem));
-    let t = Instant::now();
-    let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
-    let coarse = with_threads(options.threads, || {
-        crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))
-    })??;
-    let made = t.elapsed();
-    let checked = crate::distance::check_distance_on(problem, options, Some(&coarse))?;
-    let mut r = reconstruct_on(problem, options, progress, Some(coarse))?;
-    // The levels were made before the run's clock started: their time counts as its pyramid's
-    // (as when the run makes them), the check's own iterations still outside the timings.
-    r.timings.pyramid += made;
-    r.timings.total += made;
-    Ok((r, checked))
-}
-
 /// [`reconstruct`], with the pyramid's coarse levels when the caller has made them
 /// ([`crate::pyramid::coarse_problems`] of [`crate::pyramid::coarse_rigs`] with at least the
-/// levels of the run; the levels beyond those are dropped unused).
-fn reconstruct_on(
+/// levels of the run; the levels beyond those are dropped unused; see
+/// [`crate::reconstruct_checked`]).
+pub(crate) fn reconstruct_on(
     problem: &Problem<'_>,
     options: &Options,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
@@ -307,7 +270,7 @@ pub(crate) fn coarse_to_fine(
     let t = Instant::now();
     let rigs;
     let coarse = match pyramid {
-        // Made by the caller (see [`reconstruct_checked`]): levels 1..levels of it.
+        // Made by the caller (see [`crate::reconstruct_checked`]): levels 1..levels of it.
         Some(mut made) if made.len() + 1 >= levels => {
             made.truncate(levels - 1);
             made
@@ -1522,7 +1485,8 @@ mod tests {
             let quiet = &mut |_: &IterationStats| Control::Continue;
             let checked = crate::check_distance(problem, &options).unwrap();
             let alone = reconstruct(problem, &options, quiet).unwrap();
-            let (shared, shared_check) = reconstruct_checked(problem, &options, quiet).unwrap();
+            let (shared, shared_check) =
+                crate::reconstruct_checked(problem, &options, quiet).unwrap();
             assert!(checked.is_some());
             assert_eq!(format!("{checked:?}"), format!("{shared_check:?}"));
             assert!(bits(&alone) == bits(&shared), "levels {levels}");
