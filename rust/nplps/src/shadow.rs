@@ -1362,40 +1362,56 @@ mod tests {
         assert!(found > 100, "{found}");
     }
 
+    /// The synthetic scenes of the march tests (kind, seed).
+    #[cfg(feature = "synth")]
+    const LOW_LIGHT_SCENES: [(crate::synth::SceneKind, u64); 5] = [
+        (crate::synth::SceneKind::Block, 0),
+        (crate::synth::SceneKind::Bumps, 1),
+        (crate::synth::SceneKind::Bumps, 7),
+        (crate::synth::SceneKind::Cube, 0),
+        (crate::synth::SceneKind::SphereCap, 3),
+    ];
+
+    /// A synthetic scene of `n` x `n` pixels with point and directional lights, moved low over
+    /// it so that the bumps cast shadows too.
+    #[cfg(feature = "synth")]
+    fn low_light_scene(
+        kind: crate::synth::SceneKind,
+        seed: u64,
+        pinhole: bool,
+        n: usize,
+    ) -> crate::synth::Scene {
+        use crate::synth::{Scene, SceneOptions};
+        let options = SceneOptions::default()
+            .with_pinhole(pinhole)
+            .with_directional(true);
+        let mut scene = Scene::with_options(kind, n, 100.0, 200.0, seed, options).unwrap();
+        for (i, light) in scene.rig.lights.iter_mut().enumerate() {
+            let a = i as f64 * 0.7;
+            match light {
+                Light::Point { position, .. } if i % 2 == 1 => {
+                    *position = [150.0 * a.cos(), 150.0 * a.sin(), 180.0];
+                }
+                Light::Directional { direction, .. } => {
+                    *direction = normalize([a.cos(), a.sin(), -0.4]);
+                }
+                _ => {}
+            }
+        }
+        scene
+    }
+
     /// The pyramid's march equals the plain one on synthetic scenes: block and bumps (several
     /// seeds), orthographic and pinhole, point and directional lights, with and without a mask
     /// and a hole of unknown depths, and a short `max_steps`.
     #[cfg(feature = "synth")]
     #[test]
     fn the_pyramid_changes_nothing_on_synthetic_scenes() {
-        use crate::synth::{Scene, SceneKind, SceneOptions};
         let n = 72;
         let mut found = 0;
-        for (kind, seed) in [
-            (SceneKind::Block, 0),
-            (SceneKind::Bumps, 1),
-            (SceneKind::Bumps, 7),
-            (SceneKind::Cube, 0),
-            (SceneKind::SphereCap, 3),
-        ] {
+        for (kind, seed) in LOW_LIGHT_SCENES {
             for pinhole in [false, true] {
-                let options = SceneOptions::default()
-                    .with_pinhole(pinhole)
-                    .with_directional(true);
-                let mut scene = Scene::with_options(kind, n, 100.0, 200.0, seed, options).unwrap();
-                // Lights low over the scene, so that the bumps cast shadows too.
-                for (i, light) in scene.rig.lights.iter_mut().enumerate() {
-                    let a = i as f64 * 0.7;
-                    match light {
-                        Light::Point { position, .. } if i % 2 == 1 => {
-                            *position = [150.0 * a.cos(), 150.0 * a.sin(), 180.0];
-                        }
-                        Light::Directional { direction, .. } => {
-                            *direction = normalize([a.cos(), a.sin(), -0.4]);
-                        }
-                        _ => {}
-                    }
-                }
+                let scene = low_light_scene(kind, seed, pinhole, n);
                 let mut depth = scene.depth.clone();
                 if seed == 7 {
                     for r in 30..34 {
@@ -1454,33 +1470,12 @@ mod tests {
     #[cfg(feature = "synth")]
     #[test]
     fn the_refined_march_agrees_with_the_full_one() {
-        use crate::synth::{Scene, SceneKind, SceneOptions};
+        use crate::synth::{Scene, SceneKind};
         let n = 72;
         let (mut total, mut differ) = (0, 0);
-        for (kind, seed) in [
-            (SceneKind::Block, 0),
-            (SceneKind::Bumps, 1),
-            (SceneKind::Bumps, 7),
-            (SceneKind::Cube, 0),
-            (SceneKind::SphereCap, 3),
-        ] {
+        for (kind, seed) in LOW_LIGHT_SCENES {
             for pinhole in [false, true] {
-                let options = SceneOptions::default()
-                    .with_pinhole(pinhole)
-                    .with_directional(true);
-                let mut scene = Scene::with_options(kind, n, 100.0, 200.0, seed, options).unwrap();
-                for (i, light) in scene.rig.lights.iter_mut().enumerate() {
-                    let a = i as f64 * 0.7;
-                    match light {
-                        Light::Point { position, .. } if i % 2 == 1 => {
-                            *position = [150.0 * a.cos(), 150.0 * a.sin(), 180.0];
-                        }
-                        Light::Directional { direction, .. } => {
-                            *direction = normalize([a.cos(), a.sin(), -0.4]);
-                        }
-                        _ => {}
-                    }
-                }
+                let scene = low_light_scene(kind, seed, pinhole, n);
                 let rig = &scene.rig;
                 let v = crate::geometry::vertices(&rig.camera, n, n, &scene.depth).unwrap();
                 // A hole of 8 x 8 pixels (a march that enters it ends unblocked).
