@@ -1437,7 +1437,7 @@ pub fn reconstruct_checked(
     options.validate()?;
     problem.check_memory(options)?;
     let (h, w) = problem.shape();
-    let levels = crate::pyramid::levels_for(h, w, options.levels).max(check_levels(problem));
+    let levels = crate::pyramid::levels_for(h, w, options.levels).max(check_levels(problem).0);
     let t = Instant::now();
     let rigs = crate::pyramid::coarse_rigs(problem.rig, levels);
     let coarse = with_threads(options.threads, || {
@@ -1454,8 +1454,8 @@ pub fn reconstruct_checked(
 }
 
 /// The pyramid levels of [`check_distance`] (the full resolution counted): down to a longer
-/// side of at most [`CHECK_SIDE`] pixels.
-pub(crate) fn check_levels(problem: &Problem<'_>) -> usize {
+/// side of at most [`CHECK_SIDE`] pixels; and that longer side of the coarsest level.
+pub(crate) fn check_levels(problem: &Problem<'_>) -> (usize, usize) {
     let mut levels = 1;
     let (mut h, mut w) = (problem.grid.height, problem.grid.width);
     while h.max(w) > CHECK_SIDE {
@@ -1463,7 +1463,7 @@ pub(crate) fn check_levels(problem: &Problem<'_>) -> usize {
         w = w.div_ceil(2);
         levels += 1;
     }
-    levels
+    (levels, h.max(w))
 }
 
 /// [`check_distance`] on the coarse levels `pyramid` when the caller has made them
@@ -1478,12 +1478,7 @@ pub(crate) fn check_distance_on(
     if check_observable(problem).is_err() {
         return Ok(None);
     }
-    let levels = check_levels(problem);
-    let (mut h, mut w) = (problem.grid.height, problem.grid.width);
-    for _ in 1..levels {
-        h = h.div_ceil(2);
-        w = w.div_ceil(2);
-    }
+    let (levels, side) = check_levels(problem);
     let options = Options {
         levels: 1,
         refine: Refine {
@@ -1552,7 +1547,7 @@ pub(crate) fn check_distance_on(
             found: mean(&given) * factor,
             residual_given: residuals[given_at],
             residual_found: residuals[best],
-            side: h.max(w),
+            side,
         }))
     })?
 }
