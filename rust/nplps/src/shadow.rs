@@ -558,7 +558,6 @@ pub(crate) fn march_refined(
             1,
         );
     }
-    let rig_lights = lights;
     let words = lights.len().div_ceil(64);
     crate::memory::check(
         || {
@@ -614,7 +613,7 @@ pub(crate) fn march_refined(
                 let Some((c, n, slack)) = march.facet(r * width + col) else {
                     continue;
                 };
-                for (k, light) in rig_lights.iter().enumerate() {
+                for (k, light) in lights.iter().enumerate() {
                     if not_above(dot(n, light.beta(c).0), 0.0) {
                         continue;
                     }
@@ -658,7 +657,7 @@ pub(crate) fn march_refined(
                 }
                 let around = &around[..count];
                 let complete = count > 0 && around.iter().all(|&q| mask[q]);
-                for (k, light) in rig_lights.iter().enumerate() {
+                for (k, light) in lights.iter().enumerate() {
                     if not_above(dot(n, light.beta(c).0), 0.0) {
                         continue;
                     }
