@@ -30,7 +30,7 @@ use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::IndirectField;
 use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model, TrustMaps};
-use crate::memory::{try_copy, try_vec};
+use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
 use crate::problem::{check_fittable, Problem};
@@ -1328,7 +1328,9 @@ impl<'p> Solver<'p> {
         self.lobe_pending = false;
         drop(std::mem::take(&mut self.targets));
         drop(std::mem::take(&mut self.stats));
-        drop(std::mem::take(&mut self.next));
+        // `next` (one value a vertex) holds the vertex depths of the final step below instead
+        // of a fresh buffer (fresh pages are zeroed by the kernel as they are touched).
+        let mut depths = std::mem::take(&mut self.next);
         drop(self.system.take());
         // Much of the multigrid's coarse levels came from the allocator's arenas.
         crate::memory::give_back();
@@ -1336,11 +1338,14 @@ impl<'p> Solver<'p> {
         let glossy = self.lobe.is_some();
         let problem = self.problem;
         let mut outputs = FitOutputs::new(problem, glossy)?;
-        let depths = self.depths(u)?;
+        if depths.len() != u.len() {
+            depths = try_zeros(u.len(), "the vertex depths")?;
+        }
+        let perspective = self.depths_into(u, &mut depths);
         crate::memory::trace("finish: outputs+depths");
         let step = LocalStep {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
-            ..self.local_step(false, depths.as_deref())
+            ..self.local_step(false, perspective.then_some(&depths[..]))
         };
         let n = problem.grid.n_facets();
         let (k, channels) = (problem.obs.k, problem.obs.channels);
