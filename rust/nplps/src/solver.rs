@@ -1616,6 +1616,58 @@ mod tests {
         }
     }
 
+    /// The full resolution of a pyramid stops by the plain rule or by the projected one
+    /// ([`projected_converged`]), and says which; without a pyramid only the plain rule stops a
+    /// run. Over several seeds (noise-free and 1 % noise).
+    #[test]
+    fn the_full_resolution_stops_by_the_plain_or_the_projected_rule() {
+        let mut projected = 0;
+        for seed in 0..4 {
+            let scene = Scene::new(SceneKind::Bumps, 96, 100.0, 200.0, seed).unwrap();
+            let mut images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+            if seed % 2 == 1 {
+                // 1 % multiplicative noise from a small linear congruential generator.
+                let mut state = 0x9e37_79b9_7f4a_7c15_u64 ^ seed;
+                for v in images.iter_mut() {
+                    state = state
+                        .wrapping_mul(6_364_136_223_846_793_005)
+                        .wrapping_add(1_442_695_040_888_963_407);
+                    let unit = (state >> 11) as f64 / (1u64 << 53) as f64;
+                    *v *= (1.0 + 0.02 * (unit - 0.5)) as f32;
+                }
+            }
+            let problem = at_true_distance(&scene, &scene.rig, &images);
+            let limit = Options::default().tol * lateral_size(&problem);
+            for levels in [3, 1] {
+                let options = Options {
+                    levels,
+                    ..Options::default()
+                };
+                let quiet = &mut |_: &IterationStats| Control::Continue;
+                let r = reconstruct(&problem, &options, quiet).unwrap();
+                assert!(r.converged, "seed {seed} levels {levels}");
+                let fine: Vec<f64> = r
+                    .history
+                    .iter()
+                    .filter(|h| h.level == 0)
+                    .map(|h| h.depth_change)
+                    .collect();
+                let last = *fine.last().unwrap();
+                if last <= limit {
+                    assert!(r.status_reason.contains("within the tolerance"));
+                    continue;
+                }
+                // Only a pyramid's full resolution may stop above the limit, by the projection.
+                assert_ne!(levels, 1, "seed {seed}: {fine:?}");
+                let previous = fine[fine.len() - 2];
+                assert!(projected_converged(previous, last, limit), "{fine:?}");
+                assert!(r.status_reason.contains("projected"), "{}", r.status_reason);
+                projected += 1;
+            }
+        }
+        assert!(projected > 0, "no run stopped by the projection");
+    }
+
     /// The bits of a result's normals and depths (NaN outside the mask compares equal).
     fn bits(r: &Reconstruction) -> Vec<u64> {
         let normals = r.normals.iter().flatten();
