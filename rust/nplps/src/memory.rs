@@ -244,8 +244,16 @@ pub fn trace(label: &str) {
     let mib = |key| proc_field("/proc/self/status", key).map_or(f64::NAN, |b| b as f64 / 1048576.0);
     let (rss, hwm) = (mib("VmRSS"), mib("VmHWM"));
     let _ = std::fs::write("/proc/self/clear_refs", "5");
+    // Minor page faults so far (field 10 of /proc/self/stat): fresh pages touched.
+    let faults = std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            let rest = &s[s.rfind(')')? + 2..];
+            rest.split_whitespace().nth(7)?.parse::<u64>().ok()
+        })
+        .unwrap_or(0);
     eprintln!(
-        "memtrace {:8.3}s rss {rss:8.1} peak-since-last {hwm:8.1} MiB  {label}",
+        "memtrace {:8.3}s rss {rss:8.1} peak-since-last {hwm:8.1} MiB faults {faults:9}  {label}",
         start.elapsed().as_secs_f64()
     );
 }

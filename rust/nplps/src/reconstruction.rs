@@ -344,7 +344,21 @@ impl Reconstruction {
                 ),
             )
         } else if self.converged {
-            if tol_depth.is_finite() {
+            if tol_depth.is_finite() && last > tol_depth && iterations >= 2 {
+                // Stopped by the projected rule (crate::solver::projected_converged).
+                (
+                    Status::Converged,
+                    format!(
+                        "the depth changes of iterations {} and {iterations} ({} and {}) \
+                         contract so fast that the changes still to come are projected \
+                         within the tolerance ({})",
+                        iterations - 1,
+                        g6(changes[iterations - 2]),
+                        g6(last),
+                        g6(tol_depth)
+                    ),
+                )
+            } else if tol_depth.is_finite() {
                 (
                     Status::Converged,
                     format!(
