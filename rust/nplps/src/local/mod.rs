@@ -646,7 +646,7 @@ impl LocalStep<'_> {
     /// observations) cannot be allocated.
     pub fn try_run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) -> Result<()> {
         let per = self.obs.per_facet();
-        if let Some(lights) = self.lane_lights() {
+        if let Some(lights) = self.batch_lights() {
             let lights = &lights[..];
             return fits.par_chunks_mut(LANES).enumerate().try_for_each_init(
                 || lane_scratch(per, self.obs.k),
@@ -740,7 +740,7 @@ impl LocalStep<'_> {
     ) -> Result<()> {
         debug_assert_eq!(start % LANES, 0);
         let per = self.obs.per_facet();
-        if let Some(lights) = self.lane_lights() {
+        if let Some(lights) = self.batch_lights() {
             let lights = &lights[..];
             return targets
                 .par_chunks_mut(LANES)
