@@ -448,8 +448,9 @@ pub struct LocalStep<'s> {
     /// The indirect irradiance of each facet under each light (with
     /// [`Options::interreflections`](crate::Options::interreflections), see
     /// [`crate::indirect::IndirectField`]): added to the light's row of the fits,
-    /// `I = b . (s + V)`; None: the direct light only. Only the scalar Lambertian fits use it
-    /// (the vectorised lanes are off, the glossy model is refused).
+    /// `I = b . (s + V)`; None: the direct light only. The Lambertian fits use it (grey images
+    /// in the vectorised lanes, `lanes::field`, colour in the scalar fits; the glossy model is
+    /// refused).
     pub indirect: Option<&'s dyn IndirectLight>,
 }
 

@@ -299,7 +299,7 @@ mod tests {
 
     impl IndirectLight for Field {
         fn is_unlit(&self, p: usize, k: usize) -> bool {
-            (3 * p + k) % 7 == 0
+            (3 * p + k).is_multiple_of(7)
         }
 
         fn at_into(&self, p: usize, _width: usize, out: &mut Vec<[f64; 3]>) {
@@ -347,7 +347,7 @@ mod tests {
             };
         }
         let obs = Observations::from_stack(&data, k, h * w, 1);
-        let shadows = ShadowMask::from_fn(h, w, k, |p, j| (p + 5 * j) % 4 == 0);
+        let shadows = ShadowMask::from_fn(h, w, k, |p, j| (p + 5 * j).is_multiple_of(4));
         let field = Field { k };
         let (mut valid, mut invalid) = (0, 0);
         for camera in &cameras {
