@@ -114,7 +114,9 @@
 //! the `F (F - 1) / 2` unordered pairs (facing test: a few flops each) and marches the facing
 //! ones, `O(D)` samples each (`D` the image diagonal in pixels): `O(F^2 D)` time in the worst
 //! case, `O(F^2)` on surfaces where few pairs face each other, parallel over the facets. Near
-//! pairs cost `2 S^2` = 32 evaluations of the edge formula each, `O(F NEAR^2)` of them. It is
+//! pairs cost `2 S^2` = 32 evaluations of the edge formula each (4 edge angles each: the
+//! receiver's sub-points run in SIMD lanes with a branch-free `atan`, see `near_weight`),
+//! `O(F NEAR^2)` of them. It is
 //! computed once per geometry; with the verdicts of a nearby mesh only the pairs near its
 //! change are marched (the facing tests and the weights are computed again: `O(F^2)`).
 //!
@@ -854,28 +856,141 @@ fn raw_pair_weights(fi: &Facet, fj: &Facet) -> ([f64; 3], [f64; 3]) {
 }
 
 /// `w_ij` of a near pair: the mean over the receiver's sub-points `y_a` (in front of the
-/// emitter's plane) of the emitter quad's vector `(1 / pi) int d dw` by Lambert's edge formula.
+/// emitter's plane) of the emitter quad's vector `(1 / pi) int d dw` by Lambert's edge formula
+/// (see [`polygon_vector`]). The [`SUBDIVISIONS`]² sub-points run in SIMD lanes
+/// ([`near_weight_lanes`]): the operations of [`polygon_vector`] per sub-point, in its order,
+/// with the edge angles of [`angle_of`] instead of `atan2` (within 2 ulp of it: the weights,
+/// stored as `f32`, come out the same but where an `f64` value falls within that of an `f32`
+/// rounding boundary).
 fn near_weight(receiver: &Facet, emitter: &Facet) -> [f64; 3] {
-    let q = emitter.corners;
-    let mut w = [0.0; 3];
-    for y in sub_points(&receiver.corners) {
-        if not_above(dot(emitter.normal, sub(y, emitter.centre)), 0.0) {
-            continue;
-        }
-        let v = polygon_vector(y, [q[0], q[1], q[3], q[2]]);
-        for c in 0..3 {
-            w[c] += v[c];
+    near_weight_dispatch(
+        &receiver.corners,
+        emitter.normal,
+        emitter.centre,
+        &emitter.corners,
+    )
+}
+
+simd_dispatch! {
+    wide
+    /// [`near_weight_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic).
+    fn near_weight_dispatch => near_weight_lanes(
+        receiver: &[[f64; 3]; 4],
+        normal: [f64; 3],
+        centre: [f64; 3],
+        emitter: &[[f64; 3]; 4],
+    ) -> [f64; 3];
+}
+
+/// Sub-points of a receiver in [`near_weight`].
+const SUB: usize = SUBDIVISIONS * SUBDIVISIONS;
+
+/// [`near_weight`] of the receiver quad `receiver` and the emitter quad `emitter` (unit normal
+/// `normal`, centre `centre`), one lane per sub-point.
+#[inline(always)]
+fn near_weight_lanes(
+    receiver: &[[f64; 3]; 4],
+    normal: [f64; 3],
+    centre: [f64; 3],
+    emitter: &[[f64; 3]; 4],
+) -> [f64; 3] {
+    let y = sub_points(receiver);
+    let p = [emitter[0], emitter[1], emitter[3], emitter[2]];
+    let lane = |f: &dyn Fn(usize) -> f64| -> [f64; SUB] { std::array::from_fn(f) };
+    // Per corner e and component c: v_e = p_e - y (each sub-point).
+    let v: [[[f64; SUB]; 3]; 4] =
+        std::array::from_fn(|e| std::array::from_fn(|c| lane(&|t| p[e][c] - y[t][c])));
+    let mut sum = [[0.0f64; SUB]; 3];
+    for e in 0..4 {
+        let (a, b) = (&v[e], &v[(e + 1) % 4]);
+        for t in 0..SUB {
+            let g = [
+                a[1][t] * b[2][t] - a[2][t] * b[1][t],
+                a[2][t] * b[0][t] - a[0][t] * b[2][t],
+                a[0][t] * b[1][t] - a[1][t] * b[0][t],
+            ];
+            let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+            let d = a[0][t] * b[0][t] + a[1][t] * b[1][t] + a[2][t] * b[2][t];
+            let theta = angle_of(len, d);
+            let used = !not_above(len, 0.0);
+            for c in 0..3 {
+                sum[c][t] += if used { theta * g[c] / len } else { 0.0 };
+            }
         }
     }
-    let s = (SUBDIVISIONS * SUBDIVISIONS) as f64;
-    w.map(|x| x / s)
+    let mut w = [0.0; 3];
+    for t in 0..SUB {
+        let towards: [f64; 3] =
+            std::array::from_fn(|c| 0.0 + v[0][c][t] + v[1][c][t] + v[2][c][t] + v[3][c][t]);
+        let s = [sum[0][t], sum[1][t], sum[2][t]];
+        let sign = if dot(s, towards) < 0.0 { -1.0 } else { 1.0 };
+        let front = !not_above(dot(normal, sub(y[t], centre)), 0.0);
+        for c in 0..3 {
+            w[c] += if front {
+                sign * s[c] / (2.0 * std::f64::consts::PI)
+            } else {
+                0.0
+            };
+        }
+    }
+    w.map(|x| x / SUB as f64)
+}
+
+/// The angle `atan2(len, d)` in `[0, pi]` for `len >= 0` (the angle between two vectors from
+/// the length of their cross product and their dot product), without a branch per value (so
+/// that lanes of it vectorize): Cephes' `atan` (Moshier: the rational approximation of degree
+/// 4 / 5 on `[0, 0.66]`, the reductions `pi / 4 + atan((x - 1) / (x + 1))` and
+/// `pi / 2 - atan(1 / x)`) of `x = len / |d|`, then `pi - atan(x)` for `d < 0`. Within 2 ulp of
+/// `f64::atan2` (test `angle_of_is_atan2`).
+#[inline(always)]
+fn angle_of(len: f64, d: f64) -> f64 {
+    const P: [f64; 5] = [
+        -8.750_608_600_031_904e-1,
+        -1.615_753_718_733_365e1,
+        -7.500_855_792_314_705e1,
+        -1.228_866_684_490_136_2e2,
+        -6.485_021_904_942_025e1,
+    ];
+    const Q: [f64; 5] = [
+        2.485_846_490_142_306_4e1,
+        1.650_270_098_316_988_6e2,
+        4.328_810_604_912_903e2,
+        4.853_903_996_359_137e2,
+        1.945_506_571_482_614e2,
+    ];
+    const T3P8: f64 = 2.414_213_562_373_095;
+    const MOREBITS: f64 = 6.123_233_995_736_766e-17;
+    use std::f64::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+    let x = len / d.abs();
+    let (far, mid) = (x > T3P8, x > 0.66);
+    let r = match (far, mid) {
+        (true, _) => -1.0 / x,
+        (false, true) => (x - 1.0) / (x + 1.0),
+        _ => x,
+    };
+    let (base, more) = match (far, mid) {
+        (true, _) => (FRAC_PI_2, MOREBITS),
+        (false, true) => (FRAC_PI_4, 0.5 * MOREBITS),
+        _ => (0.0, 0.0),
+    };
+    let z = r * r;
+    let num = (((P[0] * z + P[1]) * z + P[2]) * z + P[3]) * z + P[4];
+    let den = ((((z + Q[0]) * z + Q[1]) * z + Q[2]) * z + Q[3]) * z + Q[4];
+    let a = base + (r * (z * num / den) + r + more);
+    if d < 0.0 {
+        PI - a
+    } else {
+        a
+    }
 }
 
 /// `(1 / pi) int d dw` over the solid angle of the closed polygon `p` (straight edges) seen
 /// from `y`, `d` the unit direction: Lambert's formula `1 / (2 pi) sum_e theta_e g_e`, with
 /// `theta_e` the angle that edge `e` subtends at `y` and `g_e` the unit normal of the plane
 /// through `y` and the edge, oriented towards the polygon (Arvo 1994). Exact for any surface
-/// spanned by the polygon that stays in front of `y`.
+/// spanned by the polygon that stays in front of `y`. (The reference of [`near_weight_lanes`],
+/// which computes it per sub-point in lanes.)
+#[cfg(test)]
 fn polygon_vector(y: [f64; 3], p: [[f64; 3]; 4]) -> [f64; 3] {
     let v = p.map(|x| sub(x, y));
     let mut sum = [0.0; 3];
@@ -896,6 +1011,25 @@ fn polygon_vector(y: [f64; 3], p: [[f64; 3]; 4]) -> [f64; 3] {
     let towards = v.iter().fold([0.0; 3], |acc, x| crate::vec3::add(acc, *x));
     let sign = if dot(sum, towards) < 0.0 { -1.0 } else { 1.0 };
     sum.map(|x| sign * x / (2.0 * std::f64::consts::PI))
+}
+
+/// [`near_weight`] one sub-point at a time with `atan2` (the code before the lanes; the
+/// reference of the tests).
+#[cfg(test)]
+fn near_weight_reference(receiver: &Facet, emitter: &Facet) -> [f64; 3] {
+    let q = emitter.corners;
+    let mut w = [0.0; 3];
+    for y in sub_points(&receiver.corners) {
+        if not_above(dot(emitter.normal, sub(y, emitter.centre)), 0.0) {
+            continue;
+        }
+        let v = polygon_vector(y, [q[0], q[1], q[3], q[2]]);
+        for c in 0..3 {
+            w[c] += v[c];
+        }
+    }
+    let s = (SUBDIVISIONS * SUBDIVISIONS) as f64;
+    w.map(|x| x / s)
 }
 
 /// Per unit emitter area, between the points `a` (normal `na`) and `b` (normal `nb`): the
@@ -947,7 +1081,8 @@ pub const FIELD_SIDE_SMALL: usize = 32;
 /// Cost: binning `O(H W k C)`; the [`Exchange`] of the `F <= FIELD_SIDE^2` coarse facets
 /// `O(F^2 D)` (`D` the coarse image diagonal), independent of the image size beyond the binning;
 /// its pass `O(P k C)` for `P` pairs; each local step then adds `O(k C)` per fine facet (the
-/// lookup, and the scalar fits instead of the vectorised ones). Memory: the exchange (at most
+/// lookup, and the field's rows in the fits: in SIMD lanes for grey images, see
+/// `local::lanes::field`; colour images take the scalar fits). Memory: the exchange (at most
 /// `max_pairs` pairs, [`BYTES_PER_PAIR`] each) while it is built, then `12 k C` bytes per coarse
 /// facet.
 #[derive(Debug, Clone)]
@@ -1415,19 +1550,36 @@ impl IndirectField {
         let (y0, x0) = (y.floor(), x.floor());
         let (ty, tx) = (y - y0, x - x0);
         let mut total = 0.0;
+        // The cells that take part, in the order their weights are summed.
+        let (mut cells, mut used) = ([(0usize, 0.0f64); 4], 0);
         for (dy, wy) in [(0, 1.0 - ty), (1, ty)] {
             for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
                 let (r, c) = (y0 as i64 + dy, x0 as i64 + dx);
                 let weight = wy * wx;
                 if let Some(pc) = self.cell(r, c).filter(|_| weight > 0.0) {
-                    self.add(pc, weight, out);
+                    cells[used] = (pc, weight);
+                    used += 1;
                     total += weight;
                 }
             }
         }
         if total > 0.0 {
-            for v in out.iter_mut() {
-                *v = v.map(|x| x / total);
+            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order (one pass
+            // over the values instead of one per cell; the division is skipped where the
+            // weights sum to exactly 1, as they do inside the grid for a power-of-two factor:
+            // the same bits).
+            let cells = &cells[..used];
+            let per = self.per;
+            for (i, o) in out.iter_mut().enumerate() {
+                for (pc, weight) in cells {
+                    let v = &self.vectors[pc * per + i];
+                    for c in 0..3 {
+                        o[c] += weight * f64::from(v[c]);
+                    }
+                }
+                if total != 1.0 {
+                    *o = o.map(|x| x / total);
+                }
             }
             return;
         }
@@ -1951,6 +2103,88 @@ mod tests {
         });
         assert!(close(at[0], expected), "{at:?} {expected:?}");
         assert!(expected[0].abs() > 0.01);
+    }
+
+    /// `angle_of` is `atan2` for non-negative first arguments, within 2 ulp: every range of
+    /// its reduction, both signs of the second argument, zeros and infinities of the ratio.
+    #[test]
+    fn angle_of_is_atan2() {
+        let mut next = crate::multigrid::tests::lcg(11);
+        let mut worst = 0.0f64;
+        let mut cases = vec![
+            (1.0, 0.0),
+            (1.0, -0.0),
+            (0.0, 1.0),
+            (0.0, -1.0),
+            (1e-300, 1.0),
+        ];
+        for _ in 0..200_000 {
+            let len = (20.0 * next() - 10.0).exp2() * next();
+            let d = (20.0 * next() - 10.0).exp2() * (next() - 0.5);
+            cases.push((len, d));
+        }
+        for (len, d) in cases {
+            let (a, b) = (angle_of(len, d), len.atan2(d));
+            let ulp = (b.abs() * f64::EPSILON).max(f64::MIN_POSITIVE);
+            let err = (a - b).abs() / ulp;
+            worst = worst.max(err);
+            assert!(err <= 2.0, "atan2({len}, {d}): {a} against {b}");
+        }
+        assert!(worst > 0.0);
+    }
+
+    /// The near weights in lanes are the reference's (one sub-point at a time, `atan2`) within
+    /// 1e-14 of their size and 1e-16 (the sub-points' terms are at most 1 and may cancel), on quads of random shape and tilt, near and touching, facing and
+    /// partly behind each other's planes; stored as `f32` they are the same bits.
+    #[test]
+    fn near_weights_in_lanes_match_the_reference() {
+        let mut next = crate::multigrid::tests::lcg(5);
+        let quad = |next: &mut dyn FnMut() -> f64, origin: [f64; 3], tilt: f64| -> Facet {
+            let corners: [[f64; 3]; 4] = std::array::from_fn(|k| {
+                let (x, y) = ((k % 2) as f64, (k / 2) as f64);
+                [
+                    origin[0] + x + 0.2 * (next() - 0.5),
+                    origin[1] + y + 0.2 * (next() - 0.5),
+                    origin[2] + tilt * (x - 0.5) + 0.3 * (next() - 0.5),
+                ]
+            });
+            let centre: [f64; 3] =
+                std::array::from_fn(|c| 0.25 * corners.iter().map(|q| q[c]).sum::<f64>());
+            let n = cross(sub(corners[2], corners[1]), sub(corners[3], corners[0]));
+            let normal = n.map(|x| -x / norm(n));
+            let area = 0.5 * norm(n);
+            Facet {
+                centre,
+                normal,
+                area,
+                corners,
+            }
+        };
+        let (mut same, mut total) = (0, 0);
+        for _ in 0..3000 {
+            let tilt = 4.0 * (next() - 0.5);
+            let a = quad(&mut next, [0.0; 3], tilt);
+            let offset = [
+                3.0 * (next() - 0.5),
+                3.0 * (next() - 0.5),
+                2.0 * (next() - 0.5),
+            ];
+            let tilt = 4.0 * (next() - 0.5);
+            let b = quad(&mut next, offset, tilt);
+            for (r, e) in [(&a, &b), (&b, &a)] {
+                let (w, reference) = (near_weight(r, e), near_weight_reference(r, e));
+                let size = norm(reference).max(1e-300);
+                for c in 0..3 {
+                    assert!(
+                        (w[c] - reference[c]).abs() <= 1e-16 + 1e-14 * size,
+                        "{w:?} against {reference:?}"
+                    );
+                    same += usize::from((w[c] as f32).to_bits() == (reference[c] as f32).to_bits());
+                    total += 1;
+                }
+            }
+        }
+        assert!(same as f64 >= 0.999 * total as f64, "{same} of {total}");
     }
 
     #[test]

@@ -293,6 +293,31 @@ impl ShadowMask {
         })
     }
 
+    /// The mask of an image of `height` x `width` pixels and `lights` lights where
+    /// `shadowed(pixel, light)` (for tests of the code that reads masks).
+    #[cfg(test)]
+    pub(crate) fn from_fn(
+        height: usize,
+        width: usize,
+        lights: usize,
+        shadowed: impl Fn(usize, usize) -> bool,
+    ) -> ShadowMask {
+        let words = lights.div_ceil(64);
+        let mut bits = vec![0u64; height * width * words];
+        for p in 0..height * width {
+            for k in (0..lights).filter(|&k| shadowed(p, k)) {
+                bits[p * words + k / 64] |= 1 << (k % 64);
+            }
+        }
+        ShadowMask {
+            height,
+            width,
+            lights,
+            words,
+            bits,
+        }
+    }
+
     /// Number of (pixel, light) pairs in a cast shadow.
     pub fn count(&self) -> usize {
         self.bits.iter().map(|w| w.count_ones() as usize).sum()

@@ -22,6 +22,8 @@ use crate::light::LaneLight;
 use crate::memory::try_vec;
 use crate::reflectance::Packed;
 
+mod field;
+
 impl Observations<'_> {
     /// For grey observations: the values of the facets at `pixels`, light-major and
     /// interleaved (`out[k][lane]`); returns false (and writes nothing) for colour.
@@ -135,6 +137,11 @@ impl LocalStep<'_> {
         interleaved: &mut [[f32; LANES]],
         trust: Option<LaneTrust<'_>>,
     ) -> [FacetFit; LANES] {
+        if let Some(field) = self.indirect {
+            // (with a field the lights come from `field_lane_lights`; no trust pass uses them)
+            debug_assert!(trust.is_none());
+            return self.fit_field_lanes(lights, first, u, buf, interleaved, field);
+        }
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
         let batch = self.batch_corners(first, &pixels, u);

@@ -448,8 +448,9 @@ pub struct LocalStep<'s> {
     /// The indirect irradiance of each facet under each light (with
     /// [`Options::interreflections`](crate::Options::interreflections), see
     /// [`crate::indirect::IndirectField`]): added to the light's row of the fits,
-    /// `I = b . (s + V)`; None: the direct light only. Only the scalar Lambertian fits use it
-    /// (the vectorised lanes are off, the glossy model is refused).
+    /// `I = b . (s + V)`; None: the direct light only. The Lambertian fits use it (grey images
+    /// in the vectorised lanes, `lanes::field`, colour in the scalar fits; the glossy model is
+    /// refused).
     pub indirect: Option<&'s dyn IndirectLight>,
 }
 
@@ -646,7 +647,7 @@ impl LocalStep<'_> {
     /// observations) cannot be allocated.
     pub fn try_run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) -> Result<()> {
         let per = self.obs.per_facet();
-        if let Some(lights) = self.lane_lights() {
+        if let Some(lights) = self.batch_lights() {
             let lights = &lights[..];
             return fits.par_chunks_mut(LANES).enumerate().try_for_each_init(
                 || lane_scratch(per, self.obs.k),
@@ -740,7 +741,7 @@ impl LocalStep<'_> {
     ) -> Result<()> {
         debug_assert_eq!(start % LANES, 0);
         let per = self.obs.per_facet();
-        if let Some(lights) = self.lane_lights() {
+        if let Some(lights) = self.batch_lights() {
             let lights = &lights[..];
             return targets
                 .par_chunks_mut(LANES)
