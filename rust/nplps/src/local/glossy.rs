@@ -59,7 +59,9 @@ use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
 #[cfg(test)]
 use crate::reflectance::fit_packed;
-use crate::reflectance::{fit_packed_at_within, fit_packed_within, GlossyFit, Lobe, Packed};
+use crate::reflectance::{
+    fit_packed_at_within, fit_packed_within, prepare_tables, GlossyFit, Lobe, Packed,
+};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -540,10 +542,13 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             }
             sse
         };
-        let x = match eta_round {
-            true => line_search(&near(lobe.eta, &ETAS, 1.0, 3.0, false), cost, false),
-            false => line_search(&near(lobe.alpha, &ALPHAS, 0.01, 1.0, true), cost, true),
+        let grid = match eta_round {
+            true => near(lobe.eta, &ETAS, 1.0, 3.0, false),
+            false => near(lobe.alpha, &ALPHAS, 0.01, 1.0, true),
         };
+        // The line's tables, computed in parallel before its fits ask for them one by one.
+        prepare_tables(&grid.iter().map(|&x| at(x)).collect::<Vec<_>>());
+        let x = line_search(&grid, cost, !eta_round);
         lobe = at(x);
         if cv {
             anchors = fits(lobe, &anchors, LOBE_STEPS).1;
