@@ -497,15 +497,18 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
     // The held-out score of a lobe: each facet fitted on each fold of its lights (from
-    // `starts`) predicts the lights of the other folds.
+    // `starts`) predicts the lights of the other folds. Summed in the facets' order (rayon's
+    // parallel sum adds in the order the work was split, which varies from run to run: the
+    // lobe then differed in the 14th digit between two runs of one reconstruction).
     let held = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]]| -> f64 {
-        sample
+        let scores: Vec<f64> = sample
             .par_iter()
             .zip(starts)
             .map_init(Packed::new, |scratch, (s, &starts)| {
                 held_out_score(s, step.model, channels, &lambertian, &lobe, starts, scratch)
             })
-            .sum()
+            .collect();
+        scores.iter().sum()
     };
     let (mut lobe, rounds) = match previous {
         Some(lobe) => (lobe, 2),
