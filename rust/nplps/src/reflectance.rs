@@ -1511,6 +1511,27 @@ mod tests {
         }
     }
 
+    /// The tables [`prepare_tables`] computes in parallel are those computed on demand, bit for
+    /// bit (a lobe with `eta = 1` has none).
+    #[test]
+    fn prepared_tables_are_the_tables_computed_on_demand() {
+        let lobes = [
+            Lobe::new(0.123, 1.37),
+            Lobe::new(0.321, 1.37),
+            Lobe::new(0.123, 1.37),
+            Lobe::new(0.123, 1.0),
+        ];
+        prepare_tables(&lobes);
+        for lobe in &lobes[..2] {
+            let kept = Transmittance::cached(lobe);
+            let fresh = Transmittance::new(lobe);
+            let bits = |t: &Transmittance| -> Vec<u64> {
+                t.cubic.iter().flatten().map(|x| x.to_bits()).collect()
+            };
+            assert_eq!(bits(&kept), bits(&fresh));
+        }
+    }
+
     #[test]
     fn gauss_legendre_integrates_polynomials_exactly() {
         let nodes = gauss_legendre(TABLE_QUADRATURE);
