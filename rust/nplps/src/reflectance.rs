@@ -62,7 +62,9 @@
 //! lane, so the results differ from a light-by-light sum in the last bits.
 
 use std::cell::RefCell;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use rayon::prelude::*;
 
 use nalgebra::{Matrix4, Vector4};
 
@@ -346,9 +348,12 @@ const TABLE_STEPS: usize = 256;
 /// back: 24 nodes agree with 48 within 5e-4 on the lobe search's grids).
 const TABLE_QUADRATURE: usize = 24;
 
-/// Lobes whose tables each thread keeps (see [`Transmittance::cached`]): more than a line of
-/// the lobe search tries.
-const TABLE_CACHE: usize = 16;
+/// Lobes whose tables each thread keeps, and all threads share (see [`Transmittance::cached`]):
+/// more than a run's lobe searches try. A search from scratch tries 28 lobes (its first line the
+/// same 10 every time), a search near a lobe about 8, and a reconstruction with the lobe
+/// estimated searches twice from scratch and once or twice near: with 16 the second search
+/// computed its first line's tables again (69 tables at 256², now 58). A table is 8 KiB.
+const TABLE_CACHE: usize = 64;
 
 /// The Gauss-Legendre nodes and weights of `n` points on `[0, 1]` (Newton's iteration on the
 /// Legendre polynomial from the usual start; the weights sum to 1).
@@ -381,20 +386,80 @@ fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
 /// the point `(u1, u2)` of the unit square, by Heitz's construction (2018): the direction
 /// stretched to roughness 1, a point of the unit disc (radius `sqrt(u1)`, angle `2 pi u2`)
 /// warped onto the visible half of the projected hemisphere, lifted onto it and unstretched.
+#[cfg(test)]
 fn visible_normal(alpha: f64, mu: f64, (r_cos, r_sin): (f64, f64)) -> [f64; 3] {
-    let sin = (1.0 - mu * mu).max(0.0).sqrt();
-    let vh = normalize([alpha * sin, 0.0, mu]);
-    // An orthonormal frame (t1, t2, vh) with t1 = (0, 1, 0) (x at normal incidence).
-    let (t1, t2) = if vh[0] > 0.0 {
-        ([0.0, 1.0, 0.0], [-vh[2], 0.0, vh[0]])
-    } else {
-        ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    };
-    let s = 0.5 * (1.0 + vh[2]);
-    let (p1, p2) = (r_cos, (1.0 - s) * (1.0 - r_cos * r_cos).sqrt() + s * r_sin);
-    let p3 = (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt();
-    let nh: [f64; 3] = std::array::from_fn(|j| p1 * t1[j] + p2 * t2[j] + p3 * vh[j]);
-    normalize([alpha * nh[0], alpha * nh[1], nh[2].max(1e-9)])
+    let node = Node::new((r_cos, r_sin), 1.0);
+    VisibleFrame::new(alpha, mu).normal(&node)
+}
+
+/// A node of the unit square for [`visible_normal`] with its weight: the point of the unit disc
+/// `(sqrt(u1) cos(2 pi u2), sqrt(u1) sin(2 pi u2))` and `sqrt(1 - (sqrt(u1) cos(2 pi u2))^2)`,
+/// which does not depend on the direction (computed once per node, not once per node and
+/// cosine: the same operations, the same bits).
+#[derive(Debug, Clone, Copy)]
+struct Node {
+    r_cos: f64,
+    r_sin: f64,
+    /// `sqrt(1 - r_cos^2)`.
+    r_rest: f64,
+    weight: f64,
+}
+
+impl Node {
+    fn new((r_cos, r_sin): (f64, f64), weight: f64) -> Node {
+        Node {
+            r_cos,
+            r_sin,
+            r_rest: (1.0 - r_cos * r_cos).sqrt(),
+            weight,
+        }
+    }
+}
+
+/// The terms of [`visible_normal`] that depend on the direction alone (once per cosine of a
+/// table, not once per node): the stretched direction `vh`, its frame `(t1, t2, vh)` and the
+/// warp's weight `s = (1 + vh_z) / 2`.
+struct VisibleFrame {
+    alpha: f64,
+    vh: [f64; 3],
+    t1: [f64; 3],
+    t2: [f64; 3],
+    s: f64,
+}
+
+impl VisibleFrame {
+    fn new(alpha: f64, mu: f64) -> VisibleFrame {
+        let sin = (1.0 - mu * mu).max(0.0).sqrt();
+        let vh = normalize([alpha * sin, 0.0, mu]);
+        // An orthonormal frame (t1, t2, vh) with t1 = (0, 1, 0) (x at normal incidence).
+        let (t1, t2) = if vh[0] > 0.0 {
+            ([0.0, 1.0, 0.0], [-vh[2], 0.0, vh[0]])
+        } else {
+            ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+        };
+        VisibleFrame {
+            alpha,
+            vh,
+            t1,
+            t2,
+            s: 0.5 * (1.0 + vh[2]),
+        }
+    }
+
+    /// The visible normal of `node` (see [`visible_normal`]).
+    #[inline(always)]
+    fn normal(&self, node: &Node) -> [f64; 3] {
+        let (s, vh, t1, t2) = (self.s, self.vh, self.t1, self.t2);
+        let (p1, p2) = (node.r_cos, (1.0 - s) * node.r_rest + s * node.r_sin);
+        let p3 = (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt();
+        let nh = [
+            p1 * t1[0] + p2 * t2[0] + p3 * vh[0],
+            p1 * t1[1] + p2 * t2[1] + p3 * vh[1],
+            p1 * t1[2] + p2 * t2[2] + p3 * vh[2],
+        ];
+        let alpha = self.alpha;
+        normalize([alpha * nh[0], alpha * nh[1], nh[2].max(1e-9)])
+    }
 }
 
 /// The light a GGX dielectric interface of roughness `alpha` and index `eta > 1` transmits into
@@ -425,32 +490,34 @@ pub fn rough_transmittance(alpha: f64, eta: f64, mu: f64) -> f64 {
 
 /// The nodes of the unit square for [`visible_normal`] (`sqrt(u1) cos(2 pi u2)`,
 /// `sqrt(u1) sin(2 pi u2)`) with their weights.
-fn square_nodes(nodes: &[(f64, f64)]) -> Vec<((f64, f64), f64)> {
+fn square_nodes(nodes: &[(f64, f64)]) -> Vec<Node> {
     let mut out = Vec::with_capacity(nodes.len() * nodes.len());
     for &(u1, w1) in nodes {
         for &(u2, w2) in nodes {
             let (s, c) = (2.0 * std::f64::consts::PI * u2).sin_cos();
-            out.push(((u1.sqrt() * c, u1.sqrt() * s), w1 * w2));
+            out.push(Node::new((u1.sqrt() * c, u1.sqrt() * s), w1 * w2));
         }
     }
     out
 }
 
 /// [`rough_transmittance`] over the given nodes.
-fn transmittance_integral(alpha: f64, eta: f64, mu: f64, nodes: &[((f64, f64), f64)]) -> f64 {
+fn transmittance_integral(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
     let mu = mu.clamp(1e-6, 1.0);
     let w = [(1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu];
     let lobe = Lobe::new(alpha, eta);
+    let frame = VisibleFrame::new(alpha, mu);
     let a2 = alpha * alpha;
+    let e2 = eta * eta;
     let mut sum = 0.0;
-    for &(p, weight) in nodes {
-        let m = visible_normal(alpha, mu, p);
+    for node in nodes {
+        let m = frame.normal(node);
         let c = dot(w, m);
         if c <= 0.0 {
             continue;
         }
         let (f, _) = lobe.fresnel(c.min(1.0));
-        let ct = (1.0 - (1.0 - c * c) / (eta * eta)).max(0.0).sqrt();
+        let ct = (1.0 - (1.0 - c * c) / e2).max(0.0).sqrt();
         let tz = -w[2] / eta + (c / eta - ct) * m[2];
         if tz >= 0.0 {
             continue;
@@ -458,9 +525,15 @@ fn transmittance_integral(alpha: f64, eta: f64, mu: f64, nodes: &[((f64, f64), f
         // Smith's G1 of the refracted ray (below the surface: its cosine with -n).
         let cz = -tz;
         let g1 = 2.0 * cz / (cz + (a2 + (1.0 - a2) * cz * cz).sqrt());
-        sum += weight * (1.0 - f) * g1;
+        sum += node.weight * (1.0 - f) * g1;
     }
     sum
+}
+
+/// The `TABLE_QUADRATURE^2` nodes of the tables, computed once.
+fn table_nodes() -> &'static [Node] {
+    static NODES: OnceLock<Vec<Node>> = OnceLock::new();
+    NODES.get_or_init(|| square_nodes(&gauss_legendre(TABLE_QUADRATURE)))
 }
 
 /// [`rough_transmittance`] of a lobe relative to its value at normal incidence, `T(c) / T(1)`,
@@ -490,11 +563,11 @@ thread_local! {
 impl Transmittance {
     /// The table of a lobe (`alpha > 0`, `eta > 1`).
     fn new(lobe: &Lobe) -> Transmittance {
-        let nodes = square_nodes(&gauss_legendre(TABLE_QUADRATURE));
+        let nodes = table_nodes();
         let v: Vec<f64> = (0..=TABLE_STEPS)
             .map(|i| {
                 let mu = i as f64 / TABLE_STEPS as f64;
-                transmittance_integral(lobe.alpha, lobe.eta, mu, &nodes)
+                transmittance_integral(lobe.alpha, lobe.eta, mu, nodes)
             })
             .collect();
         let t1 = v[TABLE_STEPS];
@@ -519,32 +592,26 @@ impl Transmittance {
 
     /// The table of `lobe`, computed once for the last [`TABLE_CACHE`] lobes: each thread looks
     /// in its own list first (no lock), then in the list all threads share, where a missing
-    /// table is computed under the lock (about 3 ms; the other threads that need it wait instead
-    /// of computing it again: the lobe search's threads all move to the same lobe at once).
+    /// table is computed under the lock (about 2 ms; the other threads that need it wait instead
+    /// of computing it again: the lobe search's threads all move to the same lobe at once, which
+    /// is why [`prepare_tables`] computes the tables of a line of the search beforehand).
     fn cached(lobe: &Lobe) -> Arc<Transmittance> {
-        let key = (lobe.alpha.to_bits(), lobe.eta.to_bits());
-        let find = |tables: &[Keyed]| tables.iter().find(|t| t.0 == key).map(|t| Arc::clone(&t.1));
-        let keep = |tables: &mut Vec<Keyed>, table: &Arc<Transmittance>| {
-            if tables.len() >= TABLE_CACHE {
-                tables.remove(0);
-            }
-            tables.push((key, Arc::clone(table)));
-        };
-        if let Some(table) = TABLES.with(|t| find(&t.borrow())) {
+        let key = table_key(lobe);
+        if let Some(table) = TABLES.with(|t| find_table(&t.borrow(), key)) {
             return table;
         }
         let table = {
             let mut shared = SHARED_TABLES.lock().unwrap_or_else(|e| e.into_inner());
-            match find(&shared) {
+            match find_table(&shared, key) {
                 Some(table) => table,
                 None => {
                     let table = Arc::new(Transmittance::new(lobe));
-                    keep(&mut shared, &table);
+                    keep_table(&mut shared, key, &table);
                     table
                 }
             }
         };
-        TABLES.with(|t| keep(&mut t.borrow_mut(), &table));
+        TABLES.with(|t| keep_table(&mut t.borrow_mut(), key, &table));
         table
     }
 
@@ -559,6 +626,55 @@ impl Transmittance {
             c0 + t * (c1 + t * (c2 + t * c3)),
             TABLE_STEPS as f64 * (c1 + t * (2.0 * c2 + t * 3.0 * c3)),
         )
+    }
+}
+
+/// The key of a lobe's table: the bits of `(alpha, eta)`.
+fn table_key(lobe: &Lobe) -> (u64, u64) {
+    (lobe.alpha.to_bits(), lobe.eta.to_bits())
+}
+
+/// The table of `key` in `tables`, looked for from the last one kept (the lobe of the last fits,
+/// or of the search's line).
+fn find_table(tables: &[Keyed], key: (u64, u64)) -> Option<Arc<Transmittance>> {
+    let mut newest = tables.iter().rev();
+    newest.find(|t| t.0 == key).map(|t| Arc::clone(&t.1))
+}
+
+/// Keeps `table` in `tables`, dropping the oldest one kept beyond [`TABLE_CACHE`].
+fn keep_table(tables: &mut Vec<Keyed>, key: (u64, u64), table: &Arc<Transmittance>) {
+    if tables.len() >= TABLE_CACHE {
+        tables.remove(0);
+    }
+    tables.push((key, Arc::clone(table)));
+}
+
+/// Computes the diffuse transmittance tables of `lobes` that all threads share (see
+/// `Transmittance::cached`) and are missing, in parallel, a lobe a task: the lobes of a line of
+/// the lobe search, before its fits ask for them one at a time (each then computed by one thread
+/// while the others wait for it). The same tables, bit for bit, as computed on demand.
+pub fn prepare_tables(lobes: &[Lobe]) {
+    let mut missing: Vec<Lobe> = {
+        let shared = SHARED_TABLES.lock().unwrap_or_else(|e| e.into_inner());
+        lobes
+            .iter()
+            .filter(|l| l.eta != 1.0 && find_table(&shared, table_key(l)).is_none())
+            .copied()
+            .collect()
+    };
+    missing.dedup_by_key(|l| table_key(l));
+    if missing.len() < 2 {
+        return;
+    }
+    let built: Vec<(Lobe, Arc<Transmittance>)> = missing
+        .into_par_iter()
+        .map(|l| (l, Arc::new(Transmittance::new(&l))))
+        .collect();
+    let mut shared = SHARED_TABLES.lock().unwrap_or_else(|e| e.into_inner());
+    for (lobe, table) in &built {
+        if find_table(&shared, table_key(lobe)).is_none() {
+            keep_table(&mut shared, table_key(lobe), table);
+        }
     }
 }
 
@@ -1324,7 +1440,8 @@ mod tests {
         let w = [(1.0 - mu * mu).sqrt(), 0.0, mu];
         let a2 = alpha * alpha;
         let mut sum = 0.0;
-        for &(p, weight) in &nodes {
+        for node in &nodes {
+            let (p, weight) = ((node.r_cos, node.r_sin), node.weight);
             let m = visible_normal(alpha, mu, p);
             let c = dot(w, m);
             let rz = 2.0 * c * m[2] - w[2];
@@ -1334,6 +1451,85 @@ mod tests {
             }
         }
         sum
+    }
+
+    /// [`transmittance_integral`] as it was before the direction's frame and the nodes'
+    /// `sqrt(1 - r_cos^2)` were hoisted out of the loop over the nodes (stop 40).
+    fn transmittance_integral_per_node(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
+        let visible = |mu: f64, (r_cos, r_sin): (f64, f64)| -> [f64; 3] {
+            let sin = (1.0 - mu * mu).max(0.0).sqrt();
+            let vh = normalize([alpha * sin, 0.0, mu]);
+            let (t1, t2) = if vh[0] > 0.0 {
+                ([0.0, 1.0, 0.0], [-vh[2], 0.0, vh[0]])
+            } else {
+                ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+            };
+            let s = 0.5 * (1.0 + vh[2]);
+            let (p1, p2) = (r_cos, (1.0 - s) * (1.0 - r_cos * r_cos).sqrt() + s * r_sin);
+            let p3 = (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt();
+            let nh: [f64; 3] = std::array::from_fn(|j| p1 * t1[j] + p2 * t2[j] + p3 * vh[j]);
+            normalize([alpha * nh[0], alpha * nh[1], nh[2].max(1e-9)])
+        };
+        let mu = mu.clamp(1e-6, 1.0);
+        let w = [(1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu];
+        let lobe = Lobe::new(alpha, eta);
+        let a2 = alpha * alpha;
+        let mut sum = 0.0;
+        for node in nodes {
+            let m = visible(mu, (node.r_cos, node.r_sin));
+            let c = dot(w, m);
+            if c <= 0.0 {
+                continue;
+            }
+            let (f, _) = lobe.fresnel(c.min(1.0));
+            let ct = (1.0 - (1.0 - c * c) / (eta * eta)).max(0.0).sqrt();
+            let tz = -w[2] / eta + (c / eta - ct) * m[2];
+            if tz >= 0.0 {
+                continue;
+            }
+            let cz = -tz;
+            let g1 = 2.0 * cz / (cz + (a2 + (1.0 - a2) * cz * cz).sqrt());
+            sum += node.weight * (1.0 - f) * g1;
+        }
+        sum
+    }
+
+    /// Hoisting the direction's frame and the nodes' terms out of the loop changes no bit of the
+    /// integral (the same operations on the same operands), on the lobe search's grids.
+    #[test]
+    fn the_hoisted_integral_is_the_per_node_one_bit_for_bit() {
+        let nodes = square_nodes(&gauss_legendre(TABLE_QUADRATURE));
+        for &alpha in &[0.04, 0.09, 0.2, 0.3, 0.6, 0.85] {
+            for &eta in &[1.02, 1.15, 1.5, 2.1] {
+                for i in 0..=TABLE_STEPS / 8 {
+                    let mu = (8 * i) as f64 / TABLE_STEPS as f64;
+                    let a = transmittance_integral(alpha, eta, mu, &nodes);
+                    let b = transmittance_integral_per_node(alpha, eta, mu, &nodes);
+                    assert_eq!(a.to_bits(), b.to_bits(), "{alpha} {eta} {mu}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    /// The tables [`prepare_tables`] computes in parallel are those computed on demand, bit for
+    /// bit (a lobe with `eta = 1` has none).
+    #[test]
+    fn prepared_tables_are_the_tables_computed_on_demand() {
+        let lobes = [
+            Lobe::new(0.123, 1.37),
+            Lobe::new(0.321, 1.37),
+            Lobe::new(0.123, 1.37),
+            Lobe::new(0.123, 1.0),
+        ];
+        prepare_tables(&lobes);
+        for lobe in &lobes[..2] {
+            let kept = Transmittance::cached(lobe);
+            let fresh = Transmittance::new(lobe);
+            let bits = |t: &Transmittance| -> Vec<u64> {
+                t.cubic.iter().flatten().map(|x| x.to_bits()).collect()
+            };
+            assert_eq!(bits(&kept), bits(&fresh));
+        }
     }
 
     #[test]

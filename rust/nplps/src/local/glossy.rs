@@ -59,7 +59,9 @@ use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
 #[cfg(test)]
 use crate::reflectance::fit_packed;
-use crate::reflectance::{fit_packed_at_within, fit_packed_within, GlossyFit, Lobe, Packed};
+use crate::reflectance::{
+    fit_packed_at_within, fit_packed_within, prepare_tables, GlossyFit, Lobe, Packed,
+};
 use crate::vec3::{dot, norm, scale};
 
 /// Damped Gauss-Newton steps of a facet's glossy fit in each local step (from its Lambertian
@@ -495,15 +497,18 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
     // The held-out score of a lobe: each facet fitted on each fold of its lights (from
-    // `starts`) predicts the lights of the other folds.
+    // `starts`) predicts the lights of the other folds. Summed in the facets' order (rayon's
+    // parallel sum adds in the order the work was split, which varies from run to run: the
+    // lobe then differed in the 14th digit between two runs of one reconstruction).
     let held = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]]| -> f64 {
-        sample
+        let scores: Vec<f64> = sample
             .par_iter()
             .zip(starts)
             .map_init(Packed::new, |scratch, (s, &starts)| {
                 held_out_score(s, step.model, channels, &lambertian, &lobe, starts, scratch)
             })
-            .sum()
+            .collect();
+        scores.iter().sum()
     };
     let (mut lobe, rounds) = match previous {
         Some(lobe) => (lobe, 2),
@@ -540,10 +545,13 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             }
             sse
         };
-        let x = match eta_round {
-            true => line_search(&near(lobe.eta, &ETAS, 1.0, 3.0, false), cost, false),
-            false => line_search(&near(lobe.alpha, &ALPHAS, 0.01, 1.0, true), cost, true),
+        let grid = match eta_round {
+            true => near(lobe.eta, &ETAS, 1.0, 3.0, false),
+            false => near(lobe.alpha, &ALPHAS, 0.01, 1.0, true),
         };
+        // The line's tables, computed in parallel before its fits ask for them one by one.
+        prepare_tables(&grid.iter().map(|&x| at(x)).collect::<Vec<_>>());
+        let x = line_search(&grid, cost, !eta_round);
         lobe = at(x);
         if cv {
             anchors = fits(lobe, &anchors, LOBE_STEPS).1;
