@@ -59,8 +59,29 @@ def test_the_lobe_is_estimated_from_the_images() -> None:
         assert result.lobe is not None
         assert abs(result.lobe.roughness - 0.3) < 0.015, (name, seed, result.lobe)
         assert 1.0 <= result.lobe.eta <= 3.0
+        assert result.lobe.diffuse == "transmitted", (name, seed, result.lobe)
         error = angles(result.normals[s.mask], s.normals[s.mask]).mean()
         assert error < (0.1 if name == "sphere" else 0.3), (name, seed, error)
+
+
+@pytest.mark.parametrize("name", ["sphere", "bumps"])
+def test_the_retro_reflective_diffuse_shape_is_chosen_from_the_images(name: str) -> None:
+    # The same scenes rendered with Burley's retro-reflective diffuse term (Mitsuba's principled):
+    # the lobe search must choose that shape (the transmitted one above) and recover the surface;
+    # the result's prediction uses the shape it chose.
+    s = scene(name, 0)
+    images = nplps.render(
+        s.depth, s.rig, s.albedo, mask=s.mask, specular=0.2 * s.albedo, roughness=0.3, diffuse="retro"
+    )
+    result = solve(images, s.rig, s.mean_depth, s.mask, reflectance="glossy")
+    assert result.lobe is not None and result.lobe.diffuse == "retro", result.lobe
+    assert abs(result.lobe.roughness - 0.3) < 0.015, result.lobe
+    error = angles(result.normals[s.mask], s.normals[s.mask]).mean()
+    assert error < (0.1 if name == "sphere" else 0.3), error
+    assert result.summary()["lobe"]["diffuse"] == "retro"
+    predicted = result.predict()
+    inside = np.broadcast_to(s.mask, predicted.shape)
+    assert np.median(np.abs(predicted - images)[inside]) < 1e-3 * images.max()
 
 
 @pytest.mark.parametrize(
