@@ -68,6 +68,7 @@ def run(ball: Any, options: dict[str, Any], lights: list[int]) -> dict[str, Any]
     return {
         "roughness": None if lobe is None else lobe.roughness,
         "eta": None if lobe is None else lobe.eta,
+        "diffuse": None if lobe is None else lobe.diffuse,
         "mean": float(error.mean()),
         "bands": [float(error[(facing >= a) & (facing < b)].mean()) for a, b in itertools.pairwise(BANDS)],
         "sse": float(squared.sum()),
@@ -119,6 +120,7 @@ def main() -> None:
         row = {"given": lobe is not None, "lights": len(lights), **run(ball, {**options, **given}, lights)}
         rows.append(row)
         tag = "" if lobe is not None else " (estimated)"
+        tag += " retro" if row.get("diffuse") == "retro" else ""
         cells = " | ".join(f"{x:.2f}" for x in row["bands"])
         print(
             f"| {row['roughness']:.3g}{tag} | {row['eta']:.3g} | {row['mean']:.3f} | {cells} | "

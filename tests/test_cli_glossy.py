@@ -44,7 +44,7 @@ def test_glossy_flags_reach_the_solver_and_the_result_folder(glossy_capture, tmp
     out = tmp_path / "glossy"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["reflectance"] == "glossy"
-    assert summary["lobe"] == {"roughness": 0.3, "eta": 1.5}
+    assert summary["lobe"] == {"roughness": 0.3, "eta": 1.5, "diffuse": "transmitted"}
     assert summary["options"]["solver_options"]["reflectance"] == "glossy"
     assert summary["options"]["roughness"] == 0.3 and summary["options"]["eta"] == 1.5
     specular = np.load(out / "specular.npy")
@@ -132,7 +132,7 @@ def test_batch_glossy(glossy_capture, tmp_path, capsys):
     argv += ["--levels", "1", "--workers", "1", "--out", str(tmp_path / "out"), *LOBE]
     assert cli.main(argv) == 0, capsys.readouterr().err
     summary = json.loads((tmp_path / "out" / "sphere" / "summary.json").read_text())
-    assert summary["lobe"] == {"roughness": 0.3, "eta": 1.5}
+    assert summary["lobe"] == {"roughness": 0.3, "eta": 1.5, "diffuse": "transmitted"}
     assert summary["options"]["reflectance"] == "glossy"
     assert (tmp_path / "out" / "sphere" / "specular.png").is_file()
     capsys.readouterr()

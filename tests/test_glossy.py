@@ -59,8 +59,38 @@ def test_the_lobe_is_estimated_from_the_images() -> None:
         assert result.lobe is not None
         assert abs(result.lobe.roughness - 0.3) < 0.015, (name, seed, result.lobe)
         assert 1.0 <= result.lobe.eta <= 3.0
+        assert result.lobe.diffuse == "transmitted", (name, seed, result.lobe)
         error = angles(result.normals[s.mask], s.normals[s.mask]).mean()
         assert error < (0.1 if name == "sphere" else 0.3), (name, seed, error)
+
+
+def test_the_retro_reflective_diffuse_shape_is_chosen_from_the_images() -> None:
+    # The bumps rendered with Burley's retro-reflective diffuse term (Mitsuba's principled): the
+    # lobe search should choose that shape (the transmitted one above, on every seed) and then
+    # recover the surface; the result's prediction uses the shape it chose. Measured at 40 x 40
+    # (seeds 0-4): retro on seeds 0, 2, 4 (0.09-0.16 degrees), the transmitted shape near eta 1
+    # on seeds 1 and 3 (0.29 and 0.70 degrees); on the 40 x 40 sphere (few grazing pixels, where
+    # the shapes differ) the transmitted shape every time (3.0 degrees). A limit of the choice,
+    # see docs/method.md; on the 256 x 256 PBR renders it chose the material's own shape on all 16.
+    chosen = 0
+    for seed in range(5):
+        s = scene("bumps", seed)
+        images = nplps.render(
+            s.depth, s.rig, s.albedo, mask=s.mask, specular=0.2 * s.albedo, roughness=0.3, diffuse="retro"
+        )
+        result = solve(images, s.rig, s.mean_depth, s.mask, reflectance="glossy")
+        assert result.lobe is not None
+        if result.lobe.diffuse != "retro":
+            continue
+        chosen += 1
+        assert abs(result.lobe.roughness - 0.3) < 0.015, (seed, result.lobe)
+        error = angles(result.normals[s.mask], s.normals[s.mask]).mean()
+        assert error < 0.3, (seed, error)
+        assert result.summary()["lobe"]["diffuse"] == "retro"
+        predicted = result.predict()
+        inside = np.broadcast_to(s.mask, predicted.shape)
+        assert np.median(np.abs(predicted - images)[inside]) < 1e-3 * images.max()
+    assert chosen >= 3, chosen
 
 
 @pytest.mark.parametrize(

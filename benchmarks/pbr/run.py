@@ -84,14 +84,20 @@ def reconstruct(data: Any, rig: nplps.Rig, depth: Any, options: dict[str, Any]) 
 
 
 def lobe_of(result: Any) -> list[float] | None:
-    """Return the result's glossy lobe ``[roughness, eta]`` (None under the Lambertian model)."""
+    """Return the result's glossy lobe ``[roughness, eta, retro]`` (None under the Lambertian model;
+    ``retro`` 1 with the retro-reflective diffuse term, 0 with the transmitted one)."""
     lobe = getattr(result, "lobe", None)
-    return None if lobe is None else [float(lobe.roughness), float(lobe.eta)]
+    if lobe is None:
+        return None
+    return [float(lobe.roughness), float(lobe.eta), float(getattr(lobe, "diffuse", "") == "retro")]
 
 
 def lobe_text(lobe: list[float] | None) -> str:
-    """Return a lobe as ``roughness/eta`` (``-`` without one)."""
-    return "-" if lobe is None else f"{lobe[0]:.3g}/{lobe[1]:.3g}"
+    """Return a lobe as ``roughness/eta``, ``roughness/eta/r`` with the retro-reflective diffuse
+    term (``-`` without one)."""
+    if lobe is None:
+        return "-"
+    return f"{lobe[0]:.3g}/{lobe[1]:.3g}" + ("/r" if len(lobe) > 2 and lobe[2] else "")
 
 
 def prepare(data: dict[str, Any], args: argparse.Namespace, options: dict[str, Any]) -> dict[str, Any]:

@@ -185,6 +185,7 @@ def render(
     roughness: float = 0.3,
     eta: float = 1.5,
     shadows: bool = False,
+    diffuse: str = "transmitted",
 ) -> F64: ...
 def cast_shadows(
     depth: F64,
@@ -206,6 +207,7 @@ def predict(
     parallel: bool,
     specular: F64 | None = None,
     lobe: tuple[float, float] | None = None,
+    diffuse: str = "transmitted",
 ) -> F64: ...
 def mesh_normals(depth: F64, camera: Camera) -> F64: ...
 def vertices(depth: F64, camera: Camera) -> F64: ...

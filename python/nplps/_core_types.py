@@ -263,6 +263,8 @@ class ReconstructionDict(_ReconstructionBase, total=False):
     distance_check: DistanceCheckDict
     #: The glossy model's shared lobe (roughness, eta) and the (H, W) specular albedo.
     lobe: tuple[float, float]
+    #: The shape of the lobe's diffuse part: "transmitted" or "retro".
+    lobe_diffuse: str
     specular: F64
     #: With the glossy model: the estimated lobe that was too rough to be a highlight (the
     #: result is then the Lambertian model's).

@@ -36,11 +36,18 @@ class Lobe:
         GGX roughness alpha (about 0.05 polished, 0.3 satin, 0.6 rough).
     eta : float
         Relative index of refraction of the surface layer: it sets the Fresnel shape of the lobe
-        and how the diffuse part falls off at grazing angles (1: Lambertian diffuse).
+        and, with the ``"transmitted"`` diffuse part, how it falls off at grazing angles (1:
+        Lambertian diffuse).
+    diffuse : str
+        The shape of the diffuse part: ``"transmitted"`` through the rough interface of the lobe
+        (rough plastic), or ``"retro"``: Burley's (Disney's principled) diffuse with
+        retro-reflection, brighter towards grazing angles the rougher the lobe (see
+        docs/method.md).
     """
 
     roughness: float
     eta: float
+    diffuse: str = "transmitted"
 
 
 @dataclass

@@ -812,6 +812,7 @@ def render(
     roughness: float = 0.3,
     eta: float = 1.5,
     shadows: bool = False,
+    diffuse: str = "transmitted",
 ) -> np.ndarray:
     """Render the images of a surface under a rig by the solver's image model.
 
@@ -826,7 +827,10 @@ def render(
     ``D(n) = (n.l) T(n.l) T(n.v) / T(1)^2`` is the diffuse term with the Fresnel transmittance
     ``T`` of index `eta`, ``S(n)`` the GGX specular lobe of roughness `roughness` with Smith
     masking and the Fresnel shape. ``eta=1`` with ``specular=0`` is the Lambertian image (to
-    rounding). Facets turned away from the camera are 0 in this model.
+    rounding). With ``diffuse="retro"`` the diffuse term is Burley's (Disney's principled)
+    instead: ``D(n) = (n.l) (1 + k F5(n.l)) (1 + k F5(n.v))``, ``F5(c) = (1 - c)^5``,
+    ``k = 2 sqrt(roughness) (l.h)^2 - 1/2`` (``h`` the half vector). Facets turned away from the
+    camera are 0 in this model.
 
     Parameters
     ----------
@@ -850,6 +854,8 @@ def render(
     shadows : bool, default False
         Cast shadows: an observation whose path to the light passes behind the surface (see
         :func:`cast_shadows`) is 0.
+    diffuse : {"transmitted", "retro"}, default "transmitted"
+        The shape of the glossy model's diffuse term (see above and :class:`Lobe`).
 
     Returns
     -------
@@ -890,7 +896,9 @@ def render(
             f"got shape {a.shape}"
         ) from None
     m = None if mask is None else np.ascontiguousarray(load_mask(mask, shape))
-    return _core.render(z, rig._native, rho, m, specular=rho_s, roughness=alpha, eta=index, shadows=cast)
+    return _core.render(
+        z, rig._native, rho, m, specular=rho_s, roughness=alpha, eta=index, shadows=cast, diffuse=diffuse
+    )
 
 
 def estimate_noise(images: Images, mask: Mask | None = None) -> float:

@@ -244,8 +244,8 @@ class Reconstruction:
             refinement=refinement,
             input_rig=input_rig,
             distance_check=_distance_check(out.get("distance_check")),
-            lobe=None if "lobe" not in out else Lobe(*(float(v) for v in out["lobe"])),
-            matte_lobe=None if "matte_lobe" not in out else Lobe(*(float(v) for v in out["matte_lobe"])),
+            lobe=None if "lobe" not in out else _lobe(out["lobe"], out.get("lobe_diffuse", "transmitted")),
+            matte_lobe=None if "matte_lobe" not in out else _lobe(out["matte_lobe"], "transmitted"),
             specular=out.get("specular"),
             shadow_bits=out.get("shadow_bits"),
             dark=dark,
@@ -431,6 +431,7 @@ class Reconstruction:
             self.method == "parallel",
             specular=np.nan_to_num(np.asarray(self.specular, dtype=np.float64), nan=0.0) if glossy else None,
             lobe=(self.lobe.roughness, self.lobe.eta) if glossy and self.lobe is not None else None,
+            diffuse=self.lobe.diffuse if glossy and self.lobe is not None else "transmitted",
         )
 
     def shaded(self, light: ArrayLike | Literal["camera"] | None = None) -> np.ndarray:
@@ -671,7 +672,9 @@ class Reconstruction:
             "cast_shadows": self._shadow_summary(),
             "trust": self._trust_summary(),
             "reflectance": "lambertian" if self.lobe is None else "glossy",
-            "lobe": None if self.lobe is None else {"roughness": self.lobe.roughness, "eta": self.lobe.eta},
+            "lobe": None
+            if self.lobe is None
+            else {"roughness": self.lobe.roughness, "eta": self.lobe.eta, "diffuse": self.lobe.diffuse},
         }
 
     def save(
@@ -854,6 +857,11 @@ def _distance(d: dict[str, Any] | None) -> DistanceEstimate | None:
         curve=[np.asarray(c, dtype=np.float64).reshape(-1, 2) for c in d["curve"]],
         range=tuple(d["range"]),
     )
+
+
+def _lobe(pair: tuple[float, float], diffuse: str) -> Lobe:
+    """Return the glossy model's lobe ``(roughness, eta)`` of the core's result with its diffuse shape."""
+    return Lobe(float(pair[0]), float(pair[1]), str(diffuse))
 
 
 def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:

@@ -493,6 +493,11 @@ def _reflectance_text(summary: dict[str, Any]) -> str:
     lobe = summary.get("lobe")
     if summary.get("reflectance") != "glossy" or not lobe:
         return "lambertian"
+    if lobe.get("diffuse") == "retro":
+        return (
+            f"glossy (retro-reflective diffuse + GGX specular lobe): lobe roughness "
+            f"{_fmt(lobe['roughness'])}, eta {_fmt(lobe['eta'])}"
+        )
     return (
         f"glossy (diffuse with Fresnel transmittance + GGX specular lobe): lobe roughness "
         f"{_fmt(lobe['roughness'])}, eta {_fmt(lobe['eta'])}"

@@ -488,11 +488,23 @@ fn specular_map(specular: &Bound<'_, PyAny>, h: usize, w: usize) -> PyResult<Vec
     Ok(slice(&map, "specular")?.to_vec())
 }
 
+/// The shape of the glossy model's diffuse term named `name`: "transmitted" or "retro".
+fn diffuse_of(name: &str) -> PyResult<nplps::reflectance::Diffuse> {
+    match name {
+        "transmitted" => Ok(nplps::reflectance::Diffuse::Transmitted),
+        "retro" => Ok(nplps::reflectance::Diffuse::Retro),
+        _ => Err(InputError::new_err(format!(
+            "diffuse must be \"transmitted\" or \"retro\", got {name:?}"
+        ))),
+    }
+}
+
 /// Images (k, H, W) or (k, H, W, 3) of the surface `depth` (H+1, W+1) with albedo (H, W) or
 /// (H, W, 3) under the rig; with `specular` (a number or an (H, W) map) the glossy model of
-/// roughness `roughness` and index `eta`; with `shadows`, cast shadows are 0.
+/// roughness `roughness`, index `eta` and diffuse shape `diffuse`; with `shadows`, cast
+/// shadows are 0.
 #[pyfunction]
-#[pyo3(signature = (depth, rig, albedo, mask=None, *, specular=None, roughness=0.3, eta=1.5, shadows=false))]
+#[pyo3(signature = (depth, rig, albedo, mask=None, *, specular=None, roughness=0.3, eta=1.5, shadows=false, diffuse="transmitted"))]
 #[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
@@ -504,8 +516,10 @@ fn render<'py>(
     roughness: f64,
     eta: f64,
     shadows: bool,
+    diffuse: &str,
 ) -> PyResult<Bound<'py, PyAny>> {
     let rig = &rig.get().rig;
+    let shape = diffuse_of(diffuse)?;
     let (h, w, depth_s) = depth_grid(&depth)?;
     let channels = albedo_channels(&albedo)?;
     let albedo_s = slice(&albedo, "albedo")?;
@@ -525,7 +539,10 @@ fn render<'py>(
     let options = nplps::RenderOptions::default()
         .with_specular(specular.as_deref().map(|albedo| nplps::Specular {
             albedo,
-            lobe: nplps::reflectance::Lobe::new(roughness, eta),
+            lobe: nplps::reflectance::Lobe {
+                diffuse: shape,
+                ..nplps::reflectance::Lobe::new(roughness, eta)
+            },
         }))
         .with_cast_shadows(shadows);
     let images = py
@@ -591,7 +608,7 @@ fn estimate_noise<'py>(
 
 /// Predicted images of a reconstruction (see `Reconstruction.predict`).
 #[pyfunction]
-#[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel, specular=None, lobe=None))]
+#[pyo3(signature = (depth, normals, albedo, camera, lights, mask, parallel, specular=None, lobe=None, diffuse="transmitted"))]
 #[allow(clippy::too_many_arguments)]
 fn predict<'py>(
     depth: PyReadonlyArray2<'py, f64>,
@@ -603,8 +620,10 @@ fn predict<'py>(
     parallel: bool,
     specular: Option<&Bound<'py, PyAny>>,
     lobe: Option<(f64, f64)>,
+    diffuse: &str,
 ) -> PyResult<Bound<'py, PyAny>> {
     let py = depth.py();
+    let shape = diffuse_of(diffuse)?;
     let rig = lighting_from(camera, lights)?;
     let (h, w, z) = depth_grid(&depth)?;
     let specular =
@@ -637,7 +656,10 @@ fn predict<'py>(
                     .as_ref()
                     .map(|(albedo, (alpha, eta))| nplps::Specular {
                         albedo,
-                        lobe: nplps::reflectance::Lobe::new(*alpha, *eta),
+                        lobe: nplps::reflectance::Lobe {
+                            diffuse: shape,
+                            ..nplps::reflectance::Lobe::new(*alpha, *eta)
+                        },
                     });
                 nplps::predict_with(&rig, &surface, &n, parallel, layer)
             })

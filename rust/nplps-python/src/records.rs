@@ -172,6 +172,7 @@ pub fn reconstruction_dict<'py>(
     }
     if let Some(lobe) = r.lobe {
         d.set_item("lobe", (lobe.alpha, lobe.eta))?;
+        d.set_item("lobe_diffuse", lobe.diffuse.name())?;
         d.set_item("specular", array(py, r.specular, &[h, w])?)?;
     }
     Ok(d)

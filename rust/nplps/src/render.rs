@@ -122,7 +122,7 @@ impl Specular<'_> {
                 self.albedo.len()
             )
         })?;
-        let Lobe { alpha, eta } = self.lobe;
+        let Lobe { alpha, eta, .. } = self.lobe;
         ensure_range(alpha > 0.0 && alpha <= 1.0, "roughness", alpha, || {
             format!(
                 "roughness (GGX alpha) must be in (0, 1], got {}",
