@@ -36,7 +36,7 @@ mod glossy;
 mod lanes;
 mod trust;
 
-pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS};
+pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA};
 use lanes::{lane_scratch, LANES};
 pub use trust::{LightTrust, Trust, TrustMaps};
 
