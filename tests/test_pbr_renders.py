@@ -31,6 +31,7 @@ FILES = {
     "bumps-roughplastic-0.1": ("bumps", "roughplastic-0.1"),
     "shadows-diffuse": ("shadows", "diffuse"),
     "shadows-roughplastic-0.3": ("shadows", "roughplastic-0.3"),
+    "bumps-principled-0.5": ("bumps", "principled-0.5"),
 }
 
 GI_FILES = {"bowl-diffuse-gi": "bowl", "sheet-diffuse-gi": "sheet"}
