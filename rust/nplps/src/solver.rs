@@ -769,7 +769,9 @@ impl<'p> Solver<'p> {
         };
         it.light_change = self.refine_lights(run, u)?;
         self.cast_shadows(u, iteration)?;
+        let lobe_before = self.lobe;
         self.reflectance(u, iteration)?;
+        let lobe_changed = self.lobe != lobe_before;
         self.lobe_pending = self.lobe_pending_after(iteration);
         it.rms_residual = self.local(u)?;
         if self.safeguard(run, iteration, it.rms_residual, u)? {
@@ -787,7 +789,10 @@ impl<'p> Solver<'p> {
             run.scale,
         )?;
         let previous = std::mem::replace(&mut run.last_change, it.depth_change);
+        // A change under another lobe than this iteration's says nothing of its contraction.
+        let previous = if lobe_changed { f64::NAN } else { previous };
         let projected = run.projected
+            && !self.lobe_pending
             && it.light_change == 0.0
             && self.shadows.is_none()
             && projected_converged(previous, it.depth_change, run.tol * run.scale);
@@ -800,15 +805,15 @@ impl<'p> Solver<'p> {
     /// Whether this solver's runs may stop by the projected rule ([`projected_converged`]): the
     /// full resolution after a pyramid's coarse levels (a lean solver with carried levels: its
     /// start is the converged coarse surface, so its iterations are in their geometric
-    /// regime), under the Lambertian model (no glossy lobe, used or estimated), without light
-    /// refinement and without interreflections. The step also asks that no cast-shadow mask be
-    /// in use (a mask is marched again on the surface of the first iterations, which the
-    /// projection must not skip).
+    /// regime), without light refinement and without interreflections. The step also asks that
+    /// no cast-shadow mask be in use (a mask is marched again on the surface of the first
+    /// iterations, which the projection must not skip) and, under the glossy model, that no
+    /// lobe estimate be pending, and it compares only changes made under the same lobe. (The
+    /// glossy model: 1 MP bumps 3 -> 2 fine iterations, -13..-15 % CPU; the normals within
+    /// 5e-5 degrees of a run to a 1e-9 tolerance, `tests/test_glossy.py`.)
     fn projects(&self) -> bool {
         self.lean
             && self.carried
-            && self.lobe.is_none()
-            && !self.estimates_lobe()
             && !self.lights.is_active()
             && !self.options.interreflections
             && self.indirect.is_none()
