@@ -653,6 +653,18 @@ mod tests {
             .all(|o| usable(o, &settings) != o[0].is_nan()));
     }
 
+    /// `n` distant light directions on a golden-angle spiral, evenly covering the cone of
+    /// half-angle `degrees` about the view (towards the camera, `-z`).
+    fn spiral_lights(n: usize, degrees: f64) -> Vec<[f64; 3]> {
+        (0..n)
+            .map(|i| {
+                let t = i as f64 * 2.399_963; // golden angle
+                let r = degrees.to_radians().sin() * ((i as f64 + 0.5) / n as f64).sqrt();
+                normalize([r * t.cos(), r * t.sin(), -(1.0 - r * r).sqrt()])
+            })
+            .collect()
+    }
+
     /// Facets of a glossy object (lobe 0.15, index 1.5) under `n` parallel grey lights within 50
     /// degrees of the view, exact colour images: their samples for the lobe search, their fits
     /// starting from the true normals (as the search's from its converged anchors).
@@ -707,13 +719,9 @@ mod tests {
     /// counts 0.01 when held out and nothing when not.
     #[test]
     fn the_held_out_score_is_least_at_the_true_index() {
-        let lights: Vec<([f64; 3], [f64; 3])> = (0..32)
-            .map(|i| {
-                let t = i as f64 * 2.399_963;
-                let r = 50f64.to_radians().sin() * ((i as f64 + 0.5) / 32.0).sqrt();
-                let l = normalize([r * t.cos(), r * t.sin(), -(1.0 - r * r).sqrt()]);
-                (l, [1.0; 3])
-            })
+        let lights: Vec<([f64; 3], [f64; 3])> = spiral_lights(32, 50.0)
+            .into_iter()
+            .map(|l| (l, [1.0; 3]))
             .collect();
         let model = Model::Parallel(&lights);
         let settings = FitSettings::default();
@@ -763,13 +771,9 @@ mod tests {
     /// no index of the other shape comes near it.
     #[test]
     fn the_search_tells_the_diffuse_shapes_apart() {
-        let lights: Vec<([f64; 3], [f64; 3])> = (0..32)
-            .map(|i| {
-                let t = i as f64 * 2.399_963;
-                let r = 50f64.to_radians().sin() * ((i as f64 + 0.5) / 32.0).sqrt();
-                let l = normalize([r * t.cos(), r * t.sin(), -(1.0 - r * r).sqrt()]);
-                (l, [1.0; 3])
-            })
+        let lights: Vec<([f64; 3], [f64; 3])> = spiral_lights(32, 50.0)
+            .into_iter()
+            .map(|l| (l, [1.0; 3]))
             .collect();
         let model = Model::Parallel(&lights);
         let settings = FitSettings::default();
@@ -830,13 +834,7 @@ mod tests {
     fn continuation_finds_the_normal_a_tilted_start_misses() {
         let lobe = Lobe::new(0.04, 1.5);
         let v = [0.0, 0.0, -1.0];
-        let lights: Vec<[f64; 3]> = (0..48)
-            .map(|i| {
-                let t = i as f64 * 2.399_963; // golden angle
-                let r = 35f64.to_radians().sin() * ((i as f64 + 0.5) / 48.0).sqrt();
-                normalize([r * t.cos(), r * t.sin(), -(1.0 - r * r).sqrt()])
-            })
-            .collect();
+        let lights = spiral_lights(48, 35.0);
         let mut worst = 0.0f64;
         let mut direct_best = f64::INFINITY;
         for tilt in [[0.03, -0.02], [-0.05, 0.04], [0.08, 0.01], [0.0, -0.1]] {
