@@ -576,7 +576,7 @@ impl VisibleFrame {
 /// visible facets turn towards the light. At `eta = 1` no light is reflected but the refracted
 /// ray is still masked: the model's `eta = 1` is the Lambertian term instead.
 pub fn rough_transmittance(alpha: f64, eta: f64, mu: f64) -> f64 {
-    transmittance_integral(
+    transmittance_dispatch(
         alpha,
         eta,
         mu,
@@ -597,15 +597,94 @@ fn square_nodes(nodes: &[(f64, f64)]) -> Vec<Node> {
     out
 }
 
-/// [`rough_transmittance`] over the given nodes.
+simd_dispatch! {
+    /// [`transmittance_lanes`] with AVX2 when the processor has it.
+    fn transmittance_dispatch => transmittance_lanes(
+        alpha: f64, eta: f64, mu: f64, nodes: &[Node],
+    ) -> f64;
+}
+
+/// [`rough_transmittance`]'s integral over the given nodes ([`transmittance_from`]) with the
+/// integrand of `W` nodes at a time in lanes: the same
+/// operations in the same order on each node (the visible normal, `F(min(w.m, 1))` as
+/// [`Lobe::fresnel`], the refracted ray's cosine and masking), and the terms summed one node at a
+/// time in the nodes' order, so the same bits. The square roots and divisions, most of a table's
+/// cost, are then made four at a time (a table of 257 cosines and 576 nodes: about 3x faster).
+#[inline(always)]
+fn transmittance_lanes(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
+    let mu = mu.clamp(1e-6, 1.0);
+    let w = [(1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu];
+    let frame = VisibleFrame::new(alpha, mu);
+    let (s, vh, t1, t2) = (frame.s, frame.vh, frame.t1, frame.t2);
+    let a2 = alpha * alpha;
+    let e2 = eta * eta;
+    let mut sum = 0.0;
+    let mut chunks = nodes.chunks_exact(W);
+    for chunk in &mut chunks {
+        // `VisibleFrame::normal`, lane by lane.
+        let p1 = lanes(|i| chunk[i].r_cos);
+        let p2 = lanes(|i| (1.0 - s) * chunk[i].r_rest + s * chunk[i].r_sin);
+        let p3 = lanes(|i| (1.0 - p1[i] * p1[i] - p2[i] * p2[i]).max(0.0).sqrt());
+        let nh: [Lanes; 3] =
+            std::array::from_fn(|j| lanes(|i| p1[i] * t1[j] + p2[i] * t2[j] + p3[i] * vh[j]));
+        let u = [
+            lanes(|i| alpha * nh[0][i]),
+            lanes(|i| alpha * nh[1][i]),
+            lanes(|i| nh[2][i].max(1e-9)),
+        ];
+        let len = lanes(|i| (u[0][i] * u[0][i] + u[1][i] * u[1][i] + u[2][i] * u[2][i]).sqrt());
+        let m: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| u[j][i] / len[i]));
+        let c = lanes(|i| w[0] * m[0][i] + w[1] * m[1][i] + w[2] * m[2][i]);
+        // `Lobe::fresnel(min(c, 1)).0`, both of its branches.
+        let cf = lanes(|i| c[i].min(1.0));
+        let t = lanes(|i| (1.0 - (1.0 - cf[i] * cf[i]) / e2).max(0.0).sqrt());
+        let ds = lanes(|i| cf[i] + eta * t[i]);
+        let dp = lanes(|i| eta * cf[i] + t[i]);
+        let q = lanes(|i| 1.0 / (ds[i] * dp[i] * t[i]));
+        let f = lanes(|i| {
+            let rs = (cf[i] - eta * t[i]) * (dp[i] * t[i] * q[i]);
+            let rp = (eta * cf[i] - t[i]) * (ds[i] * t[i] * q[i]);
+            0.5 * (rs * rs + rp * rp)
+        });
+        let f_flat = lanes(|i| {
+            let (rs, rp) = ((cf[i] - eta * t[i]) / ds[i], (eta * cf[i] - t[i]) / dp[i]);
+            0.5 * (rs * rs + rp * rp)
+        });
+        let ct = lanes(|i| (1.0 - (1.0 - c[i] * c[i]) / e2).max(0.0).sqrt());
+        let tz = lanes(|i| -w[2] / eta + (c[i] / eta - ct[i]) * m[2][i]);
+        let cz = lanes(|i| -tz[i]);
+        let g1 = lanes(|i| 2.0 * cz[i] / (cz[i] + (a2 + (1.0 - a2) * cz[i] * cz[i]).sqrt()));
+        for i in 0..W {
+            if c[i] <= 0.0 || tz[i] >= 0.0 {
+                continue;
+            }
+            let f = if t[i].is_nan() || t[i] <= 0.0 {
+                f_flat[i]
+            } else {
+                f[i]
+            };
+            sum += chunk[i].weight * (1.0 - f) * g1[i];
+        }
+    }
+    transmittance_from(alpha, eta, mu, chunks.remainder(), sum)
+}
+
+/// [`rough_transmittance`] over the given nodes, one node at a time.
+#[cfg(test)]
 fn transmittance_integral(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
+    transmittance_from(alpha, eta, mu, nodes, 0.0)
+}
+
+/// `sum` plus the terms of [`rough_transmittance`]'s integral of the given nodes, one node at a
+/// time.
+fn transmittance_from(alpha: f64, eta: f64, mu: f64, nodes: &[Node], sum: f64) -> f64 {
     let mu = mu.clamp(1e-6, 1.0);
     let w = [(1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu];
     let lobe = Lobe::new(alpha, eta);
     let frame = VisibleFrame::new(alpha, mu);
     let a2 = alpha * alpha;
     let e2 = eta * eta;
-    let mut sum = 0.0;
+    let mut sum = sum;
     for node in nodes {
         let m = frame.normal(node);
         let c = dot(w, m);
@@ -663,7 +742,7 @@ impl Transmittance {
         let v: Vec<f64> = (0..=TABLE_STEPS)
             .map(|i| {
                 let mu = i as f64 / TABLE_STEPS as f64;
-                transmittance_integral(lobe.alpha, lobe.eta, mu, nodes)
+                transmittance_dispatch(lobe.alpha, lobe.eta, mu, nodes)
             })
             .collect();
         let t1 = v[TABLE_STEPS];
@@ -1641,6 +1720,36 @@ mod tests {
                     let a = transmittance_integral(alpha, eta, mu, &nodes);
                     let b = transmittance_integral_per_node(alpha, eta, mu, &nodes);
                     assert_eq!(a.to_bits(), b.to_bits(), "{alpha} {eta} {mu}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    /// The integral in lanes (with AVX2 where the processor has it, and without) is the one made
+    /// node by node, bit for bit: on the lobe search's grids, near `eta = 1`, at the ends of the
+    /// cosines, and with node counts that leave a remainder of fewer than `W` nodes.
+    #[test]
+    fn the_integral_in_lanes_is_the_scalar_one_bit_for_bit() {
+        for q in [TABLE_QUADRATURE, 5, 7] {
+            let nodes = square_nodes(&gauss_legendre(q));
+            for &alpha in &[0.04, 0.09, 0.2, 0.3, 0.6, 0.85, 1.0] {
+                for &eta in &[1.0 + 1e-9, 1.02, 1.15, 1.5, 2.1, 3.0] {
+                    for i in 0..=TABLE_STEPS / 4 {
+                        let mu = (4 * i) as f64 / TABLE_STEPS as f64;
+                        let a = transmittance_integral(alpha, eta, mu, &nodes);
+                        let b = transmittance_dispatch(alpha, eta, mu, &nodes);
+                        let c = transmittance_lanes(alpha, eta, mu, &nodes);
+                        assert_eq!(
+                            a.to_bits(),
+                            b.to_bits(),
+                            "{q} {alpha} {eta} {mu}: {a} vs {b}"
+                        );
+                        assert_eq!(
+                            a.to_bits(),
+                            c.to_bits(),
+                            "{q} {alpha} {eta} {mu}: {a} vs {c}"
+                        );
+                    }
                 }
             }
         }
