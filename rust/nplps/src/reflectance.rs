@@ -605,15 +605,17 @@ simd_dispatch! {
 }
 
 /// [`rough_transmittance`]'s integral over the given nodes ([`transmittance_from`]) with the
-/// integrand of `W` nodes at a time in lanes: the same
-/// operations in the same order on each node (the visible normal, `F(min(w.m, 1))` as
-/// [`Lobe::fresnel`], the refracted ray's cosine and masking), and the terms summed one node at a
-/// time in the nodes' order, so the same bits. The square roots and divisions, most of a table's
-/// cost, are then made four at a time (a table of 257 cosines and 576 nodes: about 3x faster).
+/// integrand of `W` nodes at a time in lanes: the same operations in the same order on each node
+/// (the visible normal, `F(min(w.m, 1))` as [`Lobe::fresnel`], the refracted ray's cosine and
+/// masking), and the terms summed one node at a time in the nodes' order, so the same bits. The
+/// refracted cosine that `Lobe::fresnel` computes is the one the masking uses (`w.m <= 1`): made
+/// once, not twice. The square roots and divisions, most of a table's cost, are then made four
+/// at a time.
 #[inline(always)]
 fn transmittance_lanes(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
     let mu = mu.clamp(1e-6, 1.0);
     let w = [(1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu];
+    let lobe = Lobe::new(alpha, eta);
     let frame = VisibleFrame::new(alpha, mu);
     let (s, vh, t1, t2) = (frame.s, frame.vh, frame.t1, frame.t2);
     let a2 = alpha * alpha;
@@ -635,33 +637,30 @@ fn transmittance_lanes(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
         let len = lanes(|i| (u[0][i] * u[0][i] + u[1][i] * u[1][i] + u[2][i] * u[2][i]).sqrt());
         let m: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| u[j][i] / len[i]));
         let c = lanes(|i| w[0] * m[0][i] + w[1] * m[1][i] + w[2] * m[2][i]);
-        // `Lobe::fresnel(min(c, 1)).0`, both of its branches.
-        let cf = lanes(|i| c[i].min(1.0));
-        let t = lanes(|i| (1.0 - (1.0 - cf[i] * cf[i]) / e2).max(0.0).sqrt());
-        let ds = lanes(|i| cf[i] + eta * t[i]);
-        let dp = lanes(|i| eta * cf[i] + t[i]);
+        // The refracted ray's cosine, and `Lobe::fresnel(min(c, 1)).0` from it where `c <= 1`
+        // and the ray exists (`t > 0`; `Lobe::fresnel` computes the same `t` there).
+        let t = lanes(|i| (1.0 - (1.0 - c[i] * c[i]) / e2).max(0.0).sqrt());
+        let ds = lanes(|i| c[i] + eta * t[i]);
+        let dp = lanes(|i| eta * c[i] + t[i]);
         let q = lanes(|i| 1.0 / (ds[i] * dp[i] * t[i]));
         let f = lanes(|i| {
-            let rs = (cf[i] - eta * t[i]) * (dp[i] * t[i] * q[i]);
-            let rp = (eta * cf[i] - t[i]) * (ds[i] * t[i] * q[i]);
+            let rs = (c[i] - eta * t[i]) * (dp[i] * t[i] * q[i]);
+            let rp = (eta * c[i] - t[i]) * (ds[i] * t[i] * q[i]);
             0.5 * (rs * rs + rp * rp)
         });
-        let f_flat = lanes(|i| {
-            let (rs, rp) = ((cf[i] - eta * t[i]) / ds[i], (eta * cf[i] - t[i]) / dp[i]);
-            0.5 * (rs * rs + rp * rp)
-        });
-        let ct = lanes(|i| (1.0 - (1.0 - c[i] * c[i]) / e2).max(0.0).sqrt());
-        let tz = lanes(|i| -w[2] / eta + (c[i] / eta - ct[i]) * m[2][i]);
+        let tz = lanes(|i| -w[2] / eta + (c[i] / eta - t[i]) * m[2][i]);
         let cz = lanes(|i| -tz[i]);
         let g1 = lanes(|i| 2.0 * cz[i] / (cz[i] + (a2 + (1.0 - a2) * cz[i] * cz[i]).sqrt()));
         for i in 0..W {
             if c[i] <= 0.0 || tz[i] >= 0.0 {
                 continue;
             }
-            let f = if t[i].is_nan() || t[i] <= 0.0 {
-                f_flat[i]
-            } else {
+            let f = if c[i] <= 1.0 && t[i] > 0.0 {
                 f[i]
+            } else {
+                // A cosine above 1 by rounding, or no refracted ray (none for eta > 1 but by
+                // rounding): as the node-by-node integral.
+                lobe.fresnel(c[i].min(1.0)).0
             };
             sum += chunk[i].weight * (1.0 - f) * g1[i];
         }
