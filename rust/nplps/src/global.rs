@@ -224,6 +224,14 @@ impl GlobalStep {
         }
     }
 
+    /// Lets the next multigrid solves also stop once the residual has fallen by `factor` from
+    /// the warm start's (0: only by the tolerance); no effect on the direct solver.
+    pub fn set_relative_stop(&mut self, factor: f64) {
+        if let GlobalStep::Multigrid { system, .. } = self {
+            system.relative_stop = factor;
+        }
+    }
+
     /// Whether [`GlobalStep::solve_from`] may read the targets again: a multigrid system that
     /// may fall back to the direct solver redoes the step from them (systems of at most
     /// [`FALLBACK_MAX_UNKNOWNS`] unknowns).

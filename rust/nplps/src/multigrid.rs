@@ -26,7 +26,9 @@
 //!
 //! **Solve.** Each global step runs preconditioned conjugate gradients from the current depths
 //! (a warm start: the right side changes little between outer iterations) until
-//! `|b - A u| <= rtol |b_t|`, with `b_t` the facet part of the right side. Cost and memory are
+//! `|b - A u| <= rtol |b_t|`, with `b_t` the facet part of the right side, or, when the caller
+//! asks (`MultigridSystem::relative_stop`, the first step of the full resolution), once the
+//! residual has fallen by a given factor from the warm start's. Cost and memory are
 //! linear in the number of vertices.
 //!
 //! **Limits.** Strips of the mask separated by gaps of a pixel or two (a comb, a grille) are
@@ -938,6 +940,10 @@ pub struct MultigridSystem {
     pub rtol: f64,
     /// Most conjugate-gradient iterations per solve.
     pub max_iterations: usize,
+    /// Also stop when `|b - A u| <= relative_stop |b - A u_0|`, `u_0` the warm start (0: only
+    /// by `rtol`): for a step whose targets the next local step replaces anyway (see
+    /// `solver::FIRST_STEP_REDUCTION`).
+    pub relative_stop: f64,
     /// Checked at every conjugate-gradient iteration: once cancelled, the solve stops early
     /// (the caller checks the token and discards the step).
     pub cancel: crate::Cancel,
@@ -1037,6 +1043,7 @@ impl MultigridSystem {
             prior_rhs: prior_right_side(prior)?,
             rtol: 1e-6,
             max_iterations: MAX_ITERATIONS,
+            relative_stop: 0.0,
             cancel: crate::Cancel::default(),
         })
     }
@@ -1155,7 +1162,9 @@ impl MultigridSystem {
         residual(fine, &k.x, Some(&k.r), &mut k.w);
         std::mem::swap(&mut k.r, &mut k.w);
         let mut iterations = 0;
-        if dot(&k.r, &k.r).sqrt() > tol {
+        let start = dot(&k.r, &k.r).sqrt();
+        let tol = tol.max(self.relative_stop * start);
+        if start > tol {
             self.precondition();
             let k = &mut self.krylov;
             k.p.copy_from_slice(&k.w);
@@ -1546,6 +1555,36 @@ pub(crate) mod tests {
         let iterations = mg.solve(&grid, &targets, &a, &mut b);
         assert_eq!(iterations, 0);
         assert!(max_diff(&a, &b) == 0.0);
+    }
+
+    /// A relative stop ends the conjugate gradients earlier, once the residual has fallen by
+    /// that factor (the solution then within a small part of the start's distance from the
+    /// exact one); a relative stop of 0 changes no bit.
+    #[test]
+    fn a_relative_stop_ends_the_solve_early() {
+        let grid = Grid::new(96, 80, None).unwrap();
+        let (targets, current) = problem_data(&grid, 5);
+        let n = grid.n_unknowns();
+        let mut mg = MultigridSystem::new(&grid, None).unwrap();
+        let mut exact = vec![0.0; n];
+        let full = mg.solve(&grid, &targets, &current, &mut exact);
+        mg.relative_stop = 0.0;
+        let mut again = vec![0.0; n];
+        assert_eq!(mg.solve(&grid, &targets, &current, &mut again), full);
+        assert!(exact
+            .iter()
+            .zip(&again)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        mg.relative_stop = 1e-3;
+        let mut rough = vec![0.0; n];
+        let early = mg.solve(&grid, &targets, &current, &mut rough);
+        assert!(early >= 1 && early < full, "{early} vs {full}");
+        let start = max_diff(&current, &exact);
+        assert!(
+            max_diff(&rough, &exact) <= 1e-2 * start,
+            "{}",
+            max_diff(&rough, &exact)
+        );
     }
 
     /// Level 1 and the level-2 cells made band by band from the fine flags are those of the

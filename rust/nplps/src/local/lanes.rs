@@ -8,10 +8,11 @@
 //! from two grid rows (`LocalStep::batch_corners`). The kernels run compiled for AVX-512 (8 f64 lanes in one register) or AVX2 when the processor
 //! has it (`simd_dispatch!`, its `wide` form): the same operations per lane, so the same bits.
 
+#[cfg(test)]
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::trust::{add_sums, trust_values, LightSums, CHUNK};
+use super::trust::{add_sums, LightSums, CHUNK};
 use super::{
     facet_scratch, keep_shape, u16_value, usable_count, FacetFit, LocalStep, Model, Observations,
     Robust, Stored, Weighting, SCRATCH,
@@ -202,24 +203,13 @@ impl LocalStep<'_> {
                 &solved,
                 trust.sums,
             );
+            let values = trust_lanes_dispatch(&out, &solved, &sums.used);
             for l in 0..LANES {
                 if let (false, Some(fit)) = (self.settings.fast_residual, &mut fitted[l]) {
                     fit.sse = out[0][l];
                 }
-                trust.out[l] = match solved.active[l] {
-                    true => trust_values(
-                        &[out[1][l], 0.0, 0.0],
-                        &[solved.inverse(l), Matrix3::zeros(), Matrix3::zeros()],
-                        Vector3::zeros()
-                            + Vector3::new(solved.g[0][l], solved.g[1][l], solved.g[2][l]),
-                        sums.used[l] as usize,
-                        1,
-                        out[2][l],
-                        out[3][l] as usize,
-                    ),
-                    false => [f32::NAN; 2],
-                };
             }
+            trust.out.copy_from_slice(&values);
         } else if !self.settings.fast_residual {
             // The exact residual, a second pass over the lights (as the scalar code does).
             let normals = fitted.map(|f| f.map_or([0.0; 3], |f| f.normal));
@@ -591,12 +581,17 @@ fn residual_lanes(
 
 /// The trust part of a final pass over [`LANES`] facets (see [`LocalStep::final_lanes`]): scratch
 /// rows (`beta` of each light, per lane), the facets' `[normal sigma, held-out]` and the
-/// per-light sums they add to.
+/// per-light sums they add to, per lane (see [`LaneLightSums`]).
 pub(super) struct LaneTrust<'a> {
     rows: &'a mut [[[f64; LANES]; 3]],
     out: &'a mut [[f32; 2]],
-    sums: &'a mut [[f64; 4]],
+    sums: &'a mut [LaneLightSums],
 }
+
+/// One light's trust sums (see [`LightSums`]) of the batches of a chunk, one running sum per
+/// lane: [`final_residuals`] adds each batch's terms lane by lane (vector additions), and
+/// [`LocalStep::final_lanes`] sums the lanes ([`lane_total`]) once at the end of the chunk.
+type LaneLightSums = [[f64; LANES]; 4];
 
 /// The grey fits of [`LANES`] facets: unit normals and albedo (0 where a fit failed).
 struct LaneFits {
@@ -632,6 +627,7 @@ impl LaneSolved {
     }
 
     /// `T^-1` of lane `l`.
+    #[cfg(test)]
     fn inverse(&self, l: usize) -> Matrix3<f64> {
         let m = &self.inverse;
         Matrix3::new(
@@ -651,7 +647,7 @@ simd_dispatch! {
         thresholds: (f64, f64),
         fits: &LaneFits,
         solved: &LaneSolved,
-        sums: &mut [[f64; 4]],
+        sums: &mut [LaneLightSums],
     ) -> [[f64; LANES]; 4];
 }
 
@@ -659,10 +655,11 @@ simd_dispatch! {
 /// [`accumulate_lanes`]: the exact squared residuals of the fits `fits` (the operations of
 /// [`residual_lanes`]), and for the facets with a trust value (`solved`) the trust's residual
 /// `e = I - r . g`, leverage `h = r . T^-1 r` and leave-one-out residual `e / (1 - h)` (the
-/// operations of `LocalStep::facet_trust`, in its order), adding each light's to `sums` batch
-/// after batch, the lanes' terms summed in pairs ([`lane_total`]: the per-light sums differ
-/// from the scalar code's facet-after-facet order in the last bits, as they do with the order
-/// of the parallel reduction; the per-facet values are the scalar code's bits). Returns per lane the fit's squared residual, the trust's, the sum of the finite
+/// operations of `LocalStep::facet_trust`, in its order), adding each light's terms to its
+/// running sums `sums`, lane by lane (the lanes are summed once per chunk, see
+/// [`LaneLightSums`]: the per-light sums differ from the scalar code's facet-after-facet order
+/// in the last bits, as they do with the order of the parallel reduction; the per-facet values
+/// are the scalar code's bits). Returns per lane the fit's squared residual, the trust's, the sum of the finite
 /// `|e / (1 - h)|` and their count.
 #[inline(always)]
 fn final_residuals(
@@ -672,7 +669,7 @@ fn final_residuals(
     (dark, saturation): (f64, f64),
     fits: &LaneFits,
     solved: &LaneSolved,
-    sums: &mut [[f64; 4]],
+    sums: &mut [LaneLightSums],
 ) -> [[f64; LANES]; 4] {
     let mut sse = [0.0f64; LANES];
     let mut trust_sse = [0.0f64; LANES];
@@ -707,8 +704,8 @@ fn final_residuals(
             std::array::from_fn(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
         let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
         // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
-        // non-negative terms changes no bit); the light's terms of the lanes are summed in pairs
-        // and then added to its sums (no chain of 8 dependent additions per light).
+        // non-negative terms changes no bit); the light's terms are added to its running sums
+        // lane by lane (no horizontal sum per batch).
         let mut add = [[0.0f64; LANES]; 4];
         for l in 0..LANES {
             let used = ok[l] && solved.active[l];
@@ -723,10 +720,71 @@ fn final_residuals(
             add[3][l] = if used { 1.0 } else { 0.0 };
         }
         for (sum, add) in sum.iter_mut().zip(&add) {
-            *sum += lane_total(add);
+            for l in 0..LANES {
+                sum[l] += add[l];
+            }
         }
     }
     [sse, trust_sse, loo_sum, loo_count]
+}
+
+simd_dispatch! {
+    wide
+    /// [`trust_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
+    fn trust_lanes_dispatch => trust_lanes(
+        residuals: &[[f64; LANES]; 4],
+        solved: &LaneSolved,
+        used: &[u32; LANES],
+    ) -> [[f32; 2]; LANES];
+}
+
+/// The trust values `[normal sigma, held-out]` of [`LANES`] grey facets, one lane each, from
+/// [`final_residuals`]'s `residuals` (the trust's squared residual, the sum and count of the
+/// finite leave-one-out residuals in rows 1-3), their trust solution `solved` and usable
+/// lights `used`: per lane the operations of [`trust_values`](super::trust::trust_values) with one channel, in its order,
+/// so the same bits: `cov = 0 + (sse / (used - 3)) T^-1` entry by entry, `b = 0 + g`,
+/// `len = |b|`, `n = b / len`, the trace summed from 0 (nalgebra's `trace`), `C n` column after
+/// column (nalgebra's matrix-vector product), `n . (C n)` as `(a + b) + c` (nalgebra's 3-vector
+/// `dot`), `sigma = sqrt(max(0, (trace - n . C n) / len²))` in degrees and the mean
+/// leave-one-out residual (NaN without one). NaN for the facets without a trust value
+/// (`solved.active` false) or whose `|g|` is not finite and positive, as there. Written as plain
+/// loops over the lanes, so the 7 divisions and 2 roots of a facet run 8 lanes to an
+/// instruction (the scalar function took about a sixth of the final step).
+#[inline(always)]
+fn trust_lanes(
+    residuals: &[[f64; LANES]; 4],
+    solved: &LaneSolved,
+    used: &[u32; LANES],
+) -> [[f32; 2]; LANES] {
+    let (inv, g) = (&solved.inverse, &solved.g);
+    let [_, sse, loo_sum, loo_count] = residuals;
+    let mut out = [[f32::NAN; 2]; LANES];
+    for l in 0..LANES {
+        // (an inactive lane's values are computed and not used; its `used` may be below 3)
+        let dof = used[l].wrapping_sub(3) as usize as f64;
+        let c = sse[l] / dof;
+        let cov: [f64; 9] = std::array::from_fn(|j| 0.0 + c * inv[j][l]);
+        let b = [0.0 + g[0][l], 0.0 + g[1][l], 0.0 + g[2][l]];
+        let len = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+        let n = [b[0] / len, b[1] / len, b[2] / len];
+        let trace = ((0.0 + cov[0]) + cov[4]) + cov[8];
+        let cn: [f64; 3] = std::array::from_fn(|i| {
+            cov[3 * i] * n[0] + cov[3 * i + 1] * n[1] + cov[3 * i + 2] * n[2]
+        });
+        let ncn = (n[0] * cn[0] + n[1] * cn[1]) + n[2] * cn[2];
+        let var = ((trace - ncn) / (len * len)).max(0.0);
+        let held_out = match loo_count[l] > 0.0 {
+            true => loo_sum[l] / loo_count[l],
+            false => f64::NAN,
+        };
+        let ok = solved.active[l] && len.is_finite() && len > 0.0;
+        out[l] = match ok {
+            true => [var.sqrt().to_degrees() as f32, held_out as f32],
+            false => [f32::NAN; 2],
+        };
+    }
+    out
 }
 
 /// The sum of the [`LANES`] values `a`, in pairs: `((a0 + a1) + (a2 + a3)) + ((a4 + a5) +
@@ -765,6 +823,7 @@ impl LocalStep<'_> {
                 let (buf, interleaved, rows, trust_rows) =
                     scratch.as_mut().map_err(|e| e.clone())?;
                 let mut sums = vec![[0.0f64; 4]; k];
+                let mut lane_sums = vec![[[0.0f64; LANES]; 4]; k];
                 let start = first + chunk * CHUNK;
                 let batches = fits.chunks_mut(LANES).zip(trust.chunks_mut(LANES));
                 for (b, (fits, out)) in batches.enumerate() {
@@ -776,7 +835,7 @@ impl LocalStep<'_> {
                         let lane_trust = LaneTrust {
                             rows,
                             out,
-                            sums: &mut sums,
+                            sums: &mut lane_sums,
                         };
                         let lanes =
                             self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
@@ -786,6 +845,11 @@ impl LocalStep<'_> {
                             *fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
                             *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums);
                         }
+                    }
+                }
+                for (sum, lanes) in sums.iter_mut().zip(&lane_sums) {
+                    for (sum, lanes) in sum.iter_mut().zip(lanes) {
+                        *sum += lane_total(lanes);
                     }
                 }
                 Ok(sums)
@@ -922,6 +986,70 @@ mod tests {
             }
         }
         assert!(checked.iter().all(|&c| c > 100), "{checked:?}");
+    }
+
+    /// The lane trust values are `trust_values`' bits, lane by lane: random symmetric inverses
+    /// (also indefinite ones, whose variance is clipped at 0), zero and non-finite `g`, no
+    /// finite leave-one-out residual, inactive lanes (NaN), 3 to 20 usable lights.
+    #[test]
+    fn lane_trust_values_match_the_scalar_ones_exactly() {
+        use super::super::trust::trust_values;
+        let mut next = crate::multigrid::tests::lcg(11);
+        let mut checked = 0;
+        for round in 0..500 {
+            let mut residuals = [[0.0f64; LANES]; 4];
+            let mut inverse = [[0.0f64; LANES]; 9];
+            let mut g = [[0.0f64; LANES]; 3];
+            let mut used = [0u32; LANES];
+            let mut active = [false; LANES];
+            for l in 0..LANES {
+                let m: [f64; 6] = std::array::from_fn(|_| next() - 0.3);
+                let sym = [m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5]];
+                for (j, v) in sym.iter().enumerate() {
+                    inverse[j][l] = *v;
+                }
+                for gi in g.iter_mut() {
+                    gi[l] = 2.0 * next() - 1.0;
+                }
+                match (round + l) % 9 {
+                    0 => g.iter_mut().for_each(|gi| gi[l] = 0.0),
+                    1 => g[1][l] = f64::NAN,
+                    2 => g[0][l] = -0.0,
+                    _ => {}
+                }
+                used[l] = 3 + (next() * 18.0) as u32;
+                active[l] = used[l] >= 4 && next() < 0.9;
+                residuals[1][l] = if l % 5 == 0 { 0.0 } else { next() };
+                residuals[3][l] = (next() * used[l] as f64).floor();
+                residuals[2][l] = residuals[3][l] * next();
+            }
+            let solved = LaneSolved { inverse, g, active };
+            let lanes = trust_lanes_dispatch(&residuals, &solved, &used);
+            let plain = trust_lanes(&residuals, &solved, &used);
+            for l in 0..LANES {
+                let scalar = match active[l] {
+                    true => trust_values(
+                        &[residuals[1][l], 0.0, 0.0],
+                        &[solved.inverse(l), Matrix3::zeros(), Matrix3::zeros()],
+                        Vector3::zeros() + Vector3::new(g[0][l], g[1][l], g[2][l]),
+                        used[l] as usize,
+                        1,
+                        residuals[2][l],
+                        residuals[3][l] as usize,
+                    ),
+                    false => [f32::NAN; 2],
+                };
+                for got in [lanes[l], plain[l]] {
+                    assert_eq!(
+                        got.map(f32::to_bits),
+                        scalar.map(f32::to_bits),
+                        "{round} {l}"
+                    );
+                }
+                checked += usize::from(scalar[0].is_finite());
+            }
+        }
+        assert!(checked > 1000, "{checked}");
     }
 
     /// On full rows (batches of neighbours in one image row, whose corners
