@@ -53,10 +53,10 @@ def test_the_glossy_model_predicts_held_out_lights_of_a_glossy_scene_better(name
     assert given.lobe_check is None and given.lobe == nplps.Lobe(0.3, 1.5)
 
 
-@pytest.mark.parametrize(
-    ("name", "bin_factor", "distance"), [("hehe12", 4, 200.0), ("queau_human1", 8, 700.0)]
-)
-def test_few_lights_fall_back_to_the_lambertian_model(shared_capture, name: str, bin_factor: int, distance: float) -> None:
+@pytest.mark.parametrize(("name", "bin_factor", "distance"), [("hehe12", 4, 200.0), ("queau_human1", 8, 700.0)])
+def test_few_lights_fall_back_to_the_lambertian_model(
+    shared_capture, name: str, bin_factor: int, distance: float
+) -> None:
     # Measured: held-out RMS glossy / Lambertian 0.105 / 0.054 (hehe12, 8 LEDs; the glossy model's
     # leave-one-light-out shape error in `nplps evaluate` was 0.164 against 0.049) and 0.016-0.039 /
     # 0.0007-0.0035 (queau_human1's 7 lights left out one at a time; 0.92 against 0.27).
