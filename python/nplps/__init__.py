@@ -54,6 +54,7 @@ _LAZY = {
     "Iteration": "reconstruction",
     "LightRefinement": "reconstruction",
     "Lobe": "reconstruction",
+    "LobeCheck": "reconstruction",
     "Reconstruction": "reconstruction",
     "light_changes": "reconstruction",
     "LED": "rig",
@@ -84,6 +85,7 @@ if TYPE_CHECKING:
         Iteration,
         LightRefinement,
         Lobe,
+        LobeCheck,
         Reconstruction,
         light_changes,
     )
@@ -125,6 +127,7 @@ __all__ = [
     "LightRefinement",
     "LightReport",
     "Lobe",
+    "LobeCheck",
     "MemoryLimitError",
     "NplpsError",
     "OutputExistsError",

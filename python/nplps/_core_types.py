@@ -249,6 +249,14 @@ class DistanceCheckDict(TypedDict):
     looks_wrong: bool
 
 
+class LobeCheckDict(TypedDict):
+    """The held-out comparison of the glossy and Lambertian models (``reflectance="glossy"``)."""
+
+    glossy: float
+    lambertian: float
+    observations: int
+
+
 class ReconstructionDict(_ReconstructionBase, total=False):
     """A reconstruction as the core returns it.
 
@@ -269,6 +277,9 @@ class ReconstructionDict(_ReconstructionBase, total=False):
     #: With the glossy model: the estimated lobe that was too rough to be a highlight (the
     #: result is then the Lambertian model's).
     matte_lobe: tuple[float, float]
+    #: With the glossy model and the lobe estimated: the held-out RMS prediction errors of the
+    #: glossy and the Lambertian model (the Lambertian one was used where it is not larger).
+    lobe_check: LobeCheckDict
     #: With ``shadows``: the final level's cast shadows, bit-packed (H, W, ceil(k / 64)) words
     #: (bit k % 64 of word k // 64 is light k).
     shadow_bits: npt.NDArray[np.uint64]

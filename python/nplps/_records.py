@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from .rig import Rig
     from .types import Iteration, Method, RefineLights, Status
 
-__all__ = ["DistanceCheck", "DistanceEstimate", "LightRefinement", "Lobe", "Result"]
+__all__ = ["DistanceCheck", "DistanceEstimate", "LightRefinement", "Lobe", "LobeCheck", "Result"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,42 @@ class Lobe:
     roughness: float
     eta: float
     diffuse: str = "transmitted"
+
+
+@dataclass(frozen=True)
+class LobeCheck:
+    """Which reflectance model predicts unseen lights better (``reflectance="glossy"``, lobe estimated).
+
+    The lights are split into up to 8 folds; each facet of a subsample (at most 1024) is fitted
+    without one fold's lights, by the Lambertian model and by the glossy model under the lobe
+    found, and predicts that fold's images. The solver keeps the glossy model only where it
+    predicts them better (see docs/method.md, "Which model: held-out prediction").
+
+    Attributes
+    ----------
+    glossy, lambertian : float
+        RMS prediction errors of the held-out observations (image units).
+    observations : int
+        How many observations (lights x channels of the subsample's facets) were predicted.
+    """
+
+    glossy: float
+    lambertian: float
+    observations: int
+
+    @property
+    def glossy_wins(self) -> bool:
+        """Whether the glossy model predicted the held-out images better (it was then kept)."""
+        return self.glossy < self.lambertian
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        """Return the comparison as a JSON-ready dict."""
+        return {
+            "glossy": self.glossy,
+            "lambertian": self.lambertian,
+            "observations": self.observations,
+            "glossy_wins": self.glossy_wins,
+        }
 
 
 @dataclass

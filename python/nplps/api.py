@@ -303,7 +303,16 @@ def _warn_status(result: Reconstruction) -> None:
         )
     elif result.status == "diverged":
         warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
-    if result.matte_lobe is not None:
+    check = result.lobe_check
+    if result.matte_lobe is not None and check is not None and not check.glossy_wins:
+        warnings.warn(
+            f"reflectance='glossy': the glossy model predicted held-out lights worse than the Lambertian "
+            f"one (RMS {check.glossy:.4g} vs {check.lambertian:.4g}: too few lights for its unknowns, or no "
+            "surface highlight), so the Lambertian model was used; give roughness= and eta= to force the glossy model",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    elif result.matte_lobe is not None:
         warnings.warn(
             f"reflectance='glossy': the images show no highlight (the lobe they fit best has roughness "
             f"{result.matte_lobe.roughness:.2f}, as broad as the diffuse part), so the Lambertian model "

@@ -23,7 +23,7 @@ from . import _core, export
 from . import report as report_module
 from ._checks import _check_rig, _light_indices
 from ._outdir import result_directory
-from ._records import DistanceCheck, DistanceEstimate, LightRefinement, Lobe
+from ._records import DistanceCheck, DistanceEstimate, LightRefinement, Lobe, LobeCheck
 from .errors import InputError
 from .rig import Rig, _select_core_lights
 from .types import Iteration, _iteration
@@ -41,6 +41,7 @@ __all__ = [
     "Iteration",
     "LightRefinement",
     "Lobe",
+    "LobeCheck",
     "Reconstruction",
     "light_changes",
 ]
@@ -140,7 +141,12 @@ class Reconstruction:
         With ``reflectance="glossy"`` and the lobe estimated: the lobe found when it was too
         rough to be a highlight (roughness 0.5 or more): the images
         show none, so the solver went on with the Lambertian model and `lobe` is None (a
-        warning says so). None otherwise.
+        warning says so), or when the glossy model predicted held-out lights worse than the
+        Lambertian one (see `lobe_check`). None otherwise.
+    lobe_check : LobeCheck or None
+        With ``reflectance="glossy"`` and the lobe estimated: the held-out prediction errors of
+        the glossy and the Lambertian model; the glossy model is kept only where it predicts
+        better. None otherwise.
     specular : numpy.ndarray or None
         With ``reflectance="glossy"``: the specular albedo of each pixel (H, W).
     shadow_bits : numpy.ndarray or None
@@ -201,6 +207,7 @@ class Reconstruction:
     distance_check: DistanceCheck | None = None
     lobe: Lobe | None = None
     matte_lobe: Lobe | None = None
+    lobe_check: LobeCheck | None = None
     specular: np.ndarray | None = None
     shadow_bits: np.ndarray | None = None
     dark: float | None = None
@@ -246,6 +253,7 @@ class Reconstruction:
             distance_check=_distance_check(out.get("distance_check")),
             lobe=None if "lobe" not in out else _lobe(out["lobe"], out.get("lobe_diffuse", "transmitted")),
             matte_lobe=None if "matte_lobe" not in out else _lobe(out["matte_lobe"], "transmitted"),
+            lobe_check=None if "lobe_check" not in out else _lobe_check(out["lobe_check"]),
             specular=out.get("specular"),
             shadow_bits=out.get("shadow_bits"),
             dark=dark,
@@ -675,6 +683,7 @@ class Reconstruction:
             "lobe": None
             if self.lobe is None
             else {"roughness": self.lobe.roughness, "eta": self.lobe.eta, "diffuse": self.lobe.diffuse},
+            "lobe_check": None if self.lobe_check is None else self.lobe_check.to_dict(),
         }
 
     def save(
@@ -862,6 +871,11 @@ def _distance(d: dict[str, Any] | None) -> DistanceEstimate | None:
 def _lobe(pair: tuple[float, float], diffuse: str) -> Lobe:
     """Return the glossy model's lobe ``(roughness, eta)`` of the core's result with its diffuse shape."""
     return Lobe(float(pair[0]), float(pair[1]), str(diffuse))
+
+
+def _lobe_check(d: Mapping[str, Any]) -> LobeCheck:
+    """Return the core's held-out comparison of the glossy and Lambertian models."""
+    return LobeCheck(float(d["glossy"]), float(d["lambertian"]), int(d["observations"]))
 
 
 def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:

@@ -170,6 +170,13 @@ pub fn reconstruction_dict<'py>(
     if let Some(lobe) = r.matte_lobe {
         d.set_item("matte_lobe", (lobe.alpha, lobe.eta))?;
     }
+    if let Some(check) = r.lobe_check {
+        let c = PyDict::new(py);
+        c.set_item("glossy", check.glossy)?;
+        c.set_item("lambertian", check.lambertian)?;
+        c.set_item("observations", check.observations)?;
+        d.set_item("lobe_check", c)?;
+    }
     if let Some(lobe) = r.lobe {
         d.set_item("lobe", (lobe.alpha, lobe.eta))?;
         d.set_item("lobe_diffuse", lobe.diffuse.name())?;

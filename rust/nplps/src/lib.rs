@@ -256,7 +256,7 @@ pub use error::{g6, Error, Result};
 pub use geometry::vertices;
 pub use global::GlobalSolver;
 pub use light::Light;
-pub use local::{LightTrust, Robust, Trust, Weighting};
+pub use local::{LightTrust, LobeCheck, Robust, Trust, Weighting, CHECK_BELOW_LIGHTS, CHECK_FOLDS};
 #[doc(hidden)]
 pub use memory::trace as memtrace;
 pub use mesh::{

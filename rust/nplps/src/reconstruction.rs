@@ -6,7 +6,7 @@
 use std::time::Duration;
 
 use crate::error::Result;
-use crate::local::FacetFit;
+use crate::local::{FacetFit, LobeCheck};
 use crate::memory::try_vec;
 use crate::options::Refine;
 use crate::problem::Problem;
@@ -198,6 +198,10 @@ pub struct Reconstruction {
     /// be a highlight (see [`MATTE_ROUGHNESS`](crate::MATTE_ROUGHNESS)); the result
     /// is then the Lambertian model's (`lobe` None). None otherwise.
     pub matte_lobe: Option<Lobe>,
+    /// With the glossy model and its lobe to estimate: the last held-out comparison of the
+    /// glossy and Lambertian models (see [`LobeCheck`]); the glossy model was dropped (and
+    /// `matte_lobe` set) where it did not predict better. None otherwise.
+    pub lobe_check: Option<LobeCheck>,
     /// Specular albedo of each pixel under the glossy model (NaN where a facet could not be
     /// fitted); empty under the Lambertian model.
     pub specular: Vec<f64>,
@@ -456,6 +460,7 @@ pub(crate) fn assemble(
         refinement: None,
         lobe: None,
         matte_lobe: None,
+        lobe_check: None,
         specular: outputs.specular,
         shadows: None,
         trust: None,

@@ -29,7 +29,10 @@ use crate::error::{Error, Result};
 use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::IndirectField;
-use crate::local::{estimate_lobe, FacetFit, FacetStat, FitSettings, LocalStep, Model, TrustMaps};
+use crate::local::{
+    check_lobe, estimate_lobe, FacetFit, FacetStat, FitSettings, LobeCheck, LocalStep, Model,
+    TrustMaps, CHECK_BELOW_LIGHTS,
+};
 use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
@@ -122,6 +125,8 @@ pub(crate) struct Carried {
     lobe: Option<Lobe>,
     /// The lobe that made a level drop the glossy model (see [`MATTE_ROUGHNESS`]).
     matte: Option<Lobe>,
+    /// The last level's held-out comparison of the models (see [`check_lobe`]).
+    check: Option<LobeCheck>,
     /// The glossy normals of the last level (empty: none).
     warm: WarmMap,
     /// The cast shadows of the last level (with [`Options::shadows`]).
@@ -314,6 +319,7 @@ pub(crate) fn coarse_to_fine(
         diverged: false,
         lobe: None,
         matte: None,
+        check: None,
         warm: WarmMap::default(),
         shadows: None,
     };
@@ -354,6 +360,8 @@ pub(crate) fn coarse_to_fine(
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
             solver.carry_glossy(carried.lobe, carried.matte, &carried.warm);
+            solver.check = carried.check;
+            solver.checked = carried.check.is_some();
             solver.carry_shadows(carried.shadows.take())?;
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
@@ -380,6 +388,7 @@ pub(crate) fn coarse_to_fine(
         carried.diverged |= solver.lights.diverged;
         carried.lobe = solver.lobe;
         carried.matte = carried.matte.or(solver.matte);
+        carried.check = solver.check;
         if !solver.warm.is_empty() {
             carried.warm = WarmMap::of(&p.grid, &solver.warm)?;
         }
@@ -456,8 +465,15 @@ pub(crate) struct Solver<'p> {
     /// Whether this solver started without a lobe (it then estimates it more often).
     lobe_from_scratch: bool,
     /// The estimated lobe that made this solver (or a coarser level's) drop the glossy model
-    /// for the Lambertian one (see [`MATTE_ROUGHNESS`]).
+    /// for the Lambertian one (see [`MATTE_ROUGHNESS`] and [`check_lobe`]).
     pub(crate) matte: Option<Lobe>,
+    /// The last held-out comparison of the glossy and Lambertian models (see [`check_lobe`]),
+    /// this level's or a coarser one's.
+    pub(crate) check: Option<LobeCheck>,
+    /// Whether this level has made its comparison.
+    checked: bool,
+    /// Whether the comparison just dropped the glossy model: the run starts again.
+    restart: bool,
     /// Whether its lobe came from a coarser level (it then estimates it again at the first
     /// iteration instead of at `LOBE_AT[0]`).
     lobe_carried: bool,
@@ -558,6 +574,9 @@ impl<'p> Solver<'p> {
             warm_carried: false,
             lobe_from_scratch: false,
             matte: None,
+            check: None,
+            checked: false,
+            restart: false,
             lobe_carried: false,
             lobe_pending: false,
             shadows: None,
@@ -628,6 +647,8 @@ impl<'p> Solver<'p> {
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
             self.carry_glossy(coarse.lobe, coarse.matte, &coarse.warm);
+            self.check = coarse.check;
+            self.checked = coarse.check.is_some();
             self.carry_shadows(coarse.shadows)?;
         }
         Ok(coarse.history)
@@ -685,13 +706,33 @@ impl<'p> Solver<'p> {
         tol: f64,
         progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     ) -> Result<(Vec<IterationStats>, bool)> {
+        // A run that may drop the glossy model by the held-out check keeps its start: after a
+        // drop it starts again from there as the Lambertian run (see [`check_lobe`]).
+        let start = match self.may_check() && !self.checked {
+            true => Some((u.clone(), self.shadows.clone(), self.shadows_carried)),
+            false => None,
+        };
         let mut run = self.begin(u, gauge, tol)?;
         let mut next = Next::Continue;
-        for iteration in 1..=iterations {
+        let mut iteration = 1;
+        while iteration <= iterations {
             next = self.step(&mut run, u, iteration, progress)?;
+            if let (true, Some((u0, shadows, carried))) =
+                (std::mem::take(&mut self.restart), &start)
+            {
+                u.clone_from(u0);
+                self.shadows.clone_from(shadows);
+                self.shadows_carried = *carried;
+                self.march_next = false;
+                run = self.begin(u, gauge, tol)?;
+                next = Next::Continue;
+                iteration = 1;
+                continue;
+            }
             if next != Next::Continue {
                 break;
             }
+            iteration += 1;
         }
         self.stalled = next == Next::Stalled;
         run.guard.finish(u, &mut self.lights);
@@ -1031,6 +1072,15 @@ impl<'p> Solver<'p> {
         self.options.reflectance == Reflectance::Glossy(None)
     }
 
+    /// Whether the solver may drop the glossy model by the held-out check ([`check_lobe`]):
+    /// with a lobe it estimates, fewer than [`CHECK_BELOW_LIGHTS`] lights, and not while the
+    /// distance search compares candidates under one model.
+    fn may_check(&self) -> bool {
+        self.estimates_lobe()
+            && !self.keep_glossy
+            && self.problem.rig.n_lights() < CHECK_BELOW_LIGHTS
+    }
+
     /// Reflectance: with the glossy model and no lobe given, estimates the shared lobe on the
     /// surface `u` (see [`estimate_lobe`]) when the solver has none yet and at the iterations
     /// [`LOBE_AT`], unless it is held.
@@ -1067,6 +1117,21 @@ impl<'p> Solver<'p> {
             // An estimate on a surface of the iterations decides (see [`MATTE_ROUGHNESS`]).
             Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch && !self.keep_glossy => {
                 self.drop_glossy(lobe)
+            }
+            // With few lights the held-out prediction of the two models decides too (see
+            // [`check_lobe`]), once per level, on a surface of its iterations; a drop starts
+            // the level again as the Lambertian run.
+            Some(lobe) if !from_scratch && self.may_check() && !self.checked => {
+                let check = check_lobe(&step, u, &lobe)?;
+                self.checked = true;
+                self.check = check.or(self.check);
+                match check {
+                    Some(check) if !check.glossy_wins() => {
+                        self.drop_glossy(lobe);
+                        self.restart = true;
+                    }
+                    _ => self.lobe = Some(lobe),
+                }
             }
             Some(lobe) => self.lobe = Some(lobe),
             None => {}
@@ -1418,6 +1483,7 @@ impl<'p> Solver<'p> {
         result.lights = self.lights.take_lights();
         result.lobe = self.lobe;
         result.matte_lobe = self.matte;
+        result.lobe_check = self.check;
         result.shadows = self.shadows.take();
         result.trust = Some(trust);
         result.gauge = problem

@@ -327,7 +327,7 @@ fn continued(
 /// (rho_ch D_k + rho_s S_k))^2` over the usable observations, with the model's 0 where the facet
 /// turns away from the light or the camera.
 #[allow(clippy::too_many_arguments)]
-fn held_out_sse(
+pub(super) fn held_out_sse(
     c: [f64; 3],
     v: [f64; 3],
     model: Model<'_>,

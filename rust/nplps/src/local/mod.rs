@@ -32,10 +32,13 @@ use crate::reflectance::{Lobe, Packed};
 use crate::shadow::ShadowMask;
 use crate::vec3::{dot, norm};
 
+mod check;
 mod glossy;
 mod lanes;
 mod trust;
 
+pub(crate) use check::check_lobe;
+pub use check::{LobeCheck, CHECK_BELOW_LIGHTS, CHECK_FOLDS};
 pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA};
 use lanes::{lane_scratch, LANES};
 pub use trust::{LightTrust, Trust, TrustMaps};
