@@ -644,6 +644,64 @@ fn alternate(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
+    // The estimate of the stage with the lowest criterion so far, and that criterion.
+    let mut best = (count.lowest, profiled.0.clone());
+    let (_, mut u) = alternation(profiled, |estimate, u| {
+        // The lobe is estimated afresh (from the whole grids of roughness and index) by a run
+        // at the distance found from the surface and glossy normals found there, then held.
+        let next = held_stage(
+            solver, problem, search, range, estimate, u, None, count, progress,
+        )?;
+        if let Some(next) = &next {
+            if best.0.is_nan() || count.lowest < best.0 {
+                best = (count.lowest, next.0.clone());
+            }
+        }
+        Ok(next)
+    })?;
+    // The retro-reflective diffuse shape's stage (see [`RETRO_STAGE_ETA`]).
+    let retro = match solver.lobe {
+        Some(l) if l.diffuse == Diffuse::Transmitted && l.eta <= RETRO_STAGE_ETA => {
+            Lobe::retro(l.alpha, RETRO_ETA)
+        }
+        _ => return Ok((best.1, u)),
+    };
+    let estimate = best.1.clone();
+    match held_stage(
+        solver,
+        problem,
+        search,
+        range,
+        &estimate,
+        &mut u,
+        Some(retro),
+        count,
+        progress,
+    )? {
+        Some(next) if count.lowest < best.0 => Ok(next),
+        _ => Ok((best.1, u)),
+    }
+}
+
+/// One stage of [`alternate`]: the surface `u` gauged at `estimate`'s distances, the lobe held
+/// (`lobe`, or with `None` estimated afresh there by a run of at least
+/// [`LOBE_AT`](crate::solver::LOBE_AT)`[1]` iterations from the surface and glossy normals found
+/// there), and the distance searched again under it in a window [`NARROW_WIDTH`] either side,
+/// moving at most [`ALTERNATION_MOVES`] times. `None` when the criterion under the lobe keeps
+/// falling out of the windows (the stage brings nothing); `count.lowest` is then the stage's
+/// lowest criterion.
+#[allow(clippy::too_many_arguments)]
+fn held_stage(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    search: &DistanceSearch,
+    range: (f64, f64),
+    estimate: &DistanceEstimate,
+    u: &mut Vec<f64>,
+    lobe: Option<Lobe>,
+    count: &mut Count,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<Option<(DistanceEstimate, Vec<f64>)>> {
     let window = Window {
         scan: NARROW_SCAN,
         width: NARROW_WIDTH,
@@ -655,80 +713,38 @@ fn alternate(
         inner: search.inner.min(WINDOW_INNER),
         ..*search
     };
-    // The estimate of the stage with the lowest criterion so far, and that criterion.
-    let mut best = (count.lowest, profiled.0.clone());
-    let (_, mut u) = alternation(profiled, |estimate, u| {
-        // The lobe is estimated afresh (from the whole grids of roughness and index) by a run
-        // at the distance found from the surface and glossy normals found there, then held.
-        let gauge: Vec<f64> = estimate
-            .distance
-            .iter()
-            .map(|&d| problem.geometry.unknown(d))
-            .collect();
-        problem.grid.apply_gauge(u, &gauge);
-        solver.lobe = None;
-        solver.hold_lobe = false;
-        solver.lights.restart(solver.lights.refine());
-        solver.keep_glossy_normals();
-        let iterations = search.inner.max(crate::solver::LOBE_AT[1]);
-        solver.iterate(u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
-        solver.hold_lobe = true;
-        count.planned += planned_candidates(NARROW_SCAN);
-        count.lowest = f64::NAN;
-        let start = try_copy(u, "the depths")?;
-        let next = match search_window(
-            solver,
-            problem,
-            &narrow,
-            range,
-            (estimate.clone(), start),
-            window,
-            count,
-            progress,
-        ) {
-            Ok(next) => next,
-            // The criterion under this lobe keeps falling out of the windows (see
-            // [`ALTERNATION_MOVES`]): the stage brings nothing; the best stays.
-            Err(Error::Unusable(_)) => return Ok(None),
-            Err(e) => return Err(e),
-        };
-        if best.0.is_nan() || count.lowest < best.0 {
-            best = (count.lowest, next.0.clone());
-        }
-        Ok(Some(next))
-    })?;
-    // The retro-reflective diffuse shape's stage (see [`RETRO_STAGE_ETA`]).
-    let retro = match solver.lobe {
-        Some(l) if l.diffuse == Diffuse::Transmitted && l.eta <= RETRO_STAGE_ETA => {
-            Lobe::retro(l.alpha, RETRO_ETA)
-        }
-        _ => return Ok((best.1, u)),
-    };
-    let gauge: Vec<f64> = best
-        .1
+    let gauge: Vec<f64> = estimate
         .distance
         .iter()
         .map(|&d| problem.geometry.unknown(d))
         .collect();
-    problem.grid.apply_gauge(&mut u, &gauge);
-    solver.lobe = Some(retro);
-    solver.hold_lobe = true;
+    problem.grid.apply_gauge(u, &gauge);
+    solver.lobe = lobe;
+    solver.hold_lobe = lobe.is_some();
     solver.lights.restart(solver.lights.refine());
+    if lobe.is_none() {
+        solver.keep_glossy_normals();
+        let iterations = search.inner.max(crate::solver::LOBE_AT[1]);
+        solver.iterate(u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
+        solver.hold_lobe = true;
+    }
     count.planned += planned_candidates(NARROW_SCAN);
     count.lowest = f64::NAN;
-    let start = try_copy(&u, "the depths")?;
+    let start = try_copy(u, "the depths")?;
     match search_window(
         solver,
         problem,
         &narrow,
         range,
-        (best.1.clone(), start),
+        (estimate.clone(), start),
         window,
         count,
         progress,
     ) {
-        Ok(next) if count.lowest < best.0 => Ok((next.0, next.1)),
-        Ok(_) | Err(Error::Unusable(_)) => Ok((best.1, u)),
+        Ok(next) => Ok(Some(next)),
+        // The criterion under this lobe keeps falling out of the windows (see
+        // [`ALTERNATION_MOVES`]): the stage brings nothing.
+        Err(Error::Unusable(_)) => Ok(None),
         Err(e) => Err(e),
     }
 }
