@@ -39,6 +39,7 @@ from weighting import (
     angles,
     fresnel,
     lambert,
+    lm_fit,
     load,
     nominal_alpha,
     subset,
@@ -133,36 +134,7 @@ class Model:
 
 def fit(scene: Scene, g: np.ndarray, model: Model, steps: int = 30) -> tuple[np.ndarray, np.ndarray]:
     """LM on (rho_d n, rho_s) from g (rho_s 0): the normals and each pixel's squared residual."""
-    u = scene.usable.astype(np.float64)
-    bad = ~np.isfinite(g).all(1)
-    theta = np.concatenate([np.where(bad[:, None], scene.normals * 0.1, g), np.zeros((len(g), 1))], 1)
-
-    def residual(th: np.ndarray) -> np.ndarray:
-        rho = np.linalg.norm(th[:, :3], axis=-1)
-        d, s = model.shade(th[:, :3] / rho[:, None])
-        return u * (scene.values - scene.scale * (rho[:, None] * d + th[:, 3:4] * s))
-
-    res = residual(theta)
-    sse = (res**2).sum(1)
-    lam = np.full(len(g), 1e-3)
-    for _ in range(steps):
-        jac = np.empty((*res.shape, 4))
-        for j in range(4):
-            h = 1e-6 * np.maximum(np.abs(theta[:, j]), 1e-3 * np.linalg.norm(theta[:, :3], axis=-1))
-            th = theta.copy()
-            th[:, j] += h
-            jac[..., j] = (residual(th) - res) / h[:, None]
-        jtj = np.einsum("pki,pkj->pij", jac, jac)
-        jtr = np.einsum("pki,pk->pi", jac, res)
-        a = jtj + lam[:, None, None] * (np.eye(4) * np.diagonal(jtj, axis1=1, axis2=2)[:, None] + 1e-12 * np.eye(4))
-        step = -np.linalg.solve(a, jtr[..., None])[..., 0]
-        new = theta + step
-        new[:, 3] = np.maximum(new[:, 3], 0.0)
-        res2 = residual(new)
-        sse2 = (res2**2).sum(1)
-        better = np.isfinite(sse2) & (sse2 < sse)
-        theta[better], res[better], sse[better] = new[better], res2[better], sse2[better]
-        lam = np.where(better, lam * 0.3, lam * 10)
+    theta, sse = lm_fit(scene, g, model, steps)
     return unit(theta[:, :3]), sse
 
 

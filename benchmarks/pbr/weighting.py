@@ -66,7 +66,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -382,15 +382,24 @@ def highlight(
     return g
 
 
-def glossy(scene: Scene, g: np.ndarray, lobe: Lobe, steps: int = 30) -> np.ndarray:
-    """(d): Levenberg-Marquardt on (b = rho_d n, rho_s) per pixel from the fit g (rho_s 0)."""
+class Shading(Protocol):
+    """A per-pixel reflectance model: the diffuse and specular factors of each observation for normals n."""
+
+    def shade(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def lm_fit(scene: Scene, g: np.ndarray, model: Shading, steps: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on (b = rho_d n, rho_s) per pixel from the fit g (rho_s 0) under `model`.
+
+    Returns the unknowns (pixels x 4: b, rho_s) and each pixel's squared residual.
+    """
     u = scene.usable.astype(np.float64)
     bad = ~np.isfinite(g).all(1)
     theta = np.concatenate([np.where(bad[:, None], scene.normals * 0.1, g), np.zeros((len(g), 1))], 1)
 
     def residual(th: np.ndarray) -> np.ndarray:
         rho = np.linalg.norm(th[:, :3], axis=-1)
-        d, s = lobe.shade(th[:, :3] / rho[:, None])
+        d, s = model.shade(th[:, :3] / rho[:, None])
         return u * (scene.values - scene.scale * (rho[:, None] * d + th[:, 3:4] * s))
 
     res = residual(theta)
@@ -414,7 +423,12 @@ def glossy(scene: Scene, g: np.ndarray, lobe: Lobe, steps: int = 30) -> np.ndarr
         better = np.isfinite(sse2) & (sse2 < sse)
         theta[better], res[better], sse[better] = new[better], res2[better], sse2[better]
         lam = np.where(better, lam * 0.3, lam * 10)
-    return theta[:, :3]
+    return theta, sse
+
+
+def glossy(scene: Scene, g: np.ndarray, lobe: Lobe, steps: int = 30) -> np.ndarray:
+    """(d): Levenberg-Marquardt on (b = rho_d n, rho_s) per pixel from the fit g (rho_s 0)."""
+    return lm_fit(scene, g, lobe, steps)[0][:, :3]
 
 
 # --------------------------------------------------------------------------------------------------
