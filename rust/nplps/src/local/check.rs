@@ -36,7 +36,7 @@ use crate::reflectance::{Lobe, Packed};
 use crate::vec3::dot;
 
 /// The solver compares the models with fewer lights than this only (the glossy fits'
-/// [`CONTINUE_LIGHTS`](super::glossy::CONTINUE_LIGHTS)). With many lights the held-out squared
+/// `CONTINUE_LIGHTS`). With many lights the held-out squared
 /// error is no judge of a sharp lobe: a highlight predicted a degree off its place costs more
 /// than no highlight at all. On DiLiGenT's ball (96 lights, roughness 0.03) the glossy model
 /// predicted held-out lights worse at the full resolution (summed squared error 438 against 94,
@@ -46,7 +46,7 @@ use crate::vec3::dot;
 /// 0.0007-0.0035), as it did in `nplps evaluate`.
 pub const CHECK_BELOW_LIGHTS: usize = 12;
 
-/// The most folds of the lights in [`check_lobe`] (with fewer lights, one light a fold: leave
+/// The most folds of the lights in the solver's held-out check (with fewer lights, one light a fold: leave
 /// one out).
 pub const CHECK_FOLDS: usize = 8;
 
