@@ -359,9 +359,7 @@ pub(crate) fn coarse_to_fine(
         } else {
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
-            solver.carry_glossy(carried.lobe, carried.matte, &carried.warm);
-            solver.check = carried.check;
-            solver.checked = carried.check.is_some();
+            solver.carry_glossy(carried.lobe, carried.matte, carried.check, &carried.warm);
             solver.carry_shadows(carried.shadows.take())?;
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
@@ -597,7 +595,16 @@ impl<'p> Solver<'p> {
     /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
     /// the glossy normal of the coarser level's pixel under it.
     /// A coarser level that dropped the glossy model (`matte`) makes this one drop it too.
-    fn carry_glossy(&mut self, lobe: Option<Lobe>, matte: Option<Lobe>, warm: &WarmMap) {
+    /// The coarser level's held-out check (`check`, see [`check_lobe`]) is this level's verdict.
+    fn carry_glossy(
+        &mut self,
+        lobe: Option<Lobe>,
+        matte: Option<Lobe>,
+        check: Option<LobeCheck>,
+        warm: &WarmMap,
+    ) {
+        self.check = check;
+        self.checked = check.is_some();
         if !self.options.reflectance.is_glossy() {
             return;
         }
@@ -646,9 +653,7 @@ impl<'p> Solver<'p> {
             self.lights.set_refine(on_level(coarse.refine, unknowns));
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
-            self.carry_glossy(coarse.lobe, coarse.matte, &coarse.warm);
-            self.check = coarse.check;
-            self.checked = coarse.check.is_some();
+            self.carry_glossy(coarse.lobe, coarse.matte, coarse.check, &coarse.warm);
             self.carry_shadows(coarse.shadows)?;
         }
         Ok(coarse.history)
