@@ -248,7 +248,12 @@ SIGNAL_SCRIPT = textwrap.dedent(
         file.write(b"v 0 0 0\\n")
         file.flush()
         print("writing", flush=True)
-        time.sleep(120)
+        # A writer that keeps running Python code, as the real one does. Not one long sleep: a
+        # signal arriving between the print and the sleep would set Python's flag but run its
+        # handler only when the sleep ends (the sleep is not interrupted by a signal that came
+        # before it), which made this test hang once in a while under load.
+        for _ in range(2400):
+            time.sleep(0.05)
 
     export._write_text = slow
     raise SystemExit(cli.main(sys.argv[1:]))
@@ -269,7 +274,12 @@ def test_signal_during_save(tmp_path: Path, scene_dir: Path, scene: nplps.Scene,
         line = proc.stdout.readline()
         assert line.strip() == "writing", (line, proc.stderr.read() if proc.stderr else "")
         proc.send_signal(signum)
-        _, stderr = proc.communicate(timeout=60)
+        try:
+            _, stderr = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, stderr = proc.communicate()
+            pytest.fail(f"the process did not stop within 60 s of the signal; its stderr:\n{stderr}")
     finally:
         proc.kill()
     assert proc.returncode == status, stderr
