@@ -1563,8 +1563,7 @@ mod tests {
                     )
                     .unwrap();
                     let refined =
-                        march_refined(&rig.camera, &rig.lights, n, n, vertices, m, stride)
-                            .unwrap();
+                        march_refined(&rig.camera, &rig.lights, n, n, vertices, m, stride).unwrap();
                     let d: usize = full
                         .bits()
                         .iter()
@@ -1588,7 +1587,9 @@ mod tests {
             }
         }
         assert!(total[0] > 10_000, "{total:?}");
-        eprintln!("refined march (strides 2, 4): {differ:?} of {total:?} shadowed observations differ");
+        eprintln!(
+            "refined march (strides 2, 4): {differ:?} of {total:?} shadowed observations differ"
+        );
         // A mask riddled with holes (1 pixel in 23, about 17 % of its pixels on its border) is
         // marched in full: the same mask.
         let scene = Scene::new(SceneKind::Bumps, n, 100.0, 200.0, 1).unwrap();
