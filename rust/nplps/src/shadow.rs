@@ -67,10 +67,12 @@
 //! 32 x 32, light after light inside a block, so that successive marches read nearby cells.
 //!
 //! With interreflections the solver marches the corrected mesh with `mesh_shadows_refined`:
-//! a quarter of the facets (odd rows and columns) march, the others copy the verdicts of their
-//! lattice neighbours where those agree and march where they do not (a shadow's edge, a
-//! terminator): a quarter of the marches plus the edges', at the price of shadows (or lit gaps)
-//! narrower than two pixels that no lattice facet around sees.
+//! the facets of a lattice of stride `s` march (`s = 2`, the odd rows and columns, up to 511
+//! pixels a side; 4 at 1 MP, 8 from 2048: at least `REFINED_LATTICE` = 256 lattice facets
+//! across), the others copy the verdicts of their lattice neighbours where those agree and
+//! march where they do not (a shadow's edge, a terminator): `1 / s²` of the marches plus the
+//! edges', at the price of shadows (or lit gaps) narrower than `s` pixels that no lattice facet
+//! around sees.
 
 use rayon::prelude::*;
 
