@@ -518,9 +518,10 @@ pub(crate) fn march_all(
 /// pixels about 17 %.
 pub const MAX_BORDER_SHARE: f64 = 0.1;
 
-/// The lattice of [`mesh_shadows_refined`] keeps at least this many facets across the larger
-/// side of the image: its stride is 2 up to 511 pixels a side (every facet of a 256² level is
-/// within a pixel of the lattice), 4 from 1024, 8 from 2048 ([`refined_stride`]).
+/// The lattice of the refined march (`mesh_shadows_refined`, see the module documentation)
+/// keeps at least this many facets across the larger side of the image: its stride is 2 up to
+/// 511 pixels a side (every facet of a 256² level is within a pixel of the lattice), 4 from
+/// 1024, 8 from 2048.
 pub const REFINED_LATTICE: usize = 256;
 
 /// The stride of the lattice of [`mesh_shadows_refined`] on an image of `height` x `width`
