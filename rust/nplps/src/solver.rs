@@ -757,8 +757,8 @@ impl<'p> Solver<'p> {
     /// keep the mask they start with (the converged run's, marched on the mesh they start from;
     /// under `Auto` without one, a round probes and marches), and the last run marches the
     /// corrected mesh (its first and third iterations); with a field, each march is the refined
-    /// one ([`mesh_shadows_refined`]: the lattice of a quarter of the facets, and the facets
-    /// near a shadow's edge). Returns the rounds'
+    /// one ([`mesh_shadows_refined`]: a lattice of a quarter of the facets, of 1/16 at 1 MP, and
+    /// the facets near a shadow's edge). Returns the rounds'
     /// history and whether the last run converged (`converged` without rounds).
     pub(crate) fn interreflect(
         &mut self,
@@ -1033,7 +1033,8 @@ impl<'p> Solver<'p> {
         crate::memory::trace("shadows: after march");
         if seen {
             // With a field of indirect light (the rounds of interreflections and the run
-            // after them), from a quarter of the marches (see [`mesh_shadows_refined`]).
+            // after them), from a lattice of the facets (a quarter of them up to 511 pixels a
+            // side, 1/16 at 1 MP) and the edges (see [`mesh_shadows_refined`]).
             let mask = match self.indirect.is_some() {
                 true => mesh_shadows_refined(
                     &p.rig.camera,
