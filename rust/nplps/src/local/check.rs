@@ -87,10 +87,12 @@ pub const CHECK_FOLDS: usize = 8;
 /// is kept. Measured at the check (`LobeCheck::highlight`): hehe12's leave-one-out runs (7 of
 /// its 8 LEDs each) 0.0010-0.0043 in six runs, 0 (no fit sees the lobe) without LED 4, 0.13
 /// without LED 0 (whose fits' specular albedos are all near 0; its held-out error drops it: RMS
-/// 0.66 against 0.056); the solver's own glossy scenes (sphere and bumps, roughness 0.08, 0.15
-/// and 0.3, 8 and 10 of their 27 lights, 3 seeds, one with 0.5 % noise) 0.058-1.8, the lowest
-/// with the sharpest lobe (0.08, estimated 0.06-0.08). The threshold is about the geometric mean
-/// of the gap's ends (0.0043 and 0.058).
+/// 0.66 against 0.056); the whole hehe12 capture 0.0012, queau_human1 0 (both also dropped by
+/// their held-out error); the solver's own glossy scenes (sphere and bumps, roughness 0.08, 0.15
+/// and 0.3, 8 and 10 of their 27 lights, 3 seeds, one with 0.5 % noise) 0.023-1.8, the lowest
+/// with the sharpest lobe (0.08, estimated 0.03-0.08). The threshold is near the geometric mean
+/// of the gap's ends (0.0043 and 0.023). A wrong distance can refute the model too: the glossy
+/// sphere (roughness 0.15, 8 lights) fitted 5 % and 11 % too far gave 0.0012 and 0.010.
 pub const HIGHLIGHT_CONFIRMS: f64 = 0.01;
 
 /// A fit sees the lobe where `D(n.h_k) / D(1)` reaches this for one of its lights: the lobe's
