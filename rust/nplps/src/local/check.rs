@@ -119,7 +119,7 @@ pub struct LobeCheck {
 
 impl LobeCheck {
     /// Whether the fits that see the lobe confirm its highlight (`highlight >=`
-    /// [`HIGHLIGHT_CONFIRMS`]).
+    /// `HIGHLIGHT_CONFIRMS`, 0.01: see the module documentation of `local::check`).
     pub fn highlight_confirmed(&self) -> bool {
         self.highlight >= HIGHLIGHT_CONFIRMS
     }
