@@ -255,6 +255,9 @@ class LobeCheckDict(TypedDict):
     glossy: float
     lambertian: float
     observations: int
+    seen: int
+    highlight: float
+    highlight_confirmed: bool
 
 
 class ReconstructionDict(_ReconstructionBase, total=False):

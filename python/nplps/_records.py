@@ -57,7 +57,8 @@ class LobeCheck:
     The lights are split into up to 8 folds; each facet of a subsample (at most 1024) is fitted
     without one fold's lights, by the Lambertian model and by the glossy model under the lobe
     found, and predicts that fold's images. The solver keeps the glossy model only where it
-    predicts them better (see docs/method.md, "Which model: held-out prediction").
+    predicts them better and where the fits that see the lobe (one of their lights within its
+    half maximum) confirm its highlight (see docs/method.md, "Which model: held-out prediction").
 
     Attributes
     ----------
@@ -65,16 +66,29 @@ class LobeCheck:
         RMS prediction errors of the held-out observations (image units).
     observations : int
         How many observations (lights x channels of the subsample's facets) were predicted.
+    seen : int
+        How many of the glossy fits (facets x folds) see the lobe: one of the lights they were
+        fitted with lies within its half maximum.
+    highlight : float
+        The median specular albedo of those fits over that of all the glossy fits (0 when none
+        sees the lobe): about 1 on a glossy surface, near 0 where the images show no highlight
+        where the lobe puts one.
+    highlight_confirmed : bool
+        Whether `highlight` reached the solver's threshold (0.01); below it the specular
+        albedos were fitted to the lobe's far tail, and the glossy model is dropped.
     """
 
     glossy: float
     lambertian: float
     observations: int
+    seen: int = 0
+    highlight: float = 1.0
+    highlight_confirmed: bool = True
 
     @property
     def glossy_wins(self) -> bool:
-        """Whether the glossy model predicted the held-out images better (it was then kept)."""
-        return self.glossy < self.lambertian
+        """Whether the glossy model predicted the held-out images better and showed its highlight (then kept)."""
+        return self.highlight_confirmed and self.glossy < self.lambertian
 
     def to_dict(self) -> dict[str, float | int | bool]:
         """Return the comparison as a JSON-ready dict."""
@@ -82,6 +96,9 @@ class LobeCheck:
             "glossy": self.glossy,
             "lambertian": self.lambertian,
             "observations": self.observations,
+            "seen": self.seen,
+            "highlight": self.highlight,
+            "highlight_confirmed": self.highlight_confirmed,
             "glossy_wins": self.glossy_wins,
         }
 

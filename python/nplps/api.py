@@ -305,10 +305,27 @@ def _warn_status(result: Reconstruction) -> None:
         warnings.warn(f"the reconstruction diverged: {result.status_reason}", RuntimeWarning, stacklevel=3)
     check = result.lobe_check
     if result.matte_lobe is not None and check is not None and not check.glossy_wins:
+        reasons = []
+        if check.glossy >= check.lambertian:
+            reasons.append(
+                f"the glossy model predicted held-out lights worse than the Lambertian one (RMS {check.glossy:.4g} "
+                f"vs {check.lambertian:.4g}: too few lights for its unknowns, or no surface highlight)"
+            )
+        if not check.highlight_confirmed:
+            where = (
+                f"the {check.seen} fits with a light within it found {check.highlight:.2g} times the others' "
+                "specular albedo"
+                if check.seen
+                else "no fit had a light within it"
+            )
+            reasons.append(
+                f"the images do not show the highlight of the lobe they fit best (roughness "
+                f"{result.matte_lobe.roughness:.3g}; {where}): its specular albedos were fitted to the lobe's far "
+                "tail and would mispredict a light that falls into it"
+            )
         warnings.warn(
-            f"reflectance='glossy': the glossy model predicted held-out lights worse than the Lambertian "
-            f"one (RMS {check.glossy:.4g} vs {check.lambertian:.4g}: too few lights for its unknowns, or no "
-            "surface highlight), so the Lambertian model was used; give roughness= and eta= to force the glossy model",
+            f"reflectance='glossy': {'; and '.join(reasons)}; so the Lambertian model was used; give roughness= "
+            "and eta= to force the glossy model",
             RuntimeWarning,
             stacklevel=3,
         )

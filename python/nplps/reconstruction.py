@@ -875,7 +875,14 @@ def _lobe(pair: tuple[float, float], diffuse: str) -> Lobe:
 
 def _lobe_check(d: Mapping[str, Any]) -> LobeCheck:
     """Return the core's held-out comparison of the glossy and Lambertian models."""
-    return LobeCheck(float(d["glossy"]), float(d["lambertian"]), int(d["observations"]))
+    return LobeCheck(
+        float(d["glossy"]),
+        float(d["lambertian"]),
+        int(d["observations"]),
+        int(d["seen"]),
+        float(d["highlight"]),
+        bool(d["highlight_confirmed"]),
+    )
 
 
 def _distance_check(d: dict[str, Any] | None) -> DistanceCheck | None:

@@ -175,6 +175,9 @@ pub fn reconstruction_dict<'py>(
         c.set_item("glossy", check.glossy)?;
         c.set_item("lambertian", check.lambertian)?;
         c.set_item("observations", check.observations)?;
+        c.set_item("seen", check.seen)?;
+        c.set_item("highlight", check.highlight)?;
+        c.set_item("highlight_confirmed", check.highlight_confirmed())?;
         d.set_item("lobe_check", c)?;
     }
     if let Some(lobe) = r.lobe {
