@@ -189,11 +189,16 @@ impl Grid {
 
     /// Region label of every pixel (-1 outside the mask), row-major (H, W).
     pub fn pixel_regions(&self) -> Result<Vec<i32>> {
-        let mut out = try_vec(self.height * self.width, -1, "the region map")?;
-        for (f, p) in self.facets.iter().map(|&p| p as usize).enumerate() {
-            out[p] = self.region_of_unknown[self.facet_vertices(f)[0] as usize] as i32;
-        }
-        Ok(out)
+        // Pixel by pixel in parallel (the same values as a pass over the facets).
+        try_par_collect(
+            (0..self.height * self.width)
+                .into_par_iter()
+                .map(|p| match self.facet_of_pixel(p) {
+                    INACTIVE => -1,
+                    f => self.region_of_unknown[self.facet_vertices(f as usize)[0] as usize] as i32,
+                }),
+            "the region map",
+        )
     }
 
     /// Scatters `f` of the per-unknown `values` onto the full (H+1) x (W+1) vertex grid, NaN
@@ -202,13 +207,16 @@ impl Grid {
     pub fn scatter_vertices_with(
         &self,
         values: &[f64],
-        f: impl Fn(f64) -> f64,
+        f: impl Fn(f64) -> f64 + Sync,
     ) -> Result<Vec<f64>> {
-        let mut out = try_vec(self.vertex_unknown.len(), f64::NAN, "a vertex map")?;
-        for (u, v) in self.active.iter().map(|&v| v as usize).enumerate() {
-            out[v] = f(values[u]);
-        }
-        Ok(out)
+        // Vertex by vertex in parallel (`f` is an `exp` per vertex for a pinhole camera).
+        try_par_collect(
+            self.vertex_unknown.par_iter().map(|&u| match u {
+                INACTIVE => f64::NAN,
+                u => f(values[u as usize]),
+            }),
+            "a vertex map",
+        )
     }
 
     /// Gathers the unknowns' values from a full (H+1) x (W+1) vertex grid.
@@ -350,6 +358,28 @@ mod tests {
         assert_eq!(g.n_regions, 1);
         assert_eq!(g.pins, vec![0]);
         assert_eq!(g.facet_vertices(5), [6, 7, 11, 12]);
+    }
+
+    /// The region and vertex maps, made pixel by pixel and vertex by vertex in parallel, hold
+    /// what a pass over the facets and the unknowns writes (holed mask: -1 and NaN outside).
+    #[test]
+    fn region_and_vertex_maps_match_a_pass_over_the_facets() {
+        let (h, w) = (23, 31);
+        let mask: Vec<bool> = (0..h * w).map(|p| (p * 7919) % 11 != 0).collect();
+        let g = Grid::new(h, w, Some(&mask)).unwrap();
+        let mut regions = vec![-1; h * w];
+        for (f, p) in g.facets.iter().map(|&p| p as usize).enumerate() {
+            regions[p] = g.region_of_unknown[g.facet_vertices(f)[0] as usize] as i32;
+        }
+        assert_eq!(g.pixel_regions().unwrap(), regions);
+        let values: Vec<f64> = (0..g.n_unknowns()).map(|u| u as f64 * 0.37 - 3.0).collect();
+        let mut vertices = vec![f64::NAN; (h + 1) * (w + 1)];
+        for (u, v) in g.active.iter().map(|&v| v as usize).enumerate() {
+            vertices[v] = values[u].exp();
+        }
+        let made = g.scatter_vertices_with(&values, f64::exp).unwrap();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&made), bits(&vertices));
     }
 
     #[test]

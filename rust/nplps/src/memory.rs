@@ -117,6 +117,18 @@ pub(crate) fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<
     try_filled(len, value, what)
 }
 
+/// As [`try_vec`], written by the worker threads in parallel: a large buffer's first touch
+/// (the kernel zeroing each fresh page) and its fill are split over the cores instead of
+/// running on the calling thread alone. The same values.
+pub(crate) fn try_par_vec<T: Clone + Send + Sync>(
+    len: usize,
+    value: T,
+    what: &str,
+) -> Result<Vec<T>> {
+    use rayon::prelude::*;
+    try_par_collect((0..len).into_par_iter().map(|_| value.clone()), what)
+}
+
 /// An empty vector with room for exactly `len` values, or [`Error::Memory`].
 pub(crate) fn try_with_capacity<T>(len: usize, what: &str) -> Result<Vec<T>> {
     let mut v = Vec::new();

@@ -966,15 +966,24 @@ impl MultigridSystem {
         let pins = pinned_unknowns(grid, prior)?;
         let layout = Layout::new(grid.height + 1, grid.width + 1);
         let vw = grid.width + 1;
-        let mut flags = try_zeros(layout.rows * layout.cols, "the multigrid's fine level")?;
-        for p in grid.facets.iter().map(|&p| p as usize) {
-            let (r, c) = (p / grid.width, p % grid.width);
-            let v = r * vw + c;
-            flags[v] |= SE;
-            flags[v + 1] |= SW;
-            flags[v + vw] |= NE;
-            flags[v + vw + 1] |= NW;
-        }
+        let mut flags: Vec<u8> =
+            try_zeros(layout.rows * layout.cols, "the multigrid's fine level")?;
+        // Row by row of vertices in parallel: vertex (r, c) is the NW corner (flag SE) of facet
+        // (r, c), the NE corner (SW) of (r, c - 1), the SW corner (NE) of (r - 1, c) and the SE
+        // corner (NW) of (r - 1, c - 1), where those pixels are facets.
+        let (h, w) = (grid.height, grid.width);
+        let facet =
+            |r: usize, c: usize| r < h && c < w && grid.facet_of_pixel(r * w + c) != INACTIVE;
+        flags.par_chunks_mut(vw).enumerate().for_each(|(r, row)| {
+            for (c, f) in row.iter_mut().enumerate() {
+                let (up, left) = (r.wrapping_sub(1), c.wrapping_sub(1));
+                let bit = |on: bool, flag: u8| if on { flag } else { 0 };
+                *f = bit(facet(r, c), SE)
+                    | bit(facet(r, left), SW)
+                    | bit(facet(up, c), NE)
+                    | bit(facet(up, left), NW);
+            }
+        });
         for &p in &pins {
             flags[grid.active[p as usize] as usize] |= PINNED;
         }
@@ -1688,6 +1697,36 @@ pub(crate) mod tests {
             );
             assert!(s.general.len() <= border + 9, "{}", s.general.len());
             assert_eq!(plain + s.general.len(), l.rows * l.cols);
+        }
+    }
+
+    /// The fine level's vertex flags, made row by row in parallel, are those of a pass over the
+    /// facets setting each facet's four corners (full, holed and ragged masks, the pins).
+    #[test]
+    fn fine_flags_are_the_facets_corners() {
+        for (h, w) in [(37, 53), (64, 64), (5, 3)] {
+            for (_, mask) in masks(h, w) {
+                let Ok(grid) = Grid::new(h, w, Some(&mask)) else {
+                    continue;
+                };
+                let mg = MultigridSystem::with_coarsest(&grid, None, 50).unwrap();
+                let Stencils::Fine { flags, .. } = &mg.levels[0].stencils else {
+                    panic!("fine level expected")
+                };
+                let vw = w + 1;
+                let mut expected = vec![0u8; (h + 1) * vw];
+                for p in grid.facets.iter().map(|&p| p as usize) {
+                    let v = (p / w) * vw + p % w;
+                    expected[v] |= SE;
+                    expected[v + 1] |= SW;
+                    expected[v + vw] |= NE;
+                    expected[v + vw + 1] |= NW;
+                }
+                for &p in &mg.pins {
+                    expected[grid.active[p as usize] as usize] |= PINNED;
+                }
+                assert_eq!(flags, &expected, "{h} x {w}");
+            }
         }
     }
 

@@ -17,7 +17,7 @@
 //! rule stops it). The default number of levels halves the image while the coarser level keeps
 //! at least [`COARSEST_SIDE`] pixels along its longer side.
 
-use crate::memory::{try_collect, try_par_collect, try_vec};
+use crate::memory::{try_collect, try_par_collect, try_par_vec, try_vec};
 use rayon::prelude::*;
 
 use crate::error::Result;
@@ -117,7 +117,8 @@ pub fn coarsen(problem: &Problem<'_>, settings: &FitSettings) -> Result<Coarsene
     let obs = &problem.obs;
     // Image by image, coarse row by coarse row (streams through the finer stack: each output
     // row reads its two finer rows as slices); coarse pixels outside the coarse mask stay NaN.
-    let mut values = try_vec(k * ch * cw * channels, f32::NAN, "the coarse images")?;
+    // (filled in parallel: 4 bytes a coarse pixel and light, 190 MB under a 12 MP stack of 16)
+    let mut values = try_par_vec(k * ch * cw * channels, f32::NAN, "the coarse images")?;
     let shape = RowShape {
         h,
         w,

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::error::Result;
 use crate::local::{FacetFit, LobeCheck};
-use crate::memory::try_vec;
+use crate::memory::try_par_vec;
 use crate::options::Refine;
 use crate::problem::Problem;
 use crate::refine::Conditioning;
@@ -247,29 +247,94 @@ pub(crate) struct FitOutputs {
 }
 
 impl FitOutputs {
-    /// Empty outputs for `problem`'s image size (with a specular albedo map when `glossy`).
+    /// Empty outputs for `problem`'s image size (with a specular albedo map when `glossy`),
+    /// filled in parallel (about 40 bytes a pixel: 0.5 GB at 12 MP).
     pub(crate) fn new(problem: &Problem<'_>, glossy: bool) -> Result<FitOutputs> {
         let n = problem.grid.height * problem.grid.width;
         Ok(FitOutputs {
-            specular: try_vec(
+            specular: try_par_vec(
                 if glossy { n } else { 0 },
                 f64::NAN,
                 "the specular albedo map",
             )?,
-            normals: try_vec(n, [f64::NAN; 3], "the normal map")?,
-            albedo: try_vec(n * problem.obs.channels, f64::NAN, "the albedo map")?,
-            residual: try_vec(n, f64::NAN, "the residual map")?,
-            lights_used: try_vec(n, 0, "the map of lights used")?,
+            normals: try_par_vec(n, [f64::NAN; 3], "the normal map")?,
+            albedo: try_par_vec(n * problem.obs.channels, f64::NAN, "the albedo map")?,
+            residual: try_par_vec(n, f64::NAN, "the residual map")?,
+            lights_used: try_par_vec(n, 0, "the map of lights used")?,
         })
     }
 
-    /// Writes the fits of facets `first..first + fits.len()` onto their pixels.
+    /// Writes the fits of facets `first..first + fits.len()` onto their pixels, pieces of the
+    /// facets in parallel (each piece writes its own pixels: a grid's facets are in increasing
+    /// pixel order, so the pieces' pixel ranges do not overlap).
     pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
-        let channels = problem.obs.channels;
-        for (fit, p) in fits
-            .iter()
-            .zip(problem.grid.facets[first..].iter().map(|&p| p as usize))
-        {
+        let facets = &problem.grid.facets[first..first + fits.len()];
+        let view = OutputView {
+            base: 0,
+            channels: problem.obs.channels,
+            normals: &mut self.normals,
+            albedo: &mut self.albedo,
+            residual: &mut self.residual,
+            lights_used: &mut self.lights_used,
+            specular: &mut self.specular,
+        };
+        view.scatter(facets, fits);
+    }
+}
+
+/// Facets a piece of [`FitOutputs::scatter`] writes on one thread.
+const SCATTER_PIECE: usize = 1 << 14;
+
+/// The maps of [`FitOutputs`] from pixel `base` on (the specular map: empty, or as the others).
+struct OutputView<'a> {
+    base: usize,
+    channels: usize,
+    normals: &'a mut [[f64; 3]],
+    albedo: &'a mut [f64],
+    residual: &'a mut [f64],
+    lights_used: &'a mut [u32],
+    specular: &'a mut [f64],
+}
+
+impl OutputView<'_> {
+    /// The pixels before `at` (absolute) and those from `at` on.
+    fn split_at(self, at: usize) -> (Self, Self) {
+        let (m, channels) = (at - self.base, self.channels);
+        let (n0, n1) = self.normals.split_at_mut(m);
+        let (a0, a1) = self.albedo.split_at_mut(m * channels);
+        let (r0, r1) = self.residual.split_at_mut(m);
+        let (u0, u1) = self.lights_used.split_at_mut(m);
+        let (s0, s1) = self.specular.split_at_mut(m.min(self.specular.len()));
+        let view = |base, normals, albedo, residual, lights_used, specular| OutputView {
+            base,
+            channels,
+            normals,
+            albedo,
+            residual,
+            lights_used,
+            specular,
+        };
+        (
+            view(self.base, n0, a0, r0, u0, s0),
+            view(at, n1, a1, r1, u1, s1),
+        )
+    }
+
+    /// Writes `fits` onto the pixels `facets` (increasing, all from `base` on).
+    fn scatter(self, facets: &[u32], fits: &[FacetFit]) {
+        if fits.len() > SCATTER_PIECE {
+            let mid = fits.len() / 2;
+            debug_assert!(facets.windows(2).all(|w| w[0] < w[1]));
+            let (left, right) = self.split_at(facets[mid] as usize);
+            rayon::join(
+                || left.scatter(&facets[..mid], &fits[..mid]),
+                || right.scatter(&facets[mid..], &fits[mid..]),
+            );
+            return;
+        }
+        let channels = self.channels;
+        for (fit, &p) in fits.iter().zip(facets) {
+            let p = p as usize - self.base;
             self.normals[p] = fit.normal;
             self.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
             self.residual[p] = fit.rms(channels);

@@ -399,17 +399,25 @@ pub(crate) fn mesh_shadows(
 ) -> Result<ShadowMask> {
     let (height, width) = (grid.height, grid.width);
     let vertices = Vertices::Mesh { grid, geometry, u };
-    let mut mask = crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
-    for p in grid.facets.iter().map(|&p| p as usize) {
-        mask[p] = true;
-    }
+    // Every pixel a facet: no mask (the same marches), not a pass over the facets to make one.
+    let mask = match grid.n_facets() == height * width {
+        true => None,
+        false => {
+            let mut mask =
+                crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
+            for p in grid.facets.iter().map(|&p| p as usize) {
+                mask[p] = true;
+            }
+            Some(mask)
+        }
+    };
     march_all(
         camera,
         lights,
         height,
         width,
         vertices,
-        Some(&mask),
+        mask.as_deref(),
         max_steps,
         true,
         stride,
@@ -451,17 +459,26 @@ pub(crate) fn march_all(
         None,
     )?;
     let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
-    let z_min = vertices.min_depth();
+    let undistorted = match *camera {
+        Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+        _ => true,
+    };
+    let pyramid = match words > 0 && skip && undistorted {
+        true => Some(Pyramid::new(height, width, vertices, mask)?),
+        false => None,
+    };
+    // The pyramid's vertex depths are those of every vertex: their smallest finite one is
+    // `min_depth`'s (a minimum, whatever the order), without computing each depth again.
+    let z_min = match &pyramid {
+        Some(pyramid) => pyramid
+            .z
+            .par_iter()
+            .copied()
+            .filter(|z| z.is_finite())
+            .reduce(|| f64::INFINITY, f64::min),
+        None => vertices.min_depth(),
+    };
     if words > 0 && z_min.is_finite() {
-        let undistorted = match *camera {
-            Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
-            _ => true,
-        };
-        let pyramid = if skip && undistorted {
-            Some(Pyramid::new(height, width, vertices, mask)?)
-        } else {
-            None
-        };
         let march = March {
             camera,
             height,

@@ -999,15 +999,13 @@ impl<'p> Solver<'p> {
             .max(1.0) as usize;
         let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
         let share = |mask: &ShadowMask, stride: usize| {
-            let probed = p
-                .grid
-                .facets
-                .iter()
-                .filter(|&&f| {
-                    let f = f as usize;
-                    let (r, c) = (f / p.grid.width, f % p.grid.width);
-                    on_lattice(r, stride) && on_lattice(c, stride)
-                })
+            // The facets on the lattice: its rows and columns visited (1 / stride² of the
+            // pixels), not every facet.
+            let (h, w) = (p.grid.height, p.grid.width);
+            let lattice = |n: usize| (0..n).filter(move |&i| on_lattice(i, stride));
+            let probed = lattice(h)
+                .flat_map(|r| lattice(w).map(move |c| r * w + c))
+                .filter(|&q| p.grid.facet_of_pixel(q) != crate::grid::INACTIVE)
                 .count();
             mask.count() as f64 / (probed * mask.lights()).max(1) as f64
         };

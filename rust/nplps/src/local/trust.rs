@@ -30,7 +30,7 @@ use super::{
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
-use crate::memory::try_vec;
+use crate::memory::try_par_vec;
 use crate::vec3::norm;
 
 /// The trust maps and per-light figures of a result (see the module's documentation).
@@ -87,24 +87,60 @@ pub struct TrustMaps {
     channels: usize,
 }
 
+/// Facets a piece of [`TrustMaps::scatter`] writes on one thread.
+const SCATTER_PIECE: usize = 1 << 15;
+
+/// Writes `values` onto the pixels `facets` (increasing, all from `base` on) of the two maps
+/// (from pixel `base` on), halves in parallel above [`SCATTER_PIECE`] facets.
+fn scatter_maps(
+    base: usize,
+    sigma: &mut [f32],
+    held_out: &mut [f32],
+    facets: &[u32],
+    values: &[[f32; 2]],
+) {
+    if values.len() > SCATTER_PIECE {
+        let mid = values.len() / 2;
+        let at = facets[mid] as usize;
+        let (s0, s1) = sigma.split_at_mut(at - base);
+        let (h0, h1) = held_out.split_at_mut(at - base);
+        rayon::join(
+            || scatter_maps(base, s0, h0, &facets[..mid], &values[..mid]),
+            || scatter_maps(at, s1, h1, &facets[mid..], &values[mid..]),
+        );
+        return;
+    }
+    for (v, &p) in values.iter().zip(facets) {
+        let p = p as usize - base;
+        sigma[p] = v[0];
+        held_out[p] = v[1];
+    }
+}
+
 impl TrustMaps {
     /// Empty maps (NaN) of the grid's image for `k` lights of `channels` channels.
     pub fn new(grid: &crate::grid::Grid, k: usize, channels: usize) -> Result<TrustMaps> {
         let pixels = grid.height * grid.width;
         Ok(TrustMaps {
-            normal_sigma: try_vec(pixels, f32::NAN, "the normal uncertainty map")?,
-            held_out: try_vec(pixels, f32::NAN, "the held-out error map")?,
+            normal_sigma: try_par_vec(pixels, f32::NAN, "the normal uncertainty map")?,
+            held_out: try_par_vec(pixels, f32::NAN, "the held-out error map")?,
             sums: vec![[0.0; 4]; k],
             channels,
         })
     }
 
-    /// Writes the values of facets `first..first + per_facet.len()` into the maps.
+    /// Writes the values of facets `first..first + per_facet.len()` into the maps, pieces of
+    /// the facets in parallel (a grid's facets are in increasing pixel order, so the pieces'
+    /// pixels do not overlap).
     pub fn scatter(&mut self, grid: &crate::grid::Grid, first: usize, per_facet: &[[f32; 2]]) {
-        for (v, &p) in per_facet.iter().zip(&grid.facets[first..]) {
-            self.normal_sigma[p as usize] = v[0];
-            self.held_out[p as usize] = v[1];
-        }
+        let facets = &grid.facets[first..first + per_facet.len()];
+        scatter_maps(
+            0,
+            &mut self.normal_sigma,
+            &mut self.held_out,
+            facets,
+            per_facet,
+        );
     }
 
     /// Adds per-light sums.
@@ -144,7 +180,8 @@ impl LocalStep<'_> {
     pub fn trust(&self, u: &[f64]) -> Result<Trust> {
         let grid = self.grid;
         let mut maps = TrustMaps::new(grid, self.obs.k, self.obs.channels)?;
-        let mut per_facet = try_vec(grid.n_facets(), [f32::NAN; 2], "the trust maps")?;
+        let mut per_facet =
+            crate::memory::try_vec(grid.n_facets(), [f32::NAN; 2], "the trust maps")?;
         let sums = self.trust_range(u, 0, &mut per_facet);
         maps.add(sums);
         maps.scatter(grid, 0, &per_facet);
