@@ -61,7 +61,9 @@
 use rayon::prelude::*;
 
 use super::glossy::{held_out_sse, refine, GLOSSY_STEPS, LOBE_SAMPLE};
-use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
+use super::{
+    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LocalStep, Model,
+};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::reflectance::{Lobe, Packed};
@@ -202,18 +204,6 @@ fn highlight_of(fits: &[(bool, f64)]) -> f64 {
 /// observations they sum.
 type Scores = (f64, f64, usize);
 
-/// The observations `values` (`channels` per light) with the lights of fold `j` of `folds`
-/// hidden (NaN, which no fit uses).
-fn without_fold(values: &[f32], channels: usize, folds: usize, j: usize) -> Vec<f32> {
-    let mut kept = values.to_vec();
-    for (k, o) in kept.chunks_exact_mut(channels).enumerate() {
-        if k % folds == j {
-            o.fill(f32::NAN);
-        }
-    }
-    kept
-}
-
 /// The squared error of the Lambertian prediction of `fit` for the usable observations of
 /// `values` that `held` selects (by light): `sum (I_{k,ch} - rho_ch Phi_{k,ch} max(0, n.beta_k))^2`,
 /// and how many observations that sums.
@@ -275,7 +265,7 @@ pub fn check_lobe(step: &LocalStep<'_>, u: &[f64], lobe: &Lobe) -> Result<Option
                 let mut total = (0.0, 0.0, 0);
                 let mut fits = Vec::with_capacity(folds);
                 for j in 0..folds {
-                    let seen = without_fold(values, channels, folds, j);
+                    let seen = hide_lights(values, channels, |k| k % folds == j);
                     let Some(start) = fit_facet(c, step.model, &seen, channels, lambertian) else {
                         continue;
                     };
@@ -359,7 +349,7 @@ mod tests {
     fn a_fold_hides_its_own_lights_only() {
         let values: Vec<f32> = (0..10).map(|x| x as f32).collect();
         // 5 lights x 2 channels, 3 folds: fold 1 holds lights 1 and 4.
-        let kept = without_fold(&values, 2, 3, 1);
+        let kept = hide_lights(&values, 2, |k| k % 3 == 1);
         for (k, o) in kept.chunks_exact(2).enumerate() {
             match k % 3 == 1 {
                 true => assert!(o.iter().all(|x| x.is_nan()), "{k}"),

@@ -58,7 +58,9 @@
 
 use rayon::prelude::*;
 
-use super::{channel_intensity, fit_facet, usable, FacetFit, FitSettings, LocalStep, Model};
+use super::{
+    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LocalStep, Model,
+};
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::light::Light;
@@ -364,13 +366,7 @@ pub(super) fn held_out_sse(
 /// The observations `values` (`channels` per light) with the lights outside fold `j` (light `k`
 /// is in fold `k mod ETA_FOLDS`) hidden: NaN, which no fit uses.
 fn fold(values: &[f32], channels: usize, j: usize) -> Vec<f32> {
-    let mut kept = values.to_vec();
-    for (k, o) in kept.chunks_exact_mut(channels).enumerate() {
-        if k % ETA_FOLDS != j {
-            o.fill(f32::NAN);
-        }
-    }
-    kept
+    hide_lights(values, channels, |k| k % ETA_FOLDS != j)
 }
 
 /// One facet of the lobe search: its centre, view vector, observations and Lambertian fit.

@@ -861,6 +861,23 @@ pub(crate) fn usable(obs: &[f32], settings: &FitSettings) -> bool {
     })
 }
 
+/// The observations `values` (`channels` per light) with the lights `k` for which `hide(k)`
+/// holds hidden: NaN, which no fit uses ([`usable`] is false for them). The held-out checks
+/// (`check`) and the lobe search's folds (`glossy`) fit without some lights this way.
+pub(crate) fn hide_lights(
+    values: &[f32],
+    channels: usize,
+    hide: impl Fn(usize) -> bool,
+) -> Vec<f32> {
+    let mut kept = values.to_vec();
+    for (k, o) in kept.chunks_exact_mut(channels).enumerate() {
+        if hide(k) {
+            o.fill(f32::NAN);
+        }
+    }
+    kept
+}
+
 fn usable_count(values: &[f32], channels: usize, settings: FitSettings) -> u32 {
     values
         .chunks_exact(channels)
