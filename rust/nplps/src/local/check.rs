@@ -67,7 +67,7 @@ use super::{
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
 use crate::reflectance::{Lobe, Packed};
-use crate::vec3::{add, dot, norm, scale};
+use crate::vec3::{add, dot, norm};
 
 /// The solver compares the models with fewer lights than this only (the glossy fits'
 /// `CONTINUE_LIGHTS`). With many lights the held-out squared
@@ -158,12 +158,9 @@ fn lobe_coverage(
         if !fitted(k) || !usable(o, settings) {
             continue;
         }
-        let (b, _, _) = model.row(k, c);
-        let a = norm(b);
-        if !(a > 0.0 && a.is_finite()) {
+        let Some((_, l, _)) = model.light(k, c) else {
             continue;
-        }
-        let l = scale(b, 1.0 / a);
+        };
         let h = add(l, v);
         let hn = norm(h);
         if dot(n, l) <= 0.0 || hn == 0.0 {

@@ -175,15 +175,13 @@ fn observations(
                 }
             }
         }
-        let (b, _, phi) = model.row(k, c);
-        let a = norm(b);
-        if !(a > 0.0 && a.is_finite()) {
+        let Some((a, l, phi)) = model.light(k, c) else {
             continue;
-        }
+        };
         let p: f64 = (0..channels)
             .map(|ch| channel_intensity(phi, channels, ch))
             .sum();
-        out.push(value, p * a, scale(b, 1.0 / a));
+        out.push(value, p * a, l);
     }
     out.prepare(lobe, c);
 }
@@ -345,12 +343,10 @@ pub(super) fn held_out_sse(
         if !held(k) || !usable(o, settings) {
             continue;
         }
-        let (b, _, phi) = model.row(k, c);
-        let a = norm(b);
-        if !(a > 0.0 && a.is_finite()) {
+        let Some((a, l, phi)) = model.light(k, c) else {
             continue;
-        }
-        let sh = lobe.shade(fit.normal, scale(b, 1.0 / a), v);
+        };
+        let sh = lobe.shade(fit.normal, l, v);
         for (ch, &i) in o.iter().enumerate() {
             let pa = channel_intensity(phi, channels, ch) * a;
             let m = sh.map_or(0.0, |sh| {

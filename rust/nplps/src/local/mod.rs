@@ -30,7 +30,7 @@ use crate::light::Light;
 use crate::memory::try_vec;
 use crate::reflectance::{Lobe, Packed};
 use crate::shadow::ShadowMask;
-use crate::vec3::{dot, norm};
+use crate::vec3::{dot, norm, scale};
 
 mod check;
 mod glossy;
@@ -377,6 +377,16 @@ impl Model<'_> {
             }
             Model::Parallel(lights) => (lights[k].0, 1.0, lights[k].1),
         }
+    }
+
+    /// Light k at `c` as the glossy model uses it: `(a, l, phi)` with `a = |beta_k(c)|`, the
+    /// unit direction `l = (1 / a) beta_k(c)` and the intensity `phi`; `None` unless `a` is
+    /// positive and finite.
+    #[inline]
+    fn light(&self, k: usize, c: [f64; 3]) -> Option<(f64, [f64; 3], [f64; 3])> {
+        let (b, _, phi) = self.row(k, c);
+        let a = norm(b);
+        (a > 0.0 && a.is_finite()).then(|| (a, scale(b, 1.0 / a), phi))
     }
 }
 
