@@ -705,8 +705,9 @@ fn final_residuals(
         let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
         // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
         // non-negative terms changes no bit); the light's terms are added to its running sums
-        // lane by lane (no horizontal sum per batch).
-        let mut add = [[0.0f64; LANES]; 4];
+        // lane by lane (no horizontal sum per batch), straight from the selected values: a
+        // staging array of the four terms was written with masked stores that the loads of
+        // the additions waited for.
         for l in 0..LANES {
             let used = ok[l] && solved.active[l];
             let finite = used && loo[l].is_finite();
@@ -714,15 +715,10 @@ fn final_residuals(
             trust_sse[l] += if used { ee } else { 0.0 };
             loo_sum[l] += if finite { loo[l].abs() } else { 0.0 };
             loo_count[l] += if finite { 1.0 } else { 0.0 };
-            add[0][l] = if used { ee } else { 0.0 };
-            add[1][l] = if finite { loo[l] * loo[l] } else { 0.0 };
-            add[2][l] = if used { i[l] } else { 0.0 };
-            add[3][l] = if used { 1.0 } else { 0.0 };
-        }
-        for (sum, add) in sum.iter_mut().zip(&add) {
-            for l in 0..LANES {
-                sum[l] += add[l];
-            }
+            sum[0][l] += if used { ee } else { 0.0 };
+            sum[1][l] += if finite { loo[l] * loo[l] } else { 0.0 };
+            sum[2][l] += if used { i[l] } else { 0.0 };
+            sum[3][l] += if used { 1.0 } else { 0.0 };
         }
     }
     [sse, trust_sse, loo_sum, loo_count]
