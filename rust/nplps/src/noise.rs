@@ -48,7 +48,7 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_shape, Result};
 use crate::memory::{try_vec, try_with_capacity};
-use crate::problem::ImageStack;
+use crate::problem::{u16_value, ImageStack, Samples};
 
 /// `Phi^-1(5/8)`: the lower quartile of `|N(0, 1)|`.
 const QUARTILE_SCALE: f64 = 0.318_639_363_964_375_4;
@@ -91,16 +91,7 @@ pub fn estimate_noise(images: &ImageStack<'_>, mask: Option<&[bool]>) -> Result<
         let (i, ch) = (plane / c, plane % c);
         data.get((i * h * w + p) * c + ch)
     };
-    let top = (0..planes)
-        .into_par_iter()
-        .map(|plane| {
-            (0..h * w)
-                .filter(|&p| inside(p))
-                .map(|p| value(plane, p))
-                .filter(|v| v.is_finite())
-                .fold(0.0f32, f32::max)
-        })
-        .reduce(|| 0.0, f32::max) as f64;
+    let top = largest(&data, h * w, c, mask) as f64;
     if h < 3 || w < 3 || top <= 0.0 {
         return Ok(0.0);
     }
@@ -162,6 +153,101 @@ pub fn estimate_noise(images: &ImageStack<'_>, mask: Option<&[bool]>) -> Result<
         }
     }
     Ok(if sigma < ZERO_BELOW * top { 0.0 } else { sigma })
+}
+
+/// Values per block of [`largest`]: one running maximum per position in the block, so that the
+/// comparisons of a block run in vector lanes.
+const BLOCK: usize = 16;
+
+/// The largest finite value of `data` (planes of `hw` pixels with `channels` interleaved
+/// values each) at the pixels inside `mask`, or 0 when none is positive: `max(0, max v)` over
+/// those values. The maximum of a set does not depend on the order it is taken in (ties are
+/// equal values), so the planes are split over the threads and each is scanned in blocks of
+/// [`BLOCK`] with one running maximum per position; a 16-bit stack takes the largest integer
+/// and converts it once (`v -> v / 65535` is increasing, so the largest value is the value of
+/// the largest integer). NaN marks missing observations and is never larger.
+fn largest(data: &Samples<'_>, hw: usize, channels: usize, mask: Option<&[bool]>) -> f32 {
+    let planes = data.len() / hw.max(1);
+    (0..planes)
+        .into_par_iter()
+        .map(|plane| {
+            let (image, channel) = (plane / channels, plane % channels);
+            let start = image * hw * channels;
+            let end = start + hw * channels;
+            match *data {
+                Samples::F32(d) => {
+                    plane_max(&d[start..end], channels, channel, mask, 0.0, |x, m| {
+                        if x.is_finite() && x > m {
+                            x
+                        } else {
+                            m
+                        }
+                    })
+                }
+                Samples::U16(d) => u16_value(plane_max(
+                    &d[start..end],
+                    channels,
+                    channel,
+                    mask,
+                    0,
+                    u16::max,
+                )),
+            }
+        })
+        .reduce(|| 0.0, f32::max)
+}
+
+/// `max_with(... max_with(x_0, zero) ..., m)` over the values `x_p = image[p * channels +
+/// channel]` of one image's pixels `p` inside `mask`. `max_with(x, m)` is a maximum, so the
+/// order does not matter: a grey image is taken in blocks of [`BLOCK`] pixels with one running
+/// value per position in the block (vector lanes, no bounds checks), combined at the end.
+#[inline(always)]
+fn plane_max<T: Copy>(
+    image: &[T],
+    channels: usize,
+    channel: usize,
+    mask: Option<&[bool]>,
+    zero: T,
+    max_with: impl Fn(T, T) -> T + Copy,
+) -> T {
+    if channels != 1 {
+        let values = image.iter().skip(channel).step_by(channels);
+        return match mask {
+            None => values.fold(zero, |m, &x| max_with(x, m)),
+            Some(mask) => values.zip(mask).fold(
+                zero,
+                |m, (&x, &inside)| if inside { max_with(x, m) } else { m },
+            ),
+        };
+    }
+    let mut run = [zero; BLOCK];
+    let blocks = image.chunks_exact(BLOCK);
+    let rest = blocks.remainder();
+    let mut m = zero;
+    match mask {
+        None => {
+            for block in blocks {
+                for (r, &x) in run.iter_mut().zip(block) {
+                    *r = max_with(x, *r);
+                }
+            }
+            m = rest.iter().fold(m, |m, &x| max_with(x, m));
+        }
+        Some(mask) => {
+            let inside = mask.chunks_exact(BLOCK);
+            let rest_inside = inside.remainder();
+            for (block, inside) in blocks.zip(inside) {
+                for ((r, &x), &inside) in run.iter_mut().zip(block).zip(inside) {
+                    let y = max_with(x, *r);
+                    *r = if inside { y } else { *r };
+                }
+            }
+            for (&x, &inside) in rest.iter().zip(rest_inside) {
+                m = if inside { max_with(x, m) } else { m };
+            }
+        }
+    }
+    run.into_iter().fold(m, |a, b| max_with(b, a))
 }
 
 /// The `q` quantile (lower) of `values` by selection (reorders them); `values` is not empty.
@@ -305,6 +391,55 @@ mod tests {
                     // 61 % of the windows touch a speck: the quartile is the clean residuals'
                     // 64th percentile, about 2.9 times their lower quartile.
                     assert!(got > sigma && got < 3.5 * sigma, "seed {seed}: {got}");
+                }
+            }
+        }
+    }
+
+    /// The plain maximum [`largest`] replaces: `max(0, max v)` over the finite values inside the
+    /// mask, pixel after pixel.
+    fn plain_largest(data: &Samples<'_>, hw: usize, c: usize, mask: Option<&[bool]>) -> f32 {
+        (0..data.len())
+            .filter(|&i| mask.is_none_or(|m| m[(i / c) % hw]))
+            .map(|i| data.get(i))
+            .filter(|v| v.is_finite())
+            .fold(0.0f32, f32::max)
+    }
+
+    #[test]
+    fn largest_is_the_plain_maximum_bit_for_bit() {
+        // Sizes around the block length, one and three channels, with and without a mask,
+        // negative, infinite and NaN values (float32) and 16-bit values; several seeds.
+        for seed in 0..6u64 {
+            let mut rng = Gauss(seed * 7919 + 1);
+            for (h, w) in [(1, 1), (3, 5), (4, 4), (7, 9), (16, 17), (31, 33)] {
+                let hw = h * w;
+                for c in [1, 3] {
+                    let k = 1 + (seed as usize % 4);
+                    let n = k * hw * c;
+                    let f: Vec<f32> = (0..n)
+                        .map(|_| match (rng.uniform() * 20.0) as u32 {
+                            0 => f32::NAN,
+                            1 => f32::INFINITY,
+                            2 => f32::NEG_INFINITY,
+                            3 => -0.0,
+                            _ => (rng.normal() * 0.3) as f32,
+                        })
+                        .collect();
+                    let u: Vec<u16> = (0..n).map(|_| (rng.uniform() * 65536.0) as u16).collect();
+                    let m: Vec<bool> = (0..hw).map(|_| rng.uniform() < 0.7).collect();
+                    let none = vec![false; hw];
+                    for data in [Samples::F32(&f), Samples::U16(&u)] {
+                        for mask in [None, Some(&m[..]), Some(&none[..])] {
+                            let got = largest(&data, hw, c, mask);
+                            let want = plain_largest(&data, hw, c, mask);
+                            // Equal values; a maximum of 0 may be either zero.
+                            assert!(
+                                got.to_bits() == want.to_bits() || (got == 0.0 && want == 0.0),
+                                "seed {seed} {h}x{w}x{c}: {got} vs {want}"
+                            );
+                        }
+                    }
                 }
             }
         }
