@@ -26,8 +26,11 @@
 //! - [`Light::with_shape`]: the LED shape `(mu, axis)` that calibration fits (it differentiates
 //!   the shape by finite differences of [`Light::beta`], so no analytic shape derivative exists);
 //! - [`LaneLight`] and [`LaneLight::beta`]: the lane (SIMD) form of `beta` for several surface
-//!   points at once, with its eligibility rule ([`LaneLight::from_light`]: isotropic point
-//!   lights and LEDs with `mu = 1`), the same operations in the same order as [`Light::beta`].
+//!   points at once, with its eligibility rule ([`LaneLight::from_light`]: every point light),
+//!   the same operations in the same order as [`Light::beta`];
+//! - [`power_lanes`] and [`power`]: the LED anisotropy's power `t^mu` without libm, in lanes
+//!   (a libm call per facet and light was a third of an LED rig's reconstruction, and kept LED
+//!   rigs with `mu` other than 0 or 1 out of the lane form).
 //!
 //! Adding a light model means a new [`Light`] variant here, its entry in the rig file reader and
 //! the bindings, and its Python value class.
@@ -168,11 +171,7 @@ impl Light {
                 let d2 = dot(a, a);
                 let d = d2.sqrt();
                 let d3 = d2 * d;
-                let aniso = if mu == 0.0 {
-                    1.0
-                } else {
-                    (-dot(a, axis) / d).max(0.0).powf(mu)
-                };
+                let aniso = anisotropy((-dot(a, axis) / d).max(0.0), mu);
                 let f = aniso / d3;
                 ([a[0] * f, a[1] * f, a[2] * f], d3, aniso)
             }
@@ -228,7 +227,7 @@ impl Light {
         }
         let (tm, tm1) = match aniso {
             Some(tm) => (tm, tm / t),
-            None => (t.powf(mu), t.powf(mu - 1.0)),
+            None => (anisotropy(t, mu), anisotropy(t, mu - 1.0)),
         };
         let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
         let dm = mu * tm1 * inv3;
@@ -371,22 +370,152 @@ impl Light {
     }
 }
 
+/// `ln 2` split so that `k * LN2_HI` is exact for integers `|k| < 2^21` (its last 21 bits zero).
+const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
+/// `ln 2 - LN2_HI` (to double precision).
+const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
+/// Adding and subtracting it rounds a float below `2^51` in magnitude to the nearest integer
+/// (and its bits then hold that integer in their low part).
+const ROUND: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
+
+/// `base^exponent` for `N` bases at once with one exponent, for the LED anisotropy `t^mu`
+/// (`t = max(0, cos)` in `[0, 1]`): straight-line code over the lanes (no call into libm, no
+/// branch per lane), so that it runs in SIMD registers inside the lane form of the model, and
+/// the one power of the scalar model too ([`power`]), so that both agree bit for bit.
+///
+/// With `b = m 2^e`, `m` in `[sqrt(1/2), sqrt(2))` (subnormal bases scaled by `2^54` first),
+/// `ln b = e ln 2 + 2 atanh(s)`, `s = (m - 1) / (m + 1)`, `|s| <= 0.172`, the series
+/// `atanh(s) = s (1 + s^2/3 + ... + s^22/23)` (remainder below `1e-19` relative); then `y =
+/// exponent * ln b = k ln 2 + r` with `k` the nearest integer of `y / ln 2` (`ln 2` in two parts,
+/// Cody-Waite) and `|r| <= ln 2 / 2`, `exp(r)` by its Taylor series to `r^14/14!` (remainder
+/// below `5e-18`) and the result `exp(r) 2^k`, the power of two built in two halves so that
+/// results down to the subnormals and up to infinity come out right. `ln b` is good to about
+/// one unit in the last place, and the product `y` carries that to the result: its relative
+/// error is about `(1 + |y|) 2^-52` (libm's `powf` is correctly rounded); measured in
+/// `power_matches_libm` below. Special values as
+/// `powf` for non-negative bases: `0^e` is 0 for `e > 0`, 1 for `e = 0`, infinity for `e < 0`;
+/// `b^0 = 1` and `1^e = 1` exactly. A base of NaN or below 0 is not for this function.
+#[inline(always)]
+pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f64; N] {
+    const SCALE: f64 = 18_014_398_509_481_984.0; // 2^54
+    let tiny: [bool; N] = std::array::from_fn(|l| base[l] < f64::MIN_POSITIVE);
+    let b: [f64; N] = std::array::from_fn(|l| if tiny[l] { base[l] * SCALE } else { base[l] });
+    let bits: [u64; N] = std::array::from_fn(|l| b[l].to_bits());
+    // The mantissa in [1, 2), halved when above sqrt(2) (its exponent then one more).
+    let high: [bool; N] =
+        std::array::from_fn(|l| (bits[l] & 0x000F_FFFF_FFFF_FFFF) > 0x0006_A09E_667F_3BCC);
+    let m: [f64; N] = std::array::from_fn(|l| {
+        let exponent_bits = if high[l] {
+            0x3FE0_0000_0000_0000
+        } else {
+            0x3FF0_0000_0000_0000
+        };
+        f64::from_bits((bits[l] & 0x000F_FFFF_FFFF_FFFF) | exponent_bits)
+    });
+    let e: [f64; N] = std::array::from_fn(|l| {
+        let biased = ((bits[l] >> 52) & 0x7FF) as i64 + i64::from(high[l]);
+        let scaled = if tiny[l] { 54 } else { 0 };
+        (biased - 1023 - scaled) as f64
+    });
+    let s: [f64; N] = std::array::from_fn(|l| (m[l] - 1.0) / (m[l] + 1.0));
+    let z: [f64; N] = std::array::from_fn(|l| s[l] * s[l]);
+    let series: [f64; N] = std::array::from_fn(|l| {
+        let z = z[l];
+        let mut p = 1.0 / 23.0;
+        p = p * z + 1.0 / 21.0;
+        p = p * z + 1.0 / 19.0;
+        p = p * z + 1.0 / 17.0;
+        p = p * z + 1.0 / 15.0;
+        p = p * z + 1.0 / 13.0;
+        p = p * z + 1.0 / 11.0;
+        p = p * z + 1.0 / 9.0;
+        p = p * z + 1.0 / 7.0;
+        p = p * z + 1.0 / 5.0;
+        p = p * z + 1.0 / 3.0;
+        p * z
+    });
+    // ln b = e LN2_HI + (e LN2_LO + 2 s + 2 s z series): the large part exact. Clamped to where
+    // the result is 0 or infinity anyway (keeps k and 2^k in range).
+    let y: [f64; N] = std::array::from_fn(|l| {
+        let ln_b = e[l] * LN2_HI + (e[l] * LN2_LO + (2.0 * s[l] + 2.0 * s[l] * series[l]));
+        (exponent * ln_b).clamp(-746.0, 710.0)
+    });
+    let rounded: [f64; N] = std::array::from_fn(|l| y[l] * std::f64::consts::LOG2_E + ROUND);
+    let k: [f64; N] = std::array::from_fn(|l| rounded[l] - ROUND);
+    // r = y - k ln 2, ln 2 in two parts (k LN2_HI exact).
+    let r: [f64; N] = std::array::from_fn(|l| y[l] - k[l] * LN2_HI - k[l] * LN2_LO);
+    let p: [f64; N] = std::array::from_fn(|l| {
+        let r = r[l];
+        let mut p = 1.0 / 87_178_291_200.0; // 1/14!
+        p = p * r + 1.0 / 6_227_020_800.0;
+        p = p * r + 1.0 / 479_001_600.0;
+        p = p * r + 1.0 / 39_916_800.0;
+        p = p * r + 1.0 / 3_628_800.0;
+        p = p * r + 1.0 / 362_880.0;
+        p = p * r + 1.0 / 40_320.0;
+        p = p * r + 1.0 / 5_040.0;
+        p = p * r + 1.0 / 720.0;
+        p = p * r + 1.0 / 120.0;
+        p = p * r + 1.0 / 24.0;
+        p = p * r + 1.0 / 6.0;
+        p = p * r + 0.5;
+        p = p * r + 1.0;
+        p * r + 1.0
+    });
+    std::array::from_fn(|l| {
+        let k = rounded[l].to_bits() as i64 - ROUND.to_bits() as i64;
+        let half = k >> 1;
+        let two_a = f64::from_bits(((half + 1023) as u64) << 52);
+        let two_b = f64::from_bits(((k - half + 1023) as u64) << 52);
+        let value = p[l] * two_a * two_b;
+        if base[l] > 0.0 {
+            value
+        } else if exponent > 0.0 {
+            0.0
+        } else if exponent == 0.0 {
+            1.0
+        } else {
+            f64::INFINITY
+        }
+    })
+}
+
+/// The LED anisotropy `t^mu` of a clipped cosine `t >= 0`: 1 for `mu = 0` (an isotropic point
+/// light, whatever `t`), `t` itself for `mu = 1`, else [`power`].
+#[inline]
+pub(crate) fn anisotropy(t: f64, mu: f64) -> f64 {
+    if mu == 0.0 {
+        1.0
+    } else if mu == 1.0 {
+        t
+    } else {
+        power(t, mu)
+    }
+}
+
+/// `base^exponent` for one non-negative base: [`power_lanes`] with one lane (the scalar model's
+/// power, so that it agrees with the lane form bit for bit).
+#[inline]
+pub(crate) fn power(base: f64, exponent: f64) -> f64 {
+    power_lanes(&[base], exponent)[0]
+}
+
 /// A light in the lane (SIMD) form of the model, which evaluates `beta` at several surface
-/// points at once: an isotropic point light, or an LED with `mu = 1` (where `t^mu = t`, no
-/// `powf`), with its grey intensity.
+/// points at once: a point light (isotropic, or an LED of any anisotropy `mu`, its power by
+/// [`power_lanes`]), with its grey intensity.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct LaneLight {
     position: [f64; 3],
     axis: [f64; 3],
-    /// Whether the light is an LED with `mu = 1` (else isotropic).
-    led: bool,
+    /// The anisotropy `mu` (0: isotropic).
+    mu: f64,
     /// Grey intensity, the mean of the channels ([`channel_intensity`] of one channel).
     pub grey: f64,
 }
 
 impl LaneLight {
-    /// The lane form of `light`, when it has one: a point light with `mu = 0` or `mu = 1`
-    /// (None for other anisotropies and for directional lights).
+    /// The lane form of `light`, when it has one: any point light (None for a directional
+    /// light).
     pub fn from_light(light: &Light) -> Option<LaneLight> {
         match *light {
             Light::Point {
@@ -394,19 +523,20 @@ impl LaneLight {
                 intensity,
                 axis,
                 mu,
-            } if mu == 0.0 || mu == 1.0 => Some(LaneLight {
+            } => Some(LaneLight {
                 position,
                 axis,
-                led: mu == 1.0,
+                mu,
                 grey: channel_intensity(intensity, 1, 0),
             }),
-            _ => None,
+            Light::Directional { .. } => None,
         }
     }
 
     /// For `N` surface points `x`: `a = p - x` and the factor `f` with `beta = a * f` (see
     /// [`Light::beta`]), computed per lane with the operations of the scalar code in its order
-    /// (for `mu = 1`, `max(0, t)^1 = max(0, t)` exactly). Straight-line code over the lanes, one
+    /// (the anisotropy as [`anisotropy`] takes it: 1 for `mu = 0`, `max(0, t)` for `mu = 1`, else
+    /// [`power_lanes`], the scalar [`power`]'s lanes). Straight-line code over the lanes, one
     /// operation at a time, so that the compiler turns each line into one vector instruction.
     #[inline(always)]
     pub fn beta<const N: usize>(&self, x: &[[f64; 3]; N]) -> ([[f64; N]; 3], [f64; N]) {
@@ -418,12 +548,17 @@ impl LaneLight {
         let d2: [f64; N] = std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
         let d: [f64; N] = std::array::from_fn(|l| d2[l].sqrt());
         let d3: [f64; N] = std::array::from_fn(|l| d2[l] * d[l]);
-        let f: [f64; N] = if self.led {
-            std::array::from_fn(|l| {
-                (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0) / d3[l]
-            })
-        } else {
+        let f: [f64; N] = if self.mu == 0.0 {
             std::array::from_fn(|l| 1.0 / d3[l])
+        } else {
+            let t: [f64; N] =
+                std::array::from_fn(|l| (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0));
+            if self.mu == 1.0 {
+                std::array::from_fn(|l| t[l] / d3[l])
+            } else {
+                let aniso = power_lanes(&t, self.mu);
+                std::array::from_fn(|l| aniso[l] / d3[l])
+            }
         };
         ([a0, a1, a2], f)
     }
@@ -573,7 +708,7 @@ mod tests {
             [0.1, 0.2, 30.0],
             [200.0, 0.0, 6.0],
         ];
-        for mu in [0.0, 1.0] {
+        for mu in [0.0, 1.0, 2.5, 0.5, 1.7] {
             let light = led(mu);
             let lane = LaneLight::from_light(&light).unwrap();
             assert_eq!(lane.grey, 2.0);
@@ -587,7 +722,6 @@ mod tests {
                 );
             }
         }
-        assert!(LaneLight::from_light(&led(2.5)).is_none());
         let sun = Light::Directional {
             direction: [0.0, 0.0, -1.0],
             intensity: [1.0; 3],
@@ -612,5 +746,58 @@ mod tests {
             intensity: [1.0; 3],
         };
         assert_eq!(sun.with_shape(2.0, [1.0, 0.0, 0.0]), sun);
+    }
+
+    /// The power without libm agrees with libm's (correctly rounded) `powf` within a few units
+    /// in the last place over the bases and exponents of LEDs, and its special values are
+    /// `powf`'s.
+    #[test]
+    fn power_matches_libm() {
+        // The relative error over (1 + |y|) ulp, y = mu ln t.
+        let mut worst = 0.0f64;
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut uniform = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..200_000 {
+            let t = 10f64.powf(-6.0 * uniform());
+            let mu = -2.0 + 14.0 * uniform();
+            let (ours, libm) = (power(t, mu), t.powf(mu));
+            let y = (mu * t.ln()).abs();
+            worst = worst.max((ours - libm).abs() / libm / (1.0 + y) / f64::EPSILON);
+        }
+        eprintln!("power: worst error {worst:.3} (1 + |y|) ulp");
+        assert!(worst < 2.0, "worst error {worst:e} (1 + |y|) ulp");
+        for mu in [0.5, 1.3, 2.0, 7.25] {
+            for t in [
+                1.0,
+                0.5,
+                0.25,
+                1e-3,
+                0.999_999,
+                f64::MIN_POSITIVE,
+                1e-310,
+                5e-324,
+            ] {
+                let (ours, libm) = (power(t, mu), t.powf(mu));
+                let bound = 2.0 * (1.0 + (mu * t.ln()).abs()) * f64::EPSILON * libm;
+                assert!(
+                    ours == libm || (ours - libm).abs() <= bound,
+                    "{t:e}^{mu}: {ours:e} vs {libm:e}"
+                );
+            }
+        }
+        assert_eq!(power(1.0, 3.3), 1.0);
+        assert_eq!(power(0.3, 0.0), 1.0);
+        assert_eq!(power(0.0, 2.0), 0.0);
+        assert_eq!(power(0.0, 0.0), 1.0);
+        assert_eq!(power(0.0, -1.0), f64::INFINITY);
+        assert_eq!(power(1e-200, 2.0), 0.0);
+        assert_eq!(power(1e-200, -2.0), f64::INFINITY);
+        let lanes = power_lanes(&[0.2, 0.0, 1.0, 1e-310], 1.5);
+        assert_eq!(lanes, [0.2, 0.0, 1.0, 1e-310].map(|t| power(t, 1.5)));
     }
 }

@@ -109,8 +109,8 @@ pub(super) const LANES: usize = 8;
 
 impl LocalStep<'_> {
     /// The lights of the vectorized accumulation, when it applies: grey images, unit weights,
-    /// no robust fit, and only lights with a lane form ([`LaneLight::from_light`]: isotropic
-    /// point lights or LEDs with `mu = 1`). It computes the same sums in the same order as
+    /// no robust fit, and only lights with a lane form ([`LaneLight::from_light`]: point
+    /// lights, isotropic or LEDs). It computes the same sums in the same order as
     /// [`Facet::accumulate_grey`](super::Facet::accumulate_grey).
     pub(super) fn lane_lights(&self) -> Option<Vec<LaneLight>> {
         let s = self.settings;
@@ -1119,7 +1119,8 @@ mod tests {
     }
 
     /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic
-    /// lights and LEDs with mu = 1, shadowed and missing observations, a partial last batch).
+    /// lights and LEDs with mu = 1 and 2.3, shadowed and missing observations, a partial last
+    /// batch).
     #[test]
     fn lanes_match_the_scalar_fits_exactly() {
         use crate::rig::{Camera, Rig};
@@ -1137,6 +1138,12 @@ mod tests {
             intensity: [2.0, 3.0, 4.0],
             axis: normalize([-0.2, 0.1, 1.0]),
             mu: 1.0,
+        });
+        lights.push(Light::Point {
+            position: [-9.0, 14.0, 25.0],
+            intensity: [3.0, 2.0, 2.5],
+            axis: normalize([0.3, -0.2, 1.0]),
+            mu: 2.3,
         });
         let _ = Rig {
             camera,
