@@ -167,6 +167,54 @@ impl WarmMap {
         let (r, c) = (p / width / 2, p % width / 2);
         (r < self.height && c < self.width).then(|| self.normals[r * self.width + c])
     }
+
+    /// The coarser normals interpolated bilinearly at the centre of pixel `p` of a grid `width`
+    /// wide (twice as fine). Coarser pixel `k` covers the finer pixels `2k` and `2k + 1`, so the
+    /// centre of the finer pixel `i` lies at the coarser coordinate `y = (i + 1/2) / 2 - 1/2`
+    /// (`k - 1/4` for `i = 2k`, `k + 1/4` for `i = 2k + 1`): per axis the nearest coarser pixel
+    /// weighs 3/4 and the next one 1/4. The normal is the unit vector along `sum_j w_j n_j`
+    /// over the (up to 4) neighbours `j` that have a normal (finite, inside the coarser grid);
+    /// where none has one, or the sum vanishes, the pixel under's ([`WarmMap::under`]).
+    ///
+    /// Why: the pixel under holds one normal for 4 finer facets, the average of their surface;
+    /// on a smooth surface the interpolation is nearer each facet's own normal, so the first
+    /// glossy fits of the finer level start closer to their minimum and more of them stop at the
+    /// step tolerance. Glossy bumps lobe given, all levels: 1 MP Gauss-Newton evaluations
+    /// 6.36 M -> 5.96 M, residual-only evaluations 1.04 M -> 0.40 M, the same 14 iterations.
+    fn bilinear(&self, p: usize, width: usize) -> Option<[f32; 3]> {
+        let (r, c) = (p / width, p % width);
+        // Per axis: the nearest coarser index and the neighbour on the side of the centre.
+        let axis = |i: usize, len: usize| -> [(Option<usize>, f64); 2] {
+            let k = i / 2;
+            let other = match i % 2 {
+                0 => k.checked_sub(1),
+                _ => Some(k + 1),
+            };
+            [
+                ((k < len).then_some(k), 0.75),
+                (other.filter(|&o| o < len), 0.25),
+            ]
+        };
+        let mut sum = [0.0f64; 3];
+        for (y, wy) in axis(r, self.height) {
+            for (x, wx) in axis(c, self.width) {
+                let (Some(y), Some(x)) = (y, x) else {
+                    continue;
+                };
+                let n = self.normals[y * self.width + x];
+                if n.iter().all(|v| v.is_finite()) {
+                    for j in 0..3 {
+                        sum[j] += wy * wx * f64::from(n[j]);
+                    }
+                }
+            }
+        }
+        let len = (sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]).sqrt();
+        match len > 0.0 && len.is_finite() {
+            true => Some(sum.map(|x| (x / len) as f32)),
+            false => self.under(p, width),
+        }
+    }
 }
 
 /// With an estimated glossy lobe, the lobe is estimated at the first iteration of a solver that
@@ -593,7 +641,7 @@ impl<'p> Solver<'p> {
     }
 
     /// Starts from the lobe a coarser level estimated (when there is one), and each facet from
-    /// the glossy normal of the coarser level's pixel under it.
+    /// the coarser level's glossy normals interpolated at its pixel ([`WarmMap::bilinear`]).
     /// A coarser level that dropped the glossy model (`matte`) makes this one drop it too.
     /// The coarser level's held-out check (`check`, see [`check_lobe`]) is this level's verdict.
     fn carry_glossy(
@@ -620,7 +668,7 @@ impl<'p> Solver<'p> {
             .iter_mut()
             .zip(fine.facets.iter().map(|&p| p as usize))
         {
-            if let Some(n) = warm.under(p, fine.width) {
+            if let Some(n) = warm.bilinear(p, fine.width) {
                 *w = n;
             }
         }
@@ -1557,6 +1605,70 @@ impl RmsSum {
         } else {
             (self.sse / self.count as f64).sqrt()
         }
+    }
+}
+
+#[cfg(test)]
+mod warm_tests {
+    use super::*;
+    use crate::vec3::{dot, norm};
+
+    /// The unit normal of the surface `z = a x^2 + b y^2 + c x y` at `(x, y)`.
+    fn quadric_normal(x: f64, y: f64) -> [f64; 3] {
+        let (a, b, c) = (0.3, -0.2, 0.15);
+        let g = [-(2.0 * a * x + c * y), -(2.0 * b * y + c * x), 1.0];
+        let l = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+        g.map(|v| v / l)
+    }
+
+    /// The angle between two unit vectors (radians).
+    fn angle(a: [f64; 3], b: [f32; 3]) -> f64 {
+        let b = b.map(f64::from);
+        let cross = [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ];
+        norm(cross).atan2(dot(a, b))
+    }
+
+    #[test]
+    fn the_interpolated_warm_normals_are_nearer_the_finer_surface() {
+        // A coarser map of a curved surface (its normals at the coarser pixels' centres) and the
+        // finer pixels' own normals: the interpolation is nearer than the pixel under, and
+        // exact where the coarser map is constant.
+        let (w, h) = (7usize, 5usize);
+        let at = |y: f64, x: f64| quadric_normal(0.3 * (x - 3.0), 0.3 * (y - 2.0));
+        let mut map = WarmMap {
+            width: w,
+            height: h,
+            normals: (0..w * h)
+                .map(|p| at((p / w) as f64, (p % w) as f64).map(|v| v as f32))
+                .collect(),
+        };
+        let fine = 2 * w;
+        let (mut under, mut bilinear) = (0.0, 0.0);
+        // The finer pixels between coarser centres (the outermost ones have a single coarser
+        // neighbour per axis: the pixel under's normal, extrapolation is not attempted).
+        for r in 1..2 * h - 1 {
+            for c in 1..fine - 1 {
+                let truth = at((r as f64 + 0.5) / 2.0 - 0.5, (c as f64 + 0.5) / 2.0 - 0.5);
+                under += angle(truth, map.under(r * fine + c, fine).unwrap());
+                bilinear += angle(truth, map.bilinear(r * fine + c, fine).unwrap());
+            }
+        }
+        // 0.027 of it when written.
+        assert!(bilinear < 0.1 * under, "{bilinear} vs {under}");
+        // Missing neighbours are left out: a map with one normal gives it everywhere near it.
+        let n = [0.6f32, 0.0, 0.8];
+        map.normals.fill([f32::NAN; 3]);
+        map.normals[2 * w + 3] = n;
+        for (r, c) in [(4, 6), (4, 7), (5, 6), (5, 7), (3, 5), (6, 8)] {
+            let got = map.bilinear(r * fine + c, fine).unwrap();
+            assert!(angle(n.map(f64::from), got) < 1e-6, "{r} {c}: {got:?}");
+        }
+        // None at all: the pixel under's (no normal).
+        assert!(map.bilinear(0, fine).unwrap()[0].is_nan());
     }
 }
 
