@@ -211,9 +211,9 @@ pub const PROBE_FACETS: usize = 1024;
 /// more on the same grid from its own images on the carried surface before it iterates: one
 /// exchange of that grid is built there, and no round iterates there. Smaller images run the
 /// rounds at full resolution. Measured (`benchmarks/pbr/indirect.py --cost --synthetic 1024`,
-/// the synthetic bowl): 1 MP 7.2x -> 3.4x the CPU of a default run (mean error 0.406° ->
-/// 0.408°; rounds at full resolution with a 64² grid before), 512² 11.9x -> 3.8x (0.371° ->
-/// 0.372°).
+/// the synthetic bowl, loaded machine): 1 MP 7.3x -> 3.3-3.6x the CPU of a default run (mean
+/// error 0.406° -> 0.408°; rounds at full resolution with a 64² grid before), 512² 11.9x ->
+/// 3.6x (0.371° -> 0.372°); see docs/concave.md, stop 44.
 pub const ROUNDS_SIDE: usize = 256;
 
 /// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
