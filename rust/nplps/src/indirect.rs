@@ -1106,8 +1106,8 @@ pub struct IndirectField {
     /// [`IndirectField::with_unlit`]), kept for the field of the next round; empty: none.
     hidden: Vec<u64>,
     words: usize,
-    /// The coarse mesh continued past the image border, while the field is made (see
-    /// [`IndirectField::with_unlit`]); None without a margin.
+    /// The coarse mesh continued past the image border (see [`IndirectField::with_unlit`],
+    /// also for a finer level's field, [`IndirectField::finer`]); None without a margin.
     margin: Option<MarginMesh>,
     /// The visibility verdicts of its exchange, for the field of the next round
     /// ([`IndirectField::of_mesh`]'s `previous`).
@@ -1493,17 +1493,52 @@ impl IndirectField {
             hidden[p * words..(p + 1) * words].copy_from_slice(&hid);
         }
         self.hidden = hidden;
-        self.margin = None;
         self.unlit = unlit;
         self.words = words;
         Ok(self)
     }
 
-    /// Drops the visibility verdicts and the hidden lights kept for the next field (when
-    /// there will be none).
+    /// Drops the visibility verdicts kept for the next field (when there will be none; the
+    /// hidden lights stay for [`IndirectField::finer`]).
     pub(crate) fn drop_sightlines(&mut self) {
         self.sightlines = None;
+    }
+
+    /// The field for the next finer level of a pyramid (the grid `grid`, about twice as many
+    /// pixels a side as the field's level: `ceil(H / 2) = h` rows and columns, see
+    /// [`crate::pyramid::levels_for`]) with the mesh `u`: the same coarse vectors looked up with
+    /// twice the factor `f` (the centre of a finer pixel `r`, at `(r + 1/2) / 2` coarser
+    /// pixels, is at `(r + 1/2) / (2 f) - 1/2` cells either way: the bilinear interpolation of
+    /// the same field at finer points), and the lights behind each facet of
+    /// `u` marked again ([`IndirectField::with_unlit`]), with the lights that the margin hid
+    /// from the coarser pixel under each fine one kept hidden. No visibility verdicts (the
+    /// exchange is not built again on the finer level).
+    pub(crate) fn finer(
+        mut self,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        lights: &[crate::Light],
+    ) -> Result<IndirectField> {
+        let (h, w) = (grid.height, grid.width);
+        let (hc, wc) = (h.div_ceil(2), w.div_ceil(2));
+        let words = self.words;
+        let kept = match self.hidden.len() == hc * wc * words && words > 0 {
+            true => {
+                let mut kept = crate::memory::try_vec(h * w * words, 0u64, "the hidden lights")?;
+                for (p, bits) in kept.chunks_exact_mut(words).enumerate() {
+                    let q = (p / w / 2) * wc + p % w / 2;
+                    bits.copy_from_slice(&self.hidden[q * words..(q + 1) * words]);
+                }
+                Some(kept)
+            }
+            false => None,
+        };
+        self.factor *= 2;
+        self.sightlines = None;
+        self.unlit = Vec::new();
         self.hidden = Vec::new();
+        self.with_unlit(grid, geometry, u, lights, kept)
     }
 
     /// The lights that the margin hid from each fine pixel (see
@@ -2054,6 +2089,48 @@ mod tests {
     fn groove(n: usize, slope: f64) -> Vec<f64> {
         let m = (n / 2) as f64;
         depths(n, |_, c| 100.0 + slope * (m - (c - m).abs()))
+    }
+
+    /// A field carried to the next finer level ([`IndirectField::finer`]: twice the factor) is
+    /// the field that level gathers itself on the same coarse grid: a V-groove seen at 64² and
+    /// at 128² pixels (orthographic, half the pixel size; the same surface), every facet lit
+    /// alike, the 128² image binned 4 x 4 to the same 32² facets. Every fine pixel looks up the
+    /// same vectors, bit for bit.
+    #[test]
+    fn a_field_carried_to_a_finer_level_is_the_one_gathered_there() {
+        let field_of = |n: usize, pixel: f64, previous: Option<IndirectField>, carry: bool| {
+            let camera = Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [0.0, 0.0],
+            };
+            // The groove along the rows, deepest at x = 32, walls at 45 degrees.
+            let depth = depths(n, |_, c| 100.0 + (32.0 - (c * pixel - 32.0).abs()));
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            let images = vec![1.0f32; 2 * n * n];
+            let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
+            match (carry, previous) {
+                (true, Some(f)) => f.finer(&grid, &geometry, &u, &[]).unwrap(),
+                (_, previous) => {
+                    IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], previous, None)
+                        .unwrap()
+                }
+            }
+        };
+        let coarse = field_of(64, 1.0, None, false);
+        assert_eq!(coarse.factor(), 2);
+        let carried = field_of(128, 0.5, Some(coarse.clone()), true);
+        let gathered = field_of(128, 0.5, Some(coarse), false);
+        assert_eq!((carried.factor(), gathered.factor()), (4, 4));
+        let mut lit = 0;
+        for p in 0..128 * 128 {
+            let (a, b) = (carried.at(p, 128), gathered.at(p, 128));
+            assert_eq!(a, b, "pixel {p}");
+            lit += usize::from(a[0][0] != 0.0);
+        }
+        // The walls light each other (the facets at the groove's rim see little).
+        assert!(lit > 128 * 100, "{lit}");
     }
 
     /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit
