@@ -299,9 +299,12 @@ class Reconstruction:
                 )
         if not sigma.size:
             return {"pixels": 0, "normal_sigma_deg": None, "held_out_error": None, "lights": lights}
+        # One float64 buffer for both means (the same values and order as ``np.mean(sigma**2)`` and
+        # ``np.mean(held)`` of float64 copies, so the same pairwise sums): squared in place, then
+        # refilled with the held-out errors, instead of three fresh float64 arrays.
         wide = sigma.astype(np.float64)
-        sigma_rms = float(np.sqrt(np.mean(wide**2)))
-        wide = held.astype(np.float64)
+        sigma_rms = float(np.sqrt(np.mean(np.square(wide, out=wide))))
+        np.copyto(wide, held)
         held_mean = float(np.mean(wide))
         del wide
         sigma_median, sigma_p90 = _median_p90(sigma)
