@@ -7,8 +7,9 @@ Usage::
 
 A result of the requested size is made without reconstructing (so that it takes seconds): the
 scene of ``benchmarks/scale.py`` (a tilted plane with bumps, its albedo pattern), its true vertex
-depths as the result's depth, the mesh normals as the fitted normals, a small residual and every
-light used. ``result.save`` then writes it ``--repeats`` times into a fresh directory, in a fresh
+depths as the result's depth, the mesh normals as the fitted normals, a small residual, every
+light used and random float32 trust maps (normal sigma, held-out error). ``result.save`` then
+writes it ``--repeats`` times into a fresh directory, in a fresh
 Python process per variant, and the time of every file is recorded: from the creation of its
 temporary file to its rename into place (:mod:`nplps._atomic`), computing its content included.
 Files written in parallel overlap (the PNG images are made and encoded together on a thread of
@@ -80,6 +81,11 @@ def synthetic_result(w: int, h: int, k: int) -> Any:
         timings={"total": 0.0},
     )
     result.fit_normals = np.ascontiguousarray(result.normals)  # the mesh normals, as fits would be
+    # Trust maps (float32, as a reconstruction makes them) so that summary.json's trust figures
+    # and the two map TIFF files are part of the save, as after a reconstruction.
+    rng = np.random.default_rng(0)
+    result.normal_sigma = (rng.standard_exponential((h, w), dtype=np.float32) * np.float32(0.5)).astype(np.float32)
+    result.held_out_error = (rng.standard_exponential((h, w), dtype=np.float32) * np.float32(1e-3)).astype(np.float32)
     assert isinstance(result, nplps.Reconstruction)
     return result
 
