@@ -562,7 +562,11 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         // A line over the whole roughness grid walks down it from the current roughness (see
         // [`line_search`]); the index line scans its grid (its criterion need not be unimodal:
         // an index just above 1 has the steepest fall-off of the family).
-        let walk = (previous.is_none() && !eta_round).then_some(lobe.alpha);
+        // From a lobe as rough as a matte surface's the walk could not see an inner minimum
+        // across the residual's bump at 0.4-0.6 (a line of the distance search under
+        // `depth="auto"` kept 0.85 where the scan kept 0.13): such a line scans.
+        let walk = (previous.is_none() && !eta_round && lobe.alpha < crate::MATTE_ROUGHNESS)
+            .then_some(lobe.alpha);
         // The line's tables (those it evaluates first), computed in parallel before its fits
         // ask for them one by one.
         let first = match walk {
