@@ -28,8 +28,10 @@
 //! [`estimate_lobe`] finds them for the whole object by minimising the summed squared residual of
 //! the glossy fits of a subsample of at most [`LOBE_SAMPLE`] facets: a coordinate search over
 //! `alpha` on a geometric grid, `eta` on a grid from 1 (Lambert) to 2.1, then `alpha` again, each
-//! refined by a parabola through the best grid value and its neighbours. The line over `eta`
-//! (under the transmitted diffuse term) also scores the retro-reflective one
+//! refined by a parabola through the best grid value and its neighbours (a line over the whole
+//! `alpha` grid walks it from the current roughness instead of scoring all of it, see
+//! `line_search`: the same lobe wherever the residual along the grid has one minimum). The
+//! line over `eta` (under the transmitted diffuse term) also scores the retro-reflective one
 //! ([`Diffuse::Retro`] at the line's roughness and [`RETRO_ETA`]) by the same criterion and keeps
 //! it where it scores lower; the next line over `alpha` keeps the shape chosen. On the 16 glossy
 //! PBR renders at the true distance it chose the retro-reflective term on all 8 principled ones
@@ -557,9 +559,27 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
             }
             false => near(lobe.alpha, &ALPHAS, 0.01, 1.0, true),
         };
-        // The line's tables, computed in parallel before its fits ask for them one by one.
-        prepare_tables(&grid.iter().map(|&x| at(x)).collect::<Vec<_>>());
-        let (x, best) = line_search(&grid, |x| cost_of(at(x)), !eta_round);
+        // A line over the whole roughness grid walks down it from the current roughness (see
+        // [`line_search`]); the index line scans its grid (its criterion need not be unimodal:
+        // an index just above 1 has the steepest fall-off of the family).
+        // From a lobe as rough as a matte surface's the walk could not see an inner minimum
+        // across the residual's bump at 0.4-0.6 (a line of the distance search under
+        // `depth="auto"` kept 0.85 where the scan kept 0.13): such a line scans.
+        let walk = (previous.is_none() && !eta_round && lobe.alpha < crate::MATTE_ROUGHNESS)
+            .then_some(lobe.alpha);
+        // The line's tables (those it evaluates first), computed in parallel before its fits
+        // ask for them one by one.
+        let first = match walk {
+            Some(x) => {
+                let i = nearest(&grid, x, true);
+                let mut first = grid[i.saturating_sub(1)..(i + 2).min(grid.len())].to_vec();
+                first.extend(grid.last().filter(|&&l| !first.contains(&l)));
+                first
+            }
+            None => grid.clone(),
+        };
+        prepare_tables(&first.iter().map(|&x| at(x)).collect::<Vec<_>>());
+        let (x, best) = line_search(&grid, |x| cost_of(at(x)), !eta_round, walk);
         lobe = at(x);
         if eta_round {
             // The other diffuse shape (see [`RETRO_ETA`]), kept where it scores lower.
@@ -582,20 +602,89 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
     Ok(Some(lobe))
 }
 
+/// The index of the value of `grid` nearest `x` (in `log x` when `log`).
+fn nearest(grid: &[f64], x: f64, log: bool) -> usize {
+    let t = |x: f64| if log { x.ln() } else { x };
+    (0..grid.len())
+        .min_by(|&a, &b| {
+            (t(grid[a]) - t(x))
+                .abs()
+                .total_cmp(&(t(grid[b]) - t(x)).abs())
+        })
+        .unwrap_or(0)
+}
+
 /// The minimiser of `cost` over `grid` (increasing), refined by the parabola through the best
 /// grid value and its neighbours (in `log x` when `log`), kept within those neighbours and
 /// accepted only if its cost is lower; with its cost.
-fn line_search(grid: &[f64], cost: impl Fn(f64) -> f64, log: bool) -> (f64, f64) {
-    let costs: Vec<f64> = grid.iter().map(|&x| cost(x)).collect();
-    let best = (0..grid.len())
-        .min_by(|&a, &b| costs[a].total_cmp(&costs[b]))
-        .unwrap_or(0);
+///
+/// Without `walk` every grid value is scored. With `walk = Some(x)` the search walks the grid
+/// from the value nearest `x`: it scores that value and its two neighbours, and while the
+/// lowest cost of that run lies at an end of the run that is not an end of the grid, it scores
+/// the next value beyond that end. It also scores the grid's last value (the roughest lobe,
+/// where the residual has a second minimum on surfaces without a highlight: a broad lobe trades
+/// with the diffuse term; seen on the distance search's far candidates, where the scan chose
+/// 0.85 and a walk from 0.2 stopped at 0.09-0.13). The lowest of all scored values is kept; it
+/// is an end of the grid or inside the run, so its neighbours are scored. Where the cost along
+/// the grid has one minimum, or one inside and one at the grid's last value, the walk finds the
+/// scan's lowest value, and with it the same parabola and the same result, bit for bit, from
+/// 4 + `d` costs instead of `grid.len()`, `d` being the grid steps between `x` and the
+/// minimiser. Where it has other minima the walk may end in a higher one.
+fn line_search(
+    grid: &[f64],
+    cost: impl Fn(f64) -> f64,
+    log: bool,
+    walk: Option<f64>,
+) -> (f64, f64) {
+    let mut costs: Vec<Option<f64>> = vec![None; grid.len()];
+    // The first lowest scored cost among the indices `range` (the scan's tie-break).
+    let lowest = |costs: &[Option<f64>], range: std::ops::RangeInclusive<usize>| {
+        range
+            .filter(|&i| costs[i].is_some())
+            .min_by(|&a, &b| {
+                let c = |i: usize| costs[i].unwrap_or(f64::INFINITY);
+                c(a).total_cmp(&c(b))
+            })
+            .unwrap_or(0)
+    };
+    let last = grid.len() - 1;
+    match walk {
+        None => {
+            for (i, &x) in grid.iter().enumerate() {
+                costs[i] = Some(cost(x));
+            }
+        }
+        Some(x) => {
+            let i = nearest(grid, x, log);
+            let (mut lo, mut hi) = (i.saturating_sub(1), (i + 1).min(last));
+            for (j, &x) in grid.iter().enumerate().take(hi + 1).skip(lo) {
+                costs[j] = Some(cost(x));
+            }
+            loop {
+                let b = lowest(&costs, lo..=hi);
+                if b == lo && lo > 0 {
+                    lo -= 1;
+                    costs[lo] = Some(cost(grid[lo]));
+                } else if b == hi && hi < last {
+                    hi += 1;
+                    costs[hi] = Some(cost(grid[hi]));
+                } else {
+                    break;
+                }
+            }
+            if costs[last].is_none() {
+                costs[last] = Some(cost(grid[last]));
+            }
+        }
+    }
+    let best = lowest(&costs, 0..=last);
+    let at = |i: usize| costs[i].unwrap_or(f64::INFINITY);
     if best == 0 || best + 1 == grid.len() {
-        return (grid[best], costs[best]);
+        return (grid[best], at(best));
     }
     let t = |x: f64| if log { x.ln() } else { x };
     let (x0, x1, x2) = (t(grid[best - 1]), t(grid[best]), t(grid[best + 1]));
-    let (y0, y1, y2) = (costs[best - 1], costs[best], costs[best + 1]);
+    let (y0, y1, y2) = (at(best - 1), at(best), at(best + 1));
     let d = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0);
     if d == 0.0 {
         return (grid[best], y1);
@@ -859,5 +948,81 @@ mod tests {
             direct_best > 5.0,
             "a direct fit found the normal: {direct_best} degrees"
         );
+    }
+
+    /// A walk along the roughness grid scores fewer lobes than the whole scan and, where the
+    /// cost has one minimum along the grid, returns the scan's result bit for bit, from every
+    /// start and for minima anywhere (at either end of the grid too, and between grid values).
+    #[test]
+    fn a_walk_finds_the_scans_minimum_of_a_unimodal_cost() {
+        use std::cell::Cell;
+        for centre in [0.03, 0.04, 0.07, 0.11, 0.2, 0.33, 0.5, 0.85, 1.2] {
+            for curve in [1.0, 0.3, 4.0] {
+                let cost = |x: f64| curve * (x / centre).ln().powi(2) + 0.1 * (x - centre).abs();
+                let scan = line_search(&ALPHAS, cost, true, None);
+                for start in ALPHAS.iter().chain(&[0.01, 0.2, 2.0]) {
+                    let count = Cell::new(0);
+                    let counted = |x: f64| {
+                        count.set(count.get() + 1);
+                        cost(x)
+                    };
+                    let walked = line_search(&ALPHAS, counted, true, Some(*start));
+                    assert_eq!(
+                        (walked.0.to_bits(), walked.1.to_bits()),
+                        (scan.0.to_bits(), scan.1.to_bits()),
+                        "minimum {centre}, start {start}"
+                    );
+                    // 3 values, one more a grid step to the minimiser, the last value and
+                    // the parabola's.
+                    let steps =
+                        nearest(&ALPHAS, *start, true).abs_diff(nearest(&ALPHAS, scan.0, true));
+                    assert!(count.get() <= 3 + steps + 2, "{} costs", count.get());
+                }
+            }
+        }
+        // Near the roughness it starts from, a walk scores 3 grid values, the last one and the
+        // parabola's (the scan: all 9 and the parabola's).
+        let count = Cell::new(0);
+        let cost = |x: f64| {
+            count.set(count.get() + 1);
+            (x / 0.3).ln().powi(2)
+        };
+        line_search(&ALPHAS, cost, true, Some(0.29));
+        assert_eq!(count.get(), 5);
+    }
+
+    /// A second minimum at the roughest lobe (a surface without a highlight) is found by the
+    /// walk as by the scan: the residuals of a line of the distance search at a far candidate
+    /// on the rough plastic 0.3 bumps (a walk from 0.2 without the last value stopped at 0.13).
+    #[test]
+    fn a_walk_finds_the_roughest_lobe_where_it_is_lowest() {
+        let measured = [
+            1.1932, 1.1784, 1.1510, 1.1199, 1.1306, 1.3295, 1.7733, 2.0108, 0.9979,
+        ];
+        let cost = |x: f64| {
+            let i = ALPHAS.iter().position(|&a| a == x);
+            i.map_or(f64::INFINITY, |i| measured[i])
+        };
+        let scan = line_search(&ALPHAS, cost, true, None);
+        assert_eq!(scan, (0.85, 0.9979));
+        for start in ALPHAS {
+            assert_eq!(
+                line_search(&ALPHAS, cost, true, Some(start)),
+                scan,
+                "{start}"
+            );
+        }
+    }
+
+    /// Where the cost has two minima along the grid, the walk ends in the one it meets first
+    /// (the documented limit), and the scan in the lower.
+    #[test]
+    fn a_walk_ends_in_the_first_minimum_it_meets() {
+        let cost = |x: f64| ((x / 0.06).ln().powi(2)).min(0.5 + (x / 0.6).ln().powi(2));
+        let scan = line_search(&ALPHAS, cost, true, None);
+        assert!((scan.0 / 0.06 - 1.0).abs() < 0.05, "{scan:?}");
+        let walked = line_search(&ALPHAS, cost, true, Some(0.5));
+        assert!((walked.0 / 0.6 - 1.0).abs() < 0.05, "{walked:?}");
+        assert_eq!(line_search(&ALPHAS, cost, true, Some(0.09)), scan);
     }
 }
