@@ -28,7 +28,7 @@
 //! - [`LaneLight`] and [`LaneLight::beta`]: the lane (SIMD) form of `beta` for several surface
 //!   points at once, with its eligibility rule ([`LaneLight::from_light`]: every point light),
 //!   the same operations in the same order as [`Light::beta`];
-//! - [`power_lanes`] and [`power`]: the LED anisotropy's power `t^mu` without libm, in lanes
+//! - [`anisotropy`] and [`power_lanes`]: the LED anisotropy `t^mu` without libm, in lanes
 //!   (a libm call per facet and light was a third of an LED rig's reconstruction, and kept LED
 //!   rigs with `mu` other than 0 or 1 out of the lane form).
 //!
@@ -381,7 +381,7 @@ const ROUND: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
 /// `base^exponent` for `N` bases at once with one exponent, for the LED anisotropy `t^mu`
 /// (`t = max(0, cos)` in `[0, 1]`): straight-line code over the lanes (no call into libm, no
 /// branch per lane), so that it runs in SIMD registers inside the lane form of the model, and
-/// the one power of the scalar model too ([`power`]), so that both agree bit for bit.
+/// the one power of the scalar model too ([`anisotropy`], one lane), so that both agree bit for bit.
 ///
 /// With `b = m 2^e`, `m` in `[sqrt(1/2), sqrt(2))` (subnormal bases scaled by `2^54` first),
 /// `ln b = e ln 2 + 2 atanh(s)`, `s = (m - 1) / (m + 1)`, `|s| <= 0.172`, the series
@@ -480,24 +480,23 @@ pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f6
     })
 }
 
-/// The LED anisotropy `t^mu` of a clipped cosine `t >= 0`: 1 for `mu = 0` (an isotropic point
-/// light, whatever `t`), `t` itself for `mu = 1`, else [`power`].
+/// The LED anisotropy `t^mu` of a clipped cosine `t >= 0`: [`anisotropy_lanes`] with one lane.
 #[inline]
 pub(crate) fn anisotropy(t: f64, mu: f64) -> f64 {
-    if mu == 0.0 {
-        1.0
-    } else if mu == 1.0 {
-        t
-    } else {
-        power(t, mu)
-    }
+    anisotropy_lanes(&[t], mu)[0]
 }
 
-/// `base^exponent` for one non-negative base: [`power_lanes`] with one lane (the scalar model's
-/// power, so that it agrees with the lane form bit for bit).
-#[inline]
-pub(crate) fn power(base: f64, exponent: f64) -> f64 {
-    power_lanes(&[base], exponent)[0]
+/// The LED anisotropy `t^mu` of `N` clipped cosines `t >= 0`: 1 for `mu = 0` (an isotropic
+/// point light, whatever `t`), `t` itself for `mu = 1`, else [`power_lanes`].
+#[inline(always)]
+fn anisotropy_lanes<const N: usize>(t: &[f64; N], mu: f64) -> [f64; N] {
+    if mu == 0.0 {
+        [1.0; N]
+    } else if mu == 1.0 {
+        *t
+    } else {
+        power_lanes(t, mu)
+    }
 }
 
 /// A light in the lane (SIMD) form of the model, which evaluates `beta` at several surface
@@ -535,8 +534,8 @@ impl LaneLight {
 
     /// For `N` surface points `x`: `a = p - x` and the factor `f` with `beta = a * f` (see
     /// [`Light::beta`]), computed per lane with the operations of the scalar code in its order
-    /// (the anisotropy as [`anisotropy`] takes it: 1 for `mu = 0`, `max(0, t)` for `mu = 1`, else
-    /// [`power_lanes`], the scalar [`power`]'s lanes). Straight-line code over the lanes, one
+    /// (the anisotropy by [`anisotropy_lanes`], whose one lane is the scalar [`anisotropy`]; for
+    /// `mu = 0` no cosine is computed: the factor is `1 / |a|^3`). Straight-line code over the lanes, one
     /// operation at a time, so that the compiler turns each line into one vector instruction.
     #[inline(always)]
     pub fn beta<const N: usize>(&self, x: &[[f64; 3]; N]) -> ([[f64; N]; 3], [f64; N]) {
@@ -553,12 +552,8 @@ impl LaneLight {
         } else {
             let t: [f64; N] =
                 std::array::from_fn(|l| (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0));
-            if self.mu == 1.0 {
-                std::array::from_fn(|l| t[l] / d3[l])
-            } else {
-                let aniso = power_lanes(&t, self.mu);
-                std::array::from_fn(|l| aniso[l] / d3[l])
-            }
+            let aniso = anisotropy_lanes(&t, self.mu);
+            std::array::from_fn(|l| aniso[l] / d3[l])
         };
         ([a0, a1, a2], f)
     }
@@ -753,6 +748,7 @@ mod tests {
     /// `powf`'s.
     #[test]
     fn power_matches_libm() {
+        let power = |t: f64, mu: f64| power_lanes(&[t], mu)[0];
         // The relative error over (1 + |y|) ulp, y = mu ln t.
         let mut worst = 0.0f64;
         let mut state = 0x9E37_79B9_7F4A_7C15u64;

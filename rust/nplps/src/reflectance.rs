@@ -789,46 +789,41 @@ impl Transmittance {
         table
     }
 
-    /// `T(c) / T(1)` and its derivative at `0 <= c <= 1`.
+    /// `T(c) / T(1)` and its derivative at `0 <= c <= 1`: [`Transmittance::at_lanes`] with one
+    /// lane.
     #[inline(always)]
     fn at(&self, c: f64) -> (f64, f64) {
-        let u = c.clamp(0.0, 1.0) * TABLE_STEPS as f64;
-        let i = (u as usize).min(TABLE_STEPS - 1);
-        let t = u - i as f64;
-        let [c0, c1, c2, c3] = self.cubic[i];
-        (
-            c0 + t * (c1 + t * (c2 + t * c3)),
-            TABLE_STEPS as f64 * (c1 + t * (2.0 * c2 + t * 3.0 * c3)),
-        )
+        let (value, slope) = self.at_lanes(&[c]);
+        (value[0], slope[0])
     }
 
-    /// [`Transmittance::at`] of `W` cosines at once: the same operations on each lane (so the
+    /// [`Transmittance::at`] of `N` cosines at once: the same operations on each lane (so the
     /// same bits), written as loops over the lanes so that they are inlined into the vector
     /// code of their caller (`std::array::from_fn` over [`Transmittance::at`] was compiled as a
     /// separate, non-vector function call per group: 7 % of a 256² glossy profile).
     // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
     #[allow(clippy::needless_range_loop)]
     #[inline(always)]
-    fn at_lanes(&self, c: &Lanes) -> (Lanes, Lanes) {
+    fn at_lanes<const N: usize>(&self, c: &[f64; N]) -> ([f64; N], [f64; N]) {
         let steps = TABLE_STEPS as f64;
-        let mut u = [0.0; W];
-        let mut index = [0usize; W];
-        let mut t = [0.0; W];
-        for i in 0..W {
+        let mut u = [0.0; N];
+        let mut index = [0usize; N];
+        let mut t = [0.0; N];
+        for i in 0..N {
             u[i] = c[i].clamp(0.0, 1.0) * steps;
             index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
             t[i] = u[i] - index[i] as f64;
         }
-        let mut k = [[0.0; W]; 4];
-        for i in 0..W {
+        let mut k = [[0.0; N]; 4];
+        for i in 0..N {
             let row = self.cubic[index[i]];
             for j in 0..4 {
                 k[j][i] = row[j];
             }
         }
-        let mut value = [0.0; W];
-        let mut slope = [0.0; W];
-        for i in 0..W {
+        let mut value = [0.0; N];
+        let mut slope = [0.0; N];
+        for i in 0..N {
             value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
             slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
         }

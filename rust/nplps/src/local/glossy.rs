@@ -571,8 +571,8 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
         // ask for them one by one.
         let first = match walk {
             Some(x) => {
-                let i = nearest(&grid, x, true);
-                let mut first = grid[i.saturating_sub(1)..(i + 2).min(grid.len())].to_vec();
+                let (lo, hi) = walk_start(&grid, x, !eta_round);
+                let mut first = grid[lo..=hi].to_vec();
                 first.extend(grid.last().filter(|&&l| !first.contains(&l)));
                 first
             }
@@ -612,6 +612,13 @@ fn nearest(grid: &[f64], x: f64, log: bool) -> usize {
                 .total_cmp(&(t(grid[b]) - t(x)).abs())
         })
         .unwrap_or(0)
+}
+
+/// The run of `grid` indices a walk from `x` scores first (see [`line_search`]): the value
+/// nearest `x` (in `log x` when `log`) and its neighbours within the grid.
+fn walk_start(grid: &[f64], x: f64, log: bool) -> (usize, usize) {
+    let i = nearest(grid, x, log);
+    (i.saturating_sub(1), (i + 1).min(grid.len() - 1))
 }
 
 /// The minimiser of `cost` over `grid` (increasing), refined by the parabola through the best
@@ -655,8 +662,7 @@ fn line_search(
             }
         }
         Some(x) => {
-            let i = nearest(grid, x, log);
-            let (mut lo, mut hi) = (i.saturating_sub(1), (i + 1).min(last));
+            let (mut lo, mut hi) = walk_start(grid, x, log);
             for (j, &x) in grid.iter().enumerate().take(hi + 1).skip(lo) {
                 costs[j] = Some(cost(x));
             }
