@@ -154,6 +154,8 @@ impl Light {
     /// `beta(x)` and the anisotropy factor `t^mu` (1 for an isotropic or directional light, 0
     /// outside an LED's cone): the one power of the model, which
     /// [`Light::derivatives`] can take instead of computing it again.
+    /// The scalar reference of [`LaneLight::step_terms`] (the light step uses the lane form).
+    #[cfg_attr(not(test), allow(dead_code))]
     #[inline]
     pub(crate) fn beta_anisotropy(&self, x: [f64; 3]) -> ([f64; 3], f64) {
         let (b, _, aniso) = self.beta_parts(x);
@@ -270,6 +272,9 @@ impl Light {
     /// `phi d(beta . g)/dp` (if `position`, zero for a directional light); unused entries 0.
     /// `aniso`: the light's `t^mu` at `c` when known ([`Light::beta_anisotropy`]), which
     /// spares the powers of the position's derivative.
+    /// The scalar reference of the light step's derivatives (which take their terms from
+    /// [`LaneLight::step_terms`]).
+    #[cfg_attr(not(test), allow(dead_code))]
     #[inline]
     pub(crate) fn derivatives(
         &self,
@@ -557,6 +562,87 @@ impl LaneLight {
         };
         ([a0, a1, a2], f)
     }
+
+    /// The light step's terms of this light at `N` surface points `x` (see [`LaneTerms`]): per
+    /// lane the numbers of the scalar [`Light::beta_anisotropy`] and, if `gradient`, of
+    /// [`Light::falloff_gradient`] with `t^mu` given, bit for bit (the same operations in the
+    /// same order; one power per lane, [`anisotropy_lanes`]). Outside an LED's cone (`t <= 0`,
+    /// where the scalar gradient is None) `f` and `grad f` are 0, so that the derivative
+    /// `f g + (v . g) grad f` is zero as the scalar one.
+    #[inline(always)]
+    pub fn step_terms<const N: usize>(&self, x: &[[f64; 3]; N], gradient: bool) -> LaneTerms<N> {
+        let [px, py, pz] = self.position;
+        let axis = self.axis;
+        let v: [[f64; N]; 3] = [
+            std::array::from_fn(|l| px - x[l][0]),
+            std::array::from_fn(|l| py - x[l][1]),
+            std::array::from_fn(|l| pz - x[l][2]),
+        ];
+        let d2: [f64; N] =
+            std::array::from_fn(|l| v[0][l] * v[0][l] + v[1][l] * v[1][l] + v[2][l] * v[2][l]);
+        let d: [f64; N] = std::array::from_fn(|l| d2[l].sqrt());
+        let d3: [f64; N] = std::array::from_fn(|l| d2[l] * d[l]);
+        // v . axis and the clipped cosine t (only an LED needs them).
+        let va: [f64; N] = if self.mu == 0.0 {
+            [0.0; N]
+        } else {
+            std::array::from_fn(|l| v[0][l] * axis[0] + v[1][l] * axis[1] + v[2][l] * axis[2])
+        };
+        let t: [f64; N] = std::array::from_fn(|l| (-va[l] / d[l]).max(0.0));
+        let aniso = anisotropy_lanes(&t, self.mu);
+        let fb: [f64; N] = std::array::from_fn(|l| aniso[l] / d3[l]);
+        let beta = v.map(|vj| std::array::from_fn(|l| vj[l] * fb[l]));
+        let mut out = LaneTerms {
+            beta,
+            v,
+            f: [0.0; N],
+            grad_f: [[0.0; N]; 3],
+        };
+        if !gradient {
+            return out;
+        }
+        let inv3: [f64; N] = std::array::from_fn(|l| 1.0 / (d2[l] * d[l]));
+        let inv5: [f64; N] = std::array::from_fn(|l| inv3[l] / d2[l]);
+        if self.mu == 0.0 {
+            out.f = inv3;
+            out.grad_f = v.map(|vj| std::array::from_fn(|l| -3.0 * vj[l] * inv5[l]));
+            return out;
+        }
+        let lit: [bool; N] = std::array::from_fn(|l| t[l] > 0.0);
+        let tm1: [f64; N] = std::array::from_fn(|l| aniso[l] / t[l]);
+        let dm: [f64; N] = std::array::from_fn(|l| self.mu * tm1[l] * inv3[l]);
+        out.f = std::array::from_fn(|l| if lit[l] { aniso[l] * inv3[l] } else { 0.0 });
+        for j in 0..3 {
+            let vj = &v[j];
+            out.grad_f[j] = std::array::from_fn(|l| {
+                let dt = -axis[j] / d[l] + va[l] * vj[l] * inv3[l];
+                let g = dm[l] * dt - 3.0 * aniso[l] * vj[l] * inv5[l];
+                if lit[l] {
+                    g
+                } else {
+                    0.0
+                }
+            });
+        }
+        out
+    }
+}
+
+/// A point light's terms in the light step ([`crate::refine`]) at `N` surface points, one lane
+/// each ([`LaneLight::step_terms`]): `beta = f_b v` with `v = p - x` and `f_b = t^mu / |v|^3`,
+/// and for the position derivative `d(beta . g)/dp = f g + (v . g) grad f` the factor
+/// `f = t^mu / |v|^3` (written `t^mu (1 / |v|^3)`, as [`Light::falloff_gradient`]) and its
+/// gradient `grad f` with respect to `p` (zero when not asked for).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LaneTerms<const N: usize> {
+    /// `beta`, per coordinate.
+    pub beta: [[f64; N]; 3],
+    /// `v = p - x`, per coordinate.
+    pub v: [[f64; N]; 3],
+    /// `f` of the position derivative (0 outside an LED's cone).
+    pub f: [f64; N],
+    /// `grad f` with respect to `p`, per coordinate (0 outside an LED's cone).
+    pub grad_f: [[f64; N]; 3],
 }
 
 #[cfg(test)]
@@ -722,6 +808,42 @@ mod tests {
             intensity: [1.0; 3],
         };
         assert!(LaneLight::from_light(&sun).is_none());
+    }
+
+    /// The light step's lane terms give bit for bit the scalar `beta_anisotropy` and the
+    /// position derivative of `derivatives` with the anisotropy given, over LEDs of several
+    /// `mu` and points inside and outside the cone (where the derivative is zero).
+    #[test]
+    fn lane_step_terms_match_the_scalar_derivatives_exactly() {
+        let x = [
+            [3.0, -2.0, 100.0],
+            [-7.5, 4.25, 80.0],
+            [0.1, 0.2, 30.0],
+            [200.0, 0.0, 6.0],
+            [0.0, 0.0, -100.0],
+            [40.0, 10.0, -3.0],
+            [-30.0, 12.0, 60.0],
+            [1e-3, -5.0, 1e4],
+        ];
+        let g = [0.2, -0.1, -0.9];
+        for mu in [0.0, 1.0, 2.5, 0.5, 1.7] {
+            let light = led(mu);
+            let lane = LaneLight::from_light(&light).unwrap();
+            let with = lane.step_terms(&x, true);
+            let without = lane.step_terms(&x, false);
+            for l in 0..x.len() {
+                let (b, aniso) = light.beta_anisotropy(x[l]);
+                let ours = [0, 1, 2].map(|j| with.beta[j][l]);
+                assert_eq!(ours, b, "mu {mu} lane {l}");
+                assert_eq!([0, 1, 2].map(|j| without.beta[j][l]), b);
+                let v = [0, 1, 2].map(|j| with.v[j][l]);
+                let vg = dot(v, g);
+                let d: [f64; 3] =
+                    std::array::from_fn(|j| 2.0 * (with.f[l] * g[j] + vg * with.grad_f[j][l]));
+                let scalar = light.derivatives(x[l], [0.0; 3], g, 2.0, (false, true), Some(aniso));
+                assert_eq!(d, [scalar[0], scalar[1], scalar[2]], "mu {mu} lane {l}");
+            }
+        }
     }
 
     #[test]

@@ -79,6 +79,7 @@ use crate::error::{Error, Result};
 use crate::geometry::quad_centre;
 use crate::geometry::Geometry;
 use crate::grid::Grid;
+use crate::light::LaneLight;
 use crate::local::{channel_intensity, invert_spd3, usable, FitSettings, Observations};
 use crate::memory::{try_vec, try_with_capacity};
 use crate::options::Refine;
@@ -314,11 +315,6 @@ struct Scratch {
     glossy: Vec<Option<(f64, f64)>>,
     /// Under the glossy model, per light: the terms of [`LightData::glossy`].
     terms: Vec<Option<GlossyTerms>>,
-    /// The `beta` vectors of the current facet's lights (when not cached for the step).
-    betas: Vec<[f64; 3]>,
-    /// Their anisotropy factors `t^mu` (see [`Light::beta_anisotropy`]), with which the
-    /// position derivatives cost no power (empty with cached `beta` vectors).
-    aniso: Vec<f64>,
     /// Rows of `B^T` (see [`LightData::facet`]) of the last facets, three per facet, folded
     /// into the pass by one matrix product every [`BATCH`] facets.
     bt: DMatrix<f64>,
@@ -349,6 +345,147 @@ fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
 /// Facet channels whose normals' parts are subtracted from the Gauss-Newton matrix at once.
 const BATCH: usize = 64;
 
+/// Facets whose lights' terms ([`terms_kernel`]) are computed at once, one SIMD lane each.
+const LANES: usize = 8;
+
+/// A pass is split into at most this many chunks of consecutive facets (fewer when a chunk
+/// would hold less than [`MIN_CHUNK`] facets), each summed in order by one thread and the
+/// chunks' sums added in order: the chunks depend on the number of facets only, so a pass's
+/// sums are the same bits whatever the threads do (rayon's fold and reduce split by thread
+/// timing, and runs differed by 2.5e-12). Each chunk holds its own Gauss-Newton matrix.
+const MAX_CHUNKS: usize = 32;
+
+/// The fewest facets of a chunk (see [`MAX_CHUNKS`]).
+const MIN_CHUNK: usize = 256;
+
+/// The chunks of a pass over `count` facets (see [`MAX_CHUNKS`]): their number and size (a
+/// multiple of [`LANES`]; the last one may be shorter).
+fn chunking(count: usize) -> (usize, usize) {
+    let size = count
+        .div_ceil(MAX_CHUNKS)
+        .max(MIN_CHUNK)
+        .next_multiple_of(LANES);
+    (count.div_ceil(size), size)
+}
+
+/// The position derivative's terms of one light at one facet's centre `c` (see
+/// [`crate::light::LaneTerms`]): `d(beta . g)/dp = f g + (v . g) grad f`, `v = p - c`.
+#[derive(Debug, Clone, Copy, Default)]
+struct Gradient {
+    v: [f64; 3],
+    f: f64,
+    grad_f: [f64; 3],
+}
+
+/// The `beta` vectors of `lights` at [`LANES`] facet centres into `betas`, facet-major
+/// (entry `l k + i`: light i at the l-th centre), and, when `grads` is not empty, their
+/// position derivatives' terms into it (same layout); `lanes` holds the lights' lane forms
+/// (None: a directional light, whose `beta` is its direction and which has no position). Per
+/// facet and light the numbers of the scalar [`Light::beta_anisotropy`] and
+/// [`Light::derivatives`], bit for bit (see [`LaneLight::step_terms`]), for a light's
+/// [`LANES`] facets in SIMD registers: the LED power, one per facet and light, was a fifth of
+/// a refined run. Returns the number of lights in lane form.
+#[inline(always)]
+fn terms_kernel(
+    lights: &[Light],
+    lanes: &[Option<LaneLight>],
+    centres: &[[f64; 3]; LANES],
+    betas: &mut [[f64; 3]],
+    grads: &mut [Gradient],
+) -> usize {
+    let k = lights.len();
+    let gradient = !grads.is_empty();
+    let mut in_lanes = 0;
+    for (i, (light, lane)) in lights.iter().zip(lanes).enumerate() {
+        match lane {
+            Some(lane) => {
+                in_lanes += 1;
+                let t = lane.step_terms(centres, gradient);
+                for l in 0..LANES {
+                    betas[l * k + i] = [t.beta[0][l], t.beta[1][l], t.beta[2][l]];
+                }
+                if gradient {
+                    for l in 0..LANES {
+                        grads[l * k + i] = Gradient {
+                            v: [t.v[0][l], t.v[1][l], t.v[2][l]],
+                            f: t.f[l],
+                            grad_f: [t.grad_f[0][l], t.grad_f[1][l], t.grad_f[2][l]],
+                        };
+                    }
+                }
+            }
+            None => {
+                let b = light.beta(centres[0]).0;
+                for l in 0..LANES {
+                    betas[l * k + i] = b;
+                    if gradient {
+                        grads[l * k + i] = Gradient::default();
+                    }
+                }
+            }
+        }
+    }
+    in_lanes
+}
+
+simd_dispatch! {
+    wide
+    /// [`terms_kernel`] with AVX-512 or AVX2 when the processor has it (same arithmetic).
+    fn terms_dispatch => terms_kernel(
+        lights: &[Light],
+        lanes: &[Option<LaneLight>],
+        centres: &[[f64; 3]; LANES],
+        betas: &mut [[f64; 3]],
+        grads: &mut [Gradient],
+    ) -> usize;
+}
+
+/// `d(a . g)/d theta` of a light with row `a = phi beta` at a facet with scaled normal `g`: the
+/// log-intensity derivative `a . g` first (if `intensity`), then the position's
+/// `phi d(beta . g)/dp = phi (f g + (v . g) grad f)` from the light's `grad` terms (if
+/// `position`; zero without them); unused entries 0. The operations of
+/// [`Light::derivatives`] with the anisotropy given, so the same bits.
+#[inline]
+fn derivatives(
+    a: [f64; 3],
+    g: [f64; 3],
+    phi: f64,
+    (intensity, position): (bool, bool),
+    grad: Option<&Gradient>,
+) -> [f64; 4] {
+    let mut d = [0.0; 4];
+    let mut k = 0;
+    if intensity {
+        d[0] = dot(a, g);
+        k = 1;
+    }
+    if position {
+        debug_assert!(grad.is_some(), "position derivatives without their terms");
+        if let Some(t) = grad {
+            let vg = dot(t.v, g);
+            for j in 0..3 {
+                d[k + j] = phi * (t.f * g[j] + vg * t.grad_f[j]);
+            }
+        }
+    }
+    d
+}
+
+/// The centres of the pass's facets `first..first + m` (`m <= LANES`; the last repeated to fill
+/// the lanes) at unknowns `u`.
+fn centres(
+    (grid, geometry): (&Grid, &Geometry),
+    (first, m, stride): (usize, usize, usize),
+    u: &[f64],
+) -> [[f64; 3]; LANES] {
+    let mut out = [[0.0; 3]; LANES];
+    for (l, c) in out.iter_mut().enumerate() {
+        let j = first + l.min(m - 1);
+        *c = quad_centre(&geometry.facet_corners(grid, j * stride, u));
+    }
+    out
+}
+
 impl Scratch {
     /// A thread's scratch for `k` lights and `n` parameters (`per` values per facet).
     fn try_new(per: usize, k: usize, n: usize, with_h: bool) -> Result<Scratch> {
@@ -360,8 +497,6 @@ impl Scratch {
             obs: try_with_capacity(k, PASS)?,
             glossy: try_with_capacity(k, PASS)?,
             terms: try_with_capacity(k, PASS)?,
-            betas: try_with_capacity(k, PASS)?,
-            aniso: try_with_capacity(k, PASS)?,
             bt: DMatrix::from_vec(rows, n, try_vec(rows * n, 0.0, PASS)?),
             pending: 0,
             want_h: true,
@@ -436,13 +571,20 @@ impl LightData<'_> {
             return Ok(None);
         }
         let mut out = try_vec(count * k, [0.0; 3], "the light step's beta vectors")?;
-        out.par_chunks_mut(k)
-            .with_min_len(256)
+        let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
+        let mesh = (self.grid, self.geometry);
+        out.par_chunks_mut(k * LANES)
+            .with_min_len(32)
             .enumerate()
-            .for_each(|(j, row)| {
-                let c = quad_centre(&self.geometry.facet_corners(self.grid, j * stride, u));
-                for (b, light) in row.iter_mut().zip(lights) {
-                    *b = light.beta(c).0;
+            .for_each(|(b, block)| {
+                let m = block.len() / k;
+                let centres = centres(mesh, (b * LANES, m, stride), u);
+                if m == LANES {
+                    terms_dispatch(lights, &lanes, &centres, block, &mut []);
+                } else {
+                    let mut full = [[0.0; 3]; LANES].repeat(k);
+                    terms_dispatch(lights, &lanes, &centres, &mut full, &mut []);
+                    block.copy_from_slice(&full[..block.len()]);
                 }
             });
         Ok(Some(out))
@@ -465,76 +607,71 @@ impl LightData<'_> {
         let channels = obs.channels;
         let n = layout.n;
         let h_every = count.div_ceil(MAX_MATRIX_FACETS).max(1);
-        let mut pass = (0..count)
+        // The position derivatives' terms: for the Gauss-Newton pass of a step moving lights.
+        let gradient = with_h && layout.position.iter().any(Option::is_some);
+        let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
+        let model = Model {
+            lights,
+            layout,
+            shading,
+            same_positions: cached.is_some() || std::ptr::eq(lights, shading),
+        };
+        let (chunks, size) = chunking(count);
+        // Each chunk's sums, in order (see MAX_CHUNKS).
+        let parts = (0..chunks)
             .into_par_iter()
-            .with_min_len(256)
-            .fold(
-                || {
-                    Ok((
-                        Pass::try_new(n, with_h)?,
-                        Scratch::try_new(obs.per_facet(), k, n, with_h)?,
-                    ))
-                },
-                |state: Result<(Pass, Scratch)>, j| {
-                    let (mut acc, mut s) = state?;
-                    let f = j * stride;
-                    let q = geometry.facet_corners(grid, f, u);
-                    let c = quad_centre(&q);
-                    let n = self
-                        .normals
-                        .and_then(|w| w.get(f))
-                        .filter(|w| w.iter().all(|x| x.is_finite()))
-                        .map(|w| w.map(f64::from));
-                    acc.sum_z += c[2];
-                    acc.min_z = acc.min_z.min(c[2]);
-                    acc.facets += 1;
-                    s.want_h = j % h_every == 0;
-                    let mut values = std::mem::take(&mut s.values);
-                    obs.facet(grid.facets[f] as usize, &mut values);
-                    if let Some(shadows) = self.shadows {
-                        let c = obs.channels;
-                        for k in shadows.lights_at(grid.facets[f] as usize) {
-                            values[k * c..(k + 1) * c].fill(f32::NAN);
-                        }
+            .map(|chunk| -> Result<Pass> {
+                let (lo, hi) = (chunk * size, ((chunk + 1) * size).min(count));
+                let mut acc = Pass::try_new(n, with_h)?;
+                let mut s = Scratch::try_new(obs.per_facet(), k, n, with_h)?;
+                let mut own = try_vec(LANES * k, [0.0; 3], PASS)?;
+                let mut grads = try_vec(
+                    if gradient { LANES * k } else { 0 },
+                    Gradient::default(),
+                    PASS,
+                )?;
+                let mut values = std::mem::take(&mut s.values);
+                for first in (lo..hi).step_by(LANES) {
+                    let m = (hi - first).min(LANES);
+                    let centres = centres((grid, geometry), (first, m, stride), u);
+                    if cached.is_none() {
+                        terms_dispatch(lights, &lanes, &centres, &mut own, &mut grads);
                     }
-                    let model = Model {
-                        lights,
-                        layout,
-                        shading,
-                        same_positions: cached.is_some() || std::ptr::eq(lights, shading),
-                    };
-                    let mut own = std::mem::take(&mut s.betas);
-                    let mut aniso = std::mem::take(&mut s.aniso);
-                    aniso.clear();
-                    let betas: &Betas = match cached {
-                        Some(b) => &b[j * k..(j + 1) * k],
-                        None => {
-                            own.clear();
-                            for light in lights {
-                                let (b, t) = light.beta_anisotropy(c);
-                                own.push(b);
-                                aniso.push(t);
+                    for (l, &c) in centres.iter().enumerate().take(m) {
+                        let j = first + l;
+                        let f = j * stride;
+                        let n = self
+                            .normals
+                            .and_then(|w| w.get(f))
+                            .filter(|w| w.iter().all(|x| x.is_finite()))
+                            .map(|w| w.map(f64::from));
+                        acc.sum_z += c[2];
+                        acc.min_z = acc.min_z.min(c[2]);
+                        acc.facets += 1;
+                        s.want_h = j % h_every == 0;
+                        obs.facet(grid.facets[f] as usize, &mut values);
+                        if let Some(shadows) = self.shadows {
+                            let c = obs.channels;
+                            for k in shadows.lights_at(grid.facets[f] as usize) {
+                                values[k * c..(k + 1) * c].fill(f32::NAN);
                             }
-                            &own
                         }
-                    };
-                    for ch in 0..channels {
-                        let betas = (betas, aniso.as_slice());
-                        self.facet(model, (c, n), (&values, ch), betas, &mut acc, &mut s);
+                        let betas: &Betas = match cached {
+                            Some(b) => &b[j * k..(j + 1) * k],
+                            None => &own[l * k..(l + 1) * k],
+                        };
+                        let grads = grads.get(l * k..(l + 1) * k).unwrap_or(&[]);
+                        for ch in 0..channels {
+                            let terms = (betas, grads);
+                            self.facet(model, (c, n), (&values, ch), terms, &mut acc, &mut s);
+                        }
                     }
-                    s.values = values;
-                    s.betas = own;
-                    s.aniso = aniso;
-                    Ok((acc, s))
-                },
-            )
-            .map(|state| {
-                state.map(|(mut acc, mut s)| {
-                    s.flush(&mut acc);
-                    acc
-                })
+                }
+                s.flush(&mut acc);
+                Ok(acc)
             })
-            .try_reduce(Pass::empty, |a, b| Ok(a.merge(b)))?;
+            .collect::<Result<Vec<Pass>>>()?;
+        let mut pass = parts.into_iter().fold(Pass::empty(), Pass::merge);
         if with_h && pass.h.is_empty() {
             // No facet at all: the sums are zero.
             pass = Pass::try_new(n, with_h)?;
@@ -606,15 +743,15 @@ impl LightData<'_> {
     }
 
     /// Adds channel `ch` of the facet with centre `c`, glossy normal `n` (if any),
-    /// observations `values` and the lights' `betas` at `c` (with their anisotropy factors
-    /// `t^mu` when computed for this facet, else empty) to the pass.
+    /// observations `values` and the lights' `betas` at `c` (with their position derivatives'
+    /// terms for a Gauss-Newton pass moving the lights, else empty) to the pass.
     #[inline]
     fn facet(
         &self,
         model: Model<'_>,
         (c, n): ([f64; 3], Option<[f64; 3]>),
         (values, ch): (&[f32], usize),
-        (betas, aniso): (&Betas, &[f64]),
+        (betas, grads): (&Betas, &[Gradient]),
         acc: &mut Pass,
         s: &mut Scratch,
     ) {
@@ -697,14 +834,8 @@ impl LightData<'_> {
                 continue;
             }
             let phi = channel_intensity(lights[i].intensity(), channels, ch);
-            let d = lights[i].derivatives(
-                c,
-                *row,
-                g,
-                phi,
-                (layout.intensity[i].is_some(), layout.position[i].is_some()),
-                aniso.get(i).copied(),
-            );
+            let refined = (layout.intensity[i].is_some(), layout.position[i].is_some());
+            let d = derivatives(*row, g, phi, refined, grads.get(i));
             for (gr, da) in acc.grad[first..first + m].iter_mut().zip(&d) {
                 *gr -= da * r;
             }
@@ -1403,6 +1534,55 @@ mod tests {
                         assert!(close(*a, *b) || (a - b).abs() < 1e-300, "{a} vs {b}");
                     }
                 }
+            }
+        }
+    }
+
+    /// A pass's sums are the same bits whatever the number of threads (fixed chunks added in
+    /// order), for intensity and position refinement, with the facets of a pass not a multiple
+    /// of the lanes or of a chunk; and the chunks cover every facet once.
+    #[test]
+    fn pass_sums_do_not_depend_on_the_threads() {
+        for (n, count) in [(0usize, 0usize), (7, 7), (300, 300), (100_000, 100_000)] {
+            let (chunks, size) = chunking(count);
+            assert_eq!(size % LANES, 0);
+            assert!(chunks <= MAX_CHUNKS && chunks * size >= count);
+            assert!(count == 0 || (chunks - 1) * size < count, "{n}");
+        }
+        let scene = Scene::new(SceneKind::Bumps, 41, 100.0, 200.0, 3).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = scene_problem(&scene, &images);
+        let lights = off_intensities(&scene.rig.lights);
+        let u = problem.u0.values().unwrap();
+        let data = LightData::of(&problem, FitSettings::default());
+        assert!(data.subsample().0 % LANES != 0 && chunking(data.subsample().0).0 > 1);
+        for refine in [
+            Refine::NONE.with_intensity(true),
+            Refine::NONE.with_intensity(true).with_position(true),
+        ] {
+            let layout = Layout::new(&lights, &refine);
+            let run = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                pool.install(|| {
+                    data.pass((&lights, &lights), &layout, &u, true, None)
+                        .unwrap()
+                })
+            };
+            let one = run(1);
+            assert_eq!(one.facets, data.subsample().0);
+            assert!(one.fits > 0 && one.h.iter().any(|v| *v != 0.0));
+            for threads in [2, 3] {
+                let other = run(threads);
+                assert_eq!(one.h, other.h, "{threads} threads");
+                assert_eq!(one.grad, other.grad);
+                assert_eq!(
+                    (one.sse, one.sum_i2, one.sum_z),
+                    (other.sse, other.sum_i2, other.sum_z)
+                );
+                assert_eq!((one.count, one.fits), (other.count, other.fits));
             }
         }
     }
