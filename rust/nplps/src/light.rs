@@ -27,7 +27,9 @@
 //!   the shape by finite differences of [`Light::beta`], so no analytic shape derivative exists);
 //! - [`LaneLight`] and [`LaneLight::beta`]: the lane (SIMD) form of `beta` for several surface
 //!   points at once, with its eligibility rule ([`LaneLight::from_light`]: every point light),
-//!   the same operations in the same order as [`Light::beta`];
+//!   the same operations in the same order as [`Light::beta`]; [`LaneLight::step_terms`]: the
+//!   light refinement's terms (`beta` and the position derivative's factors) in lanes, bit for
+//!   bit those of [`Light::beta_anisotropy`] and [`Light::derivatives`];
 //! - [`anisotropy`] and [`power_lanes`]: the LED anisotropy `t^mu` without libm, in lanes
 //!   (a libm call per facet and light was a third of an LED rig's reconstruction, and kept LED
 //!   rigs with `mu` other than 0 or 1 out of the lane form).
@@ -571,58 +573,74 @@ impl LaneLight {
     /// `f g + (v . g) grad f` is zero as the scalar one.
     #[inline(always)]
     pub fn step_terms<const N: usize>(&self, x: &[[f64; 3]; N], gradient: bool) -> LaneTerms<N> {
-        let [px, py, pz] = self.position;
+        // Loops over the lanes (not `array::from_fn`, whose closures need not be inlined into
+        // the caller's SIMD target features).
         let axis = self.axis;
-        let v: [[f64; N]; 3] = [
-            std::array::from_fn(|l| px - x[l][0]),
-            std::array::from_fn(|l| py - x[l][1]),
-            std::array::from_fn(|l| pz - x[l][2]),
-        ];
-        let d2: [f64; N] =
-            std::array::from_fn(|l| v[0][l] * v[0][l] + v[1][l] * v[1][l] + v[2][l] * v[2][l]);
-        let d: [f64; N] = std::array::from_fn(|l| d2[l].sqrt());
-        let d3: [f64; N] = std::array::from_fn(|l| d2[l] * d[l]);
+        let mut v = [[0.0; N]; 3];
+        for j in 0..3 {
+            for l in 0..N {
+                v[j][l] = self.position[j] - x[l][j];
+            }
+        }
+        let (mut d2, mut d, mut d3) = ([0.0; N], [0.0; N], [0.0; N]);
+        for l in 0..N {
+            d2[l] = v[0][l] * v[0][l] + v[1][l] * v[1][l] + v[2][l] * v[2][l];
+            d[l] = d2[l].sqrt();
+            d3[l] = d2[l] * d[l];
+        }
         // v . axis and the clipped cosine t (only an LED needs them).
-        let va: [f64; N] = if self.mu == 0.0 {
-            [0.0; N]
-        } else {
-            std::array::from_fn(|l| v[0][l] * axis[0] + v[1][l] * axis[1] + v[2][l] * axis[2])
-        };
-        let t: [f64; N] = std::array::from_fn(|l| (-va[l] / d[l]).max(0.0));
+        let (mut va, mut t) = ([0.0; N], [0.0; N]);
+        if self.mu != 0.0 {
+            for l in 0..N {
+                va[l] = v[0][l] * axis[0] + v[1][l] * axis[1] + v[2][l] * axis[2];
+                t[l] = (-va[l] / d[l]).max(0.0);
+            }
+        }
         let aniso = anisotropy_lanes(&t, self.mu);
-        let fb: [f64; N] = std::array::from_fn(|l| aniso[l] / d3[l]);
-        let beta = v.map(|vj| std::array::from_fn(|l| vj[l] * fb[l]));
         let mut out = LaneTerms {
-            beta,
+            beta: [[0.0; N]; 3],
             v,
             f: [0.0; N],
             grad_f: [[0.0; N]; 3],
         };
+        let mut fb = [0.0; N];
+        for l in 0..N {
+            fb[l] = aniso[l] / d3[l];
+        }
+        for j in 0..3 {
+            for l in 0..N {
+                out.beta[j][l] = v[j][l] * fb[l];
+            }
+        }
         if !gradient {
             return out;
         }
-        let inv3: [f64; N] = std::array::from_fn(|l| 1.0 / (d2[l] * d[l]));
-        let inv5: [f64; N] = std::array::from_fn(|l| inv3[l] / d2[l]);
+        let (mut inv3, mut inv5) = ([0.0; N], [0.0; N]);
+        for l in 0..N {
+            inv3[l] = 1.0 / (d2[l] * d[l]);
+            inv5[l] = inv3[l] / d2[l];
+        }
         if self.mu == 0.0 {
             out.f = inv3;
-            out.grad_f = v.map(|vj| std::array::from_fn(|l| -3.0 * vj[l] * inv5[l]));
+            for j in 0..3 {
+                for l in 0..N {
+                    out.grad_f[j][l] = -3.0 * v[j][l] * inv5[l];
+                }
+            }
             return out;
         }
-        let lit: [bool; N] = std::array::from_fn(|l| t[l] > 0.0);
-        let tm1: [f64; N] = std::array::from_fn(|l| aniso[l] / t[l]);
-        let dm: [f64; N] = std::array::from_fn(|l| self.mu * tm1[l] * inv3[l]);
-        out.f = std::array::from_fn(|l| if lit[l] { aniso[l] * inv3[l] } else { 0.0 });
+        let mut dm = [0.0; N];
+        for l in 0..N {
+            let tm1 = aniso[l] / t[l];
+            dm[l] = self.mu * tm1 * inv3[l];
+            out.f[l] = if t[l] > 0.0 { aniso[l] * inv3[l] } else { 0.0 };
+        }
         for j in 0..3 {
-            let vj = &v[j];
-            out.grad_f[j] = std::array::from_fn(|l| {
-                let dt = -axis[j] / d[l] + va[l] * vj[l] * inv3[l];
-                let g = dm[l] * dt - 3.0 * aniso[l] * vj[l] * inv5[l];
-                if lit[l] {
-                    g
-                } else {
-                    0.0
-                }
-            });
+            for l in 0..N {
+                let dt = -axis[j] / d[l] + va[l] * v[j][l] * inv3[l];
+                let g = dm[l] * dt - 3.0 * aniso[l] * v[j][l] * inv5[l];
+                out.grad_f[j][l] = if t[l] > 0.0 { g } else { 0.0 };
+            }
         }
         out
     }

@@ -69,6 +69,15 @@
 //! - With only directional lights, intensities need 4 or more lights in general position;
 //!   directional lights have no position to refine.
 //!
+//! # The pass over the facets
+//! A pass sums the objective, the gradient and the Gauss-Newton matrix over a regular subsample
+//! of the facets ([`MAX_FACETS`]). The lights' `beta` vectors and the position derivatives'
+//! terms of `LANES` (8) facets are computed at once, one SIMD lane per facet
+//! ([`crate::light::LaneLight::step_terms`], bit for bit the scalar model's); the rest of a
+//! facet (its normal's fit, residuals and Jacobian rows) is scalar. The facets are summed in
+//! fixed chunks, one thread each, and the chunks' sums added in order, so that a pass gives the
+//! same bits whatever the threads do (`MAX_CHUNKS`).
+//!
 //! [`conditioning`] reports the singular values of the light block after the normals are
 //! eliminated and the standard error of every parameter.
 
@@ -318,28 +327,11 @@ struct Scratch {
     /// Rows of `B^T` (see [`LightData::facet`]) of the last facets, three per facet, folded
     /// into the pass by one matrix product every [`BATCH`] facets.
     bt: DMatrix<f64>,
+    /// `B B^T` of a flush (n x n; empty without the matrix).
+    product: DMatrix<f64>,
     pending: usize,
     /// Whether the current facet adds to the Gauss-Newton matrix.
     want_h: bool,
-}
-
-/// `a . b` with four independent partial sums (vectorizes).
-#[inline]
-fn dot_slices(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for k in 0..4 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    acc[0] + acc[1] + acc[2] + acc[3] + tail
 }
 
 /// Facet channels whose normals' parts are subtracted from the Gauss-Newton matrix at once.
@@ -498,12 +490,18 @@ impl Scratch {
             glossy: try_with_capacity(k, PASS)?,
             terms: try_with_capacity(k, PASS)?,
             bt: DMatrix::from_vec(rows, n, try_vec(rows * n, 0.0, PASS)?),
+            product: match with_h {
+                true => DMatrix::from_vec(n, n, try_vec(n * n, 0.0, PASS)?),
+                false => DMatrix::zeros(0, 0),
+            },
             pending: 0,
             want_h: true,
         })
     }
 
-    /// Subtracts `B B^T` of the pending facets from `acc.h`.
+    /// Subtracts `B B^T` of the pending facets from `acc.h` (its upper triangle), the product
+    /// by one matrix multiplication (nalgebra's `gemm`, packed and blocked by the
+    /// `matrixmultiply` crate) instead of a dot product per pair of columns.
     fn flush(&mut self, acc: &mut Pass) {
         if self.pending == 0 || acc.h.is_empty() {
             return;
@@ -511,17 +509,15 @@ impl Scratch {
         let n = self.bt.ncols();
         let rows = 3 * self.pending;
         let stride = self.bt.nrows();
-        let data = self.bt.as_slice();
-        // Upper triangle of B B^T: dot products of the (contiguous) columns of B^T.
+        // B (n x rows): B^T's first `rows` rows read transposed, in place.
+        let b =
+            nalgebra::DMatrixView::from_slice_with_strides(self.bt.as_slice(), n, rows, stride, 1);
+        let bt = self.bt.rows(0, rows);
+        self.product.gemm(1.0, &b, &bt, 0.0);
         for i in 0..n {
-            let ci = &data[i * stride..i * stride + rows];
-            if ci.iter().all(|v| *v == 0.0) {
-                continue;
-            }
             let h = &mut acc.h[i * n..(i + 1) * n];
             for (j, hj) in h.iter_mut().enumerate().skip(i) {
-                let cj = &data[j * stride..j * stride + rows];
-                *hj -= dot_slices(ci, cj);
+                *hj -= self.product[(i, j)];
             }
         }
         self.pending = 0;
