@@ -571,6 +571,7 @@ impl LaneLight {
     /// same order; one power per lane, [`anisotropy_lanes`]). Outside an LED's cone (`t <= 0`,
     /// where the scalar gradient is None) `f` and `grad f` are 0, so that the derivative
     /// `f g + (v . g) grad f` is zero as the scalar one.
+    #[allow(clippy::needless_range_loop)] // lane code: one index per lane, as the vector instructions
     #[inline(always)]
     pub fn step_terms<const N: usize>(&self, x: &[[f64; 3]; N], gradient: bool) -> LaneTerms<N> {
         // Loops over the lanes (not `array::from_fn`, whose closures need not be inlined into
@@ -849,8 +850,8 @@ mod tests {
             let lane = LaneLight::from_light(&light).unwrap();
             let with = lane.step_terms(&x, true);
             let without = lane.step_terms(&x, false);
-            for l in 0..x.len() {
-                let (b, aniso) = light.beta_anisotropy(x[l]);
+            for (l, &x) in x.iter().enumerate() {
+                let (b, aniso) = light.beta_anisotropy(x);
                 let ours = [0, 1, 2].map(|j| with.beta[j][l]);
                 assert_eq!(ours, b, "mu {mu} lane {l}");
                 assert_eq!([0, 1, 2].map(|j| without.beta[j][l]), b);
@@ -858,7 +859,7 @@ mod tests {
                 let vg = dot(v, g);
                 let d: [f64; 3] =
                     std::array::from_fn(|j| 2.0 * (with.f[l] * g[j] + vg * with.grad_f[j][l]));
-                let scalar = light.derivatives(x[l], [0.0; 3], g, 2.0, (false, true), Some(aniso));
+                let scalar = light.derivatives(x, [0.0; 3], g, 2.0, (false, true), Some(aniso));
                 assert_eq!(d, [scalar[0], scalar[1], scalar[2]], "mu {mu} lane {l}");
             }
         }

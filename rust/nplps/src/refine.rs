@@ -1551,7 +1551,7 @@ mod tests {
         let lights = off_intensities(&scene.rig.lights);
         let u = problem.u0.values().unwrap();
         let data = LightData::of(&problem, FitSettings::default());
-        assert!(data.subsample().0 % LANES != 0 && chunking(data.subsample().0).0 > 1);
+        assert!(!data.subsample().0.is_multiple_of(LANES) && chunking(data.subsample().0).0 > 1);
         for refine in [
             Refine::NONE.with_intensity(true),
             Refine::NONE.with_intensity(true).with_position(true),
