@@ -920,9 +920,10 @@ pub struct GlossyFit {
 
 /// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]): one
 /// AVX-512 vector of `f64` (two AVX2 vectors). The kernels are dispatched as the Lambertian
-/// ones (`simd_dispatch!` `wide`); with 4 lanes and AVX2 a 256² glossy fit took about 15 %
-/// more CPU time. A rig of 16 lights fills two groups; the lanes of a last group that is not
-/// full carry no light and cost as much as the others.
+/// ones (`simd_dispatch!` `wide`); with 4 lanes and AVX2 a 256² reconstruction with the lobe
+/// given took 1.25 s of CPU, with 8 lanes 1.02 s (Zen 4, docs/shiny.md, stop 45). A rig of 16
+/// lights fills two groups; the lanes of a last group that is not full carry no light and cost
+/// as much as the others.
 const W: usize = 8;
 
 /// One value per lane of a group.
