@@ -609,7 +609,7 @@ simd_dispatch! {
 /// (the visible normal, `F(min(w.m, 1))` as [`Lobe::fresnel`], the refracted ray's cosine and
 /// masking), and the terms summed one node at a time in the nodes' order, so the same bits. The
 /// refracted cosine that `Lobe::fresnel` computes is the one the masking uses (`w.m <= 1`): made
-/// once, not twice. The square roots and divisions, most of a table's cost, are then made four
+/// once, not twice. The square roots and divisions, most of a table's cost, are then made `W`
 /// at a time.
 #[inline(always)]
 fn transmittance_lanes(alpha: f64, eta: f64, mu: f64, nodes: &[Node]) -> f64 {
@@ -918,8 +918,13 @@ pub struct GlossyFit {
     pub used: u32,
 }
 
-/// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]).
-const W: usize = 4;
+/// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]): one
+/// AVX-512 vector of `f64` (two AVX2 vectors). The kernels are dispatched as the Lambertian
+/// ones (`simd_dispatch!` `wide`); with 4 lanes and AVX2 a 256² reconstruction with the lobe
+/// given took 1.25 s of CPU, with 8 lanes 1.02 s (Zen 4, docs/shiny.md, stop 45). A rig of 16
+/// lights fills two groups; the lanes of a last group that is not full carry no light and cost
+/// as much as the others.
+const W: usize = 8;
 
 /// One value per lane of a group.
 type Lanes = [f64; W];
@@ -928,7 +933,19 @@ type Lanes = [f64; W];
 /// vector instructions.
 #[inline(always)]
 fn lanes(f: impl FnMut(usize) -> f64) -> Lanes {
-    std::array::from_fn(f)
+    array(f)
+}
+
+/// `[f(0), ..., f(N - 1)]`, written as a loop so that it is inlined into the vector code of its
+/// caller: `std::array::from_fn` over 8 lanes was compiled as separate functions without the
+/// caller's target features (baseline SSE2 code called from the AVX-512 kernels).
+#[inline(always)]
+fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
+    let mut out = [T::default(); N];
+    for (i, x) in out.iter_mut().enumerate() {
+        *x = f(i);
+    }
+    out
 }
 
 /// `W` observations of a facet, one per lane (structure of arrays); a lane without an
@@ -975,6 +992,22 @@ pub struct Packed {
     groups: Vec<Group>,
     /// Scratch: the factors at the starting normal of a fit.
     factors: Vec<Factors>,
+    /// The kernel of the lobe last fitted, with its [`kernel_key`]: the next fits under the same
+    /// lobe reuse it instead of looking its transmittance table up again (a thread-local search
+    /// and a reference count shared by all threads, per fit).
+    kernel: Option<(KernelKey, Kernel)>,
+}
+
+/// What a [`Kernel`] is made of: the bits of `alpha`, `eta` and the retro-reflective weight.
+type KernelKey = (u64, u64, u64);
+
+/// The [`KernelKey`] of `lobe`.
+fn kernel_key(lobe: &Lobe) -> KernelKey {
+    (
+        lobe.alpha.to_bits(),
+        lobe.eta.to_bits(),
+        lobe.retro_weight().to_bits(),
+    )
 }
 
 impl Packed {
@@ -1070,7 +1103,8 @@ impl Packed {
 }
 
 simd_dispatch! {
-    /// [`prepare_groups`] with AVX2 when the processor has it.
+    wide
+    /// [`prepare_groups`] with AVX-512 or AVX2 when the processor has it.
     fn prepare_dispatch => prepare_groups(
         groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retro: bool,
     ) -> ();
@@ -1087,10 +1121,10 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
         if g.point.iter().any(|&p| p) {
             // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)
             // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
-            let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.position[j][i] - x[j]));
+            let a: [Lanes; 3] = array(|j| lanes(|i| g.position[j][i] - x[j]));
             let id =
                 lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-            let l: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| a[j][i] * id[i]));
+            let l: [Lanes; 3] = array(|j| lanes(|i| a[j][i] * id[i]));
             let aniso = lanes(|i| {
                 let t = -(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]);
                 if g.led[i] {
@@ -1099,8 +1133,8 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
                     1.0
                 }
             });
-            let lit: [bool; W] = std::array::from_fn(|i| aniso[i] > 0.0);
-            g.l = std::array::from_fn(|j| {
+            let lit: [bool; W] = array(|i| aniso[i] > 0.0);
+            g.l = array(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
                     (true, true) => l[j][i],
                     (true, false) => 0.0,
@@ -1112,10 +1146,10 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
                 false => g.scale[i],
             });
         }
-        let a: [Lanes; 3] = std::array::from_fn(|j| lanes(|i| g.l[j][i] + v[j]));
+        let a: [Lanes; 3] = array(|j| lanes(|i| g.l[j][i] + v[j]));
         let inv =
             lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-        g.h = std::array::from_fn(|j| lanes(|i| a[j][i] * inv[i]));
+        g.h = array(|j| lanes(|i| a[j][i] * inv[i]));
         g.fresnel = if f1 > 1e-12 {
             let c = lanes(|i| v[0] * g.h[0][i] + v[1] * g.h[1][i] + v[2] * g.h[2][i]);
             let d = fresnel_denominators(eta, &c);
@@ -1171,7 +1205,7 @@ impl Kernel {
         v: [f64; 3],
     ) -> Factors {
         let cl = lanes(|i| n[0] * g.l[0][i] + n[1] * g.l[1][i] + n[2] * g.l[2][i]);
-        let lit: [bool; W] = std::array::from_fn(|i| cl[i] > 0.0);
+        let lit: [bool; W] = array(|i| cl[i] > 0.0);
         // Unlit lanes are evaluated at a harmless cosine and masked; the least cosine keeps the
         // product of the denominators below from underflowing (its factors are at least
         // `c alpha^2`, `alpha^2` and about `eta - 1`).
@@ -1232,10 +1266,9 @@ impl Kernel {
             let sh = lanes(|i| specular[i] * (-4.0 * ch[i] * (a2 - 1.0) * iq[i]));
             let sl = lanes(|i| specular[i] * (a2 * sw[i]));
             let sv = lanes(|i| specular[i] * w.dgv);
-            out.d_diffuse = std::array::from_fn(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
-            out.d_specular = std::array::from_fn(|j| {
-                lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j])
-            });
+            out.d_diffuse = array(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
+            out.d_specular =
+                array(|j| lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j]));
         }
         out
     }
@@ -1274,8 +1307,7 @@ impl Accumulator {
             lanes(|i| m[i] * (g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i])));
         // d m / d b = scale (D n + P grad D + (s / rho) P grad S), P = I - n n^T.
         let t = s / rho;
-        let gr: [Lanes; 3] =
-            std::array::from_fn(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
+        let gr: [Lanes; 3] = array(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
         let gn = lanes(|i| gr[0][i] * n[0] + gr[1][i] * n[1] + gr[2][i] * n[2]);
         let ms = lanes(|i| m[i] * g.scale[i]);
         let j: [Lanes; 4] = [
@@ -1324,7 +1356,8 @@ impl Accumulator {
 }
 
 simd_dispatch! {
-    /// [`factors_of`] with AVX2 when the processor has it.
+    wide
+    /// [`factors_of`] with AVX-512 or AVX2 when the processor has it.
     fn factors_dispatch => factors_of(
         k: &Kernel, groups: &[Group], n: [f64; 3], w: &View, v: [f64; 3], out: &mut [Factors],
     ) -> ();
@@ -1346,7 +1379,8 @@ fn factors_of(
 }
 
 simd_dispatch! {
-    /// [`accumulate`] with AVX2 when the processor has it.
+    wide
+    /// [`accumulate`] with AVX-512 or AVX2 when the processor has it.
     fn accumulate_dispatch => accumulate(
         groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64,
     ) -> Equations;
@@ -1363,7 +1397,8 @@ fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f
 }
 
 simd_dispatch! {
-    /// [`equations_at`] with AVX2 when the processor has it.
+    wide
+    /// [`equations_at`] with AVX-512 or AVX2 when the processor has it.
     fn equations_dispatch => equations_at(
         k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
     ) -> Equations;
@@ -1386,7 +1421,8 @@ fn equations_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) 
 }
 
 simd_dispatch! {
-    /// [`residual_at`] with AVX2 when the processor has it.
+    wide
+    /// [`residual_at`] with AVX-512 or AVX2 when the processor has it.
     fn residual_dispatch => residual_at(
         k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
     ) -> (f64, u32);
@@ -1525,13 +1561,31 @@ fn fit_from(
     steps: usize,
     tolerance: f64,
 ) -> Option<GlossyFit> {
-    let k = Kernel::new(lobe);
+    let key = kernel_key(lobe);
+    let k = match obs.kernel.take() {
+        Some((kept, k)) if kept == key => k,
+        _ => Kernel::new(lobe),
+    };
+    let fit = fit_with(&k, obs, n0, fallback, steps, tolerance);
+    obs.kernel = Some((key, k));
+    fit
+}
+
+/// [`fit_from`] with the kernel `k` of its lobe.
+fn fit_with(
+    k: &Kernel,
+    obs: &mut Packed,
+    n0: [f64; 3],
+    fallback: Option<[f64; 3]>,
+    steps: usize,
+    tolerance: f64,
+) -> Option<GlossyFit> {
     let v = obs.view;
     // The factors at the starting normal serve both its albedos and its normal equations
     // (every entry is written: no clearing first).
     obs.factors.resize(obs.groups.len(), Factors::default());
     match k.view(n0, v) {
-        Some(w) => factors_dispatch(&k, &obs.groups, n0, &w, v, &mut obs.factors),
+        Some(w) => factors_dispatch(k, &obs.groups, n0, &w, v, &mut obs.factors),
         None => obs.factors.fill(Factors::default()),
     }
     let groups = &obs.groups[..];
@@ -1572,7 +1626,7 @@ fn fit_from(
             }
             if last {
                 // No step follows: the residual alone decides.
-                let (next, n_used) = residual_dispatch(&k, groups, v, nb, ns);
+                let (next, n_used) = residual_dispatch(k, groups, v, nb, ns);
                 if n_used >= 4 && next < sse {
                     (b, s, sse, used) = (nb, ns, next, n_used);
                     break;
@@ -1580,7 +1634,7 @@ fn fit_from(
                 lambda *= 10.0;
                 continue;
             }
-            let next = equations_dispatch(&k, groups, v, nb, ns);
+            let next = equations_dispatch(k, groups, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
@@ -2193,6 +2247,48 @@ mod tests {
                 );
             }
             assert!(worst < 1e-3, "alpha {alpha}: worst {worst} deg");
+        }
+    }
+
+    /// A [`Packed`] reused under other lobes (it keeps the kernel of the last one, see
+    /// [`kernel_key`]) fits as a fresh one, bit for bit: lobes that differ in the roughness
+    /// alone, the index alone, the shape of the diffuse term alone, and the same lobe again.
+    #[test]
+    fn a_reused_packed_fits_as_a_fresh_one() {
+        let lobes = [
+            Lobe::new(0.3, 1.5),
+            Lobe::new(0.2, 1.5),
+            Lobe::new(0.2, 1.3),
+            Lobe::retro(0.2, 1.3),
+            Lobe::new(0.2, 1.0),
+            Lobe::new(0.2, 1.0),
+            Lobe::new(0.3, 1.5),
+        ];
+        let truth = Lobe::new(0.25, 1.4);
+        let mut kept = Packed::new();
+        for i in 0..10 {
+            let t = i as f64;
+            let n = normalize([0.4 * (t * 0.37).sin(), 0.4 * (t * 0.73).cos(), -1.0]);
+            let x = [10.0 * (t * 0.11).sin(), 10.0 * (t * 0.29).cos(), 200.0];
+            let v = normalize(scale(x, -1.0));
+            let start = scale(normalize([n[0] + 0.05, n[1] - 0.04, n[2]]), 0.7);
+            for lobe in &lobes {
+                // Observations of the truth's lobe fitted under `lobe`: the fits differ by lobe.
+                let obs: Vec<Observation> = observe(&truth, x, n, 0.6, 0.4)
+                    .iter()
+                    .map(|o| Observation::new(o.value, o.scale, o.light, v, lobe))
+                    .collect();
+                let mut fresh = Packed::new();
+                for p in [&mut kept, &mut fresh] {
+                    p.clear(v);
+                    for o in &obs {
+                        p.push_observation(o);
+                    }
+                }
+                let a = fit_packed(lobe, &mut kept, start, 6).expect("a fit");
+                let b = fit_packed(lobe, &mut fresh, start, 6).expect("a fit");
+                assert_eq!(a, b, "{lobe:?}");
+            }
         }
     }
 
