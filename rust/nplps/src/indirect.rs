@@ -896,10 +896,9 @@ fn near_weight_lanes(
 ) -> [f64; 3] {
     let y = sub_points(receiver);
     let p = [emitter[0], emitter[1], emitter[3], emitter[2]];
-    let lane = |f: &dyn Fn(usize) -> f64| -> [f64; SUB] { std::array::from_fn(f) };
+    let lane = |f: &dyn Fn(usize) -> f64| -> [f64; SUB] { crate::lanes(f) };
     // Per corner e and component c: v_e = p_e - y (each sub-point).
-    let v: [[[f64; SUB]; 3]; 4] =
-        std::array::from_fn(|e| std::array::from_fn(|c| lane(&|t| p[e][c] - y[t][c])));
+    let v: [[[f64; SUB]; 3]; 4] = crate::lanes(|e| crate::lanes(|c| lane(&|t| p[e][c] - y[t][c])));
     let mut sum = [[0.0f64; SUB]; 3];
     for e in 0..4 {
         let (a, b) = (&v[e], &v[(e + 1) % 4]);

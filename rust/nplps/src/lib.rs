@@ -148,6 +148,19 @@ macro_rules! with_fields {
     };
 }
 
+/// `[f(0), f(1), .., f(N - 1)]`, always inlined: the lane kernels build their lanes with it.
+/// `std::array::from_fn` computes the same, but above a few lanes the compiler may leave it out
+/// of line, as a separate baseline (SSE2) function called from the AVX2 / AVX-512 kernels of
+/// [`simd_dispatch!`] once per use.
+#[inline(always)]
+pub(crate) fn lanes<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
+    let mut out = [T::default(); N];
+    for (i, x) in out.iter_mut().enumerate() {
+        *x = f(i);
+    }
+    out
+}
+
 /// Defines `$name`, which runs the (`#[inline(always)]`) kernel `$kernel` compiled for AVX2 when
 /// the processor has it and as compiled for the baseline otherwise. The AVX2 copy enables no
 /// FMA: its results are those of the baseline code, with wider lanes. The `wide` form (kernels

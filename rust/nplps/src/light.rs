@@ -233,12 +233,12 @@ impl Light {
             Some(tm) => (tm, tm / t),
             None => (anisotropy(t, mu), anisotropy(t, mu - 1.0)),
         };
-        let dt: [f64; 3] = std::array::from_fn(|j| -axis[j] / len + va * v[j] * inv3);
+        let dt: [f64; 3] = crate::lanes(|j| -axis[j] / len + va * v[j] * inv3);
         let dm = mu * tm1 * inv3;
         Some((
             v,
             tm * inv3,
-            std::array::from_fn(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
+            crate::lanes(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
         ))
     }
 
@@ -256,7 +256,7 @@ impl Light {
     fn beta_gradient_with(&self, x: [f64; 3], g: [f64; 3], aniso: Option<f64>) -> Option<[f64; 3]> {
         let (v, f, grad_f) = self.falloff_gradient(x, aniso)?;
         let vg = dot(v, g);
-        Some(std::array::from_fn(|j| f * g[j] + vg * grad_f[j]))
+        Some(crate::lanes(|j| f * g[j] + vg * grad_f[j]))
     }
 
     /// The gradient of `beta(x) . g` with respect to the surface point `x`: `beta` depends on
@@ -405,13 +405,13 @@ const ROUND: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
 #[inline(always)]
 pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f64; N] {
     const SCALE: f64 = 18_014_398_509_481_984.0; // 2^54
-    let tiny: [bool; N] = std::array::from_fn(|l| base[l] < f64::MIN_POSITIVE);
-    let b: [f64; N] = std::array::from_fn(|l| if tiny[l] { base[l] * SCALE } else { base[l] });
-    let bits: [u64; N] = std::array::from_fn(|l| b[l].to_bits());
+    let tiny: [bool; N] = crate::lanes(|l| base[l] < f64::MIN_POSITIVE);
+    let b: [f64; N] = crate::lanes(|l| if tiny[l] { base[l] * SCALE } else { base[l] });
+    let bits: [u64; N] = crate::lanes(|l| b[l].to_bits());
     // The mantissa in [1, 2), halved when above sqrt(2) (its exponent then one more).
     let high: [bool; N] =
-        std::array::from_fn(|l| (bits[l] & 0x000F_FFFF_FFFF_FFFF) > 0x0006_A09E_667F_3BCC);
-    let m: [f64; N] = std::array::from_fn(|l| {
+        crate::lanes(|l| (bits[l] & 0x000F_FFFF_FFFF_FFFF) > 0x0006_A09E_667F_3BCC);
+    let m: [f64; N] = crate::lanes(|l| {
         let exponent_bits = if high[l] {
             0x3FE0_0000_0000_0000
         } else {
@@ -419,14 +419,14 @@ pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f6
         };
         f64::from_bits((bits[l] & 0x000F_FFFF_FFFF_FFFF) | exponent_bits)
     });
-    let e: [f64; N] = std::array::from_fn(|l| {
+    let e: [f64; N] = crate::lanes(|l| {
         let biased = ((bits[l] >> 52) & 0x7FF) as i64 + i64::from(high[l]);
         let scaled = if tiny[l] { 54 } else { 0 };
         (biased - 1023 - scaled) as f64
     });
-    let s: [f64; N] = std::array::from_fn(|l| (m[l] - 1.0) / (m[l] + 1.0));
-    let z: [f64; N] = std::array::from_fn(|l| s[l] * s[l]);
-    let series: [f64; N] = std::array::from_fn(|l| {
+    let s: [f64; N] = crate::lanes(|l| (m[l] - 1.0) / (m[l] + 1.0));
+    let z: [f64; N] = crate::lanes(|l| s[l] * s[l]);
+    let series: [f64; N] = crate::lanes(|l| {
         let z = z[l];
         let mut p = 1.0 / 23.0;
         p = p * z + 1.0 / 21.0;
@@ -443,15 +443,15 @@ pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f6
     });
     // ln b = e LN2_HI + (e LN2_LO + 2 s + 2 s z series): the large part exact. Clamped to where
     // the result is 0 or infinity anyway (keeps k and 2^k in range).
-    let y: [f64; N] = std::array::from_fn(|l| {
+    let y: [f64; N] = crate::lanes(|l| {
         let ln_b = e[l] * LN2_HI + (e[l] * LN2_LO + (2.0 * s[l] + 2.0 * s[l] * series[l]));
         (exponent * ln_b).clamp(-746.0, 710.0)
     });
-    let rounded: [f64; N] = std::array::from_fn(|l| y[l] * std::f64::consts::LOG2_E + ROUND);
-    let k: [f64; N] = std::array::from_fn(|l| rounded[l] - ROUND);
+    let rounded: [f64; N] = crate::lanes(|l| y[l] * std::f64::consts::LOG2_E + ROUND);
+    let k: [f64; N] = crate::lanes(|l| rounded[l] - ROUND);
     // r = y - k ln 2, ln 2 in two parts (k LN2_HI exact).
-    let r: [f64; N] = std::array::from_fn(|l| y[l] - k[l] * LN2_HI - k[l] * LN2_LO);
-    let p: [f64; N] = std::array::from_fn(|l| {
+    let r: [f64; N] = crate::lanes(|l| y[l] - k[l] * LN2_HI - k[l] * LN2_LO);
+    let p: [f64; N] = crate::lanes(|l| {
         let r = r[l];
         let mut p = 1.0 / 87_178_291_200.0; // 1/14!
         p = p * r + 1.0 / 6_227_020_800.0;
@@ -469,7 +469,7 @@ pub(crate) fn power_lanes<const N: usize>(base: &[f64; N], exponent: f64) -> [f6
         p = p * r + 1.0;
         p * r + 1.0
     });
-    std::array::from_fn(|l| {
+    crate::lanes(|l| {
         let k = rounded[l].to_bits() as i64 - ROUND.to_bits() as i64;
         let half = k >> 1;
         let two_a = f64::from_bits(((half + 1023) as u64) << 52);
@@ -548,19 +548,19 @@ impl LaneLight {
     pub fn beta<const N: usize>(&self, x: &[[f64; 3]; N]) -> ([[f64; N]; 3], [f64; N]) {
         let [px, py, pz] = self.position;
         let [ax, ay, az] = self.axis;
-        let a0: [f64; N] = std::array::from_fn(|l| px - x[l][0]);
-        let a1: [f64; N] = std::array::from_fn(|l| py - x[l][1]);
-        let a2: [f64; N] = std::array::from_fn(|l| pz - x[l][2]);
-        let d2: [f64; N] = std::array::from_fn(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
-        let d: [f64; N] = std::array::from_fn(|l| d2[l].sqrt());
-        let d3: [f64; N] = std::array::from_fn(|l| d2[l] * d[l]);
+        let a0: [f64; N] = crate::lanes(|l| px - x[l][0]);
+        let a1: [f64; N] = crate::lanes(|l| py - x[l][1]);
+        let a2: [f64; N] = crate::lanes(|l| pz - x[l][2]);
+        let d2: [f64; N] = crate::lanes(|l| a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+        let d: [f64; N] = crate::lanes(|l| d2[l].sqrt());
+        let d3: [f64; N] = crate::lanes(|l| d2[l] * d[l]);
         let f: [f64; N] = if self.mu == 0.0 {
-            std::array::from_fn(|l| 1.0 / d3[l])
+            crate::lanes(|l| 1.0 / d3[l])
         } else {
             let t: [f64; N] =
-                std::array::from_fn(|l| (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0));
+                crate::lanes(|l| (-(a0[l] * ax + a1[l] * ay + a2[l] * az) / d[l]).max(0.0));
             let aniso = anisotropy_lanes(&t, self.mu);
-            std::array::from_fn(|l| aniso[l] / d3[l])
+            crate::lanes(|l| aniso[l] / d3[l])
         };
         ([a0, a1, a2], f)
     }

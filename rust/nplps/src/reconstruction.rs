@@ -9,6 +9,7 @@ use crate::error::Result;
 use crate::local::{FacetFit, LobeCheck};
 use crate::memory::try_par_vec;
 use crate::options::Refine;
+use crate::parallel::{scatter, PixelMaps};
 use crate::problem::Problem;
 use crate::refine::Conditioning;
 use crate::reflectance::{Lobe, Reflectance};
@@ -270,7 +271,6 @@ impl FitOutputs {
     pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
         let facets = &problem.grid.facets[first..first + fits.len()];
         let view = OutputView {
-            base: 0,
             channels: problem.obs.channels,
             normals: &mut self.normals,
             albedo: &mut self.albedo,
@@ -278,16 +278,24 @@ impl FitOutputs {
             lights_used: &mut self.lights_used,
             specular: &mut self.specular,
         };
-        view.scatter(facets, fits);
+        scatter(view, 0, facets, fits, SCATTER_PIECE, &|view, p, fit| {
+            let channels = view.channels;
+            view.normals[p] = fit.normal;
+            view.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
+            view.residual[p] = fit.rms(channels);
+            view.lights_used[p] = fit.used;
+            if let Some(s) = view.specular.get_mut(p) {
+                *s = fit.specular;
+            }
+        });
     }
 }
 
 /// Facets a piece of [`FitOutputs::scatter`] writes on one thread.
 const SCATTER_PIECE: usize = 1 << 14;
 
-/// The maps of [`FitOutputs`] from pixel `base` on (the specular map: empty, or as the others).
+/// The maps of [`FitOutputs`] from some pixel on (the specular map: empty, or as the others).
 struct OutputView<'a> {
-    base: usize,
     channels: usize,
     normals: &'a mut [[f64; 3]],
     albedo: &'a mut [f64],
@@ -296,17 +304,15 @@ struct OutputView<'a> {
     specular: &'a mut [f64],
 }
 
-impl OutputView<'_> {
-    /// The pixels before `at` (absolute) and those from `at` on.
-    fn split_at(self, at: usize) -> (Self, Self) {
-        let (m, channels) = (at - self.base, self.channels);
+impl PixelMaps for OutputView<'_> {
+    fn split_at(self, m: usize) -> (Self, Self) {
+        let channels = self.channels;
         let (n0, n1) = self.normals.split_at_mut(m);
         let (a0, a1) = self.albedo.split_at_mut(m * channels);
         let (r0, r1) = self.residual.split_at_mut(m);
         let (u0, u1) = self.lights_used.split_at_mut(m);
         let (s0, s1) = self.specular.split_at_mut(m.min(self.specular.len()));
-        let view = |base, normals, albedo, residual, lights_used, specular| OutputView {
-            base,
+        let view = |normals, albedo, residual, lights_used, specular| OutputView {
             channels,
             normals,
             albedo,
@@ -314,35 +320,7 @@ impl OutputView<'_> {
             lights_used,
             specular,
         };
-        (
-            view(self.base, n0, a0, r0, u0, s0),
-            view(at, n1, a1, r1, u1, s1),
-        )
-    }
-
-    /// Writes `fits` onto the pixels `facets` (increasing, all from `base` on).
-    fn scatter(self, facets: &[u32], fits: &[FacetFit]) {
-        if fits.len() > SCATTER_PIECE {
-            let mid = fits.len() / 2;
-            debug_assert!(facets.windows(2).all(|w| w[0] < w[1]));
-            let (left, right) = self.split_at(facets[mid] as usize);
-            rayon::join(
-                || left.scatter(&facets[..mid], &fits[..mid]),
-                || right.scatter(&facets[mid..], &fits[mid..]),
-            );
-            return;
-        }
-        let channels = self.channels;
-        for (fit, &p) in fits.iter().zip(facets) {
-            let p = p as usize - self.base;
-            self.normals[p] = fit.normal;
-            self.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
-            self.residual[p] = fit.rms(channels);
-            self.lights_used[p] = fit.used;
-            if let Some(s) = self.specular.get_mut(p) {
-                *s = fit.specular;
-            }
-        }
+        (view(n0, a0, r0, u0, s0), view(n1, a1, r1, u1, s1))
     }
 }
 

@@ -144,10 +144,10 @@ impl LocalStep<'_> {
             return self.fit_field_lanes(lights, first, u, buf, interleaved, field);
         }
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
+        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
         let batch = self.batch_corners(first, &pixels, u);
         let quads = &batch.quads;
-        let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
+        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&quads[l]));
         if !obs.gather_lanes(&pixels, interleaved) {
             for l in 0..LANES {
                 let f = first + l;
@@ -176,7 +176,7 @@ impl LocalStep<'_> {
             &batch.base,
             geometry,
         );
-        let mut fitted: [Option<FacetFit>; LANES] = std::array::from_fn(|l| {
+        let mut fitted: [Option<FacetFit>; LANES] = crate::lanes(|l| {
             let n = &solved.normal;
             solved.valid[l].then_some(FacetFit {
                 target: solved.target[l],
@@ -281,23 +281,22 @@ impl LocalStep<'_> {
             let vw = w + 1;
             let v0 = row * vw + col;
             let line = |r: usize, v: usize| -> ([u32; LANES + 1], [[f64; 2]; LANES + 1]) {
-                let ids: [u32; LANES + 1] = std::array::from_fn(|j| grid.vertex_unknown[v + j]);
-                let base =
-                    std::array::from_fn(|j| geometry.base_at_vertex(ids[j] as usize, r, col + j));
+                let ids: [u32; LANES + 1] = crate::lanes(|j| grid.vertex_unknown[v + j]);
+                let base = crate::lanes(|j| geometry.base_at_vertex(ids[j] as usize, r, col + j));
                 (ids, base)
             };
             let (top, top_base) = line(row, v0);
             let (bottom, bottom_base) = line(row + 1, v0 + vw);
             let place = |ids: &[u32; LANES + 1], base: &[[f64; 2]; LANES + 1]| {
-                let z: [f64; LANES + 1] = std::array::from_fn(|j| self.depth_of(ids[j], u));
+                let z: [f64; LANES + 1] = crate::lanes(|j| self.depth_of(ids[j], u));
                 let p: [[f64; 3]; LANES + 1] =
-                    std::array::from_fn(|j| geometry.position_from_base(base[j], z[j]));
+                    crate::lanes(|j| geometry.position_from_base(base[j], z[j]));
                 p
             };
             let (tp, bp) = (place(&top, &top_base), place(&bottom, &bottom_base));
             return BatchCorners {
-                ids: std::array::from_fn(|l| [top[l], top[l + 1], bottom[l], bottom[l + 1]]),
-                base: std::array::from_fn(|l| {
+                ids: crate::lanes(|l| [top[l], top[l + 1], bottom[l], bottom[l + 1]]),
+                base: crate::lanes(|l| {
                     [
                         top_base[l],
                         top_base[l + 1],
@@ -305,13 +304,13 @@ impl LocalStep<'_> {
                         bottom_base[l + 1],
                     ]
                 }),
-                quads: std::array::from_fn(|l| [tp[l], tp[l + 1], bp[l], bp[l + 1]]),
+                quads: crate::lanes(|l| [tp[l], tp[l + 1], bp[l], bp[l + 1]]),
             };
         }
-        let ids: [[u32; 4]; LANES] = std::array::from_fn(|l| grid.facet_vertices(first + l));
+        let ids: [[u32; 4]; LANES] = crate::lanes(|l| grid.facet_vertices(first + l));
         let base: [[[f64; 2]; 4]; LANES] =
-            std::array::from_fn(|l| ids[l].map(|i| geometry.base(i as usize)));
-        let quads = std::array::from_fn(|l| {
+            crate::lanes(|l| ids[l].map(|i| geometry.base(i as usize)));
+        let quads = crate::lanes(|l| {
             let (ids, base) = (&ids[l], &base[l]);
             let at = |j: usize| geometry.position_from_base(base[j], self.depth_of(ids[j], u));
             [at(0), at(1), at(2), at(3)]
@@ -483,8 +482,8 @@ fn solve_lanes(
 /// (strictly between `dark` and `saturation`, not NaN).
 #[inline(always)]
 fn lane_values(v: &[f32; LANES], dark: f64, saturation: f64) -> ([f64; LANES], [bool; LANES]) {
-    let i: [f64; LANES] = std::array::from_fn(|l| v[l] as f64);
-    let ok: [bool; LANES] = std::array::from_fn(|l| i[l] > dark && i[l] < saturation);
+    let i: [f64; LANES] = crate::lanes(|l| v[l] as f64);
+    let ok: [bool; LANES] = crate::lanes(|l| i[l] > dark && i[l] < saturation);
     (i, ok)
 }
 
@@ -509,15 +508,15 @@ fn accumulate_lanes(
         let p = light.grey;
         let (i, ok) = lane_values(v, dark, saturation);
         let ([a0, a1, a2], f) = light.beta(centres);
-        let b0: [f64; LANES] = std::array::from_fn(|l| a0[l] * f[l]);
-        let b1: [f64; LANES] = std::array::from_fn(|l| a1[l] * f[l]);
-        let b2: [f64; LANES] = std::array::from_fn(|l| a2[l] * f[l]);
+        let b0: [f64; LANES] = crate::lanes(|l| a0[l] * f[l]);
+        let b1: [f64; LANES] = crate::lanes(|l| a1[l] * f[l]);
+        let b2: [f64; LANES] = crate::lanes(|l| a2[l] * f[l]);
         if let Some(rows) = rows.as_mut() {
             rows[k] = [b0, b1, b2];
         }
-        let r0: [f64; LANES] = std::array::from_fn(|l| b0[l] * p);
-        let r1: [f64; LANES] = std::array::from_fn(|l| b1[l] * p);
-        let r2: [f64; LANES] = std::array::from_fn(|l| b2[l] * p);
+        let r0: [f64; LANES] = crate::lanes(|l| b0[l] * p);
+        let r1: [f64; LANES] = crate::lanes(|l| b1[l] * p);
+        let r2: [f64; LANES] = crate::lanes(|l| b2[l] * p);
         let pick = |l: usize, x: f64| if ok[l] { x } else { 0.0 };
         for l in 0..LANES {
             t[0][l] += pick(l, r0[l] * r0[l]);
@@ -567,7 +566,7 @@ fn residual_lanes(
         let p = light.grey;
         let (i, ok) = lane_values(v, dark, saturation);
         let ([a0, a1, a2], f) = light.beta(centres);
-        let nb: [f64; LANES] = std::array::from_fn(|l| {
+        let nb: [f64; LANES] = crate::lanes(|l| {
             let n = normals[l];
             n[0] * (a0[l] * f[l]) + n[1] * (a1[l] * f[l]) + n[2] * (a2[l] * f[l])
         });
@@ -614,10 +613,9 @@ impl LaneSolved {
     /// [`solve_lanes`] computes with the same operations): active where at least 4 lights are
     /// usable and `T` is regular (elsewhere the inverse and `g` are 0).
     fn new(sums: &LaneSums, solution: &LaneSolution) -> LaneSolved {
-        let active: [bool; LANES] =
-            std::array::from_fn(|l| sums.used[l] >= 4 && solution.regular[l]);
+        let active: [bool; LANES] = crate::lanes(|l| sums.used[l] >= 4 && solution.regular[l]);
         let keep = |x: &[f64; LANES]| -> [f64; LANES] {
-            std::array::from_fn(|l| if active[l] { x[l] } else { 0.0 })
+            crate::lanes(|l| if active[l] { x[l] } else { 0.0 })
         };
         LaneSolved {
             inverse: solution.inverse.each_ref().map(keep),
@@ -680,7 +678,7 @@ fn final_residuals(
         let p = light.grey;
         let (i, ok) = lane_values(v, dark, saturation);
         let [b0, b1, b2] = *row;
-        let nb: [f64; LANES] = std::array::from_fn(|l| {
+        let nb: [f64; LANES] = crate::lanes(|l| {
             let n = fits.normals[l];
             n[0] * b0[l] + n[1] * b1[l] + n[2] * b2[l]
         });
@@ -688,11 +686,11 @@ fn final_residuals(
             let e = fits.albedo[l] * p * nb[l] - i[l];
             sse[l] += if ok[l] { e * e } else { 0.0 };
         }
-        let r0: [f64; LANES] = std::array::from_fn(|l| b0[l] * p);
-        let r1: [f64; LANES] = std::array::from_fn(|l| b1[l] * p);
-        let r2: [f64; LANES] = std::array::from_fn(|l| b2[l] * p);
+        let r0: [f64; LANES] = crate::lanes(|l| b0[l] * p);
+        let r1: [f64; LANES] = crate::lanes(|l| b1[l] * p);
+        let r2: [f64; LANES] = crate::lanes(|l| b2[l] * p);
         let e: [f64; LANES] =
-            std::array::from_fn(|l| i[l] - (r0[l] * g[0][l] + r1[l] * g[1][l] + r2[l] * g[2][l]));
+            crate::lanes(|l| i[l] - (r0[l] * g[0][l] + r1[l] * g[1][l] + r2[l] * g[2][l]));
         let mut ir = [[0.0f64; LANES]; 3];
         for (j, ir) in ir.iter_mut().enumerate() {
             let m = &inv[3 * j..3 * j + 3];
@@ -701,8 +699,8 @@ fn final_residuals(
             }
         }
         let h: [f64; LANES] =
-            std::array::from_fn(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
-        let loo: [f64; LANES] = std::array::from_fn(|l| e[l] / (1.0 - h[l]));
+            crate::lanes(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
+        let loo: [f64; LANES] = crate::lanes(|l| e[l] / (1.0 - h[l]));
         // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
         // non-negative terms changes no bit); the light's terms are added to its running sums
         // lane by lane (no horizontal sum per batch), straight from the selected values: a
@@ -760,14 +758,13 @@ fn trust_lanes(
         // (an inactive lane's values are computed and not used; its `used` may be below 3)
         let dof = used[l].wrapping_sub(3) as usize as f64;
         let c = sse[l] / dof;
-        let cov: [f64; 9] = std::array::from_fn(|j| 0.0 + c * inv[j][l]);
+        let cov: [f64; 9] = crate::lanes(|j| 0.0 + c * inv[j][l]);
         let b = [0.0 + g[0][l], 0.0 + g[1][l], 0.0 + g[2][l]];
         let len = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
         let n = [b[0] / len, b[1] / len, b[2] / len];
         let trace = ((0.0 + cov[0]) + cov[4]) + cov[8];
-        let cn: [f64; 3] = std::array::from_fn(|i| {
-            cov[3 * i] * n[0] + cov[3 * i + 1] * n[1] + cov[3 * i + 2] * n[2]
-        });
+        let cn: [f64; 3] =
+            crate::lanes(|i| cov[3 * i] * n[0] + cov[3 * i + 1] * n[1] + cov[3 * i + 2] * n[2]);
         let ncn = (n[0] * cn[0] + n[1] * cn[1]) + n[2] * cn[2];
         let var = ((trace - ncn) / (len * len)).max(0.0);
         let held_out = match loo_count[l] > 0.0 {
@@ -787,7 +784,7 @@ fn trust_lanes(
 /// (a6 + a7))`.
 #[inline(always)]
 fn lane_total(a: &[f64; LANES]) -> f64 {
-    let pairs: [f64; 4] = std::array::from_fn(|j| a[2 * j] + a[2 * j + 1]);
+    let pairs: [f64; 4] = crate::lanes(|j| a[2 * j] + a[2 * j + 1]);
     (pairs[0] + pairs[1]) + (pairs[2] + pairs[3])
 }
 
@@ -887,8 +884,7 @@ mod tests {
         let mut checked = [0usize; 3];
         for round in 0..400 {
             let scalar: [Sums; LANES] = std::array::from_fn(|l| {
-                let r: [[f64; 3]; 5] =
-                    std::array::from_fn(|_| std::array::from_fn(|_| next() - 0.5));
+                let r: [[f64; 3]; 5] = crate::lanes(|_| crate::lanes(|_| next() - 0.5));
                 let mut t = [0.0; 6];
                 let mut s = [0.0; 3];
                 let lights = match (round + l) % 9 {
@@ -922,21 +918,20 @@ mod tests {
                     lit: lights as u32,
                 }
             });
-            let lane = |f: &dyn Fn(&Sums) -> f64| -> [f64; LANES] {
-                std::array::from_fn(|l| f(&scalar[l]))
-            };
+            let lane =
+                |f: &dyn Fn(&Sums) -> f64| -> [f64; LANES] { crate::lanes(|l| f(&scalar[l])) };
             let sums = LaneSums {
-                t: std::array::from_fn(|i| lane(&|x| x.t[0][i])),
-                s: std::array::from_fn(|i| lane(&|x| x.s[0][i])),
+                t: crate::lanes(|i| lane(&|x| x.t[0][i])),
+                s: crate::lanes(|i| lane(&|x| x.s[0][i])),
                 sum_i2: lane(&|x| x.sum_i2),
-                used: std::array::from_fn(|l| scalar[l].used),
+                used: crate::lanes(|l| scalar[l].used),
             };
             let centres: [[f64; 3]; LANES] =
-                std::array::from_fn(|_| [next() - 0.5, next() - 0.5, 5.0 + next()]);
-            let base: [[[f64; 2]; 4]; LANES] = std::array::from_fn(|_| {
+                crate::lanes(|_| [next() - 0.5, next() - 0.5, 5.0 + next()]);
+            let base: [[[f64; 2]; 4]; LANES] = crate::lanes(|_| {
                 let spread = if next() < 0.2 { 3.0 } else { 0.01 };
                 let x = [next() - 0.5, next() - 0.5];
-                std::array::from_fn(|_| [x[0] + spread * next(), x[1] + spread * next()])
+                crate::lanes(|_| [x[0] + spread * next(), x[1] + spread * next()])
             });
             let geometry = Geometry::new(&cameras[round % 2], &grid).unwrap();
             let lanes = solve_lanes_dispatch(&sums, &centres, &base, &geometry);
@@ -950,11 +945,9 @@ mod tests {
                 assert_eq!(plain.regular[l], lanes.regular[l]);
                 if let Some(inv) = inverse {
                     let g = inv * Vector3::from(sums.s[0]);
-                    let m: [[f64; 3]; 3] =
-                        std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)]));
-                    let lane_inverse: [[f64; 3]; 3] = std::array::from_fn(|i| {
-                        std::array::from_fn(|j| lanes.inverse[3 * i + j][l])
-                    });
+                    let m: [[f64; 3]; 3] = crate::lanes(|i| crate::lanes(|j| inv[(i, j)]));
+                    let lane_inverse: [[f64; 3]; 3] =
+                        crate::lanes(|i| crate::lanes(|j| lanes.inverse[3 * i + j][l]));
                     let bits = |m: [[f64; 3]; 3]| m.map(|r| r.map(f64::to_bits));
                     assert_eq!(bits(lane_inverse), bits(m));
                     let lane_g = [lanes.g[0][l], lanes.g[1][l], lanes.g[2][l]];
@@ -999,7 +992,7 @@ mod tests {
             let mut used = [0u32; LANES];
             let mut active = [false; LANES];
             for l in 0..LANES {
-                let m: [f64; 6] = std::array::from_fn(|_| next() - 0.3);
+                let m: [f64; 6] = crate::lanes(|_| next() - 0.3);
                 let sym = [m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5]];
                 for (j, v) in sym.iter().enumerate() {
                     inverse[j][l] = *v;

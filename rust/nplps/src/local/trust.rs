@@ -31,6 +31,7 @@ use super::{
 use crate::error::Result;
 use crate::geometry::quad_centre;
 use crate::memory::try_par_vec;
+use crate::parallel::scatter;
 use crate::vec3::norm;
 
 /// The trust maps and per-light figures of a result (see the module's documentation).
@@ -90,33 +91,6 @@ pub struct TrustMaps {
 /// Facets a piece of [`TrustMaps::scatter`] writes on one thread.
 const SCATTER_PIECE: usize = 1 << 15;
 
-/// Writes `values` onto the pixels `facets` (increasing, all from `base` on) of the two maps
-/// (from pixel `base` on), halves in parallel above [`SCATTER_PIECE`] facets.
-fn scatter_maps(
-    base: usize,
-    sigma: &mut [f32],
-    held_out: &mut [f32],
-    facets: &[u32],
-    values: &[[f32; 2]],
-) {
-    if values.len() > SCATTER_PIECE {
-        let mid = values.len() / 2;
-        let at = facets[mid] as usize;
-        let (s0, s1) = sigma.split_at_mut(at - base);
-        let (h0, h1) = held_out.split_at_mut(at - base);
-        rayon::join(
-            || scatter_maps(base, s0, h0, &facets[..mid], &values[..mid]),
-            || scatter_maps(at, s1, h1, &facets[mid..], &values[mid..]),
-        );
-        return;
-    }
-    for (v, &p) in values.iter().zip(facets) {
-        let p = p as usize - base;
-        sigma[p] = v[0];
-        held_out[p] = v[1];
-    }
-}
-
 impl TrustMaps {
     /// Empty maps (NaN) of the grid's image for `k` lights of `channels` channels.
     pub fn new(grid: &crate::grid::Grid, k: usize, channels: usize) -> Result<TrustMaps> {
@@ -134,12 +108,17 @@ impl TrustMaps {
     /// pixels do not overlap).
     pub fn scatter(&mut self, grid: &crate::grid::Grid, first: usize, per_facet: &[[f32; 2]]) {
         let facets = &grid.facets[first..first + per_facet.len()];
-        scatter_maps(
+        let maps = (&mut self.normal_sigma[..], &mut self.held_out[..]);
+        scatter(
+            maps,
             0,
-            &mut self.normal_sigma,
-            &mut self.held_out,
             facets,
             per_facet,
+            SCATTER_PIECE,
+            &|(sigma, held), p, v| {
+                sigma[p] = v[0];
+                held[p] = v[1];
+            },
         );
     }
 

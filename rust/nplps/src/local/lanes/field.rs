@@ -89,10 +89,10 @@ impl LocalStep<'_> {
         }
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let k = obs.k;
-        let pixels: [usize; LANES] = std::array::from_fn(|l| grid.facets[first + l] as usize);
+        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
         let batch = self.batch_corners(first, &pixels, u);
         let quads = &batch.quads;
-        let centres: [[f64; 3]; LANES] = std::array::from_fn(|l| quad_centre(&quads[l]));
+        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&quads[l]));
         // The observations as they are (those in a cast shadow keep their indirect light).
         if !obs.gather_lanes(&pixels, interleaved) {
             for (l, &pixel) in pixels.iter().enumerate() {
@@ -123,10 +123,10 @@ impl LocalStep<'_> {
             let (sums, lit) =
                 accumulate_field_dispatch(lights, &centres, interleaved, rows, thresholds);
             let solved = solve_field_dispatch(&sums, &centres, &batch.base, geometry);
-            let valid: [bool; LANES] = std::array::from_fn(|l| solved.valid[l] && lit[l] >= 3);
+            let valid: [bool; LANES] = crate::lanes(|l| solved.valid[l] && lit[l] >= 3);
             let mut sse = solved.sse;
             if !self.settings.fast_residual {
-                let normals: [[f64; 3]; LANES] = std::array::from_fn(|l| match valid[l] {
+                let normals: [[f64; 3]; LANES] = crate::lanes(|l| match valid[l] {
                     true => [
                         solved.normal[0][l],
                         solved.normal[1][l],
@@ -135,7 +135,7 @@ impl LocalStep<'_> {
                     false => [0.0; 3],
                 });
                 let albedo: [f64; LANES] =
-                    std::array::from_fn(|l| if valid[l] { solved.rho[l] } else { 0.0 });
+                    crate::lanes(|l| if valid[l] { solved.rho[l] } else { 0.0 });
                 sse = residual_field_dispatch(
                     lights,
                     &centres,
@@ -212,9 +212,9 @@ fn accumulate_field(
         let ([a0, a1, a2], f) = light.beta(centres);
         let d = &row.direct;
         let b = |a: &[f64; LANES], l: usize| if d[l] { a[l] * f[l] } else { 0.0 };
-        let r0: [f64; LANES] = std::array::from_fn(|l| b(&a0, l) * p + row.v[0][l]);
-        let r1: [f64; LANES] = std::array::from_fn(|l| b(&a1, l) * p + row.v[1][l]);
-        let r2: [f64; LANES] = std::array::from_fn(|l| b(&a2, l) * p + row.v[2][l]);
+        let r0: [f64; LANES] = crate::lanes(|l| b(&a0, l) * p + row.v[0][l]);
+        let r1: [f64; LANES] = crate::lanes(|l| b(&a1, l) * p + row.v[1][l]);
+        let r2: [f64; LANES] = crate::lanes(|l| b(&a2, l) * p + row.v[2][l]);
         let pick = |l: usize, x: f64| if ok[l] { x } else { 0.0 };
         for l in 0..LANES {
             t[0][l] += pick(l, r0[l] * r0[l]);
