@@ -933,19 +933,7 @@ type Lanes = [f64; W];
 /// vector instructions.
 #[inline(always)]
 fn lanes(f: impl FnMut(usize) -> f64) -> Lanes {
-    array(f)
-}
-
-/// `[f(0), ..., f(N - 1)]`, written as a loop so that it is inlined into the vector code of its
-/// caller: `std::array::from_fn` over 8 lanes was compiled as separate functions without the
-/// caller's target features (baseline SSE2 code called from the AVX-512 kernels).
-#[inline(always)]
-fn array<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
-    let mut out = [T::default(); N];
-    for (i, x) in out.iter_mut().enumerate() {
-        *x = f(i);
-    }
-    out
+    crate::lanes(f)
 }
 
 /// `W` observations of a facet, one per lane (structure of arrays); a lane without an
@@ -1121,10 +1109,10 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
         if g.point.iter().any(|&p| p) {
             // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)
             // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
-            let a: [Lanes; 3] = array(|j| lanes(|i| g.position[j][i] - x[j]));
+            let a: [Lanes; 3] = crate::lanes(|j| lanes(|i| g.position[j][i] - x[j]));
             let id =
                 lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-            let l: [Lanes; 3] = array(|j| lanes(|i| a[j][i] * id[i]));
+            let l: [Lanes; 3] = crate::lanes(|j| lanes(|i| a[j][i] * id[i]));
             let aniso = lanes(|i| {
                 let t = -(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]);
                 if g.led[i] {
@@ -1133,8 +1121,8 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
                     1.0
                 }
             });
-            let lit: [bool; W] = array(|i| aniso[i] > 0.0);
-            g.l = array(|j| {
+            let lit: [bool; W] = crate::lanes(|i| aniso[i] > 0.0);
+            g.l = crate::lanes(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
                     (true, true) => l[j][i],
                     (true, false) => 0.0,
@@ -1146,10 +1134,10 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
                 false => g.scale[i],
             });
         }
-        let a: [Lanes; 3] = array(|j| lanes(|i| g.l[j][i] + v[j]));
+        let a: [Lanes; 3] = crate::lanes(|j| lanes(|i| g.l[j][i] + v[j]));
         let inv =
             lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-        g.h = array(|j| lanes(|i| a[j][i] * inv[i]));
+        g.h = crate::lanes(|j| lanes(|i| a[j][i] * inv[i]));
         g.fresnel = if f1 > 1e-12 {
             let c = lanes(|i| v[0] * g.h[0][i] + v[1] * g.h[1][i] + v[2] * g.h[2][i]);
             let d = fresnel_denominators(eta, &c);
@@ -1205,7 +1193,7 @@ impl Kernel {
         v: [f64; 3],
     ) -> Factors {
         let cl = lanes(|i| n[0] * g.l[0][i] + n[1] * g.l[1][i] + n[2] * g.l[2][i]);
-        let lit: [bool; W] = array(|i| cl[i] > 0.0);
+        let lit: [bool; W] = crate::lanes(|i| cl[i] > 0.0);
         // Unlit lanes are evaluated at a harmless cosine and masked; the least cosine keeps the
         // product of the denominators below from underflowing (its factors are at least
         // `c alpha^2`, `alpha^2` and about `eta - 1`).
@@ -1266,9 +1254,9 @@ impl Kernel {
             let sh = lanes(|i| specular[i] * (-4.0 * ch[i] * (a2 - 1.0) * iq[i]));
             let sl = lanes(|i| specular[i] * (a2 * sw[i]));
             let sv = lanes(|i| specular[i] * w.dgv);
-            out.d_diffuse = array(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
+            out.d_diffuse = crate::lanes(|j| lanes(|i| wl[i] * g.l[j][i] + wv[i] * v[j]));
             out.d_specular =
-                array(|j| lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j]));
+                crate::lanes(|j| lanes(|i| sh[i] * g.h[j][i] + sl[i] * g.l[j][i] + sv[i] * v[j]));
         }
         out
     }
@@ -1307,7 +1295,8 @@ impl Accumulator {
             lanes(|i| m[i] * (g.value[i] - g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i])));
         // d m / d b = scale (D n + P grad D + (s / rho) P grad S), P = I - n n^T.
         let t = s / rho;
-        let gr: [Lanes; 3] = array(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
+        let gr: [Lanes; 3] =
+            crate::lanes(|j| lanes(|i| f.d_diffuse[j][i] + t * f.d_specular[j][i]));
         let gn = lanes(|i| gr[0][i] * n[0] + gr[1][i] * n[1] + gr[2][i] * n[2]);
         let ms = lanes(|i| m[i] * g.scale[i]);
         let j: [Lanes; 4] = [
