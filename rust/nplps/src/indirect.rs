@@ -1442,14 +1442,23 @@ impl IndirectField {
             "the unlit lights of the indirect light",
         )?;
         let margin = self.margin.as_ref();
-        let bits: Vec<(Vec<u64>, Vec<u64>)> = crate::memory::try_par_collect(
-            (0..grid.facets.len()).into_par_iter().map(|f| {
+        // Per facet, in one flat buffer (`2 words` values a facet: its unlit lights, then the
+        // lights the margin hides): 16 bytes a facet at up to 64 lights, where a pair of
+        // vectors a facet took about 100 (two headers and two heap blocks), 100 MB at 1 MP.
+        let mut bits = crate::memory::try_vec(
+            grid.facets.len() * 2 * words,
+            0u64,
+            "the unlit lights of the indirect light",
+        )?;
+        bits.par_chunks_mut(2 * words)
+            .enumerate()
+            .for_each(|(f, out)| {
+                let (bits, hidden) = out.split_at_mut(words);
                 let q = geometry.facet_corners(grid, f, u);
                 let (c, n) = (
                     crate::geometry::quad_centre(&q),
                     crate::geometry::quad_normal(&q),
                 );
-                let (mut bits, mut hidden) = (vec![0u64; words], vec![0u64; words]);
                 if let Some(kept) = kept.as_ref() {
                     let p = grid.facets[f] as usize;
                     hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
@@ -1467,31 +1476,30 @@ impl IndirectField {
                 // The margin is a guess: it may not leave fewer than MIN_LIT lights.
                 let unlit: u32 = bits
                     .iter()
-                    .zip(&hidden)
+                    .zip(hidden.iter())
                     .map(|(a, b)| (a | b).count_ones())
                     .sum();
                 let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
                 if applied {
-                    for (a, b) in bits.iter_mut().zip(&hidden) {
+                    for (a, b) in bits.iter_mut().zip(hidden.iter()) {
                         *a |= b;
                     }
                 } else {
                     hidden.fill(0);
                 }
-                (bits, hidden)
-            }),
-            "the unlit lights of the indirect light",
-        )?;
+            });
         drop(kept);
         let mut hidden = crate::memory::try_vec(
             grid.height * grid.width * words,
             0u64,
             "the hidden lights of the indirect light",
         )?;
-        for (p, (bits, hid)) in grid.facets.iter().map(|&p| p as usize).zip(bits) {
-            unlit[p * words..(p + 1) * words].copy_from_slice(&bits);
-            hidden[p * words..(p + 1) * words].copy_from_slice(&hid);
+        let facets = grid.facets.iter().map(|&p| p as usize);
+        for (p, out) in facets.zip(bits.chunks_exact(2 * words)) {
+            unlit[p * words..(p + 1) * words].copy_from_slice(&out[..words]);
+            hidden[p * words..(p + 1) * words].copy_from_slice(&out[words..]);
         }
+        drop(bits);
         self.hidden = hidden;
         self.unlit = unlit;
         self.words = words;
@@ -1511,8 +1519,12 @@ impl IndirectField {
     /// pixels, is at `(r + 1/2) / (2 f) - 1/2` cells either way: the bilinear interpolation of
     /// the same field at finer points), and the lights behind each facet of
     /// `u` marked again ([`IndirectField::with_unlit`]), with the lights that the margin hid
-    /// from the coarser pixel under each fine one kept hidden. No visibility verdicts (the
-    /// exchange is not built again on the finer level).
+    /// from the coarser pixel under each fine one kept hidden. The visibility verdicts of its
+    /// exchange stay (when it had them): the coarse grid is the same cells (its vertices on
+    /// the same rays), so the full resolution's gathering once more
+    /// ([`crate::solver::coarse_to_fine`]) marches only the pairs whose verdicts its carried
+    /// mesh may have changed ([`Exchange::build`]: the same pairs and weights as a fresh
+    /// exchange; the 256² GI renders came out the same bit for bit either way).
     pub(crate) fn finer(
         mut self,
         grid: &crate::grid::Grid,
@@ -1535,7 +1547,6 @@ impl IndirectField {
             false => None,
         };
         self.factor *= 2;
-        self.sightlines = None;
         self.unlit = Vec::new();
         self.hidden = Vec::new();
         self.with_unlit(grid, geometry, u, lights, kept)
