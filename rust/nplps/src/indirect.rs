@@ -1450,44 +1450,43 @@ impl IndirectField {
             0u64,
             "the unlit lights of the indirect light",
         )?;
-        bits.par_chunks_mut(2 * words)
-            .enumerate()
-            .for_each(|(f, out)| {
-                let (bits, hidden) = out.split_at_mut(words);
-                let q = geometry.facet_corners(grid, f, u);
-                let (c, n) = (
-                    crate::geometry::quad_centre(&q),
-                    crate::geometry::quad_normal(&q),
-                );
-                if let Some(kept) = kept.as_ref() {
-                    let p = grid.facets[f] as usize;
-                    hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+        // (no lights: an empty buffer, and chunks of 1 so that the chunking is defined)
+        let per = (2 * words).max(1);
+        bits.par_chunks_mut(per).enumerate().for_each(|(f, out)| {
+            let (bits, hidden) = out.split_at_mut(words);
+            let q = geometry.facet_corners(grid, f, u);
+            let (c, n) = (
+                crate::geometry::quad_centre(&q),
+                crate::geometry::quad_normal(&q),
+            );
+            if let Some(kept) = kept.as_ref() {
+                let p = grid.facets[f] as usize;
+                hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+            }
+            for (k, light) in lights.iter().enumerate() {
+                let bit = 1 << (k % 64);
+                if not_above(dot(n, light.beta(c).0), 0.0) {
+                    bits[k / 64] |= bit;
+                } else if hidden[k / 64] & bit == 0 && margin.is_some_and(|m| m.hides(c, light)) {
+                    // (a light kept hidden is not marched again: the result is the same)
+                    hidden[k / 64] |= bit;
                 }
-                for (k, light) in lights.iter().enumerate() {
-                    let bit = 1 << (k % 64);
-                    if not_above(dot(n, light.beta(c).0), 0.0) {
-                        bits[k / 64] |= bit;
-                    } else if hidden[k / 64] & bit == 0 && margin.is_some_and(|m| m.hides(c, light))
-                    {
-                        // (a light kept hidden is not marched again: the result is the same)
-                        hidden[k / 64] |= bit;
-                    }
+            }
+            // The margin is a guess: it may not leave fewer than MIN_LIT lights.
+            let unlit: u32 = bits
+                .iter()
+                .zip(hidden.iter())
+                .map(|(a, b)| (a | b).count_ones())
+                .sum();
+            let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
+            if applied {
+                for (a, b) in bits.iter_mut().zip(hidden.iter()) {
+                    *a |= b;
                 }
-                // The margin is a guess: it may not leave fewer than MIN_LIT lights.
-                let unlit: u32 = bits
-                    .iter()
-                    .zip(hidden.iter())
-                    .map(|(a, b)| (a | b).count_ones())
-                    .sum();
-                let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
-                if applied {
-                    for (a, b) in bits.iter_mut().zip(hidden.iter()) {
-                        *a |= b;
-                    }
-                } else {
-                    hidden.fill(0);
-                }
-            });
+            } else {
+                hidden.fill(0);
+            }
+        });
         drop(kept);
         let mut hidden = crate::memory::try_vec(
             grid.height * grid.width * words,
@@ -1495,7 +1494,7 @@ impl IndirectField {
             "the hidden lights of the indirect light",
         )?;
         let facets = grid.facets.iter().map(|&p| p as usize);
-        for (p, out) in facets.zip(bits.chunks_exact(2 * words)) {
+        for (p, out) in facets.zip(bits.chunks_exact(per)) {
             unlit[p * words..(p + 1) * words].copy_from_slice(&out[..words]);
             hidden[p * words..(p + 1) * words].copy_from_slice(&out[words..]);
         }
@@ -2142,6 +2141,66 @@ mod tests {
         }
         // The walls light each other (the facets at the groove's rim see little).
         assert!(lit > 128 * 100, "{lit}");
+    }
+
+    /// The full resolution's last gathering after rounds on a coarser level
+    /// (`solver::coarse_to_fine`): the field carried by [`IndirectField::finer`] keeps the
+    /// rounds' visibility verdicts, and the exchange built with them on the finer level's
+    /// surface, moved from the coarse one, is the fresh exchange of that surface, bit for bit.
+    /// A V-groove at 64² (32² facets of 2 pixels), carried to 128² (4 pixels a facet), gathered
+    /// there on grooves 0.1 to 2 pixels deeper (walls of 45 degrees and a little steeper).
+    #[test]
+    fn the_verdicts_carried_to_a_finer_level_give_its_fresh_exchange() {
+        let setup = |n: usize, pixel: f64, deeper: f64| {
+            let camera = Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [0.0, 0.0],
+            };
+            let depth = depths(n, |_, c| {
+                100.0 + (32.0 + deeper) * (1.0 - (c * pixel - 32.0).abs() / 32.0)
+            });
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            (camera, grid, geometry, u)
+        };
+        let images = vec![1.0f32; 2 * 128 * 128];
+        let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
+        let coarse_images = vec![1.0f32; 2 * 64 * 64];
+        let coarse_obs = crate::local::Observations::from_stack(&coarse_images, 2, 64 * 64, 1);
+        let (camera, grid, geometry, u) = setup(64, 1.0, 0.0);
+        let coarse =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &coarse_obs, &[], None, None)
+                .unwrap();
+        assert!(coarse.sightlines.is_some());
+        for deeper in [0.1, 0.5, 2.0] {
+            let (camera, grid, geometry, u) = setup(128, 0.5, deeper);
+            let carried = coarse.clone().finer(&grid, &geometry, &u, &[]).unwrap();
+            assert!(carried.sightlines.is_some(), "the verdicts go on");
+            let kept = IndirectField::of_mesh(
+                &camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                Some(carried),
+                None,
+            )
+            .unwrap();
+            let fresh =
+                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None)
+                    .unwrap();
+            assert_eq!((kept.factor(), fresh.factor()), (4, 4));
+            assert_eq!(kept.pairs(), fresh.pairs(), "{deeper}");
+            let mut lit = 0;
+            for p in 0..128 * 128 {
+                let (a, b) = (kept.at(p, 128), fresh.at(p, 128));
+                assert_eq!(a, b, "pixel {p}, {deeper} deeper");
+                lit += usize::from(a[0][0] != 0.0);
+            }
+            assert!(lit > 128 * 100, "{lit}");
+        }
     }
 
     /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit
