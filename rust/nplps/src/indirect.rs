@@ -1441,56 +1441,63 @@ impl IndirectField {
             "the unlit lights of the indirect light",
         )?;
         let margin = self.margin.as_ref();
-        let bits: Vec<(Vec<u64>, Vec<u64>)> = crate::memory::try_par_collect(
-            (0..grid.facets.len()).into_par_iter().map(|f| {
-                let q = geometry.facet_corners(grid, f, u);
-                let (c, n) = (
-                    crate::geometry::quad_centre(&q),
-                    crate::geometry::quad_normal(&q),
-                );
-                let (mut bits, mut hidden) = (vec![0u64; words], vec![0u64; words]);
-                if let Some(kept) = kept.as_ref() {
-                    let p = grid.facets[f] as usize;
-                    hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
-                }
-                for (k, light) in lights.iter().enumerate() {
-                    let bit = 1 << (k % 64);
-                    if not_above(dot(n, light.beta(c).0), 0.0) {
-                        bits[k / 64] |= bit;
-                    } else if hidden[k / 64] & bit == 0 && margin.is_some_and(|m| m.hides(c, light))
-                    {
-                        // (a light kept hidden is not marched again: the result is the same)
-                        hidden[k / 64] |= bit;
-                    }
-                }
-                // The margin is a guess: it may not leave fewer than MIN_LIT lights.
-                let unlit: u32 = bits
-                    .iter()
-                    .zip(&hidden)
-                    .map(|(a, b)| (a | b).count_ones())
-                    .sum();
-                let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
-                if applied {
-                    for (a, b) in bits.iter_mut().zip(&hidden) {
-                        *a |= b;
-                    }
-                } else {
-                    hidden.fill(0);
-                }
-                (bits, hidden)
-            }),
+        // Per facet, in one flat buffer (`2 words` values a facet: its unlit lights, then the
+        // lights the margin hides): 16 bytes a facet at up to 64 lights, where a pair of
+        // vectors a facet took about 100 (two headers and two heap blocks), 100 MB at 1 MP.
+        let mut bits = crate::memory::try_vec(
+            grid.facets.len() * 2 * words,
+            0u64,
             "the unlit lights of the indirect light",
         )?;
+        // (no lights: an empty buffer, and chunks of 1 so that the chunking is defined)
+        let per = (2 * words).max(1);
+        bits.par_chunks_mut(per).enumerate().for_each(|(f, out)| {
+            let (bits, hidden) = out.split_at_mut(words);
+            let q = geometry.facet_corners(grid, f, u);
+            let (c, n) = (
+                crate::geometry::quad_centre(&q),
+                crate::geometry::quad_normal(&q),
+            );
+            if let Some(kept) = kept.as_ref() {
+                let p = grid.facets[f] as usize;
+                hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+            }
+            for (k, light) in lights.iter().enumerate() {
+                let bit = 1 << (k % 64);
+                if not_above(dot(n, light.beta(c).0), 0.0) {
+                    bits[k / 64] |= bit;
+                } else if hidden[k / 64] & bit == 0 && margin.is_some_and(|m| m.hides(c, light)) {
+                    // (a light kept hidden is not marched again: the result is the same)
+                    hidden[k / 64] |= bit;
+                }
+            }
+            // The margin is a guess: it may not leave fewer than MIN_LIT lights.
+            let unlit: u32 = bits
+                .iter()
+                .zip(hidden.iter())
+                .map(|(a, b)| (a | b).count_ones())
+                .sum();
+            let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
+            if applied {
+                for (a, b) in bits.iter_mut().zip(hidden.iter()) {
+                    *a |= b;
+                }
+            } else {
+                hidden.fill(0);
+            }
+        });
         drop(kept);
         let mut hidden = crate::memory::try_vec(
             grid.height * grid.width * words,
             0u64,
             "the hidden lights of the indirect light",
         )?;
-        for (p, (bits, hid)) in grid.facets.iter().map(|&p| p as usize).zip(bits) {
-            unlit[p * words..(p + 1) * words].copy_from_slice(&bits);
-            hidden[p * words..(p + 1) * words].copy_from_slice(&hid);
+        let facets = grid.facets.iter().map(|&p| p as usize);
+        for (p, out) in facets.zip(bits.chunks_exact(per)) {
+            unlit[p * words..(p + 1) * words].copy_from_slice(&out[..words]);
+            hidden[p * words..(p + 1) * words].copy_from_slice(&out[words..]);
         }
+        drop(bits);
         self.hidden = hidden;
         self.unlit = unlit;
         self.words = words;
@@ -1510,8 +1517,12 @@ impl IndirectField {
     /// pixels, is at `(r + 1/2) / (2 f) - 1/2` cells either way: the bilinear interpolation of
     /// the same field at finer points), and the lights behind each facet of
     /// `u` marked again ([`IndirectField::with_unlit`]), with the lights that the margin hid
-    /// from the coarser pixel under each fine one kept hidden. No visibility verdicts (the
-    /// exchange is not built again on the finer level).
+    /// from the coarser pixel under each fine one kept hidden. The visibility verdicts of its
+    /// exchange stay (when it had them): the coarse grid is the same cells (its vertices on
+    /// the same rays), so the full resolution's gathering once more
+    /// ([`crate::solver::coarse_to_fine`]) marches only the pairs whose verdicts its carried
+    /// mesh may have changed ([`Exchange::build`]: the same pairs and weights as a fresh
+    /// exchange; the 256² GI renders came out the same bit for bit either way).
     pub(crate) fn finer(
         mut self,
         grid: &crate::grid::Grid,
@@ -1534,7 +1545,6 @@ impl IndirectField {
             false => None,
         };
         self.factor *= 2;
-        self.sightlines = None;
         self.unlit = Vec::new();
         self.hidden = Vec::new();
         self.with_unlit(grid, geometry, u, lights, kept)
@@ -2130,6 +2140,66 @@ mod tests {
         }
         // The walls light each other (the facets at the groove's rim see little).
         assert!(lit > 128 * 100, "{lit}");
+    }
+
+    /// The full resolution's last gathering after rounds on a coarser level
+    /// (`solver::coarse_to_fine`): the field carried by [`IndirectField::finer`] keeps the
+    /// rounds' visibility verdicts, and the exchange built with them on the finer level's
+    /// surface, moved from the coarse one, is the fresh exchange of that surface, bit for bit.
+    /// A V-groove at 64² (32² facets of 2 pixels), carried to 128² (4 pixels a facet), gathered
+    /// there on grooves 0.1 to 2 pixels deeper (walls of 45 degrees and a little steeper).
+    #[test]
+    fn the_verdicts_carried_to_a_finer_level_give_its_fresh_exchange() {
+        let setup = |n: usize, pixel: f64, deeper: f64| {
+            let camera = Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [0.0, 0.0],
+            };
+            let depth = depths(n, |_, c| {
+                100.0 + (32.0 + deeper) * (1.0 - (c * pixel - 32.0).abs() / 32.0)
+            });
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            (camera, grid, geometry, u)
+        };
+        let images = vec![1.0f32; 2 * 128 * 128];
+        let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
+        let coarse_images = vec![1.0f32; 2 * 64 * 64];
+        let coarse_obs = crate::local::Observations::from_stack(&coarse_images, 2, 64 * 64, 1);
+        let (camera, grid, geometry, u) = setup(64, 1.0, 0.0);
+        let coarse =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &coarse_obs, &[], None, None)
+                .unwrap();
+        assert!(coarse.sightlines.is_some());
+        for deeper in [0.1, 0.5, 2.0] {
+            let (camera, grid, geometry, u) = setup(128, 0.5, deeper);
+            let carried = coarse.clone().finer(&grid, &geometry, &u, &[]).unwrap();
+            assert!(carried.sightlines.is_some(), "the verdicts go on");
+            let kept = IndirectField::of_mesh(
+                &camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                Some(carried),
+                None,
+            )
+            .unwrap();
+            let fresh =
+                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None)
+                    .unwrap();
+            assert_eq!((kept.factor(), fresh.factor()), (4, 4));
+            assert_eq!(kept.pairs(), fresh.pairs(), "{deeper}");
+            let mut lit = 0;
+            for p in 0..128 * 128 {
+                let (a, b) = (kept.at(p, 128), fresh.at(p, 128));
+                assert_eq!(a, b, "pixel {p}, {deeper} deeper");
+                lit += usize::from(a[0][0] != 0.0);
+            }
+            assert!(lit > 128 * 100, "{lit}");
+        }
     }
 
     /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit

@@ -12,7 +12,8 @@
 //!     dz = max |z_new - z|;  z = z_new
 //!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
 //! (interreflections: rounds of "gather V on z, iterate again", see Solver::interreflect;
-//!  above ROUNDS_SIDE pixels a side on a coarser level, whose field the finer ones use)
+//!  with a pyramid on its coarsest level of ROUNDS_MIN_SIDE to ROUNDS_SIDE pixels a side,
+//!  whose field the finer ones use)
 //! final local step on z -> reported normals, albedo, residuals
 //! ```
 //!
@@ -251,22 +252,39 @@ pub const SHADOWS_AT: [usize; 2] = [1, 3];
 /// `O(pixels)` set-up of a march (the vertices and the min-depth pyramid).
 pub const PROBE_FACETS: usize = 1024;
 
-/// With [`Options::interreflections`], an image of more than `ROUNDS_SIDE` pixels a side runs
-/// the rounds of [`Solver::interreflect`] on the finest level of its pyramid of at most
+/// With [`Options::interreflections`], an image with a pyramid runs the rounds of
+/// [`Solver::interreflect`] on the coarsest level of its pyramid of [`ROUNDS_MIN_SIDE`] to
 /// `ROUNDS_SIDE` pixels a side (its field then has [`crate::indirect::FIELD_SIDE_SMALL`]
-/// facets a side, as a 256² image's), its finer levels iterate with that field
+/// facets a side or a little more, as a 256² image's), its finer levels iterate with that field
 /// ([`IndirectField::finer`]) to their own stop rule, and the full resolution gathers it once
 /// more on the same grid from its own images on the carried surface before it iterates: one
-/// exchange of that grid is built there, and no round iterates there. Smaller images run the
-/// rounds at full resolution. Measured (`benchmarks/pbr/indirect.py --cost --synthetic 1024`,
-/// the synthetic bowl, loaded machine): 1 MP 7.3x -> 3.3-3.6x the CPU of a default run (mean
-/// error 0.406° -> 0.408°; rounds at full resolution with a 64² grid before), 512² 11.9x ->
-/// 3.6x (0.371° -> 0.372°); see docs/concave.md, stop 44.
+/// exchange of that grid is built there (keeping the rounds' visibility verdicts that the
+/// carried surface cannot have changed), and no round iterates there. Images without such a
+/// level (no pyramid: less than 256 pixels a side by default) run the rounds at full
+/// resolution. Measured (`benchmarks/pbr/indirect.py --cost --synthetic 1024`, the synthetic
+/// bowl, loaded machine): 1 MP 7.3x -> 3.3-3.6x the CPU of a default run (mean error 0.406° ->
+/// 0.408°; rounds at full resolution with a 64² grid before), 512² 11.9x -> 3.6x (0.371° ->
+/// 0.372°); see docs/concave.md, stop 44.
 pub const ROUNDS_SIDE: usize = 256;
 
+/// The rounds' level (see [`ROUNDS_SIDE`]) has at least this many pixels a side: with the
+/// automatic pyramid ([`crate::pyramid::COARSEST_SIDE`]) its coarsest level, 128 to 255 pixels a
+/// side. A 256² image runs its rounds on its 128² level, on the same 32² cells it gathered on
+/// at full resolution (4 pixels a cell there instead of 8): a round's exchange costs the same,
+/// its iterations a quarter. Measured on the benchmark's GI renders at 256² against the rounds
+/// at full resolution (one session, CPU seconds with the option; docs/concave.md, stop 45):
+/// mean normal errors bowls 0.609 -> 0.599° and 0.350 -> 0.342°, blocks 0.264 -> 0.240°, sheet
+/// 0.976 -> 0.948°, torus 0.2425 -> 0.2440°, albedo within 0.1 %; CPU -12 to -30 %.
+pub const ROUNDS_MIN_SIDE: usize = 128;
+
 /// With [`Options::interreflections`], at most this many rounds of "gather the indirect light of
-/// the current mesh, iterate again" after the full-resolution level converged.
-pub const INDIRECT_ROUNDS: usize = 8;
+/// the current mesh, iterate again" (see [`Solver::interreflect`]). Every GI render of the
+/// benchmark but the corrugated sheet stops earlier by the other rules (bowls and torus 3-4
+/// rounds, blocks 3, the 1 MP synthetic bowl 2); the sheet's rounds on its 128² level ran 6
+/// (depth changes 1.83, 1.43, 0.80, 0.21, 0.14, 0.13; the changes' norm 0.26, 0.087, 0.024,
+/// 0.0060, 0.0021 after the first): 8 -> 4 rounds left its mean normal error at 0.9481 ->
+/// 0.9480° for 14 % less CPU (3 rounds: 0.957°).
+pub const INDIRECT_ROUNDS: usize = 4;
 
 /// The largest ratio of two successive depth changes under which [`projected_converged`]
 /// extrapolates them: a clearly contracting iteration (the full resolution of the 12 MP
@@ -445,19 +463,17 @@ pub(crate) fn coarse_to_fine(
             (h, gauge, converged)
         };
         history.extend(h);
-        // The rounds of interreflections on the finest level of at most ROUNDS_SIDE pixels a
-        // side (when the full resolution has more); the finer levels iterate with its field.
-        let side = |g: &crate::grid::Grid| g.height.max(g.width);
-        let finer = if i == 0 {
-            &problem.grid
-        } else {
-            &coarse[i - 1].grid
-        };
+        // The rounds of interreflections on the coarsest level of ROUNDS_MIN_SIDE to
+        // ROUNDS_SIDE pixels a side; the finer levels iterate with its field.
+        let side = p.grid.height.max(p.grid.width);
         if options.interreflections
             && solver.indirect.is_none()
-            && side(&p.grid) <= ROUNDS_SIDE
-            && side(finer) > ROUNDS_SIDE
+            && (ROUNDS_MIN_SIDE..=ROUNDS_SIDE).contains(&side)
         {
+            // The coarser levels' freed buffers, before the rounds' exchanges (their peak):
+            // on the 256² blocks the rounds started from 77 MB resident where the full
+            // resolution's had started from 66 MB after the same call.
+            crate::memory::give_back();
             let (rounds, _) = solver.interreflect(&mut current, &gauge, converged, progress)?;
             history.extend(rounds);
         }
@@ -484,6 +500,7 @@ pub(crate) fn coarse_to_fine(
     timings.pyramid += t.elapsed();
     if let Some(field) = carried.indirect.take() {
         let t = Instant::now();
+        crate::memory::give_back(); // the rounds' exchanges, before the last one
         let (grid, geometry) = (&problem.grid, &problem.geometry);
         // Gathered once more on the carried surface from the full resolution's own images, on
         // the same coarse grid (the carried field's factor, doubled per level): the coarse
@@ -941,7 +958,9 @@ impl<'p> Solver<'p> {
             residual = now;
             moved = change;
         }
-        if let Some(field) = self.indirect.as_mut() {
+        // A coarse level's field goes on to the finer levels with its verdicts, for the full
+        // resolution's last gathering (see [`coarse_to_fine`]); the full resolution's are done.
+        if let Some(field) = self.indirect.as_mut().filter(|_| self.level == 0) {
             field.drop_sightlines();
         }
         let (last, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
@@ -2195,7 +2214,7 @@ mod tests {
         assert!(with.timings.indirect > std::time::Duration::ZERO);
     }
 
-    /// The same bowl at 260² pixels, more than [`ROUNDS_SIDE`]: the rounds run on the 130²
+    /// The same bowl at 260² pixels (see [`ROUNDS_MIN_SIDE`]): the rounds run on the 130²
     /// level (its field: 17² cells of 8 of its pixels) and the full resolution iterates with
     /// that field, carried ([`IndirectField::finer`]: 16 pixels a cell, the grid the full
     /// resolution would gather on itself, which made the images) and gathered once more from
