@@ -516,8 +516,11 @@ def reconstruct(
         under every light is gathered from the observed images over the current mesh (on a
         grid of 32 x 32 to 64 x 64 cells), added to the fits' light vectors, and the iteration
         runs again, up to 8 rounds (2-6x the time of a default run). Only for captures with
-        real interreflections (direct-only renders get worse); Lambertian model only, without
-        ``refine_lights``. See the README ("Concave objects") for its cost and limits.
+        real interreflections (direct-only renders get worse); not with ``refine_lights``. With
+        ``reflectance="glossy"`` the modelled diffuse part of the images emits (the observations
+        less the fitted specular part) and the glossy fits see the observations less the
+        indirect light they receive as a Lambertian surface (its glossy reflection is ignored),
+        the rounds at full resolution. See the README ("Concave objects") for its cost and limits.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).

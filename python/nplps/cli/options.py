@@ -122,8 +122,8 @@ _OPTIONS = (
         "interreflections",
         "model the light the surface sends to itself (concave objects: bowls, grooves, folds): "
         "after convergence, gather each pixel's indirect light from the images over the mesh and "
-        "iterate again (for real captures only: direct-only renders get worse; Lambertian, "
-        "2-6x the time)",
+        "iterate again (for real captures only: direct-only renders get worse; 2-6x the time; "
+        "with --reflectance glossy the modelled diffuse part emits)",
         switch=True,
         to_api=bool,
     ),

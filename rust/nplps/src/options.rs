@@ -44,8 +44,10 @@ pub struct Options {
     /// observed images over the current mesh (on a grid of at most
     /// [`FIELD_SIDE`](crate::indirect::FIELD_SIDE)² facets), added to the lights' rows of the
     /// local fits (`I = b . (s + V)`), and the iteration runs again, up to
-    /// `INDIRECT_ROUNDS` rounds. Lambertian model only, without
-    /// light refinement (both are refused).
+    /// `INDIRECT_ROUNDS` rounds. Under the glossy model the modelled diffuse part of the images
+    /// emits and the glossy fits see the observations less the indirect light they receive as a
+    /// Lambertian surface (see `local::glossy_indirect`), the rounds at full resolution. Without
+    /// light refinement (refused).
     pub interreflections: bool,
     /// Worker threads (0: rayon's default, all cores).
     pub threads: usize,
@@ -77,13 +79,6 @@ impl Options {
             });
         }
         self.refine.validate()?;
-        if self.interreflections && self.reflectance.is_glossy() {
-            return Err(Error::Unusable(
-                "interreflections are not supported with reflectance=\"glossy\" yet (the \
-                 emitted light would be the modelled diffuse part): use the Lambertian model"
-                    .to_string(),
-            ));
-        }
         if self.interreflections && self.refine.is_active() {
             return Err(Error::Unusable(
                 "interreflections are not supported with refine_lights yet (the light step \

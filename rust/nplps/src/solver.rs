@@ -13,7 +13,7 @@
 //!     stop when dz <= tol * L   (L = max(W*w, H*h), the lateral size of the grid)
 //! (interreflections: rounds of "gather V on z, iterate again", see Solver::interreflect;
 //!  with a pyramid on its coarsest level of ROUNDS_MIN_SIDE to ROUNDS_SIDE pixels a side,
-//!  whose field the finer ones use)
+//!  whose field the finer ones use; under the glossy model at full resolution)
 //! final local step on z -> reported normals, albedo, residuals
 //! ```
 //!
@@ -33,7 +33,7 @@ use crate::grid::Grid;
 use crate::indirect::IndirectField;
 use crate::local::{
     check_lobe, estimate_lobe, FacetFit, FacetStat, FitSettings, LobeCheck, LocalStep, Model,
-    TrustMaps, CHECK_BELOW_LIGHTS,
+    Observations, TrustMaps, CHECK_BELOW_LIGHTS,
 };
 use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
@@ -464,9 +464,12 @@ pub(crate) fn coarse_to_fine(
         };
         history.extend(h);
         // The rounds of interreflections on the coarsest level of ROUNDS_MIN_SIDE to
-        // ROUNDS_SIDE pixels a side; the finer levels iterate with its field.
+        // ROUNDS_SIDE pixels a side; the finer levels iterate with its field. Under the glossy
+        // model the rounds run at full resolution (a carried field would enter the Lambertian
+        // rows; the glossy fits need the fine level's own corrections).
         let side = p.grid.height.max(p.grid.width);
         if options.interreflections
+            && !options.reflectance.is_glossy()
             && solver.indirect.is_none()
             && (ROUNDS_MIN_SIDE..=ROUNDS_SIDE).contains(&side)
         {
@@ -627,6 +630,10 @@ pub(crate) struct Solver<'p> {
     /// Whether `indirect` came from a coarser level that ran the rounds (see [`ROUNDS_SIDE`]):
     /// [`Solver::interreflect`] then has nothing left to do.
     indirect_carried: bool,
+    /// Under the glossy model with a field of indirect light: the observations its glossy fits
+    /// see, the problem's minus the indirect light the fits of the round's start receive (see
+    /// [`crate::local::LocalStep::glossy_received`] and [`Solver::glossy_round`]).
+    received: Option<Observations<'static>>,
     /// Whether the run's iterations alternate between two surfaces (then they are averaged).
     oscillation: Oscillation,
 }
@@ -716,6 +723,7 @@ impl<'p> Solver<'p> {
             march_next: false,
             indirect: None,
             indirect_carried: false,
+            received: None,
             oscillation: Oscillation::default(),
         })
     }
@@ -918,6 +926,9 @@ impl<'p> Solver<'p> {
         let (mut residual, mut moved) = (f64::NAN, f64::NAN);
         for _ in 0..INDIRECT_ROUNDS {
             let t = Instant::now();
+            // Under the glossy model: the fits of the round's start, and the diffuse part of
+            // the images they model, which emits instead of the observed images.
+            let glossy = self.glossy_emitters(u)?;
             let mut previous = self.indirect.take();
             let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
             self.indirect = Some(
@@ -926,7 +937,7 @@ impl<'p> Solver<'p> {
                     &p.grid,
                     &p.geometry,
                     u,
-                    &p.obs,
+                    glossy.as_ref().map_or(&p.obs, |(emitted, _)| emitted),
                     self.lights.lights(),
                     previous,
                     None,
@@ -939,6 +950,9 @@ impl<'p> Solver<'p> {
                     hidden,
                 )?,
             );
+            if let Some((_, state)) = glossy {
+                self.glossy_round(&state)?;
+            }
             self.timings.indirect += t.elapsed();
             p.cancel.check()?;
             let before = try_copy(u, "the depths")?;
@@ -1503,11 +1517,14 @@ impl<'p> Solver<'p> {
         depths: Option<&'a [f64]>,
     ) -> LocalStep<'a> {
         let p = self.problem;
+        // Under the glossy model the rounds' fits see the observations less the received
+        // indirect light, without the field in their rows (see [`Solver::glossy_round`]).
+        let received = self.received.as_ref().filter(|_| self.lobe.is_some());
         LocalStep {
             grid: &p.grid,
             geometry: &p.geometry,
             model: Model::Near(self.lights.lights()),
-            obs: &p.obs,
+            obs: received.unwrap_or(&p.obs),
             settings: FitSettings {
                 lobe: self.lobe,
                 continuation: self.continuation,
@@ -1527,6 +1544,7 @@ impl<'p> Solver<'p> {
             indirect: self
                 .indirect
                 .as_ref()
+                .filter(|_| received.is_none())
                 .map(|f| f as &dyn crate::local::IndirectLight),
         }
     }
@@ -1699,6 +1717,8 @@ impl RmsSum {
         }
     }
 }
+
+mod glossy_rounds;
 
 #[cfg(test)]
 mod warm_tests {

@@ -34,12 +34,14 @@ use crate::vec3::{dot, norm, scale};
 
 mod check;
 mod glossy;
+mod glossy_indirect;
 mod lanes;
 mod trust;
 
 pub(crate) use check::check_lobe;
 pub use check::{LobeCheck, CHECK_BELOW_LIGHTS, CHECK_FOLDS};
 pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA};
+pub(crate) use glossy_indirect::GlossyState;
 use lanes::{lane_scratch, LANES};
 pub use trust::{LightTrust, Trust, TrustMaps};
 
