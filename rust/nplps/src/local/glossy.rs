@@ -436,7 +436,10 @@ pub fn estimate_lobe(step: &LocalStep<'_>, u: &[f64], near: Option<Lobe>) -> Res
 
 /// The lobe a solver without one starts from, estimated on its starting surface `u`: the line
 /// over the roughness alone (walked from 0.2, see [`estimate_lobe`]), at the index 1.45 under
-/// the transmitted diffuse term; `None` when no facet of the subsample can be fitted.
+/// the transmitted diffuse term; where that roughness is at least
+/// [`MATTE_ROUGHNESS`](crate::MATTE_ROUGHNESS) (a matte surface), the whole search of
+/// [`estimate_lobe`] (the same first line, then the index and the roughness again). `None` when
+/// no facet of the subsample can be fitted.
 ///
 /// Why the roughness alone: this lobe serves the solver's first iterations and is the start of
 /// its second search ([`LOBE_AT`](crate::solver::LOBE_AT)`[0]`), which scans the index grid and
@@ -542,7 +545,7 @@ fn search_lobe(
     };
     // The lines: roughness, index, roughness (near an estimate: roughness, index; on a starting
     // surface: the roughness alone).
-    let (mut lobe, rounds) = match previous {
+    let (mut lobe, mut rounds) = match previous {
         Some(lobe) => (lobe, 2),
         None if start => (Lobe::new(0.2, 1.45), 1),
         None => (Lobe::new(0.2, 1.45), 3),
@@ -553,7 +556,8 @@ fn search_lobe(
     let own: Vec<_> = sample.iter().map(|s| s.starts).collect();
     let mut anchors = fits(lobe, &own, 2 * GLOSSY_STEPS).1;
     step.cancel.check()?;
-    for round in 0..rounds {
+    let mut round = 0;
+    while round < rounds {
         let near = |x: f64, grid: &[f64], lo: f64, hi: f64, log: bool| -> Vec<f64> {
             match previous {
                 None => grid.to_vec(),
@@ -628,6 +632,14 @@ fn search_lobe(
             anchors = ends;
         }
         step.cancel.check()?;
+        // A starting roughness as rough as a matte surface's: the index line sets the diffuse
+        // term's fall-off of the first iterations (the Lambertian one at index 1), which a matte
+        // object's run keeps through its cast shadows' mask (marched on the mesh of iteration
+        // 3); the whole search is made, as for any estimate from scratch.
+        if start && round == 0 && lobe.alpha >= crate::MATTE_ROUGHNESS {
+            rounds = 3;
+        }
+        round += 1;
     }
     Ok(Some(lobe))
 }
