@@ -32,8 +32,8 @@ use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::IndirectField;
 use crate::local::{
-    check_lobe, estimate_lobe, FacetFit, FacetStat, FitSettings, LobeCheck, LocalStep, Model,
-    Observations, TrustMaps, CHECK_BELOW_LIGHTS,
+    check_lobe, estimate_lobe, estimate_starting_lobe, FacetFit, FacetStat, FitSettings, LobeCheck,
+    LocalStep, Model, Observations, TrustMaps, CHECK_BELOW_LIGHTS,
 };
 use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
@@ -1259,9 +1259,9 @@ impl<'p> Solver<'p> {
             return Ok(());
         }
         self.lobe_from_scratch |= from_scratch;
-        // A solver without a lobe searches the whole grids twice: first on its starting
-        // surface, then on the surface of its first iterations; later estimates search near
-        // the last one.
+        // A solver without a lobe searches twice from scratch: first on its starting surface
+        // (the roughness alone), then the whole grids on the surface of its first iterations;
+        // later estimates search near the last one.
         let near = match iteration == LOBE_AT[0] && self.lobe_from_scratch {
             true => None,
             false => self.lobe,
@@ -1274,7 +1274,13 @@ impl<'p> Solver<'p> {
         };
         // The lobe search compares the fits' residuals across lobes: its fits converge fully.
         step.settings.step_tolerance = 0.0;
-        match estimate_lobe(&step, u, near)? {
+        // A solver's first estimate, on its starting surface, searches the roughness alone
+        // (see [`estimate_starting_lobe`]): the next one scans the index.
+        let estimate = match from_scratch {
+            true => estimate_starting_lobe(&step, u)?,
+            false => estimate_lobe(&step, u, near)?,
+        };
+        match estimate {
             // An estimate on a surface of the iterations decides (see [`MATTE_ROUGHNESS`]).
             Some(lobe) if lobe.alpha >= MATTE_ROUGHNESS && !from_scratch && !self.keep_glossy => {
                 self.drop_glossy(lobe)

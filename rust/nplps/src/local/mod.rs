@@ -40,7 +40,9 @@ mod trust;
 
 pub(crate) use check::check_lobe;
 pub use check::{LobeCheck, CHECK_BELOW_LIGHTS, CHECK_FOLDS};
-pub(crate) use glossy::{estimate_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA};
+pub(crate) use glossy::{
+    estimate_lobe, estimate_starting_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
+};
 pub(crate) use glossy_indirect::GlossyState;
 use lanes::{lane_scratch, LANES};
 pub use trust::{LightTrust, Trust, TrustMaps};
