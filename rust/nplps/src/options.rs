@@ -296,17 +296,27 @@ const PER_FACET_REFINE: f64 = 192.0;
 /// like `n log n`: see [`reconstruction`]).
 const PER_FACET_DIRECT: f64 = 900.0;
 
+/// Extra bytes per facet of the interreflection rounds under the glossy model: each facet's
+/// glossy state of the round's start (normal, diffuse albedo, specular albedo: seven `f32`).
+const PER_FACET_GLOSSY_ROUNDS: f64 = 28.0;
+
 /// Estimated peak memory in bytes of reconstructing an `height` x `width` frame with `facets`
-/// masked pixels and `channels` colour channels, beyond the input images themselves.
+/// masked pixels, `channels` colour channels and `lights` lights, beyond the input images
+/// themselves.
 ///
-/// `bytes = 64 MB + (78 + 16 (C - 1)) H W + (30 + 192 [refine] + 900 f(n) [direct]) n`,
-/// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. The
-/// arithmetic is in floating point, so absurd sizes give huge estimates instead of overflowing.
+/// `bytes = 64 MB + (78 + 16 (C - 1) + 8 k C [glossy rounds]) H W
+///          + (30 + 192 [refine] + 900 f(n) [direct] + 28 [glossy rounds]) n`,
+/// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. "Glossy
+/// rounds" are interreflections under the glossy model: a round holds two more `f32` stacks of
+/// the images' size (the emitters, the observations less the received light) and the fits'
+/// states. The arithmetic is in floating point, so absurd sizes give huge estimates instead of
+/// overflowing.
 pub fn reconstruction(
     height: usize,
     width: usize,
     facets: usize,
     channels: usize,
+    lights: usize,
     options: &Options,
 ) -> f64 {
     let frame = height as f64 * width as f64;
@@ -320,7 +330,12 @@ pub fn reconstruction(
         per_facet += PER_FACET_DIRECT * growth;
     }
     let channels = channels.max(1) as f64;
-    FIXED + (PER_PIXEL + PER_CHANNEL * (channels - 1.0)) * frame + per_facet * n
+    let mut per_pixel = PER_PIXEL + PER_CHANNEL * (channels - 1.0);
+    if options.interreflections && options.reflectance.is_glossy() {
+        per_pixel += 2.0 * 4.0 * lights as f64 * channels;
+        per_facet += PER_FACET_GLOSSY_ROUNDS;
+    }
+    FIXED + per_pixel * frame + per_facet * n
 }
 
 /// Extra bytes per facet of a run that keeps its iteration buffers from one step to the next
@@ -344,7 +359,7 @@ const KEEP_SHARE: f64 = 0.5;
 pub(crate) fn keeps_buffers(problem: &crate::Problem<'_>, options: &Options) -> bool {
     let (h, w) = problem.shape();
     let facets = problem.grid.n_facets();
-    let needed = reconstruction(h, w, facets, problem.obs.channels, options)
+    let needed = reconstruction(h, w, facets, problem.obs.channels, problem.obs.k, options)
         + PER_FACET_KEPT * facets as f64;
     let available = crate::memory::available().map(|a| a as f64);
     let room = match (crate::memory::limit(options.max_memory), available) {
@@ -363,7 +378,7 @@ pub fn check_reconstruction(
     lights: usize,
     options: &Options,
 ) -> Result<()> {
-    let needed = reconstruction(height, width, facets, channels, options);
+    let needed = reconstruction(height, width, facets, channels, lights, options);
     check(
         || {
             format!(
@@ -395,8 +410,8 @@ mod tests {
     #[test]
     fn the_estimate_grows_with_the_pixels_and_the_options() {
         let plain = Options::default();
-        let small = reconstruction(512, 512, 512 * 512, 1, &plain);
-        let large = reconstruction(2048, 2048, 2048 * 2048, 1, &plain);
+        let small = reconstruction(512, 512, 512 * 512, 1, 16, &plain);
+        let large = reconstruction(2048, 2048, 2048 * 2048, 1, 16, &plain);
         // Linear in the pixels beyond the fixed part; measured 91 B/px beyond the stack at
         // 4000 x 3000 (16 lights, full mask, buffers given back between the steps; issue 23,
         // the end's maps; 76 through the iterations): the estimate bounds it with 19 % to spare.
@@ -410,14 +425,40 @@ mod tests {
             },
             ..plain
         };
-        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &refine) > large);
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, 16, &refine) > large);
         let direct = Options {
             solver: GlobalSolver::Direct,
             ..plain
         };
-        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, &direct) > 4.0 * large);
+        assert!(reconstruction(2048, 2048, 2048 * 2048, 1, 16, &direct) > 4.0 * large);
+        // Interreflections under the glossy model hold two more f32 stacks (16 lights: 128
+        // bytes a pixel) and the fits' states; under the Lambertian model they add nothing here.
+        let rounds = |reflectance| Options {
+            interreflections: true,
+            reflectance,
+            ..plain
+        };
+        let lambertian = reconstruction(
+            2048,
+            2048,
+            2048 * 2048,
+            1,
+            16,
+            &rounds(Reflectance::Lambertian),
+        );
+        assert_eq!(lambertian, large);
+        let glossy = reconstruction(
+            2048,
+            2048,
+            2048 * 2048,
+            1,
+            16,
+            &rounds(Reflectance::Glossy(None)),
+        );
+        let extra = (glossy - large) / (2048.0 * 2048.0);
+        assert!((extra - (128.0 + 28.0)).abs() < 1e-9, "{extra}");
         // Absurd sizes give a huge number, not an overflow.
-        let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, &plain);
+        let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, usize::MAX, &plain);
         assert!(absurd.is_finite() && absurd > 1e40);
     }
 }
