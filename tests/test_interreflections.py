@@ -57,7 +57,43 @@ def test_the_option_is_a_flag_and_refuses_what_it_does_not_support() -> None:
     with pytest.raises(nplps.InputError, match="interreflections"):
         nplps.reconstruct(*args, depth=scene.mean_depth, interreflections="yes")  # type: ignore[arg-type]
     with pytest.raises(nplps.InputError, match="refine_lights"):
-        nplps.reconstruct(*args, depth=scene.mean_depth, interreflections=True, refine_lights="intensity")
+        nplps.reconstruct(
+            *args, depth=scene.mean_depth, interreflections=True, refine_lights="intensity", reflectance="glossy"
+        )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_intensity_refinement_with_interreflections(seed: int) -> None:
+    """Intensities off by up to 20 % (their geometric mean kept) on the GI bowl: with the option the
+    light step sees the indirect light and recovers them; without it the indirect light bends them."""
+    data, rig = load("bowl-diffuse-gi")
+    factors = np.random.default_rng(seed).uniform(0.8, 1.2, rig.n_lights)
+    factors /= np.exp(np.log(factors).mean())
+    bad = rig.with_intensities(rig.intensities * factors[:, None])
+
+    def refined(interreflections: bool) -> tuple[float, float]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = nplps.reconstruct(
+                data["images"].astype(np.float32),
+                bad,
+                depth=float(data["distance"]),
+                mask=data["mask"],
+                threads=1,
+                refine_lights="intensity",
+                interreflections=interreflections,
+            )
+        mask = data["mask"]
+        error = float(angles(result.normals[mask], data["normals"][mask]).mean())
+        found = result.rig.intensities[:, 0] / rig.intensities[:, 0]
+        return error, float(np.abs(found / np.exp(np.log(found).mean()) - 1).mean())
+
+    on, on_light = refined(True)
+    off, off_light = refined(False)
+    # Measured (seeds 0-3): with the option 0.373°, intensities off by 0.062 % on average (the true
+    # rig with the option: 0.370°); without it 2.214°, 0.20 %.
+    assert on < 0.45 and on_light < 0.001
+    assert off > 2.0 and off_light > 2 * on_light
 
 
 def test_glossy_interreflections_recover_the_gi_bowl() -> None:

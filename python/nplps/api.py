@@ -512,15 +512,18 @@ def reconstruct(
         of the final level, when used, are ``result.shadows``.
     interreflections : bool, default False
         Model the light that the surface sends to itself (concave objects: bowls, grooves,
-        folds). Once the full resolution converges, the indirect irradiance of every pixel
-        under every light is gathered from the observed images over the current mesh (on a
-        grid of 32 x 32 to 64 x 64 cells), added to the fits' light vectors, and the iteration
-        runs again, up to 8 rounds (2-6x the time of a default run). Only for captures with
-        real interreflections (direct-only renders get worse); not with ``refine_lights``. With
-        ``reflectance="glossy"`` the modelled diffuse part of the images emits (the observations
-        less the fitted specular part) and the glossy fits see the observations less the
-        indirect light they receive as a Lambertian surface (its glossy reflection is ignored),
-        the rounds at full resolution. See the README ("Concave objects") for its cost and limits.
+        folds). Once a level of 128-256 pixels a side (or a smaller image) converges, the
+        indirect irradiance of every pixel under every light is gathered from the observed
+        images over the current mesh (on a grid of 32 x 32 to 64 x 64 cells), added to the
+        fits' light vectors, and the iteration runs again, up to 4 rounds; the finer levels
+        iterate with that field (2-7x the time of a default run). Only for captures with real
+        interreflections (direct-only renders get worse). With ``refine_lights`` the light
+        step adds the same indirect light to its rows (Lambertian model only; the intensities'
+        common factor stays the rig's). With ``reflectance="glossy"`` the modelled diffuse part
+        of the images emits (the observations less the fitted specular part) and the glossy
+        fits see the observations less the indirect light they receive as a Lambertian surface
+        (its glossy reflection is ignored), the rounds at full resolution. See the README
+        ("Concave objects") for its cost and limits.
     color : bool, optional
         None: RGB images give an RGB albedo; True: require RGB images; False: average them to
         grey (an observation with a saturated channel is left out).

@@ -79,10 +79,10 @@ impl Options {
             });
         }
         self.refine.validate()?;
-        if self.interreflections && self.refine.is_active() {
+        if self.interreflections && self.refine.is_active() && self.reflectance.is_glossy() {
             return Err(Error::Unusable(
-                "interreflections are not supported with refine_lights yet (the light step \
-                 does not model the indirect light)"
+                "interreflections with refine_lights are not supported under the glossy model \
+                 yet (its light step does not model the indirect light)"
                     .to_string(),
             ));
         }

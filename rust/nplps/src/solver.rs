@@ -1107,7 +1107,7 @@ impl<'p> Solver<'p> {
             &self.options,
             self.lobe,
             &self.warm,
-            self.shadows.as_ref(),
+            (self.shadows.as_ref(), self.indirect.as_ref()),
         );
         let change = self.lights.step(&data, u)?;
         if self.lights.settled() {
@@ -1211,13 +1211,13 @@ impl<'p> Solver<'p> {
     /// The data of the light step: under the glossy model with the lobe in use (estimated or
     /// given) and the facets' glossy normals of the last local step, from which it predicts the
     /// specular part (see [`crate::refine`]); without the observations in the cast `shadows`
-    /// the local steps leave out.
+    /// the local steps leave out; with the field of `indirect` light the local steps add.
     fn light_data<'a>(
         problem: &'a Problem<'a>,
         options: &Options,
         lobe: Option<Lobe>,
         warm: &'a [[f32; 3]],
-        shadows: Option<&'a ShadowMask>,
+        (shadows, indirect): (Option<&'a ShadowMask>, Option<&'a IndirectField>),
     ) -> LightData<'a> {
         let settings = FitSettings {
             lobe,
@@ -1226,6 +1226,7 @@ impl<'p> Solver<'p> {
         LightData::of(problem, settings)
             .with_normals(Some(warm))
             .with_shadows(shadows)
+            .with_indirect(indirect.map(|f| f as &dyn crate::local::IndirectLight))
     }
 
     /// Whether the solver fits the glossy model with a lobe it estimates.
@@ -1677,7 +1678,7 @@ impl<'p> Solver<'p> {
             &self.options,
             self.lobe,
             &self.warm,
-            self.shadows.as_ref(),
+            (self.shadows.as_ref(), self.indirect.as_ref()),
         );
         let monitor = self.lights.monitor;
         Some(RefinementReport {
