@@ -96,7 +96,11 @@
 //! `z_surface < z(s) - (1e-6 |z(s)| + 1e-3 sqrt(max(A_i, A_j)))`. Samples in the two end pixels
 //! are not tested (a planar facet does not hide what it faces), and samples over pixels outside
 //! the mask or with a non-finite corner neither block nor end the march (the surface there is
-//! unknown). Visibility is symmetric: each unordered pair is marched once.
+//! unknown). Visibility is symmetric: each unordered pair is marched once. Without distortion
+//! the march computes the image points and hiding depths of 8 samples at a time in SIMD lanes
+//! (`clearance_lanes`: the same operations, the same values) and tests them in turn (with the
+//! one-pass marking of the last gathering, the benchmark's corrugated sheet with
+//! `interreflections=True` took about 13 % less processor time; docs/concave.md, stop 46).
 //!
 //! A mesh that moves a little keeps most verdicts (`Exchange::build`, used by the solver's
 //! rounds): the march of a facing pair also gives its *clearance*, the smallest margin of the
