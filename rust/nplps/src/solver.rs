@@ -511,19 +511,11 @@ pub(crate) fn coarse_to_fine(
         // the mask's edge (the 260² bowl lit by itself: 0.013° and albedo -0.29 % without it,
         // 0.0006° and +0.02 % with it; test
         // `interreflections_gathered_on_a_coarser_level_recover_a_large_bowl`).
-        let mut field = field.finer(grid, geometry, u, &carried.lights)?;
-        let hidden = field.take_hidden();
-        let mut field = IndirectField::of_mesh(
-            &problem.rig.camera,
-            grid,
-            geometry,
-            u,
-            &problem.obs,
-            &carried.lights,
-            Some(field),
-            None,
-        )?
-        .with_unlit(grid, geometry, u, &carried.lights, hidden)?;
+        // (`finer`, `of_mesh` and `with_unlit` with the hidden lights of `finer`'s marking:
+        // the two markings in one pass over the facets)
+        let camera = &problem.rig.camera;
+        let mut field =
+            field.gathered_again(camera, grid, geometry, u, &problem.obs, &carried.lights)?;
         field.drop_sightlines();
         carried.indirect = Some(field);
         timings.indirect += t.elapsed();
@@ -2142,6 +2134,81 @@ mod tests {
         assert!(bits(&auto) == bits(&on));
     }
 
+    /// A Lambertian surface of albedo `rho` lit by itself, the test helper of the exact
+    /// interreflection tests (here and in `solver::glossy_rounds`): its true mesh (a synthetic
+    /// scene's depths on `grid`), the field of indirect light that [`IndirectField::of_mesh`]
+    /// gathers on it (no margin) from what it emits, and the bounces
+    /// ([`LitByItself::fixed_point`]).
+    pub(super) struct LitByItself<'a> {
+        scene: &'a Scene,
+        grid: &'a Grid,
+        geometry: crate::geometry::Geometry,
+        u: Vec<f64>,
+        /// The true mesh normals, per pixel.
+        pub(super) normals: Vec<[f64; 3]>,
+        rho: f64,
+    }
+
+    impl<'a> LitByItself<'a> {
+        pub(super) fn new(scene: &'a Scene, grid: &'a Grid, rho: f64) -> LitByItself<'a> {
+            let (camera, n) = (&scene.rig.camera, scene.width);
+            LitByItself {
+                scene,
+                grid,
+                geometry: crate::geometry::Geometry::new(camera, grid).unwrap(),
+                u: grid.gather_vertices(&scene.depth).unwrap(),
+                normals: crate::render::mesh_normals(camera, n, n, &scene.depth).unwrap(),
+                rho,
+            }
+        }
+
+        /// The light `rho n . V(E)` that each pixel of the mask receives from the emitted
+        /// images `emitted` ((k, H, W) stack; zero outside the mask), and the field's factor.
+        pub(super) fn received(&self, emitted: &[f32]) -> (Vec<f64>, usize) {
+            let (k, plane) = (
+                self.scene.rig.n_lights(),
+                self.grid.height * self.grid.width,
+            );
+            let obs = crate::local::Observations::from_stack(emitted, k, plane, 1);
+            let field = IndirectField::of_mesh(
+                &self.scene.rig.camera,
+                self.grid,
+                &self.geometry,
+                &self.u,
+                &obs,
+                &[],
+                None,
+                None,
+            )
+            .unwrap();
+            let mut out = vec![0.0; k * plane];
+            for p in self.grid.facets.iter().map(|&p| p as usize) {
+                let v = field.at(p, self.grid.width);
+                for light in 0..k {
+                    out[light * plane + p] = self.rho * dot(self.normals[p], v[light]);
+                }
+            }
+            (out, field.factor())
+        }
+
+        /// The diffuse exitance with all its bounces, `E = direct + rho n . V(E)` (the fixed
+        /// point from `E = direct`, 40 bounces, `f32` at each), as a stack of images; every
+        /// field has the factor `factor` when given.
+        pub(super) fn fixed_point(&self, direct: &[f64], factor: Option<usize>) -> Vec<f32> {
+            let mut emitted: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
+            for _ in 0..40 {
+                let (received, f) = self.received(&emitted);
+                assert!(factor.is_none_or(|factor| f == factor), "{f} {factor:?}");
+                emitted = direct
+                    .iter()
+                    .zip(&received)
+                    .map(|(a, b)| (a + b) as f32)
+                    .collect();
+            }
+            emitted
+        }
+    }
+
     /// A bowl (the sphere-cap scene of `n` pixels a side turned inside out, albedo 0.8)
     /// rendered with all its bounces under the model of [`crate::indirect`] on its true mesh:
     /// the images are the fixed point `I = I_direct + rho n . V(I)`, gathered on the grid that
@@ -2161,36 +2228,10 @@ mod tests {
         let rho = 0.8;
         scene.albedo.fill(rho);
         let direct = scene.render().unwrap();
-        let (k, plane) = (scene.rig.n_lights(), n * n);
         let grid = Grid::new(n, n, Some(&scene.mask)).unwrap();
-        let geometry = crate::geometry::Geometry::new(&scene.rig.camera, &grid).unwrap();
-        let u = grid.gather_vertices(&scene.depth).unwrap();
-        let normals = crate::render::mesh_normals(&scene.rig.camera, n, n, &scene.depth).unwrap();
-        let mut images: Vec<f32> = direct.iter().map(|&v| v as f32).collect();
-        for _ in 0..40 {
-            let obs = crate::local::Observations::from_stack(&images, k, plane, 1);
-            let field = IndirectField::of_mesh(
-                &scene.rig.camera,
-                &grid,
-                &geometry,
-                &u,
-                &obs,
-                &[],
-                None,
-                None,
-            )
-            .unwrap();
-            assert_eq!(field.factor(), factor);
-            let mut next = images.clone();
-            for p in grid.facets.iter().map(|&p| p as usize) {
-                let v = field.at(p, n);
-                for light in 0..k {
-                    let i = direct[light * plane + p] + rho * dot(normals[p], v[light]);
-                    next[light * plane + p] = i as f32;
-                }
-            }
-            images = next;
-        }
+        let lit = LitByItself::new(&scene, &grid, rho);
+        let normals = &lit.normals;
+        let images = lit.fixed_point(&direct, Some(factor));
         let indirect_share = images
             .iter()
             .zip(&direct)

@@ -52,13 +52,12 @@ impl Solver<'_> {
 #[cfg(all(test, feature = "synth"))]
 mod tests {
     use super::super::reconstruct;
-    use crate::indirect::IndirectField;
-    use crate::local::Observations;
+    use super::super::tests::LitByItself;
     use crate::options::Options;
     use crate::problem::{ImageStack, InitialDepth, Problem};
     use crate::reconstruction::{Control, Reconstruction};
     use crate::reflectance::{Lobe, Reflectance};
-    use crate::render::{mesh_normals, render_with, RenderOptions, Specular, Surface};
+    use crate::render::{render_with, RenderOptions, Specular, Surface};
     use crate::synth::{Scene, SceneKind};
     use crate::vec3::dot;
 
@@ -73,7 +72,7 @@ mod tests {
     /// albedo `rho`, specular albedo `rho_s`, under `lobe`) lit by itself under the model that
     /// the rounds assume (see `local::glossy_indirect`): its diffuse part emits, as a
     /// Lambertian surface, the fixed point `E = E_direct + rho n . V(E)` (gathered by
-    /// [`IndirectField::of_mesh`] on its true mesh), and the images are the direct glossy
+    /// [`LitByItself`], the Lambertian tests' helper), and the images are the direct glossy
     /// images plus the received light, `I = I_direct + rho n . V(E)`. Returns the errors of the
     /// reconstructions at the true distance with the lobe given, without and with
     /// interreflections, the one with them, and the indirect share of the images' energy.
@@ -102,41 +101,10 @@ mod tests {
         };
         let (glossy, diffuse) = (render(rho_s), render(0.0));
         let grid = crate::grid::Grid::new(n, n, Some(&scene.mask)).unwrap();
-        let geometry = crate::geometry::Geometry::new(&scene.rig.camera, &grid).unwrap();
-        let u = grid.gather_vertices(&scene.depth).unwrap();
-        let normals = mesh_normals(&scene.rig.camera, n, n, &scene.depth).unwrap();
-        let received = |emitted: &[f32]| {
-            let obs = Observations::from_stack(emitted, k, plane, 1);
-            let field = IndirectField::of_mesh(
-                &scene.rig.camera,
-                &grid,
-                &geometry,
-                &u,
-                &obs,
-                &[],
-                None,
-                None,
-            )
-            .unwrap();
-            let mut out = vec![0.0; k * plane];
-            for p in grid.facets.iter().map(|&p| p as usize) {
-                let v = field.at(p, n);
-                for light in 0..k {
-                    out[light * plane + p] = rho * dot(normals[p], v[light]);
-                }
-            }
-            out
-        };
-        let mut emitted: Vec<f32> = diffuse.iter().map(|&v| v as f32).collect();
-        for _ in 0..40 {
-            let r = received(&emitted);
-            emitted = diffuse
-                .iter()
-                .zip(&r)
-                .map(|(a, b)| (a + b) as f32)
-                .collect();
-        }
-        let r = received(&emitted);
+        let lit = LitByItself::new(&scene, &grid, rho);
+        let normals = &lit.normals;
+        let emitted = lit.fixed_point(&diffuse, None);
+        let r = lit.received(&emitted).0;
         let images: Vec<f32> = glossy.iter().zip(&r).map(|(a, b)| (a + b) as f32).collect();
         let share = r.iter().sum::<f64>() / images.iter().map(|&a| f64::from(a)).sum::<f64>();
         let run = |interreflections: bool| {
