@@ -20,16 +20,17 @@
 //! - [`Light::beta`]: `beta(x)` and the paper's weighting factor `|a|^3 / aniso`;
 //!   [`Light::shading`]: `max(0, n . beta(x))`;
 //! - [`Light::beta_gradient`] and [`Light::beta_gradient_at`]: the gradient of `beta(x) . g`
-//!   with respect to the light position and to the surface point; [`Light::derivatives`]: the
-//!   derivatives of a prediction `Phi beta . g` with respect to the refined light parameters
-//!   (log-intensity, position);
+//!   with respect to the light position and to the surface point, from the position
+//!   derivative's terms [`Gradient`]; [`derivatives`]: the derivatives of a prediction
+//!   `Phi beta . g` with respect to the refined light parameters (log-intensity, position), the
+//!   one function of the light step (whose terms come from the lanes) and of the tests;
 //! - [`Light::with_shape`]: the LED shape `(mu, axis)` that calibration fits (it differentiates
 //!   the shape by finite differences of [`Light::beta`], so no analytic shape derivative exists);
 //! - [`LaneLight`] and [`LaneLight::beta`]: the lane (SIMD) form of `beta` for several surface
 //!   points at once, with its eligibility rule ([`LaneLight::from_light`]: every point light),
 //!   the same operations in the same order as [`Light::beta`]; [`LaneLight::step_terms`]: the
 //!   light refinement's terms (`beta` and the position derivative's factors) in lanes, bit for
-//!   bit those of [`Light::beta_anisotropy`] and [`Light::derivatives`];
+//!   bit those of [`Light::beta_anisotropy`] and of the scalar [`Gradient`];
 //! - [`anisotropy`] and [`power_lanes`]: the LED anisotropy `t^mu` without libm, in lanes
 //!   (a libm call per facet and light was a third of an LED rig's reconstruction, and kept LED
 //!   rigs with `mu` other than 0 or 1 out of the lane form).
@@ -50,6 +51,56 @@ use crate::vec3::{dot, norm, sub};
 pub const MAX_MAGNITUDE: f64 = 1e12;
 /// Smallest pixel size, focal length and pinhole depth (see [`MAX_MAGNITUDE`]).
 pub const MIN_MAGNITUDE: f64 = 1e-12;
+
+/// The position derivative's terms of a point light at a surface point `x`: `v = p - x`, the
+/// fall-off `f = t^mu / |v|^3` of `beta = f v` and its gradient `grad f` with respect to `p`
+/// (see [`Light::falloff_gradient`]; in lanes, [`LaneLight::step_terms`]). All zero where the
+/// gradient vanishes (a directional light, an LED's outside).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct Gradient {
+    pub v: [f64; 3],
+    pub f: f64,
+    pub grad_f: [f64; 3],
+}
+
+impl Gradient {
+    /// The gradient of `beta . g` with respect to the light's position: `d(f v . g)/dp =
+    /// f g + (v . g) grad f` (`dv/dp` is the identity).
+    #[inline(always)]
+    pub fn along(&self, g: [f64; 3]) -> [f64; 3] {
+        let vg = dot(self.v, g);
+        crate::lanes(|j| self.f * g[j] + vg * self.grad_f[j])
+    }
+}
+
+/// `d(a . g)/d theta` of a light with row `a = phi beta(c)` (`phi` its intensity in the
+/// channel) at a surface point `c` with scaled normal `g`: the log-intensity derivative `a . g`
+/// first (if `intensity`), then the position's `phi d(beta . g)/dp = phi (f g + (v . g) grad f)`
+/// from the light's terms `grad` at `c` (if `position`; zero without them: a directional light,
+/// an LED's outside); unused entries 0. The one form of the light step's derivatives (its
+/// terms from [`LaneLight::step_terms`], the tests' from [`Light::falloff_gradient`]).
+#[inline(always)]
+pub(crate) fn derivatives(
+    a: [f64; 3],
+    g: [f64; 3],
+    phi: f64,
+    (intensity, position): (bool, bool),
+    grad: Option<&Gradient>,
+) -> [f64; 4] {
+    let mut d = [0.0; 4];
+    let mut k = 0;
+    if intensity {
+        d[0] = dot(a, g);
+        k = 1;
+    }
+    if let Some(t) = grad.filter(|_| position) {
+        let along = t.along(g);
+        for j in 0..3 {
+            d[k + j] = phi * along[j];
+        }
+    }
+    d
+}
 
 /// Fails when a value of `values` (named `what`) is beyond [`MAX_MAGNITUDE`].
 pub(crate) fn check_magnitude(what: &str, values: &[f64]) -> Result<()> {
@@ -155,7 +206,7 @@ impl Light {
 
     /// `beta(x)` and the anisotropy factor `t^mu` (1 for an isotropic or directional light, 0
     /// outside an LED's cone): the one power of the model, which
-    /// [`Light::derivatives`] can take instead of computing it again.
+    /// [`Light::falloff_gradient`] can take instead of computing it again.
     /// The scalar reference of [`LaneLight::step_terms`] (the light step uses the lane form).
     #[cfg_attr(not(test), allow(dead_code))]
     #[inline]
@@ -202,11 +253,7 @@ impl Light {
     /// [`Light::beta_anisotropy`] at the same `x`) no power is computed: `t^(mu-1) = t^mu / t`
     /// (equal to `powf(mu - 1)` up to rounding).
     #[inline]
-    fn falloff_gradient(
-        &self,
-        x: [f64; 3],
-        aniso: Option<f64>,
-    ) -> Option<([f64; 3], f64, [f64; 3])> {
+    pub(crate) fn falloff_gradient(&self, x: [f64; 3], aniso: Option<f64>) -> Option<Gradient> {
         let Light::Point {
             position: p,
             axis,
@@ -222,7 +269,11 @@ impl Light {
         let inv3 = 1.0 / (d2 * len);
         let inv5 = inv3 / d2;
         if mu == 0.0 {
-            return Some((v, inv3, v.map(|x| -3.0 * x * inv5)));
+            return Some(Gradient {
+                v,
+                f: inv3,
+                grad_f: v.map(|x| -3.0 * x * inv5),
+            });
         }
         let va = dot(v, axis);
         let t = -va / len;
@@ -235,11 +286,11 @@ impl Light {
         };
         let dt: [f64; 3] = crate::lanes(|j| -axis[j] / len + va * v[j] * inv3);
         let dm = mu * tm1 * inv3;
-        Some((
+        Some(Gradient {
             v,
-            tm * inv3,
-            crate::lanes(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
-        ))
+            f: tm * inv3,
+            grad_f: crate::lanes(|j| dm * dt[j] - 3.0 * tm * v[j] * inv5),
+        })
     }
 
     /// The gradient of `beta(x) . g` with respect to the light's position `p`: with
@@ -254,9 +305,7 @@ impl Light {
     /// [`Light::beta_gradient`] with `t^mu` at `x` given (see [`Light::falloff_gradient`]).
     #[inline]
     fn beta_gradient_with(&self, x: [f64; 3], g: [f64; 3], aniso: Option<f64>) -> Option<[f64; 3]> {
-        let (v, f, grad_f) = self.falloff_gradient(x, aniso)?;
-        let vg = dot(v, g);
-        Some(crate::lanes(|j| f * g[j] + vg * grad_f[j]))
+        Some(self.falloff_gradient(x, aniso)?.along(g))
     }
 
     /// The gradient of `beta(x) . g` with respect to the surface point `x`: `beta` depends on
@@ -266,41 +315,6 @@ impl Light {
     #[inline]
     pub(crate) fn beta_gradient_at(&self, x: [f64; 3], g: [f64; 3]) -> Option<[f64; 3]> {
         self.beta_gradient(x, g).map(|d| d.map(|v| -v))
-    }
-
-    /// `d(a . g)/d theta` of this light at the surface point `c` for the scaled normal `g`,
-    /// with `a = phi beta(c)` its row and `phi` its intensity in the channel: the
-    /// log-intensity derivative `a . g` first (if `intensity`), then the position's
-    /// `phi d(beta . g)/dp` (if `position`, zero for a directional light); unused entries 0.
-    /// `aniso`: the light's `t^mu` at `c` when known ([`Light::beta_anisotropy`]), which
-    /// spares the powers of the position's derivative.
-    /// The scalar reference of the light step's derivatives (which take their terms from
-    /// [`LaneLight::step_terms`]).
-    #[cfg_attr(not(test), allow(dead_code))]
-    #[inline]
-    pub(crate) fn derivatives(
-        &self,
-        c: [f64; 3],
-        a: [f64; 3],
-        g: [f64; 3],
-        phi: f64,
-        (intensity, position): (bool, bool),
-        aniso: Option<f64>,
-    ) -> [f64; 4] {
-        let mut d = [0.0; 4];
-        let mut k = 0;
-        if intensity {
-            d[0] = dot(a, g);
-            k = 1;
-        }
-        if position {
-            if let Some(grad) = self.beta_gradient_with(c, g, aniso) {
-                for j in 0..3 {
-                    d[k + j] = phi * grad[j];
-                }
-            }
-        }
-        d
     }
 
     /// Whether the light stands strictly in front of a surface whose nearest depth is `depth`
@@ -711,7 +725,13 @@ mod tests {
             };
             let (b, _) = light.beta(c);
             let a = b.map(|x| 2.0 * x);
-            let d = light.derivatives(c, a, g, 2.0, (true, true), None);
+            let d = derivatives(
+                a,
+                g,
+                2.0,
+                (true, true),
+                light.falloff_gradient(c, None).as_ref(),
+            );
             assert!((d[0] - pred(&light)).abs() < 1e-15);
             for j in 0..3 {
                 let h = 1e-4;
@@ -744,8 +764,11 @@ mod tests {
                 let (b, aniso) = light.beta_anisotropy(c);
                 assert_eq!(b, light.beta(c).0);
                 let a = b.map(|x| 2.0 * x);
-                let with = light.derivatives(c, a, g, 2.0, (true, true), Some(aniso));
-                let without = light.derivatives(c, a, g, 2.0, (true, true), None);
+                let with = light.falloff_gradient(c, Some(aniso));
+                let without = light.falloff_gradient(c, None);
+                assert_eq!(with.is_some(), without.is_some());
+                let with = derivatives(a, g, 2.0, (true, true), with.as_ref());
+                let without = derivatives(a, g, 2.0, (true, true), without.as_ref());
                 let scale = without.iter().fold(0.0f64, |m, v| m.max(v.abs()));
                 for (x, y) in with.iter().zip(&without) {
                     assert!(
@@ -792,10 +815,8 @@ mod tests {
             intensity: [1.0; 3],
         };
         assert!(sun.beta_gradient_at(c, g).is_none());
-        assert_eq!(
-            sun.derivatives(c, [0.0; 3], g, 1.0, (false, true), None),
-            [0.0; 4]
-        );
+        assert!(sun.falloff_gradient(c, None).is_none());
+        assert_eq!(derivatives([0.0; 3], g, 1.0, (false, true), None), [0.0; 4]);
         assert!(led(1.0).beta_gradient([0.0, 0.0, -100.0], g).is_none());
     }
 
@@ -855,12 +876,18 @@ mod tests {
                 let ours = [0, 1, 2].map(|j| with.beta[j][l]);
                 assert_eq!(ours, b, "mu {mu} lane {l}");
                 assert_eq!([0, 1, 2].map(|j| without.beta[j][l]), b);
-                let v = [0, 1, 2].map(|j| with.v[j][l]);
-                let vg = dot(v, g);
-                let d: [f64; 3] =
-                    std::array::from_fn(|j| 2.0 * (with.f[l] * g[j] + vg * with.grad_f[j][l]));
-                let scalar = light.derivatives(x, [0.0; 3], g, 2.0, (false, true), Some(aniso));
-                assert_eq!(d, [scalar[0], scalar[1], scalar[2]], "mu {mu} lane {l}");
+                let ours = Gradient {
+                    v: [0, 1, 2].map(|j| with.v[j][l]),
+                    f: with.f[l],
+                    grad_f: [0, 1, 2].map(|j| with.grad_f[j][l]),
+                };
+                let scalar = light.falloff_gradient(x, Some(aniso));
+                if let Some(scalar) = scalar {
+                    assert_eq!(ours, scalar, "mu {mu} lane {l}");
+                }
+                let d = derivatives([0.0; 3], g, 2.0, (false, true), Some(&ours));
+                let scalar = derivatives([0.0; 3], g, 2.0, (false, true), scalar.as_ref());
+                assert_eq!(d, scalar, "mu {mu} lane {l}");
             }
         }
     }

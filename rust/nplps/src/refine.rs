@@ -104,7 +104,7 @@ use crate::error::{Error, Result};
 use crate::geometry::quad_centre;
 use crate::geometry::Geometry;
 use crate::grid::Grid;
-use crate::light::LaneLight;
+use crate::light::{derivatives, Gradient, LaneLight};
 use crate::local::{
     channel_intensity, invert_spd3, usable, FitSettings, IndirectLight, Observations,
 };
@@ -384,21 +384,12 @@ fn chunking(count: usize) -> (usize, usize) {
     (count.div_ceil(size), size)
 }
 
-/// The position derivative's terms of one light at one facet's centre `c` (see
-/// [`crate::light::LaneTerms`]): `d(beta . g)/dp = f g + (v . g) grad f`, `v = p - c`.
-#[derive(Debug, Clone, Copy, Default)]
-struct Gradient {
-    v: [f64; 3],
-    f: f64,
-    grad_f: [f64; 3],
-}
-
 /// The `beta` vectors of `lights` at [`LANES`] facet centres into `betas`, facet-major
 /// (entry `l k + i`: light i at the l-th centre), and, when `grads` is not empty, their
 /// position derivatives' terms into it (same layout); `lanes` holds the lights' lane forms
 /// (None: a directional light, whose `beta` is its direction and which has no position). Per
 /// facet and light the numbers of the scalar [`Light::beta_anisotropy`] and
-/// [`Light::derivatives`], bit for bit (see [`LaneLight::step_terms`]), for a light's
+/// [`Light::falloff_gradient`] ([`Gradient`]), bit for bit (see [`LaneLight::step_terms`]), for a light's
 /// [`LANES`] facets in SIMD registers: the LED power, one per facet and light, was a fifth of
 /// a refined run. Returns the number of lights in lane form.
 #[inline(always)]
@@ -454,37 +445,6 @@ simd_dispatch! {
         betas: &mut [[f64; 3]],
         grads: &mut [Gradient],
     ) -> usize;
-}
-
-/// `d(a . g)/d theta` of a light with row `a = phi beta` at a facet with scaled normal `g`: the
-/// log-intensity derivative `a . g` first (if `intensity`), then the position's
-/// `phi d(beta . g)/dp = phi (f g + (v . g) grad f)` from the light's `grad` terms (if
-/// `position`; zero without them); unused entries 0. The operations of
-/// [`Light::derivatives`] with the anisotropy given, so the same bits.
-#[inline]
-fn derivatives(
-    a: [f64; 3],
-    g: [f64; 3],
-    phi: f64,
-    (intensity, position): (bool, bool),
-    grad: Option<&Gradient>,
-) -> [f64; 4] {
-    let mut d = [0.0; 4];
-    let mut k = 0;
-    if intensity {
-        d[0] = dot(a, g);
-        k = 1;
-    }
-    if position {
-        debug_assert!(grad.is_some(), "position derivatives without their terms");
-        if let Some(t) = grad {
-            let vg = dot(t.v, g);
-            for j in 0..3 {
-                d[k + j] = phi * (t.f * g[j] + vg * t.grad_f[j]);
-            }
-        }
-    }
-    d
 }
 
 /// The centres of the pass's facets `first..first + m` (`m <= LANES`; the last repeated to fill
