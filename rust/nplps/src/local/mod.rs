@@ -706,6 +706,14 @@ impl LocalStep<'_> {
     /// `maps` (the caller scatters `trust` into `maps`). Under the vectorized accumulation both
     /// come from one evaluation of the lights per facet; otherwise the trust values are computed
     /// after the fits.
+    ///
+    /// Under the glossy model the trust values are still those of the Lambertian fit at the
+    /// final mesh (the `trust` module's, which leave the lobe out): where the Lambertian step of
+    /// the same settings would take the vectorized path, they come from it (its Lambertian fits
+    /// are then overwritten by the glossy ones) instead of the scalar [`LocalStep::trust_range`].
+    /// The same per-facet values bit for bit, the per-light sums up to the order of their
+    /// additions (2e-16 relative on the glossy bumps). The scalar pass cost the final step of
+    /// a 1 MP glossy run 0.6-0.75 of its 2.15-2.3 CPU seconds (docs/shiny.md, stop 46).
     pub fn try_run_final(
         &self,
         u: &[f64],
@@ -718,6 +726,19 @@ impl LocalStep<'_> {
         if let Some(lights) = self.lane_lights() {
             maps.add(self.final_lanes(&lights, u, first, fits, trust)?);
             return Ok(());
+        }
+        if self.settings.lobe.is_some() {
+            let lambertian = LocalStep {
+                settings: FitSettings {
+                    lobe: None,
+                    ..self.settings
+                },
+                ..*self
+            };
+            if let Some(lights) = lambertian.lane_lights() {
+                maps.add(lambertian.final_lanes(&lights, u, first, fits, trust)?);
+                return self.try_run(u, first, fits);
+            }
         }
         self.try_run(u, first, fits)?;
         maps.add(self.trust_range(u, first, trust));
@@ -1338,6 +1359,104 @@ mod tests {
 
     fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
         dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
+    /// Under the glossy model the final pass takes its trust maps from the Lambertian lanes:
+    /// its fits are the glossy fits of [`LocalStep::run`] (from warm normals where the facets
+    /// have them), its per-facet trust values those of the scalar [`LocalStep::trust`] bit for
+    /// bit and its per-light sums the same up to their order, in two chunks (one not a
+    /// multiple of the lanes); with a robust estimator (no lanes) it takes the scalar path.
+    #[test]
+    fn a_glossy_final_pass_takes_the_trust_maps_from_the_lanes() {
+        use crate::reflectance::Lobe;
+        use crate::rig::Camera;
+        let (h, w) = (9, 7);
+        let mask: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
+        let grid = Grid::new(h, w, Some(&mask)).unwrap();
+        let camera = Camera::Orthographic {
+            pixel_size: [1.5, 1.5],
+            origin: [-5.0, -7.0],
+        };
+        let geometry = Geometry::new(&camera, &grid).unwrap();
+        let lights = lights();
+        let k = lights.len();
+        let u: Vec<f64> = (0..grid.n_unknowns())
+            .map(|v| 100.0 + 0.3 * (v % 8) as f64 - 0.2 * (v / 8) as f64)
+            .collect();
+        // A diffuse part and a highlight where a light mirrors into the view, then dark, missing
+        // and saturated observations here and there.
+        let mut data = vec![0.0f32; k * h * w];
+        for (i, x) in data.iter_mut().enumerate() {
+            *x = match i % 23 {
+                0 => 0.0,
+                7 => f32::NAN,
+                11 => f32::INFINITY,
+                j => 1e-4 * (1.0 + (j % 5) as f32) + if i % 29 == 3 { 5e-3 } else { 0.0 },
+            };
+        }
+        let obs = Observations::from_stack(&data, k, h * w, 1);
+        let n = grid.n_facets();
+        let warm: Vec<[f32; 3]> = (0..n)
+            .map(|f| match f % 3 {
+                0 => [f32::NAN; 3],
+                _ => [0.05 * (f % 4) as f32, -0.1, -1.0],
+            })
+            .collect();
+        for robust in [Robust::None, Robust::Tukey] {
+            let step = LocalStep {
+                warm: Some(&warm),
+                ..LocalStep::new(
+                    &grid,
+                    &geometry,
+                    Model::Near(&lights),
+                    &obs,
+                    FitSettings {
+                        lobe: Some(Lobe::new(0.3, 1.5)),
+                        robust,
+                        ..FitSettings::default()
+                    },
+                )
+            };
+            assert!(step.lane_lights().is_none());
+            let lambertian = LocalStep {
+                settings: FitSettings {
+                    lobe: None,
+                    ..step.settings
+                },
+                ..step
+            };
+            assert_eq!(lambertian.lane_lights().is_some(), robust == Robust::None);
+            let mut fits = vec![FacetFit::EMPTY; n];
+            step.run(&u, 0, &mut fits);
+            assert!(fits.iter().filter(|f| f.valid && f.specular > 0.0).count() > n / 4);
+            let expected = step.trust(&u).unwrap();
+            let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
+            let mut final_fits = vec![FacetFit::EMPTY; n];
+            let mut values = vec![[f32::NAN; 2]; n];
+            let split = 13;
+            for (first, end) in [(0, split), (split, n)] {
+                let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
+                step.try_run_final(&u, first, fits, values, &mut maps)
+                    .unwrap();
+                maps.scatter(&grid, first, values);
+            }
+            assert_eq!(final_fits, fits);
+            let trust = maps.finish();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&trust.normal_sigma), bits(&expected.normal_sigma));
+            assert_eq!(bits(&trust.held_out), bits(&expected.held_out));
+            assert!(trust.held_out.iter().filter(|v| v.is_finite()).count() > n / 2);
+            for (a, b) in trust.lights.iter().zip(&expected.lights) {
+                assert_eq!(a.facets, b.facets);
+                for (x, y) in [
+                    (a.residual, b.residual),
+                    (a.held_out, b.held_out),
+                    (a.mean_intensity, b.mean_intensity),
+                ] {
+                    assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
+                }
+            }
+        }
     }
 
     /// Precomputed depths (pinhole: log-depth unknowns) give the same fits as the unknowns.
