@@ -83,6 +83,7 @@ use rayon::prelude::*;
 
 use nalgebra::{Matrix4, Vector4};
 
+use crate::light::power_lanes;
 use crate::vec3::{dot, norm, normalize, scale};
 
 /// The reflectance model the local step fits (see the module documentation).
@@ -952,11 +953,12 @@ struct Group {
     /// computed by [`Packed::prepare`] only for a lobe with that term.
     retro: Lanes,
     /// Whether the lane's light is a point light whose direction and scale [`Packed::prepare`]
-    /// computes (from `position`, `axis`, `led` and the intensity in `scale`).
+    /// computes (from `position`, `axis`, `mu` and the intensity in `scale`).
     point: [bool; W],
     position: [Lanes; 3],
     axis: [Lanes; 3],
-    led: [bool; W],
+    /// The LED anisotropy `mu` of a point light (0: isotropic).
+    mu: Lanes,
 }
 
 /// The factors of a [`Group`] at a normal (see [`Shade`]): lanes that carry no light have
@@ -1043,8 +1045,8 @@ impl Packed {
         }
     }
 
-    /// Adds the observation of image value `value` under an isotropic point light (`led`
-    /// false) or an LED with `mu = 1` at `position` with axis `axis` and intensity `phi`:
+    /// Adds the observation of image value `value` under a point light at `position` with axis
+    /// `axis`, anisotropy `mu` (0: isotropic, else an LED, `t^mu`) and intensity `phi`:
     /// [`Packed::prepare`] computes its direction and scale `Phi a` at the facet (see
     /// [`crate::Light`]). An LED that does not light the facet never carries light.
     pub fn push_point(
@@ -1053,13 +1055,13 @@ impl Packed {
         phi: f64,
         position: [f64; 3],
         axis: [f64; 3],
-        led: bool,
+        mu: f64,
     ) {
         let (g, i) = self.next_lane();
         g.value[i] = value;
         g.scale[i] = phi;
         g.point[i] = true;
-        g.led[i] = led;
+        g.mu[i] = mu;
         for j in 0..3 {
             g.position[j][i] = position[j];
             g.axis[j][i] = axis[j];
@@ -1101,6 +1103,8 @@ simd_dispatch! {
 /// The point lights' directions and scales at `x`, the half vectors and the Fresnel factors of
 /// `groups`, and with `retro` the `(l.h)^2` of the retro-reflective diffuse term (see
 /// [`Packed::prepare`]).
+// (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+#[allow(clippy::needless_range_loop)]
 #[inline(always)]
 fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retro: bool) {
     let f1 = Lobe::new(0.0, eta).normal_reflectance();
@@ -1113,14 +1117,25 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
             let id =
                 lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
             let l: [Lanes; 3] = crate::lanes(|j| lanes(|i| a[j][i] * id[i]));
-            let aniso = lanes(|i| {
-                let t = -(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]);
-                if g.led[i] {
-                    t.max(0.0)
-                } else {
-                    1.0
-                }
+            // aniso = t^mu, t = max(0, -axis . l): 1 for mu = 0, t for mu = 1 (as
+            // `light::anisotropy`), else `power_lanes` once per other exponent of the group.
+            let t = lanes(|i| {
+                (-(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]))
+                    .max(0.0)
             });
+            let mut aniso = lanes(|i| if g.mu[i] == 0.0 { 1.0 } else { t[i] });
+            let mut done: [bool; W] =
+                crate::lanes(|i| !g.point[i] || g.mu[i] == 0.0 || g.mu[i] == 1.0);
+            while let Some(first) = done.iter().position(|&d| !d) {
+                let mu = g.mu[first];
+                let p = power_lanes(&t, mu);
+                for i in 0..W {
+                    if !done[i] && g.mu[i] == mu {
+                        aniso[i] = p[i];
+                        done[i] = true;
+                    }
+                }
+            }
             let lit: [bool; W] = crate::lanes(|i| aniso[i] > 0.0);
             g.l = crate::lanes(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
@@ -2152,46 +2167,48 @@ mod tests {
         use crate::Light;
         let x = [3.0, -2.0, 150.0];
         let v = normalize(scale(x, -1.0));
-        let lights: Vec<(Light, bool)> = (0..7)
+        // Isotropic lights, LEDs of mu = 1 and of other exponents (two in one group), and two
+        // LEDs that point away from the facet (mu = 1 and 1.7).
+        let mus = [0.0, 1.0, 1.7, 0.0, 3.0, 1.0, 1.7, 1.7, 0.0, 1.0, 0.5];
+        let lights: Vec<Light> = (0..mus.len())
             .map(|i| {
                 let t = i as f64;
                 let position = [60.0 * t.cos(), 60.0 * t.sin(), 10.0 * t];
-                let led = i % 2 == 1;
-                // The last LED points away from the facet.
                 let axis = match i {
-                    5 => normalize([0.0, 0.0, -1.0]),
+                    5 | 7 => normalize([0.0, 0.0, -1.0]),
                     _ => normalize([0.1 * t, -0.05, 1.0]),
                 };
-                let light = Light::Point {
+                Light::Point {
                     position,
                     intensity: [1.0 + t, 2.0, 3.0],
                     axis,
-                    mu: if led { 1.0 } else { 0.0 },
-                };
-                (light, led)
+                    mu: mus[i],
+                }
             })
             .collect();
         let mut packed = Packed::new();
         packed.clear(v);
-        for (light, led) in &lights {
+        for light in &lights {
             let Light::Point {
                 position,
                 intensity,
                 axis,
-                ..
+                mu,
             } = *light
             else {
                 unreachable!()
             };
-            packed.push_point(0.5, intensity[0], position, axis, *led);
+            packed.push_point(0.5, intensity[0], position, axis, mu);
         }
         packed.prepare(lobe, x);
-        for (j, (light, _)) in lights.iter().enumerate() {
+        let mut unlit = 0;
+        for (j, light) in lights.iter().enumerate() {
             let (g, lane) = (&packed.groups[j / W], j % W);
             let (b, _) = light.beta(x);
             let a = norm(b);
             if a == 0.0 {
                 assert_eq!([g.l[0][lane], g.l[1][lane], g.l[2][lane]], [0.0; 3]);
+                unlit += 1;
                 continue;
             }
             let o = Observation::new(0.5, light.intensity()[0] * a, scale(b, 1.0 / a), v, lobe);
@@ -2205,6 +2222,7 @@ mod tests {
                 close(o.retro, g.retro[lane]);
             }
         }
+        assert_eq!(unlit, 2);
     }
 
     #[test]

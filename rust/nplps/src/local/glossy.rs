@@ -162,7 +162,8 @@ fn observations(
         }
         let value = o.iter().map(|&v| v as f64).sum();
         if let Model::Near(lights) = model {
-            // The direction and scale of a point light are computed in lanes by `prepare`.
+            // The direction and scale of a point light (any anisotropy) are computed in lanes
+            // by `prepare`.
             if let Light::Point {
                 position,
                 intensity,
@@ -170,13 +171,11 @@ fn observations(
                 mu,
             } = lights[k]
             {
-                if mu == 0.0 || mu == 1.0 {
-                    let p: f64 = (0..channels)
-                        .map(|ch| channel_intensity(intensity, channels, ch))
-                        .sum();
-                    out.push_point(value, p, position, axis, mu == 1.0);
-                    continue;
-                }
+                let p: f64 = (0..channels)
+                    .map(|ch| channel_intensity(intensity, channels, ch))
+                    .sum();
+                out.push_point(value, p, position, axis, mu);
+                continue;
             }
         }
         let Some((a, l, phi)) = model.light(k, c) else {
