@@ -2480,8 +2480,12 @@ mod tests {
         let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
         let problem = at_true_distance(&scene, &scene.rig, &images);
         let on = Options::default().with_interreflections(true);
-        // (The glossy model is supported since stop 45: see `solver::glossy_rounds`.)
-        let options = on.with_refine(Refine::NONE.with_intensity(true));
+        // (The glossy model is supported since stop 45, see `solver::glossy_rounds`; light
+        // refinement under the Lambertian model since stop 46, see `refine`: not the two
+        // together.)
+        let options = on
+            .with_refine(Refine::NONE.with_intensity(true))
+            .with_reflectance(Reflectance::Glossy(None));
         let err = reconstruct(&problem, &options, &mut |_| Control::Continue).unwrap_err();
         assert!(
             matches!(&err, Error::Unusable(m) if m.contains("interreflections")),
