@@ -677,8 +677,20 @@ fn alternate(
     // The index walk along the transmitted shape (see [`index_walk`]), then the
     // retro-reflective diffuse shape's stage where that line still ends at a low index (see
     // [`RETRO_STAGE_ETA`]).
-    let Some(line) = transmitted else {
-        return Ok((best.1, u));
+    let line = match transmitted {
+        Some(line) => line,
+        // No stage found a minimum (the first stage's criterion kept falling out of its
+        // windows): the walk starts from the profile's estimate under the transmitted lobe that
+        // stage estimated, its first stage that finds one taken (the 256² rough plastic 0.1
+        // block with 0.1 % image noise, seed 0: the profile's -1.58 % was returned, the walk
+        // never ran).
+        None if best.0.is_nan() => {
+            match solver.lobe.filter(|l| l.diffuse == Diffuse::Transmitted) {
+                Some(l) => (f64::INFINITY, best.1.clone(), l),
+                None => return Ok((best.1, u)),
+            }
+        }
+        None => return Ok((best.1, u)),
     };
     let l = index_walk(
         solver, problem, search, range, line, &mut best, &mut u, count, progress,
