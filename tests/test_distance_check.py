@@ -152,3 +152,19 @@ def test_the_report_shows_the_check(tmp_path: Path) -> None:
     assert main(["report", str(tmp_path / "out"), "--out", str(tmp_path / "again.html")]) == 0
     again = (tmp_path / "again.html").read_text(encoding="utf-8")
     assert "distance check" in again and "LOOKS WRONG" in again
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_glossy_check_judges_as_the_lambertian_one(seed: int) -> None:
+    # The check under the glossy model (3 iterations a candidate, stop 46): at the distance no
+    # warning and about the true distance found; 25 % off a warning that names it. Glossy
+    # bumps rendered by the glossy model itself, lobe estimated.
+    s = nplps.make_scene("bumps", n=64, seed=seed, noise=0.005, camera="pinhole", specular=0.2, roughness=0.3)
+    for factor in (0.75, 1.0, 1.25):
+        r, messages = _run(s, factor, reflectance="glossy")
+        c = r.distance_check
+        assert r.lobe is not None and c is not None
+        assert c.looks_wrong == (factor != 1.0), (factor, c)
+        assert any("looks wrong" in m for m in messages) == (factor != 1.0), messages
+        assert abs(c.found / s.mean_depth - 1) < 0.03, (factor, c)
+        assert c.ratio > 3 if factor != 1.0 else c.ratio == 1.0, (factor, c)
