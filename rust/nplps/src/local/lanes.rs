@@ -1116,15 +1116,9 @@ mod tests {
     /// batch).
     #[test]
     fn lanes_match_the_scalar_fits_exactly() {
-        use crate::rig::{Camera, Rig};
-        let (h, w) = (9, 7);
-        let mask: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
-        let grid = Grid::new(h, w, Some(&mask)).unwrap();
-        let camera = Camera::Orthographic {
-            pixel_size: [1.5, 1.5],
-            origin: [-5.0, -7.0],
-        };
-        let geometry = Geometry::new(&camera, &grid).unwrap();
+        use crate::rig::Rig;
+        let (grid, camera, geometry) = crate::local::tests::small_masked_mesh();
+        let (h, w) = (grid.height, grid.width);
         let mut lights: Vec<Light> = crate::local::tests::lights();
         lights.push(Light::Point {
             position: [12.0, -8.0, 30.0],

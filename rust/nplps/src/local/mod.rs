@@ -1342,6 +1342,20 @@ mod tests {
         .collect()
     }
 
+    /// A 9 x 7 grid without every fifth pixel (from the third) under an orthographic camera,
+    /// and its geometry: the small mesh on which lane and scalar paths are compared.
+    pub(crate) fn small_masked_mesh() -> (Grid, crate::rig::Camera, Geometry) {
+        let (h, w) = (9, 7);
+        let mask: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
+        let grid = Grid::new(h, w, Some(&mask)).unwrap();
+        let camera = crate::rig::Camera::Orthographic {
+            pixel_size: [1.5, 1.5],
+            origin: [-5.0, -7.0],
+        };
+        let geometry = Geometry::new(&camera, &grid).unwrap();
+        (grid, camera, geometry)
+    }
+
     /// A tilted facet centre 100 away and its exact images for albedo (2e4, 1e4, 5e3).
     fn facet(channels: usize) -> ([f64; 3], [f64; 3], Vec<f32>) {
         let c = [1.0, -2.0, 100.0];
@@ -1369,15 +1383,8 @@ mod tests {
     #[test]
     fn a_glossy_final_pass_takes_the_trust_maps_from_the_lanes() {
         use crate::reflectance::Lobe;
-        use crate::rig::Camera;
-        let (h, w) = (9, 7);
-        let mask: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
-        let grid = Grid::new(h, w, Some(&mask)).unwrap();
-        let camera = Camera::Orthographic {
-            pixel_size: [1.5, 1.5],
-            origin: [-5.0, -7.0],
-        };
-        let geometry = Geometry::new(&camera, &grid).unwrap();
+        let (grid, _, geometry) = small_masked_mesh();
+        let (h, w) = (grid.height, grid.width);
         let lights = lights();
         let k = lights.len();
         let u: Vec<f64> = (0..grid.n_unknowns())
