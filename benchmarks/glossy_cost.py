@@ -5,10 +5,12 @@ Usage::
     python benchmarks/glossy_cost.py [--sizes 256 1024] [--repeats 3]
                                      [--pbr /work/pbr-data/256/bumps-roughplastic-0.3-256.npz]
                                      [--modes lambertian given estimated] [--json out.json]
+                                     [--noise 0 0.005]
                                      [--baseline DIR]
 
 Scenes: ``nplps.make_scene("bumps", camera="pinhole", specular=0.2, roughness=0.3)`` (rendered
-by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size, and the PBR render given by
+by the glossy model itself, lobe alpha 0.3, eta 1.5) at each size and ``--noise`` level (noise-free by
+default; real captures have 0.2-1 %, where the glossy run's iterations differ), and the PBR render given by
 ``--pbr`` (its own size; pass ``--pbr ''`` to skip it). Modes: ``lambertian`` (the default),
 ``given`` (``reflectance="glossy"`` with the true lobe; for a PBR render the roughness of its
 material name (squared for principled) and eta 1.5) and ``estimated`` (``reflectance="glossy"``, lobe estimated), each
@@ -57,13 +59,16 @@ def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def load(scene: str) -> tuple[Any, Any, np.ndarray, np.ndarray, float, tuple[float, float]]:
     """Return images, rig, mask, true normals, true distance and the true lobe of `scene`.
 
-    `scene` is ``bumps-N`` (the synthetic glossy bumps, N x N) or the path of a PBR ``.npz``.
+    `scene` is ``bumps-N`` (the synthetic glossy bumps, N x N), ``bumps-N-noiseS`` (the same with
+    Gaussian noise of standard deviation S, see ``--noise``) or the path of a PBR ``.npz``.
     """
     import nplps
 
     if scene.startswith("bumps-"):
-        n = int(scene.split("-")[1])
-        s = nplps.make_scene("bumps", n=n, camera="pinhole", specular=0.2, roughness=0.3, eta=1.5)
+        n, _, noise = scene.removeprefix("bumps-").partition("-noise")
+        s = nplps.make_scene(
+            "bumps", n=int(n), camera="pinhole", specular=0.2, roughness=0.3, eta=1.5, noise=float(noise or 0.0)
+        )
         return s.images, s.rig, s.mask, s.normals, s.mean_depth, (0.3, 1.5)
     with np.load(scene) as f:
         data = dict(f)
@@ -126,6 +131,13 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="*", default=[256, 1024])
     parser.add_argument("--pbr", default="/work/pbr-data/256/bumps-roughplastic-0.3-256.npz")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--noise",
+        type=float,
+        nargs="*",
+        default=[0.0],
+        help="noise levels of the synthetic bumps (make_scene's noise, e.g. 0 0.005): one scene per size and level",
+    )
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     parser.add_argument("--json", help="write the numbers to this file")
     parser.add_argument("--baseline", help="also run the nplps importable from this directory (A/B)")
@@ -134,7 +146,8 @@ def main() -> None:
     if args.worker:
         print(json.dumps(worker(*args.worker)))
         return
-    scenes = [f"bumps-{n}" for n in args.sizes] + ([args.pbr] if args.pbr else [])
+    scenes = [f"bumps-{n}" + (f"-noise{e:g}" if e else "") for n in args.sizes for e in args.noise]
+    scenes += [args.pbr] if args.pbr else []
     header = (
         "| scene | mode | s (median) | x Lambertian | CPU s | x Lambertian (CPU) | peak RSS (MB) | iterations "
         "| mean error (deg) | lobe |"

@@ -348,8 +348,10 @@ impl Reconstruction {
 
     /// Sets `status`, `status_reason` and `converged` from the outcome: `tol_depth` is the
     /// depth-change tolerance in depth units (`tol` times the lateral size; infinite for a
-    /// non-iterative result), `stalled` whether the iteration stopped for lack of progress.
-    pub(crate) fn assess(&mut self, tol_depth: f64, stalled: bool) {
+    /// non-iterative result), `stalled` whether the iteration stopped for lack of progress,
+    /// `settled` the residual share by which it stopped because the glossy fits settled (see
+    /// [`GLOSSY_RESIDUAL_FACTOR`](crate::solver::GLOSSY_RESIDUAL_FACTOR)), if it did.
+    pub(crate) fn assess(&mut self, tol_depth: f64, stalled: bool, settled: Option<f64>) {
         use crate::error::g6;
         let masked = self.regions.iter().filter(|&&r| r >= 0).count();
         let unfitted = self
@@ -391,7 +393,20 @@ impl Reconstruction {
                 ),
             )
         } else if self.converged {
-            if tol_depth.is_finite() && last > tol_depth && iterations >= 2 {
+            if let (Some(share), true) = (settled, last > tol_depth) {
+                (
+                    Status::Converged,
+                    format!(
+                        "the RMS image residual changed by at most {} of it in the last local \
+                         steps: the glossy fits have settled (the largest depth change of \
+                         iteration {iterations}, {}, is within their precision, above the depth \
+                         tolerance {})",
+                        g6(share),
+                        g6(last),
+                        g6(tol_depth)
+                    ),
+                )
+            } else if tol_depth.is_finite() && last > tol_depth && iterations >= 2 {
                 // Stopped by the projected rule (crate::solver::projected_converged).
                 (
                     Status::Converged,
