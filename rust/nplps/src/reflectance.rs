@@ -244,6 +244,41 @@ impl Lobe {
         let o = Observation::new(0.0, 1.0, l, v, self);
         k.shade(n, &k.view(n, v)?, &o)
     }
+
+    /// [`Lobe::shade`] at the normal `n` seen from `v`, for many lights: the lobe's constants
+    /// (its transmittance table) and the terms of `n` and `v` that every light shares are
+    /// computed here, once; None where `n.v <= 0` (where [`Lobe::shade`] is None for every
+    /// light). [`Shader::shade`] of a light gives [`Lobe::shade`]'s bits.
+    pub fn shader(&self, n: [f64; 3], v: [f64; 3]) -> Option<Shader> {
+        let kernel = Kernel::new(self);
+        let view = kernel.view(n, v)?;
+        Some(Shader {
+            lobe: *self,
+            kernel,
+            view,
+            n,
+            v,
+        })
+    }
+}
+
+/// [`Lobe::shade`] at one normal and view vector, for many lights (see [`Lobe::shader`]).
+#[derive(Debug, Clone)]
+pub struct Shader {
+    lobe: Lobe,
+    kernel: Kernel,
+    view: View,
+    n: [f64; 3],
+    v: [f64; 3],
+}
+
+impl Shader {
+    /// [`Lobe::shade`] of the light from the unit direction `l` (the same bits).
+    #[inline]
+    pub fn shade(&self, l: [f64; 3]) -> Option<Shade> {
+        let o = Observation::new(0.0, 1.0, l, self.v, &self.lobe);
+        self.kernel.shade(self.n, &self.view, &o)
+    }
 }
 
 /// The constants of a [`Lobe`] that every evaluation uses.
