@@ -358,6 +358,10 @@ struct Scratch {
     want_h: bool,
 }
 
+/// Up to this many rows of `B^T` (nalgebra's `SMALL_DIM`), [`Scratch::flush`] multiplies by
+/// plain sums instead of nalgebra's `gemm`.
+const SMALL_PRODUCT: usize = 5;
+
 /// Facet channels whose normals' parts are subtracted from the Gauss-Newton matrix at once.
 const BATCH: usize = 64;
 
@@ -460,6 +464,10 @@ struct LaneScratch {
     sq_residual: Vec<[f64; LANES]>,
     sq_obs: Vec<[f64; LANES]>,
     grad: Vec<[f64; LANES]>,
+    /// With the gradient: per parameter each lane's derivative `d` (zero where unusable).
+    d: Vec<[f64; LANES]>,
+    /// With the gradient, per light: `w = L^-1 a` of each lane (`T = L L^T`, see [`Scratch`]).
+    w: Vec<[[f64; LANES]; 3]>,
 }
 
 impl LaneScratch {
@@ -474,6 +482,8 @@ impl LaneScratch {
             sq_residual: try_vec(k, z, PASS)?,
             sq_obs: try_vec(k, z, PASS)?,
             grad: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
+            d: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
+            w: try_vec(if with_grad { k } else { 0 }, [z; 3], PASS)?,
         })
     }
 }
@@ -491,8 +501,14 @@ impl LaneScratch {
 /// column after column), the residuals `r_i = I_i - a_i . g`, and with the gradient (`s.grad`
 /// not empty) the terms `d r` of each parameter ([`derivatives`]: `d = a_i . g` for the
 /// log-intensity, `phi_i (f g + (v . g) grad f)` for the position from the lights' `grads`,
-/// zero without them). Returns which lanes are fitted and their usable observations; the
-/// caller adds the lanes' terms into the pass in the scalar order (facet after facet).
+/// zero without them). With the gradient also the Gauss-Newton matrix's terms of each lane
+/// (used by the lanes that enter it): the derivatives `d` and `w_i = L^-1 a_i` with the
+/// Cholesky factor `T = L L^T` (nalgebra's `cholesky` and `solve_lower_triangular` written
+/// out: `L00 = sqrt(T00)`, `L10 = T10 / L00`, `L20 = T20 / L00`, `L11 = sqrt(T11 - L10 L10)`,
+/// `L21 = (T21 - L10 L20) / L11`, `L22 = sqrt((T22 - L20 L20) - L21 L21)`, failing where a
+/// square root's argument is not positive; forward substitution). Returns which lanes are
+/// fitted, their usable observations and whether their Cholesky factor exists; the caller
+/// adds the lanes' terms into the pass in the scalar order (facet after facet).
 #[allow(clippy::needless_range_loop)] // lane code: one index per lane, as the vector instructions
 #[inline(always)]
 fn fit_lanes_kernel(
@@ -503,7 +519,7 @@ fn fit_lanes_kernel(
     grads: &[Gradient],
     m: usize,
     s: &mut LaneScratch,
-) -> ([bool; LANES], [usize; LANES]) {
+) -> LaneFits {
     let k = phis.len();
     let (dark, saturation) = thresholds;
     let z = [0.0f64; LANES];
@@ -569,6 +585,24 @@ fn fit_lanes_kernel(
         }
     }
     let with_grad = !s.grad.is_empty();
+    // T = L L^T per lane (for the lanes of the Gauss-Newton matrix).
+    let (mut chol, mut factored) = ([z; 6], [false; LANES]);
+    if with_grad {
+        for l in 0..LANES {
+            let l00 = t[0][l].sqrt();
+            let (l10, l20) = (t[1][l] / l00, t[2][l] / l00);
+            let p11 = t[3][l] - l10 * l10;
+            let l11 = p11.sqrt();
+            let l21 = (t[4][l] - l10 * l20) / l11;
+            let p22 = (t[5][l] - l20 * l20) - l21 * l21;
+            let l22 = p22.sqrt();
+            factored[l] = t[0][l] > 0.0 && p11 > 0.0 && p22 > 0.0;
+            for (c, x) in chol.iter_mut().zip([l00, l10, l20, l11, l21, l22]) {
+                c[l] = x;
+            }
+        }
+    }
+    let [l00, l10, l20, l11, l21, l22] = &chol;
     for i in 0..k {
         let a = &s.rows[i];
         let mut r = z;
@@ -587,9 +621,18 @@ fn fit_lanes_kernel(
         if !with_grad {
             continue;
         }
+        for l in 0..LANES {
+            let w0 = a[0][l] / l00[l];
+            let w1 = (a[1][l] - w0 * l10[l]) / l11[l];
+            let w2 = ((a[2][l] - w0 * l20[l]) - w1 * l21[l]) / l22[l];
+            s.w[i][0][l] = w0;
+            s.w[i][1][l] = w1;
+            s.w[i][2][l] = w2;
+        }
         if let Some(j) = layout.intensity[i] {
             for l in 0..LANES {
                 let d = a[0][l] * g[0][l] + a[1][l] * g[1][l] + a[2][l] * g[2][l];
+                s.d[j][l] = if keep[l] { d } else { 0.0 };
                 s.grad[j][l] = if keep[l] { d * r[l] } else { 0.0 };
             }
         }
@@ -602,12 +645,25 @@ fn fit_lanes_kernel(
                     None => [0.0; 3],
                 };
                 for c in 0..3 {
+                    s.d[j + c][l] = if keep[l] { d[c] } else { 0.0 };
                     s.grad[j + c][l] = if keep[l] { d[c] * r[l] } else { 0.0 };
                 }
             }
         }
     }
-    (valid, used)
+    LaneFits {
+        valid,
+        used,
+        factored,
+    }
+}
+
+/// What [`fit_lanes_kernel`] returns per lane: whether the facet is fitted, its usable
+/// observations and whether its `T` has a Cholesky factor.
+struct LaneFits {
+    valid: [bool; LANES],
+    used: [usize; LANES],
+    factored: [bool; LANES],
 }
 
 simd_dispatch! {
@@ -621,7 +677,7 @@ simd_dispatch! {
         grads: &[Gradient],
         m: usize,
         s: &mut LaneScratch,
-    ) -> ([bool; LANES], [usize; LANES]);
+    ) -> LaneFits;
 }
 
 /// The centres of the pass's facets `first..first + m` (`m <= LANES`; the last repeated to fill
@@ -675,7 +731,22 @@ impl Scratch {
         let b =
             nalgebra::DMatrixView::from_slice_with_strides(self.bt.as_slice(), n, rows, stride, 1);
         let bt = self.bt.rows(0, rows);
-        self.product.gemm(1.0, &b, &bt, 0.0);
+        if rows > SMALL_PRODUCT {
+            self.product.gemm(1.0, &b, &bt, 0.0);
+        } else {
+            // nalgebra's `gemm` multiplies this few rows by its own loops, which read the
+            // transposed view out of its bounds (one facet pending at a chunk's end: undefined
+            // behaviour, a crash in the tests): the product by plain sums.
+            for i in 0..n {
+                for j in i..n {
+                    let mut sum = 0.0;
+                    for r in 0..rows {
+                        sum += bt[(r, i)] * bt[(r, j)];
+                    }
+                    self.product[(i, j)] = sum;
+                }
+            }
+        }
         for i in 0..n {
             let h = &mut acc.h[i * n..(i + 1) * n];
             for (j, hj) in h.iter_mut().enumerate().skip(i) {
@@ -777,8 +848,8 @@ impl LightData<'_> {
     }
 
     /// [`LightData::pass`], its facets fitted in lanes when `in_lanes` (which needs
-    /// [`LightData::lanes_apply`]) except those entering the Gauss-Newton matrix, else each by
-    /// the scalar [`LightData::facet`]: the same bits either way.
+    /// [`LightData::lanes_apply`]; [`LightData::lanes_into`]), else each by the scalar
+    /// [`LightData::facet`]: the same bits either way.
     fn pass_in(
         &self,
         (lights, shading): (&[Light], &[Light]),
@@ -835,7 +906,7 @@ impl LightData<'_> {
                     if let Some(ls) = ls.as_mut() {
                         let facets = (first, m, stride);
                         let terms = (cached, &own[..], &grads[..]);
-                        let (mesh, pass) = ((model, &phis[..]), (&mut acc, &mut s, &mut values));
+                        let (mesh, pass) = ((model, &phis[..]), (&mut acc, &mut s));
                         self.lanes_into(mesh, facets, (centres, h_every), terms, ls, pass);
                         continue;
                     }
@@ -891,11 +962,11 @@ impl LightData<'_> {
 
     /// Adds the pass's facets `first..first + m` (every `stride`-th facet of the mesh, centres
     /// `centres`) to `acc` as the scalar [`LightData::facet`] would, facet after facet (grey
-    /// images: see [`LightData::lanes_apply`]): those fitted in lanes by [`fit_lanes_kernel`]
-    /// add their terms in the scalar order; those entering the Gauss-Newton matrix (every
-    /// `h_every`-th of a pass with it) go through [`LightData::facet`] itself. `betas` are the
-    /// `cached` ones or the block's `own`, `grads` the position derivatives' terms (or empty).
-    #[allow(clippy::too_many_arguments)]
+    /// images: see [`LightData::lanes_apply`]), fitted in lanes by [`fit_lanes_kernel`], their
+    /// terms added in the scalar order; those entering the Gauss-Newton matrix (every
+    /// `h_every`-th of a pass with it) also add their rows of `B^T` and their block-diagonal
+    /// terms, in the scalar order too. `betas` are the `cached` ones or the block's `own`,
+    /// `grads` the position derivatives' terms (or empty).
     #[inline]
     fn lanes_into(
         &self,
@@ -904,7 +975,7 @@ impl LightData<'_> {
         (centres, h_every): ([[f64; 3]; LANES], usize),
         (cached, own, grads): (Option<&Betas>, &Betas, &[Gradient]),
         ls: &mut LaneScratch,
-        (acc, s, values): (&mut Pass, &mut Scratch, &mut Vec<f32>),
+        (acc, s): (&mut Pass, &mut Scratch),
     ) {
         let (grid, obs) = (self.grid, self.obs);
         let k = obs.k;
@@ -925,37 +996,56 @@ impl LightData<'_> {
         };
         let thresholds = (self.settings.dark, self.settings.saturation);
         let layout = model.layout;
-        let (valid, used) = fit_lanes_dispatch(phis, layout, thresholds, betas, grads, m, ls);
+        let fits = fit_lanes_dispatch(phis, layout, thresholds, betas, grads, m, ls);
         let with_h = !acc.h.is_empty();
+        let n = layout.n;
         for (l, &c) in centres.iter().enumerate().take(m) {
             let j = first + l;
             acc.sum_z += c[2];
             acc.min_z = acc.min_z.min(c[2]);
             acc.facets += 1;
-            if with_h && j % h_every == 0 {
-                // A facet of the Gauss-Newton matrix: the scalar fit.
-                s.want_h = true;
-                for (v, lane) in values.iter_mut().zip(&ls.values) {
-                    *v = lane[l];
-                }
-                let grads = grads.get(l * k..(l + 1) * k).unwrap_or(&[]);
-                let terms = (&betas[l * k..(l + 1) * k], grads);
-                self.facet(model, (c, None), (values, 0), terms, acc, s);
-                continue;
-            }
-            if !valid[l] {
+            if !fits.valid[l] {
                 continue;
             }
             acc.fits += 1;
+            // A facet of the Gauss-Newton matrix adds nothing without its Cholesky factor.
+            let in_h = with_h && j % h_every == 0;
+            if in_h && !fits.factored[l] {
+                continue;
+            }
             for i in 0..k {
                 acc.sse += ls.sq_residual[i][l];
             }
             for i in 0..k {
                 acc.sum_i2 += ls.sq_obs[i][l];
             }
-            acc.count += used[l];
+            acc.count += fits.used[l];
             for (gr, d) in acc.grad.iter_mut().zip(&ls.grad) {
                 *gr -= d[l];
+            }
+            if !in_h {
+                continue;
+            }
+            // B^T's rows d_ij w_i and the block-diagonal part sum_i d_i d_i^T.
+            let row = 3 * s.pending;
+            s.bt.rows_mut(row, 3).fill(0.0);
+            for i in (0..k).filter(|&i| ls.ok[i][l]) {
+                let (first, m) = layout.span(i);
+                for a in 0..m {
+                    let col = first + a;
+                    let d = ls.d[col][l];
+                    for c in 0..3 {
+                        s.bt[(row + c, col)] = d * ls.w[i][c][l];
+                    }
+                    let h = &mut acc.h[col * n..];
+                    for bb in a..m {
+                        h[first + bb] += d * ls.d[first + bb][l];
+                    }
+                }
+            }
+            s.pending += 1;
+            if s.pending == BATCH {
+                s.flush(acc);
             }
         }
     }
@@ -1880,10 +1970,16 @@ mod tests {
     /// position and both, with and without the Gauss-Newton matrix and cached `beta` vectors,
     /// with LEDs, isotropic and directional lights, unusable observations (NaN, dark,
     /// saturated), facets left with fewer than 4 usable ones and a pass whose facets are not a
-    /// multiple of the lanes.
+    /// multiple of the lanes; every facet in the Gauss-Newton matrix (41²) or every other (80²).
     #[test]
     fn lane_pass_matches_the_scalar_pass_bit_for_bit() {
-        let scene = Scene::new(SceneKind::Bumps, 41, 100.0, 200.0, 3).unwrap();
+        for size in [41, 80] {
+            lane_pass_matches_at(size);
+        }
+    }
+
+    fn lane_pass_matches_at(size: usize) {
+        let scene = Scene::new(SceneKind::Bumps, size, 100.0, 200.0, 3).unwrap();
         let mut images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
         let k = scene.rig.n_lights();
         let plane = scene.width * scene.height;
@@ -1917,7 +2013,12 @@ mod tests {
             ..FitSettings::default()
         };
         let data = LightData::of(&problem, settings);
-        assert!(data.lanes_apply() && !data.subsample().0.is_multiple_of(LANES));
+        let count = data.subsample().0;
+        assert!(data.lanes_apply() && (size > 64 || !count.is_multiple_of(LANES)));
+        assert_eq!(
+            count.div_ceil(MAX_MATRIX_FACETS),
+            if size > 64 { 2 } else { 1 }
+        );
         let trial: Vec<Light> = scene.rig.lights.clone();
         let cache = data.betas(&lights, &u).unwrap().unwrap();
         for refine in [
