@@ -468,6 +468,12 @@ struct LaneScratch {
     d: Vec<[f64; LANES]>,
     /// With the gradient, per light: `w = L^-1 a` of each lane (`T = L L^T`, see [`Scratch`]).
     w: Vec<[[f64; LANES]; 3]>,
+    /// The chunk's sums per lane so far: of the squared residuals, of the squared observations
+    /// and (with the gradient) of each parameter's terms `d r`; folded into the pass's sums at
+    /// the chunk's end ([`LaneScratch::fold`]).
+    sum_sse: [f64; LANES],
+    sum_i2: [f64; LANES],
+    sum_grad: Vec<[f64; LANES]>,
 }
 
 impl LaneScratch {
@@ -484,7 +490,22 @@ impl LaneScratch {
             grad: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
             d: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
             w: try_vec(if with_grad { k } else { 0 }, [z; 3], PASS)?,
+            sum_sse: z,
+            sum_i2: z,
+            sum_grad: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
         })
+    }
+
+    /// Adds the lanes' sums to `acc` (the lanes in order) and clears them.
+    fn fold(&mut self, acc: &mut Pass) {
+        acc.sse += self.sum_sse.iter().sum::<f64>();
+        acc.sum_i2 += self.sum_i2.iter().sum::<f64>();
+        for (gr, d) in acc.grad.iter_mut().zip(&mut self.sum_grad) {
+            *gr -= d.iter().sum::<f64>();
+            *d = [0.0; LANES];
+        }
+        self.sum_sse = [0.0; LANES];
+        self.sum_i2 = [0.0; LANES];
     }
 }
 
@@ -655,6 +676,16 @@ fn fit_lanes_kernel(
         valid,
         used,
         factored,
+    }
+}
+
+/// `sum += terms[0] + terms[1] + ...` in the lanes where `keep` holds.
+#[inline(always)]
+fn add_lanes(sum: &mut [f64; LANES], terms: &[[f64; LANES]], keep: [bool; LANES]) {
+    for t in terms {
+        for l in 0..LANES {
+            sum[l] += if keep[l] { t[l] } else { 0.0 };
+        }
     }
 }
 
@@ -946,6 +977,9 @@ impl LightData<'_> {
                         }
                     }
                 }
+                if let Some(ls) = ls.as_mut() {
+                    ls.fold(&mut acc);
+                }
                 s.flush(&mut acc);
                 Ok(acc)
             })
@@ -999,6 +1033,7 @@ impl LightData<'_> {
         let fits = fit_lanes_dispatch(phis, layout, thresholds, betas, grads, m, ls);
         let with_h = !acc.h.is_empty();
         let n = layout.n;
+        let mut keep = [false; LANES];
         for (l, &c) in centres.iter().enumerate().take(m) {
             let j = first + l;
             acc.sum_z += c[2];
@@ -1013,16 +1048,8 @@ impl LightData<'_> {
             if in_h && !fits.factored[l] {
                 continue;
             }
-            for i in 0..k {
-                acc.sse += ls.sq_residual[i][l];
-            }
-            for i in 0..k {
-                acc.sum_i2 += ls.sq_obs[i][l];
-            }
+            keep[l] = true;
             acc.count += fits.used[l];
-            for (gr, d) in acc.grad.iter_mut().zip(&ls.grad) {
-                *gr -= d[l];
-            }
             if !in_h {
                 continue;
             }
@@ -1047,6 +1074,11 @@ impl LightData<'_> {
             if s.pending == BATCH {
                 s.flush(acc);
             }
+        }
+        add_lanes(&mut ls.sum_sse, &ls.sq_residual, keep);
+        add_lanes(&mut ls.sum_i2, &ls.sq_obs, keep);
+        for (sum, d) in ls.sum_grad.iter_mut().zip(&ls.grad) {
+            add_lanes(sum, std::slice::from_ref(d), keep);
         }
     }
 
@@ -1966,13 +1998,14 @@ mod tests {
         assert!(lambertian > 10.0 * glossy, "{lambertian} vs {glossy}");
     }
 
-    /// A pass that fits its facets in lanes gives the scalar pass's sums bit for bit: intensity,
+    /// A pass that fits its facets in lanes gives the scalar pass's Gauss-Newton matrix bit for
+    /// bit and its other sums to rounding (summed per lane, then the lanes): intensity,
     /// position and both, with and without the Gauss-Newton matrix and cached `beta` vectors,
     /// with LEDs, isotropic and directional lights, unusable observations (NaN, dark,
     /// saturated), facets left with fewer than 4 usable ones and a pass whose facets are not a
     /// multiple of the lanes; every facet in the Gauss-Newton matrix (41²) or every other (80²).
     #[test]
-    fn lane_pass_matches_the_scalar_pass_bit_for_bit() {
+    fn lane_pass_matches_the_scalar_pass() {
         for size in [41, 80] {
             lane_pass_matches_at(size);
         }
@@ -2047,10 +2080,15 @@ mod tests {
                         (lanes.count, lanes.fits),
                         "{what}"
                     );
-                    assert_eq!(scalar.sse.to_bits(), lanes.sse.to_bits(), "{what}");
-                    assert_eq!(scalar.sum_i2.to_bits(), lanes.sum_i2.to_bits(), "{what}");
+                    // The sums per lane: the same terms, added in another order.
+                    let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs());
+                    assert!(close(scalar.sse, lanes.sse), "{what}");
+                    assert!(close(scalar.sum_i2, lanes.sum_i2), "{what}");
                     assert_eq!((scalar.sum_z, scalar.facets), (lanes.sum_z, lanes.facets));
-                    assert_eq!(scalar.grad, lanes.grad, "{what}");
+                    let largest = scalar.grad.iter().fold(0.0f64, |m, g| m.max(g.abs()));
+                    for (a, b) in scalar.grad.iter().zip(&lanes.grad) {
+                        assert!((a - b).abs() <= 1e-11 * largest, "{what}: {a} vs {b}");
+                    }
                     assert_eq!(scalar.h, lanes.h, "{what}");
                     assert_eq!(with_h, scalar.grad.iter().any(|g| *g != 0.0), "{what}");
                 }
