@@ -89,10 +89,14 @@
 //! A pass sums the objective, the gradient and the Gauss-Newton matrix over a regular subsample
 //! of the facets ([`MAX_FACETS`]). The lights' `beta` vectors and the position derivatives'
 //! terms of `LANES` (8) facets are computed at once, one SIMD lane per facet
-//! ([`crate::light::LaneLight::step_terms`], bit for bit the scalar model's); the rest of a
-//! facet (its normal's fit, residuals and Jacobian rows) is scalar. The facets are summed in
-//! fixed chunks, one thread each, and the chunks' sums added in order, so that a pass gives the
-//! same bits whatever the threads do (`MAX_CHUNKS`).
+//! ([`crate::light::LaneLight::step_terms`], bit for bit the scalar model's). With grey
+//! images, the Lambertian model and no indirect light the rest of a facet (its normal's fit,
+//! residuals, Jacobian rows and, for the facets of the Gauss-Newton matrix, the Cholesky
+//! rows) runs in lanes too (`fit_lanes_kernel`: the scalar operations per lane, the matrix
+//! the same bits), the residuals' and gradient's sums kept per lane through a chunk;
+//! otherwise it is scalar. The facets are summed in fixed chunks, one thread each, and the
+//! chunks' sums added in order, so that a pass gives the same bits whatever the threads do
+//! (`MAX_CHUNKS`).
 //!
 //! [`conditioning`] reports the singular values of the light block after the normals are
 //! eliminated and the standard error of every parameter.
@@ -529,7 +533,7 @@ impl LaneScratch {
 /// `L21 = (T21 - L10 L20) / L11`, `L22 = sqrt((T22 - L20 L20) - L21 L21)`, failing where a
 /// square root's argument is not positive; forward substitution). Returns which lanes are
 /// fitted, their usable observations and whether their Cholesky factor exists; the caller
-/// adds the lanes' terms into the pass in the scalar order (facet after facet).
+/// adds the lanes' terms to its sums per lane ([`LightData::lanes_into`]).
 #[allow(clippy::needless_range_loop)] // lane code: one index per lane, as the vector instructions
 #[inline(always)]
 fn fit_lanes_kernel(
@@ -995,12 +999,14 @@ impl LightData<'_> {
     }
 
     /// Adds the pass's facets `first..first + m` (every `stride`-th facet of the mesh, centres
-    /// `centres`) to `acc` as the scalar [`LightData::facet`] would, facet after facet (grey
-    /// images: see [`LightData::lanes_apply`]), fitted in lanes by [`fit_lanes_kernel`], their
-    /// terms added in the scalar order; those entering the Gauss-Newton matrix (every
-    /// `h_every`-th of a pass with it) also add their rows of `B^T` and their block-diagonal
-    /// terms, in the scalar order too. `betas` are the `cached` ones or the block's `own`,
-    /// `grads` the position derivatives' terms (or empty).
+    /// `centres`; grey images: see [`LightData::lanes_apply`]), fitted in lanes by
+    /// [`fit_lanes_kernel`], to the pass: their counts to `acc`, their squared residuals,
+    /// squared observations and gradient terms to the per-lane sums of `ls` (which
+    /// [`LaneScratch::fold`] adds to `acc` at the chunk's end: the scalar pass's terms, summed
+    /// in another order); those entering the Gauss-Newton matrix (every `h_every`-th of a pass
+    /// with it) also add their rows of `B^T` and their block-diagonal terms facet after facet,
+    /// as the scalar [`LightData::facet`] does (the same bits). `betas` are the `cached` ones
+    /// or the block's `own`, `grads` the position derivatives' terms (or empty).
     #[inline]
     fn lanes_into(
         &self,
