@@ -2008,8 +2008,9 @@ mod tests {
     /// bit and its other sums to rounding (summed per lane, then the lanes): intensity,
     /// position and both, with and without the Gauss-Newton matrix and cached `beta` vectors,
     /// with LEDs, isotropic and directional lights, unusable observations (NaN, dark,
-    /// saturated), facets left with 3 usable ones (not fitted) and 4, and a pass whose facets are not a
-    /// multiple of the lanes; every facet in the Gauss-Newton matrix (41²) or every other (80²).
+    /// saturated), facets left with 3 usable ones (not fitted) and 4, and a pass whose facets
+    /// are not a multiple of the lanes; every facet in the Gauss-Newton matrix (41²) or every
+    /// other (80²).
     #[test]
     fn lane_pass_matches_the_scalar_pass() {
         for size in [41, 80] {
