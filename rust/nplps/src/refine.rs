@@ -89,10 +89,14 @@
 //! A pass sums the objective, the gradient and the Gauss-Newton matrix over a regular subsample
 //! of the facets ([`MAX_FACETS`]). The lights' `beta` vectors and the position derivatives'
 //! terms of `LANES` (8) facets are computed at once, one SIMD lane per facet
-//! ([`crate::light::LaneLight::step_terms`], bit for bit the scalar model's); the rest of a
-//! facet (its normal's fit, residuals and Jacobian rows) is scalar. The facets are summed in
-//! fixed chunks, one thread each, and the chunks' sums added in order, so that a pass gives the
-//! same bits whatever the threads do (`MAX_CHUNKS`).
+//! ([`crate::light::LaneLight::step_terms`], bit for bit the scalar model's). With grey
+//! images, the Lambertian model and no indirect light the rest of a facet (its normal's fit,
+//! residuals, Jacobian rows and, for the facets of the Gauss-Newton matrix, the Cholesky
+//! rows) runs in lanes too (`fit_lanes_kernel`: the scalar operations per lane, the matrix
+//! the same bits), the residuals' and gradient's sums kept per lane through a chunk;
+//! otherwise it is scalar. The facets are summed in fixed chunks, one thread each, and the
+//! chunks' sums added in order, so that a pass gives the same bits whatever the threads do
+//! (`MAX_CHUNKS`).
 //!
 //! [`conditioning`] reports the singular values of the light block after the normals are
 //! eliminated and the standard error of every parameter.
@@ -358,6 +362,10 @@ struct Scratch {
     want_h: bool,
 }
 
+/// Up to this many rows of `B^T` (nalgebra's `SMALL_DIM`), [`Scratch::flush`] multiplies by
+/// plain sums instead of nalgebra's `gemm`.
+const SMALL_PRODUCT: usize = 5;
+
 /// Facet channels whose normals' parts are subtracted from the Gauss-Newton matrix at once.
 const BATCH: usize = 64;
 
@@ -447,6 +455,266 @@ simd_dispatch! {
     ) -> usize;
 }
 
+/// A thread's buffers of the light pass's facets in lanes ([`fit_lanes_kernel`]): per light,
+/// the observations of [`LANES`] facets (`values`), their rows `a` and observations as used
+/// (zero where unusable), and the outputs: per light the squared residual and squared
+/// observation of each lane (zero where unusable or the fit failed), and per parameter each
+/// lane's term `d r` of the gradient (zero where unusable; empty without the gradient).
+struct LaneScratch {
+    values: Vec<[f32; LANES]>,
+    rows: Vec<[[f64; LANES]; 3]>,
+    obs: Vec<[f64; LANES]>,
+    ok: Vec<[bool; LANES]>,
+    sq_residual: Vec<[f64; LANES]>,
+    sq_obs: Vec<[f64; LANES]>,
+    grad: Vec<[f64; LANES]>,
+    /// With the gradient: per parameter each lane's derivative `d` (zero where unusable).
+    d: Vec<[f64; LANES]>,
+    /// With the gradient, per light: `w = L^-1 a` of each lane (`T = L L^T`, see [`Scratch`]).
+    w: Vec<[[f64; LANES]; 3]>,
+    /// The chunk's sums per lane so far: of the squared residuals, of the squared observations
+    /// and (with the gradient) of each parameter's terms `d r`; folded into the pass's sums at
+    /// the chunk's end ([`LaneScratch::fold`]).
+    sum_sse: [f64; LANES],
+    sum_i2: [f64; LANES],
+    sum_grad: Vec<[f64; LANES]>,
+}
+
+impl LaneScratch {
+    /// The buffers for `k` lights and `n` parameters (the gradient's when `with_grad`).
+    fn try_new(k: usize, n: usize, with_grad: bool) -> Result<LaneScratch> {
+        let z = [0.0; LANES];
+        Ok(LaneScratch {
+            values: try_vec(k, [0.0f32; LANES], PASS)?,
+            rows: try_vec(k, [z; 3], PASS)?,
+            obs: try_vec(k, z, PASS)?,
+            ok: try_vec(k, [false; LANES], PASS)?,
+            sq_residual: try_vec(k, z, PASS)?,
+            sq_obs: try_vec(k, z, PASS)?,
+            grad: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
+            d: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
+            w: try_vec(if with_grad { k } else { 0 }, [z; 3], PASS)?,
+            sum_sse: z,
+            sum_i2: z,
+            sum_grad: try_vec(if with_grad { n } else { 0 }, z, PASS)?,
+        })
+    }
+
+    /// Adds the lanes' sums to `acc` (the lanes in order) and clears them.
+    fn fold(&mut self, acc: &mut Pass) {
+        acc.sse += self.sum_sse.iter().sum::<f64>();
+        acc.sum_i2 += self.sum_i2.iter().sum::<f64>();
+        for (gr, d) in acc.grad.iter_mut().zip(&mut self.sum_grad) {
+            *gr -= d.iter().sum::<f64>();
+            *d = [0.0; LANES];
+        }
+        self.sum_sse = [0.0; LANES];
+        self.sum_i2 = [0.0; LANES];
+    }
+}
+
+/// The fits of [`LANES`] facets of a light pass, one SIMD lane per facet (grey images, no
+/// glossy correction, no indirect light): per lane the numbers of the scalar
+/// [`LightData::facet`] without the Gauss-Newton matrix, the same operations in the same order,
+/// so the same bits. Per light i with intensity `phi_i` (`phis`) and `beta` vectors `betas`
+/// (facet-major, `m` facets, entry `l k + i`; lanes from `m` on repeat the last facet), an
+/// observation `I` of `s.values` is usable when `dark < I < saturation` (`thresholds`); the
+/// row `a_i = phi_i beta_i` (zero where unusable) enters `T = sum_i a_i a_i^T` (its 6 distinct
+/// entries) and `s = sum_i a_i I_i`; a lane with at least 4 usable observations and `T` regular
+/// by [`invert_spd3`]'s test has the scaled normal `g = T^-1 s` (nalgebra's closed-form
+/// inverse and matrix-vector product written out: the adjugate over the determinant, summed
+/// column after column), the residuals `r_i = I_i - a_i . g`, and with the gradient (`s.grad`
+/// not empty) the terms `d r` of each parameter ([`derivatives`]: `d = a_i . g` for the
+/// log-intensity, `phi_i (f g + (v . g) grad f)` for the position from the lights' `grads`,
+/// zero without them). With the gradient also the Gauss-Newton matrix's terms of each lane
+/// (used by the lanes that enter it): the derivatives `d` and `w_i = L^-1 a_i` with the
+/// Cholesky factor `T = L L^T` (nalgebra's `cholesky` and `solve_lower_triangular` written
+/// out: `L00 = sqrt(T00)`, `L10 = T10 / L00`, `L20 = T20 / L00`, `L11 = sqrt(T11 - L10 L10)`,
+/// `L21 = (T21 - L10 L20) / L11`, `L22 = sqrt((T22 - L20 L20) - L21 L21)`, failing where a
+/// square root's argument is not positive; forward substitution). Returns which lanes are
+/// fitted, their usable observations and whether their Cholesky factor exists; the caller
+/// adds the lanes' terms to its sums per lane ([`LightData::lanes_into`]).
+#[allow(clippy::needless_range_loop)] // lane code: one index per lane, as the vector instructions
+#[inline(always)]
+fn fit_lanes_kernel(
+    phis: &[f64],
+    layout: &Layout,
+    thresholds: (f64, f64),
+    betas: &[[f64; 3]],
+    grads: &[Gradient],
+    m: usize,
+    s: &mut LaneScratch,
+) -> LaneFits {
+    let k = phis.len();
+    let (dark, saturation) = thresholds;
+    let z = [0.0f64; LANES];
+    let facet = |l: usize| l.min(m - 1) * k;
+    // T = [[t0 t1 t2] [t1 t3 t4] [t2 t4 t5]] and s, summed over the lights in order.
+    let mut t = [z; 6];
+    let mut sv = [z; 3];
+    let mut used = [0usize; LANES];
+    for i in 0..k {
+        let phi = phis[i];
+        let (mut a, mut v, mut ok) = ([z; 3], z, [false; LANES]);
+        for l in 0..LANES {
+            let x = s.values[i][l] as f64;
+            ok[l] = x > dark && x < saturation;
+            let b = betas[facet(l) + i];
+            for c in 0..3 {
+                a[c][l] = if ok[l] { b[c] * phi } else { 0.0 };
+            }
+            v[l] = if ok[l] { x } else { 0.0 };
+            used[l] += ok[l] as usize;
+        }
+        for l in 0..LANES {
+            t[0][l] += a[0][l] * a[0][l];
+            t[1][l] += a[0][l] * a[1][l];
+            t[2][l] += a[0][l] * a[2][l];
+            t[3][l] += a[1][l] * a[1][l];
+            t[4][l] += a[1][l] * a[2][l];
+            t[5][l] += a[2][l] * a[2][l];
+            for c in 0..3 {
+                sv[c][l] += a[c][l] * v[l];
+            }
+        }
+        s.rows[i] = a;
+        s.obs[i] = v;
+        s.ok[i] = ok;
+    }
+    // invert_spd3 and g = T^-1 s per lane.
+    let [m11, m12, m13, m22, m23, m33] = &t;
+    let (m21, m31, m32) = (m12, m13, m23);
+    let mut g = [z; 3];
+    let mut valid = [false; LANES];
+    for l in 0..LANES {
+        let diag = m11[l] * m22[l] * m33[l];
+        let minor1 = m22[l] * m33[l] - m32[l] * m23[l];
+        let minor2 = m21[l] * m33[l] - m31[l] * m23[l];
+        let minor3 = m21[l] * m32[l] - m31[l] * m22[l];
+        let det = m11[l] * minor1 - m12[l] * minor2 + m13[l] * minor3;
+        valid[l] = l < m && used[l] >= 4 && diag > 0.0 && det > 1e-12 * diag;
+        // The inverse, row-major: the adjugate over the determinant.
+        let inv = [
+            minor1 / det,
+            (m13[l] * m32[l] - m33[l] * m12[l]) / det,
+            (m12[l] * m23[l] - m22[l] * m13[l]) / det,
+            -minor2 / det,
+            (m11[l] * m33[l] - m31[l] * m13[l]) / det,
+            (m13[l] * m21[l] - m23[l] * m11[l]) / det,
+            minor3 / det,
+            (m12[l] * m31[l] - m32[l] * m11[l]) / det,
+            (m11[l] * m22[l] - m21[l] * m12[l]) / det,
+        ];
+        for (r, g) in g.iter_mut().enumerate() {
+            g[l] = inv[3 * r] * sv[0][l] + inv[3 * r + 1] * sv[1][l] + inv[3 * r + 2] * sv[2][l];
+        }
+    }
+    let with_grad = !s.grad.is_empty();
+    // T = L L^T per lane (for the lanes of the Gauss-Newton matrix).
+    let (mut chol, mut factored) = ([z; 6], [false; LANES]);
+    if with_grad {
+        for l in 0..LANES {
+            let l00 = t[0][l].sqrt();
+            let (l10, l20) = (t[1][l] / l00, t[2][l] / l00);
+            let p11 = t[3][l] - l10 * l10;
+            let l11 = p11.sqrt();
+            let l21 = (t[4][l] - l10 * l20) / l11;
+            let p22 = (t[5][l] - l20 * l20) - l21 * l21;
+            let l22 = p22.sqrt();
+            factored[l] = t[0][l] > 0.0 && p11 > 0.0 && p22 > 0.0;
+            for (c, x) in chol.iter_mut().zip([l00, l10, l20, l11, l21, l22]) {
+                c[l] = x;
+            }
+        }
+    }
+    let [l00, l10, l20, l11, l21, l22] = &chol;
+    for i in 0..k {
+        let a = &s.rows[i];
+        let mut r = z;
+        let mut keep = [false; LANES];
+        for l in 0..LANES {
+            keep[l] = s.ok[i][l] && valid[l];
+            let prediction = a[0][l] * g[0][l] + a[1][l] * g[1][l] + a[2][l] * g[2][l];
+            r[l] = s.obs[i][l] - prediction;
+            s.sq_residual[i][l] = if keep[l] { r[l] * r[l] } else { 0.0 };
+            s.sq_obs[i][l] = if keep[l] {
+                s.obs[i][l] * s.obs[i][l]
+            } else {
+                0.0
+            };
+        }
+        if !with_grad {
+            continue;
+        }
+        for l in 0..LANES {
+            let w0 = a[0][l] / l00[l];
+            let w1 = (a[1][l] - w0 * l10[l]) / l11[l];
+            let w2 = ((a[2][l] - w0 * l20[l]) - w1 * l21[l]) / l22[l];
+            s.w[i][0][l] = w0;
+            s.w[i][1][l] = w1;
+            s.w[i][2][l] = w2;
+        }
+        if let Some(j) = layout.intensity[i] {
+            for l in 0..LANES {
+                let d = a[0][l] * g[0][l] + a[1][l] * g[1][l] + a[2][l] * g[2][l];
+                s.d[j][l] = if keep[l] { d } else { 0.0 };
+                s.grad[j][l] = if keep[l] { d * r[l] } else { 0.0 };
+            }
+        }
+        if let Some(j) = layout.position[i] {
+            let phi = phis[i];
+            for l in 0..LANES {
+                let gl = [g[0][l], g[1][l], g[2][l]];
+                let d = match grads.get(facet(l) + i) {
+                    Some(t) => t.along(gl).map(|x| phi * x),
+                    None => [0.0; 3],
+                };
+                for c in 0..3 {
+                    s.d[j + c][l] = if keep[l] { d[c] } else { 0.0 };
+                    s.grad[j + c][l] = if keep[l] { d[c] * r[l] } else { 0.0 };
+                }
+            }
+        }
+    }
+    LaneFits {
+        valid,
+        used,
+        factored,
+    }
+}
+
+/// `sum += terms[0] + terms[1] + ...` in the lanes where `keep` holds.
+#[inline(always)]
+fn add_lanes(sum: &mut [f64; LANES], terms: &[[f64; LANES]], keep: [bool; LANES]) {
+    for t in terms {
+        for l in 0..LANES {
+            sum[l] += if keep[l] { t[l] } else { 0.0 };
+        }
+    }
+}
+
+/// What [`fit_lanes_kernel`] returns per lane: whether the facet is fitted, its usable
+/// observations and whether its `T` has a Cholesky factor.
+struct LaneFits {
+    valid: [bool; LANES],
+    used: [usize; LANES],
+    factored: [bool; LANES],
+}
+
+simd_dispatch! {
+    wide
+    /// [`fit_lanes_kernel`] with AVX-512 or AVX2 when the processor has it (same arithmetic).
+    fn fit_lanes_dispatch => fit_lanes_kernel(
+        phis: &[f64],
+        layout: &Layout,
+        thresholds: (f64, f64),
+        betas: &[[f64; 3]],
+        grads: &[Gradient],
+        m: usize,
+        s: &mut LaneScratch,
+    ) -> LaneFits;
+}
+
 /// The centres of the pass's facets `first..first + m` (`m <= LANES`; the last repeated to fill
 /// the lanes) at unknowns `u`.
 fn centres(
@@ -498,7 +766,22 @@ impl Scratch {
         let b =
             nalgebra::DMatrixView::from_slice_with_strides(self.bt.as_slice(), n, rows, stride, 1);
         let bt = self.bt.rows(0, rows);
-        self.product.gemm(1.0, &b, &bt, 0.0);
+        if rows > SMALL_PRODUCT {
+            self.product.gemm(1.0, &b, &bt, 0.0);
+        } else {
+            // nalgebra's `gemm` multiplies this few rows by its own loops, which read the
+            // transposed view out of its bounds (one facet pending at a chunk's end: undefined
+            // behaviour, a crash in the tests): the product by plain sums.
+            for i in 0..n {
+                for j in i..n {
+                    let mut sum = 0.0;
+                    for r in 0..rows {
+                        sum += bt[(r, i)] * bt[(r, j)];
+                    }
+                    self.product[(i, j)] = sum;
+                }
+            }
+        }
         for i in 0..n {
             let h = &mut acc.h[i * n..(i + 1) * n];
             for (j, hj) in h.iter_mut().enumerate().skip(i) {
@@ -582,12 +865,35 @@ impl LightData<'_> {
     /// [`Error::Memory`] when a thread's sums or scratch cannot be allocated.
     fn pass(
         &self,
-        (lights, shading): (&[Light], &[Light]),
+        lights: (&[Light], &[Light]),
         layout: &Layout,
         u: &[f64],
         with_h: bool,
         cached: Option<&Betas>,
     ) -> Result<Pass> {
+        let in_lanes = self.lanes_apply();
+        self.pass_in(lights, layout, u, (with_h, in_lanes), cached)
+    }
+
+    /// Whether a pass fits its facets in lanes ([`fit_lanes_kernel`]): grey images without
+    /// the glossy correction and without indirect light (else every facet is fitted by the
+    /// scalar [`LightData::facet`]).
+    fn lanes_apply(&self) -> bool {
+        self.obs.channels == 1 && self.settings.lobe.is_none() && self.indirect.is_none()
+    }
+
+    /// [`LightData::pass`], its facets fitted in lanes when `in_lanes` (which needs
+    /// [`LightData::lanes_apply`]; [`LightData::lanes_into`]), else each by the scalar
+    /// [`LightData::facet`]: the same bits either way.
+    fn pass_in(
+        &self,
+        (lights, shading): (&[Light], &[Light]),
+        layout: &Layout,
+        u: &[f64],
+        (with_h, in_lanes): (bool, bool),
+        cached: Option<&Betas>,
+    ) -> Result<Pass> {
+        debug_assert!(!in_lanes || self.lanes_apply());
         let (count, stride) = self.subsample();
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let k = obs.k;
@@ -597,6 +903,10 @@ impl LightData<'_> {
         // The position derivatives' terms: for the Gauss-Newton pass of a step moving lights.
         let gradient = with_h && layout.position.iter().any(Option::is_some);
         let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
+        let phis: Vec<f64> = lights
+            .iter()
+            .map(|light| channel_intensity(light.intensity(), channels, 0))
+            .collect();
         let model = Model {
             lights,
             layout,
@@ -618,11 +928,22 @@ impl LightData<'_> {
                     PASS,
                 )?;
                 let mut values = std::mem::take(&mut s.values);
+                let mut ls = match in_lanes {
+                    true => Some(LaneScratch::try_new(k, n, with_h)?),
+                    false => None,
+                };
                 for first in (lo..hi).step_by(LANES) {
                     let m = (hi - first).min(LANES);
                     let centres = centres((grid, geometry), (first, m, stride), u);
                     if cached.is_none() {
                         terms_dispatch(lights, &lanes, &centres, &mut own, &mut grads);
+                    }
+                    if let Some(ls) = ls.as_mut() {
+                        let facets = (first, m, stride);
+                        let terms = (cached, &own[..], &grads[..]);
+                        let (mesh, pass) = ((model, &phis[..]), (&mut acc, &mut s));
+                        self.lanes_into(mesh, facets, (centres, h_every), terms, ls, pass);
+                        continue;
                     }
                     for (l, &c) in centres.iter().enumerate().take(m) {
                         let j = first + l;
@@ -660,6 +981,9 @@ impl LightData<'_> {
                         }
                     }
                 }
+                if let Some(ls) = ls.as_mut() {
+                    ls.fold(&mut acc);
+                }
                 s.flush(&mut acc);
                 Ok(acc)
             })
@@ -672,6 +996,96 @@ impl LightData<'_> {
         // The matrix from every `h_every`-th facet stands for all of them.
         pass.h.iter_mut().for_each(|v| *v *= h_every as f64);
         Ok(pass)
+    }
+
+    /// Adds the pass's facets `first..first + m` (every `stride`-th facet of the mesh, centres
+    /// `centres`; grey images: see [`LightData::lanes_apply`]), fitted in lanes by
+    /// [`fit_lanes_kernel`], to the pass: their counts to `acc`, their squared residuals,
+    /// squared observations and gradient terms to the per-lane sums of `ls` (which
+    /// [`LaneScratch::fold`] adds to `acc` at the chunk's end: the scalar pass's terms, summed
+    /// in another order); those entering the Gauss-Newton matrix (every `h_every`-th of a pass
+    /// with it) also add their rows of `B^T` and their block-diagonal terms facet after facet,
+    /// as the scalar [`LightData::facet`] does (the same bits). `betas` are the `cached` ones
+    /// or the block's `own`, `grads` the position derivatives' terms (or empty).
+    #[inline]
+    fn lanes_into(
+        &self,
+        (model, phis): (Model<'_>, &[f64]),
+        (first, m, stride): (usize, usize, usize),
+        (centres, h_every): ([[f64; 3]; LANES], usize),
+        (cached, own, grads): (Option<&Betas>, &Betas, &[Gradient]),
+        ls: &mut LaneScratch,
+        (acc, s): (&mut Pass, &mut Scratch),
+    ) {
+        let (grid, obs) = (self.grid, self.obs);
+        let k = obs.k;
+        let pixels: [usize; LANES] =
+            crate::lanes(|l| grid.facets[(first + l.min(m - 1)) * stride] as usize);
+        let grey = obs.gather_lanes(&pixels, &mut ls.values);
+        debug_assert!(grey);
+        if let Some(shadows) = self.shadows {
+            for (l, &pixel) in pixels.iter().enumerate().take(m) {
+                for light in shadows.lights_at(pixel) {
+                    ls.values[light][l] = f32::NAN;
+                }
+            }
+        }
+        let betas: &Betas = match cached {
+            Some(b) => &b[first * k..(first + m) * k],
+            None => own,
+        };
+        let thresholds = (self.settings.dark, self.settings.saturation);
+        let layout = model.layout;
+        let fits = fit_lanes_dispatch(phis, layout, thresholds, betas, grads, m, ls);
+        let with_h = !acc.h.is_empty();
+        let n = layout.n;
+        let mut keep = [false; LANES];
+        for (l, &c) in centres.iter().enumerate().take(m) {
+            let j = first + l;
+            acc.sum_z += c[2];
+            acc.min_z = acc.min_z.min(c[2]);
+            acc.facets += 1;
+            if !fits.valid[l] {
+                continue;
+            }
+            acc.fits += 1;
+            // A facet of the Gauss-Newton matrix adds nothing without its Cholesky factor.
+            let in_h = with_h && j % h_every == 0;
+            if in_h && !fits.factored[l] {
+                continue;
+            }
+            keep[l] = true;
+            acc.count += fits.used[l];
+            if !in_h {
+                continue;
+            }
+            // B^T's rows d_ij w_i and the block-diagonal part sum_i d_i d_i^T.
+            let row = 3 * s.pending;
+            s.bt.rows_mut(row, 3).fill(0.0);
+            for i in (0..k).filter(|&i| ls.ok[i][l]) {
+                let (first, m) = layout.span(i);
+                for a in 0..m {
+                    let col = first + a;
+                    let d = ls.d[col][l];
+                    for c in 0..3 {
+                        s.bt[(row + c, col)] = d * ls.w[i][c][l];
+                    }
+                    let h = &mut acc.h[col * n..];
+                    for bb in a..m {
+                        h[first + bb] += d * ls.d[first + bb][l];
+                    }
+                }
+            }
+            s.pending += 1;
+            if s.pending == BATCH {
+                s.flush(acc);
+            }
+        }
+        add_lanes(&mut ls.sum_sse, &ls.sq_residual, keep);
+        add_lanes(&mut ls.sum_i2, &ls.sq_obs, keep);
+        for (sum, d) in ls.sum_grad.iter_mut().zip(&ls.grad) {
+            add_lanes(sum, std::slice::from_ref(d), keep);
+        }
     }
 
     /// Under the glossy model (`lobe`), the correction `(offset, factor)` of each observation of
@@ -1588,6 +2002,105 @@ mod tests {
         let lambertian = worst(None);
         assert!(glossy < 1e-4, "glossy light step: {glossy}");
         assert!(lambertian > 10.0 * glossy, "{lambertian} vs {glossy}");
+    }
+
+    /// A pass that fits its facets in lanes gives the scalar pass's Gauss-Newton matrix bit for
+    /// bit and its other sums to rounding (summed per lane, then the lanes): intensity,
+    /// position and both, with and without the Gauss-Newton matrix and cached `beta` vectors,
+    /// with LEDs, isotropic and directional lights, unusable observations (NaN, dark,
+    /// saturated), facets left with 3 usable ones (not fitted) and 4, and a pass whose facets
+    /// are not a multiple of the lanes; every facet in the Gauss-Newton matrix (41²) or every
+    /// other (80²).
+    #[test]
+    fn lane_pass_matches_the_scalar_pass() {
+        for size in [41, 80] {
+            lane_pass_matches_at(size);
+        }
+    }
+
+    fn lane_pass_matches_at(size: usize) {
+        let scene = Scene::new(SceneKind::Bumps, size, 100.0, 200.0, 3).unwrap();
+        let mut images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let k = scene.rig.n_lights();
+        let plane = scene.width * scene.height;
+        let peak = images.iter().fold(0.0f32, |m, v| m.max(*v));
+        for (idx, v) in images.iter_mut().enumerate() {
+            let (light, pixel) = (idx / plane, idx % plane);
+            if (idx * 7919) % 97 == 0 {
+                *v = f32::NAN;
+            } else if (pixel % 53 == 0 && light + 3 < k) || (pixel % 59 == 0 && light + 4 < k) {
+                // Most lights of a few pixels dark: 3 usable observations (not fitted) or 4.
+                *v = 0.0;
+            }
+        }
+        let problem = scene_problem(&scene, &images);
+        let mut lights = off_intensities(&scene.rig.lights);
+        for (i, light) in lights.iter_mut().enumerate() {
+            if let Light::Point { axis, mu, .. } = light {
+                if i % 2 == 0 {
+                    *axis = [0.0, 0.0, 1.0];
+                    *mu = 0.5 + 0.3 * i as f64;
+                }
+            }
+        }
+        lights[1] = Light::Directional {
+            direction: [0.1, -0.2, -1.0],
+            intensity: [0.3; 3],
+        };
+        let u = problem.u0.values().unwrap();
+        let settings = FitSettings {
+            saturation: 0.8 * peak as f64,
+            ..FitSettings::default()
+        };
+        let data = LightData::of(&problem, settings);
+        let count = data.subsample().0;
+        assert!(data.lanes_apply() && (size > 64 || !count.is_multiple_of(LANES)));
+        assert_eq!(
+            count.div_ceil(MAX_MATRIX_FACETS),
+            if size > 64 { 2 } else { 1 }
+        );
+        let trial: Vec<Light> = scene.rig.lights.clone();
+        let cache = data.betas(&lights, &u).unwrap().unwrap();
+        for refine in [
+            Refine::NONE.with_intensity(true),
+            Refine::NONE.with_position(true),
+            Refine::NONE.with_intensity(true).with_position(true),
+        ] {
+            let layout = Layout::new(&lights, &refine);
+            for (with_h, pair) in [(true, (&lights, &lights)), (false, (&trial, &lights))] {
+                let pair = (&pair.0[..], &pair.1[..]);
+                let cached = match refine.position {
+                    false => vec![None, Some(&cache[..])],
+                    true => vec![None],
+                };
+                for cached in cached.into_iter().filter(|c| c.is_none() || with_h) {
+                    let run = |lanes: bool| {
+                        data.pass_in(pair, &layout, &u, (with_h, lanes), cached)
+                            .unwrap()
+                    };
+                    let (scalar, lanes) = (run(false), run(true));
+                    let what = format!("{refine:?} with_h {with_h} cached {}", cached.is_some());
+                    assert!(scalar.fits > 0 && scalar.count > 4 * scalar.fits, "{what}");
+                    assert!(scalar.fits < scalar.facets, "{what}: some facets unfitted");
+                    assert_eq!(
+                        (scalar.count, scalar.fits),
+                        (lanes.count, lanes.fits),
+                        "{what}"
+                    );
+                    // The sums per lane: the same terms, added in another order.
+                    let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs());
+                    assert!(close(scalar.sse, lanes.sse), "{what}");
+                    assert!(close(scalar.sum_i2, lanes.sum_i2), "{what}");
+                    assert_eq!((scalar.sum_z, scalar.facets), (lanes.sum_z, lanes.facets));
+                    let largest = scalar.grad.iter().fold(0.0f64, |m, g| m.max(g.abs()));
+                    for (a, b) in scalar.grad.iter().zip(&lanes.grad) {
+                        assert!((a - b).abs() <= 1e-11 * largest, "{what}: {a} vs {b}");
+                    }
+                    assert_eq!(scalar.h, lanes.h, "{what}");
+                    assert_eq!(with_h, scalar.grad.iter().any(|g| *g != 0.0), "{what}");
+                }
+            }
+        }
     }
 
     /// A pass with the step's cached `beta` vectors has the sums of one that computes them

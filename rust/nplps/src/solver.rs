@@ -884,9 +884,6 @@ impl<'p> Solver<'p> {
         let (mut history, plain_converged) =
             self.iterate(&mut plain, gauge, iterations, plain_tol, progress)?;
         let without = self.local(&plain)?;
-        if std::env::var_os("NPLPS_EXP_FROM_PLAIN").is_some() {
-            u.copy_from_slice(&plain);
-        }
         self.lights.set_refine(refine);
         let (refined, converged) = self.iterate(u, gauge, iterations, tol, progress)?;
         history.extend(refined);
