@@ -1096,33 +1096,78 @@ impl Facet<'_> {
     }
 
     /// Robust weights (per light) of the fit `(n, albedo)`; `None` when fewer than 3 lights keep
-    /// a positive weight.
+    /// a positive weight (see [`Facet::robust_weights_into`]; this one allocates its result).
     fn robust_weights(
         &self,
         n: [f64; 3],
         albedo: [f64; 3],
         scratch: &mut Vec<f64>,
     ) -> Option<Vec<f64>> {
-        let channels = self.channels as f64;
-        let rms: Vec<Option<f64>> = self
-            .observations()
-            .map(|(k, o)| {
-                self.sq_residual(k, o, n, albedo)
-                    .map(|e| (e / channels).sqrt())
-            })
-            .collect();
-        scratch.clear();
-        scratch.extend(rms.iter().flatten());
-        let mid = scratch.len() / 2;
-        let median = *scratch.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-        let max_i = self.values.iter().fold(0.0f32, |m, v| m.max(*v)) as f64;
-        let sigma = (1.4826 * median).max(1e-9 * max_i).max(f64::MIN_POSITIVE);
-        let weights: Vec<f64> = rms
-            .iter()
-            .map(|e| e.map_or(0.0, |e| robust_weight(self.settings.robust, e, sigma)))
-            .collect();
-        (weights.iter().filter(|w| **w > 0.0).count() >= 3).then_some(weights)
+        let mut irls = Irls {
+            sorted: std::mem::take(scratch),
+            ..Irls::default()
+        };
+        let ok = self.robust_weights_into(n, albedo, self.max_observation(), &mut irls);
+        *scratch = irls.sorted;
+        ok.then_some(irls.weights)
     }
+
+    /// The largest observation (NaN ignored), which floors the robust scale: a constant of the
+    /// facet, taken once per fit.
+    fn max_observation(&self) -> f64 {
+        self.values.iter().fold(0.0f32, |m, v| m.max(*v)) as f64
+    }
+
+    /// Robust weights (per light) of the fit `(n, albedo)` into `irls.weights`; false when fewer
+    /// than 3 lights keep a positive weight. With `e_k` the RMS residual over the channels of
+    /// each usable light (`irls.rms`), the scale is `sigma = max(1.4826 median_k e_k,
+    /// 1e-9 max_i, MIN_POSITIVE)` (`max_i`: [`Facet::max_observation`]) and the weight
+    /// [`robust_weight`]`(e_k, sigma)`; unusable lights weigh 0. No allocation once the buffers
+    /// have grown to the facet's lights.
+    fn robust_weights_into(
+        &self,
+        n: [f64; 3],
+        albedo: [f64; 3],
+        max_i: f64,
+        irls: &mut Irls,
+    ) -> bool {
+        let channels = self.channels as f64;
+        let Irls {
+            rms,
+            sorted,
+            weights,
+        } = irls;
+        rms.clear();
+        rms.extend(self.observations().map(|(k, o)| {
+            self.sq_residual(k, o, n, albedo)
+                .map(|e| (e / channels).sqrt())
+        }));
+        sorted.clear();
+        sorted.extend(rms.iter().flatten());
+        let mid = sorted.len() / 2;
+        let median = *sorted.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+        let sigma = (1.4826 * median).max(1e-9 * max_i).max(f64::MIN_POSITIVE);
+        weights.clear();
+        let mut positive = 0usize;
+        weights.extend(rms.iter().map(|e| {
+            let w = e.map_or(0.0, |e| robust_weight(self.settings.robust, e, sigma));
+            positive += (w > 0.0) as usize;
+            w
+        }));
+        positive >= 3
+    }
+}
+
+/// Buffers of the robust reweighting ([`Facet::robust_weights_into`]), kept per thread across
+/// facets so that the reweighting rounds allocate nothing.
+#[derive(Default)]
+struct Irls {
+    /// RMS residual of each light (None: not usable).
+    rms: Vec<Option<f64>>,
+    /// The usable residuals, for the median.
+    sorted: Vec<f64>,
+    /// Robust weight of each light.
+    weights: Vec<f64>,
 }
 
 /// Solves the accumulated system for the normal and the albedo per channel. Inlined: the
@@ -1257,16 +1302,27 @@ impl Facet<'_> {
         }
         let (mut n, mut albedo, g) = solve_sums(&sums, channels)?;
         if settings.robust != Robust::None {
-            let mut scratch = Vec::new();
-            for _ in 0..IRLS_ITERATIONS {
-                let Some(weights) = self.robust_weights(n, albedo, &mut scratch) else {
-                    break;
-                };
-                match solve_sums(&self.accumulate(|k| weights[k]), channels) {
-                    Some((n2, a2, _)) => (n, albedo) = (n2, a2),
-                    None => break,
-                }
+            thread_local! {
+                static IRLS: std::cell::RefCell<Irls> = std::cell::RefCell::default();
             }
+            let max_i = self.max_observation();
+            let mut rounds = |irls: &mut Irls| {
+                for _ in 0..IRLS_ITERATIONS {
+                    if !self.robust_weights_into(n, albedo, max_i, irls) {
+                        break;
+                    }
+                    let weights = &irls.weights;
+                    match solve_sums(&self.accumulate(|k| weights[k]), channels) {
+                        Some((n2, a2, _)) => (n, albedo) = (n2, a2),
+                        None => break,
+                    }
+                }
+            };
+            IRLS.with(|cell| match cell.try_borrow_mut() {
+                Ok(mut irls) => rounds(&mut irls),
+                // (not reached: no fit runs inside another on one thread)
+                Err(_) => rounds(&mut Irls::default()),
+            });
         }
         let unit_weights =
             settings.weighting == Weighting::Image && settings.robust == Robust::None;
@@ -1612,6 +1668,103 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The robust fit as it was before its buffers were kept per thread: every round's
+    /// weights freshly allocated, the scale's floor taken each round, then the residual.
+    fn robust_fit_allocating(facet: &Facet) -> Option<([f64; 3], [f64; 3], f64)> {
+        let sums = facet.accumulate(|_| 1.0);
+        if sums.lit < 3 {
+            return None;
+        }
+        let (mut n, mut albedo, _) = solve_sums(&sums, facet.channels)?;
+        for _ in 0..IRLS_ITERATIONS {
+            let Some(w) = facet.robust_weights(n, albedo, &mut Vec::new()) else {
+                break;
+            };
+            let Some((n2, a2, _)) = solve_sums(&facet.accumulate(|k| w[k]), facet.channels) else {
+                break;
+            };
+            (n, albedo) = (n2, a2);
+        }
+        let sse = facet
+            .observations()
+            .filter_map(|(k, o)| facet.sq_residual(k, o, n, albedo))
+            .sum();
+        Some((n, albedo, sse))
+    }
+
+    #[test]
+    fn robust_fits_with_buffers_kept_per_thread_are_the_same_bits() {
+        // The robust rounds reuse one thread's buffers from facet to facet; fitted in sequence
+        // on one thread, with the number of lights going up and down (so that a longer facet's
+        // leftovers sit in the buffers), noisy, with a highlight and a shadow, grey and colour,
+        // both weightings and both estimators, they give the bits of fresh buffers.
+        let mut l = lights();
+        l.extend([[15.0, 15.0, 30.0], [-25.0, -5.0, 35.0], [5.0, -30.0, 25.0]].map(Light::point));
+        let c = [1.0, -2.0, 100.0];
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut uniform = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut cases = 0;
+        for seed in 0..12 {
+            let lights = &l[..[l.len(), 5, l.len() - 1][seed % 3]];
+            let n = normalize([0.3 - 0.05 * seed as f64, -0.2, -1.0]);
+            let noise = [0.0, 1e-3, 1e-2][(seed / 3) % 3];
+            for channels in [1, 3] {
+                let mut images: Vec<f32> = lights
+                    .iter()
+                    .flat_map(|l| {
+                        let v = 2.0e4 * dot(n, l.beta(c).0);
+                        (0..channels)
+                            .map(|ch| v * (1.0 + 0.1 * ch as f64))
+                            .collect::<Vec<_>>()
+                    })
+                    .map(|v| (v * (1.0 + noise * (2.0 * uniform() - 1.0))) as f32)
+                    .collect();
+                images[(seed % lights.len()) * channels] *= 2.5;
+                images[((seed + 3) % lights.len()) * channels] = 0.0;
+                for weighting in [Weighting::Image, Weighting::Paper] {
+                    for robust in [Robust::Cauchy, Robust::Tukey] {
+                        let settings = FitSettings {
+                            weighting,
+                            robust,
+                            ..FitSettings::default()
+                        };
+                        let model = Model::Near(lights);
+                        let fit = fit_facet(c, model, &images, channels, settings);
+                        let facet = Facet {
+                            c,
+                            model,
+                            values: &images,
+                            channels,
+                            settings,
+                            indirect: None,
+                            rows: None,
+                        };
+                        let case = format!("{seed} {channels} {weighting:?} {robust:?}");
+                        let Some((n, albedo, sse)) = robust_fit_allocating(&facet) else {
+                            assert!(fit.is_none(), "{case}");
+                            continue;
+                        };
+                        let fit = fit.unwrap();
+                        assert_eq!(fit.normal.map(f64::to_bits), n.map(f64::to_bits), "{case}");
+                        assert_eq!(
+                            fit.albedo.map(f64::to_bits),
+                            albedo.map(f64::to_bits),
+                            "{case}"
+                        );
+                        assert_eq!(fit.sse.to_bits(), sse.to_bits(), "{case}");
+                        cases += 1;
+                    }
+                }
+            }
+        }
+        assert!(cases >= 90, "{cases} fitted");
     }
 
     #[test]
