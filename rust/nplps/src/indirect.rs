@@ -1764,20 +1764,16 @@ impl IndirectField {
             }
         }
         if total > 0.0 {
-            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order (one pass
-            // over the values instead of one per cell; the division is skipped where the
-            // weights sum to exactly 1, as they do inside the grid for a power-of-two factor:
-            // the same bits).
-            let cells = &cells[..used];
-            let per = self.per;
-            for (i, o) in out.iter_mut().enumerate() {
-                for (pc, weight) in cells {
-                    let v = &self.vectors[pc * per + i];
-                    for c in 0..3 {
-                        o[c] += weight * f64::from(v[c]);
-                    }
-                }
-                if total != 1.0 {
+            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass
+            // over a cell's contiguous values at a time (which vectorises; the same sums in the
+            // same order as a pass over the cells per value, so the same bits), the division
+            // skipped where the weights sum to exactly 1, as they do inside the grid for a
+            // power-of-two factor (the same bits).
+            for &(pc, weight) in &cells[..used] {
+                self.add(pc, weight, out);
+            }
+            if total != 1.0 {
+                for o in out.iter_mut() {
                     *o = o.map(|x| x / total);
                 }
             }
