@@ -2389,6 +2389,77 @@ mod tests {
         assert!(lit > 128 * 100, "{lit}");
     }
 
+    /// The first round's grid ([`IndirectField::of_mesh_on`] with [`FIRST_ROUND_COARSER`]):
+    /// half the facets a side of [`IndirectField::of_mesh`]'s (twice the factor), and the field
+    /// the grid of that factor gives by itself: a V-groove at 128² pixels, 32² facets of 4
+    /// pixels by default, 16² of 8 for the first round, its vectors those of the 64² image of
+    /// the same groove binned 4 x 4 (the same coarse mesh and emitters), bit for bit.
+    #[test]
+    fn the_first_round_gathers_on_half_the_side() {
+        let setup = |n: usize, pixel: f64| {
+            let camera = Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [0.0, 0.0],
+            };
+            let depth = depths(n, |_, c| 100.0 + (32.0 - (c * pixel - 32.0).abs()));
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            (camera, grid, geometry, u)
+        };
+        let images = vec![1.0f32; 2 * 128 * 128];
+        let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
+        let (camera, grid, geometry, u) = setup(128, 0.5);
+        let of = |coarser: usize| {
+            IndirectField::of_mesh_on(
+                &camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                None,
+                None,
+                coarser,
+            )
+            .unwrap()
+        };
+        let (rounds, first) = (of(1), of(FIRST_ROUND_COARSER));
+        assert_eq!((rounds.factor(), first.factor()), (4, 8));
+        assert_eq!((first.height, first.width), (16, 16));
+        assert!(
+            first.pairs() * 8 < rounds.pairs(),
+            "{} {}",
+            first.pairs(),
+            rounds.pairs()
+        );
+        // The 64² image of the same groove gathers on 16² facets of 4 of its pixels by itself
+        // only with a cap that its side rule would not reach: compare with its own field at
+        // the factor 4 (`coarser` 2 on 64² pixels: a side limit of 16).
+        let small = vec![1.0f32; 2 * 64 * 64];
+        let small_obs = crate::local::Observations::from_stack(&small, 2, 64 * 64, 1);
+        let (camera, grid, geometry, u) = setup(64, 1.0);
+        let own = IndirectField::of_mesh_on(
+            &camera,
+            &grid,
+            &geometry,
+            &u,
+            &small_obs,
+            &[],
+            None,
+            None,
+            2,
+        )
+        .unwrap();
+        assert_eq!((own.factor(), own.height, own.width), (4, 16, 16));
+        assert_eq!(own.valid, first.valid);
+        let bits = |f: &IndirectField| -> Vec<u32> {
+            f.vectors.iter().flatten().map(|x| x.to_bits()).collect()
+        };
+        assert_eq!(bits(&own), bits(&first));
+        assert!(first.vectors.iter().any(|v| v[0] != 0.0));
+    }
+
     /// A gathering on a finer level after rounds on a coarser one (the full resolution's last
     /// gathering up to stop 46): the field carried by [`IndirectField::finer`] keeps the
     /// rounds' visibility verdicts, and the exchange built with them on the finer level's

@@ -915,8 +915,10 @@ impl<'p> Solver<'p> {
     /// with it in the local fits (`I = b . (s + V)`), until a round changes the depths by at
     /// most [`INDIRECT_TOL`] times the lateral size or its residual settles
     /// ([`INDIRECT_RESIDUAL_TOL`]); then a last run with the last field to the
-    /// solver's own stop rule. Each round's field keeps the visibility verdicts of the one
-    /// before that its mesh cannot have changed (see [`crate::indirect`]), and the lights that
+    /// solver's own stop rule. The first round gathers on a grid of half the side
+    /// ([`FIRST_ROUND_COARSER`]); each later round's field keeps the visibility verdicts of the
+    /// one before that its mesh cannot have changed (see [`crate::indirect`]; the second's
+    /// grid is built afresh), and the lights that
     /// its margin hid (see [`IndirectField::with_unlit`]: without them the corrugated sheet's
     /// rounds alternated for good). With cast shadows (see [`Solver::cast_shadows`]) the rounds
     /// keep the mask they start with (the converged run's, marched on the mesh they start from;
