@@ -98,7 +98,7 @@
 //! the mask or with a non-finite corner neither block nor end the march (the surface there is
 //! unknown). Visibility is symmetric: each unordered pair is marched once. Without distortion
 //! the march computes the image points and hiding depths of 8 samples at a time in SIMD lanes
-//! (`clearance_lanes`: the same operations, the same values) and tests them in turn (with the
+//! (`clearance_lanes`: the same operations, the same values) and tests them in turn (with a
 //! one-pass marking of the last gathering, the benchmark's corrugated sheet with
 //! `interreflections=True` took about 13 % less processor time; docs/concave.md, stop 46).
 //!
@@ -1170,6 +1170,16 @@ pub const FIELD_SIDE: usize = 64;
 /// 1 s to 0.1 s a round on one core, where a default run takes 0.1-0.3 s).
 pub const FIELD_SIDE_SMALL: usize = 32;
 
+/// The first round of `Solver::interreflect` gathers on a grid of `1 / FIRST_ROUND_COARSER`
+/// as many facets a side as the rounds after it (16² instead of 32² for a 256² image: a
+/// quarter of the facets, about 1/16 of the pairs to march): the converged surface without
+/// indirect light is far from the rounds' fixed point (on the benchmark's sheet the first
+/// round moves the depths by 1.8, the fourth by 0.2), so its field need only be about right.
+/// The second round's exchange is built afresh (the first's verdicts are of another grid).
+/// Measured on the benchmark's GI renders (docs/concave.md, stop 47): the mean normal errors
+/// moved by -0.01 to +0.02° (all under 1°), the sheet's option about 10 % less processor time.
+pub const FIRST_ROUND_COARSER: usize = 2;
+
 /// The indirect irradiance of a solver's current mesh under each light, gathered on a coarse
 /// grid (the image binned by a power of two to at most [`FIELD_SIDE`] facets a side) from the
 /// binned observations, and looked up per fine facet by bilinear interpolation
@@ -1246,6 +1256,7 @@ impl IndirectField {
     /// Surface outside the mask that does not reach the border, and surface hidden from the
     /// camera, still emit nothing: their light is missing (see the module documentation).
     #[allow(clippy::too_many_arguments)]
+    #[cfg_attr(not(test), allow(dead_code))] // (the solver's rounds call `of_mesh_on`)
     pub(crate) fn of_mesh(
         camera: &Camera,
         grid: &crate::grid::Grid,
@@ -1255,6 +1266,26 @@ impl IndirectField {
         lights: &[crate::Light],
         previous: Option<IndirectField>,
         max_pairs: Option<usize>,
+    ) -> Result<IndirectField> {
+        Self::of_mesh_on(
+            camera, grid, geometry, u, obs, lights, previous, max_pairs, 1,
+        )
+    }
+
+    /// [`IndirectField::of_mesh`] on a grid of `1 / coarser` as many facets a side (`coarser`
+    /// a power of two; 1: the same): the grid's side limit (see [`FIELD_SIDE_SMALL`]) divided
+    /// by `coarser` (the first round of `Solver::interreflect`, see [`FIRST_ROUND_COARSER`]).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn of_mesh_on(
+        camera: &Camera,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        obs: &crate::local::Observations<'_>,
+        lights: &[crate::Light],
+        previous: Option<IndirectField>,
+        max_pairs: Option<usize>,
+        coarser: usize,
     ) -> Result<IndirectField> {
         // (the rest of the field before is dropped here)
         let (min_factor, mut sightlines) = previous.map_or((1, None), |f| (f.factor, f.sightlines));
@@ -1266,7 +1297,7 @@ impl IndirectField {
         }
         let mut factor = 1;
         let mut coarse = *camera;
-        let side = (h.max(w) / 8).clamp(FIELD_SIDE_SMALL, FIELD_SIDE);
+        let side = (h.max(w) / 8).clamp(FIELD_SIDE_SMALL, FIELD_SIDE) / coarser.max(1);
         while factor < min_factor || h.div_ceil(factor) > side || w.div_ceil(factor) > side {
             factor *= 2;
             coarse = crate::pyramid::coarser_camera(&coarse);
@@ -1531,17 +1562,12 @@ impl IndirectField {
         lights: &[crate::Light],
         kept: Option<Vec<u64>>,
     ) -> Result<IndirectField> {
-        self.marked(grid, geometry, u, lights, kept, None)
+        self.marked(grid, geometry, u, lights, kept)
     }
 
-    /// [`IndirectField::with_unlit`] after the lights that the margin `before` (another
-    /// field's) hides were marked on the same mesh with `kept` (the hidden lights of that
-    /// marking become this one's `kept`; None: `kept` as it is): the two markings in one pass
-    /// over the facets, their normals and light directions computed once. The same bits as
-    /// the two passes (`finer`, then `with_unlit` with its hidden lights, as the full
-    /// resolution's last gathering did up to stop 45): per facet the lights behind it are the
-    /// same in both, the first pass's hidden lights (with its [`MIN_LIT`] rule) are what the
-    /// second keeps, and the first pass's unlit lights were not used.
+    /// [`IndirectField::with_unlit`]: per facet (in parallel, into one flat buffer: 16 bytes a
+    /// facet at up to 64 lights) the lights behind it, then those its margin hides (with
+    /// `kept` and the [`MIN_LIT`] rule).
     fn marked(
         mut self,
         grid: &crate::grid::Grid,
@@ -1549,7 +1575,6 @@ impl IndirectField {
         u: &[f64],
         lights: &[crate::Light],
         kept: Option<Vec<u64>>,
-        before: Option<Option<&MarginMesh>>,
     ) -> Result<IndirectField> {
         let words = lights.len().div_ceil(64);
         let kept = kept.filter(|k| k.len() == grid.height * grid.width * words);
@@ -1586,27 +1611,21 @@ impl IndirectField {
                 }
             }
             // The margin is a guess: it may not leave fewer than MIN_LIT lights.
-            let mut applied = false;
-            for margin in before.iter().chain([&margin]) {
-                for (k, light) in lights.iter().enumerate() {
-                    let bit = 1 << (k % 64);
-                    // (a light kept hidden is not marched again: the result is the same)
-                    if (bits[k / 64] | hidden[k / 64]) & bit == 0
-                        && margin.is_some_and(|m| m.hides(c, light))
-                    {
-                        hidden[k / 64] |= bit;
-                    }
-                }
-                let unlit: u32 = bits
-                    .iter()
-                    .zip(hidden.iter())
-                    .map(|(a, b)| (a | b).count_ones())
-                    .sum();
-                applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
-                if !applied {
-                    hidden.fill(0);
+            for (k, light) in lights.iter().enumerate() {
+                let bit = 1 << (k % 64);
+                // (a light kept hidden is not marched again: the result is the same)
+                if (bits[k / 64] | hidden[k / 64]) & bit == 0
+                    && margin.is_some_and(|m| m.hides(c, light))
+                {
+                    hidden[k / 64] |= bit;
                 }
             }
+            let unlit: u32 = bits
+                .iter()
+                .zip(hidden.iter())
+                .map(|(a, b)| (a | b).count_ones())
+                .sum();
+            let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
             if applied {
                 for (a, b) in bits.iter_mut().zip(hidden.iter()) {
                     *a |= b;
@@ -1648,10 +1667,10 @@ impl IndirectField {
     /// `u` marked again ([`IndirectField::with_unlit`]), with the lights that the margin hid
     /// from the coarser pixel under each fine one kept hidden. The visibility verdicts of its
     /// exchange stay (when it had them): the coarse grid is the same cells (its vertices on
-    /// the same rays), so the full resolution's gathering once more
-    /// ([`crate::solver::coarse_to_fine`]) marches only the pairs whose verdicts its carried
-    /// mesh may have changed ([`Exchange::build`]: the same pairs and weights as a fresh
-    /// exchange; the 256² GI renders came out the same bit for bit either way).
+    /// the same rays), so an exchange of the finer level's surface on that grid marches only
+    /// the pairs whose verdicts that surface may have changed ([`Exchange::build`]: the same
+    /// pairs and weights as a fresh exchange). (The solver drops them after its rounds: since
+    /// stop 47 the full resolution does not gather again, see [`crate::solver::coarse_to_fine`].)
     pub(crate) fn finer(
         mut self,
         grid: &crate::grid::Grid,
@@ -1685,32 +1704,6 @@ impl IndirectField {
         self.unlit = Vec::new();
         self.hidden = Vec::new();
         Ok(kept)
-    }
-
-    /// The full resolution's last gathering after a coarser level's rounds (see
-    /// [`crate::solver::coarse_to_fine`]): this field (the next coarser level's) taken to the
-    /// finer `grid` ([`IndirectField::finer`]: twice the factor, its lights marked on the mesh
-    /// `u` with its margin), then the field of `u` gathered from the observations `obs` on
-    /// the same coarse grid, keeping its visibility verdicts ([`IndirectField::of_mesh`] with
-    /// it as `previous`) and the lights the first marking hid ([`IndirectField::with_unlit`]).
-    /// The two markings run in one pass over the facets (`IndirectField::marked`): the same
-    /// bits as the three calls, one pass over the fine facets (their normals and the lights'
-    /// directions) less.
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn gathered_again(
-        mut self,
-        camera: &Camera,
-        grid: &crate::grid::Grid,
-        geometry: &crate::geometry::Geometry,
-        u: &[f64],
-        obs: &crate::local::Observations<'_>,
-        lights: &[crate::Light],
-    ) -> Result<IndirectField> {
-        let kept = self.carry_to_finer(grid)?;
-        let before = self.margin.take();
-        let field =
-            IndirectField::of_mesh(camera, grid, geometry, u, obs, lights, Some(self), None)?;
-        field.marked(grid, geometry, u, lights, kept, Some(before.as_ref()))
     }
 
     /// The lights that the margin hid from each fine pixel (see
@@ -1771,20 +1764,16 @@ impl IndirectField {
             }
         }
         if total > 0.0 {
-            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order (one pass
-            // over the values instead of one per cell; the division is skipped where the
-            // weights sum to exactly 1, as they do inside the grid for a power-of-two factor:
-            // the same bits).
-            let cells = &cells[..used];
-            let per = self.per;
-            for (i, o) in out.iter_mut().enumerate() {
-                for (pc, weight) in cells {
-                    let v = &self.vectors[pc * per + i];
-                    for c in 0..3 {
-                        o[c] += weight * f64::from(v[c]);
-                    }
-                }
-                if total != 1.0 {
+            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass
+            // over a cell's contiguous values at a time (which vectorises; the same sums in the
+            // same order as a pass over the cells per value, so the same bits), the division
+            // skipped where the weights sum to exactly 1, as they do inside the grid for a
+            // power-of-two factor (the same bits).
+            for &(pc, weight) in &cells[..used] {
+                self.add(pc, weight, out);
+            }
+            if total != 1.0 {
+                for o in out.iter_mut() {
                     *o = o.map(|x| x / total);
                 }
             }
@@ -2400,8 +2389,79 @@ mod tests {
         assert!(lit > 128 * 100, "{lit}");
     }
 
-    /// The full resolution's last gathering after rounds on a coarser level
-    /// (`solver::coarse_to_fine`): the field carried by [`IndirectField::finer`] keeps the
+    /// The first round's grid ([`IndirectField::of_mesh_on`] with [`FIRST_ROUND_COARSER`]):
+    /// half the facets a side of [`IndirectField::of_mesh`]'s (twice the factor), and the field
+    /// the grid of that factor gives by itself: a V-groove at 128² pixels, 32² facets of 4
+    /// pixels by default, 16² of 8 for the first round, its vectors those of the 64² image of
+    /// the same groove binned 4 x 4 (the same coarse mesh and emitters), bit for bit.
+    #[test]
+    fn the_first_round_gathers_on_half_the_side() {
+        let setup = |n: usize, pixel: f64| {
+            let camera = Camera::Orthographic {
+                pixel_size: [pixel, pixel],
+                origin: [0.0, 0.0],
+            };
+            let depth = depths(n, |_, c| 100.0 + (32.0 - (c * pixel - 32.0).abs()));
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            (camera, grid, geometry, u)
+        };
+        let images = vec![1.0f32; 2 * 128 * 128];
+        let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
+        let (camera, grid, geometry, u) = setup(128, 0.5);
+        let of = |coarser: usize| {
+            IndirectField::of_mesh_on(
+                &camera,
+                &grid,
+                &geometry,
+                &u,
+                &obs,
+                &[],
+                None,
+                None,
+                coarser,
+            )
+            .unwrap()
+        };
+        let (rounds, first) = (of(1), of(FIRST_ROUND_COARSER));
+        assert_eq!((rounds.factor(), first.factor()), (4, 8));
+        assert_eq!((first.height, first.width), (16, 16));
+        assert!(
+            first.pairs() * 8 < rounds.pairs(),
+            "{} {}",
+            first.pairs(),
+            rounds.pairs()
+        );
+        // The 64² image of the same groove gathers on 16² facets of 4 of its pixels by itself
+        // only with a cap that its side rule would not reach: compare with its own field at
+        // the factor 4 (`coarser` 2 on 64² pixels: a side limit of 16).
+        let small = vec![1.0f32; 2 * 64 * 64];
+        let small_obs = crate::local::Observations::from_stack(&small, 2, 64 * 64, 1);
+        let (camera, grid, geometry, u) = setup(64, 1.0);
+        let own = IndirectField::of_mesh_on(
+            &camera,
+            &grid,
+            &geometry,
+            &u,
+            &small_obs,
+            &[],
+            None,
+            None,
+            2,
+        )
+        .unwrap();
+        assert_eq!((own.factor(), own.height, own.width), (4, 16, 16));
+        assert_eq!(own.valid, first.valid);
+        let bits = |f: &IndirectField| -> Vec<u32> {
+            f.vectors.iter().flatten().map(|x| x.to_bits()).collect()
+        };
+        assert_eq!(bits(&own), bits(&first));
+        assert!(first.vectors.iter().any(|v| v[0] != 0.0));
+    }
+
+    /// A gathering on a finer level after rounds on a coarser one (the full resolution's last
+    /// gathering up to stop 46): the field carried by [`IndirectField::finer`] keeps the
     /// rounds' visibility verdicts, and the exchange built with them on the finer level's
     /// surface, moved from the coarse one, is the fresh exchange of that surface, bit for bit.
     /// A V-groove at 64² (32² facets of 2 pixels), carried to 128² (4 pixels a facet), gathered
@@ -3194,101 +3254,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// The full resolution's last gathering in one marking pass
-    /// ([`IndirectField::gathered_again`]) is the three calls it replaces (`finer`, whose
-    /// hidden lights `with_unlit` keeps after `of_mesh`), bit for bit: a corrugated surface
-    /// that reaches the image border (so that both margins hide lights) at 64², its field from
-    /// two rounds, carried to 128² (half the pixel size) onto surfaces a little deeper or
-    /// shallower, and 4 or 6 low point lights off the sides (with 4, `MIN_LIT` clears the
-    /// hidden lights of some facets).
-    #[test]
-    fn the_last_gathering_in_one_marking_is_the_three_calls() {
-        let setup = |n: usize, pixel: f64, amplitude: f64| {
-            let camera = Camera::Orthographic {
-                pixel_size: [pixel, pixel],
-                origin: [0.0, 0.0],
-            };
-            let depth = depths(n, |r, c| {
-                let (x, y) = (c * pixel, r * pixel);
-                100.0 - amplitude * (2.0 * std::f64::consts::PI * x / 20.0).sin() + 0.02 * y
-            });
-            let grid = crate::grid::Grid::new(n, n, None).unwrap();
-            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
-            let u = grid.gather_vertices(&depth).unwrap();
-            (camera, grid, geometry, u)
-        };
-        let all = [
-            [-20.0, 10.0],
-            [84.0, 20.0],
-            [30.0, -20.0],
-            [16.0, 84.0],
-            [-10.0, -10.0],
-            [80.0, 70.0],
-        ];
-        let (mut hidden_total, mut compared) = (0, 0);
-        for lights_used in [4, 6] {
-            let lights: Vec<crate::Light> = all[..lights_used]
-                .iter()
-                .map(|&[x, y]| crate::Light::point([x, y, 90.0]))
-                .collect();
-            let k = lights.len();
-            let (camera, grid, geometry, u) = setup(64, 1.0, 6.0);
-            let images = vec![0.3f32; k * 64 * 64];
-            let obs = crate::local::Observations::from_stack(&images, k, 64 * 64, 1);
-            let mut field: Option<IndirectField> = None;
-            for _ in 0..2 {
-                let mut previous = field.take();
-                let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
-                let f = IndirectField::of_mesh(
-                    &camera, &grid, &geometry, &u, &obs, &lights, previous, None,
-                )
-                .unwrap()
-                .with_unlit(&grid, &geometry, &u, &lights, hidden)
-                .unwrap();
-                field = Some(f);
-            }
-            let coarse = field.unwrap();
-            assert!(coarse.margin.is_some());
-            for amplitude in [5.7, 6.0, 6.4] {
-                let (camera, grid, geometry, u) = setup(128, 0.5, amplitude);
-                let images: Vec<f32> = (0..k * 128 * 128)
-                    .map(|i| 0.2 + 0.1 * ((i % 7) as f32))
-                    .collect();
-                let obs = crate::local::Observations::from_stack(&images, k, 128 * 128, 1);
-                let mut three = coarse.clone().finer(&grid, &geometry, &u, &lights).unwrap();
-                let hidden = three.take_hidden();
-                let three = IndirectField::of_mesh(
-                    &camera,
-                    &grid,
-                    &geometry,
-                    &u,
-                    &obs,
-                    &lights,
-                    Some(three),
-                    None,
-                )
-                .unwrap()
-                .with_unlit(&grid, &geometry, &u, &lights, hidden)
-                .unwrap();
-                let one = coarse
-                    .clone()
-                    .gathered_again(&camera, &grid, &geometry, &u, &obs, &lights)
-                    .unwrap();
-                assert_eq!((one.factor, one.words), (three.factor, three.words));
-                assert_eq!(one.unlit, three.unlit);
-                assert_eq!(one.hidden, three.hidden);
-                let bits = |f: &IndirectField| -> Vec<u32> {
-                    f.vectors.iter().flatten().map(|x| x.to_bits()).collect()
-                };
-                assert_eq!(bits(&one), bits(&three));
-                hidden_total += one.hidden.iter().map(|b| b.count_ones()).sum::<u32>();
-                compared += 1;
-            }
-        }
-        // The margins hid lights (else the markings had nothing to differ on).
-        assert!(compared == 6 && hidden_total > 1000, "{hidden_total}");
     }
 
     #[test]
