@@ -521,9 +521,8 @@ impl LaneScratch {
 /// observation `I` of `s.values` is usable when `dark < I < saturation` (`thresholds`); the
 /// row `a_i = phi_i beta_i` (zero where unusable) enters `T = sum_i a_i a_i^T` (its 6 distinct
 /// entries) and `s = sum_i a_i I_i`; a lane with at least 4 usable observations and `T` regular
-/// by [`invert_spd3`]'s test has the scaled normal `g = T^-1 s` (nalgebra's closed-form
-/// inverse and matrix-vector product written out: the adjugate over the determinant, summed
-/// column after column), the residuals `r_i = I_i - a_i . g`, and with the gradient (`s.grad`
+/// by [`invert_spd3`]'s test has the scaled normal `g = T^-1 s`
+/// ([`solve_spd3_lanes`](crate::local::solve_spd3_lanes)), the residuals `r_i = I_i - a_i . g`, and with the gradient (`s.grad`
 /// not empty) the terms `d r` of each parameter ([`derivatives`]: `d = a_i . g` for the
 /// log-intensity, `phi_i (f g + (v . g) grad f)` for the position from the lights' `grads`,
 /// zero without them). With the gradient also the Gauss-Newton matrix's terms of each lane
@@ -581,34 +580,9 @@ fn fit_lanes_kernel(
         s.obs[i] = v;
         s.ok[i] = ok;
     }
-    // invert_spd3 and g = T^-1 s per lane.
-    let [m11, m12, m13, m22, m23, m33] = &t;
-    let (m21, m31, m32) = (m12, m13, m23);
-    let mut g = [z; 3];
-    let mut valid = [false; LANES];
-    for l in 0..LANES {
-        let diag = m11[l] * m22[l] * m33[l];
-        let minor1 = m22[l] * m33[l] - m32[l] * m23[l];
-        let minor2 = m21[l] * m33[l] - m31[l] * m23[l];
-        let minor3 = m21[l] * m32[l] - m31[l] * m22[l];
-        let det = m11[l] * minor1 - m12[l] * minor2 + m13[l] * minor3;
-        valid[l] = l < m && used[l] >= 4 && diag > 0.0 && det > 1e-12 * diag;
-        // The inverse, row-major: the adjugate over the determinant.
-        let inv = [
-            minor1 / det,
-            (m13[l] * m32[l] - m33[l] * m12[l]) / det,
-            (m12[l] * m23[l] - m22[l] * m13[l]) / det,
-            -minor2 / det,
-            (m11[l] * m33[l] - m31[l] * m13[l]) / det,
-            (m13[l] * m21[l] - m23[l] * m11[l]) / det,
-            minor3 / det,
-            (m12[l] * m31[l] - m32[l] * m11[l]) / det,
-            (m11[l] * m22[l] - m21[l] * m12[l]) / det,
-        ];
-        for (r, g) in g.iter_mut().enumerate() {
-            g[l] = inv[3 * r] * sv[0][l] + inv[3 * r + 1] * sv[1][l] + inv[3 * r + 2] * sv[2][l];
-        }
-    }
+    // invert_spd3's test and g = T^-1 s per lane.
+    let (regular, _, g) = crate::local::solve_spd3_lanes(&t, &sv);
+    let valid: [bool; LANES] = crate::lanes(|l| l < m && used[l] >= 4 && regular[l]);
     let with_grad = !s.grad.is_empty();
     // T = L L^T per lane (for the lanes of the Gauss-Newton matrix).
     let (mut chol, mut factored) = ([z; 6], [false; LANES]);

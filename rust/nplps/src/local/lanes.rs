@@ -396,12 +396,8 @@ fn fit_kernel(
 }
 
 /// The fits of [`LANES`] facets' grey, unit-weight sums, one lane each, with the operations of
-/// the scalar code in its order, so that they agree bit for bit: the test and closed-form
-/// inverse of [`invert_spd3`](super::invert_spd3) (nalgebra 0.34's `determinant` and
-/// `try_inverse` of a 3 x 3 matrix written out: minors `M1 = m22 m33 - m32 m23`,
-/// `M2 = m21 m33 - m31 m23`, `M3 = m21 m32 - m31 m22`, the determinant
-/// `m11 M1 - m12 M2 + m13 M3`, each entry of the adjugate divided by it), `g = T^-1 s` as
-/// nalgebra's matrix-vector product sums it (column after column), the normal and albedo of
+/// the scalar code in its order, so that they agree bit for bit: the test, closed-form
+/// inverse and `g = T^-1 s` of [`solve_spd3_lanes`](super::solve_spd3_lanes), the normal and albedo of
 /// [`solve_sums`](super::solve_sums) with one channel, the fast residual of
 /// [`fit_facet`](super::fit_facet), and the targets of [`Geometry::plane_target`]. Every lane
 /// is computed (a failed fit's values are not used), with plain loops over the lanes that the
@@ -416,42 +412,7 @@ fn solve_lanes(
 ) -> LaneSolution {
     let z = [0.0f64; LANES];
     let s = &sums.s;
-    // T = [[m11 m12 m13] [m21 m22 m23] [m31 m32 m33]] = [[t0 t1 t2] [t1 t3 t4] [t2 t4 t5]].
-    let [m11, m12, m13, m22, m23, m33] = &sums.t;
-    let (m21, m31, m32) = (m12, m13, m23);
-    let (mut diag, mut det, mut regular) = (z, z, [false; LANES]);
-    // The adjugate, row-major (the first column holds the minors M1, -M2, M3).
-    let mut adj = [z; 9];
-    for l in 0..LANES {
-        diag[l] = m11[l] * m22[l] * m33[l];
-        let minor1 = m22[l] * m33[l] - m32[l] * m23[l];
-        let minor2 = m21[l] * m33[l] - m31[l] * m23[l];
-        let minor3 = m21[l] * m32[l] - m31[l] * m22[l];
-        det[l] = m11[l] * minor1 - m12[l] * minor2 + m13[l] * minor3;
-        regular[l] = diag[l] > 0.0 && det[l] > 1e-12 * diag[l];
-        adj[0][l] = minor1;
-        adj[1][l] = m13[l] * m32[l] - m33[l] * m12[l];
-        adj[2][l] = m12[l] * m23[l] - m22[l] * m13[l];
-        adj[3][l] = -minor2;
-        adj[4][l] = m11[l] * m33[l] - m31[l] * m13[l];
-        adj[5][l] = m13[l] * m21[l] - m23[l] * m11[l];
-        adj[6][l] = minor3;
-        adj[7][l] = m12[l] * m31[l] - m32[l] * m11[l];
-        adj[8][l] = m11[l] * m22[l] - m21[l] * m12[l];
-    }
-    let mut inverse = [z; 9];
-    for (inv, adj) in inverse.iter_mut().zip(&adj) {
-        for l in 0..LANES {
-            inv[l] = adj[l] / det[l];
-        }
-    }
-    let mut g = [z; 3];
-    for (i, g) in g.iter_mut().enumerate() {
-        let row = &inverse[3 * i..3 * i + 3];
-        for l in 0..LANES {
-            g[l] = row[0][l] * s[0][l] + row[1][l] * s[1][l] + row[2][l] * s[2][l];
-        }
-    }
+    let (regular, inverse, g) = super::solve_spd3_lanes(&sums.t, s);
     let (mut rho, mut sse, mut valid) = (z, z, [false; LANES]);
     let mut normal = [z; 3];
     for l in 0..LANES {

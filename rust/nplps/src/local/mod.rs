@@ -1365,6 +1365,59 @@ pub(crate) fn invert_spd3(t: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     t.try_inverse()
 }
 
+/// [`solve_spd3`] in lanes, every lane computed: per lane of `t`, the six distinct entries of
+/// `T = [[t0 t1 t2] [t1 t3 t4] [t2 t4 t5]]`, whether it passes [`invert_spd3`]'s test, its
+/// inverse (row-major) and `g = T^-1 s`, with the operations of the scalar code in its order, so
+/// that they agree bit for bit: nalgebra 0.34's `determinant` and `try_inverse` of a 3 x 3 matrix
+/// written out (minors `M1 = m22 m33 - m32 m23`, `M2 = m21 m33 - m31 m23`, `M3 = m21 m32 - m31
+/// m22`, the determinant `m11 M1 - m12 M2 + m13 M3`, each entry of the adjugate divided by it),
+/// and the matrix-vector product as nalgebra sums it (column after column). Plain loops over
+/// the lanes that the compiler turns into vector instructions (inlined into the SIMD kernels
+/// of the local step, `lanes::solve_lanes`, and of the light pass, `refine::fit_lanes_kernel`).
+#[inline(always)]
+pub(crate) fn solve_spd3_lanes<const N: usize>(
+    t: &[[f64; N]; 6],
+    s: &[[f64; N]; 3],
+) -> ([bool; N], [[f64; N]; 9], [[f64; N]; 3]) {
+    let z = [0.0f64; N];
+    let [m11, m12, m13, m22, m23, m33] = t;
+    let (m21, m31, m32) = (m12, m13, m23);
+    let (mut det, mut regular) = (z, [false; N]);
+    // The adjugate, row-major (the first column holds the minors M1, -M2, M3).
+    let mut adj = [z; 9];
+    for l in 0..N {
+        let diag = m11[l] * m22[l] * m33[l];
+        let minor1 = m22[l] * m33[l] - m32[l] * m23[l];
+        let minor2 = m21[l] * m33[l] - m31[l] * m23[l];
+        let minor3 = m21[l] * m32[l] - m31[l] * m22[l];
+        det[l] = m11[l] * minor1 - m12[l] * minor2 + m13[l] * minor3;
+        regular[l] = diag > 0.0 && det[l] > 1e-12 * diag;
+        adj[0][l] = minor1;
+        adj[1][l] = m13[l] * m32[l] - m33[l] * m12[l];
+        adj[2][l] = m12[l] * m23[l] - m22[l] * m13[l];
+        adj[3][l] = -minor2;
+        adj[4][l] = m11[l] * m33[l] - m31[l] * m13[l];
+        adj[5][l] = m13[l] * m21[l] - m23[l] * m11[l];
+        adj[6][l] = minor3;
+        adj[7][l] = m12[l] * m31[l] - m32[l] * m11[l];
+        adj[8][l] = m11[l] * m22[l] - m21[l] * m12[l];
+    }
+    let mut inverse = [z; 9];
+    for (inv, adj) in inverse.iter_mut().zip(&adj) {
+        for l in 0..N {
+            inv[l] = adj[l] / det[l];
+        }
+    }
+    let mut g = [z; 3];
+    for (i, g) in g.iter_mut().enumerate() {
+        let row = &inverse[3 * i..3 * i + 3];
+        for l in 0..N {
+            g[l] = row[0][l] * s[0][l] + row[1][l] * s[1][l] + row[2][l] * s[2][l];
+        }
+    }
+    (regular, inverse, g)
+}
+
 /// The fit of a facet that cannot be fitted: it keeps its current (mean-subtracted) unknowns.
 fn keep_shape(q: &[[f64; 3]; 4], u: [f64; 4], used: u32) -> FacetFit {
     let mean = 0.25 * (u[0] + u[1] + u[2] + u[3]);
