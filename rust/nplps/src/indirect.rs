@@ -1255,28 +1255,12 @@ impl IndirectField {
     /// extended mesh), and hide lights from the image's facets ([`IndirectField::with_unlit`]).
     /// Surface outside the mask that does not reach the border, and surface hidden from the
     /// camera, still emit nothing: their light is missing (see the module documentation).
+    ///
+    /// On a grid of `1 / coarser` as many facets a side (`coarser` a power of two; 1: the
+    /// grid's side limit, see [`FIELD_SIDE_SMALL`]; 2: the first round of `Solver::interreflect`,
+    /// see [`FIRST_ROUND_COARSER`]).
     #[allow(clippy::too_many_arguments)]
-    #[cfg_attr(not(test), allow(dead_code))] // (the solver's rounds call `of_mesh_on`)
     pub(crate) fn of_mesh(
-        camera: &Camera,
-        grid: &crate::grid::Grid,
-        geometry: &crate::geometry::Geometry,
-        u: &[f64],
-        obs: &crate::local::Observations<'_>,
-        lights: &[crate::Light],
-        previous: Option<IndirectField>,
-        max_pairs: Option<usize>,
-    ) -> Result<IndirectField> {
-        Self::of_mesh_on(
-            camera, grid, geometry, u, obs, lights, previous, max_pairs, 1,
-        )
-    }
-
-    /// [`IndirectField::of_mesh`] on a grid of `1 / coarser` as many facets a side (`coarser`
-    /// a power of two; 1: the same): the grid's side limit (see [`FIELD_SIDE_SMALL`]) divided
-    /// by `coarser` (the first round of `Solver::interreflect`, see [`FIRST_ROUND_COARSER`]).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn of_mesh_on(
         camera: &Camera,
         grid: &crate::grid::Grid,
         geometry: &crate::geometry::Geometry,
@@ -2368,10 +2352,18 @@ mod tests {
             let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
             match (carry, previous) {
                 (true, Some(f)) => f.finer(&grid, &geometry, &u, &[]).unwrap(),
-                (_, previous) => {
-                    IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], previous, None)
-                        .unwrap()
-                }
+                (_, previous) => IndirectField::of_mesh(
+                    &camera,
+                    &grid,
+                    &geometry,
+                    &u,
+                    &obs,
+                    &[],
+                    previous,
+                    None,
+                    1,
+                )
+                .unwrap(),
             }
         };
         let coarse = field_of(64, 1.0, None, false);
@@ -2389,8 +2381,8 @@ mod tests {
         assert!(lit > 128 * 100, "{lit}");
     }
 
-    /// The first round's grid ([`IndirectField::of_mesh_on`] with [`FIRST_ROUND_COARSER`]):
-    /// half the facets a side of [`IndirectField::of_mesh`]'s (twice the factor), and the field
+    /// The first round's grid ([`IndirectField::of_mesh`] with [`FIRST_ROUND_COARSER`]):
+    /// half the facets a side of its grid with `coarser` 1 (twice the factor), and the field
     /// the grid of that factor gives by itself: a V-groove at 128² pixels, 32² facets of 4
     /// pixels by default, 16² of 8 for the first round, its vectors those of the 64² image of
     /// the same groove binned 4 x 4 (the same coarse mesh and emitters), bit for bit.
@@ -2411,7 +2403,7 @@ mod tests {
         let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
         let (camera, grid, geometry, u) = setup(128, 0.5);
         let of = |coarser: usize| {
-            IndirectField::of_mesh_on(
+            IndirectField::of_mesh(
                 &camera,
                 &grid,
                 &geometry,
@@ -2439,7 +2431,7 @@ mod tests {
         let small = vec![1.0f32; 2 * 64 * 64];
         let small_obs = crate::local::Observations::from_stack(&small, 2, 64 * 64, 1);
         let (camera, grid, geometry, u) = setup(64, 1.0);
-        let own = IndirectField::of_mesh_on(
+        let own = IndirectField::of_mesh(
             &camera,
             &grid,
             &geometry,
@@ -2486,9 +2478,18 @@ mod tests {
         let coarse_images = vec![1.0f32; 2 * 64 * 64];
         let coarse_obs = crate::local::Observations::from_stack(&coarse_images, 2, 64 * 64, 1);
         let (camera, grid, geometry, u) = setup(64, 1.0, 0.0);
-        let coarse =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &coarse_obs, &[], None, None)
-                .unwrap();
+        let coarse = IndirectField::of_mesh(
+            &camera,
+            &grid,
+            &geometry,
+            &u,
+            &coarse_obs,
+            &[],
+            None,
+            None,
+            1,
+        )
+        .unwrap();
         assert!(coarse.sightlines.is_some());
         for deeper in [0.1, 0.5, 2.0] {
             let (camera, grid, geometry, u) = setup(128, 0.5, deeper);
@@ -2503,10 +2504,11 @@ mod tests {
                 &[],
                 Some(carried),
                 None,
+                1,
             )
             .unwrap();
             let fresh =
-                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None)
+                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
                     .unwrap();
             assert_eq!((kept.factor(), fresh.factor()), (4, 4));
             assert_eq!(kept.pairs(), fresh.pairs(), "{deeper}");
@@ -2533,8 +2535,8 @@ mod tests {
         let u = grid.gather_vertices(&depth).unwrap();
         let images = vec![1.0f32; 2 * n * n];
         let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
-        let field =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None).unwrap();
+        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
+            .unwrap();
         assert_eq!(field.factor(), 2);
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);
@@ -2948,10 +2950,10 @@ mod tests {
         let images = vec![0.3f32; n * n];
         let obs = crate::local::Observations::from_stack(&images, 1, n * n, 1);
         let lights = [crate::Light::point([32.0, 32.0, 0.0])];
-        let plain =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None).unwrap();
+        let plain = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
+            .unwrap();
         let field =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None)
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
                 .unwrap();
         assert!(field.pairs() > plain.pairs());
         let energy = |f: &IndirectField, p: usize| norm(f.at(p, n)[0]);
@@ -3232,7 +3234,7 @@ mod tests {
             .map(|&[x, y]| crate::Light::point([x, y, 0.0]))
             .collect();
         let field = |kept: Option<Vec<u64>>| {
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None)
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
                 .unwrap()
                 .with_unlit(&grid, &geometry, &u, &lights, kept)
                 .unwrap()

@@ -996,7 +996,7 @@ impl<'p> Solver<'p> {
                 previous = None;
             }
             self.indirect = Some(
-                IndirectField::of_mesh_on(
+                IndirectField::of_mesh(
                     &p.rig.camera,
                     &p.grid,
                     &p.geometry,
@@ -2404,6 +2404,7 @@ mod tests {
                 &[],
                 None,
                 None,
+                1,
             )
             .unwrap();
             let mut out = vec![0.0; k * plane];
