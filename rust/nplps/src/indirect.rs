@@ -2229,6 +2229,30 @@ mod tests {
             .collect()
     }
 
+    /// An orthographic mesh of `n`² pixels of side `pixel` whose vertex depths follow the
+    /// profile `depth(x)` across the rows (`x` the vertex column times `pixel`): its camera,
+    /// grid, geometry and unknowns.
+    fn profile_mesh(
+        n: usize,
+        pixel: f64,
+        depth: impl Fn(f64) -> f64,
+    ) -> (
+        Camera,
+        crate::grid::Grid,
+        crate::geometry::Geometry,
+        Vec<f64>,
+    ) {
+        let camera = Camera::Orthographic {
+            pixel_size: [pixel, pixel],
+            origin: [0.0, 0.0],
+        };
+        let depth = depths(n, |_, c| depth(c * pixel));
+        let grid = crate::grid::Grid::new(n, n, None).unwrap();
+        let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+        let u = grid.gather_vertices(&depth).unwrap();
+        (camera, grid, geometry, u)
+    }
+
     /// A V-groove along the rows, orthographic 1-unit pixels: depth `z0 + slope (m - |c - m|)`
     /// (deepest at vertex column m = n / 2), the walls at `atan(slope)` from the image plane.
     fn groove(n: usize, slope: f64) -> Vec<f64> {
@@ -2339,15 +2363,9 @@ mod tests {
     #[test]
     fn a_field_carried_to_a_finer_level_is_the_one_gathered_there() {
         let field_of = |n: usize, pixel: f64, previous: Option<IndirectField>, carry: bool| {
-            let camera = Camera::Orthographic {
-                pixel_size: [pixel, pixel],
-                origin: [0.0, 0.0],
-            };
             // The groove along the rows, deepest at x = 32, walls at 45 degrees.
-            let depth = depths(n, |_, c| 100.0 + (32.0 - (c * pixel - 32.0).abs()));
-            let grid = crate::grid::Grid::new(n, n, None).unwrap();
-            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
-            let u = grid.gather_vertices(&depth).unwrap();
+            let (camera, grid, geometry, u) =
+                profile_mesh(n, pixel, |x| 100.0 + (32.0 - (x - 32.0).abs()));
             let images = vec![1.0f32; 2 * n * n];
             let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
             match (carry, previous) {
@@ -2388,17 +2406,8 @@ mod tests {
     /// the same groove binned 4 x 4 (the same coarse mesh and emitters), bit for bit.
     #[test]
     fn the_first_round_gathers_on_half_the_side() {
-        let setup = |n: usize, pixel: f64| {
-            let camera = Camera::Orthographic {
-                pixel_size: [pixel, pixel],
-                origin: [0.0, 0.0],
-            };
-            let depth = depths(n, |_, c| 100.0 + (32.0 - (c * pixel - 32.0).abs()));
-            let grid = crate::grid::Grid::new(n, n, None).unwrap();
-            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
-            let u = grid.gather_vertices(&depth).unwrap();
-            (camera, grid, geometry, u)
-        };
+        let setup =
+            |n: usize, pixel: f64| profile_mesh(n, pixel, |x| 100.0 + (32.0 - (x - 32.0).abs()));
         let images = vec![1.0f32; 2 * 128 * 128];
         let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
         let (camera, grid, geometry, u) = setup(128, 0.5);
@@ -2461,17 +2470,9 @@ mod tests {
     #[test]
     fn the_verdicts_carried_to_a_finer_level_give_its_fresh_exchange() {
         let setup = |n: usize, pixel: f64, deeper: f64| {
-            let camera = Camera::Orthographic {
-                pixel_size: [pixel, pixel],
-                origin: [0.0, 0.0],
-            };
-            let depth = depths(n, |_, c| {
-                100.0 + (32.0 + deeper) * (1.0 - (c * pixel - 32.0).abs() / 32.0)
-            });
-            let grid = crate::grid::Grid::new(n, n, None).unwrap();
-            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
-            let u = grid.gather_vertices(&depth).unwrap();
-            (camera, grid, geometry, u)
+            profile_mesh(n, pixel, |x| {
+                100.0 + (32.0 + deeper) * (1.0 - (x - 32.0).abs() / 32.0)
+            })
         };
         let images = vec![1.0f32; 2 * 128 * 128];
         let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
