@@ -398,7 +398,7 @@ impl Reconstruction {
                     Status::Converged,
                     format!(
                         "the RMS image residual changed by at most {} of it in the last local \
-                         steps: the glossy fits have settled (the largest depth change of \
+                         step: the glossy fits have settled (the largest depth change of \
                          iteration {iterations}, {}, is within their precision, above the depth \
                          tolerance {})",
                         g6(share),
