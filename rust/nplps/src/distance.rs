@@ -1685,7 +1685,9 @@ pub fn reconstruct_checked(
         crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))
     })??;
     let made = t.elapsed();
+    crate::memory::trace("checked: coarse problems made");
     let checked = check_distance_on(problem, options, Some(&coarse))?;
+    crate::memory::trace("checked: distance checked");
     let mut r = crate::solver::reconstruct_on(problem, options, progress, Some(coarse))?;
     // The levels were made before the run's clock started: their time counts as its pyramid's
     // (as when the run makes them), the check's own iterations still outside the timings.

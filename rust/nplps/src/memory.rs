@@ -256,16 +256,19 @@ pub fn trace(label: &str) {
     let mib = |key| proc_field("/proc/self/status", key).map_or(f64::NAN, |b| b as f64 / 1048576.0);
     let (rss, hwm) = (mib("VmRSS"), mib("VmHWM"));
     let _ = std::fs::write("/proc/self/clear_refs", "5");
-    // Minor page faults so far (field 10 of /proc/self/stat): fresh pages touched.
-    let faults = std::fs::read_to_string("/proc/self/stat")
-        .ok()
-        .and_then(|s| {
-            let rest = &s[s.rfind(')')? + 2..];
-            rest.split_whitespace().nth(7)?.parse::<u64>().ok()
-        })
-        .unwrap_or(0);
+    // Minor page faults so far (field 10 of /proc/self/stat): fresh pages touched; the
+    // process's user and system time (fields 14 and 15, in clock ticks of 1/100 s on Linux).
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let field = |n: usize| -> u64 {
+        stat.rfind(')')
+            .and_then(|at| stat.get(at + 2..))
+            .and_then(|rest| rest.split_whitespace().nth(n)?.parse::<u64>().ok())
+            .unwrap_or(0)
+    };
+    let (faults, cpu) = (field(7), (field(11) + field(12)) as f64 / 100.0);
     eprintln!(
-        "memtrace {:8.3}s rss {rss:8.1} peak-since-last {hwm:8.1} MiB faults {faults:9}  {label}",
+        "memtrace {:8.3}s cpu {cpu:8.2}s rss {rss:8.1} peak-since-last {hwm:8.1} MiB faults \
+         {faults:9}  {label}",
         start.elapsed().as_secs_f64()
     );
 }

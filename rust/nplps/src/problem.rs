@@ -6,7 +6,7 @@ use crate::error::{ensure_range, ensure_shape, ensure_usable, Error, Result};
 use crate::geometry::Geometry;
 use crate::grid::Grid;
 pub use crate::local::{u16_value, Samples, U16_SCALE};
-use crate::local::{usable, FitSettings, Observations};
+use crate::local::{usable, FitSettings, Observations, Stored};
 use crate::memory::try_vec;
 use crate::options::Options;
 use crate::rig::Rig;
@@ -441,19 +441,31 @@ pub(crate) fn check_light_geometry(rig: &Rig, geometry: &Geometry, u0: &[f64]) -
     Ok(())
 }
 
+///
+/// A 16-bit stack has none (its samples read as `v / 65535`), so it is not read at all. A float
+/// stack is read image by image over chunks of the masked pixels (each image's values of a
+/// chunk lie in one stretch of memory), not by gathering the `k` values of each facet from `k`
+/// places: the same count (the test `negative_observations_are_counted_per_masked_sample`). At
+/// 12 MP x 16 the gather was a pass of 0.2-0.3 s of CPU over the whole 16-bit stack to count
+/// nothing.
 fn count_negative(grid: &Grid, obs: &Observations<'_>) -> usize {
-    let per = obs.per_facet();
+    const CHUNK: usize = 1 << 14;
+    let Stored::F32(data) = &obs.data else {
+        return 0;
+    };
+    let (c, plane) = (obs.channels, obs.plane);
     grid.facets
-        .par_iter()
-        .map_init(
-            || vec![0.0f32; per],
-            |buf, &p| {
-                obs.facet(p as usize, buf)
-                    .iter()
-                    .filter(|v| **v < 0.0)
-                    .count()
-            },
-        )
+        .par_chunks(CHUNK)
+        .map(|pixels| {
+            let mut n = 0;
+            for image in data.chunks_exact(plane) {
+                for &p in pixels {
+                    let p = p as usize * c;
+                    n += image[p..p + c].iter().filter(|v| **v < 0.0).count();
+                }
+            }
+            n
+        })
         .sum()
 }
 
@@ -530,5 +542,49 @@ mod tests {
         assert_eq!(ia, ib);
         // A wrong length is a shape error, as for float stacks.
         assert!(ImageStack::with_channels_u16(&raw[1..], k, h, w, c).is_err());
+    }
+
+    /// The count read image by image is the per-facet count of the negative samples of the
+    /// masked pixels (grey and colour, with and without a mask, NaN not counted, more pixels than
+    /// a chunk); a 16-bit stack has none.
+    #[test]
+    fn negative_observations_are_counted_per_masked_sample() {
+        let (k, h, w) = (5, 150, 130);
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as f64 / (1u64 << 31) as f64
+        };
+        let holes: Vec<bool> = (0..h * w).map(|_| next() > 0.3).collect();
+        for c in [1, 3] {
+            let data: Vec<f32> = (0..k * h * w * c)
+                .map(|_| match next() {
+                    x if x < 0.1 => -x as f32,
+                    x if x < 0.15 => f32::NAN,
+                    x => x as f32,
+                })
+                .collect();
+            for mask in [None, Some(&holes[..])] {
+                let grid = Grid::new(h, w, mask).unwrap();
+                let obs = Observations::from_samples(Samples::F32(&data), k, h * w, c);
+                let mut buf = vec![0.0f32; k * c];
+                let expected: usize = grid
+                    .facets
+                    .iter()
+                    .map(|&p| {
+                        let values = obs.facet(p as usize, &mut buf);
+                        values.iter().filter(|v| **v < 0.0).count()
+                    })
+                    .sum();
+                assert!(expected > 1000);
+                assert_eq!(count_negative(&grid, &obs), expected);
+            }
+        }
+        let raw = vec![0u16; k * h * w];
+        let grid = Grid::new(h, w, None).unwrap();
+        let obs = Observations::from_samples(Samples::U16(&raw), k, h * w, 1);
+        assert_eq!(count_negative(&grid, &obs), 0);
     }
 }

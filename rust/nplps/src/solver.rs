@@ -520,6 +520,7 @@ pub(crate) fn coarse_to_fine(
             (h, gauge, converged)
         };
         history.extend(h);
+        crate::memory::trace("coarse level done");
         // The rounds of interreflections on the coarsest level of ROUNDS_MIN_SIDE to
         // ROUNDS_SIDE pixels a side; the finer levels iterate with its field. Under the glossy
         // model the rounds run at full resolution (a carried field would enter the Lambertian
@@ -1609,9 +1610,9 @@ impl<'p> Solver<'p> {
         let t = Instant::now();
         let geometry = &self.problem.geometry;
         self.oscillation.damp(u, &mut self.next);
-        let depth_change = self.oscillation.record(geometry, u, &self.next, limit);
+        let (depth_change, nearest) = self.oscillation.record(geometry, u, &self.next, limit);
         if self.check_lights {
-            check_in_front(geometry, self.lights.lights(), &self.next, iteration)?;
+            check_in_front(self.lights.lights(), nearest, iteration)?;
         }
         std::mem::swap(u, &mut self.next);
         self.timings.solve += t.elapsed();
