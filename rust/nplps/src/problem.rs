@@ -441,6 +441,8 @@ pub(crate) fn check_light_geometry(rig: &Rig, geometry: &Geometry, u0: &[f64]) -
     Ok(())
 }
 
+/// The number of negative samples of the masked pixels (the warning that dark-frame
+/// subtraction went below zero).
 ///
 /// A 16-bit stack has none (its samples read as `v / 65535`), so it is not read at all. A float
 /// stack is read image by image over chunks of the masked pixels (each image's values of a
