@@ -67,8 +67,8 @@
 //! 32 x 32, light after light inside a block, so that successive marches read nearby cells.
 //!
 //! With interreflections the solver marches the corrected mesh with `mesh_shadows_refined`:
-//! the facets of a lattice of stride `s` march (`s = 2`, the odd rows and columns, up to 255
-//! pixels a side; 4 at 256², 16 at 1 MP: at least `REFINED_LATTICE` = 64 lattice facets
+//! the facets of a lattice of stride `s` march (`s = 2`, the odd rows and columns, up to 511
+//! pixels a side; 4 at 1 MP, 8 from 2048: at least `REFINED_LATTICE` = 256 lattice facets
 //! across), the others copy the verdicts of their lattice neighbours where those agree and
 //! march where they do not (a shadow's edge, a terminator): `1 / s²` of the marches plus the
 //! edges', at the price of shadows (or lit gaps) narrower than `s` pixels that no lattice facet
@@ -537,22 +537,17 @@ pub const MAX_BORDER_SHARE: f64 = 0.1;
 
 /// The lattice of the refined march (`mesh_shadows_refined`, see the module documentation)
 /// keeps at least this many facets across the larger side of the image: its stride is 2 up to
-/// 255 pixels a side (the rounds' 128² level of a 256² image), 4 from 256, 8 from 512, 16 from
-/// 1024, 32 from 2048. Up to stop 47 it was 256 (stride 2 up to 511 pixels a side, 4 at 1 MP):
-/// on the benchmark's corrugated sheet with interreflections the 256² march then made 250 000
-/// lattice marches (16 lights) and took about a tenth of the option's processor time; at 64 it
-/// makes 63 000 and marches some 25 000 more facets at the edges, for 0.0003° (the sheet
-/// 0.9569 -> 0.9572°, docs/concave.md, stop 48). A shadow (or a lit gap) narrower than the
-/// stride that no lattice facet around sees is missed: 1/64 of the image's side.
-pub const REFINED_LATTICE: usize = 64;
+/// 511 pixels a side (every facet of a 256² level is within a pixel of the lattice), 4 from
+/// 1024, 8 from 2048.
+pub const REFINED_LATTICE: usize = 256;
 
 /// The stride of the lattice of [`mesh_shadows_refined`] on an image of `height` x `width`
 /// pixels: the largest power of two `s >= 2` with `max(height, width) / s >= REFINED_LATTICE`
 /// ([`REFINED_LATTICE`]), 2 when there is none. A march of every facet costs `H W k`
 /// marches; the lattice `H W k / s²` plus the facets near a shadow's edge, whose band is about
-/// `s` pixels wide: `O(s E k)` for edges `E` pixels long. At 1 MP (`s = 16`) the lattice is
-/// 1/256 of the facets, and a shadow it can miss is at most 16 pixels wide, 1/64 of the side,
-/// as 4 pixels are at 256².
+/// `s` pixels wide: `O(s E k)` for edges `E` pixels long. At 1 MP (`s = 4`) the lattice is 1/16
+/// of the facets instead of 1/4, and a shadow it can miss is at most 4 pixels wide, 1/256 of
+/// the image, as 2 pixels are at 512².
 pub(crate) fn refined_stride(height: usize, width: usize) -> usize {
     let side = height.max(width);
     let mut s = 2;
@@ -1641,17 +1636,16 @@ mod tests {
         }
     }
 
-    /// The lattice of the refined march keeps at least [`REFINED_LATTICE`] facets across: 2 on
-    /// the rounds' 128² level, 4 at 256², 16 at 1 MP, 32 at 12 MP.
+    /// The lattice of the refined march keeps at least [`REFINED_LATTICE`] facets across: 2 at
+    /// 256² and 512² (the GI renders' march unchanged), 4 at 1 MP, 8 at 12 MP.
     #[test]
     fn the_refined_lattice_grows_with_the_image() {
-        for (side, stride) in [(1, 2), (72, 2), (128, 2), (255, 2), (256, 4), (511, 4)] {
+        for (side, stride) in [(1, 2), (72, 2), (256, 2), (511, 2), (512, 2), (1023, 2)] {
             assert_eq!(refined_stride(side, side / 2 + 1), stride, "{side}");
         }
-        for (side, stride) in [(512, 8), (1023, 8), (1024, 16), (2048, 32), (4000, 32)] {
+        for (side, stride) in [(1024, 4), (2047, 4), (2048, 8), (4000, 8), (4096, 16)] {
             assert_eq!(refined_stride(side / 3, side), stride, "{side}");
         }
-        assert_eq!(refined_stride(4096, 1), 64);
     }
 
     #[test]

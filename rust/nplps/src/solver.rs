@@ -967,8 +967,8 @@ impl<'p> Solver<'p> {
     /// keep the mask they start with (the converged run's, marched on the mesh they start from;
     /// under `Auto` without one, a round probes and marches), and the last run marches the
     /// corrected mesh (its first and third iterations); with a field, each march is the refined
-    /// one ([`mesh_shadows_refined`]: a lattice of a quarter of the facets below 256 pixels a
-    /// side, of 1/16 at 256², 1/256 at 1 MP, and the facets near a shadow's edge). Returns the rounds'
+    /// one ([`mesh_shadows_refined`]: a lattice of a quarter of the facets, of 1/16 at 1 MP, and
+    /// the facets near a shadow's edge). Returns the rounds'
     /// history and whether the last run converged (`converged` without rounds). A solver whose
     /// field came from a coarser level's rounds (an image of more than [`ROUNDS_SIDE`] pixels a
     /// side, see [`coarse_to_fine`]) has iterated with it already: no rounds.
@@ -1304,8 +1304,8 @@ impl<'p> Solver<'p> {
         crate::memory::trace("shadows: after march");
         if seen {
             // With a field of indirect light (the rounds of interreflections and the run
-            // after them), from a lattice of the facets (a quarter of them up to 255 pixels a
-            // side, 1/16 at 256², 1/256 at 1 MP) and the edges (see [`mesh_shadows_refined`]).
+            // after them), from a lattice of the facets (a quarter of them up to 511 pixels a
+            // side, 1/16 at 1 MP) and the edges (see [`mesh_shadows_refined`]).
             let mask = match self.indirect.is_some() {
                 true => mesh_shadows_refined(
                     &p.rig.camera,
