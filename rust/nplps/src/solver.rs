@@ -1498,7 +1498,10 @@ impl<'p> Solver<'p> {
         let done = match step.settings.lobe {
             Some(_) => step
                 .try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm, Some(&mut kept))
-                .map(|_| rms_of(&stats, channels)),
+                .map(|kept| {
+                    crate::memory::trace(&format!("local: kept {kept} of {n} glossy fits"));
+                    rms_of(&stats, channels)
+                }),
             None if chunked => {
                 let mut sum = RmsSum::default();
                 let mut run = || -> Result<f64> {
@@ -1765,7 +1768,7 @@ impl<'p> Solver<'p> {
         for first in (0..n).step_by(FINAL_CHUNK) {
             let len = (n - first).min(FINAL_CHUNK);
             let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
-            step.try_run_final_kept(
+            let kept = step.try_run_final_kept(
                 u,
                 first,
                 chunk,
@@ -1773,6 +1776,7 @@ impl<'p> Solver<'p> {
                 &mut maps,
                 self.received.is_none().then_some(&self.kept),
             )?;
+            crate::memory::trace(&format!("finish: kept {kept} of {len} glossy fits"));
             problem.cancel.check()?;
             outputs.scatter(problem, first, chunk);
             maps.scatter(&problem.grid, first, values);
