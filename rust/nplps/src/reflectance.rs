@@ -952,6 +952,9 @@ pub struct GlossyFit {
     pub sse: f64,
     /// How many observations carry light at the final normal.
     pub used: u32,
+    /// Whether the fit ended at its minimum (a step within the tolerance or the convergence
+    /// test, or none that lowers the residual) rather than by taking its last allowed step.
+    pub converged: bool,
 }
 
 /// Observations per group of the packed evaluation (one SIMD lane each, see [`Packed`]): one
@@ -1021,6 +1024,9 @@ pub struct Packed {
     /// lobe reuse it instead of looking its transmittance table up again (a thread-local search
     /// and a reference count shared by all threads, per fit).
     kernel: Option<(KernelKey, Kernel)>,
+    /// Whether the glossy fit of these observations that their user kept ended at its minimum
+    /// ([`GlossyFit::converged`]; `glossy::refine` sets it, [`Packed::clear`] clears it).
+    pub converged: bool,
 }
 
 /// What a [`Kernel`] is made of: the bits of `alpha`, `eta` and the retro-reflective weight.
@@ -1046,6 +1052,7 @@ impl Packed {
         self.view = view;
         self.len = 0;
         self.groups.clear();
+        self.converged = false;
     }
 
     /// How many observations it holds.
@@ -1695,6 +1702,8 @@ fn fit_with(
     let (mut sse, mut jtj, mut jtr, mut used) =
         accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;
+    // Whether the last allowed step was taken (the fit may not have reached its minimum).
+    let mut capped = false;
     for step_index in 0..steps {
         if used < 4 {
             return None;
@@ -1728,6 +1737,7 @@ fn fit_with(
                 let (next, n_used) = residual_dispatch(k, groups, v, nb, ns);
                 if n_used >= 4 && next < sse {
                     (b, s, sse, used) = (nb, ns, next, n_used);
+                    capped = true;
                     break;
                 }
                 lambda *= 10.0;
@@ -1757,6 +1767,7 @@ fn fit_with(
             specular: s,
             sse,
             used,
+            converged: !capped,
         }
     })
 }
@@ -2495,6 +2506,36 @@ mod tests {
             assert!(dot(there.unwrap().normal, exact.normal) > 1.0 - 1e-15);
         }
         assert!(worst < 10.0 * STEP_TOLERANCE, "{worst} rad");
+    }
+
+    /// A fit cut off by its last allowed step reports that it did not converge; one that ends
+    /// by its step tolerance, or at its minimum, reports that it did (the flag the local steps
+    /// keep fits by). Over 50 facets from a far start.
+    #[test]
+    fn a_fit_reports_whether_it_converged() {
+        let lobe = Lobe::new(0.3, 1.5);
+        for i in 0..50 {
+            let t = i as f64;
+            let n = normalize([0.5 * (t * 0.37).sin(), 0.5 * (t * 0.73).cos(), -1.0]);
+            let x = [10.0 * (t * 0.11).sin(), 10.0 * (t * 0.29).cos(), 200.0];
+            let mut packed = Packed::new();
+            packed.clear(normalize(scale(x, -1.0)));
+            for o in observe(&lobe, x, n, 0.6, 0.4) {
+                packed.push_observation(&o);
+            }
+            let start = scale(normalize([n[0] + 0.05, n[1] - 0.04, n[2]]), 0.7);
+            let one = fit_packed_within(&lobe, &mut packed, start, 1, STEP_TOLERANCE).unwrap();
+            assert!(!one.converged, "{one:?}");
+            for tolerance in [0.0, STEP_TOLERANCE] {
+                let full = fit_packed_within(&lobe, &mut packed, start, 30, tolerance).unwrap();
+                assert!(full.converged, "{full:?}");
+            }
+            // From the fit's normal (with the albedos there) three steps are allowed: the
+            // tolerance ends the fit before the last.
+            let full = fit_packed_within(&lobe, &mut packed, start, 30, STEP_TOLERANCE).unwrap();
+            let there = fit_packed_at_within(&lobe, &mut packed, full.normal, 3, STEP_TOLERANCE);
+            assert!(there.unwrap().converged);
+        }
     }
 
     #[test]

@@ -32,8 +32,8 @@ use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::{IndirectField, FIRST_ROUND_COARSER};
 use crate::local::{
-    check_lobe, estimate_lobe, estimate_starting_lobe, FacetFit, FacetStat, FitSettings, LobeCheck,
-    LocalStep, Model, Observations, TrustMaps, CHECK_BELOW_LIGHTS,
+    check_lobe, estimate_lobe, estimate_starting_lobe, FacetFit, FacetStat, FitSettings, KeptFits,
+    LobeCheck, LocalStep, Model, Observations, TrustMaps, CHECK_BELOW_LIGHTS,
 };
 use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
@@ -642,6 +642,9 @@ pub(crate) struct Solver<'p> {
     warm: Vec<[f32; 3]>,
     /// Whether `warm` came from a coarser level (the first run then keeps it).
     warm_carried: bool,
+    /// What the glossy local steps keep of each facet's last fit (see [`KeptFits`]); cleared
+    /// wherever `warm` changes otherwise.
+    kept: KeptFits,
     /// Whether this solver started without a lobe (it then estimates it more often).
     lobe_from_scratch: bool,
     /// The estimated lobe that made this solver (or a coarser level's) drop the glossy model
@@ -764,6 +767,7 @@ impl<'p> Solver<'p> {
                 "the glossy normals",
             )?,
             warm_carried: false,
+            kept: KeptFits::default(),
             lobe_from_scratch: false,
             matte: None,
             check: None,
@@ -820,6 +824,7 @@ impl<'p> Solver<'p> {
                 *w = n;
             }
         }
+        self.kept.clear();
         self.warm_carried = true;
     }
 
@@ -1454,6 +1459,7 @@ impl<'p> Solver<'p> {
         self.lobe = None;
         self.options.reflectance = Reflectance::Lambertian;
         self.warm = Vec::new();
+        self.kept = KeptFits::default();
         self.warm_carried = false;
         self.march_next = self.shadows.is_some();
     }
@@ -1482,13 +1488,22 @@ impl<'p> Solver<'p> {
             std::mem::take(&mut self.stats),
         );
         let mut warm = std::mem::take(&mut self.warm);
+        // The kept fits stand for fits of the problem's observations (not of those less the
+        // received indirect light).
+        let mut kept = std::mem::take(&mut self.kept);
+        if self.received.is_some() {
+            kept.clear();
+        }
         let step = self.local_step(true, perspective.then_some(&depths[..]));
         let channels = self.problem.obs.channels;
         crate::memory::trace("local: before run");
         let done = match step.settings.lobe {
             Some(_) => step
-                .try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm)
-                .map(|()| rms_of(&stats, channels)),
+                .try_run_glossy_targets(u, &mut targets, &mut stats, &mut warm, Some(&mut kept))
+                .map(|kept| {
+                    crate::memory::trace(&format!("local: kept {kept} of {n} glossy fits"));
+                    rms_of(&stats, channels)
+                }),
             None if chunked => {
                 let mut sum = RmsSum::default();
                 let mut run = || -> Result<f64> {
@@ -1508,6 +1523,7 @@ impl<'p> Solver<'p> {
         };
         crate::memory::trace("local: after run");
         (self.targets, self.stats, self.warm, self.next) = (targets, stats, warm, depths);
+        self.kept = kept;
         let rms = done?;
         self.timings.local += t.elapsed();
         self.problem.cancel.check()?;
@@ -1754,7 +1770,15 @@ impl<'p> Solver<'p> {
         for first in (0..n).step_by(FINAL_CHUNK) {
             let len = (n - first).min(FINAL_CHUNK);
             let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
-            step.try_run_final(u, first, chunk, values, &mut maps)?;
+            let kept = step.try_run_final_kept(
+                u,
+                first,
+                chunk,
+                values,
+                &mut maps,
+                self.received.is_none().then_some(&self.kept),
+            )?;
+            crate::memory::trace(&format!("finish: kept {kept} of {len} glossy fits"));
             problem.cancel.check()?;
             outputs.scatter(problem, first, chunk);
             maps.scatter(&problem.grid, first, values);

@@ -249,6 +249,7 @@ pub(super) fn refine(
         .into_iter()
         .flatten()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))?;
+    scratch.converged = g.converged;
     if channels == 1 {
         return Some(FacetFit {
             target: [0.0; 4],

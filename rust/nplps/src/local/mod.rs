@@ -543,8 +543,21 @@ impl LocalStep<'_> {
         glossy: &mut Packed,
         warm: Option<[f64; 3]>,
     ) -> FacetFit {
+        self.fit_corners(f, u, self.corners(f, u), buf, glossy, warm)
+    }
+
+    /// [`LocalStep::fit`] of facet `f` whose corners `q` are already known.
+    #[inline]
+    fn fit_corners(
+        &self,
+        f: usize,
+        u: &[f64],
+        q: [[f64; 3]; 4],
+        buf: &mut [f32],
+        glossy: &mut Packed,
+        warm: Option<[f64; 3]>,
+    ) -> FacetFit {
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let q = self.corners(f, u);
         let ids = grid.facet_vertices(f);
         let c = quad_centre(&q);
         if let Some(field) = self.indirect {
@@ -700,6 +713,20 @@ impl LocalStep<'_> {
         )
     }
 
+    /// [`LocalStep::try_run_final_kept`] keeping no fits.
+    #[cfg(test)]
+    pub fn try_run_final(
+        &self,
+        u: &[f64],
+        first: usize,
+        fits: &mut [FacetFit],
+        trust: &mut [[f32; 2]],
+        maps: &mut TrustMaps,
+    ) -> Result<()> {
+        self.try_run_final_kept(u, first, fits, trust, maps, None)
+            .map(|_| ())
+    }
+
     /// The final pass over facets `first..first + fits.len()` on `u`: their fits, as
     /// [`LocalStep::try_run`], and their trust values `[normal sigma, held-out]` into `trust`
     /// (same length), as the `trust` module defines them, whose per-light sums it adds to
@@ -714,18 +741,22 @@ impl LocalStep<'_> {
     /// The same per-facet values bit for bit, the per-light sums up to the order of their
     /// additions (2e-16 relative on the glossy bumps). The scalar pass cost the final step of
     /// a 1 MP glossy run 0.6-0.75 of its 2.15-2.3 CPU seconds (docs/shiny.md, stop 46).
-    pub fn try_run_final(
+    ///
+    /// Under the glossy model, with `kept`, the facets that did not move since their last
+    /// converged glossy fit keep it (see [`LocalStep::try_run_kept`]); returns how many did.
+    pub fn try_run_final_kept(
         &self,
         u: &[f64],
         first: usize,
         fits: &mut [FacetFit],
         trust: &mut [[f32; 2]],
         maps: &mut TrustMaps,
-    ) -> Result<()> {
+        kept: Option<&KeptFits>,
+    ) -> Result<usize> {
         debug_assert_eq!(fits.len(), trust.len());
         if let Some(lights) = self.lane_lights() {
             maps.add(self.final_lanes(&lights, u, first, fits, trust)?);
-            return Ok(());
+            return Ok(0);
         }
         if self.settings.lobe.is_some() {
             let lambertian = LocalStep {
@@ -737,12 +768,90 @@ impl LocalStep<'_> {
             };
             if let Some(lights) = lambertian.lane_lights() {
                 maps.add(lambertian.final_lanes(&lights, u, first, fits, trust)?);
-                return self.try_run(u, first, fits);
+                return self.try_run_kept(u, first, fits, kept);
             }
         }
-        self.try_run(u, first, fits)?;
+        let done = self.try_run_kept(u, first, fits, kept)?;
         maps.add(self.trust_range(u, first, trust));
-        Ok(())
+        Ok(done)
+    }
+
+    /// [`LocalStep::try_run`] where, under the glossy model with grey images, each facet whose
+    /// record in `kept` holds (its last glossy fit converged, and its centre moved by at most
+    /// [`SKIP_MOVE`] of its reach since, see [`KeptFits`]) keeps that fit: its warm normal,
+    /// diffuse and specular albedos, residual and count of lights, with the plane through its
+    /// current centre as target. Returns how many facets kept their fits.
+    pub fn try_run_kept(
+        &self,
+        u: &[f64],
+        first: usize,
+        fits: &mut [FacetFit],
+        kept: Option<&KeptFits>,
+    ) -> Result<usize> {
+        let (Some(kept), Some(key), Some(warm)) = (kept, self.kept_key(), self.warm) else {
+            return self.try_run(u, first, fits).map(|()| 0);
+        };
+        if self.obs.channels != 1 || !kept.trusts(&key, self.grid.n_facets()) {
+            return self.try_run(u, first, fits).map(|()| 0);
+        }
+        let (records, lights) = (&kept.facets[first..][..fits.len()], key.1);
+        let per = self.obs.per_facet();
+        fits.par_iter_mut()
+            .zip(records)
+            .enumerate()
+            .map_init(
+                || facet_scratch(per),
+                |scratch, (i, (fit, record))| -> Result<usize> {
+                    let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
+                    if self.cancel.is_cancelled() {
+                        return Ok(0);
+                    }
+                    let f = first + i;
+                    let q = self.corners(f, u);
+                    let start = warm_normal(&warm[f]);
+                    let c = quad_centre(&q);
+                    if let Some(n) = start.filter(|_| record.holds(c, lights)) {
+                        let n = scale(n, 1.0 / norm(n));
+                        *fit = FacetFit {
+                            target: self
+                                .geometry
+                                .plane_target(n, self.grid.facet_vertices(f), c),
+                            normal: n,
+                            albedo: [record.diffuse as f64; 3],
+                            specular: record.specular as f64,
+                            sse: record.sse as f64,
+                            used: record.used,
+                            valid: true,
+                        };
+                        return Ok(1);
+                    }
+                    *fit = self.fit_corners(f, u, q, buf, glossy, start);
+                    Ok(0)
+                },
+            )
+            .try_reduce(|| 0, |a, b| Ok(a + b))
+    }
+
+    /// The settings and lights under which this step may keep fits of [`KeptFits`]: None where
+    /// it keeps none (the Lambertian model, fits that run to their minimum for a comparison
+    /// (`step_tolerance` 0), cast shadows, indirect light, parallel lights). The fits'
+    /// residual mode is left out (the glossy fits do not use it).
+    fn kept_key(&self) -> Option<(FitSettings, &[Light])> {
+        match self.model {
+            Model::Near(lights)
+                if self.settings.lobe.is_some()
+                    && self.settings.step_tolerance > 0.0
+                    && self.shadows.is_none()
+                    && self.indirect.is_none() =>
+            {
+                let settings = FitSettings {
+                    fast_residual: false,
+                    ..self.settings
+                };
+                Some((settings, lights))
+            }
+            _ => None,
+        }
     }
 
     /// Fits every facet on `u` in parallel, keeping only the targets and the statistics.
@@ -832,33 +941,229 @@ impl LocalStep<'_> {
     /// As [`LocalStep::try_run_targets`] under the glossy model (`settings.lobe` set), with the
     /// facets' glossy normals of the previous local step in `warm` (NaN: none), which start
     /// their fits and are replaced by this step's.
+    ///
+    /// With `kept` (see [`KeptFits`]), a facet whose last glossy fit converged (ended at its
+    /// minimum, not by its last allowed step) and whose centre has moved by at most [`SKIP_MOVE`] of its reach since that fit keeps it: its
+    /// target is the plane of its warm normal through its current centre, its statistics those
+    /// of that fit, and it is not fitted again. Returns how many facets kept their fits.
     pub fn try_run_glossy_targets(
         &self,
         u: &[f64],
         targets: &mut [[f64; 4]],
         stats: &mut [FacetStat],
         warm: &mut [[f32; 3]],
-    ) -> Result<()> {
+        kept: Option<&mut KeptFits>,
+    ) -> Result<usize> {
         let per = self.obs.per_facet();
-        targets
+        let kept = match (kept, self.kept_key()) {
+            (Some(kept), Some(key)) => Some((kept, key)),
+            (Some(kept), None) => {
+                kept.clear();
+                None
+            }
+            (None, _) => None,
+        };
+        let Some((kept, key)) = kept else {
+            return targets
+                .par_iter_mut()
+                .zip(stats.par_iter_mut())
+                .zip(warm.par_iter_mut())
+                .enumerate()
+                .try_for_each_init(
+                    || facet_scratch(per),
+                    |scratch, (f, ((target, stat), warm))| {
+                        let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
+                        if self.cancel.is_cancelled() {
+                            return Ok(());
+                        }
+                        self.glossy_target(f, u, buf, glossy, target, stat, warm, None);
+                        Ok(())
+                    },
+                )
+                .map(|()| 0);
+        };
+        let reuse = kept.trusts(&key, targets.len());
+        let (settings, lights) = key;
+        if kept.facets.len() != targets.len() {
+            kept.facets = Vec::new();
+            kept.facets = try_vec(targets.len(), KeptFit::NONE, "the kept glossy fits")?;
+        }
+        // Until this step has written every facet's record, none is trusted.
+        kept.under = None;
+        let skip = reuse.then_some(lights);
+        let done = targets
             .par_iter_mut()
             .zip(stats.par_iter_mut())
             .zip(warm.par_iter_mut())
+            .zip(kept.facets.par_iter_mut())
             .enumerate()
-            .try_for_each_init(
+            .map_init(
                 || facet_scratch(per),
-                |scratch, (f, ((target, stat), warm))| {
+                |scratch, (f, (((target, stat), warm), record))| -> Result<usize> {
                     let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
-                        return Ok(());
+                        return Ok(0);
                     }
-                    let fit = self.fit(f, u, buf, glossy, warm_normal(warm));
-                    *target = fit.target;
-                    *stat = FacetStat::from(&fit);
-                    *warm = glossy_normal(&fit);
-                    Ok(())
+                    let kept = (record, skip);
+                    Ok(
+                        self.glossy_target(f, u, buf, glossy, target, stat, warm, Some(kept))
+                            as usize,
+                    )
                 },
             )
+            .try_reduce(|| 0, |a, b| Ok(a + b))?;
+        if !self.cancel.is_cancelled() {
+            kept.under = Some((settings, lights.to_vec()));
+        }
+        Ok(done)
+    }
+
+    /// One facet of [`LocalStep::try_run_glossy_targets`]: its target, statistics and warm
+    /// normal, from its fit, or from its `kept` record where the facet keeps its last fit (the
+    /// lights given: the record is trusted); the record is then replaced by this fit's. Returns
+    /// whether the facet kept its fit.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn glossy_target(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        glossy: &mut Packed,
+        target: &mut [f64; 4],
+        stat: &mut FacetStat,
+        warm: &mut [f32; 3],
+        kept: Option<(&mut KeptFit, Option<&[Light]>)>,
+    ) -> bool {
+        let q = self.corners(f, u);
+        let start = warm_normal(warm);
+        let Some((record, skip)) = kept else {
+            let fit = self.fit_corners(f, u, q, buf, glossy, start);
+            *target = fit.target;
+            *stat = FacetStat::from(&fit);
+            *warm = glossy_normal(&fit);
+            return false;
+        };
+        let c = quad_centre(&q);
+        if let (Some(lights), Some(n)) = (skip, start) {
+            if record.holds(c, lights) {
+                *target = self
+                    .geometry
+                    .plane_target(n, self.grid.facet_vertices(f), c);
+                *stat = FacetStat {
+                    sse: record.sse as f64,
+                    used: record.used,
+                    valid: true,
+                };
+                return true;
+            }
+        }
+        glossy.converged = false;
+        let fit = self.fit_corners(f, u, q, buf, glossy, start);
+        *target = fit.target;
+        *stat = FacetStat::from(&fit);
+        *warm = glossy_normal(&fit);
+        *record = KeptFit::of(&fit, glossy.converged, c);
+        false
+    }
+}
+
+/// How far a facet's centre may move, as a fraction of its reach (the distance to the camera's
+/// centre or to the nearest point light, whichever is less), before its glossy fit is made
+/// again (see [`LocalStep::try_run_glossy_targets`]). A fit sees the facet's centre only
+/// through its light and view vectors: a move `d` turns a vector by at most `d / reach`
+/// radians and changes a light's falloff by about `2 d / reach` (`(2 + mu) d / reach` for an
+/// LED of anisotropy `mu`), so a kept fit's normal is about `SKIP_MOVE` radians from the fit
+/// it stands for, the size of the fits' own stop ([`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE)).
+pub const SKIP_MOVE: f64 = 1e-5;
+
+/// What the glossy local steps of a solver keep of each facet's last glossy fit, so that a
+/// facet which did not move keeps its fit instead of fitting it again (see
+/// [`LocalStep::try_run_glossy_targets`]): per facet its centre at the fit, its residual and
+/// its count of usable lights, its diffuse and specular albedos (28 bytes; its normal is the solver's warm normal), and for all
+/// the settings and lights the fits were made under. Only a step under the same settings and
+/// lights (and the same count of facets) trusts the records. The caller clears them whenever
+/// the warm normals change otherwise than by these steps (a coarser level's carried in, the
+/// glossy model dropped) or the observations do.
+#[derive(Debug, Default)]
+pub struct KeptFits {
+    /// The settings and lights of the fits; None: no record is trusted.
+    under: Option<(FitSettings, Vec<Light>)>,
+    /// One record a facet.
+    facets: Vec<KeptFit>,
+}
+
+impl KeptFits {
+    /// Forgets every record (keeps their memory).
+    pub fn clear(&mut self) {
+        self.under = None;
+    }
+
+    /// Whether the records stand for fits under `key` (see [`LocalStep::kept_key`]) of `n`
+    /// facets.
+    fn trusts(&self, key: &(FitSettings, &[Light]), n: usize) -> bool {
+        self.facets.len() == n
+            && self
+                .under
+                .as_ref()
+                .is_some_and(|(settings, lights)| *settings == key.0 && lights[..] == *key.1)
+    }
+}
+
+/// A facet's record in [`KeptFits`].
+#[derive(Debug, Clone, Copy)]
+struct KeptFit {
+    /// The facet's centre at its last fit (NaN: no fit to keep).
+    centre: [f32; 3],
+    /// That fit's sum of squared residuals.
+    sse: f32,
+    /// That fit's count of usable lights.
+    used: u32,
+    /// That fit's diffuse albedo (grey images; the mean of the channels' otherwise).
+    diffuse: f32,
+    /// That fit's specular albedo.
+    specular: f32,
+}
+
+impl KeptFit {
+    /// No fit to keep.
+    const NONE: KeptFit = KeptFit {
+        centre: [f32::NAN; 3],
+        sse: f32::NAN,
+        used: 0,
+        diffuse: f32::NAN,
+        specular: f32::NAN,
+    };
+
+    /// The record of `fit`, made at centre `c`: NONE unless it is a valid glossy fit that
+    /// `converged` (see [`GlossyFit::converged`](crate::reflectance::GlossyFit::converged)).
+    fn of(fit: &FacetFit, converged: bool, c: [f64; 3]) -> KeptFit {
+        match converged && fit.valid && fit.specular.is_finite() {
+            true => KeptFit {
+                centre: c.map(|x| x as f32),
+                sse: fit.sse as f32,
+                used: fit.used,
+                diffuse: (fit.albedo.iter().sum::<f64>() / 3.0) as f32,
+                specular: fit.specular as f32,
+            },
+            false => KeptFit::NONE,
+        }
+    }
+
+    /// Whether the fit may be kept at centre `c` under `lights`: the centre moved by at most
+    /// [`SKIP_MOVE`] of its reach (false without a record: NaN).
+    #[inline]
+    fn holds(&self, c: [f64; 3], lights: &[Light]) -> bool {
+        let d = [0, 1, 2].map(|i| c[i] - self.centre[i] as f64);
+        let moved = dot(d, d);
+        let mut reach = dot(c, c);
+        for light in lights {
+            if let Light::Point { position: p, .. } = light {
+                let e = [0, 1, 2].map(|i| c[i] - p[i]);
+                reach = reach.min(dot(e, e));
+            }
+        }
+        moved <= SKIP_MOVE * SKIP_MOVE * reach
     }
 }
 
@@ -1438,6 +1743,164 @@ mod tests {
     use crate::vec3::normalize;
 
     /// Five isotropic unit point lights in front of a surface about 100 away.
+    /// A glossy step with [`KeptFits`] keeps the fits of the facets that did not move once they
+    /// converged, with the targets and statistics of fitting them again (to about the fits' own
+    /// step tolerance); a move beyond [`SKIP_MOVE`], other settings or other lights make every
+    /// facet fit again; the final pass keeps them too, with normals and albedos as fitted.
+    #[test]
+    fn glossy_steps_keep_the_fits_of_facets_that_did_not_move() {
+        use crate::reflectance::{Lobe, STEP_TOLERANCE};
+        type Pass = (Vec<[f64; 4]>, Vec<FacetStat>, usize);
+        fn pass(
+            step: &LocalStep,
+            u: &[f64],
+            warm: &mut [[f32; 3]],
+            kept: Option<&mut KeptFits>,
+        ) -> Pass {
+            let n = step.grid.n_facets();
+            let (mut targets, mut stats) = (vec![[0.0; 4]; n], vec![FacetStat::default(); n]);
+            let skipped = step
+                .try_run_glossy_targets(u, &mut targets, &mut stats, warm, kept)
+                .unwrap();
+            (targets, stats, skipped)
+        }
+        let (grid, _, geometry) = small_masked_mesh();
+        let (h, w) = (grid.height, grid.width);
+        let lobe = Lobe::new(0.3, 1.5);
+        let normal = crate::vec3::normalize([0.1, -0.05, -1.0]);
+        let lights = lights();
+        let k = lights.len();
+        let u: Vec<f64> = (0..grid.n_unknowns())
+            .map(|v| 100.0 - 0.1 * (v % 7) as f64 + 0.05 * (v / 7) as f64)
+            .collect();
+        let angle = |a: [f64; 3], b: [f64; 3]| dot(a, b).clamp(-1.0, 1.0).acos();
+        for seed in 0..3usize {
+            // The glossy model's image of a tilted plane near `u`, with a little noise.
+            let mut data = vec![f32::NAN; k * h * w];
+            for p in 0..h * w {
+                let x = [
+                    -5.0 + 1.5 * (p % w) as f64,
+                    -7.0 + 1.5 * (p / w) as f64,
+                    100.0,
+                ];
+                for (j, light) in lights.iter().enumerate() {
+                    let Light::Point { position, .. } = light else {
+                        unreachable!()
+                    };
+                    let a = crate::vec3::sub(*position, x);
+                    let d2 = dot(a, a);
+                    let l = scale(a, 1.0 / d2.sqrt());
+                    let noise = (((p * 31 + j * 17 + seed * 7) % 13) as f64 - 6.0) * 2e-5;
+                    data[j * h * w + p] = lobe
+                        .shade(normal, l, geometry.view(x))
+                        .map_or(f32::NAN, |sh| {
+                            ((0.6 * sh.diffuse + 0.3 * sh.specular) * 1e3 / d2 + noise) as f32
+                        });
+                }
+            }
+            let obs = Observations::from_stack(&data, k, h * w, 1);
+            let n = grid.n_facets();
+            let settings = FitSettings {
+                lobe: Some(lobe),
+                step_tolerance: STEP_TOLERANCE,
+                ..FitSettings::default()
+            };
+            let step = LocalStep::new(&grid, &geometry, Model::Near(&lights), &obs, settings);
+            let settle = |kept: &mut KeptFits| {
+                let mut warm = vec![[f32::NAN; 3]; n];
+                // The first pass keeps nothing (no converged fit yet).
+                assert_eq!(pass(&step, &u, &mut warm, Some(kept)).2, 0);
+                for _ in 0..3 {
+                    pass(&step, &u, &mut warm, Some(kept));
+                }
+                warm
+            };
+            let mut kept = KeptFits::default();
+            let mut warm = settle(&mut kept);
+            // The same surface: the fits are kept, as fitting them again would find them.
+            let refit = pass(&step, &u, &mut warm.clone(), None);
+            let same = pass(&step, &u, &mut warm, Some(&mut kept));
+            assert!(same.2 > n / 2, "{} of {n}", same.2);
+            for f in 0..n {
+                let (a, b) = (same.0[f], refit.0[f]);
+                let size = 1.0 + b.iter().map(|x| x.abs()).fold(0.0, f64::max);
+                assert!(
+                    (0..4).all(|j| (a[j] - b[j]).abs() <= 1e-4 * size),
+                    "{a:?} {b:?}"
+                );
+                let (s, t) = (same.1[f], refit.1[f]);
+                assert_eq!((s.valid, s.used), (t.valid, t.used));
+                assert!((s.sse - t.sse).abs() <= 1e-3 * t.sse + 1e-12, "{s:?} {t:?}");
+            }
+            // A move far below SKIP_MOVE keeps them; one far above fits every facet again.
+            let moved = |d: f64| u.iter().map(|x| x + d).collect::<Vec<_>>();
+            let small = pass(
+                &step,
+                &moved(1e-3 * SKIP_MOVE),
+                &mut warm.clone(),
+                Some(&mut kept),
+            );
+            assert_eq!(small.2, same.2);
+            let far = pass(
+                &step,
+                &moved(1e4 * SKIP_MOVE),
+                &mut warm.clone(),
+                Some(&mut kept),
+            );
+            assert_eq!(far.2, 0);
+            // The final pass keeps them too, with the normals and albedos of fitting again.
+            let mut kept = KeptFits::default();
+            let warm = settle(&mut kept);
+            let final_step = LocalStep {
+                warm: Some(&warm),
+                ..step
+            };
+            let mut fits = vec![FacetFit::EMPTY; n];
+            let mut refits = vec![FacetFit::EMPTY; n];
+            let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
+            let mut values = vec![[f32::NAN; 2]; n];
+            let kept_final = final_step
+                .try_run_final_kept(&u, 0, &mut fits, &mut values, &mut maps, Some(&kept))
+                .unwrap();
+            assert!(kept_final > n / 2, "{kept_final} of {n}");
+            final_step.run(&u, 0, &mut refits);
+            for (a, b) in fits.iter().zip(&refits) {
+                assert_eq!(a.valid, b.valid);
+                if a.valid {
+                    assert!(
+                        angle(a.normal, b.normal) < 10.0 * STEP_TOLERANCE,
+                        "{a:?} {b:?}"
+                    );
+                    assert!((a.albedo[0] - b.albedo[0]).abs() < 1e-3 * b.albedo[0]);
+                    assert!((a.specular - b.specular).abs() < 1e-3 * b.specular + 1e-6);
+                }
+            }
+            // Other settings (another lobe, fits to their minimum) or other lights: nothing is
+            // kept.
+            let other_lobe = FitSettings {
+                lobe: Some(Lobe::new(0.4, 1.5)),
+                ..settings
+            };
+            let rough = LocalStep::new(&grid, &geometry, Model::Near(&lights), &obs, other_lobe);
+            assert_eq!(pass(&rough, &u, &mut warm.clone(), Some(&mut kept)).2, 0);
+            let mut kept = KeptFits::default();
+            let warm = settle(&mut kept);
+            let exact = LocalStep {
+                settings: FitSettings {
+                    step_tolerance: 0.0,
+                    ..settings
+                },
+                ..step
+            };
+            assert!(exact.kept_key().is_none());
+            let mut moved_light = lights.clone();
+            moved_light[0] = Light::point([31.0, 0.0, 50.0]);
+            let other = LocalStep::new(&grid, &geometry, Model::Near(&moved_light), &obs, settings);
+            assert!(kept.trusts(&step.kept_key().unwrap(), n));
+            assert_eq!(pass(&other, &u, &mut warm.clone(), Some(&mut kept)).2, 0);
+        }
+    }
+
     pub(crate) fn lights() -> Vec<Light> {
         [
             [30.0, 0.0, 50.0],
