@@ -296,6 +296,12 @@ const PER_FACET_REFINE: f64 = 192.0;
 /// like `n log n`: see [`reconstruction`]).
 const PER_FACET_DIRECT: f64 = 900.0;
 
+/// Extra bytes per facet under the glossy model: the solver's warm glossy normals (three `f32`),
+/// the converged fits a step may keep ([`crate::local::KeptFits`], 28 bytes) and the result's
+/// specular albedo. Measured at stop 48: the 1 MP glossy bumps (lobe given, full mask) peaked at
+/// 563 MB against the Lambertian run's 521 MB, 40 bytes a facet; 48 leaves 20 % to spare.
+const PER_FACET_GLOSSY: f64 = 48.0;
+
 /// Extra bytes per facet of the interreflection rounds under the glossy model: each facet's
 /// glossy state of the round's start (normal, diffuse albedo, specular albedo: seven `f32`).
 const PER_FACET_GLOSSY_ROUNDS: f64 = 28.0;
@@ -305,7 +311,7 @@ const PER_FACET_GLOSSY_ROUNDS: f64 = 28.0;
 /// themselves.
 ///
 /// `bytes = 64 MB + (78 + 16 (C - 1) + 8 k C [glossy rounds]) H W
-///          + (30 + 192 [refine] + 900 f(n) [direct] + 28 [glossy rounds]) n`,
+///          + (30 + 192 [refine] + 900 f(n) [direct] + 48 [glossy] + 28 [glossy rounds]) n`,
 /// with `f(n) = 1 + 0.15 log2(n / 2^20)` (at least 1) for the fill of the direct factor. "Glossy
 /// rounds" are interreflections under the glossy model: a round holds two more `f32` stacks of
 /// the images' size (the emitters, the observations less the received light) and the fits'
@@ -331,6 +337,9 @@ pub fn reconstruction(
     }
     let channels = channels.max(1) as f64;
     let mut per_pixel = PER_PIXEL + PER_CHANNEL * (channels - 1.0);
+    if options.reflectance.is_glossy() {
+        per_facet += PER_FACET_GLOSSY;
+    }
     if options.interreflections && options.reflectance.is_glossy() {
         per_pixel += 2.0 * 4.0 * lights as f64 * channels;
         per_facet += PER_FACET_GLOSSY_ROUNDS;
@@ -431,8 +440,16 @@ mod tests {
             ..plain
         };
         assert!(reconstruction(2048, 2048, 2048 * 2048, 1, 16, &direct) > 4.0 * large);
-        // Interreflections under the glossy model hold two more f32 stacks (16 lights: 128
-        // bytes a pixel) and the fits' states; under the Lambertian model they add nothing here.
+        // The glossy model holds its warm normals and kept fits; interreflections under it two
+        // more f32 stacks (16 lights: 128 bytes a pixel) and the fits' states; under the
+        // Lambertian model they add nothing here.
+        let alone = Options {
+            reflectance: Reflectance::Glossy(None),
+            ..plain
+        };
+        let extra =
+            (reconstruction(2048, 2048, 2048 * 2048, 1, 16, &alone) - large) / (2048.0 * 2048.0);
+        assert!((extra - 48.0).abs() < 1e-9, "{extra}");
         let rounds = |reflectance| Options {
             interreflections: true,
             reflectance,
@@ -456,7 +473,7 @@ mod tests {
             &rounds(Reflectance::Glossy(None)),
         );
         let extra = (glossy - large) / (2048.0 * 2048.0);
-        assert!((extra - (128.0 + 28.0)).abs() < 1e-9, "{extra}");
+        assert!((extra - (128.0 + 48.0 + 28.0)).abs() < 1e-9, "{extra}");
         // Absurd sizes give a huge number, not an overflow.
         let absurd = reconstruction(usize::MAX, usize::MAX, usize::MAX, 3, usize::MAX, &plain);
         assert!(absurd.is_finite() && absurd > 1e40);
