@@ -383,6 +383,10 @@ fn robust_lanes<const C: usize>(
     }
 }
 
+/// The normal equations of [`LANES`] facets with `C` channels: per channel `T_c` (its entries
+/// `t00 t01 t02 t11 t12 t22`) and `s_c`, one lane each.
+type Systems<const C: usize> = ([[[f64; LANES]; 6]; C], [[[f64; LANES]; 3]; C]);
+
 /// The weighted normal equations of [`LANES`] facets with `C` channels: `T_c` (its entries
 /// `t00 t01 t02 t11 t12 t22`) and `s_c` per channel, the terms of each usable light with a
 /// nonzero weight added in light order, as `Facet::accumulate` adds them (`(w r_i) r_j`,
@@ -392,7 +396,7 @@ fn accumulate_robust<const C: usize>(
     input: &RobustInput<'_>,
     values: &[[f32; LANES]],
     work: &[LightLanes],
-) -> ([[[f64; LANES]; 6]; C], [[[f64; LANES]; 3]; C]) {
+) -> Systems<C> {
     let (dark, saturation) = input.thresholds;
     let mut t = [[[0.0f64; LANES]; 6]; C];
     let mut s = [[[0.0f64; LANES]; 3]; C];
@@ -426,9 +430,7 @@ fn accumulate_robust<const C: usize>(
 /// (see the module documentation), and whether each succeeded (every `T_c` regular, the
 /// normal's length and the albedos finite and, for grey images, the albedo positive).
 #[inline(always)]
-fn solve_robust<const C: usize>(
-    (t, s): &([[[f64; LANES]; 6]; C], [[[f64; LANES]; 3]; C]),
-) -> (LaneFit, [bool; LANES]) {
+fn solve_robust<const C: usize>((t, s): &Systems<C>) -> (LaneFit, [bool; LANES]) {
     let z = [0.0f64; LANES];
     let mut ok = [true; LANES];
     let mut g = [[z; 3]; C];
