@@ -755,7 +755,11 @@ impl LocalStep<'_> {
             }
         }
         self.try_run(u, first, fits)?;
-        maps.add(self.trust_range(u, first, trust));
+        // A robust step's fits (without a lobe or indirect light) are those its trust values
+        // start from: passed on, not fitted again.
+        let s = self.settings;
+        let own = s.robust != Robust::None && s.lobe.is_none() && self.indirect.is_none();
+        maps.add(self.trust_range_of(u, first, trust, own.then_some(&*fits)));
         Ok(())
     }
 

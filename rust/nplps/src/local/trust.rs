@@ -26,7 +26,8 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use super::{
-    channel_intensity, fit_facet, usable, Facet, FitSettings, LocalStep, Robust, Weighting,
+    channel_intensity, fit_facet, usable, Facet, FacetFit, FitSettings, LocalStep, Robust,
+    Weighting,
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
@@ -170,6 +171,21 @@ impl LocalStep<'_> {
     /// The trust values of facets `first..first + out.len()` (`[normal sigma, held-out]`, see
     /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits.
     pub(super) fn trust_range(&self, u: &[f64], first: usize, out: &mut [[f32; 2]]) -> LightSums {
+        self.trust_range_of(u, first, out, None)
+    }
+
+    /// As [`LocalStep::trust_range`], with the robust fits of these facets (`fits`, one per
+    /// entry of `out`) when the caller has them: this step's own fits, without a lobe or
+    /// indirect light, which are those [`LocalStep::facet_trust`] would compute (the same
+    /// bits), so they are not computed twice.
+    pub(super) fn trust_range_of(
+        &self,
+        u: &[f64],
+        first: usize,
+        out: &mut [[f32; 2]],
+        fits: Option<&[FacetFit]>,
+    ) -> LightSums {
+        debug_assert!(fits.is_none_or(|f| f.len() == out.len()));
         let (k, channels) = (self.obs.k, self.obs.channels);
         out.par_chunks_mut(CHUNK)
             .enumerate()
@@ -181,8 +197,9 @@ impl LocalStep<'_> {
                     if self.cancel.is_cancelled() {
                         break;
                     }
-                    let f = first + chunk * CHUNK + i;
-                    *o = self.facet_trust(f, u, &mut buf, &mut rows, &mut sums);
+                    let j = chunk * CHUNK + i;
+                    let fitted = fits.map(|fits| &fits[j]);
+                    *o = self.facet_trust_of(first + j, u, &mut buf, &mut rows, &mut sums, fitted);
                 }
                 sums
             })
@@ -199,6 +216,20 @@ impl LocalStep<'_> {
         rows: &mut [[f64; 4]],
         sums: &mut LightSums,
     ) -> [f32; 2] {
+        self.facet_trust_of(f, u, buf, rows, sums, None)
+    }
+
+    /// [`LocalStep::facet_trust`] with the facet's robust fit `fitted` when the caller has it
+    /// (see [`LocalStep::trust_range_of`]; an invalid fit is the failed fit); None: fitted here.
+    fn facet_trust_of(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        rows: &mut [[f64; 4]],
+        sums: &mut LightSums,
+        fitted: Option<&FacetFit>,
+    ) -> [f32; 2] {
         let none = [f32::NAN; 2];
         let channels = self.obs.channels;
         let q = self.corners(f, u);
@@ -212,7 +243,11 @@ impl LocalStep<'_> {
                     lobe: None,
                     ..self.settings
                 };
-                let Some(fit) = fit_facet(c, self.model, values, channels, settings) else {
+                let fit = match fitted {
+                    Some(fit) => fit.valid.then_some(*fit),
+                    None => fit_facet(c, self.model, values, channels, settings),
+                };
+                let Some(fit) = fit else {
                     return none;
                 };
                 let facet = Facet {

@@ -720,6 +720,76 @@ mod tests {
         assert!(counts[3] > 500, "{counts:?}");
     }
 
+    /// The final pass of a robust step (`try_run_final`, in two ranges, one not a multiple of
+    /// the lanes) gives the fits of `try_run` and, from them, the trust maps of the scalar
+    /// `trust` (which fits every facet again): the per-facet values bit for bit, the per-light
+    /// sums up to the order of their additions; grey and colour, both estimators, with shadows.
+    #[test]
+    fn a_robust_final_pass_reuses_its_fits_for_the_trust_maps() {
+        use crate::local::TrustMaps;
+        let (grid, _, geometry) = crate::local::tests::small_masked_mesh();
+        let (h, w) = (grid.height, grid.width);
+        let lights = crate::local::tests::lights();
+        let k = lights.len();
+        let u: Vec<f64> = (0..grid.n_unknowns())
+            .map(|v| 100.0 + 0.3 * (v % 8) as f64 - 0.2 * (v / 8) as f64)
+            .collect();
+        let shadows = ShadowMask::from_fn(h, w, k, |p, j| (p + 2 * j) % 11 == 0);
+        let n = grid.n_facets();
+        let mut checked = 0;
+        for channels in [1, 3] {
+            let mut next = crate::multigrid::tests::lcg(5 + channels as u64);
+            let data: Vec<f32> = (0..k * h * w * channels)
+                .map(|i| match i % 19 {
+                    0 => 0.0,
+                    5 => f32::NAN,
+                    _ => (1e-3 * (1.0 + next()) * if next() < 0.1 { 3.0 } else { 1.0 }) as f32,
+                })
+                .collect();
+            let obs = Observations::from_stack(&data, k, h * w, channels);
+            for robust in [Robust::Cauchy, Robust::Tukey] {
+                let settings = FitSettings {
+                    robust,
+                    ..FitSettings::default()
+                };
+                let step = LocalStep {
+                    shadows: Some(&shadows),
+                    ..LocalStep::new(&grid, &geometry, Model::Near(&lights), &obs, settings)
+                };
+                let mut fits = vec![FacetFit::EMPTY; n];
+                step.run(&u, 0, &mut fits);
+                let expected = step.trust(&u).unwrap();
+                let mut maps = TrustMaps::new(&grid, k, channels).unwrap();
+                let mut final_fits = vec![FacetFit::EMPTY; n];
+                let mut values = vec![[f32::NAN; 2]; n];
+                for (first, end) in [(0, 13), (13, n)] {
+                    let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
+                    step.try_run_final(&u, first, fits, values, &mut maps)
+                        .unwrap();
+                    maps.scatter(&grid, first, values);
+                }
+                let fit_bits = |f: &[FacetFit]| f.iter().map(bits).collect::<Vec<_>>();
+                assert_eq!(fit_bits(&final_fits), fit_bits(&fits));
+                let trust = maps.finish();
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&trust.normal_sigma), bits(&expected.normal_sigma));
+                assert_eq!(bits(&trust.held_out), bits(&expected.held_out));
+                checked += trust.normal_sigma.iter().filter(|v| v.is_finite()).count();
+                for (a, b) in trust.lights.iter().zip(&expected.lights) {
+                    assert_eq!(a.facets, b.facets);
+                    for (x, y) in [
+                        (a.residual, b.residual),
+                        (a.held_out, b.held_out),
+                        (a.mean_intensity, b.mean_intensity),
+                    ] {
+                        assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
+                    }
+                }
+            }
+        }
+        assert!(checked > 4 * n / 2, "{checked} of {n}");
+    }
+
     /// Only the settings the lanes implement take them: a robust estimator with unit weights
     /// and the Lambertian model of point lights.
     #[test]
