@@ -759,7 +759,7 @@ impl LocalStep<'_> {
         // start from: passed on, not fitted again.
         let s = self.settings;
         let own = s.robust != Robust::None && s.lobe.is_none() && self.indirect.is_none();
-        maps.add(self.trust_range_of(u, first, trust, own.then_some(&*fits)));
+        maps.add(self.trust_range(u, first, trust, own.then_some(&*fits)));
         Ok(())
     }
 

@@ -162,23 +162,19 @@ impl LocalStep<'_> {
         let mut maps = TrustMaps::new(grid, self.obs.k, self.obs.channels)?;
         let mut per_facet =
             crate::memory::try_vec(grid.n_facets(), [f32::NAN; 2], "the trust maps")?;
-        let sums = self.trust_range(u, 0, &mut per_facet);
+        let sums = self.trust_range(u, 0, &mut per_facet, None);
         maps.add(sums);
         maps.scatter(grid, 0, &per_facet);
         Ok(maps.finish())
     }
 
     /// The trust values of facets `first..first + out.len()` (`[normal sigma, held-out]`, see
-    /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits.
-    pub(super) fn trust_range(&self, u: &[f64], first: usize, out: &mut [[f32; 2]]) -> LightSums {
-        self.trust_range_of(u, first, out, None)
-    }
-
-    /// As [`LocalStep::trust_range`], with the robust fits of these facets (`fits`, one per
-    /// entry of `out`) when the caller has them: this step's own fits, without a lobe or
-    /// indirect light, which are those [`LocalStep::facet_trust`] would compute (the same
-    /// bits), so they are not computed twice.
-    pub(super) fn trust_range_of(
+    /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits; with a
+    /// robust estimator, from the robust fits of these facets (`fits`, one per entry of `out`)
+    /// when the caller has them: this step's own fits, without a lobe or indirect light, which
+    /// are those [`LocalStep::facet_trust`] would compute (the same bits), so they are not
+    /// computed twice; None: fitted here.
+    pub(super) fn trust_range(
         &self,
         u: &[f64],
         first: usize,
@@ -220,7 +216,7 @@ impl LocalStep<'_> {
     }
 
     /// [`LocalStep::facet_trust`] with the facet's robust fit `fitted` when the caller has it
-    /// (see [`LocalStep::trust_range_of`]; an invalid fit is the failed fit); None: fitted here.
+    /// (see [`LocalStep::trust_range`]; an invalid fit is the failed fit); None: fitted here.
     fn facet_trust_of(
         &self,
         f: usize,
