@@ -26,7 +26,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use super::{
-    channel_intensity, fit_facet, usable, Facet, FacetFit, FitSettings, LocalStep, Robust,
+    channel_intensity, fit_facet, usable, Facet, FacetFit, FitSettings, LocalStep, Robust, Row,
     Weighting,
 };
 use crate::error::Result;
@@ -152,6 +152,27 @@ impl TrustMaps {
     }
 }
 
+thread_local! {
+    static LIGHT_ROWS: std::cell::Cell<Vec<Row>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// A thread's buffer of one facet's light rows ([`Model::row`](super::Model) of each light),
+/// taken from the thread and given back when dropped, so that the trust of a robust fit
+/// allocates nothing once the buffer has grown.
+struct LightRows(Vec<Row>);
+
+impl LightRows {
+    fn take() -> LightRows {
+        LightRows(LIGHT_ROWS.take())
+    }
+}
+
+impl Drop for LightRows {
+    fn drop(&mut self) {
+        LIGHT_ROWS.set(std::mem::take(&mut self.0));
+    }
+}
+
 impl LocalStep<'_> {
     /// The trust maps of every facet at the unknowns `u` (see the module's documentation), as
     /// per-pixel maps of the grid's image (the reconstruction computes them with its final fits,
@@ -231,10 +252,16 @@ impl LocalStep<'_> {
         let q = self.corners(f, u);
         let c = quad_centre(&q);
         let values = self.facet_values(f, buf);
+        // With a robust estimator each light's row is computed once, for the weights and the
+        // sums below (the same values as where they are used).
+        let mut light_rows = LightRows::take();
+        light_rows.0.clear();
         // With a robust estimator: its weights at the robust fit (0 leaves a light out).
         let robust = match self.settings.robust {
             Robust::None => None,
             _ => {
+                let k = values.len() / channels;
+                light_rows.0.extend((0..k).map(|k| self.model.row(k, c)));
                 let settings = FitSettings {
                     lobe: None,
                     ..self.settings
@@ -253,7 +280,7 @@ impl LocalStep<'_> {
                     channels,
                     settings,
                     indirect: None,
-                    rows: None,
+                    rows: Some(&light_rows.0),
                 };
                 match facet.robust_weights(fit.normal, fit.albedo, &mut Vec::new()) {
                     Some(weights) => Some(weights),
@@ -268,7 +295,10 @@ impl LocalStep<'_> {
         for (k, o) in values.chunks_exact(channels).enumerate() {
             let rw = robust.as_ref().map_or(1.0, |w| w[k]);
             let ok = usable(o, &self.settings) && rw > 0.0;
-            let (b, pw, phi) = self.model.row(k, c);
+            let (b, pw, phi) = match light_rows.0.get(k) {
+                Some(&row) => row,
+                None => self.model.row(k, c),
+            };
             used += ok as usize;
             for (ch, &i) in o.iter().enumerate() {
                 let row = &mut rows[k * channels + ch];
