@@ -24,6 +24,9 @@ use crate::memory::try_vec;
 use crate::reflectance::Packed;
 
 mod field;
+mod robust;
+
+pub(super) use robust::RobustScratch;
 
 impl Observations<'_> {
     /// For grey observations: the values of the facets at `pixels`, light-major and

@@ -44,7 +44,7 @@ pub(crate) use glossy::{
     estimate_lobe, estimate_starting_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
 };
 pub(crate) use glossy_indirect::GlossyState;
-use lanes::{lane_scratch, LANES};
+use lanes::{lane_scratch, RobustScratch, LANES};
 pub use trust::{LightTrust, Trust, TrustMaps};
 
 /// How the per-facet linear system weights the lights.
@@ -700,6 +700,20 @@ impl LocalStep<'_> {
                 },
             );
         }
+        if let Some(lights) = self.robust_lane_lights() {
+            let (k, channels) = (self.obs.k, self.obs.channels);
+            return fits.par_chunks_mut(LANES).enumerate().try_for_each_init(
+                || RobustScratch::new(k, channels),
+                |scratch, (chunk, fits)| {
+                    let scratch = scratch.as_mut().map_err(|e| e.clone())?;
+                    if !self.cancel.is_cancelled() {
+                        let start = first + chunk * LANES;
+                        self.fit_robust_batch(&lights, start, u, scratch, fits);
+                    }
+                    Ok(())
+                },
+            );
+        }
         fits.par_iter_mut().enumerate().try_for_each_init(
             || facet_scratch(per),
             |scratch, (i, fit)| {
@@ -772,7 +786,11 @@ impl LocalStep<'_> {
             }
         }
         let done = self.try_run_kept(u, first, fits, kept)?;
-        maps.add(self.trust_range(u, first, trust));
+        // A robust step's fits (without a lobe or indirect light) are those its trust values
+        // start from: passed on, not fitted again.
+        let s = self.settings;
+        let own = s.robust != Robust::None && s.lobe.is_none() && self.indirect.is_none();
+        maps.add(self.trust_range(u, first, trust, own.then_some(&*fits)));
         Ok(done)
     }
 
@@ -914,6 +932,31 @@ impl LocalStep<'_> {
                                 *target = fit.target;
                                 *stat = FacetStat::from(&fit);
                             }
+                        }
+                        Ok(())
+                    },
+                );
+        }
+        if let Some(lights) = self.robust_lane_lights() {
+            let (k, channels) = (self.obs.k, self.obs.channels);
+            return targets
+                .par_chunks_mut(LANES)
+                .zip(stats.par_chunks_mut(LANES))
+                .enumerate()
+                .try_for_each_init(
+                    || RobustScratch::new(k, channels),
+                    |scratch, (chunk, (targets, stats))| {
+                        let scratch = scratch.as_mut().map_err(|e| e.clone())?;
+                        if self.cancel.is_cancelled() {
+                            return Ok(());
+                        }
+                        let mut fits = [FacetFit::EMPTY; LANES];
+                        let fits = &mut fits[..targets.len()];
+                        let first = start + chunk * LANES;
+                        self.fit_robust_batch(&lights, first, u, scratch, fits);
+                        for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&*fits) {
+                            *target = fit.target;
+                            *stat = FacetStat::from(fit);
                         }
                         Ok(())
                     },
@@ -1513,8 +1556,9 @@ fn solve_sums(sums: &Sums, channels: usize) -> Option<([f64; 3], [f64; 3], [f64;
     Some((n, albedo, sum))
 }
 
-/// Robust weight of a residual `e` with scale `sigma`.
-#[inline]
+/// Robust weight of a residual `e` with scale `sigma` (inlined into the robust lanes,
+/// `lanes::robust`, where the estimator is a constant of the loop).
+#[inline(always)]
 fn robust_weight(robust: Robust, e: f64, sigma: f64) -> f64 {
     match robust {
         Robust::None => 1.0,

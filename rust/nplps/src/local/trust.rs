@@ -26,7 +26,8 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use super::{
-    channel_intensity, fit_facet, usable, Facet, FitSettings, LocalStep, Robust, Weighting,
+    channel_intensity, fit_facet, usable, Facet, FacetFit, FitSettings, LocalStep, Robust, Row,
+    Weighting,
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
@@ -151,6 +152,27 @@ impl TrustMaps {
     }
 }
 
+thread_local! {
+    static LIGHT_ROWS: std::cell::Cell<Vec<Row>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// A thread's buffer of one facet's light rows ([`Model::row`](super::Model) of each light),
+/// taken from the thread and given back when dropped, so that the trust of a robust fit
+/// allocates nothing once the buffer has grown.
+struct LightRows(Vec<Row>);
+
+impl LightRows {
+    fn take() -> LightRows {
+        LightRows(LIGHT_ROWS.take())
+    }
+}
+
+impl Drop for LightRows {
+    fn drop(&mut self) {
+        LIGHT_ROWS.set(std::mem::take(&mut self.0));
+    }
+}
+
 impl LocalStep<'_> {
     /// The trust maps of every facet at the unknowns `u` (see the module's documentation), as
     /// per-pixel maps of the grid's image (the reconstruction computes them with its final fits,
@@ -161,15 +183,26 @@ impl LocalStep<'_> {
         let mut maps = TrustMaps::new(grid, self.obs.k, self.obs.channels)?;
         let mut per_facet =
             crate::memory::try_vec(grid.n_facets(), [f32::NAN; 2], "the trust maps")?;
-        let sums = self.trust_range(u, 0, &mut per_facet);
+        let sums = self.trust_range(u, 0, &mut per_facet, None);
         maps.add(sums);
         maps.scatter(grid, 0, &per_facet);
         Ok(maps.finish())
     }
 
     /// The trust values of facets `first..first + out.len()` (`[normal sigma, held-out]`, see
-    /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits.
-    pub(super) fn trust_range(&self, u: &[f64], first: usize, out: &mut [[f32; 2]]) -> LightSums {
+    /// [`LocalStep::facet_trust`]) and their per-light sums, with the scalar fits; with a
+    /// robust estimator, from the robust fits of these facets (`fits`, one per entry of `out`)
+    /// when the caller has them: this step's own fits, without a lobe or indirect light, which
+    /// are those [`LocalStep::facet_trust`] would compute (the same bits), so they are not
+    /// computed twice; None: fitted here.
+    pub(super) fn trust_range(
+        &self,
+        u: &[f64],
+        first: usize,
+        out: &mut [[f32; 2]],
+        fits: Option<&[FacetFit]>,
+    ) -> LightSums {
+        debug_assert!(fits.is_none_or(|f| f.len() == out.len()));
         let (k, channels) = (self.obs.k, self.obs.channels);
         out.par_chunks_mut(CHUNK)
             .enumerate()
@@ -181,8 +214,9 @@ impl LocalStep<'_> {
                     if self.cancel.is_cancelled() {
                         break;
                     }
-                    let f = first + chunk * CHUNK + i;
-                    *o = self.facet_trust(f, u, &mut buf, &mut rows, &mut sums);
+                    let j = chunk * CHUNK + i;
+                    let fitted = fits.map(|fits| &fits[j]);
+                    *o = self.facet_trust_of(first + j, u, &mut buf, &mut rows, &mut sums, fitted);
                 }
                 sums
             })
@@ -199,20 +233,44 @@ impl LocalStep<'_> {
         rows: &mut [[f64; 4]],
         sums: &mut LightSums,
     ) -> [f32; 2] {
+        self.facet_trust_of(f, u, buf, rows, sums, None)
+    }
+
+    /// [`LocalStep::facet_trust`] with the facet's robust fit `fitted` when the caller has it
+    /// (see [`LocalStep::trust_range`]; an invalid fit is the failed fit); None: fitted here.
+    fn facet_trust_of(
+        &self,
+        f: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        rows: &mut [[f64; 4]],
+        sums: &mut LightSums,
+        fitted: Option<&FacetFit>,
+    ) -> [f32; 2] {
         let none = [f32::NAN; 2];
         let channels = self.obs.channels;
         let q = self.corners(f, u);
         let c = quad_centre(&q);
         let values = self.facet_values(f, buf);
+        // With a robust estimator each light's row is computed once, for the weights and the
+        // sums below (the same values as where they are used).
+        let mut light_rows = LightRows::take();
+        light_rows.0.clear();
         // With a robust estimator: its weights at the robust fit (0 leaves a light out).
         let robust = match self.settings.robust {
             Robust::None => None,
             _ => {
+                let k = values.len() / channels;
+                light_rows.0.extend((0..k).map(|k| self.model.row(k, c)));
                 let settings = FitSettings {
                     lobe: None,
                     ..self.settings
                 };
-                let Some(fit) = fit_facet(c, self.model, values, channels, settings) else {
+                let fit = match fitted {
+                    Some(fit) => fit.valid.then_some(*fit),
+                    None => fit_facet(c, self.model, values, channels, settings),
+                };
+                let Some(fit) = fit else {
                     return none;
                 };
                 let facet = Facet {
@@ -222,7 +280,7 @@ impl LocalStep<'_> {
                     channels,
                     settings,
                     indirect: None,
-                    rows: None,
+                    rows: Some(&light_rows.0),
                 };
                 match facet.robust_weights(fit.normal, fit.albedo, &mut Vec::new()) {
                     Some(weights) => Some(weights),
@@ -237,7 +295,10 @@ impl LocalStep<'_> {
         for (k, o) in values.chunks_exact(channels).enumerate() {
             let rw = robust.as_ref().map_or(1.0, |w| w[k]);
             let ok = usable(o, &self.settings) && rw > 0.0;
-            let (b, pw, phi) = self.model.row(k, c);
+            let (b, pw, phi) = match light_rows.0.get(k) {
+                Some(&row) => row,
+                None => self.model.row(k, c),
+            };
             used += ok as usize;
             for (ch, &i) in o.iter().enumerate() {
                 let row = &mut rows[k * channels + ch];
