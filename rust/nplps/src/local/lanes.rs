@@ -1171,20 +1171,6 @@ mod tests {
             maps.scatter(&grid, first, values);
         }
         assert_eq!(final_fits, fits);
-        let trust = maps.finish();
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        assert_eq!(bits(&trust.normal_sigma), bits(&expected.normal_sigma));
-        assert_eq!(bits(&trust.held_out), bits(&expected.held_out));
-        assert!(trust.normal_sigma.iter().any(|v| v.is_finite()));
-        for (a, b) in trust.lights.iter().zip(&expected.lights) {
-            assert_eq!(a.facets, b.facets);
-            for (x, y) in [
-                (a.residual, b.residual),
-                (a.held_out, b.held_out),
-                (a.mean_intensity, b.mean_intensity),
-            ] {
-                assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
-            }
-        }
+        assert!(maps.finish().assert_matches(&expected) > 0);
     }
 }

@@ -49,6 +49,29 @@ pub struct Trust {
     pub lights: Vec<LightTrust>,
 }
 
+#[cfg(test)]
+impl Trust {
+    /// Test helper: the per-facet maps of a final pass equal `expected`'s bit for bit and its
+    /// per-light figures within 1e-12 (relative; their sums add in another order); returns how
+    /// many facets have a finite normal sigma.
+    pub(crate) fn assert_matches(&self, expected: &Trust) -> usize {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&self.normal_sigma), bits(&expected.normal_sigma));
+        assert_eq!(bits(&self.held_out), bits(&expected.held_out));
+        for (a, b) in self.lights.iter().zip(&expected.lights) {
+            assert_eq!(a.facets, b.facets);
+            for (x, y) in [
+                (a.residual, b.residual),
+                (a.held_out, b.held_out),
+                (a.mean_intensity, b.mean_intensity),
+            ] {
+                assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
+            }
+        }
+        self.normal_sigma.iter().filter(|v| v.is_finite()).count()
+    }
+}
+
 /// One light's residuals over the facets that used it (and had at least 4 usable lights).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[non_exhaustive]

@@ -786,21 +786,7 @@ mod tests {
                 }
                 let fit_bits = |f: &[FacetFit]| f.iter().map(bits).collect::<Vec<_>>();
                 assert_eq!(fit_bits(&final_fits), fit_bits(&fits));
-                let trust = maps.finish();
-                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                assert_eq!(bits(&trust.normal_sigma), bits(&expected.normal_sigma));
-                assert_eq!(bits(&trust.held_out), bits(&expected.held_out));
-                checked += trust.normal_sigma.iter().filter(|v| v.is_finite()).count();
-                for (a, b) in trust.lights.iter().zip(&expected.lights) {
-                    assert_eq!(a.facets, b.facets);
-                    for (x, y) in [
-                        (a.residual, b.residual),
-                        (a.held_out, b.held_out),
-                        (a.mean_intensity, b.mean_intensity),
-                    ] {
-                        assert!((x - y).abs() <= 1e-12 * y.abs(), "{a:?} {b:?}");
-                    }
-                }
+                checked += maps.finish().assert_matches(&expected);
             }
         }
         assert!(checked > 4 * n / 2, "{checked} of {n}");
