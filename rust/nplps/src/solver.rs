@@ -1770,7 +1770,7 @@ impl<'p> Solver<'p> {
         for first in (0..n).step_by(FINAL_CHUNK) {
             let len = (n - first).min(FINAL_CHUNK);
             let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
-            let kept = step.try_run_final_kept(
+            let kept = step.try_run_final(
                 u,
                 first,
                 chunk,

@@ -1166,7 +1166,7 @@ mod tests {
         for (first, end) in [(0, split), (split, n)] {
             let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
             exact
-                .try_run_final(&u, first, fits, values, &mut maps)
+                .try_run_final(&u, first, fits, values, &mut maps, None)
                 .unwrap();
             maps.scatter(&grid, first, values);
         }

@@ -727,20 +727,6 @@ impl LocalStep<'_> {
         )
     }
 
-    /// [`LocalStep::try_run_final_kept`] keeping no fits.
-    #[cfg(test)]
-    pub fn try_run_final(
-        &self,
-        u: &[f64],
-        first: usize,
-        fits: &mut [FacetFit],
-        trust: &mut [[f32; 2]],
-        maps: &mut TrustMaps,
-    ) -> Result<()> {
-        self.try_run_final_kept(u, first, fits, trust, maps, None)
-            .map(|_| ())
-    }
-
     /// The final pass over facets `first..first + fits.len()` on `u`: their fits, as
     /// [`LocalStep::try_run`], and their trust values `[normal sigma, held-out]` into `trust`
     /// (same length), as the `trust` module defines them, whose per-light sums it adds to
@@ -758,7 +744,7 @@ impl LocalStep<'_> {
     ///
     /// Under the glossy model, with `kept`, the facets that did not move since their last
     /// converged glossy fit keep it (see [`LocalStep::try_run_kept`]); returns how many did.
-    pub fn try_run_final_kept(
+    pub fn try_run_final(
         &self,
         u: &[f64],
         first: usize,
@@ -1904,7 +1890,7 @@ mod tests {
             let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
             let mut values = vec![[f32::NAN; 2]; n];
             let kept_final = final_step
-                .try_run_final_kept(&u, 0, &mut fits, &mut values, &mut maps, Some(&kept))
+                .try_run_final(&u, 0, &mut fits, &mut values, &mut maps, Some(&kept))
                 .unwrap();
             assert!(kept_final > n / 2, "{kept_final} of {n}");
             final_step.run(&u, 0, &mut refits);
@@ -2059,7 +2045,7 @@ mod tests {
             let split = 13;
             for (first, end) in [(0, split), (split, n)] {
                 let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
-                step.try_run_final(&u, first, fits, values, &mut maps)
+                step.try_run_final(&u, first, fits, values, &mut maps, None)
                     .unwrap();
                 maps.scatter(&grid, first, values);
             }

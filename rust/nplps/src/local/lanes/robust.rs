@@ -780,7 +780,7 @@ mod tests {
                 let mut values = vec![[f32::NAN; 2]; n];
                 for (first, end) in [(0, 13), (13, n)] {
                     let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
-                    step.try_run_final(&u, first, fits, values, &mut maps)
+                    step.try_run_final(&u, first, fits, values, &mut maps, None)
                         .unwrap();
                     maps.scatter(&grid, first, values);
                 }
