@@ -800,7 +800,7 @@ impl LocalStep<'_> {
                     } else {
                         for (i, (fit, out)) in fits.iter_mut().zip(out).enumerate() {
                             *fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
-                            *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums);
+                            *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums, None);
                         }
                     }
                 }

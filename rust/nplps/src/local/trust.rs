@@ -239,7 +239,7 @@ impl LocalStep<'_> {
                     }
                     let j = chunk * CHUNK + i;
                     let fitted = fits.map(|fits| &fits[j]);
-                    *o = self.facet_trust_of(first + j, u, &mut buf, &mut rows, &mut sums, fitted);
+                    *o = self.facet_trust(first + j, u, &mut buf, &mut rows, &mut sums, fitted);
                 }
                 sums
             })
@@ -247,21 +247,10 @@ impl LocalStep<'_> {
     }
 
     /// `[normal sigma (degrees), mean |leave-one-out residual|]` of facet `f`, adding its
-    /// lights' residuals to `sums`; `buf` and `rows` are scratch (k * channels each).
+    /// lights' residuals to `sums`; `buf` and `rows` are scratch (k * channels each). With a
+    /// robust estimator, `fitted` is the facet's robust fit when the caller has it (see
+    /// [`LocalStep::trust_range`]; an invalid fit is the failed fit); None: fitted here.
     pub(super) fn facet_trust(
-        &self,
-        f: usize,
-        u: &[f64],
-        buf: &mut [f32],
-        rows: &mut [[f64; 4]],
-        sums: &mut LightSums,
-    ) -> [f32; 2] {
-        self.facet_trust_of(f, u, buf, rows, sums, None)
-    }
-
-    /// [`LocalStep::facet_trust`] with the facet's robust fit `fitted` when the caller has it
-    /// (see [`LocalStep::trust_range`]; an invalid fit is the failed fit); None: fitted here.
-    fn facet_trust_of(
         &self,
         f: usize,
         u: &[f64],
