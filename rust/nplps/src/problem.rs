@@ -552,13 +552,7 @@ mod tests {
     #[test]
     fn negative_observations_are_counted_per_masked_sample() {
         let (k, h, w) = (5, 150, 130);
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 33) as f64 / (1u64 << 31) as f64
-        };
+        let mut next = crate::multigrid::tests::lcg(0x9e37_79b9_7f4a_7c15);
         let holes: Vec<bool> = (0..h * w).map(|_| next() > 0.3).collect();
         for c in [1, 3] {
             let data: Vec<f32> = (0..k * h * w * c)

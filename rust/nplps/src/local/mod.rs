@@ -2237,13 +2237,7 @@ mod tests {
         let mut l = lights();
         l.extend([[15.0, 15.0, 30.0], [-25.0, -5.0, 35.0], [5.0, -30.0, 25.0]].map(Light::point));
         let c = [1.0, -2.0, 100.0];
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut uniform = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut uniform = crate::multigrid::tests::lcg(0x2545_f491_4f6c_dd1d);
         let mut cases = 0;
         for seed in 0..12 {
             let lights = &l[..[l.len(), 5, l.len() - 1][seed % 3]];
