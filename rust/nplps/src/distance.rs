@@ -373,8 +373,8 @@ const WINDOW_INNER: usize = 5;
 /// window) runs on a coarser level of at most `SEARCH_SIDE` pixels a side, whose surface then
 /// starts the search's level; there a window [`NARROW_WIDTH`] either side of the estimate
 /// gives the distance to `search.precision` (glossy with the lobe estimated: the window
-/// [`PROFILE_WIDTH`] with the lobe estimated per candidate, to [`BRACKET_PRECISION`], then
-/// [`alternate`]).
+/// [`PROFILE_WIDTH`] with the lobe estimated per candidate, to [`BRACKET_PRECISION`], on the
+/// coarser level too, see [`search_coarser`]; then [`alternate`] on the search's level).
 fn search_stages(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
@@ -440,9 +440,14 @@ fn search_stages(
             };
             // Criteria are compared on this level only.
             count.lowest = f64::NAN;
-            search_window(
-                solver, problem, &bracket, range, wide, window, &mut count, progress,
-            )
+            // On a level larger than `SEARCH_SIDE` the profile window ran on the coarser level
+            // already (see [`search_coarser`]).
+            match halvings > 0 {
+                true => Ok(wide),
+                false => search_window(
+                    solver, problem, &bracket, range, wide, window, &mut count, progress,
+                ),
+            }
             .and_then(|profiled| {
                 alternate(
                     solver, problem, search, range, profiled, &mut count, progress,
@@ -506,7 +511,17 @@ fn halvings_to(height: usize, width: usize, side: usize) -> usize {
 
 /// The wide search on the level `halvings` below `problem`'s (see [`search_stages`]): its
 /// estimate per region of `problem` (that of the coarse region holding the region's pinned
-/// vertex) and its surface carried up to `problem` (not gauged).
+/// vertex) and its surface carried up to `problem` (not gauged). Under the glossy model with
+/// the lobe estimated, the profile window ([`PROFILE_WIDTH`], the lobe estimated per candidate)
+/// refines the wide estimate on this level too, and the estimate carried up is the window's.
+///
+/// Why the profile window runs here: it only brackets the distance (its candidates are 5 %
+/// apart) for the held stages of [`alternate`] on the search's own level, which refine it to
+/// the search's precision. A candidate of 15 iterations, two lobe estimates among them, costs a
+/// quarter as much on the 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
+/// 0.75 CPU s), and its criterion there brackets the same distance (the bumps' 7 candidates:
+/// residuals within 5 % of the 128² level's, the same lowest candidate). Until stop 49 the
+/// window ran on the search's level, 40 % of the search's cost.
 #[allow(clippy::too_many_arguments)]
 fn search_coarser(
     solver: &mut Solver<'_>,
@@ -528,6 +543,7 @@ fn search_coarser(
     let mut sub = Solver::new(level, &options)?;
     sub.start = solver.start;
     let saved = begin_search(&mut sub);
+    let profile = sub.estimates_lobe();
     let found = hold_lobe(&mut sub, level, (range.0 * range.1).sqrt(), wide.inner)
         .and_then(|()| {
             let u = level.u0.to_vec("the depths")?;
@@ -537,7 +553,23 @@ fn search_coarser(
             };
             search_refined(&mut sub, level, &wide, range, u, count, progress)
         })
-        .and_then(|searched| searched.found(range));
+        .and_then(|searched| searched.found(range))
+        .and_then(|found| match profile {
+            // The glossy profile window on this level too (see [`search_coarser`]); its
+            // criteria are compared among themselves.
+            true => {
+                count.lowest = f64::NAN;
+                let window = Window {
+                    scan: PROFILE_SCAN,
+                    width: PROFILE_WIDTH,
+                    moves: PROFILE_MOVES,
+                    lobe: true,
+                    coarser: false,
+                };
+                search_window(&mut sub, level, wide, range, found, window, count, progress)
+            }
+            false => Ok(found),
+        });
     end_search(&mut sub, saved);
     let (estimate, mut u) = found?;
     drop(sub);
@@ -610,6 +642,23 @@ const ALTERNATION_PRECISION: f64 = 2e-3;
 /// falling through six moves of the window to the far end of the range, and a stage that
 /// moved 11 % there took the distance from 209 to 233 (the authors give 200-230).
 const ALTERNATION_MOVES: usize = 1;
+
+/// The half-width, as a factor of the distance, of the window of a held stage under a lobe
+/// given to it (the index walk's and the retro stage's, see [`held_stage`]); it moves at most
+/// [`GIVEN_LOBE_MOVES`] times, so that it reaches `1.01^7 = 1.072` either side of its start, as
+/// far as the alternation's window (`1.03^3 = 1.093`) within a fifth.
+///
+/// Why: such a stage starts from the distance of the best stage so far, a minimum under a
+/// neighbouring lobe to within the search's precision; the walk's steps moved the distance by
+/// 0.05-0.5 % on the PBR renders (see [`index_walk`]). The alternation's window (3 %) spent two
+/// of its three scan candidates 3 % away, where the criterion was 40-200 times its minimum,
+/// and the refinement one more to come back (the glossy bumps at 256²: 7 candidates a stage,
+/// 6 with this window).
+const GIVEN_LOBE_WIDTH: f64 = 1.01;
+
+/// How many times the window of [`GIVEN_LOBE_WIDTH`] may move to an end where the residual
+/// keeps falling.
+const GIVEN_LOBE_MOVES: usize = 3;
 
 /// Refines the estimate of a glossy profile window ([`search_window`] with `lobe`) by
 /// alternation between lobe and distance: a stage estimates the lobe afresh by a run at the
@@ -865,12 +914,21 @@ fn held_stage(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Option<(DistanceEstimate, Vec<f64>)>> {
-    let window = Window {
-        scan: NARROW_SCAN,
-        width: NARROW_WIDTH,
-        moves: ALTERNATION_MOVES,
-        lobe: false,
-        coarser: false,
+    let window = match lobe {
+        None => Window {
+            scan: NARROW_SCAN,
+            width: NARROW_WIDTH,
+            moves: ALTERNATION_MOVES,
+            lobe: false,
+            coarser: false,
+        },
+        Some(_) => Window {
+            scan: NARROW_SCAN,
+            width: GIVEN_LOBE_WIDTH,
+            moves: GIVEN_LOBE_MOVES,
+            lobe: false,
+            coarser: false,
+        },
     };
     let narrow = DistanceSearch {
         inner: search.inner.min(WINDOW_INNER),
@@ -1093,6 +1151,11 @@ fn level_ratio(window: &[(f64, f64)], wide: &[(f64, f64)], centre: f64) -> f64 {
 /// (the caller releases it): the one estimated by a run at `distance` (the middle of the
 /// search's range, or the distance checked) with at least `inner` iterations. The final run
 /// of a search estimates it again at the distance found.
+///
+/// (Stop 49: with `LOBE_AT[1]` iterations for the search's runs, the lobe being estimated at
+/// the iterations `LOBE_AT` and the run's surface dropped, the candidates after agreed with
+/// those of 15 iterations to 1e-7 in their residuals on the glossy bumps, but the PBR shadows
+/// principled 0.3 block's search ended at +1.45 % instead of -0.28 %: not kept.)
 fn hold_lobe(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
@@ -1917,6 +1980,27 @@ mod tests {
         assert_eq!(lower(2.0, f64::NAN), 2.0);
         assert_eq!(lower(2.0, 1.0), 1.0);
         assert!(lower(f64::NAN, f64::NAN).is_nan());
+    }
+
+    /// A window of half-width `w` that may move `m` times to an end reaches `w^(2m + 1)` either
+    /// side of its start (each move centres it on the last window's end). The held stages
+    /// under a given lobe ([`GIVEN_LOBE_WIDTH`], [`GIVEN_LOBE_MOVES`]) reach beyond the
+    /// profile's bracket (its candidates 5 % apart) and at most as far as the alternation's
+    /// stages ([`NARROW_WIDTH`], [`ALTERNATION_MOVES`]), which the hehe12 capture bounds (see
+    /// [`ALTERNATION_MOVES`]); their first window is narrower than the alternation's.
+    #[test]
+    fn the_given_lobe_window_reaches_the_profile_bracket() {
+        let reach = |w: f64, m: usize| w.powi(2 * m as i32 + 1);
+        let given = reach(GIVEN_LOBE_WIDTH, GIVEN_LOBE_MOVES);
+        let alternation = reach(NARROW_WIDTH, ALTERNATION_MOVES);
+        assert!(given > 1.05, "{given}");
+        assert!(given <= alternation, "{given} {alternation}");
+        // Its first window is narrower, its scan the ends and the middle, at most 1 % out.
+        const {
+            assert!(GIVEN_LOBE_WIDTH < NARROW_WIDTH);
+            assert!(NARROW_SCAN == 3);
+            assert!(GIVEN_LOBE_WIDTH - 1.0 <= 0.01 + 1e-12);
+        }
     }
 
     /// The index walk steps on while a stage lowers the criterion, upwards first, downwards
