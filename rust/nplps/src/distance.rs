@@ -442,22 +442,24 @@ fn search_stages(
             count.lowest = f64::NAN;
             // On a level larger than `SEARCH_SIDE` the profile window ran on the coarser level
             // already (see [`search_coarser`]).
-            match halvings > 0 {
-                true => Ok(wide),
-                false => search_window(
+            let profiled = if halvings > 0 {
+                Ok(wide)
+            } else {
+                search_window(
                     solver, problem, &bracket, range, wide, window, &mut count, progress,
-                ),
-            }
-            .and_then(|profiled| {
-                alternate(
-                    solver, problem, search, range, profiled, &mut count, progress,
                 )
-            })
-            .and_then(|(estimate, _)| {
-                solver.lobe = None;
-                solver.hold_lobe = false;
-                Ok((estimate, problem.u0.to_vec("the depths")?))
-            })
+            };
+            profiled
+                .and_then(|profiled| {
+                    alternate(
+                        solver, problem, search, range, profiled, &mut count, progress,
+                    )
+                })
+                .and_then(|(estimate, _)| {
+                    solver.lobe = None;
+                    solver.hold_lobe = false;
+                    Ok((estimate, problem.u0.to_vec("the depths")?))
+                })
         }
         Ok((wide, mut u)) if halvings > 0 => {
             // The coarser level's surface converges at its distance on this level first; the
@@ -554,21 +556,21 @@ fn search_coarser(
             search_refined(&mut sub, level, &wide, range, u, count, progress)
         })
         .and_then(|searched| searched.found(range))
-        .and_then(|found| match profile {
+        .and_then(|found| {
+            if !profile {
+                return Ok(found);
+            }
             // The glossy profile window on this level too (see [`search_coarser`]); its
             // criteria are compared among themselves.
-            true => {
-                count.lowest = f64::NAN;
-                let window = Window {
-                    scan: PROFILE_SCAN,
-                    width: PROFILE_WIDTH,
-                    moves: PROFILE_MOVES,
-                    lobe: true,
-                    coarser: false,
-                };
-                search_window(&mut sub, level, wide, range, found, window, count, progress)
-            }
-            false => Ok(found),
+            count.lowest = f64::NAN;
+            let window = Window {
+                scan: PROFILE_SCAN,
+                width: PROFILE_WIDTH,
+                moves: PROFILE_MOVES,
+                lobe: true,
+                coarser: false,
+            };
+            search_window(&mut sub, level, wide, range, found, window, count, progress)
         });
     end_search(&mut sub, saved);
     let (estimate, mut u) = found?;
