@@ -1824,10 +1824,14 @@ impl IndirectField {
                     sum[c] += weight * f64::from(v[c]);
                 }
             }
-            *o = match total != 1.0 {
-                true => sum.map(|x| x / total),
-                false => sum,
-            };
+            *o = sum;
+        }
+        // (a pass of its own: within the loop above the division was computed for every value
+        // and then dropped where the weights sum to 1)
+        if total != 1.0 {
+            for o in out.iter_mut() {
+                *o = o.map(|x| x / total);
+            }
         }
     }
 
