@@ -1748,7 +1748,7 @@ impl IndirectField {
 
     /// [`IndirectField::at`] into `out` (resized to `k C`).
     pub fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
-        // (every value is written below: the old ones are not cleared)
+        out.clear();
         out.resize(self.per, [0.0; 3]);
         let f = self.factor as f64;
         let y = ((p / width) as f64 + 0.5) / f - 0.5;
@@ -1770,17 +1770,18 @@ impl IndirectField {
             }
         }
         if total > 0.0 {
-            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order, each
-            // value written once (one pass over the values, the cells' sums in registers:
-            // the same sums in the same order as a pass per cell, so the same bits; test
-            // `one_pass_interpolation_matches_the_pass_per_cell`), the division skipped where
-            // the weights sum to exactly 1, as they do inside the grid for a power-of-two
-            // factor (the same bits).
-            match used {
-                4 => self.blend(&cells, total, out),
-                3 => self.blend(&cells[..3], total, out),
-                2 => self.blend(&cells[..2], total, out),
-                _ => self.blend(&cells[..1], total, out),
+            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass
+            // over a cell's contiguous values at a time (which vectorises; the same sums in the
+            // same order as a pass over the cells per value, so the same bits), the division
+            // skipped where the weights sum to exactly 1, as they do inside the grid for a
+            // power-of-two factor (the same bits).
+            for &(pc, weight) in &cells[..used] {
+                self.add(pc, weight, out);
+            }
+            if total != 1.0 {
+                for o in out.iter_mut() {
+                    *o = o.map(|x| x / total);
+                }
             }
             return;
         }
@@ -1792,7 +1793,6 @@ impl IndirectField {
             .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
             .filter_map(|(dr, dc)| self.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
             .min_by_key(|&(d, _)| d);
-        out.fill([0.0; 3]);
         if let Some((_, pc)) = nearest {
             self.add(pc, 1.0, out);
         }
@@ -1803,36 +1803,6 @@ impl IndirectField {
         let inside = r >= 0 && c >= 0 && (r as usize) < self.height && (c as usize) < self.width;
         let pc = inside.then(|| r as usize * self.width + c as usize)?;
         self.valid[pc].then_some(pc)
-    }
-
-    /// `out[j] = (0 + w_a v_a[j] + w_b v_b[j] + ...) / total` over the coarse facets and
-    /// weights `cells` in their order (the division skipped when `total` is 1), for every
-    /// value `j` of the facets' vectors `v` (`out` already holds `k C` values). Inlined per
-    /// length of `cells`, so the cells' loop unrolls.
-    #[inline(always)]
-    fn blend(&self, cells: &[(usize, f64)], total: f64, out: &mut [[f64; 3]]) {
-        let per = self.per;
-        let rows: [&[[f32; 3]]; 4] = std::array::from_fn(|i| {
-            let pc = cells.get(i).map_or(cells[0].0, |c| c.0);
-            &self.vectors[pc * per..(pc + 1) * per]
-        });
-        for (j, o) in out.iter_mut().enumerate() {
-            let mut sum = [0.0f64; 3];
-            for (i, &(_, weight)) in cells.iter().enumerate() {
-                let v = rows[i][j];
-                for c in 0..3 {
-                    sum[c] += weight * f64::from(v[c]);
-                }
-            }
-            *o = sum;
-        }
-        // (a pass of its own: within the loop above the division was computed for every value
-        // and then dropped where the weights sum to 1)
-        if total != 1.0 {
-            for o in out.iter_mut() {
-                *o = o.map(|x| x / total);
-            }
-        }
     }
 
     /// Adds `weight` times the vectors of coarse facet `pc` to `out`.
@@ -2229,96 +2199,6 @@ impl Margin<'_> {
 mod tests {
     use super::*;
     use crate::rig::Camera;
-
-    /// The lookup as it was up to stop 48: one pass over the values per coarse facet, added
-    /// into zeros, then divided where the weights do not sum to 1.
-    fn at_per_cell(field: &IndirectField, p: usize, width: usize) -> Vec<[f64; 3]> {
-        let mut out = vec![[0.0; 3]; field.per];
-        let f = field.factor as f64;
-        let y = ((p / width) as f64 + 0.5) / f - 0.5;
-        let x = ((p % width) as f64 + 0.5) / f - 0.5;
-        let (y0, x0) = (y.floor(), x.floor());
-        let (ty, tx) = (y - y0, x - x0);
-        let mut total = 0.0;
-        for (dy, wy) in [(0, 1.0 - ty), (1, ty)] {
-            for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
-                let weight = wy * wx;
-                let cell = field.cell(y0 as i64 + dy, x0 as i64 + dx);
-                if let Some(pc) = cell.filter(|_| weight > 0.0) {
-                    field.add(pc, weight, &mut out);
-                    total += weight;
-                }
-            }
-        }
-        if total > 0.0 {
-            if total != 1.0 {
-                for o in out.iter_mut() {
-                    *o = o.map(|x| x / total);
-                }
-            }
-            return out;
-        }
-        let (r, c) = (
-            (p / width / field.factor) as i64,
-            (p % width / field.factor) as i64,
-        );
-        let nearest = (-2i64..=2)
-            .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
-            .filter_map(|(dr, dc)| field.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
-            .min_by_key(|&(d, _)| d);
-        if let Some((_, pc)) = nearest {
-            field.add(pc, 1.0, &mut out);
-        }
-        out
-    }
-
-    /// The one-pass lookup ([`IndirectField::at_into`]) gives the bits of the pass per coarse
-    /// facet, over every fine pixel of fields of random vectors (signs mixed, some zero) with
-    /// random facets left out (interiors, borders, pixels with one to four cells and none),
-    /// factors 1 to 8 and 1 to 3 lights and channels, several seeds; and a reused output
-    /// buffer of another length or old values changes nothing.
-    #[test]
-    fn one_pass_interpolation_matches_the_pass_per_cell() {
-        for seed in 0..12u64 {
-            let mut rnd = crate::multigrid::tests::lcg(seed);
-            let factor = [1, 2, 4, 8, 3, 2][seed as usize % 6];
-            let (hc, wc) = (2 + seed as usize % 5, 3 + seed as usize % 4);
-            let per = 1 + seed as usize % 3 * 2;
-            let dropped = [0.0, 0.2, 0.6, 0.9][seed as usize % 4];
-            let vectors: Vec<[f32; 3]> = (0..hc * wc * per)
-                .map(|_| {
-                    std::array::from_fn(|_| match rnd() < 0.1 {
-                        true => 0.0,
-                        false => (rnd() * 2.0 - 1.0) as f32 * 10f32.powi((rnd() * 6.0) as i32 - 3),
-                    })
-                })
-                .collect();
-            let valid: Vec<bool> = (0..hc * wc).map(|_| rnd() >= dropped).collect();
-            let field = IndirectField {
-                factor,
-                height: hc,
-                width: wc,
-                per,
-                vectors,
-                valid,
-                pairs: 0,
-                unlit: Vec::new(),
-                hidden: Vec::new(),
-                words: 0,
-                margin: None,
-                sightlines: None,
-            };
-            let (h, w) = (hc * factor + seed as usize % 2, wc * factor);
-            let mut out = vec![[7.0; 3]; per + 3];
-            for p in 0..h * w {
-                field.at_into(p, w, &mut out);
-                let want = at_per_cell(&field, p, w);
-                let bits =
-                    |v: &[[f64; 3]]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
-                assert_eq!(bits(&out), bits(&want), "seed {seed} pixel {p}");
-            }
-        }
-    }
 
     fn ortho() -> Camera {
         Camera::Orthographic {
