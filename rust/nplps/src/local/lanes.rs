@@ -637,51 +637,48 @@ fn final_residuals(
     let mut trust_sse = [0.0f64; LANES];
     let mut loo_sum = [0.0f64; LANES];
     let mut loo_count = [0.0f64; LANES];
-    let (inv, g) = (&solved.inverse, &solved.g);
+    let (inv, g, active) = (&solved.inverse, &solved.g, &solved.active);
+    // The normals one row per component (the lanes of a component side by side).
+    let normals: [[f64; LANES]; 3] = crate::lanes(|j| crate::lanes(|l| fits.normals[l][j]));
+    let albedo = &fits.albedo;
     for (((light, v), row), sum) in lights.iter().zip(values).zip(rows).zip(sums) {
         let p = light.grey;
-        let (i, ok) = lane_values(v, dark, saturation);
-        let [b0, b1, b2] = *row;
-        let nb: [f64; LANES] = crate::lanes(|l| {
-            let n = fits.normals[l];
-            n[0] * b0[l] + n[1] * b1[l] + n[2] * b2[l]
-        });
+        let [b0, b1, b2] = row;
+        // The light's running sums in locals, written back whole; the conditions combined with
+        // `&` (no short circuit) and the terms chosen by `select_unpredictable`, not by `if`:
+        // branches that the compiler turned into pairs of masked stores, with the sums on the
+        // stack, whose loads the next light's additions waited for (most of the time of this
+        // function).
+        let mut s = *sum;
+        let pick = |c: bool, x: f64| std::hint::select_unpredictable(c, x, 0.0);
         for l in 0..LANES {
-            let e = fits.albedo[l] * p * nb[l] - i[l];
-            sse[l] += if ok[l] { e * e } else { 0.0 };
+            let i = v[l] as f64;
+            let ok = (i > dark) & (i < saturation);
+            let nb = normals[0][l] * b0[l] + normals[1][l] * b1[l] + normals[2][l] * b2[l];
+            let fit_e = albedo[l] * p * nb - i;
+            sse[l] += pick(ok, fit_e * fit_e);
+            let (r0, r1, r2) = (b0[l] * p, b1[l] * p, b2[l] * p);
+            let e = i - (r0 * g[0][l] + r1 * g[1][l] + r2 * g[2][l]);
+            let ir0 = inv[0][l] * r0 + inv[1][l] * r1 + inv[2][l] * r2;
+            let ir1 = inv[3][l] * r0 + inv[4][l] * r1 + inv[5][l] * r2;
+            let ir2 = inv[6][l] * r0 + inv[7][l] * r1 + inv[8][l] * r2;
+            let h = r0 * ir0 + r1 * ir1 + r2 * ir2;
+            let loo = e / (1.0 - h);
+            // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
+            // non-negative terms changes no bit); the light's terms are added to its running
+            // sums lane by lane (no horizontal sum per batch).
+            let used = ok & active[l];
+            let finite = used & loo.is_finite();
+            let ee = e * e;
+            trust_sse[l] += pick(used, ee);
+            loo_sum[l] += pick(finite, loo.abs());
+            loo_count[l] += pick(finite, 1.0);
+            s[0][l] += pick(used, ee);
+            s[1][l] += pick(finite, loo * loo);
+            s[2][l] += pick(used, i);
+            s[3][l] += pick(used, 1.0);
         }
-        let r0: [f64; LANES] = crate::lanes(|l| b0[l] * p);
-        let r1: [f64; LANES] = crate::lanes(|l| b1[l] * p);
-        let r2: [f64; LANES] = crate::lanes(|l| b2[l] * p);
-        let e: [f64; LANES] =
-            crate::lanes(|l| i[l] - (r0[l] * g[0][l] + r1[l] * g[1][l] + r2[l] * g[2][l]));
-        let mut ir = [[0.0f64; LANES]; 3];
-        for (j, ir) in ir.iter_mut().enumerate() {
-            let m = &inv[3 * j..3 * j + 3];
-            for l in 0..LANES {
-                ir[l] = m[0][l] * r0[l] + m[1][l] * r1[l] + m[2][l] * r2[l];
-            }
-        }
-        let h: [f64; LANES] =
-            crate::lanes(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
-        let loo: [f64; LANES] = crate::lanes(|l| e[l] / (1.0 - h[l]));
-        // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
-        // non-negative terms changes no bit); the light's terms are added to its running sums
-        // lane by lane (no horizontal sum per batch), straight from the selected values: a
-        // staging array of the four terms was written with masked stores that the loads of
-        // the additions waited for.
-        for l in 0..LANES {
-            let used = ok[l] && solved.active[l];
-            let finite = used && loo[l].is_finite();
-            let ee = e[l] * e[l];
-            trust_sse[l] += if used { ee } else { 0.0 };
-            loo_sum[l] += if finite { loo[l].abs() } else { 0.0 };
-            loo_count[l] += if finite { 1.0 } else { 0.0 };
-            sum[0][l] += if used { ee } else { 0.0 };
-            sum[1][l] += if finite { loo[l] * loo[l] } else { 0.0 };
-            sum[2][l] += if used { i[l] } else { 0.0 };
-            sum[3][l] += if used { 1.0 } else { 0.0 };
-        }
+        *sum = s;
     }
     [sse, trust_sse, loo_sum, loo_count]
 }
@@ -1073,6 +1070,88 @@ mod tests {
             }
         }
         assert!(fast_batches > 10, "{fast_batches}");
+    }
+
+    /// Timings of the final pass against a plain local step at 1024 x 1024 facets (pinhole
+    /// bumps, 16 of the scene's lights, depths given as the solver gives them):
+    /// `cargo test -p nplps --release --features synth --lib final_pass_timings -- --ignored
+    /// --nocapture`.
+    #[cfg(all(feature = "synth", unix))]
+    #[test]
+    #[ignore = "timings"]
+    fn final_pass_timings() {
+        use crate::problem::{ImageStack, InitialDepth, Problem};
+        use crate::synth::{Scene, SceneKind, SceneOptions};
+        let n = 1024;
+        let options = SceneOptions::default().with_pinhole(true);
+        let mut scene = Scene::with_options(SceneKind::Bumps, n, 100.0, 200.0, 0, options).unwrap();
+        scene.rig.lights.truncate(16);
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let k = scene.rig.lights.len();
+        let stack = ImageStack::new(&images, k, n, n).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let u = problem.u0.to_vec("u").unwrap();
+        let depths: Vec<f64> = u.iter().map(|&x| problem.geometry.depth(x)).collect();
+        let step = LocalStep {
+            depths: Some(&depths),
+            ..LocalStep::new(
+                &problem.grid,
+                &problem.geometry,
+                Model::Near(&scene.rig.lights),
+                &problem.obs,
+                FitSettings::default(),
+            )
+        };
+        let facets = problem.grid.n_facets();
+        let chunk = 1 << 18;
+        let mut fits = vec![FacetFit::EMPTY; chunk.min(facets)];
+        let mut values = vec![[f32::NAN; 2]; chunk.min(facets)];
+        // CPU time of the process (all threads): steadier than wall time on a shared machine.
+        let cpu = || {
+            let mut t = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: clock_gettime only writes the struct we pass.
+            unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut t) };
+            t.tv_sec as f64 * 1e9 + t.tv_nsec as f64
+        };
+        let time = |f: &mut dyn FnMut()| {
+            let mut t: Vec<f64> = (0..7)
+                .map(|_| {
+                    let start = cpu();
+                    f();
+                    (cpu() - start) / facets as f64
+                })
+                .collect();
+            t.sort_by(f64::total_cmp);
+            (t[3], t[0])
+        };
+        let plain = time(&mut || {
+            for first in (0..facets).step_by(chunk) {
+                let len = (facets - first).min(chunk);
+                step.try_run(&u, first, &mut fits[..len]).unwrap();
+            }
+        });
+        let mut maps = TrustMaps::new(&problem.grid, k, 1).unwrap();
+        let last = time(&mut || {
+            for first in (0..facets).step_by(chunk) {
+                let len = (facets - first).min(chunk);
+                let (fits, values) = (&mut fits[..len], &mut values[..len]);
+                step.try_run_final(&u, first, fits, values, &mut maps, None)
+                    .unwrap();
+            }
+        });
+        println!(
+            "final pass timing: {facets} facets, {k} lights, {} threads: plain exact step \
+             {:.1} CPU ns a facet (min {:.1}), final pass {:.1} (min {:.1})",
+            rayon::current_num_threads(),
+            plain.0,
+            plain.1,
+            last.0,
+            last.1
+        );
     }
 
     /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic
