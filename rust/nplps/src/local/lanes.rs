@@ -146,28 +146,9 @@ impl LocalStep<'_> {
             debug_assert!(trust.is_none());
             return self.fit_field_lanes(lights, first, u, buf, interleaved, field);
         }
-        let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
-        let batch = self.batch_corners(first, &pixels, u);
+        let geometry = self.geometry;
+        let (batch, centres) = self.gather_batch(first, u, buf, interleaved);
         let quads = &batch.quads;
-        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&quads[l]));
-        if !obs.gather_lanes(&pixels, interleaved) {
-            for l in 0..LANES {
-                let f = first + l;
-                let values = obs.facet(grid.facets[f] as usize, buf);
-                for (slot, &v) in interleaved.iter_mut().zip(values) {
-                    slot[l] = v;
-                }
-            }
-        }
-        if let Some(shadows) = self.shadows {
-            // One channel: light k is row k of the interleaved values.
-            for (l, &pixel) in pixels.iter().enumerate() {
-                for k in shadows.lights_at(pixel) {
-                    interleaved[k][l] = f32::NAN;
-                }
-            }
-        }
         let thresholds = (self.settings.dark, self.settings.saturation);
         let mut trust = trust;
         let (sums, solved) = fit_lanes_dispatch(
@@ -246,6 +227,73 @@ impl LocalStep<'_> {
                 }
             }
         })
+    }
+}
+
+impl LocalStep<'_> {
+    /// The corners and centres of facets `first..first + LANES` on `u`, and their observations
+    /// gathered into `interleaved` (`interleaved[k][lane]`, those in a cast shadow NaN; `buf`
+    /// is scratch for one facet's).
+    #[inline(always)]
+    fn gather_batch(
+        &self,
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+    ) -> (BatchCorners, [[f64; 3]; LANES]) {
+        let (grid, obs) = (self.grid, self.obs);
+        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
+        let batch = self.batch_corners(first, &pixels, u);
+        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&batch.quads[l]));
+        if !obs.gather_lanes(&pixels, interleaved) {
+            for l in 0..LANES {
+                let f = first + l;
+                let values = obs.facet(grid.facets[f] as usize, buf);
+                for (slot, &v) in interleaved.iter_mut().zip(values) {
+                    slot[l] = v;
+                }
+            }
+        }
+        if let Some(shadows) = self.shadows {
+            // One channel: light k is row k of the interleaved values.
+            for (l, &pixel) in pixels.iter().enumerate() {
+                for k in shadows.lights_at(pixel) {
+                    interleaved[k][l] = f32::NAN;
+                }
+            }
+        }
+        (batch, centres)
+    }
+
+    /// The trust values alone of facets `first..first + LANES` (see [`LocalStep::fit_lanes`]
+    /// with a [`LaneTrust`], whose values and sums these are, bit for bit): the sums and the
+    /// solve of the trust's normal equations, and one pass over the stored rows, without the
+    /// fits' normals, albedos, targets and residuals.
+    fn trust_batch(
+        &self,
+        lights: &[LaneLight],
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+        trust: LaneTrust<'_>,
+    ) {
+        let (_, centres) = self.gather_batch(first, u, buf, interleaved);
+        let thresholds = (self.settings.dark, self.settings.saturation);
+        let (used, solved) =
+            trust_kernel_dispatch(lights, &centres, interleaved, thresholds, trust.rows);
+        let out = trust_residuals_dispatch(
+            lights,
+            trust.rows,
+            interleaved,
+            thresholds,
+            &solved,
+            trust.sums,
+        );
+        trust
+            .out
+            .copy_from_slice(&trust_lanes_dispatch(&out, &solved, &used));
     }
 }
 
@@ -396,6 +444,38 @@ fn fit_kernel(
     let sums = accumulate_lanes(lights, centres, values, thresholds, rows);
     let solution = solve_lanes(&sums, centres, base, geometry);
     (sums, solution)
+}
+
+simd_dispatch! {
+    wide
+    /// [`trust_kernel`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
+    fn trust_kernel_dispatch => trust_kernel(
+        lights: &[LaneLight],
+        centres: &[[f64; 3]; LANES],
+        values: &[[f32; LANES]],
+        thresholds: (f64, f64),
+        rows: &mut [[[f64; LANES]; 3]],
+    ) -> ([u32; LANES], LaneSolved);
+}
+
+/// [`accumulate_lanes`] with the rows stored, and the trust's solution of the sums (the solve
+/// of [`solve_lanes`], without the normals, albedos, residuals and targets of the fits): the
+/// usable lights and the [`LaneSolved`] of [`LaneSolved::new`], the same bits.
+#[inline(always)]
+fn trust_kernel(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    rows: &mut [[[f64; LANES]; 3]],
+) -> ([u32; LANES], LaneSolved) {
+    let sums = accumulate_lanes(lights, centres, values, thresholds, Some(rows));
+    let (regular, inverse, g) = super::solve_spd3_lanes(&sums.t, &sums.s);
+    (
+        sums.used,
+        LaneSolved::of(&sums.used, &regular, &inverse, &g),
+    )
 }
 
 /// The fits of [`LANES`] facets' grey, unit-weight sums, one lane each, with the operations of
@@ -577,13 +657,30 @@ impl LaneSolved {
     /// [`solve_lanes`] computes with the same operations): active where at least 4 lights are
     /// usable and `T` is regular (elsewhere the inverse and `g` are 0).
     fn new(sums: &LaneSums, solution: &LaneSolution) -> LaneSolved {
-        let active: [bool; LANES] = crate::lanes(|l| sums.used[l] >= 4 && solution.regular[l]);
+        LaneSolved::of(
+            &sums.used,
+            &solution.regular,
+            &solution.inverse,
+            &solution.g,
+        )
+    }
+
+    /// From the usable lights, and the test, inverse and `g` of
+    /// [`solve_spd3_lanes`](super::solve_spd3_lanes) (see [`LaneSolved::new`]).
+    #[inline(always)]
+    fn of(
+        used: &[u32; LANES],
+        regular: &[bool; LANES],
+        inverse: &[[f64; LANES]; 9],
+        g: &[[f64; LANES]; 3],
+    ) -> LaneSolved {
+        let active: [bool; LANES] = crate::lanes(|l| used[l] >= 4 && regular[l]);
         let keep = |x: &[f64; LANES]| -> [f64; LANES] {
             crate::lanes(|l| if active[l] { x[l] } else { 0.0 })
         };
         LaneSolved {
-            inverse: solution.inverse.each_ref().map(keep),
-            g: solution.g.each_ref().map(keep),
+            inverse: inverse.each_ref().map(keep),
+            g: g.each_ref().map(keep),
             active,
         }
     }
@@ -628,6 +725,52 @@ fn final_residuals(
     lights: &[LaneLight],
     rows: &[[[f64; LANES]; 3]],
     values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    fits: &LaneFits,
+    solved: &LaneSolved,
+    sums: &mut [LaneLightSums],
+) -> [[f64; LANES]; 4] {
+    residual_terms::<true>(lights, rows, values, thresholds, fits, solved, sums)
+}
+
+simd_dispatch! {
+    wide
+    /// [`trust_residuals`] with AVX-512 or AVX2 when the processor has it (same arithmetic,
+    /// wider registers).
+    fn trust_residuals_dispatch => trust_residuals(
+        lights: &[LaneLight],
+        rows: &[[[f64; LANES]; 3]],
+        values: &[[f32; LANES]],
+        thresholds: (f64, f64),
+        solved: &LaneSolved,
+        sums: &mut [LaneLightSums],
+    ) -> [[f64; LANES]; 4];
+}
+
+/// [`final_residuals`] without fits: the trust's terms alone (the fits' squared residuals,
+/// row 0, are 0), the same bits.
+#[inline(always)]
+fn trust_residuals(
+    lights: &[LaneLight],
+    rows: &[[[f64; LANES]; 3]],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    solved: &LaneSolved,
+    sums: &mut [LaneLightSums],
+) -> [[f64; LANES]; 4] {
+    let fits = LaneFits {
+        normals: [[0.0; 3]; LANES],
+        albedo: [0.0; LANES],
+    };
+    residual_terms::<false>(lights, rows, values, thresholds, &fits, solved, sums)
+}
+
+/// [`final_residuals`], with the fits' squared residuals when `FIT` (else 0).
+#[inline(always)]
+fn residual_terms<const FIT: bool>(
+    lights: &[LaneLight],
+    rows: &[[[f64; LANES]; 3]],
+    values: &[[f32; LANES]],
     (dark, saturation): (f64, f64),
     fits: &LaneFits,
     solved: &LaneSolved,
@@ -654,9 +797,11 @@ fn final_residuals(
         for l in 0..LANES {
             let i = v[l] as f64;
             let ok = (i > dark) & (i < saturation);
-            let nb = normals[0][l] * b0[l] + normals[1][l] * b1[l] + normals[2][l] * b2[l];
-            let fit_e = albedo[l] * p * nb - i;
-            sse[l] += pick(ok, fit_e * fit_e);
+            if FIT {
+                let nb = normals[0][l] * b0[l] + normals[1][l] * b1[l] + normals[2][l] * b2[l];
+                let fit_e = albedo[l] * p * nb - i;
+                sse[l] += pick(ok, fit_e * fit_e);
+            }
             let (r0, r1, r2) = (b0[l] * p, b1[l] * p, b2[l] * p);
             let e = i - (r0 * g[0][l] + r1 * g[1][l] + r2 * g[2][l]);
             let ir0 = inv[0][l] * r0 + inv[1][l] * r1 + inv[2][l] * r2;
@@ -750,53 +895,74 @@ fn lane_total(a: &[f64; LANES]) -> f64 {
 }
 
 impl LocalStep<'_> {
-    /// [`LocalStep::try_run_final`] with the vectorized accumulation (`lights` from
-    /// [`LocalStep::lane_lights`]): each batch of [`LANES`] facets is fitted and its trust values
-    /// computed from one evaluation of the lights' `beta`, with the fits of
-    /// [`LocalStep::try_run`] and the trust values of the `trust` module (same operations, same
-    /// order). Returns the per-light sums.
-    pub(super) fn final_lanes(
+    /// The final pass with the vectorized accumulation (`lights` from
+    /// [`LocalStep::lane_lights`]) over facets `first..first + len`: each batch of [`LANES`]
+    /// facets is fitted and its trust values computed from one evaluation of the lights'
+    /// `beta`, with the fits of [`LocalStep::try_run`] and the trust values of the `trust`
+    /// module (same operations, same order); with `fitted` false the trust values alone (see
+    /// [`LocalStep::trust_batch`]; the fits handed on are then empty). The facets run in chunks
+    /// of [`CHUNK`] (the last one shorter; one empty chunk when `len` is 0), in parallel, each
+    /// on one thread, which hands its fits and trust values to `write` with the chunk's entry
+    /// of `views` (one per chunk) and its first facet, straight from its own buffers. Returns
+    /// the per-light sums (see [`LaneLightSums`]). Once cancelled, the remaining chunks are not
+    /// written (the caller must then check the token and discard the maps).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn final_lanes_into<V: Send>(
         &self,
         lights: &[LaneLight],
         u: &[f64],
         first: usize,
-        fits: &mut [FacetFit],
-        trust: &mut [[f32; 2]],
+        len: usize,
+        fitted: bool,
+        views: Vec<V>,
+        write: &(impl Fn(V, usize, &[FacetFit], &[[f32; 2]]) + Sync),
     ) -> Result<LightSums> {
+        debug_assert_eq!(views.len(), final_chunks(len));
         let (per, k) = (self.obs.per_facet(), self.obs.k);
         let scratch = || -> Result<_> {
             let (buf, interleaved) = lane_scratch(per, k)?;
             let rows = try_vec(k, [[0.0f64; LANES]; 3], SCRATCH)?;
             let trust_rows = try_vec(per, [0.0f64; 4], SCRATCH)?;
-            Ok((buf, interleaved, rows, trust_rows))
+            let fits = try_vec(if fitted { CHUNK } else { 0 }, FacetFit::EMPTY, SCRATCH)?;
+            let trust = try_vec(CHUNK, [f32::NAN; 2], SCRATCH)?;
+            Ok((buf, interleaved, rows, trust_rows, fits, trust))
         };
-        fits.par_chunks_mut(CHUNK)
-            .zip(trust.par_chunks_mut(CHUNK))
+        views
+            .into_par_iter()
             .enumerate()
-            .map_init(scratch, |scratch, (chunk, (fits, trust))| {
-                let (buf, interleaved, rows, trust_rows) =
+            .map_init(scratch, |scratch, (chunk, view)| {
+                let (buf, interleaved, rows, trust_rows, fits, trust) =
                     scratch.as_mut().map_err(|e| e.clone())?;
+                let start = first + chunk * CHUNK;
+                let n = len.saturating_sub(chunk * CHUNK).min(CHUNK);
+                let (fits, trust) = (&mut fits[..if fitted { n } else { 0 }], &mut trust[..n]);
                 let mut sums = vec![[0.0f64; 4]; k];
                 let mut lane_sums = vec![[[0.0f64; LANES]; 4]; k];
-                let start = first + chunk * CHUNK;
-                let batches = fits.chunks_mut(LANES).zip(trust.chunks_mut(LANES));
-                for (b, (fits, out)) in batches.enumerate() {
+                for (b, out) in trust.chunks_mut(LANES).enumerate() {
                     if self.cancel.is_cancelled() {
-                        break;
+                        return Ok(sums);
                     }
                     let at = start + b * LANES;
-                    if fits.len() == LANES {
+                    let batch = b * LANES..b * LANES + out.len();
+                    if out.len() == LANES {
                         let lane_trust = LaneTrust {
                             rows,
                             out,
                             sums: &mut lane_sums,
                         };
-                        let lanes =
-                            self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
-                        fits.copy_from_slice(&lanes);
+                        if fitted {
+                            let lanes =
+                                self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
+                            fits[batch].copy_from_slice(&lanes);
+                        } else {
+                            self.trust_batch(lights, at, u, buf, interleaved, lane_trust);
+                        }
                     } else {
-                        for (i, (fit, out)) in fits.iter_mut().zip(out).enumerate() {
-                            *fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                        for (i, out) in out.iter_mut().enumerate() {
+                            if fitted {
+                                let fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                                fits[batch.start + i] = fit;
+                            }
                             *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums, None);
                         }
                     }
@@ -806,10 +972,17 @@ impl LocalStep<'_> {
                         *sum += lane_total(lanes);
                     }
                 }
+                write(view, start, fits, trust);
                 Ok(sums)
             })
             .try_reduce(|| vec![[0.0; 4]; k], |a, b| Ok(add_sums(a, b)))
     }
+}
+
+/// The chunks of [`LocalStep::final_lanes_into`] over `len` facets: one per [`CHUNK`] facets
+/// or part of one, and at least one.
+pub(crate) fn final_chunks(len: usize) -> usize {
+    len.div_ceil(CHUNK).max(1)
 }
 
 #[cfg(test)]
