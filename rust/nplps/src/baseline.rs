@@ -230,7 +230,7 @@ pub fn reconstruct_parallel(problem: &Problem<'_>, options: &Options) -> Result<
         }];
         let mut outputs = FitOutputs::new(problem, settings.lobe.is_some())?;
         outputs.scatter(problem, 0, &fits);
-        let mut result = assemble(problem, &u, outputs, history, true, timings)?;
+        let mut result = assemble(problem, &u, None, outputs, history, true, timings)?;
         result.assess(f64::INFINITY, false, None);
         result.lobe = settings.lobe;
         if let Some(factors) = factors {

@@ -88,6 +88,18 @@ unsafe impl Zeroable for f64 {
 unsafe impl Zeroable for [f64; 4] {
     const ZERO: Self = [0.0; 4];
 }
+// SAFETY: as above.
+unsafe impl Zeroable for [f64; 3] {
+    const ZERO: Self = [0.0; 3];
+}
+// SAFETY: zero bytes are 0.
+unsafe impl Zeroable for u32 {
+    const ZERO: Self = 0;
+}
+// SAFETY: zero bytes are 0.0.
+unsafe impl Zeroable for f32 {
+    const ZERO: Self = 0.0;
+}
 
 /// `len` zeros, or [`Error::Memory`], allocated zeroed instead of filled: the operating system
 /// hands out zero pages as they are first touched, so a large buffer is not written serially

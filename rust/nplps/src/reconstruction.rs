@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::error::Result;
 use crate::local::{FacetFit, LobeCheck};
-use crate::memory::try_par_vec;
+use crate::memory::{try_par_vec, try_zeros};
 use crate::options::Refine;
 use crate::parallel::{scatter, PixelMaps};
 use crate::problem::Problem;
@@ -265,29 +265,157 @@ impl FitOutputs {
         })
     }
 
-    /// Writes the fits of facets `first..first + fits.len()` onto their pixels, pieces of the
-    /// facets in parallel (each piece writes its own pixels: a grid's facets are in increasing
-    /// pixel order, so the pieces' pixel ranges do not overlap).
-    pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
-        let facets = &problem.grid.facets[first..first + fits.len()];
-        let view = OutputView {
-            channels: problem.obs.channels,
+    /// Outputs of the Lambertian model for `problem`'s image size, allocated but not written
+    /// (zero pages until touched): for a final pass that writes every pixel, masked or not
+    /// ([`FinalView::write`]), so that each is written once.
+    pub(crate) fn unwritten(problem: &Problem<'_>) -> Result<FitOutputs> {
+        let n = problem.grid.height * problem.grid.width;
+        Ok(FitOutputs {
+            specular: Vec::new(),
+            normals: try_zeros(n, "the normal map")?,
+            albedo: try_zeros(n * problem.obs.channels, "the albedo map")?,
+            residual: try_zeros(n, "the residual map")?,
+            lights_used: try_zeros(n, "the map of lights used")?,
+        })
+    }
+
+    /// All the maps, for writing.
+    fn view(&mut self, channels: usize) -> OutputView<'_> {
+        OutputView {
+            channels,
             normals: &mut self.normals,
             albedo: &mut self.albedo,
             residual: &mut self.residual,
             lights_used: &mut self.lights_used,
             specular: &mut self.specular,
-        };
+        }
+    }
+
+    /// Writes the fits of facets `first..first + fits.len()` onto their pixels, pieces of the
+    /// facets in parallel (each piece writes its own pixels: a grid's facets are in increasing
+    /// pixel order, so the pieces' pixel ranges do not overlap).
+    pub(crate) fn scatter(&mut self, problem: &Problem<'_>, first: usize, fits: &[FacetFit]) {
+        let facets = &problem.grid.facets[first..first + fits.len()];
+        let view = self.view(problem.obs.channels);
         scatter(view, 0, facets, fits, SCATTER_PIECE, &|view, p, fit| {
-            let channels = view.channels;
-            view.normals[p] = fit.normal;
-            view.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
-            view.residual[p] = fit.rms(channels);
-            view.lights_used[p] = fit.used;
-            if let Some(s) = view.specular.get_mut(p) {
-                *s = fit.specular;
-            }
+            view.put(p, fit)
         });
+    }
+}
+
+impl OutputView<'_> {
+    /// Writes `fit` onto pixel `p` (counted from the view's first pixel).
+    #[inline]
+    fn put(&mut self, p: usize, fit: &FacetFit) {
+        let channels = self.channels;
+        self.normals[p] = fit.normal;
+        self.albedo[p * channels..(p + 1) * channels].copy_from_slice(&fit.albedo[..channels]);
+        self.residual[p] = fit.rms(channels);
+        self.lights_used[p] = fit.used;
+        if let Some(s) = self.specular.get_mut(p) {
+            *s = fit.specular;
+        }
+    }
+
+    /// Writes pixel `p` as outside the mask: NaN, no lights used (the values of
+    /// [`FitOutputs::new`]).
+    #[inline]
+    fn put_outside(&mut self, p: usize) {
+        let channels = self.channels;
+        self.normals[p] = [f64::NAN; 3];
+        self.albedo[p * channels..(p + 1) * channels].fill(f64::NAN);
+        self.residual[p] = f64::NAN;
+        self.lights_used[p] = 0;
+        if let Some(s) = self.specular.get_mut(p) {
+            *s = f64::NAN;
+        }
+    }
+}
+
+/// A range of pixels of the final pass's maps: the outputs (None: the trust maps alone) and
+/// the trust maps' `[normal sigma, held-out]`, from pixel `base` on.
+pub(crate) struct FinalView<'a> {
+    base: usize,
+    outputs: Option<OutputView<'a>>,
+    trust: (&'a mut [f32], &'a mut [f32]),
+}
+
+impl<'a> FinalView<'a> {
+    /// The maps of every pixel, cut at the first pixel of every chunk of facets but the first
+    /// (`chunks` of `chunk` facets each, the last one shorter): one view per chunk, whose
+    /// pixels no other chunk's facets lie on.
+    pub(crate) fn split(
+        grid: &crate::grid::Grid,
+        outputs: Option<&'a mut FitOutputs>,
+        channels: usize,
+        trust: (&'a mut [f32], &'a mut [f32]),
+        chunks: usize,
+        chunk: usize,
+    ) -> Vec<FinalView<'a>> {
+        let mut rest = FinalView {
+            base: 0,
+            outputs: outputs.map(|o| o.view(channels)),
+            trust,
+        };
+        let mut views = Vec::with_capacity(chunks);
+        for c in 1..chunks {
+            let at = grid.facets[c * chunk] as usize;
+            let m = at - rest.base;
+            let (left, right) = rest.split_at(m);
+            views.push(left);
+            rest = right;
+        }
+        views.push(rest);
+        views
+    }
+
+    /// Writes the fits (empty: the trust maps alone) and trust values of the facets at
+    /// `pixels` (increasing, within the view) onto their pixels, and every other pixel of the
+    /// view as outside the mask (NaN, no lights used): each pixel of the view once.
+    pub(crate) fn write(mut self, pixels: &[u32], fits: &[FacetFit], trust: &[[f32; 2]]) {
+        debug_assert!(fits.is_empty() || fits.len() == trust.len());
+        let base = self.base;
+        let end = self.trust.0.len();
+        let mut next = 0;
+        for (i, (&pixel, value)) in pixels.iter().zip(trust).enumerate() {
+            let p = pixel as usize - base;
+            self.outside(next..p);
+            self.trust.0[p] = value[0];
+            self.trust.1[p] = value[1];
+            if let (Some(outputs), Some(fit)) = (self.outputs.as_mut(), fits.get(i)) {
+                outputs.put(p, fit);
+            }
+            next = p + 1;
+        }
+        self.outside(next..end);
+    }
+
+    /// Writes the view's pixels `range` as outside the mask.
+    fn outside(&mut self, range: std::ops::Range<usize>) {
+        self.trust.0[range.clone()].fill(f32::NAN);
+        self.trust.1[range.clone()].fill(f32::NAN);
+        if let Some(outputs) = self.outputs.as_mut() {
+            range.for_each(|p| outputs.put_outside(p));
+        }
+    }
+}
+
+impl PixelMaps for FinalView<'_> {
+    fn split_at(self, m: usize) -> (Self, Self) {
+        let (outputs0, outputs1) = match self.outputs.map(|o| o.split_at(m)) {
+            Some((a, b)) => (Some(a), Some(b)),
+            None => (None, None),
+        };
+        let (trust0, trust1) = self.trust.split_at(m);
+        let view = |base, outputs, trust| FinalView {
+            base,
+            outputs,
+            trust,
+        };
+        (
+            view(self.base, outputs0, trust0),
+            view(self.base + m, outputs1, trust1),
+        )
     }
 }
 
@@ -478,22 +606,31 @@ impl Reconstruction {
     }
 }
 
-/// Assembles the result: the per-pixel `outputs` and the unknowns `z` scattered onto the
-/// vertex grid.
+/// Assembles the result: the per-pixel `outputs` and the depths of the unknowns `z` scattered
+/// onto the vertex grid. `depths`, when the caller has them, are those depths (the camera's
+/// `depth` of each unknown, as computed here otherwise): they are scattered instead, or, when
+/// every vertex is an unknown (the unknowns are numbered in vertex order), are the depth map
+/// itself.
 pub(crate) fn assemble(
     problem: &Problem<'_>,
     z: &[f64],
+    depths: Option<Vec<f64>>,
     outputs: FitOutputs,
     history: Vec<IterationStats>,
     converged: bool,
     timings: Timings,
 ) -> Result<Reconstruction> {
     let grid = &problem.grid;
+    let depth = match depths {
+        Some(d) if grid.active.len() == grid.vertex_unknown.len() && d.len() == z.len() => d,
+        Some(d) => grid.scatter_vertices_with(&d, |d| d)?,
+        None => grid.scatter_vertices_with(z, |u| problem.geometry.depth(u))?,
+    };
     Ok(Reconstruction {
         height: grid.height,
         width: grid.width,
         channels: problem.obs.channels,
-        depth: grid.scatter_vertices_with(z, |u| problem.geometry.depth(u))?,
+        depth,
         normals: outputs.normals,
         albedo: outputs.albedo,
         residual: outputs.residual,

@@ -32,15 +32,17 @@ use crate::global::GlobalStep;
 use crate::grid::Grid;
 use crate::indirect::{IndirectField, FIRST_ROUND_COARSER};
 use crate::local::{
-    check_lobe, estimate_lobe, estimate_starting_lobe, FacetFit, FacetStat, FitSettings, KeptFits,
-    LobeCheck, LocalStep, Model, Observations, TrustMaps, CHECK_BELOW_LIGHTS,
+    check_lobe, estimate_lobe, estimate_starting_lobe, final_chunks, FacetFit, FacetStat,
+    FitSettings, KeptFits, LobeCheck, LocalStep, Model, Observations, TrustMaps,
+    CHECK_BELOW_LIGHTS, FINAL_LANE_CHUNK,
 };
 use crate::memory::{try_copy, try_vec, try_zeros};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
 use crate::problem::{check_fittable, Problem};
 use crate::reconstruction::{
-    assemble, Control, FitOutputs, IterationStats, Reconstruction, RefinementReport, Timings,
+    assemble, Control, FinalView, FitOutputs, IterationStats, Reconstruction, RefinementReport,
+    Timings,
 };
 use crate::refine::LightData;
 use crate::refinement::{on_level, LightRefinement, Monitor};
@@ -1748,49 +1750,39 @@ impl<'p> Solver<'p> {
         // Much of the multigrid's coarse levels came from the allocator's arenas.
         crate::memory::give_back();
         crate::memory::trace("finish: freed");
-        let glossy = self.lobe.is_some();
         let problem = self.problem;
-        let mut outputs = FitOutputs::new(problem, glossy)?;
         if depths.len() != u.len() {
             depths = try_zeros(u.len(), "the vertex depths")?;
         }
         let perspective = self.depths_into(u, &mut depths);
-        crate::memory::trace("finish: outputs+depths");
+        crate::memory::trace("finish: depths");
         let step = LocalStep {
             warm: (!self.warm.is_empty()).then_some(&self.warm[..]),
             ..self.local_step(false, perspective.then_some(&depths[..]))
         };
-        let n = problem.grid.n_facets();
-        let (k, channels) = (problem.obs.k, problem.obs.channels);
+        let kept = self.received.is_none().then_some(&self.kept);
         // The fits and the trust maps (the plain Lambertian fit at the final mesh, without the
-        // glossy warm start) in one pass over the facets.
-        let mut maps = TrustMaps::new(&problem.grid, k, channels)?;
-        let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
-        let mut trust = try_vec(n.min(FINAL_CHUNK), [f32::NAN; 2], "the trust maps")?;
-        for first in (0..n).step_by(FINAL_CHUNK) {
-            let len = (n - first).min(FINAL_CHUNK);
-            let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
-            let kept = step.try_run_final(
-                u,
-                first,
-                chunk,
-                values,
-                &mut maps,
-                self.received.is_none().then_some(&self.kept),
-            )?;
-            crate::memory::trace(&format!("finish: kept {kept} of {len} glossy fits"));
-            problem.cancel.check()?;
-            outputs.scatter(problem, first, chunk);
-            maps.scatter(&problem.grid, first, values);
-        }
+        // glossy warm start).
+        let (outputs, maps) = match step.final_lane_lights() {
+            Some((lights, fitted)) => final_pass_lanes(problem, &step, u, &lights, fitted, kept)?,
+            None => final_pass_chunks(problem, &step, u, kept)?,
+        };
         crate::memory::trace("finish: final local step");
-        drop((fits, trust, depths));
         let trust = maps.finish();
         problem.cancel.check()?;
         self.timings.local += t.elapsed();
         self.timings.total = self.start.elapsed();
         let refinement = self.refinement_report(u);
-        let mut result = assemble(problem, u, outputs, history, converged, self.timings)?;
+        let depths = perspective.then_some(depths);
+        let mut result = assemble(
+            problem,
+            u,
+            depths,
+            outputs,
+            history,
+            converged,
+            self.timings,
+        )?;
         crate::memory::trace("finish: assembled");
         result.refinement = refinement;
         result.assess(
@@ -1836,6 +1828,102 @@ impl<'p> Solver<'p> {
             conditioning: self.lights.conditioning(&data, u),
         })
     }
+}
+
+/// The final pass of `step` (see [`LocalStep::final_lane_lights`], which gives `lights` and
+/// `fitted`) on `u`: one pass of the vectorized accumulation over the facets writes every
+/// pixel of the trust maps and, under the Lambertian model (`fitted`), of the outputs, a chunk
+/// of facets at a time onto the chunk's pixels, straight from the thread's buffers: each pixel
+/// written once, on zero pages until then. Under the glossy model the fits follow
+/// ([`final_fits`], with the records `kept`). The values of [`final_pass_chunks`], bit for bit
+/// (the per-light sums up to the order of their additions).
+fn final_pass_lanes(
+    problem: &Problem<'_>,
+    step: &LocalStep<'_>,
+    u: &[f64],
+    lights: &[crate::light::LaneLight],
+    fitted: bool,
+    kept: Option<&KeptFits>,
+) -> Result<(FitOutputs, TrustMaps)> {
+    let grid = &problem.grid;
+    let (k, channels) = (problem.obs.k, problem.obs.channels);
+    let mut maps = TrustMaps::unwritten(grid, k, channels)?;
+    let mut outputs = match fitted {
+        true => Some(FitOutputs::unwritten(problem)?),
+        false => None,
+    };
+    let chunks = final_chunks(grid.n_facets());
+    let views = FinalView::split(
+        grid,
+        outputs.as_mut(),
+        channels,
+        maps.maps(),
+        chunks,
+        FINAL_LANE_CHUNK,
+    );
+    let write = |view: FinalView<'_>, first, fits: &[_], trust: &[_]| {
+        view.write(&grid.facets[first..first + trust.len()], fits, trust);
+    };
+    let sums = step.try_run_final_lanes(lights, u, fitted, views, &write)?;
+    problem.cancel.check()?;
+    maps.add(sums);
+    crate::memory::trace("finish: final pass (lanes)");
+    let outputs = match outputs {
+        Some(outputs) => outputs,
+        None => final_fits(problem, step, u, kept)?,
+    };
+    Ok((outputs, maps))
+}
+
+/// The final pass of `step` on `u` a chunk of [`FINAL_CHUNK`] facets at a time: the fits and
+/// trust values of [`LocalStep::try_run_final`] (with the records `kept`), scattered onto the
+/// outputs and trust maps (NaN where no facet writes).
+fn final_pass_chunks(
+    problem: &Problem<'_>,
+    step: &LocalStep<'_>,
+    u: &[f64],
+    kept: Option<&KeptFits>,
+) -> Result<(FitOutputs, TrustMaps)> {
+    let grid = &problem.grid;
+    let n = grid.n_facets();
+    let glossy = step.settings.lobe.is_some();
+    let mut outputs = FitOutputs::new(problem, glossy)?;
+    let mut maps = TrustMaps::new(grid, problem.obs.k, problem.obs.channels)?;
+    let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
+    let mut trust = try_vec(n.min(FINAL_CHUNK), [f32::NAN; 2], "the trust maps")?;
+    for first in (0..n).step_by(FINAL_CHUNK) {
+        let len = (n - first).min(FINAL_CHUNK);
+        let (chunk, values) = (&mut fits[..len], &mut trust[..len]);
+        let kept = step.try_run_final(u, first, chunk, values, &mut maps, kept)?;
+        crate::memory::trace(&format!("finish: kept {kept} of {len} glossy fits"));
+        problem.cancel.check()?;
+        outputs.scatter(problem, first, chunk);
+        maps.scatter(grid, first, values);
+    }
+    Ok((outputs, maps))
+}
+
+/// The outputs of the glossy fits of `step`'s final pass on `u` (see
+/// [`LocalStep::try_run_kept`]: the facets that did not move since their converged fits in
+/// `kept` keep them), a chunk of [`FINAL_CHUNK`] facets at a time.
+fn final_fits(
+    problem: &Problem<'_>,
+    step: &LocalStep<'_>,
+    u: &[f64],
+    kept: Option<&KeptFits>,
+) -> Result<FitOutputs> {
+    let n = problem.grid.n_facets();
+    let mut outputs = FitOutputs::new(problem, step.settings.lobe.is_some())?;
+    let mut fits = try_vec(n.min(FINAL_CHUNK), FacetFit::EMPTY, "the final fits")?;
+    for first in (0..n).step_by(FINAL_CHUNK) {
+        let len = (n - first).min(FINAL_CHUNK);
+        let chunk = &mut fits[..len];
+        let kept = step.try_run_kept(u, first, chunk, kept)?;
+        crate::memory::trace(&format!("finish: kept {kept} of {len} glossy fits"));
+        problem.cancel.check()?;
+        outputs.scatter(problem, first, chunk);
+    }
+    Ok(outputs)
 }
 
 /// Facets per chunk of the final, exact local step (bounds its scratch memory).
@@ -2048,6 +2136,82 @@ mod tests {
             matches!(&err, Error::Solver(m) if m.contains("reached light 3")),
             "{err}"
         );
+    }
+
+    /// The final pass of the vectorized accumulation, which writes every pixel of the outputs
+    /// and trust maps a chunk of facets at a time (`final_pass_lanes`), gives the maps of the
+    /// chunked pass with its scatter (`final_pass_chunks`) bit for bit, the per-light figures
+    /// within 1e-12: Lambertian (fits and trust values) and glossy (trust values from the lanes,
+    /// the glossy fits after them), pinhole and orthographic, on a full grid and on one with
+    /// holes (pixels outside the mask in the first and last rows, in the middle of chunks and
+    /// at their ends), with more than one chunk and a facet count that is not a multiple of the
+    /// lanes; and the depth map made from the final pass's depths is the one made from the
+    /// unknowns.
+    #[test]
+    fn the_final_pass_in_lanes_writes_the_maps_of_the_chunked_pass() {
+        use crate::local::{FitSettings, LocalStep, Model};
+        use crate::reflectance::Lobe;
+        use crate::synth::SceneOptions;
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for pinhole in [false, true] {
+            let options = SceneOptions::default().with_pinhole(pinhole);
+            let scene =
+                Scene::with_options(SceneKind::Bumps, 75, 100.0, 200.0, 3, options).unwrap();
+            let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+            let n_px = scene.height * scene.width;
+            let holes: Vec<bool> = (0..n_px)
+                .map(|p| scene.mask[p] && p % 97 != 5 && !(3000..3100).contains(&p) && p >= 40)
+                .collect();
+            for mask in [scene.mask.clone(), holes] {
+                let stack =
+                    ImageStack::new(&images, scene.rig.n_lights(), scene.height, scene.width)
+                        .unwrap();
+                let start = InitialDepth::Distance(scene.mean_depth());
+                let problem = Problem::new(stack, &scene.rig, Some(&mask), start).unwrap();
+                let grid = &problem.grid;
+                let n = grid.n_facets();
+                assert!(n > crate::local::FINAL_LANE_CHUNK && !n.is_multiple_of(8), "{n}");
+                let u: Vec<f64> = (0..grid.n_unknowns())
+                    .map(|i| problem.u0.at(i) + 1e-3 * ((i * 7) % 13) as f64)
+                    .collect();
+                let depths: Vec<f64> = u.iter().map(|&x| problem.geometry.depth(x)).collect();
+                for lobe in [None, Some(Lobe::new(0.3, 1.5))] {
+                    let step = LocalStep {
+                        depths: pinhole.then_some(&depths[..]),
+                        ..LocalStep::new(
+                            grid,
+                            &problem.geometry,
+                            Model::Near(&scene.rig.lights),
+                            &problem.obs,
+                            FitSettings {
+                                lobe,
+                                ..FitSettings::default()
+                            },
+                        )
+                    };
+                    let (lights, fitted) = step.final_lane_lights().unwrap();
+                    assert_eq!(fitted, lobe.is_none());
+                    let (outputs, maps) =
+                        final_pass_lanes(&problem, &step, &u, &lights, fitted, None).unwrap();
+                    let (outputs_ref, maps_ref) =
+                        final_pass_chunks(&problem, &step, &u, None).unwrap();
+                    let given = pinhole.then(|| depths.clone());
+                    let done = |o, d| {
+                        assemble(&problem, &u, d, o, Vec::new(), true, Timings::default()).unwrap()
+                    };
+                    let (a, b) = (done(outputs, given), done(outputs_ref, None));
+                    let normals = |r: &Reconstruction| bits(r.normals.as_flattened());
+                    assert_eq!(normals(&a), normals(&b));
+                    assert_eq!(bits(&a.albedo), bits(&b.albedo));
+                    assert_eq!(bits(&a.residual), bits(&b.residual));
+                    assert_eq!(bits(&a.specular), bits(&b.specular));
+                    assert_eq!(bits(&a.depth), bits(&b.depth));
+                    assert_eq!(a.lights_used, b.lights_used);
+                    assert!(a.lights_used.iter().filter(|&&l| l >= 3).count() > n / 2);
+                    assert!(maps.finish().assert_matches(&maps_ref.finish()) > n / 2);
+                }
+            }
+        }
     }
 
     /// What the lean run moves in memory (the statistics summed a chunk at a time, the targets

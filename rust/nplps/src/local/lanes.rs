@@ -146,28 +146,9 @@ impl LocalStep<'_> {
             debug_assert!(trust.is_none());
             return self.fit_field_lanes(lights, first, u, buf, interleaved, field);
         }
-        let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
-        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
-        let batch = self.batch_corners(first, &pixels, u);
+        let geometry = self.geometry;
+        let (batch, centres) = self.gather_batch(first, u, buf, interleaved);
         let quads = &batch.quads;
-        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&quads[l]));
-        if !obs.gather_lanes(&pixels, interleaved) {
-            for l in 0..LANES {
-                let f = first + l;
-                let values = obs.facet(grid.facets[f] as usize, buf);
-                for (slot, &v) in interleaved.iter_mut().zip(values) {
-                    slot[l] = v;
-                }
-            }
-        }
-        if let Some(shadows) = self.shadows {
-            // One channel: light k is row k of the interleaved values.
-            for (l, &pixel) in pixels.iter().enumerate() {
-                for k in shadows.lights_at(pixel) {
-                    interleaved[k][l] = f32::NAN;
-                }
-            }
-        }
         let thresholds = (self.settings.dark, self.settings.saturation);
         let mut trust = trust;
         let (sums, solved) = fit_lanes_dispatch(
@@ -246,6 +227,73 @@ impl LocalStep<'_> {
                 }
             }
         })
+    }
+}
+
+impl LocalStep<'_> {
+    /// The corners and centres of facets `first..first + LANES` on `u`, and their observations
+    /// gathered into `interleaved` (`interleaved[k][lane]`, those in a cast shadow NaN; `buf`
+    /// is scratch for one facet's).
+    #[inline(always)]
+    fn gather_batch(
+        &self,
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+    ) -> (BatchCorners, [[f64; 3]; LANES]) {
+        let (grid, obs) = (self.grid, self.obs);
+        let pixels: [usize; LANES] = crate::lanes(|l| grid.facets[first + l] as usize);
+        let batch = self.batch_corners(first, &pixels, u);
+        let centres: [[f64; 3]; LANES] = crate::lanes(|l| quad_centre(&batch.quads[l]));
+        if !obs.gather_lanes(&pixels, interleaved) {
+            for l in 0..LANES {
+                let f = first + l;
+                let values = obs.facet(grid.facets[f] as usize, buf);
+                for (slot, &v) in interleaved.iter_mut().zip(values) {
+                    slot[l] = v;
+                }
+            }
+        }
+        if let Some(shadows) = self.shadows {
+            // One channel: light k is row k of the interleaved values.
+            for (l, &pixel) in pixels.iter().enumerate() {
+                for k in shadows.lights_at(pixel) {
+                    interleaved[k][l] = f32::NAN;
+                }
+            }
+        }
+        (batch, centres)
+    }
+
+    /// The trust values alone of facets `first..first + LANES` (see [`LocalStep::fit_lanes`]
+    /// with a [`LaneTrust`], whose values and sums these are, bit for bit): the sums and the
+    /// solve of the trust's normal equations, and one pass over the stored rows, without the
+    /// fits' normals, albedos, targets and residuals.
+    fn trust_batch(
+        &self,
+        lights: &[LaneLight],
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+        trust: LaneTrust<'_>,
+    ) {
+        let (_, centres) = self.gather_batch(first, u, buf, interleaved);
+        let thresholds = (self.settings.dark, self.settings.saturation);
+        let (used, solved) =
+            trust_kernel_dispatch(lights, &centres, interleaved, thresholds, trust.rows);
+        let out = trust_residuals_dispatch(
+            lights,
+            trust.rows,
+            interleaved,
+            thresholds,
+            &solved,
+            trust.sums,
+        );
+        trust
+            .out
+            .copy_from_slice(&trust_lanes_dispatch(&out, &solved, &used));
     }
 }
 
@@ -396,6 +444,38 @@ fn fit_kernel(
     let sums = accumulate_lanes(lights, centres, values, thresholds, rows);
     let solution = solve_lanes(&sums, centres, base, geometry);
     (sums, solution)
+}
+
+simd_dispatch! {
+    wide
+    /// [`trust_kernel`] with AVX-512 or AVX2 when the processor has it (same arithmetic, wider
+    /// registers).
+    fn trust_kernel_dispatch => trust_kernel(
+        lights: &[LaneLight],
+        centres: &[[f64; 3]; LANES],
+        values: &[[f32; LANES]],
+        thresholds: (f64, f64),
+        rows: &mut [[[f64; LANES]; 3]],
+    ) -> ([u32; LANES], LaneSolved);
+}
+
+/// [`accumulate_lanes`] with the rows stored, and the trust's solution of the sums (the solve
+/// of [`solve_lanes`], without the normals, albedos, residuals and targets of the fits): the
+/// usable lights and the [`LaneSolved`] of [`LaneSolved::new`], the same bits.
+#[inline(always)]
+fn trust_kernel(
+    lights: &[LaneLight],
+    centres: &[[f64; 3]; LANES],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    rows: &mut [[[f64; LANES]; 3]],
+) -> ([u32; LANES], LaneSolved) {
+    let sums = accumulate_lanes(lights, centres, values, thresholds, Some(rows));
+    let (regular, inverse, g) = super::solve_spd3_lanes(&sums.t, &sums.s);
+    (
+        sums.used,
+        LaneSolved::of(&sums.used, &regular, &inverse, &g),
+    )
 }
 
 /// The fits of [`LANES`] facets' grey, unit-weight sums, one lane each, with the operations of
@@ -577,13 +657,30 @@ impl LaneSolved {
     /// [`solve_lanes`] computes with the same operations): active where at least 4 lights are
     /// usable and `T` is regular (elsewhere the inverse and `g` are 0).
     fn new(sums: &LaneSums, solution: &LaneSolution) -> LaneSolved {
-        let active: [bool; LANES] = crate::lanes(|l| sums.used[l] >= 4 && solution.regular[l]);
+        LaneSolved::of(
+            &sums.used,
+            &solution.regular,
+            &solution.inverse,
+            &solution.g,
+        )
+    }
+
+    /// From the usable lights, and the test, inverse and `g` of
+    /// [`solve_spd3_lanes`](super::solve_spd3_lanes) (see [`LaneSolved::new`]).
+    #[inline(always)]
+    fn of(
+        used: &[u32; LANES],
+        regular: &[bool; LANES],
+        inverse: &[[f64; LANES]; 9],
+        g: &[[f64; LANES]; 3],
+    ) -> LaneSolved {
+        let active: [bool; LANES] = crate::lanes(|l| used[l] >= 4 && regular[l]);
         let keep = |x: &[f64; LANES]| -> [f64; LANES] {
             crate::lanes(|l| if active[l] { x[l] } else { 0.0 })
         };
         LaneSolved {
-            inverse: solution.inverse.each_ref().map(keep),
-            g: solution.g.each_ref().map(keep),
+            inverse: inverse.each_ref().map(keep),
+            g: g.each_ref().map(keep),
             active,
         }
     }
@@ -628,6 +725,52 @@ fn final_residuals(
     lights: &[LaneLight],
     rows: &[[[f64; LANES]; 3]],
     values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    fits: &LaneFits,
+    solved: &LaneSolved,
+    sums: &mut [LaneLightSums],
+) -> [[f64; LANES]; 4] {
+    residual_terms::<true>(lights, rows, values, thresholds, fits, solved, sums)
+}
+
+simd_dispatch! {
+    wide
+    /// [`trust_residuals`] with AVX-512 or AVX2 when the processor has it (same arithmetic,
+    /// wider registers).
+    fn trust_residuals_dispatch => trust_residuals(
+        lights: &[LaneLight],
+        rows: &[[[f64; LANES]; 3]],
+        values: &[[f32; LANES]],
+        thresholds: (f64, f64),
+        solved: &LaneSolved,
+        sums: &mut [LaneLightSums],
+    ) -> [[f64; LANES]; 4];
+}
+
+/// [`final_residuals`] without fits: the trust's terms alone (the fits' squared residuals,
+/// row 0, are 0), the same bits.
+#[inline(always)]
+fn trust_residuals(
+    lights: &[LaneLight],
+    rows: &[[[f64; LANES]; 3]],
+    values: &[[f32; LANES]],
+    thresholds: (f64, f64),
+    solved: &LaneSolved,
+    sums: &mut [LaneLightSums],
+) -> [[f64; LANES]; 4] {
+    let fits = LaneFits {
+        normals: [[0.0; 3]; LANES],
+        albedo: [0.0; LANES],
+    };
+    residual_terms::<false>(lights, rows, values, thresholds, &fits, solved, sums)
+}
+
+/// [`final_residuals`], with the fits' squared residuals when `FIT` (else 0).
+#[inline(always)]
+fn residual_terms<const FIT: bool>(
+    lights: &[LaneLight],
+    rows: &[[[f64; LANES]; 3]],
+    values: &[[f32; LANES]],
     (dark, saturation): (f64, f64),
     fits: &LaneFits,
     solved: &LaneSolved,
@@ -637,51 +780,50 @@ fn final_residuals(
     let mut trust_sse = [0.0f64; LANES];
     let mut loo_sum = [0.0f64; LANES];
     let mut loo_count = [0.0f64; LANES];
-    let (inv, g) = (&solved.inverse, &solved.g);
+    let (inv, g, active) = (&solved.inverse, &solved.g, &solved.active);
+    // The normals one row per component (the lanes of a component side by side).
+    let normals: [[f64; LANES]; 3] = crate::lanes(|j| crate::lanes(|l| fits.normals[l][j]));
+    let albedo = &fits.albedo;
     for (((light, v), row), sum) in lights.iter().zip(values).zip(rows).zip(sums) {
         let p = light.grey;
-        let (i, ok) = lane_values(v, dark, saturation);
-        let [b0, b1, b2] = *row;
-        let nb: [f64; LANES] = crate::lanes(|l| {
-            let n = fits.normals[l];
-            n[0] * b0[l] + n[1] * b1[l] + n[2] * b2[l]
-        });
+        let [b0, b1, b2] = row;
+        // The light's running sums in locals, written back whole; the conditions combined with
+        // `&` (no short circuit) and the terms chosen by `select_unpredictable`, not by `if`:
+        // branches that the compiler turned into pairs of masked stores, with the sums on the
+        // stack, whose loads the next light's additions waited for (most of the time of this
+        // function).
+        let mut s = *sum;
+        let pick = |c: bool, x: f64| std::hint::select_unpredictable(c, x, 0.0);
         for l in 0..LANES {
-            let e = fits.albedo[l] * p * nb[l] - i[l];
-            sse[l] += if ok[l] { e * e } else { 0.0 };
-        }
-        let r0: [f64; LANES] = crate::lanes(|l| b0[l] * p);
-        let r1: [f64; LANES] = crate::lanes(|l| b1[l] * p);
-        let r2: [f64; LANES] = crate::lanes(|l| b2[l] * p);
-        let e: [f64; LANES] =
-            crate::lanes(|l| i[l] - (r0[l] * g[0][l] + r1[l] * g[1][l] + r2[l] * g[2][l]));
-        let mut ir = [[0.0f64; LANES]; 3];
-        for (j, ir) in ir.iter_mut().enumerate() {
-            let m = &inv[3 * j..3 * j + 3];
-            for l in 0..LANES {
-                ir[l] = m[0][l] * r0[l] + m[1][l] * r1[l] + m[2][l] * r2[l];
+            let i = v[l] as f64;
+            let ok = (i > dark) & (i < saturation);
+            if FIT {
+                let nb = normals[0][l] * b0[l] + normals[1][l] * b1[l] + normals[2][l] * b2[l];
+                let fit_e = albedo[l] * p * nb - i;
+                sse[l] += pick(ok, fit_e * fit_e);
             }
+            let (r0, r1, r2) = (b0[l] * p, b1[l] * p, b2[l] * p);
+            let e = i - (r0 * g[0][l] + r1 * g[1][l] + r2 * g[2][l]);
+            let ir0 = inv[0][l] * r0 + inv[1][l] * r1 + inv[2][l] * r2;
+            let ir1 = inv[3][l] * r0 + inv[4][l] * r1 + inv[5][l] * r2;
+            let ir2 = inv[6][l] * r0 + inv[7][l] * r1 + inv[8][l] * r2;
+            let h = r0 * ir0 + r1 * ir1 + r2 * ir2;
+            let loo = e / (1.0 - h);
+            // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
+            // non-negative terms changes no bit); the light's terms are added to its running
+            // sums lane by lane (no horizontal sum per batch).
+            let used = ok & active[l];
+            let finite = used & loo.is_finite();
+            let ee = e * e;
+            trust_sse[l] += pick(used, ee);
+            loo_sum[l] += pick(finite, loo.abs());
+            loo_count[l] += pick(finite, 1.0);
+            s[0][l] += pick(used, ee);
+            s[1][l] += pick(finite, loo * loo);
+            s[2][l] += pick(used, i);
+            s[3][l] += pick(used, 1.0);
         }
-        let h: [f64; LANES] =
-            crate::lanes(|l| r0[l] * ir[0][l] + r1[l] * ir[1][l] + r2[l] * ir[2][l]);
-        let loo: [f64; LANES] = crate::lanes(|l| e[l] / (1.0 - h[l]));
-        // Per lane the facet's sums as the scalar code adds them (adding 0 to a sum of
-        // non-negative terms changes no bit); the light's terms are added to its running sums
-        // lane by lane (no horizontal sum per batch), straight from the selected values: a
-        // staging array of the four terms was written with masked stores that the loads of
-        // the additions waited for.
-        for l in 0..LANES {
-            let used = ok[l] && solved.active[l];
-            let finite = used && loo[l].is_finite();
-            let ee = e[l] * e[l];
-            trust_sse[l] += if used { ee } else { 0.0 };
-            loo_sum[l] += if finite { loo[l].abs() } else { 0.0 };
-            loo_count[l] += if finite { 1.0 } else { 0.0 };
-            sum[0][l] += if used { ee } else { 0.0 };
-            sum[1][l] += if finite { loo[l] * loo[l] } else { 0.0 };
-            sum[2][l] += if used { i[l] } else { 0.0 };
-            sum[3][l] += if used { 1.0 } else { 0.0 };
-        }
+        *sum = s;
     }
     [sse, trust_sse, loo_sum, loo_count]
 }
@@ -753,53 +895,74 @@ fn lane_total(a: &[f64; LANES]) -> f64 {
 }
 
 impl LocalStep<'_> {
-    /// [`LocalStep::try_run_final`] with the vectorized accumulation (`lights` from
-    /// [`LocalStep::lane_lights`]): each batch of [`LANES`] facets is fitted and its trust values
-    /// computed from one evaluation of the lights' `beta`, with the fits of
-    /// [`LocalStep::try_run`] and the trust values of the `trust` module (same operations, same
-    /// order). Returns the per-light sums.
-    pub(super) fn final_lanes(
+    /// The final pass with the vectorized accumulation (`lights` from
+    /// [`LocalStep::lane_lights`]) over facets `first..first + len`: each batch of [`LANES`]
+    /// facets is fitted and its trust values computed from one evaluation of the lights'
+    /// `beta`, with the fits of [`LocalStep::try_run`] and the trust values of the `trust`
+    /// module (same operations, same order); with `fitted` false the trust values alone (see
+    /// [`LocalStep::trust_batch`]; the fits handed on are then empty). The facets run in chunks
+    /// of [`CHUNK`] (the last one shorter; one empty chunk when `len` is 0), in parallel, each
+    /// on one thread, which hands its fits and trust values to `write` with the chunk's entry
+    /// of `views` (one per chunk) and its first facet, straight from its own buffers. Returns
+    /// the per-light sums (see [`LaneLightSums`]). Once cancelled, the remaining chunks are not
+    /// written (the caller must then check the token and discard the maps).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn final_lanes_into<V: Send>(
         &self,
         lights: &[LaneLight],
         u: &[f64],
         first: usize,
-        fits: &mut [FacetFit],
-        trust: &mut [[f32; 2]],
+        len: usize,
+        fitted: bool,
+        views: Vec<V>,
+        write: &(impl Fn(V, usize, &[FacetFit], &[[f32; 2]]) + Sync),
     ) -> Result<LightSums> {
+        debug_assert_eq!(views.len(), final_chunks(len));
         let (per, k) = (self.obs.per_facet(), self.obs.k);
         let scratch = || -> Result<_> {
             let (buf, interleaved) = lane_scratch(per, k)?;
             let rows = try_vec(k, [[0.0f64; LANES]; 3], SCRATCH)?;
             let trust_rows = try_vec(per, [0.0f64; 4], SCRATCH)?;
-            Ok((buf, interleaved, rows, trust_rows))
+            let fits = try_vec(if fitted { CHUNK } else { 0 }, FacetFit::EMPTY, SCRATCH)?;
+            let trust = try_vec(CHUNK, [f32::NAN; 2], SCRATCH)?;
+            Ok((buf, interleaved, rows, trust_rows, fits, trust))
         };
-        fits.par_chunks_mut(CHUNK)
-            .zip(trust.par_chunks_mut(CHUNK))
+        views
+            .into_par_iter()
             .enumerate()
-            .map_init(scratch, |scratch, (chunk, (fits, trust))| {
-                let (buf, interleaved, rows, trust_rows) =
+            .map_init(scratch, |scratch, (chunk, view)| {
+                let (buf, interleaved, rows, trust_rows, fits, trust) =
                     scratch.as_mut().map_err(|e| e.clone())?;
+                let start = first + chunk * CHUNK;
+                let n = len.saturating_sub(chunk * CHUNK).min(CHUNK);
+                let (fits, trust) = (&mut fits[..if fitted { n } else { 0 }], &mut trust[..n]);
                 let mut sums = vec![[0.0f64; 4]; k];
                 let mut lane_sums = vec![[[0.0f64; LANES]; 4]; k];
-                let start = first + chunk * CHUNK;
-                let batches = fits.chunks_mut(LANES).zip(trust.chunks_mut(LANES));
-                for (b, (fits, out)) in batches.enumerate() {
+                for (b, out) in trust.chunks_mut(LANES).enumerate() {
                     if self.cancel.is_cancelled() {
-                        break;
+                        return Ok(sums);
                     }
                     let at = start + b * LANES;
-                    if fits.len() == LANES {
+                    let batch = b * LANES..b * LANES + out.len();
+                    if out.len() == LANES {
                         let lane_trust = LaneTrust {
                             rows,
                             out,
                             sums: &mut lane_sums,
                         };
-                        let lanes =
-                            self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
-                        fits.copy_from_slice(&lanes);
+                        if fitted {
+                            let lanes =
+                                self.fit_lanes(lights, at, u, buf, interleaved, Some(lane_trust));
+                            fits[batch].copy_from_slice(&lanes);
+                        } else {
+                            self.trust_batch(lights, at, u, buf, interleaved, lane_trust);
+                        }
                     } else {
-                        for (i, (fit, out)) in fits.iter_mut().zip(out).enumerate() {
-                            *fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                        for (i, out) in out.iter_mut().enumerate() {
+                            if fitted {
+                                let fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                                fits[batch.start + i] = fit;
+                            }
                             *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums, None);
                         }
                     }
@@ -809,10 +972,17 @@ impl LocalStep<'_> {
                         *sum += lane_total(lanes);
                     }
                 }
+                write(view, start, fits, trust);
                 Ok(sums)
             })
             .try_reduce(|| vec![[0.0; 4]; k], |a, b| Ok(add_sums(a, b)))
     }
+}
+
+/// The chunks of [`LocalStep::final_lanes_into`] over `len` facets: one per [`CHUNK`] facets
+/// or part of one, and at least one.
+pub(crate) fn final_chunks(len: usize) -> usize {
+    len.div_ceil(CHUNK).max(1)
 }
 
 #[cfg(test)]
@@ -1073,6 +1243,88 @@ mod tests {
             }
         }
         assert!(fast_batches > 10, "{fast_batches}");
+    }
+
+    /// Timings of the final pass against a plain local step at 1024 x 1024 facets (pinhole
+    /// bumps, 16 of the scene's lights, depths given as the solver gives them):
+    /// `cargo test -p nplps --release --features synth --lib final_pass_timings -- --ignored
+    /// --nocapture`.
+    #[cfg(all(feature = "synth", unix))]
+    #[test]
+    #[ignore = "timings"]
+    fn final_pass_timings() {
+        use crate::problem::{ImageStack, InitialDepth, Problem};
+        use crate::synth::{Scene, SceneKind, SceneOptions};
+        let n = 1024;
+        let options = SceneOptions::default().with_pinhole(true);
+        let mut scene = Scene::with_options(SceneKind::Bumps, n, 100.0, 200.0, 0, options).unwrap();
+        scene.rig.lights.truncate(16);
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let k = scene.rig.lights.len();
+        let stack = ImageStack::new(&images, k, n, n).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let u = problem.u0.to_vec("u").unwrap();
+        let depths: Vec<f64> = u.iter().map(|&x| problem.geometry.depth(x)).collect();
+        let step = LocalStep {
+            depths: Some(&depths),
+            ..LocalStep::new(
+                &problem.grid,
+                &problem.geometry,
+                Model::Near(&scene.rig.lights),
+                &problem.obs,
+                FitSettings::default(),
+            )
+        };
+        let facets = problem.grid.n_facets();
+        let chunk = 1 << 18;
+        let mut fits = vec![FacetFit::EMPTY; chunk.min(facets)];
+        let mut values = vec![[f32::NAN; 2]; chunk.min(facets)];
+        // CPU time of the process (all threads): steadier than wall time on a shared machine.
+        let cpu = || {
+            let mut t = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: clock_gettime only writes the struct we pass.
+            unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut t) };
+            t.tv_sec as f64 * 1e9 + t.tv_nsec as f64
+        };
+        let time = |f: &mut dyn FnMut()| {
+            let mut t: Vec<f64> = (0..7)
+                .map(|_| {
+                    let start = cpu();
+                    f();
+                    (cpu() - start) / facets as f64
+                })
+                .collect();
+            t.sort_by(f64::total_cmp);
+            (t[3], t[0])
+        };
+        let plain = time(&mut || {
+            for first in (0..facets).step_by(chunk) {
+                let len = (facets - first).min(chunk);
+                step.try_run(&u, first, &mut fits[..len]).unwrap();
+            }
+        });
+        let mut maps = TrustMaps::new(&problem.grid, k, 1).unwrap();
+        let last = time(&mut || {
+            for first in (0..facets).step_by(chunk) {
+                let len = (facets - first).min(chunk);
+                let (fits, values) = (&mut fits[..len], &mut values[..len]);
+                step.try_run_final(&u, first, fits, values, &mut maps, None)
+                    .unwrap();
+            }
+        });
+        println!(
+            "final pass timing: {facets} facets, {k} lights, {} threads: plain exact step \
+             {:.1} CPU ns a facet (min {:.1}), final pass {:.1} (min {:.1})",
+            rayon::current_num_threads(),
+            plain.0,
+            plain.1,
+            last.0,
+            last.1
+        );
     }
 
     /// The vectorized accumulation gives bit for bit the fits of the scalar code (isotropic

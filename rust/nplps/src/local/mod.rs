@@ -44,7 +44,12 @@ pub(crate) use glossy::{
     estimate_lobe, estimate_starting_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
 };
 pub(crate) use glossy_indirect::GlossyState;
+pub(crate) use lanes::final_chunks;
 use lanes::{lane_scratch, RobustScratch, LANES};
+/// Facets per chunk of the final pass's vectorized accumulation (see
+/// [`LocalStep::try_run_final_lanes`]).
+pub(crate) const FINAL_LANE_CHUNK: usize = trust::CHUNK;
+use trust::CHUNK;
 pub use trust::{LightTrust, Trust, TrustMaps};
 
 /// How the per-facet linear system weights the lights.
@@ -754,22 +759,37 @@ impl LocalStep<'_> {
         kept: Option<&KeptFits>,
     ) -> Result<usize> {
         debug_assert_eq!(fits.len(), trust.len());
-        if let Some(lights) = self.lane_lights() {
-            maps.add(self.final_lanes(&lights, u, first, fits, trust)?);
-            return Ok(0);
-        }
-        if self.settings.lobe.is_some() {
-            let lambertian = LocalStep {
-                settings: FitSettings {
-                    lobe: None,
-                    ..self.settings
-                },
-                ..*self
+        if let Some((lights, fitted)) = self.final_lane_lights() {
+            let len = trust.len();
+            // Each chunk's values are copied into its part of `fits` and `trust`.
+            let views: Vec<_> = match fitted {
+                true => fits
+                    .chunks_mut(CHUNK)
+                    .map(Some)
+                    .zip(trust.chunks_mut(CHUNK))
+                    .collect(),
+                false => trust.chunks_mut(CHUNK).map(|t| (None, t)).collect(),
             };
-            if let Some(lights) = lambertian.lane_lights() {
-                maps.add(lambertian.final_lanes(&lights, u, first, fits, trust)?);
-                return self.try_run_kept(u, first, fits, kept);
+            let views = if views.is_empty() {
+                vec![(None, &mut [][..])]
+            } else {
+                views
+            };
+            let write = |(fits, trust): (Option<&mut [FacetFit]>, &mut [[f32; 2]]),
+                         _: usize,
+                         chunk_fits: &[FacetFit],
+                         chunk_trust: &[[f32; 2]]| {
+                if let Some(fits) = fits {
+                    fits.copy_from_slice(chunk_fits);
+                }
+                trust.copy_from_slice(chunk_trust);
+            };
+            let lambertian = self.lambertian();
+            maps.add(lambertian.final_lanes_into(&lights, u, first, len, fitted, views, &write)?);
+            if fitted {
+                return Ok(0);
             }
+            return self.try_run_kept(u, first, fits, kept);
         }
         let done = self.try_run_kept(u, first, fits, kept)?;
         // A robust step's fits (without a lobe or indirect light) are those its trust values
@@ -778,6 +798,47 @@ impl LocalStep<'_> {
         let own = s.robust != Robust::None && s.lobe.is_none() && self.indirect.is_none();
         maps.add(self.trust_range(u, first, trust, own.then_some(&*fits)));
         Ok(done)
+    }
+
+    /// This step without its lobe: the Lambertian model's fits under the same settings.
+    pub(crate) fn lambertian(&self) -> LocalStep<'_> {
+        LocalStep {
+            settings: FitSettings {
+                lobe: None,
+                ..self.settings
+            },
+            ..*self
+        }
+    }
+
+    /// Where the final pass takes its trust values (and, under the Lambertian model, its fits)
+    /// from the vectorized accumulation: the lights of [`LocalStep::lane_lights`] of the
+    /// Lambertian model under this step's settings, and whether the lanes' fits are the
+    /// pass's fits (the Lambertian model) or only its trust values are (the glossy model, whose
+    /// own fits are then made by [`LocalStep::try_run_kept`]). None: the scalar trust values
+    /// (colour, a robust estimator, indirect light, the paper's weighting, parallel lights).
+    pub(crate) fn final_lane_lights(&self) -> Option<(Vec<crate::light::LaneLight>, bool)> {
+        let lights = self.lambertian().lane_lights()?;
+        Some((lights, self.settings.lobe.is_none()))
+    }
+
+    /// The final pass of the vectorized accumulation over every facet (`lights` and `fitted`
+    /// from [`LocalStep::final_lane_lights`]): in chunks of [`FINAL_LANE_CHUNK`] facets run in
+    /// parallel, each handing its fits (with `fitted`; else none) and trust values to `write`
+    /// with its entry of `views` (one per chunk, [`final_chunks`] of them) and its first
+    /// facet (see `LocalStep::final_lanes_into`). Returns the per-light trust sums (for
+    /// [`TrustMaps::add`]).
+    pub(crate) fn try_run_final_lanes<V: Send>(
+        &self,
+        lights: &[crate::light::LaneLight],
+        u: &[f64],
+        fitted: bool,
+        views: Vec<V>,
+        write: &(impl Fn(V, usize, &[FacetFit], &[[f32; 2]]) + Sync),
+    ) -> Result<trust::LightSums> {
+        let n = self.grid.n_facets();
+        self.lambertian()
+            .final_lanes_into(lights, u, 0, n, fitted, views, write)
     }
 
     /// [`LocalStep::try_run`] where, under the glossy model with grey images, each facet whose

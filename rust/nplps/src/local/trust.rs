@@ -31,7 +31,7 @@ use super::{
 };
 use crate::error::Result;
 use crate::geometry::quad_centre;
-use crate::memory::try_par_vec;
+use crate::memory::{try_par_vec, try_zeros};
 use crate::parallel::scatter;
 use crate::vec3::norm;
 
@@ -87,7 +87,7 @@ pub struct LightTrust {
 }
 
 /// Per-light sums: squared residual, squared held-out residual, observation, count.
-pub(super) type LightSums = Vec<[f64; 4]>;
+pub(crate) type LightSums = Vec<[f64; 4]>;
 
 /// Facets per parallel chunk.
 pub(super) const CHUNK: usize = 4096;
@@ -127,6 +127,27 @@ impl TrustMaps {
         })
     }
 
+    /// As [`TrustMaps::new`], the maps allocated but not written (zero pages until touched):
+    /// for a final pass that writes every pixel, masked or not ([`TrustMaps::maps`]).
+    pub(crate) fn unwritten(
+        grid: &crate::grid::Grid,
+        k: usize,
+        channels: usize,
+    ) -> Result<TrustMaps> {
+        let pixels = grid.height * grid.width;
+        Ok(TrustMaps {
+            normal_sigma: try_zeros(pixels, "the normal uncertainty map")?,
+            held_out: try_zeros(pixels, "the held-out error map")?,
+            sums: vec![[0.0; 4]; k],
+            channels,
+        })
+    }
+
+    /// The normal uncertainty and held-out error maps, for writing.
+    pub(crate) fn maps(&mut self) -> (&mut [f32], &mut [f32]) {
+        (&mut self.normal_sigma, &mut self.held_out)
+    }
+
     /// Writes the values of facets `first..first + per_facet.len()` into the maps, pieces of
     /// the facets in parallel (a grid's facets are in increasing pixel order, so the pieces'
     /// pixels do not overlap).
@@ -147,7 +168,7 @@ impl TrustMaps {
     }
 
     /// Adds per-light sums.
-    pub(super) fn add(&mut self, sums: LightSums) {
+    pub(crate) fn add(&mut self, sums: LightSums) {
         self.sums = add_sums(std::mem::take(&mut self.sums), sums);
     }
 
