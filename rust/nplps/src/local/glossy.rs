@@ -156,6 +156,7 @@ fn observations(
     out: &mut Packed,
 ) {
     out.clear(v);
+    out.noise = settings.noise;
     for (k, o) in values.chunks_exact(channels).enumerate() {
         if !usable(o, settings) {
             continue;

@@ -101,6 +101,10 @@ pub struct FitSettings {
     /// on until a step no longer lowers the residual noticeably. The solver sets it where no
     /// residuals are compared across candidates (see `Solver::local_step`).
     pub step_tolerance: f64,
+    /// The variance of the noise of an observation (the sum of its channels), which with a
+    /// step tolerance also ends the glossy fits (see
+    /// [`NOISE_STOP`](crate::reflectance::NOISE_STOP)); 0: none known.
+    pub noise: f64,
 }
 
 impl Default for FitSettings {
@@ -114,6 +118,7 @@ impl Default for FitSettings {
             lobe: None,
             continuation: true,
             step_tolerance: 0.0,
+            noise: 0.0,
         }
     }
 }
@@ -293,6 +298,36 @@ impl<'a> Observations<'a> {
             channels,
             data: Stored::F32(Cow::Owned(data)),
             plane: pixels * channels,
+        }
+    }
+
+    /// The variance of the additive noise of an observation (the sum of its channels: `C
+    /// sigma^2`), with `sigma` measured by [`estimate_noise`](crate::noise::estimate_noise) in the
+    /// images of `grid`'s facets (exactly 0 on noise-free renders, and where it cannot be
+    /// measured or its buffers cannot be allocated).
+    pub fn noise_variance(&self, grid: &Grid) -> f64 {
+        let (height, width) = (grid.height, grid.width);
+        if self.plane != height * width * self.channels {
+            return 0.0;
+        }
+        let data = match &self.data {
+            Stored::F32(d) => Samples::F32(d),
+            Stored::U16(d) => Samples::U16(d),
+        };
+        let stack = crate::problem::ImageStack {
+            data,
+            k: self.k,
+            height,
+            width,
+            channels: self.channels,
+        };
+        let mut mask = vec![false; height * width];
+        for &p in &grid.facets {
+            mask[p as usize] = true;
+        }
+        match crate::noise::estimate_noise(&stack, Some(&mask)) {
+            Ok(sigma) if sigma.is_finite() => self.channels as f64 * sigma * sigma,
+            _ => 0.0,
         }
     }
 
