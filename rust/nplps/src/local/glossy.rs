@@ -216,6 +216,12 @@ pub(super) fn refine(
     scratch: &mut Packed,
 ) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
+    // The fits stop within the noise only from a glossy start (see `NOISE_STOP`): a Lambertian
+    // fit's normal is tilted by the highlights, alike on neighbouring facets, which the mesh
+    // does not average away as it does the noise.
+    if start.is_some() {
+        scratch.noise = 0.0;
+    }
     let albedo = start.map(|s| s.albedo[..channels].iter().sum::<f64>());
     let tolerance = settings.step_tolerance;
     let mut from = |n: [f64; 3]| match albedo {
