@@ -947,7 +947,10 @@ pub const STEP_TOLERANCE: f64 = 1e-5;
 /// step `dx` is then within about one standard error of the noise, `dx^T (J^T J / sigma^2) dx
 /// <= 1` (the covariance of the least-squares unknowns is `sigma^2 (J^T J)^-1`): the minimum
 /// it would reach differs from the fit where it stops by less than the noise lets the data tell
-/// apart. Such a fit counts as converged ([`GlossyFit::converged`]).
+/// apart. Such a fit counts as converged ([`GlossyFit::converged`]). The local steps use it only
+/// for fits from a glossy start (the previous step's or a coarser level's normal): from a
+/// Lambertian fit, whose normals the highlights tilt alike on neighbouring facets (a bias the
+/// mesh does not average away as it does the noise), `glossy::refine` fits with noise 0.
 ///
 /// Stop 49 (issue 20): the fits of a finer level start from the coarser level's normals, which
 /// average four facets' data and so carry a quarter of the noise; without this stop every fit
@@ -956,7 +959,9 @@ pub const STEP_TOLERANCE: f64 = 1e-5;
 /// % noise, lobe given: share 0 / 0.3 / 1 / 3: mean normal error 1.019 / 0.924 / 0.748 / 0.424
 /// degrees, CPU 11.9 / 7.0 / 6.1 / 5.3 s. 1 is a standard error, the least that stands for a
 /// statistical statement; larger shares smooth more (they keep the coarser level's normal
-/// wherever the data do not move it by more than `sqrt(share)` standard errors).
+/// wherever the data do not move it by more than `sqrt(share)` standard errors). At 128² and
+/// 192², where one glossy level starts from the Lambertian fits, the same scene came out 0.015°
+/// worse on average (3 seeds; 0.03-0.04° before the Lambertian starts were left out).
 pub const NOISE_STOP: f64 = 1.0;
 
 /// The glossy fit of one facet.
