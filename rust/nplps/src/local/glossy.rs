@@ -1036,6 +1036,80 @@ mod tests {
     /// DiLiGenT's geometry in miniature: 48 distant lights within 35 degrees of the view, a
     /// sharp lobe (0.04), exact images, and fits started 8 degrees off on the far side of the
     /// brightest highlight: the direct fits end far off, the continuation at the truth.
+    /// The fits stop within the noise (`reflectance::NOISE_STOP`) only from a glossy start: from
+    /// a Lambertian fit `refine` fits as with noise 0, bit for bit; from a warm normal a noise far
+    /// above the facet's residual ends the fit at its start (and the fit counts as converged),
+    /// while with noise 0 it moves. 3 seeds x 5 facets with 0.5 % noise, 16 parallel lights.
+    #[test]
+    fn only_glossy_starts_stop_within_the_noise() {
+        use crate::reflectance::STEP_TOLERANCE;
+        let lobe = Lobe::new(0.3, 1.5);
+        let v = [0.0, 0.0, -1.0];
+        let lights: Vec<([f64; 3], [f64; 3])> = spiral_lights(16, 35.0)
+            .into_iter()
+            .map(|l| (l, [1.0; 3]))
+            .collect();
+        let model = Model::Parallel(&lights);
+        let quiet = FitSettings {
+            step_tolerance: STEP_TOLERANCE,
+            ..FitSettings::default()
+        };
+        let loud = FitSettings {
+            noise: 1e6,
+            ..quiet
+        };
+        let mut moved = 0;
+        for seed in 0..3u64 {
+            let mut uniform = crate::multigrid::tests::lcg(seed);
+            for i in 0..5 {
+                let t = (i + 5 * seed as usize) as f64;
+                let n = normalize([0.3 * (t * 0.7).sin(), 0.3 * (t * 1.3).cos(), -1.0]);
+                let values: Vec<f32> = lights
+                    .iter()
+                    .map(|&(l, _)| {
+                        let shade = lobe
+                            .shade(n, l, v)
+                            .map_or(0.0, |s| 0.5 * s.diffuse + 0.3 * s.specular);
+                        (shade + 0.005 * (uniform() - 0.5) * 3.46) as f32
+                    })
+                    .collect();
+                let c = [0.0; 3];
+                let mut scratch = Packed::new();
+                let lambertian = fit_facet(c, model, &values, 1, quiet).unwrap();
+                let mut fit = |settings: &FitSettings, start: Option<&FacetFit>, from, steps| {
+                    let g = refine(
+                        c,
+                        v,
+                        model,
+                        &values,
+                        1,
+                        settings,
+                        &lobe,
+                        start,
+                        [Some(from), None],
+                        steps,
+                        &mut scratch,
+                    );
+                    (g.map(|g| (g.normal, g.sse)), scratch.converged)
+                };
+                let from = lambertian.normal;
+                assert_eq!(
+                    fit(&loud, Some(&lambertian), from, GLOSSY_STEPS),
+                    fit(&quiet, Some(&lambertian), from, GLOSSY_STEPS)
+                );
+                // A warm start 2 degrees off the truth.
+                let warm = normalize([n[0] + 0.035, n[1], n[2]]);
+                let (stopped, converged) = fit(&loud, None, warm, GLOSSY_WARM_STEPS);
+                assert!(converged);
+                let stopped = stopped.unwrap().0;
+                assert!(degrees(stopped, warm) < 1e-9, "{stopped:?} {warm:?}");
+                let (free, _) = fit(&quiet, None, warm, GLOSSY_WARM_STEPS);
+                moved += (degrees(free.unwrap().0, warm) > 0.5) as usize;
+            }
+        }
+        assert!(moved >= 14, "{moved} of 15 fits moved without the noise");
+    }
+
     #[test]
     fn continuation_finds_the_normal_a_tilted_start_misses() {
         let lobe = Lobe::new(0.04, 1.5);
