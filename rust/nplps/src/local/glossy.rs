@@ -8,8 +8,10 @@
 //! before a step shorter than `settings.step_tolerance` of their unknowns (see
 //! [`STEP_TOLERANCE`](crate::reflectance::STEP_TOLERANCE); 0 in the distance and lobe
 //! searches, and in a run's local steps before its last lobe estimate, see
-//! `Solver::lobe_pending_after`). Light `k` is seen by the facet with centre `c` as the
-//! observation
+//! `Solver::lobe_pending_after`); with one, the fits from a glossy start also stop once the
+//! decrease left is within the image noise (see
+//! [`NOISE_STOP`](crate::reflectance::NOISE_STOP)). Light `k` is seen by the facet with centre
+//! `c` as the observation
 //!
 //! ```text
 //! value = sum_ch I_{k,ch},   scale = sum_ch Phi_{k,ch} |beta_k(c)|,   l = beta_k(c) / |beta_k(c)|,
