@@ -119,6 +119,7 @@ impl Options {
             },
             continuation: true,
             step_tolerance: 0.0,
+            noise: 0.0,
         }
     }
 }

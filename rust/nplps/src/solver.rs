@@ -647,6 +647,9 @@ pub(crate) struct Solver<'p> {
     /// What the glossy local steps keep of each facet's last fit (see [`KeptFits`]); cleared
     /// wherever `warm` changes otherwise.
     kept: KeptFits,
+    /// The variance of an observation's noise (see [`FitSettings::noise`]), measured on the
+    /// first glossy local step that stops its fits early.
+    noise: std::sync::OnceLock<f64>,
     /// Whether this solver started without a lobe (it then estimates it more often).
     lobe_from_scratch: bool,
     /// The estimated lobe that made this solver (or a coarser level's) drop the glossy model
@@ -770,6 +773,7 @@ impl<'p> Solver<'p> {
             )?,
             warm_carried: false,
             kept: KeptFits::default(),
+            noise: std::sync::OnceLock::new(),
             lobe_from_scratch: false,
             matte: None,
             check: None,
@@ -1663,6 +1667,15 @@ impl<'p> Solver<'p> {
         // Under the glossy model the rounds' fits see the observations less the received
         // indirect light, without the field in their rows (see [`Solver::glossy_round`]).
         let received = self.received.as_ref().filter(|_| self.lobe.is_some());
+        let step_tolerance = match self.continuation && !self.lobe_pending {
+            true => STEP_TOLERANCE,
+            false => 0.0,
+        };
+        // The glossy fits that stop early also stop within the noise (see `NOISE_STOP`).
+        let noise = match self.lobe.is_some() && step_tolerance > 0.0 {
+            true => *self.noise.get_or_init(|| p.obs.noise_variance(&p.grid)),
+            false => 0.0,
+        };
         LocalStep {
             grid: &p.grid,
             geometry: &p.geometry,
@@ -1674,10 +1687,8 @@ impl<'p> Solver<'p> {
                 // Converged glossy fits stop early, but not where the fits' residuals are
                 // compared across candidates (continuation off: the distance search and check),
                 // nor before the run's last lobe estimate (`lobe_pending`).
-                step_tolerance: match self.continuation && !self.lobe_pending {
-                    true => STEP_TOLERANCE,
-                    false => 0.0,
-                },
+                step_tolerance,
+                noise,
                 ..self.options.fit_settings(fast_residual)
             },
             depths,
