@@ -2181,7 +2181,10 @@ mod tests {
                 let problem = Problem::new(stack, &scene.rig, Some(&mask), start).unwrap();
                 let grid = &problem.grid;
                 let n = grid.n_facets();
-                assert!(n > crate::local::FINAL_LANE_CHUNK && !n.is_multiple_of(8), "{n}");
+                assert!(
+                    n > crate::local::FINAL_LANE_CHUNK && !n.is_multiple_of(8),
+                    "{n}"
+                );
                 let u: Vec<f64> = (0..grid.n_unknowns())
                     .map(|i| problem.u0.at(i) + 1e-3 * ((i * 7) % 13) as f64)
                     .collect();
