@@ -1673,7 +1673,9 @@ impl<'p> Solver<'p> {
         };
         // The glossy fits that stop early also stop within the noise (see `NOISE_STOP`).
         let noise = match self.lobe.is_some() && step_tolerance > 0.0 {
-            true => *self.noise.get_or_init(|| p.obs.noise_variance(&p.grid)),
+            true => *self
+                .noise
+                .get_or_init(|| crate::noise::observation_variance(&p.obs, &p.grid)),
             false => 0.0,
         };
         LocalStep {

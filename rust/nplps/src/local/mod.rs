@@ -76,11 +76,6 @@ pub enum Robust {
     Tukey,
 }
 
-/// About this many 3 x 3 windows measure the noise of a level's images for the glossy fits
-/// (see [`Observations::noise_variance`]): all its images cost 0.1 CPU s at 1 MP with 16 lights
-/// (1 M windows, the estimator's cap), a noticeable share of a noise-free glossy run.
-pub const NOISE_WINDOWS: usize = 1 << 18;
-
 /// Reweighting rounds of the robust estimator.
 pub const IRLS_ITERATIONS: usize = 8;
 
@@ -308,40 +303,6 @@ impl<'a> Observations<'a> {
             channels,
             data: Stored::F32(Cow::Owned(data)),
             plane: pixels * channels,
-        }
-    }
-
-    /// The variance of the additive noise of an observation (the sum of its channels: `C
-    /// sigma^2`), with `sigma` measured by [`estimate_noise`](crate::noise::estimate_noise) in the
-    /// first images (enough for about [`NOISE_WINDOWS`] of its windows) inside `grid`'s facets
-    /// (exactly 0 on noise-free renders, and where it cannot be measured or its buffers cannot
-    /// be allocated).
-    pub fn noise_variance(&self, grid: &Grid) -> f64 {
-        let (height, width) = (grid.height, grid.width);
-        if self.plane != height * width * self.channels {
-            return 0.0;
-        }
-        // The first images only, about `NOISE_WINDOWS` windows (all of them below): the
-        // estimate's relative standard error is then about 0.25 %, and its cost a few ms.
-        let k = self.k.min((NOISE_WINDOWS / (height * width).max(1)).max(1));
-        let data = match &self.data {
-            Stored::F32(d) => Samples::F32(&d[..k * self.plane]),
-            Stored::U16(d) => Samples::U16(&d[..k * self.plane]),
-        };
-        let stack = crate::problem::ImageStack {
-            data,
-            k,
-            height,
-            width,
-            channels: self.channels,
-        };
-        let mut mask = vec![false; height * width];
-        for &p in &grid.facets {
-            mask[p as usize] = true;
-        }
-        match crate::noise::estimate_noise(&stack, Some(&mask)) {
-            Ok(sigma) if sigma.is_finite() => self.channels as f64 * sigma * sigma,
-            _ => 0.0,
         }
     }
 
