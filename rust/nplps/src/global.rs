@@ -260,6 +260,16 @@ impl GlobalStep {
         self.solve_from(grid, norm, targets, z_current, z_out)
     }
 
+    /// The multigrid's work vectors on the fine grid (see
+    /// [`MultigridSystem::into_spare`](crate::multigrid::MultigridSystem::into_spare); none
+    /// for the direct solver), the rest of the step freed.
+    pub(crate) fn into_spare(self) -> Vec<Vec<f64>> {
+        match self {
+            GlobalStep::Direct(_) => Vec::new(),
+            GlobalStep::Multigrid { system, .. } => system.into_spare(),
+        }
+    }
+
     /// The global step from its right side in `z_out` ([`GlobalStep::right_side`], with the norm
     /// `target_norm`), which the solution replaces; `targets` are read only where
     /// [`GlobalStep::needs_targets`] (they may be empty otherwise). Returns as

@@ -124,6 +124,59 @@ pub(crate) fn try_zeros<T: Zeroable>(len: usize, what: &str) -> Result<Vec<T>> {
     }
 }
 
+/// `len` triples on the memory of `spare`, a buffer of quadruples no longer needed, when it
+/// holds at least `3 len` values (else [`try_zeros`]): for a map whose every entry is written
+/// before it is read, which then lands on pages already touched instead of fresh ones (the
+/// kernel zeroes each fresh page as it is first touched: 70 k page faults for the normal map
+/// of 12 MP). The entries hold `spare`'s old bits (or zeros) until written. `spare`'s
+/// allocation is shrunk to the triples' size (in place: glibc gives the tail's pages back).
+pub(crate) fn triples_on(spare: Vec<[f64; 4]>, len: usize, what: &str) -> Result<Vec<[f64; 3]>> {
+    let mut flat = spare.into_flattened();
+    let values = len.saturating_mul(3);
+    if len == 0 || values > flat.capacity() {
+        drop(flat);
+        return try_zeros(len, what);
+    }
+    // (within the capacity: truncates, or writes zeros after the old values)
+    flat.resize(values, 0.0);
+    flat.shrink_to_fit();
+    if flat.capacity() != values {
+        drop(flat);
+        return try_zeros(len, what);
+    }
+    let mut flat = std::mem::ManuallyDrop::new(flat);
+    // SAFETY: `flat` owns an allocation of exactly `3 len` f64 from the global allocator (its
+    // length and capacity), whose layout (`24 len` bytes, aligned as f64) is that of `len`
+    // `[f64; 3]`; every bit pattern is a valid f64. `flat` is not dropped, so the new vector
+    // is the allocation's only owner.
+    Ok(unsafe { Vec::from_raw_parts(flat.as_mut_ptr().cast::<[f64; 3]>(), len, len) })
+}
+
+/// `len` values on the memory of one of the `spare` buffers (no longer needed: the first
+/// whose capacity holds `len`, taken out of `spare` and shrunk to `len`), else [`try_zeros`]:
+/// as [`triples_on`], for a map whose every entry is written before it is read (the entries
+/// hold the buffer's old values, or zeros, until then).
+pub(crate) fn values_on(spare: &mut Vec<Vec<f64>>, len: usize, what: &str) -> Result<Vec<f64>> {
+    let Some(i) = spare.iter().position(|v| len > 0 && v.capacity() >= len) else {
+        return try_zeros(len, what);
+    };
+    let mut values = spare.remove(i);
+    // (within the capacity: truncates, or writes zeros after the old values)
+    values.resize(len, 0.0);
+    values.shrink_to_fit();
+    Ok(values)
+}
+
+/// Buffers of a stage that are no longer needed, for maps written whole after it (see
+/// [`triples_on`] and [`values_on`]).
+#[derive(Default)]
+pub(crate) struct Spare {
+    /// One quadruple a facet (the solver's targets).
+    pub quads: Vec<[f64; 4]>,
+    /// Vectors of values (the global step's work vectors).
+    pub values: Vec<Vec<f64>>,
+}
+
 /// [`try_filled`] under the short name the modules use for their O(pixels) buffers.
 pub(crate) fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
     try_filled(len, value, what)
@@ -321,6 +374,65 @@ mod tests {
         let mut v = try_zeros::<f64>(10, "x").unwrap();
         v.push(1.0);
         assert_eq!(v.len(), 11);
+    }
+
+    /// The triples land on the spare buffer when it is large enough (its first values kept,
+    /// the allocation shrunk to the triples), on fresh zeros otherwise; empty ones included.
+    #[test]
+    fn triples_reuse_a_large_enough_spare_buffer() {
+        for (quads, len) in [(12, 16), (12, 9), (12, 1), (1 << 16, 87_381), (7, 5)] {
+            let spare: Vec<[f64; 4]> = (0..quads).map(|i| [i as f64; 4]).collect();
+            let at = spare.as_ptr() as usize;
+            let t = triples_on(spare, len, "x").unwrap();
+            assert_eq!((t.len(), t.capacity()), (len, len));
+            assert_eq!(t.as_ptr() as usize, at, "{quads} {len}");
+            let flat: Vec<f64> = t.iter().flatten().copied().collect();
+            for (j, &v) in flat.iter().enumerate() {
+                let old = if j < 4 * quads { (j / 4) as f64 } else { 0.0 };
+                assert_eq!(v, old, "{quads} {len} {j}");
+            }
+            // (dropped with the triples' layout)
+            drop(t);
+        }
+        for (quads, len) in [(12, 17), (0, 3), (5, 100)] {
+            let spare = vec![[1.0f64; 4]; quads];
+            let t = triples_on(spare, len, "x").unwrap();
+            assert_eq!(t, vec![[0.0; 3]; len]);
+        }
+        assert!(triples_on(vec![[1.0; 4]; 4], 0, "x").unwrap().is_empty());
+        let mut t = triples_on(vec![[2.0; 4]; 3], 4, "x").unwrap();
+        t.push([3.0; 3]);
+        assert_eq!(t.len(), 5);
+    }
+
+    /// Values land on the first spare buffer large enough (its first values kept, shrunk to
+    /// the length), on fresh zeros when none is; each spare buffer is used once.
+    #[test]
+    fn values_reuse_the_first_large_enough_spare_buffer() {
+        let mut spare = vec![
+            vec![1.0; 5],
+            vec![2.0; 40],
+            Vec::with_capacity(30),
+            vec![3.0; 30],
+        ];
+        let at = spare[1].as_ptr() as usize;
+        let v = values_on(&mut spare, 20, "x").unwrap();
+        assert_eq!((v.as_ptr() as usize, v.len(), v.capacity()), (at, 20, 20));
+        assert_eq!(v, vec![2.0; 20]);
+        assert_eq!(spare.len(), 3);
+        let w = values_on(&mut spare, 25, "x").unwrap();
+        assert_eq!(
+            w,
+            vec![0.0; 25],
+            "the empty buffer with room for 30, zeros written"
+        );
+        let x = values_on(&mut spare, 30, "x").unwrap();
+        assert_eq!(x, vec![3.0; 30]);
+        let y = values_on(&mut spare, 6, "x").unwrap();
+        assert_eq!(y, vec![0.0; 6], "no spare buffer holds 6: fresh zeros");
+        assert_eq!(spare, vec![vec![1.0; 5]]);
+        assert!(values_on(&mut spare, 0, "x").unwrap().is_empty());
+        assert_eq!(spare.len(), 1);
     }
 
     #[test]

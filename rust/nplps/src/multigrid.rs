@@ -1078,6 +1078,15 @@ impl MultigridSystem {
         }
     }
 
+    /// The conjugate gradients' four vectors on the fine padded grid (empty when given back,
+    /// see [`MultigridSystem::release_work`]), the rest of the system freed: buffers of the
+    /// padded node count (more than the grid's vertices), for maps written whole once the
+    /// solves are done (see [`crate::memory::values_on`]).
+    pub(crate) fn into_spare(self) -> Vec<Vec<f64>> {
+        let Krylov { x, r, p, w } = self.krylov;
+        vec![r, p, w, x]
+    }
+
     /// Allocates the work vectors given back by [`MultigridSystem::release_work`] (nothing if
     /// they are there); [`MultigridSystem::solve`] needs them.
     pub fn reserve_work(&mut self) -> Result<()> {

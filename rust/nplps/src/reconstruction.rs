@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use crate::error::Result;
 use crate::local::{FacetFit, LobeCheck};
-use crate::memory::{try_par_vec, try_zeros};
+use crate::memory::{try_par_vec, try_zeros, Spare};
 use crate::options::Refine;
 use crate::parallel::{scatter, PixelMaps};
 use crate::problem::Problem;
@@ -265,16 +265,23 @@ impl FitOutputs {
         })
     }
 
-    /// Outputs of the Lambertian model for `problem`'s image size, allocated but not written
-    /// (zero pages until touched): for a final pass that writes every pixel, masked or not
+    /// Outputs of the Lambertian model for `problem`'s image size, allocated but not written:
+    /// the normal, albedo and residual maps on the memory of `spare`'s buffers where they are
+    /// large enough (pages already touched, see [`triples_on`] and [`values_on`]), the others
+    /// zero pages until touched; for a final pass that writes every pixel, masked or not
     /// ([`FinalView::write`]), so that each is written once.
-    pub(crate) fn unwritten(problem: &Problem<'_>) -> Result<FitOutputs> {
+    ///
+    /// [`triples_on`]: crate::memory::triples_on
+    /// [`values_on`]: crate::memory::values_on
+    pub(crate) fn unwritten(problem: &Problem<'_>, spare: Spare) -> Result<FitOutputs> {
+        use crate::memory::{triples_on, values_on};
         let n = problem.grid.height * problem.grid.width;
+        let Spare { quads, mut values } = spare;
         Ok(FitOutputs {
             specular: Vec::new(),
-            normals: try_zeros(n, "the normal map")?,
-            albedo: try_zeros(n * problem.obs.channels, "the albedo map")?,
-            residual: try_zeros(n, "the residual map")?,
+            normals: triples_on(quads, n, "the normal map")?,
+            albedo: values_on(&mut values, n * problem.obs.channels, "the albedo map")?,
+            residual: values_on(&mut values, n, "the residual map")?,
             lights_used: try_zeros(n, "the map of lights used")?,
         })
     }

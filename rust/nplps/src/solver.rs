@@ -36,7 +36,7 @@ use crate::local::{
     FitSettings, KeptFits, LobeCheck, LocalStep, Model, Observations, TrustMaps,
     CHECK_BELOW_LIGHTS, FINAL_LANE_CHUNK,
 };
-use crate::memory::{try_copy, try_vec, try_zeros};
+use crate::memory::{try_copy, try_vec, try_zeros, Spare};
 use crate::options::{Options, Refine};
 use crate::parallel::{sparse_par, with_threads};
 use crate::problem::{check_fittable, Problem};
@@ -1754,12 +1754,20 @@ impl<'p> Solver<'p> {
     ) -> Result<Reconstruction> {
         let t = Instant::now();
         self.lobe_pending = false;
-        drop(std::mem::take(&mut self.targets));
+        // The targets' buffer (a quadruple a facet) and the global step's work vectors hold
+        // the normal, albedo and residual maps of a Lambertian final pass in lanes (see
+        // `FitOutputs::unwritten`): pages already touched instead of fresh ones.
+        let mut spare = Spare {
+            quads: std::mem::take(&mut self.targets),
+            values: Vec::new(),
+        };
         drop(std::mem::take(&mut self.stats));
         // `next` (one value a vertex) holds the vertex depths of the final step below instead
         // of a fresh buffer (fresh pages are zeroed by the kernel as they are touched).
         let mut depths = std::mem::take(&mut self.next);
-        drop(self.system.take());
+        if let Some(system) = self.system.take() {
+            spare.values = system.into_spare();
+        }
         // Much of the multigrid's coarse levels came from the allocator's arenas.
         crate::memory::give_back();
         crate::memory::trace("finish: freed");
@@ -1777,8 +1785,13 @@ impl<'p> Solver<'p> {
         // The fits and the trust maps (the plain Lambertian fit at the final mesh, without the
         // glossy warm start).
         let (outputs, maps) = match step.final_lane_lights() {
-            Some((lights, fitted)) => final_pass_lanes(problem, &step, u, &lights, fitted, kept)?,
-            None => final_pass_chunks(problem, &step, u, kept)?,
+            Some((lights, fitted)) => {
+                final_pass_lanes(problem, &step, u, &lights, fitted, kept, spare)?
+            }
+            None => {
+                drop(spare);
+                final_pass_chunks(problem, &step, u, kept)?
+            }
         };
         crate::memory::trace("finish: final local step");
         let trust = maps.finish();
@@ -1857,14 +1870,18 @@ fn final_pass_lanes(
     lights: &[crate::light::LaneLight],
     fitted: bool,
     kept: Option<&KeptFits>,
+    spare: Spare,
 ) -> Result<(FitOutputs, TrustMaps)> {
     let grid = &problem.grid;
     let (k, channels) = (problem.obs.k, problem.obs.channels);
-    let mut maps = TrustMaps::unwritten(grid, k, channels)?;
     let mut outputs = match fitted {
-        true => Some(FitOutputs::unwritten(problem)?),
-        false => None,
+        true => Some(FitOutputs::unwritten(problem, spare)?),
+        false => {
+            drop(spare);
+            None
+        }
     };
+    let mut maps = TrustMaps::unwritten(grid, k, channels)?;
     let chunks = final_chunks(grid.n_facets());
     let views = FinalView::split(
         grid,
@@ -2158,8 +2175,8 @@ mod tests {
     /// the glossy fits after them), pinhole and orthographic, on a full grid and on one with
     /// holes (pixels outside the mask in the first and last rows, in the middle of chunks and
     /// at their ends), with more than one chunk and a facet count that is not a multiple of the
-    /// lanes; and the depth map made from the final pass's depths is the one made from the
-    /// unknowns.
+    /// lanes, the normal map on a spare buffer of stale values (as the solver's targets'); and
+    /// the depth map made from the final pass's depths is the one made from the unknowns.
     #[test]
     fn the_final_pass_in_lanes_writes_the_maps_of_the_chunked_pass() {
         use crate::local::{FitSettings, LocalStep, Model};
@@ -2207,8 +2224,15 @@ mod tests {
                     };
                     let (lights, fitted) = step.final_lane_lights().unwrap();
                     assert_eq!(fitted, lobe.is_none());
+                    // (the solver's targets' buffer, stale values in it: every pixel of the
+                    // normal map on it is written)
+                    let spare = Spare {
+                        quads: vec![[7.5, f64::NAN, -1e300, 0.25]; n],
+                        values: vec![vec![-3.0; 10], vec![f64::NAN; n_px + 100], vec![9.0; n_px]],
+                    };
                     let (outputs, maps) =
-                        final_pass_lanes(&problem, &step, &u, &lights, fitted, None).unwrap();
+                        final_pass_lanes(&problem, &step, &u, &lights, fitted, None, spare)
+                            .unwrap();
                     let (outputs_ref, maps_ref) =
                         final_pass_chunks(&problem, &step, &u, None).unwrap();
                     let given = pinhole.then(|| depths.clone());

@@ -14,8 +14,8 @@ use rayon::prelude::*;
 
 use super::trust::{add_sums, LightSums, CHUNK};
 use super::{
-    facet_scratch, keep_shape, u16_value, usable_count, FacetFit, LocalStep, Model, Observations,
-    Robust, Stored, Weighting, SCRATCH,
+    facet_scratch, keep_shape, u16_value, usable_count, FacetFit, FacetStat, LocalStep, Model,
+    Observations, Robust, Stored, Weighting, SCRATCH,
 };
 use crate::error::Result;
 use crate::geometry::{quad_centre, Geometry};
@@ -227,6 +227,64 @@ impl LocalStep<'_> {
                 }
             }
         })
+    }
+}
+
+impl LocalStep<'_> {
+    /// The targets and statistics of [`LocalStep::fit_lanes`]'s fits of facets
+    /// `first..first + LANES` (`targets` and `stats` of [`LANES`] entries), written from the
+    /// kernel's solution without the fits' normals and albedos: with the fast residual and
+    /// without indirect light (the solver's iterations); otherwise from the whole fits.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn fit_lanes_targets(
+        &self,
+        lights: &[LaneLight],
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+        interleaved: &mut [[f32; LANES]],
+        targets: &mut [[f64; 4]],
+        stats: &mut [FacetStat],
+    ) {
+        if self.indirect.is_some() || !self.settings.fast_residual {
+            let fits = self.fit_lanes(lights, first, u, buf, interleaved, None);
+            for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&fits) {
+                *target = fit.target;
+                *stat = FacetStat::from(fit);
+            }
+            return;
+        }
+        let (batch, centres) = self.gather_batch(first, u, buf, interleaved);
+        let thresholds = (self.settings.dark, self.settings.saturation);
+        let (sums, solved) = fit_lanes_dispatch(
+            lights,
+            &centres,
+            interleaved,
+            thresholds,
+            None,
+            &batch.base,
+            self.geometry,
+        );
+        for (l, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
+            if solved.valid[l] {
+                *target = solved.target[l];
+                *stat = FacetStat {
+                    sse: solved.sse[l],
+                    used: sums.used[l],
+                    valid: true,
+                };
+            } else {
+                let values = self.facet_values(first + l, buf);
+                let ids = batch.ids[l];
+                let fit = keep_shape(
+                    &batch.quads[l],
+                    ids.map(|i| u[i as usize]),
+                    usable_count(values, 1, self.settings),
+                );
+                *target = fit.target;
+                *stat = FacetStat::from(&fit);
+            }
+        }
     }
 }
 

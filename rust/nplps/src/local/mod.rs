@@ -973,11 +973,15 @@ impl LocalStep<'_> {
                         }
                         let first = start + chunk * LANES;
                         if targets.len() == LANES {
-                            let fits = self.fit_lanes(lights, first, u, buf, interleaved, None);
-                            for ((target, stat), fit) in targets.iter_mut().zip(stats).zip(&fits) {
-                                *target = fit.target;
-                                *stat = FacetStat::from(fit);
-                            }
+                            self.fit_lanes_targets(
+                                lights,
+                                first,
+                                u,
+                                buf,
+                                interleaved,
+                                targets,
+                                stats,
+                            );
                         } else {
                             for (i, (target, stat)) in targets.iter_mut().zip(stats).enumerate() {
                                 let fit = self.fit(first + i, u, buf, &mut Packed::new(), None);
