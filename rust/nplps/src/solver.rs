@@ -2153,7 +2153,8 @@ mod tests {
 
     /// The final pass of the vectorized accumulation, which writes every pixel of the outputs
     /// and trust maps a chunk of facets at a time (`final_pass_lanes`), gives the maps of the
-    /// chunked pass with its scatter (`final_pass_chunks`) bit for bit, the per-light figures
+    /// chunked scalar pass with its scatter (`final_pass_chunks`, which the solver takes where
+    /// the lanes do not apply) bit for bit, the per-light figures
     /// within 1e-12: Lambertian (fits and trust values) and glossy (trust values from the lanes,
     /// the glossy fits after them), pinhole and orthographic, on a full grid and on one with
     /// holes (pixels outside the mask in the first and last rows, in the middle of chunks and
