@@ -49,7 +49,7 @@ use crate::refinement::{on_level, LightRefinement, Monitor};
 use crate::reflectance::{Lobe, Reflectance, STEP_TOLERANCE};
 use crate::rig::Light;
 use crate::shadow::{
-    mesh_shadows, mesh_shadows_refined, on_lattice, ShadowMask, Shadows, AUTO_SHARE,
+    mesh_shadows, mesh_shadows_refined, on_lattice, solver_stride, ShadowMask, Shadows, AUTO_SHARE,
 };
 
 /// Reconstructs the surface of `problem`. `progress` is called after every iteration; returning
@@ -1314,18 +1314,21 @@ impl<'p> Solver<'p> {
         let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
         crate::memory::trace("shadows: after march");
         if seen {
-            // With a field of indirect light (the rounds of interreflections and the run
-            // after them), from a lattice of the facets (a quarter of them up to 511 pixels a
-            // side, 1/16 at 1 MP) and the edges (see [`mesh_shadows_refined`]).
-            let mask = match self.indirect.is_some() {
-                true => mesh_shadows_refined(
+            // From a lattice of the facets and the edges (see [`mesh_shadows_refined`]) with a
+            // field of indirect light (the rounds of interreflections and the run after them:
+            // a quarter of the facets up to 511 pixels a side, 1/16 at 1 MP) and on large
+            // images (a quarter from 1024 pixels a side); every facet otherwise.
+            let stride = solver_stride(p.grid.height, p.grid.width, self.indirect.is_some());
+            let mask = match stride {
+                Some(stride) => mesh_shadows_refined(
                     &p.rig.camera,
                     self.lights.lights(),
                     &p.grid,
                     &p.geometry,
                     u,
+                    stride,
                 )?,
-                false => march(1)?,
+                None => march(1)?,
             };
             if policy == Shadows::On || share(&mask, 1) >= AUTO_SHARE {
                 self.shadows = Some(mask);
@@ -2170,7 +2173,8 @@ mod tests {
 
     /// The final pass of the vectorized accumulation, which writes every pixel of the outputs
     /// and trust maps a chunk of facets at a time (`final_pass_lanes`), gives the maps of the
-    /// chunked pass with its scatter (`final_pass_chunks`) bit for bit, the per-light figures
+    /// chunked scalar pass with its scatter (`final_pass_chunks`, which the solver takes where
+    /// the lanes do not apply) bit for bit, the per-light figures
     /// within 1e-12: Lambertian (fits and trust values) and glossy (trust values from the lanes,
     /// the glossy fits after them), pinhole and orthographic, on a full grid and on one with
     /// holes (pixels outside the mask in the first and last rows, in the middle of chunks and

@@ -1049,7 +1049,7 @@ mod tests {
     use crate::geometry::Geometry;
     use crate::grid::Grid;
     use crate::light::Light;
-    use crate::local::{FacetStat, FitSettings, TrustMaps};
+    use crate::local::{FacetStat, FitSettings};
     use crate::reflectance::Packed;
     use crate::vec3::normalize;
 
@@ -1337,7 +1337,6 @@ mod tests {
         let facets = problem.grid.n_facets();
         let chunk = 1 << 18;
         let mut fits = vec![FacetFit::EMPTY; chunk.min(facets)];
-        let mut values = vec![[f32::NAN; 2]; chunk.min(facets)];
         // CPU time of the process (all threads): steadier than wall time on a shared machine.
         let cpu = || {
             let mut t = libc::timespec {
@@ -1365,14 +1364,10 @@ mod tests {
                 step.try_run(&u, first, &mut fits[..len]).unwrap();
             }
         });
-        let mut maps = TrustMaps::new(&problem.grid, k, 1).unwrap();
+        // The final pass as the solver runs it (its facet-long fits and trust buffers
+        // allocated in each sample: the solver writes onto its outputs instead).
         let last = time(&mut || {
-            for first in (0..facets).step_by(chunk) {
-                let len = (facets - first).min(chunk);
-                let (fits, values) = (&mut fits[..len], &mut values[..len]);
-                step.try_run_final(&u, first, fits, values, &mut maps, None)
-                    .unwrap();
-            }
+            crate::local::tests::lane_final_pass(&step, &u, None);
         });
         println!(
             "final pass timing: {facets} facets, {k} lights, {} threads: plain exact step \
@@ -1466,20 +1461,10 @@ mod tests {
             assert_eq!(fit.used, lane_fit.used, "facet {f}");
         }
         // The fused final pass: the same fits, and the trust maps of `trust` bit for bit (the
-        // per-light sums up to the order of the parallel reduction), in two chunks.
+        // per-light sums up to the order of the parallel reduction).
         assert!(exact.lane_lights().is_some());
         let expected = exact.trust(&u).unwrap();
-        let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
-        let mut final_fits = vec![FacetFit::EMPTY; n];
-        let mut values = vec![[f32::NAN; 2]; n];
-        let split = 8;
-        for (first, end) in [(0, split), (split, n)] {
-            let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
-            exact
-                .try_run_final(&u, first, fits, values, &mut maps, None)
-                .unwrap();
-            maps.scatter(&grid, first, values);
-        }
+        let (final_fits, maps) = crate::local::tests::lane_final_pass(&exact, &u, None);
         assert_eq!(final_fits, fits);
         assert!(maps.finish().assert_matches(&expected) > 0);
     }

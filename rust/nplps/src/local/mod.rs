@@ -49,7 +49,6 @@ use lanes::{lane_scratch, RobustScratch, LANES};
 /// Facets per chunk of the final pass's vectorized accumulation (see
 /// [`LocalStep::try_run_final_lanes`]).
 pub(crate) const FINAL_LANE_CHUNK: usize = trust::CHUNK;
-use trust::CHUNK;
 pub use trust::{LightTrust, Trust, TrustMaps};
 
 /// How the per-facet linear system weights the lights.
@@ -737,23 +736,18 @@ impl LocalStep<'_> {
         )
     }
 
-    /// The final pass over facets `first..first + fits.len()` on `u`: their fits, as
-    /// [`LocalStep::try_run`], and their trust values `[normal sigma, held-out]` into `trust`
+    /// The final pass over facets `first..first + fits.len()` on `u` where the vectorized
+    /// accumulation does not give the trust values (colour, a robust estimator, indirect
+    /// light, the paper's weighting, parallel lights: [`LocalStep::final_lane_lights`] is
+    /// None; the solver takes [`LocalStep::try_run_final_lanes`] otherwise): their fits, as
+    /// [`LocalStep::try_run`], then their trust values `[normal sigma, held-out]` into `trust`
     /// (same length), as the `trust` module defines them, whose per-light sums it adds to
-    /// `maps` (the caller scatters `trust` into `maps`). Under the vectorized accumulation both
-    /// come from one evaluation of the lights per facet; otherwise the trust values are computed
-    /// after the fits.
+    /// `maps` (the caller scatters `trust` into `maps`).
     ///
     /// Under the glossy model the trust values are still those of the Lambertian fit at the
-    /// final mesh (the `trust` module's, which leave the lobe out): where the Lambertian step of
-    /// the same settings would take the vectorized path, they come from it (its Lambertian fits
-    /// are then overwritten by the glossy ones) instead of the scalar [`LocalStep::trust_range`].
-    /// The same per-facet values bit for bit, the per-light sums up to the order of their
-    /// additions (2e-16 relative on the glossy bumps). The scalar pass cost the final step of
-    /// a 1 MP glossy run 0.6-0.75 of its 2.15-2.3 CPU seconds (docs/shiny.md, stop 46).
-    ///
-    /// Under the glossy model, with `kept`, the facets that did not move since their last
-    /// converged glossy fit keep it (see [`LocalStep::try_run_kept`]); returns how many did.
+    /// final mesh (the `trust` module's, which leave the lobe out), and with `kept` the facets
+    /// that did not move since their last converged glossy fit keep it (see
+    /// [`LocalStep::try_run_kept`]); returns how many did.
     pub fn try_run_final(
         &self,
         u: &[f64],
@@ -764,38 +758,6 @@ impl LocalStep<'_> {
         kept: Option<&KeptFits>,
     ) -> Result<usize> {
         debug_assert_eq!(fits.len(), trust.len());
-        if let Some((lights, fitted)) = self.final_lane_lights() {
-            let len = trust.len();
-            // Each chunk's values are copied into its part of `fits` and `trust`.
-            let views: Vec<_> = match fitted {
-                true => fits
-                    .chunks_mut(CHUNK)
-                    .map(Some)
-                    .zip(trust.chunks_mut(CHUNK))
-                    .collect(),
-                false => trust.chunks_mut(CHUNK).map(|t| (None, t)).collect(),
-            };
-            let views = if views.is_empty() {
-                vec![(None, &mut [][..])]
-            } else {
-                views
-            };
-            let write = |(fits, trust): (Option<&mut [FacetFit]>, &mut [[f32; 2]]),
-                         _: usize,
-                         chunk_fits: &[FacetFit],
-                         chunk_trust: &[[f32; 2]]| {
-                if let Some(fits) = fits {
-                    fits.copy_from_slice(chunk_fits);
-                }
-                trust.copy_from_slice(chunk_trust);
-            };
-            let lambertian = self.lambertian();
-            maps.add(lambertian.final_lanes_into(&lights, u, first, len, fitted, views, &write)?);
-            if fitted {
-                return Ok(0);
-            }
-            return self.try_run_kept(u, first, fits, kept);
-        }
         let done = self.try_run_kept(u, first, fits, kept)?;
         // A robust step's fits (without a lobe or indirect light) are those its trust values
         // start from: passed on, not fitted again.
@@ -2014,6 +1976,46 @@ mod tests {
         .collect()
     }
 
+    /// The final pass of the vectorized accumulation over every facet of `step` (which must
+    /// take it: [`LocalStep::final_lane_lights`]), as the solver runs it
+    /// ([`LocalStep::try_run_final_lanes`] with each chunk copied into its part of two
+    /// facet-long buffers; under the glossy model the fits of [`LocalStep::try_run_kept`]
+    /// follow): the fits and the trust maps.
+    pub(crate) fn lane_final_pass(
+        step: &LocalStep<'_>,
+        u: &[f64],
+        kept: Option<&KeptFits>,
+    ) -> (Vec<FacetFit>, TrustMaps) {
+        let (lights, fitted) = step.final_lane_lights().unwrap();
+        let n = step.grid.n_facets();
+        let mut fits = vec![FacetFit::EMPTY; n];
+        let mut trust = vec![[f32::NAN; 2]; n];
+        let views: Vec<_> = fits
+            .chunks_mut(FINAL_LANE_CHUNK)
+            .zip(trust.chunks_mut(FINAL_LANE_CHUNK))
+            .collect();
+        assert_eq!(views.len(), lanes::final_chunks(n));
+        let write = |(fits, trust): (&mut [FacetFit], &mut [[f32; 2]]),
+                     _: usize,
+                     chunk_fits: &[FacetFit],
+                     chunk_trust: &[[f32; 2]]| {
+            if fitted {
+                fits.copy_from_slice(chunk_fits);
+            }
+            trust.copy_from_slice(chunk_trust);
+        };
+        let sums = step
+            .try_run_final_lanes(&lights, u, fitted, views, &write)
+            .unwrap();
+        let mut maps = TrustMaps::new(step.grid, step.obs.k, step.obs.channels).unwrap();
+        maps.add(sums);
+        maps.scatter(step.grid, 0, &trust);
+        if !fitted {
+            step.try_run_kept(u, 0, &mut fits, kept).unwrap();
+        }
+        (fits, maps)
+    }
+
     /// A 9 x 7 grid without every fifth pixel (from the third) under an orthographic camera,
     /// and its geometry: the small mesh on which lane and scalar paths are compared.
     pub(crate) fn small_masked_mesh() -> (Grid, crate::rig::Camera, Geometry) {
@@ -2047,11 +2049,13 @@ mod tests {
         dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
     }
 
-    /// Under the glossy model the final pass takes its trust maps from the Lambertian lanes:
-    /// its fits are the glossy fits of [`LocalStep::run`] (from warm normals where the facets
-    /// have them), its per-facet trust values those of the scalar [`LocalStep::trust`] bit for
-    /// bit and its per-light sums the same up to their order, in two chunks (one not a
-    /// multiple of the lanes); with a robust estimator (no lanes) it takes the scalar path.
+    /// Under the glossy model the final pass takes its trust maps from the Lambertian lanes
+    /// ([`LocalStep::try_run_final_lanes`]): its fits are the glossy fits of
+    /// [`LocalStep::run`] (from warm normals where the facets have them), its per-facet trust
+    /// values those of the scalar [`LocalStep::trust`] bit for bit and its per-light sums the
+    /// same up to their order; with a robust estimator (no lanes) the scalar path
+    /// ([`LocalStep::try_run_final`], in two chunks, one not a multiple of the lanes) gives
+    /// the same.
     #[test]
     fn a_glossy_final_pass_takes_the_trust_maps_from_the_lanes() {
         use crate::reflectance::Lobe;
@@ -2109,16 +2113,23 @@ mod tests {
             step.run(&u, 0, &mut fits);
             assert!(fits.iter().filter(|f| f.valid && f.specular > 0.0).count() > n / 4);
             let expected = step.trust(&u).unwrap();
-            let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
-            let mut final_fits = vec![FacetFit::EMPTY; n];
-            let mut values = vec![[f32::NAN; 2]; n];
-            let split = 13;
-            for (first, end) in [(0, split), (split, n)] {
-                let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
-                step.try_run_final(&u, first, fits, values, &mut maps, None)
-                    .unwrap();
-                maps.scatter(&grid, first, values);
-            }
+            assert_eq!(step.final_lane_lights().is_some(), robust == Robust::None);
+            let (final_fits, maps) = match step.final_lane_lights() {
+                Some(_) => lane_final_pass(&step, &u, None),
+                None => {
+                    let mut maps = TrustMaps::new(&grid, k, 1).unwrap();
+                    let mut final_fits = vec![FacetFit::EMPTY; n];
+                    let mut values = vec![[f32::NAN; 2]; n];
+                    let split = 13;
+                    for (first, end) in [(0, split), (split, n)] {
+                        let (fits, values) = (&mut final_fits[first..end], &mut values[first..end]);
+                        step.try_run_final(&u, first, fits, values, &mut maps, None)
+                            .unwrap();
+                        maps.scatter(&grid, first, values);
+                    }
+                    (final_fits, maps)
+                }
+            };
             assert_eq!(final_fits, fits);
             let trust = maps.finish();
             trust.assert_matches(&expected);

@@ -103,7 +103,8 @@ pub(super) fn add_sums(mut a: LightSums, b: LightSums) -> LightSums {
 }
 
 /// The trust maps of a result while they are filled, chunk by chunk of facets (see
-/// [`LocalStep::try_run_final`]), and its per-light sums.
+/// [`LocalStep::try_run_final_lanes`] and [`LocalStep::try_run_final`]), and its per-light
+/// sums.
 #[derive(Debug)]
 pub struct TrustMaps {
     normal_sigma: Vec<f32>,
@@ -220,7 +221,7 @@ impl Drop for LightRows {
 impl LocalStep<'_> {
     /// The trust maps of every facet at the unknowns `u` (see the module's documentation), as
     /// per-pixel maps of the grid's image (the reconstruction computes them with its final fits,
-    /// [`LocalStep::try_run_final`]).
+    /// [`LocalStep::try_run_final_lanes`] or [`LocalStep::try_run_final`]).
     #[cfg(test)]
     pub fn trust(&self, u: &[f64]) -> Result<Trust> {
         let grid = self.grid;
