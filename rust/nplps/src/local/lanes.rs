@@ -148,7 +148,6 @@ impl LocalStep<'_> {
         }
         let geometry = self.geometry;
         let (batch, centres) = self.gather_batch(first, u, buf, interleaved);
-        let quads = &batch.quads;
         let thresholds = (self.settings.dark, self.settings.saturation);
         let mut trust = trust;
         let (sums, solved) = fit_lanes_dispatch(
@@ -212,21 +211,28 @@ impl LocalStep<'_> {
                 }
             }
         }
-        std::array::from_fn(|l| {
-            let f = first + l;
-            let ids = batch.ids[l];
-            match fitted[l] {
-                Some(fitted) => fitted,
-                None => {
-                    let values = self.facet_values(f, buf);
-                    keep_shape(
-                        &quads[l],
-                        ids.map(|i| u[i as usize]),
-                        usable_count(values, 1, self.settings),
-                    )
-                }
-            }
+        std::array::from_fn(|l| match fitted[l] {
+            Some(fitted) => fitted,
+            None => self.unsolved_fit(&batch, l, first, u, buf),
         })
+    }
+
+    /// The fit of lane `l` of `batch` (facet `first + l`) where the lane solve found none: the
+    /// facet keeps its shape ([`keep_shape`]), with its count of usable lights.
+    fn unsolved_fit(
+        &self,
+        batch: &BatchCorners,
+        l: usize,
+        first: usize,
+        u: &[f64],
+        buf: &mut [f32],
+    ) -> FacetFit {
+        let values = self.facet_values(first + l, buf);
+        keep_shape(
+            &batch.quads[l],
+            batch.ids[l].map(|i| u[i as usize]),
+            usable_count(values, 1, self.settings),
+        )
     }
 }
 
@@ -274,13 +280,7 @@ impl LocalStep<'_> {
                     valid: true,
                 };
             } else {
-                let values = self.facet_values(first + l, buf);
-                let ids = batch.ids[l];
-                let fit = keep_shape(
-                    &batch.quads[l],
-                    ids.map(|i| u[i as usize]),
-                    usable_count(values, 1, self.settings),
-                );
+                let fit = self.unsolved_fit(&batch, l, first, u, buf);
                 *target = fit.target;
                 *stat = FacetStat::from(&fit);
             }
