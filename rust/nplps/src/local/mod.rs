@@ -1175,9 +1175,9 @@ impl LocalStep<'_> {
 /// A fit that stopped within the image noise ([`NOISE_STOP`](crate::reflectance::NOISE_STOP))
 /// may move farther: by its [`latitude`](crate::reflectance::latitude) of its reach (times `2 /
 /// (2 + mu)` for LEDs of anisotropy up to `mu`), the turn of its light and view vectors within
-/// which a fit made again would still stop at once, at its normal (stop 50: on the glossy bumps
-/// at 1 MP with 0.5 % noise the latitudes are 10-100 times this, and the second local step of
-/// the finest level kept 88 % of the fits instead of 11 %).
+/// which a fit made again would still stop at once, at its normal (stop 50: the unit test's
+/// fits with 0.5-2 % noise have latitudes 4-200 times this; on the glossy bumps at 1 MP with
+/// 0.5 % noise the second local step of the finest level kept 88 % of the fits instead of 11 %).
 pub const SKIP_MOVE: f64 = 1e-5;
 
 /// What the glossy local steps of a solver keep of each facet's last glossy fit, so that a
