@@ -259,6 +259,7 @@ pub(super) fn refine(
         .flatten()
         .min_by(|a, b| a.sse.total_cmp(&b.sse))?;
     scratch.converged = g.converged;
+    scratch.latitude = g.latitude;
     if channels == 1 {
         return Some(FacetFit {
             target: [0.0; 4],
