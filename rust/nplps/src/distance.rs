@@ -415,7 +415,9 @@ fn search_stages(
         hold_lobe(solver, problem, (range.0 * range.1).sqrt(), search.inner)
             .and_then(|()| {
                 let u = problem.u0.to_vec("the depths")?;
-                search_refined(solver, problem, &wide, range, u, &mut count, progress)
+                search_refined(
+                    solver, problem, &wide, range, u, false, &mut count, progress,
+                )
             })
             .and_then(|searched| searched.found(range))
     };
@@ -431,6 +433,8 @@ fn search_stages(
                 moves: PROFILE_MOVES,
                 lobe: true,
                 coarser: halvings > 0,
+                grow: 1.0,
+                vee: false,
             };
             // The profile's scan only brackets the distance (its candidates are 5 % apart);
             // the alternation under held lobes refines it.
@@ -480,6 +484,8 @@ fn search_stages(
                 moves: NARROW_MOVES,
                 lobe: false,
                 coarser: true,
+                grow: 1.0,
+                vee: false,
             };
             let narrow = DistanceSearch {
                 inner: search.inner.min(WINDOW_INNER),
@@ -553,7 +559,7 @@ fn search_coarser(
                 inner: WIDE_INNER,
                 ..*wide
             };
-            search_refined(&mut sub, level, &wide, range, u, count, progress)
+            search_refined(&mut sub, level, &wide, range, u, false, count, progress)
         })
         .and_then(|searched| searched.found(range))
         .and_then(|found| {
@@ -569,6 +575,8 @@ fn search_coarser(
                 moves: PROFILE_MOVES,
                 lobe: true,
                 coarser: false,
+                grow: 1.0,
+                vee: false,
             };
             search_window(&mut sub, level, wide, range, found, window, count, progress)
         });
@@ -645,22 +653,33 @@ const ALTERNATION_PRECISION: f64 = 2e-3;
 /// moved 11 % there took the distance from 209 to 233 (the authors give 200-230).
 const ALTERNATION_MOVES: usize = 1;
 
-/// The half-width, as a factor of the distance, of the window of a held stage under a lobe
-/// given to it (the index walk's and the retro stage's, see [`held_stage`]); it moves at most
-/// [`GIVEN_LOBE_MOVES`] times, so that it reaches `1.01^7 = 1.072` either side of its start, as
-/// far as the alternation's window (`1.03^3 = 1.093`) within a fifth.
+/// The half-width, as a factor of the distance, of the first window of a held stage under a
+/// lobe given to it (the index walk's and the retro stage's, see [`held_stage`]): the search's
+/// default precision (`1e-3` in log-distance), so that three candidates (the start and
+/// `1.001^±1`) bracket a minimum that stayed put to `2e-3`, which ends the refinement at once.
+/// Where the criterion keeps falling towards an end, the window moves there and widens
+/// ([`GIVEN_LOBE_GROWTH`]), at most [`GIVEN_LOBE_MOVES`] times.
 ///
 /// Why: such a stage starts from the distance of the best stage so far, a minimum under a
 /// neighbouring lobe to within the search's precision; the walk's steps moved the distance by
-/// 0.05-0.5 % on the PBR renders (see [`index_walk`]). The alternation's window (3 %) spent two
-/// of its three scan candidates 3 % away, where the criterion was 40-200 times its minimum,
-/// and the refinement one more to come back (the glossy bumps at 256²: 7 candidates a stage,
-/// 6 with this window).
-const GIVEN_LOBE_WIDTH: f64 = 1.01;
+/// 0.05-0.5 % on the PBR renders (see [`index_walk`]). Until stop 50 the window was 1 % either
+/// side: on the glossy bumps at 256² the walk's three stages each scanned 200.21 / 198.23 /
+/// 196.27 and refined back to 198.23 with three more candidates (6 a stage), their minima
+/// within 0.005 % of each other; with this window a stage takes 3.
+const GIVEN_LOBE_WIDTH: f64 = 1.001;
 
 /// How many times the window of [`GIVEN_LOBE_WIDTH`] may move to an end where the residual
 /// keeps falling.
 const GIVEN_LOBE_MOVES: usize = 3;
+
+/// The factor on the log half-width of the window of [`GIVEN_LOBE_WIDTH`] at each move: a
+/// window of log half-width `h` that moves `m` times, growing by `g` each time, reaches
+/// `h (1 + g + ... + g^m)` from its start (each move centres it on the last window's end):
+/// with `1e-3`, 3 and 3 moves `0.040` (`1.0408`), the reach of stop 49's window (1 % moving
+/// at its width, `1.01^4 = 1.0406`; its doc gave `1.01^7`, counting each move as a whole
+/// window). A minimum 4 % away costs either window four scans of 3 candidates; one that stayed
+/// put costs this one 3 candidates, that one 6.
+const GIVEN_LOBE_GROWTH: f64 = 3.0;
 
 /// Refines the estimate of a glossy profile window ([`search_window`] with `lobe`) by
 /// alternation between lobe and distance: a stage estimates the lobe afresh by a run at the
@@ -901,8 +920,9 @@ fn walk_indices(
 /// (`lobe`, or with `None` estimated afresh there by a run of at least
 /// [`LOBE_AT`](crate::solver::LOBE_AT)`[1]` iterations from the surface and glossy normals found
 /// there), and the distance searched again under it in a window [`NARROW_WIDTH`] either side,
-/// moving at most [`ALTERNATION_MOVES`] times. `None` when the criterion under the lobe keeps
-/// falling out of the windows (the stage brings nothing); `count.lowest` is then the stage's
+/// moving at most [`ALTERNATION_MOVES`] times (under a given lobe: [`GIVEN_LOBE_WIDTH`],
+/// widening as it moves, and refining by stepping to a V's corner, [`vee_minimum`]). `None`
+/// when the criterion under the lobe keeps falling out of the windows (the stage brings nothing); `count.lowest` is then the stage's
 /// lowest criterion.
 #[allow(clippy::too_many_arguments)]
 fn held_stage(
@@ -923,6 +943,8 @@ fn held_stage(
             moves: ALTERNATION_MOVES,
             lobe: false,
             coarser: false,
+            grow: 1.0,
+            vee: false,
         },
         Some(_) => Window {
             scan: NARROW_SCAN,
@@ -930,6 +952,8 @@ fn held_stage(
             moves: GIVEN_LOBE_MOVES,
             lobe: false,
             coarser: false,
+            grow: GIVEN_LOBE_GROWTH,
+            vee: true,
         },
     };
     let narrow = DistanceSearch {
@@ -1043,6 +1067,12 @@ struct Window {
     /// Whether the wide estimate came from a coarser level (see [`search_stages`]): its curve is
     /// then scaled to this level's residuals where the two meet.
     coarser: bool,
+    /// The factor on its log half-width at each move (1: it moves at its width; see
+    /// [`GIVEN_LOBE_GROWTH`]).
+    grow: f64,
+    /// Whether its refinement steps to the vertex of a V rather than a parabola (see
+    /// [`vee_minimum`]).
+    vee: bool,
 }
 
 /// Refines the `wide` estimate of a search (see [`search_with`]) in a window `window.width`
@@ -1074,7 +1104,8 @@ fn search_window(
         ..*search
     };
     let clip = |(lo, hi): (f64, f64)| (lo.max(range.0), hi.min(range.1));
-    let mut bounds = clip((near / window.width, far * window.width));
+    let mut width = window.width;
+    let mut bounds = clip((near / width, far * width));
     let mut moves = 0;
     loop {
         let start = try_copy(&u, "the depths")?;
@@ -1084,6 +1115,7 @@ fn search_window(
             &window_search,
             bounds,
             start,
+            window.vee,
             count,
             progress,
         )?;
@@ -1092,7 +1124,10 @@ fn search_window(
             let inside = if near { end > range.0 } else { end < range.1 };
             if inside && moves < window.moves {
                 moves += 1;
-                bounds = clip((end / window.width, end * window.width));
+                if window.grow != 1.0 {
+                    width = width.powf(window.grow);
+                }
+                bounds = clip((end / width, end * width));
                 continue;
             }
         }
@@ -1205,13 +1240,15 @@ impl Searched {
 }
 
 /// The scan of `range` (log-spaced, far to near) and the golden-section refinement of each
-/// region's minimum, warm-starting from the depths `u`.
+/// region's minimum, warm-starting from the depths `u` (with `vee`, see [`Parabolic`]).
+#[allow(clippy::too_many_arguments)]
 fn search_refined(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
     search: &DistanceSearch,
     range: (f64, f64),
     u: Vec<f64>,
+    vee: bool,
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Searched> {
@@ -1231,7 +1268,15 @@ fn search_refined(
         candidates: count.planned,
         best: (f64::NAN, f64::NAN),
     };
-    let searched = refine_scan(&mut ev, regions, scan, (ln_near, step), tolerance, progress);
+    let searched = refine_scan(
+        &mut ev,
+        regions,
+        scan,
+        (ln_near, step),
+        tolerance,
+        vee,
+        progress,
+    );
     count.done = ev.candidate;
     count.planned = count.planned.max(ev.candidates);
     count.lowest = lower(count.lowest, ev.best.1);
@@ -1259,6 +1304,7 @@ fn refine_scan(
     scan: usize,
     (ln_near, step): (f64, f64),
     tolerance: f64,
+    vee: bool,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<std::result::Result<Vec<f64>, (usize, bool)>> {
     // Coarse scan from far to near (surfaces start flat; far is the gentlest start).
@@ -1296,7 +1342,13 @@ fn refine_scan(
                 .collect(),
         );
     }
-    let mut state: Vec<Parabolic> = points.into_iter().map(Parabolic::new).collect();
+    let mut state: Vec<Parabolic> = points
+        .into_iter()
+        .map(|p| Parabolic {
+            vee,
+            ..Parabolic::new(p)
+        })
+        .collect();
     for _ in 0..MAX_REFINEMENTS {
         let trial: Vec<Option<f64>> = state.iter_mut().map(|s| s.next(tolerance)).collect();
         if trial.iter().all(Option::is_none) {
@@ -1396,7 +1448,8 @@ const MAX_REFINEMENTS: usize = 20;
 /// at least `tolerance` from the least point (into the larger side of the bracket when the
 /// vertex is nearer), so that the bracket keeps shrinking. The
 /// refinement is done when the bracket is at most `2 tolerance` wide; the estimate is then the
-/// vertex through its three points.
+/// vertex through its three points. With `vee` the vertex is a V's ([`vee_minimum`]) instead,
+/// under the same safeguards.
 struct Parabolic {
     /// The evaluated `(x, residual)`, sorted by `x`.
     points: Vec<(f64, f64)>,
@@ -1404,6 +1457,8 @@ struct Parabolic {
     steps: [f64; 2],
     /// The estimate once done.
     done: Option<f64>,
+    /// Whether the vertex is a V's ([`vee_minimum`]) rather than a parabola's.
+    vee: bool,
 }
 
 impl Parabolic {
@@ -1414,6 +1469,7 @@ impl Parabolic {
             points,
             steps: [width, width],
             done: None,
+            vee: false,
         }
     }
 
@@ -1443,11 +1499,14 @@ impl Parabolic {
             return None;
         }
         let [(a, fa), (m, fm), (c, fc)] = [self.points[b - 1], self.points[b], self.points[b + 1]];
+        let vertex = match self.vee {
+            true => vee_minimum([a, m, c], [fa, fm, fc]),
+            false => parabola_minimum([a, m, c], [fa, fm, fc]),
+        };
         if c - a <= 2.0 * tolerance * (1.0 + 1e-9) {
-            self.done = Some(parabola_minimum([a, m, c], [fa, fm, fc]));
+            self.done = Some(vertex);
             return None;
         }
-        let vertex = parabola_minimum([a, m, c], [fa, fm, fc]);
         let step = vertex - m;
         let golden = 0.5 * (3.0 - 5f64.sqrt());
         let parabolic = step.abs() < 0.5 * self.steps[0] && vertex > a && vertex < c;
@@ -1862,6 +1921,43 @@ pub(crate) fn check_distance_on(
 
 /// The abscissa of the minimum of the parabola through three points with `y[1]` the least (the
 /// middle abscissa when the points are collinear).
+/// The corner of the V of equal slopes `±s` through three points `a < m < c` whose middle one
+/// is the least: the side whose two points do not straddle the corner has the steeper slope,
+/// `s = max((f_a - f_m) / (m - a), (f_c - f_m) / (c - m))`; with the corner `x0` right of `m`
+/// (the left side steeper) `f_c - f_m = s (c + m - 2 x0)`, so
+/// `x0 = (m + c) / 2 - (f_c - f_m) / (2 s)`, and left of it
+/// `x0 = (a + m) / 2 + (f_a - f_m) / (2 s)`; clamped to that side (the middle point where no
+/// slope is positive).
+///
+/// Why: the criterion of a held stage (the median of the facets' RMS residuals) is, on
+/// noise-free images, linear in the distance error either side of its minimum, about equally
+/// steep both sides (on the glossy bumps at 256²: 4e-5 at the minimum, 2.2e-4 and 2.9e-4
+/// 0.07 % below and 0.1 % above, 6.3e-4 0.22 % below). A parabola's vertex through a V's points
+/// lies between the corner and the middle point, so parabolic steps crawl: the alternation's
+/// stage there took 7 refinement steps (198.75 / 197.06 / 197.98 / 197.78 / 198.21 / 198.41 /
+/// 198.08); the V's corner took 3. Only the stages under a given lobe use it (see
+/// [`held_stage`]): with the alternation's stages on it too, the 256² PBR shadows rough plastic
+/// 0.1 block with 0.05 % image noise (seed 2) had its alternation's lobe estimates turn to the
+/// retro shape and stay there, at -3.65 % (main: -0.23 %, its third stage transmitted and the
+/// index walk from it). On a V whose sides differ (slopes 1 and 3, the unit tests)
+/// the corner is not exact and the refinement takes about as many steps as parabolic
+/// interpolation (9-10 against 8); on noisy images the criterion's bottom is rounded
+/// (`sqrt(s0^2 + k^2 x^2)`), where the safeguards of [`Parabolic`] and its tolerance step keep
+/// the refinement to the bracket's tolerance (the unit tests).
+fn vee_minimum([a, m, c]: [f64; 3], [fa, fm, fc]: [f64; 3]) -> f64 {
+    let left = (fa - fm) / (m - a);
+    let right = (fc - fm) / (c - m);
+    let slope = left.max(right);
+    if !(slope > 0.0 && slope.is_finite()) {
+        return m;
+    }
+    if left >= right {
+        (0.5 * (m + c) - 0.5 * (fc - fm) / slope).clamp(m, c)
+    } else {
+        (0.5 * (a + m) + 0.5 * (fa - fm) / slope).clamp(a, m)
+    }
+}
+
 fn parabola_minimum(x: [f64; 3], y: [f64; 3]) -> f64 {
     let (d0, d2) = (x[0] - x[1], x[2] - x[1]);
     let (e0, e2) = (y[0] - y[1], y[2] - y[1]);
@@ -1879,12 +1975,26 @@ mod tests {
 
     /// Runs [`Parabolic`] on `f` from a scan of `scan` points over `[lo, hi]`; returns the
     /// estimate and the number of refinement steps.
-    fn refine(f: impl Fn(f64) -> f64, (lo, hi): (f64, f64), scan: usize, tol: f64) -> (f64, usize) {
+    fn refine(f: impl Fn(f64) -> f64, range: (f64, f64), scan: usize, tol: f64) -> (f64, usize) {
+        refine_with(f, range, scan, tol, false)
+    }
+
+    /// [`refine`], stepping to a V's vertex with `vee` (see [`vee_minimum`]).
+    fn refine_with(
+        f: impl Fn(f64) -> f64,
+        (lo, hi): (f64, f64),
+        scan: usize,
+        tol: f64,
+        vee: bool,
+    ) -> (f64, usize) {
         let points = (0..scan)
             .map(|i| lo + (hi - lo) * i as f64 / (scan - 1) as f64)
             .map(|x| (x, f(x)))
             .collect();
-        let mut p = Parabolic::new(points);
+        let mut p = Parabolic {
+            vee,
+            ..Parabolic::new(points)
+        };
         let mut steps = 0;
         while let Some(x) = p.next(tol) {
             p.insert(x, f(x));
@@ -1919,6 +2029,83 @@ mod tests {
         // A narrow window of three points (the search's own level after a coarser scan).
         let (x, steps) = refine(|x: f64| (x - 0.012).powi(2), (-0.03, 0.03), 3, tol);
         assert!((x - 0.012).abs() <= tol && steps <= 6, "{x} {steps}");
+    }
+
+    /// The V's corner: exact on a V of equal slopes from any three points bracketing it
+    /// (either side of the middle one); inside the bracket otherwise.
+    #[test]
+    fn the_vee_vertex_is_the_corner_of_a_vee() {
+        for corner in [-0.7, -0.2, 0.0, 0.05, 0.3, 0.69] {
+            for (a, m, c) in [(-1.0, 0.0, 0.7), (-0.8, 0.1, 1.0), (-1.0, -0.5, 0.75)] {
+                let f = |x: f64| 3.0 * (x - corner).abs() + 0.2;
+                let (fa, fm, fc) = (f(a), f(m), f(c));
+                if fm > fa.min(fc) {
+                    continue;
+                }
+                let x = vee_minimum([a, m, c], [fa, fm, fc]);
+                assert!((x - corner).abs() < 1e-12, "{corner} from {a} {m} {c}: {x}");
+            }
+        }
+        // A flat triple: its middle. A parabola `(x - 1)^2` through 0, 1, 3: the V's corner
+        // falls short of the vertex, towards the shallower side (`0.5 + 1 / 4`); a V of
+        // unequal sides (0.7 left, 0.9 right, corner 0): past the corner into the shallower
+        // side, by `(0.9 - 0.7) / 1.8`.
+        assert_eq!(vee_minimum([0.0, 1.0, 2.0], [1.0, 1.0, 1.0]), 1.0);
+        let x = vee_minimum([0.0, 1.0, 3.0], [1.0, 0.0, 4.0]);
+        assert!((x - 0.75).abs() < 1e-12, "{x}");
+        let x = vee_minimum([-1.0, 0.0, 1.0], [0.7, 0.0, 0.9]);
+        assert!((x + 0.2 / 1.8).abs() < 1e-12, "{x}");
+    }
+
+    /// Stepping to a V's corner from a window of three points (a held stage's): V-shaped minima
+    /// (noise-free residuals) in fewer steps than parabolas take, rounded ones (residuals with
+    /// noise, `sqrt(s^2 + k^2 x^2)`), lopsided ones and Vs of unequal sides still to the
+    /// tolerance, in at most 3 steps more than parabolas take.
+    #[test]
+    fn vee_refinement_finds_minima_to_the_tolerance() {
+        let tol = 1e-3;
+        type Case = (&'static str, Box<dyn Fn(f64) -> f64>, f64);
+        let cases: [Case; 6] = [
+            ("v", Box::new(|x: f64| (x + 0.0123).abs()), -0.0123),
+            (
+                "unequal v",
+                Box::new(|x: f64| {
+                    if x < 0.007 {
+                        0.007 - x
+                    } else {
+                        3.0 * (x - 0.007)
+                    }
+                }),
+                0.007,
+            ),
+            (
+                "rounded",
+                Box::new(|x: f64| (1e-6 + (x - 0.0042).powi(2)).sqrt()),
+                0.0042,
+            ),
+            ("quadratic", Box::new(|x: f64| (x - 0.0123).powi(2)), 0.0123),
+            (
+                "lopsided",
+                Box::new(|x: f64| (20.0 * (x - 0.005)).exp() - 20.0 * (x - 0.005)),
+                0.005,
+            ),
+            ("flat bottom", Box::new(|x: f64| (x - 0.004).powi(4)), 0.004),
+        ];
+        for (name, f, truth) in cases {
+            let (x, vee) = refine_with(&f, (-0.03, 0.03), 3, tol, true);
+            let (_, parabola) = refine_with(&f, (-0.03, 0.03), 3, tol, false);
+            assert!((x - truth).abs() <= 1.5 * tol, "{name}: {x} vs {truth}");
+            assert!(vee <= MAX_REFINEMENTS, "{name}: {vee} steps");
+            match name {
+                // Exact on a V: the corner, then the tolerance steps.
+                "v" => assert!(
+                    vee <= 3 && vee < parabola,
+                    "{name}: {vee} / {parabola} steps"
+                ),
+                // Not exact where the sides differ: about as many steps as parabolas take.
+                _ => assert!(vee <= parabola + 3, "{name}: {vee} / {parabola} steps"),
+            }
+        }
     }
 
     /// Levels are halved down to the search side; the ratio of two levels' curves is taken
@@ -1984,25 +2171,33 @@ mod tests {
         assert!(lower(f64::NAN, f64::NAN).is_nan());
     }
 
-    /// A window of half-width `w` that may move `m` times to an end reaches `w^(2m + 1)` either
-    /// side of its start (each move centres it on the last window's end). The held stages
-    /// under a given lobe ([`GIVEN_LOBE_WIDTH`], [`GIVEN_LOBE_MOVES`]) reach beyond the
-    /// profile's bracket (its candidates 5 % apart) and at most as far as the alternation's
-    /// stages ([`NARROW_WIDTH`], [`ALTERNATION_MOVES`]), which the hehe12 capture bounds (see
-    /// [`ALTERNATION_MOVES`]); their first window is narrower than the alternation's.
+    /// A window of log half-width `h` that may move `m` times to an end, its half-width growing
+    /// by `g` at each move, reaches `h (1 + g + ... + g^m)` either side of its start (each move
+    /// centres it on the last window's end). The held stages under a given lobe
+    /// ([`GIVEN_LOBE_WIDTH`], [`GIVEN_LOBE_MOVES`], [`GIVEN_LOBE_GROWTH`]) reach as far as stop
+    /// 49's window (1 %, 3 moves at its width) and at most as far as the alternation's stages
+    /// ([`NARROW_WIDTH`], [`ALTERNATION_MOVES`]), which the hehe12 capture bounds (see
+    /// [`ALTERNATION_MOVES`]); their first window is the search's default precision, so that
+    /// its three candidates end the refinement.
     #[test]
-    fn the_given_lobe_window_reaches_the_profile_bracket() {
-        let reach = |w: f64, m: usize| w.powi(2 * m as i32 + 1);
-        let given = reach(GIVEN_LOBE_WIDTH, GIVEN_LOBE_MOVES);
-        let alternation = reach(NARROW_WIDTH, ALTERNATION_MOVES);
-        assert!(given > 1.05, "{given}");
+    fn the_given_lobe_window_reaches_as_far_as_before() {
+        let reach = |w: f64, m: usize, g: f64| {
+            (w.ln() * (0..=m).map(|k| g.powi(k as i32)).sum::<f64>()).exp()
+        };
+        let given = reach(GIVEN_LOBE_WIDTH, GIVEN_LOBE_MOVES, GIVEN_LOBE_GROWTH);
+        let before = reach(1.01, 3, 1.0);
+        let alternation = reach(NARROW_WIDTH, ALTERNATION_MOVES, 1.0);
+        assert!((before - 1.01f64.powi(4)).abs() < 1e-12);
+        assert!(given >= before, "{given} {before}");
         assert!(given <= alternation, "{given} {alternation}");
-        // Its first window is narrower, its scan the ends and the middle, at most 1 % out.
-        const {
-            assert!(GIVEN_LOBE_WIDTH < NARROW_WIDTH);
-            assert!(NARROW_SCAN == 3);
-            assert!(GIVEN_LOBE_WIDTH - 1.0 <= 0.01 + 1e-12);
-        }
+        // Its first window: the ends and the middle, within the default precision, so that the
+        // scan's bracket is the refinement's end.
+        let precision = DistanceSearch::default().precision;
+        const { assert!(NARROW_SCAN == 3) };
+        assert!(2.0 * GIVEN_LOBE_WIDTH.ln() <= 2.0 * precision * (1.0 + 1e-9));
+        let points = [-1.0, 0.0, 1.0].map(|k: f64| (k * GIVEN_LOBE_WIDTH.ln(), k.abs()));
+        let mut p = Parabolic::new(points.to_vec());
+        assert_eq!(p.next(precision), None);
     }
 
     /// The index walk steps on while a stage lowers the criterion, upwards first, downwards
