@@ -1919,8 +1919,6 @@ pub(crate) fn check_distance_on(
     })?
 }
 
-/// The abscissa of the minimum of the parabola through three points with `y[1]` the least (the
-/// middle abscissa when the points are collinear).
 /// The corner of the V of equal slopes `±s` through three points `a < m < c` whose middle one
 /// is the least: the side whose two points do not straddle the corner has the steeper slope,
 /// `s = max((f_a - f_m) / (m - a), (f_c - f_m) / (c - m))`; with the corner `x0` right of `m`
@@ -1958,6 +1956,8 @@ fn vee_minimum([a, m, c]: [f64; 3], [fa, fm, fc]: [f64; 3]) -> f64 {
     }
 }
 
+/// The abscissa of the minimum of the parabola through three points with `y[1]` the least (the
+/// middle abscissa when the points are collinear).
 fn parabola_minimum(x: [f64; 3], y: [f64; 3]) -> f64 {
     let (d0, d2) = (x[0] - x[1], x[2] - x[1]);
     let (e0, e2) = (y[0] - y[1], y[2] - y[1]);
