@@ -954,27 +954,25 @@ fn lane_total(a: &[f64; LANES]) -> f64 {
 
 impl LocalStep<'_> {
     /// The final pass with the vectorized accumulation (`lights` from
-    /// [`LocalStep::lane_lights`]) over facets `first..first + len`: each batch of [`LANES`]
+    /// [`LocalStep::lane_lights`]) over every facet: each batch of [`LANES`]
     /// facets is fitted and its trust values computed from one evaluation of the lights'
     /// `beta`, with the fits of [`LocalStep::try_run`] and the trust values of the `trust`
     /// module (same operations, same order); with `fitted` false the trust values alone (see
     /// [`LocalStep::trust_batch`]; the fits handed on are then empty). The facets run in chunks
-    /// of [`CHUNK`] (the last one shorter; one empty chunk when `len` is 0), in parallel, each
+    /// of [`CHUNK`] (the last one shorter; one empty chunk without facets), in parallel, each
     /// on one thread, which hands its fits and trust values to `write` with the chunk's entry
     /// of `views` (one per chunk) and its first facet, straight from its own buffers. Returns
     /// the per-light sums (see [`LaneLightSums`]). Once cancelled, the remaining chunks are not
     /// written (the caller must then check the token and discard the maps).
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn final_lanes_into<V: Send>(
         &self,
         lights: &[LaneLight],
         u: &[f64],
-        first: usize,
-        len: usize,
         fitted: bool,
         views: Vec<V>,
         write: &(impl Fn(V, usize, &[FacetFit], &[[f32; 2]]) + Sync),
     ) -> Result<LightSums> {
+        let len = self.grid.n_facets();
         debug_assert_eq!(views.len(), final_chunks(len));
         let (per, k) = (self.obs.per_facet(), self.obs.k);
         let scratch = || -> Result<_> {
@@ -991,7 +989,7 @@ impl LocalStep<'_> {
             .map_init(scratch, |scratch, (chunk, view)| {
                 let (buf, interleaved, rows, trust_rows, fits, trust) =
                     scratch.as_mut().map_err(|e| e.clone())?;
-                let start = first + chunk * CHUNK;
+                let start = chunk * CHUNK;
                 let n = len.saturating_sub(chunk * CHUNK).min(CHUNK);
                 let (fits, trust) = (&mut fits[..if fitted { n } else { 0 }], &mut trust[..n]);
                 let mut sums = vec![[0.0f64; 4]; k];

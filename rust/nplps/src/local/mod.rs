@@ -803,9 +803,8 @@ impl LocalStep<'_> {
         views: Vec<V>,
         write: &(impl Fn(V, usize, &[FacetFit], &[[f32; 2]]) + Sync),
     ) -> Result<trust::LightSums> {
-        let n = self.grid.n_facets();
         self.lambertian()
-            .final_lanes_into(lights, u, 0, n, fitted, views, write)
+            .final_lanes_into(lights, u, fitted, views, write)
     }
 
     /// [`LocalStep::try_run`] where, under the glossy model with grey images, each facet whose
