@@ -1036,9 +1036,6 @@ mod tests {
         }
     }
 
-    /// DiLiGenT's geometry in miniature: 48 distant lights within 35 degrees of the view, a
-    /// sharp lobe (0.04), exact images, and fits started 8 degrees off on the far side of the
-    /// brightest highlight: the direct fits end far off, the continuation at the truth.
     /// The fits stop within the noise (`reflectance::NOISE_STOP`) only from a glossy start: from
     /// a Lambertian fit `refine` fits as with noise 0, bit for bit; from a warm normal a noise far
     /// above the facet's residual ends the fit at its start (and the fit counts as converged),
@@ -1113,6 +1110,9 @@ mod tests {
         assert!(moved >= 14, "{moved} of 15 fits moved without the noise");
     }
 
+    /// DiLiGenT's geometry in miniature: 48 distant lights within 35 degrees of the view, a
+    /// sharp lobe (0.04), exact images, and fits started 8 degrees off on the far side of the
+    /// brightest highlight: the direct fits end far off, the continuation at the truth.
     #[test]
     fn continuation_finds_the_normal_a_tilted_start_misses() {
         let lobe = Lobe::new(0.04, 1.5);
