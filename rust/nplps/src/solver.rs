@@ -135,6 +135,9 @@ pub(crate) struct Carried {
     warm: WarmMap,
     /// The cast shadows of the last level (with [`Options::shadows`]).
     shadows: Option<ShadowMask>,
+    /// Whether the last level, under [`Shadows::Auto`] without a mask, found no cast shadows
+    /// on the surface it ended on (see [`Solver::ends_shadowless`]).
+    shadowless: bool,
     /// The field of indirect light of the level that ran the rounds of interreflections (see
     /// [`ROUNDS_SIDE`]), for the full resolution's grid and carried surface.
     indirect: Option<IndirectField>,
@@ -255,7 +258,8 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 /// With [`Options::shadows`], the cast shadows of the current mesh are computed at these
 /// iterations of every run, so at most `SHADOWS_AT.len()` marches per run: the first on its
 /// starting surface (the starting plane casts none and costs little), except where a coarser
-/// level's shadows are carried (then used, upsampled, until the next).
+/// level's shadows are carried (then used, upsampled, until the next) or its verdict that its
+/// last surface casts none (under [`Shadows::Auto`], see [`Solver::ends_shadowless`]).
 pub const SHADOWS_AT: [usize; 2] = [1, 3];
 
 /// Under [`Shadows::Auto`], a solver without a mask probes a lattice of at least this many
@@ -464,6 +468,7 @@ pub(crate) fn coarse_to_fine(
         check: None,
         warm: WarmMap::default(),
         shadows: None,
+        shadowless: false,
         indirect: None,
     };
     if levels <= 1 {
@@ -504,7 +509,7 @@ pub(crate) fn coarse_to_fine(
             solver.lights.set_lights(carried.lights.clone());
             solver.lights.set_refine(on_level(carried.refine, unknowns));
             solver.carry_glossy(carried.lobe, carried.matte, carried.check, &carried.warm);
-            solver.carry_shadows(carried.shadows.take())?;
+            solver.carry_shadows(carried.shadows.take(), carried.shadowless)?;
             current = crate::pyramid::upsample(&coarse[i + 1].grid, &current, &p.grid)?;
             let gauge = p.grid.region_means(&current);
             p.grid.apply_gauge(&mut current, &gauge);
@@ -540,6 +545,7 @@ pub(crate) fn coarse_to_fine(
             let (rounds, _) = solver.interreflect(&mut current, &gauge, converged, progress)?;
             history.extend(rounds);
         }
+        carried.shadowless = solver.ends_shadowless(&current)?;
         carried.indirect = solver.indirect.take();
         timings.add(&solver.timings);
         carried.lights = solver.lights.lights().to_vec();
@@ -674,7 +680,8 @@ pub(crate) struct Solver<'p> {
     /// [`Options::shadows`]).
     shadows: Option<ShadowMask>,
     /// Whether `shadows` came from a coarser level (the first iteration of the first run then
-    /// uses them instead of marching).
+    /// uses them instead of marching): its mask, or none where it ended without cast shadows
+    /// (see [`Solver::ends_shadowless`]).
     shadows_carried: bool,
     /// Whether this run's first iteration keeps the carried shadows.
     skip_first_march: bool,
@@ -835,11 +842,18 @@ impl<'p> Solver<'p> {
     }
 
     /// Starts from a coarser level's cast shadows (twice as coarse), each pixel taking those of
-    /// the coarse pixel under it, until this level's first march.
-    fn carry_shadows(&mut self, coarse: Option<ShadowMask>) -> Result<()> {
-        if let Some(coarse) = coarse.filter(|_| self.options.shadows.is_active()) {
+    /// the coarse pixel under it, until this level's first march; or, where the coarser level
+    /// ended `shadowless` (see [`Solver::ends_shadowless`]), from none, without the first
+    /// iteration's probe.
+    fn carry_shadows(&mut self, coarse: Option<ShadowMask>, shadowless: bool) -> Result<()> {
+        if !self.options.shadows.is_active() {
+            return Ok(());
+        }
+        if let Some(coarse) = coarse {
             let grid = &self.problem.grid;
             self.shadows = Some(coarse.upsample(grid.height, grid.width)?);
+            self.shadows_carried = true;
+        } else if shadowless && self.options.shadows == Shadows::Auto {
             self.shadows_carried = true;
         }
         Ok(())
@@ -861,7 +875,7 @@ impl<'p> Solver<'p> {
             self.lights.monitor = coarse.monitor;
             self.lights.diverged = coarse.diverged;
             self.carry_glossy(coarse.lobe, coarse.matte, coarse.check, &coarse.warm);
-            self.carry_shadows(coarse.shadows)?;
+            self.carry_shadows(coarse.shadows, coarse.shadowless)?;
             self.indirect = coarse.indirect;
             self.indirect_carried = self.indirect.is_some();
         }
@@ -1259,6 +1273,64 @@ impl<'p> Solver<'p> {
         }
     }
 
+    /// The stride of this level's probe lattice (see [`PROBE_FACETS`]): every `s`-th row and
+    /// column, `s = floor(sqrt(facets / PROBE_FACETS))`, at least 1.
+    fn probe_stride(&self) -> usize {
+        let facets = self.problem.grid.facets.len();
+        (facets as f64 / PROBE_FACETS as f64)
+            .sqrt()
+            .floor()
+            .max(1.0) as usize
+    }
+
+    /// The cast shadows of the mesh `u` under the current lights, marched from the facets on
+    /// the lattice of `stride` (every facet for 1; see [`mesh_shadows`]).
+    fn march(&self, u: &[f64], stride: usize) -> Result<ShadowMask> {
+        let p = self.problem;
+        mesh_shadows(
+            &p.rig.camera,
+            self.lights.lights(),
+            &p.grid,
+            &p.geometry,
+            u,
+            None,
+            stride,
+        )
+    }
+
+    /// The share of the observations of the facets on the lattice of `stride` (its rows and
+    /// columns visited, `1 / stride²` of the pixels, not every facet) that `mask` shadows.
+    fn lattice_share(&self, mask: &ShadowMask, stride: usize) -> f64 {
+        let grid = &self.problem.grid;
+        let lattice = |n: usize| (0..n).filter(move |&i| on_lattice(i, stride));
+        let probed = lattice(grid.height)
+            .flat_map(|r| lattice(grid.width).map(move |c| r * grid.width + c))
+            .filter(|&q| grid.facet_of_pixel(q) != crate::grid::INACTIVE)
+            .count();
+        mask.count() as f64 / (probed * mask.lights()).max(1) as f64
+    }
+
+    /// Under [`Shadows::Auto`] without a mask: whether a probe of the surface `u` a level ends
+    /// on (the lattice of [`PROBE_FACETS`] facets) finds less than [`AUTO_SHARE`] of its
+    /// observations in a cast shadow. The next finer level starts from this surface,
+    /// upsampled, so its first iteration keeps this verdict (see [`Solver::carry_shadows`])
+    /// instead of probing the same surface on four times the pixels (its probe lattice has the
+    /// same spacing in the image; a shadow cast by the finer level's own detail is seen by its
+    /// third iteration's probe, as before). The probe's set-up (the vertices and the min-depth
+    /// pyramid) is `O(pixels)`: a 12 MP run probed its full resolution for most of the time it
+    /// spent on shadows.
+    fn ends_shadowless(&mut self, u: &[f64]) -> Result<bool> {
+        if self.options.shadows != Shadows::Auto || self.shadows.is_some() {
+            return Ok(false);
+        }
+        let t = Instant::now();
+        let stride = self.probe_stride();
+        let share = self.lattice_share(&self.march(u, stride)?, stride);
+        self.timings.shadows += t.elapsed();
+        self.problem.cancel.check()?;
+        Ok(share < AUTO_SHARE)
+    }
+
     /// Shadows: with [`Options::shadows`], the cast shadows of the mesh `u` under the current
     /// lights at the iterations [`SHADOWS_AT`] (see [`crate::shadow`]). Under
     /// [`Shadows::Auto`], a solver without a mask first probes a lattice of about
@@ -1276,34 +1348,8 @@ impl<'p> Solver<'p> {
         }
         let t = Instant::now();
         let p = self.problem;
-        let facets = p.grid.facets.len();
-        let stride = (facets as f64 / PROBE_FACETS as f64)
-            .sqrt()
-            .floor()
-            .max(1.0) as usize;
+        let stride = self.probe_stride();
         let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
-        let share = |mask: &ShadowMask, stride: usize| {
-            // The facets on the lattice: its rows and columns visited (1 / stride² of the
-            // pixels), not every facet.
-            let (h, w) = (p.grid.height, p.grid.width);
-            let lattice = |n: usize| (0..n).filter(move |&i| on_lattice(i, stride));
-            let probed = lattice(h)
-                .flat_map(|r| lattice(w).map(move |c| r * w + c))
-                .filter(|&q| p.grid.facet_of_pixel(q) != crate::grid::INACTIVE)
-                .count();
-            mask.count() as f64 / (probed * mask.lights()).max(1) as f64
-        };
-        let march = |stride: usize| {
-            mesh_shadows(
-                &p.rig.camera,
-                self.lights.lights(),
-                &p.grid,
-                &p.geometry,
-                u,
-                None,
-                stride,
-            )
-        };
         self.shadows = None;
         // The targets are dead here (the next local step writes every facet's): their memory
         // (32 bytes a facet) is given back while the march holds its own (the vertex depths,
@@ -1311,7 +1357,7 @@ impl<'p> Solver<'p> {
         // otherwise set the peak of the run; [`Solver::local`] allocates them again.
         self.targets = Vec::new();
         crate::memory::trace("shadows: before march");
-        let seen = !probe || share(&march(stride)?, stride) >= AUTO_SHARE;
+        let seen = !probe || self.lattice_share(&self.march(u, stride)?, stride) >= AUTO_SHARE;
         crate::memory::trace("shadows: after march");
         if seen {
             // From a lattice of the facets and the edges (see [`mesh_shadows_refined`]) with a
@@ -1328,9 +1374,9 @@ impl<'p> Solver<'p> {
                     u,
                     stride,
                 )?,
-                None => march(1)?,
+                None => self.march(u, 1)?,
             };
-            if policy == Shadows::On || share(&mask, 1) >= AUTO_SHARE {
+            if policy == Shadows::On || self.lattice_share(&mask, 1) >= AUTO_SHARE {
                 self.shadows = Some(mask);
             }
         }
@@ -2592,6 +2638,56 @@ mod tests {
         let share = found.count() as f64 / (n * n * found.lights()) as f64;
         assert!(share >= AUTO_SHARE, "{share}");
         assert!(bits(&auto) == bits(&on));
+    }
+
+    /// A level's verdict on the surface it ends on ([`Solver::ends_shadowless`]): none on the
+    /// sphere cap, shadows on the block (its probe alone, without the mask its iterations
+    /// made); and a level started from a coarser one's "none" does not probe on its first
+    /// iteration (no time spent on shadows in a run of two iterations), where one started
+    /// without it does.
+    #[test]
+    fn a_level_keeps_a_coarser_levels_verdict_of_no_cast_shadows() {
+        let n = 64;
+        let options = Options {
+            levels: 1,
+            ..Options::default()
+        };
+        assert_eq!(options.shadows, Shadows::Auto);
+        let ends = |kind: SceneKind| {
+            let scene_options = crate::synth::SceneOptions::default().with_pinhole(true);
+            let scene = Scene::with_options(kind, n, 100.0, 200.0, 0, scene_options).unwrap();
+            let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+            let problem = at_true_distance(&scene, &scene.rig, &images);
+            let mut solver = Solver::new(&problem, &options).unwrap();
+            let mut u = problem.u0.to_vec("the depths").unwrap();
+            let gauge = &problem.gauge;
+            solver
+                .iterate(&mut u, gauge, 30, 1e-6, &mut |_| Control::Continue)
+                .unwrap();
+            let masked = solver.shadows.take().is_some();
+            let shadowless = solver.ends_shadowless(&u).unwrap();
+            let first_iterations = |shadowless: bool| {
+                let mut solver = Solver::new(&problem, &options).unwrap();
+                solver.carry_shadows(None, shadowless).unwrap();
+                let mut v = u.clone();
+                solver
+                    .iterate(&mut v, gauge, 2, 0.0, &mut |_| Control::Continue)
+                    .unwrap();
+                solver.timings.shadows
+            };
+            (
+                masked,
+                shadowless,
+                first_iterations(true),
+                first_iterations(false),
+            )
+        };
+        let (masked, shadowless, kept, probed) = ends(SceneKind::SphereCap);
+        assert!(!masked && shadowless);
+        assert_eq!(kept, std::time::Duration::ZERO);
+        assert!(probed > std::time::Duration::ZERO);
+        let (masked, shadowless, _, _) = ends(SceneKind::Block);
+        assert!(masked && !shadowless);
     }
 
     /// A Lambertian surface of albedo `rho` lit by itself, the test helper of the exact
