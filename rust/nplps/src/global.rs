@@ -200,6 +200,39 @@ impl GlobalStep {
         }
     }
 
+    /// Lends `targets` (dead from [`GlobalStep::right_side`] until the next local step writes
+    /// them all) to a multigrid system as its conjugate gradients' work vectors (see
+    /// [`crate::multigrid::MultigridSystem::lend`]); returns whether it took them (never the
+    /// direct solver, nor a system that may redo the step from them, see
+    /// [`GlobalStep::needs_targets`]). [`GlobalStep::take_back_targets`] returns them.
+    pub fn lend_targets(&mut self, targets: &mut Vec<[f64; 4]>) -> bool {
+        if self.needs_targets() {
+            return false;
+        }
+        let GlobalStep::Multigrid { system, .. } = self else {
+            return false;
+        };
+        let len = targets.len();
+        let mut values = std::mem::take(targets).into_flattened();
+        if system.lend(&mut values) {
+            return true;
+        }
+        *targets = crate::memory::quads_on(values, len).unwrap_or_default();
+        false
+    }
+
+    /// The targets lent by [`GlobalStep::lend_targets`], `len` of them (their values the
+    /// solve's); empty if none were lent.
+    pub fn take_back_targets(&mut self, len: usize) -> Vec<[f64; 4]> {
+        let GlobalStep::Multigrid { system, .. } = self else {
+            return Vec::new();
+        };
+        system
+            .take_back()
+            .and_then(|values| crate::memory::quads_on(values, len))
+            .unwrap_or_default()
+    }
+
     /// The right side of the next global step for `targets` from `z_current`, per unknown into
     /// `z`; returns the norm of its target part. [`GlobalStep::solve_from`] then solves from it
     /// without reading the targets, unless [`GlobalStep::needs_targets`] says it may redo the

@@ -152,6 +152,27 @@ pub(crate) fn triples_on(spare: Vec<[f64; 4]>, len: usize, what: &str) -> Result
     Ok(unsafe { Vec::from_raw_parts(flat.as_mut_ptr().cast::<[f64; 3]>(), len, len) })
 }
 
+/// `len` quadruples on the memory of `values`, a buffer that was a vector of quadruples (made
+/// flat by `Vec::into_flattened`, e.g. to be lent, see
+/// [`MultigridSystem::lend`](crate::multigrid::MultigridSystem::lend)): None when its capacity
+/// is not a multiple of 4 or holds fewer than `4 len` values. The quadruples hold the buffer's
+/// values, or zeros past them; no allocation.
+pub(crate) fn quads_on(mut values: Vec<f64>, len: usize) -> Option<Vec<[f64; 4]>> {
+    let capacity = values.capacity();
+    if !capacity.is_multiple_of(4) || len.checked_mul(4)? > capacity {
+        return None;
+    }
+    // (within the capacity: truncates, or writes zeros after the old values)
+    values.resize(4 * len, 0.0);
+    debug_assert_eq!(values.capacity(), capacity);
+    let mut values = std::mem::ManuallyDrop::new(values);
+    // SAFETY: `values` owns an allocation of `capacity` f64 from the global allocator, whose
+    // layout (`8 capacity` bytes, aligned as f64) is that of `capacity / 4` `[f64; 4]`; its
+    // first `4 len` values are initialised, and every bit pattern is a valid f64. `values` is
+    // not dropped, so the new vector is the allocation's only owner.
+    Some(unsafe { Vec::from_raw_parts(values.as_mut_ptr().cast::<[f64; 4]>(), len, capacity / 4) })
+}
+
 /// `len` values on the memory of one of the `spare` buffers (no longer needed: the first
 /// whose capacity holds `len`, taken out of `spare` and shrunk to `len`), else [`try_zeros`]:
 /// as [`triples_on`], for a map whose every entry is written before it is read (the entries
@@ -364,6 +385,25 @@ fn address_space_free() -> Option<u64> {
 mod tests {
     use super::*;
     use crate::error::format_bytes;
+
+    /// Quadruples made flat and back keep their allocation and values; a buffer whose capacity
+    /// is not a multiple of 4 or too small is refused.
+    #[test]
+    fn quads_come_back_on_their_memory() {
+        let quads: Vec<[f64; 4]> = (0..10).map(|i| [i as f64, 1.0, 2.0, -0.0]).collect();
+        let flat = quads.clone().into_flattened();
+        let flat_at = flat.as_ptr() as usize;
+        let back = quads_on(flat, 10).unwrap();
+        assert_eq!(back.as_ptr() as usize, flat_at);
+        assert!(back
+            .iter()
+            .zip(&quads)
+            .all(|(a, b)| a.map(f64::to_bits) == b.map(f64::to_bits)));
+        let shorter = quads_on(quads.clone().into_flattened(), 4).unwrap();
+        assert_eq!((shorter.len(), shorter.capacity()), (4, 10));
+        assert!(quads_on(quads.clone().into_flattened(), 11).is_none());
+        assert!(quads_on(Vec::with_capacity(7), 1).is_none());
+    }
 
     /// Zeroed allocations are vectors of zeros of the asked length, empty ones included.
     #[test]

@@ -1623,16 +1623,22 @@ impl<'p> Solver<'p> {
         // The right side goes into `next` (which the solution then replaces); after it the
         // targets are dead until the next local step writes them all.
         let norm = system.right_side(&p.grid, &self.targets, u, &mut self.next);
-        if self.lean && !self.keep_buffers && !system.needs_targets() {
-            // Their 32 bytes a facet are given back while the conjugate-gradient vectors are
-            // in use, and allocated again (zero pages, touched by the next local step) in
-            // `local`.
+        // Lent to a multigrid system as three of its conjugate-gradient vectors (their 32
+        // bytes a facet hold 24 a vertex), or else, in a lean run that does not keep its
+        // buffers, given back while those vectors are in use and allocated again (zero pages,
+        // touched by the next local step) in `local`.
+        let facets = self.targets.len();
+        let lent = system.lend_targets(&mut self.targets);
+        if !lent && self.lean && !self.keep_buffers && !system.needs_targets() {
             self.targets = Vec::new();
         }
         crate::memory::trace("global: before solve");
         system.set_relative_stop(relative_stop);
         let solved = system.solve_from(&p.grid, norm, &self.targets, u, &mut self.next);
         system.set_relative_stop(0.0);
+        if lent {
+            self.targets = system.take_back_targets(facets);
+        }
         let inner_iterations = solved?;
         crate::memory::trace("global: after solve");
         if self.lean && !self.keep_buffers {
