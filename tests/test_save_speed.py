@@ -66,3 +66,45 @@ def test_trust_summary_is_mains_bit_for_bit(seed: int) -> None:
     assert got is not None
     assert got.pop("lights") == []
     assert got == _old_trust_figures(sigma, held, mask)
+
+
+def _old_shaded(result, light) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """``Reconstruction.shaded`` as main computed it: the (H, W, 3) product summed over its last axis."""
+    n = result.normals
+    if isinstance(light, str) and not result.rig.is_pinhole:
+        to_light = np.array([0.0, 0.0, -1.0])
+    elif isinstance(light, str):
+        v = result.vertices
+        centre = 0.25 * (v[:-1, :-1] + v[:-1, 1:] + v[1:, :-1] + v[1:, 1:])
+        to_light = -centre / np.linalg.norm(centre, axis=-1, keepdims=True)
+    else:
+        d = np.asarray(light, dtype=np.float64)
+        to_light = d / np.linalg.norm(d)
+    shade = np.clip((n * to_light).sum(axis=-1), 0.0, 1.0)
+    return np.where(result.mask & np.isfinite(shade), shade, 0.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
+def test_shaded_is_the_summed_product_bit_for_bit(seed: int, camera: str) -> None:
+    import nplps
+    from nplps.reconstruction import SHADED_LIGHT
+
+    scene = nplps.make_scene("sphere", n=24, camera=camera)  # type: ignore[arg-type]
+    result = nplps.reconstruct(scene.images, scene.rig, depth=scene.mean_depth, mask=scene.mask, iterations=2)
+    assert result.rig.is_pinhole == (camera == "pinhole")  # "camera": per-pixel directions or one
+    rng = np.random.default_rng(seed)
+    # Random normals of every sign and scale, with NaN, infinities, zeros and negative zeros.
+    n = rng.standard_normal(result.normals.shape) * rng.choice([1e-3, 1.0, 1e3], result.normals.shape)
+    special = rng.random(n.shape)
+    n[special < 0.02] = np.nan
+    n[(special >= 0.02) & (special < 0.03)] = np.inf
+    n[(special >= 0.03) & (special < 0.05)] = 0.0
+    n[(special >= 0.05) & (special < 0.07)] = -0.0
+    result.__dict__["normals"] = n  # the cached property's value
+    lights = [SHADED_LIGHT, "camera", tuple(rng.standard_normal(3))]
+    for light in lights:
+        got = result.shaded(None if light is SHADED_LIGHT else light)
+        expected = _old_shaded(result, light)
+        assert got.dtype == expected.dtype and got.shape == expected.shape
+        assert np.array_equal(got.view(np.uint64), expected.view(np.uint64)), light

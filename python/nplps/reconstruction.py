@@ -478,7 +478,15 @@ class Reconstruction:
             if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.linalg.norm(d) > 0:
                 raise InputError(f"light must be a non-zero direction of 3 finite numbers, got {light!r}")
             to_light = d / np.linalg.norm(d)
-        shade = np.clip((n * to_light).sum(axis=-1), 0.0, 1.0)
+        # n . l as ((n_x l_x + n_y l_y) + n_z l_z) + 0, the bits of ``(n * l).sum(axis=-1)`` (whose
+        # sum starts from +0, so that a sum of negative zeros is +0; adding +0 last changes nothing
+        # else), with (H, W) temporaries instead of an (H, W, 3) product: at 12 MP a third of the
+        # memory traffic (tests/test_save_speed.py checks the bits).
+        shade = n[..., 0] * to_light[..., 0]
+        shade += n[..., 1] * to_light[..., 1]
+        shade += n[..., 2] * to_light[..., 2]
+        shade += 0.0
+        np.clip(shade, 0.0, 1.0, out=shade)
         return np.where(self.mask & np.isfinite(shade), shade, 0.0)
 
     def vertex_normals(self) -> np.ndarray:
