@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from nplps.reconstruction import _median_p90
+from nplps import _core
 
 
 def _samples(rng: np.random.Generator, n: int, kind: int, dtype: type) -> np.ndarray:
@@ -16,15 +16,26 @@ def _samples(rng: np.random.Generator, n: int, kind: int, dtype: type) -> np.nda
 
 @pytest.mark.parametrize("seed", range(5))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_median_p90_is_numpys_bit_for_bit(seed: int, dtype: type) -> None:
+def test_trust_figures_are_numpys_bit_for_bit(seed: int, dtype: type) -> None:
+    # The Rust figures (radix selection, pairwise sums) against numpy's median, percentile and
+    # mean of the float64 values, over sizes around numpy's pairwise block (128) and its halving.
     rng = np.random.default_rng(seed)
-    sizes = [*range(1, 130), 1000, 4097, 65_537, int(rng.integers(100_000, 300_000))]
+    sizes = [*range(1, 140), 255, 256, 257, 1000, 4097, 65_537, int(rng.integers(100_000, 300_000))]
     for n in sizes:
         for kind in range(3):
-            values = _samples(rng, n, kind, dtype)
-            wide = values.astype(np.float64)
-            expected = (float(np.median(wide)), float(np.percentile(wide, 90)))
-            got = _median_p90(values.copy())
+            sigma = _samples(rng, n, kind, dtype)[None, :]
+            held = _samples(rng, n, (kind + 1) % 3, dtype)[None, :]
+            s, h = sigma.astype(np.float64), held.astype(np.float64)
+            expected = (
+                n,
+                float(np.median(s)),
+                float(np.percentile(s, 90)),
+                float(np.sqrt(np.mean(s**2))),
+                float(np.mean(h)),
+                float(np.median(h)),
+                float(np.percentile(h, 90)),
+            )
+            got = _core.trust_figures(np.ones((1, n), bool), sigma, held)
             assert got == expected, (n, kind, got, expected)
 
 
@@ -49,15 +60,16 @@ def _old_trust_figures(sigma_map: np.ndarray, held_map: np.ndarray, mask: np.nda
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_trust_summary_is_mains_bit_for_bit(seed: int) -> None:
+@pytest.mark.parametrize("dtypes", [(np.float32, np.float32), (np.float64, np.float64), (np.float32, np.float64)])
+def test_trust_summary_is_mains_bit_for_bit(seed: int, dtypes: tuple[type, type]) -> None:
     from types import SimpleNamespace
 
     from nplps.reconstruction import Reconstruction
 
     rng = np.random.default_rng(seed)
-    h, w = int(rng.integers(50, 400)), int(rng.integers(50, 400))
-    sigma = (rng.standard_exponential((h, w)) * rng.uniform(0.01, 5)).astype(np.float32)
-    held = (rng.standard_exponential((h, w)) ** 2 * 1e-3).astype(np.float32)
+    h, w = int(rng.integers(50, 700)), int(rng.integers(50, 700))
+    sigma = (rng.standard_exponential((h, w)) * rng.uniform(0.01, 5)).astype(dtypes[0])
+    held = (rng.standard_exponential((h, w)) ** 2 * 1e-3).astype(dtypes[1])
     sigma[rng.random((h, w)) < 0.05] = np.nan  # left out, as the maps' unknown pixels
     held[rng.random((h, w)) < 0.05] = np.inf
     mask = rng.random((h, w)) < 0.8
@@ -66,6 +78,31 @@ def test_trust_summary_is_mains_bit_for_bit(seed: int) -> None:
     assert got is not None
     assert got.pop("lights") == []
     assert got == _old_trust_figures(sigma, held, mask)
+    fake.mask = np.zeros_like(mask)
+    assert Reconstruction._trust_summary(fake) == {  # type: ignore[arg-type]
+        "pixels": 0,
+        "normal_sigma_deg": None,
+        "held_out_error": None,
+        "lights": [],
+    }
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
+def test_masked_mesh_normals_are_mains_bit_for_bit(camera: str) -> None:
+    # The mask given to the Rust function against main's way: the normals of the whole depth map,
+    # then NaN written outside the mask (the Rust unit test compares the banded normals with the
+    # quads of the whole vertex grid, main's algorithm, bit for bit).
+    import nplps
+
+    scene = nplps.make_scene("sphere", n=37, camera=camera)  # type: ignore[arg-type]
+    rng = np.random.default_rng(3)
+    depth = scene.depth + rng.normal(0, 0.01, scene.depth.shape)
+    depth[rng.random(depth.shape) < 0.03] = np.nan
+    mask = rng.random((depth.shape[0] - 1, depth.shape[1] - 1)) < 0.7
+    expected = _core.mesh_normals(depth, scene.rig.camera)
+    expected[~mask] = np.nan
+    got = _core.mesh_normals(depth, scene.rig.camera, mask)
+    assert np.array_equal(got.view(np.uint64), expected.view(np.uint64))
 
 
 def _old_shaded(result, light) -> np.ndarray:  # type: ignore[no-untyped-def]

@@ -23,7 +23,7 @@ attributes (``MemoryLimitError.needed`` / ``.limit``, ``InputError.argument`` / 
 
 import os
 from collections.abc import Sequence
-from typing import final
+from typing import Any, final
 
 import numpy as np
 import numpy.typing as npt
@@ -209,7 +209,10 @@ def predict(
     lobe: tuple[float, float] | None = None,
     diffuse: str = "transmitted",
 ) -> F64: ...
-def mesh_normals(depth: F64, camera: Camera) -> F64: ...
+def mesh_normals(depth: F64, camera: Camera, mask: npt.NDArray[np.bool_] | None = None) -> F64: ...
+def trust_figures(
+    mask: npt.NDArray[np.bool_], sigma: npt.NDArray[Any], held: npt.NDArray[Any]
+) -> tuple[int, float, float, float, float, float, float]: ...
 def vertices(depth: F64, camera: Camera) -> F64: ...
 def vertex_means(values: F64, normalize: bool) -> F64: ...
 def mesh_arrays(

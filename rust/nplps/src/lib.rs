@@ -256,6 +256,7 @@ mod solver;
 #[cfg(feature = "synth")]
 mod synth;
 mod system;
+mod trust_figures;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
@@ -286,10 +287,12 @@ pub use reconstruction::{
 pub use refine::Conditioning;
 pub use reflectance::{Lobe, Reflectance};
 pub use render::{
-    mesh_normals, predict, predict_with, render, render_with, RenderOptions, Specular, Surface,
+    mesh_normals, mesh_normals_masked, predict, predict_with, render, render_with, RenderOptions,
+    Specular, Surface,
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask, Shadows};
 pub use solver::{reconstruct, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};
+pub use trust_figures::{trust_figures, TrustFigures, TrustValue};
