@@ -145,3 +145,66 @@ def test_shaded_is_the_summed_product_bit_for_bit(seed: int, camera: str) -> Non
         expected = _old_shaded(result, light)
         assert got.dtype == expected.dtype and got.shape == expected.shape
         assert np.array_equal(got.view(np.uint64), expected.view(np.uint64)), light
+
+
+def _old_grey_pixels(image: np.ndarray) -> np.ndarray:
+    """``export._grey_pixels`` as main computed it (numpy, float64 copy)."""
+    image = np.array(image, dtype=np.float64)
+    np.nan_to_num(image, copy=False, nan=0.0)
+    np.clip(image, 0.0, 1.0, out=image)
+    image *= 255
+    np.rint(image, out=image)
+    return image.astype(np.uint8)
+
+
+def _old_normal_map_pixels(normals: np.ndarray, mask: np.ndarray | None, frame: str, bits: int) -> np.ndarray:
+    """``export.normal_map_pixels`` as main computed it (numpy, whole image at once)."""
+    from nplps.export import NORMAL_MAP_FRAMES
+
+    top = (1 << bits) - 1
+    flip = np.array(NORMAL_MAP_FRAMES[frame])
+    n = np.asarray(normals, dtype=np.float64)
+    valid = np.isfinite(n).all(axis=-1)
+    if mask is not None:
+        valid &= mask
+    flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)
+    encoded = np.rint((flipped + 1.0) / 2.0 * top).astype(np.uint8 if bits == 8 else np.uint16)
+    encoded[~valid] = 0
+    return encoded
+
+
+def _special(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:
+    """Random values of both signs around [-scale, scale] with NaN, infinities, zeros, exact halves."""
+    v = rng.uniform(-scale, scale, shape)
+    u = rng.random(shape)
+    v[u < 0.02] = np.nan
+    v[(u >= 0.02) & (u < 0.03)] = np.inf
+    v[(u >= 0.03) & (u < 0.04)] = -np.inf
+    v[(u >= 0.04) & (u < 0.05)] = -0.0
+    halves = (u >= 0.05) & (u < 0.1)  # k / 510: x 255 lands on halves (rounding to even)
+    v[halves] = rng.integers(0, 511, int(halves.sum())) / 510.0
+    return v
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_png_pixels_are_mains_bit_for_bit(seed: int) -> None:
+    from nplps.export import NORMAL_MAP_FRAMES, _grey_pixels, normal_map_pixels
+
+    rng = np.random.default_rng(seed)
+    h, w = int(rng.integers(1, 300)), int(rng.integers(1, 300))
+    image = _special(rng, (h, w), 1.5)
+    assert np.array_equal(_grey_pixels(image), _old_grey_pixels(image))
+    normals = rng.standard_normal((h, w, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals[rng.random((h, w)) < 0.2] *= 1.5  # beyond [-1, 1]: clipped
+    normals[rng.random((h, w, 3)) < 0.03] = np.nan
+    mask = rng.random((h, w)) < 0.8
+    for frame in NORMAL_MAP_FRAMES:
+        for bits in (8, 16):
+            for m in (mask, None):
+                got = normal_map_pixels(normals, mask=m, frame=frame, bits=bits)
+                expected = _old_normal_map_pixels(normals, m, frame, bits)
+                assert got.dtype == expected.dtype and np.array_equal(got, expected), (frame, bits)
+    # float32 normals are widened as before
+    n32 = normals.astype(np.float32)
+    assert np.array_equal(normal_map_pixels(n32, mask=mask, bits=16), _old_normal_map_pixels(n32, mask, "opengl", 16))

@@ -1447,20 +1447,14 @@ def normal_map_pixels(
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         _require_shape("mask", mask, normals.shape[:2])
-    top = (1 << bits) - 1
-    flip = np.array(NORMAL_MAP_FRAMES[frame])
-    encoded = np.empty(normals.shape, dtype=np.uint8 if bits == 8 else np.uint16)
-    rows = max(1, _GATHER_CHUNK // max(1, normals.shape[1]))
-    for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
-        band = slice(start, start + rows)
-        n = np.asarray(normals[band], dtype=np.float64)
-        valid = _all_finite(n)
-        if mask is not None:
-            valid &= mask[band]
-        flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)
-        encoded[band] = np.rint((flipped + 1.0) / 2.0 * top).astype(encoded.dtype)
-        encoded[band][~valid] = 0
-    return encoded
+    # One parallel pass of the Rust extension: per pixel, round(((clip(n f, -1, 1) + 1) / 2) top)
+    # with numpy's float64 arithmetic and rounding (np.rint), black where masked out or not finite.
+    return _core.normal_map_pixels(
+        np.ascontiguousarray(normals, dtype=np.float64),
+        None if mask is None else np.ascontiguousarray(mask),
+        NORMAL_MAP_FRAMES[frame],
+        bits,
+    )
 
 
 def decode_normal_map(pixels: np.ndarray, frame: str) -> np.ndarray:
@@ -1579,12 +1573,9 @@ def save_grey_png(path: PathLike, image: np.ndarray) -> None:
 
 def _grey_pixels(image: np.ndarray) -> np.ndarray:
     """Return the uint8 pixels of :func:`save_grey_png`: ``round(clip(image, 0, 1) * 255)``, NaN -> 0."""
-    image = np.array(image, dtype=np.float64)  # a copy, then in place
-    np.nan_to_num(image, copy=False, nan=0.0)
-    np.clip(image, 0.0, 1.0, out=image)
-    image *= 255
-    np.rint(image, out=image)
-    return image.astype(np.uint8)
+    # One parallel pass of the Rust extension (no float64 copy; numpy's clip, product and rint).
+    image = np.ascontiguousarray(image, dtype=np.float64)
+    return _core.grey_pixels(image.reshape(1, -1)).reshape(image.shape)
 
 
 #: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
@@ -2153,7 +2144,8 @@ def _write_result_pngs(
         shadowed = result.shadows
         assert shadowed is not None
         pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
-    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
+    # _grey_pixels of the mask as 0.0 and 1.0, without the float64 copy: 255 inside, 0 outside.
+    pngs.append((paths["mask"], np.where(result.mask, np.uint8(255), np.uint8(0))))
     if inputs is not None:
         sheet = inputs.pixels if isinstance(inputs, ContactSheet) else contact_sheet(inputs)
         pngs.append((paths["inputs"], np.asarray(sheet, dtype=np.uint8)))

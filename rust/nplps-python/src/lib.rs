@@ -730,6 +730,50 @@ fn trust_figures<'py>(
     ))
 }
 
+/// The 8-bit grey pixels (uint8, the shape of `image`) of an image of values in [0, 1] (see
+/// `nplps::grey_pixels`): `round(clip(x, 0, 1) 255)`, NaN as 0.
+#[pyfunction]
+fn grey_pixels<'py>(
+    py: Python<'py>,
+    image: PyReadonlyArray2<'py, f64>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let shape = image.shape().to_vec();
+    let values = slice(&image, "image")?;
+    let pixels = py.detach(|| nplps::grey_pixels(values));
+    array(py, pixels, &shape)
+}
+
+/// The pixels (H, W, 3) of the normal map of `normals` (H, W, 3) in the frame of the signs
+/// `flip` with `bits` (8: uint8, 16: uint16) per channel, black outside `mask` and where a
+/// component is not finite (see `nplps::normal_map_pixels`).
+#[pyfunction]
+#[pyo3(signature = (normals, mask, flip, bits))]
+fn normal_map_pixels<'py>(
+    py: Python<'py>,
+    normals: PyReadonlyArray3<'py, f64>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+    flip: [f64; 3],
+    bits: u32,
+) -> PyResult<Bound<'py, PyAny>> {
+    let shape = normals.shape().to_vec();
+    if shape[2] != 3 {
+        return Err(InputError::new_err(format!(
+            "normals must have shape (H, W, 3), got {shape:?}"
+        )));
+    }
+    let values = slice(&normals, "normals")?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let pixels = py
+        .detach(|| no_panic(|| nplps::normal_map_pixels(values, mask, flip, bits)))
+        .map_err(to_py)?;
+    if bits == 8 {
+        let bytes: Vec<u8> = pixels.into_iter().map(|v| v as u8).collect();
+        array(py, bytes, &shape)
+    } else {
+        array(py, pixels, &shape)
+    }
+}
+
 /// Vertex positions (H+1, W+1, 3) of a vertex depth map (H+1, W+1).
 #[pyfunction]
 fn vertices<'py>(
@@ -1012,6 +1056,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
     m.add_function(wrap_pyfunction!(trust_figures, m)?)?;
+    m.add_function(wrap_pyfunction!(grey_pixels, m)?)?;
+    m.add_function(wrap_pyfunction!(normal_map_pixels, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(vertex_means, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_arrays, m)?)?;

@@ -243,6 +243,7 @@ pub mod noise;
 mod options;
 mod ordering;
 mod parallel;
+mod pixels;
 mod problem;
 mod pyramid;
 mod reconstruction;
@@ -280,6 +281,7 @@ pub use mesh::{
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};
+pub use pixels::{grey_pixels, normal_map_pixels};
 pub use problem::{u16_value, ImageStack, InitialDepth, Problem, Samples, U16_SCALE};
 pub use reconstruction::{
     Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
