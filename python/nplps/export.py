@@ -2062,7 +2062,9 @@ def write_result(
             meshes_written.set()
             # The manifest's hashes are computed on a thread of their own as the files are done.
             out.finished(p for k, p in paths.items() if k in ("ply", "obj") or k in mesh_formats)
-            _write_other_files(result, paths, formats, normal_map)
+            # Each file's hash starts as soon as it is written (the hashing thread keeps up with
+            # the writes instead of taking them all after the last one).
+            _write_other_files(result, paths, formats, normal_map, lambda key: out.finished([paths[key]]))
         finally:
             meshes_written.set()
             wait([encoded])  # never leave with a file still being written
@@ -2080,8 +2082,17 @@ def write_result(
     return paths
 
 
-def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence[str], normal_map: str) -> None:
-    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`)."""
+def _write_other_files(
+    result: Result,
+    paths: dict[str, Path],
+    formats: Sequence[str],
+    normal_map: str,
+    written: Callable[[str], None] = lambda key: None,
+) -> None:
+    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`).
+
+    ``written(key)`` is called after each large file (by its key in `paths`) is in place.
+    """
     for name in formats:
         if FORMATS[name].mesh is None and name != "exr":
             FORMATS[name].write(paths[name], result.normals)
@@ -2090,16 +2101,24 @@ def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence
         save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
         save_albedo_exr(paths["albedo_exr"], result.albedo)
     save_depth_npy(paths["depth_npy"], result.depth)
+    written("depth_npy")
     save_depth_tiff(paths["depth_tiff"], result.depth)
+    written("depth_tiff")
     save_npy(paths["normals_npy"], result.normals)
+    written("normals_npy")
     save_npy(paths["residual_npy"], result.residual)
+    written("residual_npy")
     if result.specular is not None:
         save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
+        written("specular_npy")
     if result.shadow_bits is not None:
         save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
+        written("shadows_npy")
     if result.normal_sigma is not None and result.held_out_error is not None:
         save_map_tiff(paths["normal_sigma"], result.normal_sigma)
+        written("normal_sigma")
         save_map_tiff(paths["held_out_error"], result.held_out_error)
+        written("held_out_error")
     if result.distance is not None:
         result.distance.save_curve(paths["distance_curve"])
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
@@ -2109,6 +2128,7 @@ def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence
     # 2-byte copy instead of an 8-byte temporary and then the 2-byte copy.
     used = np.asarray(result.lights_used)
     save_npy(paths["lights_used"], np.minimum(used, 65535, out=np.empty(used.shape, np.uint16), casting="unsafe"))
+    written("lights_used")
     write_text(paths["history"], history_csv(result.history))
     # The rig records the image size it belongs to (and its binning): reused on images of
     # another size it is refused with both sizes named (see nplps.rig.RigGrid).
