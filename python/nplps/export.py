@@ -1447,20 +1447,14 @@ def normal_map_pixels(
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         _require_shape("mask", mask, normals.shape[:2])
-    top = (1 << bits) - 1
-    flip = np.array(NORMAL_MAP_FRAMES[frame])
-    encoded = np.empty(normals.shape, dtype=np.uint8 if bits == 8 else np.uint16)
-    rows = max(1, _GATHER_CHUNK // max(1, normals.shape[1]))
-    for start in range(0, normals.shape[0], rows):  # in bands of rows: no full-size float copies
-        band = slice(start, start + rows)
-        n = np.asarray(normals[band], dtype=np.float64)
-        valid = _all_finite(n)
-        if mask is not None:
-            valid &= mask[band]
-        flipped = np.clip(np.where(valid[..., None], n, 0.0) * flip, -1.0, 1.0)
-        encoded[band] = np.rint((flipped + 1.0) / 2.0 * top).astype(encoded.dtype)
-        encoded[band][~valid] = 0
-    return encoded
+    # One parallel pass of the Rust extension: per pixel, round(((clip(n f, -1, 1) + 1) / 2) top)
+    # with numpy's float64 arithmetic and rounding (np.rint), black where masked out or not finite.
+    return _core.normal_map_pixels(
+        np.ascontiguousarray(normals, dtype=np.float64),
+        None if mask is None else np.ascontiguousarray(mask),
+        NORMAL_MAP_FRAMES[frame],
+        bits,
+    )
 
 
 def decode_normal_map(pixels: np.ndarray, frame: str) -> np.ndarray:
@@ -1579,12 +1573,9 @@ def save_grey_png(path: PathLike, image: np.ndarray) -> None:
 
 def _grey_pixels(image: np.ndarray) -> np.ndarray:
     """Return the uint8 pixels of :func:`save_grey_png`: ``round(clip(image, 0, 1) * 255)``, NaN -> 0."""
-    image = np.array(image, dtype=np.float64)  # a copy, then in place
-    np.nan_to_num(image, copy=False, nan=0.0)
-    np.clip(image, 0.0, 1.0, out=image)
-    image *= 255
-    np.rint(image, out=image)
-    return image.astype(np.uint8)
+    # One parallel pass of the Rust extension (no float64 copy; numpy's clip, product and rint).
+    image = np.ascontiguousarray(image, dtype=np.float64)
+    return _core.grey_pixels(image.reshape(1, -1)).reshape(image.shape)
 
 
 #: How the PNG files are compressed (:func:`write_pngs`): fdeflate's fast DEFLATE, made for PNG
@@ -2071,7 +2062,9 @@ def write_result(
             meshes_written.set()
             # The manifest's hashes are computed on a thread of their own as the files are done.
             out.finished(p for k, p in paths.items() if k in ("ply", "obj") or k in mesh_formats)
-            _write_other_files(result, paths, formats, normal_map)
+            # Each file's hash starts as soon as it is written (the hashing thread keeps up with
+            # the writes instead of taking them all after the last one).
+            _write_other_files(result, paths, formats, normal_map, lambda key: out.finished([paths[key]]))
         finally:
             meshes_written.set()
             wait([encoded])  # never leave with a file still being written
@@ -2089,8 +2082,17 @@ def write_result(
     return paths
 
 
-def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence[str], normal_map: str) -> None:
-    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`)."""
+def _write_other_files(
+    result: Result,
+    paths: dict[str, Path],
+    formats: Sequence[str],
+    normal_map: str,
+    written: Callable[[str], None] = lambda key: None,
+) -> None:
+    """Write the result's files other than the meshes, the PNG images and the summary (:func:`write_result`).
+
+    ``written(key)`` is called after each large file (by its key in `paths`) is in place.
+    """
     for name in formats:
         if FORMATS[name].mesh is None and name != "exr":
             FORMATS[name].write(paths[name], result.normals)
@@ -2099,16 +2101,24 @@ def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence
         save_normals_exr(paths["normals_exr"], result.normals, frame=normal_map)
         save_albedo_exr(paths["albedo_exr"], result.albedo)
     save_depth_npy(paths["depth_npy"], result.depth)
+    written("depth_npy")
     save_depth_tiff(paths["depth_tiff"], result.depth)
+    written("depth_tiff")
     save_npy(paths["normals_npy"], result.normals)
+    written("normals_npy")
     save_npy(paths["residual_npy"], result.residual)
+    written("residual_npy")
     if result.specular is not None:
         save_npy(paths["specular_npy"], np.asarray(result.specular, dtype=np.float64))
+        written("specular_npy")
     if result.shadow_bits is not None:
         save_npy(paths["shadows_npy"], np.asarray(result.shadow_bits, dtype=np.uint64))
+        written("shadows_npy")
     if result.normal_sigma is not None and result.held_out_error is not None:
         save_map_tiff(paths["normal_sigma"], result.normal_sigma)
+        written("normal_sigma")
         save_map_tiff(paths["held_out_error"], result.held_out_error)
+        written("held_out_error")
     if result.distance is not None:
         result.distance.save_curve(paths["distance_curve"])
         plots.residual_curve_svg(result.distance.curve, list(result.distance.distance), paths["distance_plot"])
@@ -2118,6 +2128,7 @@ def _write_other_files(result: Result, paths: dict[str, Path], formats: Sequence
     # 2-byte copy instead of an 8-byte temporary and then the 2-byte copy.
     used = np.asarray(result.lights_used)
     save_npy(paths["lights_used"], np.minimum(used, 65535, out=np.empty(used.shape, np.uint16), casting="unsafe"))
+    written("lights_used")
     write_text(paths["history"], history_csv(result.history))
     # The rig records the image size it belongs to (and its binning): reused on images of
     # another size it is refused with both sizes named (see nplps.rig.RigGrid).
@@ -2153,7 +2164,8 @@ def _write_result_pngs(
         shadowed = result.shadows
         assert shadowed is not None
         pngs.append((paths["shadows"], _grey_pixels(np.where(result.mask, shadowed.mean(axis=0), 0.0))))
-    pngs.append((paths["mask"], _grey_pixels(result.mask.astype(np.float64))))
+    # _grey_pixels of the mask as 0.0 and 1.0, without the float64 copy: 255 inside, 0 outside.
+    pngs.append((paths["mask"], np.where(result.mask, np.uint8(255), np.uint8(0))))
     if inputs is not None:
         sheet = inputs.pixels if isinstance(inputs, ContactSheet) else contact_sheet(inputs)
         pngs.append((paths["inputs"], np.asarray(sheet, dtype=np.uint8)))

@@ -279,11 +279,6 @@ class Reconstruction:
         """Return the trust figures of ``summary.json`` (None without them: the parallel baseline)."""
         if self.normal_sigma is None or self.held_out_error is None:
             return None
-        inside = self.mask & np.isfinite(self.normal_sigma) & np.isfinite(self.held_out_error)
-        # Selected (a copy of the pixels inside, in the maps' float32); widened to float64 only for
-        # the means, and the order statistics taken on the float32 copy (``_median_p90``).
-        sigma = np.asarray(self.normal_sigma)[inside]
-        held = np.asarray(self.held_out_error)[inside]
         lights = []
         if self.light_trust is not None:
             t = self.light_trust
@@ -297,20 +292,20 @@ class Reconstruction:
                         "pixels": int(t["facets"][i]),
                     }
                 )
-        if not sigma.size:
+        # One Rust function (``nplps._core.trust_figures``): the order statistics selected by
+        # radix passes over the maps and numpy's pairwise sums for the means, with no masked copy
+        # and no float64 widening of the maps; the same numbers as numpy's ``median``,
+        # ``percentile(.., 90)`` and ``mean`` of the float64 values inside (tests/test_save_speed.py).
+        sigma, held = np.asarray(self.normal_sigma), np.asarray(self.held_out_error)
+        if not (sigma.dtype == held.dtype == np.float32):
+            sigma, held = sigma.astype(np.float64), held.astype(np.float64)  # exact for float32
+        pixels, sigma_median, sigma_p90, sigma_rms, held_mean, held_median, held_p90 = _core.trust_figures(
+            np.ascontiguousarray(self.mask, dtype=bool), np.ascontiguousarray(sigma), np.ascontiguousarray(held)
+        )
+        if not pixels:
             return {"pixels": 0, "normal_sigma_deg": None, "held_out_error": None, "lights": lights}
-        # One float64 buffer for both means (the same values and order as ``np.mean(sigma**2)`` and
-        # ``np.mean(held)`` of float64 copies, so the same pairwise sums): squared in place, then
-        # refilled with the held-out errors, instead of three fresh float64 arrays.
-        wide = sigma.astype(np.float64)
-        sigma_rms = float(np.sqrt(np.mean(np.square(wide, out=wide))))
-        np.copyto(wide, held)
-        held_mean = float(np.mean(wide))
-        del wide
-        sigma_median, sigma_p90 = _median_p90(sigma)
-        held_median, held_p90 = _median_p90(held)
         return {
-            "pixels": int(sigma.size),
+            "pixels": pixels,
             "normal_sigma_deg": {"median": sigma_median, "p90": sigma_p90, "rms": sigma_rms},
             "held_out_error": {"mean": held_mean, "median": held_median, "p90": held_p90},
             "lights": lights,
@@ -384,9 +379,9 @@ class Reconstruction:
         use and kept. The normal map, ``normals.npy`` and the mesh files' vertex normals use
         them; the per-pixel fits of the local step are :attr:`fit_normals`.
         """
-        n = _core.mesh_normals(self.depth, self.rig.camera)
-        n[~self.mask] = np.nan
-        return n
+        # NaN outside the mask written by the Rust function itself, band by band of rows from the
+        # depths (no whole vertex grid): the same bits as the quads of :attr:`vertices`.
+        return _core.mesh_normals(self.depth, self.rig.camera, np.ascontiguousarray(self.mask, dtype=bool))
 
     @property
     def unfitted(self) -> int:
@@ -478,7 +473,15 @@ class Reconstruction:
             if d.shape != (3,) or not np.all(np.isfinite(d)) or not np.linalg.norm(d) > 0:
                 raise InputError(f"light must be a non-zero direction of 3 finite numbers, got {light!r}")
             to_light = d / np.linalg.norm(d)
-        shade = np.clip((n * to_light).sum(axis=-1), 0.0, 1.0)
+        # n . l as ((n_x l_x + n_y l_y) + n_z l_z) + 0, the bits of ``(n * l).sum(axis=-1)`` (whose
+        # sum starts from +0, so that a sum of negative zeros is +0; adding +0 last changes nothing
+        # else), with (H, W) temporaries instead of an (H, W, 3) product: at 12 MP a third of the
+        # memory traffic (tests/test_save_speed.py checks the bits).
+        shade = n[..., 0] * to_light[..., 0]
+        shade += n[..., 1] * to_light[..., 1]
+        shade += n[..., 2] * to_light[..., 2]
+        shade += 0.0
+        np.clip(shade, 0.0, 1.0, out=shade)
         return np.where(self.mask & np.isfinite(shade), shade, 0.0)
 
     def vertex_normals(self) -> np.ndarray:
@@ -837,40 +840,6 @@ class Reconstruction:
                 paths["report"] = out.file(report_module.REPORT_NAME)
                 report_module.write_report(out.path, path=paths["report"])
         return paths
-
-
-def _median_p90(values: np.ndarray) -> tuple[float, float]:
-    """Return ``np.median`` and ``np.percentile(.., 90)`` of finite values widened to float64, bit for bit.
-
-    One ``partition`` of ``values`` in place (in their own dtype, float32 for the trust maps: half
-    the bytes of the float64 copy, and one selection for both figures instead of two) at the ranks
-    the two figures read; widening is exact and keeps the order, so those ranks hold the same values
-    as in the widened array. Then numpy's own arithmetic on them, in float64: with n values sorted
-    as x_0 <= ... <= x_(n-1), the median is x_(n/2) for odd n and (x_(n/2-1) + x_(n/2)) / 2 for even
-    n (the mean of two values); the 90th percentile ("linear", numpy's default) has the virtual
-    index v = (n - 1) * 0.9, i = floor(v), g = v - i, d = x_(i+1) - x_i, and is x_i + d * g when
-    g < 0.5 and x_(i+1) - d * (1 - g) otherwise (numpy's ``_lerp``), or x_(n-1) when v >= n - 1.
-    ``tests/test_save_speed.py`` checks the equality against numpy for many sizes and seeds.
-    """
-    n = values.size
-    half = n // 2
-    ranks = [half] if n % 2 else [half - 1, half]
-    virtual = (n - 1) * 0.9
-    low = n - 1 if virtual >= n - 1 else int(np.floor(virtual))
-    high = min(low + 1, n - 1)
-    values.partition(sorted({*ranks, low, high}))
-    if n % 2:
-        median = float(values[half])
-    else:
-        median = (float(values[half - 1]) + float(values[half])) / 2.0
-    a, b = float(values[low]), float(values[high])
-    if low == n - 1:
-        p90 = b
-    else:
-        gamma = virtual - low
-        diff = b - a
-        p90 = b - diff * (1.0 - gamma) if gamma >= 0.5 else a + diff * gamma
-    return median, p90
 
 
 def _finite(v: Any) -> float | None:

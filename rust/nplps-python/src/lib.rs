@@ -668,19 +668,110 @@ fn predict<'py>(
     image_stack(py, images, [rig.n_lights(), h, w, channels])
 }
 
-/// Mesh normals (H, W, 3) of a vertex depth map (H+1, W+1).
+/// Mesh normals (H, W, 3) of a vertex depth map (H+1, W+1); NaN outside `mask` (H, W) if given.
 #[pyfunction]
+#[pyo3(signature = (depth, camera, mask=None))]
 fn mesh_normals<'py>(
     py: Python<'py>,
     depth: PyReadonlyArray2<'py, f64>,
     camera: &Bound<'py, PyDict>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let cam = camera_from(camera)?;
     let (h, w, z) = depth_grid(&depth)?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    // The GIL released: `save` makes its PNG images on another thread meanwhile.
     let normals = py
-        .detach(|| no_panic(|| nplps::mesh_normals(&cam, h, w, z)))
+        .detach(|| no_panic(|| nplps::mesh_normals_masked(&cam, h, w, z, mask)))
         .map_err(to_py)?;
     array3(py, normals, &[h, w])
+}
+
+/// The trust figures of `summary.json` (see `nplps::trust_figures`) of the maps `sigma` and
+/// `held` (H, W; both float32 or both float64) inside `mask` (H, W): `(pixels, sigma_median,
+/// sigma_p90, sigma_rms, held_mean, held_median, held_p90)`, NaN figures without a pixel.
+#[pyfunction]
+fn trust_figures<'py>(
+    py: Python<'py>,
+    mask: PyReadonlyArray2<'py, bool>,
+    sigma: &Bound<'py, PyAny>,
+    held: &Bound<'py, PyAny>,
+) -> PyResult<(usize, f64, f64, f64, f64, f64, f64)> {
+    let mask = slice(&mask, "mask")?;
+    let figures = if let (Ok(s), Ok(e)) = (
+        sigma.extract::<PyReadonlyArray2<'py, f32>>(),
+        held.extract::<PyReadonlyArray2<'py, f32>>(),
+    ) {
+        let (s, e) = (slice(&s, "normal_sigma")?, slice(&e, "held_out_error")?);
+        py.detach(|| no_panic(|| nplps::trust_figures(mask, s, e)))
+    } else {
+        let s: PyReadonlyArray2<'py, f64> = sigma.extract().map_err(|_| {
+            InputError::new_err(
+                "normal_sigma and held_out_error must be 2-D float32 or float64 arrays",
+            )
+        })?;
+        let e: PyReadonlyArray2<'py, f64> = held.extract().map_err(|_| {
+            InputError::new_err(
+                "normal_sigma and held_out_error must be 2-D float32 or float64 arrays",
+            )
+        })?;
+        let (s, e) = (slice(&s, "normal_sigma")?, slice(&e, "held_out_error")?);
+        py.detach(|| no_panic(|| nplps::trust_figures(mask, s, e)))
+    }
+    .map_err(to_py)?;
+    Ok((
+        figures.pixels,
+        figures.sigma_median,
+        figures.sigma_p90,
+        figures.sigma_rms,
+        figures.held_mean,
+        figures.held_median,
+        figures.held_p90,
+    ))
+}
+
+/// The 8-bit grey pixels (uint8, the shape of `image`) of an image of values in [0, 1] (see
+/// `nplps::grey_pixels`): `round(clip(x, 0, 1) 255)`, NaN as 0.
+#[pyfunction]
+fn grey_pixels<'py>(
+    py: Python<'py>,
+    image: PyReadonlyArray2<'py, f64>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let shape = image.shape().to_vec();
+    let values = slice(&image, "image")?;
+    let pixels = py.detach(|| nplps::grey_pixels(values));
+    array(py, pixels, &shape)
+}
+
+/// The pixels (H, W, 3) of the normal map of `normals` (H, W, 3) in the frame of the signs
+/// `flip` with `bits` (8: uint8, 16: uint16) per channel, black outside `mask` and where a
+/// component is not finite (see `nplps::normal_map_pixels`).
+#[pyfunction]
+#[pyo3(signature = (normals, mask, flip, bits))]
+fn normal_map_pixels<'py>(
+    py: Python<'py>,
+    normals: PyReadonlyArray3<'py, f64>,
+    mask: Option<PyReadonlyArray2<'py, bool>>,
+    flip: [f64; 3],
+    bits: u32,
+) -> PyResult<Bound<'py, PyAny>> {
+    let shape = normals.shape().to_vec();
+    if shape[2] != 3 {
+        return Err(InputError::new_err(format!(
+            "normals must have shape (H, W, 3), got {shape:?}"
+        )));
+    }
+    let values = slice(&normals, "normals")?;
+    let mask = mask.as_ref().map(|m| slice(m, "mask")).transpose()?;
+    let pixels = py
+        .detach(|| no_panic(|| nplps::normal_map_pixels(values, mask, flip, bits)))
+        .map_err(to_py)?;
+    if bits == 8 {
+        let bytes: Vec<u8> = pixels.into_iter().map(|v| v as u8).collect();
+        array(py, bytes, &shape)
+    } else {
+        array(py, pixels, &shape)
+    }
 }
 
 /// Vertex positions (H+1, W+1, 3) of a vertex depth map (H+1, W+1).
@@ -964,6 +1055,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(estimate_noise, m)?)?;
     m.add_function(wrap_pyfunction!(predict, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_normals, m)?)?;
+    m.add_function(wrap_pyfunction!(trust_figures, m)?)?;
+    m.add_function(wrap_pyfunction!(grey_pixels, m)?)?;
+    m.add_function(wrap_pyfunction!(normal_map_pixels, m)?)?;
     m.add_function(wrap_pyfunction!(vertices, m)?)?;
     m.add_function(wrap_pyfunction!(vertex_means, m)?)?;
     m.add_function(wrap_pyfunction!(mesh_arrays, m)?)?;

@@ -505,6 +505,68 @@ pub fn vertices(
     Ok(positions)
 }
 
+/// Pixel rows a task of [`facet_normals`] makes (it computes their `rows + 1` vertex rows).
+const NORMAL_BAND: usize = 16;
+
+/// The mesh normal [`quad_normal`] of every pixel of an (H+1) x (W+1) depth map (H x W,
+/// row-major), NaN outside `mask` (None: every pixel); an error where a vertex of finite depth has
+/// no camera ray (as [`vertices`]).
+///
+/// The same normals, bit for bit, as [`quad_normal`] of the quads of [`vertices`]' positions,
+/// without the whole (H+1) x (W+1) position grid: each parallel task takes a band of
+/// `NORMAL_BAND` pixel rows, computes the positions of its `NORMAL_BAND + 1` vertex rows into a
+/// buffer of its own (the vertex rows between two bands twice) and writes the band's normals, so
+/// that the only large allocation is the result (24 bytes a pixel instead of 24 a vertex more).
+pub(crate) fn facet_normals(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+    mask: Option<&[bool]>,
+) -> Result<Vec<[f64; 3]>> {
+    ensure_depth_map(height, width, depth)?;
+    crate::error::ensure_mask(mask, height * width)?;
+    let mut normals = crate::memory::try_zeros::<[f64; 3]>(height * width, "the mesh normals")?;
+    let vw = width + 1;
+    let no_ray = std::sync::atomic::AtomicBool::new(false);
+    normals
+        .par_chunks_mut((NORMAL_BAND * width).max(1))
+        .enumerate()
+        .for_each(|(band, out)| {
+            let top = band * NORMAL_BAND;
+            let rows = out.len() / width;
+            let mut positions = Vec::with_capacity((rows + 1) * vw);
+            let mut lacking = false;
+            let first = top * vw;
+            for (v, &z) in (first..).zip(&depth[first..(top + rows + 1) * vw]) {
+                let xy = camera.vertex_xy(v / vw, v % vw);
+                lacking |= lacks_ray(xy, z);
+                positions.push(camera.at_depth(xy, z));
+            }
+            if lacking {
+                no_ray.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
+            for (i, n) in out.iter_mut().enumerate() {
+                let (r, c) = (i / width, i % width);
+                if mask.is_some_and(|m| !m[(top + r) * width + c]) {
+                    *n = [f64::NAN; 3];
+                    continue;
+                }
+                let v = r * vw + c;
+                *n = quad_normal(&[
+                    positions[v],
+                    positions[v + 1],
+                    positions[v + vw],
+                    positions[v + vw + 1],
+                ]);
+            }
+        });
+    if no_ray.into_inner() {
+        missing_ray(camera, height, width, depth)?;
+    }
+    Ok(normals)
+}
+
 /// Checks that every vertex of finite depth of an (H+1) x (W+1) depth map has a camera ray,
 /// with the error of [`vertices`], without making the positions (the PLY writer computes them
 /// vertex by vertex: `crate::mesh::Positions::Camera`).

@@ -243,6 +243,7 @@ pub mod noise;
 mod options;
 mod ordering;
 mod parallel;
+mod pixels;
 mod problem;
 mod pyramid;
 mod reconstruction;
@@ -256,6 +257,7 @@ mod solver;
 #[cfg(feature = "synth")]
 mod synth;
 mod system;
+mod trust_figures;
 mod vec3;
 
 pub use baseline::reconstruct_parallel;
@@ -279,6 +281,7 @@ pub use mesh::{
 pub use multigrid::MAX_ITERATIONS as MULTIGRID_MAX_ITERATIONS;
 pub use noise::estimate_noise;
 pub use options::{check_memory, Options, Refine};
+pub use pixels::{grey_pixels, normal_map_pixels};
 pub use problem::{u16_value, ImageStack, InitialDepth, Problem, Samples, U16_SCALE};
 pub use reconstruction::{
     Control, IterationStats, Reconstruction, RefinementReport, SearchProgress, Status, Timings,
@@ -286,10 +289,12 @@ pub use reconstruction::{
 pub use refine::Conditioning;
 pub use reflectance::{Lobe, Reflectance};
 pub use render::{
-    mesh_normals, predict, predict_with, render, render_with, RenderOptions, Specular, Surface,
+    mesh_normals, mesh_normals_masked, predict, predict_with, render, render_with, RenderOptions,
+    Specular, Surface,
 };
 pub use rig::{Camera, Rig, MAX_LIGHTS};
 pub use shadow::{cast_shadows, ShadowMask, Shadows};
 pub use solver::{reconstruct, MATTE_ROUGHNESS};
 #[cfg(feature = "synth")]
 pub use synth::{Scene, SceneKind, SceneOptions};
+pub use trust_figures::{trust_figures, TrustFigures, TrustValue};

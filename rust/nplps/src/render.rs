@@ -188,13 +188,20 @@ pub fn mesh_normals(
     width: usize,
     depth: &[f64],
 ) -> Result<Vec<[f64; 3]>> {
-    let v = vertices(camera, height, width, depth)?;
-    crate::memory::try_par_collect(
-        (0..height * width)
-            .into_par_iter()
-            .map(|p| quad_normal(&pixel_quad(&v, width, p))),
-        "the mesh normals",
-    )
+    mesh_normals_masked(camera, height, width, depth, None)
+}
+
+/// [`mesh_normals`] inside `mask` (H x W; None: everywhere), NaN outside it: a result's
+/// normals. Made band by band of pixel rows from the depths, with no whole vertex grid (the same
+/// bits as the normals of [`crate::vertices`]' quads).
+pub fn mesh_normals_masked(
+    camera: &Camera,
+    height: usize,
+    width: usize,
+    depth: &[f64],
+    mask: Option<&[bool]>,
+) -> Result<Vec<[f64; 3]>> {
+    crate::geometry::facet_normals(camera, height, width, depth, mask)
 }
 
 /// Renders the k images (k, H, W, C) of the surface `depth` ((H+1) x (W+1)) with per-pixel
@@ -675,6 +682,60 @@ mod forward_tests {
                         assert_eq!(shaded[i], expected);
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn masked_normals_are_the_vertex_grids_quad_normals_bit_for_bit() {
+        // Band edges (heights around 16 and 32), one column, distortion, NaN depths and masks:
+        // the banded normals against `quad_normal` of `vertices`' quads, NaN outside the mask.
+        let cameras = [
+            Camera::Orthographic {
+                pixel_size: [0.7, 1.1],
+                origin: [-3.0, 2.0],
+            },
+            Camera::Pinhole {
+                k: [[90.0, 0.5, 20.0], [0.0, 95.0, 15.0], [0.0, 0.0, 1.0]],
+                distortion: [-0.1, 0.02, 0.001, -0.002, 0.0],
+            },
+        ];
+        for (seed, camera) in cameras.iter().enumerate() {
+            for (height, width) in [(1, 1), (15, 1), (16, 7), (17, 40), (33, 29)] {
+                let vw = width + 1;
+                let depth: Vec<f64> = (0..(height + 1) * vw)
+                    .map(|v| {
+                        let (r, c) = ((v / vw) as f64, (v % vw) as f64);
+                        if (v + seed) % 23 == 5 {
+                            f64::NAN
+                        } else {
+                            10.0 + 0.3 * (0.7 * r + seed as f64).sin() + 0.2 * (1.3 * c).cos()
+                        }
+                    })
+                    .collect();
+                let mask: Vec<bool> = (0..height * width)
+                    .map(|p| (p * 7 + seed) % 5 != 0)
+                    .collect();
+                let grid = crate::geometry::vertices(camera, height, width, &depth).unwrap();
+                let all = mesh_normals(camera, height, width, &depth).unwrap();
+                let masked =
+                    mesh_normals_masked(camera, height, width, &depth, Some(&mask)).unwrap();
+                for p in 0..height * width {
+                    let want = quad_normal(&pixel_quad(&grid, width, p));
+                    assert_eq!(
+                        all[p].map(f64::to_bits),
+                        want.map(f64::to_bits),
+                        "{height}x{width} {p}"
+                    );
+                    if mask[p] {
+                        assert_eq!(masked[p].map(f64::to_bits), want.map(f64::to_bits));
+                    } else {
+                        assert!(masked[p].iter().all(|x| x.is_nan()));
+                    }
+                }
+                assert!(
+                    mesh_normals_masked(camera, height, width, &depth, Some(&mask[1..])).is_err()
+                );
             }
         }
     }
