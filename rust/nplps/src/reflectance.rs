@@ -240,9 +240,8 @@ impl Lobe {
     /// documentation) and their gradients with respect to `n` (with `l`, `v` held), or None
     /// where the facet turns away from the light or the camera.
     pub fn shade(&self, n: [f64; 3], l: [f64; 3], v: [f64; 3]) -> Option<Shade> {
-        let k = Kernel::new(self);
         let o = Observation::new(0.0, 1.0, l, v, self);
-        k.shade(n, &k.view(n, v)?, &o)
+        with_kernel(self, |k| k.shade(n, &k.view(n, v)?, &o))
     }
 
     /// [`Lobe::shade`] at the normal `n` seen from `v`, for many lights: the lobe's constants
@@ -279,6 +278,28 @@ impl Shader {
         let o = Observation::new(0.0, 1.0, l, self.v, &self.lobe);
         self.kernel.shade(self.n, &self.view, &o)
     }
+}
+
+thread_local! {
+    /// The kernel of the lobe a thread last shaded with [`Lobe::shade`], with its
+    /// [`kernel_key`] (see [`with_kernel`]).
+    static LAST_KERNEL: RefCell<Option<(KernelKey, Kernel)>> = const { RefCell::new(None) };
+}
+
+/// `f` of the kernel of `lobe`, the thread's last one where its key is the same: a scalar
+/// evaluation per light ([`Lobe::shade`]) then looks the transmittance table up (a thread-local
+/// search and a reference count shared by all threads) once per lobe, not once per call. The
+/// same kernel, so the same bits.
+fn with_kernel<T>(lobe: &Lobe, f: impl FnOnce(&Kernel) -> T) -> T {
+    let key = kernel_key(lobe);
+    LAST_KERNEL.with(|cell| {
+        let mut last = cell.borrow_mut();
+        if !matches!(&*last, Some((kept, _)) if *kept == key) {
+            *last = Some((key, Kernel::new(lobe)));
+        }
+        let (_, k) = last.as_ref().expect("a kernel was kept");
+        f(k)
+    })
 }
 
 /// The constants of a [`Lobe`] that every evaluation uses.
@@ -1305,17 +1326,16 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
                 other_exponents(&t, g, &mut aniso);
             }
             let lit: [bool; W] = crate::lanes(|i| aniso[i] > 0.0);
+            let lf: [Lanes; 3] = crate::lanes(|j| lanes(|i| l[j][i] as F));
+            let scale = lanes(|i| (g.phi[i] * aniso[i] * id[i] * id[i]) as F);
             g.l = crate::lanes(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
-                    (true, true) => l[j][i] as F,
+                    (true, true) => lf[j][i],
                     (true, false) => 0.0,
                     (false, _) => g.l[j][i],
                 })
             });
-            g.scale = lanes(|i| match g.point[i] {
-                true => (g.phi[i] * aniso[i] * id[i] * id[i]) as F,
-                false => g.scale[i],
-            });
+            g.scale = lanes(|i| if g.point[i] { scale[i] } else { g.scale[i] });
         }
         let a: [Lanes; 3] = crate::lanes(|j| lanes(|i| g.l[j][i] + vf[j]));
         let inv =
@@ -1571,6 +1591,7 @@ impl Accumulator {
     }
 
     /// The lanes summed (in `f64`).
+    #[inline(always)]
     fn finish(self) -> Equations {
         let mut m = Matrix4::zeros();
         let mut e = 0;
@@ -1687,28 +1708,39 @@ fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -
     (lane_sum(&sse), used.iter().sum())
 }
 
+simd_dispatch! {
+    wide
+    /// [`albedo_sums`] with AVX-512 or AVX2 when the processor has it.
+    fn albedo_sums_dispatch => albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5];
+}
+
+/// The sums `d.d`, `d.s`, `s.s`, `d.i`, `s.i` over the lit observations of `groups` with their
+/// `factors` (`d = Phi a D`, `s = Phi a S`, `i` the image values), in `f64` lanes.
+#[inline(always)]
+fn albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
+    let mut acc = [[0.0; W]; 5];
+    for (g, f) in groups.iter().zip(factors) {
+        let m = wide(|i| if f.lit[i] { f64::from(g.scale[i]) } else { 0.0 });
+        let d = wide(|i| m[i] * f64::from(f.diffuse[i]));
+        let s = wide(|i| m[i] * f64::from(f.specular[i]));
+        let value = wide(|i| f64::from(g.value[i]));
+        let terms = [
+            wide(|i| d[i] * d[i]),
+            wide(|i| d[i] * s[i]),
+            wide(|i| s[i] * s[i]),
+            wide(|i| d[i] * value[i]),
+            wide(|i| s[i] * value[i]),
+        ];
+        acc = crate::lanes(|k| wide(|i| acc[k][i] + terms[k][i]));
+    }
+    acc.map(|x| x.iter().sum())
+}
+
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
 /// light; `factors` are those of `groups` at `n`. (In `f64`.)
 fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
-    let (mut dd, mut ds, mut ss, mut di, mut si) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (g, f) in groups.iter().zip(factors) {
-        for i in 0..W {
-            if f.lit[i] {
-                let scale = f64::from(g.scale[i]);
-                let (d, s) = (
-                    scale * f64::from(f.diffuse[i]),
-                    scale * f64::from(f.specular[i]),
-                );
-                let value = f64::from(g.value[i]);
-                dd += d * d;
-                ds += d * s;
-                ss += s * s;
-                di += d * value;
-                si += s * value;
-            }
-        }
-    }
+    let [dd, ds, ss, di, si] = albedo_sums_dispatch(groups, factors);
     if dd <= 0.0 {
         return None;
     }
