@@ -778,7 +778,7 @@ struct Transmittance {
     /// `t = N mu - i`: `T = c0 + c1 t + c2 t^2 + c3 t^3`.
     cubic: [[f64; 4]; TABLE_STEPS],
     /// `cubic` rounded to `f32`, for the lanes of the fits ([`Transmittance::at_lanes_f32`]).
-    cubic32: [[f32; 4]; TABLE_STEPS],
+    cubic32: [[F; 4]; TABLE_STEPS],
 }
 
 /// A lobe's table with its key, the bits of `(alpha, eta)`.
@@ -821,7 +821,7 @@ impl Transmittance {
         });
         Transmittance {
             cubic,
-            cubic32: cubic.map(|row| row.map(|x| x as f32)),
+            cubic32: cubic.map(|row| row.map(|x| x as F)),
         }
     }
 
@@ -896,15 +896,15 @@ impl Transmittance {
     // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
     #[allow(clippy::needless_range_loop)]
     #[inline(always)]
-    fn at_lanes_f32<const N: usize>(&self, c: &[f32; N]) -> ([f32; N], [f32; N]) {
-        let steps = TABLE_STEPS as f32;
+    fn at_lanes_f32<const N: usize>(&self, c: &[F; N]) -> ([F; N], [F; N]) {
+        let steps = TABLE_STEPS as F;
         let mut u = [0.0; N];
         let mut index = [0usize; N];
         let mut t = [0.0; N];
         for i in 0..N {
             u[i] = c[i].clamp(0.0, 1.0) * steps;
             index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
-            t[i] = u[i] - index[i] as f32;
+            t[i] = u[i] - index[i] as F;
         }
         let mut k = [[0.0; N]; 4];
         for i in 0..N {
@@ -1511,7 +1511,7 @@ impl Kernel {
             (tl, dtl, [w.tv; W], [0.0; W])
         };
         let diffuse = lanes(|i| c[i] * tl[i] * tv[i]);
-        let da = a2 * std::f32::consts::FRAC_1_PI;
+        let da = a2 * std::f64::consts::FRAC_1_PI as F;
         let specular = lanes(|i| {
             let d = da * iq[i] * iq[i];
             let gl = 2.0 * c[i] * c[i] * r[i] * sw[i];
@@ -2362,7 +2362,7 @@ mod tests {
         for chunk in cosines.chunks(W) {
             let c: Wide = std::array::from_fn(|i| chunk[i % chunk.len()]);
             let (value, slope) = table.at_lanes(&c);
-            let (value32, slope32) = table.at_lanes_f32(&c.map(|x| x as f32));
+            let (value32, slope32) = table.at_lanes_f32(&c.map(|x| x as F));
             for i in 0..W {
                 let (v, s) = table.at(c[i]);
                 assert_eq!(value[i].to_bits(), v.to_bits(), "{}", c[i]);
@@ -2565,7 +2565,7 @@ mod tests {
                             assert!(g.lit[lane]);
                             // f32 lanes: to 4e-6 of the factor's scale (the gradients to that
                             // of the gradient's length: their coordinates may cancel).
-                            let near = |a: f64, b: f32, scale: f64| {
+                            let near = |a: f64, b: F, scale: f64| {
                                 let e = (a - f64::from(b)).abs();
                                 assert!(e <= 4e-6 * scale.max(1e-3), "{a} vs {b} ({lobe:?})");
                             };
@@ -2644,7 +2644,7 @@ mod tests {
             }
             let o = Observation::new(0.5, light.intensity()[0] * a, scale(b, 1.0 / a), v, lobe);
             // Rounded to f32: to a few units of its last place.
-            let near = |a: f64, b: f32| {
+            let near = |a: f64, b: F| {
                 assert!(
                     (a - f64::from(b)).abs() <= 4e-7 * a.abs().max(1.0),
                     "{a} vs {b}"
