@@ -67,14 +67,18 @@
 //!
 //! ## Cost
 //!
-//! [`fit_packed`] holds a facet's observations as a structure of arrays in groups of 4 lights
+//! [`fit_packed`] holds a facet's observations as a structure of arrays in groups of lights
 //! ([`Packed`]) and computes the factors, their gradients and the sums of the normal equations a
-//! group at a time, one SIMD lane per light (compiled for AVX2 where the processor has it):
-//! per light one square root, one division (the reciprocals of the GGX and Smith denominators
-//! from one division of their product) and the transmittance's table look-up. [`Packed::prepare`] computes the point
-//! lights' directions and scales, the half vectors and the Fresnel factors in lanes too. The
-//! trial after the last step is evaluated without derivatives. The sums are accumulated per
-//! lane, so the results differ from a light-by-light sum in the last bits.
+//! group at a time, one SIMD lane per light (compiled for AVX-512 or AVX2 where the processor
+//! has it): per light one square root, one division (the reciprocals of the GGX and Smith
+//! denominators from one division of their product) and the transmittance's table look-up.
+//! [`Packed::prepare`] computes the point lights' directions and scales, the half vectors and
+//! the Fresnel factors in lanes too. The trial after the last step is evaluated without
+//! derivatives. The lanes are `f32` (16 lights to a group; the lane sums, the solves and the
+//! unknowns `f64`), or `f64` (8 lights) for a [`Packed::precise`] (the lobe search's fits): one
+//! text of the kernels compiled in both precisions. The sums are accumulated per lane, so the
+//! results differ from a light-by-light `f64` evaluation ([`Lobe::shade`]) by the lanes'
+//! rounding: in the last bits in `f64`, about `1e-6` relative in the factors in `f32`.
 
 use std::cell::RefCell;
 use std::sync::{Arc, Mutex, OnceLock};
