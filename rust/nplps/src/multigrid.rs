@@ -1132,10 +1132,7 @@ impl MultigridSystem {
     /// [`MultigridSystem::release_work`]), the rest of the system freed: buffers of at least
     /// the padded node count (more than the grid's vertices), for maps written whole once the
     /// solves are done (see [`crate::memory::values_on`]).
-    pub(crate) fn into_spare(mut self) -> Vec<Vec<f64>> {
-        if self.krylov.lent {
-            self.krylov.rpw = Vec::new();
-        }
+    pub(crate) fn into_spare(self) -> Vec<Vec<f64>> {
         let Krylov { x, rpw, .. } = self.krylov;
         vec![rpw, x]
     }
