@@ -705,16 +705,13 @@ fn trust_figures<'py>(
         let (s, e) = (slice(&s, "normal_sigma")?, slice(&e, "held_out_error")?);
         py.detach(|| no_panic(|| nplps::trust_figures(mask, s, e)))
     } else {
-        let s: PyReadonlyArray2<'py, f64> = sigma.extract().map_err(|_| {
+        let wrong = |_| {
             InputError::new_err(
                 "normal_sigma and held_out_error must be 2-D float32 or float64 arrays",
             )
-        })?;
-        let e: PyReadonlyArray2<'py, f64> = held.extract().map_err(|_| {
-            InputError::new_err(
-                "normal_sigma and held_out_error must be 2-D float32 or float64 arrays",
-            )
-        })?;
+        };
+        let s: PyReadonlyArray2<'py, f64> = sigma.extract().map_err(wrong)?;
+        let e: PyReadonlyArray2<'py, f64> = held.extract().map_err(wrong)?;
         let (s, e) = (slice(&s, "normal_sigma")?, slice(&e, "held_out_error")?);
         py.detach(|| no_panic(|| nplps::trust_figures(mask, s, e)))
     }
