@@ -277,6 +277,45 @@ fn working_distance_is_found_from_the_images() {
     }
 }
 
+/// A glossy `depth="auto"` run whose model is dropped (Lambertian images: the estimated lobe is
+/// matte) is the Lambertian `depth="auto"` run, bit for bit, as at a known distance: its
+/// distance comes from a search under the Lambertian model, not from the glossy model's.
+#[test]
+fn a_glossy_auto_run_that_drops_the_model_is_the_lambertian_auto_run() {
+    use nplps::{reconstruct_auto, DistanceSearch, Reflectance};
+    let variation = SceneOptions::default().with_pinhole(true);
+    let scene = Scene::with_options(SceneKind::Bumps, 40, 100.0, 200.0, 2, variation).unwrap();
+    let truth = scene.mean_depth();
+    let images = exact_images(&scene);
+    let stack = ImageStack::new(&images, scene.rig.n_lights(), 40, 40).unwrap();
+    let problem = Problem::new(
+        stack,
+        &scene.rig,
+        Some(&scene.mask),
+        InitialDepth::Distance(truth * 1.2),
+    )
+    .unwrap();
+    let search = DistanceSearch::default().with_guess(Some(truth * 1.2));
+    let run = |reflectance: Reflectance| {
+        let mut options = Options::default();
+        options.reflectance = reflectance;
+        reconstruct_auto(&problem, &options, &search, &mut |_| Control::Continue).unwrap()
+    };
+    let (lambertian, plain) = run(Reflectance::Lambertian);
+    let (glossy, estimate) = run(Reflectance::Glossy(None));
+    assert!(glossy.matte_lobe.is_some(), "the glossy model was kept");
+    assert!(lambertian.matte_lobe.is_none());
+    assert_eq!(estimate.distance, plain.distance);
+    let bits = |v: &[[f64; 3]]| v.iter().map(|n| n.map(f64::to_bits)).collect::<Vec<_>>();
+    assert!(bits(&glossy.normals) == bits(&lambertian.normals));
+    assert!(glossy
+        .depth
+        .iter()
+        .zip(&lambertian.depth)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert!(glossy.timings.total > lambertian.timings.total / 2);
+}
+
 #[test]
 fn the_distance_search_reports_its_candidates() {
     use nplps::{reconstruct_auto, DistanceSearch, IterationStats};
