@@ -813,7 +813,7 @@ thread_local! {
 /// A method of [`Transmittance`] that looks up and evaluates its cubic table (the field
 /// `$table`, of `$float` coefficients) at `N` cosines in `$float` lanes: the value and the slope
 /// per lane. One text for the `f64` and `f32` lanes.
-macro_rules! cubic_lanes {
+macro_rules! table_lanes {
     ($(#[$doc:meta])* $name:ident, $float:ty, $table:ident) => {
         $(#[$doc])*
         // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
@@ -912,7 +912,7 @@ impl Transmittance {
         (value[0], slope[0])
     }
 
-    cubic_lanes!(
+    table_lanes!(
         /// [`Transmittance::at`] of `N` cosines at once: the same operations on each lane (so
         /// the same bits), written as loops over the lanes so that they are inlined into the
         /// vector code of their caller (`std::array::from_fn` over [`Transmittance::at`] was
@@ -921,7 +921,7 @@ impl Transmittance {
         at_lanes, f64, cubic
     );
 
-    cubic_lanes!(
+    table_lanes!(
         /// [`Transmittance::at_lanes`] in `f32` lanes from the rounded coefficients: the value
         /// and slope to about `1e-6` (the coefficients' and `t`'s rounding).
         at_lanes_f32, f32, cubic32
