@@ -810,43 +810,6 @@ thread_local! {
         const { RefCell::new(Vec::new()) };
 }
 
-/// A method of [`Transmittance`] that looks up and evaluates its cubic table (the field
-/// `$table`, of `$float` coefficients) at `N` cosines in `$float` lanes: the value and the slope
-/// per lane. One text for the `f64` and `f32` lanes.
-macro_rules! table_lanes {
-    ($(#[$doc:meta])* $name:ident, $float:ty, $table:ident) => {
-        $(#[$doc])*
-        // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
-        #[allow(clippy::needless_range_loop)]
-        #[inline(always)]
-        fn $name<const N: usize>(&self, c: &[$float; N]) -> ([$float; N], [$float; N]) {
-            let steps = TABLE_STEPS as $float;
-            let mut u = [0.0; N];
-            let mut index = [0usize; N];
-            let mut t = [0.0; N];
-            for i in 0..N {
-                u[i] = c[i].clamp(0.0, 1.0) * steps;
-                index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
-                t[i] = u[i] - index[i] as $float;
-            }
-            let mut k = [[0.0; N]; 4];
-            for i in 0..N {
-                let row = self.$table[index[i]];
-                for j in 0..4 {
-                    k[j][i] = row[j];
-                }
-            }
-            let mut value = [0.0; N];
-            let mut slope = [0.0; N];
-            for i in 0..N {
-                value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
-                slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
-            }
-            (value, slope)
-        }
-    };
-}
-
 impl Transmittance {
     /// The table of a lobe (`alpha > 0`, `eta > 1`).
     fn new(lobe: &Lobe) -> Transmittance {
@@ -912,20 +875,69 @@ impl Transmittance {
         (value[0], slope[0])
     }
 
-    table_lanes!(
-        /// [`Transmittance::at`] of `N` cosines at once: the same operations on each lane (so
-        /// the same bits), written as loops over the lanes so that they are inlined into the
-        /// vector code of their caller (`std::array::from_fn` over [`Transmittance::at`] was
-        /// compiled as a separate, non-vector function call per group: 7 % of a 256² glossy
-        /// profile).
-        at_lanes, f64, cubic
-    );
+    /// [`Transmittance::at`] of `N` cosines at once: the same operations on each lane (so the
+    /// same bits), written as loops over the lanes so that they are inlined into the vector
+    /// code of their caller (`std::array::from_fn` over [`Transmittance::at`] was compiled as a
+    /// separate, non-vector function call per group: 7 % of a 256² glossy profile).
+    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn at_lanes<const N: usize>(&self, c: &[f64; N]) -> ([f64; N], [f64; N]) {
+        let steps = TABLE_STEPS as f64;
+        let mut u = [0.0; N];
+        let mut index = [0usize; N];
+        let mut t = [0.0; N];
+        for i in 0..N {
+            u[i] = c[i].clamp(0.0, 1.0) * steps;
+            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
+            t[i] = u[i] - index[i] as f64;
+        }
+        let mut k = [[0.0; N]; 4];
+        for i in 0..N {
+            let row = self.cubic[index[i]];
+            for j in 0..4 {
+                k[j][i] = row[j];
+            }
+        }
+        let mut value = [0.0; N];
+        let mut slope = [0.0; N];
+        for i in 0..N {
+            value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
+            slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
+        }
+        (value, slope)
+    }
 
-    table_lanes!(
-        /// [`Transmittance::at_lanes`] in `f32` lanes from the rounded coefficients: the value
-        /// and slope to about `1e-6` (the coefficients' and `t`'s rounding).
-        at_lanes_f32, f32, cubic32
-    );
+    /// [`Transmittance::at_lanes`] in `f32` lanes from the rounded coefficients: the value and
+    /// slope to about `1e-6` (the coefficients' and `t`'s rounding).
+    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn at_lanes_f32<const N: usize>(&self, c: &[f32; N]) -> ([f32; N], [f32; N]) {
+        let steps = TABLE_STEPS as f32;
+        let mut u = [0.0; N];
+        let mut index = [0usize; N];
+        let mut t = [0.0; N];
+        for i in 0..N {
+            u[i] = c[i].clamp(0.0, 1.0) * steps;
+            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
+            t[i] = u[i] - index[i] as f32;
+        }
+        let mut k = [[0.0; N]; 4];
+        for i in 0..N {
+            let row = self.cubic32[index[i]];
+            for j in 0..4 {
+                k[j][i] = row[j];
+            }
+        }
+        let mut value = [0.0; N];
+        let mut slope = [0.0; N];
+        for i in 0..N {
+            value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
+            slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
+        }
+        (value, slope)
+    }
 }
 
 /// The key of a lobe's table: the bits of `(alpha, eta)`.
