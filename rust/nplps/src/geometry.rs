@@ -491,11 +491,11 @@ pub fn vertices(
     let no_ray = std::sync::atomic::AtomicBool::new(false);
     let positions = crate::memory::try_par_collect(
         depth.par_iter().enumerate().map(|(v, &z)| {
-            let xy = camera.vertex_xy(v / vw, v % vw);
-            if lacks_ray(xy, z) {
+            let (position, lacking) = vertex_position(camera, vw, v, z);
+            if lacking {
                 no_ray.store(true, std::sync::atomic::Ordering::Relaxed);
             }
-            camera.at_depth(xy, z)
+            position
         }),
         "the vertex positions",
     )?;
@@ -503,6 +503,26 @@ pub fn vertices(
         missing_ray(camera, height, width, depth)?;
     }
     Ok(positions)
+}
+
+/// The position of vertex `v` (row-major, `vw` vertices a row) at depth `z`, and whether a
+/// finite depth lacks a camera ray there ([`vertices`]' error).
+fn vertex_position(camera: &Camera, vw: usize, v: usize, z: f64) -> ([f64; 3], bool) {
+    let xy = camera.vertex_xy(v / vw, v % vw);
+    (camera.at_depth(xy, z), lacks_ray(xy, z))
+}
+
+/// The corners (top-left, top-right, bottom-left, bottom-right) of pixel `p` of an image
+/// `width` pixels wide, from its (H+1) x (W+1) `vertices` (row-major).
+#[inline]
+pub(crate) fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
+    let v = (p / width) * (width + 1) + p % width;
+    [
+        vertices[v],
+        vertices[v + 1],
+        vertices[v + width + 1],
+        vertices[v + width + 2],
+    ]
 }
 
 /// Pixel rows a task of [`facet_normals`] makes (it computes their `rows + 1` vertex rows).
@@ -539,9 +559,9 @@ pub(crate) fn facet_normals(
             let mut lacking = false;
             let first = top * vw;
             for (v, &z) in (first..).zip(&depth[first..(top + rows + 1) * vw]) {
-                let xy = camera.vertex_xy(v / vw, v % vw);
-                lacking |= lacks_ray(xy, z);
-                positions.push(camera.at_depth(xy, z));
+                let (position, lacks) = vertex_position(camera, vw, v, z);
+                lacking |= lacks;
+                positions.push(position);
             }
             if lacking {
                 no_ray.store(true, std::sync::atomic::Ordering::Relaxed);
@@ -552,13 +572,7 @@ pub(crate) fn facet_normals(
                     *n = [f64::NAN; 3];
                     continue;
                 }
-                let v = r * vw + c;
-                *n = quad_normal(&[
-                    positions[v],
-                    positions[v + 1],
-                    positions[v + vw],
-                    positions[v + vw + 1],
-                ]);
+                *n = quad_normal(&pixel_quad(&positions, width, i));
             }
         });
     if no_ray.into_inner() {

@@ -19,7 +19,7 @@
 use rayon::prelude::*;
 
 use crate::error::{ensure_mask, ensure_range, ensure_shape, Result};
-use crate::geometry::{quad_centre, quad_normal, vertices};
+use crate::geometry::{pixel_quad, quad_centre, quad_normal, vertices};
 use crate::light::{channel_intensity, Light};
 use crate::reflectance::Lobe;
 use crate::rig::{Camera, Rig};
@@ -167,18 +167,6 @@ impl<'a> Model<'a> {
             None => Model::Lambert,
         })
     }
-}
-
-/// The 4 corners of pixel `p` from the vertex positions.
-#[inline]
-fn pixel_quad(vertices: &[[f64; 3]], width: usize, p: usize) -> [[f64; 3]; 4] {
-    let v = (p / width) * (width + 1) + p % width;
-    [
-        vertices[v],
-        vertices[v + 1],
-        vertices[v + width + 1],
-        vertices[v + width + 2],
-    ]
 }
 
 /// Mesh normal of every pixel of an (H+1) x (W+1) depth map (NaN where a corner is NaN).
