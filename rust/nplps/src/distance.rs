@@ -765,7 +765,7 @@ fn alternate(
     let l = index_walk(
         solver, problem, search, range, line, &mut best, &mut u, count, progress,
     )?;
-    if l.eta <= RETRO_STAGE_ETA {
+    if l.eta <= RETRO_STAGE_ETA || l.eta >= RETRO_STAGE_TOP {
         let retro = Lobe::retro(l.alpha, RETRO_ETA);
         let estimate = best.1.clone();
         if let Some(next) = held_stage(
@@ -1012,6 +1012,18 @@ fn held_stage(
 /// rough plastic 0.3 bumps the retro shape's residual was 364 times the transmitted shape's; not
 /// measured through this stage). The bound saves the stage's window (3-5 candidates) elsewhere.
 const RETRO_STAGE_ETA: f64 = 1.25;
+
+/// The retro stage of [`alternate`] also runs where the index walk's line ends at or past the top
+/// of the walk's indices ([`WALK_ETAS`]' last): there too the transmitted shape has no minimum in
+/// the index inside the range, and the retro-reflective shape may explain the images better. On
+/// the 256² principled 0.3 block with cast shadows (the PBR renders), the search's outcome hung on
+/// the last bits of its fits: main's build chose the retro shape in the alternation (-0.28 %,
+/// index 1.5), a build whose `f64` kernels differ only in rounding (stop 52) ended the line at the
+/// index 2.3, past the grid, at +1.45 %, and the retro stage, not run there, would have won with
+/// a criterion 4 times lower (the two builds' curves). Rough plastic's lines ended at 1.34-2.2 on
+/// the PBR renders; where the stage runs on a surface the transmitted shape fits, its criterion is
+/// the higher one (see [`RETRO_STAGE_ETA`]).
+const RETRO_STAGE_TOP: f64 = WALK_ETAS[WALK_ETAS.len() - 1];
 
 /// The loop of [`alternate`]: `stage` maps an estimate (and its warm state, which it may use up)
 /// to the next, until it has none (the stage found no minimum), or one moves no region's
