@@ -32,6 +32,7 @@ FILES = {
     "shadows-diffuse": ("shadows", "diffuse"),
     "shadows-roughplastic-0.3": ("shadows", "roughplastic-0.3"),
     "bumps-principled-0.5": ("bumps", "principled-0.5"),
+    "shadows-principled-0.3": ("shadows", "principled-0.3"),
 }
 
 GI_FILES = {"bowl-diffuse-gi": "bowl", "sheet-diffuse-gi": "sheet"}
