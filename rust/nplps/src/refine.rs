@@ -1288,6 +1288,36 @@ pub struct Refiner {
     /// Whether the last step's decrease of `E` matched the Gauss-Newton model's prediction
     /// (then the next step is taken without a trial evaluation; the one after is checked).
     trusted: bool,
+    /// The Gauss-Newton pass of the last step, when that step left the lights as they were
+    /// (see [`SettledPass`]).
+    settled: Option<SettledPass>,
+}
+
+/// The Gauss-Newton pass of a light step that left the lights as they were (found nothing to
+/// improve), with those lights and the pass's subsampling stride: the light step's matrix at
+/// the lights the run keeps, from which [`SettledPass::conditioning`] reports the conditioning
+/// without a pass of its own (issue 23: at 256² the report's pass over 32 k facets was a
+/// tenth of a refined run's extra CPU).
+#[derive(Debug, Clone)]
+pub struct SettledPass {
+    pass: Pass,
+    lights: Vec<Light>,
+    stride: usize,
+}
+
+impl SettledPass {
+    /// The conditioning of `refine`'s parameters of `lights` from this pass (see
+    /// [`conditioning`]); None when `lights` are not the pass's or `refine` lays out other
+    /// parameters.
+    ///
+    /// The pass is at the mesh of the step that settled the lights, not at the final one: the
+    /// step's fits free each facet's normal, so the mesh enters only through the facet
+    /// centres, which the iterations after a settled step move by at most their depth change.
+    pub fn conditioning(&self, lights: &[Light], refine: &Refine) -> Option<Result<Conditioning>> {
+        let layout = Layout::new(lights, refine);
+        (self.lights == lights && self.pass.grad.len() == layout.n && layout.n > 0)
+            .then(|| conditioning_of(&self.pass, self.stride, lights, &layout, refine))
+    }
 }
 
 /// A light step whose undamped Gauss-Newton step predicts a decrease of the objective `E` of
@@ -1326,7 +1356,18 @@ impl Refiner {
             reference,
             lambda: 1e-3,
             trusted: false,
+            settled: None,
         }
+    }
+
+    /// The pass of the last step when it left the lights as they were (see [`SettledPass`]).
+    pub fn settled_pass(&self) -> Option<&SettledPass> {
+        self.settled.as_ref()
+    }
+
+    /// Forgets the last step's pass (a new run starts: its mesh is another).
+    pub fn forget_settled(&mut self) {
+        self.settled = None;
     }
 
     /// The refined parameters of `lights` as a vector in the step's layout: `ln(Phi_i / Phi_i^0)`
@@ -1418,6 +1459,7 @@ impl Refiner {
         lights: &mut [Light],
         u: &[f64],
     ) -> Result<StepOutcome> {
+        self.settled = None;
         let layout = Layout::new(lights, &self.refine);
         let n = layout.n;
         let none = StepOutcome {
@@ -1481,6 +1523,7 @@ impl Refiner {
         if let Some(delta) = undamped {
             let full = -grad.dot(&delta) - 0.5 * delta.dot(&(&h * &delta));
             if full <= SETTLED_DECREASE.max(SETTLED_RELATIVE * e0) {
+                self.keep_settled(pass, lights, stride);
                 return Ok(StepOutcome {
                     objective: e0,
                     ..none
@@ -1501,6 +1544,7 @@ impl Refiner {
             // E, the lights have converged and a trial evaluation could not tell.
             let predicted = -grad.dot(&delta) - 0.5 * delta.dot(&(&h * &delta));
             if predicted <= 1e-13 * e0 {
+                self.keep_settled(pass, lights, stride);
                 return Ok(StepOutcome {
                     objective: e0,
                     ..none
@@ -1538,10 +1582,20 @@ impl Refiner {
             self.lambda *= 5.0;
             self.trusted = false;
         }
+        self.keep_settled(pass, lights, stride);
         Ok(StepOutcome {
             objective: e0,
             ..none
         })
+    }
+
+    /// Keeps `pass` of a step that left `lights` as they were (see [`SettledPass`]).
+    fn keep_settled(&mut self, pass: Pass, lights: &[Light], stride: usize) {
+        self.settled = Some(SettledPass {
+            pass,
+            lights: lights.to_vec(),
+            stride,
+        });
     }
 }
 
@@ -1653,6 +1707,20 @@ pub fn conditioning(
         ));
     }
     let pass = data.pass((lights, lights), &layout, u, true, None)?;
+    let (_, stride) = data.subsample();
+    conditioning_of(&pass, stride, lights, &layout, refine)
+}
+
+/// [`conditioning`] from a Gauss-Newton `pass` of `lights` in `layout` (`refine`'s) over a
+/// subsample of every `stride`-th facet.
+fn conditioning_of(
+    pass: &Pass,
+    stride: usize,
+    lights: &[Light],
+    layout: &Layout,
+    refine: &Refine,
+) -> Result<Conditioning> {
+    let n = layout.n;
     let dof = pass.count as f64 - 3.0 * pass.fits as f64 - n as f64;
     if pass.fits == 0 || dof <= 0.0 {
         return Err(Error::Unusable(
@@ -1660,7 +1728,6 @@ pub fn conditioning(
                 .into(),
         ));
     }
-    let (_, stride) = data.subsample();
     let distance = (pass.sum_z / pass.facets as f64).abs();
     let sigma2 = pass.sse / dof;
     // Full-data J^T J, estimated from the subsample.
@@ -2192,7 +2259,9 @@ mod tests {
     /// With noisy images the light steps end once a step would move the lights by a small
     /// fraction of their standard errors ([`SETTLED_DECREASE`]) or lower `E` by less than
     /// [`SETTLED_RELATIVE`] of it, with the intensities as
-    /// close to the truth as the noise allows.
+    /// close to the truth as the noise allows. The step that ends them keeps its pass
+    /// ([`SettledPass`]), whose conditioning is that of a pass of its own at the same mesh, bit
+    /// for bit, and which serves only those lights and that layout.
     #[test]
     fn noisy_light_steps_settle_near_the_truth() {
         let scene = Scene::new(SceneKind::SphereCap, 32, 100.0, 200.0, 0).unwrap();
@@ -2246,6 +2315,32 @@ mod tests {
                 se[0]
             );
         }
+        let intensity = Refine::NONE.with_intensity(true);
+        let kept = refiner.settled_pass().expect("the settling step's pass");
+        let bits = |c: &Conditioning| -> Vec<u64> {
+            let errors = c.standard_errors.iter().flatten();
+            let values = c.singular_values.iter().chain(errors);
+            values
+                .chain([&c.rms_residual, &c.distance])
+                .map(|v| v.to_bits())
+                .collect()
+        };
+        let from_kept = kept.conditioning(&lights, &intensity).unwrap().unwrap();
+        assert_eq!(bits(&from_kept), bits(&c));
+        // Other lights, or another layout of the parameters: not this pass's.
+        let moved = off_intensities(&lights);
+        assert!(kept.conditioning(&moved, &intensity).is_none());
+        let both = intensity.with_position(true);
+        assert!(kept.conditioning(&lights, &both).is_none());
+        // An accepted step keeps none.
+        let mut again = Refiner::new(intensity, lights.clone());
+        let mut off = off_intensities(&lights);
+        assert!(
+            again
+                .step(&data, &mut off, &problem.u0.values().unwrap())
+                .accepted
+        );
+        assert!(again.settled_pass().is_none());
     }
 
     /// On the true mesh, position steps recover positions off by 5 % of the distance.

@@ -141,6 +141,9 @@ impl LightRefinement {
         self.distance = distance;
         self.settled = false;
         self.before = None;
+        if let Some(refiner) = self.refiner.as_mut() {
+            refiner.forget_settled();
+        }
     }
 
     /// The length of the refined parameter vector (0 without refinement).
@@ -194,9 +197,20 @@ impl LightRefinement {
         true
     }
 
-    /// The conditioning of the asked refinement at the final unknowns `u` (None when it
-    /// cannot be computed).
+    /// The conditioning of the asked refinement of the current lights (None when it cannot be
+    /// computed): from the pass of the light step of the last run that left these lights as
+    /// they were (see [`crate::refine::SettledPass`]) when there was one, else from a pass at
+    /// the final unknowns `u`.
     pub fn conditioning(&self, data: &LightData<'_>, u: &[f64]) -> Option<Conditioning> {
-        conditioning(data, &self.lights, u, &self.asked).ok()
+        let settled = self
+            .refiner
+            .as_ref()
+            .filter(|r| r.refine == self.asked)
+            .and_then(|r| r.settled_pass())
+            .and_then(|p| p.conditioning(&self.lights, &self.asked));
+        match settled {
+            Some(c) => c.ok(),
+            None => conditioning(data, &self.lights, u, &self.asked).ok(),
+        }
     }
 }
