@@ -73,7 +73,10 @@
 //! march where they do not (a shadow's edge, a terminator): `1 / s²` of the marches plus the
 //! edges', at the price of shadows (or lit gaps) narrower than `s` pixels that no lattice facet
 //! around sees. Without interreflections it does so from `LATTICE_SIDE` = 1024 pixels a side
-//! with `s = 2` (see `solver_stride`), and marches every facet below.
+//! with `s = 2` (see `solver_stride`), and marches every facet below. A level that iterates
+//! with a coarser level's field and starts from its mask marches once, with `march_guided`:
+//! the carried mask's verdicts stand in for the lattice's, and only the facets within
+//! `GUIDE_RADIUS` pixels of its edges (or next to a terminator or a hole) march.
 
 use rayon::prelude::*;
 
@@ -801,7 +804,7 @@ fn long_border(height: usize, width: usize, mask: &[bool]) -> bool {
     border as f64 > MAX_BORDER_SHARE * inside as f64
 }
 
-/// The pixels around a pixel whose verdicts the solver's [`march_guided`] compares: those
+/// The pixels around a pixel whose verdicts the solver's `march_guided` compares: those
 /// within this many rows and columns of it (its 7 x 7 neighbourhood). Measured on the GI
 /// renders at 256² with the coarser level's mask as the prior (docs/concave.md, stop 52; mean
 /// normal errors against the lattice's march): radius 1 moved the bowls by +0.009 and

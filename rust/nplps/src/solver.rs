@@ -264,10 +264,10 @@ pub const MATTE_ROUGHNESS: f64 = 0.5;
 pub const SHADOWS_AT: [usize; 2] = [1, 3];
 
 /// A level that iterates with a coarser level's field of indirect light (with
-/// [`Options::interreflections`]: the levels finer than the rounds', see [`coarse_to_fine`])
+/// [`Options::interreflections`]: the levels finer than the rounds', see `coarse_to_fine`)
 /// and starts from that level's cast shadows (upsampled) marches once, at this iteration
 /// instead of those of [`SHADOWS_AT`], and only where the carried mask has an edge within
-/// [`GUIDE_RADIUS`] pixels or the mesh a terminator ([`mesh_shadows_guided`]; elsewhere each
+/// [`GUIDE_RADIUS`] pixels or the mesh a terminator (`shadow::mesh_shadows_guided`; elsewhere each
 /// facet keeps the carried verdict) instead of the refined march's lattice of a quarter of the
 /// facets. Its first iteration moves the mesh most (the corrugated sheet at 256²: 0.71, then
 /// 0.004); marched at its third, the new mask moved it again (0.12) and two more iterations
