@@ -958,9 +958,6 @@ pub(crate) fn march_guided(
                 if faces.iter().all(|&f| f == 0) {
                     continue;
                 }
-                let Some((c, _, slack)) = march.facet(p) else {
-                    continue;
-                };
                 all_face.fill(!0);
                 all_shadowed.fill(!0);
                 any_shadowed.fill(0);
@@ -974,22 +971,27 @@ pub(crate) fn march_guided(
                         any_shadowed[w] |= s[w];
                     }
                 }
+                // The lights this facet faces whose neighbourhood agrees: the shadowed ones
+                // take the verdict; the others (`open`) march.
                 let o = &mut out[col * words..(col + 1) * words];
+                let mut open = false;
+                for w in 0..words {
+                    let agreed = all_face[w] & (all_shadowed[w] | !any_shadowed[w]);
+                    o[w] = faces[w] & agreed & all_shadowed[w];
+                    open |= faces[w] & !agreed != 0;
+                }
+                if !open {
+                    continue;
+                }
+                // The facet's centre only where a light marches.
+                let Some((c, _, slack)) = march.facet(p) else {
+                    o.fill(0);
+                    continue;
+                };
                 for (k, light) in lights.iter().enumerate() {
                     let (w, bit) = (k / 64, 1u64 << (k % 64));
-                    if faces[w] & bit == 0 {
-                        continue;
-                    }
-                    let verdict = match (
-                        all_face[w] & bit != 0,
-                        any_shadowed[w] & bit != 0,
-                        all_shadowed[w] & bit != 0,
-                    ) {
-                        (true, false, _) => false,
-                        (true, true, true) => true,
-                        _ => march.blocked(c, light, slack),
-                    };
-                    if verdict {
+                    let agreed = all_face[w] & (all_shadowed[w] | !any_shadowed[w]);
+                    if faces[w] & !agreed & bit != 0 && march.blocked(c, light, slack) {
                         o[w] |= bit;
                     }
                 }
