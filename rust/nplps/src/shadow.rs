@@ -660,8 +660,11 @@ pub(crate) fn march_refined(
         None,
     )?;
     let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
-    let z_min = vertices.min_depth();
-    if words == 0 || !z_min.is_finite() || plane == 0 {
+    let march = match words > 0 && plane > 0 {
+        true => March::masked(camera, height, width, vertices, mask)?,
+        false => None,
+    };
+    let Some(march) = march else {
         return Ok(ShadowMask {
             height,
             width,
@@ -669,24 +672,6 @@ pub(crate) fn march_refined(
             words,
             bits,
         });
-    }
-    let undistorted = match *camera {
-        Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
-        _ => true,
-    };
-    let pyramid = match undistorted {
-        true => Some(Pyramid::new(height, width, vertices, Some(mask))?),
-        false => None,
-    };
-    let march = March {
-        camera,
-        height,
-        width,
-        vertices,
-        mask: Some(mask),
-        z_min,
-        max_steps: 2 * height.max(width),
-        pyramid,
     };
     let lattice = |i: usize| on_lattice(i, stride);
     // The lattice: per pixel, the lights it is shadowed from and the lights it faces (both
@@ -900,8 +885,11 @@ pub(crate) fn march_guided(
         None,
     )?;
     let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
-    let z_min = vertices.min_depth();
-    if words == 0 || !z_min.is_finite() || plane == 0 {
+    let march = match words > 0 && plane > 0 {
+        true => March::masked(camera, height, width, vertices, mask)?,
+        false => None,
+    };
+    let Some(march) = march else {
         return Ok(ShadowMask {
             height,
             width,
@@ -909,24 +897,6 @@ pub(crate) fn march_guided(
             words,
             bits,
         });
-    }
-    let undistorted = match *camera {
-        Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
-        _ => true,
-    };
-    let pyramid = match undistorted {
-        true => Some(Pyramid::new(height, width, vertices, Some(mask))?),
-        false => None,
-    };
-    let march = March {
-        camera,
-        height,
-        width,
-        vertices,
-        mask: Some(mask),
-        z_min,
-        max_steps: 2 * height.max(width),
-        pyramid,
     };
     // Per pixel, the lights it faces on this mesh (zero where it is not a facet).
     let mut facing = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
@@ -1146,6 +1116,42 @@ pub(crate) struct March<'a> {
     pub(crate) z_min: f64,
     pub(crate) max_steps: usize,
     pub(crate) pyramid: Option<Pyramid>,
+}
+
+impl<'a> March<'a> {
+    /// The march of [`march_refined`] and [`march_guided`] over the pixels of `mask`: the
+    /// default `max_steps` (twice the larger side), the min-depth pyramid where the camera has
+    /// no distortion; None when no vertex has a finite depth (nothing to march).
+    fn masked(
+        camera: &'a Camera,
+        height: usize,
+        width: usize,
+        vertices: Vertices<'a>,
+        mask: &'a [bool],
+    ) -> Result<Option<March<'a>>> {
+        let z_min = vertices.min_depth();
+        if !z_min.is_finite() {
+            return Ok(None);
+        }
+        let undistorted = match *camera {
+            Camera::Pinhole { distortion, .. } => distortion == [0.0; 5],
+            _ => true,
+        };
+        let pyramid = match undistorted {
+            true => Some(Pyramid::new(height, width, vertices, Some(mask))?),
+            false => None,
+        };
+        Ok(Some(March {
+            camera,
+            height,
+            width,
+            vertices,
+            mask: Some(mask),
+            z_min,
+            max_steps: 2 * height.max(width),
+            pyramid,
+        }))
+    }
 }
 
 impl March<'_> {
