@@ -162,7 +162,7 @@ def test_the_distance_search_walks_the_index_under_noise() -> None:
 def test_the_distance_search_finds_a_retro_reflective_surface() -> None:
     # Mitsuba's principled material (roughness 0.5: Burley's retro-reflective diffuse part) on the
     # bumps, 64 x 64. Measured: without the search's last stage under the retro shape held
-    # (distance.rs, RETRO_STAGE_ETA) the alternation ends on the transmitted shape with index 1.15
+    # (distance.rs, retro_stage) the alternation ends on the transmitted shape with index 1.15
     # at +1.68 % and 1.16 degrees; with it -0.14 % and 0.107 degrees, the retro shape chosen by the
     # run at the distance found (0.081 degrees at the true distance). Both thread counts: the
     # search's result must not depend on the work split.

@@ -817,10 +817,9 @@ const WALK_ETAS: [f64; 6] = [1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
 /// stage was a transmitted one, the merged build of that stop ended the same block under the
 /// retro stage at -3.78 %, a stage the walk never got to compete with; with the walk from the
 /// best transmitted stage and the retro stage before it, 0.1 % added noise (seed 0) still ended
-/// there under the retro shape at -3.99 %. So the walk comes
-/// first and the retro stage runs only where the walk's line ends at an index of at most
-/// [`RETRO_STAGE_ETA`]: a surface the transmitted shape fits leaves the low end.) Returns the
-/// lobe of the line's lowest stage.
+/// there under the retro shape at -3.99 %. So the walk comes first and the retro stage after
+/// it, [`retro_stage`]; until stop 52 that stage ran only where the walk's line ended at an index
+/// of at most 1.25.) Returns the lobe of the line's lowest stage.
 #[allow(clippy::too_many_arguments)]
 fn index_walk(
     solver: &mut Solver<'_>,
