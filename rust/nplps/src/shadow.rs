@@ -406,14 +406,7 @@ pub(crate) fn mesh_shadows(
     // Every pixel a facet: no mask (the same marches), not a pass over the facets to make one.
     let mask = match grid.n_facets() == height * width {
         true => None,
-        false => {
-            let mut mask =
-                crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
-            for p in grid.facets.iter().map(|&p| p as usize) {
-                mask[p] = true;
-            }
-            Some(mask)
-        }
+        false => Some(facet_mask(grid)?),
     };
     march_all(
         camera,
@@ -426,6 +419,16 @@ pub(crate) fn mesh_shadows(
         true,
         stride,
     )
+}
+
+/// The pixels of `grid`'s image that are facets: the mask of a march over its mesh.
+fn facet_mask(grid: &crate::grid::Grid) -> Result<Vec<bool>> {
+    let plane = grid.height * grid.width;
+    let mut mask = crate::memory::try_vec(plane, false, "the mask of the shadow march")?;
+    for p in grid.facets.iter().map(|&p| p as usize) {
+        mask[p] = true;
+    }
+    Ok(mask)
 }
 
 /// Whether row or column `i` is on the probe lattice of `stride` (see [`mesh_shadows`]).
@@ -611,10 +614,7 @@ pub(crate) fn mesh_shadows_refined(
 ) -> Result<ShadowMask> {
     let (height, width) = (grid.height, grid.width);
     let vertices = Vertices::Mesh { grid, geometry, u };
-    let mut mask = crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
-    for p in grid.facets.iter().map(|&p| p as usize) {
-        mask[p] = true;
-    }
+    let mask = facet_mask(grid)?;
     march_refined(camera, lights, height, width, vertices, &mask, stride)
 }
 
@@ -635,44 +635,13 @@ pub(crate) fn march_refined(
     ensure_mask(Some(mask), plane)?;
     // A mask with a long border (many holes, each of which ends the marches that enter it) is
     // not smooth at the scale of the lattice: marched in full.
-    if long_border(height, width, mask) {
-        return march_all(
-            camera,
-            lights,
-            height,
-            width,
-            vertices,
-            Some(mask),
-            None,
-            true,
-            1,
-        );
-    }
+    let in_full = long_border(height, width, mask);
+    let start = start_partial(camera, lights, height, width, vertices, mask, in_full, 24.0)?;
+    let (mut bits, march) = match start {
+        Ok(start) => start,
+        Err(done) => return Ok(done),
+    };
     let words = lights.len().div_ceil(64);
-    crate::memory::check(
-        || {
-            format!(
-                "the cast shadows of {} lights on {plane} pixels",
-                lights.len()
-            )
-        },
-        24.0 * (plane * words) as f64,
-        None,
-    )?;
-    let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
-    let march = match words > 0 && plane > 0 {
-        true => March::masked(camera, height, width, vertices, mask)?,
-        false => None,
-    };
-    let Some(march) = march else {
-        return Ok(ShadowMask {
-            height,
-            width,
-            lights: lights.len(),
-            words,
-            bits,
-        });
-    };
     let lattice = |i: usize| on_lattice(i, stride);
     // The lattice: per pixel, the lights it is shadowed from and the lights it faces (both
     // zero off the lattice and where it is not a facet).
@@ -771,6 +740,66 @@ pub(crate) fn march_refined(
     })
 }
 
+/// The start of a march that takes verdicts from elsewhere ([`march_refined`], [`march_guided`])
+/// over the pixels of `mask` (H x W): `Err` with the result where nothing is left to do
+/// ([`march_all`]'s where `in_full`, the empty mask where no light or no vertex with a finite
+/// depth is marched), else `Ok` with the mask's bits (all zero) and the march (see
+/// [`March::masked`]). `bytes` is what a word of the mask costs the caller in all, checked
+/// against the memory limit.
+#[allow(clippy::too_many_arguments)]
+fn start_partial<'a>(
+    camera: &'a Camera,
+    lights: &[Light],
+    height: usize,
+    width: usize,
+    vertices: Vertices<'a>,
+    mask: &'a [bool],
+    in_full: bool,
+    bytes: f64,
+) -> Result<std::result::Result<(Vec<u64>, March<'a>), ShadowMask>> {
+    if in_full {
+        let all = march_all(
+            camera,
+            lights,
+            height,
+            width,
+            vertices,
+            Some(mask),
+            None,
+            true,
+            1,
+        )?;
+        return Ok(Err(all));
+    }
+    let plane = height * width;
+    let words = lights.len().div_ceil(64);
+    crate::memory::check(
+        || {
+            format!(
+                "the cast shadows of {} lights on {plane} pixels",
+                lights.len()
+            )
+        },
+        bytes * (plane * words) as f64,
+        None,
+    )?;
+    let bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
+    let march = match words > 0 && plane > 0 {
+        true => March::masked(camera, height, width, vertices, mask)?,
+        false => None,
+    };
+    Ok(match march {
+        Some(march) => Ok((bits, march)),
+        None => Err(ShadowMask {
+            height,
+            width,
+            lights: lights.len(),
+            words,
+            bits,
+        }),
+    })
+}
+
 /// Whether more than [`MAX_BORDER_SHARE`] of the pixels of `mask` (H x W) are on its border
 /// (next to a pixel outside it, within the image): such a mask (many holes, each of which ends
 /// the marches that enter it) is not smooth at the scale of a lattice, and is marched in full.
@@ -813,10 +842,7 @@ pub(crate) fn mesh_shadows_guided(
 ) -> Result<ShadowMask> {
     let (height, width) = (grid.height, grid.width);
     let vertices = Vertices::Mesh { grid, geometry, u };
-    let mut mask = crate::memory::try_vec(height * width, false, "the mask of the shadow march")?;
-    for p in grid.facets.iter().map(|&p| p as usize) {
-        mask[p] = true;
-    }
+    let mask = facet_mask(grid)?;
     march_guided(
         camera, lights, height, width, vertices, &mask, prior, radius,
     )
@@ -861,42 +887,11 @@ pub(crate) fn march_guided(
         && prior.width == width
         && prior.lights == lights.len()
         && prior.words == words;
-    if !matches || long_border(height, width, mask) {
-        return march_all(
-            camera,
-            lights,
-            height,
-            width,
-            vertices,
-            Some(mask),
-            None,
-            true,
-            1,
-        );
-    }
-    crate::memory::check(
-        || {
-            format!(
-                "the cast shadows of {} lights on {plane} pixels",
-                lights.len()
-            )
-        },
-        16.0 * (plane * words) as f64,
-        None,
-    )?;
-    let mut bits = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
-    let march = match words > 0 && plane > 0 {
-        true => March::masked(camera, height, width, vertices, mask)?,
-        false => None,
-    };
-    let Some(march) = march else {
-        return Ok(ShadowMask {
-            height,
-            width,
-            lights: lights.len(),
-            words,
-            bits,
-        });
+    let in_full = !matches || long_border(height, width, mask);
+    let start = start_partial(camera, lights, height, width, vertices, mask, in_full, 16.0)?;
+    let (mut bits, march) = match start {
+        Ok(start) => start,
+        Err(done) => return Ok(done),
     };
     // Per pixel, the lights it faces on this mesh (zero where it is not a facet).
     let mut facing = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
