@@ -83,7 +83,7 @@ impl Anderson {
         }
     }
 
-    /// As [`Anderson::mix`], with [`Error::Memory`](crate::Error::Memory) (and `g` unchanged)
+    /// As `Anderson::mix` (tests), with [`Error::Memory`](crate::Error::Memory) (and `g` unchanged)
     /// when a vector of the history cannot be allocated.
     pub fn try_mix(&mut self, z: &[f64], g: &mut [f64]) -> Result<()> {
         const WHAT: &str = "the Anderson acceleration's history";

@@ -55,7 +55,7 @@ impl GlobalSystem {
         GlobalSystem::with_ordering(grid, par, FillOrdering::NestedDissection, None)
     }
 
-    /// As [`GlobalSystem::new`], with a chosen fill-reducing ordering and an optional prior
+    /// As `GlobalSystem::new` (tests), with a chosen fill-reducing ordering and an optional prior
     /// (see [`Prior`]).
     pub fn with_ordering(
         grid: &Grid,

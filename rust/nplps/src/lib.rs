@@ -28,7 +28,7 @@
 //! - Output: [`Reconstruction`] with its [`Status`], [`Timings`], its [`Trust`] (per-pixel normal
 //!   uncertainty and leave-one-light-out error, per-light residuals: [`LightTrust`]) and, when
 //!   the lights are refined ([`Refine`]), a [`RefinementReport`]; [`DistanceEstimate`].
-//! - The image model: [`render`], [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
+//! - The image model: [`render`](fn@render), [`predict`] (of a [`Surface`]), [`vertices`], [`mesh_normals`].
 //! - Light calibration from sphere and board images: the [`calibrate`] module.
 //! - Files (feature `io`, on by default): the `io` module reads rig files and PNG images.
 //! - Errors: [`Error`] (non-exhaustive; input errors say which array or parameter is wrong),
@@ -151,7 +151,7 @@ macro_rules! with_fields {
 /// `[f(0), f(1), .., f(N - 1)]`, always inlined: the lane kernels build their lanes with it.
 /// `std::array::from_fn` computes the same, but above a few lanes the compiler may leave it out
 /// of line, as a separate baseline (SSE2) function called from the AVX2 / AVX-512 kernels of
-/// [`simd_dispatch!`] once per use.
+/// `simd_dispatch!` (below) once per use.
 #[inline(always)]
 pub(crate) fn lanes<T: Copy + Default, const N: usize>(mut f: impl FnMut(usize) -> T) -> [T; N] {
     let mut out = [T::default(); N];

@@ -299,8 +299,8 @@ const PLAIN_NODE: u32 = 1;
 /// The stencils of a coarse level in single precision (see [`Packed`]), stored once per kind:
 /// away from the mask's border, the pins and the prior, the Galerkin products of identical
 /// children are computed by the same operations on the same values, so every interior node
-/// has bit for bit the same stencil (the level's `plain` one, computed from an interior cell by
-/// [`interior_cells`]); only the other active nodes keep a stencil of their own. A V-cycle then
+/// has bit for bit the same stencil (the level's `plain` one, computed from an interior cell);
+/// only the other active nodes keep a stencil of their own. A V-cycle then
 /// reads 4 bytes a coarse node (its index) instead of 40 (its stencil): the coarse levels
 /// cost a fraction of what they did and take a tenth of the memory, with the same values.
 struct CoarseStencils {
@@ -1138,7 +1138,7 @@ impl MultigridSystem {
     }
 
     /// Allocates the work vectors given back by [`MultigridSystem::release_work`] (those not
-    /// there, or lent); [`MultigridSystem::solve`] needs them.
+    /// there, or lent); `MultigridSystem::solve` (tests) needs them.
     pub fn reserve_work(&mut self) -> Result<()> {
         let n = self.levels[0].layout.len();
         if self.krylov.x.is_empty() {
@@ -1184,7 +1184,7 @@ impl MultigridSystem {
         self.solve_from(grid, target_norm, z_current, z_out)
     }
 
-    /// The right side of [`MultigridSystem::solve`] per unknown into `out`; returns the norm of
+    /// The right side of `MultigridSystem::solve` (tests) per unknown into `out`; returns the norm of
     /// its target part (see [`right_side`]).
     pub fn right_side(
         &self,
@@ -1197,7 +1197,7 @@ impl MultigridSystem {
         right_side(grid, targets, &self.pins, prior, z_current, out)
     }
 
-    /// [`MultigridSystem::solve`] from its right side in `z` ([`MultigridSystem::right_side`],
+    /// `MultigridSystem::solve` (tests) from its right side in `z` ([`MultigridSystem::right_side`],
     /// whose norm is `target_norm`), which the solution then replaces: the targets are not
     /// read, so the caller may give them back before the work vectors are reserved.
     pub fn solve_from(

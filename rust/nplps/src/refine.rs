@@ -1451,7 +1451,7 @@ impl Refiner {
         }
     }
 
-    /// As [`Refiner::step`], with [`Error::Memory`] (and `lights` unchanged) when the sums of
+    /// As `Refiner::step` (tests), with [`Error::Memory`] (and `lights` unchanged) when the sums of
     /// the step or a thread's scratch cannot be allocated.
     pub fn try_step(
         &mut self,

@@ -45,7 +45,7 @@ pub struct Surface<'a> {
 
 impl Surface<'_> {
     /// Checks the channels and the lengths of the albedo and the mask against H x W, and returns
-    /// the vertex positions of the depth map (see [`positions`]).
+    /// the vertex positions of the depth map (see [`vertices`]).
     fn vertices(&self, camera: &Camera) -> Result<Vec<[f64; 3]>> {
         let (plane, channels) = (self.height * self.width, self.channels);
         let v = vertices(camera, self.height, self.width, self.depth)?;
