@@ -156,8 +156,9 @@ def colorbar_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
 
 
 #: Values (pixels x channels) of one band of block rows converted to float64 at a time by
-#: :func:`downsample` and :func:`_block_mean` (about 32 MB): the full-size float64 copy and its
-#: masks (25 bytes a value, 7.5 GB for a 100 MP normal map) are never made.
+#: :func:`downsample` and :func:`_block_mean` (about 32 MB; a band holds at least one row of
+#: blocks): the full-size float64 copy and its masks (25 bytes a value, 7.5 GB for a 100 MP
+#: normal map) are never made.
 BAND_VALUES = 4_000_000
 
 
