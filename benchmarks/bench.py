@@ -10,7 +10,9 @@ Each size reconstructs the synthetic ``bumps`` scene (27 lights, 10 iterations, 
 every run does exactly 10 iterations) and reports the median wall time of the Rust core split into
 factorization, local steps and solves, the reference's median, and the speed-up; then the time of
 ``depth="auto"`` (working-distance search) against a run given the distance. Timings are
-medians of repeated runs in one process; machines are shared and noisy, so compare ratios
+medians of repeated runs in one process, wall time and the process's CPU time (``time.process_time``,
+all threads; the numpy reference's CPU ratio says how much work each does, its wall ratio what a
+user waits); machines are shared and noisy, so compare ratios
 measured in the same run rather than absolute numbers across runs.
 
 ``--ratios`` measures only the cost ratios of issue 23 (item 4), medians in one process: ``depth="auto"``
@@ -50,7 +52,7 @@ def time_rust(
     pyramid does 10 iterations on every level and the trust maps on top."""
     runs = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         r = nplps.reconstruct(
             images,
             scene.rig,
@@ -61,8 +63,8 @@ def time_rust(
             threads=threads,
             levels=levels,
         )
-        wall = time.perf_counter() - t0
-        runs.append({**r.timings, "wall": wall})
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        runs.append({**r.timings, "wall": wall, "cpu": cpu})
     return {k: statistics.median(run[k] for run in runs) for k in runs[0]}
 
 
@@ -70,7 +72,7 @@ def time_reference(scene: nplps.Scene, images: np.ndarray, repeats: int) -> dict
     cam = scene.rig.camera
     runs = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = reference.reconstruct(
             images.astype(np.float64),
             scene.rig.positions,
@@ -81,7 +83,7 @@ def time_reference(scene: nplps.Scene, images: np.ndarray, repeats: int) -> dict
             iterations=10,
             tol=0.0,
         )
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         runs.append(
             {
                 "factorization": out["timings"]["factor"],
@@ -89,6 +91,7 @@ def time_reference(scene: nplps.Scene, images: np.ndarray, repeats: int) -> dict
                 "solve": out["timings"]["solve"],
                 "total": out["timings"]["total"],
                 "wall": wall,
+                "cpu": cpu,
             }
         )
     return {k: statistics.median(run[k] for run in runs) for k in runs[0]}
@@ -103,17 +106,19 @@ def _wall(run) -> float:
 CASES = ("none/lambertian", "tukey/lambertian", "none/glossy")
 
 
-def _timed(reps: int, *args: object, **kw: object) -> tuple[float, nplps.Reconstruction]:
-    """Median wall time of ``reps`` runs of ``nplps.reconstruct(*args, **kw)`` and the first result."""
+def _timed(reps: int, *args: object, **kw: object) -> tuple[float, float, nplps.Reconstruction]:
+    """Median wall and CPU time (the process's, all threads) of ``reps`` runs of
+    ``nplps.reconstruct(*args, **kw)`` and the first result."""
     results: list[nplps.Reconstruction] = []
-    times = []
+    times, cpus = [], []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for _ in range(reps):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             results.append(nplps.reconstruct(*args, **kw))  # type: ignore[arg-type]
             times.append(time.perf_counter() - t0)
-    return statistics.median(times), results[0]
+            cpus.append(time.process_time() - c0)
+    return statistics.median(times), statistics.median(cpus), results[0]
 
 
 def ratios(
@@ -122,7 +127,10 @@ def ratios(
     """Print and return the cost ratios of ``depth="auto"`` and of light refinement (see the module docstring)."""
     out: list[dict[str, object]] = []
     print("## depth='auto' over a known distance (bumps, pinhole, 27 lights, 1 % noise; medians)")
-    print(f"{'size':>9} {'robust':>6} {'reflectance':>11} | {'known s':>8} {'auto s':>8} {'ratio':>6} | distance error")
+    print(
+        f"{'size':>9} {'robust':>6} {'reflectance':>11} | {'known s':>8} {'auto s':>8} {'ratio':>6}"
+        f" | {'CPU known':>9} {'CPU auto':>8} {'ratio':>6} | distance error"
+    )
     for n in sizes:
         reps = repeats if n <= 512 else max(1, (repeats + 1) // 2)
         for case in cases if largest is None or n <= largest else cases[:1]:
@@ -134,17 +142,26 @@ def ratios(
             )
             images = s.images.astype(np.float32)
             kw = {"mask": s.mask, "robust": robust, "reflectance": reflectance}
-            known, _ = _timed(reps, images, s.rig, depth=s.mean_depth, **kw)
-            auto, found = _timed(reps, images, s.rig, depth="auto", **kw)
+            known, known_cpu, _ = _timed(reps, images, s.rig, depth=s.mean_depth, **kw)
+            auto, auto_cpu, found = _timed(reps, images, s.rig, depth="auto", **kw)
             assert found.distance is not None
             error = found.distance.distance[0] / s.mean_depth - 1
             print(
                 f"{n:>4}x{n:<4} {name:>6} {reflectance:>11} | {known:8.3f} {auto:8.3f} {auto / known:6.2f}"
-                f" | {100 * error:+.3f} %",
+                f" | {known_cpu:9.3f} {auto_cpu:8.3f} {auto_cpu / known_cpu:6.2f} | {100 * error:+.3f} %",
                 flush=True,
             )
             out.append(
-                {"size": n, "robust": robust, "reflectance": reflectance, "known": known, "auto": auto, "error": error}
+                {
+                    "size": n,
+                    "robust": robust,
+                    "reflectance": reflectance,
+                    "known": known,
+                    "auto": auto,
+                    "known_cpu": known_cpu,
+                    "auto_cpu": auto_cpu,
+                    "error": error,
+                }
             )
     if not refine_sizes:
         return out
@@ -152,22 +169,26 @@ def ratios(
         "\n## Light refinement over none (bumps, pinhole LEDs; intensity: intensities off by up to 20 %,"
         " position: positions off by 2 mm, both: both, none: the both rig; medians)"
     )
-    print(f"{'size':>9} {'refine':>9} | {'time s':>8} {'ratio':>6} | normals (deg) | intensity % | position mm")
+    print(
+        f"{'size':>9} {'refine':>9} | {'time s':>8} {'ratio':>6} | {'CPU s':>8} {'ratio':>6}"
+        " | normals (deg) | intensity % | position mm"
+    )
     for n in refine_sizes:
         reps = repeats if n <= 512 else max(1, (repeats + 1) // 2)
         s = nplps.make_scene("bumps", n=n, camera="pinhole", led=True, noise=0.01)
         rigs = refinement_rigs(s.rig)
         images = s.images.astype(np.float32)
-        base = None
+        base = base_cpu = None
         for mode in (None, "intensity", "position", "both"):
             rig = rigs[mode or "both"]
-            t, r = _timed(reps, images, rig, depth=s.mean_depth, mask=s.mask, refine_lights=mode)
-            base = base or t
+            t, cpu, r = _timed(reps, images, rig, depth=s.mean_depth, mask=s.mask, refine_lights=mode)
+            base, base_cpu = base or t, base_cpu or cpu
             cos = np.clip((r.normals * s.normals).sum(-1), -1.0, 1.0)
             error = float(np.degrees(np.arccos(cos))[s.mask].mean())
             phi, pos = light_errors(r.rig, s.rig)
             print(
-                f"{n:>4}x{n:<4} {mode or 'none':>9} | {t:8.3f} {t / base:6.2f} | {error:13.3f} | {phi:11.3f}"
+                f"{n:>4}x{n:<4} {mode or 'none':>9} | {t:8.3f} {t / base:6.2f} | {cpu:8.3f} {cpu / base_cpu:6.2f}"
+                f" | {error:13.3f} | {phi:11.3f}"
                 f" | {pos:11.3f}",
                 flush=True,
             )
@@ -177,6 +198,8 @@ def ratios(
                     "refine": mode,
                     "time": t,
                     "ratio": t / base,
+                    "cpu": cpu,
+                    "cpu_ratio": cpu / base_cpu,
                     "normals": error,
                     "intensity_error": phi,
                     "position_error": pos,
@@ -235,7 +258,7 @@ def main() -> None:
     results = []
     header = (
         f"{'size':>9} {'factor':>8} {'local':>8} {'solve':>8} {'total':>8} | {'numpy':>8} {'speed-up':>8}"
-        f" | {'levels=1':>8} {'speed-up':>8}"
+        f" | {'levels=1':>8} {'speed-up':>8} | {'CPU':>6} {'numpy CPU':>9} {'ratio':>6}"
     )
     print(
         f"nplps {nplps.__version__}: bumps scene, 27 lights, 10 iterations (per level: the default pyramid; "
@@ -255,6 +278,7 @@ def main() -> None:
         print(
             f"{n:>4}x{n:<4} {rust['factorization']:8.3f} {rust['local']:8.3f} {rust['solve']:8.3f} {rust['wall']:8.3f}"
             f" | {ref['wall']:8.3f} {speedup:7.1f}x | {single['wall']:8.3f} {same_work:7.1f}x"
+            f" | {rust['cpu']:6.3f} {ref['cpu']:9.3f} {ref['cpu'] / rust['cpu']:5.1f}x"
         )
         results.append(
             {

@@ -122,16 +122,21 @@ def run_once(command: list[str]) -> dict[str, Any]:
     proc = subprocess.run(full, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     stderr = proc.stderr
-    rss_mb = None
+    rss_mb = cpu_s = None
     if use_time:
         match = re.search(r"Maximum resident set size \(kbytes\): (\d+)", stderr)
         rss_mb = int(match.group(1)) / 1024 if match else None
+        user = re.search(r"User time \(seconds\): ([0-9.]+)", stderr)
+        system = re.search(r"System time \(seconds\): ([0-9.]+)", stderr)
+        cpu_s = float(user.group(1)) + float(system.group(1)) if user and system else None
         stderr = stderr.split("\tCommand being timed:")[0]
     if rss_mb is None:  # the largest child so far
         rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         rss_mb = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
     return {
         "wall_s": wall,
+        "cpu_s": cpu_s,
+        "load_average": os.getloadavg(),
         "rss_mb": rss_mb,
         "rss_source": "/usr/bin/time -v" if use_time else "getrusage(RUSAGE_CHILDREN)",
         "returncode": proc.returncode,
@@ -254,6 +259,10 @@ def main() -> None:
     print(f"\n## nplps reconstruct, {w} x {h} ({w * h / 1e6:.1f} MP), {args.lights} 16-bit PNG images, {args.camera}\n")
     print("| measure | value |\n|---|---|")
     print(f"| wall time (median of {len(runs)}) | {wall:.2f} s ({verdict}: limit {args.limit:g} s) |")
+    cpu = [r["cpu_s"] for r in runs if r["cpu_s"] is not None]
+    if cpu:
+        print(f"| CPU time, user + system (median) | {statistics.median(cpu):.2f} s |")
+    print(f"| load average at the end (1 / 5 / 15 min) | {' / '.join(f'{x:.2f}' for x in runs[-1]['load_average'])} |")
     if call and solver:
         print(
             f"| reconstruct call (reported) | {statistics.median(call):.2f} s"
@@ -289,6 +298,9 @@ def main() -> None:
             "lights": args.lights,
             "camera": args.camera,
             "wall_s": wall,
+            "cpu_s": statistics.median(cpu) if cpu else None,
+            "load_average": runs[-1]["load_average"],
+            "progress": runs[-1]["stderr"],  # the command's progress lines (stage times)
             "reconstruct_s": statistics.median(call) if call else None,
             "solver_s": statistics.median(solver) if solver else None,
             "decode_s": statistics.median(decode) if decode else None,

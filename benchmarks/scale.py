@@ -17,8 +17,11 @@ few Gaussian bumps and dents, 100 units across (the longer side) at working dist
 
 * load: ``nplps.io.load_stack`` of the PNG files (``--no-files``: ``np.load`` + ``load_stack``
   of the array), kept as ``uint16`` (``--stack float32``: converted to float32, as before);
-* reconstruct: wall time of ``nplps.reconstruct`` and its ``result.timings`` split;
-* export: ``result.save`` (PLY + OBJ up to 4 MP + maps) into a temporary directory, the time of
+* reconstruct: wall time of ``nplps.reconstruct``, the process's CPU time over it
+  (``time.process_time``: all threads, user + system; on a shared machine the figure to
+  compare) and its ``result.timings`` split;
+* export: ``result.save`` (PLY + OBJ up to 4 MP + maps) into a temporary directory (wall and
+  CPU time), the time of
   each file it writes (printed as the "Save, seconds per file" table; see ``benchmarks/save.py``,
   which times ``save`` alone at camera resolution without reconstructing), and the mesh writers
   alone (``write_ply``, ``write_obj``) on precomputed vertex arrays;
@@ -348,6 +351,7 @@ def run_child(spec_path: str) -> None:
     spec = json.loads(Path(spec_path).read_text(encoding="utf-8"))
     directory = Path(spec["directory"])
     base_rss, base_hwm = peak_rss_mb(), hwm_mb()
+    load_average_start = os.getloadavg()
     rig = nplps.Rig.load(directory / "rig.json")
     options, unsupported = supported_options(
         {"solver": spec["solver"], "levels": spec["levels"], **spec.get("options", {})}
@@ -370,7 +374,7 @@ def run_child(spec_path: str) -> None:
             stack, levels = nplps.io.load_stack(np.load(spec["inputs"]), uint16=uint16)
         load_s = time.perf_counter() - t0
         assert levels in (None, LEVELS_16), levels
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         keywords = {
             "mask": mask,
             "depth": spec["gauge"],
@@ -382,7 +386,7 @@ def run_child(spec_path: str) -> None:
             **options,  # --option may replace any of them (e.g. depth=auto)
         }
         result = nplps.reconstruct(stack, rig, **keywords)
-        reconstruct_s = time.perf_counter() - t0
+        reconstruct_s, reconstruct_cpu = time.perf_counter() - t0, time.process_time() - c0
         del stack
         rss_after_reconstruct = max(rss_after_reconstruct, peak_rss_mb())
         hwm_after_reconstruct = hwm_mb()
@@ -390,14 +394,15 @@ def run_child(spec_path: str) -> None:
             {
                 "load": load_s,
                 "reconstruct": reconstruct_s,
+                "reconstruct_cpu": reconstruct_cpu,
                 **{f"timings.{k}": float(v) for k, v in result.timings.items()},
             }
         )
         record: list[tuple[str, float, float]] = []
         with _timing.file_timer(record):  # the time of each file (_timing.file_timer)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             paths = result.save(out_dir)
-            save_s = time.perf_counter() - t0
+            save_s, save_cpu = time.perf_counter() - t0, time.process_time() - c0
         save_files = {name: b - a for name, a, b in record}
         save_files["other"] = save_s - _timing.covered([(a, b) for _, a, b in record])
         save_runs.append(save_files)
@@ -412,7 +417,7 @@ def run_child(spec_path: str) -> None:
         export.write_ply(out_dir.with_suffix(".ply"), *arrays, **vertex_data)
         ply_s = time.perf_counter() - t0
         out_dir.with_suffix(".ply").unlink()
-        timing = {"save": save_s, "write_ply": ply_s}
+        timing = {"save": save_s, "save_cpu": save_cpu, "write_ply": ply_s}
         if spec["obj_alone"]:
             t0 = time.perf_counter()
             export.write_obj(out_dir.with_suffix(".obj"), *arrays, **vertex_data)
@@ -435,6 +440,7 @@ def run_child(spec_path: str) -> None:
         "vmhwm_base_mb": base_hwm,
         "vmhwm_reconstruct_mb": hwm_after_reconstruct,
         "vmhwm_export_mb": hwm_after_export,
+        "load_average": [load_average_start, os.getloadavg()],  # 1, 5, 15 min; at the start and the end
         "options": options,
         "unsupported_options": unsupported,
         "accuracy": accuracy(result, np.load(directory / "depth_gt.npy"), rig),
@@ -540,8 +546,10 @@ def markdown_tables(cases: list[dict[str, Any]]) -> str:
         "MP",
         "load s",
         "reconstruct s",
+        "reconstruct CPU s",
         *[f"{n} s" for n in split_names],
         "save s",
+        "save CPU s",
         "PLY s",
         "OBJ s",
         "iterations (level:outer/inner)",
@@ -564,8 +572,10 @@ def markdown_tables(cases: list[dict[str, Any]]) -> str:
             f"{c['pixels'] / MEGAPIXEL:.2f}",
             _fmt(t["load"]),
             _fmt(t["reconstruct"]),
+            _fmt(t.get("reconstruct_cpu")),
             *[_fmt(t.get(k)) for k in split_keys],
             _fmt(e["save"]),
+            _fmt(e.get("save_cpu")),
             _fmt(e["write_ply"]),
             _fmt(e.get("write_obj")),
             _levels_text(c["levels"]),

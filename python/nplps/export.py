@@ -1876,7 +1876,10 @@ def contact_sheet(images: np.ndarray, *, max_side: int | None = None, columns: i
         raise InputError(f"images must be a (k, H, W) or (k, H, W, 3) stack, got shape {stack.shape}")
     k = len(stack)
     side = max_side or (128 if k <= 16 else 72)
-    small = [views.downsample(np.asarray(im, dtype=np.float32), side) for im in stack]
+    # Images whose values float32 holds exactly (integers of up to 16 bits, float32) are shrunk as
+    # they are, a band at a time, without a full-size float32 copy each: the same values.
+    exact = stack.dtype == np.float32 or (stack.dtype.kind in "biu" and stack.dtype.itemsize <= 2)
+    small = [views.downsample(im if exact else np.asarray(im, dtype=np.float32), side) for im in stack]
     sample = np.concatenate([np.asarray(s, dtype=np.float64).ravel()[::7] for s in small])
     finite = sample[np.isfinite(sample)]
     top = float(np.percentile(finite, 99.5)) if finite.size else 1.0

@@ -538,7 +538,7 @@ def _section_maps(d: _Data) -> str:
         record = d.summary.get("normal_map") or {"frame": "opengl", "bits": 8}
         top = 65535.0 if np.asarray(normals).dtype == np.uint16 else 255.0
         cropped = d.cropped(normals)
-        small = views.downsample(np.asarray(cropped, dtype=np.float64) * (255.0 / top), MAP_SIDE)
+        small = views.downsample(cropped, MAP_SIDE, scale=255.0 / top)  # float64 values x 255 / top
         caption = (
             f"normal map as written in normals.png ({record['bits']}-bit, {_FRAMES.get(record['frame'], '?')})"
             f"{d.crop_note}"
@@ -552,7 +552,7 @@ def _section_maps(d: _Data) -> str:
     name = "diffuse albedo" if glossy else "albedo"
     if albedo is not None:
         cropped = d.cropped(albedo)
-        small = views.downsample(np.asarray(cropped, dtype=np.float64), MAP_SIDE)
+        small = views.downsample(cropped, MAP_SIDE, scale=1.0)  # as float64, a band at a time
         scale = _scale_bar(d, cropped.shape, small.shape)
         figures.append(_figure(_grey_rgb(small), f"{name} (scaled to its 99.5th percentile){d.crop_note}", scale=scale))
     else:
@@ -561,7 +561,7 @@ def _section_maps(d: _Data) -> str:
     if isinstance(cast, dict):
         shadows = d._load("shadows.png")
         if shadows is not None:
-            small = views.downsample(np.asarray(d.cropped(shadows), dtype=np.float64), MAP_SIDE)
+            small = views.downsample(d.cropped(shadows), MAP_SIDE, scale=1.0)
             caption = (
                 f"cast shadows predicted from the mesh: the share of the lights each pixel is hidden from "
                 f"(black none, white all; {100 * float(cast.get('share', 0.0)):.1f} % of the observations "
@@ -572,7 +572,7 @@ def _section_maps(d: _Data) -> str:
         return _section("Mask, normal map, albedo", "".join(figures), "maps")
     specular = d._load("specular.png")
     if specular is not None:
-        small = views.downsample(np.asarray(d.cropped(specular), dtype=np.float64), MAP_SIDE)
+        small = views.downsample(d.cropped(specular), MAP_SIDE, scale=1.0)
         caption = f"specular albedo (scaled to its 99.5th percentile; the values are in specular.npy){d.crop_note}"
         figures.append(_figure(_grey_rgb(small), caption))
     else:

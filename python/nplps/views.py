@@ -155,11 +155,22 @@ def colorbar_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
     return ticks
 
 
-def downsample(image: np.ndarray, max_side: int) -> np.ndarray:
+#: Values (pixels x channels) of one band of block rows converted to float64 at a time by
+#: :func:`downsample` and :func:`_block_mean` (about 32 MB; a band holds at least one row of
+#: blocks): the full-size float64 copy and its masks (25 bytes a value, 7.5 GB for a 100 MP
+#: normal map) are never made.
+BAND_VALUES = 4_000_000
+
+
+def downsample(image: np.ndarray, max_side: int, *, scale: float | None = None) -> np.ndarray:
     """Shrink an image by an integer factor so that its longer side is at most `max_side`.
 
     Block means over ``s x s`` pixels (``s = ceil(longer side / max_side)``), ignoring NaN; an
     image already small enough is returned unchanged.
+
+    The blocks are taken a band of block rows at a time (:data:`BAND_VALUES`), each band
+    converted to float64 on its own; every block's sum is numpy's sum over the block's axes, as
+    for the whole image at once, so the means are the same bits.
 
     Parameters
     ----------
@@ -167,6 +178,10 @@ def downsample(image: np.ndarray, max_side: int) -> np.ndarray:
         (H, W) or (H, W, C), float or integer.
     max_side : int
         The largest side allowed.
+    scale : float, optional
+        Multiply the values, taken as float64, by this first (``downsample(x, n, scale=c)`` is
+        ``downsample(np.asarray(x, dtype=np.float64) * c, n)`` without the full-size product);
+        the result is then float64 also when no shrinking is needed.
 
     Returns
     -------
@@ -176,15 +191,23 @@ def downsample(image: np.ndarray, max_side: int) -> np.ndarray:
     h, w = image.shape[:2]
     s = math.ceil(max(h, w) / max_side)
     if s <= 1:
-        return image
+        return image if scale is None else np.asarray(image, dtype=np.float64) * scale
     hh, ww = h // s * s, w // s * s
-    a = np.asarray(image[:hh, :ww], dtype=np.float64)
-    blocks = a.reshape(hh // s, s, ww // s, s, *a.shape[2:])
-    finite = np.isfinite(blocks)
-    total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
-    count = finite.sum(axis=(1, 3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    channels = math.prod(image.shape[2:])
+    out = np.empty((hh // s, ww // s, *image.shape[2:]))
+    rows = max(1, BAND_VALUES // max(s * ww * channels, 1))  # block rows a band
+    for i in range(0, hh // s, rows):
+        j = min(i + rows, hh // s)
+        a = np.asarray(image[i * s : j * s, :ww], dtype=np.float64)
+        if scale is not None:
+            a = a * scale
+        blocks = a.reshape(j - i, s, ww // s, s, *a.shape[2:])
+        finite = np.isfinite(blocks)
+        total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
+        count = finite.sum(axis=(1, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[i:j] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return out
 
 
 def scale_bar_length(span: float, fraction: float = 0.25) -> float:
@@ -329,7 +352,7 @@ def render_mesh(
     hh, ww = (v.shape[0] - 1), (v.shape[1] - 1)
     if hh < 1 or ww < 1:
         return image
-    cover = _block_mean(mask.astype(np.float64), stride, hh, ww)
+    cover = _block_mean(mask, stride, hh, ww)  # the mask as 0 / 1, a band at a time
     ok = np.isfinite(v).all(axis=-1)
     quad = (cover >= 0.5) & ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1] & ok[1:, 1:]
     if not quad.any():
@@ -382,16 +405,30 @@ def render_mesh(
 
 
 def _block_mean(values: np.ndarray, s: int, hh: int, ww: int) -> np.ndarray:
-    """Mean of each s x s block of an (H, W) array, on the (hh, ww) coarse grid (partial edge blocks kept)."""
+    """Mean of each s x s block of an (H, W) array, on the (hh, ww) coarse grid (partial edge blocks kept).
+
+    The values are taken as float64 (a boolean mask as 0 and 1), NaN ignored, a band of block
+    rows at a time (:data:`BAND_VALUES`; each band padded with NaN past the array's edges): the
+    same bits as padding and reducing the whole array at once, without its full-size float64
+    copies.
+    """
     h, w = values.shape[:2]
-    padded = np.full((hh * s, ww * s, *values.shape[2:]), np.nan)
     ch, cw = min(h, hh * s), min(w, ww * s)
-    padded[:ch, :cw] = values[:ch, :cw]
-    blocks = padded.reshape(hh, s, ww, s, *values.shape[2:])
-    finite = np.isfinite(blocks)
-    total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
-    count = finite.sum(axis=(1, 3))
-    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    channels = math.prod(values.shape[2:])
+    out = np.empty((hh, ww, *values.shape[2:]))
+    rows = max(1, BAND_VALUES // max(s * ww * s * channels, 1))  # block rows a band
+    for i in range(0, hh, rows):
+        j = min(i + rows, hh)
+        padded = np.full(((j - i) * s, ww * s, *values.shape[2:]), np.nan)
+        r1 = min(j * s, ch)
+        if r1 > i * s:
+            padded[: r1 - i * s, :cw] = values[i * s : r1, :cw]
+        blocks = padded.reshape(j - i, s, ww, s, *values.shape[2:])
+        finite = np.isfinite(blocks)
+        total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
+        count = finite.sum(axis=(1, 3))
+        out[i:j] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return out
 
 
 def _albedo_colour(albedo: np.ndarray | None, s: int, hh: int, ww: int) -> np.ndarray:
