@@ -201,13 +201,20 @@ def downsample(image: np.ndarray, max_side: int, *, scale: float | None = None) 
         a = np.asarray(image[i * s : j * s, :ww], dtype=np.float64)
         if scale is not None:
             a = a * scale
-        blocks = a.reshape(j - i, s, ww // s, s, *a.shape[2:])
-        finite = np.isfinite(blocks)
-        total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
-        count = finite.sum(axis=(1, 3))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[i:j] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        out[i:j] = _nan_block_means(a.reshape(j - i, s, ww // s, s, *a.shape[2:]))
     return out
+
+
+def _nan_block_means(blocks: np.ndarray) -> np.ndarray:
+    """Average the finite values of each block of a (rows, s, cols, s[, C]) array.
+
+    NaN where a block has none: the reduction :func:`downsample` and :func:`_block_mean` share.
+    """
+    finite = np.isfinite(blocks)
+    total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
+    count = finite.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
 def scale_bar_length(span: float, fraction: float = 0.25) -> float:
@@ -423,11 +430,7 @@ def _block_mean(values: np.ndarray, s: int, hh: int, ww: int) -> np.ndarray:
         r1 = min(j * s, ch)
         if r1 > i * s:
             padded[: r1 - i * s, :cw] = values[i * s : r1, :cw]
-        blocks = padded.reshape(j - i, s, ww, s, *values.shape[2:])
-        finite = np.isfinite(blocks)
-        total = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
-        count = finite.sum(axis=(1, 3))
-        out[i:j] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        out[i:j] = _nan_block_means(padded.reshape(j - i, s, ww, s, *values.shape[2:]))
     return out
 
 
