@@ -21,7 +21,6 @@ use crate::error::Result;
 use crate::geometry::{quad_centre, Geometry};
 use crate::light::LaneLight;
 use crate::memory::try_vec;
-use crate::reflectance::Packed;
 
 mod field;
 mod robust;
