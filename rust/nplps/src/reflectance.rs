@@ -1151,6 +1151,19 @@ pub(crate) mod single {
         t.at_lanes_f32(c)
     }
 
+    /// The GGX denominator as a sum of two positive terms (see `shade_group`): in `f32` the
+    /// form `(n.h)^2 (alpha^2 - 1) + 1` cancels near the peak.
+    const GGX_SUM: bool = true;
+
+    /// The least cosine `n.l` of a lit lane in `shade_group` (lit lanes below it are evaluated
+    /// at it: their factors change by less than `1e-10`): it keeps the product of the GGX and
+    /// Smith denominators (at least `c alpha^4` about) above the least normal `f32` for
+    /// roughnesses down to `1e-7`.
+    const LEAST_COSINE: F = 1e-10;
+
+    /// The fits' starting albedos from sums in `f64` lanes (`albedo_sums`).
+    const LANE_ALBEDO_SUMS: bool = true;
+
     include!("reflectance/kernels.rs");
 }
 
@@ -1173,6 +1186,22 @@ pub(crate) mod double {
     fn table_lanes(t: &Transmittance, c: &Lanes) -> (Lanes, Lanes) {
         t.at_lanes(c)
     }
+
+    // The forms of the `f64` kernels that the `f32` lanes replaced (stop 51), so that these
+    // lanes give their bits: the distance search, which runs in them, hangs on the last bits
+    // of its fits (docs/shiny.md, stop 52), and these forms are also the cheaper ones.
+
+    /// The GGX denominator as `(n.h)^2 (alpha^2 - 1) + 1` (its cancellation near the peak costs
+    /// `1e-16 / alpha^2` relative in `f64`).
+    const GGX_SUM: bool = false;
+
+    /// The least cosine `n.l` of a lit lane in `shade_group` (lit lanes below it are evaluated
+    /// at it).
+    const LEAST_COSINE: F = 1e-100;
+
+    /// The fits' starting albedos from sums one observation after another
+    /// (`albedo_sums_in_order`).
+    const LANE_ALBEDO_SUMS: bool = false;
 
     include!("reflectance/kernels.rs");
 }
@@ -1253,6 +1282,7 @@ impl Packed {
 
     /// Adds the observation of image value `value` under a light of scale `Phi a` from the unit
     /// direction `light` ([`Packed::prepare`] then computes its half vector and Fresnel factor).
+    #[inline]
     pub fn push(&mut self, value: f64, scale: f64, light: [f64; 3]) {
         match self.precise {
             true => self.double.push(value, scale, light),
@@ -1264,6 +1294,7 @@ impl Packed {
     /// `axis`, anisotropy `mu` (0: isotropic, else an LED, `t^mu`) and intensity `phi`:
     /// [`Packed::prepare`] computes its direction and scale `Phi a` at the facet (see
     /// [`crate::Light`]). An LED that does not light the facet never carries light.
+    #[inline]
     pub fn push_point(
         &mut self,
         value: f64,
@@ -1279,6 +1310,7 @@ impl Packed {
     }
 
     /// Adds `o` as it is (with its half vector and Fresnel factor; made for this view vector).
+    #[inline]
     pub fn push_observation(&mut self, o: &Observation) {
         match self.precise {
             true => self.double.push_observation(o),

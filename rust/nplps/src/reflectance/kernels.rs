@@ -178,12 +178,6 @@ fn fresnel_lanes(eta: F, c: &Lanes, (t, ds, dp): (Lanes, Lanes, Lanes), q: &Lane
     lanes(|i| 0.5 * (rs[i] * rs[i] + rp[i] * rp[i]))
 }
 
-/// The least cosine `n.l` of a lit lane in [`Kernel::shade_group`] (lit lanes below it are
-/// evaluated at it: their factors change by less than `1e-10`): it keeps the product of the
-/// GGX and Smith denominators (at least `c alpha^4` about) above the least normal `f32` for
-/// roughnesses down to `1e-7`.
-const LEAST_COSINE: F = 1e-10;
-
 /// The terms of [`View`] that the lanes use, rounded to [`F`].
 #[derive(Debug, Clone, Copy)]
 struct LaneView {
@@ -205,8 +199,9 @@ impl LaneView {
     }
 }
 
-/// [`Kernel::shade`] (of `kernel`) of the observations of group `g` at the normal `n` with its shared
-/// terms `w` (`v` the view vector), in lanes: the factors, their gradients only `GRADS`.
+/// [`Kernel::shade`] (of `kernel`) of the observations of group `g` at the normal `n` with its
+/// shared terms `w` (`v` the view vector), in lanes: the factors, their gradients only `GRADS`.
+/// Lit lanes of a cosine `n.l` below [`LEAST_COSINE`] are evaluated at it.
 #[inline(always)]
 fn shade_group<const GRADS: bool>(
     kernel: &Kernel,
@@ -224,16 +219,21 @@ fn shade_group<const GRADS: bool>(
     let ch = lanes(|i| n[0] * g.h[0][i] + n[1] * g.h[1][i] + n[2] * g.h[2][i]);
     let a2 = kernel.a2 as F;
     // The denominators of the GGX distribution and Smith's masking, inverted by one division.
-    // The GGX one, `(n.h)^2 (alpha^2 - 1) + 1`, as `alpha^2 (n.h)^2 + |n x h|^2`: a sum of
-    // two positive terms (`1 - (n.h)^2` would cancel near the peak, where it is about
-    // `alpha^2`: in f32 an error of `1e-7 / alpha^2` relative, 4e-5 at `alpha = 0.05`).
-    let s2 = lanes(|i| {
-        let x = n[1] * g.h[2][i] - n[2] * g.h[1][i];
-        let y = n[2] * g.h[0][i] - n[0] * g.h[2][i];
-        let z = n[0] * g.h[1][i] - n[1] * g.h[0][i];
-        x * x + y * y + z * z
-    });
-    let qg = lanes(|i| a2 * (ch[i] * ch[i]) + s2[i]);
+    // The GGX one is `(n.h)^2 (alpha^2 - 1) + 1`; with `GGX_SUM` (the `f32` lanes) it is
+    // computed as `alpha^2 (n.h)^2 + |n x h|^2`, a sum of two positive terms (`1 - (n.h)^2`
+    // would cancel near the peak, where it is about `alpha^2`: in `f32` an error of
+    // `1e-7 / alpha^2` relative, 4e-5 at `alpha = 0.05`; in `f64` `1e-16 / alpha^2`).
+    let qg = if GGX_SUM {
+        let s2 = lanes(|i| {
+            let x = n[1] * g.h[2][i] - n[2] * g.h[1][i];
+            let y = n[2] * g.h[0][i] - n[0] * g.h[2][i];
+            let z = n[0] * g.h[1][i] - n[1] * g.h[0][i];
+            x * x + y * y + z * z
+        });
+        lanes(|i| a2 * (ch[i] * ch[i]) + s2[i])
+    } else {
+        lanes(|i| ch[i] * ch[i] * (a2 - 1.0) + 1.0)
+    };
     let r = lanes(|i| (a2 + (1.0 - a2) * c[i] * c[i]).sqrt());
     let qs = lanes(|i| c[i] * r[i] * (c[i] + r[i]));
     let ip = lanes(|i| 1.0 / (qg[i] * qs[i]));
@@ -361,8 +361,12 @@ impl Accumulator {
         }
     }
 
-    /// The lanes summed (in `f64`).
-    #[inline(always)]
+    /// The lanes summed (in `f64`), one lane after another. Out of line: inlined into the
+    /// dispatched kernels, the compiler summed the 15 vectors at once by transposing them, with
+    /// shuffles and spills that made `accumulate` about twice as slow in `f64` lanes (perf
+    /// samples of a glossy `depth="auto"` run, stop 53); out of line it is scalar code, as in the
+    /// `f64` kernels before the `f32` lanes.
+    #[inline(never)]
     fn finish(self) -> Equations {
         let mut m = Matrix4::zeros();
         let mut e = 0;
@@ -486,7 +490,8 @@ simd_dispatch! {
 }
 
 /// The sums `d.d`, `d.s`, `s.s`, `d.i`, `s.i` over the lit observations of `groups` with their
-/// `factors` (`d = Phi a D`, `s = Phi a S`, `i` the image values), in `f64` lanes.
+/// `factors` (`d = Phi a D`, `s = Phi a S`, `i` the image values), in `f64` lanes (see
+/// [`albedo_sums_in_order`] for the other order).
 #[inline(always)]
 fn albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
     let mut acc = [[0.0; W]; 5];
@@ -507,11 +512,37 @@ fn albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
     acc.map(|x| x.iter().sum())
 }
 
+/// The sums of [`albedo_sums`] in `f64`, one observation after another (group by group, lane by
+/// lane): the order of the scalar loop of the `f64` kernels before the `f32` lanes (their bits),
+/// without a dispatched call.
+#[inline(always)]
+fn albedo_sums_in_order(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
+    let [mut dd, mut ds, mut ss, mut di, mut si] = [0.0; 5];
+    for (g, f) in groups.iter().zip(factors) {
+        for i in 0..W {
+            if f.lit[i] {
+                let scale = f64::from(g.scale[i]);
+                let (d, s) = (scale * f64::from(f.diffuse[i]), scale * f64::from(f.specular[i]));
+                let value = f64::from(g.value[i]);
+                dd += d * d;
+                ds += d * s;
+                ss += s * s;
+                di += d * value;
+                si += s * value;
+            }
+        }
+    }
+    [dd, ds, ss, di, si]
+}
+
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
 /// light; `factors` are those of `groups` at `n`. (In `f64`.)
 fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
-    let [dd, ds, ss, di, si] = albedo_sums_dispatch(groups, factors);
+    let [dd, ds, ss, di, si] = match LANE_ALBEDO_SUMS {
+        true => albedo_sums_dispatch(groups, factors),
+        false => albedo_sums_in_order(groups, factors),
+    };
     if dd <= 0.0 {
         return None;
     }
@@ -644,12 +675,14 @@ pub(super) struct Store {
 
 impl Store {
     /// No observations.
+    #[inline]
     pub(super) fn clear(&mut self) {
         self.len = 0;
         self.groups.clear();
     }
 
     /// The lane of the next observation.
+    #[inline]
     fn next_lane(&mut self) -> (&mut Group, usize) {
         let lane = self.len % W;
         if lane == 0 {
@@ -661,6 +694,7 @@ impl Store {
     }
 
     /// [`Packed::push`].
+    #[inline]
     pub(super) fn push(&mut self, value: f64, scale: f64, light: [f64; 3]) {
         let (g, i) = self.next_lane();
         g.value[i] = value as F;
@@ -671,6 +705,7 @@ impl Store {
     }
 
     /// [`Packed::push_point`].
+    #[inline]
     pub(super) fn push_point(
         &mut self,
         value: f64,
@@ -691,6 +726,7 @@ impl Store {
     }
 
     /// [`Packed::push_observation`].
+    #[inline]
     pub(super) fn push_observation(&mut self, o: &Observation) {
         let (g, i) = self.next_lane();
         g.value[i] = o.value as F;
