@@ -1164,6 +1164,11 @@ pub(crate) mod single {
     /// The fits' starting albedos from sums in `f64` lanes (`albedo_sums`).
     const LANE_ALBEDO_SUMS: bool = true;
 
+    /// The lanes of the normal equations summed inside the kernels (`Accumulator::finish`): out
+    /// of line, the conversions and sums of 15 vectors of 16 lanes took 17 % of the `f32`
+    /// kernels' perf samples in a glossy `depth="auto"` run (stop 53).
+    const FINISH_OUT_OF_LINE: bool = false;
+
     include!("reflectance/kernels.rs");
 }
 
@@ -1202,6 +1207,13 @@ pub(crate) mod double {
     /// The fits' starting albedos from sums one observation after another
     /// (`albedo_sums_in_order`).
     const LANE_ALBEDO_SUMS: bool = false;
+
+    /// The lanes of the normal equations summed out of line (`Accumulator::finish`), as scalar
+    /// code: inlined into the dispatched kernels, the compiler summed the 15 vectors at once by
+    /// transposing them, with shuffles and spills (perf samples of a glossy `depth="auto"` run
+    /// on bumps rough plastic 0.3, stop 53: `accumulate` 298 inlined, 84 plus `finish` 139
+    /// out of line, shared with `equations`).
+    const FINISH_OUT_OF_LINE: bool = true;
 
     include!("reflectance/kernels.rs");
 }

@@ -361,13 +361,25 @@ impl Accumulator {
         }
     }
 
-    /// The lanes summed (in `f64`), one lane after another. Out of line: inlined into the
-    /// dispatched kernels, the compiler summed the 15 vectors at once by transposing them, with
-    /// shuffles and spills that made `accumulate` about twice as slow in `f64` lanes (perf
-    /// samples of a glossy `depth="auto"` run, stop 53); out of line it is scalar code, as in the
-    /// `f64` kernels before the `f32` lanes.
-    #[inline(never)]
+    /// The lanes summed (in `f64`), one lane after another: out of line with
+    /// `FINISH_OUT_OF_LINE` (the `f64` lanes), else inlined into the kernel.
+    #[inline(always)]
     fn finish(self) -> Equations {
+        match FINISH_OUT_OF_LINE {
+            true => self.finish_apart(),
+            false => self.sums(),
+        }
+    }
+
+    /// [`Accumulator::finish`] out of line (as scalar code: no dispatch).
+    #[inline(never)]
+    fn finish_apart(self) -> Equations {
+        self.sums()
+    }
+
+    /// The sums of [`Accumulator::finish`].
+    #[inline(always)]
+    fn sums(self) -> Equations {
         let mut m = Matrix4::zeros();
         let mut e = 0;
         for a in 0..4 {
@@ -742,5 +754,68 @@ impl Store {
     /// [`Packed::prepare`] with the view vector `v` and the lobe's `eta` and diffuse shape.
     pub(super) fn prepare(&mut self, v: [f64; 3], x: [f64; 3], eta: f64, retro: bool) {
         prepare_dispatch(&mut self.groups, v, x, eta, retro);
+    }
+}
+
+#[cfg(test)]
+mod kernel_tests {
+    use super::*;
+
+    /// The starting albedos' sums in `f64` lanes ([`albedo_sums`]) and one observation after
+    /// another ([`albedo_sums_in_order`]) agree to `f64` rounding, and with the scalar model's
+    /// factors to the lanes' rounding, over lit and unlit lanes and a last group not full, under
+    /// a lobe of each diffuse shape.
+    #[test]
+    fn the_albedo_sums_agree_in_both_orders() {
+        let v = [0.0, 0.0, -1.0];
+        let n = normalize([0.3, -0.2, -1.0]);
+        let lanes_rounding = 1000.0 * f64::from(F::EPSILON);
+        for lobe in [
+            Lobe::new(0.3, 1.5),
+            Lobe::retro(0.2, 1.5),
+            Lobe::new(0.1, 1.0),
+        ] {
+            let k = Kernel::new(&lobe);
+            let w = k.view(n, v).expect("the normal faces the camera");
+            let mut store = Store::default();
+            // 21 lights: the last group not full; the last ones behind the facet (unlit).
+            let lights: Vec<[f64; 3]> = (0..21)
+                .map(|i| {
+                    let t = 0.7 * i as f64;
+                    normalize([t.cos(), t.sin(), -1.5 + 0.1 * i as f64])
+                })
+                .collect();
+            let mut scalar = [0.0; 5];
+            for (i, &l) in lights.iter().enumerate() {
+                let (value, phi) = (0.5 + 0.01 * i as f64, 1.0 + 0.1 * i as f64);
+                store.push_observation(&Observation::new(value, phi, l, v, &lobe));
+                if let Some(sh) = lobe.shade(n, l, v) {
+                    let (d, s) = (phi * sh.diffuse, phi * sh.specular);
+                    let terms = [d * d, d * s, s * s, d * value, s * value];
+                    for (sum, term) in scalar.iter_mut().zip(terms) {
+                        *sum += term;
+                    }
+                }
+            }
+            let mut factors = vec![Factors::default(); store.groups.len()];
+            factors_of(&k, &store.groups, n, &w, v, &mut factors);
+            let unlit = (0..lights.len()).filter(|&i| !factors[i / W].lit[i % W]).count();
+            assert!(unlit > 0 && unlit < lights.len(), "{unlit} unlit");
+            let lanes = albedo_sums(&store.groups, &factors);
+            let in_order = albedo_sums_in_order(&store.groups, &factors);
+            for (j, ((&lane, &ordered), &reference)) in
+                lanes.iter().zip(&in_order).zip(&scalar).enumerate()
+            {
+                assert!(reference > 0.0, "{lobe:?} sum {j}: {scalar:?}");
+                assert!(
+                    (lane - ordered).abs() <= 1e-14 * ordered,
+                    "{lobe:?} sum {j}: {lanes:?} against {in_order:?}"
+                );
+                assert!(
+                    (ordered - reference).abs() <= lanes_rounding * reference,
+                    "{lobe:?} sum {j}: {in_order:?} against the scalar model's {scalar:?}"
+                );
+            }
+        }
     }
 }
