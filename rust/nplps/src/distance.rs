@@ -2320,7 +2320,8 @@ mod search_state_tests {
     use crate::synth::{Scene, SceneKind};
 
     /// The search compares its candidates without the glossy fits' continuation (their
-    /// residual curve moved with it) and gives it back to the run at the distance found.
+    /// residual curve moved with it), with its glossy fits in `f64` lanes, and gives both back
+    /// to the run at the distance found.
     #[test]
     fn the_search_turns_the_continuation_off_and_back_on() {
         let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
@@ -2339,8 +2340,10 @@ mod search_state_tests {
         assert!(!solver.local_step(false, None).settings.continuation);
         // ... and its glossy fits without the step tolerance (`STEP_TOLERANCE`).
         assert_eq!(solver.local_step(false, None).settings.step_tolerance, 0.0);
+        assert!(solver.local_step(false, None).settings.precise);
         end_search(&mut solver, saved);
         assert!(solver.continuation && solver.check_lights);
         assert!(solver.local_step(false, None).settings.step_tolerance > 0.0);
+        assert!(!solver.local_step(false, None).settings.precise);
     }
 }

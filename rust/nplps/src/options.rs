@@ -120,6 +120,7 @@ impl Options {
             continuation: true,
             step_tolerance: 0.0,
             noise: 0.0,
+            precise: false,
         }
     }
 }

@@ -1881,6 +1881,8 @@ impl<'p> Solver<'p> {
                 // nor before the run's last lobe estimate (`lobe_pending`).
                 step_tolerance,
                 noise,
+                // ... and there the glossy fits run in `f64` lanes (their criteria are flat).
+                precise: !self.continuation,
                 ..self.options.fit_settings(fast_residual)
             },
             depths,

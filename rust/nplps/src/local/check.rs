@@ -66,7 +66,7 @@ use super::{
 };
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
-use crate::reflectance::{Lobe, Packed};
+use crate::reflectance::Lobe;
 use crate::vec3::{add, dot, norm};
 
 /// The solver compares the models with fewer lights than this only (the glossy fits'
@@ -250,7 +250,7 @@ pub fn check_lobe(step: &LocalStep<'_>, u: &[f64], lobe: &Lobe) -> Result<Option
         .into_par_iter()
         .step_by(stride)
         .map_init(
-            || (vec![0.0f32; per], Packed::new()),
+            || (vec![0.0f32; per], step.settings.packed()),
             |(buf, scratch), f| {
                 let q = step.corners(f, u);
                 let c = quad_centre(&q);

@@ -14,14 +14,13 @@ use rayon::prelude::*;
 
 use super::trust::{add_sums, LightSums, CHUNK};
 use super::{
-    facet_scratch, keep_shape, u16_value, usable_count, FacetFit, FacetStat, LocalStep, Model,
-    Observations, Robust, Stored, Weighting, SCRATCH,
+    keep_shape, u16_value, usable_count, FacetFit, FacetStat, LocalStep, Model, Observations,
+    Robust, Stored, Weighting, SCRATCH,
 };
 use crate::error::Result;
 use crate::geometry::{quad_centre, Geometry};
 use crate::light::LaneLight;
 use crate::memory::try_vec;
-use crate::reflectance::Packed;
 
 mod field;
 mod robust;
@@ -83,7 +82,10 @@ fn gather_interleaved<T: Copy, const N: usize>(
 /// A thread's scratch space of the vectorized accumulation: one facet's `per` observations and
 /// the `k` lights' observations of [`LANES`] facets interleaved.
 pub(super) fn lane_scratch(per: usize, k: usize) -> Result<(Vec<f32>, Vec<[f32; LANES]>)> {
-    Ok((facet_scratch(per)?.0, try_vec(k, [0.0f32; LANES], SCRATCH)?))
+    Ok((
+        try_vec(per, 0.0f32, SCRATCH)?,
+        try_vec(k, [0.0f32; LANES], SCRATCH)?,
+    ))
 }
 
 /// How far ahead (in pixels) the gather of observations prefetches each image: the local step
@@ -1016,7 +1018,8 @@ impl LocalStep<'_> {
                     } else {
                         for (i, out) in out.iter_mut().enumerate() {
                             if fitted {
-                                let fit = self.fit(at + i, u, buf, &mut Packed::new(), None);
+                                let fit =
+                                    self.fit(at + i, u, buf, &mut self.settings.packed(), None);
                                 fits[batch.start + i] = fit;
                             }
                             *out = self.facet_trust(at + i, u, buf, trust_rows, &mut sums, None);

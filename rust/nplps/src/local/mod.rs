@@ -109,6 +109,11 @@ pub struct FitSettings {
     /// step tolerance also ends the glossy fits (see
     /// [`NOISE_STOP`](crate::reflectance::NOISE_STOP)); 0: none known.
     pub noise: f64,
+    /// The glossy fits run their kernels in `f64` lanes ([`Packed::precise`]) instead of
+    /// `f32` ones. The solver sets it where residuals are compared across candidates (the
+    /// distance search and check, see `Solver::local_step`): their criteria are flat, and the
+    /// `f32` lanes' rounding moved the distances found (stop 51, docs/shiny.md).
+    pub precise: bool,
 }
 
 impl Default for FitSettings {
@@ -123,6 +128,18 @@ impl Default for FitSettings {
             continuation: true,
             step_tolerance: 0.0,
             noise: 0.0,
+            precise: false,
+        }
+    }
+}
+
+impl FitSettings {
+    /// A glossy fit's scratch space in the lanes' precision of these settings (see
+    /// [`FitSettings::precise`]).
+    pub(crate) fn packed(&self) -> Packed {
+        match self.precise {
+            true => Packed::precise(),
+            false => Packed::new(),
         }
     }
 }
@@ -724,7 +741,7 @@ impl LocalStep<'_> {
             );
         }
         fits.par_iter_mut().enumerate().try_for_each_init(
-            || facet_scratch(per),
+            || facet_scratch(per, &self.settings),
             |scratch, (i, fit)| {
                 let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                 if !self.cancel.is_cancelled() {
@@ -831,7 +848,7 @@ impl LocalStep<'_> {
             .zip(records)
             .enumerate()
             .map_init(
-                || facet_scratch(per),
+                || facet_scratch(per, &self.settings),
                 |scratch, (i, (fit, record))| -> Result<usize> {
                     let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
@@ -984,7 +1001,7 @@ impl LocalStep<'_> {
             .zip(stats.par_iter_mut())
             .enumerate()
             .try_for_each_init(
-                || facet_scratch(per),
+                || facet_scratch(per, &self.settings),
                 |scratch, (f, (target, stat))| {
                     let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
@@ -1030,7 +1047,7 @@ impl LocalStep<'_> {
                 .zip(warm.par_iter_mut())
                 .enumerate()
                 .try_for_each_init(
-                    || facet_scratch(per),
+                    || facet_scratch(per, &self.settings),
                     |scratch, (f, ((target, stat), warm))| {
                         let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                         if self.cancel.is_cancelled() {
@@ -1058,7 +1075,7 @@ impl LocalStep<'_> {
             .zip(kept.facets.par_iter_mut())
             .enumerate()
             .map_init(
-                || facet_scratch(per),
+                || facet_scratch(per, &self.settings),
                 |scratch, (f, (((target, stat), warm), record))| -> Result<usize> {
                     let (buf, glossy) = scratch.as_mut().map_err(|e| e.clone())?;
                     if self.cancel.is_cancelled() {
@@ -1270,8 +1287,8 @@ const SCRATCH: &str = "the local step's per-thread scratch space";
 
 /// A thread's scratch space for one facet's `per` observations (and, filled on demand, its
 /// observations under the glossy model).
-fn facet_scratch(per: usize) -> Result<(Vec<f32>, Packed)> {
-    Ok((try_vec(per, 0.0f32, SCRATCH)?, Packed::new()))
+fn facet_scratch(per: usize, settings: &FitSettings) -> Result<(Vec<f32>, Packed)> {
+    Ok((try_vec(per, 0.0f32, SCRATCH)?, settings.packed()))
 }
 
 /// Whether an observation (all its channels) can be used.

@@ -142,7 +142,7 @@ impl LocalStep<'_> {
             fits.copy_from_slice(&lanes);
         } else {
             for (i, fit) in fits.iter_mut().enumerate() {
-                let glossy = &mut crate::reflectance::Packed::new();
+                let glossy = &mut self.settings.packed();
                 *fit = self.fit(first + i, u, &mut scratch.buf, glossy, None);
             }
         }
