@@ -473,6 +473,12 @@ pub const INDIRECT_RESIDUAL_TOL: f64 = 1e-3;
 /// sphere (stop 46, docs/performance.md).
 pub const PLAIN_TOL: f64 = 1e-4;
 
+/// [`Solver::mask_settled`] of a solver with a cast-shadow mask (`masked`) that has made its
+/// guided march (`marched_guided`, at [`GUIDED_MARCH_AT`]), at `iteration`.
+fn mask_settled(masked: bool, marched_guided: bool, iteration: usize) -> bool {
+    !masked || (marched_guided && iteration > GUIDED_MARCH_AT)
+}
+
 /// Whether the rounds of [`Solver::interreflect`] have settled by their residual: the RMS
 /// residuals at the end of two successive rounds, `before` and `now`, differ by at most
 /// [`INDIRECT_RESIDUAL_TOL`] times `now` (false when either is not finite, e.g. before the first
@@ -1317,7 +1323,7 @@ impl<'p> Solver<'p> {
     /// made before the local step of its iteration, so that iteration's change is already
     /// made with the final mask). A level that marches at [`SHADOWS_AT`] does not project.
     fn mask_settled(&self, iteration: usize) -> bool {
-        self.shadows.is_none() || (self.marched_guided && iteration > GUIDED_MARCH_AT)
+        mask_settled(self.shadows.is_some(), self.marched_guided, iteration)
     }
 
     /// The iterations at which a run estimates the lobe ([`LOBE_AT`] with the continuation off,
@@ -2361,6 +2367,27 @@ mod projected_tests {
         assert!(!fits_settled(f64::NAN, 0.0201516, share));
         // tol = 0 turns the rule off, even for equal residuals.
         assert!(!fits_settled(0.02, 0.02, 0.0));
+    }
+
+    /// The projection compares two changes made with the mask the run ends with: any two
+    /// without a mask; with one, only from the iteration after the guided march (the march
+    /// is made before that iteration's local step, so the change of the march's own iteration
+    /// is the first with the final mask) and never for a level that marches at
+    /// [`SHADOWS_AT`] (no guided march).
+    #[test]
+    fn the_projection_waits_for_the_last_march() {
+        for iteration in 1..6 {
+            assert!(mask_settled(false, false, iteration));
+            assert!(!mask_settled(true, false, iteration), "{iteration}");
+            assert_eq!(
+                mask_settled(true, true, iteration),
+                iteration > GUIDED_MARCH_AT,
+                "{iteration}"
+            );
+        }
+        // At the iteration after the march the previous change is the march's own iteration's.
+        assert!(mask_settled(true, true, GUIDED_MARCH_AT + 1));
+        assert!(!mask_settled(true, true, GUIDED_MARCH_AT));
     }
 
     #[test]
