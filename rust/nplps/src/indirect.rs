@@ -213,14 +213,20 @@ impl Exchange {
         mask: Option<&[bool]>,
         max_pairs: Option<usize>,
     ) -> Result<Exchange> {
-        Ok(Self::build(camera, height, width, vertices, mask, max_pairs, None)?.0)
+        Ok(Self::build(
+            camera, height, width, vertices, mask, max_pairs, None, false,
+        )?
+        .0)
     }
 
     /// [`Exchange::new`], with the visibility verdicts of an exchange of the same grid and mask
     /// on a nearby mesh (`previous`, see [`Sightlines`]): a facing pair keeps its verdict there
     /// when its clearance exceeds [`SIGHT_SLACK`] times the largest vertex displacement between
     /// the two meshes, and is marched otherwise. Returns the exchange and its own verdicts
-    /// (None beyond [`MAX_SIGHTLINES`] marched pairs).
+    /// (None beyond [`MAX_SIGHTLINES`] marched pairs, or without `keep`: when no exchange will
+    /// take them, a blocked pair's march then ends at its first blocking sample, since only
+    /// the sign of its clearance is used: the same exchange).
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn build(
         camera: &Camera,
         height: usize,
@@ -229,6 +235,7 @@ impl Exchange {
         mask: Option<&[bool]>,
         max_pairs: Option<usize>,
         previous: Option<&Sightlines>,
+        keep: bool,
     ) -> Result<(Exchange, Option<Sightlines>)> {
         let plane = height * width;
         ensure_usable(plane > 0, || "the mesh has no facets".to_string())?;
@@ -329,14 +336,16 @@ impl Exchange {
                         None => {
                             marched.fetch_add(1, Ordering::Relaxed);
                             let (a, b) = ((i, &fi, projected[i]), (j, fj, projected[j]));
-                            clearance(&march, &depths, a, b, ceiling, tol) as f32
+                            clearance(&march, &depths, a, b, ceiling, tol, !keep) as f32
                         }
                     };
-                    sights.push(Sight {
-                        source: j as u32,
-                        samples,
-                        clearance,
-                    });
+                    if keep {
+                        sights.push(Sight {
+                            source: j as u32,
+                            samples,
+                            clearance,
+                        });
+                    }
                     if clearance < 0.0 {
                         continue;
                     }
@@ -353,7 +362,7 @@ impl Exchange {
             .collect();
         let (rows, sights): (Vec<Row>, Vec<Vec<Sight>>) = rows.into_iter().unzip();
         let facing: usize = sights.iter().map(Vec::len).sum();
-        let sightlines = (facing <= MAX_SIGHTLINES).then(|| Sightlines {
+        let sightlines = (keep && facing <= MAX_SIGHTLINES).then(|| Sightlines {
             height,
             width,
             vertices: vertices.to_vec(),
@@ -578,6 +587,7 @@ fn clearance(
     (pb, fb, mb): (usize, &Facet, [f64; 2]),
     ceiling: f64,
     tol: f64,
+    first_block: bool,
 ) -> f64 {
     let (c, e) = (fa.centre, fb.centre);
     if !ceiling.is_finite() {
@@ -597,12 +607,13 @@ fn clearance(
             perspective,
             total,
             tol,
+            first_block,
         };
         return clearance_dispatch(depths, &segment);
     }
     let steps = total as usize;
     let d = sub(e, c);
-    let mut verdict = Verdict::new();
+    let mut verdict = Verdict::new(first_block);
     for i in 1..steps {
         let s = i as f64 / total;
         // With distortion: the segment's point, projected.
@@ -616,7 +627,8 @@ fn clearance(
 }
 
 /// An undistorted segment of [`clearance`]: its two cells, projected centres and depths, the
-/// camera's kind, its sample count and tolerance.
+/// camera's kind, its sample count and tolerance, and whether its march ends at its first
+/// blocking sample ([`Verdict::first_block`]).
 struct Segment {
     ends: (usize, usize),
     image: [[f64; 2]; 2],
@@ -624,6 +636,7 @@ struct Segment {
     perspective: bool,
     total: f64,
     tol: f64,
+    first_block: bool,
 }
 
 /// Samples of [`clearance_lanes`] computed together.
@@ -649,9 +662,10 @@ fn clearance_lanes(depths: &CellDepths, segment: &Segment) -> f64 {
         perspective,
         total,
         tol,
+        first_block,
     } = *segment;
     let steps = total as usize;
-    let mut verdict = Verdict::new();
+    let mut verdict = Verdict::new(first_block);
     let mut from = 1;
     while from < steps {
         let s: [f64; MARCH_LANES] = crate::lanes(|t| (from + t) as f64 / total);
@@ -678,13 +692,17 @@ struct Verdict {
     clearance: f64,
     /// Blocked: the deepest cut so far.
     blocked: Option<f64>,
+    /// Whether the march ends at its first blocking sample (its clearance then the cut there,
+    /// negative as the deepest cut: the same verdict, not the same clearance).
+    first_block: bool,
 }
 
 impl Verdict {
-    fn new() -> Verdict {
+    fn new(first_block: bool) -> Verdict {
         Verdict {
             clearance: f64::INFINITY,
             blocked: None,
+            first_block,
         }
     }
 
@@ -723,7 +741,7 @@ impl Verdict {
                 // (negative: z_surface < reach, and finite values differ by a nonzero amount)
                 _ => self.blocked = Some(cut.min(-f64::MIN_POSITIVE)),
             }
-            return false;
+            return self.first_block;
         }
         self.clearance = self.clearance.min(z_surface - reach);
         false
@@ -1282,6 +1300,7 @@ impl IndirectField {
     /// grid's side limit, see [`FIELD_SIDE_SMALL`]; 2: the first round of `Solver::interreflect`,
     /// see [`FIRST_ROUND_COARSER`]).
     #[allow(clippy::too_many_arguments)]
+    #[cfg_attr(not(test), allow(dead_code))]
     pub(crate) fn of_mesh(
         camera: &Camera,
         grid: &crate::grid::Grid,
@@ -1292,6 +1311,27 @@ impl IndirectField {
         previous: Option<IndirectField>,
         max_pairs: Option<usize>,
         coarser: usize,
+    ) -> Result<IndirectField> {
+        Self::of_mesh_keeping(
+            camera, grid, geometry, u, obs, lights, previous, max_pairs, coarser, true,
+        )
+    }
+
+    /// [`IndirectField::of_mesh`], keeping the exchange's visibility verdicts for the next
+    /// field only with `keep` (see [`Exchange::build`]; without, the same field, made faster,
+    /// with no verdicts for the next).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn of_mesh_keeping(
+        camera: &Camera,
+        grid: &crate::grid::Grid,
+        geometry: &crate::geometry::Geometry,
+        u: &[f64],
+        obs: &crate::local::Observations<'_>,
+        lights: &[crate::Light],
+        previous: Option<IndirectField>,
+        max_pairs: Option<usize>,
+        coarser: usize,
+        keep: bool,
     ) -> Result<IndirectField> {
         // (the rest of the field before is dropped here)
         let (min_factor, mut sightlines) = previous.map_or((1, None), |f| (f.factor, f.sightlines));
@@ -1311,7 +1351,7 @@ impl IndirectField {
         loop {
             let before = sightlines.take();
             match Self::at_factor(
-                &coarse, factor, grid, &depth, obs, lights, max_pairs, before,
+                &coarse, factor, grid, &depth, obs, lights, max_pairs, before, keep,
             ) {
                 Err(Error::Unusable(m))
                     if m.contains("max_pairs")
@@ -1338,6 +1378,7 @@ impl IndirectField {
         lights: &[crate::Light],
         max_pairs: Option<usize>,
         previous: Option<Sightlines>,
+        keep: bool,
     ) -> Result<IndirectField> {
         let (h, w) = (grid.height, grid.width);
         let (hc, wc) = (h.div_ceil(factor), w.div_ceil(factor));
@@ -1461,6 +1502,7 @@ impl IndirectField {
             Some(&mask_e),
             max_pairs,
             previous.as_ref(),
+            keep,
         )?;
         drop(previous);
         // The emitters, (k, He, We, C): the binned observations in the image, the model in the
@@ -1573,7 +1615,10 @@ impl IndirectField {
 
     /// [`IndirectField::with_unlit`]: per facet (in parallel, into one flat buffer: 16 bytes a
     /// facet at up to 64 lights) the lights behind it, then those its margin hides (with
-    /// `kept` and the [`MIN_LIT`] rule).
+    /// `kept` and the [`MIN_LIT`] rule). The lights behind [`MARK_LANES`] facets at a time
+    /// (a point light's `beta` in lanes: the same values as `Light::beta`), and each centre
+    /// projected once for the margin's tests of all its lights (the sheet's option: this took
+    /// 72 ms a run at stop 52, 42 of them in the margin's tests; docs/concave.md, stop 53).
     fn marked(
         mut self,
         grid: &crate::grid::Grid,
@@ -1600,46 +1645,81 @@ impl IndirectField {
         )?;
         // (no lights: an empty buffer, and chunks of 1 so that the chunking is defined)
         let per = (2 * words).max(1);
-        bits.par_chunks_mut(per).enumerate().for_each(|(f, out)| {
-            let (bits, hidden) = out.split_at_mut(words);
-            let q = geometry.facet_corners(grid, f, u);
-            let (c, n) = (
-                crate::geometry::quad_centre(&q),
-                crate::geometry::quad_normal(&q),
-            );
-            if let Some(kept) = kept.as_ref() {
-                let p = grid.facets[f] as usize;
-                hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
-            }
-            for (k, light) in lights.iter().enumerate() {
-                if not_above(dot(n, light.beta(c).0), 0.0) {
-                    bits[k / 64] |= 1 << (k % 64);
+        // The point lights' lane forms: the lights behind [`MARK_LANES`] facets at a time
+        // (`Light::beta`'s operations in its order, per lane: the same values).
+        let lanes: Vec<Option<crate::light::LaneLight>> = lights
+            .iter()
+            .map(crate::light::LaneLight::from_light)
+            .collect();
+        bits.par_chunks_mut(per * MARK_LANES)
+            .enumerate()
+            .for_each(|(chunk, outs)| {
+                let first = chunk * MARK_LANES;
+                let count = outs.len() / per;
+                // The facets' centres and normals (the chunk's last facet repeated past its
+                // end, whose lanes are not read).
+                let mut centres = [[0.0; 3]; MARK_LANES];
+                let mut normals = [[0.0; 3]; MARK_LANES];
+                for l in 0..MARK_LANES {
+                    let q = geometry.facet_corners(grid, first + l.min(count - 1), u);
+                    centres[l] = crate::geometry::quad_centre(&q);
+                    normals[l] = crate::geometry::quad_normal(&q);
                 }
-            }
-            // The margin is a guess: it may not leave fewer than MIN_LIT lights.
-            for (k, light) in lights.iter().enumerate() {
-                let bit = 1 << (k % 64);
-                // (a light kept hidden is not marched again: the result is the same)
-                if (bits[k / 64] | hidden[k / 64]) & bit == 0
-                    && margin.is_some_and(|m| m.hides(c, light))
-                {
-                    hidden[k / 64] |= bit;
+                for (k, (light, lane)) in lights.iter().zip(&lanes).enumerate() {
+                    let (w, bit) = (k / 64, 1u64 << (k % 64));
+                    let behind: [bool; MARK_LANES] = match lane {
+                        Some(lane) => {
+                            let (a, f) = lane.beta(&centres);
+                            crate::lanes(|l| {
+                                let b = [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]];
+                                not_above(dot(normals[l], b), 0.0)
+                            })
+                        }
+                        None => crate::lanes(|l| {
+                            not_above(dot(normals[l], light.beta(centres[l]).0), 0.0)
+                        }),
+                    };
+                    for (l, out) in outs.chunks_exact_mut(per).enumerate() {
+                        if behind[l] {
+                            out[w] |= bit;
+                        }
+                    }
                 }
-            }
-            let unlit: u32 = bits
-                .iter()
-                .zip(hidden.iter())
-                .map(|(a, b)| (a | b).count_ones())
-                .sum();
-            let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
-            if applied {
-                for (a, b) in bits.iter_mut().zip(hidden.iter()) {
-                    *a |= b;
+                for (l, out) in outs.chunks_exact_mut(per).enumerate() {
+                    let (bits, hidden) = out.split_at_mut(words);
+                    let f = first + l;
+                    let c = centres[l];
+                    if let Some(kept) = kept.as_ref() {
+                        let p = grid.facets[f] as usize;
+                        hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+                    }
+                    // The margin is a guess: it may not leave fewer than MIN_LIT lights. (The
+                    // centre is projected once for all the lights.)
+                    let seen = margin.map(|m| (m, m.camera.project(c)));
+                    for (k, light) in lights.iter().enumerate() {
+                        let bit = 1 << (k % 64);
+                        // (a light kept hidden is not marched again: the result is the same)
+                        if (bits[k / 64] | hidden[k / 64]) & bit == 0
+                            && seen.is_some_and(|(m, a)| m.hides(c, a, light))
+                        {
+                            hidden[k / 64] |= bit;
+                        }
+                    }
+                    let unlit: u32 = bits
+                        .iter()
+                        .zip(hidden.iter())
+                        .map(|(a, b)| (a | b).count_ones())
+                        .sum();
+                    let applied = lights.len().saturating_sub(unlit as usize) >= MIN_LIT;
+                    if applied {
+                        for (a, b) in bits.iter_mut().zip(hidden.iter()) {
+                            *a |= b;
+                        }
+                    } else {
+                        hidden.fill(0);
+                    }
                 }
-            } else {
-                hidden.fill(0);
-            }
-        });
+            });
         drop(kept);
         let mut hidden = crate::memory::try_vec(
             grid.height * grid.width * words,
@@ -1826,6 +1906,9 @@ pub const MARGIN_FRACTION: f64 = 0.125;
 /// at least `MIN_LIT` lights still reach it (a facet with fewer rows of direct light cannot be
 /// fitted; the margin is a guess).
 pub const MIN_LIT: usize = 3;
+
+/// Facets whose unlit lights [`IndirectField::with_unlit`] marks together, in SIMD lanes.
+const MARK_LANES: usize = 8;
 
 /// Passes of "model the margin's light, gather again" (see `Margin::emit`).
 pub const MARGIN_PASSES: usize = 2;
@@ -2022,7 +2105,10 @@ impl MarginMesh {
     /// `shadows=True`): hidden where the bilinear surface depth there is nearer than the
     /// segment's by more than `1e-6 |z| + 1e-3` coarse facet sizes. Segments whose cut ends
     /// both project inside the image are not marched.
-    fn hides(&self, x: [f64; 3], light: &crate::Light) -> bool {
+    ///
+    /// `a` is the image point of `x`, `self.camera.project(x)` (a facet's centre is projected
+    /// once for all its lights).
+    fn hides(&self, x: [f64; 3], a: [f64; 2], light: &crate::Light) -> bool {
         let end = match *light {
             crate::Light::Point { position, .. } => {
                 if position[2] < self.z_min && x[2] > self.z_min {
@@ -2045,7 +2131,7 @@ impl MarginMesh {
             let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
             gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
         };
-        let (a, b) = (self.camera.project(x), self.camera.project(end));
+        let b = self.camera.project(end);
         if !(a.iter().chain(&b).all(|v| v.is_finite())) || (inside(a) && inside(b)) {
             return false;
         }
@@ -2298,7 +2384,7 @@ mod tests {
         }
         let total = (2.0 * length).ceil().max(1.0);
         let d = sub(e, c);
-        let mut verdict = Verdict::new();
+        let mut verdict = Verdict::new(false);
         for i in 1..total as usize {
             let s = i as f64 / total;
             let z = match march.camera.is_perspective() {
@@ -2364,7 +2450,7 @@ mod tests {
                     let a = (i, fi, camera.project(fi.centre));
                     let b = (j, fj, camera.project(fj.centre));
                     let ceiling = march_length(a.2, b.2);
-                    let lanes = clearance(&march, &cells, a, b, ceiling, tol);
+                    let lanes = clearance(&march, &cells, a, b, ceiling, tol, false);
                     let one = clearance_one_by_one(&march, &cells, a, b, tol);
                     assert_eq!(lanes.to_bits(), one.to_bits(), "pair {i}, {j}");
                     match lanes < 0.0 {
@@ -3172,11 +3258,12 @@ mod tests {
         ];
         for (case, (camera, mask, before, after, few)) in cases.into_iter().enumerate() {
             let mask = mask.as_deref();
-            let (first, lines) = Exchange::build(&camera, n, n, &before, mask, None, None).unwrap();
+            let (first, lines) =
+                Exchange::build(&camera, n, n, &before, mask, None, None, true).unwrap();
             let lines = lines.expect("verdicts kept");
             let fresh = Exchange::new(&camera, n, n, &after, mask, None).unwrap();
             let (carried, _) =
-                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines)).unwrap();
+                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines), true).unwrap();
             assert!(same(&carried, &fresh), "case {case}");
             assert!(first.marched() > 1000, "case {case}: {}", first.marched());
             if few {
@@ -3189,8 +3276,18 @@ mod tests {
             }
             // The same mesh keeps every verdict.
             let (again, _) =
-                Exchange::build(&camera, n, n, &before, mask, None, Some(&lines)).unwrap();
+                Exchange::build(&camera, n, n, &before, mask, None, Some(&lines), true).unwrap();
             assert!(same(&again, &first) && again.marched() == 0, "case {case}");
+            // Without verdicts kept (the blocked marches end at their first blocking sample):
+            // the same exchanges, fresh and with the verdicts before, and no verdicts.
+            let (lean, none) =
+                Exchange::build(&camera, n, n, &before, mask, None, None, false).unwrap();
+            assert!(same(&lean, &first) && none.is_none(), "case {case}");
+            assert_eq!(lean.marched(), first.marched(), "case {case}");
+            let (lean, none) =
+                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines), false).unwrap();
+            assert!(same(&lean, &carried) && none.is_none(), "case {case}");
+            assert_eq!(lean.marched(), carried.marched(), "case {case}");
         }
         // The wall: the pair across it is blocked on the nearby mesh only.
         let x = Exchange::new(&ortho(), n, n, &ortho_vertices(wall(12.0)), None, None).unwrap();
@@ -3346,6 +3443,82 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The lights behind each facet and those the margin hides ([`IndirectField::with_unlit`]:
+    /// the point lights' `beta` in lanes of [`MARK_LANES`] facets, the centre projected once
+    /// per facet) are those of the scalar rule facet by facet (`n . beta_k(c) <= 0` with
+    /// `Light::beta`, then `MarginMesh::hides` with the centre projected for each light and the
+    /// [`MIN_LIT`] rule): on a sheet of ridges that reaches the border, with isotropic and
+    /// anisotropic point lights and a directional one, 30² facets (a last chunk of 4), both
+    /// cameras.
+    #[test]
+    fn the_unlit_lights_in_lanes_are_those_of_the_scalar_rule() {
+        let n = 30;
+        let depth = depths(n, |r, c| 100.0 - 6.0 * (0.45 * c + 0.1 * r).sin());
+        let led = |p: [f64; 3], axis: [f64; 3], mu: f64| crate::Light::Point {
+            position: p,
+            intensity: [1.0; 3],
+            axis,
+            mu,
+        };
+        let lights = vec![
+            crate::Light::point([-20.0, 0.0, 0.0]),
+            crate::Light::point([52.0, 10.0, 0.0]),
+            led([16.0, -20.0, 0.0], [0.0, 0.2, 1.0], 1.5),
+            led([16.0, 52.0, 10.0], [0.1, -0.3, 0.9], 0.7),
+            crate::Light::Directional {
+                direction: [0.6, 0.0, -0.8],
+                intensity: [1.0; 3],
+            },
+            crate::Light::point([5.0, 5.0, 60.0]),
+        ];
+        let pinhole = Camera::Pinhole {
+            k: [[40.0, 0.0, 14.5], [0.0, 40.0, 14.5], [0.0, 0.0, 1.0]],
+            distortion: [0.0; 5],
+        };
+        let mut hidden_any = 0;
+        for camera in [ortho(), pinhole] {
+            let grid = crate::grid::Grid::new(n, n, None).unwrap();
+            let geometry = crate::geometry::Geometry::new(&camera, &grid).unwrap();
+            let u = grid.gather_vertices(&depth).unwrap();
+            let images = vec![0.3f32; lights.len() * n * n];
+            let obs = crate::local::Observations::from_stack(&images, lights.len(), n * n, 1);
+            let field =
+                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
+                    .unwrap();
+            let margin = field.margin.clone().expect("a margin");
+            let field = field
+                .with_unlit(&grid, &geometry, &u, &lights, None)
+                .unwrap();
+            for (f, &p) in grid.facets.iter().enumerate() {
+                let q = geometry.facet_corners(&grid, f, &u);
+                let (c, nrm) = (
+                    crate::geometry::quad_centre(&q),
+                    crate::geometry::quad_normal(&q),
+                );
+                let behind: Vec<bool> = lights
+                    .iter()
+                    .map(|l| not_above(dot(nrm, l.beta(c).0), 0.0))
+                    .collect();
+                let hidden: Vec<bool> = lights
+                    .iter()
+                    .zip(&behind)
+                    .map(|(l, &b)| !b && margin.hides(c, margin.camera.project(c), l))
+                    .collect();
+                let unlit = behind.iter().chain(&hidden).filter(|&&x| x).count();
+                let applied = lights.len().saturating_sub(unlit) >= MIN_LIT;
+                hidden_any += usize::from(applied && hidden.iter().any(|&h| h));
+                for k in 0..lights.len() {
+                    let expected = behind[k] || (applied && hidden[k]);
+                    assert_eq!(field.is_unlit(p as usize, k), expected, "{p} {k}");
+                }
+            }
+        }
+        assert!(
+            hidden_any > 0,
+            "the margin hides no light: the test tests nothing of it"
+        );
     }
 
     #[test]

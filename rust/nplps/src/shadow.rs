@@ -82,7 +82,7 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_mask, ensure_range, Result};
 use crate::geometry::{quad_centre, quad_normal};
-use crate::light::Light;
+use crate::light::{LaneLight, Light};
 use crate::rig::{Camera, Rig};
 use crate::vec3::{dot, not_above, sub};
 
@@ -647,22 +647,31 @@ pub(crate) fn march_refined(
     // zero off the lattice and where it is not a facet).
     let mut known = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
     let mut facing = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
+    let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
     known
         .par_chunks_mut(words * width)
         .zip(facing.par_chunks_mut(words * width))
         .enumerate()
         .filter(|(r, _)| lattice(*r))
         .for_each(|(r, (out, faces))| {
+            // The lights each lattice facet of the row faces (in lanes), then its marches.
+            let mut batch = FacingBatch::new(lights, &lanes);
             for col in (0..width).filter(|&c| lattice(c)) {
-                let Some((c, n, slack)) = march.facet(r * width + col) else {
+                if let Some((c, n, _)) = march.facet(r * width + col) {
+                    batch.push(col, c, n, faces, words);
+                }
+            }
+            batch.flush(faces, words);
+            for col in (0..width).filter(|&c| lattice(c)) {
+                let f = &faces[col * words..(col + 1) * words];
+                if f.iter().all(|&b| b == 0) {
+                    continue;
+                }
+                let Some((c, _, slack)) = march.facet(r * width + col) else {
                     continue;
                 };
                 for (k, light) in lights.iter().enumerate() {
-                    if not_above(dot(n, light.beta(c).0), 0.0) {
-                        continue;
-                    }
-                    faces[col * words + k / 64] |= 1 << (k % 64);
-                    if march.blocked(c, light, slack) {
+                    if f[k / 64] & (1 << (k % 64)) != 0 && march.blocked(c, light, slack) {
                         out[col * words + k / 64] |= 1 << (k % 64);
                     }
                 }
@@ -688,6 +697,15 @@ pub(crate) fn march_refined(
         .enumerate()
         .for_each(|(r, out)| {
             let (rows, nr) = near(r, height);
+            // The lights each facet of the row off the lattice faces (in lanes).
+            let mut own = vec![0u64; width * words];
+            let mut batch = FacingBatch::new(lights, &lanes);
+            for col in (0..width).filter(|&c| !(lattice(r) && lattice(c))) {
+                if let Some((c, n, _)) = march.facet(r * width + col) {
+                    batch.push(col, c, n, &mut own, words);
+                }
+            }
+            batch.flush(&mut own, words);
             for col in 0..width {
                 let p = r * width + col;
                 let o = &mut out[col * words..(col + 1) * words];
@@ -695,7 +713,11 @@ pub(crate) fn march_refined(
                     o.copy_from_slice(&known[p * words..(p + 1) * words]);
                     continue;
                 }
-                let Some((c, n, slack)) = march.facet(p) else {
+                let faces = &own[col * words..(col + 1) * words];
+                if faces.iter().all(|&b| b == 0) {
+                    continue;
+                }
+                let Some((c, _, slack)) = march.facet(p) else {
                     continue;
                 };
                 let (cols, nc) = near(col, width);
@@ -710,10 +732,10 @@ pub(crate) fn march_refined(
                 let around = &around[..count];
                 let complete = count > 0 && around.iter().all(|&q| mask[q]);
                 for (k, light) in lights.iter().enumerate() {
-                    if not_above(dot(n, light.beta(c).0), 0.0) {
+                    let (w, bit) = (k / 64, 1u64 << (k % 64));
+                    if faces[w] & bit == 0 {
                         continue;
                     }
-                    let (w, bit) = (k / 64, 1u64 << (k % 64));
                     let faced =
                         complete && around.iter().all(|&q| facing[q * words + w] & bit != 0);
                     let shadowed = around
@@ -893,27 +915,41 @@ pub(crate) fn march_guided(
         Ok(start) => start,
         Err(done) => return Ok(done),
     };
-    // Per pixel, the lights it faces on this mesh (zero where it is not a facet).
+    // Per pixel, the lights it faces on this mesh (zero where it is not a facet), the point
+    // lights in lanes of FACE_LANES facets of a row.
     let mut facing = crate::memory::try_vec(plane * words, 0u64, "the shadow mask")?;
+    let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
     facing
         .par_chunks_mut(words * width)
         .enumerate()
         .for_each(|(r, faces)| {
+            let mut batch = FacingBatch::new(lights, &lanes);
             for col in 0..width {
-                let Some((c, n, _)) = march.facet(r * width + col) else {
-                    continue;
-                };
-                for (k, light) in lights.iter().enumerate() {
-                    if !not_above(dot(n, light.beta(c).0), 0.0) {
-                        faces[col * words + k / 64] |= 1 << (k % 64);
-                    }
+                if let Some((c, n, _)) = march.facet(r * width + col) {
+                    batch.push(col, c, n, faces, words);
                 }
             }
+            batch.flush(faces, words);
         });
     let span = |i: usize, size: usize| i.saturating_sub(radius)..(i + radius + 1).min(size);
     bits.par_chunks_mut(words * width)
         .enumerate()
         .for_each(|(r, out)| {
+            // The neighbourhood's AND and OR in two passes (they do not depend on the order):
+            // per column over the rows of `span(r)`, then per pixel over the columns of its
+            // span (2 (2 radius + 1) words a pixel instead of (2 radius + 1)²).
+            let mut column_face = vec![!0u64; width * words];
+            let mut column_all = vec![!0u64; width * words];
+            let mut column_any = vec![0u64; width * words];
+            for rr in span(r, height) {
+                let row = rr * width * words..(rr + 1) * width * words;
+                let (f, s) = (&facing[row.clone()], &prior.bits[row]);
+                for i in 0..width * words {
+                    column_face[i] &= f[i];
+                    column_all[i] &= s[i];
+                    column_any[i] |= s[i];
+                }
+            }
             let mut all_face = vec![0u64; words];
             let mut all_shadowed = vec![0u64; words];
             let mut any_shadowed = vec![0u64; words];
@@ -926,14 +962,12 @@ pub(crate) fn march_guided(
                 all_face.fill(!0);
                 all_shadowed.fill(!0);
                 any_shadowed.fill(0);
-                for q in
-                    span(r, height).flat_map(|rr| span(col, width).map(move |cc| rr * width + cc))
-                {
-                    let (f, s) = (&facing[q * words..(q + 1) * words], prior.pixel_bits(q));
+                for cc in span(col, width) {
+                    let i = cc * words;
                     for w in 0..words {
-                        all_face[w] &= f[w];
-                        all_shadowed[w] &= s[w];
-                        any_shadowed[w] |= s[w];
+                        all_face[w] &= column_face[i + w];
+                        all_shadowed[w] &= column_all[i + w];
+                        any_shadowed[w] |= column_any[i + w];
                     }
                 }
                 // The lights this facet faces whose neighbourhood agrees: the shadowed ones
@@ -969,6 +1003,78 @@ pub(crate) fn march_guided(
         words,
         bits,
     })
+}
+
+/// Facets whose faced lights [`FacingBatch`] finds together, in SIMD lanes.
+const FACE_LANES: usize = 8;
+
+/// The lights that facets face, `n . beta_k(c) > 0` with the values of [`Light::beta`]
+/// (`not_above(n . beta, 0)` false), [`FACE_LANES`] facets at a time: a point light's `beta` in
+/// lanes ([`LaneLight::beta`], the scalar operations in their order per lane: the same values,
+/// so the same bits), a directional light's one facet at a time.
+struct FacingBatch<'a> {
+    lights: &'a [Light],
+    lanes: &'a [Option<LaneLight>],
+    cols: [usize; FACE_LANES],
+    centres: [[f64; 3]; FACE_LANES],
+    normals: [[f64; 3]; FACE_LANES],
+    count: usize,
+}
+
+impl<'a> FacingBatch<'a> {
+    fn new(lights: &'a [Light], lanes: &'a [Option<LaneLight>]) -> FacingBatch<'a> {
+        FacingBatch {
+            lights,
+            lanes,
+            cols: [0; FACE_LANES],
+            centres: [[0.0; 3]; FACE_LANES],
+            normals: [[0.0; 3]; FACE_LANES],
+            count: 0,
+        }
+    }
+
+    /// Adds the facet of column `col` (centre `c`, normal `n`); a full batch sets its bits in
+    /// `faces` (`words` a column).
+    fn push(&mut self, col: usize, c: [f64; 3], n: [f64; 3], faces: &mut [u64], words: usize) {
+        let l = self.count;
+        (self.cols[l], self.centres[l], self.normals[l]) = (col, c, n);
+        self.count += 1;
+        if self.count == FACE_LANES {
+            self.flush(faces, words);
+        }
+    }
+
+    /// Sets the bits of the facets added since the last flush (the unused lanes repeat the
+    /// first facet and are not read).
+    fn flush(&mut self, faces: &mut [u64], words: usize) {
+        let count = std::mem::take(&mut self.count);
+        if count == 0 {
+            return;
+        }
+        for l in count..FACE_LANES {
+            (self.centres[l], self.normals[l]) = (self.centres[0], self.normals[0]);
+        }
+        let (centres, normals) = (&self.centres, &self.normals);
+        for (k, (light, lane)) in self.lights.iter().zip(self.lanes).enumerate() {
+            let faced: [bool; FACE_LANES] = match lane {
+                Some(lane) => {
+                    let (a, f) = lane.beta(centres);
+                    crate::lanes(|l| {
+                        let b = [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]];
+                        !not_above(dot(normals[l], b), 0.0)
+                    })
+                }
+                None => {
+                    crate::lanes(|l| !not_above(dot(normals[l], light.beta(centres[l]).0), 0.0))
+                }
+            };
+            for (l, &col) in self.cols[..count].iter().enumerate() {
+                if faced[l] {
+                    faces[col * words + k / 64] |= 1 << (k % 64);
+                }
+            }
+        }
+    }
 }
 
 /// Rows of a band and columns of a block of the pixels' order (see [`march_all`]).

@@ -473,6 +473,12 @@ pub const INDIRECT_RESIDUAL_TOL: f64 = 1e-3;
 /// sphere (stop 46, docs/performance.md).
 pub const PLAIN_TOL: f64 = 1e-4;
 
+/// [`Solver::mask_settled`] of a solver with a cast-shadow mask (`masked`) that has made its
+/// guided march (`marched_guided`, at [`GUIDED_MARCH_AT`]), at `iteration`.
+fn mask_settled(masked: bool, marched_guided: bool, iteration: usize) -> bool {
+    !masked || (marched_guided && iteration > GUIDED_MARCH_AT)
+}
+
 /// Whether the rounds of [`Solver::interreflect`] have settled by their residual: the RMS
 /// residuals at the end of two successive rounds, `before` and `now`, differ by at most
 /// [`INDIRECT_RESIDUAL_TOL`] times `now` (false when either is not finite, e.g. before the first
@@ -1141,8 +1147,11 @@ impl<'p> Solver<'p> {
             if round == 1 {
                 previous = None;
             }
+            // The verdicts of this round's exchange only when the next round's takes them
+            // (not the first round's, of another grid, nor the last's).
+            let keep = round > 0 && round + 1 < schedule.rounds;
             self.indirect = Some(
-                IndirectField::of_mesh(
+                IndirectField::of_mesh_keeping(
                     &p.rig.camera,
                     &p.grid,
                     &p.geometry,
@@ -1152,6 +1161,7 @@ impl<'p> Solver<'p> {
                     previous,
                     None,
                     coarser,
+                    keep,
                 )?
                 .with_unlit(
                     &p.grid,
@@ -1255,7 +1265,7 @@ impl<'p> Solver<'p> {
         let projected = run.projected
             && !self.lobe_pending
             && it.light_change == 0.0
-            && self.shadows.is_none()
+            && self.mask_settled(iteration)
             && projected_converged(previous, it.depth_change, run.tol * run.scale);
         let before = std::mem::replace(&mut run.last_residual, it.rms_residual);
         let glossy = self.continuation
@@ -1276,11 +1286,13 @@ impl<'p> Solver<'p> {
     /// Whether this solver's runs may stop by the projected rule ([`projected_converged`]): the
     /// full resolution after a pyramid's coarse levels (a lean solver with carried levels: its
     /// start is the converged coarse surface, so its iterations are in their geometric
-    /// regime), without a field of indirect light (with
+    /// regime), without a field of indirect light of its own (with
     /// [`Options::interreflections`], the run before the rounds projects: its surface is the
-    /// rounds' start, not the result; at 1 MP one fine iteration less). The step also asks that
-    /// no cast-shadow mask be in use (a mask is marched again on the surface of the first
-    /// iterations, which the projection must not skip) and, under the glossy model, that no
+    /// rounds' start, not the result; at 1 MP one fine iteration less) or with a field carried
+    /// from a coarser level's rounds (fixed over the run: since stop 53; on the GI sheet at
+    /// 256², 4 -> 3 iterations). The step also asks that the cast-shadow mask be settled
+    /// ([`Solver::mask_settled`]: a mask marched again on the surface of the first iterations
+    /// must not be skipped by the projection) and, under the glossy model, that no
     /// lobe estimate be pending, and it compares only changes made under the same lobe. (The
     /// glossy model: 1 MP bumps 3 -> 2 fine iterations, -13..-15 % CPU; the normals within
     /// 5e-5 degrees of a run to a 1e-9 tolerance, `tests/test_glossy.py`.) With light
@@ -1300,7 +1312,18 @@ impl<'p> Solver<'p> {
             && self.continuation
             && self.options.reflectance.is_glossy()
             && !self.lights.is_active();
-        (self.lean && self.carried || coarse_glossy) && self.indirect.is_none()
+        (self.lean && self.carried || coarse_glossy)
+            && (self.indirect.is_none() || self.indirect_carried)
+    }
+
+    /// Whether this iteration's depth change and the one before were both made with the
+    /// cast-shadow mask the run ends with, so that [`projected_converged`] may compare them:
+    /// without a mask; with one, after a level's only march, guided by a coarser level's mask
+    /// ([`GUIDED_MARCH_AT`]: it marches no more), from the iteration after it (the march is
+    /// made before the local step of its iteration, so that iteration's change is already
+    /// made with the final mask). A level that marches at [`SHADOWS_AT`] does not project.
+    fn mask_settled(&self, iteration: usize) -> bool {
+        mask_settled(self.shadows.is_some(), self.marched_guided, iteration)
     }
 
     /// The iterations at which a run estimates the lobe ([`LOBE_AT`] with the continuation off,
@@ -2346,6 +2369,27 @@ mod projected_tests {
         assert!(!fits_settled(f64::NAN, 0.0201516, share));
         // tol = 0 turns the rule off, even for equal residuals.
         assert!(!fits_settled(0.02, 0.02, 0.0));
+    }
+
+    /// The projection compares two changes made with the mask the run ends with: any two
+    /// without a mask; with one, only from the iteration after the guided march (the march
+    /// is made before that iteration's local step, so the change of the march's own iteration
+    /// is the first with the final mask) and never for a level that marches at
+    /// [`SHADOWS_AT`] (no guided march).
+    #[test]
+    fn the_projection_waits_for_the_last_march() {
+        for iteration in 1..6 {
+            assert!(mask_settled(false, false, iteration));
+            assert!(!mask_settled(true, false, iteration), "{iteration}");
+            assert_eq!(
+                mask_settled(true, true, iteration),
+                iteration > GUIDED_MARCH_AT,
+                "{iteration}"
+            );
+        }
+        // At the iteration after the march the previous change is the march's own iteration's.
+        assert!(mask_settled(true, true, GUIDED_MARCH_AT + 1));
+        assert!(!mask_settled(true, true, GUIDED_MARCH_AT));
     }
 
     #[test]
