@@ -995,8 +995,8 @@ fn raw_pair_weights(fi: &Facet, fj: &Facet) -> ([f64; 3], [f64; 3]) {
 
 /// `w_ij` of a near pair: the mean over the receiver's sub-points `y_a` (in front of the
 /// emitter's plane) of the emitter quad's vector `(1 / pi) int d dw` by Lambert's edge formula
-/// (see [`polygon_vector`]). The [`SUBDIVISIONS`]² sub-points run in SIMD lanes
-/// ([`near_weight_lanes`]): the operations of [`polygon_vector`] per sub-point, in its order,
+/// (see `polygon_vector`, tests). The [`SUBDIVISIONS`]² sub-points run in SIMD lanes
+/// ([`near_weight_lanes`]): the operations of `polygon_vector` per sub-point, in its order,
 /// with the edge angles of [`angle_of`] instead of `atan2` (within 2 ulp of it: the weights,
 /// stored as `f32`, come out the same but where an `f64` value falls within that of an `f32`
 /// rounding boundary).

@@ -549,7 +549,7 @@ fn visible_normal(alpha: f64, mu: f64, (r_cos, r_sin): (f64, f64)) -> [f64; 3] {
     VisibleFrame::new(alpha, mu).normal(&node)
 }
 
-/// A node of the unit square for [`visible_normal`] with its weight: the point of the unit disc
+/// A node of the unit square for `visible_normal` (tests) with its weight: the point of the unit disc
 /// `(sqrt(u1) cos(2 pi u2), sqrt(u1) sin(2 pi u2))` and `sqrt(1 - (sqrt(u1) cos(2 pi u2))^2)`,
 /// which does not depend on the direction (computed once per node, not once per node and
 /// cosine: the same operations, the same bits).
@@ -573,7 +573,7 @@ impl Node {
     }
 }
 
-/// The terms of [`visible_normal`] that depend on the direction alone (once per cosine of a
+/// The terms of `visible_normal` (tests) that depend on the direction alone (once per cosine of a
 /// table, not once per node): the stretched direction `vh`, its frame `(t1, t2, vh)` and the
 /// warp's weight `s = (1 + vh_z) / 2`.
 struct VisibleFrame {
@@ -603,7 +603,7 @@ impl VisibleFrame {
         }
     }
 
-    /// The visible normal of `node` (see [`visible_normal`]).
+    /// The visible normal of `node` (see `visible_normal`, tests).
     #[inline(always)]
     fn normal(&self, node: &Node) -> [f64; 3] {
         let (s, vh, t1, t2) = (self.s, self.vh, self.t1, self.t2);
@@ -645,7 +645,7 @@ pub fn rough_transmittance(alpha: f64, eta: f64, mu: f64) -> f64 {
     )
 }
 
-/// The nodes of the unit square for [`visible_normal`] (`sqrt(u1) cos(2 pi u2)`,
+/// The nodes of the unit square for `visible_normal` (tests; `sqrt(u1) cos(2 pi u2)`,
 /// `sqrt(u1) sin(2 pi u2)`) with their weights.
 fn square_nodes(nodes: &[(f64, f64)]) -> Vec<Node> {
     let mut out = Vec::with_capacity(nodes.len() * nodes.len());

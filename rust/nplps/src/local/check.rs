@@ -23,7 +23,7 @@
 //! The solver keeps the glossy model when `E_glossy < E_lambertian` and otherwise goes on with
 //! the Lambertian one, as it does after a lobe too rough to be a highlight
 //! ([`MATTE_ROUGHNESS`](crate::MATTE_ROUGHNESS)). The cost is `F` Lambertian and `F` glossy fits
-//! of at most [`LOBE_SAMPLE`](super::glossy::LOBE_SAMPLE) facets, a few lines of the lobe
+//! of at most [`LOBE_SAMPLE`] facets, a few lines of the lobe
 //! search's.
 //!
 //! ## The highlight where a light shows it

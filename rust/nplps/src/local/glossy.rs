@@ -2,7 +2,7 @@
 //!
 //! Under [`Reflectance::Glossy`](crate::reflectance::Reflectance) each facet is first fitted
 //! with the Lambertian model (robust, if asked for), and that fit starts the glossy one: a few
-//! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`reflectance::fit_packed`] with the shared
+//! damped Gauss-Newton steps on `(n, rho_d, rho_s)` of [`crate::reflectance::fit_packed`] with the shared
 //! [`Lobe`]. From the second local step on, the facet's glossy normal of the step before starts
 //! the fit instead, and the Lambertian fit is made only where that glossy fit fails. The fits stop
 //! before a step shorter than `settings.step_tolerance` of their unknowns (see
@@ -195,7 +195,7 @@ fn observations(
 /// The glossy fit of the facet with centre `c` and view vector `v`, started from the first normal
 /// of `starts` (e.g. its Lambertian fit's, or its glossy normal of the previous local step) with
 /// the diffuse albedo of its Lambertian fit `start` (without one: with the least-squares albedos
-/// at the starting normal, see [`fit_packed_at`]), with at most `steps` Gauss-Newton steps;
+/// at the starting normal, see [`crate::reflectance::fit_packed_at`]), with at most `steps` Gauss-Newton steps;
 /// the second normal (e.g. the mesh normal) starts another fit only where the first fails or
 /// ends more than [`AGREE_DEGREES`] from it (another basin may then hold a better fit). Under a
 /// lobe sharper than [`CONTINUE_BELOW`], with [`CONTINUE_LIGHTS`] lights or more, and from a

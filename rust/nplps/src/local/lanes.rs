@@ -682,7 +682,7 @@ fn residual_lanes(
     sse
 }
 
-/// The trust part of a final pass over [`LANES`] facets (see [`LocalStep::final_lanes`]): scratch
+/// The trust part of a final pass over [`LANES`] facets (see [`LocalStep::final_lanes_into`]): scratch
 /// rows (`beta` of each light, per lane), the facets' `[normal sigma, held-out]` and the
 /// per-light sums they add to, per lane (see [`LaneLightSums`]).
 pub(super) struct LaneTrust<'a> {
@@ -693,7 +693,7 @@ pub(super) struct LaneTrust<'a> {
 
 /// One light's trust sums (see [`LightSums`]) of the batches of a chunk, one running sum per
 /// lane: [`final_residuals`] adds each batch's terms lane by lane (vector additions), and
-/// [`LocalStep::final_lanes`] sums the lanes ([`lane_total`]) once at the end of the chunk.
+/// [`LocalStep::final_lanes_into`] sums the lanes ([`lane_total`]) once at the end of the chunk.
 type LaneLightSums = [[f64; LANES]; 4];
 
 /// The grey fits of [`LANES`] facets: unit normals and albedo (0 where a fit failed).

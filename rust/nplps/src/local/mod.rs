@@ -699,7 +699,7 @@ impl LocalStep<'_> {
         }
     }
 
-    /// As [`LocalStep::run`], with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space (one facet's
+    /// As `LocalStep::run` (tests), with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space (one facet's
     /// observations) cannot be allocated.
     pub fn try_run(&self, u: &[f64], first: usize, fits: &mut [FacetFit]) -> Result<()> {
         let per = self.obs.per_facet();
@@ -913,7 +913,7 @@ impl LocalStep<'_> {
         }
     }
 
-    /// As [`LocalStep::run_targets`], with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space
+    /// As `LocalStep::run_targets` (tests), with [`Error::Memory`](crate::Error::Memory) when a thread's scratch space
     /// cannot be allocated.
     pub fn try_run_targets(
         &self,
