@@ -1646,7 +1646,8 @@ impl IndirectField {
         // (no lights: an empty buffer, and chunks of 1 so that the chunking is defined)
         let per = (2 * words).max(1);
         // The point lights' lane forms: the lights behind [`MARK_LANES`] facets at a time
-        // (`Light::beta`'s operations in its order, per lane: the same values).
+        // (those the facets do not face, `crate::light::faced_lanes`: the values of
+        // `Light::beta`).
         let lanes: Vec<Option<crate::light::LaneLight>> = lights
             .iter()
             .map(crate::light::LaneLight::from_light)
@@ -1667,20 +1668,9 @@ impl IndirectField {
                 }
                 for (k, (light, lane)) in lights.iter().zip(&lanes).enumerate() {
                     let (w, bit) = (k / 64, 1u64 << (k % 64));
-                    let behind: [bool; MARK_LANES] = match lane {
-                        Some(lane) => {
-                            let (a, f) = lane.beta(&centres);
-                            crate::lanes(|l| {
-                                let b = [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]];
-                                not_above(dot(normals[l], b), 0.0)
-                            })
-                        }
-                        None => crate::lanes(|l| {
-                            not_above(dot(normals[l], light.beta(centres[l]).0), 0.0)
-                        }),
-                    };
+                    let faced = crate::light::faced_lanes(light, lane.as_ref(), &centres, &normals);
                     for (l, out) in outs.chunks_exact_mut(per).enumerate() {
-                        if behind[l] {
+                        if !faced[l] {
                             out[w] |= bit;
                         }
                     }

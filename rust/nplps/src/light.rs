@@ -520,6 +520,31 @@ fn anisotropy_lanes<const N: usize>(t: &[f64; N], mu: f64) -> [f64; N] {
     }
 }
 
+/// Whether `light` lights the front of each of `N` facets (centres `c`, normals `n`):
+/// `n . beta(c) > 0`, with the values of [`Light::beta`] (`not_above(n . beta, 0)` false). A
+/// point light's `beta` in lanes (`lane`, its [`LaneLight`]: the scalar operations in their
+/// order per lane, so the same bits), a directional light's (`lane` None) one facet at a time.
+/// The cast-shadow marches' facing test and the indirect field's lights behind a facet (its
+/// negation) both take it.
+#[inline(always)]
+pub(crate) fn faced_lanes<const N: usize>(
+    light: &Light,
+    lane: Option<&LaneLight>,
+    c: &[[f64; 3]; N],
+    n: &[[f64; 3]; N],
+) -> [bool; N] {
+    match lane {
+        Some(lane) => {
+            let (a, f) = lane.beta(c);
+            crate::lanes(|l| {
+                let b = [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]];
+                !crate::vec3::not_above(dot(n[l], b), 0.0)
+            })
+        }
+        None => crate::lanes(|l| !crate::vec3::not_above(dot(n[l], light.beta(c[l]).0), 0.0)),
+    }
+}
+
 /// A light in the lane (SIMD) form of the model, which evaluates `beta` at several surface
 /// points at once: a point light (isotropic, or an LED of any anisotropy `mu`, its power by
 /// [`power_lanes`]), with its grey intensity.

@@ -82,7 +82,7 @@ use rayon::prelude::*;
 
 use crate::error::{ensure_mask, ensure_range, Result};
 use crate::geometry::{quad_centre, quad_normal};
-use crate::light::{LaneLight, Light};
+use crate::light::{faced_lanes, LaneLight, Light};
 use crate::rig::{Camera, Rig};
 use crate::vec3::{dot, not_above, sub};
 
@@ -1056,18 +1056,7 @@ impl<'a> FacingBatch<'a> {
         }
         let (centres, normals) = (&self.centres, &self.normals);
         for (k, (light, lane)) in self.lights.iter().zip(self.lanes).enumerate() {
-            let faced: [bool; FACE_LANES] = match lane {
-                Some(lane) => {
-                    let (a, f) = lane.beta(centres);
-                    crate::lanes(|l| {
-                        let b = [a[0][l] * f[l], a[1][l] * f[l], a[2][l] * f[l]];
-                        !not_above(dot(normals[l], b), 0.0)
-                    })
-                }
-                None => {
-                    crate::lanes(|l| !not_above(dot(normals[l], light.beta(centres[l]).0), 0.0))
-                }
-            };
+            let faced = faced_lanes(light, lane.as_ref(), centres, normals);
             for (l, &col) in self.cols[..count].iter().enumerate() {
                 if faced[l] {
                     faces[col * words + k / 64] |= 1 << (k % 64);
