@@ -810,6 +810,38 @@ thread_local! {
         const { RefCell::new(Vec::new()) };
 }
 
+/// The body of [`Transmittance::at_lanes`] (`f64`, `cubic`) and
+/// [`Transmittance::at_lanes_f32`] (`f32`, `cubic32`): one text for both lane types, the lanes
+/// `$c` of type `$f` and the coefficients of field `$table` of `$t`. (Loops over the lanes by
+/// index: the form the compiler turns into vector instructions.)
+macro_rules! table_lanes {
+    ($t:ident, $c:ident, $f:ty, $table:ident) => {{
+        let steps = TABLE_STEPS as $f;
+        let mut u = [0.0; N];
+        let mut index = [0usize; N];
+        let mut t = [0.0; N];
+        for i in 0..N {
+            u[i] = $c[i].clamp(0.0, 1.0) * steps;
+            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
+            t[i] = u[i] - index[i] as $f;
+        }
+        let mut k = [[0.0; N]; 4];
+        for i in 0..N {
+            let row = $t.$table[index[i]];
+            for j in 0..4 {
+                k[j][i] = row[j];
+            }
+        }
+        let mut value = [0.0; N];
+        let mut slope = [0.0; N];
+        for i in 0..N {
+            value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
+            slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
+        }
+        (value, slope)
+    }};
+}
+
 impl Transmittance {
     /// The table of a lobe (`alpha > 0`, `eta > 1`).
     fn new(lobe: &Lobe) -> Transmittance {
@@ -879,64 +911,18 @@ impl Transmittance {
     /// same bits), written as loops over the lanes so that they are inlined into the vector
     /// code of their caller (`std::array::from_fn` over [`Transmittance::at`] was compiled as a
     /// separate, non-vector function call per group: 7 % of a 256² glossy profile).
-    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
     #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn at_lanes<const N: usize>(&self, c: &[f64; N]) -> ([f64; N], [f64; N]) {
-        let steps = TABLE_STEPS as f64;
-        let mut u = [0.0; N];
-        let mut index = [0usize; N];
-        let mut t = [0.0; N];
-        for i in 0..N {
-            u[i] = c[i].clamp(0.0, 1.0) * steps;
-            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
-            t[i] = u[i] - index[i] as f64;
-        }
-        let mut k = [[0.0; N]; 4];
-        for i in 0..N {
-            let row = self.cubic[index[i]];
-            for j in 0..4 {
-                k[j][i] = row[j];
-            }
-        }
-        let mut value = [0.0; N];
-        let mut slope = [0.0; N];
-        for i in 0..N {
-            value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
-            slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
-        }
-        (value, slope)
+        table_lanes!(self, c, f64, cubic)
     }
 
     /// [`Transmittance::at_lanes`] in `f32` lanes from the rounded coefficients: the value and
     /// slope to about `1e-6` (the coefficients' and `t`'s rounding).
-    // (Loops over the lanes by index: the form the compiler turns into vector instructions.)
     #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn at_lanes_f32<const N: usize>(&self, c: &[f32; N]) -> ([f32; N], [f32; N]) {
-        let steps = TABLE_STEPS as f32;
-        let mut u = [0.0; N];
-        let mut index = [0usize; N];
-        let mut t = [0.0; N];
-        for i in 0..N {
-            u[i] = c[i].clamp(0.0, 1.0) * steps;
-            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
-            t[i] = u[i] - index[i] as f32;
-        }
-        let mut k = [[0.0; N]; 4];
-        for i in 0..N {
-            let row = self.cubic32[index[i]];
-            for j in 0..4 {
-                k[j][i] = row[j];
-            }
-        }
-        let mut value = [0.0; N];
-        let mut slope = [0.0; N];
-        for i in 0..N {
-            value[i] = k[0][i] + t[i] * (k[1][i] + t[i] * (k[2][i] + t[i] * k[3][i]));
-            slope[i] = steps * (k[1][i] + t[i] * (2.0 * k[2][i] + t[i] * 3.0 * k[3][i]));
-        }
-        (value, slope)
+        table_lanes!(self, c, f32, cubic32)
     }
 }
 
