@@ -24,7 +24,7 @@ use crate::options::{Options, Refine};
 use crate::parallel::with_threads;
 use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
-use crate::reflectance::{Diffuse, Lobe};
+use crate::reflectance::Lobe;
 use crate::rig::Light;
 use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
@@ -784,7 +784,7 @@ fn fresh_stages(
         };
         let lobes = std::iter::once(Lobe::retro(alpha, RETRO_ETA))
             .chain(crate::local::ETAS.iter().map(|&eta| Lobe::new(alpha, eta)));
-        let mut best: Option<(f64, DistanceEstimate)> = None;
+        let mut best: Option<(f64, DistanceEstimate, Lobe)> = None;
         for lobe in lobes {
             let window = Window {
                 scan: NARROW_SCAN,
@@ -814,7 +814,7 @@ fn fresh_stages(
                         eprintln!("PROBE lobe {lobe:?} lowest {:.6e} distance {:?} done {}", count.lowest, estimate.distance, count.done);
                     }
                     if best.as_ref().is_none_or(|b| count.lowest < b.0) {
-                        best = Some((count.lowest, estimate));
+                        best = Some((count.lowest, estimate, lobe));
                     }
                 }
                 // The criterion under this lobe keeps falling out of the windows.
@@ -826,13 +826,42 @@ fn fresh_stages(
                 Err(e) => return Err(e),
             }
         }
-        Ok(best.map(|(_, estimate)| estimate))
+        let Some((_, estimate, lobe)) = best else {
+            return Ok(None);
+        };
+        // The best candidate once more, for its surface: carried up to `problem`, its gauge
+        // there is the distance found (a curved surface's gauge differs between levels whose
+        // masks differ, as in [`fine_estimate`]: the 256² PBR spheres and tori came out
+        // 0.2-0.4 % long with the level's own distance).
+        let mut ev = Evaluator {
+            refine: sub.lights.refine(),
+            solver: &mut sub,
+            u: Vec::new(),
+            inner: 1,
+            curve: vec![Vec::new(); level.grid.n_regions],
+            candidate: count.done,
+            candidates: count.planned + 1,
+            best: (f64::NAN, f64::NAN),
+            fresh: Some(Fresh { options, lobe }),
+        };
+        ev.eval(&estimate.distance, progress)?;
+        count.done = ev.candidate;
+        let mut u = std::mem::take(&mut ev.u);
+        for i in (0..coarse.len()).rev() {
+            let finer = match i {
+                0 => &problem.grid,
+                _ => &coarse[i - 1].grid,
+            };
+            u = crate::pyramid::upsample(&coarse[i].grid, &u, finer)?;
+        }
+        let gauge = problem.grid.region_means(&u);
+        Ok(Some(DistanceEstimate {
+            distance: gauge.iter().map(|&g| problem.geometry.depth(g)).collect(),
+            ..on_finer(&problem.grid, &level.grid, halvings, estimate)
+        }))
     })();
     end_search(&mut sub, saved);
-    Ok(match found? {
-        Some(estimate) => on_finer(&problem.grid, &level.grid, halvings, estimate),
-        None => profiled,
-    })
+    Ok(found?.unwrap_or(profiled))
 }
 
 /// Candidates evaluated so far and planned, over the stages of a search (for its progress).
