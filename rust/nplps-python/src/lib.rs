@@ -216,12 +216,7 @@ fn options_from(d: &Bound<'_, PyDict>) -> PyResult<nplps::Options> {
         }
         (true, None, None) => nplps::Reflectance::Glossy(None),
         (true, Some(alpha), Some(eta)) => {
-            // PROBE (not to commit): NPLPS_PROBE_RETRO gives the retro shape.
-            if std::env::var_os("NPLPS_PROBE_RETRO").is_some() {
-                nplps::Reflectance::Glossy(Some(nplps::Lobe::retro(alpha, eta)))
-            } else {
-                nplps::Reflectance::Glossy(Some(nplps::Lobe::new(alpha, eta)))
-            }
+            nplps::Reflectance::Glossy(Some(nplps::Lobe::new(alpha, eta)))
         }
         (true, ..) => return Err(InputError::new_err(
             "give both roughness and eta (a fixed lobe), or neither (estimated from the images)",

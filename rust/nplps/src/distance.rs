@@ -169,9 +169,10 @@ struct Evaluator<'s, 'p> {
 }
 
 /// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
-/// ([`begin_search`]) and `lobe` held, from the starting surface gauged at the candidate, run
-/// to the level's convergence (`options.iterations`, `options.tol`). Its criterion is then a
-/// function of the level, the distance and the lobe alone (see [`fresh_stages`]).
+/// ([`begin_search`]) but the continuation of sharp lobes' fits, as in a run of its own, and
+/// `lobe` held, from the starting surface gauged at the candidate, run to the level's
+/// convergence (`options.iterations`, `options.tol`). Its criterion is then a function of the
+/// level, the distance and the lobe alone (see [`fresh_stages`]).
 #[derive(Debug, Clone, Copy)]
 struct Fresh {
     options: Options,
@@ -444,7 +445,14 @@ fn search_stages(
             .and_then(|()| {
                 let u = problem.u0.to_vec("the depths")?;
                 search_refined(
-                    solver, problem, &wide, range, u, (false, None), &mut count, progress,
+                    solver,
+                    problem,
+                    &wide,
+                    range,
+                    u,
+                    (false, None),
+                    &mut count,
+                    progress,
                 )
             })
             .and_then(|searched| searched.found(range))
@@ -630,10 +638,7 @@ fn search_coarser(
         };
         u = crate::pyramid::upsample(&coarse[i].grid, &u, finer)?;
     }
-    Ok((
-        on_finer(&problem.grid, &level.grid, halvings, estimate),
-        u,
-    ))
+    Ok((on_finer(&problem.grid, &level.grid, halvings, estimate), u))
 }
 
 /// An estimate of the regions of `coarse` (`halvings` levels below `grid`) as one of the
@@ -653,25 +658,35 @@ fn on_finer(
     }
 }
 
-/// The other way: per region of `coarse`, the geometric mean of the distances of the regions of
-/// `grid` it holds (see [`on_finer`]), or of all of them where it holds none.
-fn on_coarser(grid: &Grid, coarse: &Grid, halvings: usize, distance: &[f64]) -> Vec<f64> {
+/// The other way (see [`on_finer`]): per region of `coarse`, the geometric mean of the
+/// distances of the regions of `grid` it holds (of all of them where it holds none) and the
+/// curve of the first of them.
+fn on_coarser(
+    grid: &Grid,
+    coarse: &Grid,
+    halvings: usize,
+    estimate: &DistanceEstimate,
+) -> DistanceEstimate {
     let regions = coarse_regions(grid, coarse, halvings as u32);
-    let all = mean(&distance.iter().map(|d| d.ln()).collect::<Vec<_>>()).exp();
-    (0..coarse.n_regions)
-        .map(|r| {
-            let held: Vec<f64> = regions
-                .iter()
-                .zip(distance)
-                .filter(|&(&q, _)| q == r)
-                .map(|(_, d)| d.ln())
-                .collect();
-            match held.is_empty() {
-                true => all,
-                false => mean(&held).exp(),
-            }
-        })
-        .collect()
+    let log_mean = |d: &mut dyn Iterator<Item = f64>| {
+        let (sum, n) = d.fold((0.0, 0usize), |(s, n), d| (s + d.ln(), n + 1));
+        (n > 0).then(|| (sum / n as f64).exp())
+    };
+    let all = log_mean(&mut estimate.distance.iter().copied()).unwrap_or(f64::NAN);
+    let held = |r: usize| regions.iter().enumerate().filter(move |&(_, &q)| q == r);
+    DistanceEstimate {
+        distance: (0..coarse.n_regions)
+            .map(|r| log_mean(&mut held(r).map(|(i, _)| estimate.distance[i])).unwrap_or(all))
+            .collect(),
+        curve: (0..coarse.n_regions)
+            .map(|r| {
+                held(r)
+                    .next()
+                    .map_or_else(Vec::new, |(i, _)| estimate.curve[i].clone())
+            })
+            .collect(),
+        range: estimate.range,
+    }
 }
 
 /// For each region of `grid`, the region of `coarse` (`halvings` levels below) holding its
@@ -730,7 +745,10 @@ const FRESH_GROWTH: f64 = 1.5;
 /// is searched in a window around the profile's estimate with every candidate evaluated afresh
 /// ([`Fresh`]: a new solver from the starting surface, run to convergence under the lobe). The
 /// estimate is that of the lobe whose lowest criterion `R` (the median of the facets' RMS
-/// residuals) is the lowest; the profile's when no lobe finds a minimum in its windows.
+/// residuals) is the lowest; the profile's when no lobe finds a minimum in its windows. Its
+/// distance on `problem` is the gauge there of that candidate's surface carried up: the gauge of
+/// a curved surface (its geometric mean depth) differs between levels whose masks differ, and
+/// the level's own distance left the 256² PBR spheres and tori 0.2-0.4 % long.
 ///
 /// So `R(d, L)` is a function of the level's images, the distance and the lobe alone, and the
 /// search is the minimum over a grid of lobes of a minimum over the distance: the estimate
@@ -769,11 +787,8 @@ fn fresh_stages(
     let rigs = crate::pyramid::coarse_rigs(problem.rig, halvings + 1);
     let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
     let level = coarse.last().unwrap_or(problem);
-    let start = DistanceEstimate {
-        distance: on_coarser(&problem.grid, &level.grid, halvings, &profiled.distance),
-        curve: vec![Vec::new(); level.grid.n_regions],
-        range,
-    };
+    // The profile's curve stays outside the stages' windows (see [`search_window`]).
+    let start = on_coarser(&problem.grid, &level.grid, halvings, &profiled);
     let mut sub = Solver::new(level, &options)?;
     sub.start = solver.start;
     let saved = begin_search(&mut sub);
@@ -810,19 +825,12 @@ fn fresh_stages(
                 progress,
             ) {
                 Ok((estimate, _)) => {
-                    if std::env::var_os("NPLPS_PROBE_PRINT").is_some() {
-                        eprintln!("PROBE lobe {lobe:?} lowest {:.6e} distance {:?} done {}", count.lowest, estimate.distance, count.done);
-                    }
                     if best.as_ref().is_none_or(|b| count.lowest < b.0) {
                         best = Some((count.lowest, estimate, lobe));
                     }
                 }
                 // The criterion under this lobe keeps falling out of the windows.
-                Err(Error::Unusable(_)) => {
-                    if std::env::var_os("NPLPS_PROBE_PRINT").is_some() {
-                        eprintln!("PROBE lobe {lobe:?} unusable");
-                    }
-                }
+                Err(Error::Unusable(_)) => {}
                 Err(e) => return Err(e),
             }
         }
@@ -830,9 +838,7 @@ fn fresh_stages(
             return Ok(None);
         };
         // The best candidate once more, for its surface: carried up to `problem`, its gauge
-        // there is the distance found (a curved surface's gauge differs between levels whose
-        // masks differ, as in [`fine_estimate`]: the 256² PBR spheres and tori came out
-        // 0.2-0.4 % long with the level's own distance).
+        // there is the distance found (as in [`fine_estimate`]).
         let mut ev = Evaluator {
             refine: sub.lights.refine(),
             solver: &mut sub,
@@ -1989,9 +1995,8 @@ mod tests {
     /// windows reach twice that precision, and no farther than the profile's own window.
     #[test]
     fn the_fresh_window_reaches_past_the_profile_bracket() {
-        let reach = |w: f64, m: usize, g: f64| {
-            w.ln() * (0..=m).map(|k| g.powi(k as i32)).sum::<f64>()
-        };
+        let reach =
+            |w: f64, m: usize, g: f64| w.ln() * (0..=m).map(|k| g.powi(k as i32)).sum::<f64>();
         let fresh = reach(FRESH_WIDTH, FRESH_MOVES, FRESH_GROWTH);
         assert!(fresh >= 2.0 * BRACKET_PRECISION, "{fresh}");
         assert!(fresh <= PROFILE_WIDTH.ln(), "{fresh}");
