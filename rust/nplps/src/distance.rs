@@ -737,11 +737,27 @@ const FRESH_MOVES: usize = 3;
 /// See [`FRESH_WIDTH`].
 const FRESH_GROWTH: f64 = 1.5;
 
+/// The indices of the transmitted lobes of [`fresh_stages`]: the lobe search's grid
+/// ([`ETAS`](crate::local::ETAS)) without its first index, 1.
+///
+/// At the index 1 the model is not the end of the index line but another model: its Fresnel
+/// shape `F(v.h) / F(1)` is taken as 1 (nothing is reflected to shape), while as `eta -> 1+` the
+/// shape tends to its steepest rise, `(1 + (2c^2 - 1)^2) / (2c^4)` at `c = v.h` (2.1 at
+/// `c = 0.7`, 9.9 at `c = 0.5`; at the index 1.15 1.6 and 4.7); only the transmittance (`T = 1`,
+/// the Lambertian diffuse term) joins the line continuously. On the 64² rough plastic 0.3
+/// block of tests/data/pbr (16 lights, true distance 210.95) the lowest criterion of the stages
+/// with the index 1 among them was under it, at -2.65 %, as it was for stop 45's index walk
+/// over the whole grid. The lobe search (the run at the distance found) may still choose it.
+const FRESH_ETAS: [f64; 6] = {
+    let e = crate::local::ETAS;
+    [e[1], e[2], e[3], e[4], e[5], e[6]]
+};
+
 /// Refines the estimate of a glossy profile window ([`search_window`] with `lobe`): the lobe's
 /// roughness `alpha` is estimated once, by a run at the profile's distance on the search's
 /// level (at most [`SEARCH_SIDE`] pixels a side); then, under each lobe of the diffuse shapes
 /// held in turn, the retro-reflective one (index [`RETRO_ETA`]) and the transmitted one at each
-/// index of the lobe search's grid ([`ETAS`](crate::local::ETAS)), all at `alpha`, the distance
+/// index of [`FRESH_ETAS`], all at `alpha`, the distance
 /// is searched in a window around the profile's estimate with every candidate evaluated afresh
 /// ([`Fresh`]: a new solver from the starting surface, run to convergence under the lobe). The
 /// estimate is that of the lobe whose lowest criterion `R` (the median of the facets' RMS
@@ -798,7 +814,7 @@ fn fresh_stages(
             return Ok(None);
         };
         let lobes = std::iter::once(Lobe::retro(alpha, RETRO_ETA))
-            .chain(crate::local::ETAS.iter().map(|&eta| Lobe::new(alpha, eta)));
+            .chain(FRESH_ETAS.iter().map(|&eta| Lobe::new(alpha, eta)));
         let mut best: Option<(f64, DistanceEstimate, Lobe)> = None;
         for lobe in lobes {
             let window = Window {
@@ -2001,6 +2017,9 @@ mod tests {
         assert!(fresh >= 2.0 * BRACKET_PRECISION, "{fresh}");
         assert!(fresh <= PROFILE_WIDTH.ln(), "{fresh}");
         assert!((reach(1.01, 3, 1.0) - 4.0 * 1.01f64.ln()).abs() < 1e-12);
+        // Its lobes: the lobe search's indices but the index 1.
+        assert_eq!(FRESH_ETAS[..], crate::local::ETAS[1..]);
+        assert!(FRESH_ETAS.iter().all(|&e| e > 1.0));
     }
 
     /// A solver failure after the search names the distance found; other errors and failures
