@@ -1935,9 +1935,6 @@ pub(crate) fn check_distance_on(
             false => CHECK_INNER,
         };
         hold_lobe(&mut solver, level, mean(&given), inner)?;
-        // Each candidate refines the rig's intensities again: its first light steps are thin
-        // ones (issue 23; lights held from the given distance absorb its error instead).
-        solver.lights.thin_steps();
         let mut ev = Evaluator {
             refine: solver.lights.refine(),
             solver: &mut solver,

@@ -244,10 +244,6 @@ pub struct LightData<'a> {
     /// The field of indirect light the local steps use (see the module documentation, "With
     /// interreflections"; Lambertian model only): added to each light's row.
     pub indirect: Option<&'a dyn IndirectLight>,
-    /// At most this many facets (a regular subsample) enter a pass, and at most this many of
-    /// those its Gauss-Newton matrix: [`MAX_FACETS`] and [`MAX_MATRIX_FACETS`], or
-    /// [`THIN_FACETS`] and [`THIN_MATRIX_FACETS`] for a thin step (see [`LightData::thinned`]).
-    max_facets: (usize, usize),
 }
 
 /// The lights of a pass and where their parameters sit.
@@ -781,16 +777,6 @@ impl<'a> LightData<'a> {
             normals: None,
             shadows: None,
             indirect: None,
-            max_facets: (MAX_FACETS, MAX_MATRIX_FACETS),
-        }
-    }
-
-    /// These data on the subsample of a thin step: at most [`THIN_FACETS`] facets, of which at
-    /// most [`THIN_MATRIX_FACETS`] enter the Gauss-Newton matrix.
-    fn thinned(self) -> LightData<'a> {
-        LightData {
-            max_facets: (THIN_FACETS, THIN_MATRIX_FACETS),
-            ..self
         }
     }
 
@@ -811,14 +797,10 @@ impl<'a> LightData<'a> {
 }
 
 impl LightData<'_> {
-    /// The facets of a pass: a regular subsample of at most [`MAX_FACETS`] (see
-    /// [`LightData::thinned`]), and its stride.
+    /// The facets of a pass: a regular subsample of at most [`MAX_FACETS`], and its stride.
     fn subsample(&self) -> (usize, usize) {
         let n = self.grid.n_facets();
-        let mut stride = n.div_ceil(self.max_facets.0).max(1);
-        if self.max_facets.0 == THIN_FACETS {
-            stride = stride.max(THIN_SPARSER * n.div_ceil(MAX_FACETS).max(1));
-        }
+        let stride = n.div_ceil(MAX_FACETS).max(1);
         (n.div_ceil(stride), stride)
     }
 
@@ -891,7 +873,7 @@ impl LightData<'_> {
         let k = obs.k;
         let channels = obs.channels;
         let n = layout.n;
-        let h_every = count.div_ceil(self.max_facets.1).max(1);
+        let h_every = count.div_ceil(MAX_MATRIX_FACETS).max(1);
         // The position derivatives' terms: for the Gauss-Newton pass of a step moving lights.
         let gradient = with_h && layout.position.iter().any(Option::is_some);
         let lanes: Vec<Option<LaneLight>> = lights.iter().map(LaneLight::from_light).collect();
@@ -1309,11 +1291,6 @@ pub struct Refiner {
     /// The Gauss-Newton pass of the last step, when that step left the lights as they were
     /// (see [`SettledPass`]).
     settled: Option<SettledPass>,
-    /// Whether this refiner begins its runs with thin steps ([`Refiner::with_thin_steps`]).
-    thin_steps: bool,
-    /// Whether the next step is a thin one: from a run's start until a thin step finds too
-    /// little to improve.
-    thin: bool,
 }
 
 /// The Gauss-Newton pass of a light step that left the lights as they were (found nothing to
@@ -1371,23 +1348,6 @@ pub const SETTLED_RELATIVE: f64 = 1e-4;
 /// Largest number of damping increases in one step.
 const MAX_TRIES: usize = 8;
 
-/// The first light steps of a run see at most this many facets (a regular subsample of a
-/// pass's): thin steps. See [`Refiner::with_thin_steps`].
-pub const THIN_FACETS: usize = 4096;
-
-/// A thin step's subsample is at least this many times sparser than a full pass's.
-pub const THIN_SPARSER: usize = 4;
-
-/// At most this many facets of a thin step's pass (see [`THIN_FACETS`]) enter its
-/// Gauss-Newton matrix (see [`MAX_MATRIX_FACETS`]).
-pub const THIN_MATRIX_FACETS: usize = 1024;
-
-/// A thin step (see [`THIN_FACETS`]) is taken only while its undamped Gauss-Newton step
-/// predicts a decrease of `E` of more than this many times what the thinning alone predicts
-/// at the lights of a full pass: `(r - 1) n / 2` for `n` parameters and a subsample `r` times
-/// sparser than the full pass's (see [`Refiner::with_thin_steps`]).
-pub const THIN_MARGIN: f64 = 4.0;
-
 impl Refiner {
     /// A refiner of `refine` around the rig's `reference` lights.
     pub fn new(refine: Refine, reference: Vec<Light>) -> Refiner {
@@ -1397,32 +1357,7 @@ impl Refiner {
             lambda: 1e-3,
             trusted: false,
             settled: None,
-            thin_steps: false,
-            thin: false,
         }
-    }
-
-    /// This refiner, beginning each run ([`Refiner::forget_settled`]) with thin steps: a step
-    /// on a subsample of at most [`THIN_FACETS`] facets (when that is at most half a full
-    /// pass's), taken while the subsample finds much to improve, then steps on the full pass's
-    /// facets as before (from the same call on: the step that ends the thin ones takes a full
-    /// step).
-    ///
-    /// Why: the first steps of a run move the lights far (the rig's errors) at a mesh that the
-    /// same iterations still move, and a full pass's precision is wasted on them. A subsample
-    /// `r` times sparser (every `r`-th facet of the pass) has the same expected gradient and a
-    /// matrix `r` times smaller in the objective's units (scaled back by the stride); its
-    /// gradient at the full pass's optimum is noise of variance `(r - 1)` times the full
-    /// data's, so there its undamped step predicts a decrease of about `(r - 1) n / 2`
-    /// chi-square units (`n` parameters; a chi-square with `n` degrees of freedom, spread
-    /// `sqrt(2 n)`). Thin steps stop when they predict less than [`THIN_MARGIN`] times that:
-    /// from there on the thinning would move the lights by its own noise, and the full pass's
-    /// steps finish, to the same fixed point and the same settling rule
-    /// ([`SETTLED_DECREASE`], [`SETTLED_RELATIVE`]) as without thin steps.
-    pub fn with_thin_steps(mut self) -> Refiner {
-        self.thin_steps = true;
-        self.thin = true;
-        self
     }
 
     /// The pass of the last step when it left the lights as they were (see [`SettledPass`]).
@@ -1433,7 +1368,6 @@ impl Refiner {
     /// Forgets the last step's pass (a new run starts: its mesh is another).
     pub fn forget_settled(&mut self) {
         self.settled = None;
-        self.thin = self.thin_steps;
     }
 
     /// The refined parameters of `lights` as a vector in the step's layout: `ln(Phi_i / Phi_i^0)`
@@ -1518,36 +1452,12 @@ impl Refiner {
     }
 
     /// As `Refiner::step` (tests), with [`Error::Memory`] (and `lights` unchanged) when the sums of
-    /// the step or a thread's scratch cannot be allocated. A thin step while the run's steps
-    /// are thin (see [`Refiner::with_thin_steps`]).
+    /// the step or a thread's scratch cannot be allocated.
     pub fn try_step(
         &mut self,
         data: &LightData<'_>,
         lights: &mut [Light],
         u: &[f64],
-    ) -> Result<StepOutcome> {
-        if self.thin {
-            let thin = data.thinned();
-            let sparser = thin.subsample().1 as f64 / data.subsample().1 as f64;
-            if sparser >= 2.0 {
-                let outcome = self.step_on(&thin, lights, u, sparser)?;
-                if outcome.accepted {
-                    return Ok(outcome);
-                }
-            }
-            self.thin = false;
-        }
-        self.step_on(data, lights, u, 1.0)
-    }
-
-    /// One step of [`Refiner::try_step`] on the passes of `data`, a subsample `sparser` times
-    /// sparser than a full pass's (1: a full step; see [`Refiner::with_thin_steps`]).
-    fn step_on(
-        &mut self,
-        data: &LightData<'_>,
-        lights: &mut [Light],
-        u: &[f64],
-        sparser: f64,
     ) -> Result<StepOutcome> {
         self.settled = None;
         let layout = Layout::new(lights, &self.refine);
@@ -1607,15 +1517,12 @@ impl Refiner {
         for i in 0..n {
             a[(i, i)] += 1e-12 * scale;
         }
-        let undamped = (noisy || sparser > 1.0)
+        let undamped = noisy
             .then(|| solve_constrained(&a, &grad, &constraints))
             .flatten();
-        // A thin step also ends the thin ones where the thinning's own noise could explain it.
-        let thinning = THIN_MARGIN * 0.5 * (sparser - 1.0) * n as f64;
         if let Some(delta) = undamped {
             let full = -grad.dot(&delta) - 0.5 * delta.dot(&(&h * &delta));
-            let settled = noisy && full <= SETTLED_DECREASE.max(SETTLED_RELATIVE * e0);
-            if settled || full <= thinning {
+            if full <= SETTLED_DECREASE.max(SETTLED_RELATIVE * e0) {
                 self.keep_settled(pass, lights, stride);
                 return Ok(StepOutcome {
                     objective: e0,

@@ -53,8 +53,6 @@ pub(crate) struct LightRefinement {
     asked: Refine,
     /// The refinement, while active.
     refiner: Option<Refiner>,
-    /// Whether new refiners take thin steps ([`LightRefinement::thin_steps`]).
-    thin: bool,
     /// Whether a light step of this run found nothing to improve: the lights then stay for the
     /// rest of the run (the mesh converges as with known lights).
     settled: bool,
@@ -76,7 +74,6 @@ impl LightRefinement {
             lights: lights.to_vec(),
             asked: refine,
             refiner: None,
-            thin: false,
             settled: false,
             before: None,
             distance: f64::NAN,
@@ -120,20 +117,9 @@ impl LightRefinement {
 
     /// Changes what is refined from now on.
     pub fn set_refine(&mut self, refine: Refine) {
-        self.refiner = refine.is_active().then(|| {
-            let refiner = Refiner::new(refine, self.rig.clone());
-            match self.thin {
-                true => refiner.with_thin_steps(),
-                false => refiner,
-            }
-        });
-    }
-
-    /// Makes the refiners from the next [`LightRefinement::set_refine`] (or
-    /// [`LightRefinement::restart`]) on begin their runs with thin steps
-    /// ([`Refiner::with_thin_steps`]); the distance check's candidates take them.
-    pub fn thin_steps(&mut self) {
-        self.thin = true;
+        self.refiner = refine
+            .is_active()
+            .then(|| Refiner::new(refine, self.rig.clone()));
     }
 
     /// Starts the lights over: the rig's lights, `refine` from now on, no record of an earlier
