@@ -299,9 +299,8 @@ pub fn check_lobe(step: &LocalStep<'_>, u: &[f64], lobe: &Lobe) -> Result<Option
                             ) >= SEES_PEAK;
                             fits.push((sees, g.specular));
                             held_out_sse(
-                                c,
                                 v,
-                                step.model,
+                                |k| step.model.light(k, c),
                                 values,
                                 channels,
                                 &lambertian,

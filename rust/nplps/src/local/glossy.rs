@@ -62,10 +62,13 @@
 //! line's starts are then the fits under the chosen lobe on all lights. On a matte object the specular
 //! albedo goes to 0 and every lobe fits alike; the estimate is then arbitrary and harmless.
 
+use std::cell::RefCell;
+
 use rayon::prelude::*;
 
 use super::{
-    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LocalStep, Model,
+    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LightAt, LocalStep,
+    Model,
 };
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
@@ -218,6 +221,28 @@ pub(super) fn refine(
     scratch: &mut Packed,
 ) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
+    refine_observed(
+        c, v, model, values, channels, settings, lobe, start, starts, steps, scratch,
+    )
+}
+
+/// [`refine`] of observations already in `scratch`: those [`observations`] put there for a lobe
+/// of the same index and diffuse shape as `lobe` (what [`Packed::prepare`] depends on), with
+/// the same `c`, `v`, `model`, `values`, `channels` and `settings`.
+#[allow(clippy::too_many_arguments)]
+fn refine_observed(
+    c: [f64; 3],
+    v: [f64; 3],
+    model: Model<'_>,
+    values: &[f32],
+    channels: usize,
+    settings: &FitSettings,
+    lobe: &Lobe,
+    start: Option<&FacetFit>,
+    starts: [Option<[f64; 3]>; 2],
+    steps: usize,
+    scratch: &mut Packed,
+) -> Option<FacetFit> {
     // The fits stop within the noise only from a glossy start (see `NOISE_STOP`): a Lambertian
     // fit's normal is tilted by the highlights, alike on neighbouring facets, which the mesh
     // does not average away as it does the noise.
@@ -341,12 +366,12 @@ fn continued(
 /// The squared error of the prediction of `fit` for the observations of `values` that `held`
 /// selects (by light), channel by channel: `sum_{k held, ch} (I_{k,ch} - Phi_{k,ch} a_k
 /// (rho_ch D_k + rho_s S_k))^2` over the usable observations, with the model's 0 where the facet
-/// turns away from the light or the camera.
+/// turns away from the light or the camera. `light(k)` is light `k` at the facet's centre as
+/// [`Model::light`] gives it (the lobe search keeps them per facet, see [`Sampled::lights`]).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn held_out_sse(
-    c: [f64; 3],
     v: [f64; 3],
-    model: Model<'_>,
+    light: impl Fn(usize) -> Option<LightAt>,
     values: &[f32],
     channels: usize,
     settings: &FitSettings,
@@ -362,7 +387,7 @@ pub(super) fn held_out_sse(
         if !held(k) || !usable(o, settings) {
             continue;
         }
-        let Some((a, l, phi)) = model.light(k, c) else {
+        let Some((a, l, phi)) = light(k) else {
             continue;
         };
         let sh = shader.as_ref().and_then(|s| s.shade(l));
@@ -395,6 +420,9 @@ struct Sampled {
     starts: [Option<[f64; 3]>; 2],
     /// Its observations with the lights of the other fold hidden (NaN), per fold.
     folds: Vec<Vec<f32>>,
+    /// With folds, each light at its centre ([`Model::light`]), which the held-out score's
+    /// predictions of every lobe ask for (computed once, the same values).
+    lights: Vec<Option<LightAt>>,
 }
 
 /// The held-out score of one facet of the lobe search under `lobe` (see the module
@@ -427,9 +455,8 @@ fn held_out_score(
             )
             .unwrap_or(s.start);
             held_out_sse(
-                s.c,
                 s.v,
-                model,
+                |k| s.lights[k],
                 &s.values,
                 channels,
                 settings,
@@ -499,15 +526,21 @@ fn search_lobe(
                 Some(n) => [Some(n), Some(quad_normal(&q))],
                 None => [Some(start.normal), Some(quad_normal(&q))],
             };
-            let folds = match held_out {
-                true => (0..ETA_FOLDS).map(|j| fold(&values, channels, j)).collect(),
-                false => Vec::new(),
+            let (folds, lights) = match held_out {
+                true => (
+                    (0..ETA_FOLDS).map(|j| fold(&values, channels, j)).collect(),
+                    (0..per / channels)
+                        .map(|k| step.model.light(k, c))
+                        .collect(),
+                ),
+                false => (Vec::new(), Vec::new()),
             };
             Some(Sampled {
                 c,
                 v: step.geometry.view(c),
                 values,
                 folds,
+                lights,
                 start,
                 starts,
             })
@@ -521,12 +554,39 @@ fn search_lobe(
     // each facet's fit ended (its next starts). The search's fits run the kernels in `f64`
     // lanes (`Packed::precise`): its criteria are flat in the index on a sharp lobe, and the
     // `f32` lanes' rounding moved DiLiGenT's ball's index from 2.09 to 1.90 (stop 51).
+    //
+    // Each facet keeps its observations as prepared for the index and diffuse shape of the
+    // lobe it was fitted under last (see [`Packed::prepare`]): the lobes of a roughness line
+    // share them, and their fits start from them instead of preparing them again (the same
+    // observations, so the same bits).
+    let prepared: RefCell<(Option<(u64, Diffuse)>, Vec<Packed>)> = RefCell::new((None, Vec::new()));
     let fits = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]], steps: usize| {
+        let mut prepared = prepared.borrow_mut();
+        let (under, packed) = &mut *prepared;
+        let key = Some((lobe.eta.to_bits(), lobe.diffuse));
+        let fresh = *under != key || packed.len() != sample.len();
+        if packed.len() != sample.len() {
+            *packed = (0..sample.len()).map(|_| Packed::precise()).collect();
+        }
         let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
             .zip(starts)
-            .map_init(Packed::precise, |scratch, (s, &starts)| {
-                let g = refine(
+            .zip(packed.par_iter_mut())
+            .map(|((s, &starts), scratch)| {
+                if fresh {
+                    let (model, values) = (step.model, &s.values[..]);
+                    observations(
+                        s.c,
+                        s.v,
+                        &lobe,
+                        model,
+                        values,
+                        channels,
+                        &lambertian,
+                        scratch,
+                    );
+                }
+                let g = refine_observed(
                     s.c,
                     s.v,
                     step.model,
@@ -543,6 +603,7 @@ fn search_lobe(
                 (g.sse, [Some(g.normal), None])
             })
             .collect();
+        *under = key;
         let sse = fitted.iter().map(|f| f.0).sum::<f64>();
         (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
@@ -969,9 +1030,16 @@ mod tests {
         let mut off = s.values.clone();
         off[3 * 5 + 1] += 0.1;
         let held = |j: usize| {
-            held_out_sse(s.c, s.v, model, &off, 3, &settings, &lobe, &g, |k| {
-                k % ETA_FOLDS != j
-            })
+            held_out_sse(
+                s.v,
+                |k| model.light(k, s.c),
+                &off,
+                3,
+                &settings,
+                &lobe,
+                &g,
+                |k| k % ETA_FOLDS != j,
+            )
         };
         assert!((held(0) - 0.01).abs() < 1e-6, "{}", held(0));
         assert!(held(1) < 1e-9, "{}", held(1));
