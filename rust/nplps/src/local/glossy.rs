@@ -62,8 +62,6 @@
 //! line's starts are then the fits under the chosen lobe on all lights. On a matte object the specular
 //! albedo goes to 0 and every lobe fits alike; the estimate is then arbitrary and harmless.
 
-use std::cell::RefCell;
-
 use rayon::prelude::*;
 
 use super::{
@@ -221,28 +219,6 @@ pub(super) fn refine(
     scratch: &mut Packed,
 ) -> Option<FacetFit> {
     observations(c, v, lobe, model, values, channels, settings, scratch);
-    refine_observed(
-        c, v, model, values, channels, settings, lobe, start, starts, steps, scratch,
-    )
-}
-
-/// [`refine`] of observations already in `scratch`: those [`observations`] put there for a lobe
-/// of the same index and diffuse shape as `lobe` (what [`Packed::prepare`] depends on), with
-/// the same `c`, `v`, `model`, `values`, `channels` and `settings`.
-#[allow(clippy::too_many_arguments)]
-fn refine_observed(
-    c: [f64; 3],
-    v: [f64; 3],
-    model: Model<'_>,
-    values: &[f32],
-    channels: usize,
-    settings: &FitSettings,
-    lobe: &Lobe,
-    start: Option<&FacetFit>,
-    starts: [Option<[f64; 3]>; 2],
-    steps: usize,
-    scratch: &mut Packed,
-) -> Option<FacetFit> {
     // The fits stop within the noise only from a glossy start (see `NOISE_STOP`): a Lambertian
     // fit's normal is tilted by the highlights, alike on neighbouring facets, which the mesh
     // does not average away as it does the noise.
@@ -554,39 +530,12 @@ fn search_lobe(
     // each facet's fit ended (its next starts). The search's fits run the kernels in `f64`
     // lanes (`Packed::precise`): its criteria are flat in the index on a sharp lobe, and the
     // `f32` lanes' rounding moved DiLiGenT's ball's index from 2.09 to 1.90 (stop 51).
-    //
-    // Each facet keeps its observations as prepared for the index and diffuse shape of the
-    // lobe it was fitted under last (see [`Packed::prepare`]): the lobes of a roughness line
-    // share them, and their fits start from them instead of preparing them again (the same
-    // observations, so the same bits).
-    let prepared: RefCell<(Option<(u64, Diffuse)>, Vec<Packed>)> = RefCell::new((None, Vec::new()));
     let fits = |lobe: Lobe, starts: &[[Option<[f64; 3]>; 2]], steps: usize| {
-        let mut prepared = prepared.borrow_mut();
-        let (under, packed) = &mut *prepared;
-        let key = Some((lobe.eta.to_bits(), lobe.diffuse));
-        let fresh = *under != key || packed.len() != sample.len();
-        if packed.len() != sample.len() {
-            *packed = (0..sample.len()).map(|_| Packed::precise()).collect();
-        }
         let fitted: Vec<(f64, [Option<[f64; 3]>; 2])> = sample
             .par_iter()
             .zip(starts)
-            .zip(packed.par_iter_mut())
-            .map(|((s, &starts), scratch)| {
-                if fresh {
-                    let (model, values) = (step.model, &s.values[..]);
-                    observations(
-                        s.c,
-                        s.v,
-                        &lobe,
-                        model,
-                        values,
-                        channels,
-                        &lambertian,
-                        scratch,
-                    );
-                }
-                let g = refine_observed(
+            .map_init(Packed::precise, |scratch, (s, &starts)| {
+                let g = refine(
                     s.c,
                     s.v,
                     step.model,
@@ -603,7 +552,6 @@ fn search_lobe(
                 (g.sse, [Some(g.normal), None])
             })
             .collect();
-        *under = key;
         let sse = fitted.iter().map(|f| f.0).sum::<f64>();
         (sse, fitted.into_iter().map(|f| f.1).collect::<Vec<_>>())
     };
