@@ -249,12 +249,11 @@ impl Lobe {
     }
 
     /// [`Lobe::shade`] at the normal `n` seen from `v`, for many lights: the lobe's constants
-    /// (its transmittance table, the thread's last kernel where it is this lobe's, see
-    /// `with_kernel`) and the terms of `n` and `v` that every light shares are computed here,
-    /// once; None where `n.v <= 0` (where [`Lobe::shade`] is None for every light).
-    /// [`Shader::shade`] of a light gives [`Lobe::shade`]'s bits.
+    /// (its transmittance table) and the terms of `n` and `v` that every light shares are
+    /// computed here, once; None where `n.v <= 0` (where [`Lobe::shade`] is None for every
+    /// light). [`Shader::shade`] of a light gives [`Lobe::shade`]'s bits.
     pub fn shader(&self, n: [f64; 3], v: [f64; 3]) -> Option<Shader> {
-        let kernel = with_kernel(self, Kernel::clone);
+        let kernel = Kernel::new(self);
         let view = kernel.view(n, v)?;
         Some(Shader {
             lobe: *self,

@@ -299,8 +299,9 @@ pub fn check_lobe(step: &LocalStep<'_>, u: &[f64], lobe: &Lobe) -> Result<Option
                             ) >= SEES_PEAK;
                             fits.push((sees, g.specular));
                             held_out_sse(
+                                c,
                                 v,
-                                |k| step.model.light(k, c),
+                                step.model,
                                 values,
                                 channels,
                                 &lambertian,

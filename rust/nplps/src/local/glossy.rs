@@ -65,8 +65,7 @@
 use rayon::prelude::*;
 
 use super::{
-    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LightAt, LocalStep,
-    Model,
+    channel_intensity, fit_facet, hide_lights, usable, FacetFit, FitSettings, LocalStep, Model,
 };
 use crate::error::Result;
 use crate::geometry::{quad_centre, quad_normal};
@@ -342,12 +341,12 @@ fn continued(
 /// The squared error of the prediction of `fit` for the observations of `values` that `held`
 /// selects (by light), channel by channel: `sum_{k held, ch} (I_{k,ch} - Phi_{k,ch} a_k
 /// (rho_ch D_k + rho_s S_k))^2` over the usable observations, with the model's 0 where the facet
-/// turns away from the light or the camera. `light(k)` is light `k` at the facet's centre as
-/// [`Model::light`] gives it (the lobe search keeps them per facet, see [`Sampled::lights`]).
+/// turns away from the light or the camera.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn held_out_sse(
+    c: [f64; 3],
     v: [f64; 3],
-    light: impl Fn(usize) -> Option<LightAt>,
+    model: Model<'_>,
     values: &[f32],
     channels: usize,
     settings: &FitSettings,
@@ -363,7 +362,7 @@ pub(super) fn held_out_sse(
         if !held(k) || !usable(o, settings) {
             continue;
         }
-        let Some((a, l, phi)) = light(k) else {
+        let Some((a, l, phi)) = model.light(k, c) else {
             continue;
         };
         let sh = shader.as_ref().and_then(|s| s.shade(l));
@@ -396,9 +395,6 @@ struct Sampled {
     starts: [Option<[f64; 3]>; 2],
     /// Its observations with the lights of the other fold hidden (NaN), per fold.
     folds: Vec<Vec<f32>>,
-    /// With folds, each light at its centre ([`Model::light`]), which the held-out score's
-    /// predictions of every lobe ask for (computed once, the same values).
-    lights: Vec<Option<LightAt>>,
 }
 
 /// The held-out score of one facet of the lobe search under `lobe` (see the module
@@ -431,8 +427,9 @@ fn held_out_score(
             )
             .unwrap_or(s.start);
             held_out_sse(
+                s.c,
                 s.v,
-                |k| s.lights[k],
+                model,
                 &s.values,
                 channels,
                 settings,
@@ -502,21 +499,15 @@ fn search_lobe(
                 Some(n) => [Some(n), Some(quad_normal(&q))],
                 None => [Some(start.normal), Some(quad_normal(&q))],
             };
-            let (folds, lights) = match held_out {
-                true => (
-                    (0..ETA_FOLDS).map(|j| fold(&values, channels, j)).collect(),
-                    (0..per / channels)
-                        .map(|k| step.model.light(k, c))
-                        .collect(),
-                ),
-                false => (Vec::new(), Vec::new()),
+            let folds = match held_out {
+                true => (0..ETA_FOLDS).map(|j| fold(&values, channels, j)).collect(),
+                false => Vec::new(),
             };
             Some(Sampled {
                 c,
                 v: step.geometry.view(c),
                 values,
                 folds,
-                lights,
                 start,
                 starts,
             })
@@ -978,16 +969,9 @@ mod tests {
         let mut off = s.values.clone();
         off[3 * 5 + 1] += 0.1;
         let held = |j: usize| {
-            held_out_sse(
-                s.v,
-                |k| model.light(k, s.c),
-                &off,
-                3,
-                &settings,
-                &lobe,
-                &g,
-                |k| k % ETA_FOLDS != j,
-            )
+            held_out_sse(s.c, s.v, model, &off, 3, &settings, &lobe, &g, |k| {
+                k % ETA_FOLDS != j
+            })
         };
         assert!((held(0) - 0.01).abs() < 1e-6, "{}", held(0));
         assert!(held(1) < 1e-9, "{}", held(1));

@@ -413,16 +413,12 @@ impl Model<'_> {
     /// unit direction `l = (1 / a) beta_k(c)` and the intensity `phi`; `None` unless `a` is
     /// positive and finite.
     #[inline]
-    fn light(&self, k: usize, c: [f64; 3]) -> Option<LightAt> {
+    fn light(&self, k: usize, c: [f64; 3]) -> Option<(f64, [f64; 3], [f64; 3])> {
         let (b, _, phi) = self.row(k, c);
         let a = norm(b);
         (a > 0.0 && a.is_finite()).then(|| (a, scale(b, 1.0 / a), phi))
     }
 }
-
-/// A light at a facet's centre as the glossy model sees it ([`Model::light`]): `(a, l, phi)`,
-/// the length of `beta`, its unit direction and the light's intensity.
-type LightAt = (f64, [f64; 3], [f64; 3]);
 
 /// The indirect light that a local step adds to its Lambertian fits: what the fits ask of
 /// [`crate::indirect::IndirectField`], which implements it (the local step sits below the
