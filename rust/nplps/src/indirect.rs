@@ -1676,25 +1676,40 @@ impl IndirectField {
                     }
                 }
                 for (l, out) in outs.chunks_exact_mut(per).enumerate() {
-                    let (bits, hidden) = out.split_at_mut(words);
-                    let f = first + l;
-                    let c = centres[l];
                     if let Some(kept) = kept.as_ref() {
-                        let p = grid.facets[f] as usize;
-                        hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+                        let p = grid.facets[first + l] as usize;
+                        out[words..].copy_from_slice(&kept[p * words..(p + 1) * words]);
                     }
-                    // The margin is a guess: it may not leave fewer than MIN_LIT lights. (The
-                    // centre is projected once for all the lights.)
-                    let seen = margin.map(|m| (m, m.camera.project(c)));
+                }
+                if let Some(m) = margin {
+                    // The lights the margin hides (each centre projected once for all the
+                    // lights; a point light's segments whose ends both project inside the
+                    // image, where `hides` is false without a march, found in lanes).
+                    let images: [[f64; 2]; MARK_LANES] =
+                        crate::lanes(|l| m.camera.project(centres[l]));
                     for (k, light) in lights.iter().enumerate() {
-                        let bit = 1 << (k % 64);
-                        // (a light kept hidden is not marched again: the result is the same)
-                        if (bits[k / 64] | hidden[k / 64]) & bit == 0
-                            && seen.is_some_and(|(m, a)| m.hides(c, a, light))
-                        {
-                            hidden[k / 64] |= bit;
+                        let (w, bit) = (k / 64, 1u64 << (k % 64));
+                        let may = match *light {
+                            crate::Light::Point { position, .. } => {
+                                m.may_hide_lanes(&centres, &images, position)
+                            }
+                            crate::Light::Directional { .. } => [true; MARK_LANES],
+                        };
+                        for (l, out) in outs.chunks_exact_mut(per).enumerate() {
+                            // (a light kept hidden is not marched again: the result is the
+                            // same)
+                            if may[l]
+                                && (out[w] | out[words + w]) & bit == 0
+                                && m.hides(centres[l], images[l], light)
+                            {
+                                out[words + w] |= bit;
+                            }
                         }
                     }
+                }
+                for out in outs.chunks_exact_mut(per) {
+                    let (bits, hidden) = out.split_at_mut(words);
+                    // The margin is a guess: it may not leave fewer than MIN_LIT lights.
                     let unlit: u32 = bits
                         .iter()
                         .zip(hidden.iter())
@@ -2087,6 +2102,81 @@ struct MarginMesh {
 }
 
 impl MarginMesh {
+    /// The far end of the segment of [`MarginMesh::hides`] from the point `x` towards `light`:
+    /// the light's position, or the point where the segment comes nearer the camera than
+    /// `z_min` (along a directional light's direction, which always ends there); None for a
+    /// directional light whose segment never does (nothing to march).
+    #[inline(always)]
+    fn segment_end(&self, x: [f64; 3], light: &crate::Light) -> Option<[f64; 3]> {
+        match *light {
+            crate::Light::Point { position, .. } => Some(self.point_end(x, position)),
+            crate::Light::Directional { direction, .. } => {
+                if !(direction[2] < 0.0 && x[2] > self.z_min) {
+                    return None;
+                }
+                let t = (x[2] - self.z_min) / -direction[2];
+                Some(std::array::from_fn(|i| x[i] + t * direction[i]))
+            }
+        }
+    }
+
+    /// [`MarginMesh::segment_end`] of a point light at `position`.
+    #[inline(always)]
+    fn point_end(&self, x: [f64; 3], position: [f64; 3]) -> [f64; 3] {
+        if position[2] < self.z_min && x[2] > self.z_min {
+            let t = (x[2] - self.z_min) / (x[2] - position[2]);
+            std::array::from_fn(|i| x[i] + t * (position[i] - x[i]))
+        } else {
+            position
+        }
+    }
+
+    /// Whether the image point `uv` (of the extended grid) is over the image's facets (their
+    /// grid points, corners included).
+    #[inline(always)]
+    fn inside(&self, [u, v]: [f64; 2]) -> bool {
+        let (m, hc, wc) = self.image;
+        let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
+        gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
+    }
+
+    /// Per lane, whether [`MarginMesh::hides`] of the point `x[l]` (image point `a[l]`) and the
+    /// point light at `position` may be true: false where the segment's two ends project, finite,
+    /// inside the image (where `hides` returns false before it marches), for a camera without
+    /// distortion, whose projection is computed here in lanes (`Camera::project`'s operations
+    /// less the distortion's, which with zero coefficients multiplies by 1 and adds 0: the same
+    /// values where they are finite); true otherwise (with distortion: every lane).
+    #[inline(always)]
+    fn may_hide_lanes<const N: usize>(
+        &self,
+        x: &[[f64; 3]; N],
+        a: &[[f64; 2]; N],
+        position: [f64; 3],
+    ) -> [bool; N] {
+        let end: [[f64; 3]; N] = crate::lanes(|l| self.point_end(x[l], position));
+        let b: [[f64; 2]; N] = match self.camera {
+            Camera::Orthographic { pixel_size, origin } => crate::lanes(|l| {
+                [
+                    (end[l][0] - origin[0]) / pixel_size[0] - 0.5,
+                    (end[l][1] - origin[1]) / pixel_size[1] - 0.5,
+                ]
+            }),
+            Camera::Pinhole { k, distortion } if distortion == [0.0; 5] => crate::lanes(|l| {
+                let p = end[l];
+                let (x, y) = (p[0] / p[2], p[1] / p[2]);
+                match p[2] <= 0.0 {
+                    true => [f64::NAN; 2],
+                    false => [k[0][0] * x + k[0][1] * y + k[0][2], k[1][1] * y + k[1][2]],
+                }
+            }),
+            Camera::Pinhole { .. } => return [true; N],
+        };
+        crate::lanes(|l| {
+            let finite = a[l].iter().chain(&b[l]).all(|v| v.is_finite());
+            !(finite && self.inside(a[l]) && self.inside(b[l]))
+        })
+    }
+
     /// Whether the margin's surface hides `light` from the point `x` (a fine facet's centre):
     /// the segment from `x` towards the light (its position, or along its direction), cut where
     /// it comes nearer the camera than the nearest vertex, is marched half a coarse pixel at a
@@ -2099,28 +2189,11 @@ impl MarginMesh {
     /// `a` is the image point of `x`, `self.camera.project(x)` (a facet's centre is projected
     /// once for all its lights).
     fn hides(&self, x: [f64; 3], a: [f64; 2], light: &crate::Light) -> bool {
-        let end = match *light {
-            crate::Light::Point { position, .. } => {
-                if position[2] < self.z_min && x[2] > self.z_min {
-                    let t = (x[2] - self.z_min) / (x[2] - position[2]);
-                    std::array::from_fn(|i| x[i] + t * (position[i] - x[i]))
-                } else {
-                    position
-                }
-            }
-            crate::Light::Directional { direction, .. } => {
-                if !(direction[2] < 0.0 && x[2] > self.z_min) {
-                    return false;
-                }
-                let t = (x[2] - self.z_min) / -direction[2];
-                std::array::from_fn(|i| x[i] + t * direction[i])
-            }
+        let Some(end) = self.segment_end(x, light) else {
+            return false;
         };
         let (m, hc, wc) = self.image;
-        let inside = |[u, v]: [f64; 2]| {
-            let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
-            gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
-        };
+        let inside = |uv: [f64; 2]| self.inside(uv);
         let b = self.camera.project(end);
         if !(a.iter().chain(&b).all(|v| v.is_finite())) || (inside(a) && inside(b)) {
             return false;
