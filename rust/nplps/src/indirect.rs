@@ -676,17 +676,8 @@ fn clearance_lanes(depths: &CellDepths, segment: &Segment) -> f64 {
         let gx: [f64; MARCH_LANES] = crate::lanes(|t| ma[0] + s[t] * (mb[0] - ma[0]) + 0.5);
         let gy: [f64; MARCH_LANES] = crate::lanes(|t| ma[1] + s[t] * (mb[1] - ma[1]) + 0.5);
         let reach: [f64; MARCH_LANES] = crate::lanes(|t| hiding_depth(z[t], tol));
-        let surface = depths.tested_lanes(ends, &gx, &gy);
-        let count = MARCH_LANES.min(steps - from);
-        // A block where nothing blocked before and no sample blocks only lowers the smallest
-        // margin (in the samples' order: the same value); otherwise its samples in turn.
-        let quiet = verdict.blocked.is_none() && (0..count).all(|t| !(surface[t] < reach[t]));
-        for t in 0..count {
-            if quiet {
-                if !surface[t].is_nan() {
-                    verdict.clearance = verdict.clearance.min(surface[t] - reach[t]);
-                }
-            } else if verdict.sample_depth(surface[t], reach[t]) {
+        for t in 0..MARCH_LANES.min(steps - from) {
+            if verdict.sample(depths, ends, gx[t], gy[t], reach[t]) {
                 return verdict.clearance();
             }
         }
@@ -741,16 +732,6 @@ impl Verdict {
         let Some(z_surface) = depths.surface_depth_in(gx, gy, row, col) else {
             return false;
         };
-        self.sample_depth(z_surface, reach)
-    }
-
-    /// [`Verdict::sample`] of a tested sample whose surface depth is `z_surface` (NaN: not
-    /// tested, nothing changes).
-    #[inline(always)]
-    fn sample_depth(&mut self, z_surface: f64, reach: f64) -> bool {
-        if z_surface.is_nan() {
-            return false;
-        }
         if z_surface < reach || self.blocked.is_some() {
             // Blocked: on while the surface rises further in front of the segment (to the
             // top of the ridge that blocks it), the deepest cut the clearance.
@@ -797,37 +778,6 @@ impl CellDepths {
             height,
             width,
             corners,
-        })
-    }
-
-    /// The surface depths under [`MARCH_LANES`] samples at `(gx, gy)` that [`Verdict::sample`]
-    /// tests (the values of [`CellDepths::surface_depth_in`] in their cells), NaN under those
-    /// it does not (over the end cells `ends`, outside the image, the mask or the finite
-    /// vertices), in lanes.
-    #[inline(always)]
-    fn tested_lanes(
-        &self,
-        (pa, pb): (usize, usize),
-        gx: &[f64; MARCH_LANES],
-        gy: &[f64; MARCH_LANES],
-    ) -> [f64; MARCH_LANES] {
-        let (w, h) = (self.width as f64, self.height as f64);
-        crate::lanes(|t| {
-            let (x, y) = (gx[t], gy[t]);
-            let (row, col) = (
-                (y as usize).min(self.height.saturating_sub(1)),
-                (x as usize).min(self.width.saturating_sub(1)),
-            );
-            let cell = row * self.width + col;
-            let inside = x >= 0.0 && y >= 0.0 && x <= w && y <= h && cell != pa && cell != pb;
-            let q = self.corners.get(cell).copied().unwrap_or([f64::NAN; 4]);
-            let (fx, fy) = (x - col as f64, y - row as f64);
-            let z =
-                (1.0 - fy) * ((1.0 - fx) * q[0] + fx * q[1]) + fy * ((1.0 - fx) * q[2] + fx * q[3]);
-            match inside && z.is_finite() {
-                true => z,
-                false => f64::NAN,
-            }
         })
     }
 
