@@ -1269,6 +1269,24 @@ impl crate::local::IndirectLight for IndirectField {
     fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
         IndirectField::at_into(self, p, width, out)
     }
+
+    /// In one pass: each value is interpolated straight into its lane (the sums of
+    /// [`IndirectField::at_into`], in its order: the same values) and the unlit lights read
+    /// from their bits, without the per-pixel vectors and a call per light.
+    fn lane_into(&self, p: usize, width: usize, lane: usize, rows: &mut [crate::local::FieldRow]) {
+        let (cells, used, total) = self.cells(p, width);
+        let cells = &cells[..used];
+        for (j, row) in rows.iter_mut().enumerate().take(self.per) {
+            for c in 0..3 {
+                let mut x = 0.0;
+                for &(pc, weight) in cells {
+                    x += weight * f64::from(self.vectors[pc * self.per + j][c]);
+                }
+                row.v[c][lane] = if total != 1.0 { x / total } else { x };
+            }
+            row.direct[lane] = !self.is_unlit(p, j);
+        }
+    }
 }
 
 impl IndirectField {
@@ -1835,6 +1853,27 @@ impl IndirectField {
     pub fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
         out.clear();
         out.resize(self.per, [0.0; 3]);
+        // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass over
+        // a cell's contiguous values at a time (which vectorises; the same sums in the same
+        // order as a pass over the cells per value, so the same bits), the division skipped
+        // where the weights sum to exactly 1, as they do inside the grid for a power-of-two
+        // factor (the same bits).
+        let (cells, used, total) = self.cells(p, width);
+        for &(pc, weight) in &cells[..used] {
+            self.add(pc, weight, out);
+        }
+        if total != 1.0 {
+            for o in out.iter_mut() {
+                *o = o.map(|x| x / total);
+            }
+        }
+    }
+
+    /// The coarse facets whose vectors [`IndirectField::at`] sums for fine pixel `p`, with
+    /// their weights, in the order it sums them (the first `used`), and the divisor of the sums
+    /// (`total`): the bilinear weights of those that took part and their sum; else the nearest
+    /// within two that did, weight 1; else none.
+    fn cells(&self, p: usize, width: usize) -> ([(usize, f64); 4], usize, f64) {
         let f = self.factor as f64;
         let y = ((p / width) as f64 + 0.5) / f - 0.5;
         let x = ((p % width) as f64 + 0.5) / f - 0.5;
@@ -1855,20 +1894,7 @@ impl IndirectField {
             }
         }
         if total > 0.0 {
-            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass
-            // over a cell's contiguous values at a time (which vectorises; the same sums in the
-            // same order as a pass over the cells per value, so the same bits), the division
-            // skipped where the weights sum to exactly 1, as they do inside the grid for a
-            // power-of-two factor (the same bits).
-            for &(pc, weight) in &cells[..used] {
-                self.add(pc, weight, out);
-            }
-            if total != 1.0 {
-                for o in out.iter_mut() {
-                    *o = o.map(|x| x / total);
-                }
-            }
-            return;
+            return (cells, used, total);
         }
         let (r, c) = (
             (p / width / self.factor) as i64,
@@ -1878,8 +1904,9 @@ impl IndirectField {
             .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
             .filter_map(|(dr, dc)| self.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
             .min_by_key(|&(d, _)| d);
-        if let Some((_, pc)) = nearest {
-            self.add(pc, 1.0, out);
+        match nearest {
+            Some((_, pc)) => ([(pc, 1.0); 4], 1, 1.0),
+            None => (cells, 0, 1.0),
         }
     }
 
