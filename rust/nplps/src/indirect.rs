@@ -2835,6 +2835,27 @@ mod tests {
         });
         assert!(close(at[0], expected), "{at:?} {expected:?}");
         assert!(expected[0].abs() > 0.01);
+        lanes_are_the_lookups(&field, n, n * n);
+    }
+
+    /// `IndirectLight::lane_into` of every fine pixel (in lane `p % LANES`, over what the pixel
+    /// before left there) gives `at_into` and `is_unlit`, bit for bit.
+    fn lanes_are_the_lookups(field: &IndirectField, width: usize, pixels: usize) {
+        use crate::local::IndirectLight;
+        let mut rows = vec![crate::local::FieldRow::EMPTY; field.per];
+        let lanes = rows[0].direct.len();
+        let mut vectors = Vec::new();
+        for p in 0..pixels {
+            let lane = p % lanes;
+            field.lane_into(p, width, lane, &mut rows);
+            field.at_into(p, width, &mut vectors);
+            for (j, (row, v)) in rows.iter().zip(&vectors).enumerate() {
+                for (c, x) in v.iter().enumerate() {
+                    assert_eq!(row.v[c][lane].to_bits(), x.to_bits(), "{p} {j} {c}");
+                }
+                assert_eq!(row.direct[lane], !field.is_unlit(p, j), "{p} {j}");
+            }
+        }
     }
 
     /// `angle_of` is `atan2` for non-negative first arguments, within 2 ulp: every range of
@@ -3604,6 +3625,7 @@ mod tests {
                     assert_eq!(field.is_unlit(p as usize, k), expected, "{p} {k}");
                 }
             }
+            lanes_are_the_lookups(&field, n, n * n);
         }
         assert!(
             hidden_any > 0,

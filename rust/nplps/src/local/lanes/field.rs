@@ -39,7 +39,8 @@ pub(crate) struct FieldRow {
 }
 
 impl FieldRow {
-    const EMPTY: FieldRow = FieldRow {
+    /// Zero vectors, no direct light.
+    pub(crate) const EMPTY: FieldRow = FieldRow {
         v: [[0.0; LANES]; 3],
         direct: [false; LANES],
     };
