@@ -1269,6 +1269,24 @@ impl crate::local::IndirectLight for IndirectField {
     fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
         IndirectField::at_into(self, p, width, out)
     }
+
+    /// In one pass: each value is interpolated straight into its lane (the sums of
+    /// [`IndirectField::at_into`], in its order: the same values) and the unlit lights read
+    /// from their bits, without the per-pixel vectors and a call per light.
+    fn lane_into(&self, p: usize, width: usize, lane: usize, rows: &mut [crate::local::FieldRow]) {
+        let (cells, used, total) = self.cells(p, width);
+        let cells = &cells[..used];
+        for (j, row) in rows.iter_mut().enumerate().take(self.per) {
+            for c in 0..3 {
+                let mut x = 0.0;
+                for &(pc, weight) in cells {
+                    x += weight * f64::from(self.vectors[pc * self.per + j][c]);
+                }
+                row.v[c][lane] = if total != 1.0 { x / total } else { x };
+            }
+            row.direct[lane] = !self.is_unlit(p, j);
+        }
+    }
 }
 
 impl IndirectField {
@@ -1676,25 +1694,40 @@ impl IndirectField {
                     }
                 }
                 for (l, out) in outs.chunks_exact_mut(per).enumerate() {
-                    let (bits, hidden) = out.split_at_mut(words);
-                    let f = first + l;
-                    let c = centres[l];
                     if let Some(kept) = kept.as_ref() {
-                        let p = grid.facets[f] as usize;
-                        hidden.copy_from_slice(&kept[p * words..(p + 1) * words]);
+                        let p = grid.facets[first + l] as usize;
+                        out[words..].copy_from_slice(&kept[p * words..(p + 1) * words]);
                     }
-                    // The margin is a guess: it may not leave fewer than MIN_LIT lights. (The
-                    // centre is projected once for all the lights.)
-                    let seen = margin.map(|m| (m, m.camera.project(c)));
+                }
+                if let Some(m) = margin {
+                    // The lights the margin hides (each centre projected once for all the
+                    // lights; a point light's segments whose ends both project inside the
+                    // image, where `hides` is false without a march, found in lanes).
+                    let images: [[f64; 2]; MARK_LANES] =
+                        crate::lanes(|l| m.camera.project(centres[l]));
                     for (k, light) in lights.iter().enumerate() {
-                        let bit = 1 << (k % 64);
-                        // (a light kept hidden is not marched again: the result is the same)
-                        if (bits[k / 64] | hidden[k / 64]) & bit == 0
-                            && seen.is_some_and(|(m, a)| m.hides(c, a, light))
-                        {
-                            hidden[k / 64] |= bit;
+                        let (w, bit) = (k / 64, 1u64 << (k % 64));
+                        let may = match *light {
+                            crate::Light::Point { position, .. } => {
+                                m.may_hide_lanes(&centres, &images, position)
+                            }
+                            crate::Light::Directional { .. } => [true; MARK_LANES],
+                        };
+                        for (l, out) in outs.chunks_exact_mut(per).enumerate() {
+                            // (a light kept hidden is not marched again: the result is the
+                            // same)
+                            if may[l]
+                                && (out[w] | out[words + w]) & bit == 0
+                                && m.hides(centres[l], images[l], light)
+                            {
+                                out[words + w] |= bit;
+                            }
                         }
                     }
+                }
+                for out in outs.chunks_exact_mut(per) {
+                    let (bits, hidden) = out.split_at_mut(words);
+                    // The margin is a guess: it may not leave fewer than MIN_LIT lights.
                     let unlit: u32 = bits
                         .iter()
                         .zip(hidden.iter())
@@ -1820,6 +1853,27 @@ impl IndirectField {
     pub fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>) {
         out.clear();
         out.resize(self.per, [0.0; 3]);
+        // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass over
+        // a cell's contiguous values at a time (which vectorises; the same sums in the same
+        // order as a pass over the cells per value, so the same bits), the division skipped
+        // where the weights sum to exactly 1, as they do inside the grid for a power-of-two
+        // factor (the same bits).
+        let (cells, used, total) = self.cells(p, width);
+        for &(pc, weight) in &cells[..used] {
+            self.add(pc, weight, out);
+        }
+        if total != 1.0 {
+            for o in out.iter_mut() {
+                *o = o.map(|x| x / total);
+            }
+        }
+    }
+
+    /// The coarse facets whose vectors [`IndirectField::at`] sums for fine pixel `p`, with
+    /// their weights, in the order it sums them (the first `used`), and the divisor of the sums
+    /// (`total`): the bilinear weights of those that took part and their sum; else the nearest
+    /// within two that did, weight 1; else none.
+    fn cells(&self, p: usize, width: usize) -> ([(usize, f64); 4], usize, f64) {
         let f = self.factor as f64;
         let y = ((p / width) as f64 + 0.5) / f - 0.5;
         let x = ((p % width) as f64 + 0.5) / f - 0.5;
@@ -1840,20 +1894,7 @@ impl IndirectField {
             }
         }
         if total > 0.0 {
-            // Per value, `(0 + w_a v_a + w_b v_b + ...) / total` in the cells' order: one pass
-            // over a cell's contiguous values at a time (which vectorises; the same sums in the
-            // same order as a pass over the cells per value, so the same bits), the division
-            // skipped where the weights sum to exactly 1, as they do inside the grid for a
-            // power-of-two factor (the same bits).
-            for &(pc, weight) in &cells[..used] {
-                self.add(pc, weight, out);
-            }
-            if total != 1.0 {
-                for o in out.iter_mut() {
-                    *o = o.map(|x| x / total);
-                }
-            }
-            return;
+            return (cells, used, total);
         }
         let (r, c) = (
             (p / width / self.factor) as i64,
@@ -1863,8 +1904,9 @@ impl IndirectField {
             .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
             .filter_map(|(dr, dc)| self.cell(r + dr, c + dc).map(|pc| (dr * dr + dc * dc, pc)))
             .min_by_key(|&(d, _)| d);
-        if let Some((_, pc)) = nearest {
-            self.add(pc, 1.0, out);
+        match nearest {
+            Some((_, pc)) => ([(pc, 1.0); 4], 1, 1.0),
+            None => (cells, 0, 1.0),
         }
     }
 
@@ -2087,6 +2129,81 @@ struct MarginMesh {
 }
 
 impl MarginMesh {
+    /// The far end of the segment of [`MarginMesh::hides`] from the point `x` towards `light`:
+    /// the light's position, or the point where the segment comes nearer the camera than
+    /// `z_min` (along a directional light's direction, which always ends there); None for a
+    /// directional light whose segment never does (nothing to march).
+    #[inline(always)]
+    fn segment_end(&self, x: [f64; 3], light: &crate::Light) -> Option<[f64; 3]> {
+        match *light {
+            crate::Light::Point { position, .. } => Some(self.point_end(x, position)),
+            crate::Light::Directional { direction, .. } => {
+                if !(direction[2] < 0.0 && x[2] > self.z_min) {
+                    return None;
+                }
+                let t = (x[2] - self.z_min) / -direction[2];
+                Some(std::array::from_fn(|i| x[i] + t * direction[i]))
+            }
+        }
+    }
+
+    /// [`MarginMesh::segment_end`] of a point light at `position`.
+    #[inline(always)]
+    fn point_end(&self, x: [f64; 3], position: [f64; 3]) -> [f64; 3] {
+        if position[2] < self.z_min && x[2] > self.z_min {
+            let t = (x[2] - self.z_min) / (x[2] - position[2]);
+            std::array::from_fn(|i| x[i] + t * (position[i] - x[i]))
+        } else {
+            position
+        }
+    }
+
+    /// Whether the image point `uv` (of the extended grid) is over the image's facets (their
+    /// grid points, corners included).
+    #[inline(always)]
+    fn inside(&self, [u, v]: [f64; 2]) -> bool {
+        let (m, hc, wc) = self.image;
+        let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
+        gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
+    }
+
+    /// Per lane, whether [`MarginMesh::hides`] of the point `x[l]` (image point `a[l]`) and the
+    /// point light at `position` may be true: false where the segment's two ends project, finite,
+    /// inside the image (where `hides` returns false before it marches), for a camera without
+    /// distortion, whose projection is computed here in lanes (`Camera::project`'s operations
+    /// less the distortion's, which with zero coefficients multiplies by 1 and adds 0: the same
+    /// values where they are finite); true otherwise (with distortion: every lane).
+    #[inline(always)]
+    fn may_hide_lanes<const N: usize>(
+        &self,
+        x: &[[f64; 3]; N],
+        a: &[[f64; 2]; N],
+        position: [f64; 3],
+    ) -> [bool; N] {
+        let end: [[f64; 3]; N] = crate::lanes(|l| self.point_end(x[l], position));
+        let b: [[f64; 2]; N] = match self.camera {
+            Camera::Orthographic { pixel_size, origin } => crate::lanes(|l| {
+                [
+                    (end[l][0] - origin[0]) / pixel_size[0] - 0.5,
+                    (end[l][1] - origin[1]) / pixel_size[1] - 0.5,
+                ]
+            }),
+            Camera::Pinhole { k, distortion } if distortion == [0.0; 5] => crate::lanes(|l| {
+                let p = end[l];
+                let (x, y) = (p[0] / p[2], p[1] / p[2]);
+                match p[2] <= 0.0 {
+                    true => [f64::NAN; 2],
+                    false => [k[0][0] * x + k[0][1] * y + k[0][2], k[1][1] * y + k[1][2]],
+                }
+            }),
+            Camera::Pinhole { .. } => return [true; N],
+        };
+        crate::lanes(|l| {
+            let finite = a[l].iter().chain(&b[l]).all(|v| v.is_finite());
+            !(finite && self.inside(a[l]) && self.inside(b[l]))
+        })
+    }
+
     /// Whether the margin's surface hides `light` from the point `x` (a fine facet's centre):
     /// the segment from `x` towards the light (its position, or along its direction), cut where
     /// it comes nearer the camera than the nearest vertex, is marched half a coarse pixel at a
@@ -2099,28 +2216,11 @@ impl MarginMesh {
     /// `a` is the image point of `x`, `self.camera.project(x)` (a facet's centre is projected
     /// once for all its lights).
     fn hides(&self, x: [f64; 3], a: [f64; 2], light: &crate::Light) -> bool {
-        let end = match *light {
-            crate::Light::Point { position, .. } => {
-                if position[2] < self.z_min && x[2] > self.z_min {
-                    let t = (x[2] - self.z_min) / (x[2] - position[2]);
-                    std::array::from_fn(|i| x[i] + t * (position[i] - x[i]))
-                } else {
-                    position
-                }
-            }
-            crate::Light::Directional { direction, .. } => {
-                if !(direction[2] < 0.0 && x[2] > self.z_min) {
-                    return false;
-                }
-                let t = (x[2] - self.z_min) / -direction[2];
-                std::array::from_fn(|i| x[i] + t * direction[i])
-            }
+        let Some(end) = self.segment_end(x, light) else {
+            return false;
         };
         let (m, hc, wc) = self.image;
-        let inside = |[u, v]: [f64; 2]| {
-            let (gx, gy) = (u + 0.5 - m as f64, v + 0.5 - m as f64);
-            gx >= 0.0 && gy >= 0.0 && gx <= wc as f64 && gy <= hc as f64
-        };
+        let inside = |uv: [f64; 2]| self.inside(uv);
         let b = self.camera.project(end);
         if !(a.iter().chain(&b).all(|v| v.is_finite())) || (inside(a) && inside(b)) {
             return false;
@@ -2735,6 +2835,27 @@ mod tests {
         });
         assert!(close(at[0], expected), "{at:?} {expected:?}");
         assert!(expected[0].abs() > 0.01);
+        lanes_are_the_lookups(&field, n, n * n);
+    }
+
+    /// `IndirectLight::lane_into` of every fine pixel (in lane `p % LANES`, over what the pixel
+    /// before left there) gives `at_into` and `is_unlit`, bit for bit.
+    fn lanes_are_the_lookups(field: &IndirectField, width: usize, pixels: usize) {
+        use crate::local::IndirectLight;
+        let mut rows = vec![crate::local::FieldRow::EMPTY; field.per];
+        let lanes = rows[0].direct.len();
+        let mut vectors = Vec::new();
+        for p in 0..pixels {
+            let lane = p % lanes;
+            field.lane_into(p, width, lane, &mut rows);
+            field.at_into(p, width, &mut vectors);
+            for (j, (row, v)) in rows.iter().zip(&vectors).enumerate() {
+                for (c, x) in v.iter().enumerate() {
+                    assert_eq!(row.v[c][lane].to_bits(), x.to_bits(), "{p} {j} {c}");
+                }
+                assert_eq!(row.direct[lane], !field.is_unlit(p, j), "{p} {j}");
+            }
+        }
     }
 
     /// `angle_of` is `atan2` for non-negative first arguments, within 2 ulp: every range of
@@ -3504,6 +3625,7 @@ mod tests {
                     assert_eq!(field.is_unlit(p as usize, k), expected, "{p} {k}");
                 }
             }
+            lanes_are_the_lookups(&field, n, n * n);
         }
         assert!(
             hidden_any > 0,

@@ -1090,9 +1090,7 @@ impl<'p> Solver<'p> {
     /// most [`INDIRECT_TOL`] times the lateral size or its residual settles
     /// ([`INDIRECT_RESIDUAL_TOL`]); then a last run with the last field to the
     /// solver's own stop rule. The first round gathers on a grid of half the side
-    /// ([`FIRST_ROUND_COARSER`]); each later round's field keeps the visibility verdicts of the
-    /// one before that its mesh cannot have changed (see [`crate::indirect`]; the second's
-    /// grid is built afresh), and the lights that
+    /// ([`FIRST_ROUND_COARSER`]); each later round's field keeps the lights that
     /// its margin hid (see [`IndirectField::with_unlit`]: without them the corrugated sheet's
     /// rounds alternated for good). With cast shadows (see [`Solver::cast_shadows`]) the rounds
     /// keep the mask they start with (the converged run's, marched on the mesh they start from;
@@ -1147,9 +1145,14 @@ impl<'p> Solver<'p> {
             if round == 1 {
                 previous = None;
             }
-            // The verdicts of this round's exchange only when the next round's takes them
-            // (not the first round's, of another grid, nor the last's).
-            let keep = round > 0 && round + 1 < schedule.rounds;
+            // No visibility verdicts are kept for the next round's exchange (`keep`, see
+            // [`IndirectField::of_mesh_keeping`]): its mesh moves too far for them (after the
+            // over-relaxed step, the benchmark's GI renders at 256² re-marched 75-93 % of the
+            // facing pairs at their third round), and keeping them cost more than it saved (the
+            // rest of each blocked pair's march past its first block, the verdicts' pushes; the
+            // corrugated sheet with the option 4 % less processor time without: docs/concave.md,
+            // stop 54). The same exchanges either way.
+            let keep = false;
             self.indirect = Some(
                 IndirectField::of_mesh_keeping(
                     &p.rig.camera,

@@ -23,6 +23,7 @@ use crate::light::LaneLight;
 use crate::memory::try_vec;
 
 mod field;
+pub(crate) use field::FieldRow;
 mod robust;
 
 pub(super) use robust::RobustScratch;

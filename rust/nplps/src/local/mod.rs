@@ -44,7 +44,7 @@ pub(crate) use glossy::{
     estimate_lobe, estimate_starting_lobe, ETAS, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
 };
 pub(crate) use glossy_indirect::GlossyState;
-pub(crate) use lanes::final_chunks;
+pub(crate) use lanes::{final_chunks, FieldRow};
 use lanes::{lane_scratch, RobustScratch, LANES};
 /// Facets per chunk of the final pass's vectorized accumulation (see
 /// [`LocalStep::try_run_final_lanes`]).
@@ -430,6 +430,21 @@ pub trait IndirectLight: Sync {
     /// The indirect irradiance vectors `V` of pixel `p` (of an image `width` pixels wide), one
     /// per light and channel, into `out` (resized to them).
     fn at_into(&self, p: usize, width: usize, out: &mut Vec<[f64; 3]>);
+    /// [`IndirectLight::at_into`] and [`IndirectLight::is_unlit`] of pixel `p` for lane `lane`
+    /// of the fits in lanes (grey images): `rows[j].v[c][lane]` is component `c` of its vector
+    /// `j` and `rows[j].direct[lane]` whether light `j`'s direct light reaches it (not
+    /// `is_unlit`), for the first `rows.len()` vectors. The same values as those two; a field
+    /// may find them in one pass (the default goes through them).
+    fn lane_into(&self, p: usize, width: usize, lane: usize, rows: &mut [FieldRow]) {
+        let mut vectors = Vec::new();
+        self.at_into(p, width, &mut vectors);
+        for (j, (row, v)) in rows.iter_mut().zip(&vectors).enumerate() {
+            for (c, &x) in v.iter().enumerate() {
+                row.v[c][lane] = x;
+            }
+            row.direct[lane] = !self.is_unlit(p, j);
+        }
+    }
 }
 
 /// What the iterations keep of a facet's fit besides its target.

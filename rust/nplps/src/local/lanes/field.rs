@@ -33,13 +33,14 @@ use crate::local::{keep_shape, FacetFit, IndirectLight, LocalStep, Model, Robust
 /// One light's field in [`LANES`] facets: the vector `V` of each lane (components, lanes) and
 /// whether its direct light reaches the lane's facet.
 #[derive(Debug, Clone, Copy)]
-struct FieldRow {
-    v: [[f64; LANES]; 3],
-    direct: [bool; LANES],
+pub(crate) struct FieldRow {
+    pub(crate) v: [[f64; LANES]; 3],
+    pub(crate) direct: [bool; LANES],
 }
 
 impl FieldRow {
-    const EMPTY: FieldRow = FieldRow {
+    /// Zero vectors, no direct light.
+    pub(crate) const EMPTY: FieldRow = FieldRow {
         v: [[0.0; LANES]; 3],
         direct: [false; LANES],
     };
@@ -84,8 +85,7 @@ impl LocalStep<'_> {
         field: &dyn IndirectLight,
     ) -> [FacetFit; LANES] {
         thread_local! {
-            static SCRATCH: RefCell<(Vec<[f64; 3]>, Vec<FieldRow>)> =
-                const { RefCell::new((Vec::new(), Vec::new())) };
+            static SCRATCH: RefCell<Vec<FieldRow>> = const { RefCell::new(Vec::new()) };
         }
         let (grid, geometry, obs) = (self.grid, self.geometry, self.obs);
         let k = obs.k;
@@ -102,17 +102,11 @@ impl LocalStep<'_> {
                 }
             }
         }
-        SCRATCH.with_borrow_mut(|(vectors, rows)| {
+        SCRATCH.with_borrow_mut(|rows| {
             rows.clear();
             rows.resize(k, FieldRow::EMPTY);
             for (l, &pixel) in pixels.iter().enumerate() {
-                field.at_into(pixel, grid.width, vectors);
-                for (j, (row, v)) in rows.iter_mut().zip(vectors.iter()).enumerate() {
-                    row.v[0][l] = v[0];
-                    row.v[1][l] = v[1];
-                    row.v[2][l] = v[2];
-                    row.direct[l] = !field.is_unlit(pixel, j);
-                }
+                field.lane_into(pixel, grid.width, l, rows);
                 if let Some(shadows) = self.shadows {
                     for j in shadows.lights_at(pixel) {
                         rows[j].direct[l] = false;
