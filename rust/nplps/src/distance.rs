@@ -2056,16 +2056,27 @@ mod search_state_tests {
     use crate::problem::{ImageStack, InitialDepth};
     use crate::synth::{Scene, SceneKind};
 
+    /// A 16 x 16 spherical cap at 200 and its (Lambertian) images.
+    fn cap() -> (Scene, Vec<f32>) {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        (scene, images)
+    }
+
+    /// The problem of [`cap`]'s images, started at the scene's mean depth.
+    fn cap_problem<'a>(scene: &'a Scene, images: &'a [f32]) -> Problem<'a> {
+        let stack = ImageStack::new(images, scene.rig.n_lights(), 16, 16).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap()
+    }
+
     /// The search compares its candidates without the glossy fits' continuation (their
     /// residual curve moved with it), with its glossy fits in `f64` lanes, and gives both back
     /// to the run at the distance found.
     #[test]
     fn the_search_turns_the_continuation_off_and_back_on() {
-        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
-        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
-        let start = InitialDepth::Distance(scene.mean_depth());
-        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
         let options = Options {
             levels: 1,
             ..Options::default()
@@ -2089,11 +2100,8 @@ mod search_state_tests {
     /// candidates under the same held lobe depend on what came before.
     #[test]
     fn fresh_candidates_do_not_depend_on_their_order() {
-        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
-        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
-        let start = InitialDepth::Distance(scene.mean_depth());
-        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
         let options = Options {
             levels: 1,
             reflectance: crate::Reflectance::Glossy(None),
