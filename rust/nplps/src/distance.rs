@@ -579,10 +579,7 @@ fn search_coarser(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
-    let options = Options {
-        levels: 1,
-        ..*options
-    };
+    let options = one_level(options);
     let rigs = crate::pyramid::coarse_rigs(problem.rig, halvings + 1);
     let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
     let level = coarse.last().unwrap_or(problem);
@@ -629,8 +626,25 @@ fn search_coarser(
             search_window(&mut sub, level, wide, range, found, window, count, progress)
         });
     end_search(&mut sub, saved);
-    let (estimate, mut u) = found?;
+    let (estimate, u) = found?;
     drop(sub);
+    Ok((
+        on_finer(&problem.grid, &level.grid, halvings, estimate),
+        carry_up(problem, &coarse, u)?,
+    ))
+}
+
+/// The options of a search's runs on one level of a pyramid.
+fn one_level(options: &Options) -> Options {
+    Options {
+        levels: 1,
+        ..*options
+    }
+}
+
+/// The unknowns `u` of the last of the `coarse` levels below `problem` (see
+/// [`crate::pyramid::coarse_problems`]), upsampled level by level to `problem` (not gauged).
+fn carry_up(problem: &Problem<'_>, coarse: &[Problem<'_>], mut u: Vec<f64>) -> Result<Vec<f64>> {
     for i in (0..coarse.len()).rev() {
         let finer = match i {
             0 => &problem.grid,
@@ -638,7 +652,7 @@ fn search_coarser(
         };
         u = crate::pyramid::upsample(&coarse[i].grid, &u, finer)?;
     }
-    Ok((on_finer(&problem.grid, &level.grid, halvings, estimate), u))
+    Ok(u)
 }
 
 /// An estimate of the regions of `coarse` (`halvings` levels below `grid`) as one of the
@@ -799,10 +813,7 @@ fn fresh_stages(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<DistanceEstimate> {
-    let options = Options {
-        levels: 1,
-        ..*options
-    };
+    let options = one_level(options);
     let rigs = crate::pyramid::coarse_rigs(problem.rig, halvings + 1);
     let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
     let level = coarse.last().unwrap_or(problem);
@@ -873,14 +884,7 @@ fn fresh_stages(
         };
         ev.eval(&estimate.distance, progress)?;
         count.done = ev.candidate;
-        let mut u = std::mem::take(&mut ev.u);
-        for i in (0..coarse.len()).rev() {
-            let finer = match i {
-                0 => &problem.grid,
-                _ => &coarse[i - 1].grid,
-            };
-            u = crate::pyramid::upsample(&coarse[i].grid, &u, finer)?;
-        }
+        let u = carry_up(problem, &coarse, std::mem::take(&mut ev.u))?;
         let gauge = problem.grid.region_means(&u);
         Ok(Some(DistanceEstimate {
             distance: gauge.iter().map(|&g| problem.geometry.depth(g)).collect(),
