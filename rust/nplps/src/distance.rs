@@ -563,8 +563,9 @@ fn halvings_to(height: usize, width: usize, side: usize) -> usize {
 /// refines the wide estimate on this level too, and the estimate carried up is the window's.
 ///
 /// Why the profile window runs here: it only brackets the distance (its candidates are 5 %
-/// apart) for the stages of [`fresh_stages`], which refine it to the search's precision. A candidate of 15 iterations, two lobe estimates among them, costs a
-/// quarter as much on the 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
+/// apart) for the stages of [`fresh_stages`], which refine it to the search's precision. A
+/// candidate of 15 iterations, two lobe estimates among them, costs a quarter as much on the
+/// 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
 /// 0.75 CPU s), and its criterion there brackets the same distance (the bumps' 7 candidates:
 /// residuals within 5 % of the 128² level's, the same lowest candidate). Until stop 49 the
 /// window ran on the search's level, 40 % of the search's cost.
@@ -1825,7 +1826,8 @@ pub(crate) fn check_distance_on(
 /// 198.08); the V's corner took 3. The stages of [`fresh_stages`] use it (until stop 54 the
 /// stages under a given lobe did; with the alternation's stages, whose lobe was estimated, on it
 /// too, the 256² PBR shadows rough plastic 0.1 block with 0.05 % image noise, seed 2, had its
-/// lobe estimates turn to the retro shape and stay there, at -3.65 %). On a V whose sides differ (slopes 1 and 3, the unit tests)
+/// lobe estimates turn to the retro shape and stay there, at -3.65 %). On a V whose sides
+/// differ (slopes 1 and 3, the unit tests)
 /// the corner is not exact and the refinement takes about as many steps as parabolic
 /// interpolation (9-10 against 8); on noisy images the criterion's bottom is rounded
 /// (`sqrt(s0^2 + k^2 x^2)`), where the safeguards of [`Parabolic`] and its tolerance step keep
