@@ -24,7 +24,7 @@ use crate::options::{Options, Refine};
 use crate::parallel::with_threads;
 use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
-use crate::reflectance::{Diffuse, Lobe};
+use crate::reflectance::Lobe;
 use crate::rig::Light;
 use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
@@ -164,6 +164,19 @@ struct Evaluator<'s, 'p> {
     candidates: usize,
     /// The (mean) distance and residual of the best candidate so far (NaN before the first).
     best: (f64, f64),
+    /// Candidates evaluated afresh under a held lobe (see [`Fresh`]), or warm-started.
+    fresh: Option<Fresh>,
+}
+
+/// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
+/// ([`begin_search`]) but the continuation of sharp lobes' fits, as in a run of its own, and
+/// `lobe` held, from the starting surface gauged at the candidate, run to the level's
+/// convergence (`options.iterations`, `options.tol`). Its criterion is then a function of the
+/// level, the distance and the lobe alone (see [`fresh_stages`]).
+#[derive(Debug, Clone, Copy)]
+struct Fresh {
+    options: Options,
+    lobe: Lobe,
 }
 
 impl Evaluator<'_, '_> {
@@ -175,13 +188,30 @@ impl Evaluator<'_, '_> {
         progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     ) -> Result<Vec<f64>> {
         let problem = self.solver.problem();
+        let (iterations, tol) = match self.fresh {
+            Some(fresh) => {
+                let start = self.solver.start;
+                *self.solver = Solver::new(problem, &fresh.options)?;
+                self.solver.start = start;
+                // What it would restore is the new solver's own state: nothing to keep.
+                let _ = begin_search(self.solver);
+                // A run of its own, as one given the distance and the lobe: with the
+                // continuation of sharp lobes' fits (see `Solver::continuation`).
+                self.solver.continuation = true;
+                self.solver.lobe = Some(fresh.lobe);
+                self.solver.hold_lobe = true;
+                self.u = problem.u0.to_vec("the depths")?;
+                (fresh.options.iterations, fresh.options.tol)
+            }
+            None => (self.inner, 0.0),
+        };
         let gauge: Vec<f64> = d.iter().map(|&x| problem.geometry.unknown(x)).collect();
         problem.grid.apply_gauge(&mut self.u, &gauge);
         // Every candidate starts from the rig's lights: the residual curve must not depend on
         // the order of the evaluations.
         self.solver.lights.restart(self.refine);
         // Its glossy fits go on from the normals of the last candidate, as its surface does.
-        if self.candidate > 0 {
+        if self.candidate > 0 && self.fresh.is_none() {
             self.solver.keep_glossy_normals();
         }
         self.candidate += 1;
@@ -207,7 +237,7 @@ impl Evaluator<'_, '_> {
                 }
             };
             self.solver
-                .iterate(&mut self.u, &gauge, self.inner, 0.0, &mut deferred)?;
+                .iterate(&mut self.u, &gauge, iterations, tol, &mut deferred)?;
         }
         self.solver.local(&self.u)?;
         let residuals = self.solver.search_residuals();
@@ -287,10 +317,8 @@ pub fn estimate_distance(
 /// the distance under a held lobe ([`hold_lobe`]); it is then refined in a window
 /// [`PROFILE_WIDTH`] either side of the distance found with the lobe estimated for every
 /// candidate (the residual minimised over lobes, [`search_window`]), which brackets it, and
-/// refined by alternating between the lobe estimated at the distance found and a search under
-/// it held ([`alternate`]), then by a walk along the index under the transmitted shape
-/// ([`index_walk`]), with a last stage under the retro-reflective diffuse shape held
-/// ([`retro_stage`]). The stages are [`search_stages`]'s.
+/// refined under each lobe of a grid held in turn, every candidate evaluated afresh
+/// ([`fresh_stages`]). The stages are [`search_stages`]'s.
 fn search_with(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
@@ -374,7 +402,8 @@ const WINDOW_INNER: usize = 5;
 /// starts the search's level; there a window [`NARROW_WIDTH`] either side of the estimate
 /// gives the distance to `search.precision` (glossy with the lobe estimated: the window
 /// [`PROFILE_WIDTH`] with the lobe estimated per candidate, to [`BRACKET_PRECISION`], on the
-/// coarser level too, see [`search_coarser`]; then [`alternate`] on the search's level).
+/// coarser level too, see [`search_coarser`]; then [`fresh_stages`] on a level of at most
+/// `SEARCH_SIDE` pixels a side).
 fn search_stages(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
@@ -416,7 +445,14 @@ fn search_stages(
             .and_then(|()| {
                 let u = problem.u0.to_vec("the depths")?;
                 search_refined(
-                    solver, problem, &wide, range, u, false, &mut count, progress,
+                    solver,
+                    problem,
+                    &wide,
+                    range,
+                    u,
+                    (false, None),
+                    &mut count,
+                    progress,
                 )
             })
             .and_then(|searched| searched.found(range))
@@ -435,9 +471,10 @@ fn search_stages(
                 coarser: halvings > 0,
                 grow: 1.0,
                 vee: false,
+                fresh: None,
             };
             // The profile's scan only brackets the distance (its candidates are 5 % apart);
-            // the alternation under held lobes refines it.
+            // the stages under held lobes refine it.
             let bracket = DistanceSearch {
                 precision: tolerance.max(BRACKET_PRECISION),
                 ..*search
@@ -454,12 +491,13 @@ fn search_stages(
                 )
             };
             profiled
-                .and_then(|profiled| {
-                    alternate(
-                        solver, problem, search, range, profiled, &mut count, progress,
+                .and_then(|(profiled, _)| {
+                    fresh_stages(
+                        solver, problem, options, search, range, halvings, profiled, &mut count,
+                        progress,
                     )
                 })
-                .and_then(|(estimate, _)| {
+                .and_then(|estimate| {
                     solver.lobe = None;
                     solver.hold_lobe = false;
                     Ok((estimate, problem.u0.to_vec("the depths")?))
@@ -486,6 +524,7 @@ fn search_stages(
                 coarser: true,
                 grow: 1.0,
                 vee: false,
+                fresh: None,
             };
             let narrow = DistanceSearch {
                 inner: search.inner.min(WINDOW_INNER),
@@ -524,9 +563,9 @@ fn halvings_to(height: usize, width: usize, side: usize) -> usize {
 /// refines the wide estimate on this level too, and the estimate carried up is the window's.
 ///
 /// Why the profile window runs here: it only brackets the distance (its candidates are 5 %
-/// apart) for the held stages of [`alternate`] on the search's own level, which refine it to
-/// the search's precision. A candidate of 15 iterations, two lobe estimates among them, costs a
-/// quarter as much on the 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
+/// apart) for the stages of [`fresh_stages`], which refine it to the search's precision. A
+/// candidate of 15 iterations, two lobe estimates among them, costs a quarter as much on the
+/// 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
 /// 0.75 CPU s), and its criterion there brackets the same distance (the bumps' 7 candidates:
 /// residuals within 5 % of the 128² level's, the same lowest candidate). Until stop 49 the
 /// window ran on the search's level, 40 % of the search's cost.
@@ -541,10 +580,7 @@ fn search_coarser(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
-    let options = Options {
-        levels: 1,
-        ..*options
-    };
+    let options = one_level(options);
     let rigs = crate::pyramid::coarse_rigs(problem.rig, halvings + 1);
     let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
     let level = coarse.last().unwrap_or(problem);
@@ -559,7 +595,16 @@ fn search_coarser(
                 inner: WIDE_INNER,
                 ..*wide
             };
-            search_refined(&mut sub, level, &wide, range, u, false, count, progress)
+            search_refined(
+                &mut sub,
+                level,
+                &wide,
+                range,
+                u,
+                (false, None),
+                count,
+                progress,
+            )
         })
         .and_then(|searched| searched.found(range))
         .and_then(|found| {
@@ -577,12 +622,30 @@ fn search_coarser(
                 coarser: false,
                 grow: 1.0,
                 vee: false,
+                fresh: None,
             };
             search_window(&mut sub, level, wide, range, found, window, count, progress)
         });
     end_search(&mut sub, saved);
-    let (estimate, mut u) = found?;
+    let (estimate, u) = found?;
     drop(sub);
+    Ok((
+        on_finer(&problem.grid, &level.grid, halvings, estimate),
+        carry_up(problem, &coarse, u)?,
+    ))
+}
+
+/// The options of a search's runs on one level of a pyramid.
+fn one_level(options: &Options) -> Options {
+    Options {
+        levels: 1,
+        ..*options
+    }
+}
+
+/// The unknowns `u` of the last of the `coarse` levels below `problem` (see
+/// [`crate::pyramid::coarse_problems`]), upsampled level by level to `problem` (not gauged).
+fn carry_up(problem: &Problem<'_>, coarse: &[Problem<'_>], mut u: Vec<f64>) -> Result<Vec<f64>> {
     for i in (0..coarse.len()).rev() {
         let finer = match i {
             0 => &problem.grid,
@@ -590,15 +653,55 @@ fn search_coarser(
         };
         u = crate::pyramid::upsample(&coarse[i].grid, &u, finer)?;
     }
-    let regions = coarse_regions(&problem.grid, &level.grid, halvings as u32);
-    Ok((
-        DistanceEstimate {
-            distance: regions.iter().map(|&r| estimate.distance[r]).collect(),
-            curve: regions.iter().map(|&r| estimate.curve[r].clone()).collect(),
-            range,
-        },
-        u,
-    ))
+    Ok(u)
+}
+
+/// An estimate of the regions of `coarse` (`halvings` levels below `grid`) as one of the
+/// regions of `grid`: each takes the distance and curve of the coarse region holding its
+/// pinned vertex ([`coarse_regions`]).
+fn on_finer(
+    grid: &Grid,
+    coarse: &Grid,
+    halvings: usize,
+    estimate: DistanceEstimate,
+) -> DistanceEstimate {
+    let regions = coarse_regions(grid, coarse, halvings as u32);
+    DistanceEstimate {
+        distance: regions.iter().map(|&r| estimate.distance[r]).collect(),
+        curve: regions.iter().map(|&r| estimate.curve[r].clone()).collect(),
+        range: estimate.range,
+    }
+}
+
+/// The other way (see [`on_finer`]): per region of `coarse`, the geometric mean of the
+/// distances of the regions of `grid` it holds (of all of them where it holds none) and the
+/// curve of the first of them.
+fn on_coarser(
+    grid: &Grid,
+    coarse: &Grid,
+    halvings: usize,
+    estimate: &DistanceEstimate,
+) -> DistanceEstimate {
+    let regions = coarse_regions(grid, coarse, halvings as u32);
+    let log_mean = |d: &mut dyn Iterator<Item = f64>| {
+        let (sum, n) = d.fold((0.0, 0usize), |(s, n), d| (s + d.ln(), n + 1));
+        (n > 0).then(|| (sum / n as f64).exp())
+    };
+    let all = log_mean(&mut estimate.distance.iter().copied()).unwrap_or(f64::NAN);
+    let held = |r: usize| regions.iter().enumerate().filter(move |&(_, &q)| q == r);
+    DistanceEstimate {
+        distance: (0..coarse.n_regions)
+            .map(|r| log_mean(&mut held(r).map(|(i, _)| estimate.distance[i])).unwrap_or(all))
+            .collect(),
+        curve: (0..coarse.n_regions)
+            .map(|r| {
+                held(r)
+                    .next()
+                    .map_or_else(Vec::new, |(i, _)| estimate.curve[i].clone())
+            })
+            .collect(),
+        range: estimate.range,
+    }
 }
 
 /// For each region of `grid`, the region of `coarse` (`halvings` levels below) holding its
@@ -637,431 +740,160 @@ const PROFILE_SCAN: usize = 7;
 /// How many times the window may move to an end where the residual keeps falling.
 const PROFILE_MOVES: usize = 3;
 
-/// How many times [`alternate`] estimates the lobe at the distance found and searches again
-/// under it, at most.
-const ALTERNATIONS: usize = 3;
+/// The half-width, as a factor of the distance, of the first window of a stage of
+/// [`fresh_stages`], around the profile's estimate; it widens by [`FRESH_GROWTH`] at each of
+/// at most [`FRESH_MOVES`] moves towards an end where the criterion keeps falling (a reach of
+/// `1.015^(1 + 1.5 + 2.25 + 3.375) = 1.13`, within the profile's own window [`PROFILE_WIDTH`]).
+const FRESH_WIDTH: f64 = 1.015;
 
-/// [`alternate`] stops when a stage moves the distance by at most this (in log-distance): a
-/// fifth of the 1 % the search is meant to reach, and what the stages' residual curves resolve.
-const ALTERNATION_PRECISION: f64 = 2e-3;
+/// See [`FRESH_WIDTH`].
+const FRESH_MOVES: usize = 3;
 
-/// How many times a window of [`alternate`] may move to an end where the residual keeps
-/// falling: once, so that a stage searches within about a factor 1.06 of the profile's estimate,
-/// the profile's own bracket (its candidates are 5 % apart). A stage whose minimum lies beyond
-/// contradicts the profile and brings nothing: on hehe12 (8 LEDs) a held lobe's criterion kept
-/// falling through six moves of the window to the far end of the range, and a stage that
-/// moved 11 % there took the distance from 209 to 233 (the authors give 200-230).
-const ALTERNATION_MOVES: usize = 1;
+/// See [`FRESH_WIDTH`].
+const FRESH_GROWTH: f64 = 1.5;
 
-/// The half-width, as a factor of the distance, of the first window of a held stage under a
-/// lobe given to it (the index walk's and the retro stage's, see [`held_stage`]): the search's
-/// default precision (`1e-3` in log-distance), so that three candidates (the start and
-/// `1.001^±1`) bracket a minimum that stayed put to `2e-3`, which ends the refinement at once.
-/// Where the criterion keeps falling towards an end, the window moves there and widens
-/// ([`GIVEN_LOBE_GROWTH`]), at most [`GIVEN_LOBE_MOVES`] times.
-///
-/// Why: such a stage starts from the distance of the best stage so far, a minimum under a
-/// neighbouring lobe to within the search's precision; the walk's steps moved the distance by
-/// 0.05-0.5 % on the PBR renders (see [`index_walk`]). Until stop 50 the window was 1 % either
-/// side: on the glossy bumps at 256² the walk's three stages each scanned 200.21 / 198.23 /
-/// 196.27 and refined back to 198.23 with three more candidates (6 a stage), their minima
-/// within 0.005 % of each other; with this window a stage takes 3.
-const GIVEN_LOBE_WIDTH: f64 = 1.001;
-
-/// How many times the window of [`GIVEN_LOBE_WIDTH`] may move to an end where the residual
-/// keeps falling.
-const GIVEN_LOBE_MOVES: usize = 3;
-
-/// The factor on the log half-width of the window of [`GIVEN_LOBE_WIDTH`] at each move: a
-/// window of log half-width `h` that moves `m` times, growing by `g` each time, reaches
-/// `h (1 + g + ... + g^m)` from its start (each move centres it on the last window's end):
-/// with `1e-3`, 3 and 3 moves `0.040` (`1.0408`), the reach of stop 49's window (1 % moving
-/// at its width, `1.01^4 = 1.0406`; its doc gave `1.01^7`, counting each move as a whole
-/// window). A minimum 4 % away costs either window four scans of 3 candidates; one that stayed
-/// put costs this one 3 candidates, that one 6.
-const GIVEN_LOBE_GROWTH: f64 = 3.0;
-
-/// Refines the estimate of a glossy profile window ([`search_window`] with `lobe`) by
-/// alternation between lobe and distance: a stage estimates the lobe afresh by a run at the
-/// distance found (from the surface and glossy normals found there), holds it, and searches the
-/// distance again under it in a narrow window ([`NARROW_WIDTH`], moving as needed). It ends
-/// when a stage moves the distance by at most [`ALTERNATION_PRECISION`], or after
-/// [`ALTERNATIONS`] stages; then the index walk ([`index_walk`]) and the retro stage
-/// ([`retro_stage`]). The estimate returned is that of the held stage whose lowest criterion `R`
-/// (the median of the facets' RMS residuals, on the search's level) is the lowest (the
-/// profile's when no stage finds a minimum).
-///
-/// Why: with the lobe estimated afresh for every candidate, the criterion is a profile
-/// `R(d, L(d))`; each estimate is a search of its own (line searches on grids of roughness and
-/// index, from scratch), so that curve is noisy at the scale of a refinement: on the PBR renders
-/// neighbouring candidates 0.1-0.5 % apart differed by 10-35 % in residual, and the
-/// refinement's bracket closed on a noisy point (principled 0.3 bumps at +1.6 % while the
-/// residual near the truth was a tenth of that point's). Under a held lobe `R(d, L)` is smooth
-/// in `d` (a given lobe's candidates near the minimum differed by 0.01 %), so each stage's
-/// minimum is well defined, and a fixed point of the alternation is a stationary point of `R`
-/// over distance and lobe together when `L(d)` minimises `R` at `d`. It does not quite: the
-/// lobe estimate minimises the summed squared residual of a facet subsample, not the median,
-/// so a stage can end at a higher `R` than a candidate before it (on the principled 0.3 block,
-/// index 1.2 estimated at +0.7 % holds the minimum at +0.9 % with `R` 3.3e-4, while the profile
-/// window's candidate at +0.4 % had 2.2e-4); keeping the stage of the lowest `R` makes the
-/// alternation never end worse, by the search's own criterion, than its first stage. Until stop
-/// 45 the profile competed too (its lowest candidate's `R`); see [`index_walk`] for why it no
-/// longer does.
-#[allow(clippy::too_many_arguments)]
-fn alternate(
-    solver: &mut Solver<'_>,
-    problem: &Problem<'_>,
-    search: &DistanceSearch,
-    range: (f64, f64),
-    profiled: (DistanceEstimate, Vec<f64>),
-    count: &mut Count,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<(DistanceEstimate, Vec<f64>)> {
-    // The estimate of the held stage with the lowest criterion so far, that criterion, and the
-    // lobe the stage held: the profile's estimate (a parabola's vertex between candidates under
-    // lobes of their own) only starts them, kept when no stage finds a minimum (see
-    // [`index_walk`] for why its criterion does not compete).
-    let mut best: (f64, DistanceEstimate, Option<Lobe>) = (f64::NAN, profiled.0.clone(), None);
-    // The same for the stages under the transmitted diffuse shape alone: where the index walk
-    // starts (the retro stage may win over them and the walk then still runs, see
-    // [`index_walk`]).
-    let mut transmitted: Option<(f64, DistanceEstimate, Lobe)> = None;
-    let (_, mut u) = alternation(profiled, |estimate, u| {
-        // The lobe is estimated afresh (from the whole grids of roughness and index) by a run
-        // at the distance found from the surface and glossy normals found there, then held.
-        let next = held_stage(
-            solver, problem, search, range, estimate, u, None, count, progress,
-        )?;
-        if let Some(next) = &next {
-            if best.0.is_nan() || count.lowest < best.0 {
-                best = (count.lowest, next.0.clone(), solver.lobe);
-            }
-            if let Some(l) = solver.lobe.filter(|l| l.diffuse == Diffuse::Transmitted) {
-                if transmitted.as_ref().is_none_or(|t| count.lowest < t.0) {
-                    transmitted = Some((count.lowest, next.0.clone(), l));
-                }
-            }
-        }
-        Ok(next)
-    })?;
-    // The index walk along the transmitted shape (see [`index_walk`]), then the
-    // retro-reflective diffuse shape's stage (see [`retro_stage`]).
-    let line = match transmitted {
-        Some(line) => line,
-        // No stage found a minimum (the first stage's criterion kept falling out of its
-        // windows): the walk starts from the profile's estimate under the transmitted lobe that
-        // stage estimated, its first stage that finds one taken (the 256² rough plastic 0.1
-        // block with 0.1 % image noise, seed 0: the profile's -1.58 % was returned, the walk
-        // never ran).
-        None if best.0.is_nan() => {
-            match solver.lobe.filter(|l| l.diffuse == Diffuse::Transmitted) {
-                Some(l) => (f64::INFINITY, best.1.clone(), l),
-                None => return Ok((best.1, u)),
-            }
-        }
-        None => return Ok((best.1, u)),
-    };
-    let l = index_walk(
-        solver, problem, search, range, line, &mut best, &mut u, count, progress,
-    )?;
-    retro_stage(
-        solver, problem, search, range, l.alpha, &mut best, &mut u, count, progress,
-    )?;
-    Ok((best.1, u))
-}
-
-/// The index grid of [`index_walk`]: the lobe search's index grid without its first index, 1.
+/// The indices of the transmitted lobes of [`fresh_stages`]: the lobe search's grid
+/// ([`ETAS`](crate::local::ETAS)) without its first index, 1.
 ///
 /// At the index 1 the model is not the end of the index line but another model: its Fresnel
 /// shape `F(v.h) / F(1)` is taken as 1 (nothing is reflected to shape), while as `eta -> 1+` the
 /// shape tends to its steepest rise, `(1 + (2c^2 - 1)^2) / (2c^4)` at `c = v.h` (2.1 at
-/// `c = 0.7`, 9.9 at `c = 0.5`; at the index 1.15 1.6 and 4.7, at 1.5 1.3 and 2.2); only the
-/// transmittance (`T = 1`, the Lambertian diffuse term) joins the line continuously. A step from
-/// 1.15 to 1 jumps from the steepest rise to none. On the 64² rough plastic 0.3 block of
-/// tests/data/pbr (16 lights, true distance 210.95) a walk on the whole grid went from the
-/// alternation's index 1.5 (+0.42 %, `R` 2.77e-4) down through 1.45 / 1.3 / 1.15 (+0.38 / +0.17 /
-/// -0.15 %, `R` 2.75 / 2.66 / 2.64e-4), each step moving the distance by 0.05-0.3 %, then to 1:
-/// `R` 2.29e-4 at -2.65 %, 2.5 % in one step (the stop-45 merge's failing test). Without the
-/// index 1 the walk ends at 1.15 (-0.15 %). The index 1 still competes where the alternation's
-/// lobe search chooses it (its stages), and a walk may start there (the 256² rough plastic 0.1
-/// block: from 1 at -2.1 % up to 2.1 at -0.38 %).
-const WALK_ETAS: [f64; 6] = [1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
+/// `c = 0.7`, 9.9 at `c = 0.5`; at the index 1.15 1.6 and 4.7); only the transmittance (`T = 1`,
+/// the Lambertian diffuse term) joins the line continuously. On the 64² rough plastic 0.3
+/// block of tests/data/pbr (16 lights, true distance 210.95) the lowest criterion of the stages
+/// with the index 1 among them was under it, at -2.65 %, as it was for stop 45's index walk
+/// over the whole grid. It competes where the lobe estimated at the profile's distance has it
+/// (matte surfaces: without it the 256² matte bumps of the PBR renders under the glossy model
+/// went to +1.49 %, index 1.05, and kept the glossy model), and the lobe search of the run at the
+/// distance found may choose it.
+const FRESH_ETAS: [f64; 6] = {
+    let e = crate::local::ETAS;
+    [e[1], e[2], e[3], e[4], e[5], e[6]]
+};
 
-/// [`alternate`] ends with a walk along the index: from the lobe of the best stage under the
-/// transmitted shape, held stages under the indices of [`WALK_ETAS`] next to it (the same
-/// roughness), first upwards, stepping on while a stage's lowest criterion `R` falls below the
-/// best so far, then (if the first step up brought nothing) downwards alike ([`walk_indices`]).
-/// The stage of the lowest `R` is the estimate.
+/// Refines the estimate of a glossy profile window ([`search_window`] with `lobe`): the lobe
+/// (its roughness `alpha`) is estimated once, by a run at the profile's distance on the search's
+/// level (at most [`SEARCH_SIDE`] pixels a side); then, under each lobe held in turn, that one,
+/// the retro-reflective one (index [`RETRO_ETA`]) and the transmitted one at each index of
+/// [`FRESH_ETAS`], all at `alpha`, the distance
+/// is searched in a window around the profile's estimate with every candidate evaluated afresh
+/// ([`Fresh`]: a new solver from the starting surface, run to convergence under the lobe). The
+/// estimate is that of the lobe whose lowest criterion `R` (the median of the facets' RMS
+/// residuals) is the lowest; the profile's when no lobe finds a minimum in its windows. Its
+/// distance on `problem` is the gauge there of that candidate's surface carried up: the gauge of
+/// a curved surface (its geometric mean depth) differs between levels whose masks differ, and
+/// the level's own distance left the 256² PBR spheres and tori 0.2-0.4 % long.
 ///
-/// Why: under the glossy model the index and the distance trade along a diagonal valley of
-/// `R(d, eta)`: a lower index explains the fall-off of a nearer surface. On the 16-light rough
-/// plastic 0.1 block (true distance 210.94; held stages of 5 iterations on the 128² level,
-/// roughness 0.092) the minimum over the distance under each held index was at -2.5 / -2.0 /
-/// -1.25 / -0.5 / -0.5 / -0.5 % with `R` 1.26 / 1.09 / 0.91 / 0.75 / 0.74 / 0.71e-3 for the indices
-/// 1 / 1.1 / 1.25 / 1.5 / 1.8 / 2.2: the joint minimum lies within 0.5 % of the truth. The
-/// alternation is a coordinate descent in which the lobe is estimated by the summed squared
-/// residual of a facet subsample, not by `R`: at the profile's vertex (-2.0 %) it chose the
-/// retro shape, then the index 1.0, and the stages stopped at -2.4 % (`R` 9.7e-4), at a fixed point
-/// in the valley's low end. The profile window's lowest candidate (-1.7 %, index 1.22 estimated
-/// there, `R` 7.8e-4) beat every stage, so the search returned the profile's vertex (-1.99 %); its
-/// `R` is not comparable with a held stage's (its lobe was estimated by a run of its own, with
-/// more iterations), and the vertex is not that candidate, so it no longer competes. The walk
-/// then went 1.15 / 1.3 / 1.45 (`R` 7.5 / 6.5 / 6.1e-4, the minimum at -0.64 %) and stopped at
-/// 1.6 (6.2e-4). (Stop 46's build, whose alternation ends there under the index 1 at -2.10 %,
-/// `R` 1.01e-3: 1.15 / 1.3 / 1.45 / 1.6 / 1.8 / 2.1 at -1.67 / -1.15 / -0.67 / -0.41 / -0.38 /
-/// -0.38 %, `R` 7.31 / 6.13 / 5.84 / 5.53 / 5.52 / 5.51e-4.)
+/// So `R(d, L)` is a function of the level's images, the distance and the lobe alone, and the
+/// search is the minimum over a grid of lobes of a minimum over the distance: the estimate
+/// moves continuously with the images, except where two lobes' minima tie.
 ///
-/// The walk starts from the best stage under the transmitted shape, `line` (its `R`, estimate
-/// and lobe), and steps on while it lowers that line's `R`; each of its stages also competes
-/// with `best`, which the retro stage may hold. (Stop 45: with the walk run only where the best
-/// stage was a transmitted one, the merged build of that stop ended the same block under the
-/// retro stage at -3.78 %, a stage the walk never got to compete with; with the walk from the
-/// best transmitted stage and the retro stage before it, 0.1 % added noise (seed 0) still ended
-/// there under the retro shape at -3.99 %. So the walk comes first and the retro stage after
-/// it, [`retro_stage`]; until stop 52 that stage ran only where the walk's line ended at an index
-/// of at most 1.25.) Returns the lobe of the line's lowest stage.
+/// Why (stop 54): until then the stages after the profile (an alternation between the lobe
+/// estimated at the distance found and a search under it held, a walk along the index, a last
+/// stage under the retro-reflective shape) evaluated each candidate by 5 iterations from the
+/// last candidate's surface and glossy normals: a stage's minimum stayed near the distance it
+/// started from, and its criterion depended on the order of all the candidates before it, so
+/// that stages did not compare. The 256² principled 0.3 block with cast shadows of the PBR
+/// renders ended at -0.31 / -0.15 / -0.76 / -1.72 / -0.98 / -0.74 % under Gaussian noise of
+/// `1e-6` (seeds 0-5), and its 64² render with noise of 0.5 % of the maximum missed 1 % in 5 of 8
+/// seeds (-0.55 to -2.23 %). Converged runs from the starting surface, at given distances under
+/// the retro-reflective lobe (0.09), had their minimum at -0.5 % in every seed, and the lowest
+/// criterion of all the lobes (docs/shiny.md, stop 54). The index trades against the distance
+/// along a valley (a lower index explains the fall-off of a nearer surface: on the 256² rough
+/// plastic 0.1 block the minima under the indices 1 / 1.15 / 1.45 / 1.8 / 2.1 lie at -2.1 / -1.4
+/// / -0.4 / -0.1 / -0.2 %), and the lowest criterion lies near the truth, under the index 1.8.
 #[allow(clippy::too_many_arguments)]
-fn index_walk(
+fn fresh_stages(
     solver: &mut Solver<'_>,
     problem: &Problem<'_>,
+    options: &Options,
     search: &DistanceSearch,
     range: (f64, f64),
-    line: (f64, DistanceEstimate, Lobe),
-    best: &mut (f64, DistanceEstimate, Option<Lobe>),
-    u: &mut Vec<f64>,
+    halvings: usize,
+    profiled: DistanceEstimate,
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<Lobe> {
-    let (mut lowest, mut estimate, start) = line;
-    let mut found = start;
-    walk_indices(start.eta, &WALK_ETAS, |eta| {
-        let lobe = Lobe::new(start.alpha, eta);
-        let next = held_stage(
-            solver,
-            problem,
-            search,
-            range,
-            &estimate.clone(),
-            u,
-            Some(lobe),
-            count,
-            progress,
-        )?;
-        Ok(match next {
-            Some(next) if count.lowest < lowest => {
-                lowest = count.lowest;
-                estimate = next.0;
-                found = lobe;
-                if best.0.is_nan() || lowest < best.0 {
-                    *best = (lowest, estimate.clone(), Some(lobe));
-                    *u = next.1;
-                }
-                true
-            }
-            _ => false,
-        })
-    })?;
-    Ok(found)
-}
-
-/// The walk of [`index_walk`] from the index `start` over `grid` (ascending): `lower(eta)` tries
-/// a stage under `eta` and tells whether it lowered the best criterion. Upwards from the first
-/// index above `start` while it does; then, if the first step up did not, downwards from the
-/// first index below `start` alike. It never leaves `grid` (with [`WALK_ETAS`]: never to the
-/// index 1).
-fn walk_indices(
-    start: f64,
-    grid: &[f64],
-    mut lower: impl FnMut(f64) -> Result<bool>,
-) -> Result<()> {
-    let above = grid.iter().copied().filter(|&e| e > start * (1.0 + 1e-9));
-    let below = grid
-        .iter()
-        .rev()
-        .copied()
-        .filter(|&e| e < start * (1.0 - 1e-9));
-    let mut moved = false;
-    for eta in above {
-        if !lower(eta)? {
-            break;
-        }
-        moved = true;
-    }
-    if !moved {
-        for eta in below {
-            if !lower(eta)? {
-                break;
-            }
-        }
-    }
-    Ok(())
-}
-
-/// One stage of [`alternate`]: the surface `u` gauged at `estimate`'s distances, the lobe held
-/// (`lobe`, or with `None` estimated afresh there by a run of at least
-/// [`LOBE_AT`](crate::solver::LOBE_AT)`[1]` iterations from the surface and glossy normals found
-/// there), and the distance searched again under it in a window [`NARROW_WIDTH`] either side,
-/// moving at most [`ALTERNATION_MOVES`] times (under a given lobe: [`GIVEN_LOBE_WIDTH`],
-/// widening as it moves, and refining by stepping to a V's corner, [`vee_minimum`]). `None`
-/// when the criterion under the lobe keeps falling out of the windows (the stage brings nothing); `count.lowest` is then the stage's
-/// lowest criterion.
-#[allow(clippy::too_many_arguments)]
-fn held_stage(
-    solver: &mut Solver<'_>,
-    problem: &Problem<'_>,
-    search: &DistanceSearch,
-    range: (f64, f64),
-    estimate: &DistanceEstimate,
-    u: &mut Vec<f64>,
-    lobe: Option<Lobe>,
-    count: &mut Count,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<Option<(DistanceEstimate, Vec<f64>)>> {
-    let window = match lobe {
-        None => Window {
-            scan: NARROW_SCAN,
-            width: NARROW_WIDTH,
-            moves: ALTERNATION_MOVES,
-            lobe: false,
-            coarser: false,
-            grow: 1.0,
-            vee: false,
-        },
-        Some(_) => Window {
-            scan: NARROW_SCAN,
-            width: GIVEN_LOBE_WIDTH,
-            moves: GIVEN_LOBE_MOVES,
-            lobe: false,
-            coarser: false,
-            grow: GIVEN_LOBE_GROWTH,
-            vee: true,
-        },
-    };
-    let narrow = DistanceSearch {
-        inner: search.inner.min(WINDOW_INNER),
-        ..*search
-    };
-    let gauge: Vec<f64> = estimate
-        .distance
-        .iter()
-        .map(|&d| problem.geometry.unknown(d))
-        .collect();
-    problem.grid.apply_gauge(u, &gauge);
-    solver.lobe = lobe;
-    solver.hold_lobe = lobe.is_some();
-    solver.lights.restart(solver.lights.refine());
-    if lobe.is_none() {
-        solver.keep_glossy_normals();
-        let iterations = search.inner.max(crate::solver::LOBE_AT[1]);
-        solver.iterate(u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
-        solver.hold_lobe = true;
-    }
-    count.planned += planned_candidates(NARROW_SCAN);
-    count.lowest = f64::NAN;
-    let start = try_copy(u, "the depths")?;
-    match search_window(
-        solver,
-        problem,
-        &narrow,
-        range,
-        (estimate.clone(), start),
-        window,
-        count,
-        progress,
-    ) {
-        Ok(next) => Ok(Some(next)),
-        // The criterion under this lobe keeps falling out of the windows (see
-        // [`ALTERNATION_MOVES`]): the stage brings nothing.
-        Err(Error::Unusable(_)) => Ok(None),
-        Err(e) => Err(e),
-    }
-}
-
-/// [`alternate`] ends with one more stage under the retro-reflective diffuse shape
-/// ([`Diffuse::Retro`] at the roughness of the index walk's line, index [`RETRO_ETA`]) held,
-/// kept when its lowest criterion is below the stages' before (the retro stage).
-///
-/// Why: the transmitted shape is brightest at grazing angles with the index 1 (Lambertian), so
-/// a surface brighter still (Burley's retro-reflection, the principled renders) pulls its index
-/// towards an end of the range, and the distance with it (principled 0.5 at 256²: bumps and
-/// block index 1.05 / 1.02 at +1.67 / +1.68 % without this stage, -0.15 / -0.16 % with it; the
-/// 64² bumps of tests/data/pbr index 1.15 at +1.68 %, -0.14 % with it). The lobe search chooses
-/// the shape too, but the profile's candidates (5 % apart) fall outside the retro shape's narrow
-/// minimum (it lost to the transmitted shape 0.8 % from the true distance).
-///
-/// Until stop 51 the stage ran only where the line ended at an index of at most 1.25, which
-/// saved its window (3-5 candidates) elsewhere. Stop 52 found that on the 256² principled 0.3
-/// block with cast shadows (the PBR renders) the search's outcome hung on the last bits of its
-/// fits: main's build chose the retro shape in the alternation (-0.28 %), but the same images
-/// with Gaussian noise of `1e-6` added (seeds 0-5, below any sensor's quantization) ended at
-/// +1.55 / +1.77 / +1.32 / -1.72 / -0.98 / +0.67 %, the line mostly at the top of the index range
-/// (2.0-2.3), where the stage did not run; run there, it won with a criterion 1.6-10 times
-/// lower: -0.31 / -0.15 / -0.76 / -1.72 / -0.98 / -0.74 % (seed 3's line ended at the index 1 and
-/// its retro stage lost, as before). Where the transmitted shape fits (rough plastic), the
-/// retro stage's criterion is the higher one and the estimate stays: every row of the PBR
-/// renders' `depth="auto"` table came out the same (at the true distance of the rough plastic
-/// 0.3 bumps the retro shape's residual was 364 times the transmitted shape's).
-#[allow(clippy::too_many_arguments)]
-fn retro_stage(
-    solver: &mut Solver<'_>,
-    problem: &Problem<'_>,
-    search: &DistanceSearch,
-    range: (f64, f64),
-    alpha: f64,
-    best: &mut (f64, DistanceEstimate, Option<Lobe>),
-    u: &mut Vec<f64>,
-    count: &mut Count,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<()> {
-    let retro = Lobe::retro(alpha, RETRO_ETA);
-    let estimate = best.1.clone();
-    if let Some(next) = held_stage(
-        solver,
-        problem,
-        search,
-        range,
-        &estimate,
-        u,
-        Some(retro),
-        count,
-        progress,
-    )? {
-        if best.0.is_nan() || count.lowest < best.0 {
-            *best = (count.lowest, next.0, Some(retro));
-            *u = next.1;
-        }
-    }
-    Ok(())
-}
-
-/// The loop of [`alternate`]: `stage` maps an estimate (and its warm state, which it may use up)
-/// to the next, until it has none (the stage found no minimum), or one moves no region's
-/// distance by more than [`ALTERNATION_PRECISION`] in log-distance, or after [`ALTERNATIONS`]
-/// stages.
-fn alternation(
-    mut current: (DistanceEstimate, Vec<f64>),
-    mut stage: impl FnMut(
-        &DistanceEstimate,
-        &mut Vec<f64>,
-    ) -> Result<Option<(DistanceEstimate, Vec<f64>)>>,
-) -> Result<(DistanceEstimate, Vec<f64>)> {
-    for _ in 0..ALTERNATIONS {
-        let Some(next) = stage(&current.0, &mut current.1)? else {
-            break;
+) -> Result<DistanceEstimate> {
+    let options = one_level(options);
+    let rigs = crate::pyramid::coarse_rigs(problem.rig, halvings + 1);
+    let coarse = crate::pyramid::coarse_problems(problem, &rigs, &options.fit_settings(true))?;
+    let level = coarse.last().unwrap_or(problem);
+    // The profile's curve stays outside the stages' windows (see [`search_window`]).
+    let start = on_coarser(&problem.grid, &level.grid, halvings, &profiled);
+    let mut sub = Solver::new(level, &options)?;
+    sub.start = solver.start;
+    let saved = begin_search(&mut sub);
+    let found = (|| {
+        hold_lobe(&mut sub, level, mean(&start.distance), search.inner)?;
+        let Some(estimated) = sub.lobe else {
+            return Ok(None);
         };
-        let moved = next
-            .0
-            .distance
-            .iter()
-            .zip(&current.0.distance)
-            .map(|(a, b)| (a / b).ln().abs())
-            .fold(0.0, f64::max);
-        current = next;
-        if moved <= ALTERNATION_PRECISION {
-            break;
+        let alpha = estimated.alpha;
+        let grid = std::iter::once(Lobe::retro(alpha, RETRO_ETA))
+            .chain(FRESH_ETAS.iter().map(|&eta| Lobe::new(alpha, eta)));
+        let lobes = std::iter::once(estimated).chain(grid.filter(|&l| l != estimated));
+        let mut best: Option<(f64, DistanceEstimate, Lobe)> = None;
+        for lobe in lobes {
+            let window = Window {
+                scan: NARROW_SCAN,
+                width: FRESH_WIDTH,
+                moves: FRESH_MOVES,
+                lobe: false,
+                coarser: false,
+                grow: FRESH_GROWTH,
+                vee: true,
+                fresh: Some(Fresh { options, lobe }),
+            };
+            count.planned += planned_candidates(NARROW_SCAN);
+            count.lowest = f64::NAN;
+            let u = level.u0.to_vec("the depths")?;
+            match search_window(
+                &mut sub,
+                level,
+                search,
+                range,
+                (start.clone(), u),
+                window,
+                count,
+                progress,
+            ) {
+                Ok((estimate, _)) => {
+                    if best.as_ref().is_none_or(|b| count.lowest < b.0) {
+                        best = Some((count.lowest, estimate, lobe));
+                    }
+                }
+                // The criterion under this lobe keeps falling out of the windows.
+                Err(Error::Unusable(_)) => {}
+                Err(e) => return Err(e),
+            }
         }
-    }
-    Ok(current)
+        let Some((_, estimate, lobe)) = best else {
+            return Ok(None);
+        };
+        // The best candidate once more, for its surface: carried up to `problem`, its gauge
+        // there is the distance found (as in [`fine_estimate`]).
+        let mut ev = Evaluator {
+            refine: sub.lights.refine(),
+            solver: &mut sub,
+            u: Vec::new(),
+            inner: 1,
+            curve: vec![Vec::new(); level.grid.n_regions],
+            candidate: count.done,
+            candidates: count.planned + 1,
+            best: (f64::NAN, f64::NAN),
+            fresh: Some(Fresh { options, lobe }),
+        };
+        ev.eval(&estimate.distance, progress)?;
+        count.done = ev.candidate;
+        let u = carry_up(problem, &coarse, std::mem::take(&mut ev.u))?;
+        let gauge = problem.grid.region_means(&u);
+        Ok(Some(DistanceEstimate {
+            distance: gauge.iter().map(|&g| problem.geometry.depth(g)).collect(),
+            ..on_finer(&problem.grid, &level.grid, halvings, estimate)
+        }))
+    })();
+    end_search(&mut sub, saved);
+    Ok(found?.unwrap_or(profiled))
 }
 
 /// Candidates evaluated so far and planned, over the stages of a search (for its progress).
@@ -1069,7 +901,7 @@ struct Count {
     done: usize,
     planned: usize,
     /// The lowest (mean) criterion of a candidate since it was last reset (NaN: none; see
-    /// [`alternate`]).
+    /// [`fresh_stages`]).
     lowest: f64,
 }
 
@@ -1089,11 +921,13 @@ struct Window {
     /// then scaled to this level's residuals where the two meet.
     coarser: bool,
     /// The factor on its log half-width at each move (1: it moves at its width; see
-    /// [`GIVEN_LOBE_GROWTH`]).
+    /// [`FRESH_GROWTH`]).
     grow: f64,
     /// Whether its refinement steps to the vertex of a V rather than a parabola (see
     /// [`vee_minimum`]).
     vee: bool,
+    /// Whether its candidates are evaluated afresh (see [`Fresh`]).
+    fresh: Option<Fresh>,
 }
 
 /// Refines the `wide` estimate of a search (see [`search_with`]) in a window `window.width`
@@ -1136,7 +970,7 @@ fn search_window(
             &window_search,
             bounds,
             start,
-            window.vee,
+            (window.vee, window.fresh),
             count,
             progress,
         )?;
@@ -1269,7 +1103,7 @@ fn search_refined(
     search: &DistanceSearch,
     range: (f64, f64),
     u: Vec<f64>,
-    vee: bool,
+    (vee, fresh): (bool, Option<Fresh>),
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<Searched> {
@@ -1288,6 +1122,7 @@ fn search_refined(
         candidate: count.done,
         candidates: count.planned,
         best: (f64::NAN, f64::NAN),
+        fresh,
     };
     let searched = refine_scan(
         &mut ev,
@@ -1944,6 +1779,7 @@ pub(crate) fn check_distance_on(
             candidate: 0,
             candidates: CHECK_FACTORS.len(),
             best: (f64::NAN, f64::NAN),
+            fresh: None,
         };
         let mut quiet = |_: &IterationStats| Control::Continue;
         let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
@@ -1987,11 +1823,11 @@ pub(crate) fn check_distance_on(
 /// 0.07 % below and 0.1 % above, 6.3e-4 0.22 % below). A parabola's vertex through a V's points
 /// lies between the corner and the middle point, so parabolic steps crawl: the alternation's
 /// stage there took 7 refinement steps (198.75 / 197.06 / 197.98 / 197.78 / 198.21 / 198.41 /
-/// 198.08); the V's corner took 3. Only the stages under a given lobe use it (see
-/// [`held_stage`]): with the alternation's stages on it too, the 256² PBR shadows rough plastic
-/// 0.1 block with 0.05 % image noise (seed 2) had its alternation's lobe estimates turn to the
-/// retro shape and stay there, at -3.65 % (main: -0.23 %, its third stage transmitted and the
-/// index walk from it). On a V whose sides differ (slopes 1 and 3, the unit tests)
+/// 198.08); the V's corner took 3. The stages of [`fresh_stages`] use it (until stop 54 the
+/// stages under a given lobe did; with the alternation's stages, whose lobe was estimated, on it
+/// too, the 256² PBR shadows rough plastic 0.1 block with 0.05 % image noise, seed 2, had its
+/// lobe estimates turn to the retro shape and stay there, at -3.65 %). On a V whose sides
+/// differ (slopes 1 and 3, the unit tests)
 /// the corner is not exact and the refinement takes about as many steps as parabolic
 /// interpolation (9-10 against 8); on noisy images the criterion's bottom is rounded
 /// (`sqrt(s0^2 + k^2 x^2)`), where the safeguards of [`Parabolic`] and its tolerance step keep
@@ -2178,116 +2014,23 @@ mod tests {
         assert_eq!(level_ratio(&[], &wide, 2.0), 1.0);
     }
 
-    /// The alternation of [`alternate`] on a criterion coupled in distance and lobe,
-    /// `R(d, L) = (d - L)² + (L - 1)²` (log-distance `d`, a lobe parameter `L`): the lobe
-    /// estimated at `d` is `(d + 1) / 2` and the distance under a held `L` is `L`, so each stage
-    /// halves the distance's error towards the joint minimum `d = L = 1`; it stops once a stage
-    /// moves the distance by at most [`ALTERNATION_PRECISION`], else after [`ALTERNATIONS`].
-    #[test]
-    fn the_alternation_goes_to_the_joint_minimum_and_stops() {
-        let at = |d: f64| {
-            let estimate = DistanceEstimate {
-                distance: vec![d.exp()],
-                curve: vec![Vec::new()],
-                range: (0.1, 10.0),
-            };
-            (estimate, Vec::new())
-        };
-        let run = |start: f64| {
-            let mut stages = 0;
-            let (estimate, _) = alternation(at(start), |e, _| {
-                stages += 1;
-                let d = e.distance[0].ln();
-                let lobe = (d + 1.0) / 2.0;
-                Ok(Some(at(lobe)))
-            })
-            .unwrap();
-            (estimate.distance[0].ln(), stages)
-        };
-        // 4 % off: 2, 1, 0.5 % after the three stages (the last still moved by 0.5 %).
-        let (d, stages) = run(1.04);
-        assert_eq!(stages, ALTERNATIONS);
-        assert!((d - 1.005).abs() < 1e-12, "{d}");
-        // 0.3 % off: the first stage moves by 0.15 % and is the last.
-        let (d, stages) = run(1.003);
-        assert_eq!(stages, 1);
-        assert!((d - 1.0015).abs() < 1e-12, "{d}");
-        // A stage without a minimum ends it where it is.
-        let (kept, _) = alternation(at(1.04), |_, _| Ok(None)).unwrap();
-        assert_eq!(kept.distance[0], 1.04f64.exp());
-        // A failing stage fails the search.
-        let failed = alternation(at(1.0), |_, _| Err(Error::Cancelled));
-        assert!(matches!(failed, Err(Error::Cancelled)));
-        // The lowest criterion of a stage: NaN counts as none.
-        assert_eq!(lower(f64::NAN, 2.0), 2.0);
-        assert_eq!(lower(2.0, f64::NAN), 2.0);
-        assert_eq!(lower(2.0, 1.0), 1.0);
-        assert!(lower(f64::NAN, f64::NAN).is_nan());
-    }
-
     /// A window of log half-width `h` that may move `m` times to an end, its half-width growing
     /// by `g` at each move, reaches `h (1 + g + ... + g^m)` either side of its start (each move
-    /// centres it on the last window's end). The held stages under a given lobe
-    /// ([`GIVEN_LOBE_WIDTH`], [`GIVEN_LOBE_MOVES`], [`GIVEN_LOBE_GROWTH`]) reach as far as stop
-    /// 49's window (1 %, 3 moves at its width) and at most as far as the alternation's stages
-    /// ([`NARROW_WIDTH`], [`ALTERNATION_MOVES`]), which the hehe12 capture bounds (see
-    /// [`ALTERNATION_MOVES`]); their first window is the search's default precision, so that
-    /// its three candidates end the refinement.
+    /// centres it on the last window's end). The stages of [`fresh_stages`] start at the
+    /// profile's estimate, which lies within [`BRACKET_PRECISION`] of the profile's minimum,
+    /// and the minima under the lobes of the grid lie within a few percent of each other: their
+    /// windows reach twice that precision, and no farther than the profile's own window.
     #[test]
-    fn the_given_lobe_window_reaches_as_far_as_before() {
-        let reach = |w: f64, m: usize, g: f64| {
-            (w.ln() * (0..=m).map(|k| g.powi(k as i32)).sum::<f64>()).exp()
-        };
-        let given = reach(GIVEN_LOBE_WIDTH, GIVEN_LOBE_MOVES, GIVEN_LOBE_GROWTH);
-        let before = reach(1.01, 3, 1.0);
-        let alternation = reach(NARROW_WIDTH, ALTERNATION_MOVES, 1.0);
-        assert!((before - 1.01f64.powi(4)).abs() < 1e-12);
-        assert!(given >= before, "{given} {before}");
-        assert!(given <= alternation, "{given} {alternation}");
-        // Its first window: the ends and the middle, within the default precision, so that the
-        // scan's bracket is the refinement's end.
-        let precision = DistanceSearch::default().precision;
-        const { assert!(NARROW_SCAN == 3) };
-        assert!(2.0 * GIVEN_LOBE_WIDTH.ln() <= 2.0 * precision * (1.0 + 1e-9));
-        let points = [-1.0, 0.0, 1.0].map(|k: f64| (k * GIVEN_LOBE_WIDTH.ln(), k.abs()));
-        let mut p = Parabolic::new(points.to_vec());
-        assert_eq!(p.next(precision), None);
-    }
-
-    /// The index walk steps on while a stage lowers the criterion, upwards first, downwards
-    /// only when the first step up brings nothing, and passes on a stage's failure.
-    #[test]
-    fn the_index_walk_follows_the_criterion_downhill() {
-        // A criterion along the index with its least value at `m`; a stage "lowers" when its
-        // value is below the best so far (that of the start).
-        let run = |start: f64, m: f64| {
-            let cost = |e: f64| (e - m).powi(2);
-            let mut best = cost(start);
-            let mut tried = Vec::new();
-            walk_indices(start, &WALK_ETAS, |e| {
-                tried.push(e);
-                let lowered = cost(e) < best;
-                best = best.min(cost(e));
-                Ok(lowered)
-            })
-            .unwrap();
-            tried
-        };
-        // From the low end up to the least grid index (and one past it, which fails).
-        assert_eq!(run(1.0, 1.5), vec![1.15, 1.3, 1.45, 1.6]);
-        // Down only after the first step up failed; an index between grid values (1.22); not
-        // to the index 1, which is not on the walk's grid (see `WALK_ETAS`).
-        assert_eq!(run(1.22, 1.0), vec![1.3, 1.15]);
-        assert_eq!(run(1.5, 1.0), vec![1.6, 1.45, 1.3, 1.15]);
-        assert!(WALK_ETAS.iter().all(|&e| e > 1.0));
-        assert!(WALK_ETAS.windows(2).all(|w| w[0] < w[1]));
-        // At the least value: its two neighbours only.
-        assert_eq!(run(1.45, 1.45), vec![1.6, 1.3]);
-        // At the top of the grid: downwards only.
-        assert_eq!(run(2.1, 1.75), vec![1.8, 1.6]);
-        // A failing stage fails the walk.
-        let failed = walk_indices(1.0, &WALK_ETAS, |_| Err(Error::Cancelled));
-        assert!(matches!(failed, Err(Error::Cancelled)));
+    fn the_fresh_window_reaches_past_the_profile_bracket() {
+        let reach =
+            |w: f64, m: usize, g: f64| w.ln() * (0..=m).map(|k| g.powi(k as i32)).sum::<f64>();
+        let fresh = reach(FRESH_WIDTH, FRESH_MOVES, FRESH_GROWTH);
+        assert!(fresh >= 2.0 * BRACKET_PRECISION, "{fresh}");
+        assert!(fresh <= PROFILE_WIDTH.ln(), "{fresh}");
+        assert!((reach(1.01, 3, 1.0) - 4.0 * 1.01f64.ln()).abs() < 1e-12);
+        // Its lobes: the lobe search's indices but the index 1.
+        assert_eq!(FRESH_ETAS[..], crate::local::ETAS[1..]);
+        assert!(FRESH_ETAS.iter().all(|&e| e > 1.0));
     }
 
     /// A solver failure after the search names the distance found; other errors and failures
@@ -2319,16 +2062,27 @@ mod search_state_tests {
     use crate::problem::{ImageStack, InitialDepth};
     use crate::synth::{Scene, SceneKind};
 
+    /// A 16 x 16 spherical cap at 200 and its (Lambertian) images.
+    fn cap() -> (Scene, Vec<f32>) {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        (scene, images)
+    }
+
+    /// The problem of [`cap`]'s images, started at the scene's mean depth.
+    fn cap_problem<'a>(scene: &'a Scene, images: &'a [f32]) -> Problem<'a> {
+        let stack = ImageStack::new(images, scene.rig.n_lights(), 16, 16).unwrap();
+        let start = InitialDepth::Distance(scene.mean_depth());
+        Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap()
+    }
+
     /// The search compares its candidates without the glossy fits' continuation (their
     /// residual curve moved with it), with its glossy fits in `f64` lanes, and gives both back
     /// to the run at the distance found.
     #[test]
     fn the_search_turns_the_continuation_off_and_back_on() {
-        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
-        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
-        let stack = ImageStack::new(&images, scene.rig.n_lights(), 16, 16).unwrap();
-        let start = InitialDepth::Distance(scene.mean_depth());
-        let problem = Problem::new(stack, &scene.rig, Some(&scene.mask), start).unwrap();
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
         let options = Options {
             levels: 1,
             ..Options::default()
@@ -2345,5 +2099,53 @@ mod search_state_tests {
         assert!(solver.continuation && solver.check_lights);
         assert!(solver.local_step(false, None).settings.step_tolerance > 0.0);
         assert!(!solver.local_step(false, None).settings.precise);
+    }
+
+    /// A candidate evaluated afresh ([`Fresh`]) is a function of its distance and lobe alone:
+    /// the same residuals, bit for bit, whatever was evaluated before it; warm-started
+    /// candidates under the same held lobe depend on what came before.
+    #[test]
+    fn fresh_candidates_do_not_depend_on_their_order() {
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
+        let options = Options {
+            levels: 1,
+            reflectance: crate::Reflectance::Glossy(None),
+            ..Options::default()
+        };
+        let lobe = Lobe::new(0.3, 1.5);
+        let evaluate = |order: &[f64], fresh: bool| -> Vec<Vec<f64>> {
+            let mut solver = Solver::new(&problem, &options).unwrap();
+            let _ = begin_search(&mut solver);
+            solver.lobe = Some(lobe);
+            solver.hold_lobe = true;
+            let mut ev = Evaluator {
+                refine: solver.lights.refine(),
+                solver: &mut solver,
+                u: problem.u0.to_vec("the depths").unwrap(),
+                inner: 5,
+                curve: vec![Vec::new(); problem.grid.n_regions],
+                candidate: 0,
+                candidates: order.len(),
+                best: (f64::NAN, f64::NAN),
+                fresh: fresh.then_some(Fresh { options, lobe }),
+            };
+            let mut quiet = |_: &IterationStats| Control::Continue;
+            order
+                .iter()
+                .map(|&d| ev.eval(&[d], &mut quiet).unwrap())
+                .collect()
+        };
+        let alone = evaluate(&[200.0], true);
+        let after = evaluate(&[180.0, 215.0, 200.0], true);
+        let before = evaluate(&[200.0, 180.0], true);
+        assert!(alone[0][0].is_finite() && alone[0][0] > 0.0);
+        assert_eq!(after[2], alone[0]);
+        assert_eq!(before[0], alone[0]);
+        assert_eq!(evaluate(&[180.0], true)[0], after[0]);
+        assert_eq!(before[1], after[0]);
+        let warm_alone = evaluate(&[200.0], false);
+        let warm_after = evaluate(&[180.0, 215.0, 200.0], false);
+        assert_ne!(warm_after[2], warm_alone[0]);
     }
 }

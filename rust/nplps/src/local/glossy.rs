@@ -141,8 +141,9 @@ pub const RETRO_ETA: f64 = 1.5;
 
 /// The roughness grid of the lobe search.
 const ALPHAS: [f64; 9] = [0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.4, 0.6, 0.85];
-/// The index grid of the lobe search (1: the diffuse part is Lambertian).
-const ETAS: [f64; 7] = [1.0, 1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
+/// The index grid of the lobe search (1: the diffuse part is Lambertian), and of the glossy
+/// distance search's lobes (`crate::distance`, `fresh_stages`).
+pub(crate) const ETAS: [f64; 7] = [1.0, 1.15, 1.3, 1.45, 1.6, 1.8, 2.1];
 
 /// The glossy observations of a facet with centre `c` and view vector `v` under `lobe` (see the
 /// module documentation), the usable ones only, into `out`.

@@ -41,7 +41,7 @@ mod trust;
 pub(crate) use check::check_lobe;
 pub use check::{LobeCheck, CHECK_BELOW_LIGHTS, CHECK_FOLDS};
 pub(crate) use glossy::{
-    estimate_lobe, estimate_starting_lobe, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
+    estimate_lobe, estimate_starting_lobe, ETAS, GLOSSY_STEPS, GLOSSY_WARM_STEPS, RETRO_ETA,
 };
 pub(crate) use glossy_indirect::GlossyState;
 pub(crate) use lanes::{final_chunks, FieldRow};
