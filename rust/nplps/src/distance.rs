@@ -193,8 +193,12 @@ impl Evaluator<'_, '_> {
                 let start = self.solver.start;
                 *self.solver = Solver::new(problem, &fresh.options)?;
                 self.solver.start = start;
-                // What it would restore is the new solver's own state: nothing to keep.
-                let _ = begin_search(self.solver);
+                // The search's settings, but the user's cast-shadow policy: with the marches
+                // (shadows "auto") the 64² PBR block with 0.5 % noise had its lowest criterion
+                // under the retro lobe near the truth; with none, under the transmitted ones
+                // 0.5-1.5 % long (docs/shiny.md, stop 54).
+                let (_, shadows) = begin_search(self.solver);
+                self.solver.restore_shadows(shadows);
                 // A run of its own, as one given the distance and the lobe: with the
                 // continuation of sharp lobes' fits (see `Solver::continuation`).
                 self.solver.continuation = true;
