@@ -169,8 +169,8 @@ struct Evaluator<'s, 'p> {
 }
 
 /// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
-/// ([`begin_search`]) but the continuation of sharp lobes' fits, as in a run of its own, and
-/// `lobe` held, from the starting surface gauged at the candidate, run to the level's
+/// ([`begin_search`]) but the continuation of sharp lobes' fits and the user's cast-shadow
+/// policy, as in a run of its own, and `lobe` held, from the starting surface gauged at the candidate, run to the level's
 /// convergence (`options.iterations`, `options.tol`). Its criterion is then a function of the
 /// level, the distance and the lobe alone (see [`fresh_stages`]).
 #[derive(Debug, Clone, Copy)]
