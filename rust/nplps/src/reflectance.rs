@@ -1328,25 +1328,6 @@ impl Packed {
             false => self.single.prepare(self.view, x, lobe.eta, retro),
         }
     }
-
-    /// The squared error of the prediction of every observation held (prepared for `lobe`, see
-    /// [`Packed::prepare`]) by the unit normal `n` with the diffuse albedo `rho` and the
-    /// specular one `s`: `sum_k (I_k - Phi_k a_k (rho D_k + s S_k))^2`, the model 0 where the
-    /// facet turns away from the light or the camera (the held-out prediction of the lobe
-    /// search, `glossy::held_out_sse`, in lanes).
-    pub fn prediction_sse(&mut self, lobe: &Lobe, n: [f64; 3], rho: f64, s: f64) -> f64 {
-        let key = kernel_key(lobe);
-        let k = match self.kernel.take() {
-            Some((kept, k)) if kept == key => k,
-            _ => Kernel::new(lobe),
-        };
-        let sse = match self.precise {
-            true => self.double.prediction(&k, self.view, n, rho, s),
-            false => self.single.prediction(&k, self.view, n, rho, s),
-        };
-        self.kernel = Some((key, k));
-        sse
-    }
 }
 
 /// The solution `x` of `A x = r` for a symmetric positive definite 4x4 `A` (its lower triangle

@@ -158,26 +158,10 @@ fn observations(
     settings: &FitSettings,
     out: &mut Packed,
 ) {
-    observations_of(c, v, lobe, model, values, channels, settings, out, |_| true);
-}
-
-/// [`observations`] of the lights that `keep` selects.
-#[allow(clippy::too_many_arguments)]
-fn observations_of(
-    c: [f64; 3],
-    v: [f64; 3],
-    lobe: &Lobe,
-    model: Model<'_>,
-    values: &[f32],
-    channels: usize,
-    settings: &FitSettings,
-    out: &mut Packed,
-    keep: impl Fn(usize) -> bool,
-) {
     out.clear(v);
     out.noise = settings.noise;
     for (k, o) in values.chunks_exact(channels).enumerate() {
-        if !keep(k) || !usable(o, settings) {
+        if !usable(o, settings) {
             continue;
         }
         let value = o.iter().map(|&v| v as f64).sum();
@@ -417,9 +401,7 @@ struct Sampled {
 /// The held-out score of one facet of the lobe search under `lobe` (see the module
 /// documentation): its fit on each fold of its lights (from `starts`, [`LOBE_STEPS`] steps; its
 /// Lambertian fit where that fails) predicts the observations of the other folds; the summed
-/// squared errors. Grey images predict in lanes (the held lights packed into `held`, see
-/// [`Packed::prediction_sse`]), colour ones per channel ([`held_out_sse`]).
-#[allow(clippy::too_many_arguments)]
+/// squared errors.
 fn held_out_score(
     s: &Sampled,
     model: Model<'_>,
@@ -428,7 +410,6 @@ fn held_out_score(
     lobe: &Lobe,
     starts: [Option<[f64; 3]>; 2],
     scratch: &mut Packed,
-    held: &mut Packed,
 ) -> f64 {
     (0..s.folds.len())
         .map(|j| {
@@ -446,14 +427,17 @@ fn held_out_score(
                 scratch,
             )
             .unwrap_or(s.start);
-            let out = |k: usize| k % ETA_FOLDS != j;
-            if channels != 1 {
-                return held_out_sse(
-                    s.c, s.v, model, &s.values, channels, settings, lobe, &g, out,
-                );
-            }
-            observations_of(s.c, s.v, lobe, model, &s.values, 1, settings, held, out);
-            held.prediction_sse(lobe, g.normal, g.albedo[0], g.specular)
+            held_out_sse(
+                s.c,
+                s.v,
+                model,
+                &s.values,
+                channels,
+                settings,
+                lobe,
+                &g,
+                |k| k % ETA_FOLDS != j,
+            )
         })
         .sum()
 }
@@ -571,21 +555,9 @@ fn search_lobe(
         let scores: Vec<f64> = sample
             .par_iter()
             .zip(starts)
-            .map_init(
-                || (Packed::precise(), Packed::precise()),
-                |(scratch, out), (s, &starts)| {
-                    held_out_score(
-                        s,
-                        step.model,
-                        channels,
-                        &lambertian,
-                        &lobe,
-                        starts,
-                        scratch,
-                        out,
-                    )
-                },
-            )
+            .map_init(Packed::precise, |scratch, (s, &starts)| {
+                held_out_score(s, step.model, channels, &lambertian, &lobe, starts, scratch)
+            })
             .collect();
         scores.iter().sum()
     };
@@ -967,14 +939,11 @@ mod tests {
         let settings = FitSettings::default();
         let facets = glossy_facets(&lights);
         let mut scratch = Packed::new();
-        let mut held = Packed::precise();
-        let mut score = |eta: f64, scratch: &mut Packed| -> f64 {
+        let score = |eta: f64, scratch: &mut Packed| -> f64 {
             let lobe = Lobe::new(0.15, eta);
             facets
                 .iter()
-                .map(|s| {
-                    held_out_score(s, model, 3, &settings, &lobe, s.starts, scratch, &mut held)
-                })
+                .map(|s| held_out_score(s, model, 3, &settings, &lobe, s.starts, scratch))
                 .sum()
         };
         let truth = score(1.5, &mut scratch);
@@ -1007,74 +976,6 @@ mod tests {
         };
         assert!((held(0) - 0.01).abs() < 1e-6, "{}", held(0));
         assert!(held(1) < 1e-9, "{}", held(1));
-    }
-
-    /// The held-out prediction of grey images in lanes ([`Packed::prediction_sse`] of the held
-    /// lights) is [`held_out_sse`]'s to rounding (`f64` lanes; `f32` ones to their rounding):
-    /// both diffuse shapes and the index 1, lights the fitted normal turns away from (counted
-    /// with the model 0) and a normal turned away from the view (every held light counted so).
-    #[test]
-    fn the_lanes_predict_the_held_out_lights_as_the_scalar_model() {
-        let lights: Vec<([f64; 3], [f64; 3])> = spiral_lights(27, 85.0)
-            .into_iter()
-            .enumerate()
-            .map(|(k, l)| (l, [1.0 + 0.1 * (k % 3) as f64; 3]))
-            .collect();
-        let model = Model::Parallel(&lights);
-        let settings = FitSettings::default();
-        let (c, v) = ([0.0; 3], [0.0, 0.0, -1.0]);
-        let mut unlit = 0;
-        for lobe in [
-            Lobe::new(0.15, 1.5),
-            Lobe::retro(0.3, RETRO_ETA),
-            Lobe::new(0.3, 1.0),
-        ] {
-            for t in [[0.0, 0.0], [0.6, -0.2], [-1.4, 0.5], [0.3, 0.2]] {
-                let n = normalize([t[0], t[1], -1.0]);
-                let values: Vec<f32> = lights
-                    .iter()
-                    .enumerate()
-                    .map(|(k, &(l, phi))| {
-                        let m = lobe
-                            .shade(n, l, v)
-                            .map_or(0.0, |s| 0.5 * s.diffuse + 0.3 * s.specular);
-                        (phi[0] * m + 0.01 * (k % 4) as f64) as f32
-                    })
-                    .collect();
-                // The fitted normal: off the truth (and for the last tilt, away from the view).
-                let normal = match t == [0.3, 0.2] {
-                    true => normalize([0.2, 0.1, 1.0]),
-                    false => normalize([t[0] + 0.05, t[1] - 0.03, -1.0]),
-                };
-                let fit = FacetFit {
-                    target: [0.0; 4],
-                    normal,
-                    albedo: [0.45; 3],
-                    specular: 0.25,
-                    sse: 0.0,
-                    used: 0,
-                    valid: true,
-                };
-                unlit += lights
-                    .iter()
-                    .filter(|(l, _)| dot(normal, *l) <= 0.0)
-                    .count();
-                for j in 0..ETA_FOLDS {
-                    let out = |k: usize| k % ETA_FOLDS != j;
-                    let scalar = held_out_sse(c, v, model, &values, 1, &settings, &lobe, &fit, out);
-                    for (mut held, tolerance) in [(Packed::precise(), 1e-12), (Packed::new(), 1e-5)]
-                    {
-                        observations_of(c, v, &lobe, model, &values, 1, &settings, &mut held, out);
-                        let lanes = held.prediction_sse(&lobe, normal, 0.45, 0.25);
-                        assert!(
-                            (lanes - scalar).abs() <= tolerance * scalar,
-                            "{lanes} vs {scalar} ({lobe:?}, {t:?}, fold {j})"
-                        );
-                    }
-                }
-            }
-        }
-        assert!(unlit > 0, "some held lights unlit");
     }
 
     /// The lobe search's criteria (the residual, and the held-out score) tell the diffuse
@@ -1116,10 +1017,7 @@ mod tests {
                 let held = |lobe: &Lobe, scratch: &mut Packed| -> f64 {
                     facets
                         .iter()
-                        .map(|s| {
-                            let held = &mut Packed::precise();
-                            held_out_score(s, model, 3, &settings, lobe, s.starts, scratch, held)
-                        })
+                        .map(|s| held_out_score(s, model, 3, &settings, lobe, s.starts, scratch))
                         .sum()
                 };
                 let transmitted = ETAS.iter().map(|&eta| Lobe::new(alpha, eta));

@@ -497,44 +497,6 @@ fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -
 
 simd_dispatch! {
     wide
-    /// [`prediction_at`] with AVX-512 or AVX2 when the processor has it.
-    fn prediction_dispatch => prediction_at(
-        k: &Kernel, groups: &[Group], v: [f64; 3], n: [f64; 3], rho: f64, s: f64,
-    ) -> f64;
-}
-
-/// The squared error of the prediction at the unit normal `n` with the albedos `rho`, `s` of
-/// every observation of `groups`, the model 0 where the facet turns away from the light or the
-/// camera (as `glossy::held_out_sse`; the lanes without an observation hold 0).
-#[inline(always)]
-fn prediction_at(k: &Kernel, groups: &[Group], v: [f64; 3], n: [f64; 3], rho: f64, s: f64) -> f64 {
-    let mut sse: Lanes = [0.0; W];
-    match k.view(n, v) {
-        Some(w) => {
-            let (n, w, v) = (to_lane(n), LaneView::new(&w), to_lane(v));
-            let (rho, s) = (rho as F, s as F);
-            for g in groups {
-                let f = shade_group::<false>(k, g, n, &w, v);
-                for i in 0..W {
-                    let m = g.scale[i] * (rho * f.diffuse[i] + s * f.specular[i]);
-                    let r = g.value[i] - if f.lit[i] { m } else { 0.0 };
-                    sse[i] += r * r;
-                }
-            }
-        }
-        None => {
-            for g in groups {
-                for i in 0..W {
-                    sse[i] += g.value[i] * g.value[i];
-                }
-            }
-        }
-    }
-    lane_sum(&sse)
-}
-
-simd_dispatch! {
-    wide
     /// [`albedo_sums`] with AVX-512 or AVX2 when the processor has it.
     fn albedo_sums_dispatch => albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5];
 }
@@ -787,11 +749,6 @@ impl Store {
         }
         g.fresnel[i] = o.fresnel as F;
         g.retro[i] = o.retro as F;
-    }
-
-    /// [`Packed::prediction_sse`] with the kernel `k`.
-    pub(super) fn prediction(&self, k: &Kernel, v: [f64; 3], n: [f64; 3], rho: f64, s: f64) -> f64 {
-        prediction_dispatch(k, &self.groups, v, n, rho, s)
     }
 
     /// [`Packed::prepare`] with the view vector `v` and the lobe's `eta` and diffuse shape.
