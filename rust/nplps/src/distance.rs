@@ -2125,7 +2125,7 @@ mod search_state_tests {
             levels: 1,
             ..Options::default()
         };
-        let mut solver = check_solver(&problem, &options).unwrap();
+        let solver = check_solver(&problem, &options).unwrap();
         assert!(!solver.continuation && !solver.check_lights);
         let settings = solver.local_step(false, None).settings;
         assert!(!settings.continuation && !settings.precise);
