@@ -1817,9 +1817,7 @@ pub(crate) fn check_distance_on(
             .iter()
             .map(|&g| level.geometry.depth(g))
             .collect();
-        let mut solver = Solver::new(level, &options)?;
-        solver.check_lights = false;
-        solver.continuation = false; // as in the search (`begin_search`)
+        let mut solver = check_solver(level, &options)?;
         let inner = match options.reflectance.is_glossy() {
             true => CHECK_INNER_GLOSSY,
             false => CHECK_INNER,
@@ -1863,6 +1861,17 @@ pub(crate) fn check_distance_on(
             side,
         }))
     })?
+}
+
+/// The solver of [`check_distance_on`] on its coarse `level`: the lights as given, the glossy
+/// fits without the continuation (as in the search, `begin_search`) and, unlike the search's, in
+/// `f32` lanes (see [`Solver::precise_lanes`]).
+fn check_solver<'a>(level: &'a Problem<'a>, options: &Options) -> Result<Solver<'a>> {
+    let mut solver = Solver::new(level, options)?;
+    solver.check_lights = false;
+    solver.continuation = false;
+    solver.precise_lanes = false;
+    Ok(solver)
 }
 
 /// The corner of the V of equal slopes `±s` through three points `a < m < c` whose middle one
@@ -2155,6 +2164,28 @@ mod search_state_tests {
         assert!(solver.continuation && solver.check_lights);
         assert!(solver.local_step(false, None).settings.step_tolerance > 0.0);
         assert!(!solver.local_step(false, None).settings.precise);
+    }
+
+    /// The check compares its candidates without the glossy fits' continuation, as the search
+    /// does, but with its glossy fits in `f32` lanes (its verdict is a ratio and an offset, not
+    /// a distance to 1 %), and without the step tolerance.
+    #[test]
+    fn the_check_fits_in_single_lanes() {
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
+        let options = Options {
+            levels: 1,
+            ..Options::default()
+        };
+        let solver = check_solver(&problem, &options).unwrap();
+        assert!(!solver.continuation && !solver.check_lights);
+        let settings = solver.local_step(false, None).settings;
+        assert!(!settings.continuation && !settings.precise);
+        assert_eq!(settings.step_tolerance, 0.0);
+        // The search's solver keeps them in `f64` lanes.
+        let mut solver = Solver::new(&problem, &options).unwrap();
+        let _saved = begin_search(&mut solver);
+        assert!(solver.local_step(false, None).settings.precise);
     }
 
     /// A candidate evaluated afresh ([`Fresh`]) is a function of its distance and lobe alone:

@@ -738,6 +738,12 @@ pub(crate) struct Solver<'p> {
     /// truth), while the fits at a given distance gained (see the CHANGELOG); the run at the
     /// distance found uses it.
     pub(crate) continuation: bool,
+    /// Whether, with the continuation off, the glossy fits run in `f64` lanes
+    /// ([`FitSettings::precise`]): the distance search's candidates need them (the `f32` lanes'
+    /// rounding moved the distances it found, stop 51); the distance check turns it off (its
+    /// verdict is a residual ratio above 1.02 with an offset above 10 %, see
+    /// `distance::check_distance`).
+    pub(crate) precise_lanes: bool,
     /// Under the glossy model, each facet's glossy normal of the last local step (NaN: none),
     /// which starts its next fit; empty under the Lambertian model.
     warm: Vec<[f32; 3]>,
@@ -869,6 +875,7 @@ impl<'p> Solver<'p> {
             hold_lobe: false,
             keep_glossy: false,
             continuation: true,
+            precise_lanes: true,
             warm: try_vec(
                 if options.reflectance.is_glossy() {
                     n
@@ -1944,7 +1951,7 @@ impl<'p> Solver<'p> {
                 step_tolerance,
                 noise,
                 // ... and there the glossy fits run in `f64` lanes (their criteria are flat).
-                precise: !self.continuation,
+                precise: !self.continuation && self.precise_lanes,
                 ..self.options.fit_settings(fast_residual)
             },
             depths,
