@@ -1137,34 +1137,29 @@ impl<'p> Solver<'p> {
             let mut previous = self.indirect.take();
             let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
             // The first round on a coarser grid (FIRST_ROUND_COARSER); the second starts the
-            // rounds' own grid afresh (the first's verdicts and factor are of another grid).
-            let coarser = match round {
-                0 => FIRST_ROUND_COARSER,
-                _ => 1,
+            // rounds' own grid afresh (the first's factor is of another grid), the later ones
+            // at least at the factor of the round before. Each round's exchange marches every
+            // facing pair afresh (up to stop 54 the rounds kept the verdicts of the round
+            // before, but after the over-relaxed step the mesh moves too far for most of them:
+            // docs/concave.md, stop 54).
+            let factor = previous.as_ref().map_or(1, IndirectField::factor);
+            let (coarser, min_factor) = match round {
+                0 => (FIRST_ROUND_COARSER, factor),
+                1 => (1, 1),
+                _ => (1, factor),
             };
-            if round == 1 {
-                previous = None;
-            }
-            // No visibility verdicts are kept for the next round's exchange (`keep`, see
-            // [`IndirectField::of_mesh_keeping`]): its mesh moves too far for them (after the
-            // over-relaxed step, the benchmark's GI renders at 256² re-marched 75-93 % of the
-            // facing pairs at their third round), and keeping them cost more than it saved (the
-            // rest of each blocked pair's march past its first block, the verdicts' pushes; the
-            // corrugated sheet with the option 4 % less processor time without: docs/concave.md,
-            // stop 54). The same exchanges either way.
-            let keep = false;
+            drop(previous);
             self.indirect = Some(
-                IndirectField::of_mesh_keeping(
+                IndirectField::of_mesh(
                     &p.rig.camera,
                     &p.grid,
                     &p.geometry,
                     u,
                     glossy.as_ref().map_or(&p.obs, |(emitted, _)| emitted),
                     self.lights.lights(),
-                    previous,
+                    min_factor,
                     None,
                     coarser,
-                    keep,
                 )?
                 .with_unlit(
                     &p.grid,
@@ -1198,11 +1193,6 @@ impl<'p> Solver<'p> {
             if round + 1 < schedule.rounds {
                 over_relax(&before, u, schedule.relax);
             }
-        }
-        // No exchange is built after the rounds (see [`coarse_to_fine`]): their verdicts are
-        // done.
-        if let Some(field) = self.indirect.as_mut() {
-            field.drop_sightlines();
         }
         let last = iterations.min(schedule.last);
         let (last, converged) = self.iterate(u, gauge, last, tol, progress)?;
@@ -3007,7 +2997,7 @@ mod tests {
                 &self.u,
                 &obs,
                 &[],
-                None,
+                1,
                 None,
                 1,
             )
