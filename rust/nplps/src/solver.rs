@@ -330,6 +330,9 @@ pub(crate) struct RoundSchedule {
     pub relax: f64,
     /// The run after the rounds iterates at most this many times.
     pub last: usize,
+    /// Whether the run after the rounds marches its cast shadows guided by the rounds' mask
+    /// when a round marched it (see [`Solver::interreflect_with`]).
+    pub guide_last: bool,
 }
 
 /// The rounds at the full resolution (a problem without a pyramid level of
@@ -341,6 +344,7 @@ pub(crate) const ROUNDS_AT_FULL_RESOLUTION: RoundSchedule = RoundSchedule {
     iterations: ROUND_ITERATIONS,
     relax: 1.0,
     last: usize::MAX,
+    guide_last: false,
 };
 
 /// The rounds on a pyramid's coarse level, whose field the finer levels then iterate with to
@@ -365,6 +369,7 @@ pub(crate) const ROUNDS_BEFORE_FINER: RoundSchedule = RoundSchedule {
     iterations: 1,
     relax: ROUNDS_RELAX,
     last: 2,
+    guide_last: true,
 };
 
 /// The over-relaxation of the depth step of the rounds on a coarse level (see
@@ -787,6 +792,10 @@ pub(crate) struct Solver<'p> {
     /// Whether the next iteration marches whatever [`SHADOWS_AT`] says: after the glossy model
     /// was dropped, whose surface the last masks came from.
     march_next: bool,
+    /// Whether the next march is guided by the mask the solver holds (`shadow::march_guided`,
+    /// [`GUIDE_RADIUS`]): the first march of a coarse level's run after its rounds when a round
+    /// marched that mask (see [`Solver::interreflect_with`]).
+    guide_by_rounds: bool,
     /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
     /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
     indirect: Option<IndirectField>,
@@ -894,6 +903,7 @@ impl<'p> Solver<'p> {
             shadows_upsampled: false,
             marched_guided: false,
             march_next: false,
+            guide_by_rounds: false,
             indirect: None,
             indirect_carried: false,
             received: None,
@@ -1097,7 +1107,9 @@ impl<'p> Solver<'p> {
     /// under `Auto` without one, a round probes and marches), and the last run marches the
     /// corrected mesh (its first and third iterations); with a field, each march is the refined
     /// one ([`mesh_shadows_refined`]: a lattice of a quarter of the facets, of 1/16 at 1 MP, and
-    /// the facets near a shadow's edge). Returns the rounds'
+    /// the facets near a shadow's edge), except on a coarse level ([`RoundSchedule::guide_last`])
+    /// whose mask a round marched: there the last run's first march is guided by that mask
+    /// ([`GUIDE_RADIUS`], `shadow::mesh_shadows_guided`). Returns the rounds'
     /// history and whether the last run converged (`converged` without rounds). A solver whose
     /// field came from a coarser level's rounds (an image of more than [`ROUNDS_SIDE`] pixels a
     /// side, see [`coarse_to_fine`]) has iterated with it already: no rounds.
@@ -1129,6 +1141,7 @@ impl<'p> Solver<'p> {
         let (iterations, tol) = (self.options.iterations, self.options.tol);
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         let (mut residual, mut moved) = (f64::NAN, f64::NAN);
+        let masked = self.shadows.is_some();
         for round in 0..schedule.rounds {
             let t = Instant::now();
             // Under the glossy model: the fits of the round's start, and the diffuse part of
@@ -1194,8 +1207,15 @@ impl<'p> Solver<'p> {
                 over_relax(&before, u, schedule.relax);
             }
         }
+        // A mask that a round marched (no mask before the rounds, a probe found cast shadows
+        // during them) was marched on a mesh with the rounds' field, near the last run's: its
+        // march is guided by it (only near its edges and the terminators; a mask the rounds kept
+        // from before them came from a mesh without the field and is marched again in full:
+        // docs/concave.md, stops 52 and 55).
+        self.guide_by_rounds = schedule.guide_last && !masked && self.shadows.is_some();
         let last = iterations.min(schedule.last);
         let (last, converged) = self.iterate(u, gauge, last, tol, progress)?;
+        self.guide_by_rounds = false;
         history.extend(last);
         Ok((history, converged))
     }
@@ -1491,7 +1511,9 @@ impl<'p> Solver<'p> {
         let p = self.problem;
         let stride = self.probe_stride();
         let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
-        let prior = self.shadows.take().filter(|_| guided);
+        // (taken by the first march that comes, guided or not)
+        let by_rounds = std::mem::take(&mut self.guide_by_rounds);
+        let prior = self.shadows.take().filter(|_| guided || by_rounds);
         // The targets are dead here (the next local step writes every facet's): their memory
         // (32 bytes a facet) is given back while the march holds its own (the vertex depths,
         // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
