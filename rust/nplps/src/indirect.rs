@@ -255,7 +255,6 @@ impl Exchange {
         )?;
 
         let depths = CellDepths::new(&march)?;
-        let lanes = FacetLanes::new(&geometry)?;
         // The unordered pairs (i < j) per row i: (j, w_ij, w_ji).
         let (count, marched) = (AtomicUsize::new(0), AtomicUsize::new(0));
         let over = AtomicBool::new(false);
@@ -272,11 +271,13 @@ impl Exchange {
                     return row;
                 };
                 let mut facing = 0;
-                let mut faced = Vec::new();
-                facing_dispatch(&lanes, &fi, i + 1, &mut faced);
-                for j in faced.into_iter().map(|j| j as usize) {
-                    // (a facet in the lanes' arrays: finite there)
-                    let Some(fj) = &geometry[j] else { continue };
+                for (j, fj) in geometry.iter().enumerate().skip(i + 1) {
+                    let Some(fj) = fj else { continue };
+                    let d = sub(fj.centre, fi.centre);
+                    let r = norm(d);
+                    if !(dot(fi.normal, d) > COS_MIN * r && -dot(fj.normal, d) > COS_MIN * r) {
+                        continue;
+                    }
                     let tol = 1e-3 * fi.area.max(fj.area).sqrt();
                     let ceiling = march_length(projected[i], projected[j]);
                     facing += 1;
@@ -466,89 +467,6 @@ impl Exchange {
                 });
         }
         Ok(out)
-    }
-}
-
-/// Facets of [`FACING_LANES`] pixels at a time for the facing test of [`Exchange::new`]: the
-/// centres' and normals' components in separate arrays (NaN where the pixel is no facet, so
-/// that it faces nothing), padded to a whole number of blocks.
-struct FacetLanes {
-    /// Centre x, y, z, normal x, y, z.
-    parts: [Vec<f64>; 6],
-    plane: usize,
-}
-
-/// Facets whose facing test [`facing_lanes`] computes together.
-const FACING_LANES: usize = 8;
-
-impl FacetLanes {
-    fn new(geometry: &[Option<Facet>]) -> Result<FacetLanes> {
-        let plane = geometry.len();
-        let padded = plane.div_ceil(FACING_LANES) * FACING_LANES;
-        let part = |f: &dyn Fn(&Facet) -> f64| {
-            crate::memory::try_collect(
-                (0..padded).map(|p| match geometry.get(p) {
-                    Some(Some(facet)) => f(facet),
-                    _ => f64::NAN,
-                }),
-                "the facets of the light exchange",
-            )
-        };
-        Ok(FacetLanes {
-            parts: [
-                part(&|f| f.centre[0])?,
-                part(&|f| f.centre[1])?,
-                part(&|f| f.centre[2])?,
-                part(&|f| f.normal[0])?,
-                part(&|f| f.normal[1])?,
-                part(&|f| f.normal[2])?,
-            ],
-            plane,
-        })
-    }
-}
-
-simd_dispatch! {
-    wide
-    /// [`facing_lanes`] with AVX-512 or AVX2 when the processor has it (same arithmetic).
-    fn facing_dispatch => facing_lanes(
-        lanes: &FacetLanes,
-        fi: &Facet,
-        from: usize,
-        out: &mut Vec<u32>,
-    ) -> ();
-}
-
-/// The facets `j >= from` that facet `fi` faces and that face it (see the module
-/// documentation: `n_i . d > COS_MIN r` and `-n_j . d > COS_MIN r` for `d = x_j - x_i`, `r =
-/// |d|`), pushed to `out` in increasing order: the test of one pair at a time (`sub`, `norm`,
-/// `dot` in their order: the same values), [`FACING_LANES`] facets at a time in SIMD lanes.
-#[inline(always)]
-fn facing_lanes(lanes: &FacetLanes, fi: &Facet, from: usize, out: &mut Vec<u32>) {
-    const L: usize = FACING_LANES;
-    let [cx, cy, cz, nx, ny, nz] = &lanes.parts;
-    let (c, n) = (fi.centre, fi.normal);
-    let mut block = from - from % L;
-    while block < lanes.plane {
-        let at = |v: &Vec<f64>| -> [f64; L] { v[block..block + L].try_into().unwrap_or([0.0; L]) };
-        let (x, y, z) = (at(cx), at(cy), at(cz));
-        let (a, b, e) = (at(nx), at(ny), at(nz));
-        let d0: [f64; L] = crate::lanes(|t| x[t] - c[0]);
-        let d1: [f64; L] = crate::lanes(|t| y[t] - c[1]);
-        let d2: [f64; L] = crate::lanes(|t| z[t] - c[2]);
-        let r: [f64; L] = crate::lanes(|t| (d0[t] * d0[t] + d1[t] * d1[t] + d2[t] * d2[t]).sqrt());
-        let faces: [bool; L] = crate::lanes(|t| {
-            let reach = COS_MIN * r[t];
-            (n[0] * d0[t] + n[1] * d1[t] + n[2] * d2[t] > reach)
-                & (-(a[t] * d0[t] + b[t] * d1[t] + e[t] * d2[t]) > reach)
-        });
-        for (t, &yes) in faces.iter().enumerate() {
-            let j = block + t;
-            if yes && j >= from && j < lanes.plane {
-                out.push(j as u32);
-            }
-        }
-        block += L;
     }
 }
 
@@ -2319,65 +2237,6 @@ mod tests {
         }
         // Both verdicts are common on these meshes.
         assert!(blocked > 10_000 && visible > 10_000, "{blocked} {visible}");
-    }
-
-    /// The facing test in lanes ([`facing_lanes`]) gives every row the facets of the scalar
-    /// test (`n_i . d > COS_MIN r` and `-n_j . d > COS_MIN r`, one pair at a time), in order:
-    /// rough meshes under a pinhole and an orthographic camera, with a mask (facets missing
-    /// from the lanes' blocks), rows starting at every offset within a block.
-    #[test]
-    fn the_facing_test_in_lanes_is_the_scalar_one() {
-        let n = 27;
-        let mask: Vec<bool> = (0..n * n).map(|p| (p * 7919) % 11 != 0).collect();
-        let mut facing = 0;
-        for (seed, camera) in [(0.0, pinhole(n, 40.0)), (1.0, ortho())] {
-            let z = depths(n, |r, c| {
-                30.0 + 3.0 * (0.7 * c + seed).sin() * (0.4 * r).cos() + 0.5 * (1.3 * r * c).sin()
-            });
-            let vertices = crate::geometry::vertices(&camera, n, n, &z).unwrap();
-            let march = March {
-                camera: &camera,
-                height: n,
-                width: n,
-                vertices: crate::shadow::Vertices::Positions(&vertices),
-                mask: Some(&mask),
-                z_min: f64::NEG_INFINITY,
-                max_steps: usize::MAX / 4,
-                pyramid: None,
-            };
-            let facets: Vec<Option<Facet>> = (0..n * n)
-                .map(|p| {
-                    let (centre, normal, _) = march.facet(p)?;
-                    let q = march.quad(p / n, p % n);
-                    let area = 0.5 * norm(cross(sub(q[2], q[1]), sub(q[3], q[0])));
-                    Some(Facet {
-                        centre,
-                        normal,
-                        area,
-                        corners: q,
-                    })
-                })
-                .collect();
-            let lanes = FacetLanes::new(&facets).unwrap();
-            for (i, fi) in facets.iter().enumerate() {
-                let Some(fi) = fi else { continue };
-                let scalar: Vec<u32> = (i + 1..n * n)
-                    .filter(|&j| {
-                        let Some(fj) = &facets[j] else { return false };
-                        let d = sub(fj.centre, fi.centre);
-                        let r = norm(d);
-                        dot(fi.normal, d) > COS_MIN * r && -dot(fj.normal, d) > COS_MIN * r
-                    })
-                    .map(|j| j as u32)
-                    .collect();
-                let mut got = Vec::new();
-                facing_lanes(&lanes, fi, i + 1, &mut got);
-                assert_eq!(got, scalar, "row {i}");
-                facing += got.len();
-            }
-        }
-        // Both verdicts are common on these meshes.
-        assert!(facing > 10_000 && facing < 200_000, "{facing}");
     }
 
     /// [`march_length`] (the square root of the sum of squares, away from integers) is the
