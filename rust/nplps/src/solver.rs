@@ -2355,17 +2355,20 @@ mod round_schedule_tests {
         }
     }
 
-    /// Only a coarse level's rounds change: the full resolution keeps the plain rounds and runs
-    /// after them to the solver's own stop rule.
+    /// Only a coarse level's rounds change: the full resolution keeps the plain rounds, runs
+    /// after them to the solver's own stop rule and marches its last run's cast shadows
+    /// unguided (it gives the result; no finer level's march follows).
     #[test]
     fn the_full_resolution_keeps_the_plain_rounds() {
         let full = ROUNDS_AT_FULL_RESOLUTION;
         assert_eq!(full.iterations, ROUND_ITERATIONS);
         assert_eq!(full.relax, 1.0);
         assert_eq!(full.last, usize::MAX);
+        assert!(!full.guide_last);
         let coarse = ROUNDS_BEFORE_FINER;
         assert!(coarse.relax > 1.0 && coarse.relax < 2.0);
         assert!(coarse.last >= 1 && coarse.iterations >= 1);
+        assert!(coarse.guide_last);
     }
 }
 
