@@ -102,15 +102,11 @@
 //! one-pass marking of the last gathering, the benchmark's corrugated sheet with
 //! `interreflections=True` took about 13 % less processor time; docs/concave.md, stop 46).
 //!
-//! A mesh that moves a little keeps most verdicts (`Exchange::build`, used by the solver's
-//! rounds): the march of a facing pair also gives its *clearance*, the smallest margin of the
-//! surface behind the segment over its samples when visible, the deepest cut of the ridge that
-//! blocks it when blocked (the march goes on past the first blocking sample while the surface
-//! rises further in front). On a mesh whose vertices moved by at most `delta` within the
-//! bounding box of the pair's two pixels (the box holds the image of the segment and every
-//! surface point its samples read), a verdict whose clearance exceeds [`SIGHT_SLACK`] `delta`
-//! cannot have changed and is kept; the others are marched again. The exchange is then the
-//! same, bit for bit, as one built afresh.
+//! A blocked pair's march ends at its first blocking sample. Every exchange marches all its
+//! facing pairs afresh: up to stop 54 the solver's rounds kept each pair's verdict for the next
+//! round's exchange (with the clearance that bounded how far the mesh could move before it
+//! changed), but after their over-relaxed step the meshes moved too far for most of them and
+//! keeping them cost more than it saved (docs/concave.md, stops 54 and 55).
 //!
 //! ## Cost and memory
 //!
@@ -121,8 +117,7 @@
 //! pairs cost `2 S^2` = 32 evaluations of the edge formula each (4 edge angles each: the
 //! receiver's sub-points run in SIMD lanes with a branch-free `atan`, see `near_weight`),
 //! `O(F NEAR^2)` of them. It is
-//! computed once per geometry; with the verdicts of a nearby mesh only the pairs near its
-//! change are marched (the facing tests and the weights are computed again: `O(F^2)`).
+//! computed once per geometry.
 //!
 //! The pairs are stored sparsely, by receiver (compressed rows): a `u32` source facet and the
 //! weight vector as 3 `f32`, [`BYTES_PER_PAIR`] = 16 bytes per directed pair (each facing, visible
@@ -132,9 +127,7 @@
 //! worst case at 64² facets is `F (F - 1)` = 16.8 M directed pairs (268 MB); the count is capped
 //! (`max_pairs`, default [`DEFAULT_MAX_PAIRS`] = 4 M directed pairs, 67 MB) and building fails
 //! with an error that names the cap beyond it (use a coarser grid, or raise the cap). The
-//! verdicts kept for the next exchange (`Sightlines`) take 12 bytes per facing unordered pair
-//! (visible or not) and the mesh's vertices; beyond [`MAX_SIGHTLINES`] pairs (48 MB) none are
-//! kept. The march reads the cells' corner depths from one array (32 bytes per pixel).
+//! march reads the cells' corner depths from one array (32 bytes per pixel).
 //!
 //! The pass over the lights ([`Exchange::irradiance`]) costs `O(P k C)` multiply-adds for `P`
 //! directed pairs, `k` lights and `C` channels, parallel over the receivers; it holds the
@@ -194,8 +187,7 @@ pub struct Exchange {
     weights: Vec<[f32; 3]>,
     /// Per pixel: centre, unit normal and area (NaN outside the mask or the finite vertices).
     facets: Vec<([f64; 3], [f64; 3], f64)>,
-    /// Facing pairs (unordered) whose visibility was marched while it was built (the others
-    /// kept their verdict, see [`Exchange::build`]).
+    /// Facing pairs (unordered) whose visibility was marched while it was built.
     marched: usize,
 }
 
@@ -213,30 +205,6 @@ impl Exchange {
         mask: Option<&[bool]>,
         max_pairs: Option<usize>,
     ) -> Result<Exchange> {
-        Ok(Self::build(
-            camera, height, width, vertices, mask, max_pairs, None, false,
-        )?
-        .0)
-    }
-
-    /// [`Exchange::new`], with the visibility verdicts of an exchange of the same grid and mask
-    /// on a nearby mesh (`previous`, see [`Sightlines`]): a facing pair keeps its verdict there
-    /// when its clearance exceeds [`SIGHT_SLACK`] times the largest vertex displacement between
-    /// the two meshes, and is marched otherwise. Returns the exchange and its own verdicts
-    /// (None beyond [`MAX_SIGHTLINES`] marched pairs, or without `keep`: when no exchange will
-    /// take them, a blocked pair's march then ends at its first blocking sample, since only
-    /// the sign of its clearance is used: the same exchange).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn build(
-        camera: &Camera,
-        height: usize,
-        width: usize,
-        vertices: &[[f64; 3]],
-        mask: Option<&[bool]>,
-        max_pairs: Option<usize>,
-        previous: Option<&Sightlines>,
-        keep: bool,
-    ) -> Result<(Exchange, Option<Sightlines>)> {
         let plane = height * width;
         ensure_usable(plane > 0, || "the mesh has no facets".to_string())?;
         ensure_shape(
@@ -287,29 +255,22 @@ impl Exchange {
         )?;
 
         let depths = CellDepths::new(&march)?;
-        // The verdicts of `previous` are valid here up to its slack (None: not the same grid).
-        let slack = previous.and_then(|p| p.slack(height, width, vertices, mask));
-        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji), and the verdicts of the
-        // facing pairs (j, samples, clearance).
+        // The unordered pairs (i < j) per row i: (j, w_ij, w_ji).
         let (count, marched) = (AtomicUsize::new(0), AtomicUsize::new(0));
         let over = AtomicBool::new(false);
         type Row = Vec<(u32, [f32; 3], [f32; 3])>;
-        let rows: Vec<(Row, Vec<Sight>)> = (0..plane)
+        let rows: Vec<Row> = (0..plane)
             .into_par_iter()
             .with_max_len(1)
             .map(|i| {
-                let (mut row, mut sights) = (Row::new(), Vec::new());
+                let mut row = Row::new();
                 if over.load(Ordering::Relaxed) {
-                    return (row, sights);
+                    return row;
                 }
                 let Some(fi) = geometry[i] else {
-                    return (row, sights);
+                    return row;
                 };
-                let before: &[Sight] = match (previous, &slack) {
-                    (Some(p), Some(_)) => &p.rows[i],
-                    _ => &[],
-                };
-                let mut cursor = 0;
+                let mut facing = 0;
                 for (j, fj) in geometry.iter().enumerate().skip(i + 1) {
                     let Some(fj) = fj else { continue };
                     let d = sub(fj.centre, fi.centre);
@@ -319,34 +280,9 @@ impl Exchange {
                     }
                     let tol = 1e-3 * fi.area.max(fj.area).sqrt();
                     let ceiling = march_length(projected[i], projected[j]);
-                    let samples = samples_of(ceiling);
-                    while cursor < before.len() && (before[cursor].source as usize) < j {
-                        cursor += 1;
-                    }
-                    let kept = before.get(cursor).and_then(|b| {
-                        let slack = SIGHT_SLACK * slack.as_ref()?.between(i, j);
-                        let sure = b.source as usize == j
-                            && b.samples == samples
-                            && f64::from(b.clearance.abs()) > slack;
-                        // What is left of its clearance on this mesh (a lower bound).
-                        sure.then(|| b.clearance.signum() * (b.clearance.abs() - slack as f32))
-                    });
-                    let clearance = match kept {
-                        Some(c) => c,
-                        None => {
-                            marched.fetch_add(1, Ordering::Relaxed);
-                            let (a, b) = ((i, &fi, projected[i]), (j, fj, projected[j]));
-                            clearance(&march, &depths, a, b, ceiling, tol, !keep) as f32
-                        }
-                    };
-                    if keep {
-                        sights.push(Sight {
-                            source: j as u32,
-                            samples,
-                            clearance,
-                        });
-                    }
-                    if clearance < 0.0 {
+                    facing += 1;
+                    let (a, b) = ((i, &fi, projected[i]), (j, fj, projected[j]));
+                    if clearance(&march, &depths, a, b, ceiling, tol) < 0.0 {
                         continue;
                     }
                     let Some((wij, wji)) = pair_weights(&fi, fj) else {
@@ -354,21 +290,13 @@ impl Exchange {
                     };
                     row.push((j as u32, wij.map(|x| x as f32), wji.map(|x| x as f32)));
                 }
+                marched.fetch_add(facing, Ordering::Relaxed);
                 if count.fetch_add(2 * row.len(), Ordering::Relaxed) + 2 * row.len() > max_pairs {
                     over.store(true, Ordering::Relaxed);
                 }
-                (row, sights)
+                row
             })
             .collect();
-        let (rows, sights): (Vec<Row>, Vec<Vec<Sight>>) = rows.into_iter().unzip();
-        let facing: usize = sights.iter().map(Vec::len).sum();
-        let sightlines = (keep && facing <= MAX_SIGHTLINES).then(|| Sightlines {
-            height,
-            width,
-            vertices: vertices.to_vec(),
-            mask: mask.map(<[bool]>::to_vec),
-            rows: sights,
-        });
         let total = count.load(Ordering::Relaxed);
         if over.load(Ordering::Relaxed) {
             return Err(Error::Unusable(format!(
@@ -418,7 +346,7 @@ impl Exchange {
                 None => ([f64::NAN; 3], [f64::NAN; 3], f64::NAN),
             })
             .collect();
-        let exchange = Exchange {
+        Ok(Exchange {
             height,
             width,
             offsets,
@@ -426,8 +354,7 @@ impl Exchange {
             weights,
             facets,
             marched: marched.load(Ordering::Relaxed),
-        };
-        Ok((exchange, sightlines))
+        })
     }
 
     /// Image height H (facet rows).
@@ -440,7 +367,7 @@ impl Exchange {
         self.width
     }
 
-    /// Facing pairs (unordered) whose visibility was marched while it was built.
+    /// Facing pairs (unordered) whose visibility was marched while it was built (all of them).
     pub fn marched(&self) -> usize {
         self.marched
     }
@@ -543,17 +470,6 @@ impl Exchange {
     }
 }
 
-/// The samples of the visibility march between two facets whose centres project `ceiling =
-/// ceil(2 |mb - ma|)` pixels apart ([`march_length`]): `ceiling` (at least 1; `u32::MAX` when
-/// not finite or that large).
-fn samples_of(ceiling: f64) -> u32 {
-    let total = ceiling.max(1.0);
-    match total < f64::from(u32::MAX) {
-        true => total as u32,
-        false => u32::MAX,
-    }
-}
-
 /// `ceil(2 |mb - ma|)` with the length `hypot(dx, dy)` (NaN or infinite with it), where the
 /// visibility march counts its samples: from `sqrt(dx² + dy²)` when twice that is more than 1
 /// and further than `1e-9` (relative) from an integer, else from `hypot`. The two lengths
@@ -577,9 +493,9 @@ fn march_length(ma: [f64; 2], mb: [f64; 2]) -> f64 {
 /// Whether the segment between the centres of facets `a` and `b` (pixel, facet, projected
 /// centre) stays in front of the surface (see the module documentation), as its *clearance*:
 /// blocked, the amount (negative) by which the surface passes in front of the segment's
-/// hiding depth at the first sample that blocks it; visible, the smallest margin (>= 0) of
-/// the surface behind the segment's hiding depth over the samples tested (+inf when none is),
-/// `min_s z_surface(s) - hiding_depth(z(s), tol)`.
+/// hiding depth at the first sample that blocks it, where the march ends; visible, the
+/// smallest margin (>= 0) of the surface behind the segment over the samples tested (+inf
+/// when none is), `min_s z_surface(s) - hiding_depth(z(s), tol)`. (Only its sign is used.)
 fn clearance(
     march: &March<'_>,
     depths: &CellDepths,
@@ -587,7 +503,6 @@ fn clearance(
     (pb, fb, mb): (usize, &Facet, [f64; 2]),
     ceiling: f64,
     tol: f64,
-    first_block: bool,
 ) -> f64 {
     let (c, e) = (fa.centre, fb.centre);
     if !ceiling.is_finite() {
@@ -607,13 +522,12 @@ fn clearance(
             perspective,
             total,
             tol,
-            first_block,
         };
         return clearance_dispatch(depths, &segment);
     }
     let steps = total as usize;
     let d = sub(e, c);
-    let mut verdict = Verdict::new(first_block);
+    let mut verdict = Verdict::new();
     for i in 1..steps {
         let s = i as f64 / total;
         // With distortion: the segment's point, projected.
@@ -627,8 +541,7 @@ fn clearance(
 }
 
 /// An undistorted segment of [`clearance`]: its two cells, projected centres and depths, the
-/// camera's kind, its sample count and tolerance, and whether its march ends at its first
-/// blocking sample ([`Verdict::first_block`]).
+/// camera's kind, its sample count and tolerance.
 struct Segment {
     ends: (usize, usize),
     image: [[f64; 2]; 2],
@@ -636,7 +549,6 @@ struct Segment {
     perspective: bool,
     total: f64,
     tol: f64,
-    first_block: bool,
 }
 
 /// Samples of [`clearance_lanes`] computed together.
@@ -662,10 +574,9 @@ fn clearance_lanes(depths: &CellDepths, segment: &Segment) -> f64 {
         perspective,
         total,
         tol,
-        first_block,
     } = *segment;
     let steps = total as usize;
-    let mut verdict = Verdict::new(first_block);
+    let mut verdict = Verdict::new();
     let mut from = 1;
     while from < steps {
         let s: [f64; MARCH_LANES] = crate::lanes(|t| (from + t) as f64 / total);
@@ -688,27 +599,21 @@ fn clearance_lanes(depths: &CellDepths, segment: &Segment) -> f64 {
 
 /// The state of a march of [`clearance`] along its samples.
 struct Verdict {
-    /// The smallest margin of the surface behind the segment so far.
+    /// The smallest margin of the surface behind the segment so far; blocked, the cut at the
+    /// blocking sample (negative).
     clearance: f64,
-    /// Blocked: the deepest cut so far.
-    blocked: Option<f64>,
-    /// Whether the march ends at its first blocking sample (its clearance then the cut there,
-    /// negative as the deepest cut: the same verdict, not the same clearance).
-    first_block: bool,
 }
 
 impl Verdict {
-    fn new(first_block: bool) -> Verdict {
+    fn new() -> Verdict {
         Verdict {
             clearance: f64::INFINITY,
-            blocked: None,
-            first_block,
         }
     }
 
     /// Tests the sample at the image point `(gx, gy)` (pixel corners at integers) with the
     /// hiding depth `reach`; samples over the end cells `ends` or where the surface is unknown
-    /// are not tested. True when the march is over (past the top of the ridge that blocks it).
+    /// are not tested. True when the march is over: the sample blocks the segment.
     #[inline(always)]
     fn sample(
         &mut self,
@@ -732,24 +637,19 @@ impl Verdict {
         let Some(z_surface) = depths.surface_depth_in(gx, gy, row, col) else {
             return false;
         };
-        if z_surface < reach || self.blocked.is_some() {
-            // Blocked: on while the surface rises further in front of the segment (to the
-            // top of the ridge that blocks it), the deepest cut the clearance.
-            let cut = z_surface - reach;
-            match self.blocked {
-                Some(b) if not_above(b, cut) => return true,
-                // (negative: z_surface < reach, and finite values differ by a nonzero amount)
-                _ => self.blocked = Some(cut.min(-f64::MIN_POSITIVE)),
-            }
-            return self.first_block;
+        if z_surface < reach {
+            // (negative: z_surface < reach, and finite values differ by a nonzero amount)
+            self.clearance = (z_surface - reach).min(-f64::MIN_POSITIVE);
+            return true;
         }
         self.clearance = self.clearance.min(z_surface - reach);
         false
     }
 
-    /// Blocked, the deepest cut; else the smallest margin (+inf when no sample was tested).
+    /// Blocked, the cut at the blocking sample; else the smallest margin (+inf when no sample
+    /// was tested).
     fn clearance(&self) -> f64 {
-        self.blocked.unwrap_or(self.clearance)
+        self.clearance
     }
 }
 
@@ -794,163 +694,6 @@ impl CellDepths {
         let (fx, fy) = (gx - col as f64, gy - row as f64);
         let z = (1.0 - fy) * ((1.0 - fx) * q[0] + fx * q[1]) + fy * ((1.0 - fx) * q[2] + fx * q[3]);
         z.is_finite().then_some(z)
-    }
-}
-
-/// With `Exchange::build`, a facing pair keeps its visibility verdict of the mesh before when
-/// its clearance (`Sightlines`) exceeds `SIGHT_SLACK` times the largest displacement `delta`
-/// of a vertex between the two meshes. A sample of the march moves by about `delta` in depth
-/// (its segment's ends are means of vertices that moved by at most `delta`) and the surface
-/// depth under a fixed image point by at most `delta` (a bilinear mean of vertex depths); the
-/// sample's image point moves by `O(delta / z)` pixels (the projected centres are means of
-/// vertex rays weighted by their depths), which moves the surface depth under it by far less
-/// for the slopes of a height field. A clearance changes by at most about `2 delta`: the
-/// factor 4 leaves as much again.
-pub const SIGHT_SLACK: f64 = 4.0;
-
-/// At most this many marched pairs keep their verdicts for the next exchange (12 bytes each,
-/// 48 MB; beyond, the next exchange marches them all).
-pub const MAX_SIGHTLINES: usize = 1 << 22;
-
-/// The visibility verdict of a facing pair (`i < j`, stored in row `i`).
-#[derive(Debug, Clone, Copy)]
-struct Sight {
-    /// The facet `j`.
-    source: u32,
-    /// The samples of its march ([`samples_of`]): a verdict is kept only for the same.
-    samples: u32,
-    /// Its clearance ([`clearance`]), or a lower bound of it on a later mesh.
-    clearance: f32,
-}
-
-/// The visibility verdicts of an [`Exchange`]'s facing pairs and the mesh they were marched on,
-/// to build the exchange of the same grid on a nearby mesh ([`Exchange::build`]): the light
-/// exchange of a solver's rounds of interreflections is rebuilt on meshes that move less and
-/// less, and the march is most of its cost.
-#[derive(Debug, Clone)]
-pub(crate) struct Sightlines {
-    height: usize,
-    width: usize,
-    vertices: Vec<[f64; 3]>,
-    mask: Option<Vec<bool>>,
-    /// Per facet `i`: its facing pairs `j > i`, by increasing `j`.
-    rows: Vec<Vec<Sight>>,
-}
-
-impl Sightlines {
-    /// The displacements from these verdicts' mesh to `vertices` (see [`Displacement`]), or
-    /// None when the grid, the mask or the set of finite vertices differ.
-    fn slack(
-        &self,
-        height: usize,
-        width: usize,
-        vertices: &[[f64; 3]],
-        mask: Option<&[bool]>,
-    ) -> Option<Displacement> {
-        let same = self.height == height
-            && self.width == width
-            && self.vertices.len() == vertices.len()
-            && self.mask.as_deref() == mask;
-        if !same {
-            return None;
-        }
-        let mut moved = vec![0.0; vertices.len()];
-        for ((a, b), m) in self.vertices.iter().zip(vertices).zip(&mut moved) {
-            let (fa, fb) = (
-                a.iter().all(|x| x.is_finite()),
-                b.iter().all(|x| x.is_finite()),
-            );
-            match (fa, fb) {
-                (true, true) => *m = norm(sub(*a, *b)),
-                (false, false) => {}
-                _ => return None,
-            }
-        }
-        let w = width + 1;
-        let cells: Vec<f64> = (0..height * width)
-            .map(|p| {
-                let v = (p / width) * w + p % width;
-                moved[v]
-                    .max(moved[v + 1])
-                    .max(moved[v + w])
-                    .max(moved[v + w + 1])
-            })
-            .collect();
-        cells
-            .iter()
-            .all(|x| x.is_finite())
-            .then(|| Displacement::new(height, width, cells))
-    }
-}
-
-/// The largest displacement of a vertex of each cell between two meshes, with a 2-D sparse
-/// table for the largest over a rectangle of cells in `O(1)`: the slack of a pair is
-/// [`SIGHT_SLACK`] times the largest over the bounding box of its two cells, which holds the
-/// image of its segment (the projected centres lie in their cells) and so every surface point
-/// its march samples.
-struct Displacement {
-    width: usize,
-    /// Per (a, b): the largest over 2^a x 2^b cells from each (row, col) that has them,
-    /// ((height - 2^a + 1) x (width - 2^b + 1), row-major), at `levels[a * cols_levels + b]`.
-    levels: Vec<Vec<f64>>,
-    cols_levels: usize,
-}
-
-impl Displacement {
-    fn new(height: usize, width: usize, cells: Vec<f64>) -> Displacement {
-        let (la, lb) = (height.ilog2() as usize + 1, width.ilog2() as usize + 1);
-        let mut levels: Vec<Vec<f64>> = Vec::with_capacity(la * lb);
-        for a in 0..la {
-            for b in 0..lb {
-                let (rows, cols) = (height - (1 << a) + 1, width - (1 << b) + 1);
-                let level = if a == 0 && b == 0 {
-                    cells.clone()
-                } else if b > 0 {
-                    // From (a, b - 1): two blocks side by side.
-                    let (prev, pc) = (&levels[a * lb + b - 1], width - (1 << (b - 1)) + 1);
-                    (0..rows * cols)
-                        .map(|t| {
-                            let (r, c) = (t / cols, t % cols);
-                            prev[r * pc + c].max(prev[r * pc + c + (1 << (b - 1))])
-                        })
-                        .collect()
-                } else {
-                    // From (a - 1, 0): two blocks one above the other.
-                    let prev = &levels[(a - 1) * lb];
-                    (0..rows * cols)
-                        .map(|t| {
-                            let (r, c) = (t / cols, t % cols);
-                            prev[r * cols + c].max(prev[(r + (1 << (a - 1))) * cols + c])
-                        })
-                        .collect()
-                };
-                levels.push(level);
-            }
-        }
-        Displacement {
-            width,
-            levels,
-            cols_levels: lb,
-        }
-    }
-
-    /// The largest displacement over the cells of the bounding box of cells `p` and `q`.
-    #[inline]
-    fn between(&self, p: usize, q: usize) -> f64 {
-        let w = self.width;
-        let (r0, r1) = ((p / w).min(q / w), (p / w).max(q / w));
-        let (c0, c1) = ((p % w).min(q % w), (p % w).max(q % w));
-        let (a, b) = (
-            (r1 - r0 + 1).ilog2() as usize,
-            (c1 - c0 + 1).ilog2() as usize,
-        );
-        let level = &self.levels[a * self.cols_levels + b];
-        let cols = w - (1 << b) + 1;
-        let (r2, c2) = (r1 + 1 - (1 << a), c1 + 1 - (1 << b));
-        level[r0 * cols + c0]
-            .max(level[r0 * cols + c2])
-            .max(level[r2 * cols + c0])
-            .max(level[r2 * cols + c2])
     }
 }
 
@@ -1215,7 +958,7 @@ pub const FIELD_SIDE_SMALL: usize = 32;
 /// quarter of the facets, about 1/16 of the pairs to march): the converged surface without
 /// indirect light is far from the rounds' fixed point (on the benchmark's sheet the first
 /// round moves the depths by 1.8, the fourth by 0.2), so its field need only be about right.
-/// The second round's exchange is built afresh (the first's verdicts are of another grid).
+/// The second round gathers on the rounds' own grid afresh (not at the first's factor).
 /// Measured on the benchmark's GI renders (docs/concave.md, stop 47): the mean normal errors
 /// moved by -0.01 to +0.02° (all under 1°), the sheet's option about 10 % less processor time.
 pub const FIRST_ROUND_COARSER: usize = 2;
@@ -1256,9 +999,6 @@ pub struct IndirectField {
     /// The coarse mesh continued past the image border (see [`IndirectField::with_unlit`],
     /// also for a finer level's field, [`IndirectField::finer`]); None without a margin.
     margin: Option<MarginMesh>,
-    /// The visibility verdicts of its exchange, for the field of the next round
-    /// ([`IndirectField::of_mesh`]'s `previous`).
-    sightlines: Option<Sightlines>,
 }
 
 impl crate::local::IndirectLight for IndirectField {
@@ -1294,11 +1034,9 @@ impl IndirectField {
     /// fine grid's), from the observations `obs` (the fine stack: the observed images are the
     /// emitters; non-finite values emit nothing). The grid is binned by the smallest power of
     /// two that brings both sides to at most [`FIELD_SIDE_SMALL`] to [`FIELD_SIDE`] facets (see
-    /// [`FIELD_SIDE_SMALL`]), at least the factor of `previous` (the field of the same solver
-    /// the round before, so that a grid over the cap is built once), or further while the
-    /// exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]). The exchange
-    /// keeps the visibility verdicts of `previous` that its mesh cannot have changed
-    /// ([`Exchange::build`]; the same pairs and weights as a fresh exchange).
+    /// [`FIELD_SIDE_SMALL`]), at least `min_factor` (the factor of the field of the same
+    /// solver the round before, so that a grid over the cap is built once), or further while
+    /// the exchange has more than `max_pairs` pairs (None: [`DEFAULT_MAX_PAIRS`]).
     ///
     /// A coarse vertex is the fine vertex it stands on when that is active, else the mean depth
     /// of the active fine vertices within half a bin of it, on its own ray; a coarse facet takes
@@ -1318,7 +1056,6 @@ impl IndirectField {
     /// grid's side limit, see [`FIELD_SIDE_SMALL`]; 2: the first round of `Solver::interreflect`,
     /// see [`FIRST_ROUND_COARSER`]).
     #[allow(clippy::too_many_arguments)]
-    #[cfg_attr(not(test), allow(dead_code))]
     pub(crate) fn of_mesh(
         camera: &Camera,
         grid: &crate::grid::Grid,
@@ -1326,33 +1063,10 @@ impl IndirectField {
         u: &[f64],
         obs: &crate::local::Observations<'_>,
         lights: &[crate::Light],
-        previous: Option<IndirectField>,
+        min_factor: usize,
         max_pairs: Option<usize>,
         coarser: usize,
     ) -> Result<IndirectField> {
-        Self::of_mesh_keeping(
-            camera, grid, geometry, u, obs, lights, previous, max_pairs, coarser, true,
-        )
-    }
-
-    /// [`IndirectField::of_mesh`], keeping the exchange's visibility verdicts for the next
-    /// field only with `keep` (see [`Exchange::build`]; without, the same field, made faster,
-    /// with no verdicts for the next).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn of_mesh_keeping(
-        camera: &Camera,
-        grid: &crate::grid::Grid,
-        geometry: &crate::geometry::Geometry,
-        u: &[f64],
-        obs: &crate::local::Observations<'_>,
-        lights: &[crate::Light],
-        previous: Option<IndirectField>,
-        max_pairs: Option<usize>,
-        coarser: usize,
-        keep: bool,
-    ) -> Result<IndirectField> {
-        // (the rest of the field before is dropped here)
-        let (min_factor, mut sightlines) = previous.map_or((1, None), |f| (f.factor, f.sightlines));
         let (h, w) = (grid.height, grid.width);
         // Fine vertex depths ((H+1) x (W+1), NaN where inactive) and the fine mask.
         let mut depth = crate::memory::try_vec((h + 1) * (w + 1), f64::NAN, "the vertex depths")?;
@@ -1367,10 +1081,7 @@ impl IndirectField {
             coarse = crate::pyramid::coarser_camera(&coarse);
         }
         loop {
-            let before = sightlines.take();
-            match Self::at_factor(
-                &coarse, factor, grid, &depth, obs, lights, max_pairs, before, keep,
-            ) {
+            match Self::at_factor(&coarse, factor, grid, &depth, obs, lights, max_pairs) {
                 Err(Error::Unusable(m))
                     if m.contains("max_pairs")
                         && h.div_ceil(factor) > 4
@@ -1384,9 +1095,7 @@ impl IndirectField {
         }
     }
 
-    /// [`IndirectField::of_mesh`] at one binning `factor` (`coarse`: the camera of that grid),
-    /// with the verdicts of the exchange before (used when of the same grid).
-    #[allow(clippy::too_many_arguments)]
+    /// [`IndirectField::of_mesh`] at one binning `factor` (`coarse`: the camera of that grid).
     fn at_factor(
         coarse: &Camera,
         factor: usize,
@@ -1395,8 +1104,6 @@ impl IndirectField {
         obs: &crate::local::Observations<'_>,
         lights: &[crate::Light],
         max_pairs: Option<usize>,
-        previous: Option<Sightlines>,
-        keep: bool,
     ) -> Result<IndirectField> {
         let (h, w) = (grid.height, grid.width);
         let (hc, wc) = (h.div_ceil(factor), w.div_ceil(factor));
@@ -1512,17 +1219,7 @@ impl IndirectField {
             }),
             "the coarse vertices of the light exchange",
         )?;
-        let (exchange, sightlines) = Exchange::build(
-            &camera,
-            he,
-            we,
-            &vertices,
-            Some(&mask_e),
-            max_pairs,
-            previous.as_ref(),
-            keep,
-        )?;
-        drop(previous);
+        let exchange = Exchange::new(&camera, he, we, &vertices, Some(&mask_e), max_pairs)?;
         // The emitters, (k, He, We, C): the binned observations in the image, the model in the
         // margin (NaN, emitting nothing, until it is set).
         let mut emit = crate::memory::try_vec(extended * per, f32::NAN, "the emitted light")?;
@@ -1599,7 +1296,6 @@ impl IndirectField {
             hidden: Vec::new(),
             words: 0,
             margin,
-            sightlines,
         })
     }
 
@@ -1761,12 +1457,6 @@ impl IndirectField {
         Ok(self)
     }
 
-    /// Drops the visibility verdicts kept for the next field (when there will be none; the
-    /// hidden lights stay for [`IndirectField::finer`]).
-    pub(crate) fn drop_sightlines(&mut self) {
-        self.sightlines = None;
-    }
-
     /// The field for the next finer level of a pyramid (the grid `grid`, about twice as many
     /// pixels a side as the field's level: `ceil(H / 2) = h` rows and columns, see
     /// [`crate::pyramid::levels_for`]) with the mesh `u`: the same coarse vectors looked up with
@@ -1774,12 +1464,7 @@ impl IndirectField {
     /// pixels, is at `(r + 1/2) / (2 f) - 1/2` cells either way: the bilinear interpolation of
     /// the same field at finer points), and the lights behind each facet of
     /// `u` marked again ([`IndirectField::with_unlit`]), with the lights that the margin hid
-    /// from the coarser pixel under each fine one kept hidden. The visibility verdicts of its
-    /// exchange stay (when it had them): the coarse grid is the same cells (its vertices on
-    /// the same rays), so an exchange of the finer level's surface on that grid marches only
-    /// the pairs whose verdicts that surface may have changed ([`Exchange::build`]: the same
-    /// pairs and weights as a fresh exchange). (The solver drops them after its rounds: since
-    /// stop 47 the full resolution does not gather again, see [`crate::solver::coarse_to_fine`].)
+    /// from the coarser pixel under each fine one kept hidden.
     pub(crate) fn finer(
         mut self,
         grid: &crate::grid::Grid,
@@ -2474,7 +2159,7 @@ mod tests {
         }
         let total = (2.0 * length).ceil().max(1.0);
         let d = sub(e, c);
-        let mut verdict = Verdict::new(false);
+        let mut verdict = Verdict::new();
         for i in 1..total as usize {
             let s = i as f64 / total;
             let z = match march.camera.is_perspective() {
@@ -2540,7 +2225,7 @@ mod tests {
                     let a = (i, fi, camera.project(fi.centre));
                     let b = (j, fj, camera.project(fj.centre));
                     let ceiling = march_length(a.2, b.2);
-                    let lanes = clearance(&march, &cells, a, b, ceiling, tol, false);
+                    let lanes = clearance(&march, &cells, a, b, ceiling, tol);
                     let one = clearance_one_by_one(&march, &cells, a, b, tol);
                     assert_eq!(lanes.to_bits(), one.to_bits(), "pair {i}, {j}");
                     match lanes < 0.0 {
@@ -2642,7 +2327,7 @@ mod tests {
                     &u,
                     &obs,
                     &[],
-                    previous,
+                    previous.map_or(1, |f| f.factor()),
                     None,
                     1,
                 )
@@ -2677,18 +2362,8 @@ mod tests {
         let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
         let (camera, grid, geometry, u) = setup(128, 0.5);
         let of = |coarser: usize| {
-            IndirectField::of_mesh(
-                &camera,
-                &grid,
-                &geometry,
-                &u,
-                &obs,
-                &[],
-                None,
-                None,
-                coarser,
-            )
-            .unwrap()
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None, coarser)
+                .unwrap()
         };
         let (rounds, first) = (of(1), of(FIRST_ROUND_COARSER));
         assert_eq!((rounds.factor(), first.factor()), (4, 8));
@@ -2705,18 +2380,9 @@ mod tests {
         let small = vec![1.0f32; 2 * 64 * 64];
         let small_obs = crate::local::Observations::from_stack(&small, 2, 64 * 64, 1);
         let (camera, grid, geometry, u) = setup(64, 1.0);
-        let own = IndirectField::of_mesh(
-            &camera,
-            &grid,
-            &geometry,
-            &u,
-            &small_obs,
-            &[],
-            None,
-            None,
-            2,
-        )
-        .unwrap();
+        let own =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &small_obs, &[], 1, None, 2)
+                .unwrap();
         assert_eq!((own.factor(), own.height, own.width), (4, 16, 16));
         assert_eq!(own.valid, first.valid);
         let bits = |f: &IndirectField| -> Vec<u32> {
@@ -2724,68 +2390,6 @@ mod tests {
         };
         assert_eq!(bits(&own), bits(&first));
         assert!(first.vectors.iter().any(|v| v[0] != 0.0));
-    }
-
-    /// A gathering on a finer level after rounds on a coarser one (the full resolution's last
-    /// gathering up to stop 46): the field carried by [`IndirectField::finer`] keeps the
-    /// rounds' visibility verdicts, and the exchange built with them on the finer level's
-    /// surface, moved from the coarse one, is the fresh exchange of that surface, bit for bit.
-    /// A V-groove at 64² (32² facets of 2 pixels), carried to 128² (4 pixels a facet), gathered
-    /// there on grooves 0.1 to 2 pixels deeper (walls of 45 degrees and a little steeper).
-    #[test]
-    fn the_verdicts_carried_to_a_finer_level_give_its_fresh_exchange() {
-        let setup = |n: usize, pixel: f64, deeper: f64| {
-            profile_mesh(n, pixel, |x| {
-                100.0 + (32.0 + deeper) * (1.0 - (x - 32.0).abs() / 32.0)
-            })
-        };
-        let images = vec![1.0f32; 2 * 128 * 128];
-        let obs = crate::local::Observations::from_stack(&images, 2, 128 * 128, 1);
-        let coarse_images = vec![1.0f32; 2 * 64 * 64];
-        let coarse_obs = crate::local::Observations::from_stack(&coarse_images, 2, 64 * 64, 1);
-        let (camera, grid, geometry, u) = setup(64, 1.0, 0.0);
-        let coarse = IndirectField::of_mesh(
-            &camera,
-            &grid,
-            &geometry,
-            &u,
-            &coarse_obs,
-            &[],
-            None,
-            None,
-            1,
-        )
-        .unwrap();
-        assert!(coarse.sightlines.is_some());
-        for deeper in [0.1, 0.5, 2.0] {
-            let (camera, grid, geometry, u) = setup(128, 0.5, deeper);
-            let carried = coarse.clone().finer(&grid, &geometry, &u, &[]).unwrap();
-            assert!(carried.sightlines.is_some(), "the verdicts go on");
-            let kept = IndirectField::of_mesh(
-                &camera,
-                &grid,
-                &geometry,
-                &u,
-                &obs,
-                &[],
-                Some(carried),
-                None,
-                1,
-            )
-            .unwrap();
-            let fresh =
-                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
-                    .unwrap();
-            assert_eq!((kept.factor(), fresh.factor()), (4, 4));
-            assert_eq!(kept.pairs(), fresh.pairs(), "{deeper}");
-            let mut lit = 0;
-            for p in 0..128 * 128 {
-                let (a, b) = (kept.at(p, 128), fresh.at(p, 128));
-                assert_eq!(a, b, "pixel {p}, {deeper} deeper");
-                lit += usize::from(a[0][0] != 0.0);
-            }
-            assert!(lit > 128 * 100, "{lit}");
-        }
     }
 
     /// The solver's field of a V-groove, 64² pixels binned 2 x 2 (32² facets), every facet lit
@@ -2801,8 +2405,8 @@ mod tests {
         let u = grid.gather_vertices(&depth).unwrap();
         let images = vec![1.0f32; 2 * n * n];
         let obs = crate::local::Observations::from_stack(&images, 2, n * n, 1);
-        let field = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
-            .unwrap();
+        let field =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None, 1).unwrap();
         assert_eq!(field.factor(), 2);
         let m = n / 2;
         let coarse_camera = crate::pyramid::coarser_camera(&camera);
@@ -3237,10 +2841,10 @@ mod tests {
         let images = vec![0.3f32; n * n];
         let obs = crate::local::Observations::from_stack(&images, 1, n * n, 1);
         let lights = [crate::Light::point([32.0, 32.0, 0.0])];
-        let plain = IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], None, None, 1)
-            .unwrap();
+        let plain =
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &[], 1, None, 1).unwrap();
         let field =
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, 1, None, 1)
                 .unwrap();
         assert!(field.pairs() > plain.pairs());
         let energy = |f: &IndirectField, p: usize| norm(f.at(p, n)[0]);
@@ -3300,109 +2904,6 @@ mod tests {
                 assert!(pair(&x, high_l, high_r), "wall {wall} {pinhole_camera}");
             }
         }
-    }
-
-    /// The visibility verdicts of an exchange carried to a nearby mesh ([`Exchange::build`]):
-    /// the same pairs and weights, bit for bit, as a fresh exchange of that mesh, on a bowl
-    /// (every pair visible), a corrugation (most facing pairs blocked by a ridge) and a groove
-    /// whose wall rises between the two meshes (the verdicts it changes are marched again);
-    /// only the pairs near the change are marched when the mesh moves a little.
-    #[test]
-    fn verdicts_carried_to_a_nearby_mesh_give_the_fresh_exchange() {
-        let same = |a: &Exchange, b: &Exchange| {
-            a.offsets == b.offsets
-                && a.sources == b.sources
-                && a.weights.iter().flatten().map(|x| x.to_bits()).eq(b
-                    .weights
-                    .iter()
-                    .flatten()
-                    .map(|x| x.to_bits()))
-        };
-        let n = 32;
-        let (bowl_camera, bowl, bowl_mask) = benchmark_bowl(n);
-        let ridges = |amplitude: f64| {
-            depths(n, move |r, c| {
-                200.0 + amplitude * (0.9 * c + 0.3 * r).sin() + 0.01 * (0.37 * r * c).cos()
-            })
-        };
-        let m = (n / 2) as f64;
-        let wall = |height: f64| {
-            depths(n, move |_, c| {
-                let raised = if (c - m).abs() <= 1.0 { height } else { 0.0 };
-                100.0 + (m - (c - m).abs()) - raised
-            })
-        };
-        let ortho_vertices = |z: Vec<f64>| crate::geometry::vertices(&ortho(), n, n, &z).unwrap();
-        // (camera, mask, mesh, nearby mesh, whether few pairs are marched on the nearby one)
-        type Case = (
-            Camera,
-            Option<Vec<bool>>,
-            Vec<[f64; 3]>,
-            Vec<[f64; 3]>,
-            bool,
-        );
-        let cases: Vec<Case> = vec![
-            (
-                bowl_camera,
-                Some(bowl_mask),
-                bowl.clone(),
-                bowl.iter()
-                    .enumerate()
-                    .map(|(v, x)| x.map(|c| c * (1.0 + 1e-4 * ((v % 7) as f64 - 3.0))))
-                    .collect(),
-                true,
-            ),
-            (
-                ortho(),
-                None,
-                ortho_vertices(ridges(3.0)),
-                ortho_vertices(ridges(3.02)),
-                true,
-            ),
-            (
-                ortho(),
-                None,
-                ortho_vertices(wall(0.0)),
-                ortho_vertices(wall(12.0)),
-                false,
-            ),
-        ];
-        for (case, (camera, mask, before, after, few)) in cases.into_iter().enumerate() {
-            let mask = mask.as_deref();
-            let (first, lines) =
-                Exchange::build(&camera, n, n, &before, mask, None, None, true).unwrap();
-            let lines = lines.expect("verdicts kept");
-            let fresh = Exchange::new(&camera, n, n, &after, mask, None).unwrap();
-            let (carried, _) =
-                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines), true).unwrap();
-            assert!(same(&carried, &fresh), "case {case}");
-            assert!(first.marched() > 1000, "case {case}: {}", first.marched());
-            if few {
-                assert!(
-                    carried.marched() * 5 < fresh.marched(),
-                    "case {case}: {} of {} marched",
-                    carried.marched(),
-                    fresh.marched()
-                );
-            }
-            // The same mesh keeps every verdict.
-            let (again, _) =
-                Exchange::build(&camera, n, n, &before, mask, None, Some(&lines), true).unwrap();
-            assert!(same(&again, &first) && again.marched() == 0, "case {case}");
-            // Without verdicts kept (the blocked marches end at their first blocking sample):
-            // the same exchanges, fresh and with the verdicts before, and no verdicts.
-            let (lean, none) =
-                Exchange::build(&camera, n, n, &before, mask, None, None, false).unwrap();
-            assert!(same(&lean, &first) && none.is_none(), "case {case}");
-            assert_eq!(lean.marched(), first.marched(), "case {case}");
-            let (lean, none) =
-                Exchange::build(&camera, n, n, &after, mask, None, Some(&lines), false).unwrap();
-            assert!(same(&lean, &carried) && none.is_none(), "case {case}");
-            assert_eq!(lean.marched(), carried.marched(), "case {case}");
-        }
-        // The wall: the pair across it is blocked on the nearby mesh only.
-        let x = Exchange::new(&ortho(), n, n, &ortho_vertices(wall(12.0)), None, None).unwrap();
-        assert!(!x.pairs_of(16 * n + 10).any(|(j, _)| j == 16 * n + 21));
     }
 
     /// Reciprocity `A_i F_ij = A_j F_ji` (with `F_ij = n_i . w_ij`) for every pair, far and
@@ -3532,7 +3033,7 @@ mod tests {
             .map(|&[x, y]| crate::Light::point([x, y, 0.0]))
             .collect();
         let field = |kept: Option<Vec<u64>>| {
-            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
+            IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, 1, None, 1)
                 .unwrap()
                 .with_unlit(&grid, &geometry, &u, &lights, kept)
                 .unwrap()
@@ -3596,7 +3097,7 @@ mod tests {
             let images = vec![0.3f32; lights.len() * n * n];
             let obs = crate::local::Observations::from_stack(&images, lights.len(), n * n, 1);
             let field =
-                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, None, None, 1)
+                IndirectField::of_mesh(&camera, &grid, &geometry, &u, &obs, &lights, 1, None, 1)
                     .unwrap();
             let margin = field.margin.clone().expect("a margin");
             let field = field

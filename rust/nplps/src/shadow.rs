@@ -841,13 +841,15 @@ fn long_border(height: usize, width: usize, mask: &[bool]) -> bool {
 }
 
 /// The pixels around a pixel whose verdicts the solver's `march_guided` compares: those
-/// within this many rows and columns of it (its 7 x 7 neighbourhood). Measured on the GI
+/// within this many rows and columns of it (its 5 x 5 neighbourhood). Measured on the GI
 /// renders at 256² with the coarser level's mask as the prior (docs/concave.md, stop 52; mean
 /// normal errors against the lattice's march): radius 1 moved the bowls by +0.009 and
 /// +0.014° and the blocks by +0.014° (the shadows' edges moved by more than a pixel between
 /// the two meshes), 2 by at most +0.003°, 3 by at most +0.001°; the sheet marched 22 600,
-/// 41 700 and 57 600 times against the lattice's 261 000.
-pub const GUIDE_RADIUS: usize = 3;
+/// 41 700 and 57 600 times against the lattice's 261 000. Radius 3 up to stop 54; 2 since
+/// stop 55 (with the coarse level's last run also guided, see `Solver::interreflect_with`:
+/// the GI renders within +0.003° of radius 3, the sheet's CPU with the option about -6 %).
+pub const GUIDE_RADIUS: usize = 2;
 
 /// [`mesh_shadows`] (every facet) of the mesh `u` guided by `prior`, a mask of the same image
 /// from a mesh near it (the coarser level's mask, upsampled, that the level started with; see

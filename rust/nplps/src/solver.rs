@@ -330,6 +330,9 @@ pub(crate) struct RoundSchedule {
     pub relax: f64,
     /// The run after the rounds iterates at most this many times.
     pub last: usize,
+    /// Whether the run after the rounds marches its cast shadows guided by the rounds' mask
+    /// when a round marched it (see [`Solver::interreflect_with`]).
+    pub guide_last: bool,
 }
 
 /// The rounds at the full resolution (a problem without a pyramid level of
@@ -341,6 +344,7 @@ pub(crate) const ROUNDS_AT_FULL_RESOLUTION: RoundSchedule = RoundSchedule {
     iterations: ROUND_ITERATIONS,
     relax: 1.0,
     last: usize::MAX,
+    guide_last: false,
 };
 
 /// The rounds on a pyramid's coarse level, whose field the finer levels then iterate with to
@@ -365,6 +369,7 @@ pub(crate) const ROUNDS_BEFORE_FINER: RoundSchedule = RoundSchedule {
     iterations: 1,
     relax: ROUNDS_RELAX,
     last: 2,
+    guide_last: true,
 };
 
 /// The over-relaxation of the depth step of the rounds on a coarse level (see
@@ -793,6 +798,10 @@ pub(crate) struct Solver<'p> {
     /// Whether the next iteration marches whatever [`SHADOWS_AT`] says: after the glossy model
     /// was dropped, whose surface the last masks came from.
     march_next: bool,
+    /// Whether the next march is guided by the mask the solver holds (`shadow::march_guided`,
+    /// [`GUIDE_RADIUS`]): the first march of a coarse level's run after its rounds when a round
+    /// marched that mask (see [`Solver::interreflect_with`]).
+    guide_by_rounds: bool,
     /// The indirect light of the mesh (with [`Options::interreflections`], once the rounds of
     /// [`Solver::interreflect`] begin), added to the lights' rows of the local fits.
     indirect: Option<IndirectField>,
@@ -901,6 +910,7 @@ impl<'p> Solver<'p> {
             shadows_upsampled: false,
             marched_guided: false,
             march_next: false,
+            guide_by_rounds: false,
             indirect: None,
             indirect_carried: false,
             received: None,
@@ -1104,7 +1114,9 @@ impl<'p> Solver<'p> {
     /// under `Auto` without one, a round probes and marches), and the last run marches the
     /// corrected mesh (its first and third iterations); with a field, each march is the refined
     /// one ([`mesh_shadows_refined`]: a lattice of a quarter of the facets, of 1/16 at 1 MP, and
-    /// the facets near a shadow's edge). Returns the rounds'
+    /// the facets near a shadow's edge), except on a coarse level ([`RoundSchedule::guide_last`])
+    /// whose mask a round marched: there the last run's first march is guided by that mask
+    /// ([`GUIDE_RADIUS`], `shadow::mesh_shadows_guided`). Returns the rounds'
     /// history and whether the last run converged (`converged` without rounds). A solver whose
     /// field came from a coarser level's rounds (an image of more than [`ROUNDS_SIDE`] pixels a
     /// side, see [`coarse_to_fine`]) has iterated with it already: no rounds.
@@ -1136,6 +1148,7 @@ impl<'p> Solver<'p> {
         let (iterations, tol) = (self.options.iterations, self.options.tol);
         let limit = INDIRECT_TOL.max(tol) * lateral_size(p);
         let (mut residual, mut moved) = (f64::NAN, f64::NAN);
+        let masked = self.shadows.is_some();
         for round in 0..schedule.rounds {
             let t = Instant::now();
             // Under the glossy model: the fits of the round's start, and the diffuse part of
@@ -1144,34 +1157,29 @@ impl<'p> Solver<'p> {
             let mut previous = self.indirect.take();
             let hidden = previous.as_mut().and_then(IndirectField::take_hidden);
             // The first round on a coarser grid (FIRST_ROUND_COARSER); the second starts the
-            // rounds' own grid afresh (the first's verdicts and factor are of another grid).
-            let coarser = match round {
-                0 => FIRST_ROUND_COARSER,
-                _ => 1,
+            // rounds' own grid afresh (the first's factor is of another grid), the later ones
+            // at least at the factor of the round before. Each round's exchange marches every
+            // facing pair afresh (up to stop 54 the rounds kept the verdicts of the round
+            // before, but after the over-relaxed step the mesh moves too far for most of them:
+            // docs/concave.md, stop 54).
+            let factor = previous.as_ref().map_or(1, IndirectField::factor);
+            let (coarser, min_factor) = match round {
+                0 => (FIRST_ROUND_COARSER, factor),
+                1 => (1, 1),
+                _ => (1, factor),
             };
-            if round == 1 {
-                previous = None;
-            }
-            // No visibility verdicts are kept for the next round's exchange (`keep`, see
-            // [`IndirectField::of_mesh_keeping`]): its mesh moves too far for them (after the
-            // over-relaxed step, the benchmark's GI renders at 256² re-marched 75-93 % of the
-            // facing pairs at their third round), and keeping them cost more than it saved (the
-            // rest of each blocked pair's march past its first block, the verdicts' pushes; the
-            // corrugated sheet with the option 4 % less processor time without: docs/concave.md,
-            // stop 54). The same exchanges either way.
-            let keep = false;
+            drop(previous);
             self.indirect = Some(
-                IndirectField::of_mesh_keeping(
+                IndirectField::of_mesh(
                     &p.rig.camera,
                     &p.grid,
                     &p.geometry,
                     u,
                     glossy.as_ref().map_or(&p.obs, |(emitted, _)| emitted),
                     self.lights.lights(),
-                    previous,
+                    min_factor,
                     None,
                     coarser,
-                    keep,
                 )?
                 .with_unlit(
                     &p.grid,
@@ -1206,13 +1214,15 @@ impl<'p> Solver<'p> {
                 over_relax(&before, u, schedule.relax);
             }
         }
-        // No exchange is built after the rounds (see [`coarse_to_fine`]): their verdicts are
-        // done.
-        if let Some(field) = self.indirect.as_mut() {
-            field.drop_sightlines();
-        }
+        // A mask that a round marched (no mask before the rounds, a probe found cast shadows
+        // during them) was marched on a mesh with the rounds' field, near the last run's: its
+        // march is guided by it (only near its edges and the terminators; a mask the rounds kept
+        // from before them came from a mesh without the field and is marched again in full:
+        // docs/concave.md, stops 52 and 55).
+        self.guide_by_rounds = schedule.guide_last && !masked && self.shadows.is_some();
         let last = iterations.min(schedule.last);
         let (last, converged) = self.iterate(u, gauge, last, tol, progress)?;
+        self.guide_by_rounds = false;
         history.extend(last);
         Ok((history, converged))
     }
@@ -1544,7 +1554,9 @@ impl<'p> Solver<'p> {
         let p = self.problem;
         let stride = self.probe_stride();
         let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
-        let prior = self.shadows.take().filter(|_| guided);
+        // (taken by the first march that comes, guided or not)
+        let by_rounds = std::mem::take(&mut self.guide_by_rounds);
+        let prior = self.shadows.take().filter(|_| guided || by_rounds);
         // The targets are dead here (the next local step writes every facet's): their memory
         // (32 bytes a facet) is given back while the march holds its own (the vertex depths,
         // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
@@ -2386,17 +2398,20 @@ mod round_schedule_tests {
         }
     }
 
-    /// Only a coarse level's rounds change: the full resolution keeps the plain rounds and runs
-    /// after them to the solver's own stop rule.
+    /// Only a coarse level's rounds change: the full resolution keeps the plain rounds, runs
+    /// after them to the solver's own stop rule and marches its last run's cast shadows
+    /// unguided (it gives the result; no finer level's march follows).
     #[test]
     fn the_full_resolution_keeps_the_plain_rounds() {
         let full = ROUNDS_AT_FULL_RESOLUTION;
         assert_eq!(full.iterations, ROUND_ITERATIONS);
         assert_eq!(full.relax, 1.0);
         assert_eq!(full.last, usize::MAX);
+        assert!(!full.guide_last);
         let coarse = ROUNDS_BEFORE_FINER;
         assert!(coarse.relax > 1.0 && coarse.relax < 2.0);
         assert!(coarse.last >= 1 && coarse.iterations >= 1);
+        assert!(coarse.guide_last);
     }
 }
 
@@ -3050,7 +3065,7 @@ mod tests {
                 &self.u,
                 &obs,
                 &[],
-                None,
+                1,
                 None,
                 1,
             )
