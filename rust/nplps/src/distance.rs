@@ -840,10 +840,9 @@ fn fresh_stages(
     sub.start = solver.start;
     let saved = begin_search(&mut sub);
     let found = (|| {
-        // The lobe is estimated by a run at the profile's distance; that run's surface starts
-        // every candidate (see [`Fresh`]).
-        // That run marches the cast shadows of the user's policy, and those of its surface are
-        // every candidate's.
+        // The lobe is estimated by a run at the profile's distance that marches the cast shadows
+        // of the user's policy; its surface and that surface's cast shadows start every
+        // candidate (see [`Fresh`]).
         sub.restore_shadows(saved.1);
         let origin = lobe_run(&mut sub, level, mean(&start.distance), search.inner)?;
         let shadows = Arc::new(sub.shadows_under(&origin, saved.1)?);
