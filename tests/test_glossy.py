@@ -188,7 +188,9 @@ def test_the_distance_search_does_not_hang_on_the_last_bits(seed: int) -> None:
     # candidate, each from the last one's surface and fits): seeds 0-7 ended at -0.46 / -1.88 /
     # -1.46 / +0.06 / -0.39 / +1.56 / -2.77 / -0.50 % (stop 51), seeds 1, 2 and 6 beyond 1 % still
     # at stop 53. Every candidate is now a run of its own (distance.rs, Fresh): seeds 0-7 at
-    # -0.026 / -0.036 / -0.030 / -0.032 / -0.040 / -0.035 / -0.032 / -0.040 %. The seeds of the
+    # -0.026 / -0.036 / -0.030 / -0.032 / -0.040 / -0.035 / -0.032 / -0.040 % (stop 54), -0.043 /
+    # -0.054 / -0.047 / -0.049 / -0.044 / -0.051 / -0.046 / -0.047 % since the candidates start
+    # from the lobe run's surface and cast shadows (stop 55). The seeds of the
     # old misses and the old top-of-the-range one (5), each within 0.5 %.
     data, rig = load("shadows-principled-0.3")
     images, mask, distance = data["images"].astype(np.float32), data["mask"], float(data["distance"])

@@ -14,6 +14,7 @@
 //! With 3 lights the fit is exact at every distance, and directional lights do not depend on
 //! the distance: such rigs are rejected.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
@@ -26,6 +27,7 @@ use crate::problem::Problem;
 use crate::reconstruction::{Control, IterationStats, Reconstruction, SearchProgress};
 use crate::reflectance::Lobe;
 use crate::rig::Light;
+use crate::shadow::ShadowMask;
 use crate::solver::{coarse_to_fine, Solver};
 use crate::vec3::{norm, sub};
 
@@ -166,17 +168,25 @@ struct Evaluator<'s, 'p> {
     best: (f64, f64),
     /// Candidates evaluated afresh under a held lobe (see [`Fresh`]), or warm-started.
     fresh: Option<Fresh>,
+    /// The surface every fresh candidate starts from, gauged at its distance (see [`Fresh`];
+    /// empty otherwise).
+    origin: Vec<f64>,
 }
 
 /// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
 /// ([`begin_search`]) but the continuation of sharp lobes' fits and the user's cast-shadow
-/// policy, as in a run of its own, and `lobe` held, from the starting surface gauged at the candidate, run to the level's
-/// convergence (`options.iterations`, `options.tol`). Its criterion is then a function of the
-/// level, the distance and the lobe alone (see [`fresh_stages`]).
-#[derive(Debug, Clone, Copy)]
+/// policy, as in a run of its own, and `lobe` held, from one surface for all candidates (the
+/// [`Evaluator`]'s `origin`: the run that estimated the lobe at the profile's distance, see
+/// [`fresh_stages`]) gauged at the candidate, run to the level's convergence
+/// (`options.iterations`, `options.tol`). Its criterion is then a function of the level, the
+/// distance and the lobe alone.
+#[derive(Debug, Clone)]
 struct Fresh {
     options: Options,
     lobe: Lobe,
+    /// The cast shadows every candidate starts from (see [`Solver::start_from_shadows`]):
+    /// those of the `origin` surface under the user's policy.
+    shadows: Arc<Option<ShadowMask>>,
 }
 
 impl Evaluator<'_, '_> {
@@ -188,23 +198,25 @@ impl Evaluator<'_, '_> {
         progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
     ) -> Result<Vec<f64>> {
         let problem = self.solver.problem();
-        let (iterations, tol) = match self.fresh {
+        let (iterations, tol) = match &self.fresh {
             Some(fresh) => {
                 let start = self.solver.start;
                 *self.solver = Solver::new(problem, &fresh.options)?;
                 self.solver.start = start;
-                // The search's settings, but the user's cast-shadow policy: with the marches
+                // The search's settings, but the cast shadows of the user's policy: with them
                 // (shadows "auto") the 64² PBR block with 0.5 % noise had its lowest criterion
                 // under the retro lobe near the truth; with none, under the transmitted ones
-                // 0.5-1.5 % long (docs/shiny.md, stop 54).
+                // 0.5-1.5 % long (docs/shiny.md, stop 54). It starts from the origin's.
                 let (_, shadows) = begin_search(self.solver);
                 self.solver.restore_shadows(shadows);
+                self.solver
+                    .start_from_shadows(Option::clone(&fresh.shadows));
                 // A run of its own, as one given the distance and the lobe: with the
                 // continuation of sharp lobes' fits (see `Solver::continuation`).
                 self.solver.continuation = true;
                 self.solver.lobe = Some(fresh.lobe);
                 self.solver.hold_lobe = true;
-                self.u = problem.u0.to_vec("the depths")?;
+                self.u.clone_from(&self.origin);
                 (fresh.options.iterations, fresh.options.tol)
             }
             None => (self.inner, 0.0),
@@ -828,7 +840,13 @@ fn fresh_stages(
     sub.start = solver.start;
     let saved = begin_search(&mut sub);
     let found = (|| {
-        hold_lobe(&mut sub, level, mean(&start.distance), search.inner)?;
+        // The lobe is estimated by a run at the profile's distance that marches the cast shadows
+        // of the user's policy; its surface and that surface's cast shadows start every
+        // candidate (see [`Fresh`]).
+        sub.restore_shadows(saved.1);
+        let origin = lobe_run(&mut sub, level, mean(&start.distance), search.inner)?;
+        let shadows = Arc::new(sub.shadows_under(&origin, saved.1)?);
+        sub.search_shadows();
         let Some(estimated) = sub.lobe else {
             return Ok(None);
         };
@@ -846,11 +864,15 @@ fn fresh_stages(
                 coarser: false,
                 grow: FRESH_GROWTH,
                 vee: true,
-                fresh: Some(Fresh { options, lobe }),
+                fresh: Some(Fresh {
+                    options,
+                    lobe,
+                    shadows: shadows.clone(),
+                }),
             };
             count.planned += planned_candidates(NARROW_SCAN);
             count.lowest = f64::NAN;
-            let u = level.u0.to_vec("the depths")?;
+            let u = try_copy(&origin, "the depths")?;
             match search_window(
                 &mut sub,
                 level,
@@ -885,7 +907,12 @@ fn fresh_stages(
             candidate: count.done,
             candidates: count.planned + 1,
             best: (f64::NAN, f64::NAN),
-            fresh: Some(Fresh { options, lobe }),
+            fresh: Some(Fresh {
+                options,
+                lobe,
+                shadows: shadows.clone(),
+            }),
+            origin,
         };
         ev.eval(&estimate.distance, progress)?;
         count.done = ev.candidate;
@@ -910,7 +937,7 @@ struct Count {
 }
 
 /// The window in which [`search_window`] refines a wide estimate.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct Window {
     /// Candidates of its scan.
     scan: usize,
@@ -974,7 +1001,7 @@ fn search_window(
             &window_search,
             bounds,
             start,
-            (window.vee, window.fresh),
+            (window.vee, window.fresh.clone()),
             count,
             progress,
         )?;
@@ -1072,6 +1099,25 @@ fn hold_lobe(
     Ok(())
 }
 
+/// [`hold_lobe`] with a lobe to estimate (`solver.lobe` unset): the lobe is estimated by a run
+/// from the starting surface at `distance` and held; returns that run's surface.
+fn lobe_run(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    distance: f64,
+    inner: usize,
+) -> Result<Vec<f64>> {
+    let gauge = vec![problem.geometry.unknown(distance); problem.grid.n_regions];
+    let mut u = problem.u0.to_vec("the depths")?;
+    problem.grid.apply_gauge(&mut u, &gauge);
+    if solver.estimates_lobe() && solver.lobe.is_none() {
+        let iterations = inner.max(crate::solver::LOBE_AT[1]);
+        solver.iterate(&mut u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
+        solver.hold_lobe = true;
+    }
+    Ok(u)
+}
+
 /// The outcome of a scan and its refinement.
 enum Searched {
     /// The estimate and the warm state at it.
@@ -1120,13 +1166,17 @@ fn search_refined(
     let mut ev = Evaluator {
         refine,
         solver,
-        u,
         inner: search.inner.max(1),
         curve: vec![Vec::new(); regions],
         candidate: count.done,
         candidates: count.planned,
         best: (f64::NAN, f64::NAN),
+        origin: match fresh {
+            Some(_) => try_copy(&u, "the depths")?,
+            None => Vec::new(),
+        },
         fresh,
+        u,
     };
     let searched = refine_scan(
         &mut ev,
@@ -1782,6 +1832,7 @@ pub(crate) fn check_distance_on(
             candidates: CHECK_FACTORS.len(),
             best: (f64::NAN, f64::NAN),
             fresh: None,
+            origin: Vec::new(),
         };
         let mut quiet = |_: &IterationStats| Control::Continue;
         let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
@@ -2146,9 +2197,19 @@ mod search_state_tests {
         let options = Options {
             levels: 1,
             reflectance: crate::Reflectance::Glossy(None),
+            shadows: crate::shadow::Shadows::On,
             ..Options::default()
         };
         let lobe = Lobe::new(0.3, 1.5);
+        // The candidates start from one surface and its cast shadows (marched: `On`).
+        let origin = problem.u0.to_vec("the depths").unwrap();
+        let shadows = Arc::new(
+            Solver::new(&problem, &options)
+                .unwrap()
+                .shadows_under(&origin, crate::shadow::Shadows::On)
+                .unwrap(),
+        );
+        assert!(shadows.is_some());
         let evaluate = |order: &[f64], fresh: bool| -> Vec<Vec<f64>> {
             let mut solver = Solver::new(&problem, &options).unwrap();
             let _ = begin_search(&mut solver);
@@ -2157,13 +2218,21 @@ mod search_state_tests {
             let mut ev = Evaluator {
                 refine: solver.lights.refine(),
                 solver: &mut solver,
-                u: problem.u0.to_vec("the depths").unwrap(),
+                u: origin.clone(),
                 inner: 5,
                 curve: vec![Vec::new(); problem.grid.n_regions],
                 candidate: 0,
                 candidates: order.len(),
                 best: (f64::NAN, f64::NAN),
-                fresh: fresh.then_some(Fresh { options, lobe }),
+                fresh: fresh.then(|| Fresh {
+                    options,
+                    lobe,
+                    shadows: shadows.clone(),
+                }),
+                origin: match fresh {
+                    true => origin.clone(),
+                    false => Vec::new(),
+                },
             };
             let mut quiet = |_: &IterationStats| Control::Continue;
             order

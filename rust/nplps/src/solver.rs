@@ -1433,6 +1433,42 @@ impl<'p> Solver<'p> {
         }
     }
 
+    /// The cast shadows of the mesh `u` under `policy` as a run's march finds them (under
+    /// [`Shadows::Auto`] a probe first, and a mask only where it holds [`AUTO_SHARE`] of the
+    /// observations), for [`Solver::start_from_shadows`]; the solver's own mask and policy
+    /// unchanged.
+    pub(crate) fn shadows_under(
+        &mut self,
+        u: &[f64],
+        policy: Shadows,
+    ) -> Result<Option<ShadowMask>> {
+        let own = std::mem::replace(&mut self.options.shadows, policy);
+        let mask = self.shadows.take();
+        let (guided, upsampled) = (self.marched_guided, self.shadows_upsampled);
+        self.march_next = true;
+        let found = self.cast_shadows(u, 0);
+        self.march_next = false;
+        (self.marched_guided, self.shadows_upsampled) = (guided, upsampled);
+        self.options.shadows = own;
+        let found = found.map(|()| self.shadows.take());
+        self.shadows = mask;
+        found
+    }
+
+    /// Starts the next run from the cast-shadow `mask` of a nearby surface (see
+    /// [`Solver::shadows_under`]; none: that surface casts none) instead of its first march, as
+    /// a level starts from a coarser level's (see [`Solver::carry_shadows`]); the run marches
+    /// its own surface at its later iterations of [`SHADOWS_AT`].
+    pub(crate) fn start_from_shadows(&mut self, mask: Option<ShadowMask>) {
+        if !self.options.shadows.is_active() {
+            return;
+        }
+        self.shadows_carried = mask.is_some() || self.options.shadows == Shadows::Auto;
+        self.shadows = mask;
+        self.shadows_upsampled = false;
+        self.marched_guided = false;
+    }
+
     /// The stride of this level's probe lattice (see [`PROBE_FACETS`]): every `s`-th row and
     /// column, `s = floor(sqrt(facets / PROBE_FACETS))`, at least 1.
     fn probe_stride(&self) -> usize {
