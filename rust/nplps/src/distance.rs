@@ -168,15 +168,12 @@ struct Evaluator<'s, 'p> {
     best: (f64, f64),
     /// Candidates evaluated afresh under a held lobe (see [`Fresh`]), or warm-started.
     fresh: Option<Fresh>,
-    /// The surface every fresh candidate starts from, gauged at its distance (see [`Fresh`];
-    /// empty otherwise).
-    origin: Vec<f64>,
 }
 
 /// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
 /// ([`begin_search`]) but the continuation of sharp lobes' fits and the user's cast-shadow
-/// policy, as in a run of its own, and `lobe` held, from one surface for all candidates (the
-/// [`Evaluator`]'s `origin`: the run that estimated the lobe at the profile's distance, see
+/// policy, as in a run of its own, and `lobe` held, from one surface for all candidates
+/// (`start`: that of the run that estimated the lobe at the profile's distance, see
 /// [`fresh_stages`]) gauged at the candidate, run to the level's convergence
 /// (`options.iterations`, `options.tol`). Its criterion is then a function of the level, the
 /// distance and the lobe alone.
@@ -184,9 +181,17 @@ struct Evaluator<'s, 'p> {
 struct Fresh {
     options: Options,
     lobe: Lobe,
-    /// The cast shadows every candidate starts from (see [`Solver::start_from_shadows`]):
-    /// those of the `origin` surface under the user's policy.
-    shadows: Arc<Option<ShadowMask>>,
+    /// The surface every candidate starts from and its cast shadows.
+    start: Arc<FreshStart>,
+}
+
+/// Where the candidates of [`Fresh`] start.
+#[derive(Debug)]
+struct FreshStart {
+    /// The unknowns of the surface, gauged at each candidate's distance.
+    surface: Vec<f64>,
+    /// Its cast shadows under the user's policy (see [`Solver::start_from_shadows`]).
+    shadows: Option<ShadowMask>,
 }
 
 impl Evaluator<'_, '_> {
@@ -206,17 +211,16 @@ impl Evaluator<'_, '_> {
                 // The search's settings, but the cast shadows of the user's policy: with them
                 // (shadows "auto") the 64² PBR block with 0.5 % noise had its lowest criterion
                 // under the retro lobe near the truth; with none, under the transmitted ones
-                // 0.5-1.5 % long (docs/shiny.md, stop 54). It starts from the origin's.
+                // 0.5-1.5 % long (docs/shiny.md, stop 54). It starts from its start's.
                 let (_, shadows) = begin_search(self.solver);
                 self.solver.restore_shadows(shadows);
-                self.solver
-                    .start_from_shadows(Option::clone(&fresh.shadows));
+                self.solver.start_from_shadows(fresh.start.shadows.clone());
                 // A run of its own, as one given the distance and the lobe: with the
                 // continuation of sharp lobes' fits (see `Solver::continuation`).
                 self.solver.continuation = true;
                 self.solver.lobe = Some(fresh.lobe);
                 self.solver.hold_lobe = true;
-                self.u.clone_from(&self.origin);
+                self.u.clone_from(&fresh.start.surface);
                 (fresh.options.iterations, fresh.options.tol)
             }
             None => (self.inner, 0.0),
@@ -844,8 +848,9 @@ fn fresh_stages(
         // of the user's policy; its surface and that surface's cast shadows start every
         // candidate (see [`Fresh`]).
         sub.restore_shadows(saved.1);
-        let origin = lobe_run(&mut sub, level, mean(&start.distance), search.inner)?;
-        let shadows = Arc::new(sub.shadows_under(&origin, saved.1)?);
+        let surface = lobe_run(&mut sub, level, mean(&start.distance), search.inner)?;
+        let shadows = sub.shadows_under(&surface, saved.1)?;
+        let fresh_start = Arc::new(FreshStart { surface, shadows });
         sub.search_shadows();
         let Some(estimated) = sub.lobe else {
             return Ok(None);
@@ -867,12 +872,13 @@ fn fresh_stages(
                 fresh: Some(Fresh {
                     options,
                     lobe,
-                    shadows: shadows.clone(),
+                    start: fresh_start.clone(),
                 }),
             };
             count.planned += planned_candidates(NARROW_SCAN);
             count.lowest = f64::NAN;
-            let u = try_copy(&origin, "the depths")?;
+            // (Fresh candidates start from `fresh_start`, not from the window's surface.)
+            let u = Vec::new();
             match search_window(
                 &mut sub,
                 level,
@@ -910,9 +916,8 @@ fn fresh_stages(
             fresh: Some(Fresh {
                 options,
                 lobe,
-                shadows: shadows.clone(),
+                start: fresh_start,
             }),
-            origin,
         };
         ev.eval(&estimate.distance, progress)?;
         count.done = ev.candidate;
@@ -1089,11 +1094,7 @@ fn hold_lobe(
         return Ok(());
     }
     if solver.lobe.is_none() {
-        let gauge = vec![problem.geometry.unknown(distance); problem.grid.n_regions];
-        let mut u = problem.u0.to_vec("the depths")?;
-        problem.grid.apply_gauge(&mut u, &gauge);
-        let iterations = inner.max(crate::solver::LOBE_AT[1]);
-        solver.iterate(&mut u, &gauge, iterations, 0.0, &mut |_| Control::Continue)?;
+        lobe_run(solver, problem, distance, inner)?;
     }
     solver.hold_lobe = true;
     Ok(())
@@ -1171,10 +1172,6 @@ fn search_refined(
         candidate: count.done,
         candidates: count.planned,
         best: (f64::NAN, f64::NAN),
-        origin: match fresh {
-            Some(_) => try_copy(&u, "the depths")?,
-            None => Vec::new(),
-        },
         fresh,
         u,
     };
@@ -1832,7 +1829,6 @@ pub(crate) fn check_distance_on(
             candidates: CHECK_FACTORS.len(),
             best: (f64::NAN, f64::NAN),
             fresh: None,
-            origin: Vec::new(),
         };
         let mut quiet = |_: &IterationStats| Control::Continue;
         let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
@@ -2203,13 +2199,15 @@ mod search_state_tests {
         let lobe = Lobe::new(0.3, 1.5);
         // The candidates start from one surface and its cast shadows (marched: `On`).
         let origin = problem.u0.to_vec("the depths").unwrap();
-        let shadows = Arc::new(
-            Solver::new(&problem, &options)
-                .unwrap()
-                .shadows_under(&origin, crate::shadow::Shadows::On)
-                .unwrap(),
-        );
+        let shadows = Solver::new(&problem, &options)
+            .unwrap()
+            .shadows_under(&origin, crate::shadow::Shadows::On)
+            .unwrap();
         assert!(shadows.is_some());
+        let start = Arc::new(FreshStart {
+            surface: origin.clone(),
+            shadows,
+        });
         let evaluate = |order: &[f64], fresh: bool| -> Vec<Vec<f64>> {
             let mut solver = Solver::new(&problem, &options).unwrap();
             let _ = begin_search(&mut solver);
@@ -2227,12 +2225,8 @@ mod search_state_tests {
                 fresh: fresh.then(|| Fresh {
                     options,
                     lobe,
-                    shadows: shadows.clone(),
+                    start: start.clone(),
                 }),
-                origin: match fresh {
-                    true => origin.clone(),
-                    false => Vec::new(),
-                },
             };
             let mut quiet = |_: &IterationStats| Control::Continue;
             order

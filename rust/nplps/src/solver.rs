@@ -1444,11 +1444,19 @@ impl<'p> Solver<'p> {
     ) -> Result<Option<ShadowMask>> {
         let own = std::mem::replace(&mut self.options.shadows, policy);
         let mask = self.shadows.take();
-        let (guided, upsampled) = (self.marched_guided, self.shadows_upsampled);
+        let kept = (
+            self.marched_guided,
+            self.shadows_upsampled,
+            self.guide_by_rounds,
+        );
         self.march_next = true;
         let found = self.cast_shadows(u, 0);
         self.march_next = false;
-        (self.marched_guided, self.shadows_upsampled) = (guided, upsampled);
+        (
+            self.marched_guided,
+            self.shadows_upsampled,
+            self.guide_by_rounds,
+        ) = kept;
         self.options.shadows = own;
         let found = found.map(|()| self.shadows.take());
         self.shadows = mask;
