@@ -818,18 +818,21 @@ macro_rules! table_lanes {
     ($t:ident, $c:ident, $f:ty, $table:ident) => {{
         let steps = TABLE_STEPS as $f;
         let mut u = [0.0; N];
-        let mut index = [0usize; N];
+        // The interval in `i32` lanes (`u` is in `[0, N]` or NaN, where both conversions give
+        // the same integer, 0 for NaN): the conversion to `usize` was made lane by lane.
+        let mut index = [0i32; N];
         let mut t = [0.0; N];
         for i in 0..N {
             u[i] = $c[i].clamp(0.0, 1.0) * steps;
-            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
+            index[i] = (u[i] as i32).clamp(0, TABLE_STEPS as i32 - 1);
             t[i] = u[i] - index[i] as $f;
         }
+        // The coefficients by lane, from the flat table (an index at most `4 TABLE_STEPS - 1`).
+        let flat = $t.$table.as_flattened();
         let mut k = [[0.0; N]; 4];
-        for i in 0..N {
-            let row = $t.$table[index[i]];
-            for j in 0..4 {
-                k[j][i] = row[j];
+        for j in 0..4 {
+            for i in 0..N {
+                k[j][i] = flat[4 * index[i] as usize + j];
             }
         }
         let mut value = [0.0; N];
@@ -1023,6 +1026,25 @@ pub const STEP_TOLERANCE: f64 = 1e-5;
 /// worse on average (3 seeds; 0.03-0.04° before the Lambertian starts were left out).
 pub const NOISE_STOP: f64 = 1.0;
 
+/// A fit with a step tolerance ([`fit_packed_within`]) takes a step without evaluating the
+/// model at its end when the step before it *settled* (the residual fell by the decrease the
+/// linearised model predicted for it, within [`SETTLED_MATCH`] of it), this step is at most
+/// this fraction of that one's length `q`, and the step after it, predicted `q` times as long
+/// (promising `q^2` times the decrease), would end the fit (within the step tolerance or the
+/// noise stop, see [`NOISE_STOP`]). Its residual is then the linearised model's, `|r - J dx|^2`,
+/// and the fit counts as converged. Near its minimum a Gauss-Newton fit converges at least
+/// linearly, quadratically where the residual is small: the prediction is conservative there.
+///
+/// Stop 56 (issue 20): the warm fits of a reconstruction's local steps took a second step and
+/// then evaluated the model at its end only to find the third step within the tolerance (77 %
+/// of the first fine local step's fits at 1 MP); that evaluation with its derivatives was a
+/// third of a fit's.
+pub const SETTLED_RATIO: f64 = 0.5;
+
+/// How close a step's decrease of the residual must come to the linearised model's prediction
+/// (relatively) for the step to have settled (see [`SETTLED_RATIO`]).
+pub const SETTLED_MATCH: f64 = 0.1;
+
 /// The glossy fit of one facet.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GlossyFit {
@@ -1155,6 +1177,11 @@ pub(crate) mod single {
     /// kernels' perf samples in a glossy `depth="auto"` run (stop 53).
     const FINISH_OUT_OF_LINE: bool = false;
 
+    /// The lanes summed pairwise (`lane_sum`): one after another, the 15 sums of the normal
+    /// equations were chains of 16 scalar conversions and additions, about a quarter of the
+    /// samples of `equations_dispatch` on a 1 MP glossy run (stop 56).
+    const TREE_SUMS: bool = true;
+
     include!("reflectance/kernels.rs");
 }
 
@@ -1200,6 +1227,9 @@ pub(crate) mod double {
     /// on bumps rough plastic 0.3, stop 53: `accumulate` 298 inlined, 84 plus `finish` 139
     /// out of line, shared with `equations`).
     const FINISH_OUT_OF_LINE: bool = true;
+
+    /// The lanes summed one after another (`lane_sum`), as main's `f64` kernels did.
+    const TREE_SUMS: bool = false;
 
     include!("reflectance/kernels.rs");
 }

@@ -307,10 +307,25 @@ struct Accumulator {
 /// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
 type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
 
-/// The sum of the lanes `x`, in `f64`.
+/// The sum of the lanes `x`, in `f64`: with `TREE_SUMS` pairwise (the upper half of the lanes
+/// added to the lower half, until one is left: a few vector additions and shuffles), else one
+/// lane after another (a chain of `W` scalar additions).
+#[allow(clippy::needless_range_loop)]
 #[inline(always)]
 fn lane_sum(x: &Lanes) -> f64 {
-    x.iter().map(|&v| f64::from(v)).sum()
+    if TREE_SUMS {
+        let mut sums: Wide = wide(|i| f64::from(x[i]));
+        let mut half = W;
+        while half > 1 {
+            half /= 2;
+            for i in 0..half {
+                sums[i] += sums[i + half];
+            }
+        }
+        sums[0]
+    } else {
+        x.iter().map(|&v| f64::from(v)).sum()
+    }
 }
 
 impl Accumulator {
@@ -599,6 +614,9 @@ pub(super) fn fit_with(
     let mut capped = false;
     // The decrease the step at which the fit stopped promised (unknown: infinite).
     let mut promise = f64::INFINITY;
+    // The length of the last step taken where the decrease it brought was the one the
+    // linearised model predicted, within `SETTLED_MATCH` (see `SETTLED_RATIO`).
+    let mut settled: Option<f64> = None;
     for step_index in 0..steps {
         if used < 4 {
             return None;
@@ -631,6 +649,26 @@ pub(super) fn fit_with(
                 lambda *= 10.0;
                 continue;
             }
+            // A step that the last one predicts to end the fit (see `SETTLED_RATIO`) is taken
+            // without evaluating the model at its end: the residual there is the linearised
+            // model's.
+            if let (true, Some(before)) = (tolerance > 0.0, settled) {
+                let length = step.norm();
+                let q = length / before;
+                let next_promise = q * q * step.dot(&jtr);
+                let drop = 2.0 * step.dot(&jtr) - step.dot(&(jtj * step));
+                if q <= SETTLED_RATIO
+                    && s + step[3] >= 0.0
+                    && drop > 0.0
+                    && drop < sse
+                    && (q * length <= tolerance * (norm(nb) + ns)
+                        || next_promise <= NOISE_STOP * noise)
+                {
+                    (b, s, sse) = (nb, ns, sse - drop);
+                    promise = next_promise;
+                    break;
+                }
+            }
             if last {
                 // No step follows: the residual alone decides.
                 let (next, n_used) = residual_dispatch(k, groups, v, nb, ns);
@@ -646,6 +684,8 @@ pub(super) fn fit_with(
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
+                let drop = 2.0 * step.dot(&jtr) - step.dot(&(jtj * step));
+                settled = ((sse - next.0 - drop).abs() <= SETTLED_MATCH * drop).then(|| step.norm());
                 (b, s) = (nb, ns);
                 (sse, jtj, jtr, used) = next;
                 lambda = (lambda * 0.3).max(1e-9);
