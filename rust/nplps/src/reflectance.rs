@@ -353,7 +353,7 @@ impl Kernel {
     }
 
     /// `T(c) / T(1)` and its derivative (1 and 0 for `eta = 1`).
-    #[inline]
+    #[inline(always)]
     fn transmittance(&self, c: f64) -> (f64, f64) {
         match &self.table {
             None => (1.0, 0.0),
@@ -373,7 +373,7 @@ impl Kernel {
 
     /// Smith masking `G1(c)` and `G1'(c) / G1(c)`: with `r = sqrt(alpha^2 + (1 - alpha^2) c^2)`,
     /// `G1 = 2c / (c + r)` and `G1' / G1 = alpha^2 / (c r (c + r))`.
-    #[inline]
+    #[inline(always)]
     fn smith(&self, c: f64) -> (f64, f64) {
         let r = (self.a2 + (1.0 - self.a2) * c * c).sqrt();
         let w = 1.0 / (c * r * (c + r));
@@ -381,7 +381,7 @@ impl Kernel {
     }
 
     /// The terms of the normal `n` that every light shares, or None where `n.v <= 0`.
-    #[inline]
+    #[inline(always)]
     fn view(&self, n: [f64; 3], v: [f64; 3]) -> Option<View> {
         let cv = dot(n, v);
         if cv <= 0.0 {
@@ -824,7 +824,10 @@ macro_rules! table_lanes {
         let mut t = [0.0; N];
         for i in 0..N {
             u[i] = $c[i].clamp(0.0, 1.0) * steps;
-            index[i] = (u[i] as i32).clamp(0, TABLE_STEPS as i32 - 1);
+            // (`max` and `min` send NaN to 0: the conversion of a value in range, in lanes.)
+            let at = u[i].max(0.0).min(steps - 1.0);
+            // SAFETY: `at` is finite and in `[0, TABLE_STEPS - 1]`, within `i32`.
+            index[i] = unsafe { at.to_int_unchecked::<i32>() };
             t[i] = u[i] - index[i] as $f;
         }
         // The coefficients by lane, from the flat table (an index at most `4 TABLE_STEPS - 1`).
@@ -1180,7 +1183,7 @@ pub(crate) mod single {
     /// The lanes summed pairwise (`lane_sum`): one after another, the 15 sums of the normal
     /// equations were chains of 16 scalar conversions and additions, about a quarter of the
     /// samples of `equations_dispatch` on a 1 MP glossy run (stop 56).
-    const TREE_SUMS: bool = true;
+    const TREE_SUMS: bool = false;
 
     include!("reflectance/kernels.rs");
 }

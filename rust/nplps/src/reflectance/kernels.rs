@@ -85,23 +85,24 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
         if g.point.iter().any(|&p| p) {
             // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)^mu
             // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
-            let a: [Wide; 3] = coords!(|j| wide(|i| g.position[j][i] - x[j]));
+            // The offsets from the facet in `f64` (from positions of hundreds of millimetres),
+            // the rest in the lanes' type (the `f64` lanes: the same operations in `f64`).
+            let a: [Lanes; 3] = coords!(|j| lanes(|i| (g.position[j][i] - x[j]) as F));
             let id =
-                wide(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-            let l: [Wide; 3] = coords!(|j| wide(|i| a[j][i] * id[i]));
+                lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+            let lf: [Lanes; 3] = coords!(|j| lanes(|i| a[j][i] * id[i]));
             // aniso = t^mu, t = max(0, -axis . l): 1 for mu = 0, t for mu = 1 (as
             // `light::anisotropy`), else `power_lanes` once per other exponent of the group.
-            let t = wide(|i| {
-                (-(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]))
-                    .max(0.0)
+            let axis: [Lanes; 3] = coords!(|j| lanes(|i| g.axis[j][i] as F));
+            let t = lanes(|i| {
+                (-(lf[0][i] * axis[0][i] + lf[1][i] * axis[1][i] + lf[2][i] * axis[2][i])).max(0.0)
             });
-            let mut aniso = wide(|i| if g.mu[i] == 0.0 { 1.0 } else { t[i] });
+            let mut aniso = lanes(|i| if g.mu[i] == 0.0 { 1.0 } else { t[i] });
             if (0..W).any(|i| g.point[i] && g.mu[i] != 0.0 && g.mu[i] != 1.0) {
-                other_exponents(&t, g, &mut aniso);
+                other_exponents(&wide(|i| f64::from(t[i])), g, &mut aniso);
             }
             let lit: [bool; W] = crate::lanes(|i| aniso[i] > 0.0);
-            let lf: [Lanes; 3] = coords!(|j| lanes(|i| l[j][i] as F));
-            let scale = lanes(|i| (g.phi[i] * aniso[i] * id[i] * id[i]) as F);
+            let scale = lanes(|i| g.phi[i] as F * aniso[i] * id[i] * id[i]);
             g.l = coords!(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
                     (true, true) => lf[j][i],
@@ -138,14 +139,14 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
 /// i20-f32, stop 46).
 #[inline(never)]
 #[allow(clippy::needless_range_loop)]
-fn other_exponents(t: &Wide, g: &Group, aniso: &mut Wide) {
+fn other_exponents(t: &Wide, g: &Group, aniso: &mut Lanes) {
     let mut done: [bool; W] = crate::lanes(|i| !g.point[i] || g.mu[i] == 0.0 || g.mu[i] == 1.0);
     while let Some(first) = done.iter().position(|&d| !d) {
         let mu = g.mu[first];
         let p = power_lanes(t, mu);
         for i in 0..W {
             if !done[i] && g.mu[i] == mu {
-                aniso[i] = p[i];
+                aniso[i] = p[i] as F;
                 done[i] = true;
             }
         }
@@ -582,6 +583,17 @@ fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f6
     (rho > 0.0).then(|| (scale(n, rho), s))
 }
 
+/// `x^T a x`, written out (`nalgebra`'s product was a call out of line).
+#[inline(always)]
+fn quadratic(a: &Matrix4<f64>, x: &Vector4<f64>) -> f64 {
+    let mut q = 0.0;
+    for i in 0..4 {
+        let row = a[(i, 0)] * x[0] + a[(i, 1)] * x[1] + a[(i, 2)] * x[2] + a[(i, 3)] * x[3];
+        q += x[i] * row;
+    }
+    q
+}
+
 /// [`fit_from`] with the kernel `k` of its lobe, on the observations `obs` seen along `v`
 /// with the noise variance `noise` (see [`Packed::noise`]).
 #[allow(clippy::too_many_arguments)]
@@ -649,6 +661,12 @@ pub(super) fn fit_with(
                 lambda *= 10.0;
                 continue;
             }
+            // The decrease of the residual the linearised model predicts for the step,
+            // `|r|^2 - |r - J dx|^2` (with a step tolerance only: see `SETTLED_RATIO`).
+            let drop = match tolerance > 0.0 {
+                true => 2.0 * step.dot(&jtr) - quadratic(&jtj, &step),
+                false => f64::NAN,
+            };
             // A step that the last one predicts to end the fit (see `SETTLED_RATIO`) is taken
             // without evaluating the model at its end: the residual there is the linearised
             // model's.
@@ -656,7 +674,6 @@ pub(super) fn fit_with(
                 let length = step.norm();
                 let q = length / before;
                 let next_promise = q * q * step.dot(&jtr);
-                let drop = 2.0 * step.dot(&jtr) - step.dot(&(jtj * step));
                 if q <= SETTLED_RATIO
                     && s + step[3] >= 0.0
                     && drop > 0.0
@@ -684,7 +701,6 @@ pub(super) fn fit_with(
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
-                let drop = 2.0 * step.dot(&jtr) - step.dot(&(jtj * step));
                 settled = ((sse - next.0 - drop).abs() <= SETTLED_MATCH * drop).then(|| step.norm());
                 (b, s) = (nb, ns);
                 (sse, jtj, jtr, used) = next;
