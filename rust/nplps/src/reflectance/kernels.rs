@@ -414,14 +414,6 @@ impl Accumulator {
     }
 }
 
-simd_dispatch! {
-    wide
-    /// [`factors_of`] with AVX-512 or AVX2 when the processor has it.
-    fn factors_dispatch => factors_of(
-        k: &Kernel, groups: &[Group], n: [f64; 3], w: &View, v: [f64; 3], out: &mut [Factors],
-    ) -> ();
-}
-
 /// The factors of `groups` at the normal `n` (with its shared terms `w`) into `out`.
 #[inline(always)]
 pub(super) fn factors_of(
@@ -438,14 +430,6 @@ pub(super) fn factors_of(
     }
 }
 
-simd_dispatch! {
-    wide
-    /// [`accumulate`] with AVX-512 or AVX2 when the processor has it.
-    fn accumulate_dispatch => accumulate(
-        groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64,
-    ) -> Equations;
-}
-
 /// The normal equations at `(rho n, s)` from the factors at `n`.
 #[inline(always)]
 fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64) -> Equations {
@@ -455,14 +439,6 @@ fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f
         acc.add(g, f, n, rho as F, s as F);
     }
     acc.finish()
-}
-
-simd_dispatch! {
-    wide
-    /// [`equations_at`] with AVX-512 or AVX2 when the processor has it.
-    fn equations_dispatch => equations_at(
-        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
-    ) -> Equations;
 }
 
 /// The model and its derivatives at `(b, s)`: the squared residual, `J^T J`, `J^T r` and the
@@ -480,14 +456,6 @@ fn equations_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) 
         }
     }
     acc.finish()
-}
-
-simd_dispatch! {
-    wide
-    /// [`residual_at`] with AVX-512 or AVX2 when the processor has it.
-    fn residual_dispatch => residual_at(
-        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
-    ) -> (f64, u32);
 }
 
 /// The squared residual at `(b, s)` and the number of observations used (no derivatives).
@@ -509,12 +477,6 @@ fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -
         }
     }
     (lane_sum(&sse), used.iter().sum())
-}
-
-simd_dispatch! {
-    wide
-    /// [`albedo_sums`] with AVX-512 or AVX2 when the processor has it.
-    fn albedo_sums_dispatch => albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5];
 }
 
 /// The sums `d.d`, `d.s`, `s.s`, `d.i`, `s.i` over the lit observations of `groups` with their
@@ -566,9 +528,10 @@ fn albedo_sums_in_order(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
 /// light; `factors` are those of `groups` at `n`. (In `f64`.)
+#[inline(always)]
 fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
     let [dd, ds, ss, di, si] = match LANE_ALBEDO_SUMS {
-        true => albedo_sums_dispatch(groups, factors),
+        true => albedo_sums(groups, factors),
         false => albedo_sums_in_order(groups, factors),
     };
     if dd <= 0.0 {
@@ -607,11 +570,42 @@ pub(super) fn fit_with(
     steps: usize,
     tolerance: f64,
 ) -> Option<GlossyFit> {
+    fit_dispatch(k, obs, v, noise, n0, fallback, (steps, tolerance))
+}
+
+simd_dispatch! {
+    wide
+    /// [`fit_in_lanes`] with AVX-512 or AVX2 when the processor has it.
+    fn fit_dispatch => fit_in_lanes(
+        k: &Kernel,
+        obs: &mut Store,
+        v: [f64; 3],
+        noise: f64,
+        n0: [f64; 3],
+        fallback: Option<[f64; 3]>,
+        limits: (usize, f64),
+    ) -> Option<GlossyFit>;
+}
+
+/// [`fit_with`] with its limits `(steps, tolerance)`: the whole fit one dispatched function,
+/// its kernels (the factors, the albedos' sums, the normal equations, the residual) and the
+/// view's terms inlined into it. (Each kernel was dispatched on its own, with `Kernel::view`
+/// and the steps' scalar code between them compiled for the baseline processor.)
+#[inline(always)]
+fn fit_in_lanes(
+    k: &Kernel,
+    obs: &mut Store,
+    v: [f64; 3],
+    noise: f64,
+    n0: [f64; 3],
+    fallback: Option<[f64; 3]>,
+    (steps, tolerance): (usize, f64),
+) -> Option<GlossyFit> {
     // The factors at the starting normal serve both its albedos and its normal equations
     // (every entry is written: no clearing first).
     obs.factors.resize(obs.groups.len(), Factors::default());
     match k.view(n0, v) {
-        Some(w) => factors_dispatch(k, &obs.groups, n0, &w, v, &mut obs.factors),
+        Some(w) => factors_of(k, &obs.groups, n0, &w, v, &mut obs.factors),
         None => obs.factors.fill(Factors::default()),
     }
     let groups = &obs.groups[..];
@@ -620,7 +614,7 @@ pub(super) fn fit_with(
         None => (fallback?, 0.0),
     };
     let (mut sse, mut jtj, mut jtr, mut used) =
-        accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
+        accumulate(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;
     // Whether the last allowed step was taken (the fit may not have reached its minimum).
     let mut capped = false;
@@ -688,7 +682,7 @@ pub(super) fn fit_with(
             }
             if last {
                 // No step follows: the residual alone decides.
-                let (next, n_used) = residual_dispatch(k, groups, v, nb, ns);
+                let (next, n_used) = residual_at(k, groups, v, nb, ns);
                 if n_used >= 4 && next < sse {
                     (b, s, sse, used) = (nb, ns, next, n_used);
                     capped = true;
@@ -697,7 +691,7 @@ pub(super) fn fit_with(
                 lambda *= 10.0;
                 continue;
             }
-            let next = equations_dispatch(k, groups, v, nb, ns);
+            let next = equations_at(k, groups, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
