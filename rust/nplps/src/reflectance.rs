@@ -2048,7 +2048,7 @@ mod tests {
         let v = packed.view;
         macro_rules! read {
             ($m:ident, $store:expr) => {{
-                let groups = &$store.groups;
+                let groups = $store.groups();
                 let mut f = vec![$m::Factors::default(); groups.len()];
                 $m::factors_of(k, groups, n, w, v, &mut f);
                 let one = |j: usize| {
@@ -2178,7 +2178,7 @@ mod tests {
         macro_rules! read {
             ($m:ident, $store:expr) => {{
                 let one = |j: usize| {
-                    let (g, lane) = (&$store.groups[j / $m::W], j % $m::W);
+                    let (g, lane) = (&$store.groups()[j / $m::W], j % $m::W);
                     let x = |a: $m::F| f64::from(a);
                     (
                         x(g.scale[lane]),

@@ -85,24 +85,23 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
         if g.point.iter().any(|&p| p) {
             // beta = aniso (p - x) / |p - x|^3, aniso = max(0, -axis . (p - x) / |p - x|)^mu
             // for an LED: l = (p - x) / |p - x|, a = |beta| = aniso / |p - x|^2.
-            // The offsets from the facet in `f64` (from positions of hundreds of millimetres),
-            // the rest in the lanes' type (the `f64` lanes: the same operations in `f64`).
-            let a: [Lanes; 3] = coords!(|j| lanes(|i| (g.position[j][i] - x[j]) as F));
+            let a: [Wide; 3] = coords!(|j| wide(|i| g.position[j][i] - x[j]));
             let id =
-                lanes(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
-            let lf: [Lanes; 3] = coords!(|j| lanes(|i| a[j][i] * id[i]));
+                wide(|i| 1.0 / (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt());
+            let l: [Wide; 3] = coords!(|j| wide(|i| a[j][i] * id[i]));
             // aniso = t^mu, t = max(0, -axis . l): 1 for mu = 0, t for mu = 1 (as
             // `light::anisotropy`), else `power_lanes` once per other exponent of the group.
-            let axis: [Lanes; 3] = coords!(|j| lanes(|i| g.axis[j][i] as F));
-            let t = lanes(|i| {
-                (-(lf[0][i] * axis[0][i] + lf[1][i] * axis[1][i] + lf[2][i] * axis[2][i])).max(0.0)
+            let t = wide(|i| {
+                (-(l[0][i] * g.axis[0][i] + l[1][i] * g.axis[1][i] + l[2][i] * g.axis[2][i]))
+                    .max(0.0)
             });
-            let mut aniso = lanes(|i| if g.mu[i] == 0.0 { 1.0 } else { t[i] });
+            let mut aniso = wide(|i| if g.mu[i] == 0.0 { 1.0 } else { t[i] });
             if (0..W).any(|i| g.point[i] && g.mu[i] != 0.0 && g.mu[i] != 1.0) {
-                other_exponents(&wide(|i| f64::from(t[i])), g, &mut aniso);
+                other_exponents(&t, g, &mut aniso);
             }
             let lit: [bool; W] = crate::lanes(|i| aniso[i] > 0.0);
-            let scale = lanes(|i| g.phi[i] as F * aniso[i] * id[i] * id[i]);
+            let lf: [Lanes; 3] = coords!(|j| lanes(|i| l[j][i] as F));
+            let scale = lanes(|i| (g.phi[i] * aniso[i] * id[i] * id[i]) as F);
             g.l = coords!(|j| {
                 lanes(|i| match (g.point[i], lit[i]) {
                     (true, true) => lf[j][i],
@@ -139,14 +138,14 @@ fn prepare_groups(groups: &mut [Group], v: [f64; 3], x: [f64; 3], eta: f64, retr
 /// i20-f32, stop 46).
 #[inline(never)]
 #[allow(clippy::needless_range_loop)]
-fn other_exponents(t: &Wide, g: &Group, aniso: &mut Lanes) {
+fn other_exponents(t: &Wide, g: &Group, aniso: &mut Wide) {
     let mut done: [bool; W] = crate::lanes(|i| !g.point[i] || g.mu[i] == 0.0 || g.mu[i] == 1.0);
     while let Some(first) = done.iter().position(|&d| !d) {
         let mu = g.mu[first];
         let p = power_lanes(t, mu);
         for i in 0..W {
             if !done[i] && g.mu[i] == mu {
-                aniso[i] = p[i] as F;
+                aniso[i] = p[i];
                 done[i] = true;
             }
         }
@@ -603,12 +602,13 @@ fn fit_in_lanes(
 ) -> Option<GlossyFit> {
     // The factors at the starting normal serve both its albedos and its normal equations
     // (every entry is written: no clearing first).
-    obs.factors.resize(obs.groups.len(), Factors::default());
+    let n = obs.len.div_ceil(W);
+    obs.factors.resize(n, Factors::default());
     match k.view(n0, v) {
-        Some(w) => factors_of(k, &obs.groups, n0, &w, v, &mut obs.factors),
+        Some(w) => factors_of(k, &obs.all[..n], n0, &w, v, &mut obs.factors),
         None => obs.factors.fill(Factors::default()),
     }
-    let groups = &obs.groups[..];
+    let groups = &obs.all[..n];
     let (mut b, mut s) = match albedos_at(groups, &obs.factors, n0) {
         Some(albedos) => albedos,
         None => (fallback?, 0.0),
@@ -730,9 +730,29 @@ fn fit_in_lanes(
 pub(super) struct Store {
     /// How many observations it holds.
     pub(super) len: usize,
-    pub(super) groups: Vec<Group>,
+    /// The groups of these observations ([`Store::groups`]), then those of earlier facets,
+    /// kept so that the next facets reset theirs instead of making them anew (see
+    /// [`Group::reset`]).
+    all: Vec<Group>,
     /// Scratch: the factors at the starting normal of a fit.
     factors: Vec<Factors>,
+}
+
+impl Group {
+    /// What a group made anew holds where no observation was pushed since: no light, not a
+    /// point light. (A lane's other terms are those of its observation once pushed, computed by
+    /// [`Packed::prepare`] for every lane, or not read for a lane without one: the point
+    /// lights' terms of a lane that is not a point light's are discarded.) A new group, made
+    /// per facet, was written whole (1.7 kB of `f32` lanes at 16 lanes).
+    #[inline]
+    fn reset(&mut self) {
+        self.value = [0.0; W];
+        self.scale = [0.0; W];
+        self.l = [[0.0; W]; 3];
+        self.retro = [0.0; W];
+        self.point = [false; W];
+        self.mu = [0.0; W];
+    }
 }
 
 impl Store {
@@ -740,19 +760,26 @@ impl Store {
     #[inline]
     pub(super) fn clear(&mut self) {
         self.len = 0;
-        self.groups.clear();
+    }
+
+    /// The groups of the observations.
+    #[inline]
+    pub(super) fn groups(&self) -> &[Group] {
+        &self.all[..self.len.div_ceil(W)]
     }
 
     /// The lane of the next observation.
     #[inline]
     fn next_lane(&mut self) -> (&mut Group, usize) {
-        let lane = self.len % W;
+        let (group, lane) = (self.len / W, self.len % W);
         if lane == 0 {
-            self.groups.push(Group::default());
+            match self.all.get_mut(group) {
+                Some(g) => g.reset(),
+                None => self.all.push(Group::default()),
+            }
         }
         self.len += 1;
-        let g = self.groups.last_mut().expect("a group was pushed");
-        (g, lane)
+        (&mut self.all[group], lane)
     }
 
     /// [`Packed::push`].
@@ -803,7 +830,8 @@ impl Store {
 
     /// [`Packed::prepare`] with the view vector `v` and the lobe's `eta` and diffuse shape.
     pub(super) fn prepare(&mut self, v: [f64; 3], x: [f64; 3], eta: f64, retro: bool) {
-        prepare_dispatch(&mut self.groups, v, x, eta, retro);
+        let n = self.len.div_ceil(W);
+        prepare_dispatch(&mut self.all[..n], v, x, eta, retro);
     }
 }
 
@@ -847,12 +875,12 @@ mod kernel_tests {
                     }
                 }
             }
-            let mut factors = vec![Factors::default(); store.groups.len()];
-            factors_of(&k, &store.groups, n, &w, v, &mut factors);
+            let mut factors = vec![Factors::default(); store.groups().len()];
+            factors_of(&k, store.groups(), n, &w, v, &mut factors);
             let unlit = (0..lights.len()).filter(|&i| !factors[i / W].lit[i % W]).count();
             assert!(unlit > 0 && unlit < lights.len(), "{unlit} unlit");
-            let lanes = albedo_sums(&store.groups, &factors);
-            let in_order = albedo_sums_in_order(&store.groups, &factors);
+            let lanes = albedo_sums(store.groups(), &factors);
+            let in_order = albedo_sums_in_order(store.groups(), &factors);
             for (j, ((&lane, &ordered), &reference)) in
                 lanes.iter().zip(&in_order).zip(&scalar).enumerate()
             {
