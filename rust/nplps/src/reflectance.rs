@@ -1032,10 +1032,13 @@ pub const NOISE_STOP: f64 = 1.0;
 /// A fit with a step tolerance ([`fit_packed_within`]) takes a step without evaluating the
 /// model at its end when the step before it *settled* (the residual fell by the decrease the
 /// linearised model predicted for it, within [`SETTLED_MATCH`] of it), this step is at most
-/// this fraction of that one's length `q`, and the step after it, predicted `q` times as long
-/// (promising `q^2` times the decrease), would end the fit (within the step tolerance or the
-/// noise stop, see [`NOISE_STOP`]). Its residual is then the linearised model's, `|r - J dx|^2`,
-/// and the fit counts as converged. Near its minimum a Gauss-Newton fit converges at least
+/// this fraction of that one's length `q`, and the step after it, predicted `q` times as long,
+/// would be within the step tolerance ([`STEP_TOLERANCE`]). The fit then counts as converged
+/// and reports the residual the linearised model predicts at the step's end, `|r - J dx|^2`
+/// ([`GlossyFit::sse`]; in a unit test within `1e-3` of the model's there). The noise stop
+/// ([`NOISE_STOP`]) was tried as a second reason (the next step promising `q^2` times this one's
+/// decrease, within the noise): such a step may still lower the residual by several `sigma^2`,
+/// and the prediction then came out up to `0.08 sigma^2` below the least residual. Near its minimum a Gauss-Newton fit converges at least
 /// linearly, quadratically where the residual is small: the prediction is conservative there.
 ///
 /// Stop 56 (issue 20): the warm fits of a reconstruction's local steps took a second step and
@@ -1057,7 +1060,8 @@ pub struct GlossyFit {
     pub diffuse: f64,
     /// Specular albedo `rho_s`.
     pub specular: f64,
-    /// Sum of squared residuals over the observations that carry light.
+    /// Sum of squared residuals over the observations that carry light (where the fit's last
+    /// step was taken unevaluated, see [`SETTLED_RATIO`], the linearised model's).
     pub sse: f64,
     /// How many observations carry light at the final normal.
     pub used: u32,
@@ -2515,6 +2519,59 @@ mod tests {
         assert!(worst < 10.0 * STEP_TOLERANCE, "{worst} rad");
     }
 
+    /// Fits from warm starts near their minimum, on noisy observations: with the step
+    /// tolerance, a fit whose last step settled takes the next one without evaluating the model
+    /// at its end (see [`SETTLED_RATIO`]). Such fits end as near the minimum as the step tolerance
+    /// says, report that they converged, and report the residual of the model at their unknowns
+    /// (or the one before their last step, as near). With two steps allowed, a fit that needs
+    /// both ends converged only by taking its second step unevaluated: some do.
+    #[test]
+    fn a_settled_fit_takes_its_last_step_unevaluated() {
+        let lobe = Lobe::new(0.3, 1.5);
+        let angle = |a: [f64; 3], b: [f64; 3]| dot(a, b).clamp(-1.0, 1.0).acos();
+        let mut state = 7u64;
+        let (mut worst, mut converged_in_two) = (0.0f64, 0);
+        for i in 0..100 {
+            let t = i as f64;
+            let n = normalize([0.5 * (t * 0.37).sin(), 0.5 * (t * 0.73).cos(), -1.0]);
+            let x = [10.0 * (t * 0.11).sin(), 10.0 * (t * 0.29).cos(), 200.0];
+            let v = normalize(scale(x, -1.0));
+            let mut obs = observe(&lobe, x, n, 0.6, 0.4);
+            for o in &mut obs {
+                o.value += 0.005 * uniform(&mut state);
+            }
+            let mut packed = Packed::new();
+            packed.clear(v);
+            for o in &obs {
+                packed.push_observation(o);
+            }
+            let exact = fit_packed(&lobe, &mut packed, scale(n, 0.6), 30).unwrap();
+            let start = normalize([n[0] + 0.006, n[1] - 0.004, n[2]]);
+            let fit = fit_packed_at_within(&lobe, &mut packed, start, 30, STEP_TOLERANCE).unwrap();
+            assert!(fit.converged, "{i}: {fit:?}");
+            worst = worst.max(angle(fit.normal, exact.normal));
+            // The residual of the scalar model at the fit's unknowns.
+            let sse: f64 = obs
+                .iter()
+                .filter_map(|o| {
+                    let s = lobe.shade(fit.normal, o.light, v)?;
+                    let e =
+                        o.value - o.scale * (fit.diffuse * s.diffuse + fit.specular * s.specular);
+                    Some(e * e)
+                })
+                .sum();
+            assert!(
+                (fit.sse - sse).abs() <= 1e-3 * sse,
+                "{i}: {} against {sse}",
+                fit.sse
+            );
+            let two = fit_packed_at_within(&lobe, &mut packed, start, 2, STEP_TOLERANCE).unwrap();
+            converged_in_two += usize::from(two.converged);
+        }
+        assert!(worst < 10.0 * STEP_TOLERANCE, "{worst} rad");
+        assert!(converged_in_two >= 10, "{converged_in_two} of 100");
+    }
+
     /// A fit cut off by its last allowed step reports that it did not converge; one that ends
     /// by its step tolerance, or at its minimum, reports that it did (the flag the local steps
     /// keep fits by). Over 50 facets from a far start.
@@ -2591,9 +2648,11 @@ mod tests {
                 packed.noise = sigma * sigma;
                 let fit = fit_packed_within(&lobe, &mut packed, start, 30, STEP_TOLERANCE).unwrap();
                 assert!(fit.converged, "{fit:?}");
+                // (A fit whose last step was taken unevaluated reports the linearised model's
+                // residual, which may lie a little below the least: see `SETTLED_RATIO`.)
                 let excess = (fit.sse - best.sse) / (sigma * sigma);
                 assert!(
-                    (-1e-9..=3.0 * NOISE_STOP).contains(&excess),
+                    (-1e-2..=3.0 * NOISE_STOP).contains(&excess),
                     "seed {seed} facet {i}: {excess} {fit:?} {best:?}"
                 );
                 let error = |g: &GlossyFit| dot(g.normal, n).min(1.0).acos();

@@ -672,8 +672,7 @@ fn fit_in_lanes(
                     && s + step[3] >= 0.0
                     && drop > 0.0
                     && drop < sse
-                    && (q * length <= tolerance * (norm(nb) + ns)
-                        || next_promise <= NOISE_STOP * noise)
+                    && q * length <= tolerance * (norm(nb) + ns)
                 {
                     (b, s, sse) = (nb, ns, sse - drop);
                     promise = next_promise;
@@ -730,8 +729,8 @@ fn fit_in_lanes(
 pub(super) struct Store {
     /// How many observations it holds.
     pub(super) len: usize,
-    /// The groups of these observations ([`Store::groups`]), then those of earlier facets,
-    /// kept so that the next facets reset theirs instead of making them anew (see
+    /// The groups of these observations (the first `len.div_ceil(W)`), then those of earlier
+    /// facets, kept so that the next facets reset theirs instead of making them anew (see
     /// [`Group::reset`]).
     all: Vec<Group>,
     /// Scratch: the factors at the starting normal of a fit.
@@ -763,7 +762,7 @@ impl Store {
     }
 
     /// The groups of the observations.
-    #[inline]
+    #[cfg(test)]
     pub(super) fn groups(&self) -> &[Group] {
         &self.all[..self.len.div_ceil(W)]
     }
