@@ -1184,11 +1184,6 @@ pub(crate) mod single {
     /// kernels' perf samples in a glossy `depth="auto"` run (stop 53).
     const FINISH_OUT_OF_LINE: bool = false;
 
-    /// The lanes summed pairwise (`lane_sum`): one after another, the 15 sums of the normal
-    /// equations were chains of 16 scalar conversions and additions, about a quarter of the
-    /// samples of `equations_dispatch` on a 1 MP glossy run (stop 56).
-    const TREE_SUMS: bool = false;
-
     include!("reflectance/kernels.rs");
 }
 
@@ -1234,9 +1229,6 @@ pub(crate) mod double {
     /// on bumps rough plastic 0.3, stop 53: `accumulate` 298 inlined, 84 plus `finish` 139
     /// out of line, shared with `equations`).
     const FINISH_OUT_OF_LINE: bool = true;
-
-    /// The lanes summed one after another (`lane_sum`), as main's `f64` kernels did.
-    const TREE_SUMS: bool = false;
 
     include!("reflectance/kernels.rs");
 }

@@ -307,25 +307,10 @@ struct Accumulator {
 /// The squared residual, `J^T J`, `J^T r` and the number of observations used at `(b, s)`.
 type Equations = (f64, Matrix4<f64>, Vector4<f64>, u32);
 
-/// The sum of the lanes `x`, in `f64`: with `TREE_SUMS` pairwise (the upper half of the lanes
-/// added to the lower half, until one is left: a few vector additions and shuffles), else one
-/// lane after another (a chain of `W` scalar additions).
-#[allow(clippy::needless_range_loop)]
+/// The sum of the lanes `x`, in `f64`.
 #[inline(always)]
 fn lane_sum(x: &Lanes) -> f64 {
-    if TREE_SUMS {
-        let mut sums: Wide = wide(|i| f64::from(x[i]));
-        let mut half = W;
-        while half > 1 {
-            half /= 2;
-            for i in 0..half {
-                sums[i] += sums[i + half];
-            }
-        }
-        sums[0]
-    } else {
-        x.iter().map(|&v| f64::from(v)).sum()
-    }
+    x.iter().map(|&v| f64::from(v)).sum()
 }
 
 impl Accumulator {
