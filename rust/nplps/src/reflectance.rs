@@ -353,7 +353,7 @@ impl Kernel {
     }
 
     /// `T(c) / T(1)` and its derivative (1 and 0 for `eta = 1`).
-    #[inline]
+    #[inline(always)]
     fn transmittance(&self, c: f64) -> (f64, f64) {
         match &self.table {
             None => (1.0, 0.0),
@@ -373,7 +373,7 @@ impl Kernel {
 
     /// Smith masking `G1(c)` and `G1'(c) / G1(c)`: with `r = sqrt(alpha^2 + (1 - alpha^2) c^2)`,
     /// `G1 = 2c / (c + r)` and `G1' / G1 = alpha^2 / (c r (c + r))`.
-    #[inline]
+    #[inline(always)]
     fn smith(&self, c: f64) -> (f64, f64) {
         let r = (self.a2 + (1.0 - self.a2) * c * c).sqrt();
         let w = 1.0 / (c * r * (c + r));
@@ -381,7 +381,7 @@ impl Kernel {
     }
 
     /// The terms of the normal `n` that every light shares, or None where `n.v <= 0`.
-    #[inline]
+    #[inline(always)]
     fn view(&self, n: [f64; 3], v: [f64; 3]) -> Option<View> {
         let cv = dot(n, v);
         if cv <= 0.0 {
@@ -818,18 +818,24 @@ macro_rules! table_lanes {
     ($t:ident, $c:ident, $f:ty, $table:ident) => {{
         let steps = TABLE_STEPS as $f;
         let mut u = [0.0; N];
-        let mut index = [0usize; N];
+        // The interval in `i32` lanes (`u` is in `[0, N]` or NaN, where both conversions give
+        // the same integer, 0 for NaN): the conversion to `usize` was made lane by lane.
+        let mut index = [0i32; N];
         let mut t = [0.0; N];
         for i in 0..N {
             u[i] = $c[i].clamp(0.0, 1.0) * steps;
-            index[i] = (u[i] as usize).min(TABLE_STEPS - 1);
+            // (`max` and `min` send NaN to 0: the conversion of a value in range, in lanes.)
+            let at = u[i].max(0.0).min(steps - 1.0);
+            // SAFETY: `at` is finite and in `[0, TABLE_STEPS - 1]`, within `i32`.
+            index[i] = unsafe { at.to_int_unchecked::<i32>() };
             t[i] = u[i] - index[i] as $f;
         }
+        // The coefficients by lane, from the flat table (an index at most `4 TABLE_STEPS - 1`).
+        let flat = $t.$table.as_flattened();
         let mut k = [[0.0; N]; 4];
-        for i in 0..N {
-            let row = $t.$table[index[i]];
-            for j in 0..4 {
-                k[j][i] = row[j];
+        for j in 0..4 {
+            for i in 0..N {
+                k[j][i] = flat[4 * index[i] as usize + j];
             }
         }
         let mut value = [0.0; N];
@@ -1023,6 +1029,28 @@ pub const STEP_TOLERANCE: f64 = 1e-5;
 /// worse on average (3 seeds; 0.03-0.04° before the Lambertian starts were left out).
 pub const NOISE_STOP: f64 = 1.0;
 
+/// A fit with a step tolerance ([`fit_packed_within`]) takes a step without evaluating the
+/// model at its end when the step before it *settled* (the residual fell by the decrease the
+/// linearised model predicted for it, within [`SETTLED_MATCH`] of it), this step is at most
+/// this fraction of that one's length `q`, and the step after it, predicted `q` times as long,
+/// would be within the step tolerance ([`STEP_TOLERANCE`]). The fit then counts as converged
+/// and reports the residual the linearised model predicts at the step's end, `|r - J dx|^2`
+/// ([`GlossyFit::sse`]; in a unit test within `1e-3` of the model's there). The noise stop
+/// ([`NOISE_STOP`]) was tried as a second reason (the next step promising `q^2` times this one's
+/// decrease, within the noise): such a step may still lower the residual by several `sigma^2`,
+/// and the prediction then came out up to `0.08 sigma^2` below the least residual. Near its minimum a Gauss-Newton fit converges at least
+/// linearly, quadratically where the residual is small: the prediction is conservative there.
+///
+/// Stop 56 (issue 20): the warm fits of a reconstruction's local steps took a second step and
+/// then evaluated the model at its end only to find the third step within the tolerance (77 %
+/// of the first fine local step's fits at 1 MP); that evaluation with its derivatives was a
+/// third of a fit's.
+pub const SETTLED_RATIO: f64 = 0.5;
+
+/// How close a step's decrease of the residual must come to the linearised model's prediction
+/// (relatively) for the step to have settled (see [`SETTLED_RATIO`]).
+pub const SETTLED_MATCH: f64 = 0.1;
+
 /// The glossy fit of one facet.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GlossyFit {
@@ -1032,7 +1060,8 @@ pub struct GlossyFit {
     pub diffuse: f64,
     /// Specular albedo `rho_s`.
     pub specular: f64,
-    /// Sum of squared residuals over the observations that carry light.
+    /// Sum of squared residuals over the observations that carry light (where the fit's last
+    /// step was taken unevaluated, see [`SETTLED_RATIO`], the linearised model's).
     pub sse: f64,
     /// How many observations carry light at the final normal.
     pub used: u32,
@@ -2015,7 +2044,7 @@ mod tests {
         let v = packed.view;
         macro_rules! read {
             ($m:ident, $store:expr) => {{
-                let groups = &$store.groups;
+                let groups = $store.groups();
                 let mut f = vec![$m::Factors::default(); groups.len()];
                 $m::factors_of(k, groups, n, w, v, &mut f);
                 let one = |j: usize| {
@@ -2145,7 +2174,7 @@ mod tests {
         macro_rules! read {
             ($m:ident, $store:expr) => {{
                 let one = |j: usize| {
-                    let (g, lane) = (&$store.groups[j / $m::W], j % $m::W);
+                    let (g, lane) = (&$store.groups()[j / $m::W], j % $m::W);
                     let x = |a: $m::F| f64::from(a);
                     (
                         x(g.scale[lane]),
@@ -2482,6 +2511,59 @@ mod tests {
         assert!(worst < 10.0 * STEP_TOLERANCE, "{worst} rad");
     }
 
+    /// Fits from warm starts near their minimum, on noisy observations: with the step
+    /// tolerance, a fit whose last step settled takes the next one without evaluating the model
+    /// at its end (see [`SETTLED_RATIO`]). Such fits end as near the minimum as the step tolerance
+    /// says, report that they converged, and report the residual of the model at their unknowns
+    /// (or the one before their last step, as near). With two steps allowed, a fit that needs
+    /// both ends converged only by taking its second step unevaluated: some do.
+    #[test]
+    fn a_settled_fit_takes_its_last_step_unevaluated() {
+        let lobe = Lobe::new(0.3, 1.5);
+        let angle = |a: [f64; 3], b: [f64; 3]| dot(a, b).clamp(-1.0, 1.0).acos();
+        let mut state = 7u64;
+        let (mut worst, mut converged_in_two) = (0.0f64, 0);
+        for i in 0..100 {
+            let t = i as f64;
+            let n = normalize([0.5 * (t * 0.37).sin(), 0.5 * (t * 0.73).cos(), -1.0]);
+            let x = [10.0 * (t * 0.11).sin(), 10.0 * (t * 0.29).cos(), 200.0];
+            let v = normalize(scale(x, -1.0));
+            let mut obs = observe(&lobe, x, n, 0.6, 0.4);
+            for o in &mut obs {
+                o.value += 0.005 * uniform(&mut state);
+            }
+            let mut packed = Packed::new();
+            packed.clear(v);
+            for o in &obs {
+                packed.push_observation(o);
+            }
+            let exact = fit_packed(&lobe, &mut packed, scale(n, 0.6), 30).unwrap();
+            let start = normalize([n[0] + 0.006, n[1] - 0.004, n[2]]);
+            let fit = fit_packed_at_within(&lobe, &mut packed, start, 30, STEP_TOLERANCE).unwrap();
+            assert!(fit.converged, "{i}: {fit:?}");
+            worst = worst.max(angle(fit.normal, exact.normal));
+            // The residual of the scalar model at the fit's unknowns.
+            let sse: f64 = obs
+                .iter()
+                .filter_map(|o| {
+                    let s = lobe.shade(fit.normal, o.light, v)?;
+                    let e =
+                        o.value - o.scale * (fit.diffuse * s.diffuse + fit.specular * s.specular);
+                    Some(e * e)
+                })
+                .sum();
+            assert!(
+                (fit.sse - sse).abs() <= 1e-3 * sse,
+                "{i}: {} against {sse}",
+                fit.sse
+            );
+            let two = fit_packed_at_within(&lobe, &mut packed, start, 2, STEP_TOLERANCE).unwrap();
+            converged_in_two += usize::from(two.converged);
+        }
+        assert!(worst < 10.0 * STEP_TOLERANCE, "{worst} rad");
+        assert!(converged_in_two >= 10, "{converged_in_two} of 100");
+    }
+
     /// A fit cut off by its last allowed step reports that it did not converge; one that ends
     /// by its step tolerance, or at its minimum, reports that it did (the flag the local steps
     /// keep fits by). Over 50 facets from a far start.
@@ -2558,9 +2640,11 @@ mod tests {
                 packed.noise = sigma * sigma;
                 let fit = fit_packed_within(&lobe, &mut packed, start, 30, STEP_TOLERANCE).unwrap();
                 assert!(fit.converged, "{fit:?}");
+                // (A fit whose last step was taken unevaluated reports the linearised model's
+                // residual, which may lie a little below the least: see `SETTLED_RATIO`.)
                 let excess = (fit.sse - best.sse) / (sigma * sigma);
                 assert!(
-                    (-1e-9..=3.0 * NOISE_STOP).contains(&excess),
+                    (-1e-2..=3.0 * NOISE_STOP).contains(&excess),
                     "seed {seed} facet {i}: {excess} {fit:?} {best:?}"
                 );
                 let error = |g: &GlossyFit| dot(g.normal, n).min(1.0).acos();

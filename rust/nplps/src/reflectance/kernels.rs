@@ -398,14 +398,6 @@ impl Accumulator {
     }
 }
 
-simd_dispatch! {
-    wide
-    /// [`factors_of`] with AVX-512 or AVX2 when the processor has it.
-    fn factors_dispatch => factors_of(
-        k: &Kernel, groups: &[Group], n: [f64; 3], w: &View, v: [f64; 3], out: &mut [Factors],
-    ) -> ();
-}
-
 /// The factors of `groups` at the normal `n` (with its shared terms `w`) into `out`.
 #[inline(always)]
 pub(super) fn factors_of(
@@ -422,14 +414,6 @@ pub(super) fn factors_of(
     }
 }
 
-simd_dispatch! {
-    wide
-    /// [`accumulate`] with AVX-512 or AVX2 when the processor has it.
-    fn accumulate_dispatch => accumulate(
-        groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64,
-    ) -> Equations;
-}
-
 /// The normal equations at `(rho n, s)` from the factors at `n`.
 #[inline(always)]
 fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f64) -> Equations {
@@ -439,14 +423,6 @@ fn accumulate(groups: &[Group], factors: &[Factors], n: [f64; 3], rho: f64, s: f
         acc.add(g, f, n, rho as F, s as F);
     }
     acc.finish()
-}
-
-simd_dispatch! {
-    wide
-    /// [`equations_at`] with AVX-512 or AVX2 when the processor has it.
-    fn equations_dispatch => equations_at(
-        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
-    ) -> Equations;
 }
 
 /// The model and its derivatives at `(b, s)`: the squared residual, `J^T J`, `J^T r` and the
@@ -464,14 +440,6 @@ fn equations_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) 
         }
     }
     acc.finish()
-}
-
-simd_dispatch! {
-    wide
-    /// [`residual_at`] with AVX-512 or AVX2 when the processor has it.
-    fn residual_dispatch => residual_at(
-        k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64,
-    ) -> (f64, u32);
 }
 
 /// The squared residual at `(b, s)` and the number of observations used (no derivatives).
@@ -493,12 +461,6 @@ fn residual_at(k: &Kernel, groups: &[Group], v: [f64; 3], b: [f64; 3], s: f64) -
         }
     }
     (lane_sum(&sse), used.iter().sum())
-}
-
-simd_dispatch! {
-    wide
-    /// [`albedo_sums`] with AVX-512 or AVX2 when the processor has it.
-    fn albedo_sums_dispatch => albedo_sums(groups: &[Group], factors: &[Factors]) -> [f64; 5];
 }
 
 /// The sums `d.d`, `d.s`, `s.s`, `d.i`, `s.i` over the lit observations of `groups` with their
@@ -550,9 +512,10 @@ fn albedo_sums_in_order(groups: &[Group], factors: &[Factors]) -> [f64; 5] {
 /// The least-squares albedos `(rho_d n, rho_s)` at the normal `n` held (`rho_s >= 0`; `rho_d`
 /// from the diffuse part alone where the specular one would be negative), or None without
 /// light; `factors` are those of `groups` at `n`. (In `f64`.)
+#[inline(always)]
 fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f64; 3], f64)> {
     let [dd, ds, ss, di, si] = match LANE_ALBEDO_SUMS {
-        true => albedo_sums_dispatch(groups, factors),
+        true => albedo_sums(groups, factors),
         false => albedo_sums_in_order(groups, factors),
     };
     if dd <= 0.0 {
@@ -565,6 +528,17 @@ fn albedos_at(groups: &[Group], factors: &[Factors], n: [f64; 3]) -> Option<([f6
         (di / dd, 0.0)
     };
     (rho > 0.0).then(|| (scale(n, rho), s))
+}
+
+/// `x^T a x`, written out (`nalgebra`'s product was a call out of line).
+#[inline(always)]
+fn quadratic(a: &Matrix4<f64>, x: &Vector4<f64>) -> f64 {
+    let mut q = 0.0;
+    for i in 0..4 {
+        let row = a[(i, 0)] * x[0] + a[(i, 1)] * x[1] + a[(i, 2)] * x[2] + a[(i, 3)] * x[3];
+        q += x[i] * row;
+    }
+    q
 }
 
 /// [`fit_from`] with the kernel `k` of its lobe, on the observations `obs` seen along `v`
@@ -580,25 +554,60 @@ pub(super) fn fit_with(
     steps: usize,
     tolerance: f64,
 ) -> Option<GlossyFit> {
+    fit_dispatch(k, obs, v, noise, n0, fallback, (steps, tolerance))
+}
+
+simd_dispatch! {
+    wide
+    /// [`fit_in_lanes`] with AVX-512 or AVX2 when the processor has it.
+    fn fit_dispatch => fit_in_lanes(
+        k: &Kernel,
+        obs: &mut Store,
+        v: [f64; 3],
+        noise: f64,
+        n0: [f64; 3],
+        fallback: Option<[f64; 3]>,
+        limits: (usize, f64),
+    ) -> Option<GlossyFit>;
+}
+
+/// [`fit_with`] with its limits `(steps, tolerance)`: the whole fit one dispatched function,
+/// its kernels (the factors, the albedos' sums, the normal equations, the residual) and the
+/// view's terms inlined into it. (Each kernel was dispatched on its own, with `Kernel::view`
+/// and the steps' scalar code between them compiled for the baseline processor.)
+#[inline(always)]
+fn fit_in_lanes(
+    k: &Kernel,
+    obs: &mut Store,
+    v: [f64; 3],
+    noise: f64,
+    n0: [f64; 3],
+    fallback: Option<[f64; 3]>,
+    (steps, tolerance): (usize, f64),
+) -> Option<GlossyFit> {
     // The factors at the starting normal serve both its albedos and its normal equations
     // (every entry is written: no clearing first).
-    obs.factors.resize(obs.groups.len(), Factors::default());
+    let n = obs.len.div_ceil(W);
+    obs.factors.resize(n, Factors::default());
     match k.view(n0, v) {
-        Some(w) => factors_dispatch(k, &obs.groups, n0, &w, v, &mut obs.factors),
+        Some(w) => factors_of(k, &obs.all[..n], n0, &w, v, &mut obs.factors),
         None => obs.factors.fill(Factors::default()),
     }
-    let groups = &obs.groups[..];
+    let groups = &obs.all[..n];
     let (mut b, mut s) = match albedos_at(groups, &obs.factors, n0) {
         Some(albedos) => albedos,
         None => (fallback?, 0.0),
     };
     let (mut sse, mut jtj, mut jtr, mut used) =
-        accumulate_dispatch(groups, &obs.factors, n0, norm(b), s);
+        accumulate(groups, &obs.factors, n0, norm(b), s);
     let mut lambda = 1e-3;
     // Whether the last allowed step was taken (the fit may not have reached its minimum).
     let mut capped = false;
     // The decrease the step at which the fit stopped promised (unknown: infinite).
     let mut promise = f64::INFINITY;
+    // The length of the last step taken where the decrease it brought was the one the
+    // linearised model predicted, within `SETTLED_MATCH` (see `SETTLED_RATIO`).
+    let mut settled: Option<f64> = None;
     for step_index in 0..steps {
         if used < 4 {
             return None;
@@ -631,9 +640,33 @@ pub(super) fn fit_with(
                 lambda *= 10.0;
                 continue;
             }
+            // The decrease of the residual the linearised model predicts for the step,
+            // `|r|^2 - |r - J dx|^2` (with a step tolerance only: see `SETTLED_RATIO`).
+            let drop = match tolerance > 0.0 {
+                true => 2.0 * step.dot(&jtr) - quadratic(&jtj, &step),
+                false => f64::NAN,
+            };
+            // A step that the last one predicts to end the fit (see `SETTLED_RATIO`) is taken
+            // without evaluating the model at its end: the residual there is the linearised
+            // model's.
+            if let (true, Some(before)) = (tolerance > 0.0, settled) {
+                let length = step.norm();
+                let q = length / before;
+                let next_promise = q * q * step.dot(&jtr);
+                if q <= SETTLED_RATIO
+                    && s + step[3] >= 0.0
+                    && drop > 0.0
+                    && drop < sse
+                    && q * length <= tolerance * (norm(nb) + ns)
+                {
+                    (b, s, sse) = (nb, ns, sse - drop);
+                    promise = next_promise;
+                    break;
+                }
+            }
             if last {
                 // No step follows: the residual alone decides.
-                let (next, n_used) = residual_dispatch(k, groups, v, nb, ns);
+                let (next, n_used) = residual_at(k, groups, v, nb, ns);
                 if n_used >= 4 && next < sse {
                     (b, s, sse, used) = (nb, ns, next, n_used);
                     capped = true;
@@ -642,10 +675,11 @@ pub(super) fn fit_with(
                 lambda *= 10.0;
                 continue;
             }
-            let next = equations_dispatch(k, groups, v, nb, ns);
+            let next = equations_at(k, groups, v, nb, ns);
             if next.3 >= 4 && next.0 < sse {
                 // Converged when the step no longer changes the fit noticeably.
                 let small = step.norm() <= 1e-9 * (norm(b) + s) || sse - next.0 <= CONVERGED * sse;
+                settled = ((sse - next.0 - drop).abs() <= SETTLED_MATCH * drop).then(|| step.norm());
                 (b, s) = (nb, ns);
                 (sse, jtj, jtr, used) = next;
                 lambda = (lambda * 0.3).max(1e-9);
@@ -680,9 +714,29 @@ pub(super) fn fit_with(
 pub(super) struct Store {
     /// How many observations it holds.
     pub(super) len: usize,
-    pub(super) groups: Vec<Group>,
+    /// The groups of these observations (the first `len.div_ceil(W)`), then those of earlier
+    /// facets, kept so that the next facets reset theirs instead of making them anew (see
+    /// [`Group::reset`]).
+    all: Vec<Group>,
     /// Scratch: the factors at the starting normal of a fit.
     factors: Vec<Factors>,
+}
+
+impl Group {
+    /// What a group made anew holds where no observation was pushed since: no light, not a
+    /// point light. (A lane's other terms are those of its observation once pushed, computed by
+    /// [`Packed::prepare`] for every lane, or not read for a lane without one: the point
+    /// lights' terms of a lane that is not a point light's are discarded.) A new group, made
+    /// per facet, was written whole (1.7 kB of `f32` lanes at 16 lanes).
+    #[inline]
+    fn reset(&mut self) {
+        self.value = [0.0; W];
+        self.scale = [0.0; W];
+        self.l = [[0.0; W]; 3];
+        self.retro = [0.0; W];
+        self.point = [false; W];
+        self.mu = [0.0; W];
+    }
 }
 
 impl Store {
@@ -690,19 +744,26 @@ impl Store {
     #[inline]
     pub(super) fn clear(&mut self) {
         self.len = 0;
-        self.groups.clear();
+    }
+
+    /// The groups of the observations.
+    #[cfg(test)]
+    pub(super) fn groups(&self) -> &[Group] {
+        &self.all[..self.len.div_ceil(W)]
     }
 
     /// The lane of the next observation.
     #[inline]
     fn next_lane(&mut self) -> (&mut Group, usize) {
-        let lane = self.len % W;
+        let (group, lane) = (self.len / W, self.len % W);
         if lane == 0 {
-            self.groups.push(Group::default());
+            match self.all.get_mut(group) {
+                Some(g) => g.reset(),
+                None => self.all.push(Group::default()),
+            }
         }
         self.len += 1;
-        let g = self.groups.last_mut().expect("a group was pushed");
-        (g, lane)
+        (&mut self.all[group], lane)
     }
 
     /// [`Packed::push`].
@@ -753,7 +814,8 @@ impl Store {
 
     /// [`Packed::prepare`] with the view vector `v` and the lobe's `eta` and diffuse shape.
     pub(super) fn prepare(&mut self, v: [f64; 3], x: [f64; 3], eta: f64, retro: bool) {
-        prepare_dispatch(&mut self.groups, v, x, eta, retro);
+        let n = self.len.div_ceil(W);
+        prepare_dispatch(&mut self.all[..n], v, x, eta, retro);
     }
 }
 
@@ -797,12 +859,12 @@ mod kernel_tests {
                     }
                 }
             }
-            let mut factors = vec![Factors::default(); store.groups.len()];
-            factors_of(&k, &store.groups, n, &w, v, &mut factors);
+            let mut factors = vec![Factors::default(); store.groups().len()];
+            factors_of(&k, store.groups(), n, &w, v, &mut factors);
             let unlit = (0..lights.len()).filter(|&i| !factors[i / W].lit[i % W]).count();
             assert!(unlit > 0 && unlit < lights.len(), "{unlit} unlit");
-            let lanes = albedo_sums(&store.groups, &factors);
-            let in_order = albedo_sums_in_order(&store.groups, &factors);
+            let lanes = albedo_sums(store.groups(), &factors);
+            let in_order = albedo_sums_in_order(store.groups(), &factors);
             for (j, ((&lane, &ordered), &reference)) in
                 lanes.iter().zip(&in_order).zip(&scalar).enumerate()
             {
