@@ -265,6 +265,9 @@ impl Evaluator<'_, '_> {
             curve.push((x, r));
         }
         let residual = mean(&residuals);
+        if self.fresh.is_some() && !i23_env("NPLPS_I23_TRACE").is_nan() {
+            eprintln!("I23 cand d {:?} R {:e}", d, residual);
+        }
         if residual.is_finite() && (self.best.1.is_nan() || residual < self.best.1) {
             self.best = (info.distance, residual);
         }
@@ -284,6 +287,13 @@ impl Evaluator<'_, '_> {
         }
         Ok(residuals)
     }
+}
+
+fn i23_env(name: &str) -> f64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::NAN)
 }
 
 /// The lower of two criteria, NaN counting as none.
@@ -443,6 +453,7 @@ fn search_stages(
     };
     let mut count = Count {
         lowest: f64::NAN,
+        beat: f64::NAN,
         done: 0,
         planned: planned_candidates(scan)
             + match (profile, halvings > 0) {
@@ -858,9 +869,33 @@ fn fresh_stages(
         let alpha = estimated.alpha;
         let grid = std::iter::once(Lobe::retro(alpha, RETRO_ETA))
             .chain(FRESH_ETAS.iter().map(|&eta| Lobe::new(alpha, eta)));
-        let lobes = std::iter::once(estimated).chain(grid.filter(|&l| l != estimated));
+        let mut lobes: Vec<Lobe> = std::iter::once(estimated)
+            .chain(grid.filter(|&l| l != estimated))
+            .collect();
+        if i23_env("NPLPS_I23_ORDER") == 1.0 {
+            // estimated, retro, then indices by nearness to the estimated one
+            let e = estimated.eta;
+            let (head, tail) = lobes.split_at_mut(2);
+            let _ = head;
+            tail.sort_by(|a, b| (a.eta - e).abs().total_cmp(&(b.eta - e).abs()));
+        }
+        let prune = !i23_env("NPLPS_I23_PRUNE").is_nan();
+        let trace = !i23_env("NPLPS_I23_TRACE").is_nan();
         let mut best: Option<(f64, DistanceEstimate, Lobe)> = None;
         for lobe in lobes {
+            count.beat = match (prune, &best) {
+                (true, Some(b)) => b.0,
+                _ => f64::NAN,
+            };
+            if trace {
+                eprintln!(
+                    "I23 lobe eta {} retro {} alpha {} beat {:e}",
+                    lobe.eta,
+                    lobe != Lobe::new(lobe.alpha, lobe.eta),
+                    lobe.alpha,
+                    count.beat
+                );
+            }
             let window = Window {
                 scan: NARROW_SCAN,
                 width: FRESH_WIDTH,
@@ -890,6 +925,9 @@ fn fresh_stages(
                 progress,
             ) {
                 Ok((estimate, _)) => {
+                    if trace {
+                        eprintln!("I23 lowest {:e} at {:?}", count.lowest, estimate.distance);
+                    }
                     if best.as_ref().is_none_or(|b| count.lowest < b.0) {
                         best = Some((count.lowest, estimate, lobe));
                     }
@@ -899,9 +937,13 @@ fn fresh_stages(
                 Err(e) => return Err(e),
             }
         }
+        count.beat = f64::NAN;
         let Some((_, estimate, lobe)) = best else {
             return Ok(None);
         };
+        if trace {
+            eprintln!("I23 winner eta {} at {:?}", lobe.eta, estimate.distance);
+        }
         // The best candidate once more, for its surface: carried up to `problem`, its gauge
         // there is the distance found (as in [`fine_estimate`]).
         let mut ev = Evaluator {
@@ -939,6 +981,8 @@ struct Count {
     /// The lowest (mean) criterion of a candidate since it was last reset (NaN: none; see
     /// [`fresh_stages`]).
     lowest: f64,
+    /// The criterion a lobe's search must beat (NaN: none): see [`fresh_stages`].
+    beat: f64,
 }
 
 /// The window in which [`search_window`] refines a wide estimate.
@@ -1181,7 +1225,7 @@ fn search_refined(
         scan,
         (ln_near, step),
         tolerance,
-        vee,
+        (vee, count.beat),
         progress,
     );
     count.done = ev.candidate;
@@ -1211,7 +1255,7 @@ fn refine_scan(
     scan: usize,
     (ln_near, step): (f64, f64),
     tolerance: f64,
-    vee: bool,
+    (vee, beat): (bool, f64),
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<std::result::Result<Vec<f64>, (usize, bool)>> {
     // Coarse scan from far to near (surfaces start flat; far is the gentlest start).
@@ -1256,7 +1300,18 @@ fn refine_scan(
             ..Parabolic::new(p)
         })
         .collect();
-    for _ in 0..MAX_REFINEMENTS {
+    let margin = i23_env("NPLPS_I23_PRUNE");
+    let after = i23_env("NPLPS_I23_AFTER");
+    for step in 0..MAX_REFINEMENTS {
+        if !beat.is_nan() && (after.is_nan() || step < after as usize) {
+            let floor = mean(&state.iter().map(Parabolic::floor).collect::<Vec<_>>());
+            if floor > beat * (1.0 + margin) {
+                if !i23_env("NPLPS_I23_TRACE").is_nan() {
+                    eprintln!("I23 pruned at step {step} floor {floor:e} beat {beat:e}");
+                }
+                break;
+            }
+        }
         let trial: Vec<Option<f64>> = state.iter_mut().map(|s| s.next(tolerance)).collect();
         if trial.iter().all(Option::is_none) {
             break;
@@ -1435,6 +1490,22 @@ impl Parabolic {
         x = x.clamp(a + gap.min(0.5 * (m - a)), c - gap.min(0.5 * (c - m)));
         self.steps = [self.steps[1], (x - m).abs()];
         Some(x)
+    }
+
+    /// A lower bound of the residual's minimum: the bottom of the V of equal slopes (the
+    /// steeper of the least point's two chords) through the least point and its neighbours
+    /// (see [`vee_minimum`]); minus infinity without a bracket.
+    fn floor(&self) -> f64 {
+        let b = self.best();
+        if b == 0 || b + 1 >= self.points.len() {
+            return f64::NEG_INFINITY;
+        }
+        let [(a, fa), (m, fm), (c, fc)] = [self.points[b - 1], self.points[b], self.points[b + 1]];
+        let slope = ((fa - fm) / (m - a)).max((fc - fm) / (c - m));
+        if !(slope > 0.0 && slope.is_finite()) {
+            return f64::NEG_INFINITY;
+        }
+        fm - slope * (vee_minimum([a, m, c], [fa, fm, fc]) - m).abs()
     }
 
     /// Records the residual `f` at `x`.
