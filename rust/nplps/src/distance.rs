@@ -2152,6 +2152,49 @@ mod tests {
     /// (noise-free residuals) in fewer steps than parabolas take, rounded ones (residuals with
     /// noise, `sqrt(s^2 + k^2 x^2)`), lopsided ones and Vs of unequal sides still to the
     /// tolerance, in at most 3 steps more than parabolas take.
+    /// [`Parabolic::floor`]: the bottom of a V of equal slopes, at every step of its
+    /// refinement; below the minimum of smooth curves from a scan's three points (not at every
+    /// step: once the points crowd on one side of a rounded bottom, the floor of a parabola
+    /// `4 (x - 0.05)^2 + 0.5` reaches 0.504); none without a bracket.
+    #[test]
+    fn the_floor_bounds_the_least_residual() {
+        let curves: [(&str, fn(f64, f64) -> f64, f64); 3] = [
+            ("vee", |x, c| 3.0 * (x - c).abs() + 0.2, 0.2),
+            ("parabola", |x, c| 4.0 * (x - c).powi(2) + 0.5, 0.5),
+            ("quartic", |x, c| (x - c).powi(4) + 0.1, 0.1),
+        ];
+        for (name, f, least) in curves {
+            for corner in [-0.7, -0.2, 0.0, 0.05, 0.3, 0.69] {
+                let points: Vec<(f64, f64)> = [-1.0, corner + 0.1, 1.0]
+                    .map(|x| (x, f(x, corner)))
+                    .to_vec();
+                let mut p = Parabolic {
+                    vee: true,
+                    ..Parabolic::new(points)
+                };
+                // A scan's three points: below the least for the smooth curves too.
+                let floor = p.floor();
+                assert!(floor <= least + 1e-12, "{name} {corner}: {floor}");
+                assert!(floor > least - 3.0, "{name} {corner}: {floor}");
+                let mut steps = 0;
+                loop {
+                    let floor = p.floor();
+                    if name == "vee" {
+                        assert!((floor - least).abs() < 1e-12, "{corner}: {floor}");
+                    }
+                    let Some(x) = p.next(1e-4) else { break };
+                    p.insert(x, f(x, corner));
+                    steps += 1;
+                }
+                assert!(steps > 0);
+            }
+        }
+        let edge = Parabolic::new(vec![(0.0, 1.0), (1.0, 2.0), (2.0, 3.0)]);
+        assert_eq!(edge.floor(), f64::NEG_INFINITY);
+        let flat = Parabolic::new(vec![(0.0, 1.0), (1.0, 1.0), (2.0, 1.0)]);
+        assert_eq!(flat.floor(), f64::NEG_INFINITY);
+    }
+
     #[test]
     fn vee_refinement_finds_minima_to_the_tolerance() {
         let tol = 1e-3;
@@ -2387,5 +2430,57 @@ mod search_state_tests {
         let warm_alone = evaluate(&[200.0], false);
         let warm_after = evaluate(&[180.0, 215.0, 200.0], false);
         assert_ne!(warm_after[2], warm_alone[0]);
+    }
+
+    /// A search given a criterion to beat stops once its floor is above it (by more than
+    /// [`BEAT_MARGIN`]), and refines as before when it is not.
+    #[test]
+    fn a_search_that_cannot_beat_the_best_stops() {
+        let (scene, images) = cap();
+        let problem = cap_problem(&scene, &images);
+        let options = Options {
+            levels: 1,
+            ..Options::default()
+        };
+        let search = |beat: f64| {
+            let mut solver = Solver::new(&problem, &options).unwrap();
+            let _ = begin_search(&mut solver);
+            let mut count = Count {
+                done: 0,
+                planned: 0,
+                lowest: f64::NAN,
+                beat,
+            };
+            let u = problem.u0.to_vec("the depths").unwrap();
+            let window = DistanceSearch {
+                scan: 3,
+                ..DistanceSearch::default()
+            };
+            let mut quiet = |_: &IterationStats| Control::Continue;
+            let searched = search_refined(
+                &mut solver,
+                &problem,
+                &window,
+                (scene.mean_depth() / 1.05, scene.mean_depth() * 1.05),
+                u,
+                (true, None),
+                &mut count,
+                &mut quiet,
+            )
+            .unwrap();
+            let Searched::Found(estimate, _) = searched else {
+                panic!("no bracket");
+            };
+            (count.done, count.lowest, estimate.distance[0])
+        };
+        let (all, lowest, found) = search(f64::NAN);
+        assert!(all > 3, "{all}");
+        // A criterion to beat above this search's lowest: refined as before, to the bit.
+        assert_eq!(search(lowest * (1.0 + BEAT_MARGIN)), (all, lowest, found));
+        assert_eq!(search(2.0 * lowest), (all, lowest, found));
+        // Far below it: stopped before the refinement's end, at the least point so far.
+        let (fewer, above, _) = search(0.01 * lowest);
+        assert!((3..all).contains(&fewer), "{fewer} of {all}");
+        assert!(above >= lowest);
     }
 }
