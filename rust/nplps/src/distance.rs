@@ -857,6 +857,14 @@ const FRESH_ETAS: [f64; 6] = {
 /// a curved surface (its geometric mean depth) differs between levels whose masks differ, and
 /// the level's own distance left the 256² PBR spheres and tori 0.2-0.4 % long.
 ///
+/// The lobes' first windows are scanned first (3 candidates each); their searches then run
+/// from the lobe whose scan went lowest, and each stops as soon as the V floor of its least
+/// points ([`Parabolic::floor`]) lies above the lowest criterion found so far (by more than
+/// [`BEAT_MARGIN`]): such a lobe would not win. A search's candidates evaluated before (its
+/// scan, the end its window moved to) are looked up, not run again ([`Fresh`]'s memo). This
+/// leaves the winner and its candidates as they were (stop 56: the same bits on 62 runs,
+/// docs/performance.md) and saves about a third of the stages' candidates.
+///
 /// So `R(d, L)` is a function of the level's images, the distance and the lobe alone, and the
 /// search is the minimum over a grid of lobes of a minimum over the distance: the estimate
 /// moves continuously with the images, except where two lobes' minima tie.
