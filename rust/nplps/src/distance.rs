@@ -2166,7 +2166,8 @@ mod tests {
     /// `4 (x - 0.05)^2 + 0.5` reaches 0.504); none without a bracket.
     #[test]
     fn the_floor_bounds_the_least_residual() {
-        let curves: [(&str, fn(f64, f64) -> f64, f64); 3] = [
+        type Curve = fn(f64, f64) -> f64;
+        let curves: [(&str, Curve, f64); 3] = [
             ("vee", |x, c| 3.0 * (x - c).abs() + 0.2, 0.2),
             ("parabola", |x, c| 4.0 * (x - c).powi(2) + 0.5, 0.5),
             ("quartic", |x, c| (x - c).powi(4) + 0.1, 0.1),
