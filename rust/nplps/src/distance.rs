@@ -1463,9 +1463,10 @@ impl Surfaces {
 
 /// The margin (relative) by which a lower bound must be above the criterion to beat before a
 /// search stops (see [`refine_scan`]): the bound of [`Parabolic::floor`] assumes a V of equal
-/// slopes, and the criterion's minimum is rounded (stop 56: on 48 traced searches, 56 of
-/// 1623 bounds were above their lobe's lowest criterion, by at most 0.2 % but one, by 10.6 %, on
-/// a noise-free render whose lobe won by a factor 2.4).
+/// slopes, and the criterion's minimum may be rounded or lopsided (stop 56, on the traces of 62
+/// runs: 77 of 2360 floors were above their lobe's lowest criterion, 58 by at most 0.2 %, 19 on
+/// noise-free renders by up to 8.5 times; no winner changed, as those lobes won by far or were
+/// searched first: docs/performance.md).
 const BEAT_MARGIN: f64 = 2e-3;
 
 /// At most this many refinement steps follow a scan (golden-section search from the scan's
@@ -2156,10 +2157,6 @@ mod tests {
         assert!((x + 0.2 / 1.8).abs() < 1e-12, "{x}");
     }
 
-    /// Stepping to a V's corner from a window of three points (a held stage's): V-shaped minima
-    /// (noise-free residuals) in fewer steps than parabolas take, rounded ones (residuals with
-    /// noise, `sqrt(s^2 + k^2 x^2)`), lopsided ones and Vs of unequal sides still to the
-    /// tolerance, in at most 3 steps more than parabolas take.
     /// [`Parabolic::floor`]: the bottom of a V of equal slopes, at every step of its
     /// refinement; below the minimum of smooth curves from a scan's three points (not at every
     /// step: once the points crowd on one side of a rounded bottom, the floor of a parabola
@@ -2204,6 +2201,10 @@ mod tests {
         assert_eq!(flat.floor(), f64::NEG_INFINITY);
     }
 
+    /// Stepping to a V's corner from a window of three points (a held stage's): V-shaped minima
+    /// (noise-free residuals) in fewer steps than parabolas take, rounded ones (residuals with
+    /// noise, `sqrt(s^2 + k^2 x^2)`), lopsided ones and Vs of unequal sides still to the
+    /// tolerance, in at most 3 steps more than parabolas take.
     #[test]
     fn vee_refinement_finds_minima_to_the_tolerance() {
         let tol = 1e-3;
