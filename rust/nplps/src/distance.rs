@@ -817,7 +817,7 @@ const PROFILE_MOVES: usize = 3;
 /// lobe is estimated at its iterations [`LOBE_AT`](crate::solver::LOBE_AT) (3 and 5), then
 /// three more. With 15 (stop 56) the window cost 1.8 of the 5.4 CPU s of the glossy bumps'
 /// 256² search; 8 and the estimates near the last one ([`Solver::lobe_near`]) cut it by a
-/// third, with the distances found within 0.1 % of before (docs/performance.md, stop 56).
+/// third, the distances found within 0.2 % of before (docs/performance.md, stop 56).
 const PROFILE_INNER: usize = 8;
 
 /// The half-width, as a factor of the distance, of the first window of a stage of
