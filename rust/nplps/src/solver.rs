@@ -732,6 +732,11 @@ pub(crate) struct Solver<'p> {
     /// Whether the estimated lobe is held as it is (the distance search holds it while it
     /// compares candidates).
     pub(crate) hold_lobe: bool,
+    /// Whether every lobe estimate searches near the last one, also the first of a run of a
+    /// solver that started without a lobe (which otherwise searches the whole grids; see
+    /// [`Solver::reflectance`]). The distance search's profile window sets it for its
+    /// candidates, each a run from its neighbour's surface and lobe (`distance::search_window`).
+    pub(crate) lobe_near: bool,
     /// Whether a rough lobe estimate keeps the glossy model (the distance search's candidates
     /// are compared under one model; the run at the distance found decides, see
     /// [`MATTE_ROUGHNESS`]).
@@ -882,6 +887,7 @@ impl<'p> Solver<'p> {
                 Reflectance::Lambertian => None,
             },
             hold_lobe: false,
+            lobe_near: false,
             keep_glossy: false,
             continuation: true,
             precise_lanes: true,
@@ -1663,8 +1669,8 @@ impl<'p> Solver<'p> {
         self.lobe_from_scratch |= from_scratch;
         // A solver without a lobe searches twice from scratch: first on its starting surface
         // (the roughness alone), then the whole grids on the surface of its first iterations;
-        // later estimates search near the last one.
-        let near = match iteration == at[0] && self.lobe_from_scratch {
+        // later estimates search near the last one (all of them with `lobe_near`).
+        let near = match iteration == at[0] && self.lobe_from_scratch && !self.lobe_near {
             true => None,
             false => self.lobe,
         };
