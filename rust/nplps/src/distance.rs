@@ -170,6 +170,31 @@ struct Evaluator<'s, 'p> {
     fresh: Option<Fresh>,
 }
 
+impl<'s, 'p> Evaluator<'s, 'p> {
+    /// An evaluator of candidates on `solver`'s level (of `regions` regions) from the depths
+    /// `u`, `inner` iterations each (warm-started) or afresh (`fresh`); its candidates numbered
+    /// from `candidate` of `candidates` planned.
+    fn new(
+        (solver, regions): (&'s mut Solver<'p>, usize),
+        u: Vec<f64>,
+        inner: usize,
+        (candidate, candidates): (usize, usize),
+        fresh: Option<Fresh>,
+    ) -> Self {
+        Evaluator {
+            refine: solver.lights.refine(),
+            solver,
+            u,
+            inner,
+            curve: vec![Vec::new(); regions],
+            candidate,
+            candidates,
+            best: (f64::NAN, f64::NAN),
+            fresh,
+        }
+    }
+}
+
 /// A candidate evaluated afresh: a new solver on the level (`options`), the search's settings
 /// ([`begin_search`]) but the continuation of sharp lobes' fits and the user's cast-shadow
 /// policy, as in a run of its own, and `lobe` held, from one surface for all candidates
@@ -945,17 +970,13 @@ fn fresh_stages(
         let mut lowest = Vec::with_capacity(fresh.len());
         for f in &fresh {
             count.planned += NARROW_SCAN;
-            let mut ev = Evaluator {
-                refine: sub.lights.refine(),
-                solver: &mut sub,
-                u: Vec::new(),
-                inner: 1,
-                curve: vec![Vec::new(); level.grid.n_regions],
-                candidate: count.done,
-                candidates: count.planned,
-                best: (f64::NAN, f64::NAN),
-                fresh: Some(f.clone()),
-            };
+            let mut ev = Evaluator::new(
+                (&mut sub, level.grid.n_regions),
+                Vec::new(),
+                1,
+                (count.done, count.planned),
+                Some(f.clone()),
+            );
             let scan = log_scan(bounds, NARROW_SCAN);
             for i in (0..NARROW_SCAN).rev() {
                 let d = scan_distance(scan, i).exp();
@@ -1012,17 +1033,13 @@ fn fresh_stages(
         };
         // The best candidate once more, for its surface: carried up to `problem`, its gauge
         // there is the distance found (as in [`fine_estimate`]).
-        let mut ev = Evaluator {
-            refine: sub.lights.refine(),
-            solver: &mut sub,
-            u: Vec::new(),
-            inner: 1,
-            curve: vec![Vec::new(); level.grid.n_regions],
-            candidate: count.done,
-            candidates: count.planned + 1,
-            best: (f64::NAN, f64::NAN),
-            fresh: Some(fresh),
-        };
+        let mut ev = Evaluator::new(
+            (&mut sub, level.grid.n_regions),
+            Vec::new(),
+            1,
+            (count.done, count.planned + 1),
+            Some(fresh),
+        );
         ev.eval(&estimate.distance, progress)?;
         count.done = ev.candidate;
         let u = carry_up(problem, &coarse, std::mem::take(&mut ev.u))?;
@@ -1319,19 +1336,14 @@ fn search_refined(
     let regions = problem.grid.n_regions;
     let scan = search.scan.max(3);
     let (ln_near, step) = log_scan(range, scan);
-    let refine = solver.lights.refine();
     let tolerance = search.precision.max(1e-9);
-    let mut ev = Evaluator {
-        refine,
-        solver,
-        inner: search.inner.max(1),
-        curve: vec![Vec::new(); regions],
-        candidate: count.done,
-        candidates: count.planned,
-        best: (f64::NAN, f64::NAN),
-        fresh,
+    let mut ev = Evaluator::new(
+        (solver, regions),
         u,
-    };
+        search.inner.max(1),
+        (count.done, count.planned),
+        fresh,
+    );
     let searched = refine_scan(
         &mut ev,
         regions,
@@ -2009,17 +2021,13 @@ pub(crate) fn check_distance_on(
             false => CHECK_INNER,
         };
         hold_lobe(&mut solver, level, mean(&given), inner)?;
-        let mut ev = Evaluator {
-            refine: solver.lights.refine(),
-            solver: &mut solver,
-            u: level.u0.to_vec("the depths")?,
+        let mut ev = Evaluator::new(
+            (&mut solver, level.grid.n_regions),
+            level.u0.to_vec("the depths")?,
             inner,
-            curve: vec![Vec::new(); level.grid.n_regions],
-            candidate: 0,
-            candidates: CHECK_FACTORS.len(),
-            best: (f64::NAN, f64::NAN),
-            fresh: None,
-        };
+            (0, CHECK_FACTORS.len()),
+            None,
+        );
         let mut quiet = |_: &IterationStats| Control::Continue;
         let mut residuals = [f64::NAN; CHECK_FACTORS.len()];
         for (i, f) in CHECK_FACTORS.iter().enumerate().rev() {
