@@ -838,13 +838,6 @@ const PROFILE_SCAN: usize = 7;
 /// How many times the window may move to an end where the residual keeps falling.
 const PROFILE_MOVES: usize = 3;
 
-/// Local/global iterations per candidate of the profile window (at most the search's): the
-/// lobe is estimated at its iterations [`LOBE_AT`](crate::solver::LOBE_AT) (3 and 5), then
-/// three more. With 15 (stop 56) the window cost 1.8 of the 5.4 CPU s of the glossy bumps'
-/// 256² search; 8 and the estimates near the last one ([`Solver::lobe_near`]) cut it by a
-/// third, the distances found within 0.2 % of before (docs/performance.md, stop 56).
-const PROFILE_INNER: usize = 8;
-
 /// The half-width, as a factor of the distance, of the first window of a stage of
 /// [`fresh_stages`], around the profile's estimate; it widens by [`FRESH_GROWTH`] at each of
 /// at most [`FRESH_MOVES`] moves towards an end where the criterion keeps falling (a reach of
@@ -1105,50 +1098,17 @@ fn search_window(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
+    let (wide, u) = wide;
     if window.lobe {
         solver.lobe = None;
         solver.hold_lobe = false;
-        hold_lobe(solver, problem, mean(&wide.0.distance), search.inner)?;
+        hold_lobe(solver, problem, mean(&wide.distance), search.inner)?;
         solver.hold_lobe = false;
     }
-    // The profile window's candidates estimate the lobe near their neighbour's (see
-    // [`PROFILE_INNER`]); the solver searches the whole grids again after it.
-    solver.lobe_near = window.lobe;
     let window_search = DistanceSearch {
         scan: window.scan,
-        inner: match window.lobe {
-            true => search.inner.min(PROFILE_INNER),
-            false => search.inner,
-        },
         ..*search
     };
-    let found = window_loop(
-        solver,
-        problem,
-        &window_search,
-        range,
-        wide,
-        window,
-        count,
-        progress,
-    );
-    solver.lobe_near = false;
-    found
-}
-
-/// The scans and refinements of [`search_window`], from `wide`'s bounds, moving the window.
-#[allow(clippy::too_many_arguments)]
-fn window_loop(
-    solver: &mut Solver<'_>,
-    problem: &Problem<'_>,
-    window_search: &DistanceSearch,
-    range: (f64, f64),
-    wide: (DistanceEstimate, Vec<f64>),
-    window: Window,
-    count: &mut Count,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<(DistanceEstimate, Vec<f64>)> {
-    let (wide, u) = wide;
     let clip = |(lo, hi): (f64, f64)| (lo.max(range.0), hi.min(range.1));
     let mut width = window.width;
     let mut bounds = first_bounds(&wide.distance, width, range);
@@ -1158,7 +1118,7 @@ fn window_loop(
         let searched = search_refined(
             solver,
             problem,
-            window_search,
+            &window_search,
             bounds,
             start,
             (window.vee, window.fresh.clone()),

@@ -732,11 +732,6 @@ pub(crate) struct Solver<'p> {
     /// Whether the estimated lobe is held as it is (the distance search holds it while it
     /// compares candidates).
     pub(crate) hold_lobe: bool,
-    /// Whether every lobe estimate searches near the last one, also the first of a run of a
-    /// solver that started without a lobe (which otherwise searches the whole grids; see
-    /// [`Solver::reflectance`]). The distance search's profile window sets it for its
-    /// candidates, each a run from its neighbour's surface and lobe (`distance::search_window`).
-    pub(crate) lobe_near: bool,
     /// Whether a rough lobe estimate keeps the glossy model (the distance search's candidates
     /// are compared under one model; the run at the distance found decides, see
     /// [`MATTE_ROUGHNESS`]).
@@ -887,7 +882,6 @@ impl<'p> Solver<'p> {
                 Reflectance::Lambertian => None,
             },
             hold_lobe: false,
-            lobe_near: false,
             keep_glossy: false,
             continuation: true,
             precise_lanes: true,
@@ -1669,8 +1663,8 @@ impl<'p> Solver<'p> {
         self.lobe_from_scratch |= from_scratch;
         // A solver without a lobe searches twice from scratch: first on its starting surface
         // (the roughness alone), then the whole grids on the surface of its first iterations;
-        // later estimates search near the last one (all of them with `lobe_near`).
-        let near = match iteration == at[0] && self.lobe_from_scratch && !self.lobe_near {
+        // later estimates search near the last one.
+        let near = match iteration == at[0] && self.lobe_from_scratch {
             true => None,
             false => self.lobe,
         };
