@@ -2415,22 +2415,20 @@ mod search_state_tests {
             let _ = begin_search(&mut solver);
             solver.lobe = Some(lobe);
             solver.hold_lobe = true;
-            let mut ev = Evaluator {
-                refine: solver.lights.refine(),
-                solver: &mut solver,
-                u: origin.clone(),
-                inner: 5,
-                curve: vec![Vec::new(); problem.grid.n_regions],
-                candidate: 0,
-                candidates: order.len(),
-                best: (f64::NAN, f64::NAN),
-                fresh: fresh.then(|| Fresh {
-                    options,
-                    lobe,
-                    start: start.clone(),
-                    memo: Arc::default(),
-                }),
-            };
+            let fresh = fresh.then(|| Fresh {
+                options,
+                lobe,
+                start: start.clone(),
+                memo: Arc::default(),
+            });
+            let regions = problem.grid.n_regions;
+            let mut ev = Evaluator::new(
+                (&mut solver, regions),
+                origin.clone(),
+                5,
+                (0, order.len()),
+                fresh,
+            );
             let mut quiet = |_: &IterationStats| Control::Continue;
             order
                 .iter()
