@@ -1433,34 +1433,23 @@ impl<'p> Solver<'p> {
         }
     }
 
-    /// The cast shadows of the mesh `u` under `policy` as a run's march finds them (under
-    /// [`Shadows::Auto`] a probe first, and a mask only where it holds [`AUTO_SHARE`] of the
-    /// observations), for [`Solver::start_from_shadows`]; the solver's own mask and policy
-    /// unchanged.
+    /// The cast shadows of the mesh `u` under `policy` as a run's march finds them (see
+    /// [`Solver::marched`]), for [`Solver::start_from_shadows`]; the solver's own mask, policy
+    /// and march schedule unchanged. `None` under an inactive policy.
     pub(crate) fn shadows_under(
         &mut self,
         u: &[f64],
         policy: Shadows,
     ) -> Result<Option<ShadowMask>> {
-        let own = std::mem::replace(&mut self.options.shadows, policy);
-        let mask = self.shadows.take();
-        let kept = (
-            self.marched_guided,
-            self.shadows_upsampled,
-            self.guide_by_rounds,
-        );
-        self.march_next = true;
-        let found = self.cast_shadows(u, 0);
-        self.march_next = false;
-        (
-            self.marched_guided,
-            self.shadows_upsampled,
-            self.guide_by_rounds,
-        ) = kept;
-        self.options.shadows = own;
-        let found = found.map(|()| self.shadows.take());
-        self.shadows = mask;
-        found
+        if !policy.is_active() {
+            return Ok(None);
+        }
+        let t = Instant::now();
+        let found = self.marched(u, policy, None, policy == Shadows::Auto);
+        self.timings.shadows += t.elapsed();
+        let found = found?;
+        self.problem.cancel.check()?;
+        Ok(found)
     }
 
     /// Starts the next run from the cast-shadow `mask` of a nearby surface (see
@@ -1559,9 +1548,8 @@ impl<'p> Solver<'p> {
         self.shadows_upsampled = false;
         self.marched_guided |= guided;
         let t = Instant::now();
-        let p = self.problem;
-        let stride = self.probe_stride();
-        let probe = policy == Shadows::Auto && self.shadows.is_none() && stride > 1;
+        // Under `Auto`, a solver without a mask probes first.
+        let probe = policy == Shadows::Auto && self.shadows.is_none();
         // (taken by the first march that comes, guided or not)
         let by_rounds = std::mem::take(&mut self.guide_by_rounds);
         let prior = self.shadows.take().filter(|_| guided || by_rounds);
@@ -1570,42 +1558,65 @@ impl<'p> Solver<'p> {
         // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
         // otherwise set the peak of the run; [`Solver::local`] allocates them again.
         self.targets = Vec::new();
+        let found = self.marched(u, policy, prior.as_ref(), probe);
+        self.timings.shadows += t.elapsed();
+        self.shadows = found?;
+        self.problem.cancel.check()
+    }
+
+    /// The cast shadows of the mesh `u` under the active `policy`, as a march of
+    /// [`Solver::cast_shadows`] finds them: with `probe` (under [`Shadows::Auto`], a solver
+    /// without a mask) a probe of the lattice of [`PROBE_FACETS`] facets first where that
+    /// lattice is sparser than the facets (none where it finds less than [`AUTO_SHARE`] of its
+    /// observations in a cast shadow); then the march, guided by `prior`
+    /// (only near its edges and the terminators, [`GUIDE_RADIUS`]), from a lattice of the facets
+    /// and edges on large images or with a field of indirect light, or from every facet; under
+    /// `Auto` the mask only where it holds [`AUTO_SHARE`] of the observations. The solver's
+    /// state is not touched.
+    fn marched(
+        &self,
+        u: &[f64],
+        policy: Shadows,
+        prior: Option<&ShadowMask>,
+        probe: bool,
+    ) -> Result<Option<ShadowMask>> {
+        let p = self.problem;
+        let stride = self.probe_stride();
+        let probe = probe && stride > 1;
         crate::memory::trace("shadows: before march");
         let seen = !probe || self.lattice_share(&self.march(u, stride)?, stride) >= AUTO_SHARE;
         crate::memory::trace("shadows: after march");
-        if seen {
-            // From a lattice of the facets and the edges (see [`mesh_shadows_refined`]) with a
-            // field of indirect light (the rounds of interreflections and the run after them:
-            // a quarter of the facets up to 511 pixels a side, 1/16 at 1 MP) and on large
-            // images (a quarter from 1024 pixels a side); every facet otherwise.
-            let stride = solver_stride(p.grid.height, p.grid.width, self.indirect.is_some());
-            // Guided by the carried mask: only at its edges and the terminators.
-            let mask = match (&prior, stride) {
-                (Some(prior), _) => mesh_shadows_guided(
-                    &p.rig.camera,
-                    self.lights.lights(),
-                    &p.grid,
-                    &p.geometry,
-                    u,
-                    prior,
-                    GUIDE_RADIUS,
-                )?,
-                (None, Some(stride)) => mesh_shadows_refined(
-                    &p.rig.camera,
-                    self.lights.lights(),
-                    &p.grid,
-                    &p.geometry,
-                    u,
-                    stride,
-                )?,
-                (None, None) => self.march(u, 1)?,
-            };
-            if policy == Shadows::On || self.lattice_share(&mask, 1) >= AUTO_SHARE {
-                self.shadows = Some(mask);
-            }
+        if !seen {
+            return Ok(None);
         }
-        self.timings.shadows += t.elapsed();
-        p.cancel.check()
+        // From a lattice of the facets and the edges (see [`mesh_shadows_refined`]) with a
+        // field of indirect light (the rounds of interreflections and the run after them: a
+        // quarter of the facets up to 511 pixels a side, 1/16 at 1 MP) and on large images (a
+        // quarter from 1024 pixels a side); every facet otherwise.
+        let stride = solver_stride(p.grid.height, p.grid.width, self.indirect.is_some());
+        // Guided by the carried mask: only at its edges and the terminators.
+        let mask = match (prior, stride) {
+            (Some(prior), _) => mesh_shadows_guided(
+                &p.rig.camera,
+                self.lights.lights(),
+                &p.grid,
+                &p.geometry,
+                u,
+                prior,
+                GUIDE_RADIUS,
+            )?,
+            (None, Some(stride)) => mesh_shadows_refined(
+                &p.rig.camera,
+                self.lights.lights(),
+                &p.grid,
+                &p.geometry,
+                u,
+                stride,
+            )?,
+            (None, None) => self.march(u, 1)?,
+        };
+        let kept = policy == Shadows::On || self.lattice_share(&mask, 1) >= AUTO_SHARE;
+        Ok(kept.then_some(mask))
     }
 
     /// The data of the light step: under the glossy model with the lobe in use (estimated or
