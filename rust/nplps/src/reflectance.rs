@@ -373,7 +373,7 @@ fn shade_values(shader: &Shader, l: &[[f64; 3]; SHADE_LANES]) -> ShadeValues {
             fresnel[i] = 0.5 * (rs * rs + rp * rp) / f1;
         }
         for i in 0..N {
-            if !(t[i] > 0.0) {
+            if t[i].is_nan() || t[i] <= 0.0 {
                 fresnel[i] = lobe.fresnel(c[i]).0 / f1;
             }
         }

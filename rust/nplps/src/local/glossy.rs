@@ -968,7 +968,9 @@ mod tests {
         ];
         let mut state = 7u64;
         let mut uniform = || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (state >> 11) as f64 / (1u64 << 53) as f64
         };
         let points: Vec<Light> = (0..37)
@@ -987,10 +989,7 @@ mod tests {
             })
             .map(|light| match light {
                 Light::Point {
-                    position,
-                    axis,
-                    mu,
-                    ..
+                    position, axis, mu, ..
                 } => Light::Point {
                     position,
                     intensity: [0.9, 1.1, 1.0],
@@ -1038,7 +1037,7 @@ mod tests {
                             valid: true,
                         };
                         for m in 1..=10 {
-                            let held = |k: usize| k % m != 0;
+                            let held = |k: usize| !k.is_multiple_of(m);
                             let args = (c, v, model, &values[..], channels, &settings, lobe);
                             let a = held_out_sse(
                                 args.0, args.1, args.2, args.3, args.4, args.5, args.6, &fit, held,
