@@ -282,6 +282,147 @@ impl Shader {
         let o = Observation::new(0.0, 1.0, l, self.v, &self.lobe);
         self.kernel.shade(self.n, &self.view, &o)
     }
+
+    /// The factors `D(n)`, `S(n)` of [`Shader::shade`] (without their gradients) of
+    /// [`SHADE_LANES`] lights at once, from their unit directions: `lit[i]` where
+    /// [`Shader::shade`] of light `i` is Some, and then `diffuse[i]`, `specular[i]` its factors'
+    /// bits (the same operations in the same order, lane by lane; the other lanes' values are
+    /// not meaningful). For predictions at a fitted normal (the lobe search's held-out score):
+    /// [`Shader::shade`] made the half vector, the Fresnel factor and the factors' gradients of
+    /// one light at a time.
+    #[inline]
+    pub fn values(&self, lights: &[[f64; 3]; SHADE_LANES]) -> ShadeValues {
+        values_dispatch(self, lights)
+    }
+}
+
+/// Lights per call of [`Shader::values`]: one AVX-512 vector of `f64` (two AVX2 vectors).
+pub const SHADE_LANES: usize = 8;
+
+/// The factors of [`SHADE_LANES`] lights at one normal (see [`Shader::values`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShadeValues {
+    /// Whether the light carries light ([`Shader::shade`] is Some).
+    pub lit: [bool; SHADE_LANES],
+    /// `D(n)` where `lit`.
+    pub diffuse: [f64; SHADE_LANES],
+    /// `S(n)` where `lit`.
+    pub specular: [f64; SHADE_LANES],
+}
+
+simd_dispatch! {
+    wide
+    /// [`shade_values`] with AVX-512 or AVX2 when the processor has it.
+    fn values_dispatch => shade_values(
+        shader: &Shader, lights: &[[f64; 3]; SHADE_LANES],
+    ) -> ShadeValues;
+}
+
+/// [`Shader::values`]: [`Observation::new`]'s half vector and Fresnel factor, and
+/// [`Kernel::shade`]'s factors (not their gradients), written lane by lane with the scalar
+/// code's operations in its order (so its bits); where the scalar Fresnel factor takes its
+/// other branch (no refracted ray, by rounding or at a NaN cosine), that lane calls it.
+// (Loops over the lanes by index: the form the compiler turns into vector instructions.)
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn shade_values(shader: &Shader, l: &[[f64; 3]; SHADE_LANES]) -> ShadeValues {
+    const N: usize = SHADE_LANES;
+    type L = [f64; N];
+    let (n, v, lobe, kernel, w) = (
+        shader.n,
+        shader.v,
+        &shader.lobe,
+        &shader.kernel,
+        &shader.view,
+    );
+    // `Observation::new`: h = normalize(l + v), F(v.h) / F(1), (l.h)^2.
+    let mut a = [[0.0; N]; 3];
+    for j in 0..3 {
+        for i in 0..N {
+            a[j][i] = l[i][j] + v[j];
+        }
+    }
+    let mut len: L = [0.0; N];
+    for i in 0..N {
+        len[i] = (a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i]).sqrt();
+    }
+    let mut h = [[0.0; N]; 3];
+    for j in 0..3 {
+        for i in 0..N {
+            h[j][i] = a[j][i] / len[i];
+        }
+    }
+    let f1 = lobe.normal_reflectance();
+    let mut fresnel: L = [1.0; N];
+    if f1 > 1e-12 {
+        // `Lobe::fresnel(v.h).0`, its branch with a refracted ray (`t > 0`).
+        let eta = lobe.eta;
+        let e2 = eta * eta;
+        let mut c: L = [0.0; N];
+        let mut t: L = [0.0; N];
+        for i in 0..N {
+            c[i] = v[0] * h[0][i] + v[1] * h[1][i] + v[2] * h[2][i];
+            t[i] = (1.0 - (1.0 - c[i] * c[i]) / e2).max(0.0).sqrt();
+        }
+        for i in 0..N {
+            let (ds, dp) = (c[i] + eta * t[i], eta * c[i] + t[i]);
+            let q = 1.0 / (ds * dp * t[i]);
+            let (ids, idp) = (dp * t[i] * q, ds * t[i] * q);
+            let rs = (c[i] - eta * t[i]) * ids;
+            let rp = (eta * c[i] - t[i]) * idp;
+            fresnel[i] = 0.5 * (rs * rs + rp * rp) / f1;
+        }
+        for i in 0..N {
+            if t[i].is_nan() || t[i] <= 0.0 {
+                fresnel[i] = lobe.fresnel(c[i]).0 / f1;
+            }
+        }
+    }
+    // `Kernel::shade`'s factors.
+    let mut cl: L = [0.0; N];
+    let mut ch: L = [0.0; N];
+    for i in 0..N {
+        cl[i] = n[0] * l[i][0] + n[1] * l[i][1] + n[2] * l[i][2];
+        ch[i] = n[0] * h[0][i] + n[1] * h[1][i] + n[2] * h[2][i];
+    }
+    let lit: [bool; N] = std::array::from_fn(|i| !(cl[i] <= 0.0 || w.cv <= 0.0));
+    let mut diffuse: L = [0.0; N];
+    if kernel.retro > 0.0 {
+        for i in 0..N {
+            let cd = l[i][0] * h[0][i] + l[i][1] * h[1][i] + l[i][2] * h[2][i];
+            let k = kernel.retro * (cd * cd) - 0.5;
+            let u = 1.0 - cl[i];
+            let u4 = (u * u) * (u * u);
+            let (x, y) = (1.0 + k * (u4 * u), 1.0 + k * w.tv);
+            diffuse[i] = cl[i] * x * y;
+        }
+    } else {
+        let tl = match &kernel.table {
+            None => [1.0; N],
+            Some(t) => t.at_lanes(&cl).0,
+        };
+        for i in 0..N {
+            diffuse[i] = cl[i] * tl[i] * w.tv;
+        }
+    }
+    let a2 = kernel.a2;
+    let mut specular: L = [0.0; N];
+    for i in 0..N {
+        let c = ch[i];
+        let iq = 1.0 / (c * c * (a2 - 1.0) + 1.0);
+        let d = a2 * std::f64::consts::FRAC_1_PI * iq * iq;
+        let c = cl[i];
+        let r = (a2 + (1.0 - a2) * c * c).sqrt();
+        let q = 1.0 / (c * r * (c + r));
+        let g = 2.0 * c * c * r * q;
+        let s = fresnel[i] * d * g * w.gv;
+        specular[i] = if ch[i] > 0.0 { s } else { 0.0 };
+    }
+    ShadeValues {
+        lit,
+        diffuse,
+        specular,
+    }
 }
 
 thread_local! {

@@ -74,6 +74,7 @@ use crate::light::Light;
 use crate::reflectance::fit_packed;
 use crate::reflectance::{
     fit_packed_at_within, fit_packed_within, prepare_tables, Diffuse, GlossyFit, Lobe, Packed,
+    ShadeValues, SHADE_LANES,
 };
 use crate::vec3::{dot, norm, scale};
 
@@ -358,7 +359,41 @@ pub(super) fn held_out_sse(
     let mut sse = 0.0;
     // The lobe's and the fitted normal's terms that every light shares, once (`lobe.shade`'s
     // bits; per light they took about a third of the held-out prediction's time).
-    let shader = lobe.shader(fit.normal, v);
+    let Some(shader) = lobe.shader(fit.normal, v) else {
+        // The facet turns away from the camera: the model is 0 for every light.
+        for (k, o) in values.chunks_exact(channels).enumerate() {
+            if !held(k) || !usable(o, settings) || model.light(k, c).is_none() {
+                continue;
+            }
+            for &i in o {
+                let e = i as f64;
+                sse += e * e;
+            }
+        }
+        return sse;
+    };
+    // The held lights' factors [`SHADE_LANES`] at a time ([`Shader::values`], the bits of
+    // `shader.shade`), each group's terms then summed in the lights' order.
+    let mut group: [(usize, f64, [f64; 3]); SHADE_LANES] = [(0, 0.0, [0.0; 3]); SHADE_LANES];
+    let mut dirs = [[0.0, 0.0, 1.0]; SHADE_LANES];
+    let mut len = 0;
+    let add = |group: &[(usize, f64, [f64; 3])], values_of: &ShadeValues, sse: &mut f64| {
+        for (i, &(k, a, phi)) in group.iter().enumerate() {
+            let o = &values[k * channels..(k + 1) * channels];
+            for (ch, &x) in o.iter().enumerate() {
+                let pa = channel_intensity(phi, channels, ch) * a;
+                let m = match values_of.lit[i] {
+                    true => {
+                        pa * (fit.albedo[ch] * values_of.diffuse[i]
+                            + fit.specular * values_of.specular[i])
+                    }
+                    false => 0.0,
+                };
+                let e = x as f64 - m;
+                *sse += e * e;
+            }
+        }
+    };
     for (k, o) in values.chunks_exact(channels).enumerate() {
         if !held(k) || !usable(o, settings) {
             continue;
@@ -366,15 +401,16 @@ pub(super) fn held_out_sse(
         let Some((a, l, phi)) = model.light(k, c) else {
             continue;
         };
-        let sh = shader.as_ref().and_then(|s| s.shade(l));
-        for (ch, &i) in o.iter().enumerate() {
-            let pa = channel_intensity(phi, channels, ch) * a;
-            let m = sh.map_or(0.0, |sh| {
-                pa * (fit.albedo[ch] * sh.diffuse + fit.specular * sh.specular)
-            });
-            let e = i as f64 - m;
-            sse += e * e;
+        group[len] = (k, a, phi);
+        dirs[len] = l;
+        len += 1;
+        if len == SHADE_LANES {
+            add(&group, &shader.values(&dirs), &mut sse);
+            len = 0;
         }
+    }
+    if len > 0 {
+        add(&group[..len], &shader.values(&dirs), &mut sse);
     }
     sse
 }
@@ -875,6 +911,149 @@ mod tests {
             lit > 100 && lit < compared && away > 0,
             "{lit} {compared} {away}"
         );
+    }
+
+    /// The held-out prediction of [`held_out_sse`] one light at a time through
+    /// [`Shader::shade`](crate::reflectance::Shader::shade) (its code before the lights were
+    /// shaded in lanes).
+    #[allow(clippy::too_many_arguments)]
+    fn held_out_sse_per_light(
+        c: [f64; 3],
+        v: [f64; 3],
+        model: Model<'_>,
+        values: &[f32],
+        channels: usize,
+        settings: &FitSettings,
+        lobe: &Lobe,
+        fit: &FacetFit,
+        held: impl Fn(usize) -> bool,
+    ) -> f64 {
+        let mut sse = 0.0;
+        let shader = lobe.shader(fit.normal, v);
+        for (k, o) in values.chunks_exact(channels).enumerate() {
+            if !held(k) || !usable(o, settings) {
+                continue;
+            }
+            let Some((a, l, phi)) = model.light(k, c) else {
+                continue;
+            };
+            let sh = shader.as_ref().and_then(|s| s.shade(l));
+            for (ch, &i) in o.iter().enumerate() {
+                let pa = channel_intensity(phi, channels, ch) * a;
+                let m = sh.map_or(0.0, |sh| {
+                    pa * (fit.albedo[ch] * sh.diffuse + fit.specular * sh.specular)
+                });
+                let e = i as f64 - m;
+                sse += e * e;
+            }
+        }
+        sse
+    }
+
+    /// The held-out prediction with the lights shaded in lanes
+    /// ([`Shader::values`](crate::reflectance::Shader::values)) gives the
+    /// bits of the prediction one light at a time: point lights (isotropic and LEDs, colour
+    /// intensities) and parallel ones, grey and colour images with unusable observations,
+    /// both diffuse shapes, the index 1, sharp and rough lobes, normals lit by some lights and
+    /// not others and turned from the view, every count of held lights modulo the lanes.
+    #[test]
+    fn the_held_out_prediction_in_lanes_is_the_per_light_one_bit_for_bit() {
+        let lobes = [
+            Lobe::new(0.15, 1.5),
+            Lobe::new(0.04, 2.1),
+            Lobe::new(0.6, 1.0),
+            Lobe::new(0.3, 1.15),
+            Lobe::retro(0.09, RETRO_ETA),
+            Lobe::retro(0.5, RETRO_ETA),
+        ];
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let points: Vec<Light> = (0..37)
+            .map(|k| {
+                let p = [
+                    400.0 * (uniform() - 0.5),
+                    400.0 * (uniform() - 0.5),
+                    -300.0 * uniform() + 50.0,
+                ];
+                let light = Light::point(p);
+                match k % 3 {
+                    0 => light,
+                    1 => light.with_shape(1.0, normalize([0.1, -0.2, 1.0])),
+                    _ => light.with_shape(2.5, normalize([-0.3, 0.1, 1.0])),
+                }
+            })
+            .map(|light| match light {
+                Light::Point {
+                    position, axis, mu, ..
+                } => Light::Point {
+                    position,
+                    intensity: [0.9, 1.1, 1.0],
+                    axis,
+                    mu,
+                },
+                other => other,
+            })
+            .collect();
+        let parallel: Vec<([f64; 3], [f64; 3])> = spiral_lights(37, 89.0)
+            .into_iter()
+            .enumerate()
+            .map(|(k, l)| match k % 4 {
+                0 => ([l[0], l[1], -l[2]], [1.0, 0.8, 1.2]),
+                _ => (l, [1.0, 0.8, 1.2]),
+            })
+            .collect();
+        let settings = FitSettings::default();
+        let normals = [
+            [0.0, 0.0, -1.0],
+            normalize([0.5, 0.2, -1.0]),
+            normalize([-1.0, 0.3, -0.2]),
+            normalize([0.1, 0.0, 1.0]),
+        ];
+        let c = [3.0, -2.0, 500.0];
+        let v = normalize(scale(c, -1.0));
+        let (mut compared, mut nonzero) = (0, 0);
+        for model in [Model::Near(&points), Model::Parallel(&parallel)] {
+            for channels in [1, 3] {
+                let values: Vec<f32> = (0..37 * channels)
+                    .map(|i| match i % 11 {
+                        5 => f32::NAN,
+                        _ => (0.5 * uniform()) as f32,
+                    })
+                    .collect();
+                for lobe in &lobes {
+                    for &n in &normals {
+                        let fit = FacetFit {
+                            target: [0.0; 4],
+                            normal: n,
+                            albedo: [0.5, 0.4, 0.3],
+                            specular: 0.7,
+                            sse: 0.0,
+                            used: 0,
+                            valid: true,
+                        };
+                        for m in 1..=10 {
+                            let held = |k: usize| !k.is_multiple_of(m);
+                            let args = (c, v, model, &values[..], channels, &settings, lobe);
+                            let a = held_out_sse(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, &fit, held,
+                            );
+                            let b = held_out_sse_per_light(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, &fit, held,
+                            );
+                            assert_eq!(a.to_bits(), b.to_bits(), "{lobe:?} {n:?} {m} {a} {b}");
+                            compared += 1;
+                            nonzero += usize::from(a > 0.0);
+                        }
+                    }
+                }
+            }
+        }
+        assert!(nonzero > compared / 2, "{nonzero} {compared}");
     }
 
     /// Facets of a glossy object (lobe 0.15, index 1.5) under `n` parallel grey lights within 50
