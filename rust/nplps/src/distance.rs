@@ -662,7 +662,8 @@ fn halvings_to(height: usize, width: usize, side: usize) -> usize {
 ///
 /// Why the profile window runs here: it only brackets the distance (its candidates are 5 %
 /// apart) for the stages of [`fresh_stages`], which refine it to the search's precision. A
-/// candidate of 15 iterations, two lobe estimates among them, costs a quarter as much on the
+/// candidate of 15 iterations, two lobe estimates among them (until stop 57; now
+/// [`PROFILE_INNER`] and one), costs a quarter as much on the
 /// 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
 /// 0.75 CPU s), and its criterion there brackets the same distance (the bumps' 7 candidates:
 /// residuals within 5 % of the 128² level's, the same lowest candidate). Until stop 49 the
@@ -840,12 +841,12 @@ const PROFILE_MOVES: usize = 3;
 
 /// Local/global iterations per candidate of the profile window (at most the search's): each
 /// candidate estimates the lobe once ([`Solver::lobe_once`]), over the whole grids at its
-/// iteration [`LOBE_AT`](crate::solver::LOBE_AT)`[0]` (3), then iterates five more under it.
+/// iteration [`LOBE_AT`](crate::solver::LOBE_AT)`[0]` (3), and keeps that lobe to the end.
 ///
 /// Until stop 57 a candidate ran 15 iterations and estimated the lobe at iterations 3 (the whole
 /// grids) and 5 (near the first), after a run at the wide estimate that estimated the window's
 /// first lobe (15 iterations, three estimates); the window was 1.6 of the 5.6 CPU s of the 256²
-/// glossy bumps of `bench.py --ratios`, and is 42 % cheaper now (docs/performance.md, stop 57).
+/// glossy bumps of `bench.py --ratios`, and is 41 % cheaper now (docs/performance.md, stop 57).
 /// The estimates must search the whole grids: on a matte object under the glossy model the
 /// roughness criterion has two minima (about 0.19 and 0.85), and estimates near the last one
 /// drift along it from candidate to candidate (stop 56's variant, reverted: the 256² matte
