@@ -662,7 +662,8 @@ fn halvings_to(height: usize, width: usize, side: usize) -> usize {
 ///
 /// Why the profile window runs here: it only brackets the distance (its candidates are 5 %
 /// apart) for the stages of [`fresh_stages`], which refine it to the search's precision. A
-/// candidate of 15 iterations, two lobe estimates among them, costs a quarter as much on the
+/// candidate of 15 iterations, two lobe estimates among them (until stop 57; now
+/// [`PROFILE_INNER`] and one), costs a quarter as much on the
 /// 64² level as on the 128² one (the glossy bumps at 256²: 0.35 against
 /// 0.75 CPU s), and its criterion there brackets the same distance (the bumps' 7 candidates:
 /// residuals within 5 % of the 128² level's, the same lowest candidate). Until stop 49 the
@@ -837,6 +838,20 @@ const PROFILE_SCAN: usize = 7;
 
 /// How many times the window may move to an end where the residual keeps falling.
 const PROFILE_MOVES: usize = 3;
+
+/// Local/global iterations per candidate of the profile window (at most the search's): each
+/// candidate estimates the lobe once ([`Solver::lobe_once`]), over the whole grids at its
+/// iteration [`LOBE_AT`](crate::solver::LOBE_AT)`[0]` (3), and keeps that lobe to the end.
+///
+/// Until stop 57 a candidate ran 15 iterations and estimated the lobe at iterations 3 (the whole
+/// grids) and 5 (near the first), after a run at the wide estimate that estimated the window's
+/// first lobe (15 iterations, three estimates); the window was 1.6 of the 5.6 CPU s of the 256²
+/// glossy bumps of `bench.py --ratios`, and is 41 % cheaper now (docs/performance.md, stop 57).
+/// The estimates must search the whole grids: on a matte object under the glossy model the
+/// roughness criterion has two minima (about 0.19 and 0.85), and estimates near the last one
+/// drift along it from candidate to candidate (stop 56's variant, reverted: the 256² matte
+/// sphere and torus went +0.88 % and +1.35 %).
+const PROFILE_INNER: usize = 8;
 
 /// The half-width, as a factor of the distance, of the first window of a stage of
 /// [`fresh_stages`], around the profile's estimate; it widens by [`FRESH_GROWTH`] at each of
@@ -1085,8 +1100,9 @@ struct Window {
 
 /// Refines the `wide` estimate of a search (see [`search_with`]) in a window `window.width`
 /// either side of it, which moves towards an end where the residual keeps falling. With
-/// `window.lobe` the lobe is estimated afresh at the distance found, then again for every
-/// candidate. The curve keeps the wide search's candidates outside the last window.
+/// `window.lobe` every candidate estimates the lobe (once, see [`PROFILE_INNER`]), the first
+/// starting under the lobe the wide search held. The curve keeps the wide search's candidates
+/// outside the last window.
 #[allow(clippy::too_many_arguments)]
 fn search_window(
     solver: &mut Solver<'_>,
@@ -1098,17 +1114,50 @@ fn search_window(
     count: &mut Count,
     progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
 ) -> Result<(DistanceEstimate, Vec<f64>)> {
-    let (wide, u) = wide;
     if window.lobe {
-        solver.lobe = None;
-        solver.hold_lobe = false;
-        hold_lobe(solver, problem, mean(&wide.distance), search.inner)?;
+        // The first candidate starts under the lobe the wide search held (a run at the wide
+        // estimate only where it had none): its own estimate at iteration 3 replaces it. (Until
+        // stop 57 a run at the wide estimate estimated the window's first lobe: 0.2 CPU s of
+        // the 256² glossy bumps' search, with the same PBR table within its noise.)
+        hold_lobe(solver, problem, mean(&wide.0.distance), search.inner)?;
         solver.hold_lobe = false;
     }
+    solver.lobe_once = window.lobe;
     let window_search = DistanceSearch {
         scan: window.scan,
+        inner: match window.lobe {
+            true => search.inner.min(PROFILE_INNER),
+            false => search.inner,
+        },
         ..*search
     };
+    let found = window_loop(
+        solver,
+        problem,
+        &window_search,
+        range,
+        wide,
+        window,
+        count,
+        progress,
+    );
+    solver.lobe_once = false;
+    found
+}
+
+/// The scans and refinements of [`search_window`], from `wide`'s bounds, moving the window.
+#[allow(clippy::too_many_arguments)]
+fn window_loop(
+    solver: &mut Solver<'_>,
+    problem: &Problem<'_>,
+    window_search: &DistanceSearch,
+    range: (f64, f64),
+    wide: (DistanceEstimate, Vec<f64>),
+    window: Window,
+    count: &mut Count,
+    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
+) -> Result<(DistanceEstimate, Vec<f64>)> {
+    let (wide, u) = wide;
     let clip = |(lo, hi): (f64, f64)| (lo.max(range.0), hi.min(range.1));
     let mut width = window.width;
     let mut bounds = first_bounds(&wide.distance, width, range);
@@ -1118,7 +1167,7 @@ fn search_window(
         let searched = search_refined(
             solver,
             problem,
-            &window_search,
+            window_search,
             bounds,
             start,
             (window.vee, window.fresh.clone()),

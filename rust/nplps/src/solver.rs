@@ -732,6 +732,11 @@ pub(crate) struct Solver<'p> {
     /// Whether the estimated lobe is held as it is (the distance search holds it while it
     /// compares candidates).
     pub(crate) hold_lobe: bool,
+    /// Whether a run estimates the lobe once, at the first iteration of [`Solver::lobe_at`]
+    /// (over the whole grids), and not again at the second (near the first), although the
+    /// solver started without a lobe. The distance search's profile window sets it for its
+    /// candidates (`distance::search_window`).
+    pub(crate) lobe_once: bool,
     /// Whether a rough lobe estimate keeps the glossy model (the distance search's candidates
     /// are compared under one model; the run at the distance found decides, see
     /// [`MATTE_ROUGHNESS`]).
@@ -882,6 +887,7 @@ impl<'p> Solver<'p> {
                 Reflectance::Lambertian => None,
             },
             hold_lobe: false,
+            lobe_once: false,
             keep_glossy: false,
             continuation: true,
             precise_lanes: true,
@@ -1666,7 +1672,8 @@ impl<'p> Solver<'p> {
         // level's iterations fit under the lobe it keeps.
         let at = self.lobe_at();
         let first = if self.lobe_carried { 1 } else { at[0] };
-        let again = iteration == first || (iteration == at[1] && self.lobe_from_scratch);
+        let again =
+            iteration == first || (iteration == at[1] && self.lobe_from_scratch && !self.lobe_once);
         let from_scratch = self.lobe.is_none();
         if !(from_scratch || (again && !self.hold_lobe)) {
             return Ok(());
@@ -1723,7 +1730,8 @@ impl<'p> Solver<'p> {
     /// Whether [`Solver::reflectance`] may estimate the lobe again at an iteration after
     /// `iteration` of this run: with an estimated lobe not held, before the first estimate of the
     /// run (`lobe_at()[0]`, or 1 with a lobe carried from a coarser level) and, for a solver that
-    /// started without a lobe, before `lobe_at()[1]` (see [`Solver::lobe_at`]).
+    /// started without a lobe (unless [`Solver::lobe_once`]), before `lobe_at()[1]` (see
+    /// [`Solver::lobe_at`]).
     ///
     /// The glossy fits of a run's local steps stop early ([`STEP_TOLERANCE`]) only once this is
     /// false. On the benchmark's principled 0.3 bumps (`depth="auto"`) the early stop on the
@@ -1739,7 +1747,7 @@ impl<'p> Solver<'p> {
         }
         let at = self.lobe_at();
         let first = if self.lobe_carried { 1 } else { at[0] };
-        iteration < first || (self.lobe_from_scratch && iteration < at[1])
+        iteration < first || (self.lobe_from_scratch && !self.lobe_once && iteration < at[1])
     }
 
     /// Drops the glossy model for the Lambertian one for the rest of the reconstruction, after
@@ -3345,10 +3353,39 @@ mod tests {
         assert!(worst < 0.01, "largest normal difference {worst} degrees");
     }
 
+    /// A solver that started without a lobe estimates it again at `lobe_at()[1]`, except with
+    /// `lobe_once` (the distance search's profile window), which keeps the lobe of
+    /// `lobe_at()[0]`.
+    #[test]
+    fn a_run_estimating_the_lobe_once_keeps_it_at_the_second_iteration() {
+        let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
+        let images: Vec<f32> = scene.render().unwrap().iter().map(|&v| v as f32).collect();
+        let problem = at_true_distance(&scene, &scene.rig, &images);
+        let options = Options {
+            levels: 1,
+            ..Options::default().with_reflectance(Reflectance::Glossy(None))
+        };
+        let u = problem.u0.to_vec("the depths").unwrap();
+        let given = Lobe::new(0.77, 1.33);
+        let after = |once: bool| {
+            let mut solver = Solver::new(&problem, &options).unwrap();
+            solver.continuation = false;
+            solver.keep_glossy = true;
+            solver.lobe = Some(given);
+            solver.lobe_from_scratch = true;
+            solver.lobe_once = once;
+            solver.reflectance(&u, solver.lobe_at()[1]).unwrap();
+            solver.lobe
+        };
+        assert_eq!(after(true), Some(given));
+        assert_ne!(after(false), Some(given));
+    }
+
     /// With an estimated lobe the glossy fits converge fully (no step tolerance) until the run's
     /// last lobe estimate: from scratch until `LOBE_AT_CONTINUED[1]` (`LOBE_AT[1]` with the
-    /// continuation off, as in the distance search and check), with a carried lobe from the
-    /// first iteration on; a given lobe, a held one and the Lambertian model never wait.
+    /// continuation off, as in the distance search and check; `LOBE_AT[0]` with `lobe_once`, as in
+    /// the search's profile window), with a carried lobe from the first iteration on; a given
+    /// lobe, a held one and the Lambertian model never wait.
     #[test]
     fn the_step_tolerance_waits_for_the_last_lobe_estimate() {
         let scene = Scene::new(SceneKind::SphereCap, 16, 100.0, 200.0, 0).unwrap();
@@ -3388,6 +3425,16 @@ mod tests {
                 "iteration {it}"
             );
         }
+        // Estimated once (the profile window's candidates): pending until LOBE_AT[0] only.
+        solver.lobe_once = true;
+        for it in 1..LOBE_AT[1] + 3 {
+            assert_eq!(
+                solver.lobe_pending_after(it),
+                it < LOBE_AT[0],
+                "iteration {it}"
+            );
+        }
+        solver.lobe_once = false;
         solver.continuation = true;
         // ... held (the distance search): no estimate to wait for.
         solver.hold_lobe = true;
