@@ -454,6 +454,7 @@ fn begin_search(solver: &mut Solver<'_>) -> (Refine, crate::shadow::Shadows) {
 /// Undoes [`begin_search`].
 fn end_search(solver: &mut Solver<'_>, (refine, shadows): (Refine, crate::shadow::Shadows)) {
     solver.hold_lobe = false;
+    solver.lobe_once = false;
     solver.keep_glossy = false;
     solver.continuation = true;
     solver.restore_shadows(shadows);
@@ -1122,6 +1123,7 @@ fn search_window(
         hold_lobe(solver, problem, mean(&wide.0.distance), search.inner)?;
         solver.hold_lobe = false;
     }
+    // (Back to false where the window ends; on an error [`end_search`] resets it.)
     solver.lobe_once = window.lobe;
     let window_search = DistanceSearch {
         scan: window.scan,
@@ -1131,32 +1133,6 @@ fn search_window(
         },
         ..*search
     };
-    let found = window_loop(
-        solver,
-        problem,
-        &window_search,
-        range,
-        wide,
-        window,
-        count,
-        progress,
-    );
-    solver.lobe_once = false;
-    found
-}
-
-/// The scans and refinements of [`search_window`], from `wide`'s bounds, moving the window.
-#[allow(clippy::too_many_arguments)]
-fn window_loop(
-    solver: &mut Solver<'_>,
-    problem: &Problem<'_>,
-    window_search: &DistanceSearch,
-    range: (f64, f64),
-    wide: (DistanceEstimate, Vec<f64>),
-    window: Window,
-    count: &mut Count,
-    progress: &mut (dyn FnMut(&IterationStats) -> Control + Send),
-) -> Result<(DistanceEstimate, Vec<f64>)> {
     let (wide, u) = wide;
     let clip = |(lo, hi): (f64, f64)| (lo.max(range.0), hi.min(range.1));
     let mut width = window.width;
@@ -1167,7 +1143,7 @@ fn window_loop(
         let searched = search_refined(
             solver,
             problem,
-            window_search,
+            &window_search,
             bounds,
             start,
             (window.vee, window.fresh.clone()),
@@ -1206,6 +1182,7 @@ fn window_loop(
             curve.sort_by(|a, b| a.0.total_cmp(&b.0));
         }
         estimate.range = range;
+        solver.lobe_once = false;
         return Ok((estimate, u));
     }
 }
