@@ -171,3 +171,48 @@ def test_larger_rigs_add_rings_after_the_16_lights() -> None:
         np.testing.assert_allclose(radii, [140.0] * 8 + [60.0] * (count - 24), rtol=1e-12)
     with pytest.raises(SystemExit):
         render.make_rig(64, 20)
+
+
+def _largest_part_by_search(mask: np.ndarray) -> np.ndarray:
+    """The largest 4-connected part by a breadth-first search (the oracle; ties: the part with the
+    least first pixel, as the labels' least index)."""
+    h, w = mask.shape
+    seen = np.zeros_like(mask)
+    best: list[tuple[int, int]] = []
+    for r0, c0 in np.argwhere(mask):
+        start = (int(r0), int(c0))
+        if seen[start]:
+            continue
+        seen[start] = True
+        part, queue = [start], [start]
+        while queue:
+            r, c = queue.pop()
+            for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if 0 <= rr < h and 0 <= cc < w and mask[rr, cc] and not seen[rr, cc]:
+                    seen[rr, cc] = True
+                    part.append((rr, cc))
+                    queue.append((rr, cc))
+        if len(part) > len(best):
+            best = part
+    out = np.zeros_like(mask)
+    for pixel in best:
+        out[pixel] = True
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_largest_part_is_the_largest_connected_part(seed: int) -> None:
+    # render.py's mask clean-up (label propagation with pointer jumping) against a plain search:
+    # random masks near the percolation threshold (many parts, long thin ones), a serpentine
+    # whose one part is as long as the image's area, and an empty mask.
+    render = _render_module()
+    rng = np.random.default_rng(seed)
+    for shape in [(31, 47), (64, 64), (5, 120)]:
+        mask = rng.random(shape) < rng.uniform(0.45, 0.7)
+        np.testing.assert_array_equal(render.largest_part(mask), _largest_part_by_search(mask))
+    serpentine = np.zeros((41, 41), dtype=bool)
+    serpentine[::2] = True
+    serpentine[1::4, -1] = True
+    serpentine[3::4, 0] = True
+    assert render.largest_part(serpentine).sum() == serpentine.sum()
+    assert not render.largest_part(np.zeros((4, 6), dtype=bool)).any()
