@@ -1450,12 +1450,7 @@ impl<'p> Solver<'p> {
         if !policy.is_active() {
             return Ok(None);
         }
-        let t = Instant::now();
-        let found = self.marched(u, policy, None, policy == Shadows::Auto);
-        self.timings.shadows += t.elapsed();
-        let found = found?;
-        self.problem.cancel.check()?;
-        Ok(found)
+        self.march_timed(u, policy, None, policy == Shadows::Auto)
     }
 
     /// Starts the next run from the cast-shadow `mask` of a nearby surface (see
@@ -1553,7 +1548,6 @@ impl<'p> Solver<'p> {
         }
         self.shadows_upsampled = false;
         self.marched_guided |= guided;
-        let t = Instant::now();
         // Under `Auto`, a solver without a mask probes first.
         let probe = policy == Shadows::Auto && self.shadows.is_none();
         // (taken by the first march that comes, guided or not)
@@ -1564,10 +1558,24 @@ impl<'p> Solver<'p> {
         // the depth pyramid, the mask and the shadow bits: about 22 bytes a pixel), which would
         // otherwise set the peak of the run; [`Solver::local`] allocates them again.
         self.targets = Vec::new();
-        let found = self.marched(u, policy, prior.as_ref(), probe);
+        self.shadows = self.march_timed(u, policy, prior.as_ref(), probe)?;
+        Ok(())
+    }
+
+    /// [`Solver::marched`], its time added to the run's shadows, then the cancel check.
+    fn march_timed(
+        &mut self,
+        u: &[f64],
+        policy: Shadows,
+        prior: Option<&ShadowMask>,
+        probe: bool,
+    ) -> Result<Option<ShadowMask>> {
+        let t = Instant::now();
+        let found = self.marched(u, policy, prior, probe);
         self.timings.shadows += t.elapsed();
-        self.shadows = found?;
-        self.problem.cancel.check()
+        let found = found?;
+        self.problem.cancel.check()?;
+        Ok(found)
     }
 
     /// The cast shadows of the mesh `u` under the active `policy`, as a march of
@@ -1671,9 +1679,8 @@ impl<'p> Solver<'p> {
         // the glossy normals carried with it (close to this level's already), so that the
         // level's iterations fit under the lobe it keeps.
         let at = self.lobe_at();
-        let first = if self.lobe_carried { 1 } else { at[0] };
-        let again =
-            iteration == first || (iteration == at[1] && self.lobe_from_scratch && !self.lobe_once);
+        let (first, second) = self.estimate_iterations();
+        let again = iteration == first || second == Some(iteration);
         let from_scratch = self.lobe.is_none();
         if !(from_scratch || (again && !self.hold_lobe)) {
             return Ok(());
@@ -1745,9 +1752,19 @@ impl<'p> Solver<'p> {
         if self.lobe.is_none() {
             return true;
         }
+        let (first, second) = self.estimate_iterations();
+        iteration < first || second.is_some_and(|second| iteration < second)
+    }
+
+    /// The iterations of this run at which [`Solver::reflectance`] estimates the lobe again (a
+    /// lobe not held): the first, `lobe_at()[0]` (or 1 with a lobe carried from a coarser
+    /// level), and for a solver that started without a lobe a second at `lobe_at()[1]`, unless
+    /// [`Solver::lobe_once`].
+    fn estimate_iterations(&self) -> (usize, Option<usize>) {
         let at = self.lobe_at();
         let first = if self.lobe_carried { 1 } else { at[0] };
-        iteration < first || (self.lobe_from_scratch && !self.lobe_once && iteration < at[1])
+        let second = (self.lobe_from_scratch && !self.lobe_once).then_some(at[1]);
+        (first, second)
     }
 
     /// Drops the glossy model for the Lambertian one for the rest of the reconstruction, after
